@@ -1,0 +1,326 @@
+//! Instrument profiles: every instrument number a stage needs, from a TOML file.
+//!
+//! The SOFI profile is embedded (`calib/profiles/sofi.toml`). A user file may override
+//! any subset of it: it is merged key by key over the embedded one, then validated.
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+use crate::error::{Error, Result};
+
+/// The embedded SOFI profile text.
+pub const SOFI_TOML: &str = include_str!("../profiles/sofi.toml");
+
+/// Header keyword names (without `HIERARCH`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[allow(missing_docs)]
+pub struct Keywords {
+    pub instrument: String,
+    pub object: String,
+    pub targ_name: String,
+    pub date_obs: String,
+    pub mjd_obs: String,
+    pub exptime: String,
+    pub dpr_catg: String,
+    pub dpr_type: String,
+    pub dpr_tech: String,
+    pub tpl_id: String,
+    pub tpl_start: String,
+    pub tpl_nexp: String,
+    pub tpl_expno: String,
+    pub filter: String,
+    /// `OPTIi ID` keywords are `{opti_prefix}{i} ID` for i = 1..=opti_max.
+    pub opti_prefix: String,
+    pub opti_max: u32,
+    pub pixscale: String,
+    pub posang: String,
+    pub offset_x: String,
+    pub offset_y: String,
+    pub dit: String,
+    pub ndit: String,
+    pub parang: String,
+    pub airmass: String,
+}
+
+/// Values that identify polarimetric science frames.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Match {
+    /// Expected INSTRUME value.
+    pub instrument: String,
+    /// Template ID of the polarimetric imaging template.
+    pub polarimetry_template: String,
+    /// DPR TECH of polarimetric frames.
+    pub polarimetry_tech: String,
+    /// Substring identifying the Wollaston in an `INS OPTIi ID`.
+    pub wollaston_contains: String,
+    /// DPR TYPE values accepted as science.
+    pub science_types: Vec<String>,
+    /// OBJECT value that means "use OBS TARG NAME instead".
+    pub object_std_alias: String,
+}
+
+/// Detector geometry and focal-mask strips. Row ranges are 0-based, half-open.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[allow(missing_docs)]
+pub struct Geometry {
+    pub nx: usize,
+    pub ny: usize,
+    pub pixscale_arcsec: f64,
+    pub strip_height_px: usize,
+    pub o_sky2: [usize; 2],
+    pub e_sky2: [usize; 2],
+    pub o_target: [usize; 2],
+    pub e_target: [usize; 2],
+    pub o_sky1: [usize; 2],
+    pub e_sky1: [usize; 2],
+    /// e image position minus o image position, (dx, dy) px; a starting value only.
+    pub eo_offset_px: [f64; 2],
+    /// Nominal jitter step, px.
+    pub jitter_step_px: f64,
+}
+
+impl Geometry {
+    /// All six strips as (name, [start, end)), bottom to top.
+    pub fn strips(&self) -> [(&'static str, [usize; 2]); 6] {
+        [
+            ("o_sky2", self.o_sky2),
+            ("e_sky2", self.e_sky2),
+            ("o_target", self.o_target),
+            ("e_target", self.e_target),
+            ("o_sky1", self.o_sky1),
+            ("e_sky1", self.e_sky1),
+        ]
+    }
+    /// Whether row `y` lies inside any strip (i.e. is not blocked by the focal mask).
+    pub fn row_in_strip(&self, y: usize) -> bool {
+        self.strips().iter().any(|(_, r)| y >= r[0] && y < r[1])
+    }
+}
+
+/// Detector constants.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Detector {
+    /// Gain, electrons per ADU (per read).
+    pub gain_e_per_adu: f64,
+    /// Read noise per read, electrons.
+    pub read_noise_e: f64,
+    /// Below this level the response is linear to 0.1 %.
+    pub linear_limit_adu: f64,
+    /// Above this level photometry is flagged non-linear.
+    pub nonlinear_warn_adu: f64,
+    /// Saturation level.
+    pub saturation_adu: f64,
+    /// Quadratic non-linearity: measured = true * (1 - c * true).
+    pub nonlin_coeff_per_adu: f64,
+}
+
+impl Detector {
+    /// Effective gain of an NDIT-averaged frame for Poisson noise (e-/ADU).
+    pub fn effective_gain(&self, ndit: u32) -> f64 {
+        self.gain_e_per_adu * ndit.max(1) as f64
+    }
+    /// Read-noise variance of an NDIT-averaged frame, ADU^2.
+    pub fn read_variance_adu2(&self, ndit: u32) -> f64 {
+        let r = self.read_noise_e / self.gain_e_per_adu;
+        r * r / ndit.max(1) as f64
+    }
+}
+
+/// Angle conventions.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Angles {
+    /// theta0, degrees.
+    pub zero_point_deg: f64,
+    /// Image parity s, +1 or -1.
+    pub parity: i32,
+}
+
+impl Angles {
+    /// Analyzer angle phi (degrees) for a rotator position angle: phi = s * POSANG + theta0.
+    pub fn analyzer_angle_deg(&self, posang_deg: f64) -> f64 {
+        self.parity as f64 * posang_deg + self.zero_point_deg
+    }
+}
+
+/// A complete, validated instrument profile.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Profile {
+    /// Instrument name.
+    pub name: String,
+    /// Header keyword names.
+    pub keywords: Keywords,
+    /// Values that identify polarimetric science frames.
+    #[serde(rename = "match")]
+    pub matching: Match,
+    /// Geometry.
+    pub geometry: Geometry,
+    /// Detector constants.
+    pub detector: Detector,
+    /// Angle conventions.
+    pub angles: Angles,
+}
+
+fn merge(base: &mut toml::Value, over: toml::Value) {
+    match (base, over) {
+        (toml::Value::Table(b), toml::Value::Table(o)) => {
+            for (k, v) in o {
+                match b.get_mut(&k) {
+                    Some(bv) if bv.is_table() && v.is_table() => merge(bv, v),
+                    _ => {
+                        b.insert(k, v);
+                    }
+                }
+            }
+        }
+        (b, o) => *b = o,
+    }
+}
+
+impl Profile {
+    /// The embedded SOFI profile.
+    pub fn sofi() -> Profile {
+        Self::from_layers(&[("embedded sofi", SOFI_TOML)]).expect("embedded SOFI profile is valid")
+    }
+
+    /// The SOFI profile with a user TOML file merged over it.
+    pub fn sofi_with_override(path: &Path) -> Result<Profile> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| Error::Io { path: path.to_path_buf(), source: e })?;
+        Self::from_layers(&[("embedded sofi", SOFI_TOML), (&path.display().to_string(), &text)])
+    }
+
+    /// Apply `section.key=value` overrides (value parsed as TOML, bare words as strings).
+    pub fn with_overrides(&self, sets: &[String]) -> Result<Profile> {
+        if sets.is_empty() {
+            return Ok(self.clone());
+        }
+        let mut v = toml::Value::try_from(self).map_err(|e| Error::Profile {
+            source_name: "current".into(),
+            reason: e.to_string(),
+        })?;
+        for s in sets {
+            let (path, val) = s.split_once('=').ok_or_else(|| Error::Profile {
+                source_name: "--set".into(),
+                reason: format!("'{s}' is not of the form section.key=value"),
+            })?;
+            let parsed: toml::Value = format!("x = {val}")
+                .parse::<toml::Table>()
+                .ok()
+                .and_then(|t| t.get("x").cloned())
+                .unwrap_or_else(|| toml::Value::String(val.to_string()));
+            let mut over = parsed;
+            for part in path.trim().split('.').rev() {
+                let mut t = toml::Table::new();
+                t.insert(part.to_string(), over);
+                over = toml::Value::Table(t);
+            }
+            merge(&mut v, over);
+        }
+        let p: Profile = v.try_into().map_err(|e: toml::de::Error| Error::Profile {
+            source_name: "--set".into(),
+            reason: e.to_string(),
+        })?;
+        p.validate("--set")?;
+        Ok(p)
+    }
+
+    fn from_layers(layers: &[(&str, &str)]) -> Result<Profile> {
+        let mut acc = toml::Value::Table(toml::Table::new());
+        let mut last = "";
+        for (name, text) in layers {
+            let v: toml::Table = text.parse().map_err(|e: toml::de::Error| Error::Profile {
+                source_name: name.to_string(),
+                reason: e.to_string(),
+            })?;
+            merge(&mut acc, toml::Value::Table(v));
+            last = name;
+        }
+        let p: Profile = acc.try_into().map_err(|e: toml::de::Error| Error::Profile {
+            source_name: last.to_string(),
+            reason: e.to_string(),
+        })?;
+        p.validate(last)?;
+        Ok(p)
+    }
+
+    /// Check internal consistency.
+    pub fn validate(&self, source_name: &str) -> Result<()> {
+        let err = |reason: String| Err(Error::Profile { source_name: source_name.into(), reason });
+        let g = &self.geometry;
+        for (name, r) in g.strips() {
+            if r[0] >= r[1] || r[1] > g.ny {
+                return err(format!("geometry.{name} = [{}, {}) is not inside 0..{}", r[0], r[1], g.ny));
+            }
+        }
+        if !(g.pixscale_arcsec > 0.0) {
+            return err(format!("geometry.pixscale_arcsec = {} must be > 0", g.pixscale_arcsec));
+        }
+        let d = &self.detector;
+        if !(d.gain_e_per_adu > 0.0) {
+            return err(format!("detector.gain_e_per_adu = {} must be > 0", d.gain_e_per_adu));
+        }
+        if !(d.read_noise_e >= 0.0) {
+            return err(format!("detector.read_noise_e = {} must be >= 0", d.read_noise_e));
+        }
+        if !(d.saturation_adu > d.linear_limit_adu) {
+            return err(format!(
+                "detector.saturation_adu = {} must exceed linear_limit_adu = {}",
+                d.saturation_adu, d.linear_limit_adu
+            ));
+        }
+        if self.angles.parity != 1 && self.angles.parity != -1 {
+            return err(format!("angles.parity = {} must be +1 or -1", self.angles.parity));
+        }
+        Ok(())
+    }
+
+    /// Keyword name of `INS OPTIi ID`.
+    pub fn opti_key(&self, i: u32) -> String {
+        format!("{}{} ID", self.keywords.opti_prefix, i)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn embedded_profile_matches_frame_format_contract() {
+        let p = Profile::sofi();
+        assert_eq!(p.geometry.o_target, [345, 512]);
+        assert_eq!(p.geometry.e_target, [512, 679]);
+        assert_eq!(p.geometry.eo_offset_px, [0.0, 167.0]);
+        assert_eq!(p.detector.gain_e_per_adu, 5.4);
+        assert_eq!(p.keywords.posang, "ESO ADA POSANG");
+        assert_eq!(p.opti_key(3), "ESO INS OPTI3 ID");
+        // Strips are contiguous, 167 px each.
+        let s = p.geometry.strips();
+        for w in s.windows(2) {
+            assert_eq!(w[0].1[1], w[1].1[0]);
+        }
+        for (_, r) in s {
+            assert_eq!(r[1] - r[0], p.geometry.strip_height_px);
+        }
+    }
+
+    #[test]
+    fn partial_override_merges_and_validates() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("o.toml");
+        std::fs::write(&f, "[detector]\ngain_e_per_adu = 6.0\n").unwrap();
+        let p = Profile::sofi_with_override(&f).unwrap();
+        assert_eq!(p.detector.gain_e_per_adu, 6.0);
+        assert_eq!(p.detector.read_noise_e, 11.3);
+        std::fs::write(&f, "[angles]\nparity = 2\n").unwrap();
+        let e = Profile::sofi_with_override(&f).unwrap_err().to_string();
+        assert!(e.contains("parity") && e.contains("o.toml"), "{e}");
+    }
+
+    #[test]
+    fn set_overrides() {
+        let p = Profile::sofi()
+            .with_overrides(&["detector.gain_e_per_adu=7.5".into(), "angles.zero_point_deg=12".into()])
+            .unwrap();
+        assert_eq!(p.detector.gain_e_per_adu, 7.5);
+        assert_eq!(p.angles.zero_point_deg, 12.0);
+    }
+}

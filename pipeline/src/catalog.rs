@@ -1,0 +1,117 @@
+//! The JSON catalog: what `sofipol target` / `sofipol night` write and other tools read.
+//! Schema documented in docs/catalog-schema.md; keep the two in step.
+use serde::{Deserialize, Serialize};
+
+/// Version of the catalog schema written by this build.
+pub const SCHEMA_VERSION: &str = "1.0";
+
+/// Reduction outcome of a target.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Status {
+    /// Every stage ran and both components were measured.
+    Ok,
+    /// Reduced with degradation (missing frames, one component lost...): see flags.
+    Partial,
+    /// Nothing usable: see `error`.
+    Failed,
+}
+
+/// One binary component's polarimetry.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Component {
+    /// "A" (brighter) or "B".
+    pub name: String,
+    /// Normalised Stokes q (sky frame).
+    pub q: f64,
+    /// Normalised Stokes u (sky frame).
+    pub u: f64,
+    /// 1-sigma error of q.
+    pub sigma_q: f64,
+    /// 1-sigma error of u.
+    pub sigma_u: f64,
+    /// Degree of linear polarization P_l = sqrt(q^2 + u^2) (not debiased).
+    pub p: f64,
+    /// 1-sigma error of P.
+    pub sigma_p: f64,
+    /// Debiased P (Wardle & Kronberg 1974 unless `debias` says otherwise).
+    pub p_debiased: f64,
+    /// Polarization angle gamma, degrees east of north, in [0, 180).
+    pub gamma_deg: f64,
+    /// 1-sigma error of gamma, degrees (28.65 deg * sigma_P / P).
+    pub sigma_gamma_deg: f64,
+    /// P / sigma_P > 3.
+    pub passes_cut: bool,
+    /// Per-source flags (e.g. "truncated", "bad_pixels", "saturated", "companion_overlap", "low_snr").
+    #[serde(default)]
+    pub flags: Vec<String>,
+    /// Further per-component fields (fluxes, positions, scatter-based errors...).
+    #[serde(flatten, default)]
+    pub extra: serde_json::Map<String, serde_json::Value>,
+}
+
+/// One target sequence.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Target {
+    /// Object name.
+    pub object: String,
+    /// Outcome.
+    pub status: Status,
+    /// Error message when failed (or the main degradation when partial).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// Components, A first.
+    #[serde(default)]
+    pub components: Vec<Component>,
+    /// |gamma_A - gamma_B| folded into [0, 90] when both components pass the cut.
+    #[serde(default)]
+    pub delta_gamma_deg: Option<f64>,
+    /// Further per-target fields (sequence id, input files, e-o offset, flags...).
+    #[serde(flatten, default)]
+    pub extra: serde_json::Map<String, serde_json::Value>,
+}
+
+/// An input that could not be used.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Failure {
+    /// File name.
+    pub file: String,
+    /// Reason.
+    pub error: String,
+}
+
+/// A whole catalog.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+pub struct Catalog {
+    /// Schema version.
+    #[serde(default)]
+    pub schema_version: String,
+    /// Targets.
+    pub targets: Vec<Target>,
+    /// Unusable inputs.
+    #[serde(default)]
+    pub failures: Vec<Failure>,
+    /// Provenance: software version, command line, profile, parameters...
+    #[serde(default)]
+    pub provenance: serde_json::Value,
+}
+
+/// Fold an angle difference of two axial angles (degrees) into [0, 90].
+pub fn fold_delta_gamma(gamma_a_deg: f64, gamma_b_deg: f64) -> f64 {
+    let d = (gamma_a_deg - gamma_b_deg).rem_euclid(180.0);
+    if d > 90.0 { 180.0 - d } else { d }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fold_is_axial_and_symmetric() {
+        assert_eq!(fold_delta_gamma(10.0, 170.0), 20.0);
+        assert_eq!(fold_delta_gamma(170.0, 10.0), 20.0);
+        assert_eq!(fold_delta_gamma(0.0, 90.0), 90.0);
+        assert_eq!(fold_delta_gamma(45.0, 45.0), 0.0);
+        assert!((fold_delta_gamma(179.9, 0.1) - 0.2).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,22 @@
+//! # sofipol-pipeline: the science
+//!
+//! ```text
+//!  raw frames ─ calib (read, bad pixels, sky) ─▶ sequence {orientation -> dithers}
+//!      │
+//!      ├─ beams: o/e target strips, e-o offset measured from the data
+//!      ├─ sources: both binary components at each orientation (rotation moves B)
+//!      ├─ photometry: exact-overlap apertures, annulus background, variance, flags
+//!      ├─ stokes: F = (o-e)/(o+e) per dither -> q, u (N-orientation least squares),
+//!      │          P, gamma, Wardle-Kronberg errors, debiasing, P/sigma > 3 cut
+//!      └─ catalog: JSON (docs/catalog-schema.md)
+//!
+//!  sim:   scene simulator (the same forward model the inversion tests invert)
+//!  stats: projection / ISM Monte Carlo, KS and Kuiper tests, histograms
+//!  plots: PNG figures
+//! ```
+#![deny(missing_docs)]
+
+pub mod catalog;
+pub mod photometry;
+pub mod plots;
+pub mod stats;

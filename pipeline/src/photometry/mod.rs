@@ -1,0 +1,1 @@
+//! Aperture photometry with exact pixel-overlap geometry. (being implemented)

@@ -1,0 +1,1 @@
+//! Sample statistics: projection / ISM Monte Carlo, KS and Kuiper tests. (being implemented)
