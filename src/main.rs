@@ -1,1 +1,47 @@
-fn main() {}
+//! `sofipol`: the command-line front end. Thin: parse -> validated parameters -> call the
+//! libraries -> map the outcome to an exit code (see docs/cli.md for the codes).
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+mod cmd;
+
+/// Dual-beam near-infrared imaging polarimetry with SOFI (ESO NTT).
+#[derive(Parser, Debug)]
+#[command(name = "sofipol", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Simulate the embedded demo scene into ./sofipol-demo/ and reduce it.
+    Demo(cmd::demo::Args),
+    /// Write SOFI-like raw frames and a truth JSON from a scene TOML.
+    Simulate(cmd::simulate::Args),
+    /// Projection / interstellar-polarization Monte Carlo of Pi(Delta gamma).
+    Mc(cmd::mc::Args),
+    /// Alignment statistics of a catalog: histograms, KS, Kuiper, binomial, verdict.
+    Stats(cmd::stats::Args),
+    /// Benchmarks that print figures (simulator, ...).
+    Bench(cmd::bench::Args),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Demo(a) => cmd::demo::run(a),
+        Command::Simulate(a) => cmd::simulate::run(a),
+        Command::Mc(a) => cmd::mc::run(a),
+        Command::Stats(a) => cmd::stats::run(a),
+        Command::Bench(a) => cmd::bench::run(a),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("sofipol: error: {e:#}");
+            ExitCode::from(1)
+        }
+    }
+}
