@@ -17,6 +17,9 @@
 #![deny(missing_docs)]
 
 pub mod catalog;
+pub mod io;
 pub mod photometry;
 pub mod plots;
+pub mod sim;
 pub mod stats;
+pub mod stokes;

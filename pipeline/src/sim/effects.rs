@@ -1,0 +1,333 @@
+//! One function per effect. Each counts its calls in [`EffectCalls`] and draws from its
+//! own random stream ([`super::rng::stream`]), so an effect's realisation does not depend
+//! on which other effects are listed.
+use ndarray::Array2;
+use rand::RngExt;
+use rand_distr::{Distribution, Poisson};
+use rayon::prelude::*;
+use serde::Serialize;
+use sofipol_calib::profile::Geometry;
+
+use super::psf::Psf;
+use super::rng::stream;
+use super::scene::*;
+use super::{normal, uniform, EffectCalls};
+
+/// Above this many electrons the Poisson draw is replaced by a Gaussian of the same mean
+/// and variance (skewness 1/sqrt(1e4) = 0.01: far below anything measurable here).
+pub const POISSON_GAUSS_SWITCH_E: f64 = 1e4;
+
+/// Fixed bad-pixel realisation.
+pub struct BadPixelMap {
+    /// 1 where bad.
+    pub mask: Array2<u8>,
+    /// (y, x, value) of pixels forced to a value (hot: high, dead: 0).
+    pub forced: Vec<(usize, usize, f32)>,
+    /// Counts for the truth file.
+    pub summary: BadPixelSummary,
+}
+
+/// Bad-pixel counts.
+#[derive(Debug, Clone, Serialize)]
+pub struct BadPixelSummary {
+    /// Hot pixels.
+    pub hot: usize,
+    /// Isolated dead pixels.
+    pub dead: usize,
+    /// Pixels in dead clusters.
+    pub cluster_pixels: usize,
+    /// Column segments as (x, y_start, length).
+    pub column_segments: Vec<(usize, usize, usize)>,
+    /// Total distinct bad pixels.
+    pub total: usize,
+}
+
+/// Draw the detector's bad pixels (fixed for the whole scene).
+pub fn bad_pixel_map(calls: &EffectCalls, seed: u64, c: &BadPixelConfig, ny: usize, nx: usize) -> BadPixelMap {
+    calls.hit(EffectKind::BadPixels);
+    let mut r = stream(seed, EffectKind::BadPixels, 0, 0, 0);
+    let mut mask = Array2::<u8>::zeros((ny, nx));
+    let mut forced = Vec::new();
+    let n = (ny * nx) as f64;
+    let mut put = |mask: &mut Array2<u8>, y: usize, x: usize, v: f32| {
+        if mask[[y, x]] == 0 {
+            mask[[y, x]] = 1;
+            forced.push((y, x, v));
+            true
+        } else {
+            false
+        }
+    };
+    let mut hot = 0;
+    for _ in 0..(c.hot_fraction * n).round() as usize {
+        let (y, x) = (r.random_range(0..ny), r.random_range(0..nx));
+        let level = (c.hot_level_adu * (0.5 + uniform(&mut r))) as f32;
+        hot += put(&mut mask, y, x, level) as usize;
+    }
+    let mut dead = 0;
+    for _ in 0..(c.dead_fraction * n).round() as usize {
+        let (y, x) = (r.random_range(0..ny), r.random_range(0..nx));
+        dead += put(&mut mask, y, x, 0.0) as usize;
+    }
+    let mut cluster_pixels = 0;
+    for _ in 0..c.clusters {
+        let (cy, cx) = (r.random_range(0..ny) as f64, r.random_range(0..nx) as f64);
+        let rr = c.cluster_radius_px;
+        let k = rr.ceil() as i64;
+        for dy in -k..=k {
+            for dx in -k..=k {
+                let (y, x) = (cy as i64 + dy, cx as i64 + dx);
+                if (dx * dx + dy * dy) as f64 <= rr * rr && y >= 0 && x >= 0 && (y as usize) < ny && (x as usize) < nx {
+                    cluster_pixels += put(&mut mask, y as usize, x as usize, 0.0) as usize;
+                }
+            }
+        }
+    }
+    let mut column_segments = Vec::new();
+    for _ in 0..c.column_segments {
+        let x = r.random_range(0..nx);
+        let y0 = r.random_range(0..ny.saturating_sub(c.column_length_px).max(1));
+        let len = c.column_length_px.min(ny - y0);
+        let level = (c.hot_level_adu * 0.25) as f32;
+        for y in y0..y0 + len {
+            put(&mut mask, y, x, level);
+        }
+        column_segments.push((x, y0, len));
+    }
+    let total = forced.len();
+    BadPixelMap { mask, forced, summary: BadPixelSummary { hot, dead, cluster_pixels, column_segments, total } }
+}
+
+/// Force bad pixels to their values.
+pub fn apply_bad_pixels(calls: &EffectCalls, img: &mut Array2<f32>, bad: &BadPixelMap) {
+    calls.hit(EffectKind::BadPixels);
+    for &(y, x, v) in &bad.forced {
+        img[[y, x]] = v;
+    }
+}
+
+/// Draw the pixel response: (1 - v r^2/r_corner^2) (1 + rms N(0,1)), fixed on the detector.
+pub fn flat_field_map(calls: &EffectCalls, seed: u64, c: &FlatFieldConfig, ny: usize, nx: usize) -> Array2<f32> {
+    calls.hit(EffectKind::FlatField);
+    let mut out = Array2::<f32>::zeros((ny, nx));
+    let (cy, cx) = ((ny as f64 - 1.0) / 2.0, (nx as f64 - 1.0) / 2.0);
+    let rc2 = cx * cx + cy * cy;
+    out.as_slice_mut().expect("standard layout").par_chunks_mut(nx).enumerate().for_each(|(y, row)| {
+        let mut r = stream(seed, EffectKind::FlatField, y as u64, 0, 0);
+        for (x, v) in row.iter_mut().enumerate() {
+            let d2 = (x as f64 - cx).powi(2) + (y as f64 - cy).powi(2);
+            *v = ((1.0 - c.vignetting * d2 / rc2) * (1.0 + c.pixel_rms * normal(&mut r))) as f32;
+        }
+    });
+    out
+}
+
+/// True offset = header offset + N(0, rms) per axis.
+pub fn pointing_error(calls: &EffectCalls, seed: u64, c: &PointingConfig, key: (u64, u64), header: [f64; 2]) -> [f64; 2] {
+    calls.hit(EffectKind::PointingError);
+    let mut r = stream(seed, EffectKind::PointingError, key.0, key.1, 0);
+    [header[0] + c.rms_px * normal(&mut r), header[1] + c.rms_px * normal(&mut r)]
+}
+
+/// Transparency factor, uniform in [min, 1].
+pub fn transparency(calls: &EffectCalls, seed: u64, c: &TransparencyConfig, key: (u64, u64)) -> f64 {
+    calls.hit(EffectKind::Transparency);
+    let mut r = stream(seed, EffectKind::Transparency, key.0, key.1, 0);
+    c.min + (1.0 - c.min) * uniform(&mut r)
+}
+
+/// Sky level of one frame: level (1 + change N(0,1)).
+pub fn sky_level(calls: &EffectCalls, seed: u64, c: &SkyConfig, key: (u64, u64)) -> f64 {
+    calls.hit(EffectKind::Sky);
+    let mut r = stream(seed, EffectKind::Sky, key.0, key.1, 0);
+    c.level_adu * (1.0 + c.frame_change_frac * normal(&mut r))
+}
+
+/// Seeing of one frame: FWHM exp(N(0, rms)).
+pub fn frame_psf(calls: &EffectCalls, seed: u64, c: &PsfConfig, key: (u64, u64), scale: f64) -> Psf {
+    calls.hit(EffectKind::Psf);
+    let mut r = stream(seed, EffectKind::Psf, key.0, key.1, 0);
+    let fwhm_px = c.fwhm_arcsec / scale * (c.seeing_rms_frac * normal(&mut r)).exp();
+    Psf::from_fwhm(c.kind, fwhm_px, c.beta)
+}
+
+/// Fill the sky: level + gx (x - xc) + gy (y - yc), ADU per pixel.
+pub fn sky(calls: &EffectCalls, img: &mut Array2<f32>, level: f64, c: &SkyConfig) {
+    calls.hit(EffectKind::Sky);
+    let (ny, nx) = img.dim();
+    let (xc, yc) = (nx as f64 / 2.0, ny as f64 / 2.0);
+    img.as_slice_mut().expect("standard layout").par_chunks_mut(nx).enumerate().for_each(|(y, row)| {
+        let base = level + c.gradient_y * (y as f64 - yc);
+        for (x, v) in row.iter_mut().enumerate() {
+            *v += (base + c.gradient_x * (x as f64 - xc)) as f32;
+        }
+    });
+}
+
+/// Beam transmissions (T_o, T_e).
+pub fn throughput(calls: &EffectCalls, c: &ThroughputConfig) -> (f64, f64) {
+    calls.hit(EffectKind::Throughput);
+    (c.t_o, c.t_e)
+}
+
+/// Instrumental polarization as the constant it adds to F = (o - e)/(o + e): the whole
+/// instrument rotates, so a polarization fixed in the instrument frame adds
+/// q_inst = p cos 2(angle) at every rotator angle.
+pub fn instrumental_polarization(calls: &EffectCalls, c: &PolConfig) -> f64 {
+    calls.hit(EffectKind::InstrumentalPolarization);
+    c.p * (2.0 * c.angle_deg.to_radians()).cos()
+}
+
+/// Focal mask: zero every row outside the six strips.
+pub fn strips(calls: &EffectCalls, img: &mut Array2<f32>, g: &Geometry) {
+    calls.hit(EffectKind::Strips);
+    for (y, mut row) in img.outer_iter_mut().enumerate() {
+        if !g.row_in_strip(y) {
+            row.fill(0.0);
+        }
+    }
+}
+
+/// measured = true (1 - c true), for positive values.
+pub fn nonlinearity(calls: &EffectCalls, img: &mut Array2<f32>, c: f64) {
+    calls.hit(EffectKind::Nonlinearity);
+    img.par_mapv_inplace(|v| if v > 0.0 { (v as f64 * (1.0 - c * v as f64)) as f32 } else { v });
+}
+
+/// Poisson noise of the photo-electrons: value (ADU) x gain_eff -> Poisson -> / gain_eff.
+pub fn photon_noise(calls: &EffectCalls, img: &mut Array2<f32>, seed: u64, key: (u64, u64), gain_eff: f64) {
+    calls.hit(EffectKind::PhotonNoise);
+    let nx = img.dim().1;
+    img.as_slice_mut().expect("standard layout").par_chunks_mut(nx).enumerate().for_each(|(y, row)| {
+        let mut r = stream(seed, EffectKind::PhotonNoise, key.0, key.1, y as u64);
+        for v in row.iter_mut() {
+            let e = *v as f64 * gain_eff;
+            if e <= 0.0 {
+                continue;
+            }
+            let draw = if e >= POISSON_GAUSS_SWITCH_E {
+                e + e.sqrt() * normal(&mut r)
+            } else {
+                match Poisson::new(e) {
+                    Ok(p) => p.sample(&mut r),
+                    Err(_) => e,
+                }
+            };
+            *v = (draw / gain_eff) as f32;
+        }
+    });
+}
+
+/// Gaussian read noise of `sigma_adu` (already divided by sqrt(NDIT)).
+pub fn read_noise(calls: &EffectCalls, img: &mut Array2<f32>, seed: u64, key: (u64, u64), sigma_adu: f64) {
+    calls.hit(EffectKind::ReadNoise);
+    let nx = img.dim().1;
+    img.as_slice_mut().expect("standard layout").par_chunks_mut(nx).enumerate().for_each(|(y, row)| {
+        let mut r = stream(seed, EffectKind::ReadNoise, key.0, key.1, y as u64);
+        for v in row.iter_mut() {
+            *v += (sigma_adu * normal(&mut r)) as f32;
+        }
+    });
+}
+
+/// Cosmic rays: Poisson(rate) hits, each a short track of 1-4 pixels. Returns pixels hit.
+pub fn cosmic_rays(calls: &EffectCalls, img: &mut Array2<f32>, seed: u64, key: (u64, u64), c: &CosmicConfig) -> usize {
+    calls.hit(EffectKind::CosmicRays);
+    let (ny, nx) = img.dim();
+    let mut r = stream(seed, EffectKind::CosmicRays, key.0, key.1, 0);
+    let n = if c.rate_per_frame > 0.0 {
+        Poisson::new(c.rate_per_frame).map(|p| p.sample(&mut r) as usize).unwrap_or(0)
+    } else {
+        0
+    };
+    let mut hit = 0;
+    for _ in 0..n {
+        let (mut y, mut x) = (r.random_range(0..ny) as i64, r.random_range(0..nx) as i64);
+        let len = r.random_range(1..=4);
+        let (dy, dx) = [(0, 1), (1, 0), (1, 1), (1, -1)][r.random_range(0..4)];
+        let peak = c.peak_adu[0] + (c.peak_adu[1] - c.peak_adu[0]) * uniform(&mut r);
+        for i in 0..len {
+            if y >= 0 && x >= 0 && (y as usize) < ny && (x as usize) < nx {
+                img[[y as usize, x as usize]] += (peak / (1.0 + i as f64)) as f32;
+                hit += 1;
+            }
+            y += dy;
+            x += dx;
+        }
+    }
+    hit
+}
+
+/// Clip at the saturation level.
+pub fn saturation(calls: &EffectCalls, img: &mut Array2<f32>, level: f64) {
+    calls.hit(EffectKind::Saturation);
+    let l = level as f32;
+    img.par_mapv_inplace(|v| v.min(l));
+}
+
+/// Days from 1970-01-01 of a proleptic Gregorian date (H. Hinnant's algorithm).
+fn days_from_civil(y: i64, m: i64, d: i64) -> i64 {
+    let y = if m <= 2 { y - 1 } else { y };
+    let era = if y >= 0 { y } else { y - 399 } / 400;
+    let yoe = y - era * 400;
+    let mp = (m + 9) % 12;
+    let doy = (153 * mp + 2) / 5 + d - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    era * 146097 + doe - 719468
+}
+
+fn civil_from_days(z: i64) -> (i64, i64, i64) {
+    let z = z + 719468;
+    let era = if z >= 0 { z } else { z - 146096 } / 146097;
+    let doe = z - era * 146097;
+    let yoe = (doe - doe / 1460 + doe / 36524 - doe / 146096) / 365;
+    let y = yoe + era * 400;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    (if m <= 2 { y + 1 } else { y }, m, d)
+}
+
+/// MJD of "YYYY-MM-DD" + "HH:MM:SS" (UT).
+pub fn mjd_from_date_time(date: &str, ut: &str) -> Option<f64> {
+    let d: Vec<i64> = date.split('-').map(|s| s.parse().ok()).collect::<Option<_>>()?;
+    let t: Vec<f64> = ut.split(':').map(|s| s.parse().ok()).collect::<Option<_>>()?;
+    if d.len() != 3 || t.len() != 3 {
+        return None;
+    }
+    let days = days_from_civil(d[0], d[1], d[2]) as f64 + 40587.0; // MJD of 1970-01-01
+    Some(days + (t[0] * 3600.0 + t[1] * 60.0 + t[2]) / 86400.0)
+}
+
+/// ISO time of an MJD, to the second or the millisecond.
+pub fn iso_from_mjd(mjd: f64, millis: bool) -> String {
+    let day = mjd.floor();
+    let mut ms = ((mjd - day) * 86_400_000.0).round() as i64;
+    let mut z = day as i64 - 40587;
+    if ms >= 86_400_000 {
+        ms -= 86_400_000;
+        z += 1;
+    }
+    let (y, m, d) = civil_from_days(z);
+    let (h, mi, s, frac) = (ms / 3_600_000, ms / 60_000 % 60, ms / 1000 % 60, ms % 1000);
+    if millis {
+        format!("{y:04}-{m:02}-{d:02}T{h:02}:{mi:02}:{s:02}.{frac:03}")
+    } else {
+        format!("{y:04}-{m:02}-{d:02}T{h:02}:{mi:02}:{s:02}")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mjd_of_known_dates() {
+        // MJD 51240 = 1999-03-03 0h UT (the reference study's run); MJD 0 = 1858-11-17.
+        assert_eq!(mjd_from_date_time("1999-03-03", "00:00:00"), Some(51240.0));
+        assert_eq!(mjd_from_date_time("1858-11-17", "00:00:00"), Some(0.0));
+        assert_eq!(iso_from_mjd(51240.5, false), "1999-03-03T12:00:00");
+        assert_eq!(iso_from_mjd(51240.0 + 1.0 / 86400.0 * 3725.25, true), "1999-03-03T01:02:05.250");
+    }
+}

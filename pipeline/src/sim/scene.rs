@@ -1,0 +1,494 @@
+//! The scene file: observing setup, sources, and the list of effects to simulate.
+//!
+//! Only effects named in `effects` are simulated; a configuration section of an effect
+//! that is not listed is ignored (and reported in the truth as ignored).
+use serde::{Deserialize, Serialize};
+
+/// Every effect the simulator knows, in the order they act on a frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EffectKind {
+    /// Point-spread function (Gaussian or Moffat, per-frame seeing). Without it, sources are
+    /// unresolved points shared between the four nearest pixels (cloud-in-cell).
+    Psf,
+    /// Sky background: level, gradient, per-frame change.
+    Sky,
+    /// Focal-mask strips: light outside the six strips is blocked.
+    Strips,
+    /// Poisson noise of the photo-electrons (gain x NDIT).
+    PhotonNoise,
+    /// Read noise (per read, averaged over NDIT).
+    ReadNoise,
+    /// Hot and dead pixels, clusters, column segments (fixed on the detector).
+    BadPixels,
+    /// Pixel response (flat field): pixel-to-pixel and large-scale.
+    FlatField,
+    /// Unequal o and e beam throughput.
+    Throughput,
+    /// Instrumental polarization (instrument frame).
+    InstrumentalPolarization,
+    /// Interstellar polarization (sky frame, common to all sources of a target).
+    InterstellarPolarization,
+    /// Frame-to-frame transparency changes (multiply source fluxes).
+    Transparency,
+    /// True jitter offset differs from the header offset.
+    PointingError,
+    /// Cosmic-ray hits.
+    CosmicRays,
+    /// Detector non-linearity.
+    Nonlinearity,
+    /// Saturation (clipping at the profile's level).
+    Saturation,
+}
+
+impl EffectKind {
+    /// All effects.
+    pub const ALL: [EffectKind; 15] = [
+        EffectKind::Psf,
+        EffectKind::Sky,
+        EffectKind::Strips,
+        EffectKind::PhotonNoise,
+        EffectKind::ReadNoise,
+        EffectKind::BadPixels,
+        EffectKind::FlatField,
+        EffectKind::Throughput,
+        EffectKind::InstrumentalPolarization,
+        EffectKind::InterstellarPolarization,
+        EffectKind::Transparency,
+        EffectKind::PointingError,
+        EffectKind::CosmicRays,
+        EffectKind::Nonlinearity,
+        EffectKind::Saturation,
+    ];
+    /// snake_case name as used in scene files.
+    pub fn name(self) -> &'static str {
+        match self {
+            EffectKind::Psf => "psf",
+            EffectKind::Sky => "sky",
+            EffectKind::Strips => "strips",
+            EffectKind::PhotonNoise => "photon_noise",
+            EffectKind::ReadNoise => "read_noise",
+            EffectKind::BadPixels => "bad_pixels",
+            EffectKind::FlatField => "flat_field",
+            EffectKind::Throughput => "throughput",
+            EffectKind::InstrumentalPolarization => "instrumental_polarization",
+            EffectKind::InterstellarPolarization => "interstellar_polarization",
+            EffectKind::Transparency => "transparency",
+            EffectKind::PointingError => "pointing_error",
+            EffectKind::CosmicRays => "cosmic_rays",
+            EffectKind::Nonlinearity => "nonlinearity",
+            EffectKind::Saturation => "saturation",
+        }
+    }
+    /// Index into per-effect tables.
+    pub fn index(self) -> usize {
+        Self::ALL.iter().position(|&k| k == self).unwrap_or(0)
+    }
+}
+
+/// Observing setup shared by every target of the scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Observation {
+    /// Rotator position angles, degrees.
+    pub orientations_deg: Vec<f64>,
+    /// Dither positions per orientation.
+    pub dithers: usize,
+    /// Jitter step along x, px (default: the profile's).
+    pub jitter_step_px: Option<f64>,
+    /// DIT, seconds.
+    pub dit_s: f64,
+    /// Reads averaged per frame.
+    pub ndit: u32,
+    /// Filter name written to the header.
+    pub filter: String,
+    /// -32 (float) or 16 (int with BZERO).
+    pub bitpix: i32,
+    /// Rice tile-compress the frames (.fz).
+    pub compress: bool,
+    /// UT date of the night, YYYY-MM-DD.
+    pub date: String,
+    /// UT of the first exposure, HH:MM:SS.
+    pub start_ut: String,
+    /// Overhead between exposures, seconds.
+    pub overhead_s: f64,
+}
+
+impl Default for Observation {
+    fn default() -> Self {
+        Observation {
+            orientations_deg: vec![0.0, 45.0],
+            dithers: 5,
+            jitter_step_px: None,
+            dit_s: 10.0,
+            ndit: 6,
+            filter: "Ks".into(),
+            bitpix: -32,
+            compress: false,
+            date: "1999-03-03".into(),
+            start_ut: "01:00:00".into(),
+            overhead_s: 15.0,
+        }
+    }
+}
+
+/// A field star near a target (appears in that target's frames).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FieldStar {
+    /// Separation from the binary's primary, arcsec.
+    pub separation_arcsec: f64,
+    /// Position angle from the primary, degrees east of north.
+    pub pa_deg: f64,
+    /// Total flux (o + e), ADU per NDIT-averaged frame.
+    pub flux: f64,
+    /// Degree of polarization (fraction).
+    #[serde(default)]
+    pub p: f64,
+    /// Polarization angle, degrees.
+    #[serde(default)]
+    pub gamma_deg: f64,
+}
+
+/// One binary target: one observing sequence (all orientations x dithers).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Binary {
+    /// Object name written to OBJECT.
+    pub name: String,
+    /// Separation of B from A, arcsec.
+    pub separation_arcsec: f64,
+    /// Position angle of B from A, degrees east of north.
+    pub pa_deg: f64,
+    /// Total flux of A (o + e), ADU per NDIT-averaged frame.
+    pub flux_a: f64,
+    /// Total flux of B.
+    pub flux_b: f64,
+    /// Degree of polarization of A (fraction).
+    pub p_a: f64,
+    /// Angle of A, degrees.
+    pub gamma_a_deg: f64,
+    /// Degree of polarization of B.
+    pub p_b: f64,
+    /// Angle of B, degrees.
+    pub gamma_b_deg: f64,
+    /// x of A's ordinary image at zero offset (default: detector centre).
+    #[serde(default)]
+    pub x_px: Option<f64>,
+    /// y of A's ordinary image at zero offset (default: middle of the o-target strip).
+    #[serde(default)]
+    pub y_px: Option<f64>,
+    /// Field stars.
+    #[serde(default)]
+    pub field_star: Vec<FieldStar>,
+}
+
+/// PSF settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PsfConfig {
+    /// "gaussian" or "moffat".
+    pub kind: PsfKind,
+    /// Median seeing FWHM, arcsec.
+    pub fwhm_arcsec: f64,
+    /// Moffat beta.
+    pub beta: f64,
+    /// Per-frame seeing change: FWHM multiplied by exp(N(0, rms)).
+    pub seeing_rms_frac: f64,
+}
+impl Default for PsfConfig {
+    fn default() -> Self {
+        PsfConfig { kind: PsfKind::Moffat, fwhm_arcsec: 0.8, beta: 3.0, seeing_rms_frac: 0.1 }
+    }
+}
+
+/// PSF profile family.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PsfKind {
+    /// Circular Gaussian.
+    Gaussian,
+    /// Circular Moffat.
+    Moffat,
+}
+
+/// Sky settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SkyConfig {
+    /// Level at the detector centre, ADU per pixel.
+    pub level_adu: f64,
+    /// Gradient along x, ADU/px.
+    pub gradient_x: f64,
+    /// Gradient along y, ADU/px.
+    pub gradient_y: f64,
+    /// Per-frame change of the level: multiplied by (1 + N(0, rms)).
+    pub frame_change_frac: f64,
+}
+impl Default for SkyConfig {
+    fn default() -> Self {
+        SkyConfig { level_adu: 1500.0, gradient_x: 0.05, gradient_y: -0.03, frame_change_frac: 0.03 }
+    }
+}
+
+/// Bad-pixel settings (the map is fixed on the detector for the whole scene).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BadPixelConfig {
+    /// Fraction of hot pixels.
+    pub hot_fraction: f64,
+    /// Fraction of dead pixels.
+    pub dead_fraction: f64,
+    /// Value of a hot pixel, ADU.
+    pub hot_level_adu: f64,
+    /// Number of dead clusters.
+    pub clusters: usize,
+    /// Cluster radius, px.
+    pub cluster_radius_px: f64,
+    /// Number of bad column segments.
+    pub column_segments: usize,
+    /// Length of a column segment, px.
+    pub column_length_px: usize,
+}
+impl Default for BadPixelConfig {
+    fn default() -> Self {
+        BadPixelConfig {
+            hot_fraction: 3e-4,
+            dead_fraction: 3e-4,
+            hot_level_adu: 20000.0,
+            clusters: 4,
+            cluster_radius_px: 2.5,
+            column_segments: 3,
+            column_length_px: 120,
+        }
+    }
+}
+
+/// Flat-field (pixel response) settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FlatFieldConfig {
+    /// Pixel-to-pixel rms (fraction).
+    pub pixel_rms: f64,
+    /// Large-scale fall-off at the detector corners (fraction).
+    pub vignetting: f64,
+}
+impl Default for FlatFieldConfig {
+    fn default() -> Self {
+        FlatFieldConfig { pixel_rms: 0.01, vignetting: 0.05 }
+    }
+}
+
+/// Beam throughputs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ThroughputConfig {
+    /// Ordinary-beam transmission T_o.
+    pub t_o: f64,
+    /// Extraordinary-beam transmission T_e.
+    pub t_e: f64,
+}
+impl Default for ThroughputConfig {
+    fn default() -> Self {
+        ThroughputConfig { t_o: 1.0, t_e: 0.97 }
+    }
+}
+
+/// A polarization (degree and angle).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PolConfig {
+    /// Degree (fraction).
+    pub p: f64,
+    /// Angle, degrees (instrument frame for instrumental, east of north for ISM).
+    pub angle_deg: f64,
+}
+impl Default for PolConfig {
+    fn default() -> Self {
+        PolConfig { p: 0.01, angle_deg: 60.0 }
+    }
+}
+
+/// Transparency settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TransparencyConfig {
+    /// Lowest transparency factor; each frame draws uniformly in [min, 1].
+    pub min: f64,
+}
+impl Default for TransparencyConfig {
+    fn default() -> Self {
+        TransparencyConfig { min: 0.9 }
+    }
+}
+
+/// Pointing-error settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PointingConfig {
+    /// rms of the true-minus-header offset per axis, px.
+    pub rms_px: f64,
+}
+impl Default for PointingConfig {
+    fn default() -> Self {
+        PointingConfig { rms_px: 0.7 }
+    }
+}
+
+/// Cosmic-ray settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CosmicConfig {
+    /// Mean number of hits per frame.
+    pub rate_per_frame: f64,
+    /// Peak deposit range, ADU (in the NDIT-averaged frame).
+    pub peak_adu: [f64; 2],
+}
+impl Default for CosmicConfig {
+    fn default() -> Self {
+        CosmicConfig { rate_per_frame: 40.0, peak_adu: [500.0, 5000.0] }
+    }
+}
+
+/// Non-linearity settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct NonlinearityConfig {
+    /// Coefficient c of measured = true (1 - c true); default: the profile's.
+    pub coeff_per_adu: Option<f64>,
+}
+
+/// Saturation settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct SaturationConfig {
+    /// Saturation level, ADU; default: the profile's.
+    pub level_adu: Option<f64>,
+}
+
+/// A whole scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scene {
+    /// Scene name (used in file names).
+    pub name: String,
+    /// Master seed: the same scene and seed give bit-identical frames.
+    #[serde(default)]
+    pub seed: u64,
+    /// Effects to simulate. Anything not listed is not simulated.
+    #[serde(default)]
+    pub effects: Vec<EffectKind>,
+    /// Observing setup.
+    #[serde(default)]
+    pub observation: Observation,
+    /// Targets.
+    #[serde(default)]
+    pub binary: Vec<Binary>,
+    /// PSF settings (used only when `psf` is listed).
+    #[serde(default)]
+    pub psf: Option<PsfConfig>,
+    /// Sky settings.
+    #[serde(default)]
+    pub sky: Option<SkyConfig>,
+    /// Bad-pixel settings.
+    #[serde(default)]
+    pub bad_pixels: Option<BadPixelConfig>,
+    /// Flat-field settings.
+    #[serde(default)]
+    pub flat_field: Option<FlatFieldConfig>,
+    /// Throughput settings.
+    #[serde(default)]
+    pub throughput: Option<ThroughputConfig>,
+    /// Instrumental polarization.
+    #[serde(default)]
+    pub instrumental_polarization: Option<PolConfig>,
+    /// Interstellar polarization.
+    #[serde(default)]
+    pub interstellar_polarization: Option<PolConfig>,
+    /// Transparency.
+    #[serde(default)]
+    pub transparency: Option<TransparencyConfig>,
+    /// Pointing error.
+    #[serde(default)]
+    pub pointing_error: Option<PointingConfig>,
+    /// Cosmic rays.
+    #[serde(default)]
+    pub cosmic_rays: Option<CosmicConfig>,
+    /// Non-linearity.
+    #[serde(default)]
+    pub nonlinearity: Option<NonlinearityConfig>,
+    /// Saturation.
+    #[serde(default)]
+    pub saturation: Option<SaturationConfig>,
+}
+
+impl Scene {
+    /// Parse a scene from TOML text; `origin` names the source in errors.
+    pub fn from_toml(text: &str, origin: &str) -> Result<Scene, String> {
+        let s: Scene = toml::from_str(text).map_err(|e| format!("{origin}: {e}"))?;
+        s.validate().map_err(|e| format!("{origin}: {e}"))?;
+        Ok(s)
+    }
+
+    /// Whether an effect is listed.
+    pub fn has(&self, k: EffectKind) -> bool {
+        self.effects.contains(&k)
+    }
+
+    /// Sections present in the file whose effect is not listed (they are ignored).
+    pub fn ignored_sections(&self) -> Vec<&'static str> {
+        let present = [
+            (EffectKind::Psf, self.psf.is_some()),
+            (EffectKind::Sky, self.sky.is_some()),
+            (EffectKind::BadPixels, self.bad_pixels.is_some()),
+            (EffectKind::FlatField, self.flat_field.is_some()),
+            (EffectKind::Throughput, self.throughput.is_some()),
+            (EffectKind::InstrumentalPolarization, self.instrumental_polarization.is_some()),
+            (EffectKind::InterstellarPolarization, self.interstellar_polarization.is_some()),
+            (EffectKind::Transparency, self.transparency.is_some()),
+            (EffectKind::PointingError, self.pointing_error.is_some()),
+            (EffectKind::CosmicRays, self.cosmic_rays.is_some()),
+            (EffectKind::Nonlinearity, self.nonlinearity.is_some()),
+            (EffectKind::Saturation, self.saturation.is_some()),
+        ];
+        present.iter().filter(|(k, p)| *p && !self.has(*k)).map(|(k, _)| k.name()).collect()
+    }
+
+    /// Check values that would make a meaningless simulation.
+    pub fn validate(&self) -> Result<(), String> {
+        let o = &self.observation;
+        if o.orientations_deg.is_empty() {
+            return Err("observation.orientations_deg is empty".into());
+        }
+        if o.dithers == 0 {
+            return Err("observation.dithers = 0".into());
+        }
+        if o.ndit == 0 || !(o.dit_s > 0.0) {
+            return Err(format!("observation: ndit = {} and dit_s = {} must be > 0", o.ndit, o.dit_s));
+        }
+        if o.bitpix != -32 && o.bitpix != 16 {
+            return Err(format!("observation.bitpix = {} (expected -32 or 16)", o.bitpix));
+        }
+        for b in &self.binary {
+            for (what, v) in [("flux_a", b.flux_a), ("flux_b", b.flux_b)] {
+                if !(v >= 0.0) {
+                    return Err(format!("binary '{}': {what} = {v} must be >= 0", b.name));
+                }
+            }
+            for (what, v) in [("p_a", b.p_a), ("p_b", b.p_b)] {
+                if !(0.0..=1.0).contains(&v) {
+                    return Err(format!("binary '{}': {what} = {v} must be in [0, 1]", b.name));
+                }
+            }
+            if !(b.separation_arcsec >= 0.0) {
+                return Err(format!("binary '{}': separation_arcsec = {}", b.name, b.separation_arcsec));
+            }
+        }
+        if let Some(p) = &self.psf {
+            if !(p.fwhm_arcsec > 0.0) || (p.kind == PsfKind::Moffat && !(p.beta > 1.0)) {
+                return Err(format!("psf: fwhm_arcsec = {} must be > 0 and beta = {} > 1", p.fwhm_arcsec, p.beta));
+            }
+        }
+        Ok(())
+    }
+}

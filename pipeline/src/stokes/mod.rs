@@ -1,0 +1,4 @@
+//! Stokes parameters: the instrument's forward model and its inversion.
+pub mod model;
+
+pub use model::{beam_fluxes, companion_offset_px, normalized_difference, Polarization};
