@@ -1,4 +1,5 @@
 //! Stokes parameters: the instrument's forward model and its inversion.
+pub mod inversion;
 pub mod model;
 
 pub use model::{beam_fluxes, companion_offset_px, normalized_difference, Polarization};

@@ -1,0 +1,359 @@
+//! From normalised differences to q, u, P, gamma and their errors.
+//!
+//! * Dithers of one orientation: inverse-variance weighted mean of F with its propagated
+//!   error and the chi^2 of the dither scatter ([`combine_dithers`]).
+//! * Orientations: weighted least squares of `F_i = q cos 2phi_i + u sin 2phi_i`
+//!   ([`fit_qu`]); for 0/45 it is `q = F(0)`, `u = F(45)`; for 0/45/90/135 the difference
+//!   method `q = (F0 - F90)/2`, `u = (F45 - F135)/2`.
+//! * [`Polarization::from_qu`]: P = hypot(q, u), gamma = 1/2 atan2(u, q) in [0, 180),
+//!   sigma_P = sqrt(q^2 sigma_q^2 + u^2 sigma_u^2)/P, sigma_gamma = 28.65 deg sigma_P/P
+//!   (Wardle & Kronberg 1974), debiased P (WK or MAS, Plaszczynski et al. 2014), and the
+//!   68.27 % half-width of the Naghizadeh-Khouei & Clarke (1993) angle distribution.
+use serde::{Deserialize, Serialize};
+
+/// sigma_P -> sigma_gamma factor: 90/pi = 28.6479 deg per unit sigma_P/P.
+pub const WK_ANGLE_FACTOR_DEG: f64 = 90.0 / std::f64::consts::PI;
+
+/// A weighted combination of per-dither F values.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Combined {
+    /// Weighted mean.
+    pub value: f64,
+    /// Propagated 1-sigma error of the mean.
+    pub sigma: f64,
+    /// chi^2 of the values about the mean.
+    pub chi2: f64,
+    /// Values used.
+    pub n: usize,
+    /// Error of the mean from the scatter alone: sqrt(sum w (x - m)^2 / ((n - 1) sum w)).
+    pub sigma_scatter: f64,
+}
+
+/// Inverse-variance weighted mean of values with 1-sigma errors (non-finite or
+/// non-positive errors are skipped). `None` when nothing is usable.
+pub fn combine_dithers(values: &[f64], sigmas: &[f64]) -> Option<Combined> {
+    let (mut sw, mut swx, mut n) = (0.0, 0.0, 0usize);
+    for (&x, &s) in values.iter().zip(sigmas) {
+        if x.is_finite() && s.is_finite() && s > 0.0 {
+            let w = 1.0 / (s * s);
+            sw += w;
+            swx += w * x;
+            n += 1;
+        }
+    }
+    if n == 0 {
+        return None;
+    }
+    let m = swx / sw;
+    let mut chi2 = 0.0;
+    for (&x, &s) in values.iter().zip(sigmas) {
+        if x.is_finite() && s.is_finite() && s > 0.0 {
+            chi2 += ((x - m) / s).powi(2);
+        }
+    }
+    let sigma_scatter = if n > 1 { (chi2 / (n - 1) as f64 / sw).sqrt() } else { f64::NAN };
+    Some(Combined { value: m, sigma: sw.recip().sqrt(), chi2, n, sigma_scatter })
+}
+
+/// Indices kept after iterative clipping of values further than `k` sigma (own error
+/// combined with the error of the mean of the others) from the weighted mean of the others.
+/// At most one value is removed per pass, the worst first; at least `min_keep` remain.
+pub fn clip_dithers(values: &[f64], sigmas: &[f64], k: f64, min_keep: usize) -> Vec<usize> {
+    let mut keep: Vec<usize> = (0..values.len()).filter(|&i| values[i].is_finite() && sigmas[i] > 0.0).collect();
+    while keep.len() > min_keep.max(2) {
+        let mut worst: Option<(usize, f64)> = None;
+        for (pos, &i) in keep.iter().enumerate() {
+            let others: Vec<usize> = keep.iter().copied().filter(|&j| j != i).collect();
+            let xs: Vec<f64> = others.iter().map(|&j| values[j]).collect();
+            let ss: Vec<f64> = others.iter().map(|&j| sigmas[j]).collect();
+            if let Some(c) = combine_dithers(&xs, &ss) {
+                let z = (values[i] - c.value).abs() / (sigmas[i].powi(2) + c.sigma.powi(2)).sqrt();
+                if z > k && worst.is_none_or(|(_, zw)| z > zw) {
+                    worst = Some((pos, z));
+                }
+            }
+        }
+        match worst {
+            Some((pos, _)) => {
+                keep.remove(pos);
+            }
+            None => break,
+        }
+    }
+    keep
+}
+
+/// Result of the q, u least squares.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct QuFit {
+    /// q.
+    pub q: f64,
+    /// u.
+    pub u: f64,
+    /// Var(q).
+    pub var_q: f64,
+    /// Var(u).
+    pub var_u: f64,
+    /// Cov(q, u).
+    pub cov_qu: f64,
+    /// chi^2 of the fit (0 for two orientations).
+    pub chi2: f64,
+}
+
+/// Weighted least squares of `F_i = q cos 2phi_i + u sin 2phi_i` (phi in degrees).
+/// `None` when the angles do not constrain both q and u (e.g. all orientations equal
+/// modulo 90 deg).
+pub fn fit_qu(phi_deg: &[f64], f: &[f64], sigma: &[f64]) -> Option<QuFit> {
+    let (mut a, mut b, mut c, mut ya, mut yb) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for ((&p, &fi), &s) in phi_deg.iter().zip(f).zip(sigma) {
+        let w = 1.0 / (s * s);
+        let t = 2.0 * p.to_radians();
+        let (cs, sn) = (t.cos(), t.sin());
+        a += w * cs * cs;
+        b += w * cs * sn;
+        c += w * sn * sn;
+        ya += w * cs * fi;
+        yb += w * sn * fi;
+    }
+    let det = a * c - b * b;
+    if !(det > 1e-10 * (a + c) * (a + c)) {
+        return None;
+    }
+    let q = (c * ya - b * yb) / det;
+    let u = (a * yb - b * ya) / det;
+    let mut chi2 = 0.0;
+    for ((&p, &fi), &s) in phi_deg.iter().zip(f).zip(sigma) {
+        let t = 2.0 * p.to_radians();
+        chi2 += ((fi - q * t.cos() - u * t.sin()) / s).powi(2);
+    }
+    Some(QuFit { q, u, var_q: c / det, var_u: a / det, cov_qu: -b / det, chi2 })
+}
+
+/// Debiasing estimator of P.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Debias {
+    /// Wardle & Kronberg (1974): sqrt(P^2 - sigma^2) if P > sigma, else 0.
+    #[default]
+    WardleKronberg,
+    /// Modified asymptotic estimator, Plaszczynski et al. (2014).
+    Mas,
+}
+
+/// Debiased P.
+pub fn debias(p: f64, sigma_p: f64, how: Debias) -> f64 {
+    match how {
+        Debias::WardleKronberg => {
+            if p > sigma_p { (p * p - sigma_p * sigma_p).sqrt() } else { 0.0 }
+        }
+        Debias::Mas => {
+            if p <= 0.0 {
+                return 0.0;
+            }
+            let b2 = sigma_p * sigma_p;
+            p - b2 * (1.0 - (-p * p / b2).exp()) / (2.0 * p)
+        }
+    }
+}
+
+/// Linear polarization of one source with errors.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LinearPolarization {
+    /// q.
+    pub q: f64,
+    /// u.
+    pub u: f64,
+    /// sigma_q.
+    pub sigma_q: f64,
+    /// sigma_u.
+    pub sigma_u: f64,
+    /// P = hypot(q, u).
+    pub p: f64,
+    /// sigma_P.
+    pub sigma_p: f64,
+    /// Debiased P.
+    pub p_debiased: f64,
+    /// gamma, degrees in [0, 180).
+    pub gamma_deg: f64,
+    /// Wardle-Kronberg sigma_gamma = 28.65 deg sigma_P / P.
+    pub sigma_gamma_deg: f64,
+    /// 68.27 % half-width of the Naghizadeh-Khouei & Clarke angle distribution, deg.
+    pub sigma_gamma_nkc_deg: f64,
+    /// P / sigma_P.
+    pub snr: f64,
+}
+
+impl LinearPolarization {
+    /// From q, u and their errors.
+    pub fn from_qu(q: f64, u: f64, sigma_q: f64, sigma_u: f64, how: Debias) -> Self {
+        let p = q.hypot(u);
+        let sigma_p = if p > 0.0 {
+            ((q * sigma_q).powi(2) + (u * sigma_u).powi(2)).sqrt() / p
+        } else {
+            (0.5 * (sigma_q * sigma_q + sigma_u * sigma_u)).sqrt()
+        };
+        let gamma_deg = crate::stokes::model::normalize_axial_deg(0.5 * u.atan2(q).to_degrees());
+        let snr = if sigma_p > 0.0 { p / sigma_p } else { f64::INFINITY };
+        let sigma_gamma_deg = if p > 0.0 { WK_ANGLE_FACTOR_DEG * sigma_p / p } else { 90.0 / 3f64.sqrt() };
+        LinearPolarization {
+            q,
+            u,
+            sigma_q,
+            sigma_u,
+            p,
+            sigma_p,
+            p_debiased: debias(p, sigma_p, how),
+            gamma_deg,
+            sigma_gamma_deg,
+            sigma_gamma_nkc_deg: angle_half_width_68_deg(snr),
+            snr,
+        }
+    }
+
+    /// P / sigma_P > `threshold` (3 in the reference study).
+    pub fn passes_cut(&self, threshold: f64) -> bool {
+        self.snr > threshold
+    }
+}
+
+/// Density of the measured angle about the true one (degrees), Naghizadeh-Khouei & Clarke
+/// (1993), for P0 = p/sigma (true S/N). Integrates to 1 over [-90, 90] deg.
+pub fn angle_density_per_deg(dtheta_deg: f64, p0: f64) -> f64 {
+    let eta = p0 / std::f64::consts::SQRT_2 * (2.0 * dtheta_deg.to_radians()).cos();
+    let sp = std::f64::consts::PI.sqrt();
+    // exp(eta^2) [1 + erf(eta)] overflows for large eta; use erfc for stability:
+    // 1 + erf(eta) = 2 - erfc(eta) and exp(eta^2 - p0^2/2) combined in one exponent.
+    let g = (1.0 / sp) * ((1.0 / sp) * (-p0 * p0 / 2.0).exp()
+        + eta * (eta * eta - p0 * p0 / 2.0).exp() * (2.0 - statrs::function::erf::erfc(eta)));
+    g * std::f64::consts::PI / 180.0
+}
+
+/// Half-width (deg) of the interval about the true angle holding 68.27 % of the
+/// Naghizadeh-Khouei & Clarke distribution, for S/N `p0` (90/sqrt(3) * 0.6827... limit at 0).
+pub fn angle_half_width_68_deg(p0: f64) -> f64 {
+    if !p0.is_finite() {
+        return 0.0;
+    }
+    let target = 0.682_689_492_137_085_9;
+    // Cumulative from 0 to w by Simpson on a fine grid (the density is smooth), then bisect.
+    let cum = |w: f64| -> f64 {
+        let n = 400;
+        let h = w / n as f64;
+        let mut s = angle_density_per_deg(0.0, p0) + angle_density_per_deg(w, p0);
+        for i in 1..n {
+            s += if i % 2 == 1 { 4.0 } else { 2.0 } * angle_density_per_deg(i as f64 * h, p0);
+        }
+        2.0 * s * h / 3.0
+    };
+    let (mut lo, mut hi) = (0.0, 90.0);
+    for _ in 0..50 {
+        let mid = 0.5 * (lo + hi);
+        if cum(mid) < target { lo = mid } else { hi = mid }
+    }
+    0.5 * (lo + hi)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stokes::model::{normalized_difference, Polarization};
+
+    #[test]
+    fn least_squares_reduces_to_the_textbook_formulas() {
+        let pol = Polarization { q: 0.031, u: -0.047 };
+        let f = |phi: f64| normalized_difference(pol, phi);
+        // Two orientations 0/45: q = F(0), u = F(45).
+        let r = fit_qu(&[0.0, 45.0], &[f(0.0), f(45.0)], &[0.01, 0.02]).unwrap();
+        assert!((r.q - f(0.0)).abs() < 1e-15 && (r.u - f(45.0)).abs() < 1e-15);
+        assert!((r.var_q.sqrt() - 0.01).abs() < 1e-15 && (r.var_u.sqrt() - 0.02).abs() < 1e-15);
+        // Four orientations with equal errors: the difference method and sigma_q = 1/2 sqrt(s0^2 + s90^2).
+        let fs = [0.0, 45.0, 90.0, 135.0].map(|p| f(p) + 0.001 * (p / 45.0 - 1.5));
+        let r = fit_qu(&[0.0, 45.0, 90.0, 135.0], &fs, &[0.01; 4]).unwrap();
+        assert!((r.q - (fs[0] - fs[2]) / 2.0).abs() < 1e-15);
+        assert!((r.u - (fs[1] - fs[3]) / 2.0).abs() < 1e-15);
+        assert!((r.var_q.sqrt() - 0.5 * (2.0f64 * 1e-4).sqrt()).abs() < 1e-15);
+        // Any angle set recovers exact q, u from noiseless F.
+        let phis = [3.0, 50.0, 97.0, 141.0, 170.0];
+        let r = fit_qu(&phis, &phis.map(f), &[0.01; 5]).unwrap();
+        assert!((r.q - pol.q).abs() < 1e-14 && (r.u - pol.u).abs() < 1e-14 && r.chi2 < 1e-20);
+        // Degenerate: 0 and 90 only constrain q.
+        assert!(fit_qu(&[0.0, 90.0], &[0.1, -0.1], &[0.01, 0.01]).is_none());
+    }
+
+    #[test]
+    fn polarization_errors_and_debiasing() {
+        let lp = LinearPolarization::from_qu(0.03, 0.04, 0.01, 0.01, Debias::WardleKronberg);
+        assert!((lp.p - 0.05).abs() < 1e-15);
+        assert!((lp.sigma_p - 0.01).abs() < 1e-15);
+        assert!((lp.sigma_gamma_deg - 28.647_889_756_541_16 * 0.2).abs() < 1e-9);
+        assert!((lp.p_debiased - (0.05f64 * 0.05 - 1e-4).sqrt()).abs() < 1e-15);
+        assert!((lp.gamma_deg - 0.5 * (0.04f64).atan2(0.03).to_degrees()).abs() < 1e-12);
+        // At P/sigma = 3 WK lowers P by 5.7 % (polarimetry.md).
+        assert!((1.0 - debias(3.0, 1.0, Debias::WardleKronberg) / 3.0 - 0.0572).abs() < 1e-3);
+        assert_eq!(debias(0.5, 1.0, Debias::WardleKronberg), 0.0);
+        // MAS: p - b^2 (1 - exp(-p^2/b^2)) / 2p; at high S/N it tends to p - b^2/2p ~ WK.
+        let m = debias(10.0, 1.0, Debias::Mas);
+        assert!((m - (10.0 - (1.0 - (-100.0f64).exp()) / 20.0)).abs() < 1e-12);
+        assert!((m - debias(10.0, 1.0, Debias::WardleKronberg)).abs() < 1e-3);
+        // gamma in [0, 180) in every quadrant.
+        for (q, u) in [(1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0), (-1.0, -1e-9)] {
+            let g = LinearPolarization::from_qu(q, u, 0.1, 0.1, Debias::Mas).gamma_deg;
+            assert!((0.0..180.0).contains(&g), "{g}");
+        }
+        assert!(lp.passes_cut(3.0) && !LinearPolarization::from_qu(0.02, 0.0, 0.01, 0.01, Debias::Mas).passes_cut(3.0));
+    }
+
+    #[test]
+    fn nkc_angle_distribution() {
+        // Normalised over [-90, 90] for several S/N, including large ones (no overflow).
+        for p0 in [0.0, 0.5, 1.0, 3.0, 10.0, 40.0] {
+            let n = 20000;
+            let h = 180.0 / n as f64;
+            let s: f64 = (0..n).map(|i| angle_density_per_deg(-90.0 + (i as f64 + 0.5) * h, p0) * h).sum();
+            assert!((s - 1.0).abs() < 1e-6, "p0 {p0}: {s}");
+        }
+        // S/N 0: uniform, 68.27 % half-width = 0.6827 * 90 deg.
+        assert!((angle_half_width_68_deg(0.0) - 0.682_689_5 * 90.0).abs() < 1e-3);
+        // High S/N: tends to Wardle-Kronberg 28.65/snr.
+        let w = angle_half_width_68_deg(50.0);
+        assert!((w - WK_ANGLE_FACTOR_DEG / 50.0).abs() / w < 0.01, "{w}");
+        // At P/sigma = 3, about 9.5 deg (polarimetry.md), a little wider than WK's 9.55? check range.
+        let w3 = angle_half_width_68_deg(3.0);
+        assert!((w3 - 9.5).abs() < 0.6, "{w3}");
+    }
+
+    #[test]
+    fn nkc_half_width_matches_a_monte_carlo_of_gaussian_q_u() {
+        // Slow independent reference: draw Gaussian (q, u) about a true P0 and measure the
+        // 68.27 % quantile of |gamma - gamma0|.
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, StandardNormal};
+        let mut r = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(5);
+        for p0 in [1.0, 2.0, 4.0] {
+            let mut d: Vec<f64> = (0..200_000)
+                .map(|_| {
+                    let dq: f64 = StandardNormal.sample(&mut r);
+                    let q = p0 + dq;
+                    let u: f64 = StandardNormal.sample(&mut r);
+                    (0.5 * u.atan2(q).to_degrees()).abs()
+                })
+                .collect();
+            d.sort_by(|a, b| a.total_cmp(b));
+            let mc = d[(0.682_689_5 * d.len() as f64) as usize];
+            let an = angle_half_width_68_deg(p0);
+            assert!((mc - an).abs() < 0.4, "p0 {p0}: MC {mc} vs analytic {an}");
+        }
+    }
+
+    #[test]
+    fn dither_combination_and_clipping() {
+        let c = combine_dithers(&[1.0, 2.0, 3.0], &[1.0, 1.0, 1.0]).unwrap();
+        assert!((c.value - 2.0).abs() < 1e-15 && (c.sigma - 1.0 / 3f64.sqrt()).abs() < 1e-15);
+        assert!((c.chi2 - 2.0).abs() < 1e-15);
+        assert!((c.sigma_scatter - (1.0f64 / 3.0).sqrt()).abs() < 1e-15);
+        let keep = clip_dithers(&[0.010, 0.011, 0.009, 0.060, 0.010], &[0.001; 5], 4.0, 3);
+        assert_eq!(keep, vec![0, 1, 2, 4]);
+        let keep = clip_dithers(&[0.010, 0.011, 0.009, 0.0105, 0.010], &[0.001; 5], 4.0, 3);
+        assert_eq!(keep.len(), 5);
+    }
+}
