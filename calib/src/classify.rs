@@ -1,10 +1,36 @@
-//! Frame classification from the header alone. STUB: being implemented.
-use std::path::PathBuf;
+//! Frame classification from the header alone.
+//!
+//! A frame is polarimetric science when, in this order (the first failing test gives the
+//! rejection reason, naming the keyword and its value):
+//! 1. `INSTRUME` equals the profile's instrument;
+//! 2. the template is the polarimetry template (`TPL ID`) **or** `DPR TECH` contains the
+//!    polarimetry technique;
+//! 3. `DPR TYPE`, when present, is one of the profile's science types (OBJECT, STD: a
+//!    polarimetric standard is science for sofipol even though ESO files it under
+//!    `DPR CATG = 'CALIB'`); when `DPR TYPE` is absent, `DPR CATG` must be `SCIENCE` or
+//!    absent (simulated and older headers may lack both);
+//! 4. some `INS OPTIi ID` (i = 1..=opti_max) contains the Wollaston marker;
+//! 5. every keyword a reduction needs is present and valid: position angle, cumulative
+//!    offsets x and y, template start, object name (OBJECT, or OBS TARG NAME when OBJECT
+//!    is the standard alias or absent), filter, DIT (`DET DIT`, else EXPTIME) and NDIT.
+//!    NDIT is required (no default of 1): the noise model depends on it, so a missing
+//!    NDIT is reported rather than guessed.
+//!
+//! Optional: TPL EXPNO / NEXP, MJD-OBS, INS PIXSCALE (else the profile's pixel scale);
+//! present but malformed optional keywords are also rejected, never silently ignored.
+//! String comparisons ignore case and surrounding blanks. Every keyword name comes from
+//! the [`Profile`].
+use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::header::Header;
+use crate::error::{Error, Result};
+use crate::header::{Header, HeaderValue};
 use crate::profile::Profile;
+
+/// `DPR CATG` value of science frames (an ESO data-product convention, not instrument
+/// specific).
+pub const SCIENCE_CATEGORY: &str = "SCIENCE";
 
 /// What the header says about one polarimetric science frame.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -51,8 +77,226 @@ pub enum Classification {
     },
 }
 
-/// Classify one header.
+impl Classification {
+    /// The science information, if this is a science frame.
+    pub fn science(&self) -> Option<&ScienceInfo> {
+        match self {
+            Classification::Science(s) => Some(s),
+            Classification::Rejected { .. } => None,
+        }
+    }
+
+    /// The rejection reason, if this is not a science frame.
+    pub fn reason(&self) -> Option<&str> {
+        match self {
+            Classification::Science(_) => None,
+            Classification::Rejected { reason } => Some(reason),
+        }
+    }
+
+    /// Whether this is a polarimetric science frame.
+    pub fn is_science(&self) -> bool {
+        matches!(self, Classification::Science(_))
+    }
+}
+
+/// Read the header of a file ([`crate::fits::read_header`]) and classify it.
+/// Unreadable files are errors, not rejections.
+pub fn classify_file(path: &Path, profile: &Profile) -> Result<Classification> {
+    let header = crate::fits::read_header(path)?;
+    Ok(classify(&header, profile))
+}
+
+/// Classify one header (see the module documentation for the rules).
+///
+/// ```
+/// use sofipol_calib::{classify::classify, Header, Profile};
+/// let mut h = Header::new("x.fits");
+/// h.set("INSTRUME", "ISAAC");
+/// let c = classify(&h, &Profile::sofi());
+/// assert_eq!(c.reason(), Some("not SOFI: INSTRUME = 'ISAAC'"));
+/// ```
 pub fn classify(header: &Header, profile: &Profile) -> Classification {
-    let _ = (header, profile);
-    unimplemented!()
+    match science_info(header, profile) {
+        Ok(info) => Classification::Science(Box::new(info)),
+        Err(reason) => Classification::Rejected { reason },
+    }
+}
+
+fn same(a: &str, b: &str) -> bool {
+    a.trim().eq_ignore_ascii_case(b.trim())
+}
+
+fn contains_ci(haystack: &str, needle: &str) -> bool {
+    haystack.to_ascii_uppercase().contains(&needle.trim().to_ascii_uppercase())
+}
+
+/// A string keyword's value (trimmed), `None` when absent or blank.
+fn text(h: &Header, key: &str) -> Option<String> {
+    match h.get(key)? {
+        HeaderValue::Str(s) => Some(s.trim().to_string()).filter(|s| !s.is_empty()),
+        v => Some(v.to_string()),
+    }
+}
+
+/// `KEY = 'value'` or `KEY absent`, for messages.
+fn shown(h: &Header, key: &str) -> String {
+    match h.get(key) {
+        Some(v) => format!("{key} = {v}"),
+        None => format!("{key} absent"),
+    }
+}
+
+/// Turn a header error into a rejection reason (without the file name: the caller knows it).
+fn reason_of(e: Error) -> String {
+    match e {
+        Error::MissingKeyword { keyword, .. } => format!("missing keyword {keyword}"),
+        Error::BadKeyword { keyword, value, reason, .. } => format!("bad keyword {keyword} = {value}: {reason}"),
+        other => other.to_string(),
+    }
+}
+
+fn required_text(h: &Header, key: &str) -> std::result::Result<String, String> {
+    text(h, key).ok_or_else(|| match h.get(key) {
+        Some(v) => format!("empty keyword {key} = {v}"),
+        None => format!("missing keyword {key}"),
+    })
+}
+
+fn finite(h: &Header, key: &str) -> std::result::Result<f64, String> {
+    h.get_f64(key).map_err(reason_of)
+}
+
+/// Optional positive integer that fits in u32.
+fn opt_count(h: &Header, key: &str) -> std::result::Result<Option<u32>, String> {
+    if !h.contains(key) {
+        return Ok(None);
+    }
+    let v = h.get_i64(key).map_err(reason_of)?;
+    u32::try_from(v)
+        .ok()
+        .filter(|&n| n >= 1)
+        .map(Some)
+        .ok_or_else(|| format!("bad keyword {key} = {v}: expected an integer >= 1"))
+}
+
+fn science_info(h: &Header, p: &Profile) -> std::result::Result<ScienceInfo, String> {
+    let k = &p.keywords;
+    let m = &p.matching;
+
+    // 1. Instrument.
+    match text(h, &k.instrument) {
+        Some(i) if same(&i, &m.instrument) => {}
+        Some(_) => return Err(format!("not {}: {}", m.instrument, shown(h, &k.instrument))),
+        None => return Err(format!("not {}: missing keyword {}", m.instrument, k.instrument)),
+    }
+
+    // 2. Polarimetric template or technique.
+    let by_template = text(h, &k.tpl_id).is_some_and(|t| same(&t, &m.polarimetry_template));
+    let by_tech = text(h, &k.dpr_tech).is_some_and(|t| contains_ci(&t, &m.polarimetry_tech));
+    if !(by_template || by_tech) {
+        let mut reason = format!("not polarimetric: {}, {}", shown(h, &k.tpl_id), shown(h, &k.dpr_tech));
+        if h.contains(&k.dpr_type) {
+            reason.push_str(&format!(" ({})", shown(h, &k.dpr_type)));
+        }
+        return Err(reason);
+    }
+
+    // 3. Science, not calibration.
+    match text(h, &k.dpr_type) {
+        Some(t) => {
+            if !m.science_types.iter().any(|s| same(s, &t)) {
+                return Err(format!(
+                    "calibration frame: {} (science types: {})",
+                    shown(h, &k.dpr_type),
+                    m.science_types.join(", ")
+                ));
+            }
+        }
+        None => {
+            if let Some(c) = text(h, &k.dpr_catg) {
+                if !same(&c, SCIENCE_CATEGORY) {
+                    return Err(format!(
+                        "calibration frame: {} ({} absent)",
+                        shown(h, &k.dpr_catg),
+                        k.dpr_type
+                    ));
+                }
+            }
+        }
+    }
+
+    // 4. Wollaston in the beam.
+    let mut seen = Vec::new();
+    let mut wollaston = None;
+    for i in 1..=k.opti_max {
+        let key = p.opti_key(i);
+        if let Some(v) = text(h, &key) {
+            if contains_ci(&v, &m.wollaston_contains) {
+                wollaston = Some(v);
+                break;
+            }
+            seen.push(shown(h, &key));
+        }
+    }
+    let Some(wollaston) = wollaston else {
+        let found = if seen.is_empty() { "none present".to_string() } else { seen.join(", ") };
+        return Err(format!(
+            "no Wollaston in {}1..{} ID (looking for '{}'; {found})",
+            k.opti_prefix, k.opti_max, m.wollaston_contains
+        ));
+    };
+
+    // 5. Everything a reduction needs.
+    let posang_deg = finite(h, &k.posang)?;
+    let offset_px = [finite(h, &k.offset_x)?, finite(h, &k.offset_y)?];
+    let tpl_start = required_text(h, &k.tpl_start)?;
+    let object = match text(h, &k.object) {
+        Some(o) if !same(&o, &m.object_std_alias) => o,
+        Some(o) => text(h, &k.targ_name).ok_or_else(|| {
+            format!("{} = '{o}' (standard alias) but missing keyword {}", k.object, k.targ_name)
+        })?,
+        None => text(h, &k.targ_name)
+            .ok_or_else(|| format!("missing keyword {} (and {})", k.object, k.targ_name))?,
+    };
+    let filter = required_text(h, &k.filter)?;
+    let (dit_key, dit_s) = if h.contains(&k.dit) {
+        (&k.dit, finite(h, &k.dit)?)
+    } else if h.contains(&k.exptime) {
+        (&k.exptime, finite(h, &k.exptime)?)
+    } else {
+        return Err(format!("missing keyword {} (and {})", k.dit, k.exptime));
+    };
+    if dit_s <= 0.0 {
+        return Err(format!("bad keyword {dit_key} = {dit_s}: integration time must be > 0 s"));
+    }
+    let ndit = match h.get_i64(&k.ndit).map_err(reason_of)? {
+        n if n >= 1 && n <= u32::MAX as i64 => n as u32,
+        n => return Err(format!("bad keyword {} = {n}: expected an integer >= 1", k.ndit)),
+    };
+    let expno = opt_count(h, &k.tpl_expno)?;
+    let nexp = opt_count(h, &k.tpl_nexp)?;
+    let mjd = h.opt_f64(&k.mjd_obs).map_err(reason_of)?;
+    let pixscale_arcsec = match h.opt_f64(&k.pixscale).map_err(reason_of)? {
+        Some(s) if s > 0.0 => s,
+        Some(s) => return Err(format!("bad keyword {} = {s}: pixel scale must be > 0", k.pixscale)),
+        None => p.geometry.pixscale_arcsec,
+    };
+
+    Ok(ScienceInfo {
+        path: h.path.clone(),
+        sequence: format!("{object}@{tpl_start}"),
+        object,
+        tpl_start,
+        posang_deg,
+        offset_px,
+        filter,
+        wollaston,
+        dit_s,
+        ndit,
+        expno,
+        nexp,
+        mjd,
+        pixscale_arcsec,
+    })
 }

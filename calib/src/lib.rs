@@ -8,7 +8,7 @@
 //!                                   │
 //!        profile::Profile (calib/profiles/sofi.toml, user overrides)
 //!                                   │
-//!  classify::classify(header) ──▶ Science{orientation, dither, sequence} | Rejected{reason}
+//!  classify::classify(header) ──▶ Science(ScienceInfo{object, sequence, posang, offset...}) | Rejected{reason}
 //!                                   │
 //!  badpix ─▶ sky ─▶ sky-subtracted Frame (each stage: &Frame -> Result<Frame>, with history)
 //! ```
