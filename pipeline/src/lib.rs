@@ -20,6 +20,8 @@ pub mod catalog;
 pub mod io;
 pub mod photometry;
 pub mod plots;
+pub mod reduce;
+pub mod sequence;
 pub mod sim;
 pub mod stats;
 pub mod stokes;

@@ -1,0 +1,201 @@
+//! Finding the binary: the primary's position in every frame (header jitter offsets
+//! refined by centroids), the e-o beam offset (measured), and the companion's offset at
+//! each orientation (from a two-star PSF fit on the registered stack of the dithers).
+use ndarray::{s, Array2, ArrayView2};
+use sofipol_calib::Frame;
+
+use crate::photometry::{centroid, fit_psf, CentroidParams, PsfFitParams};
+use crate::stokes::model::{companion_offset_px, offset_to_sep_pa};
+
+/// Brightest point of a 3x3 box-smoothed image within `radius` of (x0, y0), restricted to
+/// rows [y_lo, y_hi) and unmasked pixels. Returns (x, y, smoothed value).
+pub fn brightest_peak(img: ArrayView2<f32>, mask: ArrayView2<u8>, x0: f64, y0: f64, radius: f64, rows: [usize; 2]) -> Option<(f64, f64, f64)> {
+    let (ny, nx) = img.dim();
+    let r = radius.ceil() as i64;
+    let mut best: Option<(f64, f64, f64)> = None;
+    for y in (y0.round() as i64 - r).max(rows[0] as i64 + 1)..=(y0.round() as i64 + r).min(rows[1] as i64 - 2).min(ny as i64 - 2) {
+        for x in (x0.round() as i64 - r).max(1)..=(x0.round() as i64 + r).min(nx as i64 - 2) {
+            if ((x as f64 - x0).powi(2) + (y as f64 - y0).powi(2)) > radius * radius {
+                continue;
+            }
+            let (yu, xu) = (y as usize, x as usize);
+            let mut sum = 0.0;
+            let mut n = 0;
+            for j in yu - 1..=yu + 1 {
+                for i in xu - 1..=xu + 1 {
+                    if mask[[j, i]] == 0 {
+                        sum += img[[j, i]] as f64;
+                        n += 1;
+                    }
+                }
+            }
+            if n < 5 {
+                continue;
+            }
+            let v = sum / n as f64;
+            if best.is_none_or(|b| v > b.2) {
+                best = Some((x as f64, y as f64, v));
+            }
+        }
+    }
+    best
+}
+
+/// Mask bits that make a pixel unusable for centroids and fits.
+pub const UNUSABLE: u8 = sofipol_calib::frame::mask::BAD
+    | sofipol_calib::frame::mask::COSMIC
+    | sofipol_calib::frame::mask::SATURATED
+    | sofipol_calib::frame::mask::OFF_STRIP;
+
+/// A 0/1 view of the unusable pixels.
+pub fn unusable(frame: &Frame) -> Array2<u8> {
+    frame.mask.mapv(|m| u8::from(m & UNUSABLE != 0))
+}
+
+/// Refine a position by a windowed centroid; None when it fails.
+pub fn refine(img: ArrayView2<f32>, mask: ArrayView2<u8>, x: f64, y: f64, fwhm_px: f64, max_shift_px: f64) -> Option<(f64, f64)> {
+    let p = CentroidParams { fwhm_px, max_shift_px, background: Some(0.0), ..CentroidParams::default() };
+    centroid(img, Some(mask), x, y, &p).map(|c| (c.x, c.y))
+}
+
+/// Shift-and-add of square cut-outs of half-size `h` centred on the rounded positions
+/// `centres` (one per frame). Returns the stack (mean) and the mean fractional offset of
+/// the true centres from the cut-out centre.
+pub fn stack_cutouts(frames: &[(&Array2<f32>, &Array2<u8>)], centres: &[(f64, f64)], h: usize) -> (Array2<f32>, Array2<u8>, (f64, f64)) {
+    let n = 2 * h + 1;
+    let mut acc = Array2::<f64>::zeros((n, n));
+    let mut cnt = Array2::<u32>::zeros((n, n));
+    let (mut fx, mut fy) = (0.0, 0.0);
+    for (&(img, mask), &(cx, cy)) in frames.iter().zip(centres) {
+        let (ix, iy) = (cx.round() as i64, cy.round() as i64);
+        fx += cx - ix as f64;
+        fy += cy - iy as f64;
+        let (ny, nx) = img.dim();
+        for j in 0..n {
+            for i in 0..n {
+                let (y, x) = (iy - h as i64 + j as i64, ix - h as i64 + i as i64);
+                if y < 0 || x < 0 || y >= ny as i64 || x >= nx as i64 {
+                    continue;
+                }
+                let (y, x) = (y as usize, x as usize);
+                if mask[[y, x]] == 0 && img[[y, x]].is_finite() {
+                    acc[[j, i]] += img[[y, x]] as f64;
+                    cnt[[j, i]] += 1;
+                }
+            }
+        }
+    }
+    let k = frames.len().max(1) as f64;
+    let stack = Array2::from_shape_fn((n, n), |(j, i)| if cnt[[j, i]] > 0 { (acc[[j, i]] / cnt[[j, i]] as f64) as f32 } else { 0.0 });
+    let smask = cnt.mapv(|c| u8::from(c == 0));
+    (stack, smask, (fx / k, fy / k))
+}
+
+/// The pair found on a stack: positions relative to the stack's reference centre.
+#[derive(Debug, Clone, Copy)]
+pub struct PairOnStack {
+    /// Primary (brighter) offset from the reference centroid, px.
+    pub a: (f64, f64),
+    /// Companion offset from the reference centroid, px.
+    pub b: (f64, f64),
+    /// Fitted fluxes (stack units) of A and B.
+    pub flux: (f64, f64),
+    /// Flux error of B.
+    pub flux_b_err: f64,
+    /// Fitted FWHM, px.
+    pub fwhm_px: f64,
+}
+
+/// Find the companion on a stack centred (to within `frac`) on the blend centroid: fit one
+/// star, look for the largest residual within `search_px`, then fit two stars. With
+/// `predicted` (offset of B from A, px) the residual search is skipped.
+pub fn find_pair(stack: &Array2<f32>, smask: &Array2<u8>, frac: (f64, f64), fwhm_guess: f64, search_px: f64, predicted: Option<(f64, f64)>) -> Option<PairOnStack> {
+    let n = stack.dim().0;
+    let c = ((n / 2) as f64 + frac.0, (n / 2) as f64 + frac.1);
+    let p1 = PsfFitParams { fwhm_px: fwhm_guess, fit_radius_px: (2.0 * fwhm_guess).max(4.0), background: Some(0.0), ..PsfFitParams::default() };
+    let single = fit_psf(stack.view(), None, Some(smask.view()), &[c], &p1).ok()?;
+    let s0 = single.stars[0];
+    let fwhm = single.fwhm_x().clamp(0.5 * fwhm_guess, 3.0 * fwhm_guess);
+    let b_guess = match predicted {
+        Some((dx, dy)) => (s0.x + dx * 0.5, s0.y + dy * 0.5, s0.x - dx * 0.5, s0.y - dy * 0.5),
+        None => {
+            let resid = crate::photometry::subtract_star(stack.view(), &single, 0);
+            let (bx, by, v) = brightest_peak(resid.view(), smask.view(), s0.x, s0.y, search_px, [0, n])?;
+            if !(v > 0.0) {
+                return None;
+            }
+            // The single fit sits between the two stars: put A opposite B about it,
+            // weighted by the residual peak relative to the single fit's peak.
+            let peak = s0.flux / (2.0 * std::f64::consts::PI * single.sigma_x * single.sigma_y);
+            let w = (v / peak).clamp(0.05, 1.0);
+            let (dx, dy) = (bx - s0.x, by - s0.y);
+            (bx, by, s0.x - w * dx / (1.0 + w), s0.y - w * dy / (1.0 + w))
+        }
+    };
+    let sep_guess = ((b_guess.0 - b_guess.2).powi(2) + (b_guess.1 - b_guess.3).powi(2)).sqrt();
+    let p2 = PsfFitParams {
+        fwhm_px: fwhm,
+        fit_radius_px: (1.5 * fwhm).max(3.0).max(0.6 * sep_guess),
+        background: Some(0.0),
+        ..PsfFitParams::default()
+    };
+    let two = fit_psf(stack.view(), None, Some(smask.view()), &[(b_guess.2, b_guess.3), (b_guess.0, b_guess.1)], &p2).ok()?;
+    let (sa, sb) = (two.stars[0], two.stars[1]);
+    let (a, b) = if sa.flux >= sb.flux { (sa, sb) } else { (sb, sa) };
+    if !(b.flux > 0.0) {
+        return None;
+    }
+    Some(PairOnStack {
+        a: (a.x - c.0 + frac.0, a.y - c.1 + frac.1),
+        b: (b.x - c.0 + frac.0, b.y - c.1 + frac.1),
+        flux: (a.flux, b.flux),
+        flux_b_err: b.flux_err,
+        fwhm_px: two.fwhm_x(),
+    })
+}
+
+/// Combine the companion offsets found at several orientations into one separation and
+/// PA (flux-error weighted circular mean of the PA), returning also the largest position
+/// disagreement in px.
+pub fn combine_geometry(found: &[(f64, (f64, f64), f64)], scale: f64) -> Option<(f64, f64, f64)> {
+    // found: (posang, offset of B from A, weight)
+    if found.is_empty() {
+        return None;
+    }
+    let (mut ws, mut wsep, mut cx, mut cy) = (0.0, 0.0, 0.0, 0.0);
+    for &(posang, (dx, dy), w) in found {
+        let (sep, pa) = offset_to_sep_pa(dx, dy, posang, scale);
+        ws += w;
+        wsep += w * sep;
+        cx += w * pa.to_radians().cos();
+        cy += w * pa.to_radians().sin();
+    }
+    let sep = wsep / ws;
+    let pa = cy.atan2(cx).to_degrees().rem_euclid(360.0);
+    let worst = found
+        .iter()
+        .map(|&(posang, (dx, dy), _)| {
+            let (px, py) = companion_offset_px(sep, pa, posang, scale);
+            (px - dx).hypot(py - dy)
+        })
+        .fold(0.0, f64::max);
+    Some((sep, pa, worst))
+}
+
+/// Median e-o offset from per-frame (o, e) centroids.
+pub fn median_offset(pairs: &[((f64, f64), (f64, f64))]) -> Option<(f64, f64)> {
+    if pairs.is_empty() {
+        return None;
+    }
+    let med = |mut v: Vec<f64>| {
+        v.sort_by(|a, b| a.total_cmp(b));
+        let n = v.len();
+        if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) }
+    };
+    Some((med(pairs.iter().map(|(o, e)| e.0 - o.0).collect()), med(pairs.iter().map(|(o, e)| e.1 - o.1).collect())))
+}
+
+/// A cut-out view helper: rows of a strip.
+pub fn strip_rows(img: &Array2<f32>, rows: [usize; 2]) -> ArrayView2<'_, f32> {
+    img.slice(s![rows[0]..rows[1], ..])
+}

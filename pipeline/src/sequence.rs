@@ -1,0 +1,151 @@
+//! Grouping classified science frames into target sequences: one sequence per
+//! (object, TPL START), and within it one group of dithers per rotator orientation.
+use std::collections::BTreeMap;
+
+use serde::Serialize;
+use sofipol_calib::classify::ScienceInfo;
+use sofipol_calib::Profile;
+
+/// The dithers taken at one rotator position angle.
+#[derive(Debug, Clone, Serialize)]
+pub struct Orientation {
+    /// Rotator position angle, deg.
+    pub posang_deg: f64,
+    /// Analyzer angle phi = s POSANG + theta0, deg.
+    pub analyzer_deg: f64,
+    /// Exposures in exposure order (EXPNO, then MJD, then file name).
+    pub exposures: Vec<ScienceInfo>,
+}
+
+/// One target sequence.
+#[derive(Debug, Clone, Serialize)]
+pub struct Sequence {
+    /// `object@tpl_start`.
+    pub id: String,
+    /// Object name.
+    pub object: String,
+    /// TPL START.
+    pub tpl_start: String,
+    /// Filter (of the first exposure; a mixture is reported by [`Sequence::problems`]).
+    pub filter: String,
+    /// Orientations in increasing POSANG.
+    pub orientations: Vec<Orientation>,
+}
+
+impl Sequence {
+    /// All files of the sequence.
+    pub fn files(&self) -> Vec<String> {
+        self.orientations.iter().flat_map(|o| o.exposures.iter().map(|e| e.path.display().to_string())).collect()
+    }
+
+    /// Things that degrade the sequence, in words (empty when complete): an orientation
+    /// with fewer than 2 dithers, unequal dither counts, fewer exposures than TPL NEXP,
+    /// mixed filters.
+    pub fn problems(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        let counts: Vec<usize> = self.orientations.iter().map(|o| o.exposures.len()).collect();
+        for o in &self.orientations {
+            if o.exposures.len() < 2 {
+                out.push(format!(
+                    "only {} dither at POSANG {} deg: cannot sky-subtract from the data itself",
+                    o.exposures.len(),
+                    o.posang_deg
+                ));
+            }
+        }
+        if counts.iter().any(|&c| c != counts[0]) {
+            out.push(format!("unequal dithers per orientation: {counts:?}"));
+        }
+        let total: usize = counts.iter().sum();
+        if let Some(nexp) = self.orientations.iter().flat_map(|o| &o.exposures).find_map(|e| e.nexp) {
+            if (total as u32) < nexp {
+                out.push(format!("{total} of {nexp} exposures of the template present (TPL NEXP)"));
+            }
+        }
+        let filters: std::collections::BTreeSet<&str> =
+            self.orientations.iter().flat_map(|o| o.exposures.iter().map(|e| e.filter.as_str())).collect();
+        if filters.len() > 1 {
+            out.push(format!("mixed filters {filters:?}"));
+        }
+        out
+    }
+}
+
+/// Group science frames into sequences, sorted by (TPL START, object) so that the order,
+/// and everything computed from it, does not depend on the order files were found in.
+/// Orientations are equal when their POSANG agree to 0.01 deg.
+pub fn group(infos: Vec<ScienceInfo>, profile: &Profile) -> Vec<Sequence> {
+    let mut by_seq: BTreeMap<(String, String), Vec<ScienceInfo>> = BTreeMap::new();
+    for i in infos {
+        by_seq.entry((i.tpl_start.clone(), i.object.clone())).or_default().push(i);
+    }
+    by_seq
+        .into_iter()
+        .map(|((tpl_start, object), frames)| {
+            let mut by_pa: BTreeMap<i64, Vec<ScienceInfo>> = BTreeMap::new();
+            for f in frames {
+                by_pa.entry((f.posang_deg * 100.0).round() as i64).or_default().push(f);
+            }
+            let orientations: Vec<Orientation> = by_pa
+                .into_values()
+                .map(|mut ex| {
+                    ex.sort_by(|a, b| {
+                        a.expno
+                            .cmp(&b.expno)
+                            .then(a.mjd.unwrap_or(0.0).total_cmp(&b.mjd.unwrap_or(0.0)))
+                            .then(a.path.cmp(&b.path))
+                    });
+                    let posang = ex[0].posang_deg;
+                    Orientation { posang_deg: posang, analyzer_deg: profile.angles.analyzer_angle_deg(posang), exposures: ex }
+                })
+                .collect();
+            let filter = orientations[0].exposures[0].filter.clone();
+            Sequence { id: format!("{object}@{tpl_start}"), object, tpl_start, filter, orientations }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn info(obj: &str, tpl: &str, pa: f64, expno: u32) -> ScienceInfo {
+        ScienceInfo {
+            path: format!("{obj}_{pa}_{expno}.fits").into(),
+            object: obj.into(),
+            tpl_start: tpl.into(),
+            sequence: format!("{obj}@{tpl}"),
+            posang_deg: pa,
+            offset_px: [0.0, 0.0],
+            filter: "Ks".into(),
+            wollaston: "WOLLASTON".into(),
+            dit_s: 10.0,
+            ndit: 6,
+            expno: Some(expno),
+            nexp: Some(10),
+            mjd: None,
+            pixscale_arcsec: 0.288,
+        }
+    }
+
+    #[test]
+    fn groups_by_template_and_orientation_in_a_stable_order() {
+        let mut v = Vec::new();
+        for k in (1..=10).rev() {
+            v.push(info("HK Tau", "1999-03-03T02:10:41", if k <= 5 { 0.0 } else { 45.0 }, k));
+        }
+        for k in 1..=9 {
+            v.push(info("GG Tau", "1999-03-03T01:00:00", if k <= 5 { 0.0 } else { 45.0 }, k));
+        }
+        let seqs = group(v, &Profile::sofi());
+        assert_eq!(seqs.len(), 2);
+        assert_eq!(seqs[0].object, "GG Tau");
+        assert_eq!(seqs[1].orientations.len(), 2);
+        assert_eq!(seqs[1].orientations[1].posang_deg, 45.0);
+        let e: Vec<u32> = seqs[1].orientations[0].exposures.iter().map(|e| e.expno.unwrap()).collect();
+        assert_eq!(e, vec![1, 2, 3, 4, 5]);
+        assert!(seqs[1].problems().is_empty());
+        let p = seqs[0].problems();
+        assert!(p.iter().any(|s| s.contains("unequal")) && p.iter().any(|s| s.contains("9 of 10")), "{p:?}");
+    }
+}
