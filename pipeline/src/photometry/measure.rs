@@ -1,0 +1,288 @@
+//! One photometric measurement: aperture sum, annulus background, flux, variance, flags.
+
+use ndarray::{s, ArrayView2};
+use serde::{Deserialize, Serialize};
+
+use super::aperture::{aperture_sum, Aperture, ApertureSum, MaskFill};
+use super::background::{annulus_background, Annulus, BkgStat, Background};
+use super::flags::Flags;
+use super::overlap::Method;
+
+/// A rectangle of valid pixels, inclusive 0-based indices (e.g. one beam's strip of rows).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Region {
+    /// First valid column.
+    pub x_min: usize,
+    /// Last valid column (inclusive).
+    pub x_max: usize,
+    /// First valid row.
+    pub y_min: usize,
+    /// Last valid row (inclusive).
+    pub y_max: usize,
+}
+
+/// Default aperture radius, px (about 2 FWHM of 0.8" seeing at SOFI's 0.288"/px).
+pub const DEFAULT_R_AP_PX: f64 = 6.0;
+/// Default background annulus, px.
+pub const DEFAULT_ANNULUS_PX: (f64, f64) = (10.0, 16.0);
+/// Default clipping threshold, in standard deviations.
+pub const DEFAULT_CLIP_SIGMA: f64 = 3.0;
+/// Default maximum number of clipping iterations.
+pub const DEFAULT_CLIP_ITERS: u32 = 5;
+/// Default minimum number of annulus pixels for a trusted background.
+pub const DEFAULT_MIN_SKY_PIXELS: usize = 20;
+/// Default S/N under which `low_snr` is set.
+pub const DEFAULT_MIN_SNR: f64 = 5.0;
+
+/// Settings of [`measure`]. Lengths in px, levels in ADU.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PhotParams {
+    /// Aperture radius, px.
+    pub r_ap_px: f64,
+    /// Background annulus `(r_in, r_out)`, px; None: no local background (the frame is
+    /// already sky-subtracted); the per-pixel noise must then come from a variance map.
+    pub annulus_px: Option<(f64, f64)>,
+    /// Pixel weights of the aperture.
+    pub method: Method,
+    /// Treatment of bad pixels inside the aperture.
+    pub mask_fill: MaskFill,
+    /// Background statistic.
+    pub bkg_stat: BkgStat,
+    /// Clipping threshold, standard deviations.
+    pub clip_sigma: f64,
+    /// Maximum clipping iterations.
+    pub clip_iters: u32,
+    /// Fewer valid annulus pixels than this sets `annulus_contaminated`.
+    pub min_sky_pixels: usize,
+    /// A valid aperture pixel at or above this level sets `saturated`, ADU.
+    pub saturation_adu: Option<f64>,
+    /// Pixels outside this region count as off the image (aperture and annulus).
+    pub valid_region: Option<Region>,
+    /// Radius attributed to the other listed sources, px: `companion_overlap` is set when one
+    /// lies closer than `r_ap_px + companion_radius_px`.
+    pub companion_radius_px: f64,
+    /// Annulus pixels within this distance of another listed source are left out of the
+    /// background (0: none are, and a source whose disc of `companion_radius_px` meets the
+    /// annulus sets `annulus_contaminated`).
+    pub annulus_exclude_radius_px: f64,
+    /// S/N threshold of `low_snr`.
+    pub min_snr: f64,
+    /// Gain, e/ADU; used only without a variance map, for the source shot noise `f/g` (ADU^2).
+    /// None: the shot noise of the source is left out (sky-limited approximation).
+    pub gain_e_per_adu: Option<f64>,
+}
+
+impl Default for PhotParams {
+    fn default() -> Self {
+        PhotParams {
+            r_ap_px: DEFAULT_R_AP_PX,
+            annulus_px: Some(DEFAULT_ANNULUS_PX),
+            method: Method::Exact,
+            mask_fill: MaskFill::Exclude,
+            bkg_stat: BkgStat::ClippedMean,
+            clip_sigma: DEFAULT_CLIP_SIGMA,
+            clip_iters: DEFAULT_CLIP_ITERS,
+            min_sky_pixels: DEFAULT_MIN_SKY_PIXELS,
+            saturation_adu: None,
+            valid_region: None,
+            companion_radius_px: DEFAULT_R_AP_PX,
+            annulus_exclude_radius_px: 2.0 * DEFAULT_R_AP_PX,
+            min_snr: DEFAULT_MIN_SNR,
+            gain_e_per_adu: None,
+        }
+    }
+}
+
+/// Result of [`measure`]. Flux in ADU, variance in ADU^2.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Photometry {
+    /// Aperture centre x, px (full-image coordinates).
+    pub x: f64,
+    /// Aperture centre y, px.
+    pub y: f64,
+    /// Background-subtracted flux `S - A b`, ADU. NaN (with `truncated`) when no valid pixel
+    /// of the aperture is on the image.
+    pub flux: f64,
+    /// Variance of `flux`, ADU^2 (see the module docs). NaN (with `low_snr`) when no noise
+    /// estimate exists (no variance map and no annulus).
+    pub variance: f64,
+    /// `flux / sqrt(variance)`.
+    pub snr: f64,
+    /// The raw aperture sum.
+    pub aperture: ApertureSum,
+    /// The annulus background, when one was requested and could be measured.
+    pub background: Option<Background>,
+    /// Problems found.
+    pub flags: Flags,
+}
+
+/// Measures the source at `(x, y)` (px, full-image coordinates) with the settings `params`.
+///
+/// `others`: positions of the other known sources (e.g. the binary's companion), for the
+/// `companion_overlap` flag and the exclusion from the annulus. `var` (ADU^2) and `mask`
+/// (nonzero = bad) are optional and have the image's shape.
+///
+/// ```
+/// use ndarray::Array2;
+/// use sofipol_pipeline::photometry::{measure, PhotParams};
+/// let mut img = Array2::<f32>::from_elem((64, 64), 100.0);
+/// img[[30, 31]] += 5000.0; // a one-pixel "star" on a flat sky of 100 ADU
+/// let p = measure(img.view(), None, None, &PhotParams::default(), 31.0, 30.0, &[]);
+/// assert!((p.flux - 5000.0).abs() < 1e-6);
+/// assert!(p.flags.is_empty(), "{:?}", p.flags.names());
+/// ```
+pub fn measure(
+    img: ArrayView2<f32>,
+    var: Option<ArrayView2<f32>>,
+    mask: Option<ArrayView2<u8>>,
+    params: &PhotParams,
+    x: f64,
+    y: f64,
+    others: &[(f64, f64)],
+) -> Photometry {
+    let (ny, nx) = img.dim();
+    // Restrict everything to the valid region by slicing and shifting the coordinates.
+    let (ox, oy, img, var, mask) = match params.valid_region {
+        Some(reg) if nx > 0 && ny > 0 => {
+            let (x0, x1) = (reg.x_min.min(nx - 1), reg.x_max.min(nx - 1).max(reg.x_min.min(nx - 1)));
+            let (y0, y1) = (reg.y_min.min(ny - 1), reg.y_max.min(ny - 1).max(reg.y_min.min(ny - 1)));
+            let sl = s![y0..=y1, x0..=x1];
+            (
+                x0 as f64,
+                y0 as f64,
+                img.slice_move(sl),
+                var.map(|v| v.slice_move(sl)),
+                mask.map(|m| m.slice_move(sl)),
+            )
+        }
+        _ => (0.0, 0.0, img, var, mask),
+    };
+    let (lx, ly) = (x - ox, y - oy);
+    let others_local: Vec<(f64, f64)> = others.iter().map(|&(a, b)| (a - ox, b - oy)).collect();
+    let r_ap = params.r_ap_px;
+    let ap = Aperture { x: lx, y: ly, r: r_ap };
+    let sum = aperture_sum(img, var, mask, &ap, params.method, params.mask_fill);
+
+    let mut flags = Flags::NONE;
+    if sum.truncated() {
+        flags |= Flags::TRUNCATED;
+    }
+    if sum.masked_area > 0.0 {
+        flags |= Flags::BAD_PIXELS;
+    }
+    if let (Some(sat), Some(max)) = (params.saturation_adu, sum.max_value) {
+        if max >= sat {
+            flags |= Flags::SATURATED;
+        }
+    }
+    let dist = |&(a, b): &(f64, f64)| ((a - lx).powi(2) + (b - ly).powi(2)).sqrt();
+    if others_local.iter().any(|o| dist(o) < r_ap + params.companion_radius_px) {
+        flags |= Flags::COMPANION_OVERLAP;
+    }
+
+    let background = params.annulus_px.and_then(|(r_in, r_out)| {
+        let exclude: Vec<(f64, f64, f64)> = if params.annulus_exclude_radius_px > 0.0 {
+            others_local.iter().map(|&(a, b)| (a, b, params.annulus_exclude_radius_px)).collect()
+        } else {
+            Vec::new()
+        };
+        let ann = Annulus { x: lx, y: ly, r_in, r_out };
+        annulus_background(img, mask, &ann, &exclude, params.bkg_stat, params.clip_sigma, params.clip_iters)
+    });
+    if let Some((r_in, r_out)) = params.annulus_px {
+        match &background {
+            None => flags |= Flags::ANNULUS_CONTAMINATED,
+            Some(b) if b.n < params.min_sky_pixels => flags |= Flags::ANNULUS_CONTAMINATED,
+            Some(_) => {}
+        }
+        if params.annulus_exclude_radius_px <= 0.0 {
+            let rc = params.companion_radius_px;
+            if others_local.iter().any(|o| {
+                let d = dist(o);
+                d + rc > r_in && d - rc < r_out
+            }) {
+                flags |= Flags::ANNULUS_CONTAMINATED;
+            }
+        }
+    }
+
+    let (level, level_var, sky_sigma) = match &background {
+        Some(b) => (b.level, b.level_variance, Some(b.sigma)),
+        None => (0.0, 0.0, None),
+    };
+    let (flux, variance) = if sum.area > 0.0 {
+        let flux = sum.sum - sum.area * level;
+        let pixel_var = match (sum.variance, sky_sigma) {
+            (Some(v), _) => Some(v),
+            (None, Some(s)) => {
+                let shot = params.gain_e_per_adu.map_or(0.0, |g| flux.max(0.0) / g);
+                Some(shot + s * s * sum.area_w2)
+            }
+            (None, None) => None,
+        };
+        (flux, pixel_var.map_or(f64::NAN, |v| v + sum.area * sum.area * level_var))
+    } else {
+        flags |= Flags::TRUNCATED;
+        (f64::NAN, f64::NAN)
+    };
+    let snr = flux / variance.sqrt();
+    if !(snr >= params.min_snr) {
+        flags |= Flags::LOW_SNR;
+    }
+    Photometry { x, y, flux, variance, snr, aperture: sum, background, flags }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ndarray::Array2;
+
+    fn star_image(n: usize, x: f64, y: f64, flux: f64, sky: f32) -> Array2<f32> {
+        let mut img = Array2::<f32>::from_elem((n, n), sky);
+        let mut v = img.view_mut();
+        crate::photometry::model::add_gaussian(&mut v, flux, x, y, 1.3, 1.3);
+        img
+    }
+
+    #[test]
+    fn photometry_measure_flags() {
+        let mut img = star_image(64, 30.2, 31.6, 1.0e5, 50.0);
+        let mut p = PhotParams { saturation_adu: Some(5.0e3), ..PhotParams::default() };
+        let m = measure(img.view(), None, None, &p, 30.2, 31.6, &[]);
+        assert!((m.flux - 1.0e5).abs() < 1.0e5 * 1e-4, "{}", m.flux);
+        assert_eq!(m.flags, Flags::SATURATED);
+        p.saturation_adu = None;
+        // Truncated by the image edge and by a valid region.
+        let m = measure(img.view(), None, None, &p, 2.0, 31.6, &[]);
+        assert!(m.flags.contains(Flags::TRUNCATED));
+        let reg = Region { x_min: 0, x_max: 63, y_min: 0, y_max: 33 };
+        let m = measure(img.view(), None, None, &PhotParams { valid_region: Some(reg), ..p }, 30.2, 31.6, &[]);
+        assert!(m.flags.contains(Flags::TRUNCATED));
+        assert!(m.flags.contains(Flags::ANNULUS_CONTAMINATED) || m.background.is_some());
+        // Companion: overlap, and annulus contamination only when not excluded.
+        let m = measure(img.view(), None, None, &p, 30.2, 31.6, &[(38.0, 31.6)]);
+        assert!(m.flags.contains(Flags::COMPANION_OVERLAP));
+        assert!(!m.flags.contains(Flags::ANNULUS_CONTAMINATED));
+        let q = PhotParams { annulus_exclude_radius_px: 0.0, ..p };
+        let m = measure(img.view(), None, None, &q, 30.2, 31.6, &[(44.0, 31.6)]);
+        assert!(m.flags.contains(Flags::ANNULUS_CONTAMINATED));
+        assert!(!m.flags.contains(Flags::COMPANION_OVERLAP));
+        // Bad pixel.
+        let mut mask = Array2::<u8>::zeros((64, 64));
+        mask[[31, 30]] = 1;
+        let m = measure(img.view(), None, Some(mask.view()), &p, 30.2, 31.6, &[]);
+        assert_eq!(m.flags, Flags::BAD_PIXELS);
+        // Off the image entirely: NaN flux, flagged.
+        let m = measure(img.view(), None, None, &p, -40.0, 31.6, &[]);
+        assert!(m.flux.is_nan() && m.flags.contains(Flags::TRUNCATED | Flags::LOW_SNR));
+        // Faint source: low S/N (the sky has no scatter, so give it some).
+        for ((iy, ix), v) in img.indexed_iter_mut() {
+            *v = 50.0 + if (ix + iy) % 2 == 0 { 5.0 } else { -5.0 };
+        }
+        let m = measure(img.view(), None, None, &p, 30.2, 31.6, &[]);
+        assert!(m.flags.contains(Flags::LOW_SNR), "{:?}", m);
+        // No variance map and no annulus: variance undefined, flagged.
+        let m = measure(img.view(), None, None, &PhotParams { annulus_px: None, ..p }, 30.2, 31.6, &[]);
+        assert!(m.variance.is_nan() && m.flags == Flags::LOW_SNR);
+    }
+}
