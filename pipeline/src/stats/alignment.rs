@@ -1,0 +1,236 @@
+//! The alignment tests of a Delta-gamma sample and the verdict in plain words.
+use serde::{Deserialize, Serialize};
+
+use super::binomial::{binomial_test, BinomialOutcome};
+use super::ks::{ks_two_sample_sorted, ks_uniform, kolmogorov_sf};
+use super::kuiper::kuiper_uniform;
+use super::mc::{simulate_samples, Ism, McConfig, McOutput};
+use super::{Result, TestOutcome};
+
+/// Default significance level of the verdict.
+pub const DEFAULT_SIGNIFICANCE: f64 = 0.05;
+/// Default threshold of the binomial test, degrees (probability 1/3 under the null).
+pub const DEFAULT_THRESHOLD_DEG: f64 = 30.0;
+/// Fewer binaries than this: no test is run (the verdict says so).
+pub const MIN_N_FOR_TESTS: usize = 2;
+
+/// What to test and how to simulate the interstellar-polarization predictions.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AnalysisParams {
+    /// Significance level used in the verdict.
+    pub significance: f64,
+    /// Threshold of the binomial test, degrees (0 < t < 90).
+    pub threshold_deg: f64,
+    /// Interstellar polarization degrees to compare with, percent.
+    pub ism_levels_percent: Vec<f64>,
+    /// Common ISM angle, degrees.
+    pub ism_angle_deg: f64,
+    /// Base Monte-Carlo configuration (its `ism` is replaced by each level).
+    pub mc: McConfig,
+}
+
+/// Comparison of the observed Delta gamma with one ISM level of the Monte Carlo.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct IsmComparison {
+    /// P_ism, percent.
+    pub p_ism_percent: f64,
+    /// Two-sample KS, observed vs simulated.
+    pub ks: TestOutcome,
+    /// Simulated fraction below the threshold.
+    pub mc_fraction_below_threshold: f64,
+    /// The simulated Pi(Delta gamma).
+    pub mc: McOutput,
+}
+
+/// Everything `sofipol stats` reports.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AlignmentReport {
+    /// Number of binaries in the sample.
+    pub n: usize,
+    /// Mean Delta gamma, degrees (45 under the null).
+    pub mean_delta_gamma_deg: Option<f64>,
+    /// Threshold of the binomial test, degrees.
+    pub threshold_deg: f64,
+    /// Binomial test of the fraction below the threshold (p0 = threshold / 90).
+    pub below_threshold: Option<BinomialOutcome>,
+    /// One-sample KS against uniform on [0, 90].
+    pub ks_uniform: Option<TestOutcome>,
+    /// Kuiper against uniform on [0, 90].
+    pub kuiper_uniform: Option<TestOutcome>,
+    /// Two-sample KS against each ISM level.
+    pub ism: Vec<IsmComparison>,
+    /// Significance level of the verdict.
+    pub significance: f64,
+    /// The Monte-Carlo set-up in words.
+    pub mc_description: String,
+    /// The verdict in plain words.
+    pub verdict: String,
+}
+
+/// p-value as text: 4 decimals, or scientific below 1e-4.
+pub fn format_p(p: f64) -> String {
+    if p < 1e-4 { format!("{p:.1e}") } else { format!("{p:.4}") }
+}
+
+/// Run every test on `delta_gamma_deg` (degrees in [0, 90]) and write the verdict.
+pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<AlignmentReport> {
+    let n = delta_gamma_deg.len();
+    let t = params.threshold_deg;
+    let mc_description = describe_mc(&params.mc);
+    let mut report = AlignmentReport {
+        n,
+        mean_delta_gamma_deg: (n > 0).then(|| delta_gamma_deg.iter().sum::<f64>() / n as f64),
+        threshold_deg: t,
+        below_threshold: None,
+        ks_uniform: None,
+        kuiper_uniform: None,
+        ism: Vec::new(),
+        significance: params.significance,
+        mc_description,
+        verdict: String::new(),
+    };
+    if n >= MIN_N_FOR_TESTS {
+        let k = delta_gamma_deg.iter().filter(|&&d| d < t).count() as u64;
+        report.below_threshold = Some(binomial_test(k, n as u64, t / 90.0));
+        report.ks_uniform = Some(ks_uniform(delta_gamma_deg, 0.0, 90.0));
+        report.kuiper_uniform = Some(kuiper_uniform(delta_gamma_deg, 0.0, 90.0));
+        let mut observed = delta_gamma_deg.to_vec();
+        observed.sort_by(|a, b| a.total_cmp(b));
+        for &level in &params.ism_levels_percent {
+            let mut cfg = params.mc.clone();
+            cfg.ism = Some(Ism { p_percent: level, angle_deg: params.ism_angle_deg });
+            let (mut sim, out) = simulate_samples(&cfg)?;
+            let below = sim.iter().filter(|&&d| d < t).count() as f64 / sim.len().max(1) as f64;
+            let ks = if sim.is_empty() {
+                TestOutcome { statistic: f64::NAN, p_value: f64::NAN, n: 0, method: "no simulated pair passed the cut".into() }
+            } else {
+                sim.sort_by(|a, b| a.total_cmp(b));
+                let d = ks_two_sample_sorted(&observed, &sim);
+                let (n1, n2) = (n as f64, sim.len() as f64);
+                let ne = (n1 * n2 / (n1 + n2)).round().max(1.0) as usize;
+                let (p, method) = kolmogorov_sf(d, ne);
+                TestOutcome { statistic: d, p_value: p, n: ne, method: format!("two-sample, n_e = {ne}: {method}") }
+            };
+            report.ism.push(IsmComparison { p_ism_percent: level, ks, mc_fraction_below_threshold: below, mc: out });
+        }
+    }
+    report.verdict = verdict(&report, delta_gamma_deg);
+    Ok(report)
+}
+
+fn describe_mc(cfg: &McConfig) -> String {
+    let noise = match cfg.noise_percent {
+        Some(s) => format!("noise sigma(q, u) = {s:.3} %"),
+        None => "no measurement noise".into(),
+    };
+    let cut = match cfg.snr_cut {
+        Some(k) => format!(", both components P/sigma > {k}"),
+        None => String::new(),
+    };
+    format!(
+        "model {}, P_int {}, {noise}{cut}, {} pairs per level, seed {}",
+        cfg.model.spec(),
+        cfg.p_int.spec(),
+        cfg.pairs,
+        cfg.seed
+    )
+}
+
+fn list(levels: &[f64]) -> String {
+    levels.iter().map(|l| format!("{l}")).collect::<Vec<_>>().join(", ")
+}
+
+/// The verdict in plain words.
+fn verdict(r: &AlignmentReport, dg: &[f64]) -> String {
+    let a = r.significance;
+    match r.n {
+        0 => return "No binary has both components above the P/sigma cut: there is nothing to test.".into(),
+        1 => {
+            return format!(
+                "Only one binary ({:.1} deg) has both components above the P/sigma cut: a single pair cannot test alignment; no test was run.",
+                dg[0]
+            )
+        }
+        _ => {}
+    }
+    let (ks, kp, bt) = match (&r.ks_uniform, &r.kuiper_uniform, &r.below_threshold) {
+        (Some(a), Some(b), Some(c)) => (a, b, c),
+        _ => return "Tests were not run.".into(),
+    };
+    let mean = r.mean_delta_gamma_deg.unwrap_or(f64::NAN);
+    let mut s = format!(
+        "{} binaries have both components above the cut. Mean Delta gamma = {:.1} deg (random orientation: 45 deg); {} of {} ({:.0} %) have Delta gamma < {} deg (random: {:.0} %).\n",
+        r.n,
+        mean,
+        bt.k,
+        bt.n,
+        100.0 * bt.k as f64 / bt.n as f64,
+        r.threshold_deg,
+        100.0 * bt.p0
+    );
+    s += &format!(
+        "Against a uniform Pi(Delta gamma) on [0, 90] deg (randomly oriented disks): KS D = {:.3}, p = {}; Kuiper V = {:.3}, p = {}; binomial test of the fraction below {} deg: one-sided p = {} (two-sided {}).\n",
+        ks.statistic,
+        format_p(ks.p_value),
+        kp.statistic,
+        format_p(kp.p_value),
+        r.threshold_deg,
+        format_p(bt.p_greater),
+        format_p(bt.p_two_sided)
+    );
+    let rejected = ks.p_value < a;
+    if rejected && mean < 45.0 {
+        s += &format!(
+            "Verdict: random disk orientation is rejected at the {a} level (KS p = {}). The excess is at small Delta gamma: the disks of a binary tend to be aligned (in projection on the sky).",
+            format_p(ks.p_value)
+        );
+    } else if rejected {
+        s += &format!(
+            "Verdict: random disk orientation is rejected at the {a} level (KS p = {}), but the excess is at large Delta gamma: the disks tend to be misaligned, not aligned.",
+            format_p(ks.p_value)
+        );
+    } else {
+        s += &format!(
+            "Verdict: random disk orientation is not rejected at the {a} level (KS p = {}). With {} binaries this does not show that the disks are randomly oriented, only that any alignment is not strong enough to be detected.",
+            format_p(ks.p_value),
+            r.n
+        );
+        let others: Vec<String> = [("Kuiper", kp.p_value), ("binomial (one-sided)", bt.p_greater)]
+            .iter()
+            .filter(|(_, p)| *p < a)
+            .map(|(name, p)| format!("{name} p = {}", format_p(*p)))
+            .collect();
+        if !others.is_empty() {
+            s += &format!(" Note: {} would reject on its own; treat the evidence as marginal.", others.join(", "));
+        }
+    }
+    if r.n < 10 {
+        s += &format!(" (With only {} binaries every test has little power.)", r.n);
+    }
+    if !r.ism.is_empty() {
+        let ok: Vec<f64> = r.ism.iter().filter(|c| c.ks.p_value >= a).map(|c| c.p_ism_percent).collect();
+        let bad: Vec<f64> = r.ism.iter().filter(|c| !(c.ks.p_value >= a)).map(|c| c.p_ism_percent).collect();
+        s += &format!("\nRandom disks plus interstellar polarization (Monte Carlo: {}): ", r.mc_description);
+        if ok.is_empty() {
+            s += &format!(
+                "none of the levels P_ism = {} % reproduces the observed Delta gamma (two-sample KS p < {a} for all): interstellar polarization alone does not explain it.",
+                list(&bad)
+            );
+        } else if bad.is_empty() {
+            s += &format!("every level P_ism = {} % is consistent with the observed Delta gamma (two-sample KS p >= {a}).", list(&ok));
+        } else {
+            s += &format!(
+                "consistent (two-sample KS p >= {a}) for P_ism = {} %, inconsistent for P_ism = {} %.",
+                list(&ok),
+                list(&bad)
+            );
+            if rejected && mean < 45.0 {
+                let min_ok = ok.iter().cloned().fold(f64::INFINITY, f64::min);
+                s += &format!(
+                    " Interstellar polarization could mimic the alignment only if P_ism >= {min_ok} % towards these binaries; compare with the interstellar polarization expected along their lines of sight."
+                );
+            }
+        }
+    }
+    s
+}

@@ -1,0 +1,161 @@
+//! Figures in the spirit of the reference study (Wolf et al. 2001): Pi(alpha) next to the
+//! Pi(Delta gamma) it produces for models (a)-(d); Pi(Delta gamma) for the interstellar
+//! polarization levels; the observed histograms of P_l and Delta gamma.
+//!
+//! Pi(Delta gamma) is drawn relative to the uniform law (flat = 1, i.e. density x 90 deg),
+//! Pi(alpha) per unit solid angle relative to isotropy (flat = 1), both folded to [0, 90].
+use std::path::Path;
+
+use super::alignment::{format_p, IsmComparison};
+use super::hist::Histogram;
+use super::mc::{simulate, McConfig, McOutput};
+use super::model::AlignmentModel;
+use super::sample::BinarySample;
+use super::Result;
+use crate::plots::{palette, sequential, Figure, LegendPos, Panel, Series, Style};
+
+const DG: &str = "Δγ [deg]";
+const PI_DG: &str = "Π(Δγ) / uniform";
+
+/// The four models of the paper-style figure: (a) random, (b) and (c) von Mises-Fisher
+/// spreads of 60 and 25 deg, (d) uniform inside a 30 deg cone.
+pub fn paper_models() -> Vec<(String, AlignmentModel)> {
+    vec![
+        ("(a) random".into(), AlignmentModel::Random),
+        ("(b) spread σ = 60°".into(), AlignmentModel::Spread { sigma_deg: 60.0 }),
+        ("(c) spread σ = 25°".into(), AlignmentModel::Spread { sigma_deg: 25.0 }),
+        ("(d) uniform, α ≤ 30°".into(), AlignmentModel::Cone { alpha0_deg: 30.0 }),
+    ]
+}
+
+/// Relative density (uniform = 1) of a Delta-gamma histogram as a steps series.
+fn relative_steps(label: &str, h: &Histogram) -> Series {
+    let rel: Vec<f64> = h.density().iter().map(|d| d * (h.hi - h.lo)).collect();
+    Series::steps(label, h.edges(), rel)
+}
+
+fn uniform_line() -> Series {
+    Series::line("uniform", vec![0.0, 90.0], vec![1.0, 1.0]).style(Style::Dashed(1)).color(palette(6)).unlabelled()
+}
+
+/// Pi(alpha) of `model` sampled on [0, 90] deg for plotting (None for perfect alignment).
+fn pi_alpha_series(model: &AlignmentModel) -> Series {
+    match model {
+        AlignmentModel::Aligned => Series::line("Π(α): δ(α)", vec![0.0, 0.0], vec![0.0, 10.0]),
+        _ => {
+            let x: Vec<f64> = (0..=360).map(|i| 0.25 * i as f64).collect();
+            let y = x.iter().map(|&a| model.pi_alpha_relative(a).unwrap_or(0.0)).collect();
+            Series::line("Π(α)", x, y).unlabelled()
+        }
+    }
+}
+
+/// Models (a)-(d): Pi(alpha) (left) and the simulated Pi(Delta gamma) (right), one row each.
+/// `base` supplies pairs, seed and bins (its model is replaced).
+pub fn models_figure(path: &Path, models: &[(String, AlignmentModel)], base: &McConfig) -> Result<Vec<McOutput>> {
+    let mut panels = Vec::new();
+    let mut outs = Vec::new();
+    for (i, (label, model)) in models.iter().enumerate() {
+        let mut cfg = base.clone();
+        cfg.model = model.clone();
+        let out = simulate(&cfg)?;
+        let c = palette(i);
+        panels.push(
+            Panel::new(format!("{label}: Π(α)"), "α [deg]", "Π(α) per solid angle / isotropic")
+                .x_range(0.0, 90.0)
+                .with(pi_alpha_series(model).color(c))
+                .legend(LegendPos::None),
+        );
+        panels.push(
+            Panel::new(format!("{label}: Π(Δγ)"), DG, PI_DG)
+                .x_range(0.0, 90.0)
+                .with(uniform_line())
+                .with(relative_steps("", &out.histogram).color(c).unlabelled())
+                .legend(LegendPos::None)
+                .note(format!("{} pairs", out.accepted)),
+        );
+        outs.push(out);
+    }
+    let fig = Figure::grid(
+        Some("Alignment Π(α) and the projected position-angle difference Π(Δγ)".into()),
+        panels,
+        2,
+        (560, 330),
+    );
+    fig.save_png(path)?;
+    Ok(outs)
+}
+
+/// Pi(Delta gamma) of random disks for each interstellar polarization level, with the
+/// observed histogram (if any) as bars.
+pub fn ism_figure(path: &Path, comparisons: &[IsmComparison], observed: &[f64], observed_bins: usize, subtitle: &str) -> Result<()> {
+    let mut panel = Panel::new("Π(Δγ) of random disks + interstellar polarization", DG, PI_DG)
+        .x_range(0.0, 90.0)
+        .note(subtitle.to_string());
+    if !observed.is_empty() {
+        let (h, _) = Histogram::from_values(0.0, 90.0, observed_bins, observed);
+        panel = panel.with(relative_steps(&format!("observed (n = {})", observed.len()), &h).style(Style::Bars).color(GREY));
+    }
+    panel = panel.with(uniform_line());
+    let n = comparisons.len();
+    for (i, c) in comparisons.iter().enumerate() {
+        let h = c.mc.histogram.clone();
+        // Thin 1-deg steps are noisy to the eye at 10^6 pairs: show 5-deg bins when possible.
+        let h = if h.bins() % 18 == 0 { h.rebin(h.bins() / 18).unwrap_or(h) } else { h };
+        let label = if observed.is_empty() {
+            format!("P_ism = {} %", c.p_ism_percent)
+        } else {
+            format!("P_ism = {} % (KS p = {})", c.p_ism_percent, format_p(c.ks.p_value))
+        };
+        panel = panel.with(relative_steps(&label, &h).color(sequential(i, n)));
+    }
+    Figure::single(panel).save_png(path)?;
+    Ok(())
+}
+
+
+const GREY: crate::plots::Rgb = crate::plots::Rgb(120, 120, 120);
+
+/// Observed histograms: P_l of the components (percent) and Delta gamma of the binaries.
+/// `notes` are printed in panel B (e.g. the test results).
+pub fn observed_figure(path: &Path, sample: &BinarySample, dg_bins: usize, notes: &[String]) -> Result<()> {
+    let p = sample.p_percent();
+    let pmax = p.iter().cloned().fold(0.0f64, f64::max).max(1.0).ceil();
+    let p_bins = (pmax as usize).clamp(1, 40);
+    let (hp, _) = Histogram::from_values(0.0, pmax, p_bins, &p);
+    let dg = sample.delta_gamma_deg();
+    let (hd, _) = Histogram::from_values(0.0, 90.0, dg_bins, &dg);
+    let expected = dg.len() as f64 / dg_bins as f64;
+    let to_f = |h: &Histogram| h.counts.iter().map(|&c| c as f64).collect::<Vec<_>>();
+    let a = Panel::new(format!("[A] P_l of {} components", p.len()), "P_l (debiased) [%]", "N")
+        .with(Series::bars("", hp.edges(), to_f(&hp)).unlabelled().color(palette(0)))
+        .legend(LegendPos::None);
+    let noun = if dg.len() == 1 { "binary" } else { "binaries" };
+    let mut b = Panel::new(format!("[B] Δγ of {} {noun}", dg.len()), DG, "N")
+        .x_range(0.0, 90.0)
+        .with(Series::bars("observed", hd.edges(), to_f(&hd)).color(palette(1)))
+        .with(Series::line("random orientation", vec![0.0, 90.0], vec![expected, expected]).style(Style::Dashed(2)).color(palette(6)));
+    b.notes = notes.to_vec();
+    if !notes.is_empty() {
+        // Leave room above the bars for the notes.
+        let top = hd.counts.iter().copied().max().unwrap_or(1) as f64;
+        b = b.y_range(0.0, top * (1.15 + 0.08 * notes.len() as f64));
+    }
+    Figure::grid(None, vec![a, b], 2, (620, 440)).save_png(path)?;
+    Ok(())
+}
+
+/// Pi(Delta gamma) of one or more Monte-Carlo runs (the figure of `sofipol mc`).
+pub fn mc_figure(path: &Path, runs: &[(String, McOutput)], title: &str) -> Result<()> {
+    let mut panel = Panel::new(title, DG, PI_DG).x_range(0.0, 90.0).with(uniform_line());
+    let n = runs.len();
+    for (i, (label, out)) in runs.iter().enumerate() {
+        let color = if n > 4 { sequential(i, n) } else { palette(i) };
+        panel = panel.with(relative_steps(label, &out.histogram).color(color));
+    }
+    if n == 1 {
+        panel.legend = LegendPos::None;
+    }
+    Figure::single(panel).save_png(path)?;
+    Ok(())
+}
