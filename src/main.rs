@@ -20,6 +20,8 @@ enum Command {
     Demo(cmd::demo::Args),
     /// Write SOFI-like raw frames and a truth JSON from a scene TOML.
     Simulate(cmd::simulate::Args),
+    /// Reduce one target sequence (files or a directory) to a JSON catalog.
+    Target(cmd::target::Args),
     /// Projection / interstellar-polarization Monte Carlo of Pi(Delta gamma).
     Mc(cmd::mc::Args),
     /// Alignment statistics of a catalog: histograms, KS, Kuiper, binomial, verdict.
@@ -33,6 +35,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Demo(a) => cmd::demo::run(a),
         Command::Simulate(a) => cmd::simulate::run(a),
+        Command::Target(a) => cmd::target::run(a),
         Command::Mc(a) => cmd::mc::run(a),
         Command::Stats(a) => cmd::stats::run(a),
         Command::Bench(a) => cmd::bench::run(a),

@@ -17,12 +17,15 @@
 //! integer 0-based coordinates, FITS 1-based coordinates appear only at I/O.
 #![deny(missing_docs)]
 
+pub mod badpix;
 pub mod classify;
 pub mod error;
 pub mod fits;
 pub mod frame;
 pub mod header;
 pub mod profile;
+pub mod sky;
+pub mod stack;
 
 pub use error::{Error, Result};
 pub use frame::{Frame, HistoryRecord};

@@ -16,11 +16,13 @@
 //! ```
 #![deny(missing_docs)]
 
+pub mod accuracy;
 pub mod catalog;
 pub mod io;
 pub mod photometry;
 pub mod plots;
 pub mod reduce;
+pub mod scan;
 pub mod sequence;
 pub mod sim;
 pub mod stats;

@@ -21,6 +21,17 @@ enum What {
         #[arg(long, default_value_t = 21)]
         repeats: usize,
     },
+    /// Reduction accuracy on simulated nights: pull widths by separation bin, and time.
+    Accuracy {
+        /// Targets per separation bin.
+        #[arg(long, default_value_t = 24)]
+        targets: usize,
+        /// Seed.
+        #[arg(long, default_value_t = 7)]
+        seed: u64,
+        #[command(flatten)]
+        reduce: super::target::ReduceArgs,
+    },
 }
 
 const BENCH_SCENE: &str = r#"
@@ -87,6 +98,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 println!("  {:<28} {:>9.2} ms  (+{:.2}){extra}", k.name(), t, t - none);
             }
             println!("target: all effects <= 50 ms/frame on 2 cores: {}", if all <= 50.0 { "met" } else { "NOT met" });
+        }
+        What::Accuracy { targets, seed, reduce } => {
+            let params = reduce.params()?;
+            let cfg = sofipol_pipeline::accuracy::AccuracyConfig { targets_per_bin: targets, seed, ..Default::default() };
+            println!(
+                "sofipol bench accuracy: {} targets per bin, seeing {}\", effects [{}], method {:?}, aperture {} FWHM",
+                targets, cfg.fwhm_arcsec, cfg.effects.join(", "), params.measure.method, params.measure.aperture_fwhm
+            );
+            let t0 = Instant::now();
+            let r = sofipol_pipeline::accuracy::run(&cfg, &params);
+            print!("{}", sofipol_pipeline::accuracy::table(&r));
+            println!("total {:.1} s (simulation included)", t0.elapsed().as_secs_f64());
         }
     }
     Ok(ExitCode::SUCCESS)

@@ -4,4 +4,6 @@ pub mod common;
 pub mod demo;
 pub mod mc;
 pub mod simulate;
+pub mod report;
 pub mod stats;
+pub mod target;

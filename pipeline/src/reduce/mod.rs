@@ -16,6 +16,7 @@
 //!   -> q, u (least squares over orientations), P, gamma, errors, debiasing, cut
 //! ```
 pub mod locate;
+pub mod target;
 
 use ndarray::{s, Array2};
 use serde::{Deserialize, Serialize};

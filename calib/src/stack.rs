@@ -1,0 +1,680 @@
+//! Fast per-pixel statistics across a small stack of equally shaped frames.
+//!
+//! The sky of a dithered frame is the median of the *other* dithers at each pixel (the
+//! stars move between dithers, the sky does not). For N frames that is N
+//! "leave-one-out" medians, the hot spot of a whole night's reduction. They are computed
+//! here with **one** partial sort of the N values per pixel:
+//!
+//! * Sort the N values, s\[0\] <= ... <= s\[N-1\]. Removing frame i's value v_i leaves
+//!   m = N - 1 values whose median depends only on where v_i sits relative to the middle:
+//!   * N odd (N = 2k + 1, m even): v_i < s\[k\] gives (s\[k\] + s\[k+1\])/2,
+//!     v_i > s\[k\] gives (s\[k-1\] + s\[k\])/2, v_i = s\[k\] gives (s\[k-1\] + s\[k+1\])/2;
+//!   * N even (N = 2k, m odd): v_i >= s\[k\] gives s\[k-1\], otherwise s\[k\].
+//!
+//!   Ties are harmless: when v_i equals s\[k\] but sits at another rank, the order
+//!   statistics involved are equal, so every branch gives the same value.
+//! * Only the two or three middle order statistics are needed, so the sort is a
+//!   *selection network*: Batcher's odd-even merge sorting network for N (padded to a
+//!   power of two, comparators on padding wires dropped), pruned backwards to the
+//!   comparators that feed the middle wires. The network runs on blocks of pixels of a
+//!   row at once (structure of arrays), which the compiler turns into SIMD min/max.
+//! * Rows are distributed over rayon threads in bands; every output pixel depends on its
+//!   own inputs only, so results are bit-identical for any thread count.
+//!
+//! Each frame's values may first go through an affine map `v * scale + offset` (the sky
+//! stage divides by each frame's sky level or subtracts it), computed in `f32` exactly as
+//! written, in the fast path and in the reference alike.
+//!
+//! Inputs must be NaN-free (masked pixels carry values; the median is robust to them).
+//! The slow, obviously correct [`reference_median`] and [`reference_leave_one_out`]
+//! (collect, sort, take the middle) define the results; tests compare them bit for bit.
+use std::time::Instant;
+
+use ndarray::{Array2, ArrayView2, CowArray, Ix2};
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+
+/// Largest stack handled (frames per call).
+pub const MAX_STACK: usize = 32;
+
+/// Pixels processed together per network pass (16 KiB of f32 scratch at N = 32).
+const BLOCK: usize = 128;
+
+/// SIMD lanes handled together by a comparator (two SSE or one AVX register).
+const LANES: usize = 8;
+
+/// Rows per parallel task.
+const BAND_ROWS: usize = 8;
+
+/// Per-frame affine map applied before the statistics: `v * scale + offset` (f32).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Affine {
+    /// Multiplier.
+    pub scale: f32,
+    /// Added after scaling.
+    pub offset: f32,
+}
+
+impl Affine {
+    /// The identity map.
+    pub const IDENTITY: Affine = Affine { scale: 1.0, offset: 0.0 };
+
+    /// Apply to one value (the single definition both fast and reference paths use).
+    #[inline(always)]
+    pub fn apply(self, v: f32) -> f32 {
+        v * self.scale + self.offset
+    }
+}
+
+/// Mean of the two middle values, as both the fast path and the reference compute it.
+#[inline(always)]
+fn mid(a: f32, b: f32) -> f32 {
+    (a + b) * 0.5
+}
+
+/// Median of a slice of NaN-free values (sorts a copy; the reference definition).
+/// Even counts give the mean of the two middle values. Panics on an empty slice.
+pub fn reference_median(values: &[f32]) -> f32 {
+    let mut v = values.to_vec();
+    v.sort_by(|a, b| a.total_cmp(b));
+    let n = v.len();
+    assert!(n > 0, "median of no values");
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        mid(v[n / 2 - 1], v[n / 2])
+    }
+}
+
+/// Slow reference: for every frame i and pixel, collect the other frames' mapped values,
+/// sort them and take the median. Defines what [`leave_one_out_medians_affine`] returns.
+pub fn reference_leave_one_out(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Vec<Array2<f32>>> {
+    check_stack(frames, maps, 2, "leave-one-out median")?;
+    let (ny, nx) = frames[0].dim();
+    let n = frames.len();
+    Ok((0..n)
+        .map(|i| {
+            Array2::from_shape_fn((ny, nx), |(y, x)| {
+                let others: Vec<f32> =
+                    (0..n).filter(|&j| j != i).map(|j| maps[j].apply(frames[j][[y, x]])).collect();
+                reference_median(&others)
+            })
+        })
+        .collect())
+}
+
+/// Slow reference of [`median_stack_affine`].
+pub fn reference_median_stack(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Array2<f32>> {
+    check_stack(frames, maps, 1, "median stack")?;
+    let (ny, nx) = frames[0].dim();
+    Ok(Array2::from_shape_fn((ny, nx), |(y, x)| {
+        let v: Vec<f32> = frames.iter().zip(maps).map(|(f, m)| m.apply(f[[y, x]])).collect();
+        reference_median(&v)
+    }))
+}
+
+fn check_stack(frames: &[ArrayView2<f32>], maps: &[Affine], min: usize, what: &str) -> Result<()> {
+    let n = frames.len();
+    if n < min || n > MAX_STACK {
+        return Err(Error::Stage {
+            stage: "stack",
+            reason: format!("{what} of {n} frames: need {min} to {MAX_STACK}"),
+        });
+    }
+    if maps.len() != n {
+        return Err(Error::Stage {
+            stage: "stack",
+            reason: format!("{what}: {} affine maps for {n} frames", maps.len()),
+        });
+    }
+    let d0 = frames[0].dim();
+    if let Some((j, f)) = frames.iter().enumerate().find(|(_, f)| f.dim() != d0) {
+        return Err(Error::Stage {
+            stage: "stack",
+            reason: format!(
+                "{what}: frame {j} is {}x{} (ny x nx) but frame 0 is {}x{}",
+                f.dim().0,
+                f.dim().1,
+                d0.0,
+                d0.1
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// A comparator network on `n` wires: after running, the `wanted` wires hold the sorted
+/// values at those ranks.
+#[derive(Debug, Clone)]
+struct Network {
+    comparators: Vec<(u8, u8)>,
+}
+
+impl Network {
+    /// Batcher's odd-even merge sort for `n` wires (padded to a power of two with +inf
+    /// wires, whose comparators are no-ops and are dropped), pruned to the comparators
+    /// whose results reach one of the `wanted` output wires.
+    fn selecting(n: usize, wanted: &[usize]) -> Network {
+        let p = n.next_power_of_two();
+        let mut all = Vec::new();
+        // Knuth's iterative formulation of Batcher's odd-even merge sort.
+        let mut pp = 1;
+        while pp < p {
+            let mut k = pp;
+            while k >= 1 {
+                let mut j = k % pp;
+                while j + k < p {
+                    for i in 0..k.min(p - j - k) {
+                        let (a, b) = (i + j, i + j + k);
+                        if (a / (pp * 2)) == (b / (pp * 2)) && b < n {
+                            all.push((a as u8, b as u8));
+                        }
+                    }
+                    j += 2 * k;
+                }
+                k /= 2;
+            }
+            pp *= 2;
+        }
+        // Backward pruning: a comparator matters only if one of its wires is still read.
+        let mut needed = vec![false; n];
+        for &w in wanted {
+            needed[w] = true;
+        }
+        let mut kept: Vec<(u8, u8)> = Vec::new();
+        for &(a, b) in all.iter().rev() {
+            if needed[a as usize] || needed[b as usize] {
+                needed[a as usize] = true;
+                needed[b as usize] = true;
+                kept.push((a, b));
+            }
+        }
+        kept.reverse();
+        Network { comparators: kept }
+    }
+
+    /// Run on `len` lanes of `w[wire][lane]`.
+    #[inline]
+    fn run(&self, w: &mut [[f32; BLOCK]], len: usize) {
+        for &(a, b) in &self.comparators {
+            let (a, b) = (a as usize, b as usize);
+            // a < b always: split to borrow both rows.
+            let (lo_part, hi_part) = w.split_at_mut(b);
+            let ra = &mut lo_part[a][..len];
+            let rb = &mut hi_part[0][..len];
+            // Lanes of 8 computed as whole arrays, then stored: `select(v < u, v, u)` maps
+            // to MINPS/MAXPS exactly (no NaN fix-up as with f32::min; inputs are NaN-free),
+            // and storing whole arrays keeps LLVM from turning the selects into branchy
+            // conditional stores.
+            let mut ca = ra.chunks_exact_mut(LANES);
+            let mut cb = rb.chunks_exact_mut(LANES);
+            for (xa, xb) in (&mut ca).zip(&mut cb) {
+                let u: [f32; LANES] = std::array::from_fn(|i| xa[i]);
+                let v: [f32; LANES] = std::array::from_fn(|i| xb[i]);
+                let lo: [f32; LANES] = std::array::from_fn(|i| if v[i] < u[i] { v[i] } else { u[i] });
+                let hi: [f32; LANES] = std::array::from_fn(|i| if v[i] > u[i] { v[i] } else { u[i] });
+                xa.copy_from_slice(&lo);
+                xb.copy_from_slice(&hi);
+            }
+            for (x, y) in ca.into_remainder().iter_mut().zip(cb.into_remainder().iter_mut()) {
+                let (u, v) = (*x, *y);
+                *x = if v < u { v } else { u };
+                *y = if v > u { v } else { u };
+            }
+        }
+    }
+}
+
+/// Rank(s) that the plain median of `n` values reads.
+fn median_ranks(n: usize) -> Vec<usize> {
+    if n % 2 == 1 { vec![n / 2] } else { vec![n / 2 - 1, n / 2] }
+}
+
+/// Ranks the leave-one-out medians of `n` values read.
+fn loo_ranks(n: usize) -> Vec<usize> {
+    let k = n / 2;
+    if n % 2 == 1 { vec![k - 1, k, k + 1] } else { vec![k - 1, k] }
+}
+
+/// Views in standard layout (copies only inputs that are not).
+fn standard<'a>(frames: &'a [ArrayView2<'_, f32>]) -> Vec<CowArray<'a, f32, Ix2>> {
+    frames.iter().map(|f| f.as_standard_layout()).collect()
+}
+
+/// Load block `[x0, x0+len)` of row `y` of every frame, mapped, into the scratch wires.
+#[inline]
+fn load(w: &mut [[f32; BLOCK]], rows: &[&[f32]], maps: &[Affine], x0: usize, len: usize) {
+    for ((wire, row), m) in w.iter_mut().zip(rows).zip(maps) {
+        for (d, &s) in wire[..len].iter_mut().zip(&row[x0..x0 + len]) {
+            *d = m.apply(s);
+        }
+    }
+}
+
+/// Per-pixel median of a stack of 1..=[`MAX_STACK`] frames (no mapping).
+pub fn median_stack(frames: &[ArrayView2<f32>]) -> Result<Array2<f32>> {
+    median_stack_affine(frames, &vec![Affine::IDENTITY; frames.len()])
+}
+
+/// Per-pixel median of `maps[j].apply(frames[j])` over the stack (even counts: mean of
+/// the two middle values). Bit-identical to [`reference_median_stack`].
+pub fn median_stack_affine(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Array2<f32>> {
+    check_stack(frames, maps, 1, "median stack")?;
+    let n = frames.len();
+    let (ny, nx) = frames[0].dim();
+    let frames = standard(frames);
+    let slices: Vec<&[f32]> = frames.iter().map(|f| f.as_slice().expect("standard layout")).collect();
+    let ranks = median_ranks(n);
+    let net = Network::selecting(n, &ranks);
+    let mut out = Array2::<f32>::zeros((ny, nx));
+    if nx == 0 || ny == 0 {
+        return Ok(out);
+    }
+    out.as_slice_mut().expect("fresh array").par_chunks_mut(nx * BAND_ROWS).enumerate().for_each(|(band, chunk)| {
+        let mut w = vec![[0f32; BLOCK]; n];
+        for (r, orow) in chunk.chunks_mut(nx).enumerate() {
+            let y = band * BAND_ROWS + r;
+            let rows: Vec<&[f32]> = slices.iter().map(|s| &s[y * nx..(y + 1) * nx]).collect();
+            let mut x0 = 0;
+            while x0 < nx {
+                let len = BLOCK.min(nx - x0);
+                load(&mut w, &rows, maps, x0, len);
+                net.run(&mut w, len);
+                let o = &mut orow[x0..x0 + len];
+                if ranks.len() == 1 {
+                    o.copy_from_slice(&w[ranks[0]][..len]);
+                } else {
+                    let (a, b) = (&w[ranks[0]][..len], &w[ranks[1]][..len]);
+                    for ((o, &a), &b) in o.iter_mut().zip(a).zip(b) {
+                        *o = mid(a, b);
+                    }
+                }
+                x0 += len;
+            }
+        }
+    });
+    Ok(out)
+}
+
+/// Leave-one-out medians without mapping: element i is the per-pixel median of all
+/// frames but frame i.
+pub fn leave_one_out_medians(frames: &[ArrayView2<f32>]) -> Result<Vec<Array2<f32>>> {
+    leave_one_out_medians_affine(frames, &vec![Affine::IDENTITY; frames.len()])
+}
+
+/// Leave-one-out medians of the mapped stack: element i is, at every pixel, the median
+/// of `maps[j].apply(frames[j])` over j != i. Needs 2..=[`MAX_STACK`] frames of one
+/// shape. One selection network per pixel serves all N outputs; bit-identical to
+/// [`reference_leave_one_out`].
+pub fn leave_one_out_medians_affine(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Vec<Array2<f32>>> {
+    check_stack(frames, maps, 2, "leave-one-out median")?;
+    let mut outs: Vec<Array2<f32>> = (0..frames.len()).map(|_| Array2::<f32>::zeros(frames[0].raw_dim())).collect();
+    leave_one_out_medians_into(frames, maps, &mut outs)?;
+    Ok(outs)
+}
+
+/// [`leave_one_out_medians_affine`] into caller-owned outputs (one per frame, each of
+/// the frames' shape, standard layout), e.g. to reuse buffers across sequences: fresh
+/// 4 MiB allocations cost page faults comparable to the medians themselves.
+pub fn leave_one_out_medians_into(frames: &[ArrayView2<f32>], maps: &[Affine], outs: &mut [Array2<f32>]) -> Result<()> {
+    check_stack(frames, maps, 2, "leave-one-out median")?;
+    let n = frames.len();
+    let (ny, nx) = frames[0].dim();
+    if outs.len() != n || outs.iter().any(|o| o.dim() != (ny, nx) || !o.is_standard_layout()) {
+        return Err(Error::Stage {
+            stage: "stack",
+            reason: format!("leave-one-out median: need {n} standard-layout outputs of {ny}x{nx}"),
+        });
+    }
+    let frames = standard(frames);
+    let slices: Vec<&[f32]> = frames.iter().map(|f| f.as_slice().expect("standard layout")).collect();
+    let ranks = loo_ranks(n);
+    let net = Network::selecting(n, &ranks);
+    if nx == 0 || ny == 0 {
+        return Ok(());
+    }
+    // Band b of every output, grouped, so that one task writes all N outputs of its rows.
+    let mut bands: Vec<Vec<&mut [f32]>> = Vec::new();
+    for o in outs.iter_mut() {
+        for (b, chunk) in o.as_slice_mut().expect("standard layout").chunks_mut(nx * BAND_ROWS).enumerate() {
+            if bands.len() <= b {
+                bands.push(Vec::with_capacity(n));
+            }
+            bands[b].push(chunk);
+        }
+    }
+    let k = n / 2;
+    bands.into_par_iter().enumerate().for_each(|(band, mut chunks)| {
+        let mut w = vec![[0f32; BLOCK]; n];
+        let rows_here = chunks[0].len() / nx;
+        for r in 0..rows_here {
+            let y = band * BAND_ROWS + r;
+            let rows: Vec<&[f32]> = slices.iter().map(|s| &s[y * nx..(y + 1) * nx]).collect();
+            let mut x0 = 0;
+            while x0 < nx {
+                let len = BLOCK.min(nx - x0);
+                load(&mut w, &rows, maps, x0, len);
+                net.run(&mut w, len);
+                for (i, chunk) in chunks.iter_mut().enumerate() {
+                    let o = &mut chunk[r * nx + x0..r * nx + x0 + len];
+                    let src = &rows[i][x0..x0 + len];
+                    let m = maps[i];
+                    if n % 2 == 1 {
+                        let (lo, md, hi) = (&w[k - 1][..len], &w[k][..len], &w[k + 1][..len]);
+                        for ((((o, &s), &l), &c), &h) in o.iter_mut().zip(src).zip(lo).zip(md).zip(hi) {
+                            let v = m.apply(s);
+                            let below = mid(c, h);
+                            let above = mid(l, c);
+                            let equal = mid(l, h);
+                            let r = if v > c { above } else { equal };
+                            *o = if v < c { below } else { r };
+                        }
+                    } else {
+                        let (lo, hi) = (&w[k - 1][..len], &w[k][..len]);
+                        for (((o, &s), &l), &h) in o.iter_mut().zip(src).zip(lo).zip(hi) {
+                            let v = m.apply(s);
+                            *o = if v >= h { l } else { h };
+                        }
+                    }
+                }
+                x0 += len;
+            }
+        }
+    });
+    Ok(())
+}
+
+/// Running median along x of every row: `out[y, x]` is the median of
+/// `image[y, x-h ..= x+h]`, the window clipped at the row ends (clipped windows of even
+/// length give the upper of the two middle values). `2 h + 1 <= MAX_STACK`. Interior
+/// pixels go through a median-selection network on 2h+1 shifted copies of the row;
+/// bit-identical to [`reference_running_median_x`].
+pub fn running_median_x(image: ArrayView2<f32>, half_window: usize) -> Result<Array2<f32>> {
+    let h = half_window;
+    let n = 2 * h + 1;
+    if n > MAX_STACK {
+        return Err(Error::Stage {
+            stage: "stack",
+            reason: format!("running median window 2 x {h} + 1 = {n} px exceeds {MAX_STACK}"),
+        });
+    }
+    let (ny, nx) = image.dim();
+    let img = image.as_standard_layout();
+    let src = img.as_slice().expect("standard layout");
+    let mut out = Array2::<f32>::zeros((ny, nx));
+    if nx == 0 || ny == 0 {
+        return Ok(out);
+    }
+    let net = Network::selecting(n, &[h]);
+    out.as_slice_mut().expect("fresh array").par_chunks_mut(nx).enumerate().for_each(|(y, orow)| {
+        let row = &src[y * nx..(y + 1) * nx];
+        let mut w = vec![[0f32; BLOCK]; n];
+        let mut buf = Vec::with_capacity(n);
+        let mut clipped = |x: usize| {
+            buf.clear();
+            buf.extend_from_slice(&row[x.saturating_sub(h)..(x + h + 1).min(nx)]);
+            let k = buf.len() / 2;
+            *buf.select_nth_unstable_by(k, |a, b| a.total_cmp(b)).1
+        };
+        if nx < n {
+            for x in 0..nx {
+                orow[x] = clipped(x);
+            }
+            return;
+        }
+        for x in (0..h).chain(nx - h..nx) {
+            orow[x] = clipped(x);
+        }
+        let mut x0 = h;
+        while x0 < nx - h {
+            let len = BLOCK.min(nx - h - x0);
+            for (j, wire) in w.iter_mut().enumerate() {
+                wire[..len].copy_from_slice(&row[x0 - h + j..x0 - h + j + len]);
+            }
+            net.run(&mut w, len);
+            orow[x0..x0 + len].copy_from_slice(&w[h][..len]);
+            x0 += len;
+        }
+    });
+    Ok(out)
+}
+
+/// Slow reference of [`running_median_x`]: sort each clipped window.
+pub fn reference_running_median_x(image: ArrayView2<f32>, half_window: usize) -> Array2<f32> {
+    let (ny, nx) = image.dim();
+    let h = half_window;
+    Array2::from_shape_fn((ny, nx), |(y, x)| {
+        let mut v: Vec<f32> = (x.saturating_sub(h)..(x + h + 1).min(nx)).map(|i| image[[y, i]]).collect();
+        v.sort_by(|a, b| a.total_cmp(b));
+        v[v.len() / 2]
+    })
+}
+
+/// Benchmark: median wall time (ms) of computing all `n_frames` leave-one-out medians of
+/// `n_frames` frames of `ny` x `nx` pseudo-random sky-like values, over `repeats` runs
+/// (after one warm-up), on the current rayon pool.
+pub fn bench_leave_one_out(n_frames: usize, ny: usize, nx: usize, repeats: usize) -> f64 {
+    let frames = bench_frames(n_frames, ny, nx);
+    let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.view()).collect();
+    let maps: Vec<Affine> = (0..n_frames).map(|j| Affine { scale: 1.0 / (1500.0 + j as f32), offset: 0.0 }).collect();
+    median_ms(repeats, || {
+        let r = leave_one_out_medians_affine(&views, &maps).expect("valid bench stack");
+        std::hint::black_box(r);
+    })
+}
+
+/// Benchmark: median wall time (ms) of one per-pixel median of `n_frames` frames.
+pub fn bench_median(n_frames: usize, ny: usize, nx: usize, repeats: usize) -> f64 {
+    let frames = bench_frames(n_frames, ny, nx);
+    let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.view()).collect();
+    median_ms(repeats, || {
+        let r = median_stack(&views).expect("valid bench stack");
+        std::hint::black_box(r);
+    })
+}
+
+/// Median of `repeats` timings (ms) of `f`, after one warm-up call.
+pub fn median_ms(repeats: usize, mut f: impl FnMut()) -> f64 {
+    f();
+    let mut t: Vec<f64> = (0..repeats.max(1))
+        .map(|_| {
+            let t0 = Instant::now();
+            f();
+            t0.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    t.sort_by(|a, b| a.total_cmp(b));
+    t[t.len() / 2]
+}
+
+/// Sky-like pseudo-random frames (xorshift; Irwin-Hall approximately normal noise).
+fn bench_frames(n: usize, ny: usize, nx: usize) -> Vec<Array2<f32>> {
+    (0..n)
+        .map(|j| {
+            let mut s = 0x9E37_79B9_7F4A_7C15u64 ^ (j as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03);
+            let mut next = move || {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                (s >> 40) as f32 / (1u64 << 24) as f32
+            };
+            Array2::from_shape_fn((ny, nx), |_| 1500.0 + j as f32 + 12.0 * (next() + next() + next() - 1.5))
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Small deterministic generator (tests only).
+    struct Rng(u64);
+    impl Rng {
+        fn next(&mut self) -> u64 {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            self.0
+        }
+        fn below(&mut self, k: u64) -> u64 {
+            self.next() % k
+        }
+    }
+
+    /// Stacks of random shapes and sizes; values drawn from a tiny alphabet half of the
+    /// time so ties are frequent.
+    fn random_stack(r: &mut Rng, n: usize) -> (Vec<Array2<f32>>, Vec<Affine>) {
+        let ny = 1 + r.below(5) as usize;
+        let nx = 1 + r.below(300) as usize;
+        let ties = r.below(2) == 0;
+        let frames = (0..n)
+            .map(|_| {
+                Array2::from_shape_fn((ny, nx), |_| {
+                    if ties {
+                        r.below(4) as f32
+                    } else {
+                        (r.next() >> 40) as f32 / 1024.0 - 8000.0
+                    }
+                })
+            })
+            .collect();
+        let maps = (0..n)
+            .map(|_| match r.below(3) {
+                0 => Affine::IDENTITY,
+                1 => Affine { scale: 1.0 / (1000.0 + r.below(1000) as f32), offset: 0.0 },
+                _ => Affine { scale: 1.0, offset: -(r.below(3000) as f32) },
+            })
+            .collect();
+        (frames, maps)
+    }
+
+    #[test]
+    fn networks_sort_every_zero_one_input() {
+        // 0-1 principle: a comparator network sorts (selects) all inputs iff it does so
+        // for all 2^n inputs of zeros and ones.
+        for n in 1..=14usize {
+            for ranks in [median_ranks(n), if n >= 2 { loo_ranks(n) } else { vec![0] }] {
+                let net = Network::selecting(n, &ranks);
+                for bits in 0u32..(1 << n) {
+                    let mut w = vec![[0f32; BLOCK]; n];
+                    for (i, wire) in w.iter_mut().enumerate() {
+                        wire[0] = ((bits >> i) & 1) as f32;
+                    }
+                    net.run(&mut w, 1);
+                    let zeros = n - bits.count_ones() as usize;
+                    for &k in &ranks {
+                        let want = if k < zeros { 0.0 } else { 1.0 };
+                        assert_eq!(w[k][0], want, "n {n} rank {k} input {bits:b}");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn network_sizes_are_small() {
+        // Batcher's full sorting network for 5 wires has 9 comparators; selecting the three
+        // middle ranks of 5 must not need more.
+        assert!(Network::selecting(5, &loo_ranks(5)).comparators.len() <= 9);
+        assert!(Network::selecting(8, &loo_ranks(8)).comparators.len() <= 19);
+    }
+
+    #[test]
+    fn leave_one_out_matches_reference_exactly() {
+        let mut r = Rng(0x1234_5678_9abc_def1);
+        for case in 0..300 {
+            let n = 2 + r.below(MAX_STACK as u64 - 1) as usize;
+            let n = if case % 3 == 0 { n } else { 2 + (n % 11) };
+            let (frames, maps) = random_stack(&mut r, n);
+            let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.view()).collect();
+            let fast = leave_one_out_medians_affine(&views, &maps).unwrap();
+            let slow = reference_leave_one_out(&views, &maps).unwrap();
+            for i in 0..n {
+                for (a, b) in fast[i].iter().zip(slow[i].iter()) {
+                    assert_eq!(a.to_bits(), b.to_bits(), "case {case} n {n} frame {i}: {a} vs {b}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn median_matches_reference_exactly() {
+        let mut r = Rng(0xfeed_beef_1234_0001);
+        for case in 0..300 {
+            let n = 1 + r.below(MAX_STACK as u64) as usize;
+            let (frames, maps) = random_stack(&mut r, n);
+            let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.view()).collect();
+            let fast = median_stack_affine(&views, &maps).unwrap();
+            let slow = reference_median_stack(&views, &maps).unwrap();
+            for (a, b) in fast.iter().zip(slow.iter()) {
+                assert_eq!(a.to_bits(), b.to_bits(), "case {case} n {n}: {a} vs {b}");
+            }
+        }
+    }
+
+    #[test]
+    fn non_standard_layout_inputs_work() {
+        let a = Array2::from_shape_fn((7, 9), |(y, x)| (y * 9 + x) as f32);
+        let b = a.mapv(|v| v * 2.0);
+        let c = a.mapv(|v| 100.0 - v);
+        let views = [a.t(), b.t(), c.t()];
+        let fast = leave_one_out_medians(&views).unwrap();
+        let slow = reference_leave_one_out(&views, &[Affine::IDENTITY; 3]).unwrap();
+        assert_eq!(fast, slow);
+        assert_eq!(fast[0].dim(), (9, 7));
+    }
+
+    #[test]
+    fn bad_stacks_are_errors_naming_the_problem() {
+        let a = Array2::<f32>::zeros((4, 5));
+        let b = Array2::<f32>::zeros((4, 6));
+        let e = leave_one_out_medians(&[a.view()]).unwrap_err().to_string();
+        assert!(e.contains("1 frames") && e.contains("need 2"), "{e}");
+        let e = median_stack(&[a.view(), b.view()]).unwrap_err().to_string();
+        assert!(e.contains("frame 1 is 4x6"), "{e}");
+    }
+
+    #[test]
+    fn running_median_matches_reference_exactly() {
+        let mut r = Rng(77);
+        for case in 0..200 {
+            let ny = 1 + r.below(4) as usize;
+            let nx = 1 + r.below(400) as usize;
+            let h = r.below(16) as usize;
+            let ties = case % 2 == 0;
+            let img = Array2::from_shape_fn((ny, nx), |_| {
+                if ties { r.below(5) as f32 } else { (r.next() >> 40) as f32 / 7.0 }
+            });
+            let fast = running_median_x(img.view(), h).unwrap();
+            let slow = reference_running_median_x(img.view(), h);
+            for (a, b) in fast.iter().zip(slow.iter()) {
+                assert_eq!(a.to_bits(), b.to_bits(), "case {case} {ny}x{nx} h {h}");
+            }
+        }
+        assert!(running_median_x(Array2::<f32>::zeros((2, 2)).view(), 16).is_err());
+    }
+
+    #[test]
+    #[ignore = "timing: run with --ignored --nocapture"]
+    fn print_timings() {
+        let t = rayon::current_num_threads();
+        for n in [3, 4, 5, 10, 12] {
+            let loo = bench_leave_one_out(n, 1024, 1024, 11);
+            let med = bench_median(n, 1024, 1024, 11);
+            let frames = bench_frames(n, 1024, 1024);
+            let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.view()).collect();
+            let maps = vec![Affine::IDENTITY; n];
+            let mut outs = vec![Array2::<f32>::zeros((1024, 1024)); n];
+            let into = median_ms(11, || leave_one_out_medians_into(&views, &maps, &mut outs).unwrap());
+            println!("{n:2} x 1024^2, {t} threads: leave-one-out into reused buffers {into:.2} ms");
+            if n == 5 {
+                let rm = median_ms(11, || {
+                    std::hint::black_box(running_median_x(frames[0].view(), 7).unwrap());
+                });
+                println!("running median along x, window 15, 1024^2: {rm:.2} ms");
+            }
+            println!("{n:2} x 1024^2, {t} threads: all {n} leave-one-out medians {loo:.2} ms; one median {med:.2} ms");
+        }
+    }
+}

@@ -1,0 +1,61 @@
+//! Provenance and the human summary shared by `target`, `night` and `demo`.
+use sofipol_calib::Profile;
+use sofipol_pipeline::catalog::{Catalog, Status};
+
+/// Provenance block of a catalog: software, command line, profile, parameters, time.
+pub fn provenance(profile: &Profile, params: &impl serde::Serialize) -> serde_json::Value {
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0);
+    serde_json::json!({
+        "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
+        "command_line": std::env::args().collect::<Vec<_>>(),
+        "created_utc": sofipol_pipeline::sim::effects::iso_from_mjd(40587.0 + now / 86400.0, false),
+        "profile": profile,
+        "parameters": params,
+    })
+}
+
+/// A table of the catalog for a terminal.
+pub fn summary(cat: &Catalog) -> String {
+    let mut s = String::new();
+    s += &format!(
+        "{:<16} {:<7} {:>4} {:>8} {:>7} {:>7} {:>6} {:>5} {:>6}  {}\n",
+        "object", "status", "comp", "P [%]", "sig_P", "gamma", "sig_g", "cut", "dgamma", "flags"
+    );
+    for t in &cat.targets {
+        let st = match t.status {
+            Status::Ok => "ok",
+            Status::Partial => "partial",
+            Status::Failed => "FAILED",
+        };
+        if t.components.is_empty() {
+            s += &format!("{:<16} {:<7}  {}\n", t.object, st, t.error.as_deref().unwrap_or(""));
+            continue;
+        }
+        for (i, c) in t.components.iter().enumerate() {
+            let dg = match (i, t.delta_gamma_deg) {
+                (0, Some(d)) => format!("{d:6.1}"),
+                _ => "     -".into(),
+            };
+            s += &format!(
+                "{:<16} {:<7} {:>4} {:>8.3} {:>7.3} {:>7.1} {:>6.1} {:>5} {}  {}\n",
+                if i == 0 { t.object.as_str() } else { "" },
+                if i == 0 { st } else { "" },
+                c.name,
+                100.0 * c.p,
+                100.0 * c.sigma_p,
+                c.gamma_deg,
+                c.sigma_gamma_deg,
+                if c.passes_cut { "pass" } else { "-" },
+                dg,
+                c.flags.join(",")
+            );
+        }
+    }
+    if !cat.failures.is_empty() {
+        s += &format!("\n{} input(s) not used:\n", cat.failures.len());
+        for f in &cat.failures {
+            s += &format!("  {}: {}\n", f.file, f.error);
+        }
+    }
+    s
+}
