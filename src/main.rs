@@ -1,5 +1,6 @@
 //! `sofipol`: the command-line front end. Thin: parse -> validated parameters -> call the
-//! libraries -> map the outcome to an exit code (see docs/cli.md for the codes).
+//! libraries -> map the outcome to an exit code: 0 everything reduced, 1 usage or fatal error, 2 reduced but some
+//! input unusable or some target not fully reduced (docs/cli.md).
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
@@ -20,6 +21,10 @@ enum Command {
     Demo(cmd::demo::Args),
     /// Write SOFI-like raw frames and a truth JSON from a scene TOML.
     Simulate(cmd::simulate::Args),
+    /// Reduce a whole night directory in parallel into one catalog.
+    Night(cmd::night::Args),
+    /// Join shard catalogs written with `night --shard K/N`.
+    Merge(cmd::merge::Args),
     /// Reduce one target sequence (files or a directory) to a JSON catalog.
     Target(cmd::target::Args),
     /// Projection / interstellar-polarization Monte Carlo of Pi(Delta gamma).
@@ -36,6 +41,8 @@ fn main() -> ExitCode {
         Command::Demo(a) => cmd::demo::run(a),
         Command::Simulate(a) => cmd::simulate::run(a),
         Command::Target(a) => cmd::target::run(a),
+        Command::Night(a) => cmd::night::run(a),
+        Command::Merge(a) => cmd::merge::run(a),
         Command::Mc(a) => cmd::mc::run(a),
         Command::Stats(a) => cmd::stats::run(a),
         Command::Bench(a) => cmd::bench::run(a),

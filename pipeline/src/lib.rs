@@ -19,6 +19,7 @@
 pub mod accuracy;
 pub mod catalog;
 pub mod io;
+pub mod night;
 pub mod photometry;
 pub mod plots;
 pub mod reduce;

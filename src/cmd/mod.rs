@@ -3,6 +3,8 @@ pub mod bench;
 pub mod common;
 pub mod demo;
 pub mod mc;
+pub mod merge;
+pub mod night;
 pub mod simulate;
 pub mod report;
 pub mod stats;
