@@ -158,7 +158,7 @@ pub fn aperture_sum(
         n_pixels: 0,
         max_value: None,
     };
-    if !(ap.r > 0.0) || !ap.x.is_finite() || !ap.y.is_finite() || !ap.r.is_finite() {
+    if ap.r.is_nan() || ap.r <= 0.0 || !ap.x.is_finite() || !ap.y.is_finite() || !ap.r.is_finite() {
         return out;
     }
     let inside = if nx == 0 || ny == 0 {
@@ -186,6 +186,18 @@ pub fn aperture_sum(
         // An interior run (w = 1): straight loops over the row, bad pixels handled one by one.
         let (a, b) = (ix0 as usize, ix1 as usize);
         let row = ctx.img.row(iy);
+        if ctx.mask.is_none() {
+            let vals = row.slice(s![a..=b]);
+            let vrow = ctx.var.as_ref().map(|v| v.row(iy));
+            let vars = vrow.as_ref().map(|v| v.slice(s![a..=b]));
+            if let Some(vals) = vals.as_slice() {
+                let vars = vars.as_ref().map(|v| v.as_slice());
+                if let Some(done) = run_sum(vals, vars) {
+                    acc.add_run(done, b - a + 1);
+                    return;
+                }
+            }
+        }
         match (&ctx.var, &ctx.mask) {
             (None, None) => {
                 for (ix, &v) in (a..=b).zip(row.slice(s![a..=b]).iter()) {
@@ -228,6 +240,29 @@ pub fn aperture_sum(
     out
 }
 
+/// Sum, variance sum and maximum of a contiguous run of weight-1 pixels, or None if the run
+/// holds a bad value (or the variance row is not contiguous): then it is done pixel by pixel.
+#[inline]
+fn run_sum(vals: &[f32], vars: Option<Option<&[f32]>>) -> Option<(f64, f64, f64)> {
+    let mut sum = 0.0f64;
+    let mut max = f32::NEG_INFINITY;
+    let mut ok = true;
+    for &v in vals {
+        sum += v as f64;
+        max = max.max(v);
+        ok &= v.is_finite();
+    }
+    let mut var_sum = 0.0f64;
+    if let Some(vars) = vars {
+        let vars = vars?;
+        for &q in vars {
+            var_sum += q as f64;
+            ok &= q.is_finite() && q >= 0.0;
+        }
+    }
+    ok.then_some((sum, var_sum, max as f64))
+}
+
 #[derive(Default)]
 struct Acc {
     sum: f64,
@@ -241,6 +276,19 @@ struct Acc {
 }
 
 impl Acc {
+    /// A run of `n` valid weight-1 pixels summarised by [`run_sum`].
+    #[inline]
+    fn add_run(&mut self, (sum, var_sum, max): (f64, f64, f64), n: usize) {
+        self.sum += sum;
+        self.var_sum += var_sum;
+        self.area += n as f64;
+        self.area_w2 += n as f64;
+        self.n_pixels += n;
+        if max > self.max_value {
+            self.max_value = max;
+        }
+    }
+
     /// A valid pixel of value `v`, weight `w`, variance `q` (0 without a map).
     #[inline]
     fn add(&mut self, v: f64, w: f64, q: f64) {
@@ -268,8 +316,8 @@ impl Ctx<'_> {
     #[inline]
     fn valid(&self, ix: usize, iy: usize) -> bool {
         self.img[[iy, ix]].is_finite()
-            && self.mask.as_ref().map_or(true, |m| m[[iy, ix]] == 0)
-            && self.var.as_ref().map_or(true, |v| {
+            && self.mask.as_ref().is_none_or(|m| m[[iy, ix]] == 0)
+            && self.var.as_ref().is_none_or(|v| {
                 let q = v[[iy, ix]];
                 q.is_finite() && q >= 0.0
             })
@@ -314,7 +362,7 @@ mod tests {
     fn photometry_all_ones_sum_is_pi_r2_over_grid() {
         let img = Array2::<f32>::ones((80, 80));
         let mut worst = 0.0f64;
-        for &r in &[0.05, 0.3, 0.5, 0.70710678118654757, 1.0, 1.7, 2.5, 5.0, 10.3, 17.0, 30.0] {
+        for &r in &[0.05, 0.3, 0.5, std::f64::consts::FRAC_1_SQRT_2, 1.0, 1.7, 2.5, 5.0, 10.3, 17.0, 30.0] {
             for i in 0..9 {
                 for j in 0..9 {
                     let (x, y) = (39.0 + i as f64 / 8.0, 40.0 + j as f64 / 8.0 + 0.01 * i as f64);
@@ -330,6 +378,58 @@ mod tests {
             }
         }
         assert!(worst < 1e-10);
+    }
+
+    proptest::proptest! {
+        /// The run-based fast path equals a naive loop over every pixel with `pixel_weight`,
+        /// with variance map, mask, NaNs and truncation.
+        #[test]
+        fn photometry_prop_sum_matches_naive_loop(
+            cx in -4.0f64..24.0, cy in -4.0f64..20.0, r in 0.01f64..12.0, seed in 0u64..1000,
+            m in 0usize..3, use_var in proptest::bool::ANY, use_mask in proptest::bool::ANY,
+        ) {
+            let method = [Method::Exact, Method::Center, Method::Subpixel(4)][m];
+            let (ny, nx) = (17, 21);
+            let h = |i: usize, k: u64| (((i as u64 + 1) * 2_654_435_761) ^ ((seed + k) * 40_503)) % 1000;
+            let img = Array2::from_shape_fn((ny, nx), |(y, x)| {
+                let i = y * nx + x;
+                if h(i, 3) == 7 { f32::NAN } else { h(i, 0) as f32 * 0.37 - 50.0 }
+            });
+            let var = Array2::from_shape_fn((ny, nx), |(y, x)| h(y * nx + x, 1) as f32 * 0.01);
+            let mask = Array2::from_shape_fn((ny, nx), |(y, x)| u8::from(h(y * nx + x, 2) < 60));
+            let ap = Aperture { x: cx, y: cy, r };
+            let vv = use_var.then(|| var.view());
+            let mm = use_mask.then(|| mask.view());
+            let s = aperture_sum(img.view(), vv, mm, &ap, method, MaskFill::Exclude);
+            let (mut sum, mut vs, mut area, mut masked, mut n) = (0.0, 0.0, 0.0, 0.0, 0);
+            for y in 0..ny {
+                for x in 0..nx {
+                    let w = crate::photometry::pixel_weight(method, cx, cy, r, x as i64, y as i64);
+                    if w == 0.0 {
+                        continue;
+                    }
+                    let bad = !img[[y, x]].is_finite() || (use_mask && mask[[y, x]] != 0);
+                    if bad {
+                        masked += w;
+                    } else {
+                        sum += w * img[[y, x]] as f64;
+                        vs += w * w * var[[y, x]] as f64;
+                        area += w;
+                        n += 1;
+                    }
+                }
+            }
+            let tol = 1e-12 * (1.0 + sum.abs() + area);
+            proptest::prop_assert!((s.sum - sum).abs() <= tol, "{} vs {}", s.sum, sum);
+            proptest::prop_assert!((s.area - area).abs() <= 1e-12 * (1.0 + area));
+            proptest::prop_assert!((s.masked_area - masked).abs() <= 1e-12 * (1.0 + masked));
+            proptest::prop_assert_eq!(s.n_pixels, n);
+            if use_var {
+                proptest::prop_assert!((s.variance.unwrap() - vs).abs() <= 1e-12 * (1.0 + vs));
+            } else {
+                proptest::prop_assert!(s.variance.is_none());
+            }
+        }
     }
 
     #[test]

@@ -110,7 +110,7 @@ pub fn sigma_clip(values: &mut Vec<f64>, k: f64, max_iter: u32) -> Option<Clippe
     while iterations < max_iter {
         let med = median_in_place(values);
         let (_, std) = mean_std(values);
-        if !(std > 0.0) {
+        if std.is_nan() || std <= 0.0 {
             break;
         }
         let before = values.len();
@@ -135,6 +135,16 @@ pub fn sigma_clip(values: &mut Vec<f64>, k: f64, max_iter: u32) -> Option<Clippe
 ///
 /// Returns None when fewer than 2 pixels survive (no scatter can be measured); the caller
 /// decides whether `n` is enough (see `PhotParams::min_sky_pixels`).
+///
+/// ```
+/// use ndarray::Array2;
+/// use sofipol_pipeline::photometry::{annulus_background, Annulus, BkgStat};
+/// let mut img = Array2::<f32>::from_elem((40, 40), 3.0);
+/// img[[20, 28]] = 1e4; // a hot pixel in the annulus, clipped
+/// let ann = Annulus { x: 20.0, y: 20.0, r_in: 6.0, r_out: 10.0 };
+/// let b = annulus_background(img.view(), None, &ann, &[], BkgStat::ClippedMean, 3.0, 5).unwrap();
+/// assert_eq!((b.level, b.n_rejected), (3.0, 1));
+/// ```
 pub fn annulus_background(
     img: ArrayView2<f32>,
     mask: Option<ArrayView2<u8>>,
@@ -145,7 +155,7 @@ pub fn annulus_background(
     iters: u32,
 ) -> Option<Background> {
     let (ny, nx) = img.dim();
-    if !(ann.r_out > ann.r_in.max(0.0)) || !ann.x.is_finite() || !ann.y.is_finite() || ny == 0 || nx == 0 {
+    if ann.r_out.is_nan() || ann.r_out <= ann.r_in.max(0.0) || !ann.x.is_finite() || !ann.y.is_finite() || ny == 0 || nx == 0 {
         return None;
     }
     let (ri2, ro2) = (ann.r_in.max(0.0).powi(2), ann.r_out * ann.r_out);

@@ -56,6 +56,15 @@ pub struct Centroid {
 ///
 /// Returns None when the windowed flux is not positive or the centroid leaves
 /// `max_shift_px` of the guess.
+///
+/// ```
+/// use ndarray::Array2;
+/// use sofipol_pipeline::photometry::{centroid, model::add_gaussian, CentroidParams};
+/// let mut img = Array2::<f32>::from_elem((32, 32), 10.0);
+/// add_gaussian(&mut img.view_mut(), 1e4, 15.3, 16.7, 1.3, 1.3);
+/// let c = centroid(img.view(), None, 16.0, 16.0, &CentroidParams::default()).unwrap();
+/// assert!((c.x - 15.3).abs() < 1e-3 && (c.y - 16.7).abs() < 1e-3);
+/// ```
 pub fn centroid(
     img: ArrayView2<f32>,
     mask: Option<ArrayView2<u8>>,
@@ -64,7 +73,7 @@ pub fn centroid(
     params: &CentroidParams,
 ) -> Option<Centroid> {
     let (ny, nx) = img.dim();
-    if !(params.fwhm_px > 0.0) || !x0.is_finite() || !y0.is_finite() || nx == 0 || ny == 0 {
+    if params.fwhm_px.is_nan() || params.fwhm_px <= 0.0 || !x0.is_finite() || !y0.is_finite() || nx == 0 || ny == 0 {
         return None;
     }
     let sw = params.fwhm_px / FWHM_PER_SIGMA;
@@ -78,7 +87,7 @@ pub fn centroid(
     };
     let inv2s2 = 0.5 / (sw * sw);
     let good = |ix: usize, iy: usize| {
-        img[[iy, ix]].is_finite() && mask.as_ref().map_or(true, |m| m[[iy, ix]] == 0)
+        img[[iy, ix]].is_finite() && mask.as_ref().is_none_or(|m| m[[iy, ix]] == 0)
     };
     let (mut x, mut y) = (x0, y0);
     let mut converged = false;
@@ -114,7 +123,7 @@ pub fn centroid(
                 sy += wi * dy;
             }
         }
-        if !(s0 > 0.0) {
+        if s0.is_nan() || s0 <= 0.0 {
             return None;
         }
         let (stx, sty) = (1.5 * sx / s0, 1.5 * sy / s0);

@@ -226,7 +226,7 @@ pub fn measure(
         (f64::NAN, f64::NAN)
     };
     let snr = flux / variance.sqrt();
-    if !(snr >= params.min_snr) {
+    if snr.is_nan() || snr < params.min_snr {
         flags |= Flags::LOW_SNR;
     }
     Photometry { x, y, flux, variance, snr, aperture: sum, background, flags }

@@ -207,6 +207,14 @@ fn subpixel_weight(x0: f64, x1: f64, y0: f64, y1: f64, r: f64, n: u32) -> f64 {
 ///
 /// Only pixels with `cols.0 <= ix <= cols.1` and `rows.0 <= iy <= rows.1` are visited (pass
 /// `(i64::MIN, i64::MAX)` for no limit), so the cost is bounded by the image, not by `r`.
+///
+/// ```
+/// use sofipol_pipeline::photometry::{for_each_weight, Method};
+/// let mut area = 0.0;
+/// let all = (i64::MIN, i64::MAX);
+/// for_each_weight(3.2, 4.9, 2.5, Method::Exact, all, all, |_ix, _iy, w| area += w);
+/// assert!((area - std::f64::consts::PI * 6.25).abs() < 1e-12);
+/// ```
 pub fn for_each_weight<F: FnMut(i64, i64, f64)>(
     cx: f64,
     cy: f64,
@@ -235,7 +243,7 @@ pub(crate) fn for_each_run<F: FnMut(i64, i64, i64, f64)>(
     rows: (i64, i64),
     mut visit: F,
 ) {
-    if !(r > 0.0) || !cx.is_finite() || !cy.is_finite() || !r.is_finite() || cols.0 > cols.1 {
+    if r.is_nan() || r <= 0.0 || !cx.is_finite() || !cy.is_finite() || !r.is_finite() || cols.0 > cols.1 {
         return;
     }
     let iy_lo = ((cy - r - 0.5).floor() as i64).max(rows.0);
@@ -477,7 +485,7 @@ mod tests {
 
         #[test]
         fn photometry_prop_overlap_boundary_pixels_large_r(
-            cx in -0.5f64..0.5, cy in -0.5f64..0.5, r in 3.0f64..300.0, phi in 0.0f64..6.2831853,
+            cx in -0.5f64..0.5, cy in -0.5f64..0.5, r in 3.0f64..300.0, phi in 0.0f64..std::f64::consts::TAU,
         ) {
             // A pixel on the circle's boundary at polar angle phi.
             let ix = (cx + r * phi.cos()).round() as i64;

@@ -241,7 +241,7 @@ fn cholesky(a: &mut [f64], n: usize) -> bool {
         for k in 0..j {
             d -= a[j * n + k] * a[j * n + k];
         }
-        if !(d > 0.0) {
+        if d.is_nan() || d <= 0.0 {
             return false;
         }
         let d = d.sqrt();
@@ -480,6 +480,20 @@ pub fn fit_psf(
 }
 
 /// [`fit_psf`] for a pair: `a` and `b` are the initial positions of the two components.
+///
+/// ```
+/// use ndarray::Array2;
+/// use sofipol_pipeline::photometry::{fit_two_psf, model::add_gaussian, subtract_star, PsfFitParams};
+/// // Two stars 4 px apart (1.4 FWHM), on a sky of 5 ADU.
+/// let mut img = Array2::<f32>::from_elem((40, 40), 5.0);
+/// add_gaussian(&mut img.view_mut(), 2e4, 18.0, 20.0, 1.2, 1.2);
+/// add_gaussian(&mut img.view_mut(), 5e3, 22.0, 20.5, 1.2, 1.2);
+/// let fit = fit_two_psf(img.view(), None, None, (18.3, 19.8), (21.6, 20.9), &PsfFitParams::default()).unwrap();
+/// assert!((fit.stars[1].flux / 5e3 - 1.0).abs() < 1e-4);
+/// // Deblend: the primary alone (plus sky).
+/// let primary = subtract_star(img.view(), &fit, 1);
+/// assert!((primary[[20, 22]] - 5.0) < 0.1 * (img[[20, 22]] - 5.0));
+/// ```
 pub fn fit_two_psf(
     img: ArrayView2<f32>,
     var: Option<ArrayView2<f32>>,

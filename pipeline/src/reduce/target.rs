@@ -81,14 +81,18 @@ pub fn reduce_sequence(seq: &Sequence, profile: &Profile, params: &TargetParams,
     let t = std::time::Instant::now();
     // Read every frame; a file that cannot be read is a failure, the rest goes on.
     let mut orients: Vec<(f64, f64, Vec<Frame>, Vec<[f64; 2]>)> = Vec::new();
-    for o in &seq.orientations {
+    // The sequence as read: problems (missing dithers...) are judged on the usable frames.
+    let mut readable = seq.clone();
+    for (o, ro) in seq.orientations.iter().zip(readable.orientations.iter_mut()) {
         let mut frames = Vec::new();
         let mut offs = Vec::new();
+        ro.exposures.clear();
         for e in &o.exposures {
             match fits::read_frame(&e.path) {
                 Ok(f) => {
                     frames.push(f);
                     offs.push(e.offset_px);
+                    ro.exposures.push(e.clone());
                 }
                 Err(err) => failures.push(Failure { file: e.path.display().to_string(), error: err.to_string() }),
             }
@@ -96,7 +100,8 @@ pub fn reduce_sequence(seq: &Sequence, profile: &Profile, params: &TargetParams,
         orients.push((o.posang_deg, o.analyzer_deg, frames, offs));
     }
     times.read = t.elapsed().as_secs_f64();
-    let mut out = reduce_loaded(seq, orients, profile, params, keep_frames);
+    let mut out = reduce_loaded(&readable, orients, profile, params, keep_frames);
+    out.target.extra.insert("input_files".into(), serde_json::json!(seq.files()));
     out.times.read = times.read;
     failures.extend(out.failures);
     out.failures = failures;

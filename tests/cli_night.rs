@@ -1,0 +1,152 @@
+//! End-to-end: a simulated night with bad inputs mixed in, through the `sofipol` binary.
+use std::path::Path;
+use std::process::Command;
+
+use serde_json::Value;
+use sofipol_calib::{fits, Header};
+
+const BIN: &str = env!("CARGO_BIN_EXE_sofipol");
+
+const SCENE: &str = r#"
+name = "it"
+seed = 99
+effects = ["psf", "sky", "strips", "photon_noise", "read_noise", "bad_pixels", "pointing_error"]
+[observation]
+orientations_deg = [0.0, 45.0]
+dithers = 4
+[psf]
+kind = "moffat"
+fwhm_arcsec = 0.8
+[[binary]]
+name = "Alpha"
+separation_arcsec = 4.0
+pa_deg = 30.0
+flux_a = 120000.0
+flux_b = 60000.0
+p_a = 0.05
+gamma_a_deg = 20.0
+p_b = 0.04
+gamma_b_deg = 110.0
+[[binary]]
+name = "Beta"
+separation_arcsec = 3.0
+pa_deg = 200.0
+flux_a = 100000.0
+flux_b = 70000.0
+p_a = 0.03
+gamma_a_deg = 60.0
+p_b = 0.06
+gamma_b_deg = 150.0
+[[binary]]
+name = "Gamma"
+separation_arcsec = 2.5
+pa_deg = 300.0
+flux_a = 90000.0
+flux_b = 50000.0
+p_a = 0.04
+gamma_a_deg = 170.0
+p_b = 0.02
+gamma_b_deg = 80.0
+"#;
+
+fn run(args: &[&str]) -> (i32, String, String) {
+    let o = Command::new(BIN).args(args).output().expect("run sofipol");
+    (o.status.code().unwrap_or(-1), String::from_utf8_lossy(&o.stdout).into(), String::from_utf8_lossy(&o.stderr).into())
+}
+
+fn catalog(p: &Path) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+}
+
+fn without_time(mut v: Value) -> Value {
+    v["provenance"]["created_utc"] = Value::Null;
+    v["provenance"]["command_line"] = Value::Null;
+    v
+}
+
+#[test]
+fn a_night_with_bad_inputs_reduces_every_good_target_and_names_every_bad_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let night = dir.path().join("night");
+    let scene = dir.path().join("scene.toml");
+    std::fs::write(&scene, SCENE).unwrap();
+    let (code, _, err) = run(&["simulate", scene.to_str().unwrap(), "-o", night.to_str().unwrap(), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_file(night.join("truth.json")).unwrap();
+    // Damage: a truncated copy, a text file, a flat from another template, a frame missing
+    // POSANG, and one dither of Beta removed.
+    let good = night.join("SOFI_it_Alpha_01.fits");
+    let bytes = std::fs::read(&good).unwrap();
+    std::fs::create_dir(night.join("sub")).unwrap();
+    std::fs::write(night.join("sub/truncated.fits"), &bytes[..bytes.len() / 3]).unwrap();
+    std::fs::write(night.join("notes.fits"), "observing log: clouds at 3 UT\n").unwrap();
+    let mut flat = fits::read_frame(&good).unwrap();
+    flat.header.set("ESO TPL ID", "SOFI_img_cal_SkyFlats");
+    flat.header.set("ESO DPR TYPE", "FLAT");
+    flat.header.set("ESO DPR TECH", "IMAGE");
+    fits::write_frame(&night.join("flat_0001.fits"), &flat, &Default::default()).unwrap();
+    let mut nokey = fits::read_frame(&good).unwrap();
+    nokey.header.cards.retain(|c| c.key != "ESO ADA POSANG");
+    nokey.header.set("ESO TPL START", "1999-03-03T05:00:00");
+    fits::write_frame(&night.join("nokey.fits"), &nokey, &Default::default()).unwrap();
+    std::fs::remove_file(night.join("SOFI_it_Beta_07.fits")).unwrap();
+    let _ = Header::default();
+
+    let out1 = dir.path().join("cat1.json");
+    let (code, stdout, err) = run(&["night", night.to_str().unwrap(), "-o", out1.to_str().unwrap(), "--jobs", "2"]);
+    assert_eq!(code, 2, "exit code for a night with failures\n{stdout}\n{err}");
+    let c = catalog(&out1);
+    let targets = c["targets"].as_array().unwrap();
+    let names: Vec<&str> = targets.iter().map(|t| t["object"].as_str().unwrap()).collect();
+    assert_eq!(names.len(), 3, "{names:?}");
+    for t in targets {
+        let obj = t["object"].as_str().unwrap();
+        let status = t["status"].as_str().unwrap();
+        if obj == "Beta" {
+            assert_eq!(status, "partial", "{t}");
+            assert!(t["error"].as_str().unwrap().contains("unequal") || t["error"].as_str().unwrap().contains("of 8"), "{t}");
+        } else {
+            assert_eq!(status, "ok", "{obj}: {t}");
+        }
+        assert_eq!(t["components"].as_array().unwrap().len(), 2, "{obj}");
+        for comp in t["components"].as_array().unwrap() {
+            assert!(comp["q"].as_f64().unwrap().is_finite());
+        }
+    }
+    let fails = c["failures"].as_array().unwrap();
+    let find = |name: &str| fails.iter().find(|f| f["file"].as_str().unwrap().ends_with(name)).map(|f| f["error"].as_str().unwrap().to_string());
+    assert!(find("truncated.fits").is_some(), "{fails:?}");
+    assert!(find("notes.fits").is_some(), "{fails:?}");
+    assert!(find("flat_0001.fits").unwrap().contains("SOFI_img_cal_SkyFlats") || find("flat_0001.fits").unwrap().contains("FLAT"), "{fails:?}");
+    assert!(find("nokey.fits").unwrap().contains("ESO ADA POSANG"), "{fails:?}");
+    assert_eq!(fails.len(), 4, "{fails:?}");
+    assert!(stdout.contains("Alpha") && stdout.contains("truncated.fits"), "{stdout}");
+
+    // Same inputs, one thread: identical catalog (timestamps aside).
+    let out2 = dir.path().join("cat2.json");
+    let (code, _, _) = run(&["night", night.to_str().unwrap(), "-o", out2.to_str().unwrap(), "--jobs", "1", "-q", "--no-png"]);
+    assert_eq!(code, 2);
+    assert_eq!(without_time(catalog(&out1)), without_time(catalog(&out2)));
+
+    // Shards 1/2 and 2/2 merged hold the same targets and failures as the whole night.
+    let s1 = dir.path().join("s1.json");
+    let s2 = dir.path().join("s2.json");
+    run(&["night", night.to_str().unwrap(), "-o", s1.to_str().unwrap(), "--shard", "1/2", "-q", "--no-png"]);
+    run(&["night", night.to_str().unwrap(), "-o", s2.to_str().unwrap(), "--shard", "2/2", "-q", "--no-png"]);
+    let merged = dir.path().join("merged.json");
+    let (code, _, err) = run(&["merge", s1.to_str().unwrap(), s2.to_str().unwrap(), "-o", merged.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let m = catalog(&merged);
+    assert_eq!(m["targets"], c["targets"]);
+    assert_eq!(m["failures"], c["failures"]);
+}
+
+#[test]
+fn usage_errors_exit_1_and_name_the_problem() {
+    let (code, _, err) = run(&["night", "/nonexistent/night", "-o", "/tmp/x.json"]);
+    assert_eq!(code, 1);
+    assert!(err.contains("/nonexistent/night"), "{err}");
+    let (code, _, err) = run(&["night", "/tmp", "--shard", "3/2"]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("3/2"), "{err}");
+}
