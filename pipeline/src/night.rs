@@ -125,6 +125,45 @@ pub fn reduce_night(
     NightResult { catalog, times }
 }
 
+/// The detector's bad pixels for the whole night: detector defects stay put while stars
+/// move between dithers and between sequences, so one median stack of frames taken from
+/// many sequences (first and middle dithers, round-robin) finds them once. Returns the
+/// mask and the files used, or None when fewer than 3 frames can be read.
+pub fn night_bad_pixel_mask(plan: &NightPlan, profile: &Profile, opts: &sofipol_calib::badpix::BadPixelOptions, max_frames: usize) -> Option<(ndarray::Array2<u8>, Vec<String>)> {
+    let mut picks: Vec<PathBuf> = Vec::new();
+    let mut round = 0;
+    while picks.len() < max_frames {
+        let mut any = false;
+        for q in &plan.sequences {
+            for o in &q.orientations {
+                // Round 0: first dither; round 1: middle dither; ...
+                let idx = (round * o.exposures.len() / 2 + round) % o.exposures.len().max(1);
+                if round < o.exposures.len() {
+                    if let Some(e) = o.exposures.get(idx) {
+                        if picks.len() < max_frames && !picks.contains(&e.path) {
+                            picks.push(e.path.clone());
+                            any = true;
+                        }
+                    }
+                }
+                break; // one orientation per sequence per round
+            }
+        }
+        round += 1;
+        if !any || round > 8 {
+            break;
+        }
+    }
+    let frames: Vec<sofipol_calib::Frame> = picks.par_iter().filter_map(|p| sofipol_calib::fits::read_frame(p).ok()).collect();
+    let shape = frames.first()?.shape();
+    let frames: Vec<&sofipol_calib::Frame> = frames.iter().filter(|f| f.shape() == shape).collect();
+    if frames.len() < 3 {
+        return None;
+    }
+    let (mask, _report) = sofipol_calib::badpix::detect_bad_pixels(&frames, profile, opts).ok()?;
+    Some((mask, frames.iter().map(|f| f.path().display().to_string()).collect()))
+}
+
 /// Join shard catalogs: targets ordered by sequence, failures by file, duplicates (the same
 /// sequence in two shards) refused.
 pub fn merge(parts: Vec<(String, Catalog)>) -> Result<Catalog, String> {

@@ -92,12 +92,27 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             plot_target(d, out);
         }
     };
+    // The detector's defects, detected once for the night (unless only a calibration mask
+    // is wanted).
+    let mut params = params;
+    let mut night_mask_files = Vec::new();
+    if !params.no_detect_bad_pixels {
+        let t = std::time::Instant::now();
+        if let Some((m, files)) = pool.install(|| night::night_bad_pixel_mask(&plan, &profile, &params.bad_pixels, 15)) {
+            if args.verbose > 0 {
+                eprintln!("night bad-pixel mask: {} pixels from {} frames in {:.2} s", m.iter().filter(|&&v| v != 0).count(), files.len(), t.elapsed().as_secs_f64());
+            }
+            params.night_mask = Some(std::sync::Arc::new(m));
+            night_mask_files = files;
+        }
+    }
     let res = pool.install(|| night::reduce_night(&plan, &profile, &params, png_dir.is_some(), &on_done, &plot));
     pb.finish_and_clear();
     let mut cat = res.catalog;
     let mut prov = super::report::provenance(&profile, &params);
     prov["shard"] = serde_json::json!(args.shard.map(|s| format!("{}/{}", s.k, s.n)));
     prov["inputs"] = serde_json::json!(args.dirs);
+    prov["night_bad_pixel_mask_from"] = serde_json::json!(night_mask_files);
     cat.provenance = prov;
     sofipol_pipeline::io::write_json_atomic(&args.output, &cat).with_context(|| format!("writing {}", args.output.display()))?;
     let wall = t0.elapsed().as_secs_f64();

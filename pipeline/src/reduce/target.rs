@@ -29,6 +29,10 @@ pub struct TargetParams {
     pub no_detect_bad_pixels: bool,
     /// Write sky-subtracted FITS frames (data, VARIANCE, MASK) into this directory.
     pub save_intermediate: Option<PathBuf>,
+    /// A bad-pixel mask already detected (night mode detects the detector's defects once
+    /// from frames of many sequences); used instead of per-target detection.
+    #[serde(skip)]
+    pub night_mask: Option<std::sync::Arc<ndarray::Array2<u8>>>,
 }
 
 /// Timings of the stages of one target, seconds.
@@ -131,7 +135,15 @@ pub fn reduce_loaded(seq: &Sequence, orients: Vec<LoadedOrientation>, profile: &
             Err(e) => return failed(seq, format!("calibration mask: {e}"), failures, times),
         }
     }
-    if !params.no_detect_bad_pixels && all.len() >= 3 {
+    if let Some(nm) = &params.night_mask {
+        mask = Some(match mask {
+            Some(c) => match badpix::combine_masks(&c, nm) {
+                Ok(x) => x,
+                Err(e) => return failed(seq, format!("night bad-pixel mask: {e}"), failures, times),
+            },
+            None => (**nm).clone(),
+        });
+    } else if !params.no_detect_bad_pixels && all.len() >= 3 {
         match badpix::detect_bad_pixels(&all, profile, &params.bad_pixels) {
             Ok((m, _report)) => {
                 mask = Some(match mask {
