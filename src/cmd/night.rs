@@ -150,5 +150,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 
 /// Write the per-target figure (never fails the night: a problem is printed).
 fn plot_target(dir: &std::path::Path, out: &sofipol_pipeline::reduce::target::TargetOutcome) {
-    let _ = (dir, out);
+    let seq = out.target.extra.get("sequence").and_then(|v| v.as_str()).unwrap_or(&out.target.object);
+    let path = dir.join(format!("{}.png", night::slug(seq)));
+    if let Err(e) = sofipol_pipeline::plots::target::outcome_png(&path, out) {
+        eprintln!("sofipol: warning: {}: could not write the figure: {e}", path.display());
+    }
 }

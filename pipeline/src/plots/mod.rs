@@ -20,6 +20,8 @@ use std::sync::OnceLock;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 
+pub mod target;
+
 /// Errors of the plotting module.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
