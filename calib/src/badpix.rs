@@ -64,6 +64,9 @@ pub struct BadPixelReport {
     pub window_px: usize,
 }
 
+/// One strip's result: name, robust sigma (ADU), and (y, x, hot) of its bad pixels.
+type StripHits = (&'static str, f64, Vec<(usize, usize, bool)>);
+
 fn stage_err(reason: String) -> Error {
     Error::Stage { stage: "badpix", reason }
 }
@@ -88,12 +91,12 @@ pub fn detect_bad_pixels(frames: &[&Frame], profile: &Profile, opts: &BadPixelOp
     if n > stack::MAX_STACK {
         return Err(stage_err(format!("{n} frames given: at most {} per median stack", stack::MAX_STACK)));
     }
-    if !(opts.sigma > 0.0) || opts.window_px < 3 || opts.window_px > stack::MAX_STACK {
+    if opts.sigma.is_nan() || opts.sigma <= 0.0 || opts.window_px < 3 || 2 * (opts.window_px / 2) + 1 > stack::MAX_STACK {
         return Err(stage_err(format!(
             "sigma = {} must be > 0 and window_px = {} must be in 3..={}",
             opts.sigma,
             opts.window_px,
-            stack::MAX_STACK
+            stack::MAX_STACK - 1
         )));
     }
     let shape = frames[0].shape();
@@ -133,7 +136,7 @@ pub fn detect_bad_pixels(frames: &[&Frame], profile: &Profile, opts: &BadPixelOp
 
     // 3. Robust sigma (1.4826 MAD, from every 3rd pixel: +-0.7 % at 57k samples) and
     //    threshold per strip, strips in parallel.
-    let per_strip: Vec<(&'static str, f64, Vec<(usize, usize, bool)>)> = g
+    let per_strip: Vec<StripHits> = g
         .strips()
         .par_iter()
         .map(|&(name, [y0, y1])| {

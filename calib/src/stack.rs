@@ -418,8 +418,8 @@ pub fn running_median_x(image: ArrayView2<f32>, half_window: usize) -> Result<Ar
             *buf.select_nth_unstable_by(k, |a, b| a.total_cmp(b)).1
         };
         if nx < n {
-            for x in 0..nx {
-                orow[x] = clipped(x);
+            for (x, o) in orow.iter_mut().enumerate() {
+                *o = clipped(x);
             }
             return;
         }

@@ -37,6 +37,12 @@ enum What {
         #[arg(long)]
         dir: Option<std::path::PathBuf>,
     },
+    /// Cost of each reduction stage on one simulated 10-frame sequence (medians).
+    Stages {
+        /// Repeats per stage.
+        #[arg(long, default_value_t = 5)]
+        repeats: usize,
+    },
     /// Reduction accuracy on simulated nights: pull widths by separation bin, and time.
     Accuracy {
         /// Targets per separation bin.
@@ -116,6 +122,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             println!("target: all effects <= 50 ms/frame on 2 cores: {}", if all <= 50.0 { "met" } else { "NOT met" });
         }
         What::Night { targets, jobs, repeats, dir } => bench_night(targets, jobs, repeats, dir)?,
+        What::Stages { repeats } => bench_stages(repeats)?,
         What::Accuracy { targets, seed, reduce } => {
             let params = reduce.params()?;
             let cfg = sofipol_pipeline::accuracy::AccuracyConfig { targets_per_bin: targets, seed, ..Default::default() };
@@ -189,5 +196,68 @@ fn bench_night(targets: usize, jobs: Option<usize>, repeats: usize, dir: Option<
         println!("  last run: {line}");
     }
     println!("  targets: <= 2.5 s wall, peak RSS <= 1 GB (2-core machine)");
+    Ok(())
+}
+
+fn bench_stages(repeats: usize) -> anyhow::Result<()> {
+    use sofipol_calib::{badpix, fits, sky, stack};
+    use sofipol_pipeline::reduce::{measure_sequence, target_entry, CalibratedOrientation, MeasureParams};
+    let scene = Scene::from_toml(&night_scene(1, 5), "bench").map_err(anyhow::Error::msg)?;
+    let profile = Profile::sofi();
+    let sim = Simulator::new(scene, profile.clone()).map_err(anyhow::Error::msg)?;
+    let frames: Vec<_> = (0..sim.frames_per_target()).map(|k| sim.frame(0, k)).collect();
+    let dir = tempfile::tempdir()?;
+    let path = dir.path().join("f.fits");
+    println!("sofipol bench stages: one sequence (2 orientations x 5 dithers, 1024x1024), median of {repeats}, {} threads", rayon::current_num_threads());
+    let w = stack::median_ms(repeats, || fits::write_frame(&path, &frames[0].frame, &Default::default()).expect("write"));
+    let r = stack::median_ms(repeats, || {
+        std::hint::black_box(fits::read_frame(&path).expect("read"));
+    });
+    println!("  {:<44} {:>8.2} ms", "FITS write (f32, atomic, fsync) / frame", w);
+    println!("  {:<44} {:>8.2} ms", "FITS read / frame", r);
+    let all: Vec<&sofipol_calib::Frame> = frames.iter().map(|f| &f.frame).collect();
+    let bp = stack::median_ms(repeats, || {
+        std::hint::black_box(badpix::detect_bad_pixels(&all, &profile, &Default::default()).expect("badpix"));
+    });
+    println!("  {:<44} {:>8.2} ms", "bad-pixel detection / sequence (10 frames)", bp);
+    let (mask, _) = badpix::detect_bad_pixels(&all, &profile, &Default::default())?;
+    let o0: Vec<sofipol_calib::Frame> = frames[..5].iter().map(|f| badpix::apply_mask(&f.frame, &mask)).collect::<Result<_, _>>()?;
+    let views: Vec<ndarray::ArrayView2<f32>> = o0.iter().map(|f| f.data.view()).collect();
+    let loo = stack::median_ms(repeats, || {
+        std::hint::black_box(stack::leave_one_out_medians(&views).expect("loo"));
+    });
+    println!("  {:<44} {:>8.2} ms", "leave-one-out medians / orientation (5)", loo);
+    let plain = sky::SkyOptions { cosmic_rays: None, ..Default::default() };
+    let rec = sky::SkyOptions::recommended();
+    let s1 = stack::median_ms(repeats, || {
+        std::hint::black_box(sky::sky_subtract(&o0, &profile, &plain).expect("sky"));
+    });
+    let s2 = stack::median_ms(repeats, || {
+        std::hint::black_box(sky::sky_subtract(&o0, &profile, &rec).expect("sky"));
+    });
+    println!("  {:<44} {:>8.2} ms", "sky subtraction / orientation, no CR flags", s1);
+    println!("  {:<44} {:>8.2} ms", "sky subtraction / orientation, with CR flags", s2);
+    let mut cal = Vec::new();
+    for (i, chunk) in frames.chunks(5).enumerate() {
+        let fr: Vec<sofipol_calib::Frame> = chunk.iter().map(|f| badpix::apply_mask(&f.frame, &mask)).collect::<Result<_, _>>()?;
+        cal.push(CalibratedOrientation {
+            posang_deg: chunk[0].truth.posang_deg,
+            analyzer_deg: chunk[0].truth.analyzer_deg,
+            frames: sky::sky_subtract(&fr, &profile, &rec)?,
+            offsets: chunk.iter().map(|f| f.truth.header_offset_px).collect(),
+        });
+        let _ = i;
+    }
+    let mp = MeasureParams::default();
+    let m = stack::median_ms(repeats, || {
+        let m = measure_sequence(&cal, &profile, &mp).expect("measure");
+        std::hint::black_box(target_entry("x", &cal, &m, &mp));
+    });
+    println!("  {:<44} {:>8.2} ms", "find sources + photometry + Stokes / sequence", m);
+    let per_seq = 10.0 * r + 2.0 * s2 + m;
+    println!(
+        "  => per sequence ~{per_seq:.0} ms of work (+ bad pixels {bp:.0} ms when detected per target); 49 sequences on 2 cores ~{:.1} s",
+        49.0 * per_seq / 1000.0 / 2.0
+    );
     Ok(())
 }
