@@ -27,7 +27,8 @@ use crate::profile::Profile;
 use crate::stack::{self, Affine};
 
 /// Options of [`detect_bad_pixels`].
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct BadPixelOptions {
     /// Threshold in robust standard deviations of the residual (median stack minus
     /// running median), per strip.
@@ -139,6 +140,7 @@ pub fn detect_bad_pixels(frames: &[&Frame], profile: &Profile, opts: &BadPixelOp
     let per_strip: Vec<StripHits> = g
         .strips()
         .par_iter()
+        .filter(|(_, [y0, y1])| y1 > y0) // a cropped profile has empty strips
         .map(|&(name, [y0, y1])| {
             let block = resid.slice(ndarray::s![y0..y1, ..]);
             let mut v: Vec<f32> = block.iter().step_by(3).copied().collect();

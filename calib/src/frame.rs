@@ -75,6 +75,22 @@ impl Frame {
         self
     }
 
+    /// Rows `[r0, r1)` of this frame as a new frame (row r0 becomes row 0), with a history
+    /// record. Pair with [`crate::Profile::cropped_rows`] so that geometry follows.
+    pub fn crop_rows(&self, r0: usize, r1: usize) -> Frame {
+        let (ny, _) = self.shape();
+        let (r0, r1) = (r0.min(ny), r1.min(ny).max(r0.min(ny)));
+        let sl = ndarray::s![r0..r1, ..];
+        Frame {
+            data: self.data.slice(sl).to_owned(),
+            variance: self.variance.as_ref().map(|v| v.slice(sl).to_owned()),
+            mask: self.mask.slice(sl).to_owned(),
+            header: self.header.clone(),
+            history: self.history.clone(),
+        }
+        .with_history("crop", format!("rows [{r0}, {r1}) of the detector; row {r0} is row 0 here"))
+    }
+
     /// The file this frame came from (may be empty).
     pub fn path(&self) -> &std::path::Path {
         &self.header.path

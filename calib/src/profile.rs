@@ -273,6 +273,24 @@ impl Profile {
         Ok(())
     }
 
+    /// The profile seen through a crop to detector rows `[r0, r1)`: row ranges shift by
+    /// -r0 and are clipped (strips outside the crop become empty); `ny = r1 - r0`.
+    pub fn cropped_rows(&self, r0: usize, r1: usize) -> Profile {
+        let mut p = self.clone();
+        let g = &mut p.geometry;
+        let n = r1.saturating_sub(r0);
+        let shift = |r: &mut [usize; 2]| {
+            let a = r[0].saturating_sub(r0).min(n);
+            let b = r[1].saturating_sub(r0).min(n);
+            *r = [a, b.max(a)];
+        };
+        for r in [&mut g.o_sky2, &mut g.e_sky2, &mut g.o_target, &mut g.e_target, &mut g.o_sky1, &mut g.e_sky1] {
+            shift(r);
+        }
+        g.ny = n;
+        p
+    }
+
     /// Keyword name of `INS OPTIi ID`.
     pub fn opti_key(&self, i: u32) -> String {
         format!("{}{} ID", self.keywords.opti_prefix, i)
@@ -313,6 +331,17 @@ mod tests {
         std::fs::write(&f, "[angles]\nparity = 2\n").unwrap();
         let e = Profile::sofi_with_override(&f).unwrap_err().to_string();
         assert!(e.contains("parity") && e.contains("o.toml"), "{e}");
+    }
+
+    #[test]
+    fn cropping_shifts_the_strips() {
+        let p = Profile::sofi().cropped_rows(345, 679);
+        assert_eq!(p.geometry.o_target, [0, 167]);
+        assert_eq!(p.geometry.e_target, [167, 334]);
+        assert_eq!(p.geometry.o_sky2[1] - p.geometry.o_sky2[0], 0);
+        assert_eq!(p.geometry.e_sky1[1] - p.geometry.e_sky1[0], 0);
+        assert_eq!(p.geometry.ny, 334);
+        assert!(p.geometry.row_in_strip(0) && !p.geometry.row_in_strip(334));
     }
 
     #[test]

@@ -2,8 +2,8 @@
 //!
 //! ```text
 //!  image (ADU) + variance (ADU^2) + mask ─┬─ centroid():   windowed first moment near a guess
-//!                                         ├─ fit_psf():    1..n pixel-integrated Gaussians by
-//!                                         │                Levenberg-Marquardt (close pairs);
+//!                                         ├─ fit_psf():    1..n pixel-integrated Gaussians or
+//!                                         │                Moffats by Levenberg-Marquardt;
 //!                                         │                subtract_star() deblends a companion
 //!                                         └─ measure():    aperture_sum()  exact/center/subpixel
 //!                                                          annulus_background()  sigma-clipped
@@ -39,8 +39,10 @@
 //! * [`annulus_background`] -> [`Background`], [`sigma_clip`]
 //! * [`measure`] with [`PhotParams`] -> [`Photometry`]
 //! * [`centroid`] with [`CentroidParams`] -> [`Centroid`]
-//! * [`fit_psf`], [`fit_two_psf`] with [`PsfFitParams`] -> [`PsfFit`]; [`subtract_star`]
+//! * [`fit_psf`], [`fit_two_psf`] with [`PsfFitParams`] ([`PsfModel`]) -> [`PsfFit`];
+//!   [`subtract_star`], [`PsfFit::render_star`], [`PsfFit::model_value`]
 //! * [`model`]: pixel-integrated Gaussian (erf differences) used by the fit and by simulators.
+//! * [`moffat`]: pixel-integrated circular Moffat (Gauss-Legendre quadrature per pixel).
 
 mod aperture;
 mod background;
@@ -48,9 +50,12 @@ mod centroid;
 mod flags;
 mod measure;
 pub mod model;
+pub mod moffat;
 mod overlap;
 mod psf;
 
+#[cfg(test)]
+mod psf_moffat_tests;
 #[cfg(test)]
 mod tests;
 
@@ -60,4 +65,7 @@ pub use centroid::{centroid, Centroid, CentroidParams};
 pub use flags::{flag_names, Flags};
 pub use measure::{measure, PhotParams, Photometry, Region};
 pub use overlap::{for_each_weight, overlap_circle_pixel, overlap_circle_rect, pixel_weight, Method};
-pub use psf::{fit_psf, fit_two_psf, subtract_star, PsfFit, PsfFitError, PsfFitParams, PsfStar};
+pub use psf::{
+    fit_psf, fit_two_psf, subtract_star, PsfFit, PsfFitError, PsfFitParams, PsfModel, PsfStar, MOFFAT_ALPHA_RANGE,
+    MOFFAT_BETA_RANGE, MOFFAT_BETA_START,
+};

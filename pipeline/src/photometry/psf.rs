@@ -1,16 +1,46 @@
-//! PSF fitting of one or a few close stars: pixel-integrated Gaussians with a shared shape,
-//! separate fluxes and positions, fitted by a small hand-written Levenberg-Marquardt.
+//! PSF fitting of one or a few close stars: pixel-integrated Gaussians or circular Moffats
+//! with a shared shape, separate fluxes and positions, fitted by a small hand-written
+//! Levenberg-Marquardt.
 //!
-//! Model of pixel `(ix, iy)`: `b + sum_k F_k Px(ix; x_k, sx) Py(iy; y_k, sy)` (see [`super::model`]).
+//! Gaussian model of pixel `(ix, iy)`: `b + sum_k F_k Px(ix; x_k, sx) Py(iy; y_k, sy)` (see
+//! [`super::model`]); Moffat model: `b + sum_k F_k M(ix - x_k, iy - y_k; alpha, beta)` with `M`
+//! the pixel integral of the unit-flux Moffat (see [`super::moffat`]). Fluxes are total fluxes.
 //! Parameters, in this order (also [`PsfFit::param_names`]):
-//! `F_0, x_0, y_0, F_1, x_1, y_1, ..., sx, [sy if elliptical], [b if fitted]`.
+//! `F_0, x_0, y_0, F_1, x_1, y_1, ..., sx, [sy if elliptical], [b if fitted]` (Gaussian) or
+//! `F_0, x_0, y_0, ..., alpha, [beta if fitted], [b if fitted]` (Moffat).
 //! Deblending a close pair: fit both, then [`subtract_star`] the companion's model from the
 //! image and do aperture photometry of the target on the result.
 
-use ndarray::{Array2, ArrayView2};
+use ndarray::{Array2, ArrayView2, ArrayViewMut2};
 use serde::{Deserialize, Serialize};
 
-use super::model::{add_gaussian, gauss_pixel_1d_derivs, FWHM_PER_SIGMA};
+use super::model::{add_gaussian, gauss_pixel_1d, gauss_pixel_1d_derivs, FWHM_PER_SIGMA};
+use super::moffat::{add_moffat, moffat_alpha, moffat_fwhm, moffat_pixel, moffat_pixel_derivs};
+
+/// Range of the Moffat `alpha` accepted by the fit, px.
+pub const MOFFAT_ALPHA_RANGE: (f64, f64) = (0.3, 30.0);
+/// Range of the Moffat `beta` accepted by the fit (when fitted).
+pub const MOFFAT_BETA_RANGE: (f64, f64) = (1.2, 10.0);
+/// Starting `beta` of a Moffat fit with a free `beta` (typical of seeing-limited PSFs).
+pub const MOFFAT_BETA_START: f64 = 3.0;
+
+/// The PSF model of [`fit_psf`]. In TOML: `{ kind = "gaussian" }`, `{ kind = "moffat" }`
+/// (free beta) or `{ kind = "moffat", beta = 3.0 }` (fixed beta).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum PsfModel {
+    /// Pixel-integrated (axis-aligned) Gaussian, exact erf differences.
+    #[default]
+    Gaussian,
+    /// Circular Moffat `(beta-1)/(pi alpha^2) (1 + r^2/alpha^2)^-beta`, integrated over each
+    /// pixel by Gauss-Legendre quadrature.
+    Moffat {
+        /// None: `beta` is fitted (shared by all stars, started at [`MOFFAT_BETA_START`],
+        /// kept in [`MOFFAT_BETA_RANGE`]); Some(b): held fixed at b (> 1).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        beta: Option<f64>,
+    },
+}
 
 /// Errors of [`fit_psf`].
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -53,18 +83,28 @@ pub struct PsfFitParams {
     pub background: Option<f64>,
     /// Maximum Levenberg-Marquardt iterations.
     pub max_iter: u32,
+    /// PSF model (default Gaussian). `elliptical` is for the Gaussian only.
+    #[serde(default)]
+    pub model: PsfModel,
 }
 
 impl Default for PsfFitParams {
     fn default() -> Self {
-        PsfFitParams { fwhm_px: 3.0, fit_radius_px: 8.0, elliptical: false, background: None, max_iter: 200 }
+        PsfFitParams {
+            fwhm_px: 3.0,
+            fit_radius_px: 8.0,
+            elliptical: false,
+            background: None,
+            max_iter: 200,
+            model: PsfModel::Gaussian,
+        }
     }
 }
 
 /// One fitted star. Errors are 1-sigma from the covariance matrix.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct PsfStar {
-    /// Total flux of the Gaussian, ADU.
+    /// Total flux of the star (the integral of the model over the plane), ADU.
     pub flux: f64,
     /// Centre x, px.
     pub x: f64,
@@ -83,17 +123,26 @@ pub struct PsfStar {
 pub struct PsfFit {
     /// The stars, in the order of the initial positions.
     pub stars: Vec<PsfStar>,
-    /// Gaussian sigma along x, px.
+    /// The model fitted (as in [`PsfFitParams::model`]: `Moffat { beta: None }` when beta was
+    /// fitted; its value is [`PsfFit::beta`]).
+    pub model: PsfModel,
+    /// Gaussian sigma along x, px. For a Moffat: the sigma of the Gaussian of the same FWHM,
+    /// `fwhm() / 2.3548` (informational).
     pub sigma_x: f64,
     /// Gaussian sigma along y, px (= sigma_x unless elliptical).
     pub sigma_y: f64,
+    /// Moffat alpha, px (NaN for a Gaussian).
+    pub alpha: f64,
+    /// Moffat beta, fitted or fixed (NaN for a Gaussian).
+    pub beta: f64,
     /// Background level, ADU (fitted or fixed).
     pub background: f64,
     /// Covariance matrix of the parameters, in the order of `param_names`. With a variance
     /// map it is `(J^T W J)^-1`; without, it is scaled by the reduced chi-square.
     /// `covariance[i][j]`, row-major.
     pub covariance: Vec<Vec<f64>>,
-    /// Parameter names: `flux_0, x_0, y_0, ..., sigma_x, [sigma_y], [background]`.
+    /// Parameter names: `flux_0, x_0, y_0, ..., sigma_x, [sigma_y], [background]` (Gaussian)
+    /// or `flux_0, x_0, y_0, ..., alpha, [beta], [background]` (Moffat).
     pub param_names: Vec<String>,
     /// Final chi-square (weighted by 1/variance when a variance map was given).
     pub chi2: f64,
@@ -108,30 +157,90 @@ pub struct PsfFit {
 }
 
 impl PsfFit {
-    /// FWHM along x, px.
+    /// FWHM along x, px (the circular FWHM for a Moffat).
     pub fn fwhm_x(&self) -> f64 {
-        FWHM_PER_SIGMA * self.sigma_x
+        match self.model {
+            PsfModel::Gaussian => FWHM_PER_SIGMA * self.sigma_x,
+            PsfModel::Moffat { .. } => self.fwhm(),
+        }
     }
-    /// FWHM along y, px.
+    /// FWHM along y, px (the circular FWHM for a Moffat).
     pub fn fwhm_y(&self) -> f64 {
-        FWHM_PER_SIGMA * self.sigma_y
+        match self.model {
+            PsfModel::Gaussian => FWHM_PER_SIGMA * self.sigma_y,
+            PsfModel::Moffat { .. } => self.fwhm(),
+        }
+    }
+    /// FWHM, px: `2 alpha sqrt(2^(1/beta) - 1)` for a Moffat, the geometric mean of the x and y
+    /// FWHMs for a Gaussian.
+    pub fn fwhm(&self) -> f64 {
+        match self.model {
+            PsfModel::Gaussian => FWHM_PER_SIGMA * (self.sigma_x * self.sigma_y).sqrt(),
+            PsfModel::Moffat { .. } => moffat_fwhm(self.alpha, self.beta),
+        }
+    }
+    /// Model flux (ADU, background excluded) of star `k` in the pixel centred at `(px, py)`
+    /// (pixel centres are integers; any position is accepted). Panics if `k` is out of range.
+    pub fn model_value(&self, k: usize, px: f64, py: f64) -> f64 {
+        let s = &self.stars[k];
+        match self.model {
+            PsfModel::Gaussian => {
+                let fx = super::model::normal_cdf_diff((px - 0.5 - s.x) / self.sigma_x, (px + 0.5 - s.x) / self.sigma_x);
+                let fy = super::model::normal_cdf_diff((py - 0.5 - s.y) / self.sigma_y, (py + 0.5 - s.y) / self.sigma_y);
+                s.flux * fx * fy
+            }
+            PsfModel::Moffat { .. } => s.flux * moffat_pixel(px - s.x, py - s.y, self.alpha, self.beta),
+        }
+    }
+    /// Adds `scale` times the model of star `k` (not the background) to `img`; `scale = -1`
+    /// subtracts it. Panics if `k` is out of range.
+    pub fn render_star(&self, k: usize, img: &mut ArrayViewMut2<f32>, scale: f64) {
+        let s = &self.stars[k];
+        match self.model {
+            PsfModel::Gaussian => add_gaussian(img, scale * s.flux, s.x, s.y, self.sigma_x, self.sigma_y),
+            PsfModel::Moffat { .. } => add_moffat(img, scale * s.flux, s.x, s.y, self.alpha, self.beta),
+        }
     }
 }
 
 struct Layout {
     n_src: usize,
+    /// sigma_x (Gaussian) or alpha (Moffat).
     i_sx: usize,
+    /// sigma_y (= i_sx unless elliptical; = i_sx for a Moffat).
     i_sy: usize,
+    /// Moffat beta, when fitted.
+    i_beta: Option<usize>,
     i_b: Option<usize>,
     n: usize,
+    /// Some(fixed beta or NaN when fitted) for a Moffat.
+    moffat: Option<f64>,
 }
 
 impl Layout {
-    fn new(n_src: usize, elliptical: bool, fit_b: bool) -> Layout {
+    fn new(n_src: usize, elliptical: bool, fit_b: bool, model: PsfModel) -> Layout {
         let i_sx = 3 * n_src;
-        let i_sy = if elliptical { i_sx + 1 } else { i_sx };
-        let i_b = fit_b.then_some(i_sy + 1);
-        Layout { n_src, i_sx, i_sy, i_b, n: i_sy + 1 + fit_b as usize }
+        match model {
+            PsfModel::Gaussian => {
+                let i_sy = if elliptical { i_sx + 1 } else { i_sx };
+                let i_b = fit_b.then_some(i_sy + 1);
+                Layout { n_src, i_sx, i_sy, i_beta: None, i_b, n: i_sy + 1 + fit_b as usize, moffat: None }
+            }
+            PsfModel::Moffat { beta } => {
+                let i_beta = beta.is_none().then_some(i_sx + 1);
+                let last = i_beta.unwrap_or(i_sx);
+                let i_b = fit_b.then_some(last + 1);
+                Layout { n_src, i_sx, i_sy: i_sx, i_beta, i_b, n: last + 1 + fit_b as usize, moffat: Some(beta.unwrap_or(f64::NAN)) }
+            }
+        }
+    }
+
+    /// Moffat beta at parameters `p`.
+    fn beta(&self, p: &[f64]) -> f64 {
+        match self.i_beta {
+            Some(i) => p[i],
+            None => self.moffat.unwrap_or(f64::NAN),
+        }
     }
 }
 
@@ -181,7 +290,11 @@ fn evaluate(
     bx: (usize, usize, usize, usize),
     mut normal: Option<(&mut [f64], &mut [f64])>,
 ) -> f64 {
-    let f = Factors::new(p, lay, bx);
+    let f = match lay.moffat {
+        None => Some(Factors::new(p, lay, bx)),
+        Some(_) => None,
+    };
+    let (alpha, beta) = (p[lay.i_sx], lay.beta(p));
     let b = background_of(p, lay, fixed_b);
     let n = lay.n;
     let mut jrow = vec![0.0; n];
@@ -191,22 +304,45 @@ fn evaluate(
     }
     let mut chi2 = 0.0;
     for px in pixels {
-        let (cx, cy) = (px.ix - f.x0, px.iy - f.y0);
         let mut m = b;
         if normal.is_some() {
             jrow.iter_mut().for_each(|v| *v = 0.0);
         }
-        for k in 0..lay.n_src {
-            let flux = p[3 * k];
-            let (gx, dgx, sgx) = f.fx[k][cx];
-            let (gy, dgy, sgy) = f.fy[k][cy];
-            m += flux * gx * gy;
-            if normal.is_some() {
-                jrow[3 * k] = gx * gy;
-                jrow[3 * k + 1] = flux * dgx * gy;
-                jrow[3 * k + 2] = flux * gx * dgy;
-                jrow[lay.i_sx] += flux * sgx * gy;
-                jrow[lay.i_sy] += flux * gx * sgy; // same slot as sx when circular
+        match &f {
+            Some(f) => {
+                let (cx, cy) = (px.ix - f.x0, px.iy - f.y0);
+                for k in 0..lay.n_src {
+                    let flux = p[3 * k];
+                    let (gx, dgx, sgx) = f.fx[k][cx];
+                    let (gy, dgy, sgy) = f.fy[k][cy];
+                    m += flux * gx * gy;
+                    if normal.is_some() {
+                        jrow[3 * k] = gx * gy;
+                        jrow[3 * k + 1] = flux * dgx * gy;
+                        jrow[3 * k + 2] = flux * gx * dgy;
+                        jrow[lay.i_sx] += flux * sgx * gy;
+                        jrow[lay.i_sy] += flux * gx * sgy; // same slot as sx when circular
+                    }
+                }
+            }
+            None => {
+                for k in 0..lay.n_src {
+                    let flux = p[3 * k];
+                    let (dx, dy) = (px.ix as f64 - p[3 * k + 1], px.iy as f64 - p[3 * k + 2]);
+                    if normal.is_some() {
+                        let d = moffat_pixel_derivs(dx, dy, alpha, beta);
+                        m += flux * d[0];
+                        jrow[3 * k] = d[0];
+                        jrow[3 * k + 1] = flux * d[1];
+                        jrow[3 * k + 2] = flux * d[2];
+                        jrow[lay.i_sx] += flux * d[3];
+                        if let Some(ib) = lay.i_beta {
+                            jrow[ib] += flux * d[4];
+                        }
+                    } else {
+                        m += flux * moffat_pixel(dx, dy, alpha, beta);
+                    }
+                }
             }
         }
         let r = (px.v - m) * px.w;
@@ -275,12 +411,14 @@ fn cholesky_solve(l: &[f64], n: usize, b: &[f64]) -> Vec<f64> {
     y
 }
 
-/// Fits `guesses.len()` pixel-integrated Gaussians with a shared shape to the image near the
-/// initial positions `guesses` (px). `var` (ADU^2) weights the pixels; `mask` (nonzero = bad)
-/// and non-finite pixels are skipped.
+/// Fits `guesses.len()` pixel-integrated Gaussians or Moffats ([`PsfFitParams::model`]) with a
+/// shared shape to the image near the initial positions `guesses` (px). `var` (ADU^2) weights
+/// the pixels; `mask` (nonzero = bad) and non-finite pixels are skipped.
 ///
-/// Robustness: a step that would make a width leave `[0.05, 50]` px or move a star farther
-/// than `fit_radius_px` from its initial position is rejected (the damping grows instead).
+/// Robustness: a step that would make a Gaussian width leave `[0.05, 50]` px, a Moffat alpha
+/// leave [`MOFFAT_ALPHA_RANGE`], a fitted beta leave [`MOFFAT_BETA_RANGE`], or move a star
+/// farther than `fit_radius_px` from its initial position is rejected (the damping grows
+/// instead).
 pub fn fit_psf(
     img: ArrayView2<f32>,
     var: Option<ArrayView2<f32>>,
@@ -297,8 +435,18 @@ pub fn fit_psf(
     if !(params.fit_radius_px > 0.0 && params.fit_radius_px.is_finite()) {
         return Err(PsfFitError::InvalidParams { name: "fit_radius_px", value: params.fit_radius_px });
     }
+    if let PsfModel::Moffat { beta } = params.model {
+        if params.elliptical {
+            return Err(PsfFitError::InvalidParams { name: "elliptical (Moffat is circular)", value: 1.0 });
+        }
+        if let Some(b) = beta {
+            if !(b > 1.0 && b.is_finite()) {
+                return Err(PsfFitError::InvalidParams { name: "beta", value: b });
+            }
+        }
+    }
     let (ny, nx) = img.dim();
-    let lay = Layout::new(guesses.len(), params.elliptical, params.background.is_none());
+    let lay = Layout::new(guesses.len(), params.elliptical, params.background.is_none(), params.model);
     let rf = params.fit_radius_px;
 
     // Pixels to fit.
@@ -343,8 +491,19 @@ pub fn fit_psf(
     let bx = (bx0, bx1, by0, by1);
 
     // Initial values: background = 20th percentile of the fitted pixels; each flux from the
-    // pixel nearest its guess, as the peak of a pixel-integrated Gaussian of the initial width.
+    // pixel nearest its guess, as the peak of a pixel-integrated model of the initial width.
     let s0 = params.fwhm_px / FWHM_PER_SIGMA;
+    let beta0 = match params.model {
+        PsfModel::Gaussian => f64::NAN,
+        PsfModel::Moffat { beta } => beta.unwrap_or(MOFFAT_BETA_START),
+    };
+    let (shape0, peak_frac) = match params.model {
+        PsfModel::Gaussian => (s0, gauss_pixel_1d(0, 0.0, s0).powi(2)),
+        PsfModel::Moffat { .. } => {
+            let a0 = moffat_alpha(params.fwhm_px, beta0).clamp(MOFFAT_ALPHA_RANGE.0, MOFFAT_ALPHA_RANGE.1);
+            (a0, moffat_pixel(0.0, 0.0, a0, beta0))
+        }
+    };
     let mut p = vec![0.0; lay.n];
     let b0 = match params.background {
         Some(b) => b,
@@ -363,20 +522,28 @@ pub fn fit_psf(
                 da.total_cmp(&db)
             })
             .map_or(0.0, |q| q.v);
-        let peak_frac = gauss_pixel_1d_derivs(0, 0.0, s0).0.powi(2);
         p[3 * k] = ((nearest - b0) / peak_frac).max(1e-3);
         p[3 * k + 1] = gx;
         p[3 * k + 2] = gy;
     }
-    p[lay.i_sx] = s0;
-    p[lay.i_sy] = s0;
+    p[lay.i_sx] = shape0;
+    p[lay.i_sy] = shape0;
+    if let Some(ib) = lay.i_beta {
+        p[ib] = beta0;
+    }
     if let Some(ib) = lay.i_b {
         p[ib] = b0;
     }
 
     let n = lay.n;
     let acceptable = |q: &[f64]| -> bool {
-        let widths_ok = [q[lay.i_sx], q[lay.i_sy]].iter().all(|&s| (0.05..=50.0).contains(&s));
+        let widths_ok = match lay.moffat {
+            None => [q[lay.i_sx], q[lay.i_sy]].iter().all(|&s| (0.05..=50.0).contains(&s)),
+            Some(_) => {
+                (MOFFAT_ALPHA_RANGE.0..=MOFFAT_ALPHA_RANGE.1).contains(&q[lay.i_sx])
+                    && lay.i_beta.is_none_or(|i| (MOFFAT_BETA_RANGE.0..=MOFFAT_BETA_RANGE.1).contains(&q[i]))
+            }
+        };
         let pos_ok = guesses.iter().enumerate().all(|(k, &(gx, gy))| {
             (q[3 * k + 1] - gx).hypot(q[3 * k + 2] - gy) <= rf
         });
@@ -457,17 +624,34 @@ pub fn fit_psf(
     let mut names: Vec<String> = (0..lay.n_src)
         .flat_map(|k| [format!("flux_{k}"), format!("x_{k}"), format!("y_{k}")])
         .collect();
-    names.push("sigma_x".into());
-    if params.elliptical {
-        names.push("sigma_y".into());
-    }
+    let (sigma_x, sigma_y, alpha, beta) = match lay.moffat {
+        None => {
+            names.push("sigma_x".into());
+            if params.elliptical {
+                names.push("sigma_y".into());
+            }
+            (p[lay.i_sx], p[lay.i_sy], f64::NAN, f64::NAN)
+        }
+        Some(_) => {
+            names.push("alpha".into());
+            if lay.i_beta.is_some() {
+                names.push("beta".into());
+            }
+            let (a, b) = (p[lay.i_sx], lay.beta(&p));
+            let s = moffat_fwhm(a, b) / FWHM_PER_SIGMA;
+            (s, s, a, b)
+        }
+    };
     if lay.i_b.is_some() {
         names.push("background".into());
     }
     Ok(PsfFit {
         stars,
-        sigma_x: p[lay.i_sx],
-        sigma_y: p[lay.i_sy],
+        model: params.model,
+        sigma_x,
+        sigma_y,
+        alpha,
+        beta,
         background: background_of(&p, &lay, params.background),
         covariance: cov,
         param_names: names,
@@ -508,8 +692,7 @@ pub fn fit_two_psf(
 /// A copy of `img` with the fitted model of star `k` (not the background) subtracted: the
 /// deblended image on which to measure the other star(s). Panics if `k` is out of range.
 pub fn subtract_star(img: ArrayView2<f32>, fit: &PsfFit, k: usize) -> Array2<f32> {
-    let s = &fit.stars[k];
     let mut out = img.to_owned();
-    add_gaussian(&mut out.view_mut(), -s.flux, s.x, s.y, fit.sigma_x, fit.sigma_y);
+    fit.render_star(k, &mut out.view_mut(), -1.0);
     out
 }

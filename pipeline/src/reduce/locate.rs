@@ -4,7 +4,7 @@
 use ndarray::{s, Array2, ArrayView2};
 use sofipol_calib::Frame;
 
-use crate::photometry::{centroid, fit_psf, CentroidParams, PsfFitParams};
+use crate::photometry::{centroid, fit_psf, CentroidParams, PsfFitParams, PsfModel};
 use crate::stokes::model::{companion_offset_px, offset_to_sep_pa};
 
 /// Brightest point of a 3x3 box-smoothed image within `radius` of (x0, y0), restricted to
@@ -108,11 +108,19 @@ pub struct PairOnStack {
 
 /// Find the companion on a stack centred (to within `frac`) on the blend centroid: fit one
 /// star, look for the largest residual within `search_px`, then fit two stars. With
-/// `predicted` (offset of B from A, px) the residual search is skipped.
-pub fn find_pair(stack: &Array2<f32>, smask: &Array2<u8>, frac: (f64, f64), fwhm_guess: f64, search_px: f64, predicted: Option<(f64, f64)>) -> Option<PairOnStack> {
+/// `predicted` (offset of B from A, px) the residual search is skipped. Both fits use `model`.
+pub fn find_pair(
+    stack: &Array2<f32>,
+    smask: &Array2<u8>,
+    frac: (f64, f64),
+    fwhm_guess: f64,
+    search_px: f64,
+    predicted: Option<(f64, f64)>,
+    model: PsfModel,
+) -> Option<PairOnStack> {
     let n = stack.dim().0;
     let c = ((n / 2) as f64 + frac.0, (n / 2) as f64 + frac.1);
-    let p1 = PsfFitParams { fwhm_px: fwhm_guess, fit_radius_px: (2.0 * fwhm_guess).max(4.0), background: Some(0.0), ..PsfFitParams::default() };
+    let p1 = PsfFitParams { fwhm_px: fwhm_guess, fit_radius_px: (2.0 * fwhm_guess).max(4.0), background: Some(0.0), model, ..PsfFitParams::default() };
     let single = fit_psf(stack.view(), None, Some(smask.view()), &[c], &p1).ok()?;
     let s0 = single.stars[0];
     let fwhm = single.fwhm_x().clamp(0.5 * fwhm_guess, 3.0 * fwhm_guess);
@@ -137,6 +145,7 @@ pub fn find_pair(stack: &Array2<f32>, smask: &Array2<u8>, frac: (f64, f64), fwhm
         fwhm_px: fwhm,
         fit_radius_px: (1.5 * fwhm).max(3.0).max(0.6 * sep_guess),
         background: Some(0.0),
+        model,
         ..PsfFitParams::default()
     };
     let two = fit_psf(stack.view(), None, Some(smask.view()), &[(b_guess.2, b_guess.3), (b_guess.0, b_guess.1)], &p2).ok()?;

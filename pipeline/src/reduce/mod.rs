@@ -24,7 +24,7 @@ use sofipol_calib::frame::mask as mbits;
 use sofipol_calib::{Frame, Profile};
 
 use crate::catalog::{self, Component, Status, Target};
-use crate::photometry::{fit_psf, measure, subtract_star, Method, PhotParams, PsfFitParams};
+use crate::photometry::{fit_psf, measure, subtract_star, Method, PhotParams, PsfFitParams, PsfModel};
 use crate::stokes::inversion::{clip_dithers, combine_dithers, fit_qu, Debias, LinearPolarization};
 use crate::stokes::model::companion_offset_px;
 use locate::*;
@@ -58,6 +58,11 @@ pub struct MeasureParams {
     pub debias: Debias,
     /// Known separation (arcsec) and PA (deg) of the companion, when a target list gives it.
     pub companion_hint: Option<(f64, f64)>,
+    /// PSF model of the stack and per-frame fits (deblending and PSF-fit fluxes). Default: a
+    /// circular Moffat with beta fitted, `{ kind = "moffat" }`, since seeing-limited PSFs have
+    /// Moffat wings that a Gaussian misfits; `{ kind = "moffat", beta = 3.0 }` fixes beta,
+    /// `{ kind = "gaussian" }` restores the Gaussian fit.
+    pub psf_model: PsfModel,
 }
 
 impl Default for MeasureParams {
@@ -75,6 +80,7 @@ impl Default for MeasureParams {
             cut_snr: 3.0,
             debias: Debias::WardleKronberg,
             companion_hint: None,
+            psf_model: PsfModel::Moffat { beta: None },
         }
     }
 }
@@ -262,7 +268,7 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
         }
         let (stack, smask, frac) = stack_cutouts(&fr, &cc, h);
         let predicted = params.companion_hint.map(|(sep, pa)| companion_offset_px(sep, pa, o.posang_deg, scale));
-        let p = find_pair(&stack, &smask, frac, fwhm_guess, search_px, predicted);
+        let p = find_pair(&stack, &smask, frac, fwhm_guess, search_px, predicted, params.psf_model);
         if let Some(p) = p {
             fwhms.push(p.fwhm_px);
         }
@@ -361,6 +367,7 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
                     fwhm_px: fwhm_med,
                     fit_radius_px: (1.5 * fwhm_med).max(3.0),
                     background: Some(0.0),
+                    model: params.psf_model,
                     ..PsfFitParams::default()
                 };
                 let fit = fit_psf(img.view(), Some(var.view()), Some(bad.view()), &local, &fitp).ok();

@@ -12,16 +12,14 @@ use crate::catalog::{Failure, Status, Target};
 use crate::sequence::Sequence;
 
 /// Settings of a target reduction.
-#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct TargetParams {
     /// Measurement settings.
     pub measure: MeasureParams,
-    /// Sky subtraction.
-    #[serde(skip)]
+    /// Sky subtraction (default: multiplicative scaling, cosmic-ray flagging on).
     pub sky: SkyOptions,
     /// Bad-pixel detection.
-    #[serde(skip)]
     pub bad_pixels: BadPixelOptions,
     /// A calibration bad-pixel mask (nonzero = bad), combined with the detected one.
     pub calib_mask: Option<PathBuf>,
@@ -29,10 +27,29 @@ pub struct TargetParams {
     pub no_detect_bad_pixels: bool,
     /// Write sky-subtracted FITS frames (data, VARIANCE, MASK) into this directory.
     pub save_intermediate: Option<PathBuf>,
+    /// Sky-subtract whole frames. By default only the target strips (o-target and
+    /// e-target rows, all the measurement uses) are sky-subtracted, about a third of the
+    /// detector; whole frames are always done when intermediates are saved.
+    pub full_frame_sky: bool,
     /// A bad-pixel mask already detected (night mode detects the detector's defects once
     /// from frames of many sequences); used instead of per-target detection.
     #[serde(skip)]
     pub night_mask: Option<std::sync::Arc<ndarray::Array2<u8>>>,
+}
+
+impl Default for TargetParams {
+    fn default() -> Self {
+        TargetParams {
+            measure: MeasureParams::default(),
+            sky: SkyOptions::recommended(),
+            bad_pixels: BadPixelOptions::default(),
+            calib_mask: None,
+            no_detect_bad_pixels: false,
+            save_intermediate: None,
+            full_frame_sky: false,
+            night_mask: None,
+        }
+    }
 }
 
 /// Timings of the stages of one target, seconds.
@@ -118,6 +135,33 @@ pub type LoadedOrientation = (f64, f64, Vec<Frame>, Vec<[f64; 2]>);
 
 /// [`reduce_sequence`] on frames already in memory (`seq` gives the names and files).
 pub fn reduce_loaded(seq: &Sequence, orients: Vec<LoadedOrientation>, profile: &Profile, params: &TargetParams, keep_frames: bool) -> TargetOutcome {
+    // Everything the measurement needs lies in the o- and e-target strips: unless whole
+    // frames are wanted (intermediates for DS9), work on those rows only (a third of the
+    // detector), with the profile's geometry shifted to match.
+    let g = &profile.geometry;
+    let (r0, r1) = (g.o_target[0].min(g.e_target[0]), g.o_target[1].max(g.e_target[1]));
+    let crop = !params.full_frame_sky && params.save_intermediate.is_none() && r1 > r0;
+    let mut orients = orients;
+    let cropped_profile: Profile;
+    let params_c: TargetParams;
+    let (profile, params) = if crop {
+        orients = orients
+            .into_iter()
+            .map(|(pa, phi, frames, offs)| {
+                let frames = frames.iter().map(|f| if f.shape().0 >= r1 { f.crop_rows(r0, r1) } else { f.clone() }).collect();
+                (pa, phi, frames, offs)
+            })
+            .collect::<Vec<_>>();
+        cropped_profile = profile.cropped_rows(r0, r1);
+        let mut p = params.clone();
+        p.night_mask = params.night_mask.as_ref().map(|m| {
+            if m.dim().0 >= r1 { std::sync::Arc::new(m.slice(ndarray::s![r0..r1, ..]).to_owned()) } else { m.clone() }
+        });
+        params_c = p;
+        (&cropped_profile, &params_c)
+    } else {
+        (profile, params)
+    };
     let mut times = StageTimes::default();
     let failures = Vec::new();
     let mut flags: Vec<String> = seq.problems();
@@ -131,7 +175,7 @@ pub fn reduce_loaded(seq: &Sequence, orients: Vec<LoadedOrientation>, profile: &
     let mut mask = None;
     if let Some(p) = &params.calib_mask {
         match badpix::load_mask(p) {
-            Ok(m) => mask = Some(m),
+            Ok(m) => mask = Some(if crop && m.dim().0 >= r1 { m.slice(ndarray::s![r0..r1, ..]).to_owned() } else { m }),
             Err(e) => return failed(seq, format!("calibration mask: {e}"), failures, times),
         }
     }
