@@ -139,6 +139,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         print!("{}", super::report::summary(&cat));
         println!("catalog: {}", args.output.display());
     }
-    let failed = cat.targets.iter().any(|t| t.status == Status::Failed);
+    let failed = cat.targets.iter().any(|t| t.status != Status::Ok);
     Ok(if failed || !cat.failures.is_empty() { ExitCode::from(2) } else { ExitCode::SUCCESS })
 }

@@ -104,6 +104,33 @@ pub struct PairOnStack {
     pub flux_b_err: f64,
     /// Fitted FWHM, px.
     pub fwhm_px: f64,
+    /// Fitted Moffat beta (NaN for a Gaussian model).
+    pub beta: f64,
+    /// F statistic of the two-star fit against the one-star fit on the same pixels:
+    /// ((S1 - S2)/3) / (S2/(n - 7)) with S the residual sums of squares. A single star
+    /// gives ~1; a real companion gives hundreds or more.
+    pub f_stat: f64,
+}
+
+impl PairOnStack {
+    /// Whether the companion is real: F above `min_f` and separated by at least
+    /// `min_sep_px` (the whole-pixel registration of the stack blurs a lone star so that a
+    /// "pair" ~0.5 px apart fits it better).
+    pub fn companion(&self, min_f: f64, min_sep_px: f64) -> bool {
+        self.f_stat > min_f && self.flux.1 > 0.0 && (self.b.0 - self.a.0).hypot(self.b.1 - self.a.1) >= min_sep_px
+    }
+}
+
+/// Residual sum of squares of `model_resid` over unmasked pixels within `r` of `(x, y)`.
+fn rss(resid: &Array2<f32>, smask: &Array2<u8>, x: f64, y: f64, r: f64) -> (f64, usize) {
+    let (mut s, mut n) = (0.0, 0);
+    for ((j, i), &v) in resid.indexed_iter() {
+        if smask[[j, i]] == 0 && ((i as f64 - x).powi(2) + (j as f64 - y).powi(2)) <= r * r {
+            s += (v as f64).powi(2);
+            n += 1;
+        }
+    }
+    (s, n)
 }
 
 /// Find the companion on a stack centred (to within `frac`) on the blend centroid: fit one
@@ -148,11 +175,33 @@ pub fn find_pair(
         model,
         ..PsfFitParams::default()
     };
-    let two = fit_psf(stack.view(), None, Some(smask.view()), &[(b_guess.2, b_guess.3), (b_guess.0, b_guess.1)], &p2).ok()?;
+    let single_only = PairOnStack {
+        a: (s0.x - c.0 + frac.0, s0.y - c.1 + frac.1),
+        b: (f64::NAN, f64::NAN),
+        flux: (s0.flux, 0.0),
+        flux_b_err: f64::INFINITY,
+        fwhm_px: single.fwhm_x(),
+        beta: single.beta,
+        f_stat: 0.0,
+    };
+    let Ok(two) = fit_psf(stack.view(), None, Some(smask.view()), &[(b_guess.2, b_guess.3), (b_guess.0, b_guess.1)], &p2) else {
+        return Some(single_only);
+    };
     let (sa, sb) = (two.stars[0], two.stars[1]);
     let (a, b) = if sa.flux >= sb.flux { (sa, sb) } else { (sb, sa) };
+    // Model selection on one fixed set of pixels: is the second star needed?
+    let sep = (a.x - b.x).hypot(a.y - b.y);
+    let r = (2.0 * fwhm).max(sep + 1.5 * fwhm).min(n as f64 / 2.0);
+    let r1 = crate::photometry::subtract_star(stack.view(), &single, 0);
+    let r2 = crate::photometry::subtract_star(crate::photometry::subtract_star(stack.view(), &two, 0).view(), &two, 1);
+    let (s1, npix) = rss(&r1, smask, s0.x, s0.y, r);
+    let (s2, _) = rss(&r2, smask, s0.x, s0.y, r);
+    let f_stat = if npix > 8 && s2 > 0.0 { ((s1 - s2) / 3.0) / (s2 / (npix - 7) as f64) } else { 0.0 };
+    if std::env::var_os("SOFIPOL_DEBUG_PAIR").is_some() {
+        eprintln!("find_pair: sep {sep:.2} px, fluxes {:.0} {:.0}, S1 {s1:.3e} S2 {s2:.3e} n {npix} F {f_stat:.1}", a.flux, b.flux);
+    }
     if !(b.flux > 0.0) {
-        return None;
+        return Some(single_only);
     }
     Some(PairOnStack {
         a: (a.x - c.0 + frac.0, a.y - c.1 + frac.1),
@@ -160,6 +209,8 @@ pub fn find_pair(
         flux: (a.flux, b.flux),
         flux_b_err: b.flux_err,
         fwhm_px: two.fwhm_x(),
+        beta: two.beta,
+        f_stat,
     })
 }
 
