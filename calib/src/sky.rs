@@ -88,16 +88,12 @@ pub struct SkyOptions {
     pub scaling: SkyScaling,
     /// Flag cosmic rays in each sky-subtracted frame ([`flag_cosmic_rays`]); `None`: don't.
     pub cosmic_rays: Option<CosmicOptions>,
-    /// Region of interest: only rows `[start, end)` are sky-subtracted (the reduction
-    /// needs only the target strips); other rows come out NaN and masked OFF_STRIP.
-    /// `None`: the whole frame (e.g. for intermediates to inspect in DS9).
-    pub rows: Option<[usize; 2]>,
 }
 
 impl SkyOptions {
     /// Multiplicative scaling and cosmic-ray flagging with default thresholds.
     pub fn recommended() -> Self {
-        SkyOptions { scaling: SkyScaling::Multiplicative, cosmic_rays: Some(CosmicOptions::default()), rows: None }
+        SkyOptions { scaling: SkyScaling::Multiplicative, cosmic_rays: Some(CosmicOptions::default()) }
     }
 }
 
@@ -297,15 +293,7 @@ pub fn sky_subtract_with_report(frames: &[Frame], profile: &Profile, opts: &SkyO
             SkyScaling::Additive => Affine { scale: 1.0, offset: -l as f32 },
         })
         .collect();
-    let (r0, r1) = match opts.rows {
-        Some([a, b]) if a < b && a < shape.0 => (a, b.min(shape.0)),
-        Some(r) => {
-            return Err(Error::Stage { stage: "sky", reason: format!("rows [{}, {}) select nothing of {} rows", r[0], r[1], shape.0) });
-        }
-        None => (0, shape.0),
-    };
-    let roi = ndarray::s![r0..r1, ..];
-    let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.data.slice(roi)).collect();
+    let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.data.view()).collect();
     let loo = stack::leave_one_out_medians_affine(&views, &maps)?;
 
     let m = n - 1;
@@ -327,10 +315,10 @@ pub fn sky_subtract_with_report(frames: &[Frame], profile: &Profile, opts: &SkyO
         // One pass, row-parallel: sky <- level-scaled median, then data = raw - sky
         // (in the same buffer), variance and mask alongside. Counts non-finite inputs,
         // which the medians cannot handle (checked here rather than in a separate pass).
-        let raw = f.data.slice(roi).as_standard_layout().into_owned();
-        let vin = f.variance.as_ref().map(|v| v.slice(roi).as_standard_layout().into_owned());
-        let mut var = Array2::<f32>::zeros(sky.raw_dim());
-        let mut msk = f.mask.slice(roi).as_standard_layout().into_owned();
+        let raw = f.data.as_standard_layout();
+        let vin = f.variance.as_ref().map(|v| v.as_standard_layout());
+        let mut var = Array2::<f32>::zeros(shape);
+        let mut msk = f.mask.as_standard_layout().into_owned();
         let nonfinite: usize = sky
             .as_slice_mut()
             .expect("fresh array")
@@ -361,7 +349,7 @@ pub fn sky_subtract_with_report(frames: &[Frame], profile: &Profile, opts: &SkyO
                 for (s, &r) in srow.iter_mut().zip(rrow) {
                     *s = r - *s;
                 }
-                let off = if off_rows[y + r0] { mask::OFF_STRIP } else { 0 };
+                let off = if off_rows[y] { mask::OFF_STRIP } else { 0 };
                 for (b, &r) in mrow.iter_mut().zip(rrow) {
                     *b |= off | (((r >= sat) as u8) * mask::SATURATED) | (((r >= nonlin) as u8) * mask::NONLINEAR);
                 }
@@ -402,19 +390,6 @@ pub fn sky_subtract_with_report(frames: &[Frame], profile: &Profile, opts: &SkyO
             history.push(cosmic_record(co, &rep));
             cosmic.push(rep);
         }
-        let (sky, var, msk) = if (r0, r1) == (0, shape.0) {
-            (sky, var, msk)
-        } else {
-            // Embed the region of interest; everything else is NaN and masked.
-            let mut d = Array2::from_elem(shape, f32::NAN);
-            let mut v = Array2::from_elem(shape, f32::NAN);
-            let mut m = Array2::from_elem(shape, mask::OFF_STRIP);
-            d.slice_mut(roi).assign(&sky);
-            v.slice_mut(roi).assign(&var);
-            m.slice_mut(roi).assign(&msk);
-            history.push(crate::frame::HistoryRecord::new("sky", format!("region of interest: rows [{r0}, {r1}); other rows NaN, masked OFF_STRIP")));
-            (d, v, m)
-        };
         out.push(Frame { data: sky, variance: Some(var), mask: msk, header: f.header.clone(), history });
     }
     Ok((out, SkyReport { levels_adu: levels, median_of: m, median_variance_factor: c, cosmic }))

@@ -61,6 +61,29 @@ pub struct NightPlan {
     pub failures: Vec<Failure>,
     /// Files found.
     pub n_files: usize,
+    /// Frames for the night's bad-pixel detection, chosen from every sequence of the
+    /// night before sharding, so that every shard finds the same mask.
+    pub mask_frames: Vec<PathBuf>,
+}
+
+/// Frames for the bad-pixel median stack: the first dither of each sequence, then the
+/// middle one, ... (round-robin over sequences, first orientation), at most `max`.
+fn pick_mask_frames(sequences: &[Sequence], max: usize) -> Vec<PathBuf> {
+    let mut picks: Vec<PathBuf> = Vec::new();
+    for round in 0..8 {
+        for q in sequences {
+            let Some(o) = q.orientations.first() else { continue };
+            let n = o.exposures.len();
+            if round >= n || picks.len() >= max {
+                continue;
+            }
+            let e = &o.exposures[(round * (n / 2 + 1)) % n];
+            if !picks.contains(&e.path) {
+                picks.push(e.path.clone());
+            }
+        }
+    }
+    picks
 }
 
 /// Scan `roots`, classify and group (restricted to `shard` when given).
@@ -76,12 +99,13 @@ pub fn plan(roots: &[PathBuf], profile: &Profile, shard: Option<Shard>) -> std::
     let mut failures: Vec<Failure> = s.unreadable;
     failures.extend(s.other);
     let mut sequences = sequence::group(s.science, profile);
+    let mask_frames = pick_mask_frames(&sequences, 15);
     if let Some(sh) = shard {
         sequences.retain(|q| sh.owns(&q.id));
         failures.retain(|f| sh.owns(&f.file));
     }
     failures.sort_by(|a, b| a.file.cmp(&b.file));
-    Ok(NightPlan { sequences, failures, n_files })
+    Ok(NightPlan { sequences, failures, n_files, mask_frames })
 }
 
 /// The result of a night.
@@ -127,33 +151,10 @@ pub fn reduce_night(
 
 /// The detector's bad pixels for the whole night: detector defects stay put while stars
 /// move between dithers and between sequences, so one median stack of frames taken from
-/// many sequences (first and middle dithers, round-robin) finds them once. Returns the
+/// many sequences ([`NightPlan::mask_frames`]) finds them once. Returns the
 /// mask and the files used, or None when fewer than 3 frames can be read.
 pub fn night_bad_pixel_mask(plan: &NightPlan, profile: &Profile, opts: &sofipol_calib::badpix::BadPixelOptions, max_frames: usize) -> Option<(ndarray::Array2<u8>, Vec<String>)> {
-    let mut picks: Vec<PathBuf> = Vec::new();
-    let mut round = 0;
-    while picks.len() < max_frames {
-        let mut any = false;
-        for q in &plan.sequences {
-            for o in &q.orientations {
-                // Round 0: first dither; round 1: middle dither; ...
-                let idx = (round * o.exposures.len() / 2 + round) % o.exposures.len().max(1);
-                if round < o.exposures.len() {
-                    if let Some(e) = o.exposures.get(idx) {
-                        if picks.len() < max_frames && !picks.contains(&e.path) {
-                            picks.push(e.path.clone());
-                            any = true;
-                        }
-                    }
-                }
-                break; // one orientation per sequence per round
-            }
-        }
-        round += 1;
-        if !any || round > 8 {
-            break;
-        }
-    }
+    let picks: Vec<PathBuf> = plan.mask_frames.iter().take(max_frames).cloned().collect();
     let frames: Vec<sofipol_calib::Frame> = picks.par_iter().filter_map(|p| sofipol_calib::fits::read_frame(p).ok()).collect();
     let shape = frames.first()?.shape();
     let frames: Vec<&sofipol_calib::Frame> = frames.iter().filter(|f| f.shape() == shape).collect();

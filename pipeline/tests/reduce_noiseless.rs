@@ -85,7 +85,10 @@ fn noiseless_gaussian_scenes_recover_q_u_to_1e6() {
 #[test]
 fn noiseless_moffat_scenes_recover_q_u() {
     const TOL_MOFFAT: f64 = 1e-6;
-    let params = MeasureParams::default();
+    // beta fitted in every frame: the inversion with a matching model. (The default holds
+    // beta at the value fitted on the whole-pixel-registered stacks, which biases q, u by
+    // ~6e-6 here, < 2 % of the photon noise of these stars; see docs/accuracy.md.)
+    let params = MeasureParams { beta_from_stack: false, ..MeasureParams::default() };
     assert_eq!(params.psf_model, PsfModel::Moffat { beta: None });
     for orient in ["0.0, 45.0", "0.0, 45.0, 90.0, 135.0"] {
         let text = scene_text("kind = \"moffat\"\nbeta = 3.0\nfwhm_arcsec = 0.8\nseeing_rms_frac = 0.1", orient, &BINARIES);

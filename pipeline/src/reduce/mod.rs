@@ -235,27 +235,49 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
     let fwhm_guess = 0.8 / scale;
     let c0 = refine(o0.frames[0].data.view(), m0.view(), px, py, fwhm_guess, 4.0).unwrap_or((px, py));
     let anchor = (c0.0 - o0.offsets[0][0], c0.1 - o0.offsets[0][1]);
+    // Within an orientation every frame is registered on the same star: the first frame's
+    // centre (brightest peak near the header position) carried by the header offsets and
+    // refined by a centroid. Picking the brightest peak in every frame would jump between
+    // the components of a near-equal pair.
     let mut centres: Vec<Vec<Option<(f64, f64)>>> = Vec::new();
-    let mut eo_pairs = Vec::new();
     for o in orients {
-        let mut cs = Vec::new();
+        let mut cs: Vec<Option<(f64, f64)>> = Vec::new();
+        let mut first: Option<((f64, f64), [f64; 2])> = None;
         for (f, off) in o.frames.iter().zip(&o.offsets) {
             let m = unusable(f);
-            let guess = (anchor.0 + off[0], anchor.1 + off[1]);
-            let peak = brightest_peak(f.data.view(), m.view(), guess.0, guess.1, 8.0, orow);
-            let c = peak.and_then(|(x, y, _)| refine(f.data.view(), m.view(), x, y, fwhm_guess, 4.0));
-            if let Some(c) = c {
-                let eg = (c.0 + g.eo_offset_px[0], c.1 + g.eo_offset_px[1]);
-                let ep = brightest_peak(f.data.view(), m.view(), eg.0, eg.1, 6.0, g.e_target);
-                if let Some(e) = ep.and_then(|(x, y, _)| refine(f.data.view(), m.view(), x, y, fwhm_guess, 4.0)) {
-                    eo_pairs.push((c, e));
+            let c = match first {
+                Some((c1, off1)) => {
+                    let guess = (c1.0 + off[0] - off1[0], c1.1 + off[1] - off1[1]);
+                    refine(f.data.view(), m.view(), guess.0, guess.1, fwhm_guess, 3.0)
                 }
-            }
+                None => {
+                    let guess = (anchor.0 + off[0], anchor.1 + off[1]);
+                    let peak = brightest_peak(f.data.view(), m.view(), guess.0, guess.1, 8.0, orow);
+                    let c = peak.and_then(|(x, y, _)| refine(f.data.view(), m.view(), x, y, fwhm_guess, 4.0));
+                    if let Some(c) = c {
+                        first = Some((c, *off));
+                    }
+                    c
+                }
+            };
             cs.push(c);
         }
         centres.push(cs);
     }
-    let eo = median_offset(&eo_pairs).ok_or_else(|| err("could not measure the e-o beam offset (no source found in the e beam)".into()))?;
+    // The e-o offset, by cross-correlating the o and e images of the target.
+    let (mut fr, mut cc) = (Vec::new(), Vec::new());
+    let masks_all: Vec<Vec<Array2<u8>>> = orients.iter().map(|o| o.frames.iter().map(unusable).collect()).collect();
+    for ((o, cs), ms) in orients.iter().zip(&centres).zip(&masks_all) {
+        for ((f, c), m) in o.frames.iter().zip(cs).zip(ms) {
+            if let Some(c) = c {
+                fr.push((&f.data, m));
+                cc.push(*c);
+            }
+        }
+    }
+    let h_corr = (2.5 * fwhm_guess).ceil() as usize + 4;
+    let eo = eo_offset_by_correlation(&fr, &cc, (g.eo_offset_px[0], g.eo_offset_px[1]), h_corr, 5)
+        .ok_or_else(|| err("could not measure the e-o beam offset (target too close to the strip edges)".into()))?;
     if (eo.0 - g.eo_offset_px[0]).hypot(eo.1 - g.eo_offset_px[1]) > 3.0 {
         flags.push(format!("eo_offset_differs_from_profile: ({:.2}, {:.2}) px", eo.0, eo.1));
     }
