@@ -231,6 +231,9 @@ pub fn reduce_loaded(seq: &Sequence, orients: Vec<LoadedOrientation>, profile: &
     if let Some(dir) = &params.save_intermediate {
         let t = std::time::Instant::now();
         let opts = fits::WriteOptions { with_variance_and_mask: true, ..Default::default() };
+        if let Err(e) = std::fs::create_dir_all(dir) {
+            flags.push(format!("could not create {}: {e}", dir.display()));
+        }
         for o in &cal {
             for f in &o.frames {
                 let name = f.path().file_name().and_then(|n| n.to_str()).unwrap_or("frame.fits");
