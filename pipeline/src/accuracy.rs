@@ -6,8 +6,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 use sofipol_calib::Profile;
 
-use crate::reduce::target::{reduce_loaded, LoadedOrientation, TargetParams};
-use crate::sequence::{Orientation, Sequence};
+use crate::reduce::target::{loaded_from_sim, reduce_loaded, TargetParams};
 use crate::sim::{Scene, Simulator};
 
 /// What to simulate.
@@ -113,22 +112,7 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
                     let frames: Vec<_> = (0..n).map(|k| sim.frame(t, k)).collect();
                     let truth = sim.truth(&[]);
                     let tt = &truth.targets[t];
-                    let mut orients: Vec<LoadedOrientation> = Vec::new();
-                    let mut seq_or: Vec<Orientation> = Vec::new();
-                    for f in frames {
-                        let pa = f.truth.posang_deg;
-                        if orients.last().is_none_or(|o| o.0 != pa) {
-                            orients.push((pa, f.truth.analyzer_deg, vec![], vec![]));
-                            seq_or.push(Orientation { posang_deg: pa, analyzer_deg: f.truth.analyzer_deg, exposures: vec![] });
-                        }
-                        if let sofipol_calib::classify::Classification::Science(info) = sofipol_calib::classify::classify(&f.frame.header, &profile) {
-                            seq_or.last_mut().expect("pushed").exposures.push(*info);
-                        }
-                        let o = orients.last_mut().expect("pushed");
-                        o.3.push(f.truth.header_offset_px);
-                        o.2.push(f.frame);
-                    }
-                    let seq = Sequence { id: tt.object.clone(), object: tt.object.clone(), tpl_start: tt.tpl_start.clone(), filter: "Ks".into(), orientations: seq_or };
+                    let (seq, orients) = loaded_from_sim(frames, &profile);
                     let t0 = std::time::Instant::now();
                     let out = reduce_loaded(&seq, orients, &profile, params, false);
                     let reduce_s = t0.elapsed().as_secs_f64();

@@ -1,29 +1,15 @@
 //! Hard cases stay numerically stable and honest: a lone star is not split into a fake
-//! binary; a faint unpolarized companion gives an undefined angle without NaN; the
-//! pipeline survives an all-masked dither.
+//! binary; a faint unpolarized companion gives finite values and fails the cut; a
+//! saturated primary is flagged, never silently used.
 use sofipol_calib::Profile;
-use sofipol_pipeline::reduce::target::{reduce_loaded, LoadedOrientation, TargetParams};
-use sofipol_pipeline::sequence::{Orientation, Sequence};
+use sofipol_pipeline::reduce::target::{loaded_from_sim, reduce_loaded, TargetParams};
 use sofipol_pipeline::sim::{Scene, Simulator};
 
 fn reduce(text: &str) -> (sofipol_pipeline::catalog::Target, sofipol_pipeline::sim::Truth) {
     let profile = Profile::sofi();
     let sim = Simulator::new(Scene::from_toml(text, "t").unwrap(), profile.clone()).unwrap();
     let (frames, truth) = sim.run_in_memory();
-    let mut orients: Vec<LoadedOrientation> = Vec::new();
-    let mut so: Vec<Orientation> = Vec::new();
-    for f in frames {
-        let pa = f.truth.posang_deg;
-        if orients.last().is_none_or(|o| o.0 != pa) {
-            orients.push((pa, f.truth.analyzer_deg, vec![], vec![]));
-            so.push(Orientation { posang_deg: pa, analyzer_deg: f.truth.analyzer_deg, exposures: vec![] });
-        }
-        let o = orients.last_mut().unwrap();
-        o.3.push(f.truth.header_offset_px);
-        o.2.push(f.frame);
-    }
-    let t = &truth.targets[0];
-    let seq = Sequence { id: t.object.clone(), object: t.object.clone(), tpl_start: t.tpl_start.clone(), filter: "Ks".into(), orientations: so };
+    let (seq, orients) = loaded_from_sim(frames, &profile);
     (reduce_loaded(&seq, orients, &profile, &TargetParams::default(), false).target, truth)
 }
 
@@ -72,4 +58,21 @@ fn an_unpolarized_faint_companion_stays_finite_and_fails_the_cut() {
     assert!(!b.passes_cut, "{b:?}");
     assert!((0.0..180.0).contains(&b.gamma_deg));
     assert!(t.delta_gamma_deg.is_none());
+}
+
+#[test]
+fn a_saturated_primary_is_flagged_not_silently_used() {
+    let text = scene(60000.0, 0.04, 3.0).replace("effects = [\"psf\",", "effects = [\"saturation\", \"psf\",").replace("flux_a = 150000.0", "flux_a = 3000000.0");
+    let (t, _) = reduce(&text);
+    let a = &t.components[0];
+    assert!(a.flags.iter().any(|f| f == "saturated"), "{:?}", a.flags);
+    for v in [a.q, a.u, a.sigma_q, a.sigma_u, a.p, a.sigma_p] {
+        assert!(v.is_finite(), "{a:?}");
+    }
+    // The companion, 50x fainter beside a saturated core, is either measured unflagged or
+    // reported as not found: never a crash, never a silent NaN.
+    match t.components.get(1) {
+        Some(b) => assert!(!b.flags.iter().any(|f| f == "saturated") && b.q.is_finite(), "{b:?}"),
+        None => assert!(t.extra["flags"].as_array().unwrap().iter().any(|f| f == "companion_not_found")),
+    }
 }

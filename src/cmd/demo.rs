@@ -42,7 +42,19 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let files = scan::find_files(&raw)?;
     let s = scan::classify_all(&files, &profile);
     let seqs = sequence::group(s.science, &profile);
-    let outs: Vec<_> = seqs.par_iter().map(|q| reduce_sequence(q, &profile, &params, false)).collect();
+    let fig_dir = args.output.join("figures");
+    std::fs::create_dir_all(&fig_dir)?;
+    let outs: Vec<_> = seqs
+        .par_iter()
+        .map(|q| {
+            let out = reduce_sequence(q, &profile, &params, true);
+            let png = fig_dir.join(format!("{}.png", sofipol_pipeline::night::slug(&q.object)));
+            if let Err(e) = sofipol_pipeline::plots::target::outcome_png(&png, &out) {
+                eprintln!("sofipol: warning: {}: {e}", png.display());
+            }
+            out
+        })
+        .collect();
     let mut cat = Catalog { schema_version: SCHEMA_VERSION.into(), ..Default::default() };
     cat.failures.extend(s.unreadable);
     for o in outs {
@@ -85,6 +97,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             );
         }
     }
-    println!("\n  (P found is debiased (Wardle & Kronberg); pulls use the raw P.) Catalog: {}", cat_path.display());
+    println!("\n  (P found is debiased (Wardle & Kronberg); pulls use the raw P.)");
+    println!("  catalog: {}   figures: {}", cat_path.display(), fig_dir.display());
     Ok(ExitCode::SUCCESS)
 }

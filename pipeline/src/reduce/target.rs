@@ -285,3 +285,32 @@ pub fn reduce_loaded(seq: &Sequence, orients: Vec<LoadedOrientation>, profile: &
         measured: Some(measured),
     }
 }
+
+/// Group simulated frames of one target (in exposure order) into the [`Sequence`] and the
+/// loaded orientations [`reduce_loaded`] takes: what `night` would build from the files,
+/// without writing them (tests, the accuracy harness).
+pub fn loaded_from_sim(frames: Vec<crate::sim::SimFrame>, profile: &Profile) -> (Sequence, Vec<LoadedOrientation>) {
+    use crate::sequence::Orientation;
+    use sofipol_calib::classify::{classify, Classification};
+    let mut orients: Vec<LoadedOrientation> = Vec::new();
+    let mut seq_or: Vec<Orientation> = Vec::new();
+    let (mut object, mut tpl_start, mut filter) = (String::new(), String::new(), String::new());
+    for f in frames {
+        let pa = f.truth.posang_deg;
+        if orients.last().is_none_or(|o| o.0 != pa) {
+            orients.push((pa, f.truth.analyzer_deg, vec![], vec![]));
+            seq_or.push(Orientation { posang_deg: pa, analyzer_deg: f.truth.analyzer_deg, exposures: vec![] });
+        }
+        if let Classification::Science(info) = classify(&f.frame.header, profile) {
+            object.clone_from(&info.object);
+            tpl_start.clone_from(&info.tpl_start);
+            filter.clone_from(&info.filter);
+            seq_or.last_mut().expect("pushed").exposures.push(*info);
+        }
+        let o = orients.last_mut().expect("pushed");
+        o.3.push(f.truth.header_offset_px);
+        o.2.push(f.frame);
+    }
+    let seq = Sequence { id: format!("{object}@{tpl_start}"), object, tpl_start, filter, orientations: seq_or };
+    (seq, orients)
+}
