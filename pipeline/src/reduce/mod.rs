@@ -119,6 +119,9 @@ pub struct BeamFlux {
     pub var: f64,
     /// Position (x, y), px.
     pub xy: (f64, f64),
+    /// Aperture-photometry flags of this measurement ([`crate::photometry::Flags`] bits;
+    /// 0 for PSF-fit fluxes).
+    pub phot_flags: u32,
 }
 
 /// Per-dither measurement of one component.
@@ -248,7 +251,12 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
             let c = match first {
                 Some((c1, off1)) => {
                     let guess = (c1.0 + off[0] - off1[0], c1.1 + off[1] - off1[1]);
-                    refine(f.data.view(), m.view(), guess.0, guess.1, fwhm_guess, 3.0)
+                    refine(f.data.view(), m.view(), guess.0, guess.1, fwhm_guess, 3.0).or_else(|| {
+                        // A defect or cosmic ray near the guess: restart from the brightest
+                        // peak within the pointing tolerance.
+                        brightest_peak(f.data.view(), m.view(), guess.0, guess.1, 3.0, orow)
+                            .and_then(|(x, y, _)| refine(f.data.view(), m.view(), x, y, fwhm_guess, 3.0))
+                    })
                 }
                 None => {
                     let guess = (anchor.0 + off[0], anchor.1 + off[1]);
@@ -398,13 +406,14 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
         }
         for (f, c) in o.frames.iter().zip(cs) {
             let Some(c) = c else {
+                flags.push(format!("primary not found in {}", f.path().display()));
                 for comp in dithers.iter_mut() {
                     comp[k].push(DitherValue {
                         f: f64::NAN,
                         sigma_f: f64::NAN,
-                        o: BeamFlux { flux: f64::NAN, var: f64::NAN, xy: (f64::NAN, f64::NAN) },
-                        e: BeamFlux { flux: f64::NAN, var: f64::NAN, xy: (f64::NAN, f64::NAN) },
-                        rejected: Some(format!("{}: primary not found", f.path().display())),
+                        o: BeamFlux { flux: f64::NAN, var: f64::NAN, xy: (f64::NAN, f64::NAN), phot_flags: 0 },
+                        e: BeamFlux { flux: f64::NAN, var: f64::NAN, xy: (f64::NAN, f64::NAN), phot_flags: 0 },
+                        rejected: Some("primary_not_found".into()),
                     });
                 }
                 continue;
@@ -458,9 +467,9 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
                         match &fit {
                             Some(ft) => {
                                 let st = ft.stars[si];
-                                out.push((BeamFlux { flux: st.flux, var: st.flux_err.powi(2), xy: (st.x + x0, st.y + y0) }, bits_in));
+                                out.push((BeamFlux { flux: st.flux, var: st.flux_err.powi(2), xy: (st.x + x0, st.y + y0), phot_flags: 0 }, bits_in));
                             }
-                            None => out.push((BeamFlux { flux: f64::NAN, var: f64::NAN, xy: (lx + x0, ly + y0) }, bits_in)),
+                            None => out.push((BeamFlux { flux: f64::NAN, var: f64::NAN, xy: (lx + x0, ly + y0), phot_flags: 0 }, bits_in)),
                         }
                     } else {
                         // Deblend: subtract the other stars' models, then measure.
@@ -482,7 +491,7 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
                             ..PhotParams::default()
                         };
                         let ph = measure(work.view(), Some(var.view()), Some(bad.view()), &pp, lx, ly, &others);
-                        out.push((BeamFlux { flux: ph.flux, var: ph.variance, xy: (lx + x0, ly + y0) }, bits_in));
+                        out.push((BeamFlux { flux: ph.flux, var: ph.variance, xy: (lx + x0, ly + y0), phot_flags: ph.flags.0 }, bits_in));
                     }
                 }
                 if bi == 0 {
@@ -500,8 +509,11 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
                 let fval = (o_b.flux - e_b.flux) / tot;
                 let sigma_f = 2.0 * ((e_b.flux.powi(2) * o_b.var) + (o_b.flux.powi(2) * e_b.var)).sqrt() / tot.powi(2);
                 let blocking = (ob | eb) & (mbits::BAD | mbits::COSMIC | mbits::SATURATED | mbits::OFF_STRIP);
+                let pf = crate::photometry::Flags(o_b.phot_flags | e_b.phot_flags);
                 let rejected = if !(fval.is_finite() && sigma_f.is_finite() && sigma_f > 0.0 && tot > 0.0) {
                     Some("photometry failed".to_string())
+                } else if pf.contains(crate::photometry::Flags::TRUNCATED) {
+                    Some("truncated".to_string())
                 } else if blocking != 0 {
                     Some(bit_names(blocking).join(","))
                 } else {
@@ -552,6 +564,17 @@ pub fn component_from_dithers(name: &str, per_orient: &[Vec<DitherValue>], analy
             usable = (0..dv.len()).filter(|&i| dv[i].f.is_finite() && dv[i].sigma_f > 0.0).collect();
             if !usable.is_empty() {
                 flags.push("used_flagged_dithers".into());
+            }
+        }
+        for &i in &usable {
+            let pf = crate::photometry::Flags(dv[i].o.phot_flags | dv[i].e.phot_flags);
+            for (bit, name) in [
+                (crate::photometry::Flags::COMPANION_OVERLAP, "companion_overlap"),
+                (crate::photometry::Flags::ANNULUS_CONTAMINATED, "annulus_contaminated"),
+            ] {
+                if pf.contains(bit) && !flags.iter().any(|f| f == name) {
+                    flags.push(name.to_string());
+                }
             }
         }
         let vals: Vec<f64> = usable.iter().map(|&i| dv[i].f).collect();
