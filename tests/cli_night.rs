@@ -51,7 +51,11 @@ gamma_b_deg = 80.0
 
 fn run(args: &[&str]) -> (i32, String, String) {
     let o = Command::new(BIN).args(args).output().expect("run sofipol");
-    (o.status.code().unwrap_or(-1), String::from_utf8_lossy(&o.stdout).into(), String::from_utf8_lossy(&o.stderr).into())
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stdout).into(),
+        String::from_utf8_lossy(&o.stderr).into(),
+    )
 }
 
 fn catalog(p: &Path) -> Value {
@@ -93,7 +97,14 @@ fn a_night_with_bad_inputs_reduces_every_good_target_and_names_every_bad_file() 
     let _ = Header::default();
 
     let out1 = dir.path().join("cat1.json");
-    let (code, stdout, err) = run(&["night", night.to_str().unwrap(), "-o", out1.to_str().unwrap(), "--jobs", "2"]);
+    let (code, stdout, err) = run(&[
+        "night",
+        night.to_str().unwrap(),
+        "-o",
+        out1.to_str().unwrap(),
+        "--jobs",
+        "2",
+    ]);
     assert_eq!(code, 2, "exit code for a night with failures\n{stdout}\n{err}");
     let c = catalog(&out1);
     let targets = c["targets"].as_array().unwrap();
@@ -104,7 +115,10 @@ fn a_night_with_bad_inputs_reduces_every_good_target_and_names_every_bad_file() 
         let status = t["status"].as_str().unwrap();
         if obj == "Beta" {
             assert_eq!(status, "partial", "{t}");
-            assert!(t["error"].as_str().unwrap().contains("unequal") || t["error"].as_str().unwrap().contains("of 8"), "{t}");
+            assert!(
+                t["error"].as_str().unwrap().contains("unequal") || t["error"].as_str().unwrap().contains("of 8"),
+                "{t}"
+            );
         } else {
             assert_eq!(status, "ok", "{obj}: {t}");
         }
@@ -114,27 +128,72 @@ fn a_night_with_bad_inputs_reduces_every_good_target_and_names_every_bad_file() 
         }
     }
     let fails = c["failures"].as_array().unwrap();
-    let find = |name: &str| fails.iter().find(|f| f["file"].as_str().unwrap().ends_with(name)).map(|f| f["error"].as_str().unwrap().to_string());
+    let find = |name: &str| {
+        fails
+            .iter()
+            .find(|f| f["file"].as_str().unwrap().ends_with(name))
+            .map(|f| f["error"].as_str().unwrap().to_string())
+    };
     assert!(find("truncated.fits").is_some(), "{fails:?}");
     assert!(find("notes.fits").is_some(), "{fails:?}");
-    assert!(find("flat_0001.fits").unwrap().contains("SOFI_img_cal_SkyFlats") || find("flat_0001.fits").unwrap().contains("FLAT"), "{fails:?}");
+    assert!(
+        find("flat_0001.fits").unwrap().contains("SOFI_img_cal_SkyFlats")
+            || find("flat_0001.fits").unwrap().contains("FLAT"),
+        "{fails:?}"
+    );
     assert!(find("nokey.fits").unwrap().contains("ESO ADA POSANG"), "{fails:?}");
     assert_eq!(fails.len(), 4, "{fails:?}");
-    assert!(stdout.contains("Alpha") && stdout.contains("truncated.fits"), "{stdout}");
+    assert!(
+        stdout.contains("Alpha") && stdout.contains("truncated.fits"),
+        "{stdout}"
+    );
 
     // Same inputs, one thread: identical catalog (timestamps aside).
     let out2 = dir.path().join("cat2.json");
-    let (code, _, _) = run(&["night", night.to_str().unwrap(), "-o", out2.to_str().unwrap(), "--jobs", "1", "-q", "--no-png"]);
+    let (code, _, _) = run(&[
+        "night",
+        night.to_str().unwrap(),
+        "-o",
+        out2.to_str().unwrap(),
+        "--jobs",
+        "1",
+        "-q",
+        "--no-png",
+    ]);
     assert_eq!(code, 2);
     assert_eq!(without_time(catalog(&out1)), without_time(catalog(&out2)));
 
     // Shards 1/2 and 2/2 merged hold the same targets and failures as the whole night.
     let s1 = dir.path().join("s1.json");
     let s2 = dir.path().join("s2.json");
-    run(&["night", night.to_str().unwrap(), "-o", s1.to_str().unwrap(), "--shard", "1/2", "-q", "--no-png"]);
-    run(&["night", night.to_str().unwrap(), "-o", s2.to_str().unwrap(), "--shard", "2/2", "-q", "--no-png"]);
+    run(&[
+        "night",
+        night.to_str().unwrap(),
+        "-o",
+        s1.to_str().unwrap(),
+        "--shard",
+        "1/2",
+        "-q",
+        "--no-png",
+    ]);
+    run(&[
+        "night",
+        night.to_str().unwrap(),
+        "-o",
+        s2.to_str().unwrap(),
+        "--shard",
+        "2/2",
+        "-q",
+        "--no-png",
+    ]);
     let merged = dir.path().join("merged.json");
-    let (code, _, err) = run(&["merge", s1.to_str().unwrap(), s2.to_str().unwrap(), "-o", merged.to_str().unwrap()]);
+    let (code, _, err) = run(&[
+        "merge",
+        s1.to_str().unwrap(),
+        s2.to_str().unwrap(),
+        "-o",
+        merged.to_str().unwrap(),
+    ]);
     assert_eq!(code, 0, "{err}");
     let m = catalog(&merged);
     assert_eq!(m["targets"], c["targets"]);

@@ -42,7 +42,11 @@ pub struct BadPixelOptions {
 
 impl Default for BadPixelOptions {
     fn default() -> Self {
-        BadPixelOptions { sigma: 6.0, window_px: 15, min_deviation_adu: 0.0 }
+        BadPixelOptions {
+            sigma: 6.0,
+            window_px: 15,
+            min_deviation_adu: 0.0,
+        }
     }
 }
 
@@ -69,7 +73,10 @@ pub struct BadPixelReport {
 type StripHits = (&'static str, f64, Vec<(usize, usize, bool)>);
 
 fn stage_err(reason: String) -> Error {
-    Error::Stage { stage: "badpix", reason }
+    Error::Stage {
+        stage: "badpix",
+        reason,
+    }
 }
 
 /// Median of a vector (reordered in place); upper middle for even counts.
@@ -82,7 +89,11 @@ fn select_median(v: &mut [f32]) -> f32 {
 /// the module documentation). `frames`: all frames of a sequence (at least 3, one
 /// shape, NaN-free; the more dithers and orientations the cleaner). Returns a mask
 /// (`mask::BAD` where bad, 0 elsewhere) and counts.
-pub fn detect_bad_pixels(frames: &[&Frame], profile: &Profile, opts: &BadPixelOptions) -> Result<(Array2<u8>, BadPixelReport)> {
+pub fn detect_bad_pixels(
+    frames: &[&Frame],
+    profile: &Profile,
+    opts: &BadPixelOptions,
+) -> Result<(Array2<u8>, BadPixelReport)> {
     let n = frames.len();
     if n < 3 {
         return Err(stage_err(format!(
@@ -90,9 +101,13 @@ pub fn detect_bad_pixels(frames: &[&Frame], profile: &Profile, opts: &BadPixelOp
         )));
     }
     if n > stack::MAX_STACK {
-        return Err(stage_err(format!("{n} frames given: at most {} per median stack", stack::MAX_STACK)));
+        return Err(stage_err(format!(
+            "{n} frames given: at most {} per median stack",
+            stack::MAX_STACK
+        )));
     }
-    if opts.sigma.is_nan() || opts.sigma <= 0.0 || opts.window_px < 3 || 2 * (opts.window_px / 2) + 1 > stack::MAX_STACK {
+    if opts.sigma.is_nan() || opts.sigma <= 0.0 || opts.window_px < 3 || 2 * (opts.window_px / 2) + 1 > stack::MAX_STACK
+    {
         return Err(stage_err(format!(
             "sigma = {} must be > 0 and window_px = {} must be in 3..={}",
             opts.sigma,
@@ -114,17 +129,35 @@ pub fn detect_bad_pixels(frames: &[&Frame], profile: &Profile, opts: &BadPixelOp
     let g = &profile.geometry;
     let strip_end = g.strips().iter().map(|(_, r)| r[1]).max().unwrap_or(0);
     if shape.0 < strip_end {
-        return Err(stage_err(format!("frames have {} rows but the profile's strips reach row {strip_end}", shape.0)));
+        return Err(stage_err(format!(
+            "frames have {} rows but the profile's strips reach row {strip_end}",
+            shape.0
+        )));
     }
     let (ny, nx) = shape;
 
     // 1. Median stack at a common level.
-    let levels: Vec<f64> = frames.par_iter().map(|f| crate::sky::sky_level(f, profile)).collect::<Result<_>>()?;
+    let levels: Vec<f64> = frames
+        .par_iter()
+        .map(|f| crate::sky::sky_level(f, profile))
+        .collect::<Result<_>>()?;
     let mean_level = levels.iter().sum::<f64>() / n as f64;
     let maps: Vec<Affine> = if levels.iter().all(|&l| l > 0.0) {
-        levels.iter().map(|&l| Affine { scale: (mean_level / l) as f32, offset: 0.0 }).collect()
+        levels
+            .iter()
+            .map(|&l| Affine {
+                scale: (mean_level / l) as f32,
+                offset: 0.0,
+            })
+            .collect()
     } else {
-        levels.iter().map(|&l| Affine { scale: 1.0, offset: (mean_level - l) as f32 }).collect()
+        levels
+            .iter()
+            .map(|&l| Affine {
+                scale: 1.0,
+                offset: (mean_level - l) as f32,
+            })
+            .collect()
     };
     let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.data.view()).collect();
     let med = stack::median_stack_affine(&views, &maps)?;
@@ -208,7 +241,9 @@ pub fn combine_masks(a: &Array2<u8>, b: &Array2<u8>) -> Result<Array2<u8>> {
             b.dim().1
         )));
     }
-    Ok(Zip::from(a).and(b).map_collect(|&p, &q| if p != 0 || q != 0 { mask::BAD } else { 0 }))
+    Ok(Zip::from(a)
+        .and(b)
+        .map_collect(|&p, &q| if p != 0 || q != 0 { mask::BAD } else { 0 }))
 }
 
 /// A copy of `frame` with [`mask::BAD`] set wherever `bad` is nonzero; data, variance and
@@ -236,7 +271,10 @@ pub fn apply_mask(frame: &Frame, bad: &Array2<u8>) -> Result<Frame> {
             *m |= mask::BAD;
         }
     });
-    Ok(out.with_history("badpix", format!("bad-pixel mask applied: {total} pixels BAD ({newly} newly); data unchanged")))
+    Ok(out.with_history(
+        "badpix",
+        format!("bad-pixel mask applied: {total} pixels BAD ({newly} newly); data unchanged"),
+    ))
 }
 
 #[cfg(test)]
@@ -297,7 +335,9 @@ mod tests {
         assert_eq!(c, m);
         let e = combine_masks(&m, &Array2::zeros((3, 3))).unwrap_err().to_string();
         assert!(e.contains("3x3"), "{e}");
-        let e = detect_bad_pixels(&refs[..2], &Profile::sofi(), &BadPixelOptions::default()).unwrap_err().to_string();
+        let e = detect_bad_pixels(&refs[..2], &Profile::sofi(), &BadPixelOptions::default())
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("2 frames") && e.contains("at least 3"), "{e}");
     }
 

@@ -128,7 +128,9 @@ fn same(a: &str, b: &str) -> bool {
 }
 
 fn contains_ci(haystack: &str, needle: &str) -> bool {
-    haystack.to_ascii_uppercase().contains(&needle.trim().to_ascii_uppercase())
+    haystack
+        .to_ascii_uppercase()
+        .contains(&needle.trim().to_ascii_uppercase())
 }
 
 /// A string keyword's value (trimmed), `None` when absent or blank.
@@ -151,7 +153,9 @@ fn shown(h: &Header, key: &str) -> String {
 fn reason_of(e: Error) -> String {
     match e {
         Error::MissingKeyword { keyword, .. } => format!("missing keyword {keyword}"),
-        Error::BadKeyword { keyword, value, reason, .. } => format!("bad keyword {keyword} = {value}: {reason}"),
+        Error::BadKeyword {
+            keyword, value, reason, ..
+        } => format!("bad keyword {keyword} = {value}: {reason}"),
         other => other.to_string(),
     }
 }
@@ -240,7 +244,11 @@ fn science_info(h: &Header, p: &Profile) -> std::result::Result<ScienceInfo, Str
         }
     }
     let Some(wollaston) = wollaston else {
-        let found = if seen.is_empty() { "none present".to_string() } else { seen.join(", ") };
+        let found = if seen.is_empty() {
+            "none present".to_string()
+        } else {
+            seen.join(", ")
+        };
         return Err(format!(
             "no Wollaston in {}1..{} ID (looking for '{}'; {found})",
             k.opti_prefix, k.opti_max, m.wollaston_contains
@@ -254,10 +262,12 @@ fn science_info(h: &Header, p: &Profile) -> std::result::Result<ScienceInfo, Str
     let object = match text(h, &k.object) {
         Some(o) if !same(&o, &m.object_std_alias) => o,
         Some(o) => text(h, &k.targ_name).ok_or_else(|| {
-            format!("{} = '{o}' (standard alias) but missing keyword {}", k.object, k.targ_name)
+            format!(
+                "{} = '{o}' (standard alias) but missing keyword {}",
+                k.object, k.targ_name
+            )
         })?,
-        None => text(h, &k.targ_name)
-            .ok_or_else(|| format!("missing keyword {} (and {})", k.object, k.targ_name))?,
+        None => text(h, &k.targ_name).ok_or_else(|| format!("missing keyword {} (and {})", k.object, k.targ_name))?,
     };
     let filter = required_text(h, &k.filter)?;
     let (dit_key, dit_s) = if h.contains(&k.dit) {
@@ -268,7 +278,9 @@ fn science_info(h: &Header, p: &Profile) -> std::result::Result<ScienceInfo, Str
         return Err(format!("missing keyword {} (and {})", k.dit, k.exptime));
     };
     if dit_s <= 0.0 {
-        return Err(format!("bad keyword {dit_key} = {dit_s}: integration time must be > 0 s"));
+        return Err(format!(
+            "bad keyword {dit_key} = {dit_s}: integration time must be > 0 s"
+        ));
     }
     let ndit = match h.get_i64(&k.ndit).map_err(reason_of)? {
         n if n >= 1 && n <= u32::MAX as i64 => n as u32,

@@ -188,7 +188,11 @@ pub fn write_frame(path: &Path, frame: &Frame, opts: &WriteOptions) -> Result<()
             reason: format!("cannot write an empty image ({ny} x {nx} pixels)"),
         });
     }
-    let variance = if opts.with_variance_and_mask { frame.variance.as_ref() } else { None };
+    let variance = if opts.with_variance_and_mask {
+        frame.variance.as_ref()
+    } else {
+        None
+    };
     if let Some(v) = variance {
         check_extension_shape(path, VARIANCE_EXTNAME, v.dim(), (ny, nx))?;
     }
@@ -221,7 +225,10 @@ pub fn write_frame(path: &Path, frame: &Frame, opts: &WriteOptions) -> Result<()
         Bitpix::I16 => ImageType::UnsignedShort,
     };
     let shape = [ny, nx];
-    let desc = ImageDescription { data_type: image_type, dimensions: &shape };
+    let desc = ImageDescription {
+        data_type: image_type,
+        dimensions: &shape,
+    };
     let tpath = tmp.path.clone();
     let ferr = |what: &str, e: fitsio::errors::Error| fits_err(&tpath, what, e);
     {
@@ -247,22 +254,34 @@ pub fn write_frame(path: &Path, frame: &Frame, opts: &WriteOptions) -> Result<()
         match opts.bitpix {
             Bitpix::F32 => {
                 let data = contiguous(&frame.data);
-                hdu.write_image(&mut f, &data).map_err(|e| ferr("writing image data", e))?;
+                hdu.write_image(&mut f, &data)
+                    .map_err(|e| ferr("writing image data", e))?;
             }
             Bitpix::I16 => {
                 let data: Vec<u16> = frame.data.iter().map(|&v| to_u16(v)).collect();
-                hdu.write_image(&mut f, &data).map_err(|e| ferr("writing image data", e))?;
+                hdu.write_image(&mut f, &data)
+                    .map_err(|e| ferr("writing image data", e))?;
             }
         }
         if opts.with_variance_and_mask {
             if let Some(v) = variance {
-                let d = ImageDescription { data_type: ImageType::Float, dimensions: &shape };
-                let h = f.create_image(VARIANCE_EXTNAME, &d).map_err(|e| ferr("creating VARIANCE", e))?;
-                h.write_image(&mut f, &contiguous(v)).map_err(|e| ferr("writing VARIANCE", e))?;
+                let d = ImageDescription {
+                    data_type: ImageType::Float,
+                    dimensions: &shape,
+                };
+                let h = f
+                    .create_image(VARIANCE_EXTNAME, &d)
+                    .map_err(|e| ferr("creating VARIANCE", e))?;
+                h.write_image(&mut f, &contiguous(v))
+                    .map_err(|e| ferr("writing VARIANCE", e))?;
             }
-            let d = ImageDescription { data_type: ImageType::UnsignedByte, dimensions: &shape };
+            let d = ImageDescription {
+                data_type: ImageType::UnsignedByte,
+                dimensions: &shape,
+            };
             let h = f.create_image(MASK_EXTNAME, &d).map_err(|e| ferr("creating MASK", e))?;
-            h.write_image(&mut f, &contiguous(&frame.mask)).map_err(|e| ferr("writing MASK", e))?;
+            h.write_image(&mut f, &contiguous(&frame.mask))
+                .map_err(|e| ferr("writing MASK", e))?;
         }
         // Drop (fits_close_file) cannot report errors: flush explicitly first.
         cfitsio_raw(&mut f, RawOp::Flush).map_err(|e| ferr("flushing", e))?;
@@ -285,7 +304,10 @@ fn fits_err(path: &Path, what: &str, e: fitsio::errors::Error) -> Error {
         }
         other => format!("{what}: {other}"),
     };
-    Error::Fits { path: path.to_path_buf(), message }
+    Error::Fits {
+        path: path.to_path_buf(),
+        message,
+    }
 }
 
 /// The file name as cfitsio must see it. cfitsio parses an "extended file name syntax"
@@ -298,7 +320,9 @@ fn cfitsio_name(path: &Path) -> Result<String> {
     };
     let s = path.to_str().ok_or_else(|| bad("not valid UTF-8"))?;
     if s.contains(['[', ']', '(', ')']) {
-        return Err(bad("contains brackets or parentheses, which cfitsio reads as its extended file-name syntax"));
+        return Err(bad(
+            "contains brackets or parentheses, which cfitsio reads as its extended file-name syntax",
+        ));
     }
     if s.contains("://") {
         return Err(bad("looks like a URL"));
@@ -315,7 +339,10 @@ fn cfitsio_name(path: &Path) -> Result<String> {
 }
 
 fn open(path: &Path) -> Result<FitsFile> {
-    let meta = std::fs::metadata(path).map_err(|e| Error::Io { path: path.to_path_buf(), source: e })?;
+    let meta = std::fs::metadata(path).map_err(|e| Error::Io {
+        path: path.to_path_buf(),
+        source: e,
+    })?;
     if !meta.is_file() {
         return Err(Error::Io {
             path: path.to_path_buf(),
@@ -391,7 +418,9 @@ fn is_image_hdu(cards: &[String]) -> bool {
 fn naxis_values(cards: &[String]) -> (i64, Vec<i64>, &'static str) {
     let prefix = if is_compressed(cards) { "ZNAXIS" } else { "NAXIS" };
     let n = raw_int(cards, prefix).unwrap_or(0);
-    let axes = (1..=n.clamp(0, 999)).map(|i| raw_int(cards, &format!("{prefix}{i}")).unwrap_or(-1)).collect();
+    let axes = (1..=n.clamp(0, 999))
+        .map(|i| raw_int(cards, &format!("{prefix}{i}")).unwrap_or(-1))
+        .collect();
     (n, axes, prefix)
 }
 
@@ -404,7 +433,11 @@ fn image_dims(cards: &[String], path: &Path) -> Result<(usize, usize)> {
         .map(|(i, a)| format!("{prefix}{} = {a}", i + 1))
         .collect::<Vec<_>>()
         .join(", ");
-    let describe = if listing.is_empty() { format!("{prefix} = {n}") } else { format!("{prefix} = {n} ({listing})") };
+    let describe = if listing.is_empty() {
+        format!("{prefix} = {n}")
+    } else {
+        format!("{prefix} = {n} ({listing})")
+    };
     if n != 2 {
         return Err(Error::BadImage {
             path: path.to_path_buf(),
@@ -412,7 +445,10 @@ fn image_dims(cards: &[String], path: &Path) -> Result<(usize, usize)> {
         });
     }
     if axes.iter().any(|&a| a <= 0) {
-        return Err(Error::BadImage { path: path.to_path_buf(), reason: format!("empty image: {describe}") });
+        return Err(Error::BadImage {
+            path: path.to_path_buf(),
+            reason: format!("empty image: {describe}"),
+        });
     }
     // fitsio panics on the one pixel type it does not know (unsigned 64-bit): refuse it.
     let bitpix_key = if prefix == "ZNAXIS" { "ZBITPIX" } else { "BITPIX" };
@@ -431,7 +467,10 @@ fn image_dims(cards: &[String], path: &Path) -> Result<(usize, usize)> {
 
 fn check_same_shape(cards: &[String], path: &Path, name: &str, want: (usize, usize)) -> Result<()> {
     let got = image_dims(cards, path).map_err(|e| match e {
-        Error::BadImage { path, reason } => Error::BadImage { path, reason: format!("{name} extension: {reason}") },
+        Error::BadImage { path, reason } => Error::BadImage {
+            path,
+            reason: format!("{name} extension: {reason}"),
+        },
         e => e,
     })?;
     check_extension_shape(path, name, got, want)
@@ -458,7 +497,9 @@ fn extname(cards: &[String]) -> Option<String> {
 }
 
 fn read_f32(f: &mut FitsFile, path: &Path, index: usize, ny: usize, nx: usize) -> Result<Array2<f32>> {
-    let hdu = f.hdu(index).map_err(|e| fits_err(path, &format!("moving to HDU {index}"), e))?;
+    let hdu = f
+        .hdu(index)
+        .map_err(|e| fits_err(path, &format!("moving to HDU {index}"), e))?;
     match &hdu.info {
         HduInfo::ImageInfo { shape, .. } if shape.as_slice() == [ny, nx] => {}
         other => {
@@ -490,7 +531,11 @@ fn to_array<T>(v: Vec<T>, ny: usize, nx: usize, path: &Path) -> Result<Array2<T>
 #[derive(Debug, Clone, PartialEq)]
 enum Parsed {
     /// `KEY = value / comment` (HIERARCH prefix removed from the key).
-    Key { key: String, value: HeaderValue, comment: Option<String> },
+    Key {
+        key: String,
+        value: HeaderValue,
+        comment: Option<String>,
+    },
     /// A keyword with an empty (undefined) value.
     Undefined,
     /// `HISTORY text`.
@@ -504,19 +549,19 @@ enum Parsed {
 /// Keywords that describe the file layout rather than the data.
 fn is_structural(key: &str) -> bool {
     const EXACT: &[&str] = &[
-        "SIMPLE", "BITPIX", "NAXIS", "EXTEND", "BZERO", "BSCALE", "BLANK", "PCOUNT", "GCOUNT",
-        "XTENSION", "EXTNAME", "EXTVER", "EXTLEVEL", "INHERIT", "TFIELDS", "THEAP", "CHECKSUM",
-        "DATASUM", "BLOCKED", "END", "LONGSTRN", "ZIMAGE", "ZBITPIX", "ZNAXIS", "ZCMPTYPE",
-        "ZQUANTIZ", "ZDITHER0", "ZSIMPLE", "ZEXTEND", "ZBLOCKED", "ZTENSION", "ZPCOUNT",
-        "ZGCOUNT", "ZHECKSUM", "ZDATASUM", "ZMASKCMP", "ZSCALE", "ZZERO", "ZBLANK", "ZTHEAP",
+        "SIMPLE", "BITPIX", "NAXIS", "EXTEND", "BZERO", "BSCALE", "BLANK", "PCOUNT", "GCOUNT", "XTENSION", "EXTNAME",
+        "EXTVER", "EXTLEVEL", "INHERIT", "TFIELDS", "THEAP", "CHECKSUM", "DATASUM", "BLOCKED", "END", "LONGSTRN",
+        "ZIMAGE", "ZBITPIX", "ZNAXIS", "ZCMPTYPE", "ZQUANTIZ", "ZDITHER0", "ZSIMPLE", "ZEXTEND", "ZBLOCKED",
+        "ZTENSION", "ZPCOUNT", "ZGCOUNT", "ZHECKSUM", "ZDATASUM", "ZMASKCMP", "ZSCALE", "ZZERO", "ZBLANK", "ZTHEAP",
     ];
     const NUMBERED: &[&str] = &[
-        "NAXIS", "ZNAXIS", "ZTILE", "ZNAME", "ZVAL", "TTYPE", "TFORM", "TUNIT", "TDIM", "TSCAL",
-        "TZERO", "TNULL", "TDISP",
+        "NAXIS", "ZNAXIS", "ZTILE", "ZNAME", "ZVAL", "TTYPE", "TFORM", "TUNIT", "TDIM", "TSCAL", "TZERO", "TNULL",
+        "TDISP",
     ];
     EXACT.contains(&key)
         || NUMBERED.iter().any(|p| {
-            key.strip_prefix(p).is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
+            key.strip_prefix(p)
+                .is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
         })
 }
 
@@ -570,7 +615,10 @@ fn parse_value(field: &str) -> (Option<HeaderValue>, Option<String>) {
             if numeric && digits.bytes().all(|b| b.is_ascii_digit()) {
                 match v.parse::<i64>() {
                     Ok(i) => HeaderValue::Int(i),
-                    Err(_) => v.parse::<f64>().map(HeaderValue::Float).unwrap_or_else(|_| HeaderValue::Str(v.into())),
+                    Err(_) => v
+                        .parse::<f64>()
+                        .map(HeaderValue::Float)
+                        .unwrap_or_else(|_| HeaderValue::Str(v.into())),
                 }
             } else if numeric {
                 match v.replace(['D', 'd'], "E").parse::<f64>() {
@@ -597,7 +645,10 @@ fn parse_card(raw: &str) -> Parsed {
         let t = card.get(8..).unwrap_or("").trim_start();
         if t.starts_with('\'') {
             let (text, rest) = parse_quoted(t);
-            return Parsed::Continue { text, comment: parse_comment(rest) };
+            return Parsed::Continue {
+                text,
+                comment: parse_comment(rest),
+            };
         }
         return Parsed::Commentary;
     }
@@ -617,7 +668,11 @@ fn parse_card(raw: &str) -> Parsed {
         return Parsed::Commentary;
     }
     match parse_value(&card[9..]) {
-        (Some(value), comment) => Parsed::Key { key: name8, value, comment },
+        (Some(value), comment) => Parsed::Key {
+            key: name8,
+            value,
+            comment,
+        },
         _ => Parsed::Undefined,
     }
 }
@@ -698,11 +753,17 @@ fn parse_cards(cards: &[String], path: &Path) -> (Header, Vec<HistoryRecord>) {
 const CARD: usize = 80;
 
 fn is_standard_key(key: &str) -> bool {
-    !key.is_empty() && key.len() <= 8 && key.bytes().all(|b| b.is_ascii_uppercase() || b.is_ascii_digit() || b == b'-' || b == b'_')
+    !key.is_empty()
+        && key.len() <= 8
+        && key
+            .bytes()
+            .all(|b| b.is_ascii_uppercase() || b.is_ascii_digit() || b == b'-' || b == b'_')
 }
 
 fn ascii_sanitize(s: &str) -> String {
-    s.chars().map(|c| if (' '..='~').contains(&c) { c } else { '?' }).collect()
+    s.chars()
+        .map(|c| if (' '..='~').contains(&c) { c } else { '?' })
+        .collect()
 }
 
 /// A float in FITS syntax with the shortest digits that read back bit-exactly.
@@ -715,7 +776,11 @@ fn format_f64(x: f64) -> Option<String> {
     let s = format!("{x:?}");
     Some(match s.split_once('e') {
         Some((m, e)) => {
-            let m = if m.contains('.') { m.to_string() } else { format!("{m}.0") };
+            let m = if m.contains('.') {
+                m.to_string()
+            } else {
+                format!("{m}.0")
+            };
             format!("{m}E{e}")
         }
         None => s,
@@ -749,7 +814,11 @@ fn format_card(card: &Card, path: &Path) -> Result<Vec<String>> {
     if key.is_empty() || key.contains('=') || !key.chars().all(|c| (' '..='~').contains(&c)) {
         return Err(bad_key(path, card, "keyword names must be printable ASCII without '='"));
     }
-    let prefix = if is_standard_key(&key) { format!("{key:<8}= ") } else { format!("HIERARCH {key} = ") };
+    let prefix = if is_standard_key(&key) {
+        format!("{key:<8}= ")
+    } else {
+        format!("HIERARCH {key} = ")
+    };
     let comment = card.comment.as_deref();
     let too_long = || bad_key(path, card, "keyword name too long for an 80-character card");
     match &card.value {
@@ -758,10 +827,17 @@ fn format_card(card: &Card, path: &Path) -> Result<Vec<String>> {
                 return Err(bad_key(path, card, "FITS strings must be printable ASCII"));
             }
             // Escaped pieces, one per character, so that '' is never split.
-            let pieces: Vec<String> = s.chars().map(|c| if c == '\'' { "''".into() } else { c.to_string() }).collect();
+            let pieces: Vec<String> = s
+                .chars()
+                .map(|c| if c == '\'' { "''".into() } else { c.to_string() })
+                .collect();
             let escaped: String = pieces.concat();
             if prefix.len() + escaped.len().max(8) + 2 <= CARD {
-                let padded = if escaped.len() < 8 { format!("{escaped:<8}") } else { escaped };
+                let padded = if escaped.len() < 8 {
+                    format!("{escaped:<8}")
+                } else {
+                    escaped
+                };
                 return Ok(vec![with_comment(format!("{prefix}'{padded}'"), comment)]);
             }
             // Long string: CONTINUE convention; every card but the last ends in '&'.
@@ -769,7 +845,10 @@ fn format_card(card: &Card, path: &Path) -> Result<Vec<String>> {
             let mut lead = prefix.clone();
             let mut it = pieces.iter().peekable();
             while it.peek().is_some() {
-                let room = CARD.checked_sub(lead.len() + 3).filter(|&r| r > 1).ok_or_else(too_long)?;
+                let room = CARD
+                    .checked_sub(lead.len() + 3)
+                    .filter(|&r| r > 1)
+                    .ok_or_else(too_long)?;
                 let mut chunk = String::new();
                 while let Some(p) = it.peek() {
                     if chunk.len() + p.len() > room {
@@ -805,7 +884,11 @@ fn format_card(card: &Card, path: &Path) -> Result<Vec<String>> {
                 HeaderValue::Str(_) => unreachable!(),
             };
             // Fixed format (value right-justified in column 30) for standard keys.
-            let line = if prefix.len() == 10 && text.len() <= 20 { format!("{prefix}{text:>20}") } else { format!("{prefix}{text}") };
+            let line = if prefix.len() == 10 && text.len() <= 20 {
+                format!("{prefix}{text:>20}")
+            } else {
+                format!("{prefix}{text}")
+            };
             if line.len() > CARD {
                 return Err(too_long());
             }
@@ -820,7 +903,10 @@ fn commentary(name: &str, text: &str) -> Vec<String> {
     if text.is_empty() {
         return vec![name.to_string()];
     }
-    text.as_bytes().chunks(72).map(|c| format!("{name:<8}{}", String::from_utf8_lossy(c))).collect()
+    text.as_bytes()
+        .chunks(72)
+        .map(|c| format!("{name:<8}{}", String::from_utf8_lossy(c)))
+        .collect()
 }
 
 /// All cards of a header, in order (structural keywords skipped).
@@ -852,7 +938,11 @@ fn split_history(line: &str) -> Vec<String> {
     let mut rest: &str = &line;
     let mut first = true;
     loop {
-        let room = if first { HISTORY_CHUNK } else { HISTORY_CHUNK - HISTORY_CONTINUATION.len() };
+        let room = if first {
+            HISTORY_CHUNK
+        } else {
+            HISTORY_CHUNK - HISTORY_CONTINUATION.len()
+        };
         if rest.len() <= room {
             out.push(rest.to_string());
             break;
@@ -870,7 +960,13 @@ fn split_history(line: &str) -> Vec<String> {
     }
     out.into_iter()
         .enumerate()
-        .map(|(i, piece)| if i == 0 { piece } else { format!("{HISTORY_CONTINUATION}{piece}") })
+        .map(|(i, piece)| {
+            if i == 0 {
+                piece
+            } else {
+                format!("{HISTORY_CONTINUATION}{piece}")
+            }
+        })
         .collect()
 }
 
@@ -918,7 +1014,13 @@ impl TempFile {
         let safe: String = name
             .to_string_lossy()
             .chars()
-            .map(|c| if c.is_ascii_alphanumeric() || "._-".contains(c) { c } else { '_' })
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || "._-".contains(c) {
+                    c
+                } else {
+                    '_'
+                }
+            })
             .collect();
         let n = TMP_COUNTER.fetch_add(1, Ordering::Relaxed);
         let tmp_name = format!(".{safe}.tmp-{}-{n}", std::process::id());
@@ -933,9 +1035,14 @@ impl TempFile {
     }
 
     fn commit(mut self, dest: &Path) -> Result<()> {
-        let io = |p: &Path, e| Error::Io { path: p.to_path_buf(), source: e };
+        let io = |p: &Path, e| Error::Io {
+            path: p.to_path_buf(),
+            source: e,
+        };
         // Data on disk before the rename makes it visible.
-        std::fs::File::open(&self.path).and_then(|f| f.sync_all()).map_err(|e| io(&self.path, e))?;
+        std::fs::File::open(&self.path)
+            .and_then(|f| f.sync_all())
+            .map_err(|e| io(&self.path, e))?;
         std::fs::rename(&self.path, dest).map_err(|e| io(dest, e))?;
         self.committed = true;
         if let Some(dir) = dest.parent().filter(|p| !p.as_os_str().is_empty()) {
@@ -1032,7 +1139,11 @@ mod tests {
     use super::*;
 
     fn card(key: &str, value: impl Into<HeaderValue>, comment: Option<&str>) -> Card {
-        Card { key: key.into(), value: value.into(), comment: comment.map(String::from) }
+        Card {
+            key: key.into(),
+            value: value.into(),
+            comment: comment.map(String::from),
+        }
     }
 
     fn roundtrip(c: &Card) -> Card {
@@ -1069,7 +1180,15 @@ mod tests {
 
     #[test]
     fn long_strings_use_continue() {
-        let long: String = (0..300).map(|i| if i % 7 == 0 { '\'' } else { (b'a' + (i % 26) as u8) as char }).collect();
+        let long: String = (0..300)
+            .map(|i| {
+                if i % 7 == 0 {
+                    '\''
+                } else {
+                    (b'a' + (i % 26) as u8) as char
+                }
+            })
+            .collect();
         for key in ["LONGSTR", "ESO SOME VERY LONG HIERARCH KEYWORD NAME"] {
             let c = card(key, long.as_str(), Some("end"));
             let lines = format_card(&c, Path::new("t.fits")).unwrap();
@@ -1110,7 +1229,19 @@ mod tests {
         let keys: Vec<&str> = h.cards.iter().map(|c| c.key.as_str()).collect();
         assert_eq!(
             keys,
-            ["ESO DET DIT", "ESO INS OPTI3 ID", "EXPTIME", "BIGINT", "CPLX", "ZENITH", "NEGFRAC", "PLUSEXP", "TRAIL", "NOTNUM", "DUP"]
+            [
+                "ESO DET DIT",
+                "ESO INS OPTI3 ID",
+                "EXPTIME",
+                "BIGINT",
+                "CPLX",
+                "ZENITH",
+                "NEGFRAC",
+                "PLUSEXP",
+                "TRAIL",
+                "NOTNUM",
+                "DUP"
+            ]
         );
         assert_eq!(h.get("NEGFRAC"), Some(&HeaderValue::Float(-0.5)));
         assert_eq!(h.get("PLUSEXP"), Some(&HeaderValue::Float(10.0)));

@@ -32,7 +32,10 @@ pub struct HistoryRecord {
 impl HistoryRecord {
     /// New record.
     pub fn new(stage: impl Into<String>, detail: impl Into<String>) -> Self {
-        HistoryRecord { stage: stage.into(), detail: detail.into() }
+        HistoryRecord {
+            stage: stage.into(),
+            detail: detail.into(),
+        }
     }
     /// One line as written to a FITS HISTORY card (`sofipol <stage>: <detail>`).
     pub fn line(&self) -> String {
@@ -60,7 +63,13 @@ impl Frame {
     /// A frame with the given data, no variance, an empty mask and no history.
     pub fn new(data: Array2<f32>, header: Header) -> Self {
         let mask = Array2::zeros(data.raw_dim());
-        Frame { data, variance: None, mask, header, history: Vec::new() }
+        Frame {
+            data,
+            variance: None,
+            mask,
+            header,
+            history: Vec::new(),
+        }
     }
 
     /// Image shape as (ny, nx).
@@ -88,7 +97,10 @@ impl Frame {
             header: self.header.clone(),
             history: self.history.clone(),
         }
-        .with_history("crop", format!("rows [{r0}, {r1}) of the detector; row {r0} is row 0 here"))
+        .with_history(
+            "crop",
+            format!("rows [{r0}, {r1}) of the detector; row {r0} is row 0 here"),
+        )
     }
 
     /// The file this frame came from (may be empty).

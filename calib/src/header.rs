@@ -68,7 +68,10 @@ pub fn normalize_key(key: &str) -> String {
 impl Header {
     /// Empty header attached to `path`.
     pub fn new(path: impl AsRef<Path>) -> Self {
-        Header { cards: Vec::new(), path: path.as_ref().to_path_buf() }
+        Header {
+            cards: Vec::new(),
+            path: path.as_ref().to_path_buf(),
+        }
     }
 
     /// Set (replace or append) a keyword.
@@ -78,7 +81,11 @@ impl Header {
         if let Some(c) = self.cards.iter_mut().find(|c| c.key == k) {
             c.value = value;
         } else {
-            self.cards.push(Card { key: k, value, comment: None });
+            self.cards.push(Card {
+                key: k,
+                value,
+                comment: None,
+            });
         }
     }
 
@@ -103,7 +110,10 @@ impl Header {
     }
 
     fn missing(&self, key: &str) -> Error {
-        Error::MissingKeyword { path: self.path.clone(), keyword: normalize_key(key) }
+        Error::MissingKeyword {
+            path: self.path.clone(),
+            keyword: normalize_key(key),
+        }
     }
 
     fn bad(&self, key: &str, value: &HeaderValue, reason: &str) -> Error {
@@ -130,9 +140,10 @@ impl Header {
         let x = match v {
             HeaderValue::Float(x) => *x,
             HeaderValue::Int(i) => *i as f64,
-            HeaderValue::Str(s) => {
-                s.trim().parse::<f64>().map_err(|_| self.bad(key, v, "expected a number"))?
-            }
+            HeaderValue::Str(s) => s
+                .trim()
+                .parse::<f64>()
+                .map_err(|_| self.bad(key, v, "expected a number"))?,
             HeaderValue::Bool(_) => return Err(self.bad(key, v, "expected a number")),
         };
         if !x.is_finite() {
@@ -147,16 +158,21 @@ impl Header {
         match v {
             HeaderValue::Int(i) => Ok(*i),
             HeaderValue::Float(x) if x.fract() == 0.0 && x.abs() < 9e15 => Ok(*x as i64),
-            HeaderValue::Str(s) => {
-                s.trim().parse::<i64>().map_err(|_| self.bad(key, v, "expected an integer"))
-            }
+            HeaderValue::Str(s) => s
+                .trim()
+                .parse::<i64>()
+                .map_err(|_| self.bad(key, v, "expected an integer")),
             _ => Err(self.bad(key, v, "expected an integer")),
         }
     }
 
     /// Optional float: `Ok(None)` when absent, an error when present but malformed.
     pub fn opt_f64(&self, key: &str) -> Result<Option<f64>> {
-        if self.contains(key) { self.get_f64(key).map(Some) } else { Ok(None) }
+        if self.contains(key) {
+            self.get_f64(key).map(Some)
+        } else {
+            Ok(None)
+        }
     }
 
     /// Optional string.
@@ -166,25 +182,39 @@ impl Header {
 }
 
 impl From<bool> for HeaderValue {
-    fn from(v: bool) -> Self { HeaderValue::Bool(v) }
+    fn from(v: bool) -> Self {
+        HeaderValue::Bool(v)
+    }
 }
 impl From<i64> for HeaderValue {
-    fn from(v: i64) -> Self { HeaderValue::Int(v) }
+    fn from(v: i64) -> Self {
+        HeaderValue::Int(v)
+    }
 }
 impl From<i32> for HeaderValue {
-    fn from(v: i32) -> Self { HeaderValue::Int(v as i64) }
+    fn from(v: i32) -> Self {
+        HeaderValue::Int(v as i64)
+    }
 }
 impl From<usize> for HeaderValue {
-    fn from(v: usize) -> Self { HeaderValue::Int(v as i64) }
+    fn from(v: usize) -> Self {
+        HeaderValue::Int(v as i64)
+    }
 }
 impl From<f64> for HeaderValue {
-    fn from(v: f64) -> Self { HeaderValue::Float(v) }
+    fn from(v: f64) -> Self {
+        HeaderValue::Float(v)
+    }
 }
 impl From<&str> for HeaderValue {
-    fn from(v: &str) -> Self { HeaderValue::Str(v.to_string()) }
+    fn from(v: &str) -> Self {
+        HeaderValue::Str(v.to_string())
+    }
 }
 impl From<String> for HeaderValue {
-    fn from(v: String) -> Self { HeaderValue::Str(v) }
+    fn from(v: String) -> Self {
+        HeaderValue::Str(v)
+    }
 }
 
 #[cfg(test)]

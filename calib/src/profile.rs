@@ -183,8 +183,10 @@ impl Profile {
 
     /// The SOFI profile with a user TOML file merged over it.
     pub fn sofi_with_override(path: &Path) -> Result<Profile> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| Error::Io { path: path.to_path_buf(), source: e })?;
+        let text = std::fs::read_to_string(path).map_err(|e| Error::Io {
+            path: path.to_path_buf(),
+            source: e,
+        })?;
         Self::from_layers(&[("embedded sofi", SOFI_TOML), (&path.display().to_string(), &text)])
     }
 
@@ -244,11 +246,19 @@ impl Profile {
 
     /// Check internal consistency.
     pub fn validate(&self, source_name: &str) -> Result<()> {
-        let err = |reason: String| Err(Error::Profile { source_name: source_name.into(), reason });
+        let err = |reason: String| {
+            Err(Error::Profile {
+                source_name: source_name.into(),
+                reason,
+            })
+        };
         let g = &self.geometry;
         for (name, r) in g.strips() {
             if r[0] >= r[1] || r[1] > g.ny {
-                return err(format!("geometry.{name} = [{}, {}) is not inside 0..{}", r[0], r[1], g.ny));
+                return err(format!(
+                    "geometry.{name} = [{}, {}) is not inside 0..{}",
+                    r[0], r[1], g.ny
+                ));
             }
         }
         if !(g.pixscale_arcsec > 0.0) {
@@ -284,7 +294,14 @@ impl Profile {
             let b = r[1].saturating_sub(r0).min(n);
             *r = [a, b.max(a)];
         };
-        for r in [&mut g.o_sky2, &mut g.e_sky2, &mut g.o_target, &mut g.e_target, &mut g.o_sky1, &mut g.e_sky1] {
+        for r in [
+            &mut g.o_sky2,
+            &mut g.e_sky2,
+            &mut g.o_target,
+            &mut g.e_target,
+            &mut g.o_sky1,
+            &mut g.e_sky1,
+        ] {
             shift(r);
         }
         g.ny = n;

@@ -75,7 +75,12 @@ pub struct CosmicOptions {
 
 impl Default for CosmicOptions {
     fn default() -> Self {
-        CosmicOptions { sigma_clip: 5.0, sharpness_ratio: 4.0, grow_sigma: 3.0, grow_iterations: 3 }
+        CosmicOptions {
+            sigma_clip: 5.0,
+            sharpness_ratio: 4.0,
+            grow_sigma: 3.0,
+            grow_iterations: 3,
+        }
     }
 }
 
@@ -93,7 +98,10 @@ pub struct SkyOptions {
 impl SkyOptions {
     /// Multiplicative scaling and cosmic-ray flagging with default thresholds.
     pub fn recommended() -> Self {
-        SkyOptions { scaling: SkyScaling::Multiplicative, cosmic_rays: Some(CosmicOptions::default()) }
+        SkyOptions {
+            scaling: SkyScaling::Multiplicative,
+            cosmic_rays: Some(CosmicOptions::default()),
+        }
     }
 }
 
@@ -129,10 +137,9 @@ pub struct SkyReport {
 /// m <= 12) and the classical Var(median of 3) = 0.4487 sigma^2. For m = 2 the median
 /// is the mean (c = 1); c -> pi/2 as m grows (odd m from below, even m more slowly).
 pub const MEDIAN_VARIANCE_FACTOR: [f64; 32] = [
-    1.000000, 1.000000, 1.346013, 1.192798, 1.434168, 1.288456, 1.473128, 1.345447, 1.494912, 1.383264,
-    1.508787, 1.410194, 1.518387, 1.430350, 1.525420, 1.446003, 1.530792, 1.458513, 1.535029, 1.468741,
-    1.538455, 1.477258, 1.541283, 1.484463, 1.543656, 1.490635, 1.545677, 1.495984, 1.547418, 1.500663,
-    1.548933, 1.504790,
+    1.000000, 1.000000, 1.346013, 1.192798, 1.434168, 1.288456, 1.473128, 1.345447, 1.494912, 1.383264, 1.508787,
+    1.410194, 1.518387, 1.430350, 1.525420, 1.446003, 1.530792, 1.458513, 1.535029, 1.468741, 1.538455, 1.477258,
+    1.541283, 1.484463, 1.543656, 1.490635, 1.545677, 1.495984, 1.547418, 1.500663, 1.548933, 1.504790,
 ];
 
 /// c(m): Var(median of m Gaussian values) = c(m) sigma^2 / m. Table
@@ -177,7 +184,9 @@ fn frame_name(frame: &Frame, i: usize) -> String {
     if p.as_os_str().is_empty() {
         format!("frame {i}")
     } else {
-        p.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| p.display().to_string())
+        p.file_name()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| p.display().to_string())
     }
 }
 
@@ -223,19 +232,32 @@ pub fn sky_subtract(frames: &[Frame], profile: &Profile, opts: &SkyOptions) -> R
 }
 
 /// [`sky_subtract`] that also returns levels and cosmic-ray counts.
-pub fn sky_subtract_with_report(frames: &[Frame], profile: &Profile, opts: &SkyOptions) -> Result<(Vec<Frame>, SkyReport)> {
+pub fn sky_subtract_with_report(
+    frames: &[Frame],
+    profile: &Profile,
+    opts: &SkyOptions,
+) -> Result<(Vec<Frame>, SkyReport)> {
     let n = frames.len();
     if n < 2 {
-        let pa = frames.first().map(|f| posang_text(f, profile)).unwrap_or_else(|| "(none)".into());
+        let pa = frames
+            .first()
+            .map(|f| posang_text(f, profile))
+            .unwrap_or_else(|| "(none)".into());
         return Err(Error::Stage {
             stage: "sky",
-            reason: format!("fewer than 2 dithers at POSANG {pa} ({n} given): cannot sky-subtract from the data itself"),
+            reason: format!(
+                "fewer than 2 dithers at POSANG {pa} ({n} given): cannot sky-subtract from the data itself"
+            ),
         });
     }
     if n > stack::MAX_STACK {
         return Err(Error::Stage {
             stage: "sky",
-            reason: format!("{n} dithers at POSANG {}: at most {} per call", posang_text(&frames[0], profile), stack::MAX_STACK),
+            reason: format!(
+                "{n} dithers at POSANG {}: at most {} per call",
+                posang_text(&frames[0], profile),
+                stack::MAX_STACK
+            ),
         });
     }
     if let Some(co) = &opts.cosmic_rays {
@@ -269,11 +291,17 @@ pub fn sky_subtract_with_report(frames: &[Frame], profile: &Profile, opts: &SkyO
     if shape.0 < strip_end {
         return Err(Error::Stage {
             stage: "sky",
-            reason: format!("frames have {} rows but the profile's strips reach row {strip_end}", shape.0),
+            reason: format!(
+                "frames have {} rows but the profile's strips reach row {strip_end}",
+                shape.0
+            ),
         });
     }
 
-    let levels: Vec<f64> = frames.par_iter().map(|f| sky_level(f, profile)).collect::<Result<_>>()?;
+    let levels: Vec<f64> = frames
+        .par_iter()
+        .map(|f| sky_level(f, profile))
+        .collect::<Result<_>>()?;
     if opts.scaling == SkyScaling::Multiplicative {
         if let Some((i, l)) = levels.iter().enumerate().find(|(_, l)| l.is_nan() || **l <= 0.0) {
             return Err(Error::Stage {
@@ -289,8 +317,14 @@ pub fn sky_subtract_with_report(frames: &[Frame], profile: &Profile, opts: &SkyO
     let maps: Vec<Affine> = levels
         .iter()
         .map(|&l| match opts.scaling {
-            SkyScaling::Multiplicative => Affine { scale: (1.0 / l) as f32, offset: 0.0 },
-            SkyScaling::Additive => Affine { scale: 1.0, offset: -l as f32 },
+            SkyScaling::Multiplicative => Affine {
+                scale: (1.0 / l) as f32,
+                offset: 0.0,
+            },
+            SkyScaling::Additive => Affine {
+                scale: 1.0,
+                offset: -l as f32,
+            },
         })
         .collect();
     let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.data.view()).collect();
@@ -359,7 +393,10 @@ pub fn sky_subtract_with_report(frames: &[Frame], profile: &Profile, opts: &SkyO
         if nonfinite > 0 {
             return Err(Error::Stage {
                 stage: "sky",
-                reason: format!("{}: {nonfinite} non-finite pixel values (NaN/inf); sky medians need finite data", names[i]),
+                reason: format!(
+                    "{}: {nonfinite} non-finite pixel values (NaN/inf); sky medians need finite data",
+                    names[i]
+                ),
             });
         }
         let others: Vec<&str> = (0..n).filter(|&j| j != i).map(|j| names[j].as_str()).collect();
@@ -390,9 +427,23 @@ pub fn sky_subtract_with_report(frames: &[Frame], profile: &Profile, opts: &SkyO
             history.push(cosmic_record(co, &rep));
             cosmic.push(rep);
         }
-        out.push(Frame { data: sky, variance: Some(var), mask: msk, header: f.header.clone(), history });
+        out.push(Frame {
+            data: sky,
+            variance: Some(var),
+            mask: msk,
+            header: f.header.clone(),
+            history,
+        });
     }
-    Ok((out, SkyReport { levels_adu: levels, median_of: m, median_variance_factor: c, cosmic }))
+    Ok((
+        out,
+        SkyReport {
+            levels_adu: levels,
+            median_of: m,
+            median_variance_factor: c,
+            cosmic,
+        },
+    ))
 }
 
 /// Mask bits that exclude a pixel from cosmic-ray tests (as candidate and as neighbour).
@@ -417,7 +468,13 @@ fn cosmic_record(opts: &CosmicOptions, rep: &CosmicReport) -> crate::frame::Hist
         format!(
             "sigma_clip {} sigma, sharpness ratio {} (value - ratio x mean4 > sigma_clip sigma), grow {} sigma x {}: \
              {} seeds + {} grown = {} pixels flagged COSMIC",
-            opts.sigma_clip, opts.sharpness_ratio, opts.grow_sigma, opts.grow_iterations, rep.seeds, rep.grown, rep.total
+            opts.sigma_clip,
+            opts.sharpness_ratio,
+            opts.grow_sigma,
+            opts.grow_iterations,
+            rep.seeds,
+            rep.grown,
+            rep.total
         ),
     )
 }
@@ -436,7 +493,10 @@ pub fn flag_cosmic_rays(frame: &Frame, opts: &CosmicOptions) -> Result<(Frame, C
     if var.dim() != frame.data.dim() || frame.mask.dim() != frame.data.dim() {
         return Err(Error::Stage {
             stage: "cosmic",
-            reason: format!("{}: variance or mask shape differs from the data's", frame_name(frame, 0)),
+            reason: format!(
+                "{}: variance or mask shape differs from the data's",
+                frame_name(frame, 0)
+            ),
         });
     }
     let mut out = frame.clone();
@@ -453,7 +513,12 @@ pub fn flag_cosmic_rays(frame: &Frame, opts: &CosmicOptions) -> Result<(Frame, C
 }
 
 /// Core of [`flag_cosmic_rays`]: sets COSMIC bits in `msk` (same shapes, standard layout).
-fn cosmic_flags(d: &Array2<f32>, var: &ndarray::ArrayView2<f32>, msk: &mut Array2<u8>, opts: &CosmicOptions) -> CosmicReport {
+fn cosmic_flags(
+    d: &Array2<f32>,
+    var: &ndarray::ArrayView2<f32>,
+    msk: &mut Array2<u8>,
+    opts: &CosmicOptions,
+) -> CosmicReport {
     let (ny, nx) = d.dim();
     let (k, r) = (opts.sigma_clip as f32, opts.sharpness_ratio as f32);
     let k2 = k * k;
@@ -473,7 +538,11 @@ fn cosmic_flags(d: &Array2<f32>, var: &ndarray::ArrayView2<f32>, msk: &mut Array
             let mut hits = Vec::new();
             // Candidate flags in a branch-free (vectorised) pass, then a scan of the rare
             // candidates: a per-pixel `v > 0 && ...` branch mispredicts half the time.
-            let cand: Vec<bool> = drow.iter().zip(vrow).map(|(&v, &vv)| (v > 0.0) & (v * v > k2 * vv)).collect();
+            let cand: Vec<bool> = drow
+                .iter()
+                .zip(vrow)
+                .map(|(&v, &vv)| (v > 0.0) & (v * v > k2 * vv))
+                .collect();
             for x in cand.iter().enumerate().filter_map(|(x, &c)| c.then_some(x)) {
                 let (v, vv) = (drow[x], vrow[x]);
                 let i = y * nx + x;
@@ -537,7 +606,11 @@ fn cosmic_flags(d: &Array2<f32>, var: &ndarray::ArrayView2<f32>, msk: &mut Array
         }
         frontier = next;
     }
-    CosmicReport { seeds: seeds.len(), grown, total: seeds.len() + grown }
+    CosmicReport {
+        seeds: seeds.len(),
+        grown,
+        total: seeds.len() + grown,
+    }
 }
 
 #[cfg(test)]
@@ -589,8 +662,13 @@ mod tests {
     #[test]
     fn too_few_dithers_is_an_error_naming_posang_and_count() {
         let f = frame_from(Array2::from_elem((1024, 1024), 1000.0), 6, 45.0);
-        let e = sky_subtract(&[f], &Profile::sofi(), &SkyOptions::default()).unwrap_err().to_string();
-        assert!(e.contains("fewer than 2 dithers at POSANG 45") && e.contains("(1 given)"), "{e}");
+        let e = sky_subtract(&[f], &Profile::sofi(), &SkyOptions::default())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("fewer than 2 dithers at POSANG 45") && e.contains("(1 given)"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -624,7 +702,11 @@ mod tests {
             assert_eq!(f.mask[[500, 5]], 0);
             let h = f.history.last().unwrap();
             assert_eq!(h.stage, "sky");
-            assert!(h.detail.contains("multiplicative") && h.detail.contains("c(2) = 1.000000"), "{}", h.detail);
+            assert!(
+                h.detail.contains("multiplicative") && h.detail.contains("c(2) = 1.000000"),
+                "{}",
+                h.detail
+            );
             // Variance: Poisson + read + c(2)/2 x (same): 1.5 x (L/32.4 + (11.3/5.4)^2/6).
             let l = [1000.0, 1100.0, 1050.0][j];
             let want = 1.5 * (l / 32.4 + (11.3f64 / 5.4).powi(2) / 6.0);
@@ -635,9 +717,17 @@ mod tests {
 
     #[test]
     fn additive_scaling_removes_additive_level_changes_exactly() {
-        let base = Array2::from_shape_fn((1024, 64), |(y, x)| (y as f32 * 0.01 + x as f32 * 0.5).sin() * 50.0 + 500.0);
-        let frames: Vec<Frame> = [0.0f32, 30.0, -20.0, 12.0].iter().map(|&c| frame_from(base.mapv(|v| v + c), 1, 0.0)).collect();
-        let opts = SkyOptions { scaling: SkyScaling::Additive, cosmic_rays: None };
+        let base = Array2::from_shape_fn((1024, 64), |(y, x)| {
+            (y as f32 * 0.01 + x as f32 * 0.5).sin() * 50.0 + 500.0
+        });
+        let frames: Vec<Frame> = [0.0f32, 30.0, -20.0, 12.0]
+            .iter()
+            .map(|&c| frame_from(base.mapv(|v| v + c), 1, 0.0))
+            .collect();
+        let opts = SkyOptions {
+            scaling: SkyScaling::Additive,
+            cosmic_rays: None,
+        };
         let p = Profile::sofi();
         let out = sky_subtract(&frames, &p, &opts).unwrap();
         for f in &out {
@@ -673,13 +763,23 @@ mod tests {
         for i in 0..4 {
             assert_eq!(out.mask[[30, 20 + i]], mask::COSMIC, "track pixel {i}");
         }
-        assert_eq!(out.mask.slice(ndarray::s![40..60, 40..60]).iter().filter(|&&b| b != 0).count(), 0);
+        assert_eq!(
+            out.mask
+                .slice(ndarray::s![40..60, 40..60])
+                .iter()
+                .filter(|&&b| b != 0)
+                .count(),
+            0
+        );
         assert_eq!(rep.total, 5);
         assert_eq!(out.data, f.data);
         assert_eq!(out.history.last().unwrap().stage, "cosmic");
-        let e = flag_cosmic_rays(&Frame::new(Array2::zeros((4, 4)), Header::new("a.fits")), &CosmicOptions::default())
-            .unwrap_err()
-            .to_string();
+        let e = flag_cosmic_rays(
+            &Frame::new(Array2::zeros((4, 4)), Header::new("a.fits")),
+            &CosmicOptions::default(),
+        )
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("a.fits") && e.contains("variance"), "{e}");
     }
 }

@@ -58,7 +58,10 @@ pub struct Affine {
 
 impl Affine {
     /// The identity map.
-    pub const IDENTITY: Affine = Affine { scale: 1.0, offset: 0.0 };
+    pub const IDENTITY: Affine = Affine {
+        scale: 1.0,
+        offset: 0.0,
+    };
 
     /// Apply to one value (the single definition both fast and reference paths use).
     #[inline(always)]
@@ -96,8 +99,10 @@ pub fn reference_leave_one_out(frames: &[ArrayView2<f32>], maps: &[Affine]) -> R
     Ok((0..n)
         .map(|i| {
             Array2::from_shape_fn((ny, nx), |(y, x)| {
-                let others: Vec<f32> =
-                    (0..n).filter(|&j| j != i).map(|j| maps[j].apply(frames[j][[y, x]])).collect();
+                let others: Vec<f32> = (0..n)
+                    .filter(|&j| j != i)
+                    .map(|j| maps[j].apply(frames[j][[y, x]]))
+                    .collect();
                 reference_median(&others)
             })
         })
@@ -228,13 +233,21 @@ impl Network {
 
 /// Rank(s) that the plain median of `n` values reads.
 fn median_ranks(n: usize) -> Vec<usize> {
-    if n % 2 == 1 { vec![n / 2] } else { vec![n / 2 - 1, n / 2] }
+    if n % 2 == 1 {
+        vec![n / 2]
+    } else {
+        vec![n / 2 - 1, n / 2]
+    }
 }
 
 /// Ranks the leave-one-out medians of `n` values read.
 fn loo_ranks(n: usize) -> Vec<usize> {
     let k = n / 2;
-    if n % 2 == 1 { vec![k - 1, k, k + 1] } else { vec![k - 1, k] }
+    if n % 2 == 1 {
+        vec![k - 1, k, k + 1]
+    } else {
+        vec![k - 1, k]
+    }
 }
 
 /// Views in standard layout (copies only inputs that are not).
@@ -271,29 +284,33 @@ pub fn median_stack_affine(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Resul
     if nx == 0 || ny == 0 {
         return Ok(out);
     }
-    out.as_slice_mut().expect("fresh array").par_chunks_mut(nx * BAND_ROWS).enumerate().for_each(|(band, chunk)| {
-        let mut w = vec![[0f32; BLOCK]; n];
-        for (r, orow) in chunk.chunks_mut(nx).enumerate() {
-            let y = band * BAND_ROWS + r;
-            let rows: Vec<&[f32]> = slices.iter().map(|s| &s[y * nx..(y + 1) * nx]).collect();
-            let mut x0 = 0;
-            while x0 < nx {
-                let len = BLOCK.min(nx - x0);
-                load(&mut w, &rows, maps, x0, len);
-                net.run(&mut w, len);
-                let o = &mut orow[x0..x0 + len];
-                if ranks.len() == 1 {
-                    o.copy_from_slice(&w[ranks[0]][..len]);
-                } else {
-                    let (a, b) = (&w[ranks[0]][..len], &w[ranks[1]][..len]);
-                    for ((o, &a), &b) in o.iter_mut().zip(a).zip(b) {
-                        *o = mid(a, b);
+    out.as_slice_mut()
+        .expect("fresh array")
+        .par_chunks_mut(nx * BAND_ROWS)
+        .enumerate()
+        .for_each(|(band, chunk)| {
+            let mut w = vec![[0f32; BLOCK]; n];
+            for (r, orow) in chunk.chunks_mut(nx).enumerate() {
+                let y = band * BAND_ROWS + r;
+                let rows: Vec<&[f32]> = slices.iter().map(|s| &s[y * nx..(y + 1) * nx]).collect();
+                let mut x0 = 0;
+                while x0 < nx {
+                    let len = BLOCK.min(nx - x0);
+                    load(&mut w, &rows, maps, x0, len);
+                    net.run(&mut w, len);
+                    let o = &mut orow[x0..x0 + len];
+                    if ranks.len() == 1 {
+                        o.copy_from_slice(&w[ranks[0]][..len]);
+                    } else {
+                        let (a, b) = (&w[ranks[0]][..len], &w[ranks[1]][..len]);
+                        for ((o, &a), &b) in o.iter_mut().zip(a).zip(b) {
+                            *o = mid(a, b);
+                        }
                     }
+                    x0 += len;
                 }
-                x0 += len;
             }
-        }
-    });
+        });
     Ok(out)
 }
 
@@ -309,7 +326,9 @@ pub fn leave_one_out_medians(frames: &[ArrayView2<f32>]) -> Result<Vec<Array2<f3
 /// [`reference_leave_one_out`].
 pub fn leave_one_out_medians_affine(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Vec<Array2<f32>>> {
     check_stack(frames, maps, 2, "leave-one-out median")?;
-    let mut outs: Vec<Array2<f32>> = (0..frames.len()).map(|_| Array2::<f32>::zeros(frames[0].raw_dim())).collect();
+    let mut outs: Vec<Array2<f32>> = (0..frames.len())
+        .map(|_| Array2::<f32>::zeros(frames[0].raw_dim()))
+        .collect();
     leave_one_out_medians_into(frames, maps, &mut outs)?;
     Ok(outs)
 }
@@ -337,7 +356,12 @@ pub fn leave_one_out_medians_into(frames: &[ArrayView2<f32>], maps: &[Affine], o
     // Band b of every output, grouped, so that one task writes all N outputs of its rows.
     let mut bands: Vec<Vec<&mut [f32]>> = Vec::new();
     for o in outs.iter_mut() {
-        for (b, chunk) in o.as_slice_mut().expect("standard layout").chunks_mut(nx * BAND_ROWS).enumerate() {
+        for (b, chunk) in o
+            .as_slice_mut()
+            .expect("standard layout")
+            .chunks_mut(nx * BAND_ROWS)
+            .enumerate()
+        {
             if bands.len() <= b {
                 bands.push(Vec::with_capacity(n));
             }
@@ -407,36 +431,40 @@ pub fn running_median_x(image: ArrayView2<f32>, half_window: usize) -> Result<Ar
         return Ok(out);
     }
     let net = Network::selecting(n, &[h]);
-    out.as_slice_mut().expect("fresh array").par_chunks_mut(nx).enumerate().for_each(|(y, orow)| {
-        let row = &src[y * nx..(y + 1) * nx];
-        let mut w = vec![[0f32; BLOCK]; n];
-        let mut buf = Vec::with_capacity(n);
-        let mut clipped = |x: usize| {
-            buf.clear();
-            buf.extend_from_slice(&row[x.saturating_sub(h)..(x + h + 1).min(nx)]);
-            let k = buf.len() / 2;
-            *buf.select_nth_unstable_by(k, |a, b| a.total_cmp(b)).1
-        };
-        if nx < n {
-            for (x, o) in orow.iter_mut().enumerate() {
-                *o = clipped(x);
+    out.as_slice_mut()
+        .expect("fresh array")
+        .par_chunks_mut(nx)
+        .enumerate()
+        .for_each(|(y, orow)| {
+            let row = &src[y * nx..(y + 1) * nx];
+            let mut w = vec![[0f32; BLOCK]; n];
+            let mut buf = Vec::with_capacity(n);
+            let mut clipped = |x: usize| {
+                buf.clear();
+                buf.extend_from_slice(&row[x.saturating_sub(h)..(x + h + 1).min(nx)]);
+                let k = buf.len() / 2;
+                *buf.select_nth_unstable_by(k, |a, b| a.total_cmp(b)).1
+            };
+            if nx < n {
+                for (x, o) in orow.iter_mut().enumerate() {
+                    *o = clipped(x);
+                }
+                return;
             }
-            return;
-        }
-        for x in (0..h).chain(nx - h..nx) {
-            orow[x] = clipped(x);
-        }
-        let mut x0 = h;
-        while x0 < nx - h {
-            let len = BLOCK.min(nx - h - x0);
-            for (j, wire) in w.iter_mut().enumerate() {
-                wire[..len].copy_from_slice(&row[x0 - h + j..x0 - h + j + len]);
+            for x in (0..h).chain(nx - h..nx) {
+                orow[x] = clipped(x);
             }
-            net.run(&mut w, len);
-            orow[x0..x0 + len].copy_from_slice(&w[h][..len]);
-            x0 += len;
-        }
-    });
+            let mut x0 = h;
+            while x0 < nx - h {
+                let len = BLOCK.min(nx - h - x0);
+                for (j, wire) in w.iter_mut().enumerate() {
+                    wire[..len].copy_from_slice(&row[x0 - h + j..x0 - h + j + len]);
+                }
+                net.run(&mut w, len);
+                orow[x0..x0 + len].copy_from_slice(&w[h][..len]);
+                x0 += len;
+            }
+        });
     Ok(out)
 }
 
@@ -445,7 +473,9 @@ pub fn reference_running_median_x(image: ArrayView2<f32>, half_window: usize) ->
     let (ny, nx) = image.dim();
     let h = half_window;
     Array2::from_shape_fn((ny, nx), |(y, x)| {
-        let mut v: Vec<f32> = (x.saturating_sub(h)..(x + h + 1).min(nx)).map(|i| image[[y, i]]).collect();
+        let mut v: Vec<f32> = (x.saturating_sub(h)..(x + h + 1).min(nx))
+            .map(|i| image[[y, i]])
+            .collect();
         v.sort_by(|a, b| a.total_cmp(b));
         v[v.len() / 2]
     })
@@ -457,7 +487,12 @@ pub fn reference_running_median_x(image: ArrayView2<f32>, half_window: usize) ->
 pub fn bench_leave_one_out(n_frames: usize, ny: usize, nx: usize, repeats: usize) -> f64 {
     let frames = bench_frames(n_frames, ny, nx);
     let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.view()).collect();
-    let maps: Vec<Affine> = (0..n_frames).map(|j| Affine { scale: 1.0 / (1500.0 + j as f32), offset: 0.0 }).collect();
+    let maps: Vec<Affine> = (0..n_frames)
+        .map(|j| Affine {
+            scale: 1.0 / (1500.0 + j as f32),
+            offset: 0.0,
+        })
+        .collect();
     median_ms(repeats, || {
         let r = leave_one_out_medians_affine(&views, &maps).expect("valid bench stack");
         std::hint::black_box(r);
@@ -499,7 +534,9 @@ fn bench_frames(n: usize, ny: usize, nx: usize) -> Vec<Array2<f32>> {
                 s ^= s << 17;
                 (s >> 40) as f32 / (1u64 << 24) as f32
             };
-            Array2::from_shape_fn((ny, nx), |_| 1500.0 + j as f32 + 12.0 * (next() + next() + next() - 1.5))
+            Array2::from_shape_fn((ny, nx), |_| {
+                1500.0 + j as f32 + 12.0 * (next() + next() + next() - 1.5)
+            })
         })
         .collect()
 }
@@ -542,8 +579,14 @@ mod tests {
         let maps = (0..n)
             .map(|_| match r.below(3) {
                 0 => Affine::IDENTITY,
-                1 => Affine { scale: 1.0 / (1000.0 + r.below(1000) as f32), offset: 0.0 },
-                _ => Affine { scale: 1.0, offset: -(r.below(3000) as f32) },
+                1 => Affine {
+                    scale: 1.0 / (1000.0 + r.below(1000) as f32),
+                    offset: 0.0,
+                },
+                _ => Affine {
+                    scale: 1.0,
+                    offset: -(r.below(3000) as f32),
+                },
             })
             .collect();
         (frames, maps)
@@ -644,7 +687,11 @@ mod tests {
             let h = r.below(16) as usize;
             let ties = case % 2 == 0;
             let img = Array2::from_shape_fn((ny, nx), |_| {
-                if ties { r.below(5) as f32 } else { (r.next() >> 40) as f32 / 7.0 }
+                if ties {
+                    r.below(5) as f32
+                } else {
+                    (r.next() >> 40) as f32 / 7.0
+                }
             });
             let fast = running_median_x(img.view(), h).unwrap();
             let slow = reference_running_median_x(img.view(), h);

@@ -55,7 +55,10 @@ fn standard_star_uses_obs_targ_name() {
     // Without OBS TARG NAME the reason names it.
     h.cards.retain(|c| c.key != "ESO OBS TARG NAME");
     let r = reason(&h);
-    assert!(r.contains("OBJECT = 'STD'") && r.contains("missing keyword ESO OBS TARG NAME"), "{r}");
+    assert!(
+        r.contains("OBJECT = 'STD'") && r.contains("missing keyword ESO OBS TARG NAME"),
+        "{r}"
+    );
 }
 
 #[test]
@@ -66,8 +69,14 @@ fn flat_from_another_template() {
     h.set("ESO DPR TYPE", "FLAT");
     h.set("ESO DPR TECH", "IMAGE");
     let r = reason(&h);
-    assert!(r.starts_with("not polarimetric: ESO TPL ID = 'SOFI_img_cal_SkyFlats'"), "{r}");
-    assert!(r.contains("ESO DPR TECH = 'IMAGE'") && r.contains("ESO DPR TYPE = 'FLAT'"), "{r}");
+    assert!(
+        r.starts_with("not polarimetric: ESO TPL ID = 'SOFI_img_cal_SkyFlats'"),
+        "{r}"
+    );
+    assert!(
+        r.contains("ESO DPR TECH = 'IMAGE'") && r.contains("ESO DPR TYPE = 'FLAT'"),
+        "{r}"
+    );
 }
 
 #[test]
@@ -91,10 +100,16 @@ fn dark() {
     h.set("ESO DPR TECH", "IMAGE");
     h.set("ESO DET DIT", 10.0);
     let r = reason(&h);
-    assert!(r.contains("not polarimetric") && r.contains("'SOFI_img_cal_Darks'") && r.contains("'DARK'"), "{r}");
+    assert!(
+        r.contains("not polarimetric") && r.contains("'SOFI_img_cal_Darks'") && r.contains("'DARK'"),
+        "{r}"
+    );
     // A dark inside a polarimetric template is still a calibration frame.
     h.set("ESO DPR TECH", "POLARIMETRY");
-    assert_eq!(reason(&h), "calibration frame: ESO DPR TYPE = 'DARK' (science types: OBJECT, STD)");
+    assert_eq!(
+        reason(&h),
+        "calibration frame: ESO DPR TYPE = 'DARK' (science types: OBJECT, STD)"
+    );
 }
 
 #[test]
@@ -105,7 +120,10 @@ fn sky_and_catg_without_type() {
     // Without DPR TYPE, a non-science DPR CATG rejects; absent DPR CATG and TYPE accept.
     h.cards.retain(|c| c.key != "ESO DPR TYPE");
     h.set("ESO DPR CATG", "ACQUISITION");
-    assert_eq!(reason(&h), "calibration frame: ESO DPR CATG = 'ACQUISITION' (ESO DPR TYPE absent)");
+    assert_eq!(
+        reason(&h),
+        "calibration frame: ESO DPR CATG = 'ACQUISITION' (ESO DPR TYPE absent)"
+    );
     h.cards.retain(|c| c.key != "ESO DPR CATG");
     science(&h);
 }
@@ -125,7 +143,10 @@ fn science_frame_without_wollaston() {
     h.set("ESO INS OPTI3 ID", "OPEN");
     let r = reason(&h);
     assert!(r.starts_with("no Wollaston in ESO INS OPTI1..9 ID"), "{r}");
-    assert!(r.contains("ESO INS OPTI1 ID = 'MASK_POL'") && r.contains("ESO INS OPTI3 ID = 'OPEN'"), "{r}");
+    assert!(
+        r.contains("ESO INS OPTI1 ID = 'MASK_POL'") && r.contains("ESO INS OPTI3 ID = 'OPEN'"),
+        "{r}"
+    );
     // Any slot 1..=opti_max works, and the match ignores case.
     h.set("ESO INS OPTI7 ID", "Woll_Prism");
     assert_eq!(science(&h).wollaston, "Woll_Prism");
@@ -164,7 +185,10 @@ fn missing_required_keywords_are_named() {
 fn malformed_values_are_named() {
     let mut h = sofi_science_header(45.0, 1);
     h.set("ESO ADA POSANG", "forty-five");
-    assert_eq!(reason(&h), "bad keyword ESO ADA POSANG = 'forty-five': expected a number");
+    assert_eq!(
+        reason(&h),
+        "bad keyword ESO ADA POSANG = 'forty-five': expected a number"
+    );
     let mut h = sofi_science_header(45.0, 1);
     h.set("ESO DET NDIT", 0i64);
     assert_eq!(reason(&h), "bad keyword ESO DET NDIT = 0: expected an integer >= 1");

@@ -11,7 +11,11 @@ use sofipol_calib::fits::{read_frame, read_header, write_frame, Bitpix, WriteOpt
 use sofipol_calib::{Error, Frame, Header, HeaderValue, HistoryRecord};
 
 fn opts(bitpix: Bitpix, compress: bool) -> WriteOptions {
-    WriteOptions { bitpix, compress, with_variance_and_mask: false }
+    WriteOptions {
+        bitpix,
+        compress,
+        with_variance_and_mask: false,
+    }
 }
 
 /// Header cards must come back identical (order, values, comments).
@@ -55,7 +59,10 @@ fn f32_round_trip_is_bit_exact() {
     assert!(back.variance.is_none());
     assert_eq!(back.mask, Array2::<u8>::zeros((40, 50)));
     // Primary HDU image, BITPIX -32, no EXTNAME on the primary.
-    assert_eq!(raw_card(&path, "BITPIX").unwrap(), format!("BITPIX  = {:>20} / number of bits per data pixel", -32));
+    assert_eq!(
+        raw_card(&path, "BITPIX").unwrap(),
+        format!("BITPIX  = {:>20} / number of bits per data pixel", -32)
+    );
     assert!(raw_card(&path, "EXTNAME").is_none());
     // Row 0 is FITS row 1: check one pixel through cfitsio directly (1-based x, y).
     let mut f = FitsFile::open(&path).unwrap();
@@ -82,15 +89,27 @@ fn i16_round_trip_and_raw_cards() {
     write_frame(&path, &frame, &opts(Bitpix::I16, false)).unwrap();
     let back = read_frame(&path).unwrap();
     let mut expected = frame.data.clone();
-    for (v, want) in [((1, 0), 0.0), ((1, 1), 65535.0), ((1, 2), 11.0), ((1, 3), 10.0), ((1, 4), 0.0)] {
+    for (v, want) in [
+        ((1, 0), 0.0),
+        ((1, 1), 65535.0),
+        ((1, 2), 11.0),
+        ((1, 3), 10.0),
+        ((1, 4), 0.0),
+    ] {
         expected[v] = want;
     }
     assert_eq!(back.data, expected);
     assert_same_header(&back.header, &frame.header);
     // Independent check of the file layout: the raw header cards.
-    assert!(raw_card(&path, "BITPIX").unwrap().starts_with(&format!("BITPIX  = {:>20}", 16)));
-    assert!(raw_card(&path, "BZERO").unwrap().starts_with(&format!("BZERO   = {:>20}", 32768)));
-    assert!(raw_card(&path, "BSCALE").unwrap().starts_with(&format!("BSCALE  = {:>20}", 1)));
+    assert!(raw_card(&path, "BITPIX")
+        .unwrap()
+        .starts_with(&format!("BITPIX  = {:>20}", 16)));
+    assert!(raw_card(&path, "BZERO")
+        .unwrap()
+        .starts_with(&format!("BZERO   = {:>20}", 32768)));
+    assert!(raw_card(&path, "BSCALE")
+        .unwrap()
+        .starts_with(&format!("BSCALE  = {:>20}", 1)));
     // 32 x 48 x 2 bytes of data in 2880-byte blocks after the header.
     let len = std::fs::metadata(&path).unwrap().len();
     assert_eq!(len % 2880, 0);
@@ -108,11 +127,21 @@ fn rice_compressed_i16_is_compressed_and_exact() {
     assert_eq!(back.data, frame.data);
     assert_same_header(&back.header, &frame.header);
     assert_eq!(back.history, frame.history);
-    assert_eq!(raw_card(&fz, "ZIMAGE").unwrap(), format!("ZIMAGE  = {:>20} / extension contains compressed image", "T"));
+    assert_eq!(
+        raw_card(&fz, "ZIMAGE").unwrap(),
+        format!("ZIMAGE  = {:>20} / extension contains compressed image", "T")
+    );
     assert!(raw_card(&fz, "ZCMPTYPE").unwrap().contains("'RICE_1"));
-    assert!(raw_card(&fz, "ZBITPIX").unwrap().starts_with(&format!("ZBITPIX = {:>20}", 16)));
-    assert!(raw_card(&fz, "BZERO").unwrap().starts_with(&format!("BZERO   = {:>20}", 32768)));
-    let (a, b) = (std::fs::metadata(&plain).unwrap().len(), std::fs::metadata(&fz).unwrap().len());
+    assert!(raw_card(&fz, "ZBITPIX")
+        .unwrap()
+        .starts_with(&format!("ZBITPIX = {:>20}", 16)));
+    assert!(raw_card(&fz, "BZERO")
+        .unwrap()
+        .starts_with(&format!("BZERO   = {:>20}", 32768)));
+    let (a, b) = (
+        std::fs::metadata(&plain).unwrap().len(),
+        std::fs::metadata(&fz).unwrap().len(),
+    );
     assert!(b * 2 < a, "compressed {b} bytes vs plain {a} bytes");
     // The image is in HDU 1, the primary is empty.
     let mut f = FitsFile::open(&fz).unwrap();
@@ -170,9 +199,15 @@ fn hierarch_keys_and_values_with_spaces() {
     let mut f = FitsFile::open(&path).unwrap();
     let hdu = f.primary_hdu().unwrap();
     assert_eq!(hdu.read_key::<f64>(&mut f, "ESO ADA POSANG").unwrap(), 45.0);
-    assert_eq!(hdu.read_key::<String>(&mut f, "HIERARCH ESO OBS NAME").unwrap(), "HK Tau pol  0/45 run 2");
+    assert_eq!(
+        hdu.read_key::<String>(&mut f, "HIERARCH ESO OBS NAME").unwrap(),
+        "HK Tau pol  0/45 run 2"
+    );
     assert_eq!(hdu.read_key::<i64>(&mut f, "ESO DET NDIT").unwrap(), 6);
-    assert_eq!(hdu.read_key::<String>(&mut f, "ESO DET READ CLOCK").unwrap(), "Double Correlated Read 'DCR'");
+    assert_eq!(
+        hdu.read_key::<String>(&mut f, "ESO DET READ CLOCK").unwrap(),
+        "Double Correlated Read 'DCR'"
+    );
 }
 
 #[test]
@@ -183,7 +218,17 @@ fn f64_keys_round_trip_bit_exactly() {
     let path = dir.path().join("f64.fits");
     let mut frame = Frame::new(Array2::zeros((4, 4)), Header::new(""));
     let mut s: u64 = 12345;
-    let mut values = vec![0.1, 1.0 / 3.0, 51240.09112345679, -157.1, 1e-300, 6.02214076e23, f64::MAX, f64::MIN_POSITIVE, -0.0];
+    let mut values = vec![
+        0.1,
+        1.0 / 3.0,
+        51240.09112345679,
+        -157.1,
+        1e-300,
+        6.02214076e23,
+        f64::MAX,
+        f64::MIN_POSITIVE,
+        -0.0,
+    ];
     for _ in 0..60 {
         s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
         let x = f64::from_bits(s >> 1);
@@ -207,8 +252,13 @@ fn f64_keys_round_trip_bit_exactly() {
     }
     // Non-finite values cannot be written: an error naming file and keyword.
     frame.header.set("ESO BAD", f64::INFINITY);
-    let e = write_frame(&path, &frame, &WriteOptions::default()).unwrap_err().to_string();
-    assert!(e.contains("f64.fits") && e.contains("ESO BAD") && e.contains("inf"), "{e}");
+    let e = write_frame(&path, &frame, &WriteOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("f64.fits") && e.contains("ESO BAD") && e.contains("inf"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -216,14 +266,25 @@ fn history_cards_come_back_in_order() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("hist.fits");
     let mut frame = sofi_frame(8, 8, 0.0);
-    let long = format!("params: {}", (0..40).map(|i| format!("p{i}={}", i as f64 * 0.5)).collect::<Vec<_>>().join(" "));
-    frame = frame.with_history("sky", long.clone()).with_history("stack", "5 frames, median");
+    let long = format!(
+        "params: {}",
+        (0..40)
+            .map(|i| format!("p{i}={}", i as f64 * 0.5))
+            .collect::<Vec<_>>()
+            .join(" ")
+    );
+    frame = frame
+        .with_history("sky", long.clone())
+        .with_history("stack", "5 frames, median");
     write_frame(&path, &frame, &WriteOptions::default()).unwrap();
     let back = read_frame(&path).unwrap();
     assert_eq!(back.history, frame.history);
     // One card per record, plus continuation cards for the long one, each <= 70 chars.
     let text = raw_text(&path);
-    let cards: Vec<&str> = (0..text.len() / 80).map(|i| &text[i * 80..i * 80 + 80]).filter(|c| c.starts_with("HISTORY ")).collect();
+    let cards: Vec<&str> = (0..text.len() / 80)
+        .map(|i| &text[i * 80..i * 80 + 80])
+        .filter(|c| c.starts_with("HISTORY "))
+        .collect();
     assert!(cards.len() > 4);
     assert!(cards.iter().all(|c| c[8..].trim_end().len() <= 70));
     assert!(cards[0].starts_with("HISTORY sofipol sim: scene=binary"));
@@ -236,7 +297,10 @@ fn foreign_history_and_cfitsio_written_keys_are_read() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("cfitsio.fits");
     {
-        let desc = fitsio::images::ImageDescription { data_type: fitsio::images::ImageType::Short, dimensions: &[3, 4] };
+        let desc = fitsio::images::ImageDescription {
+            data_type: fitsio::images::ImageType::Short,
+            dimensions: &[3, 4],
+        };
         let mut f = FitsFile::create(&path).with_custom_primary(&desc).open().unwrap();
         let hdu = f.primary_hdu().unwrap();
         hdu.write_key(&mut f, "INSTRUME", ("SOFI", "instrument")).unwrap();
@@ -268,11 +332,18 @@ fn variance_and_mask_extensions() {
         frame.variance = Some(awkward_f32(20, 30).mapv(|v| v.abs()));
         frame.mask[[3, 4]] = 1 | 8;
         frame.mask[[19, 29]] = 255;
-        let o = WriteOptions { bitpix, compress, with_variance_and_mask: true };
+        let o = WriteOptions {
+            bitpix,
+            compress,
+            with_variance_and_mask: true,
+        };
         write_frame(&path, &frame, &o).unwrap();
         let back = read_frame(&path).unwrap();
         assert_eq!(back.data, frame.data);
-        assert!(bits_equal(back.variance.as_ref().unwrap(), frame.variance.as_ref().unwrap()));
+        assert!(bits_equal(
+            back.variance.as_ref().unwrap(),
+            frame.variance.as_ref().unwrap()
+        ));
         assert_eq!(back.mask, frame.mask);
         assert_same_header(&back.header, &frame.header);
     }
@@ -287,7 +358,10 @@ fn variance_and_mask_extensions() {
     assert_eq!(back.mask[[0, 0]], 0);
     // Shapes must agree.
     frame.mask = Array2::zeros((4, 5));
-    let o = WriteOptions { with_variance_and_mask: true, ..Default::default() };
+    let o = WriteOptions {
+        with_variance_and_mask: true,
+        ..Default::default()
+    };
     let e = write_frame(&path, &frame, &o).unwrap_err().to_string();
     assert!(e.contains("none.fits") && e.contains("MASK"), "{e}");
 }
@@ -307,7 +381,9 @@ fn gzipped_fits_is_read_transparently() {
     assert_eq!(back.data, frame.data);
     assert_same_header(&back.header, &frame.header);
     // Writing .gz is refused (cfitsio would compress only when closing, out of our sight).
-    let e = write_frame(&gz, &frame, &WriteOptions::default()).unwrap_err().to_string();
+    let e = write_frame(&gz, &frame, &WriteOptions::default())
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("raw.fits.gz"), "{e}");
 }
 
@@ -346,13 +422,21 @@ fn writing_is_atomic() {
     assert!(write_frame(&path, &other, &WriteOptions::default()).is_err());
     other.header.set("ESO BAD VALUE", 1.0);
     other.mask = Array2::zeros((3, 3));
-    let o = WriteOptions { with_variance_and_mask: true, ..Default::default() };
+    let o = WriteOptions {
+        with_variance_and_mask: true,
+        ..Default::default()
+    };
     assert!(write_frame(&path, &other, &o).is_err());
     assert_eq!(std::fs::read(&path).unwrap(), before);
-    let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    let names: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
     assert_eq!(names, vec![std::ffi::OsString::from("good.fits")]);
     // A relative path in the current directory works too (no parent component).
-    let e = write_frame(Path::new("no/such/dir/x.fits"), &frame, &WriteOptions::default()).unwrap_err().to_string();
+    let e = write_frame(Path::new("no/such/dir/x.fits"), &frame, &WriteOptions::default())
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("no/such/dir"), "{e}");
 }
 
@@ -364,11 +448,17 @@ fn parallel_reads_and_writes() {
     paths.par_iter().enumerate().for_each(|(i, p)| {
         let mut f = sofi_frame(64, 64, i as f64);
         f.data.mapv_inplace(|v| v + i as f32);
-        write_frame(p, &f, &opts(if i % 2 == 0 { Bitpix::F32 } else { Bitpix::I16 }, i % 3 == 0)).unwrap();
+        write_frame(
+            p,
+            &f,
+            &opts(if i % 2 == 0 { Bitpix::F32 } else { Bitpix::I16 }, i % 3 == 0),
+        )
+        .unwrap();
     });
     let ok = paths.par_iter().enumerate().all(|(i, p)| {
         let f = read_frame(p).unwrap();
-        f.header.get_f64("ESO ADA POSANG").unwrap() == i as f64 && f.data[[0, 0]] == smooth_image(64, 64)[[0, 0]] + i as f32
+        f.header.get_f64("ESO ADA POSANG").unwrap() == i as f64
+            && f.data[[0, 0]] == smooth_image(64, 64)[[0, 0]] + i as f32
     });
     assert!(ok);
 }
@@ -385,9 +475,15 @@ fn missing_file_is_a_clean_error() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("absent_frame.fits");
     let e = err_of(&path);
-    assert!(matches!(&e, Error::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound), "{e:?}");
+    assert!(
+        matches!(&e, Error::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound),
+        "{e:?}"
+    );
     assert!(e.to_string().contains("absent_frame.fits"), "{e}");
-    assert!(read_header(&path).unwrap_err().to_string().contains("absent_frame.fits"));
+    assert!(read_header(&path)
+        .unwrap_err()
+        .to_string()
+        .contains("absent_frame.fits"));
     // A directory is not a file either.
     assert!(err_of(dir.path()).to_string().contains("not a regular file"));
 }
@@ -399,7 +495,12 @@ fn truncated_file_is_a_clean_error() {
     let frame = sofi_frame(64, 64, 0.0);
     write_frame(&good, &frame, &WriteOptions::default()).unwrap();
     let bytes = std::fs::read(&good).unwrap();
-    for (name, len) in [("cut_data.fits", bytes.len() / 2), ("cut_header.fits", 1000), ("cut_2880.fits", 2880), ("empty.fits", 0)] {
+    for (name, len) in [
+        ("cut_data.fits", bytes.len() / 2),
+        ("cut_header.fits", 1000),
+        ("cut_2880.fits", 2880),
+        ("empty.fits", 0),
+    ] {
         let p = dir.path().join(name);
         std::fs::write(&p, &bytes[..len]).unwrap();
         let e = err_of(&p).to_string();
@@ -419,7 +520,11 @@ fn truncated_file_is_a_clean_error() {
 fn text_file_is_a_clean_error() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("notes.txt");
-    std::fs::write(&p, "This is not a FITS file.\nJust some notes about HK Tau.\n".repeat(100)).unwrap();
+    std::fs::write(
+        &p,
+        "This is not a FITS file.\nJust some notes about HK Tau.\n".repeat(100),
+    )
+    .unwrap();
     let e = err_of(&p);
     assert!(matches!(e, Error::Fits { .. }), "{e:?}");
     assert!(e.to_string().contains("notes.txt"), "{e}");
@@ -431,7 +536,10 @@ fn non_2d_images_are_rejected_with_naxis_values() {
     let dir = tempfile::tempdir().unwrap();
     let cube = dir.path().join("cube.fits");
     {
-        let desc = fitsio::images::ImageDescription { data_type: fitsio::images::ImageType::Float, dimensions: &[2, 4, 5] };
+        let desc = fitsio::images::ImageDescription {
+            data_type: fitsio::images::ImageType::Float,
+            dimensions: &[2, 4, 5],
+        };
         let mut f = FitsFile::create(&cube).with_custom_primary(&desc).open().unwrap();
         let hdu = f.primary_hdu().unwrap();
         hdu.write_image(&mut f, &[1.0f32; 40]).unwrap();
@@ -439,18 +547,30 @@ fn non_2d_images_are_rejected_with_naxis_values() {
     let e = err_of(&cube);
     assert!(matches!(e, Error::BadImage { .. }), "{e:?}");
     let msg = e.to_string();
-    assert!(msg.contains("cube.fits") && msg.contains("NAXIS = 3") && msg.contains("NAXIS1 = 5") && msg.contains("NAXIS3 = 2"), "{msg}");
+    assert!(
+        msg.contains("cube.fits")
+            && msg.contains("NAXIS = 3")
+            && msg.contains("NAXIS1 = 5")
+            && msg.contains("NAXIS3 = 2"),
+        "{msg}"
+    );
     assert!(read_header(&cube).unwrap_err().to_string().contains("NAXIS = 3"));
 
     let line = dir.path().join("line.fits");
     {
-        let desc = fitsio::images::ImageDescription { data_type: fitsio::images::ImageType::Float, dimensions: &[7] };
+        let desc = fitsio::images::ImageDescription {
+            data_type: fitsio::images::ImageType::Float,
+            dimensions: &[7],
+        };
         let mut f = FitsFile::create(&line).with_custom_primary(&desc).open().unwrap();
         let hdu = f.primary_hdu().unwrap();
         hdu.write_image(&mut f, &[0.0f32; 7]).unwrap();
     }
     let msg = err_of(&line).to_string();
-    assert!(msg.contains("line.fits") && msg.contains("NAXIS = 1 (NAXIS1 = 7)"), "{msg}");
+    assert!(
+        msg.contains("line.fits") && msg.contains("NAXIS = 1 (NAXIS1 = 7)"),
+        "{msg}"
+    );
 
     // Only an empty primary: no image at all.
     let empty = dir.path().join("noimage.fits");
@@ -461,14 +581,24 @@ fn non_2d_images_are_rejected_with_naxis_values() {
     // A 2-D image with a zero axis.
     let zero = dir.path().join("zero.fits");
     {
-        let desc = fitsio::images::ImageDescription { data_type: fitsio::images::ImageType::Float, dimensions: &[0, 5] };
+        let desc = fitsio::images::ImageDescription {
+            data_type: fitsio::images::ImageType::Float,
+            dimensions: &[0, 5],
+        };
         drop(FitsFile::create(&zero).with_custom_primary(&desc).open().unwrap());
     }
     let msg = err_of(&zero).to_string();
-    assert!(msg.contains("zero.fits") && msg.contains("empty image") && msg.contains("NAXIS2 = 0"), "{msg}");
+    assert!(
+        msg.contains("zero.fits") && msg.contains("empty image") && msg.contains("NAXIS2 = 0"),
+        "{msg}"
+    );
 
     // Writing an empty frame is refused too.
-    let e = write_frame(&dir.path().join("w.fits"), &Frame::new(Array2::zeros((0, 3)), Header::new("")), &WriteOptions::default());
+    let e = write_frame(
+        &dir.path().join("w.fits"),
+        &Frame::new(Array2::zeros((0, 3)), Header::new("")),
+        &WriteOptions::default(),
+    );
     assert!(e.unwrap_err().to_string().contains("w.fits"));
 }
 
@@ -479,7 +609,10 @@ fn image_in_first_extension_is_found() {
     let p = dir.path().join("mef.fits");
     {
         let mut f = FitsFile::create(&p).open().unwrap();
-        let desc = fitsio::images::ImageDescription { data_type: fitsio::images::ImageType::Float, dimensions: &[2, 3] };
+        let desc = fitsio::images::ImageDescription {
+            data_type: fitsio::images::ImageType::Float,
+            dimensions: &[2, 3],
+        };
         let hdu = f.create_image("CHIP1", &desc).unwrap();
         hdu.write_key(&mut f, "ESO ADA POSANG", 90.0f64).unwrap();
         hdu.write_image(&mut f, &[1.0f32, 2.0, 3.0, 4.0, 5.0, 6.0]).unwrap();
@@ -497,7 +630,10 @@ fn unsupported_file_names_are_clean_errors() {
     let p = dir.path().join("frame[1].fits");
     std::fs::write(&p, b"x").unwrap();
     let e = err_of(&p).to_string();
-    assert!(e.contains("frame[1].fits") && e.contains("extended file-name syntax"), "{e}");
+    assert!(
+        e.contains("frame[1].fits") && e.contains("extended file-name syntax"),
+        "{e}"
+    );
     // Writing to such a name works: the temporary name is plain, rename does the rest.
     let frame = sofi_frame(4, 4, 0.0);
     let w = dir.path().join("odd (copy).fits");

@@ -30,7 +30,11 @@ fn timing_1024_square() {
         ("f32 GZIP .fz", Bitpix::F32, true),
     ] {
         let path = dir.path().join(format!("t-{label}.fits").replace(' ', "_"));
-        let o = WriteOptions { bitpix, compress, with_variance_and_mask: false };
+        let o = WriteOptions {
+            bitpix,
+            compress,
+            with_variance_and_mask: false,
+        };
         let w = median_ms(|| write_frame(&path, &frame, &o).unwrap(), 7);
         let r = median_ms(|| assert_eq!(read_frame(&path).unwrap().shape(), (1024, 1024)), 7);
         let size = std::fs::metadata(&path).unwrap().len();

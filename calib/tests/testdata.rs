@@ -27,7 +27,11 @@ fn committed_testdata_matches_generator() {
     if std::env::var_os("REGENERATE").is_some_and(|v| v == "1") {
         std::fs::create_dir_all(testdata_dir()).unwrap();
         for (name, compress) in FILES {
-            let o = WriteOptions { bitpix: Bitpix::I16, compress, with_variance_and_mask: false };
+            let o = WriteOptions {
+                bitpix: Bitpix::I16,
+                compress,
+                with_variance_and_mask: false,
+            };
             write_frame(&testdata_dir().join(name), &frame, &o).unwrap();
         }
     }

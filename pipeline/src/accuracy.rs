@@ -31,10 +31,20 @@ impl Default for AccuracyConfig {
             targets_per_bin: 12,
             seed: 7,
             fwhm_arcsec: 0.8,
-            effects: ["psf", "sky", "strips", "photon_noise", "read_noise", "bad_pixels", "transparency", "pointing_error", "cosmic_rays"]
-                .iter()
-                .map(|s| s.to_string())
-                .collect(),
+            effects: [
+                "psf",
+                "sky",
+                "strips",
+                "photon_noise",
+                "read_noise",
+                "bad_pixels",
+                "transparency",
+                "pointing_error",
+                "cosmic_rays",
+            ]
+            .iter()
+            .map(|s| s.to_string())
+            .collect(),
         }
     }
 }
@@ -83,7 +93,10 @@ fn scene_for(cfg: &AccuracyConfig, lo: f64, hi: f64, bin: usize) -> (Scene, Vec<
         );
         truths.push([sep, fa, fb, 0.0]);
     }
-    (Scene::from_toml(&text, "accuracy scene").expect("valid generated scene"), truths)
+    (
+        Scene::from_toml(&text, "accuracy scene").expect("valid generated scene"),
+        truths,
+    )
 }
 
 /// One reduced target: pulls and time.
@@ -116,7 +129,13 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
                     let t0 = std::time::Instant::now();
                     let out = reduce_loaded(&seq, orients, &profile, params, false);
                     let reduce_s = t0.elapsed().as_secs_f64();
-                    let mut one = One { note: None, pulls: vec![], sigmas: vec![], missing: 0, reduce_s };
+                    let mut one = One {
+                        note: None,
+                        pulls: vec![],
+                        sigmas: vec![],
+                        missing: 0,
+                        reduce_s,
+                    };
                     // The reduction calls the brighter star A as measured; near-equal pairs may
                     // be labelled the other way round from the scene: match by position angle.
                     let found_pa = out.target.extra.get("pa_deg").and_then(|v| v.as_f64());
@@ -147,17 +166,28 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
                             .map(|(c, tc)| {
                                 format!(
                                     "{}: q {:.4}/{:.4} u {:.4}/{:.4} sig {:.4} flux {:.0}/{:.0} [{}]",
-                                    c.name, c.q, tc.q, c.u, tc.u, c.sigma_q,
-                                    c.extra.get("flux_adu").and_then(|v| v.as_f64()).unwrap_or(f64::NAN), tc.flux,
+                                    c.name,
+                                    c.q,
+                                    tc.q,
+                                    c.u,
+                                    tc.u,
+                                    c.sigma_q,
+                                    c.extra.get("flux_adu").and_then(|v| v.as_f64()).unwrap_or(f64::NAN),
+                                    tc.flux,
                                     c.flags.join(",")
                                 )
                             })
                             .collect();
                         one.note = Some(format!(
                             "{} sep {:.2}\" pa {:.0} found {:?}/{:?} phot {:?}: {} | {:?}",
-                            tt.object, tt.separation_arcsec, tt.pa_deg,
-                            out.target.extra.get("separation_arcsec"), out.target.extra.get("pa_deg"),
-                            out.target.extra.get("photometry"), comps.join(" ; "), out.target.extra.get("flags")
+                            tt.object,
+                            tt.separation_arcsec,
+                            tt.pa_deg,
+                            out.target.extra.get("separation_arcsec"),
+                            out.target.extra.get("pa_deg"),
+                            out.target.extra.get("photometry"),
+                            comps.join(" ; "),
+                            out.target.extra.get("flags")
                         ));
                     }
                     one
@@ -186,11 +216,23 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
 
 /// A table of the reports.
 pub fn table(r: &[BinReport]) -> String {
-    let mut s = format!("{:>13} {:>11} {:>7} {:>9} {:>9} {:>10} {:>8} {:>10}\n", "sep [\"]", "sep [FWHM]", "pulls", "rms pull", "mean", "med sig_q", "missing", "reduce s");
+    let mut s = format!(
+        "{:>13} {:>11} {:>7} {:>9} {:>9} {:>10} {:>8} {:>10}\n",
+        "sep [\"]", "sep [FWHM]", "pulls", "rms pull", "mean", "med sig_q", "missing", "reduce s"
+    );
     for b in r {
         s += &format!(
             "{:>6.2}-{:<6.2} {:>5.2}-{:<5.2} {:>7} {:>9.3} {:>9.3} {:>10.5} {:>8} {:>10.3}\n",
-            b.sep_arcsec.0, b.sep_arcsec.1, b.sep_fwhm.0, b.sep_fwhm.1, b.n_pulls, b.rms_pull, b.mean_pull, b.median_sigma, b.missing, b.median_reduce_s
+            b.sep_arcsec.0,
+            b.sep_arcsec.1,
+            b.sep_fwhm.0,
+            b.sep_fwhm.1,
+            b.n_pulls,
+            b.rms_pull,
+            b.mean_pull,
+            b.median_sigma,
+            b.missing,
+            b.median_reduce_s
         );
         if std::env::var_os("SOFIPOL_SHOW_OUTLIERS").is_some() {
             for o in &b.outliers {

@@ -99,7 +99,11 @@ pub struct Catalog {
 /// Fold an angle difference of two axial angles (degrees) into [0, 90].
 pub fn fold_delta_gamma(gamma_a_deg: f64, gamma_b_deg: f64) -> f64 {
     let d = (gamma_a_deg - gamma_b_deg).rem_euclid(180.0);
-    if d > 90.0 { 180.0 - d } else { d }
+    if d > 90.0 {
+        180.0 - d
+    } else {
+        d
+    }
 }
 
 #[cfg(test)]

@@ -25,9 +25,17 @@ pub struct Shard {
 impl std::str::FromStr for Shard {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        let (a, b) = s.split_once('/').ok_or_else(|| format!("shard '{s}': expected K/N, e.g. 2/8"))?;
-        let k: usize = a.trim().parse().map_err(|_| format!("shard '{s}': K is not a number"))?;
-        let n: usize = b.trim().parse().map_err(|_| format!("shard '{s}': N is not a number"))?;
+        let (a, b) = s
+            .split_once('/')
+            .ok_or_else(|| format!("shard '{s}': expected K/N, e.g. 2/8"))?;
+        let k: usize = a
+            .trim()
+            .parse()
+            .map_err(|_| format!("shard '{s}': K is not a number"))?;
+        let n: usize = b
+            .trim()
+            .parse()
+            .map_err(|_| format!("shard '{s}': N is not a number"))?;
         if n == 0 || k == 0 || k > n {
             return Err(format!("shard '{s}': need 1 <= K <= N"));
         }
@@ -105,7 +113,12 @@ pub fn plan(roots: &[PathBuf], profile: &Profile, shard: Option<Shard>) -> std::
         failures.retain(|f| sh.owns(&f.file));
     }
     failures.sort_by(|a, b| a.file.cmp(&b.file));
-    Ok(NightPlan { sequences, failures, n_files, mask_frames })
+    Ok(NightPlan {
+        sequences,
+        failures,
+        n_files,
+        mask_frames,
+    })
 }
 
 /// The result of a night.
@@ -138,7 +151,11 @@ pub fn reduce_night(
             (out.target, out.failures, out.times)
         })
         .collect();
-    let mut catalog = Catalog { schema_version: SCHEMA_VERSION.into(), failures: plan.failures.clone(), ..Default::default() };
+    let mut catalog = Catalog {
+        schema_version: SCHEMA_VERSION.into(),
+        failures: plan.failures.clone(),
+        ..Default::default()
+    };
     let mut times = Vec::new();
     for (t, f, tm) in outs {
         catalog.targets.push(t);
@@ -153,9 +170,17 @@ pub fn reduce_night(
 /// move between dithers and between sequences, so one median stack of frames taken from
 /// many sequences ([`NightPlan::mask_frames`]) finds them once. Returns the
 /// mask and the files used, or None when fewer than 3 frames can be read.
-pub fn night_bad_pixel_mask(plan: &NightPlan, profile: &Profile, opts: &sofipol_calib::badpix::BadPixelOptions, max_frames: usize) -> Option<(ndarray::Array2<u8>, Vec<String>)> {
+pub fn night_bad_pixel_mask(
+    plan: &NightPlan,
+    profile: &Profile,
+    opts: &sofipol_calib::badpix::BadPixelOptions,
+    max_frames: usize,
+) -> Option<(ndarray::Array2<u8>, Vec<String>)> {
     let picks: Vec<PathBuf> = plan.mask_frames.iter().take(max_frames).cloned().collect();
-    let frames: Vec<sofipol_calib::Frame> = picks.par_iter().filter_map(|p| sofipol_calib::fits::read_frame(p).ok()).collect();
+    let frames: Vec<sofipol_calib::Frame> = picks
+        .par_iter()
+        .filter_map(|p| sofipol_calib::fits::read_frame(p).ok())
+        .collect();
     let shape = frames.first()?.shape();
     let frames: Vec<&sofipol_calib::Frame> = frames.iter().filter(|f| f.shape() == shape).collect();
     if frames.len() < 3 {
@@ -168,15 +193,26 @@ pub fn night_bad_pixel_mask(plan: &NightPlan, profile: &Profile, opts: &sofipol_
 /// Join shard catalogs: targets ordered by sequence, failures by file, duplicates (the same
 /// sequence in two shards) refused.
 pub fn merge(parts: Vec<(String, Catalog)>) -> Result<Catalog, String> {
-    let mut out = Catalog { schema_version: SCHEMA_VERSION.into(), ..Default::default() };
+    let mut out = Catalog {
+        schema_version: SCHEMA_VERSION.into(),
+        ..Default::default()
+    };
     let mut provs = Vec::new();
     let mut seen = std::collections::BTreeMap::new();
     for (name, c) in parts {
         if !c.schema_version.is_empty() && c.schema_version.split('.').next() != SCHEMA_VERSION.split('.').next() {
-            return Err(format!("{name}: schema version {} is not compatible with {}", c.schema_version, SCHEMA_VERSION));
+            return Err(format!(
+                "{name}: schema version {} is not compatible with {}",
+                c.schema_version, SCHEMA_VERSION
+            ));
         }
         for t in c.targets {
-            let key = t.extra.get("sequence").and_then(|v| v.as_str()).unwrap_or(&t.object).to_string();
+            let key = t
+                .extra
+                .get("sequence")
+                .and_then(|v| v.as_str())
+                .unwrap_or(&t.object)
+                .to_string();
             if let Some(prev) = seen.insert(key.clone(), name.clone()) {
                 return Err(format!("sequence {key} appears in both {prev} and {name}"));
             }
@@ -186,7 +222,13 @@ pub fn merge(parts: Vec<(String, Catalog)>) -> Result<Catalog, String> {
         provs.push(serde_json::json!({"file": name, "provenance": c.provenance}));
     }
     out.targets.sort_by(|a, b| {
-        let k = |t: &Target| t.extra.get("sequence").and_then(|v| v.as_str()).unwrap_or(&t.object).to_string();
+        let k = |t: &Target| {
+            t.extra
+                .get("sequence")
+                .and_then(|v| v.as_str())
+                .unwrap_or(&t.object)
+                .to_string()
+        };
         k(a).cmp(&k(b))
     });
     out.failures.sort_by(|a, b| a.file.cmp(&b.file));
@@ -205,13 +247,18 @@ pub fn peak_rss_bytes() -> Option<u64> {
 
 /// A file-system-safe name for an object.
 pub fn slug(s: &str) -> String {
-    s.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' { c } else { '_' }).collect()
+    s.chars()
+        .map(|c| if c.is_ascii_alphanumeric() || c == '-' { c } else { '_' })
+        .collect()
 }
 
 /// Where per-target products go for a catalog path: `<dir>/<stem>_products/`.
 pub fn products_dir(catalog: &Path) -> PathBuf {
     let stem = catalog.file_stem().and_then(|s| s.to_str()).unwrap_or("catalog");
-    catalog.parent().unwrap_or(Path::new(".")).join(format!("{stem}_products"))
+    catalog
+        .parent()
+        .unwrap_or(Path::new("."))
+        .join(format!("{stem}_products"))
 }
 
 #[cfg(test)]

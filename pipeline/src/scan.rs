@@ -8,8 +8,15 @@ use crate::catalog::Failure;
 
 /// File names sofipol reads: `.fits`, `.fit`, `.fits.gz`, `.fit.gz`, `.fz` (any case).
 pub fn is_fits_name(p: &Path) -> bool {
-    let n = p.file_name().and_then(|n| n.to_str()).unwrap_or("").to_ascii_lowercase();
-    !n.starts_with('.') && [".fits", ".fit", ".fits.gz", ".fit.gz", ".fz"].iter().any(|e| n.ends_with(e))
+    let n = p
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    !n.starts_with('.')
+        && [".fits", ".fit", ".fits.gz", ".fit.gz", ".fz"]
+            .iter()
+            .any(|e| n.ends_with(e))
 }
 
 /// Every FITS-named file under `root` (recursively; a file is taken as given), sorted.
@@ -49,14 +56,22 @@ pub struct Scan {
 /// Classify files by header (in parallel; the order of the result does not depend on it).
 pub fn classify_all(files: &[PathBuf], profile: &Profile) -> Scan {
     use rayon::prelude::*;
-    let results: Vec<(PathBuf, sofipol_calib::Result<Classification>)> =
-        files.par_iter().map(|f| (f.clone(), classify_file(f, profile))).collect();
+    let results: Vec<(PathBuf, sofipol_calib::Result<Classification>)> = files
+        .par_iter()
+        .map(|f| (f.clone(), classify_file(f, profile)))
+        .collect();
     let mut s = Scan::default();
     for (f, r) in results {
         match r {
             Ok(Classification::Science(info)) => s.science.push(*info),
-            Ok(Classification::Rejected { reason }) => s.other.push(Failure { file: f.display().to_string(), error: reason }),
-            Err(e) => s.unreadable.push(Failure { file: f.display().to_string(), error: e.to_string() }),
+            Ok(Classification::Rejected { reason }) => s.other.push(Failure {
+                file: f.display().to_string(),
+                error: reason,
+            }),
+            Err(e) => s.unreadable.push(Failure {
+                file: f.display().to_string(),
+                error: e.to_string(),
+            }),
         }
     }
     s

@@ -35,7 +35,10 @@ pub struct Sequence {
 impl Sequence {
     /// All files of the sequence.
     pub fn files(&self) -> Vec<String> {
-        self.orientations.iter().flat_map(|o| o.exposures.iter().map(|e| e.path.display().to_string())).collect()
+        self.orientations
+            .iter()
+            .flat_map(|o| o.exposures.iter().map(|e| e.path.display().to_string()))
+            .collect()
     }
 
     /// Things that degrade the sequence, in words (empty when complete): an orientation
@@ -59,11 +62,16 @@ impl Sequence {
         let total: usize = counts.iter().sum();
         if let Some(nexp) = self.orientations.iter().flat_map(|o| &o.exposures).find_map(|e| e.nexp) {
             if (total as u32) < nexp {
-                out.push(format!("{total} of {nexp} exposures of the template present (TPL NEXP)"));
+                out.push(format!(
+                    "{total} of {nexp} exposures of the template present (TPL NEXP)"
+                ));
             }
         }
-        let filters: std::collections::BTreeSet<&str> =
-            self.orientations.iter().flat_map(|o| o.exposures.iter().map(|e| e.filter.as_str())).collect();
+        let filters: std::collections::BTreeSet<&str> = self
+            .orientations
+            .iter()
+            .flat_map(|o| o.exposures.iter().map(|e| e.filter.as_str()))
+            .collect();
         if filters.len() > 1 {
             out.push(format!("mixed filters {filters:?}"));
         }
@@ -77,7 +85,10 @@ impl Sequence {
 pub fn group(infos: Vec<ScienceInfo>, profile: &Profile) -> Vec<Sequence> {
     let mut by_seq: BTreeMap<(String, String), Vec<ScienceInfo>> = BTreeMap::new();
     for i in infos {
-        by_seq.entry((i.tpl_start.clone(), i.object.clone())).or_default().push(i);
+        by_seq
+            .entry((i.tpl_start.clone(), i.object.clone()))
+            .or_default()
+            .push(i);
     }
     by_seq
         .into_iter()
@@ -96,11 +107,21 @@ pub fn group(infos: Vec<ScienceInfo>, profile: &Profile) -> Vec<Sequence> {
                             .then(a.path.cmp(&b.path))
                     });
                     let posang = ex[0].posang_deg;
-                    Orientation { posang_deg: posang, analyzer_deg: profile.angles.analyzer_angle_deg(posang), exposures: ex }
+                    Orientation {
+                        posang_deg: posang,
+                        analyzer_deg: profile.angles.analyzer_angle_deg(posang),
+                        exposures: ex,
+                    }
                 })
                 .collect();
             let filter = orientations[0].exposures[0].filter.clone();
-            Sequence { id: format!("{object}@{tpl_start}"), object, tpl_start, filter, orientations }
+            Sequence {
+                id: format!("{object}@{tpl_start}"),
+                object,
+                tpl_start,
+                filter,
+                orientations,
+            }
         })
         .collect()
 }
@@ -132,20 +153,37 @@ mod tests {
     fn groups_by_template_and_orientation_in_a_stable_order() {
         let mut v = Vec::new();
         for k in (1..=10).rev() {
-            v.push(info("HK Tau", "1999-03-03T02:10:41", if k <= 5 { 0.0 } else { 45.0 }, k));
+            v.push(info(
+                "HK Tau",
+                "1999-03-03T02:10:41",
+                if k <= 5 { 0.0 } else { 45.0 },
+                k,
+            ));
         }
         for k in 1..=9 {
-            v.push(info("GG Tau", "1999-03-03T01:00:00", if k <= 5 { 0.0 } else { 45.0 }, k));
+            v.push(info(
+                "GG Tau",
+                "1999-03-03T01:00:00",
+                if k <= 5 { 0.0 } else { 45.0 },
+                k,
+            ));
         }
         let seqs = group(v, &Profile::sofi());
         assert_eq!(seqs.len(), 2);
         assert_eq!(seqs[0].object, "GG Tau");
         assert_eq!(seqs[1].orientations.len(), 2);
         assert_eq!(seqs[1].orientations[1].posang_deg, 45.0);
-        let e: Vec<u32> = seqs[1].orientations[0].exposures.iter().map(|e| e.expno.unwrap()).collect();
+        let e: Vec<u32> = seqs[1].orientations[0]
+            .exposures
+            .iter()
+            .map(|e| e.expno.unwrap())
+            .collect();
         assert_eq!(e, vec![1, 2, 3, 4, 5]);
         assert!(seqs[1].problems().is_empty());
         let p = seqs[0].problems();
-        assert!(p.iter().any(|s| s.contains("unequal")) && p.iter().any(|s| s.contains("9 of 10")), "{p:?}");
+        assert!(
+            p.iter().any(|s| s.contains("unequal")) && p.iter().any(|s| s.contains("9 of 10")),
+            "{p:?}"
+        );
     }
 }

@@ -10,7 +10,11 @@ use sofipol_pipeline::reduce::target::TargetParams;
 
 #[test]
 fn pull_widths_by_separation() {
-    let cfg = AccuracyConfig { targets_per_bin: 12, seed: 31, ..Default::default() };
+    let cfg = AccuracyConfig {
+        targets_per_bin: 12,
+        seed: 31,
+        ..Default::default()
+    };
     let r = run(&cfg, &TargetParams::default());
     eprintln!("{}", table(&r));
     let pooled = |keep: &dyn Fn(f64) -> bool| {
@@ -24,8 +28,16 @@ fn pull_widths_by_separation() {
     let (wide, nw) = pooled(&|lo| lo >= 1.99);
     let (close, nc) = pooled(&|lo| lo < 1.99);
     assert!(nw >= 100 && nc >= 100, "too few pulls: {nw} {nc}");
-    assert!((0.8..=1.2).contains(&wide), "pairs >= 2 FWHM: rms pull {wide:.3} over {nw} pulls\n{}", table(&r));
-    assert!(close <= 1.5, "pairs < 2 FWHM: rms pull {close:.3} over {nc} pulls\n{}", table(&r));
+    assert!(
+        (0.8..=1.2).contains(&wide),
+        "pairs >= 2 FWHM: rms pull {wide:.3} over {nw} pulls\n{}",
+        table(&r)
+    );
+    assert!(
+        close <= 1.5,
+        "pairs < 2 FWHM: rms pull {close:.3} over {nc} pulls\n{}",
+        table(&r)
+    );
     let missing: usize = r.iter().map(|b| b.missing).sum();
     assert!(missing <= 2, "{missing} components not measured\n{}", table(&r));
 }

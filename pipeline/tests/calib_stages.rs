@@ -104,24 +104,47 @@ fn sky_subtraction_is_unbiased_its_variance_map_is_right_and_fluxes_survive() {
     for scaling in [SkyScaling::Multiplicative, SkyScaling::Additive] {
         for orient in sim.chunks(5) {
             let raw: Vec<Frame> = orient.iter().map(|s| s.frame.clone()).collect();
-            let opts = SkyOptions { scaling, cosmic_rays: None };
+            let opts = SkyOptions {
+                scaling,
+                cosmic_rays: None,
+            };
             let (out, rep) = sky_subtract_with_report(&raw, &p, &opts).unwrap();
             assert_eq!(rep.median_of, 4);
             assert!((rep.median_variance_factor - 1.192798).abs() < 1e-6);
             for ((f, s), level) in out.iter().zip(orient).zip(&rep.levels_adu) {
                 // The level is the median of the strip rows: close to the centre level.
-                assert!((level / s.truth.sky_level_adu - 1.0).abs() < 0.01, "{level} vs {}", s.truth.sky_level_adu);
+                assert!(
+                    (level / s.truth.sky_level_adu - 1.0).abs() < 0.01,
+                    "{level} vs {}",
+                    s.truth.sky_level_adu
+                );
                 let (bias, ratio) = residual_stats(f, &p);
-                eprintln!("{scaling:?} {}: mean residual {bias:+.4} sigma, variance measured/predicted {ratio:.4}", s.file_name);
-                assert!(bias.abs() < 0.05, "{scaling:?} {}: mean residual {bias} sigma", s.file_name);
-                assert!((0.9..1.1).contains(&ratio), "{scaling:?} {}: var measured/predicted {ratio}", s.file_name);
+                eprintln!(
+                    "{scaling:?} {}: mean residual {bias:+.4} sigma, variance measured/predicted {ratio:.4}",
+                    s.file_name
+                );
+                assert!(
+                    bias.abs() < 0.05,
+                    "{scaling:?} {}: mean residual {bias} sigma",
+                    s.file_name
+                );
+                assert!(
+                    (0.9..1.1).contains(&ratio),
+                    "{scaling:?} {}: var measured/predicted {ratio}",
+                    s.file_name
+                );
                 // Star fluxes: every source image (o and e) inside the target strips.
                 let var = f.variance.as_ref().unwrap();
                 for src in &s.truth.sources {
                     for (xy, flux) in [(src.o_xy, src.flux_o), (src.e_xy, src.flux_e)] {
                         let (sum, v) = aperture(&f.data, var, xy, 7.0);
                         let z = (sum - flux) / v.sqrt();
-                        assert!(z.abs() < 4.5, "{} {} at {xy:?}: {sum:.0} vs truth {flux:.0} ({z:.2} sigma)", s.file_name, src.name);
+                        assert!(
+                            z.abs() < 4.5,
+                            "{} {} at {xy:?}: {sum:.0} vs truth {flux:.0} ({z:.2} sigma)",
+                            s.file_name,
+                            src.name
+                        );
                     }
                 }
             }
@@ -145,14 +168,21 @@ fn sky_stage_never_mutates_inputs_and_records_history() {
         assert_eq!(stages, ["simulate", "sky", "cosmic"]);
         assert_eq!(o.mask[[3, 100]] & mask::OFF_STRIP, mask::OFF_STRIP);
     }
-    let e = sky_subtract(&raw[..1], &p, &SkyOptions::default()).unwrap_err().to_string();
+    let e = sky_subtract(&raw[..1], &p, &SkyOptions::default())
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("fewer than 2 dithers at POSANG 45"), "{e}");
 }
 
 #[test]
 fn bad_pixels_are_recovered_from_the_dithers() {
     let p = Profile::sofi();
-    let sc = scene("\"psf\", \"sky\", \"strips\", \"photon_noise\", \"read_noise\", \"bad_pixels\"", "0.0, 45.0", "", 21);
+    let sc = scene(
+        "\"psf\", \"sky\", \"strips\", \"photon_noise\", \"read_noise\", \"bad_pixels\"",
+        "0.0, 45.0",
+        "",
+        21,
+    );
     let (simulator, sim) = run(sc);
     let truth = simulator.bad_pixel_mask().unwrap();
     let frames: Vec<&Frame> = sim.iter().map(|s| &s.frame).collect();
@@ -174,7 +204,11 @@ fn bad_pixels_are_recovered_from_the_dithers() {
     let recall = tp as f64 / (tp + fn_) as f64;
     let fp_rate = fp as f64 / n as f64;
     eprintln!("bad pixels in strips: {tp} found, {fn_} missed, {fp} false ({recall:.4} recall, {fp_rate:.2e} false rate); {rep:?}");
-    assert!(tp + fn_ > 500, "the scene should have many bad pixels, got {}", tp + fn_);
+    assert!(
+        tp + fn_ > 500,
+        "the scene should have many bad pixels, got {}",
+        tp + fn_
+    );
     assert!(recall >= 0.99, "recall {recall}");
     assert!(fp_rate < 1e-4, "false-positive rate {fp_rate}");
     assert_eq!(rep.total, tp + fp);
@@ -194,15 +228,22 @@ fn cosmic_case(psf: &str) -> (usize, usize, usize, usize) {
     let (_, with) = run(scene(&format!("{base}, \"cosmic_rays\""), "0.0", &extra, 9));
     let (_, without) = run(scene(base, "0.0", &extra, 9));
     let raw: Vec<Frame> = with.iter().map(|s| s.frame.clone()).collect();
-    let opts = SkyOptions { scaling: SkyScaling::Multiplicative, cosmic_rays: Some(CosmicOptions::default()) };
+    let opts = SkyOptions {
+        scaling: SkyScaling::Multiplicative,
+        cosmic_rays: Some(CosmicOptions::default()),
+    };
     let (out, rep) = sky_subtract_with_report(&raw, &p, &opts).unwrap();
     let (mut hit_strong, mut found_strong, mut false_flags, mut star_flags) = (0, 0, 0, 0);
     for (k, f) in out.iter().enumerate() {
-        let cr = Array2::from_shape_fn(f.data.raw_dim(), |ix| with[k].frame.data[ix] - without[k].frame.data[ix]);
+        let cr = Array2::from_shape_fn(f.data.raw_dim(), |ix| {
+            with[k].frame.data[ix] - without[k].frame.data[ix]
+        });
         let var = f.variance.as_ref().unwrap();
         let near_star = |y: usize, x: usize| {
             with[k].truth.sources.iter().any(|s| {
-                [s.o_xy, s.e_xy].iter().any(|c| (c[0] - x as f64).powi(2) + (c[1] - y as f64).powi(2) <= 16.0)
+                [s.o_xy, s.e_xy]
+                    .iter()
+                    .any(|c| (c[0] - x as f64).powi(2) + (c[1] - y as f64).powi(2) <= 16.0)
             })
         };
         for ((y, x), &b) in f.mask.indexed_iter() {
@@ -229,12 +270,19 @@ fn cosmic_case(psf: &str) -> (usize, usize, usize, usize) {
             for c in [s.o_xy, s.e_xy] {
                 let (y, x) = (c[1].round() as usize, c[0].round() as usize);
                 let v = f.data[[y, x]] as f64;
-                let m4 = [(y - 1, x), (y + 1, x), (y, x - 1), (y, x + 1)].iter().map(|&ix| f.data[ix] as f64).sum::<f64>() / 4.0;
+                let m4 = [(y - 1, x), (y + 1, x), (y, x - 1), (y, x + 1)]
+                    .iter()
+                    .map(|&ix| f.data[ix] as f64)
+                    .sum::<f64>()
+                    / 4.0;
                 worst = worst.max((v - 5.0 * (var[[y, x]] as f64).sqrt()) / m4);
             }
         }
     }
-    eprintln!("{psf:?}: largest star-peak sharpness (value - 5 sigma)/mean4 = {worst:.2} (threshold {})", CosmicOptions::default().sharpness_ratio);
+    eprintln!(
+        "{psf:?}: largest star-peak sharpness (value - 5 sigma)/mean4 = {worst:.2} (threshold {})",
+        CosmicOptions::default().sharpness_ratio
+    );
     (hit_strong, found_strong, false_flags, star_flags)
 }
 
@@ -264,14 +312,29 @@ fn cosmic_rays_are_flagged_but_not_star_cores_moffat_2_8_px() {
 fn print_stage_timings() {
     use sofipol_calib::stack;
     let p = Profile::sofi();
-    let sc = scene("\"psf\", \"sky\", \"strips\", \"photon_noise\", \"read_noise\", \"bad_pixels\"", "0.0, 45.0", "", 4);
+    let sc = scene(
+        "\"psf\", \"sky\", \"strips\", \"photon_noise\", \"read_noise\", \"bad_pixels\"",
+        "0.0, 45.0",
+        "",
+        4,
+    );
     let (_, sim) = run(sc);
     let frames: Vec<Frame> = sim.iter().map(|s| s.frame.clone()).collect();
     let refs: Vec<&Frame> = frames.iter().collect();
     let t = rayon::current_num_threads();
     let loo = stack::bench_leave_one_out(5, 1024, 1024, 21);
     let sky = stack::median_ms(11, || {
-        std::hint::black_box(sky_subtract(&frames[..5], &p, &SkyOptions { scaling: SkyScaling::Multiplicative, cosmic_rays: None }).unwrap());
+        std::hint::black_box(
+            sky_subtract(
+                &frames[..5],
+                &p,
+                &SkyOptions {
+                    scaling: SkyScaling::Multiplicative,
+                    cosmic_rays: None,
+                },
+            )
+            .unwrap(),
+        );
     });
     let sky_cr = stack::median_ms(11, || {
         std::hint::black_box(sky_subtract(&frames[..5], &p, &SkyOptions::recommended()).unwrap());

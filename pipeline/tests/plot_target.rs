@@ -20,7 +20,11 @@ fn scene(orientations: &str, binary: &str) -> String {
 
 /// Simulate one sequence and reduce it (frames kept for the plot).
 fn reduce(orientations: &str, binary: &str) -> TargetOutcome {
-    let sim = Simulator::new(Scene::from_toml(&scene(orientations, binary), "t").unwrap(), Profile::sofi()).unwrap();
+    let sim = Simulator::new(
+        Scene::from_toml(&scene(orientations, binary), "t").unwrap(),
+        Profile::sofi(),
+    )
+    .unwrap();
     let (frames, truth) = sim.run_in_memory();
     let object = truth.targets[0].object.clone();
     let mut orients: Vec<LoadedOrientation> = Vec::new();
@@ -45,7 +49,9 @@ fn reduce(orientations: &str, binary: &str) -> TargetOutcome {
 
 /// Decode and check the PNG: width, and that it shows more than white and text.
 fn check_png(path: &Path) -> (u32, u32) {
-    let img = image::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).to_rgb8();
+    let img = image::open(path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .to_rgb8();
     assert_eq!(img.width(), WIDTH);
     assert!(img.height() > 200);
     let px: Vec<&[u8]> = img.as_raw().chunks(3).collect();
@@ -63,7 +69,8 @@ fn keep_example(path: &Path) {
     }
 }
 
-const WIDE: &str = "name = \"Wide Tau\"\nseparation_arcsec = 2.2\npa_deg = 300.0\nflux_a = 120000.0\nflux_b = 40000.0\n\
+const WIDE: &str =
+    "name = \"Wide Tau\"\nseparation_arcsec = 2.2\npa_deg = 300.0\nflux_a = 120000.0\nflux_b = 40000.0\n\
                     p_a = 0.03\ngamma_a_deg = 150.0\np_b = 0.05\ngamma_b_deg = 95.0";
 
 #[test]
@@ -91,12 +98,20 @@ fn plot_target_png_of_a_reduced_binary() {
         target_png(&path, &out.target, cal, m).unwrap();
         let ms = t.elapsed().as_secs_f64() * 1e3;
         let (w, h) = check_png(&path);
-        eprintln!("{name}: {w}x{h}, {ms:.1} ms, status {:?}, {} components", out.target.status, out.target.components.len());
+        eprintln!(
+            "{name}: {w}x{h}, {ms:.1} ms, status {:?}, {} components",
+            out.target.status,
+            out.target.components.len()
+        );
         keep_example(&path);
         // Same figure through the outcome wrapper.
         outcome_png(&dir.path().join(format!("o_{name}")), &out).unwrap();
     }
-    let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().filter_map(|e| e.ok()).filter(|e| e.file_name().to_string_lossy().starts_with('.')).collect();
+    let left: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().starts_with('.'))
+        .collect();
     assert!(left.is_empty(), "temporary files left behind");
 }
 

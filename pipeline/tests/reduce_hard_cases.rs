@@ -10,7 +10,10 @@ fn reduce(text: &str) -> (sofipol_pipeline::catalog::Target, sofipol_pipeline::s
     let sim = Simulator::new(Scene::from_toml(text, "t").unwrap(), profile.clone()).unwrap();
     let (frames, truth) = sim.run_in_memory();
     let (seq, orients) = loaded_from_sim(frames, &profile);
-    (reduce_loaded(&seq, orients, &profile, &TargetParams::default(), false).target, truth)
+    (
+        reduce_loaded(&seq, orients, &profile, &TargetParams::default(), false).target,
+        truth,
+    )
 }
 
 fn scene(flux_b: f64, p_b: f64, sep: f64) -> String {
@@ -43,7 +46,10 @@ fn a_lone_star_is_not_split_into_a_binary() {
     assert!(flags.iter().any(|f| f == "companion_not_found"), "{flags:?}");
     let a = &t.components[0];
     let ta = &truth.targets[0].components[0];
-    assert!(((a.q - ta.q) / a.sigma_q).abs() < 4.0 && ((a.u - ta.u) / a.sigma_u).abs() < 4.0, "{a:?}");
+    assert!(
+        ((a.q - ta.q) / a.sigma_q).abs() < 4.0 && ((a.u - ta.u) / a.sigma_u).abs() < 4.0,
+        "{a:?}"
+    );
     assert!(t.delta_gamma_deg.is_none());
 }
 
@@ -52,7 +58,17 @@ fn an_unpolarized_faint_companion_stays_finite_and_fails_the_cut() {
     let (t, _) = reduce(&scene(8000.0, 0.0, 3.0));
     assert_eq!(t.components.len(), 2, "{t:?}");
     let b = &t.components[1];
-    for v in [b.q, b.u, b.sigma_q, b.sigma_u, b.p, b.sigma_p, b.p_debiased, b.gamma_deg, b.sigma_gamma_deg] {
+    for v in [
+        b.q,
+        b.u,
+        b.sigma_q,
+        b.sigma_u,
+        b.p,
+        b.sigma_p,
+        b.p_debiased,
+        b.gamma_deg,
+        b.sigma_gamma_deg,
+    ] {
         assert!(v.is_finite(), "{b:?}");
     }
     assert!(!b.passes_cut, "{b:?}");
@@ -62,7 +78,9 @@ fn an_unpolarized_faint_companion_stays_finite_and_fails_the_cut() {
 
 #[test]
 fn a_saturated_primary_is_flagged_not_silently_used() {
-    let text = scene(60000.0, 0.04, 3.0).replace("effects = [\"psf\",", "effects = [\"saturation\", \"psf\",").replace("flux_a = 150000.0", "flux_a = 3000000.0");
+    let text = scene(60000.0, 0.04, 3.0)
+        .replace("effects = [\"psf\",", "effects = [\"saturation\", \"psf\",")
+        .replace("flux_a = 150000.0", "flux_a = 3000000.0");
     let (t, _) = reduce(&text);
     let a = &t.components[0];
     assert!(a.flags.iter().any(|f| f == "saturated"), "{:?}", a.flags);
@@ -73,6 +91,10 @@ fn a_saturated_primary_is_flagged_not_silently_used() {
     // reported as not found: never a crash, never a silent NaN.
     match t.components.get(1) {
         Some(b) => assert!(!b.flags.iter().any(|f| f == "saturated") && b.q.is_finite(), "{b:?}"),
-        None => assert!(t.extra["flags"].as_array().unwrap().iter().any(|f| f == "companion_not_found")),
+        None => assert!(t.extra["flags"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|f| f == "companion_not_found")),
     }
 }

@@ -22,7 +22,12 @@ fn orientations(frames: &[SimFrame], t: &str) -> Vec<CalibratedOrientation> {
     for f in frames.iter().filter(|f| f.frame.header.get_str("OBJECT").unwrap() == t) {
         let pa = f.truth.posang_deg;
         if out.last().is_none_or(|o| o.posang_deg != pa) {
-            out.push(CalibratedOrientation { posang_deg: pa, analyzer_deg: f.truth.analyzer_deg, frames: vec![], offsets: vec![] });
+            out.push(CalibratedOrientation {
+                posang_deg: pa,
+                analyzer_deg: f.truth.analyzer_deg,
+                frames: vec![],
+                offsets: vec![],
+            });
         }
         let o = out.last_mut().unwrap();
         o.frames.push(f.frame.clone());
@@ -39,12 +44,26 @@ fn check(truth: &Truth, frames: &[SimFrame], tol: f64, params: &MeasureParams) -
         let entry = target_entry(&t.object, &o, &m, params);
         assert_eq!(entry.components.len(), 2, "{}: {:?}", t.object, m.flags);
         let (sep, pa) = m.geometry.unwrap();
-        assert!((sep - t.separation_arcsec).abs() < 1e-3 && (pa - t.pa_deg).abs() < 0.05, "{}: geometry {sep} {pa}", t.object);
+        assert!(
+            (sep - t.separation_arcsec).abs() < 1e-3 && (pa - t.pa_deg).abs() < 0.05,
+            "{}: geometry {sep} {pa}",
+            t.object
+        );
         assert!((m.eo_offset_px.1 - 167.0).abs() < 1e-3, "{:?}", m.eo_offset_px);
         let mut w: f64 = 0.0;
         for (c, tc) in entry.components.iter().zip(&t.components) {
             let dq = (c.q - tc.q).abs().max((c.u - tc.u).abs());
-            assert!(dq < tol, "{} {}: q {} vs {}, u {} vs {} ({})", t.object, c.name, c.q, tc.q, c.u, tc.u, m.photometry);
+            assert!(
+                dq < tol,
+                "{} {}: q {} vs {}, u {} vs {} ({})",
+                t.object,
+                c.name,
+                c.q,
+                tc.q,
+                c.u,
+                tc.u,
+                m.photometry
+            );
             w = w.max(dq);
         }
         worst.push((t.object.clone(), w));
@@ -65,9 +84,16 @@ const BINARIES: [(f64, f64, f64, f64, f64, f64, f64, f64); 5] = [
 /// exactly and would leave ~1e-3 px / 1e-4 errors here.)
 #[test]
 fn noiseless_gaussian_scenes_recover_q_u_to_1e6() {
-    let params = MeasureParams { psf_model: PsfModel::Gaussian, ..MeasureParams::default() };
+    let params = MeasureParams {
+        psf_model: PsfModel::Gaussian,
+        ..MeasureParams::default()
+    };
     for orient in ["0.0, 45.0", "0.0, 45.0, 90.0, 135.0"] {
-        let text = scene_text("kind = \"gaussian\"\nfwhm_arcsec = 0.8\nseeing_rms_frac = 0.1", orient, &BINARIES);
+        let text = scene_text(
+            "kind = \"gaussian\"\nfwhm_arcsec = 0.8\nseeing_rms_frac = 0.1",
+            orient,
+            &BINARIES,
+        );
         let sim = Simulator::new(Scene::from_toml(&text, "t").unwrap(), Profile::sofi()).unwrap();
         let (frames, truth) = sim.run_in_memory();
         let worst = check(&truth, &frames, 1e-6, &params);
@@ -88,10 +114,17 @@ fn noiseless_moffat_scenes_recover_q_u() {
     // beta fitted in every frame: the inversion with a matching model. (The default holds
     // beta at the value fitted on the whole-pixel-registered stacks, which biases q, u by
     // ~6e-6 here, < 2 % of the photon noise of these stars; see docs/accuracy.md.)
-    let params = MeasureParams { beta_from_stack: false, ..MeasureParams::default() };
+    let params = MeasureParams {
+        beta_from_stack: false,
+        ..MeasureParams::default()
+    };
     assert_eq!(params.psf_model, PsfModel::Moffat { beta: None });
     for orient in ["0.0, 45.0", "0.0, 45.0, 90.0, 135.0"] {
-        let text = scene_text("kind = \"moffat\"\nbeta = 3.0\nfwhm_arcsec = 0.8\nseeing_rms_frac = 0.1", orient, &BINARIES);
+        let text = scene_text(
+            "kind = \"moffat\"\nbeta = 3.0\nfwhm_arcsec = 0.8\nseeing_rms_frac = 0.1",
+            orient,
+            &BINARIES,
+        );
         let sim = Simulator::new(Scene::from_toml(&text, "t").unwrap(), Profile::sofi()).unwrap();
         let (frames, truth) = sim.run_in_memory();
         let worst = check(&truth, &frames, TOL_MOFFAT, &params);

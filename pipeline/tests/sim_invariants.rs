@@ -93,7 +93,11 @@ fn o_plus_e_is_i_times_transmission_and_f_follows_the_model() {
         assert!(((o + e) / (0.9 * 40000.0) - 1.0).abs() < 2e-6, "o+e = {}", o + e);
         let phi = f.truth.analyzer_deg;
         let model = normalized_difference(pol, phi);
-        assert!(((o - e) / (o + e) - model).abs() < 2e-6, "phi {phi}: F {} vs {model}", (o - e) / (o + e));
+        assert!(
+            ((o - e) / (o + e) - model).abs() < 2e-6,
+            "phi {phi}: F {} vs {model}",
+            (o - e) / (o + e)
+        );
     }
     assert!((truth.targets[0].components[0].gamma_deg - 71.0).abs() < 1e-9);
 }
@@ -141,14 +145,20 @@ fn companion_lands_where_the_rotation_convention_says() {
         let (dx, dy) = (-4.0 / 0.288 * psi.sin(), 4.0 / 0.288 * psi.cos());
         let (bx, by) = (a[0] + dx, a[1] + dy);
         let (cx, cy) = centroid(&f.frame.data, bx, by, 3);
-        assert!((cx - bx).abs() < 1e-4 && (cy - by).abs() < 1e-4, "posang {posang}: B at ({cx},{cy}) expected ({bx},{by})");
+        assert!(
+            (cx - bx).abs() < 1e-4 && (cy - by).abs() < 1e-4,
+            "posang {posang}: B at ({cx},{cy}) expected ({bx},{by})"
+        );
         // The extraordinary image 167 px above.
         let (ex, ey) = centroid(&f.frame.data, bx, by + 167.0, 3);
         assert!((ex - bx).abs() < 1e-4 && (ey - by - 167.0).abs() < 1e-4);
         // A moves with the header dither offset.
         let (ax, ay) = centroid(&f.frame.data, a[0], a[1], 3);
         let off = f.truth.header_offset_px;
-        assert!((ax - (512.0 + off[0])).abs() < 1e-4 && (ay - 428.0).abs() < 1e-4, "A at ({ax},{ay})");
+        assert!(
+            (ax - (512.0 + off[0])).abs() < 1e-4 && (ay - 428.0).abs() < 1e-4,
+            "A at ({ax},{ay})"
+        );
         let (mx, my) = companion_offset_px(4.0, 130.0, posang, 0.288);
         assert!((mx - dx).abs() < 1e-9 && (my - dy).abs() < 1e-9);
     }
@@ -210,7 +220,12 @@ fn unlisted_effects_leave_frames_bit_identical_and_are_never_called() {
     let (a, _) = plain.run_in_memory();
     let (b, tb) = configured.run_in_memory();
     for (fa, fb) in a.iter().zip(&b) {
-        assert!(fa.frame.data.iter().zip(fb.frame.data.iter()).all(|(x, y)| x.to_bits() == y.to_bits()));
+        assert!(fa
+            .frame
+            .data
+            .iter()
+            .zip(fb.frame.data.iter())
+            .all(|(x, y)| x.to_bits() == y.to_bits()));
     }
     let calls = configured.calls();
     let names: Vec<&str> = calls.keys().copied().collect();
@@ -238,7 +253,14 @@ fn each_effect_is_called_only_when_listed_and_changes_the_frames() {
         let changed = frames
             .iter()
             .zip(&base_frames)
-            .map(|(f, g)| f.frame.data.iter().zip(g.frame.data.iter()).filter(|(x, y)| x != y).count())
+            .map(|(f, g)| {
+                f.frame
+                    .data
+                    .iter()
+                    .zip(g.frame.data.iter())
+                    .filter(|(x, y)| x != y)
+                    .count()
+            })
             .sum::<usize>();
         assert!(changed > 0, "{} changed nothing", k.name());
         if k == EffectKind::CosmicRays {
@@ -251,7 +273,11 @@ fn each_effect_is_called_only_when_listed_and_changes_the_frames() {
 
 #[test]
 fn seeded_deterministic_and_thread_count_independent() {
-    let all = EffectKind::ALL.iter().map(|e| format!("\"{}\"", e.name())).collect::<Vec<_>>().join(",");
+    let all = EffectKind::ALL
+        .iter()
+        .map(|e| format!("\"{}\"", e.name()))
+        .collect::<Vec<_>>()
+        .join(",");
     let run = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
         pool.install(|| {
@@ -262,7 +288,12 @@ fn seeded_deterministic_and_thread_count_independent() {
     let a = run(1);
     let b = run(2);
     for (x, y) in a.iter().zip(&b) {
-        assert!(x.frame.data.iter().zip(y.frame.data.iter()).all(|(p, q)| p.to_bits() == q.to_bits()));
+        assert!(x
+            .frame
+            .data
+            .iter()
+            .zip(y.frame.data.iter())
+            .all(|(p, q)| p.to_bits() == q.to_bits()));
     }
     // A different seed gives a different realisation.
     let mut sc = scene(&all, "", "0.0, 45.0");
@@ -273,7 +304,11 @@ fn seeded_deterministic_and_thread_count_independent() {
 
 #[test]
 fn ism_adds_to_the_truth_in_the_sky_frame() {
-    let sc = scene("\"interstellar_polarization\"", "[interstellar_polarization]\np = 0.02\nangle_deg = 10.0\n", "0.0, 45.0");
+    let sc = scene(
+        "\"interstellar_polarization\"",
+        "[interstellar_polarization]\np = 0.02\nangle_deg = 10.0\n",
+        "0.0, 45.0",
+    );
     let sim = Simulator::new(sc, Profile::sofi()).unwrap();
     let (_, truth) = sim.run_in_memory();
     let a = &truth.targets[0].components[0];

@@ -111,24 +111,47 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             println!("sofipol bench sim: one 1024x1024 frame, median of {repeats}, {threads} rayon threads");
             let (all, all_setup) = time_frames(&EffectKind::ALL, repeats);
             let (none, _) = time_frames(&[], repeats);
-            println!("  {:<28} {:>9.2} ms/frame   (one-off detector maps: {:.1} ms)", "all 15 effects", all, all_setup);
+            println!(
+                "  {:<28} {:>9.2} ms/frame   (one-off detector maps: {:.1} ms)",
+                "all 15 effects", all, all_setup
+            );
             println!("  {:<28} {:>9.2} ms/frame", "no effects", none);
             println!("  {:<28} {:>9}", "effect alone", "ms/frame (minus no-effect)");
             for k in EffectKind::ALL {
                 let (t, setup) = time_frames(&[k], repeats);
-                let extra = if setup > 1.0 { format!("   (setup {setup:.1} ms)") } else { String::new() };
+                let extra = if setup > 1.0 {
+                    format!("   (setup {setup:.1} ms)")
+                } else {
+                    String::new()
+                };
                 println!("  {:<28} {:>9.2} ms  (+{:.2}){extra}", k.name(), t, t - none);
             }
-            println!("target: all effects <= 50 ms/frame on 2 cores: {}", if all <= 50.0 { "met" } else { "NOT met" });
+            println!(
+                "target: all effects <= 50 ms/frame on 2 cores: {}",
+                if all <= 50.0 { "met" } else { "NOT met" }
+            );
         }
-        What::Night { targets, jobs, repeats, dir } => bench_night(targets, jobs, repeats, dir)?,
+        What::Night {
+            targets,
+            jobs,
+            repeats,
+            dir,
+        } => bench_night(targets, jobs, repeats, dir)?,
         What::Stages { repeats } => bench_stages(repeats)?,
         What::Accuracy { targets, seed, reduce } => {
             let params = reduce.params()?;
-            let cfg = sofipol_pipeline::accuracy::AccuracyConfig { targets_per_bin: targets, seed, ..Default::default() };
+            let cfg = sofipol_pipeline::accuracy::AccuracyConfig {
+                targets_per_bin: targets,
+                seed,
+                ..Default::default()
+            };
             println!(
                 "sofipol bench accuracy: {} targets per bin, seeing {}\", effects [{}], method {:?}, aperture {} FWHM",
-                targets, cfg.fwhm_arcsec, cfg.effects.join(", "), params.measure.method, params.measure.aperture_fwhm
+                targets,
+                cfg.fwhm_arcsec,
+                cfg.effects.join(", "),
+                params.measure.method,
+                params.measure.aperture_fwhm
             );
             let t0 = Instant::now();
             let r = sofipol_pipeline::accuracy::run(&cfg, &params);
@@ -162,7 +185,12 @@ pub fn night_scene(n: usize, seed: u64) -> String {
     s
 }
 
-fn bench_night(targets: usize, jobs: Option<usize>, repeats: usize, dir: Option<std::path::PathBuf>) -> anyhow::Result<()> {
+fn bench_night(
+    targets: usize,
+    jobs: Option<usize>,
+    repeats: usize,
+    dir: Option<std::path::PathBuf>,
+) -> anyhow::Result<()> {
     use anyhow::Context;
     let tmp = tempfile::tempdir()?;
     let root = dir.unwrap_or_else(|| tmp.path().to_path_buf());
@@ -179,7 +207,13 @@ fn bench_night(targets: usize, jobs: Option<usize>, repeats: usize, dir: Option<
     for r in 0..repeats.max(1) {
         let out = root.join(format!("catalog{r}.json"));
         let mut cmd = std::process::Command::new(&exe);
-        cmd.arg("night").arg(&raw).arg("-o").arg(&out).arg("-q").arg("-v").arg("--no-png");
+        cmd.arg("night")
+            .arg(&raw)
+            .arg("-o")
+            .arg(&out)
+            .arg("-q")
+            .arg("-v")
+            .arg("--no-png");
         if let Some(j) = jobs {
             cmd.arg("--jobs").arg(j.to_string());
         }
@@ -187,11 +221,19 @@ fn bench_night(targets: usize, jobs: Option<usize>, repeats: usize, dir: Option<
         let o = cmd.output().context("running sofipol night")?;
         walls.push(t.elapsed().as_secs_f64());
         last = String::from_utf8_lossy(&o.stderr).to_string();
-        anyhow::ensure!(o.status.code() == Some(0) || o.status.code() == Some(2), "sofipol night failed: {last}");
+        anyhow::ensure!(
+            o.status.code() == Some(0) || o.status.code() == Some(2),
+            "sofipol night failed: {last}"
+        );
     }
     let mut w = walls.clone();
     w.sort_by(|a, b| a.total_cmp(b));
-    println!("  reduction wall time (process, incl. start-up): median {:.2} s over {} runs {:?}", w[w.len() / 2], w.len(), walls.iter().map(|x| format!("{x:.2}")).collect::<Vec<_>>());
+    println!(
+        "  reduction wall time (process, incl. start-up): median {:.2} s over {} runs {:?}",
+        w[w.len() / 2],
+        w.len(),
+        walls.iter().map(|x| format!("{x:.2}")).collect::<Vec<_>>()
+    );
     for line in last.lines().filter(|l| l.contains("stage time")) {
         println!("  last run: {line}");
     }
@@ -208,8 +250,13 @@ fn bench_stages(repeats: usize) -> anyhow::Result<()> {
     let frames: Vec<_> = (0..sim.frames_per_target()).map(|k| sim.frame(0, k)).collect();
     let dir = tempfile::tempdir()?;
     let path = dir.path().join("f.fits");
-    println!("sofipol bench stages: one sequence (2 orientations x 5 dithers, 1024x1024), median of {repeats}, {} threads", rayon::current_num_threads());
-    let w = stack::median_ms(repeats, || fits::write_frame(&path, &frames[0].frame, &Default::default()).expect("write"));
+    println!(
+        "sofipol bench stages: one sequence (2 orientations x 5 dithers, 1024x1024), median of {repeats}, {} threads",
+        rayon::current_num_threads()
+    );
+    let w = stack::median_ms(repeats, || {
+        fits::write_frame(&path, &frames[0].frame, &Default::default()).expect("write")
+    });
     let r = stack::median_ms(repeats, || {
         std::hint::black_box(fits::read_frame(&path).expect("read"));
     });
@@ -221,7 +268,10 @@ fn bench_stages(repeats: usize) -> anyhow::Result<()> {
     });
     println!("  {:<44} {:>8.2} ms", "bad-pixel detection / sequence (10 frames)", bp);
     let (mask, _) = badpix::detect_bad_pixels(&all, &profile, &Default::default())?;
-    let o0: Vec<sofipol_calib::Frame> = frames[..5].iter().map(|f| badpix::apply_mask(&f.frame, &mask)).collect::<Result<_, _>>()?;
+    let o0: Vec<sofipol_calib::Frame> = frames[..5]
+        .iter()
+        .map(|f| badpix::apply_mask(&f.frame, &mask))
+        .collect::<Result<_, _>>()?;
     let views: Vec<ndarray::ArrayView2<f32>> = o0.iter().map(|f| f.data.view()).collect();
     let loo = stack::median_ms(repeats, || {
         std::hint::black_box(stack::leave_one_out_medians(&views).expect("loo"));
@@ -231,13 +281,19 @@ fn bench_stages(repeats: usize) -> anyhow::Result<()> {
     let (r0, r1) = (g.o_target[0], g.e_target[1]);
     let cropped_profile = profile.cropped_rows(r0, r1);
     let o0c: Vec<sofipol_calib::Frame> = o0.iter().map(|f| f.crop_rows(r0, r1)).collect();
-    let plain = sky::SkyOptions { cosmic_rays: None, ..Default::default() };
+    let plain = sky::SkyOptions {
+        cosmic_rays: None,
+        ..Default::default()
+    };
     let full = sky::SkyOptions::recommended();
     let rec = sky::SkyOptions::recommended();
     let s0 = stack::median_ms(repeats, || {
         std::hint::black_box(sky::sky_subtract(&o0, &profile, &full).expect("sky"));
     });
-    println!("  {:<44} {:>8.2} ms", "sky subtraction / orientation, full frame, CR", s0);
+    println!(
+        "  {:<44} {:>8.2} ms",
+        "sky subtraction / orientation, full frame, CR", s0
+    );
     let s1 = stack::median_ms(repeats, || {
         std::hint::black_box(sky::sky_subtract(&o0, &profile, &plain).expect("sky"));
     });
@@ -245,10 +301,16 @@ fn bench_stages(repeats: usize) -> anyhow::Result<()> {
         std::hint::black_box(sky::sky_subtract(&o0c, &cropped_profile, &rec).expect("sky"));
     });
     println!("  {:<44} {:>8.2} ms", "sky subtraction / orientation, no CR flags", s1);
-    println!("  {:<44} {:>8.2} ms", "sky subtraction / orientation, target strips, CR", s2);
+    println!(
+        "  {:<44} {:>8.2} ms",
+        "sky subtraction / orientation, target strips, CR", s2
+    );
     let mut cal = Vec::new();
     for (i, chunk) in frames.chunks(5).enumerate() {
-        let fr: Vec<sofipol_calib::Frame> = chunk.iter().map(|f| badpix::apply_mask(&f.frame, &mask)).collect::<Result<_, _>>()?;
+        let fr: Vec<sofipol_calib::Frame> = chunk
+            .iter()
+            .map(|f| badpix::apply_mask(&f.frame, &mask))
+            .collect::<Result<_, _>>()?;
         cal.push(CalibratedOrientation {
             posang_deg: chunk[0].truth.posang_deg,
             analyzer_deg: chunk[0].truth.analyzer_deg,
@@ -262,7 +324,10 @@ fn bench_stages(repeats: usize) -> anyhow::Result<()> {
         let m = measure_sequence(&cal, &profile, &mp).expect("measure");
         std::hint::black_box(target_entry("x", &cal, &m, &mp));
     });
-    println!("  {:<44} {:>8.2} ms", "find sources + photometry + Stokes / sequence", m);
+    println!(
+        "  {:<44} {:>8.2} ms",
+        "find sources + photometry + Stokes / sequence", m
+    );
     let per_seq = 10.0 * r + 2.0 * s2 + m;
     println!(
         "  => per sequence ~{per_seq:.0} ms of work (+ bad pixels {bp:.0} ms when detected per target); 49 sequences on 2 cores ~{:.1} s",

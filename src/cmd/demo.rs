@@ -30,11 +30,22 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let profile = ProfileArgs::default().load()?;
     let raw = args.output.join("raw");
     let t0 = std::time::Instant::now();
-    println!("sofipol demo: simulating the embedded scene '{}' (seed {}) into {}", scene.name, scene.seed, raw.display());
-    println!("  effects: {}", scene.effects.iter().map(|e| e.name()).collect::<Vec<_>>().join(", "));
+    println!(
+        "sofipol demo: simulating the embedded scene '{}' (seed {}) into {}",
+        scene.name,
+        scene.seed,
+        raw.display()
+    );
+    println!(
+        "  effects: {}",
+        scene.effects.iter().map(|e| e.name()).collect::<Vec<_>>().join(", ")
+    );
     let truth = super::simulate::simulate_into(scene, profile.clone(), &raw, None, args.quiet)?;
     let nframes: usize = truth.targets.iter().map(|t| t.frames.len()).sum();
-    println!("  wrote {nframes} frames and truth.json in {:.2} s", t0.elapsed().as_secs_f64());
+    println!(
+        "  wrote {nframes} frames and truth.json in {:.2} s",
+        t0.elapsed().as_secs_f64()
+    );
 
     // Reduce the night exactly as a user would: scan, classify, group, reduce.
     let t1 = std::time::Instant::now();
@@ -55,7 +66,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             out
         })
         .collect();
-    let mut cat = Catalog { schema_version: SCHEMA_VERSION.into(), ..Default::default() };
+    let mut cat = Catalog {
+        schema_version: SCHEMA_VERSION.into(),
+        ..Default::default()
+    };
     cat.failures.extend(s.unreadable);
     for o in outs {
         cat.failures.extend(o.failures);
@@ -64,14 +78,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     cat.provenance = super::report::provenance(&profile, &params);
     let cat_path = args.output.join("catalog.json");
     sofipol_pipeline::io::write_json_atomic(&cat_path, &cat)?;
-    println!("  reduced {} sequences in {:.2} s -> {}\n", cat.targets.len(), t1.elapsed().as_secs_f64(), cat_path.display());
+    println!(
+        "  reduced {} sequences in {:.2} s -> {}\n",
+        cat.targets.len(),
+        t1.elapsed().as_secs_f64(),
+        cat_path.display()
+    );
 
     println!(
         "  {:<11} {:>5} {:>4} | {:>6} {:>15} {:>6} | {:>6} {:>13} {:>6} | {}",
         "target", "sep\"", "comp", "P true", "P found [%]", "pull", "g true", "gamma found", "pull", "cut"
     );
     for tt in &truth.targets {
-        let Some(t) = cat.targets.iter().find(|t| t.object == tt.object) else { continue };
+        let Some(t) = cat.targets.iter().find(|t| t.object == tt.object) else {
+            continue;
+        };
         // Match components by position angle: near-equal pairs may be labelled either way.
         let swapped = t.extra.get("pa_deg").and_then(|v| v.as_f64()).is_some_and(|pa| {
             let d = (pa - tt.pa_deg).rem_euclid(360.0);

@@ -13,14 +13,16 @@ use serde::Deserialize;
 use sofipol_pipeline::plots::write_atomic;
 use sofipol_pipeline::stats::figures::mc_figure;
 use sofipol_pipeline::stats::mc::{
-    self, simulate, Ism, McConfig, McOutput, PIntDist, CHUNK_PAIRS, DEFAULT_BINS, DEFAULT_P_INT, DEFAULT_PAIRS,
+    self, simulate, Ism, McConfig, McOutput, PIntDist, CHUNK_PAIRS, DEFAULT_BINS, DEFAULT_PAIRS, DEFAULT_P_INT,
     DEFAULT_SEED, PAPER_ISM_LEVELS_PERCENT,
 };
 use sofipol_pipeline::stats::AlignmentModel;
 
 /// Arguments of `sofipol mc`.
 #[derive(clap::Args, Debug)]
-#[command(after_help = "Examples:\n  sofipol mc --model random -o out/\n  sofipol mc --model spread:20 --pairs 1e6\n  sofipol mc --p-ism paper --p-int sin2i:6 -o out/ism\n  sofipol mc --p-ism 0.5,1,2 --noise 0.3 --snr-cut 3\n  sofipol mc --bench")]
+#[command(
+    after_help = "Examples:\n  sofipol mc --model random -o out/\n  sofipol mc --model spread:20 --pairs 1e6\n  sofipol mc --p-ism paper --p-int sin2i:6 -o out/ism\n  sofipol mc --p-ism 0.5,1,2 --noise 0.3 --snr-cut 3\n  sofipol mc --bench"
+)]
 pub struct Args {
     /// Pi(alpha): random | aligned | spread:SIGMA_DEG | uniform:ALPHA0_DEG | table:FILE [default: random]
     #[arg(long)]
@@ -102,7 +104,10 @@ pub fn parse_levels(s: &str) -> anyhow::Result<Vec<f64>> {
     }
     s.split(',')
         .map(|t| {
-            let v: f64 = t.trim().parse().with_context(|| format!("--p-ism: '{t}' is not a number (percent)"))?;
+            let v: f64 = t
+                .trim()
+                .parse()
+                .with_context(|| format!("--p-ism: '{t}' is not a number (percent)"))?;
             if !(v >= 0.0 && v.is_finite()) {
                 bail!("--p-ism: {v} % must be >= 0");
             }
@@ -128,7 +133,13 @@ fn settings(args: &Args) -> anyhow::Result<Settings> {
     };
     let model_spec = args.model.clone().or(file.model).unwrap_or_else(|| "random".into());
     let model = AlignmentModel::parse(&model_spec)?;
-    let p_int = PIntDist::parse(&args.p_int.clone().or(file.p_int).unwrap_or_else(|| DEFAULT_P_INT.into()))?;
+    let p_int = PIntDist::parse(
+        &args
+            .p_int
+            .clone()
+            .or(file.p_int)
+            .unwrap_or_else(|| DEFAULT_P_INT.into()),
+    )?;
     let levels = match (&args.p_ism, file.p_ism) {
         (Some(s), _) => Some(parse_levels(s)?),
         (None, Some(v)) => Some(v),
@@ -145,7 +156,11 @@ fn settings(args: &Args) -> anyhow::Result<Settings> {
         snr_cut: args.snr_cut.or(file.snr_cut),
     };
     base.validate()?;
-    Ok(Settings { base, levels, ism_angle_deg: args.ism_angle.or(file.ism_angle_deg).unwrap_or(0.0) })
+    Ok(Settings {
+        base,
+        levels,
+        ism_angle_deg: args.ism_angle.or(file.ism_angle_deg).unwrap_or(0.0),
+    })
 }
 
 /// The configurations to run: one per ISM level, or the base alone.
@@ -156,7 +171,10 @@ fn runs(s: &Settings) -> Vec<(String, McConfig)> {
             .iter()
             .map(|&p| {
                 let mut c = s.base.clone();
-                c.ism = Some(Ism { p_percent: p, angle_deg: s.ism_angle_deg });
+                c.ism = Some(Ism {
+                    p_percent: p,
+                    angle_deg: s.ism_angle_deg,
+                });
                 (format!("P_ism = {p} %"), c)
             })
             .collect(),
@@ -179,7 +197,13 @@ pub fn pool(threads: Option<usize>) -> anyhow::Result<rayon::ThreadPool> {
 pub fn summary(out: &McOutput) -> (f64, f64, f64) {
     let h = &out.histogram;
     let t = h.total().max(1) as f64;
-    let mean = h.centers().iter().zip(&h.counts).map(|(c, &n)| c * n as f64).sum::<f64>() / t;
+    let mean = h
+        .centers()
+        .iter()
+        .zip(&h.counts)
+        .map(|(c, &n)| c * n as f64)
+        .sum::<f64>()
+        / t;
     let below = h.cdf(30.0);
     let last = 1.0 - h.cdf(80.0);
     let ratio = if last > 0.0 { h.cdf(10.0) / last } else { f64::INFINITY };
@@ -211,19 +235,29 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             ", geometry only".into()
         }
     );
-    println!("{:<18} {:>12} {:>10} {:>12} {:>16} {:>9}", "run", "accepted", "mean [deg]", "frac < 30", "Pi(0-10)/Pi(80-90)", "time [s]");
+    println!(
+        "{:<18} {:>12} {:>10} {:>12} {:>16} {:>9}",
+        "run", "accepted", "mean [deg]", "frac < 30", "Pi(0-10)/Pi(80-90)", "time [s]"
+    );
     let mut results = Vec::new();
     for (label, cfg) in &runs {
         let t0 = Instant::now();
         let out = pool.install(|| simulate(cfg))?;
         let dt = t0.elapsed().as_secs_f64();
         let (mean, below, ratio) = summary(&out);
-        println!("{label:<18} {:>12} {mean:>10.2} {below:>12.4} {ratio:>16.3} {dt:>9.3}", out.accepted);
+        println!(
+            "{label:<18} {:>12} {mean:>10.2} {below:>12.4} {ratio:>16.3} {dt:>9.3}",
+            out.accepted
+        );
         results.push((label.clone(), cfg.clone(), out));
     }
     if let Some(dir) = &args.out {
         write_outputs(dir, &s, &results)?;
-        println!("wrote {} and {}", dir.join("pi_delta_gamma.json").display(), dir.join("pi_delta_gamma.png").display());
+        println!(
+            "wrote {} and {}",
+            dir.join("pi_delta_gamma.json").display(),
+            dir.join("pi_delta_gamma.png").display()
+        );
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -263,7 +297,10 @@ fn write_outputs(dir: &Path, s: &Settings, results: &[(String, McConfig, McOutpu
         "bin_edges_deg": edges,
         "runs": runs,
     });
-    write_atomic(&dir.join("pi_delta_gamma.json"), serde_json::to_string_pretty(&json)?.as_bytes())?;
+    write_atomic(
+        &dir.join("pi_delta_gamma.json"),
+        serde_json::to_string_pretty(&json)?.as_bytes(),
+    )?;
     let plotted: Vec<(String, McOutput)> = results.iter().map(|(l, _, o)| (l.clone(), o.clone())).collect();
     let title = format!("Π(Δγ), model {}, {} pairs", s.base.model.spec(), s.base.pairs);
     mc_figure(&dir.join("pi_delta_gamma.png"), &plotted, &title)?;
@@ -273,14 +310,35 @@ fn write_outputs(dir: &Path, s: &Settings, results: &[(String, McConfig, McOutpu
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     let n = v.len();
-    if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) }
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
 }
 
 fn bench(s: &Settings, runs: usize) -> anyhow::Result<ExitCode> {
-    let geometry = McConfig { ism: None, noise_percent: None, snr_cut: None, ..s.base.clone() };
-    let ism = McConfig { ism: Some(Ism { p_percent: 1.0, angle_deg: s.ism_angle_deg }), ..geometry.clone() };
-    let ism_noise = McConfig { noise_percent: Some(0.3), ..ism.clone() };
-    let ism_noise_cut = McConfig { snr_cut: Some(3.0), ..ism_noise.clone() };
+    let geometry = McConfig {
+        ism: None,
+        noise_percent: None,
+        snr_cut: None,
+        ..s.base.clone()
+    };
+    let ism = McConfig {
+        ism: Some(Ism {
+            p_percent: 1.0,
+            angle_deg: s.ism_angle_deg,
+        }),
+        ..geometry.clone()
+    };
+    let ism_noise = McConfig {
+        noise_percent: Some(0.3),
+        ..ism.clone()
+    };
+    let ism_noise_cut = McConfig {
+        snr_cut: Some(3.0),
+        ..ism_noise.clone()
+    };
     let configs = [
         ("geometry only", geometry),
         ("+ ISM 1 %", ism),
@@ -294,7 +352,10 @@ fn bench(s: &Settings, runs: usize) -> anyhow::Result<ExitCode> {
         s.base.p_int.spec(),
         s.base.pairs
     );
-    println!("{:<26} {:>8} {:>12} {:>12} {:>14}", "configuration", "threads", "median [s]", "min [s]", "ns/pair/thread");
+    println!(
+        "{:<26} {:>8} {:>12} {:>12} {:>14}",
+        "configuration", "threads", "median [s]", "min [s]", "ns/pair/thread"
+    );
     let mut threads = vec![1];
     if cores >= 2 {
         threads.push(2);
@@ -302,7 +363,12 @@ fn bench(s: &Settings, runs: usize) -> anyhow::Result<ExitCode> {
     for (name, cfg) in &configs {
         for &t in &threads {
             let pool = pool(Some(t))?;
-            pool.install(|| mc::simulate(&McConfig { pairs: cfg.pairs.min(1 << 20), ..cfg.clone() }))?; // warm-up
+            pool.install(|| {
+                mc::simulate(&McConfig {
+                    pairs: cfg.pairs.min(1 << 20),
+                    ..cfg.clone()
+                })
+            })?; // warm-up
             let times: Vec<f64> = (0..runs)
                 .map(|_| {
                     let t0 = Instant::now();
@@ -311,7 +377,10 @@ fn bench(s: &Settings, runs: usize) -> anyhow::Result<ExitCode> {
                 .collect::<Result<_, _>>()?;
             let min = times.iter().cloned().fold(f64::INFINITY, f64::min);
             let med = median(times);
-            println!("{name:<26} {t:>8} {med:>12.3} {min:>12.3} {:>14.1}", med * 1e9 * t as f64 / cfg.pairs as f64);
+            println!(
+                "{name:<26} {t:>8} {med:>12.3} {min:>12.3} {:>14.1}",
+                med * 1e9 * t as f64 / cfg.pairs as f64
+            );
         }
     }
     Ok(ExitCode::SUCCESS)

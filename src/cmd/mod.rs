@@ -5,7 +5,7 @@ pub mod demo;
 pub mod mc;
 pub mod merge;
 pub mod night;
-pub mod simulate;
 pub mod report;
+pub mod simulate;
 pub mod stats;
 pub mod target;

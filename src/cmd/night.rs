@@ -52,7 +52,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     for d in &args.dirs {
         anyhow::ensure!(d.exists(), "{}: no such file or directory", d.display());
     }
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(args.jobs.unwrap_or(0)).build().context("starting worker threads")?;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(args.jobs.unwrap_or(0))
+        .build()
+        .context("starting worker threads")?;
     let t0 = std::time::Instant::now();
     let plan = night::plan(&args.dirs, &profile, args.shard).context("scanning the night")?;
     let n = plan.sequences.len();
@@ -61,7 +64,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             "sofipol night: {} files, {} sequences{}, {} unusable inputs; {} threads",
             plan.n_files,
             n,
-            args.shard.map(|s| format!(" in shard {}/{}", s.k, s.n)).unwrap_or_default(),
+            args.shard
+                .map(|s| format!(" in shard {}/{}", s.k, s.n))
+                .unwrap_or_default(),
             plan.failures.len(),
             pool.current_num_threads()
         );
@@ -80,7 +85,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             pb.inc(1);
             pb.set_message(format!("{} {st}", t.object));
         } else if !args.quiet {
-            eprintln!("[{k}/{n}] {} {st}{}", t.object, t.error.as_deref().map(|e| format!(": {e}")).unwrap_or_default());
+            eprintln!(
+                "[{k}/{n}] {} {st}{}",
+                t.object,
+                t.error.as_deref().map(|e| format!(": {e}")).unwrap_or_default()
+            );
         }
     };
     let png_dir = (!args.no_png).then(|| night::products_dir(&args.output));
@@ -98,9 +107,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mut night_mask_files = Vec::new();
     if !params.no_detect_bad_pixels {
         let t = std::time::Instant::now();
-        if let Some((m, files)) = pool.install(|| night::night_bad_pixel_mask(&plan, &profile, &params.bad_pixels, 15)) {
+        if let Some((m, files)) = pool.install(|| night::night_bad_pixel_mask(&plan, &profile, &params.bad_pixels, 15))
+        {
             if args.verbose > 0 {
-                eprintln!("night bad-pixel mask: {} pixels from {} frames in {:.2} s", m.iter().filter(|&&v| v != 0).count(), files.len(), t.elapsed().as_secs_f64());
+                eprintln!(
+                    "night bad-pixel mask: {} pixels from {} frames in {:.2} s",
+                    m.iter().filter(|&&v| v != 0).count(),
+                    files.len(),
+                    t.elapsed().as_secs_f64()
+                );
             }
             params.night_mask = Some(std::sync::Arc::new(m));
             night_mask_files = files;
@@ -114,7 +129,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     prov["inputs"] = serde_json::json!(args.dirs);
     prov["night_bad_pixel_mask_from"] = serde_json::json!(night_mask_files);
     cat.provenance = prov;
-    sofipol_pipeline::io::write_json_atomic(&args.output, &cat).with_context(|| format!("writing {}", args.output.display()))?;
+    sofipol_pipeline::io::write_json_atomic(&args.output, &cat)
+        .with_context(|| format!("writing {}", args.output.display()))?;
     let wall = t0.elapsed().as_secs_f64();
     if !args.quiet {
         print!("{}", super::report::summary(&cat));
@@ -133,7 +149,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
     }
     if args.verbose > 0 {
-        let sum = res.times.iter().fold([0.0; 5], |a, t| [a[0] + t.read, a[1] + t.bad_pixels, a[2] + t.sky, a[3] + t.measure, a[4] + t.write]);
+        let sum = res.times.iter().fold([0.0; 5], |a, t| {
+            [
+                a[0] + t.read,
+                a[1] + t.bad_pixels,
+                a[2] + t.sky,
+                a[3] + t.measure,
+                a[4] + t.write,
+            ]
+        });
         eprintln!(
             "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; wall {wall:.2} s; peak RSS {:.0} MB",
             sum[0],
@@ -150,7 +174,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 
 /// Write the per-target figure (never fails the night: a problem is printed).
 fn plot_target(dir: &std::path::Path, out: &sofipol_pipeline::reduce::target::TargetOutcome) {
-    let seq = out.target.extra.get("sequence").and_then(|v| v.as_str()).unwrap_or(&out.target.object);
+    let seq = out
+        .target
+        .extra
+        .get("sequence")
+        .and_then(|v| v.as_str())
+        .unwrap_or(&out.target.object);
     let path = dir.join(format!("{}.png", night::slug(seq)));
     if let Err(e) = sofipol_pipeline::plots::target::outcome_png(&path, out) {
         eprintln!("sofipol: warning: {}: could not write the figure: {e}", path.display());

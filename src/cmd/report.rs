@@ -4,7 +4,10 @@ use sofipol_pipeline::catalog::{Catalog, Status};
 
 /// Provenance block of a catalog: software, command line, profile, parameters, time.
 pub fn provenance(profile: &Profile, params: &impl serde::Serialize) -> serde_json::Value {
-    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0);
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0);
     serde_json::json!({
         "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
         "command_line": std::env::args().collect::<Vec<_>>(),

@@ -35,7 +35,13 @@ pub fn load_scene(path: &Path) -> anyhow::Result<Scene> {
 }
 
 /// Simulate `scene` into `dir`, with a progress bar unless quiet. Returns the truth.
-pub fn simulate_into(scene: Scene, profile: sofipol_calib::Profile, dir: &Path, badpix: Option<&Path>, quiet: bool) -> anyhow::Result<Truth> {
+pub fn simulate_into(
+    scene: Scene,
+    profile: sofipol_calib::Profile,
+    dir: &Path,
+    badpix: Option<&Path>,
+    quiet: bool,
+) -> anyhow::Result<Truth> {
     let sim = Simulator::new(scene, profile).map_err(anyhow::Error::msg)?;
     let total = (sim.frames_per_target() * sim.scene().binary.len()) as u64;
     let pb = progress(total, "simulate", quiet);
@@ -47,11 +53,19 @@ pub fn simulate_into(scene: Scene, profile: sofipol_calib::Profile, dir: &Path, 
         .map_err(anyhow::Error::msg)?;
     pb.finish_and_clear();
     if let Some(path) = badpix {
-        let mask = sim.bad_pixel_mask().context("--badpix-mask needs the bad_pixels effect in the scene")?;
+        let mask = sim
+            .bad_pixel_mask()
+            .context("--badpix-mask needs the bad_pixels effect in the scene")?;
         let mut h = sofipol_calib::Header::new(path);
         h.set("OBJECT", "sofipol true bad-pixel map");
-        let frame = sofipol_calib::Frame::new(mask.mapv(|v| v as f32), h)
-            .with_history("simulate", format!("true bad-pixel map of scene '{}' seed {}", sim.scene().name, sim.scene().seed));
+        let frame = sofipol_calib::Frame::new(mask.mapv(|v| v as f32), h).with_history(
+            "simulate",
+            format!(
+                "true bad-pixel map of scene '{}' seed {}",
+                sim.scene().name,
+                sim.scene().seed
+            ),
+        );
         sofipol_calib::fits::write_frame(path, &frame, &Default::default())?;
     }
     Ok(truth)
@@ -76,7 +90,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             truth.effects.join(", ")
         );
         if !truth.ignored_sections.is_empty() {
-            println!("ignored (configured but not listed in effects): {}", truth.ignored_sections.join(", "));
+            println!(
+                "ignored (configured but not listed in effects): {}",
+                truth.ignored_sections.join(", ")
+            );
         }
         println!("truth: {}", args.output.join("truth.json").display());
     }

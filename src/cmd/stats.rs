@@ -23,7 +23,9 @@ use super::mc::{parse_count, parse_levels, pool};
 
 /// Arguments of `sofipol stats`.
 #[derive(clap::Args, Debug)]
-#[command(after_help = "Examples:\n  sofipol stats night1/catalog.json -o night1/stats\n  sofipol stats catalog.json --p-ism 0,0.5,1,2 --noise none --pairs 1e5")]
+#[command(
+    after_help = "Examples:\n  sofipol stats night1/catalog.json -o night1/stats\n  sofipol stats catalog.json --p-ism 0,0.5,1,2 --noise none --pairs 1e5"
+)]
 pub struct Args {
     /// The catalog JSON written by `sofipol target` / `sofipol night`
     catalog: PathBuf,
@@ -90,7 +92,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         if sample.is_empty() {
             PIntDist::parse(DEFAULT_P_INT)?
         } else {
-            PIntDist::empirical(&format!("{} (sample components)", args.catalog.display()), sample.p_percent())?
+            PIntDist::empirical(
+                &format!("{} (sample components)", args.catalog.display()),
+                sample.p_percent(),
+            )?
         }
     } else {
         PIntDist::parse(&args.p_int)?
@@ -98,11 +103,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let noise = match args.noise.as_str() {
         "auto" => sample.median_sigma_p_percent(),
         "none" => None,
-        s => Some(s.parse::<f64>().with_context(|| format!("--noise '{s}': expected auto, none or percent"))?),
+        s => Some(
+            s.parse::<f64>()
+                .with_context(|| format!("--noise '{s}': expected auto, none or percent"))?,
+        ),
     };
     let snr_cut = match (args.snr_cut.as_str(), noise) {
         ("none", _) | (_, None) => None,
-        (s, Some(_)) => Some(s.parse::<f64>().with_context(|| format!("--snr-cut '{s}': expected a number or none"))?),
+        (s, Some(_)) => Some(
+            s.parse::<f64>()
+                .with_context(|| format!("--snr-cut '{s}': expected a number or none"))?,
+        ),
     };
     let mc = McConfig {
         model: AlignmentModel::Random,
@@ -144,7 +155,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             written.push("observed.png");
         }
         if !report.ism.is_empty() {
-            ism_figure(&dir.join("ism_levels.png"), &report.ism, &dg, args.bins, &report_subtitle(&params.mc))?;
+            ism_figure(
+                &dir.join("ism_levels.png"),
+                &report.ism,
+                &dg,
+                args.bins,
+                &report_subtitle(&params.mc),
+            )?;
             written.push("ism_levels.png");
         }
         if !args.no_model_figure {
@@ -158,7 +175,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 }
 
 fn report_subtitle(mc: &McConfig) -> String {
-    let noise = mc.noise_percent.map_or("no noise".to_string(), |s| format!("σ = {s:.2} %"));
+    let noise = mc
+        .noise_percent
+        .map_or("no noise".to_string(), |s| format!("σ = {s:.2} %"));
     let cut = mc.snr_cut.map_or(String::new(), |k| format!(", P/σ > {k}"));
     format!("P_int {}, {noise}{cut}", short_spec(&mc.p_int))
 }
@@ -183,7 +202,10 @@ fn print_report(path: &Path, sample: &BinarySample, r: &AlignmentReport) {
     }
     if !r.ism.is_empty() {
         println!("\nrandom disks + ISM (Monte Carlo: {}):", r.mc_description);
-        println!("  {:>10} {:>10} {:>9} {:>10} {:>10}", "P_ism [%]", "accepted", "frac<30", "KS D", "KS p");
+        println!(
+            "  {:>10} {:>10} {:>9} {:>10} {:>10}",
+            "P_ism [%]", "accepted", "frac<30", "KS D", "KS p"
+        );
         for c in &r.ism {
             println!(
                 "  {:>10} {:>10} {:>9.3} {:>10.3} {:>10}",

@@ -76,7 +76,9 @@ impl ReduceArgs {
                 "exact" => Method::Exact,
                 "center" => Method::Center,
                 s if s.starts_with("subpixel:") => Method::Subpixel(
-                    s[9..].parse().with_context(|| format!("--method {s}: N of subpixel:N must be a positive integer"))?,
+                    s[9..]
+                        .parse()
+                        .with_context(|| format!("--method {s}: N of subpixel:N must be a positive integer"))?,
                 ),
                 s => anyhow::bail!("--method {s}: expected exact, center or subpixel:N"),
             };
@@ -90,8 +92,15 @@ impl ReduceArgs {
             };
         }
         if let Some(c) = &self.companion {
-            let v: Vec<f64> = c.split(',').map(|x| x.trim().parse::<f64>()).collect::<Result<_, _>>().with_context(|| format!("--companion {c}: expected SEP_ARCSEC,PA_DEG"))?;
-            anyhow::ensure!(v.len() == 2 && v[0] > 0.0, "--companion {c}: expected SEP_ARCSEC,PA_DEG with SEP > 0");
+            let v: Vec<f64> = c
+                .split(',')
+                .map(|x| x.trim().parse::<f64>())
+                .collect::<Result<_, _>>()
+                .with_context(|| format!("--companion {c}: expected SEP_ARCSEC,PA_DEG"))?;
+            anyhow::ensure!(
+                v.len() == 2 && v[0] > 0.0,
+                "--companion {c}: expected SEP_ARCSEC,PA_DEG with SEP > 0"
+            );
             p.measure.companion_hint = Some((v[0], v[1]));
         }
         if self.badpix.is_some() {
@@ -112,33 +121,62 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     for i in &args.inputs {
         files.extend(scan::find_files(i).with_context(|| format!("listing {}", i.display()))?);
     }
-    anyhow::ensure!(!files.is_empty(), "no FITS files (.fits, .fit, .fits.gz, .fz) in {:?}", args.inputs);
+    anyhow::ensure!(
+        !files.is_empty(),
+        "no FITS files (.fits, .fit, .fits.gz, .fz) in {:?}",
+        args.inputs
+    );
     let s = scan::classify_all(&files, &profile);
     let mut seqs = sequence::group(s.science, &profile);
     if let Some(obj) = &args.object {
         seqs.retain(|q| &q.object == obj);
-        anyhow::ensure!(!seqs.is_empty(), "no polarimetric sequence of object '{obj}' in the inputs");
+        anyhow::ensure!(
+            !seqs.is_empty(),
+            "no polarimetric sequence of object '{obj}' in the inputs"
+        );
     } else if seqs.len() > 1 {
         let names: Vec<&str> = seqs.iter().map(|q| q.object.as_str()).collect();
-        anyhow::bail!("the inputs hold {} sequences ({}): choose one with --object", seqs.len(), names.join(", "));
+        anyhow::bail!(
+            "the inputs hold {} sequences ({}): choose one with --object",
+            seqs.len(),
+            names.join(", ")
+        );
     }
-    anyhow::ensure!(!seqs.is_empty(), "no polarimetric science frames among {} file(s)", files.len());
-    let mut cat = Catalog { schema_version: SCHEMA_VERSION.into(), ..Default::default() };
+    anyhow::ensure!(
+        !seqs.is_empty(),
+        "no polarimetric science frames among {} file(s)",
+        files.len()
+    );
+    let mut cat = Catalog {
+        schema_version: SCHEMA_VERSION.into(),
+        ..Default::default()
+    };
     cat.failures.extend(s.unreadable);
     // Non-science files count as failures only when they were named explicitly.
-    let explicit: Vec<String> = args.inputs.iter().filter(|p| p.is_file()).map(|p| p.display().to_string()).collect();
-    cat.failures.extend(s.other.into_iter().filter(|f| explicit.contains(&f.file)));
+    let explicit: Vec<String> = args
+        .inputs
+        .iter()
+        .filter(|p| p.is_file())
+        .map(|p| p.display().to_string())
+        .collect();
+    cat.failures
+        .extend(s.other.into_iter().filter(|f| explicit.contains(&f.file)));
     for q in &seqs {
         let out = reduce_sequence(q, &profile, &params, false);
         cat.failures.extend(out.failures);
         cat.targets.push(out.target);
     }
     cat.provenance = super::report::provenance(&profile, &params);
-    sofipol_pipeline::io::write_json_atomic(&args.output, &cat).with_context(|| format!("writing {}", args.output.display()))?;
+    sofipol_pipeline::io::write_json_atomic(&args.output, &cat)
+        .with_context(|| format!("writing {}", args.output.display()))?;
     if !args.quiet {
         print!("{}", super::report::summary(&cat));
         println!("catalog: {}", args.output.display());
     }
     let failed = cat.targets.iter().any(|t| t.status != Status::Ok);
-    Ok(if failed || !cat.failures.is_empty() { ExitCode::from(2) } else { ExitCode::SUCCESS })
+    Ok(if failed || !cat.failures.is_empty() {
+        ExitCode::from(2)
+    } else {
+        ExitCode::SUCCESS
+    })
 }

@@ -59,7 +59,10 @@ pub fn sofi_frame(ny: usize, nx: usize, posang_deg: f64) -> Frame {
 /// The raw header text of a FITS file (every HDU's cards are plain ASCII in the file).
 pub fn raw_text(path: &std::path::Path) -> String {
     let bytes = std::fs::read(path).unwrap();
-    bytes.iter().map(|&b| if (32..127).contains(&b) { b as char } else { '\u{1}' }).collect()
+    bytes
+        .iter()
+        .map(|&b| if (32..127).contains(&b) { b as char } else { '\u{1}' })
+        .collect()
 }
 
 /// The 80-character cards of the file whose text starts with `name` (first match).

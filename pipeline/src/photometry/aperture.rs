@@ -173,8 +173,18 @@ pub fn aperture_sum(
     if nx == 0 || ny == 0 {
         return out;
     }
-    let mut acc = Acc { max_value: f64::NEG_INFINITY, ..Acc::default() };
-    let ctx = Ctx { img, var, mask, fill, cx: ap.x, cy: ap.y };
+    let mut acc = Acc {
+        max_value: f64::NEG_INFINITY,
+        ..Acc::default()
+    };
+    let ctx = Ctx {
+        img,
+        var,
+        mask,
+        fill,
+        cx: ap.x,
+        cy: ap.y,
+    };
     let cols = (0, nx as i64 - 1);
     let rows = (0, ny as i64 - 1);
     for_each_run(ap.x, ap.y, ap.r, method, cols, rows, |iy, ix0, ix1, w| {
@@ -210,7 +220,10 @@ pub fn aperture_sum(
             }
             (Some(vm), None) => {
                 let vrow = vm.row(iy);
-                for ((ix, &v), &q) in (a..=b).zip(row.slice(s![a..=b]).iter()).zip(vrow.slice(s![a..=b]).iter()) {
+                for ((ix, &v), &q) in (a..=b)
+                    .zip(row.slice(s![a..=b]).iter())
+                    .zip(vrow.slice(s![a..=b]).iter())
+                {
                     if v.is_finite() && q.is_finite() && q >= 0.0 {
                         acc.add(v as f64, 1.0, q as f64);
                     } else {
@@ -362,7 +375,19 @@ mod tests {
     fn photometry_all_ones_sum_is_pi_r2_over_grid() {
         let img = Array2::<f32>::ones((80, 80));
         let mut worst = 0.0f64;
-        for &r in &[0.05, 0.3, 0.5, std::f64::consts::FRAC_1_SQRT_2, 1.0, 1.7, 2.5, 5.0, 10.3, 17.0, 30.0] {
+        for &r in &[
+            0.05,
+            0.3,
+            0.5,
+            std::f64::consts::FRAC_1_SQRT_2,
+            1.0,
+            1.7,
+            2.5,
+            5.0,
+            10.3,
+            17.0,
+            30.0,
+        ] {
             for i in 0..9 {
                 for j in 0..9 {
                     let (x, y) = (39.0 + i as f64 / 8.0, 40.0 + j as f64 / 8.0 + 0.01 * i as f64);
@@ -437,13 +462,28 @@ mod tests {
         let mut img = Array2::<f32>::from_elem((20, 20), 2.0);
         let var = Array2::<f32>::from_elem((20, 20), 4.0);
         // Off the left edge: half the disc is outside.
-        let ap = Aperture { x: -0.5, y: 10.0, r: 3.0 };
-        let s = aperture_sum(img.view(), Some(var.view()), None, &ap, Method::Exact, MaskFill::Exclude);
+        let ap = Aperture {
+            x: -0.5,
+            y: 10.0,
+            r: 3.0,
+        };
+        let s = aperture_sum(
+            img.view(),
+            Some(var.view()),
+            None,
+            &ap,
+            Method::Exact,
+            MaskFill::Exclude,
+        );
         assert!((s.outside_area - ap.area() / 2.0).abs() < 1e-12);
         assert!((s.area - ap.area() / 2.0).abs() < 1e-12);
         assert!(s.truncated());
         // Entirely off the image.
-        let far = Aperture { x: -50.0, y: 10.0, r: 3.0 };
+        let far = Aperture {
+            x: -50.0,
+            y: 10.0,
+            r: 3.0,
+        };
         let s = aperture_sum(img.view(), None, None, &far, Method::Exact, MaskFill::Exclude);
         assert_eq!((s.sum, s.area, s.n_pixels, s.max_value), (0.0, 0.0, 0, None));
         assert!((s.outside_area - far.area()).abs() < 1e-12);
@@ -455,18 +495,47 @@ mod tests {
                 img[[iy, ix]] = (100.0 * (-d2 / 8.0).exp()) as f32;
             }
         }
-        let clean = aperture_sum(img.view(), Some(var.view()), None, &Aperture { x: 10.0, y: 10.0, r: 4.0 }, Method::Exact, MaskFill::Exclude);
+        let clean = aperture_sum(
+            img.view(),
+            Some(var.view()),
+            None,
+            &Aperture {
+                x: 10.0,
+                y: 10.0,
+                r: 4.0,
+            },
+            Method::Exact,
+            MaskFill::Exclude,
+        );
         let mut mask = Array2::<u8>::zeros((20, 20));
         mask[[10, 11]] = 1;
         img[[10, 11]] = 1e6; // junk under the mask
-        let ap = Aperture { x: 10.0, y: 10.0, r: 4.0 };
-        let ex = aperture_sum(img.view(), Some(var.view()), Some(mask.view()), &ap, Method::Exact, MaskFill::Exclude);
+        let ap = Aperture {
+            x: 10.0,
+            y: 10.0,
+            r: 4.0,
+        };
+        let ex = aperture_sum(
+            img.view(),
+            Some(var.view()),
+            Some(mask.view()),
+            &ap,
+            Method::Exact,
+            MaskFill::Exclude,
+        );
         assert_eq!(ex.masked_area, 1.0);
         assert_eq!(ex.filled_area, 0.0);
         assert_eq!(ex.n_pixels, clean.n_pixels - 1);
         assert!((ex.sum - (clean.sum - img[[10, 9]] as f64)).abs() < 1e-9);
         assert!((ex.area - (clean.area - 1.0)).abs() < 1e-12);
-        let mi = aperture_sum(img.view(), Some(var.view()), Some(mask.view()), &ap, Method::Exact, MaskFill::Mirror);
+        let mi = aperture_sum(
+            img.view(),
+            Some(var.view()),
+            Some(mask.view()),
+            &ap,
+            Method::Exact,
+            MaskFill::Mirror,
+        );
         assert!((mi.sum - clean.sum).abs() < 1e-9, "{} {}", mi.sum, clean.sum);
         assert_eq!(mi.filled_area, 1.0);
         assert!((mi.area - clean.area).abs() < 1e-12);

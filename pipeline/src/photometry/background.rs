@@ -125,7 +125,14 @@ pub fn sigma_clip(values: &mut Vec<f64>, k: f64, max_iter: u32) -> Option<Clippe
     }
     let (mean, std) = mean_std(values);
     let median = median_in_place(values);
-    Some(Clipped { mean, median, std, n: values.len(), n_rejected: n0 - values.len(), iterations })
+    Some(Clipped {
+        mean,
+        median,
+        std,
+        n: values.len(),
+        n_rejected: n0 - values.len(),
+        iterations,
+    })
 }
 
 /// Background in an annulus: pixels whose centre lies in `[r_in, r_out)` from the annulus
@@ -155,7 +162,13 @@ pub fn annulus_background(
     iters: u32,
 ) -> Option<Background> {
     let (ny, nx) = img.dim();
-    if ann.r_out.is_nan() || ann.r_out <= ann.r_in.max(0.0) || !ann.x.is_finite() || !ann.y.is_finite() || ny == 0 || nx == 0 {
+    if ann.r_out.is_nan()
+        || ann.r_out <= ann.r_in.max(0.0)
+        || !ann.x.is_finite()
+        || !ann.y.is_finite()
+        || ny == 0
+        || nx == 0
+    {
         return None;
     }
     let (ri2, ro2) = (ann.r_in.max(0.0).powi(2), ann.r_out * ann.r_out);
@@ -246,24 +259,52 @@ mod tests {
         let mut mask = Array2::<u8>::zeros((40, 40));
         mask[[12, 20]] = 1;
         img[[12, 20]] = -1e9; // masked junk
-        // A companion at (20, 30): exclude 3 px around it.
+                              // A companion at (20, 30): exclude 3 px around it.
         for iy in 27..34 {
             for ix in 17..24 {
                 img[[iy, ix]] += 1000.0;
             }
         }
-        let ann = Annulus { x: 20.0, y: 20.0, r_in: 6.0, r_out: 11.0 };
-        let b = annulus_background(img.view(), Some(mask.view()), &ann, &[(20.0, 30.0, 4.5)], BkgStat::ClippedMean, 3.0, 10).unwrap();
+        let ann = Annulus {
+            x: 20.0,
+            y: 20.0,
+            r_in: 6.0,
+            r_out: 11.0,
+        };
+        let b = annulus_background(
+            img.view(),
+            Some(mask.view()),
+            &ann,
+            &[(20.0, 30.0, 4.5)],
+            BkgStat::ClippedMean,
+            3.0,
+            10,
+        )
+        .unwrap();
         assert_eq!(b.n_masked, 1);
         assert!(b.n_excluded > 0);
         assert_eq!(b.n_rejected, 1);
         assert!((b.level - 10.0).abs() < 0.1, "{}", b.level);
         assert!((b.sigma - 1.0).abs() < 0.02, "{}", b.sigma);
         assert!((b.level_variance - b.sigma * b.sigma / b.n as f64).abs() < 1e-15);
-        let m = annulus_background(img.view(), Some(mask.view()), &ann, &[(20.0, 30.0, 4.5)], BkgStat::ClippedMedian, 3.0, 10).unwrap();
+        let m = annulus_background(
+            img.view(),
+            Some(mask.view()),
+            &ann,
+            &[(20.0, 30.0, 4.5)],
+            BkgStat::ClippedMedian,
+            3.0,
+            10,
+        )
+        .unwrap();
         assert!((m.level - 10.0).abs() <= 1.0);
         // Off the image: None.
-        let off = Annulus { x: -100.0, y: 5.0, r_in: 2.0, r_out: 5.0 };
+        let off = Annulus {
+            x: -100.0,
+            y: 5.0,
+            r_in: 2.0,
+            r_out: 5.0,
+        };
         assert!(annulus_background(img.view(), None, &off, &[], BkgStat::ClippedMean, 3.0, 5).is_none());
     }
 }

@@ -25,7 +25,13 @@ pub struct CentroidParams {
 
 impl Default for CentroidParams {
     fn default() -> Self {
-        CentroidParams { fwhm_px: 3.0, max_iter: 100, tol_px: 1e-6, max_shift_px: 5.0, background: None }
+        CentroidParams {
+            fwhm_px: 3.0,
+            max_iter: 100,
+            tol_px: 1e-6,
+            max_shift_px: 5.0,
+            background: None,
+        }
     }
 }
 
@@ -81,14 +87,17 @@ pub fn centroid(
     let background = match params.background {
         Some(b) => b,
         None => {
-            let ann = Annulus { x: x0, y: y0, r_in: rwin, r_out: rwin + (2.0 * sw).max(3.0) };
+            let ann = Annulus {
+                x: x0,
+                y: y0,
+                r_in: rwin,
+                r_out: rwin + (2.0 * sw).max(3.0),
+            };
             annulus_background(img, mask, &ann, &[], BkgStat::ClippedMedian, 3.0, 5).map_or(0.0, |b| b.level)
         }
     };
     let inv2s2 = 0.5 / (sw * sw);
-    let good = |ix: usize, iy: usize| {
-        img[[iy, ix]].is_finite() && mask.as_ref().is_none_or(|m| m[[iy, ix]] == 0)
-    };
+    let good = |ix: usize, iy: usize| img[[iy, ix]].is_finite() && mask.as_ref().is_none_or(|m| m[[iy, ix]] == 0);
     let (mut x, mut y) = (x0, y0);
     let mut converged = false;
     let mut iterations = 0;
@@ -113,7 +122,11 @@ pub fn centroid(
                     // A bad pixel takes the value at its mirror image through the current
                     // centre, so that a hole does not pull the moment off-centre.
                     match mirror_stencil((ny, nx), good, x, y, ix, iy) {
-                        Some(st) => st.iter().filter(|s| s.2 != 0.0).map(|&(a, b, w)| w * img[[b, a]] as f64).sum(),
+                        Some(st) => st
+                            .iter()
+                            .filter(|s| s.2 != 0.0)
+                            .map(|&(a, b, w)| w * img[[b, a]] as f64)
+                            .sum(),
                         None => continue,
                     }
                 };
@@ -137,5 +150,11 @@ pub fn centroid(
             break;
         }
     }
-    Some(Centroid { x, y, iterations, converged, background })
+    Some(Centroid {
+        x,
+        y,
+        iterations,
+        converged,
+        background,
+    })
 }

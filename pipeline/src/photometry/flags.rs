@@ -102,13 +102,23 @@ mod tests {
         let names: Vec<&str> = Flags::ALL.iter().map(|(_, n)| *n).collect();
         assert_eq!(
             names,
-            ["truncated", "bad_pixels", "saturated", "companion_overlap", "low_snr", "annulus_contaminated"]
+            [
+                "truncated",
+                "bad_pixels",
+                "saturated",
+                "companion_overlap",
+                "low_snr",
+                "annulus_contaminated"
+            ]
         );
         let all = Flags(0b11_1111);
         assert_eq!(all.names().len(), 6);
         assert_eq!(Flags::from_names(&all.names()), Some(all));
         assert!(Flags::NONE.names().is_empty());
         assert_eq!(Flags::from_names(&["nope"]), None);
-        assert_eq!(serde_json::to_string(&(Flags::SATURATED | Flags::TRUNCATED)).unwrap(), "5");
+        assert_eq!(
+            serde_json::to_string(&(Flags::SATURATED | Flags::TRUNCATED)).unwrap(),
+            "5"
+        );
     }
 }

@@ -4,7 +4,7 @@ use ndarray::{s, ArrayView2};
 use serde::{Deserialize, Serialize};
 
 use super::aperture::{aperture_sum, Aperture, ApertureSum, MaskFill};
-use super::background::{annulus_background, Annulus, BkgStat, Background};
+use super::background::{annulus_background, Annulus, Background, BkgStat};
 use super::flags::Flags;
 use super::overlap::Method;
 
@@ -182,12 +182,28 @@ pub fn measure(
 
     let background = params.annulus_px.and_then(|(r_in, r_out)| {
         let exclude: Vec<(f64, f64, f64)> = if params.annulus_exclude_radius_px > 0.0 {
-            others_local.iter().map(|&(a, b)| (a, b, params.annulus_exclude_radius_px)).collect()
+            others_local
+                .iter()
+                .map(|&(a, b)| (a, b, params.annulus_exclude_radius_px))
+                .collect()
         } else {
             Vec::new()
         };
-        let ann = Annulus { x: lx, y: ly, r_in, r_out };
-        annulus_background(img, mask, &ann, &exclude, params.bkg_stat, params.clip_sigma, params.clip_iters)
+        let ann = Annulus {
+            x: lx,
+            y: ly,
+            r_in,
+            r_out,
+        };
+        annulus_background(
+            img,
+            mask,
+            &ann,
+            &exclude,
+            params.bkg_stat,
+            params.clip_sigma,
+            params.clip_iters,
+        )
     });
     if let Some((r_in, r_out)) = params.annulus_px {
         match &background {
@@ -220,7 +236,10 @@ pub fn measure(
             }
             (None, None) => None,
         };
-        (flux, pixel_var.map_or(f64::NAN, |v| v + sum.area * sum.area * level_var))
+        (
+            flux,
+            pixel_var.map_or(f64::NAN, |v| v + sum.area * sum.area * level_var),
+        )
     } else {
         flags |= Flags::TRUNCATED;
         (f64::NAN, f64::NAN)
@@ -229,7 +248,16 @@ pub fn measure(
     if snr.is_nan() || snr < params.min_snr {
         flags |= Flags::LOW_SNR;
     }
-    Photometry { x, y, flux, variance, snr, aperture: sum, background, flags }
+    Photometry {
+        x,
+        y,
+        flux,
+        variance,
+        snr,
+        aperture: sum,
+        background,
+        flags,
+    }
 }
 
 #[cfg(test)]
@@ -247,7 +275,10 @@ mod tests {
     #[test]
     fn photometry_measure_flags() {
         let mut img = star_image(64, 30.2, 31.6, 1.0e5, 50.0);
-        let mut p = PhotParams { saturation_adu: Some(5.0e3), ..PhotParams::default() };
+        let mut p = PhotParams {
+            saturation_adu: Some(5.0e3),
+            ..PhotParams::default()
+        };
         let m = measure(img.view(), None, None, &p, 30.2, 31.6, &[]);
         assert!((m.flux - 1.0e5).abs() < 1.0e5 * 1e-4, "{}", m.flux);
         assert_eq!(m.flags, Flags::SATURATED);
@@ -255,15 +286,34 @@ mod tests {
         // Truncated by the image edge and by a valid region.
         let m = measure(img.view(), None, None, &p, 2.0, 31.6, &[]);
         assert!(m.flags.contains(Flags::TRUNCATED));
-        let reg = Region { x_min: 0, x_max: 63, y_min: 0, y_max: 33 };
-        let m = measure(img.view(), None, None, &PhotParams { valid_region: Some(reg), ..p }, 30.2, 31.6, &[]);
+        let reg = Region {
+            x_min: 0,
+            x_max: 63,
+            y_min: 0,
+            y_max: 33,
+        };
+        let m = measure(
+            img.view(),
+            None,
+            None,
+            &PhotParams {
+                valid_region: Some(reg),
+                ..p
+            },
+            30.2,
+            31.6,
+            &[],
+        );
         assert!(m.flags.contains(Flags::TRUNCATED));
         assert!(m.flags.contains(Flags::ANNULUS_CONTAMINATED) || m.background.is_some());
         // Companion: overlap, and annulus contamination only when not excluded.
         let m = measure(img.view(), None, None, &p, 30.2, 31.6, &[(38.0, 31.6)]);
         assert!(m.flags.contains(Flags::COMPANION_OVERLAP));
         assert!(!m.flags.contains(Flags::ANNULUS_CONTAMINATED));
-        let q = PhotParams { annulus_exclude_radius_px: 0.0, ..p };
+        let q = PhotParams {
+            annulus_exclude_radius_px: 0.0,
+            ..p
+        };
         let m = measure(img.view(), None, None, &q, 30.2, 31.6, &[(44.0, 31.6)]);
         assert!(m.flags.contains(Flags::ANNULUS_CONTAMINATED));
         assert!(!m.flags.contains(Flags::COMPANION_OVERLAP));
@@ -282,7 +332,15 @@ mod tests {
         let m = measure(img.view(), None, None, &p, 30.2, 31.6, &[]);
         assert!(m.flags.contains(Flags::LOW_SNR), "{:?}", m);
         // No variance map and no annulus: variance undefined, flagged.
-        let m = measure(img.view(), None, None, &PhotParams { annulus_px: None, ..p }, 30.2, 31.6, &[]);
+        let m = measure(
+            img.view(),
+            None,
+            None,
+            &PhotParams { annulus_px: None, ..p },
+            30.2,
+            31.6,
+            &[],
+        );
         assert!(m.variance.is_nan() && m.flags == Flags::LOW_SNR);
     }
 }

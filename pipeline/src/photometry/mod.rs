@@ -60,7 +60,7 @@ mod psf_moffat_tests;
 mod tests;
 
 pub use aperture::{aperture_sum, Aperture, ApertureSum, MaskFill};
-pub use background::{annulus_background, sigma_clip, Annulus, BkgStat, Background, Clipped};
+pub use background::{annulus_background, sigma_clip, Annulus, Background, BkgStat, Clipped};
 pub use centroid::{centroid, Centroid, CentroidParams};
 pub use flags::{flag_names, Flags};
 pub use measure::{measure, PhotParams, Photometry, Region};

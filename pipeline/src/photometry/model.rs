@@ -46,7 +46,11 @@ pub(crate) fn gauss_pixel_1d_derivs(i: i64, mu: f64, sigma: f64) -> (f64, f64, f
     let za = (i as f64 - 0.5 - mu) / sigma;
     let zb = (i as f64 + 0.5 - mu) / sigma;
     let (pa, pb) = (phi(za), phi(zb));
-    (normal_cdf_diff(za, zb), -(pb - pa) / sigma, -(zb * pb - za * pa) / sigma)
+    (
+        normal_cdf_diff(za, zb),
+        -(pb - pa) / sigma,
+        -(zb * pb - za * pa) / sigma,
+    )
 }
 
 /// Adds a pixel-integrated Gaussian star (flux `flux` ADU, centre `(x, y)` px, widths

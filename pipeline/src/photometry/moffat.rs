@@ -22,13 +22,27 @@
 use ndarray::ArrayViewMut2;
 
 /// 4-point Gauss-Legendre nodes on `[-1/2, 1/2]`.
-const GL4_X: [f64; 4] = [-0.430_568_155_797_026_3, -0.169_990_521_792_428_1, 0.169_990_521_792_428_1, 0.430_568_155_797_026_3];
+const GL4_X: [f64; 4] = [
+    -0.430_568_155_797_026_3,
+    -0.169_990_521_792_428_1,
+    0.169_990_521_792_428_1,
+    0.430_568_155_797_026_3,
+];
 /// Weights of [`GL4_X`] (sum 1).
-const GL4_W: [f64; 4] = [0.173_927_422_568_726_9, 0.326_072_577_431_273_1, 0.326_072_577_431_273_1, 0.173_927_422_568_726_9];
+const GL4_W: [f64; 4] = [
+    0.173_927_422_568_726_9,
+    0.326_072_577_431_273_1,
+    0.326_072_577_431_273_1,
+    0.173_927_422_568_726_9,
+];
 /// 3-point Gauss-Legendre nodes on `[-1/2, 1/2]` (`±sqrt(3/5)/2`, 0).
 const GL3_X: [f64; 3] = [-0.387_298_334_620_741_7, 0.0, 0.387_298_334_620_741_7];
 /// Weights of [`GL3_X`]: 5/18, 8/18, 5/18.
-const GL3_W: [f64; 3] = [0.277_777_777_777_777_8, 0.444_444_444_444_444_4, 0.277_777_777_777_777_8];
+const GL3_W: [f64; 3] = [
+    0.277_777_777_777_777_8,
+    0.444_444_444_444_444_4,
+    0.277_777_777_777_777_8,
+];
 /// 2-point Gauss-Legendre nodes on `[-1/2, 1/2]` (`±1/(2 sqrt 3)`).
 /// 1-point rule (midpoint) on [-1/2, 1/2].
 const GL1_X: [f64; 1] = [0.0];
@@ -236,14 +250,21 @@ mod tests {
 
     #[test]
     fn photometry_moffat_tables_match_computed_nodes() {
-        for (n, tx, tw) in [(2, &GL2_X[..], &GL2_W[..]), (3, &GL3_X[..], &GL3_W[..]), (4, &GL4_X[..], &GL4_W[..])] {
+        for (n, tx, tw) in [
+            (2, &GL2_X[..], &GL2_W[..]),
+            (3, &GL3_X[..], &GL3_W[..]),
+            (4, &GL4_X[..], &GL4_W[..]),
+        ] {
             let (mut xs, ws) = gauss_legendre(n);
             let mut order: Vec<usize> = (0..n).collect();
             order.sort_by(|&a, &b| xs[a].total_cmp(&xs[b]));
             xs = order.iter().map(|&i| xs[i]).collect();
             let ws: Vec<f64> = order.iter().map(|&i| ws[i]).collect();
             for i in 0..n {
-                assert!((xs[i] - tx[i]).abs() < 1e-15 && (ws[i] - tw[i]).abs() < 1e-15, "n {n}: {xs:?} {ws:?}");
+                assert!(
+                    (xs[i] - tx[i]).abs() < 1e-15 && (ws[i] - tw[i]).abs() < 1e-15,
+                    "n {n}: {xs:?} {ws:?}"
+                );
             }
         }
         assert!((GL4X2_W.iter().sum::<f64>() - 1.0).abs() < 1e-15);
@@ -290,7 +311,13 @@ mod tests {
 
     #[test]
     fn photometry_moffat_derivatives_match_differences() {
-        for &(dx, dy, alpha, beta) in &[(0.2, -0.3, 2.7, 3.0), (3.4, 1.2, 1.9, 2.5), (9.5, -8.0, 2.0, 4.0), (20.1, 3.0, 2.5, 3.0), (0.4, 0.9, 1.0, 3.0)] {
+        for &(dx, dy, alpha, beta) in &[
+            (0.2, -0.3, 2.7, 3.0),
+            (3.4, 1.2, 1.9, 2.5),
+            (9.5, -8.0, 2.0, 4.0),
+            (20.1, 3.0, 2.5, 3.0),
+            (0.4, 0.9, 1.0, 3.0),
+        ] {
             let d = moffat_pixel_derivs(dx, dy, alpha, beta);
             assert_eq!(d[0], moffat_pixel(dx, dy, alpha, beta));
             let h = 1e-5;
@@ -303,7 +330,12 @@ mod tests {
             ];
             for i in 0..4 {
                 let scale = d[0] + num[i].abs();
-                assert!((d[i + 1] - num[i]).abs() < 1e-6 * scale, "({dx},{dy},{alpha},{beta}) d{i}: {} vs {}", d[i + 1], num[i]);
+                assert!(
+                    (d[i + 1] - num[i]).abs() < 1e-6 * scale,
+                    "({dx},{dy},{alpha},{beta}) d{i}: {} vs {}",
+                    d[i + 1],
+                    num[i]
+                );
             }
         }
     }

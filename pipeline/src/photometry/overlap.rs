@@ -58,7 +58,11 @@ fn chord_integral(r: f64, a: f64, sa: f64, b: f64, sb: f64) -> f64 {
     let cross = if cross > 0.0 { cross } else { 0.0 };
     let dot = sa * sb + a * b;
     // atan is cheaper than atan2 and as accurate for angles below pi/2.
-    let angle = if dot > 0.0 { (cross / dot).atan() } else { cross.atan2(dot) };
+    let angle = if dot > 0.0 {
+        (cross / dot).atan()
+    } else {
+        cross.atan2(dot)
+    };
     0.5 * (b * sb - a * sa + r * r * angle)
 }
 
@@ -82,7 +86,15 @@ impl Strip {
         let s0 = half_chord(r, y0);
         let s1 = half_chord(r, y1);
         let s_out = if y0 < 0.0 && y1 > 0.0 { r } else { s0.max(s1) };
-        Strip { r, y0, s0, y1, s1, s_in: s0.min(s1), s_out }
+        Strip {
+            r,
+            y0,
+            s0,
+            y1,
+            s1,
+            s_in: s0.min(s1),
+            s_out,
+        }
     }
 
     /// `R(t)`, `t >= 0`: area of the disc in this strip to the right of `u = t`.
@@ -156,9 +168,7 @@ pub fn overlap_circle_pixel(cx: f64, cy: f64, r: f64, ix: i64, iy: i64) -> f64 {
 pub fn pixel_weight(method: Method, cx: f64, cy: f64, r: f64, ix: i64, iy: i64) -> f64 {
     match method {
         Method::Exact => overlap_circle_pixel(cx, cy, r, ix, iy),
-        Method::Center | Method::Subpixel(0) | Method::Subpixel(1) => {
-            center_weight(cx, cy, r, ix, iy)
-        }
+        Method::Center | Method::Subpixel(0) | Method::Subpixel(1) => center_weight(cx, cy, r, ix, iy),
         Method::Subpixel(n) => {
             let x0 = (ix as f64 - 0.5) - cx;
             let y0 = (iy as f64 - 0.5) - cy;
@@ -272,7 +282,10 @@ pub(crate) fn for_each_run<F: FnMut(i64, i64, i64, f64)>(
         }
         // The pixels fully inside form an interval (the disc is convex): find it from the
         // closed form, then settle the ends with the same per-pixel test.
-        let (mut a, mut b) = ((cx - strip.s_in + 0.5).ceil() as i64, (cx + strip.s_in - 0.5).floor() as i64);
+        let (mut a, mut b) = (
+            (cx - strip.s_in + 0.5).ceil() as i64,
+            (cx + strip.s_in - 0.5).floor() as i64,
+        );
         if a <= b {
             while a <= b && !inside(a) {
                 a += 1;
@@ -287,7 +300,11 @@ pub(crate) fn for_each_run<F: FnMut(i64, i64, i64, f64)>(
                 b += 1;
             }
         }
-        let (run_lo, run_hi) = if a <= b { (a.max(ix_lo), b.min(ix_hi)) } else { (ix_hi + 1, ix_hi) };
+        let (run_lo, run_hi) = if a <= b {
+            (a.max(ix_lo), b.min(ix_hi))
+        } else {
+            (ix_hi + 1, ix_hi)
+        };
         let interior_empty = run_lo > run_hi;
 
         // Cached tail at the left edge of the current pixel: (edge index, R(|x|)).

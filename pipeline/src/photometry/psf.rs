@@ -185,8 +185,10 @@ impl PsfFit {
         let s = &self.stars[k];
         match self.model {
             PsfModel::Gaussian => {
-                let fx = super::model::normal_cdf_diff((px - 0.5 - s.x) / self.sigma_x, (px + 0.5 - s.x) / self.sigma_x);
-                let fy = super::model::normal_cdf_diff((py - 0.5 - s.y) / self.sigma_y, (py + 0.5 - s.y) / self.sigma_y);
+                let fx =
+                    super::model::normal_cdf_diff((px - 0.5 - s.x) / self.sigma_x, (px + 0.5 - s.x) / self.sigma_x);
+                let fy =
+                    super::model::normal_cdf_diff((py - 0.5 - s.y) / self.sigma_y, (py + 0.5 - s.y) / self.sigma_y);
                 s.flux * fx * fy
             }
             PsfModel::Moffat { .. } => s.flux * moffat_pixel(px - s.x, py - s.y, self.alpha, self.beta),
@@ -224,13 +226,29 @@ impl Layout {
             PsfModel::Gaussian => {
                 let i_sy = if elliptical { i_sx + 1 } else { i_sx };
                 let i_b = fit_b.then_some(i_sy + 1);
-                Layout { n_src, i_sx, i_sy, i_beta: None, i_b, n: i_sy + 1 + fit_b as usize, moffat: None }
+                Layout {
+                    n_src,
+                    i_sx,
+                    i_sy,
+                    i_beta: None,
+                    i_b,
+                    n: i_sy + 1 + fit_b as usize,
+                    moffat: None,
+                }
             }
             PsfModel::Moffat { beta } => {
                 let i_beta = beta.is_none().then_some(i_sx + 1);
                 let last = i_beta.unwrap_or(i_sx);
                 let i_b = fit_b.then_some(last + 1);
-                Layout { n_src, i_sx, i_sy: i_sx, i_beta, i_b, n: last + 1 + fit_b as usize, moffat: Some(beta.unwrap_or(f64::NAN)) }
+                Layout {
+                    n_src,
+                    i_sx,
+                    i_sy: i_sx,
+                    i_beta,
+                    i_b,
+                    n: last + 1 + fit_b as usize,
+                    moffat: Some(beta.unwrap_or(f64::NAN)),
+                }
             }
         }
     }
@@ -265,10 +283,18 @@ impl Factors {
         let (x0, x1, y0, y1) = bx;
         let (sx, sy) = (p[lay.i_sx], p[lay.i_sy]);
         let fx = (0..lay.n_src)
-            .map(|k| (x0..=x1).map(|ix| gauss_pixel_1d_derivs(ix as i64, p[3 * k + 1], sx)).collect())
+            .map(|k| {
+                (x0..=x1)
+                    .map(|ix| gauss_pixel_1d_derivs(ix as i64, p[3 * k + 1], sx))
+                    .collect()
+            })
             .collect();
         let fy = (0..lay.n_src)
-            .map(|k| (y0..=y1).map(|iy| gauss_pixel_1d_derivs(iy as i64, p[3 * k + 2], sy)).collect())
+            .map(|k| {
+                (y0..=y1)
+                    .map(|iy| gauss_pixel_1d_derivs(iy as i64, p[3 * k + 2], sy))
+                    .collect()
+            })
             .collect();
         Factors { x0, y0, fx, fy }
     }
@@ -430,14 +456,23 @@ pub fn fit_psf(
         return Err(PsfFitError::NoSources);
     }
     if !(params.fwhm_px > 0.0 && params.fwhm_px.is_finite()) {
-        return Err(PsfFitError::InvalidParams { name: "fwhm_px", value: params.fwhm_px });
+        return Err(PsfFitError::InvalidParams {
+            name: "fwhm_px",
+            value: params.fwhm_px,
+        });
     }
     if !(params.fit_radius_px > 0.0 && params.fit_radius_px.is_finite()) {
-        return Err(PsfFitError::InvalidParams { name: "fit_radius_px", value: params.fit_radius_px });
+        return Err(PsfFitError::InvalidParams {
+            name: "fit_radius_px",
+            value: params.fit_radius_px,
+        });
     }
     if let PsfModel::Moffat { beta } = params.model {
         if params.elliptical {
-            return Err(PsfFitError::InvalidParams { name: "elliptical (Moffat is circular)", value: 1.0 });
+            return Err(PsfFitError::InvalidParams {
+                name: "elliptical (Moffat is circular)",
+                value: 1.0,
+            });
         }
         if let Some(b) = beta {
             if !(b > 1.0 && b.is_finite()) {
@@ -446,7 +481,12 @@ pub fn fit_psf(
         }
     }
     let (ny, nx) = img.dim();
-    let lay = Layout::new(guesses.len(), params.elliptical, params.background.is_none(), params.model);
+    let lay = Layout::new(
+        guesses.len(),
+        params.elliptical,
+        params.background.is_none(),
+        params.model,
+    );
     let rf = params.fit_radius_px;
 
     // Pixels to fit.
@@ -460,9 +500,9 @@ pub fn fit_psf(
         let clampi = |v: f64, n: usize| v.max(0.0).min(n as f64 - 1.0) as usize;
         for iy in clampi(gy0.floor(), ny)..=clampi(gy1.ceil(), ny) {
             for ix in clampi(gx0.floor(), nx)..=clampi(gx1.ceil(), nx) {
-                let near = guesses.iter().any(|&(gx, gy)| {
-                    (ix as f64 - gx).powi(2) + (iy as f64 - gy).powi(2) <= rf * rf
-                });
+                let near = guesses
+                    .iter()
+                    .any(|&(gx, gy)| (ix as f64 - gx).powi(2) + (iy as f64 - gy).powi(2) <= rf * rf);
                 let v = img[[iy, ix]];
                 if !near || !v.is_finite() || mask.as_ref().is_some_and(|m| m[[iy, ix]] != 0) {
                     continue;
@@ -486,7 +526,10 @@ pub fn fit_psf(
         }
     }
     if pixels.len() <= lay.n {
-        return Err(PsfFitError::TooFewPixels { n_pixels: pixels.len(), n_params: lay.n });
+        return Err(PsfFitError::TooFewPixels {
+            n_pixels: pixels.len(),
+            n_params: lay.n,
+        });
     }
     let bx = (bx0, bx1, by0, by1);
 
@@ -541,12 +584,15 @@ pub fn fit_psf(
             None => [q[lay.i_sx], q[lay.i_sy]].iter().all(|&s| (0.05..=50.0).contains(&s)),
             Some(_) => {
                 (MOFFAT_ALPHA_RANGE.0..=MOFFAT_ALPHA_RANGE.1).contains(&q[lay.i_sx])
-                    && lay.i_beta.is_none_or(|i| (MOFFAT_BETA_RANGE.0..=MOFFAT_BETA_RANGE.1).contains(&q[i]))
+                    && lay
+                        .i_beta
+                        .is_none_or(|i| (MOFFAT_BETA_RANGE.0..=MOFFAT_BETA_RANGE.1).contains(&q[i]))
             }
         };
-        let pos_ok = guesses.iter().enumerate().all(|(k, &(gx, gy))| {
-            (q[3 * k + 1] - gx).hypot(q[3 * k + 2] - gy) <= rf
-        });
+        let pos_ok = guesses
+            .iter()
+            .enumerate()
+            .all(|(k, &(gx, gy))| (q[3 * k + 1] - gx).hypot(q[3 * k + 2] - gy) <= rf);
         widths_ok && pos_ok && q.iter().all(|v| v.is_finite())
     };
     let mut a = vec![0.0; n * n];
@@ -562,7 +608,11 @@ pub fn fit_psf(
             let d = a[i * n + i];
             damped[i * n + i] = d + lambda * d.max(1e-300);
         }
-        let step = if cholesky(&mut damped, n) { Some(cholesky_solve(&damped, n, &g)) } else { None };
+        let step = if cholesky(&mut damped, n) {
+            Some(cholesky_solve(&damped, n, &g))
+        } else {
+            None
+        };
         let trial: Option<Vec<f64>> = step.map(|d| p.iter().zip(&d).map(|(x, dx)| x + dx).collect());
         let improved = match &trial {
             Some(q) if acceptable(q) => {

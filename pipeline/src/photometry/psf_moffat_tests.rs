@@ -67,7 +67,13 @@ impl Rng {
 }
 
 fn moffat_params(fwhm: f64, fit_radius: f64, background: Option<f64>) -> PsfFitParams {
-    PsfFitParams { fwhm_px: fwhm, fit_radius_px: fit_radius, background, model: PsfModel::Moffat { beta: None }, ..PsfFitParams::default() }
+    PsfFitParams {
+        fwhm_px: fwhm,
+        fit_radius_px: fit_radius,
+        background,
+        model: PsfModel::Moffat { beta: None },
+        ..PsfFitParams::default()
+    }
 }
 
 /// Single noiseless stars: flux, position, alpha and beta to 1e-4 (relative; position in px),
@@ -75,7 +81,13 @@ fn moffat_params(fwhm: f64, fit_radius: f64, background: Option<f64>) -> PsfFitP
 #[test]
 fn photometry_moffat_fit_recovers_single_star() {
     let mut worst = [0.0f64; 4];
-    for &(fwhm, beta, sky) in &[(2.8, 3.0, 0.0), (2.2, 2.5, 0.0), (3.6, 4.0, 0.0), (2.8, 3.0, 20.0), (4.0, 2.5, 15.0)] {
+    for &(fwhm, beta, sky) in &[
+        (2.8, 3.0, 0.0),
+        (2.2, 2.5, 0.0),
+        (3.6, 4.0, 0.0),
+        (2.8, 3.0, 20.0),
+        (4.0, 2.5, 15.0),
+    ] {
         let alpha = alpha_of(fwhm, beta);
         let (f, x, y) = (5.0e4, 20.37, 19.71);
         let img = render(41, 41, &[(f, x, y)], alpha, beta, sky).mapv(|v| v as f32);
@@ -83,7 +95,12 @@ fn photometry_moffat_fit_recovers_single_star() {
         let params = moffat_params(1.25 * fwhm, 4.0 * fwhm, bkg);
         let fit = fit_psf(img.view(), None, None, &[(x - 0.4, y + 0.3)], &params).expect("fit");
         let s = fit.stars[0];
-        let errs = [rel_err(s.flux, f), (s.x - x).hypot(s.y - y), rel_err(fit.alpha, alpha), rel_err(fit.beta, beta)];
+        let errs = [
+            rel_err(s.flux, f),
+            (s.x - x).hypot(s.y - y),
+            rel_err(fit.alpha, alpha),
+            rel_err(fit.beta, beta),
+        ];
         eprintln!(
             "Moffat single star FWHM {fwhm} beta {beta} sky {sky}: flux {:.1e} pos {:.1e} px alpha {:.1e} beta {:.1e}, {} iterations",
             errs[0], errs[1], errs[2], errs[3], fit.iterations
@@ -97,7 +114,10 @@ fn photometry_moffat_fit_recovers_single_star() {
             *w = w.max(e);
         }
     }
-    eprintln!("Moffat single star: worst flux {:.1e}, pos {:.1e} px, alpha {:.1e}, beta {:.1e}", worst[0], worst[1], worst[2], worst[3]);
+    eprintln!(
+        "Moffat single star: worst flux {:.1e}, pos {:.1e} px, alpha {:.1e}, beta {:.1e}",
+        worst[0], worst[1], worst[2], worst[3]
+    );
 }
 
 /// Noiseless pairs 1.0-2.0 FWHM apart, flux ratios 1 to 0.25, beta fitted: fluxes to 1e-3
@@ -115,7 +135,15 @@ fn photometry_moffat_fit_recovers_close_pairs() {
             let (fa, fb) = (8.0e4, 8.0e4 * ratio);
             let img = render(31, 31, &[(fa, xa, ya), (fb, xb, yb)], alpha, beta, 0.0).mapv(|v| v as f32);
             let params = moffat_params(fwhm * 1.15, 2.0 * fwhm, Some(0.0));
-            let fit = fit_two_psf(img.view(), None, None, (xa + 0.3, ya - 0.4), (xb - 0.4, yb + 0.3), &params).expect("fit");
+            let fit = fit_two_psf(
+                img.view(),
+                None,
+                None,
+                (xa + 0.3, ya - 0.4),
+                (xb - 0.4, yb + 0.3),
+                &params,
+            )
+            .expect("fit");
             let (a, b) = (fit.stars[0], fit.stars[1]);
             let e = rel_err(a.flux, fa).max(rel_err(b.flux, fb));
             let ep = (a.x - xa).hypot(a.y - ya).max((b.x - xb).hypot(b.y - yb));
@@ -123,7 +151,10 @@ fn photometry_moffat_fit_recovers_close_pairs() {
                 "Moffat pair {sep_fwhm} FWHM ratio {ratio}: flux rel err {e:.1e}, pos {ep:.1e} px, beta {:.5}, {} iterations",
                 fit.beta, fit.iterations
             );
-            assert!(fit.converged && e < 1e-3 && ep < 1e-3, "sep {sep_fwhm} ratio {ratio}: {fit:?}");
+            assert!(
+                fit.converged && e < 1e-3 && ep < 1e-3,
+                "sep {sep_fwhm} ratio {ratio}: {fit:?}"
+            );
             worst = worst.max(e);
         }
     }
@@ -145,8 +176,18 @@ fn photometry_moffat_flux_errors_match_scatter() {
     let n = 200;
     let (mut da, mut db, mut ea, mut eb, mut fs) = (Vec::new(), Vec::new(), 0.0, 0.0, Vec::new());
     for _ in 0..n {
-        let img = Array2::from_shape_fn(truth.raw_dim(), |(j, i)| (truth[[j, i]] + (var[[j, i]] as f64).sqrt() * rng.normal()) as f32);
-        let fit = fit_two_psf(img.view(), Some(var.view()), None, (xa + 0.2, ya - 0.2), (xb - 0.3, yb + 0.2), &params).expect("fit");
+        let img = Array2::from_shape_fn(truth.raw_dim(), |(j, i)| {
+            (truth[[j, i]] + (var[[j, i]] as f64).sqrt() * rng.normal()) as f32
+        });
+        let fit = fit_two_psf(
+            img.view(),
+            Some(var.view()),
+            None,
+            (xa + 0.2, ya - 0.2),
+            (xb - 0.3, yb + 0.2),
+            &params,
+        )
+        .expect("fit");
         assert!(fit.converged);
         da.push(fit.stars[0].flux - fa);
         db.push(fit.stars[1].flux - fb);
@@ -156,7 +197,10 @@ fn photometry_moffat_flux_errors_match_scatter() {
     }
     let stats = |d: &[f64]| {
         let m = d.iter().sum::<f64>() / d.len() as f64;
-        (m, (d.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (d.len() - 1) as f64).sqrt())
+        (
+            m,
+            (d.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (d.len() - 1) as f64).sqrt(),
+        )
     };
     let ((ma, sa), (mb, sb), (mbeta, sbeta)) = (stats(&da), stats(&db), stats(&fs));
     eprintln!(
@@ -166,7 +210,10 @@ fn photometry_moffat_flux_errors_match_scatter() {
     );
     assert!((sa / ea - 1.0).abs() < 0.15 && (sb / eb - 1.0).abs() < 0.15);
     // Unbiased to 4 sigma of the mean (a maximum-likelihood bias this size would be ~ sigma^2/F).
-    assert!(ma.abs() < 4.0 * sa / (n as f64).sqrt() && mb.abs() < 4.0 * sb / (n as f64).sqrt(), "bias {ma} {mb}");
+    assert!(
+        ma.abs() < 4.0 * sa / (n as f64).sqrt() && mb.abs() < 4.0 * sb / (n as f64).sqrt(),
+        "bias {ma} {mb}"
+    );
 }
 
 /// Deblending a pair 2-3 FWHM apart (the aperture regime): after `subtract_star` of the
@@ -183,7 +230,15 @@ fn photometry_moffat_subtract_star_removes_companion_wings() {
         let img = render(41, 41, &[(fa, xa, ya), (fb, xb, yb)], alpha, beta, 0.0).mapv(|v| v as f32);
         let alone = render(41, 41, &[(fa, xa, ya)], alpha, beta, 0.0).mapv(|v| v as f32);
         let params = moffat_params(fwhm, 1.5 * fwhm, Some(0.0));
-        let fit = fit_two_psf(img.view(), None, None, (xa + 0.3, ya + 0.2), (xb - 0.2, yb - 0.3), &params).expect("fit");
+        let fit = fit_two_psf(
+            img.view(),
+            None,
+            None,
+            (xa + 0.3, ya + 0.2),
+            (xb - 0.2, yb - 0.3),
+            &params,
+        )
+        .expect("fit");
         let clean = subtract_star(img.view(), &fit, 1);
         let ap = Aperture { x: xa, y: ya, r: fwhm };
         let got = aperture_sum(clean.view(), None, None, &ap, Method::Exact, MaskFill::Exclude).sum;
@@ -196,8 +251,18 @@ fn photometry_moffat_subtract_star_removes_companion_wings() {
         );
         assert!((got - want).abs() < 1e-3 * fb, "sep {sep_fwhm}: {got} vs {want}");
         // A Gaussian fit leaves the companion's wings (the problem this model solves).
-        let gfit = fit_two_psf(img.view(), None, None, (xa + 0.3, ya + 0.2), (xb - 0.2, yb - 0.3), &PsfFitParams { model: PsfModel::Gaussian, ..params })
-            .expect("gaussian fit");
+        let gfit = fit_two_psf(
+            img.view(),
+            None,
+            None,
+            (xa + 0.3, ya + 0.2),
+            (xb - 0.2, yb - 0.3),
+            &PsfFitParams {
+                model: PsfModel::Gaussian,
+                ..params
+            },
+        )
+        .expect("gaussian fit");
         let gclean = subtract_star(img.view(), &gfit, 1);
         let g = aperture_sum(gclean.view(), None, None, &ap, Method::Exact, MaskFill::Exclude).sum;
         eprintln!("    (Gaussian model instead: residual {:.1e})", (g - want).abs() / fb);
@@ -221,8 +286,14 @@ fn photometry_moffat_oe_ratio_of_blended_pair_is_unbiased() {
         let o = render(31, 31, &[(fa * ka.0, xa, ya), (fb * kb.0, xb, yb)], alpha, beta, 0.0).mapv(|v| v as f32);
         let e = render(31, 31, &[(fa * ka.1, xa, ya), (fb * kb.1, xb, yb)], alpha, beta, 0.0).mapv(|v| v as f32);
         let mut dev = [[0.0; 2]; 2];
-        for (mi, model) in [PsfModel::Moffat { beta: None }, PsfModel::Gaussian].into_iter().enumerate() {
-            let params = PsfFitParams { model, ..moffat_params(fwhm, 1.5 * fwhm, Some(0.0)) };
+        for (mi, model) in [PsfModel::Moffat { beta: None }, PsfModel::Gaussian]
+            .into_iter()
+            .enumerate()
+        {
+            let params = PsfFitParams {
+                model,
+                ..moffat_params(fwhm, 1.5 * fwhm, Some(0.0))
+            };
             let fo = fit_two_psf(o.view(), None, None, (xa, ya), (xb, yb), &params).expect("fit o");
             let fe = fit_two_psf(e.view(), None, None, (xa, ya), (xb, yb), &params).expect("fit e");
             for k in 0..2 {
@@ -245,11 +316,22 @@ fn photometry_moffat_fixed_beta_and_settings() {
     let (fwhm, beta) = (3.0, 3.5);
     let alpha = alpha_of(fwhm, beta);
     let img = render(31, 31, &[(4.0e4, 14.6, 15.3), (1.0e4, 18.0, 16.0)], alpha, beta, 7.0).mapv(|v| v as f32);
-    let params = PsfFitParams { model: PsfModel::Moffat { beta: Some(beta) }, fwhm_px: 2.5, fit_radius_px: 7.0, ..PsfFitParams::default() };
+    let params = PsfFitParams {
+        model: PsfModel::Moffat { beta: Some(beta) },
+        fwhm_px: 2.5,
+        fit_radius_px: 7.0,
+        ..PsfFitParams::default()
+    };
     let fit = fit_two_psf(img.view(), None, None, (14.8, 15.0), (17.6, 16.3), &params).unwrap();
-    assert_eq!(fit.param_names, ["flux_0", "x_0", "y_0", "flux_1", "x_1", "y_1", "alpha", "background"]);
+    assert_eq!(
+        fit.param_names,
+        ["flux_0", "x_0", "y_0", "flux_1", "x_1", "y_1", "alpha", "background"]
+    );
     assert_eq!(fit.beta, beta);
-    assert!(rel_err(fit.alpha, alpha) < 1e-5 && rel_err(fit.stars[1].flux, 1.0e4) < 1e-4, "{fit:?}");
+    assert!(
+        rel_err(fit.alpha, alpha) < 1e-5 && rel_err(fit.stars[1].flux, 1.0e4) < 1e-4,
+        "{fit:?}"
+    );
     // model_value and render_star agree with each other and with the fit's model.
     let mut one = Array2::<f32>::zeros((31, 31));
     fit.render_star(1, &mut one.view_mut(), 1.0);
@@ -259,10 +341,22 @@ fn photometry_moffat_fixed_beta_and_settings() {
     assert_eq!(free.param_names[6..], ["alpha", "beta", "background"]);
     assert_eq!(free.covariance.len(), 9);
     // Moffat is circular; beta must be > 1.
-    let bad = PsfFitParams { elliptical: true, ..fitted };
-    assert!(matches!(fit_psf(img.view(), None, None, &[(14.8, 15.0)], &bad), Err(PsfFitError::InvalidParams { .. })));
-    let bad = PsfFitParams { model: PsfModel::Moffat { beta: Some(1.0) }, ..fitted };
-    assert!(matches!(fit_psf(img.view(), None, None, &[(14.8, 15.0)], &bad), Err(PsfFitError::InvalidParams { .. })));
+    let bad = PsfFitParams {
+        elliptical: true,
+        ..fitted
+    };
+    assert!(matches!(
+        fit_psf(img.view(), None, None, &[(14.8, 15.0)], &bad),
+        Err(PsfFitError::InvalidParams { .. })
+    ));
+    let bad = PsfFitParams {
+        model: PsfModel::Moffat { beta: Some(1.0) },
+        ..fitted
+    };
+    assert!(matches!(
+        fit_psf(img.view(), None, None, &[(14.8, 15.0)], &bad),
+        Err(PsfFitError::InvalidParams { .. })
+    ));
     // TOML.
     #[derive(serde::Deserialize, serde::Serialize, Debug, PartialEq)]
     struct W {
@@ -271,7 +365,10 @@ fn photometry_moffat_fixed_beta_and_settings() {
     for (text, m) in [
         ("m = { kind = \"gaussian\" }", PsfModel::Gaussian),
         ("m = { kind = \"moffat\" }", PsfModel::Moffat { beta: None }),
-        ("m = { kind = \"moffat\", beta = 2.5 }", PsfModel::Moffat { beta: Some(2.5) }),
+        (
+            "m = { kind = \"moffat\", beta = 2.5 }",
+            PsfModel::Moffat { beta: Some(2.5) },
+        ),
     ] {
         let w: W = toml::from_str(text).unwrap();
         assert_eq!(w.m, m);
@@ -290,7 +387,11 @@ fn photometry_moffat_two_star_fit_is_fast() {
     let var = truth.mapv(|v| (v.max(0.0) + 400.0) as f32);
     let mut rng = Rng(3);
     let imgs: Vec<Array2<f32>> = (0..8)
-        .map(|_| Array2::from_shape_fn(truth.raw_dim(), |(j, i)| (truth[[j, i]] + (var[[j, i]] as f64).sqrt() * rng.normal()) as f32))
+        .map(|_| {
+            Array2::from_shape_fn(truth.raw_dim(), |(j, i)| {
+                (truth[[j, i]] + (var[[j, i]] as f64).sqrt() * rng.normal()) as f32
+            })
+        })
         .collect();
     for (radius, label) in [(1.5 * fwhm, "1.5 FWHM"), (2.0 * fwhm, "2 FWHM")] {
         let params = moffat_params(fwhm * 1.1, radius, Some(0.0));

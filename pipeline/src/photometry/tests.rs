@@ -5,7 +5,10 @@ use super::*;
 use ndarray::Array2;
 use serde_json::Value;
 
-const REFERENCE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../testdata/photometry/photutils_reference.json");
+const REFERENCE: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../testdata/photometry/photutils_reference.json"
+);
 
 fn load_reference() -> Value {
     let text = std::fs::read_to_string(REFERENCE).expect("testdata/photometry/photutils_reference.json");
@@ -29,8 +32,12 @@ fn photometry_matches_photutils_reference_sums() {
     let mut n_cases = 0;
     for im in r["images"].as_array().unwrap() {
         let (ny, nx) = (im["ny"].as_u64().unwrap() as usize, im["nx"].as_u64().unwrap() as usize);
-        let vals: Vec<f32> =
-            im["values_row_major"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
+        let vals: Vec<f32> = im["values_row_major"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap() as f32)
+            .collect();
         let img = Array2::from_shape_vec((ny, nx), vals).unwrap();
         let name = im["name"].as_str().unwrap();
         // The stored values are the formula's: check the exactly reproducible ones.
@@ -46,10 +53,16 @@ fn photometry_matches_photutils_reference_sums() {
             }
         }
         for c in im["cases"].as_array().unwrap() {
-            let ap = Aperture { x: c["x"].as_f64().unwrap(), y: c["y"].as_f64().unwrap(), r: c["r"].as_f64().unwrap() };
-            for (key, method, tol) in
-                [("exact", Method::Exact, 1e-9), ("center", Method::Center, 1e-13), ("subpixel5", Method::Subpixel(5), 1e-13)]
-            {
+            let ap = Aperture {
+                x: c["x"].as_f64().unwrap(),
+                y: c["y"].as_f64().unwrap(),
+                r: c["r"].as_f64().unwrap(),
+            };
+            for (key, method, tol) in [
+                ("exact", Method::Exact, 1e-9),
+                ("center", Method::Center, 1e-13),
+                ("subpixel5", Method::Subpixel(5), 1e-13),
+            ] {
                 let want = c[key].as_f64().unwrap();
                 let got = aperture_sum(img.view(), None, None, &ap, method, MaskFill::Exclude).sum;
                 let e = rel_err(got, want);
@@ -70,7 +83,11 @@ fn photometry_matches_photutils_reference_sums() {
 fn photometry_matches_photutils_reference_masks() {
     let r = load_reference();
     for m in r["masks"].as_array().unwrap() {
-        let (x, y, rad) = (m["x"].as_f64().unwrap(), m["y"].as_f64().unwrap(), m["r"].as_f64().unwrap());
+        let (x, y, rad) = (
+            m["x"].as_f64().unwrap(),
+            m["y"].as_f64().unwrap(),
+            m["r"].as_f64().unwrap(),
+        );
         let (ix0, iy0) = (m["ixmin"].as_i64().unwrap(), m["iymin"].as_i64().unwrap());
         let (ny, nx) = (m["ny"].as_u64().unwrap() as i64, m["nx"].as_u64().unwrap() as i64);
         let w = m["weights_row_major"].as_array().unwrap();
@@ -79,7 +96,12 @@ fn photometry_matches_photutils_reference_masks() {
             for i in 0..nx {
                 let want = w[(j * nx + i) as usize].as_f64().unwrap();
                 let got = overlap_circle_pixel(x, y, rad, ix0 + i, iy0 + j);
-                assert!((got - want).abs() < 1e-12, "({x},{y},{rad}) pixel ({},{}): {got} vs {want}", ix0 + i, iy0 + j);
+                assert!(
+                    (got - want).abs() < 1e-12,
+                    "({x},{y},{rad}) pixel ({},{}): {got} vs {want}",
+                    ix0 + i,
+                    iy0 + j
+                );
                 total_ref += want;
             }
         }
@@ -94,7 +116,8 @@ fn photometry_matches_photutils_reference_masks() {
 fn gauss_1d_quadrature(i: i64, mu: f64, sigma: f64) -> f64 {
     let n = 64; // even
     let (a, h) = (i as f64 - 0.5, 1.0 / n as f64);
-    let f = |x: f64| (-(x - mu) * (x - mu) / (2.0 * sigma * sigma)).exp() / (sigma * (2.0 * std::f64::consts::PI).sqrt());
+    let f =
+        |x: f64| (-(x - mu) * (x - mu) / (2.0 * sigma * sigma)).exp() / (sigma * (2.0 * std::f64::consts::PI).sqrt());
     let mut s = f(a) + f(a + 1.0);
     for k in 1..n {
         s += if k % 2 == 1 { 4.0 } else { 2.0 } * f(a + k as f64 * h);
@@ -150,12 +173,22 @@ fn photometry_centroid_recovers_gaussian_position() {
     let mut worst = 0.0f64;
     for &(x, y, sigma) in &[(20.37, 18.81, 1.5), (21.0, 19.5, 1.2), (19.62, 20.13, 2.4)] {
         let img = render(40, 42, &[(5.0e4, x, y)], sigma, 100.0).mapv(|v| v as f32);
-        for (fwhm_guess, dx0, dy0) in [(2.3548 * sigma, 1.2, -0.9), (1.8 * sigma, -1.5, 0.4), (3.2 * sigma, 0.3, 1.1)] {
-            let p = CentroidParams { fwhm_px: fwhm_guess, ..CentroidParams::default() };
+        for (fwhm_guess, dx0, dy0) in [
+            (2.3548 * sigma, 1.2, -0.9),
+            (1.8 * sigma, -1.5, 0.4),
+            (3.2 * sigma, 0.3, 1.1),
+        ] {
+            let p = CentroidParams {
+                fwhm_px: fwhm_guess,
+                ..CentroidParams::default()
+            };
             let c = centroid(img.view(), None, x + dx0, y + dy0, &p).expect("centroid");
             assert!(c.converged, "{c:?}");
             let err = (c.x - x).hypot(c.y - y);
-            assert!(err < 0.02, "true ({x}, {y}) sigma {sigma} fwhm guess {fwhm_guess}: {c:?}, err {err}");
+            assert!(
+                err < 0.02,
+                "true ({x}, {y}) sigma {sigma} fwhm guess {fwhm_guess}: {c:?}, err {err}"
+            );
             worst = worst.max(err);
             if fwhm_guess == 2.3548 * sigma {
                 // The default background ring (4 to 6 window sigma) sees < 1e-3 of the star.
@@ -170,7 +203,10 @@ fn photometry_centroid_recovers_gaussian_position() {
     let mut mask = Array2::<u8>::zeros((40, 40));
     mask[[21, 21]] = 1;
     let c = centroid(img.view(), Some(mask.view()), 19.5, 19.0, &CentroidParams::default()).unwrap();
-    eprintln!("centroid with a masked pixel near the core: error {:e} px", (c.x - 20.2).hypot(c.y - 19.7));
+    eprintln!(
+        "centroid with a masked pixel near the core: error {:e} px",
+        (c.x - 20.2).hypot(c.y - 19.7)
+    );
     assert!((c.x - 20.2).hypot(c.y - 19.7) < 0.05, "{c:?}");
     let flat = Array2::<f32>::zeros((20, 20));
     assert!(centroid(flat.view(), None, 10.0, 10.0, &CentroidParams::default()).is_none());
@@ -186,8 +222,20 @@ fn photometry_two_psf_fit_recovers_close_pair() {
         let (xb, yb) = (xa + sep * f64::cos(pa), ya + sep * f64::sin(pa));
         let (fa, fb) = (4.0e4, 4.0e4 * ratio);
         let img = render(50, 50, &[(fa, xa, ya), (fb, xb, yb)], sigma, 20.0).mapv(|v| v as f32);
-        let params = PsfFitParams { fwhm_px: 1.2 * fwhm, fit_radius_px: 9.0, ..PsfFitParams::default() };
-        let fit = fit_two_psf(img.view(), None, None, (xa + 0.4, ya - 0.3), (xb - 0.3, yb + 0.5), &params).expect("fit");
+        let params = PsfFitParams {
+            fwhm_px: 1.2 * fwhm,
+            fit_radius_px: 9.0,
+            ..PsfFitParams::default()
+        };
+        let fit = fit_two_psf(
+            img.view(),
+            None,
+            None,
+            (xa + 0.4, ya - 0.3),
+            (xb - 0.3, yb + 0.5),
+            &params,
+        )
+        .expect("fit");
         assert!(fit.converged, "{fit:?}");
         let (a, b) = (&fit.stars[0], &fit.stars[1]);
         let msg = format!("sep {sep_fwhm} FWHM ratio {ratio}: {fit:?}");
@@ -196,15 +244,25 @@ fn photometry_two_psf_fit_recovers_close_pair() {
             "two-PSF fit, sep {sep_fwhm} FWHM, ratio {ratio}: flux rel err {:.1e} {:.1e}, pos err {:.1e} {:.1e} px, {} iterations",
             rel_err(a.flux, fa), rel_err(b.flux, fb), (a.x - xa).hypot(a.y - ya), (b.x - xb).hypot(b.y - yb), fit.iterations
         );
-        assert!((a.x - xa).hypot(a.y - ya) < 1e-3 && (b.x - xb).hypot(b.y - yb) < 1e-3, "{msg}");
-        assert!(rel_err(fit.sigma_x, sigma) < 1e-4 && (fit.background - 20.0).abs() < 1e-2, "{msg}");
+        assert!(
+            (a.x - xa).hypot(a.y - ya) < 1e-3 && (b.x - xb).hypot(b.y - yb) < 1e-3,
+            "{msg}"
+        );
+        assert!(
+            rel_err(fit.sigma_x, sigma) < 1e-4 && (fit.background - 20.0).abs() < 1e-2,
+            "{msg}"
+        );
         assert_eq!(fit.param_names.len(), 8);
         assert_eq!(fit.covariance.len(), 8);
 
         // Deblending: subtract the companion, then aperture photometry of the primary with the
         // background level known -> its flux, up to the aperture's encircled energy.
         let clean = subtract_star(img.view(), &fit, 1);
-        let ap = Aperture { x: a.x, y: a.y, r: 4.0 * sigma };
+        let ap = Aperture {
+            x: a.x,
+            y: a.y,
+            r: 4.0 * sigma,
+        };
         let s = aperture_sum(clean.view(), None, None, &ap, Method::Exact, MaskFill::Exclude);
         let net = s.sum - s.area * fit.background;
         let ee = 1.0 - (-(4.0f64 * 4.0) / 2.0).exp(); // encircled energy of a Gaussian at 4 sigma
@@ -215,18 +273,38 @@ fn photometry_two_psf_fit_recovers_close_pair() {
     let sky = 50.0;
     let truth = render(50, 50, &[(3.0e4, 24.0, 25.0), (1.5e4, 27.5, 26.0)], 1.4, sky);
     let var = truth.mapv(|v| (v + 25.0) as f32); // gain 1 e/ADU, read noise 5 ADU
-    let noisy = Array2::from_shape_fn((50, 50), |(iy, ix)| (truth[[iy, ix]] + (var[[iy, ix]] as f64).sqrt() * rng.normal()) as f32);
-    let params = PsfFitParams { fwhm_px: 3.0, elliptical: true, ..PsfFitParams::default() };
-    let fit = fit_two_psf(noisy.view(), Some(var.view()), None, (24.2, 25.3), (27.2, 26.1), &params).unwrap();
+    let noisy = Array2::from_shape_fn((50, 50), |(iy, ix)| {
+        (truth[[iy, ix]] + (var[[iy, ix]] as f64).sqrt() * rng.normal()) as f32
+    });
+    let params = PsfFitParams {
+        fwhm_px: 3.0,
+        elliptical: true,
+        ..PsfFitParams::default()
+    };
+    let fit = fit_two_psf(
+        noisy.view(),
+        Some(var.view()),
+        None,
+        (24.2, 25.3),
+        (27.2, 26.1),
+        &params,
+    )
+    .unwrap();
     assert_eq!(fit.param_names.len(), 9);
     for (s, (f, x, y)) in fit.stars.iter().zip([(3.0e4, 24.0, 25.0), (1.5e4, 27.5, 26.0)]) {
         assert!((s.flux - f).abs() < 5.0 * s.flux_err, "{s:?}");
-        assert!((s.x - x).abs() < 5.0 * s.x_err && (s.y - y).abs() < 5.0 * s.y_err, "{s:?}");
+        assert!(
+            (s.x - x).abs() < 5.0 * s.x_err && (s.y - y).abs() < 5.0 * s.y_err,
+            "{s:?}"
+        );
         assert!(s.flux_err > 0.0 && s.flux_err < 0.02 * f);
     }
     let red = fit.chi2 / fit.dof as f64;
     assert!(red > 0.7 && red < 1.4, "reduced chi2 {red}");
-    assert!(matches!(fit_psf(noisy.view(), None, None, &[], &params), Err(PsfFitError::NoSources)));
+    assert!(matches!(
+        fit_psf(noisy.view(), None, None, &[], &params),
+        Err(PsfFitError::NoSources)
+    ));
 }
 
 /// The predicted variance of a background-subtracted flux matches the scatter of repeated
@@ -236,8 +314,15 @@ fn photometry_flux_variance_matches_monte_carlo() {
     let (n, sky, flux) = (48, 200.0, 3.0e4);
     let truth = render(n, n, &[(flux, 23.4, 24.1)], 1.6, sky);
     let var = truth.mapv(|v| v as f32); // gain 1 e/ADU: variance = value
-    let params = PhotParams { r_ap_px: 5.0, annulus_px: Some((9.0, 16.0)), ..PhotParams::default() };
-    let params_nomap = PhotParams { gain_e_per_adu: Some(1.0), ..params };
+    let params = PhotParams {
+        r_ap_px: 5.0,
+        annulus_px: Some((9.0, 16.0)),
+        ..PhotParams::default()
+    };
+    let params_nomap = PhotParams {
+        gain_e_per_adu: Some(1.0),
+        ..params
+    };
     let mut rng = Rng(42);
     let trials = 400;
     let (mut f1, mut f2, mut v1, mut v2) = (Vec::new(), Vec::new(), 0.0, 0.0);
@@ -255,16 +340,24 @@ fn photometry_flux_variance_matches_monte_carlo() {
     }
     let stats = |f: &[f64]| {
         let mean = f.iter().sum::<f64>() / f.len() as f64;
-        (mean, f.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (f.len() - 1) as f64)
+        (
+            mean,
+            f.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (f.len() - 1) as f64,
+        )
     };
     // Expected mean: the same measurement on the noiseless image.
-    let expected = measure(truth.mapv(|v| v as f32).view(), None, None, &params, 23.4, 24.1, &[]).aperture.sum
+    let expected = measure(truth.mapv(|v| v as f32).view(), None, None, &params, 23.4, 24.1, &[])
+        .aperture
+        .sum
         - sky * std::f64::consts::PI * 25.0;
     for (name, f, v) in [("variance map", &f1, v1), ("no map", &f2, v2)] {
         let (mean, emp) = stats(f);
         // 400 trials: the empirical variance is known to ~7% (1 sigma); allow 25%.
         assert!((emp / v - 1.0).abs() < 0.25, "{name}: empirical {emp} predicted {v}");
-        assert!((mean - expected).abs() < 4.0 * (v / trials as f64).sqrt(), "{name}: mean {mean} expected {expected}");
+        assert!(
+            (mean - expected).abs() < 4.0 * (v / trials as f64).sqrt(),
+            "{name}: mean {mean} expected {expected}"
+        );
     }
 }
 
@@ -279,8 +372,20 @@ fn photometry_exact_sum_r10_is_fast() {
     for k in 0..25 {
         let t0 = std::time::Instant::now();
         for j in 0..reps {
-            let ap = Aperture { x: 31.3 + 0.001 * j as f64, y: 32.6 - 0.0007 * k as f64, r: 10.0 };
-            acc += aperture_sum(img.view(), Some(var.view()), None, &ap, Method::Exact, MaskFill::Exclude).sum;
+            let ap = Aperture {
+                x: 31.3 + 0.001 * j as f64,
+                y: 32.6 - 0.0007 * k as f64,
+                r: 10.0,
+            };
+            acc += aperture_sum(
+                img.view(),
+                Some(var.view()),
+                None,
+                &ap,
+                Method::Exact,
+                MaskFill::Exclude,
+            )
+            .sum;
         }
         times.push(t0.elapsed().as_secs_f64() / reps as f64 * 1e6);
     }
@@ -295,14 +400,30 @@ fn photometry_exact_sum_r10_is_fast() {
 fn photometry_timing_breakdown() {
     let img = render(64, 64, &[(1.0e5, 31.3, 32.6)], 1.5, 10.0).mapv(|v| v as f32);
     let var = img.clone();
-    for (name, method, with_var) in [("exact+var", Method::Exact, true), ("exact", Method::Exact, false), ("center", Method::Center, false)] {
+    for (name, method, with_var) in [
+        ("exact+var", Method::Exact, true),
+        ("exact", Method::Exact, false),
+        ("center", Method::Center, false),
+    ] {
         let mut times = Vec::new();
         let mut acc = 0.0;
         for k in 0..25 {
             let t0 = std::time::Instant::now();
             for j in 0..200 {
-                let ap = Aperture { x: 31.3 + 0.001 * j as f64, y: 32.6 - 0.0007 * k as f64, r: 10.0 };
-                acc += aperture_sum(img.view(), with_var.then(|| var.view()), None, &ap, method, MaskFill::Exclude).sum;
+                let ap = Aperture {
+                    x: 31.3 + 0.001 * j as f64,
+                    y: 32.6 - 0.0007 * k as f64,
+                    r: 10.0,
+                };
+                acc += aperture_sum(
+                    img.view(),
+                    with_var.then(|| var.view()),
+                    None,
+                    &ap,
+                    method,
+                    MaskFill::Exclude,
+                )
+                .sum;
             }
             times.push(t0.elapsed().as_secs_f64() / 200.0 * 1e6);
         }
@@ -314,7 +435,15 @@ fn photometry_timing_breakdown() {
         let t0 = std::time::Instant::now();
         let mut s = 0.0;
         for j in 0..200 {
-            for_each_weight(31.3 + 0.001 * j as f64, 32.6 - 0.0007 * k as f64, 10.0, Method::Exact, (0, 63), (0, 63), |_, _, w| s += w);
+            for_each_weight(
+                31.3 + 0.001 * j as f64,
+                32.6 - 0.0007 * k as f64,
+                10.0,
+                Method::Exact,
+                (0, 63),
+                (0, 63),
+                |_, _, w| s += w,
+            );
         }
         std::hint::black_box(s);
         times.push(t0.elapsed().as_secs_f64() / 200.0 * 1e6);

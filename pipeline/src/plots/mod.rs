@@ -64,7 +64,11 @@ fn ensure_font() -> Result<()> {
         plotters::style::register_font(FONT, FontStyle::Normal, dejavu::sans::regular()).is_ok()
             && plotters::style::register_font(FONT, FontStyle::Bold, dejavu::sans::bold()).is_ok()
     });
-    if ok { Ok(()) } else { Err(Error::Font) }
+    if ok {
+        Ok(())
+    } else {
+        Err(Error::Font)
+    }
 }
 
 /// An RGB colour.
@@ -97,12 +101,22 @@ pub fn sequential(i: usize, n: usize) -> Rgb {
     let t = if n <= 1 { 0.0 } else { i as f64 / (n - 1) as f64 };
     // viridis, stopping short of its light yellow end (poor contrast on white)
     let t = 0.92 * t;
-    let stops = [(68.0, 1.0, 84.0), (59.0, 82.0, 139.0), (33.0, 145.0, 140.0), (94.0, 201.0, 98.0), (253.0, 231.0, 37.0)];
+    let stops = [
+        (68.0, 1.0, 84.0),
+        (59.0, 82.0, 139.0),
+        (33.0, 145.0, 140.0),
+        (94.0, 201.0, 98.0),
+        (253.0, 231.0, 37.0),
+    ];
     let x = t * (stops.len() - 1) as f64;
     let k = (x as usize).min(stops.len() - 2);
     let f = x - k as f64;
     let lerp = |a: f64, b: f64| (a + (b - a) * f).round() as u8;
-    Rgb(lerp(stops[k].0, stops[k + 1].0), lerp(stops[k].1, stops[k + 1].1), lerp(stops[k].2, stops[k + 1].2))
+    Rgb(
+        lerp(stops[k].0, stops[k + 1].0),
+        lerp(stops[k].1, stops[k + 1].1),
+        lerp(stops[k].2, stops[k + 1].2),
+    )
 }
 
 /// How a series is drawn.
@@ -138,15 +152,33 @@ pub struct Series {
 impl Series {
     /// A line through (x, y).
     pub fn line(label: impl Into<String>, x: Vec<f64>, y: Vec<f64>) -> Self {
-        Self { label: Some(label.into()), x, y, style: Style::Line(2), color: None }
+        Self {
+            label: Some(label.into()),
+            x,
+            y,
+            style: Style::Line(2),
+            color: None,
+        }
     }
     /// A histogram outline over bin `edges`.
     pub fn steps(label: impl Into<String>, edges: Vec<f64>, values: Vec<f64>) -> Self {
-        Self { label: Some(label.into()), x: edges, y: values, style: Style::Steps(2), color: None }
+        Self {
+            label: Some(label.into()),
+            x: edges,
+            y: values,
+            style: Style::Steps(2),
+            color: None,
+        }
     }
     /// Filled histogram bars over bin `edges`.
     pub fn bars(label: impl Into<String>, edges: Vec<f64>, values: Vec<f64>) -> Self {
-        Self { label: Some(label.into()), x: edges, y: values, style: Style::Bars, color: None }
+        Self {
+            label: Some(label.into()),
+            x: edges,
+            y: values,
+            style: Style::Bars,
+            color: None,
+        }
     }
     /// Set the colour.
     pub fn color(mut self, c: Rgb) -> Self {
@@ -169,7 +201,9 @@ impl Series {
             Style::Steps(_) | Style::Bars => self.x.len() == self.y.len() + 1,
             _ => self.x.len() == self.y.len(),
         };
-        if ok { Ok(()) } else {
+        if ok {
+            Ok(())
+        } else {
             Err(Error::Input(format!(
                 "series '{}': {} x values for {} y values",
                 self.label.as_deref().unwrap_or(""),
@@ -323,18 +357,31 @@ fn tick(v: f64) -> String {
 }
 
 fn draw_err<E: std::fmt::Display>(what: &str) -> impl Fn(E) -> Error + '_ {
-    move |e| Error::Draw { what: what.to_string(), reason: e.to_string() }
+    move |e| Error::Draw {
+        what: what.to_string(),
+        reason: e.to_string(),
+    }
 }
 
 impl Figure {
     /// One panel, 800 x 560 pixels.
     pub fn single(panel: Panel) -> Self {
-        Self { title: None, panels: vec![panel], cols: 1, panel_size: (800, 560) }
+        Self {
+            title: None,
+            panels: vec![panel],
+            cols: 1,
+            panel_size: (800, 560),
+        }
     }
 
     /// A grid of panels with `cols` per row, each `panel_size` pixels.
     pub fn grid(title: Option<String>, panels: Vec<Panel>, cols: usize, panel_size: (u32, u32)) -> Self {
-        Self { title, panels, cols: cols.max(1), panel_size }
+        Self {
+            title,
+            panels,
+            cols: cols.max(1),
+            panel_size,
+        }
     }
 
     /// Render to an RGB8 buffer (width, height, pixels).
@@ -348,13 +395,18 @@ impl Figure {
         let cols = self.cols.min(self.panels.len().max(1));
         let rows = self.panels.len().div_ceil(cols).max(1);
         let title_h: u32 = if self.title.is_some() { 44 } else { 0 };
-        let (w, h) = (self.panel_size.0 * cols as u32, self.panel_size.1 * rows as u32 + title_h);
+        let (w, h) = (
+            self.panel_size.0 * cols as u32,
+            self.panel_size.1 * rows as u32 + title_h,
+        );
         let mut buf = vec![255u8; (w * h * 3) as usize];
         {
             let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
             root.fill(&WHITE).map_err(draw_err("background"))?;
             let area = match &self.title {
-                Some(t) => root.titled(t, (FONT, 26).into_font().style(FontStyle::Bold)).map_err(draw_err("title"))?,
+                Some(t) => root
+                    .titled(t, (FONT, 26).into_font().style(FontStyle::Bold))
+                    .map_err(draw_err("title"))?,
                 None => root.clone(),
             };
             let cells = area.split_evenly((rows, cols));
@@ -434,7 +486,11 @@ where
                 chart.draw_series(rects).map_err(draw_err(&panel.title))?
             }
             Style::Points(r) => chart
-                .draw_series(s.x.iter().zip(&s.y).map(|(&x, &y)| Circle::new((x, y), r, color.filled())))
+                .draw_series(
+                    s.x.iter()
+                        .zip(&s.y)
+                        .map(|(&x, &y)| Circle::new((x, y), r, color.filled())),
+                )
                 .map_err(draw_err(&panel.title))?,
         };
         if let Some(label) = &s.label {
@@ -465,7 +521,11 @@ where
     for (k, line) in panel.notes.iter().enumerate() {
         let at = (x0 + 0.02 * (x1 - x0), y1 - (0.03 + 0.065 * k as f64) * (y1 - y0));
         chart
-            .draw_series(std::iter::once(Text::new(line.clone(), at, (FONT, 14).into_font().color(&BLACK))))
+            .draw_series(std::iter::once(Text::new(
+                line.clone(),
+                at,
+                (FONT, 14).into_font().color(&BLACK),
+            )))
             .map_err(draw_err(&panel.title))?;
     }
     Ok(())
@@ -474,9 +534,17 @@ where
 /// Write `bytes` to `path` atomically: a temporary file in the same directory, flushed and
 /// synced, then renamed over `path`.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let io = |e| Error::Io { path: path.to_path_buf(), source: e };
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let name = path.file_name().ok_or_else(|| Error::Input(format!("{} has no file name", path.display())))?;
+    let io = |e| Error::Io {
+        path: path.to_path_buf(),
+        source: e,
+    };
+    let dir = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let name = path
+        .file_name()
+        .ok_or_else(|| Error::Input(format!("{} has no file name", path.display())))?;
     let tmp = dir.join(format!(".{}.tmp{}", name.to_string_lossy(), std::process::id()));
     let result = (|| {
         let mut f = std::fs::File::create(&tmp)?;
@@ -491,7 +559,14 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 }
 
 /// One histogram as filled bars, written to `path`.
-pub fn histogram_png(path: &Path, edges: &[f64], values: &[f64], title: &str, xlabel: &str, ylabel: &str) -> Result<()> {
+pub fn histogram_png(
+    path: &Path,
+    edges: &[f64],
+    values: &[f64],
+    title: &str,
+    xlabel: &str,
+    ylabel: &str,
+) -> Result<()> {
     let panel = Panel::new(title, xlabel, ylabel)
         .with(Series::bars("", edges.to_vec(), values.to_vec()).unlabelled())
         .legend(LegendPos::None);
@@ -514,11 +589,19 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let edges: Vec<f64> = (0..=9).map(|i| 10.0 * i as f64).collect();
         let a = Panel::new("Observed Δγ", "Δγ [deg]", "N")
-            .with(Series::bars("data", edges.clone(), vec![9.0, 7.0, 5.0, 4.0, 3.0, 2.0, 2.0, 1.0, 1.0]))
+            .with(Series::bars(
+                "data",
+                edges.clone(),
+                vec![9.0, 7.0, 5.0, 4.0, 3.0, 2.0, 2.0, 1.0, 1.0],
+            ))
             .note("KS p = 0.001");
         let b = Panel::new("Π(Δγ)", "Δγ [deg]", "density")
             .with(Series::line("flat", vec![0.0, 90.0], vec![1.0 / 90.0, 1.0 / 90.0]))
-            .with(Series::steps("mc", edges, vec![0.012; 9]).style(Style::Steps(1)).color(sequential(3, 5)));
+            .with(
+                Series::steps("mc", edges, vec![0.012; 9])
+                    .style(Style::Steps(1))
+                    .color(sequential(3, 5)),
+            );
         let fig = Figure::grid(Some("test".into()), vec![a, b], 2, (400, 300));
         let (w, h, rgb) = fig.render_rgb().unwrap();
         assert_eq!((w, h), (800, 344));

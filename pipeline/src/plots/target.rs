@@ -84,21 +84,41 @@ pub fn target_png(path: &Path, target: &Target, cal: &[CalibratedOrientation], m
 /// [`target_png`] of a [`TargetOutcome`] (kept frames and measurements when present; a
 /// failed target gets the text-only figure).
 pub fn outcome_png(path: &Path, outcome: &TargetOutcome) -> io::Result<()> {
-    target_png_opt(path, &outcome.target, outcome.calibrated.as_deref(), outcome.measured.as_ref())
+    target_png_opt(
+        path,
+        &outcome.target,
+        outcome.calibrated.as_deref(),
+        outcome.measured.as_ref(),
+    )
 }
 
 /// [`target_png`] when the frames or the measurements may be missing.
-pub fn target_png_opt(path: &Path, target: &Target, cal: Option<&[CalibratedOrientation]>, m: Option<&Measured>) -> io::Result<()> {
+pub fn target_png_opt(
+    path: &Path,
+    target: &Target,
+    cal: Option<&[CalibratedOrientation]>,
+    m: Option<&Measured>,
+) -> io::Result<()> {
     let (w, h, rgb) = render_target_rgb(target, cal, m)?;
     let mut png = Vec::new();
-    image::ImageEncoder::write_image(image::codecs::png::PngEncoder::new(&mut png), &rgb, w, h, image::ExtendedColorType::Rgb8)
-        .map_err(de)?;
+    image::ImageEncoder::write_image(
+        image::codecs::png::PngEncoder::new(&mut png),
+        &rgb,
+        w,
+        h,
+        image::ExtendedColorType::Rgb8,
+    )
+    .map_err(de)?;
     write_atomic(path, &png).map_err(to_io)
 }
 
 /// Render the figure to an RGB8 buffer (width, height, pixels). Falls back to a text-only
 /// figure when the full one cannot be drawn.
-pub fn render_target_rgb(target: &Target, cal: Option<&[CalibratedOrientation]>, m: Option<&Measured>) -> io::Result<(u32, u32, Vec<u8>)> {
+pub fn render_target_rgb(
+    target: &Target,
+    cal: Option<&[CalibratedOrientation]>,
+    m: Option<&Measured>,
+) -> io::Result<(u32, u32, Vec<u8>)> {
     ensure_font().map_err(to_io)?;
     let full = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| render(target, cal, m)));
     match full {
@@ -116,7 +136,11 @@ fn finite(v: f64) -> bool {
 }
 
 fn fmt(v: f64, prec: usize) -> String {
-    if v.is_finite() { format!("{v:.prec$}") } else { "—".into() }
+    if v.is_finite() {
+        format!("{v:.prec$}")
+    } else {
+        "—".into()
+    }
 }
 
 fn median(v: &mut [f64]) -> Option<f64> {
@@ -132,7 +156,11 @@ fn median(v: &mut [f64]) -> Option<f64> {
         return None;
     }
     v.sort_by(|a, b| a.total_cmp(b));
-    Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
+    Some(if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    })
 }
 
 fn status_word(s: Status) -> &'static str {
@@ -161,20 +189,34 @@ struct Line {
 
 impl Line {
     fn plain(t: impl Into<String>) -> Self {
-        Line { text: t.into(), color: BLACK, bold: false }
+        Line {
+            text: t.into(),
+            color: BLACK,
+            bold: false,
+        }
     }
     fn head(t: impl Into<String>) -> Self {
-        Line { text: t.into(), color: BLACK, bold: true }
+        Line {
+            text: t.into(),
+            color: BLACK,
+            bold: true,
+        }
     }
     fn col(t: impl Into<String>, c: RGBColor) -> Self {
-        Line { text: t.into(), color: c, bold: false }
+        Line {
+            text: t.into(),
+            color: c,
+            bold: false,
+        }
     }
 }
 
 fn text_width(t: &str, bold: bool) -> u32 {
     let style = if bold { FontStyle::Bold } else { FontStyle::Normal };
     let font = FontDesc::new(FontFamily::Name(FONT), TEXT_FONT as f64, style);
-    font.box_size(t).map(|(w, _)| w).unwrap_or((t.chars().count() as u32) * TEXT_FONT * 6 / 10)
+    font.box_size(t)
+        .map(|(w, _)| w)
+        .unwrap_or((t.chars().count() as u32) * TEXT_FONT * 6 / 10)
 }
 
 /// Wrap `line` at word (or comma) boundaries to `width` px; continuation lines indented.
@@ -187,7 +229,10 @@ fn wrap(line: Line, width: u32, out: &mut Vec<Line>) {
     for word in line.text.split_inclusive([' ', ',']) {
         let cand = format!("{cur}{word}");
         if !cur.trim().is_empty() && text_width(cand.trim_end(), line.bold) > width {
-            out.push(Line { text: cur.trim_end().to_string(), ..line.clone() });
+            out.push(Line {
+                text: cur.trim_end().to_string(),
+                ..line.clone()
+            });
             cur = format!("    {word}");
         } else {
             cur = cand;
@@ -205,12 +250,18 @@ fn wrap(line: Line, width: u32, out: &mut Vec<Line>) {
                 break;
             }
             let rest: String = cur.chars().skip(head.chars().count()).collect();
-            out.push(Line { text: head, ..line.clone() });
+            out.push(Line {
+                text: head,
+                ..line.clone()
+            });
             cur = format!("    {rest}");
         }
     }
     if !cur.trim().is_empty() {
-        out.push(Line { text: cur.trim_end().to_string(), ..line });
+        out.push(Line {
+            text: cur.trim_end().to_string(),
+            ..line
+        });
     }
 }
 
@@ -223,7 +274,14 @@ fn component_lines(target: &Target, out: &mut Vec<Line>) {
         let col = comp_color(i, false);
         let pct = |v: f64| fmt(100.0 * v, 2);
         out.push(Line::col(
-            format!("{}:  P = {} ± {} %    γ = {} ± {}°", c.name, pct(c.p), pct(c.sigma_p), fmt(c.gamma_deg, 1), fmt(c.sigma_gamma_deg, 1)),
+            format!(
+                "{}:  P = {} ± {} %    γ = {} ± {}°",
+                c.name,
+                pct(c.p),
+                pct(c.sigma_p),
+                fmt(c.gamma_deg, 1),
+                fmt(c.sigma_gamma_deg, 1)
+            ),
             col,
         ));
         let snr = c.p / c.sigma_p;
@@ -236,9 +294,22 @@ fn component_lines(target: &Target, out: &mut Vec<Line>) {
             ),
             col,
         ));
-        out.push(Line::col(format!("      q = {} ± {} %,  u = {} ± {} %", pct(c.q), pct(c.sigma_q), pct(c.u), pct(c.sigma_u)), col));
+        out.push(Line::col(
+            format!(
+                "      q = {} ± {} %,  u = {} ± {} %",
+                pct(c.q),
+                pct(c.sigma_q),
+                pct(c.u),
+                pct(c.sigma_u)
+            ),
+            col,
+        ));
         if !c.flags.is_empty() {
-            wrap(Line::col(format!("      flags: {}", c.flags.join(", ")), col), COL_W, out);
+            wrap(
+                Line::col(format!("      flags: {}", c.flags.join(", ")), col),
+                COL_W,
+                out,
+            );
         }
     }
     let dg = match target.delta_gamma_deg {
@@ -248,33 +319,65 @@ fn component_lines(target: &Target, out: &mut Vec<Line>) {
     out.push(Line::head(dg));
 }
 
-fn measurement_lines(target: &Target, cal: Option<&[CalibratedOrientation]>, m: Option<&Measured>, out: &mut Vec<Line>) {
+fn measurement_lines(
+    target: &Target,
+    cal: Option<&[CalibratedOrientation]>,
+    m: Option<&Measured>,
+    out: &mut Vec<Line>,
+) {
     out.push(Line::head("Measurement"));
     let Some(m) = m else {
         out.push(Line::plain("no measurement"));
         return;
     };
     match m.geometry {
-        Some((sep, pa)) => out.push(Line::plain(format!("B from A: ρ = {}″, PA = {}°", fmt(sep, 3), fmt(pa, 1)))),
+        Some((sep, pa)) => out.push(Line::plain(format!(
+            "B from A: ρ = {}″, PA = {}°",
+            fmt(sep, 3),
+            fmt(pa, 1)
+        ))),
         None => out.push(Line::plain("companion not found")),
     }
-    out.push(Line::plain(format!("FWHM {} px;  aperture r = {} px ({})", fmt(m.fwhm_px, 2), fmt(m.aperture_px, 2), m.photometry)));
-    out.push(Line::plain(format!("e − o offset: ({}, {}) px", fmt(m.eo_offset_px.0, 2), fmt(m.eo_offset_px.1, 2))));
+    out.push(Line::plain(format!(
+        "FWHM {} px;  aperture r = {} px ({})",
+        fmt(m.fwhm_px, 2),
+        fmt(m.aperture_px, 2),
+        m.photometry
+    )));
+    out.push(Line::plain(format!(
+        "e − o offset: ({}, {}) px",
+        fmt(m.eo_offset_px.0, 2),
+        fmt(m.eo_offset_px.1, 2)
+    )));
     if let Some(cal) = cal.filter(|c| !c.is_empty()) {
         let pas: Vec<String> = cal.iter().map(|o| format!("{}", fmt(o.posang_deg, 1))).collect();
         let phis: Vec<String> = cal.iter().map(|o| format!("{}", fmt(o.analyzer_deg, 1))).collect();
-        wrap(Line::plain(format!("POSANG {}°;  φ {}°", pas.join(", "), phis.join(", "))), COL_W, out);
+        wrap(
+            Line::plain(format!("POSANG {}°;  φ {}°", pas.join(", "), phis.join(", "))),
+            COL_W,
+            out,
+        );
     }
     for (c, comp) in m.dithers.iter().enumerate() {
         let total: usize = comp.iter().map(|o| o.len()).sum();
-        let used: usize = comp.iter().flat_map(|o| o.iter()).filter(|d| d.rejected.is_none()).count();
+        let used: usize = comp
+            .iter()
+            .flat_map(|o| o.iter())
+            .filter(|d| d.rejected.is_none())
+            .count();
         // Rejected dithers grouped by reason: "bad_pixels: 0°#3, 45°#3".
         let mut why: Vec<(String, Vec<String>)> = Vec::new();
         for (k, o) in comp.iter().enumerate() {
             for (i, d) in o.iter().enumerate() {
                 if let Some(r) = &d.rejected {
                     let r = r.split(':').next_back().unwrap_or(r).trim().to_string();
-                    let at = format!("{}°#{}", cal.and_then(|c| c.get(k)).map(|o| fmt(o.posang_deg, 0)).unwrap_or(format!("{k}")), i + 1);
+                    let at = format!(
+                        "{}°#{}",
+                        cal.and_then(|c| c.get(k))
+                            .map(|o| fmt(o.posang_deg, 0))
+                            .unwrap_or(format!("{k}")),
+                        i + 1
+                    );
                     match why.iter_mut().find(|w| w.0 == r) {
                         Some(w) => w.1.push(at),
                         None => why.push((r, vec![at])),
@@ -290,7 +393,10 @@ fn measurement_lines(target: &Target, cal: Option<&[CalibratedOrientation]>, m: 
         wrap(Line::col(text, comp_color(c, false)), COL_W, out);
     }
     if !m.dithers.is_empty() {
-        out.push(Line::col("F plots: ● used, red ○ rejected, dashed: fitted q, u", RGBColor(90, 90, 90)));
+        out.push(Line::col(
+            "F plots: ● used, red ○ rejected, dashed: fitted q, u",
+            RGBColor(90, 90, 90),
+        ));
     }
     if let Some(v) = target.extra.get("sequence").and_then(|v| v.as_str()) {
         wrap(Line::plain(format!("sequence {v}")), COL_W, out);
@@ -298,9 +404,17 @@ fn measurement_lines(target: &Target, cal: Option<&[CalibratedOrientation]>, m: 
 }
 
 fn status_lines(target: &Target, m: Option<&Measured>, out: &mut Vec<Line>) {
-    out.push(Line { text: format!("Status: {}", status_word(target.status)), color: status_color(target.status), bold: true });
+    out.push(Line {
+        text: format!("Status: {}", status_word(target.status)),
+        color: status_color(target.status),
+        bold: true,
+    });
     if let Some(e) = &target.error {
-        wrap(Line::col(format!("error: {e}"), status_color(target.status)), COL_W, out);
+        wrap(
+            Line::col(format!("error: {e}"), status_color(target.status)),
+            COL_W,
+            out,
+        );
     }
     let mut flags: Vec<String> = m.map(|m| m.flags.clone()).unwrap_or_default();
     if let Some(arr) = target.extra.get("flags").and_then(|v| v.as_array()) {
@@ -348,7 +462,12 @@ fn sample(f: &Frame, x: f64, y: f64) -> Option<f32> {
     let (fx, fy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
     let bad = mbits::BAD | mbits::COSMIC | mbits::OFF_STRIP;
     let mut acc = 0.0f32;
-    for (yy, xx, w) in [(y0, x0, (1.0 - fx) * (1.0 - fy)), (y0, x1, fx * (1.0 - fy)), (y1, x0, (1.0 - fx) * fy), (y1, x1, fx * fy)] {
+    for (yy, xx, w) in [
+        (y0, x0, (1.0 - fx) * (1.0 - fy)),
+        (y0, x1, fx * (1.0 - fy)),
+        (y1, x0, (1.0 - fx) * fy),
+        (y1, x1, fx * fy),
+    ] {
         if w <= 0.0 {
             continue;
         }
@@ -362,7 +481,11 @@ fn sample(f: &Frame, x: f64, y: f64) -> Option<f32> {
 }
 
 fn beam_xy(d: &DitherValue, e_beam: bool) -> (f64, f64) {
-    if e_beam { d.e.xy } else { d.o.xy }
+    if e_beam {
+        d.e.xy
+    } else {
+        d.o.xy
+    }
 }
 
 /// Stack of beam `e_beam` of orientation `k` (None when no dither has a measured position).
@@ -370,7 +493,11 @@ fn stack(o: &CalibratedOrientation, m: &Measured, k: usize, e_beam: bool) -> Opt
     let a: &[DitherValue] = m.dithers.first()?.get(k)?;
     let b: Option<&[DitherValue]> = m.dithers.get(1).and_then(|c| c.get(k)).map(|v| v.as_slice());
     let anchors: Vec<Option<(f64, f64)>> = (0..o.frames.len())
-        .map(|i| a.get(i).map(|d| beam_xy(d, e_beam)).filter(|p| finite(p.0) && finite(p.1)))
+        .map(|i| {
+            a.get(i)
+                .map(|d| beam_xy(d, e_beam))
+                .filter(|p| finite(p.0) && finite(p.1))
+        })
         .collect();
     if anchors.iter().all(|p| p.is_none()) {
         return None;
@@ -387,7 +514,11 @@ fn stack(o: &CalibratedOrientation, m: &Measured, k: usize, e_beam: bool) -> Opt
             .unzip();
         Some((median(&mut dx)?, median(&mut dy)?))
     });
-    let ap = if m.aperture_px.is_finite() && m.aperture_px > 0.0 { m.aperture_px.min(30.0) } else { 3.0 };
+    let ap = if m.aperture_px.is_finite() && m.aperture_px > 0.0 {
+        m.aperture_px.min(30.0)
+    } else {
+        3.0
+    };
     let r = rel.map(|r| r.0.hypot(r.1)).unwrap_or(0.0).min(100.0);
     let h = ((0.5 * r + ap + 8.0).ceil() as usize).clamp(24, 60);
     let n = 2 * h + 1;
@@ -409,7 +540,11 @@ fn stack(o: &CalibratedOrientation, m: &Measured, k: usize, e_beam: bool) -> Opt
             if !vals.is_empty() {
                 vals.sort_by(|a, b| a.total_cmp(b));
                 let q = vals.len();
-                pix[j * n + i] = if q % 2 == 1 { vals[q / 2] } else { 0.5 * (vals[q / 2 - 1] + vals[q / 2]) };
+                pix[j * n + i] = if q % 2 == 1 {
+                    vals[q / 2]
+                } else {
+                    0.5 * (vals[q / 2 - 1] + vals[q / 2])
+                };
             }
         }
     }
@@ -423,8 +558,15 @@ fn stack(o: &CalibratedOrientation, m: &Measured, k: usize, e_beam: bool) -> Opt
 
 /// asinh stretch parameters (low, soft, high) shared by the tiles of one orientation.
 fn stretch(stacks: &[&Stack]) -> (f32, f32, f32) {
-    let mut all: Vec<f64> = stacks.iter().flat_map(|s| s.pix.iter()).filter(|v| v.is_finite()).map(|&v| v as f64).collect();
-    let Some(bg) = median(&mut all) else { return (0.0, 1.0, 1.0) };
+    let mut all: Vec<f64> = stacks
+        .iter()
+        .flat_map(|s| s.pix.iter())
+        .filter(|v| v.is_finite())
+        .map(|&v| v as f64)
+        .collect();
+    let Some(bg) = median(&mut all) else {
+        return (0.0, 1.0, 1.0);
+    };
     let mut dev: Vec<f64> = all.iter().map(|v| (v - bg).abs()).collect();
     let noise = 1.4826 * median(&mut dev).unwrap_or(0.0);
     let peak = all.iter().copied().fold(f64::NEG_INFINITY, f64::max);
@@ -461,13 +603,22 @@ fn paint_tile(buf: &mut [u8], width: u32, x0: u32, y0: u32, s: &Stack, (lo, soft
 /// Tile pixel position of cut-out coordinates (x, y).
 fn tile_xy(s: &Stack, x0: u32, y0: u32, (x, y): (f64, f64)) -> (i32, i32) {
     let k = TILE as f64 / s.n as f64;
-    (x0 as i32 + ((x + 0.5) * k).round() as i32, y0 as i32 + (TILE as f64 - (y + 0.5) * k).round() as i32)
+    (
+        x0 as i32 + ((x + 0.5) * k).round() as i32,
+        y0 as i32 + (TILE as f64 - (y + 0.5) * k).round() as i32,
+    )
 }
 
 fn draw_tile_overlay(root: &Area, s: &Stack, x0: u32, y0: u32, ap: f64, beam: &str, posang: f64) -> io::Result<()> {
     let k = TILE as f64 / s.n as f64;
-    let r = if ap.is_finite() && ap > 0.0 { (ap * k).round().max(2.0) as i32 } else { (3.0 * k) as i32 };
-    let centre = s.stars.iter().fold((0.0, 0.0), |a, p| (a.0 + p.0 / s.stars.len() as f64, a.1 + p.1 / s.stars.len() as f64));
+    let r = if ap.is_finite() && ap > 0.0 {
+        (ap * k).round().max(2.0) as i32
+    } else {
+        (3.0 * k) as i32
+    };
+    let centre = s.stars.iter().fold((0.0, 0.0), |a, p| {
+        (a.0 + p.0 / s.stars.len() as f64, a.1 + p.1 / s.stars.len() as f64)
+    });
     for (c, &p) in s.stars.iter().enumerate() {
         let (x, y) = tile_xy(s, x0, y0, p);
         let col = comp_color(c, true);
@@ -482,13 +633,30 @@ fn draw_tile_overlay(root: &Area, s: &Stack, x0: u32, y0: u32, ap: f64, beam: &s
         }
         let d = r as f64 + 11.0;
         let at = ((x as f64 + dx * d) as i32, (y as f64 + dy * d) as i32);
-        let style = (FONT, 17).into_font().style(FontStyle::Bold).color(&col).pos(Pos::new(HPos::Center, VPos::Center));
+        let style = (FONT, 17)
+            .into_font()
+            .style(FontStyle::Bold)
+            .color(&col)
+            .pos(Pos::new(HPos::Center, VPos::Center));
         root.draw(&Text::new(COMP_NAMES[c.min(1)], at, style)).map_err(de)?;
     }
     let lab = (FONT, 15).into_font().color(&WHITE);
-    root.draw(&Text::new(beam.to_string(), (x0 as i32 + 6, y0 as i32 + 4), lab.clone())).map_err(de)?;
-    let sz = (FONT, 11).into_font().color(&RGBColor(200, 200, 200)).pos(Pos::new(HPos::Left, VPos::Bottom));
-    root.draw(&Text::new(format!("{0}×{0} px", s.n), (x0 as i32 + 5, (y0 + TILE) as i32 - 3), sz)).map_err(de)?;
+    root.draw(&Text::new(
+        beam.to_string(),
+        (x0 as i32 + 6, y0 as i32 + 4),
+        lab.clone(),
+    ))
+    .map_err(de)?;
+    let sz = (FONT, 11)
+        .into_font()
+        .color(&RGBColor(200, 200, 200))
+        .pos(Pos::new(HPos::Left, VPos::Bottom));
+    root.draw(&Text::new(
+        format!("{0}×{0} px", s.n),
+        (x0 as i32 + 5, (y0 + TILE) as i32 - 3),
+        sz,
+    ))
+    .map_err(de)?;
     // Compass: PA psi is along detector (-sin(psi - theta), cos(psi - theta)).
     if posang.is_finite() {
         let c = ((x0 + TILE) as i32 - 30, (y0 + TILE) as i32 - 30);
@@ -496,9 +664,13 @@ fn draw_tile_overlay(root: &Area, s: &Stack, x0: u32, y0: u32, ap: f64, beam: &s
             let a = (psi - posang).to_radians();
             let (dx, dy) = (-a.sin(), -a.cos()); // screen y down
             let tip = (c.0 + (dx * 14.0) as i32, c.1 + (dy * 14.0) as i32);
-            root.draw(&PathElement::new(vec![c, tip], RGBColor(160, 220, 160).stroke_width(1))).map_err(de)?;
+            root.draw(&PathElement::new(vec![c, tip], RGBColor(160, 220, 160).stroke_width(1)))
+                .map_err(de)?;
             let lp = (c.0 + (dx * 21.0) as i32, c.1 + (dy * 21.0) as i32);
-            let st = (FONT, 10).into_font().color(&RGBColor(160, 220, 160)).pos(Pos::new(HPos::Center, VPos::Center));
+            let st = (FONT, 10)
+                .into_font()
+                .color(&RGBColor(160, 220, 160))
+                .pos(Pos::new(HPos::Center, VPos::Center));
             root.draw(&Text::new(name, lp, st)).map_err(de)?;
         }
     }
@@ -506,19 +678,44 @@ fn draw_tile_overlay(root: &Area, s: &Stack, x0: u32, y0: u32, ap: f64, beam: &s
 }
 
 fn empty_tile(root: &Area, x0: u32, y0: u32, msg: &str) -> io::Result<()> {
-    root.draw(&Rectangle::new([(x0 as i32, y0 as i32), ((x0 + TILE) as i32, (y0 + TILE) as i32)], RGBColor(225, 225, 225).filled()))
-        .map_err(de)?;
-    let st = (FONT, 13).into_font().color(&RGBColor(90, 90, 90)).pos(Pos::new(HPos::Center, VPos::Center));
-    root.draw(&Text::new(msg.to_string(), ((x0 + TILE / 2) as i32, (y0 + TILE / 2) as i32), st)).map_err(de)?;
+    root.draw(&Rectangle::new(
+        [(x0 as i32, y0 as i32), ((x0 + TILE) as i32, (y0 + TILE) as i32)],
+        RGBColor(225, 225, 225).filled(),
+    ))
+    .map_err(de)?;
+    let st = (FONT, 13)
+        .into_font()
+        .color(&RGBColor(90, 90, 90))
+        .pos(Pos::new(HPos::Center, VPos::Center));
+    root.draw(&Text::new(
+        msg.to_string(),
+        ((x0 + TILE / 2) as i32, (y0 + TILE / 2) as i32),
+        st,
+    ))
+    .map_err(de)?;
     Ok(())
 }
 
 // ---------------------------------------------------------------------------------------
 // Per-dither F
 
-fn f_panel(root: &Area, x0: u32, y0: u32, w: u32, h: u32, m: &Measured, k: usize, phi: f64, target: &Target) -> io::Result<()> {
+fn f_panel(
+    root: &Area,
+    x0: u32,
+    y0: u32,
+    w: u32,
+    h: u32,
+    m: &Measured,
+    k: usize,
+    phi: f64,
+    target: &Target,
+) -> io::Result<()> {
     let area = root.clone().shrink((x0, y0), (w, h));
-    let per: Vec<&[DitherValue]> = m.dithers.iter().filter_map(|c| c.get(k).map(|v| v.as_slice())).collect();
+    let per: Vec<&[DitherValue]> = m
+        .dithers
+        .iter()
+        .filter_map(|c| c.get(k).map(|v| v.as_slice()))
+        .collect();
     let nd = per.iter().map(|v| v.len()).max().unwrap_or(0);
     // Model F from the fitted q, u of each component.
     let model: Vec<Option<f64>> = (0..per.len())
@@ -555,7 +752,13 @@ fn f_panel(root: &Area, x0: u32, y0: u32, w: u32, h: u32, m: &Measured, k: usize
         .y_label_area_size(52)
         .build_cartesian_2d(0.5..xmax, lo..hi)
         .map_err(de)?;
-    let xfmt = |v: &f64| if (v - v.round()).abs() < 1e-6 { format!("{}", v.round() as i64) } else { String::new() };
+    let xfmt = |v: &f64| {
+        if (v - v.round()).abs() < 1e-6 {
+            format!("{}", v.round() as i64)
+        } else {
+            String::new()
+        }
+    };
     let yfmt = |v: &f64| super::tick(*v);
     chart
         .configure_mesh()
@@ -575,9 +778,20 @@ fn f_panel(root: &Area, x0: u32, y0: u32, w: u32, h: u32, m: &Measured, k: usize
     for (c, vals) in per.iter().enumerate() {
         let col = comp_color(c, false);
         if let Some(v) = model[c] {
-            chart.draw_series(DashedLineSeries::new(vec![(0.5, v), (xmax, v)], 6, 4, col.mix(0.8).stroke_width(1))).map_err(de)?;
+            chart
+                .draw_series(DashedLineSeries::new(
+                    vec![(0.5, v), (xmax, v)],
+                    6,
+                    4,
+                    col.mix(0.8).stroke_width(1),
+                ))
+                .map_err(de)?;
         }
-        let shift = if nc > 1 { (c as f64 - 0.5 * (nc - 1) as f64) * 0.14 } else { 0.0 };
+        let shift = if nc > 1 {
+            (c as f64 - 0.5 * (nc - 1) as f64) * 0.14
+        } else {
+            0.0
+        };
         for (i, d) in vals.iter().enumerate() {
             let (f, s) = (100.0 * d.f, 100.0 * d.sigma_f);
             if !f.is_finite() {
@@ -589,24 +803,42 @@ fn f_panel(root: &Area, x0: u32, y0: u32, w: u32, h: u32, m: &Measured, k: usize
             let ecol = if rej { REJECT } else { col };
             if s.is_finite() && s > 0.0 {
                 let (a, b) = ((f - s).max(lo), (f + s).min(hi));
-                chart.draw_series(std::iter::once(PathElement::new(vec![(x, a), (x, b)], ecol.stroke_width(1)))).map_err(de)?;
+                chart
+                    .draw_series(std::iter::once(PathElement::new(
+                        vec![(x, a), (x, b)],
+                        ecol.stroke_width(1),
+                    )))
+                    .map_err(de)?;
                 for y in [a, b] {
                     chart
-                        .draw_series(std::iter::once(PathElement::new(vec![(x - 0.05, y), (x + 0.05, y)], ecol.stroke_width(1))))
+                        .draw_series(std::iter::once(PathElement::new(
+                            vec![(x - 0.05, y), (x + 0.05, y)],
+                            ecol.stroke_width(1),
+                        )))
                         .map_err(de)?;
                 }
             }
             if rej {
-                chart.draw_series(std::iter::once(Circle::new((x, f), 4, WHITE.filled()))).map_err(de)?;
-                chart.draw_series(std::iter::once(Circle::new((x, f), 4, REJECT.stroke_width(2)))).map_err(de)?;
+                chart
+                    .draw_series(std::iter::once(Circle::new((x, f), 4, WHITE.filled())))
+                    .map_err(de)?;
+                chart
+                    .draw_series(std::iter::once(Circle::new((x, f), 4, REJECT.stroke_width(2))))
+                    .map_err(de)?;
             } else {
-                chart.draw_series(std::iter::once(Circle::new((x, f), 4, col.filled()))).map_err(de)?;
+                chart
+                    .draw_series(std::iter::once(Circle::new((x, f), 4, col.filled())))
+                    .map_err(de)?;
             }
         }
     }
     if nd == 0 {
-        let st = (FONT, 13).into_font().color(&RGBColor(120, 120, 120)).pos(Pos::new(HPos::Center, VPos::Center));
-        area.draw(&Text::new("no per-dither values", ((w / 2) as i32, (h / 2) as i32), st)).map_err(de)?;
+        let st = (FONT, 13)
+            .into_font()
+            .color(&RGBColor(120, 120, 120))
+            .pos(Pos::new(HPos::Center, VPos::Center));
+        area.draw(&Text::new("no per-dither values", ((w / 2) as i32, (h / 2) as i32), st))
+            .map_err(de)?;
     }
     Ok(())
 }
@@ -661,31 +893,63 @@ fn label_dir(star: (f64, f64), other: Option<(f64, f64)>, gamma_deg: Option<f64>
 
 fn pol_panel(root: &Area, x0: u32, y0: u32, s: u32, target: &Target, m: Option<&Measured>) -> io::Result<()> {
     let (x0i, y0i, si) = (x0 as i32, y0 as i32, s as i32);
-    let title = (FONT, 16).into_font().style(FontStyle::Bold).color(&BLACK).pos(Pos::new(HPos::Center, VPos::Top));
-    root.draw(&Text::new("Polarization on the sky", (x0i + si / 2, y0i), title)).map_err(de)?;
+    let title = (FONT, 16)
+        .into_font()
+        .style(FontStyle::Bold)
+        .color(&BLACK)
+        .pos(Pos::new(HPos::Center, VPos::Top));
+    root.draw(&Text::new("Polarization on the sky", (x0i + si / 2, y0i), title))
+        .map_err(de)?;
     let top = y0i + 24;
     let side = si - 24;
     let left = x0i + (si - side) / 2;
-    root.draw(&Rectangle::new([(left, top), (left + side, top + side)], RGBColor(250, 250, 250).filled())).map_err(de)?;
-    root.draw(&Rectangle::new([(left, top), (left + side, top + side)], RGBColor(150, 150, 150).stroke_width(1))).map_err(de)?;
+    root.draw(&Rectangle::new(
+        [(left, top), (left + side, top + side)],
+        RGBColor(250, 250, 250).filled(),
+    ))
+    .map_err(de)?;
+    root.draw(&Rectangle::new(
+        [(left, top), (left + side, top + side)],
+        RGBColor(150, 150, 150).stroke_width(1),
+    ))
+    .map_err(de)?;
     let grey = RGBColor(110, 110, 110);
     // Compass, top left: north up, east left.
     let c = (left + 54, top + 46);
     for ((dx, dy), name) in [((0, -26), "N"), ((-26, 0), "E")] {
         let tip = (c.0 + dx, c.1 + dy);
-        root.draw(&PathElement::new(vec![c, tip], grey.stroke_width(2))).map_err(de)?;
+        root.draw(&PathElement::new(vec![c, tip], grey.stroke_width(2)))
+            .map_err(de)?;
         let lp = (c.0 + dx * 3 / 2 - if dx != 0 { 2 } else { 0 }, c.1 + dy * 3 / 2);
-        root.draw(&Text::new(name, lp, (FONT, 13).into_font().color(&grey).pos(Pos::new(HPos::Center, VPos::Center)))).map_err(de)?;
+        root.draw(&Text::new(
+            name,
+            lp,
+            (FONT, 13)
+                .into_font()
+                .color(&grey)
+                .pos(Pos::new(HPos::Center, VPos::Center)),
+        ))
+        .map_err(de)?;
     }
     let comps = &target.components;
     if comps.is_empty() {
-        let st = (FONT, 14).into_font().color(&grey).pos(Pos::new(HPos::Center, VPos::Center));
-        root.draw(&Text::new("no polarization measured", (left + side / 2, top + side / 2), st)).map_err(de)?;
+        let st = (FONT, 14)
+            .into_font()
+            .color(&grey)
+            .pos(Pos::new(HPos::Center, VPos::Center));
+        root.draw(&Text::new(
+            "no polarization measured",
+            (left + side / 2, top + side / 2),
+            st,
+        ))
+        .map_err(de)?;
         return Ok(());
     }
     let cx = (left + side / 2) as f64;
     let cy = (top + side / 2) as f64;
-    let geometry = m.and_then(|m| m.geometry).filter(|g| g.0.is_finite() && g.1.is_finite());
+    let geometry = m
+        .and_then(|m| m.geometry)
+        .filter(|g| g.0.is_finite() && g.1.is_finite());
     let dstar = 0.40 * side as f64;
     let pos: Vec<(f64, f64)> = match comps.len() {
         1 => vec![(cx, cy)],
@@ -701,7 +965,11 @@ fn pol_panel(root: &Area, x0: u32, y0: u32, s: u32, target: &Target, m: Option<&
             v
         }
     };
-    let ps: Vec<f64> = comps.iter().map(|c| c.p).filter(|p| p.is_finite() && *p > 0.0 && *p < 1.0).collect();
+    let ps: Vec<f64> = comps
+        .iter()
+        .map(|c| c.p)
+        .filter(|p| p.is_finite() && *p > 0.0 && *p < 1.0)
+        .collect();
     let pmax = ps.iter().copied().fold(0.0, f64::max);
     let scale_p = nice_ceil(pmax);
     let full = if comps.len() == 1 { 0.7 } else { 0.38 } * side as f64; // length of a scale_p vector
@@ -713,8 +981,12 @@ fn pol_panel(root: &Area, x0: u32, y0: u32, s: u32, target: &Target, m: Option<&
             let half = 0.5 * full * comp.p / scale_p;
             let g = comp.gamma_deg.to_radians();
             let (dx, dy) = (-g.sin(), -g.cos()); // east left, north up (screen y down)
-            // Error wedge ±sigma_gamma, both ends (axial).
-            let sg = if comp.sigma_gamma_deg.is_finite() { comp.sigma_gamma_deg.clamp(0.0, 90.0) } else { 90.0 };
+                                                 // Error wedge ±sigma_gamma, both ends (axial).
+            let sg = if comp.sigma_gamma_deg.is_finite() {
+                comp.sigma_gamma_deg.clamp(0.0, 90.0)
+            } else {
+                90.0
+            };
             let rw = half.max(10.0);
             if sg > 0.05 {
                 for end in [0.0, 180.0] {
@@ -729,52 +1001,93 @@ fn pol_panel(root: &Area, x0: u32, y0: u32, s: u32, target: &Target, m: Option<&
             }
             let a = ((sx - dx * half).round() as i32, (sy - dy * half).round() as i32);
             let b = ((sx + dx * half).round() as i32, (sy + dy * half).round() as i32);
-            let style = if comp.passes_cut { col.stroke_width(4) } else { col.mix(0.55).stroke_width(3) };
+            let style = if comp.passes_cut {
+                col.stroke_width(4)
+            } else {
+                col.mix(0.55).stroke_width(3)
+            };
             root.draw(&PathElement::new(vec![a, b], style)).map_err(de)?;
         }
-        root.draw(&Circle::new((sx as i32, sy as i32), 6, col.filled())).map_err(de)?;
-        root.draw(&Circle::new((sx as i32, sy as i32), 6, BLACK.stroke_width(1))).map_err(de)?;
+        root.draw(&Circle::new((sx as i32, sy as i32), 6, col.filled()))
+            .map_err(de)?;
+        root.draw(&Circle::new((sx as i32, sy as i32), 6, BLACK.stroke_width(1)))
+            .map_err(de)?;
         // Name next to the star: away from the other star and off the vector's axis.
         let other = if pos.len() > 1 { Some(pos[1 - i.min(1)]) } else { None };
         let axis = if ok { Some(comp.gamma_deg) } else { None };
         let (ox, oy) = label_dir((sx, sy), other, axis);
         let lp = ((sx + ox * 22.0) as i32, (sy + oy * 22.0) as i32);
-        let st = (FONT, 17).into_font().style(FontStyle::Bold).color(&col).pos(Pos::new(HPos::Center, VPos::Center));
+        let st = (FONT, 17)
+            .into_font()
+            .style(FontStyle::Bold)
+            .color(&col)
+            .pos(Pos::new(HPos::Center, VPos::Center));
         root.draw(&Text::new(comp.name.clone(), lp, st)).map_err(de)?;
         if !ok {
-            let st = (FONT, 12).into_font().color(&col).pos(Pos::new(HPos::Center, VPos::Top));
-            root.draw(&Text::new("P undefined", ((sx) as i32, (sy + 10.0) as i32), st)).map_err(de)?;
+            let st = (FONT, 12)
+                .into_font()
+                .color(&col)
+                .pos(Pos::new(HPos::Center, VPos::Top));
+            root.draw(&Text::new("P undefined", ((sx) as i32, (sy + 10.0) as i32), st))
+                .map_err(de)?;
         }
     }
     // Scale bar, bottom left.
     let bar = (if comps.len() == 1 { 0.7 } else { 0.38 } * side as f64 * 0.5).round() as i32;
     let by = top + side - 18;
     let bx = left + 14;
-    root.draw(&PathElement::new(vec![(bx, by), (bx + bar, by)], BLACK.stroke_width(3))).map_err(de)?;
-    let st = (FONT, 13).into_font().color(&BLACK).pos(Pos::new(HPos::Left, VPos::Center));
-    root.draw(&Text::new(format!("P = {} %", super::tick(50.0 * scale_p)), (bx + bar + 8, by), st)).map_err(de)?;
-    let st = (FONT, 12).into_font().color(&grey).pos(Pos::new(HPos::Right, VPos::Bottom));
+    root.draw(&PathElement::new(vec![(bx, by), (bx + bar, by)], BLACK.stroke_width(3)))
+        .map_err(de)?;
+    let st = (FONT, 13)
+        .into_font()
+        .color(&BLACK)
+        .pos(Pos::new(HPos::Left, VPos::Center));
+    root.draw(&Text::new(
+        format!("P = {} %", super::tick(50.0 * scale_p)),
+        (bx + bar + 8, by),
+        st,
+    ))
+    .map_err(de)?;
+    let st = (FONT, 12)
+        .into_font()
+        .color(&grey)
+        .pos(Pos::new(HPos::Right, VPos::Bottom));
     let note = match (comps.len(), geometry) {
         (1, _) => "wedge: ±σγ".to_string(),
         (_, Some((sep, pa))) => format!("B at ρ = {sep:.2}″, PA {pa:.1}° (not to scale); wedge ±σγ"),
         (_, None) => "B position unknown; wedge ±σγ".to_string(),
     };
-    root.draw(&Text::new(note, (left + side - 6, top + side - 34), st)).map_err(de)?;
+    root.draw(&Text::new(note, (left + side - 6, top + side - 34), st))
+        .map_err(de)?;
     Ok(())
 }
 
 // ---------------------------------------------------------------------------------------
 // The figure
 
-fn render(target: &Target, cal: Option<&[CalibratedOrientation]>, m: Option<&Measured>) -> io::Result<(u32, u32, Vec<u8>)> {
+fn render(
+    target: &Target,
+    cal: Option<&[CalibratedOrientation]>,
+    m: Option<&Measured>,
+) -> io::Result<(u32, u32, Vec<u8>)> {
     let cal = cal.unwrap_or(&[]);
     let n_or = match m {
-        Some(m) => cal.len().max(m.dithers.first().filter(|c| c.iter().any(|o| !o.is_empty())).map(|c| c.len()).unwrap_or(0)),
+        Some(m) => cal.len().max(
+            m.dithers
+                .first()
+                .filter(|c| c.iter().any(|o| !o.is_empty()))
+                .map(|c| c.len())
+                .unwrap_or(0),
+        ),
         None => 0,
     }
     .min(16);
     let rows = n_or.div_ceil(2) as u32;
-    let body_h = if n_or == 0 { 70 } else { (rows * CELL_H).max(POL_S + 26) + 10 };
+    let body_h = if n_or == 0 {
+        70
+    } else {
+        (rows * CELL_H).max(POL_S + 26) + 10
+    };
 
     // Text band: three columns.
     let mut cols: [Vec<Line>; 3] = [Vec::new(), Vec::new(), Vec::new()];
@@ -816,15 +1129,40 @@ fn render(target: &Target, cal: Option<&[CalibratedOrientation]>, m: Option<&Mea
     {
         let root: Area = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
         // Title band.
-        root.draw(&Rectangle::new([(0, 0), (w as i32, TITLE_H as i32 - 6)], RGBColor(240, 243, 247).filled())).map_err(de)?;
+        root.draw(&Rectangle::new(
+            [(0, 0), (w as i32, TITLE_H as i32 - 6)],
+            RGBColor(240, 243, 247).filled(),
+        ))
+        .map_err(de)?;
         let title = format!("{}  —  {}", target.object, status_word(target.status));
-        let st = (FONT, 24).into_font().style(FontStyle::Bold).color(&BLACK).pos(Pos::new(HPos::Left, VPos::Center));
-        root.draw(&Text::new(title.clone(), (14, (TITLE_H as i32 - 6) / 2), st)).map_err(de)?;
-        let tw = FontDesc::new(FontFamily::Name(FONT), 24.0, FontStyle::Bold).box_size(&title).map(|s| s.0).unwrap_or(300) as i32;
-        root.draw(&Circle::new((tw + 28, (TITLE_H as i32 - 6) / 2), 8, status_color(target.status).filled())).map_err(de)?;
+        let st = (FONT, 24)
+            .into_font()
+            .style(FontStyle::Bold)
+            .color(&BLACK)
+            .pos(Pos::new(HPos::Left, VPos::Center));
+        root.draw(&Text::new(title.clone(), (14, (TITLE_H as i32 - 6) / 2), st))
+            .map_err(de)?;
+        let tw = FontDesc::new(FontFamily::Name(FONT), 24.0, FontStyle::Bold)
+            .box_size(&title)
+            .map(|s| s.0)
+            .unwrap_or(300) as i32;
+        root.draw(&Circle::new(
+            (tw + 28, (TITLE_H as i32 - 6) / 2),
+            8,
+            status_color(target.status).filled(),
+        ))
+        .map_err(de)?;
         if let Some(seq) = target.extra.get("sequence").and_then(|v| v.as_str()) {
-            let st = (FONT, 14).into_font().color(&RGBColor(90, 90, 90)).pos(Pos::new(HPos::Right, VPos::Center));
-            root.draw(&Text::new(seq.to_string(), (w as i32 - 14, (TITLE_H as i32 - 6) / 2), st)).map_err(de)?;
+            let st = (FONT, 14)
+                .into_font()
+                .color(&RGBColor(90, 90, 90))
+                .pos(Pos::new(HPos::Right, VPos::Center));
+            root.draw(&Text::new(
+                seq.to_string(),
+                (w as i32 - 14, (TITLE_H as i32 - 6) / 2),
+                st,
+            ))
+            .map_err(de)?;
         }
 
         if n_or == 0 {
@@ -833,8 +1171,12 @@ fn render(target: &Target, cal: Option<&[CalibratedOrientation]>, m: Option<&Mea
                 (false, true) => "No measurement to show.",
                 _ => "No orientation measured.",
             };
-            let st = (FONT, 18).into_font().color(&RGBColor(110, 110, 110)).pos(Pos::new(HPos::Left, VPos::Center));
-            root.draw(&Text::new(msg, (14, (TITLE_H + body_h / 2) as i32), st)).map_err(de)?;
+            let st = (FONT, 18)
+                .into_font()
+                .color(&RGBColor(110, 110, 110))
+                .pos(Pos::new(HPos::Left, VPos::Center));
+            root.draw(&Text::new(msg, (14, (TITLE_H + body_h / 2) as i32), st))
+                .map_err(de)?;
         }
 
         for (k, cell) in cells.iter().enumerate() {
@@ -845,10 +1187,19 @@ fn render(target: &Target, cal: Option<&[CalibratedOrientation]>, m: Option<&Mea
             let used = cell.tiles.iter().flatten().map(|t| t.used).max().unwrap_or(0);
             let label = format!("POSANG {}°   (φ = {}°)", fmt(posang, 1), fmt(phi, 1));
             let st = (FONT, 15).into_font().style(FontStyle::Bold).color(&BLACK);
-            root.draw(&Text::new(label, (cell.x as i32 + 2, cell.y as i32 + 3), st)).map_err(de)?;
-            let st = (FONT, 12).into_font().color(&RGBColor(90, 90, 90)).pos(Pos::new(HPos::Right, VPos::Top));
+            root.draw(&Text::new(label, (cell.x as i32 + 2, cell.y as i32 + 3), st))
+                .map_err(de)?;
+            let st = (FONT, 12)
+                .into_font()
+                .color(&RGBColor(90, 90, 90))
+                .pos(Pos::new(HPos::Right, VPos::Top));
             let right = (cell.x + 2 * TILE + TILE_GAP) as i32;
-            root.draw(&Text::new(format!("median of {used}/{nfr} dithers"), (right, cell.y as i32 + 5), st)).map_err(de)?;
+            root.draw(&Text::new(
+                format!("median of {used}/{nfr} dithers"),
+                (right, cell.y as i32 + 5),
+                st,
+            ))
+            .map_err(de)?;
             let ap = m.map(|m| m.aperture_px).unwrap_or(f64::NAN);
             for (b, t) in cell.tiles.iter().enumerate() {
                 let tx = cell.x + b as u32 * (TILE + TILE_GAP);
@@ -861,7 +1212,17 @@ fn render(target: &Target, cal: Option<&[CalibratedOrientation]>, m: Option<&Mea
                 }
             }
             if let Some(m) = m {
-                f_panel(&root, cell.x, cell.y + CELL_LABEL_H + TILE + 6, 2 * TILE + TILE_GAP, F_H, m, k, phi, target)?;
+                f_panel(
+                    &root,
+                    cell.x,
+                    cell.y + CELL_LABEL_H + TILE + 6,
+                    2 * TILE + TILE_GAP,
+                    F_H,
+                    m,
+                    k,
+                    phi,
+                    target,
+                )?;
             }
         }
         if n_or > 0 {
@@ -870,13 +1231,21 @@ fn render(target: &Target, cal: Option<&[CalibratedOrientation]>, m: Option<&Mea
 
         // Text band.
         let ty = TITLE_H + body_h;
-        root.draw(&PathElement::new(vec![(8, ty as i32 - 4), (w as i32 - 8, ty as i32 - 4)], RGBColor(200, 200, 200).stroke_width(1)))
-            .map_err(de)?;
+        root.draw(&PathElement::new(
+            vec![(8, ty as i32 - 4), (w as i32 - 8, ty as i32 - 4)],
+            RGBColor(200, 200, 200).stroke_width(1),
+        ))
+        .map_err(de)?;
         for (c, lines) in cols.iter().enumerate() {
             for (i, l) in lines.iter().enumerate() {
                 let style = if l.bold { FontStyle::Bold } else { FontStyle::Normal };
                 let st = FontDesc::new(FontFamily::Name(FONT), TEXT_FONT as f64, style).color(&l.color);
-                root.draw(&Text::new(l.text.clone(), (COL_X[c] as i32, (ty + 6 + i as u32 * LINE_H) as i32), st)).map_err(de)?;
+                root.draw(&Text::new(
+                    l.text.clone(),
+                    (COL_X[c] as i32, (ty + 6 + i as u32 * LINE_H) as i32),
+                    st,
+                ))
+                .map_err(de)?;
             }
         }
         root.present().map_err(de)?;

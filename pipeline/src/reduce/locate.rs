@@ -9,11 +9,20 @@ use crate::stokes::model::{companion_offset_px, offset_to_sep_pa};
 
 /// Brightest point of a 3x3 box-smoothed image within `radius` of (x0, y0), restricted to
 /// rows [y_lo, y_hi) and unmasked pixels. Returns (x, y, smoothed value).
-pub fn brightest_peak(img: ArrayView2<f32>, mask: ArrayView2<u8>, x0: f64, y0: f64, radius: f64, rows: [usize; 2]) -> Option<(f64, f64, f64)> {
+pub fn brightest_peak(
+    img: ArrayView2<f32>,
+    mask: ArrayView2<u8>,
+    x0: f64,
+    y0: f64,
+    radius: f64,
+    rows: [usize; 2],
+) -> Option<(f64, f64, f64)> {
     let (ny, nx) = img.dim();
     let r = radius.ceil() as i64;
     let mut best: Option<(f64, f64, f64)> = None;
-    for y in (y0.round() as i64 - r).max(rows[0] as i64 + 1)..=(y0.round() as i64 + r).min(rows[1] as i64 - 2).min(ny as i64 - 2) {
+    for y in (y0.round() as i64 - r).max(rows[0] as i64 + 1)
+        ..=(y0.round() as i64 + r).min(rows[1] as i64 - 2).min(ny as i64 - 2)
+    {
         for x in (x0.round() as i64 - r).max(1)..=(x0.round() as i64 + r).min(nx as i64 - 2) {
             if ((x as f64 - x0).powi(2) + (y as f64 - y0).powi(2)) > radius * radius {
                 continue;
@@ -53,15 +62,31 @@ pub fn unusable(frame: &Frame) -> Array2<u8> {
 }
 
 /// Refine a position by a windowed centroid; None when it fails.
-pub fn refine(img: ArrayView2<f32>, mask: ArrayView2<u8>, x: f64, y: f64, fwhm_px: f64, max_shift_px: f64) -> Option<(f64, f64)> {
-    let p = CentroidParams { fwhm_px, max_shift_px, background: Some(0.0), ..CentroidParams::default() };
+pub fn refine(
+    img: ArrayView2<f32>,
+    mask: ArrayView2<u8>,
+    x: f64,
+    y: f64,
+    fwhm_px: f64,
+    max_shift_px: f64,
+) -> Option<(f64, f64)> {
+    let p = CentroidParams {
+        fwhm_px,
+        max_shift_px,
+        background: Some(0.0),
+        ..CentroidParams::default()
+    };
     centroid(img, Some(mask), x, y, &p).map(|c| (c.x, c.y))
 }
 
 /// Shift-and-add of square cut-outs of half-size `h` centred on the rounded positions
 /// `centres` (one per frame). Returns the stack (mean) and the mean fractional offset of
 /// the true centres from the cut-out centre.
-pub fn stack_cutouts(frames: &[(&Array2<f32>, &Array2<u8>)], centres: &[(f64, f64)], h: usize) -> (Array2<f32>, Array2<u8>, (f64, f64)) {
+pub fn stack_cutouts(
+    frames: &[(&Array2<f32>, &Array2<u8>)],
+    centres: &[(f64, f64)],
+    h: usize,
+) -> (Array2<f32>, Array2<u8>, (f64, f64)) {
     let n = 2 * h + 1;
     let mut acc = Array2::<f64>::zeros((n, n));
     let mut cnt = Array2::<u32>::zeros((n, n));
@@ -86,7 +111,13 @@ pub fn stack_cutouts(frames: &[(&Array2<f32>, &Array2<u8>)], centres: &[(f64, f6
         }
     }
     let k = frames.len().max(1) as f64;
-    let stack = Array2::from_shape_fn((n, n), |(j, i)| if cnt[[j, i]] > 0 { (acc[[j, i]] / cnt[[j, i]] as f64) as f32 } else { 0.0 });
+    let stack = Array2::from_shape_fn((n, n), |(j, i)| {
+        if cnt[[j, i]] > 0 {
+            (acc[[j, i]] / cnt[[j, i]] as f64) as f32
+        } else {
+            0.0
+        }
+    });
     let smask = cnt.mapv(|c| u8::from(c == 0));
     (stack, smask, (fx / k, fy / k))
 }
@@ -147,7 +178,13 @@ pub fn find_pair(
 ) -> Option<PairOnStack> {
     let n = stack.dim().0;
     let c = ((n / 2) as f64 + frac.0, (n / 2) as f64 + frac.1);
-    let p1 = PsfFitParams { fwhm_px: fwhm_guess, fit_radius_px: (2.0 * fwhm_guess).max(4.0), background: Some(0.0), model, ..PsfFitParams::default() };
+    let p1 = PsfFitParams {
+        fwhm_px: fwhm_guess,
+        fit_radius_px: (2.0 * fwhm_guess).max(4.0),
+        background: Some(0.0),
+        model,
+        ..PsfFitParams::default()
+    };
     let single = fit_psf(stack.view(), None, Some(smask.view()), &[c], &p1).ok()?;
     let s0 = single.stars[0];
     let fwhm = single.fwhm_x().clamp(0.5 * fwhm_guess, 3.0 * fwhm_guess);
@@ -184,7 +221,13 @@ pub fn find_pair(
         beta: single.beta,
         f_stat: 0.0,
     };
-    let Ok(two) = fit_psf(stack.view(), None, Some(smask.view()), &[(b_guess.2, b_guess.3), (b_guess.0, b_guess.1)], &p2) else {
+    let Ok(two) = fit_psf(
+        stack.view(),
+        None,
+        Some(smask.view()),
+        &[(b_guess.2, b_guess.3), (b_guess.0, b_guess.1)],
+        &p2,
+    ) else {
         return Some(single_only);
     };
     let (sa, sb) = (two.stars[0], two.stars[1]);
@@ -196,9 +239,16 @@ pub fn find_pair(
     let r2 = crate::photometry::subtract_star(crate::photometry::subtract_star(stack.view(), &two, 0).view(), &two, 1);
     let (s1, npix) = rss(&r1, smask, s0.x, s0.y, r);
     let (s2, _) = rss(&r2, smask, s0.x, s0.y, r);
-    let f_stat = if npix > 8 && s2 > 0.0 { ((s1 - s2) / 3.0) / (s2 / (npix - 7) as f64) } else { 0.0 };
+    let f_stat = if npix > 8 && s2 > 0.0 {
+        ((s1 - s2) / 3.0) / (s2 / (npix - 7) as f64)
+    } else {
+        0.0
+    };
     if std::env::var_os("SOFIPOL_DEBUG_PAIR").is_some() {
-        eprintln!("find_pair: sep {sep:.2} px, fluxes {:.0} {:.0}, S1 {s1:.3e} S2 {s2:.3e} n {npix} F {f_stat:.1}", a.flux, b.flux);
+        eprintln!(
+            "find_pair: sep {sep:.2} px, fluxes {:.0} {:.0}, S1 {s1:.3e} S2 {s2:.3e} n {npix} F {f_stat:.1}",
+            a.flux, b.flux
+        );
     }
     if !(b.flux > 0.0) {
         return Some(single_only);
@@ -250,9 +300,16 @@ pub fn median_offset(pairs: &[((f64, f64), (f64, f64))]) -> Option<(f64, f64)> {
     let med = |mut v: Vec<f64>| {
         v.sort_by(|a, b| a.total_cmp(b));
         let n = v.len();
-        if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) }
+        if n % 2 == 1 {
+            v[n / 2]
+        } else {
+            0.5 * (v[n / 2 - 1] + v[n / 2])
+        }
     };
-    Some((med(pairs.iter().map(|(o, e)| e.0 - o.0).collect()), med(pairs.iter().map(|(o, e)| e.1 - o.1).collect())))
+    Some((
+        med(pairs.iter().map(|(o, e)| e.0 - o.0).collect()),
+        med(pairs.iter().map(|(o, e)| e.1 - o.1).collect()),
+    ))
 }
 
 /// A cut-out view helper: rows of a strip.
@@ -266,7 +323,13 @@ pub fn strip_rows(img: &Array2<f32>, rows: [usize; 2]) -> ArrayView2<'_, f32> {
 /// brighter star in one beam is the fainter in the other (a brightest-peak match would
 /// then jump between the components). Integer search within `search` px of `start`, then
 /// a parabola through the peak and its neighbours on each axis.
-pub fn eo_offset_by_correlation(frames: &[(&Array2<f32>, &Array2<u8>)], centres: &[(f64, f64)], start: (f64, f64), h: usize, search: i64) -> Option<(f64, f64)> {
+pub fn eo_offset_by_correlation(
+    frames: &[(&Array2<f32>, &Array2<u8>)],
+    centres: &[(f64, f64)],
+    start: (f64, f64),
+    h: usize,
+    search: i64,
+) -> Option<(f64, f64)> {
     let n = 2 * search as usize + 1;
     let mut score = vec![0.0f64; n * n];
     let mut used = 0;
@@ -278,7 +341,11 @@ pub fn eo_offset_by_correlation(frames: &[(&Array2<f32>, &Array2<u8>)], centres:
         if ox - hh < 0 || oy - hh < 0 || ox + hh >= nx as i64 || oy + hh >= ny as i64 {
             continue;
         }
-        if ex0 - hh - search < 0 || ey0 - hh - search < 0 || ex0 + hh + search >= nx as i64 || ey0 + hh + search >= ny as i64 {
+        if ex0 - hh - search < 0
+            || ey0 - hh - search < 0
+            || ex0 + hh + search >= nx as i64
+            || ey0 + hh + search >= ny as i64
+        {
             continue;
         }
         used += 1;
@@ -311,10 +378,22 @@ pub fn eo_offset_by_correlation(frames: &[(&Array2<f32>, &Array2<u8>)], centres:
     let (by, bx) = (bi / n, bi % n);
     let para = |m: f64, c: f64, p: f64| {
         let d = m - 2.0 * c + p;
-        if d < 0.0 { 0.5 * (m - p) / d } else { 0.0 }
+        if d < 0.0 {
+            0.5 * (m - p) / d
+        } else {
+            0.0
+        }
     };
-    let dx = if bx > 0 && bx + 1 < n { para(score[by * n + bx - 1], bv, score[by * n + bx + 1]) } else { 0.0 };
-    let dy = if by > 0 && by + 1 < n { para(score[(by - 1) * n + bx], bv, score[(by + 1) * n + bx]) } else { 0.0 };
+    let dx = if bx > 0 && bx + 1 < n {
+        para(score[by * n + bx - 1], bv, score[by * n + bx + 1])
+    } else {
+        0.0
+    };
+    let dy = if by > 0 && by + 1 < n {
+        para(score[(by - 1) * n + bx], bv, score[(by + 1) * n + bx])
+    } else {
+        0.0
+    };
     let fx = (start.0).round() + (bx as f64 - search as f64) + dx.clamp(-0.5, 0.5) - start.0;
     let fy = (start.1).round() + (by as f64 - search as f64) + dy.clamp(-0.5, 0.5) - start.1;
     Some((start.0 + fx, start.1 + fy))

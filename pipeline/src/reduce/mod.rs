@@ -213,17 +213,26 @@ fn bit_names(b: u8) -> Vec<String> {
 }
 
 /// Measure both components of a calibrated sequence.
-pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, params: &MeasureParams) -> Result<Measured, MeasureError> {
+pub fn measure_sequence(
+    orients: &[CalibratedOrientation],
+    profile: &Profile,
+    params: &MeasureParams,
+) -> Result<Measured, MeasureError> {
     let g = &profile.geometry;
     let scale = g.pixscale_arcsec;
     let orow = g.o_target;
     let err = |m: String| MeasureError(m);
-    let first = orients.first().and_then(|o| o.frames.first()).ok_or_else(|| err("no frames".into()))?;
+    let first = orients
+        .first()
+        .and_then(|o| o.frames.first())
+        .ok_or_else(|| err("no frames".into()))?;
     let (_, nx) = first.shape();
     let mut flags: Vec<String> = Vec::new();
 
     // 1. The primary (blend centroid) in every frame.
-    let nominal = params.nominal_xy_px.unwrap_or((nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5));
+    let nominal = params
+        .nominal_xy_px
+        .unwrap_or((nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5));
     let o0 = &orients[0];
     let m0 = unusable(&o0.frames[0]);
     let (px, py, _) = brightest_peak(
@@ -234,7 +243,12 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
         params.primary_search_px,
         orow,
     )
-    .ok_or_else(|| err(format!("no source found within {} px of the nominal target position", params.primary_search_px)))?;
+    .ok_or_else(|| {
+        err(format!(
+            "no source found within {} px of the nominal target position",
+            params.primary_search_px
+        ))
+    })?;
     let fwhm_guess = 0.8 / scale;
     let c0 = refine(o0.frames[0].data.view(), m0.view(), px, py, fwhm_guess, 4.0).unwrap_or((px, py));
     let anchor = (c0.0 - o0.offsets[0][0], c0.1 - o0.offsets[0][1]);
@@ -274,7 +288,10 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
     }
     // The e-o offset, by cross-correlating the o and e images of the target.
     let (mut fr, mut cc) = (Vec::new(), Vec::new());
-    let masks_all: Vec<Vec<Array2<u8>>> = orients.iter().map(|o| o.frames.iter().map(unusable).collect()).collect();
+    let masks_all: Vec<Vec<Array2<u8>>> = orients
+        .iter()
+        .map(|o| o.frames.iter().map(unusable).collect())
+        .collect();
     for ((o, cs), ms) in orients.iter().zip(&centres).zip(&masks_all) {
         for ((f, c), m) in o.frames.iter().zip(cs).zip(ms) {
             if let Some(c) = c {
@@ -309,7 +326,9 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
             continue;
         }
         let (stack, smask, frac) = stack_cutouts(&fr, &cc, h);
-        let predicted = params.companion_hint.map(|(sep, pa)| companion_offset_px(sep, pa, o.posang_deg, scale));
+        let predicted = params
+            .companion_hint
+            .map(|(sep, pa)| companion_offset_px(sep, pa, o.posang_deg, scale));
         let p = find_pair(&stack, &smask, frac, fwhm_guess, search_px, predicted, params.psf_model);
         if let Some(p) = p {
             fwhms.push(p.fwhm_px);
@@ -322,8 +341,18 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
     // over a single star (F test on the stack): a lone star is otherwise split in two.
     let min_f = params.min_companion_f;
     let min_sep_px = params.min_companion_sep_arcsec / scale;
-    let snr = |p: &PairOnStack| if p.companion(min_f, min_sep_px) { p.flux.1 / p.flux_b_err.max(1e-30) } else { 0.0 };
-    let best = found.iter().enumerate().filter_map(|(i, p)| p.map(|p| (i, snr(&p)))).max_by(|a, b| a.1.total_cmp(&b.1));
+    let snr = |p: &PairOnStack| {
+        if p.companion(min_f, min_sep_px) {
+            p.flux.1 / p.flux_b_err.max(1e-30)
+        } else {
+            0.0
+        }
+    };
+    let best = found
+        .iter()
+        .enumerate()
+        .filter_map(|(i, p)| p.map(|p| (i, snr(&p))))
+        .max_by(|a, b| a.1.total_cmp(&b.1));
     let mut geometry = None;
     if let Some((ib, best_snr)) = best {
         if best_snr >= params.min_companion_snr {
@@ -344,7 +373,10 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
                 }
             }
             // A is the brighter over all orientations.
-            let (fa, fb): (f64, f64) = found.iter().flatten().fold((0.0, 0.0), |acc, p| (acc.0 + p.flux.0, acc.1 + p.flux.1));
+            let (fa, fb): (f64, f64) = found
+                .iter()
+                .flatten()
+                .fold((0.0, 0.0), |acc, p| (acc.0 + p.flux.0, acc.1 + p.flux.1));
             if fb > fa {
                 for p in found.iter_mut().flatten() {
                     std::mem::swap(&mut p.a, &mut p.b);
@@ -359,14 +391,22 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
             let need = orients.len().min(2);
             match combine_geometry(&obs, scale) {
                 Some(_) if obs.len() < need => {
-                    flags.push(format!("companion_rejected: significant at {} of {} orientations", obs.len(), orients.len()));
+                    flags.push(format!(
+                        "companion_rejected: significant at {} of {} orientations",
+                        obs.len(),
+                        orients.len()
+                    ));
                 }
                 Some((_, _, worst)) if worst > 1.5 => {
-                    flags.push(format!("companion_rejected: positions disagree by {worst:.2} px between orientations"));
+                    flags.push(format!(
+                        "companion_rejected: positions disagree by {worst:.2} px between orientations"
+                    ));
                 }
                 Some((sep, pa, worst)) => {
                     if worst > 0.5 {
-                        flags.push(format!("companion_position_scatter: {worst:.2} px between orientations"));
+                        flags.push(format!(
+                            "companion_position_scatter: {worst:.2} px between orientations"
+                        ));
                     }
                     geometry = Some((sep, pa));
                 }
@@ -381,14 +421,23 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
     // registration of the stack does not blur) and held fixed in the per-frame fits,
     // where only the seeing (alpha) changes: fewer free parameters, smaller flux errors
     // for close pairs, and faster fits.
-    let mut betas: Vec<f64> = found.iter().flatten().map(|p| p.beta).filter(|b| b.is_finite()).collect();
+    let mut betas: Vec<f64> = found
+        .iter()
+        .flatten()
+        .map(|p| p.beta)
+        .filter(|b| b.is_finite())
+        .collect();
     betas.sort_by(|a, b| a.total_cmp(b));
     let frame_model = match (params.psf_model, params.beta_from_stack, betas.get(betas.len() / 2)) {
         (PsfModel::Moffat { beta: None }, true, Some(&b)) => PsfModel::Moffat { beta: Some(b) },
         (m, _, _) => m,
     };
     fwhms.sort_by(|a, b| a.total_cmp(b));
-    let fwhm_med = if fwhms.is_empty() { fwhm_guess } else { fwhms[fwhms.len() / 2] };
+    let fwhm_med = if fwhms.is_empty() {
+        fwhm_guess
+    } else {
+        fwhms[fwhms.len() / 2]
+    };
     let sep_px = geometry.map(|(s, _)| s / scale).unwrap_or(f64::INFINITY);
     let use_psf = sep_px < params.psf_photometry_below_fwhm * fwhm_med;
     let ncomp = if geometry.is_some() { 2 } else { 1 };
@@ -411,8 +460,18 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
                     comp[k].push(DitherValue {
                         f: f64::NAN,
                         sigma_f: f64::NAN,
-                        o: BeamFlux { flux: f64::NAN, var: f64::NAN, xy: (f64::NAN, f64::NAN), phot_flags: 0 },
-                        e: BeamFlux { flux: f64::NAN, var: f64::NAN, xy: (f64::NAN, f64::NAN), phot_flags: 0 },
+                        o: BeamFlux {
+                            flux: f64::NAN,
+                            var: f64::NAN,
+                            xy: (f64::NAN, f64::NAN),
+                            phot_flags: 0,
+                        },
+                        e: BeamFlux {
+                            flux: f64::NAN,
+                            var: f64::NAN,
+                            xy: (f64::NAN, f64::NAN),
+                            phot_flags: 0,
+                        },
                         rejected: Some("primary_not_found".into()),
                     });
                 }
@@ -428,7 +487,9 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
             let mut frame_fwhm = fwhm_med;
             for (bi, shift) in [(0.0, 0.0), eo].into_iter().enumerate() {
                 let pos: Vec<(f64, f64)> = stars.iter().map(|&(x, y)| (x + shift.0, y + shift.1)).collect();
-                let (cx, cy) = pos.iter().fold((0.0, 0.0), |a, p| (a.0 + p.0 / pos.len() as f64, a.1 + p.1 / pos.len() as f64));
+                let (cx, cy) = pos.iter().fold((0.0, 0.0), |a, p| {
+                    (a.0 + p.0 / pos.len() as f64, a.1 + p.1 / pos.len() as f64)
+                });
                 let half = (params.annulus_fwhm.1 * fwhm_med + sep_px.min(40.0) + 4.0).ceil() as usize;
                 let (img, var, bad, bits, (x0, y0)) = cutout(f, cx, cy, half);
                 let local: Vec<(f64, f64)> = pos.iter().map(|&(x, y)| (x - x0, y - y0)).collect();
@@ -467,9 +528,25 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
                         match &fit {
                             Some(ft) => {
                                 let st = ft.stars[si];
-                                out.push((BeamFlux { flux: st.flux, var: st.flux_err.powi(2), xy: (st.x + x0, st.y + y0), phot_flags: 0 }, bits_in));
+                                out.push((
+                                    BeamFlux {
+                                        flux: st.flux,
+                                        var: st.flux_err.powi(2),
+                                        xy: (st.x + x0, st.y + y0),
+                                        phot_flags: 0,
+                                    },
+                                    bits_in,
+                                ));
                             }
-                            None => out.push((BeamFlux { flux: f64::NAN, var: f64::NAN, xy: (lx + x0, ly + y0), phot_flags: 0 }, bits_in)),
+                            None => out.push((
+                                BeamFlux {
+                                    flux: f64::NAN,
+                                    var: f64::NAN,
+                                    xy: (lx + x0, ly + y0),
+                                    phot_flags: 0,
+                                },
+                                bits_in,
+                            )),
                         }
                     } else {
                         // Deblend: subtract the other stars' models, then measure.
@@ -481,7 +558,12 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
                                 }
                             }
                         }
-                        let others: Vec<(f64, f64)> = local.iter().enumerate().filter(|(j, _)| *j != si).map(|(_, p)| *p).collect();
+                        let others: Vec<(f64, f64)> = local
+                            .iter()
+                            .enumerate()
+                            .filter(|(j, _)| *j != si)
+                            .map(|(_, p)| *p)
+                            .collect();
                         let pp = PhotParams {
                             r_ap_px: r_ap,
                             annulus_px: Some((params.annulus_fwhm.0 * fwhm_med, params.annulus_fwhm.1 * fwhm_med)),
@@ -491,7 +573,15 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
                             ..PhotParams::default()
                         };
                         let ph = measure(work.view(), Some(var.view()), Some(bad.view()), &pp, lx, ly, &others);
-                        out.push((BeamFlux { flux: ph.flux, var: ph.variance, xy: (lx + x0, ly + y0), phot_flags: ph.flags.0 }, bits_in));
+                        out.push((
+                            BeamFlux {
+                                flux: ph.flux,
+                                var: ph.variance,
+                                xy: (lx + x0, ly + y0),
+                                phot_flags: ph.flags.0,
+                            },
+                            bits_in,
+                        ));
                     }
                 }
                 if bi == 0 {
@@ -519,7 +609,13 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
                 } else {
                     None
                 };
-                comp[k].push(DitherValue { f: fval, sigma_f, o: o_b, e: e_b, rejected });
+                comp[k].push(DitherValue {
+                    f: fval,
+                    sigma_f,
+                    o: o_b,
+                    e: e_b,
+                    rejected,
+                });
             }
         }
     }
@@ -542,7 +638,12 @@ pub fn measure_sequence(orients: &[CalibratedOrientation], profile: &Profile, pa
 }
 
 /// Turn the per-dither values of one component into its catalog entry.
-pub fn component_from_dithers(name: &str, per_orient: &[Vec<DitherValue>], analyzer_deg: &[f64], params: &MeasureParams) -> Component {
+pub fn component_from_dithers(
+    name: &str,
+    per_orient: &[Vec<DitherValue>],
+    analyzer_deg: &[f64],
+    params: &MeasureParams,
+) -> Component {
     let mut flags: Vec<String> = Vec::new();
     let (mut phis, mut fs, mut ss) = (Vec::new(), Vec::new(), Vec::new());
     let mut extra = serde_json::Map::new();
@@ -561,7 +662,9 @@ pub fn component_from_dithers(name: &str, per_orient: &[Vec<DitherValue>], analy
         }
         if usable.is_empty() {
             // Everything is flagged: fall back to all finite values rather than nothing.
-            usable = (0..dv.len()).filter(|&i| dv[i].f.is_finite() && dv[i].sigma_f > 0.0).collect();
+            usable = (0..dv.len())
+                .filter(|&i| dv[i].f.is_finite() && dv[i].sigma_f > 0.0)
+                .collect();
             if !usable.is_empty() {
                 flags.push("used_flagged_dithers".into());
             }
@@ -596,7 +699,11 @@ pub fn component_from_dithers(name: &str, per_orient: &[Vec<DitherValue>], analy
             let dof = (c.n.saturating_sub(1)) as f64;
             let mut sigma = c.sigma;
             if dof >= 1.0 {
-                let p = 1.0 - statrs::distribution::ContinuousCDF::cdf(&statrs::distribution::ChiSquared::new(dof).expect("dof > 0"), c.chi2);
+                let p = 1.0
+                    - statrs::distribution::ContinuousCDF::cdf(
+                        &statrs::distribution::ChiSquared::new(dof).expect("dof > 0"),
+                        c.chi2,
+                    );
                 if p < 0.01 {
                     sigma *= (c.chi2 / dof).sqrt();
                     if !flags.contains(&"excess_dither_scatter".to_string()) {
@@ -614,7 +721,10 @@ pub fn component_from_dithers(name: &str, per_orient: &[Vec<DitherValue>], analy
         }
     }
     extra.insert("orientations".into(), serde_json::Value::Array(per_orientation));
-    extra.insert("flux_adu".into(), serde_json::json!(if n_flux > 0 { sum_flux / n_flux as f64 } else { f64::NAN }));
+    extra.insert(
+        "flux_adu".into(),
+        serde_json::json!(if n_flux > 0 { sum_flux / n_flux as f64 } else { f64::NAN }),
+    );
     let fit = fit_qu(&phis, &fs, &ss);
     match fit {
         Some(r) => {
@@ -666,16 +776,30 @@ pub fn component_from_dithers(name: &str, per_orient: &[Vec<DitherValue>], analy
 pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measured, params: &MeasureParams) -> Target {
     let phis: Vec<f64> = orients.iter().map(|o| o.analyzer_deg).collect();
     let names = ["A", "B"];
-    let components: Vec<Component> =
-        m.dithers.iter().enumerate().map(|(i, d)| component_from_dithers(names[i], d, &phis, params)).collect();
+    let components: Vec<Component> = m
+        .dithers
+        .iter()
+        .enumerate()
+        .map(|(i, d)| component_from_dithers(names[i], d, &phis, params))
+        .collect();
     let delta = if components.len() == 2 && components.iter().all(|c| c.passes_cut) {
-        Some(catalog::fold_delta_gamma(components[0].gamma_deg, components[1].gamma_deg))
+        Some(catalog::fold_delta_gamma(
+            components[0].gamma_deg,
+            components[1].gamma_deg,
+        ))
     } else {
         None
     };
-    let status = if components.len() == 2 && components.iter().all(|c| c.q.is_finite()) { Status::Ok } else { Status::Partial };
+    let status = if components.len() == 2 && components.iter().all(|c| c.q.is_finite()) {
+        Status::Ok
+    } else {
+        Status::Partial
+    };
     let mut extra = serde_json::Map::new();
-    extra.insert("eo_offset_px".into(), serde_json::json!([m.eo_offset_px.0, m.eo_offset_px.1]));
+    extra.insert(
+        "eo_offset_px".into(),
+        serde_json::json!([m.eo_offset_px.0, m.eo_offset_px.1]),
+    );
     extra.insert("fwhm_px".into(), serde_json::json!(m.fwhm_px));
     extra.insert("photometry".into(), serde_json::json!(m.photometry));
     extra.insert("aperture_radius_px".into(), serde_json::json!(m.aperture_px));
@@ -683,12 +807,19 @@ pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measure
         extra.insert("separation_arcsec".into(), serde_json::json!(sep));
         extra.insert("pa_deg".into(), serde_json::json!(pa));
     }
-    extra.insert("orientations_deg".into(), serde_json::json!(orients.iter().map(|o| o.posang_deg).collect::<Vec<_>>()));
+    extra.insert(
+        "orientations_deg".into(),
+        serde_json::json!(orients.iter().map(|o| o.posang_deg).collect::<Vec<_>>()),
+    );
     extra.insert("flags".into(), serde_json::json!(m.flags));
     Target {
         object: object.into(),
         status,
-        error: if status == Status::Partial { m.flags.first().cloned().or(Some("companion not measured".into())) } else { None },
+        error: if status == Status::Partial {
+            m.flags.first().cloned().or(Some("companion not measured".into()))
+        } else {
+            None
+        },
         components,
         delta_gamma_deg: delta,
         extra,

@@ -86,7 +86,14 @@ fn failed(seq: &Sequence, msg: String, failures: Vec<Failure>, times: StageTimes
     extra.insert("sequence".into(), serde_json::json!(seq.id));
     extra.insert("input_files".into(), serde_json::json!(seq.files()));
     TargetOutcome {
-        target: Target { object: seq.object.clone(), status: Status::Failed, error: Some(msg), components: vec![], delta_gamma_deg: None, extra },
+        target: Target {
+            object: seq.object.clone(),
+            status: Status::Failed,
+            error: Some(msg),
+            components: vec![],
+            delta_gamma_deg: None,
+            extra,
+        },
         failures,
         times,
         calibrated: None,
@@ -115,14 +122,19 @@ pub fn reduce_sequence(seq: &Sequence, profile: &Profile, params: &TargetParams,
                     offs.push(e.offset_px);
                     ro.exposures.push(e.clone());
                 }
-                Err(err) => failures.push(Failure { file: e.path.display().to_string(), error: err.to_string() }),
+                Err(err) => failures.push(Failure {
+                    file: e.path.display().to_string(),
+                    error: err.to_string(),
+                }),
             }
         }
         orients.push((o.posang_deg, o.analyzer_deg, frames, offs));
     }
     times.read = t.elapsed().as_secs_f64();
     let mut out = reduce_loaded(&readable, orients, profile, params, keep_frames);
-    out.target.extra.insert("input_files".into(), serde_json::json!(seq.files()));
+    out.target
+        .extra
+        .insert("input_files".into(), serde_json::json!(seq.files()));
     out.times.read = times.read;
     failures.extend(out.failures);
     out.failures = failures;
@@ -134,7 +146,13 @@ pub fn reduce_sequence(seq: &Sequence, profile: &Profile, params: &TargetParams,
 pub type LoadedOrientation = (f64, f64, Vec<Frame>, Vec<[f64; 2]>);
 
 /// [`reduce_sequence`] on frames already in memory (`seq` gives the names and files).
-pub fn reduce_loaded(seq: &Sequence, orients: Vec<LoadedOrientation>, profile: &Profile, params: &TargetParams, keep_frames: bool) -> TargetOutcome {
+pub fn reduce_loaded(
+    seq: &Sequence,
+    orients: Vec<LoadedOrientation>,
+    profile: &Profile,
+    params: &TargetParams,
+    keep_frames: bool,
+) -> TargetOutcome {
     // Everything the measurement needs lies in the o- and e-target strips: unless whole
     // frames are wanted (intermediates for DS9), work on those rows only (a third of the
     // detector), with the profile's geometry shifted to match.
@@ -148,14 +166,27 @@ pub fn reduce_loaded(seq: &Sequence, orients: Vec<LoadedOrientation>, profile: &
         orients = orients
             .into_iter()
             .map(|(pa, phi, frames, offs)| {
-                let frames = frames.iter().map(|f| if f.shape().0 >= r1 { f.crop_rows(r0, r1) } else { f.clone() }).collect();
+                let frames = frames
+                    .iter()
+                    .map(|f| {
+                        if f.shape().0 >= r1 {
+                            f.crop_rows(r0, r1)
+                        } else {
+                            f.clone()
+                        }
+                    })
+                    .collect();
                 (pa, phi, frames, offs)
             })
             .collect::<Vec<_>>();
         cropped_profile = profile.cropped_rows(r0, r1);
         let mut p = params.clone();
         p.night_mask = params.night_mask.as_ref().map(|m| {
-            if m.dim().0 >= r1 { std::sync::Arc::new(m.slice(ndarray::s![r0..r1, ..]).to_owned()) } else { m.clone() }
+            if m.dim().0 >= r1 {
+                std::sync::Arc::new(m.slice(ndarray::s![r0..r1, ..]).to_owned())
+            } else {
+                m.clone()
+            }
         });
         params_c = p;
         (&cropped_profile, &params_c)
@@ -175,7 +206,13 @@ pub fn reduce_loaded(seq: &Sequence, orients: Vec<LoadedOrientation>, profile: &
     let mut mask = None;
     if let Some(p) = &params.calib_mask {
         match badpix::load_mask(p) {
-            Ok(m) => mask = Some(if crop && m.dim().0 >= r1 { m.slice(ndarray::s![r0..r1, ..]).to_owned() } else { m }),
+            Ok(m) => {
+                mask = Some(if crop && m.dim().0 >= r1 {
+                    m.slice(ndarray::s![r0..r1, ..]).to_owned()
+                } else {
+                    m
+                })
+            }
             Err(e) => return failed(seq, format!("calibration mask: {e}"), failures, times),
         }
     }
@@ -208,11 +245,18 @@ pub fn reduce_loaded(seq: &Sequence, orients: Vec<LoadedOrientation>, profile: &
     let mut cal = Vec::new();
     for (posang, phi, frames, offs) in orients {
         if frames.len() < 2 {
-            flags.push(format!("orientation POSANG {posang} dropped: {} readable dither(s), need 2 for the sky", frames.len()));
+            flags.push(format!(
+                "orientation POSANG {posang} dropped: {} readable dither(s), need 2 for the sky",
+                frames.len()
+            ));
             continue;
         }
         let frames: Vec<Frame> = match &mask {
-            Some(m) => match frames.iter().map(|f| badpix::apply_mask(f, m)).collect::<Result<Vec<_>, _>>() {
+            Some(m) => match frames
+                .iter()
+                .map(|f| badpix::apply_mask(f, m))
+                .collect::<Result<Vec<_>, _>>()
+            {
                 Ok(v) => v,
                 Err(e) => {
                     flags.push(format!("orientation POSANG {posang} dropped: {e}"));
@@ -222,7 +266,12 @@ pub fn reduce_loaded(seq: &Sequence, orients: Vec<LoadedOrientation>, profile: &
             None => frames,
         };
         match sky::sky_subtract(&frames, profile, &params.sky) {
-            Ok(s) => cal.push(CalibratedOrientation { posang_deg: posang, analyzer_deg: phi, frames: s, offsets: offs }),
+            Ok(s) => cal.push(CalibratedOrientation {
+                posang_deg: posang,
+                analyzer_deg: phi,
+                frames: s,
+                offsets: offs,
+            }),
             Err(e) => flags.push(format!("orientation POSANG {posang} dropped: {e}")),
         }
     }
@@ -230,14 +279,21 @@ pub fn reduce_loaded(seq: &Sequence, orients: Vec<LoadedOrientation>, profile: &
 
     if let Some(dir) = &params.save_intermediate {
         let t = std::time::Instant::now();
-        let opts = fits::WriteOptions { with_variance_and_mask: true, ..Default::default() };
+        let opts = fits::WriteOptions {
+            with_variance_and_mask: true,
+            ..Default::default()
+        };
         if let Err(e) = std::fs::create_dir_all(dir) {
             flags.push(format!("could not create {}: {e}", dir.display()));
         }
         for o in &cal {
             for f in &o.frames {
                 let name = f.path().file_name().and_then(|n| n.to_str()).unwrap_or("frame.fits");
-                let base = name.trim_end_matches(".gz").trim_end_matches(".fz").trim_end_matches(".fits").trim_end_matches(".fit");
+                let base = name
+                    .trim_end_matches(".gz")
+                    .trim_end_matches(".fz")
+                    .trim_end_matches(".fits")
+                    .trim_end_matches(".fit");
                 let out = dir.join(format!("{base}_skysub.fits"));
                 if let Err(e) = fits::write_frame(&out, f, &opts) {
                     flags.push(format!("could not write intermediate {}: {e}", out.display()));
@@ -248,13 +304,24 @@ pub fn reduce_loaded(seq: &Sequence, orients: Vec<LoadedOrientation>, profile: &
     }
 
     let distinct = {
-        let mut v: Vec<i64> = cal.iter().map(|o| ((o.analyzer_deg.rem_euclid(180.0)) * 100.0).round() as i64).collect();
+        let mut v: Vec<i64> = cal
+            .iter()
+            .map(|o| ((o.analyzer_deg.rem_euclid(180.0)) * 100.0).round() as i64)
+            .collect();
         v.sort();
         v.dedup();
         v.len()
     };
     if distinct < 2 {
-        return failed(seq, format!("{} usable orientation(s): q and u need at least 2 analyzer angles", cal.len()), failures, times);
+        return failed(
+            seq,
+            format!(
+                "{} usable orientation(s): q and u need at least 2 analyzer angles",
+                cal.len()
+            ),
+            failures,
+            times,
+        );
     }
 
     let t = std::time::Instant::now();
@@ -270,12 +337,19 @@ pub fn reduce_loaded(seq: &Sequence, orients: Vec<LoadedOrientation>, profile: &
         target.error = seq.problems().first().cloned();
     }
     target.extra.insert("sequence".into(), serde_json::json!(seq.id));
-    target.extra.insert("tpl_start".into(), serde_json::json!(seq.tpl_start));
+    target
+        .extra
+        .insert("tpl_start".into(), serde_json::json!(seq.tpl_start));
     target.extra.insert("filter".into(), serde_json::json!(seq.filter));
-    target.extra.insert("input_files".into(), serde_json::json!(seq.files()));
+    target
+        .extra
+        .insert("input_files".into(), serde_json::json!(seq.files()));
     target.extra.insert("flags".into(), serde_json::json!(flags));
     if let Some(m) = &mask {
-        target.extra.insert("bad_pixels_masked".into(), serde_json::json!(m.iter().filter(|&&v| v != 0).count()));
+        target.extra.insert(
+            "bad_pixels_masked".into(),
+            serde_json::json!(m.iter().filter(|&&v| v != 0).count()),
+        );
     }
     TargetOutcome {
         target,
@@ -299,7 +373,11 @@ pub fn loaded_from_sim(frames: Vec<crate::sim::SimFrame>, profile: &Profile) -> 
         let pa = f.truth.posang_deg;
         if orients.last().is_none_or(|o| o.0 != pa) {
             orients.push((pa, f.truth.analyzer_deg, vec![], vec![]));
-            seq_or.push(Orientation { posang_deg: pa, analyzer_deg: f.truth.analyzer_deg, exposures: vec![] });
+            seq_or.push(Orientation {
+                posang_deg: pa,
+                analyzer_deg: f.truth.analyzer_deg,
+                exposures: vec![],
+            });
         }
         if let Classification::Science(info) = classify(&f.frame.header, profile) {
             object.clone_from(&info.object);
@@ -311,6 +389,12 @@ pub fn loaded_from_sim(frames: Vec<crate::sim::SimFrame>, profile: &Profile) -> 
         o.3.push(f.truth.header_offset_px);
         o.2.push(f.frame);
     }
-    let seq = Sequence { id: format!("{object}@{tpl_start}"), object, tpl_start, filter, orientations: seq_or };
+    let seq = Sequence {
+        id: format!("{object}@{tpl_start}"),
+        object,
+        tpl_start,
+        filter,
+        orientations: seq_or,
+    };
     (seq, orients)
 }

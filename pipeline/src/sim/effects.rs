@@ -95,7 +95,17 @@ pub fn bad_pixel_map(calls: &EffectCalls, seed: u64, c: &BadPixelConfig, ny: usi
         column_segments.push((x, y0, len));
     }
     let total = forced.len();
-    BadPixelMap { mask, forced, summary: BadPixelSummary { hot, dead, cluster_pixels, column_segments, total } }
+    BadPixelMap {
+        mask,
+        forced,
+        summary: BadPixelSummary {
+            hot,
+            dead,
+            cluster_pixels,
+            column_segments,
+            total,
+        },
+    }
 }
 
 /// Force bad pixels to their values.
@@ -112,21 +122,34 @@ pub fn flat_field_map(calls: &EffectCalls, seed: u64, c: &FlatFieldConfig, ny: u
     let mut out = Array2::<f32>::zeros((ny, nx));
     let (cy, cx) = ((ny as f64 - 1.0) / 2.0, (nx as f64 - 1.0) / 2.0);
     let rc2 = cx * cx + cy * cy;
-    out.as_slice_mut().expect("standard layout").par_chunks_mut(nx).enumerate().for_each(|(y, row)| {
-        let mut r = stream(seed, EffectKind::FlatField, y as u64, 0, 0);
-        for (x, v) in row.iter_mut().enumerate() {
-            let d2 = (x as f64 - cx).powi(2) + (y as f64 - cy).powi(2);
-            *v = ((1.0 - c.vignetting * d2 / rc2) * (1.0 + c.pixel_rms * normal(&mut r))) as f32;
-        }
-    });
+    out.as_slice_mut()
+        .expect("standard layout")
+        .par_chunks_mut(nx)
+        .enumerate()
+        .for_each(|(y, row)| {
+            let mut r = stream(seed, EffectKind::FlatField, y as u64, 0, 0);
+            for (x, v) in row.iter_mut().enumerate() {
+                let d2 = (x as f64 - cx).powi(2) + (y as f64 - cy).powi(2);
+                *v = ((1.0 - c.vignetting * d2 / rc2) * (1.0 + c.pixel_rms * normal(&mut r))) as f32;
+            }
+        });
     out
 }
 
 /// True offset = header offset + N(0, rms) per axis.
-pub fn pointing_error(calls: &EffectCalls, seed: u64, c: &PointingConfig, key: (u64, u64), header: [f64; 2]) -> [f64; 2] {
+pub fn pointing_error(
+    calls: &EffectCalls,
+    seed: u64,
+    c: &PointingConfig,
+    key: (u64, u64),
+    header: [f64; 2],
+) -> [f64; 2] {
     calls.hit(EffectKind::PointingError);
     let mut r = stream(seed, EffectKind::PointingError, key.0, key.1, 0);
-    [header[0] + c.rms_px * normal(&mut r), header[1] + c.rms_px * normal(&mut r)]
+    [
+        header[0] + c.rms_px * normal(&mut r),
+        header[1] + c.rms_px * normal(&mut r),
+    ]
 }
 
 /// Transparency factor, uniform in [min, 1].
@@ -156,12 +179,16 @@ pub fn sky(calls: &EffectCalls, img: &mut Array2<f32>, level: f64, c: &SkyConfig
     calls.hit(EffectKind::Sky);
     let (ny, nx) = img.dim();
     let (xc, yc) = (nx as f64 / 2.0, ny as f64 / 2.0);
-    img.as_slice_mut().expect("standard layout").par_chunks_mut(nx).enumerate().for_each(|(y, row)| {
-        let base = level + c.gradient_y * (y as f64 - yc);
-        for (x, v) in row.iter_mut().enumerate() {
-            *v += (base + c.gradient_x * (x as f64 - xc)) as f32;
-        }
-    });
+    img.as_slice_mut()
+        .expect("standard layout")
+        .par_chunks_mut(nx)
+        .enumerate()
+        .for_each(|(y, row)| {
+            let base = level + c.gradient_y * (y as f64 - yc);
+            for (x, v) in row.iter_mut().enumerate() {
+                *v += (base + c.gradient_x * (x as f64 - xc)) as f32;
+            }
+        });
 }
 
 /// Beam transmissions (T_o, T_e).
@@ -191,43 +218,57 @@ pub fn strips(calls: &EffectCalls, img: &mut Array2<f32>, g: &Geometry) {
 /// measured = true (1 - c true), for positive values.
 pub fn nonlinearity(calls: &EffectCalls, img: &mut Array2<f32>, c: f64) {
     calls.hit(EffectKind::Nonlinearity);
-    img.par_mapv_inplace(|v| if v > 0.0 { (v as f64 * (1.0 - c * v as f64)) as f32 } else { v });
+    img.par_mapv_inplace(|v| {
+        if v > 0.0 {
+            (v as f64 * (1.0 - c * v as f64)) as f32
+        } else {
+            v
+        }
+    });
 }
 
 /// Poisson noise of the photo-electrons: value (ADU) x gain_eff -> Poisson -> / gain_eff.
 pub fn photon_noise(calls: &EffectCalls, img: &mut Array2<f32>, seed: u64, key: (u64, u64), gain_eff: f64) {
     calls.hit(EffectKind::PhotonNoise);
     let nx = img.dim().1;
-    img.as_slice_mut().expect("standard layout").par_chunks_mut(nx).enumerate().for_each(|(y, row)| {
-        let mut r = stream(seed, EffectKind::PhotonNoise, key.0, key.1, y as u64);
-        for v in row.iter_mut() {
-            let e = *v as f64 * gain_eff;
-            if e <= 0.0 {
-                continue;
-            }
-            let draw = if e >= POISSON_GAUSS_SWITCH_E {
-                e + e.sqrt() * normal(&mut r)
-            } else {
-                match Poisson::new(e) {
-                    Ok(p) => p.sample(&mut r),
-                    Err(_) => e,
+    img.as_slice_mut()
+        .expect("standard layout")
+        .par_chunks_mut(nx)
+        .enumerate()
+        .for_each(|(y, row)| {
+            let mut r = stream(seed, EffectKind::PhotonNoise, key.0, key.1, y as u64);
+            for v in row.iter_mut() {
+                let e = *v as f64 * gain_eff;
+                if e <= 0.0 {
+                    continue;
                 }
-            };
-            *v = (draw / gain_eff) as f32;
-        }
-    });
+                let draw = if e >= POISSON_GAUSS_SWITCH_E {
+                    e + e.sqrt() * normal(&mut r)
+                } else {
+                    match Poisson::new(e) {
+                        Ok(p) => p.sample(&mut r),
+                        Err(_) => e,
+                    }
+                };
+                *v = (draw / gain_eff) as f32;
+            }
+        });
 }
 
 /// Gaussian read noise of `sigma_adu` (already divided by sqrt(NDIT)).
 pub fn read_noise(calls: &EffectCalls, img: &mut Array2<f32>, seed: u64, key: (u64, u64), sigma_adu: f64) {
     calls.hit(EffectKind::ReadNoise);
     let nx = img.dim().1;
-    img.as_slice_mut().expect("standard layout").par_chunks_mut(nx).enumerate().for_each(|(y, row)| {
-        let mut r = stream(seed, EffectKind::ReadNoise, key.0, key.1, y as u64);
-        for v in row.iter_mut() {
-            *v += (sigma_adu * normal(&mut r)) as f32;
-        }
-    });
+    img.as_slice_mut()
+        .expect("standard layout")
+        .par_chunks_mut(nx)
+        .enumerate()
+        .for_each(|(y, row)| {
+            let mut r = stream(seed, EffectKind::ReadNoise, key.0, key.1, y as u64);
+            for v in row.iter_mut() {
+                *v += (sigma_adu * normal(&mut r)) as f32;
+            }
+        });
 }
 
 /// Cosmic rays: Poisson(rate) hits, each a short track of 1-4 pixels. Returns pixels hit.
@@ -236,7 +277,9 @@ pub fn cosmic_rays(calls: &EffectCalls, img: &mut Array2<f32>, seed: u64, key: (
     let (ny, nx) = img.dim();
     let mut r = stream(seed, EffectKind::CosmicRays, key.0, key.1, 0);
     let n = if c.rate_per_frame > 0.0 {
-        Poisson::new(c.rate_per_frame).map(|p| p.sample(&mut r) as usize).unwrap_or(0)
+        Poisson::new(c.rate_per_frame)
+            .map(|p| p.sample(&mut r) as usize)
+            .unwrap_or(0)
     } else {
         0
     };
@@ -328,6 +371,9 @@ mod tests {
         assert_eq!(mjd_from_date_time("1999-03-03", "00:00:00"), Some(51240.0));
         assert_eq!(mjd_from_date_time("1858-11-17", "00:00:00"), Some(0.0));
         assert_eq!(iso_from_mjd(51240.5, false), "1999-03-03T12:00:00");
-        assert_eq!(iso_from_mjd(51240.0 + 1.0 / 86400.0 * 3725.25, true), "1999-03-03T01:02:05.250");
+        assert_eq!(
+            iso_from_mjd(51240.0 + 1.0 / 86400.0 * 3725.25, true),
+            "1999-03-03T01:02:05.250"
+        );
     }
 }

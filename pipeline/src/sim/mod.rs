@@ -188,10 +188,22 @@ impl Simulator {
         let calls = EffectCalls::default();
         let (ny, nx) = (profile.geometry.ny, profile.geometry.nx);
         let bad = scene.has(EffectKind::BadPixels).then(|| {
-            effects::bad_pixel_map(&calls, scene.seed, &scene.bad_pixels.clone().unwrap_or_default(), ny, nx)
+            effects::bad_pixel_map(
+                &calls,
+                scene.seed,
+                &scene.bad_pixels.clone().unwrap_or_default(),
+                ny,
+                nx,
+            )
         });
         let flat = scene.has(EffectKind::FlatField).then(|| {
-            effects::flat_field_map(&calls, scene.seed, &scene.flat_field.clone().unwrap_or_default(), ny, nx)
+            effects::flat_field_map(
+                &calls,
+                scene.seed,
+                &scene.flat_field.clone().unwrap_or_default(),
+                ny,
+                nx,
+            )
         });
         // Sequence start times: targets one after another through the night.
         let o = &scene.observation;
@@ -205,7 +217,14 @@ impl Simulator {
                 (mjd, effects::iso_from_mjd(mjd, false))
             })
             .collect();
-        Ok(Simulator { scene, profile, calls, bad, flat, tpl_starts })
+        Ok(Simulator {
+            scene,
+            profile,
+            calls,
+            bad,
+            flat,
+            tpl_starts,
+        })
     }
 
     /// The scene.
@@ -235,7 +254,11 @@ impl Simulator {
             .chars()
             .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
             .collect();
-        let ext = if self.scene.observation.compress { "fits.fz" } else { "fits" };
+        let ext = if self.scene.observation.compress {
+            "fits.fz"
+        } else {
+            "fits"
+        };
         format!("SOFI_{}_{slug}_{:02}.{ext}", self.scene.name, k + 1)
     }
 
@@ -253,7 +276,13 @@ impl Simulator {
         let header_off = [(d as f64 - (nd as f64 - 1.0) / 2.0) * step, 0.0];
         let key = (t as u64, k as u64);
         let true_off = if s.has(EffectKind::PointingError) {
-            effects::pointing_error(&self.calls, s.seed, &s.pointing_error.clone().unwrap_or_default(), key, header_off)
+            effects::pointing_error(
+                &self.calls,
+                s.seed,
+                &s.pointing_error.clone().unwrap_or_default(),
+                key,
+                header_off,
+            )
         } else {
             header_off
         };
@@ -268,7 +297,13 @@ impl Simulator {
             0.0
         };
         let psf = if s.has(EffectKind::Psf) {
-            effects::frame_psf(&self.calls, s.seed, &s.psf.clone().unwrap_or_default(), key, self.scale())
+            effects::frame_psf(
+                &self.calls,
+                s.seed,
+                &s.psf.clone().unwrap_or_default(),
+                key,
+                self.scale(),
+            )
         } else {
             psf::Psf::Point
         };
@@ -289,22 +324,25 @@ impl Simulator {
     fn component_truth(&self, t: usize) -> Vec<ComponentTruth> {
         let b = &self.scene.binary[t];
         let ism = self.ism();
-        [("A", b.flux_a, b.p_a, b.gamma_a_deg), ("B", b.flux_b, b.p_b, b.gamma_b_deg)]
-            .into_iter()
-            .map(|(name, flux, p, g)| {
-                let intrinsic = Polarization::from_p_gamma(p, g);
-                let sky = intrinsic.add(ism);
-                ComponentTruth {
-                    name: name.into(),
-                    flux,
-                    intrinsic,
-                    q: sky.q,
-                    u: sky.u,
-                    p: sky.p(),
-                    gamma_deg: sky.gamma_deg(),
-                }
-            })
-            .collect()
+        [
+            ("A", b.flux_a, b.p_a, b.gamma_a_deg),
+            ("B", b.flux_b, b.p_b, b.gamma_b_deg),
+        ]
+        .into_iter()
+        .map(|(name, flux, p, g)| {
+            let intrinsic = Polarization::from_p_gamma(p, g);
+            let sky = intrinsic.add(ism);
+            ComponentTruth {
+                name: name.into(),
+                flux,
+                intrinsic,
+                q: sky.q,
+                u: sky.u,
+                p: sky.p(),
+                gamma_deg: sky.gamma_deg(),
+            }
+        })
+        .collect()
     }
 
     fn ism(&self) -> Polarization {
@@ -345,7 +383,12 @@ impl Simulator {
             0.0
         };
         let mut srcs: Vec<(String, (f64, f64), f64, Polarization)> = vec![
-            ("A".into(), (0.0, 0.0), b.flux_a, Polarization::from_p_gamma(b.p_a, b.gamma_a_deg)),
+            (
+                "A".into(),
+                (0.0, 0.0),
+                b.flux_a,
+                Polarization::from_p_gamma(b.p_a, b.gamma_a_deg),
+            ),
             (
                 "B".into(),
                 companion_offset_px(b.separation_arcsec, b.pa_deg, fp.posang, self.scale()),
@@ -388,7 +431,13 @@ impl Simulator {
                 self.render(fp.psf, xe, ye)
             };
             psf::add_stamp(&mut img, &stamp_e, fe);
-            sources.push(SourceTruth { name, o_xy: [xo, yo], e_xy: [xe, ye], flux_o: fo, flux_e: fe });
+            sources.push(SourceTruth {
+                name,
+                o_xy: [xo, yo],
+                e_xy: [xe, ye],
+                flux_o: fo,
+                flux_e: fe,
+            });
         }
 
         if s.has(EffectKind::Strips) {
@@ -410,20 +459,43 @@ impl Simulator {
         let fkey = (t as u64, k as u64);
         let ndit = s.observation.ndit;
         if s.has(EffectKind::PhotonNoise) {
-            effects::photon_noise(&self.calls, &mut img, s.seed, fkey, self.profile.detector.effective_gain(ndit));
+            effects::photon_noise(
+                &self.calls,
+                &mut img,
+                s.seed,
+                fkey,
+                self.profile.detector.effective_gain(ndit),
+            );
         }
         if s.has(EffectKind::ReadNoise) {
-            effects::read_noise(&self.calls, &mut img, s.seed, fkey, self.profile.detector.read_variance_adu2(ndit).sqrt());
+            effects::read_noise(
+                &self.calls,
+                &mut img,
+                s.seed,
+                fkey,
+                self.profile.detector.read_variance_adu2(ndit).sqrt(),
+            );
         }
         let mut cr_pixels = 0;
         if s.has(EffectKind::CosmicRays) {
-            cr_pixels = effects::cosmic_rays(&self.calls, &mut img, s.seed, fkey, &s.cosmic_rays.clone().unwrap_or_default());
+            cr_pixels = effects::cosmic_rays(
+                &self.calls,
+                &mut img,
+                s.seed,
+                fkey,
+                &s.cosmic_rays.clone().unwrap_or_default(),
+            );
         }
         if let Some(bad) = &self.bad {
             effects::apply_bad_pixels(&self.calls, &mut img, bad);
         }
         if s.has(EffectKind::Saturation) {
-            let level = s.saturation.clone().unwrap_or_default().level_adu.unwrap_or(self.profile.detector.saturation_adu);
+            let level = s
+                .saturation
+                .clone()
+                .unwrap_or_default()
+                .level_adu
+                .unwrap_or(self.profile.detector.saturation_adu);
             effects::saturation(&self.calls, &mut img, level);
         }
 
@@ -452,7 +524,11 @@ impl Simulator {
             sources,
             cosmic_ray_pixels: cr_pixels,
         };
-        SimFrame { file_name, frame, truth }
+        SimFrame {
+            file_name,
+            frame,
+            truth,
+        }
     }
 
     fn render(&self, p: psf::Psf, x: f64, y: f64) -> psf::Stamp {
@@ -474,7 +550,11 @@ impl Simulator {
         h.set(&kw.mjd_obs, fp.mjd);
         h.set(&kw.exptime, o.dit_s);
         // A fixed fake pointing per target, from its name.
-        let hash = rng::splitmix64(b.name.bytes().fold(7u64, |a, c| a.wrapping_mul(31).wrapping_add(c as u64)));
+        let hash = rng::splitmix64(
+            b.name
+                .bytes()
+                .fold(7u64, |a, c| a.wrapping_mul(31).wrapping_add(c as u64)),
+        );
         h.set("RA", (hash % 36000) as f64 / 100.0);
         h.set("DEC", -60.0 + ((hash >> 20) % 9000) as f64 / 100.0);
         h.set(&kw.dpr_catg, "SCIENCE");
@@ -504,7 +584,10 @@ impl Simulator {
         let s = &self.scene;
         let mut detector = serde_json::Map::new();
         if let Some(b) = &self.bad {
-            detector.insert("bad_pixels".into(), serde_json::to_value(&b.summary).unwrap_or_default());
+            detector.insert(
+                "bad_pixels".into(),
+                serde_json::to_value(&b.summary).unwrap_or_default(),
+            );
         }
         if let Some(f) = &self.flat {
             let n = f.len() as f64;
@@ -548,7 +631,9 @@ impl Simulator {
     pub fn run_in_memory(&self) -> (Vec<SimFrame>, Truth) {
         use rayon::prelude::*;
         let n = self.frames_per_target();
-        let jobs: Vec<(usize, usize)> = (0..self.scene.binary.len()).flat_map(|t| (0..n).map(move |k| (t, k))).collect();
+        let jobs: Vec<(usize, usize)> = (0..self.scene.binary.len())
+            .flat_map(|t| (0..n).map(move |k| (t, k)))
+            .collect();
         let frames: Vec<SimFrame> = jobs.par_iter().map(|&(t, k)| self.frame(t, k)).collect();
         let mut per_t: Vec<Vec<FrameTruth>> = vec![Vec::new(); self.scene.binary.len()];
         for (f, &(t, _)) in frames.iter().zip(&jobs) {
@@ -584,7 +669,9 @@ impl Simulator {
             with_variance_and_mask: false,
         };
         let n = self.frames_per_target();
-        let jobs: Vec<(usize, usize)> = (0..self.scene.binary.len()).flat_map(|t| (0..n).map(move |k| (t, k))).collect();
+        let jobs: Vec<(usize, usize)> = (0..self.scene.binary.len())
+            .flat_map(|t| (0..n).map(move |k| (t, k)))
+            .collect();
         let truths: Vec<Result<FrameTruth, String>> = jobs
             .par_iter()
             .map(|&(t, k)| {
@@ -600,7 +687,8 @@ impl Simulator {
             per_t[t].push(r?);
         }
         let truth = self.truth(&per_t);
-        crate::io::write_json_atomic(&dir.join("truth.json"), &truth).map_err(|e| format!("{}: {e}", dir.join("truth.json").display()))?;
+        crate::io::write_json_atomic(&dir.join("truth.json"), &truth)
+            .map_err(|e| format!("{}: {e}", dir.join("truth.json").display()))?;
         Ok(truth)
     }
 }

@@ -28,10 +28,13 @@ impl Psf {
     /// Build from a family and a FWHM in pixels.
     pub fn from_fwhm(kind: PsfKind, fwhm_px: f64, beta: f64) -> Psf {
         match kind {
-            PsfKind::Gaussian => Psf::Gaussian { sigma_px: fwhm_px / (2.0 * (2.0 * std::f64::consts::LN_2).sqrt()) },
-            PsfKind::Moffat => {
-                Psf::Moffat { alpha_px: fwhm_px / (2.0 * (2f64.powf(1.0 / beta) - 1.0).sqrt()), beta }
-            }
+            PsfKind::Gaussian => Psf::Gaussian {
+                sigma_px: fwhm_px / (2.0 * (2.0 * std::f64::consts::LN_2).sqrt()),
+            },
+            PsfKind::Moffat => Psf::Moffat {
+                alpha_px: fwhm_px / (2.0 * (2f64.powf(1.0 / beta) - 1.0).sqrt()),
+                beta,
+            },
         }
     }
 
@@ -64,8 +67,18 @@ fn phi(x: f64) -> f64 {
 }
 
 /// 4-point Gauss-Legendre nodes on [-1/2, 1/2] and weights summing to 1.
-const GL4_X: [f64; 4] = [-0.430_568_155_797_026_3, -0.169_990_521_792_428_1, 0.169_990_521_792_428_1, 0.430_568_155_797_026_3];
-const GL4_W: [f64; 4] = [0.173_927_422_568_726_9, 0.326_072_577_431_273_1, 0.326_072_577_431_273_1, 0.173_927_422_568_726_9];
+const GL4_X: [f64; 4] = [
+    -0.430_568_155_797_026_3,
+    -0.169_990_521_792_428_1,
+    0.169_990_521_792_428_1,
+    0.430_568_155_797_026_3,
+];
+const GL4_W: [f64; 4] = [
+    0.173_927_422_568_726_9,
+    0.326_072_577_431_273_1,
+    0.326_072_577_431_273_1,
+    0.173_927_422_568_726_9,
+];
 
 /// 2-point Gauss-Legendre nodes on [-1/2, 1/2] and weights summing to 1.
 const GL2_X: [f64; 2] = [-0.288_675_134_594_812_9, 0.288_675_134_594_812_9];
@@ -96,7 +109,11 @@ pub fn render(psf: Psf, cx: f64, cy: f64) -> Stamp {
             v[[0, 1]] = fx * (1.0 - fy);
             v[[1, 0]] = (1.0 - fx) * fy;
             v[[1, 1]] = fx * fy;
-            Stamp { x0: ix as i64, y0: iy as i64, values: v }
+            Stamp {
+                x0: ix as i64,
+                y0: iy as i64,
+                values: v,
+            }
         }
         Psf::Gaussian { sigma_px } => {
             let h = psf.half_size() as i64;
@@ -131,8 +148,11 @@ pub fn render(psf: Psf, cx: f64, cy: f64) -> Stamp {
                 let py = (y0 + j as i64) as f64 - cy;
                 let mut s = 0.0;
                 // The wings are smooth: 2x2 Gauss-Legendre beyond 4 alpha, 4x4 inside.
-                let (xs, ws): (&[f64], &[f64]) =
-                    if px * px + py * py > wing2 { (&GL2_X, &GL2_W) } else { (&GL4_X, &GL4_W) };
+                let (xs, ws): (&[f64], &[f64]) = if px * px + py * py > wing2 {
+                    (&GL2_X, &GL2_W)
+                } else {
+                    (&GL4_X, &GL4_W)
+                };
                 for (a, wa) in xs.iter().zip(ws) {
                     for (b, wb) in xs.iter().zip(ws) {
                         let dx = px + a;
@@ -155,7 +175,11 @@ pub fn render(psf: Psf, cx: f64, cy: f64) -> Stamp {
 impl Stamp {
     /// The same stamp moved by a whole number of pixels.
     pub fn shifted(&self, dx: i64, dy: i64) -> Stamp {
-        Stamp { x0: self.x0 + dx, y0: self.y0 + dy, values: self.values.clone() }
+        Stamp {
+            x0: self.x0 + dx,
+            y0: self.y0 + dy,
+            values: self.values.clone(),
+        }
     }
 }
 
@@ -205,7 +229,10 @@ mod tests {
                 let (t, mx, my) = moments(&s);
                 assert!((t - 1.0).abs() < 1e-12, "{psf:?} sum {t}");
                 // The Moffat truncation circle is sampled at quadrature nodes: a few 1e-6 px.
-                assert!((mx - cx).abs() < 2e-5 && (my - cy).abs() < 2e-5, "{psf:?} centroid {mx} {my}");
+                assert!(
+                    (mx - cx).abs() < 2e-5 && (my - cy).abs() < 2e-5,
+                    "{psf:?} centroid {mx} {my}"
+                );
             }
         }
     }

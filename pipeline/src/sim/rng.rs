@@ -4,8 +4,8 @@
 //! stream is seeded by hashing (scene seed, effect, indices) with SplitMix64, so adding or
 //! removing one effect never changes another effect's realisation, and results do not
 //! depend on the number of threads or the order work is done in.
-use rand::SeedableRng;
 use rand::rngs::Xoshiro256PlusPlus;
+use rand::SeedableRng;
 
 use super::scene::EffectKind;
 

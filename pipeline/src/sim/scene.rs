@@ -198,7 +198,12 @@ pub struct PsfConfig {
 }
 impl Default for PsfConfig {
     fn default() -> Self {
-        PsfConfig { kind: PsfKind::Moffat, fwhm_arcsec: 0.8, beta: 3.0, seeing_rms_frac: 0.1 }
+        PsfConfig {
+            kind: PsfKind::Moffat,
+            fwhm_arcsec: 0.8,
+            beta: 3.0,
+            seeing_rms_frac: 0.1,
+        }
     }
 }
 
@@ -227,7 +232,12 @@ pub struct SkyConfig {
 }
 impl Default for SkyConfig {
     fn default() -> Self {
-        SkyConfig { level_adu: 1500.0, gradient_x: 0.05, gradient_y: -0.03, frame_change_frac: 0.03 }
+        SkyConfig {
+            level_adu: 1500.0,
+            gradient_x: 0.05,
+            gradient_y: -0.03,
+            frame_change_frac: 0.03,
+        }
     }
 }
 
@@ -275,7 +285,10 @@ pub struct FlatFieldConfig {
 }
 impl Default for FlatFieldConfig {
     fn default() -> Self {
-        FlatFieldConfig { pixel_rms: 0.01, vignetting: 0.05 }
+        FlatFieldConfig {
+            pixel_rms: 0.01,
+            vignetting: 0.05,
+        }
     }
 }
 
@@ -305,7 +318,10 @@ pub struct PolConfig {
 }
 impl Default for PolConfig {
     fn default() -> Self {
-        PolConfig { p: 0.01, angle_deg: 60.0 }
+        PolConfig {
+            p: 0.01,
+            angle_deg: 60.0,
+        }
     }
 }
 
@@ -346,7 +362,10 @@ pub struct CosmicConfig {
 }
 impl Default for CosmicConfig {
     fn default() -> Self {
-        CosmicConfig { rate_per_frame: 40.0, peak_adu: [500.0, 5000.0] }
+        CosmicConfig {
+            rate_per_frame: 40.0,
+            peak_adu: [500.0, 5000.0],
+        }
     }
 }
 
@@ -443,15 +462,25 @@ impl Scene {
             (EffectKind::BadPixels, self.bad_pixels.is_some()),
             (EffectKind::FlatField, self.flat_field.is_some()),
             (EffectKind::Throughput, self.throughput.is_some()),
-            (EffectKind::InstrumentalPolarization, self.instrumental_polarization.is_some()),
-            (EffectKind::InterstellarPolarization, self.interstellar_polarization.is_some()),
+            (
+                EffectKind::InstrumentalPolarization,
+                self.instrumental_polarization.is_some(),
+            ),
+            (
+                EffectKind::InterstellarPolarization,
+                self.interstellar_polarization.is_some(),
+            ),
             (EffectKind::Transparency, self.transparency.is_some()),
             (EffectKind::PointingError, self.pointing_error.is_some()),
             (EffectKind::CosmicRays, self.cosmic_rays.is_some()),
             (EffectKind::Nonlinearity, self.nonlinearity.is_some()),
             (EffectKind::Saturation, self.saturation.is_some()),
         ];
-        present.iter().filter(|(k, p)| *p && !self.has(*k)).map(|(k, _)| k.name()).collect()
+        present
+            .iter()
+            .filter(|(k, p)| *p && !self.has(*k))
+            .map(|(k, _)| k.name())
+            .collect()
     }
 
     /// Check values that would make a meaningless simulation.
@@ -464,7 +493,10 @@ impl Scene {
             return Err("observation.dithers = 0".into());
         }
         if o.ndit == 0 || !(o.dit_s > 0.0) {
-            return Err(format!("observation: ndit = {} and dit_s = {} must be > 0", o.ndit, o.dit_s));
+            return Err(format!(
+                "observation: ndit = {} and dit_s = {} must be > 0",
+                o.ndit, o.dit_s
+            ));
         }
         if o.bitpix != -32 && o.bitpix != 16 {
             return Err(format!("observation.bitpix = {} (expected -32 or 16)", o.bitpix));
@@ -481,12 +513,18 @@ impl Scene {
                 }
             }
             if !(b.separation_arcsec >= 0.0) {
-                return Err(format!("binary '{}': separation_arcsec = {}", b.name, b.separation_arcsec));
+                return Err(format!(
+                    "binary '{}': separation_arcsec = {}",
+                    b.name, b.separation_arcsec
+                ));
             }
         }
         if let Some(p) = &self.psf {
             if !(p.fwhm_arcsec > 0.0) || (p.kind == PsfKind::Moffat && !(p.beta > 1.0)) {
-                return Err(format!("psf: fwhm_arcsec = {} must be > 0 and beta = {} > 1", p.fwhm_arcsec, p.beta));
+                return Err(format!(
+                    "psf: fwhm_arcsec = {} must be > 0 and beta = {} > 1",
+                    p.fwhm_arcsec, p.beta
+                ));
             }
         }
         Ok(())

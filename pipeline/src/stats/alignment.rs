@@ -2,7 +2,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::binomial::{binomial_test, BinomialOutcome};
-use super::ks::{ks_two_sample_sorted, ks_uniform, kolmogorov_sf};
+use super::ks::{kolmogorov_sf, ks_two_sample_sorted, ks_uniform};
 use super::kuiper::kuiper_uniform;
 use super::mc::{simulate_samples, Ism, McConfig, McOutput};
 use super::{Result, TestOutcome};
@@ -69,7 +69,11 @@ pub struct AlignmentReport {
 
 /// p-value as text: 4 decimals, or scientific below 1e-4.
 pub fn format_p(p: f64) -> String {
-    if p < 1e-4 { format!("{p:.1e}") } else { format!("{p:.4}") }
+    if p < 1e-4 {
+        format!("{p:.1e}")
+    } else {
+        format!("{p:.4}")
+    }
 }
 
 /// Run every test on `delta_gamma_deg` (degrees in [0, 90]) and write the verdict.
@@ -98,20 +102,38 @@ pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<Align
         observed.sort_by(|a, b| a.total_cmp(b));
         for &level in &params.ism_levels_percent {
             let mut cfg = params.mc.clone();
-            cfg.ism = Some(Ism { p_percent: level, angle_deg: params.ism_angle_deg });
+            cfg.ism = Some(Ism {
+                p_percent: level,
+                angle_deg: params.ism_angle_deg,
+            });
             let (mut sim, out) = simulate_samples(&cfg)?;
             let below = sim.iter().filter(|&&d| d < t).count() as f64 / sim.len().max(1) as f64;
             let ks = if sim.is_empty() {
-                TestOutcome { statistic: f64::NAN, p_value: f64::NAN, n: 0, method: "no simulated pair passed the cut".into() }
+                TestOutcome {
+                    statistic: f64::NAN,
+                    p_value: f64::NAN,
+                    n: 0,
+                    method: "no simulated pair passed the cut".into(),
+                }
             } else {
                 sim.sort_by(|a, b| a.total_cmp(b));
                 let d = ks_two_sample_sorted(&observed, &sim);
                 let (n1, n2) = (n as f64, sim.len() as f64);
                 let ne = (n1 * n2 / (n1 + n2)).round().max(1.0) as usize;
                 let (p, method) = kolmogorov_sf(d, ne);
-                TestOutcome { statistic: d, p_value: p, n: ne, method: format!("two-sample, n_e = {ne}: {method}") }
+                TestOutcome {
+                    statistic: d,
+                    p_value: p,
+                    n: ne,
+                    method: format!("two-sample, n_e = {ne}: {method}"),
+                }
             };
-            report.ism.push(IsmComparison { p_ism_percent: level, ks, mc_fraction_below_threshold: below, mc: out });
+            report.ism.push(IsmComparison {
+                p_ism_percent: level,
+                ks,
+                mc_fraction_below_threshold: below,
+                mc: out,
+            });
         }
     }
     report.verdict = verdict(&report, delta_gamma_deg);
@@ -201,23 +223,42 @@ fn verdict(r: &AlignmentReport, dg: &[f64]) -> String {
             .map(|(name, p)| format!("{name} p = {}", format_p(*p)))
             .collect();
         if !others.is_empty() {
-            s += &format!(" Note: {} would reject on its own; treat the evidence as marginal.", others.join(", "));
+            s += &format!(
+                " Note: {} would reject on its own; treat the evidence as marginal.",
+                others.join(", ")
+            );
         }
     }
     if r.n < 10 {
         s += &format!(" (With only {} binaries every test has little power.)", r.n);
     }
     if !r.ism.is_empty() {
-        let ok: Vec<f64> = r.ism.iter().filter(|c| c.ks.p_value >= a).map(|c| c.p_ism_percent).collect();
-        let bad: Vec<f64> = r.ism.iter().filter(|c| !(c.ks.p_value >= a)).map(|c| c.p_ism_percent).collect();
-        s += &format!("\nRandom disks plus interstellar polarization (Monte Carlo: {}): ", r.mc_description);
+        let ok: Vec<f64> = r
+            .ism
+            .iter()
+            .filter(|c| c.ks.p_value >= a)
+            .map(|c| c.p_ism_percent)
+            .collect();
+        let bad: Vec<f64> = r
+            .ism
+            .iter()
+            .filter(|c| !(c.ks.p_value >= a))
+            .map(|c| c.p_ism_percent)
+            .collect();
+        s += &format!(
+            "\nRandom disks plus interstellar polarization (Monte Carlo: {}): ",
+            r.mc_description
+        );
         if ok.is_empty() {
             s += &format!(
                 "none of the levels P_ism = {} % reproduces the observed Delta gamma (two-sample KS p < {a} for all): interstellar polarization alone does not explain it.",
                 list(&bad)
             );
         } else if bad.is_empty() {
-            s += &format!("every level P_ism = {} % is consistent with the observed Delta gamma (two-sample KS p >= {a}).", list(&ok));
+            s += &format!(
+                "every level P_ism = {} % is consistent with the observed Delta gamma (two-sample KS p >= {a}).",
+                list(&ok)
+            );
         } else {
             s += &format!(
                 "consistent (two-sample KS p >= {a}) for P_ism = {} %, inconsistent for P_ism = {} %.",

@@ -29,10 +29,19 @@ fn ln_pmf(i: u64, n: u64, p: f64) -> f64 {
 
 /// Exact binomial test of k successes in n trials against p0 (0 < p0 < 1, k <= n).
 pub fn binomial_test(k: u64, n: u64, p0: f64) -> BinomialOutcome {
-    assert!(k <= n && p0 > 0.0 && p0 < 1.0, "binomial test needs k <= n and 0 < p0 < 1");
+    assert!(
+        k <= n && p0 > 0.0 && p0 < 1.0,
+        "binomial test needs k <= n and 0 < p0 < 1"
+    );
     let pmf: Vec<f64> = (0..=n).map(|i| ln_pmf(i, n, p0).exp()).collect();
     let p_greater: f64 = pmf[k as usize..].iter().sum::<f64>().min(1.0);
     let d = pmf[k as usize];
     let p_two_sided: f64 = pmf.iter().filter(|&&x| x <= d * (1.0 + 1e-7)).sum::<f64>().min(1.0);
-    BinomialOutcome { k, n, p0, p_greater, p_two_sided }
+    BinomialOutcome {
+        k,
+        n,
+        p0,
+        p_greater,
+        p_two_sided,
+    }
 }

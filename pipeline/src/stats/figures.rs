@@ -35,7 +35,10 @@ fn relative_steps(label: &str, h: &Histogram) -> Series {
 }
 
 fn uniform_line() -> Series {
-    Series::line("uniform", vec![0.0, 90.0], vec![1.0, 1.0]).style(Style::Dashed(1)).color(palette(6)).unlabelled()
+    Series::line("uniform", vec![0.0, 90.0], vec![1.0, 1.0])
+        .style(Style::Dashed(1))
+        .color(palette(6))
+        .unlabelled()
 }
 
 /// Pi(alpha) of `model` sampled on [0, 90] deg for plotting (None for perfect alignment).
@@ -88,20 +91,34 @@ pub fn models_figure(path: &Path, models: &[(String, AlignmentModel)], base: &Mc
 
 /// Pi(Delta gamma) of random disks for each interstellar polarization level, with the
 /// observed histogram (if any) as bars.
-pub fn ism_figure(path: &Path, comparisons: &[IsmComparison], observed: &[f64], observed_bins: usize, subtitle: &str) -> Result<()> {
+pub fn ism_figure(
+    path: &Path,
+    comparisons: &[IsmComparison],
+    observed: &[f64],
+    observed_bins: usize,
+    subtitle: &str,
+) -> Result<()> {
     let mut panel = Panel::new("Π(Δγ) of random disks + interstellar polarization", DG, PI_DG)
         .x_range(0.0, 90.0)
         .note(subtitle.to_string());
     if !observed.is_empty() {
         let (h, _) = Histogram::from_values(0.0, 90.0, observed_bins, observed);
-        panel = panel.with(relative_steps(&format!("observed (n = {})", observed.len()), &h).style(Style::Bars).color(GREY));
+        panel = panel.with(
+            relative_steps(&format!("observed (n = {})", observed.len()), &h)
+                .style(Style::Bars)
+                .color(GREY),
+        );
     }
     panel = panel.with(uniform_line());
     let n = comparisons.len();
     for (i, c) in comparisons.iter().enumerate() {
         let h = c.mc.histogram.clone();
         // Thin 1-deg steps are noisy to the eye at 10^6 pairs: show 5-deg bins when possible.
-        let h = if h.bins() % 18 == 0 { h.rebin(h.bins() / 18).unwrap_or(h) } else { h };
+        let h = if h.bins() % 18 == 0 {
+            h.rebin(h.bins() / 18).unwrap_or(h)
+        } else {
+            h
+        };
         let label = if observed.is_empty() {
             format!("P_ism = {} %", c.p_ism_percent)
         } else {
@@ -112,7 +129,6 @@ pub fn ism_figure(path: &Path, comparisons: &[IsmComparison], observed: &[f64], 
     Figure::single(panel).save_png(path)?;
     Ok(())
 }
-
 
 const GREY: crate::plots::Rgb = crate::plots::Rgb(120, 120, 120);
 
@@ -134,7 +150,11 @@ pub fn observed_figure(path: &Path, sample: &BinarySample, dg_bins: usize, notes
     let mut b = Panel::new(format!("[B] Δγ of {} {noun}", dg.len()), DG, "N")
         .x_range(0.0, 90.0)
         .with(Series::bars("observed", hd.edges(), to_f(&hd)).color(palette(1)))
-        .with(Series::line("random orientation", vec![0.0, 90.0], vec![expected, expected]).style(Style::Dashed(2)).color(palette(6)));
+        .with(
+            Series::line("random orientation", vec![0.0, 90.0], vec![expected, expected])
+                .style(Style::Dashed(2))
+                .color(palette(6)),
+        );
     b.notes = notes.to_vec();
     if !notes.is_empty() {
         // Leave room above the bars for the notes.

@@ -17,7 +17,11 @@ impl Histogram {
     /// Empty histogram of `bins` equal bins on [lo, hi] (requires lo < hi, bins >= 1).
     pub fn new(lo: f64, hi: f64, bins: usize) -> Self {
         assert!(lo < hi && bins >= 1, "histogram needs lo < hi and at least one bin");
-        Self { lo, hi, counts: vec![0; bins] }
+        Self {
+            lo,
+            hi,
+            counts: vec![0; bins],
+        }
     }
 
     /// Histogram of `values` (values outside [lo, hi] are ignored and counted in the return).
@@ -126,7 +130,11 @@ impl Histogram {
             return None;
         }
         let counts = self.counts.chunks(factor).map(|c| c.iter().sum()).collect();
-        Some(Histogram { lo: self.lo, hi: self.hi, counts })
+        Some(Histogram {
+            lo: self.lo,
+            hi: self.hi,
+            counts,
+        })
     }
 }
 

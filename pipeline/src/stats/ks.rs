@@ -25,7 +25,12 @@ pub fn ks_one_sample(data: &[f64], cdf: impl Fn(f64) -> f64) -> TestOutcome {
     let (d, _, _) = ks_statistics(data, &cdf);
     let n = data.len();
     let (p, method) = kolmogorov_sf(d, n);
-    TestOutcome { statistic: d, p_value: p, n, method: method.into() }
+    TestOutcome {
+        statistic: d,
+        p_value: p,
+        n,
+        method: method.into(),
+    }
 }
 
 /// One-sample KS test against the uniform distribution on [lo, hi].
@@ -56,7 +61,12 @@ pub fn ks_statistics(data: &[f64], cdf: &impl Fn(f64) -> f64) -> (f64, f64, f64)
 pub fn ks_two_sample(a: &[f64], b: &[f64]) -> TestOutcome {
     let (n1, n2) = (a.len(), b.len());
     if n1 == 0 || n2 == 0 {
-        return TestOutcome { statistic: 0.0, p_value: 1.0, n: n1.min(n2), method: "empty sample".into() };
+        return TestOutcome {
+            statistic: 0.0,
+            p_value: 1.0,
+            n: n1.min(n2),
+            method: "empty sample".into(),
+        };
     }
     let mut x = a.to_vec();
     let mut y = b.to_vec();
@@ -65,7 +75,12 @@ pub fn ks_two_sample(a: &[f64], b: &[f64]) -> TestOutcome {
     let d = ks_two_sample_sorted(&x, &y);
     let ne = ((n1 as f64 * n2 as f64) / (n1 as f64 + n2 as f64)).round().max(1.0) as usize;
     let (p, method) = kolmogorov_sf(d, ne);
-    TestOutcome { statistic: d, p_value: p, n: ne, method: format!("two-sample, n_e = {ne}: {method}") }
+    TestOutcome {
+        statistic: d,
+        p_value: p,
+        n: ne,
+        method: format!("two-sample, n_e = {ne}: {method}"),
+    }
 }
 
 /// D of two sorted samples.
@@ -96,13 +111,19 @@ pub fn kolmogorov_sf(d: f64, n: usize) -> (f64, &'static str) {
     }
     if n > EXACT_MAX_N {
         let sn = (n as f64).sqrt();
-        return (kolmogorov_q((sn + 0.12 + 0.11 / sn) * d), "asymptotic Kolmogorov, Stephens (1970) correction");
+        return (
+            kolmogorov_q((sn + 0.12 + 0.11 / sn) * d),
+            "asymptotic Kolmogorov, Stephens (1970) correction",
+        );
     }
     let tail = 2.0 * smirnov_sf(d, n);
     if tail < TAIL_SWITCH {
         return (tail, "exact tail: 2 x Birnbaum-Tingey one-sided");
     }
-    ((1.0 - mtw_cdf(d, n)).clamp(0.0, 1.0), "exact (Marsaglia, Tsang & Wang 2003)")
+    (
+        (1.0 - mtw_cdf(d, n)).clamp(0.0, 1.0),
+        "exact (Marsaglia, Tsang & Wang 2003)",
+    )
 }
 
 /// Q_KS(lambda) = 2 sum_{j>=1} (-1)^{j-1} exp(-2 j^2 lambda^2), the limiting P(sqrt(n) D > lambda).
@@ -158,9 +179,8 @@ pub fn smirnov_sf(d: f64, n: usize) -> f64 {
             // j/n = 1 - d exactly: the term is 0^(n-j) = 0 unless n = j (excluded since d > 0).
             continue;
         }
-        let ln_term = ln_n_fact - ln_factorial(j) - ln_factorial(n - j)
-            + (j as f64 - 1.0) * a.ln()
-            + (nf - j as f64) * b.ln();
+        let ln_term =
+            ln_n_fact - ln_factorial(j) - ln_factorial(n - j) + (j as f64 - 1.0) * a.ln() + (nf - j as f64) * b.ln();
         sum += ln_term.exp();
     }
     (d * sum).clamp(0.0, 1.0)
@@ -237,7 +257,11 @@ fn matrix_power(a: &[f64], ea: i32, m: usize, n: usize) -> (Vec<f64>, i32) {
     let (v, ev) = matrix_power(a, ea, m, n / 2);
     let b = matrix_multiply(&v, &v, m);
     let eb = 2 * ev;
-    let (mut v, mut ev) = if n % 2 == 0 { (b, eb) } else { (matrix_multiply(a, &b, m), ea + eb) };
+    let (mut v, mut ev) = if n % 2 == 0 {
+        (b, eb)
+    } else {
+        (matrix_multiply(a, &b, m), ea + eb)
+    };
     if v[(m / 2) * m + m / 2] > 1e140 {
         for x in v.iter_mut() {
             *x *= 1e-140;

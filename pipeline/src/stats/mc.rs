@@ -116,11 +116,17 @@ impl PIntDist {
                 _ => return Err(bad("fixed takes one value")),
             },
             "uniform" => match nums()?[..] {
-                [lo, hi] => Self::Uniform { lo_percent: lo, hi_percent: hi },
+                [lo, hi] => Self::Uniform {
+                    lo_percent: lo,
+                    hi_percent: hi,
+                },
                 _ => return Err(bad("uniform takes LO,HI")),
             },
             "lognormal" => match nums()?[..] {
-                [m, s] => Self::LogNormal { median_percent: m, sigma_ln: s },
+                [m, s] => Self::LogNormal {
+                    median_percent: m,
+                    sigma_ln: s,
+                },
                 _ => return Err(bad("lognormal takes MEDIAN,SIGMA_LN")),
             },
             "sin2i" => match nums()?[..] {
@@ -130,11 +136,19 @@ impl PIntDist {
             "table" => Self::histogram_from_file(Path::new(arg.trim()))?,
             "catalog" => {
                 let path = Path::new(arg.trim());
-                let text = std::fs::read_to_string(path).map_err(|e| Error::Io { path: path.into(), source: e })?;
-                let cat: Catalog = serde_json::from_str(&text)
-                    .map_err(|e| Error::Catalog { path: path.into(), reason: e.to_string() })?;
+                let text = std::fs::read_to_string(path).map_err(|e| Error::Io {
+                    path: path.into(),
+                    source: e,
+                })?;
+                let cat: Catalog = serde_json::from_str(&text).map_err(|e| Error::Catalog {
+                    path: path.into(),
+                    reason: e.to_string(),
+                })?;
                 let sample = super::sample::BinarySample::from_catalog(&cat, None);
-                Self::Empirical { source: path.display().to_string(), values: sample.p_percent() }
+                Self::Empirical {
+                    source: path.display().to_string(),
+                    values: sample.p_percent(),
+                }
             }
             _ => return Err(bad("unknown distribution")),
         };
@@ -145,19 +159,27 @@ impl PIntDist {
     /// Check the parameters.
     pub fn validate(&self) -> Result<()> {
         let bad = |value: String, reason: &str| {
-            Err(Error::InvalidParameter { name: "p-int".into(), value, reason: reason.into() })
+            Err(Error::InvalidParameter {
+                name: "p-int".into(),
+                value,
+                reason: reason.into(),
+            })
         };
         let ok = |v: f64| v.is_finite() && v >= 0.0;
         match self {
             Self::Fixed { p_percent } if !ok(*p_percent) => bad(p_percent.to_string(), "P must be >= 0"),
-            Self::Uniform { lo_percent, hi_percent } if !(ok(*lo_percent) && ok(*hi_percent) && lo_percent <= hi_percent) => {
+            Self::Uniform { lo_percent, hi_percent }
+                if !(ok(*lo_percent) && ok(*hi_percent) && lo_percent <= hi_percent) =>
+            {
                 bad(format!("{lo_percent},{hi_percent}"), "need 0 <= LO <= HI")
             }
-            Self::LogNormal { median_percent, sigma_ln }
-                if !(*median_percent > 0.0 && median_percent.is_finite() && ok(*sigma_ln)) =>
-            {
-                bad(format!("{median_percent},{sigma_ln}"), "need MEDIAN > 0 and SIGMA_LN >= 0")
-            }
+            Self::LogNormal {
+                median_percent,
+                sigma_ln,
+            } if !(*median_percent > 0.0 && median_percent.is_finite() && ok(*sigma_ln)) => bad(
+                format!("{median_percent},{sigma_ln}"),
+                "need MEDIAN > 0 and SIGMA_LN >= 0",
+            ),
             Self::Sin2i { p_max_percent } if !ok(*p_max_percent) => bad(p_max_percent.to_string(), "PMAX must be >= 0"),
             Self::Empirical { source, values } if values.is_empty() || !values.iter().all(|v| ok(*v)) => {
                 bad(source.clone(), "needs at least one value, all finite and >= 0")
@@ -168,16 +190,25 @@ impl PIntDist {
 
     /// Resample the given values (percent).
     pub fn empirical(source: &str, values: Vec<f64>) -> Result<Self> {
-        let d = Self::Empirical { source: source.into(), values };
+        let d = Self::Empirical {
+            source: source.into(),
+            values,
+        };
         d.validate()?;
         Ok(d)
     }
 
     /// Read a histogram table: lines `lo_percent hi_percent weight`, `#` comments.
     pub fn histogram_from_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::Io { path: path.into(), source: e })?;
+        let text = std::fs::read_to_string(path).map_err(|e| Error::Io {
+            path: path.into(),
+            source: e,
+        })?;
         let source = path.display().to_string();
-        let bad = |reason: String| Error::Table { table: source.clone(), reason };
+        let bad = |reason: String| Error::Table {
+            table: source.clone(),
+            reason,
+        };
         let mut bins = Vec::new();
         let mut weights = Vec::new();
         for (i, line) in text.lines().enumerate() {
@@ -196,7 +227,12 @@ impl PIntDist {
                     bins.push((lo, hi));
                     weights.push(w);
                 }
-                _ => return Err(bad(format!("line {}: expected 'lo hi weight' with 0 <= lo <= hi, weight >= 0", i + 1))),
+                _ => {
+                    return Err(bad(format!(
+                        "line {}: expected 'lo hi weight' with 0 <= lo <= hi, weight >= 0",
+                        i + 1
+                    )))
+                }
             }
         }
         let total: f64 = weights.iter().sum();
@@ -211,7 +247,11 @@ impl PIntDist {
                 acc
             })
             .collect();
-        Ok(Self::Histogram { source, bins, cumulative })
+        Ok(Self::Histogram {
+            source,
+            bins,
+            cumulative,
+        })
     }
 
     /// The spec string (files: their name).
@@ -219,7 +259,10 @@ impl PIntDist {
         match self {
             Self::Fixed { p_percent } => format!("fixed:{p_percent}"),
             Self::Uniform { lo_percent, hi_percent } => format!("uniform:{lo_percent},{hi_percent}"),
-            Self::LogNormal { median_percent, sigma_ln } => format!("lognormal:{median_percent},{sigma_ln}"),
+            Self::LogNormal {
+                median_percent,
+                sigma_ln,
+            } => format!("lognormal:{median_percent},{sigma_ln}"),
             Self::Sin2i { p_max_percent } => format!("sin2i:{p_max_percent}"),
             Self::Empirical { source, values } => format!("empirical:{source} ({} values)", values.len()),
             Self::Histogram { source, .. } => format!("table:{source}"),
@@ -232,7 +275,10 @@ impl PIntDist {
         match self {
             Self::Fixed { p_percent } => *p_percent,
             Self::Uniform { lo_percent, hi_percent } => lo_percent + (hi_percent - lo_percent) * rng.uniform(),
-            Self::LogNormal { median_percent, sigma_ln } => median_percent * (sigma_ln * rng.normal_pair().0).exp(),
+            Self::LogNormal {
+                median_percent,
+                sigma_ln,
+            } => median_percent * (sigma_ln * rng.normal_pair().0).exp(),
             Self::Sin2i { p_max_percent } => p_max_percent * r2,
             Self::Empirical { values, .. } => values[rng.below(values.len() as u64) as usize],
             Self::Histogram { bins, cumulative, .. } => {
@@ -293,7 +339,11 @@ impl McConfig {
     /// Check every parameter (the Monte Carlo refuses an invalid configuration).
     pub fn validate(&self) -> Result<()> {
         let bad = |name: &str, value: String, reason: &str| {
-            Err(Error::InvalidParameter { name: name.into(), value, reason: reason.into() })
+            Err(Error::InvalidParameter {
+                name: name.into(),
+                value,
+                reason: reason.into(),
+            })
         };
         self.model.validate()?;
         self.p_int.validate()?;
@@ -363,7 +413,13 @@ impl<'a> Kernel<'a> {
         });
         let noise = cfg.noise_percent.unwrap_or(0.0);
         let cut2 = cfg.snr_cut.map(|k| (k * noise) * (k * noise));
-        Self { cfg, model_constant: cfg.model.sampler_constant(), ism_qu, noise, cut2 }
+        Self {
+            cfg,
+            model_constant: cfg.model.sampler_constant(),
+            ism_qu,
+            noise,
+            cut2,
+        }
     }
 
     /// Intrinsic (q, u) of a disk with projected axis (x, y), percent.
@@ -480,7 +536,15 @@ pub fn simulate(cfg: &McConfig) -> Result<McOutput> {
                 (a, na + nb)
             },
         );
-    Ok(McOutput { histogram: Histogram { lo: 0.0, hi: 90.0, counts }, simulated: cfg.pairs, accepted })
+    Ok(McOutput {
+        histogram: Histogram {
+            lo: 0.0,
+            hi: 90.0,
+            counts,
+        },
+        simulated: cfg.pairs,
+        accepted,
+    })
 }
 
 /// Run the Monte Carlo and also return every accepted Delta gamma (degrees) in a fixed
@@ -499,5 +563,12 @@ pub fn simulate_samples(cfg: &McConfig) -> Result<(Vec<f64>, McOutput)> {
     let samples: Vec<f64> = parts.concat();
     let (histogram, _) = Histogram::from_values(0.0, 90.0, cfg.bins, &samples);
     let accepted = samples.len() as u64;
-    Ok((samples, McOutput { histogram, simulated: cfg.pairs, accepted }))
+    Ok((
+        samples,
+        McOutput {
+            histogram,
+            simulated: cfg.pairs,
+            accepted,
+        },
+    ))
 }

@@ -78,13 +78,22 @@ pub struct AlphaTable {
 impl AlphaTable {
     /// Build from points; checks monotonicity, finiteness and a positive total.
     pub fn new(source: &str, alpha_deg: Vec<f64>, density: Vec<f64>, measure: AlphaMeasure) -> Result<Self> {
-        let bad = |reason: String| Error::Table { table: source.to_string(), reason };
+        let bad = |reason: String| Error::Table {
+            table: source.to_string(),
+            reason,
+        };
         if alpha_deg.len() < 2 || alpha_deg.len() != density.len() {
-            return Err(bad(format!("needs at least two (alpha, density) points, got {}", alpha_deg.len())));
+            return Err(bad(format!(
+                "needs at least two (alpha, density) points, got {}",
+                alpha_deg.len()
+            )));
         }
         for w in alpha_deg.windows(2) {
             if !(w[1] > w[0]) {
-                return Err(bad(format!("alpha must increase strictly ({} then {} deg)", w[0], w[1])));
+                return Err(bad(format!(
+                    "alpha must increase strictly ({} then {} deg)",
+                    w[0], w[1]
+                )));
             }
         }
         if alpha_deg[0] < 0.0 || *alpha_deg.last().unwrap() > 180.0 {
@@ -124,15 +133,28 @@ impl AlphaTable {
                 cell += 1;
             }
             let (c0, c1) = (cdf[cell], cdf[cell + 1]);
-            let frac = if c1 > c0 { ((target - c0) / (c1 - c0)).clamp(0.0, 1.0) } else { 0.0 };
+            let frac = if c1 > c0 {
+                ((target - c0) / (c1 - c0)).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
             quantiles.push(a0 + h * (cell as f64 + frac));
         }
-        Ok(Self { source: source.to_string(), alpha_deg, density, measure, quantiles })
+        Ok(Self {
+            source: source.to_string(),
+            alpha_deg,
+            density,
+            measure,
+            quantiles,
+        })
     }
 
     /// Read the text format described on the type.
     pub fn from_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::Io { path: path.to_path_buf(), source: e })?;
+        let text = std::fs::read_to_string(path).map_err(|e| Error::Io {
+            path: path.to_path_buf(),
+            source: e,
+        })?;
         Self::parse(&path.display().to_string(), &text)
     }
 
@@ -150,7 +172,10 @@ impl AlphaTable {
                         other => {
                             return Err(Error::Table {
                                 table: source.to_string(),
-                                reason: format!("line {}: unknown measure '{other}' (alpha or solid_angle)", lineno + 1),
+                                reason: format!(
+                                    "line {}: unknown measure '{other}' (alpha or solid_angle)",
+                                    lineno + 1
+                                ),
                             })
                         }
                     };
@@ -167,7 +192,11 @@ impl AlphaTable {
             if nums.len() != 2 {
                 return Err(Error::Table {
                     table: source.to_string(),
-                    reason: format!("line {}: expected 'alpha_deg density', got {} numbers", lineno + 1, nums.len()),
+                    reason: format!(
+                        "line {}: expected 'alpha_deg density', got {} numbers",
+                        lineno + 1,
+                        nums.len()
+                    ),
                 });
             }
             a.push(nums[0]);
@@ -205,11 +234,17 @@ fn parse_numbers(s: &str) -> std::result::Result<Vec<f64>, String> {
 }
 
 fn invalid(name: &str, value: impl std::fmt::Display, reason: &str) -> Error {
-    Error::InvalidParameter { name: name.to_string(), value: value.to_string(), reason: reason.to_string() }
+    Error::InvalidParameter {
+        name: name.to_string(),
+        value: value.to_string(),
+        reason: reason.to_string(),
+    }
 }
 
 fn one_number(name: &str, arg: &str) -> Result<f64> {
-    arg.trim().parse::<f64>().map_err(|_| invalid(name, arg, "expected a number"))
+    arg.trim()
+        .parse::<f64>()
+        .map_err(|_| invalid(name, arg, "expected a number"))
 }
 
 impl AlignmentModel {
@@ -223,8 +258,12 @@ impl AlignmentModel {
         let model = match (kind, arg) {
             ("random" | "isotropic", None) => Self::Random,
             ("aligned", None) => Self::Aligned,
-            ("spread" | "vmf", Some(a)) => Self::Spread { sigma_deg: one_number("model spread sigma (deg)", a)? },
-            ("uniform" | "cone", Some(a)) => Self::Cone { alpha0_deg: one_number("model alpha_0 (deg)", a)? },
+            ("spread" | "vmf", Some(a)) => Self::Spread {
+                sigma_deg: one_number("model spread sigma (deg)", a)?,
+            },
+            ("uniform" | "cone", Some(a)) => Self::Cone {
+                alpha0_deg: one_number("model alpha_0 (deg)", a)?,
+            },
             ("table", Some(a)) => Self::Table(AlphaTable::from_file(Path::new(a.trim()))?),
             _ => {
                 return Err(invalid(
@@ -284,12 +323,20 @@ impl AlignmentModel {
                 }
                 Self::Cone { alpha0_deg } => {
                     let c0 = alpha0_deg.to_radians().cos();
-                    if a <= alpha0_deg.to_radians() { 2.0 / (1.0 - c0) } else { 0.0 }
+                    if a <= alpha0_deg.to_radians() {
+                        2.0 / (1.0 - c0)
+                    } else {
+                        0.0
+                    }
                 }
                 Self::Table(t) => {
                     let d = interp(&t.alpha_deg, &t.density, a.to_degrees());
                     let d = if t.measure == AlphaMeasure::Alpha {
-                        if a.sin() > 1e-12 { d / a.sin() } else { 0.0 }
+                        if a.sin() > 1e-12 {
+                            d / a.sin()
+                        } else {
+                            0.0
+                        }
                     } else {
                         d
                     };
@@ -353,7 +400,10 @@ impl AlignmentModel {
         let e1 = [1.0 + sign * x * x * a, sign * b];
         let e2 = [b, sign + y * y * a];
         let (cb, sb) = rng.unit_circle();
-        (w * x + s * (cb * e1[0] + sb * e2[0]), w * y + s * (cb * e1[1] + sb * e2[1]))
+        (
+            w * x + s * (cb * e1[0] + sb * e2[0]),
+            w * y + s * (cb * e1[1] + sb * e2[1]),
+        )
     }
 
     /// The per-model constant used by the samplers (kappa, or cos alpha_0).
@@ -372,7 +422,9 @@ impl AlignmentModel {
             Self::Random => rng.uniform_pm1().acos().to_degrees(),
             Self::Aligned => 0.0,
             _ => {
-                let (w, s) = self.draw_tilt(rng, self.sampler_constant()).expect("tilting models draw a tilt");
+                let (w, s) = self
+                    .draw_tilt(rng, self.sampler_constant())
+                    .expect("tilting models draw a tilt");
                 s.atan2(w).to_degrees()
             }
         }
@@ -383,13 +435,20 @@ impl AlphaTable {
     /// Integral over the sphere of the density per solid angle, / (2 pi): int d_sa(a) sin a da.
     fn norm_per_solid_angle(&self) -> f64 {
         let n = 4096;
-        let (a0, a1) = (self.alpha_deg[0].to_radians(), self.alpha_deg.last().unwrap().to_radians());
+        let (a0, a1) = (
+            self.alpha_deg[0].to_radians(),
+            self.alpha_deg.last().unwrap().to_radians(),
+        );
         let h = (a1 - a0) / n as f64;
         (0..n)
             .map(|i| {
                 let a = a0 + h * (i as f64 + 0.5);
                 let d = interp(&self.alpha_deg, &self.density, a.to_degrees());
-                let d = if self.measure == AlphaMeasure::Alpha { d } else { d * a.sin() };
+                let d = if self.measure == AlphaMeasure::Alpha {
+                    d
+                } else {
+                    d * a.sin()
+                };
                 d * h
             })
             .sum()

@@ -58,9 +58,7 @@ impl Xoshiro256pp {
 
     /// Generator of stream `stream` (e.g. a chunk index) for the run seed `seed`.
     pub fn for_stream(seed: u64, stream: u64) -> Self {
-        Self::from_seed(
-            mix64(seed ^ 0x5851_F42D_4C95_7F2D) ^ mix64(stream.wrapping_add(0x1405_7B7E_F767_814F)),
-        )
+        Self::from_seed(mix64(seed ^ 0x5851_F42D_4C95_7F2D) ^ mix64(stream.wrapping_add(0x1405_7B7E_F767_814F)))
     }
 
     /// Next 64-bit output.
@@ -165,9 +163,18 @@ mod tests {
 
     #[test]
     fn streams_differ_and_repeat() {
-        let a: Vec<u64> = { let mut g = Xoshiro256pp::for_stream(7, 0); (0..8).map(|_| g.next_u64()).collect() };
-        let b: Vec<u64> = { let mut g = Xoshiro256pp::for_stream(7, 1); (0..8).map(|_| g.next_u64()).collect() };
-        let c: Vec<u64> = { let mut g = Xoshiro256pp::for_stream(7, 0); (0..8).map(|_| g.next_u64()).collect() };
+        let a: Vec<u64> = {
+            let mut g = Xoshiro256pp::for_stream(7, 0);
+            (0..8).map(|_| g.next_u64()).collect()
+        };
+        let b: Vec<u64> = {
+            let mut g = Xoshiro256pp::for_stream(7, 1);
+            (0..8).map(|_| g.next_u64()).collect()
+        };
+        let c: Vec<u64> = {
+            let mut g = Xoshiro256pp::for_stream(7, 0);
+            (0..8).map(|_| g.next_u64()).collect()
+        };
         assert_ne!(a, b);
         assert_eq!(a, c);
     }

@@ -50,7 +50,12 @@ impl BinarySample {
             None => c.passes_cut,
         };
         for t in &cat.targets {
-            let mut exclude = |reason: String| s.excluded.push(Excluded { object: t.object.clone(), reason });
+            let mut exclude = |reason: String| {
+                s.excluded.push(Excluded {
+                    object: t.object.clone(),
+                    reason,
+                })
+            };
             if t.status == Status::Failed {
                 exclude("reduction failed".into());
                 continue;
@@ -128,5 +133,9 @@ pub fn median(values: &[f64]) -> Option<f64> {
     }
     v.sort_by(|a, b| a.total_cmp(b));
     let n = v.len();
-    Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
+    Some(if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    })
 }

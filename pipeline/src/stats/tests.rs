@@ -3,6 +3,7 @@
 //! slow-but-obvious reimplementations of the fast paths.
 use serde_json::Value;
 
+use super::alignment::{analyse, AnalysisParams};
 use super::binomial::binomial_test;
 use super::hist::Histogram;
 use super::ks::{kolmogorov_sf, ks_statistics, ks_two_sample, ks_uniform, smirnov_sf, EXACT_MAX_N};
@@ -11,7 +12,6 @@ use super::mc::{self, simulate, simulate_samples, Ism, McConfig, PIntDist, CHUNK
 use super::model::{AlignmentModel, AlphaMeasure, AlphaTable};
 use super::rng::Xoshiro256pp;
 use super::sample::BinarySample;
-use super::alignment::{analyse, AnalysisParams};
 use crate::catalog::{fold_delta_gamma, Catalog, Component, Status, Target};
 
 fn reference() -> Value {
@@ -39,13 +39,26 @@ fn ks_one_sample_matches_scipy() {
         let name = e["name"].as_str().unwrap();
         let data = floats(&e["data"]);
         let t = ks_uniform(&data, 0.0, 90.0);
-        assert!((t.statistic - f(&e["ks_d"])).abs() < 1e-12, "{name}: D {} vs {}", t.statistic, e["ks_d"]);
+        assert!(
+            (t.statistic - f(&e["ks_d"])).abs() < 1e-12,
+            "{name}: D {} vs {}",
+            t.statistic,
+            e["ks_d"]
+        );
         let exact = f(&e["ks_p_exact"]);
         if data.len() <= EXACT_MAX_N {
-            assert!(rel_close(t.p_value, exact, 1e-7), "{name}: p {} vs scipy exact {exact}", t.p_value);
+            assert!(
+                rel_close(t.p_value, exact, 1e-7),
+                "{name}: p {} vs scipy exact {exact}",
+                t.p_value
+            );
         } else {
             // Asymptotic with Stephens' correction: within 1 % of the exact value here.
-            assert!(rel_close(t.p_value, exact, 0.01), "{name}: p {} vs scipy exact {exact}", t.p_value);
+            assert!(
+                rel_close(t.p_value, exact, 0.01),
+                "{name}: p {} vs scipy exact {exact}",
+                t.p_value
+            );
         }
     }
 }
@@ -56,7 +69,10 @@ fn kolmogorov_sf_matches_kstwo_including_far_tail() {
     for e in r["kolmogorov_sf"].as_array().unwrap() {
         let (d, n, sf) = (f(&e["d"]), e["n"].as_u64().unwrap() as usize, f(&e["sf"]));
         let (p, method) = kolmogorov_sf(d, n);
-        assert!(rel_close(p, sf, 1e-7), "d = {d}, n = {n}: {p} ({method}) vs scipy kstwo {sf}");
+        assert!(
+            rel_close(p, sf, 1e-7),
+            "d = {d}, n = {n}: {p} ({method}) vs scipy kstwo {sf}"
+        );
     }
     for e in r["asymptotic_kolmogorov"].as_array().unwrap() {
         let (d, n, sf) = (f(&e["d"]), e["n"].as_u64().unwrap() as usize, f(&e["sf_scipy_kstwo"]));
@@ -72,16 +88,33 @@ fn kuiper_matches_astropy_mpmath_and_monte_carlo() {
         let name = e["name"].as_str().unwrap();
         let data = floats(&e["data"]);
         let t = kuiper_uniform(&data, 0.0, 90.0);
-        assert!((t.statistic - f(&e["kuiper_v"])).abs() < 1e-12, "{name}: V {} vs astropy {}", t.statistic, e["kuiper_v"]);
+        assert!(
+            (t.statistic - f(&e["kuiper_v"])).abs() < 1e-12,
+            "{name}: V {} vs astropy {}",
+            t.statistic,
+            e["kuiper_v"]
+        );
         let stephens = f(&e["kuiper_p_stephens_mpmath"]);
-        assert!(rel_close(t.p_value, stephens, 1e-9), "{name}: p {} vs mpmath {stephens}", t.p_value);
+        assert!(
+            rel_close(t.p_value, stephens, 1e-9),
+            "{name}: p {} vs mpmath {stephens}",
+            t.p_value
+        );
         // astropy's Paltani (2004) formulas may be up to 1.5x high; they agree within that.
         let paltani = f(&e["kuiper_p_astropy_paltani"]);
-        assert!(t.p_value / paltani < 1.5 && paltani / t.p_value < 1.5, "{name}: {} vs astropy {paltani}", t.p_value);
+        assert!(
+            t.p_value / paltani < 1.5 && paltani / t.p_value < 1.5,
+            "{name}: {} vs astropy {paltani}",
+            t.p_value
+        );
         // The approximation itself, against brute force: within 5 % + 4 standard errors.
         if let Some(mcp) = e.get("kuiper_p_monte_carlo") {
             let (mcp, se) = (f(mcp), f(&e["kuiper_p_monte_carlo_se"]));
-            assert!((t.p_value - mcp).abs() < 0.05 * mcp + 4.0 * se, "{name}: {} vs Monte Carlo {mcp} +- {se}", t.p_value);
+            assert!(
+                (t.p_value - mcp).abs() < 0.05 * mcp + 4.0 * se,
+                "{name}: {} vs Monte Carlo {mcp} +- {se}",
+                t.p_value
+            );
         }
     }
 }
@@ -92,7 +125,10 @@ fn kuiper_q_matches_mpmath_and_is_continuous_at_the_switch() {
     for e in r["kuiper_q"].as_array().unwrap() {
         let (lam, q) = (f(&e["lambda"]), f(&e["q"]));
         let ours = kuiper_q(lam);
-        assert!((ours - q).abs() <= 1e-13 + 1e-11 * q, "Q_KP({lam}) = {ours} vs mpmath {q}");
+        assert!(
+            (ours - q).abs() <= 1e-13 + 1e-11 * q,
+            "Q_KP({lam}) = {ours} vs mpmath {q}"
+        );
     }
     // The two representations agree where both converge.
     for i in 0..=40 {
@@ -121,8 +157,18 @@ fn ks_two_sample_matches_scipy_asymp() {
     for e in r["two_sample"].as_array().unwrap() {
         let name = e["name"].as_str().unwrap();
         let t = ks_two_sample(&floats(&e["a"]), &floats(&e["b"]));
-        assert!((t.statistic - f(&e["d"])).abs() < 1e-12, "{name}: D {} vs {}", t.statistic, e["d"]);
-        assert!(rel_close(t.p_value, f(&e["p_asymp"]), 1e-7), "{name}: p {} vs {}", t.p_value, e["p_asymp"]);
+        assert!(
+            (t.statistic - f(&e["d"])).abs() < 1e-12,
+            "{name}: D {} vs {}",
+            t.statistic,
+            e["d"]
+        );
+        assert!(
+            rel_close(t.p_value, f(&e["p_asymp"]), 1e-7),
+            "{name}: p {} vs {}",
+            t.p_value,
+            e["p_asymp"]
+        );
     }
 }
 
@@ -132,8 +178,18 @@ fn binomial_matches_scipy_binomtest() {
     for e in r["binomial"].as_array().unwrap() {
         let (k, n) = (e["k"].as_u64().unwrap(), e["n"].as_u64().unwrap());
         let b = binomial_test(k, n, f(&e["p0"]));
-        assert!(rel_close(b.p_greater, f(&e["p_greater"]), 1e-9), "{k}/{n}: {} vs {}", b.p_greater, e["p_greater"]);
-        assert!(rel_close(b.p_two_sided, f(&e["p_two_sided"]), 1e-9), "{k}/{n}: {} vs {}", b.p_two_sided, e["p_two_sided"]);
+        assert!(
+            rel_close(b.p_greater, f(&e["p_greater"]), 1e-9),
+            "{k}/{n}: {} vs {}",
+            b.p_greater,
+            e["p_greater"]
+        );
+        assert!(
+            rel_close(b.p_two_sided, f(&e["p_two_sided"]), 1e-9),
+            "{k}/{n}: {} vs {}",
+            b.p_two_sided,
+            e["p_two_sided"]
+        );
     }
 }
 
@@ -145,10 +201,14 @@ fn ks_statistics_match_brute_force_and_statrs() {
     let cdf = |x: f64| (x / 90.0).clamp(0.0, 1.0);
     for case in 0..200 {
         let n = 1 + (case % 40);
-        let data: Vec<f64> = (0..n).map(|_| 90.0 * rng.uniform().powf(1.0 + (case % 3) as f64 * 0.5)).collect();
+        let data: Vec<f64> = (0..n)
+            .map(|_| 90.0 * rng.uniform().powf(1.0 + (case % 3) as f64 * 0.5))
+            .collect();
         let (d, dp, dm) = ks_statistics(&data, &cdf);
         // Brute force: sup over x of ECDF(x) - F(x) and F(x) - ECDF(x-), at every data point.
-        let ecdf = |x: f64, strict: bool| data.iter().filter(|&&v| if strict { v < x } else { v <= x }).count() as f64 / n as f64;
+        let ecdf = |x: f64, strict: bool| {
+            data.iter().filter(|&&v| if strict { v < x } else { v <= x }).count() as f64 / n as f64
+        };
         let bp = data.iter().map(|&x| ecdf(x, false) - cdf(x)).fold(0.0f64, f64::max);
         let bm = data.iter().map(|&x| cdf(x) - ecdf(x, true)).fold(0.0f64, f64::max);
         assert!((dp - bp).abs() < 1e-14 && (dm - bm).abs() < 1e-14, "case {case}");
@@ -185,7 +245,12 @@ fn kolmogorov_tail_formula_agrees_with_exact_where_they_overlap() {
 fn fast_angle_formulas_match_trigonometry() {
     let mut rng = Xoshiro256pp::from_seed(5);
     for _ in 0..20_000 {
-        let (x1, y1, x2, y2) = (rng.uniform_pm1(), rng.uniform_pm1(), rng.uniform_pm1(), rng.uniform_pm1());
+        let (x1, y1, x2, y2) = (
+            rng.uniform_pm1(),
+            rng.uniform_pm1(),
+            rng.uniform_pm1(),
+            rng.uniform_pm1(),
+        );
         let pa = |x: f64, y: f64| y.atan2(x).to_degrees();
         let slow = fold_delta_gamma(pa(x1, y1), pa(x2, y2));
         let fast = mc::delta_gamma_axes(x1, y1, x2, y2);
@@ -215,12 +280,23 @@ fn isotropic_alignment_gives_flat_pi_delta_gamma_across_seeds() {
         assert_eq!(out.accepted, 1_000_000);
         let ks = ks_uniform(&s, 0.0, 90.0);
         let kp = kuiper_uniform(&s, 0.0, 90.0);
-        assert!(ks.p_value > 1e-3, "seed {seed}: KS D = {} p = {}", ks.statistic, ks.p_value);
-        assert!(kp.p_value > 1e-3, "seed {seed}: Kuiper V = {} p = {}", kp.statistic, kp.p_value);
+        assert!(
+            ks.p_value > 1e-3,
+            "seed {seed}: KS D = {} p = {}",
+            ks.statistic,
+            ks.p_value
+        );
+        assert!(
+            kp.p_value > 1e-3,
+            "seed {seed}: Kuiper V = {} p = {}",
+            kp.statistic,
+            kp.p_value
+        );
         // And the 90-bin histogram is flat by a chi-square test.
         let e = 1_000_000.0 / 90.0;
         let chi2: f64 = out.histogram.counts.iter().map(|&c| (c as f64 - e).powi(2) / e).sum();
-        let p = 1.0 - statrs::distribution::ContinuousCDF::cdf(&statrs::distribution::ChiSquared::new(89.0).unwrap(), chi2);
+        let p =
+            1.0 - statrs::distribution::ContinuousCDF::cdf(&statrs::distribution::ChiSquared::new(89.0).unwrap(), chi2);
         assert!(p > 1e-3, "seed {seed}: chi2 = {chi2}, p = {p}");
     }
 }
@@ -230,8 +306,18 @@ fn equivalent_descriptions_of_random_orientation_are_flat_too() {
     // A 90-deg cone is isotropic for axes; so is a table flat per solid angle, or sin(alpha) per alpha.
     let flat_sa = AlphaTable::new("flat", vec![0.0, 180.0], vec![1.0, 1.0], AlphaMeasure::SolidAngle).unwrap();
     let xs: Vec<f64> = (0..=180).map(|i| i as f64).collect();
-    let sin_alpha = AlphaTable::new("sin", xs.clone(), xs.iter().map(|a| a.to_radians().sin()).collect(), AlphaMeasure::Alpha).unwrap();
-    for model in [AlignmentModel::Cone { alpha0_deg: 90.0 }, AlignmentModel::Table(flat_sa), AlignmentModel::Table(sin_alpha)] {
+    let sin_alpha = AlphaTable::new(
+        "sin",
+        xs.clone(),
+        xs.iter().map(|a| a.to_radians().sin()).collect(),
+        AlphaMeasure::Alpha,
+    )
+    .unwrap();
+    for model in [
+        AlignmentModel::Cone { alpha0_deg: 90.0 },
+        AlignmentModel::Table(flat_sa),
+        AlignmentModel::Table(sin_alpha),
+    ] {
         let (s, _) = simulate_samples(&geometry(model.clone(), 1_000_000, 7)).unwrap();
         let ks = ks_uniform(&s, 0.0, 90.0);
         assert!(ks.p_value > 1e-3, "{}: KS p = {}", model.spec(), ks.p_value);
@@ -242,10 +328,19 @@ fn equivalent_descriptions_of_random_orientation_are_flat_too() {
 fn the_flatness_test_has_power_against_alignment() {
     // Pi(alpha) flat per unit alpha is NOT isotropic (too many small alpha): must be rejected.
     let flat_alpha = AlphaTable::new("flat-per-alpha", vec![0.0, 90.0], vec![1.0, 1.0], AlphaMeasure::Alpha).unwrap();
-    for model in [AlignmentModel::Table(flat_alpha), AlignmentModel::Spread { sigma_deg: 60.0 }, AlignmentModel::Cone { alpha0_deg: 60.0 }] {
+    for model in [
+        AlignmentModel::Table(flat_alpha),
+        AlignmentModel::Spread { sigma_deg: 60.0 },
+        AlignmentModel::Cone { alpha0_deg: 60.0 },
+    ] {
         let (s, _) = simulate_samples(&geometry(model.clone(), 200_000, 3)).unwrap();
         let ks = ks_uniform(&s, 0.0, 90.0);
-        assert!(ks.p_value < 1e-10, "{}: KS p = {} should reject", model.spec(), ks.p_value);
+        assert!(
+            ks.p_value < 1e-10,
+            "{}: KS p = {} should reject",
+            model.spec(),
+            ks.p_value
+        );
         let mean = s.iter().sum::<f64>() / s.len() as f64;
         assert!(mean < 44.0, "{}: mean {mean} should be below 45", model.spec());
     }
@@ -261,9 +356,16 @@ fn perfect_alignment_gives_zero_delta_gamma() {
     // Still exactly zero with a common ISM and a fixed intrinsic P (same angle, same P).
     let mut cfg = geometry(AlignmentModel::Aligned, 100_000, 12);
     cfg.p_int = PIntDist::Fixed { p_percent: 4.0 };
-    cfg.ism = Some(Ism { p_percent: 2.0, angle_deg: 33.0 });
+    cfg.ism = Some(Ism {
+        p_percent: 2.0,
+        angle_deg: 33.0,
+    });
     let (s, _) = simulate_samples(&cfg).unwrap();
-    assert!(s.iter().all(|&d| d < 1e-9), "max {}", s.iter().cloned().fold(0.0, f64::max));
+    assert!(
+        s.iter().all(|&d| d < 1e-9),
+        "max {}",
+        s.iter().cloned().fold(0.0, f64::max)
+    );
 }
 
 #[test]
@@ -277,7 +379,10 @@ fn measurement_noise_has_the_wardle_kronberg_width() {
     let mean = s.iter().sum::<f64>() / s.len() as f64;
     let sigma_gamma = (0.5 * 0.5f64 / 10.0).to_degrees(); // sigma_P / (2P) rad = 28.65 deg * 0.05
     let expected = 2f64.sqrt() * sigma_gamma * (2.0 / std::f64::consts::PI).sqrt();
-    assert!((mean / expected - 1.0).abs() < 0.01, "mean |dgamma| {mean} vs {expected}");
+    assert!(
+        (mean / expected - 1.0).abs() < 0.01,
+        "mean |dgamma| {mean} vs {expected}"
+    );
 }
 
 #[test]
@@ -287,7 +392,10 @@ fn rising_ism_makes_pi_delta_gamma_fall_more_steeply() {
     let mut ratios = Vec::new();
     for &p in &levels {
         let mut cfg = geometry(AlignmentModel::Random, 400_000, 31);
-        cfg.ism = Some(Ism { p_percent: p, angle_deg: 0.0 });
+        cfg.ism = Some(Ism {
+            p_percent: p,
+            angle_deg: 0.0,
+        });
         let out = simulate(&cfg).unwrap();
         let h = &out.histogram;
         let below30 = h.counts[..30].iter().sum::<u64>() as f64 / h.total() as f64;
@@ -297,17 +405,29 @@ fn rising_ism_makes_pi_delta_gamma_fall_more_steeply() {
         ratios.push(first / last);
         if p == 0.0 {
             // No ISM: the polarization path reproduces the flat geometry.
-            assert!((below30 - 1.0 / 3.0).abs() < 4.0 * (2.0 / 9.0 / 400_000f64).sqrt(), "P_ism = 0: {below30}");
+            assert!(
+                (below30 - 1.0 / 3.0).abs() < 4.0 * (2.0 / 9.0 / 400_000f64).sqrt(),
+                "P_ism = 0: {below30}"
+            );
         }
     }
     let se = (0.25 / 400_000f64).sqrt();
     for i in 1..levels.len() {
-        assert!(fractions[i] > fractions[i - 1] + 3.0 * se, "fraction < 30 deg not rising: {fractions:?}");
-        assert!(ratios[i] > ratios[i - 1], "first/last decile ratio not rising: {ratios:?}");
+        assert!(
+            fractions[i] > fractions[i - 1] + 3.0 * se,
+            "fraction < 30 deg not rising: {fractions:?}"
+        );
+        assert!(
+            ratios[i] > ratios[i - 1],
+            "first/last decile ratio not rising: {ratios:?}"
+        );
     }
     // Monotone decrease of Pi(Delta gamma) at a strong ISM (5-deg bins).
     let mut cfg = geometry(AlignmentModel::Random, 400_000, 32);
-    cfg.ism = Some(Ism { p_percent: 4.0, angle_deg: 0.0 });
+    cfg.ism = Some(Ism {
+        p_percent: 4.0,
+        angle_deg: 0.0,
+    });
     let h = simulate(&cfg).unwrap().histogram.rebin(5).unwrap();
     for w in h.counts.windows(2) {
         assert!(w[1] < w[0], "not decreasing: {:?}", h.counts);
@@ -318,21 +438,38 @@ fn rising_ism_makes_pi_delta_gamma_fall_more_steeply() {
 fn ism_angle_does_not_matter_for_isotropic_disks() {
     let run = |angle: f64, seed: u64| {
         let mut cfg = geometry(AlignmentModel::Random, 300_000, seed);
-        cfg.ism = Some(Ism { p_percent: 2.0, angle_deg: angle });
-        cfg.p_int = PIntDist::LogNormal { median_percent: 3.0, sigma_ln: 0.5 };
+        cfg.ism = Some(Ism {
+            p_percent: 2.0,
+            angle_deg: angle,
+        });
+        cfg.p_int = PIntDist::LogNormal {
+            median_percent: 3.0,
+            sigma_ln: 0.5,
+        };
         simulate_samples(&cfg).unwrap().0
     };
     let t = ks_two_sample(&run(0.0, 41), &run(37.0, 42));
-    assert!(t.p_value > 1e-3, "ISM angle changed Pi(dgamma): D = {} p = {}", t.statistic, t.p_value);
+    assert!(
+        t.p_value > 1e-3,
+        "ISM angle changed Pi(dgamma): D = {} p = {}",
+        t.statistic,
+        t.p_value
+    );
 }
 
 #[test]
 fn results_are_identical_for_any_thread_count() {
     let mut pol = geometry(AlignmentModel::Spread { sigma_deg: 30.0 }, 5 * CHUNK_PAIRS + 123, 77);
-    pol.ism = Some(Ism { p_percent: 1.0, angle_deg: 10.0 });
+    pol.ism = Some(Ism {
+        p_percent: 1.0,
+        angle_deg: 10.0,
+    });
     pol.noise_percent = Some(0.3);
     pol.snr_cut = Some(3.0);
-    pol.p_int = PIntDist::LogNormal { median_percent: 2.0, sigma_ln: 0.7 };
+    pol.p_int = PIntDist::LogNormal {
+        median_percent: 2.0,
+        sigma_ln: 0.7,
+    };
     for cfg in [geometry(AlignmentModel::Random, 7 * CHUNK_PAIRS + 5, 5), pol] {
         let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
         let two = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
@@ -417,16 +554,31 @@ fn alpha_samplers_follow_their_analytic_pi_alpha() {
         AlignmentModel::Table(tab),
     ] {
         let cdf = folded_alpha_cdf(&model);
-        assert!((cdf(90.0) - 1.0).abs() < 1e-4, "{}: Pi(alpha) integrates to {}", model.spec(), cdf(90.0));
+        assert!(
+            (cdf(90.0) - 1.0).abs() < 1e-4,
+            "{}: Pi(alpha) integrates to {}",
+            model.spec(),
+            cdf(90.0)
+        );
         let mut rng = Xoshiro256pp::from_seed(61);
         let a: Vec<f64> = (0..200_000)
             .map(|_| {
                 let x = model.sample_alpha_deg(&mut rng);
-                if x > 90.0 { 180.0 - x } else { x }
+                if x > 90.0 {
+                    180.0 - x
+                } else {
+                    x
+                }
             })
             .collect();
         let t = super::ks::ks_one_sample(&a, &cdf);
-        assert!(t.p_value > 1e-3, "{}: sampled alpha vs analytic, D = {} p = {}", model.spec(), t.statistic, t.p_value);
+        assert!(
+            t.p_value > 1e-3,
+            "{}: sampled alpha vs analytic, D = {} p = {}",
+            model.spec(),
+            t.statistic,
+            t.p_value
+        );
         if let AlignmentModel::Cone { alpha0_deg } = model {
             assert!(a.iter().all(|&x| x <= alpha0_deg + 1e-9));
         }
@@ -435,8 +587,14 @@ fn alpha_samplers_follow_their_analytic_pi_alpha() {
     let mut rng = Xoshiro256pp::from_seed(62);
     let m = AlignmentModel::Spread { sigma_deg: 40.0 };
     let k = 1.0 / 40f64.to_radians().powi(2);
-    let mean = (0..200_000).map(|_| m.sample_alpha_deg(&mut rng).to_radians().cos()).sum::<f64>() / 200_000.0;
-    assert!((mean - (1.0 / k.tanh() - 1.0 / k)).abs() < 0.003, "E cos alpha = {mean}");
+    let mean = (0..200_000)
+        .map(|_| m.sample_alpha_deg(&mut rng).to_radians().cos())
+        .sum::<f64>()
+        / 200_000.0;
+    assert!(
+        (mean - (1.0 / k.tanh() - 1.0 / k)).abs() < 0.003,
+        "E cos alpha = {mean}"
+    );
 }
 
 #[test]
@@ -450,14 +608,44 @@ fn strong_but_imperfect_alignment_still_gives_large_delta_gamma() {
 #[test]
 fn specs_parse_and_bad_input_is_refused() {
     assert_eq!(AlignmentModel::parse("random").unwrap(), AlignmentModel::Random);
-    assert_eq!(AlignmentModel::parse("spread:15").unwrap(), AlignmentModel::Spread { sigma_deg: 15.0 });
-    assert_eq!(AlignmentModel::parse("uniform:30").unwrap(), AlignmentModel::Cone { alpha0_deg: 30.0 });
-    for bad in ["", "spread", "spread:-1", "uniform:0", "uniform:200", "table:/nonexistent/x", "nonsense:3"] {
+    assert_eq!(
+        AlignmentModel::parse("spread:15").unwrap(),
+        AlignmentModel::Spread { sigma_deg: 15.0 }
+    );
+    assert_eq!(
+        AlignmentModel::parse("uniform:30").unwrap(),
+        AlignmentModel::Cone { alpha0_deg: 30.0 }
+    );
+    for bad in [
+        "",
+        "spread",
+        "spread:-1",
+        "uniform:0",
+        "uniform:200",
+        "table:/nonexistent/x",
+        "nonsense:3",
+    ] {
         assert!(AlignmentModel::parse(bad).is_err(), "{bad} accepted");
     }
-    assert_eq!(PIntDist::parse("lognormal:3,0.5").unwrap(), PIntDist::LogNormal { median_percent: 3.0, sigma_ln: 0.5 });
-    assert_eq!(PIntDist::parse("sin2i:6").unwrap(), PIntDist::Sin2i { p_max_percent: 6.0 });
-    for bad in ["fixed", "fixed:-1", "uniform:3,1", "lognormal:0,1", "sin2i:a", "table:/nonexistent"] {
+    assert_eq!(
+        PIntDist::parse("lognormal:3,0.5").unwrap(),
+        PIntDist::LogNormal {
+            median_percent: 3.0,
+            sigma_ln: 0.5
+        }
+    );
+    assert_eq!(
+        PIntDist::parse("sin2i:6").unwrap(),
+        PIntDist::Sin2i { p_max_percent: 6.0 }
+    );
+    for bad in [
+        "fixed",
+        "fixed:-1",
+        "uniform:3,1",
+        "lognormal:0,1",
+        "sin2i:a",
+        "table:/nonexistent",
+    ] {
         assert!(PIntDist::parse(bad).is_err(), "{bad} accepted");
     }
     assert!(AlphaTable::parse("t", "0 1\n0 2\n").is_err());
@@ -480,7 +668,10 @@ fn histogram_tables_and_catalog_p_are_drawn_from() {
     let d = PIntDist::parse(&format!("table:{}", p.display())).unwrap();
     let mut cfg = geometry(AlignmentModel::Random, 20_000, 3);
     cfg.p_int = d;
-    cfg.ism = Some(Ism { p_percent: 0.5, angle_deg: 0.0 });
+    cfg.ism = Some(Ism {
+        p_percent: 0.5,
+        angle_deg: 0.0,
+    });
     assert_eq!(simulate(&cfg).unwrap().accepted, 20_000);
     let cat = test_catalog();
     let path = dir.path().join("cat.json");
@@ -512,18 +703,40 @@ fn component(name: &str, p: f64, sigma_p: f64, gamma: f64) -> Component {
 }
 
 fn target(name: &str, status: Status, comps: Vec<Component>, stored: Option<f64>) -> Target {
-    Target { object: name.into(), status, error: None, components: comps, delta_gamma_deg: stored, extra: Default::default() }
+    Target {
+        object: name.into(),
+        status,
+        error: None,
+        components: comps,
+        delta_gamma_deg: stored,
+        extra: Default::default(),
+    }
 }
 
 fn test_catalog() -> Catalog {
     Catalog {
         schema_version: "1.0".into(),
         targets: vec![
-            target("both", Status::Ok, vec![component("A", 0.05, 0.005, 10.0), component("B", 0.03, 0.005, 170.0)], Some(20.0)),
-            target("weakB", Status::Ok, vec![component("A", 0.05, 0.005, 10.0), component("B", 0.01, 0.005, 80.0)], None),
+            target(
+                "both",
+                Status::Ok,
+                vec![component("A", 0.05, 0.005, 10.0), component("B", 0.03, 0.005, 170.0)],
+                Some(20.0),
+            ),
+            target(
+                "weakB",
+                Status::Ok,
+                vec![component("A", 0.05, 0.005, 10.0), component("B", 0.01, 0.005, 80.0)],
+                None,
+            ),
             target("failed", Status::Failed, vec![], None),
             target("single", Status::Partial, vec![component("A", 0.05, 0.005, 10.0)], None),
-            target("stale", Status::Ok, vec![component("A", 0.02, 0.002, 0.0), component("B", 0.04, 0.004, 100.0)], Some(12.0)),
+            target(
+                "stale",
+                Status::Ok,
+                vec![component("A", 0.02, 0.002, 0.0), component("B", 0.04, 0.004, 100.0)],
+                Some(12.0),
+            ),
         ],
         failures: vec![],
         provenance: Value::Null,
@@ -537,7 +750,12 @@ fn sample_takes_binaries_with_both_components_above_the_cut() {
     assert_eq!(s.delta_gamma_deg(), vec![20.0, 80.0]);
     assert_eq!(s.excluded.len(), 3);
     assert!(s.excluded.iter().any(|e| e.object == "weakB" && e.reason.contains('B')));
-    assert_eq!(s.warnings.len(), 1, "the stale stored delta_gamma is reported: {:?}", s.warnings);
+    assert_eq!(
+        s.warnings.len(),
+        1,
+        "the stale stored delta_gamma is reported: {:?}",
+        s.warnings
+    );
     assert_eq!(s.p_percent(), vec![5.0, 3.0, 2.0, 4.0]);
     // sigma_P of every component of two-component targets (passing or not), percent.
     assert_eq!(s.all_sigma_p_percent.len(), 6);
@@ -553,7 +771,13 @@ fn params(pairs: u64) -> AnalysisParams {
         threshold_deg: 30.0,
         ism_levels_percent: vec![0.5, 5.0],
         ism_angle_deg: 0.0,
-        mc: McConfig { p_int: PIntDist::LogNormal { median_percent: 3.0, sigma_ln: 0.5 }, ..geometry(AlignmentModel::Random, pairs, 9) },
+        mc: McConfig {
+            p_int: PIntDist::LogNormal {
+                median_percent: 3.0,
+                sigma_ln: 0.5,
+            },
+            ..geometry(AlignmentModel::Random, pairs, 9)
+        },
     }
 }
 
@@ -562,7 +786,11 @@ fn tiny_samples_get_a_message_not_a_crash() {
     for dg in [vec![], vec![12.0]] {
         let r = analyse(&dg, &params(1000)).unwrap();
         assert!(r.ks_uniform.is_none() && r.ism.is_empty());
-        assert!(r.verdict.contains("binary") || r.verdict.contains("No binary"), "{}", r.verdict);
+        assert!(
+            r.verdict.contains("binary") || r.verdict.contains("No binary"),
+            "{}",
+            r.verdict
+        );
     }
 }
 
@@ -573,7 +801,11 @@ fn verdict_on_a_strongly_aligned_sample_and_on_a_flat_one() {
     let rep = analyse(&skewed, &params(50_000)).unwrap();
     assert_eq!(rep.n, 34);
     assert!(rep.ks_uniform.as_ref().unwrap().p_value < 1e-5);
-    assert!(rep.verdict.contains("rejected") && rep.verdict.contains("aligned"), "{}", rep.verdict);
+    assert!(
+        rep.verdict.contains("rejected") && rep.verdict.contains("aligned"),
+        "{}",
+        rep.verdict
+    );
     assert_eq!(rep.ism.len(), 2);
     // 5 % ISM produces a much steeper Pi than 0.5 %: closer to the aligned sample.
     assert!(rep.ism[1].ks.statistic < rep.ism[0].ks.statistic);

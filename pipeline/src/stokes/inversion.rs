@@ -51,15 +51,27 @@ pub fn combine_dithers(values: &[f64], sigmas: &[f64]) -> Option<Combined> {
             chi2 += ((x - m) / s).powi(2);
         }
     }
-    let sigma_scatter = if n > 1 { (chi2 / (n - 1) as f64 / sw).sqrt() } else { f64::NAN };
-    Some(Combined { value: m, sigma: sw.recip().sqrt(), chi2, n, sigma_scatter })
+    let sigma_scatter = if n > 1 {
+        (chi2 / (n - 1) as f64 / sw).sqrt()
+    } else {
+        f64::NAN
+    };
+    Some(Combined {
+        value: m,
+        sigma: sw.recip().sqrt(),
+        chi2,
+        n,
+        sigma_scatter,
+    })
 }
 
 /// Indices kept after iterative clipping of values further than `k` sigma (own error
 /// combined with the error of the mean of the others) from the weighted mean of the others.
 /// At most one value is removed per pass, the worst first; at least `min_keep` remain.
 pub fn clip_dithers(values: &[f64], sigmas: &[f64], k: f64, min_keep: usize) -> Vec<usize> {
-    let mut keep: Vec<usize> = (0..values.len()).filter(|&i| values[i].is_finite() && sigmas[i] > 0.0).collect();
+    let mut keep: Vec<usize> = (0..values.len())
+        .filter(|&i| values[i].is_finite() && sigmas[i] > 0.0)
+        .collect();
     while keep.len() > min_keep.max(2) {
         let mut worst: Option<(usize, f64)> = None;
         for (pos, &i) in keep.iter().enumerate() {
@@ -126,7 +138,14 @@ pub fn fit_qu(phi_deg: &[f64], f: &[f64], sigma: &[f64]) -> Option<QuFit> {
         let t = 2.0 * p.to_radians();
         chi2 += ((fi - q * t.cos() - u * t.sin()) / s).powi(2);
     }
-    Some(QuFit { q, u, var_q: c / det, var_u: a / det, cov_qu: -b / det, chi2 })
+    Some(QuFit {
+        q,
+        u,
+        var_q: c / det,
+        var_u: a / det,
+        cov_qu: -b / det,
+        chi2,
+    })
 }
 
 /// Debiasing estimator of P.
@@ -144,7 +163,11 @@ pub enum Debias {
 pub fn debias(p: f64, sigma_p: f64, how: Debias) -> f64 {
     match how {
         Debias::WardleKronberg => {
-            if p > sigma_p { (p * p - sigma_p * sigma_p).sqrt() } else { 0.0 }
+            if p > sigma_p {
+                (p * p - sigma_p * sigma_p).sqrt()
+            } else {
+                0.0
+            }
         }
         Debias::Mas => {
             if p <= 0.0 {
@@ -194,7 +217,11 @@ impl LinearPolarization {
         };
         let gamma_deg = crate::stokes::model::normalize_axial_deg(0.5 * u.atan2(q).to_degrees());
         let snr = if sigma_p > 0.0 { p / sigma_p } else { f64::INFINITY };
-        let sigma_gamma_deg = if p > 0.0 { WK_ANGLE_FACTOR_DEG * sigma_p / p } else { 90.0 / 3f64.sqrt() };
+        let sigma_gamma_deg = if p > 0.0 {
+            WK_ANGLE_FACTOR_DEG * sigma_p / p
+        } else {
+            90.0 / 3f64.sqrt()
+        };
         LinearPolarization {
             q,
             u,
@@ -223,8 +250,9 @@ pub fn angle_density_per_deg(dtheta_deg: f64, p0: f64) -> f64 {
     let sp = std::f64::consts::PI.sqrt();
     // exp(eta^2) [1 + erf(eta)] overflows for large eta; use erfc for stability:
     // 1 + erf(eta) = 2 - erfc(eta) and exp(eta^2 - p0^2/2) combined in one exponent.
-    let g = (1.0 / sp) * ((1.0 / sp) * (-p0 * p0 / 2.0).exp()
-        + eta * (eta * eta - p0 * p0 / 2.0).exp() * (2.0 - statrs::function::erf::erfc(eta)));
+    let g = (1.0 / sp)
+        * ((1.0 / sp) * (-p0 * p0 / 2.0).exp()
+            + eta * (eta * eta - p0 * p0 / 2.0).exp() * (2.0 - statrs::function::erf::erfc(eta)));
     g * std::f64::consts::PI / 180.0
 }
 
@@ -248,7 +276,11 @@ pub fn angle_half_width_68_deg(p0: f64) -> f64 {
     let (mut lo, mut hi) = (0.0, 90.0);
     for _ in 0..50 {
         let mid = 0.5 * (lo + hi);
-        if cum(mid) < target { lo = mid } else { hi = mid }
+        if cum(mid) < target {
+            lo = mid
+        } else {
+            hi = mid
+        }
     }
     0.5 * (lo + hi)
 }
@@ -309,7 +341,9 @@ mod tests {
         for p0 in [0.0, 0.5, 1.0, 3.0, 10.0, 40.0] {
             let n = 20000;
             let h = 180.0 / n as f64;
-            let s: f64 = (0..n).map(|i| angle_density_per_deg(-90.0 + (i as f64 + 0.5) * h, p0) * h).sum();
+            let s: f64 = (0..n)
+                .map(|i| angle_density_per_deg(-90.0 + (i as f64 + 0.5) * h, p0) * h)
+                .sum();
             assert!((s - 1.0).abs() < 1e-6, "p0 {p0}: {s}");
         }
         // S/N 0: uniform, 68.27 % half-width = 0.6827 * 90 deg.

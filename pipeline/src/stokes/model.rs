@@ -24,7 +24,10 @@ impl Polarization {
     /// From degree `p` (fraction, not percent) and angle `gamma_deg` (east of north).
     pub fn from_p_gamma(p: f64, gamma_deg: f64) -> Self {
         let two_g = 2.0 * gamma_deg.to_radians();
-        Polarization { q: p * two_g.cos(), u: p * two_g.sin() }
+        Polarization {
+            q: p * two_g.cos(),
+            u: p * two_g.sin(),
+        }
     }
     /// Degree of linear polarization.
     pub fn p(&self) -> f64 {
@@ -37,14 +40,21 @@ impl Polarization {
     /// Sum of two polarizations (valid for the small degrees of the NIR regime; exact
     /// for Stokes parameters of light passing through a weak polarizer to first order).
     pub fn add(self, other: Polarization) -> Polarization {
-        Polarization { q: self.q + other.q, u: self.u + other.u }
+        Polarization {
+            q: self.q + other.q,
+            u: self.u + other.u,
+        }
     }
 }
 
 /// Map an axial angle (degrees) into [0, 180).
 pub fn normalize_axial_deg(a: f64) -> f64 {
     let r = a.rem_euclid(180.0);
-    if r >= 180.0 { 0.0 } else { r }
+    if r >= 180.0 {
+        0.0
+    } else {
+        r
+    }
 }
 
 /// Normalised difference F(phi) = q cos 2phi + u sin 2phi.
@@ -64,7 +74,10 @@ pub fn beam_fluxes(i: f64, pol: Polarization, phi_deg: f64, t_o: f64, t_e: f64) 
 /// position angle `pa_deg` from the primary, at rotator position angle `posang_deg`.
 pub fn companion_offset_px(sep_arcsec: f64, pa_deg: f64, posang_deg: f64, scale_arcsec_per_px: f64) -> (f64, f64) {
     let d = (pa_deg - posang_deg).to_radians();
-    (-sep_arcsec * d.sin() / scale_arcsec_per_px, sep_arcsec * d.cos() / scale_arcsec_per_px)
+    (
+        -sep_arcsec * d.sin() / scale_arcsec_per_px,
+        sep_arcsec * d.cos() / scale_arcsec_per_px,
+    )
 }
 
 /// Inverse of [`companion_offset_px`]: separation (arcsec) and PA (degrees, [0, 360)).
