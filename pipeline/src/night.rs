@@ -74,18 +74,21 @@ pub struct NightPlan {
     pub mask_frames: Vec<PathBuf>,
 }
 
-/// Frames for the bad-pixel median stack: the first dither of each sequence, then the
-/// middle one, ... (round-robin over sequences, first orientation), at most `max`.
+/// Frames for the bad-pixel median stack. Every target of a night sits at the same
+/// detector position for a given dither, so taking the same dither of every sequence would
+/// stack the stars onto each other and mask them as defects: sequence `i` contributes its
+/// dither `(i + round) mod n` (first orientation), so the picks cycle through all dither
+/// positions and no position holds more than about 1/n of the frames. At most `max`.
 fn pick_mask_frames(sequences: &[Sequence], max: usize) -> Vec<PathBuf> {
     let mut picks: Vec<PathBuf> = Vec::new();
     for round in 0..8 {
-        for q in sequences {
+        for (i, q) in sequences.iter().enumerate() {
             let Some(o) = q.orientations.first() else { continue };
             let n = o.exposures.len();
             if round >= n || picks.len() >= max {
                 continue;
             }
-            let e = &o.exposures[(round * (n / 2 + 1)) % n];
+            let e = &o.exposures[(i + round) % n];
             if !picks.contains(&e.path) {
                 picks.push(e.path.clone());
             }
@@ -264,6 +267,51 @@ pub fn products_dir(catalog: &Path) -> PathBuf {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn mask_frames_cycle_through_dither_positions() {
+        // Regression: every target sits at the same detector position for a given dither;
+        // taking dither 1 of every sequence stacked the stars and masked them as defects.
+        let profile = Profile::sofi();
+        let mut infos = Vec::new();
+        for t in 0..6 {
+            for k in 1..=5u32 {
+                infos.push(sofipol_calib::classify::ScienceInfo {
+                    path: format!("T{t}_{k}.fits").into(),
+                    object: format!("T{t}"),
+                    tpl_start: format!("1999-03-03T0{t}:00:00"),
+                    sequence: String::new(),
+                    posang_deg: 0.0,
+                    offset_px: [k as f64 * 86.8, 0.0],
+                    filter: "Ks".into(),
+                    wollaston: "WOLLASTON".into(),
+                    dit_s: 10.0,
+                    ndit: 6,
+                    expno: Some(k),
+                    nexp: Some(5),
+                    mjd: None,
+                    pixscale_arcsec: 0.288,
+                });
+            }
+        }
+        let seqs = sequence::group(infos, &profile);
+        let picks = pick_mask_frames(&seqs, 15);
+        assert_eq!(picks.len(), 15);
+        let mut per_dither = [0usize; 6];
+        for p in &picks {
+            let k: usize = p
+                .to_str()
+                .unwrap()
+                .trim_end_matches(".fits")
+                .rsplit('_')
+                .next()
+                .unwrap()
+                .parse()
+                .unwrap();
+            per_dither[k] += 1;
+        }
+        assert!(per_dither.iter().all(|&c| c <= 4), "{per_dither:?}");
+    }
 
     #[test]
     fn shards_partition_deterministically() {

@@ -37,7 +37,7 @@ pub struct Args {
     /// Print only errors.
     #[arg(short, long)]
     pub quiet: bool,
-    /// More detail (-v: per-target lines and stage times; -vv: also every failure reason).
+    /// More detail: the night's bad-pixel mask, the stage-time summary and peak memory.
     #[arg(short, long, action = clap::ArgAction::Count)]
     pub verbose: u8,
 }

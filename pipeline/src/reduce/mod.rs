@@ -233,8 +233,13 @@ pub fn measure_sequence(
     let nominal = params
         .nominal_xy_px
         .unwrap_or((nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5));
+    // Unusable-pixel masks, once per frame (centring, e-o correlation and stacks use them).
+    let masks_all: Vec<Vec<Array2<u8>>> = orients
+        .iter()
+        .map(|o| o.frames.iter().map(unusable).collect())
+        .collect();
     let o0 = &orients[0];
-    let m0 = unusable(&o0.frames[0]);
+    let m0 = &masks_all[0][0];
     let (px, py, _) = brightest_peak(
         o0.frames[0].data.view(),
         m0.view(),
@@ -257,11 +262,10 @@ pub fn measure_sequence(
     // refined by a centroid. Picking the brightest peak in every frame would jump between
     // the components of a near-equal pair.
     let mut centres: Vec<Vec<Option<(f64, f64)>>> = Vec::new();
-    for o in orients {
+    for (o, ms) in orients.iter().zip(&masks_all) {
         let mut cs: Vec<Option<(f64, f64)>> = Vec::new();
         let mut first: Option<((f64, f64), [f64; 2])> = None;
-        for (f, off) in o.frames.iter().zip(&o.offsets) {
-            let m = unusable(f);
+        for ((f, off), m) in o.frames.iter().zip(&o.offsets).zip(ms) {
             let c = match first {
                 Some((c1, off1)) => {
                     let guess = (c1.0 + off[0] - off1[0], c1.1 + off[1] - off1[1]);
@@ -288,10 +292,6 @@ pub fn measure_sequence(
     }
     // The e-o offset, by cross-correlating the o and e images of the target.
     let (mut fr, mut cc) = (Vec::new(), Vec::new());
-    let masks_all: Vec<Vec<Array2<u8>>> = orients
-        .iter()
-        .map(|o| o.frames.iter().map(unusable).collect())
-        .collect();
     for ((o, cs), ms) in orients.iter().zip(&centres).zip(&masks_all) {
         for ((f, c), m) in o.frames.iter().zip(cs).zip(ms) {
             if let Some(c) = c {
@@ -312,10 +312,9 @@ pub fn measure_sequence(
     let h = (search_px + 3.0 * fwhm_guess).ceil() as usize;
     let mut found: Vec<Option<PairOnStack>> = Vec::new();
     let mut fwhms = Vec::new();
-    for (o, cs) in orients.iter().zip(&centres) {
-        let masks: Vec<Array2<u8>> = o.frames.iter().map(unusable).collect();
+    for ((o, cs), masks) in orients.iter().zip(&centres).zip(&masks_all) {
         let (mut fr, mut cc) = (Vec::new(), Vec::new());
-        for ((f, m), c) in o.frames.iter().zip(&masks).zip(cs) {
+        for ((f, m), c) in o.frames.iter().zip(masks).zip(cs) {
             if let Some(c) = c {
                 fr.push((&f.data, m));
                 cc.push(*c);
