@@ -111,6 +111,24 @@ mod tests {
     use super::*;
 
     #[test]
+    fn catalog_floats_round_trip_bit_exactly() {
+        // Regression: serde_json's default float parser is not exact; `merge` and `stats`
+        // re-read catalogs, so a merged catalog differed from a single run in the last digit.
+        let values = [
+            0.037803643548976563,
+            0.00044009000027138596,
+            -9.993711226758646e-24,
+            150.23621383361115,
+            1.0 / 3.0,
+        ];
+        for v in values {
+            let text = serde_json::to_string(&v).unwrap();
+            let back: f64 = serde_json::from_str(&text).unwrap();
+            assert_eq!(back.to_bits(), v.to_bits(), "{v:e} -> {text} -> {back:e}");
+        }
+    }
+
+    #[test]
     fn fold_is_axial_and_symmetric() {
         assert_eq!(fold_delta_gamma(10.0, 170.0), 20.0);
         assert_eq!(fold_delta_gamma(170.0, 10.0), 20.0);
