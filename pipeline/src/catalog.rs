@@ -114,7 +114,7 @@ mod tests {
     fn catalog_floats_round_trip_bit_exactly() {
         // Regression: serde_json's default float parser is not exact; `merge` and `stats`
         // re-read catalogs, so a merged catalog differed from a single run in the last digit.
-        let values = [
+        let values: [f64; 5] = [
             0.037803643548976563,
             0.00044009000027138596,
             -9.993711226758646e-24,
