@@ -4,7 +4,8 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use sofipol_pipeline::catalog::{Catalog, Status, SCHEMA_VERSION};
-use sofipol_pipeline::reduce::target::{reduce_sequence, TargetParams};
+use sofipol_pipeline::reduce::run::reduce_sequence;
+use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::{scan, sequence};
 
 use super::common::ProfileArgs;
@@ -162,7 +163,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     cat.failures
         .extend(s.other.into_iter().filter(|f| explicit.contains(&f.file)));
     for q in &seqs {
-        let out = reduce_sequence(q, &profile, &params, false);
+        let out = reduce_sequence(q, &profile, &params, None, false);
         cat.failures.extend(out.failures);
         cat.targets.push(out.target);
     }

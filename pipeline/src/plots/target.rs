@@ -30,7 +30,7 @@ use sofipol_calib::Frame;
 
 use super::{ensure_font, write_atomic, Error, FONT};
 use crate::catalog::{Component, Status, Target};
-use crate::reduce::target::TargetOutcome;
+use crate::reduce::run::TargetOutcome;
 use crate::reduce::{CalibratedOrientation, DitherValue, Measured};
 
 /// Width of every target figure, px.
