@@ -68,7 +68,6 @@ impl ReduceArgs {
             None => TargetParams::default(),
         };
         if let Some(a) = self.aperture_fwhm {
-            anyhow::ensure!(a > 0.0 && a.is_finite(), "--aperture-fwhm {a}: must be > 0");
             p.measure.aperture_fwhm = a;
         }
         if let Some(m) = &self.method {
@@ -110,6 +109,7 @@ impl ReduceArgs {
         if self.save_intermediate.is_some() {
             p.save_intermediate = self.save_intermediate.clone();
         }
+        p.validate()?;
         Ok(p)
     }
 }

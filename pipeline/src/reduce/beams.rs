@@ -11,15 +11,7 @@ pub fn median_offset(pairs: &[((f64, f64), (f64, f64))]) -> Option<(f64, f64)> {
     if pairs.is_empty() {
         return None;
     }
-    let med = |mut v: Vec<f64>| {
-        v.sort_by(|a, b| a.total_cmp(b));
-        let n = v.len();
-        if n % 2 == 1 {
-            v[n / 2]
-        } else {
-            0.5 * (v[n / 2 - 1] + v[n / 2])
-        }
-    };
+    let med = |mut v: Vec<f64>| crate::numeric::median_in_place(&mut v);
     Some((
         med(pairs.iter().map(|(o, e)| e.0 - o.0).collect()),
         med(pairs.iter().map(|(o, e)| e.1 - o.1).collect()),

@@ -112,3 +112,146 @@ impl Default for TargetParams {
         }
     }
 }
+
+/// A setting outside its allowed range: names the key, the value and what is allowed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("setting {key} = {value}: must be {allowed}")]
+pub struct SettingError {
+    /// Key as written in the settings file (`section.name`).
+    pub key: &'static str,
+    /// The value found.
+    pub value: String,
+    /// The allowed range.
+    pub allowed: &'static str,
+}
+
+/// `Ok` when `ok`, else the error naming `key`, `value` and `allowed`.
+fn check(ok: bool, key: &'static str, value: impl std::fmt::Debug, allowed: &'static str) -> Result<(), SettingError> {
+    if ok {
+        Ok(())
+    } else {
+        Err(SettingError {
+            key,
+            value: format!("{value:?}"),
+            allowed,
+        })
+    }
+}
+
+impl TargetParams {
+    /// Check every setting once, when the settings are read (file, then command-line
+    /// overrides). The one place where allowed ranges are written down.
+    pub fn validate(&self) -> Result<(), SettingError> {
+        self.measure.validate()
+    }
+}
+
+impl MeasureParams {
+    /// Check the measurement settings (see [`TargetParams::validate`]).
+    pub fn validate(&self) -> Result<(), SettingError> {
+        let pos = |v: f64| v.is_finite() && v > 0.0;
+        let nonneg = |v: f64| v.is_finite() && v >= 0.0;
+        check(
+            pos(self.aperture_fwhm),
+            "measure.aperture_fwhm",
+            self.aperture_fwhm,
+            "> 0",
+        )?;
+        let (a, b) = self.annulus_fwhm;
+        check(
+            pos(a) && pos(b) && a < b,
+            "measure.annulus_fwhm",
+            self.annulus_fwhm,
+            "(inner, outer) with 0 < inner < outer",
+        )?;
+        if let Method::Subpixel(n) = self.method {
+            check(
+                n >= 1,
+                "measure.method",
+                self.method,
+                "exact, center, or subpixel with N >= 1",
+            )?;
+        }
+        check(
+            nonneg(self.psf_photometry_below_fwhm),
+            "measure.psf_photometry_below_fwhm",
+            self.psf_photometry_below_fwhm,
+            ">= 0",
+        )?;
+        check(
+            pos(self.primary_search_px),
+            "measure.primary_search_px",
+            self.primary_search_px,
+            "> 0",
+        )?;
+        if let Some((x, y)) = self.nominal_xy_px {
+            check(
+                x.is_finite() && y.is_finite(),
+                "measure.nominal_xy_px",
+                (x, y),
+                "finite (x, y)",
+            )?;
+        }
+        check(
+            pos(self.companion_search_arcsec),
+            "measure.companion_search_arcsec",
+            self.companion_search_arcsec,
+            "> 0",
+        )?;
+        check(
+            nonneg(self.min_companion_snr),
+            "measure.min_companion_snr",
+            self.min_companion_snr,
+            ">= 0",
+        )?;
+        check(
+            nonneg(self.min_companion_f),
+            "measure.min_companion_f",
+            self.min_companion_f,
+            ">= 0",
+        )?;
+        check(
+            nonneg(self.min_companion_sep_arcsec),
+            "measure.min_companion_sep_arcsec",
+            self.min_companion_sep_arcsec,
+            ">= 0",
+        )?;
+        check(pos(self.clip_sigma), "measure.clip_sigma", self.clip_sigma, "> 0")?;
+        check(nonneg(self.cut_snr), "measure.cut_snr", self.cut_snr, ">= 0")?;
+        if let Some((sep, pa)) = self.companion_hint {
+            check(
+                pos(sep) && pa.is_finite(),
+                "measure.companion_hint",
+                (sep, pa),
+                "(separation > 0, finite PA)",
+            )?;
+        }
+        if let PsfModel::Moffat { beta: Some(b) } = self.psf_model {
+            check(b.is_finite() && b > 1.0, "measure.psf_model.beta", b, "> 1")?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid_and_errors_name_key_value_and_range() {
+        assert_eq!(TargetParams::default().validate(), Ok(()));
+        let mut p = TargetParams::default();
+        p.measure.annulus_fwhm = (6.0, 4.0);
+        let e = p.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("measure.annulus_fwhm") && e.contains("6.0") && e.contains("inner < outer"),
+            "{e}"
+        );
+        let mut p = TargetParams::default();
+        p.measure.aperture_fwhm = f64::NAN;
+        assert_eq!(p.validate().unwrap_err().key, "measure.aperture_fwhm");
+        let mut p = TargetParams::default();
+        p.measure.psf_model = PsfModel::Moffat { beta: Some(1.0) };
+        assert_eq!(p.validate().unwrap_err().key, "measure.psf_model.beta");
+    }
+}
