@@ -17,6 +17,7 @@
 //! integer 0-based coordinates, FITS 1-based coordinates appear only at I/O.
 #![deny(missing_docs)]
 
+pub mod atomic;
 pub mod badpix;
 pub mod classify;
 pub mod error;

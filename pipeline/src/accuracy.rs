@@ -6,7 +6,9 @@ use rayon::prelude::*;
 use serde::Serialize;
 use sofipol_calib::Profile;
 
-use crate::reduce::target::{loaded_from_sim, reduce_loaded, TargetParams};
+use crate::reduce::run::{reduce_loaded, LoadedOrientation};
+use crate::reduce::TargetParams;
+use crate::sequence::Sequence;
 use crate::sim::{Scene, Simulator};
 
 /// What to simulate.
@@ -127,7 +129,7 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
                     let tt = &truth.targets[t];
                     let (seq, orients) = loaded_from_sim(frames, &profile);
                     let t0 = std::time::Instant::now();
-                    let out = reduce_loaded(&seq, orients, &profile, params, false);
+                    let out = reduce_loaded(&seq, orients, &profile, params, None, false);
                     let reduce_s = t0.elapsed().as_secs_f64();
                     let mut one = One {
                         note: None,
@@ -241,4 +243,43 @@ pub fn table(r: &[BinReport]) -> String {
         }
     }
     s
+}
+
+/// Group simulated frames of one target (in exposure order) into the [`Sequence`] and the
+/// loaded orientations [`reduce_loaded`] takes: what `night` would build from the files,
+/// without writing them (tests, the accuracy harness).
+pub fn loaded_from_sim(frames: Vec<crate::sim::SimFrame>, profile: &Profile) -> (Sequence, Vec<LoadedOrientation>) {
+    use crate::sequence::Orientation;
+    use sofipol_calib::classify::{classify, Classification};
+    let mut orients: Vec<LoadedOrientation> = Vec::new();
+    let mut seq_or: Vec<Orientation> = Vec::new();
+    let (mut object, mut tpl_start, mut filter) = (String::new(), String::new(), String::new());
+    for f in frames {
+        let pa = f.truth.posang_deg;
+        if orients.last().is_none_or(|o| o.0 != pa) {
+            orients.push((pa, f.truth.analyzer_deg, vec![], vec![]));
+            seq_or.push(Orientation {
+                posang_deg: pa,
+                analyzer_deg: f.truth.analyzer_deg,
+                exposures: vec![],
+            });
+        }
+        if let Classification::Science(info) = classify(&f.frame.header, profile) {
+            object.clone_from(&info.object);
+            tpl_start.clone_from(&info.tpl_start);
+            filter.clone_from(&info.filter);
+            seq_or.last_mut().expect("pushed").exposures.push(*info);
+        }
+        let o = orients.last_mut().expect("pushed");
+        o.3.push(f.truth.header_offset_px);
+        o.2.push(f.frame);
+    }
+    let seq = Sequence {
+        id: format!("{object}@{tpl_start}"),
+        object,
+        tpl_start,
+        filter,
+        orientations: seq_or,
+    };
+    (seq, orients)
 }

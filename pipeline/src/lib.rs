@@ -20,6 +20,7 @@ pub mod accuracy;
 pub mod catalog;
 pub mod io;
 pub mod night;
+pub mod numeric;
 pub mod photometry;
 pub mod plots;
 pub mod reduce;

@@ -9,7 +9,8 @@ use rayon::prelude::*;
 use sofipol_calib::Profile;
 
 use crate::catalog::{Catalog, Failure, Target, SCHEMA_VERSION};
-use crate::reduce::target::{reduce_sequence, StageTimes, TargetOutcome, TargetParams};
+use crate::reduce::run::{reduce_sequence, StageTimes, TargetOutcome};
+use crate::reduce::TargetParams;
 use crate::scan;
 use crate::sequence::{self, Sequence};
 
@@ -135,11 +136,13 @@ pub struct NightResult {
 /// Reduce every sequence of a plan in parallel (in the current rayon pool). `on_done` is
 /// called once per finished target (progress). `plot` is called with each outcome (for
 /// products such as PNGs) before its frames are dropped; frames are kept only if
-/// `keep_frames`.
+/// `keep_frames`. `night_mask`: the detector's defects found once for the night
+/// ([`night_bad_pixel_mask`]), used instead of per-target detection.
 pub fn reduce_night(
     plan: &NightPlan,
     profile: &Profile,
     params: &TargetParams,
+    night_mask: Option<&ndarray::Array2<u8>>,
     keep_frames: bool,
     on_done: &(dyn Fn(&Target) + Sync),
     plot: &(dyn Fn(&TargetOutcome) + Sync),
@@ -148,7 +151,7 @@ pub fn reduce_night(
         .sequences
         .par_iter()
         .map(|q| {
-            let out = reduce_sequence(q, profile, params, keep_frames);
+            let out = reduce_sequence(q, profile, params, night_mask, keep_frames);
             plot(&out);
             on_done(&out.target);
             (out.target, out.failures, out.times)

@@ -6,7 +6,7 @@
 //! so the bounds fail a correct pipeline with probability well below 1e-3 and catch a
 //! 25 % error misestimate.
 use sofipol_pipeline::accuracy::{run, table, AccuracyConfig};
-use sofipol_pipeline::reduce::target::TargetParams;
+use sofipol_pipeline::reduce::TargetParams;
 
 #[test]
 fn pull_widths_by_separation() {

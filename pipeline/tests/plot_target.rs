@@ -6,7 +6,8 @@ use std::time::Instant;
 use sofipol_calib::Profile;
 use sofipol_pipeline::catalog::{Status, Target};
 use sofipol_pipeline::plots::target::{outcome_png, target_png, target_png_opt, WIDTH};
-use sofipol_pipeline::reduce::target::{reduce_loaded, LoadedOrientation, TargetOutcome, TargetParams};
+use sofipol_pipeline::reduce::run::{reduce_loaded, LoadedOrientation, TargetOutcome};
+use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sequence::Sequence;
 use sofipol_pipeline::sim::{Scene, Simulator};
 
@@ -44,7 +45,7 @@ fn reduce(orientations: &str, binary: &str) -> TargetOutcome {
         filter: "Ks".into(),
         orientations: vec![],
     };
-    reduce_loaded(&seq, orients, &Profile::sofi(), &TargetParams::default(), true)
+    reduce_loaded(&seq, orients, &Profile::sofi(), &TargetParams::default(), None, true)
 }
 
 /// Decode and check the PNG: width, and that it shows more than white and text.

@@ -2,7 +2,9 @@
 //! binary; a faint unpolarized companion gives finite values and fails the cut; a
 //! saturated primary is flagged, never silently used.
 use sofipol_calib::Profile;
-use sofipol_pipeline::reduce::target::{loaded_from_sim, reduce_loaded, TargetParams};
+use sofipol_pipeline::accuracy::loaded_from_sim;
+use sofipol_pipeline::reduce::run::reduce_loaded;
+use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sim::{Scene, Simulator};
 
 fn reduce(text: &str) -> (sofipol_pipeline::catalog::Target, sofipol_pipeline::sim::Truth) {
@@ -11,7 +13,7 @@ fn reduce(text: &str) -> (sofipol_pipeline::catalog::Target, sofipol_pipeline::s
     let (frames, truth) = sim.run_in_memory();
     let (seq, orients) = loaded_from_sim(frames, &profile);
     (
-        reduce_loaded(&seq, orients, &profile, &TargetParams::default(), false).target,
+        reduce_loaded(&seq, orients, &profile, &TargetParams::default(), None, false).target,
         truth,
     )
 }

@@ -4,7 +4,8 @@ use std::process::ExitCode;
 
 use rayon::prelude::*;
 use sofipol_pipeline::catalog::{Catalog, SCHEMA_VERSION};
-use sofipol_pipeline::reduce::target::{reduce_sequence, TargetParams};
+use sofipol_pipeline::reduce::run::reduce_sequence;
+use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sim::Scene;
 use sofipol_pipeline::{scan, sequence};
 
@@ -58,7 +59,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let outs: Vec<_> = seqs
         .par_iter()
         .map(|q| {
-            let out = reduce_sequence(q, &profile, &params, true);
+            let out = reduce_sequence(q, &profile, &params, None, true);
             let png = fig_dir.join(format!("{}.png", sofipol_pipeline::night::slug(&q.object)));
             if let Err(e) = sofipol_pipeline::plots::target::outcome_png(&png, &out) {
                 eprintln!("sofipol: warning: {}: {e}", png.display());

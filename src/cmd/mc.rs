@@ -10,6 +10,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context};
 use serde::Deserialize;
+use sofipol_pipeline::numeric::median_in_place;
 use sofipol_pipeline::plots::write_atomic;
 use sofipol_pipeline::stats::figures::mc_figure;
 use sofipol_pipeline::stats::mc::{
@@ -307,16 +308,6 @@ fn write_outputs(dir: &Path, s: &Settings, results: &[(String, McConfig, McOutpu
     Ok(())
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
-}
-
 fn bench(s: &Settings, runs: usize) -> anyhow::Result<ExitCode> {
     let geometry = McConfig {
         ism: None,
@@ -369,14 +360,14 @@ fn bench(s: &Settings, runs: usize) -> anyhow::Result<ExitCode> {
                     ..cfg.clone()
                 })
             })?; // warm-up
-            let times: Vec<f64> = (0..runs)
+            let mut times: Vec<f64> = (0..runs)
                 .map(|_| {
                     let t0 = Instant::now();
                     pool.install(|| mc::simulate(cfg)).map(|_| t0.elapsed().as_secs_f64())
                 })
                 .collect::<Result<_, _>>()?;
             let min = times.iter().cloned().fold(f64::INFINITY, f64::min);
-            let med = median(times);
+            let med = median_in_place(&mut times);
             println!(
                 "{name:<26} {t:>8} {med:>12.3} {min:>12.3} {:>14.1}",
                 med * 1e9 * t as f64 / cfg.pairs as f64

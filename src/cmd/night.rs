@@ -96,14 +96,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if let Some(d) = &png_dir {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }
-    let plot = |out: &sofipol_pipeline::reduce::target::TargetOutcome| {
+    let plot = |out: &sofipol_pipeline::reduce::run::TargetOutcome| {
         if let Some(d) = &png_dir {
             plot_target(d, out);
         }
     };
     // The detector's defects, detected once for the night (unless only a calibration mask
     // is wanted).
-    let mut params = params;
+    let mut night_mask = None;
     let mut night_mask_files = Vec::new();
     if !params.no_detect_bad_pixels {
         let t = std::time::Instant::now();
@@ -117,11 +117,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                     t.elapsed().as_secs_f64()
                 );
             }
-            params.night_mask = Some(std::sync::Arc::new(m));
+            night_mask = Some(m);
             night_mask_files = files;
         }
     }
-    let res = pool.install(|| night::reduce_night(&plan, &profile, &params, png_dir.is_some(), &on_done, &plot));
+    let res = pool.install(|| {
+        night::reduce_night(
+            &plan,
+            &profile,
+            &params,
+            night_mask.as_ref(),
+            png_dir.is_some(),
+            &on_done,
+            &plot,
+        )
+    });
     pb.finish_and_clear();
     let mut cat = res.catalog;
     let mut prov = super::report::provenance(&profile, &params);
@@ -173,7 +183,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 }
 
 /// Write the per-target figure (never fails the night: a problem is printed).
-fn plot_target(dir: &std::path::Path, out: &sofipol_pipeline::reduce::target::TargetOutcome) {
+fn plot_target(dir: &std::path::Path, out: &sofipol_pipeline::reduce::run::TargetOutcome) {
     let seq = out
         .target
         .extra

@@ -4,7 +4,8 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use sofipol_pipeline::catalog::{Catalog, Status, SCHEMA_VERSION};
-use sofipol_pipeline::reduce::target::{reduce_sequence, TargetParams};
+use sofipol_pipeline::reduce::run::reduce_sequence;
+use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::{scan, sequence};
 
 use super::common::ProfileArgs;
@@ -67,7 +68,6 @@ impl ReduceArgs {
             None => TargetParams::default(),
         };
         if let Some(a) = self.aperture_fwhm {
-            anyhow::ensure!(a > 0.0 && a.is_finite(), "--aperture-fwhm {a}: must be > 0");
             p.measure.aperture_fwhm = a;
         }
         if let Some(m) = &self.method {
@@ -109,6 +109,7 @@ impl ReduceArgs {
         if self.save_intermediate.is_some() {
             p.save_intermediate = self.save_intermediate.clone();
         }
+        p.validate()?;
         Ok(p)
     }
 }
@@ -162,7 +163,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     cat.failures
         .extend(s.other.into_iter().filter(|f| explicit.contains(&f.file)));
     for q in &seqs {
-        let out = reduce_sequence(q, &profile, &params, false);
+        let out = reduce_sequence(q, &profile, &params, None, false);
         cat.failures.extend(out.failures);
         cat.targets.push(out.target);
     }

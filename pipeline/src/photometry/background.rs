@@ -64,18 +64,7 @@ pub struct Background {
     pub stat: BkgStat,
 }
 
-fn median_in_place(v: &mut [f64]) -> f64 {
-    let n = v.len();
-    debug_assert!(n > 0);
-    let (lower, mid, _) = v.select_nth_unstable_by(n / 2, f64::total_cmp);
-    let mid = *mid;
-    if n % 2 == 1 {
-        mid
-    } else {
-        let below = lower.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        0.5 * (below + mid)
-    }
-}
+use crate::numeric::median_in_place;
 
 fn mean_std(v: &[f64]) -> (f64, f64) {
     let n = v.len() as f64;

@@ -28,36 +28,7 @@
 
 use ndarray::ArrayViewMut2;
 
-/// 4-point Gauss-Legendre nodes on `[-1/2, 1/2]`.
-const GL4_X: [f64; 4] = [
-    -0.430_568_155_797_026_3,
-    -0.169_990_521_792_428_1,
-    0.169_990_521_792_428_1,
-    0.430_568_155_797_026_3,
-];
-/// Weights of [`GL4_X`] (sum 1).
-const GL4_W: [f64; 4] = [
-    0.173_927_422_568_726_9,
-    0.326_072_577_431_273_1,
-    0.326_072_577_431_273_1,
-    0.173_927_422_568_726_9,
-];
-/// 3-point Gauss-Legendre nodes on `[-1/2, 1/2]` (`±sqrt(3/5)/2`, 0).
-const GL3_X: [f64; 3] = [-0.387_298_334_620_741_7, 0.0, 0.387_298_334_620_741_7];
-/// Weights of [`GL3_X`]: 5/18, 8/18, 5/18.
-const GL3_W: [f64; 3] = [
-    0.277_777_777_777_777_8,
-    0.444_444_444_444_444_4,
-    0.277_777_777_777_777_8,
-];
-/// 2-point Gauss-Legendre nodes on `[-1/2, 1/2]` (`±1/(2 sqrt 3)`).
-/// 1-point rule (midpoint) on [-1/2, 1/2].
-const GL1_X: [f64; 1] = [0.0];
-/// Its weight.
-const GL1_W: [f64; 1] = [1.0];
-const GL2_X: [f64; 2] = [-0.288_675_134_594_812_9, 0.288_675_134_594_812_9];
-/// Weights of [`GL2_X`].
-const GL2_W: [f64; 2] = [0.5, 0.5];
+use crate::numeric::{GL1_W, GL1_X, GL2_W, GL2_X, GL3_W, GL3_X, GL4_W, GL4_X};
 /// 4 nodes on each half of `[-1/2, 1/2]` (composite rule for the cores of narrow stars).
 const GL4X2_X: [f64; 8] = [
     -0.25 + 0.5 * -0.430_568_155_797_026_3,

@@ -13,7 +13,6 @@
 //!     .with(Series::bars("34 binaries", edges, vec![9.0, 7.0, 5.0, 4.0, 3.0, 2.0, 2.0, 1.0, 1.0]));
 //! Figure::single(panel).save_png(std::path::Path::new("dg.png")).unwrap();
 //! ```
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
@@ -531,31 +530,15 @@ where
     Ok(())
 }
 
-/// Write `bytes` to `path` atomically: a temporary file in the same directory, flushed and
-/// synced, then renamed over `path`.
+/// Write `bytes` to `path` atomically ([`sofipol_calib::atomic::write_atomic`]).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let io = |e| Error::Io {
-        path: path.to_path_buf(),
-        source: e,
-    };
-    let dir = path
-        .parent()
-        .filter(|d| !d.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let name = path
-        .file_name()
-        .ok_or_else(|| Error::Input(format!("{} has no file name", path.display())))?;
-    let tmp = dir.join(format!(".{}.tmp{}", name.to_string_lossy(), std::process::id()));
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result.map_err(io)
+    sofipol_calib::atomic::write_atomic(path, bytes).map_err(|e| match e {
+        sofipol_calib::Error::Io { path, source } => Error::Io { path, source },
+        other => Error::Io {
+            path: path.to_path_buf(),
+            source: std::io::Error::other(other.to_string()),
+        },
+    })
 }
 
 /// One histogram as filled bars, written to `path`.

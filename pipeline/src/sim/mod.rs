@@ -687,8 +687,7 @@ impl Simulator {
             per_t[t].push(r?);
         }
         let truth = self.truth(&per_t);
-        crate::io::write_json_atomic(&dir.join("truth.json"), &truth)
-            .map_err(|e| format!("{}: {e}", dir.join("truth.json").display()))?;
+        crate::io::write_json_atomic(&dir.join("truth.json"), &truth).map_err(|e| e.to_string())?;
         Ok(truth)
     }
 }

@@ -66,23 +66,7 @@ fn phi(x: f64) -> f64 {
     0.5 * (1.0 + statrs::function::erf::erf(x / std::f64::consts::SQRT_2))
 }
 
-/// 4-point Gauss-Legendre nodes on [-1/2, 1/2] and weights summing to 1.
-const GL4_X: [f64; 4] = [
-    -0.430_568_155_797_026_3,
-    -0.169_990_521_792_428_1,
-    0.169_990_521_792_428_1,
-    0.430_568_155_797_026_3,
-];
-const GL4_W: [f64; 4] = [
-    0.173_927_422_568_726_9,
-    0.326_072_577_431_273_1,
-    0.326_072_577_431_273_1,
-    0.173_927_422_568_726_9,
-];
-
-/// 2-point Gauss-Legendre nodes on [-1/2, 1/2] and weights summing to 1.
-const GL2_X: [f64; 2] = [-0.288_675_134_594_812_9, 0.288_675_134_594_812_9];
-const GL2_W: [f64; 2] = [0.5, 0.5];
+use crate::numeric::{GL2_W, GL2_X, GL4_W, GL4_X};
 
 /// A unit-sum stamp: `values[[j, i]]` is the fraction of the flux falling in pixel
 /// `(x0 + i, y0 + j)`.

@@ -9,13 +9,7 @@ use rand::SeedableRng;
 
 use super::scene::EffectKind;
 
-/// SplitMix64 finaliser: a bijective 64-bit mixer.
-pub fn splitmix64(mut z: u64) -> u64 {
-    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
+pub use crate::numeric::splitmix64;
 
 /// The stream of `effect` at indices `a`, `b`, `c` for a scene seed.
 pub fn stream(seed: u64, effect: EffectKind, a: u64, b: u64, c: u64) -> Xoshiro256PlusPlus {

@@ -10,13 +10,7 @@
 //! the generator [`Xoshiro256pp::for_stream`]`(seed, i)`, whose state is four splitmix64
 //! outputs started from a mix of `seed` and `i`.
 
-/// splitmix64 finaliser: a bijective 64-bit mixer.
-#[inline]
-pub fn mix64(mut z: u64) -> u64 {
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
+pub use crate::numeric::mix64;
 
 /// splitmix64: used only to expand a 64-bit seed into a xoshiro state.
 #[derive(Debug, Clone)]

@@ -320,7 +320,7 @@ mod tests {
         assert!((lp.sigma_gamma_deg - 28.647_889_756_541_16 * 0.2).abs() < 1e-9);
         assert!((lp.p_debiased - (0.05f64 * 0.05 - 1e-4).sqrt()).abs() < 1e-15);
         assert!((lp.gamma_deg - 0.5 * (0.04f64).atan2(0.03).to_degrees()).abs() < 1e-12);
-        // At P/sigma = 3 WK lowers P by 5.7 % (polarimetry.md).
+        // At P/sigma = 3 WK lowers P by 5.7 % (docs/polarimetry.md).
         assert!((1.0 - debias(3.0, 1.0, Debias::WardleKronberg) / 3.0 - 0.0572).abs() < 1e-3);
         assert_eq!(debias(0.5, 1.0, Debias::WardleKronberg), 0.0);
         // MAS: p - b^2 (1 - exp(-p^2/b^2)) / 2p; at high S/N it tends to p - b^2/2p ~ WK.
@@ -351,7 +351,7 @@ mod tests {
         // High S/N: tends to Wardle-Kronberg 28.65/snr.
         let w = angle_half_width_68_deg(50.0);
         assert!((w - WK_ANGLE_FACTOR_DEG / 50.0).abs() / w < 0.01, "{w}");
-        // At P/sigma = 3, about 9.5 deg (polarimetry.md), a little wider than WK's 9.55? check range.
+        // At P/sigma = 3, about 9.5 deg (docs/polarimetry.md), a little wider than WK's 9.55? check range.
         let w3 = angle_half_width_68_deg(3.0);
         assert!((w3 - 9.5).abs() < 0.6, "{w3}");
     }

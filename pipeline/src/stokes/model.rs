@@ -2,7 +2,7 @@
 //!
 //! One model, used by the scene simulator to make frames and by the tests of the
 //! inversion to check that the pipeline undoes exactly what the instrument does
-//! (frame-format.md, "Geometry and angle conventions"; polarimetry.md).
+//! (docs/conventions.md, "Angles"; docs/polarimetry.md).
 //!
 //! * Analyzer angle `phi = s * POSANG + theta0` (profile `angles`).
 //! * Beam fluxes for sky-frame Stokes `I, Q, U` (Q, U referred to north, angles east of north):

@@ -1,83 +1,12 @@
-//! Finding the binary: the primary's position in every frame (header jitter offsets
-//! refined by centroids), the e-o beam offset (measured), and the companion's offset at
-//! each orientation (from a two-star PSF fit on the registered stack of the dithers).
-use ndarray::{s, Array2, ArrayView2};
-use sofipol_calib::Frame;
+//! The companion: a two-star PSF fit on the registered stack of the dithers at each
+//! orientation, A/B labels made consistent across orientations, one separation and PA.
+use ndarray::Array2;
+use sofipol_calib::Profile;
 
-use crate::photometry::{centroid, fit_psf, CentroidParams, PsfFitParams, PsfModel};
+use super::sources::{brightest_peak, Primary};
+use super::{CalibratedOrientation, MeasureParams};
+use crate::photometry::{fit_psf, PsfFitParams, PsfModel};
 use crate::stokes::model::{companion_offset_px, offset_to_sep_pa};
-
-/// Brightest point of a 3x3 box-smoothed image within `radius` of (x0, y0), restricted to
-/// rows [y_lo, y_hi) and unmasked pixels. Returns (x, y, smoothed value).
-pub fn brightest_peak(
-    img: ArrayView2<f32>,
-    mask: ArrayView2<u8>,
-    x0: f64,
-    y0: f64,
-    radius: f64,
-    rows: [usize; 2],
-) -> Option<(f64, f64, f64)> {
-    let (ny, nx) = img.dim();
-    let r = radius.ceil() as i64;
-    let mut best: Option<(f64, f64, f64)> = None;
-    for y in (y0.round() as i64 - r).max(rows[0] as i64 + 1)
-        ..=(y0.round() as i64 + r).min(rows[1] as i64 - 2).min(ny as i64 - 2)
-    {
-        for x in (x0.round() as i64 - r).max(1)..=(x0.round() as i64 + r).min(nx as i64 - 2) {
-            if ((x as f64 - x0).powi(2) + (y as f64 - y0).powi(2)) > radius * radius {
-                continue;
-            }
-            let (yu, xu) = (y as usize, x as usize);
-            let mut sum = 0.0;
-            let mut n = 0;
-            for j in yu - 1..=yu + 1 {
-                for i in xu - 1..=xu + 1 {
-                    if mask[[j, i]] == 0 {
-                        sum += img[[j, i]] as f64;
-                        n += 1;
-                    }
-                }
-            }
-            if n < 5 {
-                continue;
-            }
-            let v = sum / n as f64;
-            if best.is_none_or(|b| v > b.2) {
-                best = Some((x as f64, y as f64, v));
-            }
-        }
-    }
-    best
-}
-
-/// Mask bits that make a pixel unusable for centroids and fits.
-pub const UNUSABLE: u8 = sofipol_calib::frame::mask::BAD
-    | sofipol_calib::frame::mask::COSMIC
-    | sofipol_calib::frame::mask::SATURATED
-    | sofipol_calib::frame::mask::OFF_STRIP;
-
-/// A 0/1 view of the unusable pixels.
-pub fn unusable(frame: &Frame) -> Array2<u8> {
-    frame.mask.mapv(|m| u8::from(m & UNUSABLE != 0))
-}
-
-/// Refine a position by a windowed centroid; None when it fails.
-pub fn refine(
-    img: ArrayView2<f32>,
-    mask: ArrayView2<u8>,
-    x: f64,
-    y: f64,
-    fwhm_px: f64,
-    max_shift_px: f64,
-) -> Option<(f64, f64)> {
-    let p = CentroidParams {
-        fwhm_px,
-        max_shift_px,
-        background: Some(0.0),
-        ..CentroidParams::default()
-    };
-    centroid(img, Some(mask), x, y, &p).map(|c| (c.x, c.y))
-}
 
 /// Shift-and-add of square cut-outs of half-size `h` centred on the rounded positions
 /// `centres` (one per frame). Returns the stack (mean) and the mean fractional offset of
@@ -144,6 +73,12 @@ pub struct PairOnStack {
 }
 
 impl PairOnStack {
+    /// Exchange the labels A and B.
+    fn swap(&mut self) {
+        std::mem::swap(&mut self.a, &mut self.b);
+        self.flux = (self.flux.1, self.flux.0);
+    }
+
     /// Whether the companion is real: F above `min_f` and separated by at least
     /// `min_sep_px` (the whole-pixel registration of the stack blurs a lone star so that a
     /// "pair" ~0.5 px apart fits it better).
@@ -292,109 +227,140 @@ pub fn combine_geometry(found: &[(f64, (f64, f64), f64)], scale: f64) -> Option<
     Some((sep, pa, worst))
 }
 
-/// Median e-o offset from per-frame (o, e) centroids.
-pub fn median_offset(pairs: &[((f64, f64), (f64, f64))]) -> Option<(f64, f64)> {
-    if pairs.is_empty() {
-        return None;
-    }
-    let med = |mut v: Vec<f64>| {
-        v.sort_by(|a, b| a.total_cmp(b));
-        let n = v.len();
-        if n % 2 == 1 {
-            v[n / 2]
-        } else {
-            0.5 * (v[n / 2 - 1] + v[n / 2])
+/// What the companion search found.
+#[derive(Debug, Clone)]
+pub struct Companion {
+    /// Per orientation: the pair fitted on the registered stack (A/B labels consistent
+    /// across orientations, A the brighter), None where there was nothing to stack.
+    pub found: Vec<Option<PairOnStack>>,
+    /// FWHM of the stack fits, px (one per orientation with a fit).
+    pub fwhms: Vec<f64>,
+    /// Separation (arcsec) and PA (deg) of B from A, when B was accepted.
+    pub geometry: Option<(f64, f64)>,
+}
+
+/// Stage 3: the companion, orientation by orientation, on registered stacks; then one
+/// separation and PA from the orientations where it is significant.
+pub fn find_companion(
+    orients: &[CalibratedOrientation],
+    primary: &Primary,
+    masks: &[Vec<Array2<u8>>],
+    profile: &Profile,
+    params: &MeasureParams,
+    flags: &mut Vec<String>,
+) -> Companion {
+    let scale = profile.geometry.pixscale_arcsec;
+    let fwhm_guess = primary.fwhm_guess;
+    let search_px = params.companion_search_arcsec / scale;
+    let h = (search_px + 3.0 * fwhm_guess).ceil() as usize;
+    let mut found: Vec<Option<PairOnStack>> = Vec::new();
+    let mut fwhms = Vec::new();
+    for (k, (o, ms)) in orients.iter().zip(masks).enumerate() {
+        let (fr, cc) = primary.found_in(k, o, ms);
+        if fr.is_empty() {
+            found.push(None);
+            continue;
         }
-    };
-    Some((
-        med(pairs.iter().map(|(o, e)| e.0 - o.0).collect()),
-        med(pairs.iter().map(|(o, e)| e.1 - o.1).collect()),
-    ))
+        let (stack, smask, frac) = stack_cutouts(&fr, &cc, h);
+        let predicted = params
+            .companion_hint
+            .map(|(sep, pa)| companion_offset_px(sep, pa, o.posang_deg, scale));
+        let p = find_pair(&stack, &smask, frac, fwhm_guess, search_px, predicted, params.psf_model);
+        if let Some(p) = p {
+            fwhms.push(p.fwhm_px);
+        }
+        found.push(p);
+    }
+    let geometry = label_and_combine(&mut found, orients, params, scale, flags);
+    if geometry.is_none() {
+        flags.push("companion_not_found".into());
+    }
+    Companion { found, fwhms, geometry }
 }
 
-/// A cut-out view helper: rows of a strip.
-pub fn strip_rows(img: &Array2<f32>, rows: [usize; 2]) -> ArrayView2<'_, f32> {
-    img.slice(s![rows[0]..rows[1], ..])
-}
-
-/// The e-o beam offset by cross-correlation of ordinary and extraordinary cut-outs of the
-/// target (summed over frames): the two beams show the same pair with fluxes that differ
-/// only by the polarization, so the correlation peaks at the true offset even when the
-/// brighter star in one beam is the fainter in the other (a brightest-peak match would
-/// then jump between the components). Integer search within `search` px of `start`, then
-/// a parabola through the peak and its neighbours on each axis.
-pub fn eo_offset_by_correlation(
-    frames: &[(&Array2<f32>, &Array2<u8>)],
-    centres: &[(f64, f64)],
-    start: (f64, f64),
-    h: usize,
-    search: i64,
+/// Make A/B consistent across orientations: the companion of the best orientation predicts
+/// where B is at the others; swap where the fit labelled them the other way. A companion
+/// must both be significant in flux and improve the fit significantly over a single star
+/// (F test on the stack): a lone star is otherwise split in two. Returns the combined
+/// separation and PA when the companion is accepted.
+fn label_and_combine(
+    found: &mut [Option<PairOnStack>],
+    orients: &[CalibratedOrientation],
+    params: &MeasureParams,
+    scale: f64,
+    flags: &mut Vec<String>,
 ) -> Option<(f64, f64)> {
-    let n = 2 * search as usize + 1;
-    let mut score = vec![0.0f64; n * n];
-    let mut used = 0;
-    for (&(img, mask), &(cx, cy)) in frames.iter().zip(centres) {
-        let (ny, nx) = img.dim();
-        let (ox, oy) = (cx.round() as i64, cy.round() as i64);
-        let (ex0, ey0) = ((cx + start.0).round() as i64, (cy + start.1).round() as i64);
-        let hh = h as i64;
-        if ox - hh < 0 || oy - hh < 0 || ox + hh >= nx as i64 || oy + hh >= ny as i64 {
-            continue;
-        }
-        if ex0 - hh - search < 0
-            || ey0 - hh - search < 0
-            || ex0 + hh + search >= nx as i64
-            || ey0 + hh + search >= ny as i64
-        {
-            continue;
-        }
-        used += 1;
-        for sy in -search..=search {
-            for sx in -search..=search {
-                let mut acc = 0.0;
-                for j in -hh..=hh {
-                    for i in -hh..=hh {
-                        let (oyy, oxx) = ((oy + j) as usize, (ox + i) as usize);
-                        let (eyy, exx) = ((ey0 + sy + j) as usize, (ex0 + sx + i) as usize);
-                        if mask[[oyy, oxx]] == 0 && mask[[eyy, exx]] == 0 {
-                            acc += img[[oyy, oxx]] as f64 * img[[eyy, exx]] as f64;
-                        }
-                    }
-                }
-                score[((sy + search) as usize) * n + (sx + search) as usize] += acc;
-            }
-        }
-    }
-    if used == 0 {
-        return None;
-    }
-    let (mut bi, mut bv) = (0, f64::NEG_INFINITY);
-    for (k, &v) in score.iter().enumerate() {
-        if v > bv {
-            bv = v;
-            bi = k;
-        }
-    }
-    let (by, bx) = (bi / n, bi % n);
-    let para = |m: f64, c: f64, p: f64| {
-        let d = m - 2.0 * c + p;
-        if d < 0.0 {
-            0.5 * (m - p) / d
+    let min_f = params.min_companion_f;
+    let min_sep_px = params.min_companion_sep_arcsec / scale;
+    let snr = |p: &PairOnStack| {
+        if p.companion(min_f, min_sep_px) {
+            p.flux.1 / p.flux_b_err.max(1e-30)
         } else {
             0.0
         }
     };
-    let dx = if bx > 0 && bx + 1 < n {
-        para(score[by * n + bx - 1], bv, score[by * n + bx + 1])
-    } else {
-        0.0
-    };
-    let dy = if by > 0 && by + 1 < n {
-        para(score[(by - 1) * n + bx], bv, score[(by + 1) * n + bx])
-    } else {
-        0.0
-    };
-    let fx = (start.0).round() + (bx as f64 - search as f64) + dx.clamp(-0.5, 0.5) - start.0;
-    let fy = (start.1).round() + (by as f64 - search as f64) + dy.clamp(-0.5, 0.5) - start.1;
-    Some((start.0 + fx, start.1 + fy))
+    let (ib, best_snr) = found
+        .iter()
+        .enumerate()
+        .filter_map(|(i, p)| p.map(|p| (i, snr(&p))))
+        .max_by(|a, b| a.1.total_cmp(&b.1))?;
+    if best_snr < params.min_companion_snr {
+        return None;
+    }
+    let pb = found[ib].expect("best exists");
+    let d = (pb.b.0 - pb.a.0, pb.b.1 - pb.a.1);
+    let (sep0, pa0) = offset_to_sep_pa(d.0, d.1, orients[ib].posang_deg, scale);
+    let mut obs = Vec::new();
+    for (i, p) in found.iter_mut().enumerate() {
+        let Some(p) = p else { continue };
+        let pred = companion_offset_px(sep0, pa0, orients[i].posang_deg, scale);
+        let (dab, dba) = ((p.b.0 - p.a.0, p.b.1 - p.a.1), (p.a.0 - p.b.0, p.a.1 - p.b.1));
+        if (dba.0 - pred.0).hypot(dba.1 - pred.1) < (dab.0 - pred.0).hypot(dab.1 - pred.1) {
+            p.swap();
+        }
+        if snr(p) >= params.min_companion_snr {
+            obs.push((orients[i].posang_deg, (p.b.0 - p.a.0, p.b.1 - p.a.1), snr(p).powi(2)));
+        }
+    }
+    // A is the brighter over all orientations.
+    let (fa, fb): (f64, f64) = found
+        .iter()
+        .flatten()
+        .fold((0.0, 0.0), |acc, p| (acc.0 + p.flux.0, acc.1 + p.flux.1));
+    if fb > fa {
+        for p in found.iter_mut().flatten() {
+            p.swap();
+        }
+        for o in obs.iter_mut() {
+            o.1 = (-o.1 .0, -o.1 .1);
+        }
+    }
+    // A real companion is seen at every orientation where the rotation puts it; a fit
+    // artefact (blur, a cosmic ray in a stack) is not.
+    let need = orients.len().min(2);
+    match combine_geometry(&obs, scale) {
+        Some(_) if obs.len() < need => {
+            flags.push(format!(
+                "companion_rejected: significant at {} of {} orientations",
+                obs.len(),
+                orients.len()
+            ));
+            None
+        }
+        Some((_, _, worst)) if worst > 1.5 => {
+            flags.push(format!(
+                "companion_rejected: positions disagree by {worst:.2} px between orientations"
+            ));
+            None
+        }
+        Some((sep, pa, worst)) => {
+            if worst > 0.5 {
+                flags.push(format!(
+                    "companion_position_scatter: {worst:.2} px between orientations"
+                ));
+            }
+            Some((sep, pa))
+        }
+        None => None,
+    }
 }

@@ -1,0 +1,266 @@
+//! Reading: the image HDU, its header cards and pixels, the VARIANCE and MASK extensions.
+use std::path::Path;
+
+use fitsio::hdu::HduInfo;
+use fitsio::FitsFile;
+use ndarray::Array2;
+
+use crate::error::{Error, Result};
+use crate::frame::Frame;
+use crate::header::{Header, HeaderValue};
+
+use super::cards::*;
+use super::cfitsio::*;
+use super::{MASK_EXTNAME, VARIANCE_EXTNAME};
+
+/// Read the header of the image HDU only (see the module documentation for which HDU).
+///
+/// Structural keywords (SIMPLE, BITPIX, NAXISn, EXTEND, BZERO, BSCALE, PCOUNT, GCOUNT,
+/// XTENSION, EXTNAME, EXTVER, BLANK, CHECKSUM, DATASUM, the Z* and T* keywords of tile
+/// compression...) are not returned, nor are COMMENT and HISTORY cards (see
+/// [`read_frame`] for HISTORY). `HIERARCH ESO ADA POSANG` is stored as `ESO ADA POSANG`.
+/// Values are typed: strings (CONTINUE long strings joined), integers, floats, logicals.
+/// When a keyword occurs twice the first occurrence wins, as in cfitsio look-ups.
+///
+/// ```
+/// let path = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"),
+///     "/../testdata/fits/sofi_pol_64x64_i16.fits"));
+/// let h = sofipol_calib::fits::read_header(path)?;
+/// assert_eq!(h.get_f64("ESO ADA POSANG")?, 45.0);
+/// assert_eq!(h.get_str("INSTRUME")?, "SOFI");
+/// # Ok::<(), sofipol_calib::Error>(())
+/// ```
+pub fn read_header(path: &Path) -> Result<Header> {
+    let mut f = open(path)?;
+    let (_, cards) = find_image_hdu(&mut f, path)?;
+    Ok(parse_cards(&cards, path).0)
+}
+
+/// Read a frame: the image as `f32` (`[y, x]`, row 0 = FITS row 1), its header, HISTORY
+/// cards as provenance records, and VARIANCE / MASK extensions when present.
+///
+/// HISTORY cards of the form `sofipol <stage>: <detail>` (as written by [`write_frame`],
+/// continuation cards joined) become records of that stage; any other HISTORY card
+/// becomes a record of stage `"file"`. Without a MASK extension the mask is all zeros.
+///
+/// Errors name the file: missing, unreadable, truncated or non-FITS files, and images
+/// that are not 2-D or are empty ([`Error::BadImage`] with the NAXIS values).
+///
+/// ```
+/// let path = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"),
+///     "/../testdata/fits/sofi_pol_64x64_i16.fits.fz"));
+/// let frame = sofipol_calib::fits::read_frame(path)?;
+/// assert_eq!(frame.shape(), (64, 64));
+/// assert_eq!(frame.header.get_str("ESO TPL ID")?, "SOFI_img_obs_Polarimetry");
+/// # Ok::<(), sofipol_calib::Error>(())
+/// ```
+pub fn read_frame(path: &Path) -> Result<Frame> {
+    let mut f = open(path)?;
+    let (hdu_index, cards) = find_image_hdu(&mut f, path)?;
+    let (header, history) = parse_cards(&cards, path);
+    let (ny, nx) = image_dims(&cards, path)?;
+
+    let data = read_f32(&mut f, path, hdu_index, ny, nx)?;
+
+    // Look for VARIANCE / MASK extensions after the image HDU.
+    let mut variance = None;
+    let mut mask = None;
+    let mut i = hdu_index + 1;
+    while let Some(cards) = hdu_cards(&mut f, path, i)? {
+        match extname(&cards).as_deref() {
+            Some(VARIANCE_EXTNAME) if variance.is_none() => {
+                check_same_shape(&cards, path, VARIANCE_EXTNAME, (ny, nx))?;
+                variance = Some(read_f32(&mut f, path, i, ny, nx)?);
+            }
+            Some(MASK_EXTNAME) if mask.is_none() => {
+                check_same_shape(&cards, path, MASK_EXTNAME, (ny, nx))?;
+                let hdu = f.hdu(i).map_err(|e| fits_err(path, &format!("HDU {i} (MASK)"), e))?;
+                let v: Vec<u8> = hdu
+                    .read_image(&mut f)
+                    .map_err(|e| fits_err(path, "reading the MASK extension", e))?;
+                mask = Some(to_array(v, ny, nx, path)?);
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+
+    Ok(Frame {
+        mask: mask.unwrap_or_else(|| Array2::zeros((ny, nx))),
+        data,
+        variance,
+        header,
+        history,
+    })
+}
+
+/// Header cards of HDU `index` (0-based), or `None` past the last HDU.
+pub(super) fn hdu_cards(f: &mut FitsFile, path: &Path, index: usize) -> Result<Option<Vec<String>>> {
+    match cfitsio_raw(f, RawOp::ReadCards(index)) {
+        Ok(c) => Ok(Some(c)),
+        // END_OF_FILE: no such HDU. (A file truncated inside a later HDU's header ends the
+        // scan here too; the image HDU itself was read in full before.)
+        Err(fitsio::errors::Error::Fits(fe)) if index > 0 && fe.status == END_OF_FILE => Ok(None),
+        Err(e) => Err(fits_err(path, &format!("reading the header of HDU {index}"), e)),
+    }
+}
+
+pub(super) const END_OF_FILE: i32 = 107;
+
+/// Find the image HDU: the primary if it has NAXIS > 0, else the first image extension
+/// (plain or tile-compressed) with NAXIS > 0. The image must be 2-D and non-empty.
+pub(super) fn find_image_hdu(f: &mut FitsFile, path: &Path) -> Result<(usize, Vec<String>)> {
+    let primary = hdu_cards(f, path, 0)?.unwrap_or_default();
+    if naxis_values(&primary).0 > 0 {
+        image_dims(&primary, path)?;
+        return Ok((0, primary));
+    }
+    let mut i = 1;
+    while let Some(cards) = hdu_cards(f, path, i)? {
+        if is_image_hdu(&cards) && naxis_values(&cards).0 > 0 {
+            image_dims(&cards, path)?;
+            return Ok((i, cards));
+        }
+        i += 1;
+    }
+    Err(Error::BadImage {
+        path: path.to_path_buf(),
+        reason: "no image: the primary HDU has NAXIS = 0 and there is no image extension".into(),
+    })
+}
+
+/// The value of a structural keyword straight from the raw cards.
+pub(super) fn raw_value(cards: &[String], key: &str) -> Option<HeaderValue> {
+    cards.iter().find_map(|c| match parse_card(c) {
+        Parsed::Key { key: k, value, .. } if k == key => Some(value),
+        _ => None,
+    })
+}
+
+pub(super) fn raw_int(cards: &[String], key: &str) -> Option<i64> {
+    match raw_value(cards, key)? {
+        HeaderValue::Int(i) => Some(i),
+        _ => None,
+    }
+}
+
+pub(super) fn is_compressed(cards: &[String]) -> bool {
+    matches!(raw_value(cards, "ZIMAGE"), Some(HeaderValue::Bool(true)))
+}
+
+pub(super) fn is_image_hdu(cards: &[String]) -> bool {
+    is_compressed(cards)
+        || matches!(raw_value(cards, "XTENSION"), Some(HeaderValue::Str(s)) if s.trim() == "IMAGE")
+        || raw_value(cards, "SIMPLE").is_some()
+}
+
+/// (NAXIS, [NAXIS1, NAXIS2, ...]) of an image or tile-compressed image HDU, and the
+/// keyword prefix used ("NAXIS" or "ZNAXIS").
+pub(super) fn naxis_values(cards: &[String]) -> (i64, Vec<i64>, &'static str) {
+    let prefix = if is_compressed(cards) { "ZNAXIS" } else { "NAXIS" };
+    let n = raw_int(cards, prefix).unwrap_or(0);
+    let axes = (1..=n.clamp(0, 999))
+        .map(|i| raw_int(cards, &format!("{prefix}{i}")).unwrap_or(-1))
+        .collect();
+    (n, axes, prefix)
+}
+
+/// (ny, nx) of a 2-D non-empty image, else [`Error::BadImage`] naming the NAXIS values.
+pub(super) fn image_dims(cards: &[String], path: &Path) -> Result<(usize, usize)> {
+    let (n, axes, prefix) = naxis_values(cards);
+    let listing = axes
+        .iter()
+        .enumerate()
+        .map(|(i, a)| format!("{prefix}{} = {a}", i + 1))
+        .collect::<Vec<_>>()
+        .join(", ");
+    let describe = if listing.is_empty() {
+        format!("{prefix} = {n}")
+    } else {
+        format!("{prefix} = {n} ({listing})")
+    };
+    if n != 2 {
+        return Err(Error::BadImage {
+            path: path.to_path_buf(),
+            reason: format!("not a 2-D image: {describe}"),
+        });
+    }
+    if axes.iter().any(|&a| a <= 0) {
+        return Err(Error::BadImage {
+            path: path.to_path_buf(),
+            reason: format!("empty image: {describe}"),
+        });
+    }
+    // fitsio panics on the one pixel type it does not know (unsigned 64-bit): refuse it.
+    let bitpix_key = if prefix == "ZNAXIS" { "ZBITPIX" } else { "BITPIX" };
+    if raw_int(cards, bitpix_key) == Some(64) {
+        if let Some(z) = raw_value(cards, "BZERO") {
+            if !matches!(z, HeaderValue::Int(0)) && z != HeaderValue::Float(0.0) {
+                return Err(Error::BadImage {
+                    path: path.to_path_buf(),
+                    reason: format!("unsupported pixel type: {bitpix_key} = 64 with BZERO = {z}"),
+                });
+            }
+        }
+    }
+    Ok((axes[1] as usize, axes[0] as usize))
+}
+
+pub(super) fn check_same_shape(cards: &[String], path: &Path, name: &str, want: (usize, usize)) -> Result<()> {
+    let got = image_dims(cards, path).map_err(|e| match e {
+        Error::BadImage { path, reason } => Error::BadImage {
+            path,
+            reason: format!("{name} extension: {reason}"),
+        },
+        e => e,
+    })?;
+    check_extension_shape(path, name, got, want)
+}
+
+pub(super) fn check_extension_shape(path: &Path, name: &str, got: (usize, usize), want: (usize, usize)) -> Result<()> {
+    if got != want {
+        return Err(Error::BadImage {
+            path: path.to_path_buf(),
+            reason: format!(
+                "{name} extension is {} x {} pixels (nx x ny) but the image is {} x {}",
+                got.1, got.0, want.1, want.0
+            ),
+        });
+    }
+    Ok(())
+}
+
+pub(super) fn extname(cards: &[String]) -> Option<String> {
+    match raw_value(cards, "EXTNAME")? {
+        HeaderValue::Str(s) => Some(s.trim().to_ascii_uppercase()),
+        _ => None,
+    }
+}
+
+pub(super) fn read_f32(f: &mut FitsFile, path: &Path, index: usize, ny: usize, nx: usize) -> Result<Array2<f32>> {
+    let hdu = f
+        .hdu(index)
+        .map_err(|e| fits_err(path, &format!("moving to HDU {index}"), e))?;
+    match &hdu.info {
+        HduInfo::ImageInfo { shape, .. } if shape.as_slice() == [ny, nx] => {}
+        other => {
+            return Err(Error::BadImage {
+                path: path.to_path_buf(),
+                reason: format!("HDU {index}: cfitsio reports {other:?}, expected a {nx} x {ny} image"),
+            })
+        }
+    }
+    // One allocation, filled by cfitsio (scaled by BZERO/BSCALE), moved into the array.
+    let v: Vec<f32> = hdu
+        .read_image(f)
+        .map_err(|e| fits_err(path, &format!("reading image data of HDU {index}"), e))?;
+    to_array(v, ny, nx, path)
+}
+
+pub(super) fn to_array<T>(v: Vec<T>, ny: usize, nx: usize, path: &Path) -> Result<Array2<T>> {
+    let n = v.len();
+    Array2::from_shape_vec((ny, nx), v).map_err(|_| Error::BadImage {
+        path: path.to_path_buf(),
+        reason: format!("read {n} pixels, expected {nx} x {ny}"),
+    })
+}

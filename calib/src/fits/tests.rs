@@ -1,0 +1,172 @@
+//! Unit tests of the card parser and formatter, file names and pixel conversion.
+use std::path::Path;
+
+use super::cards::*;
+use super::cfitsio::cfitsio_name;
+use super::write::to_u16;
+use super::HISTORY_CHUNK;
+use crate::frame::HistoryRecord;
+use crate::header::{Card, HeaderValue};
+
+fn card(key: &str, value: impl Into<HeaderValue>, comment: Option<&str>) -> Card {
+    Card {
+        key: key.into(),
+        value: value.into(),
+        comment: comment.map(String::from),
+    }
+}
+
+fn roundtrip(c: &Card) -> Card {
+    let lines = format_card(c, Path::new("t.fits")).unwrap();
+    for l in &lines {
+        assert!(l.len() <= 80, "{l:?}");
+    }
+    let (h, _) = parse_cards(&lines, Path::new("t.fits"));
+    assert_eq!(h.cards.len(), 1, "{lines:?}");
+    h.cards[0].clone()
+}
+
+#[test]
+fn cards_round_trip() {
+    for c in [
+        card("OBJECT", "HK Tau", Some("target")),
+        card("ESO ADA POSANG", 45.0, Some("deg")),
+        card("ESO OBS TARG NAME", "it's a 'quoted' name", None),
+        card("NDIT", 6i64, None),
+        card("ESO DET NDIT", -7i64, Some("x")),
+        card("FLAG", true, None),
+        card("ESO SEQ FLAG", false, None),
+        card("EMPTY", "", None),
+        card("LEADING", "  padded", None),
+        card("TINY", 1.2345678901234567e-300, None),
+        card("HUGE", -9.87654321e250, None),
+        card("THIRD", 1.0 / 3.0, None),
+        card("MJD-OBS", 51240.09112345679, None),
+        card("DATE-OBS", "1999-03-03T02:11:05.123", None),
+    ] {
+        assert_eq!(roundtrip(&c), c, "{c:?}");
+    }
+}
+
+#[test]
+fn long_strings_use_continue() {
+    let long: String = (0..300)
+        .map(|i| {
+            if i % 7 == 0 {
+                '\''
+            } else {
+                (b'a' + (i % 26) as u8) as char
+            }
+        })
+        .collect();
+    for key in ["LONGSTR", "ESO SOME VERY LONG HIERARCH KEYWORD NAME"] {
+        let c = card(key, long.as_str(), Some("end"));
+        let lines = format_card(&c, Path::new("t.fits")).unwrap();
+        assert!(lines.len() > 3);
+        assert!(lines[1].starts_with("CONTINUE  '"));
+        assert_eq!(roundtrip(&c), c);
+    }
+}
+
+#[test]
+fn parses_foreign_cards() {
+    let cards: Vec<String> = [
+        "SIMPLE  =                    T / conforms",
+        "BITPIX  =                   16",
+        "NAXIS1  =                 1024",
+        "HIERARCH ESO DET DIT         =    10.0000000 / Integration Time",
+        "HIERARCH ESO INS OPTI3 ID = 'WOLLASTON' / OPTIi ID",
+        "EXPTIME =              1.0D+01 / Fortran exponent",
+        "BIGINT  = 123456789012345678901234",
+        "UNDEF   =",
+        "CPLX    = (1.0, 2.0)",
+        "COMMENT this is a comment = with equals",
+        "HISTORY some foreign step",
+        "        blank keyword card",
+        "ZTILE1  =                 1024",
+        "ZENITH  =                 12.5",
+        "NEGFRAC =                  -.5",
+        "PLUSEXP =             +1.0E+01",
+        "TRAIL   =                   5.",
+        "NOTNUM  =                  NaN",
+        "DUP     =                    1",
+        "DUP     =                    2",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    let (h, hist) = parse_cards(&cards, Path::new("x.fits"));
+    let keys: Vec<&str> = h.cards.iter().map(|c| c.key.as_str()).collect();
+    assert_eq!(
+        keys,
+        [
+            "ESO DET DIT",
+            "ESO INS OPTI3 ID",
+            "EXPTIME",
+            "BIGINT",
+            "CPLX",
+            "ZENITH",
+            "NEGFRAC",
+            "PLUSEXP",
+            "TRAIL",
+            "NOTNUM",
+            "DUP"
+        ]
+    );
+    assert_eq!(h.get("NEGFRAC"), Some(&HeaderValue::Float(-0.5)));
+    assert_eq!(h.get("PLUSEXP"), Some(&HeaderValue::Float(10.0)));
+    assert_eq!(h.get("TRAIL"), Some(&HeaderValue::Float(5.0)));
+    assert_eq!(h.get("NOTNUM"), Some(&HeaderValue::Str("NaN".into())));
+    assert_eq!(h.get("DUP"), Some(&HeaderValue::Int(1)));
+    assert_eq!(h.get("ESO DET DIT"), Some(&HeaderValue::Float(10.0)));
+    assert_eq!(h.cards[0].comment.as_deref(), Some("Integration Time"));
+    assert_eq!(h.get_str("ESO INS OPTI3 ID").unwrap(), "WOLLASTON");
+    assert_eq!(h.get("EXPTIME"), Some(&HeaderValue::Float(10.0)));
+    assert_eq!(h.get("BIGINT"), Some(&HeaderValue::Float(1.2345678901234568e23)));
+    assert_eq!(hist, vec![HistoryRecord::new("file", "some foreign step")]);
+}
+
+#[test]
+fn history_split_and_join() {
+    let recs = vec![
+        HistoryRecord::new("sky", "x".repeat(69) + "  two spaces then more" + &"y".repeat(150)),
+        HistoryRecord::new("badpix", ""),
+        HistoryRecord::new("flat", "short: with colon"),
+    ];
+    let cards = format_history(&recs);
+    assert!(cards.iter().all(|c| c.len() <= 8 + HISTORY_CHUNK), "{cards:#?}");
+    // cfitsio trims trailing blanks of every card.
+    let trimmed: Vec<String> = cards.iter().map(|c| c.trim_end().to_string()).collect();
+    let (_, back) = parse_cards(&trimmed, Path::new("x.fits"));
+    assert_eq!(back[0], recs[0]);
+    assert_eq!(back[1], recs[1]);
+    assert_eq!(back[2], recs[2]);
+}
+
+#[test]
+fn bad_keywords_are_errors() {
+    let p = Path::new("out.fits");
+    let e = format_card(&card("ESO X", f64::NAN, None), p).unwrap_err().to_string();
+    assert!(e.contains("out.fits") && e.contains("ESO X"), "{e}");
+    let e = format_card(&card("OBJECT", "Ωmega", None), p).unwrap_err().to_string();
+    assert!(e.contains("OBJECT") && e.contains("ASCII"), "{e}");
+    let long_key = "ESO ".to_string() + &"K".repeat(80);
+    assert!(format_card(&card(&long_key, 1i64, None), p).is_err());
+}
+
+#[test]
+fn cfitsio_names() {
+    assert!(cfitsio_name(Path::new("a[1].fits")).is_err());
+    assert!(cfitsio_name(Path::new("x.fits+1")).is_err());
+    assert_eq!(cfitsio_name(Path::new("-x.fits")).unwrap(), "./-x.fits");
+    assert_eq!(cfitsio_name(Path::new("/d/x.fits")).unwrap(), "/d/x.fits");
+}
+
+#[test]
+fn u16_conversion() {
+    assert_eq!(to_u16(-3.0), 0);
+    assert_eq!(to_u16(1.5), 2);
+    assert_eq!(to_u16(2.49), 2);
+    assert_eq!(to_u16(70000.0), 65535);
+    assert_eq!(to_u16(f32::NAN), 0);
+}

@@ -1,0 +1,170 @@
+//! Writing: float32 or int16 images, optionally tile compressed, with VARIANCE and MASK
+//! extensions, through a temporary file renamed into place.
+use std::path::Path;
+
+use fitsio::images::{ImageDescription, ImageType};
+use fitsio::FitsFile;
+use ndarray::Array2;
+
+use crate::atomic::TempFile;
+use crate::error::{Error, Result};
+use crate::frame::Frame;
+
+use super::cards::*;
+use super::cfitsio::*;
+use super::read::check_extension_shape;
+use super::{Bitpix, WriteOptions, MASK_EXTNAME, VARIANCE_EXTNAME};
+
+/// Write a frame atomically: the file is written to a temporary file in the same
+/// directory (`.<name>.tmp-<pid>-<n>`), flushed, synced and renamed over `path`, so a
+/// crash never leaves a half-written file and an existing file is replaced only by a
+/// complete one.
+///
+/// Header: every card of `frame.header` (keys longer than 8 characters or with spaces
+/// as `HIERARCH` cards; strings longer than a card with the CONTINUE convention; floats
+/// with the shortest representation that reads back bit-exactly; comments when they
+/// fit), then one HISTORY entry per `frame.history` record (`record.line()`, split into
+/// cards of at most [`HISTORY_CHUNK`] characters; continuation cards start with
+/// [`HISTORY_CONTINUATION`]). Structural keywords in `frame.header` are ignored (the
+/// file layout decides them). Non-ASCII characters in comments and HISTORY become `?`;
+/// in keyword names or string values they are an error, as are non-finite floats.
+///
+/// ```
+/// use sofipol_calib::fits::{read_frame, write_frame, Bitpix, WriteOptions};
+/// use sofipol_calib::{Frame, Header};
+/// let dir = tempfile::tempdir().unwrap();
+/// let path = dir.path().join("raw.fits.fz");
+/// let mut header = Header::new("");
+/// header.set("ESO ADA POSANG", 45.0);
+/// let frame = Frame::new(ndarray::Array2::from_elem((8, 16), 1234.0), header)
+///     .with_history("sim", "seed=1");
+/// let opts = WriteOptions { bitpix: Bitpix::I16, compress: true, ..Default::default() };
+/// write_frame(&path, &frame, &opts)?;
+/// let back = read_frame(&path)?;
+/// assert_eq!(back.data, frame.data);
+/// assert_eq!(back.history, frame.history);
+/// # Ok::<(), sofipol_calib::Error>(())
+/// ```
+pub fn write_frame(path: &Path, frame: &Frame, opts: &WriteOptions) -> Result<()> {
+    let (ny, nx) = frame.shape();
+    if ny == 0 || nx == 0 {
+        return Err(Error::BadImage {
+            path: path.to_path_buf(),
+            reason: format!("cannot write an empty image ({ny} x {nx} pixels)"),
+        });
+    }
+    let variance = if opts.with_variance_and_mask {
+        frame.variance.as_ref()
+    } else {
+        None
+    };
+    if let Some(v) = variance {
+        check_extension_shape(path, VARIANCE_EXTNAME, v.dim(), (ny, nx))?;
+    }
+    if opts.with_variance_and_mask {
+        check_extension_shape(path, MASK_EXTNAME, frame.mask.dim(), (ny, nx))?;
+    }
+    if path.to_string_lossy().ends_with(".gz") {
+        return Err(Error::Fits {
+            path: path.to_path_buf(),
+            message: "writing gzip-compressed files is not supported; use tile compression \
+                      (WriteOptions::compress, a .fz file)"
+                .into(),
+        });
+    }
+    // Format every card before touching the disk: a bad keyword leaves no trace.
+    let mut cards = format_header(&frame.header, path)?;
+    cards.extend(format_history(&frame.history));
+
+    let tmp = TempFile::new(path)?;
+    let tmp_name = cfitsio_name(&tmp.path)?;
+    let float_inside = opts.bitpix == Bitpix::F32 || variance.is_some();
+    let create_name = match (opts.compress, float_inside) {
+        (false, _) => tmp_name,
+        (true, false) => format!("{tmp_name}[compress R]"),
+        // "q 0": no quantization, i.e. lossless GZIP for float tiles.
+        (true, true) => format!("{tmp_name}[compress G; q 0]"),
+    };
+    let image_type = match opts.bitpix {
+        Bitpix::F32 => ImageType::Float,
+        Bitpix::I16 => ImageType::UnsignedShort,
+    };
+    let shape = [ny, nx];
+    let desc = ImageDescription {
+        data_type: image_type,
+        dimensions: &shape,
+    };
+    let tpath = tmp.path.clone();
+    let ferr = |what: &str, e: fitsio::errors::Error| fits_err(&tpath, what, e);
+    {
+        let mut f;
+        let hdu;
+        if opts.compress {
+            // Empty primary (written directly, never compressed), image in HDU 1.
+            f = FitsFile::create(&create_name).open().map_err(|e| ferr("creating", e))?;
+            hdu = f
+                .create_image("COMPRESSED_IMAGE", &desc)
+                .map_err(|e| ferr("creating the compressed image HDU", e))?;
+        } else {
+            f = FitsFile::create(&create_name)
+                .with_custom_primary(&desc)
+                .open()
+                .map_err(|e| ferr("creating", e))?;
+            hdu = f.primary_hdu().map_err(|e| ferr("primary HDU", e))?;
+            // fitsio names the primary '_PRIMARY': drop it, a primary needs no name.
+            cfitsio_raw(&mut f, RawOp::Delete("EXTNAME")).map_err(|e| ferr("deleting EXTNAME", e))?;
+        }
+        // Header before data: appending cards later would make cfitsio shift the data.
+        cfitsio_raw(&mut f, RawOp::Append(&cards)).map_err(|e| ferr("writing header cards", e))?;
+        match opts.bitpix {
+            Bitpix::F32 => {
+                let data = contiguous(&frame.data);
+                hdu.write_image(&mut f, &data)
+                    .map_err(|e| ferr("writing image data", e))?;
+            }
+            Bitpix::I16 => {
+                let data: Vec<u16> = frame.data.iter().map(|&v| to_u16(v)).collect();
+                hdu.write_image(&mut f, &data)
+                    .map_err(|e| ferr("writing image data", e))?;
+            }
+        }
+        if opts.with_variance_and_mask {
+            if let Some(v) = variance {
+                let d = ImageDescription {
+                    data_type: ImageType::Float,
+                    dimensions: &shape,
+                };
+                let h = f
+                    .create_image(VARIANCE_EXTNAME, &d)
+                    .map_err(|e| ferr("creating VARIANCE", e))?;
+                h.write_image(&mut f, &contiguous(v))
+                    .map_err(|e| ferr("writing VARIANCE", e))?;
+            }
+            let d = ImageDescription {
+                data_type: ImageType::UnsignedByte,
+                dimensions: &shape,
+            };
+            let h = f.create_image(MASK_EXTNAME, &d).map_err(|e| ferr("creating MASK", e))?;
+            h.write_image(&mut f, &contiguous(&frame.mask))
+                .map_err(|e| ferr("writing MASK", e))?;
+        }
+        // Drop (fits_close_file) cannot report errors: flush explicitly first.
+        cfitsio_raw(&mut f, RawOp::Flush).map_err(|e| ferr("flushing", e))?;
+    }
+    tmp.commit(path)
+}
+
+pub(super) fn contiguous<T: Clone>(a: &Array2<T>) -> std::borrow::Cow<'_, [T]> {
+    match a.as_slice() {
+        Some(s) => std::borrow::Cow::Borrowed(s),
+        None => std::borrow::Cow::Owned(a.iter().cloned().collect()),
+    }
+}
+
+pub(super) fn to_u16(v: f32) -> u16 {
+    if v.is_nan() {
+        0
+    } else {
+        v.round().clamp(0.0, 65535.0) as u16
+    }
+}

@@ -1,0 +1,195 @@
+//! The catalog entry of a measured sequence: per component, the dither values of each
+//! orientation combined (rejections, clipping, weighted mean, honest error), then q and u by
+//! least squares over the orientations, P, gamma and their errors, debiasing and the cut.
+use super::{CalibratedOrientation, DitherValue, MeasureParams, Measured};
+use crate::catalog::{self, Component, Status, Target};
+use crate::stokes::inversion::{clip_dithers, combine_dithers, fit_qu, LinearPolarization};
+
+/// Turn the per-dither values of one component into its catalog entry.
+pub fn component_from_dithers(
+    name: &str,
+    per_orient: &[Vec<DitherValue>],
+    analyzer_deg: &[f64],
+    params: &MeasureParams,
+) -> Component {
+    let mut flags: Vec<String> = Vec::new();
+    let (mut phis, mut fs, mut ss) = (Vec::new(), Vec::new(), Vec::new());
+    let mut extra = serde_json::Map::new();
+    let mut per_orientation = Vec::new();
+    let mut sum_flux = 0.0;
+    let mut n_flux = 0;
+    for (k, dv) in per_orient.iter().enumerate() {
+        let mut usable: Vec<usize> = (0..dv.len()).filter(|&i| dv[i].rejected.is_none()).collect();
+        for d in dv.iter().filter(|d| d.rejected.is_some()) {
+            for r in d.rejected.as_deref().unwrap_or("").split(',') {
+                let r = r.to_string();
+                if !r.is_empty() && !flags.contains(&r) {
+                    flags.push(r);
+                }
+            }
+        }
+        if usable.is_empty() {
+            // Everything is flagged: fall back to all finite values rather than nothing.
+            usable = (0..dv.len())
+                .filter(|&i| dv[i].f.is_finite() && dv[i].sigma_f > 0.0)
+                .collect();
+            if !usable.is_empty() {
+                flags.push("used_flagged_dithers".into());
+            }
+        }
+        for &i in &usable {
+            let pf = crate::photometry::Flags(dv[i].o.phot_flags | dv[i].e.phot_flags);
+            for (bit, name) in [
+                (crate::photometry::Flags::COMPANION_OVERLAP, "companion_overlap"),
+                (crate::photometry::Flags::ANNULUS_CONTAMINATED, "annulus_contaminated"),
+            ] {
+                if pf.contains(bit) && !flags.iter().any(|f| f == name) {
+                    flags.push(name.to_string());
+                }
+            }
+        }
+        let vals: Vec<f64> = usable.iter().map(|&i| dv[i].f).collect();
+        let sig: Vec<f64> = usable.iter().map(|&i| dv[i].sigma_f).collect();
+        let keep = clip_dithers(&vals, &sig, params.clip_sigma, 2);
+        if keep.len() < vals.len() && !flags.contains(&"dither_clipped".to_string()) {
+            flags.push("dither_clipped".into());
+        }
+        let kv: Vec<f64> = keep.iter().map(|&i| vals[i]).collect();
+        let ks: Vec<f64> = keep.iter().map(|&i| sig[i]).collect();
+        for &i in &keep {
+            let d = &dv[usable[i]];
+            sum_flux += d.o.flux + d.e.flux;
+            n_flux += 1;
+        }
+        if let Some(c) = combine_dithers(&kv, &ks) {
+            // Honest error: the propagated one, inflated by sqrt(chi2/dof) when the dither
+            // scatter is significantly larger (p < 0.01).
+            let dof = (c.n.saturating_sub(1)) as f64;
+            let mut sigma = c.sigma;
+            if dof >= 1.0 {
+                let p = 1.0
+                    - statrs::distribution::ContinuousCDF::cdf(
+                        &statrs::distribution::ChiSquared::new(dof).expect("dof > 0"),
+                        c.chi2,
+                    );
+                if p < 0.01 {
+                    sigma *= (c.chi2 / dof).sqrt();
+                    if !flags.contains(&"excess_dither_scatter".to_string()) {
+                        flags.push("excess_dither_scatter".into());
+                    }
+                }
+            }
+            phis.push(analyzer_deg[k]);
+            fs.push(c.value);
+            ss.push(sigma);
+            per_orientation.push(serde_json::json!({
+                "analyzer_deg": analyzer_deg[k], "f": c.value, "sigma_f": sigma, "sigma_f_propagated": c.sigma,
+                "sigma_f_scatter": c.sigma_scatter, "chi2": c.chi2, "n_dithers": c.n, "n_dithers_total": dv.len(),
+            }));
+        }
+    }
+    extra.insert("orientations".into(), serde_json::Value::Array(per_orientation));
+    extra.insert(
+        "flux_adu".into(),
+        serde_json::json!(if n_flux > 0 { sum_flux / n_flux as f64 } else { f64::NAN }),
+    );
+    let fit = fit_qu(&phis, &fs, &ss);
+    match fit {
+        Some(r) => {
+            let lp = LinearPolarization::from_qu(r.q, r.u, r.var_q.sqrt(), r.var_u.sqrt(), params.debias);
+            extra.insert("snr".into(), serde_json::json!(lp.snr));
+            extra.insert("sigma_gamma_nkc_deg".into(), serde_json::json!(lp.sigma_gamma_nkc_deg));
+            extra.insert("cov_qu".into(), serde_json::json!(r.cov_qu));
+            if lp.snr <= params.cut_snr {
+                flags.push("low_snr".into());
+            }
+            Component {
+                name: name.into(),
+                q: lp.q,
+                u: lp.u,
+                sigma_q: lp.sigma_q,
+                sigma_u: lp.sigma_u,
+                p: lp.p,
+                sigma_p: lp.sigma_p,
+                p_debiased: lp.p_debiased,
+                gamma_deg: lp.gamma_deg,
+                sigma_gamma_deg: lp.sigma_gamma_deg,
+                passes_cut: lp.passes_cut(params.cut_snr),
+                flags,
+                extra,
+            }
+        }
+        None => {
+            flags.push("undefined_polarization: orientations do not constrain q and u".into());
+            Component {
+                name: name.into(),
+                q: f64::NAN,
+                u: f64::NAN,
+                sigma_q: f64::NAN,
+                sigma_u: f64::NAN,
+                p: f64::NAN,
+                sigma_p: f64::NAN,
+                p_debiased: f64::NAN,
+                gamma_deg: f64::NAN,
+                sigma_gamma_deg: f64::NAN,
+                passes_cut: false,
+                flags,
+                extra,
+            }
+        }
+    }
+}
+
+/// Build the catalog entry of a measured sequence.
+pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measured, params: &MeasureParams) -> Target {
+    let phis: Vec<f64> = orients.iter().map(|o| o.analyzer_deg).collect();
+    let names = ["A", "B"];
+    let components: Vec<Component> = m
+        .dithers
+        .iter()
+        .enumerate()
+        .map(|(i, d)| component_from_dithers(names[i], d, &phis, params))
+        .collect();
+    let delta = if components.len() == 2 && components.iter().all(|c| c.passes_cut) {
+        Some(catalog::fold_delta_gamma(
+            components[0].gamma_deg,
+            components[1].gamma_deg,
+        ))
+    } else {
+        None
+    };
+    let status = if components.len() == 2 && components.iter().all(|c| c.q.is_finite()) {
+        Status::Ok
+    } else {
+        Status::Partial
+    };
+    let mut extra = serde_json::Map::new();
+    extra.insert(
+        "eo_offset_px".into(),
+        serde_json::json!([m.eo_offset_px.0, m.eo_offset_px.1]),
+    );
+    extra.insert("fwhm_px".into(), serde_json::json!(m.fwhm_px));
+    extra.insert("photometry".into(), serde_json::json!(m.photometry));
+    extra.insert("aperture_radius_px".into(), serde_json::json!(m.aperture_px));
+    if let Some((sep, pa)) = m.geometry {
+        extra.insert("separation_arcsec".into(), serde_json::json!(sep));
+        extra.insert("pa_deg".into(), serde_json::json!(pa));
+    }
+    extra.insert(
+        "orientations_deg".into(),
+        serde_json::json!(orients.iter().map(|o| o.posang_deg).collect::<Vec<_>>()),
+    );
+    extra.insert("flags".into(), serde_json::json!(m.flags));
+    Target {
+        object: object.into(),
+        status,
+        error: if status == Status::Partial {
+            m.flags.first().cloned().or(Some("companion not measured".into()))
+        } else {
+            None
+        },
+        components,
+        delta_gamma_deg: delta,
+        extra,
+    }
+}

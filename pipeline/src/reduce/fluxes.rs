@@ -1,0 +1,381 @@
+//! Per-frame photometry of both components in both beams: the PSF model and method chosen
+//! from the stacks, then for every frame a two-star PSF fit per beam (deblending) and either
+//! aperture photometry on the frame with the other star's model subtracted (exact overlap) or
+//! PSF-fit fluxes (close pairs); F = (o - e)/(o + e) per dither with its rejection reason.
+use ndarray::{s, Array2};
+use sofipol_calib::frame::mask as mbits;
+use sofipol_calib::Frame;
+
+use super::companion::Companion;
+use super::sources::{Primary, UNUSABLE};
+use super::{BeamFlux, CalibratedOrientation, DitherValue, MeasureParams};
+use crate::photometry::{fit_psf, measure, subtract_star, Flags, PhotParams, PsfFit, PsfFitParams, PsfModel};
+use crate::stokes::model::companion_offset_px;
+
+/// How the fluxes are measured, chosen once per sequence from the stacks.
+#[derive(Debug, Clone, Copy)]
+pub struct PsfChoice {
+    /// Median FWHM of the stack fits, px (the initial guess when no stack was fitted).
+    pub fwhm_px: f64,
+    /// PSF model of the per-frame fits.
+    pub frame_model: PsfModel,
+    /// PSF-fit fluxes (pair closer than `psf_photometry_below_fwhm`) instead of apertures.
+    pub use_psf: bool,
+    /// Separation of the pair, px (infinite without a companion).
+    pub sep_px: f64,
+}
+
+/// Stage 4: the PSF model and photometry method.
+///
+/// Moffat beta is measured once on the stacks (the wings, which the whole-pixel registration
+/// of the stack does not blur) and held fixed in the per-frame fits, where only the seeing
+/// (alpha) changes: fewer free parameters, smaller flux errors for close pairs, faster fits.
+pub fn choose_psf(companion: &Companion, fwhm_guess: f64, scale: f64, params: &MeasureParams) -> PsfChoice {
+    let mut betas: Vec<f64> = companion
+        .found
+        .iter()
+        .flatten()
+        .map(|p| p.beta)
+        .filter(|b| b.is_finite())
+        .collect();
+    betas.sort_by(|a, b| a.total_cmp(b));
+    let frame_model = match (params.psf_model, params.beta_from_stack, betas.get(betas.len() / 2)) {
+        (PsfModel::Moffat { beta: None }, true, Some(&b)) => PsfModel::Moffat { beta: Some(b) },
+        (m, _, _) => m,
+    };
+    let mut fwhms = companion.fwhms.clone();
+    fwhms.sort_by(|a, b| a.total_cmp(b));
+    let fwhm_px = if fwhms.is_empty() {
+        fwhm_guess
+    } else {
+        fwhms[fwhms.len() / 2]
+    };
+    let sep_px = companion.geometry.map(|(s, _)| s / scale).unwrap_or(f64::INFINITY);
+    PsfChoice {
+        fwhm_px,
+        frame_model,
+        use_psf: sep_px < params.psf_photometry_below_fwhm * fwhm_px,
+        sep_px,
+    }
+}
+
+/// The per-frame measurements of a sequence.
+#[derive(Debug, Clone, Default)]
+pub struct Fluxes {
+    /// Per component, per orientation, per dither.
+    pub dithers: Vec<Vec<Vec<DitherValue>>>,
+    /// Aperture radius of every measured frame, px.
+    pub apertures: Vec<f64>,
+    /// Fitted position of A in the o and e beams of every frame (refines the e-o offset).
+    pub fitted_a_oe: Vec<((f64, f64), (f64, f64))>,
+    /// Offset of B from A fitted in every frame: (POSANG, offset, weight).
+    pub pair_offsets: Vec<(f64, (f64, f64), f64)>,
+}
+
+/// Stage 5: photometry of both components in both beams of every frame.
+pub fn measure_fluxes(
+    orients: &[CalibratedOrientation],
+    primary: &Primary,
+    companion: &Companion,
+    choice: &PsfChoice,
+    eo: (f64, f64),
+    scale: f64,
+    params: &MeasureParams,
+    flags: &mut Vec<String>,
+) -> Fluxes {
+    let ncomp = if companion.geometry.is_some() { 2 } else { 1 };
+    let mut out = Fluxes {
+        dithers: vec![Vec::new(); ncomp],
+        ..Fluxes::default()
+    };
+    for (k, (o, cs)) in orients.iter().zip(&primary.centres).enumerate() {
+        let rel_a = companion.found[k].map(|p| p.a).unwrap_or((0.0, 0.0));
+        let off_b = companion
+            .geometry
+            .map(|(sep, pa)| companion_offset_px(sep, pa, o.posang_deg, scale));
+        for c in out.dithers.iter_mut() {
+            c.push(Vec::new());
+        }
+        for (f, c) in o.frames.iter().zip(cs) {
+            let Some(c) = c else {
+                flags.push(format!("primary not found in {}", f.path().display()));
+                for comp in out.dithers.iter_mut() {
+                    comp[k].push(DitherValue::missing("primary_not_found"));
+                }
+                continue;
+            };
+            let a_o = (c.0 + rel_a.0, c.1 + rel_a.1);
+            let mut stars = vec![a_o];
+            if let Some(ob) = off_b {
+                stars.push((a_o.0 + ob.0, a_o.1 + ob.1));
+            }
+            let mut beams: Vec<Vec<(BeamFlux, u8)>> = Vec::new();
+            let mut fitted_a: [Option<(f64, f64)>; 2] = [None, None];
+            let mut frame_fwhm = choice.fwhm_px;
+            for (bi, shift) in [(0.0, 0.0), eo].into_iter().enumerate() {
+                let b = measure_beam(f, &stars, shift, bi == 0, &mut frame_fwhm, choice, params);
+                fitted_a[bi] = b.fitted_a;
+                if let Some(d) = b.pair_offset {
+                    out.pair_offsets.push((o.posang_deg, d, 1.0));
+                }
+                if bi == 0 {
+                    out.apertures.push(b.r_ap);
+                }
+                beams.push(b.stars);
+            }
+            if let [Some(a), Some(b)] = fitted_a {
+                out.fitted_a_oe.push((a, b));
+            }
+            for (si, comp) in out.dithers.iter_mut().enumerate() {
+                comp[k].push(dither_value(beams[0][si], beams[1][si]));
+            }
+        }
+    }
+    out
+}
+
+/// One beam of one frame.
+struct BeamResult {
+    /// Per star: the flux and the mask bits inside its aperture.
+    stars: Vec<(BeamFlux, u8)>,
+    /// Fitted (or assumed) position of A, frame px.
+    fitted_a: Option<(f64, f64)>,
+    /// Offset of B from A when the two-star fit converged, px.
+    pair_offset: Option<(f64, f64)>,
+    /// Aperture radius, px.
+    r_ap: f64,
+}
+
+/// Fit and measure the stars at `stars` + `shift` in one beam of frame `f`. The o beam
+/// (`first`) sets `frame_fwhm` from its fit; both beams size their apertures with it.
+fn measure_beam(
+    f: &Frame,
+    stars: &[(f64, f64)],
+    shift: (f64, f64),
+    first: bool,
+    frame_fwhm: &mut f64,
+    choice: &PsfChoice,
+    params: &MeasureParams,
+) -> BeamResult {
+    let fwhm_med = choice.fwhm_px;
+    let pos: Vec<(f64, f64)> = stars.iter().map(|&(x, y)| (x + shift.0, y + shift.1)).collect();
+    let (cx, cy) = pos.iter().fold((0.0, 0.0), |a, p| {
+        (a.0 + p.0 / pos.len() as f64, a.1 + p.1 / pos.len() as f64)
+    });
+    let half = (params.annulus_fwhm.1 * fwhm_med + choice.sep_px.min(40.0) + 4.0).ceil() as usize;
+    let cut = Cutout::new(f, cx, cy, half);
+    let (x0, y0) = cut.origin;
+    let local: Vec<(f64, f64)> = pos.iter().map(|&(x, y)| (x - x0, y - y0)).collect();
+    let fitp = PsfFitParams {
+        fwhm_px: fwhm_med,
+        fit_radius_px: (1.5 * fwhm_med).max(3.0),
+        background: Some(0.0),
+        model: choice.frame_model,
+        ..PsfFitParams::default()
+    };
+    let fit = fit_psf(
+        cut.img.view(),
+        Some(cut.var.view()),
+        Some(cut.bad.view()),
+        &local,
+        &fitp,
+    )
+    .ok();
+    if first {
+        if let Some(ft) = &fit {
+            *frame_fwhm = ft.fwhm_x().clamp(0.5 * fwhm_med, 2.0 * fwhm_med);
+        }
+    }
+    let r_ap = (params.aperture_fwhm * *frame_fwhm).max(1.0);
+    // Centre apertures on the fitted positions (both beams are fitted freely, so the e-o
+    // offset found before only needs to be good to a pixel).
+    let local: Vec<(f64, f64)> = match &fit {
+        Some(ft) if ft.converged => ft.stars.iter().map(|st| (st.x, st.y)).collect(),
+        _ => local,
+    };
+    let fitted_a = local.first().map(|&(ax, ay)| (ax + x0, ay + y0));
+    let pair_offset = match (&fit, local.len()) {
+        (Some(ft), 2) if ft.converged => Some((local[1].0 - local[0].0, local[1].1 - local[0].1)),
+        _ => None,
+    };
+    let stars = (0..local.len())
+        .map(|si| measure_star(&cut, &local, si, fit.as_ref(), r_ap, choice, params))
+        .collect();
+    BeamResult {
+        stars,
+        fitted_a,
+        pair_offset,
+        r_ap,
+    }
+}
+
+/// Flux of star `si` (at `local[si]` in the cut-out): PSF-fit flux, or aperture photometry
+/// with the other stars' fitted models subtracted.
+fn measure_star(
+    cut: &Cutout,
+    local: &[(f64, f64)],
+    si: usize,
+    fit: Option<&PsfFit>,
+    r_ap: f64,
+    choice: &PsfChoice,
+    params: &MeasureParams,
+) -> (BeamFlux, u8) {
+    let fwhm_med = choice.fwhm_px;
+    let (x0, y0) = cut.origin;
+    let (lx, ly) = local[si];
+    let bits_in = bits_inside(&cut.bits, lx, ly, r_ap);
+    if choice.use_psf {
+        let flux = match fit {
+            Some(ft) => {
+                let st = ft.stars[si];
+                BeamFlux {
+                    flux: st.flux,
+                    var: st.flux_err.powi(2),
+                    xy: (st.x + x0, st.y + y0),
+                    phot_flags: 0,
+                }
+            }
+            None => BeamFlux {
+                xy: (lx + x0, ly + y0),
+                ..BeamFlux::missing()
+            },
+        };
+        return (flux, bits_in);
+    }
+    // Deblend: subtract the other stars' models, then measure.
+    let mut work = cut.img.clone();
+    if let Some(ft) = fit {
+        for other in 0..local.len() {
+            if other != si {
+                work = subtract_star(work.view(), ft, other);
+            }
+        }
+    }
+    let others: Vec<(f64, f64)> = local
+        .iter()
+        .enumerate()
+        .filter(|(j, _)| *j != si)
+        .map(|(_, p)| *p)
+        .collect();
+    let pp = PhotParams {
+        r_ap_px: r_ap,
+        annulus_px: Some((params.annulus_fwhm.0 * fwhm_med, params.annulus_fwhm.1 * fwhm_med)),
+        method: params.method,
+        companion_radius_px: r_ap,
+        annulus_exclude_radius_px: 2.0 * fwhm_med,
+        ..PhotParams::default()
+    };
+    let ph = measure(
+        work.view(),
+        Some(cut.var.view()),
+        Some(cut.bad.view()),
+        &pp,
+        lx,
+        ly,
+        &others,
+    );
+    let flux = BeamFlux {
+        flux: ph.flux,
+        var: ph.variance,
+        xy: (lx + x0, ly + y0),
+        phot_flags: ph.flags.0,
+    };
+    (flux, bits_in)
+}
+
+/// F = (o - e)/(o + e) of one dither from the o and e beam fluxes (with the mask bits in
+/// their apertures), and why it is not used, if so.
+fn dither_value((o_b, ob): (BeamFlux, u8), (e_b, eb): (BeamFlux, u8)) -> DitherValue {
+    let tot = o_b.flux + e_b.flux;
+    let fval = (o_b.flux - e_b.flux) / tot;
+    let sigma_f = 2.0 * ((e_b.flux.powi(2) * o_b.var) + (o_b.flux.powi(2) * e_b.var)).sqrt() / tot.powi(2);
+    let blocking = (ob | eb) & (mbits::BAD | mbits::COSMIC | mbits::SATURATED | mbits::OFF_STRIP);
+    let pf = Flags(o_b.phot_flags | e_b.phot_flags);
+    let rejected = if !(fval.is_finite() && sigma_f.is_finite() && sigma_f > 0.0 && tot > 0.0) {
+        Some("photometry failed".to_string())
+    } else if pf.contains(Flags::TRUNCATED) {
+        Some("truncated".to_string())
+    } else if blocking != 0 {
+        Some(bit_names(blocking).join(","))
+    } else {
+        None
+    };
+    DitherValue {
+        f: fval,
+        sigma_f,
+        o: o_b,
+        e: e_b,
+        rejected,
+    }
+}
+
+/// A square cut-out of a frame around the target.
+struct Cutout {
+    img: Array2<f32>,
+    /// Variance (1 where the frame has none).
+    var: Array2<f32>,
+    /// 0/1 unusable pixels.
+    bad: Array2<u8>,
+    /// The frame's mask bits.
+    bits: Array2<u8>,
+    /// Frame coordinates (x, y) of the cut-out's pixel (0, 0).
+    origin: (f64, f64),
+}
+
+impl Cutout {
+    fn new(frame: &Frame, cx: f64, cy: f64, h: usize) -> Cutout {
+        let (ny, nx) = frame.shape();
+        let x0 = (cx.round() as i64 - h as i64).clamp(0, nx as i64 - 1) as usize;
+        let y0 = (cy.round() as i64 - h as i64).clamp(0, ny as i64 - 1) as usize;
+        let x1 = (cx.round() as usize + h + 1).min(nx);
+        let y1 = (cy.round() as usize + h + 1).min(ny);
+        let sl = s![y0..y1, x0..x1];
+        let img = frame.data.slice(sl).to_owned();
+        let var = match &frame.variance {
+            Some(v) => v.slice(sl).to_owned(),
+            None => Array2::from_elem(img.raw_dim(), 1.0),
+        };
+        let bits = frame.mask.slice(sl).to_owned();
+        let bad = bits.mapv(|m| u8::from(m & UNUSABLE != 0));
+        Cutout {
+            img,
+            var,
+            bad,
+            bits,
+            origin: (x0 as f64, y0 as f64),
+        }
+    }
+}
+
+/// Mask bits inside radius r of (x, y) in a cut-out.
+fn bits_inside(bits: &Array2<u8>, x: f64, y: f64, r: f64) -> u8 {
+    let (ny, nx) = bits.dim();
+    let mut acc = 0u8;
+    let rr = r.ceil() as i64 + 1;
+    for j in (y.round() as i64 - rr).max(0)..=(y.round() as i64 + rr).min(ny as i64 - 1) {
+        for i in (x.round() as i64 - rr).max(0)..=(x.round() as i64 + rr).min(nx as i64 - 1) {
+            if ((i as f64 - x).powi(2) + (j as f64 - y).powi(2)).sqrt() <= r + 0.71 {
+                acc |= bits[[j as usize, i as usize]];
+            }
+        }
+    }
+    acc
+}
+
+/// Catalog flag names of blocking mask bits.
+fn bit_names(b: u8) -> Vec<String> {
+    let mut v = Vec::new();
+    if b & (mbits::BAD | mbits::OFF_STRIP) != 0 {
+        v.push("bad_pixels".to_string());
+    }
+    if b & mbits::COSMIC != 0 {
+        v.push("cosmic_ray".to_string());
+    }
+    if b & mbits::SATURATED != 0 {
+        v.push("saturated".to_string());
+    }
+    if b & mbits::NONLINEAR != 0 {
+        v.push("nonlinear".to_string());
+    }
+    v
+}

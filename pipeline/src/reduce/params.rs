@@ -1,0 +1,257 @@
+//! Settings of the reduction of a target: what the measurement and the calibration stages
+//! read from `[measure]`, `[sky]`, `[bad_pixels]` and the top level of a settings file.
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+use sofipol_calib::badpix::BadPixelOptions;
+use sofipol_calib::sky::SkyOptions;
+
+use crate::photometry::{Method, PsfModel};
+use crate::stokes::inversion::Debias;
+
+/// Settings of the measurement (defaults are the documented choices, docs/configuration.md).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MeasureParams {
+    /// Aperture radius in units of the frame's FWHM.
+    pub aperture_fwhm: f64,
+    /// Residual-background annulus (inner, outer) in units of the median FWHM.
+    pub annulus_fwhm: (f64, f64),
+    /// Aperture pixel-weighting method.
+    pub method: Method,
+    /// Pairs closer than this many FWHM are measured by PSF fitting instead of apertures.
+    pub psf_photometry_below_fwhm: f64,
+    /// Search radius for the primary around its nominal position, px.
+    pub primary_search_px: f64,
+    /// Nominal position of the primary's ordinary image at zero jitter offset (x, y) px;
+    /// None: detector centre in x, middle of the o-target strip in y.
+    pub nominal_xy_px: Option<(f64, f64)>,
+    /// Largest companion separation searched, arcsec.
+    pub companion_search_arcsec: f64,
+    /// Companion accepted when its stacked flux S/N exceeds this.
+    pub min_companion_snr: f64,
+    /// ... and the two-star fit of the stack beats the one-star fit with an F statistic
+    /// above this (3 and n-7 degrees of freedom; a lone star gives ~1).
+    pub min_companion_f: f64,
+    /// ... and lies at least this far from the primary, arcsec (the study's closest pair
+    /// is 0.5").
+    pub min_companion_sep_arcsec: f64,
+    /// Dither values further than this many sigma from the others are rejected.
+    pub clip_sigma: f64,
+    /// P / sigma_P threshold of the cut.
+    pub cut_snr: f64,
+    /// Debiasing estimator.
+    pub debias: Debias,
+    /// Known separation (arcsec) and PA (deg) of the companion, when a target list gives it.
+    pub companion_hint: Option<(f64, f64)>,
+    /// PSF model of the stack and per-frame fits (deblending and PSF-fit fluxes). Default: a
+    /// circular Moffat with beta fitted, `{ kind = "moffat" }`, since seeing-limited PSFs have
+    /// Moffat wings that a Gaussian misfits; `{ kind = "moffat", beta = 3.0 }` fixes beta,
+    /// `{ kind = "gaussian" }` restores the Gaussian fit.
+    pub psf_model: PsfModel,
+    /// With a Moffat model of free beta: measure beta on the registered stacks and hold it
+    /// fixed in the per-frame fits.
+    pub beta_from_stack: bool,
+}
+
+impl Default for MeasureParams {
+    fn default() -> Self {
+        MeasureParams {
+            aperture_fwhm: 1.0,
+            annulus_fwhm: (4.0, 6.0),
+            method: Method::Exact,
+            psf_photometry_below_fwhm: 2.0,
+            primary_search_px: 60.0,
+            nominal_xy_px: None,
+            companion_search_arcsec: 6.0,
+            min_companion_snr: 5.0,
+            min_companion_f: 50.0,
+            min_companion_sep_arcsec: 0.3,
+            clip_sigma: 4.0,
+            cut_snr: 3.0,
+            debias: Debias::WardleKronberg,
+            companion_hint: None,
+            psf_model: PsfModel::Moffat { beta: None },
+            beta_from_stack: true,
+        }
+    }
+}
+
+/// Settings of a target reduction.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TargetParams {
+    /// Measurement settings.
+    pub measure: MeasureParams,
+    /// Sky subtraction (default: multiplicative scaling, cosmic-ray flagging on).
+    pub sky: SkyOptions,
+    /// Bad-pixel detection.
+    pub bad_pixels: BadPixelOptions,
+    /// A calibration bad-pixel mask (nonzero = bad), combined with the detected one.
+    pub calib_mask: Option<PathBuf>,
+    /// Do not detect bad pixels from the data (use only the calibration mask).
+    pub no_detect_bad_pixels: bool,
+    /// Write sky-subtracted FITS frames (data, VARIANCE, MASK) into this directory.
+    pub save_intermediate: Option<PathBuf>,
+    /// Sky-subtract whole frames. By default only the target strips (o-target and
+    /// e-target rows, all the measurement uses) are sky-subtracted, about a third of the
+    /// detector; whole frames are always done when intermediates are saved.
+    pub full_frame_sky: bool,
+}
+
+impl Default for TargetParams {
+    fn default() -> Self {
+        TargetParams {
+            measure: MeasureParams::default(),
+            sky: SkyOptions::recommended(),
+            bad_pixels: BadPixelOptions::default(),
+            calib_mask: None,
+            no_detect_bad_pixels: false,
+            save_intermediate: None,
+            full_frame_sky: false,
+        }
+    }
+}
+
+/// A setting outside its allowed range: names the key, the value and what is allowed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("setting {key} = {value}: must be {allowed}")]
+pub struct SettingError {
+    /// Key as written in the settings file (`section.name`).
+    pub key: &'static str,
+    /// The value found.
+    pub value: String,
+    /// The allowed range.
+    pub allowed: &'static str,
+}
+
+/// `Ok` when `ok`, else the error naming `key`, `value` and `allowed`.
+fn check(ok: bool, key: &'static str, value: impl std::fmt::Debug, allowed: &'static str) -> Result<(), SettingError> {
+    if ok {
+        Ok(())
+    } else {
+        Err(SettingError {
+            key,
+            value: format!("{value:?}"),
+            allowed,
+        })
+    }
+}
+
+impl TargetParams {
+    /// Check every setting once, when the settings are read (file, then command-line
+    /// overrides). The one place where allowed ranges are written down.
+    pub fn validate(&self) -> Result<(), SettingError> {
+        self.measure.validate()
+    }
+}
+
+impl MeasureParams {
+    /// Check the measurement settings (see [`TargetParams::validate`]).
+    pub fn validate(&self) -> Result<(), SettingError> {
+        let pos = |v: f64| v.is_finite() && v > 0.0;
+        let nonneg = |v: f64| v.is_finite() && v >= 0.0;
+        check(
+            pos(self.aperture_fwhm),
+            "measure.aperture_fwhm",
+            self.aperture_fwhm,
+            "> 0",
+        )?;
+        let (a, b) = self.annulus_fwhm;
+        check(
+            pos(a) && pos(b) && a < b,
+            "measure.annulus_fwhm",
+            self.annulus_fwhm,
+            "(inner, outer) with 0 < inner < outer",
+        )?;
+        if let Method::Subpixel(n) = self.method {
+            check(
+                n >= 1,
+                "measure.method",
+                self.method,
+                "exact, center, or subpixel with N >= 1",
+            )?;
+        }
+        check(
+            nonneg(self.psf_photometry_below_fwhm),
+            "measure.psf_photometry_below_fwhm",
+            self.psf_photometry_below_fwhm,
+            ">= 0",
+        )?;
+        check(
+            pos(self.primary_search_px),
+            "measure.primary_search_px",
+            self.primary_search_px,
+            "> 0",
+        )?;
+        if let Some((x, y)) = self.nominal_xy_px {
+            check(
+                x.is_finite() && y.is_finite(),
+                "measure.nominal_xy_px",
+                (x, y),
+                "finite (x, y)",
+            )?;
+        }
+        check(
+            pos(self.companion_search_arcsec),
+            "measure.companion_search_arcsec",
+            self.companion_search_arcsec,
+            "> 0",
+        )?;
+        check(
+            nonneg(self.min_companion_snr),
+            "measure.min_companion_snr",
+            self.min_companion_snr,
+            ">= 0",
+        )?;
+        check(
+            nonneg(self.min_companion_f),
+            "measure.min_companion_f",
+            self.min_companion_f,
+            ">= 0",
+        )?;
+        check(
+            nonneg(self.min_companion_sep_arcsec),
+            "measure.min_companion_sep_arcsec",
+            self.min_companion_sep_arcsec,
+            ">= 0",
+        )?;
+        check(pos(self.clip_sigma), "measure.clip_sigma", self.clip_sigma, "> 0")?;
+        check(nonneg(self.cut_snr), "measure.cut_snr", self.cut_snr, ">= 0")?;
+        if let Some((sep, pa)) = self.companion_hint {
+            check(
+                pos(sep) && pa.is_finite(),
+                "measure.companion_hint",
+                (sep, pa),
+                "(separation > 0, finite PA)",
+            )?;
+        }
+        if let PsfModel::Moffat { beta: Some(b) } = self.psf_model {
+            check(b.is_finite() && b > 1.0, "measure.psf_model.beta", b, "> 1")?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid_and_errors_name_key_value_and_range() {
+        assert_eq!(TargetParams::default().validate(), Ok(()));
+        let mut p = TargetParams::default();
+        p.measure.annulus_fwhm = (6.0, 4.0);
+        let e = p.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("measure.annulus_fwhm") && e.contains("6.0") && e.contains("inner < outer"),
+            "{e}"
+        );
+        let mut p = TargetParams::default();
+        p.measure.aperture_fwhm = f64::NAN;
+        assert_eq!(p.validate().unwrap_err().key, "measure.aperture_fwhm");
+        let mut p = TargetParams::default();
+        p.measure.psf_model = PsfModel::Moffat { beta: Some(1.0) };
+        assert_eq!(p.validate().unwrap_err().key, "measure.psf_model.beta");
+    }
+}

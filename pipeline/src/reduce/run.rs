@@ -1,0 +1,349 @@
+//! One target sequence from raw files to a catalog entry: read -> bad pixels -> sky ->
+//! measure ([`super::measure_sequence`]) -> Stokes ([`super::target_entry`]).
+use std::path::Path;
+
+use ndarray::{s, Array2};
+use serde::Serialize;
+use sofipol_calib::{badpix, fits, sky, Frame, Profile};
+
+use super::{measure_sequence, target_entry, CalibratedOrientation, TargetParams};
+use crate::catalog::{Failure, Status, Target};
+use crate::sequence::Sequence;
+
+/// Timings of the stages of one target, seconds.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct StageTimes {
+    /// Reading FITS.
+    pub read: f64,
+    /// Bad-pixel detection.
+    pub bad_pixels: f64,
+    /// Sky subtraction.
+    pub sky: f64,
+    /// Source finding, photometry and Stokes.
+    pub measure: f64,
+    /// Writing intermediates.
+    pub write: f64,
+}
+
+/// Everything a target reduction produced.
+pub struct TargetOutcome {
+    /// The catalog entry.
+    pub target: Target,
+    /// Files that could not be used.
+    pub failures: Vec<Failure>,
+    /// Stage timings.
+    pub times: StageTimes,
+    /// Calibrated orientations (kept only when asked, for plots).
+    pub calibrated: Option<Vec<CalibratedOrientation>>,
+    /// Intermediate measurements (for plots).
+    pub measured: Option<super::Measured>,
+}
+
+fn failed(seq: &Sequence, msg: String, failures: Vec<Failure>, times: StageTimes) -> TargetOutcome {
+    let mut extra = serde_json::Map::new();
+    extra.insert("sequence".into(), serde_json::json!(seq.id));
+    extra.insert("input_files".into(), serde_json::json!(seq.files()));
+    TargetOutcome {
+        target: Target {
+            object: seq.object.clone(),
+            status: Status::Failed,
+            error: Some(msg),
+            components: vec![],
+            delta_gamma_deg: None,
+            extra,
+        },
+        failures,
+        times,
+        calibrated: None,
+        measured: None,
+    }
+}
+
+/// Reduce one sequence. Never panics on bad input: problems become failures, flags or a
+/// failed target. `night_mask`: the detector's defects already detected for the night
+/// (used instead of per-target detection), full-frame.
+pub fn reduce_sequence(
+    seq: &Sequence,
+    profile: &Profile,
+    params: &TargetParams,
+    night_mask: Option<&Array2<u8>>,
+    keep_frames: bool,
+) -> TargetOutcome {
+    let mut failures = Vec::new();
+    let t = std::time::Instant::now();
+    // Read every frame; a file that cannot be read is a failure, the rest goes on.
+    let mut orients: Vec<LoadedOrientation> = Vec::new();
+    // The sequence as read: problems (missing dithers...) are judged on the usable frames.
+    let mut readable = seq.clone();
+    for (o, ro) in seq.orientations.iter().zip(readable.orientations.iter_mut()) {
+        let mut frames = Vec::new();
+        let mut offs = Vec::new();
+        ro.exposures.clear();
+        for e in &o.exposures {
+            match fits::read_frame(&e.path) {
+                Ok(f) => {
+                    frames.push(f);
+                    offs.push(e.offset_px);
+                    ro.exposures.push(e.clone());
+                }
+                Err(err) => failures.push(Failure {
+                    file: e.path.display().to_string(),
+                    error: err.to_string(),
+                }),
+            }
+        }
+        orients.push((o.posang_deg, o.analyzer_deg, frames, offs));
+    }
+    let read = t.elapsed().as_secs_f64();
+    let mut out = reduce_loaded(&readable, orients, profile, params, night_mask, keep_frames);
+    out.target
+        .extra
+        .insert("input_files".into(), serde_json::json!(seq.files()));
+    out.times.read = read;
+    failures.extend(out.failures);
+    out.failures = failures;
+    out
+}
+
+/// Frames of one orientation already in memory: (POSANG, analyzer angle, frames, header
+/// jitter offsets).
+pub type LoadedOrientation = (f64, f64, Vec<Frame>, Vec<[f64; 2]>);
+
+/// [`reduce_sequence`] on frames already in memory (`seq` gives the names and files).
+pub fn reduce_loaded(
+    seq: &Sequence,
+    orients: Vec<LoadedOrientation>,
+    profile: &Profile,
+    params: &TargetParams,
+    night_mask: Option<&Array2<u8>>,
+    keep_frames: bool,
+) -> TargetOutcome {
+    // Everything the measurement needs lies in the o- and e-target strips: unless whole
+    // frames are wanted (intermediates for DS9), work on those rows only (a third of the
+    // detector), with the profile's geometry shifted to match.
+    let g = &profile.geometry;
+    let (r0, r1) = (g.o_target[0].min(g.e_target[0]), g.o_target[1].max(g.e_target[1]));
+    let crop = (!params.full_frame_sky && params.save_intermediate.is_none() && r1 > r0).then_some((r0, r1));
+    let (orients, cropped_profile) = match crop {
+        Some((r0, r1)) => (crop_rows(orients, r0, r1), Some(profile.cropped_rows(r0, r1))),
+        None => (orients, None),
+    };
+    let profile = cropped_profile.as_ref().unwrap_or(profile);
+    let mut times = StageTimes::default();
+    let failures = Vec::new();
+    let mut flags: Vec<String> = seq.problems();
+
+    // Bad pixels: calibration mask and/or detection on all frames of the sequence.
+    let t = std::time::Instant::now();
+    let all: Vec<&Frame> = orients.iter().flat_map(|o| o.2.iter()).collect();
+    if all.is_empty() {
+        return failed(seq, "no readable frame".into(), failures, times);
+    }
+    let mask = match bad_pixel_mask(&all, crop, night_mask, profile, params, &mut flags) {
+        Ok(m) => m,
+        Err(e) => return failed(seq, e, failures, times),
+    };
+    times.bad_pixels = t.elapsed().as_secs_f64();
+
+    let t = std::time::Instant::now();
+    let cal = subtract_sky(orients, mask.as_ref(), profile, params, &mut flags);
+    times.sky = t.elapsed().as_secs_f64();
+
+    if let Some(dir) = &params.save_intermediate {
+        let t = std::time::Instant::now();
+        save_intermediates(&cal, dir, &mut flags);
+        times.write = t.elapsed().as_secs_f64();
+    }
+
+    if distinct_analyzer_angles(&cal) < 2 {
+        return failed(
+            seq,
+            format!(
+                "{} usable orientation(s): q and u need at least 2 analyzer angles",
+                cal.len()
+            ),
+            failures,
+            times,
+        );
+    }
+
+    let t = std::time::Instant::now();
+    let measured = match measure_sequence(&cal, profile, &params.measure) {
+        Ok(m) => m,
+        Err(e) => return failed(seq, e.0, failures, times),
+    };
+    let mut target = target_entry(&seq.object, &cal, &measured, &params.measure);
+    times.measure = t.elapsed().as_secs_f64();
+    flags.extend(measured.flags.iter().cloned());
+    if !flags.is_empty() && target.status == Status::Ok && !seq.problems().is_empty() {
+        target.status = Status::Partial;
+        target.error = seq.problems().first().cloned();
+    }
+    target.extra.insert("sequence".into(), serde_json::json!(seq.id));
+    target
+        .extra
+        .insert("tpl_start".into(), serde_json::json!(seq.tpl_start));
+    target.extra.insert("filter".into(), serde_json::json!(seq.filter));
+    target
+        .extra
+        .insert("input_files".into(), serde_json::json!(seq.files()));
+    target.extra.insert("flags".into(), serde_json::json!(flags));
+    if let Some(m) = &mask {
+        target.extra.insert(
+            "bad_pixels_masked".into(),
+            serde_json::json!(m.iter().filter(|&&v| v != 0).count()),
+        );
+    }
+    TargetOutcome {
+        target,
+        failures,
+        times,
+        calibrated: if keep_frames { Some(cal) } else { None },
+        measured: Some(measured),
+    }
+}
+
+/// Rows [r0, r1) of every frame at least r1 rows high.
+fn crop_rows(orients: Vec<LoadedOrientation>, r0: usize, r1: usize) -> Vec<LoadedOrientation> {
+    orients
+        .into_iter()
+        .map(|(pa, phi, frames, offs)| {
+            let frames = frames
+                .iter()
+                .map(|f| {
+                    if f.shape().0 >= r1 {
+                        f.crop_rows(r0, r1)
+                    } else {
+                        f.clone()
+                    }
+                })
+                .collect();
+            (pa, phi, frames, offs)
+        })
+        .collect()
+}
+
+/// A full-frame mask cut to the rows `crop` (when it has them).
+fn crop_mask(m: &Array2<u8>, crop: Option<(usize, usize)>) -> Array2<u8> {
+    match crop {
+        Some((r0, r1)) if m.dim().0 >= r1 => m.slice(s![r0..r1, ..]).to_owned(),
+        _ => m.clone(),
+    }
+}
+
+/// The bad-pixel mask of a sequence: the calibration mask (settings), combined with the
+/// night's mask when given, else with defects detected on the sequence's own frames
+/// (at least 3). An error fails the target; a failed detection is only flagged.
+fn bad_pixel_mask(
+    all: &[&Frame],
+    crop: Option<(usize, usize)>,
+    night_mask: Option<&Array2<u8>>,
+    profile: &Profile,
+    params: &TargetParams,
+    flags: &mut Vec<String>,
+) -> Result<Option<Array2<u8>>, String> {
+    let mut mask = None;
+    if let Some(p) = &params.calib_mask {
+        let m = badpix::load_mask(p).map_err(|e| format!("calibration mask: {e}"))?;
+        mask = Some(crop_mask(&m, crop));
+    }
+    if let Some(nm) = night_mask {
+        let nm = crop_mask(nm, crop);
+        mask = Some(match mask {
+            Some(c) => badpix::combine_masks(&c, &nm).map_err(|e| format!("night bad-pixel mask: {e}"))?,
+            None => nm,
+        });
+    } else if !params.no_detect_bad_pixels && all.len() >= 3 {
+        match badpix::detect_bad_pixels(all, profile, &params.bad_pixels) {
+            Ok((m, _report)) => {
+                mask = Some(match mask {
+                    Some(c) => badpix::combine_masks(&c, &m).map_err(|e| format!("calibration mask: {e}"))?,
+                    None => m,
+                })
+            }
+            Err(e) => flags.push(format!("bad-pixel detection failed: {e}")),
+        }
+    }
+    Ok(mask)
+}
+
+/// Sky subtraction, orientation by orientation (the mask applied first). An orientation
+/// with fewer than 2 readable dithers, or whose sky fails, is dropped and flagged.
+fn subtract_sky(
+    orients: Vec<LoadedOrientation>,
+    mask: Option<&Array2<u8>>,
+    profile: &Profile,
+    params: &TargetParams,
+    flags: &mut Vec<String>,
+) -> Vec<CalibratedOrientation> {
+    let mut cal = Vec::new();
+    for (posang, phi, frames, offs) in orients {
+        if frames.len() < 2 {
+            flags.push(format!(
+                "orientation POSANG {posang} dropped: {} readable dither(s), need 2 for the sky",
+                frames.len()
+            ));
+            continue;
+        }
+        let frames: Vec<Frame> = match mask {
+            Some(m) => match frames
+                .iter()
+                .map(|f| badpix::apply_mask(f, m))
+                .collect::<Result<Vec<_>, _>>()
+            {
+                Ok(v) => v,
+                Err(e) => {
+                    flags.push(format!("orientation POSANG {posang} dropped: {e}"));
+                    continue;
+                }
+            },
+            None => frames,
+        };
+        match sky::sky_subtract(&frames, profile, &params.sky) {
+            Ok(s) => cal.push(CalibratedOrientation {
+                posang_deg: posang,
+                analyzer_deg: phi,
+                frames: s,
+                offsets: offs,
+            }),
+            Err(e) => flags.push(format!("orientation POSANG {posang} dropped: {e}")),
+        }
+    }
+    cal
+}
+
+/// Write the sky-subtracted frames (data, VARIANCE, MASK) into `dir` as `<name>_skysub.fits`.
+fn save_intermediates(cal: &[CalibratedOrientation], dir: &Path, flags: &mut Vec<String>) {
+    let opts = fits::WriteOptions {
+        with_variance_and_mask: true,
+        ..Default::default()
+    };
+    if let Err(e) = std::fs::create_dir_all(dir) {
+        flags.push(format!("could not create {}: {e}", dir.display()));
+    }
+    for o in cal {
+        for f in &o.frames {
+            let name = f.path().file_name().and_then(|n| n.to_str()).unwrap_or("frame.fits");
+            let base = name
+                .trim_end_matches(".gz")
+                .trim_end_matches(".fz")
+                .trim_end_matches(".fits")
+                .trim_end_matches(".fit");
+            let out = dir.join(format!("{base}_skysub.fits"));
+            if let Err(e) = fits::write_frame(&out, f, &opts) {
+                flags.push(format!("could not write intermediate {}: {e}", out.display()));
+            }
+        }
+    }
+}
+
+/// Number of distinct analyzer angles (mod 180 deg, to 0.01 deg).
+fn distinct_analyzer_angles(cal: &[CalibratedOrientation]) -> usize {
+    let mut v: Vec<i64> = cal
+        .iter()
+        .map(|o| ((o.analyzer_deg.rem_euclid(180.0)) * 100.0).round() as i64)
+        .collect();
+    v.sort();
+    v.dedup();
+    v.len()
+}

@@ -1,0 +1,205 @@
+//! The primary: its position in every frame (the brightest peak near the header jitter
+//! offset, refined by a windowed centroid), and the unusable-pixel masks the later stages use.
+use ndarray::{Array2, ArrayView2};
+use sofipol_calib::{Frame, Profile};
+
+use super::{CalibratedOrientation, MeasureError, MeasureParams};
+use crate::photometry::{centroid, CentroidParams};
+
+/// Brightest point of a 3x3 box-smoothed image within `radius` of (x0, y0), restricted to
+/// rows [y_lo, y_hi) and unmasked pixels. Returns (x, y, smoothed value).
+pub fn brightest_peak(
+    img: ArrayView2<f32>,
+    mask: ArrayView2<u8>,
+    x0: f64,
+    y0: f64,
+    radius: f64,
+    rows: [usize; 2],
+) -> Option<(f64, f64, f64)> {
+    let (ny, nx) = img.dim();
+    let r = radius.ceil() as i64;
+    let mut best: Option<(f64, f64, f64)> = None;
+    for y in (y0.round() as i64 - r).max(rows[0] as i64 + 1)
+        ..=(y0.round() as i64 + r).min(rows[1] as i64 - 2).min(ny as i64 - 2)
+    {
+        for x in (x0.round() as i64 - r).max(1)..=(x0.round() as i64 + r).min(nx as i64 - 2) {
+            if ((x as f64 - x0).powi(2) + (y as f64 - y0).powi(2)) > radius * radius {
+                continue;
+            }
+            let (yu, xu) = (y as usize, x as usize);
+            let mut sum = 0.0;
+            let mut n = 0;
+            for j in yu - 1..=yu + 1 {
+                for i in xu - 1..=xu + 1 {
+                    if mask[[j, i]] == 0 {
+                        sum += img[[j, i]] as f64;
+                        n += 1;
+                    }
+                }
+            }
+            if n < 5 {
+                continue;
+            }
+            let v = sum / n as f64;
+            if best.is_none_or(|b| v > b.2) {
+                best = Some((x as f64, y as f64, v));
+            }
+        }
+    }
+    best
+}
+
+/// Mask bits that make a pixel unusable for centroids and fits.
+pub const UNUSABLE: u8 = sofipol_calib::frame::mask::BAD
+    | sofipol_calib::frame::mask::COSMIC
+    | sofipol_calib::frame::mask::SATURATED
+    | sofipol_calib::frame::mask::OFF_STRIP;
+
+/// A 0/1 view of the unusable pixels.
+pub fn unusable(frame: &Frame) -> Array2<u8> {
+    frame.mask.mapv(|m| u8::from(m & UNUSABLE != 0))
+}
+
+/// Refine a position by a windowed centroid; None when it fails.
+pub fn refine(
+    img: ArrayView2<f32>,
+    mask: ArrayView2<u8>,
+    x: f64,
+    y: f64,
+    fwhm_px: f64,
+    max_shift_px: f64,
+) -> Option<(f64, f64)> {
+    let p = CentroidParams {
+        fwhm_px,
+        max_shift_px,
+        background: Some(0.0),
+        ..CentroidParams::default()
+    };
+    centroid(img, Some(mask), x, y, &p).map(|c| (c.x, c.y))
+}
+
+/// Where the primary (the blend centroid of the pair) is in every frame.
+#[derive(Debug, Clone)]
+pub struct Primary {
+    /// Per orientation, per frame: the centre, px (None: not found in that frame).
+    pub centres: Vec<Vec<Option<(f64, f64)>>>,
+    /// FWHM assumed before any fit (0.8" seeing), px.
+    pub fwhm_guess: f64,
+}
+
+impl Primary {
+    /// The frames of orientation `k` where the primary was found, with their unusable-pixel
+    /// masks, and the centres.
+    pub fn found_in<'a>(
+        &self,
+        k: usize,
+        orient: &'a CalibratedOrientation,
+        masks: &'a [Array2<u8>],
+    ) -> FramesWithCentres<'a> {
+        let (mut fr, mut cc) = (Vec::new(), Vec::new());
+        for ((f, m), c) in orient.frames.iter().zip(masks).zip(&self.centres[k]) {
+            if let Some(c) = c {
+                fr.push((&f.data, m));
+                cc.push(*c);
+            }
+        }
+        (fr, cc)
+    }
+}
+
+/// Frames (data, unusable mask) and the primary's centre in each.
+pub type FramesWithCentres<'a> = (Vec<(&'a Array2<f32>, &'a Array2<u8>)>, Vec<(f64, f64)>);
+
+/// Unusable-pixel masks, once per frame (centring, e-o correlation and stacks use them).
+pub fn unusable_masks(orients: &[CalibratedOrientation]) -> Vec<Vec<Array2<u8>>> {
+    orients
+        .iter()
+        .map(|o| o.frames.iter().map(unusable).collect())
+        .collect()
+}
+
+/// Stage 1: the primary in every frame.
+///
+/// Within an orientation every frame is registered on the same star: the first frame's
+/// centre (brightest peak near the header position) carried by the header offsets and
+/// refined by a centroid. Picking the brightest peak in every frame would jump between the
+/// components of a near-equal pair.
+pub fn locate_primary(
+    orients: &[CalibratedOrientation],
+    masks: &[Vec<Array2<u8>>],
+    profile: &Profile,
+    params: &MeasureParams,
+) -> Result<Primary, MeasureError> {
+    let g = &profile.geometry;
+    let orow = g.o_target;
+    let first = orients
+        .first()
+        .and_then(|o| o.frames.first())
+        .ok_or_else(|| MeasureError::new("no frames"))?;
+    let (_, nx) = first.shape();
+    let nominal = params
+        .nominal_xy_px
+        .unwrap_or((nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5));
+    let o0 = &orients[0];
+    let m0 = &masks[0][0];
+    let (px, py, _) = brightest_peak(
+        o0.frames[0].data.view(),
+        m0.view(),
+        nominal.0 + o0.offsets[0][0],
+        nominal.1 + o0.offsets[0][1],
+        params.primary_search_px,
+        orow,
+    )
+    .ok_or_else(|| {
+        MeasureError::new(format!(
+            "no source found within {} px of the nominal target position",
+            params.primary_search_px
+        ))
+    })?;
+    let fwhm_guess = 0.8 / g.pixscale_arcsec;
+    let c0 = refine(o0.frames[0].data.view(), m0.view(), px, py, fwhm_guess, 4.0).unwrap_or((px, py));
+    let anchor = (c0.0 - o0.offsets[0][0], c0.1 - o0.offsets[0][1]);
+    let centres = orients
+        .iter()
+        .zip(masks)
+        .map(|(o, ms)| centres_in_orientation(o, ms, anchor, fwhm_guess, orow))
+        .collect();
+    Ok(Primary { centres, fwhm_guess })
+}
+
+/// The primary in the frames of one orientation, starting from `anchor` (its position at
+/// zero jitter offset).
+fn centres_in_orientation(
+    o: &CalibratedOrientation,
+    ms: &[Array2<u8>],
+    anchor: (f64, f64),
+    fwhm_guess: f64,
+    orow: [usize; 2],
+) -> Vec<Option<(f64, f64)>> {
+    let mut cs: Vec<Option<(f64, f64)>> = Vec::new();
+    let mut first: Option<((f64, f64), [f64; 2])> = None;
+    for ((f, off), m) in o.frames.iter().zip(&o.offsets).zip(ms) {
+        let c = match first {
+            Some((c1, off1)) => {
+                let guess = (c1.0 + off[0] - off1[0], c1.1 + off[1] - off1[1]);
+                refine(f.data.view(), m.view(), guess.0, guess.1, fwhm_guess, 3.0).or_else(|| {
+                    // A defect or cosmic ray near the guess: restart from the brightest
+                    // peak within the pointing tolerance.
+                    brightest_peak(f.data.view(), m.view(), guess.0, guess.1, 3.0, orow)
+                        .and_then(|(x, y, _)| refine(f.data.view(), m.view(), x, y, fwhm_guess, 3.0))
+                })
+            }
+            None => {
+                let guess = (anchor.0 + off[0], anchor.1 + off[1]);
+                let peak = brightest_peak(f.data.view(), m.view(), guess.0, guess.1, 8.0, orow);
+                let c = peak.and_then(|(x, y, _)| refine(f.data.view(), m.view(), x, y, fwhm_guess, 4.0));
+                if let Some(c) = c {
+                    first = Some((c, *off));
+                }
+                c
+            }
+        };
+        cs.push(c);
+    }
+    cs
+}
