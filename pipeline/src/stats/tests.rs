@@ -888,3 +888,26 @@ fn histogram_cdf_is_consistent_with_counts() {
     assert!((h.cdf(5.0) - 0.4).abs() < 1e-12);
     assert!((h.cdf(90.0) - 1.0).abs() < 1e-12);
 }
+
+#[test]
+fn figure_counts_use_superscripts_and_mc_mean_comes_from_the_pairs() {
+    use super::figures::format_count;
+    assert_eq!(format_count(10_000_000), "10⁷");
+    assert_eq!(format_count(2_000_000), "2×10⁶");
+    assert_eq!(format_count(123_456), "123456");
+    assert_eq!(format_count(900), "900");
+    // Aligned pairs: every Delta gamma is exactly 0, so the mean is 0, not half a bin.
+    let out = simulate(&McConfig::geometry(AlignmentModel::Aligned, 100_000, 3)).unwrap();
+    assert_eq!(out.mean_delta_gamma_deg, 0.0);
+    // Random pairs: the mean of the samples, and 45 deg within 4 standard errors.
+    let cfg = McConfig::geometry(AlignmentModel::Random, 200_000, 4);
+    let (s, o) = simulate_samples(&cfg).unwrap();
+    let m = s.iter().sum::<f64>() / s.len() as f64;
+    assert!((o.mean_delta_gamma_deg - m).abs() < 1e-9);
+    let h = simulate(&cfg).unwrap();
+    assert!((h.mean_delta_gamma_deg - m).abs() < 1e-9);
+    assert!(
+        (m - 45.0).abs() < 4.0 * 90.0 / 12f64.sqrt() / (s.len() as f64).sqrt(),
+        "{m}"
+    );
+}
