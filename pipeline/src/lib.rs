@@ -18,6 +18,7 @@
 
 pub mod accuracy;
 pub mod catalog;
+pub mod export;
 pub mod io;
 pub mod night;
 pub mod numeric;
