@@ -43,8 +43,16 @@ fn astropy_written_files_read_back_exactly() {
         // Printed by astropy when it wrote the files (make_fits.py): sum and two pixels.
         assert_eq!(data.sum(), 4_569_857.0, "{name}: pixel sum");
         assert_eq!(data[[28, 25]], 8079.0, "{name}: peak pixel [y=28, x=25]");
-        assert_eq!(data[[0, 63]], 1032.0, "{name}: corner pixel [y=0, x=63] (row 0 = FITS row 1)");
-        let worst = data.iter().zip(stated.iter()).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+        assert_eq!(
+            data[[0, 63]],
+            1032.0,
+            "{name}: corner pixel [y=0, x=63] (row 0 = FITS row 1)"
+        );
+        let worst = data
+            .iter()
+            .zip(stated.iter())
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
         assert_eq!(worst, 0.0, "{name}: differs from the stated content");
 
         let h = &frame.header;
@@ -57,11 +65,17 @@ fn astropy_written_files_read_back_exactly() {
         assert_eq!(h.get_f64("ESO SEQ CUMOFFSETX").unwrap(), 86.8, "{name}");
         // Structural and compression keywords are not returned as science keywords.
         for k in ["BITPIX", "NAXIS1", "BZERO", "ZCMPTYPE", "ZBITPIX"] {
-            assert!(h.get_str(k).is_err() && h.get_f64(k).is_err(), "{name}: {k} leaked into the header");
+            assert!(
+                h.get_str(k).is_err() && h.get_f64(k).is_err(),
+                "{name}: {k} leaked into the header"
+            );
         }
         // A foreign HISTORY card becomes a record of stage "file".
         assert!(
-            frame.history.iter().any(|r| r.stage == "file" && r.detail.contains("make_fits.py")),
+            frame
+                .history
+                .iter()
+                .any(|r| r.stage == "file" && r.detail.contains("make_fits.py")),
             "{name}: {:?}",
             frame.history
         );
