@@ -224,14 +224,28 @@ fn score(target: &Target, tt: &TargetTruth, ratio: f64) -> (Vec<f64>, Vec<f64>, 
     (pulls, sigmas, missing, swapped && ratio < RELABEL_RATIO)
 }
 
-fn one_target(cfg: &WorldConfig, params: &TargetParams, bin: usize, t: usize, lo: f64, hi: f64) -> WorldTarget {
+/// Draw target `t` of bin `bin` (separations `lo`..`hi`) and write its frames and
+/// truth.json into `dir` (e.g. to look at one case with `sofipol target`).
+pub fn write_target(
+    cfg: &WorldConfig,
+    bin: usize,
+    t: usize,
+    lo: f64,
+    hi: f64,
+    dir: &Path,
+) -> (TargetTruth, Conditions, f64) {
     let (scene, cond, ratio) = draw_scene(cfg, bin, t, lo, hi);
     let mut sim_profile = Profile::sofi();
     sim_profile.geometry.eo_offset_px = cond.eo_offset_px;
     let sim = Simulator::new(scene, sim_profile).expect("valid scene");
+    let truth = sim.write_to_dir(dir, &|_| {}).expect("frames written");
+    (truth.targets[0].clone(), cond, ratio)
+}
+
+fn one_target(cfg: &WorldConfig, params: &TargetParams, bin: usize, t: usize, lo: f64, hi: f64) -> WorldTarget {
     let dir = cfg.work_dir.join(format!("w{bin}_{t}"));
-    let truth = sim.write_to_dir(&dir, &|_| {}).expect("frames written");
-    let tt = &truth.targets[0];
+    let (tt, cond, ratio) = write_target(cfg, bin, t, lo, hi, &dir);
+    let tt = &tt;
     // Reduce as `sofipol night` would: scan, classify, group, reduce from the files, with the
     // instrument profile's defaults (not the drawn e-o offset).
     let profile = Profile::sofi();
