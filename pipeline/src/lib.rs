@@ -30,3 +30,4 @@ pub mod sequence;
 pub mod sim;
 pub mod stats;
 pub mod stokes;
+pub mod world;
