@@ -144,3 +144,76 @@ fn closed_stdout_and_stderr_do_not_panic_and_the_catalog_is_written() {
     assert_eq!(st.code(), Some(0), "{st:?}");
     assert_eq!(catalog(&out2)["targets"].as_array().unwrap().len(), 1);
 }
+
+fn components(t: &Value) -> &Value {
+    &t["components"]
+}
+
+#[cfg(unix)]
+#[test]
+fn the_same_frame_reached_twice_is_used_once_and_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let clean = clean_catalog(dir.path(), &n);
+    // A backup copy in a subfolder, a symlink alias, and the night given three times
+    // (relative, ./relative, absolute).
+    std::fs::create_dir(n.join("backup")).unwrap();
+    std::fs::copy(n.join("SOFI_hx_Beta_02.fits"), n.join("backup/SOFI_hx_Beta_02.fits")).unwrap();
+    std::os::unix::fs::symlink(n.join("SOFI_hx_Beta_05.fits"), n.join("alias.fits")).unwrap();
+    let out = dir.path().join("cat.json");
+    let o = Command::new(bin())
+        .current_dir(dir.path())
+        .args(["night", "night", "./night", s(&n), "-o", s(&out), "-q", "--no-png"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
+    let c = catalog(&out);
+    for name in ["Alpha", "Beta"] {
+        assert_eq!(target(&c, name)["status"], "ok", "{name}");
+        // Bit-identical to the clean night: no frame used twice (sigma would shrink).
+        assert_eq!(components(target(&c, name)), components(target(&clean, name)), "{name}");
+    }
+    let f = failures(&c);
+    assert_eq!(f.len(), 2, "{f:?}");
+    assert!(
+        f.iter()
+            .any(|(file, e)| file.ends_with("alias.fits") && e.contains("duplicate of")),
+        "{f:?}"
+    );
+    assert!(
+        f.iter()
+            .any(|(file, e)| file.ends_with("backup/SOFI_hx_Beta_02.fits") && e.contains("SOFI_hx_Beta_02.fits")),
+        "{f:?}"
+    );
+}
+
+#[test]
+fn output_onto_an_input_or_a_directory_or_an_unwritable_place_is_refused_before_the_reduction() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let frame = n.join("SOFI_hx_Alpha_01.fits");
+    let before = std::fs::read(&frame).unwrap();
+    for (o, want) in [
+        (frame.clone(), "input"),
+        (n.join("./SOFI_hx_Beta_01.fits"), "input"),
+        (n.clone(), "directory"),
+        (PathBuf::from("/proc/sofipol-cat.json"), "cannot create"),
+    ] {
+        let (code, _, err) = run(&["night", s(&n), "-o", s(&o), "--no-png"]);
+        assert_eq!(code, 1, "-o {}: {err}", o.display());
+        assert!(err.contains(want) && err.contains(s(&o)), "-o {}: {err}", o.display());
+        // Refused before any target was reduced.
+        assert!(!err.contains("[1/2]"), "{err}");
+        let (code, _, err) = run(&["target", s(&n), "--object", "Alpha", "-o", s(&o)]);
+        assert_eq!(code, 1, "target -o {}: {err}", o.display());
+    }
+    assert_eq!(std::fs::read(&frame).unwrap(), before, "an input frame was overwritten");
+    // merge onto one of its own inputs.
+    let c = dir.path().join("c.json");
+    let (code, _, _) = run(&["night", s(&n), "-o", s(&c), "-q", "--no-png"]);
+    assert_eq!(code, 0);
+    let c_before = std::fs::read(&c).unwrap();
+    let (code, _, err) = run(&["merge", s(&c), "-o", s(&c), "--allow-partial"]);
+    assert_eq!(code, 1, "{err}");
+    assert_eq!(std::fs::read(&c).unwrap(), c_before);
+}

@@ -70,6 +70,9 @@ pub struct NightPlan {
     pub failures: Vec<Failure>,
     /// Files found.
     pub n_files: usize,
+    /// Every input file found (each once), whether used or not: outputs must not
+    /// overwrite any of them.
+    pub files: Vec<PathBuf>,
     /// Frames for the night's bad-pixel detection, chosen from every sequence of the
     /// night before sharding, so that every shard finds the same mask.
     pub mask_frames: Vec<PathBuf>,
@@ -98,18 +101,15 @@ fn pick_mask_frames(sequences: &[Sequence], max: usize) -> Vec<PathBuf> {
     picks
 }
 
-/// Scan `roots`, classify and group (restricted to `shard` when given).
+/// Scan `roots`, classify, keep each exposure once and group (restricted to `shard` when
+/// given). Unreadable directories, unreadable or foreign files and duplicates (the same
+/// file by two paths, a copy of the same exposure) are `failures`, by path.
 pub fn plan(roots: &[PathBuf], profile: &Profile, shard: Option<Shard>) -> std::io::Result<NightPlan> {
-    let mut files = Vec::new();
-    for r in roots {
-        files.extend(scan::find_files(r)?);
-    }
-    files.sort();
-    files.dedup();
+    let (s, files) = scan::scan(roots, profile);
     let n_files = files.len();
-    let s = scan::classify_all(&files, profile);
     let mut failures: Vec<Failure> = s.unreadable;
     failures.extend(s.other);
+    failures.extend(s.duplicates);
     let mut sequences = sequence::group(s.science, profile);
     let mask_frames = pick_mask_frames(&sequences, 15);
     if let Some(sh) = shard {
@@ -121,6 +121,7 @@ pub fn plan(roots: &[PathBuf], profile: &Profile, shard: Option<Shard>) -> std::
         sequences,
         failures,
         n_files,
+        files,
         mask_frames,
     })
 }

@@ -18,6 +18,7 @@ pub struct Args {
 
 /// Run.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    super::common::check_output(&args.output, &args.catalogs)?;
     let mut parts = Vec::new();
     for p in &args.catalogs {
         let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;

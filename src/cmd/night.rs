@@ -58,6 +58,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .context("starting worker threads")?;
     let t0 = std::time::Instant::now();
     let plan = night::plan(&args.dirs, &profile, args.shard).context("scanning the night")?;
+    // Outputs are checked before the reduction starts, never overwrite an input.
+    let mut inputs = plan.files.clone();
+    inputs.extend(args.reduce.input_files());
+    inputs.extend(args.profile.profile.clone());
+    super::common::check_output(&args.output, &inputs)?;
+    if let Some(d) = &args.reduce.save_intermediate {
+        super::common::check_output_dir(d, "--save-intermediate")?;
+    }
     let n = plan.sequences.len();
     if !args.quiet {
         eprintln!(
