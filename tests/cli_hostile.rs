@@ -217,3 +217,45 @@ fn output_onto_an_input_or_a_directory_or_an_unwritable_place_is_refused_before_
     assert_eq!(code, 1, "{err}");
     assert_eq!(std::fs::read(&c).unwrap(), c_before);
 }
+
+#[test]
+fn merge_refuses_missing_shards_and_shards_with_different_parameters() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let sh = |k: &str, extra: &[&str]| {
+        let out = dir
+            .path()
+            .join(format!("s{}{}.json", k.replace('/', "of"), extra.len()));
+        let mut a = vec!["night", s(&n), "-o", s(&out), "-q", "--no-png", "--shard", k];
+        a.extend_from_slice(extra);
+        let (code, _, err) = run(&a);
+        assert!(code == 0 || code == 2, "{err}");
+        out
+    };
+    let (s1, s2, s3) = (sh("1/3", &[]), sh("2/3", &[]), sh("3/3", &[]));
+    let s2b = sh("2/3", &["--aperture-fwhm", "2.5"]);
+    let m = dir.path().join("m.json");
+    // Complete and consistent: merged.
+    let (code, _, err) = run(&["merge", s(&s1), s(&s2), s(&s3), "-o", s(&m)]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(catalog(&m)["targets"].as_array().unwrap().len(), 2);
+    // A shard missing: refused, naming it; --allow-partial merges, says so, exits 2.
+    std::fs::remove_file(&m).unwrap();
+    let (code, _, err) = run(&["merge", s(&s1), s(&s3), "-o", s(&m)]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("2/3") && err.contains("--allow-partial"), "{err}");
+    assert!(!m.exists());
+    let (code, _, err) = run(&["merge", s(&s1), s(&s3), "-o", s(&m), "--allow-partial"]);
+    assert_eq!(code, 2, "{err}");
+    let ms = catalog(&m)["provenance"]["missing_shards"].clone();
+    assert!(
+        ms.as_array().unwrap().len() == 1 && ms[0].as_str().unwrap().starts_with("2/3 of"),
+        "{ms}"
+    );
+    // A shard given twice, or run with other parameters: refused.
+    let (code, _, err) = run(&["merge", s(&s1), s(&s2), s(&s2b), s(&s3), "-o", s(&m)]);
+    assert_eq!(code, 1, "{err}");
+    let (code, _, err) = run(&["merge", s(&s1), s(&s2b), s(&s3), "-o", s(&m)]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("aperture_fwhm") && err.contains(s(&s2b)), "{err}");
+}
