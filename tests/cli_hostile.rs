@@ -259,3 +259,51 @@ fn merge_refuses_missing_shards_and_shards_with_different_parameters() {
     assert_eq!(code, 1, "{err}");
     assert!(err.contains("aperture_fwhm") && err.contains(s(&s2b)), "{err}");
 }
+
+#[test]
+fn an_empty_or_fits_less_night_exits_1() {
+    let dir = tempfile::tempdir().unwrap();
+    let empty = dir.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    std::fs::write(dir.path().join("notes.txt"), "no frames").unwrap();
+    let out = dir.path().join("c.json");
+    for d in [empty.clone(), dir.path().to_path_buf()] {
+        let (code, _, err) = run(&["night", s(&d), "-o", s(&out), "--no-png"]);
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains("no FITS files") && err.contains(s(&d)), "{err}");
+    }
+    assert!(!out.exists());
+}
+
+#[test]
+fn jobs_2048_is_capped_and_finishes_and_unused_input_counts_agree() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    std::fs::write(n.join("notes.fits"), "observing log\n").unwrap();
+    let out = dir.path().join("c.json");
+    let mut child = Command::new(bin())
+        .args(["night", s(&n), "-o", s(&out), "--no-png", "--jobs", "2048"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if t0.elapsed().as_secs() > 120 {
+            child.kill().unwrap();
+            panic!("--jobs 2048 did not finish in 120 s");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    let o = child.wait_with_output().unwrap();
+    let (stdout, err) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("--jobs 2048 capped at"), "{err}");
+    // The start line and the end line count the same unused inputs.
+    assert!(err.contains("1 inputs not used (found while scanning)"), "{err}");
+    assert!(
+        stdout.contains("1 inputs not used (1 found while scanning, 0 during the reduction)"),
+        "{stdout}"
+    );
+    assert_eq!(catalog(&out)["targets"].as_array().unwrap().len(), 2);
+}
