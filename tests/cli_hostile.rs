@@ -307,3 +307,43 @@ fn jobs_2048_is_capped_and_finishes_and_unused_input_counts_agree() {
     );
     assert_eq!(catalog(&out)["targets"].as_array().unwrap().len(), 2);
 }
+
+#[test]
+fn save_intermediate_inside_the_night_folder_is_skipped_by_the_next_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let clean = clean_catalog(dir.path(), &n);
+    let products = n.join("products");
+    let first = dir.path().join("first.json");
+    let (code, _, err) = run(&[
+        "night",
+        s(&n),
+        "-o",
+        s(&first),
+        "-q",
+        "--no-png",
+        "--save-intermediate",
+        s(&products),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let saved: Vec<_> = std::fs::read_dir(&products).unwrap().collect();
+    assert_eq!(saved.len(), 12, "one sky-subtracted product per frame");
+    // The next run over the same folder finds the products, skips them by name, and
+    // reduces the raw frames exactly as before.
+    let second = dir.path().join("second.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&second), "-q", "--no-png"]);
+    assert_eq!(code, 2, "{err}");
+    let c = catalog(&second);
+    for name in ["Alpha", "Beta"] {
+        assert_eq!(target(&c, name)["status"], "ok", "{name}: {}", target(&c, name));
+        assert_eq!(components(target(&c, name)), components(target(&clean, name)), "{name}");
+    }
+    let f = failures(&c);
+    assert_eq!(f.len(), 12, "{f:?}");
+    assert!(
+        f.iter().all(|(file, e)| file.contains("products")
+            && file.ends_with("_skysub.fits")
+            && e.contains("sofipol product")),
+        "{f:?}"
+    );
+}

@@ -427,11 +427,19 @@ pub fn sky_subtract_with_report(
             history.push(cosmic_record(co, &rep));
             cosmic.push(rep);
         }
+        // Marked as a product: written out (`--save-intermediate`) it must never be read
+        // back as a raw frame (crate::classify::PRODUCT_KEYWORD).
+        let mut header = f.header.clone();
+        header.set_with_comment(
+            crate::classify::PRODUCT_KEYWORD,
+            "SKYSUB",
+            "sofipol product (sky-subtracted), not a raw frame",
+        );
         out.push(Frame {
             data: sky,
             variance: Some(var),
             mask: msk,
-            header: f.header.clone(),
+            header,
             history,
         });
     }
