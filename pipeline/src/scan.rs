@@ -221,6 +221,45 @@ pub fn scan(roots: &[PathBuf], profile: &Profile) -> (Scan, Vec<PathBuf>) {
     (s, l.files)
 }
 
+/// Why a file could not be read, in words, without repeating the path (the failure record
+/// names it): a file that does not start like FITS (`SIMPLE  =`, or gzip) is "not a FITS
+/// file" with its first bytes shown, instead of cfitsio's "is the file truncated?".
+pub fn unreadable_reason(path: &Path, message: &str) -> String {
+    let mut head = [0u8; 30];
+    let n = std::fs::File::open(path)
+        .and_then(|mut f| {
+            let mut n = 0;
+            while n < head.len() {
+                match std::io::Read::read(&mut f, &mut head[n..])? {
+                    0 => break,
+                    k => n += k,
+                }
+            }
+            Ok(n)
+        })
+        .unwrap_or(usize::MAX);
+    if n != usize::MAX && !head[..n].starts_with(b"SIMPLE  =") && !head[..n].starts_with(&[0x1f, 0x8b]) {
+        if n == 0 {
+            return "not a FITS file: empty".into();
+        }
+        let preview: String = head[..n]
+            .iter()
+            .map(|&b| match b {
+                b'\n' | b'\r' | b'\t' => ' ',
+                0x20..0x7f => b as char,
+                _ => '.',
+            })
+            .collect();
+        return format!("not a FITS file: starts with '{}', not 'SIMPLE  ='", preview.trim_end());
+    }
+    let shown = path.display().to_string();
+    message
+        .strip_prefix(&shown)
+        .and_then(|m| m.strip_prefix(": "))
+        .unwrap_or(message)
+        .to_string()
+}
+
 /// Classify files by header (in parallel; the order of the result does not depend on it).
 pub fn classify_all(files: &[PathBuf], profile: &Profile) -> Scan {
     use rayon::prelude::*;
@@ -238,7 +277,7 @@ pub fn classify_all(files: &[PathBuf], profile: &Profile) -> Scan {
             }),
             Err(e) => s.unreadable.push(Failure {
                 file: f.display().to_string(),
-                error: e.to_string(),
+                error: unreadable_reason(&f, &e.to_string()),
             }),
         }
     }
@@ -268,6 +307,41 @@ mod tests {
         assert_eq!(l.unreadable_dirs.len(), 1, "{:?}", l.unreadable_dirs);
         assert_eq!(l.unreadable_dirs[0].file, d.path().join("locked").display().to_string());
         assert!(l.unreadable_dirs[0].error.contains("not readable"));
+    }
+
+    #[test]
+    fn a_text_file_is_not_a_fits_file_and_the_path_is_not_repeated() {
+        // Regression: a text file was reported as "is the file truncated?", and every FITS
+        // error repeated the path the failure record already names.
+        let d = tempfile::tempdir().unwrap();
+        let notes = d.path().join("notes.fits");
+        std::fs::write(&notes, "observing log: clouds at 3 UT\n").unwrap();
+        let empty = d.path().join("empty.fits");
+        std::fs::write(&empty, "").unwrap();
+        let mut cut = std::fs::read(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../testdata/fits/sofi_pol_64x64_i16.fits"
+        ))
+        .unwrap();
+        cut.truncate(1000);
+        let trunc = d.path().join("cut.fits");
+        std::fs::write(&trunc, cut).unwrap();
+        let s = classify_all(&[notes.clone(), empty.clone(), trunc.clone()], &Profile::sofi());
+        let get = |p: &Path| {
+            s.unreadable
+                .iter()
+                .find(|f| f.file == p.display().to_string())
+                .map(|f| f.error.clone())
+                .unwrap()
+        };
+        let e = get(&notes);
+        assert_eq!(
+            e,
+            "not a FITS file: starts with 'observing log: clouds at 3 UT', not 'SIMPLE  ='"
+        );
+        assert_eq!(get(&empty), "not a FITS file: empty");
+        let e = get(&trunc);
+        assert!(!e.contains(&trunc.display().to_string()) && e.contains("FITS"), "{e}");
     }
 
     #[cfg(unix)]
