@@ -347,3 +347,47 @@ fn save_intermediate_inside_the_night_folder_is_skipped_by_the_next_run() {
         "{f:?}"
     );
 }
+
+/// Alpha (dithered as usual) and, simulated separately, Beta with every dither at one
+/// position (jitter step 0), in one night folder.
+fn night_with_a_stationary_target(dir: &Path) -> PathBuf {
+    let n = night(dir);
+    for f in std::fs::read_dir(&n).unwrap() {
+        let p = f.unwrap().path();
+        if p.to_str().unwrap().contains("Beta") {
+            std::fs::remove_file(p).unwrap();
+        }
+    }
+    let still = SCENE
+        .replace("name = \"hx\"", "name = \"still\"")
+        .replace("dithers = 3", "dithers = 3\njitter_step_px = 0.0");
+    let still = still[..still.find("[[binary]]\nname = \"Alpha\"").unwrap()].to_string()
+        + &still[still.find("[[binary]]\nname = \"Beta\"").unwrap()..];
+    let scene = dir.join("still.toml");
+    std::fs::write(&scene, still).unwrap();
+    let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&n), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_file(n.join("truth.json")).unwrap();
+    n
+}
+
+#[test]
+fn all_dithers_at_one_position_are_diagnosed_and_kept_out_of_the_night_mask() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night_with_a_stationary_target(dir.path());
+    let out = dir.path().join("c.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png"]);
+    assert_eq!(code, 2, "{err}");
+    let c = catalog(&out);
+    let beta = target(&c, "Beta");
+    assert_ne!(beta["status"], "ok", "{beta}");
+    let flags = beta["flags"].as_array().unwrap();
+    assert!(
+        flags.iter().any(|f| f.as_str().unwrap().contains("one position")),
+        "{beta}"
+    );
+    assert_eq!(target(&c, "Alpha")["status"], "ok");
+    // The stationary star must not be taken for a detector defect.
+    let from = c["provenance"]["night_bad_pixel_mask_from"].as_array().unwrap();
+    assert!(from.iter().all(|f| !f.as_str().unwrap().contains("still")), "{from:?}");
+}

@@ -85,8 +85,14 @@ pub struct NightPlan {
 /// positions and no position holds more than about 1/n of the frames. At most `max`.
 fn pick_mask_frames(sequences: &[Sequence], max: usize) -> Vec<PathBuf> {
     let mut picks: Vec<PathBuf> = Vec::new();
+    // A sequence whose dithers do not move keeps its star on the same pixels: it would
+    // be taken for a defect. Such sequences give no frame to the mask.
+    let moving: Vec<&Sequence> = sequences
+        .iter()
+        .filter(|q| q.stationary_orientations().is_empty())
+        .collect();
     for round in 0..8 {
-        for (i, q) in sequences.iter().enumerate() {
+        for (i, q) in moving.iter().enumerate() {
             let Some(o) = q.orientations.first() else { continue };
             let n = o.exposures.len();
             if round >= n || picks.len() >= max {
