@@ -69,7 +69,7 @@ proptest! {
         let lossy = String::from_utf8_lossy(&bytes).into_owned();
         for t in [&text, &lossy] {
             let _ = sofipol_pipeline::sim::Scene::from_toml(t, "fuzz");
-            let _ = toml::from_str::<sofipol_pipeline::reduce::target::TargetParams>(t);
+            let _ = toml::from_str::<sofipol_pipeline::reduce::TargetParams>(t);
             let _ = serde_json::from_str::<sofipol_pipeline::catalog::Catalog>(t);
             let _ = sofipol_pipeline::stats::mc::PIntDist::parse(t);
             let d = tempfile::tempdir().unwrap();
@@ -100,7 +100,7 @@ proptest! {
             }
         }
         let params = format!("[measure]\n{key} = {value}\n");
-        let _ = toml::from_str::<sofipol_pipeline::reduce::target::TargetParams>(&params);
+        let _ = toml::from_str::<sofipol_pipeline::reduce::TargetParams>(&params);
     }
 }
 
