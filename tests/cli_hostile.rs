@@ -372,7 +372,7 @@ fn night_with_a_stationary_target(dir: &Path) -> PathBuf {
 }
 
 #[test]
-fn all_dithers_at_one_position_are_diagnosed_and_kept_out_of_the_night_mask() {
+fn all_dithers_at_one_position_are_refused_by_name_and_kept_out_of_the_night_mask() {
     let dir = tempfile::tempdir().unwrap();
     let n = night_with_a_stationary_target(dir.path());
     let out = dir.path().join("c.json");
@@ -380,7 +380,11 @@ fn all_dithers_at_one_position_are_diagnosed_and_kept_out_of_the_night_mask() {
     assert_eq!(code, 2, "{err}");
     let c = catalog(&out);
     let beta = target(&c, "Beta");
-    assert_ne!(beta["status"], "ok", "{beta}");
+    // Refused clearly (it was `partial` with gamma off and `passes_cut: true`).
+    assert_eq!(beta["status"], "failed", "{beta}");
+    assert!(beta["error"].as_str().unwrap().contains("one position"), "{beta}");
+    assert!(beta["components"].as_array().unwrap().is_empty(), "{beta}");
+    // A failed target keeps its diagnostic flags.
     let flags = beta["flags"].as_array().unwrap();
     assert!(
         flags.iter().any(|f| f.as_str().unwrap().contains("one position")),
