@@ -395,3 +395,33 @@ fn all_dithers_at_one_position_are_refused_by_name_and_kept_out_of_the_night_mas
     let from = c["provenance"]["night_bad_pixel_mask_from"].as_array().unwrap();
     assert!(from.iter().all(|f| !f.as_str().unwrap().contains("still")), "{from:?}");
 }
+
+#[test]
+fn a_corrupt_naxis_of_100000_is_named_and_the_night_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let clean = clean_catalog(dir.path(), &n);
+    let f = n.join("SOFI_hx_Alpha_01.fits");
+    let mut b = std::fs::read(&f).unwrap();
+    for key in [&b"NAXIS1  ="[..], &b"NAXIS2  ="[..]] {
+        let at = (0..b.len() / 80)
+            .map(|i| i * 80)
+            .find(|&i| b[i..].starts_with(key))
+            .unwrap();
+        let card = format!("{:<8}= {:>20}", std::str::from_utf8(&key[..8]).unwrap().trim(), 100000);
+        b[at..at + 30].copy_from_slice(card.as_bytes());
+    }
+    std::fs::write(&f, &b).unwrap();
+    let out = dir.path().join("c.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png"]);
+    assert_eq!(code, 2, "{err}");
+    let c = catalog(&out);
+    assert_eq!(components(target(&c, "Beta")), components(target(&clean, "Beta")));
+    assert_ne!(target(&c, "Alpha")["status"], "ok");
+    let fl = failures(&c);
+    assert!(
+        fl.iter()
+            .any(|(file, e)| file.ends_with("SOFI_hx_Alpha_01.fits") && e.contains("corrupt header")),
+        "{fl:?}"
+    );
+}
