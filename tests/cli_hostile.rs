@@ -425,3 +425,46 @@ fn a_corrupt_naxis_of_100000_is_named_and_the_night_goes_on() {
         "{fl:?}"
     );
 }
+
+#[test]
+fn unknown_keys_and_out_of_range_values_are_refused_naming_the_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let out = dir.path().join("c.json");
+    let params = dir.path().join("p.toml");
+    let prof = dir.path().join("prof.toml");
+    std::fs::write(&prof, "[detector]\ngain = 5.6\n").unwrap();
+    let cases: Vec<(Vec<String>, &str)> = vec![
+        (
+            vec!["--set".into(), "detector.gian_e_per_adu=5".into()],
+            "gian_e_per_adu",
+        ),
+        (vec!["--profile".into(), s(&prof).into()], "gain"),
+        (vec!["--params".into(), s(&params).into()], "bad_pixels.window_px"),
+    ];
+    std::fs::write(&params, "[bad_pixels]\nwindow_px = 0\n").unwrap();
+    for (extra, key) in cases {
+        let mut a = vec!["night", s(&n), "-o", s(&out), "--no-png"];
+        a.extend(extra.iter().map(|x| x.as_str()));
+        let (code, _, err) = run(&a);
+        assert_eq!(code, 1, "{a:?}: {err}");
+        assert!(err.contains(key), "{a:?}: {err}");
+    }
+    for (text, key) in [
+        ("[sky.cosmic_rays]\nsigma_clip = nan\n", "sky.cosmic_rays.sigma_clip"),
+        ("[bad_pixels]\nsigma = -1.0\n", "bad_pixels.sigma"),
+    ] {
+        std::fs::write(&params, text).unwrap();
+        let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "--no-png", "--params", s(&params)]);
+        assert_eq!(code, 1, "{text}: {err}");
+        assert!(err.contains(key), "{text}: {err}");
+    }
+    assert!(!out.exists());
+    // A [sky] table with only `scaling` keeps cosmic-ray flagging (it silently dropped it).
+    std::fs::write(&params, "[sky]\nscaling = \"additive\"\n").unwrap();
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--params", s(&params)]);
+    assert_eq!(code, 0, "{err}");
+    let sky = &catalog(&out)["provenance"]["parameters"]["sky"];
+    assert_eq!(sky["cosmic_rays"]["enabled"], true, "{sky}");
+    assert_eq!(sky["scaling"], "additive", "{sky}");
+}
