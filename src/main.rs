@@ -5,6 +5,21 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
+// A closed stdout or stderr (`sofipol night ... | head`, `2>&1 | true`) must neither panic
+// nor stop the work: std's `print!` family panics on a write error (EPIPE). These
+// replacements, visible in every module below, write through a locked handle and drop
+// write errors, as ripgrep does on a broken pipe; the run goes on, writes its outputs
+// and exits with its usual code (docs/cli.md).
+macro_rules! print {
+    ($($t:tt)*) => {{ use std::io::Write as _; let _ = write!(std::io::stdout().lock(), $($t)*); }};
+}
+macro_rules! println {
+    ($($t:tt)*) => {{ use std::io::Write as _; let _ = writeln!(std::io::stdout().lock(), $($t)*); }};
+}
+macro_rules! eprintln {
+    ($($t:tt)*) => {{ use std::io::Write as _; let _ = writeln!(std::io::stderr().lock(), $($t)*); }};
+}
+
 mod cmd;
 
 /// Dual-beam near-infrared imaging polarimetry with SOFI (ESO NTT).

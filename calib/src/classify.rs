@@ -2,6 +2,7 @@
 //!
 //! A frame is polarimetric science when, in this order (the first failing test gives the
 //! rejection reason, naming the keyword and its value):
+//! 0. the frame is not a sofipol product (no [`PRODUCT_KEYWORD`] card);
 //! 1. `INSTRUME` equals the profile's instrument;
 //! 2. the template is the polarimetry template (`TPL ID`) **or** `DPR TECH` contains the
 //!    polarimetry technique;
@@ -27,6 +28,12 @@ use serde::{Deserialize, Serialize};
 use crate::error::{Error, Result};
 use crate::header::{Header, HeaderValue};
 use crate::profile::Profile;
+
+/// Header keyword sofipol writes into every image product it derives from a raw frame
+/// (value: the product kind, e.g. `'SKYSUB'` for `--save-intermediate`). A frame carrying
+/// it is never classified as a raw science frame, so products saved inside a night folder
+/// are skipped (and reported) by the next run instead of being reduced as raw data.
+pub const PRODUCT_KEYWORD: &str = "SOFIPROD";
 
 /// `DPR CATG` value of science frames (an ESO data-product convention, not instrument
 /// specific).
@@ -187,6 +194,14 @@ fn opt_count(h: &Header, key: &str) -> std::result::Result<Option<u32>, String> 
 fn science_info(h: &Header, p: &Profile) -> std::result::Result<ScienceInfo, String> {
     let k = &p.keywords;
     let m = &p.matching;
+
+    // 0. Not one of sofipol's own products.
+    if h.contains(PRODUCT_KEYWORD) {
+        return Err(format!(
+            "a sofipol product ({}), not a raw frame: skipped",
+            shown(h, PRODUCT_KEYWORD)
+        ));
+    }
 
     // 1. Instrument.
     match text(h, &k.instrument) {

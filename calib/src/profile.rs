@@ -12,6 +12,7 @@ pub const SOFI_TOML: &str = include_str!("../profiles/sofi.toml");
 
 /// Header keyword names (without `HIERARCH`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)] // a misspelt key in --profile or --set is an error, not ignored
 #[allow(missing_docs)]
 pub struct Keywords {
     pub instrument: String,
@@ -43,6 +44,7 @@ pub struct Keywords {
 
 /// Values that identify polarimetric science frames.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)] // a misspelt key in --profile or --set is an error, not ignored
 pub struct Match {
     /// Expected INSTRUME value.
     pub instrument: String,
@@ -60,6 +62,7 @@ pub struct Match {
 
 /// Detector geometry and focal-mask strips. Row ranges are 0-based, half-open.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)] // a misspelt key in --profile or --set is an error, not ignored
 #[allow(missing_docs)]
 pub struct Geometry {
     pub nx: usize,
@@ -98,6 +101,7 @@ impl Geometry {
 
 /// Detector constants.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)] // a misspelt key in --profile or --set is an error, not ignored
 pub struct Detector {
     /// Gain, electrons per ADU (per read).
     pub gain_e_per_adu: f64,
@@ -127,6 +131,7 @@ impl Detector {
 
 /// Angle conventions.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)] // a misspelt key in --profile or --set is an error, not ignored
 pub struct Angles {
     /// theta0, degrees.
     pub zero_point_deg: f64,
@@ -143,6 +148,7 @@ impl Angles {
 
 /// A complete, validated instrument profile.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)] // a misspelt key in --profile or --set is an error, not ignored
 pub struct Profile {
     /// Instrument name.
     pub name: String,
@@ -277,6 +283,41 @@ impl Profile {
                 d.saturation_adu, d.linear_limit_adu
             ));
         }
+        // Every number finite and in its range (NaN fails every comparison above only
+        // when the test is written `!(x > 0)`; these would pass NaN or infinity).
+        let finite = [
+            ("geometry.pixscale_arcsec", g.pixscale_arcsec),
+            ("geometry.eo_offset_px[0]", g.eo_offset_px[0]),
+            ("geometry.eo_offset_px[1]", g.eo_offset_px[1]),
+            ("geometry.jitter_step_px", g.jitter_step_px),
+            ("detector.gain_e_per_adu", d.gain_e_per_adu),
+            ("detector.read_noise_e", d.read_noise_e),
+            ("detector.linear_limit_adu", d.linear_limit_adu),
+            ("detector.nonlinear_warn_adu", d.nonlinear_warn_adu),
+            ("detector.saturation_adu", d.saturation_adu),
+            ("detector.nonlin_coeff_per_adu", d.nonlin_coeff_per_adu),
+            ("angles.zero_point_deg", self.angles.zero_point_deg),
+        ];
+        for (name, v) in finite {
+            if !v.is_finite() {
+                return err(format!("{name} = {v} must be a finite number"));
+            }
+        }
+        if !(d.linear_limit_adu > 0.0) {
+            return err(format!(
+                "detector.linear_limit_adu = {} must be > 0",
+                d.linear_limit_adu
+            ));
+        }
+        if !(d.nonlin_coeff_per_adu >= 0.0) {
+            return err(format!(
+                "detector.nonlin_coeff_per_adu = {} must be >= 0",
+                d.nonlin_coeff_per_adu
+            ));
+        }
+        if g.nx == 0 || g.ny == 0 {
+            return err(format!("geometry.nx = {}, ny = {}: must be >= 1", g.nx, g.ny));
+        }
         if self.angles.parity != 1 && self.angles.parity != -1 {
             return err(format!("angles.parity = {} must be +1 or -1", self.angles.parity));
         }
@@ -348,6 +389,40 @@ mod tests {
         std::fs::write(&f, "[angles]\nparity = 2\n").unwrap();
         let e = Profile::sofi_with_override(&f).unwrap_err().to_string();
         assert!(e.contains("parity") && e.contains("o.toml"), "{e}");
+    }
+
+    #[test]
+    fn unknown_keys_in_set_and_profile_are_rejected_by_name() {
+        // Regression: a misspelt key in --set or --profile was silently ignored.
+        let e = Profile::sofi()
+            .with_overrides(&["detector.gian_e_per_adu=6".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("gian_e_per_adu") && e.contains("--set"), "{e}");
+        let e = Profile::sofi()
+            .with_overrides(&["detectr.gain_e_per_adu=6".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("detectr"), "{e}");
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("o.toml");
+        std::fs::write(&f, "[detector]\nsaturation = 30000.0\n").unwrap();
+        let e = Profile::sofi_with_override(&f).unwrap_err().to_string();
+        assert!(e.contains("saturation") && e.contains("o.toml"), "{e}");
+        // Non-finite values are named too.
+        for set in [
+            "detector.nonlin_coeff_per_adu=nan",
+            "angles.zero_point_deg=inf",
+            "geometry.jitter_step_px=nan",
+        ] {
+            let e = Profile::sofi().with_overrides(&[set.into()]).unwrap_err().to_string();
+            assert!(e.contains(set.split('=').next().unwrap()), "{set}: {e}");
+        }
+        // Known keys still work.
+        let p = Profile::sofi()
+            .with_overrides(&["detector.gain_e_per_adu=6".into()])
+            .unwrap();
+        assert_eq!(p.detector.gain_e_per_adu, 6.0);
     }
 
     #[test]

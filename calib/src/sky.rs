@@ -58,6 +58,8 @@ impl SkyScaling {
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CosmicOptions {
+    /// Flag cosmic rays at all (`false` turns the flagging off).
+    pub enabled: bool,
     /// A seed pixel exceeds this many sigma (sqrt of the variance map) above the sky.
     pub sigma_clip: f64,
     /// ... and exceeds `sharpness_ratio` x the mean of its unmasked 4-neighbours by
@@ -76,6 +78,7 @@ pub struct CosmicOptions {
 impl Default for CosmicOptions {
     fn default() -> Self {
         CosmicOptions {
+            enabled: true,
             sigma_clip: 5.0,
             sharpness_ratio: 4.0,
             grow_sigma: 3.0,
@@ -84,9 +87,11 @@ impl Default for CosmicOptions {
     }
 }
 
-/// Options of [`sky_subtract`]. `Default`: multiplicative scaling, no cosmic-ray
-/// flagging; [`SkyOptions::recommended`] adds cosmic-ray flagging.
-#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+/// Options of [`sky_subtract`]. `Default` is [`SkyOptions::recommended`]: multiplicative
+/// scaling and cosmic-ray flagging, also for every key a `[sky]` table leaves out (a table
+/// with only `scaling` used to drop the flagging silently). Turn flagging off with
+/// `[sky.cosmic_rays] enabled = false`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SkyOptions {
     /// Level scaling.
@@ -95,7 +100,18 @@ pub struct SkyOptions {
     pub cosmic_rays: Option<CosmicOptions>,
 }
 
+impl Default for SkyOptions {
+    fn default() -> Self {
+        Self::recommended()
+    }
+}
+
 impl SkyOptions {
+    /// The cosmic-ray options in force (`None` when absent or `enabled = false`).
+    pub fn cosmic(&self) -> Option<&CosmicOptions> {
+        self.cosmic_rays.as_ref().filter(|c| c.enabled)
+    }
+
     /// Multiplicative scaling and cosmic-ray flagging with default thresholds.
     pub fn recommended() -> Self {
         SkyOptions {
@@ -260,7 +276,7 @@ pub fn sky_subtract_with_report(
             ),
         });
     }
-    if let Some(co) = &opts.cosmic_rays {
+    if let Some(co) = opts.cosmic() {
         check_cosmic_options(co)?;
     }
     let shape = frames[0].shape();
@@ -422,16 +438,24 @@ pub fn sky_subtract_with_report(
         );
         let mut history = f.history.clone();
         history.push(crate::frame::HistoryRecord::new("sky", detail));
-        if let Some(co) = &opts.cosmic_rays {
+        if let Some(co) = opts.cosmic() {
             let rep = cosmic_flags(&sky, &var.view(), &mut msk, co);
             history.push(cosmic_record(co, &rep));
             cosmic.push(rep);
         }
+        // Marked as a product: written out (`--save-intermediate`) it must never be read
+        // back as a raw frame (crate::classify::PRODUCT_KEYWORD).
+        let mut header = f.header.clone();
+        header.set_with_comment(
+            crate::classify::PRODUCT_KEYWORD,
+            "SKYSUB",
+            "sofipol product (sky-subtracted), not a raw frame",
+        );
         out.push(Frame {
             data: sky,
             variance: Some(var),
             mask: msk,
-            header: f.header.clone(),
+            header,
             history,
         });
     }
@@ -687,7 +711,11 @@ mod tests {
             frames.push(frame_from(d, 6, 0.0));
         }
         let inputs = frames.clone();
-        let out = sky_subtract(&frames, &p, &SkyOptions::default()).unwrap();
+        let no_cr = SkyOptions {
+            cosmic_rays: None,
+            ..SkyOptions::default()
+        };
+        let out = sky_subtract(&frames, &p, &no_cr).unwrap();
         // Inputs untouched.
         for (a, b) in inputs.iter().zip(&frames) {
             assert_eq!(a.data, b.data);

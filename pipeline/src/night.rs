@@ -70,6 +70,9 @@ pub struct NightPlan {
     pub failures: Vec<Failure>,
     /// Files found.
     pub n_files: usize,
+    /// Every input file found (each once), whether used or not: outputs must not
+    /// overwrite any of them.
+    pub files: Vec<PathBuf>,
     /// Frames for the night's bad-pixel detection, chosen from every sequence of the
     /// night before sharding, so that every shard finds the same mask.
     pub mask_frames: Vec<PathBuf>,
@@ -82,8 +85,14 @@ pub struct NightPlan {
 /// positions and no position holds more than about 1/n of the frames. At most `max`.
 fn pick_mask_frames(sequences: &[Sequence], max: usize) -> Vec<PathBuf> {
     let mut picks: Vec<PathBuf> = Vec::new();
+    // A sequence whose dithers do not move keeps its star on the same pixels: it would
+    // be taken for a defect. Such sequences give no frame to the mask.
+    let moving: Vec<&Sequence> = sequences
+        .iter()
+        .filter(|q| q.stationary_orientations().is_empty())
+        .collect();
     for round in 0..8 {
-        for (i, q) in sequences.iter().enumerate() {
+        for (i, q) in moving.iter().enumerate() {
             let Some(o) = q.orientations.first() else { continue };
             let n = o.exposures.len();
             if round >= n || picks.len() >= max {
@@ -98,18 +107,15 @@ fn pick_mask_frames(sequences: &[Sequence], max: usize) -> Vec<PathBuf> {
     picks
 }
 
-/// Scan `roots`, classify and group (restricted to `shard` when given).
+/// Scan `roots`, classify, keep each exposure once and group (restricted to `shard` when
+/// given). Unreadable directories, unreadable or foreign files and duplicates (the same
+/// file by two paths, a copy of the same exposure) are `failures`, by path.
 pub fn plan(roots: &[PathBuf], profile: &Profile, shard: Option<Shard>) -> std::io::Result<NightPlan> {
-    let mut files = Vec::new();
-    for r in roots {
-        files.extend(scan::find_files(r)?);
-    }
-    files.sort();
-    files.dedup();
+    let (s, files) = scan::scan(roots, profile);
     let n_files = files.len();
-    let s = scan::classify_all(&files, profile);
     let mut failures: Vec<Failure> = s.unreadable;
     failures.extend(s.other);
+    failures.extend(s.duplicates);
     let mut sequences = sequence::group(s.science, profile);
     let mask_frames = pick_mask_frames(&sequences, 15);
     if let Some(sh) = shard {
@@ -121,6 +127,7 @@ pub fn plan(roots: &[PathBuf], profile: &Profile, shard: Option<Shard>) -> std::
         sequences,
         failures,
         n_files,
+        files,
         mask_frames,
     })
 }

@@ -19,26 +19,177 @@ pub fn is_fits_name(p: &Path) -> bool {
             .any(|e| n.ends_with(e))
 }
 
+/// The FITS-named files under some roots, and the directories that could not be listed.
+#[derive(Debug, Default)]
+pub struct Listing {
+    /// Files found (sorted, each file once: paths that resolve to the same file are kept
+    /// once, the others are in `duplicates`).
+    pub files: Vec<PathBuf>,
+    /// Directories that could not be listed (permissions, I/O errors), by path.
+    pub unreadable_dirs: Vec<Failure>,
+    /// Second and later paths of a file already found (`./good` and `good`, an absolute
+    /// and a relative path, a symlink alias), with the path kept.
+    pub duplicates: Vec<Failure>,
+}
+
 /// Every FITS-named file under `root` (recursively; a file is taken as given), sorted.
+/// A directory that cannot be listed is reported by path and skipped, never fatal; a
+/// directory reached twice (a symlink loop or alias) is listed once.
 pub fn find_files(root: &Path) -> std::io::Result<Vec<PathBuf>> {
-    let mut out = Vec::new();
-    if root.is_file() {
-        out.push(root.to_path_buf());
-        return Ok(out);
+    if !root.exists() {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::NotFound,
+            format!("{}: no such file or directory", root.display()),
+        ));
     }
-    let mut stack = vec![root.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d)? {
-            let p = e?.path();
-            if p.is_dir() {
-                stack.push(p);
-            } else if is_fits_name(&p) {
-                out.push(p);
+    Ok(list(&[root.to_path_buf()]).files)
+}
+
+/// [`find_files`] over several roots, with each file kept once (by canonical path) and
+/// the unreadable directories and duplicate paths reported.
+pub fn list(roots: &[PathBuf]) -> Listing {
+    list_with(roots, &|d: &Path| {
+        std::fs::read_dir(d)?
+            .map(|e| e.map(|e| e.path()))
+            .collect::<std::io::Result<Vec<PathBuf>>>()
+    })
+}
+
+/// [`list`] with the directory reader given (tests inject failures with it).
+pub fn list_with(roots: &[PathBuf], read_dir: &dyn Fn(&Path) -> std::io::Result<Vec<PathBuf>>) -> Listing {
+    let mut out = Listing::default();
+    let mut found = Vec::new();
+    let mut seen_dirs = std::collections::HashSet::new();
+    // A root given twice (`night n ./n /abs/n`) is scanned once, silently: nothing is lost.
+    let mut seen_roots = std::collections::HashSet::new();
+    for root in roots {
+        if !seen_roots.insert(std::fs::canonicalize(root).unwrap_or_else(|_| root.clone())) {
+            continue;
+        }
+        if !root.is_dir() {
+            if root.exists() {
+                found.push(root.clone());
+            }
+            continue;
+        }
+        let mut stack = vec![root.clone()];
+        while let Some(d) = stack.pop() {
+            // A loop (`night/loop -> ..`) or an alias resolves to a directory already seen.
+            if !seen_dirs.insert(std::fs::canonicalize(&d).unwrap_or_else(|_| d.clone())) {
+                continue;
+            }
+            match read_dir(&d) {
+                Ok(entries) => {
+                    for p in entries {
+                        if p.is_dir() {
+                            stack.push(p);
+                        } else if is_fits_name(&p) {
+                            found.push(p);
+                        }
+                    }
+                }
+                Err(e) => out.unreadable_dirs.push(Failure {
+                    file: d.display().to_string(),
+                    error: format!("directory not readable, skipped: {e}"),
+                }),
             }
         }
     }
-    out.sort();
-    Ok(out)
+    found.sort();
+    found.dedup();
+    let mut by_canonical: std::collections::HashMap<PathBuf, PathBuf> = std::collections::HashMap::new();
+    for f in found {
+        let c = std::fs::canonicalize(&f).unwrap_or_else(|_| f.clone());
+        match by_canonical.get(&c) {
+            Some(kept) => out.duplicates.push(Failure {
+                file: f.display().to_string(),
+                error: format!(
+                    "duplicate of {} (the same file by another path): not used twice",
+                    kept.display()
+                ),
+            }),
+            None => {
+                by_canonical.insert(c, f.clone());
+                out.files.push(f);
+            }
+        }
+    }
+    out.unreadable_dirs.sort_by(|a, b| a.file.cmp(&b.file));
+    out
+}
+
+/// Frames that are the same exposure under two names (a backup copy, a copy in a
+/// subfolder): equal identifying header values (object, template start, exposure number,
+/// MJD-OBS, position angle, offsets, filter, DIT, NDIT) and equal pixels. The first in
+/// path order is kept; the others are returned as failures naming it. Pixels are read only
+/// for frames whose identifying values collide.
+pub fn drop_duplicate_exposures(science: Vec<ScienceInfo>) -> (Vec<ScienceInfo>, Vec<Failure>) {
+    use std::collections::BTreeMap;
+    let key = |i: &ScienceInfo| {
+        format!(
+            "{}|{}|{:?}|{:?}|{}|{}|{}|{}|{}|{}",
+            i.object,
+            i.tpl_start,
+            i.expno,
+            i.mjd.map(f64::to_bits),
+            i.posang_deg.to_bits(),
+            i.offset_px[0].to_bits(),
+            i.offset_px[1].to_bits(),
+            i.filter,
+            i.dit_s.to_bits(),
+            i.ndit
+        )
+    };
+    let mut groups: BTreeMap<String, Vec<ScienceInfo>> = BTreeMap::new();
+    for i in science {
+        groups.entry(key(&i)).or_default().push(i);
+    }
+    let mut keep = Vec::new();
+    let mut dups = Vec::new();
+    for (_, mut g) in groups {
+        if g.len() == 1 {
+            keep.append(&mut g);
+            continue;
+        }
+        g.sort_by(|a, b| a.path.cmp(&b.path));
+        let mut kept: Vec<(u64, PathBuf)> = Vec::new();
+        for i in g {
+            let h = pixel_hash(&i.path);
+            match (h, kept.iter().find(|(k, _)| Some(*k) == h)) {
+                (Some(_), Some((_, first))) => dups.push(Failure {
+                    file: i.path.display().to_string(),
+                    error: format!(
+                        "duplicate of {} (same exposure: identical identifying keywords and pixels): not used twice",
+                        first.display()
+                    ),
+                }),
+                _ => {
+                    if let Some(h) = h {
+                        kept.push((h, i.path.clone()));
+                    }
+                    keep.push(i);
+                }
+            }
+        }
+    }
+    (keep, dups)
+}
+
+/// FNV-1a hash of a frame's pixel values (None when unreadable: such a file is kept and
+/// fails later, by name, in the reduction).
+fn pixel_hash(p: &Path) -> Option<u64> {
+    let f = sofipol_calib::fits::read_frame(p).ok()?;
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let (ny, nx) = f.shape();
+    for b in (ny as u64).to_le_bytes().into_iter().chain((nx as u64).to_le_bytes()) {
+        h = (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    for v in f.data.iter() {
+        for b in v.to_bits().to_le_bytes() {
+            h = (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+    Some(h)
 }
 
 /// The outcome of classifying a set of files.
@@ -51,6 +202,62 @@ pub struct Scan {
     pub other: Vec<Failure>,
     /// Files that could not be read.
     pub unreadable: Vec<Failure>,
+    /// Inputs reached twice (same file by another path, or a copy of the same exposure),
+    /// with the one kept.
+    pub duplicates: Vec<Failure>,
+}
+
+/// List the FITS files under `roots` ([`list`]), classify them ([`classify_all`]) and keep
+/// each exposure once ([`drop_duplicate_exposures`]). Returns the scan and the files found.
+pub fn scan(roots: &[PathBuf], profile: &Profile) -> (Scan, Vec<PathBuf>) {
+    let l = list(roots);
+    let mut s = classify_all(&l.files, profile);
+    s.unreadable.extend(l.unreadable_dirs);
+    let (science, dups) = drop_duplicate_exposures(std::mem::take(&mut s.science));
+    s.science = science;
+    s.duplicates = l.duplicates;
+    s.duplicates.extend(dups);
+    s.duplicates.sort_by(|a, b| a.file.cmp(&b.file));
+    (s, l.files)
+}
+
+/// Why a file could not be read, in words, without repeating the path (the failure record
+/// names it): a file that does not start like FITS (`SIMPLE  =`, or gzip) is "not a FITS
+/// file" with its first bytes shown, instead of cfitsio's "is the file truncated?".
+pub fn unreadable_reason(path: &Path, message: &str) -> String {
+    let mut head = [0u8; 30];
+    let n = std::fs::File::open(path)
+        .and_then(|mut f| {
+            let mut n = 0;
+            while n < head.len() {
+                match std::io::Read::read(&mut f, &mut head[n..])? {
+                    0 => break,
+                    k => n += k,
+                }
+            }
+            Ok(n)
+        })
+        .unwrap_or(usize::MAX);
+    if n != usize::MAX && !head[..n].starts_with(b"SIMPLE  =") && !head[..n].starts_with(&[0x1f, 0x8b]) {
+        if n == 0 {
+            return "not a FITS file: empty".into();
+        }
+        let preview: String = head[..n]
+            .iter()
+            .map(|&b| match b {
+                b'\n' | b'\r' | b'\t' => ' ',
+                0x20..0x7f => b as char,
+                _ => '.',
+            })
+            .collect();
+        return format!("not a FITS file: starts with '{}', not 'SIMPLE  ='", preview.trim_end());
+    }
+    let shown = path.display().to_string();
+    message
+        .strip_prefix(&shown)
+        .and_then(|m| m.strip_prefix(": "))
+        .unwrap_or(message)
+        .to_string()
 }
 
 /// Classify files by header (in parallel; the order of the result does not depend on it).
@@ -70,9 +277,89 @@ pub fn classify_all(files: &[PathBuf], profile: &Profile) -> Scan {
             }),
             Err(e) => s.unreadable.push(Failure {
                 file: f.display().to_string(),
-                error: e.to_string(),
+                error: unreadable_reason(&f, &e.to_string()),
             }),
         }
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_unreadable_subdirectory_is_named_and_skipped() {
+        // Regression: one unreadable subdirectory aborted the night without naming it.
+        // (Tests may run as root, for whom chmod 000 changes nothing: the error is injected.)
+        let d = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(d.path().join("a")).unwrap();
+        std::fs::create_dir_all(d.path().join("locked")).unwrap();
+        std::fs::write(d.path().join("a/x.fits"), b"").unwrap();
+        std::fs::write(d.path().join("locked/y.fits"), b"").unwrap();
+        let l = list_with(&[d.path().to_path_buf()], &|p: &Path| {
+            if p.ends_with("locked") {
+                return Err(std::io::Error::from(std::io::ErrorKind::PermissionDenied));
+            }
+            std::fs::read_dir(p)?.map(|e| e.map(|e| e.path())).collect()
+        });
+        assert_eq!(l.files, vec![d.path().join("a/x.fits")]);
+        assert_eq!(l.unreadable_dirs.len(), 1, "{:?}", l.unreadable_dirs);
+        assert_eq!(l.unreadable_dirs[0].file, d.path().join("locked").display().to_string());
+        assert!(l.unreadable_dirs[0].error.contains("not readable"));
+    }
+
+    #[test]
+    fn a_text_file_is_not_a_fits_file_and_the_path_is_not_repeated() {
+        // Regression: a text file was reported as "is the file truncated?", and every FITS
+        // error repeated the path the failure record already names.
+        let d = tempfile::tempdir().unwrap();
+        let notes = d.path().join("notes.fits");
+        std::fs::write(&notes, "observing log: clouds at 3 UT\n").unwrap();
+        let empty = d.path().join("empty.fits");
+        std::fs::write(&empty, "").unwrap();
+        let mut cut = std::fs::read(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../testdata/fits/sofi_pol_64x64_i16.fits"
+        ))
+        .unwrap();
+        cut.truncate(1000);
+        let trunc = d.path().join("cut.fits");
+        std::fs::write(&trunc, cut).unwrap();
+        let s = classify_all(&[notes.clone(), empty.clone(), trunc.clone()], &Profile::sofi());
+        let get = |p: &Path| {
+            s.unreadable
+                .iter()
+                .find(|f| f.file == p.display().to_string())
+                .map(|f| f.error.clone())
+                .unwrap()
+        };
+        let e = get(&notes);
+        assert_eq!(
+            e,
+            "not a FITS file: starts with 'observing log: clouds at 3 UT', not 'SIMPLE  ='"
+        );
+        assert_eq!(get(&empty), "not a FITS file: empty");
+        let e = get(&trunc);
+        assert!(!e.contains(&trunc.display().to_string()) && e.contains("FITS"), "{e}");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_directory_symlink_loop_is_followed_once() {
+        // Regression: `night/loop -> ..` made every frame count 41 times.
+        let d = tempfile::tempdir().unwrap();
+        let n = d.path().join("n");
+        std::fs::create_dir_all(n.join("sub")).unwrap();
+        std::fs::write(n.join("a.fits"), b"").unwrap();
+        std::fs::write(n.join("sub/b.fits"), b"").unwrap();
+        std::os::unix::fs::symlink("..", n.join("sub/loop")).unwrap();
+        std::os::unix::fs::symlink(&n, n.join("self")).unwrap();
+        std::os::unix::fs::symlink(n.join("a.fits"), n.join("alias.fits")).unwrap();
+        let l = list(&[n.clone(), d.path().join("n/."), n.join("sub")]);
+        assert_eq!(l.files, vec![n.join("a.fits"), n.join("sub/b.fits")], "{l:?}");
+        assert_eq!(l.duplicates.len(), 1, "{:?}", l.duplicates);
+        assert!(l.duplicates[0].file.ends_with("alias.fits"));
+        assert!(l.unreadable_dirs.is_empty());
+    }
 }

@@ -6,6 +6,11 @@ use serde::Serialize;
 use sofipol_calib::classify::ScienceInfo;
 use sofipol_calib::Profile;
 
+/// Dithers whose header offsets all lie within this distance (pixels) of the first are
+/// "at one position" ([`Sequence::stationary_orientations`]); real jitter steps are tens
+/// of pixels (SOFI: 86.8).
+pub const STATIONARY_PX: f64 = 2.0;
+
 /// The dithers taken at one rotator position angle.
 #[derive(Debug, Clone, Serialize)]
 pub struct Orientation {
@@ -41,11 +46,33 @@ impl Sequence {
             .collect()
     }
 
+    /// POSANG of the orientations whose dithers all sit at one position (header offsets
+    /// within [`STATIONARY_PX`] of each other): the sky median of such dithers contains
+    /// the star itself, and the star stays put on the detector like a defect.
+    pub fn stationary_orientations(&self) -> Vec<f64> {
+        self.orientations
+            .iter()
+            .filter(|o| {
+                o.exposures.len() >= 2
+                    && o.exposures.iter().all(|e| {
+                        let d = &o.exposures[0].offset_px;
+                        (e.offset_px[0] - d[0]).hypot(e.offset_px[1] - d[1]) < STATIONARY_PX
+                    })
+            })
+            .map(|o| o.posang_deg)
+            .collect()
+    }
+
     /// Things that degrade the sequence, in words (empty when complete): an orientation
     /// with fewer than 2 dithers, unequal dither counts, fewer exposures than TPL NEXP,
-    /// mixed filters.
+    /// mixed filters, dithers all at one position.
     pub fn problems(&self) -> Vec<String> {
         let mut out = Vec::new();
+        for pa in self.stationary_orientations() {
+            out.push(format!(
+                "all dithers at POSANG {pa} deg at one position (SEQ CUMOFFSET equal): the sky median contains the star"
+            ));
+        }
         let counts: Vec<usize> = self.orientations.iter().map(|o| o.exposures.len()).collect();
         for o in &self.orientations {
             if o.exposures.len() < 2 {
@@ -137,7 +164,7 @@ mod tests {
             tpl_start: tpl.into(),
             sequence: format!("{obj}@{tpl}"),
             posang_deg: pa,
-            offset_px: [0.0, 0.0],
+            offset_px: [86.8 * expno as f64, 0.0],
             filter: "Ks".into(),
             wollaston: "WOLLASTON".into(),
             dit_s: 10.0,
@@ -147,6 +174,30 @@ mod tests {
             mjd: None,
             pixscale_arcsec: 0.288,
         }
+    }
+
+    #[test]
+    fn all_dithers_at_one_position_are_detected_from_the_headers() {
+        // Regression: a sequence without offsets was reduced with the star in its own sky
+        // median and no diagnosis.
+        let mut v = Vec::new();
+        for k in 1..=6 {
+            let mut i = info("Still", "1999-03-03T03:00:00", if k <= 3 { 0.0 } else { 45.0 }, k);
+            i.nexp = Some(6);
+            i.offset_px = if k <= 3 {
+                [0.3 * k as f64, 0.0]
+            } else {
+                [86.8 * k as f64, 0.0]
+            };
+            v.push(i);
+        }
+        let seqs = group(v, &Profile::sofi());
+        assert_eq!(seqs[0].stationary_orientations(), vec![0.0]);
+        let p = seqs[0].problems();
+        assert!(
+            p.len() == 1 && p[0].contains("one position") && p[0].contains("POSANG 0"),
+            "{p:?}"
+        );
     }
 
     #[test]

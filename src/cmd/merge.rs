@@ -1,8 +1,16 @@
 //! `sofipol merge a.json b.json ... -o night.json`: join shard catalogs.
+//!
+//! The catalogs must form one run: the same instrument profile and reduction parameters
+//! (always refused otherwise). Shards of the same inputs must have the same N, each K
+//! once, and every K of 1..=N present; a missing shard is refused unless
+//! `--allow-partial`, which merges what is there, lists the missing shards in the
+//! provenance (`missing_shards`) and exits 2. A catalog written without `--shard` is a
+//! whole run and complete by itself (several nights can be merged).
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Context;
+use serde_json::Value;
 use sofipol_pipeline::catalog::Catalog;
 
 /// Arguments of `sofipol merge`.
@@ -14,10 +22,89 @@ pub struct Args {
     /// Output catalog.
     #[arg(short, long)]
     pub output: PathBuf,
+    /// Merge even when shards are missing; the missing shards are listed in the
+    /// provenance and the exit code is 2.
+    #[arg(long)]
+    pub allow_partial: bool,
+}
+
+/// The shards' coverage: `Ok(missing "K/N of inputs")` or the reason the set cannot be merged. Parts
+/// are (name, provenance).
+pub fn check_shards(parts: &[(String, &Value)], allow_partial: bool) -> anyhow::Result<Vec<String>> {
+    // One run: identical profile and parameters.
+    let (first_name, first) = &parts[0];
+    for (name, p) in &parts[1..] {
+        for key in ["parameters", "profile"] {
+            if p[key] != first[key] {
+                let detail = first_difference(&first[key], &p[key], key);
+                anyhow::bail!(
+                    "{name} and {first_name} were reduced with different {key} ({detail}): not one run; \
+                     reduce the shards again with the same settings"
+                );
+            }
+        }
+    }
+    // Shards are checked per night (the `inputs` they scanned): every K of 1..=N once.
+    // A catalog without a shard is a whole run, complete by itself.
+    let mut nights: std::collections::BTreeMap<String, (usize, std::collections::BTreeMap<usize, &str>)> =
+        std::collections::BTreeMap::new();
+    for (name, p) in parts {
+        let Some(sh) = p["shard"].as_str() else { continue };
+        let sh: sofipol_pipeline::night::Shard = sh
+            .parse()
+            .map_err(|e| anyhow::anyhow!("{name}: provenance.shard: {e}"))?;
+        let (n, have) = nights
+            .entry(p["inputs"].to_string())
+            .or_insert_with(|| (sh.n, Default::default()));
+        if *n != sh.n {
+            anyhow::bail!(
+                "{name} is shard {}/{} but other shards of the same inputs are shards of {n}",
+                sh.k,
+                sh.n
+            );
+        }
+        if let Some(prev) = have.insert(sh.k, name) {
+            anyhow::bail!("{name} and {prev} are both shard {}/{}", sh.k, sh.n);
+        }
+    }
+    let mut missing = Vec::new();
+    for (inputs, (n, have)) in &nights {
+        for k in (1..=*n).filter(|k| !have.contains_key(k)) {
+            missing.push(format!("{k}/{n} of {inputs}"));
+        }
+    }
+    if !missing.is_empty() && !allow_partial {
+        anyhow::bail!(
+            "shard(s) {} missing: their targets would be lost silently (use --allow-partial to merge anyway)",
+            missing.join(", ")
+        );
+    }
+    Ok(missing)
+}
+
+/// A short description of where two JSON values first differ (the key path).
+fn first_difference(a: &Value, b: &Value, path: &str) -> String {
+    match (a, b) {
+        (Value::Object(x), Value::Object(y)) => {
+            for (k, v) in x {
+                match y.get(k) {
+                    Some(w) if w == v => {}
+                    Some(w) => return first_difference(v, w, &format!("{path}.{k}")),
+                    None => return format!("{path}.{k} only in one"),
+                }
+            }
+            match y.keys().find(|k| !x.contains_key(*k)) {
+                Some(k) => format!("{path}.{k} only in one"),
+                None => path.to_string(),
+            }
+        }
+        _ => format!("{path}: {a} vs {b}"),
+    }
 }
 
 /// Run.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    super::common::check_output(&args.output, &args.catalogs)?;
     let mut parts = Vec::new();
     for p in &args.catalogs {
         let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
@@ -25,7 +112,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             serde_json::from_str(&text).with_context(|| format!("{}: not a sofipol catalog", p.display()))?;
         parts.push((p.display().to_string(), c));
     }
-    let merged = sofipol_pipeline::night::merge(parts).map_err(anyhow::Error::msg)?;
+    let provs: Vec<(String, &Value)> = parts.iter().map(|(n, c)| (n.clone(), &c.provenance)).collect();
+    let missing = check_shards(&provs, args.allow_partial)?;
+    let mut merged = sofipol_pipeline::night::merge(parts).map_err(anyhow::Error::msg)?;
+    merged.provenance["missing_shards"] = serde_json::json!(missing);
     sofipol_pipeline::io::write_json_atomic(&args.output, &merged)
         .with_context(|| format!("writing {}", args.output.display()))?;
     println!(
@@ -35,5 +125,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         merged.failures.len(),
         args.output.display()
     );
+    if !missing.is_empty() {
+        eprintln!(
+            "sofipol merge: warning: shard(s) {} missing (--allow-partial)",
+            missing.join(", ")
+        );
+        return Ok(ExitCode::from(2));
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -11,6 +11,9 @@ use sofipol_pipeline::night::{self, Shard};
 use super::common::{progress, ProfileArgs};
 use super::target::ReduceArgs;
 
+/// `--jobs` is capped at this many threads per core.
+pub const MAX_JOBS_PER_CORE: usize = 4;
+
 /// Arguments of `sofipol night`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -20,7 +23,7 @@ pub struct Args {
     /// Output catalog (JSON, written atomically).
     #[arg(short, long, default_value = "catalog.json")]
     pub output: PathBuf,
-    /// Worker threads (default: all cores).
+    /// Worker threads (default: all cores; at most 4 x the cores: more are capped, with a note).
     #[arg(short, long)]
     pub jobs: Option<usize>,
     /// Reduce only shard K of N (1-based), a deterministic partition of the sequences; join
@@ -46,22 +49,49 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let profile = args.profile.load()?;
     let params = args.reduce.params()?;
-    if let Some(j) = args.jobs {
+    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    let mut jobs = args.jobs;
+    if let Some(j) = jobs {
         anyhow::ensure!(j >= 1, "--jobs {j}: need at least 1");
+        // Thousands of threads only thrash (and each holds a frame set in memory).
+        let cap = MAX_JOBS_PER_CORE * cores;
+        if j > cap {
+            if !args.quiet {
+                eprintln!("sofipol night: --jobs {j} capped at {cap} ({MAX_JOBS_PER_CORE} x {cores} cores)");
+            }
+            jobs = Some(cap);
+        }
     }
     for d in &args.dirs {
         anyhow::ensure!(d.exists(), "{}: no such file or directory", d.display());
     }
     let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(args.jobs.unwrap_or(0))
+        .num_threads(jobs.unwrap_or(0))
         .build()
         .context("starting worker threads")?;
     let t0 = std::time::Instant::now();
     let plan = night::plan(&args.dirs, &profile, args.shard).context("scanning the night")?;
+    anyhow::ensure!(
+        plan.n_files > 0,
+        "no FITS files (.fits, .fit, .fits.gz, .fit.gz, .fz) in {}",
+        args.dirs
+            .iter()
+            .map(|d| d.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    // Outputs are checked before the reduction starts, never overwrite an input.
+    let mut inputs = plan.files.clone();
+    inputs.extend(args.reduce.input_files());
+    inputs.extend(args.profile.profile.clone());
+    super::common::check_output(&args.output, &inputs)?;
+    if let Some(d) = &args.reduce.save_intermediate {
+        super::common::check_output_dir(d, "--save-intermediate")?;
+    }
     let n = plan.sequences.len();
     if !args.quiet {
         eprintln!(
-            "sofipol night: {} files, {} sequences{}, {} unusable inputs; {} threads",
+            "sofipol night: {} files, {} sequences{}, {} inputs not used (found while scanning); {} threads",
             plan.n_files,
             n,
             args.shard
@@ -146,11 +176,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         print!("{}", super::report::summary(&cat));
         let ok = cat.targets.iter().filter(|t| t.status == Status::Ok).count();
         println!(
-            "{} targets: {ok} ok, {} partial, {} failed; {} inputs not used; {:.2} s wall -> {}",
+            "{} targets: {ok} ok, {} partial, {} failed; {} inputs not used ({} found while scanning, {} during the reduction); {:.2} s wall -> {}",
             cat.targets.len(),
             cat.targets.iter().filter(|t| t.status == Status::Partial).count(),
             cat.targets.iter().filter(|t| t.status == Status::Failed).count(),
             cat.failures.len(),
+            plan.failures.len(),
+            cat.failures.len() - plan.failures.len(),
             wall,
             args.output.display()
         );

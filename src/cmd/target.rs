@@ -58,6 +58,11 @@ pub struct ReduceArgs {
 }
 
 impl ReduceArgs {
+    /// Files these options read (outputs must not overwrite them).
+    pub fn input_files(&self) -> Vec<PathBuf> {
+        self.params.iter().chain(&self.badpix).cloned().collect()
+    }
+
     /// Validated parameters.
     pub fn params(&self) -> anyhow::Result<TargetParams> {
         let mut p: TargetParams = match &self.params {
@@ -118,16 +123,15 @@ impl ReduceArgs {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let profile = args.profile.load()?;
     let params = args.reduce.params()?;
-    let mut files = Vec::new();
     for i in &args.inputs {
-        files.extend(scan::find_files(i).with_context(|| format!("listing {}", i.display()))?);
+        anyhow::ensure!(i.exists(), "{}: no such file or directory", i.display());
     }
+    let (s, files) = scan::scan(&args.inputs, &profile);
     anyhow::ensure!(
         !files.is_empty(),
         "no FITS files (.fits, .fit, .fits.gz, .fz) in {:?}",
         args.inputs
     );
-    let s = scan::classify_all(&files, &profile);
     let mut seqs = sequence::group(s.science, &profile);
     if let Some(obj) = &args.object {
         seqs.retain(|q| &q.object == obj);
@@ -148,11 +152,19 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         "no polarimetric science frames among {} file(s)",
         files.len()
     );
+    let mut inputs = files.clone();
+    inputs.extend(args.reduce.input_files());
+    inputs.extend(args.profile.profile.clone());
+    super::common::check_output(&args.output, &inputs)?;
+    if let Some(d) = &args.reduce.save_intermediate {
+        super::common::check_output_dir(d, "--save-intermediate")?;
+    }
     let mut cat = Catalog {
         schema_version: SCHEMA_VERSION.into(),
         ..Default::default()
     };
     cat.failures.extend(s.unreadable);
+    cat.failures.extend(s.duplicates);
     // Non-science files count as failures only when they were named explicitly.
     let explicit: Vec<String> = args
         .inputs

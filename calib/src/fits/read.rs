@@ -59,6 +59,7 @@ pub fn read_frame(path: &Path) -> Result<Frame> {
     let (hdu_index, cards) = find_image_hdu(&mut f, path)?;
     let (header, history) = parse_cards(&cards, path);
     let (ny, nx) = image_dims(&cards, path)?;
+    check_size_against_file(&cards, path, ny, nx)?;
 
     let data = read_f32(&mut f, path, hdu_index, ny, nx)?;
 
@@ -204,6 +205,58 @@ pub(super) fn image_dims(cards: &[String], path: &Path) -> Result<(usize, usize)
         }
     }
     Ok((axes[1] as usize, axes[0] as usize))
+}
+
+/// Most output bytes (f32 pixels) allowed per byte of a compressed file (tile-compressed or
+/// gzip): far above what real frames reach (noise does not compress 1000 times).
+pub const MAX_COMPRESSION_RATIO: u64 = 1000;
+
+/// Refuse, before allocating, an image whose header promises more data than the file can
+/// hold: a corrupt NAXIS1 = NAXIS2 = 100000 in a 4 MB file asked for a 40 GB allocation
+/// and aborted the process. An uncompressed image needs NAXIS1 x NAXIS2 x |BITPIX|/8
+/// bytes of file; a compressed one (tile compression, gzip) at most
+/// [`MAX_COMPRESSION_RATIO`] output bytes per file byte.
+pub(super) fn check_size_against_file(cards: &[String], path: &Path, ny: usize, nx: usize) -> Result<()> {
+    let file_len = std::fs::metadata(path)
+        .map_err(|e| Error::Io {
+            path: path.to_path_buf(),
+            source: e,
+        })?
+        .len();
+    let gz = std::fs::File::open(path)
+        .and_then(|mut f| {
+            let mut m = [0u8; 2];
+            std::io::Read::read_exact(&mut f, &mut m).map(|_| m == [0x1f, 0x8b])
+        })
+        .unwrap_or(false);
+    let pixels = (nx as u64).checked_mul(ny as u64);
+    let (need, limit, what) = if is_compressed(cards) || gz {
+        (
+            pixels.and_then(|p| p.checked_mul(4)),
+            file_len.saturating_mul(MAX_COMPRESSION_RATIO),
+            format!("{MAX_COMPRESSION_RATIO} x the compressed file"),
+        )
+    } else {
+        let bytes = raw_int(cards, "BITPIX")
+            .map(|b| b.unsigned_abs() / 8)
+            .unwrap_or(4)
+            .max(1);
+        (
+            pixels.and_then(|p| p.checked_mul(bytes)),
+            file_len,
+            "the file".to_string(),
+        )
+    };
+    match need {
+        Some(n) if n <= limit => Ok(()),
+        _ => Err(Error::BadImage {
+            path: path.to_path_buf(),
+            reason: format!(
+                "corrupt header: NAXIS1 x NAXIS2 = {nx} x {ny} needs {} bytes of data, more than {what} holds ({file_len} bytes)",
+                need.map(|n| n.to_string()).unwrap_or_else(|| "over 2^64".into())
+            ),
+        }),
+    }
 }
 
 pub(super) fn check_same_shape(cards: &[String], path: &Path, name: &str, want: (usize, usize)) -> Result<()> {

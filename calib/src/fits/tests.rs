@@ -4,7 +4,7 @@ use std::path::Path;
 use super::cards::*;
 use super::cfitsio::cfitsio_name;
 use super::write::to_u16;
-use super::HISTORY_CHUNK;
+use super::{read_frame, read_header, HISTORY_CHUNK};
 use crate::frame::HistoryRecord;
 use crate::header::{Card, HeaderValue};
 
@@ -169,4 +169,44 @@ fn u16_conversion() {
     assert_eq!(to_u16(2.49), 2);
     assert_eq!(to_u16(70000.0), 65535);
     assert_eq!(to_u16(f32::NAN), 0);
+}
+
+#[test]
+fn a_corrupt_naxis_larger_than_the_file_is_refused_before_allocating() {
+    // Regression: NAXIS1 = NAXIS2 = 100000 in a 4 MB file asked for a 40 GB allocation
+    // and aborted the whole night.
+    let good = std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../testdata/fits/sofi_pol_64x64_i16.fits"
+    ));
+    let mut b = std::fs::read(good).unwrap();
+    for key in [&b"NAXIS1  ="[..], &b"NAXIS2  ="[..]] {
+        let at = (0..b.len() / 80)
+            .map(|i| i * 80)
+            .find(|&i| b[i..].starts_with(key))
+            .unwrap();
+        let card = format!("{:<8}= {:>20}", std::str::from_utf8(&key[..8]).unwrap().trim(), 100000);
+        b[at..at + 30].copy_from_slice(card.as_bytes());
+    }
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path().join("corrupt.fits");
+    std::fs::write(&p, &b).unwrap();
+    let e = read_frame(&p).unwrap_err().to_string();
+    assert!(e.contains("corrupt header") && e.contains("100000 x 100000"), "{e}");
+    // The header alone still reads (classification names the file, the reduction drops it).
+    assert_eq!(read_header(&p).unwrap().get_str("INSTRUME").unwrap(), "SOFI");
+    // The same through gzip: the compressed size bounds the output too.
+    let gz = d.path().join("corrupt.fits.gz");
+    let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+    std::io::Write::write_all(&mut enc, &b).unwrap();
+    std::fs::write(&gz, enc.finish().unwrap()).unwrap();
+    let e = read_frame(&gz).unwrap_err().to_string();
+    assert!(e.contains("corrupt header"), "{e}");
+    // Valid files, plain and compressed, still read.
+    assert_eq!(read_frame(good).unwrap().shape(), (64, 64));
+    let fz = std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../testdata/fits/sofi_pol_64x64_i16.fits.fz"
+    ));
+    assert_eq!(read_frame(fz).unwrap().shape(), (64, 64));
 }

@@ -142,7 +142,48 @@ impl TargetParams {
     /// Check every setting once, when the settings are read (file, then command-line
     /// overrides). The one place where allowed ranges are written down.
     pub fn validate(&self) -> Result<(), SettingError> {
-        self.measure.validate()
+        self.measure.validate()?;
+        let b = &self.bad_pixels;
+        check(b.sigma.is_finite() && b.sigma > 0.0, "bad_pixels.sigma", b.sigma, "> 0")?;
+        check(
+            (1..=31).contains(&b.window_px),
+            "bad_pixels.window_px",
+            b.window_px,
+            "in 1..=31",
+        )?;
+        check(
+            b.min_deviation_adu.is_finite() && b.min_deviation_adu >= 0.0,
+            "bad_pixels.min_deviation_adu",
+            b.min_deviation_adu,
+            ">= 0",
+        )?;
+        if let Some(c) = &self.sky.cosmic_rays {
+            check(
+                c.sigma_clip.is_finite() && c.sigma_clip > 0.0,
+                "sky.cosmic_rays.sigma_clip",
+                c.sigma_clip,
+                "> 0",
+            )?;
+            check(
+                c.sharpness_ratio.is_finite() && c.sharpness_ratio >= 0.0,
+                "sky.cosmic_rays.sharpness_ratio",
+                c.sharpness_ratio,
+                ">= 0",
+            )?;
+            check(
+                c.grow_sigma.is_finite() && c.grow_sigma > 0.0,
+                "sky.cosmic_rays.grow_sigma",
+                c.grow_sigma,
+                "> 0",
+            )?;
+            check(
+                c.grow_iterations <= 100,
+                "sky.cosmic_rays.grow_iterations",
+                c.grow_iterations,
+                "in 0..=100",
+            )?;
+        }
+        Ok(())
     }
 }
 

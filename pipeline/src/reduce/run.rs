@@ -39,10 +39,12 @@ pub struct TargetOutcome {
     pub measured: Option<super::Measured>,
 }
 
-fn failed(seq: &Sequence, msg: String, failures: Vec<Failure>, times: StageTimes) -> TargetOutcome {
+/// A failed target, keeping the diagnostic flags gathered before the failure.
+fn failed(seq: &Sequence, msg: String, flags: &[String], failures: Vec<Failure>, times: StageTimes) -> TargetOutcome {
     let mut extra = serde_json::Map::new();
     extra.insert("sequence".into(), serde_json::json!(seq.id));
     extra.insert("input_files".into(), serde_json::json!(seq.files()));
+    extra.insert("flags".into(), serde_json::json!(flags));
     TargetOutcome {
         target: Target {
             object: seq.object.clone(),
@@ -132,16 +134,32 @@ pub fn reduce_loaded(
     let mut times = StageTimes::default();
     let failures = Vec::new();
     let mut flags: Vec<String> = seq.problems();
+    // Dithers that do not move leave the star in its own sky median: the result would be
+    // wrong without a sign of it (gamma off by 10 deg and more, passing the cut). Refused.
+    let still = seq.stationary_orientations();
+    if !still.is_empty() {
+        return failed(
+            seq,
+            format!(
+                "all dithers at one position at POSANG {still:?} deg (header offsets within {} px): \
+                 the sky median would contain the star; refused (no sky frames besides the dithers)",
+                crate::sequence::STATIONARY_PX
+            ),
+            &flags,
+            failures,
+            times,
+        );
+    }
 
     // Bad pixels: calibration mask and/or detection on all frames of the sequence.
     let t = std::time::Instant::now();
     let all: Vec<&Frame> = orients.iter().flat_map(|o| o.2.iter()).collect();
     if all.is_empty() {
-        return failed(seq, "no readable frame".into(), failures, times);
+        return failed(seq, "no readable frame".into(), &flags, failures, times);
     }
     let mask = match bad_pixel_mask(&all, crop, night_mask, profile, params, &mut flags) {
         Ok(m) => m,
-        Err(e) => return failed(seq, e, failures, times),
+        Err(e) => return failed(seq, e, &flags, failures, times),
     };
     times.bad_pixels = t.elapsed().as_secs_f64();
 
@@ -162,6 +180,7 @@ pub fn reduce_loaded(
                 "{} usable orientation(s): q and u need at least 2 analyzer angles",
                 cal.len()
             ),
+            &flags,
             failures,
             times,
         );
@@ -170,7 +189,7 @@ pub fn reduce_loaded(
     let t = std::time::Instant::now();
     let measured = match measure_sequence(&cal, profile, &params.measure) {
         Ok(m) => m,
-        Err(e) => return failed(seq, e.0, failures, times),
+        Err(e) => return failed(seq, e.0, &flags, failures, times),
     };
     let mut target = target_entry(&seq.object, &cal, &measured, &params.measure);
     times.measure = t.elapsed().as_secs_f64();

@@ -35,6 +35,8 @@ use crate::catalog::Catalog;
 pub const CHUNK_PAIRS: u64 = 1 << 16;
 /// Default number of pairs (the reference study used 10^7).
 pub const DEFAULT_PAIRS: u64 = 10_000_000;
+/// Most pairs [`simulate_samples`] keeps in memory (800 MB).
+pub const MAX_SAMPLE_PAIRS: u64 = 100_000_000;
 /// Default seed.
 pub const DEFAULT_SEED: u64 = 20010101;
 /// Default number of Delta-gamma bins on [0, 90] deg (1 deg each).
@@ -554,9 +556,20 @@ pub fn simulate(cfg: &McConfig) -> Result<McOutput> {
 }
 
 /// Run the Monte Carlo and also return every accepted Delta gamma (degrees) in a fixed
-/// order (chunk by chunk), for two-sample tests. Memory: 8 bytes per pair.
+/// order (chunk by chunk), for two-sample tests. Memory: 8 bytes per pair, so at most
+/// [`MAX_SAMPLE_PAIRS`] pairs (refused above, before allocating; the histogram of
+/// [`simulate`] has no such limit).
 pub fn simulate_samples(cfg: &McConfig) -> Result<(Vec<f64>, McOutput)> {
     cfg.validate()?;
+    if cfg.pairs > MAX_SAMPLE_PAIRS {
+        return Err(Error::InvalidParameter {
+            name: "pairs".into(),
+            value: cfg.pairs.to_string(),
+            reason: format!(
+                "a two-sample test keeps every simulated Delta gamma (8 bytes each): at most {MAX_SAMPLE_PAIRS} pairs"
+            ),
+        });
+    }
     let kernel = Kernel::new(cfg);
     let parts: Vec<Vec<f64>> = chunks(cfg.pairs)
         .into_par_iter()
@@ -586,5 +599,28 @@ fn parts_mean(v: &[f64]) -> f64 {
         f64::NAN
     } else {
         v.iter().sum::<f64>() / v.len() as f64
+    }
+}
+
+#[cfg(test)]
+mod hard_case_tests {
+    use super::*;
+
+    #[test]
+    fn a_billion_pairs_are_counted_exactly_and_samples_refused_before_allocating() {
+        // 10^9 pairs: the chunking covers every pair once (u64 throughout), without
+        // running 10^9 draws; `simulate_samples` (8 GB) refuses before allocating.
+        let pairs = 1_000_000_000u64;
+        let c = chunks(pairs);
+        assert_eq!(c.len() as u64, pairs.div_ceil(CHUNK_PAIRS));
+        assert_eq!(c.iter().map(|&(_, n)| n).sum::<u64>(), pairs);
+        assert!(c
+            .iter()
+            .enumerate()
+            .all(|(i, &(k, n))| k == i as u64 && n >= 1 && n <= CHUNK_PAIRS));
+        assert_eq!(c.last().unwrap().1, pairs - (c.len() as u64 - 1) * CHUNK_PAIRS);
+        let cfg = McConfig::geometry(AlignmentModel::Random, pairs, 1);
+        let e = simulate_samples(&cfg).unwrap_err().to_string();
+        assert!(e.contains("pairs") && e.contains("1000000000"), "{e}");
     }
 }

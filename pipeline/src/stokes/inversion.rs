@@ -13,6 +13,9 @@ use serde::{Deserialize, Serialize};
 
 /// sigma_P -> sigma_gamma factor: 90/pi = 28.6479 deg per unit sigma_P/P.
 pub const WK_ANGLE_FACTOR_DEG: f64 = 90.0 / std::f64::consts::PI;
+/// Standard deviation of an axial angle uniform on [-90, 90) deg (no information): 90/sqrt(3).
+/// The upper bound of the reported `sigma_gamma_deg`.
+pub const UNIFORM_ANGLE_SIGMA_DEG: f64 = 51.961_524_227_066_32;
 
 /// A weighted combination of per-dither F values.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -198,7 +201,8 @@ pub struct LinearPolarization {
     pub p_debiased: f64,
     /// gamma, degrees in [0, 180).
     pub gamma_deg: f64,
-    /// Wardle-Kronberg sigma_gamma = 28.65 deg sigma_P / P.
+    /// Wardle-Kronberg sigma_gamma = 28.65 deg sigma_P / P, at most 90/sqrt(3) = 51.96 deg
+    /// (the standard deviation of a uniform angle; reached for P below ~0.55 sigma_P).
     pub sigma_gamma_deg: f64,
     /// 68.27 % half-width of the Naghizadeh-Khouei & Clarke angle distribution, deg,
     /// evaluated at the debiased S/N P0 = `p_debiased` / `sigma_p` (the distribution's
@@ -218,11 +222,19 @@ impl LinearPolarization {
             (0.5 * (sigma_q * sigma_q + sigma_u * sigma_u)).sqrt()
         };
         let gamma_deg = crate::stokes::model::normalize_axial_deg(0.5 * u.atan2(q).to_degrees());
-        let snr = if sigma_p > 0.0 { p / sigma_p } else { f64::INFINITY };
-        let sigma_gamma_deg = if p > 0.0 {
-            WK_ANGLE_FACTOR_DEG * sigma_p / p
+        let snr = if p == 0.0 {
+            0.0
+        } else if sigma_p > 0.0 {
+            p / sigma_p
         } else {
-            90.0 / 3f64.sqrt()
+            f64::INFINITY
+        };
+        // At low S/N the linear formula explodes (P << sigma gave 10^5 deg); no axial angle
+        // error exceeds that of an angle uniform on [-90, 90): 90/sqrt(3) = 51.96 deg.
+        let sigma_gamma_deg = if p > 0.0 {
+            (WK_ANGLE_FACTOR_DEG * sigma_p / p).min(UNIFORM_ANGLE_SIGMA_DEG)
+        } else {
+            UNIFORM_ANGLE_SIGMA_DEG
         };
         let p_debiased = debias(p, sigma_p, how);
         let snr0 = if sigma_p > 0.0 {

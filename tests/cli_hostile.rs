@@ -1,0 +1,470 @@
+//! Hostile but realistic use of the `sofipol` binary (issue 9): each test simulates a
+//! 2-target night, damages it or the command line in one way, and checks that nothing is
+//! lost and nothing is silently wrong: the undamaged target is reduced exactly as in a
+//! clean run, and every unused input is named under `failures`.
+//!
+//! `SOFIPOL_BIN=/path/to/sofipol cargo test --test cli_hostile` runs these tests against
+//! another build (how they were checked to fail before the fixes).
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use serde_json::Value;
+
+fn bin() -> String {
+    std::env::var("SOFIPOL_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_sofipol").to_string())
+}
+
+const SCENE: &str = r#"
+name = "hx"
+seed = 7
+effects = ["psf", "sky", "strips", "photon_noise", "read_noise"]
+[observation]
+orientations_deg = [0.0, 45.0]
+dithers = 3
+[psf]
+kind = "moffat"
+fwhm_arcsec = 0.8
+[[binary]]
+name = "Alpha"
+separation_arcsec = 4.0
+pa_deg = 30.0
+flux_a = 120000.0
+flux_b = 60000.0
+p_a = 0.05
+gamma_a_deg = 20.0
+p_b = 0.04
+gamma_b_deg = 110.0
+[[binary]]
+name = "Beta"
+separation_arcsec = 3.0
+pa_deg = 200.0
+flux_a = 100000.0
+flux_b = 70000.0
+p_a = 0.03
+gamma_a_deg = 60.0
+p_b = 0.06
+gamma_b_deg = 150.0
+"#;
+
+fn run(args: &[&str]) -> (i32, String, String) {
+    let o = Command::new(bin()).args(args).output().expect("run sofipol");
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stdout).into(),
+        String::from_utf8_lossy(&o.stderr).into(),
+    )
+}
+
+/// A simulated 2-target night (Alpha, Beta; 2 orientations x 3 dithers) in `dir/night`.
+fn night(dir: &Path) -> PathBuf {
+    let n = dir.join("night");
+    let scene = dir.join("scene.toml");
+    std::fs::write(&scene, SCENE).unwrap();
+    let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&n), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_file(n.join("truth.json")).unwrap();
+    n
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+fn catalog(p: &Path) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+}
+
+fn target<'a>(c: &'a Value, name: &str) -> &'a Value {
+    c["targets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|t| t["object"] == name)
+        .unwrap_or_else(|| panic!("no target {name} in {c}"))
+}
+
+fn failures(c: &Value) -> Vec<(String, String)> {
+    c["failures"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| {
+            (
+                f["file"].as_str().unwrap().to_string(),
+                f["error"].as_str().unwrap().to_string(),
+            )
+        })
+        .collect()
+}
+
+/// The reference catalog of the undamaged night.
+fn clean_catalog(dir: &Path, n: &Path) -> Value {
+    let out = dir.join("clean.json");
+    let (code, _, err) = run(&["night", s(n), "-o", s(&out), "-q", "--no-png"]);
+    assert_eq!(code, 0, "{err}");
+    catalog(&out)
+}
+
+#[test]
+fn closed_stdout_and_stderr_do_not_panic_and_the_catalog_is_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let out = dir.path().join("cat.json");
+    // Both ends closed before sofipol writes anything: every write fails with EPIPE.
+    let (r1, w1) = std::io::pipe().unwrap();
+    let (r2, w2) = std::io::pipe().unwrap();
+    drop(r1);
+    drop(r2);
+    let st = Command::new(bin())
+        .args(["night", s(&n), "-o", s(&out), "--no-png", "-v"])
+        .stdout(Stdio::from(w1))
+        .stderr(Stdio::from(w2))
+        .status()
+        .unwrap();
+    assert_eq!(st.code(), Some(0), "{st:?}");
+    let c = catalog(&out);
+    assert_eq!(c["targets"].as_array().unwrap().len(), 2, "{c}");
+    // The same for `target`, and for an error path (message to a closed stderr).
+    let (r, w) = std::io::pipe().unwrap();
+    drop(r);
+    let st = Command::new(bin())
+        .args(["night", "/nonexistent/night", "-o", s(&out)])
+        .stderr(Stdio::from(w))
+        .status()
+        .unwrap();
+    assert_eq!(st.code(), Some(1), "{st:?}");
+    let out2 = dir.path().join("t.json");
+    let (r, w) = std::io::pipe().unwrap();
+    drop(r);
+    let st = Command::new(bin())
+        .args(["target", s(&n), "--object", "Beta", "-o", s(&out2)])
+        .stdout(Stdio::from(w))
+        .status()
+        .unwrap();
+    assert_eq!(st.code(), Some(0), "{st:?}");
+    assert_eq!(catalog(&out2)["targets"].as_array().unwrap().len(), 1);
+}
+
+fn components(t: &Value) -> &Value {
+    &t["components"]
+}
+
+#[cfg(unix)]
+#[test]
+fn the_same_frame_reached_twice_is_used_once_and_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let clean = clean_catalog(dir.path(), &n);
+    // A backup copy in a subfolder, a symlink alias, and the night given three times
+    // (relative, ./relative, absolute).
+    std::fs::create_dir(n.join("backup")).unwrap();
+    std::fs::copy(n.join("SOFI_hx_Beta_02.fits"), n.join("backup/SOFI_hx_Beta_02.fits")).unwrap();
+    std::os::unix::fs::symlink(n.join("SOFI_hx_Beta_05.fits"), n.join("alias.fits")).unwrap();
+    let out = dir.path().join("cat.json");
+    let o = Command::new(bin())
+        .current_dir(dir.path())
+        .args(["night", "night", "./night", s(&n), "-o", s(&out), "-q", "--no-png"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
+    let c = catalog(&out);
+    for name in ["Alpha", "Beta"] {
+        assert_eq!(target(&c, name)["status"], "ok", "{name}");
+        // Bit-identical to the clean night: no frame used twice (sigma would shrink).
+        assert_eq!(components(target(&c, name)), components(target(&clean, name)), "{name}");
+    }
+    let f = failures(&c);
+    assert_eq!(f.len(), 2, "{f:?}");
+    assert!(
+        f.iter()
+            .any(|(file, e)| file.ends_with("alias.fits") && e.contains("duplicate of")),
+        "{f:?}"
+    );
+    assert!(
+        f.iter()
+            .any(|(file, e)| file.ends_with("backup/SOFI_hx_Beta_02.fits") && e.contains("SOFI_hx_Beta_02.fits")),
+        "{f:?}"
+    );
+}
+
+#[test]
+fn output_onto_an_input_or_a_directory_or_an_unwritable_place_is_refused_before_the_reduction() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let frame = n.join("SOFI_hx_Alpha_01.fits");
+    let before = std::fs::read(&frame).unwrap();
+    for (o, want) in [
+        (frame.clone(), "input"),
+        (n.join("./SOFI_hx_Beta_01.fits"), "input"),
+        (n.clone(), "directory"),
+        (PathBuf::from("/proc/sofipol-cat.json"), "cannot create"),
+    ] {
+        let (code, _, err) = run(&["night", s(&n), "-o", s(&o), "--no-png"]);
+        assert_eq!(code, 1, "-o {}: {err}", o.display());
+        assert!(err.contains(want) && err.contains(s(&o)), "-o {}: {err}", o.display());
+        // Refused before any target was reduced.
+        assert!(!err.contains("[1/2]"), "{err}");
+        let (code, _, err) = run(&["target", s(&n), "--object", "Alpha", "-o", s(&o)]);
+        assert_eq!(code, 1, "target -o {}: {err}", o.display());
+    }
+    assert_eq!(std::fs::read(&frame).unwrap(), before, "an input frame was overwritten");
+    // merge onto one of its own inputs.
+    let c = dir.path().join("c.json");
+    let (code, _, _) = run(&["night", s(&n), "-o", s(&c), "-q", "--no-png"]);
+    assert_eq!(code, 0);
+    let c_before = std::fs::read(&c).unwrap();
+    let (code, _, err) = run(&["merge", s(&c), "-o", s(&c), "--allow-partial"]);
+    assert_eq!(code, 1, "{err}");
+    assert_eq!(std::fs::read(&c).unwrap(), c_before);
+}
+
+#[test]
+fn merge_refuses_missing_shards_and_shards_with_different_parameters() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let sh = |k: &str, extra: &[&str]| {
+        let out = dir
+            .path()
+            .join(format!("s{}{}.json", k.replace('/', "of"), extra.len()));
+        let mut a = vec!["night", s(&n), "-o", s(&out), "-q", "--no-png", "--shard", k];
+        a.extend_from_slice(extra);
+        let (code, _, err) = run(&a);
+        assert!(code == 0 || code == 2, "{err}");
+        out
+    };
+    let (s1, s2, s3) = (sh("1/3", &[]), sh("2/3", &[]), sh("3/3", &[]));
+    let s2b = sh("2/3", &["--aperture-fwhm", "2.5"]);
+    let m = dir.path().join("m.json");
+    // Complete and consistent: merged.
+    let (code, _, err) = run(&["merge", s(&s1), s(&s2), s(&s3), "-o", s(&m)]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(catalog(&m)["targets"].as_array().unwrap().len(), 2);
+    // A shard missing: refused, naming it; --allow-partial merges, says so, exits 2.
+    std::fs::remove_file(&m).unwrap();
+    let (code, _, err) = run(&["merge", s(&s1), s(&s3), "-o", s(&m)]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("2/3") && err.contains("--allow-partial"), "{err}");
+    assert!(!m.exists());
+    let (code, _, err) = run(&["merge", s(&s1), s(&s3), "-o", s(&m), "--allow-partial"]);
+    assert_eq!(code, 2, "{err}");
+    let ms = catalog(&m)["provenance"]["missing_shards"].clone();
+    assert!(
+        ms.as_array().unwrap().len() == 1 && ms[0].as_str().unwrap().starts_with("2/3 of"),
+        "{ms}"
+    );
+    // A shard given twice, or run with other parameters: refused.
+    let (code, _, err) = run(&["merge", s(&s1), s(&s2), s(&s2b), s(&s3), "-o", s(&m)]);
+    assert_eq!(code, 1, "{err}");
+    let (code, _, err) = run(&["merge", s(&s1), s(&s2b), s(&s3), "-o", s(&m)]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("aperture_fwhm") && err.contains(s(&s2b)), "{err}");
+}
+
+#[test]
+fn an_empty_or_fits_less_night_exits_1() {
+    let dir = tempfile::tempdir().unwrap();
+    let empty = dir.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    std::fs::write(dir.path().join("notes.txt"), "no frames").unwrap();
+    let out = dir.path().join("c.json");
+    for d in [empty.clone(), dir.path().to_path_buf()] {
+        let (code, _, err) = run(&["night", s(&d), "-o", s(&out), "--no-png"]);
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains("no FITS files") && err.contains(s(&d)), "{err}");
+    }
+    assert!(!out.exists());
+}
+
+#[test]
+fn jobs_2048_is_capped_and_finishes_and_unused_input_counts_agree() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    std::fs::write(n.join("notes.fits"), "observing log\n").unwrap();
+    let out = dir.path().join("c.json");
+    let mut child = Command::new(bin())
+        .args(["night", s(&n), "-o", s(&out), "--no-png", "--jobs", "2048"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if t0.elapsed().as_secs() > 120 {
+            child.kill().unwrap();
+            panic!("--jobs 2048 did not finish in 120 s");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    let o = child.wait_with_output().unwrap();
+    let (stdout, err) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("--jobs 2048 capped at"), "{err}");
+    // The start line and the end line count the same unused inputs.
+    assert!(err.contains("1 inputs not used (found while scanning)"), "{err}");
+    assert!(
+        stdout.contains("1 inputs not used (1 found while scanning, 0 during the reduction)"),
+        "{stdout}"
+    );
+    assert_eq!(catalog(&out)["targets"].as_array().unwrap().len(), 2);
+}
+
+#[test]
+fn save_intermediate_inside_the_night_folder_is_skipped_by_the_next_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let clean = clean_catalog(dir.path(), &n);
+    let products = n.join("products");
+    let first = dir.path().join("first.json");
+    let (code, _, err) = run(&[
+        "night",
+        s(&n),
+        "-o",
+        s(&first),
+        "-q",
+        "--no-png",
+        "--save-intermediate",
+        s(&products),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let saved: Vec<_> = std::fs::read_dir(&products).unwrap().collect();
+    assert_eq!(saved.len(), 12, "one sky-subtracted product per frame");
+    // The next run over the same folder finds the products, skips them by name, and
+    // reduces the raw frames exactly as before.
+    let second = dir.path().join("second.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&second), "-q", "--no-png"]);
+    assert_eq!(code, 2, "{err}");
+    let c = catalog(&second);
+    for name in ["Alpha", "Beta"] {
+        assert_eq!(target(&c, name)["status"], "ok", "{name}: {}", target(&c, name));
+        assert_eq!(components(target(&c, name)), components(target(&clean, name)), "{name}");
+    }
+    let f = failures(&c);
+    assert_eq!(f.len(), 12, "{f:?}");
+    assert!(
+        f.iter().all(|(file, e)| file.contains("products")
+            && file.ends_with("_skysub.fits")
+            && e.contains("sofipol product")),
+        "{f:?}"
+    );
+}
+
+/// Alpha (dithered as usual) and, simulated separately, Beta with every dither at one
+/// position (jitter step 0), in one night folder.
+fn night_with_a_stationary_target(dir: &Path) -> PathBuf {
+    let n = night(dir);
+    for f in std::fs::read_dir(&n).unwrap() {
+        let p = f.unwrap().path();
+        if p.to_str().unwrap().contains("Beta") {
+            std::fs::remove_file(p).unwrap();
+        }
+    }
+    let still = SCENE
+        .replace("name = \"hx\"", "name = \"still\"")
+        .replace("dithers = 3", "dithers = 3\njitter_step_px = 0.0");
+    let still = still[..still.find("[[binary]]\nname = \"Alpha\"").unwrap()].to_string()
+        + &still[still.find("[[binary]]\nname = \"Beta\"").unwrap()..];
+    let scene = dir.join("still.toml");
+    std::fs::write(&scene, still).unwrap();
+    let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&n), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_file(n.join("truth.json")).unwrap();
+    n
+}
+
+#[test]
+fn all_dithers_at_one_position_are_refused_by_name_and_kept_out_of_the_night_mask() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night_with_a_stationary_target(dir.path());
+    let out = dir.path().join("c.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png"]);
+    assert_eq!(code, 2, "{err}");
+    let c = catalog(&out);
+    let beta = target(&c, "Beta");
+    // Refused clearly (it was `partial` with gamma off and `passes_cut: true`).
+    assert_eq!(beta["status"], "failed", "{beta}");
+    assert!(beta["error"].as_str().unwrap().contains("one position"), "{beta}");
+    assert!(beta["components"].as_array().unwrap().is_empty(), "{beta}");
+    // A failed target keeps its diagnostic flags.
+    let flags = beta["flags"].as_array().unwrap();
+    assert!(
+        flags.iter().any(|f| f.as_str().unwrap().contains("one position")),
+        "{beta}"
+    );
+    assert_eq!(target(&c, "Alpha")["status"], "ok");
+    // The stationary star must not be taken for a detector defect.
+    let from = c["provenance"]["night_bad_pixel_mask_from"].as_array().unwrap();
+    assert!(from.iter().all(|f| !f.as_str().unwrap().contains("still")), "{from:?}");
+}
+
+#[test]
+fn a_corrupt_naxis_of_100000_is_named_and_the_night_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let clean = clean_catalog(dir.path(), &n);
+    let f = n.join("SOFI_hx_Alpha_01.fits");
+    let mut b = std::fs::read(&f).unwrap();
+    for key in [&b"NAXIS1  ="[..], &b"NAXIS2  ="[..]] {
+        let at = (0..b.len() / 80)
+            .map(|i| i * 80)
+            .find(|&i| b[i..].starts_with(key))
+            .unwrap();
+        let card = format!("{:<8}= {:>20}", std::str::from_utf8(&key[..8]).unwrap().trim(), 100000);
+        b[at..at + 30].copy_from_slice(card.as_bytes());
+    }
+    std::fs::write(&f, &b).unwrap();
+    let out = dir.path().join("c.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png"]);
+    assert_eq!(code, 2, "{err}");
+    let c = catalog(&out);
+    assert_eq!(components(target(&c, "Beta")), components(target(&clean, "Beta")));
+    assert_ne!(target(&c, "Alpha")["status"], "ok");
+    let fl = failures(&c);
+    assert!(
+        fl.iter()
+            .any(|(file, e)| file.ends_with("SOFI_hx_Alpha_01.fits") && e.contains("corrupt header")),
+        "{fl:?}"
+    );
+}
+
+#[test]
+fn unknown_keys_and_out_of_range_values_are_refused_naming_the_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let out = dir.path().join("c.json");
+    let params = dir.path().join("p.toml");
+    let prof = dir.path().join("prof.toml");
+    std::fs::write(&prof, "[detector]\ngain = 5.6\n").unwrap();
+    let cases: Vec<(Vec<String>, &str)> = vec![
+        (
+            vec!["--set".into(), "detector.gian_e_per_adu=5".into()],
+            "gian_e_per_adu",
+        ),
+        (vec!["--profile".into(), s(&prof).into()], "gain"),
+        (vec!["--params".into(), s(&params).into()], "bad_pixels.window_px"),
+    ];
+    std::fs::write(&params, "[bad_pixels]\nwindow_px = 0\n").unwrap();
+    for (extra, key) in cases {
+        let mut a = vec!["night", s(&n), "-o", s(&out), "--no-png"];
+        a.extend(extra.iter().map(|x| x.as_str()));
+        let (code, _, err) = run(&a);
+        assert_eq!(code, 1, "{a:?}: {err}");
+        assert!(err.contains(key), "{a:?}: {err}");
+    }
+    for (text, key) in [
+        ("[sky.cosmic_rays]\nsigma_clip = nan\n", "sky.cosmic_rays.sigma_clip"),
+        ("[bad_pixels]\nsigma = -1.0\n", "bad_pixels.sigma"),
+    ] {
+        std::fs::write(&params, text).unwrap();
+        let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "--no-png", "--params", s(&params)]);
+        assert_eq!(code, 1, "{text}: {err}");
+        assert!(err.contains(key), "{text}: {err}");
+    }
+    assert!(!out.exists());
+    // A [sky] table with only `scaling` keeps cosmic-ray flagging (it silently dropped it).
+    std::fs::write(&params, "[sky]\nscaling = \"additive\"\n").unwrap();
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--params", s(&params)]);
+    assert_eq!(code, 0, "{err}");
+    let sky = &catalog(&out)["provenance"]["parameters"]["sky"];
+    assert_eq!(sky["cosmic_rays"]["enabled"], true, "{sky}");
+    assert_eq!(sky["scaling"], "additive", "{sky}");
+}
