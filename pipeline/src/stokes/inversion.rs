@@ -237,7 +237,10 @@ impl LinearPolarization {
             UNIFORM_ANGLE_SIGMA_DEG
         };
         let p_debiased = debias(p, sigma_p, how);
-        let snr0 = if sigma_p > 0.0 {
+        // The NKC width at the debiased S/N; P = 0 (even with zero errors) is S/N 0.
+        let snr0 = if p_debiased == 0.0 {
+            0.0
+        } else if sigma_p > 0.0 {
             p_debiased / sigma_p
         } else {
             f64::INFINITY
