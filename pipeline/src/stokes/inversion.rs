@@ -150,13 +150,55 @@ pub fn fit_qu(phi_deg: &[f64], f: &[f64], sigma: &[f64]) -> Option<QuFit> {
 
 /// Debiasing estimator of P.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
+#[serde(try_from = "String", into = "String")]
 pub enum Debias {
     /// Wardle & Kronberg (1974): sqrt(P^2 - sigma^2) if P > sigma, else 0.
     #[default]
     WardleKronberg,
     /// Modified asymptotic estimator, Plaszczynski et al. (2014).
     Mas,
+}
+
+/// The spellings of [`Debias`], the same in TOML and on the command line.
+pub const DEBIAS_SPELLINGS: &str = "wk (Wardle & Kronberg 1974) or mas (Plaszczynski et al. 2014)";
+
+/// `wk`, `mas`: the one spelling of TOML and the command line.
+impl std::fmt::Display for Debias {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Debias::WardleKronberg => "wk",
+            Debias::Mas => "mas",
+        })
+    }
+}
+
+/// Parses what [`Debias`]'s `Display` writes (and the old TOML `wardle_kronberg`).
+impl std::str::FromStr for Debias {
+    type Err = crate::error::SettingError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "wk" | "wardle_kronberg" => Ok(Debias::WardleKronberg),
+            "mas" => Ok(Debias::Mas),
+            _ => Err(crate::error::SettingError {
+                key: "measure.debias",
+                value: format!("{s:?}"),
+                allowed: DEBIAS_SPELLINGS,
+            }),
+        }
+    }
+}
+
+impl TryFrom<String> for Debias {
+    type Error = crate::error::SettingError;
+    fn try_from(s: String) -> Result<Self, Self::Error> {
+        s.parse()
+    }
+}
+
+impl From<Debias> for String {
+    fn from(d: Debias) -> String {
+        d.to_string()
+    }
 }
 
 /// Debiased P.
