@@ -221,31 +221,62 @@ pub fn debias(p: f64, sigma_p: f64, how: Debias) -> f64 {
     }
 }
 
-/// Linear polarization of one source with errors.
+/// q, u, P, gamma and their errors, in this order: what a catalog component stores
+/// ([`crate::catalog::Component`] flattens it, so the JSON keys keep this order).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct LinearPolarization {
-    /// q.
+pub struct Polarization {
+    /// Normalised Stokes q (sky frame).
     pub q: f64,
-    /// u.
+    /// Normalised Stokes u (sky frame).
     pub u: f64,
-    /// sigma_q.
+    /// 1-sigma error of q.
     pub sigma_q: f64,
-    /// sigma_u.
+    /// 1-sigma error of u.
     pub sigma_u: f64,
-    /// P = hypot(q, u).
+    /// Degree of linear polarization P_l = hypot(q, u) (not debiased).
     pub p: f64,
-    /// sigma_P.
+    /// 1-sigma error of P.
     pub sigma_p: f64,
-    /// Debiased P.
+    /// Debiased P (Wardle & Kronberg 1974 unless `debias` says otherwise).
     pub p_debiased: f64,
-    /// gamma, degrees in [0, 180).
+    /// Polarization angle gamma, degrees east of north, in [0, 180).
     pub gamma_deg: f64,
     /// Wardle-Kronberg sigma_gamma = 28.65 deg sigma_P / P.
     pub sigma_gamma_deg: f64,
+}
+
+impl Polarization {
+    /// Every value NaN: q and u not constrained.
+    pub const UNDEFINED: Polarization = Polarization {
+        q: f64::NAN,
+        u: f64::NAN,
+        sigma_q: f64::NAN,
+        sigma_u: f64::NAN,
+        p: f64::NAN,
+        sigma_p: f64::NAN,
+        p_debiased: f64::NAN,
+        gamma_deg: f64::NAN,
+        sigma_gamma_deg: f64::NAN,
+    };
+}
+
+/// Linear polarization of one source with errors: [`Polarization`] and the S/N measures.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LinearPolarization {
+    /// q, u, P, gamma and their errors (read through `Deref`: `lp.q`).
+    #[serde(flatten)]
+    pub pol: Polarization,
     /// 68.27 % half-width of the Naghizadeh-Khouei & Clarke angle distribution, deg.
     pub sigma_gamma_nkc_deg: f64,
     /// P / sigma_P.
     pub snr: f64,
+}
+
+impl std::ops::Deref for LinearPolarization {
+    type Target = Polarization;
+    fn deref(&self) -> &Polarization {
+        &self.pol
+    }
 }
 
 impl LinearPolarization {
@@ -265,15 +296,17 @@ impl LinearPolarization {
             90.0 / 3f64.sqrt()
         };
         LinearPolarization {
-            q,
-            u,
-            sigma_q,
-            sigma_u,
-            p,
-            sigma_p,
-            p_debiased: debias(p, sigma_p, how),
-            gamma_deg,
-            sigma_gamma_deg,
+            pol: Polarization {
+                q,
+                u,
+                sigma_q,
+                sigma_u,
+                p,
+                sigma_p,
+                p_debiased: debias(p, sigma_p, how),
+                gamma_deg,
+                sigma_gamma_deg,
+            },
             sigma_gamma_nkc_deg: angle_half_width_68_deg(snr),
             snr,
         }
