@@ -31,6 +31,8 @@ enum Command {
     Mc(cmd::mc::Args),
     /// Alignment statistics of a catalog: histograms, KS, Kuiper, binomial, verdict.
     Stats(cmd::stats::Args),
+    /// Export a catalog as a table (ECSV, FITS binary table, CSV), one row per component.
+    Export(cmd::export::Args),
     /// Benchmarks that print figures (simulator, ...).
     Bench(cmd::bench::Args),
 }
@@ -53,6 +55,7 @@ fn main() -> ExitCode {
         Command::Merge(a) => cmd::merge::run(a),
         Command::Mc(a) => cmd::mc::run(a),
         Command::Stats(a) => cmd::stats::run(a),
+        Command::Export(a) => cmd::export::run(a),
         Command::Bench(a) => cmd::bench::run(a),
     };
     match result {

@@ -19,6 +19,7 @@
 pub mod accuracy;
 pub mod catalog;
 pub mod error;
+pub mod export;
 pub mod io;
 pub mod night;
 pub mod numeric;
@@ -30,3 +31,4 @@ pub mod sequence;
 pub mod sim;
 pub mod stats;
 pub mod stokes;
+pub mod world;

@@ -329,8 +329,11 @@ mod tests {
             counts[owners[0] - 1] += 1;
         }
         assert!(counts.iter().all(|&c| c > 25), "{counts:?}");
-        assert_eq!(stable_hash("HK Tau"), stable_hash("HK Tau"));
+        // FNV-1a 64 reference values (offset basis for ""; "a" and "foobar" from the
+        // published FNV test vectors, http://www.isthe.com/chongo/src/fnv/test_fnv.c).
         assert_eq!(stable_hash(""), 0xcbf2_9ce4_8422_2325);
+        assert_eq!(stable_hash("a"), 0xaf63_dc4c_8601_ec8c);
+        assert_eq!(stable_hash("foobar"), 0x8594_4171_f739_67e8);
         assert!("0/4".parse::<Shard>().is_err() && "5/4".parse::<Shard>().is_err() && "2/4".parse::<Shard>().is_ok());
     }
 }

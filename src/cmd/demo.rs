@@ -121,5 +121,141 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     println!("\n  (P found is debiased (Wardle & Kronberg); pulls use the raw P.)");
     println!("  catalog: {}   figures: {}", cat_path.display(), fig_dir.display());
-    Ok(ExitCode::SUCCESS)
+    let problems = check_against_truth(&truth.targets, &cat, PULL_LIMIT);
+    if problems.is_empty() {
+        println!("  check: every component's q and u within {PULL_LIMIT} sigma of the truth");
+        Ok(ExitCode::SUCCESS)
+    } else {
+        for p in &problems {
+            eprintln!("sofipol demo: check failed: {p}");
+        }
+        Ok(ExitCode::from(DEMO_CHECK_FAILED))
+    }
+}
+
+/// A recovered q or u further than this many sigma from the truth fails the demo.
+pub const PULL_LIMIT: f64 = 5.0;
+
+/// Exit code of a demo whose reduction disagrees with the simulated truth (docs/cli.md).
+pub const DEMO_CHECK_FAILED: u8 = 3;
+
+/// Compare the catalog with the simulated truth: every true component must be in the
+/// catalog with finite q, u and errors, and its q and u within `limit` sigma of the truth.
+/// Components are matched by name after undoing an A/B swap (position angle of B off by
+/// more than 90 deg from the truth). Returns one line per problem.
+pub fn check_against_truth(truth: &[sofipol_pipeline::sim::TargetTruth], cat: &Catalog, limit: f64) -> Vec<String> {
+    let mut problems = Vec::new();
+    for tt in truth {
+        let Some(t) = cat.targets.iter().find(|t| t.object == tt.object) else {
+            problems.push(format!("{}: not in the catalog", tt.object));
+            continue;
+        };
+        let swapped = t.extra.get("pa_deg").and_then(|v| v.as_f64()).is_some_and(|pa| {
+            let d = (pa - tt.pa_deg).rem_euclid(360.0);
+            d > 90.0 && d < 270.0
+        });
+        for (i, tc) in tt.components.iter().enumerate() {
+            let j = if swapped { 1 - i.min(1) } else { i };
+            let Some(c) = t.components.get(j) else {
+                problems.push(format!(
+                    "{} {}: component not measured ({:?})",
+                    tt.object, tc.name, t.status
+                ));
+                continue;
+            };
+            for (what, got, want, sigma) in [("q", c.q, tc.q, c.sigma_q), ("u", c.u, tc.u, c.sigma_u)] {
+                let pull = (got - want) / sigma;
+                if !pull.is_finite() || pull.abs() > limit {
+                    problems.push(format!(
+                        "{} {}: {what} = {got:.5} +- {sigma:.5}, truth {want:.5}: pull {pull:.1} (limit {limit})",
+                        tt.object, tc.name
+                    ));
+                }
+            }
+        }
+    }
+    problems
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use sofipol_pipeline::catalog::Target;
+    use sofipol_pipeline::sim::{ComponentTruth, TargetTruth};
+    use sofipol_pipeline::stokes::model::Polarization;
+
+    fn truth(q: [f64; 2], u: [f64; 2]) -> TargetTruth {
+        let comp = |n: &str, i: usize| ComponentTruth {
+            name: n.into(),
+            flux: 1e5,
+            intrinsic: Polarization { q: q[i], u: u[i] },
+            q: q[i],
+            u: u[i],
+            p: q[i].hypot(u[i]),
+            gamma_deg: 0.5 * u[i].atan2(q[i]).to_degrees().rem_euclid(360.0),
+        };
+        TargetTruth {
+            object: "T".into(),
+            tpl_start: "x".into(),
+            separation_arcsec: 2.0,
+            pa_deg: 30.0,
+            components: vec![comp("A", 0), comp("B", 1)],
+            frames: vec![],
+        }
+    }
+
+    fn catalog(q: [f64; 2], u: [f64; 2], sigma: f64, pa_deg: f64) -> Catalog {
+        let comps: Vec<_> = ["A", "B"]
+            .iter()
+            .enumerate()
+            .map(|(i, n)| {
+                serde_json::json!({"name": n, "q": q[i], "u": u[i], "sigma_q": sigma, "sigma_u": sigma,
+                    "p": q[i].hypot(u[i]), "sigma_p": sigma, "p_debiased": q[i].hypot(u[i]),
+                    "gamma_deg": 0.0, "sigma_gamma_deg": 1.0, "passes_cut": true})
+            })
+            .collect();
+        let t: Target = serde_json::from_value(serde_json::json!({
+            "object": "T", "status": "ok", "components": comps, "pa_deg": pa_deg
+        }))
+        .unwrap();
+        Catalog {
+            targets: vec![t],
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn demo_check_passes_within_limit_and_fails_beyond_it() {
+        let t = truth([0.05, -0.02], [0.01, 0.03]);
+        // 4.9 sigma off in q of A: passes; 5.1 sigma: fails, naming the component and value.
+        let ok = catalog([0.05 + 4.9e-3, -0.02], [0.01, 0.03], 1e-3, 30.0);
+        assert!(check_against_truth(&[t.clone()], &ok, 5.0).is_empty());
+        let bad = catalog([0.05 + 5.1e-3, -0.02], [0.01, 0.03], 1e-3, 30.0);
+        let p = check_against_truth(&[t.clone()], &bad, 5.0);
+        assert_eq!(p.len(), 1, "{p:?}");
+        assert!(p[0].contains("T A: q") && p[0].contains("pull 5.1"), "{p:?}");
+        // u of B off by -6 sigma.
+        let bad_u = catalog([0.05, -0.02], [0.01, 0.03 - 6e-3], 1e-3, 30.0);
+        assert!(check_against_truth(&[t.clone()], &bad_u, 5.0)[0].contains("T B: u"));
+    }
+
+    #[test]
+    fn demo_check_undoes_an_ab_swap_and_reports_lost_components() {
+        let t = truth([0.05, -0.02], [0.01, 0.03]);
+        // The reduction labelled the stars the other way round (PA off by 180 deg).
+        let swapped = catalog([-0.02, 0.05], [0.03, 0.01], 1e-3, 210.0);
+        assert!(check_against_truth(&[t.clone()], &swapped, 5.0).is_empty());
+        // ... but the same values without the PA flip are 70 sigma off.
+        let wrong = catalog([-0.02, 0.05], [0.03, 0.01], 1e-3, 30.0);
+        assert_eq!(check_against_truth(&[t.clone()], &wrong, 5.0).len(), 4);
+        // A component missing, a target missing, a NaN error.
+        let mut one = catalog([0.05, -0.02], [0.01, 0.03], 1e-3, 30.0);
+        one.targets[0].components.pop();
+        assert!(check_against_truth(&[t.clone()], &one, 5.0)[0].contains("not measured"));
+        assert!(check_against_truth(&[t.clone()], &Catalog::default(), 5.0)[0].contains("not in the catalog"));
+        let mut nan = catalog([0.05, -0.02], [0.01, 0.03], 1e-3, 30.0);
+        nan.targets[0].components[1].sigma_u = f64::NAN;
+        let p = check_against_truth(&[t], &nan, 5.0);
+        assert!(p.len() == 1 && p[0].contains("T B: u"), "{p:?}");
+    }
 }

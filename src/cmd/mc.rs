@@ -12,7 +12,7 @@ use anyhow::{bail, Context};
 use serde::Deserialize;
 use sofipol_pipeline::numeric::median_in_place;
 use sofipol_pipeline::plots::write_atomic;
-use sofipol_pipeline::stats::figures::mc_figure;
+use sofipol_pipeline::stats::figures::{format_count, mc_figure};
 use sofipol_pipeline::stats::mc::{
     self, simulate, Ism, McConfig, McOutput, PIntDist, CHUNK_PAIRS, DEFAULT_BINS, DEFAULT_PAIRS, DEFAULT_P_INT,
     DEFAULT_SEED, PAPER_ISM_LEVELS_PERCENT,
@@ -197,14 +197,8 @@ pub fn pool(threads: Option<usize>) -> anyhow::Result<rayon::ThreadPool> {
 /// Summary figures of a Pi(Delta gamma) histogram: (mean, fraction < 30 deg, first/last ninth).
 pub fn summary(out: &McOutput) -> (f64, f64, f64) {
     let h = &out.histogram;
-    let t = h.total().max(1) as f64;
-    let mean = h
-        .centers()
-        .iter()
-        .zip(&h.counts)
-        .map(|(c, &n)| c * n as f64)
-        .sum::<f64>()
-        / t;
+    // From the pairs, not the bin centres (exact for `aligned`: 0, not half a bin).
+    let mean = out.mean_delta_gamma_deg;
     let below = h.cdf(30.0);
     let last = 1.0 - h.cdf(80.0);
     let ratio = if last > 0.0 { h.cdf(10.0) / last } else { f64::INFINITY };
@@ -303,7 +297,16 @@ fn write_outputs(dir: &Path, s: &Settings, results: &[(String, McConfig, McOutpu
         serde_json::to_string_pretty(&json)?.as_bytes(),
     )?;
     let plotted: Vec<(String, McOutput)> = results.iter().map(|(l, _, o)| (l.clone(), o.clone())).collect();
-    let title = format!("Π(Δγ), model {}, {} pairs", s.base.model.spec(), s.base.pairs);
+    let pint = if results[0].1.simulates_polarization() {
+        format!(", Pᵢₙₜ {}", s.base.p_int.spec())
+    } else {
+        ", geometry only".to_string()
+    };
+    let title = format!(
+        "Π(Δγ), model {}{pint}, {} pairs",
+        s.base.model.spec(),
+        format_count(s.base.pairs)
+    );
     mc_figure(&dir.join("pi_delta_gamma.png"), &plotted, &title)?;
     Ok(())
 }

@@ -2,6 +2,7 @@
 pub mod bench;
 pub mod common;
 pub mod demo;
+pub mod export;
 pub mod mc;
 pub mod merge;
 pub mod night;

@@ -179,7 +179,7 @@ fn report_subtitle(mc: &McConfig) -> String {
         .noise_percent
         .map_or("no noise".to_string(), |s| format!("σ = {s:.2} %"));
     let cut = mc.snr_cut.map_or(String::new(), |k| format!(", P/σ > {k}"));
-    format!("P_int {}, {noise}{cut}", short_spec(&mc.p_int))
+    format!("Pᵢₙₜ {}, {noise}{cut}", short_spec(&mc.p_int))
 }
 
 fn short_spec(p: &PIntDist) -> String {

@@ -305,7 +305,48 @@ mod tests {
             &[],
         );
         assert!(m.flags.contains(Flags::TRUNCATED));
-        assert!(m.flags.contains(Flags::ANNULUS_CONTAMINATED) || m.background.is_some());
+        // The region cuts the 10-16 px annulus roughly in half: the background comes from
+        // the pixels inside (~45 % of the full annulus), still more than the minimum, so
+        // it is trusted and not flagged.
+        let full = measure(img.view(), None, None, &p, 30.2, 31.6, &[])
+            .background
+            .unwrap()
+            .n;
+        let b = m
+            .background
+            .expect("background from the part of the annulus inside the region");
+        let frac = b.n as f64 / full as f64;
+        assert!((0.35..0.6).contains(&frac), "{} of {full}", b.n);
+        assert!(!m.flags.contains(Flags::ANNULUS_CONTAMINATED), "{:?}", m.flags);
+        // A region that leaves fewer than the minimum of sky pixels flags the annulus.
+        let tiny = Region {
+            x_min: 27,
+            x_max: 33,
+            y_min: 20,
+            y_max: 33,
+        };
+        let m = measure(
+            img.view(),
+            None,
+            None,
+            &PhotParams {
+                valid_region: Some(tiny),
+                ..p
+            },
+            30.2,
+            31.6,
+            &[],
+        );
+        assert!(
+            m.background.is_none_or(|b| b.n < p.min_sky_pixels),
+            "{:?}",
+            m.background
+        );
+        assert!(
+            m.flags.contains(Flags::ANNULUS_CONTAMINATED | Flags::TRUNCATED),
+            "{:?}",
+            m.flags
+        );
         // Companion: overlap, and annulus contamination only when not excluded.
         let m = measure(img.view(), None, None, &p, 30.2, 31.6, &[(38.0, 31.6)]);
         assert!(m.flags.contains(Flags::COMPANION_OVERLAP));

@@ -377,10 +377,11 @@ fn photometry_moffat_fixed_beta_and_settings() {
     assert_eq!(PsfFitParams::default().model, PsfModel::Gaussian);
 }
 
-/// Time of a two-star Moffat fit with free beta on a 31 x 31 cut-out like the reduction's
-/// (fit radius 1.5 FWHM, variance map, noise). Prints the median.
+/// A two-star Moffat fit with free beta on a 31 x 31 cut-out like the reduction's (fit
+/// radius 1.5 and 2 FWHM, variance map, noise) converges in few iterations and recovers
+/// both fluxes and beta within their errors. (Its cost is printed by `sofipol bench`.)
 #[test]
-fn photometry_moffat_two_star_fit_is_fast() {
+fn photometry_moffat_two_star_fit_converges_on_noisy_cutouts() {
     let (fwhm, beta) = (2.8, 3.0);
     let alpha = alpha_of(fwhm, beta);
     let truth = render(31, 31, &[(9.0e4, 15.2, 15.4), (4.0e4, 18.5, 17.9)], alpha, beta, 0.0);
@@ -395,24 +396,22 @@ fn photometry_moffat_two_star_fit_is_fast() {
         .collect();
     for (radius, label) in [(1.5 * fwhm, "1.5 FWHM"), (2.0 * fwhm, "2 FWHM")] {
         let params = moffat_params(fwhm * 1.1, radius, Some(0.0));
-        let mut times = Vec::new();
         let mut iters = Vec::new();
-        for rep in 0..40 {
-            let img = &imgs[rep % imgs.len()];
-            let t0 = std::time::Instant::now();
+        for img in &imgs {
             let fit = fit_two_psf(img.view(), Some(var.view()), None, (15.0, 15.6), (18.2, 18.3), &params).unwrap();
-            times.push(t0.elapsed().as_secs_f64() * 1e3);
+            assert!(fit.converged, "{label}");
+            for (s, want) in fit.stars.iter().zip([9.0e4, 4.0e4]) {
+                assert!(
+                    (s.flux - want).abs() < 5.0 * s.flux_err,
+                    "{label}: {} +- {} vs {want}",
+                    s.flux,
+                    s.flux_err
+                );
+            }
+            assert!((fit.beta - beta).abs() < 0.5, "{label}: beta {}", fit.beta);
             iters.push(fit.iterations);
-            std::hint::black_box(fit);
         }
-        times.sort_by(f64::total_cmp);
         iters.sort();
-        eprintln!(
-            "two-star Moffat fit (beta free), fit radius {label}: median {:.2} ms (best {:.2}), median {} iterations",
-            times[times.len() / 2],
-            times[0],
-            iters[iters.len() / 2]
-        );
-        assert!(times[times.len() / 2] < 50.0, "{times:?}");
+        assert!(iters[iters.len() / 2] <= 30, "{label}: iterations {iters:?}");
     }
 }

@@ -361,40 +361,6 @@ fn photometry_flux_variance_matches_monte_carlo() {
     }
 }
 
-/// Timing of the exact r = 10 px aperture sum (the night's inner loop); prints the median.
-#[test]
-fn photometry_exact_sum_r10_is_fast() {
-    let img = render(64, 64, &[(1.0e5, 31.3, 32.6)], 1.5, 10.0).mapv(|v| v as f32);
-    let var = img.clone();
-    let reps = 200;
-    let mut times = Vec::new();
-    let mut acc = 0.0;
-    for k in 0..25 {
-        let t0 = std::time::Instant::now();
-        for j in 0..reps {
-            let ap = Aperture {
-                x: 31.3 + 0.001 * j as f64,
-                y: 32.6 - 0.0007 * k as f64,
-                r: 10.0,
-            };
-            acc += aperture_sum(
-                img.view(),
-                Some(var.view()),
-                None,
-                &ap,
-                Method::Exact,
-                MaskFill::Exclude,
-            )
-            .sum;
-        }
-        times.push(t0.elapsed().as_secs_f64() / reps as f64 * 1e6);
-    }
-    times.sort_by(f64::total_cmp);
-    let median = times[times.len() / 2];
-    eprintln!("exact aperture sum, r = 10 px, with variance map: median {median:.2} us (checksum {acc:.3e})");
-    assert!(median < 500.0, "{median} us");
-}
-
 #[test]
 #[ignore]
 fn photometry_timing_breakdown() {

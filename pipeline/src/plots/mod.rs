@@ -262,6 +262,8 @@ pub struct Panel {
     pub legend: LegendPos,
     /// Free text lines drawn in the upper left of the plot area (e.g. test results).
     pub notes: Vec<String>,
+    /// Label only integer y ticks (count axes).
+    pub integer_y: bool,
 }
 
 impl Panel {
@@ -276,6 +278,7 @@ impl Panel {
             series: Vec::new(),
             legend: LegendPos::UpperRight,
             notes: Vec::new(),
+            integer_y: false,
         }
     }
     /// Add a series.
@@ -452,6 +455,14 @@ where
         .build_cartesian_2d(x0..x1, y0..y1)
         .map_err(draw_err(&panel.title))?;
     let fmt = |v: &f64| tick(*v);
+    let integer_y = panel.integer_y;
+    let yfmt = move |v: &f64| {
+        if integer_y && (v.fract().abs() > 1e-9) {
+            String::new()
+        } else {
+            tick(*v)
+        }
+    };
     chart
         .configure_mesh()
         .x_desc(panel.xlabel.as_str())
@@ -459,9 +470,9 @@ where
         .label_style((FONT, 15))
         .axis_desc_style((FONT, 17))
         .x_label_formatter(&fmt)
-        .y_label_formatter(&fmt)
-        .light_line_style(RGBColor(235, 235, 235))
-        .bold_line_style(RGBColor(205, 205, 205))
+        .y_label_formatter(&yfmt)
+        .light_line_style(RGBColor(246, 246, 246))
+        .bold_line_style(RGBColor(228, 228, 228))
         .draw()
         .map_err(draw_err(&panel.title))?;
     let mut labelled = false;

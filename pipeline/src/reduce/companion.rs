@@ -5,7 +5,7 @@ use sofipol_calib::Profile;
 
 use super::sources::{brightest_peak, Primary};
 use super::{CalibratedOrientation, MeasureParams};
-use crate::photometry::{fit_psf, PsfFitParams, PsfModel};
+use crate::photometry::{fit_psf, PsfFit, PsfFitParams, PsfModel};
 use crate::stokes::model::{companion_offset_px, offset_to_sep_pa};
 
 /// Shift-and-add of square cut-outs of half-size `h` centred on the rounded positions
@@ -156,24 +156,50 @@ pub fn find_pair(
         beta: single.beta,
         f_stat: 0.0,
     };
-    let Ok(two) = fit_psf(
-        stack.view(),
-        None,
-        Some(smask.view()),
-        &[(b_guess.2, b_guess.3), (b_guess.0, b_guess.1)],
-        &p2,
-    ) else {
+    let r1 = crate::photometry::subtract_star(stack.view(), &single, 0);
+    let two_star = |p: &PsfFitParams| -> Option<(PsfFit, f64, f64, usize)> {
+        let two = fit_psf(
+            stack.view(),
+            None,
+            Some(smask.view()),
+            &[(b_guess.2, b_guess.3), (b_guess.0, b_guess.1)],
+            p,
+        )
+        .ok()?;
+        // Model selection on one fixed set of pixels: is the second star needed?
+        let (sa, sb) = (two.stars[0], two.stars[1]);
+        let sep = (sa.x - sb.x).hypot(sa.y - sb.y);
+        let r = (2.0 * fwhm).max(sep + 1.5 * fwhm).min(n as f64 / 2.0);
+        let r2 =
+            crate::photometry::subtract_star(crate::photometry::subtract_star(stack.view(), &two, 0).view(), &two, 1);
+        let (s1, npix) = rss(&r1, smask, s0.x, s0.y, r);
+        let (s2, _) = rss(&r2, smask, s0.x, s0.y, r);
+        Some((two, s1, s2, npix))
+    };
+    let Some(mut fitted) = two_star(&p2) else {
         return Some(single_only);
     };
+    // With beta free, the two-star fit can slide into a worse minimum than one star (beta
+    // at its bound, a broad core absorbing both): then hold beta at the single-star fit's.
+    if let PsfModel::Moffat { beta: None } = model {
+        if !(fitted.2 < fitted.1) {
+            let fixed = PsfFitParams {
+                model: PsfModel::Moffat {
+                    beta: Some(single.beta),
+                },
+                ..p2.clone()
+            };
+            if let Some(f) = two_star(&fixed) {
+                if f.2 < fitted.2 {
+                    fitted = f;
+                }
+            }
+        }
+    }
+    let (two, s1, s2, npix) = fitted;
     let (sa, sb) = (two.stars[0], two.stars[1]);
     let (a, b) = if sa.flux >= sb.flux { (sa, sb) } else { (sb, sa) };
-    // Model selection on one fixed set of pixels: is the second star needed?
     let sep = (a.x - b.x).hypot(a.y - b.y);
-    let r = (2.0 * fwhm).max(sep + 1.5 * fwhm).min(n as f64 / 2.0);
-    let r1 = crate::photometry::subtract_star(stack.view(), &single, 0);
-    let r2 = crate::photometry::subtract_star(crate::photometry::subtract_star(stack.view(), &two, 0).view(), &two, 1);
-    let (s1, npix) = rss(&r1, smask, s0.x, s0.y, r);
-    let (s2, _) = rss(&r2, smask, s0.x, s0.y, r);
     let f_stat = if npix > 8 && s2 > 0.0 {
         ((s1 - s2) / 3.0) / (s2 / (npix - 7) as f64)
     } else {
@@ -181,8 +207,8 @@ pub fn find_pair(
     };
     if std::env::var_os("SOFIPOL_DEBUG_PAIR").is_some() {
         eprintln!(
-            "find_pair: sep {sep:.2} px, fluxes {:.0} {:.0}, S1 {s1:.3e} S2 {s2:.3e} n {npix} F {f_stat:.1}",
-            a.flux, b.flux
+            "find_pair: sep {sep:.2} px, fluxes {:.0} {:.0}, S1 {s1:.3e} S2 {s2:.3e} n {npix} F {f_stat:.1}; single fwhm {:.2} beta {:.2} conv {} ; two fwhm {:.2} beta {:.2} conv {} iters {} guess {b_guess:?} s0 ({:.1},{:.1})",
+            a.flux, b.flux, single.fwhm_x(), single.beta, single.converged, two.fwhm_x(), two.beta, two.converged, two.iterations, s0.x, s0.y
         );
     }
     if !(b.flux > 0.0) {

@@ -9,7 +9,10 @@ use sofipol_calib::Frame;
 use super::companion::Companion;
 use super::sources::{Primary, UNUSABLE};
 use super::{BeamFlux, CalibratedOrientation, DitherValue, MeasureParams};
-use crate::photometry::{fit_psf, measure, subtract_star, Flags, PhotParams, PsfFit, PsfFitParams, PsfModel};
+use crate::photometry::{
+    aperture_sum, fit_psf, measure, subtract_star, Aperture, Flags, MaskFill, PhotParams, PsfFit, PsfFitParams,
+    PsfModel,
+};
 use crate::stokes::model::companion_offset_px;
 
 /// How the fluxes are measured, chosen once per sequence from the stacks.
@@ -233,6 +236,7 @@ fn measure_star(
                     var: st.flux_err.powi(2),
                     xy: (st.x + x0, st.y + y0),
                     phot_flags: 0,
+                    aperture_fraction: None,
                 }
             }
             None => BeamFlux {
@@ -279,13 +283,47 @@ fn measure_star(
         var: ph.variance,
         xy: (lx + x0, ly + y0),
         phot_flags: ph.flags.0,
+        aperture_fraction: fit.and_then(|ft| model_fraction_in_aperture(ft, si, cut.img.dim(), lx, ly, r_ap, params)),
     };
     (flux, bits_in)
 }
 
+/// The fraction of star `si`'s fitted PSF model (pixel-integrated) that falls in the
+/// aperture at (x, y), measured with the same pixel weights as the data. A small aperture
+/// on an undersampled star (FWHM ~2 px) catches a fraction that depends on the star's
+/// sub-pixel position, which differs between the o and e images: dividing both beams by
+/// their own fraction removes that difference from F (docs/photometry.md).
+fn model_fraction_in_aperture(
+    fit: &PsfFit,
+    si: usize,
+    dim: (usize, usize),
+    x: f64,
+    y: f64,
+    r_ap: f64,
+    params: &MeasureParams,
+) -> Option<f64> {
+    let st = fit.stars.get(si)?;
+    if !(fit.converged && st.flux.is_finite() && st.flux > 0.0) {
+        return None;
+    }
+    let mut model = Array2::<f32>::zeros(dim);
+    fit.render_star(si, &mut model.view_mut(), 1.0 / st.flux);
+    let ap = Aperture { x, y, r: r_ap };
+    let frac = aperture_sum(model.view(), None, None, &ap, params.method, MaskFill::Exclude).sum;
+    (frac.is_finite() && frac > 0.2 && frac <= 1.0 + 1e-6).then_some(frac)
+}
+
 /// F = (o - e)/(o + e) of one dither from the o and e beam fluxes (with the mask bits in
 /// their apertures), and why it is not used, if so.
-fn dither_value((o_b, ob): (BeamFlux, u8), (e_b, eb): (BeamFlux, u8)) -> DitherValue {
+fn dither_value((mut o_b, ob): (BeamFlux, u8), (mut e_b, eb): (BeamFlux, u8)) -> DitherValue {
+    // Aperture correction, only when both beams have one (else F would mix corrected and
+    // uncorrected fluxes).
+    if let (Some(fo), Some(fe)) = (o_b.aperture_fraction, e_b.aperture_fraction) {
+        for (b, f) in [(&mut o_b, fo), (&mut e_b, fe)] {
+            b.flux /= f;
+            b.var /= f * f;
+        }
+    }
     let tot = o_b.flux + e_b.flux;
     let fval = (o_b.flux - e_b.flux) / tot;
     let sigma_f = 2.0 * ((e_b.flux.powi(2) * o_b.var) + (o_b.flux.powi(2) * e_b.var)).sqrt() / tot.powi(2);

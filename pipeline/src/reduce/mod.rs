@@ -64,6 +64,9 @@ pub struct BeamFlux {
     /// Aperture-photometry flags of this measurement ([`crate::photometry::Flags`] bits;
     /// 0 for PSF-fit fluxes).
     pub phot_flags: u32,
+    /// Fraction of the fitted PSF model's flux inside the aperture, pixel-integrated at the
+    /// star's sub-pixel position (None: PSF-fit flux, or no converged fit).
+    pub aperture_fraction: Option<f64>,
 }
 
 /// Per-dither measurement of one component.
@@ -120,6 +123,7 @@ impl BeamFlux {
             var: f64::NAN,
             xy: (f64::NAN, f64::NAN),
             phot_flags: 0,
+            aperture_fraction: None,
         }
     }
 }

@@ -137,11 +137,11 @@ pub fn locate_primary(
         .and_then(|o| o.frames.first())
         .ok_or_else(|| MeasureError::new("no frames"))?;
     let (_, nx) = first.shape();
-    let nominal = params
-        .nominal_xy_px
-        .unwrap_or((nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5));
     let o0 = &orients[0];
     let m0 = &masks[0][0];
+    let nominal = params.nominal_xy_px.unwrap_or_else(|| {
+        nominal_from_data(o0, &masks[0], orow).unwrap_or((nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5))
+    });
     let (px, py, _) = brightest_peak(
         o0.frames[0].data.view(),
         m0.view(),
@@ -165,6 +165,35 @@ pub fn locate_primary(
         .map(|(o, ms)| centres_in_orientation(o, ms, anchor, fwhm_guess, orow))
         .collect();
     Ok(Primary { centres, fwhm_guess })
+}
+
+/// Where the target sits at zero jitter offset when no position is given: the brightest
+/// source of the o-target strip in each frame of the first orientation, carried back by the
+/// header offset; the median over the frames, accepted when at least half of them agree
+/// within 3 px (a cosmic ray or a defect that escaped the masks wins in one frame, not in
+/// most). None: no agreement (the caller falls back to the strip centre).
+fn nominal_from_data(o: &CalibratedOrientation, ms: &[Array2<u8>], orow: [usize; 2]) -> Option<(f64, f64)> {
+    let mut at_zero = Vec::new();
+    for ((f, off), m) in o.frames.iter().zip(&o.offsets).zip(ms) {
+        let (_, nx) = f.shape();
+        let centre = (nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0);
+        if let Some((x, y, _)) = brightest_peak(f.data.view(), m.view(), centre.0, centre.1, nx as f64, orow) {
+            at_zero.push((x - off[0], y - off[1]));
+        }
+    }
+    if at_zero.is_empty() {
+        return None;
+    }
+    let med = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let m = (
+        med(at_zero.iter().map(|p| p.0).collect()),
+        med(at_zero.iter().map(|p| p.1).collect()),
+    );
+    let agree = at_zero.iter().filter(|p| (p.0 - m.0).hypot(p.1 - m.1) <= 3.0).count();
+    (2 * agree >= at_zero.len()).then_some(m)
 }
 
 /// The primary in the frames of one orientation, starting from `anchor` (its position at

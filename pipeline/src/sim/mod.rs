@@ -410,10 +410,11 @@ impl Simulator {
         for (name, (dx, dy), flux, pol) in srcs {
             let pol = pol.add(ism);
             let (mut fo, mut fe) = beam_fluxes(flux * fp.transparency, pol, fp.phi, t_o, t_e);
-            if inst != 0.0 {
+            let tot = fo + fe;
+            if inst != 0.0 && tot > 0.0 {
                 // Instrumental polarization q_inst (instrument frame) adds to F at every
-                // orientation: f_o,e = (f_o + f_e)/2 (1 +- (F + q_inst)).
-                let tot = fo + fe;
+                // orientation: f_o,e = (f_o + f_e)/2 (1 +- (F + q_inst)). (A zero-flux
+                // component stays zero, not 0/0.)
                 let f = (fo - fe) / tot + inst;
                 fo = 0.5 * tot * (1.0 + f);
                 fe = 0.5 * tot * (1.0 - f);

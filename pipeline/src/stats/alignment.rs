@@ -191,11 +191,12 @@ fn verdict(r: &AlignmentReport, dg: &[f64]) -> String {
         100.0 * bt.p0
     );
     s += &format!(
-        "Against a uniform Pi(Delta gamma) on [0, 90] deg (randomly oriented disks): KS D = {:.3}, p = {}; Kuiper V = {:.3}, p = {}; binomial test of the fraction below {} deg: one-sided p = {} (two-sided {}).\n",
+        "Against a uniform Pi(Delta gamma) on [0, 90] deg (randomly oriented disks): KS D = {:.3}, p = {}; Kuiper V = {:.3}, p = {} ({}); binomial test of the fraction below {} deg: one-sided p = {} (two-sided {}).\n",
         ks.statistic,
         format_p(ks.p_value),
         kp.statistic,
         format_p(kp.p_value),
+        kp.method.split(' ').next().unwrap_or(""),
         r.threshold_deg,
         format_p(bt.p_greater),
         format_p(bt.p_two_sided)

@@ -75,7 +75,7 @@ pub fn models_figure(path: &Path, models: &[(String, AlignmentModel)], base: &Mc
                 .with(uniform_line())
                 .with(relative_steps("", &out.histogram).color(c).unlabelled())
                 .legend(LegendPos::None)
-                .note(format!("{} pairs", out.accepted)),
+                .note(format!("{} pairs", format_count(out.accepted))),
         );
         outs.push(out);
     }
@@ -104,10 +104,14 @@ pub fn ism_figure(
     if !observed.is_empty() {
         let (h, _) = Histogram::from_values(0.0, 90.0, observed_bins, observed);
         panel = panel.with(
-            relative_steps(&format!("observed (n = {})", observed.len()), &h)
+            relative_steps(&format!("observed (n = {}, ±√N)", observed.len()), &h)
                 .style(Style::Bars)
                 .color(GREY),
         );
+        let scale = observed_bins as f64 / observed.len() as f64;
+        for s in poisson_bars(&h, scale) {
+            panel = panel.with(s);
+        }
     }
     panel = panel.with(uniform_line());
     let n = comparisons.len();
@@ -120,14 +124,87 @@ pub fn ism_figure(
             h
         };
         let label = if observed.is_empty() {
-            format!("P_ism = {} %", c.p_ism_percent)
+            format!("Pᵢₛₘ = {} %", c.p_ism_percent)
         } else {
-            format!("P_ism = {} % (KS p = {})", c.p_ism_percent, format_p(c.ks.p_value))
+            format!("Pᵢₛₘ = {} % (KS p = {})", c.p_ism_percent, format_p(c.ks.p_value))
         };
-        panel = panel.with(relative_steps(&label, &h).color(sequential(i, n)));
+        panel = panel.with(
+            relative_steps(&label, &h)
+                .color(level_color(i, n))
+                .style(Style::Steps(2)),
+        );
     }
     Figure::single(panel).save_png(path)?;
     Ok(())
+}
+
+/// "a x 10^k" with a Unicode superscript exponent for round counts >= 10^4 (10⁷, 2×10⁶).
+pub fn format_count(n: u64) -> String {
+    if n < 10_000 {
+        return n.to_string();
+    }
+    let mut k = 0;
+    let mut m = n;
+    while m % 10 == 0 {
+        m /= 10;
+        k += 1;
+    }
+    if m >= 10 || k < 4 {
+        return n.to_string();
+    }
+    const SUP: [char; 10] = ['⁰', '¹', '²', '³', '⁴', '⁵', '⁶', '⁷', '⁸', '⁹'];
+    let e: String = k
+        .to_string()
+        .chars()
+        .map(|c| SUP[c.to_digit(10).unwrap() as usize])
+        .collect();
+    if m == 1 {
+        format!("10{e}")
+    } else {
+        format!("{m}×10{e}")
+    }
+}
+
+/// Distinct colours for levels: the Okabe-Ito palette (without black and yellow) up to 6
+/// levels, Tableau 10 (grey replaced by navy: grey is the observed histogram, black the
+/// uniform line) up to 10, the sequential ramp beyond.
+fn level_color(i: usize, n: usize) -> crate::plots::Rgb {
+    use crate::plots::Rgb;
+    const T10: [Rgb; 10] = [
+        Rgb(31, 119, 180),
+        Rgb(255, 127, 14),
+        Rgb(44, 160, 44),
+        Rgb(214, 39, 40),
+        Rgb(148, 103, 189),
+        Rgb(140, 86, 75),
+        Rgb(227, 119, 194),
+        Rgb(0, 0, 128),
+        Rgb(188, 189, 34),
+        Rgb(23, 190, 207),
+    ];
+    if n <= 6 {
+        palette(i)
+    } else if n <= T10.len() {
+        T10[i]
+    } else {
+        sequential(i, n)
+    }
+}
+
+/// Poisson (sqrt N) error bars of a count histogram, scaled by `scale`, as vertical segments.
+fn poisson_bars(h: &Histogram, scale: f64) -> Vec<Series> {
+    h.centers()
+        .iter()
+        .zip(&h.counts)
+        .filter(|(_, &c)| c > 0)
+        .map(|(&x, &c)| {
+            let (v, e) = (c as f64 * scale, (c as f64).sqrt() * scale);
+            Series::line("", vec![x, x], vec![v - e, v + e])
+                .color(crate::plots::Rgb(0, 0, 0))
+                .style(Style::Line(1))
+                .unlabelled()
+        })
+        .collect()
 }
 
 const GREY: crate::plots::Rgb = crate::plots::Rgb(120, 120, 120);
@@ -143,22 +220,34 @@ pub fn observed_figure(path: &Path, sample: &BinarySample, dg_bins: usize, notes
     let (hd, _) = Histogram::from_values(0.0, 90.0, dg_bins, &dg);
     let expected = dg.len() as f64 / dg_bins as f64;
     let to_f = |h: &Histogram| h.counts.iter().map(|&c| c as f64).collect::<Vec<_>>();
-    let a = Panel::new(format!("[A] P_l of {} components", p.len()), "P_l (debiased) [%]", "N")
+    let mut a = Panel::new(format!("[A] Pₗ of {} components", p.len()), "Pₗ (debiased) [%]", "N")
         .with(Series::bars("", hp.edges(), to_f(&hp)).unlabelled().color(palette(0)))
         .legend(LegendPos::None);
+    a.integer_y = true;
+    for s in poisson_bars(&hp, 1.0) {
+        a = a.with(s);
+    }
     let noun = if dg.len() == 1 { "binary" } else { "binaries" };
     let mut b = Panel::new(format!("[B] Δγ of {} {noun}", dg.len()), DG, "N")
         .x_range(0.0, 90.0)
-        .with(Series::bars("observed", hd.edges(), to_f(&hd)).color(palette(1)))
+        .with(Series::bars("observed (±√N)", hd.edges(), to_f(&hd)).color(palette(1)))
         .with(
             Series::line("random orientation", vec![0.0, 90.0], vec![expected, expected])
                 .style(Style::Dashed(2))
                 .color(palette(6)),
         );
+    for s in poisson_bars(&hd, 1.0) {
+        b = b.with(s);
+    }
+    b.integer_y = true;
     b.notes = notes.to_vec();
     if !notes.is_empty() {
         // Leave room above the bars for the notes.
-        let top = hd.counts.iter().copied().max().unwrap_or(1) as f64;
+        let top = hd
+            .counts
+            .iter()
+            .map(|&c| c as f64 + (c as f64).sqrt())
+            .fold(1.0, f64::max);
         b = b.y_range(0.0, top * (1.15 + 0.08 * notes.len() as f64));
     }
     Figure::grid(None, vec![a, b], 2, (620, 440)).save_png(path)?;
@@ -170,8 +259,13 @@ pub fn mc_figure(path: &Path, runs: &[(String, McOutput)], title: &str) -> Resul
     let mut panel = Panel::new(title, DG, PI_DG).x_range(0.0, 90.0).with(uniform_line());
     let n = runs.len();
     for (i, (label, out)) in runs.iter().enumerate() {
-        let color = if n > 4 { sequential(i, n) } else { palette(i) };
-        panel = panel.with(relative_steps(label, &out.histogram).color(color));
+        let color = level_color(i, n);
+        let label = label.replace("P_ism", "Pᵢₛₘ");
+        panel = panel.with(
+            relative_steps(&label, &out.histogram)
+                .color(color)
+                .style(Style::Steps(2)),
+        );
     }
     if n == 1 {
         panel.legend = LegendPos::None;

@@ -392,6 +392,9 @@ pub struct McOutput {
     pub simulated: u64,
     /// Pairs that passed the P/sigma cut (all of them without a cut).
     pub accepted: u64,
+    /// Mean Delta gamma of the accepted pairs (deg), from the pairs themselves (not bin
+    /// centres); per-chunk sums added in chunk order, so independent of the thread count.
+    pub mean_delta_gamma_deg: f64,
 }
 
 /// Precomputed per-run constants of the kernel.
@@ -518,24 +521,26 @@ pub fn simulate(cfg: &McConfig) -> Result<McOutput> {
     let kernel = Kernel::new(cfg);
     let bins = cfg.bins;
     let inv_width = bins as f64 / 90.0;
-    let (counts, accepted) = chunks(cfg.pairs)
+    let parts: Vec<(Vec<u64>, u64, f64)> = chunks(cfg.pairs)
         .into_par_iter()
         .map(|(chunk, n)| {
             let mut counts = vec![0u64; bins];
+            let mut sum = 0.0;
             let accepted = kernel.run_chunk(chunk, n, &mut |dg| {
                 counts[((dg * inv_width) as usize).min(bins - 1)] += 1;
+                sum += dg;
             });
-            (counts, accepted)
+            (counts, accepted, sum)
         })
-        .reduce(
-            || (vec![0u64; bins], 0),
-            |(mut a, na), (b, nb)| {
-                for (x, y) in a.iter_mut().zip(&b) {
-                    *x += *y;
-                }
-                (a, na + nb)
-            },
-        );
+        .collect();
+    let (mut counts, mut accepted, mut sum) = (vec![0u64; bins], 0u64, 0.0f64);
+    for (c, a, s) in parts {
+        for (x, y) in counts.iter_mut().zip(&c) {
+            *x += *y;
+        }
+        accepted += a;
+        sum += s;
+    }
     Ok(McOutput {
         histogram: Histogram {
             lo: 0.0,
@@ -544,6 +549,7 @@ pub fn simulate(cfg: &McConfig) -> Result<McOutput> {
         },
         simulated: cfg.pairs,
         accepted,
+        mean_delta_gamma_deg: if accepted > 0 { sum / accepted as f64 } else { f64::NAN },
     })
 }
 
@@ -563,12 +569,22 @@ pub fn simulate_samples(cfg: &McConfig) -> Result<(Vec<f64>, McOutput)> {
     let samples: Vec<f64> = parts.concat();
     let (histogram, _) = Histogram::from_values(0.0, 90.0, cfg.bins, &samples);
     let accepted = samples.len() as u64;
+    let mean_delta_gamma_deg = parts_mean(&samples);
     Ok((
         samples,
         McOutput {
             histogram,
             simulated: cfg.pairs,
             accepted,
+            mean_delta_gamma_deg,
         },
     ))
+}
+
+fn parts_mean(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        f64::NAN
+    } else {
+        v.iter().sum::<f64>() / v.len() as f64
+    }
 }

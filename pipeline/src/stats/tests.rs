@@ -7,7 +7,10 @@ use super::alignment::{analyse, AnalysisParams};
 use super::binomial::binomial_test;
 use super::hist::Histogram;
 use super::ks::{kolmogorov_sf, ks_statistics, ks_two_sample, ks_uniform, smirnov_sf, EXACT_MAX_N};
-use super::kuiper::{kuiper_cdf_dual_for_tests, kuiper_q, kuiper_q_series_for_tests, kuiper_uniform};
+use super::kuiper::{
+    kuiper_cdf_dual_for_tests, kuiper_cdf_exact, kuiper_p, kuiper_q, kuiper_q_series_for_tests, kuiper_sf,
+    kuiper_uniform, EXACT_MAX_N as KUIPER_EXACT_MAX_N, METHOD_EXACT,
+};
 use super::mc::{self, simulate, simulate_samples, Ism, McConfig, PIntDist, CHUNK_PAIRS};
 use super::model::{AlignmentModel, AlphaMeasure, AlphaTable};
 use super::rng::Xoshiro256pp;
@@ -94,11 +97,20 @@ fn kuiper_matches_astropy_mpmath_and_monte_carlo() {
             t.statistic,
             e["kuiper_v"]
         );
+        let n = data.len();
         let stephens = f(&e["kuiper_p_stephens_mpmath"]);
         assert!(
-            rel_close(t.p_value, stephens, 1e-9),
-            "{name}: p {} vs mpmath {stephens}",
-            t.p_value
+            rel_close(kuiper_sf(t.statistic, n), stephens, 1e-9),
+            "{name}: Stephens p {} vs mpmath {stephens}",
+            kuiper_sf(t.statistic, n)
+        );
+        assert_eq!(
+            t.method,
+            if n <= KUIPER_EXACT_MAX_N {
+                METHOD_EXACT
+            } else {
+                super::kuiper::METHOD_STEPHENS
+            }
         );
         // astropy's Paltani (2004) formulas may be up to 1.5x high; they agree within that.
         let paltani = f(&e["kuiper_p_astropy_paltani"]);
@@ -107,16 +119,70 @@ fn kuiper_matches_astropy_mpmath_and_monte_carlo() {
             "{name}: {} vs astropy {paltani}",
             t.p_value
         );
-        // The approximation itself, against brute force: within 5 % + 4 standard errors.
+        // Against brute force: exact within 4 standard errors, Stephens (n > 200) within 5 % + 4 SE.
         if let Some(mcp) = e.get("kuiper_p_monte_carlo") {
             let (mcp, se) = (f(mcp), f(&e["kuiper_p_monte_carlo_se"]));
+            let slack = if n <= KUIPER_EXACT_MAX_N { 0.0 } else { 0.05 * mcp };
             assert!(
-                (t.p_value - mcp).abs() < 0.05 * mcp + 4.0 * se,
+                (t.p_value - mcp).abs() < slack + 4.0 * se,
                 "{name}: {} vs Monte Carlo {mcp} +- {se}",
                 t.p_value
             );
         }
     }
+}
+
+/// testdata/stats/kuiper_exact.json (make_kuiper_exact.py): Stephens' (1965) exact upper
+/// tail in 50-digit mpmath where it applies, else a 10^7-sample numpy Monte Carlo.
+#[test]
+fn kuiper_exact_small_n_matches_independent_references_within_one_percent() {
+    let r: Value = serde_json::from_str(include_str!("../../../testdata/stats/kuiper_exact.json")).unwrap();
+    let mut ns = std::collections::BTreeSet::new();
+    for e in r["cases"].as_array().unwrap() {
+        let (n, v) = (e["n"].as_u64().unwrap() as usize, f(&e["v"]));
+        ns.insert(n);
+        let (p, method) = kuiper_p(v, n);
+        assert_eq!(method, METHOD_EXACT);
+        let (mc, se) = (f(&e["monte_carlo"]), f(&e["monte_carlo_se"]));
+        println!(
+            "n {n:2} V {v:.2}: exact {p:.6e}, Monte Carlo {mc:.6e} +- {se:.1e} ({:+.1} SE)",
+            (p - mc) / se
+        );
+        if let Some(ex) = e.get("stephens1965_exact") {
+            let ex = f(ex);
+            assert!(rel_close(p, ex, 1e-9), "n {n} V {v}: {p} vs Stephens 1965 exact {ex}");
+        } else {
+            assert!(se < 0.0025 * mc, "n {n} V {v}: reference too imprecise");
+            assert!(rel_close(p, mc, 0.01), "n {n} V {v}: {p} vs Monte Carlo {mc} +- {se}");
+        }
+        assert!(
+            (p - mc).abs() < 4.5 * se.max(1e-6),
+            "n {n} V {v}: {p} vs Monte Carlo {mc} +- {se}"
+        );
+    }
+    assert_eq!(ns.into_iter().collect::<Vec<_>>(), vec![5, 9, 12, 20]);
+    // Analytic cases: n = 1, V = 1 always; n = 2, V = max(g, 1 - g) with g uniform.
+    assert_eq!(kuiper_cdf_exact(0.999, 1), 0.0);
+    assert_eq!(kuiper_cdf_exact(1.0, 1), 1.0);
+    for v in [0.5, 0.6, 0.75, 0.9, 0.99] {
+        assert!((kuiper_cdf_exact(v, 2) - 2.0 * (v - 0.5)).abs() < 1e-14, "n 2 V {v}");
+    }
+    // V_n >= 1/n; monotone CDF; continuous and close to Stephens at n = 200.
+    for n in [3, 7, 30, 200] {
+        assert_eq!(kuiper_cdf_exact(0.999 / n as f64, n), 0.0);
+        let mut prev = 0.0;
+        for i in 0..=100 {
+            let c = kuiper_cdf_exact(i as f64 / 100.0, n);
+            assert!(
+                c >= prev - 1e-14 && c <= 1.0,
+                "n {n}: not monotone at {}",
+                i as f64 / 100.0
+            );
+            prev = c;
+        }
+    }
+    let (pe, ps) = (1.0 - kuiper_cdf_exact(0.13, 200), kuiper_sf(0.13, 200));
+    assert!(rel_close(pe, ps, 0.02), "n 200: exact {pe} vs Stephens {ps}");
 }
 
 #[test]
@@ -785,14 +851,14 @@ fn params(pairs: u64) -> AnalysisParams {
 
 #[test]
 fn tiny_samples_get_a_message_not_a_crash() {
-    for dg in [vec![], vec![12.0]] {
+    for (dg, says) in [
+        (vec![], "No binary has both components above the P/sigma cut"),
+        (vec![12.0], "Only one binary (12.0 deg)"),
+    ] {
         let r = analyse(&dg, &params(1000)).unwrap();
-        assert!(r.ks_uniform.is_none() && r.ism.is_empty());
-        assert!(
-            r.verdict.contains("binary") || r.verdict.contains("No binary"),
-            "{}",
-            r.verdict
-        );
+        assert!(r.ks_uniform.is_none() && r.kuiper_uniform.is_none() && r.ism.is_empty());
+        assert!(r.verdict.starts_with(says), "{}", r.verdict);
+        assert!(r.verdict.contains("nothing to test") || r.verdict.contains("no test was run"));
     }
 }
 
@@ -823,4 +889,27 @@ fn histogram_cdf_is_consistent_with_counts() {
     assert_eq!(h.total(), 5);
     assert!((h.cdf(5.0) - 0.4).abs() < 1e-12);
     assert!((h.cdf(90.0) - 1.0).abs() < 1e-12);
+}
+
+#[test]
+fn figure_counts_use_superscripts_and_mc_mean_comes_from_the_pairs() {
+    use super::figures::format_count;
+    assert_eq!(format_count(10_000_000), "10⁷");
+    assert_eq!(format_count(2_000_000), "2×10⁶");
+    assert_eq!(format_count(123_456), "123456");
+    assert_eq!(format_count(900), "900");
+    // Aligned pairs: every Delta gamma is exactly 0, so the mean is 0, not half a bin.
+    let out = simulate(&McConfig::geometry(AlignmentModel::Aligned, 100_000, 3)).unwrap();
+    assert_eq!(out.mean_delta_gamma_deg, 0.0);
+    // Random pairs: the mean of the samples, and 45 deg within 4 standard errors.
+    let cfg = McConfig::geometry(AlignmentModel::Random, 200_000, 4);
+    let (s, o) = simulate_samples(&cfg).unwrap();
+    let m = s.iter().sum::<f64>() / s.len() as f64;
+    assert!((o.mean_delta_gamma_deg - m).abs() < 1e-9);
+    let h = simulate(&cfg).unwrap();
+    assert!((h.mean_delta_gamma_deg - m).abs() < 1e-9);
+    assert!(
+        (m - 45.0).abs() < 4.0 * 90.0 / 12f64.sqrt() / (s.len() as f64).sqrt(),
+        "{m}"
+    );
 }

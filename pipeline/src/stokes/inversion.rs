@@ -266,7 +266,9 @@ pub struct LinearPolarization {
     /// q, u, P, gamma and their errors (read through `Deref`: `lp.q`).
     #[serde(flatten)]
     pub pol: Polarization,
-    /// 68.27 % half-width of the Naghizadeh-Khouei & Clarke angle distribution, deg.
+    /// 68.27 % half-width of the Naghizadeh-Khouei & Clarke angle distribution, deg,
+    /// evaluated at the debiased S/N P0 = `p_debiased` / `sigma_p` (the distribution's
+    /// parameter is the true S/N; the measured one is biased high, most at low S/N).
     pub sigma_gamma_nkc_deg: f64,
     /// P / sigma_P.
     pub snr: f64,
@@ -295,6 +297,12 @@ impl LinearPolarization {
         } else {
             90.0 / 3f64.sqrt()
         };
+        let p_debiased = debias(p, sigma_p, how);
+        let snr0 = if sigma_p > 0.0 {
+            p_debiased / sigma_p
+        } else {
+            f64::INFINITY
+        };
         LinearPolarization {
             pol: Polarization {
                 q,
@@ -303,11 +311,11 @@ impl LinearPolarization {
                 sigma_u,
                 p,
                 sigma_p,
-                p_debiased: debias(p, sigma_p, how),
+                p_debiased,
                 gamma_deg,
                 sigma_gamma_deg,
             },
-            sigma_gamma_nkc_deg: angle_half_width_68_deg(snr),
+            sigma_gamma_nkc_deg: angle_half_width_68_deg(snr0),
             snr,
         }
     }
@@ -426,9 +434,86 @@ mod tests {
         // High S/N: tends to Wardle-Kronberg 28.65/snr.
         let w = angle_half_width_68_deg(50.0);
         assert!((w - WK_ANGLE_FACTOR_DEG / 50.0).abs() / w < 0.01, "{w}");
-        // At P/sigma = 3, about 9.5 deg (docs/polarimetry.md), a little wider than WK's 9.55? check range.
-        let w3 = angle_half_width_68_deg(3.0);
-        assert!((w3 - 9.5).abs() < 0.6, "{w3}");
+        // Independent reference: scipy 1.17.1 `integrate.quad` of the NKC density and
+        // `optimize.brentq` for the 68.27 % half-width (tolerances 1e-13): 9.733373 deg at
+        // P0 = 3, 28.991644 at 1, 5.768479 at 5 (wider than Wardle-Kronberg's 9.55 at 3).
+        for (p0, want) in [(3.0, 9.733_373), (1.0, 28.991_644), (5.0, 5.768_479)] {
+            let w = angle_half_width_68_deg(p0);
+            assert!((w - want).abs() < 0.01, "P0 {p0}: {w} vs {want}");
+        }
+    }
+
+    /// Slow, obviously correct: the angle density by radial quadrature of the bivariate
+    /// normal (q, u) ~ N((p0, 0), I) (no closed form), then the 68.27 % half-width by a
+    /// trapezoid cumulative on a fine grid and linear interpolation.
+    fn half_width_by_quadrature(p0: f64) -> f64 {
+        use std::f64::consts::PI;
+        // density of phi = atan2(u, q): int_0^inf r/(2 pi) exp(-(r^2 - 2 r p0 cos phi + p0^2)/2) dr
+        let dens_phi = |phi: f64| -> f64 {
+            let (nr, rmax) = (4000, p0 + 12.0);
+            let h = rmax / nr as f64;
+            let g = |r: f64| r / (2.0 * PI) * (-(r * r - 2.0 * r * p0 * phi.cos() + p0 * p0) / 2.0).exp();
+            let mut s = 0.5 * (g(0.0) + g(rmax));
+            for i in 1..nr {
+                s += g(i as f64 * h);
+            }
+            s * h
+        };
+        // gamma = phi / 2: density of |gamma| on [0, 90] deg is 2 * 2 * dens_phi(2 gamma) per rad.
+        let n = 9000;
+        let h = (PI / 2.0) / n as f64;
+        let mut cum = 0.0;
+        let mut prev = 4.0 * dens_phi(0.0);
+        let target = 0.682_689_492_137_085_9;
+        for i in 1..=n {
+            let g = i as f64 * h;
+            let d = 4.0 * dens_phi(2.0 * g);
+            let step = 0.5 * (prev + d) * h;
+            if cum + step >= target {
+                let frac = (target - cum) / step;
+                return ((i as f64 - 1.0 + frac) * h).to_degrees();
+            }
+            cum += step;
+            prev = d;
+        }
+        90.0
+    }
+
+    #[test]
+    fn nkc_width_is_evaluated_at_the_debiased_snr_and_matches_quadrature() {
+        // The issue's figures: P/sigma = 0.84 (WK-debiased P0 = 0) and 3 (P0 = sqrt 8).
+        for (snr, p0, expect) in [
+            (0.84, 0.0, 61.4),
+            (3.0, 8f64.sqrt(), 10.35),
+            (10.0, 99f64.sqrt(), f64::NAN),
+        ] {
+            let lp = LinearPolarization::from_qu(snr * 0.01, 0.0, 0.01, 0.01, Debias::WardleKronberg);
+            assert!((lp.p_debiased / lp.sigma_p - p0).abs() < 1e-12);
+            let q = half_width_by_quadrature(p0);
+            assert!(
+                (lp.sigma_gamma_nkc_deg - q).abs() < 0.02,
+                "P/sigma {snr}: NKC {} vs quadrature {q}",
+                lp.sigma_gamma_nkc_deg
+            );
+            if expect.is_finite() {
+                assert!(
+                    (lp.sigma_gamma_nkc_deg - expect).abs() < 0.05,
+                    "{} vs {expect}",
+                    lp.sigma_gamma_nkc_deg
+                );
+            }
+        }
+        // The measured S/N would give the narrower, wrong widths quoted in issue 12.
+        let (w084, w3) = (half_width_by_quadrature(0.84), half_width_by_quadrature(3.0));
+        assert!((w084 - 33.2).abs() < 0.1 && (w3 - 9.7).abs() < 0.05, "{w084} {w3}");
+        // MAS debiasing: P0 from the MAS estimator.
+        let lp = LinearPolarization::from_qu(0.0084, 0.0, 0.01, 0.01, Debias::Mas);
+        let q = half_width_by_quadrature(lp.p_debiased / lp.sigma_p);
+        assert!(
+            (lp.sigma_gamma_nkc_deg - q).abs() < 0.02,
+            "{} vs {q}",
+            lp.sigma_gamma_nkc_deg
+        );
     }
 
     #[test]

@@ -1,0 +1,21 @@
+//! Run the world-sampling accuracy harness:
+//! `cargo run --release -p sofipol-pipeline --example world -- [targets per bin]`, or write
+//! one drawn target's frames to look at: `... --example world -- write BIN T DIR`.
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let dir = std::env::temp_dir().join(format!("sofipol-world-{}", std::process::id()));
+    let mut cfg = sofipol_pipeline::world::WorldConfig::new(&dir);
+    if args.get(1).map(String::as_str) == Some("write") {
+        let (bin, t): (usize, usize) = (args[2].parse().unwrap(), args[3].parse().unwrap());
+        let (lo, hi) = (cfg.bins_arcsec[bin], cfg.bins_arcsec[bin + 1]);
+        let (tt, cond, _) = sofipol_pipeline::world::write_target(&cfg, bin, t, lo, hi, std::path::Path::new(&args[4]));
+        println!("{cond:?}\n{}", serde_json::to_string_pretty(&tt.components).unwrap());
+        return;
+    }
+    cfg.targets_per_bin = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(6);
+    let t0 = std::time::Instant::now();
+    let bins = sofipol_pipeline::world::run(&cfg, &Default::default());
+    print!("{}", sofipol_pipeline::world::table(&bins, true));
+    println!("{:.1} s", t0.elapsed().as_secs_f64());
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,0 +1,122 @@
+//! The locating stages of the reduction (reduce/sources.rs, reduce/beams.rs,
+//! reduce/companion.rs) on images whose answer is known by construction.
+use ndarray::Array2;
+use sofipol_pipeline::photometry::model::add_gaussian;
+use sofipol_pipeline::reduce::beams::{eo_offset_by_correlation, median_offset};
+use sofipol_pipeline::reduce::companion::combine_geometry;
+use sofipol_pipeline::reduce::sources::brightest_peak;
+use sofipol_pipeline::stokes::model::companion_offset_px;
+
+fn image(ny: usize, nx: usize, stars: &[(f64, f64, f64)], sky: f32) -> Array2<f32> {
+    let mut img = Array2::from_elem((ny, nx), sky);
+    let mut v = img.view_mut();
+    for &(flux, x, y) in stars {
+        add_gaussian(&mut v, flux, x, y, 1.2, 1.2);
+    }
+    img
+}
+
+#[test]
+fn brightest_peak_finds_the_brighter_star_within_radius_rows_and_mask() {
+    let img = image(
+        100,
+        120,
+        &[(5e4, 40.3, 50.6), (9e4, 80.2, 50.1), (2e5, 60.0, 90.0)],
+        10.0,
+    );
+    let mut mask = Array2::<u8>::zeros(img.raw_dim());
+    // Around (60, 50) with radius 30 both of the first two stars are in reach; the third
+    // is outside the rows [20, 80).
+    let (x, y, _) = brightest_peak(img.view(), mask.view(), 60.0, 50.0, 30.0, [20, 80]).unwrap();
+    assert_eq!((x, y), (80.0, 50.0));
+    // Radius 15 around (45, 50): only the fainter star.
+    let (x, y, _) = brightest_peak(img.view(), mask.view(), 45.0, 50.0, 15.0, [20, 80]).unwrap();
+    assert_eq!((x, y), (40.0, 51.0));
+    // Without the row limit the brightest star of all wins.
+    let (x, y, _) = brightest_peak(img.view(), mask.view(), 60.0, 70.0, 40.0, [0, 100]).unwrap();
+    assert_eq!((x, y), (60.0, 90.0));
+    // The bright star masked out: its 3x3 boxes have too few good pixels or lower values.
+    for j in 85..96 {
+        for i in 55..66 {
+            mask[[j, i]] = 1;
+        }
+    }
+    let (x, y, _) = brightest_peak(img.view(), mask.view(), 60.0, 70.0, 40.0, [0, 100]).unwrap();
+    assert_eq!((x, y), (80.0, 50.0));
+    // Everything masked: nothing found.
+    mask.fill(1);
+    assert!(brightest_peak(img.view(), mask.view(), 60.0, 50.0, 30.0, [0, 100]).is_none());
+}
+
+#[test]
+fn median_offset_of_odd_and_even_counts_and_empty() {
+    assert_eq!(median_offset(&[]), None);
+    let p = |dx: f64, dy: f64| ((10.0, 20.0), (10.0 + dx, 20.0 + dy));
+    assert_eq!(
+        median_offset(&[p(1.0, 5.0), p(3.0, -1.0), p(100.0, 2.0)]),
+        Some((3.0, 2.0))
+    );
+    assert_eq!(median_offset(&[p(1.0, 5.0), p(3.0, -1.0)]), Some((2.0, 2.0)));
+}
+
+/// The e-o offset off the whole pixel and slightly tilted, with the fluxes of the pair
+/// swapped in rank between the beams (a brightest-peak match would jump to the other star).
+/// The correlation is the starting point of the per-frame fits, which find each beam's
+/// position on their own: it must land within half a pixel (the right whole-pixel peak,
+/// refined towards the truth by the parabola).
+#[test]
+fn eo_offset_by_correlation_recovers_a_fractional_tilted_offset() {
+    for &(dx, dy) in &[(0.4, 166.6), (-0.7, 167.3), (1.2, 165.5), (0.0, 167.0)] {
+        let (xo, yo) = (60.3, 40.7);
+        let sep = (3.1, 2.4);
+        let img = image(
+            260,
+            130,
+            &[
+                (6e4, xo, yo),
+                (4e4, xo + sep.0, yo + sep.1),
+                // e beam: A fainter than B here.
+                (3.5e4, xo + dx, yo + dy),
+                (5e4, xo + sep.0 + dx, yo + sep.1 + dy),
+            ],
+            0.0,
+        );
+        let mask = Array2::<u8>::zeros(img.raw_dim());
+        let got = eo_offset_by_correlation(&[(&img, &mask)], &[(xo, yo)], (0.0, 167.0), 9, 5).unwrap();
+        assert!(
+            (got.0 - dx).abs() < 0.5 && (got.1 - dy).abs() < 0.5,
+            "true ({dx}, {dy}), found {got:?}"
+        );
+    }
+}
+
+#[test]
+fn eo_offset_is_none_when_the_target_is_too_close_to_the_edge() {
+    let img = image(200, 100, &[(6e4, 3.0, 20.0)], 0.0);
+    let mask = Array2::<u8>::zeros(img.raw_dim());
+    assert!(eo_offset_by_correlation(&[(&img, &mask)], &[(3.0, 20.0)], (0.0, 167.0), 9, 5).is_none());
+}
+
+#[test]
+fn combine_geometry_inverts_the_rotation_convention_and_wraps_the_pa() {
+    let scale = 0.288;
+    for &(sep, pa) in &[(2.2, 130.0), (0.6, 359.5), (4.6, 0.4), (1.1, 181.0)] {
+        let found: Vec<_> = [0.0, 45.0, 90.0, 135.0]
+            .iter()
+            .map(|&posang| (posang, companion_offset_px(sep, pa, posang, scale), 1.0))
+            .collect();
+        let (s, p, worst) = combine_geometry(&found, scale).unwrap();
+        let dpa = (p - pa + 180.0).rem_euclid(360.0) - 180.0;
+        assert!(
+            (s - sep).abs() < 1e-9 && dpa.abs() < 1e-9 && worst < 1e-9,
+            "{sep} {pa}: {s} {p} {worst}"
+        );
+    }
+    // PAs of 359 and 1 deg average to 0, not 180; the disagreement is reported in px.
+    let off = |pa: f64| (0.0, companion_offset_px(3.0, pa, 0.0, scale), 1.0);
+    let (_, p, worst) = combine_geometry(&[off(359.0), off(1.0)], scale).unwrap();
+    assert!(p < 1e-9 || p > 360.0 - 1e-9, "{p}");
+    let chord = 3.0 / scale * (2.0 * (1f64).to_radians().sin() / 2.0) * 2.0 / 2.0;
+    assert!((worst - chord).abs() < 0.01, "{worst} vs {chord}");
+    assert!(combine_geometry(&[], scale).is_none());
+}

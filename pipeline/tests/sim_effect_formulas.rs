@@ -1,0 +1,157 @@
+//! The simulator's pixel response, non-linearity and instrumental polarization against the
+//! formulas docs/simulator.md states for them (each effect alone, noiseless).
+use ndarray::{s, Array2};
+use sofipol_calib::Profile;
+use sofipol_pipeline::sim::{Scene, Simulator};
+use sofipol_pipeline::stokes::model::{normalized_difference, Polarization};
+
+fn scene(effects: &str, orientations: &str, extra: &str, p_a: f64, flux_a: f64) -> Scene {
+    let text = format!(
+        r#"
+name = "formulas"
+seed = 17
+effects = [{effects}]
+[observation]
+orientations_deg = [{orientations}]
+dithers = 2
+[[binary]]
+name = "single"
+separation_arcsec = 3.0
+pa_deg = 0.0
+flux_a = {flux_a}
+flux_b = 0.0
+p_a = {p_a}
+gamma_a_deg = 71.0
+p_b = 0.0
+gamma_b_deg = 0.0
+{extra}
+"#
+    );
+    Scene::from_toml(&text, "formula scene").unwrap()
+}
+
+const FLAT_SKY: &str = "[sky]\nlevel_adu = 1000.0\ngradient_x = 0.0\ngradient_y = 0.0\nframe_change_frac = 0.0\n";
+
+fn frames(sc: Scene) -> Vec<Array2<f32>> {
+    let sim = Simulator::new(sc, Profile::sofi()).unwrap();
+    sim.run_in_memory().0.into_iter().map(|f| f.frame.data).collect()
+}
+
+/// flat_field: response (1 - v r^2/r_corner^2)(1 + rms N(0,1)), fixed on the detector.
+#[test]
+fn pixel_response_follows_vignetting_times_gaussian_pixel_noise_and_is_fixed() {
+    let (rms, v) = (0.01, 0.05);
+    let extra = format!("{FLAT_SKY}[flat_field]\npixel_rms = {rms}\nvignetting = {v}\n");
+    let imgs = frames(scene("\"sky\", \"flat_field\"", "0.0, 45.0", &extra, 0.0, 0.0));
+    // The same response in every frame, whatever the orientation or dither.
+    for f in &imgs[1..] {
+        assert_eq!(f, &imgs[0]);
+    }
+    let resp = imgs[0].mapv(|x| x as f64 / 1000.0);
+    let (ny, nx) = resp.dim();
+    let (cy, cx) = ((ny as f64 - 1.0) / 2.0, (nx as f64 - 1.0) / 2.0);
+    let rc2 = cx * cx + cy * cy;
+    // Divide out the stated vignetting: what is left is 1 + rms N(0,1), pixel by pixel.
+    let mut resid = Vec::with_capacity(ny * nx);
+    for ((y, x), &r) in resp.indexed_iter() {
+        let vig = 1.0 - v * ((x as f64 - cx).powi(2) + (y as f64 - cy).powi(2)) / rc2;
+        resid.push(r / vig - 1.0);
+    }
+    let n = resid.len() as f64;
+    let mean = resid.iter().sum::<f64>() / n;
+    let sd = (resid.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+    // 1M pixels: the mean is known to rms/1000, the rms to 0.07 %.
+    assert!(mean.abs() < 5.0 * rms / n.sqrt(), "mean {mean}");
+    assert!((sd / rms - 1.0).abs() < 0.005, "rms {sd}");
+    // Gaussian: 4.55 % of the pixels beyond 2 sigma (binomial error 0.02 %).
+    let beyond = resid.iter().filter(|d| d.abs() > 2.0 * rms).count() as f64 / n;
+    assert!((beyond - 0.0455).abs() < 0.001, "{beyond}");
+    // Neighbouring pixels are independent.
+    let lag1: f64 = (0..ny)
+        .flat_map(|y| (0..nx - 1).map(move |x| (y, x)))
+        .map(|(y, x)| resid[y * nx + x] * resid[y * nx + x + 1])
+        .sum::<f64>()
+        / (n * sd * sd);
+    assert!(lag1.abs() < 0.005, "lag-1 correlation {lag1}");
+    // The corner is 5 % darker than the centre, on average.
+    let corner = resp.slice(s![..16, ..16]).mean().unwrap();
+    let centre = resp.slice(s![504..520, 504..520]).mean().unwrap();
+    assert!(
+        (corner / centre - (1.0 - v * 0.97)).abs() < 0.003,
+        "{corner} / {centre}"
+    );
+}
+
+/// nonlinearity: measured = true (1 - c true) for positive values.
+#[test]
+fn nonlinearity_is_the_stated_quadratic() {
+    let c = 2e-6;
+    let extra = format!("{FLAT_SKY}[nonlinearity]\ncoeff_per_adu = {c}\n");
+    let imgs = frames(scene("\"sky\", \"nonlinearity\"", "0.0", &extra, 0.0, 0.0));
+    let want = 1000.0 * (1.0 - c * 1000.0);
+    for f in &imgs {
+        for &x in f.iter() {
+            assert!((x as f64 - want).abs() < 1e-3, "{x} vs {want}");
+        }
+    }
+    // The profile's coefficient when the scene gives none: SOFI ~1 % at 13.5 kADU.
+    let extra = "[sky]\nlevel_adu = 13500.0\ngradient_x = 0.0\ngradient_y = 0.0\nframe_change_frac = 0.0\n";
+    let imgs = frames(scene("\"sky\", \"nonlinearity\"", "0.0", extra, 0.0, 0.0));
+    let c_prof = Profile::sofi().detector.nonlin_coeff_per_adu;
+    let got = imgs[0][[500, 500]] as f64;
+    assert!((got - 13500.0 * (1.0 - c_prof * 13500.0)).abs() < 0.01, "{got}");
+    let loss = 1.0 - got / 13500.0;
+    assert!(
+        (0.005..0.02).contains(&loss),
+        "profile non-linearity at 13.5 kADU: {loss}"
+    );
+}
+
+/// instrumental_polarization: p cos 2(angle) adds to F = (o - e)/(o + e) at every rotator
+/// angle (fixed in the instrument frame), o + e unchanged.
+#[test]
+fn instrumental_polarization_adds_a_constant_to_f_at_every_angle() {
+    let p = Profile::sofi();
+    let (p_inst, ang) = (0.004, 20.0);
+    let c = p_inst * (2.0 * f64::to_radians(ang)).cos();
+    for p_star in [0.0, 0.12] {
+        let extra = format!(
+            "[instrumental_polarization]\np = {p_inst}\nangle_deg = {ang}\n[psf]\nkind = \"gaussian\"\nfwhm_arcsec = 1.0\n"
+        );
+        let sc = scene(
+            "\"psf\", \"instrumental_polarization\"",
+            "0.0, 45.0, 90.0, 135.0, 161.0",
+            &extra,
+            p_star,
+            40000.0,
+        );
+        let sim = Simulator::new(sc, p.clone()).unwrap();
+        let (frames, _) = sim.run_in_memory();
+        let pol = Polarization::from_p_gamma(p_star, 71.0);
+        for f in &frames {
+            let o: f64 = f
+                .frame
+                .data
+                .slice(s![p.geometry.o_target[0]..p.geometry.o_target[1], ..])
+                .iter()
+                .map(|&v| v as f64)
+                .sum();
+            let e: f64 = f
+                .frame
+                .data
+                .slice(s![p.geometry.e_target[0]..p.geometry.e_target[1], ..])
+                .iter()
+                .map(|&v| v as f64)
+                .sum();
+            let phi = f.truth.analyzer_deg;
+            assert!(f.frame.data.iter().all(|v| v.is_finite()));
+            assert!(((o + e) / 40000.0 - 1.0).abs() < 2e-6, "o + e = {}", o + e);
+            let want = normalized_difference(pol, phi) + c;
+            assert!(
+                ((o - e) / (o + e) - want).abs() < 2e-6,
+                "p {p_star}, phi {phi}: F {} vs {want}",
+                (o - e) / (o + e)
+            );
+        }
+    }
+}

@@ -1,0 +1,131 @@
+//! `demo`, `target` and `bench` through the `sofipol` binary, as a user runs them.
+use std::path::Path;
+use std::process::Command;
+
+use serde_json::Value;
+
+const BIN: &str = env!("CARGO_BIN_EXE_sofipol");
+
+fn run(args: &[&str]) -> (i32, String, String) {
+    let o = Command::new(BIN).args(args).output().expect("run sofipol");
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stdout).into(),
+        String::from_utf8_lossy(&o.stderr).into(),
+    )
+}
+
+fn json(p: &Path) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))).unwrap()
+}
+
+/// The README's first command is itself a check: the demo compares every recovered q, u
+/// with the simulated truth and exits 0 only when all are within 5 sigma.
+#[test]
+fn demo_simulates_reduces_checks_and_writes_figures() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demo");
+    let (code, stdout, err) = run(&["demo", "-o", out.to_str().unwrap(), "-q"]);
+    assert_eq!(code, 0, "{stdout}\n{err}");
+    assert!(
+        stdout.contains("check: every component's q and u within 5 sigma"),
+        "{stdout}"
+    );
+    let cat = json(&out.join("catalog.json"));
+    let targets = cat["targets"].as_array().unwrap();
+    assert_eq!(targets.len(), 5);
+    let truth = json(&out.join("raw/truth.json"));
+    assert_eq!(truth["targets"].as_array().unwrap().len(), 5);
+    let pngs = std::fs::read_dir(out.join("figures"))
+        .unwrap()
+        .filter(|e| e.as_ref().unwrap().path().extension().is_some_and(|x| x == "png"));
+    assert_eq!(pngs.count(), 5);
+}
+
+const ONE: &str = r#"
+name = "one"
+seed = 5
+effects = ["psf", "sky", "strips", "photon_noise", "read_noise"]
+[observation]
+orientations_deg = [0.0, 45.0]
+dithers = 3
+[psf]
+kind = "moffat"
+fwhm_arcsec = 0.8
+[[binary]]
+name = "Solo"
+separation_arcsec = 3.0
+pa_deg = 70.0
+flux_a = 100000.0
+flux_b = 60000.0
+p_a = 0.04
+gamma_a_deg = 35.0
+p_b = 0.03
+gamma_b_deg = 125.0
+"#;
+
+#[test]
+fn target_reduces_one_sequence_to_the_truth_and_names_a_missing_object() {
+    let dir = tempfile::tempdir().unwrap();
+    let raw = dir.path().join("raw");
+    let scene = dir.path().join("one.toml");
+    std::fs::write(&scene, ONE).unwrap();
+    let (code, _, err) = run(&["simulate", scene.to_str().unwrap(), "-o", raw.to_str().unwrap(), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    let out = dir.path().join("solo.json");
+    let (code, stdout, err) = run(&[
+        "target",
+        raw.to_str().unwrap(),
+        "--object",
+        "Solo",
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stdout}\n{err}");
+    let cat = json(&out);
+    let t = &cat["targets"][0];
+    assert_eq!(t["object"], "Solo");
+    assert_eq!(t["status"], "ok", "{t}");
+    let truth = json(&raw.join("truth.json"));
+    let tt = &truth["targets"][0]["components"];
+    for i in 0..2 {
+        let c = &t["components"][i];
+        for k in ["q", "u"] {
+            let (got, want) = (c[k].as_f64().unwrap(), tt[i][k].as_f64().unwrap());
+            let sigma = c[format!("sigma_{k}")].as_f64().unwrap();
+            assert!(sigma > 0.0 && sigma < 0.01, "{k}: sigma {sigma}");
+            assert!(
+                ((got - want) / sigma).abs() < 5.0,
+                "component {i} {k}: {got} vs {want} +- {sigma}"
+            );
+        }
+    }
+    assert!(cat["provenance"].is_object(), "provenance missing");
+
+    // An object that is not in the input: exit 1, nothing written, the name in the message.
+    let none = dir.path().join("none.json");
+    let (code, _, err) = run(&[
+        "target",
+        raw.to_str().unwrap(),
+        "--object",
+        "Nobody",
+        "-o",
+        none.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("Nobody"), "{err}");
+    assert!(!none.exists());
+}
+
+#[test]
+fn bench_commands_print_figures() {
+    let (code, stdout, err) = run(&["bench", "sim", "--repeats", "3"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(stdout.contains("ms"), "{stdout}");
+    let (code, stdout, err) = run(&["bench", "stages", "--repeats", "1"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(stdout.contains("ms"), "{stdout}");
+    let (code, stdout, err) = run(&["bench", "night", "--targets", "2", "--repeats", "1"]);
+    assert_eq!(code, 0, "{stdout}\n{err}");
+    assert!(stdout.to_lowercase().contains("wall"), "{stdout}");
+}
