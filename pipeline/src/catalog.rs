@@ -2,6 +2,8 @@
 //! Schema documented in docs/catalog-schema.md; keep the two in step.
 use serde::{Deserialize, Serialize};
 
+use crate::stokes::inversion::Polarization;
+
 /// Version of the catalog schema written by this build.
 pub const SCHEMA_VERSION: &str = "1.0";
 
@@ -22,24 +24,10 @@ pub enum Status {
 pub struct Component {
     /// "A" (brighter) or "B".
     pub name: String,
-    /// Normalised Stokes q (sky frame).
-    pub q: f64,
-    /// Normalised Stokes u (sky frame).
-    pub u: f64,
-    /// 1-sigma error of q.
-    pub sigma_q: f64,
-    /// 1-sigma error of u.
-    pub sigma_u: f64,
-    /// Degree of linear polarization P_l = sqrt(q^2 + u^2) (not debiased).
-    pub p: f64,
-    /// 1-sigma error of P.
-    pub sigma_p: f64,
-    /// Debiased P (Wardle & Kronberg 1974 unless `debias` says otherwise).
-    pub p_debiased: f64,
-    /// Polarization angle gamma, degrees east of north, in [0, 180).
-    pub gamma_deg: f64,
-    /// 1-sigma error of gamma, degrees (28.65 deg * sigma_P / P).
-    pub sigma_gamma_deg: f64,
+    /// q, u, P, gamma and their errors (keys in the JSON as if written here; read through
+    /// `Deref`: `c.q`, `c.p_debiased`).
+    #[serde(flatten)]
+    pub pol: Polarization,
     /// P / sigma_P > 3.
     pub passes_cut: bool,
     /// Per-source flags (e.g. "truncated", "bad_pixels", "saturated", "companion_overlap", "low_snr").
@@ -48,6 +36,19 @@ pub struct Component {
     /// Further per-component fields (fluxes, positions, scatter-based errors...).
     #[serde(flatten, default)]
     pub extra: serde_json::Map<String, serde_json::Value>,
+}
+
+impl std::ops::Deref for Component {
+    type Target = Polarization;
+    fn deref(&self) -> &Polarization {
+        &self.pol
+    }
+}
+
+impl std::ops::DerefMut for Component {
+    fn deref_mut(&mut self) -> &mut Polarization {
+        &mut self.pol
+    }
 }
 
 /// One target sequence.
@@ -126,6 +127,50 @@ mod tests {
             let back: f64 = serde_json::from_str(&text).unwrap();
             assert_eq!(back.to_bits(), v.to_bits(), "{v:e} -> {text} -> {back:e}");
         }
+    }
+
+    #[test]
+    fn component_keys_keep_the_documented_order_and_round_trip() {
+        use crate::stokes::inversion::{Debias, LinearPolarization};
+        let lp = LinearPolarization::from_qu(0.03, -0.04, 0.004, 0.005, Debias::WardleKronberg);
+        let mut extra = serde_json::Map::new();
+        extra.insert("snr".into(), serde_json::json!(lp.snr));
+        let c = Component {
+            name: "A".into(),
+            pol: lp.pol,
+            passes_cut: true,
+            flags: vec!["low_snr".into()],
+            extra,
+        };
+        let text = serde_json::to_string(&c).unwrap();
+        let keys: Vec<&str> = text.split('"').skip(1).step_by(2).filter(|k| !k.is_empty()).collect();
+        let want = [
+            "name",
+            "A",
+            "q",
+            "u",
+            "sigma_q",
+            "sigma_u",
+            "p",
+            "sigma_p",
+            "p_debiased",
+            "gamma_deg",
+            "sigma_gamma_deg",
+            "passes_cut",
+            "flags",
+            "low_snr",
+            "snr",
+        ];
+        assert_eq!(keys, want, "{text}");
+        let back: Component = serde_json::from_str(&text).unwrap();
+        assert_eq!(back, c);
+        assert_eq!(back.extra.len(), 1, "the flattened fields must not leak into extra");
+        // LinearPolarization itself serializes as before: the shared fields, then the S/N measures.
+        let lp_text = serde_json::to_string(&lp).unwrap();
+        assert!(
+            lp_text.starts_with("{\"q\":") && lp_text.ends_with(&format!("\"snr\":{}}}", lp.snr)),
+            "{lp_text}"
+        );
     }
 
     #[test]

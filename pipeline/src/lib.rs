@@ -18,6 +18,7 @@
 
 pub mod accuracy;
 pub mod catalog;
+pub mod error;
 pub mod export;
 pub mod io;
 pub mod night;

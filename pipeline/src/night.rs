@@ -24,21 +24,17 @@ pub struct Shard {
 }
 
 impl std::str::FromStr for Shard {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        let (a, b) = s
-            .split_once('/')
-            .ok_or_else(|| format!("shard '{s}': expected K/N, e.g. 2/8"))?;
-        let k: usize = a
-            .trim()
-            .parse()
-            .map_err(|_| format!("shard '{s}': K is not a number"))?;
-        let n: usize = b
-            .trim()
-            .parse()
-            .map_err(|_| format!("shard '{s}': N is not a number"))?;
+    type Err = crate::error::Error;
+    fn from_str(s: &str) -> crate::error::Result<Self> {
+        let bad = |reason: &str| crate::error::Error::Merge {
+            file: format!("shard '{s}'"),
+            reason: reason.to_string(),
+        };
+        let (a, b) = s.split_once('/').ok_or_else(|| bad("expected K/N, e.g. 2/8"))?;
+        let k: usize = a.trim().parse().map_err(|_| bad("K is not a number"))?;
+        let n: usize = b.trim().parse().map_err(|_| bad("N is not a number"))?;
         if n == 0 || k == 0 || k > n {
-            return Err(format!("shard '{s}': need 1 <= K <= N"));
+            return Err(bad("need 1 <= K <= N"));
         }
         Ok(Shard { k, n })
     }
@@ -205,7 +201,7 @@ pub fn night_bad_pixel_mask(
 
 /// Join shard catalogs: targets ordered by sequence, failures by file, duplicates (the same
 /// sequence in two shards) refused.
-pub fn merge(parts: Vec<(String, Catalog)>) -> Result<Catalog, String> {
+pub fn merge(parts: Vec<(String, Catalog)>) -> crate::error::Result<Catalog> {
     let mut out = Catalog {
         schema_version: SCHEMA_VERSION.into(),
         ..Default::default()
@@ -214,10 +210,13 @@ pub fn merge(parts: Vec<(String, Catalog)>) -> Result<Catalog, String> {
     let mut seen = std::collections::BTreeMap::new();
     for (name, c) in parts {
         if !c.schema_version.is_empty() && c.schema_version.split('.').next() != SCHEMA_VERSION.split('.').next() {
-            return Err(format!(
-                "{name}: schema version {} is not compatible with {}",
-                c.schema_version, SCHEMA_VERSION
-            ));
+            return Err(crate::error::Error::Merge {
+                file: name,
+                reason: format!(
+                    "schema version {} is not compatible with {}",
+                    c.schema_version, SCHEMA_VERSION
+                ),
+            });
         }
         for t in c.targets {
             let key = t
@@ -227,7 +226,10 @@ pub fn merge(parts: Vec<(String, Catalog)>) -> Result<Catalog, String> {
                 .unwrap_or(&t.object)
                 .to_string();
             if let Some(prev) = seen.insert(key.clone(), name.clone()) {
-                return Err(format!("sequence {key} appears in both {prev} and {name}"));
+                return Err(crate::error::Error::Merge {
+                    reason: format!("sequence {key} appears in both {prev} and {name}"),
+                    file: name,
+                });
             }
             out.targets.push(t);
         }

@@ -4,8 +4,10 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use sofipol_pipeline::catalog::{Catalog, Status, SCHEMA_VERSION};
+use sofipol_pipeline::photometry::Method;
 use sofipol_pipeline::reduce::run::reduce_sequence;
 use sofipol_pipeline::reduce::TargetParams;
+use sofipol_pipeline::stokes::inversion::Debias;
 use sofipol_pipeline::{scan, sequence};
 
 use super::common::ProfileArgs;
@@ -43,12 +45,12 @@ pub struct ReduceArgs {
     /// Aperture radius in units of the FWHM.
     #[arg(long)]
     pub aperture_fwhm: Option<f64>,
-    /// Aperture method: exact, center, or subpixel:N.
+    /// Aperture method: exact, center, or subpixel:N (as `measure.method` in TOML).
     #[arg(long)]
-    pub method: Option<String>,
-    /// Debiasing of P: wk (Wardle & Kronberg) or mas (Plaszczynski et al. 2014).
+    pub method: Option<Method>,
+    /// Debiasing of P: wk (Wardle & Kronberg) or mas (Plaszczynski et al. 2014), as `measure.debias`.
     #[arg(long)]
-    pub debias: Option<String>,
+    pub debias: Option<Debias>,
     /// Known companion separation and PA, "SEP_ARCSEC,PA_DEG" (optional hint).
     #[arg(long, value_name = "SEP,PA")]
     pub companion: Option<String>,
@@ -75,26 +77,11 @@ impl ReduceArgs {
         if let Some(a) = self.aperture_fwhm {
             p.measure.aperture_fwhm = a;
         }
-        if let Some(m) = &self.method {
-            use sofipol_pipeline::photometry::Method;
-            p.measure.method = match m.as_str() {
-                "exact" => Method::Exact,
-                "center" => Method::Center,
-                s if s.starts_with("subpixel:") => Method::Subpixel(
-                    s[9..]
-                        .parse()
-                        .with_context(|| format!("--method {s}: N of subpixel:N must be a positive integer"))?,
-                ),
-                s => anyhow::bail!("--method {s}: expected exact, center or subpixel:N"),
-            };
+        if let Some(m) = self.method {
+            p.measure.method = m;
         }
-        if let Some(d) = &self.debias {
-            use sofipol_pipeline::stokes::inversion::Debias;
-            p.measure.debias = match d.as_str() {
-                "wk" => Debias::WardleKronberg,
-                "mas" => Debias::Mas,
-                s => anyhow::bail!("--debias {s}: expected wk or mas"),
-            };
+        if let Some(d) = self.debias {
+            p.measure.debias = d;
         }
         if let Some(c) = &self.companion {
             let v: Vec<f64> = c
@@ -192,4 +179,90 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     } else {
         ExitCode::SUCCESS
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        reduce: ReduceArgs,
+    }
+
+    fn cli(args: &[&str]) -> Result<TargetParams, String> {
+        let a = Cli::try_parse_from(std::iter::once("t").chain(args.iter().copied())).map_err(|e| e.to_string())?;
+        a.reduce.params().map_err(|e| format!("{e:#}"))
+    }
+
+    fn toml_file(body: &str) -> Result<TargetParams, String> {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("p.toml");
+        std::fs::write(&f, body).unwrap();
+        cli(&["--params", f.to_str().unwrap()])
+    }
+
+    #[test]
+    fn method_and_debias_have_one_spelling_in_toml_and_on_the_command_line() {
+        for m in [Method::Exact, Method::Center, Method::Subpixel(1), Method::Subpixel(5)] {
+            for d in [Debias::WardleKronberg, Debias::Mas] {
+                let (ms, ds) = (m.to_string(), d.to_string());
+                let from_cli = cli(&["--method", &ms, "--debias", &ds]).unwrap();
+                assert_eq!((from_cli.measure.method, from_cli.measure.debias), (m, d));
+                // What the parameters serialize to (provenance) is what the flags take.
+                let text = toml::to_string(&from_cli).unwrap();
+                assert!(text.contains(&format!("method = \"{ms}\"")), "{text}");
+                assert!(text.contains(&format!("debias = \"{ds}\"")), "{text}");
+                let from_toml = toml_file(&text).unwrap();
+                assert_eq!((from_toml.measure.method, from_toml.measure.debias), (m, d));
+            }
+        }
+        // The old TOML spellings are still read.
+        let old = toml_file("[measure]\nmethod = { Subpixel = 4 }\ndebias = \"wardle_kronberg\"\n").unwrap();
+        assert_eq!(
+            (old.measure.method, old.measure.debias),
+            (Method::Subpixel(4), Debias::WardleKronberg)
+        );
+        assert_eq!(
+            toml_file("[measure]\nmethod = \"Center\"\n").unwrap().measure.method,
+            Method::Center
+        );
+    }
+
+    #[test]
+    fn a_bad_spelling_names_the_key_the_value_and_the_allowed_values() {
+        for (args, key, value, allowed) in [
+            (
+                &["--method", "subpixel:x"][..],
+                "method",
+                "subpixel:x",
+                "exact, center or subpixel:N",
+            ),
+            (
+                &["--method", "subpixel:0"][..],
+                "method",
+                "subpixel:0",
+                "exact, center or subpixel:N",
+            ),
+            (
+                &["--debias", "wardle"][..],
+                "debias",
+                "wardle",
+                "wk (Wardle & Kronberg 1974) or mas",
+            ),
+        ] {
+            let e = cli(args).unwrap_err();
+            assert!(
+                e.contains(&format!("--{key}")) && e.contains(value) && e.contains(allowed),
+                "{e}"
+            );
+            let e = toml_file(&format!("[measure]\n{key} = \"{value}\"\n")).unwrap_err();
+            assert!(
+                e.contains(&format!("measure.{key}")) && e.contains(value) && e.contains(allowed),
+                "{e}"
+            );
+        }
+    }
 }

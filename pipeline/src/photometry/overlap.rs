@@ -29,6 +29,7 @@ use serde::{Deserialize, Serialize};
 
 /// How the weight of a pixel in a circular aperture is computed (as photutils' `method`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(try_from = "MethodToml", into = "String")]
 pub enum Method {
     /// Exact fraction of the pixel area covered by the disc.
     Exact,
@@ -37,6 +38,68 @@ pub enum Method {
     /// Fraction of the `n x n` sub-pixel centres strictly inside the circle.
     /// `Subpixel(0)` and `Subpixel(1)` are the same as [`Method::Center`].
     Subpixel(u32),
+}
+
+/// The spellings of [`Method`], the same in TOML and on the command line.
+pub const METHOD_SPELLINGS: &str = "exact, center or subpixel:N with N >= 1";
+
+/// `exact`, `center`, `subpixel:N`: the one spelling of TOML and the command line.
+impl std::fmt::Display for Method {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Method::Exact => f.write_str("exact"),
+            Method::Center => f.write_str("center"),
+            Method::Subpixel(n) => write!(f, "subpixel:{n}"),
+        }
+    }
+}
+
+/// Parses what [`Method`]'s `Display` writes (case-insensitive, so the old TOML `"Exact"` is read).
+impl std::str::FromStr for Method {
+    type Err = crate::error::SettingError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let bad = || crate::error::SettingError {
+            key: "measure.method",
+            value: format!("{s:?}"),
+            allowed: METHOD_SPELLINGS,
+        };
+        let t = s.trim().to_ascii_lowercase();
+        match t.as_str() {
+            "exact" => Ok(Method::Exact),
+            "center" => Ok(Method::Center),
+            _ => match t.strip_prefix("subpixel:").map(|n| n.trim().parse::<u32>()) {
+                Some(Ok(n)) if n >= 1 => Ok(Method::Subpixel(n)),
+                _ => Err(bad()),
+            },
+        }
+    }
+}
+
+/// What TOML may hold for a [`Method`]: the one spelling, or the old `{ Subpixel = N }` table.
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum MethodToml {
+    Text(String),
+    Table {
+        #[serde(rename = "Subpixel")]
+        subpixel: u32,
+    },
+}
+
+impl TryFrom<MethodToml> for Method {
+    type Error = crate::error::SettingError;
+    fn try_from(m: MethodToml) -> Result<Self, Self::Error> {
+        match m {
+            MethodToml::Text(s) => s.parse(),
+            MethodToml::Table { subpixel } => format!("subpixel:{subpixel}").parse(),
+        }
+    }
+}
+
+impl From<Method> for String {
+    fn from(m: Method) -> String {
+        m.to_string()
+    }
 }
 
 /// Half chord `sqrt(r^2 - y^2)`, 0 outside `|y| < r`; `(r-y)(r+y)` keeps accuracy near `|y| = r`.

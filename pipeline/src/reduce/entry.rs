@@ -3,7 +3,7 @@
 //! least squares over the orientations, P, gamma and their errors, debiasing and the cut.
 use super::{CalibratedOrientation, DitherValue, MeasureParams, Measured};
 use crate::catalog::{self, Component, Status, Target};
-use crate::stokes::inversion::{clip_dithers, combine_dithers, fit_qu, LinearPolarization};
+use crate::stokes::inversion::{clip_dithers, combine_dithers, fit_qu, LinearPolarization, Polarization};
 
 /// Turn the per-dither values of one component into its catalog entry.
 pub fn component_from_dithers(
@@ -105,15 +105,7 @@ pub fn component_from_dithers(
             }
             Component {
                 name: name.into(),
-                q: lp.q,
-                u: lp.u,
-                sigma_q: lp.sigma_q,
-                sigma_u: lp.sigma_u,
-                p: lp.p,
-                sigma_p: lp.sigma_p,
-                p_debiased: lp.p_debiased,
-                gamma_deg: lp.gamma_deg,
-                sigma_gamma_deg: lp.sigma_gamma_deg,
+                pol: lp.pol,
                 passes_cut: lp.passes_cut(params.cut_snr),
                 flags,
                 extra,
@@ -123,15 +115,7 @@ pub fn component_from_dithers(
             flags.push("undefined_polarization: orientations do not constrain q and u".into());
             Component {
                 name: name.into(),
-                q: f64::NAN,
-                u: f64::NAN,
-                sigma_q: f64::NAN,
-                sigma_u: f64::NAN,
-                p: f64::NAN,
-                sigma_p: f64::NAN,
-                p_debiased: f64::NAN,
-                gamma_deg: f64::NAN,
-                sigma_gamma_deg: f64::NAN,
+                pol: Polarization::UNDEFINED,
                 passes_cut: false,
                 flags,
                 extra,

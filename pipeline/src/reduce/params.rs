@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 use sofipol_calib::badpix::BadPixelOptions;
 use sofipol_calib::sky::SkyOptions;
 
+pub use crate::error::SettingError;
 use crate::photometry::{Method, PsfModel};
 use crate::stokes::inversion::Debias;
 
@@ -111,18 +112,6 @@ impl Default for TargetParams {
             full_frame_sky: false,
         }
     }
-}
-
-/// A setting outside its allowed range: names the key, the value and what is allowed.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("setting {key} = {value}: must be {allowed}")]
-pub struct SettingError {
-    /// Key as written in the settings file (`section.name`).
-    pub key: &'static str,
-    /// The value found.
-    pub value: String,
-    /// The allowed range.
-    pub allowed: &'static str,
 }
 
 /// `Ok` when `ok`, else the error naming `key`, `value` and `allowed`.

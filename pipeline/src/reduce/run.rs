@@ -8,6 +8,7 @@ use sofipol_calib::{badpix, fits, sky, Frame, Profile};
 
 use super::{measure_sequence, target_entry, CalibratedOrientation, TargetParams};
 use crate::catalog::{Failure, Status, Target};
+use crate::error::Error;
 use crate::sequence::Sequence;
 
 /// Timings of the stages of one target, seconds.
@@ -159,7 +160,7 @@ pub fn reduce_loaded(
     }
     let mask = match bad_pixel_mask(&all, crop, night_mask, profile, params, &mut flags) {
         Ok(m) => m,
-        Err(e) => return failed(seq, e, &flags, failures, times),
+        Err(e) => return failed(seq, e.to_string(), &flags, failures, times),
     };
     times.bad_pixels = t.elapsed().as_secs_f64();
 
@@ -260,23 +261,23 @@ fn bad_pixel_mask(
     profile: &Profile,
     params: &TargetParams,
     flags: &mut Vec<String>,
-) -> Result<Option<Array2<u8>>, String> {
+) -> crate::error::Result<Option<Array2<u8>>> {
     let mut mask = None;
     if let Some(p) = &params.calib_mask {
-        let m = badpix::load_mask(p).map_err(|e| format!("calibration mask: {e}"))?;
+        let m = badpix::load_mask(p).map_err(|e| Error::calib("calibration mask", e))?;
         mask = Some(crop_mask(&m, crop));
     }
     if let Some(nm) = night_mask {
         let nm = crop_mask(nm, crop);
         mask = Some(match mask {
-            Some(c) => badpix::combine_masks(&c, &nm).map_err(|e| format!("night bad-pixel mask: {e}"))?,
+            Some(c) => badpix::combine_masks(&c, &nm).map_err(|e| Error::calib("night bad-pixel mask", e))?,
             None => nm,
         });
     } else if !params.no_detect_bad_pixels && all.len() >= 3 {
         match badpix::detect_bad_pixels(all, profile, &params.bad_pixels) {
             Ok((m, _report)) => {
                 mask = Some(match mask {
-                    Some(c) => badpix::combine_masks(&c, &m).map_err(|e| format!("calibration mask: {e}"))?,
+                    Some(c) => badpix::combine_masks(&c, &m).map_err(|e| Error::calib("calibration mask", e))?,
                     None => m,
                 })
             }

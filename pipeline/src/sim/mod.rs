@@ -183,7 +183,7 @@ struct FrameParams {
 
 impl Simulator {
     /// Prepare a scene (validates it and draws the fixed detector maps of listed effects).
-    pub fn new(scene: Scene, profile: Profile) -> Result<Simulator, String> {
+    pub fn new(scene: Scene, profile: Profile) -> crate::error::Result<Simulator> {
         scene.validate()?;
         let calls = EffectCalls::default();
         let (ny, nx) = (profile.geometry.ny, profile.geometry.nx);
@@ -207,8 +207,10 @@ impl Simulator {
         });
         // Sequence start times: targets one after another through the night.
         let o = &scene.observation;
-        let mjd0 = effects::mjd_from_date_time(&o.date, &o.start_ut)
-            .ok_or_else(|| format!("observation.date/start_ut '{} {}' not understood", o.date, o.start_ut))?;
+        let mjd0 = effects::mjd_from_date_time(&o.date, &o.start_ut).ok_or_else(|| crate::error::Error::Scene {
+            origin: "scene".into(),
+            reason: format!("observation.date/start_ut '{} {}' not understood", o.date, o.start_ut),
+        })?;
         let nframes = o.orientations_deg.len() * o.dithers;
         let per_seq_s = nframes as f64 * (o.dit_s * o.ndit as f64 + o.overhead_s) + 120.0;
         let tpl_starts = (0..scene.binary.len())
@@ -659,10 +661,13 @@ impl Simulator {
     /// Simulate every frame and write it to `dir` (FITS, atomically) together with
     /// `truth.json`. Frames stream: at most one frame per worker thread is in memory.
     /// `on_frame` is called after each frame is written (progress reporting).
-    pub fn write_to_dir(&self, dir: &std::path::Path, on_frame: &(dyn Fn(&str) + Sync)) -> Result<Truth, String> {
+    pub fn write_to_dir(&self, dir: &std::path::Path, on_frame: &(dyn Fn(&str) + Sync)) -> crate::error::Result<Truth> {
         use rayon::prelude::*;
         use sofipol_calib::fits::{write_frame, Bitpix, WriteOptions};
-        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        std::fs::create_dir_all(dir).map_err(|source| crate::error::Error::Io {
+            path: dir.to_path_buf(),
+            source,
+        })?;
         let o = &self.scene.observation;
         let opts = WriteOptions {
             bitpix: if o.bitpix == 16 { Bitpix::I16 } else { Bitpix::F32 },
@@ -673,12 +678,12 @@ impl Simulator {
         let jobs: Vec<(usize, usize)> = (0..self.scene.binary.len())
             .flat_map(|t| (0..n).map(move |k| (t, k)))
             .collect();
-        let truths: Vec<Result<FrameTruth, String>> = jobs
+        let truths: Vec<crate::error::Result<FrameTruth>> = jobs
             .par_iter()
             .map(|&(t, k)| {
                 let f = self.frame(t, k);
                 let path = dir.join(&f.file_name);
-                write_frame(&path, &f.frame, &opts).map_err(|e| e.to_string())?;
+                write_frame(&path, &f.frame, &opts).map_err(|e| crate::error::Error::calib("simulated frame", e))?;
                 on_frame(&f.file_name);
                 Ok(f.truth)
             })
@@ -688,7 +693,8 @@ impl Simulator {
             per_t[t].push(r?);
         }
         let truth = self.truth(&per_t);
-        crate::io::write_json_atomic(&dir.join("truth.json"), &truth).map_err(|e| e.to_string())?;
+        crate::io::write_json_atomic(&dir.join("truth.json"), &truth)
+            .map_err(|e| crate::error::Error::calib("truth", e))?;
         Ok(truth)
     }
 }

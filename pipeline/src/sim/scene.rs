@@ -4,6 +4,8 @@
 //! that is not listed is ignored (and reported in the truth as ignored).
 use serde::{Deserialize, Serialize};
 
+use crate::error::Error;
+
 /// Every effect the simulator knows, in the order they act on a frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -443,9 +445,16 @@ pub struct Scene {
 
 impl Scene {
     /// Parse a scene from TOML text; `origin` names the source in errors.
-    pub fn from_toml(text: &str, origin: &str) -> Result<Scene, String> {
-        let s: Scene = toml::from_str(text).map_err(|e| format!("{origin}: {e}"))?;
-        s.validate().map_err(|e| format!("{origin}: {e}"))?;
+    pub fn from_toml(text: &str, origin: &str) -> crate::error::Result<Scene> {
+        let scene_err = |reason: String| Error::Scene {
+            origin: origin.to_string(),
+            reason,
+        };
+        let s: Scene = toml::from_str(text).map_err(|e| scene_err(e.to_string()))?;
+        s.validate().map_err(|e| match e {
+            Error::Scene { reason, .. } => scene_err(reason),
+            e => e,
+        })?;
         Ok(s)
     }
 
@@ -484,49 +493,60 @@ impl Scene {
     }
 
     /// Check values that would make a meaningless simulation.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> crate::error::Result<()> {
         let o = &self.observation;
         if o.orientations_deg.is_empty() {
-            return Err("observation.orientations_deg is empty".into());
+            return Err(invalid("observation.orientations_deg is empty".into()));
         }
         if o.dithers == 0 {
-            return Err("observation.dithers = 0".into());
+            return Err(invalid("observation.dithers = 0".into()));
         }
         if o.ndit == 0 || !(o.dit_s > 0.0) {
-            return Err(format!(
+            return Err(invalid(format!(
                 "observation: ndit = {} and dit_s = {} must be > 0",
                 o.ndit, o.dit_s
-            ));
+            )));
         }
         if o.bitpix != -32 && o.bitpix != 16 {
-            return Err(format!("observation.bitpix = {} (expected -32 or 16)", o.bitpix));
+            return Err(invalid(format!(
+                "observation.bitpix = {} (expected -32 or 16)",
+                o.bitpix
+            )));
         }
         for b in &self.binary {
             for (what, v) in [("flux_a", b.flux_a), ("flux_b", b.flux_b)] {
                 if !(v >= 0.0) {
-                    return Err(format!("binary '{}': {what} = {v} must be >= 0", b.name));
+                    return Err(invalid(format!("binary '{}': {what} = {v} must be >= 0", b.name)));
                 }
             }
             for (what, v) in [("p_a", b.p_a), ("p_b", b.p_b)] {
                 if !(0.0..=1.0).contains(&v) {
-                    return Err(format!("binary '{}': {what} = {v} must be in [0, 1]", b.name));
+                    return Err(invalid(format!("binary '{}': {what} = {v} must be in [0, 1]", b.name)));
                 }
             }
             if !(b.separation_arcsec >= 0.0) {
-                return Err(format!(
+                return Err(invalid(format!(
                     "binary '{}': separation_arcsec = {}",
                     b.name, b.separation_arcsec
-                ));
+                )));
             }
         }
         if let Some(p) = &self.psf {
             if !(p.fwhm_arcsec > 0.0) || (p.kind == PsfKind::Moffat && !(p.beta > 1.0)) {
-                return Err(format!(
+                return Err(invalid(format!(
                     "psf: fwhm_arcsec = {} must be > 0 and beta = {} > 1",
                     p.fwhm_arcsec, p.beta
-                ));
+                )));
             }
         }
         Ok(())
+    }
+}
+
+/// A scene error without its origin (added by [`Scene::from_toml`]).
+fn invalid(reason: String) -> Error {
+    Error::Scene {
+        origin: "scene".into(),
+        reason,
     }
 }

@@ -153,13 +153,55 @@ pub fn fit_qu(phi_deg: &[f64], f: &[f64], sigma: &[f64]) -> Option<QuFit> {
 
 /// Debiasing estimator of P.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
+#[serde(try_from = "String", into = "String")]
 pub enum Debias {
     /// Wardle & Kronberg (1974): sqrt(P^2 - sigma^2) if P > sigma, else 0.
     #[default]
     WardleKronberg,
     /// Modified asymptotic estimator, Plaszczynski et al. (2014).
     Mas,
+}
+
+/// The spellings of [`Debias`], the same in TOML and on the command line.
+pub const DEBIAS_SPELLINGS: &str = "wk (Wardle & Kronberg 1974) or mas (Plaszczynski et al. 2014)";
+
+/// `wk`, `mas`: the one spelling of TOML and the command line.
+impl std::fmt::Display for Debias {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Debias::WardleKronberg => "wk",
+            Debias::Mas => "mas",
+        })
+    }
+}
+
+/// Parses what [`Debias`]'s `Display` writes (and the old TOML `wardle_kronberg`).
+impl std::str::FromStr for Debias {
+    type Err = crate::error::SettingError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "wk" | "wardle_kronberg" => Ok(Debias::WardleKronberg),
+            "mas" => Ok(Debias::Mas),
+            _ => Err(crate::error::SettingError {
+                key: "measure.debias",
+                value: format!("{s:?}"),
+                allowed: DEBIAS_SPELLINGS,
+            }),
+        }
+    }
+}
+
+impl TryFrom<String> for Debias {
+    type Error = crate::error::SettingError;
+    fn try_from(s: String) -> Result<Self, Self::Error> {
+        s.parse()
+    }
+}
+
+impl From<Debias> for String {
+    fn from(d: Debias) -> String {
+        d.to_string()
+    }
 }
 
 /// Debiased P.
@@ -182,34 +224,65 @@ pub fn debias(p: f64, sigma_p: f64, how: Debias) -> f64 {
     }
 }
 
-/// Linear polarization of one source with errors.
+/// q, u, P, gamma and their errors, in this order: what a catalog component stores
+/// ([`crate::catalog::Component`] flattens it, so the JSON keys keep this order).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct LinearPolarization {
-    /// q.
+pub struct Polarization {
+    /// Normalised Stokes q (sky frame).
     pub q: f64,
-    /// u.
+    /// Normalised Stokes u (sky frame).
     pub u: f64,
-    /// sigma_q.
+    /// 1-sigma error of q.
     pub sigma_q: f64,
-    /// sigma_u.
+    /// 1-sigma error of u.
     pub sigma_u: f64,
-    /// P = hypot(q, u).
+    /// Degree of linear polarization P_l = hypot(q, u) (not debiased).
     pub p: f64,
-    /// sigma_P.
+    /// 1-sigma error of P.
     pub sigma_p: f64,
-    /// Debiased P.
+    /// Debiased P (Wardle & Kronberg 1974 unless `debias` says otherwise).
     pub p_debiased: f64,
-    /// gamma, degrees in [0, 180).
+    /// Polarization angle gamma, degrees east of north, in [0, 180).
     pub gamma_deg: f64,
     /// Wardle-Kronberg sigma_gamma = 28.65 deg sigma_P / P, at most 90/sqrt(3) = 51.96 deg
     /// (the standard deviation of a uniform angle; reached for P below ~0.55 sigma_P).
     pub sigma_gamma_deg: f64,
+}
+
+impl Polarization {
+    /// Every value NaN: q and u not constrained.
+    pub const UNDEFINED: Polarization = Polarization {
+        q: f64::NAN,
+        u: f64::NAN,
+        sigma_q: f64::NAN,
+        sigma_u: f64::NAN,
+        p: f64::NAN,
+        sigma_p: f64::NAN,
+        p_debiased: f64::NAN,
+        gamma_deg: f64::NAN,
+        sigma_gamma_deg: f64::NAN,
+    };
+}
+
+/// Linear polarization of one source with errors: [`Polarization`] and the S/N measures.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LinearPolarization {
+    /// q, u, P, gamma and their errors (read through `Deref`: `lp.q`).
+    #[serde(flatten)]
+    pub pol: Polarization,
     /// 68.27 % half-width of the Naghizadeh-Khouei & Clarke angle distribution, deg,
     /// evaluated at the debiased S/N P0 = `p_debiased` / `sigma_p` (the distribution's
     /// parameter is the true S/N; the measured one is biased high, most at low S/N).
     pub sigma_gamma_nkc_deg: f64,
     /// P / sigma_P.
     pub snr: f64,
+}
+
+impl std::ops::Deref for LinearPolarization {
+    type Target = Polarization;
+    fn deref(&self) -> &Polarization {
+        &self.pol
+    }
 }
 
 impl LinearPolarization {
@@ -246,15 +319,17 @@ impl LinearPolarization {
             f64::INFINITY
         };
         LinearPolarization {
-            q,
-            u,
-            sigma_q,
-            sigma_u,
-            p,
-            sigma_p,
-            p_debiased,
-            gamma_deg,
-            sigma_gamma_deg,
+            pol: Polarization {
+                q,
+                u,
+                sigma_q,
+                sigma_u,
+                p,
+                sigma_p,
+                p_debiased,
+                gamma_deg,
+                sigma_gamma_deg,
+            },
             sigma_gamma_nkc_deg: angle_half_width_68_deg(snr0),
             snr,
         }
