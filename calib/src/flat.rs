@@ -444,8 +444,46 @@ pub fn superflat(frames: &[Frame], profile: &Profile, opts: &FlatOptions) -> Res
         .collect();
     let sat = profile.detector.nonlinear_warn_adu as f32;
 
+    // Fixed detector defects (hot pixels and columns, dead pixels) sit at the same pixel in
+    // every frame: found first as pixels whose median over (up to 9) frames, each divided
+    // by its strip level, is outside [min_response, max_response], so that they are not
+    // taken for stars (whose surroundings are left out).
+    let defect = {
+        let step = frames.len().div_ceil(9).max(1);
+        let sub: Vec<&Frame> = frames.iter().step_by(step).copied().collect();
+        let inv: Vec<[f32; 6]> = sub
+            .iter()
+            .map(|f| {
+                let mut l = [0f32; 6];
+                for (k, (_, [a, b])) in strips.iter().enumerate() {
+                    let m = strip_median(&f.data, *a, *b, |y, x, v| f.mask[[y, x]] == 0 && v < sat).unwrap_or(0.0);
+                    l[k] = if m > 0.0 { 1.0 / m } else { 0.0 };
+                }
+                l
+            })
+            .collect();
+        let mut d = Array2::<u8>::zeros(shape);
+        d.as_slice_mut()
+            .expect("fresh array")
+            .par_chunks_mut(nx)
+            .enumerate()
+            .for_each(|(y, row)| {
+                let Some(k) = strip_of[y] else { return };
+                let mut v = Vec::with_capacity(sub.len());
+                for (x, o) in row.iter_mut().enumerate() {
+                    v.clear();
+                    v.extend(sub.iter().zip(&inv).map(|(f, l)| f.data[[y, x]] * l[k]));
+                    let m = median_f32(&mut v).unwrap_or(f32::NAN);
+                    if !(m >= opts.min_response && m <= opts.max_response) {
+                        *o = 1;
+                    }
+                }
+            });
+        d
+    };
+
     // Per frame: strip levels and the per-pixel sigma of a normalized value, and the
-    // exclusion map (masked, saturated, stars grown by star_grow_px).
+    // exclusion map (defects, masked, saturated, stars grown by star_grow_px).
     struct Prep {
         inv_level: [f32; 6],
         sigma: [f32; 6],
@@ -465,39 +503,84 @@ pub fn superflat(frames: &[Frame], profile: &Profile, opts: &FlatOptions) -> Res
                     }
                 }
             }
-            let mut excl = Array2::<u8>::zeros(shape);
-            for y in 0..ny {
-                let Some(k) = strip_of[y] else { continue };
-                let (thr, ok) = (1.0 + opts.star_sigma * sigma[k], inv_level[k] > 0.0);
-                for x in 0..nx {
-                    let d = f.data[[y, x]];
-                    if !ok || f.mask[[y, x]] != 0 || !d.is_finite() || d >= sat || d * inv_level[k] > thr {
-                        excl[[y, x]] = 1;
-                    }
-                }
-            }
-            // Grow the stars: box dilation, separable (rows then columns).
-            let r = opts.star_grow_px;
-            if r > 0 {
-                let src = excl.clone();
-                for y in 0..ny {
-                    let row = src.row(y);
-                    let mut out = excl.row_mut(y);
-                    for x in 0..nx {
-                        if row[x] != 0 {
-                            for xx in x.saturating_sub(r)..(x + r + 1).min(nx) {
-                                out[xx] = 1;
+            // Local level: median of blocks of BLOCK columns of each strip (the sky is
+            // not flat: a gradient would push whole regions over a global threshold).
+            const BLOCK: usize = 64;
+            let nb = nx.div_ceil(BLOCK);
+            // Level and robust scatter (median - 15.9th percentile: photon noise and the
+            // pixel response itself, which looks like noise within one frame).
+            let mut local = vec![[0f32; 6]; nb];
+            let mut scatter = vec![[0f32; 6]; nb];
+            for (k, (_, [a, b])) in strips.iter().enumerate() {
+                for bi in 0..nb {
+                    let lv = &mut local[bi];
+                    let (x0, x1) = (bi * BLOCK, ((bi + 1) * BLOCK).min(nx));
+                    let mut v: Vec<f32> = Vec::with_capacity((b - a) * (x1 - x0) / 2 + 1);
+                    for y in *a..*b {
+                        for x in (x0 + (y % 2)..x1).step_by(2) {
+                            let d = f.data[[y, x]];
+                            if f.mask[[y, x]] == 0 && d.is_finite() && d < sat {
+                                v.push(d);
                             }
                         }
                     }
+                    lv[k] = median_f32(&mut v).unwrap_or(0.0);
+                    if !v.is_empty() {
+                        let i16 = (v.len() as f64 * 0.1587) as usize;
+                        let p16 = *v.select_nth_unstable_by(i16, |a, b| a.total_cmp(b)).1;
+                        scatter[bi][k] = (lv[k] - p16).max(0.0);
+                    }
                 }
-                let src = excl.clone();
-                for y in 0..ny {
-                    for x in 0..nx {
-                        if src[[y, x]] != 0 {
-                            for yy in y.saturating_sub(r)..(y + r + 1).min(ny) {
-                                excl[[yy, x]] = 1;
-                            }
+            }
+            // Significance of each pixel above its local level, in sigma of that level.
+            let mut excl = Array2::<u8>::zeros(shape);
+            let mut seed = Array2::<u8>::zeros(shape);
+            for y in 0..ny {
+                let Some(k) = strip_of[y] else { continue };
+                for x in 0..nx {
+                    let d = f.data[[y, x]];
+                    let l = local[x / BLOCK][k];
+                    if inv_level[k] <= 0.0
+                        || l <= 0.0
+                        || defect[[y, x]] != 0
+                        || f.mask[[y, x]] != 0
+                        || !d.is_finite()
+                        || d >= sat
+                    {
+                        excl[[y, x]] = 1;
+                        continue;
+                    }
+                    let sig = scatter[x / BLOCK][k].max((l * inv_g + rv).sqrt());
+                    let z = (d - l) / sig;
+                    if z > opts.star_sigma {
+                        excl[[y, x]] = 1;
+                        seed[[y, x]] = 2;
+                    } else if z > 2.0 {
+                        seed[[y, x]] = 1;
+                    }
+                }
+            }
+            // Grow stars (a significant pixel with a neighbour above 2 sigma: not a lone
+            // noise spike or cosmic-ray pixel) by star_grow_px: box dilation.
+            let r = opts.star_grow_px;
+            if r > 0 {
+                let mut grow = Vec::new();
+                for y in 1..ny.saturating_sub(1) {
+                    for x in 1..nx.saturating_sub(1) {
+                        if seed[[y, x]] == 2
+                            && (seed[[y, x - 1]] > 0
+                                || seed[[y, x + 1]] > 0
+                                || seed[[y - 1, x]] > 0
+                                || seed[[y + 1, x]] > 0)
+                        {
+                            grow.push((y, x));
+                        }
+                    }
+                }
+                for (y, x) in grow {
+                    for yy in y.saturating_sub(r)..(y + r + 1).min(ny) {
+                        for xx in x.saturating_sub(r)..(x + r + 1).min(nx) {
+                            excl[[yy, xx]] = 1;
                         }
                     }
                 }

@@ -267,6 +267,11 @@ impl Simulator {
         self.bad.as_ref().map(|b| b.mask.clone())
     }
 
+    /// The fixed pixel response (the `flat_field` effect), when listed.
+    pub fn pixel_response(&self) -> Option<&Array2<f32>> {
+        self.flat.as_ref()
+    }
+
     /// File name of frame `k` of target `t`.
     pub fn file_name(&self, t: usize, k: usize) -> String {
         let slug: String = self.scene.binary[t]
