@@ -186,7 +186,7 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
                     let tt = &truth.targets[t];
                     let (seq, orients) = loaded_from_sim(frames, &profile);
                     let t0 = std::time::Instant::now();
-                    let out = reduce_loaded(&seq, orients, &profile, params, None, false);
+                    let out = reduce_loaded(&seq, orients, &profile, params, None, None, false);
                     let reduce_s = t0.elapsed().as_secs_f64();
                     let mut one = One {
                         note: None,
