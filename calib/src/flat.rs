@@ -114,6 +114,29 @@ impl Flat {
         }
     }
 
+    /// This flat (made on rows [r0, r0 + its height) of a detector of `ny` rows) placed in
+    /// a full-height flat: 1 with variance 0 elsewhere.
+    pub fn embed_rows(&self, r0: usize, ny: usize) -> Flat {
+        let (h, nx) = self.shape();
+        let r1 = (r0 + h).min(ny);
+        let mut data = Array2::<f32>::ones((ny, nx));
+        let mut variance = Array2::<f32>::zeros((ny, nx));
+        let mut bad = Array2::<u8>::zeros((ny, nx));
+        data.slice_mut(s![r0..r1, ..])
+            .assign(&self.data.slice(s![..r1 - r0, ..]));
+        variance
+            .slice_mut(s![r0..r1, ..])
+            .assign(&self.variance.slice(s![..r1 - r0, ..]));
+        bad.slice_mut(s![r0..r1, ..]).assign(&self.bad.slice(s![..r1 - r0, ..]));
+        Flat {
+            data,
+            variance,
+            bad,
+            detail: format!("{} (rows {r0}-{r1} of the detector; 1 elsewhere)", self.detail),
+            ..self.clone()
+        }
+    }
+
     /// One line for provenance: kind, angle, filter, frames, file.
     pub fn describe(&self) -> String {
         let mut s = self.kind.name().to_string();
@@ -173,7 +196,7 @@ impl Default for FlatOptions {
             star_grow_px: 3,
             clip_sigma: 4.0,
             min_values: 5,
-            max_frames: 40,
+            max_frames: 25,
         }
     }
 }
@@ -278,10 +301,21 @@ fn median_f32(v: &mut [f32]) -> Option<f32> {
 
 /// Median of the finite values of rows [a, b) where `ok` says so (one pixel in 4).
 fn strip_median(data: &Array2<f32>, a: usize, b: usize, ok: impl Fn(usize, usize, f32) -> bool) -> Option<f32> {
+    strip_median_step(data, a, b, 4, ok)
+}
+
+/// Median of the finite values of rows [a, b) where `ok` says so (one pixel in `step`).
+fn strip_median_step(
+    data: &Array2<f32>,
+    a: usize,
+    b: usize,
+    step: usize,
+    ok: impl Fn(usize, usize, f32) -> bool,
+) -> Option<f32> {
     let mut v = Vec::new();
     for y in a..b {
         let row = data.row(y);
-        for x in ((y % 4)..row.len()).step_by(4) {
+        for x in ((y % step)..row.len()).step_by(step) {
             let val = row[x];
             if val.is_finite() && ok(y, x, val) {
                 v.push(val);
@@ -304,6 +338,9 @@ fn normalize_strips(
     let g = &profile.geometry;
     let mut levels = Vec::new();
     for (name, [a, b]) in g.strips() {
+        if a >= b || b > resp.dim().0 {
+            continue; // a strip outside the rows at hand (cropped frames)
+        }
         let med = strip_median(resp, a, b, |y, x, v| bad[[y, x]] == 0 && v > 0.0).ok_or_else(|| Error::Stage {
             stage,
             reason: format!("strip {name} (rows {a}-{b}) has no usable pixel"),
@@ -702,7 +739,7 @@ pub fn apply_flat(frame: &Frame, flat: &Flat, profile: &Profile) -> Result<Frame
         if a >= b {
             continue;
         }
-        let l = strip_median(&frame.data, a, b, |y, x, v| frame.mask[[y, x]] == 0 && v < sat).unwrap_or(0.0);
+        let l = strip_median_step(&frame.data, a, b, 16, |y, x, v| frame.mask[[y, x]] == 0 && v < sat).unwrap_or(0.0);
         for lr in &mut level_of_row[a..b] {
             *lr = l;
         }

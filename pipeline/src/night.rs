@@ -171,12 +171,40 @@ pub fn night_flats(
     }
     let mut flats = Vec::new();
     let mut notes = Vec::new();
+    // Only the target strips are reduced unless whole frames are wanted: build the
+    // superflat on those rows (a third of the detector) and leave 1 elsewhere.
+    let g = &profile.geometry;
+    let (r0, r1) = (g.o_target[0].min(g.e_target[0]), g.o_target[1].max(g.e_target[1]));
+    let crop = !params.full_frame_sky && params.save_intermediate.is_none() && r1 > r0;
+    let cropped_profile = profile.cropped_rows(r0, r1);
     for (filter, paths) in superflat_frames {
         let frames: Vec<sofipol_calib::Frame> = paths
             .par_iter()
             .filter_map(|p| sofipol_calib::fits::read_frame(p).ok())
+            .map(|f| {
+                if crop && f.shape().0 >= r1 {
+                    f.crop_rows(r0, r1)
+                } else {
+                    f
+                }
+            })
             .collect();
-        match superflat(&frames, profile, &params.flat_options) {
+        let cropped = crop && frames.first().is_some_and(|f| f.shape().0 == r1 - r0);
+        let built = if cropped {
+            superflat(&frames, &cropped_profile, &params.flat_options).map(|f| {
+                let ny = paths
+                    .first()
+                    .and_then(|p| sofipol_calib::fits::read_header(p).ok())
+                    .and_then(|h| h.get_i64("NAXIS2").ok())
+                    .map(|n| n as usize)
+                    .unwrap_or(g.ny)
+                    .max(r1);
+                f.embed_rows(r0, ny)
+            })
+        } else {
+            superflat(&frames, profile, &params.flat_options)
+        };
+        match built {
             Ok(f) => flats.push(f),
             Err(e) => notes.push(format!("filter {filter}: no superflat: {e}")),
         }
