@@ -218,7 +218,10 @@ pub struct DomeFlatInfo {
 pub fn dome_flat_info(header: &Header, profile: &Profile) -> Result<Option<DomeFlatInfo>> {
     let kw = &profile.keywords;
     let is = |k: &str, want: &str| header.opt_str(k).is_some_and(|v| v.trim().eq_ignore_ascii_case(want));
-    if !(is(&kw.dpr_type, FLAT_TYPE) || is(&kw.tpl_id, DOME_FLAT_TEMPLATE)) {
+    // The dome-flat template, or a flat (DPR TYPE) that carries the lamp keyword: a flat of
+    // another template without it (a sky flat) is not a dome flat.
+    let template = is(&kw.tpl_id, DOME_FLAT_TEMPLATE);
+    if !(template || (is(&kw.dpr_type, FLAT_TYPE) && header.contains(LAMP_KEYWORD))) {
         return Ok(None);
     }
     let lamp_on = match header.get(LAMP_KEYWORD) {
@@ -1222,7 +1225,12 @@ mod tests {
     #[test]
     fn lamp_keyword_is_required_and_checked() {
         let p = profile();
-        assert!(dome_flat_info(&header(0.0, None), &p).is_err());
+        // A flat of another template without the lamp keyword (a sky flat) is not a dome flat;
+        // the dome-flat template without it is an error naming the keyword.
+        assert!(dome_flat_info(&header(0.0, None), &p).unwrap().is_none());
+        let mut dome = header(0.0, None);
+        dome.set(&p.keywords.tpl_id, DOME_FLAT_TEMPLATE);
+        assert!(dome_flat_info(&dome, &p).unwrap_err().to_string().contains("LAMP1"));
         let mut h = header(0.0, None);
         h.set(LAMP_KEYWORD, "maybe");
         let e = dome_flat_info(&h, &p).unwrap_err().to_string();
