@@ -10,7 +10,7 @@
 //!                                   │
 //!  classify::classify(header) ──▶ Science(ScienceInfo{object, sequence, posang, offset...}) | Rejected{reason}
 //!                                   │
-//!  badpix ─▶ sky ─▶ sky-subtracted Frame (each stage: &Frame -> Result<Frame>, with history)
+//!  flat ─▶ badpix ─▶ sky ─▶ sky-subtracted Frame (each stage: &Frame -> Result<Frame>, with history)
 //! ```
 //!
 //! Conventions (docs/conventions.md): arrays are indexed `[y, x]`, pixel centres sit at
@@ -22,6 +22,7 @@ pub mod badpix;
 pub mod classify;
 pub mod error;
 pub mod fits;
+pub mod flat;
 pub mod frame;
 pub mod header;
 pub mod profile;

@@ -22,8 +22,46 @@ pub struct AccuracyConfig {
     pub seed: u64,
     /// Seeing FWHM, arcsec.
     pub fwhm_arcsec: f64,
+    /// Per-frame FWHM spread: each frame's FWHM is multiplied by U(1 - s, 1 + s) (on top
+    /// of the 8 % log-normal seeing change).
+    pub fwhm_spread_frac: f64,
+    /// Per-frame Moffat beta range (uniform), drawn independently of the FWHM; None: 3.
+    pub beta_range: Option<[f64; 2]>,
     /// Effects (scene names).
     pub effects: Vec<String>,
+    /// Extra scene sections (TOML), e.g. `[flat_field]` settings.
+    pub extra_scene: String,
+    /// Flat field applied to the raw frames before the reduction.
+    pub flat: FlatMode,
+}
+
+impl AccuracyConfig {
+    /// `cfg` with a pixel response non-uniformity of `rms` (the `flat_field` effect, no
+    /// vignetting; none when 0) and the flat `mode` (Dome adds the `dome_flats` effect).
+    pub fn with_flat_field(mut cfg: AccuracyConfig, rms: f64, mode: FlatMode) -> AccuracyConfig {
+        if rms > 0.0 {
+            cfg.effects.push("flat_field".into());
+            cfg.extra_scene += &format!("[flat_field]\npixel_rms = {rms}\nvignetting = 0.0\n");
+        }
+        if mode == FlatMode::Dome {
+            cfg.effects.push("dome_flats".into());
+            cfg.extra_scene += "[dome_flats]\nframes_on = 5\nframes_off = 5\n";
+        }
+        cfg.flat = mode;
+        cfg
+    }
+}
+
+/// Which flat the harness divides the raw frames by (each separation bin is one night).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FlatMode {
+    /// No flat.
+    None,
+    /// Superflat from the sky of (up to 40) science frames of the bin's night, picked
+    /// cycling through the dither positions.
+    Superflat,
+    /// Dome flats of the night (the scene must list `dome_flats`), one per rotator angle.
+    Dome,
 }
 
 impl Default for AccuracyConfig {
@@ -33,6 +71,8 @@ impl Default for AccuracyConfig {
             targets_per_bin: 12,
             seed: 7,
             fwhm_arcsec: 0.8,
+            fwhm_spread_frac: 0.2,
+            beta_range: Some([2.5, 4.0]),
             effects: [
                 "psf",
                 "sky",
@@ -47,6 +87,8 @@ impl Default for AccuracyConfig {
             .iter()
             .map(|s| s.to_string())
             .collect(),
+            extra_scene: String::new(),
+            flat: FlatMode::None,
         }
     }
 }
@@ -74,13 +116,19 @@ pub struct BinReport {
     pub outliers: Vec<String>,
 }
 
-fn scene_for(cfg: &AccuracyConfig, lo: f64, hi: f64, bin: usize) -> (Scene, Vec<[f64; 4]>) {
+/// The scene of separation bin `bin` (edges `lo`, `hi` arcsec) and its (sep, flux A, flux B, 0) draws.
+pub fn scene_for(cfg: &AccuracyConfig, lo: f64, hi: f64, bin: usize) -> (Scene, Vec<[f64; 4]>) {
     let mut r = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(cfg.seed ^ (bin as u64 * 0x9E37));
     let mut text = format!(
-        "name = \"acc{bin}\"\nseed = {}\neffects = [{}]\n[psf]\nkind = \"moffat\"\nfwhm_arcsec = {}\nbeta = 3.0\nseeing_rms_frac = 0.08\n",
+        "name = \"acc{bin}\"\nseed = {}\neffects = [{}]\n{}\n[psf]\nkind = \"moffat\"\nfwhm_arcsec = {}\nbeta = 3.0\nseeing_rms_frac = 0.08\nfwhm_spread_frac = {}\n{}",
         cfg.seed + bin as u64,
         cfg.effects.iter().map(|e| format!("\"{e}\"")).collect::<Vec<_>>().join(","),
-        cfg.fwhm_arcsec
+        cfg.extra_scene,
+        cfg.fwhm_arcsec,
+        cfg.fwhm_spread_frac,
+        cfg.beta_range
+            .map(|[lo, hi]| format!("beta_range = [{lo}, {hi}]\n"))
+            .unwrap_or_default()
     );
     let mut truths = Vec::new();
     for t in 0..cfg.targets_per_bin {
@@ -121,15 +169,24 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
             let (scene, _) = scene_for(cfg, w[0], w[1], bin);
             let sim = Simulator::new(scene, profile.clone()).expect("valid");
             let n = sim.frames_per_target();
+            let flats = night_flats(cfg.flat, &sim, &profile);
             let ones: Vec<One> = (0..cfg.targets_per_bin)
                 .into_par_iter()
                 .map(|t| {
-                    let frames: Vec<_> = (0..n).map(|k| sim.frame(t, k)).collect();
+                    let mut frames: Vec<_> = (0..n).map(|k| sim.frame(t, k)).collect();
+                    if let Some(set) = &flats {
+                        for f in &mut frames {
+                            if let Some(flat) = set.for_frame(f.truth.posang_deg, &sim.scene().observation.filter) {
+                                f.frame =
+                                    sofipol_calib::flat::apply_flat(&f.frame, flat, &profile).expect("same shape");
+                            }
+                        }
+                    }
                     let truth = sim.truth(&[]);
                     let tt = &truth.targets[t];
                     let (seq, orients) = loaded_from_sim(frames, &profile);
                     let t0 = std::time::Instant::now();
-                    let out = reduce_loaded(&seq, orients, &profile, params, None, false);
+                    let out = reduce_loaded(&seq, orients, &profile, params, None, None, false);
                     let reduce_s = t0.elapsed().as_secs_f64();
                     let mut one = One {
                         note: None,
@@ -214,6 +271,49 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
             }
         })
         .collect()
+}
+
+/// The flats of one simulated night (one separation bin), as `night` would build them.
+pub fn night_flats(mode: FlatMode, sim: &Simulator, profile: &Profile) -> Option<sofipol_calib::flat::FlatSet> {
+    use sofipol_calib::flat::{dome_flat, superflat, FlatOptions, FlatSet};
+    let opts = FlatOptions::default();
+    match mode {
+        FlatMode::None => None,
+        FlatMode::Superflat => {
+            let n = sim.frames_per_target();
+            let nt = sim.scene().binary.len();
+            let mut picks = Vec::new();
+            'outer: for round in 0..n {
+                for t in 0..nt {
+                    if picks.len() >= opts.max_frames {
+                        break 'outer;
+                    }
+                    picks.push((t, (t + round * 3) % n));
+                }
+            }
+            let frames: Vec<_> = picks.par_iter().map(|&(t, k)| sim.frame(t, k).frame).collect();
+            let f = superflat(&frames, profile, &opts).expect("superflat of a simulated night");
+            Some(FlatSet { flats: vec![f] })
+        }
+        FlatMode::Dome => {
+            let all = sim.dome_flat_frames();
+            let mut angles: Vec<f64> = all.iter().map(|f| f.truth.posang_deg).collect();
+            angles.dedup();
+            let flats = angles
+                .iter()
+                .map(|&pa| {
+                    let (on, off): (Vec<_>, Vec<_>) = all
+                        .iter()
+                        .filter(|f| f.truth.posang_deg == pa)
+                        .partition(|f| f.truth.lamp_on);
+                    let on: Vec<_> = on.into_iter().map(|f| f.frame.clone()).collect();
+                    let off: Vec<_> = off.into_iter().map(|f| f.frame.clone()).collect();
+                    dome_flat(&on, &off, profile, &opts).expect("dome flat of a simulated night")
+                })
+                .collect();
+            Some(FlatSet { flats })
+        }
+    }
 }
 
 /// A table of the reports.

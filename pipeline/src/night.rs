@@ -72,6 +72,151 @@ pub struct NightPlan {
     /// Frames for the night's bad-pixel detection, chosen from every sequence of the
     /// night before sharding, so that every shard finds the same mask.
     pub mask_frames: Vec<PathBuf>,
+    /// Dome-flat frames of the whole night (before sharding: every shard builds the same
+    /// flats).
+    pub dome_flats: Vec<PathBuf>,
+    /// Frames for the superflat, by filter, from every sequence of the night (before
+    /// sharding), cycling through the dither positions like `mask_frames`.
+    pub superflat_frames: std::collections::BTreeMap<String, Vec<PathBuf>>,
+}
+
+/// Frames for a superflat, by filter: sequence `i` contributes its exposure
+/// `(i + round) mod n` (all orientations in turn), round after round, at most `max` per
+/// filter, so the stars of the night fall on different pixels in different frames.
+pub fn pick_superflat_frames(sequences: &[Sequence], max: usize) -> std::collections::BTreeMap<String, Vec<PathBuf>> {
+    let mut out: std::collections::BTreeMap<String, Vec<PathBuf>> = Default::default();
+    let longest = sequences
+        .iter()
+        .map(|q| q.orientations.iter().map(|o| o.exposures.len()).sum::<usize>())
+        .max()
+        .unwrap_or(0);
+    for round in 0..longest {
+        for (i, q) in sequences.iter().enumerate() {
+            let all: Vec<&PathBuf> = q
+                .orientations
+                .iter()
+                .flat_map(|o| o.exposures.iter().map(|e| &e.path))
+                .collect();
+            let picks = out.entry(q.filter.clone()).or_default();
+            if round >= all.len() || picks.len() >= max {
+                continue;
+            }
+            let p = all[(i + round) % all.len()];
+            if !picks.contains(p) {
+                picks.push(p.clone());
+            }
+        }
+    }
+    out
+}
+
+/// The flats a night uses, and what was done.
+#[derive(Debug, Default)]
+pub struct NightFlats {
+    /// The flats (None: no flat-fielding).
+    pub set: Option<sofipol_calib::flat::FlatSet>,
+    /// Provenance: which flats, from which frames (catalog provenance `flat`).
+    pub provenance: serde_json::Value,
+    /// Flat frames that could not be used, with the reason.
+    pub failures: Vec<Failure>,
+}
+
+/// Build the night's flats: the calibration flat file of the settings when given; else
+/// dome flats (lamp on - off per rotator angle) when the night has them; else a superflat
+/// per filter from `superflat_frames` (at least `flat_options.min_values` frames).
+/// `params.no_flat`: none.
+pub fn night_flats(
+    dome_flats: &[PathBuf],
+    superflat_frames: &std::collections::BTreeMap<String, Vec<PathBuf>>,
+    profile: &Profile,
+    params: &TargetParams,
+) -> NightFlats {
+    use sofipol_calib::flat::{build_flats, read_flat, superflat, FlatSet};
+    let mut out = NightFlats::default();
+    if params.no_flat {
+        out.provenance = serde_json::json!({"mode": "none (no_flat)"});
+        return out;
+    }
+    if let Some(p) = &params.flat {
+        match read_flat(p) {
+            Ok(f) => {
+                out.provenance = serde_json::json!({"mode": "file", "flats": [f.provenance()]});
+                out.set = Some(FlatSet { flats: vec![f] });
+            }
+            Err(e) => {
+                out.provenance = serde_json::json!({"mode": "none", "error": e.to_string()});
+                out.failures.push(Failure {
+                    file: p.display().to_string(),
+                    error: format!("calibration flat: {e}"),
+                });
+            }
+        }
+        return out;
+    }
+    if !dome_flats.is_empty() {
+        let (set, problems) = build_flats(dome_flats, profile, &params.flat_options);
+        out.failures.extend(problems.into_iter().map(|(p, e)| Failure {
+            file: p.display().to_string(),
+            error: e,
+        }));
+        if !set.is_empty() {
+            out.provenance = serde_json::json!({
+                "mode": "dome",
+                "flats": set.flats.iter().map(|f| f.provenance()).collect::<Vec<_>>()
+            });
+            out.set = Some(set);
+            return out;
+        }
+    }
+    let mut flats = Vec::new();
+    let mut notes = Vec::new();
+    // Only the target strips are reduced unless whole frames are wanted: build the
+    // superflat on those rows (a third of the detector) and leave 1 elsewhere.
+    let g = &profile.geometry;
+    let (r0, r1) = (g.o_target[0].min(g.e_target[0]), g.o_target[1].max(g.e_target[1]));
+    let crop = !params.full_frame_sky && params.save_intermediate.is_none() && r1 > r0;
+    let cropped_profile = profile.cropped_rows(r0, r1);
+    for (filter, paths) in superflat_frames {
+        let frames: Vec<sofipol_calib::Frame> = paths
+            .par_iter()
+            .filter_map(|p| sofipol_calib::fits::read_frame(p).ok())
+            .map(|f| {
+                if crop && f.shape().0 >= r1 {
+                    f.crop_rows(r0, r1)
+                } else {
+                    f
+                }
+            })
+            .collect();
+        let cropped = crop && frames.first().is_some_and(|f| f.shape().0 == r1 - r0);
+        let built = if cropped {
+            superflat(&frames, &cropped_profile, &params.flat_options).map(|f| {
+                let ny = paths
+                    .first()
+                    .and_then(|p| sofipol_calib::fits::read_header(p).ok())
+                    .and_then(|h| h.get_i64("NAXIS2").ok())
+                    .map(|n| n as usize)
+                    .unwrap_or(g.ny)
+                    .max(r1);
+                f.embed_rows(r0, ny)
+            })
+        } else {
+            superflat(&frames, profile, &params.flat_options)
+        };
+        match built {
+            Ok(f) => flats.push(f),
+            Err(e) => notes.push(format!("filter {filter}: no superflat: {e}")),
+        }
+    }
+    out.provenance = serde_json::json!({
+        "mode": if flats.is_empty() { "none" } else { "superflat" },
+        "flats": flats.iter().map(|f| f.provenance()).collect::<Vec<_>>(),
+        "notes": notes,
+    });
+    if !flats.is_empty() {
+        out.set = Some(FlatSet { flats });
+    }
+    out
 }
 
 /// Frames for the bad-pixel median stack. Every target of a night sits at the same
@@ -114,6 +259,8 @@ pub fn plan(roots: &[PathBuf], profile: &Profile, shard: Option<Shard>) -> std::
     failures.extend(s.duplicates);
     let mut sequences = sequence::group(s.science, profile);
     let mask_frames = pick_mask_frames(&sequences, 15);
+    let superflat_frames = pick_superflat_frames(&sequences, sofipol_calib::flat::FlatOptions::default().max_frames);
+    let dome_flats = s.dome_flats;
     if let Some(sh) = shard {
         sequences.retain(|q| sh.owns(&q.id));
         failures.retain(|f| sh.owns(&f.file));
@@ -125,6 +272,8 @@ pub fn plan(roots: &[PathBuf], profile: &Profile, shard: Option<Shard>) -> std::
         n_files,
         files,
         mask_frames,
+        dome_flats,
+        superflat_frames,
     })
 }
 
@@ -146,6 +295,7 @@ pub fn reduce_night(
     profile: &Profile,
     params: &TargetParams,
     night_mask: Option<&ndarray::Array2<u8>>,
+    flats: Option<&sofipol_calib::flat::FlatSet>,
     keep_frames: bool,
     on_done: &(dyn Fn(&Target) + Sync),
     plot: &(dyn Fn(&TargetOutcome) + Sync),
@@ -154,7 +304,7 @@ pub fn reduce_night(
         .sequences
         .par_iter()
         .map(|q| {
-            let out = reduce_sequence(q, profile, params, night_mask, keep_frames);
+            let out = reduce_sequence(q, profile, params, night_mask, flats, keep_frames);
             plot(&out);
             on_done(&out.target);
             (out.target, out.failures, out.times)

@@ -1,7 +1,7 @@
 //! Finding and classifying input files.
 use std::path::{Path, PathBuf};
 
-use sofipol_calib::classify::{classify_file, Classification, ScienceInfo};
+use sofipol_calib::classify::{classify, Classification, ScienceInfo};
 use sofipol_calib::Profile;
 
 use crate::catalog::Failure;
@@ -205,6 +205,9 @@ pub struct Scan {
     /// Inputs reached twice (same file by another path, or a copy of the same exposure),
     /// with the one kept.
     pub duplicates: Vec<Failure>,
+    /// Dome-flat frames (DPR TYPE 'FLAT' with a valid lamp keyword): calibration for the
+    /// flat builder, not failures.
+    pub dome_flats: Vec<PathBuf>,
 }
 
 /// List the FITS files under `roots` ([`list`]), classify them ([`classify_all`]) and keep
@@ -263,15 +266,31 @@ pub fn unreadable_reason(path: &Path, message: &str) -> String {
 /// Classify files by header (in parallel; the order of the result does not depend on it).
 pub fn classify_all(files: &[PathBuf], profile: &Profile) -> Scan {
     use rayon::prelude::*;
-    let results: Vec<(PathBuf, sofipol_calib::Result<Classification>)> = files
+    let results: Vec<(PathBuf, sofipol_calib::Result<(Classification, bool)>)> = files
         .par_iter()
-        .map(|f| (f.clone(), classify_file(f, profile)))
+        .map(|f| {
+            let r = sofipol_calib::fits::read_header(f).map(|h| {
+                let c = classify(&h, profile);
+                // A rejected frame that is a dome flat goes to the flat builder; a flat with
+                // a bad lamp keyword stays a failure with that reason.
+                if let Classification::Rejected { .. } = &c {
+                    match sofipol_calib::flat::dome_flat_info(&h, profile) {
+                        Ok(Some(_)) => return (c, true),
+                        Err(e) => return (Classification::Rejected { reason: e.to_string() }, false),
+                        Ok(None) => {}
+                    }
+                }
+                (c, false)
+            });
+            (f.clone(), r)
+        })
         .collect();
     let mut s = Scan::default();
     for (f, r) in results {
         match r {
-            Ok(Classification::Science(info)) => s.science.push(*info),
-            Ok(Classification::Rejected { reason }) => s.other.push(Failure {
+            Ok((_, true)) => s.dome_flats.push(f),
+            Ok((Classification::Science(info), false)) => s.science.push(*info),
+            Ok((Classification::Rejected { reason }, false)) => s.other.push(Failure {
                 file: f.display().to_string(),
                 error: reason,
             }),

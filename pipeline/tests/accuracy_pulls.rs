@@ -1,5 +1,5 @@
 //! Acceptance: on simulated nights with realistic effects (photon and read noise, sky with
-//! per-frame changes, seeing changes, bad pixels, cosmic rays, transparency changes,
+//! per-frame changes, seeing changes (FWHM +-20 % and Moffat beta 2.5-4 frame to frame), bad pixels, cosmic rays, transparency changes,
 //! pointing errors), the reported errors are honest. The rms of (q - q_true)/sigma_q and
 //! (u - u_true)/sigma_u must lie in 0.8-1.2 for pairs at least 2 FWHM apart and be at most
 //! 1.5 for closer pairs (FWHM 0.8"). With ~140 pulls per group the rms is known to ~6 %,
@@ -38,6 +38,18 @@ fn pull_widths_by_separation() {
         "pairs < 2 FWHM: rms pull {close:.3} over {nc} pulls\n{}",
         table(&r)
     );
+    // Issue 8: the PSF varies frame to frame (FWHM +-20 %, beta 2.5-4, the harness's
+    // default): every separation bin stays within 0.8-1.25 (48 pulls a bin: rms known to
+    // ~10 %).
+    for b in &r {
+        assert!(
+            (0.8..=1.25).contains(&b.rms_pull),
+            "bin {:?}: rms pull {:.3}\n{}",
+            b.sep_arcsec,
+            b.rms_pull,
+            table(&r)
+        );
+    }
     let missing: usize = r.iter().map(|b| b.missing).sum();
     assert!(missing <= 2, "{missing} components not measured\n{}", table(&r));
 }

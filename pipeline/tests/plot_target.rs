@@ -45,7 +45,15 @@ fn reduce(orientations: &str, binary: &str) -> TargetOutcome {
         filter: "Ks".into(),
         orientations: vec![],
     };
-    reduce_loaded(&seq, orients, &Profile::sofi(), &TargetParams::default(), None, true)
+    reduce_loaded(
+        &seq,
+        orients,
+        &Profile::sofi(),
+        &TargetParams::default(),
+        None,
+        None,
+        true,
+    )
 }
 
 /// Decode and check the PNG: width, and that it shows more than white and text.

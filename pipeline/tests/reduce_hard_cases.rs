@@ -13,7 +13,7 @@ fn reduce(text: &str) -> (sofipol_pipeline::catalog::Target, sofipol_pipeline::s
     let (frames, truth) = sim.run_in_memory();
     let (seq, orients) = loaded_from_sim(frames, &profile);
     (
-        reduce_loaded(&seq, orients, &profile, &TargetParams::default(), None, false).target,
+        reduce_loaded(&seq, orients, &profile, &TargetParams::default(), None, None, false).target,
         truth,
     )
 }

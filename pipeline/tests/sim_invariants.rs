@@ -209,6 +209,9 @@ rate_per_frame = 100.0
 coeff_per_adu = 1e-6
 [saturation]
 level_adu = 100.0
+[dome_flats]
+frames_on = 2
+frames_off = 1
 "#;
 
 #[test]
@@ -230,7 +233,9 @@ fn unlisted_effects_leave_frames_bit_identical_and_are_never_called() {
     let calls = configured.calls();
     let names: Vec<&str> = calls.keys().copied().collect();
     assert_eq!(names, vec!["photon_noise", "read_noise", "strips"]);
-    assert_eq!(tb.ignored_sections.len(), 12, "{:?}", tb.ignored_sections);
+    assert_eq!(tb.ignored_sections.len(), 13, "{:?}", tb.ignored_sections);
+    assert_eq!(configured.n_dome_flat_frames(), 0);
+    assert!(tb.dome_flats.is_empty());
 }
 
 #[test]
@@ -247,6 +252,22 @@ fn each_effect_is_called_only_when_listed_and_changes_the_frames() {
         list.push(k.name());
         let sim = Simulator::new(scene(&quoted(&list), ALL_SECTIONS, "0.0, 45.0"), Profile::sofi()).unwrap();
         let (frames, _) = sim.run_in_memory();
+        if k == EffectKind::DomeFlats {
+            // Dome flats add frames and leave the science frames bit-identical.
+            assert!(sim.calls().is_empty() || !sim.calls().contains_key("dome_flats"));
+            assert!(frames.iter().zip(&base_frames).all(|(f, g)| f
+                .frame
+                .data
+                .iter()
+                .zip(g.frame.data.iter())
+                .all(|(x, y)| x.to_bits() == y.to_bits())));
+            let flats = sim.dome_flat_frames();
+            assert_eq!(flats.len(), 2 * 3);
+            let calls = sim.calls();
+            assert_eq!(calls.get("dome_flats"), Some(&6), "{calls:?}");
+            assert_eq!(calls.len(), 4, "{calls:?}");
+            continue;
+        }
         let calls = sim.calls();
         assert!(calls.contains_key(k.name()), "{} listed but not called", k.name());
         assert_eq!(calls.len(), 4, "{}: {:?}", k.name(), calls);
@@ -314,4 +335,80 @@ fn ism_adds_to_the_truth_in_the_sky_frame() {
     let a = &truth.targets[0].components[0];
     let expect = Polarization::from_p_gamma(0.08, 35.0).add(Polarization::from_p_gamma(0.02, 10.0));
     assert!((a.q - expect.q).abs() < 1e-15 && (a.u - expect.u).abs() < 1e-15);
+}
+
+#[test]
+fn dome_flats_follow_the_contract_and_see_the_science_pixel_response() {
+    use sofipol_calib::flat::{dome_flat_info, LAMP_KEYWORD};
+    let sc = scene(
+        "\"strips\", \"flat_field\", \"dome_flats\", \"throughput\"",
+        "[flat_field]\npixel_rms = 0.01\nvignetting = 0.0\n[throughput]\nt_e = 0.9\n[dome_flats]\nframes_on = 2\nframes_off = 1\nlamp_p = 0.04\n",
+        "0.0, 45.0",
+    );
+    let p = Profile::sofi();
+    let sim = Simulator::new(sc, p.clone()).unwrap();
+    let flats = sim.dome_flat_frames();
+    assert_eq!(flats.len(), 6);
+    let g = &p.geometry;
+    for f in &flats {
+        let h = &f.frame.header;
+        assert_eq!(h.get_str("ESO DPR CATG").unwrap(), "CALIB");
+        assert_eq!(h.get_str("ESO DPR TYPE").unwrap(), "FLAT");
+        assert_eq!(h.get_str("ESO DPR TECH").unwrap(), "POLARIMETRY");
+        assert_eq!(h.get_str("ESO TPL ID").unwrap(), "SOFI_img_cal_DomeFlat");
+        assert!(h.contains(LAMP_KEYWORD));
+        let info = dome_flat_info(h, &p).unwrap().unwrap();
+        assert_eq!(info.lamp_on, f.truth.lamp_on);
+        assert_eq!(info.posang_deg, f.truth.posang_deg);
+        // Noiseless: pixel = level x response, the same response as the science frames'.
+        let row_o = (g.o_target[0] + g.o_target[1]) / 2;
+        let row_e = (g.e_target[0] + g.e_target[1]) / 2;
+        let (o, e) = (f.frame.data[[row_o, 300]] as f64, f.frame.data[[row_e, 300]] as f64);
+        assert!(o != e);
+        if f.truth.lamp_on {
+            // o and e strips differ by the lamp's polarization and the throughput.
+            assert!((f.truth.level_o_adu / f.truth.level_e_adu - 1.0).abs() > 0.05);
+        }
+        assert_eq!(f.frame.data[[3, 300]], 0.0, "off-strip row blocked by the focal mask");
+    }
+    // The science frames see the same pixel response: ratio of two flats' pixels equals the
+    // ratio of the science sky... here with no sky, compare the flat of two orientations.
+    let on0 = &flats[0].frame.data;
+    let on1 = &flats[3].frame.data;
+    let row = (g.o_target[0] + g.o_target[1]) / 2;
+    let r0: Vec<f64> = (100..110)
+        .map(|x| on0[[row, x]] as f64 / on0[[row, 100]] as f64)
+        .collect();
+    let r1: Vec<f64> = (100..110)
+        .map(|x| on1[[row, x]] as f64 / on1[[row, 100]] as f64)
+        .collect();
+    for (a, b) in r0.iter().zip(&r1) {
+        assert!((a - b).abs() < 1e-6);
+    }
+    assert!(r0.iter().any(|r| (r - 1.0).abs() > 1e-3), "pixel response not applied");
+}
+
+#[test]
+fn psf_fwhm_and_beta_vary_independently_frame_to_frame() {
+    let sc = scene(
+        "\"psf\"",
+        "[psf]\nkind = \"moffat\"\nfwhm_arcsec = 0.8\nseeing_rms_frac = 0.0\nfwhm_spread_frac = 0.2\nbeta_range = [2.5, 4.0]\n",
+        "0.0, 45.0, 90.0, 135.0",
+    );
+    let sim = Simulator::new(sc, Profile::sofi()).unwrap();
+    let (frames, _) = sim.run_in_memory();
+    let f0 = 0.8 / 0.288;
+    let fw: Vec<f64> = frames.iter().map(|f| f.truth.fwhm_px / f0).collect();
+    let be: Vec<f64> = frames.iter().map(|f| f.truth.beta).collect();
+    assert!(fw.iter().all(|&r| (0.8..=1.2).contains(&r)), "{fw:?}");
+    assert!(be.iter().all(|&b| (2.5..=4.0).contains(&b)), "{be:?}");
+    let spread = |v: &[f64]| v.iter().cloned().fold(f64::MIN, f64::max) - v.iter().cloned().fold(f64::MAX, f64::min);
+    assert!(spread(&fw) > 0.2 && spread(&be) > 0.7, "{fw:?} {be:?}");
+    // Independent: correlation of the two draws is small over the frames.
+    let n = fw.len() as f64;
+    let (mf, mb) = (fw.iter().sum::<f64>() / n, be.iter().sum::<f64>() / n);
+    let cov: f64 = fw.iter().zip(&be).map(|(a, b)| (a - mf) * (b - mb)).sum::<f64>() / n;
+    let sd = |v: &[f64], m: f64| (v.iter().map(|a| (a - m).powi(2)).sum::<f64>() / n).sqrt();
+    let corr = cov / (sd(&fw, mf) * sd(&be, mb));
+    assert!(corr.abs() < 0.6, "corr {corr}");
 }

@@ -51,6 +51,17 @@ enum What {
         /// Seed.
         #[arg(long, default_value_t = 7)]
         seed: u64,
+        /// Simulate a pixel response non-uniformity of this rms (fraction, e.g. 0.01; no
+        /// large-scale vignetting). 0: none.
+        #[arg(long, default_value_t = 0.0)]
+        pixel_response: f64,
+        /// Flat field applied before the reduction: none, superflat (from the night's sky),
+        /// dome (the nights get dome flats).
+        #[arg(long, default_value = "none", value_parser = ["none", "superflat", "dome"])]
+        flat: String,
+        /// Hold the PSF fixed in shape (beta 3, no FWHM spread; only the 8 % seeing change).
+        #[arg(long)]
+        fixed_psf: bool,
         #[command(flatten)]
         reduce: super::target::ReduceArgs,
     },
@@ -138,17 +149,45 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             dir,
         } => bench_night(targets, jobs, repeats, dir)?,
         What::Stages { repeats } => bench_stages(repeats)?,
-        What::Accuracy { targets, seed, reduce } => {
+        What::Accuracy {
+            targets,
+            seed,
+            reduce,
+            pixel_response,
+            flat,
+            fixed_psf,
+        } => {
             let params = reduce.params()?;
-            let cfg = sofipol_pipeline::accuracy::AccuracyConfig {
-                targets_per_bin: targets,
-                seed,
-                ..Default::default()
+            let cfg = sofipol_pipeline::accuracy::AccuracyConfig::with_flat_field(
+                sofipol_pipeline::accuracy::AccuracyConfig {
+                    targets_per_bin: targets,
+                    seed,
+                    ..Default::default()
+                },
+                pixel_response,
+                match flat.as_str() {
+                    "superflat" => sofipol_pipeline::accuracy::FlatMode::Superflat,
+                    "dome" => sofipol_pipeline::accuracy::FlatMode::Dome,
+                    _ => sofipol_pipeline::accuracy::FlatMode::None,
+                },
+            );
+            let cfg = if fixed_psf {
+                sofipol_pipeline::accuracy::AccuracyConfig {
+                    fwhm_spread_frac: 0.0,
+                    beta_range: None,
+                    ..cfg
+                }
+            } else {
+                cfg
             };
             println!(
-                "sofipol bench accuracy: {} targets per bin, seeing {}\", effects [{}], method {:?}, aperture {} FWHM",
+                "sofipol bench accuracy: {} targets per bin, seeing {}\" (FWHM spread +-{:.0} %, beta {:?}), pixel response {}, flat {:?}, effects [{}], method {:?}, aperture {} FWHM",
                 targets,
                 cfg.fwhm_arcsec,
+                100.0 * cfg.fwhm_spread_frac,
+                cfg.beta_range.unwrap_or([3.0, 3.0]),
+                pixel_response,
+                cfg.flat,
                 cfg.effects.join(", "),
                 params.measure.method,
                 params.measure.aperture_fwhm

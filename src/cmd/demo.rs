@@ -59,7 +59,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let outs: Vec<_> = seqs
         .par_iter()
         .map(|q| {
-            let out = reduce_sequence(q, &profile, &params, None, true);
+            let out = reduce_sequence(q, &profile, &params, None, None, true);
             let png = fig_dir.join(format!("{}.png", sofipol_pipeline::night::slug(&q.object)));
             if let Err(e) = sofipol_pipeline::plots::target::outcome_png(&png, &out) {
                 eprintln!("sofipol: warning: {}: {e}", png.display());

@@ -151,12 +151,24 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             night_mask_files = files;
         }
     }
+    // The night's flats (dome flats, else a superflat from the night's sky), built from the
+    // whole night's frame list so that every shard gets the same flats.
+    let t = std::time::Instant::now();
+    let flats = pool.install(|| night::night_flats(&plan.dome_flats, &plan.superflat_frames, &profile, &params));
+    if args.verbose > 0 {
+        eprintln!(
+            "flats: {} in {:.2} s",
+            flats.provenance.get("mode").and_then(|m| m.as_str()).unwrap_or("none"),
+            t.elapsed().as_secs_f64()
+        );
+    }
     let res = pool.install(|| {
         night::reduce_night(
             &plan,
             &profile,
             &params,
             night_mask.as_ref(),
+            flats.set.as_ref(),
             png_dir.is_some(),
             &on_done,
             &plot,
@@ -168,6 +180,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     prov["shard"] = serde_json::json!(args.shard.map(|s| format!("{}/{}", s.k, s.n)));
     prov["inputs"] = serde_json::json!(args.dirs);
     prov["night_bad_pixel_mask_from"] = serde_json::json!(night_mask_files);
+    prov["flat"] = flats.provenance;
+    let owned_flat_failures: Vec<_> = flats
+        .failures
+        .into_iter()
+        .filter(|f| args.shard.is_none_or(|sh| sh.owns(&f.file)))
+        .collect();
+    cat.failures.extend(owned_flat_failures);
+    cat.failures.sort_by(|a, b| a.file.cmp(&b.file));
     cat.provenance = prov;
     sofipol_pipeline::io::write_json_atomic(&args.output, &cat)
         .with_context(|| format!("writing {}", args.output.display()))?;
@@ -191,19 +211,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
     }
     if args.verbose > 0 {
-        let sum = res.times.iter().fold([0.0; 5], |a, t| {
+        let sum = res.times.iter().fold([0.0; 6], |a, t| {
             [
                 a[0] + t.read,
                 a[1] + t.bad_pixels,
                 a[2] + t.sky,
                 a[3] + t.measure,
                 a[4] + t.write,
+                a[5] + t.flat,
             ]
         });
         eprintln!(
-            "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; wall {wall:.2} s; peak RSS {:.0} MB",
+            "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, flat {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; wall {wall:.2} s; peak RSS {:.0} MB",
             sum[0],
             sum[1],
+            sum[5],
             sum[2],
             sum[3],
             sum[4],

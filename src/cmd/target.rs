@@ -57,6 +57,13 @@ pub struct ReduceArgs {
     /// Write sky-subtracted FITS (with VARIANCE and MASK) into this directory.
     #[arg(long, value_name = "DIR")]
     pub save_intermediate: Option<PathBuf>,
+    /// Calibration flat (FITS, e.g. from `sofipol calib`) instead of building one from
+    /// the night (dome flats, else a superflat from the night's sky).
+    #[arg(long, value_name = "FILE", conflicts_with = "no_flat")]
+    pub flat: Option<PathBuf>,
+    /// Do not flat-field.
+    #[arg(long)]
+    pub no_flat: bool,
 }
 
 impl ReduceArgs {
@@ -74,6 +81,12 @@ impl ReduceArgs {
             }
             None => TargetParams::default(),
         };
+        if let Some(f) = &self.flat {
+            p.flat = Some(f.clone());
+        }
+        if self.no_flat {
+            p.no_flat = true;
+        }
         if let Some(a) = self.aperture_fwhm {
             p.measure.aperture_fwhm = a;
         }
@@ -119,6 +132,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         "no FITS files (.fits, .fit, .fits.gz, .fz) in {:?}",
         args.inputs
     );
+    let s_science_all = s.science.clone();
+    let s_dome_flats = s.dome_flats.clone();
     let mut seqs = sequence::group(s.science, &profile);
     if let Some(obj) = &args.object {
         seqs.retain(|q| &q.object == obj);
@@ -161,12 +176,23 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .collect();
     cat.failures
         .extend(s.other.into_iter().filter(|f| explicit.contains(&f.file)));
+    // The flat: from the whole of the inputs (dome flats, else a superflat from every
+    // sequence found, not only the one reduced).
+    let all_seqs = sequence::group(s_science_all, &profile);
+    let flats = sofipol_pipeline::night::night_flats(
+        &s_dome_flats,
+        &sofipol_pipeline::night::pick_superflat_frames(&all_seqs, params.flat_options.max_frames),
+        &profile,
+        &params,
+    );
+    cat.failures.extend(flats.failures);
     for q in &seqs {
-        let out = reduce_sequence(q, &profile, &params, None, false);
+        let out = reduce_sequence(q, &profile, &params, None, flats.set.as_ref(), false);
         cat.failures.extend(out.failures);
         cat.targets.push(out.target);
     }
     cat.provenance = super::report::provenance(&profile, &params);
+    cat.provenance["flat"] = flats.provenance;
     sofipol_pipeline::io::write_json_atomic(&args.output, &cat)
         .with_context(|| format!("writing {}", args.output.display()))?;
     if !args.quiet {

@@ -98,6 +98,13 @@ pub struct TargetParams {
     /// e-target rows, all the measurement uses) are sky-subtracted, about a third of the
     /// detector; whole frames are always done when intermediates are saved.
     pub full_frame_sky: bool,
+    /// A calibration flat file (FITS, as written by `sofipol calib` or any pixel-response
+    /// image): used instead of building one from the night.
+    pub flat: Option<PathBuf>,
+    /// Do not flat-field (no dome flat, no superflat).
+    pub no_flat: bool,
+    /// How flats are built (dome flats and superflat).
+    pub flat_options: sofipol_calib::flat::FlatOptions,
 }
 
 impl Default for TargetParams {
@@ -110,6 +117,9 @@ impl Default for TargetParams {
             no_detect_bad_pixels: false,
             save_intermediate: None,
             full_frame_sky: false,
+            flat: None,
+            no_flat: false,
+            flat_options: sofipol_calib::flat::FlatOptions::default(),
         }
     }
 }

@@ -4,6 +4,7 @@ use std::path::Path;
 
 use ndarray::{s, Array2};
 use serde::Serialize;
+use sofipol_calib::flat::{self, FlatSet};
 use sofipol_calib::{badpix, fits, sky, Frame, Profile};
 
 use super::{measure_sequence, target_entry, CalibratedOrientation, TargetParams};
@@ -18,6 +19,8 @@ pub struct StageTimes {
     pub read: f64,
     /// Bad-pixel detection.
     pub bad_pixels: f64,
+    /// Flat fielding.
+    pub flat: f64,
     /// Sky subtraction.
     pub sky: f64,
     /// Source finding, photometry and Stokes.
@@ -64,12 +67,14 @@ fn failed(seq: &Sequence, msg: String, flags: &[String], failures: Vec<Failure>,
 
 /// Reduce one sequence. Never panics on bad input: problems become failures, flags or a
 /// failed target. `night_mask`: the detector's defects already detected for the night
-/// (used instead of per-target detection), full-frame.
+/// (used instead of per-target detection), full-frame. `flats`: the night's flats
+/// (full-frame; the flat of each orientation is chosen by rotator angle and filter).
 pub fn reduce_sequence(
     seq: &Sequence,
     profile: &Profile,
     params: &TargetParams,
     night_mask: Option<&Array2<u8>>,
+    flats: Option<&FlatSet>,
     keep_frames: bool,
 ) -> TargetOutcome {
     let mut failures = Vec::new();
@@ -98,7 +103,7 @@ pub fn reduce_sequence(
         orients.push((o.posang_deg, o.analyzer_deg, frames, offs));
     }
     let read = t.elapsed().as_secs_f64();
-    let mut out = reduce_loaded(&readable, orients, profile, params, night_mask, keep_frames);
+    let mut out = reduce_loaded(&readable, orients, profile, params, night_mask, flats, keep_frames);
     out.target
         .extra
         .insert("input_files".into(), serde_json::json!(seq.files()));
@@ -119,6 +124,7 @@ pub fn reduce_loaded(
     profile: &Profile,
     params: &TargetParams,
     night_mask: Option<&Array2<u8>>,
+    flats: Option<&FlatSet>,
     keep_frames: bool,
 ) -> TargetOutcome {
     // Everything the measurement needs lies in the o- and e-target strips: unless whole
@@ -165,6 +171,13 @@ pub fn reduce_loaded(
     times.bad_pixels = t.elapsed().as_secs_f64();
 
     let t = std::time::Instant::now();
+    let (orients, flats_used) = match flats {
+        Some(set) if !set.is_empty() => flat_field(orients, set, &seq.filter, crop, profile, &mut flags),
+        _ => (orients, Vec::new()),
+    };
+    times.flat = t.elapsed().as_secs_f64();
+
+    let t = std::time::Instant::now();
     let cal = subtract_sky(orients, mask.as_ref(), profile, params, &mut flags);
     times.sky = t.elapsed().as_secs_f64();
 
@@ -208,6 +221,14 @@ pub fn reduce_loaded(
         .extra
         .insert("input_files".into(), serde_json::json!(seq.files()));
     target.extra.insert("flags".into(), serde_json::json!(flags));
+    target.extra.insert(
+        "flat".into(),
+        if flats_used.is_empty() {
+            serde_json::Value::Null
+        } else {
+            serde_json::json!(flats_used)
+        },
+    );
     if let Some(m) = &mask {
         target.extra.insert(
             "bad_pixels_masked".into(),
@@ -221,6 +242,52 @@ pub fn reduce_loaded(
         calibrated: if keep_frames { Some(cal) } else { None },
         measured: Some(measured),
     }
+}
+
+/// Divide every frame by the flat of its orientation (rotator angle and filter), cropped
+/// like the frames. Returns the frames and one provenance line per orientation; an
+/// orientation without a flat, or a flat that does not fit, is flagged and left as it is.
+fn flat_field(
+    orients: Vec<LoadedOrientation>,
+    set: &FlatSet,
+    filter: &str,
+    crop: Option<(usize, usize)>,
+    profile: &Profile,
+    flags: &mut Vec<String>,
+) -> (Vec<LoadedOrientation>, Vec<String>) {
+    let mut used = Vec::new();
+    let out = orients
+        .into_iter()
+        .map(|(pa, phi, frames, offs)| {
+            let Some(full) = set.for_frame(pa, filter) else {
+                flags.push(format!("no flat for POSANG {pa} filter {filter}: not flat-fielded"));
+                return (pa, phi, frames, offs);
+            };
+            let cropped;
+            let flat = match crop {
+                Some((r0, r1)) if full.shape().0 >= r1 && frames.first().is_some_and(|f| f.shape().0 == r1 - r0) => {
+                    cropped = full.crop_rows(r0, r1);
+                    &cropped
+                }
+                _ => full,
+            };
+            match frames
+                .iter()
+                .map(|f| flat::apply_flat(f, flat, profile))
+                .collect::<Result<Vec<_>, _>>()
+            {
+                Ok(v) => {
+                    used.push(format!("POSANG {pa}: {}", full.describe()));
+                    (pa, phi, v, offs)
+                }
+                Err(e) => {
+                    flags.push(format!("POSANG {pa} not flat-fielded: {e}"));
+                    (pa, phi, frames, offs)
+                }
+            }
+        })
+        .collect();
+    (out, used)
 }
 
 /// Rows [r0, r1) of every frame at least r1 rows high.

@@ -166,12 +166,25 @@ pub fn sky_level(calls: &EffectCalls, seed: u64, c: &SkyConfig, key: (u64, u64))
     c.level_adu * (1.0 + c.frame_change_frac * normal(&mut r))
 }
 
-/// Seeing of one frame: FWHM exp(N(0, rms)).
+/// Seeing of one frame: FWHM exp(N(0, rms)) x U(1 - spread, 1 + spread), and beta
+/// uniform in `beta_range` when given. Each draw has its own stream (sub-keys 0, 1, 2),
+/// so adding a spread or a beta range leaves the other draws unchanged.
 pub fn frame_psf(calls: &EffectCalls, seed: u64, c: &PsfConfig, key: (u64, u64), scale: f64) -> Psf {
     calls.hit(EffectKind::Psf);
     let mut r = stream(seed, EffectKind::Psf, key.0, key.1, 0);
-    let fwhm_px = c.fwhm_arcsec / scale * (c.seeing_rms_frac * normal(&mut r)).exp();
-    Psf::from_fwhm(c.kind, fwhm_px, c.beta)
+    let mut fwhm_px = c.fwhm_arcsec / scale * (c.seeing_rms_frac * normal(&mut r)).exp();
+    if c.fwhm_spread_frac > 0.0 {
+        let mut r = stream(seed, EffectKind::Psf, key.0, key.1, 2);
+        fwhm_px *= 1.0 + c.fwhm_spread_frac * (2.0 * uniform(&mut r) - 1.0);
+    }
+    let beta = match c.beta_range {
+        Some([lo, hi]) => {
+            let mut r = stream(seed, EffectKind::Psf, key.0, key.1, 1);
+            lo + (hi - lo) * uniform(&mut r)
+        }
+        None => c.beta,
+    };
+    Psf::from_fwhm(c.kind, fwhm_px, beta)
 }
 
 /// Fill the sky: level + gx (x - xc) + gy (y - yc), ADU per pixel.

@@ -33,7 +33,7 @@ pub use scene::{Binary, EffectKind, Scene};
 
 /// Per-effect call counters.
 #[derive(Debug, Default)]
-pub struct EffectCalls([AtomicU64; 15]);
+pub struct EffectCalls([AtomicU64; 16]);
 
 impl EffectCalls {
     /// Count one call of an effect function.
@@ -87,6 +87,8 @@ pub struct FrameTruth {
     pub sky_level_adu: f64,
     /// Seeing FWHM of this frame, px (0 without psf).
     pub fwhm_px: f64,
+    /// Moffat beta of this frame (0 for other profiles).
+    pub beta: f64,
     /// Sources.
     pub sources: Vec<SourceTruth>,
     /// Cosmic-ray pixels hit.
@@ -146,6 +148,24 @@ pub struct Truth {
     pub detector: serde_json::Value,
     /// Targets.
     pub targets: Vec<TargetTruth>,
+    /// Dome-flat frames (the `dome_flats` effect), in exposure order.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub dome_flats: Vec<FlatFrameTruth>,
+}
+
+/// Realised parameters of one dome-flat frame.
+#[derive(Debug, Clone, Serialize)]
+pub struct FlatFrameTruth {
+    /// File name (no directory).
+    pub file: String,
+    /// Rotator position angle, deg.
+    pub posang_deg: f64,
+    /// Lamp on (`INS LAMP1 ST` = T).
+    pub lamp_on: bool,
+    /// Light per pixel in the o strips and the e strips before the pixel response, ADU.
+    pub level_o_adu: f64,
+    /// Same for the e strips.
+    pub level_e_adu: f64,
 }
 
 /// A simulated frame in memory.
@@ -247,6 +267,11 @@ impl Simulator {
     /// The fixed bad-pixel map (1 = bad), when the effect is listed.
     pub fn bad_pixel_mask(&self) -> Option<Array2<u8>> {
         self.bad.as_ref().map(|b| b.mask.clone())
+    }
+
+    /// The fixed pixel response (the `flat_field` effect), when listed.
+    pub fn pixel_response(&self) -> Option<&Array2<f32>> {
+        self.flat.as_ref()
     }
 
     /// File name of frame `k` of target `t`.
@@ -443,64 +468,7 @@ impl Simulator {
             });
         }
 
-        if s.has(EffectKind::Strips) {
-            effects::strips(&self.calls, &mut img, g);
-        }
-        if let Some(flat) = &self.flat {
-            self.calls.hit(EffectKind::FlatField);
-            ndarray::Zip::from(&mut img).and(flat).for_each(|v, &r| *v *= r);
-        }
-        if s.has(EffectKind::Nonlinearity) {
-            let c = s
-                .nonlinearity
-                .clone()
-                .unwrap_or_default()
-                .coeff_per_adu
-                .unwrap_or(self.profile.detector.nonlin_coeff_per_adu);
-            effects::nonlinearity(&self.calls, &mut img, c);
-        }
-        let fkey = (t as u64, k as u64);
-        let ndit = s.observation.ndit;
-        if s.has(EffectKind::PhotonNoise) {
-            effects::photon_noise(
-                &self.calls,
-                &mut img,
-                s.seed,
-                fkey,
-                self.profile.detector.effective_gain(ndit),
-            );
-        }
-        if s.has(EffectKind::ReadNoise) {
-            effects::read_noise(
-                &self.calls,
-                &mut img,
-                s.seed,
-                fkey,
-                self.profile.detector.read_variance_adu2(ndit).sqrt(),
-            );
-        }
-        let mut cr_pixels = 0;
-        if s.has(EffectKind::CosmicRays) {
-            cr_pixels = effects::cosmic_rays(
-                &self.calls,
-                &mut img,
-                s.seed,
-                fkey,
-                &s.cosmic_rays.clone().unwrap_or_default(),
-            );
-        }
-        if let Some(bad) = &self.bad {
-            effects::apply_bad_pixels(&self.calls, &mut img, bad);
-        }
-        if s.has(EffectKind::Saturation) {
-            let level = s
-                .saturation
-                .clone()
-                .unwrap_or_default()
-                .level_adu
-                .unwrap_or(self.profile.detector.saturation_adu);
-            effects::saturation(&self.calls, &mut img, level);
-        }
+        let cr_pixels = self.detector(&mut img, (t as u64, k as u64), s.observation.ndit);
 
         let file_name = self.file_name(t, k);
         let header = self.header(t, k, &fp, &file_name);
@@ -524,6 +492,10 @@ impl Simulator {
             transparency: fp.transparency,
             sky_level_adu: fp.sky_level,
             fwhm_px: fp.psf.fwhm_px(),
+            beta: match fp.psf {
+                psf::Psf::Moffat { beta, .. } => beta,
+                _ => 0.0,
+            },
             sources,
             cosmic_ray_pixels: cr_pixels,
         };
@@ -532,6 +504,72 @@ impl Simulator {
             frame,
             truth,
         }
+    }
+
+    /// What the detector does to the light of any frame (science or calibration), in
+    /// order: strips -> flat_field -> nonlinearity -> photon_noise -> read_noise ->
+    /// cosmic_rays -> bad_pixels -> saturation (listed effects only). Returns the pixels
+    /// hit by cosmic rays.
+    fn detector(&self, img: &mut Array2<f32>, fkey: (u64, u64), ndit: u32) -> usize {
+        let s = &self.scene;
+        let g = &self.profile.geometry;
+        if s.has(EffectKind::Strips) {
+            effects::strips(&self.calls, img, g);
+        }
+        if let Some(flat) = &self.flat {
+            self.calls.hit(EffectKind::FlatField);
+            ndarray::Zip::from(&mut *img).and(flat).for_each(|v, &r| *v *= r);
+        }
+        if s.has(EffectKind::Nonlinearity) {
+            let c = s
+                .nonlinearity
+                .clone()
+                .unwrap_or_default()
+                .coeff_per_adu
+                .unwrap_or(self.profile.detector.nonlin_coeff_per_adu);
+            effects::nonlinearity(&self.calls, img, c);
+        }
+        if s.has(EffectKind::PhotonNoise) {
+            effects::photon_noise(
+                &self.calls,
+                img,
+                s.seed,
+                fkey,
+                self.profile.detector.effective_gain(ndit),
+            );
+        }
+        if s.has(EffectKind::ReadNoise) {
+            effects::read_noise(
+                &self.calls,
+                img,
+                s.seed,
+                fkey,
+                self.profile.detector.read_variance_adu2(ndit).sqrt(),
+            );
+        }
+        let mut cr_pixels = 0;
+        if s.has(EffectKind::CosmicRays) {
+            cr_pixels = effects::cosmic_rays(
+                &self.calls,
+                img,
+                s.seed,
+                fkey,
+                &s.cosmic_rays.clone().unwrap_or_default(),
+            );
+        }
+        if let Some(bad) = &self.bad {
+            effects::apply_bad_pixels(&self.calls, img, bad);
+        }
+        if s.has(EffectKind::Saturation) {
+            let level = s
+                .saturation
+                .clone()
+                .unwrap_or_default()
+                .level_adu
+                .unwrap_or(self.profile.detector.saturation_adu);
+            effects::saturation(&self.calls, img, level);
+        }
+        cr_pixels
     }
 
     fn render(&self, p: psf::Psf, x: f64, y: f64) -> psf::Stamp {
@@ -626,6 +664,9 @@ impl Simulator {
                     frames: frames.get(t).cloned().unwrap_or_default(),
                 })
                 .collect(),
+            dome_flats: (0..self.n_dome_flat_frames())
+                .map(|i| self.dome_flat_plan(i).1)
+                .collect(),
         }
     }
 
@@ -644,6 +685,152 @@ impl Simulator {
         }
         let truth = self.truth(&per_t);
         (frames, truth)
+    }
+}
+
+/// A simulated dome-flat frame in memory.
+#[derive(Debug, Clone)]
+pub struct SimFlatFrame {
+    /// File name (no directory).
+    pub file_name: String,
+    /// The frame.
+    pub frame: Frame,
+    /// Its truth.
+    pub truth: FlatFrameTruth,
+}
+
+/// Key of the random streams of dome-flat frames (science targets use their index).
+const FLAT_STREAM_KEY: u64 = 1 << 40;
+
+impl Simulator {
+    /// Number of dome-flat frames (0 unless `dome_flats` is listed): per rotator angle,
+    /// `frames_on` lamp-on then `frames_off` lamp-off frames.
+    pub fn n_dome_flat_frames(&self) -> usize {
+        if !self.scene.has(EffectKind::DomeFlats) {
+            return 0;
+        }
+        let c = self.scene.dome_flats.clone().unwrap_or_default();
+        self.scene.observation.orientations_deg.len() * (c.frames_on + c.frames_off)
+    }
+
+    /// (orientation index, index within its template, truth) of dome-flat frame `i`.
+    fn dome_flat_plan(&self, i: usize) -> ((usize, usize), FlatFrameTruth) {
+        let s = &self.scene;
+        let c = s.dome_flats.clone().unwrap_or_default();
+        let per = c.frames_on + c.frames_off;
+        let (io, j) = (i / per, i % per);
+        let posang = s.observation.orientations_deg[io];
+        let lamp_on = j < c.frames_on;
+        let phi = self.profile.angles.analyzer_angle_deg(posang);
+        let f = c.lamp_p * (2.0 * (phi - c.lamp_angle_deg).to_radians()).cos();
+        let (t_o, t_e) = if s.has(EffectKind::Throughput) {
+            effects::throughput(&self.calls, &s.throughput.clone().unwrap_or_default())
+        } else {
+            (1.0, 1.0)
+        };
+        let lamp = if lamp_on { c.lamp_adu } else { 0.0 };
+        let slug: String = s
+            .name
+            .chars()
+            .map(|ch| if ch.is_ascii_alphanumeric() { ch } else { '_' })
+            .collect();
+        let ext = if s.observation.compress { "fits.fz" } else { "fits" };
+        let file = format!(
+            "SOFI_{slug}_FLAT_pa{:03}_{}_{:02}.{ext}",
+            posang.round() as i64,
+            if lamp_on { "on" } else { "off" },
+            j + 1
+        );
+        (
+            (io, j),
+            FlatFrameTruth {
+                file,
+                posang_deg: posang,
+                lamp_on,
+                level_o_adu: t_o * (c.off_adu + lamp * (1.0 + f)),
+                level_e_adu: t_e * (c.off_adu + lamp * (1.0 - f)),
+            },
+        )
+    }
+
+    /// Simulate dome-flat frame `i` (0-based, see [`Simulator::n_dome_flat_frames`]): the
+    /// lamp (polarized: o and e strips differ) plus the lamp-off light, through the beams
+    /// (`throughput` when listed) and the same detector as the science frames.
+    pub fn dome_flat_frame(&self, i: usize) -> SimFlatFrame {
+        self.calls.hit(EffectKind::DomeFlats);
+        let s = &self.scene;
+        let c = s.dome_flats.clone().unwrap_or_default();
+        let g = &self.profile.geometry;
+        let ((io, j), truth) = self.dome_flat_plan(i);
+        let is_o = |y: usize| [g.o_sky2, g.o_target, g.o_sky1].iter().any(|r| y >= r[0] && y < r[1]);
+        let is_e = |y: usize| [g.e_sky2, g.e_target, g.e_sky1].iter().any(|r| y >= r[0] && y < r[1]);
+        let mean = 0.5 * (truth.level_o_adu + truth.level_e_adu);
+        let mut img = Array2::<f32>::from_shape_fn((g.ny, g.nx), |(y, _)| {
+            (if is_o(y) {
+                truth.level_o_adu
+            } else if is_e(y) {
+                truth.level_e_adu
+            } else {
+                mean
+            }) as f32
+        });
+        let cr = self.detector(&mut img, (FLAT_STREAM_KEY + io as u64, j as u64), c.ndit);
+        let _ = cr;
+        // Header: the contract's dome-flat template.
+        let o = &s.observation;
+        let kw = &self.profile.keywords;
+        let per = c.frames_on + c.frames_off;
+        let mjd0 = effects::mjd_from_date_time(&o.date, &o.start_ut).unwrap_or(51240.0) - 0.25;
+        let tpl_mjd = mjd0 + io as f64 * (per as f64 * (c.dit_s * c.ndit as f64 + 5.0) + 60.0) / 86400.0;
+        let mjd = tpl_mjd + (j as f64 * (c.dit_s * c.ndit as f64 + 5.0) + 10.0) / 86400.0;
+        let mut h = Header::new(&truth.file);
+        h.set(&kw.instrument, self.profile.matching.instrument.as_str());
+        h.set(&kw.object, "DOME FLAT");
+        h.set(&kw.date_obs, effects::iso_from_mjd(mjd, true));
+        h.set(&kw.mjd_obs, mjd);
+        h.set(&kw.exptime, c.dit_s);
+        h.set(&kw.dpr_catg, "CALIB");
+        h.set(&kw.dpr_type, "FLAT");
+        h.set(&kw.dpr_tech, self.profile.matching.polarimetry_tech.as_str());
+        h.set(&kw.tpl_id, sofipol_calib::flat::DOME_FLAT_TEMPLATE);
+        h.set(&kw.tpl_start, effects::iso_from_mjd(tpl_mjd, false));
+        h.set(&kw.tpl_nexp, per as i64);
+        h.set(&kw.tpl_expno, (j + 1) as i64);
+        h.set(&kw.filter, o.filter.as_str());
+        h.set(&format!("{}1 ID", kw.opti_prefix), "MASK_POL");
+        h.set(&format!("{}3 ID", kw.opti_prefix), "WOLLASTON");
+        h.set(&kw.pixscale, self.scale());
+        h.set(&kw.posang, truth.posang_deg);
+        h.set(&kw.offset_x, 0.0);
+        h.set(&kw.offset_y, 0.0);
+        h.set(&kw.dit, c.dit_s);
+        h.set(&kw.ndit, c.ndit as i64);
+        h.set(sofipol_calib::flat::LAMP_KEYWORD, truth.lamp_on);
+        let frame = Frame::new(img, h).with_history(
+            "simulate",
+            format!(
+                "scene '{}' seed {} dome flat POSANG {} lamp {} exposure {}",
+                s.name,
+                s.seed,
+                truth.posang_deg,
+                if truth.lamp_on { "on" } else { "off" },
+                j + 1
+            ),
+        );
+        SimFlatFrame {
+            file_name: truth.file.clone(),
+            frame,
+            truth,
+        }
+    }
+
+    /// Every dome-flat frame in memory (empty unless `dome_flats` is listed).
+    pub fn dome_flat_frames(&self) -> Vec<SimFlatFrame> {
+        use rayon::prelude::*;
+        (0..self.n_dome_flat_frames())
+            .into_par_iter()
+            .map(|i| self.dome_flat_frame(i))
+            .collect()
     }
 }
 
@@ -692,6 +879,15 @@ impl Simulator {
         for (r, &(t, _)) in truths.into_iter().zip(&jobs) {
             per_t[t].push(r?);
         }
+        (0..self.n_dome_flat_frames())
+            .into_par_iter()
+            .map(|i| {
+                let f = self.dome_flat_frame(i);
+                write_frame(&dir.join(&f.file_name), &f.frame, &opts).map_err(|e| e.to_string())?;
+                on_frame(&f.file_name);
+                Ok(())
+            })
+            .collect::<Result<Vec<()>, String>>()?;
         let truth = self.truth(&per_t);
         crate::io::write_json_atomic(&dir.join("truth.json"), &truth)
             .map_err(|e| crate::error::Error::calib("truth", e))?;

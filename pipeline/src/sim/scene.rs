@@ -41,11 +41,14 @@ pub enum EffectKind {
     Nonlinearity,
     /// Saturation (clipping at the profile's level).
     Saturation,
+    /// Dome-flat frames (lamp on and off, one template per rotator angle) in the night;
+    /// they see the same detector (pixel response, noise, bad pixels) as the science.
+    DomeFlats,
 }
 
 impl EffectKind {
     /// All effects.
-    pub const ALL: [EffectKind; 15] = [
+    pub const ALL: [EffectKind; 16] = [
         EffectKind::Psf,
         EffectKind::Sky,
         EffectKind::Strips,
@@ -61,6 +64,7 @@ impl EffectKind {
         EffectKind::CosmicRays,
         EffectKind::Nonlinearity,
         EffectKind::Saturation,
+        EffectKind::DomeFlats,
     ];
     /// snake_case name as used in scene files.
     pub fn name(self) -> &'static str {
@@ -80,6 +84,7 @@ impl EffectKind {
             EffectKind::CosmicRays => "cosmic_rays",
             EffectKind::Nonlinearity => "nonlinearity",
             EffectKind::Saturation => "saturation",
+            EffectKind::DomeFlats => "dome_flats",
         }
     }
     /// Index into per-effect tables.
@@ -197,6 +202,12 @@ pub struct PsfConfig {
     pub beta: f64,
     /// Per-frame seeing change: FWHM multiplied by exp(N(0, rms)).
     pub seeing_rms_frac: f64,
+    /// Per-frame FWHM spread: FWHM also multiplied by a uniform draw in [1 - s, 1 + s]
+    /// (0: off). Drawn independently of the seeing change and of beta.
+    pub fwhm_spread_frac: f64,
+    /// Per-frame Moffat beta, uniform in [lo, hi] (absent: `beta` for every frame). Real
+    /// seeing changes beta independently of the FWHM (2.5-4 is typical).
+    pub beta_range: Option<[f64; 2]>,
 }
 impl Default for PsfConfig {
     fn default() -> Self {
@@ -205,6 +216,8 @@ impl Default for PsfConfig {
             fwhm_arcsec: 0.8,
             beta: 3.0,
             seeing_rms_frac: 0.1,
+            fwhm_spread_frac: 0.0,
+            beta_range: None,
         }
     }
 }
@@ -290,6 +303,44 @@ impl Default for FlatFieldConfig {
         FlatFieldConfig {
             pixel_rms: 0.01,
             vignetting: 0.05,
+        }
+    }
+}
+
+/// Dome flats (the `dome_flats` effect): per rotator angle of the observation, one
+/// template of lamp-on and lamp-off frames, before the science.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DomeFlatConfig {
+    /// Lamp-on frames per rotator angle.
+    pub frames_on: usize,
+    /// Lamp-off frames per rotator angle.
+    pub frames_off: usize,
+    /// Lamp light per pixel, ADU (NDIT-averaged frame), before the focal mask and beams.
+    pub lamp_adu: f64,
+    /// Light present with the lamp off too (thermal emission of the dome), ADU per pixel.
+    pub off_adu: f64,
+    /// Degree of polarization of the lamp light (fraction): the o and e strips differ in
+    /// level by 1 +- p cos 2(phi - angle).
+    pub lamp_p: f64,
+    /// Polarization angle of the lamp light in the instrument frame, deg.
+    pub lamp_angle_deg: f64,
+    /// DIT of a flat frame, s.
+    pub dit_s: f64,
+    /// NDIT of a flat frame.
+    pub ndit: u32,
+}
+impl Default for DomeFlatConfig {
+    fn default() -> Self {
+        DomeFlatConfig {
+            frames_on: 5,
+            frames_off: 5,
+            lamp_adu: 6000.0,
+            off_adu: 400.0,
+            lamp_p: 0.03,
+            lamp_angle_deg: 20.0,
+            dit_s: 2.0,
+            ndit: 10,
         }
     }
 }
@@ -441,6 +492,9 @@ pub struct Scene {
     /// Saturation.
     #[serde(default)]
     pub saturation: Option<SaturationConfig>,
+    /// Dome flats (frames in the night; used only when `dome_flats` is listed).
+    #[serde(default)]
+    pub dome_flats: Option<DomeFlatConfig>,
 }
 
 impl Scene {
@@ -484,6 +538,7 @@ impl Scene {
             (EffectKind::CosmicRays, self.cosmic_rays.is_some()),
             (EffectKind::Nonlinearity, self.nonlinearity.is_some()),
             (EffectKind::Saturation, self.saturation.is_some()),
+            (EffectKind::DomeFlats, self.dome_flats.is_some()),
         ];
         present
             .iter()
@@ -537,6 +592,28 @@ impl Scene {
                     "psf: fwhm_arcsec = {} must be > 0 and beta = {} > 1",
                     p.fwhm_arcsec, p.beta
                 )));
+            }
+            if !(0.0..1.0).contains(&p.fwhm_spread_frac) {
+                return Err(format!(
+                    "psf: fwhm_spread_frac = {} must be in [0, 1)",
+                    p.fwhm_spread_frac
+                ));
+            }
+            if let Some([lo, hi]) = p.beta_range {
+                if !(lo > 1.0 && hi >= lo) {
+                    return Err(format!("psf: beta_range = [{lo}, {hi}] must have 1 < lo <= hi"));
+                }
+            }
+        }
+        if let Some(d) = &self.dome_flats {
+            if d.frames_on == 0 || d.frames_off == 0 || d.ndit == 0 || !(d.dit_s > 0.0) || !(d.lamp_adu > 0.0) {
+                return Err(format!(
+                    "dome_flats: frames_on = {}, frames_off = {}, ndit = {}, dit_s = {}, lamp_adu = {} must all be > 0",
+                    d.frames_on, d.frames_off, d.ndit, d.dit_s, d.lamp_adu
+                ));
+            }
+            if !(0.0..1.0).contains(&d.lamp_p) {
+                return Err(format!("dome_flats: lamp_p = {} must be in [0, 1)", d.lamp_p));
             }
         }
         Ok(())
