@@ -27,5 +27,6 @@ pub mod reduce;
 pub mod scan;
 pub mod sequence;
 pub mod sim;
+pub mod standards;
 pub mod stats;
 pub mod stokes;
