@@ -39,11 +39,14 @@ pub enum EffectKind {
     Nonlinearity,
     /// Saturation (clipping at the profile's level).
     Saturation,
+    /// The instrument's true analyzer angle phi = s POSANG + theta0 differs from the
+    /// profile's (angle zero-point and image parity, section `analyzer_angle`).
+    AnalyzerAngle,
 }
 
 impl EffectKind {
     /// All effects.
-    pub const ALL: [EffectKind; 15] = [
+    pub const ALL: [EffectKind; 16] = [
         EffectKind::Psf,
         EffectKind::Sky,
         EffectKind::Strips,
@@ -59,6 +62,7 @@ impl EffectKind {
         EffectKind::CosmicRays,
         EffectKind::Nonlinearity,
         EffectKind::Saturation,
+        EffectKind::AnalyzerAngle,
     ];
     /// snake_case name as used in scene files.
     pub fn name(self) -> &'static str {
@@ -78,6 +82,7 @@ impl EffectKind {
             EffectKind::CosmicRays => "cosmic_rays",
             EffectKind::Nonlinearity => "nonlinearity",
             EffectKind::Saturation => "saturation",
+            EffectKind::AnalyzerAngle => "analyzer_angle",
         }
     }
     /// Index into per-effect tables.
@@ -385,6 +390,42 @@ pub struct SaturationConfig {
     pub level_adu: Option<f64>,
 }
 
+/// A polarimetric standard star observed with the same template as the targets
+/// (DPR CATG 'CALIB', DPR TYPE 'STD', OBJECT = its name): a single star, reduced as such.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StandardSource {
+    /// Name written to OBJECT (match it to a standards-table entry).
+    pub name: String,
+    /// Total flux (o + e), ADU per NDIT-averaged frame.
+    pub flux: f64,
+    /// Degree of polarization (fraction, sky frame; 0 for an unpolarized standard). No
+    /// interstellar polarization is added: this is the star's total polarization.
+    #[serde(default)]
+    pub p: f64,
+    /// Angle, degrees east of north.
+    #[serde(default)]
+    pub gamma_deg: f64,
+}
+
+/// The instrument's true analyzer-angle relation (effect `analyzer_angle`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AnalyzerAngleConfig {
+    /// Zero-point theta0, degrees.
+    pub zero_point_deg: f64,
+    /// Image parity s, +1 or -1.
+    pub parity: i32,
+}
+impl Default for AnalyzerAngleConfig {
+    fn default() -> Self {
+        AnalyzerAngleConfig {
+            zero_point_deg: 3.0,
+            parity: 1,
+        }
+    }
+}
+
 /// A whole scene.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -439,6 +480,13 @@ pub struct Scene {
     /// Saturation.
     #[serde(default)]
     pub saturation: Option<SaturationConfig>,
+    /// Standard stars (observed after the binaries, one sequence each). Sources, not an
+    /// effect: every listed standard is simulated.
+    #[serde(default)]
+    pub standard: Vec<StandardSource>,
+    /// True analyzer angle (used only when `analyzer_angle` is listed).
+    #[serde(default)]
+    pub analyzer_angle: Option<AnalyzerAngleConfig>,
 }
 
 impl Scene {
@@ -475,6 +523,7 @@ impl Scene {
             (EffectKind::CosmicRays, self.cosmic_rays.is_some()),
             (EffectKind::Nonlinearity, self.nonlinearity.is_some()),
             (EffectKind::Saturation, self.saturation.is_some()),
+            (EffectKind::AnalyzerAngle, self.analyzer_angle.is_some()),
         ];
         present
             .iter()
@@ -517,6 +566,19 @@ impl Scene {
                     "binary '{}': separation_arcsec = {}",
                     b.name, b.separation_arcsec
                 ));
+            }
+        }
+        for st in &self.standard {
+            if !(st.flux >= 0.0) || !(0.0..1.0).contains(&st.p) {
+                return Err(format!(
+                    "standard '{}': flux = {} must be >= 0 and p = {} in [0, 1)",
+                    st.name, st.flux, st.p
+                ));
+            }
+        }
+        if let Some(a) = &self.analyzer_angle {
+            if a.parity != 1 && a.parity != -1 {
+                return Err(format!("analyzer_angle.parity = {} must be +1 or -1", a.parity));
             }
         }
         if let Some(p) = &self.psf {
