@@ -17,6 +17,7 @@
 #![deny(missing_docs)]
 
 pub mod accuracy;
+pub mod calibration;
 pub mod catalog;
 pub mod io;
 pub mod night;
