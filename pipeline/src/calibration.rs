@@ -174,7 +174,17 @@ pub fn resolve_component(
             return false;
         }
     };
-    let lp = LinearPolarization::from_qu(sol.fit.q, sol.fit.u, sol.fit.var_q.sqrt(), sol.fit.var_u.sqrt(), debias);
+    let mut fit = sol.fit;
+    if let Some(a) = cal.and_then(|c| c.angles.as_ref()) {
+        // An error d of theta0 rotates (q, u) by 2d: dq = -2u d, du = 2q d. It leaves P and
+        // sigma_P alone and adds sigma_theta0 to sigma_gamma (common to every target, so it
+        // cancels in Delta-gamma).
+        let v = (2.0 * a.sigma_theta0_deg.to_radians()).powi(2);
+        fit.var_q += fit.u * fit.u * v;
+        fit.var_u += fit.q * fit.q * v;
+        fit.cov_qu -= fit.q * fit.u * v;
+    }
+    let lp = LinearPolarization::from_qu(fit.q, fit.u, fit.var_q.sqrt(), fit.var_u.sqrt(), debias);
     c.q = lp.q;
     c.u = lp.u;
     c.sigma_q = lp.sigma_q;
@@ -194,7 +204,7 @@ pub fn resolve_component(
     c.extra.insert("snr".into(), serde_json::json!(lp.snr));
     c.extra
         .insert("sigma_gamma_nkc_deg".into(), serde_json::json!(lp.sigma_gamma_nkc_deg));
-    c.extra.insert("cov_qu".into(), serde_json::json!(sol.fit.cov_qu));
+    c.extra.insert("cov_qu".into(), serde_json::json!(fit.cov_qu));
     c.extra
         .insert("stokes_method".into(), serde_json::json!(sol.method.name()));
     if let Some(o) = sol.offset {
@@ -205,8 +215,7 @@ pub fn resolve_component(
         );
     }
     if let Some(a) = cal.and_then(|c| c.angles.as_ref()) {
-        // The zero-point error is common to every target: it leaves Delta-gamma alone and
-        // is reported apart from the statistical sigma_gamma.
+        // Included in sigma_q, sigma_u and sigma_gamma above; common to every target.
         c.extra.insert(
             "sigma_gamma_zero_point_deg".into(),
             serde_json::json!(a.sigma_theta0_deg),
@@ -495,6 +504,35 @@ pub fn calibrate_catalog(
     (cal, summary)
 }
 
+/// Whether a sequence observes a standard star: `DPR TYPE` of its first readable frame is
+/// 'STD' (frame-format.md). Unreadable headers count as science (the reduction reports them).
+pub fn is_standard_sequence(seq: &crate::sequence::Sequence, profile: &Profile) -> bool {
+    let key = &profile.keywords.dpr_type;
+    seq.orientations
+        .iter()
+        .flat_map(|o| &o.exposures)
+        .find_map(|e| sofipol_calib::fits::read_header(&e.path).ok())
+        .and_then(|h| h.get_str(key).ok())
+        .is_some_and(|t| t.trim().eq_ignore_ascii_case("STD"))
+}
+
+/// Split sequences into (science, standards).
+pub fn split_standards(
+    seqs: Vec<crate::sequence::Sequence>,
+    profile: &Profile,
+) -> (Vec<crate::sequence::Sequence>, Vec<crate::sequence::Sequence>) {
+    seqs.into_iter().partition(|q| !is_standard_sequence(q, profile))
+}
+
+/// Reduction settings for a standard: a single star, never a binary (no companion is
+/// accepted, so none is searched for in the photometry).
+pub fn standard_params(p: &crate::reduce::target::TargetParams) -> crate::reduce::target::TargetParams {
+    let mut s = p.clone();
+    s.measure.min_companion_snr = f64::INFINITY;
+    s.measure.companion_hint = None;
+    s
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -609,7 +647,10 @@ mod tests {
         assert!(!a.flags.contains(&"uncalibrated".to_string()));
         // sigma_q holds sigma_F and sigma_c: at phi = 3 and 48 deg, q = F_a cos 6 - F_b sin 6.
         let t = 6f64.to_radians();
-        let expect = 1e-6 + (t.cos() - t.sin()).powi(2) * f.offset.unwrap().sigma_c.powi(2);
+        // ... and the zero-point error, which rotates (q, u): dq = -2u dtheta0.
+        let st = f.angles.unwrap().sigma_theta0_deg.to_radians();
+        let expect =
+            1e-6 + (t.cos() - t.sin()).powi(2) * f.offset.unwrap().sigma_c.powi(2) + (2.0 * truth_a.u * st).powi(2);
         assert!(f.offset.unwrap().sigma_c > 0.0);
         assert!(
             (a.sigma_q.powi(2) - expect).abs() < 1e-18,

@@ -33,6 +33,8 @@ pub struct Args {
     #[command(flatten)]
     pub reduce: ReduceArgs,
     #[command(flatten)]
+    pub calib: super::calib::CalibArgs,
+    #[command(flatten)]
     pub profile: ProfileArgs,
     /// Print only errors.
     #[arg(short, long)]
@@ -46,6 +48,7 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let profile = args.profile.load()?;
     let params = args.reduce.params()?;
+    let setup = args.calib.setup()?;
     if let Some(j) = args.jobs {
         anyhow::ensure!(j >= 1, "--jobs {j}: need at least 1");
     }
@@ -57,13 +60,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .build()
         .context("starting worker threads")?;
     let t0 = std::time::Instant::now();
-    let plan = night::plan(&args.dirs, &profile, args.shard).context("scanning the night")?;
+    // Standards are split off before sharding: every shard calibrates with all of them.
+    let mut plan = night::plan(&args.dirs, &profile, None).context("scanning the night")?;
+    let (science, stds) = sofipol_pipeline::calibration::split_standards(std::mem::take(&mut plan.sequences), &profile);
+    plan.sequences = science;
+    if let Some(sh) = args.shard {
+        plan.sequences.retain(|q| sh.owns(&q.id));
+        plan.failures.retain(|f| sh.owns(&f.file));
+    }
     let n = plan.sequences.len();
     if !args.quiet {
         eprintln!(
-            "sofipol night: {} files, {} sequences{}, {} unusable inputs; {} threads",
+            "sofipol night: {} files, {} sequences + {} standard(s){}, {} unusable inputs; {} threads",
             plan.n_files,
             n,
+            stds.len(),
             args.shard
                 .map(|s| format!(" in shard {}/{}", s.k, s.n))
                 .unwrap_or_default(),
@@ -134,11 +145,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     });
     pb.finish_and_clear();
     let mut cat = res.catalog;
+    let t_cal = std::time::Instant::now();
+    let cal_summary = pool.install(|| super::calib::calibrate(&mut cat, &stds, &profile, &params, &setup));
+    let cal_s = t_cal.elapsed().as_secs_f64();
     let mut prov = super::report::provenance(&profile, &params);
     prov["shard"] = serde_json::json!(args.shard.map(|s| format!("{}/{}", s.k, s.n)));
     prov["inputs"] = serde_json::json!(args.dirs);
     prov["night_bad_pixel_mask_from"] = serde_json::json!(night_mask_files);
+    prov["calibration"] = serde_json::json!({"params": setup.params, "standards_table": setup.table.sources,
+        "calib_dir": setup.external.as_ref().map(|e| e.0.display().to_string()), "seconds": cal_s});
     cat.provenance = prov;
+    if !args.quiet {
+        for l in &cal_summary.lines {
+            eprintln!("sofipol night: {l}");
+        }
+    }
     sofipol_pipeline::io::write_json_atomic(&args.output, &cat)
         .with_context(|| format!("writing {}", args.output.display()))?;
     let wall = t0.elapsed().as_secs_f64();

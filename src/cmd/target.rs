@@ -25,6 +25,8 @@ pub struct Args {
     #[command(flatten)]
     pub reduce: ReduceArgs,
     #[command(flatten)]
+    pub calib: super::calib::CalibArgs,
+    #[command(flatten)]
     pub profile: ProfileArgs,
     /// Print nothing but errors.
     #[arg(short, long)]
@@ -118,6 +120,7 @@ impl ReduceArgs {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let profile = args.profile.load()?;
     let params = args.reduce.params()?;
+    let setup = args.calib.setup()?;
     let mut files = Vec::new();
     for i in &args.inputs {
         files.extend(scan::find_files(i).with_context(|| format!("listing {}", i.display()))?);
@@ -128,7 +131,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         args.inputs
     );
     let s = scan::classify_all(&files, &profile);
-    let mut seqs = sequence::group(s.science, &profile);
+    // Standard stars in the inputs calibrate the target; they are not the target.
+    let (mut seqs, stds) =
+        sofipol_pipeline::calibration::split_standards(sequence::group(s.science, &profile), &profile);
     if let Some(obj) = &args.object {
         seqs.retain(|q| &q.object == obj);
         anyhow::ensure!(
@@ -167,7 +172,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         cat.failures.extend(out.failures);
         cat.targets.push(out.target);
     }
+    let cal_summary = super::calib::calibrate(&mut cat, &stds, &profile, &params, &setup);
     cat.provenance = super::report::provenance(&profile, &params);
+    cat.provenance["calibration"] = serde_json::json!({"params": setup.params, "standards_table": setup.table.sources,
+        "calib_dir": setup.external.as_ref().map(|e| e.0.display().to_string())});
+    if !args.quiet {
+        for l in &cal_summary.lines {
+            eprintln!("sofipol target: {l}");
+        }
+    }
     sofipol_pipeline::io::write_json_atomic(&args.output, &cat)
         .with_context(|| format!("writing {}", args.output.display()))?;
     if !args.quiet {
