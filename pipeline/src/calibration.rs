@@ -174,26 +174,29 @@ pub fn resolve_component(
             return false;
         }
     };
+    // P, sigma_P and the statistical sigma_gamma from the measurement errors.
+    let lp = LinearPolarization::from_qu(sol.fit.q, sol.fit.u, sol.fit.var_q.sqrt(), sol.fit.var_u.sqrt(), debias);
     let mut fit = sol.fit;
+    let mut sigma_gamma = lp.sigma_gamma_deg;
     if let Some(a) = cal.and_then(|c| c.angles.as_ref()) {
         // An error d of theta0 rotates (q, u) by 2d: dq = -2u d, du = 2q d. It leaves P and
-        // sigma_P alone and adds sigma_theta0 to sigma_gamma (common to every target, so it
-        // cancels in Delta-gamma).
+        // sigma_P alone, adds sigma_theta0 to sigma_gamma, and is common to every target
+        // (it cancels in Delta-gamma).
         let v = (2.0 * a.sigma_theta0_deg.to_radians()).powi(2);
         fit.var_q += fit.u * fit.u * v;
         fit.var_u += fit.q * fit.q * v;
         fit.cov_qu -= fit.q * fit.u * v;
+        sigma_gamma = sigma_gamma.hypot(a.sigma_theta0_deg);
     }
-    let lp = LinearPolarization::from_qu(fit.q, fit.u, fit.var_q.sqrt(), fit.var_u.sqrt(), debias);
     c.q = lp.q;
     c.u = lp.u;
-    c.sigma_q = lp.sigma_q;
-    c.sigma_u = lp.sigma_u;
+    c.sigma_q = fit.var_q.sqrt();
+    c.sigma_u = fit.var_u.sqrt();
     c.p = lp.p;
     c.sigma_p = lp.sigma_p;
     c.p_debiased = lp.p_debiased;
     c.gamma_deg = lp.gamma_deg;
-    c.sigma_gamma_deg = lp.sigma_gamma_deg;
+    c.sigma_gamma_deg = sigma_gamma;
     c.passes_cut = lp.passes_cut(cut_snr);
     if !c.passes_cut {
         c.flags.push("low_snr".into());
