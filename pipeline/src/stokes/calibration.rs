@@ -492,16 +492,9 @@ pub fn measure_angles(stds: &[StandardObservation], offset: Offset, default_pari
         axial_mean(&v)
     };
     let (p, m) = (trial(1), trial(-1));
-    // The parities are told apart only by standards whose raw angles differ.
-    let spread = raws
-        .iter()
-        .flat_map(|a| raws.iter().map(move |b| (a, b)))
-        .map(|(a, b)| {
-            let d = ((a.0 - b.0 + 90.0).rem_euclid(180.0) - 90.0).abs();
-            d / a.1.hypot(b.1)
-        })
-        .fold(0.0, f64::max);
-    let measured = raws.len() >= 2 && spread > 5.0;
+    // The parities are told apart only when the two trials disagree strongly (two
+    // standards whose table angles differ by 90 deg fit either parity equally well).
+    let measured = raws.len() >= 2 && (p.2 - m.2).abs() > 25.0;
     let parity = if measured {
         if p.2 <= m.2 {
             1
