@@ -190,7 +190,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             ]
         });
         eprintln!(
-            "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; wall {wall:.2} s; peak RSS {:.0} MB",
+            "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; calibration (standards reduced + every target re-solved, wall) {cal_s:.2} s; wall {wall:.2} s; peak RSS {:.0} MB",
             sum[0],
             sum[1],
             sum[2],
