@@ -107,7 +107,7 @@ impl Calibration {
     pub fn write(&self, dir: &Path) -> std::io::Result<std::path::PathBuf> {
         std::fs::create_dir_all(dir)?;
         let p = dir.join(CALIBRATION_FILE);
-        crate::io::write_json_atomic(&p, self)?;
+        crate::io::write_json_atomic(&p, self).map_err(|e| std::io::Error::other(e.to_string()))?;
         Ok(p)
     }
 }
@@ -529,7 +529,7 @@ pub fn split_standards(
 
 /// Reduction settings for a standard: a single star, never a binary (no companion is
 /// accepted, so none is searched for in the photometry).
-pub fn standard_params(p: &crate::reduce::target::TargetParams) -> crate::reduce::target::TargetParams {
+pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::TargetParams {
     let mut s = p.clone();
     s.measure.min_companion_snr = f64::INFINITY;
     s.measure.companion_hint = None;

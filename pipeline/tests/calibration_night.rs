@@ -15,7 +15,8 @@ use sofipol_calib::classify::{classify, Classification};
 use sofipol_calib::Profile;
 use sofipol_pipeline::calibration::{calibrate_catalog, standard_params, CalibrationParams, CalibrationSource};
 use sofipol_pipeline::catalog::{Catalog, Target};
-use sofipol_pipeline::reduce::target::{reduce_loaded, LoadedOrientation, TargetParams};
+use sofipol_pipeline::reduce::run::{reduce_loaded, LoadedOrientation};
+use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sequence::{Orientation, Sequence};
 use sofipol_pipeline::sim::{Scene, Simulator, Truth};
 use sofipol_pipeline::standards::StandardsTable;
@@ -142,7 +143,7 @@ fn reduce_one(sim: &Simulator, t: usize, profile: &Profile, params: &TargetParam
     } else {
         params.clone()
     };
-    reduce_loaded(&seq, orients, profile, &p, false).target
+    reduce_loaded(&seq, orients, profile, &p, None, false).target
 }
 
 /// Reduce every sequence: (science catalog, standard targets).

@@ -13,7 +13,7 @@ use sofipol_pipeline::calibration::{
 };
 use sofipol_pipeline::catalog::{Catalog, Target};
 use sofipol_pipeline::night;
-use sofipol_pipeline::reduce::target::TargetParams;
+use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sequence::Sequence;
 use sofipol_pipeline::standards::StandardsTable;
 use sofipol_pipeline::stokes::calibration::StokesMethod;
@@ -50,12 +50,10 @@ pub struct CalibSetup {
 }
 
 impl CalibArgs {
-    /// Validate.
-    pub fn setup(&self) -> anyhow::Result<CalibSetup> {
-        let mut params = CalibrationParams {
-            no_calibration: self.no_calibration,
-            ..Default::default()
-        };
+    /// Validate; the flags override `base` (the `[calibration]` section of --params).
+    pub fn setup(&self, base: &CalibrationParams) -> anyhow::Result<CalibSetup> {
+        let mut params = base.clone();
+        params.no_calibration |= self.no_calibration;
         if let Some(m) = &self.stokes_method {
             params.stokes_method = parse_method(m)?;
         }
@@ -65,7 +63,10 @@ impl CalibArgs {
         };
         let external = match &self.calib {
             Some(p) => {
-                anyhow::ensure!(!self.no_calibration, "--calib and --no-calibration exclude each other");
+                anyhow::ensure!(
+                    !params.no_calibration,
+                    "--calib and --no-calibration exclude each other"
+                );
                 Some((p.clone(), Calibration::read(p).map_err(anyhow::Error::msg)?))
             }
             None => None,
@@ -91,13 +92,18 @@ pub fn parse_method(m: &str) -> anyhow::Result<StokesMethod> {
 }
 
 /// Reduce standard sequences as single stars (in the current rayon pool).
-pub fn reduce_standards(stds: &[Sequence], profile: &Profile, params: &TargetParams) -> (Vec<Target>, Catalog) {
+pub fn reduce_standards(
+    stds: &[Sequence],
+    profile: &Profile,
+    params: &TargetParams,
+    night_mask: Option<&ndarray::Array2<u8>>,
+) -> (Vec<Target>, Catalog) {
     let plan = night::NightPlan {
         sequences: stds.to_vec(),
         ..Default::default()
     };
     let sp = calibration::standard_params(params);
-    let res = night::reduce_night(&plan, profile, &sp, false, &|_| {}, &|_| {});
+    let res = night::reduce_night(&plan, profile, &sp, night_mask, false, &|_| {}, &|_| {});
     let targets = res.catalog.targets.clone();
     (targets, res.catalog)
 }
@@ -109,12 +115,13 @@ pub fn calibrate(
     stds: &[Sequence],
     profile: &Profile,
     params: &TargetParams,
+    night_mask: Option<&ndarray::Array2<u8>>,
     setup: &CalibSetup,
 ) -> CalibrationSummary {
     let (std_targets, std_cat) = if stds.is_empty() {
         (vec![], Catalog::default())
     } else {
-        reduce_standards(stds, profile, params)
+        reduce_standards(stds, profile, params, night_mask)
     };
     cat.failures.extend(std_cat.failures);
     cat.failures.sort_by(|a, b| a.file.cmp(&b.file));
@@ -188,7 +195,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             stds.len()
         );
     }
-    let (std_targets, _) = reduce_standards(&stds, &profile, &params);
+    let (std_targets, _) = reduce_standards(&stds, &profile, &params, None);
     let flats = build_flat_products(&plan, &profile, &args.output);
     let mut cal = calibration::measure(&std_targets, &table, &profile).ok_or_else(|| {
         anyhow::anyhow!(

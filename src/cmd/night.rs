@@ -48,7 +48,7 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let profile = args.profile.load()?;
     let params = args.reduce.params()?;
-    let setup = args.calib.setup()?;
+    let setup = args.calib.setup(&params.calibration)?;
     if let Some(j) = args.jobs {
         anyhow::ensure!(j >= 1, "--jobs {j}: need at least 1");
     }
@@ -146,14 +146,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     pb.finish_and_clear();
     let mut cat = res.catalog;
     let t_cal = std::time::Instant::now();
-    let cal_summary = pool.install(|| super::calib::calibrate(&mut cat, &stds, &profile, &params, &setup));
+    let cal_summary =
+        pool.install(|| super::calib::calibrate(&mut cat, &stds, &profile, &params, night_mask.as_ref(), &setup));
     let cal_s = t_cal.elapsed().as_secs_f64();
     let mut prov = super::report::provenance(&profile, &params);
     prov["shard"] = serde_json::json!(args.shard.map(|s| format!("{}/{}", s.k, s.n)));
     prov["inputs"] = serde_json::json!(args.dirs);
     prov["night_bad_pixel_mask_from"] = serde_json::json!(night_mask_files);
     prov["calibration"] = serde_json::json!({"params": setup.params, "standards_table": setup.table.sources,
-        "calib_dir": setup.external.as_ref().map(|e| e.0.display().to_string()), "seconds": cal_s});
+        "calib_dir": setup.external.as_ref().map(|e| e.0.display().to_string())});
     cat.provenance = prov;
     if !args.quiet {
         for l in &cal_summary.lines {

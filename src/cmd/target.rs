@@ -120,7 +120,7 @@ impl ReduceArgs {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let profile = args.profile.load()?;
     let params = args.reduce.params()?;
-    let setup = args.calib.setup()?;
+    let setup = args.calib.setup(&params.calibration)?;
     let mut files = Vec::new();
     for i in &args.inputs {
         files.extend(scan::find_files(i).with_context(|| format!("listing {}", i.display()))?);
@@ -172,7 +172,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         cat.failures.extend(out.failures);
         cat.targets.push(out.target);
     }
-    let cal_summary = super::calib::calibrate(&mut cat, &stds, &profile, &params, &setup);
+    let cal_summary = super::calib::calibrate(&mut cat, &stds, &profile, &params, None, &setup);
     cat.provenance = super::report::provenance(&profile, &params);
     cat.provenance["calibration"] = serde_json::json!({"params": setup.params, "standards_table": setup.table.sources,
         "calib_dir": setup.external.as_ref().map(|e| e.0.display().to_string())});

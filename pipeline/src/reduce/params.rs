@@ -97,6 +97,8 @@ pub struct TargetParams {
     /// e-target rows, all the measurement uses) are sky-subtracted, about a third of the
     /// detector; whole frames are always done when intermediates are saved.
     pub full_frame_sky: bool,
+    /// Instrumental calibration and the Stokes method (`[calibration]`, docs/calibration.md).
+    pub calibration: crate::calibration::CalibrationParams,
 }
 
 impl Default for TargetParams {
@@ -109,6 +111,7 @@ impl Default for TargetParams {
             no_detect_bad_pixels: false,
             save_intermediate: None,
             full_frame_sky: false,
+            calibration: Default::default(),
         }
     }
 }
