@@ -13,7 +13,7 @@ seed = 31
 effects = ["psf", "sky", "strips", "photon_noise", "read_noise", "throughput", "instrumental_polarization", "analyzer_angle"]
 [observation]
 orientations_deg = [0.0, 45.0]
-dithers = 2
+dithers = 3
 [psf]
 fwhm_arcsec = 0.8
 [throughput]
@@ -113,7 +113,7 @@ fn calib_products_serve_another_night_and_uncalibrated_is_flagged_and_explained(
         "{f}"
     );
     assert_eq!(f["offset_standards"].as_array().unwrap().len(), 3);
-    assert!(cal["frames"].as_array().unwrap().len() == 12);
+    assert!(cal["frames"].as_array().unwrap().len() == 18);
 
     // The night without standards, calibrated from the other night's products.
     let cat_path = tmp.path().join("c1.json");
