@@ -38,6 +38,8 @@ enum Command {
     Simulate(cmd::simulate::Args),
     /// Reduce a whole night directory in parallel into one catalog.
     Night(cmd::night::Args),
+    /// Calibration products of a night (calibration.json) from its standard stars.
+    Calib(cmd::calib::Args),
     /// Join shard catalogs written with `night --shard K/N`.
     Merge(cmd::merge::Args),
     /// Reduce one target sequence (files or a directory) to a JSON catalog.
@@ -68,6 +70,7 @@ fn main() -> ExitCode {
         Command::Target(a) => cmd::target::run(a),
         Command::Night(a) => cmd::night::run(a),
         Command::Merge(a) => cmd::merge::run(a),
+        Command::Calib(a) => cmd::calib::run(a),
         Command::Mc(a) => cmd::mc::run(a),
         Command::Stats(a) => cmd::stats::run(a),
         Command::Export(a) => cmd::export::run(a),

@@ -356,11 +356,14 @@ pub fn loaded_from_sim(frames: Vec<crate::sim::SimFrame>, profile: &Profile) -> 
     let (mut object, mut tpl_start, mut filter) = (String::new(), String::new(), String::new());
     for f in frames {
         let pa = f.truth.posang_deg;
+        // The pipeline knows the profile's analyzer angle, not the simulated instrument's
+        // true one (they differ when the scene lists `analyzer_angle`).
+        let phi = profile.angles.analyzer_angle_deg(pa);
         if orients.last().is_none_or(|o| o.0 != pa) {
-            orients.push((pa, f.truth.analyzer_deg, vec![], vec![]));
+            orients.push((pa, phi, vec![], vec![]));
             seq_or.push(Orientation {
                 posang_deg: pa,
-                analyzer_deg: f.truth.analyzer_deg,
+                analyzer_deg: phi,
                 exposures: vec![],
             });
         }

@@ -95,6 +95,49 @@ pub struct Catalog {
     /// Provenance: software version, command line, profile, parameters...
     #[serde(default)]
     pub provenance: serde_json::Value,
+    /// Standard stars of the night, reduced as single stars (docs/catalog-schema.md).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub standards: Vec<StandardResult>,
+    /// The instrumental calibration applied to the targets (`calibration.json`'s content
+    /// and where it came from); absent when none was available.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<serde_json::Value>,
+}
+
+/// A standard star's table values, its measurement and the residuals.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StandardResult {
+    /// Name in the standards table (the OBJECT when not in the table).
+    pub name: String,
+    /// OBJECT (or OBS TARG NAME) of the sequence.
+    pub object: String,
+    /// Sequence id.
+    pub sequence: String,
+    /// Filter.
+    pub filter: String,
+    /// Outcome of the reduction.
+    pub status: Status,
+    /// Table values (absent when the star is not in the table).
+    #[serde(default)]
+    pub table: Option<crate::standards::StandardStar>,
+    /// Measured polarization (sky frame, calibration applied), when measured.
+    #[serde(default)]
+    pub measured: Option<Component>,
+    /// (P - p_table) / sqrt(sigma_P^2 + sigma_p_table^2).
+    #[serde(default)]
+    pub residual_p_sigma: Option<f64>,
+    /// gamma - gamma_table folded into [-90, 90), deg (polarized standards only).
+    #[serde(default)]
+    pub residual_gamma_deg: Option<f64>,
+    /// The angle residual in units of the combined error.
+    #[serde(default)]
+    pub residual_gamma_sigma: Option<f64>,
+    /// What the calibration used it for: "offset", "angles".
+    #[serde(default)]
+    pub used_for: Vec<String>,
+    /// Flags ("not_in_standards_table", "no_table_values_for_filter", ...).
+    #[serde(default)]
+    pub flags: Vec<String>,
 }
 
 /// Fold an angle difference of two axial angles (degrees) into [0, 90].

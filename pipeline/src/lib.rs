@@ -17,6 +17,7 @@
 #![deny(missing_docs)]
 
 pub mod accuracy;
+pub mod calibration;
 pub mod catalog;
 pub mod error;
 pub mod export;
@@ -29,6 +30,7 @@ pub mod reduce;
 pub mod scan;
 pub mod sequence;
 pub mod sim;
+pub mod standards;
 pub mod stats;
 pub mod stokes;
 pub mod world;

@@ -384,6 +384,15 @@ pub fn merge(parts: Vec<(String, Catalog)>) -> crate::error::Result<Catalog> {
             out.targets.push(t);
         }
         out.failures.extend(c.failures);
+        // Every shard reduces all standards and calibrates with them: keep one copy.
+        for s in c.standards {
+            if !out.standards.iter().any(|o| o.sequence == s.sequence) {
+                out.standards.push(s);
+            }
+        }
+        if out.calibration.is_none() {
+            out.calibration = c.calibration;
+        }
         provs.push(serde_json::json!({"file": name, "provenance": c.provenance}));
     }
     out.targets.sort_by(|a, b| {

@@ -252,7 +252,7 @@ fn one_target(cfg: &WorldConfig, params: &TargetParams, bin: usize, t: usize, lo
     let files = scan::find_files(&dir).expect("scratch folder");
     let s = scan::classify_all(&files, &profile);
     let seqs = sequence::group(s.science, &profile);
-    let out = reduce_sequence(&seqs[0], &profile, params, None, false);
+    let out = reduce_sequence(&seqs[0], &profile, params, None, None, false);
     let _ = std::fs::remove_dir_all(&dir);
     let (pulls, sigmas, missing, relabelled) = score(&out.target, tt, ratio);
     WorldTarget {

@@ -212,6 +212,9 @@ level_adu = 100.0
 [dome_flats]
 frames_on = 2
 frames_off = 1
+[analyzer_angle]
+zero_point_deg = 7.0
+parity = -1
 "#;
 
 #[test]
@@ -411,4 +414,74 @@ fn psf_fwhm_and_beta_vary_independently_frame_to_frame() {
     let sd = |v: &[f64], m: f64| (v.iter().map(|a| (a - m).powi(2)).sum::<f64>() / n).sqrt();
     let corr = cov / (sd(&fw, mf) * sd(&be, mb));
     assert!(corr.abs() < 0.6, "corr {corr}");
+}
+
+#[test]
+fn standards_are_single_calib_std_sequences_and_follow_k_inst_zero_point_and_parity() {
+    // Noiseless: a standard's beams follow the forward model with the true analyzer angle
+    // phi = s POSANG + theta0, the beam ratio k and the instrumental term; nothing else.
+    let extra = r#"
+[throughput]
+t_o = 1.0
+t_e = 0.97
+[instrumental_polarization]
+p = 0.003
+angle_deg = 0.0
+[analyzer_angle]
+zero_point_deg = 3.0
+parity = -1
+[[standard]]
+name = "HD 204827"
+flux = 30000.0
+p = 0.02
+gamma_deg = 58.7
+[[standard]]
+name = "HD 64299"
+flux = 20000.0
+"#;
+    let effects = "\"throughput\", \"instrumental_polarization\", \"analyzer_angle\"";
+    let sim = Simulator::new(scene(effects, extra, "0.0, 45.0, 90.0, 135.0"), Profile::sofi()).unwrap();
+    assert_eq!(sim.n_sequences(), 3);
+    assert!(!sim.is_standard(0) && sim.is_standard(1) && sim.is_standard(2));
+    let (frames, truth) = sim.run_in_memory();
+    assert_eq!(truth.targets.len(), 1);
+    assert_eq!(truth.standards.len(), 2);
+    assert_eq!(truth.standards[0].components.len(), 1);
+    assert!((truth.standards[0].components[0].p - 0.02).abs() < 1e-15);
+    let k = 0.97;
+    let c_k = (1.0 - k) / (1.0 + k);
+    let per = sim.frames_per_target();
+    for (i, f) in frames.iter().enumerate() {
+        let t = i / per;
+        let h = &f.frame.header;
+        let catg = h.get_str("HIERARCH ESO DPR CATG").unwrap();
+        let typ = h.get_str("HIERARCH ESO DPR TYPE").unwrap();
+        if t == 0 {
+            assert_eq!((catg.as_str(), typ.as_str()), ("SCIENCE", "OBJECT"));
+            continue;
+        }
+        assert_eq!((catg.as_str(), typ.as_str()), ("CALIB", "STD"));
+        assert_eq!(f.truth.sources.len(), 1, "a standard is a single star");
+        let phi = -f.truth.posang_deg + 3.0;
+        assert!((f.truth.analyzer_deg - phi).abs() < 1e-12);
+        let st = &truth.standards[t - 1].components[0];
+        let ft = normalized_difference(Polarization { q: st.q, u: st.u }, phi);
+        let expect = (ft + c_k) / (1.0 + c_k * ft) + 0.003;
+        let s0 = &f.truth.sources[0];
+        let fm = (s0.flux_o - s0.flux_e) / (s0.flux_o + s0.flux_e);
+        assert!((fm - expect).abs() < 1e-12, "{fm} vs {expect}");
+        // And the image holds exactly those beam fluxes (no PSF: point images).
+        let g = Profile::sofi().geometry;
+        let (so, se) = (
+            strip_sum(&f.frame.data, g.o_target),
+            strip_sum(&f.frame.data, g.e_target),
+        );
+        assert!(
+            (so - s0.flux_o).abs() < 0.05 && (se - s0.flux_e).abs() < 0.05,
+            "{so} {se}"
+        );
+    }
+    let calls = sim.calls();
+    assert!(calls.contains_key("analyzer_angle") && calls.contains_key("throughput"));
+    assert!(!calls.contains_key("interstellar_polarization"));
 }

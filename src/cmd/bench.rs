@@ -36,6 +36,11 @@ enum What {
         /// Keep the simulated night here instead of a temporary directory.
         #[arg(long)]
         dir: Option<std::path::PathBuf>,
+        /// Add 3 standard stars (2 unpolarized, 1 polarized, from the built-in table) and the
+        /// instrumental effects they calibrate (k = 0.97, p_inst 0.3 %, zero-point 3 deg):
+        /// shows what calibration adds to the night.
+        #[arg(long)]
+        with_standards: bool,
     },
     /// Cost of each reduction stage on one simulated 10-frame sequence (medians).
     Stages {
@@ -147,7 +152,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             jobs,
             repeats,
             dir,
-        } => bench_night(targets, jobs, repeats, dir)?,
+            with_standards,
+        } => bench_night(targets, jobs, repeats, dir, with_standards)?,
         What::Stages { repeats } => bench_stages(repeats)?,
         What::Accuracy {
             targets,
@@ -229,12 +235,25 @@ fn bench_night(
     jobs: Option<usize>,
     repeats: usize,
     dir: Option<std::path::PathBuf>,
+    with_standards: bool,
 ) -> anyhow::Result<()> {
     use anyhow::Context;
     let tmp = tempfile::tempdir()?;
     let root = dir.unwrap_or_else(|| tmp.path().to_path_buf());
     let raw = root.join("raw");
-    let scene = Scene::from_toml(&night_scene(targets, 2001), "bench night").map_err(anyhow::Error::msg)?;
+    let mut text = night_scene(targets, 2001);
+    if with_standards {
+        text = text.replacen(
+            "\"cosmic_rays\"]",
+            "\"cosmic_rays\", \"throughput\", \"instrumental_polarization\", \"analyzer_angle\"]",
+            1,
+        );
+        text += "[throughput]\nt_e = 0.97\n[instrumental_polarization]\np = 0.003\nangle_deg = 0.0\n[analyzer_angle]\nzero_point_deg = 3.0\n";
+        text +=
+            "[[standard]]\nname = \"HD 64299\"\nflux = 150000.0\n[[standard]]\nname = \"HD 98161\"\nflux = 150000.0\n";
+        text += "[[standard]]\nname = \"HD 204827\"\nflux = 150000.0\np = 0.0084\ngamma_deg = 58.7\n";
+    }
+    let scene = Scene::from_toml(&text, "bench night").map_err(anyhow::Error::msg)?;
     let t0 = Instant::now();
     let truth = super::simulate::simulate_into(scene, Profile::sofi(), &raw, None, true)?;
     std::fs::remove_file(raw.join("truth.json")).ok();
@@ -273,7 +292,10 @@ fn bench_night(
         w.len(),
         walls.iter().map(|x| format!("{x:.2}")).collect::<Vec<_>>()
     );
-    for line in last.lines().filter(|l| l.contains("stage time")) {
+    for line in last
+        .lines()
+        .filter(|l| l.contains("stage time") || l.contains("calibration"))
+    {
         println!("  last run: {line}");
     }
     println!("  targets: <= 2.5 s wall, peak RSS <= 1 GB (2-core machine)");

@@ -1,5 +1,6 @@
 //! One module per subcommand. Each has `Args` (clap) and `run(Args) -> anyhow::Result<ExitCode>`.
 pub mod bench;
+pub mod calib;
 pub mod common;
 pub mod demo;
 pub mod export;

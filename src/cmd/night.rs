@@ -36,6 +36,8 @@ pub struct Args {
     #[command(flatten)]
     pub reduce: ReduceArgs,
     #[command(flatten)]
+    pub calib: super::calib::CalibArgs,
+    #[command(flatten)]
     pub profile: ProfileArgs,
     /// Print only errors.
     #[arg(short, long)]
@@ -49,6 +51,7 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let profile = args.profile.load()?;
     let params = args.reduce.params()?;
+    let setup = args.calib.setup(&params.calibration)?;
     let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     let mut jobs = args.jobs;
     if let Some(j) = jobs {
@@ -70,7 +73,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .build()
         .context("starting worker threads")?;
     let t0 = std::time::Instant::now();
-    let plan = night::plan(&args.dirs, &profile, args.shard).context("scanning the night")?;
+    // Standards are split off before sharding: every shard calibrates with all of them.
+    let mut plan = night::plan(&args.dirs, &profile, None).context("scanning the night")?;
     anyhow::ensure!(
         plan.n_files > 0,
         "no FITS files (.fits, .fit, .fits.gz, .fit.gz, .fz) in {}",
@@ -88,12 +92,19 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if let Some(d) = &args.reduce.save_intermediate {
         super::common::check_output_dir(d, "--save-intermediate")?;
     }
+    let (science, stds) = sofipol_pipeline::calibration::split_standards(std::mem::take(&mut plan.sequences), &profile);
+    plan.sequences = science;
+    if let Some(sh) = args.shard {
+        plan.sequences.retain(|q| sh.owns(&q.id));
+        plan.failures.retain(|f| sh.owns(&f.file));
+    }
     let n = plan.sequences.len();
     if !args.quiet {
         eprintln!(
-            "sofipol night: {} files, {} sequences{}, {} inputs not used (found while scanning); {} threads",
+            "sofipol night: {} files, {} sequences + {} standard(s){}, {} inputs not used (found while scanning); {} threads",
             plan.n_files,
             n,
+            stds.len(),
             args.shard
                 .map(|s| format!(" in shard {}/{}", s.k, s.n))
                 .unwrap_or_default(),
@@ -176,6 +187,19 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     });
     pb.finish_and_clear();
     let mut cat = res.catalog;
+    let t_cal = std::time::Instant::now();
+    let cal_summary = pool.install(|| {
+        super::calib::calibrate(
+            &mut cat,
+            &stds,
+            &profile,
+            &params,
+            night_mask.as_ref(),
+            flats.set.as_ref(),
+            &setup,
+        )
+    });
+    let cal_s = t_cal.elapsed().as_secs_f64();
     let mut prov = super::report::provenance(&profile, &params);
     prov["shard"] = serde_json::json!(args.shard.map(|s| format!("{}/{}", s.k, s.n)));
     prov["inputs"] = serde_json::json!(args.dirs);
@@ -188,7 +212,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .collect();
     cat.failures.extend(owned_flat_failures);
     cat.failures.sort_by(|a, b| a.file.cmp(&b.file));
+    prov["calibration"] = serde_json::json!({"params": setup.params, "standards_table": setup.table.sources,
+        "calib_dir": setup.external.as_ref().map(|e| e.0.display().to_string())});
     cat.provenance = prov;
+    if !args.quiet {
+        for l in &cal_summary.lines {
+            eprintln!("sofipol night: {l}");
+        }
+    }
     sofipol_pipeline::io::write_json_atomic(&args.output, &cat)
         .with_context(|| format!("writing {}", args.output.display()))?;
     let wall = t0.elapsed().as_secs_f64();
@@ -222,7 +253,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             ]
         });
         eprintln!(
-            "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, flat {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; wall {wall:.2} s; peak RSS {:.0} MB",
+            "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, flat {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; calibration (standards reduced + every target re-solved, wall) {cal_s:.2} s; wall {wall:.2} s; peak RSS {:.0} MB",
             sum[0],
             sum[1],
             sum[5],

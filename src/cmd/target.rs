@@ -27,6 +27,8 @@ pub struct Args {
     #[command(flatten)]
     pub reduce: ReduceArgs,
     #[command(flatten)]
+    pub calib: super::calib::CalibArgs,
+    #[command(flatten)]
     pub profile: ProfileArgs,
     /// Print nothing but errors.
     #[arg(short, long)]
@@ -123,6 +125,7 @@ impl ReduceArgs {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let profile = args.profile.load()?;
     let params = args.reduce.params()?;
+    let setup = args.calib.setup(&params.calibration)?;
     for i in &args.inputs {
         anyhow::ensure!(i.exists(), "{}: no such file or directory", i.display());
     }
@@ -134,7 +137,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     );
     let s_science_all = s.science.clone();
     let s_dome_flats = s.dome_flats.clone();
-    let mut seqs = sequence::group(s.science, &profile);
+    // Standard stars in the inputs calibrate the target; they are not the target.
+    let (mut seqs, stds) =
+        sofipol_pipeline::calibration::split_standards(sequence::group(s.science, &profile), &profile);
     if let Some(obj) = &args.object {
         seqs.retain(|q| &q.object == obj);
         anyhow::ensure!(
@@ -191,8 +196,16 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         cat.failures.extend(out.failures);
         cat.targets.push(out.target);
     }
+    let cal_summary = super::calib::calibrate(&mut cat, &stds, &profile, &params, None, flats.set.as_ref(), &setup);
     cat.provenance = super::report::provenance(&profile, &params);
     cat.provenance["flat"] = flats.provenance;
+    cat.provenance["calibration"] = serde_json::json!({"params": setup.params, "standards_table": setup.table.sources,
+        "calib_dir": setup.external.as_ref().map(|e| e.0.display().to_string())});
+    if !args.quiet {
+        for l in &cal_summary.lines {
+            eprintln!("sofipol target: {l}");
+        }
+    }
     sofipol_pipeline::io::write_json_atomic(&args.output, &cat)
         .with_context(|| format!("writing {}", args.output.display()))?;
     if !args.quiet {

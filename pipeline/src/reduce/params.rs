@@ -105,6 +105,8 @@ pub struct TargetParams {
     pub no_flat: bool,
     /// How flats are built (dome flats and superflat).
     pub flat_options: sofipol_calib::flat::FlatOptions,
+    /// Instrumental calibration and the Stokes method (`[calibration]`, docs/calibration.md).
+    pub calibration: crate::calibration::CalibrationParams,
 }
 
 impl Default for TargetParams {
@@ -120,6 +122,7 @@ impl Default for TargetParams {
             flat: None,
             no_flat: false,
             flat_options: sofipol_calib::flat::FlatOptions::default(),
+            calibration: Default::default(),
         }
     }
 }

@@ -218,6 +218,13 @@ pub fn instrumental_polarization(calls: &EffectCalls, c: &PolConfig) -> f64 {
     c.p * (2.0 * c.angle_deg.to_radians()).cos()
 }
 
+/// The instrument's true analyzer angle phi = s POSANG + theta0 (effect `analyzer_angle`:
+/// the profile's zero-point and parity are then wrong by what the scene says).
+pub fn analyzer_angle(calls: &EffectCalls, c: &AnalyzerAngleConfig, posang_deg: f64) -> f64 {
+    calls.hit(EffectKind::AnalyzerAngle);
+    c.parity as f64 * posang_deg + c.zero_point_deg
+}
+
 /// Focal mask: zero every row outside the six strips.
 pub fn strips(calls: &EffectCalls, img: &mut Array2<f32>, g: &Geometry) {
     calls.hit(EffectKind::Strips);

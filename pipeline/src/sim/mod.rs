@@ -29,11 +29,11 @@ use serde::Serialize;
 use sofipol_calib::{Frame, Header, Profile};
 
 use crate::stokes::model::{beam_fluxes, companion_offset_px, Polarization};
-pub use scene::{Binary, EffectKind, Scene};
+pub use scene::{Binary, EffectKind, Scene, StandardSource};
 
 /// Per-effect call counters.
 #[derive(Debug, Default)]
-pub struct EffectCalls([AtomicU64; 16]);
+pub struct EffectCalls([AtomicU64; EffectKind::ALL.len()]);
 
 impl EffectCalls {
     /// Count one call of an effect function.
@@ -151,6 +151,10 @@ pub struct Truth {
     /// Dome-flat frames (the `dome_flats` effect), in exposure order.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub dome_flats: Vec<FlatFrameTruth>,
+    /// Standard stars (one component "A", separation 0), in observing order after the
+    /// targets.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub standards: Vec<TargetTruth>,
 }
 
 /// Realised parameters of one dome-flat frame.
@@ -187,6 +191,9 @@ pub struct Simulator {
     bad: Option<effects::BadPixelMap>,
     flat: Option<Array2<f32>>,
     tpl_starts: Vec<(f64, String)>,
+    /// Binaries, then the standards as single stars (flux_b = 0): sequence `t` observes
+    /// `targets[t]`.
+    targets: Vec<Binary>,
 }
 
 /// Per-frame parameters drawn before rendering.
@@ -233,7 +240,26 @@ impl Simulator {
         })?;
         let nframes = o.orientations_deg.len() * o.dithers;
         let per_seq_s = nframes as f64 * (o.dit_s * o.ndit as f64 + o.overhead_s) + 120.0;
-        let tpl_starts = (0..scene.binary.len())
+        let targets: Vec<Binary> = scene
+            .binary
+            .iter()
+            .cloned()
+            .chain(scene.standard.iter().map(|st| Binary {
+                name: st.name.clone(),
+                separation_arcsec: 0.0,
+                pa_deg: 0.0,
+                flux_a: st.flux,
+                flux_b: 0.0,
+                p_a: st.p,
+                gamma_a_deg: st.gamma_deg,
+                p_b: 0.0,
+                gamma_b_deg: 0.0,
+                x_px: None,
+                y_px: None,
+                field_star: vec![],
+            }))
+            .collect();
+        let tpl_starts = (0..targets.len())
             .map(|t| {
                 let mjd = mjd0 + t as f64 * per_seq_s / 86400.0;
                 (mjd, effects::iso_from_mjd(mjd, false))
@@ -246,7 +272,30 @@ impl Simulator {
             bad,
             flat,
             tpl_starts,
+            targets,
         })
+    }
+
+    /// Whether sequence `t` observes a standard star (after the binaries).
+    pub fn is_standard(&self, t: usize) -> bool {
+        t >= self.scene.binary.len()
+    }
+
+    /// Number of sequences: binaries, then standards.
+    pub fn n_sequences(&self) -> usize {
+        self.targets.len()
+    }
+
+    fn target_truth(&self, t: usize, frames: &[Vec<FrameTruth>]) -> TargetTruth {
+        let b = &self.targets[t];
+        TargetTruth {
+            object: b.name.clone(),
+            tpl_start: self.tpl_starts[t].1.clone(),
+            separation_arcsec: b.separation_arcsec,
+            pa_deg: b.pa_deg,
+            components: self.component_truth(t),
+            frames: frames.get(t).cloned().unwrap_or_default(),
+        }
     }
 
     /// The scene.
@@ -276,7 +325,7 @@ impl Simulator {
 
     /// File name of frame `k` of target `t`.
     pub fn file_name(&self, t: usize, k: usize) -> String {
-        let slug: String = self.scene.binary[t]
+        let slug: String = self.targets[t]
             .name
             .chars()
             .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
@@ -337,7 +386,11 @@ impl Simulator {
         let mjd = self.tpl_starts[t].0 + (k as f64 * (o.dit_s * o.ndit as f64 + o.overhead_s) + 20.0) / 86400.0;
         FrameParams {
             posang,
-            phi: self.profile.angles.analyzer_angle_deg(posang),
+            phi: if s.has(EffectKind::AnalyzerAngle) {
+                effects::analyzer_angle(&self.calls, &s.analyzer_angle.clone().unwrap_or_default(), posang)
+            } else {
+                self.profile.angles.analyzer_angle_deg(posang)
+            },
             header_off,
             true_off,
             transparency,
@@ -349,8 +402,12 @@ impl Simulator {
 
     /// Truth of target `t`'s components.
     fn component_truth(&self, t: usize) -> Vec<ComponentTruth> {
-        let b = &self.scene.binary[t];
-        let ism = self.ism();
+        let b = &self.targets[t];
+        let ism = if self.is_standard(t) {
+            Polarization::default()
+        } else {
+            self.ism()
+        };
         [
             ("A", b.flux_a, b.p_a, b.gamma_a_deg),
             ("B", b.flux_b, b.p_b, b.gamma_b_deg),
@@ -387,7 +444,7 @@ impl Simulator {
         let s = &self.scene;
         let g = &self.profile.geometry;
         let (ny, nx) = (g.ny, g.nx);
-        let b = &s.binary[t];
+        let b = &self.targets[t];
         let fp = self.frame_params(t, k);
         let mut img = Array2::<f32>::zeros((ny, nx));
 
@@ -398,7 +455,11 @@ impl Simulator {
         // Sources: A, B and field stars, each as (name, offset from A in px, flux, pol).
         let x_a = b.x_px.unwrap_or(nx as f64 / 2.0);
         let y_a = b.y_px.unwrap_or((g.o_target[0] + g.o_target[1]) as f64 / 2.0 - 0.5);
-        let ism = self.ism();
+        let ism = if self.is_standard(t) {
+            Polarization::default()
+        } else {
+            self.ism()
+        };
         let (t_o, t_e) = if s.has(EffectKind::Throughput) {
             effects::throughput(&self.calls, &s.throughput.clone().unwrap_or_default())
         } else {
@@ -423,6 +484,9 @@ impl Simulator {
                 Polarization::from_p_gamma(b.p_b, b.gamma_b_deg),
             ),
         ];
+        if self.is_standard(t) {
+            srcs.truncate(1);
+        }
         for (i, f) in b.field_star.iter().enumerate() {
             srcs.push((
                 format!("field{}", i + 1),
@@ -583,7 +647,7 @@ impl Simulator {
         let s = &self.scene;
         let o = &s.observation;
         let kw = &self.profile.keywords;
-        let b = &s.binary[t];
+        let b = &self.targets[t];
         let mut h = Header::new(file_name);
         h.set(&kw.instrument, self.profile.matching.instrument.as_str());
         h.set(&kw.object, b.name.as_str());
@@ -598,8 +662,13 @@ impl Simulator {
         );
         h.set("RA", (hash % 36000) as f64 / 100.0);
         h.set("DEC", -60.0 + ((hash >> 20) % 9000) as f64 / 100.0);
-        h.set(&kw.dpr_catg, "SCIENCE");
-        h.set(&kw.dpr_type, "OBJECT");
+        if self.is_standard(t) {
+            h.set(&kw.dpr_catg, "CALIB");
+            h.set(&kw.dpr_type, "STD");
+        } else {
+            h.set(&kw.dpr_catg, "SCIENCE");
+            h.set(&kw.dpr_type, "OBJECT");
+        }
         h.set(&kw.dpr_tech, self.profile.matching.polarimetry_tech.as_str());
         h.set(&kw.tpl_id, self.profile.matching.polarimetry_template.as_str());
         h.set(&kw.tpl_start, self.tpl_starts[t].1.as_str());
@@ -654,14 +723,12 @@ impl Simulator {
             effects: s.effects.iter().map(|e| e.name()).collect(),
             ignored_sections: s.ignored_sections(),
             detector: serde_json::Value::Object(detector),
-            targets: (0..s.binary.len())
-                .map(|t| TargetTruth {
-                    object: s.binary[t].name.clone(),
-                    tpl_start: self.tpl_starts[t].1.clone(),
-                    separation_arcsec: s.binary[t].separation_arcsec,
-                    pa_deg: s.binary[t].pa_deg,
-                    components: self.component_truth(t),
-                    frames: frames.get(t).cloned().unwrap_or_default(),
+            targets: (0..s.binary.len()).map(|t| self.target_truth(t, frames)).collect(),
+            standards: (s.binary.len()..self.targets.len())
+                .map(|t| {
+                    let mut tt = self.target_truth(t, frames);
+                    tt.components.truncate(1);
+                    tt
                 })
                 .collect(),
             dome_flats: (0..self.n_dome_flat_frames())
@@ -675,11 +742,11 @@ impl Simulator {
     pub fn run_in_memory(&self) -> (Vec<SimFrame>, Truth) {
         use rayon::prelude::*;
         let n = self.frames_per_target();
-        let jobs: Vec<(usize, usize)> = (0..self.scene.binary.len())
+        let jobs: Vec<(usize, usize)> = (0..self.targets.len())
             .flat_map(|t| (0..n).map(move |k| (t, k)))
             .collect();
         let frames: Vec<SimFrame> = jobs.par_iter().map(|&(t, k)| self.frame(t, k)).collect();
-        let mut per_t: Vec<Vec<FrameTruth>> = vec![Vec::new(); self.scene.binary.len()];
+        let mut per_t: Vec<Vec<FrameTruth>> = vec![Vec::new(); self.targets.len()];
         for (f, &(t, _)) in frames.iter().zip(&jobs) {
             per_t[t].push(f.truth.clone());
         }
@@ -862,7 +929,7 @@ impl Simulator {
             with_variance_and_mask: false,
         };
         let n = self.frames_per_target();
-        let jobs: Vec<(usize, usize)> = (0..self.scene.binary.len())
+        let jobs: Vec<(usize, usize)> = (0..self.targets.len())
             .flat_map(|t| (0..n).map(move |k| (t, k)))
             .collect();
         let truths: Vec<crate::error::Result<FrameTruth>> = jobs
@@ -875,7 +942,7 @@ impl Simulator {
                 Ok(f.truth)
             })
             .collect();
-        let mut per_t: Vec<Vec<FrameTruth>> = vec![Vec::new(); self.scene.binary.len()];
+        let mut per_t: Vec<Vec<FrameTruth>> = vec![Vec::new(); self.targets.len()];
         for (r, &(t, _)) in truths.into_iter().zip(&jobs) {
             per_t[t].push(r?);
         }
@@ -883,11 +950,12 @@ impl Simulator {
             .into_par_iter()
             .map(|i| {
                 let f = self.dome_flat_frame(i);
-                write_frame(&dir.join(&f.file_name), &f.frame, &opts).map_err(|e| e.to_string())?;
+                write_frame(&dir.join(&f.file_name), &f.frame, &opts)
+                    .map_err(|e| crate::error::Error::calib("simulated dome flat", e))?;
                 on_frame(&f.file_name);
                 Ok(())
             })
-            .collect::<Result<Vec<()>, String>>()?;
+            .collect::<crate::error::Result<Vec<()>>>()?;
         let truth = self.truth(&per_t);
         crate::io::write_json_atomic(&dir.join("truth.json"), &truth)
             .map_err(|e| crate::error::Error::calib("truth", e))?;

@@ -44,11 +44,14 @@ pub enum EffectKind {
     /// Dome-flat frames (lamp on and off, one template per rotator angle) in the night;
     /// they see the same detector (pixel response, noise, bad pixels) as the science.
     DomeFlats,
+    /// The instrument's true analyzer angle phi = s POSANG + theta0 differs from the
+    /// profile's (angle zero-point and image parity, section `analyzer_angle`).
+    AnalyzerAngle,
 }
 
 impl EffectKind {
     /// All effects.
-    pub const ALL: [EffectKind; 16] = [
+    pub const ALL: [EffectKind; 17] = [
         EffectKind::Psf,
         EffectKind::Sky,
         EffectKind::Strips,
@@ -65,6 +68,7 @@ impl EffectKind {
         EffectKind::Nonlinearity,
         EffectKind::Saturation,
         EffectKind::DomeFlats,
+        EffectKind::AnalyzerAngle,
     ];
     /// snake_case name as used in scene files.
     pub fn name(self) -> &'static str {
@@ -85,6 +89,7 @@ impl EffectKind {
             EffectKind::Nonlinearity => "nonlinearity",
             EffectKind::Saturation => "saturation",
             EffectKind::DomeFlats => "dome_flats",
+            EffectKind::AnalyzerAngle => "analyzer_angle",
         }
     }
     /// Index into per-effect tables.
@@ -438,6 +443,42 @@ pub struct SaturationConfig {
     pub level_adu: Option<f64>,
 }
 
+/// A polarimetric standard star observed with the same template as the targets
+/// (DPR CATG 'CALIB', DPR TYPE 'STD', OBJECT = its name): a single star, reduced as such.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StandardSource {
+    /// Name written to OBJECT (match it to a standards-table entry).
+    pub name: String,
+    /// Total flux (o + e), ADU per NDIT-averaged frame.
+    pub flux: f64,
+    /// Degree of polarization (fraction, sky frame; 0 for an unpolarized standard). No
+    /// interstellar polarization is added: this is the star's total polarization.
+    #[serde(default)]
+    pub p: f64,
+    /// Angle, degrees east of north.
+    #[serde(default)]
+    pub gamma_deg: f64,
+}
+
+/// The instrument's true analyzer-angle relation (effect `analyzer_angle`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AnalyzerAngleConfig {
+    /// Zero-point theta0, degrees.
+    pub zero_point_deg: f64,
+    /// Image parity s, +1 or -1.
+    pub parity: i32,
+}
+impl Default for AnalyzerAngleConfig {
+    fn default() -> Self {
+        AnalyzerAngleConfig {
+            zero_point_deg: 3.0,
+            parity: 1,
+        }
+    }
+}
+
 /// A whole scene.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -495,6 +536,13 @@ pub struct Scene {
     /// Dome flats (frames in the night; used only when `dome_flats` is listed).
     #[serde(default)]
     pub dome_flats: Option<DomeFlatConfig>,
+    /// Standard stars (observed after the binaries, one sequence each). Sources, not an
+    /// effect: every listed standard is simulated.
+    #[serde(default)]
+    pub standard: Vec<StandardSource>,
+    /// True analyzer angle (used only when `analyzer_angle` is listed).
+    #[serde(default)]
+    pub analyzer_angle: Option<AnalyzerAngleConfig>,
 }
 
 impl Scene {
@@ -539,6 +587,7 @@ impl Scene {
             (EffectKind::Nonlinearity, self.nonlinearity.is_some()),
             (EffectKind::Saturation, self.saturation.is_some()),
             (EffectKind::DomeFlats, self.dome_flats.is_some()),
+            (EffectKind::AnalyzerAngle, self.analyzer_angle.is_some()),
         ];
         present
             .iter()
@@ -586,6 +635,22 @@ impl Scene {
                 )));
             }
         }
+        for st in &self.standard {
+            if !(st.flux >= 0.0) || !(0.0..1.0).contains(&st.p) {
+                return Err(invalid(format!(
+                    "standard '{}': flux = {} must be >= 0 and p = {} in [0, 1)",
+                    st.name, st.flux, st.p
+                )));
+            }
+        }
+        if let Some(a) = &self.analyzer_angle {
+            if a.parity != 1 && a.parity != -1 {
+                return Err(invalid(format!(
+                    "analyzer_angle.parity = {} must be +1 or -1",
+                    a.parity
+                )));
+            }
+        }
         if let Some(p) = &self.psf {
             if !(p.fwhm_arcsec > 0.0) || (p.kind == PsfKind::Moffat && !(p.beta > 1.0)) {
                 return Err(invalid(format!(
@@ -594,26 +659,28 @@ impl Scene {
                 )));
             }
             if !(0.0..1.0).contains(&p.fwhm_spread_frac) {
-                return Err(format!(
+                return Err(invalid(format!(
                     "psf: fwhm_spread_frac = {} must be in [0, 1)",
                     p.fwhm_spread_frac
-                ));
+                )));
             }
             if let Some([lo, hi]) = p.beta_range {
                 if !(lo > 1.0 && hi >= lo) {
-                    return Err(format!("psf: beta_range = [{lo}, {hi}] must have 1 < lo <= hi"));
+                    return Err(invalid(format!(
+                        "psf: beta_range = [{lo}, {hi}] must have 1 < lo <= hi"
+                    )));
                 }
             }
         }
         if let Some(d) = &self.dome_flats {
             if d.frames_on == 0 || d.frames_off == 0 || d.ndit == 0 || !(d.dit_s > 0.0) || !(d.lamp_adu > 0.0) {
-                return Err(format!(
+                return Err(invalid(format!(
                     "dome_flats: frames_on = {}, frames_off = {}, ndit = {}, dit_s = {}, lamp_adu = {} must all be > 0",
                     d.frames_on, d.frames_off, d.ndit, d.dit_s, d.lamp_adu
-                ));
+                )));
             }
             if !(0.0..1.0).contains(&d.lamp_p) {
-                return Err(format!("dome_flats: lamp_p = {} must be in [0, 1)", d.lamp_p));
+                return Err(invalid(format!("dome_flats: lamp_p = {} must be in [0, 1)", d.lamp_p)));
             }
         }
         Ok(())

@@ -808,6 +808,7 @@ fn test_catalog() -> Catalog {
         ],
         failures: vec![],
         provenance: Value::Null,
+        ..Default::default()
     }
 }
 

@@ -1,4 +1,5 @@
 //! Stokes parameters: the instrument's forward model and its inversion.
+pub mod calibration;
 pub mod inversion;
 pub mod model;
 

@@ -1,0 +1,733 @@
+//! The instrumental calibration of a night: standards -> `calibration.json` -> every target.
+//!
+//! ```text
+//! standard sequences (DPR TYPE 'STD'), reduced as single stars
+//!   -> matched to the standards table (name ignoring case, spaces, '_'; filter)
+//!   -> per filter: offset c from the unpolarized ones (weighted mean of F)
+//!                  theta0 (and parity) from the polarized ones (offset removed)
+//!                  c again with the polarized ones added (their known q, u removed)
+//!   -> Calibration (written as calibration.json by `sofipol calib`, read with --calib)
+//! every target component: per-orientation F (from the measurement)
+//!   -> analyzer angles from the calibration's theta0, parity (else the profile's)
+//!   -> Stokes solve (stokes::calibration::solve): ratio method on balanced angles,
+//!      else F - c with sigma_c propagated, else free offset (3+ angles), else
+//!      plain least squares flagged `uncalibrated`
+//! ```
+//! The photometry is not redone: the solve works on the per-orientation F values each
+//! component carries in its `orientations` field.
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+use sofipol_calib::Profile;
+
+use crate::catalog::{fold_delta_gamma, Catalog, Component, StandardResult, Status, Target};
+use crate::standards::{StandardStar, StandardsTable};
+use crate::stokes::calibration::{
+    measure_angles, measure_offset, solve, AngleCalibration, Offset, OrientationF, StandardObservation, StokesMethod,
+};
+use crate::stokes::inversion::{Debias, LinearPolarization};
+
+/// File name of the calibration product in a calibration directory.
+pub const CALIBRATION_FILE: &str = "calibration.json";
+
+/// Version of the `calibration.json` schema.
+pub const CALIBRATION_SCHEMA: &str = "1.0";
+
+/// Settings of the calibration and the Stokes solve (`[calibration]` in the settings file).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct CalibrationParams {
+    /// How q, u are obtained from the per-orientation F (default `auto`).
+    pub stokes_method: StokesMethod,
+    /// Ignore the night's standards and any calibration (q, u from the plain solve;
+    /// 2-orientation targets are flagged `uncalibrated`).
+    pub no_calibration: bool,
+}
+
+/// The calibration of one filter.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FilterCalibration {
+    /// Filter name.
+    pub filter: String,
+    /// Instrumental offset of F (c ~ (1 - k)/(1 + k) + p_inst along the analyzer).
+    pub offset: Option<Offset>,
+    /// Standards (sequence ids) the offset comes from.
+    pub offset_standards: Vec<String>,
+    /// Angle zero-point and parity.
+    pub angles: Option<AngleCalibration>,
+    /// Polarized standards (sequence ids) the angles come from.
+    pub angle_standards: Vec<String>,
+}
+
+/// The calibration products of a night (`calibration.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Calibration {
+    /// Schema version of this file.
+    pub schema_version: String,
+    /// Per filter.
+    pub filters: Vec<FilterCalibration>,
+    /// Input frames of the standards used.
+    pub frames: Vec<String>,
+    /// Flat-field products (FITS per rotator angle, relative to the calibration
+    /// directory). Empty until the flat-field stage is connected.
+    #[serde(default)]
+    pub flats: Vec<String>,
+    /// Where it came from: software, night directory, standards table sources...
+    pub provenance: serde_json::Value,
+}
+
+impl Calibration {
+    /// The calibration of a filter (case-insensitive).
+    pub fn for_filter(&self, filter: &str) -> Option<&FilterCalibration> {
+        self.filters
+            .iter()
+            .find(|f| f.filter.eq_ignore_ascii_case(filter.trim()))
+    }
+
+    /// Read `calibration.json` from a calibration directory (or a file path).
+    pub fn read(path: &Path) -> Result<Calibration, String> {
+        let file = if path.is_dir() {
+            path.join(CALIBRATION_FILE)
+        } else {
+            path.to_path_buf()
+        };
+        let text = std::fs::read_to_string(&file).map_err(|e| format!("{}: {e}", file.display()))?;
+        let c: Calibration = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", file.display()))?;
+        if c.schema_version.split('.').next() != CALIBRATION_SCHEMA.split('.').next() {
+            return Err(format!(
+                "{}: schema_version = '{}' is not compatible with {CALIBRATION_SCHEMA}",
+                file.display(),
+                c.schema_version
+            ));
+        }
+        Ok(c)
+    }
+
+    /// Write `calibration.json` into a directory (atomically).
+    pub fn write(&self, dir: &Path) -> std::io::Result<std::path::PathBuf> {
+        std::fs::create_dir_all(dir)?;
+        let p = dir.join(CALIBRATION_FILE);
+        crate::io::write_json_atomic(&p, self).map_err(|e| std::io::Error::other(e.to_string()))?;
+        Ok(p)
+    }
+}
+
+/// The rotator angle of an analyzer angle under the profile's relation (inverse of
+/// phi = s POSANG + theta0).
+fn posang_of(profile: &Profile, phi: f64) -> f64 {
+    profile.angles.parity as f64 * (phi - profile.angles.zero_point_deg)
+}
+
+/// Per-orientation (POSANG, F, sigma_F) of a measured component (its `orientations` field).
+pub fn orientation_values(c: &Component, profile: &Profile) -> Vec<(f64, f64, f64)> {
+    let Some(list) = c.extra.get("orientations").and_then(|v| v.as_array()) else {
+        return vec![];
+    };
+    list.iter()
+        .filter_map(|o| {
+            let num = |k: &str| o.get(k).and_then(|v| v.as_f64());
+            let pa = num("posang_deg").or_else(|| num("analyzer_deg").map(|phi| posang_of(profile, phi)))?;
+            Some((pa, num("f")?, num("sigma_f")?))
+        })
+        .collect()
+}
+
+/// Analyzer angle of a rotator angle: the calibration's relation when it has one, else the
+/// profile's.
+fn analyzer(cal: Option<&FilterCalibration>, profile: &Profile, posang: f64) -> f64 {
+    match cal.and_then(|c| c.angles.as_ref()) {
+        Some(a) => a.analyzer_deg(posang),
+        None => profile.angles.analyzer_angle_deg(posang),
+    }
+}
+
+/// Re-solve one component's q, u from its per-orientation F with the calibration (offset,
+/// zero-point, parity) and the chosen method; P, gamma, errors, the cut and the flags follow.
+/// Returns whether the result is uncalibrated.
+pub fn resolve_component(
+    c: &mut Component,
+    profile: &Profile,
+    cal: Option<&FilterCalibration>,
+    method: StokesMethod,
+    debias: Debias,
+    cut_snr: f64,
+) -> bool {
+    let vals = orientation_values(c, profile);
+    if vals.is_empty() {
+        return false;
+    }
+    let obs: Vec<OrientationF> = vals
+        .iter()
+        .map(|&(pa, f, s)| OrientationF {
+            analyzer_deg: analyzer(cal, profile, pa),
+            f,
+            sigma_f: s,
+        })
+        .collect();
+    let offset = cal.and_then(|c| c.offset);
+    c.flags
+        .retain(|f| f != "uncalibrated" && f != "low_snr" && !f.starts_with("stokes_method_failed"));
+    let sol = match solve(&obs, method, offset) {
+        Ok(s) => s,
+        Err(e) => {
+            c.flags.push(format!("stokes_method_failed: {e}"));
+            return false;
+        }
+    };
+    // P, sigma_P and the statistical sigma_gamma from the measurement errors.
+    let lp = LinearPolarization::from_qu(sol.fit.q, sol.fit.u, sol.fit.var_q.sqrt(), sol.fit.var_u.sqrt(), debias);
+    let mut fit = sol.fit;
+    let mut sigma_gamma = lp.sigma_gamma_deg;
+    if let Some(a) = cal.and_then(|c| c.angles.as_ref()) {
+        // An error d of theta0 rotates (q, u) by 2d: dq = -2u d, du = 2q d. It leaves P and
+        // sigma_P alone, adds sigma_theta0 to sigma_gamma, and is common to every target
+        // (it cancels in Delta-gamma).
+        let v = (2.0 * a.sigma_theta0_deg.to_radians()).powi(2);
+        fit.var_q += fit.u * fit.u * v;
+        fit.var_u += fit.q * fit.q * v;
+        fit.cov_qu -= fit.q * fit.u * v;
+        sigma_gamma = sigma_gamma.hypot(a.sigma_theta0_deg);
+    }
+    c.q = lp.q;
+    c.u = lp.u;
+    c.sigma_q = fit.var_q.sqrt();
+    c.sigma_u = fit.var_u.sqrt();
+    c.p = lp.p;
+    c.sigma_p = lp.sigma_p;
+    c.p_debiased = lp.p_debiased;
+    c.gamma_deg = lp.gamma_deg;
+    c.sigma_gamma_deg = sigma_gamma;
+    c.passes_cut = lp.passes_cut(cut_snr);
+    if !c.passes_cut {
+        c.flags.push("low_snr".into());
+    }
+    if sol.uncalibrated {
+        c.flags.push("uncalibrated".into());
+    }
+    c.extra.insert("snr".into(), serde_json::json!(lp.snr));
+    c.extra
+        .insert("sigma_gamma_nkc_deg".into(), serde_json::json!(lp.sigma_gamma_nkc_deg));
+    c.extra.insert("cov_qu".into(), serde_json::json!(fit.cov_qu));
+    c.extra
+        .insert("stokes_method".into(), serde_json::json!(sol.method.name()));
+    if let Some(o) = sol.offset {
+        c.extra.insert(
+            "instrumental_offset".into(),
+            serde_json::json!({"c": o.c, "sigma_c": o.sigma_c,
+                "source": if sol.method == StokesMethod::FreeOffset { "fitted" } else { "calibration" }}),
+        );
+    }
+    if let Some(a) = cal.and_then(|c| c.angles.as_ref()) {
+        // Included in sigma_q, sigma_u and sigma_gamma above; common to every target.
+        c.extra.insert(
+            "sigma_gamma_zero_point_deg".into(),
+            serde_json::json!(a.sigma_theta0_deg),
+        );
+    }
+    sol.uncalibrated
+}
+
+fn table_entry_for(t: &Target, table: &StandardsTable) -> (Option<StandardStar>, Vec<String>) {
+    let filter = t.extra.get("filter").and_then(|v| v.as_str()).unwrap_or("");
+    match table.find(&t.object, filter) {
+        Some(e) => (Some(e.clone()), vec![]),
+        None if table.knows(&t.object) => (None, vec![format!("no_table_values_for_filter: {filter}")]),
+        None => (None, vec!["not_in_standards_table".into()]),
+    }
+}
+
+fn sequence_of(t: &Target) -> String {
+    t.extra
+        .get("sequence")
+        .and_then(|v| v.as_str())
+        .unwrap_or(&t.object)
+        .to_string()
+}
+
+fn filter_of(t: &Target) -> String {
+    t.extra.get("filter").and_then(|v| v.as_str()).unwrap_or("").to_string()
+}
+
+/// Measure the calibration from reduced standard sequences (raw values: before any
+/// calibration). Standards not in the table, without a measurement, or in a filter without
+/// table values are skipped. `None` when no filter gets anything.
+pub fn measure(standards: &[Target], table: &StandardsTable, profile: &Profile) -> Option<Calibration> {
+    let mut by_filter: std::collections::BTreeMap<String, Vec<(String, StandardObservation)>> = Default::default();
+    let mut frames = Vec::new();
+    for t in standards {
+        let (Some(entry), _) = table_entry_for(t, table) else {
+            continue;
+        };
+        let Some(c) = t.components.first() else { continue };
+        let vals = orientation_values(c, profile);
+        if vals.len() < 2 {
+            continue;
+        }
+        let so = StandardObservation {
+            name: entry.name.clone(),
+            posang_deg: vals.iter().map(|v| v.0).collect(),
+            f: vals
+                .iter()
+                .map(|&(_, f, s)| OrientationF {
+                    analyzer_deg: f64::NAN,
+                    f,
+                    sigma_f: s,
+                })
+                .collect(),
+            p: entry.p,
+            sigma_p: entry.sigma_p,
+            gamma_deg: entry.gamma_deg,
+            sigma_gamma_deg: entry.sigma_gamma_deg,
+        };
+        if let Some(files) = t.extra.get("input_files").and_then(|v| v.as_array()) {
+            frames.extend(files.iter().filter_map(|f| f.as_str().map(String::from)));
+        }
+        by_filter.entry(filter_of(t)).or_default().push((sequence_of(t), so));
+    }
+    let mut filters = Vec::new();
+    for (filter, list) in by_filter {
+        let obs: Vec<StandardObservation> = list.iter().map(|(_, o)| o.clone()).collect();
+        let unpol: Vec<String> = list
+            .iter()
+            .filter(|(_, o)| !o.polarized())
+            .map(|(s, _)| s.clone())
+            .collect();
+        let pol: Vec<String> = list
+            .iter()
+            .filter(|(_, o)| o.polarized())
+            .map(|(s, _)| s.clone())
+            .collect();
+        let first = measure_offset(&obs, None).map(|(o, _)| o);
+        let angles = measure_angles(
+            &obs,
+            first.unwrap_or(Offset { c: 0.0, sigma_c: 0.0 }),
+            profile.angles.parity,
+        );
+        // With the angles known, the polarized standards also measure the offset.
+        let offset = match (&angles, first) {
+            (Some(a), _) => measure_offset(&obs, Some(a)).map(|(o, _)| o),
+            (None, f) => f,
+        };
+        let offset_standards = if angles.is_some() {
+            unpol.iter().chain(&pol).cloned().collect()
+        } else {
+            unpol
+        };
+        filters.push(FilterCalibration {
+            filter,
+            offset,
+            offset_standards: if offset.is_some() { offset_standards } else { vec![] },
+            angle_standards: if angles.is_some() { pol } else { vec![] },
+            angles,
+        });
+    }
+    if filters.is_empty() {
+        return None;
+    }
+    frames.sort();
+    Some(Calibration {
+        schema_version: CALIBRATION_SCHEMA.into(),
+        filters,
+        frames,
+        flats: vec![],
+        provenance: serde_json::json!({
+            "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
+            "standards_table": table.sources,
+        }),
+    })
+}
+
+/// What [`calibrate_catalog`] did, for the run summary.
+#[derive(Debug, Clone, Default)]
+pub struct CalibrationSummary {
+    /// Lines for stderr (why numbers may be biased, what was used).
+    pub lines: Vec<String>,
+    /// Components flagged `uncalibrated`.
+    pub n_uncalibrated: usize,
+}
+
+/// Where a calibration came from.
+#[derive(Debug, Clone)]
+pub enum CalibrationSource {
+    /// Measured from this night's standards.
+    Night,
+    /// Read from a calibration directory (`--calib`).
+    File(std::path::PathBuf, Box<Calibration>),
+    /// None wanted (`no_calibration`).
+    Disabled,
+}
+
+/// Calibrate a reduced catalog: measure the calibration from the standard sequences (or
+/// use the given one), report the standards in their own section, re-solve every target
+/// component with the calibration and the chosen Stokes method, flag `uncalibrated`
+/// components and record what was used in `catalog.calibration`. Returns the calibration
+/// used and the summary.
+pub fn calibrate_catalog(
+    cat: &mut Catalog,
+    standards: Vec<Target>,
+    table: &StandardsTable,
+    profile: &Profile,
+    source: CalibrationSource,
+    params: &CalibrationParams,
+    debias: Debias,
+    cut_snr: f64,
+) -> (Option<Calibration>, CalibrationSummary) {
+    let mut summary = CalibrationSummary::default();
+    let (cal, origin) = match source {
+        CalibrationSource::Disabled => (None, "disabled".to_string()),
+        CalibrationSource::File(p, c) => (Some(*c), p.display().to_string()),
+        CalibrationSource::Night => (measure(&standards, table, profile), "night".to_string()),
+    };
+    let method = params.stokes_method;
+    for t in cat.targets.iter_mut() {
+        let fc = cal.as_ref().and_then(|c| c.for_filter(&filter_of(t)));
+        let mut n_unc = 0;
+        for c in t.components.iter_mut() {
+            n_unc += usize::from(resolve_component(c, profile, fc, method, debias, cut_snr));
+        }
+        summary.n_uncalibrated += n_unc;
+        t.delta_gamma_deg = if t.components.len() == 2 && t.components.iter().all(|c| c.passes_cut) {
+            Some(fold_delta_gamma(t.components[0].gamma_deg, t.components[1].gamma_deg))
+        } else {
+            None
+        };
+    }
+    // The standards, reduced as single stars, calibrated like the targets.
+    let used_offset: Vec<String> = cal
+        .iter()
+        .flat_map(|c| c.filters.iter().flat_map(|f| f.offset_standards.clone()))
+        .collect();
+    let used_angles: Vec<String> = cal
+        .iter()
+        .flat_map(|c| c.filters.iter().flat_map(|f| f.angle_standards.clone()))
+        .collect();
+    for t in standards {
+        let (entry, mut flags) = table_entry_for(&t, table);
+        let seq = sequence_of(&t);
+        let filter = filter_of(&t);
+        let fc = cal.as_ref().and_then(|c| c.for_filter(&filter));
+        let mut measured = t.components.first().cloned();
+        if let Some(c) = measured.as_mut() {
+            c.flags.retain(|f| f != "companion_not_found");
+            resolve_component(c, profile, fc, method, debias, cut_snr);
+        }
+        if let Some(e) = t.error.as_ref().filter(|_| t.status == Status::Failed) {
+            flags.push(format!("failed: {e}"));
+        }
+        let (mut rp, mut rg, mut rgs) = (None, None, None);
+        if let (Some(e), Some(m)) = (&entry, &measured) {
+            if m.p.is_finite() {
+                rp = Some((m.p - e.p) / m.sigma_p.hypot(e.sigma_p));
+                if e.polarized() {
+                    let d = (m.gamma_deg - e.gamma_deg + 90.0).rem_euclid(180.0) - 90.0;
+                    rg = Some(d);
+                    rgs = Some(d / m.sigma_gamma_deg.hypot(e.sigma_gamma_deg));
+                }
+            }
+        }
+        let mut used_for = Vec::new();
+        if used_offset.contains(&seq) {
+            used_for.push("offset".to_string());
+        }
+        if used_angles.contains(&seq) {
+            used_for.push("angles".to_string());
+        }
+        cat.standards.push(StandardResult {
+            name: entry
+                .as_ref()
+                .map(|e| e.name.clone())
+                .unwrap_or_else(|| t.object.clone()),
+            object: t.object.clone(),
+            sequence: seq,
+            filter,
+            status: if measured.as_ref().is_some_and(|m| m.q.is_finite()) {
+                Status::Ok
+            } else {
+                Status::Failed
+            },
+            table: entry,
+            measured,
+            residual_p_sigma: rp,
+            residual_gamma_deg: rg,
+            residual_gamma_sigma: rgs,
+            used_for,
+            flags,
+        });
+    }
+    cat.calibration = Some(serde_json::json!({
+        "source": origin,
+        "stokes_method": method.name(),
+        "calibration": cal,
+    }));
+    if summary.n_uncalibrated > 0 {
+        summary.lines.push(format!(
+            "{} component(s) flagged 'uncalibrated': with 2 orientations the beam throughput ratio and the \
+             instrumental polarization add a constant to F = (o-e)/(o+e) that biases q and u \
+             (c ~ (1-k)/(1+k) + p_inst, e.g. 1.5 % for k = 0.97), and the angle zero-point is the \
+             profile's; the night has no usable standards ({}). Observe unpolarized and polarized \
+             standards, use --calib CALDIR from another night, or observe 4 orientations.",
+            summary.n_uncalibrated,
+            if cal.is_none() {
+                "no calibration"
+            } else {
+                "no offset for this filter"
+            }
+        ));
+    }
+    if let Some(c) = &cal {
+        for f in &c.filters {
+            let off = f
+                .offset
+                .map(|o| {
+                    format!(
+                        "c = {:.5} +- {:.5} ({} standards)",
+                        o.c,
+                        o.sigma_c,
+                        f.offset_standards.len()
+                    )
+                })
+                .unwrap_or_else(|| "no offset".into());
+            let ang = f
+                .angles
+                .map(|a| {
+                    format!(
+                        "theta0 = {:.2} +- {:.2} deg, parity {:+} ({})",
+                        a.theta0_deg,
+                        a.sigma_theta0_deg,
+                        a.parity,
+                        if a.parity_measured { "measured" } else { "profile" }
+                    )
+                })
+                .unwrap_or_else(|| "angle zero-point from the profile".into());
+            summary
+                .lines
+                .push(format!("calibration ({origin}) {}: {off}; {ang}", f.filter));
+        }
+    }
+    (cal, summary)
+}
+
+/// Whether a sequence observes a standard star: `DPR TYPE` of its first readable frame is
+/// 'STD' (frame-format.md). Unreadable headers count as science (the reduction reports them).
+pub fn is_standard_sequence(seq: &crate::sequence::Sequence, profile: &Profile) -> bool {
+    let key = &profile.keywords.dpr_type;
+    seq.orientations
+        .iter()
+        .flat_map(|o| &o.exposures)
+        .find_map(|e| sofipol_calib::fits::read_header(&e.path).ok())
+        .and_then(|h| h.get_str(key).ok())
+        .is_some_and(|t| t.trim().eq_ignore_ascii_case("STD"))
+}
+
+/// Split sequences into (science, standards).
+pub fn split_standards(
+    seqs: Vec<crate::sequence::Sequence>,
+    profile: &Profile,
+) -> (Vec<crate::sequence::Sequence>, Vec<crate::sequence::Sequence>) {
+    seqs.into_iter().partition(|q| !is_standard_sequence(q, profile))
+}
+
+/// Reduction settings for a standard: a single star, never a binary (no companion is
+/// accepted, so none is searched for in the photometry).
+pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::TargetParams {
+    let mut s = p.clone();
+    s.measure.min_companion_snr = f64::INFINITY;
+    s.measure.companion_hint = None;
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stokes::model::{normalized_difference, Polarization};
+
+    fn component(name: &str, pol: Polarization, posangs: &[f64], theta0: f64, c: f64, sigma: f64) -> Component {
+        let orients: Vec<serde_json::Value> = posangs
+            .iter()
+            .map(|&pa| {
+                serde_json::json!({"posang_deg": pa, "analyzer_deg": pa,
+                    "f": normalized_difference(pol, pa + theta0) + c, "sigma_f": sigma})
+            })
+            .collect();
+        let mut extra = serde_json::Map::new();
+        extra.insert("orientations".into(), serde_json::Value::Array(orients));
+        Component {
+            name: name.into(),
+            pol: crate::stokes::inversion::Polarization::UNDEFINED,
+            passes_cut: false,
+            flags: vec![],
+            extra,
+        }
+    }
+
+    fn target(object: &str, comps: Vec<Component>) -> Target {
+        let mut extra = serde_json::Map::new();
+        extra.insert("filter".into(), serde_json::json!("Ks"));
+        extra.insert("sequence".into(), serde_json::json!(format!("{object}@t")));
+        Target {
+            object: object.into(),
+            status: Status::Ok,
+            error: None,
+            components: comps,
+            delta_gamma_deg: None,
+            extra,
+        }
+    }
+
+    #[test]
+    fn night_calibration_recovers_truth_and_flags_uncalibrated_without_it() {
+        let pa = [0.0, 45.0];
+        let (theta0, c) = (3.0, 0.0152);
+        let table = StandardsTable::builtin();
+        let hd = table.find("HD 204827", "Ks").unwrap().clone();
+        let stds = vec![
+            target(
+                "HD 64299",
+                vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)],
+            ),
+            target(
+                "HD_98161",
+                vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)],
+            ),
+            target(
+                "HD 204827",
+                vec![component(
+                    "A",
+                    Polarization::from_p_gamma(hd.p, hd.gamma_deg),
+                    &pa,
+                    theta0,
+                    c,
+                    3e-4,
+                )],
+            ),
+            target(
+                "Mystery",
+                vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)],
+            ),
+        ];
+        let truth_a = Polarization::from_p_gamma(0.05, 20.0);
+        let truth_b = Polarization::from_p_gamma(0.03, 110.0);
+        let science = || Catalog {
+            targets: vec![target(
+                "HK Tau",
+                vec![
+                    component("A", truth_a, &pa, theta0, c, 1e-3),
+                    component("B", truth_b, &pa, theta0, c, 1e-3),
+                ],
+            )],
+            ..Default::default()
+        };
+        let profile = Profile::sofi();
+        let mut cat = science();
+        let (cal, sum) = calibrate_catalog(
+            &mut cat,
+            stds.clone(),
+            &table,
+            &profile,
+            CalibrationSource::Night,
+            &CalibrationParams::default(),
+            Debias::WardleKronberg,
+            3.0,
+        );
+        let cal = cal.unwrap();
+        let f = cal.for_filter("ks").unwrap();
+        assert!((f.offset.unwrap().c - c).abs() < 1e-12, "{f:?}");
+        assert!((f.angles.unwrap().theta0_deg - theta0).abs() < 1e-9);
+        assert_eq!(sum.n_uncalibrated, 0);
+        let a = &cat.targets[0].components[0];
+        assert!(
+            (a.q - truth_a.q).abs() < 1e-12 && (a.u - truth_a.u).abs() < 1e-12,
+            "{a:?}"
+        );
+        assert!(!a.flags.contains(&"uncalibrated".to_string()));
+        // sigma_q holds sigma_F and sigma_c: at phi = 3 and 48 deg, q = F_a cos 6 - F_b sin 6.
+        let t = 6f64.to_radians();
+        // ... and the zero-point error, which rotates (q, u): dq = -2u dtheta0.
+        let st = f.angles.unwrap().sigma_theta0_deg.to_radians();
+        let expect =
+            1e-6 + (t.cos() - t.sin()).powi(2) * f.offset.unwrap().sigma_c.powi(2) + (2.0 * truth_a.u * st).powi(2);
+        assert!(f.offset.unwrap().sigma_c > 0.0);
+        assert!(
+            (a.sigma_q.powi(2) - expect).abs() < 1e-18,
+            "{} vs {expect}",
+            a.sigma_q.powi(2)
+        );
+        assert!((cat.targets[0].delta_gamma_deg.unwrap() - 90.0).abs() < 1e-6);
+        // Standards section: four entries, the unknown one flagged and unused.
+        assert_eq!(cat.standards.len(), 4);
+        let hd_res = cat.standards.iter().find(|s| s.name == "HD 204827").unwrap();
+        assert_eq!(hd_res.used_for, vec!["offset".to_string(), "angles".to_string()]);
+        assert!(hd_res.residual_p_sigma.unwrap().abs() < 1e-6);
+        let m = cat.standards.iter().find(|s| s.object == "Mystery").unwrap();
+        assert!(m.flags.contains(&"not_in_standards_table".to_string()) && m.used_for.is_empty());
+        assert_eq!(
+            cat.standards.iter().find(|s| s.object == "HD_98161").unwrap().name,
+            "HD 98161"
+        );
+
+        // Without calibration: biased by c, flagged, and the summary says why.
+        let mut raw = science();
+        let (none, sum) = calibrate_catalog(
+            &mut raw,
+            vec![],
+            &table,
+            &profile,
+            CalibrationSource::Night,
+            &CalibrationParams::default(),
+            Debias::WardleKronberg,
+            3.0,
+        );
+        assert!(none.is_none());
+        assert_eq!(sum.n_uncalibrated, 2);
+        assert!(sum.lines[0].contains("uncalibrated") && sum.lines[0].contains("4 orientations"));
+        let a = &raw.targets[0].components[0];
+        assert!(a.flags.contains(&"uncalibrated".to_string()));
+        assert!((a.q - truth_a.q).abs() > 0.01);
+
+        // The calibration file round-trips and serves another night.
+        let dir = tempfile::tempdir().unwrap();
+        cal.write(dir.path()).unwrap();
+        let back = Calibration::read(dir.path()).unwrap();
+        assert_eq!(back, cal);
+        let mut other = science();
+        calibrate_catalog(
+            &mut other,
+            vec![],
+            &table,
+            &profile,
+            CalibrationSource::File(dir.path().into(), Box::new(back)),
+            &CalibrationParams::default(),
+            Debias::WardleKronberg,
+            3.0,
+        );
+        assert!((other.targets[0].components[0].q - truth_a.q).abs() < 1e-12);
+        assert_eq!(
+            other.calibration.as_ref().unwrap()["source"],
+            dir.path().display().to_string()
+        );
+    }
+
+    #[test]
+    fn four_orientations_need_no_calibration() {
+        let pa = [0.0, 45.0, 90.0, 135.0];
+        let truth = Polarization::from_p_gamma(0.04, 150.0);
+        let mut c = component("A", truth, &pa, 0.0, 0.0, 1e-3);
+        // A pure beam ratio k: F_obs = (F + ck)/(1 + ck F).
+        let ck = (1.0 - 0.97) / 1.97;
+        for o in c.extra.get_mut("orientations").unwrap().as_array_mut().unwrap() {
+            let f = o["f"].as_f64().unwrap();
+            o["f"] = serde_json::json!((f + ck) / (1.0 + ck * f));
+        }
+        let unc = resolve_component(
+            &mut c,
+            &Profile::sofi(),
+            None,
+            StokesMethod::Auto,
+            Debias::WardleKronberg,
+            3.0,
+        );
+        assert!(!unc);
+        assert_eq!(c.extra["stokes_method"], "ratio");
+        assert!((c.q - truth.q).abs() < 1e-14 && (c.u - truth.u).abs() < 1e-14);
+    }
+}

@@ -1,0 +1,217 @@
+//! The table of polarimetric standard stars: built-in entries
+//! (`pipeline/standards/builtin.toml`, each with its band and literature reference) plus a
+//! user file (`--standards FILE`) in the same TOML format that adds entries or overrides
+//! them by name and filter (frame-format.md, "Calibration frames and standards").
+//!
+//! Names match an OBJECT or OBS TARG NAME ignoring case, spaces and '_' ("HD_64299",
+//! "hd64299" and "HD 64299" are one star). Filter "*" applies to every filter; an entry for
+//! the exact filter (ignoring case) wins over "*".
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+/// The built-in table (TOML text).
+pub const BUILTIN_TOML: &str = include_str!("../standards/builtin.toml");
+
+/// One standard in one filter.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StandardStar {
+    /// Name as in the literature.
+    pub name: String,
+    /// Filter the values are for ("*": any).
+    pub filter: String,
+    /// Degree of linear polarization (fraction, sky frame); 0 for unpolarized standards.
+    pub p: f64,
+    /// 1-sigma error of p.
+    pub sigma_p: f64,
+    /// Polarization angle, degrees east of north (ignored when p = 0).
+    #[serde(default)]
+    pub gamma_deg: f64,
+    /// 1-sigma error of the angle, deg.
+    #[serde(default = "default_sigma_gamma")]
+    pub sigma_gamma_deg: f64,
+    /// Band the values were measured in (or how they were derived).
+    #[serde(default)]
+    pub band: String,
+    /// Literature reference.
+    #[serde(default)]
+    pub reference: String,
+}
+
+fn default_sigma_gamma() -> f64 {
+    1.0
+}
+
+impl StandardStar {
+    /// Whether the table calls it polarized (p > 3 sigma_p).
+    pub fn polarized(&self) -> bool {
+        self.p > 0.0 && self.p > 3.0 * self.sigma_p
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct File {
+    #[serde(default)]
+    standard: Vec<StandardStar>,
+}
+
+/// A standards table.
+#[derive(Debug, Clone, PartialEq, Default, Serialize)]
+pub struct StandardsTable {
+    /// Entries (built-in first, user entries replacing same name and filter).
+    pub entries: Vec<StandardStar>,
+    /// Where the entries came from ("builtin", file paths).
+    pub sources: Vec<String>,
+}
+
+/// A name reduced for matching: lower case, without spaces and '_'.
+pub fn match_key(name: &str) -> String {
+    name.chars()
+        .filter(|c| !c.is_whitespace() && *c != '_')
+        .flat_map(|c| c.to_lowercase())
+        .collect()
+}
+
+fn parse(text: &str, origin: &str) -> Result<Vec<StandardStar>, String> {
+    let f: File = toml::from_str(text).map_err(|e| format!("{origin}: {e}"))?;
+    for s in &f.standard {
+        let bad = |what: &str, v: f64| format!("{origin}: standard '{}': {what} = {v}", s.name);
+        if match_key(&s.name).is_empty() {
+            return Err(format!("{origin}: a standard has an empty name"));
+        }
+        if !(0.0..1.0).contains(&s.p) {
+            return Err(bad("p (a fraction in [0, 1))", s.p));
+        }
+        if !(s.sigma_p > 0.0) {
+            return Err(bad("sigma_p (must be > 0)", s.sigma_p));
+        }
+        if !(s.sigma_gamma_deg > 0.0) {
+            return Err(bad("sigma_gamma_deg (must be > 0)", s.sigma_gamma_deg));
+        }
+        if !s.gamma_deg.is_finite() {
+            return Err(bad("gamma_deg", s.gamma_deg));
+        }
+    }
+    Ok(f.standard)
+}
+
+impl StandardsTable {
+    /// The built-in table.
+    pub fn builtin() -> StandardsTable {
+        StandardsTable {
+            entries: parse(BUILTIN_TOML, "builtin standards").expect("the built-in table parses (tested)"),
+            sources: vec!["builtin".into()],
+        }
+    }
+
+    /// Add or override entries (same name and filter) from TOML text.
+    pub fn merge_toml(&mut self, text: &str, origin: &str) -> Result<(), String> {
+        for s in parse(text, origin)? {
+            let k = (match_key(&s.name), s.filter.to_ascii_lowercase());
+            match self
+                .entries
+                .iter_mut()
+                .find(|e| (match_key(&e.name), e.filter.to_ascii_lowercase()) == k)
+            {
+                Some(e) => *e = s,
+                None => self.entries.push(s),
+            }
+        }
+        self.sources.push(origin.to_string());
+        Ok(())
+    }
+
+    /// The built-in table plus a user file.
+    pub fn with_file(path: &Path) -> Result<StandardsTable, String> {
+        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let mut t = StandardsTable::builtin();
+        t.merge_toml(&text, &path.display().to_string())?;
+        Ok(t)
+    }
+
+    /// The entry for a name (OBJECT or OBS TARG NAME) and filter: the exact filter first,
+    /// then "*".
+    pub fn find(&self, name: &str, filter: &str) -> Option<&StandardStar> {
+        let k = match_key(name);
+        let mine = self.entries.iter().filter(|e| match_key(&e.name) == k);
+        let exact = mine.clone().find(|e| e.filter.eq_ignore_ascii_case(filter.trim()));
+        exact.or_else(|| mine.clone().find(|e| e.filter.trim() == "*"))
+    }
+
+    /// Whether the name is in the table in any filter.
+    pub fn knows(&self, name: &str) -> bool {
+        let k = match_key(name);
+        self.entries.iter().any(|e| match_key(&e.name) == k)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn builtin_table_parses_and_every_entry_has_a_reference_and_band() {
+        let t = StandardsTable::builtin();
+        assert!(t.entries.len() >= 6);
+        assert!(t.entries.iter().filter(|e| e.p == 0.0).count() >= 2);
+        assert!(t.entries.iter().filter(|e| e.polarized()).count() >= 2);
+        for e in &t.entries {
+            assert!(!e.reference.is_empty() && !e.band.is_empty(), "{}", e.name);
+        }
+    }
+
+    #[test]
+    fn names_match_ignoring_case_spaces_and_underscores() {
+        let t = StandardsTable::builtin();
+        for n in ["HD 64299", "HD_64299", "hd64299", " Hd 642_99 "] {
+            assert_eq!(t.find(n, "Ks").map(|e| e.name.as_str()), Some("HD 64299"), "{n}");
+        }
+        assert!(t.find("HD 204827", "Ks").is_some_and(|e| e.polarized()));
+        assert!(t.find("HD 204827", "J").is_none(), "polarized values are per filter");
+        assert!(t.find("HK Tau", "Ks").is_none());
+    }
+
+    #[test]
+    fn user_file_adds_and_overrides() {
+        let mut t = StandardsTable::builtin();
+        let n0 = t.entries.len();
+        t.merge_toml(
+            r#"
+[[standard]]
+name = "HD_204827"
+filter = "ks"
+p = 0.0120
+sigma_p = 0.0003
+gamma_deg = 60.0
+sigma_gamma_deg = 0.5
+
+[[standard]]
+name = "My Std"
+filter = "Ks"
+p = 0.0
+sigma_p = 0.0005
+"#,
+            "user.toml",
+        )
+        .unwrap();
+        assert_eq!(t.entries.len(), n0 + 1);
+        let e = t.find("HD 204827", "Ks").unwrap();
+        assert_eq!((e.p, e.gamma_deg), (0.012, 60.0));
+        assert!(t.find("MY_STD", "Ks").is_some());
+        assert_eq!(t.sources, vec!["builtin".to_string(), "user.toml".to_string()]);
+        // Errors name the file, the star and the value.
+        let e = t
+            .merge_toml(
+                "[[standard]]\nname = \"X\"\nfilter = \"Ks\"\np = 1.5\nsigma_p = 0.1\n",
+                "bad.toml",
+            )
+            .unwrap_err();
+        assert!(e.contains("bad.toml") && e.contains("'X'") && e.contains("1.5"), "{e}");
+        assert!(t
+            .merge_toml("[[standard]]\nname = \"X\"\n", "bad2.toml")
+            .unwrap_err()
+            .contains("bad2.toml"));
+    }
+}

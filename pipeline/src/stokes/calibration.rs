@@ -1,0 +1,697 @@
+//! Instrumental calibration of the Stokes solve: the offset `c`, the angle zero-point and
+//! parity, and the four-orientation difference and ratio methods.
+//!
+//! The instrument adds to the normalised difference of every orientation a constant
+//! (polarimetry.md, frame-format.md "Calibration frames and standards"):
+//!
+//! ```text
+//! F(phi) = q cos 2phi + u sin 2phi + c,   c ~ (1 - k)/(1 + k) + p_inst,   k = T_e/T_o
+//! phi    = s * POSANG + theta0
+//! ```
+//!
+//! * With a measured `c` (unpolarized standards), `F - c` goes into the least squares and the
+//!   error of `c` is propagated: `(q, u)` are linear in `F`, so `c` moves them by the fit of
+//!   an all-ones `F` times `c` ([`solve`]).
+//! * Balanced angle sets (each analyzer angle has a partner 90 deg away) need no `c` at all:
+//!   the difference method `G = (F(phi) - F(phi + 90))/2` cancels `c` to first order and the
+//!   ratio method `G = tanh[(atanh F(phi) - atanh F(phi + 90))/2]` (which is
+//!   `(R - 1)/(R + 1)` with `R^2 = (f_o/f_e)(phi) / (f_o/f_e)(phi + 90)`) cancels any beam
+//!   ratio `k` exactly. `G = q cos 2phi + u sin 2phi` is then fitted over the pairs.
+//! * Three or more distinct angles allow a free offset in the least squares.
+//! * Standards: [`measure_offset`] (weighted mean of F minus the known polarization, over
+//!   every orientation of every standard) and [`measure_angles`] (theta0 and parity from
+//!   the polarized ones).
+use serde::{Deserialize, Serialize};
+
+use super::inversion::{fit_qu, QuFit, WK_ANGLE_FACTOR_DEG};
+use super::model::normalize_axial_deg;
+
+/// How q and u are obtained from the per-orientation F.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum StokesMethod {
+    /// Ratio method when the angles are balanced, else the least squares with the measured
+    /// offset subtracted, else (3+ distinct angles) a free offset, else the plain least
+    /// squares (flagged `uncalibrated`).
+    #[default]
+    Auto,
+    /// Least squares of `F = q cos 2phi + u sin 2phi` (minus the calibration offset when
+    /// there is one).
+    LeastSquares,
+    /// Least squares with a free offset term (3 or more distinct angles).
+    FreeOffset,
+    /// Difference method on pairs 90 deg apart.
+    Difference,
+    /// Ratio method on pairs 90 deg apart (cancels the beam ratio exactly).
+    Ratio,
+}
+
+impl StokesMethod {
+    /// snake_case name.
+    pub fn name(self) -> &'static str {
+        match self {
+            StokesMethod::Auto => "auto",
+            StokesMethod::LeastSquares => "least_squares",
+            StokesMethod::FreeOffset => "free_offset",
+            StokesMethod::Difference => "difference",
+            StokesMethod::Ratio => "ratio",
+        }
+    }
+}
+
+/// The combined F of one orientation.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct OrientationF {
+    /// Analyzer angle phi, deg.
+    pub analyzer_deg: f64,
+    /// F = (o - e)/(o + e), weighted mean over the dithers.
+    pub f: f64,
+    /// 1-sigma error of F.
+    pub sigma_f: f64,
+}
+
+/// A measured instrumental offset of F.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Offset {
+    /// c.
+    pub c: f64,
+    /// 1-sigma error of c.
+    pub sigma_c: f64,
+}
+
+/// The result of the Stokes solve.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct StokesSolution {
+    /// q, u, their (co)variances and the chi^2.
+    pub fit: QuFit,
+    /// The method actually used.
+    pub method: StokesMethod,
+    /// The offset subtracted (calibration) or fitted (free offset), when any.
+    pub offset: Option<Offset>,
+    /// Neither a calibration offset nor a method that cancels or fits it: q and u carry
+    /// the instrumental offset.
+    pub uncalibrated: bool,
+}
+
+fn key(phi: f64) -> i64 {
+    (phi.rem_euclid(180.0) * 100.0).round() as i64 % 18000
+}
+
+/// Orientations merged by analyzer angle modulo 180 deg (weighted mean of F).
+fn merged(obs: &[OrientationF]) -> Vec<OrientationF> {
+    let mut out: Vec<(i64, f64, f64, f64)> = Vec::new(); // key, phi, sum w f, sum w
+    for o in obs {
+        if !(o.f.is_finite() && o.sigma_f.is_finite() && o.sigma_f > 0.0) {
+            continue;
+        }
+        let w = o.sigma_f.powi(-2);
+        let k = key(o.analyzer_deg);
+        match out.iter_mut().find(|e| e.0 == k) {
+            Some(e) => {
+                e.2 += w * o.f;
+                e.3 += w;
+            }
+            None => out.push((k, o.analyzer_deg, w * o.f, w)),
+        }
+    }
+    out.sort_by_key(|e| e.0);
+    out.into_iter()
+        .map(|(_, phi, swf, sw)| OrientationF {
+            analyzer_deg: phi,
+            f: swf / sw,
+            sigma_f: sw.recip().sqrt(),
+        })
+        .collect()
+}
+
+/// Pairs (phi, phi + 90) when every distinct angle has exactly one partner 90 deg away
+/// (within 0.01 deg); `None` otherwise.
+pub fn balanced_pairs(obs: &[OrientationF]) -> Option<Vec<(OrientationF, OrientationF)>> {
+    let m = merged(obs);
+    if m.len() < 4 || m.len() % 2 != 0 {
+        return None;
+    }
+    let mut pairs = Vec::new();
+    for a in &m {
+        let ka = key(a.analyzer_deg);
+        if ka >= 9000 {
+            continue;
+        }
+        let b = m.iter().find(|b| key(b.analyzer_deg) == ka + 9000)?;
+        pairs.push((*a, *b));
+    }
+    (pairs.len() * 2 == m.len()).then_some(pairs)
+}
+
+/// Number of distinct analyzer angles modulo 180 deg.
+pub fn distinct_angles(obs: &[OrientationF]) -> usize {
+    merged(obs).len()
+}
+
+/// Ratio-method value of one pair and its error: `G = tanh[(atanh Fa - atanh Fb)/2]`.
+pub fn ratio_pair(a: &OrientationF, b: &OrientationF) -> (f64, f64) {
+    let g = (0.5 * (a.f.atanh() - b.f.atanh())).tanh();
+    let da = 0.5 * (1.0 - g * g) / (1.0 - a.f * a.f);
+    let db = 0.5 * (1.0 - g * g) / (1.0 - b.f * b.f);
+    (g, ((da * a.sigma_f).powi(2) + (db * b.sigma_f).powi(2)).sqrt())
+}
+
+/// Difference-method value of one pair and its error: `G = (Fa - Fb)/2`.
+pub fn difference_pair(a: &OrientationF, b: &OrientationF) -> (f64, f64) {
+    (0.5 * (a.f - b.f), 0.5 * a.sigma_f.hypot(b.sigma_f))
+}
+
+/// Least squares of `F_i = q cos 2phi_i + u sin 2phi_i + c` with `c` free. `None` with fewer
+/// than 3 distinct angles (mod 180) or a singular system.
+pub fn fit_qu_offset(obs: &[OrientationF]) -> Option<(QuFit, Offset)> {
+    let m = merged(obs);
+    if m.len() < 3 {
+        return None;
+    }
+    // Normal equations for (q, u, c).
+    let mut a = [[0.0f64; 3]; 3];
+    let mut y = [0.0f64; 3];
+    for o in &m {
+        let w = o.sigma_f.powi(-2);
+        let t = 2.0 * o.analyzer_deg.to_radians();
+        let x = [t.cos(), t.sin(), 1.0];
+        for i in 0..3 {
+            y[i] += w * x[i] * o.f;
+            for j in 0..3 {
+                a[i][j] += w * x[i] * x[j];
+            }
+        }
+    }
+    let inv = invert3(&a)?;
+    let p: Vec<f64> = (0..3).map(|i| (0..3).map(|j| inv[i][j] * y[j]).sum()).collect();
+    let chi2 = m
+        .iter()
+        .map(|o| {
+            let t = 2.0 * o.analyzer_deg.to_radians();
+            ((o.f - p[0] * t.cos() - p[1] * t.sin() - p[2]) / o.sigma_f).powi(2)
+        })
+        .sum();
+    Some((
+        QuFit {
+            q: p[0],
+            u: p[1],
+            var_q: inv[0][0],
+            var_u: inv[1][1],
+            cov_qu: inv[0][1],
+            chi2,
+        },
+        Offset {
+            c: p[2],
+            sigma_c: inv[2][2].sqrt(),
+        },
+    ))
+}
+
+fn invert3(a: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
+    let det = a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+        + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]);
+    let scale = a.iter().flatten().map(|v| v.abs()).fold(0.0, f64::max);
+    if !(det.abs() > 1e-10 * scale.powi(3)) {
+        return None;
+    }
+    let mut inv = [[0.0; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            let (r0, r1) = ([1, 0, 0][j], [2, 2, 1][j]);
+            let (c0, c1) = ([1, 0, 0][i], [2, 2, 1][i]);
+            let minor = a[r0][c0] * a[r1][c1] - a[r0][c1] * a[r1][c0];
+            inv[i][j] = if (i + j) % 2 == 0 { minor } else { -minor } / det;
+        }
+    }
+    Some(inv)
+}
+
+/// Least squares of `F - c` with the error of `c` propagated into (co)variances.
+pub fn fit_qu_calibrated(obs: &[OrientationF], offset: Offset) -> Option<QuFit> {
+    let m = merged(obs);
+    let phis: Vec<f64> = m.iter().map(|o| o.analyzer_deg).collect();
+    let fs: Vec<f64> = m.iter().map(|o| o.f - offset.c).collect();
+    let ss: Vec<f64> = m.iter().map(|o| o.sigma_f).collect();
+    let mut r = fit_qu(&phis, &fs, &ss)?;
+    // (q, u) are linear in F: a common shift of every F by dc moves them by (q1, u1) dc.
+    let ones = vec![1.0; phis.len()];
+    let one = fit_qu(&phis, &ones, &ss)?;
+    let v = offset.sigma_c.powi(2);
+    r.var_q += one.q * one.q * v;
+    r.var_u += one.u * one.u * v;
+    r.cov_qu += one.q * one.u * v;
+    Some(r)
+}
+
+/// Solve for q, u with the chosen method (see [`StokesMethod::Auto`] for the automatic
+/// choice). `offset`: the calibration's instrumental offset, when there is one. Errors say
+/// why the method cannot be used with these angles.
+pub fn solve(obs: &[OrientationF], method: StokesMethod, offset: Option<Offset>) -> Result<StokesSolution, String> {
+    let pairs = balanced_pairs(obs);
+    let n = distinct_angles(obs);
+    let method = match method {
+        StokesMethod::Auto => {
+            if pairs.is_some() {
+                StokesMethod::Ratio
+            } else if offset.is_some() {
+                StokesMethod::LeastSquares
+            } else if n >= 3 {
+                StokesMethod::FreeOffset
+            } else {
+                StokesMethod::LeastSquares
+            }
+        }
+        m => m,
+    };
+    let undefined = || "orientations do not constrain q and u".to_string();
+    match method {
+        StokesMethod::Ratio | StokesMethod::Difference => {
+            let pairs = pairs.ok_or_else(|| {
+                format!(
+                    "the {} method needs balanced orientations (pairs 90 deg apart); {n} distinct analyzer angle(s)",
+                    method.name()
+                )
+            })?;
+            let (mut phis, mut gs, mut ss) = (Vec::new(), Vec::new(), Vec::new());
+            for (a, b) in &pairs {
+                let (g, s) = if method == StokesMethod::Ratio {
+                    ratio_pair(a, b)
+                } else {
+                    difference_pair(a, b)
+                };
+                phis.push(a.analyzer_deg);
+                gs.push(g);
+                ss.push(s);
+            }
+            let fit = fit_qu(&phis, &gs, &ss).ok_or_else(undefined)?;
+            Ok(StokesSolution {
+                fit,
+                method,
+                offset: None,
+                uncalibrated: false,
+            })
+        }
+        StokesMethod::FreeOffset => {
+            let (fit, off) = fit_qu_offset(obs)
+                .ok_or_else(|| format!("a free offset needs 3 or more distinct analyzer angles; {n} present"))?;
+            Ok(StokesSolution {
+                fit,
+                method,
+                offset: Some(off),
+                uncalibrated: false,
+            })
+        }
+        StokesMethod::LeastSquares | StokesMethod::Auto => match offset {
+            Some(off) => Ok(StokesSolution {
+                fit: fit_qu_calibrated(obs, off).ok_or_else(undefined)?,
+                method: StokesMethod::LeastSquares,
+                offset: Some(off),
+                uncalibrated: false,
+            }),
+            None => {
+                let m = merged(obs);
+                let phis: Vec<f64> = m.iter().map(|o| o.analyzer_deg).collect();
+                let fs: Vec<f64> = m.iter().map(|o| o.f).collect();
+                let ss: Vec<f64> = m.iter().map(|o| o.sigma_f).collect();
+                Ok(StokesSolution {
+                    fit: fit_qu(&phis, &fs, &ss).ok_or_else(undefined)?,
+                    method: StokesMethod::LeastSquares,
+                    offset: None,
+                    uncalibrated: pairs.is_none(),
+                })
+            }
+        },
+    }
+}
+
+/// A standard as the calibration sees it: its per-orientation F at the rotator angles, and
+/// its table polarization (sky frame; p = 0 for unpolarized standards).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StandardObservation {
+    /// Name (as matched in the standards table).
+    pub name: String,
+    /// Rotator position angles, deg, one per orientation.
+    pub posang_deg: Vec<f64>,
+    /// F and its error per orientation (the analyzer angle field is ignored: angles come
+    /// from `posang_deg` and the parity and zero-point being tried).
+    pub f: Vec<OrientationF>,
+    /// Table degree of polarization (fraction).
+    pub p: f64,
+    /// Its error.
+    pub sigma_p: f64,
+    /// Table angle, deg east of north.
+    pub gamma_deg: f64,
+    /// Its error, deg.
+    pub sigma_gamma_deg: f64,
+}
+
+impl StandardObservation {
+    /// Whether the table calls it polarized (p > 3 sigma_p and p > 0).
+    pub fn polarized(&self) -> bool {
+        self.p > 0.0 && self.p > 3.0 * self.sigma_p
+    }
+}
+
+/// Angle zero-point and parity.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AngleCalibration {
+    /// theta0, deg in [0, 180).
+    pub theta0_deg: f64,
+    /// Its 1-sigma error, deg.
+    pub sigma_theta0_deg: f64,
+    /// Image parity s (+1 or -1).
+    pub parity: i32,
+    /// Whether the parity was measured (2+ polarized standards with different angles)
+    /// rather than taken from the profile.
+    pub parity_measured: bool,
+    /// Polarized standards used.
+    pub n_standards: usize,
+}
+
+impl AngleCalibration {
+    /// Analyzer angle of a rotator position angle.
+    pub fn analyzer_deg(&self, posang_deg: f64) -> f64 {
+        self.parity as f64 * posang_deg + self.theta0_deg
+    }
+}
+
+/// The instrumental offset from standards: weighted mean over every orientation of every
+/// standard of `F - F_model` (F_model from the table polarization at the analyzer angle of
+/// `angles`; 0 for unpolarized standards). The table errors enter the weights. When the
+/// scatter exceeds the errors (chi^2/dof > 1) the error is inflated by sqrt(chi^2/dof).
+/// Polarized standards are used only when `angles` is given. `None` when nothing is usable.
+pub fn measure_offset(stds: &[StandardObservation], angles: Option<&AngleCalibration>) -> Option<(Offset, usize)> {
+    let (mut sw, mut swx, mut vals) = (0.0, 0.0, Vec::new());
+    let mut used = 0;
+    for s in stds {
+        let pol = s.polarized();
+        if pol && angles.is_none() {
+            continue;
+        }
+        let mut any = false;
+        for (o, &pa) in s.f.iter().zip(&s.posang_deg) {
+            if !(o.f.is_finite() && o.sigma_f > 0.0) {
+                continue;
+            }
+            let (model, var_model) = if pol {
+                let phi = angles.expect("checked").analyzer_deg(pa);
+                let t = 2.0 * (phi - s.gamma_deg).to_radians();
+                let sg = 2.0 * s.sigma_gamma_deg.to_radians();
+                (
+                    s.p * t.cos(),
+                    (s.sigma_p * t.cos()).powi(2) + (s.p * sg * t.sin()).powi(2),
+                )
+            } else {
+                (0.0, s.sigma_p.powi(2) / 2.0)
+            };
+            let var = o.sigma_f.powi(2) + var_model;
+            let w = 1.0 / var;
+            sw += w;
+            swx += w * (o.f - model);
+            vals.push((o.f - model, var));
+            any = true;
+        }
+        used += usize::from(any);
+    }
+    if vals.is_empty() {
+        return None;
+    }
+    let c = swx / sw;
+    let mut sigma_c = sw.recip().sqrt();
+    if vals.len() > 1 {
+        let chi2: f64 = vals.iter().map(|(x, v)| (x - c).powi(2) / v).sum();
+        let r = chi2 / (vals.len() - 1) as f64;
+        if r > 1.0 {
+            sigma_c *= r.sqrt();
+        }
+    }
+    Some((Offset { c, sigma_c }, used))
+}
+
+/// Measured angle of a standard with the raw convention phi = POSANG (s = +1, theta0 = 0),
+/// after subtracting the offset: (gamma_raw, sigma_gamma, P).
+fn raw_angle(s: &StandardObservation, offset: Offset) -> Option<(f64, f64, f64)> {
+    let obs: Vec<OrientationF> =
+        s.f.iter()
+            .zip(&s.posang_deg)
+            .map(|(o, &pa)| OrientationF { analyzer_deg: pa, ..*o })
+            .collect();
+    let r = solve(&obs, StokesMethod::LeastSquares, Some(offset)).ok()?.fit;
+    let p = r.q.hypot(r.u);
+    if !(p > 0.0) {
+        return None;
+    }
+    let sp = ((r.q.powi(2) * r.var_q + r.u.powi(2) * r.var_u + 2.0 * r.q * r.u * r.cov_qu) / (p * p)).sqrt();
+    Some((
+        normalize_axial_deg(0.5 * r.u.atan2(r.q).to_degrees()),
+        WK_ANGLE_FACTOR_DEG * sp / p,
+        p,
+    ))
+}
+
+/// Weighted axial mean (period 180 deg) of angles with errors: (mean, error, chi^2).
+fn axial_mean(vals: &[(f64, f64)]) -> (f64, f64, f64) {
+    let (mut c, mut s, mut sw) = (0.0, 0.0, 0.0);
+    for &(a, e) in vals {
+        let w = e.powi(-2);
+        let t = 2.0 * a.to_radians();
+        c += w * t.cos();
+        s += w * t.sin();
+        sw += w;
+    }
+    let mean = normalize_axial_deg(0.5 * s.atan2(c).to_degrees());
+    let chi2 = vals
+        .iter()
+        .map(|&(a, e)| {
+            let d = (a - mean + 90.0).rem_euclid(180.0) - 90.0;
+            (d / e).powi(2)
+        })
+        .sum();
+    (mean, sw.recip().sqrt(), chi2)
+}
+
+/// Angle zero-point (and parity) from the polarized standards, with the offset `offset`
+/// already known: for each, `theta0 = gamma_table - s gamma_raw` (gamma_raw measured with
+/// phi = POSANG). The parity is the one with the smaller chi^2 when two or more polarized
+/// standards differ in angle by more than 5 of their errors; else `default_parity`.
+/// `None` without a usable polarized standard.
+pub fn measure_angles(stds: &[StandardObservation], offset: Offset, default_parity: i32) -> Option<AngleCalibration> {
+    let raws: Vec<(f64, f64, f64)> = stds
+        .iter()
+        .filter(|s| s.polarized())
+        .filter_map(|s| raw_angle(s, offset).map(|(g, sg, _)| (g, sg.hypot(s.sigma_gamma_deg), s.gamma_deg)))
+        .collect();
+    if raws.is_empty() {
+        return None;
+    }
+    let trial = |par: i32| {
+        let v: Vec<(f64, f64)> = raws
+            .iter()
+            .map(|&(g, e, table)| (normalize_axial_deg(table - par as f64 * g), e))
+            .collect();
+        axial_mean(&v)
+    };
+    let (p, m) = (trial(1), trial(-1));
+    // The parities are told apart only when the two trials disagree strongly (two
+    // standards whose table angles differ by 90 deg fit either parity equally well).
+    let measured = raws.len() >= 2 && (p.2 - m.2).abs() > 25.0;
+    let parity = if measured {
+        if p.2 <= m.2 {
+            1
+        } else {
+            -1
+        }
+    } else {
+        default_parity
+    };
+    let (theta0, mut sigma, chi2) = if parity == 1 { p } else { m };
+    if raws.len() > 1 {
+        let r = chi2 / (raws.len() - 1) as f64;
+        if r > 1.0 {
+            sigma *= r.sqrt();
+        }
+    }
+    Some(AngleCalibration {
+        theta0_deg: theta0,
+        sigma_theta0_deg: sigma,
+        parity,
+        parity_measured: measured,
+        n_standards: raws.len(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stokes::model::{beam_fluxes, Polarization};
+
+    /// Noiseless F of the forward model with throughput ratio k and an additive
+    /// instrumental term.
+    fn f_of(pol: Polarization, phi: f64, k: f64, inst: f64) -> f64 {
+        let (o, e) = beam_fluxes(1000.0, pol, phi, 1.0, k);
+        (o - e) / (o + e) + inst
+    }
+
+    fn obs(pol: Polarization, phis: &[f64], k: f64, inst: f64) -> Vec<OrientationF> {
+        phis.iter()
+            .map(|&p| OrientationF {
+                analyzer_deg: p,
+                f: f_of(pol, p, k, inst),
+                sigma_f: 0.001,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn ratio_method_cancels_any_beam_ratio_exactly() {
+        let pol = Polarization { q: 0.043, u: -0.021 };
+        for k in [0.5, 0.9, 0.97, 1.0, 1.1, 2.0] {
+            for phis in [
+                vec![0.0, 45.0, 90.0, 135.0],
+                vec![10.0, 55.0, 100.0, 145.0],
+                vec![0.0, 22.5, 45.0, 67.5, 90.0, 112.5, 135.0, 157.5],
+            ] {
+                let s = solve(&obs(pol, &phis, k, 0.0), StokesMethod::Auto, None).unwrap();
+                assert_eq!(s.method, StokesMethod::Ratio);
+                assert!(!s.uncalibrated);
+                assert!((s.fit.q - pol.q).abs() < 1e-14, "k {k}: q {}", s.fit.q);
+                assert!((s.fit.u - pol.u).abs() < 1e-14, "k {k}: u {}", s.fit.u);
+            }
+        }
+        // The textbook form: R_q^2 = (o0/e0)/(o90/e90), q = (R_q - 1)/(R_q + 1).
+        let k = 0.93;
+        let (o0, e0) = beam_fluxes(1.0, pol, 0.0, 1.0, k);
+        let (o9, e9) = beam_fluxes(1.0, pol, 90.0, 1.0, k);
+        let r = ((o0 / e0) / (o9 / e9)).sqrt();
+        let a = OrientationF {
+            analyzer_deg: 0.0,
+            f: (o0 - e0) / (o0 + e0),
+            sigma_f: 0.01,
+        };
+        let b = OrientationF {
+            analyzer_deg: 90.0,
+            f: (o9 - e9) / (o9 + e9),
+            sigma_f: 0.01,
+        };
+        assert!((ratio_pair(&a, &b).0 - (r - 1.0) / (r + 1.0)).abs() < 1e-15);
+    }
+
+    #[test]
+    fn ratio_error_matches_a_numerical_derivative() {
+        let a = OrientationF {
+            analyzer_deg: 0.0,
+            f: 0.12,
+            sigma_f: 0.01,
+        };
+        let b = OrientationF {
+            analyzer_deg: 90.0,
+            f: -0.05,
+            sigma_f: 0.02,
+        };
+        let h = 1e-6;
+        let d = |da: f64, db: f64| ratio_pair(&OrientationF { f: a.f + da, ..a }, &OrientationF { f: b.f + db, ..b }).0;
+        let ga = (d(h, 0.0) - d(-h, 0.0)) / (2.0 * h);
+        let gb = (d(0.0, h) - d(0.0, -h)) / (2.0 * h);
+        let s = ((ga * a.sigma_f).powi(2) + (gb * b.sigma_f).powi(2)).sqrt();
+        assert!((ratio_pair(&a, &b).1 - s).abs() < 1e-9);
+    }
+
+    #[test]
+    fn difference_and_free_offset_cancel_a_constant_offset() {
+        let pol = Polarization { q: -0.012, u: 0.034 };
+        let phis = [0.0, 45.0, 90.0, 135.0];
+        let o = obs(pol, &phis, 1.0, 0.0123);
+        let d = solve(&o, StokesMethod::Difference, None).unwrap();
+        assert!((d.fit.q - pol.q).abs() < 1e-15 && (d.fit.u - pol.u).abs() < 1e-15);
+        // sigma_q = 1/2 sqrt(s0^2 + s90^2).
+        assert!((d.fit.var_q.sqrt() - 0.5 * 2f64.sqrt() * 0.001).abs() < 1e-15);
+        let f = solve(&o, StokesMethod::FreeOffset, None).unwrap();
+        assert!((f.fit.q - pol.q).abs() < 1e-14 && (f.fit.u - pol.u).abs() < 1e-14);
+        assert!((f.offset.unwrap().c - 0.0123).abs() < 1e-14);
+        // Three unbalanced angles: the free offset still recovers everything exactly.
+        let o3 = obs(pol, &[0.0, 60.0, 120.0], 1.0, -0.007);
+        let (fit, off) = fit_qu_offset(&o3).unwrap();
+        assert!((fit.q - pol.q).abs() < 1e-14 && (fit.u - pol.u).abs() < 1e-14 && (off.c + 0.007).abs() < 1e-14);
+        // Two angles cannot hold three unknowns.
+        assert!(fit_qu_offset(&obs(pol, &[0.0, 45.0], 1.0, 0.0)).is_none());
+        assert!(solve(&obs(pol, &[0.0, 45.0], 1.0, 0.0), StokesMethod::Ratio, None).is_err());
+    }
+
+    #[test]
+    fn calibrated_least_squares_subtracts_the_offset_and_propagates_its_error() {
+        let pol = Polarization { q: 0.02, u: 0.01 };
+        let o = obs(pol, &[0.0, 45.0], 1.0, 0.005);
+        let plain = solve(&o, StokesMethod::Auto, None).unwrap();
+        assert!(plain.uncalibrated);
+        assert!((plain.fit.q - 0.025).abs() < 1e-15);
+        let off = Offset {
+            c: 0.005,
+            sigma_c: 0.0003,
+        };
+        let s = solve(&o, StokesMethod::Auto, Some(off)).unwrap();
+        assert!(!s.uncalibrated && s.method == StokesMethod::LeastSquares);
+        assert!((s.fit.q - pol.q).abs() < 1e-15 && (s.fit.u - pol.u).abs() < 1e-15);
+        // Two orientations: q = F0 - c, u = F45 - c, so Var q = s0^2 + sc^2 and Cov = sc^2.
+        assert!((s.fit.var_q - (1e-6 + 9e-8)).abs() < 1e-18);
+        assert!((s.fit.cov_qu - 9e-8).abs() < 1e-18);
+        // Balanced angles: the offset cancels in the least squares, its error too.
+        let o4 = obs(pol, &[0.0, 45.0, 90.0, 135.0], 1.0, 0.005);
+        let s4 = solve(&o4, StokesMethod::LeastSquares, Some(off)).unwrap();
+        assert!((s4.fit.var_q - 0.5e-6).abs() < 1e-18);
+    }
+
+    fn std_obs(
+        name: &str,
+        pol: Polarization,
+        posangs: &[f64],
+        theta0: f64,
+        parity: i32,
+        c: f64,
+    ) -> StandardObservation {
+        StandardObservation {
+            name: name.into(),
+            posang_deg: posangs.to_vec(),
+            f: posangs
+                .iter()
+                .map(|&pa| OrientationF {
+                    analyzer_deg: f64::NAN,
+                    f: crate::stokes::model::normalized_difference(pol, parity as f64 * pa + theta0) + c,
+                    sigma_f: 0.0005,
+                })
+                .collect(),
+            p: pol.p(),
+            sigma_p: if pol.p() > 0.0 { 0.0002 } else { 0.0005 },
+            gamma_deg: pol.gamma_deg(),
+            sigma_gamma_deg: 0.5,
+        }
+    }
+
+    #[test]
+    fn standards_give_offset_zero_point_and_parity() {
+        let pa = [0.0, 45.0];
+        for parity in [1, -1] {
+            let (theta0, c) = (3.0, 0.0167);
+            let stds = vec![
+                std_obs("U1", Polarization::default(), &pa, theta0, parity, c),
+                std_obs("U2", Polarization::default(), &pa, theta0, parity, c),
+                std_obs("P1", Polarization::from_p_gamma(0.02, 40.0), &pa, theta0, parity, c),
+                std_obs("P2", Polarization::from_p_gamma(0.015, 125.0), &pa, theta0, parity, c),
+            ];
+            let (off, n) = measure_offset(&stds, None).unwrap();
+            assert_eq!(n, 2);
+            assert!((off.c - c).abs() < 1e-12 && off.sigma_c > 0.0);
+            let ang = measure_angles(&stds, off, 1).unwrap();
+            assert!(ang.parity_measured);
+            assert_eq!(ang.parity, parity);
+            assert!((ang.theta0_deg - theta0).abs() < 1e-9, "{ang:?}");
+            // With the angles known, polarized standards join the offset.
+            let (off2, n2) = measure_offset(&stds, Some(&ang)).unwrap();
+            assert_eq!(n2, 4);
+            assert!((off2.c - c).abs() < 1e-12);
+        }
+        // One polarized standard: theta0 measured, parity from the profile.
+        let stds = vec![std_obs("P1", Polarization::from_p_gamma(0.02, 40.0), &pa, 3.0, 1, 0.0)];
+        let a = measure_angles(&stds, Offset { c: 0.0, sigma_c: 0.0 }, 1).unwrap();
+        assert!(!a.parity_measured && (a.theta0_deg - 3.0).abs() < 1e-9);
+    }
+}

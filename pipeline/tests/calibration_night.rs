@@ -1,0 +1,304 @@
+//! Acceptance of the instrumental calibration (issue 8) on simulated nights, fixed seeds:
+//! beam ratio k = 0.97, instrumental polarization 0.3 %, angle zero-point 3 deg.
+//!
+//! * 2 orientations with 2 unpolarized + 2 polarized standards: q, u pulls of the pooled
+//!   components have rms in 0.8-1.2 and mean within 0.3; standards agree with their table.
+//! * The same night without calibration: every component flagged `uncalibrated` (and the
+//!   pulls are far off: the test shows why the flag is needed).
+//! * 4 orientations with k = 0.97 and no calibration data: the ratio method gives pulls
+//!   with rms in 0.8-1.2.
+//!
+//! Frames are simulated and reduced one sequence at a time (streaming: a night of 1024^2
+//! frames does not fit in memory), in parallel over sequences.
+use rayon::prelude::*;
+use sofipol_calib::classify::{classify, Classification};
+use sofipol_calib::Profile;
+use sofipol_pipeline::calibration::{calibrate_catalog, standard_params, CalibrationParams, CalibrationSource};
+use sofipol_pipeline::catalog::{Catalog, Target};
+use sofipol_pipeline::reduce::run::{reduce_loaded, LoadedOrientation};
+use sofipol_pipeline::reduce::TargetParams;
+use sofipol_pipeline::sequence::{Orientation, Sequence};
+use sofipol_pipeline::sim::{Scene, Simulator, Truth};
+use sofipol_pipeline::standards::StandardsTable;
+use sofipol_pipeline::stokes::inversion::Debias;
+
+const N_BINARIES: usize = 16;
+
+fn scene(orientations: &str, instrument: &str, standards: bool) -> Scene {
+    let mut s = format!(
+        r#"
+name = "cal"
+seed = 808
+effects = ["psf", "sky", "strips", "photon_noise", "read_noise", {instrument}]
+[observation]
+orientations_deg = [{orientations}]
+dithers = 3
+[psf]
+fwhm_arcsec = 0.8
+seeing_rms_frac = 0.05
+[sky]
+level_adu = 1500.0
+[throughput]
+t_o = 1.0
+t_e = 0.97
+[instrumental_polarization]
+p = 0.003
+angle_deg = 0.0
+[analyzer_angle]
+zero_point_deg = 3.0
+parity = 1
+"#
+    );
+    for i in 0..N_BINARIES {
+        // Wide pairs (4-5"), intrinsic P 1-6 %, angles spread over [0, 180).
+        let f = i as f64;
+        s += &format!(
+            "[[binary]]\nname = \"T{i}\"\nseparation_arcsec = {}\npa_deg = {}\nflux_a = 20000.0\nflux_b = 12000.0\np_a = {}\ngamma_a_deg = {}\np_b = {}\ngamma_b_deg = {}\n",
+            4.0 + 0.06 * f,
+            (37.0 * f) % 360.0,
+            0.01 + 0.05 * ((f * 0.37) % 1.0),
+            (23.0 + 71.0 * f) % 180.0,
+            0.01 + 0.05 * ((f * 0.61 + 0.3) % 1.0),
+            (101.0 + 53.0 * f) % 180.0,
+        );
+    }
+    if standards {
+        s += r#"
+[[standard]]
+name = "HD 64299"
+flux = 150000.0
+[[standard]]
+name = "HD_98161"
+flux = 150000.0
+[[standard]]
+name = "Pol A"
+flux = 150000.0
+p = 0.025
+gamma_deg = 40.0
+[[standard]]
+name = "Pol B"
+flux = 150000.0
+p = 0.02
+gamma_deg = 100.0
+"#;
+    }
+    Scene::from_toml(&s, "calibration scene").unwrap()
+}
+
+/// Table values of the scene's polarized standards (as a user --standards file would give).
+const USER_STANDARDS: &str = r#"
+[[standard]]
+name = "Pol A"
+filter = "Ks"
+p = 0.025
+sigma_p = 0.0002
+gamma_deg = 40.0
+sigma_gamma_deg = 0.1
+[[standard]]
+name = "POL_B"
+filter = "Ks"
+p = 0.02
+sigma_p = 0.0002
+gamma_deg = 100.0
+sigma_gamma_deg = 0.1
+"#;
+
+/// Simulate and reduce sequence `t` the way `night` reads files: analyzer angles from the
+/// profile (the pipeline does not know the instrument's true zero-point).
+fn reduce_one(sim: &Simulator, t: usize, profile: &Profile, params: &TargetParams) -> Target {
+    let mut orients: Vec<LoadedOrientation> = Vec::new();
+    let mut seq_or: Vec<Orientation> = Vec::new();
+    let (mut object, mut tpl_start, mut filter) = (String::new(), String::new(), String::new());
+    for k in 0..sim.frames_per_target() {
+        let f = sim.frame(t, k);
+        let pa = f.truth.posang_deg;
+        let phi = profile.angles.analyzer_angle_deg(pa);
+        if orients.last().is_none_or(|o| o.0 != pa) {
+            orients.push((pa, phi, vec![], vec![]));
+            seq_or.push(Orientation {
+                posang_deg: pa,
+                analyzer_deg: phi,
+                exposures: vec![],
+            });
+        }
+        if let Classification::Science(info) = classify(&f.frame.header, profile) {
+            object.clone_from(&info.object);
+            tpl_start.clone_from(&info.tpl_start);
+            filter.clone_from(&info.filter);
+            seq_or.last_mut().unwrap().exposures.push(*info);
+        }
+        let o = orients.last_mut().unwrap();
+        o.3.push(f.truth.header_offset_px);
+        o.2.push(f.frame);
+    }
+    let seq = Sequence {
+        id: format!("{object}@{tpl_start}"),
+        object,
+        tpl_start,
+        filter,
+        orientations: seq_or,
+    };
+    let p = if sim.is_standard(t) {
+        standard_params(params)
+    } else {
+        params.clone()
+    };
+    reduce_loaded(&seq, orients, profile, &p, None, None, false).target
+}
+
+/// Reduce every sequence: (science catalog, standard targets).
+fn reduce_night(sc: Scene) -> (Catalog, Vec<Target>, Truth) {
+    let profile = Profile::sofi();
+    let sim = Simulator::new(sc, profile.clone()).unwrap();
+    let params = TargetParams {
+        no_detect_bad_pixels: true,
+        ..Default::default()
+    };
+    let targets: Vec<Target> = (0..sim.n_sequences())
+        .into_par_iter()
+        .map(|t| reduce_one(&sim, t, &profile, &params))
+        .collect();
+    let truth = sim.truth(&[]);
+    let nb = truth.targets.len();
+    let mut cat = Catalog::default();
+    let mut stds = Vec::new();
+    for (t, target) in targets.into_iter().enumerate() {
+        if t < nb {
+            cat.targets.push(target);
+        } else {
+            stds.push(target);
+        }
+    }
+    (cat, stds, truth)
+}
+
+/// Pooled q and u pulls of every component of status ok against the truth.
+fn pulls(cat: &Catalog, truth: &Truth) -> Vec<f64> {
+    let mut out = Vec::new();
+    for (t, tt) in cat.targets.iter().zip(&truth.targets) {
+        assert_eq!(t.object, tt.object);
+        if t.components.len() != 2 {
+            continue;
+        }
+        for (c, ct) in t.components.iter().zip(&tt.components) {
+            out.push((c.q - ct.q) / c.sigma_q);
+            out.push((c.u - ct.u) / c.sigma_u);
+        }
+    }
+    out
+}
+
+fn mean_rms(v: &[f64]) -> (f64, f64) {
+    let n = v.len() as f64;
+    let m = v.iter().sum::<f64>() / n;
+    (m, (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt())
+}
+
+fn calibrate(cat: &mut Catalog, stds: Vec<Target>, source: CalibrationSource) -> usize {
+    let mut table = StandardsTable::builtin();
+    table.merge_toml(USER_STANDARDS, "test standards").unwrap();
+    let (_, s) = calibrate_catalog(
+        cat,
+        stds,
+        &table,
+        &Profile::sofi(),
+        source,
+        &CalibrationParams::default(),
+        Debias::WardleKronberg,
+        3.0,
+    );
+    s.n_uncalibrated
+}
+
+#[test]
+fn two_orientations_with_standards_give_unbiased_pulls_and_without_them_are_flagged() {
+    let (raw, stds, truth) = reduce_night(scene(
+        "0.0, 45.0",
+        "\"throughput\", \"instrumental_polarization\", \"analyzer_angle\"",
+        true,
+    ));
+    assert_eq!(stds.len(), 4);
+    // Standards are single stars, never binaries.
+    for s in &stds {
+        assert_eq!(s.components.len(), 1, "{}: {:?}", s.object, s.components.len());
+    }
+
+    let mut cat = raw.clone();
+    assert_eq!(calibrate(&mut cat, stds.clone(), CalibrationSource::Night), 0);
+    let cal = &cat.calibration.as_ref().unwrap()["calibration"]["filters"][0];
+    let c = cal["offset"]["c"].as_f64().unwrap();
+    let sc = cal["offset"]["sigma_c"].as_f64().unwrap();
+    let c_true = 0.03 / 1.97 + 0.003;
+    let th = cal["angles"]["theta0_deg"].as_f64().unwrap();
+    let sth = cal["angles"]["sigma_theta0_deg"].as_f64().unwrap();
+    eprintln!("c = {c:.5} +- {sc:.5} (true {c_true:.5}); theta0 = {th:.3} +- {sth:.3} (true 3)");
+    assert!((c - c_true).abs() < 3.0 * sc, "c {c} +- {sc} vs {c_true}");
+    assert!((th - 3.0).abs() < 3.0 * sth, "theta0 {th} +- {sth}");
+    assert_eq!(cal["angles"]["parity"], 1);
+    assert_eq!(cal["angles"]["parity_measured"], true);
+
+    let p = pulls(&cat, &truth);
+    let (m, rms) = mean_rms(&p);
+    eprintln!(
+        "calibrated, 2 orientations: n = {} q,u pulls, mean {m:.3}, rms {rms:.3}",
+        p.len()
+    );
+    assert!(p.len() >= 60, "{}", p.len());
+    assert!((0.8..=1.2).contains(&rms), "pull rms {rms}");
+    assert!(m.abs() < 0.3, "pull mean {m}");
+    for t in &cat.targets {
+        for c in &t.components {
+            assert!(!c.flags.contains(&"uncalibrated".to_string()));
+        }
+    }
+    // Every standard is reported, matched to the table, and agrees with it within errors.
+    assert_eq!(cat.standards.len(), 4);
+    for s in &cat.standards {
+        eprintln!(
+            "standard {}: P residual {:?} sigma, angle residual {:?} deg ({:?} sigma)",
+            s.name, s.residual_p_sigma, s.residual_gamma_deg, s.residual_gamma_sigma
+        );
+        assert!(s.table.is_some(), "{}", s.object);
+        let rp = s.residual_p_sigma.unwrap();
+        assert!(rp.abs() < 3.0, "{}: P residual {rp} sigma", s.name);
+        if let Some(rg) = s.residual_gamma_sigma {
+            assert!(rg.abs() < 3.0, "{}: angle residual {rg} sigma", s.name);
+        }
+        assert!(s.used_for.contains(&"offset".to_string()));
+    }
+
+    // The same night without calibration: flagged, and biased.
+    let mut unc = raw;
+    let n = calibrate(&mut unc, vec![], CalibrationSource::Night);
+    assert_eq!(n, 2 * N_BINARIES);
+    for t in &unc.targets {
+        for c in &t.components {
+            assert!(c.flags.contains(&"uncalibrated".to_string()), "{}", t.object);
+        }
+    }
+    let (m0, rms0) = mean_rms(&pulls(&unc, &truth));
+    eprintln!("uncalibrated, 2 orientations: pull mean {m0:.2}, rms {rms0:.2}");
+    assert!(rms0 > 2.0 || m0.abs() > 2.0);
+}
+
+#[test]
+fn four_orientations_with_a_beam_ratio_need_no_calibration() {
+    let (mut cat, stds, truth) = reduce_night(scene("0.0, 45.0, 90.0, 135.0", "\"throughput\"", false));
+    assert!(stds.is_empty());
+    assert_eq!(calibrate(&mut cat, stds, CalibrationSource::Night), 0);
+    for t in &cat.targets {
+        for c in &t.components {
+            assert_eq!(c.extra["stokes_method"], "ratio");
+            assert!(!c.flags.contains(&"uncalibrated".to_string()));
+        }
+    }
+    let p = pulls(&cat, &truth);
+    let (m, rms) = mean_rms(&p);
+    eprintln!(
+        "ratio method, 4 orientations, k = 0.97: n = {} pulls, mean {m:.3}, rms {rms:.3}",
+        p.len()
+    );
+    assert!(p.len() >= 60);
+    assert!((0.8..=1.2).contains(&rms), "pull rms {rms}");
+    assert!(m.abs() < 0.3, "pull mean {m}");
+}

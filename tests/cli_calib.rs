@@ -1,0 +1,174 @@
+//! End-to-end: `sofipol calib` on a night with standards, `night --calib` on a night
+//! without, and the `uncalibrated` flag and its explanation when nothing calibrates.
+use std::process::Command;
+
+use serde_json::Value;
+
+const BIN: &str = env!("CARGO_BIN_EXE_sofipol");
+
+fn scene(standards: bool) -> String {
+    let mut s = r#"
+name = "cc"
+seed = 31
+effects = ["psf", "sky", "strips", "photon_noise", "read_noise", "throughput", "instrumental_polarization", "analyzer_angle"]
+[observation]
+orientations_deg = [0.0, 45.0]
+dithers = 3
+[psf]
+fwhm_arcsec = 0.8
+[throughput]
+t_e = 0.97
+[instrumental_polarization]
+p = 0.003
+angle_deg = 0.0
+[analyzer_angle]
+zero_point_deg = 3.0
+[[binary]]
+name = "Alpha"
+separation_arcsec = 4.0
+pa_deg = 30.0
+flux_a = 100000.0
+flux_b = 60000.0
+p_a = 0.05
+gamma_a_deg = 20.0
+p_b = 0.03
+gamma_b_deg = 110.0
+"#
+    .to_string();
+    if standards {
+        s += r#"
+[[standard]]
+name = "HD 64299"
+flux = 150000.0
+[[standard]]
+name = "HD_98161"
+flux = 150000.0
+[[standard]]
+name = "My Pol"
+flux = 150000.0
+p = 0.02
+gamma_deg = 45.0
+"#;
+    }
+    s
+}
+
+const STANDARDS: &str = r#"
+[[standard]]
+name = "my pol"
+filter = "Ks"
+p = 0.02
+sigma_p = 0.0002
+gamma_deg = 45.0
+sigma_gamma_deg = 0.2
+"#;
+
+fn run(args: &[&str]) -> (i32, String, String) {
+    let o = Command::new(BIN).args(args).output().expect("run sofipol");
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stdout).into(),
+        String::from_utf8_lossy(&o.stderr).into(),
+    )
+}
+
+fn simulate(dir: &std::path::Path, name: &str, standards: bool) -> String {
+    let sc = dir.join(format!("{name}.toml"));
+    std::fs::write(&sc, scene(standards)).unwrap();
+    let out = dir.join(name);
+    let (code, _, err) = run(&["simulate", sc.to_str().unwrap(), "-o", out.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    out.to_str().unwrap().to_string()
+}
+
+#[test]
+fn calib_products_serve_another_night_and_uncalibrated_is_flagged_and_explained() {
+    let tmp = tempfile::tempdir().unwrap();
+    let with = simulate(tmp.path(), "with", true);
+    let without = simulate(tmp.path(), "without", false);
+    let stds = tmp.path().join("stds.toml");
+    std::fs::write(&stds, STANDARDS).unwrap();
+    let caldir = tmp.path().join("cal");
+
+    let (code, out, err) = run(&[
+        "calib",
+        &with,
+        "-o",
+        caldir.to_str().unwrap(),
+        "--standards",
+        stds.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{out}\n{err}");
+    let cal: Value = serde_json::from_str(&std::fs::read_to_string(caldir.join("calibration.json")).unwrap()).unwrap();
+    let f = &cal["filters"][0];
+    let c = f["offset"]["c"].as_f64().unwrap();
+    let c_true = 0.03 / 1.97 + 0.003;
+    assert!(
+        (c - c_true).abs() < 5.0 * f["offset"]["sigma_c"].as_f64().unwrap(),
+        "{f}"
+    );
+    let th = f["angles"]["theta0_deg"].as_f64().unwrap();
+    assert!(
+        (th - 3.0).abs() < 5.0 * f["angles"]["sigma_theta0_deg"].as_f64().unwrap(),
+        "{f}"
+    );
+    assert_eq!(f["offset_standards"].as_array().unwrap().len(), 3);
+    assert!(cal["frames"].as_array().unwrap().len() == 18);
+
+    // The night without standards, calibrated from the other night's products.
+    let cat_path = tmp.path().join("c1.json");
+    let (code, out, err) = run(&[
+        "night",
+        &without,
+        "-o",
+        cat_path.to_str().unwrap(),
+        "--no-png",
+        "--calib",
+        caldir.to_str().unwrap(),
+    ]);
+    assert!(code == 0 || code == 2, "{out}\n{err}");
+    let cat: Value = serde_json::from_str(&std::fs::read_to_string(&cat_path).unwrap()).unwrap();
+    assert_eq!(cat["calibration"]["source"], caldir.to_str().unwrap());
+    assert_eq!(cat["provenance"]["calibration"]["calib_dir"], caldir.to_str().unwrap());
+    for c in cat["targets"][0]["components"].as_array().unwrap() {
+        assert!(
+            !c["flags"].as_array().unwrap().iter().any(|f| f == "uncalibrated"),
+            "{c}"
+        );
+        assert_eq!(c["stokes_method"], "least_squares");
+    }
+
+    // Nothing to calibrate with: flagged, and stderr says why.
+    let cat_path = tmp.path().join("c2.json");
+    let (_, _, err) = run(&["night", &without, "-o", cat_path.to_str().unwrap(), "--no-png"]);
+    assert!(err.contains("uncalibrated") && err.contains("biases q and u"), "{err}");
+    let cat: Value = serde_json::from_str(&std::fs::read_to_string(&cat_path).unwrap()).unwrap();
+    for c in cat["targets"][0]["components"].as_array().unwrap() {
+        assert!(
+            c["flags"].as_array().unwrap().iter().any(|f| f == "uncalibrated"),
+            "{c}"
+        );
+    }
+
+    // The night with standards calibrates itself; standards are their own section.
+    let cat_path = tmp.path().join("c3.json");
+    let (_, _, err) = run(&[
+        "night",
+        &with,
+        "-o",
+        cat_path.to_str().unwrap(),
+        "--no-png",
+        "--standards",
+        stds.to_str().unwrap(),
+    ]);
+    assert!(err.contains("1 sequences + 3 standard(s)"), "{err}");
+    let cat: Value = serde_json::from_str(&std::fs::read_to_string(&cat_path).unwrap()).unwrap();
+    assert_eq!(cat["targets"].as_array().unwrap().len(), 1);
+    assert_eq!(cat["standards"].as_array().unwrap().len(), 3);
+    assert_eq!(cat["calibration"]["source"], "night");
+
+    // A night without standards cannot make calibration products: exit 1 with the reason.
+    let (code, _, err) = run(&["calib", &without, "-o", tmp.path().join("cal2").to_str().unwrap()]);
+    assert_eq!(code, 1);
+    assert!(err.contains("no usable standard"), "{err}");
+}
