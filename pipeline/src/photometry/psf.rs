@@ -597,6 +597,10 @@ pub fn fit_psf(
     };
     let mut a = vec![0.0; n * n];
     let mut g = vec![0.0; n];
+    // The trial point's normal equations are built with its chi-square (same operations,
+    // bit-identical chi-square): an accepted step then needs no second evaluation.
+    let mut a_trial = vec![0.0; n * n];
+    let mut g_trial = vec![0.0; n];
     let mut chi2 = evaluate(&p, &lay, params.background, &pixels, bx, Some((&mut a, &mut g)));
     let mut lambda = 1e-3;
     let mut converged = false;
@@ -616,7 +620,14 @@ pub fn fit_psf(
         let trial: Option<Vec<f64>> = step.map(|d| p.iter().zip(&d).map(|(x, dx)| x + dx).collect());
         let improved = match &trial {
             Some(q) if acceptable(q) => {
-                let c = evaluate(q, &lay, params.background, &pixels, bx, None);
+                let c = evaluate(
+                    q,
+                    &lay,
+                    params.background,
+                    &pixels,
+                    bx,
+                    Some((&mut a_trial, &mut g_trial)),
+                );
                 (c <= chi2).then_some(c)
             }
             _ => None,
@@ -626,7 +637,9 @@ pub fn fit_psf(
                 let small_step = p.iter().zip(&q).all(|(x, y)| (x - y).abs() <= 1e-10 * (x.abs() + 1e-6));
                 let small_gain = chi2 - c <= 1e-13 * chi2;
                 p = q;
-                chi2 = evaluate(&p, &lay, params.background, &pixels, bx, Some((&mut a, &mut g)));
+                chi2 = c;
+                std::mem::swap(&mut a, &mut a_trial);
+                std::mem::swap(&mut g, &mut g_trial);
                 lambda = (lambda * 0.1).max(1e-12);
                 if small_step || small_gain || chi2 == 0.0 {
                     converged = true;
