@@ -54,6 +54,13 @@ enum What {
         /// Seed.
         #[arg(long, default_value_t = 7)]
         seed: u64,
+        /// Write the full accuracy-against-time report (Markdown tables, JSON, PNG Pareto
+        /// plots) of every trade-off into this directory instead of one table.
+        #[arg(long, value_name = "DIR")]
+        report: Option<std::path::PathBuf>,
+        /// With --report: tiny sizes (a smoke test; the figures mean nothing).
+        #[arg(long, requires = "report")]
+        quick: bool,
         #[command(flatten)]
         reduce: super::target::ReduceArgs,
     },
@@ -141,7 +148,36 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             dir,
         } => bench_night(targets, jobs, repeats, dir)?,
         What::Stages { repeats } => bench_stages(repeats)?,
-        What::Accuracy { targets, seed, reduce } => {
+        What::Accuracy {
+            targets,
+            seed,
+            report: Some(dir),
+            quick,
+            reduce,
+        } => {
+            let params = reduce.params()?;
+            let command = std::env::args().collect::<Vec<_>>().join(" ");
+            let opts = super::accuracy_report::ReportOptions {
+                targets,
+                seed,
+                quick,
+                command,
+            };
+            let t0 = Instant::now();
+            super::accuracy_report::run(&dir, &params, &opts)?;
+            println!(
+                "sofipol bench accuracy: report written to {} in {:.1} s",
+                dir.display(),
+                t0.elapsed().as_secs_f64()
+            );
+        }
+        What::Accuracy {
+            targets,
+            seed,
+            report: None,
+            reduce,
+            ..
+        } => {
             let params = reduce.params()?;
             let cfg = sofipol_pipeline::accuracy::AccuracyConfig {
                 targets_per_bin: targets,
