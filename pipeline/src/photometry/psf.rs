@@ -759,3 +759,40 @@ pub fn subtract_star(img: ArrayView2<f32>, fit: &PsfFit, k: usize) -> Array2<f32
     fit.render_star(k, &mut out.view_mut(), -1.0);
     out
 }
+
+/// [`subtract_star`] on the pixels of the square `[floor(c - radius), ceil(c + radius)]` about
+/// `centre` (clipped to the image; it holds every pixel within `radius`) only: there the
+/// values are those of [`subtract_star`] bit for bit (the star is rendered into a sub-view
+/// with shifted coordinates; differences of pixel indices and positions are exact), the
+/// input's elsewhere. For deblending before aperture photometry, which reads only the
+/// aperture and the annulus: the Moffat's 1e-9 wings otherwise cover the whole image.
+/// Panics if `k` is out of range.
+pub fn subtract_star_near(
+    img: ArrayView2<f32>,
+    fit: &PsfFit,
+    k: usize,
+    centre: (f64, f64),
+    radius: f64,
+) -> Array2<f32> {
+    let mut out = img.to_owned();
+    subtract_star_near_in_place(&mut out, fit, k, centre, radius);
+    out
+}
+
+/// [`subtract_star_near`] in place.
+pub fn subtract_star_near_in_place(img: &mut Array2<f32>, fit: &PsfFit, k: usize, (cx, cy): (f64, f64), radius: f64) {
+    let (ny, nx) = img.dim();
+    let s = fit.stars[k];
+    if nx == 0 || ny == 0 || !(cx.is_finite() && cy.is_finite() && radius >= 0.0) {
+        return;
+    }
+    let clampi = |v: f64, n: usize| v.max(0.0).min(n as f64 - 1.0) as usize;
+    let (x0, x1) = (clampi((cx - radius).floor(), nx), clampi((cx + radius).ceil(), nx));
+    let (y0, y1) = (clampi((cy - radius).floor(), ny), clampi((cy + radius).ceil(), ny));
+    let mut view = img.slice_mut(ndarray::s![y0..=y1, x0..=x1]);
+    let (x, y) = (s.x - x0 as f64, s.y - y0 as f64);
+    match fit.model {
+        PsfModel::Gaussian => add_gaussian(&mut view, -s.flux, x, y, fit.sigma_x, fit.sigma_y),
+        PsfModel::Moffat { .. } => add_moffat(&mut view, -s.flux, x, y, fit.alpha, fit.beta),
+    }
+}
