@@ -15,7 +15,7 @@ use sofipol_calib::sky::SkyScaling;
 use sofipol_pipeline::accuracy::{AccuracyConfig, BinReport};
 use sofipol_pipeline::photometry::{Method, PsfModel};
 use sofipol_pipeline::plots::{Figure, LegendPos, Panel, Series, Style};
-use sofipol_pipeline::reduce::target::TargetParams;
+use sofipol_pipeline::reduce::TargetParams;
 
 /// Changes a variant makes to the simulated night and to the reduction settings.
 pub type Apply = Box<dyn Fn(&mut AccuracyConfig, &mut TargetParams) + Sync + Send>;

@@ -5,7 +5,7 @@ use sofipol_calib::Profile;
 
 use super::sources::{brightest_peak, Primary};
 use super::{CalibratedOrientation, MeasureParams};
-use crate::photometry::{fit_psf, PsfFitParams, PsfModel};
+use crate::photometry::{fit_psf, subtract_star_near, subtract_star_near_in_place, PsfFitParams, PsfModel};
 use crate::stokes::model::{companion_offset_px, offset_to_sep_pa};
 
 /// Shift-and-add of square cut-outs of half-size `h` centred on the rounded positions
@@ -126,7 +126,8 @@ pub fn find_pair(
     let b_guess = match predicted {
         Some((dx, dy)) => (s0.x + dx * 0.5, s0.y + dy * 0.5, s0.x - dx * 0.5, s0.y - dy * 0.5),
         None => {
-            let resid = crate::photometry::subtract_star(stack.view(), &single, 0);
+            // The search reads within search_px (+1 for its 3x3 sums) of the single fit.
+            let resid = subtract_star_near(stack.view(), &single, 0, (s0.x, s0.y), search_px + 3.0);
             let (bx, by, v) = brightest_peak(resid.view(), smask.view(), s0.x, s0.y, search_px, [0, n])?;
             if !(v > 0.0) {
                 return None;
@@ -170,8 +171,11 @@ pub fn find_pair(
     // Model selection on one fixed set of pixels: is the second star needed?
     let sep = (a.x - b.x).hypot(a.y - b.y);
     let r = (2.0 * fwhm).max(sep + 1.5 * fwhm).min(n as f64 / 2.0);
-    let r1 = crate::photometry::subtract_star(stack.view(), &single, 0);
-    let r2 = crate::photometry::subtract_star(crate::photometry::subtract_star(stack.view(), &two, 0).view(), &two, 1);
+    // rss reads within r of the single fit: the models are subtracted there only.
+    let near = (s0.x, s0.y);
+    let r1 = subtract_star_near(stack.view(), &single, 0, near, r + 1.0);
+    let mut r2 = subtract_star_near(stack.view(), &two, 0, near, r + 1.0);
+    subtract_star_near_in_place(&mut r2, &two, 1, near, r + 1.0);
     let (s1, npix) = rss(&r1, smask, s0.x, s0.y, r);
     let (s2, _) = rss(&r2, smask, s0.x, s0.y, r);
     let f_stat = if npix > 8 && s2 > 0.0 {
