@@ -29,6 +29,10 @@ pub struct AccuracyConfig {
     pub beta_range: Option<[f64; 2]>,
     /// Effects (scene names).
     pub effects: Vec<String>,
+    /// Instrument orientations (POSANG), degrees.
+    pub orientations_deg: Vec<f64>,
+    /// Dithers per orientation.
+    pub dithers: usize,
     /// Extra scene sections (TOML), e.g. `[flat_field]` settings.
     pub extra_scene: String,
     /// Flat field applied to the raw frames before the reduction.
@@ -89,6 +93,8 @@ impl Default for AccuracyConfig {
             .collect(),
             extra_scene: String::new(),
             flat: FlatMode::None,
+            orientations_deg: vec![0.0, 45.0],
+            dithers: 5,
         }
     }
 }
@@ -108,6 +114,10 @@ pub struct BinReport {
     pub mean_pull: f64,
     /// Median sigma_q, fraction.
     pub median_sigma: f64,
+    /// rms of the true errors q - q_true and u - u_true (both components), fraction.
+    pub rms_error: f64,
+    /// Mean of the true errors (the bias), fraction.
+    pub mean_error: f64,
     /// Components not measured (companion not found, failed...).
     pub missing: usize,
     /// Median wall time per target (simulation excluded), s.
@@ -120,10 +130,12 @@ pub struct BinReport {
 pub fn scene_for(cfg: &AccuracyConfig, lo: f64, hi: f64, bin: usize) -> (Scene, Vec<[f64; 4]>) {
     let mut r = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(cfg.seed ^ (bin as u64 * 0x9E37));
     let mut text = format!(
-        "name = \"acc{bin}\"\nseed = {}\neffects = [{}]\n{}\n[psf]\nkind = \"moffat\"\nfwhm_arcsec = {}\nbeta = 3.0\nseeing_rms_frac = 0.08\nfwhm_spread_frac = {}\n{}",
+        "name = \"acc{bin}\"\nseed = {}\neffects = [{}]\n{}\n[observation]\norientations_deg = [{}]\ndithers = {}\n[psf]\nkind = \"moffat\"\nfwhm_arcsec = {}\nbeta = 3.0\nseeing_rms_frac = 0.08\nfwhm_spread_frac = {}\n{}",
         cfg.seed + bin as u64,
         cfg.effects.iter().map(|e| format!("\"{e}\"")).collect::<Vec<_>>().join(","),
         cfg.extra_scene,
+        cfg.orientations_deg.iter().map(|a| format!("{a:?}")).collect::<Vec<_>>().join(","),
+        cfg.dithers,
         cfg.fwhm_arcsec,
         cfg.fwhm_spread_frac,
         cfg.beta_range
@@ -153,6 +165,7 @@ pub fn scene_for(cfg: &AccuracyConfig, lo: f64, hi: f64, bin: usize) -> (Scene, 
 struct One {
     note: Option<String>,
     pulls: Vec<f64>,
+    errors: Vec<f64>,
     sigmas: Vec<f64>,
     missing: usize,
     reduce_s: f64,
@@ -191,6 +204,7 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
                     let mut one = One {
                         note: None,
                         pulls: vec![],
+                        errors: vec![],
                         sigmas: vec![],
                         missing: 0,
                         reduce_s,
@@ -211,6 +225,8 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
                             Some(c) if c.q.is_finite() && c.sigma_q > 0.0 => {
                                 one.pulls.push((c.q - tc.q) / c.sigma_q);
                                 one.pulls.push((c.u - tc.u) / c.sigma_u);
+                                one.errors.push(c.q - tc.q);
+                                one.errors.push(c.u - tc.u);
                                 one.sigmas.push(c.sigma_q);
                             }
                             _ => one.missing += 1,
@@ -253,6 +269,8 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
                 })
                 .collect();
             let pulls: Vec<f64> = ones.iter().flat_map(|o| o.pulls.iter().copied()).collect();
+            let errs: Vec<f64> = ones.iter().flat_map(|o| o.errors.iter().copied()).collect();
+            let ne = errs.len().max(1) as f64;
             let mut sig: Vec<f64> = ones.iter().flat_map(|o| o.sigmas.iter().copied()).collect();
             sig.sort_by(|a, b| a.total_cmp(b));
             let mut ts: Vec<f64> = ones.iter().map(|o| o.reduce_s).collect();
@@ -265,6 +283,8 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
                 rms_pull: (pulls.iter().map(|p| p * p).sum::<f64>() / np).sqrt(),
                 mean_pull: pulls.iter().sum::<f64>() / np,
                 median_sigma: sig.get(sig.len() / 2).copied().unwrap_or(f64::NAN),
+                rms_error: (errs.iter().map(|e| e * e).sum::<f64>() / ne).sqrt(),
+                mean_error: errs.iter().sum::<f64>() / ne,
                 missing: ones.iter().map(|o| o.missing).sum(),
                 median_reduce_s: ts.get(ts.len() / 2).copied().unwrap_or(f64::NAN),
                 outliers: ones.iter().filter_map(|o| o.note.clone()).collect(),

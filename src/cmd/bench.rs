@@ -22,7 +22,9 @@ enum What {
         repeats: usize,
     },
     /// A 49-target night (490 frames of 1024x1024): simulate it (not timed), then time
-    /// `sofipol night` on it in a child process: wall time, per-stage breakdown, peak RSS.
+    /// `sofipol night` on it in a child process: wall and CPU time, per-stage breakdown, peak
+    /// RSS, and right after each run the `cat` floor (time `cat` needs to read the same files,
+    /// page cache warm) and the ratio wall / cat.
     Night {
         /// Targets.
         #[arg(long, default_value_t = 49)]
@@ -33,7 +35,8 @@ enum What {
         /// Repeats of the reduction (median reported).
         #[arg(long, default_value_t = 3)]
         repeats: usize,
-        /// Keep the simulated night here instead of a temporary directory.
+        /// Keep the simulated night here instead of a temporary directory (a night simulated
+        /// there earlier with the same --targets is reused).
         #[arg(long)]
         dir: Option<std::path::PathBuf>,
         /// Add 3 standard stars (2 unpolarized, 1 polarized, from the built-in table) and the
@@ -67,6 +70,13 @@ enum What {
         /// Hold the PSF fixed in shape (beta 3, no FWHM spread; only the 8 % seeing change).
         #[arg(long)]
         fixed_psf: bool,
+        /// Write the full accuracy-against-time report (Markdown tables, JSON, PNG Pareto
+        /// plots) of every trade-off into this directory instead of one table.
+        #[arg(long, value_name = "DIR")]
+        report: Option<std::path::PathBuf>,
+        /// With --report: tiny sizes (a smoke test; the figures mean nothing).
+        #[arg(long, requires = "report")]
+        quick: bool,
         #[command(flatten)]
         reduce: super::target::ReduceArgs,
     },
@@ -158,10 +168,36 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         What::Accuracy {
             targets,
             seed,
+            report: Some(dir),
+            quick,
+            reduce,
+            ..
+        } => {
+            let params = reduce.params()?;
+            let command = std::env::args().collect::<Vec<_>>().join(" ");
+            let opts = super::accuracy_report::ReportOptions {
+                targets,
+                seed,
+                quick,
+                command,
+            };
+            let t0 = Instant::now();
+            super::accuracy_report::run(&dir, &params, &opts)?;
+            println!(
+                "sofipol bench accuracy: report written to {} in {:.1} s",
+                dir.display(),
+                t0.elapsed().as_secs_f64()
+            );
+        }
+        What::Accuracy {
+            targets,
+            seed,
+            report: None,
             reduce,
             pixel_response,
             flat,
             fixed_psf,
+            ..
         } => {
             let params = reduce.params()?;
             let cfg = sofipol_pipeline::accuracy::AccuracyConfig::with_flat_field(
@@ -239,6 +275,7 @@ fn bench_night(
 ) -> anyhow::Result<()> {
     use anyhow::Context;
     let tmp = tempfile::tempdir()?;
+    let keep = dir.is_some();
     let root = dir.unwrap_or_else(|| tmp.path().to_path_buf());
     let raw = root.join("raw");
     let mut text = night_scene(targets, 2001);
@@ -253,14 +290,32 @@ fn bench_night(
             "[[standard]]\nname = \"HD 64299\"\nflux = 150000.0\n[[standard]]\nname = \"HD 98161\"\nflux = 150000.0\n";
         text += "[[standard]]\nname = \"HD 204827\"\nflux = 150000.0\np = 0.0084\ngamma_deg = 58.7\n";
     }
-    let scene = Scene::from_toml(&text, "bench night").map_err(anyhow::Error::msg)?;
-    let t0 = Instant::now();
-    let truth = super::simulate::simulate_into(scene, Profile::sofi(), &raw, None, true)?;
-    std::fs::remove_file(raw.join("truth.json")).ok();
-    let nframes: usize = truth.targets.iter().map(|t| t.frames.len()).sum();
-    println!("sofipol bench night: simulated {targets} targets, {nframes} frames (1024x1024 f32) in {:.1} s (not timed below)", t0.elapsed().as_secs_f64());
+    let reuse = raw.join(".bench-night-complete");
+    let tag = format!("{targets}{}\n", if with_standards { " with standards" } else { "" });
+    if std::fs::read_to_string(&reuse).ok().as_deref() == Some(tag.as_str()) {
+        println!(
+            "sofipol bench night: reusing the {targets}-target night simulated earlier in {}",
+            raw.display()
+        );
+    } else {
+        let scene = Scene::from_toml(&text, "bench night").map_err(anyhow::Error::msg)?;
+        let t0 = Instant::now();
+        let truth = super::simulate::simulate_into(scene, Profile::sofi(), &raw, None, true)?;
+        std::fs::remove_file(raw.join("truth.json")).ok();
+        let nframes: usize = truth.targets.iter().map(|t| t.frames.len()).sum();
+        println!("sofipol bench night: simulated {targets} targets, {nframes} frames (1024x1024 f32) in {:.1} s (not timed below)", t0.elapsed().as_secs_f64());
+        if keep {
+            std::fs::write(&reuse, &tag)?;
+        }
+    }
     let exe = std::env::current_exe().context("locating the sofipol executable")?;
-    let mut walls = Vec::new();
+    let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(&raw)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.is_file() && p.extension().is_some_and(|x| x == "fits"))
+        .collect();
+    files.sort();
+    let bytes: u64 = files.iter().filter_map(|p| p.metadata().ok()).map(|m| m.len()).sum();
+    let mut runs: Vec<NightRun> = Vec::new();
     let mut last = String::new();
     for r in 0..repeats.max(1) {
         let out = root.join(format!("catalog{r}.json"));
@@ -277,20 +332,39 @@ fn bench_night(
         }
         let t = Instant::now();
         let o = cmd.output().context("running sofipol night")?;
-        walls.push(t.elapsed().as_secs_f64());
-        last = String::from_utf8_lossy(&o.stderr).to_string();
+        let wall = t.elapsed().as_secs_f64();
+        let stderr = String::from_utf8_lossy(&o.stderr).to_string();
         anyhow::ensure!(
             o.status.code() == Some(0) || o.status.code() == Some(2),
-            "sofipol night failed: {last}"
+            "sofipol night failed: {stderr}"
         );
+        // The floors, in the same run, page cache warm (the reduction just read the files).
+        let cat = cat_floor(&files)?;
+        let read = read_floor(&files)?;
+        last = stderr.clone();
+        runs.push(NightRun {
+            wall,
+            cat,
+            read,
+            stages: parse_stage_line(&stderr),
+        });
     }
-    let mut w = walls.clone();
-    w.sort_by(|a, b| a.total_cmp(b));
+    let med = |f: &dyn Fn(&NightRun) -> f64| -> f64 {
+        let mut v: Vec<f64> = runs.iter().map(f).filter(|x| x.is_finite()).collect();
+        v.sort_by(|a, b| a.total_cmp(b));
+        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+    };
+    let list = |f: &dyn Fn(&NightRun) -> f64| -> String {
+        runs.iter()
+            .map(|r| format!("{:.2}", f(r)))
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
+    let n = runs.len();
     println!(
-        "  reduction wall time (process, incl. start-up): median {:.2} s over {} runs {:?}",
-        w[w.len() / 2],
-        w.len(),
-        walls.iter().map(|x| format!("{x:.2}")).collect::<Vec<_>>()
+        "  files: {} ({:.0} MB); medians over {n} runs, each run = reduction + floors right after it",
+        files.len(),
+        bytes as f64 / 1e6
     );
     for line in last
         .lines()
@@ -298,8 +372,125 @@ fn bench_night(
     {
         println!("  last run: {line}");
     }
-    println!("  targets: <= 2.5 s wall, peak RSS <= 1 GB (2-core machine)");
+    println!(
+        "  reduction wall (child process, incl. start-up): {:.2} s   [{}]",
+        med(&|r| r.wall),
+        list(&|r| r.wall)
+    );
+    println!(
+        "  reduction CPU (user+sys):                       {:.2} s   [{}]",
+        med(&|r| r.stages.get("cpu")),
+        list(&|r| r.stages.get("cpu"))
+    );
+    println!(
+        "  `cat` floor (cat FILES > /dev/null):             {:.3} s  [{}]",
+        med(&|r| r.cat),
+        runs.iter()
+            .map(|r| format!("{:.3}", r.cat))
+            .collect::<Vec<_>>()
+            .join(" ")
+    );
+    println!(
+        "  in-process read floor (std::fs::read each file): {:.3} s  [{}]",
+        med(&|r| r.read),
+        runs.iter()
+            .map(|r| format!("{:.3}", r.read))
+            .collect::<Vec<_>>()
+            .join(" ")
+    );
+    println!(
+        "  ratio wall / cat (per run, same run):           {:.1}x  [{}]",
+        med(&|r| r.wall / r.cat),
+        runs.iter()
+            .map(|r| format!("{:.1}", r.wall / r.cat))
+            .collect::<Vec<_>>()
+            .join(" ")
+    );
+    println!(
+        "  ratio CPU / cat:                                 {:.1}x",
+        med(&|r| r.stages.get("cpu") / r.cat)
+    );
+    println!(
+        "  stage times (s, wall time per target summed over targets, both workers; median): read {:.2}, bad pixels {:.2}, sky {:.2}, measure {:.2}, write {:.2}",
+        med(&|r| r.stages.get("read")),
+        med(&|r| r.stages.get("bad pixels")),
+        med(&|r| r.stages.get("sky")),
+        med(&|r| r.stages.get("measure")),
+        med(&|r| r.stages.get("write"))
+    );
+    println!(
+        "  peak RSS: {:.0} MB (max over runs)",
+        runs.iter().map(|r| r.stages.get("rss")).fold(0.0, f64::max)
+    );
+    println!("  Python reference: no expert Python reduction of a night is in this repository; not compared");
+    println!("  targets (issue 10): wall <= 5x cat, peak RSS <= 1 GB");
     Ok(())
+}
+
+/// One repeat of `bench night`.
+struct NightRun {
+    wall: f64,
+    cat: f64,
+    read: f64,
+    stages: StageLine,
+}
+
+/// The figures of the child's `-v` line.
+#[derive(Default)]
+struct StageLine(Vec<(String, f64)>);
+
+impl StageLine {
+    fn get(&self, k: &str) -> f64 {
+        self.0.iter().find(|(n, _)| n == k).map_or(f64::NAN, |(_, v)| *v)
+    }
+}
+
+/// Parses `stage time summed over targets: read 0.94 s, ...; cpu 3.1 s; peak RSS 145 MB`.
+fn parse_stage_line(stderr: &str) -> StageLine {
+    let Some(line) = stderr.lines().find(|l| l.contains("stage time")) else {
+        return StageLine::default();
+    };
+    let body = line.split_once(':').map_or(line, |(_, b)| b);
+    let mut out = Vec::new();
+    for part in body.split([',', ';']) {
+        let words: Vec<&str> = part.split_whitespace().collect();
+        // "<name words> <value> <unit>"
+        if words.len() >= 3 {
+            if let Ok(v) = words[words.len() - 2].parse::<f64>() {
+                let name = words[..words.len() - 2].join(" ");
+                let name = if name == "peak RSS" { "rss".to_string() } else { name };
+                out.push((name, v));
+            }
+        }
+    }
+    StageLine(out)
+}
+
+/// Seconds `cat` needs to read `files` to /dev/null (one process, like `cat *.fits`).
+fn cat_floor(files: &[std::path::PathBuf]) -> anyhow::Result<f64> {
+    use anyhow::Context;
+    let t = Instant::now();
+    let st = std::process::Command::new("cat")
+        .args(files)
+        .stdout(std::process::Stdio::null())
+        .status()
+        .context("running cat")?;
+    anyhow::ensure!(st.success(), "cat failed");
+    Ok(t.elapsed().as_secs_f64())
+}
+
+/// Seconds to read every file fully into memory, in this process, one thread.
+fn read_floor(files: &[std::path::PathBuf]) -> anyhow::Result<f64> {
+    use std::io::Read;
+    let t = Instant::now();
+    let mut buf = Vec::new();
+    let mut total = 0usize;
+    for f in files {
+        buf.clear();
+        total += std::fs::File::open(f)?.read_to_end(&mut buf)?;
+    }
+    std::hint::black_box(total);
+    Ok(t.elapsed().as_secs_f64())
 }
 
 fn bench_stages(repeats: usize) -> anyhow::Result<()> {

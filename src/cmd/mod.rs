@@ -1,4 +1,5 @@
 //! One module per subcommand. Each has `Args` (clap) and `run(Args) -> anyhow::Result<ExitCode>`.
+pub mod accuracy_report;
 pub mod bench;
 pub mod calib;
 pub mod common;

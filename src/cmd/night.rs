@@ -253,13 +253,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             ]
         });
         eprintln!(
-            "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, flat {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; calibration (standards reduced + every target re-solved, wall) {cal_s:.2} s; wall {wall:.2} s; peak RSS {:.0} MB",
+            "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, flat {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; calibration {cal_s:.2} s; wall {wall:.2} s; cpu {:.2} s; peak RSS {:.0} MB",
             sum[0],
             sum[1],
             sum[5],
             sum[2],
             sum[3],
             sum[4],
+            night::cpu_seconds().unwrap_or(f64::NAN),
             night::peak_rss_bytes().unwrap_or(0) as f64 / 1e6
         );
     }

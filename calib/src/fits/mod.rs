@@ -30,7 +30,7 @@ mod read;
 mod tests;
 mod write;
 
-pub use read::{read_frame, read_header};
+pub use read::{read_frame, read_frame_rows, read_header};
 pub use write::write_frame;
 
 /// On-disk pixel type of a written image.

@@ -55,13 +55,30 @@ pub fn read_header(path: &Path) -> Result<Header> {
 /// # Ok::<(), sofipol_calib::Error>(())
 /// ```
 pub fn read_frame(path: &Path) -> Result<Frame> {
+    read_frame_rows(path, None)
+}
+
+/// [`read_frame`] of the rows `[r0, r1)` only (cfitsio reads just those rows of the image
+/// and of the VARIANCE / MASK extensions): the same frame as
+/// `read_frame(path)?.crop_rows(r0, r1)`, history record included, at a fraction of the
+/// cost. An image with fewer than `r1` rows (or `r0 >= r1`) is read whole and uncropped, as
+/// the reduction's cropping leaves such frames. `None`: the whole image.
+pub fn read_frame_rows(path: &Path, rows: Option<(usize, usize)>) -> Result<Frame> {
     let mut f = open(path)?;
     let (hdu_index, cards) = find_image_hdu(&mut f, path)?;
     let (header, history) = parse_cards(&cards, path);
-    let (ny, nx) = image_dims(&cards, path)?;
-    check_size_against_file(&cards, path, ny, nx)?;
+    let (ny_full, nx) = image_dims(&cards, path)?;
+    check_size_against_file(&cards, path, ny_full, nx)?;
+    let rows = rows.filter(|&(r0, r1)| r0 < r1 && r1 <= ny_full);
+    let ny = rows.map_or(ny_full, |(r0, r1)| r1 - r0);
+    let read = |f: &mut FitsFile, i: usize| -> Result<Array2<f32>> {
+        match rows {
+            None => read_f32(f, path, i, ny_full, nx),
+            Some((r0, _)) => read_f32_rows(f, path, i, (ny_full, nx), r0, ny),
+        }
+    };
 
-    let data = read_f32(&mut f, path, hdu_index, ny, nx)?;
+    let data = read(&mut f, hdu_index)?;
 
     // Look for VARIANCE / MASK extensions after the image HDU.
     let mut variance = None;
@@ -70,15 +87,17 @@ pub fn read_frame(path: &Path) -> Result<Frame> {
     while let Some(cards) = hdu_cards(&mut f, path, i)? {
         match extname(&cards).as_deref() {
             Some(VARIANCE_EXTNAME) if variance.is_none() => {
-                check_same_shape(&cards, path, VARIANCE_EXTNAME, (ny, nx))?;
-                variance = Some(read_f32(&mut f, path, i, ny, nx)?);
+                check_same_shape(&cards, path, VARIANCE_EXTNAME, (ny_full, nx))?;
+                variance = Some(read(&mut f, i)?);
             }
             Some(MASK_EXTNAME) if mask.is_none() => {
-                check_same_shape(&cards, path, MASK_EXTNAME, (ny, nx))?;
+                check_same_shape(&cards, path, MASK_EXTNAME, (ny_full, nx))?;
                 let hdu = f.hdu(i).map_err(|e| fits_err(path, &format!("HDU {i} (MASK)"), e))?;
-                let v: Vec<u8> = hdu
-                    .read_image(&mut f)
-                    .map_err(|e| fits_err(path, "reading the MASK extension", e))?;
+                let v: Vec<u8> = match rows {
+                    None => hdu.read_image(&mut f),
+                    Some((r0, _)) => hdu.read_rows(&mut f, r0, ny),
+                }
+                .map_err(|e| fits_err(path, "reading the MASK extension", e))?;
                 mask = Some(to_array(v, ny, nx, path)?);
             }
             _ => {}
@@ -86,12 +105,20 @@ pub fn read_frame(path: &Path) -> Result<Frame> {
         i += 1;
     }
 
-    Ok(Frame {
+    let frame = Frame {
         mask: mask.unwrap_or_else(|| Array2::zeros((ny, nx))),
         data,
         variance,
         header,
         history,
+    };
+    Ok(match rows {
+        None => frame,
+        // The record Frame::crop_rows writes.
+        Some((r0, r1)) => frame.with_history(
+            "crop",
+            format!("rows [{r0}, {r1}) of the detector; row {r0} is row 0 here"),
+        ),
     })
 }
 
@@ -308,6 +335,36 @@ pub(super) fn read_f32(f: &mut FitsFile, path: &Path, index: usize, ny: usize, n
         .read_image(f)
         .map_err(|e| fits_err(path, &format!("reading image data of HDU {index}"), e))?;
     to_array(v, ny, nx, path)
+}
+
+/// Rows `[r0, r0 + n)` of the image HDU `index` of shape `full` (ny, nx), as `f32`.
+fn read_f32_rows(
+    f: &mut FitsFile,
+    path: &Path,
+    index: usize,
+    full: (usize, usize),
+    r0: usize,
+    n: usize,
+) -> Result<Array2<f32>> {
+    let hdu = f
+        .hdu(index)
+        .map_err(|e| fits_err(path, &format!("moving to HDU {index}"), e))?;
+    match &hdu.info {
+        HduInfo::ImageInfo { shape, .. } if shape.as_slice() == [full.0, full.1] => {}
+        other => {
+            return Err(Error::BadImage {
+                path: path.to_path_buf(),
+                reason: format!(
+                    "HDU {index}: cfitsio reports {other:?}, expected a {} x {} image",
+                    full.1, full.0
+                ),
+            })
+        }
+    }
+    let v: Vec<f32> = hdu
+        .read_rows(f, r0, n)
+        .map_err(|e| fits_err(path, &format!("reading rows [{r0}, {}) of HDU {index}", r0 + n), e))?;
+    to_array(v, n, full.1, path)
 }
 
 pub(super) fn to_array<T>(v: Vec<T>, ny: usize, nx: usize, path: &Path) -> Result<Array2<T>> {

@@ -210,3 +210,46 @@ fn a_corrupt_naxis_larger_than_the_file_is_refused_before_allocating() {
     ));
     assert_eq!(read_frame(fz).unwrap().shape(), (64, 64));
 }
+
+/// `read_frame_rows` gives the frame `read_frame(..).crop_rows(..)` gives: 16-bit, tile
+/// compressed, and float with VARIANCE and MASK extensions; too-short images stay whole.
+#[test]
+fn read_frame_rows_equals_read_then_crop() {
+    use super::{read_frame, read_frame_rows, write_frame};
+    let dir = tempfile::tempdir().unwrap();
+    let base = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../testdata/fits"));
+    let mut f32_frame = read_frame(&base.join("sofi_pol_64x64_i16.fits")).unwrap();
+    f32_frame
+        .data
+        .iter_mut()
+        .enumerate()
+        .for_each(|(i, v)| *v += i as f32 * 0.001);
+    f32_frame.variance = Some(f32_frame.data.mapv(|v| v.abs() + 1.5));
+    f32_frame
+        .mask
+        .iter_mut()
+        .enumerate()
+        .for_each(|(i, m)| *m = (i % 7 == 0) as u8);
+    let written = dir.path().join("f.fits");
+    write_frame(&written, &f32_frame, &Default::default()).unwrap();
+    for path in [
+        base.join("sofi_pol_64x64_i16.fits"),
+        base.join("sofi_pol_64x64_i16.fits.fz"),
+        written,
+    ] {
+        let full = read_frame(&path).unwrap();
+        let want = full.crop_rows(11, 40);
+        let got = read_frame_rows(&path, Some((11, 40))).unwrap();
+        assert_eq!(got.shape(), (29, 64), "{}", path.display());
+        let bits = |a: &ndarray::Array2<f32>| a.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&got.data), bits(&want.data), "{}", path.display());
+        assert_eq!(got.mask, want.mask);
+        assert_eq!(got.variance.as_ref().map(bits), want.variance.as_ref().map(bits));
+        assert_eq!(
+            got.history.last().map(|h| &h.detail),
+            want.history.last().map(|h| &h.detail)
+        );
+        // Rows beyond the image: read whole, uncropped.
+        assert_eq!(read_frame_rows(&path, Some((11, 65))).unwrap().shape(), (64, 64));
+    }
+}

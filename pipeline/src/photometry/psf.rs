@@ -597,6 +597,10 @@ pub fn fit_psf(
     };
     let mut a = vec![0.0; n * n];
     let mut g = vec![0.0; n];
+    // The trial point's normal equations are built with its chi-square (same operations,
+    // bit-identical chi-square): an accepted step then needs no second evaluation.
+    let mut a_trial = vec![0.0; n * n];
+    let mut g_trial = vec![0.0; n];
     let mut chi2 = evaluate(&p, &lay, params.background, &pixels, bx, Some((&mut a, &mut g)));
     let mut lambda = 1e-3;
     let mut converged = false;
@@ -616,7 +620,14 @@ pub fn fit_psf(
         let trial: Option<Vec<f64>> = step.map(|d| p.iter().zip(&d).map(|(x, dx)| x + dx).collect());
         let improved = match &trial {
             Some(q) if acceptable(q) => {
-                let c = evaluate(q, &lay, params.background, &pixels, bx, None);
+                let c = evaluate(
+                    q,
+                    &lay,
+                    params.background,
+                    &pixels,
+                    bx,
+                    Some((&mut a_trial, &mut g_trial)),
+                );
                 (c <= chi2).then_some(c)
             }
             _ => None,
@@ -626,7 +637,9 @@ pub fn fit_psf(
                 let small_step = p.iter().zip(&q).all(|(x, y)| (x - y).abs() <= 1e-10 * (x.abs() + 1e-6));
                 let small_gain = chi2 - c <= 1e-13 * chi2;
                 p = q;
-                chi2 = evaluate(&p, &lay, params.background, &pixels, bx, Some((&mut a, &mut g)));
+                chi2 = c;
+                std::mem::swap(&mut a, &mut a_trial);
+                std::mem::swap(&mut g, &mut g_trial);
                 lambda = (lambda * 0.1).max(1e-12);
                 if small_step || small_gain || chi2 == 0.0 {
                     converged = true;
@@ -745,4 +758,41 @@ pub fn subtract_star(img: ArrayView2<f32>, fit: &PsfFit, k: usize) -> Array2<f32
     let mut out = img.to_owned();
     fit.render_star(k, &mut out.view_mut(), -1.0);
     out
+}
+
+/// [`subtract_star`] on the pixels of the square `[floor(c - radius), ceil(c + radius)]` about
+/// `centre` (clipped to the image; it holds every pixel within `radius`) only: there the
+/// values are those of [`subtract_star`] bit for bit (the star is rendered into a sub-view
+/// with shifted coordinates; differences of pixel indices and positions are exact), the
+/// input's elsewhere. For deblending before aperture photometry, which reads only the
+/// aperture and the annulus: the Moffat's 1e-9 wings otherwise cover the whole image.
+/// Panics if `k` is out of range.
+pub fn subtract_star_near(
+    img: ArrayView2<f32>,
+    fit: &PsfFit,
+    k: usize,
+    centre: (f64, f64),
+    radius: f64,
+) -> Array2<f32> {
+    let mut out = img.to_owned();
+    subtract_star_near_in_place(&mut out, fit, k, centre, radius);
+    out
+}
+
+/// [`subtract_star_near`] in place.
+pub fn subtract_star_near_in_place(img: &mut Array2<f32>, fit: &PsfFit, k: usize, (cx, cy): (f64, f64), radius: f64) {
+    let (ny, nx) = img.dim();
+    let s = fit.stars[k];
+    if nx == 0 || ny == 0 || !(cx.is_finite() && cy.is_finite() && radius >= 0.0) {
+        return;
+    }
+    let clampi = |v: f64, n: usize| v.max(0.0).min(n as f64 - 1.0) as usize;
+    let (x0, x1) = (clampi((cx - radius).floor(), nx), clampi((cx + radius).ceil(), nx));
+    let (y0, y1) = (clampi((cy - radius).floor(), ny), clampi((cy + radius).ceil(), ny));
+    let mut view = img.slice_mut(ndarray::s![y0..=y1, x0..=x1]);
+    let (x, y) = (s.x - x0 as f64, s.y - y0 as f64);
+    match fit.model {
+        PsfModel::Gaussian => add_gaussian(&mut view, -s.flux, x, y, fit.sigma_x, fit.sigma_y),
+        PsfModel::Moffat { .. } => add_moffat(&mut view, -s.flux, x, y, fit.alpha, fit.beta),
+    }
 }

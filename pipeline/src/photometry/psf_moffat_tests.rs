@@ -415,3 +415,71 @@ fn photometry_moffat_two_star_fit_converges_on_noisy_cutouts() {
         assert!(iters[iters.len() / 2] <= 30, "{label}: iterations {iters:?}");
     }
 }
+
+/// `subtract_star_near` equals `subtract_star` bit for bit inside its window and leaves the
+/// input alone outside, for both models, stars inside, at the edge of and outside the window.
+#[test]
+fn photometry_subtract_star_near_is_exact_inside_its_window() {
+    use super::{subtract_star, subtract_star_near};
+    let mut img = Array2::<f32>::zeros((61, 67));
+    for (i, v) in img.iter_mut().enumerate() {
+        *v = 100.0 + (i % 17) as f32 * 0.37;
+    }
+    for model in [PsfModel::Gaussian, PsfModel::Moffat { beta: None }] {
+        for &(x, y) in &[(30.37, 29.81), (3.2, 58.6), (65.9, 0.4), (12.123_456_789, 40.5)] {
+            let fit = PsfFit {
+                stars: vec![PsfStar {
+                    flux: 5e4,
+                    x,
+                    y,
+                    flux_err: 0.0,
+                    x_err: 0.0,
+                    y_err: 0.0,
+                }],
+                model,
+                sigma_x: 1.3,
+                sigma_y: 1.1,
+                alpha: 2.6,
+                beta: 2.9,
+                background: 0.0,
+                covariance: vec![],
+                param_names: vec![],
+                chi2: 0.0,
+                dof: 0,
+                n_pixels: 0,
+                iterations: 0,
+                converged: true,
+            };
+            let full = subtract_star(img.view(), &fit, 0);
+            for &(c, r) in &[((30.0, 30.0), 12.5), ((10.0, 45.0), 7.0), ((60.0, 5.0), 30.0)] {
+                let near = subtract_star_near(img.view(), &fit, 0, c, r);
+                let mut changed = 0;
+                for ((iy, ix), &v) in near.indexed_iter() {
+                    let (fx, fy) = (ix as f64, iy as f64);
+                    let inside = fx >= (c.0 - r).floor()
+                        && fx <= (c.0 + r).ceil()
+                        && fy >= (c.1 - r).floor()
+                        && fy <= (c.1 + r).ceil();
+                    if inside {
+                        assert_eq!(
+                            v.to_bits(),
+                            full[[iy, ix]].to_bits(),
+                            "{model:?} star ({x},{y}) pixel ({ix},{iy})"
+                        );
+                        changed += (v != img[[iy, ix]]) as usize;
+                    } else {
+                        assert_eq!(
+                            v.to_bits(),
+                            img[[iy, ix]].to_bits(),
+                            "{model:?} star ({x},{y}) window {c:?} {r}: outside ({ix},{iy})"
+                        );
+                    }
+                }
+                // (the Gaussian is rendered within 10 sigma only: nothing to see far away)
+                if matches!(model, PsfModel::Moffat { .. }) {
+                    assert!(changed > 0, "star ({x},{y}) window {c:?} {r}: nothing subtracted");
+                }
+            }
+        }
+    }
+}

@@ -5,7 +5,7 @@ use sofipol_calib::Profile;
 
 use super::sources::{brightest_peak, Primary};
 use super::{CalibratedOrientation, MeasureParams};
-use crate::photometry::{fit_psf, PsfFit, PsfFitParams, PsfModel};
+use crate::photometry::{fit_psf, subtract_star_near, PsfFit, PsfFitParams, PsfModel};
 use crate::stokes::model::{companion_offset_px, offset_to_sep_pa};
 
 /// Shift-and-add of square cut-outs of half-size `h` centred on the rounded positions
@@ -126,7 +126,8 @@ pub fn find_pair(
     let b_guess = match predicted {
         Some((dx, dy)) => (s0.x + dx * 0.5, s0.y + dy * 0.5, s0.x - dx * 0.5, s0.y - dy * 0.5),
         None => {
-            let resid = crate::photometry::subtract_star(stack.view(), &single, 0);
+            // The search reads within search_px (+1 for its 3x3 sums) of the single fit.
+            let resid = subtract_star_near(stack.view(), &single, 0, (s0.x, s0.y), search_px + 3.0);
             let (bx, by, v) = brightest_peak(resid.view(), smask.view(), s0.x, s0.y, search_px, [0, n])?;
             if !(v > 0.0) {
                 return None;

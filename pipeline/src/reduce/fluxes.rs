@@ -10,8 +10,8 @@ use super::companion::Companion;
 use super::sources::{Primary, UNUSABLE};
 use super::{BeamFlux, CalibratedOrientation, DitherValue, MeasureParams};
 use crate::photometry::{
-    aperture_sum, fit_psf, measure, subtract_star, Aperture, Flags, MaskFill, PhotParams, PsfFit, PsfFitParams,
-    PsfModel,
+    aperture_sum, fit_psf, measure, subtract_star_near_in_place, Aperture, Flags, MaskFill, PhotParams, PsfFit,
+    PsfFitParams, PsfModel,
 };
 use crate::stokes::model::companion_offset_px;
 
@@ -247,11 +247,14 @@ fn measure_star(
         return (flux, bits_in);
     }
     // Deblend: subtract the other stars' models, then measure.
+    // The photometry below reads the aperture and the annulus only: the other stars are
+    // subtracted there (the same pixel values as a whole-cutout subtraction).
     let mut work = cut.img.clone();
+    let reach = r_ap.max(params.annulus_fwhm.1 * fwhm_med) + 2.0;
     if let Some(ft) = fit {
         for other in 0..local.len() {
             if other != si {
-                work = subtract_star(work.view(), ft, other);
+                subtract_star_near_in_place(&mut work, ft, other, (lx, ly), reach);
             }
         }
     }

@@ -83,12 +83,14 @@ pub fn reduce_sequence(
     let mut orients: Vec<LoadedOrientation> = Vec::new();
     // The sequence as read: problems (missing dithers...) are judged on the usable frames.
     let mut readable = seq.clone();
+    // Only the rows the reduction keeps are read (reduce_loaded leaves such frames as they are).
+    let rows = crop_of(profile, params);
     for (o, ro) in seq.orientations.iter().zip(readable.orientations.iter_mut()) {
         let mut frames = Vec::new();
         let mut offs = Vec::new();
         ro.exposures.clear();
         for e in &o.exposures {
-            match fits::read_frame(&e.path) {
+            match fits::read_frame_rows(&e.path, rows) {
                 Ok(f) => {
                     frames.push(f);
                     offs.push(e.offset_px);
@@ -130,9 +132,7 @@ pub fn reduce_loaded(
     // Everything the measurement needs lies in the o- and e-target strips: unless whole
     // frames are wanted (intermediates for DS9), work on those rows only (a third of the
     // detector), with the profile's geometry shifted to match.
-    let g = &profile.geometry;
-    let (r0, r1) = (g.o_target[0].min(g.e_target[0]), g.o_target[1].max(g.e_target[1]));
-    let crop = (!params.full_frame_sky && params.save_intermediate.is_none() && r1 > r0).then_some((r0, r1));
+    let crop = crop_of(profile, params);
     let (orients, cropped_profile) = match crop {
         Some((r0, r1)) => (crop_rows(orients, r0, r1), Some(profile.cropped_rows(r0, r1))),
         None => (orients, None),
@@ -288,6 +288,14 @@ fn flat_field(
         })
         .collect();
     (out, used)
+}
+
+/// The detector rows `[r0, r1)` the reduction works on (the o- and e-target strips), unless
+/// whole frames are wanted.
+fn crop_of(profile: &Profile, params: &TargetParams) -> Option<(usize, usize)> {
+    let g = &profile.geometry;
+    let (r0, r1) = (g.o_target[0].min(g.e_target[0]), g.o_target[1].max(g.e_target[1]));
+    (!params.full_frame_sky && params.save_intermediate.is_none() && r1 > r0).then_some((r0, r1))
 }
 
 /// Rows [r0, r1) of every frame at least r1 rows high.

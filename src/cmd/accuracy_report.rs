@@ -1,0 +1,550 @@
+//! `sofipol bench accuracy --report DIR`: what accuracy costs in time, for every trade-off
+//! the code offers, from one command. Writes `DIR/README.md` (tables), `DIR/results.json` and
+//! PNG Pareto plots (error against time, the default marked).
+//!
+//! A trade-off is a [`Variant`]: a group, a name, the flags that reproduce it and a closure
+//! that changes the simulated night ([`AccuracyConfig`]) and/or the reduction settings
+//! ([`TargetParams`]). To add rows (e.g. calibration: none / superflat / dome flat,
+//! standards / ratio method), push variants in [`variants`]; a new group gets its own table
+//! and plot.
+use std::path::Path;
+use std::time::Instant;
+
+use serde::Serialize;
+use sofipol_calib::sky::SkyScaling;
+use sofipol_pipeline::accuracy::{AccuracyConfig, BinReport};
+use sofipol_pipeline::photometry::{Method, PsfModel};
+use sofipol_pipeline::plots::{Figure, LegendPos, Panel, Series, Style};
+use sofipol_pipeline::reduce::TargetParams;
+
+/// Changes a variant makes to the simulated night and to the reduction settings.
+pub type Apply = Box<dyn Fn(&mut AccuracyConfig, &mut TargetParams) + Sync + Send>;
+
+/// One row of the report.
+pub struct Variant {
+    /// Group (one table and one plot per group).
+    pub group: &'static str,
+    /// Short name.
+    pub name: String,
+    /// How to reproduce it with `sofipol bench accuracy` / `sofipol night`.
+    pub flags: String,
+    /// True for the shipped default of this group.
+    pub is_default: bool,
+    /// What the variant changes.
+    pub apply: Apply,
+}
+
+fn v(
+    group: &'static str,
+    name: &str,
+    flags: &str,
+    is_default: bool,
+    apply: impl Fn(&mut AccuracyConfig, &mut TargetParams) + Sync + Send + 'static,
+) -> Variant {
+    Variant {
+        group,
+        name: name.into(),
+        flags: flags.into(),
+        is_default,
+        apply: Box::new(apply),
+    }
+}
+
+/// Group of the reduction choices (x axis: reduction time per target).
+pub const G_REDUCTION: &str = "reduction";
+/// Group of the observing choices (x axis: exposure time per target).
+pub const G_EXPOSURE: &str = "exposure";
+
+/// Every trade-off of the report. The DIT of the simulated frames is 10 s (1 NDIT).
+pub fn variants() -> Vec<Variant> {
+    let mut out = vec![
+        v(
+            G_REDUCTION,
+            "Moffat (beta from stacks), exact 1-FWHM apertures, multiplicative sky + CR flags, target strips",
+            "",
+            true,
+            |_, _| {},
+        ),
+        v(
+            G_REDUCTION,
+            "Gaussian PSF model",
+            "--params: [measure.psf_model] kind=\"gaussian\"",
+            false,
+            |_, p| p.measure.psf_model = PsfModel::Gaussian,
+        ),
+        v(
+            G_REDUCTION,
+            "Moffat beta fitted per frame",
+            "--params: [measure] beta_from_stack=false",
+            false,
+            |_, p| p.measure.beta_from_stack = false,
+        ),
+        v(
+            G_REDUCTION,
+            "center-method apertures",
+            "--method center",
+            false,
+            |_, p| p.measure.method = Method::Center,
+        ),
+        v(
+            G_REDUCTION,
+            "subpixel 5x5 apertures",
+            "--method subpixel:5",
+            false,
+            |_, p| p.measure.method = Method::Subpixel(5),
+        ),
+        v(
+            G_REDUCTION,
+            "aperture 0.7 FWHM",
+            "--aperture-fwhm 0.7",
+            false,
+            |_, p| p.measure.aperture_fwhm = 0.7,
+        ),
+        v(
+            G_REDUCTION,
+            "aperture 1.5 FWHM",
+            "--aperture-fwhm 1.5",
+            false,
+            |_, p| p.measure.aperture_fwhm = 1.5,
+        ),
+        v(
+            G_REDUCTION,
+            "sky: additive scaling",
+            "--params: [sky] scaling=\"additive\"",
+            false,
+            |_, p| p.sky.scaling = SkyScaling::Additive,
+        ),
+        v(
+            G_REDUCTION,
+            "sky: no cosmic-ray flags",
+            "--params: [sky] without cosmic_rays",
+            false,
+            |_, p| p.sky.cosmic_rays = None,
+        ),
+        v(
+            G_REDUCTION,
+            "sky on full frames",
+            "--params: full_frame_sky=true",
+            false,
+            |_, p| p.full_frame_sky = true,
+        ),
+    ];
+    for d in 2..=5usize {
+        out.push(v(
+            G_EXPOSURE,
+            &format!("2 orientations x {d} dithers"),
+            &format!("scene [observation] dithers={d}"),
+            d == 5,
+            move |c, _| c.dithers = d,
+        ));
+    }
+    for d in [3usize, 5] {
+        out.push(v(
+            G_EXPOSURE,
+            &format!("4 orientations x {d} dithers"),
+            &format!("scene [observation] orientations_deg=[0,45,90,135] dithers={d}"),
+            false,
+            move |c, _| {
+                c.orientations_deg = vec![0.0, 45.0, 90.0, 135.0];
+                c.dithers = d;
+            },
+        ));
+    }
+    out
+}
+
+/// The figures of one variant.
+#[derive(Debug, Clone, Serialize)]
+pub struct VariantResult {
+    /// Group.
+    pub group: String,
+    /// Name.
+    pub name: String,
+    /// Reproduce with.
+    pub flags: String,
+    /// Shipped default.
+    pub is_default: bool,
+    /// Exposure time per target, s (frames x DIT).
+    pub exposure_s: f64,
+    /// Mean over bins of the median reduction time per target, s.
+    pub reduce_s: f64,
+    /// rms of q - q_true, u - u_true over all bins.
+    pub rms_error: f64,
+    /// Per-bin figures.
+    pub bins: Vec<BinReport>,
+    /// On the Pareto front of its group (error against the group's cost).
+    pub on_front: bool,
+}
+
+/// One Monte-Carlo size.
+#[derive(Debug, Clone, Serialize)]
+pub struct McRow {
+    /// Pairs simulated.
+    pub pairs: u64,
+    /// Wall time, s.
+    pub seconds: f64,
+    /// Largest binomial 1-sigma error of a bin's fraction of Pi(Delta gamma), relative.
+    pub max_rel_err_expected: f64,
+    /// rms over bins of the relative deviation from the exact (uniform) Pi(Delta gamma).
+    pub rms_rel_dev_measured: f64,
+    /// KS p-value of the reference sample against this run's CDF.
+    pub ks_p: f64,
+    /// |p - p_exact| (p_exact: against the exact uniform CDF).
+    pub ks_p_err: f64,
+}
+
+/// The whole report.
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    /// The command that made it.
+    pub command: String,
+    /// Targets per bin.
+    pub targets_per_bin: usize,
+    /// Bin edges, arcsec.
+    pub bins_arcsec: Vec<f64>,
+    /// Variants.
+    pub variants: Vec<VariantResult>,
+    /// Monte-Carlo sizes.
+    pub mc: Vec<McRow>,
+    /// Rayon threads.
+    pub threads: usize,
+}
+
+/// Settings of the report.
+pub struct ReportOptions {
+    /// Targets per separation bin.
+    pub targets: usize,
+    /// Seed.
+    pub seed: u64,
+    /// Tiny sizes (CI smoke test).
+    pub quick: bool,
+    /// The command line, for the provenance.
+    pub command: String,
+}
+
+fn pareto(points: &[(f64, f64)]) -> Vec<bool> {
+    points
+        .iter()
+        .map(|&(c, e)| {
+            c.is_finite() && e.is_finite() && !points.iter().any(|&(c2, e2)| c2 <= c && e2 <= e && (c2 < c || e2 < e))
+        })
+        .collect()
+}
+
+/// Run every variant and the Monte-Carlo sizes; write the report into `dir`.
+pub fn run(dir: &Path, base: &TargetParams, opts: &ReportOptions) -> anyhow::Result<Report> {
+    std::fs::create_dir_all(dir)?;
+    let mut base_cfg = AccuracyConfig {
+        targets_per_bin: opts.targets,
+        seed: opts.seed,
+        ..Default::default()
+    };
+    if opts.quick {
+        base_cfg.bins_arcsec = vec![0.8, 1.2, 2.5, 4.0];
+        base_cfg.targets_per_bin = opts.targets.min(1);
+    }
+    let dit_s = 10.0;
+    let mut results = Vec::new();
+    let vs = variants();
+    for (i, var) in vs.iter().enumerate() {
+        let mut cfg = base_cfg.clone();
+        let mut params = base.clone();
+        (var.apply)(&mut cfg, &mut params);
+        let t0 = Instant::now();
+        let mut bins = sofipol_pipeline::accuracy::run(&cfg, &params);
+        if opts.quick {
+            // Only the first and last bins were asked for.
+            bins = bins.into_iter().step_by(2).collect();
+        }
+        let (mut se, mut ne) = (0.0, 0usize);
+        for b in bins.iter().filter(|b| b.n_pulls > 0) {
+            se += b.rms_error * b.rms_error * b.n_pulls as f64;
+            ne += b.n_pulls;
+        }
+        let reduce_s = bins.iter().map(|b| b.median_reduce_s).sum::<f64>() / bins.len().max(1) as f64;
+        eprintln!(
+            "[{}/{}] {:<10} {:<32} {:.1} s",
+            i + 1,
+            vs.len(),
+            var.group,
+            var.name,
+            t0.elapsed().as_secs_f64()
+        );
+        results.push(VariantResult {
+            group: var.group.to_string(),
+            name: var.name.clone(),
+            flags: var.flags.clone(),
+            is_default: var.is_default,
+            exposure_s: (cfg.orientations_deg.len() * cfg.dithers) as f64 * dit_s,
+            reduce_s,
+            // Components lost count as unmeasured: no error to average (see `missing`).
+            rms_error: if ne > 0 { (se / ne as f64).sqrt() } else { f64::NAN },
+            bins,
+            on_front: false,
+        });
+    }
+    let groups: Vec<String> = {
+        let mut g: Vec<String> = results.iter().map(|r| r.group.clone()).collect();
+        g.dedup();
+        g
+    };
+    for g in &groups {
+        let idx: Vec<usize> = (0..results.len()).filter(|&i| &results[i].group == g).collect();
+        let pts: Vec<(f64, f64)> = idx.iter().map(|&i| (cost(&results[i]), results[i].rms_error)).collect();
+        for (k, f) in pareto(&pts).into_iter().enumerate() {
+            results[idx[k]].on_front = f;
+        }
+    }
+    let sizes: Vec<u64> = if opts.quick {
+        vec![1_000, 10_000]
+    } else {
+        vec![10_000, 100_000, 1_000_000, 10_000_000, 100_000_000]
+    };
+    let mc = mc_rows(&sizes, opts.seed)?;
+    let report = Report {
+        command: opts.command.clone(),
+        targets_per_bin: base_cfg.targets_per_bin,
+        bins_arcsec: base_cfg.bins_arcsec.clone(),
+        variants: results,
+        mc,
+        threads: rayon::current_num_threads(),
+    };
+    write_report(dir, &report)?;
+    Ok(report)
+}
+
+/// The cost axis of a result: exposure time for observing choices, reduction time else.
+fn cost(r: &VariantResult) -> f64 {
+    if r.group == G_EXPOSURE {
+        r.exposure_s
+    } else {
+        r.reduce_s
+    }
+}
+
+fn cost_label(group: &str) -> &'static str {
+    if group == G_EXPOSURE {
+        "exposure time per target, s"
+    } else {
+        "reduction time per target, s (median, 2 workers)"
+    }
+}
+
+/// Monte-Carlo cost: Pi(Delta gamma) of randomly oriented pairs (exactly uniform on
+/// [0, 90] deg) from `pairs` simulated pairs.
+fn mc_rows(sizes: &[u64], seed: u64) -> anyhow::Result<Vec<McRow>> {
+    use sofipol_pipeline::stats::{ks_one_sample, simulate, AlignmentModel, McConfig};
+    // Reference sample: 40 Delta-gamma values spread like a small catalog's, fixed.
+    let sample: Vec<f64> = (0..40)
+        .map(|i| 90.0 * ((i as f64 * 0.618_034 + 0.1) % 1.0).powf(1.3))
+        .collect();
+    let exact = ks_one_sample(&sample, |x: f64| (x / 90.0).clamp(0.0, 1.0)).p_value;
+    let mut rows = Vec::new();
+    for &n in sizes {
+        let cfg = McConfig::geometry(AlignmentModel::Random, n, seed);
+        let t0 = Instant::now();
+        let out = simulate(&cfg).map_err(|e| anyhow::anyhow!("{e}"))?;
+        let seconds = t0.elapsed().as_secs_f64();
+        let h = &out.histogram;
+        let fr = h.fractions();
+        let nb = fr.len() as f64;
+        let p0 = 1.0 / nb;
+        let max_rel_err_expected = ((1.0 - p0) / (n as f64 * p0)).sqrt();
+        let rms_rel_dev_measured = (fr.iter().map(|f| ((f - p0) / p0).powi(2)).sum::<f64>() / nb).sqrt();
+        let ks_p = ks_one_sample(&sample, |x: f64| h.cdf(x)).p_value;
+        rows.push(McRow {
+            pairs: n,
+            seconds,
+            max_rel_err_expected,
+            rms_rel_dev_measured,
+            ks_p,
+            ks_p_err: (ks_p - exact).abs(),
+        });
+    }
+    Ok(rows)
+}
+
+fn fmt_bins(bins: &[BinReport], f: impl Fn(&BinReport) -> String) -> String {
+    bins.iter()
+        .map(|b| if b.n_pulls == 0 { "n/a".to_string() } else { f(b) })
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+fn write_report(dir: &Path, r: &Report) -> anyhow::Result<()> {
+    let mut md = String::new();
+    md += "# What accuracy costs in time\n\n";
+    md += &format!(
+        "Made by `{}` ({} rayon threads). {} simulated binaries per separation bin (bins {} arcsec; seeing 0.8\" = 2.8 px, Moffat beta 3, all effects of `sofipol bench accuracy`). \
+         Errors are true errors against the simulation: `rms err` = rms of q - q_true and u - u_true over both components and all bins; \
+         `pull` = (q - q_true)/sigma_q (1 = honest errors). Times are medians per target inside the harness on a shared machine: compare within one report.\n\n",
+        r.command,
+        r.threads,
+        r.targets_per_bin,
+        r.bins_arcsec.iter().map(|b| format!("{b}")).collect::<Vec<_>>().join(", ")
+    );
+    let mut groups: Vec<&str> = r.variants.iter().map(|v| v.group.as_str()).collect();
+    groups.dedup();
+    for g in &groups {
+        let rows: Vec<&VariantResult> = r.variants.iter().filter(|v| v.group == *g).collect();
+        md += &format!("## {g}\n\n![{g}](pareto_{g}.png)\n\n");
+        md += &format!(
+            "| variant | flags | {} | rms err (1e-3) | rms pull per bin | median sigma_q per bin (1e-3) | rms err per bin (1e-3) | mean err per bin (1e-3) | missing | Pareto |\n|---|---|---|---|---|---|---|---|---|---|\n",
+            if *g == G_EXPOSURE { "exposure s" } else { "s / target" }
+        );
+        for v in rows {
+            let name = if v.is_default {
+                format!("**{} (default)**", v.name)
+            } else {
+                v.name.clone()
+            };
+            md += &format!(
+                "| {name} | {} | {} | {:.3} | {} | {} | {} | {} | {} | {} |\n",
+                if v.flags.is_empty() {
+                    "-".to_string()
+                } else {
+                    format!("`{}`", v.flags)
+                },
+                if *g == G_EXPOSURE {
+                    format!("{:.0} ({:.3} s cpu)", v.exposure_s, v.reduce_s)
+                } else {
+                    format!("{:.3}", v.reduce_s)
+                },
+                v.rms_error * 1e3,
+                fmt_bins(&v.bins, |b| format!("{:.2}", b.rms_pull)),
+                fmt_bins(&v.bins, |b| format!("{:.3}", b.median_sigma * 1e3)),
+                fmt_bins(&v.bins, |b| format!("{:.3}", b.rms_error * 1e3)),
+                fmt_bins(&v.bins, |b| format!("{:+.3}", b.mean_error * 1e3)),
+                v.bins.iter().map(|b| b.missing).sum::<usize>(),
+                if v.on_front { "front" } else { "" }
+            );
+        }
+        md += "\n";
+        plot_group(dir, g, &r.variants)?;
+    }
+    md += "## Monte Carlo of Pi(Delta gamma): pairs against time\n\n![mc](mc_cost.png)\n\n";
+    md += "Randomly oriented pairs (Pi(Delta gamma) exactly uniform on [0, 90] deg, so the error is measured against the truth). \
+           Expected error: largest binomial 1-sigma error of a bin's fraction; measured: rms over bins of the relative deviation from uniform; \
+           KS p: p-value of a fixed 40-value sample against the run's CDF, and its error against the exact CDF's p.\n\n";
+    md += "| pairs | s | expected rel. error per bin | measured rms rel. deviation | KS p | KS p error |\n|---|---|---|---|---|---|\n";
+    for m in &r.mc {
+        md += &format!(
+            "| {:.0e} | {:.3} | {:.2e} | {:.2e} | {:.4} | {:.1e} |\n",
+            m.pairs as f64, m.seconds, m.max_rel_err_expected, m.rms_rel_dev_measured, m.ks_p, m.ks_p_err
+        );
+    }
+    plot_mc(dir, &r.mc)?;
+    write_atomic(&dir.join("README.md"), md.as_bytes())?;
+    write_atomic(&dir.join("results.json"), serde_json::to_string_pretty(r)?.as_bytes())?;
+    Ok(())
+}
+
+fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes)?;
+    std::fs::rename(&tmp, path)?;
+    Ok(())
+}
+
+fn plot_group(dir: &Path, g: &str, all: &[VariantResult]) -> anyhow::Result<()> {
+    let rows: Vec<&VariantResult> = all.iter().filter(|v| v.group == g).collect();
+    let mut panel = Panel::new(
+        format!("{g}: true error against cost (default = large marker)"),
+        cost_label(g),
+        "rms(q - q_true, u - u_true), 1e-3",
+    )
+    .legend(LegendPos::UpperRight);
+    let mut front: Vec<(f64, f64)> = rows
+        .iter()
+        .filter(|v| v.on_front)
+        .map(|v| (cost(v), v.rms_error * 1e3))
+        .collect();
+    front.sort_by(|a, b| a.0.total_cmp(&b.0));
+    panel = panel.with(
+        Series::line(
+            "Pareto front",
+            front.iter().map(|p| p.0).collect(),
+            front.iter().map(|p| p.1).collect(),
+        )
+        .style(Style::Dashed(1))
+        .color(sofipol_pipeline::plots::Rgb(120, 120, 120)),
+    );
+    for (i, v) in rows.iter().enumerate() {
+        if !v.rms_error.is_finite() {
+            continue;
+        }
+        let label = if v.is_default {
+            format!("{} (default)", v.name)
+        } else {
+            v.name.clone()
+        };
+        panel = panel.with(
+            Series::line(label, vec![cost(v)], vec![v.rms_error * 1e3])
+                .style(Style::Points(if v.is_default { 9 } else { 5 }))
+                .color(sofipol_pipeline::plots::palette(i)),
+        );
+    }
+    let xmax = rows.iter().map(|v| cost(v)).fold(0.0, f64::max);
+    let ymax = rows
+        .iter()
+        .map(|v| v.rms_error * 1e3)
+        .filter(|y| y.is_finite())
+        .fold(0.0, f64::max);
+    panel = panel
+        .x_range(0.0, 1.6 * xmax.max(1e-9))
+        .y_range(0.0, 1.1 * ymax.max(1e-9));
+    Figure::single(panel).save_png(&dir.join(format!("pareto_{g}.png")))?;
+    Ok(())
+}
+
+fn plot_mc(dir: &Path, mc: &[McRow]) -> anyhow::Result<()> {
+    let x: Vec<f64> = mc.iter().map(|m| (m.seconds.max(1e-6)).log10()).collect();
+    let panel = Panel::new(
+        "Monte Carlo: statistical error against time",
+        "log10(wall time, s)",
+        "log10(relative error)",
+    )
+    .legend(LegendPos::UpperRight)
+    .with(Series::line(
+        "Pi(Delta gamma) per bin, measured rms",
+        x.clone(),
+        mc.iter().map(|m| m.rms_rel_dev_measured.max(1e-12).log10()).collect(),
+    ))
+    .with(
+        Series::line(
+            "Pi(Delta gamma) per bin, binomial",
+            x.clone(),
+            mc.iter().map(|m| m.max_rel_err_expected.max(1e-12).log10()).collect(),
+        )
+        .style(Style::Dashed(2)),
+    )
+    .with(Series::line(
+        "KS p-value error",
+        x,
+        mc.iter().map(|m| m.ks_p_err.max(1e-12).log10()).collect(),
+    ));
+    Figure::single(panel).save_png(&dir.join("mc_cost.png"))?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pareto_front_keeps_only_undominated_points() {
+        let f = pareto(&[(1.0, 5.0), (2.0, 3.0), (2.0, 4.0), (3.0, 3.0), (0.5, 9.0)]);
+        assert_eq!(f, vec![true, true, false, false, true]);
+        assert_eq!(pareto(&[(1.0, f64::NAN), (2.0, 1.0)]), vec![false, true]);
+    }
+
+    #[test]
+    fn every_group_has_exactly_one_default() {
+        let vs = variants();
+        let mut groups: Vec<&str> = vs.iter().map(|v| v.group).collect();
+        groups.dedup();
+        for g in groups {
+            assert_eq!(vs.iter().filter(|v| v.group == g && v.is_default).count(), 1, "{g}");
+        }
+    }
+}
