@@ -48,6 +48,10 @@ pub struct Args {
     /// components) or any `sofipol mc --p-int` spec
     #[arg(long, default_value = "catalog")]
     p_int: String,
+    /// Fraction (0..1) of simulated disks polarized perpendicular to their projected long
+    /// axis, drawn independently for each component
+    #[arg(long, default_value_t = 0.0)]
+    perpendicular_fraction: f64,
     /// Measurement noise of the Monte Carlo: "auto" (median sigma_P of the catalog's
     /// components), "none", or sigma in percent
     #[arg(long, default_value = "auto")]
@@ -124,6 +128,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         ism: None,
         noise_percent: noise,
         snr_cut,
+        perpendicular_fraction: [args.perpendicular_fraction; 2],
     };
     mc.validate()?;
     let params = AnalysisParams {
