@@ -69,6 +69,9 @@ pub struct Args {
     /// Output directory for pi_delta_gamma.json and pi_delta_gamma.png
     #[arg(short, long)]
     out: Option<PathBuf>,
+    /// Figure format: png, or svg (vector, for papers)
+    #[arg(long, default_value = "png", value_parser = ["png", "svg"])]
+    format: String,
     /// Print timing figures (median of --bench-runs) instead of a normal run
     #[arg(long)]
     bench: bool,
@@ -258,17 +261,22 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         results.push((label.clone(), cfg.clone(), out));
     }
     if let Some(dir) = &args.out {
-        write_outputs(dir, &s, &results)?;
+        write_outputs(dir, &s, &results, &args.format)?;
         println!(
             "wrote {} and {}",
             dir.join("pi_delta_gamma.json").display(),
-            dir.join("pi_delta_gamma.png").display()
+            dir.join(format!("pi_delta_gamma.{}", args.format)).display()
         );
     }
     Ok(ExitCode::SUCCESS)
 }
 
-fn write_outputs(dir: &Path, s: &Settings, results: &[(String, McConfig, McOutput)]) -> anyhow::Result<()> {
+fn write_outputs(
+    dir: &Path,
+    s: &Settings,
+    results: &[(String, McConfig, McOutput)],
+    format: &str,
+) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let edges = results[0].2.histogram.edges();
     let runs: Vec<serde_json::Value> = results
@@ -320,7 +328,7 @@ fn write_outputs(dir: &Path, s: &Settings, results: &[(String, McConfig, McOutpu
         perpendicular_note(&s.base),
         format_count(s.base.pairs)
     );
-    mc_figure(&dir.join("pi_delta_gamma.png"), &plotted, &title)?;
+    mc_figure(&dir.join(format!("pi_delta_gamma.{format}")), &plotted, &title)?;
     Ok(())
 }
 
