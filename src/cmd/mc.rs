@@ -45,9 +45,14 @@ pub struct Args {
     #[arg(long, allow_hyphen_values = true)]
     ism_angle: Option<f64>,
     /// Intrinsic P distribution (percent): fixed:P | uniform:LO,HI | lognormal:MEDIAN,SIGMA_LN |
-    /// sin2i:PMAX | table:FILE | catalog:FILE [default: sin2i:6]
+    /// sin2i:PMAX | pofi:FILE (P(i) table, CSV inclination_deg,p) | table:FILE | catalog:FILE
+    /// [default: sin2i:6]
     #[arg(long)]
     p_int: Option<String>,
+    /// Fraction (0..1) of disks polarized perpendicular to their projected long axis (angle
+    /// rotated by 90 deg), drawn independently for each component [default: 0]
+    #[arg(long)]
+    perpendicular_fraction: Option<f64>,
     /// Gaussian noise sigma of q and u of each component, percent [default: none]
     #[arg(long)]
     noise: Option<f64>,
@@ -58,12 +63,15 @@ pub struct Args {
     #[arg(long)]
     threads: Option<usize>,
     /// TOML file with any of: model, pairs, seed, bins, p_ism (list), ism_angle_deg, p_int,
-    /// noise_percent, snr_cut; flags override it
+    /// perpendicular_fraction, noise_percent, snr_cut; flags override it
     #[arg(long)]
     config: Option<PathBuf>,
     /// Output directory for pi_delta_gamma.json and pi_delta_gamma.png
     #[arg(short, long)]
     out: Option<PathBuf>,
+    /// Figure format: png, or svg (vector, for papers)
+    #[arg(long, default_value = "png", value_parser = ["png", "svg"])]
+    format: String,
     /// Print timing figures (median of --bench-runs) instead of a normal run
     #[arg(long)]
     bench: bool,
@@ -83,6 +91,7 @@ struct McFile {
     p_ism: Option<Vec<f64>>,
     ism_angle_deg: Option<f64>,
     p_int: Option<String>,
+    perpendicular_fraction: Option<f64>,
     noise_percent: Option<f64>,
     snr_cut: Option<f64>,
 }
@@ -155,6 +164,10 @@ fn settings(args: &Args) -> anyhow::Result<Settings> {
         ism: None,
         noise_percent: args.noise.or(file.noise_percent),
         snr_cut: args.snr_cut.or(file.snr_cut),
+        perpendicular_fraction: [args
+            .perpendicular_fraction
+            .or(file.perpendicular_fraction)
+            .unwrap_or(0.0); 2],
     };
     base.validate()?;
     Ok(Settings {
@@ -214,11 +227,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let runs = runs(&s);
     println!(
-        "sofipol mc: model {}, {} pairs, seed {}, {} threads{}",
+        "sofipol mc: model {}, {} pairs, seed {}, {} threads{}{}",
         s.base.model.spec(),
         s.base.pairs,
         s.base.seed,
         pool.current_num_threads(),
+        perpendicular_note(&s.base),
         if runs[0].1.simulates_polarization() {
             format!(
                 ", P_int {}, noise {}, cut {}",
@@ -247,17 +261,22 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         results.push((label.clone(), cfg.clone(), out));
     }
     if let Some(dir) = &args.out {
-        write_outputs(dir, &s, &results)?;
+        write_outputs(dir, &s, &results, &args.format)?;
         println!(
             "wrote {} and {}",
             dir.join("pi_delta_gamma.json").display(),
-            dir.join("pi_delta_gamma.png").display()
+            dir.join(format!("pi_delta_gamma.{}", args.format)).display()
         );
     }
     Ok(ExitCode::SUCCESS)
 }
 
-fn write_outputs(dir: &Path, s: &Settings, results: &[(String, McConfig, McOutput)]) -> anyhow::Result<()> {
+fn write_outputs(
+    dir: &Path,
+    s: &Settings,
+    results: &[(String, McConfig, McOutput)],
+    format: &str,
+) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let edges = results[0].2.histogram.edges();
     let runs: Vec<serde_json::Value> = results
@@ -286,6 +305,7 @@ fn write_outputs(dir: &Path, s: &Settings, results: &[(String, McConfig, McOutpu
             "ism_angle_deg": s.levels.as_ref().map(|_| s.ism_angle_deg),
             "noise_percent": s.base.noise_percent,
             "snr_cut": s.base.snr_cut,
+            "perpendicular_fraction": s.base.perpendicular_fraction[0],
             "rng": format!("xoshiro256++, one stream per chunk of {CHUNK_PAIRS} pairs seeded from (seed, chunk index) via splitmix64"),
             "conventions": "Delta gamma in [0, 90] deg; intrinsic polarization along the projected disk long axis (spin-axis PA + 90 deg); P in percent",
         },
@@ -303,12 +323,23 @@ fn write_outputs(dir: &Path, s: &Settings, results: &[(String, McConfig, McOutpu
         ", geometry only".to_string()
     };
     let title = format!(
-        "Π(Δγ), model {}{pint}, {} pairs",
+        "Π(Δγ), model {}{pint}{}, {} pairs",
         s.base.model.spec(),
+        perpendicular_note(&s.base),
         format_count(s.base.pairs)
     );
-    mc_figure(&dir.join("pi_delta_gamma.png"), &plotted, &title)?;
+    mc_figure(&dir.join(format!("pi_delta_gamma.{format}")), &plotted, &title)?;
     Ok(())
+}
+
+/// ", 30 % perpendicular" when some disks are polarized perpendicular to their long axis.
+fn perpendicular_note(c: &McConfig) -> String {
+    let f = c.perpendicular_fraction[0];
+    if f > 0.0 {
+        format!(", {} % perpendicular", f * 100.0)
+    } else {
+        String::new()
+    }
 }
 
 fn bench(s: &Settings, runs: usize) -> anyhow::Result<ExitCode> {

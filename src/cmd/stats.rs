@@ -48,6 +48,10 @@ pub struct Args {
     /// components) or any `sofipol mc --p-int` spec
     #[arg(long, default_value = "catalog")]
     p_int: String,
+    /// Fraction (0..1) of simulated disks polarized perpendicular to their projected long
+    /// axis, drawn independently for each component
+    #[arg(long, default_value_t = 0.0)]
+    perpendicular_fraction: f64,
     /// Measurement noise of the Monte Carlo: "auto" (median sigma_P of the catalog's
     /// components), "none", or sigma in percent
     #[arg(long, default_value = "auto")]
@@ -67,6 +71,9 @@ pub struct Args {
     /// Worker threads [default: all cores]; results do not depend on it
     #[arg(long)]
     threads: Option<usize>,
+    /// Figure format: png, or svg (vector, for papers)
+    #[arg(long, default_value = "png", value_parser = ["png", "svg"])]
+    format: String,
     /// Skip the models (a)-(d) figure (4 extra Monte-Carlo runs)
     #[arg(long)]
     no_model_figure: bool,
@@ -124,6 +131,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         ism: None,
         noise_percent: noise,
         snr_cut,
+        perpendicular_fraction: [args.perpendicular_fraction; 2],
     };
     mc.validate()?;
     let params = AnalysisParams {
@@ -142,6 +150,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         write_json(dir, &args, &sample, &report)?;
         let mut written = vec!["stats.json"];
+        let ext = &args.format;
+        let (observed, ism_levels, models) = (
+            format!("observed.{ext}"),
+            format!("ism_levels.{ext}"),
+            format!("models.{ext}"),
+        );
         if !sample.is_empty() {
             let notes: Vec<String> = match (&report.ks_uniform, &report.kuiper_uniform, &report.below_threshold) {
                 (Some(ks), Some(kp), Some(bt)) => vec![
@@ -151,23 +165,23 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 ],
                 _ => Vec::new(),
             };
-            observed_figure(&dir.join("observed.png"), &sample, args.bins, &notes)?;
-            written.push("observed.png");
+            observed_figure(&dir.join(&observed), &sample, args.bins, &notes)?;
+            written.push(&observed);
         }
         if !report.ism.is_empty() {
             ism_figure(
-                &dir.join("ism_levels.png"),
+                &dir.join(&ism_levels),
                 &report.ism,
                 &dg,
                 args.bins,
                 &report_subtitle(&params.mc),
             )?;
-            written.push("ism_levels.png");
+            written.push(&ism_levels);
         }
         if !args.no_model_figure {
             let base = McConfig::geometry(AlignmentModel::Random, args.pairs, args.seed);
-            pool.install(|| models_figure(&dir.join("models.png"), &paper_models(), &base))?;
-            written.push("models.png");
+            pool.install(|| models_figure(&dir.join(&models), &paper_models(), &base))?;
+            written.push(&models);
         }
         println!("\nwrote {} in {}", written.join(", "), dir.display());
     }

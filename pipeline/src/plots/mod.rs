@@ -386,8 +386,8 @@ impl Figure {
         }
     }
 
-    /// Render to an RGB8 buffer (width, height, pixels).
-    pub fn render_rgb(&self) -> Result<(u32, u32, Vec<u8>)> {
+    /// Check the series and return (rows, cols, width, height).
+    fn layout(&self) -> Result<(usize, usize, u32, u32)> {
         ensure_font()?;
         for p in &self.panels {
             for s in &p.series {
@@ -401,21 +401,68 @@ impl Figure {
             self.panel_size.0 * cols as u32,
             self.panel_size.1 * rows as u32 + title_h,
         );
+        Ok((rows, cols, w, h))
+    }
+
+    /// Draw the figure on any plotters backend.
+    fn draw_on<DB: DrawingBackend>(
+        &self,
+        root: DrawingArea<DB, plotters::coord::Shift>,
+        rows: usize,
+        cols: usize,
+    ) -> Result<()>
+    where
+        DB::ErrorType: 'static,
+    {
+        root.fill(&WHITE).map_err(draw_err("background"))?;
+        let area = match &self.title {
+            Some(t) => root
+                .titled(t, (FONT, 26).into_font().style(FontStyle::Bold))
+                .map_err(draw_err("title"))?,
+            None => root.clone(),
+        };
+        let cells = area.split_evenly((rows, cols));
+        for (panel, cell) in self.panels.iter().zip(cells.iter()) {
+            draw_panel(panel, cell)?;
+        }
+        root.present().map_err(draw_err("figure"))?;
+        Ok(())
+    }
+
+    /// Render as an SVG document (vector figure for papers; text as SVG `<text>`, no font
+    /// file embedded: the viewer's sans-serif is used).
+    pub fn render_svg(&self) -> Result<String> {
+        let (rows, cols, w, h) = self.layout()?;
+        let mut out = String::new();
+        {
+            let root = SVGBackend::with_string(&mut out, (w, h)).into_drawing_area();
+            self.draw_on(root, rows, cols)?;
+        }
+        Ok(out)
+    }
+
+    /// Render and write an SVG atomically.
+    pub fn save_svg(&self, path: &Path) -> Result<()> {
+        let svg = self.render_svg()?;
+        write_atomic(path, svg.as_bytes())
+    }
+
+    /// Write a PNG, or an SVG when the file name ends in `.svg`, atomically.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("svg")) {
+            self.save_svg(path)
+        } else {
+            self.save_png(path)
+        }
+    }
+
+    /// Render to an RGB8 buffer (width, height, pixels).
+    pub fn render_rgb(&self) -> Result<(u32, u32, Vec<u8>)> {
+        let (rows, cols, w, h) = self.layout()?;
         let mut buf = vec![255u8; (w * h * 3) as usize];
         {
             let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
-            root.fill(&WHITE).map_err(draw_err("background"))?;
-            let area = match &self.title {
-                Some(t) => root
-                    .titled(t, (FONT, 26).into_font().style(FontStyle::Bold))
-                    .map_err(draw_err("title"))?,
-                None => root.clone(),
-            };
-            let cells = area.split_evenly((rows, cols));
-            for (panel, cell) in self.panels.iter().zip(cells.iter()) {
-                draw_panel(panel, cell)?;
-            }
-            root.present().map_err(draw_err("figure"))?;
+            self.draw_on(root, rows, cols)?;
         }
         Ok((w, h, buf))
     }
@@ -577,6 +624,79 @@ pub fn line_png(path: &Path, series: Vec<Series>, title: &str, xlabel: &str, yla
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Minimal well-formedness check: every start tag is closed in order (a stack over
+    /// `<name ...>`, `</name>`, `<name .../>`), one root `svg`. Returns the element count.
+    fn check_xml(doc: &str) -> usize {
+        let mut stack: Vec<String> = Vec::new();
+        let mut elements = 0;
+        let mut rest = doc;
+        while let Some(start) = rest.find('<') {
+            let end = rest[start..].find('>').expect("unterminated tag") + start;
+            let tag = &rest[start + 1..end];
+            rest = &rest[end + 1..];
+            if tag.starts_with('?') || tag.starts_with('!') {
+                continue;
+            }
+            if let Some(name) = tag.strip_prefix('/') {
+                assert_eq!(stack.pop().as_deref(), Some(name.trim()), "mismatched </{name}>");
+            } else {
+                elements += 1;
+                let name = tag.split_whitespace().next().unwrap().trim_end_matches('/').to_string();
+                assert!(!name.is_empty());
+                if elements == 1 {
+                    assert_eq!(name, "svg");
+                } else {
+                    assert!(!stack.is_empty(), "second root element <{name}>");
+                }
+                if !tag.ends_with('/') {
+                    stack.push(name);
+                }
+            }
+        }
+        assert!(stack.is_empty(), "unclosed {stack:?}");
+        elements
+    }
+
+    #[test]
+    fn svg_is_well_formed_has_the_labels_and_is_written_atomically() {
+        let dir = tempfile::tempdir().unwrap();
+        let edges: Vec<f64> = (0..=9).map(|i| 10.0 * i as f64).collect();
+        let panel = Panel::new("Observed Δγ & co", "Δγ [deg]", "N binaries")
+            .with(Series::bars(
+                "data",
+                edges,
+                vec![9.0, 7.0, 5.0, 4.0, 3.0, 2.0, 2.0, 1.0, 1.0],
+            ))
+            .note("KS p < 0.001");
+        let fig = Figure::grid(Some("vector test".into()), vec![panel], 1, (500, 400));
+        let svg = fig.render_svg().unwrap();
+        assert!(check_xml(&svg) > 20);
+        assert_eq!(svg.matches("<text").count(), svg.matches("</text>").count());
+        for label in [
+            "Δγ [deg]",
+            "N binaries",
+            "vector test",
+            "Observed Δγ &amp; co",
+            "KS p &lt; 0.001",
+        ] {
+            assert!(svg.contains(label), "{label} missing");
+        }
+        // The checker rejects a broken document.
+        assert!(std::panic::catch_unwind(|| check_xml("<svg><g></svg>")).is_err());
+        let path = dir.path().join("f.svg");
+        fig.save(&path).unwrap();
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), svg);
+        let names: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(names.len(), 1, "no temporary file left: {names:?}");
+        // `save` with another extension still writes a PNG.
+        let png = dir.path().join("f.png");
+        fig.save(&png).unwrap();
+        assert_eq!(&std::fs::read(&png).unwrap()[..4], b"\x89PNG");
+    }
 
     #[test]
     fn renders_a_grid_with_text_and_writes_atomically() {

@@ -149,8 +149,13 @@ fn describe_mc(cfg: &McConfig) -> String {
         Some(k) => format!(", both components P/sigma > {k}"),
         None => String::new(),
     };
+    let perp = match cfg.perpendicular_fraction {
+        [0.0, 0.0] => String::new(),
+        [a, b] if a == b => format!(", {} % of disks polarized perpendicular to their long axis", a * 100.0),
+        [a, b] => format!(", perpendicular fractions A {a}, B {b}"),
+    };
     format!(
-        "model {}, P_int {}, {noise}{cut}, {} pairs per level, seed {}",
+        "model {}, P_int {}{perp}, {noise}{cut}, {} pairs per level, seed {}",
         cfg.model.spec(),
         cfg.p_int.spec(),
         cfg.pairs,

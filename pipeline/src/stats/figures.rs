@@ -85,7 +85,7 @@ pub fn models_figure(path: &Path, models: &[(String, AlignmentModel)], base: &Mc
         2,
         (560, 330),
     );
-    fig.save_png(path)?;
+    fig.save(path)?;
     Ok(outs)
 }
 
@@ -134,7 +134,7 @@ pub fn ism_figure(
                 .style(Style::Steps(2)),
         );
     }
-    Figure::single(panel).save_png(path)?;
+    Figure::single(panel).save(path)?;
     Ok(())
 }
 
@@ -250,7 +250,7 @@ pub fn observed_figure(path: &Path, sample: &BinarySample, dg_bins: usize, notes
             .fold(1.0, f64::max);
         b = b.y_range(0.0, top * (1.15 + 0.08 * notes.len() as f64));
     }
-    Figure::grid(None, vec![a, b], 2, (620, 440)).save_png(path)?;
+    Figure::grid(None, vec![a, b], 2, (620, 440)).save(path)?;
     Ok(())
 }
 
@@ -270,6 +270,6 @@ pub fn mc_figure(path: &Path, runs: &[(String, McOutput)], title: &str) -> Resul
     if n == 1 {
         panel.legend = LegendPos::None;
     }
-    Figure::single(panel).save_png(path)?;
+    Figure::single(panel).save(path)?;
     Ok(())
 }

@@ -83,6 +83,9 @@ pub enum PIntDist {
         /// The values, percent.
         values: Vec<f64>,
     },
+    /// P as a function of the inclination i of the drawn disk, from a table
+    /// (`pofi:FILE`, [`PofITable`]): linear interpolation in i, no randomness.
+    Inclination(PofITable),
     /// A tabulated histogram: a bin is drawn by weight, then P uniformly inside it.
     Histogram {
         /// Where it came from.
@@ -105,7 +108,7 @@ impl PIntDist {
             reason: reason.into(),
         };
         let (kind, arg) = spec.split_once(':').ok_or_else(|| {
-            bad("expected fixed:P, uniform:LO,HI, lognormal:MEDIAN,SIGMA_LN, sin2i:PMAX, table:FILE or catalog:FILE")
+            bad("expected fixed:P, uniform:LO,HI, lognormal:MEDIAN,SIGMA_LN, sin2i:PMAX, pofi:FILE, table:FILE or catalog:FILE")
         })?;
         let nums = || -> Result<Vec<f64>> {
             arg.split(',')
@@ -136,6 +139,7 @@ impl PIntDist {
                 _ => return Err(bad("sin2i takes PMAX")),
             },
             "table" => Self::histogram_from_file(Path::new(arg.trim()))?,
+            "pofi" => Self::Inclination(PofITable::from_file(Path::new(arg.trim()))?),
             "catalog" => {
                 let path = Path::new(arg.trim());
                 let text = std::fs::read_to_string(path).map_err(|e| Error::Io {
@@ -268,6 +272,7 @@ impl PIntDist {
             Self::Sin2i { p_max_percent } => format!("sin2i:{p_max_percent}"),
             Self::Empirical { source, values } => format!("empirical:{source} ({} values)", values.len()),
             Self::Histogram { source, .. } => format!("table:{source}"),
+            Self::Inclination(t) => format!("pofi:{}", t.source),
         }
     }
 
@@ -282,6 +287,7 @@ impl PIntDist {
                 sigma_ln,
             } => median_percent * (sigma_ln * rng.normal_pair().0).exp(),
             Self::Sin2i { p_max_percent } => p_max_percent * r2,
+            Self::Inclination(t) => t.p_percent_at(r2.min(1.0).sqrt().asin().to_degrees()),
             Self::Empirical { values, .. } => values[rng.below(values.len() as u64) as usize],
             Self::Histogram { bins, cumulative, .. } => {
                 let u = rng.uniform();
@@ -290,6 +296,154 @@ impl PIntDist {
                 lo + (hi - lo) * rng.uniform()
             }
         }
+    }
+}
+
+/// Intrinsic P against inclination, P(i), read from a two-column CSV file (the reference
+/// study's radiative-transfer P_l(i) is of this form).
+///
+/// Format: one `inclination_deg,p` line per point (commas or whitespace), `#` comments,
+/// an optional header line `inclination_deg,p`. Inclinations in degrees (0 = face-on,
+/// 90 = edge-on), strictly increasing, within [0, 90]; p is a **fraction** in [0, 1) like the
+/// catalog's P (0.06 = 6 %), converted to percent on reading. Between points P is linear
+/// in i; below the first or above the last point it is the end value.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PofITable {
+    /// File name, for provenance and messages.
+    pub source: String,
+    /// Inclinations, degrees, strictly increasing in [0, 90].
+    pub inclination_deg: Vec<f64>,
+    /// P at each inclination, percent.
+    pub p_percent: Vec<f64>,
+}
+
+impl PofITable {
+    /// Build from points (P in **percent**), validated.
+    pub fn new(source: &str, inclination_deg: Vec<f64>, p_percent: Vec<f64>) -> Result<Self> {
+        let bad = |reason: String| Error::Table {
+            table: source.to_string(),
+            reason,
+        };
+        if inclination_deg.is_empty() || inclination_deg.len() != p_percent.len() {
+            return Err(bad(format!(
+                "needs at least one (inclination_deg, p) point, got {}",
+                inclination_deg.len()
+            )));
+        }
+        for (k, (&i, &p)) in inclination_deg.iter().zip(&p_percent).enumerate() {
+            if !(0.0..=90.0).contains(&i) {
+                return Err(bad(format!("point {}: inclination {i} deg outside [0, 90]", k + 1)));
+            }
+            if !(0.0..100.0).contains(&p) {
+                return Err(bad(format!("point {}: p = {} outside [0, 1)", k + 1, p / 100.0)));
+            }
+        }
+        for (k, w) in inclination_deg.windows(2).enumerate() {
+            if !(w[1] > w[0]) {
+                return Err(bad(format!(
+                    "point {}: inclinations must increase strictly ({} then {} deg)",
+                    k + 2,
+                    w[0],
+                    w[1]
+                )));
+            }
+        }
+        Ok(Self {
+            source: source.to_string(),
+            inclination_deg,
+            p_percent,
+        })
+    }
+
+    /// Read the CSV format described on the type; errors name the file, the line and the value.
+    pub fn from_file(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::Io {
+            path: path.to_path_buf(),
+            source: e,
+        })?;
+        Self::parse(&path.display().to_string(), &text)
+    }
+
+    /// Parse the CSV format described on the type.
+    pub fn parse(source: &str, text: &str) -> Result<Self> {
+        let bad = |lineno: usize, reason: String| Error::Table {
+            table: source.to_string(),
+            reason: format!("line {lineno}: {reason}"),
+        };
+        let (mut inc, mut p) = (Vec::new(), Vec::new());
+        let mut header_allowed = true;
+        let mut last_line = 0;
+        for (k, raw) in text.lines().enumerate() {
+            let lineno = k + 1;
+            let line = raw.split('#').next().unwrap_or("").trim();
+            if line.is_empty() {
+                continue;
+            }
+            let fields: Vec<&str> = line
+                .split(|c: char| c.is_whitespace() || c == ',')
+                .filter(|t| !t.is_empty())
+                .collect();
+            if header_allowed && fields == ["inclination_deg", "p"] {
+                header_allowed = false;
+                continue;
+            }
+            header_allowed = false;
+            if fields.len() != 2 {
+                return Err(bad(
+                    lineno,
+                    format!("expected 'inclination_deg,p', got '{line}' ({} fields)", fields.len()),
+                ));
+            }
+            let num = |t: &str| {
+                t.parse::<f64>()
+                    .ok()
+                    .filter(|v| v.is_finite())
+                    .ok_or_else(|| bad(lineno, format!("'{t}' is not a finite number")))
+            };
+            let (i, pv) = (num(fields[0])?, num(fields[1])?);
+            if !(0.0..=90.0).contains(&i) {
+                return Err(bad(lineno, format!("inclination {i} deg outside [0, 90]")));
+            }
+            if !(0.0..1.0).contains(&pv) {
+                return Err(bad(lineno, format!("p = {pv} outside [0, 1) (a fraction: 0.06 = 6 %)")));
+            }
+            if let Some(&prev) = inc.last() {
+                if !(i > prev) {
+                    return Err(bad(
+                        lineno,
+                        format!("inclination {i} deg does not exceed the previous {prev} deg (line {last_line})"),
+                    ));
+                }
+            }
+            inc.push(i);
+            p.push(pv * 100.0);
+            last_line = lineno;
+        }
+        if inc.is_empty() {
+            return Err(Error::Table {
+                table: source.to_string(),
+                reason: "no (inclination_deg, p) points".into(),
+            });
+        }
+        Self::new(source, inc, p)
+    }
+
+    /// P (percent) at inclination `i_deg`: linear between points, exact at the points, the
+    /// end value outside the table.
+    #[inline]
+    pub fn p_percent_at(&self, i_deg: f64) -> f64 {
+        let (x, y) = (&self.inclination_deg, &self.p_percent);
+        let n = x.len();
+        if i_deg <= x[0] {
+            return y[0];
+        }
+        if i_deg >= x[n - 1] {
+            return y[n - 1];
+        }
+        // x[j-1] <= i < x[j]
+        let j = x.partition_point(|&v| v <= i_deg);
+        let (x0, x1, y0, y1) = (x[j - 1], x[j], y[j - 1], y[j]);
+        y0 + (y1 - y0) * ((i_deg - x0) / (x1 - x0))
     }
 }
 
@@ -321,6 +475,11 @@ pub struct McConfig {
     pub noise_percent: Option<f64>,
     /// Keep a pair only when both measured P / sigma exceed this (needs noise).
     pub snr_cut: Option<f64>,
+    /// Fraction of disks polarized **perpendicular** to the long axis of their projection
+    /// (polarization angle rotated by 90 deg: edge-on, multiple-scattering disks), drawn
+    /// independently for component A (`[0]`) and B (`[1]`); the CLI sets both to
+    /// `--perpendicular-fraction`. 0 and 1 draw no random number.
+    pub perpendicular_fraction: [f64; 2],
 }
 
 impl McConfig {
@@ -335,6 +494,7 @@ impl McConfig {
             ism: None,
             noise_percent: None,
             snr_cut: None,
+            perpendicular_fraction: [0.0; 2],
         }
     }
 
@@ -361,6 +521,11 @@ impl McConfig {
             }
             if !ism.angle_deg.is_finite() {
                 return bad("ism-angle (deg)", ism.angle_deg.to_string(), "must be finite");
+            }
+        }
+        for f in self.perpendicular_fraction {
+            if !(0.0..=1.0).contains(&f) {
+                return bad("perpendicular-fraction", f.to_string(), "must be in [0, 1]");
             }
         }
         if let Some(s) = self.noise_percent {
@@ -450,13 +615,24 @@ impl<'a> Kernel<'a> {
             let n1 = rng.unit_vector();
             let (x1, y1) = (n1[0], n1[1]);
             let (x2, y2) = model.second_axis(&mut rng, n1, self.model_constant);
+            let flip1 = perpendicular(&mut rng, self.cfg.perpendicular_fraction[0]);
+            let flip2 = perpendicular(&mut rng, self.cfg.perpendicular_fraction[1]);
             if !pol {
-                sink(delta_gamma_axes(x1, y1, x2, y2));
+                let dg = delta_gamma_axes(x1, y1, x2, y2);
+                // One polarization rotated by 90 deg: the folded difference becomes 90 - dg.
+                sink(if flip1 != flip2 { 90.0 - dg } else { dg });
                 accepted += 1;
                 continue;
             }
             let (mut q1, mut u1) = self.intrinsic(&mut rng, x1, y1);
             let (mut q2, mut u2) = self.intrinsic(&mut rng, x2, y2);
+            // A 90-deg rotation of the polarization angle is (q, u) -> (-q, -u).
+            if flip1 {
+                (q1, u1) = (-q1, -u1);
+            }
+            if flip2 {
+                (q2, u2) = (-q2, -u2);
+            }
             q1 += self.ism_qu.0;
             u1 += self.ism_qu.1;
             q2 += self.ism_qu.0;
@@ -478,6 +654,19 @@ impl<'a> Kernel<'a> {
             accepted += 1;
         }
         accepted
+    }
+}
+
+/// Whether a disk is polarized perpendicular to its projected long axis (probability `f`);
+/// draws a uniform only for 0 < f < 1, so f = 0 leaves every seeded result unchanged.
+#[inline]
+fn perpendicular(rng: &mut Xoshiro256pp, f: f64) -> bool {
+    if f <= 0.0 {
+        false
+    } else if f >= 1.0 {
+        true
+    } else {
+        rng.uniform() < f
     }
 }
 

@@ -42,7 +42,7 @@ pub use binomial::{binomial_test, BinomialOutcome};
 pub use hist::Histogram;
 pub use ks::{ks_one_sample, ks_two_sample, ks_uniform};
 pub use kuiper::{kuiper_one_sample, kuiper_uniform};
-pub use mc::{simulate, simulate_samples, Ism, McConfig, McOutput, PIntDist};
+pub use mc::{simulate, simulate_samples, Ism, McConfig, McOutput, PIntDist, PofITable};
 pub use model::{AlignmentModel, AlphaMeasure, AlphaTable};
 pub use sample::BinarySample;
 

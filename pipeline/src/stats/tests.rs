@@ -914,3 +914,199 @@ fn figure_counts_use_superscripts_and_mc_mean_comes_from_the_pairs() {
         "{m}"
     );
 }
+
+// ---- issue 12: perpendicular polarization and P(i) tables ----
+
+fn with_perp(cfg: McConfig, f: [f64; 2]) -> McConfig {
+    McConfig {
+        perpendicular_fraction: f,
+        ..cfg
+    }
+}
+
+fn pol(model: AlignmentModel, pairs: u64, seed: u64, p_int: PIntDist, ism: Option<f64>, angle: f64) -> McConfig {
+    McConfig {
+        p_int,
+        ism: ism.map(|p| Ism {
+            p_percent: p,
+            angle_deg: angle,
+        }),
+        noise_percent: Some(0.0),
+        ..geometry(model, pairs, seed)
+    }
+}
+
+/// Sum of |a_k - b_(n-1-k)|: zero when b is a mirrored (Delta gamma -> 90 - Delta gamma).
+fn mirror_mismatch(a: &[u64], b: &[u64]) -> u64 {
+    a.iter().zip(b.iter().rev()).map(|(x, y)| x.abs_diff(*y)).sum()
+}
+
+#[test]
+fn perpendicular_on_both_components_leaves_pi_delta_gamma_unchanged() {
+    // Geometry path: rotating both polarization angles by 90 deg changes no difference.
+    for model in [AlignmentModel::Random, AlignmentModel::Cone { alpha0_deg: 30.0 }] {
+        let base = geometry(model.clone(), 200_000, 5);
+        let a = simulate(&base).unwrap();
+        let b = simulate(&with_perp(base, [1.0, 1.0])).unwrap();
+        assert_eq!(a.histogram.counts, b.histogram.counts, "{model:?}");
+    }
+    // With ISM: both (q, u) negated is the ISM vector negated (gamma_ism + 90 deg), pair by
+    // pair, up to the last bit of sin(2 (gamma_ism + 90 deg)).
+    let p = PIntDist::Sin2i { p_max_percent: 6.0 };
+    let cone = AlignmentModel::Cone { alpha0_deg: 30.0 };
+    let flipped = simulate(&with_perp(
+        pol(cone.clone(), 200_000, 6, p.clone(), Some(2.0), 0.0),
+        [1.0, 1.0],
+    ))
+    .unwrap();
+    let rotated_ism = simulate(&pol(cone.clone(), 200_000, 6, p.clone(), Some(2.0), 90.0)).unwrap();
+    assert!(
+        mirror_mismatch(
+            &flipped.histogram.counts,
+            &rotated_ism.histogram.counts.iter().rev().copied().collect::<Vec<_>>()
+        ) <= 4
+    );
+    // ... and for isotropic disks the ISM angle does not matter, so the fraction below 30 deg
+    // is unchanged within its statistical error.
+    let unflipped = simulate(&pol(AlignmentModel::Random, 400_000, 7, p.clone(), Some(2.0), 0.0)).unwrap();
+    let flipped = simulate(&with_perp(
+        pol(AlignmentModel::Random, 400_000, 8, p, Some(2.0), 0.0),
+        [1.0, 1.0],
+    ))
+    .unwrap();
+    let (f0, f1) = (unflipped.histogram.cdf(30.0), flipped.histogram.cdf(30.0));
+    let se = (2.0 * f0 * (1.0 - f0) / 400_000.0).sqrt();
+    assert!((f0 - f1).abs() < 4.0 * se, "{f0} vs {f1}");
+}
+
+#[test]
+fn perpendicular_on_one_component_mirrors_delta_gamma() {
+    let cone = AlignmentModel::Cone { alpha0_deg: 30.0 };
+    // Geometry path and the polarization path (fixed P, no ISM, zero noise).
+    let configs = [
+        geometry(cone.clone(), 200_000, 11),
+        pol(cone.clone(), 200_000, 12, PIntDist::Fixed { p_percent: 3.0 }, None, 0.0),
+        pol(cone, 200_000, 13, PIntDist::Sin2i { p_max_percent: 6.0 }, None, 0.0),
+    ];
+    for cfg in configs {
+        let a = simulate(&cfg).unwrap();
+        let b = simulate(&with_perp(cfg.clone(), [1.0, 0.0])).unwrap();
+        let c = simulate(&with_perp(cfg, [0.0, 1.0])).unwrap();
+        // Values within rounding of a bin edge may move by one bin: allow a handful.
+        assert!(mirror_mismatch(&a.histogram.counts, &b.histogram.counts) <= 4);
+        assert!(mirror_mismatch(&a.histogram.counts, &c.histogram.counts) <= 4);
+        assert!((a.mean_delta_gamma_deg - (90.0 - b.mean_delta_gamma_deg)).abs() < 1e-9);
+        // The aligned cone really is asymmetric, so the mirror is not trivially satisfied.
+        assert!(a.histogram.cdf(30.0) > 0.8 && b.histogram.cdf(30.0) < 0.2);
+    }
+    // A fraction in between draws per component: 50 % gives half the pairs one flip.
+    let cfg = with_perp(geometry(AlignmentModel::Aligned, 100_000, 14), [0.5, 0.5]);
+    let out = simulate(&cfg).unwrap();
+    let at_90 = *out.histogram.counts.last().unwrap() as f64 / 100_000.0;
+    assert!((at_90 - 0.5).abs() < 4.0 * (0.25f64 / 100_000.0).sqrt(), "{at_90}");
+}
+
+#[test]
+fn perpendicular_fraction_is_validated() {
+    for f in [-0.1, 1.1, f64::NAN] {
+        let err = simulate(&with_perp(geometry(AlignmentModel::Random, 10, 1), [f, 0.0])).unwrap_err();
+        assert!(err.to_string().contains("perpendicular-fraction"), "{err}");
+    }
+}
+
+#[test]
+fn constant_p_of_i_table_equals_the_fixed_model_exactly() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("flat.csv");
+    std::fs::write(&path, "inclination_deg,p\n0,0.02\n45,0.02\n90,0.02\n").unwrap();
+    let table = PIntDist::parse(&format!("pofi:{}", path.display())).unwrap();
+    for model in [AlignmentModel::Random, AlignmentModel::Spread { sigma_deg: 20.0 }] {
+        let mk = |p: PIntDist| McConfig {
+            p_int: p,
+            ism: Some(Ism {
+                p_percent: 1.0,
+                angle_deg: 10.0,
+            }),
+            noise_percent: Some(0.3),
+            snr_cut: Some(3.0),
+            ..geometry(model.clone(), 150_000, 21)
+        };
+        let a = simulate(&mk(table.clone())).unwrap();
+        let b = simulate(&mk(PIntDist::Fixed { p_percent: 2.0 })).unwrap();
+        assert_eq!(a, b);
+    }
+}
+
+#[test]
+fn p_of_i_table_interpolates_linearly_and_exactly_at_its_points() {
+    let inc = vec![0.0, 10.0, 35.5, 60.0, 90.0];
+    let p = vec![0.1, 0.7, 2.3, 4.9, 8.3];
+    let t = mc::PofITable::new("test", inc.clone(), p.clone()).unwrap();
+    for (i, v) in inc.iter().zip(&p) {
+        assert_eq!(t.p_percent_at(*i), *v, "at {i}");
+    }
+    assert!((t.p_percent_at(5.0) - 0.4).abs() < 1e-12);
+    assert!((t.p_percent_at(47.75) - 3.6).abs() < 1e-12);
+    assert!((t.p_percent_at(80.0) - (4.9 + 3.4 * 20.0 / 30.0)).abs() < 1e-12);
+    // Ends: the end values outside the table.
+    let short = mc::PofITable::new("short", vec![20.0, 70.0], vec![1.0, 5.0]).unwrap();
+    assert_eq!(short.p_percent_at(0.0), 1.0);
+    assert_eq!(short.p_percent_at(90.0), 5.0);
+    // A fine table of 6 % sin^2 i reproduces the analytic sin2i model (independent code path).
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("sin2.csv");
+    let text: String = (0..=180)
+        .map(|k| {
+            let i = k as f64 * 0.5;
+            format!("{i},{:.10}\n", 0.06 * i.to_radians().sin().powi(2))
+        })
+        .collect();
+    std::fs::write(&path, text).unwrap();
+    let tab = PIntDist::parse(&format!("pofi:{}", path.display())).unwrap();
+    let mk = |p: PIntDist| pol(AlignmentModel::Random, 200_000, 31, p, Some(2.0), 0.0);
+    let a = simulate(&mk(tab)).unwrap();
+    let b = simulate(&mk(PIntDist::Sin2i { p_max_percent: 6.0 })).unwrap();
+    // Same seed, same geometry: P differs by the interpolation error only (< 1e-4 %).
+    assert!((a.histogram.cdf(30.0) - b.histogram.cdf(30.0)).abs() < 1e-3);
+    assert!((a.mean_delta_gamma_deg - b.mean_delta_gamma_deg).abs() < 1e-2);
+    // The example file in testdata parses.
+    let ex = PIntDist::parse("pofi:../testdata/stats/p_of_i_illustrative.csv").unwrap();
+    assert!(matches!(ex, PIntDist::Inclination(ref t) if t.inclination_deg.len() == 10 && t.p_percent[9] == 8.5));
+}
+
+#[test]
+fn bad_p_of_i_files_are_refused_naming_file_line_and_value() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases = [
+        ("decreasing.csv", "0,0.01\n40,0.03\n30,0.04\n", "line 3", "30"),
+        ("equal.csv", "0,0.01\n40,0.03\n40,0.04\n", "line 3", "40"),
+        ("p_too_big.csv", "# comment\n0,0.01\n90,1.2\n", "line 3", "1.2"),
+        ("p_negative.csv", "0,-0.01\n90,0.05\n", "line 1", "-0.01"),
+        ("inc_too_big.csv", "0,0.01\n95,0.05\n", "line 2", "95"),
+        ("inc_negative.csv", "-5,0.01\n90,0.05\n", "line 1", "-5"),
+        ("nan.csv", "0,0.01\n45,abc\n", "line 2", "abc"),
+        ("three.csv", "inclination_deg,p\n0,0.01,7\n", "line 2", "0,0.01,7"),
+        ("empty.csv", "# nothing\n", "no (inclination_deg, p) points", ""),
+        (
+            "header_late.csv",
+            "0,0.01\ninclination_deg,p\n",
+            "line 2",
+            "inclination_deg",
+        ),
+    ];
+    for (name, text, where_, value) in cases {
+        let path = dir.path().join(name);
+        std::fs::write(&path, text).unwrap();
+        let err = PIntDist::parse(&format!("pofi:{}", path.display()))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains(name), "{name}: {err}");
+        assert!(err.contains(where_), "{name}: {err}");
+        assert!(err.contains(value), "{name}: {err}");
+    }
+    let missing = dir.path().join("missing.csv");
+    let err = PIntDist::parse(&format!("pofi:{}", missing.display()))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("missing.csv"), "{err}");
+}
