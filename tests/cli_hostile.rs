@@ -416,7 +416,18 @@ fn a_corrupt_naxis_of_100000_is_named_and_the_night_goes_on() {
     let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png"]);
     assert_eq!(code, 2, "{err}");
     let c = catalog(&out);
-    assert_eq!(components(target(&c, "Beta")), components(target(&clean, "Beta")));
+    // The night's superflat is built from frames of every target, so the damaged frame
+    // changes Beta's flat slightly: Beta must agree with the clean night far within its
+    // errors.
+    let (now, before) = (components(target(&c, "Beta")), components(target(&clean, "Beta")));
+    assert_eq!(now.as_array().unwrap().len(), 2);
+    for (a, b) in now.as_array().unwrap().iter().zip(before.as_array().unwrap()) {
+        for k in ["q", "u"] {
+            let (x, y) = (a[k].as_f64().unwrap(), b[k].as_f64().unwrap());
+            let sx = b[format!("sigma_{k}").as_str()].as_f64().unwrap();
+            assert!((x - y).abs() < 0.1 * sx, "Beta {k}: {x} vs {y} (sigma {sx})");
+        }
+    }
     assert_ne!(target(&c, "Alpha")["status"], "ok");
     let fl = failures(&c);
     assert!(

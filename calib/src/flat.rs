@@ -460,8 +460,12 @@ pub fn dome_flat(on: &[Frame], off: &[Frame], profile: &Profile, opts: &FlatOpti
     })
 }
 
+/// Marks, inside the superflat builder, pixels with too few star-free values.
+const UNKNOWN: u8 = 2;
+
 /// Superflat from the sky of dithered science frames (raw, one shape; see the module
-/// documentation). Needs at least `opts.min_values` frames.
+/// documentation). Needs at least `opts.min_values` frames. Pixels where fewer than
+/// `opts.min_values` frames are free of stars are left uncorrected (response 1), not masked.
 pub fn superflat(frames: &[Frame], profile: &Profile, opts: &FlatOptions) -> Result<Flat> {
     const STAGE: &str = "superflat";
     let frames: Vec<&Frame> = frames.iter().take(opts.max_frames.max(1)).collect();
@@ -650,8 +654,12 @@ pub fn superflat(frames: &[Frame], profile: &Profile, opts: &FlatOptions) -> Res
                         vals.push((f.data[[y, x]] * p.inv_level[k], p.sigma[k]));
                     }
                 }
+                // Too few star-free values (a star sat here in most frames): the response
+                // is unknown, so this pixel is left uncorrected (response 1, no flat noise)
+                // rather than masked: masking it would mask the stars of the science frames,
+                // which sit exactly there.
                 if vals.len() < min_values {
-                    brow[x] = 1;
+                    brow[x] = UNKNOWN;
                     continue;
                 }
                 tmp.clear();
@@ -667,19 +675,35 @@ pub fn superflat(frames: &[Frame], profile: &Profile, opts: &FlatOptions) -> Res
                     }
                 }
                 if n < min_values {
-                    brow[x] = 1;
+                    brow[x] = UNKNOWN;
                     continue;
                 }
                 rrow[x] = (swv / sw) as f32;
                 vrow[x] = (1.0 / sw) as f32;
             }
         });
+    let unknown = bad.mapv(|b| u8::from(b == UNKNOWN));
+    let n_unknown = unknown.iter().filter(|&&u| u != 0).count();
+    // The strip medians leave the unknown pixels out (they are in `bad` here); afterwards
+    // they are uncorrected (response 1, no variance), not bad.
     let levels = normalize_strips(&mut resp, &mut var, &mut bad, profile, opts, STAGE)?;
+    ndarray::Zip::from(&mut resp)
+        .and(&mut var)
+        .and(&mut bad)
+        .and(&unknown)
+        .for_each(|r, v, b, &u| {
+            if u != 0 {
+                *r = 1.0;
+                *v = 0.0;
+                *b = 0;
+            }
+        });
     let sources: Vec<String> = frames.iter().enumerate().map(|(i, f)| name_of(f, i)).collect();
     let detail = format!(
         "superflat from the sky of {} science frames: each divided by its strip sky level, stars (> {} sigma, grown {} px) \
          and masked pixels left out, per pixel the inverse-variance weighted mean of the values within {} sigma of their \
-         median (at least {}); strips normalized separately (medians {}); {} pixels unusable",
+         median (at least {}); strips normalized separately (medians {}); {} pixels unusable; {} pixels left uncorrected \
+         (too few star-free values)",
         frames.len(),
         opts.star_sigma,
         opts.star_grow_px,
@@ -690,7 +714,8 @@ pub fn superflat(frames: &[Frame], profile: &Profile, opts: &FlatOptions) -> Res
             .map(|(n, l)| format!("{n} {l:.4}"))
             .collect::<Vec<_>>()
             .join(", "),
-        bad.iter().filter(|&&b| b != 0).count()
+        bad.iter().filter(|&&b| b != 0).count(),
+        n_unknown
     );
     let filter = frames[0]
         .header

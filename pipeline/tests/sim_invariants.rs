@@ -236,7 +236,7 @@ fn unlisted_effects_leave_frames_bit_identical_and_are_never_called() {
     let calls = configured.calls();
     let names: Vec<&str> = calls.keys().copied().collect();
     assert_eq!(names, vec!["photon_noise", "read_noise", "strips"]);
-    assert_eq!(tb.ignored_sections.len(), 13, "{:?}", tb.ignored_sections);
+    assert_eq!(tb.ignored_sections.len(), 14, "{:?}", tb.ignored_sections);
     assert_eq!(configured.n_dome_flat_frames(), 0);
     assert!(tb.dome_flats.is_empty());
 }

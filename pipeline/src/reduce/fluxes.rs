@@ -115,8 +115,17 @@ pub fn measure_fluxes(
             let mut beams: Vec<Vec<(BeamFlux, u8)>> = Vec::new();
             let mut fitted_a: [Option<(f64, f64)>; 2] = [None, None];
             let mut frame_fwhm = choice.fwhm_px;
+            let mut frame_shape: Option<[f64; 4]> = None;
             for (bi, shift) in [(0.0, 0.0), eo].into_iter().enumerate() {
-                let b = measure_beam(f, &stars, shift, bi == 0, &mut frame_fwhm, choice, params);
+                let b = measure_beam(
+                    f,
+                    &stars,
+                    shift,
+                    bi == 0,
+                    (&mut frame_fwhm, &mut frame_shape),
+                    choice,
+                    params,
+                );
                 fitted_a[bi] = b.fitted_a;
                 if let Some(d) = b.pair_offset {
                     out.pair_offsets.push((o.posang_deg, d, 1.0));
@@ -150,13 +159,15 @@ struct BeamResult {
 }
 
 /// Fit and measure the stars at `stars` + `shift` in one beam of frame `f`. The o beam
-/// (`first`) sets `frame_fwhm` from its fit; both beams size their apertures with it.
+/// (`first`) sets `frame_fwhm` and the PSF shape (alpha, beta, sigma_x, sigma_y) from its
+/// fit; both beams size their apertures with the one and correct them with the other (two
+/// independently fitted widths would put their noise into F).
 fn measure_beam(
     f: &Frame,
     stars: &[(f64, f64)],
     shift: (f64, f64),
     first: bool,
-    frame_fwhm: &mut f64,
+    (frame_fwhm, frame_shape): (&mut f64, &mut Option<[f64; 4]>),
     choice: &PsfChoice,
     params: &MeasureParams,
 ) -> BeamResult {
@@ -187,6 +198,9 @@ fn measure_beam(
     if first {
         if let Some(ft) = &fit {
             *frame_fwhm = ft.fwhm_x().clamp(0.5 * fwhm_med, 2.0 * fwhm_med);
+            if ft.converged {
+                *frame_shape = Some([ft.alpha, ft.beta, ft.sigma_x, ft.sigma_y]);
+            }
         }
     }
     let r_ap = (params.aperture_fwhm * *frame_fwhm).max(1.0);
@@ -202,7 +216,7 @@ fn measure_beam(
         _ => None,
     };
     let stars = (0..local.len())
-        .map(|si| measure_star(&cut, &local, si, fit.as_ref(), r_ap, choice, params))
+        .map(|si| measure_star(&cut, &local, si, fit.as_ref(), *frame_shape, r_ap, choice, params))
         .collect();
     BeamResult {
         stars,
@@ -214,11 +228,13 @@ fn measure_beam(
 
 /// Flux of star `si` (at `local[si]` in the cut-out): PSF-fit flux, or aperture photometry
 /// with the other stars' fitted models subtracted.
+#[allow(clippy::too_many_arguments)]
 fn measure_star(
     cut: &Cutout,
     local: &[(f64, f64)],
     si: usize,
     fit: Option<&PsfFit>,
+    shape: Option<[f64; 4]>,
     r_ap: f64,
     choice: &PsfChoice,
     params: &MeasureParams,
@@ -286,7 +302,9 @@ fn measure_star(
         var: ph.variance,
         xy: (lx + x0, ly + y0),
         phot_flags: ph.flags.0,
-        aperture_fraction: fit.and_then(|ft| model_fraction_in_aperture(ft, si, cut.img.dim(), lx, ly, r_ap, params)),
+        aperture_fraction: fit
+            .zip(shape)
+            .and_then(|(ft, sh)| model_fraction_in_aperture(ft, sh, si, cut.img.dim(), lx, ly, r_ap, params)),
     };
     (flux, bits_in)
 }
@@ -296,8 +314,10 @@ fn measure_star(
 /// on an undersampled star (FWHM ~2 px) catches a fraction that depends on the star's
 /// sub-pixel position, which differs between the o and e images: dividing both beams by
 /// their own fraction removes that difference from F (docs/photometry.md).
+#[allow(clippy::too_many_arguments)]
 fn model_fraction_in_aperture(
     fit: &PsfFit,
+    [alpha, beta, sigma_x, sigma_y]: [f64; 4],
     si: usize,
     dim: (usize, usize),
     x: f64,
@@ -309,8 +329,11 @@ fn model_fraction_in_aperture(
     if !(fit.converged && st.flux.is_finite() && st.flux > 0.0) {
         return None;
     }
+    // This beam's position, the frame's PSF shape (the o beam's fit).
+    let mut shared = fit.clone();
+    (shared.alpha, shared.beta, shared.sigma_x, shared.sigma_y) = (alpha, beta, sigma_x, sigma_y);
     let mut model = Array2::<f32>::zeros(dim);
-    fit.render_star(si, &mut model.view_mut(), 1.0 / st.flux);
+    shared.render_star(si, &mut model.view_mut(), 1.0 / st.flux);
     let ap = Aperture { x, y, r: r_ap };
     let frac = aperture_sum(model.view(), None, None, &ap, params.method, MaskFill::Exclude).sum;
     (frac.is_finite() && frac > 0.2 && frac <= 1.0 + 1e-6).then_some(frac)
