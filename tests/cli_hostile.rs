@@ -479,3 +479,76 @@ fn unknown_keys_and_out_of_range_values_are_refused_naming_the_key() {
     assert_eq!(sky["cosmic_rays"]["enabled"], true, "{sky}");
     assert_eq!(sky["scaling"], "additive", "{sky}");
 }
+
+/// Issue 9, item 1 (and 5 for one frame): one NaN pixel used to fail the whole target and
+/// an all-NaN or foreign-size frame was never named. A non-finite pixel is now a bad pixel;
+/// a frame unusable as a whole is dropped by name and the other dithers carry on.
+#[test]
+fn a_nan_pixel_is_a_bad_pixel_and_unusable_frames_are_dropped_by_name() {
+    use sofipol_calib::fits;
+    let dir = tempfile::tempdir().unwrap();
+    // 4 dithers, so that each orientation keeps 3 after the damage (2 dithers cannot
+    // sky-subtract each other well: docs/accuracy.md).
+    let n = dir.path().join("night");
+    let scene = dir.path().join("scene4.toml");
+    std::fs::write(&scene, SCENE.replace("dithers = 3", "dithers = 4")).unwrap();
+    let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&n), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_file(n.join("truth.json")).unwrap();
+    // The scene has no pixel response: runs without the night's superflat, which the dropped
+    // frames would change for Beta too, so that Beta can be compared bit for bit.
+    let clean_out = dir.path().join("clean.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&clean_out), "-q", "--no-png", "--no-flat"]);
+    assert_eq!(code, 0, "{err}");
+    let clean = catalog(&clean_out);
+    let frame = |k: u32| n.join(format!("SOFI_hx_Alpha_{k:02}.fits"));
+    // One NaN and one Inf pixel in a target strip of dither 1, away from the stars.
+    let mut f1 = fits::read_frame(&frame(1)).unwrap();
+    f1.data[[400, 100]] = f32::NAN;
+    f1.data[[600, 900]] = f32::INFINITY;
+    fits::write_frame(&frame(1), &f1, &Default::default()).unwrap();
+    // Dither 2 (orientation 1): every pixel NaN. Dither 6 (orientation 2): another size.
+    let mut f2 = fits::read_frame(&frame(2)).unwrap();
+    f2.data.fill(f32::NAN);
+    fits::write_frame(&frame(2), &f2, &Default::default()).unwrap();
+    let mut f6 = fits::read_frame(&frame(6)).unwrap();
+    f6.data = f6.data.slice(ndarray::s![..512, ..512]).to_owned();
+    f6.mask = f6.mask.slice(ndarray::s![..512, ..512]).to_owned();
+    fits::write_frame(&frame(6), &f6, &Default::default()).unwrap();
+
+    let out = dir.path().join("c.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--no-flat"]);
+    assert_eq!(code, 2, "{err}");
+    let c = catalog(&out);
+    let alpha = target(&c, "Alpha");
+    assert_eq!(alpha["status"], "partial", "{alpha}");
+    let comps = alpha["components"].as_array().unwrap();
+    assert_eq!(comps.len(), 2, "{alpha}");
+    for comp in comps {
+        // Every number the schema promises (a NaN would be written as null).
+        for k in [
+            "q",
+            "u",
+            "sigma_q",
+            "sigma_u",
+            "p",
+            "sigma_p",
+            "p_debiased",
+            "gamma_deg",
+            "sigma_gamma_deg",
+        ] {
+            assert!(comp[k].as_f64().is_some_and(f64::is_finite), "{k}: {comp}");
+        }
+    }
+    let fl = failures(&c);
+    let named = |k: u32, why: &str| {
+        fl.iter()
+            .any(|(file, e)| file.ends_with(&format!("Alpha_{k:02}.fits")) && e.contains(why))
+    };
+    assert!(named(2, "not finite"), "{fl:?}");
+    assert!(named(6, "detector is 1024 x 1024"), "{fl:?}");
+    assert!(!fl.iter().any(|(file, _)| file.ends_with("Alpha_01.fits")), "{fl:?}");
+    // Beta is untouched.
+    assert_eq!(target(&c, "Beta")["components"], target(&clean, "Beta")["components"]);
+    assert_eq!(target(&c, "Beta")["status"], "ok");
+}

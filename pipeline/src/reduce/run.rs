@@ -90,7 +90,10 @@ pub fn reduce_sequence(
         let mut offs = Vec::new();
         ro.exposures.clear();
         for e in &o.exposures {
-            match fits::read_frame_rows(&e.path, rows) {
+            match fits::read_frame_rows(&e.path, rows)
+                .map_err(|e| e.to_string())
+                .and_then(|f| usable_frame(f, profile, rows))
+            {
                 Ok(f) => {
                     frames.push(f);
                     offs.push(e.offset_px);
@@ -98,7 +101,7 @@ pub fn reduce_sequence(
                 }
                 Err(err) => failures.push(Failure {
                     file: e.path.display().to_string(),
-                    error: err.to_string(),
+                    error: err,
                 }),
             }
         }
@@ -113,6 +116,57 @@ pub fn reduce_sequence(
     failures.extend(out.failures);
     out.failures = failures;
     out
+}
+
+/// A frame as read, checked before it enters the reduction: an image of another size than
+/// the profile's detector, one whose pixels are mostly not finite, or one whose pixels are
+/// all equal (all zero...) is unusable as a whole and dropped by name with the reason (the
+/// other dithers carry on). A few non-finite pixels (NaN, Inf) are bad pixels: set to the
+/// frame's median and masked BAD, so an aperture that holds one flags its dither.
+pub fn usable_frame(mut f: Frame, profile: &Profile, rows: Option<(usize, usize)>) -> Result<Frame, String> {
+    let g = &profile.geometry;
+    let want = match rows {
+        Some((r0, r1)) => (r1 - r0, g.nx),
+        None => (g.ny, g.nx),
+    };
+    let got = f.shape();
+    if got != want && got != (g.ny, g.nx) {
+        return Err(format!(
+            "image is {} x {} px (NAXIS2 x NAXIS1), the instrument profile's detector is {} x {}: frame not used",
+            got.0, got.1, g.ny, g.nx
+        ));
+    }
+    let n = f.data.len();
+    let finite: Vec<f32> = f.data.iter().copied().filter(|v| v.is_finite()).collect();
+    let n_bad = n - finite.len();
+    if 2 * n_bad > n {
+        return Err(format!(
+            "{n_bad} of {n} pixels are not finite (NaN or Inf): frame unusable"
+        ));
+    }
+    let (lo, hi) = finite
+        .iter()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    if lo == hi {
+        return Err(format!("every pixel equals {lo}: frame unusable"));
+    }
+    if n_bad > 0 {
+        let mut tmp = finite;
+        let mid = tmp.len() / 2;
+        let (_, med, _) = tmp.select_nth_unstable_by(mid, f32::total_cmp);
+        let med = *med;
+        ndarray::Zip::from(&mut f.data).and(&mut f.mask).for_each(|v, m| {
+            if !v.is_finite() {
+                *v = med;
+                *m |= sofipol_calib::frame::mask::BAD;
+            }
+        });
+        f = f.with_history(
+            "read",
+            &format!("{n_bad} non-finite pixels set to the median {med} and masked BAD"),
+        );
+    }
+    Ok(f)
 }
 
 /// Frames of one orientation already in memory: (POSANG, analyzer angle, frames, header
