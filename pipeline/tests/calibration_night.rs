@@ -11,13 +11,12 @@
 //! Frames are simulated and reduced one sequence at a time (streaming: a night of 1024^2
 //! frames does not fit in memory), in parallel over sequences.
 use rayon::prelude::*;
-use sofipol_calib::classify::{classify, Classification};
 use sofipol_calib::Profile;
+use sofipol_pipeline::accuracy::loaded_from_sim;
 use sofipol_pipeline::calibration::{calibrate_catalog, standard_params, CalibrationParams, CalibrationSource};
 use sofipol_pipeline::catalog::{Catalog, Target};
-use sofipol_pipeline::reduce::run::{reduce_loaded, LoadedOrientation};
+use sofipol_pipeline::reduce::run::reduce_loaded;
 use sofipol_pipeline::reduce::TargetParams;
-use sofipol_pipeline::sequence::{Orientation, Sequence};
 use sofipol_pipeline::sim::{Scene, Simulator, Truth};
 use sofipol_pipeline::standards::StandardsTable;
 use sofipol_pipeline::stokes::inversion::Debias;
@@ -106,38 +105,8 @@ sigma_gamma_deg = 0.1
 /// Simulate and reduce sequence `t` the way `night` reads files: analyzer angles from the
 /// profile (the pipeline does not know the instrument's true zero-point).
 fn reduce_one(sim: &Simulator, t: usize, profile: &Profile, params: &TargetParams) -> Target {
-    let mut orients: Vec<LoadedOrientation> = Vec::new();
-    let mut seq_or: Vec<Orientation> = Vec::new();
-    let (mut object, mut tpl_start, mut filter) = (String::new(), String::new(), String::new());
-    for k in 0..sim.frames_per_target() {
-        let f = sim.frame(t, k);
-        let pa = f.truth.posang_deg;
-        let phi = profile.angles.analyzer_angle_deg(pa);
-        if orients.last().is_none_or(|o| o.0 != pa) {
-            orients.push((pa, phi, vec![], vec![]));
-            seq_or.push(Orientation {
-                posang_deg: pa,
-                analyzer_deg: phi,
-                exposures: vec![],
-            });
-        }
-        if let Classification::Science(info) = classify(&f.frame.header, profile) {
-            object.clone_from(&info.object);
-            tpl_start.clone_from(&info.tpl_start);
-            filter.clone_from(&info.filter);
-            seq_or.last_mut().unwrap().exposures.push(*info);
-        }
-        let o = orients.last_mut().unwrap();
-        o.3.push(f.truth.header_offset_px);
-        o.2.push(f.frame);
-    }
-    let seq = Sequence {
-        id: format!("{object}@{tpl_start}"),
-        object,
-        tpl_start,
-        filter,
-        orientations: seq_or,
-    };
+    let frames = (0..sim.frames_per_target()).map(|k| sim.frame(t, k)).collect();
+    let (seq, orients) = loaded_from_sim(frames, profile);
     let p = if sim.is_standard(t) {
         standard_params(params)
     } else {

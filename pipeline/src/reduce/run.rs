@@ -137,21 +137,27 @@ pub fn usable_frame(mut f: Frame, profile: &Profile, rows: Option<(usize, usize)
         ));
     }
     let n = f.data.len();
-    let finite: Vec<f32> = f.data.iter().copied().filter(|v| v.is_finite()).collect();
-    let n_bad = n - finite.len();
+    // One pass over the pixels (this runs on every frame read); a copy only when needed.
+    let (n_bad, lo, hi) = f
+        .data
+        .iter()
+        .fold((0usize, f32::INFINITY, f32::NEG_INFINITY), |(k, a, b), &v| {
+            if v.is_finite() {
+                (k, a.min(v), b.max(v))
+            } else {
+                (k + 1, a, b)
+            }
+        });
     if 2 * n_bad > n {
         return Err(format!(
             "{n_bad} of {n} pixels are not finite (NaN or Inf): frame unusable"
         ));
     }
-    let (lo, hi) = finite
-        .iter()
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
     if lo == hi {
         return Err(format!("every pixel equals {lo}: frame unusable"));
     }
     if n_bad > 0 {
-        let mut tmp = finite;
+        let mut tmp: Vec<f32> = f.data.iter().copied().filter(|v| v.is_finite()).collect();
         let mid = tmp.len() / 2;
         let (_, med, _) = tmp.select_nth_unstable_by(mid, f32::total_cmp);
         let med = *med;
