@@ -1,0 +1,205 @@
+use super::*;
+
+fn profile() -> Profile {
+    Profile::sofi()
+}
+
+/// A response map: 1 + 0.02 * a deterministic pattern, in every strip.
+fn response(ny: usize, nx: usize) -> Array2<f32> {
+    Array2::from_shape_fn((ny, nx), |(y, x)| {
+        let h = (y as u64 * 7919 + x as u64 * 104729) % 1000;
+        1.0 + 0.02 * (h as f32 / 500.0 - 1.0)
+    })
+}
+
+fn header(posang: f64, lamp: Option<bool>) -> Header {
+    let p = profile();
+    let mut h = Header::new("");
+    h.set(&p.keywords.dpr_type, "FLAT");
+    h.set(&p.keywords.posang, posang);
+    h.set(&p.keywords.ndit, 6i64);
+    h.set(&p.keywords.filter, "Ks");
+    if let Some(l) = lamp {
+        h.set(LAMP_KEYWORD, l);
+    }
+    h
+}
+
+/// Noiseless lamp frames: the o strips see the lamp 3 % brighter than the e strips.
+fn lamp_frames(resp: &Array2<f32>, posang: f64) -> (Vec<Frame>, Vec<Frame>) {
+    let g = profile().geometry;
+    let pol = |y: usize| {
+        if [g.o_sky2, g.o_target, g.o_sky1].iter().any(|r| y >= r[0] && y < r[1]) {
+            1.03
+        } else {
+            0.97
+        }
+    };
+    let mk = |lamp: f32, on: bool| {
+        let d = Array2::from_shape_fn(resp.dim(), |(y, x)| {
+            if g.row_in_strip(y) {
+                (lamp * pol(y) + 300.0) * resp[[y, x]]
+            } else {
+                0.0
+            }
+        });
+        Frame::new(d, header(posang, Some(on)))
+    };
+    (vec![mk(5000.0, true), mk(5000.0, true)], vec![mk(0.0, false)])
+}
+
+#[test]
+fn dome_flat_recovers_the_response_strip_by_strip() {
+    let g = profile().geometry;
+    let resp = response(g.ny, g.nx);
+    let (on, off) = lamp_frames(&resp, 45.0);
+    let f = dome_flat(&on, &off, &profile(), &FlatOptions::default()).unwrap();
+    assert_eq!(f.kind, FlatKind::Dome);
+    assert_eq!(f.posang_deg, Some(45.0));
+    // Each strip: flat = resp / median(resp over the strip), whatever the lamp level.
+    for (_, [a, b]) in g.strips() {
+        let mut v: Vec<f32> = resp.slice(s![a..b, ..]).iter().copied().collect();
+        let med = median_f32(&mut v).unwrap();
+        for y in (a..b).step_by(37) {
+            for x in (0..g.nx).step_by(41) {
+                let want = resp[[y, x]] / med;
+                assert!(
+                    (f.data[[y, x]] - want).abs() < 2e-3,
+                    "{y} {x}: {} vs {want}",
+                    f.data[[y, x]]
+                );
+            }
+        }
+    }
+    assert_eq!(f.data[[0, 5]], 1.0);
+    assert!(f.variance[[400, 400]] > 0.0);
+    // Variance: (on/g + rv)/n_on + (off/g + rv)/n_off over the level^2.
+    let det = profile().detector;
+    let (inv_g, rv) = (1.0 / det.effective_gain(6), det.read_variance_adu2(6));
+    let raw_on = on[0].data[[400, 400]] as f64;
+    let raw_off = off[0].data[[400, 400]] as f64;
+    let want = ((raw_on * inv_g + rv) / 2.0 + (raw_off * inv_g + rv)) / (raw_on - raw_off).powi(2)
+        * (f.data[[400, 400]] as f64).powi(2);
+    assert!(((f.variance[[400, 400]] as f64) / want - 1.0).abs() < 0.02);
+}
+
+#[test]
+fn superflat_recovers_the_response_with_stars_present() {
+    let g = profile().geometry;
+    let (ny, nx) = (g.ny, g.nx);
+    let resp = response(ny, nx);
+    let frames: Vec<Frame> = (0..9)
+        .map(|i| {
+            let level = 1000.0 + 50.0 * i as f32;
+            let sx = 100.0 + 90.0 * i as f32;
+            let d = Array2::from_shape_fn((ny, nx), |(y, x)| {
+                if !g.row_in_strip(y) {
+                    return 0.0;
+                }
+                let r2 = (x as f32 - sx).powi(2) + (y as f32 - 420.0).powi(2);
+                (level + 20000.0 * (-r2 / 8.0).exp()) * resp[[y, x]]
+            });
+            let mut h = header(0.0, None);
+            h.set(&profile().keywords.dpr_type, "OBJECT");
+            Frame::new(d, h)
+        })
+        .collect();
+    let f = superflat(&frames, &profile(), &FlatOptions::default()).unwrap();
+    let (a, b) = (g.o_target[0], g.o_target[1]);
+    let mut v: Vec<f32> = resp.slice(s![a..b, ..]).iter().copied().collect();
+    let med = median_f32(&mut v).unwrap();
+    let mut worst = 0f32;
+    for y in a..b {
+        for x in 0..nx {
+            worst = worst.max((f.data[[y, x]] - resp[[y, x]] / med).abs());
+        }
+    }
+    // Noiseless: exact up to the strip normalization (median over a 1-in-4 sample).
+    assert!(worst < 2e-3, "worst {worst}");
+    assert_eq!(f.bad.iter().filter(|&&b| b != 0).count(), 0);
+}
+
+#[test]
+fn apply_divides_and_propagates_the_flat_noise() {
+    let g = profile().geometry;
+    let resp = response(g.ny, g.nx);
+    let flat = Flat {
+        data: resp.clone(),
+        variance: Array2::from_elem(resp.dim(), 1e-4),
+        bad: Array2::zeros(resp.dim()),
+        kind: FlatKind::Superflat,
+        posang_deg: None,
+        filter: None,
+        sources: vec![],
+        detail: String::new(),
+        path: None,
+    };
+    let mut flat = flat;
+    flat.bad[[400, 10]] = 1;
+    let mut data = Array2::from_shape_fn(resp.dim(), |(y, x)| 1000.0 * resp[[y, x]]);
+    data[[400, 500]] += 3000.0 * resp[[400, 500]];
+    let fr = Frame::new(data, header(0.0, None));
+    let out = apply_flat(&fr, &flat, &profile()).unwrap();
+    assert!((out.data[[400, 400]] - 1000.0).abs() < 1e-2);
+    assert!((out.data[[400, 500]] - 4000.0).abs() < 1e-1);
+    let det = profile().detector;
+    let (inv_g, rv) = (1.0 / det.effective_gain(6), det.read_variance_adu2(6));
+    let f = resp[[400, 500]] as f64;
+    let raw = 4000.0 * f;
+    let want = (raw * inv_g + rv + 3000.0f64.powi(2) * 1e-4) / (f * f);
+    assert!(((out.variance.as_ref().unwrap()[[400, 500]] as f64) / want - 1.0).abs() < 1e-3);
+    // Sky pixels: no flat-noise term (it cancels in the sky subtraction).
+    let f = resp[[400, 400]] as f64;
+    let want = (1000.0 * f * inv_g + rv) / (f * f);
+    assert!(((out.variance.as_ref().unwrap()[[400, 400]] as f64) / want - 1.0).abs() < 1e-2);
+    assert_eq!(out.mask[[400, 10]] & mask::BAD, mask::BAD);
+    assert_eq!(out.history.last().unwrap().stage, "flat");
+}
+
+#[test]
+fn flat_file_round_trip_and_choice_by_angle() {
+    let g = profile().geometry;
+    let resp = response(g.ny, g.nx);
+    let (on, off) = lamp_frames(&resp, 90.0);
+    let f = dome_flat(&on, &off, &profile(), &FlatOptions::default()).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join(flat_file_name(&f));
+    assert!(p.ends_with("flat_dome_Ks_pa090.fits"));
+    write_flat(&p, &f).unwrap();
+    let back = read_flat(&p).unwrap();
+    assert_eq!(back.data, f.data);
+    assert_eq!(back.variance, f.variance);
+    assert_eq!(back.bad, f.bad);
+    assert_eq!(back.kind, FlatKind::Dome);
+    assert_eq!(back.posang_deg, Some(90.0));
+    assert_eq!(back.filter.as_deref(), Some("Ks"));
+    assert_eq!(back.sources.len(), 3);
+    let mut f0 = back.clone();
+    f0.posang_deg = Some(0.0);
+    let set = FlatSet { flats: vec![f0, back] };
+    assert_eq!(set.for_frame(90.2, "Ks").unwrap().posang_deg, Some(90.0));
+    assert_eq!(set.for_frame(359.9, "ks").unwrap().posang_deg, Some(0.0));
+    assert_eq!(set.for_frame(80.0, "Ks").unwrap().posang_deg, Some(90.0));
+    assert!(set.for_frame(0.0, "J").is_none());
+}
+
+#[test]
+fn lamp_keyword_is_required_and_checked() {
+    let p = profile();
+    // A flat of another template without the lamp keyword (a sky flat) is not a dome flat;
+    // the dome-flat template without it is an error naming the keyword.
+    assert!(dome_flat_info(&header(0.0, None), &p).unwrap().is_none());
+    let mut dome = header(0.0, None);
+    dome.set(&p.keywords.tpl_id, DOME_FLAT_TEMPLATE);
+    assert!(dome_flat_info(&dome, &p).unwrap_err().to_string().contains("LAMP1"));
+    let mut h = header(0.0, None);
+    h.set(LAMP_KEYWORD, "maybe");
+    let e = dome_flat_info(&h, &p).unwrap_err().to_string();
+    assert!(e.contains("LAMP1") && e.contains("maybe"), "{e}");
+    assert!(dome_flat_info(&header(30.0, Some(false)), &p)
+        .unwrap()
+        .is_some_and(|i| !i.lamp_on));
+    let mut sci = header(0.0, Some(true));
+    sci.set(&p.keywords.dpr_type, "OBJECT");
+    assert!(dome_flat_info(&sci, &p).unwrap().is_none());
+}

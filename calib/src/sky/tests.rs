@@ -1,0 +1,171 @@
+use super::*;
+use crate::header::Header;
+
+fn frame_from(data: Array2<f32>, ndit: i64, posang: f64) -> Frame {
+    let p = Profile::sofi();
+    let mut h = Header::new("");
+    h.set(&p.keywords.ndit, ndit);
+    h.set(&p.keywords.posang, posang);
+    Frame::new(data, h)
+}
+
+/// xorshift + Box-Muller (tests only).
+struct Gauss(u64);
+impl Gauss {
+    fn u(&mut self) -> f64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        ((self.0 >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    }
+    fn n(&mut self) -> f64 {
+        (-2.0 * self.u().ln()).sqrt() * (2.0 * std::f64::consts::PI * self.u()).cos()
+    }
+}
+
+#[test]
+fn median_variance_factor_matches_monte_carlo() {
+    let mut g = Gauss(99);
+    for m in 2..=9usize {
+        let trials = 200_000;
+        let mut s2 = 0.0;
+        for _ in 0..trials {
+            let v: Vec<f32> = (0..m).map(|_| g.n() as f32).collect();
+            let med = stack::reference_median(&v) as f64;
+            s2 += med * med;
+        }
+        let c = m as f64 * s2 / trials as f64;
+        let want = median_variance_factor(m);
+        assert!((c / want - 1.0).abs() < 0.015, "m {m}: Monte Carlo {c} vs table {want}");
+    }
+    assert_eq!(median_variance_factor(2), 1.0);
+    assert!((median_variance_factor(1000) - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+}
+
+#[test]
+fn too_few_dithers_is_an_error_naming_posang_and_count() {
+    let f = frame_from(Array2::from_elem((1024, 1024), 1000.0), 6, 45.0);
+    let e = sky_subtract(&[f], &Profile::sofi(), &SkyOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("fewer than 2 dithers at POSANG 45") && e.contains("(1 given)"),
+        "{e}"
+    );
+}
+
+#[test]
+fn flat_sky_subtracts_to_zero_with_flags_and_history() {
+    let p = Profile::sofi();
+    let mut frames = Vec::new();
+    for (j, level) in [1000.0f32, 1100.0, 1050.0].into_iter().enumerate() {
+        let mut d = Array2::from_elem((1024, 1024), level);
+        for y in 0..1024 {
+            if !p.geometry.row_in_strip(y) {
+                d.row_mut(y).fill(0.0);
+            }
+        }
+        d[[400, 100 + 50 * j]] = 40000.0; // a "star" that moves
+        d[[600, 700]] = 12000.0 * (j + 1) as f32; // non-linear, saturating in none
+        frames.push(frame_from(d, 6, 0.0));
+    }
+    let inputs = frames.clone();
+    let no_cr = SkyOptions {
+        cosmic_rays: None,
+        ..SkyOptions::default()
+    };
+    let out = sky_subtract(&frames, &p, &no_cr).unwrap();
+    // Inputs untouched.
+    for (a, b) in inputs.iter().zip(&frames) {
+        assert_eq!(a.data, b.data);
+        assert_eq!(a.history, b.history);
+    }
+    for (j, f) in out.iter().enumerate() {
+        assert!((f.data[[500, 500]]).abs() < 1e-3, "{}", f.data[[500, 500]]);
+        assert_eq!(f.mask[[400, 100 + 50 * j]] & mask::SATURATED, mask::SATURATED);
+        assert!(f.data[[400, 100 + 50 * j]] > 38000.0);
+        assert_eq!(f.mask[[600, 700]] & mask::NONLINEAR, mask::NONLINEAR);
+        assert_eq!(f.mask[[5, 5]] & mask::OFF_STRIP, mask::OFF_STRIP);
+        assert_eq!(f.mask[[500, 5]], 0);
+        let h = f.history.last().unwrap();
+        assert_eq!(h.stage, "sky");
+        assert!(
+            h.detail.contains("multiplicative") && h.detail.contains("c(2) = 1.000000"),
+            "{}",
+            h.detail
+        );
+        // Variance: Poisson + read + c(2)/2 x (same): 1.5 x (L/32.4 + (11.3/5.4)^2/6).
+        let l = [1000.0, 1100.0, 1050.0][j];
+        let want = 1.5 * (l / 32.4 + (11.3f64 / 5.4).powi(2) / 6.0);
+        let got = f.variance.as_ref().unwrap()[[500, 500]] as f64;
+        assert!((got / want - 1.0).abs() < 1e-4, "{got} vs {want}");
+    }
+}
+
+#[test]
+fn additive_scaling_removes_additive_level_changes_exactly() {
+    let base = Array2::from_shape_fn((1024, 64), |(y, x)| {
+        (y as f32 * 0.01 + x as f32 * 0.5).sin() * 50.0 + 500.0
+    });
+    let frames: Vec<Frame> = [0.0f32, 30.0, -20.0, 12.0]
+        .iter()
+        .map(|&c| frame_from(base.mapv(|v| v + c), 1, 0.0))
+        .collect();
+    let opts = SkyOptions {
+        scaling: SkyScaling::Additive,
+        cosmic_rays: None,
+    };
+    let p = Profile::sofi();
+    let out = sky_subtract(&frames, &p, &opts).unwrap();
+    for f in &out {
+        for y in (11..1013).step_by(7) {
+            for x in 0..64 {
+                assert!(f.data[[y, x]].abs() < 0.01, "{}", f.data[[y, x]]);
+            }
+        }
+    }
+}
+
+#[test]
+fn cosmic_flags_single_pixel_and_track_but_not_a_broad_bump() {
+    let (ny, nx) = (64, 64);
+    let mut d = Array2::<f32>::zeros((ny, nx));
+    d[[10, 10]] = 1000.0;
+    // Track of 4 along +x: 2000, 1000, 667, 500.
+    for i in 0..4 {
+        d[[30, 20 + i]] += 2000.0 / (1.0 + i as f32);
+    }
+    // Gaussian bump, sigma 1.2 px (FWHM 2.8 px), peak 5000.
+    for y in 40..60 {
+        for x in 40..60 {
+            let r2 = ((y as f32 - 50.0).powi(2) + (x as f32 - 50.0).powi(2)) / (2.0 * 1.2 * 1.2);
+            d[[y, x]] += 5000.0 * (-r2).exp();
+        }
+    }
+    let var = d.mapv(|v| 50.0 + v.max(0.0) / 32.4);
+    let mut f = Frame::new(d, Header::new(""));
+    f.variance = Some(var);
+    let (out, rep) = flag_cosmic_rays(&f, &CosmicOptions::default()).unwrap();
+    assert_eq!(out.mask[[10, 10]], mask::COSMIC);
+    for i in 0..4 {
+        assert_eq!(out.mask[[30, 20 + i]], mask::COSMIC, "track pixel {i}");
+    }
+    assert_eq!(
+        out.mask
+            .slice(ndarray::s![40..60, 40..60])
+            .iter()
+            .filter(|&&b| b != 0)
+            .count(),
+        0
+    );
+    assert_eq!(rep.total, 5);
+    assert_eq!(out.data, f.data);
+    assert_eq!(out.history.last().unwrap().stage, "cosmic");
+    let e = flag_cosmic_rays(
+        &Frame::new(Array2::zeros((4, 4)), Header::new("a.fits")),
+        &CosmicOptions::default(),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("a.fits") && e.contains("variance"), "{e}");
+}

@@ -1,0 +1,192 @@
+use super::*;
+use crate::stokes::model::{normalized_difference, Polarization};
+
+fn component(name: &str, pol: Polarization, posangs: &[f64], theta0: f64, c: f64, sigma: f64) -> Component {
+    let orients: Vec<serde_json::Value> = posangs
+        .iter()
+        .map(|&pa| {
+            serde_json::json!({"posang_deg": pa, "analyzer_deg": pa,
+                "f": normalized_difference(pol, pa + theta0) + c, "sigma_f": sigma})
+        })
+        .collect();
+    let mut extra = serde_json::Map::new();
+    extra.insert("orientations".into(), serde_json::Value::Array(orients));
+    Component {
+        name: name.into(),
+        pol: crate::stokes::inversion::Polarization::UNDEFINED,
+        passes_cut: false,
+        flags: vec![],
+        extra,
+    }
+}
+
+fn target(object: &str, comps: Vec<Component>) -> Target {
+    let mut extra = serde_json::Map::new();
+    extra.insert("filter".into(), serde_json::json!("Ks"));
+    extra.insert("sequence".into(), serde_json::json!(format!("{object}@t")));
+    Target {
+        object: object.into(),
+        status: Status::Ok,
+        error: None,
+        components: comps,
+        delta_gamma_deg: None,
+        extra,
+    }
+}
+
+#[test]
+fn night_calibration_recovers_truth_and_flags_uncalibrated_without_it() {
+    let pa = [0.0, 45.0];
+    let (theta0, c) = (3.0, 0.0152);
+    let table = StandardsTable::builtin();
+    let hd = table.find("HD 204827", "Ks").unwrap().clone();
+    let stds = vec![
+        target(
+            "HD 64299",
+            vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)],
+        ),
+        target(
+            "HD_98161",
+            vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)],
+        ),
+        target(
+            "HD 204827",
+            vec![component(
+                "A",
+                Polarization::from_p_gamma(hd.p, hd.gamma_deg),
+                &pa,
+                theta0,
+                c,
+                3e-4,
+            )],
+        ),
+        target(
+            "Mystery",
+            vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)],
+        ),
+    ];
+    let truth_a = Polarization::from_p_gamma(0.05, 20.0);
+    let truth_b = Polarization::from_p_gamma(0.03, 110.0);
+    let science = || Catalog {
+        targets: vec![target(
+            "HK Tau",
+            vec![
+                component("A", truth_a, &pa, theta0, c, 1e-3),
+                component("B", truth_b, &pa, theta0, c, 1e-3),
+            ],
+        )],
+        ..Default::default()
+    };
+    let profile = Profile::sofi();
+    let mut cat = science();
+    let (cal, sum) = calibrate_catalog(
+        &mut cat,
+        stds.clone(),
+        &table,
+        &profile,
+        CalibrationSource::Night,
+        &CalibrationParams::default(),
+        Debias::WardleKronberg,
+        3.0,
+    );
+    let cal = cal.unwrap();
+    let f = cal.for_filter("ks").unwrap();
+    assert!((f.offset.unwrap().c - c).abs() < 1e-12, "{f:?}");
+    assert!((f.angles.unwrap().theta0_deg - theta0).abs() < 1e-9);
+    assert_eq!(sum.n_uncalibrated, 0);
+    let a = &cat.targets[0].components[0];
+    assert!(
+        (a.q - truth_a.q).abs() < 1e-12 && (a.u - truth_a.u).abs() < 1e-12,
+        "{a:?}"
+    );
+    assert!(!a.flags.contains(&"uncalibrated".to_string()));
+    // sigma_q holds sigma_F and sigma_c: at phi = 3 and 48 deg, q = F_a cos 6 - F_b sin 6.
+    let t = 6f64.to_radians();
+    // ... and the zero-point error, which rotates (q, u): dq = -2u dtheta0.
+    let st = f.angles.unwrap().sigma_theta0_deg.to_radians();
+    let expect =
+        1e-6 + (t.cos() - t.sin()).powi(2) * f.offset.unwrap().sigma_c.powi(2) + (2.0 * truth_a.u * st).powi(2);
+    assert!(f.offset.unwrap().sigma_c > 0.0);
+    assert!(
+        (a.sigma_q.powi(2) - expect).abs() < 1e-18,
+        "{} vs {expect}",
+        a.sigma_q.powi(2)
+    );
+    assert!((cat.targets[0].delta_gamma_deg.unwrap() - 90.0).abs() < 1e-6);
+    // Standards section: four entries, the unknown one flagged and unused.
+    assert_eq!(cat.standards.len(), 4);
+    let hd_res = cat.standards.iter().find(|s| s.name == "HD 204827").unwrap();
+    assert_eq!(hd_res.used_for, vec!["offset".to_string(), "angles".to_string()]);
+    assert!(hd_res.residual_p_sigma.unwrap().abs() < 1e-6);
+    let m = cat.standards.iter().find(|s| s.object == "Mystery").unwrap();
+    assert!(m.flags.contains(&"not_in_standards_table".to_string()) && m.used_for.is_empty());
+    assert_eq!(
+        cat.standards.iter().find(|s| s.object == "HD_98161").unwrap().name,
+        "HD 98161"
+    );
+
+    // Without calibration: biased by c, flagged, and the summary says why.
+    let mut raw = science();
+    let (none, sum) = calibrate_catalog(
+        &mut raw,
+        vec![],
+        &table,
+        &profile,
+        CalibrationSource::Night,
+        &CalibrationParams::default(),
+        Debias::WardleKronberg,
+        3.0,
+    );
+    assert!(none.is_none());
+    assert_eq!(sum.n_uncalibrated, 2);
+    assert!(sum.lines[0].contains("uncalibrated") && sum.lines[0].contains("4 orientations"));
+    let a = &raw.targets[0].components[0];
+    assert!(a.flags.contains(&"uncalibrated".to_string()));
+    assert!((a.q - truth_a.q).abs() > 0.01);
+
+    // The calibration file round-trips and serves another night.
+    let dir = tempfile::tempdir().unwrap();
+    cal.write(dir.path()).unwrap();
+    let back = Calibration::read(dir.path()).unwrap();
+    assert_eq!(back, cal);
+    let mut other = science();
+    calibrate_catalog(
+        &mut other,
+        vec![],
+        &table,
+        &profile,
+        CalibrationSource::File(dir.path().into(), Box::new(back)),
+        &CalibrationParams::default(),
+        Debias::WardleKronberg,
+        3.0,
+    );
+    assert!((other.targets[0].components[0].q - truth_a.q).abs() < 1e-12);
+    assert_eq!(
+        other.calibration.as_ref().unwrap()["source"],
+        dir.path().display().to_string()
+    );
+}
+
+#[test]
+fn four_orientations_need_no_calibration() {
+    let pa = [0.0, 45.0, 90.0, 135.0];
+    let truth = Polarization::from_p_gamma(0.04, 150.0);
+    let mut c = component("A", truth, &pa, 0.0, 0.0, 1e-3);
+    // A pure beam ratio k: F_obs = (F + ck)/(1 + ck F).
+    let ck = (1.0 - 0.97) / 1.97;
+    for o in c.extra.get_mut("orientations").unwrap().as_array_mut().unwrap() {
+        let f = o["f"].as_f64().unwrap();
+        o["f"] = serde_json::json!((f + ck) / (1.0 + ck * f));
+    }
+    let unc = resolve_component(
+        &mut c,
+        &Profile::sofi(),
+        None,
+        StokesMethod::Auto,
+        Debias::WardleKronberg,
+        3.0,
+    );
+    assert!(!unc);
+    assert_eq!(c.extra["stokes_method"], "ratio");
+    assert!((c.q - truth.q).abs() < 1e-14 && (c.u - truth.u).abs() < 1e-14);
+}

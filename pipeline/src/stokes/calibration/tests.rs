@@ -1,0 +1,165 @@
+use super::*;
+use crate::stokes::model::{beam_fluxes, Polarization};
+
+/// Noiseless F of the forward model with throughput ratio k and an additive
+/// instrumental term.
+fn f_of(pol: Polarization, phi: f64, k: f64, inst: f64) -> f64 {
+    let (o, e) = beam_fluxes(1000.0, pol, phi, 1.0, k);
+    (o - e) / (o + e) + inst
+}
+
+fn obs(pol: Polarization, phis: &[f64], k: f64, inst: f64) -> Vec<OrientationF> {
+    phis.iter()
+        .map(|&p| OrientationF {
+            analyzer_deg: p,
+            f: f_of(pol, p, k, inst),
+            sigma_f: 0.001,
+        })
+        .collect()
+}
+
+#[test]
+fn ratio_method_cancels_any_beam_ratio_exactly() {
+    let pol = Polarization { q: 0.043, u: -0.021 };
+    for k in [0.5, 0.9, 0.97, 1.0, 1.1, 2.0] {
+        for phis in [
+            vec![0.0, 45.0, 90.0, 135.0],
+            vec![10.0, 55.0, 100.0, 145.0],
+            vec![0.0, 22.5, 45.0, 67.5, 90.0, 112.5, 135.0, 157.5],
+        ] {
+            let s = solve(&obs(pol, &phis, k, 0.0), StokesMethod::Auto, None).unwrap();
+            assert_eq!(s.method, StokesMethod::Ratio);
+            assert!(!s.uncalibrated);
+            assert!((s.fit.q - pol.q).abs() < 1e-14, "k {k}: q {}", s.fit.q);
+            assert!((s.fit.u - pol.u).abs() < 1e-14, "k {k}: u {}", s.fit.u);
+        }
+    }
+    // The textbook form: R_q^2 = (o0/e0)/(o90/e90), q = (R_q - 1)/(R_q + 1).
+    let k = 0.93;
+    let (o0, e0) = beam_fluxes(1.0, pol, 0.0, 1.0, k);
+    let (o9, e9) = beam_fluxes(1.0, pol, 90.0, 1.0, k);
+    let r = ((o0 / e0) / (o9 / e9)).sqrt();
+    let a = OrientationF {
+        analyzer_deg: 0.0,
+        f: (o0 - e0) / (o0 + e0),
+        sigma_f: 0.01,
+    };
+    let b = OrientationF {
+        analyzer_deg: 90.0,
+        f: (o9 - e9) / (o9 + e9),
+        sigma_f: 0.01,
+    };
+    assert!((ratio_pair(&a, &b).0 - (r - 1.0) / (r + 1.0)).abs() < 1e-15);
+}
+
+#[test]
+fn ratio_error_matches_a_numerical_derivative() {
+    let a = OrientationF {
+        analyzer_deg: 0.0,
+        f: 0.12,
+        sigma_f: 0.01,
+    };
+    let b = OrientationF {
+        analyzer_deg: 90.0,
+        f: -0.05,
+        sigma_f: 0.02,
+    };
+    let h = 1e-6;
+    let d = |da: f64, db: f64| ratio_pair(&OrientationF { f: a.f + da, ..a }, &OrientationF { f: b.f + db, ..b }).0;
+    let ga = (d(h, 0.0) - d(-h, 0.0)) / (2.0 * h);
+    let gb = (d(0.0, h) - d(0.0, -h)) / (2.0 * h);
+    let s = ((ga * a.sigma_f).powi(2) + (gb * b.sigma_f).powi(2)).sqrt();
+    assert!((ratio_pair(&a, &b).1 - s).abs() < 1e-9);
+}
+
+#[test]
+fn difference_and_free_offset_cancel_a_constant_offset() {
+    let pol = Polarization { q: -0.012, u: 0.034 };
+    let phis = [0.0, 45.0, 90.0, 135.0];
+    let o = obs(pol, &phis, 1.0, 0.0123);
+    let d = solve(&o, StokesMethod::Difference, None).unwrap();
+    assert!((d.fit.q - pol.q).abs() < 1e-15 && (d.fit.u - pol.u).abs() < 1e-15);
+    // sigma_q = 1/2 sqrt(s0^2 + s90^2).
+    assert!((d.fit.var_q.sqrt() - 0.5 * 2f64.sqrt() * 0.001).abs() < 1e-15);
+    let f = solve(&o, StokesMethod::FreeOffset, None).unwrap();
+    assert!((f.fit.q - pol.q).abs() < 1e-14 && (f.fit.u - pol.u).abs() < 1e-14);
+    assert!((f.offset.unwrap().c - 0.0123).abs() < 1e-14);
+    // Three unbalanced angles: the free offset still recovers everything exactly.
+    let o3 = obs(pol, &[0.0, 60.0, 120.0], 1.0, -0.007);
+    let (fit, off) = fit_qu_offset(&o3).unwrap();
+    assert!((fit.q - pol.q).abs() < 1e-14 && (fit.u - pol.u).abs() < 1e-14 && (off.c + 0.007).abs() < 1e-14);
+    // Two angles cannot hold three unknowns.
+    assert!(fit_qu_offset(&obs(pol, &[0.0, 45.0], 1.0, 0.0)).is_none());
+    assert!(solve(&obs(pol, &[0.0, 45.0], 1.0, 0.0), StokesMethod::Ratio, None).is_err());
+}
+
+#[test]
+fn calibrated_least_squares_subtracts_the_offset_and_propagates_its_error() {
+    let pol = Polarization { q: 0.02, u: 0.01 };
+    let o = obs(pol, &[0.0, 45.0], 1.0, 0.005);
+    let plain = solve(&o, StokesMethod::Auto, None).unwrap();
+    assert!(plain.uncalibrated);
+    assert!((plain.fit.q - 0.025).abs() < 1e-15);
+    let off = Offset {
+        c: 0.005,
+        sigma_c: 0.0003,
+    };
+    let s = solve(&o, StokesMethod::Auto, Some(off)).unwrap();
+    assert!(!s.uncalibrated && s.method == StokesMethod::LeastSquares);
+    assert!((s.fit.q - pol.q).abs() < 1e-15 && (s.fit.u - pol.u).abs() < 1e-15);
+    // Two orientations: q = F0 - c, u = F45 - c, so Var q = s0^2 + sc^2 and Cov = sc^2.
+    assert!((s.fit.var_q - (1e-6 + 9e-8)).abs() < 1e-18);
+    assert!((s.fit.cov_qu - 9e-8).abs() < 1e-18);
+    // Balanced angles: the offset cancels in the least squares, its error too.
+    let o4 = obs(pol, &[0.0, 45.0, 90.0, 135.0], 1.0, 0.005);
+    let s4 = solve(&o4, StokesMethod::LeastSquares, Some(off)).unwrap();
+    assert!((s4.fit.var_q - 0.5e-6).abs() < 1e-18);
+}
+
+fn std_obs(name: &str, pol: Polarization, posangs: &[f64], theta0: f64, parity: i32, c: f64) -> StandardObservation {
+    StandardObservation {
+        name: name.into(),
+        posang_deg: posangs.to_vec(),
+        f: posangs
+            .iter()
+            .map(|&pa| OrientationF {
+                analyzer_deg: f64::NAN,
+                f: crate::stokes::model::normalized_difference(pol, parity as f64 * pa + theta0) + c,
+                sigma_f: 0.0005,
+            })
+            .collect(),
+        p: pol.p(),
+        sigma_p: if pol.p() > 0.0 { 0.0002 } else { 0.0005 },
+        gamma_deg: pol.gamma_deg(),
+        sigma_gamma_deg: 0.5,
+    }
+}
+
+#[test]
+fn standards_give_offset_zero_point_and_parity() {
+    let pa = [0.0, 45.0];
+    for parity in [1, -1] {
+        let (theta0, c) = (3.0, 0.0167);
+        let stds = vec![
+            std_obs("U1", Polarization::default(), &pa, theta0, parity, c),
+            std_obs("U2", Polarization::default(), &pa, theta0, parity, c),
+            std_obs("P1", Polarization::from_p_gamma(0.02, 40.0), &pa, theta0, parity, c),
+            std_obs("P2", Polarization::from_p_gamma(0.015, 125.0), &pa, theta0, parity, c),
+        ];
+        let (off, n) = measure_offset(&stds, None).unwrap();
+        assert_eq!(n, 2);
+        assert!((off.c - c).abs() < 1e-12 && off.sigma_c > 0.0);
+        let ang = measure_angles(&stds, off, 1).unwrap();
+        assert!(ang.parity_measured);
+        assert_eq!(ang.parity, parity);
+        assert!((ang.theta0_deg - theta0).abs() < 1e-9, "{ang:?}");
+        // With the angles known, polarized standards join the offset.
+        let (off2, n2) = measure_offset(&stds, Some(&ang)).unwrap();
+        assert_eq!(n2, 4);
+        assert!((off2.c - c).abs() < 1e-12);
+    }
+    // One polarized standard: theta0 measured, parity from the profile.
+    let stds = vec![std_obs("P1", Polarization::from_p_gamma(0.02, 40.0), &pa, 3.0, 1, 0.0)];
+    let a = measure_angles(&stds, Offset { c: 0.0, sigma_c: 0.0 }, 1).unwrap();
+    assert!(!a.parity_measured && (a.theta0_deg - 3.0).abs() < 1e-9);
+}
