@@ -21,30 +21,13 @@ enum What {
         #[arg(long, default_value_t = 21)]
         repeats: usize,
     },
-    /// A 49-target night (490 frames of 1024x1024): simulate it (not timed), then time
-    /// `sofipol night` on it in a child process: wall and CPU time, per-stage breakdown, peak
-    /// RSS, and right after each run the `cat` floor (time `cat` needs to read the same files,
-    /// page cache warm) and the ratio wall / cat.
-    Night {
-        /// Targets.
-        #[arg(long, default_value_t = 49)]
-        targets: usize,
-        /// Worker threads for the reduction (default: all cores).
-        #[arg(long)]
-        jobs: Option<usize>,
-        /// Repeats of the reduction (median reported).
-        #[arg(long, default_value_t = 3)]
-        repeats: usize,
-        /// Keep the simulated night here instead of a temporary directory (a night simulated
-        /// there earlier with the same --targets is reused).
-        #[arg(long)]
-        dir: Option<std::path::PathBuf>,
-        /// Add 3 standard stars (2 unpolarized, 1 polarized, from the built-in table) and the
-        /// instrumental effects they calibrate (k = 0.97, p_inst 0.3 %, zero-point 3 deg):
-        /// shows what calibration adds to the night.
-        #[arg(long)]
-        with_standards: bool,
-    },
+    /// A 49-target night (490 frames of 1024x1024, half float, half 16-bit): simulate it (not
+    /// timed), then time `sofipol night` on it in a child process: wall and CPU time,
+    /// per-stage breakdown, peak RSS, and right after each run the `cat` floor (time `cat`
+    /// needs to read the same files, page cache warm) and the ratio wall / cat. With
+    /// --python: the expert Python reduction of the same night, the ratios and the
+    /// comparison of the two catalogs.
+    Night(NightArgs),
     /// Cost of each reduction stage on one simulated 10-frame sequence (medians).
     Stages {
         /// Repeats per stage.
@@ -80,6 +63,38 @@ enum What {
         #[command(flatten)]
         reduce: super::target::ReduceArgs,
     },
+}
+
+/// Arguments of `sofipol bench night`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct NightArgs {
+    /// Targets.
+    #[arg(long, default_value_t = 49)]
+    targets: usize,
+    /// Worker threads for the reduction (default: all cores).
+    #[arg(long)]
+    jobs: Option<usize>,
+    /// Repeats of the reduction (median reported).
+    #[arg(long, default_value_t = 3)]
+    repeats: usize,
+    /// Keep the simulated night here instead of a temporary directory (a night simulated
+    /// there earlier with the same --targets, standards and pixel types is reused).
+    #[arg(long)]
+    dir: Option<std::path::PathBuf>,
+    /// Add 3 standard stars (2 unpolarized, 1 polarized, from the built-in table) and the
+    /// instrumental effects they calibrate (k = 0.97, p_inst 0.3 %, zero-point 3 deg):
+    /// shows what calibration adds to the night.
+    #[arg(long)]
+    with_standards: bool,
+    /// Python interpreter with numpy, scipy, astropy and photutils: also time the expert
+    /// Python reduction (bench/python/reduce_night.py) on the same night, print the ratios
+    /// and compare its q, u with sofipol's (default: $SOFIPOL_PYTHON; not run without).
+    #[arg(long, value_name = "PYTHON")]
+    python: Option<std::path::PathBuf>,
+    /// Run the Python reduction on the first N targets only and scale its times to the
+    /// whole night (it is one run, single-threaded; the output says when it was scaled).
+    #[arg(long, value_name = "N")]
+    python_targets: Option<usize>,
 }
 
 const BENCH_SCENE: &str = r#"
@@ -157,13 +172,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 if all <= 50.0 { "met" } else { "NOT met" }
             );
         }
-        What::Night {
-            targets,
-            jobs,
-            repeats,
-            dir,
-            with_standards,
-        } => bench_night(targets, jobs, repeats, dir, with_standards)?,
+        What::Night(a) => bench_night(a)?,
         What::Stages { repeats } => bench_stages(repeats)?,
         What::Accuracy {
             targets,
@@ -266,20 +275,20 @@ pub fn night_scene(n: usize, seed: u64) -> String {
     s
 }
 
-fn bench_night(
-    targets: usize,
-    jobs: Option<usize>,
-    repeats: usize,
-    dir: Option<std::path::PathBuf>,
-    with_standards: bool,
-) -> anyhow::Result<()> {
-    use anyhow::Context;
-    let tmp = tempfile::tempdir()?;
-    let keep = dir.is_some();
-    let root = dir.unwrap_or_else(|| tmp.path().to_path_buf());
-    let raw = root.join("raw");
-    let mut text = night_scene(targets, 2001);
-    if with_standards {
+/// Tag of a complete cached night in `--dir`: the targets, standards and the pixel-type mix
+/// (a night simulated with another mix, e.g. all float by an older sofipol, is re-simulated).
+fn night_tag(a: &NightArgs) -> String {
+    format!(
+        "{} targets{}; BITPIX -32 for even targets, 16 (BZERO 32768) for odd ones\n",
+        a.targets,
+        if a.with_standards { " with standards" } else { "" }
+    )
+}
+
+/// The scene of the bench night (with the standards and their effects when asked).
+fn night_scene_text(a: &NightArgs) -> String {
+    let mut text = night_scene(a.targets, 2001);
+    if a.with_standards {
         text = text.replacen(
             "\"cosmic_rays\"]",
             "\"cosmic_rays\", \"throughput\", \"instrumental_polarization\", \"analyzer_angle\"]",
@@ -290,44 +299,139 @@ fn bench_night(
             "[[standard]]\nname = \"HD 64299\"\nflux = 150000.0\n[[standard]]\nname = \"HD 98161\"\nflux = 150000.0\n";
         text += "[[standard]]\nname = \"HD 204827\"\nflux = 150000.0\np = 0.0084\ngamma_deg = 58.7\n";
     }
-    let reuse = raw.join(".bench-night-complete");
-    let tag = format!("{targets}{}\n", if with_standards { " with standards" } else { "" });
-    if std::fs::read_to_string(&reuse).ok().as_deref() == Some(tag.as_str()) {
-        println!(
-            "sofipol bench night: reusing the {targets}-target night simulated earlier in {}",
-            raw.display()
-        );
-    } else {
-        let scene = Scene::from_toml(&text, "bench night").map_err(anyhow::Error::msg)?;
-        let t0 = Instant::now();
-        let truth = super::simulate::simulate_into(scene, Profile::sofi(), &raw, None, true)?;
-        std::fs::remove_file(raw.join("truth.json")).ok();
-        let nframes: usize = truth.targets.iter().map(|t| t.frames.len()).sum();
-        println!("sofipol bench night: simulated {targets} targets, {nframes} frames (1024x1024 f32) in {:.1} s (not timed below)", t0.elapsed().as_secs_f64());
-        if keep {
-            std::fs::write(&reuse, &tag)?;
+    text
+}
+
+/// Simulate the night into `raw` as SOFI writes it: half the targets float (BITPIX -32),
+/// half 16-bit (BITPIX 16, BZERO 32768, BSCALE 1), alternating so that any first N targets
+/// hold both. Also writes `pairs.csv`, the binaries' nominal separation and PA (what an
+/// observer takes from the literature). Returns (frames, f32 frames).
+fn simulate_mixed_night(text: &str, raw: &std::path::Path) -> anyhow::Result<(usize, usize)> {
+    use rayon::prelude::*;
+    use sofipol_calib::fits::{write_frame, Bitpix, WriteOptions};
+    let scene = Scene::from_toml(text, "bench night").map_err(anyhow::Error::msg)?;
+    let n_targets = scene.binary.len() + scene.standard.len();
+    let mut pairs = String::from("name,separation_arcsec,pa_deg\n");
+    for b in &scene.binary {
+        pairs += &format!("{},{},{}\n", b.name, b.separation_arcsec, b.pa_deg);
+    }
+    let sim = Simulator::new(scene, Profile::sofi()).map_err(anyhow::Error::msg)?;
+    std::fs::create_dir_all(raw)?;
+    // Frames of an earlier bench night (another size or mix) go first.
+    for e in std::fs::read_dir(raw)?.flatten() {
+        if e.file_name().to_string_lossy().starts_with("SOFI_bench_") {
+            std::fs::remove_file(e.path())?;
         }
     }
-    let exe = std::env::current_exe().context("locating the sofipol executable")?;
-    let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(&raw)?
+    let n = sim.frames_per_target();
+    let jobs: Vec<(usize, usize)> = (0..n_targets).flat_map(|t| (0..n).map(move |k| (t, k))).collect();
+    let pb = super::common::progress(jobs.len() as u64, "simulate", false);
+    jobs.par_iter().try_for_each(|&(t, k)| -> anyhow::Result<()> {
+        let f = sim.frame(t, k);
+        let opts = WriteOptions {
+            bitpix: if t % 2 == 0 { Bitpix::F32 } else { Bitpix::I16 },
+            ..Default::default()
+        };
+        write_frame(&raw.join(&f.file_name), &f.frame, &opts)?;
+        pb.inc(1);
+        Ok(())
+    })?;
+    pb.finish_and_clear();
+    std::fs::write(raw.join("pairs.csv"), pairs)?;
+    let f32_frames = n_targets.div_ceil(2) * n;
+    Ok((jobs.len(), f32_frames))
+}
+
+/// The night in `raw`: reused when `--dir` holds one with the same tag, simulated otherwise.
+fn ensure_night(a: &NightArgs, raw: &std::path::Path, keep: bool) -> anyhow::Result<()> {
+    let reuse = raw.join(".bench-night-complete");
+    let tag = night_tag(a);
+    if std::fs::read_to_string(&reuse).ok().as_deref() == Some(tag.as_str()) && raw.join("pairs.csv").exists() {
+        println!(
+            "sofipol bench night: reusing the {}-target night simulated earlier in {} ({})",
+            a.targets,
+            raw.display(),
+            tag.trim()
+        );
+        return Ok(());
+    }
+    std::fs::remove_file(&reuse).ok();
+    let t0 = Instant::now();
+    let (nframes, nf32) = simulate_mixed_night(&night_scene_text(a), raw)?;
+    println!(
+        "sofipol bench night: simulated {} targets, {nframes} frames of 1024x1024 ({nf32} float BITPIX -32, {} 16-bit BITPIX 16) in {:.1} s (not timed below)",
+        a.targets,
+        nframes - nf32,
+        t0.elapsed().as_secs_f64()
+    );
+    if keep {
+        std::fs::write(&reuse, &tag)?;
+    }
+    Ok(())
+}
+
+/// The night's FITS files, sorted.
+fn fits_files(raw: &std::path::Path) -> anyhow::Result<Vec<std::path::PathBuf>> {
+    let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(raw)?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.is_file() && p.extension().is_some_and(|x| x == "fits"))
         .collect();
     files.sort();
-    let bytes: u64 = files.iter().filter_map(|p| p.metadata().ok()).map(|m| m.len()).sum();
+    Ok(files)
+}
+
+fn bench_night(a: NightArgs) -> anyhow::Result<()> {
+    let tmp = tempfile::tempdir()?;
+    let keep = a.dir.is_some();
+    let root = a.dir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
+    let raw = root.join("raw");
+    ensure_night(&a, &raw, keep)?;
+    let files = fits_files(&raw)?;
+    let (runs, last) = time_sofipol_night(&a, &raw, &root, &files)?;
+    let s = print_night_runs(&runs, &files, &last);
+    let python = a
+        .python
+        .clone()
+        .or_else(|| std::env::var_os("SOFIPOL_PYTHON").map(std::path::PathBuf::from));
+    match python {
+        Some(py) => {
+            let n = a.python_targets.unwrap_or(a.targets).clamp(1, a.targets.max(1));
+            match run_python(&py, &raw, &root, n) {
+                Ok(p) => print_python(&p, &s, a.targets, &root.join(format!("catalog{}.json", runs.len() - 1))),
+                Err(e) => println!("  Python reference: FAILED ({e:#}); not compared"),
+            }
+        }
+        None => println!(
+            "  Python reference: not run (give --python PATH or set SOFIPOL_PYTHON to an interpreter with numpy, scipy, astropy, photutils)"
+        ),
+    }
+    println!("  targets (issue 10): wall <= 5x cat, >= 50x faster than the Python reduction, peak RSS <= 1 GB");
+    Ok(())
+}
+
+/// Runs `sofipol night` `--repeats` times in a child process, each followed by the floors.
+/// Returns the runs and the last run's stderr.
+fn time_sofipol_night(
+    a: &NightArgs,
+    raw: &std::path::Path,
+    root: &std::path::Path,
+    files: &[std::path::PathBuf],
+) -> anyhow::Result<(Vec<NightRun>, String)> {
+    use anyhow::Context;
+    let exe = std::env::current_exe().context("locating the sofipol executable")?;
     let mut runs: Vec<NightRun> = Vec::new();
     let mut last = String::new();
-    for r in 0..repeats.max(1) {
+    for r in 0..a.repeats.max(1) {
         let out = root.join(format!("catalog{r}.json"));
         let mut cmd = std::process::Command::new(&exe);
         cmd.arg("night")
-            .arg(&raw)
+            .arg(raw)
             .arg("-o")
             .arg(&out)
             .arg("-q")
             .arg("-v")
             .arg("--no-png");
-        if let Some(j) = jobs {
+        if let Some(j) = a.jobs {
             cmd.arg("--jobs").arg(j.to_string());
         }
         let t = Instant::now();
@@ -339,8 +443,8 @@ fn bench_night(
             "sofipol night failed: {stderr}"
         );
         // The floors, in the same run, page cache warm (the reduction just read the files).
-        let cat = cat_floor(&files)?;
-        let read = read_floor(&files)?;
+        let cat = cat_floor(files)?;
+        let read = read_floor(files)?;
         last = stderr.clone();
         runs.push(NightRun {
             wall,
@@ -349,22 +453,35 @@ fn bench_night(
             stages: parse_stage_line(&stderr),
         });
     }
+    Ok((runs, last))
+}
+
+/// Medians of the sofipol runs that the Python comparison needs.
+struct NightSummary {
+    wall: f64,
+    cpu: f64,
+    cat: f64,
+}
+
+/// Prints the sofipol runs: wall, CPU, floors, ratios, stages, RSS.
+fn print_night_runs(runs: &[NightRun], files: &[std::path::PathBuf], last: &str) -> NightSummary {
+    let bytes: u64 = files.iter().filter_map(|p| p.metadata().ok()).map(|m| m.len()).sum();
     let med = |f: &dyn Fn(&NightRun) -> f64| -> f64 {
         let mut v: Vec<f64> = runs.iter().map(f).filter(|x| x.is_finite()).collect();
         v.sort_by(|a, b| a.total_cmp(b));
         v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
     };
-    let list = |f: &dyn Fn(&NightRun) -> f64| -> String {
+    let list = |f: &dyn Fn(&NightRun) -> f64, digits: usize| -> String {
         runs.iter()
-            .map(|r| format!("{:.2}", f(r)))
+            .map(|r| format!("{:.*}", digits, f(r)))
             .collect::<Vec<_>>()
             .join(" ")
     };
-    let n = runs.len();
     println!(
-        "  files: {} ({:.0} MB); medians over {n} runs, each run = reduction + floors right after it",
+        "  files: {} ({:.0} MB); medians over {} runs, each run = reduction + floors right after it",
         files.len(),
-        bytes as f64 / 1e6
+        bytes as f64 / 1e6,
+        runs.len()
     );
     for line in last
         .lines()
@@ -372,39 +489,35 @@ fn bench_night(
     {
         println!("  last run: {line}");
     }
+    let s = NightSummary {
+        wall: med(&|r| r.wall),
+        cpu: med(&|r| r.stages.get("cpu")),
+        cat: med(&|r| r.cat),
+    };
     println!(
         "  reduction wall (child process, incl. start-up): {:.2} s   [{}]",
-        med(&|r| r.wall),
-        list(&|r| r.wall)
+        s.wall,
+        list(&|r| r.wall, 2)
     );
     println!(
         "  reduction CPU (user+sys):                       {:.2} s   [{}]",
-        med(&|r| r.stages.get("cpu")),
-        list(&|r| r.stages.get("cpu"))
+        s.cpu,
+        list(&|r| r.stages.get("cpu"), 2)
     );
     println!(
         "  `cat` floor (cat FILES > /dev/null):             {:.3} s  [{}]",
-        med(&|r| r.cat),
-        runs.iter()
-            .map(|r| format!("{:.3}", r.cat))
-            .collect::<Vec<_>>()
-            .join(" ")
+        s.cat,
+        list(&|r| r.cat, 3)
     );
     println!(
         "  in-process read floor (std::fs::read each file): {:.3} s  [{}]",
         med(&|r| r.read),
-        runs.iter()
-            .map(|r| format!("{:.3}", r.read))
-            .collect::<Vec<_>>()
-            .join(" ")
+        list(&|r| r.read, 3)
     );
     println!(
         "  ratio wall / cat (per run, same run):           {:.1}x  [{}]",
         med(&|r| r.wall / r.cat),
-        runs.iter()
-            .map(|r| format!("{:.1}", r.wall / r.cat))
-            .collect::<Vec<_>>()
-            .join(" ")
+        list(&|r| r.wall / r.cat, 1)
     );
     println!(
         "  ratio CPU / cat:                                 {:.1}x",
@@ -422,9 +535,193 @@ fn bench_night(
         "  peak RSS: {:.0} MB (max over runs)",
         runs.iter().map(|r| r.stages.get("rss")).fold(0.0, f64::max)
     );
-    println!("  Python reference: no expert Python reduction of a night is in this repository; not compared");
-    println!("  targets (issue 10): wall <= 5x cat, peak RSS <= 1 GB");
-    Ok(())
+    s
+}
+
+/// The expert Python reduction (bench/python/reduce_night.py), embedded so that the bench
+/// runs from any directory.
+const PYTHON_REDUCTION: &str = include_str!("../../bench/python/reduce_night.py");
+
+/// One run of the Python reduction.
+struct PythonRun {
+    /// Wall time of the child process (interpreter start-up and imports included), s.
+    wall: f64,
+    /// The child's CPU time (user + sys, its own getrusage at exit), s.
+    cpu: f64,
+    /// Sequences it reduced (and failed).
+    sequences: usize,
+    /// Its catalog.
+    catalog: serde_json::Value,
+}
+
+/// Runs the Python reduction on the first `n` sequences of `raw`, single-threaded (one
+/// process; BLAS/OpenMP threads pinned to 1).
+fn run_python(
+    py: &std::path::Path,
+    raw: &std::path::Path,
+    root: &std::path::Path,
+    n: usize,
+) -> anyhow::Result<PythonRun> {
+    use anyhow::Context;
+    let script = root.join("reduce_night.py");
+    std::fs::write(&script, PYTHON_REDUCTION)?;
+    let out = root.join("catalog_python.json");
+    std::fs::remove_file(&out).ok();
+    let mut cmd = std::process::Command::new(py);
+    cmd.arg(&script)
+        .arg(raw)
+        .arg("-o")
+        .arg(&out)
+        .arg("--pairs")
+        .arg(raw.join("pairs.csv"))
+        .arg("--targets")
+        .arg(n.to_string())
+        .arg("-q");
+    for v in ["OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"] {
+        cmd.env(v, "1");
+    }
+    let t = Instant::now();
+    let o = cmd
+        .output()
+        .with_context(|| format!("running {} {}", py.display(), script.display()))?;
+    let wall = t.elapsed().as_secs_f64();
+    if !o.status.success() {
+        let err = String::from_utf8_lossy(&o.stderr);
+        let tail: Vec<&str> = err.lines().rev().take(3).collect();
+        anyhow::bail!("{} exited with {}: {}", py.display(), o.status, tail.join(" | "));
+    }
+    let text = std::fs::read_to_string(&out).with_context(|| format!("reading {}", out.display()))?;
+    let catalog: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", out.display()))?;
+    let count = |k: &str| catalog[k].as_array().map_or(0, |v| v.len());
+    Ok(PythonRun {
+        wall,
+        cpu: catalog["cpu_s"].as_f64().unwrap_or(f64::NAN),
+        sequences: count("targets") + count("failures"),
+        catalog,
+    })
+}
+
+/// Prints the Python timings (scaled to the whole night when it ran on fewer targets), the
+/// ratios against sofipol and the comparison of the two catalogs.
+fn print_python(p: &PythonRun, s: &NightSummary, targets: usize, sofipol_catalog: &std::path::Path) {
+    let scale = targets as f64 / p.sequences.max(1) as f64;
+    let v = &p.catalog["versions"];
+    println!(
+        "  Python reference (bench/python/reduce_night.py: numpy {}, scipy {}, astropy {}, photutils {}; one process, 1 thread), one run on {} of {} targets{}:",
+        v["numpy"].as_str().unwrap_or("?"),
+        v["scipy"].as_str().unwrap_or("?"),
+        v["astropy"].as_str().unwrap_or("?"),
+        v["photutils"].as_str().unwrap_or("?"),
+        p.sequences,
+        targets,
+        if scale > 1.0 {
+            format!(", times scaled x{scale:.2} to the whole night")
+        } else {
+            String::new()
+        }
+    );
+    let (wall, cpu) = (p.wall * scale, p.cpu * scale);
+    println!(
+        "    Python wall {:.2} s (measured {:.2} s, incl. start-up), CPU {:.2} s (measured {:.2} s)",
+        wall, p.wall, cpu, p.cpu
+    );
+    println!(
+        "    ratio Python / sofipol: wall {:.1}x, CPU {:.1}x; Python wall / cat {:.0}x",
+        wall / s.wall,
+        cpu / s.cpu,
+        wall / s.cat
+    );
+    match std::fs::read_to_string(sofipol_catalog)
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+    {
+        Some(sp) => print_comparison(&compare_catalogs(&sp, &p.catalog)),
+        None => println!("    comparison: cannot read {}", sofipol_catalog.display()),
+    }
+}
+
+/// Differences of q and u between the Python and the sofipol catalog, per component and
+/// target: (object, component, photometry, dq / sigma_q, du / sigma_u), sigma from sofipol.
+pub fn compare_catalogs(
+    sofipol: &serde_json::Value,
+    python: &serde_json::Value,
+) -> Vec<(String, String, String, f64, f64)> {
+    let empty = Vec::new();
+    let sp_targets = sofipol["targets"].as_array().unwrap_or(&empty);
+    let mut out = Vec::new();
+    for pt in python["targets"].as_array().unwrap_or(&empty) {
+        let key = (pt["object"].as_str(), pt["tpl_start"].as_str());
+        let Some(st) = sp_targets
+            .iter()
+            .find(|t| (t["object"].as_str(), t["tpl_start"].as_str()) == key)
+        else {
+            continue;
+        };
+        for pc in pt["components"].as_array().unwrap_or(&empty) {
+            let Some(sc) = st["components"]
+                .as_array()
+                .unwrap_or(&empty)
+                .iter()
+                .find(|c| c["name"] == pc["name"])
+            else {
+                continue;
+            };
+            let f = |c: &serde_json::Value, k: &str| c[k].as_f64().unwrap_or(f64::NAN);
+            let dq = (f(pc, "q") - f(sc, "q")) / f(sc, "sigma_q");
+            let du = (f(pc, "u") - f(sc, "u")) / f(sc, "sigma_u");
+            if dq.is_finite() && du.is_finite() {
+                out.push((
+                    key.0.unwrap_or("").to_string(),
+                    pc["name"].as_str().unwrap_or("").to_string(),
+                    st["photometry"].as_str().unwrap_or("").to_string(),
+                    dq,
+                    du,
+                ));
+            }
+        }
+    }
+    out
+}
+
+fn print_comparison(d: &[(String, String, String, f64, f64)]) {
+    if d.is_empty() {
+        println!("    comparison: no component measured by both");
+        return;
+    }
+    let stats = |sel: &dyn Fn(&(String, String, String, f64, f64)) -> bool| -> (usize, f64, f64, usize) {
+        let v: Vec<f64> = d.iter().filter(|x| sel(x)).flat_map(|x| [x.3, x.4]).collect();
+        let rms = (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt();
+        let max = v.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        (v.len(), rms, max, v.iter().filter(|x| x.abs() <= 1.0).count())
+    };
+    for (label, sel) in [
+        (
+            "all",
+            &(|_: &(String, String, String, f64, f64)| true) as &dyn Fn(&_) -> bool,
+        ),
+        ("sofipol aperture", &|x: &(String, String, String, f64, f64)| {
+            x.2 == "aperture"
+        }),
+        ("sofipol psf_fit", &|x: &(String, String, String, f64, f64)| {
+            x.2 == "psf_fit"
+        }),
+    ] {
+        let (n, rms, max, within) = stats(sel);
+        if n > 0 {
+            println!(
+                "    Python - sofipol, q and u in units of sofipol's sigma ({label}): {n} values, rms {rms:.2}, max |d| {max:.2}, {within} within 1 sigma"
+            );
+        }
+    }
+    let mut worst: Vec<&(String, String, String, f64, f64)> = d.iter().collect();
+    worst.sort_by(|a, b| b.3.abs().max(b.4.abs()).total_cmp(&a.3.abs().max(a.4.abs())));
+    let w: Vec<String> = worst
+        .iter()
+        .take(3)
+        .map(|x| format!("{} {} ({}) dq {:+.2} du {:+.2}", x.0, x.1, x.2, x.3, x.4))
+        .collect();
+    println!("    largest: {}", w.join("; "));
 }
 
 /// One repeat of `bench night`.
