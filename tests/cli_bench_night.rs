@@ -102,10 +102,10 @@ fn python_reduction_agrees_with_sofipol_and_with_the_truth() {
     let dir = tempfile::tempdir().unwrap();
     let out = bench_night(dir.path(), &["--python", py.to_str().unwrap()]);
     assert!(out.contains("ratio Python / sofipol: wall"), "{out}");
-    // "Python - sofipol, q and u in units of sofipol's sigma (all): 16 values, rms 0.52, ..."
+    // "Python - sofipol, q and u in units of sofipol's sigma (all, sofipol status ok): 16 values, rms 0.52, ..."
     let line = out
         .lines()
-        .find(|l| l.contains("sofipol's sigma (all)"))
+        .find(|l| l.contains("sofipol's sigma (all, sofipol status ok)"))
         .unwrap_or_else(|| panic!("{out}"));
     assert!(line.contains("16 values"), "{line}");
     let rms: f64 = line
@@ -127,6 +127,7 @@ fn python_reduction_agrees_with_sofipol_and_with_the_truth() {
         .parse()
         .unwrap();
     assert!(rms < 1.0 && max < 3.0, "{line}");
+    assert!(out.contains("Python  against the simulated truth"), "{out}");
 
     // The Python catalog on its own against the truth (A = the brighter component).
     let cat: Value =
