@@ -21,30 +21,13 @@ enum What {
         #[arg(long, default_value_t = 21)]
         repeats: usize,
     },
-    /// A 49-target night (490 frames of 1024x1024): simulate it (not timed), then time
-    /// `sofipol night` on it in a child process: wall and CPU time, per-stage breakdown, peak
-    /// RSS, and right after each run the `cat` floor (time `cat` needs to read the same files,
-    /// page cache warm) and the ratio wall / cat.
-    Night {
-        /// Targets.
-        #[arg(long, default_value_t = 49)]
-        targets: usize,
-        /// Worker threads for the reduction (default: all cores).
-        #[arg(long)]
-        jobs: Option<usize>,
-        /// Repeats of the reduction (median reported).
-        #[arg(long, default_value_t = 3)]
-        repeats: usize,
-        /// Keep the simulated night here instead of a temporary directory (a night simulated
-        /// there earlier with the same --targets is reused).
-        #[arg(long)]
-        dir: Option<std::path::PathBuf>,
-        /// Add 3 standard stars (2 unpolarized, 1 polarized, from the built-in table) and the
-        /// instrumental effects they calibrate (k = 0.97, p_inst 0.3 %, zero-point 3 deg):
-        /// shows what calibration adds to the night.
-        #[arg(long)]
-        with_standards: bool,
-    },
+    /// A 49-target night (490 frames of 1024x1024, half float, half 16-bit): simulate it (not
+    /// timed), then time `sofipol night` on it in a child process: wall and CPU time,
+    /// per-stage breakdown, peak RSS, and right after each run the `cat` floor (time `cat`
+    /// needs to read the same files, page cache warm) and the ratio wall / cat. With
+    /// --python: the expert Python reduction of the same night, the ratios and the
+    /// comparison of the two catalogs.
+    Night(super::bench_night::NightArgs),
     /// Cost of each reduction stage on one simulated 10-frame sequence (medians).
     Stages {
         /// Repeats per stage.
@@ -157,13 +140,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 if all <= 50.0 { "met" } else { "NOT met" }
             );
         }
-        What::Night {
-            targets,
-            jobs,
-            repeats,
-            dir,
-            with_standards,
-        } => bench_night(targets, jobs, repeats, dir, with_standards)?,
+        What::Night(a) => super::bench_night::run(a)?,
         What::Stages { repeats } => bench_stages(repeats)?,
         What::Accuracy {
             targets,
@@ -243,260 +220,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// A night of `n` binaries like the reference study's: separations 0.5-5.3", K-band fluxes
-/// and polarizations spread as in a real sample, realistic effects.
-pub fn night_scene(n: usize, seed: u64) -> String {
-    let mut s = format!(
-        "name = \"bench\"\nseed = {seed}\neffects = [\"psf\", \"sky\", \"strips\", \"photon_noise\", \"read_noise\", \"bad_pixels\", \"transparency\", \"pointing_error\", \"cosmic_rays\"]\n[psf]\nkind = \"moffat\"\nfwhm_arcsec = 0.8\n"
-    );
-    for i in 0..n {
-        let f = i as f64 / n.max(1) as f64;
-        s += &format!(
-            "[[binary]]\nname = \"Bench {i:02}\"\nseparation_arcsec = {:.3}\npa_deg = {:.1}\nflux_a = {:.0}\nflux_b = {:.0}\np_a = {:.4}\ngamma_a_deg = {:.1}\np_b = {:.4}\ngamma_b_deg = {:.1}\n",
-            0.5 + 4.8 * f,
-            (i * 47 % 360) as f64,
-            60000.0 + 90000.0 * ((i * 7 % 10) as f64 / 10.0),
-            30000.0 + 50000.0 * ((i * 3 % 10) as f64 / 10.0),
-            0.01 + 0.06 * ((i * 5 % 11) as f64 / 11.0),
-            (i * 37 % 180) as f64,
-            0.01 + 0.06 * ((i * 9 % 11) as f64 / 11.0),
-            (i * 71 % 180) as f64
-        );
-    }
-    s
-}
-
-fn bench_night(
-    targets: usize,
-    jobs: Option<usize>,
-    repeats: usize,
-    dir: Option<std::path::PathBuf>,
-    with_standards: bool,
-) -> anyhow::Result<()> {
-    use anyhow::Context;
-    let tmp = tempfile::tempdir()?;
-    let keep = dir.is_some();
-    let root = dir.unwrap_or_else(|| tmp.path().to_path_buf());
-    let raw = root.join("raw");
-    let mut text = night_scene(targets, 2001);
-    if with_standards {
-        text = text.replacen(
-            "\"cosmic_rays\"]",
-            "\"cosmic_rays\", \"throughput\", \"instrumental_polarization\", \"analyzer_angle\"]",
-            1,
-        );
-        text += "[throughput]\nt_e = 0.97\n[instrumental_polarization]\np = 0.003\nangle_deg = 0.0\n[analyzer_angle]\nzero_point_deg = 3.0\n";
-        text +=
-            "[[standard]]\nname = \"HD 64299\"\nflux = 150000.0\n[[standard]]\nname = \"HD 98161\"\nflux = 150000.0\n";
-        text += "[[standard]]\nname = \"HD 204827\"\nflux = 150000.0\np = 0.0084\ngamma_deg = 58.7\n";
-    }
-    let reuse = raw.join(".bench-night-complete");
-    let tag = format!("{targets}{}\n", if with_standards { " with standards" } else { "" });
-    if std::fs::read_to_string(&reuse).ok().as_deref() == Some(tag.as_str()) {
-        println!(
-            "sofipol bench night: reusing the {targets}-target night simulated earlier in {}",
-            raw.display()
-        );
-    } else {
-        let scene = Scene::from_toml(&text, "bench night").map_err(anyhow::Error::msg)?;
-        let t0 = Instant::now();
-        let truth = super::simulate::simulate_into(scene, Profile::sofi(), &raw, None, true)?;
-        std::fs::remove_file(raw.join("truth.json")).ok();
-        let nframes: usize = truth.targets.iter().map(|t| t.frames.len()).sum();
-        println!("sofipol bench night: simulated {targets} targets, {nframes} frames (1024x1024 f32) in {:.1} s (not timed below)", t0.elapsed().as_secs_f64());
-        if keep {
-            std::fs::write(&reuse, &tag)?;
-        }
-    }
-    let exe = std::env::current_exe().context("locating the sofipol executable")?;
-    let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(&raw)?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.is_file() && p.extension().is_some_and(|x| x == "fits"))
-        .collect();
-    files.sort();
-    let bytes: u64 = files.iter().filter_map(|p| p.metadata().ok()).map(|m| m.len()).sum();
-    let mut runs: Vec<NightRun> = Vec::new();
-    let mut last = String::new();
-    for r in 0..repeats.max(1) {
-        let out = root.join(format!("catalog{r}.json"));
-        let mut cmd = std::process::Command::new(&exe);
-        cmd.arg("night")
-            .arg(&raw)
-            .arg("-o")
-            .arg(&out)
-            .arg("-q")
-            .arg("-v")
-            .arg("--no-png");
-        if let Some(j) = jobs {
-            cmd.arg("--jobs").arg(j.to_string());
-        }
-        let t = Instant::now();
-        let o = cmd.output().context("running sofipol night")?;
-        let wall = t.elapsed().as_secs_f64();
-        let stderr = String::from_utf8_lossy(&o.stderr).to_string();
-        anyhow::ensure!(
-            o.status.code() == Some(0) || o.status.code() == Some(2),
-            "sofipol night failed: {stderr}"
-        );
-        // The floors, in the same run, page cache warm (the reduction just read the files).
-        let cat = cat_floor(&files)?;
-        let read = read_floor(&files)?;
-        last = stderr.clone();
-        runs.push(NightRun {
-            wall,
-            cat,
-            read,
-            stages: parse_stage_line(&stderr),
-        });
-    }
-    let med = |f: &dyn Fn(&NightRun) -> f64| -> f64 {
-        let mut v: Vec<f64> = runs.iter().map(f).filter(|x| x.is_finite()).collect();
-        v.sort_by(|a, b| a.total_cmp(b));
-        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-    };
-    let list = |f: &dyn Fn(&NightRun) -> f64| -> String {
-        runs.iter()
-            .map(|r| format!("{:.2}", f(r)))
-            .collect::<Vec<_>>()
-            .join(" ")
-    };
-    let n = runs.len();
-    println!(
-        "  files: {} ({:.0} MB); medians over {n} runs, each run = reduction + floors right after it",
-        files.len(),
-        bytes as f64 / 1e6
-    );
-    for line in last
-        .lines()
-        .filter(|l| l.contains("stage time") || l.contains("calibration"))
-    {
-        println!("  last run: {line}");
-    }
-    println!(
-        "  reduction wall (child process, incl. start-up): {:.2} s   [{}]",
-        med(&|r| r.wall),
-        list(&|r| r.wall)
-    );
-    println!(
-        "  reduction CPU (user+sys):                       {:.2} s   [{}]",
-        med(&|r| r.stages.get("cpu")),
-        list(&|r| r.stages.get("cpu"))
-    );
-    println!(
-        "  `cat` floor (cat FILES > /dev/null):             {:.3} s  [{}]",
-        med(&|r| r.cat),
-        runs.iter()
-            .map(|r| format!("{:.3}", r.cat))
-            .collect::<Vec<_>>()
-            .join(" ")
-    );
-    println!(
-        "  in-process read floor (std::fs::read each file): {:.3} s  [{}]",
-        med(&|r| r.read),
-        runs.iter()
-            .map(|r| format!("{:.3}", r.read))
-            .collect::<Vec<_>>()
-            .join(" ")
-    );
-    println!(
-        "  ratio wall / cat (per run, same run):           {:.1}x  [{}]",
-        med(&|r| r.wall / r.cat),
-        runs.iter()
-            .map(|r| format!("{:.1}", r.wall / r.cat))
-            .collect::<Vec<_>>()
-            .join(" ")
-    );
-    println!(
-        "  ratio CPU / cat:                                 {:.1}x",
-        med(&|r| r.stages.get("cpu") / r.cat)
-    );
-    println!(
-        "  stage times (s, wall time per target summed over targets, both workers; median): read {:.2}, bad pixels {:.2}, sky {:.2}, measure {:.2}, write {:.2}",
-        med(&|r| r.stages.get("read")),
-        med(&|r| r.stages.get("bad pixels")),
-        med(&|r| r.stages.get("sky")),
-        med(&|r| r.stages.get("measure")),
-        med(&|r| r.stages.get("write"))
-    );
-    println!(
-        "  peak RSS: {:.0} MB (max over runs)",
-        runs.iter().map(|r| r.stages.get("rss")).fold(0.0, f64::max)
-    );
-    println!("  Python reference: no expert Python reduction of a night is in this repository; not compared");
-    println!("  targets (issue 10): wall <= 5x cat, peak RSS <= 1 GB");
-    Ok(())
-}
-
-/// One repeat of `bench night`.
-struct NightRun {
-    wall: f64,
-    cat: f64,
-    read: f64,
-    stages: StageLine,
-}
-
-/// The figures of the child's `-v` line.
-#[derive(Default)]
-struct StageLine(Vec<(String, f64)>);
-
-impl StageLine {
-    fn get(&self, k: &str) -> f64 {
-        self.0.iter().find(|(n, _)| n == k).map_or(f64::NAN, |(_, v)| *v)
-    }
-}
-
-/// Parses `stage time summed over targets: read 0.94 s, ...; cpu 3.1 s; peak RSS 145 MB`.
-fn parse_stage_line(stderr: &str) -> StageLine {
-    let Some(line) = stderr.lines().find(|l| l.contains("stage time")) else {
-        return StageLine::default();
-    };
-    let body = line.split_once(':').map_or(line, |(_, b)| b);
-    let mut out = Vec::new();
-    for part in body.split([',', ';']) {
-        let words: Vec<&str> = part.split_whitespace().collect();
-        // "<name words> <value> <unit>"
-        if words.len() >= 3 {
-            if let Ok(v) = words[words.len() - 2].parse::<f64>() {
-                let name = words[..words.len() - 2].join(" ");
-                let name = if name == "peak RSS" { "rss".to_string() } else { name };
-                out.push((name, v));
-            }
-        }
-    }
-    StageLine(out)
-}
-
-/// Seconds `cat` needs to read `files` to /dev/null (one process, like `cat *.fits`).
-fn cat_floor(files: &[std::path::PathBuf]) -> anyhow::Result<f64> {
-    use anyhow::Context;
-    let t = Instant::now();
-    let st = std::process::Command::new("cat")
-        .args(files)
-        .stdout(std::process::Stdio::null())
-        .status()
-        .context("running cat")?;
-    anyhow::ensure!(st.success(), "cat failed");
-    Ok(t.elapsed().as_secs_f64())
-}
-
-/// Seconds to read every file fully into memory, in this process, one thread.
-fn read_floor(files: &[std::path::PathBuf]) -> anyhow::Result<f64> {
-    use std::io::Read;
-    let t = Instant::now();
-    let mut buf = Vec::new();
-    let mut total = 0usize;
-    for f in files {
-        buf.clear();
-        total += std::fs::File::open(f)?.read_to_end(&mut buf)?;
-    }
-    std::hint::black_box(total);
-    Ok(t.elapsed().as_secs_f64())
-}
-
 fn bench_stages(repeats: usize) -> anyhow::Result<()> {
     use sofipol_calib::{badpix, fits, sky, stack};
     use sofipol_pipeline::reduce::{measure_sequence, target_entry, CalibratedOrientation, MeasureParams};
-    let scene = Scene::from_toml(&night_scene(1, 5), "bench").map_err(anyhow::Error::msg)?;
+    let scene = Scene::from_toml(&super::bench_night::night_scene(1, 5), "bench").map_err(anyhow::Error::msg)?;
     let profile = Profile::sofi();
     let sim = Simulator::new(scene, profile.clone()).map_err(anyhow::Error::msg)?;
     let frames: Vec<_> = (0..sim.frames_per_target()).map(|k| sim.frame(0, k)).collect();

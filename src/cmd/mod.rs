@@ -1,6 +1,7 @@
 //! One module per subcommand. Each has `Args` (clap) and `run(Args) -> anyhow::Result<ExitCode>`.
 pub mod accuracy_report;
 pub mod bench;
+pub mod bench_night;
 pub mod calib;
 pub mod common;
 pub mod demo;

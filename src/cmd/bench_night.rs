@@ -1,0 +1,680 @@
+//! `sofipol bench night`: a 49-target night (half float, half 16-bit frames) reduced by
+//! `sofipol night` in a child process against the `cat` floor and, with `--python`, against
+//! the expert Python reduction of bench/python/ (timed in the same run, catalogs compared).
+use std::time::Instant;
+
+use sofipol_calib::Profile;
+use sofipol_pipeline::sim::{Scene, Simulator};
+/// Arguments of `sofipol bench night`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct NightArgs {
+    /// Targets.
+    #[arg(long, default_value_t = 49)]
+    targets: usize,
+    /// Worker threads for the reduction (default: all cores).
+    #[arg(long)]
+    jobs: Option<usize>,
+    /// Repeats of the reduction (median reported).
+    #[arg(long, default_value_t = 3)]
+    repeats: usize,
+    /// Keep the simulated night here instead of a temporary directory (a night simulated
+    /// there earlier with the same --targets, standards and pixel types is reused).
+    #[arg(long)]
+    dir: Option<std::path::PathBuf>,
+    /// Add 3 standard stars (2 unpolarized, 1 polarized, from the built-in table) and the
+    /// instrumental effects they calibrate (k = 0.97, p_inst 0.3 %, zero-point 3 deg):
+    /// shows what calibration adds to the night.
+    #[arg(long)]
+    with_standards: bool,
+    /// Python interpreter with numpy, scipy, astropy and photutils: also time the expert
+    /// Python reduction (bench/python/reduce_night.py) on the same night, print the ratios
+    /// and compare its q, u with sofipol's (default: $SOFIPOL_PYTHON; not run without).
+    #[arg(long, value_name = "PYTHON")]
+    python: Option<std::path::PathBuf>,
+    /// Run the Python reduction on the first N targets only and scale its times to the
+    /// whole night (it is one run, single-threaded; the output says when it was scaled).
+    #[arg(long, value_name = "N")]
+    python_targets: Option<usize>,
+}
+
+/// A night of `n` binaries like the reference study's: separations 0.5-5.3", K-band fluxes
+/// and polarizations spread as in a real sample, realistic effects.
+pub fn night_scene(n: usize, seed: u64) -> String {
+    let mut s = format!(
+        "name = \"bench\"\nseed = {seed}\neffects = [\"psf\", \"sky\", \"strips\", \"photon_noise\", \"read_noise\", \"bad_pixels\", \"transparency\", \"pointing_error\", \"cosmic_rays\"]\n[psf]\nkind = \"moffat\"\nfwhm_arcsec = 0.8\n"
+    );
+    for i in 0..n {
+        let f = i as f64 / n.max(1) as f64;
+        s += &format!(
+            "[[binary]]\nname = \"Bench {i:02}\"\nseparation_arcsec = {:.3}\npa_deg = {:.1}\nflux_a = {:.0}\nflux_b = {:.0}\np_a = {:.4}\ngamma_a_deg = {:.1}\np_b = {:.4}\ngamma_b_deg = {:.1}\n",
+            0.5 + 4.8 * f,
+            (i * 47 % 360) as f64,
+            60000.0 + 90000.0 * ((i * 7 % 10) as f64 / 10.0),
+            30000.0 + 50000.0 * ((i * 3 % 10) as f64 / 10.0),
+            0.01 + 0.06 * ((i * 5 % 11) as f64 / 11.0),
+            (i * 37 % 180) as f64,
+            0.01 + 0.06 * ((i * 9 % 11) as f64 / 11.0),
+            (i * 71 % 180) as f64
+        );
+    }
+    s
+}
+
+/// Tag of a complete cached night in `--dir`: the targets, standards and the pixel-type mix
+/// (a night simulated with another mix, e.g. all float by an older sofipol, is re-simulated).
+fn night_tag(a: &NightArgs) -> String {
+    format!(
+        "{} targets{}; BITPIX -32 for even targets, 16 (BZERO 32768) for odd ones\n",
+        a.targets,
+        if a.with_standards { " with standards" } else { "" }
+    )
+}
+
+/// The scene of the bench night (with the standards and their effects when asked).
+fn night_scene_text(a: &NightArgs) -> String {
+    let mut text = night_scene(a.targets, 2001);
+    if a.with_standards {
+        text = text.replacen(
+            "\"cosmic_rays\"]",
+            "\"cosmic_rays\", \"throughput\", \"instrumental_polarization\", \"analyzer_angle\"]",
+            1,
+        );
+        text += "[throughput]\nt_e = 0.97\n[instrumental_polarization]\np = 0.003\nangle_deg = 0.0\n[analyzer_angle]\nzero_point_deg = 3.0\n";
+        text +=
+            "[[standard]]\nname = \"HD 64299\"\nflux = 150000.0\n[[standard]]\nname = \"HD 98161\"\nflux = 150000.0\n";
+        text += "[[standard]]\nname = \"HD 204827\"\nflux = 150000.0\np = 0.0084\ngamma_deg = 58.7\n";
+    }
+    text
+}
+
+/// Simulate the night into `raw` as SOFI writes it: half the targets float (BITPIX -32),
+/// half 16-bit (BITPIX 16, BZERO 32768, BSCALE 1), alternating so that any first N targets
+/// hold both. Also writes `pairs.csv`, the binaries' nominal separation and PA (what an
+/// observer takes from the literature). Returns (frames, f32 frames).
+fn simulate_mixed_night(text: &str, raw: &std::path::Path) -> anyhow::Result<(usize, usize)> {
+    use rayon::prelude::*;
+    use sofipol_calib::fits::{write_frame, Bitpix, WriteOptions};
+    let scene = Scene::from_toml(text, "bench night").map_err(anyhow::Error::msg)?;
+    let n_targets = scene.binary.len() + scene.standard.len();
+    let mut pairs = String::from("name,separation_arcsec,pa_deg\n");
+    for b in &scene.binary {
+        pairs += &format!("{},{},{}\n", b.name, b.separation_arcsec, b.pa_deg);
+    }
+    let sim = Simulator::new(scene, Profile::sofi()).map_err(anyhow::Error::msg)?;
+    std::fs::create_dir_all(raw)?;
+    // Frames of an earlier bench night (another size or mix) go first.
+    for e in std::fs::read_dir(raw)?.flatten() {
+        if e.file_name().to_string_lossy().starts_with("SOFI_bench_") {
+            std::fs::remove_file(e.path())?;
+        }
+    }
+    let n = sim.frames_per_target();
+    let jobs: Vec<(usize, usize)> = (0..n_targets).flat_map(|t| (0..n).map(move |k| (t, k))).collect();
+    let pb = super::common::progress(jobs.len() as u64, "simulate", false);
+    jobs.par_iter().try_for_each(|&(t, k)| -> anyhow::Result<()> {
+        let f = sim.frame(t, k);
+        let opts = WriteOptions {
+            bitpix: if t % 2 == 0 { Bitpix::F32 } else { Bitpix::I16 },
+            ..Default::default()
+        };
+        write_frame(&raw.join(&f.file_name), &f.frame, &opts)?;
+        pb.inc(1);
+        Ok(())
+    })?;
+    pb.finish_and_clear();
+    std::fs::write(raw.join("pairs.csv"), pairs)?;
+    let f32_frames = n_targets.div_ceil(2) * n;
+    Ok((jobs.len(), f32_frames))
+}
+
+/// The night in `raw`: reused when `--dir` holds one with the same tag, simulated otherwise.
+fn ensure_night(a: &NightArgs, raw: &std::path::Path, keep: bool) -> anyhow::Result<()> {
+    let reuse = raw.join(".bench-night-complete");
+    let tag = night_tag(a);
+    if std::fs::read_to_string(&reuse).ok().as_deref() == Some(tag.as_str()) && raw.join("pairs.csv").exists() {
+        println!(
+            "sofipol bench night: reusing the {}-target night simulated earlier in {} ({})",
+            a.targets,
+            raw.display(),
+            tag.trim()
+        );
+        return Ok(());
+    }
+    std::fs::remove_file(&reuse).ok();
+    let t0 = Instant::now();
+    let (nframes, nf32) = simulate_mixed_night(&night_scene_text(a), raw)?;
+    println!(
+        "sofipol bench night: simulated {} targets, {nframes} frames of 1024x1024 ({nf32} float BITPIX -32, {} 16-bit BITPIX 16) in {:.1} s (not timed below)",
+        a.targets,
+        nframes - nf32,
+        t0.elapsed().as_secs_f64()
+    );
+    if keep {
+        std::fs::write(&reuse, &tag)?;
+    }
+    Ok(())
+}
+
+/// The night's FITS files, sorted.
+fn fits_files(raw: &std::path::Path) -> anyhow::Result<Vec<std::path::PathBuf>> {
+    let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(raw)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.is_file() && p.extension().is_some_and(|x| x == "fits"))
+        .collect();
+    files.sort();
+    Ok(files)
+}
+
+/// Run `sofipol bench night`.
+pub fn run(a: NightArgs) -> anyhow::Result<()> {
+    let tmp = tempfile::tempdir()?;
+    let keep = a.dir.is_some();
+    let root = a.dir.clone().unwrap_or_else(|| tmp.path().to_path_buf());
+    let raw = root.join("raw");
+    ensure_night(&a, &raw, keep)?;
+    let files = fits_files(&raw)?;
+    let (runs, last) = time_sofipol_night(&a, &raw, &root, &files)?;
+    let s = print_night_runs(&runs, &files, &last);
+    let python = a
+        .python
+        .clone()
+        .or_else(|| std::env::var_os("SOFIPOL_PYTHON").map(std::path::PathBuf::from));
+    match python {
+        Some(py) => {
+            let n = a.python_targets.unwrap_or(a.targets).clamp(1, a.targets.max(1));
+            match run_python(&py, &raw, &root, n) {
+                Ok(p) => {
+                    let scene = Scene::from_toml(&night_scene_text(&a), "bench night").ok();
+                    let catalog = root.join(format!("catalog{}.json", runs.len() - 1));
+                    print_python(&p, &s, a.targets, &catalog, scene.as_ref())
+                }
+                Err(e) => println!("  Python reference: FAILED ({e:#}); not compared"),
+            }
+        }
+        None => println!(
+            "  Python reference: not run (give --python PATH or set SOFIPOL_PYTHON to an interpreter with numpy, scipy, astropy, photutils)"
+        ),
+    }
+    println!("  targets (issue 10): wall <= 5x cat, >= 50x faster than the Python reduction, peak RSS <= 1 GB");
+    Ok(())
+}
+
+/// Runs `sofipol night` `--repeats` times in a child process, each followed by the floors.
+/// Returns the runs and the last run's stderr.
+fn time_sofipol_night(
+    a: &NightArgs,
+    raw: &std::path::Path,
+    root: &std::path::Path,
+    files: &[std::path::PathBuf],
+) -> anyhow::Result<(Vec<NightRun>, String)> {
+    use anyhow::Context;
+    let exe = std::env::current_exe().context("locating the sofipol executable")?;
+    let mut runs: Vec<NightRun> = Vec::new();
+    let mut last = String::new();
+    for r in 0..a.repeats.max(1) {
+        let out = root.join(format!("catalog{r}.json"));
+        let mut cmd = std::process::Command::new(&exe);
+        cmd.arg("night")
+            .arg(raw)
+            .arg("-o")
+            .arg(&out)
+            .arg("-q")
+            .arg("-v")
+            .arg("--no-png");
+        if let Some(j) = a.jobs {
+            cmd.arg("--jobs").arg(j.to_string());
+        }
+        let t = Instant::now();
+        let o = cmd.output().context("running sofipol night")?;
+        let wall = t.elapsed().as_secs_f64();
+        let stderr = String::from_utf8_lossy(&o.stderr).to_string();
+        anyhow::ensure!(
+            o.status.code() == Some(0) || o.status.code() == Some(2),
+            "sofipol night failed: {stderr}"
+        );
+        // The floors, in the same run, page cache warm (the reduction just read the files).
+        let cat = cat_floor(files)?;
+        let read = read_floor(files)?;
+        last = stderr.clone();
+        runs.push(NightRun {
+            wall,
+            cat,
+            read,
+            stages: parse_stage_line(&stderr),
+        });
+    }
+    Ok((runs, last))
+}
+
+/// Medians of the sofipol runs that the Python comparison needs.
+struct NightSummary {
+    wall: f64,
+    cpu: f64,
+    cat: f64,
+}
+
+/// Prints the sofipol runs: wall, CPU, floors, ratios, stages, RSS.
+fn print_night_runs(runs: &[NightRun], files: &[std::path::PathBuf], last: &str) -> NightSummary {
+    let bytes: u64 = files.iter().filter_map(|p| p.metadata().ok()).map(|m| m.len()).sum();
+    let med = |f: &dyn Fn(&NightRun) -> f64| -> f64 {
+        let mut v: Vec<f64> = runs.iter().map(f).filter(|x| x.is_finite()).collect();
+        v.sort_by(|a, b| a.total_cmp(b));
+        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+    };
+    let list = |f: &dyn Fn(&NightRun) -> f64, digits: usize| -> String {
+        runs.iter()
+            .map(|r| format!("{:.*}", digits, f(r)))
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
+    println!(
+        "  files: {} ({:.0} MB); medians over {} runs, each run = reduction + floors right after it",
+        files.len(),
+        bytes as f64 / 1e6,
+        runs.len()
+    );
+    for line in last
+        .lines()
+        .filter(|l| l.contains("stage time") || l.contains("calibration"))
+    {
+        println!("  last run: {line}");
+    }
+    let s = NightSummary {
+        wall: med(&|r| r.wall),
+        cpu: med(&|r| r.stages.get("cpu")),
+        cat: med(&|r| r.cat),
+    };
+    println!(
+        "  reduction wall (child process, incl. start-up): {:.2} s   [{}]",
+        s.wall,
+        list(&|r| r.wall, 2)
+    );
+    println!(
+        "  reduction CPU (user+sys):                       {:.2} s   [{}]",
+        s.cpu,
+        list(&|r| r.stages.get("cpu"), 2)
+    );
+    println!(
+        "  `cat` floor (cat FILES > /dev/null):             {:.3} s  [{}]",
+        s.cat,
+        list(&|r| r.cat, 3)
+    );
+    println!(
+        "  in-process read floor (std::fs::read each file): {:.3} s  [{}]",
+        med(&|r| r.read),
+        list(&|r| r.read, 3)
+    );
+    println!(
+        "  ratio wall / cat (per run, same run):           {:.1}x  [{}]",
+        med(&|r| r.wall / r.cat),
+        list(&|r| r.wall / r.cat, 1)
+    );
+    println!(
+        "  ratio CPU / cat:                                 {:.1}x",
+        med(&|r| r.stages.get("cpu") / r.cat)
+    );
+    println!(
+        "  stage times (s, wall time per target summed over targets, both workers; median): read {:.2}, bad pixels {:.2}, sky {:.2}, measure {:.2}, write {:.2}",
+        med(&|r| r.stages.get("read")),
+        med(&|r| r.stages.get("bad pixels")),
+        med(&|r| r.stages.get("sky")),
+        med(&|r| r.stages.get("measure")),
+        med(&|r| r.stages.get("write"))
+    );
+    println!(
+        "  peak RSS: {:.0} MB (max over runs)",
+        runs.iter().map(|r| r.stages.get("rss")).fold(0.0, f64::max)
+    );
+    s
+}
+
+/// The expert Python reduction (bench/python/reduce_night.py), embedded so that the bench
+/// runs from any directory.
+const PYTHON_REDUCTION: &str = include_str!("../../bench/python/reduce_night.py");
+
+/// One run of the Python reduction.
+struct PythonRun {
+    /// Wall time of the child process (interpreter start-up and imports included), s.
+    wall: f64,
+    /// The child's CPU time (user + sys, its own getrusage at exit), s.
+    cpu: f64,
+    /// Sequences it reduced (and failed).
+    sequences: usize,
+    /// Its catalog.
+    catalog: serde_json::Value,
+}
+
+/// Runs the Python reduction on the first `n` sequences of `raw`, single-threaded (one
+/// process; BLAS/OpenMP threads pinned to 1).
+fn run_python(
+    py: &std::path::Path,
+    raw: &std::path::Path,
+    root: &std::path::Path,
+    n: usize,
+) -> anyhow::Result<PythonRun> {
+    use anyhow::Context;
+    let script = root.join("reduce_night.py");
+    std::fs::write(&script, PYTHON_REDUCTION)?;
+    let out = root.join("catalog_python.json");
+    std::fs::remove_file(&out).ok();
+    let mut cmd = std::process::Command::new(py);
+    cmd.arg(&script)
+        .arg(raw)
+        .arg("-o")
+        .arg(&out)
+        .arg("--pairs")
+        .arg(raw.join("pairs.csv"))
+        .arg("--targets")
+        .arg(n.to_string())
+        .arg("-q");
+    for v in ["OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"] {
+        cmd.env(v, "1");
+    }
+    let t = Instant::now();
+    let o = cmd
+        .output()
+        .with_context(|| format!("running {} {}", py.display(), script.display()))?;
+    let wall = t.elapsed().as_secs_f64();
+    if !o.status.success() {
+        let err = String::from_utf8_lossy(&o.stderr);
+        let tail: Vec<&str> = err.lines().rev().take(3).collect();
+        anyhow::bail!("{} exited with {}: {}", py.display(), o.status, tail.join(" | "));
+    }
+    let text = std::fs::read_to_string(&out).with_context(|| format!("reading {}", out.display()))?;
+    let catalog: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", out.display()))?;
+    let count = |k: &str| catalog[k].as_array().map_or(0, |v| v.len());
+    Ok(PythonRun {
+        wall,
+        cpu: catalog["cpu_s"].as_f64().unwrap_or(f64::NAN),
+        sequences: count("targets") + count("failures"),
+        catalog,
+    })
+}
+
+/// Prints the Python timings (scaled to the whole night when it ran on fewer targets), the
+/// ratios against sofipol and the comparison of the two catalogs.
+fn print_python(
+    p: &PythonRun,
+    s: &NightSummary,
+    targets: usize,
+    sofipol_catalog: &std::path::Path,
+    scene: Option<&Scene>,
+) {
+    let scale = targets as f64 / p.sequences.max(1) as f64;
+    let v = &p.catalog["versions"];
+    println!(
+        "  Python reference (bench/python/reduce_night.py: numpy {}, scipy {}, astropy {}, photutils {}; one process, 1 thread), one run on {} of {} targets{}:",
+        v["numpy"].as_str().unwrap_or("?"),
+        v["scipy"].as_str().unwrap_or("?"),
+        v["astropy"].as_str().unwrap_or("?"),
+        v["photutils"].as_str().unwrap_or("?"),
+        p.sequences,
+        targets,
+        if scale > 1.0 {
+            format!(", reduction times scaled x{scale:.2} to the whole night (start-up once)")
+        } else {
+            String::new()
+        }
+    );
+    // Interpreter start-up and imports once, the reduction itself scaled.
+    let work_wall = p.catalog["wall_s"].as_f64().unwrap_or(p.wall).min(p.wall);
+    let startup_cpu = p.catalog["startup_cpu_s"].as_f64().unwrap_or(0.0).min(p.cpu);
+    let wall = p.wall - work_wall + work_wall * scale;
+    let cpu = startup_cpu + (p.cpu - startup_cpu) * scale;
+    println!(
+        "    Python wall {:.2} s (measured {:.2} s, incl. start-up), CPU {:.2} s (measured {:.2} s)",
+        wall, p.wall, cpu, p.cpu
+    );
+    println!(
+        "    ratio Python / sofipol: wall {:.1}x, CPU {:.1}x; Python wall / cat {:.0}x",
+        wall / s.wall,
+        cpu / s.cpu,
+        wall / s.cat
+    );
+    match std::fs::read_to_string(sofipol_catalog)
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+    {
+        Some(sp) => {
+            print_comparison(&compare_catalogs(&sp, &p.catalog));
+            if let Some(sc) = scene {
+                for (who, cat) in [("sofipol", &sp), ("Python", &p.catalog)] {
+                    print_truth_pulls(who, &truth_pulls(cat, sc, Some(&p.catalog)));
+                }
+            }
+        }
+        None => println!("    comparison: cannot read {}", sofipol_catalog.display()),
+    }
+}
+
+/// One component measured by both reductions: q and u differences in sofipol's sigma.
+pub struct Diff {
+    /// Target (OBJECT).
+    pub object: String,
+    /// "A" (the brighter) or "B".
+    pub component: String,
+    /// sofipol's photometry: "aperture" or "psf_fit".
+    pub photometry: String,
+    /// sofipol's target status ("ok", "partial", ...).
+    pub status: String,
+    /// (q_python - q_sofipol) / sigma_q_sofipol.
+    pub dq: f64,
+    /// (u_python - u_sofipol) / sigma_u_sofipol.
+    pub du: f64,
+}
+
+/// Differences of q and u between the Python and the sofipol catalog, per component of every
+/// target both measured (matched by OBJECT and TPL START, components by name).
+pub fn compare_catalogs(sofipol: &serde_json::Value, python: &serde_json::Value) -> Vec<Diff> {
+    let empty = Vec::new();
+    let sp_targets = sofipol["targets"].as_array().unwrap_or(&empty);
+    let mut out = Vec::new();
+    for pt in python["targets"].as_array().unwrap_or(&empty) {
+        let key = (pt["object"].as_str(), pt["tpl_start"].as_str());
+        let Some(st) = sp_targets
+            .iter()
+            .find(|t| (t["object"].as_str(), t["tpl_start"].as_str()) == key)
+        else {
+            continue;
+        };
+        for pc in pt["components"].as_array().unwrap_or(&empty) {
+            let Some(sc) = st["components"]
+                .as_array()
+                .unwrap_or(&empty)
+                .iter()
+                .find(|c| c["name"] == pc["name"])
+            else {
+                continue;
+            };
+            let f = |c: &serde_json::Value, k: &str| c[k].as_f64().unwrap_or(f64::NAN);
+            let dq = (f(pc, "q") - f(sc, "q")) / f(sc, "sigma_q");
+            let du = (f(pc, "u") - f(sc, "u")) / f(sc, "sigma_u");
+            if dq.is_finite() && du.is_finite() {
+                out.push(Diff {
+                    object: key.0.unwrap_or("").to_string(),
+                    component: pc["name"].as_str().unwrap_or("").to_string(),
+                    photometry: st["photometry"].as_str().unwrap_or("").to_string(),
+                    status: st["status"].as_str().unwrap_or("ok").to_string(),
+                    dq,
+                    du,
+                });
+            }
+        }
+    }
+    out
+}
+
+/// (values, rms, max |x|, values within 1)
+fn spread(v: &[f64]) -> (usize, f64, f64, usize) {
+    let rms = (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt();
+    let max = v.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    (v.len(), rms, max, v.iter().filter(|x| x.abs() <= 1.0).count())
+}
+
+fn print_comparison(d: &[Diff]) {
+    if d.is_empty() {
+        println!("    comparison: no component measured by both");
+        return;
+    }
+    for (label, photometry) in [
+        ("all", None),
+        ("sofipol aperture", Some("aperture")),
+        ("sofipol psf_fit", Some("psf_fit")),
+    ] {
+        let v: Vec<f64> = d
+            .iter()
+            .filter(|x| x.status == "ok" && photometry.is_none_or(|p| x.photometry == p))
+            .flat_map(|x| [x.dq, x.du])
+            .collect();
+        let (n, rms, max, within) = spread(&v);
+        if n > 0 {
+            println!(
+                "    Python - sofipol, q and u in units of sofipol's sigma ({label}, sofipol status ok): {n} values, rms {rms:.2}, max |d| {max:.2}, {within} within 1 sigma"
+            );
+        }
+    }
+    let mut worst: Vec<&Diff> = d.iter().collect();
+    worst.sort_by(|a, b| b.dq.abs().max(b.du.abs()).total_cmp(&a.dq.abs().max(a.du.abs())));
+    let w: Vec<String> = worst
+        .iter()
+        .take(3)
+        .map(|x| {
+            format!(
+                "{} {} ({}, {}) dq {:+.2} du {:+.2}",
+                x.object, x.component, x.photometry, x.status, x.dq, x.du
+            )
+        })
+        .collect();
+    println!("    largest differences: {}", w.join("; "));
+    let not_ok: Vec<String> = d
+        .iter()
+        .filter(|x| x.status != "ok")
+        .map(|x| {
+            format!(
+                "{} {} ({}) dq {:+.2} du {:+.2}",
+                x.object, x.component, x.status, x.dq, x.du
+            )
+        })
+        .collect();
+    if !not_ok.is_empty() {
+        println!(
+            "    targets sofipol did not reduce fully (left out above): {}",
+            not_ok.join("; ")
+        );
+    }
+}
+
+/// Pulls (value - true) / sigma of q and u of every component of `catalog` against the
+/// scene, over the targets the Python catalog holds (A = the brighter true component).
+/// Returns (object and component, pull) pairs.
+fn truth_pulls(catalog: &serde_json::Value, scene: &Scene, only: Option<&serde_json::Value>) -> Vec<(String, f64)> {
+    let empty = Vec::new();
+    let wanted: Vec<&str> = only
+        .and_then(|c| c["targets"].as_array())
+        .map(|v| v.iter().filter_map(|t| t["object"].as_str()).collect())
+        .unwrap_or_default();
+    let qu = |p: f64, g: f64| [p * (2.0 * g.to_radians()).cos(), p * (2.0 * g.to_radians()).sin()];
+    let mut out = Vec::new();
+    for t in catalog["targets"].as_array().unwrap_or(&empty) {
+        let Some(obj) = t["object"].as_str() else { continue };
+        let Some(b) = scene.binary.iter().find(|b| b.name == obj) else {
+            continue;
+        };
+        if only.is_some() && !wanted.contains(&obj) {
+            continue;
+        }
+        let (a_true, b_true) = (qu(b.p_a, b.gamma_a_deg), qu(b.p_b, b.gamma_b_deg));
+        let (bright, faint) = if b.flux_a >= b.flux_b {
+            (a_true, b_true)
+        } else {
+            (b_true, a_true)
+        };
+        for c in t["components"].as_array().unwrap_or(&empty) {
+            let tr = if c["name"] == "A" { bright } else { faint };
+            for (k, s, v) in [("q", "sigma_q", tr[0]), ("u", "sigma_u", tr[1])] {
+                let pull = (c[k].as_f64().unwrap_or(f64::NAN) - v) / c[s].as_f64().unwrap_or(f64::NAN);
+                if pull.is_finite() {
+                    out.push((format!("{obj} {} {k}", c["name"].as_str().unwrap_or("?")), pull));
+                }
+            }
+        }
+    }
+    out
+}
+
+fn print_truth_pulls(who: &str, p: &[(String, f64)]) {
+    let v: Vec<f64> = p.iter().map(|x| x.1).collect();
+    let (n, rms, max, within) = spread(&v);
+    let worst = p.iter().max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()));
+    println!(
+        "    {who:<7} against the simulated truth, (value - true) / sigma of q and u: {n} values, rms {rms:.2}, max |pull| {max:.2}{}, {within} within 1 sigma",
+        worst.map_or(String::new(), |w| format!(" ({})", w.0))
+    );
+}
+
+/// One repeat of `bench night`.
+struct NightRun {
+    wall: f64,
+    cat: f64,
+    read: f64,
+    stages: StageLine,
+}
+
+/// The figures of the child's `-v` line.
+#[derive(Default)]
+struct StageLine(Vec<(String, f64)>);
+
+impl StageLine {
+    fn get(&self, k: &str) -> f64 {
+        self.0.iter().find(|(n, _)| n == k).map_or(f64::NAN, |(_, v)| *v)
+    }
+}
+
+/// Parses `stage time summed over targets: read 0.94 s, ...; cpu 3.1 s; peak RSS 145 MB`.
+fn parse_stage_line(stderr: &str) -> StageLine {
+    let Some(line) = stderr.lines().find(|l| l.contains("stage time")) else {
+        return StageLine::default();
+    };
+    let body = line.split_once(':').map_or(line, |(_, b)| b);
+    let mut out = Vec::new();
+    for part in body.split([',', ';']) {
+        let words: Vec<&str> = part.split_whitespace().collect();
+        // "<name words> <value> <unit>"
+        if words.len() >= 3 {
+            if let Ok(v) = words[words.len() - 2].parse::<f64>() {
+                let name = words[..words.len() - 2].join(" ");
+                let name = if name == "peak RSS" { "rss".to_string() } else { name };
+                out.push((name, v));
+            }
+        }
+    }
+    StageLine(out)
+}
+
+/// Seconds `cat` needs to read `files` to /dev/null (one process, like `cat *.fits`).
+fn cat_floor(files: &[std::path::PathBuf]) -> anyhow::Result<f64> {
+    use anyhow::Context;
+    let t = Instant::now();
+    let st = std::process::Command::new("cat")
+        .args(files)
+        .stdout(std::process::Stdio::null())
+        .status()
+        .context("running cat")?;
+    anyhow::ensure!(st.success(), "cat failed");
+    Ok(t.elapsed().as_secs_f64())
+}
+
+/// Seconds to read every file fully into memory, in this process, one thread.
+fn read_floor(files: &[std::path::PathBuf]) -> anyhow::Result<f64> {
+    use std::io::Read;
+    let t = Instant::now();
+    let mut buf = Vec::new();
+    let mut total = 0usize;
+    for f in files {
+        buf.clear();
+        total += std::fs::File::open(f)?.read_to_end(&mut buf)?;
+    }
+    std::hint::black_box(total);
+    Ok(t.elapsed().as_secs_f64())
+}
