@@ -10,9 +10,8 @@ use std::process::{Command, Stdio};
 
 use serde_json::Value;
 
-fn bin() -> String {
-    std::env::var("SOFIPOL_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_sofipol").to_string())
-}
+mod common;
+use common::{bin, json as catalog, run};
 
 const SCENE: &str = r#"
 name = "hx"
@@ -46,15 +45,6 @@ p_b = 0.06
 gamma_b_deg = 150.0
 "#;
 
-fn run(args: &[&str]) -> (i32, String, String) {
-    let o = Command::new(bin()).args(args).output().expect("run sofipol");
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into(),
-        String::from_utf8_lossy(&o.stderr).into(),
-    )
-}
-
 /// A simulated 2-target night (Alpha, Beta; 2 orientations x 3 dithers) in `dir/night`.
 fn night(dir: &Path) -> PathBuf {
     let n = dir.join("night");
@@ -68,10 +58,6 @@ fn night(dir: &Path) -> PathBuf {
 
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()
-}
-
-fn catalog(p: &Path) -> Value {
-    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
 }
 
 fn target<'a>(c: &'a Value, name: &str) -> &'a Value {

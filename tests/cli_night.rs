@@ -1,11 +1,10 @@
 //! End-to-end: a simulated night with bad inputs mixed in, through the `sofipol` binary.
-use std::path::Path;
-use std::process::Command;
 
 use serde_json::Value;
 use sofipol_calib::fits;
 
-const BIN: &str = env!("CARGO_BIN_EXE_sofipol");
+mod common;
+use common::{json as catalog, run};
 
 const SCENE: &str = r#"
 name = "it"
@@ -48,19 +47,6 @@ gamma_a_deg = 170.0
 p_b = 0.02
 gamma_b_deg = 80.0
 "#;
-
-fn run(args: &[&str]) -> (i32, String, String) {
-    let o = Command::new(BIN).args(args).output().expect("run sofipol");
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into(),
-        String::from_utf8_lossy(&o.stderr).into(),
-    )
-}
-
-fn catalog(p: &Path) -> Value {
-    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
-}
 
 fn without_time(mut v: Value) -> Value {
     v["provenance"]["created_utc"] = Value::Null;
