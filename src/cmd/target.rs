@@ -249,6 +249,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 mod tests {
     use super::*;
     use clap::Parser;
+    use sofipol_pipeline::stokes::calibration::{StokesMethod, STOKES_METHOD_SPELLINGS};
 
     #[derive(Parser)]
     struct Cli {
@@ -292,6 +293,56 @@ mod tests {
         assert_eq!(
             toml_file("[measure]\nmethod = \"Center\"\n").unwrap().measure.method,
             Method::Center
+        );
+    }
+
+    #[derive(Parser)]
+    struct SetupCli {
+        #[command(flatten)]
+        setup: SetupArgs,
+    }
+
+    /// The Stokes method that `--params` and the flags resolve to.
+    fn stokes_method(args: &[&str]) -> Result<StokesMethod, String> {
+        let a =
+            SetupCli::try_parse_from(std::iter::once("t").chain(args.iter().copied())).map_err(|e| e.to_string())?;
+        let (_, _, setup) = a.setup.load().map_err(|e| format!("{e:#}"))?;
+        Ok(setup.params.stokes_method)
+    }
+
+    #[test]
+    fn stokes_method_has_one_spelling_in_toml_json_and_on_the_command_line() {
+        use StokesMethod::*;
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("p.toml");
+        for m in [Auto, LeastSquares, FreeOffset, Difference, Ratio] {
+            let s = m.to_string();
+            assert_eq!(s, m.name());
+            assert_eq!(stokes_method(&["--stokes-method", &s]).unwrap(), m);
+            // What the settings serialize to (TOML, the catalog's JSON provenance) is what
+            // the flag takes, and reads back.
+            let mut p = TargetParams::default();
+            p.calibration.stokes_method = m;
+            let text = toml::to_string(&p).unwrap();
+            assert!(text.contains(&format!("stokes_method = \"{s}\"")), "{text}");
+            assert_eq!(serde_json::to_value(m).unwrap(), serde_json::json!(s));
+            std::fs::write(&f, &text).unwrap();
+            assert_eq!(stokes_method(&["--params", f.to_str().unwrap()]).unwrap(), m);
+            // The flag overrides the file.
+            let other = if m == Ratio { Difference } else { Ratio };
+            let both = stokes_method(&["--params", f.to_str().unwrap(), "--stokes-method", other.name()]);
+            assert_eq!(both.unwrap(), other);
+        }
+        let e = stokes_method(&["--stokes-method", "least-squares"]).unwrap_err();
+        assert!(
+            e.contains("--stokes-method") && e.contains("least-squares") && e.contains(STOKES_METHOD_SPELLINGS),
+            "{e}"
+        );
+        std::fs::write(&f, "[calibration]\nstokes_method = \"Ratio\"\n").unwrap();
+        let e = stokes_method(&["--params", f.to_str().unwrap()]).unwrap_err();
+        assert!(
+            e.contains("calibration.stokes_method") && e.contains("Ratio") && e.contains(STOKES_METHOD_SPELLINGS),
+            "{e}"
         );
     }
 
