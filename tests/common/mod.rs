@@ -45,3 +45,28 @@ pub fn testdata(name: &str) -> String {
         .display()
         .to_string()
 }
+
+/// Two binaries, Alpha (4.0 arcsec, PA 30) and Beta (3.0 arcsec, PA 200), as `[[binary]]`
+/// tables of a simulator scene: the targets of the simulated nights of `cli_hostile` and
+/// `cli_night`.
+pub const ALPHA_BETA: &str = r#"[[binary]]
+name = "Alpha"
+separation_arcsec = 4.0
+pa_deg = 30.0
+flux_a = 120000.0
+flux_b = 60000.0
+p_a = 0.05
+gamma_a_deg = 20.0
+p_b = 0.04
+gamma_b_deg = 110.0
+[[binary]]
+name = "Beta"
+separation_arcsec = 3.0
+pa_deg = 200.0
+flux_a = 100000.0
+flux_b = 70000.0
+p_a = 0.03
+gamma_a_deg = 60.0
+p_b = 0.06
+gamma_b_deg = 150.0
+"#;
