@@ -1,10 +1,10 @@
 //! End-to-end: `sofipol calib` on a night with standards, `night --calib` on a night
 //! without, and the `uncalibrated` flag and its explanation when nothing calibrates.
-use std::process::Command;
 
 use serde_json::Value;
 
-const BIN: &str = env!("CARGO_BIN_EXE_sofipol");
+mod common;
+use common::run;
 
 fn scene(standards: bool) -> String {
     let mut s = r#"
@@ -62,15 +62,6 @@ sigma_p = 0.0002
 gamma_deg = 45.0
 sigma_gamma_deg = 0.2
 "#;
-
-fn run(args: &[&str]) -> (i32, String, String) {
-    let o = Command::new(BIN).args(args).output().expect("run sofipol");
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into(),
-        String::from_utf8_lossy(&o.stderr).into(),
-    )
-}
 
 fn simulate(dir: &std::path::Path, name: &str, standards: bool) -> String {
     let sc = dir.join(format!("{name}.toml"));

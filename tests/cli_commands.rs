@@ -1,23 +1,7 @@
 //! `demo`, `target` and `bench` through the `sofipol` binary, as a user runs them.
-use std::path::Path;
-use std::process::Command;
 
-use serde_json::Value;
-
-const BIN: &str = env!("CARGO_BIN_EXE_sofipol");
-
-fn run(args: &[&str]) -> (i32, String, String) {
-    let o = Command::new(BIN).args(args).output().expect("run sofipol");
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into(),
-        String::from_utf8_lossy(&o.stderr).into(),
-    )
-}
-
-fn json(p: &Path) -> Value {
-    serde_json::from_str(&std::fs::read_to_string(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))).unwrap()
-}
+mod common;
+use common::{json, run};
 
 /// The README's first command is itself a check: the demo compares every recovered q, u
 /// with the simulated truth and exits 0 only when all are within 5 sigma.

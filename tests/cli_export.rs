@@ -5,17 +5,8 @@ use std::process::Command;
 
 use serde_json::Value;
 
-fn sofipol() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_sofipol"))
-}
-
-fn testdata(name: &str) -> String {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("testdata/stats")
-        .join(name)
-        .display()
-        .to_string()
-}
+mod common;
+use common::{sofipol, testdata};
 
 fn export(format: &str, out: &Path) {
     let o = sofipol()

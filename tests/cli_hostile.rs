@@ -10,11 +10,13 @@ use std::process::{Command, Stdio};
 
 use serde_json::Value;
 
-fn bin() -> String {
-    std::env::var("SOFIPOL_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_sofipol").to_string())
-}
+mod common;
+use common::{bin, json as catalog, run, ALPHA_BETA};
 
-const SCENE: &str = r#"
+/// The simulated night's scene (Alpha and Beta from [`common::ALPHA_BETA`]).
+fn scene_toml() -> String {
+    format!(
+        r#"
 name = "hx"
 seed = 7
 effects = ["psf", "sky", "strips", "photon_noise", "read_noise"]
@@ -24,34 +26,7 @@ dithers = 3
 [psf]
 kind = "moffat"
 fwhm_arcsec = 0.8
-[[binary]]
-name = "Alpha"
-separation_arcsec = 4.0
-pa_deg = 30.0
-flux_a = 120000.0
-flux_b = 60000.0
-p_a = 0.05
-gamma_a_deg = 20.0
-p_b = 0.04
-gamma_b_deg = 110.0
-[[binary]]
-name = "Beta"
-separation_arcsec = 3.0
-pa_deg = 200.0
-flux_a = 100000.0
-flux_b = 70000.0
-p_a = 0.03
-gamma_a_deg = 60.0
-p_b = 0.06
-gamma_b_deg = 150.0
-"#;
-
-fn run(args: &[&str]) -> (i32, String, String) {
-    let o = Command::new(bin()).args(args).output().expect("run sofipol");
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into(),
-        String::from_utf8_lossy(&o.stderr).into(),
+{ALPHA_BETA}"#
     )
 }
 
@@ -59,7 +34,7 @@ fn run(args: &[&str]) -> (i32, String, String) {
 fn night(dir: &Path) -> PathBuf {
     let n = dir.join("night");
     let scene = dir.join("scene.toml");
-    std::fs::write(&scene, SCENE).unwrap();
+    std::fs::write(&scene, scene_toml()).unwrap();
     let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&n), "-q"]);
     assert_eq!(code, 0, "{err}");
     std::fs::remove_file(n.join("truth.json")).unwrap();
@@ -68,10 +43,6 @@ fn night(dir: &Path) -> PathBuf {
 
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()
-}
-
-fn catalog(p: &Path) -> Value {
-    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
 }
 
 fn target<'a>(c: &'a Value, name: &str) -> &'a Value {
@@ -358,7 +329,7 @@ fn night_with_a_stationary_target(dir: &Path) -> PathBuf {
             std::fs::remove_file(p).unwrap();
         }
     }
-    let still = SCENE
+    let still = scene_toml()
         .replace("name = \"hx\"", "name = \"still\"")
         .replace("dithers = 3", "dithers = 3\njitter_step_px = 0.0");
     let still = still[..still.find("[[binary]]\nname = \"Alpha\"").unwrap()].to_string()
@@ -491,7 +462,7 @@ fn a_nan_pixel_is_a_bad_pixel_and_unusable_frames_are_dropped_by_name() {
     // sky-subtract each other well: docs/accuracy.md).
     let n = dir.path().join("night");
     let scene = dir.path().join("scene4.toml");
-    std::fs::write(&scene, SCENE.replace("dithers = 3", "dithers = 4")).unwrap();
+    std::fs::write(&scene, scene_toml().replace("dithers = 3", "dithers = 4")).unwrap();
     let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&n), "-q"]);
     assert_eq!(code, 0, "{err}");
     std::fs::remove_file(n.join("truth.json")).unwrap();

@@ -1,13 +1,15 @@
 //! End-to-end: a simulated night with bad inputs mixed in, through the `sofipol` binary.
-use std::path::Path;
-use std::process::Command;
 
 use serde_json::Value;
 use sofipol_calib::fits;
 
-const BIN: &str = env!("CARGO_BIN_EXE_sofipol");
+mod common;
+use common::{json as catalog, run, ALPHA_BETA};
 
-const SCENE: &str = r#"
+/// The simulated night's scene (Alpha and Beta from [`common::ALPHA_BETA`]).
+fn scene_toml() -> String {
+    format!(
+        r#"
 name = "it"
 seed = 99
 effects = ["psf", "sky", "strips", "photon_noise", "read_noise", "bad_pixels", "pointing_error"]
@@ -17,27 +19,7 @@ dithers = 4
 [psf]
 kind = "moffat"
 fwhm_arcsec = 0.8
-[[binary]]
-name = "Alpha"
-separation_arcsec = 4.0
-pa_deg = 30.0
-flux_a = 120000.0
-flux_b = 60000.0
-p_a = 0.05
-gamma_a_deg = 20.0
-p_b = 0.04
-gamma_b_deg = 110.0
-[[binary]]
-name = "Beta"
-separation_arcsec = 3.0
-pa_deg = 200.0
-flux_a = 100000.0
-flux_b = 70000.0
-p_a = 0.03
-gamma_a_deg = 60.0
-p_b = 0.06
-gamma_b_deg = 150.0
-[[binary]]
+{ALPHA_BETA}[[binary]]
 name = "Gamma"
 separation_arcsec = 2.5
 pa_deg = 300.0
@@ -47,19 +29,8 @@ p_a = 0.04
 gamma_a_deg = 170.0
 p_b = 0.02
 gamma_b_deg = 80.0
-"#;
-
-fn run(args: &[&str]) -> (i32, String, String) {
-    let o = Command::new(BIN).args(args).output().expect("run sofipol");
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into(),
-        String::from_utf8_lossy(&o.stderr).into(),
+"#
     )
-}
-
-fn catalog(p: &Path) -> Value {
-    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
 }
 
 fn without_time(mut v: Value) -> Value {
@@ -73,7 +44,7 @@ fn a_night_with_bad_inputs_reduces_every_good_target_and_names_every_bad_file() 
     let dir = tempfile::tempdir().unwrap();
     let night = dir.path().join("night");
     let scene = dir.path().join("scene.toml");
-    std::fs::write(&scene, SCENE).unwrap();
+    std::fs::write(&scene, scene_toml()).unwrap();
     let (code, _, err) = run(&["simulate", scene.to_str().unwrap(), "-o", night.to_str().unwrap(), "-q"]);
     assert_eq!(code, 0, "{err}");
     std::fs::remove_file(night.join("truth.json")).unwrap();

@@ -1,19 +1,7 @@
 //! End-to-end checks of `sofipol mc` and `sofipol stats` on the synthetic catalogs of
 //! testdata/stats/ (made by testdata/stats/make_catalogs.py).
-use std::path::Path;
-use std::process::Command;
-
-fn sofipol() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_sofipol"))
-}
-
-fn testdata(name: &str) -> String {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("testdata/stats")
-        .join(name)
-        .display()
-        .to_string()
-}
+mod common;
+use common::{sofipol, testdata};
 
 #[test]
 fn stats_on_an_aligned_sample_rejects_random_orientation_and_writes_figures() {

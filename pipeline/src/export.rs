@@ -22,13 +22,17 @@ pub enum Format {
 }
 
 impl std::str::FromStr for Format {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
+    type Err = crate::error::SettingError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s.to_ascii_lowercase().as_str() {
             "ecsv" => Ok(Format::Ecsv),
             "fits" | "fit" => Ok(Format::Fits),
             "csv" => Ok(Format::Csv),
-            _ => Err(format!("unknown format '{s}' (ecsv, fits or csv)")),
+            _ => Err(crate::error::SettingError {
+                key: "format",
+                value: format!("{s:?}"),
+                allowed: "ecsv, fits or csv",
+            }),
         }
     }
 }

@@ -33,7 +33,7 @@ pub struct CalibArgs {
     pub standards: Option<PathBuf>,
     /// How q, u are solved: auto, least_squares, free_offset, difference, ratio.
     #[arg(long, value_name = "METHOD")]
-    pub stokes_method: Option<String>,
+    pub stokes_method: Option<StokesMethod>,
     /// Use no calibration at all (2-orientation components are flagged `uncalibrated`).
     #[arg(long)]
     pub no_calibration: bool,
@@ -49,13 +49,21 @@ pub struct CalibSetup {
     pub external: Option<(PathBuf, Calibration)>,
 }
 
+impl CalibSetup {
+    /// The catalog's `provenance.calibration`: settings, standards tables, `--calib` directory.
+    pub fn provenance(&self) -> serde_json::Value {
+        serde_json::json!({"params": self.params, "standards_table": self.table.sources,
+            "calib_dir": self.external.as_ref().map(|e| e.0.display().to_string())})
+    }
+}
+
 impl CalibArgs {
     /// Validate; the flags override `base` (the `[calibration]` section of --params).
     pub fn setup(&self, base: &CalibrationParams) -> anyhow::Result<CalibSetup> {
         let mut params = base.clone();
         params.no_calibration |= self.no_calibration;
-        if let Some(m) = &self.stokes_method {
-            params.stokes_method = parse_method(m)?;
+        if let Some(m) = self.stokes_method {
+            params.stokes_method = m;
         }
         let table = match &self.standards {
             Some(f) => StandardsTable::with_file(f).map_err(anyhow::Error::msg)?,
@@ -77,18 +85,6 @@ impl CalibArgs {
             external,
         })
     }
-}
-
-/// Parse a Stokes method name.
-pub fn parse_method(m: &str) -> anyhow::Result<StokesMethod> {
-    Ok(match m {
-        "auto" => StokesMethod::Auto,
-        "least_squares" => StokesMethod::LeastSquares,
-        "free_offset" => StokesMethod::FreeOffset,
-        "difference" => StokesMethod::Difference,
-        "ratio" => StokesMethod::Ratio,
-        s => anyhow::bail!("--stokes-method {s}: expected auto, least_squares, free_offset, difference or ratio"),
-    })
 }
 
 /// Reduce standard sequences as single stars (in the current rayon pool).

@@ -97,13 +97,13 @@ struct McFile {
 }
 
 /// Parse a count written as an integer or in floating-point notation (1e7).
-pub fn parse_count(s: &str) -> Result<u64, String> {
+pub fn parse_count(s: &str) -> anyhow::Result<u64> {
     if let Ok(n) = s.parse::<u64>() {
         return Ok(n);
     }
     match s.parse::<f64>() {
         Ok(x) if x >= 1.0 && x.fract() == 0.0 && x <= 1e15 => Ok(x as u64),
-        _ => Err(format!("'{s}' is not a positive whole number")),
+        _ => bail!("'{s}' is not a positive whole number"),
     }
 }
 

@@ -1,15 +1,21 @@
 //! `sofipol night DIR -o catalog.json`: reduce a whole night in parallel.
 use std::io::IsTerminal;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Instant;
 
 use anyhow::Context;
-use sofipol_pipeline::catalog::Status;
+use ndarray::Array2;
+use sofipol_calib::Profile;
+use sofipol_pipeline::catalog::{Catalog, Status, Target};
 use sofipol_pipeline::night::{self, Shard};
+use sofipol_pipeline::reduce::run::{StageTimes, TargetOutcome};
+use sofipol_pipeline::reduce::TargetParams;
+use sofipol_pipeline::sequence::Sequence;
 
-use super::common::{progress, ProfileArgs};
-use super::target::ReduceArgs;
+use super::common::progress;
+use super::target::SetupArgs;
 
 /// `--jobs` is capped at this many threads per core.
 pub const MAX_JOBS_PER_CORE: usize = 4;
@@ -34,11 +40,7 @@ pub struct Args {
     #[arg(long)]
     pub no_png: bool,
     #[command(flatten)]
-    pub reduce: ReduceArgs,
-    #[command(flatten)]
-    pub calib: super::calib::CalibArgs,
-    #[command(flatten)]
-    pub profile: ProfileArgs,
+    pub setup: SetupArgs,
     /// Print only errors.
     #[arg(short, long)]
     pub quiet: bool,
@@ -47,24 +49,11 @@ pub struct Args {
     pub verbose: u8,
 }
 
-/// Run.
+/// Run: check the options, plan the night, the night-wide calibration frames (bad-pixel
+/// mask, flats), reduce every sequence, calibrate with the standards, write the catalog.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let profile = args.profile.load()?;
-    let params = args.reduce.params()?;
-    let setup = args.calib.setup(&params.calibration)?;
-    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    let mut jobs = args.jobs;
-    if let Some(j) = jobs {
-        anyhow::ensure!(j >= 1, "--jobs {j}: need at least 1");
-        // Thousands of threads only thrash (and each holds a frame set in memory).
-        let cap = MAX_JOBS_PER_CORE * cores;
-        if j > cap {
-            if !args.quiet {
-                eprintln!("sofipol night: --jobs {j} capped at {cap} ({MAX_JOBS_PER_CORE} x {cores} cores)");
-            }
-            jobs = Some(cap);
-        }
-    }
+    let (profile, params, setup) = args.setup.load()?;
+    let jobs = capped_jobs(args.jobs, args.quiet)?;
     for d in &args.dirs {
         anyhow::ensure!(d.exists(), "{}: no such file or directory", d.display());
     }
@@ -72,38 +61,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .num_threads(jobs.unwrap_or(0))
         .build()
         .context("starting worker threads")?;
-    let t0 = std::time::Instant::now();
-    // Standards are split off before sharding: every shard calibrates with all of them.
-    let mut plan = night::plan(&args.dirs, &profile, None).context("scanning the night")?;
-    anyhow::ensure!(
-        plan.n_files > 0,
-        "no FITS files (.fits, .fit, .fits.gz, .fit.gz, .fz) in {}",
-        args.dirs
-            .iter()
-            .map(|d| d.display().to_string())
-            .collect::<Vec<_>>()
-            .join(", ")
-    );
-    // Outputs are checked before the reduction starts, never overwrite an input.
-    let mut inputs = plan.files.clone();
-    inputs.extend(args.reduce.input_files());
-    inputs.extend(args.profile.profile.clone());
-    super::common::check_output(&args.output, &inputs)?;
-    if let Some(d) = &args.reduce.save_intermediate {
-        super::common::check_output_dir(d, "--save-intermediate")?;
-    }
-    let (science, stds) = sofipol_pipeline::calibration::split_standards(std::mem::take(&mut plan.sequences), &profile);
-    plan.sequences = science;
-    if let Some(sh) = args.shard {
-        plan.sequences.retain(|q| sh.owns(&q.id));
-        plan.failures.retain(|f| sh.owns(&f.file));
-    }
-    let n = plan.sequences.len();
+    let t0 = Instant::now();
+    let (plan, stds) = plan_night(&args, &profile)?;
     if !args.quiet {
         eprintln!(
             "sofipol night: {} files, {} sequences + {} standard(s){}, {} inputs not used (found while scanning); {} threads",
             plan.n_files,
-            n,
+            plan.sequences.len(),
             stds.len(),
             args.shard
                 .map(|s| format!(" in shard {}/{}", s.k, s.n))
@@ -112,82 +76,25 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             pool.current_num_threads()
         );
     }
-    let tty = std::io::stderr().is_terminal();
-    let pb = progress(n as u64, "reduce", args.quiet || !tty);
-    let done = AtomicUsize::new(0);
-    let on_done = |t: &sofipol_pipeline::catalog::Target| {
-        let k = done.fetch_add(1, Ordering::Relaxed) + 1;
-        let st = match t.status {
-            Status::Ok => "ok",
-            Status::Partial => "partial",
-            Status::Failed => "failed",
-        };
-        if tty && !args.quiet {
-            pb.inc(1);
-            pb.set_message(format!("{} {st}", t.object));
-        } else if !args.quiet {
-            eprintln!(
-                "[{k}/{n}] {} {st}{}",
-                t.object,
-                t.error.as_deref().map(|e| format!(": {e}")).unwrap_or_default()
-            );
-        }
-    };
     let png_dir = (!args.no_png).then(|| night::products_dir(&args.output));
     if let Some(d) = &png_dir {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }
-    let plot = |out: &sofipol_pipeline::reduce::run::TargetOutcome| {
-        if let Some(d) = &png_dir {
-            plot_target(d, out);
-        }
-    };
-    // The detector's defects, detected once for the night (unless only a calibration mask
-    // is wanted).
-    let mut night_mask = None;
-    let mut night_mask_files = Vec::new();
-    if !params.no_detect_bad_pixels {
-        let t = std::time::Instant::now();
-        if let Some((m, files)) = pool.install(|| night::night_bad_pixel_mask(&plan, &profile, &params.bad_pixels, 15))
-        {
-            if args.verbose > 0 {
-                eprintln!(
-                    "night bad-pixel mask: {} pixels from {} frames in {:.2} s",
-                    m.iter().filter(|&&v| v != 0).count(),
-                    files.len(),
-                    t.elapsed().as_secs_f64()
-                );
-            }
-            night_mask = Some(m);
-            night_mask_files = files;
-        }
-    }
-    // The night's flats (dome flats, else a superflat from the night's sky), built from the
-    // whole night's frame list so that every shard gets the same flats.
-    let t = std::time::Instant::now();
-    let flats = pool.install(|| night::night_flats(&plan.dome_flats, &plan.superflat_frames, &profile, &params));
-    if args.verbose > 0 {
-        eprintln!(
-            "flats: {} in {:.2} s",
-            flats.provenance.get("mode").and_then(|m| m.as_str()).unwrap_or("none"),
-            t.elapsed().as_secs_f64()
-        );
-    }
+    let (night_mask, night_mask_files) = pool.install(|| night_mask(&plan, &profile, &params, args.verbose));
+    let flats = pool.install(|| night_flats(&plan, &profile, &params, args.verbose));
     let res = pool.install(|| {
-        night::reduce_night(
+        reduce_with_progress(
             &plan,
             &profile,
             &params,
             night_mask.as_ref(),
-            flats.set.as_ref(),
-            png_dir.is_some(),
-            &on_done,
-            &plot,
+            &flats,
+            png_dir.as_deref(),
+            args.quiet,
         )
     });
-    pb.finish_and_clear();
     let mut cat = res.catalog;
-    let t_cal = std::time::Instant::now();
+    let t_cal = Instant::now();
     let cal_summary = pool.install(|| {
         super::calib::calibrate(
             &mut cat,
@@ -205,15 +112,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     prov["inputs"] = serde_json::json!(args.dirs);
     prov["night_bad_pixel_mask_from"] = serde_json::json!(night_mask_files);
     prov["flat"] = flats.provenance;
-    let owned_flat_failures: Vec<_> = flats
+    let owned_flat_failures = flats
         .failures
         .into_iter()
-        .filter(|f| args.shard.is_none_or(|sh| sh.owns(&f.file)))
-        .collect();
+        .filter(|f| args.shard.is_none_or(|sh| sh.owns(&f.file)));
     cat.failures.extend(owned_flat_failures);
     cat.failures.sort_by(|a, b| a.file.cmp(&b.file));
-    prov["calibration"] = serde_json::json!({"params": setup.params, "standards_table": setup.table.sources,
-        "calib_dir": setup.external.as_ref().map(|e| e.0.display().to_string())});
+    prov["calibration"] = setup.provenance();
     cat.provenance = prov;
     if !args.quiet {
         for l in &cal_summary.lines {
@@ -224,52 +129,196 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .with_context(|| format!("writing {}", args.output.display()))?;
     let wall = t0.elapsed().as_secs_f64();
     if !args.quiet {
-        print!("{}", super::report::summary(&cat));
-        let ok = cat.targets.iter().filter(|t| t.status == Status::Ok).count();
-        println!(
-            "{} targets: {ok} ok, {} partial, {} failed; {} inputs not used ({} found while scanning, {} during the reduction); {:.2} s wall -> {}",
-            cat.targets.len(),
-            cat.targets.iter().filter(|t| t.status == Status::Partial).count(),
-            cat.targets.iter().filter(|t| t.status == Status::Failed).count(),
-            cat.failures.len(),
-            plan.failures.len(),
-            cat.failures.len() - plan.failures.len(),
-            wall,
-            args.output.display()
-        );
-        if let Some(d) = &png_dir {
-            println!("figures: {}", d.display());
-        }
+        print_summary(&cat, plan.failures.len(), wall, &args.output, png_dir.as_deref());
     }
     if args.verbose > 0 {
-        let sum = res.times.iter().fold([0.0; 6], |a, t| {
-            [
-                a[0] + t.read,
-                a[1] + t.bad_pixels,
-                a[2] + t.sky,
-                a[3] + t.measure,
-                a[4] + t.write,
-                a[5] + t.flat,
-            ]
-        });
-        eprintln!(
-            "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, flat {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; calibration {cal_s:.2} s; wall {wall:.2} s; cpu {:.2} s; peak RSS {:.0} MB",
-            sum[0],
-            sum[1],
-            sum[5],
-            sum[2],
-            sum[3],
-            sum[4],
-            night::cpu_seconds().unwrap_or(f64::NAN),
-            night::peak_rss_bytes().unwrap_or(0) as f64 / 1e6
-        );
+        print_stage_times(&res.times, cal_s, wall);
     }
     let bad = cat.targets.iter().any(|t| t.status != Status::Ok) || !cat.failures.is_empty();
     Ok(if bad { ExitCode::from(2) } else { ExitCode::SUCCESS })
 }
 
+/// `--jobs`, checked (at least 1) and capped at [`MAX_JOBS_PER_CORE`] x the cores (with a
+/// note unless `quiet`): thousands of threads only thrash, and each holds a frame set in
+/// memory.
+fn capped_jobs(jobs: Option<usize>, quiet: bool) -> anyhow::Result<Option<usize>> {
+    let Some(j) = jobs else { return Ok(None) };
+    anyhow::ensure!(j >= 1, "--jobs {j}: need at least 1");
+    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    let cap = MAX_JOBS_PER_CORE * cores;
+    if j > cap {
+        if !quiet {
+            eprintln!("sofipol night: --jobs {j} capped at {cap} ({MAX_JOBS_PER_CORE} x {cores} cores)");
+        }
+        return Ok(Some(cap));
+    }
+    Ok(Some(j))
+}
+
+/// Scan the night, check the outputs against its files (never overwrite an input), split
+/// off the standards (before sharding: every shard calibrates with all of them) and keep
+/// this shard's sequences and failures. Returns the plan and the standard sequences.
+fn plan_night(args: &Args, profile: &Profile) -> anyhow::Result<(night::NightPlan, Vec<Sequence>)> {
+    let mut plan = night::plan(&args.dirs, profile, None).context("scanning the night")?;
+    anyhow::ensure!(
+        plan.n_files > 0,
+        "no FITS files (.fits, .fit, .fits.gz, .fit.gz, .fz) in {}",
+        args.dirs
+            .iter()
+            .map(|d| d.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    let mut inputs = plan.files.clone();
+    inputs.extend(args.setup.input_files());
+    super::common::check_output(&args.output, &inputs)?;
+    if let Some(d) = &args.setup.reduce.save_intermediate {
+        super::common::check_output_dir(d, "--save-intermediate")?;
+    }
+    let (science, stds) = sofipol_pipeline::calibration::split_standards(std::mem::take(&mut plan.sequences), profile);
+    plan.sequences = science;
+    if let Some(sh) = args.shard {
+        plan.sequences.retain(|q| sh.owns(&q.id));
+        plan.failures.retain(|f| sh.owns(&f.file));
+    }
+    Ok((plan, stds))
+}
+
+/// The detector's defects, detected once for the night (in the current rayon pool), and
+/// the frames they came from; none when only a calibration mask is wanted.
+fn night_mask(
+    plan: &night::NightPlan,
+    profile: &Profile,
+    params: &TargetParams,
+    verbose: u8,
+) -> (Option<Array2<u8>>, Vec<String>) {
+    if params.no_detect_bad_pixels {
+        return (None, Vec::new());
+    }
+    let t = Instant::now();
+    let Some((m, files)) = night::night_bad_pixel_mask(plan, profile, &params.bad_pixels, 15) else {
+        return (None, Vec::new());
+    };
+    if verbose > 0 {
+        eprintln!(
+            "night bad-pixel mask: {} pixels from {} frames in {:.2} s",
+            m.iter().filter(|&&v| v != 0).count(),
+            files.len(),
+            t.elapsed().as_secs_f64()
+        );
+    }
+    (Some(m), files)
+}
+
+/// The night's flats (dome flats, else a superflat from the night's sky), built from the
+/// whole night's frame list so that every shard gets the same flats.
+fn night_flats(plan: &night::NightPlan, profile: &Profile, params: &TargetParams, verbose: u8) -> night::NightFlats {
+    let t = Instant::now();
+    let flats = night::night_flats(&plan.dome_flats, &plan.superflat_frames, profile, params);
+    if verbose > 0 {
+        eprintln!(
+            "flats: {} in {:.2} s",
+            flats.provenance.get("mode").and_then(|m| m.as_str()).unwrap_or("none"),
+            t.elapsed().as_secs_f64()
+        );
+    }
+    flats
+}
+
+/// Reduce every sequence of the plan (in the current rayon pool) with a progress bar on a
+/// terminal, else a line per target (nothing if `quiet`); writes each target's figure
+/// into `png_dir` when given.
+fn reduce_with_progress(
+    plan: &night::NightPlan,
+    profile: &Profile,
+    params: &TargetParams,
+    night_mask: Option<&Array2<u8>>,
+    flats: &night::NightFlats,
+    png_dir: Option<&Path>,
+    quiet: bool,
+) -> night::NightResult {
+    let n = plan.sequences.len();
+    let tty = std::io::stderr().is_terminal();
+    let pb = progress(n as u64, "reduce", quiet || !tty);
+    let done = AtomicUsize::new(0);
+    let on_done = |t: &Target| {
+        let k = done.fetch_add(1, Ordering::Relaxed) + 1;
+        let st = match t.status {
+            Status::Ok => "ok",
+            Status::Partial => "partial",
+            Status::Failed => "failed",
+        };
+        if tty && !quiet {
+            pb.inc(1);
+            pb.set_message(format!("{} {st}", t.object));
+        } else if !quiet {
+            eprintln!(
+                "[{k}/{n}] {} {st}{}",
+                t.object,
+                t.error.as_deref().map(|e| format!(": {e}")).unwrap_or_default()
+            );
+        }
+    };
+    let plot = |out: &TargetOutcome| {
+        if let Some(d) = png_dir {
+            plot_target(d, out);
+        }
+    };
+    let res = night::reduce_night(
+        plan,
+        profile,
+        params,
+        night_mask,
+        flats.set.as_ref(),
+        png_dir.is_some(),
+        &on_done,
+        &plot,
+    );
+    pb.finish_and_clear();
+    res
+}
+
+/// The night's summary on stdout: the targets, their status, the inputs not used
+/// (`scan_failures` of them found while scanning), the wall time, where the outputs are.
+fn print_summary(cat: &Catalog, scan_failures: usize, wall: f64, output: &Path, png_dir: Option<&Path>) {
+    print!("{}", super::report::summary(cat));
+    let count = |s: Status| cat.targets.iter().filter(|t| t.status == s).count();
+    println!(
+        "{} targets: {} ok, {} partial, {} failed; {} inputs not used ({} found while scanning, {} during the reduction); {:.2} s wall -> {}",
+        cat.targets.len(),
+        count(Status::Ok),
+        count(Status::Partial),
+        count(Status::Failed),
+        cat.failures.len(),
+        scan_failures,
+        cat.failures.len() - scan_failures,
+        wall,
+        output.display()
+    );
+    if let Some(d) = png_dir {
+        println!("figures: {}", d.display());
+    }
+}
+
+/// `-v`: the stage times summed over the targets, the calibration and wall times, CPU time
+/// and peak memory, on stderr.
+fn print_stage_times(times: &[StageTimes], cal_s: f64, wall: f64) {
+    let sum = |f: fn(&StageTimes) -> f64| times.iter().fold(0.0, |a, t| a + f(t));
+    eprintln!(
+        "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, flat {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; calibration {cal_s:.2} s; wall {wall:.2} s; cpu {:.2} s; peak RSS {:.0} MB",
+        sum(|t| t.read),
+        sum(|t| t.bad_pixels),
+        sum(|t| t.flat),
+        sum(|t| t.sky),
+        sum(|t| t.measure),
+        sum(|t| t.write),
+        night::cpu_seconds().unwrap_or(f64::NAN),
+        night::peak_rss_bytes().unwrap_or(0) as f64 / 1e6
+    );
+}
+
 /// Write the per-target figure (never fails the night: a problem is printed).
-fn plot_target(dir: &std::path::Path, out: &sofipol_pipeline::reduce::run::TargetOutcome) {
+fn plot_target(dir: &Path, out: &TargetOutcome) {
     let seq = out
         .target
         .extra

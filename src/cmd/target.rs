@@ -10,6 +10,9 @@ use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::stokes::inversion::Debias;
 use sofipol_pipeline::{scan, sequence};
 
+use sofipol_calib::Profile;
+
+use super::calib::{CalibArgs, CalibSetup};
 use super::common::ProfileArgs;
 
 /// Arguments of `sofipol target`.
@@ -25,17 +28,43 @@ pub struct Args {
     #[arg(short, long, default_value = "catalog.json")]
     pub output: PathBuf,
     #[command(flatten)]
-    pub reduce: ReduceArgs,
-    #[command(flatten)]
-    pub calib: super::calib::CalibArgs,
-    #[command(flatten)]
-    pub profile: ProfileArgs,
+    pub setup: SetupArgs,
     /// Print nothing but errors.
     #[arg(short, long)]
     pub quiet: bool,
 }
 
-/// Reduction settings shared by `target` and `night`.
+/// What sets up a reduction, shared by `target` and `night`: the reduction settings, the
+/// calibration options and the instrument profile (in this order in `--help`).
+#[derive(clap::Args, Debug)]
+pub struct SetupArgs {
+    #[command(flatten)]
+    pub reduce: ReduceArgs,
+    #[command(flatten)]
+    pub calib: CalibArgs,
+    #[command(flatten)]
+    pub profile: ProfileArgs,
+}
+
+impl SetupArgs {
+    /// The validated profile, reduction parameters and calibration setup (the calibration
+    /// flags override the `[calibration]` section of `--params`).
+    pub fn load(&self) -> anyhow::Result<(Profile, TargetParams, CalibSetup)> {
+        let profile = self.profile.load()?;
+        let params = self.reduce.params()?;
+        let setup = self.calib.setup(&params.calibration)?;
+        Ok((profile, params, setup))
+    }
+
+    /// Files these options read (outputs must not overwrite them).
+    pub fn input_files(&self) -> Vec<PathBuf> {
+        let mut files = self.reduce.input_files();
+        files.extend(self.profile.profile.clone());
+        files
+    }
+}
+
+/// Reduction settings shared by `target`, `night` and `calib`.
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct ReduceArgs {
     /// Reduction parameters (TOML, sections as in docs/configuration.md); flags override.
@@ -123,9 +152,7 @@ impl ReduceArgs {
 
 /// Run.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let profile = args.profile.load()?;
-    let params = args.reduce.params()?;
-    let setup = args.calib.setup(&params.calibration)?;
+    let (profile, params, setup) = args.setup.load()?;
     for i in &args.inputs {
         anyhow::ensure!(i.exists(), "{}: no such file or directory", i.display());
     }
@@ -160,10 +187,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         files.len()
     );
     let mut inputs = files.clone();
-    inputs.extend(args.reduce.input_files());
-    inputs.extend(args.profile.profile.clone());
+    inputs.extend(args.setup.input_files());
     super::common::check_output(&args.output, &inputs)?;
-    if let Some(d) = &args.reduce.save_intermediate {
+    if let Some(d) = &args.setup.reduce.save_intermediate {
         super::common::check_output_dir(d, "--save-intermediate")?;
     }
     let mut cat = Catalog {
@@ -199,8 +225,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let cal_summary = super::calib::calibrate(&mut cat, &stds, &profile, &params, None, flats.set.as_ref(), &setup);
     cat.provenance = super::report::provenance(&profile, &params);
     cat.provenance["flat"] = flats.provenance;
-    cat.provenance["calibration"] = serde_json::json!({"params": setup.params, "standards_table": setup.table.sources,
-        "calib_dir": setup.external.as_ref().map(|e| e.0.display().to_string())});
+    cat.provenance["calibration"] = setup.provenance();
     if !args.quiet {
         for l in &cal_summary.lines {
             eprintln!("sofipol target: {l}");
@@ -224,6 +249,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 mod tests {
     use super::*;
     use clap::Parser;
+    use sofipol_pipeline::stokes::calibration::{StokesMethod, STOKES_METHOD_SPELLINGS};
 
     #[derive(Parser)]
     struct Cli {
@@ -267,6 +293,56 @@ mod tests {
         assert_eq!(
             toml_file("[measure]\nmethod = \"Center\"\n").unwrap().measure.method,
             Method::Center
+        );
+    }
+
+    #[derive(Parser)]
+    struct SetupCli {
+        #[command(flatten)]
+        setup: SetupArgs,
+    }
+
+    /// The Stokes method that `--params` and the flags resolve to.
+    fn stokes_method(args: &[&str]) -> Result<StokesMethod, String> {
+        let a =
+            SetupCli::try_parse_from(std::iter::once("t").chain(args.iter().copied())).map_err(|e| e.to_string())?;
+        let (_, _, setup) = a.setup.load().map_err(|e| format!("{e:#}"))?;
+        Ok(setup.params.stokes_method)
+    }
+
+    #[test]
+    fn stokes_method_has_one_spelling_in_toml_json_and_on_the_command_line() {
+        use StokesMethod::*;
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("p.toml");
+        for m in [Auto, LeastSquares, FreeOffset, Difference, Ratio] {
+            let s = m.to_string();
+            assert_eq!(s, m.name());
+            assert_eq!(stokes_method(&["--stokes-method", &s]).unwrap(), m);
+            // What the settings serialize to (TOML, the catalog's JSON provenance) is what
+            // the flag takes, and reads back.
+            let mut p = TargetParams::default();
+            p.calibration.stokes_method = m;
+            let text = toml::to_string(&p).unwrap();
+            assert!(text.contains(&format!("stokes_method = \"{s}\"")), "{text}");
+            assert_eq!(serde_json::to_value(m).unwrap(), serde_json::json!(s));
+            std::fs::write(&f, &text).unwrap();
+            assert_eq!(stokes_method(&["--params", f.to_str().unwrap()]).unwrap(), m);
+            // The flag overrides the file.
+            let other = if m == Ratio { Difference } else { Ratio };
+            let both = stokes_method(&["--params", f.to_str().unwrap(), "--stokes-method", other.name()]);
+            assert_eq!(both.unwrap(), other);
+        }
+        let e = stokes_method(&["--stokes-method", "least-squares"]).unwrap_err();
+        assert!(
+            e.contains("--stokes-method") && e.contains("least-squares") && e.contains(STOKES_METHOD_SPELLINGS),
+            "{e}"
+        );
+        std::fs::write(&f, "[calibration]\nstokes_method = \"Ratio\"\n").unwrap();
+        let e = stokes_method(&["--params", f.to_str().unwrap()]).unwrap_err();
+        assert!(
+            e.contains("calibration.stokes_method") && e.contains("Ratio") && e.contains(STOKES_METHOD_SPELLINGS),
+            "{e}"
         );
     }
 

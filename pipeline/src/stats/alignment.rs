@@ -2,7 +2,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::binomial::{binomial_test, BinomialOutcome};
-use super::ks::{kolmogorov_sf, ks_two_sample_sorted, ks_uniform};
+use super::ks::{ks_two_sample_presorted, ks_uniform};
 use super::kuiper::kuiper_uniform;
 use super::mc::{simulate_samples, Ism, McConfig, McOutput};
 use super::{Result, TestOutcome};
@@ -117,16 +117,7 @@ pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<Align
                 }
             } else {
                 sim.sort_by(|a, b| a.total_cmp(b));
-                let d = ks_two_sample_sorted(&observed, &sim);
-                let (n1, n2) = (n as f64, sim.len() as f64);
-                let ne = (n1 * n2 / (n1 + n2)).round().max(1.0) as usize;
-                let (p, method) = kolmogorov_sf(d, ne);
-                TestOutcome {
-                    statistic: d,
-                    p_value: p,
-                    n: ne,
-                    method: format!("two-sample, n_e = {ne}: {method}"),
-                }
+                ks_two_sample_presorted(&observed, &sim)
             };
             report.ism.push(IsmComparison {
                 p_ism_percent: level,

@@ -72,7 +72,14 @@ pub fn ks_two_sample(a: &[f64], b: &[f64]) -> TestOutcome {
     let mut y = b.to_vec();
     x.sort_by(|p, q| p.total_cmp(q));
     y.sort_by(|p, q| p.total_cmp(q));
-    let d = ks_two_sample_sorted(&x, &y);
+    ks_two_sample_presorted(&x, &y)
+}
+
+/// Two-sample KS test of two sorted, non-empty samples: D, the effective size
+/// n_e = n1 n2 / (n1 + n2) and the Kolmogorov p-value at n_e.
+pub fn ks_two_sample_presorted(x: &[f64], y: &[f64]) -> TestOutcome {
+    let (n1, n2) = (x.len(), y.len());
+    let d = ks_two_sample_sorted(x, y);
     let ne = ((n1 as f64 * n2 as f64) / (n1 as f64 + n2 as f64)).round().max(1.0) as usize;
     let (p, method) = kolmogorov_sf(d, ne);
     TestOutcome {

@@ -14,7 +14,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::rng::Xoshiro256pp;
-use super::{Error, Result};
+use super::{read_text, Error, Result};
 
 /// Number of quantiles kept for tabulated distributions (inverse-CDF lookup, linear inside).
 const QUANTILES: usize = 8192;
@@ -151,11 +151,7 @@ impl AlphaTable {
 
     /// Read the text format described on the type.
     pub fn from_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::Io {
-            path: path.to_path_buf(),
-            source: e,
-        })?;
-        Self::parse(&path.display().to_string(), &text)
+        Self::parse(&path.display().to_string(), &read_text(path)?)
     }
 
     /// Parse the text format described on the type.
@@ -185,10 +181,7 @@ impl AlphaTable {
             if line.is_empty() {
                 continue;
             }
-            let nums = parse_numbers(line).map_err(|reason| Error::Table {
-                table: source.to_string(),
-                reason: format!("line {}: {reason}", lineno + 1),
-            })?;
+            let nums = parse_numbers(line, source, lineno + 1)?;
             if nums.len() != 2 {
                 return Err(Error::Table {
                     table: source.to_string(),
@@ -225,11 +218,16 @@ fn interp(x: &[f64], y: &[f64], at: f64) -> f64 {
     y0 + (y1 - y0) * (at - x0) / (x1 - x0)
 }
 
-/// Whitespace- or comma-separated numbers.
-fn parse_numbers(s: &str) -> std::result::Result<Vec<f64>, String> {
+/// Whitespace- or comma-separated numbers of line `lineno` of table `source`.
+fn parse_numbers(s: &str, source: &str, lineno: usize) -> Result<Vec<f64>> {
     s.split(|c: char| c.is_whitespace() || c == ',')
         .filter(|t| !t.is_empty())
-        .map(|t| t.parse::<f64>().map_err(|_| format!("'{t}' is not a number")))
+        .map(|t| {
+            t.parse::<f64>().map_err(|_| Error::Table {
+                table: source.to_string(),
+                reason: format!("line {lineno}: '{t}' is not a number"),
+            })
+        })
         .collect()
 }
 

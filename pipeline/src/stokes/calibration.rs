@@ -28,7 +28,7 @@ use super::model::normalize_axial_deg;
 
 /// How q and u are obtained from the per-orientation F.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
+#[serde(try_from = "String", into = "String")]
 pub enum StokesMethod {
     /// Ratio method when the angles are balanced, else the least squares with the measured
     /// offset subtracted, else (3+ distinct angles) a free offset, else the plain least
@@ -56,6 +56,46 @@ impl StokesMethod {
             StokesMethod::Difference => "difference",
             StokesMethod::Ratio => "ratio",
         }
+    }
+}
+
+/// The spellings of [`StokesMethod`], the same in TOML (`calibration.stokes_method`) and on
+/// the command line (`--stokes-method`).
+pub const STOKES_METHOD_SPELLINGS: &str = "auto, least_squares, free_offset, difference or ratio";
+
+/// [`StokesMethod::name`]: the one spelling of TOML, JSON and the command line.
+impl std::fmt::Display for StokesMethod {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Parses what [`StokesMethod::name`] writes.
+impl std::str::FromStr for StokesMethod {
+    type Err = crate::error::SettingError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        use StokesMethod::*;
+        [Auto, LeastSquares, FreeOffset, Difference, Ratio]
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| crate::error::SettingError {
+                key: "calibration.stokes_method",
+                value: format!("{s:?}"),
+                allowed: STOKES_METHOD_SPELLINGS,
+            })
+    }
+}
+
+impl TryFrom<String> for StokesMethod {
+    type Error = crate::error::SettingError;
+    fn try_from(s: String) -> Result<Self, Self::Error> {
+        s.parse()
+    }
+}
+
+impl From<StokesMethod> for String {
+    fn from(m: StokesMethod) -> String {
+        m.name().to_string()
     }
 }
 

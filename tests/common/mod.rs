@@ -1,0 +1,72 @@
+//! Helpers shared by the `tests/cli_*.rs` integration tests: run the `sofipol` binary,
+//! read its JSON outputs, find test data.
+//!
+//! `SOFIPOL_BIN=/path/to/sofipol cargo test --test cli_...` runs the tests against another
+//! build (how tests are checked to fail before a fix).
+// Each test file uses a subset of these helpers.
+#![allow(dead_code)]
+
+use std::path::Path;
+use std::process::Command;
+
+use serde_json::Value;
+
+/// The binary under test: `$SOFIPOL_BIN`, else the one cargo built.
+pub fn bin() -> String {
+    std::env::var("SOFIPOL_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_sofipol").to_string())
+}
+
+/// A command running the binary under test.
+pub fn sofipol() -> Command {
+    Command::new(bin())
+}
+
+/// Run `sofipol ARGS`: (exit code, stdout, stderr).
+pub fn run(args: &[&str]) -> (i32, String, String) {
+    let o = sofipol().args(args).output().expect("run sofipol");
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stdout).into(),
+        String::from_utf8_lossy(&o.stderr).into(),
+    )
+}
+
+/// A JSON file (catalog, truth, report); panics naming the file.
+pub fn json(p: &Path) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(p).unwrap_or_else(|e| panic!("{}: {e}", p.display())))
+        .unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+}
+
+/// A file of testdata/stats/.
+pub fn testdata(name: &str) -> String {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("testdata/stats")
+        .join(name)
+        .display()
+        .to_string()
+}
+
+/// Two binaries, Alpha (4.0 arcsec, PA 30) and Beta (3.0 arcsec, PA 200), as `[[binary]]`
+/// tables of a simulator scene: the targets of the simulated nights of `cli_hostile` and
+/// `cli_night`.
+pub const ALPHA_BETA: &str = r#"[[binary]]
+name = "Alpha"
+separation_arcsec = 4.0
+pa_deg = 30.0
+flux_a = 120000.0
+flux_b = 60000.0
+p_a = 0.05
+gamma_a_deg = 20.0
+p_b = 0.04
+gamma_b_deg = 110.0
+[[binary]]
+name = "Beta"
+separation_arcsec = 3.0
+pa_deg = 200.0
+flux_a = 100000.0
+flux_b = 70000.0
+p_a = 0.03
+gamma_a_deg = 60.0
+p_b = 0.06
+gamma_b_deg = 150.0
+"#;
