@@ -20,6 +20,37 @@ fn demo_simulates_reduces_checks_and_writes_figures() {
     assert_eq!(targets.len(), 5);
     let truth = json(&out.join("raw/truth.json"));
     assert_eq!(truth["targets"].as_array().unwrap().len(), 5);
+    // The night's dome flats and standards calibrate it: flat, offset c within 3 sigma of
+    // the simulated (1-k)/(1+k) + p_inst, no component left uncalibrated, every standard
+    // reported and within 3 sigma of its table P.
+    assert!(stdout.contains("calibration derived from the night"), "{stdout}");
+    assert_eq!(
+        cat["provenance"]["flat"]["mode"], "dome",
+        "{}",
+        cat["provenance"]["flat"]
+    );
+    let f = &cat["calibration"]["calibration"]["filters"][0];
+    let (c, sc) = (
+        f["offset"]["c"].as_f64().unwrap(),
+        f["offset"]["sigma_c"].as_f64().unwrap(),
+    );
+    let c_true = 0.03 / 1.97 + 0.003;
+    assert!((c - c_true).abs() < 3.0 * sc, "c = {c} +- {sc}, simulated {c_true}");
+    let th = (
+        f["angles"]["theta0_deg"].as_f64().unwrap(),
+        f["angles"]["sigma_theta0_deg"].as_f64().unwrap(),
+    );
+    assert!((th.0 - 3.0).abs() < 3.0 * th.1, "theta0 {th:?}");
+    for t in targets {
+        for comp in t["components"].as_array().unwrap() {
+            assert!(!comp["flags"].to_string().contains("uncalibrated"), "{}", t["object"]);
+        }
+    }
+    let stds = cat["standards"].as_array().unwrap();
+    assert_eq!(stds.len(), 3);
+    for s in stds {
+        assert!(s["residual_p_sigma"].as_f64().unwrap().abs() < 3.0, "{s}");
+    }
     let pngs = std::fs::read_dir(out.join("figures"))
         .unwrap()
         .filter(|e| e.as_ref().unwrap().path().extension().is_some_and(|x| x == "png"));

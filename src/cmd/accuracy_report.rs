@@ -55,6 +55,12 @@ pub const G_REDUCTION: &str = "reduction";
 /// Group of the observing choices (x axis: exposure time per target).
 pub const G_EXPOSURE: &str = "exposure";
 
+/// Group of the flat-field choices on a night with a 1 % pixel response (issue 8; x axis:
+/// reduction time per target).
+pub const G_FLAT: &str = "flat field";
+/// Group of the instrumental calibration (issue 8; x axis: reduction time per target).
+pub const G_INSTRUMENT: &str = "instrument calibration";
+
 /// Every trade-off of the report. The DIT of the simulated frames is 10 s (1 NDIT).
 pub fn variants() -> Vec<Variant> {
     let mut out = vec![
@@ -150,7 +156,65 @@ pub fn variants() -> Vec<Variant> {
             },
         ));
     }
+    out.extend(calibration_variants());
     out
+}
+
+/// Calibration rows (issue 8): the flat on a night with a 1 % pixel response, and the
+/// instrument (k = 0.97, p_inst 0.3 %, zero-point 3 deg) calibrated by standards (2
+/// orientations) or cancelled by the ratio method (4 orientations, no calibration data).
+fn calibration_variants() -> Vec<Variant> {
+    use sofipol_pipeline::accuracy::FlatMode;
+    let flat = |m: FlatMode| {
+        move |c: &mut AccuracyConfig, _: &mut TargetParams| *c = AccuracyConfig::with_flat_field(c.clone(), 0.01, m)
+    };
+    vec![
+        v(
+            G_FLAT,
+            "1 % pixel response, no flat",
+            "bench accuracy --pixel-response 0.01 --flat none; night --no-flat",
+            false,
+            flat(FlatMode::None),
+        ),
+        v(
+            G_FLAT,
+            "1 % pixel response, superflat",
+            "bench accuracy --pixel-response 0.01 --flat superflat (night without dome flats)",
+            true,
+            flat(FlatMode::Superflat),
+        ),
+        v(
+            G_FLAT,
+            "1 % pixel response, dome flats",
+            "bench accuracy --pixel-response 0.01 --flat dome (night with dome flats)",
+            false,
+            flat(FlatMode::Dome),
+        ),
+        v(
+            G_INSTRUMENT,
+            "k 0.97 + p_inst 0.3 % + theta0 3 deg, 2 orientations, no calibration (uncalibrated)",
+            "night --no-calibration",
+            false,
+            |c, _| *c = AccuracyConfig::with_instrument(c.clone(), false),
+        ),
+        v(
+            G_INSTRUMENT,
+            "same, 2 orientations + 2 unpolarized and 2 polarized standards",
+            "night (standards in the night)",
+            true,
+            |c, _| *c = AccuracyConfig::with_instrument(c.clone(), true),
+        ),
+        v(
+            G_INSTRUMENT,
+            "k 0.97 + p_inst 0.3 % (zero-point 0), 4 orientations, ratio method, no calibration data",
+            "night, orientations 0/45/90/135 (--stokes-method auto or ratio)",
+            false,
+            |c, _| {
+                *c = AccuracyConfig::with_instrument(c.clone(), false);
+                c.orientations_deg = vec![0.0, 45.0, 90.0, 135.0];
+            },
+        ),
+    ]
 }
 
 /// The figures of one variant.

@@ -82,7 +82,7 @@ fn night_scene_text(a: &NightArgs) -> String {
         text += "[throughput]\nt_e = 0.97\n[instrumental_polarization]\np = 0.003\nangle_deg = 0.0\n[analyzer_angle]\nzero_point_deg = 3.0\n";
         text +=
             "[[standard]]\nname = \"HD 64299\"\nflux = 150000.0\n[[standard]]\nname = \"HD 98161\"\nflux = 150000.0\n";
-        text += "[[standard]]\nname = \"HD 204827\"\nflux = 150000.0\np = 0.0084\ngamma_deg = 58.7\n";
+        text += "[[standard]]\nname = \"HD 204827\"\nflux = 150000.0\np = 0.0088\ngamma_deg = 58.7\n";
     }
     text
 }

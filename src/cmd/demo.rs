@@ -2,12 +2,10 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use rayon::prelude::*;
-use sofipol_pipeline::catalog::{Catalog, SCHEMA_VERSION};
-use sofipol_pipeline::reduce::run::reduce_sequence;
+use sofipol_pipeline::catalog::Catalog;
 use sofipol_pipeline::reduce::TargetParams;
-use sofipol_pipeline::sim::Scene;
-use sofipol_pipeline::{scan, sequence};
+use sofipol_pipeline::sim::{Scene, Truth};
+use sofipol_pipeline::{calibration, night};
 
 use super::common::ProfileArgs;
 
@@ -43,47 +41,69 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     );
     let truth = super::simulate::simulate_into(scene, profile.clone(), &raw, None, args.quiet)?;
     let nframes: usize = truth.targets.iter().map(|t| t.frames.len()).sum();
+    let nstd: usize = truth.standards.iter().map(|t| t.frames.len()).sum();
     println!(
-        "  wrote {nframes} frames and truth.json in {:.2} s",
+        "  wrote {nframes} target frames, {nstd} frames of {} standards, {} dome flats and truth.json in {:.2} s",
+        truth.standards.len(),
+        truth.dome_flats.len(),
         t0.elapsed().as_secs_f64()
     );
 
-    // Reduce the night exactly as a user would: scan, classify, group, reduce.
+    // Reduce the night exactly as `sofipol night` does: scan, classify, group; the
+    // night's bad-pixel mask and flats; the targets; the standards and the calibration.
     let t1 = std::time::Instant::now();
     let params = TargetParams::default();
-    let files = scan::find_files(&raw)?;
-    let s = scan::classify_all(&files, &profile);
-    let seqs = sequence::group(s.science, &profile);
+    let setup = super::calib::CalibArgs::default().setup(&params.calibration)?;
+    let mut plan = night::plan(std::slice::from_ref(&raw), &profile, None)?;
+    let (science, stds) = calibration::split_standards(std::mem::take(&mut plan.sequences), &profile);
+    plan.sequences = science;
+    let night_mask = night::night_bad_pixel_mask(&plan, &profile, &params.bad_pixels, 15).map(|(m, _)| m);
+    let flats = night::night_flats(&plan.dome_flats, &plan.superflat_frames, &profile, &params);
     let fig_dir = args.output.join("figures");
     std::fs::create_dir_all(&fig_dir)?;
-    let outs: Vec<_> = seqs
-        .par_iter()
-        .map(|q| {
-            let out = reduce_sequence(q, &profile, &params, None, None, true);
-            let png = fig_dir.join(format!("{}.png", sofipol_pipeline::night::slug(&q.object)));
-            if let Err(e) = sofipol_pipeline::plots::target::outcome_png(&png, &out) {
-                eprintln!("sofipol: warning: {}: {e}", png.display());
-            }
-            out
-        })
-        .collect();
-    let mut cat = Catalog {
-        schema_version: SCHEMA_VERSION.into(),
-        ..Default::default()
+    let plot = |out: &sofipol_pipeline::reduce::run::TargetOutcome| {
+        let png = fig_dir.join(format!("{}.png", night::slug(&out.target.object)));
+        if let Err(e) = sofipol_pipeline::plots::target::outcome_png(&png, out) {
+            eprintln!("sofipol: warning: {}: {e}", png.display());
+        }
     };
-    cat.failures.extend(s.unreadable);
-    for o in outs {
-        cat.failures.extend(o.failures);
-        cat.targets.push(o.target);
-    }
-    cat.provenance = super::report::provenance(&profile, &params);
+    let res = night::reduce_night(
+        &plan,
+        &profile,
+        &params,
+        night_mask.as_ref(),
+        flats.set.as_ref(),
+        true,
+        &|_| {},
+        &plot,
+    );
+    let mut cat = res.catalog;
+    let summary = super::calib::calibrate(
+        &mut cat,
+        &stds,
+        &profile,
+        &params,
+        night_mask.as_ref(),
+        flats.set.as_ref(),
+        &setup,
+    );
+    let mut prov = super::report::provenance(&profile, &params);
+    prov["flat"] = flats.provenance.clone();
+    prov["calibration"] = serde_json::json!({"params": setup.params, "standards_table": setup.table.sources});
+    cat.provenance = prov;
+    cat.failures.extend(flats.failures.iter().cloned());
     let cat_path = args.output.join("catalog.json");
     sofipol_pipeline::io::write_json_atomic(&cat_path, &cat)?;
     println!(
-        "  reduced {} sequences in {:.2} s -> {}\n",
+        "  reduced {} sequences and {} standards in {:.2} s -> {}",
         cat.targets.len(),
+        stds.len(),
         t1.elapsed().as_secs_f64(),
         cat_path.display()
+    );
+    println!(
+        "{}",
+        calibration_report(&truth, &flats.provenance, &cat, &summary.lines)
     );
 
     println!(
@@ -131,6 +151,95 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
         Ok(ExitCode::from(DEMO_CHECK_FAILED))
     }
+}
+
+/// What the calibration found against what the scene simulated: the flat, the offset c
+/// (true (T_o - T_e)/(T_o + T_e) + p_inst cos 2 angle), the angle zero-point, parity, and
+/// each standard against its table values.
+pub fn calibration_report(truth: &Truth, flat: &serde_json::Value, cat: &Catalog, lines: &[String]) -> String {
+    let mut out = String::from("\n  calibration derived from the night:\n");
+    let mode = flat.get("mode").and_then(|m| m.as_str()).unwrap_or("none");
+    let list = flat
+        .get("flats")
+        .and_then(|f| f.as_array())
+        .cloned()
+        .unwrap_or_default();
+    let nframes: usize = list.iter().map(|f| f["frames"].as_array().map_or(0, |v| v.len())).sum();
+    let rms = truth.detector["flat_field"]["rms"].as_f64();
+    out += &format!(
+        "    flat: {mode}, {} flat(s) from {nframes} frames{}\n",
+        list.len(),
+        rms.map(|r| format!("; simulated pixel response rms {:.2} %", 100.0 * r))
+            .unwrap_or_default()
+    );
+    let d = &truth.detector;
+    let c_true = d["throughput"]["t_o"]
+        .as_f64()
+        .zip(d["throughput"]["t_e"].as_f64())
+        .map(|(o, e)| {
+            (o - e) / (o + e)
+                + d["instrumental_polarization"]["q_inst_added_to_F"]
+                    .as_f64()
+                    .unwrap_or(0.0)
+        });
+    let aa = truth.scene.analyzer_angle.clone().unwrap_or_default();
+    let filters = cat
+        .calibration
+        .as_ref()
+        .and_then(|c| c["calibration"]["filters"].as_array().cloned())
+        .unwrap_or_default();
+    if filters.is_empty() {
+        out += "    no calibration (no usable standards)\n";
+    }
+    for f in &filters {
+        let name = f["filter"].as_str().unwrap_or("?");
+        if let (Some(c), Some(s)) = (f["offset"]["c"].as_f64(), f["offset"]["sigma_c"].as_f64()) {
+            out += &format!(
+                "    {name}: offset c = {:.4} +- {:.4}{}\n",
+                c,
+                s,
+                c_true
+                    .map(|t| format!(" (simulated {t:.4}: {:+.1} sigma)", (c - t) / s))
+                    .unwrap_or_default()
+            );
+        }
+        let a = &f["angles"];
+        if let (Some(t0), Some(st)) = (a["theta0_deg"].as_f64(), a["sigma_theta0_deg"].as_f64()) {
+            out += &format!(
+                "    {name}: angle zero-point theta0 = {t0:.2} +- {st:.2} deg (simulated {:.2}: {:+.1} sigma), parity {} ({}; simulated {:+})\n",
+                aa.zero_point_deg,
+                (t0 - aa.zero_point_deg) / st,
+                a["parity"],
+                if a["parity_measured"].as_bool() == Some(true) { "measured" } else { "profile" },
+                aa.parity
+            );
+        }
+    }
+    for s in &cat.standards {
+        let m = s.measured.as_ref();
+        out += &format!(
+            "    standard {:<10} P = {:.2} +- {:.2} % (table {}), gamma {} {}\n",
+            s.name,
+            m.map_or(f64::NAN, |m| 100.0 * m.p),
+            m.map_or(f64::NAN, |m| 100.0 * m.sigma_p),
+            s.table
+                .as_ref()
+                .map(|t| format!("{:.2} +- {:.2} %", 100.0 * t.p, 100.0 * t.sigma_p))
+                .unwrap_or_else(|| "none".into()),
+            match (m, s.residual_gamma_deg) {
+                (Some(m), Some(r)) => format!(
+                    "{:.1} +- {:.1} deg (table {:+.1} deg off)",
+                    m.gamma_deg, m.sigma_gamma_deg, r
+                ),
+                _ => "-".into(),
+            },
+            s.used_for.join(", ")
+        );
+    }
+    for l in lines {
+        out += &format!("    {l}\n");
+    }
+    out
 }
 
 /// A recovered q or u further than this many sigma from the truth fails the demo.
@@ -222,6 +331,31 @@ mod tests {
             targets: vec![t],
             ..Default::default()
         }
+    }
+
+    /// The demo's standards are entries of the built-in table with the table's values
+    /// (polarized: the simulated P and angle are the table's Ks values), so the demo
+    /// calibrates with the same table a user's night does.
+    #[test]
+    fn demo_scene_standards_are_builtin_table_entries() {
+        let scene = Scene::from_toml(DEMO_SCENE, "demo").unwrap();
+        let table = sofipol_pipeline::standards::StandardsTable::builtin();
+        let filter = &scene.observation.filter;
+        assert!(scene.standard.len() >= 3);
+        let (mut unpol, mut pol) = (0, 0);
+        for s in &scene.standard {
+            let e = table
+                .find(&s.name, filter)
+                .unwrap_or_else(|| panic!("{} not in the table", s.name));
+            assert!((s.p - e.p).abs() < 1e-9, "{}: scene p {} table {}", s.name, s.p, e.p);
+            if e.p > 0.0 {
+                pol += 1;
+                assert!((s.gamma_deg - e.gamma_deg).abs() < 1e-9, "{}", s.name);
+            } else {
+                unpol += 1;
+            }
+        }
+        assert!(unpol >= 2 && pol >= 1, "{unpol} unpolarized, {pol} polarized");
     }
 
     #[test]

@@ -190,3 +190,117 @@ fn four_orientations_need_no_calibration() {
     assert_eq!(c.extra["stokes_method"], "ratio");
     assert!((c.q - truth.q).abs() < 1e-14 && (c.u - truth.u).abs() < 1e-14);
 }
+
+fn target_in(object: &str, filter: &str, comps: Vec<Component>) -> Target {
+    let mut t = target(object, comps);
+    t.extra.insert("filter".into(), serde_json::json!(filter));
+    t.extra
+        .insert("sequence".into(), serde_json::json!(format!("{object}@{filter}")));
+    t
+}
+
+/// The offset is per filter (issue 8): a night in J and Ks with different offsets gets one
+/// entry per filter in calibration.json, and each target is corrected with its own
+/// filter's entry (also when the calibration is read back from the file, as `--calib`
+/// does); a filter without standards is flagged `uncalibrated`.
+#[test]
+fn two_filter_night_gets_one_offset_per_filter_and_targets_use_their_own() {
+    let pa = [0.0, 45.0];
+    let table = StandardsTable::builtin();
+    let hd = table.find("HD 204827", "Ks").unwrap().clone();
+    // Ks: k and p_inst give c = 0.0152, zero-point 3 deg (from HD 204827). J: c = -0.008
+    // and, with no polarized standard in J, the profile's zero-point (0).
+    let (c_ks, th_ks, c_j) = (0.0152, 3.0, -0.008);
+    let unpol = |name: &str, filter: &str, th: f64, c: f64| {
+        target_in(
+            name,
+            filter,
+            vec![component("A", Polarization::default(), &pa, th, c, 3e-4)],
+        )
+    };
+    let stds = vec![
+        unpol("HD 64299", "Ks", th_ks, c_ks),
+        unpol("HD 98161", "Ks", th_ks, c_ks),
+        target_in(
+            "HD 204827",
+            "Ks",
+            vec![component(
+                "A",
+                Polarization::from_p_gamma(hd.p, hd.gamma_deg),
+                &pa,
+                th_ks,
+                c_ks,
+                3e-4,
+            )],
+        ),
+        unpol("HD 64299", "J", 0.0, c_j),
+        unpol("HD 94851", "J", 0.0, c_j),
+    ];
+    let truth = Polarization::from_p_gamma(0.04, 35.0);
+    let science = || Catalog {
+        targets: vec![
+            target_in("T Ks", "Ks", vec![component("A", truth, &pa, th_ks, c_ks, 1e-3)]),
+            target_in("T J", "J", vec![component("A", truth, &pa, 0.0, c_j, 1e-3)]),
+            target_in("T H", "H", vec![component("A", truth, &pa, 0.0, 0.01, 1e-3)]),
+        ],
+        ..Default::default()
+    };
+    let profile = Profile::sofi();
+    let run = |source: CalibrationSource| {
+        let mut cat = science();
+        let (cal, sum) = calibrate_catalog(
+            &mut cat,
+            stds.clone(),
+            &table,
+            &profile,
+            source,
+            &CalibrationParams::default(),
+            Debias::WardleKronberg,
+            3.0,
+        );
+        (cat, cal, sum)
+    };
+    let (cat, cal, sum) = run(CalibrationSource::Night);
+    let cal = cal.unwrap();
+    let names: Vec<&str> = cal.filters.iter().map(|f| f.filter.as_str()).collect();
+    assert_eq!(names.len(), 2, "{names:?}");
+    let (ks, j) = (cal.for_filter("Ks").unwrap(), cal.for_filter("J").unwrap());
+    assert!((ks.offset.unwrap().c - c_ks).abs() < 1e-12, "{ks:?}");
+    assert!((j.offset.unwrap().c - c_j).abs() < 1e-12, "{j:?}");
+    assert!((ks.angles.unwrap().theta0_deg - th_ks).abs() < 1e-9);
+    assert!(j.angles.is_none(), "no polarized standard in J: {j:?}");
+    assert_eq!(j.offset_standards.len(), 2);
+    assert!(cal.for_filter("H").is_none());
+
+    let check = |cat: &Catalog, what: &str| {
+        for object in ["T Ks", "T J"] {
+            let a = &cat.targets.iter().find(|t| t.object == object).unwrap().components[0];
+            assert!(
+                (a.q - truth.q).abs() < 1e-9 && (a.u - truth.u).abs() < 1e-9,
+                "{what} {object}: q {} u {} vs {} {}",
+                a.q,
+                a.u,
+                truth.q,
+                truth.u
+            );
+            assert!(!a.flags.contains(&"uncalibrated".to_string()), "{what} {object}");
+        }
+        let h = &cat.targets.iter().find(|t| t.object == "T H").unwrap().components[0];
+        assert!(h.flags.contains(&"uncalibrated".to_string()), "{what}: {:?}", h.flags);
+    };
+    check(&cat, "night");
+    assert_eq!(sum.n_uncalibrated, 1);
+    assert!(
+        sum.lines.iter().any(|l| l.contains("no offset for this filter")),
+        "{:?}",
+        sum.lines
+    );
+
+    // Written and read back (calibration.json), then applied as --calib does.
+    let dir = tempfile::tempdir().unwrap();
+    let path = cal.write(dir.path()).unwrap();
+    let back = Calibration::read(dir.path()).unwrap();
+    assert_eq!(back.filters.len(), 2);
+    let (cat2, _, _) = run(CalibrationSource::File(path, Box::new(back)));
+    check(&cat2, "--calib");
+}
