@@ -244,9 +244,10 @@ impl Simulator {
             transparency: fp.transparency,
             sky_level_adu: fp.sky_level,
             fwhm_px: fp.psf.fwhm_px(),
-            beta: match fp.psf {
-                psf::Psf::Moffat { beta, .. } => beta,
-                _ => 0.0,
+            beta: fp.psf.beta(),
+            ellipse: match fp.psf {
+                psf::Psf::EllipticalMoffat { ratio, pa_deg, .. } => Some([ratio, pa_deg]),
+                _ => None,
             },
             sources,
             cosmic_ray_pixels: cr_pixels,

@@ -27,6 +27,7 @@ pub mod psf;
 pub mod rng;
 pub mod scene;
 pub mod truth;
+mod validate;
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};

@@ -43,6 +43,10 @@ pub struct FrameTruth {
     pub fwhm_px: f64,
     /// Moffat beta of this frame (0 for other profiles).
     pub beta: f64,
+    /// PSF minor/major axis ratio and major-axis angle (deg from +x towards +y), when the
+    /// scene asks for `axis_ratio_range`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ellipse: Option<[f64; 2]>,
     /// Sources.
     pub sources: Vec<SourceTruth>,
     /// Cosmic-ray pixels hit.
