@@ -84,7 +84,7 @@ impl Simulator {
         let bad = scene.has(EffectKind::BadPixels).then(|| {
             effects::bad_pixel_map(
                 &calls,
-                scene.seed,
+                scene.detector_seed.unwrap_or(scene.seed),
                 &scene.bad_pixels.clone().unwrap_or_default(),
                 ny,
                 nx,
@@ -93,7 +93,7 @@ impl Simulator {
         let flat = scene.has(EffectKind::FlatField).then(|| {
             effects::flat_field_map(
                 &calls,
-                scene.seed,
+                scene.detector_seed.unwrap_or(scene.seed),
                 &scene.flat_field.clone().unwrap_or_default(),
                 ny,
                 nx,

@@ -494,6 +494,11 @@ pub struct Scene {
     /// Master seed: the same scene and seed give bit-identical frames.
     #[serde(default)]
     pub seed: u64,
+    /// Seed of the fixed detector maps (bad pixels, pixel response; absent: `seed`). Scenes
+    /// observed with the same detector (targets and standards of one night simulated as
+    /// separate scenes) share it while their noise stays independent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub detector_seed: Option<u64>,
     /// Effects to simulate. Anything not listed is not simulated.
     #[serde(default)]
     pub effects: Vec<EffectKind>,
