@@ -2,7 +2,8 @@
 //! `cargo run --release -p sofipol-pipeline --example world -- [targets per bin]`, or write
 //! one drawn target's frames to look at: `... --example world -- write BIN T DIR`;
 //! `-- N nocal` leaves the night's calibration unused, `-- N noinst` turns the instrument off,
-//! `noell` / `nonl` only the PSF ellipticity / the non-linearity.
+//! `noell` / `nonl` only the PSF ellipticity / the non-linearity (`full`: everything); a
+//! third argument is the seed.
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let dir = std::env::temp_dir().join(format!("sofipol-world-{}", std::process::id()));
@@ -16,6 +17,9 @@ fn main() {
     }
     cfg.targets_per_bin = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(6);
     // `-- N nocal`: the instrument without its calibration; `-- N noinst`: no instrument effects.
+    if let Some(seed) = args.get(3).and_then(|s| s.parse().ok()) {
+        cfg.seed = seed;
+    }
     match args.get(2).map(String::as_str) {
         Some("nocal") => cfg.calibrate = false,
         Some("noinst") => cfg.instrument = false,
