@@ -1,6 +1,9 @@
 //! Run the world-sampling accuracy harness:
 //! `cargo run --release -p sofipol-pipeline --example world -- [targets per bin]`, or write
-//! one drawn target's frames to look at: `... --example world -- write BIN T DIR`.
+//! one drawn target's frames to look at: `... --example world -- write BIN T DIR`;
+//! `-- N nocal` leaves the night's calibration unused, `-- N noinst` turns the instrument off,
+//! `noell` / `nonl` only the PSF ellipticity / the non-linearity (`full`: everything); a
+//! third argument is the seed.
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let dir = std::env::temp_dir().join(format!("sofipol-world-{}", std::process::id()));
@@ -13,8 +16,20 @@ fn main() {
         return;
     }
     cfg.targets_per_bin = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(6);
+    // `-- N nocal`: the instrument without its calibration; `-- N noinst`: no instrument effects.
+    if let Some(seed) = args.get(3).and_then(|s| s.parse().ok()) {
+        cfg.seed = seed;
+    }
+    match args.get(2).map(String::as_str) {
+        Some("nocal") => cfg.calibrate = false,
+        Some("noinst") => cfg.instrument = false,
+        Some("noell") => cfg.ellipticity = false,
+        Some("nonl") => cfg.nonlinearity = false,
+        _ => {}
+    }
     let t0 = std::time::Instant::now();
     let bins = sofipol_pipeline::world::run(&cfg, &Default::default());
+    println!("{:?}", sofipol_pipeline::world::draw_instrument(&cfg));
     print!("{}", sofipol_pipeline::world::table(&bins, true));
     println!("{:.1} s", t0.elapsed().as_secs_f64());
     let _ = std::fs::remove_dir_all(&dir);

@@ -6,19 +6,23 @@
 //!
 //! | condition | drawn from |
 //! |---|---|
-//! | seeing FWHM | 0.6-1.1", and +-20 % (2 sigma) frame to frame |
-//! | Moffat beta | 2.5-4 per target |
+//! | seeing FWHM | 0.6-1.1" per target; per frame 10 % rms and x U(0.8, 1.2) |
+//! | Moffat beta | 2.5-4 per frame |
+//! | PSF ellipticity | axis ratio 0.9-1 per frame, random angle |
 //! | e-o beam offset | x -1..+1 px (tilt), y 165.5-168.5 px (the reducer starts from the profile's 0, 167) |
 //! | primary position | x 250-774 px, y anywhere in the o-target strip with room for the pair |
-//! | flux of A | 2e3-2e5 ADU, log-uniform; B 25-100 % of A |
+//! | flux of A | 2e3-2e5 ADU, log-uniform; B 25-100 % of A; every 6th target 2e6-4e6 (saturated) |
 //! | polarization | P 1-8 % each, angles uniform |
 //! | orientations | 2 (0/45) or 4 (0/45/90/135), alternating |
 //! | file format | BITPIX -32 or 16 (BZERO 32768), alternating |
 //! | effects | psf, sky (gradient, 3 % level changes), strips, photon and read noise, bad pixels, transparency, pointing error, cosmic rays |
+//! | instrument (one per night) | 1 % pixel response + 5 % vignetting (one detector: `detector_seed`), k = T_e/T_o 0.96-0.99, instrumental polarization 0.3 %, analyzer zero-point -5..5 deg and parity +-1, non-linearity, saturation |
+//! | calibration | dome flats and 2 unpolarized + 2 polarized standards of the same night and detector, reduced and applied as `sofipol night` does |
 //!
 //! Pulls are `(q - q_true)/sigma_q` and `(u - u_true)/sigma_u` of both components; the A/B
 //! labels of the catalog are matched to the truth by position angle, and a swap of a pair
 //! whose flux ratio is below [`RELABEL_RATIO`] is counted as a relabelling error.
+//! Components flagged `saturated` are refused: counted, not scored.
 use std::path::{Path, PathBuf};
 
 use rand::{RngExt, SeedableRng};
@@ -26,10 +30,12 @@ use rayon::prelude::*;
 use serde::Serialize;
 use sofipol_calib::Profile;
 
-use crate::catalog::Target;
+use crate::calibration::{calibrate_catalog, CalibrationParams, CalibrationSource};
+use crate::catalog::{Catalog, Target};
 use crate::reduce::run::reduce_sequence;
 use crate::reduce::TargetParams;
 use crate::sim::{Scene, Simulator, TargetTruth};
+use crate::standards::StandardsTable;
 use crate::{scan, sequence};
 
 /// A/B swaps of pairs fainter than this flux ratio B/A are labelling errors (closer to
@@ -49,6 +55,18 @@ pub struct WorldConfig {
     pub work_dir: PathBuf,
     /// Lowest flux of A, ADU.
     pub min_flux_adu: f64,
+    /// Every instrument effect (pixel response, beam ratio, instrumental polarization,
+    /// analyzer zero-point and parity, non-linearity, saturation) in every scene.
+    pub instrument: bool,
+    /// Use the calibration the night provides (dome flats, standards). Off: the reduction
+    /// ignores them (to show what they are worth).
+    pub calibrate: bool,
+    /// PSF axis ratio 0.9-1 per frame (with `instrument`).
+    pub ellipticity: bool,
+    /// Detector non-linearity (with `instrument`).
+    pub nonlinearity: bool,
+    /// Every this many targets of a bin has a saturated primary (2e6-4e6 ADU; 0: none).
+    pub saturated_every: usize,
 }
 
 impl WorldConfig {
@@ -60,6 +78,11 @@ impl WorldConfig {
             seed: 13,
             work_dir: work_dir.to_path_buf(),
             min_flux_adu: 2e3,
+            instrument: true,
+            calibrate: true,
+            ellipticity: true,
+            nonlinearity: true,
+            saturated_every: 6,
         }
     }
 }
@@ -67,10 +90,8 @@ impl WorldConfig {
 /// The conditions one target drew.
 #[derive(Debug, Clone, Serialize)]
 pub struct Conditions {
-    /// Seeing FWHM, arcsec (median over frames).
+    /// Seeing FWHM, arcsec (median over frames; each frame +-20 % and 10 % rms).
     pub fwhm_arcsec: f64,
-    /// Moffat beta.
-    pub beta: f64,
     /// e-o offset (x, y), px.
     pub eo_offset_px: [f64; 2],
     /// Primary position (x, y) at zero offset, px.
@@ -100,6 +121,10 @@ pub struct WorldTarget {
     pub sigmas: Vec<f64>,
     /// Components not measured.
     pub missing: usize,
+    /// Components refused (flagged `saturated`, not scored).
+    pub refused: usize,
+    /// A was made bright enough to saturate (flux above [`SATURATED_FLUX_ADU`]).
+    pub saturated: bool,
     /// Catalog labels swapped against the truth for a pair of flux ratio below [`RELABEL_RATIO`].
     pub relabelled: bool,
     /// Catalog status and flags, for the report.
@@ -121,29 +146,97 @@ pub struct WorldBin {
     pub median_sigma: f64,
     /// Components not measured.
     pub missing: usize,
+    /// Components refused as saturated.
+    pub refused: usize,
     /// Pairs relabelled.
     pub relabelled: usize,
     /// The targets.
     pub targets: Vec<WorldTarget>,
 }
 
-fn draw_scene(cfg: &WorldConfig, bin: usize, t: usize, lo: f64, hi: f64) -> (Scene, Conditions, f64) {
+/// The instrument of the world night, drawn once: every target and standard sees it.
+#[derive(Debug, Clone, Serialize)]
+pub struct Instrument {
+    /// Beam transmission ratio k = T_e/T_o.
+    pub k: f64,
+    /// Instrumental polarization (instrument frame) and its angle, deg.
+    pub p_inst: f64,
+    /// Angle of the instrumental polarization, deg.
+    pub p_inst_angle_deg: f64,
+    /// True analyzer zero-point, deg (the profile says 0).
+    pub zero_point_deg: f64,
+    /// True analyzer parity (the profile says +1).
+    pub parity: i32,
+}
+
+/// Draw the night's instrument from the seed.
+pub fn draw_instrument(cfg: &WorldConfig) -> Instrument {
+    let mut r = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(cfg.seed ^ 0x1A57_2B00);
+    Instrument {
+        k: 0.96 + 0.03 * r.random::<f64>(),
+        p_inst: 0.003,
+        p_inst_angle_deg: 180.0 * r.random::<f64>(),
+        zero_point_deg: -5.0 + 10.0 * r.random::<f64>(),
+        parity: if r.random::<f64>() < 0.5 { 1 } else { -1 },
+    }
+}
+
+/// The effects and sections every scene of the night shares: the detector (same seed of
+/// the fixed maps) and, with `cfg.instrument`, the instrument.
+fn night_sections(cfg: &WorldConfig, inst: &Instrument) -> (String, String) {
+    let mut effects = String::from(
+        r#""psf", "sky", "strips", "photon_noise", "read_noise", "bad_pixels", "transparency", "pointing_error", "cosmic_rays""#,
+    );
+    let mut sections = format!(
+        "[psf]\nkind = \"moffat\"\nfwhm_arcsec = {{fwhm}}\nseeing_rms_frac = 0.1\nfwhm_spread_frac = 0.2\nbeta_range = [2.5, 4.0]\n{}[transparency]\nmin = 0.9\n",
+        if cfg.instrument && cfg.ellipticity {
+            "axis_ratio_range = [0.9, 1.0]\n"
+        } else {
+            ""
+        }
+    );
+    if cfg.instrument {
+        effects += r#", "flat_field", "throughput", "instrumental_polarization", "analyzer_angle", "saturation""#;
+        if cfg.nonlinearity {
+            effects += r#", "nonlinearity""#;
+        }
+        sections += &format!(
+            "[flat_field]\npixel_rms = 0.01\nvignetting = 0.05\n[throughput]\nt_o = 1.0\nt_e = {}\n[instrumental_polarization]\np = {}\nangle_deg = {}\n[analyzer_angle]\nzero_point_deg = {}\nparity = {}\n",
+            inst.k, inst.p_inst, inst.p_inst_angle_deg, inst.zero_point_deg, inst.parity
+        );
+    }
+    (effects, sections)
+}
+
+fn draw_scene(
+    cfg: &WorldConfig,
+    inst: &Instrument,
+    bin: usize,
+    t: usize,
+    lo: f64,
+    hi: f64,
+) -> (Scene, Conditions, f64) {
     let mut r =
         rand::rngs::Xoshiro256PlusPlus::seed_from_u64(cfg.seed ^ ((bin as u64) << 32) ^ (t as u64 * 0x9E37_79B9));
     let sep = lo + (hi - lo) * r.random::<f64>();
     let fwhm = 0.6 + 0.5 * r.random::<f64>();
-    let beta = 2.5 + 1.5 * r.random::<f64>();
+    // (Beta was drawn here per target; it is now drawn per frame by the simulator: the
+    // draw is kept so that every other condition stays what it was.)
+    let _ = r.random::<f64>();
     let eo = [-1.0 + 2.0 * r.random::<f64>(), 165.5 + 3.0 * r.random::<f64>()];
     let g = Profile::sofi().geometry;
     let margin = 30.0;
     let xy = [
         250.0 + 524.0 * r.random::<f64>(),
-        g.o_target[0] as f64 + margin + (g.o_target[1] - g.o_target[0]) as f64 * 0.0 + {
+        g.o_target[0] as f64 + margin + {
             let span = (g.o_target[1] - g.o_target[0]) as f64 - 2.0 * margin;
             span * r.random::<f64>()
         },
     ];
-    let fa = cfg.min_flux_adu * (2e5 / cfg.min_flux_adu).powf(r.random::<f64>());
+    let mut fa = cfg.min_flux_adu * (2e5 / cfg.min_flux_adu).powf(r.random::<f64>());
+    if cfg.instrument && cfg.saturated_every > 0 && t % cfg.saturated_every == cfg.saturated_every - 1 {
+        fa = 2e6 * (1.0 + r.random::<f64>());
+    }
     let ratio = 0.25 + 0.75 * r.random::<f64>();
     let (pa_, pb) = (0.01 + 0.07 * r.random::<f64>(), 0.01 + 0.07 * r.random::<f64>());
     let (ga, gb) = (180.0 * r.random::<f64>(), 180.0 * r.random::<f64>());
@@ -154,21 +247,17 @@ fn draw_scene(cfg: &WorldConfig, bin: usize, t: usize, lo: f64, hi: f64) -> (Sce
         vec![0.0, 45.0, 90.0, 135.0]
     };
     let bitpix = if (t / 2) % 2 == 0 { -32 } else { 16 };
+    let (effects, sections) = night_sections(cfg, inst);
     let text = format!(
         r#"name = "world{bin}_{t}"
 seed = {seed}
-effects = ["psf", "sky", "strips", "photon_noise", "read_noise", "bad_pixels", "transparency", "pointing_error", "cosmic_rays"]
+detector_seed = {dseed}
+effects = [{effects}]
 [observation]
 orientations_deg = {orientations:?}
 dithers = 5
 bitpix = {bitpix}
-[psf]
-kind = "moffat"
-fwhm_arcsec = {fwhm}
-beta = {beta}
-seeing_rms_frac = 0.1
-[transparency]
-min = 0.9
+{sections}
 [[binary]]
 name = "W{bin}_{t}"
 separation_arcsec = {sep}
@@ -183,6 +272,8 @@ x_px = {x}
 y_px = {y}
 "#,
         seed = cfg.seed.wrapping_mul(1000).wrapping_add((bin * 100 + t) as u64),
+        dseed = cfg.seed,
+        sections = sections.replace("{fwhm}", &fwhm.to_string()),
         fb = fa * ratio,
         x = xy[0],
         y = xy[1],
@@ -190,7 +281,6 @@ y_px = {y}
     let scene = Scene::from_toml(&text, "world scene").expect("valid generated scene");
     let cond = Conditions {
         fwhm_arcsec: fwhm,
-        beta,
         eo_offset_px: eo,
         primary_xy_px: xy,
         orientations_deg: orientations,
@@ -199,8 +289,103 @@ y_px = {y}
     (scene, cond, ratio)
 }
 
-/// Match the catalog's components to the truth and compute the pulls.
-fn score(target: &Target, tt: &TargetTruth, ratio: f64) -> (Vec<f64>, Vec<f64>, usize, bool) {
+/// Table values of the world night's polarized standards (a user `--standards` file).
+pub const WORLD_STANDARDS: &str = r#"
+[[standard]]
+name = "World Pol A"
+filter = "Ks"
+p = 0.025
+sigma_p = 0.0002
+gamma_deg = 40.0
+sigma_gamma_deg = 0.1
+[[standard]]
+name = "World Pol B"
+filter = "Ks"
+p = 0.02
+sigma_p = 0.0002
+gamma_deg = 115.0
+sigma_gamma_deg = 0.1
+"#;
+
+/// The calibration scene of the world night: two unpolarized standards of the built-in
+/// table and two polarized ones ([`WORLD_STANDARDS`]), observed at 0/45/90/135, and dome
+/// flats at those angles, through the same detector and instrument as the targets.
+fn calibration_scene(cfg: &WorldConfig, inst: &Instrument) -> Scene {
+    let (effects, sections) = night_sections(cfg, inst);
+    let text = format!(
+        r#"name = "worldcal"
+seed = {seed}
+detector_seed = {dseed}
+effects = [{effects}, "dome_flats"]
+[observation]
+orientations_deg = [0.0, 45.0, 90.0, 135.0]
+dithers = 3
+{sections}
+[[standard]]
+name = "HD 64299"
+flux = 150000.0
+[[standard]]
+name = "HD_98161"
+flux = 150000.0
+[[standard]]
+name = "World Pol A"
+flux = 150000.0
+p = 0.025
+gamma_deg = 40.0
+[[standard]]
+name = "World Pol B"
+flux = 150000.0
+p = 0.02
+gamma_deg = 115.0
+"#,
+        seed = cfg.seed.wrapping_mul(1000).wrapping_add(99_999),
+        dseed = cfg.seed,
+        sections = sections.replace("{fwhm}", "0.8"),
+    );
+    Scene::from_toml(&text, "world calibration scene").expect("valid generated scene")
+}
+
+/// What the night provides for the calibration, reduced as `sofipol night` does: the
+/// flats (dome flats) and the standards reduced as single stars.
+pub struct NightCalibration {
+    /// Flats.
+    pub flats: Option<sofipol_calib::flat::FlatSet>,
+    /// Standards, reduced.
+    pub standards: Vec<Target>,
+    /// Standards table (built-in + [`WORLD_STANDARDS`]).
+    pub table: StandardsTable,
+}
+
+/// Simulate the night's calibration frames into `dir`, build the flats and reduce the
+/// standards.
+pub fn night_calibration(cfg: &WorldConfig, inst: &Instrument, params: &TargetParams) -> NightCalibration {
+    let dir = cfg.work_dir.join("calibration");
+    let sim = Simulator::new(calibration_scene(cfg, inst), Profile::sofi()).expect("valid scene");
+    sim.write_to_dir(&dir, &|_| {}).expect("calibration frames written");
+    let profile = Profile::sofi();
+    let plan = crate::night::plan(std::slice::from_ref(&dir), &profile, None).expect("scratch folder");
+    let flats = crate::night::night_flats(&plan.dome_flats, &Default::default(), &profile, params).set;
+    let sp = crate::calibration::standard_params(params);
+    let standards = plan
+        .sequences
+        .par_iter()
+        .map(|q| reduce_sequence(q, &profile, &sp, None, flats.as_ref(), false).target)
+        .collect();
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut table = StandardsTable::builtin();
+    table
+        .merge_toml(WORLD_STANDARDS, "world standards")
+        .expect("valid standards table");
+    NightCalibration {
+        flats,
+        standards,
+        table,
+    }
+}
+
+/// Match the catalog's components to the truth and compute the pulls. Components flagged
+/// `saturated` are refused (counted, not scored); the others are scored.
+fn score(target: &Target, tt: &TargetTruth, ratio: f64) -> (Vec<f64>, Vec<f64>, usize, usize, bool) {
     let found_pa = target.extra.get("pa_deg").and_then(|v| v.as_f64());
     let swapped = found_pa.is_some_and(|pa| {
         let d = (pa - tt.pa_deg).rem_euclid(360.0);
@@ -210,9 +395,10 @@ fn score(target: &Target, tt: &TargetTruth, ratio: f64) -> (Vec<f64>, Vec<f64>, 
     if swapped {
         truth.swap(0, 1);
     }
-    let (mut pulls, mut sigmas, mut missing) = (Vec::new(), Vec::new(), 0);
+    let (mut pulls, mut sigmas, mut missing, mut refused) = (Vec::new(), Vec::new(), 0, 0);
     for (i, tc) in truth.iter().enumerate() {
         match target.components.get(i) {
+            Some(c) if c.flags.iter().any(|f| f == "saturated") => refused += 1,
             Some(c) if c.q.is_finite() && c.sigma_q > 0.0 && c.sigma_u > 0.0 => {
                 pulls.push((c.q - tc.q) / c.sigma_q);
                 pulls.push((c.u - tc.u) / c.sigma_u);
@@ -221,7 +407,14 @@ fn score(target: &Target, tt: &TargetTruth, ratio: f64) -> (Vec<f64>, Vec<f64>, 
             _ => missing += 1,
         }
     }
-    (pulls, sigmas, missing, swapped && ratio < RELABEL_RATIO)
+    // A/B labels are judged where both components were measured unflagged by saturation.
+    (
+        pulls,
+        sigmas,
+        missing,
+        refused,
+        swapped && ratio < RELABEL_RATIO && refused == 0,
+    )
 }
 
 /// Draw target `t` of bin `bin` (separations `lo`..`hi`) and write its frames and
@@ -234,7 +427,8 @@ pub fn write_target(
     hi: f64,
     dir: &Path,
 ) -> (TargetTruth, Conditions, f64) {
-    let (scene, cond, ratio) = draw_scene(cfg, bin, t, lo, hi);
+    let inst = draw_instrument(cfg);
+    let (scene, cond, ratio) = draw_scene(cfg, &inst, bin, t, lo, hi);
     let mut sim_profile = Profile::sofi();
     sim_profile.geometry.eo_offset_px = cond.eo_offset_px;
     let sim = Simulator::new(scene, sim_profile).expect("valid scene");
@@ -242,54 +436,130 @@ pub fn write_target(
     (truth.targets[0].clone(), cond, ratio)
 }
 
-fn one_target(cfg: &WorldConfig, params: &TargetParams, bin: usize, t: usize, lo: f64, hi: f64) -> WorldTarget {
+struct Reduced {
+    bin: usize,
+    target: Target,
+    truth: TargetTruth,
+    cond: Conditions,
+    ratio: f64,
+}
+
+fn one_target(
+    cfg: &WorldConfig,
+    params: &TargetParams,
+    flats: Option<&sofipol_calib::flat::FlatSet>,
+    (bin, t, lo, hi): (usize, usize, f64, f64),
+) -> Reduced {
     let dir = cfg.work_dir.join(format!("w{bin}_{t}"));
-    let (tt, cond, ratio) = write_target(cfg, bin, t, lo, hi, &dir);
-    let tt = &tt;
+    let (truth, cond, ratio) = write_target(cfg, bin, t, lo, hi, &dir);
     // Reduce as `sofipol night` would: scan, classify, group, reduce from the files, with the
     // instrument profile's defaults (not the drawn e-o offset).
     let profile = Profile::sofi();
     let files = scan::find_files(&dir).expect("scratch folder");
     let s = scan::classify_all(&files, &profile);
     let seqs = sequence::group(s.science, &profile);
-    let out = reduce_sequence(&seqs[0], &profile, params, None, None, false);
+    let out = reduce_sequence(&seqs[0], &profile, params, None, flats, false);
     let _ = std::fs::remove_dir_all(&dir);
-    let (pulls, sigmas, missing, relabelled) = score(&out.target, tt, ratio);
+    Reduced {
+        bin,
+        target: out.target,
+        truth,
+        cond,
+        ratio,
+    }
+}
+
+fn scored(r: Reduced, saturated_design: bool) -> WorldTarget {
+    let (pulls, sigmas, missing, refused, relabelled) = score(&r.target, &r.truth, r.ratio);
+    let target = &r.target;
     WorldTarget {
-        object: tt.object.clone(),
-        separation_arcsec: tt.separation_arcsec,
-        flux_ratio: ratio,
-        flux_a_adu: tt.components[0].flux,
-        conditions: cond,
+        object: r.truth.object.clone(),
+        separation_arcsec: r.truth.separation_arcsec,
+        flux_ratio: r.ratio,
+        flux_a_adu: r.truth.components[0].flux,
+        conditions: r.cond,
         pulls,
         sigmas,
         missing,
+        refused,
+        saturated: saturated_design,
         relabelled,
         note: format!(
             "{:?} {} flags {:?} err {:?}",
-            out.target.status,
-            out.target
+            target.status,
+            target
                 .components
                 .iter()
                 .map(|c| format!("{}[{}]", c.name, c.flags.join(",")))
                 .collect::<Vec<_>>()
                 .join(" "),
-            out.target.extra.get("flags"),
-            out.target.error
+            target.extra.get("flags"),
+            target.error
         ),
     }
 }
 
-/// Draw, write, reduce and score every target, bin by bin (targets in parallel).
+/// Flux of A above which a world target is saturated by design, ADU.
+pub const SATURATED_FLUX_ADU: f64 = 5e5;
+
+/// Draw, write, reduce, calibrate and score every target (targets in parallel); with
+/// `cfg.instrument` the night's calibration (dome flats, standards) is simulated and
+/// reduced first and, with `cfg.calibrate`, used.
 pub fn run(cfg: &WorldConfig, params: &TargetParams) -> Vec<WorldBin> {
-    cfg.bins_arcsec
+    let inst = draw_instrument(cfg);
+    let cal = (cfg.instrument && cfg.calibrate).then(|| night_calibration(cfg, &inst, params));
+    let jobs: Vec<(usize, usize, f64, f64)> = cfg
+        .bins_arcsec
         .windows(2)
         .enumerate()
-        .map(|(bin, w)| {
-            let targets: Vec<WorldTarget> = (0..cfg.targets_per_bin)
-                .into_par_iter()
-                .map(|t| one_target(cfg, params, bin, t, w[0], w[1]))
-                .collect();
+        .flat_map(|(bin, w)| (0..cfg.targets_per_bin).map(move |t| (bin, t, w[0], w[1])))
+        .collect();
+    let flats = cal.as_ref().and_then(|c| c.flats.as_ref());
+    let reduced: Vec<Reduced> = jobs.par_iter().map(|&j| one_target(cfg, params, flats, j)).collect();
+    let mut cat = Catalog::default();
+    let meta: Vec<(usize, TargetTruth, Conditions, f64)> = reduced
+        .into_iter()
+        .map(|r| {
+            cat.targets.push(r.target);
+            (r.bin, r.truth, r.cond, r.ratio)
+        })
+        .collect();
+    if cfg.instrument {
+        // The night's calibration, as `sofipol night` applies it (without it, every
+        // 2-orientation component is flagged `uncalibrated` and left as measured).
+        let (standards, table) = match cal {
+            Some(c) => (c.standards, c.table),
+            None => (vec![], StandardsTable::builtin()),
+        };
+        calibrate_catalog(
+            &mut cat,
+            standards,
+            &table,
+            &Profile::sofi(),
+            CalibrationSource::Night,
+            &CalibrationParams::default(),
+            params.measure.debias,
+            params.measure.cut_snr,
+        );
+    }
+    let mut targets: Vec<Vec<WorldTarget>> = vec![Vec::new(); cfg.bins_arcsec.len().saturating_sub(1)];
+    for (target, (bin, truth, cond, ratio)) in cat.targets.into_iter().zip(meta) {
+        let sat = truth.components[0].flux > SATURATED_FLUX_ADU;
+        targets[bin].push(scored(
+            Reduced {
+                bin,
+                target,
+                truth,
+                cond,
+                ratio,
+            },
+            sat,
+        ));
+    }
+    cfg.bins_arcsec
+        .windows(2)
+        .zip(targets)
+        .map(|(w, targets)| {
             let pulls: Vec<f64> = targets.iter().flat_map(|t| t.pulls.iter().copied()).collect();
             let mut sig: Vec<f64> = targets.iter().flat_map(|t| t.sigmas.iter().copied()).collect();
             sig.sort_by(f64::total_cmp);
@@ -301,6 +571,7 @@ pub fn run(cfg: &WorldConfig, params: &TargetParams) -> Vec<WorldBin> {
                 mean_pull: pulls.iter().sum::<f64>() / np,
                 median_sigma: sig.get(sig.len() / 2).copied().unwrap_or(f64::NAN),
                 missing: targets.iter().map(|t| t.missing).sum(),
+                refused: targets.iter().map(|t| t.refused).sum(),
                 relabelled: targets.iter().filter(|t| t.relabelled).count(),
                 targets,
             }
@@ -312,18 +583,26 @@ pub fn run(cfg: &WorldConfig, params: &TargetParams) -> Vec<WorldBin> {
 /// that lost a component.
 pub fn table(bins: &[WorldBin], detail: bool) -> String {
     let mut s = format!(
-        "{:>11} {:>6} {:>9} {:>9} {:>10} {:>8} {:>10}\n",
-        "sep [\"]", "pulls", "rms pull", "mean", "med sig_q", "missing", "relabelled"
+        "{:>11} {:>6} {:>9} {:>9} {:>10} {:>8} {:>8} {:>10}\n",
+        "sep [\"]", "pulls", "rms pull", "mean", "med sig_q", "missing", "refused", "relabelled"
     );
     for b in bins {
         s += &format!(
-            "{:>5.2}-{:<5.2} {:>6} {:>9.3} {:>9.3} {:>10.5} {:>8} {:>10}\n",
-            b.sep_arcsec.0, b.sep_arcsec.1, b.n_pulls, b.rms_pull, b.mean_pull, b.median_sigma, b.missing, b.relabelled
+            "{:>5.2}-{:<5.2} {:>6} {:>9.3} {:>9.3} {:>10.5} {:>8} {:>8} {:>10}\n",
+            b.sep_arcsec.0,
+            b.sep_arcsec.1,
+            b.n_pulls,
+            b.rms_pull,
+            b.mean_pull,
+            b.median_sigma,
+            b.missing,
+            b.refused,
+            b.relabelled
         );
         if detail {
             for t in &b.targets {
                 let worst = t.pulls.iter().fold(0.0f64, |a, p| a.max(p.abs()));
-                if worst > 4.0 || t.missing > 0 || t.relabelled {
+                if worst > 4.0 || t.missing > 0 || t.relabelled || t.refused > 0 || t.saturated {
                     s += &format!(
                         "    {} sep {:.2}\" A {:.0} ADU B/A {:.2} {:?}: worst pull {:.1}, missing {} | {}\n",
                         t.object,

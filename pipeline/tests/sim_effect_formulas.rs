@@ -155,3 +155,59 @@ fn instrumental_polarization_adds_a_constant_to_f_at_every_angle() {
         }
     }
 }
+
+/// psf with `axis_ratio_range`: each frame draws its own axis ratio in the range and a
+/// major-axis angle, recorded in the truth; the star's second moments show them. Without
+/// the key the PSF is circular and the truth has no ellipse. A Gaussian cannot be asked
+/// for it (it would be silently circular).
+#[test]
+fn psf_ellipticity_is_drawn_per_frame_in_its_range_and_seen_in_the_image() {
+    let psf = "[psf]\nkind = \"moffat\"\nfwhm_arcsec = 1.0\nseeing_rms_frac = 0.0\n";
+    let extra = format!("{psf}axis_ratio_range = [0.7, 0.9]\n");
+    let sim = Simulator::new(scene("\"psf\"", "0.0, 45.0", &extra, 0.0, 1e5), Profile::sofi()).unwrap();
+    let (frames, _) = sim.run_in_memory();
+    let mut ratios = Vec::new();
+    for f in &frames {
+        let [ratio, pa] = f.truth.ellipse.expect("ellipse in the truth");
+        assert!(
+            (0.7..=0.9).contains(&ratio) && (0.0..180.0).contains(&pa),
+            "{ratio} {pa}"
+        );
+        ratios.push(ratio);
+        // Second moments of the o image of A around its true position.
+        let [x, y] = f.truth.sources[0].o_xy;
+        let (xi, yi) = (x.round() as usize, y.round() as usize);
+        let (mut t, mut xx, mut yy, mut xy) = (0.0, 0.0, 0.0, 0.0);
+        for j in yi - 25..=yi + 25 {
+            for i in xi - 25..=xi + 25 {
+                let v = f.frame.data[[j, i]] as f64;
+                let (dx, dy) = (i as f64 - x, j as f64 - y);
+                t += v;
+                xx += v * dx * dx;
+                yy += v * dy * dy;
+                xy += v * dx * dy;
+            }
+        }
+        let (xx, yy, xy) = (xx / t - 1.0 / 12.0, yy / t - 1.0 / 12.0, xy / t);
+        let angle = 0.5 * (2.0 * xy).atan2(xx - yy).to_degrees();
+        let d = (angle - pa).rem_euclid(180.0);
+        assert!(d.min(180.0 - d) < 1.0, "moments angle {angle} vs {pa}");
+        let disc = (0.25 * (xx - yy).powi(2) + xy * xy).sqrt();
+        let (l1, l2) = (0.5 * (xx + yy) + disc, 0.5 * (xx + yy) - disc);
+        assert!(
+            (l2 / l1 - ratio * ratio).abs() < 0.03,
+            "{} vs {}",
+            l2 / l1,
+            ratio * ratio
+        );
+    }
+    ratios.dedup();
+    assert!(ratios.len() > 1, "one ratio for every frame");
+    // Not asked for: circular, no ellipse in the truth.
+    let sim = Simulator::new(scene("\"psf\"", "0.0", psf, 0.0, 1e5), Profile::sofi()).unwrap();
+    assert!(sim.run_in_memory().0.iter().all(|f| f.truth.ellipse.is_none()));
+    let gauss = "[psf]\nkind = \"gaussian\"\naxis_ratio_range = [0.9, 1.0]\n";
+    let text = format!("name = \"g\"\neffects = [\"psf\"]\n{gauss}");
+    let e = Scene::from_toml(&text, "g").and_then(|s| s.validate().map(|_| s));
+    assert!(e.is_err_and(|e| e.to_string().contains("axis_ratio_range")));
+}

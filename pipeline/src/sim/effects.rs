@@ -184,7 +184,15 @@ pub fn frame_psf(calls: &EffectCalls, seed: u64, c: &PsfConfig, key: (u64, u64),
         }
         None => c.beta,
     };
-    Psf::from_fwhm(c.kind, fwhm_px, beta)
+    let psf = Psf::from_fwhm(c.kind, fwhm_px, beta);
+    match c.axis_ratio_range {
+        Some([lo, hi]) => {
+            let mut r = stream(seed, EffectKind::Psf, key.0, key.1, 3);
+            let ratio = lo + (hi - lo) * uniform(&mut r);
+            psf.with_ellipticity(ratio, 180.0 * uniform(&mut r))
+        }
+        None => psf,
+    }
 }
 
 /// Fill the sky: level + gx (x - xc) + gy (y - yc), ADU per pixel.

@@ -22,6 +22,20 @@ pub enum Psf {
         /// beta.
         beta: f64,
     },
+    /// Elliptical Moffat: I ~ (1 + (ratio u^2 + v^2/ratio)/alpha^2)^-beta, u along the
+    /// major axis (position angle `pa_deg` from +x towards +y), v across; the axes are
+    /// alpha/sqrt(ratio) and alpha sqrt(ratio) (same area, same FWHM as geometric mean).
+    /// Truncated on the ellipse enclosing 1 - 1e-5 of the flux and renormalised.
+    EllipticalMoffat {
+        /// alpha (geometric mean of the two axes), px.
+        alpha_px: f64,
+        /// beta.
+        beta: f64,
+        /// Minor/major axis ratio, (0, 1].
+        ratio: f64,
+        /// Major-axis angle from +x towards +y, deg.
+        pa_deg: f64,
+    },
 }
 
 impl Psf {
@@ -38,12 +52,36 @@ impl Psf {
         }
     }
 
-    /// FWHM in pixels (0 for a point).
+    /// The same PSF stretched along `pa_deg` to the minor/major axis ratio `ratio` (only
+    /// a Moffat; a ratio of 1 leaves it circular and unchanged).
+    pub fn with_ellipticity(self, ratio: f64, pa_deg: f64) -> Psf {
+        match self {
+            Psf::Moffat { alpha_px, beta } if ratio != 1.0 => Psf::EllipticalMoffat {
+                alpha_px,
+                beta,
+                ratio,
+                pa_deg,
+            },
+            p => p,
+        }
+    }
+
+    /// Moffat beta (0 for other profiles).
+    pub fn beta(&self) -> f64 {
+        match *self {
+            Psf::Moffat { beta, .. } | Psf::EllipticalMoffat { beta, .. } => beta,
+            _ => 0.0,
+        }
+    }
+
+    /// FWHM in pixels (0 for a point; geometric mean of the axes for an ellipse).
     pub fn fwhm_px(&self) -> f64 {
         match *self {
             Psf::Point => 0.0,
             Psf::Gaussian { sigma_px } => sigma_px * 2.0 * (2.0 * std::f64::consts::LN_2).sqrt(),
-            Psf::Moffat { alpha_px, beta } => 2.0 * alpha_px * (2f64.powf(1.0 / beta) - 1.0).sqrt(),
+            Psf::Moffat { alpha_px, beta } | Psf::EllipticalMoffat { alpha_px, beta, .. } => {
+                2.0 * alpha_px * (2f64.powf(1.0 / beta) - 1.0).sqrt()
+            }
         }
     }
 
@@ -56,6 +94,12 @@ impl Psf {
                 // 1 - (1 + R^2/a^2)^(1-beta) = 1 - 1e-5
                 let x = 1e-5f64.powf(1.0 / (1.0 - beta)) - 1.0;
                 ((alpha_px * x.max(0.0).sqrt()).ceil() as usize + 1).min(60)
+            }
+            Psf::EllipticalMoffat {
+                alpha_px, beta, ratio, ..
+            } => {
+                let x = 1e-5f64.powf(1.0 / (1.0 - beta)) - 1.0;
+                ((alpha_px * x.max(0.0).sqrt() / ratio.sqrt()).ceil() as usize + 1).min(60)
             }
         }
     }
@@ -153,6 +197,50 @@ pub fn render(psf: Psf, cx: f64, cy: f64) -> Stamp {
             v.mapv_inplace(|x| x / total);
             Stamp { x0, y0, values: v }
         }
+        Psf::EllipticalMoffat {
+            alpha_px,
+            beta,
+            ratio,
+            pa_deg,
+        } => {
+            let h = psf.half_size() as i64;
+            let x0 = cx.round() as i64 - h;
+            let y0 = cy.round() as i64 - h;
+            let n = (2 * h + 1) as usize;
+            let ia2 = 1.0 / (alpha_px * alpha_px);
+            // The truncation ellipse: the circular profile's radius in the scaled metric,
+            // which fits inside the stamp along the major axis.
+            let r2max = (((h as f64) - 0.5) * ratio.sqrt()).powi(2);
+            let wing2 = (4.0 * alpha_px).powi(2);
+            let (sn, cs) = pa_deg.to_radians().sin_cos();
+            let metric = |dx: f64, dy: f64| {
+                let u = dx * cs + dy * sn;
+                let w = -dx * sn + dy * cs;
+                ratio * u * u + w * w / ratio
+            };
+            let mut v = Array2::from_shape_fn((n, n), |(j, i)| {
+                let px = (x0 + i as i64) as f64 - cx;
+                let py = (y0 + j as i64) as f64 - cy;
+                let mut s = 0.0;
+                let (xs, ws): (&[f64], &[f64]) = if metric(px, py) > wing2 {
+                    (&GL2_X, &GL2_W)
+                } else {
+                    (&GL4_X, &GL4_W)
+                };
+                for (a, wa) in xs.iter().zip(ws) {
+                    for (b, wb) in xs.iter().zip(ws) {
+                        let r2 = metric(px + a, py + b);
+                        if r2 <= r2max {
+                            s += wa * wb * (-beta * (r2 * ia2).ln_1p()).exp();
+                        }
+                    }
+                }
+                s
+            });
+            let total: f64 = v.sum();
+            v.mapv_inplace(|x| x / total);
+            Stamp { x0, y0, values: v }
+        }
     }
 }
 
@@ -218,6 +306,47 @@ mod tests {
                     "{psf:?} centroid {mx} {my}"
                 );
             }
+        }
+    }
+
+    /// Second moments of a stamp about its centroid: (Ixx, Iyy, Ixy).
+    fn second_moments(s: &Stamp) -> (f64, f64, f64) {
+        let (t, mx, my) = moments(s);
+        let (mut xx, mut yy, mut xy) = (0.0, 0.0, 0.0);
+        for ((j, i), &v) in s.values.indexed_iter() {
+            let dx = (s.x0 + i as i64) as f64 - mx;
+            let dy = (s.y0 + j as i64) as f64 - my;
+            xx += v * dx * dx;
+            yy += v * dy * dy;
+            xy += v * dx * dy;
+        }
+        (xx / t, yy / t, xy / t)
+    }
+
+    #[test]
+    fn an_elliptical_moffat_has_unit_flux_its_centroid_and_its_axes() {
+        let base = Psf::from_fwhm(PsfKind::Moffat, 3.0, 3.5);
+        // A ratio of 1 is the circular Moffat itself.
+        assert_eq!(base.with_ellipticity(1.0, 30.0), base);
+        for (ratio, pa) in [(0.9, 0.0), (0.8, 90.0), (0.7, 30.0), (0.95, 137.0)] {
+            let p = base.with_ellipticity(ratio, pa);
+            assert!((p.fwhm_px() - 3.0).abs() < 1e-12);
+            let s = render(p, 100.3, 99.6);
+            let (t, mx, my) = moments(&s);
+            assert!((t - 1.0).abs() < 1e-12);
+            assert!((mx - 100.3).abs() < 1e-4 && (my - 99.6).abs() < 1e-4, "{mx} {my}");
+            // The second-moment tensor's eigenvectors point along pa and across, and the
+            // eigenvalue ratio is ratio^2 (the axes scale as 1/sqrt(ratio), sqrt(ratio)):
+            // the profile is a linear stretch of the circular one, up to pixel integration
+            // (+1/12 px^2 on each axis) and the truncation.
+            let (xx, yy, xy) = second_moments(&s);
+            let angle = 0.5 * (2.0 * xy).atan2(xx - yy).to_degrees();
+            let d = (angle - pa).rem_euclid(180.0);
+            assert!(d.min(180.0 - d) < 0.5, "ratio {ratio} pa {pa}: moments angle {angle}");
+            let tr = 0.5 * (xx + yy);
+            let disc = (0.25 * (xx - yy).powi(2) + xy * xy).sqrt();
+            let (l1, l2) = (tr + disc - 1.0 / 12.0, tr - disc - 1.0 / 12.0);
+            assert!((l2 / l1 - ratio * ratio).abs() < 0.02, "ratio {ratio}: {}", l2 / l1);
         }
     }
 

@@ -1,0 +1,122 @@
+//! Whole scenes: the truth, every frame in memory, or every frame written to a folder.
+use super::truth::{FrameTruth, SimFrame, Truth};
+use super::{effects, EffectKind, Simulator};
+
+impl Simulator {
+    /// Truth of the whole scene (frames are re-derived cheaply: no images are rendered).
+    pub fn truth(&self, frames: &[Vec<FrameTruth>]) -> Truth {
+        let s = &self.scene;
+        let mut detector = serde_json::Map::new();
+        if let Some(b) = &self.bad {
+            detector.insert(
+                "bad_pixels".into(),
+                serde_json::to_value(&b.summary).unwrap_or_default(),
+            );
+        }
+        if let Some(f) = &self.flat {
+            let n = f.len() as f64;
+            let mean = f.iter().map(|&v| v as f64).sum::<f64>() / n;
+            let rms = (f.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n).sqrt();
+            detector.insert("flat_field".into(), serde_json::json!({"mean": mean, "rms": rms}));
+        }
+        if s.has(EffectKind::Throughput) {
+            let (t_o, t_e) = effects::throughput(&self.calls, &s.throughput.clone().unwrap_or_default());
+            detector.insert("throughput".into(), serde_json::json!({"t_o": t_o, "t_e": t_e}));
+        }
+        if s.has(EffectKind::InstrumentalPolarization) {
+            let c = s.instrumental_polarization.clone().unwrap_or_default();
+            detector.insert(
+                "instrumental_polarization".into(),
+                serde_json::json!({"p": c.p, "angle_deg": c.angle_deg, "q_inst_added_to_F": c.p * (2.0 * c.angle_deg.to_radians()).cos()}),
+            );
+        }
+        Truth {
+            software: format!("sofipol {}", env!("CARGO_PKG_VERSION")),
+            scene: s.clone(),
+            profile: self.profile.name.clone(),
+            effects: s.effects.iter().map(|e| e.name()).collect(),
+            ignored_sections: s.ignored_sections(),
+            detector: serde_json::Value::Object(detector),
+            targets: (0..s.binary.len()).map(|t| self.target_truth(t, frames)).collect(),
+            standards: (s.binary.len()..self.targets.len())
+                .map(|t| {
+                    let mut tt = self.target_truth(t, frames);
+                    tt.components.truncate(1);
+                    tt
+                })
+                .collect(),
+            dome_flats: (0..self.n_dome_flat_frames())
+                .map(|i| self.dome_flat_plan(i).1)
+                .collect(),
+        }
+    }
+
+    /// Simulate every frame in memory (small scenes and tests; a night should stream
+    /// with [`Simulator::frame`]).
+    pub fn run_in_memory(&self) -> (Vec<SimFrame>, Truth) {
+        use rayon::prelude::*;
+        let n = self.frames_per_target();
+        let jobs: Vec<(usize, usize)> = (0..self.targets.len())
+            .flat_map(|t| (0..n).map(move |k| (t, k)))
+            .collect();
+        let frames: Vec<SimFrame> = jobs.par_iter().map(|&(t, k)| self.frame(t, k)).collect();
+        let mut per_t: Vec<Vec<FrameTruth>> = vec![Vec::new(); self.targets.len()];
+        for (f, &(t, _)) in frames.iter().zip(&jobs) {
+            per_t[t].push(f.truth.clone());
+        }
+        let truth = self.truth(&per_t);
+        (frames, truth)
+    }
+}
+
+impl Simulator {
+    /// Simulate every frame and write it to `dir` (FITS, atomically) together with
+    /// `truth.json`. Frames stream: at most one frame per worker thread is in memory.
+    /// `on_frame` is called after each frame is written (progress reporting).
+    pub fn write_to_dir(&self, dir: &std::path::Path, on_frame: &(dyn Fn(&str) + Sync)) -> crate::error::Result<Truth> {
+        use rayon::prelude::*;
+        use sofipol_calib::fits::{write_frame, Bitpix, WriteOptions};
+        std::fs::create_dir_all(dir).map_err(|source| crate::error::Error::Io {
+            path: dir.to_path_buf(),
+            source,
+        })?;
+        let o = &self.scene.observation;
+        let opts = WriteOptions {
+            bitpix: if o.bitpix == 16 { Bitpix::I16 } else { Bitpix::F32 },
+            compress: o.compress,
+            with_variance_and_mask: false,
+        };
+        let n = self.frames_per_target();
+        let jobs: Vec<(usize, usize)> = (0..self.targets.len())
+            .flat_map(|t| (0..n).map(move |k| (t, k)))
+            .collect();
+        let truths: Vec<crate::error::Result<FrameTruth>> = jobs
+            .par_iter()
+            .map(|&(t, k)| {
+                let f = self.frame(t, k);
+                let path = dir.join(&f.file_name);
+                write_frame(&path, &f.frame, &opts).map_err(|e| crate::error::Error::calib("simulated frame", e))?;
+                on_frame(&f.file_name);
+                Ok(f.truth)
+            })
+            .collect();
+        let mut per_t: Vec<Vec<FrameTruth>> = vec![Vec::new(); self.targets.len()];
+        for (r, &(t, _)) in truths.into_iter().zip(&jobs) {
+            per_t[t].push(r?);
+        }
+        (0..self.n_dome_flat_frames())
+            .into_par_iter()
+            .map(|i| {
+                let f = self.dome_flat_frame(i);
+                write_frame(&dir.join(&f.file_name), &f.frame, &opts)
+                    .map_err(|e| crate::error::Error::calib("simulated dome flat", e))?;
+                on_frame(&f.file_name);
+                Ok(())
+            })
+            .collect::<crate::error::Result<Vec<()>>>()?;
+        let truth = self.truth(&per_t);
+        crate::io::write_json_atomic(&dir.join("truth.json"), &truth)
+            .map_err(|e| crate::error::Error::calib("truth", e))?;
+        Ok(truth)
+    }
+}

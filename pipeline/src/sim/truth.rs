@@ -1,0 +1,142 @@
+//! What a simulation realised: per frame, per target, per scene (written as truth.json).
+use serde::Serialize;
+use sofipol_calib::Frame;
+
+use crate::stokes::model::Polarization;
+
+use super::Scene;
+
+/// Where a source landed in one frame and with what fluxes (ADU, before noise).
+#[derive(Debug, Clone, Serialize)]
+pub struct SourceTruth {
+    /// "A", "B", or "field1"...
+    pub name: String,
+    /// Ordinary image position (x, y), px, true (pointing error included).
+    pub o_xy: [f64; 2],
+    /// Extraordinary image position.
+    pub e_xy: [f64; 2],
+    /// Ordinary-beam flux, ADU (transparency, throughput, polarization included; before
+    /// flat field and non-linearity).
+    pub flux_o: f64,
+    /// Extraordinary-beam flux, ADU.
+    pub flux_e: f64,
+}
+
+/// Realised parameters of one frame.
+#[derive(Debug, Clone, Serialize)]
+pub struct FrameTruth {
+    /// File name (no directory).
+    pub file: String,
+    /// Rotator position angle, deg.
+    pub posang_deg: f64,
+    /// Analyzer angle phi = s POSANG + theta0, deg.
+    pub analyzer_deg: f64,
+    /// Jitter offset written to the header, px.
+    pub header_offset_px: [f64; 2],
+    /// True jitter offset, px.
+    pub true_offset_px: [f64; 2],
+    /// Transparency factor applied to the sources.
+    pub transparency: f64,
+    /// Sky level at the detector centre, ADU (0 without sky).
+    pub sky_level_adu: f64,
+    /// Seeing FWHM of this frame, px (0 without psf).
+    pub fwhm_px: f64,
+    /// Moffat beta of this frame (0 for other profiles).
+    pub beta: f64,
+    /// PSF minor/major axis ratio and major-axis angle (deg from +x towards +y), when the
+    /// scene asks for `axis_ratio_range`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ellipse: Option<[f64; 2]>,
+    /// Sources.
+    pub sources: Vec<SourceTruth>,
+    /// Cosmic-ray pixels hit.
+    pub cosmic_ray_pixels: usize,
+}
+
+/// A binary component's truth.
+#[derive(Debug, Clone, Serialize)]
+pub struct ComponentTruth {
+    /// "A" or "B".
+    pub name: String,
+    /// Total flux (o + e) with unit transmission, ADU.
+    pub flux: f64,
+    /// Intrinsic polarization.
+    pub intrinsic: Polarization,
+    /// What a perfect reduction should report in the sky frame: intrinsic + ISM.
+    pub q: f64,
+    /// Sky-frame u (intrinsic + ISM).
+    pub u: f64,
+    /// Degree of polarization of (q, u).
+    pub p: f64,
+    /// Angle of (q, u), deg [0, 180).
+    pub gamma_deg: f64,
+}
+
+/// One target's truth.
+#[derive(Debug, Clone, Serialize)]
+pub struct TargetTruth {
+    /// Object name.
+    pub object: String,
+    /// TPL START of the sequence.
+    pub tpl_start: String,
+    /// Separation, arcsec.
+    pub separation_arcsec: f64,
+    /// PA of B from A, deg.
+    pub pa_deg: f64,
+    /// Components A, B.
+    pub components: Vec<ComponentTruth>,
+    /// Frames in exposure order.
+    pub frames: Vec<FrameTruth>,
+}
+
+/// Truth of a whole simulation (written as truth.json).
+#[derive(Debug, Clone, Serialize)]
+pub struct Truth {
+    /// sofipol version.
+    pub software: String,
+    /// The scene as parsed (defaults filled in).
+    pub scene: Scene,
+    /// Instrument profile name.
+    pub profile: String,
+    /// Effects simulated.
+    pub effects: Vec<&'static str>,
+    /// Effect sections present but not listed (ignored).
+    pub ignored_sections: Vec<&'static str>,
+    /// Fixed detector realisations (bad-pixel counts, flat statistics...).
+    pub detector: serde_json::Value,
+    /// Targets.
+    pub targets: Vec<TargetTruth>,
+    /// Dome-flat frames (the `dome_flats` effect), in exposure order.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub dome_flats: Vec<FlatFrameTruth>,
+    /// Standard stars (one component "A", separation 0), in observing order after the
+    /// targets.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub standards: Vec<TargetTruth>,
+}
+
+/// Realised parameters of one dome-flat frame.
+#[derive(Debug, Clone, Serialize)]
+pub struct FlatFrameTruth {
+    /// File name (no directory).
+    pub file: String,
+    /// Rotator position angle, deg.
+    pub posang_deg: f64,
+    /// Lamp on (`INS LAMP1 ST` = T).
+    pub lamp_on: bool,
+    /// Light per pixel in the o strips and the e strips before the pixel response, ADU.
+    pub level_o_adu: f64,
+    /// Same for the e strips.
+    pub level_e_adu: f64,
+}
+
+/// A simulated frame in memory.
+#[derive(Debug, Clone)]
+pub struct SimFrame {
+    /// File name (no directory).
+    pub file_name: String,
+    /// The frame (data in ADU, header, history).
+    pub frame: Frame,
+    /// Its truth.
+    pub truth: FrameTruth,
+}

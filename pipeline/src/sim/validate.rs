@@ -1,0 +1,111 @@
+//! Scene validation: values that would make a meaningless simulation are refused with
+//! the section, key and value.
+use super::scene::{PsfKind, Scene};
+use crate::error::Error;
+
+impl Scene {
+    /// Check values that would make a meaningless simulation.
+    pub fn validate(&self) -> crate::error::Result<()> {
+        let o = &self.observation;
+        if o.orientations_deg.is_empty() {
+            return Err(invalid("observation.orientations_deg is empty".into()));
+        }
+        if o.dithers == 0 {
+            return Err(invalid("observation.dithers = 0".into()));
+        }
+        if o.ndit == 0 || !(o.dit_s > 0.0) {
+            return Err(invalid(format!(
+                "observation: ndit = {} and dit_s = {} must be > 0",
+                o.ndit, o.dit_s
+            )));
+        }
+        if o.bitpix != -32 && o.bitpix != 16 {
+            return Err(invalid(format!(
+                "observation.bitpix = {} (expected -32 or 16)",
+                o.bitpix
+            )));
+        }
+        for b in &self.binary {
+            for (what, v) in [("flux_a", b.flux_a), ("flux_b", b.flux_b)] {
+                if !(v >= 0.0) {
+                    return Err(invalid(format!("binary '{}': {what} = {v} must be >= 0", b.name)));
+                }
+            }
+            for (what, v) in [("p_a", b.p_a), ("p_b", b.p_b)] {
+                if !(0.0..=1.0).contains(&v) {
+                    return Err(invalid(format!("binary '{}': {what} = {v} must be in [0, 1]", b.name)));
+                }
+            }
+            if !(b.separation_arcsec >= 0.0) {
+                return Err(invalid(format!(
+                    "binary '{}': separation_arcsec = {}",
+                    b.name, b.separation_arcsec
+                )));
+            }
+        }
+        for st in &self.standard {
+            if !(st.flux >= 0.0) || !(0.0..1.0).contains(&st.p) {
+                return Err(invalid(format!(
+                    "standard '{}': flux = {} must be >= 0 and p = {} in [0, 1)",
+                    st.name, st.flux, st.p
+                )));
+            }
+        }
+        if let Some(a) = &self.analyzer_angle {
+            if a.parity != 1 && a.parity != -1 {
+                return Err(invalid(format!(
+                    "analyzer_angle.parity = {} must be +1 or -1",
+                    a.parity
+                )));
+            }
+        }
+        if let Some(p) = &self.psf {
+            if !(p.fwhm_arcsec > 0.0) || (p.kind == PsfKind::Moffat && !(p.beta > 1.0)) {
+                return Err(invalid(format!(
+                    "psf: fwhm_arcsec = {} must be > 0 and beta = {} > 1",
+                    p.fwhm_arcsec, p.beta
+                )));
+            }
+            if !(0.0..1.0).contains(&p.fwhm_spread_frac) {
+                return Err(invalid(format!(
+                    "psf: fwhm_spread_frac = {} must be in [0, 1)",
+                    p.fwhm_spread_frac
+                )));
+            }
+            if let Some([lo, hi]) = p.beta_range {
+                if !(lo > 1.0 && hi >= lo) {
+                    return Err(invalid(format!(
+                        "psf: beta_range = [{lo}, {hi}] must have 1 < lo <= hi"
+                    )));
+                }
+            }
+            if let Some([lo, hi]) = p.axis_ratio_range {
+                if !(lo > 0.0 && lo <= hi && hi <= 1.0) || p.kind != PsfKind::Moffat {
+                    return Err(invalid(format!(
+                        "psf: axis_ratio_range = [{lo}, {hi}] needs 0 < lo <= hi <= 1 and kind = \"moffat\""
+                    )));
+                }
+            }
+        }
+        if let Some(d) = &self.dome_flats {
+            if d.frames_on == 0 || d.frames_off == 0 || d.ndit == 0 || !(d.dit_s > 0.0) || !(d.lamp_adu > 0.0) {
+                return Err(invalid(format!(
+                    "dome_flats: frames_on = {}, frames_off = {}, ndit = {}, dit_s = {}, lamp_adu = {} must all be > 0",
+                    d.frames_on, d.frames_off, d.ndit, d.dit_s, d.lamp_adu
+                )));
+            }
+            if !(0.0..1.0).contains(&d.lamp_p) {
+                return Err(invalid(format!("dome_flats: lamp_p = {} must be in [0, 1)", d.lamp_p)));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A scene error without its origin (added by [`Scene::from_toml`]).
+fn invalid(reason: String) -> Error {
+    Error::Scene {
+        origin: "scene".into(),
+        reason,
+    }
+}
