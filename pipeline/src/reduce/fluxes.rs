@@ -9,6 +9,8 @@ use sofipol_calib::Frame;
 use super::companion::Companion;
 use super::sources::{Primary, UNUSABLE};
 use super::{BeamFlux, CalibratedOrientation, DitherValue, MeasureParams};
+use crate::photometry::model::add_gaussian;
+use crate::photometry::moffat::add_moffat;
 use crate::photometry::{
     aperture_sum, fit_psf, measure, subtract_star_near_in_place, Aperture, Flags, MaskFill, PhotParams, PsfFit,
     PsfFitParams, PsfModel,
@@ -329,12 +331,35 @@ fn model_fraction_in_aperture(
     if !(fit.converged && st.flux.is_finite() && st.flux > 0.0) {
         return None;
     }
-    // This beam's position, the frame's PSF shape (the o beam's fit).
-    let mut shared = fit.clone();
-    (shared.alpha, shared.beta, shared.sigma_x, shared.sigma_y) = (alpha, beta, sigma_x, sigma_y);
-    let mut model = Array2::<f32>::zeros(dim);
-    shared.render_star(si, &mut model.view_mut(), 1.0 / st.flux);
-    let ap = Aperture { x, y, r: r_ap };
+    // This beam's position, the frame's PSF shape (the o beam's fit). The model is rendered
+    // on the pixels the aperture reads only (its bounding square, clipped to the cut-out):
+    // in that sub-image, with the coordinates shifted by whole pixels (exact differences),
+    // every value and the aperture sum are those of a whole cut-out render, bit for bit.
+    let (ny, nx) = dim;
+    if nx == 0 || ny == 0 || !(x.is_finite() && y.is_finite() && r_ap.is_finite()) {
+        return None;
+    }
+    let clampi = |v: f64, n: usize| v.max(0.0).min(n as f64 - 1.0) as usize;
+    let (wx0, wx1) = (
+        clampi((x - r_ap - 1.0).floor(), nx),
+        clampi((x + r_ap + 1.0).ceil(), nx),
+    );
+    let (wy0, wy1) = (
+        clampi((y - r_ap - 1.0).floor(), ny),
+        clampi((y + r_ap + 1.0).ceil(), ny),
+    );
+    let mut model = Array2::<f32>::zeros((wy1 - wy0 + 1, wx1 - wx0 + 1));
+    let (sx, sy) = (st.x - wx0 as f64, st.y - wy0 as f64);
+    let flux = 1.0 / st.flux * st.flux; // as `render_star` scales it
+    match fit.model {
+        PsfModel::Gaussian => add_gaussian(&mut model.view_mut(), flux, sx, sy, sigma_x, sigma_y),
+        PsfModel::Moffat { .. } => add_moffat(&mut model.view_mut(), flux, sx, sy, alpha, beta),
+    }
+    let ap = Aperture {
+        x: x - wx0 as f64,
+        y: y - wy0 as f64,
+        r: r_ap,
+    };
     let frac = aperture_sum(model.view(), None, None, &ap, params.method, MaskFill::Exclude).sum;
     (frac.is_finite() && frac > 0.2 && frac <= 1.0 + 1e-6).then_some(frac)
 }
