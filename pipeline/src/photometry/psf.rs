@@ -15,7 +15,7 @@ use ndarray::{Array2, ArrayView2, ArrayViewMut2};
 use serde::{Deserialize, Serialize};
 
 use super::model::{add_gaussian, gauss_pixel_1d, gauss_pixel_1d_derivs, FWHM_PER_SIGMA};
-use super::moffat::{add_moffat, moffat_alpha, moffat_fwhm, moffat_pixel, moffat_pixel_derivs};
+use super::moffat::{add_moffat, add_moffat_where, moffat_alpha, moffat_fwhm, moffat_pixel, moffat_pixel_derivs};
 
 /// Range of the Moffat `alpha` accepted by the fit, px.
 pub const MOFFAT_ALPHA_RANGE: (f64, f64) = (0.3, 30.0);
@@ -780,7 +780,23 @@ pub fn subtract_star_near(
 }
 
 /// [`subtract_star_near`] in place.
-pub fn subtract_star_near_in_place(img: &mut Array2<f32>, fit: &PsfFit, k: usize, (cx, cy): (f64, f64), radius: f64) {
+pub fn subtract_star_near_in_place(img: &mut Array2<f32>, fit: &PsfFit, k: usize, centre: (f64, f64), radius: f64) {
+    subtract_star_near_where(img, fit, k, centre, radius, |_, _| true);
+}
+
+/// [`subtract_star_near_in_place`] that may leave the pixels `(ix, iy)` (image indices) with
+/// `keep(ix, iy)` false as they are (a Moffat skips them: its pixel integrals are the
+/// costly part); every other pixel gets the value [`subtract_star_near`] gives it, bit for
+/// bit. For photometry that reads only some of the square (the aperture and the unexcluded
+/// part of the annulus).
+pub fn subtract_star_near_where(
+    img: &mut Array2<f32>,
+    fit: &PsfFit,
+    k: usize,
+    (cx, cy): (f64, f64),
+    radius: f64,
+    keep: impl Fn(usize, usize) -> bool,
+) {
     let (ny, nx) = img.dim();
     let s = fit.stars[k];
     if nx == 0 || ny == 0 || !(cx.is_finite() && cy.is_finite() && radius >= 0.0) {
@@ -793,6 +809,8 @@ pub fn subtract_star_near_in_place(img: &mut Array2<f32>, fit: &PsfFit, k: usize
     let (x, y) = (s.x - x0 as f64, s.y - y0 as f64);
     match fit.model {
         PsfModel::Gaussian => add_gaussian(&mut view, -s.flux, x, y, fit.sigma_x, fit.sigma_y),
-        PsfModel::Moffat { .. } => add_moffat(&mut view, -s.flux, x, y, fit.alpha, fit.beta),
+        PsfModel::Moffat { .. } => add_moffat_where(&mut view, -s.flux, x, y, fit.alpha, fit.beta, |ix, iy| {
+            keep(ix + x0, iy + y0)
+        }),
     }
 }

@@ -12,7 +12,7 @@ use super::{BeamFlux, CalibratedOrientation, DitherValue, MeasureParams};
 use crate::photometry::model::add_gaussian;
 use crate::photometry::moffat::add_moffat;
 use crate::photometry::{
-    aperture_sum, fit_psf, measure, subtract_star_near_in_place, Aperture, Flags, MaskFill, PhotParams, PsfFit,
+    aperture_sum, fit_psf, measure, subtract_star_near_where, Aperture, Flags, MaskFill, PhotParams, PsfFit,
     PsfFitParams, PsfModel,
 };
 use crate::stokes::model::companion_offset_px;
@@ -265,17 +265,6 @@ fn measure_star(
         return (flux, bits_in);
     }
     // Deblend: subtract the other stars' models, then measure.
-    // The photometry below reads the aperture and the annulus only: the other stars are
-    // subtracted there (the same pixel values as a whole-cutout subtraction).
-    let mut work = cut.img.clone();
-    let reach = r_ap.max(params.annulus_fwhm.1 * fwhm_med) + 2.0;
-    if let Some(ft) = fit {
-        for other in 0..local.len() {
-            if other != si {
-                subtract_star_near_in_place(&mut work, ft, other, (lx, ly), reach);
-            }
-        }
-    }
     let others: Vec<(f64, f64)> = local
         .iter()
         .enumerate()
@@ -290,6 +279,19 @@ fn measure_star(
         annulus_exclude_radius_px: 2.0 * fwhm_med,
         ..PhotParams::default()
     };
+    // The photometry below reads the aperture and the annulus only: the other stars are
+    // subtracted there (the same pixel values as a whole-cutout subtraction), and not on
+    // the annulus pixels it leaves out near them (their cores, the costly part).
+    let mut work = cut.img.clone();
+    let reach = r_ap.max(params.annulus_fwhm.1 * fwhm_med) + 2.0;
+    if let Some(ft) = fit {
+        let read = pixels_read(&pp, (lx, ly), &others);
+        for other in 0..local.len() {
+            if other != si {
+                subtract_star_near_where(&mut work, ft, other, (lx, ly), reach, &read);
+            }
+        }
+    }
     let ph = measure(
         work.view(),
         Some(cut.var.view()),
@@ -309,6 +311,36 @@ fn measure_star(
             .and_then(|(ft, sh)| model_fraction_in_aperture(ft, sh, si, cut.img.dim(), lx, ly, r_ap, params)),
     };
     (flux, bits_in)
+}
+
+/// A superset (by a pixel's margin) of the pixels [`measure`] with `pp` reads at `(x, y)`
+/// with the other sources `others`: the aperture's bounding square, and the annulus without
+/// the discs of `annulus_exclude_radius_px` about the others.
+fn pixels_read<'a>(
+    pp: &PhotParams,
+    (x, y): (f64, f64),
+    others: &'a [(f64, f64)],
+) -> impl Fn(usize, usize) -> bool + 'a {
+    let half = pp.r_ap_px + 1.0;
+    let (r_in, r_out) = pp.annulus_px.unwrap_or((f64::INFINITY, f64::INFINITY));
+    let inner = (r_in - 1.0).max(0.0);
+    let outer = r_out + 1.0;
+    let excl = pp.annulus_exclude_radius_px - 1.0;
+    let annulus = pp.annulus_px.is_some();
+    move |ix: usize, iy: usize| {
+        let (dx, dy) = (ix as f64 - x, iy as f64 - y);
+        if dx.abs() <= half && dy.abs() <= half {
+            return true;
+        }
+        let d2 = dx * dx + dy * dy;
+        if !annulus || d2 < inner * inner || d2 > outer * outer {
+            return false;
+        }
+        excl <= 0.0
+            || !others
+                .iter()
+                .any(|&(ox, oy)| (ix as f64 - ox).hypot(iy as f64 - oy) < excl)
+    }
 }
 
 /// The fraction of star `si`'s fitted PSF model (pixel-integrated) that falls in the

@@ -29,16 +29,16 @@ pub fn brightest_peak(
     // Largest unmasked value of each image row the boxes read (rows y_lo-1 ..= y_hi+1).
     let mut row_max = Vec::with_capacity((w.y_hi - w.y_lo + 3) as usize);
     for y in w.y_lo - 1..=w.y_hi + 1 {
-        let vals = img.row(y as usize);
-        let ms = mask.row(y as usize);
+        let (vals, ms) = (img.row(y as usize), mask.row(y as usize));
+        let (Some(vals), Some(ms)) = (vals.as_slice(), ms.as_slice()) else {
+            return brightest_peak_scan(img, mask, x0, y0, radius, rows);
+        };
+        let cols = (w.x_lo - 1) as usize..=(w.x_hi + 1) as usize;
         let mut m = f32::NEG_INFINITY;
         let mut finite = true;
-        for i in (w.x_lo - 1) as usize..=(w.x_hi + 1) as usize {
-            let v = vals[i];
+        for (&v, &k) in vals[cols.clone()].iter().zip(&ms[cols]) {
             finite &= v.is_finite();
-            if ms[i] == 0 && v > m {
-                m = v;
-            }
+            m = m.max(if k == 0 { v } else { f32::NEG_INFINITY });
         }
         if !finite {
             return brightest_peak_scan(img, mask, x0, y0, radius, rows);
