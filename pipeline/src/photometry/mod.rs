@@ -53,6 +53,7 @@ pub mod model;
 pub mod moffat;
 mod overlap;
 mod psf;
+mod psf_fit;
 
 #[cfg(test)]
 mod psf_moffat_tests;
