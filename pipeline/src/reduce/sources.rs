@@ -34,13 +34,15 @@ pub fn brightest_peak(
             return brightest_peak_scan(img, mask, x0, y0, radius, rows);
         };
         let cols = (w.x_lo - 1) as usize..=(w.x_hi + 1) as usize;
+        // Branch-free (vectorised): the largest unmasked value, and whether any is not finite.
         let mut m = f32::NEG_INFINITY;
-        let mut finite = true;
+        let mut exp_all_ones = 0u32;
         for (&v, &k) in vals[cols.clone()].iter().zip(&ms[cols]) {
-            finite &= v.is_finite();
-            m = m.max(if k == 0 { v } else { f32::NEG_INFINITY });
+            exp_all_ones |= u32::from(v.to_bits() & 0x7f80_0000 == 0x7f80_0000);
+            let c = if k == 0 { v } else { f32::NEG_INFINITY };
+            m = if c > m { c } else { m };
         }
-        if !finite {
+        if exp_all_ones != 0 {
             return brightest_peak_scan(img, mask, x0, y0, radius, rows);
         }
         row_max.push(m);
