@@ -4,7 +4,7 @@ use ndarray::Array2;
 use sofipol_pipeline::photometry::model::add_gaussian;
 use sofipol_pipeline::reduce::beams::{eo_offset_by_correlation, median_offset};
 use sofipol_pipeline::reduce::companion::combine_geometry;
-use sofipol_pipeline::reduce::sources::brightest_peak;
+use sofipol_pipeline::reduce::sources::{brightest_peak, brightest_peak_scan};
 use sofipol_pipeline::stokes::model::companion_offset_px;
 
 fn image(ny: usize, nx: usize, stars: &[(f64, f64, f64)], sky: f32) -> Array2<f32> {
@@ -46,6 +46,57 @@ fn brightest_peak_finds_the_brighter_star_within_radius_rows_and_mask() {
     // Everything masked: nothing found.
     mask.fill(1);
     assert!(brightest_peak(img.view(), mask.view(), 60.0, 50.0, 30.0, [0, 100]).is_none());
+}
+
+/// The pruned search returns what the plain row-major scan returns, bit for bit: on noise
+/// with stars, cosmic-like spikes, masked hot pixels, ties (values on a coarse grid) and a
+/// NaN, over whole strips and small radii.
+#[test]
+fn brightest_peak_pruned_search_equals_the_plain_scan() {
+    use rand::{RngExt, SeedableRng};
+    let mut rng = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(17);
+    for case in 0..60 {
+        let (ny, nx) = (40 + case % 7 * 9, 50 + case % 5 * 13);
+        let coarse = case % 3 == 0; // values on a grid of 1: many ties
+        let mut img = Array2::from_shape_fn((ny, nx), |_| {
+            let v: f32 = rng.random_range(-5.0..5.0);
+            if coarse {
+                v.round()
+            } else {
+                v
+            }
+        });
+        for _ in 0..case % 4 {
+            let (x, y) = (rng.random_range(0.0..nx as f64), rng.random_range(0.0..ny as f64));
+            add_gaussian(&mut img.view_mut(), rng.random_range(10.0..500.0), x, y, 1.3, 1.3);
+        }
+        let mut mask = Array2::<u8>::zeros((ny, nx));
+        for _ in 0..case % 6 * 5 {
+            let (i, j) = (rng.random_range(0..nx), rng.random_range(0..ny));
+            img[[j, i]] += 1e4; // a spike: masked or not
+            mask[[j, i]] = u8::from(rng.random_bool(0.7));
+        }
+        if case % 10 == 9 {
+            img[[ny / 2, nx / 2]] = f32::NAN;
+        }
+        for _ in 0..5 {
+            let (x0, y0) = (rng.random_range(0.0..nx as f64), rng.random_range(0.0..ny as f64));
+            let radius = if rng.random_bool(0.3) {
+                nx as f64
+            } else {
+                rng.random_range(0.5..15.0)
+            };
+            let lo = rng.random_range(0..ny / 3);
+            let rows = [lo, rng.random_range(lo + 1..=ny)];
+            let a = brightest_peak(img.view(), mask.view(), x0, y0, radius, rows);
+            let b = brightest_peak_scan(img.view(), mask.view(), x0, y0, radius, rows);
+            assert_eq!(
+                a.map(|p| (p.0, p.1, p.2.to_bits())),
+                b.map(|p| (p.0, p.1, p.2.to_bits())),
+                "case {case}"
+            );
+        }
+    }
 }
 
 #[test]

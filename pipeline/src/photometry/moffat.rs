@@ -153,6 +153,20 @@ pub fn moffat_pixel_derivs(dx: f64, dy: f64, alpha: f64, beta: f64) -> [f64; 5] 
 /// `beta > 1`) to `img` (indexed `[y, x]`), over the pixels within the radius enclosing all
 /// but 1e-9 of the flux (clipped to the image). A negative flux subtracts the star.
 pub fn add_moffat(img: &mut ArrayViewMut2<f32>, flux: f64, x: f64, y: f64, alpha: f64, beta: f64) {
+    add_moffat_where(img, flux, x, y, alpha, beta, |_, _| true);
+}
+
+/// [`add_moffat`] on the pixels `(ix, iy)` for which `keep(ix, iy)` holds only (the others
+/// are left as they are); those get the values [`add_moffat`] gives them, bit for bit.
+pub fn add_moffat_where(
+    img: &mut ArrayViewMut2<f32>,
+    flux: f64,
+    x: f64,
+    y: f64,
+    alpha: f64,
+    beta: f64,
+    keep: impl Fn(usize, usize) -> bool,
+) {
     let (ny, nx) = img.dim();
     let ok = nx > 0 && ny > 0 && alpha > 0.0 && alpha.is_finite() && beta > 1.0 && x.is_finite() && y.is_finite();
     if !ok {
@@ -172,7 +186,7 @@ pub fn add_moffat(img: &mut ArrayViewMut2<f32>, flux: f64, x: f64, y: f64, alpha
         let dy = iy as f64 - y;
         for ix in x_lo..=x_hi {
             let dx = ix as f64 - x;
-            if dx * dx + dy * dy > rmax * rmax {
+            if dx * dx + dy * dy > rmax * rmax || !keep(ix, iy) {
                 continue;
             }
             let v = &mut img[[iy, ix]];

@@ -479,6 +479,16 @@ fn photometry_subtract_star_near_is_exact_inside_its_window() {
                 if matches!(model, PsfModel::Moffat { .. }) {
                     assert!(changed > 0, "star ({x},{y}) window {c:?} {r}: nothing subtracted");
                 }
+                // With a pixel filter (a ring about the window's centre): the kept pixels as
+                // above, a Moffat leaves the others alone.
+                let keep = |ix: usize, iy: usize| ((ix as f64 - c.0).hypot(iy as f64 - c.1) - 0.6 * r).abs() < 3.0;
+                let mut part = img.clone();
+                super::subtract_star_near_where(&mut part, &fit, 0, c, r, keep);
+                for ((iy, ix), &v) in part.indexed_iter() {
+                    let skipped = !keep(ix, iy) && matches!(model, PsfModel::Moffat { .. });
+                    let expect = if skipped { img[[iy, ix]] } else { near[[iy, ix]] };
+                    assert_eq!(v.to_bits(), expect.to_bits(), "{model:?} filtered ({ix},{iy})");
+                }
             }
         }
     }

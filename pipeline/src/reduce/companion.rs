@@ -5,7 +5,7 @@ use sofipol_calib::Profile;
 
 use super::sources::{brightest_peak, Primary};
 use super::{CalibratedOrientation, MeasureParams};
-use crate::photometry::{fit_psf, subtract_star_near, PsfFit, PsfFitParams, PsfModel};
+use crate::photometry::{fit_psf, subtract_star_near, subtract_star_near_in_place, PsfFit, PsfFitParams, PsfModel};
 use crate::stokes::model::{companion_offset_px, offset_to_sep_pa};
 
 /// Shift-and-add of square cut-outs of half-size `h` centred on the rounded positions
@@ -157,7 +157,8 @@ pub fn find_pair(
         beta: single.beta,
         f_stat: 0.0,
     };
-    let r1 = crate::photometry::subtract_star(stack.view(), &single, 0);
+    // The residuals are read within r of the single fit only (rss): they are rendered on
+    // the square that holds that disc (the same values as a whole-stack subtraction).
     let two_star = |p: &PsfFitParams| -> Option<(PsfFit, f64, f64, usize)> {
         let two = fit_psf(
             stack.view(),
@@ -171,8 +172,9 @@ pub fn find_pair(
         let (sa, sb) = (two.stars[0], two.stars[1]);
         let sep = (sa.x - sb.x).hypot(sa.y - sb.y);
         let r = (2.0 * fwhm).max(sep + 1.5 * fwhm).min(n as f64 / 2.0);
-        let r2 =
-            crate::photometry::subtract_star(crate::photometry::subtract_star(stack.view(), &two, 0).view(), &two, 1);
+        let r1 = subtract_star_near(stack.view(), &single, 0, (s0.x, s0.y), r + 1.0);
+        let mut r2 = subtract_star_near(stack.view(), &two, 0, (s0.x, s0.y), r + 1.0);
+        subtract_star_near_in_place(&mut r2, &two, 1, (s0.x, s0.y), r + 1.0);
         let (s1, npix) = rss(&r1, smask, s0.x, s0.y, r);
         let (s2, _) = rss(&r2, smask, s0.x, s0.y, r);
         Some((two, s1, s2, npix))

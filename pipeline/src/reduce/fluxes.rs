@@ -9,8 +9,10 @@ use sofipol_calib::Frame;
 use super::companion::Companion;
 use super::sources::{Primary, UNUSABLE};
 use super::{BeamFlux, CalibratedOrientation, DitherValue, MeasureParams};
+use crate::photometry::model::add_gaussian;
+use crate::photometry::moffat::add_moffat;
 use crate::photometry::{
-    aperture_sum, fit_psf, measure, subtract_star_near_in_place, Aperture, Flags, MaskFill, PhotParams, PsfFit,
+    aperture_sum, fit_psf, measure, subtract_star_near_where, Aperture, Flags, MaskFill, PhotParams, PsfFit,
     PsfFitParams, PsfModel,
 };
 use crate::stokes::model::companion_offset_px;
@@ -263,17 +265,6 @@ fn measure_star(
         return (flux, bits_in);
     }
     // Deblend: subtract the other stars' models, then measure.
-    // The photometry below reads the aperture and the annulus only: the other stars are
-    // subtracted there (the same pixel values as a whole-cutout subtraction).
-    let mut work = cut.img.clone();
-    let reach = r_ap.max(params.annulus_fwhm.1 * fwhm_med) + 2.0;
-    if let Some(ft) = fit {
-        for other in 0..local.len() {
-            if other != si {
-                subtract_star_near_in_place(&mut work, ft, other, (lx, ly), reach);
-            }
-        }
-    }
     let others: Vec<(f64, f64)> = local
         .iter()
         .enumerate()
@@ -288,6 +279,19 @@ fn measure_star(
         annulus_exclude_radius_px: 2.0 * fwhm_med,
         ..PhotParams::default()
     };
+    // The photometry below reads the aperture and the annulus only: the other stars are
+    // subtracted there (the same pixel values as a whole-cutout subtraction), and not on
+    // the annulus pixels it leaves out near them (their cores, the costly part).
+    let mut work = cut.img.clone();
+    let reach = r_ap.max(params.annulus_fwhm.1 * fwhm_med) + 2.0;
+    if let Some(ft) = fit {
+        let read = pixels_read(&pp, (lx, ly), &others);
+        for other in 0..local.len() {
+            if other != si {
+                subtract_star_near_where(&mut work, ft, other, (lx, ly), reach, &read);
+            }
+        }
+    }
     let ph = measure(
         work.view(),
         Some(cut.var.view()),
@@ -307,6 +311,36 @@ fn measure_star(
             .and_then(|(ft, sh)| model_fraction_in_aperture(ft, sh, si, cut.img.dim(), lx, ly, r_ap, params)),
     };
     (flux, bits_in)
+}
+
+/// A superset (by a pixel's margin) of the pixels [`measure`] with `pp` reads at `(x, y)`
+/// with the other sources `others`: the aperture's bounding square, and the annulus without
+/// the discs of `annulus_exclude_radius_px` about the others.
+fn pixels_read<'a>(
+    pp: &PhotParams,
+    (x, y): (f64, f64),
+    others: &'a [(f64, f64)],
+) -> impl Fn(usize, usize) -> bool + 'a {
+    let half = pp.r_ap_px + 1.0;
+    let (r_in, r_out) = pp.annulus_px.unwrap_or((f64::INFINITY, f64::INFINITY));
+    let inner = (r_in - 1.0).max(0.0);
+    let outer = r_out + 1.0;
+    let excl = pp.annulus_exclude_radius_px - 1.0;
+    let annulus = pp.annulus_px.is_some();
+    move |ix: usize, iy: usize| {
+        let (dx, dy) = (ix as f64 - x, iy as f64 - y);
+        if dx.abs() <= half && dy.abs() <= half {
+            return true;
+        }
+        let d2 = dx * dx + dy * dy;
+        if !annulus || d2 < inner * inner || d2 > outer * outer {
+            return false;
+        }
+        excl <= 0.0
+            || !others
+                .iter()
+                .any(|&(ox, oy)| (ix as f64 - ox).hypot(iy as f64 - oy) < excl)
+    }
 }
 
 /// The fraction of star `si`'s fitted PSF model (pixel-integrated) that falls in the
@@ -329,12 +363,35 @@ fn model_fraction_in_aperture(
     if !(fit.converged && st.flux.is_finite() && st.flux > 0.0) {
         return None;
     }
-    // This beam's position, the frame's PSF shape (the o beam's fit).
-    let mut shared = fit.clone();
-    (shared.alpha, shared.beta, shared.sigma_x, shared.sigma_y) = (alpha, beta, sigma_x, sigma_y);
-    let mut model = Array2::<f32>::zeros(dim);
-    shared.render_star(si, &mut model.view_mut(), 1.0 / st.flux);
-    let ap = Aperture { x, y, r: r_ap };
+    // This beam's position, the frame's PSF shape (the o beam's fit). The model is rendered
+    // on the pixels the aperture reads only (its bounding square, clipped to the cut-out):
+    // in that sub-image, with the coordinates shifted by whole pixels (exact differences),
+    // every value and the aperture sum are those of a whole cut-out render, bit for bit.
+    let (ny, nx) = dim;
+    if nx == 0 || ny == 0 || !(x.is_finite() && y.is_finite() && r_ap.is_finite()) {
+        return None;
+    }
+    let clampi = |v: f64, n: usize| v.max(0.0).min(n as f64 - 1.0) as usize;
+    let (wx0, wx1) = (
+        clampi((x - r_ap - 1.0).floor(), nx),
+        clampi((x + r_ap + 1.0).ceil(), nx),
+    );
+    let (wy0, wy1) = (
+        clampi((y - r_ap - 1.0).floor(), ny),
+        clampi((y + r_ap + 1.0).ceil(), ny),
+    );
+    let mut model = Array2::<f32>::zeros((wy1 - wy0 + 1, wx1 - wx0 + 1));
+    let (sx, sy) = (st.x - wx0 as f64, st.y - wy0 as f64);
+    let flux = 1.0 / st.flux * st.flux; // as `render_star` scales it
+    match fit.model {
+        PsfModel::Gaussian => add_gaussian(&mut model.view_mut(), flux, sx, sy, sigma_x, sigma_y),
+        PsfModel::Moffat { .. } => add_moffat(&mut model.view_mut(), flux, sx, sy, alpha, beta),
+    }
+    let ap = Aperture {
+        x: x - wx0 as f64,
+        y: y - wy0 as f64,
+        r: r_ap,
+    };
     let frac = aperture_sum(model.view(), None, None, &ap, params.method, MaskFill::Exclude).sum;
     (frac.is_finite() && frac > 0.2 && frac <= 1.0 + 1e-6).then_some(frac)
 }

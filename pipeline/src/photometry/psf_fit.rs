@@ -1,0 +1,601 @@
+//! The Levenberg-Marquardt fit behind [`fit_psf`]: parameter layout, pixels, start values,
+//! normal equations (analytic Jacobians of the pixel-integrated models), the damped
+//! iteration and the covariance. The model, settings and result types are in [`super::psf`].
+
+use ndarray::ArrayView2;
+
+use super::model::{gauss_pixel_1d, gauss_pixel_1d_derivs, FWHM_PER_SIGMA};
+use super::moffat::{moffat_alpha, moffat_fwhm, moffat_pixel, moffat_pixel_derivs};
+use super::psf::{
+    PsfFit, PsfFitError, PsfFitParams, PsfModel, PsfStar, MOFFAT_ALPHA_RANGE, MOFFAT_BETA_RANGE, MOFFAT_BETA_START,
+};
+
+struct Layout {
+    n_src: usize,
+    /// sigma_x (Gaussian) or alpha (Moffat).
+    i_sx: usize,
+    /// sigma_y (= i_sx unless elliptical; = i_sx for a Moffat).
+    i_sy: usize,
+    /// Moffat beta, when fitted.
+    i_beta: Option<usize>,
+    i_b: Option<usize>,
+    n: usize,
+    /// Some(fixed beta or NaN when fitted) for a Moffat.
+    moffat: Option<f64>,
+}
+
+impl Layout {
+    fn new(n_src: usize, elliptical: bool, fit_b: bool, model: PsfModel) -> Layout {
+        let i_sx = 3 * n_src;
+        match model {
+            PsfModel::Gaussian => {
+                let i_sy = if elliptical { i_sx + 1 } else { i_sx };
+                let i_b = fit_b.then_some(i_sy + 1);
+                Layout {
+                    n_src,
+                    i_sx,
+                    i_sy,
+                    i_beta: None,
+                    i_b,
+                    n: i_sy + 1 + fit_b as usize,
+                    moffat: None,
+                }
+            }
+            PsfModel::Moffat { beta } => {
+                let i_beta = beta.is_none().then_some(i_sx + 1);
+                let last = i_beta.unwrap_or(i_sx);
+                let i_b = fit_b.then_some(last + 1);
+                Layout {
+                    n_src,
+                    i_sx,
+                    i_sy: i_sx,
+                    i_beta,
+                    i_b,
+                    n: last + 1 + fit_b as usize,
+                    moffat: Some(beta.unwrap_or(f64::NAN)),
+                }
+            }
+        }
+    }
+
+    /// Moffat beta at parameters `p`.
+    fn beta(&self, p: &[f64]) -> f64 {
+        match self.i_beta {
+            Some(i) => p[i],
+            None => self.moffat.unwrap_or(f64::NAN),
+        }
+    }
+}
+
+struct Pixel {
+    ix: usize,
+    iy: usize,
+    v: f64,
+    w: f64, // 1 / sigma
+}
+
+/// The model's 1-D factors for every column/row of the fitted box, per star.
+struct Factors {
+    x0: usize,
+    y0: usize,
+    // [star][col] -> (P, dP/dmu, dP/dsigma)
+    fx: Vec<Vec<(f64, f64, f64)>>,
+    fy: Vec<Vec<(f64, f64, f64)>>,
+}
+
+impl Factors {
+    fn new(p: &[f64], lay: &Layout, bx: (usize, usize, usize, usize)) -> Factors {
+        let (x0, x1, y0, y1) = bx;
+        let (sx, sy) = (p[lay.i_sx], p[lay.i_sy]);
+        let fx = (0..lay.n_src)
+            .map(|k| {
+                (x0..=x1)
+                    .map(|ix| gauss_pixel_1d_derivs(ix as i64, p[3 * k + 1], sx))
+                    .collect()
+            })
+            .collect();
+        let fy = (0..lay.n_src)
+            .map(|k| {
+                (y0..=y1)
+                    .map(|iy| gauss_pixel_1d_derivs(iy as i64, p[3 * k + 2], sy))
+                    .collect()
+            })
+            .collect();
+        Factors { x0, y0, fx, fy }
+    }
+}
+
+fn background_of(p: &[f64], lay: &Layout, fixed: Option<f64>) -> f64 {
+    match lay.i_b {
+        Some(i) => p[i],
+        None => fixed.unwrap_or(0.0),
+    }
+}
+
+/// chi2, and when `normal` is given, fills it with (J^T W J, J^T W r).
+fn evaluate(
+    p: &[f64],
+    lay: &Layout,
+    fixed_b: Option<f64>,
+    pixels: &[Pixel],
+    bx: (usize, usize, usize, usize),
+    mut normal: Option<(&mut [f64], &mut [f64])>,
+) -> f64 {
+    let f = match lay.moffat {
+        None => Some(Factors::new(p, lay, bx)),
+        Some(_) => None,
+    };
+    let (alpha, beta) = (p[lay.i_sx], lay.beta(p));
+    let b = background_of(p, lay, fixed_b);
+    let n = lay.n;
+    let mut jrow = vec![0.0; n];
+    if let Some((a, g)) = normal.as_mut() {
+        a.iter_mut().for_each(|v| *v = 0.0);
+        g.iter_mut().for_each(|v| *v = 0.0);
+    }
+    let mut chi2 = 0.0;
+    for px in pixels {
+        let mut m = b;
+        if normal.is_some() {
+            jrow.iter_mut().for_each(|v| *v = 0.0);
+        }
+        match &f {
+            Some(f) => {
+                let (cx, cy) = (px.ix - f.x0, px.iy - f.y0);
+                for k in 0..lay.n_src {
+                    let flux = p[3 * k];
+                    let (gx, dgx, sgx) = f.fx[k][cx];
+                    let (gy, dgy, sgy) = f.fy[k][cy];
+                    m += flux * gx * gy;
+                    if normal.is_some() {
+                        jrow[3 * k] = gx * gy;
+                        jrow[3 * k + 1] = flux * dgx * gy;
+                        jrow[3 * k + 2] = flux * gx * dgy;
+                        jrow[lay.i_sx] += flux * sgx * gy;
+                        jrow[lay.i_sy] += flux * gx * sgy; // same slot as sx when circular
+                    }
+                }
+            }
+            None => {
+                for k in 0..lay.n_src {
+                    let flux = p[3 * k];
+                    let (dx, dy) = (px.ix as f64 - p[3 * k + 1], px.iy as f64 - p[3 * k + 2]);
+                    if normal.is_some() {
+                        let d = moffat_pixel_derivs(dx, dy, alpha, beta);
+                        m += flux * d[0];
+                        jrow[3 * k] = d[0];
+                        jrow[3 * k + 1] = flux * d[1];
+                        jrow[3 * k + 2] = flux * d[2];
+                        jrow[lay.i_sx] += flux * d[3];
+                        if let Some(ib) = lay.i_beta {
+                            jrow[ib] += flux * d[4];
+                        }
+                    } else {
+                        m += flux * moffat_pixel(dx, dy, alpha, beta);
+                    }
+                }
+            }
+        }
+        let r = (px.v - m) * px.w;
+        chi2 += r * r;
+        if let Some((a, g)) = normal.as_mut() {
+            if let Some(ib) = lay.i_b {
+                jrow[ib] = 1.0;
+            }
+            for i in 0..n {
+                let ji = jrow[i] * px.w;
+                g[i] += ji * r;
+                for j in 0..=i {
+                    a[i * n + j] += ji * jrow[j] * px.w;
+                }
+            }
+        }
+    }
+    if let Some((a, _)) = normal.as_mut() {
+        for i in 0..n {
+            for j in 0..i {
+                a[j * n + i] = a[i * n + j];
+            }
+        }
+    }
+    chi2
+}
+
+/// In-place Cholesky factorisation of the symmetric n x n matrix `a` (lower triangle).
+fn cholesky(a: &mut [f64], n: usize) -> bool {
+    for j in 0..n {
+        let mut d = a[j * n + j];
+        for k in 0..j {
+            d -= a[j * n + k] * a[j * n + k];
+        }
+        if d.is_nan() || d <= 0.0 {
+            return false;
+        }
+        let d = d.sqrt();
+        a[j * n + j] = d;
+        for i in j + 1..n {
+            let mut s = a[i * n + j];
+            for k in 0..j {
+                s -= a[i * n + k] * a[j * n + k];
+            }
+            a[i * n + j] = s / d;
+        }
+    }
+    true
+}
+
+/// Solves `L L^T x = b` with the factor from [`cholesky`].
+fn cholesky_solve(l: &[f64], n: usize, b: &[f64]) -> Vec<f64> {
+    let mut y = b.to_vec();
+    for i in 0..n {
+        for k in 0..i {
+            y[i] -= l[i * n + k] * y[k];
+        }
+        y[i] /= l[i * n + i];
+    }
+    for i in (0..n).rev() {
+        for k in i + 1..n {
+            y[i] -= l[k * n + i] * y[k];
+        }
+        y[i] /= l[i * n + i];
+    }
+    y
+}
+
+/// Fits `guesses.len()` pixel-integrated Gaussians or Moffats ([`PsfFitParams::model`]) with a
+/// shared shape to the image near the initial positions `guesses` (px). `var` (ADU^2) weights
+/// the pixels; `mask` (nonzero = bad) and non-finite pixels are skipped.
+///
+/// Robustness: a step that would make a Gaussian width leave `[0.05, 50]` px, a Moffat alpha
+/// leave [`MOFFAT_ALPHA_RANGE`], a fitted beta leave [`MOFFAT_BETA_RANGE`], or move a star
+/// farther than `fit_radius_px` from its initial position is rejected (the damping grows
+/// instead).
+pub fn fit_psf(
+    img: ArrayView2<f32>,
+    var: Option<ArrayView2<f32>>,
+    mask: Option<ArrayView2<u8>>,
+    guesses: &[(f64, f64)],
+    params: &PsfFitParams,
+) -> Result<PsfFit, PsfFitError> {
+    check_params(guesses, params)?;
+    let lay = Layout::new(
+        guesses.len(),
+        params.elliptical,
+        params.background.is_none(),
+        params.model,
+    );
+    let (pixels, bx) = fit_pixels(img, var, mask, guesses, params.fit_radius_px);
+    if pixels.len() <= lay.n {
+        return Err(PsfFitError::TooFewPixels {
+            n_pixels: pixels.len(),
+            n_params: lay.n,
+        });
+    }
+    let p = start_values(params, &lay, &pixels, guesses);
+    let problem = Problem {
+        lay: &lay,
+        fixed_b: params.background,
+        pixels: &pixels,
+        bx,
+        guesses,
+        rf: params.fit_radius_px,
+    };
+    let sol = problem.solve(p, params.max_iter);
+    finish(&problem, sol, params, var.is_some())
+}
+
+/// The settings [`fit_psf`] refuses.
+fn check_params(guesses: &[(f64, f64)], params: &PsfFitParams) -> Result<(), PsfFitError> {
+    if guesses.is_empty() {
+        return Err(PsfFitError::NoSources);
+    }
+    if !(params.fwhm_px > 0.0 && params.fwhm_px.is_finite()) {
+        return Err(PsfFitError::InvalidParams {
+            name: "fwhm_px",
+            value: params.fwhm_px,
+        });
+    }
+    if !(params.fit_radius_px > 0.0 && params.fit_radius_px.is_finite()) {
+        return Err(PsfFitError::InvalidParams {
+            name: "fit_radius_px",
+            value: params.fit_radius_px,
+        });
+    }
+    if let PsfModel::Moffat { beta } = params.model {
+        if params.elliptical {
+            return Err(PsfFitError::InvalidParams {
+                name: "elliptical (Moffat is circular)",
+                value: 1.0,
+            });
+        }
+        if let Some(b) = beta {
+            if !(b > 1.0 && b.is_finite()) {
+                return Err(PsfFitError::InvalidParams { name: "beta", value: b });
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The usable pixels within `rf` of any guess, and their bounding box (x0, x1, y0, y1).
+fn fit_pixels(
+    img: ArrayView2<f32>,
+    var: Option<ArrayView2<f32>>,
+    mask: Option<ArrayView2<u8>>,
+    guesses: &[(f64, f64)],
+    rf: f64,
+) -> (Vec<Pixel>, (usize, usize, usize, usize)) {
+    let (ny, nx) = img.dim();
+    let mut pixels = Vec::new();
+    let (mut bx0, mut bx1, mut by0, mut by1) = (usize::MAX, 0usize, usize::MAX, 0usize);
+    if nx > 0 && ny > 0 {
+        let gx0 = guesses.iter().map(|g| g.0).fold(f64::INFINITY, f64::min) - rf;
+        let gx1 = guesses.iter().map(|g| g.0).fold(f64::NEG_INFINITY, f64::max) + rf;
+        let gy0 = guesses.iter().map(|g| g.1).fold(f64::INFINITY, f64::min) - rf;
+        let gy1 = guesses.iter().map(|g| g.1).fold(f64::NEG_INFINITY, f64::max) + rf;
+        let clampi = |v: f64, n: usize| v.max(0.0).min(n as f64 - 1.0) as usize;
+        for iy in clampi(gy0.floor(), ny)..=clampi(gy1.ceil(), ny) {
+            for ix in clampi(gx0.floor(), nx)..=clampi(gx1.ceil(), nx) {
+                let near = guesses
+                    .iter()
+                    .any(|&(gx, gy)| (ix as f64 - gx).powi(2) + (iy as f64 - gy).powi(2) <= rf * rf);
+                let v = img[[iy, ix]];
+                if !near || !v.is_finite() || mask.as_ref().is_some_and(|m| m[[iy, ix]] != 0) {
+                    continue;
+                }
+                let w = match &var {
+                    Some(vm) => {
+                        let q = vm[[iy, ix]];
+                        if !(q > 0.0 && q.is_finite()) {
+                            continue;
+                        }
+                        1.0 / (q as f64).sqrt()
+                    }
+                    None => 1.0,
+                };
+                pixels.push(Pixel { ix, iy, v: v as f64, w });
+                bx0 = bx0.min(ix);
+                bx1 = bx1.max(ix);
+                by0 = by0.min(iy);
+                by1 = by1.max(iy);
+            }
+        }
+    }
+    (pixels, (bx0, bx1, by0, by1))
+}
+
+/// Initial values: background = 20th percentile of the fitted pixels; each flux from the
+/// pixel nearest its guess, as the peak of a pixel-integrated model of the initial width.
+fn start_values(params: &PsfFitParams, lay: &Layout, pixels: &[Pixel], guesses: &[(f64, f64)]) -> Vec<f64> {
+    let s0 = params.fwhm_px / FWHM_PER_SIGMA;
+    let beta0 = match params.model {
+        PsfModel::Gaussian => f64::NAN,
+        PsfModel::Moffat { beta } => beta.unwrap_or(MOFFAT_BETA_START),
+    };
+    let (shape0, peak_frac) = match params.model {
+        PsfModel::Gaussian => (s0, gauss_pixel_1d(0, 0.0, s0).powi(2)),
+        PsfModel::Moffat { .. } => {
+            let a0 = moffat_alpha(params.fwhm_px, beta0).clamp(MOFFAT_ALPHA_RANGE.0, MOFFAT_ALPHA_RANGE.1);
+            (a0, moffat_pixel(0.0, 0.0, a0, beta0))
+        }
+    };
+    let mut p = vec![0.0; lay.n];
+    let b0 = match params.background {
+        Some(b) => b,
+        None => {
+            let mut vals: Vec<f64> = pixels.iter().map(|q| q.v).collect();
+            let k = vals.len() / 5;
+            *vals.select_nth_unstable_by(k, f64::total_cmp).1
+        }
+    };
+    for (k, &(gx, gy)) in guesses.iter().enumerate() {
+        let nearest = pixels
+            .iter()
+            .min_by(|a, b| {
+                let da = (a.ix as f64 - gx).powi(2) + (a.iy as f64 - gy).powi(2);
+                let db = (b.ix as f64 - gx).powi(2) + (b.iy as f64 - gy).powi(2);
+                da.total_cmp(&db)
+            })
+            .map_or(0.0, |q| q.v);
+        p[3 * k] = ((nearest - b0) / peak_frac).max(1e-3);
+        p[3 * k + 1] = gx;
+        p[3 * k + 2] = gy;
+    }
+    p[lay.i_sx] = shape0;
+    p[lay.i_sy] = shape0;
+    if let Some(ib) = lay.i_beta {
+        p[ib] = beta0;
+    }
+    if let Some(ib) = lay.i_b {
+        p[ib] = b0;
+    }
+    p
+}
+
+/// What one fit works on.
+struct Problem<'a> {
+    lay: &'a Layout,
+    /// The background when it is held fixed.
+    fixed_b: Option<f64>,
+    pixels: &'a [Pixel],
+    /// Bounding box of the pixels (x0, x1, y0, y1).
+    bx: (usize, usize, usize, usize),
+    guesses: &'a [(f64, f64)],
+    /// Fit radius: no star may move farther from its guess.
+    rf: f64,
+}
+
+/// Where the iteration stopped.
+struct Solution {
+    p: Vec<f64>,
+    chi2: f64,
+    /// The undamped normal matrix at `p`.
+    a: Vec<f64>,
+    iterations: u32,
+    converged: bool,
+}
+
+impl Problem<'_> {
+    /// Whether a trial point is inside the accepted ranges.
+    fn acceptable(&self, q: &[f64]) -> bool {
+        let lay = self.lay;
+        let widths_ok = match lay.moffat {
+            None => [q[lay.i_sx], q[lay.i_sy]].iter().all(|&s| (0.05..=50.0).contains(&s)),
+            Some(_) => {
+                (MOFFAT_ALPHA_RANGE.0..=MOFFAT_ALPHA_RANGE.1).contains(&q[lay.i_sx])
+                    && lay
+                        .i_beta
+                        .is_none_or(|i| (MOFFAT_BETA_RANGE.0..=MOFFAT_BETA_RANGE.1).contains(&q[i]))
+            }
+        };
+        let pos_ok = self
+            .guesses
+            .iter()
+            .enumerate()
+            .all(|(k, &(gx, gy))| (q[3 * k + 1] - gx).hypot(q[3 * k + 2] - gy) <= self.rf);
+        widths_ok && pos_ok && q.iter().all(|v| v.is_finite())
+    }
+
+    /// chi2 at `p`, and the normal equations there into `normal`.
+    fn evaluate(&self, p: &[f64], normal: Option<(&mut [f64], &mut [f64])>) -> f64 {
+        evaluate(p, self.lay, self.fixed_b, self.pixels, self.bx, normal)
+    }
+
+    /// The damped Levenberg-Marquardt iteration from `p`.
+    fn solve(&self, mut p: Vec<f64>, max_iter: u32) -> Solution {
+        let n = self.lay.n;
+        let mut a = vec![0.0; n * n];
+        let mut g = vec![0.0; n];
+        // The trial point's normal equations are built with its chi-square (same operations,
+        // bit-identical chi-square): an accepted step then needs no second evaluation.
+        let mut a_trial = vec![0.0; n * n];
+        let mut g_trial = vec![0.0; n];
+        let mut chi2 = self.evaluate(&p, Some((&mut a, &mut g)));
+        let mut lambda = 1e-3;
+        let mut converged = false;
+        let mut iterations = 0;
+        while iterations < max_iter {
+            iterations += 1;
+            let mut damped = a.clone();
+            for i in 0..n {
+                let d = a[i * n + i];
+                damped[i * n + i] = d + lambda * d.max(1e-300);
+            }
+            let step = if cholesky(&mut damped, n) {
+                Some(cholesky_solve(&damped, n, &g))
+            } else {
+                None
+            };
+            let trial: Option<Vec<f64>> = step.map(|d| p.iter().zip(&d).map(|(x, dx)| x + dx).collect());
+            let improved = match &trial {
+                Some(q) if self.acceptable(q) => {
+                    let c = self.evaluate(q, Some((&mut a_trial, &mut g_trial)));
+                    (c <= chi2).then_some(c)
+                }
+                _ => None,
+            };
+            match (improved, trial) {
+                (Some(c), Some(q)) => {
+                    let small_step = p.iter().zip(&q).all(|(x, y)| (x - y).abs() <= 1e-10 * (x.abs() + 1e-6));
+                    let small_gain = chi2 - c <= 1e-13 * chi2;
+                    p = q;
+                    chi2 = c;
+                    std::mem::swap(&mut a, &mut a_trial);
+                    std::mem::swap(&mut g, &mut g_trial);
+                    lambda = (lambda * 0.1).max(1e-12);
+                    if small_step || small_gain || chi2 == 0.0 {
+                        converged = true;
+                        break;
+                    }
+                }
+                _ => {
+                    lambda *= 10.0;
+                    if lambda > 1e12 {
+                        // No downhill step exists at working precision: we are at the minimum.
+                        converged = true;
+                        break;
+                    }
+                }
+            }
+        }
+        Solution {
+            p,
+            chi2,
+            a,
+            iterations,
+            converged,
+        }
+    }
+}
+
+/// The result: covariance from the undamped normal matrix, stars, shape, names.
+fn finish(problem: &Problem, sol: Solution, params: &PsfFitParams, weighted: bool) -> Result<PsfFit, PsfFitError> {
+    let (lay, p, chi2) = (problem.lay, &sol.p, sol.chi2);
+    let n = lay.n;
+    let mut l = sol.a.clone();
+    if !cholesky(&mut l, n) {
+        return Err(PsfFitError::Singular);
+    }
+    let dof = problem.pixels.len() - n;
+    let scale = if weighted { 1.0 } else { chi2 / dof as f64 };
+    let mut cov = vec![vec![0.0; n]; n];
+    for j in 0..n {
+        let mut e = vec![0.0; n];
+        e[j] = 1.0;
+        let col = cholesky_solve(&l, n, &e);
+        for i in 0..n {
+            cov[i][j] = col[i] * scale;
+        }
+    }
+    let err = |i: usize| cov[i][i].max(0.0).sqrt();
+    let stars = (0..lay.n_src)
+        .map(|k| PsfStar {
+            flux: p[3 * k],
+            x: p[3 * k + 1],
+            y: p[3 * k + 2],
+            flux_err: err(3 * k),
+            x_err: err(3 * k + 1),
+            y_err: err(3 * k + 2),
+        })
+        .collect();
+    let mut names: Vec<String> = (0..lay.n_src)
+        .flat_map(|k| [format!("flux_{k}"), format!("x_{k}"), format!("y_{k}")])
+        .collect();
+    let (sigma_x, sigma_y, alpha, beta) = match lay.moffat {
+        None => {
+            names.push("sigma_x".into());
+            if params.elliptical {
+                names.push("sigma_y".into());
+            }
+            (p[lay.i_sx], p[lay.i_sy], f64::NAN, f64::NAN)
+        }
+        Some(_) => {
+            names.push("alpha".into());
+            if lay.i_beta.is_some() {
+                names.push("beta".into());
+            }
+            let (a, b) = (p[lay.i_sx], lay.beta(p));
+            let s = moffat_fwhm(a, b) / FWHM_PER_SIGMA;
+            (s, s, a, b)
+        }
+    };
+    if lay.i_b.is_some() {
+        names.push("background".into());
+    }
+    Ok(PsfFit {
+        stars,
+        model: params.model,
+        sigma_x,
+        sigma_y,
+        alpha,
+        beta,
+        background: background_of(p, lay, params.background),
+        covariance: cov,
+        param_names: names,
+        chi2,
+        dof,
+        n_pixels: problem.pixels.len(),
+        iterations: sol.iterations,
+        converged: sol.converged,
+    })
+}
