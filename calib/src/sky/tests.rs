@@ -114,6 +114,7 @@ fn additive_scaling_removes_additive_level_changes_exactly() {
     let opts = SkyOptions {
         scaling: SkyScaling::Additive,
         cosmic_rays: None,
+        ..SkyOptions::default()
     };
     let p = Profile::sofi();
     let out = sky_subtract(&frames, &p, &opts).unwrap();
