@@ -268,14 +268,12 @@ pub fn apply_mask_in_place(frame: &mut Frame, bad: &Array2<u8>) -> Result<()> {
     }
     let mut newly = 0usize;
     let mut total = 0usize;
+    // Branch-free (vectorised): this runs on every frame of the night.
     Zip::from(&mut frame.mask).and(bad).for_each(|m, &b| {
-        if b != 0 {
-            total += 1;
-            if *m & mask::BAD == 0 {
-                newly += 1;
-            }
-            *m |= mask::BAD;
-        }
+        let hit = u8::from(b != 0);
+        total += hit as usize;
+        newly += (hit & u8::from(*m & mask::BAD == 0)) as usize;
+        *m |= hit * mask::BAD;
     });
     frame.history.push(crate::frame::HistoryRecord::new(
         "badpix",
