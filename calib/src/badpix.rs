@@ -249,6 +249,13 @@ pub fn combine_masks(a: &Array2<u8>, b: &Array2<u8>) -> Result<Array2<u8>> {
 /// A copy of `frame` with [`mask::BAD`] set wherever `bad` is nonzero; data, variance and
 /// the other mask bits are unchanged. Appends a `badpix` history record.
 pub fn apply_mask(frame: &Frame, bad: &Array2<u8>) -> Result<Frame> {
+    let mut out = frame.clone();
+    apply_mask_in_place(&mut out, bad)?;
+    Ok(out)
+}
+
+/// [`apply_mask`] in place (no copy of the frame); on error the frame is unchanged.
+pub fn apply_mask_in_place(frame: &mut Frame, bad: &Array2<u8>) -> Result<()> {
     if bad.dim() != frame.mask.dim() {
         return Err(stage_err(format!(
             "{}: bad-pixel mask is {}x{} but the frame is {}x{} (ny x nx)",
@@ -259,22 +266,20 @@ pub fn apply_mask(frame: &Frame, bad: &Array2<u8>) -> Result<Frame> {
             frame.shape().1
         )));
     }
-    let mut out = frame.clone();
     let mut newly = 0usize;
     let mut total = 0usize;
-    Zip::from(&mut out.mask).and(bad).for_each(|m, &b| {
-        if b != 0 {
-            total += 1;
-            if *m & mask::BAD == 0 {
-                newly += 1;
-            }
-            *m |= mask::BAD;
-        }
+    // Branch-free (vectorised): this runs on every frame of the night.
+    Zip::from(&mut frame.mask).and(bad).for_each(|m, &b| {
+        let hit = u8::from(b != 0);
+        total += hit as usize;
+        newly += (hit & u8::from(*m & mask::BAD == 0)) as usize;
+        *m |= hit * mask::BAD;
     });
-    Ok(out.with_history(
+    frame.history.push(crate::frame::HistoryRecord::new(
         "badpix",
         format!("bad-pixel mask applied: {total} pixels BAD ({newly} newly); data unchanged"),
-    ))
+    ));
+    Ok(())
 }
 
 #[cfg(test)]

@@ -177,9 +177,11 @@ pub fn night_flats(
     let crop = !params.full_frame_sky && params.save_intermediate.is_none() && r1 > r0;
     let cropped_profile = profile.cropped_rows(r0, r1);
     for (filter, paths) in superflat_frames {
+        // Only the rows used are read (cfitsio reads a row range).
+        let rows = crop.then_some((r0, r1));
         let frames: Vec<sofipol_calib::Frame> = paths
             .par_iter()
-            .filter_map(|p| sofipol_calib::fits::read_frame(p).ok())
+            .filter_map(|p| sofipol_calib::fits::read_frame_rows(p, rows).ok())
             .map(|f| {
                 if crop && f.shape().0 >= r1 {
                     f.crop_rows(r0, r1)

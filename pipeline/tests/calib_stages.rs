@@ -107,6 +107,7 @@ fn sky_subtraction_is_unbiased_its_variance_map_is_right_and_fluxes_survive() {
             let opts = SkyOptions {
                 scaling,
                 cosmic_rays: None,
+                ..SkyOptions::default()
             };
             let (out, rep) = sky_subtract_with_report(&raw, &p, &opts).unwrap();
             assert_eq!(rep.median_of, 4);
@@ -231,6 +232,7 @@ fn cosmic_case(psf: &str) -> (usize, usize, usize, usize) {
     let opts = SkyOptions {
         scaling: SkyScaling::Multiplicative,
         cosmic_rays: Some(CosmicOptions::default()),
+        ..SkyOptions::default()
     };
     let (out, rep) = sky_subtract_with_report(&raw, &p, &opts).unwrap();
     let (mut hit_strong, mut found_strong, mut false_flags, mut star_flags) = (0, 0, 0, 0);
@@ -331,6 +333,7 @@ fn print_stage_timings() {
                 &SkyOptions {
                     scaling: SkyScaling::Multiplicative,
                     cosmic_rays: None,
+                    ..SkyOptions::default()
                 },
             )
             .unwrap(),

@@ -11,7 +11,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use serde::Serialize;
-use sofipol_calib::sky::SkyScaling;
+use sofipol_calib::sky::{SkyEstimator, SkyScaling};
 use sofipol_pipeline::accuracy::{AccuracyConfig, BinReport};
 use sofipol_pipeline::photometry::{Method, PsfModel};
 use sofipol_pipeline::plots::{Figure, LegendPos, Panel, Series, Style};
@@ -119,6 +119,30 @@ pub fn variants() -> Vec<Variant> {
             "--params: [sky] scaling=\"additive\"",
             false,
             |_, p| p.sky.scaling = SkyScaling::Additive,
+        ),
+        v(
+            G_REDUCTION,
+            "sky: 3-sigma clipped mean of the other dithers",
+            "--params: [sky] estimator=\"clipped_mean\"",
+            false,
+            |_, p| p.sky.estimator = SkyEstimator::ClippedMean,
+        ),
+        v(
+            G_REDUCTION,
+            "sky: median, sources of a first pass masked (second pass)",
+            "--params: [sky] mask_sources=true",
+            false,
+            |_, p| p.sky.mask_sources = true,
+        ),
+        v(
+            G_REDUCTION,
+            "sky: clipped mean, sources masked (second pass)",
+            "--params: [sky] estimator=\"clipped_mean\" mask_sources=true",
+            false,
+            |_, p| {
+                p.sky.estimator = SkyEstimator::ClippedMean;
+                p.sky.mask_sources = true;
+            },
         ),
         v(
             G_REDUCTION,

@@ -275,7 +275,7 @@ fn print_night_runs(runs: &[NightRun], files: &[std::path::PathBuf], last: &str)
     );
     for line in last
         .lines()
-        .filter(|l| l.contains("stage time") || l.contains("calibration"))
+        .filter(|l| l.contains("stage time") || l.contains("calibration") || l.starts_with("flats: "))
     {
         println!("  last run: {line}");
     }
@@ -313,14 +313,7 @@ fn print_night_runs(runs: &[NightRun], files: &[std::path::PathBuf], last: &str)
         "  ratio CPU / cat:                                 {:.1}x",
         med(&|r| r.stages.get("cpu") / r.cat)
     );
-    println!(
-        "  stage times (s, wall time per target summed over targets, both workers; median): read {:.2}, bad pixels {:.2}, sky {:.2}, measure {:.2}, write {:.2}",
-        med(&|r| r.stages.get("read")),
-        med(&|r| r.stages.get("bad pixels")),
-        med(&|r| r.stages.get("sky")),
-        med(&|r| r.stages.get("measure")),
-        med(&|r| r.stages.get("write"))
-    );
+    print_stages(runs);
     println!(
         "  peak RSS: {:.0} MB (max over runs)",
         runs.iter().map(|r| r.stages.get("rss")).fold(0.0, f64::max)
@@ -613,6 +606,44 @@ fn print_truth_pulls(who: &str, p: &[(String, f64)]) {
     );
 }
 
+
+/// Median per-stage times and the cost of calibration (issue 8: <= 15 % of the night).
+fn print_stages(runs: &[NightRun]) {
+    let med = |f: &dyn Fn(&NightRun) -> f64| -> f64 {
+        let mut v: Vec<f64> = runs.iter().map(f).filter(|x| x.is_finite()).collect();
+        v.sort_by(|a, b| a.total_cmp(b));
+        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+    };
+    let g = |r: &NightRun, k: &str| r.stages.get(k);
+    println!(
+        "  stage times (s, wall time per target summed over targets, both workers; median): read {:.2}, bad pixels {:.2}, flat {:.2}, sky {:.2}, measure {:.2}, write {:.2}",
+        med(&|r| g(r, "read")),
+        med(&|r| g(r, "bad pixels")),
+        med(&|r| g(r, "flat")),
+        med(&|r| g(r, "sky")),
+        med(&|r| g(r, "measure")),
+        med(&|r| g(r, "write"))
+    );
+    // Share of the night: the flat stage's share of the summed stage times, plus the
+    // night-wide steps (flat build, standards: run on the whole pool) as a share of the wall.
+    let share = |r: &NightRun| {
+        let stages: f64 = ["read", "bad pixels", "flat", "sky", "measure", "write"]
+            .iter()
+            .map(|k| g(r, k))
+            .filter(|v| v.is_finite())
+            .sum();
+        let build = g(r, "flat build").max(0.0) + g(r, "calibration").max(0.0);
+        100.0 * (g(r, "flat") / stages + build / g(r, "wall"))
+    };
+    println!(
+        "  calibration (issue 8: <= 15 % of the night): flat build {:.2} s + flat stage {:.2} s + standards {:.2} s = {:.1} % of the night (median)",
+        med(&|r| g(r, "flat build")),
+        med(&|r| g(r, "flat")),
+        med(&|r| g(r, "calibration")),
+        med(&share)
+    );
+}
+
 /// One repeat of `bench night`.
 struct NightRun {
     wall: f64,
@@ -648,6 +679,15 @@ fn parse_stage_line(stderr: &str) -> StageLine {
                 out.push((name, v));
             }
         }
+    }
+    // `flats: superflat in 0.59 s` (the night's flats, built before the targets).
+    if let Some(v) = stderr
+        .lines()
+        .find_map(|l| l.strip_prefix("flats: "))
+        .and_then(|l| l.rsplit_once(" in "))
+        .and_then(|(_, t)| t.trim_end_matches(" s").trim().parse::<f64>().ok())
+    {
+        out.push(("flat build".into(), v));
     }
     StageLine(out)
 }

@@ -154,6 +154,24 @@ fn apply_divides_and_propagates_the_flat_noise() {
     assert!(((out.variance.as_ref().unwrap()[[400, 400]] as f64) / want - 1.0).abs() < 1e-2);
     assert_eq!(out.mask[[400, 10]] & mask::BAD, mask::BAD);
     assert_eq!(out.history.last().unwrap().stage, "flat");
+    // In place on the target strips, reading those rows of the full-height flat: the same
+    // numbers bit for bit as the cropped frame divided by the cropped flat.
+    let (r0, r1) = (g.o_target[0], g.e_target[1]);
+    let cp = profile().cropped_rows(r0, r1);
+    let crop = fr.crop_rows(r0, r1);
+    let want = apply_flat(&crop, &flat.crop_rows(r0, r1), &cp).unwrap();
+    let mut got = crop.clone();
+    apply_flat_in_place(&mut got, &flat, r0, &cp).unwrap();
+    assert_eq!(got.data, want.data);
+    assert_eq!(got.variance, want.variance);
+    assert_eq!(got.mask, want.mask);
+    assert_eq!(got.mask[[400 - r0, 10]] & mask::BAD, mask::BAD);
+    // A flat too short for the rows asked is refused, the frame left as it was.
+    let mut same = crop.clone();
+    let e = apply_flat_in_place(&mut same, &flat, g.ny - 10, &cp).unwrap_err();
+    assert!(e.to_string().contains("differs from the flat's"), "{e}");
+    assert_eq!(same.data, crop.data);
+    assert!(same.variance.is_none());
 }
 
 #[test]

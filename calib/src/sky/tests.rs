@@ -114,6 +114,7 @@ fn additive_scaling_removes_additive_level_changes_exactly() {
     let opts = SkyOptions {
         scaling: SkyScaling::Additive,
         cosmic_rays: None,
+        ..SkyOptions::default()
     };
     let p = Profile::sofi();
     let out = sky_subtract(&frames, &p, &opts).unwrap();
@@ -168,4 +169,138 @@ fn cosmic_flags_single_pixel_and_track_but_not_a_broad_bump() {
     .unwrap_err()
     .to_string();
     assert!(e.contains("a.fits") && e.contains("variance"), "{e}");
+}
+
+/// Frames of 1024 x 64 px: level `l` in the strips plus Gaussian noise (sigma `s`), 0 off-strip.
+fn noisy_frames(levels: &[f32], s: f64, seed: u64) -> Vec<Frame> {
+    let p = Profile::sofi();
+    let mut g = Gauss(seed);
+    levels
+        .iter()
+        .map(|&l| {
+            let d = Array2::from_shape_fn((1024, 64), |(y, _)| {
+                if p.geometry.row_in_strip(y) {
+                    l + (s * g.n()) as f32
+                } else {
+                    0.0
+                }
+            });
+            frame_from(d, 1, 0.0)
+        })
+        .collect()
+}
+
+#[test]
+fn clipped_mean_matches_a_slow_reference_and_drops_outliers() {
+    let p = Profile::sofi();
+    let mut frames = noisy_frames(&[1000.0, 1040.0, 980.0, 1010.0, 1020.0], 6.0, 5);
+    // A bright outlier in frame 1 (a star) must not enter the other frames' skies.
+    frames[1].data[[450, 20]] += 3000.0;
+    let opts = SkyOptions {
+        estimator: SkyEstimator::ClippedMean,
+        cosmic_rays: None,
+        ..SkyOptions::default()
+    };
+    let (out, rep) = sky_subtract_with_report(&frames, &p, &opts).unwrap();
+    assert_eq!(rep.median_variance_factor, 1.0);
+    let inv_g = (1.0 / p.detector.effective_gain(1)) as f32;
+    let rv = p.detector.read_variance_adu2(1) as f32;
+    let n = frames.len();
+    for i in 0..n {
+        for (y, x) in [(450, 20), (451, 3), (700, 63), (350, 40)] {
+            // Reference: median of the other level-normalized values, drop those more than
+            // 3 sigma away, mean of the rest.
+            let mut v = Vec::new();
+            for j in (0..n).filter(|&j| j != i) {
+                let sc = (1.0 / rep.levels_adu[j]) as f32;
+                let r = frames[j].data[[y, x]];
+                v.push((r * sc, (r.max(0.0) * inv_g + rv).sqrt() * sc));
+            }
+            let mut s: Vec<f32> = v.iter().map(|a| a.0).collect();
+            s.sort_by(f32::total_cmp);
+            let med = (s[1] + s[2]) * 0.5;
+            let kept: Vec<f64> = v
+                .iter()
+                .filter(|a| (a.0 - med).abs() <= 3.0 * a.1)
+                .map(|a| a.0 as f64)
+                .collect();
+            let est = kept.iter().sum::<f64>() / kept.len() as f64;
+            let want = frames[i].data[[y, x]] as f64 - rep.levels_adu[i] * est;
+            let got = out[i].data[[y, x]] as f64;
+            assert!((got - want).abs() < 0.01, "frame {i} ({y}, {x}): {got} vs {want}");
+            if i != 1 && (y, x) == (450, 20) {
+                assert!(got.abs() < 30.0, "outlier leaked into the sky of frame {i}: {got}");
+            }
+        }
+    }
+    let h = &out[0].history.last().unwrap().detail;
+    assert!(
+        h.contains("3-sigma clipped mean") && h.contains("c(4) = 1.000000"),
+        "{h}"
+    );
+}
+
+#[test]
+fn masking_sources_removes_the_bias_of_a_star_in_the_other_dithers() {
+    let p = Profile::sofi();
+    // 3 dithers: each sky is the median of 2 values, their mean: a star in one of the other
+    // dithers enters at half its brightness.
+    let mut frames = noisy_frames(&[1000.0, 1000.0, 1000.0], 0.0, 1);
+    for (j, f) in frames.iter_mut().enumerate() {
+        let cx = 10.0 + 20.0 * j as f32;
+        for y in 440..460 {
+            for x in 0..64 {
+                let r2 = (y as f32 - 450.0).powi(2) + (x as f32 - cx).powi(2);
+                f.data[[y, x]] += 5000.0 * (-r2 / (2.0 * 1.5f32.powi(2))).exp();
+            }
+        }
+    }
+    let plain = SkyOptions {
+        cosmic_rays: None,
+        ..SkyOptions::default()
+    };
+    let masked = SkyOptions {
+        mask_sources: true,
+        ..plain.clone()
+    };
+    let a = sky_subtract(&frames, &p, &plain).unwrap();
+    let b = sky_subtract(&frames, &p, &masked).unwrap();
+    // Frame 0 at the star of frame 1 (x = 30): -2500 without masking, ~0 with.
+    assert!(a[0].data[[450, 30]] < -2000.0, "{}", a[0].data[[450, 30]]);
+    assert!(b[0].data[[450, 30]].abs() < 1.0, "{}", b[0].data[[450, 30]]);
+    // The star of frame 0 itself is kept whole by both.
+    assert!((a[0].data[[450, 10]] - 5000.0).abs() < 1.0);
+    assert!((b[0].data[[450, 10]] - 5000.0).abs() < 1.0);
+    // Away from the stars nothing changes; where one dither was left out the sky variance
+    // is that of one value (c(1)/1 = 1 instead of c(2)/2 = 1/2).
+    assert_eq!(a[0].data[[700, 40]], b[0].data[[700, 40]]);
+    let va = a[0].variance.as_ref().unwrap();
+    let vb = b[0].variance.as_ref().unwrap();
+    assert_eq!(va[[700, 40]], vb[[700, 40]]);
+    let one = 1000.0 / p.detector.effective_gain(1) + p.detector.read_variance_adu2(1);
+    assert!((va[[700, 40]] as f64 / (1.5 * one) - 1.0).abs() < 1e-3);
+    assert!(
+        (vb[[450, 30]] as f64 / (2.0 * one) - 1.0).abs() < 1e-3,
+        "{} vs {}",
+        vb[[450, 30]],
+        2.0 * one
+    );
+    assert!(b[0].history.last().unwrap().detail.contains("second pass"));
+}
+
+#[test]
+fn sky_options_are_checked_and_defaults_are_not_written() {
+    let p = Profile::sofi();
+    let frames = noisy_frames(&[1000.0, 1000.0], 5.0, 2);
+    let bad = SkyOptions {
+        clip_sigma: 0.0,
+        ..SkyOptions::default()
+    };
+    let e = sky_subtract(&frames, &p, &bad).unwrap_err().to_string();
+    assert!(e.contains("sky.clip_sigma = 0"), "{e}");
+    let v = serde_json::to_value(SkyOptions::recommended()).unwrap();
+    assert!(v.get("estimator").is_none() && v.get("mask_sources").is_none(), "{v}");
+    let o: SkyOptions = serde_json::from_str(r#"{"estimator": "clipped_mean", "mask_sources": true}"#).unwrap();
+    assert_eq!(o.estimator, SkyEstimator::ClippedMean);
+    assert!(o.mask_sources && o.cosmic_rays.is_some());
 }

@@ -159,6 +159,25 @@ impl TargetParams {
             b.min_deviation_adu,
             ">= 0",
         )?;
+        let sk = &self.sky;
+        check(
+            sk.clip_sigma.is_finite() && sk.clip_sigma > 0.0,
+            "sky.clip_sigma",
+            sk.clip_sigma,
+            "> 0",
+        )?;
+        check(
+            sk.source_sigma.is_finite() && sk.source_sigma > 0.0,
+            "sky.source_sigma",
+            sk.source_sigma,
+            "> 0",
+        )?;
+        check(
+            sk.source_grow_px <= 10,
+            "sky.source_grow_px",
+            sk.source_grow_px,
+            "in 0..=10",
+        )?;
         if let Some(c) = &self.sky.cosmic_rays {
             check(
                 c.sigma_clip.is_finite() && c.sigma_clip > 0.0,

@@ -138,16 +138,7 @@ pub fn usable_frame(mut f: Frame, profile: &Profile, rows: Option<(usize, usize)
     }
     let n = f.data.len();
     // One pass over the pixels (this runs on every frame read); a copy only when needed.
-    let (n_bad, lo, hi) = f
-        .data
-        .iter()
-        .fold((0usize, f32::INFINITY, f32::NEG_INFINITY), |(k, a, b), &v| {
-            if v.is_finite() {
-                (k, a.min(v), b.max(v))
-            } else {
-                (k + 1, a, b)
-            }
-        });
+    let (n_bad, lo, hi) = finite_count_min_max(&f.data);
     if 2 * n_bad > n {
         return Err(format!(
             "{n_bad} of {n} pixels are not finite (NaN or Inf): frame unusable"
@@ -173,6 +164,48 @@ pub fn usable_frame(mut f: Frame, profile: &Profile, rows: Option<(usize, usize)
         );
     }
     Ok(f)
+}
+
+/// Non-finite count, min and max of the finite values (lanes of 8: vectorised; this
+/// pass runs over every pixel read).
+fn finite_count_min_max(a: &Array2<f32>) -> (usize, f32, f32) {
+    const L: usize = 16;
+    let Some(s) = a.as_slice() else {
+        return a.iter().fold((0, f32::INFINITY, f32::NEG_INFINITY), |(k, lo, hi), &v| {
+            if v.is_finite() {
+                (k, lo.min(v), hi.max(v))
+            } else {
+                (k + 1, lo, hi)
+            }
+        });
+    };
+    let (mut bad, mut lo, mut hi) = ([0u32; L], [f32::INFINITY; L], [f32::NEG_INFINITY; L]);
+    let mut c = s.chunks_exact(L);
+    for ch in &mut c {
+        for i in 0..L {
+            let v = ch[i];
+            // |v| < inf is false for NaN and +-inf; NaN compares false too.
+            let fin = v.abs() < f32::INFINITY;
+            bad[i] += u32::from(!fin);
+            let w = if fin { v } else { lo[i] };
+            lo[i] = if w < lo[i] { w } else { lo[i] };
+            let w = if fin { v } else { hi[i] };
+            hi[i] = if w > hi[i] { w } else { hi[i] };
+        }
+    }
+    let (mut k, mut l, mut h) = (
+        bad.iter().map(|&b| b as usize).sum::<usize>(),
+        lo.iter().copied().fold(f32::INFINITY, f32::min),
+        hi.iter().copied().fold(f32::NEG_INFINITY, f32::max),
+    );
+    for &v in c.remainder() {
+        if v.is_finite() {
+            (l, h) = (l.min(v), h.max(v));
+        } else {
+            k += 1;
+        }
+    }
+    (k, l, h)
 }
 
 /// Frames of one orientation already in memory: (POSANG, analyzer angle, frames, header
@@ -304,9 +337,10 @@ pub fn reduce_loaded(
     }
 }
 
-/// Divide every frame by the flat of its orientation (rotator angle and filter), cropped
-/// like the frames. Returns the frames and one provenance line per orientation; an
-/// orientation without a flat, or a flat that does not fit, is flagged and left as it is.
+/// Divide every frame by the flat of its orientation (rotator angle and filter), in place;
+/// frames holding only the rows `crop` use those rows of a full-height flat (no copy).
+/// Returns the frames and one provenance line per orientation; an orientation without a
+/// flat, or a flat that does not fit one of its frames, is flagged and left as it is.
 fn flat_field(
     orients: Vec<LoadedOrientation>,
     set: &FlatSet,
@@ -318,33 +352,31 @@ fn flat_field(
     let mut used = Vec::new();
     let out = orients
         .into_iter()
-        .map(|(pa, phi, frames, offs)| {
-            let Some(full) = set.for_frame(pa, filter) else {
+        .map(|(pa, phi, mut frames, offs)| {
+            let Some(flat) = set.for_frame(pa, filter) else {
                 flags.push(format!("no flat for POSANG {pa} filter {filter}: not flat-fielded"));
                 return (pa, phi, frames, offs);
             };
-            let cropped;
-            let flat = match crop {
-                Some((r0, r1)) if full.shape().0 >= r1 && frames.first().is_some_and(|f| f.shape().0 == r1 - r0) => {
-                    cropped = full.crop_rows(r0, r1);
-                    &cropped
-                }
-                _ => full,
+            let row0 = match crop {
+                Some((r0, r1)) if flat.shape().0 >= r1 && frames.first().is_some_and(|f| f.shape().0 == r1 - r0) => r0,
+                _ => 0,
             };
-            match frames
+            // Every frame is checked first: an orientation is flat-fielded whole or not at all.
+            if let Some(e) = frames
                 .iter()
-                .map(|f| flat::apply_flat(f, flat, profile))
-                .collect::<Result<Vec<_>, _>>()
+                .find_map(|f| flat::check_flat(f, flat, row0, profile).err())
             {
-                Ok(v) => {
-                    used.push(format!("POSANG {pa}: {}", full.describe()));
-                    (pa, phi, v, offs)
-                }
-                Err(e) => {
-                    flags.push(format!("POSANG {pa} not flat-fielded: {e}"));
-                    (pa, phi, frames, offs)
-                }
+                flags.push(format!("POSANG {pa} not flat-fielded: {e}"));
+                return (pa, phi, frames, offs);
             }
+            let res: Result<(), _> = frames
+                .iter_mut()
+                .try_for_each(|f| flat::apply_flat_in_place(f, flat, row0, profile));
+            match res {
+                Ok(()) => used.push(format!("POSANG {pa}: {}", flat.describe())),
+                Err(e) => flags.push(format!("POSANG {pa} partly flat-fielded: {e}")),
+            }
+            (pa, phi, frames, offs)
         })
         .collect();
     (out, used)
@@ -363,15 +395,10 @@ fn crop_rows(orients: Vec<LoadedOrientation>, r0: usize, r1: usize) -> Vec<Loade
     orients
         .into_iter()
         .map(|(pa, phi, frames, offs)| {
+            // Frames read as the strips already (the usual case) are moved, not copied.
             let frames = frames
-                .iter()
-                .map(|f| {
-                    if f.shape().0 >= r1 {
-                        f.crop_rows(r0, r1)
-                    } else {
-                        f.clone()
-                    }
-                })
+                .into_iter()
+                .map(|f| if f.shape().0 >= r1 { f.crop_rows(r0, r1) } else { f })
                 .collect();
             (pa, phi, frames, offs)
         })
@@ -440,22 +467,15 @@ fn subtract_sky(
             ));
             continue;
         }
-        let frames: Vec<Frame> = match mask {
-            Some(m) => match frames
-                .iter()
-                .map(|f| badpix::apply_mask(f, m))
-                .collect::<Result<Vec<_>, _>>()
-            {
-                Ok(v) => v,
-                Err(e) => {
-                    flags.push(format!("orientation POSANG {posang} dropped: {e}"));
-                    continue;
-                }
-            },
-            None => frames,
-        };
-        match sky::sky_subtract(&frames, profile, &params.sky) {
-            Ok(s) => cal.push(CalibratedOrientation {
+        let mut frames = frames;
+        if let Some(m) = mask {
+            if let Err(e) = frames.iter_mut().try_for_each(|f| badpix::apply_mask_in_place(f, m)) {
+                flags.push(format!("orientation POSANG {posang} dropped: {e}"));
+                continue;
+            }
+        }
+        match sky::sky_subtract_owned(frames, profile, &params.sky) {
+            Ok((s, _)) => cal.push(CalibratedOrientation {
                 posang_deg: posang,
                 analyzer_deg: phi,
                 frames: s,
