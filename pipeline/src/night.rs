@@ -345,7 +345,17 @@ pub fn night_bad_pixel_mask(
     if frames.len() < 3 {
         return None;
     }
-    let (mask, _report) = sofipol_calib::badpix::detect_bad_pixels(&frames, profile, opts).ok()?;
+    // Where each frame put its target (header offset): with 2 dithers per sequence half
+    // of the picks hold a star on the same pixels, and the stack must be built per position.
+    let offsets: Option<Vec<[f64; 2]>> = frames
+        .iter()
+        .map(|f| match sofipol_calib::classify::classify(&f.header, profile) {
+            sofipol_calib::classify::Classification::Science(info) => Some(info.offset_px),
+            _ => None,
+        })
+        .collect();
+    let (mask, _report) =
+        sofipol_calib::badpix::detect_bad_pixels_at(&frames, offsets.as_deref(), profile, opts).ok()?;
     Some((mask, frames.iter().map(|f| f.path().display().to_string()).collect()))
 }
 

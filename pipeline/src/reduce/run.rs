@@ -224,7 +224,10 @@ pub fn reduce_loaded(
     if all.is_empty() {
         return failed(seq, "no readable frame".into(), &flags, failures, times);
     }
-    let mask = match bad_pixel_mask(&all, crop, night_mask, profile, params, &mut flags) {
+    // Header offsets of every frame (the target's detector position), when each frame has one.
+    let offsets: Vec<[f64; 2]> = orients.iter().flat_map(|o| o.3.iter().copied()).collect();
+    let offsets = (offsets.len() == all.len()).then_some(offsets.as_slice());
+    let mask = match bad_pixel_mask(&all, offsets, crop, night_mask, profile, params, &mut flags) {
         Ok(m) => m,
         Err(e) => return failed(seq, e.to_string(), &flags, failures, times),
     };
@@ -388,9 +391,12 @@ fn crop_mask(m: &Array2<u8>, crop: Option<(usize, usize)>) -> Array2<u8> {
 
 /// The bad-pixel mask of a sequence: the calibration mask (settings), combined with the
 /// night's mask when given, else with defects detected on the sequence's own frames
-/// (at least 3). An error fails the target; a failed detection is only flagged.
+/// (at least 3; stacked per dither position when one position holds half of them, see
+/// [`badpix::detect_bad_pixels_at`]). An error fails the target; a failed detection is
+/// only flagged.
 fn bad_pixel_mask(
     all: &[&Frame],
+    offsets: Option<&[[f64; 2]]>,
     crop: Option<(usize, usize)>,
     night_mask: Option<&Array2<u8>>,
     profile: &Profile,
@@ -409,7 +415,7 @@ fn bad_pixel_mask(
             None => nm,
         });
     } else if !params.no_detect_bad_pixels && all.len() >= 3 {
-        match badpix::detect_bad_pixels(all, profile, &params.bad_pixels) {
+        match badpix::detect_bad_pixels_at(all, offsets, profile, &params.bad_pixels) {
             Ok((m, _report)) => {
                 mask = Some(match mask {
                     Some(c) => badpix::combine_masks(&c, &m).map_err(|e| Error::calib("calibration mask", e))?,
