@@ -201,6 +201,9 @@ pub fn reduce_loaded(
     let mut times = StageTimes::default();
     let failures = Vec::new();
     let mut flags: Vec<String> = seq.problems();
+    if let Some(m) = mixed_exposure(seq) {
+        flags.push(m);
+    }
     // Dithers that do not move leave the star in its own sky median: the result would be
     // wrong without a sign of it (gamma off by 10 deg and more, passing the cut). Refused.
     let still = seq.stationary_orientations();
@@ -507,4 +510,29 @@ fn distinct_analyzer_angles(cal: &[CalibratedOrientation]) -> usize {
     v.sort();
     v.dedup();
     v.len()
+}
+
+/// A flag when the exposures of a sequence differ in DIT (or EXPTIME) or NDIT: such
+/// frames are normalised, not refused. The data are ADU per DIT averaged over NDIT reads,
+/// so NDIT changes only the noise (each frame's variance uses its own NDIT); a longer DIT
+/// scales sky and stars alike, so each frame's sky comes from the other dithers scaled to
+/// its own sky level (multiplicative sky scaling: exact; additive: the sky pattern is not
+/// rescaled) and F = (o - e)/(o + e) is a flux ratio within one frame.
+pub fn mixed_exposure(seq: &Sequence) -> Option<String> {
+    let mut dits: Vec<f64> = Vec::new();
+    let mut ndits: Vec<u32> = Vec::new();
+    for e in seq.orientations.iter().flat_map(|o| &o.exposures) {
+        if !dits.iter().any(|d| (d - e.dit_s).abs() <= 1e-6 * d.abs().max(1e-9)) {
+            dits.push(e.dit_s);
+        }
+        if !ndits.contains(&e.ndit) {
+            ndits.push(e.ndit);
+        }
+    }
+    (dits.len() > 1 || ndits.len() > 1).then(|| {
+        format!(
+            "mixed_exposure: DIT {dits:?} s, NDIT {ndits:?} within the sequence: normalised \
+             (each frame's sky scaled to its own level, F a flux ratio within a frame, variance from its own NDIT)"
+        )
+    })
 }
