@@ -610,3 +610,68 @@ fn a_night_of_two_dithers_per_orientation_measures_every_component() {
         }
     }
 }
+
+/// Issue 9, item 5: a sequence of another frame size (Gamma, 1024 rows x 512 columns,
+/// observed first in the night) used to give the night's bad-pixel mask its size: every valid target then
+/// failed on the mask. The night mask is built only from frames of the profile's detector
+/// size; Gamma's frames are refused by name ("detector is 1024 x 1024") and Alpha and
+/// Beta come out exactly as in a night without Gamma.
+#[test]
+fn a_sequence_of_another_frame_size_fails_no_valid_target_via_the_night_mask() {
+    use sofipol_calib::fits;
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    // Without the night's superflat, which Gamma's frames would change (not the point here).
+    let clean_out = dir.path().join("clean.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&clean_out), "-q", "--no-png", "--no-flat"]);
+    assert_eq!(code, 0, "{err}");
+    let clean = catalog(&clean_out);
+    let gamma = SCENE
+        .replace("name = \"hx\"", "name = \"small\"")
+        .replace("dithers = 3", "dithers = 3\nstart_ut = \"00:10:00\"")
+        .replace("name = \"Alpha\"", "name = \"Gamma\"")
+        .replace("name = \"Beta\"", "name = \"Delta\"");
+    let gamma = gamma[..gamma.find("[[binary]]\nname = \"Delta\"").unwrap()].to_string();
+    let scene = dir.path().join("gamma.toml");
+    std::fs::write(&scene, gamma).unwrap();
+    let g = dir.path().join("gamma");
+    let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&g), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    let mut n_small = 0;
+    for e in std::fs::read_dir(&g).unwrap() {
+        let p = e.unwrap().path();
+        if p.extension().is_some_and(|x| x == "fits") {
+            let mut f = fits::read_frame(&p).unwrap();
+            f.data = f.data.slice(ndarray::s![.., ..512]).to_owned();
+            f.mask = f.mask.slice(ndarray::s![.., ..512]).to_owned();
+            fits::write_frame(&n.join(p.file_name().unwrap()), &f, &Default::default()).unwrap();
+            n_small += 1;
+        }
+    }
+    assert_eq!(n_small, 6);
+    let out = dir.path().join("c.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--no-flat"]);
+    assert_eq!(code, 2, "{err}");
+    let c = catalog(&out);
+    for name in ["Alpha", "Beta"] {
+        assert_eq!(target(&c, name)["status"], "ok", "{}", target(&c, name));
+        assert_eq!(
+            target(&c, name)["components"],
+            target(&clean, name)["components"],
+            "{name}"
+        );
+    }
+    assert_eq!(target(&c, "Gamma")["status"], "failed");
+    let fl = failures(&c);
+    let small: Vec<_> = fl.iter().filter(|(f, _)| f.contains("Gamma")).collect();
+    assert_eq!(small.len(), 6, "{fl:?}");
+    assert!(
+        small.iter().all(|(_, e)| e.contains("detector is 1024 x 1024")),
+        "{fl:?}"
+    );
+    let from = c["provenance"]["night_bad_pixel_mask_from"].as_array().unwrap();
+    assert!(
+        from.len() >= 3 && from.iter().all(|f| !f.as_str().unwrap().contains("Gamma")),
+        "{from:?}"
+    );
+}

@@ -340,7 +340,10 @@ pub fn night_bad_pixel_mask(
         .par_iter()
         .filter_map(|p| sofipol_calib::fits::read_frame(p).ok())
         .collect();
-    let shape = frames.first()?.shape();
+    // Only frames of the profile's detector size (a sequence of another size, observed
+    // first, used to give the mask its size, and every valid target then failed on it;
+    // such frames are refused by name when their sequence is reduced).
+    let shape = (profile.geometry.ny, profile.geometry.nx);
     let frames: Vec<&sofipol_calib::Frame> = frames.iter().filter(|f| f.shape() == shape).collect();
     if frames.len() < 3 {
         return None;

@@ -392,6 +392,11 @@ fn crop_mask(m: &Array2<u8>, crop: Option<(usize, usize)>) -> Array2<u8> {
     }
 }
 
+/// Whether a full-frame mask has `nx` columns and at least `ny` rows.
+fn nm_fits(m: Option<&Array2<u8>>, ny: usize, nx: usize) -> bool {
+    m.is_some_and(|m| m.dim().1 == nx && m.dim().0 >= ny)
+}
+
 /// The bad-pixel mask of a sequence: the calibration mask (settings), combined with the
 /// night's mask when given, else with defects detected on the sequence's own frames
 /// (at least 3; stacked per dither position when one position holds half of them, see
@@ -411,6 +416,23 @@ fn bad_pixel_mask(
         let m = badpix::load_mask(p).map_err(|e| Error::calib("calibration mask", e))?;
         mask = Some(crop_mask(&m, crop));
     }
+    let g = &profile.geometry;
+    let full = match crop {
+        // The night mask is full-frame (`profile` is already cut to the rows `crop`): it
+        // must have the frames' width and reach row r1. A mask of another geometry is
+        // not used (flagged) rather than failing the target.
+        Some((_, r1)) => nm_fits(night_mask, r1, g.nx),
+        None => nm_fits(night_mask, g.ny, g.nx),
+    };
+    if let (Some(nm), false) = (night_mask, full) {
+        flags.push(format!(
+            "night bad-pixel mask is {} x {} px, the frames {} px wide: not used, defects detected on this sequence",
+            nm.dim().0,
+            nm.dim().1,
+            g.nx
+        ));
+    }
+    let night_mask = night_mask.filter(|_| full);
     if let Some(nm) = night_mask {
         let nm = crop_mask(nm, crop);
         mask = Some(match mask {
