@@ -675,3 +675,40 @@ fn a_sequence_of_another_frame_size_fails_no_valid_target_via_the_night_mask() {
         "{from:?}"
     );
 }
+
+/// `export -o` onto its input catalog (the same path, or an alias through `..` or a
+/// symlink) is refused before anything is written, like `night`/`target -o`; the
+/// catalog is left as it was.
+#[test]
+fn export_never_overwrites_its_input_catalog() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    clean_catalog(dir.path(), &n);
+    let cat = dir.path().join("clean.json");
+    let before = std::fs::read(&cat).unwrap();
+    let alias = dir.path().join("night").join("..").join("clean.json");
+    let link = dir.path().join("link.json");
+    #[cfg(unix)]
+    std::os::unix::fs::symlink(&cat, &link).unwrap();
+    for (out, fmt) in [(&cat, "ecsv"), (&alias, "csv"), (&link, "fits")] {
+        if !out.exists() {
+            continue;
+        }
+        let (code, _, err) = run(&["export", s(&cat), "--format", fmt, "-o", s(out)]);
+        assert_ne!(code, 0, "{}: {err}", out.display());
+        assert!(err.contains("never overwrites its inputs"), "{err}");
+        assert_eq!(
+            std::fs::read(&cat).unwrap(),
+            before,
+            "{} overwrote the catalog",
+            out.display()
+        );
+    }
+    // A directory is refused too; a fresh file is written.
+    let (code, _, err) = run(&["export", s(&cat), "-o", s(dir.path())]);
+    assert_ne!(code, 0, "{err}");
+    let ok = dir.path().join("t.ecsv");
+    let (code, _, err) = run(&["export", s(&cat), "-o", s(&ok)]);
+    assert_eq!(code, 0, "{err}");
+    assert!(ok.is_file());
+}
