@@ -712,3 +712,71 @@ fn export_never_overwrites_its_input_catalog() {
     assert_eq!(code, 0, "{err}");
     assert!(ok.is_file());
 }
+
+/// `--flat FILE` of the wrong size is refused once, by name (a failure "calibration flat:
+/// ... detector is 1024 x 1024: not used", exit 2, provenance `flat.mode` "none"), and the
+/// targets are reduced exactly as with `--no-flat`. A flat with NaN pixels: they are bad
+/// pixels of the flat (counted in the provenance), so a dither whose aperture holds one
+/// is flagged `bad_pixels`: never a NaN, and a component from such dithers only never
+/// passes the cut.
+#[test]
+fn a_flat_file_of_the_wrong_size_or_with_nan_pixels_is_refused_or_flagged_by_name() {
+    use sofipol_calib::fits;
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let noflat = dir.path().join("noflat.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&noflat), "-q", "--no-png", "--no-flat"]);
+    assert_eq!(code, 0, "{err}");
+    let noflat = catalog(&noflat);
+    let mut f = fits::read_frame(&n.join("SOFI_hx_Alpha_01.fits")).unwrap();
+    let small = dir.path().join("small_flat.fits");
+    let mut g = f.clone();
+    g.data = ndarray::Array2::from_elem((512, 512), 1.0);
+    g.mask = ndarray::Array2::zeros((512, 512));
+    fits::write_frame(&small, &g, &Default::default()).unwrap();
+    let out = dir.path().join("c.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--flat", s(&small)]);
+    assert_eq!(code, 2, "{err}");
+    let c = catalog(&out);
+    let fl = failures(&c);
+    assert!(
+        fl.iter()
+            .any(|(file, e)| file.ends_with("small_flat.fits") && e.contains("detector is 1024 x 1024: not used")),
+        "{fl:?}"
+    );
+    assert_eq!(c["provenance"]["flat"]["mode"], "none");
+    for name in ["Alpha", "Beta"] {
+        assert_eq!(
+            target(&c, name)["components"],
+            target(&noflat, name)["components"],
+            "{name}"
+        );
+    }
+
+    // NaN pixels on every 7th diagonal: in every aperture.
+    f.data = ndarray::Array2::from_shape_fn((1024, 1024), |(y, x)| if (x + y) % 7 == 0 { f32::NAN } else { 1.0 });
+    f.mask = ndarray::Array2::zeros((1024, 1024));
+    let nan = dir.path().join("nan_flat.fits");
+    fits::write_frame(&nan, &f, &Default::default()).unwrap();
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--flat", s(&nan)]);
+    assert!(code == 0 || code == 2, "{err}");
+    let c = catalog(&out);
+    let bad = c["provenance"]["flat"]["flats"][0]["bad_pixels"].as_u64().unwrap();
+    assert!(bad > 140_000, "{}", c["provenance"]["flat"]);
+    for name in ["Alpha", "Beta"] {
+        for comp in components(target(&c, name)).as_array().unwrap() {
+            assert!(comp["q"].as_f64().is_some_and(f64::is_finite), "{comp}");
+            let flags: Vec<&str> = comp["flags"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|f| f.as_str().unwrap())
+                .collect();
+            assert!(flags.contains(&"bad_pixels"), "{name}: {flags:?}");
+            assert!(
+                !flags.contains(&"used_flagged_dithers") || comp["passes_cut"] == false,
+                "{comp}"
+            );
+        }
+    }
+}

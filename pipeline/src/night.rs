@@ -138,13 +138,32 @@ pub fn night_flats(
         return out;
     }
     if let Some(p) = &params.flat {
-        match read_flat(p) {
+        let want = (profile.geometry.ny, profile.geometry.nx);
+        match read_flat(p).and_then(|f| {
+            // A flat of another geometry would leave every orientation un-flat-fielded
+            // (flagged per target): refused once, by name, instead.
+            if f.shape() == want {
+                Ok(f)
+            } else {
+                Err(sofipol_calib::Error::Stage {
+                    stage: "flat",
+                    reason: format!(
+                        "image is {} x {} px (NAXIS2 x NAXIS1), the instrument profile's detector is {} x {}: not used",
+                        f.shape().0,
+                        f.shape().1,
+                        want.0,
+                        want.1
+                    ),
+                })
+            }
+        }) {
             Ok(f) => {
                 out.provenance = serde_json::json!({"mode": "file", "flats": [f.provenance()]});
                 out.set = Some(FlatSet { flats: vec![f] });
             }
             Err(e) => {
-                out.provenance = serde_json::json!({"mode": "none", "error": e.to_string()});
+                out.provenance =
+                    serde_json::json!({"mode": "none", "file": p.display().to_string(), "error": e.to_string()});
                 out.failures.push(Failure {
                     file: p.display().to_string(),
                     error: format!("calibration flat: {e}"),
