@@ -523,3 +523,231 @@ fn a_nan_pixel_is_a_bad_pixel_and_unusable_frames_are_dropped_by_name() {
     assert_eq!(target(&c, "Beta")["components"], target(&clean, "Beta")["components"]);
     assert_eq!(target(&c, "Beta")["status"], "ok");
 }
+
+/// Issue 9 (2 dithers): every target of a night sits on the same pixels for a given dither
+/// offset, so with 2 dithers per orientation half of the frames picked for the night's
+/// bad-pixel mask held a star on the same pixels: the mask took the star cores for
+/// defects and the primaries came out unmeasured ("photometry failed", q and u null, the
+/// standards' F wrong alike). The night mask is now stacked per dither position: both
+/// components of both targets are measured and agree with the simulated truth.
+#[test]
+fn a_night_of_two_dithers_per_orientation_measures_every_component() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = dir.path().join("night");
+    let scene = dir.path().join("scene2.toml");
+    std::fs::write(&scene, SCENE.replace("dithers = 3", "dithers = 2")).unwrap();
+    let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&n), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    let truth = catalog(&n.join("truth.json"));
+    std::fs::remove_file(n.join("truth.json")).unwrap();
+    let out = dir.path().join("c.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png"]);
+    assert_eq!(code, 0, "{err}");
+    let c = catalog(&out);
+    assert!(
+        c["provenance"]["night_bad_pixel_mask_from"]
+            .as_array()
+            .is_some_and(|a| a.len() >= 3),
+        "the night mask was not built: {}",
+        c["provenance"]
+    );
+    for name in ["Alpha", "Beta"] {
+        let t = target(&c, name);
+        assert_eq!(t["status"], "ok", "{t}");
+        let tt = truth["targets"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|x| x["object"] == name)
+            .unwrap();
+        for (comp, tc) in components(t)
+            .as_array()
+            .unwrap()
+            .iter()
+            .zip(tt["components"].as_array().unwrap())
+        {
+            for (k, sk) in [("q", "sigma_q"), ("u", "sigma_u")] {
+                let (v, sig, truth) = (
+                    comp[k].as_f64().unwrap_or(f64::NAN),
+                    comp[sk].as_f64().unwrap_or(f64::NAN),
+                    tc[k].as_f64().unwrap(),
+                );
+                assert!(
+                    ((v - truth) / sig).abs() < 4.0,
+                    "{name} {}: {k} {v} +- {sig}, truth {truth}: {comp}",
+                    comp["name"]
+                );
+            }
+        }
+    }
+}
+
+/// Issue 9, item 5: a sequence of another frame size (Gamma, 1024 rows x 512 columns,
+/// observed first in the night) used to give the night's bad-pixel mask its size: every valid target then
+/// failed on the mask. The night mask is built only from frames of the profile's detector
+/// size; Gamma's frames are refused by name ("detector is 1024 x 1024") and Alpha and
+/// Beta come out exactly as in a night without Gamma.
+#[test]
+fn a_sequence_of_another_frame_size_fails_no_valid_target_via_the_night_mask() {
+    use sofipol_calib::fits;
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    // Without the night's superflat, which Gamma's frames would change (not the point here).
+    let clean_out = dir.path().join("clean.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&clean_out), "-q", "--no-png", "--no-flat"]);
+    assert_eq!(code, 0, "{err}");
+    let clean = catalog(&clean_out);
+    let gamma = SCENE
+        .replace("name = \"hx\"", "name = \"small\"")
+        .replace("dithers = 3", "dithers = 3\nstart_ut = \"00:10:00\"")
+        .replace("name = \"Alpha\"", "name = \"Gamma\"")
+        .replace("name = \"Beta\"", "name = \"Delta\"");
+    let gamma = gamma[..gamma.find("[[binary]]\nname = \"Delta\"").unwrap()].to_string();
+    let scene = dir.path().join("gamma.toml");
+    std::fs::write(&scene, gamma).unwrap();
+    let g = dir.path().join("gamma");
+    let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&g), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    let mut n_small = 0;
+    for e in std::fs::read_dir(&g).unwrap() {
+        let p = e.unwrap().path();
+        if p.extension().is_some_and(|x| x == "fits") {
+            let mut f = fits::read_frame(&p).unwrap();
+            f.data = f.data.slice(ndarray::s![.., ..512]).to_owned();
+            f.mask = f.mask.slice(ndarray::s![.., ..512]).to_owned();
+            fits::write_frame(&n.join(p.file_name().unwrap()), &f, &Default::default()).unwrap();
+            n_small += 1;
+        }
+    }
+    assert_eq!(n_small, 6);
+    let out = dir.path().join("c.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--no-flat"]);
+    assert_eq!(code, 2, "{err}");
+    let c = catalog(&out);
+    for name in ["Alpha", "Beta"] {
+        assert_eq!(target(&c, name)["status"], "ok", "{}", target(&c, name));
+        assert_eq!(
+            target(&c, name)["components"],
+            target(&clean, name)["components"],
+            "{name}"
+        );
+    }
+    assert_eq!(target(&c, "Gamma")["status"], "failed");
+    let fl = failures(&c);
+    let small: Vec<_> = fl.iter().filter(|(f, _)| f.contains("Gamma")).collect();
+    assert_eq!(small.len(), 6, "{fl:?}");
+    assert!(
+        small.iter().all(|(_, e)| e.contains("detector is 1024 x 1024")),
+        "{fl:?}"
+    );
+    let from = c["provenance"]["night_bad_pixel_mask_from"].as_array().unwrap();
+    assert!(
+        from.len() >= 3 && from.iter().all(|f| !f.as_str().unwrap().contains("Gamma")),
+        "{from:?}"
+    );
+}
+
+/// `export -o` onto its input catalog (the same path, or an alias through `..` or a
+/// symlink) is refused before anything is written, like `night`/`target -o`; the
+/// catalog is left as it was.
+#[test]
+fn export_never_overwrites_its_input_catalog() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    clean_catalog(dir.path(), &n);
+    let cat = dir.path().join("clean.json");
+    let before = std::fs::read(&cat).unwrap();
+    let alias = dir.path().join("night").join("..").join("clean.json");
+    let link = dir.path().join("link.json");
+    #[cfg(unix)]
+    std::os::unix::fs::symlink(&cat, &link).unwrap();
+    for (out, fmt) in [(&cat, "ecsv"), (&alias, "csv"), (&link, "fits")] {
+        if !out.exists() {
+            continue;
+        }
+        let (code, _, err) = run(&["export", s(&cat), "--format", fmt, "-o", s(out)]);
+        assert_ne!(code, 0, "{}: {err}", out.display());
+        assert!(err.contains("never overwrites its inputs"), "{err}");
+        assert_eq!(
+            std::fs::read(&cat).unwrap(),
+            before,
+            "{} overwrote the catalog",
+            out.display()
+        );
+    }
+    // A directory is refused too; a fresh file is written.
+    let (code, _, err) = run(&["export", s(&cat), "-o", s(dir.path())]);
+    assert_ne!(code, 0, "{err}");
+    let ok = dir.path().join("t.ecsv");
+    let (code, _, err) = run(&["export", s(&cat), "-o", s(&ok)]);
+    assert_eq!(code, 0, "{err}");
+    assert!(ok.is_file());
+}
+
+/// `--flat FILE` of the wrong size is refused once, by name (a failure "calibration flat:
+/// ... detector is 1024 x 1024: not used", exit 2, provenance `flat.mode` "none"), and the
+/// targets are reduced exactly as with `--no-flat`. A flat with NaN pixels: they are bad
+/// pixels of the flat (counted in the provenance), so a dither whose aperture holds one
+/// is flagged `bad_pixels`: never a NaN, and a component from such dithers only never
+/// passes the cut.
+#[test]
+fn a_flat_file_of_the_wrong_size_or_with_nan_pixels_is_refused_or_flagged_by_name() {
+    use sofipol_calib::fits;
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let noflat = dir.path().join("noflat.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&noflat), "-q", "--no-png", "--no-flat"]);
+    assert_eq!(code, 0, "{err}");
+    let noflat = catalog(&noflat);
+    let mut f = fits::read_frame(&n.join("SOFI_hx_Alpha_01.fits")).unwrap();
+    let small = dir.path().join("small_flat.fits");
+    let mut g = f.clone();
+    g.data = ndarray::Array2::from_elem((512, 512), 1.0);
+    g.mask = ndarray::Array2::zeros((512, 512));
+    fits::write_frame(&small, &g, &Default::default()).unwrap();
+    let out = dir.path().join("c.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--flat", s(&small)]);
+    assert_eq!(code, 2, "{err}");
+    let c = catalog(&out);
+    let fl = failures(&c);
+    assert!(
+        fl.iter()
+            .any(|(file, e)| file.ends_with("small_flat.fits") && e.contains("detector is 1024 x 1024: not used")),
+        "{fl:?}"
+    );
+    assert_eq!(c["provenance"]["flat"]["mode"], "none");
+    for name in ["Alpha", "Beta"] {
+        assert_eq!(
+            target(&c, name)["components"],
+            target(&noflat, name)["components"],
+            "{name}"
+        );
+    }
+
+    // NaN pixels on every 7th diagonal: in every aperture.
+    f.data = ndarray::Array2::from_shape_fn((1024, 1024), |(y, x)| if (x + y) % 7 == 0 { f32::NAN } else { 1.0 });
+    f.mask = ndarray::Array2::zeros((1024, 1024));
+    let nan = dir.path().join("nan_flat.fits");
+    fits::write_frame(&nan, &f, &Default::default()).unwrap();
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--flat", s(&nan)]);
+    assert!(code == 0 || code == 2, "{err}");
+    let c = catalog(&out);
+    let bad = c["provenance"]["flat"]["flats"][0]["bad_pixels"].as_u64().unwrap();
+    assert!(bad > 140_000, "{}", c["provenance"]["flat"]);
+    for name in ["Alpha", "Beta"] {
+        for comp in components(target(&c, name)).as_array().unwrap() {
+            assert!(comp["q"].as_f64().is_some_and(f64::is_finite), "{comp}");
+            let flags: Vec<&str> = comp["flags"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|f| f.as_str().unwrap())
+                .collect();
+            assert!(flags.contains(&"bad_pixels"), "{name}: {flags:?}");
+            assert!(
+                !flags.contains(&"used_flagged_dithers") || comp["passes_cut"] == false,
+                "{comp}"
+            );
+        }
+    }
+}

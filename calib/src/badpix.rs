@@ -94,7 +94,57 @@ pub fn detect_bad_pixels(
     profile: &Profile,
     opts: &BadPixelOptions,
 ) -> Result<(Array2<u8>, BadPixelReport)> {
+    detect_bad_pixels_at(frames, None, profile, opts)
+}
+
+/// Frames within this distance (px, header offsets) are at one dither position for
+/// [`dither_groups`]: a star keeps most of its flux within a few FWHM (~4 px on SOFI).
+pub const SAME_POSITION_PX: f64 = 10.0;
+
+/// Group frames by dither position (header offsets (dx, dy), px): frames within
+/// [`SAME_POSITION_PX`] of a group's first frame join it. Returns the group of each frame
+/// (0, 1, ... in order of first appearance).
+pub fn dither_groups(offsets: &[[f64; 2]]) -> Vec<usize> {
+    let mut reps: Vec<[f64; 2]> = Vec::new();
+    offsets
+        .iter()
+        .map(|o| {
+            match reps
+                .iter()
+                .position(|r| (r[0] - o[0]).hypot(r[1] - o[1]) < SAME_POSITION_PX)
+            {
+                Some(g) => g,
+                None => {
+                    reps.push(*o);
+                    reps.len() - 1
+                }
+            }
+        })
+        .collect()
+}
+
+/// [`detect_bad_pixels`] knowing where the stars are: `offsets`, the header offset of each
+/// frame (None: unknown, every frame taken as its own position). The target of every
+/// sequence sits at the same detector position for a given dither offset, whatever the
+/// rotator angle, so the frames of one position all hold a star on the same pixels. When
+/// one position holds at least half of the frames (2 dithers per orientation: exactly
+/// half) the plain median keeps that star (the star core was masked as a defect and the
+/// target's flux lost). Then the stack is built per position instead: the median of each
+/// position's frames, and across positions the median (3 or more positions) or the
+/// per-pixel minimum (2 positions: the star is in one of them, a defect in both). One
+/// position only is an error (a star cannot be told from a defect).
+pub fn detect_bad_pixels_at(
+    frames: &[&Frame],
+    offsets: Option<&[[f64; 2]]>,
+    profile: &Profile,
+    opts: &BadPixelOptions,
+) -> Result<(Array2<u8>, BadPixelReport)> {
     let n = frames.len();
+    if let Some(o) = offsets {
+        if o.len() != n {
+            return Err(stage_err(format!("{} offsets for {n} frames", o.len())));
+        }
+    }
     if n < 3 {
         return Err(stage_err(format!(
             "{n} frames given: need at least 3 dithered frames so that stars drop out of the median"
@@ -160,7 +210,38 @@ pub fn detect_bad_pixels(
             .collect()
     };
     let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.data.view()).collect();
-    let med = stack::median_stack_affine(&views, &maps)?;
+    let groups = offsets.map(dither_groups).unwrap_or_else(|| (0..n).collect());
+    let n_groups = groups.iter().max().map_or(0, |g| g + 1);
+    let largest = (0..n_groups)
+        .map(|g| groups.iter().filter(|&&k| k == g).count())
+        .max()
+        .unwrap_or(0);
+    let med = if 2 * largest < n {
+        stack::median_stack_affine(&views, &maps)?
+    } else {
+        if n_groups < 2 {
+            return Err(stage_err(format!(
+                "all {n} frames at one dither position (header offsets within {SAME_POSITION_PX} px): \
+                 stars cannot be told from defects"
+            )));
+        }
+        let per_group: Vec<Array2<f32>> = (0..n_groups)
+            .map(|g| {
+                let idx: Vec<usize> = (0..n).filter(|&j| groups[j] == g).collect();
+                let v: Vec<ArrayView2<f32>> = idx.iter().map(|&j| views[j]).collect();
+                let m: Vec<Affine> = idx.iter().map(|&j| maps[j]).collect();
+                stack::median_stack_affine(&v, &m)
+            })
+            .collect::<Result<_>>()?;
+        if n_groups == 2 {
+            let mut lo = per_group[0].clone();
+            Zip::from(&mut lo).and(&per_group[1]).for_each(|a, &b| *a = a.min(b));
+            lo
+        } else {
+            let v: Vec<ArrayView2<f32>> = per_group.iter().map(|a| a.view()).collect();
+            stack::median_stack(&v)?
+        }
+    };
 
     // 2. Residual from a running median along x (all rows: the few blocked rows cost
     //    less than skipping them).

@@ -197,10 +197,11 @@ pub fn resolve_component(
     c.p_debiased = lp.p_debiased;
     c.gamma_deg = lp.gamma_deg;
     c.sigma_gamma_deg = sigma_gamma;
-    c.passes_cut = lp.passes_cut(cut_snr);
-    if !c.passes_cut {
+    if !lp.passes_cut(cut_snr) {
         c.flags.push("low_snr".into());
     }
+    // As in reduce::entry: a value from all-flagged dithers never passes the cut.
+    c.passes_cut = lp.passes_cut(cut_snr) && !c.flags.iter().any(|f| f == "used_flagged_dithers");
     if sol.uncalibrated {
         c.flags.push("uncalibrated".into());
     }

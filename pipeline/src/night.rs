@@ -138,13 +138,32 @@ pub fn night_flats(
         return out;
     }
     if let Some(p) = &params.flat {
-        match read_flat(p) {
+        let want = (profile.geometry.ny, profile.geometry.nx);
+        match read_flat(p).and_then(|f| {
+            // A flat of another geometry would leave every orientation un-flat-fielded
+            // (flagged per target): refused once, by name, instead.
+            if f.shape() == want {
+                Ok(f)
+            } else {
+                Err(sofipol_calib::Error::Stage {
+                    stage: "flat",
+                    reason: format!(
+                        "image is {} x {} px (NAXIS2 x NAXIS1), the instrument profile's detector is {} x {}: not used",
+                        f.shape().0,
+                        f.shape().1,
+                        want.0,
+                        want.1
+                    ),
+                })
+            }
+        }) {
             Ok(f) => {
                 out.provenance = serde_json::json!({"mode": "file", "flats": [f.provenance()]});
                 out.set = Some(FlatSet { flats: vec![f] });
             }
             Err(e) => {
-                out.provenance = serde_json::json!({"mode": "none", "error": e.to_string()});
+                out.provenance =
+                    serde_json::json!({"mode": "none", "file": p.display().to_string(), "error": e.to_string()});
                 out.failures.push(Failure {
                     file: p.display().to_string(),
                     error: format!("calibration flat: {e}"),
@@ -342,12 +361,25 @@ pub fn night_bad_pixel_mask(
         .par_iter()
         .filter_map(|p| sofipol_calib::fits::read_frame(p).ok())
         .collect();
-    let shape = frames.first()?.shape();
+    // Only frames of the profile's detector size (a sequence of another size, observed
+    // first, used to give the mask its size, and every valid target then failed on it;
+    // such frames are refused by name when their sequence is reduced).
+    let shape = (profile.geometry.ny, profile.geometry.nx);
     let frames: Vec<&sofipol_calib::Frame> = frames.iter().filter(|f| f.shape() == shape).collect();
     if frames.len() < 3 {
         return None;
     }
-    let (mask, _report) = sofipol_calib::badpix::detect_bad_pixels(&frames, profile, opts).ok()?;
+    // Where each frame put its target (header offset): with 2 dithers per sequence half
+    // of the picks hold a star on the same pixels, and the stack must be built per position.
+    let offsets: Option<Vec<[f64; 2]>> = frames
+        .iter()
+        .map(|f| match sofipol_calib::classify::classify(&f.header, profile) {
+            sofipol_calib::classify::Classification::Science(info) => Some(info.offset_px),
+            _ => None,
+        })
+        .collect();
+    let (mask, _report) =
+        sofipol_calib::badpix::detect_bad_pixels_at(&frames, offsets.as_deref(), profile, opts).ok()?;
     Some((mask, frames.iter().map(|f| f.path().display().to_string()).collect()))
 }
 

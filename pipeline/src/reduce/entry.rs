@@ -106,7 +106,9 @@ pub fn component_from_dithers(
             Component {
                 name: name.into(),
                 pol: lp.pol,
-                passes_cut: lp.passes_cut(params.cut_snr),
+                // A value from dithers that were all flagged (saturated, bad pixels...) is
+                // reported, never a detection: it may be far off (a saturated core).
+                passes_cut: lp.passes_cut(params.cut_snr) && !flags.iter().any(|f| f == "used_flagged_dithers"),
                 flags,
                 extra,
             }

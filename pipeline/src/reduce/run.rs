@@ -234,6 +234,9 @@ pub fn reduce_loaded(
     let mut times = StageTimes::default();
     let failures = Vec::new();
     let mut flags: Vec<String> = seq.problems();
+    if let Some(m) = mixed_exposure(seq) {
+        flags.push(m);
+    }
     // Dithers that do not move leave the star in its own sky median: the result would be
     // wrong without a sign of it (gamma off by 10 deg and more, passing the cut). Refused.
     let still = seq.stationary_orientations();
@@ -257,7 +260,10 @@ pub fn reduce_loaded(
     if all.is_empty() {
         return failed(seq, "no readable frame".into(), &flags, failures, times);
     }
-    let mask = match bad_pixel_mask(&all, crop, night_mask, profile, params, &mut flags) {
+    // Header offsets of every frame (the target's detector position), when each frame has one.
+    let offsets: Vec<[f64; 2]> = orients.iter().flat_map(|o| o.3.iter().copied()).collect();
+    let offsets = (offsets.len() == all.len()).then_some(offsets.as_slice());
+    let mask = match bad_pixel_mask(&all, offsets, crop, night_mask, profile, params, &mut flags) {
         Ok(m) => m,
         Err(e) => return failed(seq, e.to_string(), &flags, failures, times),
     };
@@ -413,11 +419,19 @@ fn crop_mask(m: &Array2<u8>, crop: Option<(usize, usize)>) -> Array2<u8> {
     }
 }
 
+/// Whether a full-frame mask has `nx` columns and at least `ny` rows.
+fn nm_fits(m: Option<&Array2<u8>>, ny: usize, nx: usize) -> bool {
+    m.is_some_and(|m| m.dim().1 == nx && m.dim().0 >= ny)
+}
+
 /// The bad-pixel mask of a sequence: the calibration mask (settings), combined with the
 /// night's mask when given, else with defects detected on the sequence's own frames
-/// (at least 3). An error fails the target; a failed detection is only flagged.
+/// (at least 3; stacked per dither position when one position holds half of them, see
+/// [`badpix::detect_bad_pixels_at`]). An error fails the target; a failed detection is
+/// only flagged.
 fn bad_pixel_mask(
     all: &[&Frame],
+    offsets: Option<&[[f64; 2]]>,
     crop: Option<(usize, usize)>,
     night_mask: Option<&Array2<u8>>,
     profile: &Profile,
@@ -429,6 +443,23 @@ fn bad_pixel_mask(
         let m = badpix::load_mask(p).map_err(|e| Error::calib("calibration mask", e))?;
         mask = Some(crop_mask(&m, crop));
     }
+    let g = &profile.geometry;
+    let full = match crop {
+        // The night mask is full-frame (`profile` is already cut to the rows `crop`): it
+        // must have the frames' width and reach row r1. A mask of another geometry is
+        // not used (flagged) rather than failing the target.
+        Some((_, r1)) => nm_fits(night_mask, r1, g.nx),
+        None => nm_fits(night_mask, g.ny, g.nx),
+    };
+    if let (Some(nm), false) = (night_mask, full) {
+        flags.push(format!(
+            "night bad-pixel mask is {} x {} px, the frames {} px wide: not used, defects detected on this sequence",
+            nm.dim().0,
+            nm.dim().1,
+            g.nx
+        ));
+    }
+    let night_mask = night_mask.filter(|_| full);
     if let Some(nm) = night_mask {
         let nm = crop_mask(nm, crop);
         mask = Some(match mask {
@@ -436,7 +467,7 @@ fn bad_pixel_mask(
             None => nm,
         });
     } else if !params.no_detect_bad_pixels && all.len() >= 3 {
-        match badpix::detect_bad_pixels(all, profile, &params.bad_pixels) {
+        match badpix::detect_bad_pixels_at(all, offsets, profile, &params.bad_pixels) {
             Ok((m, _report)) => {
                 mask = Some(match mask {
                     Some(c) => badpix::combine_masks(&c, &m).map_err(|e| Error::calib("calibration mask", e))?,
@@ -521,4 +552,29 @@ fn distinct_analyzer_angles(cal: &[CalibratedOrientation]) -> usize {
     v.sort();
     v.dedup();
     v.len()
+}
+
+/// A flag when the exposures of a sequence differ in DIT (or EXPTIME) or NDIT: such
+/// frames are normalised, not refused. The data are ADU per DIT averaged over NDIT reads,
+/// so NDIT changes only the noise (each frame's variance uses its own NDIT); a longer DIT
+/// scales sky and stars alike, so each frame's sky comes from the other dithers scaled to
+/// its own sky level (multiplicative sky scaling: exact; additive: the sky pattern is not
+/// rescaled) and F = (o - e)/(o + e) is a flux ratio within one frame.
+pub fn mixed_exposure(seq: &Sequence) -> Option<String> {
+    let mut dits: Vec<f64> = Vec::new();
+    let mut ndits: Vec<u32> = Vec::new();
+    for e in seq.orientations.iter().flat_map(|o| &o.exposures) {
+        if !dits.iter().any(|d| (d - e.dit_s).abs() <= 1e-6 * d.abs().max(1e-9)) {
+            dits.push(e.dit_s);
+        }
+        if !ndits.contains(&e.ndit) {
+            ndits.push(e.ndit);
+        }
+    }
+    (dits.len() > 1 || ndits.len() > 1).then(|| {
+        format!(
+            "mixed_exposure: DIT {dits:?} s, NDIT {ndits:?} within the sequence: normalised \
+             (each frame's sky scaled to its own level, F a flux ratio within a frame, variance from its own NDIT)"
+        )
+    })
 }
