@@ -182,8 +182,11 @@ pub fn find_pair(
     };
     // With beta free, the two-star fit can slide into a worse minimum than one star (beta
     // at its bound, a broad core absorbing both): then hold beta at the single-star fit's.
+    // Likewise when the fit lost the companion (its flux at or below zero: the second star
+    // wandered off into the noise).
+    let lost = |f: &(PsfFit, f64, f64, usize)| !(f.0.stars[0].flux.min(f.0.stars[1].flux) > 0.0);
     if let PsfModel::Moffat { beta: None } = model {
-        if !(fitted.2 < fitted.1) {
+        if !(fitted.2 < fitted.1) || lost(&fitted) {
             let fixed = PsfFitParams {
                 model: PsfModel::Moffat {
                     beta: Some(single.beta),
@@ -191,7 +194,7 @@ pub fn find_pair(
                 ..p2.clone()
             };
             if let Some(f) = two_star(&fixed) {
-                if f.2 < fitted.2 {
+                if (f.2 < fitted.2 && !lost(&f)) || (lost(&fitted) && !lost(&f)) {
                     fitted = f;
                 }
             }
@@ -362,6 +365,7 @@ fn label_and_combine(
             o.1 = (-o.1 .0, -o.1 .1);
         }
     }
+    verify_identity(found, orients, ib, (sep0, pa0), params, scale, flags);
     // A real companion is seen at every orientation where the rotation puts it; a fit
     // artefact (blur, a cosmic ray in a stack) is not.
     let need = orients.len().min(2);
@@ -389,5 +393,68 @@ fn label_and_combine(
             Some((sep, pa))
         }
         None => None,
+    }
+}
+
+/// Flux ratio (B/A on the stack) above which the components cannot be told apart by flux.
+const NEAR_EQUAL_RATIO: f64 = 0.8;
+
+/// Where the companion was not found at an orientation, the star the stack is centred on
+/// may be either component: tell which by its flux against A and B of the best orientation
+/// `ib` (the labels there are final), and put A where the geometry `(sep, pa)` of the best
+/// orientation predicts it when that star is B. A near-equal pair cannot be told apart:
+/// flagged, never relabelled silently.
+fn verify_identity(
+    found: &mut [Option<PairOnStack>],
+    orients: &[CalibratedOrientation],
+    ib: usize,
+    (sep0, pa0): (f64, f64),
+    params: &MeasureParams,
+    scale: f64,
+    flags: &mut Vec<String>,
+) {
+    let Some(pb) = found[ib] else { return };
+    let (min_f, min_sep_px) = (params.min_companion_f, params.min_companion_sep_arcsec / scale);
+    // Offset of B from A at the best orientation after the labelling (A may have been swapped).
+    let (sep, pa) = {
+        let d = (pb.b.0 - pb.a.0, pb.b.1 - pb.a.1);
+        if d.0.is_finite() && d.1.is_finite() {
+            offset_to_sep_pa(d.0, d.1, orients[ib].posang_deg, scale)
+        } else {
+            (sep0, pa0)
+        }
+    };
+    let (fa, fb) = pb.flux;
+    if !(fa > 0.0 && fb > 0.0) {
+        return;
+    }
+    for (i, p) in found.iter_mut().enumerate() {
+        let Some(p) = p else { continue };
+        if i == ib || (p.companion(min_f, min_sep_px) && p.flux.1 / p.flux_b_err.max(1e-30) >= params.min_companion_snr)
+        {
+            continue;
+        }
+        let f = p.flux.0;
+        if !(f > 0.0) {
+            continue;
+        }
+        if fb.min(fa) / fb.max(fa) > NEAR_EQUAL_RATIO {
+            flags.push(format!(
+                "ab_identity_unverified: companion not found at POSANG {:.1} and the components are near equal in flux",
+                orients[i].posang_deg
+            ));
+            continue;
+        }
+        let (la, lb, lf) = (fa.ln(), fb.ln(), f.ln());
+        if (lf - lb).abs() < (lf - la).abs() {
+            let pred = companion_offset_px(sep, pa, orients[i].posang_deg, scale);
+            p.b = p.a;
+            p.a = (p.a.0 - pred.0, p.a.1 - pred.1);
+            p.flux = (0.0, f);
+            flags.push(format!(
+                "ab_identity_from_flux: at POSANG {:.1} the star found is B (companion not found there); A placed by the geometry",
+                orients[i].posang_deg
+            ));
+        }
     }
 }
