@@ -458,3 +458,88 @@ fn verify_identity(
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn orient(posang: f64) -> CalibratedOrientation {
+        CalibratedOrientation {
+            posang_deg: posang,
+            analyzer_deg: posang,
+            frames: Vec::new(),
+            offsets: Vec::new(),
+        }
+    }
+
+    /// The stacks of bench target 40 in the 49-target night (SOFIPOL_DEBUG_PAIR): at POSANG 0
+    /// the stack, centred on B, holds A (28779) at (15.06, -2.81) and B (14803); at POSANG 45
+    /// the two-star fit lost A and left one star, B (flux ~14800 on the stack), at the centre.
+    fn bench_40(flux_45: f64, flux_b0: f64) -> (Vec<Option<PairOnStack>>, Vec<CalibratedOrientation>) {
+        let pair0 = PairOnStack {
+            a: (15.06, -2.81),
+            b: (0.0, 0.0),
+            flux: (28779.0, flux_b0),
+            flux_b_err: 60.0,
+            fwhm_px: 2.93,
+            beta: 3.18,
+            f_stat: 3.3e5,
+        };
+        let single45 = PairOnStack {
+            a: (0.07, -0.12),
+            b: (f64::NAN, f64::NAN),
+            flux: (flux_45, 0.0),
+            flux_b_err: f64::INFINITY,
+            fwhm_px: 2.89,
+            beta: 2.91,
+            f_stat: 0.0,
+        };
+        (vec![Some(pair0), Some(single45)], vec![orient(0.0), orient(45.0)])
+    }
+
+    #[test]
+    fn bench_target_40_star_left_without_its_companion_is_not_silently_a() {
+        let (mut found, orients) = bench_40(14700.0, 14803.0);
+        let params = MeasureParams::default();
+        let scale = Profile::sofi().geometry.pixscale_arcsec;
+        let mut flags = Vec::new();
+        let geometry = label_and_combine(&mut found, &orients, &params, scale, &mut flags);
+        // Seen at one orientation of two: rejected, as before.
+        assert!(geometry.is_none(), "{geometry:?}");
+        // B from A at POSANG 0 is (-15.06, 2.81); at POSANG 45 the geometry predicts it
+        // rotated, and A sits that far from the star found (B), not on it.
+        let d0 = (-15.06, 2.81);
+        let (sep, pa) = offset_to_sep_pa(d0.0, d0.1, 0.0, scale);
+        let pred = companion_offset_px(sep, pa, 45.0, scale);
+        let p = found[1].unwrap();
+        assert!(
+            (p.a.0 - (0.07 - pred.0)).abs() < 1e-9 && (p.a.1 - (-0.12 - pred.1)).abs() < 1e-9,
+            "A at POSANG 45 on {:?}, expected {:?}",
+            p.a,
+            (0.07 - pred.0, -0.12 - pred.1)
+        );
+        assert!(
+            flags.iter().any(|f| f.starts_with("ab_identity_from_flux")),
+            "{flags:?}"
+        );
+        // The star found is A (flux like A's): left where it is, no flag.
+        let (mut found, orients) = bench_40(28500.0, 14803.0);
+        let mut flags = Vec::new();
+        label_and_combine(&mut found, &orients, &params, scale, &mut flags);
+        assert_eq!(found[1].unwrap().a, (0.07, -0.12));
+        assert!(!flags.iter().any(|f| f.starts_with("ab_identity")), "{flags:?}");
+    }
+
+    #[test]
+    fn near_equal_components_without_the_companion_are_flagged_not_relabelled() {
+        let (mut found, orients) = bench_40(26000.0, 26000.0);
+        let mut flags = Vec::new();
+        let scale = Profile::sofi().geometry.pixscale_arcsec;
+        label_and_combine(&mut found, &orients, &MeasureParams::default(), scale, &mut flags);
+        assert_eq!(found[1].unwrap().a, (0.07, -0.12));
+        assert!(
+            flags.iter().any(|f| f.starts_with("ab_identity_unverified")),
+            "{flags:?}"
+        );
+    }
+}
