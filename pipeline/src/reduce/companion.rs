@@ -184,8 +184,11 @@ pub fn find_pair(
     };
     // With beta free, the two-star fit can slide into a worse minimum than one star (beta
     // at its bound, a broad core absorbing both): then hold beta at the single-star fit's.
+    // Likewise when the fit lost the companion (its flux at or below zero: the second star
+    // wandered off into the noise).
+    let lost = |f: &(PsfFit, f64, f64, usize)| !(f.0.stars[0].flux.min(f.0.stars[1].flux) > 0.0);
     if let PsfModel::Moffat { beta: None } = model {
-        if !(fitted.2 < fitted.1) {
+        if !(fitted.2 < fitted.1) || lost(&fitted) {
             let fixed = PsfFitParams {
                 model: PsfModel::Moffat {
                     beta: Some(single.beta),
@@ -193,7 +196,7 @@ pub fn find_pair(
                 ..p2.clone()
             };
             if let Some(f) = two_star(&fixed) {
-                if f.2 < fitted.2 {
+                if (f.2 < fitted.2 && !lost(&f)) || (lost(&fitted) && !lost(&f)) {
                     fitted = f;
                 }
             }
@@ -364,6 +367,7 @@ fn label_and_combine(
             o.1 = (-o.1 .0, -o.1 .1);
         }
     }
+    verify_identity(found, orients, ib, (sep0, pa0), params, scale, flags);
     // A real companion is seen at every orientation where the rotation puts it; a fit
     // artefact (blur, a cosmic ray in a stack) is not.
     let need = orients.len().min(2);
@@ -391,5 +395,153 @@ fn label_and_combine(
             Some((sep, pa))
         }
         None => None,
+    }
+}
+
+/// Flux ratio (B/A on the stack) above which the components cannot be told apart by flux.
+const NEAR_EQUAL_RATIO: f64 = 0.8;
+
+/// Where the companion was not found at an orientation, the star the stack is centred on
+/// may be either component: tell which by its flux against A and B of the best orientation
+/// `ib` (the labels there are final), and put A where the geometry `(sep, pa)` of the best
+/// orientation predicts it when that star is B. A near-equal pair cannot be told apart:
+/// flagged, never relabelled silently.
+fn verify_identity(
+    found: &mut [Option<PairOnStack>],
+    orients: &[CalibratedOrientation],
+    ib: usize,
+    (sep0, pa0): (f64, f64),
+    params: &MeasureParams,
+    scale: f64,
+    flags: &mut Vec<String>,
+) {
+    let Some(pb) = found[ib] else { return };
+    let (min_f, min_sep_px) = (params.min_companion_f, params.min_companion_sep_arcsec / scale);
+    // Offset of B from A at the best orientation after the labelling (A may have been swapped).
+    let (sep, pa) = {
+        let d = (pb.b.0 - pb.a.0, pb.b.1 - pb.a.1);
+        if d.0.is_finite() && d.1.is_finite() {
+            offset_to_sep_pa(d.0, d.1, orients[ib].posang_deg, scale)
+        } else {
+            (sep0, pa0)
+        }
+    };
+    let (fa, fb) = pb.flux;
+    if !(fa > 0.0 && fb > 0.0) {
+        return;
+    }
+    for (i, p) in found.iter_mut().enumerate() {
+        let Some(p) = p else { continue };
+        if i == ib || (p.companion(min_f, min_sep_px) && p.flux.1 / p.flux_b_err.max(1e-30) >= params.min_companion_snr)
+        {
+            continue;
+        }
+        let f = p.flux.0;
+        if !(f > 0.0) {
+            continue;
+        }
+        if fb.min(fa) / fb.max(fa) > NEAR_EQUAL_RATIO {
+            flags.push(format!(
+                "ab_identity_unverified: companion not found at POSANG {:.1} and the components are near equal in flux",
+                orients[i].posang_deg
+            ));
+            continue;
+        }
+        let (la, lb, lf) = (fa.ln(), fb.ln(), f.ln());
+        if (lf - lb).abs() < (lf - la).abs() {
+            let pred = companion_offset_px(sep, pa, orients[i].posang_deg, scale);
+            p.b = p.a;
+            p.a = (p.a.0 - pred.0, p.a.1 - pred.1);
+            p.flux = (0.0, f);
+            flags.push(format!(
+                "ab_identity_from_flux: at POSANG {:.1} the star found is B (companion not found there); A placed by the geometry",
+                orients[i].posang_deg
+            ));
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn orient(posang: f64) -> CalibratedOrientation {
+        CalibratedOrientation {
+            posang_deg: posang,
+            analyzer_deg: posang,
+            frames: Vec::new(),
+            offsets: Vec::new(),
+        }
+    }
+
+    /// The stacks of bench target 40 in the 49-target night (SOFIPOL_DEBUG_PAIR): at POSANG 0
+    /// the stack, centred on B, holds A (28779) at (15.06, -2.81) and B (14803); at POSANG 45
+    /// the two-star fit lost A and left one star, B (flux ~14800 on the stack), at the centre.
+    fn bench_40(flux_45: f64, flux_b0: f64) -> (Vec<Option<PairOnStack>>, Vec<CalibratedOrientation>) {
+        let pair0 = PairOnStack {
+            a: (15.06, -2.81),
+            b: (0.0, 0.0),
+            flux: (28779.0, flux_b0),
+            flux_b_err: 60.0,
+            fwhm_px: 2.93,
+            beta: 3.18,
+            f_stat: 3.3e5,
+        };
+        let single45 = PairOnStack {
+            a: (0.07, -0.12),
+            b: (f64::NAN, f64::NAN),
+            flux: (flux_45, 0.0),
+            flux_b_err: f64::INFINITY,
+            fwhm_px: 2.89,
+            beta: 2.91,
+            f_stat: 0.0,
+        };
+        (vec![Some(pair0), Some(single45)], vec![orient(0.0), orient(45.0)])
+    }
+
+    #[test]
+    fn bench_target_40_star_left_without_its_companion_is_not_silently_a() {
+        let (mut found, orients) = bench_40(14700.0, 14803.0);
+        let params = MeasureParams::default();
+        let scale = Profile::sofi().geometry.pixscale_arcsec;
+        let mut flags = Vec::new();
+        let geometry = label_and_combine(&mut found, &orients, &params, scale, &mut flags);
+        // Seen at one orientation of two: rejected, as before.
+        assert!(geometry.is_none(), "{geometry:?}");
+        // B from A at POSANG 0 is (-15.06, 2.81); at POSANG 45 the geometry predicts it
+        // rotated, and A sits that far from the star found (B), not on it.
+        let d0 = (-15.06, 2.81);
+        let (sep, pa) = offset_to_sep_pa(d0.0, d0.1, 0.0, scale);
+        let pred = companion_offset_px(sep, pa, 45.0, scale);
+        let p = found[1].unwrap();
+        assert!(
+            (p.a.0 - (0.07 - pred.0)).abs() < 1e-9 && (p.a.1 - (-0.12 - pred.1)).abs() < 1e-9,
+            "A at POSANG 45 on {:?}, expected {:?}",
+            p.a,
+            (0.07 - pred.0, -0.12 - pred.1)
+        );
+        assert!(
+            flags.iter().any(|f| f.starts_with("ab_identity_from_flux")),
+            "{flags:?}"
+        );
+        // The star found is A (flux like A's): left where it is, no flag.
+        let (mut found, orients) = bench_40(28500.0, 14803.0);
+        let mut flags = Vec::new();
+        label_and_combine(&mut found, &orients, &params, scale, &mut flags);
+        assert_eq!(found[1].unwrap().a, (0.07, -0.12));
+        assert!(!flags.iter().any(|f| f.starts_with("ab_identity")), "{flags:?}");
+    }
+
+    #[test]
+    fn near_equal_components_without_the_companion_are_flagged_not_relabelled() {
+        let (mut found, orients) = bench_40(26000.0, 26000.0);
+        let mut flags = Vec::new();
+        let scale = Profile::sofi().geometry.pixscale_arcsec;
+        label_and_combine(&mut found, &orients, &MeasureParams::default(), scale, &mut flags);
+        assert_eq!(found[1].unwrap().a, (0.07, -0.12));
+        assert!(
+            flags.iter().any(|f| f.starts_with("ab_identity_unverified")),
+            "{flags:?}"
+        );
     }
 }

@@ -237,31 +237,50 @@ pub fn locate_primary(
         .ok_or_else(|| MeasureError::new("no frames"))?;
     let (_, nx) = first.shape();
     let o0 = &orients[0];
-    let m0 = &masks[0][0];
     let nominal = params.nominal_xy_px.unwrap_or_else(|| {
         nominal_from_data(o0, &masks[0], orow).unwrap_or((nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5))
     });
-    let (px, py, _) = brightest_peak(
-        o0.frames[0].data.view(),
-        m0.view(),
-        nominal.0 + o0.offsets[0][0],
-        nominal.1 + o0.offsets[0][1],
-        params.primary_search_px,
-        orow,
-    )
-    .ok_or_else(|| {
-        MeasureError::new(format!(
-            "no source found within {} px of the nominal target position",
-            params.primary_search_px
-        ))
-    })?;
     let fwhm_guess = 0.8 / g.pixscale_arcsec;
-    let c0 = refine(o0.frames[0].data.view(), m0.view(), px, py, fwhm_guess, 4.0).unwrap_or((px, py));
-    let anchor = (c0.0 - o0.offsets[0][0], c0.1 - o0.offsets[0][1]);
+    // The star at the nominal position in every frame of the first orientation, carried
+    // back by the header offsets; the anchor is the position most frames agree on (within
+    // 3 px; the earliest frame wins ties). One frame alone can pick the fainter component
+    // when a cosmic ray or a masked pixel sits on the brighter one's core.
+    let mut at_zero: Vec<(f64, f64)> = Vec::new();
+    for ((f, off), m) in o0.frames.iter().zip(&o0.offsets).zip(&masks[0]) {
+        let peak = brightest_peak(
+            f.data.view(),
+            m.view(),
+            nominal.0 + off[0],
+            nominal.1 + off[1],
+            params.primary_search_px,
+            orow,
+        );
+        if let Some((px, py, _)) = peak {
+            let c = refine(f.data.view(), m.view(), px, py, fwhm_guess, 4.0).unwrap_or((px, py));
+            at_zero.push((c.0 - off[0], c.1 - off[1]));
+        }
+    }
+    let votes = |p: &(f64, f64)| at_zero.iter().filter(|q| (q.0 - p.0).hypot(q.1 - p.1) <= 3.0).count();
+    let anchor = at_zero
+        .iter()
+        .enumerate()
+        .max_by_key(|(i, p)| (votes(p), std::cmp::Reverse(*i)))
+        .map(|(_, p)| *p)
+        .ok_or_else(|| {
+            MeasureError::new(format!(
+                "no source found within {} px of the nominal target position",
+                params.primary_search_px
+            ))
+        })?;
+    // The star found at the anchor may be either component; the other rotates about the
+    // pointing centre, so at another rotator angle the anchored star can have moved by up
+    // to twice the companion search radius (the labels are made consistent later, from
+    // the stacks).
+    let wide = 8.0 + 2.0 * params.companion_search_arcsec / g.pixscale_arcsec;
     let centres = orients
         .iter()
         .zip(masks)
-        .map(|(o, ms)| centres_in_orientation(o, ms, anchor, fwhm_guess, orow))
+        .map(|(o, ms)| centres_in_orientation(o, ms, anchor, fwhm_guess, orow, wide))
         .collect();
     Ok(Primary { centres, fwhm_guess })
 }
@@ -303,6 +322,7 @@ fn centres_in_orientation(
     anchor: (f64, f64),
     fwhm_guess: f64,
     orow: [usize; 2],
+    wide: f64,
 ) -> Vec<Option<(f64, f64)>> {
     let mut cs: Vec<Option<(f64, f64)>> = Vec::new();
     let mut first: Option<((f64, f64), [f64; 2])> = None;
@@ -319,8 +339,13 @@ fn centres_in_orientation(
             }
             None => {
                 let guess = (anchor.0 + off[0], anchor.1 + off[1]);
-                let peak = brightest_peak(f.data.view(), m.view(), guess.0, guess.1, 8.0, orow);
-                let c = peak.and_then(|(x, y, _)| refine(f.data.view(), m.view(), x, y, fwhm_guess, 4.0));
+                let at = |r: f64| {
+                    brightest_peak(f.data.view(), m.view(), guess.0, guess.1, r, orow)
+                        .and_then(|(x, y, _)| refine(f.data.view(), m.view(), x, y, fwhm_guess, 4.0))
+                };
+                // Near the anchor first; when nothing is there (the anchored component
+                // rotated away), the brightest star within reach of the rotation.
+                let c = at(8.0).or_else(|| at(wide));
                 if let Some(c) = c {
                     first = Some((c, *off));
                 }
