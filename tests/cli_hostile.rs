@@ -535,7 +535,7 @@ fn a_night_of_two_dithers_per_orientation_measures_every_component() {
     let dir = tempfile::tempdir().unwrap();
     let n = dir.path().join("night");
     let scene = dir.path().join("scene2.toml");
-    std::fs::write(&scene, SCENE.replace("dithers = 3", "dithers = 2")).unwrap();
+    std::fs::write(&scene, scene_toml().replace("dithers = 3", "dithers = 2")).unwrap();
     let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&n), "-q"]);
     assert_eq!(code, 0, "{err}");
     let truth = catalog(&n.join("truth.json"));
@@ -597,7 +597,7 @@ fn a_sequence_of_another_frame_size_fails_no_valid_target_via_the_night_mask() {
     let (code, _, err) = run(&["night", s(&n), "-o", s(&clean_out), "-q", "--no-png", "--no-flat"]);
     assert_eq!(code, 0, "{err}");
     let clean = catalog(&clean_out);
-    let gamma = SCENE
+    let gamma = scene_toml()
         .replace("name = \"hx\"", "name = \"small\"")
         .replace("dithers = 3", "dithers = 3\nstart_ut = \"00:10:00\"")
         .replace("name = \"Alpha\"", "name = \"Gamma\"")

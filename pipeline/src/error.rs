@@ -53,6 +53,10 @@ pub enum Error {
         /// Underlying error.
         source: std::io::Error,
     },
+    /// A frame that cannot be used as a whole (foreign size, mostly non-finite, constant):
+    /// dropped by name with this reason, the other dithers carry on.
+    #[error("{0}")]
+    UnusableFrame(String),
     /// The measurement of a sequence stopped.
     #[error(transparent)]
     Measure(#[from] crate::reduce::MeasureError),

@@ -606,7 +606,6 @@ fn print_truth_pulls(who: &str, p: &[(String, f64)]) {
     );
 }
 
-
 /// Median per-stage times and the cost of calibration (issue 8: <= 15 % of the night).
 fn print_stages(runs: &[NightRun]) {
     let med = |f: &dyn Fn(&NightRun) -> f64| -> f64 {

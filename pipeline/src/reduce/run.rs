@@ -92,7 +92,7 @@ pub fn reduce_sequence(
         for e in &o.exposures {
             match fits::read_frame_rows(&e.path, rows)
                 .map_err(|e| e.to_string())
-                .and_then(|f| usable_frame(f, profile, rows))
+                .and_then(|f| usable_frame(f, profile, rows).map_err(|e| e.to_string()))
             {
                 Ok(f) => {
                     frames.push(f);
@@ -123,7 +123,7 @@ pub fn reduce_sequence(
 /// all equal (all zero...) is unusable as a whole and dropped by name with the reason (the
 /// other dithers carry on). A few non-finite pixels (NaN, Inf) are bad pixels: set to the
 /// frame's median and masked BAD, so an aperture that holds one flags its dither.
-pub fn usable_frame(mut f: Frame, profile: &Profile, rows: Option<(usize, usize)>) -> Result<Frame, String> {
+pub fn usable_frame(mut f: Frame, profile: &Profile, rows: Option<(usize, usize)>) -> crate::error::Result<Frame> {
     let g = &profile.geometry;
     let want = match rows {
         Some((r0, r1)) => (r1 - r0, g.nx),
@@ -131,21 +131,23 @@ pub fn usable_frame(mut f: Frame, profile: &Profile, rows: Option<(usize, usize)
     };
     let got = f.shape();
     if got != want && got != (g.ny, g.nx) {
-        return Err(format!(
+        return Err(crate::error::Error::UnusableFrame(format!(
             "image is {} x {} px (NAXIS2 x NAXIS1), the instrument profile's detector is {} x {}: frame not used",
             got.0, got.1, g.ny, g.nx
-        ));
+        )));
     }
     let n = f.data.len();
     // One pass over the pixels (this runs on every frame read); a copy only when needed.
     let (n_bad, lo, hi) = finite_count_min_max(&f.data);
     if 2 * n_bad > n {
-        return Err(format!(
+        return Err(crate::error::Error::UnusableFrame(format!(
             "{n_bad} of {n} pixels are not finite (NaN or Inf): frame unusable"
-        ));
+        )));
     }
     if lo == hi {
-        return Err(format!("every pixel equals {lo}: frame unusable"));
+        return Err(crate::error::Error::UnusableFrame(format!(
+            "every pixel equals {lo}: frame unusable"
+        )));
     }
     if n_bad > 0 {
         let mut tmp: Vec<f32> = f.data.iter().copied().filter(|v| v.is_finite()).collect();
