@@ -126,7 +126,7 @@ pub fn classify_file(path: &Path, profile: &Profile) -> Result<Classification> {
 pub fn classify(header: &Header, profile: &Profile) -> Classification {
     match science_info(header, profile) {
         Ok(info) => Classification::Science(Box::new(info)),
-        Err(reason) => Classification::Rejected { reason },
+        Err(e) => Classification::Rejected { reason: e.to_string() },
     }
 }
 
@@ -156,30 +156,37 @@ fn shown(h: &Header, key: &str) -> String {
     }
 }
 
-/// Turn a header error into a rejection reason (without the file name: the caller knows it).
-fn reason_of(e: Error) -> String {
-    match e {
+/// A rejection with this reason.
+fn reject(reason: String) -> Error {
+    Error::Rejected { reason }
+}
+
+/// Turn a header error into a rejection (its reason without the file name: the caller knows it).
+fn reason_of(e: Error) -> Error {
+    reject(match e {
         Error::MissingKeyword { keyword, .. } => format!("missing keyword {keyword}"),
         Error::BadKeyword {
             keyword, value, reason, ..
         } => format!("bad keyword {keyword} = {value}: {reason}"),
         other => other.to_string(),
-    }
-}
-
-fn required_text(h: &Header, key: &str) -> std::result::Result<String, String> {
-    text(h, key).ok_or_else(|| match h.get(key) {
-        Some(v) => format!("empty keyword {key} = {v}"),
-        None => format!("missing keyword {key}"),
     })
 }
 
-fn finite(h: &Header, key: &str) -> std::result::Result<f64, String> {
+fn required_text(h: &Header, key: &str) -> Result<String> {
+    text(h, key).ok_or_else(|| {
+        reject(match h.get(key) {
+            Some(v) => format!("empty keyword {key} = {v}"),
+            None => format!("missing keyword {key}"),
+        })
+    })
+}
+
+fn finite(h: &Header, key: &str) -> Result<f64> {
     h.get_f64(key).map_err(reason_of)
 }
 
 /// Optional positive integer that fits in u32.
-fn opt_count(h: &Header, key: &str) -> std::result::Result<Option<u32>, String> {
+fn opt_count(h: &Header, key: &str) -> Result<Option<u32>> {
     if !h.contains(key) {
         return Ok(None);
     }
@@ -188,64 +195,12 @@ fn opt_count(h: &Header, key: &str) -> std::result::Result<Option<u32>, String> 
         .ok()
         .filter(|&n| n >= 1)
         .map(Some)
-        .ok_or_else(|| format!("bad keyword {key} = {v}: expected an integer >= 1"))
+        .ok_or_else(|| reject(format!("bad keyword {key} = {v}: expected an integer >= 1")))
 }
 
-fn science_info(h: &Header, p: &Profile) -> std::result::Result<ScienceInfo, String> {
-    let k = &p.keywords;
-    let m = &p.matching;
-
-    // 0. Not one of sofipol's own products.
-    if h.contains(PRODUCT_KEYWORD) {
-        return Err(format!(
-            "a sofipol product ({}), not a raw frame: skipped",
-            shown(h, PRODUCT_KEYWORD)
-        ));
-    }
-
-    // 1. Instrument.
-    match text(h, &k.instrument) {
-        Some(i) if same(&i, &m.instrument) => {}
-        Some(_) => return Err(format!("not {}: {}", m.instrument, shown(h, &k.instrument))),
-        None => return Err(format!("not {}: missing keyword {}", m.instrument, k.instrument)),
-    }
-
-    // 2. Polarimetric template or technique.
-    let by_template = text(h, &k.tpl_id).is_some_and(|t| same(&t, &m.polarimetry_template));
-    let by_tech = text(h, &k.dpr_tech).is_some_and(|t| contains_ci(&t, &m.polarimetry_tech));
-    if !(by_template || by_tech) {
-        let mut reason = format!("not polarimetric: {}, {}", shown(h, &k.tpl_id), shown(h, &k.dpr_tech));
-        if h.contains(&k.dpr_type) {
-            reason.push_str(&format!(" ({})", shown(h, &k.dpr_type)));
-        }
-        return Err(reason);
-    }
-
-    // 3. Science, not calibration.
-    match text(h, &k.dpr_type) {
-        Some(t) => {
-            if !m.science_types.iter().any(|s| same(s, &t)) {
-                return Err(format!(
-                    "calibration frame: {} (science types: {})",
-                    shown(h, &k.dpr_type),
-                    m.science_types.join(", ")
-                ));
-            }
-        }
-        None => {
-            if let Some(c) = text(h, &k.dpr_catg) {
-                if !same(&c, SCIENCE_CATEGORY) {
-                    return Err(format!(
-                        "calibration frame: {} ({} absent)",
-                        shown(h, &k.dpr_catg),
-                        k.dpr_type
-                    ));
-                }
-            }
-        }
-    }
-
-    // 4. Wollaston in the beam.
+/// Step 4 of [`classify`]: the Wollaston's OPTIi.ID value, first match of OPTI1..OPTImax.
+fn wollaston_in_beam(h: &Header, p: &Profile) -> Result<String> {
+    let (k, m) = (&p.keywords, &p.matching);
     let mut seen = Vec::new();
     let mut wollaston = None;
     for i in 1..=k.opti_max {
@@ -258,17 +213,80 @@ fn science_info(h: &Header, p: &Profile) -> std::result::Result<ScienceInfo, Str
             seen.push(shown(h, &key));
         }
     }
-    let Some(wollaston) = wollaston else {
+    wollaston.ok_or_else(|| {
         let found = if seen.is_empty() {
             "none present".to_string()
         } else {
             seen.join(", ")
         };
-        return Err(format!(
+        reject(format!(
             "no Wollaston in {}1..{} ID (looking for '{}'; {found})",
             k.opti_prefix, k.opti_max, m.wollaston_contains
-        ));
-    };
+        ))
+    })
+}
+
+fn science_info(h: &Header, p: &Profile) -> Result<ScienceInfo> {
+    let k = &p.keywords;
+    let m = &p.matching;
+
+    // 0. Not one of sofipol's own products.
+    if h.contains(PRODUCT_KEYWORD) {
+        return Err(reject(format!(
+            "a sofipol product ({}), not a raw frame: skipped",
+            shown(h, PRODUCT_KEYWORD)
+        )));
+    }
+
+    // 1. Instrument.
+    match text(h, &k.instrument) {
+        Some(i) if same(&i, &m.instrument) => {}
+        Some(_) => return Err(reject(format!("not {}: {}", m.instrument, shown(h, &k.instrument)))),
+        None => {
+            return Err(reject(format!(
+                "not {}: missing keyword {}",
+                m.instrument, k.instrument
+            )))
+        }
+    }
+
+    // 2. Polarimetric template or technique.
+    let by_template = text(h, &k.tpl_id).is_some_and(|t| same(&t, &m.polarimetry_template));
+    let by_tech = text(h, &k.dpr_tech).is_some_and(|t| contains_ci(&t, &m.polarimetry_tech));
+    if !(by_template || by_tech) {
+        let mut reason = format!("not polarimetric: {}, {}", shown(h, &k.tpl_id), shown(h, &k.dpr_tech));
+        if h.contains(&k.dpr_type) {
+            reason.push_str(&format!(" ({})", shown(h, &k.dpr_type)));
+        }
+        return Err(reject(reason));
+    }
+
+    // 3. Science, not calibration.
+    match text(h, &k.dpr_type) {
+        Some(t) => {
+            if !m.science_types.iter().any(|s| same(s, &t)) {
+                return Err(reject(format!(
+                    "calibration frame: {} (science types: {})",
+                    shown(h, &k.dpr_type),
+                    m.science_types.join(", ")
+                )));
+            }
+        }
+        None => {
+            if let Some(c) = text(h, &k.dpr_catg) {
+                if !same(&c, SCIENCE_CATEGORY) {
+                    return Err(reject(format!(
+                        "calibration frame: {} ({} absent)",
+                        shown(h, &k.dpr_catg),
+                        k.dpr_type
+                    )));
+                }
+            }
+        }
+    }
+
+    // 4. Wollaston in the beam.
+    let wollaston = wollaston_in_beam(h, p)?;
 
     // 5. Everything a reduction needs.
     let posang_deg = finite(h, &k.posang)?;
@@ -277,12 +295,13 @@ fn science_info(h: &Header, p: &Profile) -> std::result::Result<ScienceInfo, Str
     let object = match text(h, &k.object) {
         Some(o) if !same(&o, &m.object_std_alias) => o,
         Some(o) => text(h, &k.targ_name).ok_or_else(|| {
-            format!(
+            reject(format!(
                 "{} = '{o}' (standard alias) but missing keyword {}",
                 k.object, k.targ_name
-            )
+            ))
         })?,
-        None => text(h, &k.targ_name).ok_or_else(|| format!("missing keyword {} (and {})", k.object, k.targ_name))?,
+        None => text(h, &k.targ_name)
+            .ok_or_else(|| reject(format!("missing keyword {} (and {})", k.object, k.targ_name)))?,
     };
     let filter = required_text(h, &k.filter)?;
     let (dit_key, dit_s) = if h.contains(&k.dit) {
@@ -290,23 +309,33 @@ fn science_info(h: &Header, p: &Profile) -> std::result::Result<ScienceInfo, Str
     } else if h.contains(&k.exptime) {
         (&k.exptime, finite(h, &k.exptime)?)
     } else {
-        return Err(format!("missing keyword {} (and {})", k.dit, k.exptime));
+        return Err(reject(format!("missing keyword {} (and {})", k.dit, k.exptime)));
     };
     if dit_s <= 0.0 {
-        return Err(format!(
+        return Err(reject(format!(
             "bad keyword {dit_key} = {dit_s}: integration time must be > 0 s"
-        ));
+        )));
     }
     let ndit = match h.get_i64(&k.ndit).map_err(reason_of)? {
         n if n >= 1 && n <= u32::MAX as i64 => n as u32,
-        n => return Err(format!("bad keyword {} = {n}: expected an integer >= 1", k.ndit)),
+        n => {
+            return Err(reject(format!(
+                "bad keyword {} = {n}: expected an integer >= 1",
+                k.ndit
+            )))
+        }
     };
     let expno = opt_count(h, &k.tpl_expno)?;
     let nexp = opt_count(h, &k.tpl_nexp)?;
     let mjd = h.opt_f64(&k.mjd_obs).map_err(reason_of)?;
     let pixscale_arcsec = match h.opt_f64(&k.pixscale).map_err(reason_of)? {
         Some(s) if s > 0.0 => s,
-        Some(s) => return Err(format!("bad keyword {} = {s}: pixel scale must be > 0", k.pixscale)),
+        Some(s) => {
+            return Err(reject(format!(
+                "bad keyword {} = {s}: pixel scale must be > 0",
+                k.pixscale
+            )))
+        }
         None => p.geometry.pixscale_arcsec,
     };
 

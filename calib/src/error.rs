@@ -51,6 +51,13 @@ pub enum Error {
         /// What is wrong.
         reason: String,
     },
+    /// A header is not that of a polarimetric science frame: the classification's rejection
+    /// reason (names the keyword and its value; the caller knows the file).
+    #[error("{reason}")]
+    Rejected {
+        /// Why the frame is not reduced as science.
+        reason: String,
+    },
     /// Plain I/O error on a file.
     #[error("{path}: {source}")]
     Io {

@@ -267,134 +267,149 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
                 })
                 .collect();
             if cfg.calibrate {
-                use crate::calibration::{calibrate_catalog, standard_params, CalibrationSource};
-                let sp = standard_params(params);
-                let stds: Vec<crate::catalog::Target> = (cfg.targets_per_bin..sim.n_sequences())
-                    .into_par_iter()
-                    .map(|t| {
-                        let (seq, orients) = load(t);
-                        reduce_loaded(&seq, orients, &profile, &sp, None, None, false).target
-                    })
-                    .collect();
-                let mut cat = crate::catalog::Catalog {
-                    targets: reduced.iter().map(|r| r.0.clone()).collect(),
-                    ..Default::default()
-                };
-                calibrate_catalog(
-                    &mut cat,
-                    stds,
-                    &standards_table(),
-                    &profile,
-                    CalibrationSource::Night,
-                    &params.calibration,
-                    params.measure.debias,
-                    params.measure.cut_snr,
-                );
-                for (r, t) in reduced.iter_mut().zip(cat.targets) {
-                    r.0 = t;
-                }
+                calibrate_bin(cfg, params, &profile, &sim, &load, &mut reduced);
             }
             let truth = sim.truth(&[]);
             let ones: Vec<One> = reduced
                 .into_iter()
                 .enumerate()
-                .map(|(t, (target, reduce_s))| {
-                    let tt = &truth.targets[t];
-                    // (`out.target`, as the reduction returned it, then calibrated.)
-                    struct Out {
-                        target: crate::catalog::Target,
-                    }
-                    let out = Out { target };
-                    let mut one = One {
-                        note: None,
-                        pulls: vec![],
-                        errors: vec![],
-                        sigmas: vec![],
-                        missing: 0,
-                        reduce_s,
-                    };
-                    // The reduction calls the brighter star A as measured; near-equal pairs may
-                    // be labelled the other way round from the scene: match by position angle.
-                    let found_pa = out.target.extra.get("pa_deg").and_then(|v| v.as_f64());
-                    let swapped = found_pa.is_some_and(|pa| {
-                        let d = (pa - tt.pa_deg).rem_euclid(360.0);
-                        d > 90.0 && d < 270.0
-                    });
-                    let mut truth_comps = tt.components.clone();
-                    if swapped {
-                        truth_comps.swap(0, 1);
-                    }
-                    for (i, tc) in truth_comps.iter().enumerate() {
-                        match out.target.components.get(i) {
-                            Some(c) if c.q.is_finite() && c.sigma_q > 0.0 => {
-                                one.pulls.push((c.q - tc.q) / c.sigma_q);
-                                one.pulls.push((c.u - tc.u) / c.sigma_u);
-                                one.errors.push(c.q - tc.q);
-                                one.errors.push(c.u - tc.u);
-                                one.sigmas.push(c.sigma_q);
-                            }
-                            _ => one.missing += 1,
-                        }
-                    }
-                    if one.pulls.iter().any(|p| p.abs() > 5.0) || one.missing > 0 {
-                        let comps: Vec<String> = out
-                            .target
-                            .components
-                            .iter()
-                            .zip(&truth_comps)
-                            .map(|(c, tc)| {
-                                format!(
-                                    "{}: q {:.4}/{:.4} u {:.4}/{:.4} sig {:.4} flux {:.0}/{:.0} [{}]",
-                                    c.name,
-                                    c.q,
-                                    tc.q,
-                                    c.u,
-                                    tc.u,
-                                    c.sigma_q,
-                                    c.extra.get("flux_adu").and_then(|v| v.as_f64()).unwrap_or(f64::NAN),
-                                    tc.flux,
-                                    c.flags.join(",")
-                                )
-                            })
-                            .collect();
-                        one.note = Some(format!(
-                            "{} sep {:.2}\" pa {:.0} found {:?}/{:?} phot {:?}: {} | {:?}",
-                            tt.object,
-                            tt.separation_arcsec,
-                            tt.pa_deg,
-                            out.target.extra.get("separation_arcsec"),
-                            out.target.extra.get("pa_deg"),
-                            out.target.extra.get("photometry"),
-                            comps.join(" ; "),
-                            out.target.extra.get("flags")
-                        ));
-                    }
-                    one
-                })
+                .map(|(t, (target, reduce_s))| score_target(&target, &truth.targets[t], reduce_s))
                 .collect();
-            let pulls: Vec<f64> = ones.iter().flat_map(|o| o.pulls.iter().copied()).collect();
-            let errs: Vec<f64> = ones.iter().flat_map(|o| o.errors.iter().copied()).collect();
-            let ne = errs.len().max(1) as f64;
-            let mut sig: Vec<f64> = ones.iter().flat_map(|o| o.sigmas.iter().copied()).collect();
-            sig.sort_by(|a, b| a.total_cmp(b));
-            let mut ts: Vec<f64> = ones.iter().map(|o| o.reduce_s).collect();
-            ts.sort_by(|a, b| a.total_cmp(b));
-            let np = pulls.len().max(1) as f64;
-            BinReport {
-                sep_arcsec: (w[0], w[1]),
-                sep_fwhm: (w[0] / fwhm, w[1] / fwhm),
-                n_pulls: pulls.len(),
-                rms_pull: (pulls.iter().map(|p| p * p).sum::<f64>() / np).sqrt(),
-                mean_pull: pulls.iter().sum::<f64>() / np,
-                median_sigma: sig.get(sig.len() / 2).copied().unwrap_or(f64::NAN),
-                rms_error: (errs.iter().map(|e| e * e).sum::<f64>() / ne).sqrt(),
-                mean_error: errs.iter().sum::<f64>() / ne,
-                missing: ones.iter().map(|o| o.missing).sum(),
-                median_reduce_s: ts.get(ts.len() / 2).copied().unwrap_or(f64::NAN),
-                outliers: ones.iter().filter_map(|o| o.note.clone()).collect(),
-            }
+            bin_report(w, fwhm, &ones)
         })
         .collect()
+}
+
+/// Reduce the bin's standards and calibrate its reduced targets in place (the `night` path).
+fn calibrate_bin<L>(
+    cfg: &AccuracyConfig,
+    params: &TargetParams,
+    profile: &Profile,
+    sim: &Simulator,
+    load: &L,
+    reduced: &mut [(crate::catalog::Target, f64)],
+) where
+    L: Fn(usize) -> (Sequence, Vec<LoadedOrientation>) + Sync,
+{
+    use crate::calibration::{calibrate_catalog, standard_params, CalibrationSource};
+    let sp = standard_params(params);
+    let stds: Vec<crate::catalog::Target> = (cfg.targets_per_bin..sim.n_sequences())
+        .into_par_iter()
+        .map(|t| {
+            let (seq, orients) = load(t);
+            reduce_loaded(&seq, orients, profile, &sp, None, None, false).target
+        })
+        .collect();
+    let mut cat = crate::catalog::Catalog {
+        targets: reduced.iter().map(|r| r.0.clone()).collect(),
+        ..Default::default()
+    };
+    calibrate_catalog(
+        &mut cat,
+        stds,
+        &standards_table(),
+        profile,
+        CalibrationSource::Night,
+        &params.calibration,
+        params.measure.debias,
+        params.measure.cut_snr,
+    );
+    for (r, t) in reduced.iter_mut().zip(cat.targets) {
+        r.0 = t;
+    }
+}
+
+/// Compare one reduced target with its truth: pulls, errors, and a note when it is an outlier.
+fn score_target(target: &crate::catalog::Target, tt: &crate::sim::TargetTruth, reduce_s: f64) -> One {
+    let mut one = One {
+        note: None,
+        pulls: vec![],
+        errors: vec![],
+        sigmas: vec![],
+        missing: 0,
+        reduce_s,
+    };
+    // The reduction calls the brighter star A as measured; near-equal pairs may
+    // be labelled the other way round from the scene: match by position angle.
+    let found_pa = target.extra.get("pa_deg").and_then(|v| v.as_f64());
+    let swapped = found_pa.is_some_and(|pa| {
+        let d = (pa - tt.pa_deg).rem_euclid(360.0);
+        d > 90.0 && d < 270.0
+    });
+    let mut truth_comps = tt.components.clone();
+    if swapped {
+        truth_comps.swap(0, 1);
+    }
+    for (i, tc) in truth_comps.iter().enumerate() {
+        match target.components.get(i) {
+            Some(c) if c.q.is_finite() && c.sigma_q > 0.0 => {
+                one.pulls.push((c.q - tc.q) / c.sigma_q);
+                one.pulls.push((c.u - tc.u) / c.sigma_u);
+                one.errors.push(c.q - tc.q);
+                one.errors.push(c.u - tc.u);
+                one.sigmas.push(c.sigma_q);
+            }
+            _ => one.missing += 1,
+        }
+    }
+    if one.pulls.iter().any(|p| p.abs() > 5.0) || one.missing > 0 {
+        let comps: Vec<String> = target
+            .components
+            .iter()
+            .zip(&truth_comps)
+            .map(|(c, tc)| {
+                format!(
+                    "{}: q {:.4}/{:.4} u {:.4}/{:.4} sig {:.4} flux {:.0}/{:.0} [{}]",
+                    c.name,
+                    c.q,
+                    tc.q,
+                    c.u,
+                    tc.u,
+                    c.sigma_q,
+                    c.extra.get("flux_adu").and_then(|v| v.as_f64()).unwrap_or(f64::NAN),
+                    tc.flux,
+                    c.flags.join(",")
+                )
+            })
+            .collect();
+        one.note = Some(format!(
+            "{} sep {:.2}\" pa {:.0} found {:?}/{:?} phot {:?}: {} | {:?}",
+            tt.object,
+            tt.separation_arcsec,
+            tt.pa_deg,
+            target.extra.get("separation_arcsec"),
+            target.extra.get("pa_deg"),
+            target.extra.get("photometry"),
+            comps.join(" ; "),
+            target.extra.get("flags")
+        ));
+    }
+    one
+}
+
+/// Summary statistics of one separation bin.
+fn bin_report(w: &[f64], fwhm: f64, ones: &[One]) -> BinReport {
+    let pulls: Vec<f64> = ones.iter().flat_map(|o| o.pulls.iter().copied()).collect();
+    let errs: Vec<f64> = ones.iter().flat_map(|o| o.errors.iter().copied()).collect();
+    let ne = errs.len().max(1) as f64;
+    let mut sig: Vec<f64> = ones.iter().flat_map(|o| o.sigmas.iter().copied()).collect();
+    sig.sort_by(|a, b| a.total_cmp(b));
+    let mut ts: Vec<f64> = ones.iter().map(|o| o.reduce_s).collect();
+    ts.sort_by(|a, b| a.total_cmp(b));
+    let np = pulls.len().max(1) as f64;
+    BinReport {
+        sep_arcsec: (w[0], w[1]),
+        sep_fwhm: (w[0] / fwhm, w[1] / fwhm),
+        n_pulls: pulls.len(),
+        rms_pull: (pulls.iter().map(|p| p * p).sum::<f64>() / np).sqrt(),
+        mean_pull: pulls.iter().sum::<f64>() / np,
+        median_sigma: sig.get(sig.len() / 2).copied().unwrap_or(f64::NAN),
+        rms_error: (errs.iter().map(|e| e * e).sum::<f64>() / ne).sqrt(),
+        mean_error: errs.iter().sum::<f64>() / ne,
+        missing: ones.iter().map(|o| o.missing).sum(),
+        median_reduce_s: ts.get(ts.len() / 2).copied().unwrap_or(f64::NAN),
+        outliers: ones.iter().filter_map(|o| o.note.clone()).collect(),
+    }
 }
 
 /// The flats of one simulated night (one separation bin), as `night` would build them.

@@ -85,20 +85,29 @@ impl Calibration {
     }
 
     /// Read `calibration.json` from a calibration directory (or a file path).
-    pub fn read(path: &Path) -> Result<Calibration, String> {
+    pub fn read(path: &Path) -> crate::error::Result<Calibration> {
+        use crate::error::Error;
         let file = if path.is_dir() {
             path.join(CALIBRATION_FILE)
         } else {
             path.to_path_buf()
         };
-        let text = std::fs::read_to_string(&file).map_err(|e| format!("{}: {e}", file.display()))?;
-        let c: Calibration = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", file.display()))?;
+        let text = std::fs::read_to_string(&file).map_err(|source| Error::Io {
+            path: file.clone(),
+            source,
+        })?;
+        let c: Calibration = serde_json::from_str(&text).map_err(|e| Error::CalibrationFile {
+            path: file.clone(),
+            reason: e.to_string(),
+        })?;
         if c.schema_version.split('.').next() != CALIBRATION_SCHEMA.split('.').next() {
-            return Err(format!(
-                "{}: schema_version = '{}' is not compatible with {CALIBRATION_SCHEMA}",
-                file.display(),
-                c.schema_version
-            ));
+            return Err(Error::CalibrationFile {
+                path: file,
+                reason: format!(
+                    "schema_version = '{}' is not compatible with {CALIBRATION_SCHEMA}",
+                    c.schema_version
+                ),
+            });
         }
         Ok(c)
     }

@@ -45,6 +45,28 @@ pub enum Error {
         /// The calib crate's error (names file, keyword, value).
         source: sofipol_calib::Error,
     },
+    /// A standards table (built-in, harness or user file) is malformed.
+    #[error("{origin}: {reason}")]
+    Standards {
+        /// Where the table came from (file path, "builtin standards"...).
+        origin: String,
+        /// What is wrong (names the star, the key and the value).
+        reason: String,
+    },
+    /// A calibration file (`calibration.json`) cannot be used.
+    #[error("{path}: {reason}")]
+    CalibrationFile {
+        /// File concerned.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A Stokes method cannot be used with these orientations; says why.
+    #[error("{reason}")]
+    StokesMethod {
+        /// Why (names the method and the angles present).
+        reason: String,
+    },
     /// Plain I/O error on a file.
     #[error("{path}: {source}")]
     Io {

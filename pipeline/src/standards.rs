@@ -8,6 +8,8 @@
 //! the exact filter (ignoring case) wins over "*".
 use std::path::Path;
 
+use crate::error::{Error, Result};
+
 use serde::{Deserialize, Serialize};
 
 /// The built-in table (TOML text).
@@ -74,12 +76,16 @@ pub fn match_key(name: &str) -> String {
         .collect()
 }
 
-fn parse(text: &str, origin: &str) -> Result<Vec<StandardStar>, String> {
-    let f: File = toml::from_str(text).map_err(|e| format!("{origin}: {e}"))?;
+fn parse(text: &str, origin: &str) -> Result<Vec<StandardStar>> {
+    let err = |reason: String| Error::Standards {
+        origin: origin.to_string(),
+        reason,
+    };
+    let f: File = toml::from_str(text).map_err(|e| err(e.to_string()))?;
     for s in &f.standard {
-        let bad = |what: &str, v: f64| format!("{origin}: standard '{}': {what} = {v}", s.name);
+        let bad = |what: &str, v: f64| err(format!("standard '{}': {what} = {v}", s.name));
         if match_key(&s.name).is_empty() {
-            return Err(format!("{origin}: a standard has an empty name"));
+            return Err(err("a standard has an empty name".to_string()));
         }
         if !(0.0..1.0).contains(&s.p) {
             return Err(bad("p (a fraction in [0, 1))", s.p));
@@ -107,7 +113,7 @@ impl StandardsTable {
     }
 
     /// Add or override entries (same name and filter) from TOML text.
-    pub fn merge_toml(&mut self, text: &str, origin: &str) -> Result<(), String> {
+    pub fn merge_toml(&mut self, text: &str, origin: &str) -> Result<()> {
         for s in parse(text, origin)? {
             let k = (match_key(&s.name), s.filter.to_ascii_lowercase());
             match self
@@ -124,8 +130,11 @@ impl StandardsTable {
     }
 
     /// The built-in table plus a user file.
-    pub fn with_file(path: &Path) -> Result<StandardsTable, String> {
-        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    pub fn with_file(path: &Path) -> Result<StandardsTable> {
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
         let mut t = StandardsTable::builtin();
         t.merge_toml(&text, &path.display().to_string())?;
         Ok(t)
@@ -242,11 +251,13 @@ sigma_p = 0.0005
                 "[[standard]]\nname = \"X\"\nfilter = \"Ks\"\np = 1.5\nsigma_p = 0.1\n",
                 "bad.toml",
             )
-            .unwrap_err();
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("bad.toml") && e.contains("'X'") && e.contains("1.5"), "{e}");
         assert!(t
             .merge_toml("[[standard]]\nname = \"X\"\n", "bad2.toml")
             .unwrap_err()
+            .to_string()
             .contains("bad2.toml"));
     }
 }

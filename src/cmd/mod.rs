@@ -2,6 +2,7 @@
 pub mod accuracy_report;
 pub mod bench;
 pub mod bench_night;
+pub mod bench_python;
 pub mod calib;
 pub mod common;
 pub mod demo;

@@ -286,7 +286,11 @@ pub fn fit_qu_calibrated(obs: &[OrientationF], offset: Offset) -> Option<QuFit> 
 /// Solve for q, u with the chosen method (see [`StokesMethod::Auto`] for the automatic
 /// choice). `offset`: the calibration's instrumental offset, when there is one. Errors say
 /// why the method cannot be used with these angles.
-pub fn solve(obs: &[OrientationF], method: StokesMethod, offset: Option<Offset>) -> Result<StokesSolution, String> {
+pub fn solve(
+    obs: &[OrientationF],
+    method: StokesMethod,
+    offset: Option<Offset>,
+) -> crate::error::Result<StokesSolution> {
     let pairs = balanced_pairs(obs);
     let n = distinct_angles(obs);
     let method = match method {
@@ -303,14 +307,15 @@ pub fn solve(obs: &[OrientationF], method: StokesMethod, offset: Option<Offset>)
         }
         m => m,
     };
-    let undefined = || "orientations do not constrain q and u".to_string();
+    let err = |reason: String| crate::error::Error::StokesMethod { reason };
+    let undefined = || err("orientations do not constrain q and u".to_string());
     match method {
         StokesMethod::Ratio | StokesMethod::Difference => {
             let pairs = pairs.ok_or_else(|| {
-                format!(
+                err(format!(
                     "the {} method needs balanced orientations (pairs 90 deg apart); {n} distinct analyzer angle(s)",
                     method.name()
-                )
+                ))
             })?;
             let (mut phis, mut gs, mut ss) = (Vec::new(), Vec::new(), Vec::new());
             for (a, b) in &pairs {
@@ -332,8 +337,11 @@ pub fn solve(obs: &[OrientationF], method: StokesMethod, offset: Option<Offset>)
             })
         }
         StokesMethod::FreeOffset => {
-            let (fit, off) = fit_qu_offset(obs)
-                .ok_or_else(|| format!("a free offset needs 3 or more distinct analyzer angles; {n} present"))?;
+            let (fit, off) = fit_qu_offset(obs).ok_or_else(|| {
+                err(format!(
+                    "a free offset needs 3 or more distinct analyzer angles; {n} present"
+                ))
+            })?;
             Ok(StokesSolution {
                 fit,
                 method,
