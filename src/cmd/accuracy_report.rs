@@ -236,6 +236,9 @@ fn calibration_variants() -> Vec<Variant> {
             |c, _| {
                 *c = AccuracyConfig::with_instrument(c.clone(), false);
                 c.orientations_deg = vec![0.0, 45.0, 90.0, 135.0];
+                // Zero-point 0 as the label says: without a polarized standard nothing
+                // measures it, and the ratio method cancels k and p_inst only.
+                c.effects.retain(|e| e != "analyzer_angle");
             },
         ),
     ]
@@ -463,7 +466,7 @@ fn write_report(dir: &Path, r: &Report) -> anyhow::Result<()> {
     let mut md = String::new();
     md += "# What accuracy costs in time\n\n";
     md += &format!(
-        "Made by `{}` ({} rayon threads). {} simulated binaries per separation bin (bins {} arcsec; seeing 0.8\" = 2.8 px, Moffat beta 3, all effects of `sofipol bench accuracy`). \
+        "Made by `{}` ({} rayon threads). {} simulated binaries per separation bin (bins {} arcsec; seeing 0.8\" = 2.8 px varying +-20 % and Moffat beta 2.5-4 frame to frame, all effects of `sofipol bench accuracy`). \
          Errors are true errors against the simulation: `rms err` = rms of q - q_true and u - u_true over both components and all bins; \
          `pull` = (q - q_true)/sigma_q (1 = honest errors). Times are medians per target inside the harness on a shared machine: compare within one report.\n\n",
         r.command,
@@ -475,7 +478,7 @@ fn write_report(dir: &Path, r: &Report) -> anyhow::Result<()> {
     groups.dedup();
     for g in &groups {
         let rows: Vec<&VariantResult> = r.variants.iter().filter(|v| v.group == *g).collect();
-        md += &format!("## {g}\n\n![{g}](pareto_{g}.png)\n\n");
+        md += &format!("## {g}\n\n![{g}](pareto_{}.png)\n\n", g.replace(' ', "_"));
         md += &format!(
             "| variant | flags | {} | rms err (1e-3) | rms pull per bin | median sigma_q per bin (1e-3) | rms err per bin (1e-3) | mean err per bin (1e-3) | missing | Pareto |\n|---|---|---|---|---|---|---|---|---|---|\n",
             if *g == G_EXPOSURE { "exposure s" } else { "s / target" }
@@ -581,7 +584,7 @@ fn plot_group(dir: &Path, g: &str, all: &[VariantResult]) -> anyhow::Result<()> 
     panel = panel
         .x_range(0.0, 1.6 * xmax.max(1e-9))
         .y_range(0.0, 1.1 * ymax.max(1e-9));
-    Figure::single(panel).save_png(&dir.join(format!("pareto_{g}.png")))?;
+    Figure::single(panel).save_png(&dir.join(format!("pareto_{}.png", g.replace(' ', "_"))))?;
     Ok(())
 }
 
