@@ -123,22 +123,13 @@ pub fn dither_groups(offsets: &[[f64; 2]]) -> Vec<usize> {
         .collect()
 }
 
-/// [`detect_bad_pixels`] knowing where the stars are: `offsets`, the header offset of each
-/// frame (None: unknown, every frame taken as its own position). The target of every
-/// sequence sits at the same detector position for a given dither offset, whatever the
-/// rotator angle, so the frames of one position all hold a star on the same pixels. When
-/// one position holds at least half of the frames (2 dithers per orientation: exactly
-/// half) the plain median keeps that star (the star core was masked as a defect and the
-/// target's flux lost). Then the stack is built per position instead: the median of each
-/// position's frames, and across positions the median (3 or more positions) or the
-/// per-pixel minimum (2 positions: the star is in one of them, a defect in both). One
-/// position only is an error (a star cannot be told from a defect).
-pub fn detect_bad_pixels_at(
+/// Check the frame count, options, frame shapes and profile strips; returns the common shape.
+fn check_inputs(
     frames: &[&Frame],
     offsets: Option<&[[f64; 2]]>,
     profile: &Profile,
     opts: &BadPixelOptions,
-) -> Result<(Array2<u8>, BadPixelReport)> {
+) -> Result<(usize, usize)> {
     let n = frames.len();
     if let Some(o) = offsets {
         if o.len() != n {
@@ -184,9 +175,13 @@ pub fn detect_bad_pixels_at(
             shape.0
         )));
     }
-    let (ny, nx) = shape;
+    Ok(shape)
+}
 
-    // 1. Median stack at a common level.
+/// Median stack of the frames scaled (or offset) to their mean sky level; with too few
+/// dither positions, a median per position and then the minimum / median of those.
+fn common_level_median(frames: &[&Frame], offsets: Option<&[[f64; 2]]>, profile: &Profile) -> Result<Array2<f32>> {
+    let n = frames.len();
     let levels: Vec<f64> = frames
         .par_iter()
         .map(|f| crate::sky::sky_level(f, profile))
@@ -243,15 +238,14 @@ pub fn detect_bad_pixels_at(
         }
     };
 
-    // 2. Residual from a running median along x (all rows: the few blocked rows cost
-    //    less than skipping them).
-    let h = opts.window_px / 2;
-    let run = stack::running_median_x(med.view(), h)?;
-    let resid = &med - &run;
+    Ok(med)
+}
 
-    // 3. Robust sigma (1.4826 MAD, from every 3rd pixel: +-0.7 % at 57k samples) and
-    //    threshold per strip, strips in parallel.
-    let per_strip: Vec<StripHits> = g
+/// Robust sigma (1.4826 MAD, from every 3rd pixel: +-0.7 % at 57k samples) and
+/// threshold per strip, strips in parallel.
+fn strip_hits(resid: &Array2<f32>, profile: &Profile, opts: &BadPixelOptions) -> Vec<StripHits> {
+    profile
+        .geometry
         .strips()
         .par_iter()
         .filter(|(_, [y0, y1])| y1 > y0) // a cropped profile has empty strips
@@ -278,7 +272,40 @@ pub fn detect_bad_pixels_at(
             }
             (name, sigma, hits)
         })
-        .collect();
+        .collect()
+}
+
+/// [`detect_bad_pixels`] knowing where the stars are: `offsets`, the header offset of each
+/// frame (None: unknown, every frame taken as its own position). The target of every
+/// sequence sits at the same detector position for a given dither offset, whatever the
+/// rotator angle, so the frames of one position all hold a star on the same pixels. When
+/// one position holds at least half of the frames (2 dithers per orientation: exactly
+/// half) the plain median keeps that star (the star core was masked as a defect and the
+/// target's flux lost). Then the stack is built per position instead: the median of each
+/// position's frames, and across positions the median (3 or more positions) or the
+/// per-pixel minimum (2 positions: the star is in one of them, a defect in both). One
+/// position only is an error (a star cannot be told from a defect).
+pub fn detect_bad_pixels_at(
+    frames: &[&Frame],
+    offsets: Option<&[[f64; 2]]>,
+    profile: &Profile,
+    opts: &BadPixelOptions,
+) -> Result<(Array2<u8>, BadPixelReport)> {
+    let n = frames.len();
+    let shape = check_inputs(frames, offsets, profile, opts)?;
+    let (ny, nx) = shape;
+
+    // 1. Median stack at a common level.
+    let med = common_level_median(frames, offsets, profile)?;
+
+    // 2. Residual from a running median along x (all rows: the few blocked rows cost
+    //    less than skipping them).
+    let h = opts.window_px / 2;
+    let run = stack::running_median_x(med.view(), h)?;
+    let resid = &med - &run;
+
+    // 3. Robust sigma and threshold per strip, strips in parallel.
+    let per_strip = strip_hits(&resid, profile, opts);
     let mut out = Array2::<u8>::zeros((ny, nx));
     let mut report = BadPixelReport {
         frames: n,

@@ -265,6 +265,32 @@ fn load(w: &mut [[f32; BLOCK]], rows: &[&[f32]], maps: &[Affine], x0: usize, len
     }
 }
 
+/// Row `y` of every frame (`slices`, rows of `nx`), block by block: each block loaded,
+/// mapped, into the wires `w` and put through `net`, then `emit(w, rows, x0, len)` with
+/// the frames' rows `rows` and the block `[x0, x0+len)`.
+#[inline]
+fn sort_row_blocks<F>(
+    w: &mut [[f32; BLOCK]],
+    slices: &[&[f32]],
+    maps: &[Affine],
+    net: &Network,
+    y: usize,
+    nx: usize,
+    mut emit: F,
+) where
+    F: FnMut(&[[f32; BLOCK]], &[&[f32]], usize, usize),
+{
+    let rows: Vec<&[f32]> = slices.iter().map(|s| &s[y * nx..(y + 1) * nx]).collect();
+    let mut x0 = 0;
+    while x0 < nx {
+        let len = BLOCK.min(nx - x0);
+        load(w, &rows, maps, x0, len);
+        net.run(w, len);
+        emit(w, &rows, x0, len);
+        x0 += len;
+    }
+}
+
 /// Per-pixel median of a stack of 1..=[`MAX_STACK`] frames (no mapping).
 pub fn median_stack(frames: &[ArrayView2<f32>]) -> Result<Array2<f32>> {
     median_stack_affine(frames, &vec![Affine::IDENTITY; frames.len()])
@@ -292,12 +318,7 @@ pub fn median_stack_affine(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Resul
             let mut w = vec![[0f32; BLOCK]; n];
             for (r, orow) in chunk.chunks_mut(nx).enumerate() {
                 let y = band * BAND_ROWS + r;
-                let rows: Vec<&[f32]> = slices.iter().map(|s| &s[y * nx..(y + 1) * nx]).collect();
-                let mut x0 = 0;
-                while x0 < nx {
-                    let len = BLOCK.min(nx - x0);
-                    load(&mut w, &rows, maps, x0, len);
-                    net.run(&mut w, len);
+                sort_row_blocks(&mut w, &slices, maps, &net, y, nx, |w, _rows, x0, len| {
                     let o = &mut orow[x0..x0 + len];
                     if ranks.len() == 1 {
                         o.copy_from_slice(&w[ranks[0]][..len]);
@@ -307,8 +328,7 @@ pub fn median_stack_affine(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Resul
                             *o = mid(a, b);
                         }
                     }
-                    x0 += len;
-                }
+                });
             }
         });
     Ok(out)
@@ -374,12 +394,7 @@ pub fn leave_one_out_medians_into(frames: &[ArrayView2<f32>], maps: &[Affine], o
         let rows_here = chunks[0].len() / nx;
         for r in 0..rows_here {
             let y = band * BAND_ROWS + r;
-            let rows: Vec<&[f32]> = slices.iter().map(|s| &s[y * nx..(y + 1) * nx]).collect();
-            let mut x0 = 0;
-            while x0 < nx {
-                let len = BLOCK.min(nx - x0);
-                load(&mut w, &rows, maps, x0, len);
-                net.run(&mut w, len);
+            sort_row_blocks(&mut w, &slices, maps, &net, y, nx, |w, rows, x0, len| {
                 for (i, chunk) in chunks.iter_mut().enumerate() {
                     let o = &mut chunk[r * nx + x0..r * nx + x0 + len];
                     let src = &rows[i][x0..x0 + len];
@@ -402,8 +417,7 @@ pub fn leave_one_out_medians_into(frames: &[ArrayView2<f32>], maps: &[Affine], o
                         }
                     }
                 }
-                x0 += len;
-            }
+            });
         }
     });
     Ok(())

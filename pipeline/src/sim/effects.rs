@@ -2,6 +2,7 @@
 //! own random stream ([`super::rng::stream`]), so an effect's realisation does not depend
 //! on which other effects are listed.
 use ndarray::Array2;
+use rand::rngs::Xoshiro256PlusPlus;
 use rand::RngExt;
 use rand_distr::{Distribution, Poisson};
 use rayon::prelude::*;
@@ -258,43 +259,47 @@ pub fn nonlinearity(calls: &EffectCalls, img: &mut Array2<f32>, c: f64) {
 /// Poisson noise of the photo-electrons: value (ADU) x gain_eff -> Poisson -> / gain_eff.
 pub fn photon_noise(calls: &EffectCalls, img: &mut Array2<f32>, seed: u64, key: (u64, u64), gain_eff: f64) {
     calls.hit(EffectKind::PhotonNoise);
-    let nx = img.dim().1;
-    img.as_slice_mut()
-        .expect("standard layout")
-        .par_chunks_mut(nx)
-        .enumerate()
-        .for_each(|(y, row)| {
-            let mut r = stream(seed, EffectKind::PhotonNoise, key.0, key.1, y as u64);
-            for v in row.iter_mut() {
-                let e = *v as f64 * gain_eff;
-                if e <= 0.0 {
-                    continue;
-                }
-                let draw = if e >= POISSON_GAUSS_SWITCH_E {
-                    e + e.sqrt() * normal(&mut r)
-                } else {
-                    match Poisson::new(e) {
-                        Ok(p) => p.sample(&mut r),
-                        Err(_) => e,
-                    }
-                };
-                *v = (draw / gain_eff) as f32;
+    noise_rows(img, seed, EffectKind::PhotonNoise, key, |r, v| {
+        let e = *v as f64 * gain_eff;
+        if e <= 0.0 {
+            return;
+        }
+        let draw = if e >= POISSON_GAUSS_SWITCH_E {
+            e + e.sqrt() * normal(r)
+        } else {
+            match Poisson::new(e) {
+                Ok(p) => p.sample(r),
+                Err(_) => e,
             }
-        });
+        };
+        *v = (draw / gain_eff) as f32;
+    });
 }
 
 /// Gaussian read noise of `sigma_adu` (already divided by sqrt(NDIT)).
 pub fn read_noise(calls: &EffectCalls, img: &mut Array2<f32>, seed: u64, key: (u64, u64), sigma_adu: f64) {
     calls.hit(EffectKind::ReadNoise);
+    noise_rows(img, seed, EffectKind::ReadNoise, key, |r, v| {
+        *v += (sigma_adu * normal(r)) as f32;
+    });
+}
+
+/// Apply `f` to every pixel, rows in parallel, row `y` drawing from its own random stream
+/// `stream(seed, kind, key.0, key.1, y)` (pixels in row order: results do not depend on
+/// the thread count).
+fn noise_rows<F>(img: &mut Array2<f32>, seed: u64, kind: EffectKind, key: (u64, u64), f: F)
+where
+    F: Fn(&mut Xoshiro256PlusPlus, &mut f32) + Sync,
+{
     let nx = img.dim().1;
     img.as_slice_mut()
         .expect("standard layout")
         .par_chunks_mut(nx)
         .enumerate()
         .for_each(|(y, row)| {
-            let mut r = stream(seed, EffectKind::ReadNoise, key.0, key.1, y as u64);
+            let mut r = stream(seed, kind, key.0, key.1, y as u64);
             for v in row.iter_mut() {
-                *v += (sigma_adu * normal(&mut r)) as f32;
+                f(&mut r, v);
             }
         });
 }
