@@ -125,3 +125,74 @@ fn standardize<T: Clone>(a: &mut Array2<T>) {
         *a = a.as_standard_layout().into_owned();
     }
 }
+
+/// The rows of a flat matching a frame whose row 0 is row `row0` of the flat, to be divided
+/// out inside the sky stage's last pass ([`crate::sky::sky_subtract_flat`]) instead of in
+/// a pass of its own: the frames are sky-subtracted raw, and raw - sky is then divided by
+/// the flat. With the sky scaled multiplicatively this is the same reduction as dividing
+/// first (the per-pixel median of the other dithers commutes with a response they share)
+/// at the cost of one division per pixel, without a copy, a variance map or a strip median
+/// of its own.
+#[derive(Debug, Clone, Copy)]
+pub struct FlatRows<'a> {
+    /// The flat.
+    pub flat: &'a Flat,
+    /// Flat row of the frame's row 0.
+    pub row0: usize,
+}
+
+impl<'a> FlatRows<'a> {
+    /// Data, variance and unusable-pixel rows of frame row `y`.
+    pub(crate) fn row(&self, y: usize) -> (&'a [f32], &'a [f32], &'a [u8]) {
+        let (f, r) = (self.flat, self.row0 + y);
+        let nx = f.data.dim().1;
+        let sl = |a: &'a [f32]| &a[r * nx..(r + 1) * nx];
+        (
+            sl(f.data.as_slice().expect("flats are standard layout")),
+            sl(f.variance.as_slice().expect("flats are standard layout")),
+            &f.bad.as_slice().expect("flats are standard layout")[r * nx..(r + 1) * nx],
+        )
+    }
+
+    /// Whether every array of the flat is in standard layout (always, for flats built or
+    /// read by sofipol; checked rather than assumed).
+    pub(crate) fn standard(&self) -> bool {
+        let f = self.flat;
+        f.data.is_standard_layout() && f.variance.is_standard_layout() && f.bad.is_standard_layout()
+    }
+
+    /// History record of a frame flat-fielded this way.
+    pub(crate) fn history(&self, n_bad: usize) -> HistoryRecord {
+        HistoryRecord::new(
+            "flat",
+            format!(
+                "divided by the {} in the sky stage's last pass: data = (raw - sky) / flat; variance = \
+                 (raw variance + sky-estimate variance) / flat^2 + data^2 var_flat / flat^2 (the flat's noise \
+                 on the signal above the sky); {n_bad} pixels unusable in the flat marked BAD",
+                self.flat.describe()
+            ),
+        )
+    }
+}
+
+/// Divides one row of raw - sky (`d`, with its variance `v` in raw units) by the flat's row
+/// (`f`, variance `fv`, unusable `fb`): d <- d / f, v <- (v + max(d / f, 0)^2 fv) / f^2.
+/// Unusable pixels keep their values and get [`mask::BAD`]; returns how many. Branch-free
+/// (vectorised).
+pub(crate) fn divide_row(d: &mut [f32], v: &mut [f32], m: &mut [u8], (f, fv, fb): (&[f32], &[f32], &[u8])) -> usize {
+    let n = d.len();
+    let (v, m, f, fv, fb) = (&mut v[..n], &mut m[..n], &f[..n], &fv[..n], &fb[..n]);
+    let mut bad_count = 0;
+    for x in 0..n {
+        let (dd, ff, vv) = (d[x], f[x], v[x]);
+        let o = dd / ff;
+        let ex = o.max(0.0);
+        let vf = (vv + ex * ex * fv[x]) / (ff * ff);
+        let bad = fb[x] != 0;
+        d[x] = if bad { dd } else { o };
+        v[x] = if bad { vv } else { vf };
+        m[x] |= u8::from(bad) * mask::BAD;
+        bad_count += usize::from(bad);
+    }
+    bad_count
+}

@@ -28,6 +28,7 @@ use ndarray::{Array2, ArrayView2};
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
+use crate::flat::FlatRows;
 use crate::frame::{mask, Frame};
 use crate::profile::Profile;
 use crate::stack::{self, Affine};
@@ -356,7 +357,57 @@ pub fn sky_subtract_with_report(
 /// the outputs' (the data, mask and variance maps are not copied), with the same numbers
 /// bit for bit.
 pub fn sky_subtract_owned(frames: Vec<Frame>, profile: &Profile, opts: &SkyOptions) -> Result<(Vec<Frame>, SkyReport)> {
+    sky_subtract_flat(frames, profile, opts, None)
+}
+
+/// [`sky_subtract_owned`] of raw frames that also divides them by a flat (the flat's rows
+/// matching the frames): data = (raw - sky) / flat, the variance as
+/// [`crate::flat::apply_flat`] gives it followed by this stage, in the same last pass
+/// ([`crate::flat::FlatRows`]). With multiplicative scaling (the default) the per-pixel
+/// sky of the other dithers is estimated on the raw values, which divides by the shared
+/// flat like the frames; with additive scaling, where it would not, the frames are divided
+/// by the flat first ([`crate::flat::apply_flat_in_place`]). Errors name the flat when its
+/// rows do not cover the frames.
+pub fn sky_subtract_flat(
+    mut frames: Vec<Frame>,
+    profile: &Profile,
+    opts: &SkyOptions,
+    flat: Option<FlatRows>,
+) -> Result<(Vec<Frame>, SkyReport)> {
     check_inputs(&frames, profile, opts)?;
+    let flat = match flat {
+        Some(fr) => {
+            let (ny, nx) = frames[0].shape();
+            let (fny, fnx) = fr.flat.shape();
+            if fnx != nx || fr.row0 + ny > fny || !fr.standard() {
+                return Err(Error::Stage {
+                    stage: "flat",
+                    reason: format!(
+                        "{}: frame shape {:?} at flat row {} does not fit the {} of shape {:?}{}",
+                        frame_name(&frames[0], 0),
+                        (ny, nx),
+                        fr.row0,
+                        fr.flat.describe(),
+                        fr.flat.shape(),
+                        fr.flat
+                            .path
+                            .as_ref()
+                            .map(|p| format!(" ({})", p.display()))
+                            .unwrap_or_default()
+                    ),
+                });
+            }
+            if opts.scaling == SkyScaling::Additive {
+                for f in &mut frames {
+                    crate::flat::apply_flat_in_place(f, fr.flat, fr.row0, profile)?;
+                }
+                None
+            } else {
+                Some(fr)
+            }
+        }
+        None => None,
+    };
     let n = frames.len();
     let levels: Vec<f64> = frames
         .par_iter()
@@ -420,7 +471,15 @@ pub fn sky_subtract_owned(frames: Vec<Frame>, profile: &Profile, opts: &SkyOptio
     for (i, ((f, sky), count)) in frames.into_iter().zip(skies).zip(counts).enumerate() {
         let has_vin = f.variance.is_some();
         let ndit = ndits[i];
-        let mut frame = fin.frame(f, sky, count.as_ref(), levels[i] as f32, noise[i], &names[i])?;
+        let mut frame = fin.frame(
+            f,
+            sky,
+            count.as_ref(),
+            levels[i] as f32,
+            noise[i],
+            &names[i],
+            flat.as_ref(),
+        )?;
         let others: Vec<&str> = (0..n).filter(|&j| j != i).map(|j| names[j].as_str()).collect();
         let detail = format!(
             "{} scaling, level {:.2} ADU; sky = {} of the other {m} dithers [{}] (levels {}); \
@@ -557,6 +616,7 @@ impl Finish {
         level: f32,
         (inv_g, rv): (f32, f32),
         name: &str,
+        flat: Option<&FlatRows>,
     ) -> Result<Frame> {
         let Frame {
             data,
@@ -573,7 +633,7 @@ impl Finish {
         let cnt_row = |y: usize| count.map(|c| &c.as_slice().expect("standard layout")[y * nx..(y + 1) * nx]);
         // The variance goes into the input variance map when there is one, else over the
         // raw values (each read before it is overwritten).
-        let nonfinite: usize = match vin.as_mut() {
+        let (nonfinite, n_flat_bad): (usize, usize) = match vin.as_mut() {
             Some(v) => {
                 let raw_s = raw.as_slice().expect("standard layout");
                 sky.as_slice_mut()
@@ -595,9 +655,10 @@ impl Finish {
                             Some(c) => (0..nx).for_each(|x| one(x, self.c_over_count[c[x] as usize])),
                         }
                         self.mask_row(y, mrow, rrow);
-                        rrow.iter().filter(|r| !r.is_finite()).count()
+                        let n_bad = flat.map_or(0, |fr| crate::flat::divide_row(srow, vrow, mrow, fr.row(y)));
+                        (rrow.iter().filter(|r| !r.is_finite()).count(), n_bad)
                     })
-                    .sum()
+                    .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
             }
             None => sky
                 .as_slice_mut()
@@ -619,15 +680,20 @@ impl Finish {
                         None => (0..nx).for_each(|x| one(x, c_over_m)),
                         Some(c) => (0..nx).for_each(|x| one(x, self.c_over_count[c[x] as usize])),
                     }
-                    bad
+                    let n_bad = flat.map_or(0, |fr| crate::flat::divide_row(srow, rrow, mrow, fr.row(y)));
+                    (bad, n_bad)
                 })
-                .sum(),
+                .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1)),
         };
         if nonfinite > 0 {
             return Err(Error::Stage {
                 stage: "sky",
                 reason: format!("{name}: {nonfinite} non-finite pixel values (NaN/inf); sky medians need finite data"),
             });
+        }
+        let mut history = history;
+        if let Some(fr) = flat {
+            history.push(fr.history(n_flat_bad));
         }
         Ok(Frame {
             data: sky,
