@@ -245,7 +245,10 @@ fn time_sofipol_night(
         let read = read_floor(files)?;
         // The same night without any calibration (no flat, no standards), right after: what
         // calibration costs is the difference (issue 8).
-        let (base_wall, base_err) = night(&root.join("catalog-uncalibrated.json"), &["--no-flat", "--no-calibration"])?;
+        let (base_wall, base_err) = night(
+            &root.join("catalog-uncalibrated.json"),
+            &["--no-flat", "--no-calibration"],
+        )?;
         last = stderr.clone();
         runs.push(NightRun {
             wall,
@@ -354,7 +357,12 @@ fn print_stages(runs: &[NightRun]) {
     // What calibration costs: each calibrated run against the uncalibrated run right after
     // it (`--no-flat --no-calibration`), CPU and wall.
     let pct = |a: f64, b: f64| 100.0 * (a / b - 1.0);
-    let list = |f: &dyn Fn(&NightRun) -> f64| runs.iter().map(|r| format!("{:+.1}", f(r))).collect::<Vec<_>>().join(" ");
+    let list = |f: &dyn Fn(&NightRun) -> f64| {
+        runs.iter()
+            .map(|r| format!("{:+.1}", f(r)))
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
     println!(
         "  calibration (issue 8: adds <= 15 %): night without flat and standards {:.2} CPU-s / {:.2} s wall (median); \
          calibration adds {:+.1} % CPU [{}], {:+.1} % wall [{}] (median of per-run ratios; flat build {:.2} s, \

@@ -390,7 +390,7 @@ mod dome;
 mod io;
 mod superflat;
 
-pub(crate) use apply::divide_row;
+pub(crate) use apply::FlatRow;
 pub use apply::{apply_flat, apply_flat_in_place, check_flat, FlatRows};
 pub use dome::{build_flats, dome_flat, dome_flat_info, DomeFlatInfo};
 pub use io::{flat_file_name, read_flat, write_flat};

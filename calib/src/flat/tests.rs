@@ -263,8 +263,8 @@ fn the_sky_stage_divides_by_the_flat_like_dividing_first() {
     // The reference: every frame divided by the flat first, then sky-subtracted.
     let first: Vec<Frame> = frames.iter().map(|f| apply_flat(f, &flat, &p).unwrap()).collect();
     let want = sky_subtract(&first, &p, &opts).unwrap();
-    let fr = FlatRows { flat: &flat, row0: 0 };
-    let (got, _) = sky_subtract_flat(frames.clone(), &p, &opts, Some(fr)).unwrap();
+    let fr = FlatRows::new(&flat, 0, g.ny);
+    let (got, _) = sky_subtract_flat(frames.clone(), &p, &opts, Some(&fr)).unwrap();
     let mut worst = (0f32, 0f32);
     for (w, o) in want.iter().zip(&got) {
         for y in (0..g.ny).filter(|&y| g.row_in_strip(y)) {
@@ -296,7 +296,7 @@ fn the_sky_stage_divides_by_the_flat_like_dividing_first() {
     let no_flat_noise = {
         let mut f0 = flat.clone();
         f0.variance.fill(0.0);
-        let (o, _) = sky_subtract_flat(frames.clone(), &p, &opts, Some(FlatRows { flat: &f0, row0: 0 })).unwrap();
+        let (o, _) = sky_subtract_flat(frames.clone(), &p, &opts, Some(&FlatRows::new(&f0, 0, g.ny))).unwrap();
         o[0].variance.as_ref().unwrap()[[400, 300]]
     };
     let f = resp[[400, 300]];
@@ -308,13 +308,13 @@ fn the_sky_stage_divides_by_the_flat_like_dividing_first() {
         ..opts.clone()
     };
     let want = sky_subtract(&first, &p, &add).unwrap();
-    let (got, _) = sky_subtract_flat(frames.clone(), &p, &add, Some(fr)).unwrap();
+    let (got, _) = sky_subtract_flat(frames.clone(), &p, &add, Some(&fr)).unwrap();
     for (w, o) in want.iter().zip(&got) {
         assert_eq!(w.data, o.data);
         assert_eq!(w.variance, o.variance);
     }
     // A flat whose rows do not cover the frames is refused by name.
     let short = flat.crop_rows(0, g.ny - 10);
-    let e = sky_subtract_flat(frames, &p, &opts, Some(FlatRows { flat: &short, row0: 0 })).unwrap_err();
+    let e = sky_subtract_flat(frames, &p, &opts, Some(&FlatRows::new(&short, 0, g.ny))).unwrap_err();
     assert!(e.to_string().contains("does not fit the superflat"), "{e}");
 }

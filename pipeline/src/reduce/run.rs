@@ -383,7 +383,8 @@ fn choose_flats<'a>(
                 return None;
             }
             used.push(format!("POSANG {pa}: {}", flat.describe()));
-            Some(flat::FlatRows { flat, row0 })
+            let ny = frames.first().map_or(0, |f| f.shape().0);
+            Some(flat::FlatRows::new(flat, row0, ny))
         })
         .collect();
     (chosen, used)
@@ -507,7 +508,7 @@ fn subtract_sky(
                 continue;
             }
         }
-        match sky::sky_subtract_flat(frames, profile, &params.sky, *fl) {
+        match sky::sky_subtract_flat(frames, profile, &params.sky, fl.as_ref()) {
             Ok((s, _)) => cal.push(CalibratedOrientation {
                 posang_deg: posang,
                 analyzer_deg: phi,
