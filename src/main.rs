@@ -20,6 +20,7 @@ macro_rules! eprintln {
     ($($t:tt)*) => {{ use std::io::Write as _; let _ = writeln!(std::io::stderr().lock(), $($t)*); }};
 }
 
+mod alloc;
 mod cmd;
 
 /// Dual-beam near-infrared imaging polarimetry with SOFI (ESO NTT).
@@ -55,6 +56,7 @@ enum Command {
 }
 
 fn main() -> ExitCode {
+    alloc::keep_freed_memory();
     // Usage errors exit 1 (clap's own default of 2 means "reduced with failures" here).
     let cli = match Cli::try_parse() {
         Ok(c) => c,
