@@ -3,7 +3,9 @@
 //! one drawn target's frames to look at: `... --example world -- write BIN T DIR`;
 //! `-- N nocal` leaves the night's calibration unused, `-- N noinst` turns the instrument off,
 //! `noell` / `nonl` only the PSF ellipticity / the non-linearity (`full`: everything); a
-//! third argument is the seed.
+//! third argument is the seed. Environment: `WORLD_JSON=file` writes every target (conditions,
+//! pulls, photometry method, dither chi2, per-orientation F) as JSON; `WORLD_BETA_FREE=1`
+//! fits Moffat beta in every frame for every target (`[measure] beta_from_stack = false`).
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let dir = std::env::temp_dir().join(format!("sofipol-world-{}", std::process::id()));

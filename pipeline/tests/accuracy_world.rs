@@ -20,6 +20,9 @@ fn pool_nights(nights: &[Vec<WorldBin>]) -> Vec<WorldBin> {
         b.n_pulls = pulls.len();
         b.rms_pull = (pulls.iter().map(|p| p * p).sum::<f64>() / np).sqrt();
         b.mean_pull = pulls.iter().sum::<f64>() / np;
+        let mut sig: Vec<f64> = b.targets.iter().flat_map(|t| t.sigmas.iter().copied()).collect();
+        sig.sort_by(f64::total_cmp);
+        b.median_sigma = sig.get(sig.len() / 2).copied().unwrap_or(f64::NAN);
         b.missing = nights.iter().map(|n| n[i].missing).sum();
         b.refused = nights.iter().map(|n| n[i].refused).sum();
         b.relabelled = nights.iter().map(|n| n[i].relabelled).sum();
@@ -59,7 +62,8 @@ fn pulls_are_unit_wide_and_unbiased_on_a_sampled_night_with_its_calibration() {
     for b in &bins {
         // ~110 pulls per bin: the rms of unit Gaussian pulls spreads by 1/sqrt(2n) = 7 %
         // (1 sigma), so 0.8-1.2 is a ~3-sigma band. One night of 16 targets a bin (56 pulls,
-        // 10 %) is not enough: over 7 nights the bins' rms ranged 0.74-1.52 (docs/accuracy.md).
+        // 10 %) is not enough: over 7 nights the bins' rms ranged 0.74-1.52 (one more at 3.9: a
+        // near-equal 5" pair whose identity was lost, an open defect; docs/accuracy.md).
         assert!(b.n_pulls >= 90, "{report}");
         // Every bin, close pairs too, both sides: errors neither too small nor too large.
         // Pairs measured by PSF-fit fluxes fit beta per frame: with beta held at the stack's
