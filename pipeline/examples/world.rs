@@ -3,7 +3,9 @@
 //! one drawn target's frames to look at: `... --example world -- write BIN T DIR`;
 //! `-- N nocal` leaves the night's calibration unused, `-- N noinst` turns the instrument off,
 //! `noell` / `nonl` only the PSF ellipticity / the non-linearity (`full`: everything); a
-//! third argument is the seed.
+//! third argument is the seed. Environment: `WORLD_JSON=file` writes every target (conditions,
+//! pulls, photometry method, dither chi2, per-orientation F) as JSON; `WORLD_BETA_FREE=1`
+//! fits Moffat beta in every frame for every target (`[measure] beta_from_stack = false`).
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let dir = std::env::temp_dir().join(format!("sofipol-world-{}", std::process::id()));
@@ -28,9 +30,17 @@ fn main() {
         _ => {}
     }
     let t0 = std::time::Instant::now();
-    let bins = sofipol_pipeline::world::run(&cfg, &Default::default());
+    let mut params = sofipol_pipeline::reduce::TargetParams::default();
+    if std::env::var("WORLD_BETA_FREE").is_ok() {
+        params.measure.beta_from_stack = false;
+    }
+    let bins = sofipol_pipeline::world::run(&cfg, &params);
     println!("{:?}", sofipol_pipeline::world::draw_instrument(&cfg));
     print!("{}", sofipol_pipeline::world::table(&bins, true));
+    // `WORLD_JSON=path`: every target's conditions, pulls and sigmas, for a closer look.
+    if let Ok(p) = std::env::var("WORLD_JSON") {
+        std::fs::write(&p, serde_json::to_string(&bins).unwrap()).unwrap();
+    }
     println!("{:.1} s", t0.elapsed().as_secs_f64());
     let _ = std::fs::remove_dir_all(&dir);
 }

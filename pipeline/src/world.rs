@@ -129,6 +129,13 @@ pub struct WorldTarget {
     pub relabelled: bool,
     /// Catalog status and flags, for the report.
     pub note: String,
+    /// Photometry method of the sequence (`psf` or `aperture`, the catalog's `photometry`).
+    pub photometry: String,
+    /// Per scored component and orientation: (chi2 of the dither values about their
+    /// weighted mean, number of dithers combined), from the catalog's `orientations`.
+    pub dither_chi2: Vec<(f64, usize)>,
+    /// Per scored component (catalog order) and orientation: (analyzer angle, F, sigma_F).
+    pub orientation_f: Vec<Vec<(f64, f64, f64)>>,
 }
 
 /// Pull statistics of one bin.
@@ -472,7 +479,40 @@ fn one_target(
 fn scored(r: Reduced, saturated_design: bool) -> WorldTarget {
     let (pulls, sigmas, missing, refused, relabelled) = score(&r.target, &r.truth, r.ratio);
     let target = &r.target;
+    let dither_chi2 = target
+        .components
+        .iter()
+        .filter(|c| c.q.is_finite() && !c.flags.iter().any(|f| f == "saturated"))
+        .filter_map(|c| c.extra.get("orientations").and_then(|v| v.as_array()))
+        .flatten()
+        .filter_map(|o| Some((o.get("chi2")?.as_f64()?, o.get("n_dithers")?.as_u64()? as usize)))
+        .collect();
+    let orientation_f = target
+        .components
+        .iter()
+        .filter(|c| c.q.is_finite() && !c.flags.iter().any(|f| f == "saturated"))
+        .filter_map(|c| c.extra.get("orientations").and_then(|v| v.as_array()))
+        .map(|os| {
+            os.iter()
+                .filter_map(|o| {
+                    Some((
+                        o.get("analyzer_deg")?.as_f64()?,
+                        o.get("f")?.as_f64()?,
+                        o.get("sigma_f")?.as_f64()?,
+                    ))
+                })
+                .collect()
+        })
+        .collect();
     WorldTarget {
+        orientation_f,
+        photometry: target
+            .extra
+            .get("photometry")
+            .and_then(|v| v.as_str())
+            .unwrap_or("")
+            .to_string(),
+        dither_chi2,
         object: r.truth.object.clone(),
         separation_arcsec: r.truth.separation_arcsec,
         flux_ratio: r.ratio,

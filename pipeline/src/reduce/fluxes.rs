@@ -44,10 +44,6 @@ pub fn choose_psf(companion: &Companion, fwhm_guess: f64, scale: f64, params: &M
         .filter(|b| b.is_finite())
         .collect();
     betas.sort_by(|a, b| a.total_cmp(b));
-    let frame_model = match (params.psf_model, params.beta_from_stack, betas.get(betas.len() / 2)) {
-        (PsfModel::Moffat { beta: None }, true, Some(&b)) => PsfModel::Moffat { beta: Some(b) },
-        (m, _, _) => m,
-    };
     let mut fwhms = companion.fwhms.clone();
     fwhms.sort_by(|a, b| a.total_cmp(b));
     let fwhm_px = if fwhms.is_empty() {
@@ -56,10 +52,26 @@ pub fn choose_psf(companion: &Companion, fwhm_guess: f64, scale: f64, params: &M
         fwhms[fwhms.len() / 2]
     };
     let sep_px = companion.geometry.map(|(s, _)| s / scale).unwrap_or(f64::INFINITY);
+    let use_psf = sep_px < params.psf_photometry_below_fwhm * fwhm_px;
+    // A pair measured by PSF-fit fluxes keeps beta free in every frame: its flux partition
+    // depends on the profile's shape, and a beta held at the stack's value (biased by the
+    // stack's whole-pixel registration, blind to the frame-to-frame changes of the seeing)
+    // moves the same fraction of each star's flux to the other in both beams, which mixes
+    // the components' polarizations by an amount no error term contains (world harness:
+    // pulls of 4 for bright 0.5-0.8" pairs; docs/accuracy.md). The beta-free fit's larger
+    // errors are the honest ones there.
+    let frame_model = match (
+        params.psf_model,
+        params.beta_from_stack && !use_psf,
+        betas.get(betas.len() / 2),
+    ) {
+        (PsfModel::Moffat { beta: None }, true, Some(&b)) => PsfModel::Moffat { beta: Some(b) },
+        (m, _, _) => m,
+    };
     PsfChoice {
         fwhm_px,
         frame_model,
-        use_psf: sep_px < params.psf_photometry_below_fwhm * fwhm_px,
+        use_psf,
         sep_px,
     }
 }
