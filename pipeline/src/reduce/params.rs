@@ -51,7 +51,8 @@ pub struct MeasureParams {
     /// `{ kind = "gaussian" }` restores the Gaussian fit.
     pub psf_model: PsfModel,
     /// With a Moffat model of free beta: measure beta on the registered stacks and hold it
-    /// fixed in the per-frame fits.
+    /// fixed in the per-frame fits of pairs measured by apertures (2 FWHM and wider); pairs
+    /// measured by PSF-fit fluxes fit beta in every frame (`reduce::fluxes::choose_psf`).
     pub beta_from_stack: bool,
 }
 
