@@ -25,6 +25,16 @@
 //! any noise. Derivatives with respect to the star's position, `alpha` and `beta` are
 //! computed by differentiating under the integral at the same nodes, so they are the exact
 //! derivatives of the quadrature (what the Levenberg-Marquardt fit needs).
+//!
+//! Speed: every node needs `ln(1 + t)` and `(1 + t)^-beta`. They are computed for all nodes of
+//! a pixel at once by a branch-free kernel (fdlibm's `log` with its division shared with
+//! `1/(1 + t)`, a Taylor `exp` after Cody-Waite reduction) that the compiler vectorises, built
+//! twice: for SSE2 and, chosen at run time, for AVX2 (same operations, no FMA contraction: the
+//! values are bit-identical on every x86-64 CPU). Against libm: `ln(1 + t)` and `1/(1 + t)`
+//! within 2.2e-16 relative, `(1 + t)^-beta` within 3.7e-16 x (1 + beta ln(1 + t)) (the
+//! conditioning of any `exp`), pixel values and derivatives within 3e-14 of their scale
+//! (tests `photometry_moffat_*_matches_libm*`). About 1.5x faster than the libm calls
+//! (measure stage of the 49-target bench night 2.35 -> 1.83 s).
 
 use ndarray::ArrayViewMut2;
 
