@@ -92,6 +92,7 @@ const ROUND_MAGIC: f64 = 6_755_399_441_055_744.0;
 /// `(ln(u), 1/u)` for finite `u >= 1`: fdlibm's `__ieee754_log` made branch-free (error
 /// ~1 ulp), its one division `f / (2 + f)` shared with `1 / u` (one reciprocal for both).
 #[inline(always)]
+#[allow(clippy::excessive_precision)] // fdlibm's constants, digits as published
 fn ln_recip_kernel(u: f64) -> (f64, f64) {
     const LN2_HI: f64 = 6.931_471_803_691_238_164_90e-01;
     const LN2_LO: f64 = 1.908_214_929_270_587_700_02e-10;
@@ -128,10 +129,10 @@ fn ln_recip_kernel(u: f64) -> (f64, f64) {
 /// Taylor polynomial of degree 13 for `exp(r)` (truncation < 2e-18 relative), no division;
 /// error ~1 ulp. `x` is clamped to `[-1400, 709]`, so results below ~1e-608 are 0; NaN stays NaN.
 #[inline(always)]
+#[allow(clippy::excessive_precision)] // fdlibm's constants, digits as published
 fn exp_kernel(x: f64) -> f64 {
     const LN2_HI: f64 = 6.931_471_803_691_238_164_90e-01;
     const LN2_LO: f64 = 1.908_214_929_270_587_700_02e-10;
-    const INV_LN2: f64 = 1.442_695_040_888_963_387_00e+00;
     // 1/k!, k = 2..13.
     const C: [f64; 12] = [
         1.0 / 2.0,
@@ -147,15 +148,9 @@ fn exp_kernel(x: f64) -> f64 {
         1.0 / 479001600.0,
         1.0 / 6227020800.0,
     ];
-    let x = if x < -1400.0 {
-        -1400.0
-    } else if x > 709.0 {
-        709.0
-    } else {
-        x
-    };
-    // k = round(x / ln 2), in [-2020, 1023], as f64 and as integer bits.
-    let kr = x * INV_LN2 + ROUND_MAGIC;
+    let x = x.clamp(-1400.0, 709.0); // NaN stays NaN
+                                     // k = round(x / ln 2), in [-2020, 1023], as f64 and as integer bits.
+    let kr = x * std::f64::consts::LOG2_E + ROUND_MAGIC;
     let kf = kr - ROUND_MAGIC;
     // r = x - k ln 2 in two parts: hi is exact (k has <= 11 bits, LN2_HI 32), lo tiny.
     let hi = x - kf * LN2_HI;
