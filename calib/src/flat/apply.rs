@@ -125,3 +125,94 @@ fn standardize<T: Clone>(a: &mut Array2<T>) {
         *a = a.as_standard_layout().into_owned();
     }
 }
+
+/// The rows of a flat matching frames whose row 0 is row `row0` of the flat, prepared to
+/// be divided out inside the sky stage's last pass ([`crate::sky::sky_subtract_flat`])
+/// instead of in a pass of its own: the frames are sky-subtracted raw, and raw - sky is
+/// then divided by the flat in the same loop. With the sky scaled multiplicatively this is
+/// the same reduction as dividing first (the per-pixel median of the other dithers commutes
+/// with a response they share). Made once per orientation ([`FlatRows::new`]): per pixel
+/// the inverse response and the flat's variance (1 and 0 where unusable) and the BAD bit,
+/// so that each frame costs two multiplications per pixel and no division, copy, variance
+/// map or pass of its own.
+#[derive(Debug, Clone)]
+pub struct FlatRows<'a> {
+    /// The flat.
+    pub flat: &'a Flat,
+    /// Flat row of the frames' row 0.
+    pub row0: usize,
+    nx: usize,
+    /// 1 / flat, 1 where unusable.
+    inv: Vec<f32>,
+    /// var_flat, 0 where unusable.
+    var: Vec<f32>,
+    /// [`mask::BAD`] where unusable, else 0.
+    bad: Vec<u8>,
+    /// Unusable pixels in these rows.
+    n_bad: usize,
+}
+
+/// One row of [`FlatRows`].
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct FlatRow<'a> {
+    pub(crate) inv: &'a [f32],
+    pub(crate) var: &'a [f32],
+    pub(crate) bad: &'a [u8],
+}
+
+impl<'a> FlatRows<'a> {
+    /// Rows `row0..row0 + ny` of `flat` (clamped to the flat's rows; the sky stage refuses
+    /// frames the rows do not cover).
+    pub fn new(flat: &'a Flat, row0: usize, ny: usize) -> FlatRows<'a> {
+        let (fny, nx) = flat.shape();
+        let (a, b) = (row0.min(fny), (row0 + ny).min(fny));
+        let rows = s![a..b, ..];
+        let (d, v, bad) = (flat.data.slice(rows), flat.variance.slice(rows), flat.bad.slice(rows));
+        let inv = ndarray::Zip::from(&d)
+            .and(&bad)
+            .map_collect(|&f, &b| if b != 0 { 1.0 } else { 1.0 / f });
+        let var = ndarray::Zip::from(&v)
+            .and(&bad)
+            .map_collect(|&v, &b| if b != 0 { 0.0 } else { v });
+        let bits = bad.map(|&b| u8::from(b != 0) * mask::BAD);
+        let n_bad = bad.iter().filter(|&&b| b != 0).count();
+        FlatRows {
+            flat,
+            row0,
+            nx,
+            inv: inv.into_raw_vec_and_offset().0,
+            var: var.into_raw_vec_and_offset().0,
+            bad: bits.into_raw_vec_and_offset().0,
+            n_bad,
+        }
+    }
+
+    /// Frame rows covered.
+    pub fn ny(&self) -> usize {
+        self.inv.len() / self.nx.max(1)
+    }
+
+    /// Frame row `y`.
+    pub(crate) fn row(&self, y: usize) -> FlatRow<'_> {
+        let r = y * self.nx..(y + 1) * self.nx;
+        FlatRow {
+            inv: &self.inv[r.clone()],
+            var: &self.var[r.clone()],
+            bad: &self.bad[r],
+        }
+    }
+
+    /// History record of a frame flat-fielded this way.
+    pub(crate) fn history(&self) -> HistoryRecord {
+        HistoryRecord::new(
+            "flat",
+            format!(
+                "divided by the {} in the sky stage's last pass: data = (raw - sky) / flat; variance = \
+                 (raw variance + sky-estimate variance) / flat^2 + data^2 var_flat / flat^2 (the flat's noise \
+                 on the signal above the sky); {} pixels unusable in the flat marked BAD",
+                self.flat.describe(),
+                self.n_bad
+            ),
+        )
+    }
+}

@@ -1,5 +1,6 @@
 //! Flat field: the detector's pixel response, measured from dome flats or from the night's
-//! own sky (a superflat), and divided out of the raw frames before sky subtraction.
+//! own sky (a superflat), and divided out of the frames in the sky stage's last pass
+//! ([`FlatRows`], [`crate::sky::sky_subtract_flat`]).
 //!
 //! * **Dome flat** ([`dome_flat`]): per rotator angle, mean(lamp on) - mean(lamp off)
 //!   (`INS LAMP1 ST` = T / F, [`LAMP_KEYWORD`]). The lamp light is itself polarized by a
@@ -11,7 +12,8 @@
 //!   `star_sigma` sigma above the level, grown by `star_grow_px`) and masked pixels are left
 //!   out; per pixel the values are combined by a clipped, inverse-variance weighted mean
 //!   around their median; then each strip is normalized to median 1.
-//! * **Application** ([`apply_flat`]): data / flat with a variance map (photon + read noise
+//! * **Application** ([`apply_flat`], or inside the sky stage with [`FlatRows`], the same
+//!   reduction for the default multiplicative sky): data / flat with a variance map (photon + read noise
 //!   of the raw frame, divided by flat^2, plus the flat's own noise on the signal above the
 //!   sky level, see below) and a history record; pixels whose response is unusable get the
 //!   BAD mask bit.
@@ -388,7 +390,8 @@ mod dome;
 mod io;
 mod superflat;
 
-pub use apply::{apply_flat, apply_flat_in_place, check_flat};
+pub(crate) use apply::FlatRow;
+pub use apply::{apply_flat, apply_flat_in_place, check_flat, FlatRows};
 pub use dome::{build_flats, dome_flat, dome_flat_info, DomeFlatInfo};
 pub use io::{flat_file_name, read_flat, write_flat};
 pub use superflat::superflat;

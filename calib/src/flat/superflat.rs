@@ -40,6 +40,21 @@ pub fn superflat(frames: &[Frame], profile: &Profile, opts: &FlatOptions) -> Res
             ),
         });
     }
+    // Row slices below: frames not in standard layout (never from FITS) are copied once.
+    let standard: Vec<std::borrow::Cow<Frame>> = frames
+        .iter()
+        .map(|&f| {
+            if f.data.is_standard_layout() && f.mask.is_standard_layout() {
+                std::borrow::Cow::Borrowed(f)
+            } else {
+                let mut g = f.clone();
+                g.data = g.data.as_standard_layout().into_owned();
+                g.mask = g.mask.as_standard_layout().into_owned();
+                std::borrow::Cow::Owned(g)
+            }
+        })
+        .collect();
+    let frames: Vec<&Frame> = standard.iter().map(|c| c.as_ref()).collect();
     let shape = check_shapes(&frames, profile, STAGE)?;
     let ny = shape.0;
     let g = &profile.geometry;
@@ -141,9 +156,10 @@ fn fixed_defects(frames: &[&Frame], lay: &Layout, opts: &FlatOptions) -> Array2<
         .for_each(|(y, row)| {
             let Some(k) = strip_of[y] else { return };
             let mut v = Vec::with_capacity(sub.len());
+            let rows: Vec<(&[f32], f32)> = sub.iter().zip(&inv).map(|(f, l)| (row_of(&f.data, y), l[k])).collect();
             for (x, o) in row.iter_mut().enumerate() {
                 v.clear();
-                v.extend(sub.iter().zip(&inv).map(|(f, l)| f.data[[y, x]] * l[k]));
+                v.extend(rows.iter().map(|(d, l)| d[x] * l));
                 let m = median_f32(&mut v).unwrap_or(f32::NAN);
                 if !(m >= opts.min_response && m <= opts.max_response) {
                     *o = 1;
@@ -151,6 +167,17 @@ fn fixed_defects(frames: &[&Frame], lay: &Layout, opts: &FlatOptions) -> Array2<
             }
         });
     d
+}
+
+/// Row `y` of an array as a slice (standard layout or not: a row of a 2-D array is
+/// contiguous when its column stride is 1, which every array here has; checked).
+fn row_of<T>(a: &Array2<T>, y: usize) -> &[T] {
+    a.row(y).to_slice().expect("rows with unit column stride")
+}
+
+/// [`row_of`], mutable.
+fn row_of_mut<T>(a: &mut Array2<T>, y: usize) -> &mut [T] {
+    a.row_mut(y).into_slice().expect("rows with unit column stride")
 }
 
 /// Levels, sigmas and the exclusion map of one frame (stars found against a local level
@@ -203,26 +230,22 @@ fn prep_frame(f: &Frame, profile: &Profile, lay: &Layout, defect: &Array2<u8>, o
     let mut seed = Array2::<u8>::zeros(shape);
     for y in 0..ny {
         let Some(k) = strip_of[y] else { continue };
+        let (drow, mrow, defrow) = (row_of(&f.data, y), row_of(&f.mask, y), row_of(defect, y));
+        let (erow, srow) = (row_of_mut(&mut excl, y), row_of_mut(&mut seed, y));
         for x in 0..nx {
-            let d = f.data[[y, x]];
+            let d = drow[x];
             let l = local[x / BLOCK][k];
-            if inv_level[k] <= 0.0
-                || l <= 0.0
-                || defect[[y, x]] != 0
-                || f.mask[[y, x]] != 0
-                || !d.is_finite()
-                || d >= sat
-            {
-                excl[[y, x]] = 1;
+            if inv_level[k] <= 0.0 || l <= 0.0 || defrow[x] != 0 || mrow[x] != 0 || !d.is_finite() || d >= sat {
+                erow[x] = 1;
                 continue;
             }
             let sig = scatter[x / BLOCK][k].max((l * inv_g + rv).sqrt());
             let z = (d - l) / sig;
             if z > opts.star_sigma {
-                excl[[y, x]] = 1;
-                seed[[y, x]] = 2;
+                erow[x] = 1;
+                srow[x] = 2;
             } else if z > 2.0 {
-                seed[[y, x]] = 1;
+                srow[x] = 1;
             }
         }
     }
@@ -275,11 +298,17 @@ fn combine(
             let Some(k) = strip_of[y] else { return };
             let mut vals: Vec<(f32, f32)> = Vec::with_capacity(frames.len());
             let mut tmp: Vec<f32> = Vec::with_capacity(frames.len());
+            // Row slices of every frame (no 2-D indexing per value).
+            let rows: Vec<(&[f32], &[u8], f32, f32)> = frames
+                .iter()
+                .zip(preps)
+                .map(|(f, p)| (row_of(&f.data, y), row_of(&p.excl, y), p.inv_level[k], p.sigma[k]))
+                .collect();
             for x in 0..nx {
                 vals.clear();
-                for (f, p) in frames.iter().zip(preps) {
-                    if p.excl[[y, x]] == 0 {
-                        vals.push((f.data[[y, x]] * p.inv_level[k], p.sigma[k]));
+                for &(d, e, il, sg) in &rows {
+                    if e[x] == 0 {
+                        vals.push((d[x] * il, sg));
                     }
                 }
                 // Too few star-free values (a star sat here in most frames): the response

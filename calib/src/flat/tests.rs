@@ -221,3 +221,100 @@ fn lamp_keyword_is_required_and_checked() {
     sci.set(&p.keywords.dpr_type, "OBJECT");
     assert!(dome_flat_info(&sci, &p).unwrap().is_none());
 }
+
+/// Five noiseless dithers of a sky that changes level from frame to frame, with a star
+/// that moves, seen through `resp`.
+fn dithers_through(resp: &Array2<f32>) -> Vec<Frame> {
+    (0..5)
+        .map(|i| {
+            let (sky, sx) = (1000.0 * (1.0 + 0.03 * i as f32), 300.0 + 87.0 * i as f32);
+            let data = Array2::from_shape_fn(resp.dim(), |(y, x)| {
+                let r2 = (x as f32 - sx).powi(2) + (y as f32 - 400.0).powi(2);
+                resp[[y, x]] * (sky + 5000.0 * (-r2 / 4.5).exp())
+            });
+            Frame::new(data, header(0.0, None))
+        })
+        .collect()
+}
+
+#[test]
+fn the_sky_stage_divides_by_the_flat_like_dividing_first() {
+    use crate::sky::{sky_subtract, sky_subtract_flat, SkyOptions, SkyScaling};
+    let p = profile();
+    let g = p.geometry.clone();
+    let resp = response(g.ny, g.nx);
+    let mut flat = Flat {
+        data: resp.clone(),
+        variance: Array2::from_elem(resp.dim(), 1e-4),
+        bad: Array2::zeros(resp.dim()),
+        kind: FlatKind::Superflat,
+        posang_deg: None,
+        filter: None,
+        sources: vec![],
+        detail: String::new(),
+        path: None,
+    };
+    flat.bad[[400, 10]] = 1;
+    let frames = dithers_through(&resp);
+    let opts = SkyOptions {
+        cosmic_rays: None,
+        ..Default::default()
+    };
+    // The reference: every frame divided by the flat first, then sky-subtracted.
+    let first: Vec<Frame> = frames.iter().map(|f| apply_flat(f, &flat, &p).unwrap()).collect();
+    let want = sky_subtract(&first, &p, &opts).unwrap();
+    let fr = FlatRows::new(&flat, 0, g.ny);
+    let (got, _) = sky_subtract_flat(frames.clone(), &p, &opts, Some(&fr)).unwrap();
+    let mut worst = (0f32, 0f32);
+    for (w, o) in want.iter().zip(&got) {
+        for y in (0..g.ny).filter(|&y| g.row_in_strip(y)) {
+            for x in 0..g.nx {
+                if w.mask[[y, x]] & mask::BAD != 0 {
+                    continue;
+                }
+                let (a, b) = (w.data[[y, x]], o.data[[y, x]]);
+                worst.0 = worst.0.max((a - b).abs());
+                let (va, vb) = (
+                    w.variance.as_ref().unwrap()[[y, x]],
+                    o.variance.as_ref().unwrap()[[y, x]],
+                );
+                worst.1 = worst.1.max((va / vb - 1.0).abs());
+            }
+        }
+        assert_eq!(o.mask[[400, 10]] & mask::BAD, mask::BAD);
+        // Unusable in the flat: raw - sky, not divided.
+        assert_eq!(o.history.iter().filter(|h| h.stage == "flat").count(), 1);
+    }
+    // The star's 5000 ADU peak and a 1000-1120 ADU sky: the same to float rounding; the
+    // variances differ only in how the sky estimate's noise meets the flat (sky / flat
+    // against sky / flat^2: ~2 % for a 2 % response).
+    assert!(worst.0 < 0.05, "data differ by {} ADU", worst.0);
+    assert!(worst.1 < 0.03, "variances differ by {}", worst.1);
+    // The star's signal above the sky carries the flat's noise: ~5000^2 x 1e-4 = 2500 ADU^2
+    // on top of its Poisson variance.
+    let star_var = got[0].variance.as_ref().unwrap()[[400, 300]];
+    let no_flat_noise = {
+        let mut f0 = flat.clone();
+        f0.variance.fill(0.0);
+        let (o, _) = sky_subtract_flat(frames.clone(), &p, &opts, Some(&FlatRows::new(&f0, 0, g.ny))).unwrap();
+        o[0].variance.as_ref().unwrap()[[400, 300]]
+    };
+    let f = resp[[400, 300]];
+    let sig = got[0].data[[400, 300]];
+    assert!(((star_var - no_flat_noise) / (sig * sig * 1e-4 / (f * f)) - 1.0).abs() < 1e-3);
+    // Additive scaling: the flat is divided out first (the sky does not scale with it).
+    let add = SkyOptions {
+        scaling: SkyScaling::Additive,
+        ..opts.clone()
+    };
+    let want = sky_subtract(&first, &p, &add).unwrap();
+    let (got, _) = sky_subtract_flat(frames.clone(), &p, &add, Some(&fr)).unwrap();
+    for (w, o) in want.iter().zip(&got) {
+        assert_eq!(w.data, o.data);
+        assert_eq!(w.variance, o.variance);
+    }
+    // A flat whose rows do not cover the frames is refused by name.
+    let short = flat.crop_rows(0, g.ny - 10);
+    let e = sky_subtract_flat(frames, &p, &opts, Some(&FlatRows::new(&short, 0, g.ny))).unwrap_err();
+    assert!(e.to_string().contains("does not fit the superflat"), "{e}");
+}

@@ -21,6 +21,12 @@
 //! for Gaussian samples ([`median_variance_factor`]; docs/calibration.md). When the
 //! input frame already carries a variance map, it replaces the first line.
 //!
+//! [`sky_subtract_flat`] also divides by a flat in the same last pass (all dithers of an
+//! orientation row block by row block, the flat's rows read once for all of them):
+//! data = (raw - sky) / flat, variance / flat^2 plus the flat's noise on the signal
+//! ([`crate::flat::FlatRows`]; the same reduction as dividing the raw frames first, for
+//! the default multiplicative scaling).
+//!
 //! [`flag_cosmic_rays`] then marks sharp positive outliers of the sky-subtracted frame
 //! (outliers in time, because the sky is the other dithers, *and* in space, because they
 //! are much sharper than the PSF) with [`mask::COSMIC`].
@@ -28,6 +34,7 @@ use ndarray::{Array2, ArrayView2};
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
+use crate::flat::FlatRows;
 use crate::frame::{mask, Frame};
 use crate::profile::Profile;
 use crate::stack::{self, Affine};
@@ -356,7 +363,57 @@ pub fn sky_subtract_with_report(
 /// the outputs' (the data, mask and variance maps are not copied), with the same numbers
 /// bit for bit.
 pub fn sky_subtract_owned(frames: Vec<Frame>, profile: &Profile, opts: &SkyOptions) -> Result<(Vec<Frame>, SkyReport)> {
+    sky_subtract_flat(frames, profile, opts, None)
+}
+
+/// [`sky_subtract_owned`] of raw frames that also divides them by a flat (the flat's rows
+/// matching the frames): data = (raw - sky) / flat, the variance as
+/// [`crate::flat::apply_flat`] gives it followed by this stage, in the same last pass
+/// ([`crate::flat::FlatRows`]). With multiplicative scaling (the default) the per-pixel
+/// sky of the other dithers is estimated on the raw values, which divides by the shared
+/// flat like the frames; with additive scaling, where it would not, the frames are divided
+/// by the flat first ([`crate::flat::apply_flat_in_place`]). Errors name the flat when its
+/// rows do not cover the frames.
+pub fn sky_subtract_flat(
+    mut frames: Vec<Frame>,
+    profile: &Profile,
+    opts: &SkyOptions,
+    flat: Option<&FlatRows>,
+) -> Result<(Vec<Frame>, SkyReport)> {
     check_inputs(&frames, profile, opts)?;
+    let flat = match flat {
+        Some(fr) => {
+            let (ny, nx) = frames[0].shape();
+            let (fny, fnx) = fr.flat.shape();
+            if fnx != nx || fr.row0 + ny > fny || fr.ny() != ny {
+                return Err(Error::Stage {
+                    stage: "flat",
+                    reason: format!(
+                        "{}: frame shape {:?} at flat row {} does not fit the {} of shape {:?}{}",
+                        frame_name(&frames[0], 0),
+                        (ny, nx),
+                        fr.row0,
+                        fr.flat.describe(),
+                        fr.flat.shape(),
+                        fr.flat
+                            .path
+                            .as_ref()
+                            .map(|p| format!(" ({})", p.display()))
+                            .unwrap_or_default()
+                    ),
+                });
+            }
+            if opts.scaling == SkyScaling::Additive {
+                for f in &mut frames {
+                    crate::flat::apply_flat_in_place(f, fr.flat, fr.row0, profile)?;
+                }
+                None
+            } else {
+                Some(fr)
+            }
+        }
+        None => None,
+    };
     let n = frames.len();
     let levels: Vec<f64> = frames
         .par_iter()
@@ -415,12 +472,19 @@ pub fn sky_subtract_owned(frames: Vec<Frame>, profile: &Profile, opts: &SkyOptio
         c_over_m: (c / m as f64) as f32,
         c_over_count: estimate::c_over_count_table(opts.estimator),
     };
+    let has_vin: Vec<bool> = frames.iter().map(|f| f.variance.is_some()).collect();
+    let inp = FinishInputs {
+        counts: &counts,
+        levels: levels.iter().map(|&l| l as f32).collect(),
+        noise: &noise,
+        names: &names,
+        flat,
+    };
+    let done = fin.frames(frames, skies, &inp)?;
     let mut out = Vec::with_capacity(n);
     let mut cosmic = Vec::new();
-    for (i, ((f, sky), count)) in frames.into_iter().zip(skies).zip(counts).enumerate() {
-        let has_vin = f.variance.is_some();
-        let ndit = ndits[i];
-        let mut frame = fin.frame(f, sky, count.as_ref(), levels[i] as f32, noise[i], &names[i])?;
+    for (i, mut frame) in done.into_iter().enumerate() {
+        let (has_vin, ndit) = (has_vin[i], ndits[i]);
         let others: Vec<&str> = (0..n).filter(|&j| j != i).map(|j| names[j].as_str()).collect();
         let detail = format!(
             "{} scaling, level {:.2} ADU; sky = {} of the other {m} dithers [{}] (levels {}); \
@@ -532,6 +596,24 @@ fn check_inputs(frames: &[Frame], profile: &Profile, opts: &SkyOptions) -> Resul
     Ok(())
 }
 
+/// One frame's rows of one block in [`Finish::frames`].
+struct Rows<'a> {
+    sky: &'a mut [f32],
+    raw: &'a mut [f32],
+    mask: &'a mut [u8],
+    vin: Option<&'a mut [f32]>,
+    count: Option<&'a [u8]>,
+}
+
+/// Per-frame inputs of [`Finish::frames`].
+struct FinishInputs<'a> {
+    counts: &'a [Option<Array2<u8>>],
+    levels: Vec<f32>,
+    noise: &'a [(f32, f32)],
+    names: &'a [String],
+    flat: Option<&'a FlatRows<'a>>,
+}
+
 /// The last pass of the sky stage, shared by every frame of an orientation.
 struct Finish {
     scaling: SkyScaling,
@@ -545,97 +627,172 @@ struct Finish {
 }
 
 impl Finish {
-    /// One pass, row-parallel, in the frame's own buffers: sky <- level-scaled estimate,
-    /// data = raw - sky (in the sky's buffer), the variance in the input's variance map or
-    /// else in the raw data's buffer, mask bits alongside. Counts non-finite inputs, which
-    /// the medians cannot handle (checked here rather than in a separate pass).
-    fn frame(
-        &self,
-        f: Frame,
-        mut sky: Array2<f32>,
-        count: Option<&Array2<u8>>,
-        level: f32,
-        (inv_g, rv): (f32, f32),
-        name: &str,
-    ) -> Result<Frame> {
-        let Frame {
-            data,
-            variance,
-            mask: msk,
-            header,
-            history,
-        } = f;
-        let nx = data.dim().1;
-        let mut raw = data.as_standard_layout().into_owned();
-        let mut msk = msk.as_standard_layout().into_owned();
-        let mut vin = variance.map(|v| v.as_standard_layout().into_owned());
-        let (scaling, c_over_m) = (self.scaling, self.c_over_m);
-        let cnt_row = |y: usize| count.map(|c| &c.as_slice().expect("standard layout")[y * nx..(y + 1) * nx]);
-        // The variance goes into the input variance map when there is one, else over the
-        // raw values (each read before it is overwritten).
-        let nonfinite: usize = match vin.as_mut() {
-            Some(v) => {
-                let raw_s = raw.as_slice().expect("standard layout");
-                sky.as_slice_mut()
-                    .expect("standard layout")
-                    .par_chunks_mut(nx)
-                    .zip(v.as_slice_mut().expect("standard layout").par_chunks_mut(nx))
-                    .zip(msk.as_slice_mut().expect("standard layout").par_chunks_mut(nx))
-                    .enumerate()
-                    .map(|(y, ((srow, vrow), mrow))| {
-                        let rrow = &raw_s[y * nx..(y + 1) * nx];
-                        let mut one = |x: usize, com: f32| {
-                            let r = rrow[x];
-                            let s = scale(srow[x], level, scaling);
-                            vrow[x] += com * (s.max(0.0) * inv_g + rv);
-                            srow[x] = r - s;
-                        };
-                        match cnt_row(y) {
-                            None => (0..nx).for_each(|x| one(x, c_over_m)),
-                            Some(c) => (0..nx).for_each(|x| one(x, self.c_over_count[c[x] as usize])),
-                        }
-                        self.mask_row(y, mrow, rrow);
-                        rrow.iter().filter(|r| !r.is_finite()).count()
-                    })
-                    .sum()
-            }
-            None => sky
+    /// One pass over the frames of an orientation, in their own buffers, row block by row
+    /// block in parallel (all frames of a block together, so that the flat's rows are read
+    /// once for all of them): sky <- level-scaled estimate, data = raw - sky (in the sky's
+    /// buffer), the variance in the input's variance map or else in the raw data's buffer,
+    /// mask bits alongside, then the flat divided out when there is one. Counts non-finite
+    /// inputs, which the medians cannot handle (checked here rather than in a separate
+    /// pass): an error names the first frame holding any.
+    fn frames(&self, frames: Vec<Frame>, skies: Vec<Array2<f32>>, inp: &FinishInputs) -> Result<Vec<Frame>> {
+        /// Rows per parallel task.
+        const BLOCK: usize = 4;
+        let n = frames.len();
+        let (ny, nx) = frames[0].shape();
+        let mut parts: Vec<(Frame, Array2<f32>, Array2<f32>, Option<Array2<f32>>)> = frames
+            .into_iter()
+            .zip(skies)
+            .map(|(mut f, sky)| {
+                let raw = std::mem::take(&mut f.data).as_standard_layout().into_owned();
+                f.mask = f.mask.as_standard_layout().into_owned();
+                let vin = f.variance.take().map(|v| v.as_standard_layout().into_owned());
+                (f, raw, sky.as_standard_layout().into_owned(), vin)
+            })
+            .collect();
+        let chunk = BLOCK * nx;
+        // blocks[b][i]: frame i's rows of block b.
+        let mut blocks: Vec<Vec<Rows>> = (0..ny.div_ceil(BLOCK)).map(|_| Vec::with_capacity(n)).collect();
+        for (i, (f, raw, sky, vin)) in parts.iter_mut().enumerate() {
+            let cnt = inp.counts[i].as_ref().map(|c| c.as_slice().expect("standard layout"));
+            let mut vin = vin
+                .as_mut()
+                .map(|v| v.as_slice_mut().expect("standard layout").chunks_mut(chunk));
+            let it = sky
                 .as_slice_mut()
                 .expect("standard layout")
-                .par_chunks_mut(nx)
-                .zip(raw.as_slice_mut().expect("standard layout").par_chunks_mut(nx))
-                .zip(msk.as_slice_mut().expect("standard layout").par_chunks_mut(nx))
-                .enumerate()
-                .map(|(y, ((srow, rrow), mrow))| {
-                    self.mask_row(y, mrow, rrow);
-                    let bad = rrow.iter().filter(|r| !r.is_finite()).count();
-                    let mut one = |x: usize, com: f32| {
-                        let r = rrow[x];
-                        let s = scale(srow[x], level, scaling);
-                        rrow[x] = r.max(0.0) * inv_g + rv + com * (s.max(0.0) * inv_g + rv);
-                        srow[x] = r - s;
-                    };
-                    match cnt_row(y) {
-                        None => (0..nx).for_each(|x| one(x, c_over_m)),
-                        Some(c) => (0..nx).for_each(|x| one(x, self.c_over_count[c[x] as usize])),
+                .chunks_mut(chunk)
+                .zip(raw.as_slice_mut().expect("standard layout").chunks_mut(chunk))
+                .zip(f.mask.as_slice_mut().expect("standard layout").chunks_mut(chunk));
+            for (b, ((s, r), m)) in it.enumerate() {
+                blocks[b].push(Rows {
+                    sky: s,
+                    raw: r,
+                    mask: m,
+                    vin: vin.as_mut().and_then(|v| v.next()),
+                    count: cnt.map(|c| &c[b * chunk..(b * chunk + chunk).min(c.len())]),
+                });
+            }
+        }
+        let nonfinite: Vec<usize> = blocks
+            .into_par_iter()
+            .enumerate()
+            .map(|(b, mut rows)| {
+                let mut out = vec![0usize; n];
+                for r in 0..rows[0].sky.len() / nx {
+                    let y = b * BLOCK + r;
+                    let span = r * nx..(r + 1) * nx;
+                    for (i, fr) in rows.iter_mut().enumerate() {
+                        let (srow, rrow, mrow) = (
+                            &mut fr.sky[span.clone()],
+                            &mut fr.raw[span.clone()],
+                            &mut fr.mask[span.clone()],
+                        );
+                        let cnt = fr.count.map(|c| &c[span.clone()]);
+                        let vrow = fr.vin.as_deref_mut().map(|v| &mut v[span.clone()]);
+                        let px = (inp.levels[i], inp.noise[i]);
+                        out[i] += match inp.flat {
+                            None => self.row::<false>(y, srow, rrow, mrow, vrow, cnt, px, None),
+                            Some(fl) => self.row::<true>(y, srow, rrow, mrow, vrow, cnt, px, Some(fl.row(y))),
+                        };
                     }
-                    bad
-                })
-                .sum(),
-        };
-        if nonfinite > 0 {
+                }
+                out
+            })
+            .reduce(
+                || vec![0; n],
+                |mut a, b| {
+                    a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+                    a
+                },
+            );
+        if let Some(i) = nonfinite.iter().position(|&c| c > 0) {
             return Err(Error::Stage {
                 stage: "sky",
-                reason: format!("{name}: {nonfinite} non-finite pixel values (NaN/inf); sky medians need finite data"),
+                reason: format!(
+                    "{}: {} non-finite pixel values (NaN/inf); sky medians need finite data",
+                    inp.names[i], nonfinite[i]
+                ),
             });
         }
-        Ok(Frame {
-            data: sky,
-            variance: Some(vin.unwrap_or(raw)),
-            mask: msk,
-            header,
-            history,
-        })
+        Ok(parts
+            .into_iter()
+            .map(|(mut f, raw, sky, vin)| {
+                f.data = sky;
+                f.variance = Some(vin.unwrap_or(raw));
+                if let Some(fl) = inp.flat {
+                    f.history.push(fl.history());
+                }
+                f
+            })
+            .collect())
+    }
+
+    /// One row of one frame: mask bits from the raw values, the variance (into `vrow` when
+    /// the frame has a variance map, else over the raw values), data = raw - sky into the
+    /// sky's row; with `FLAT`, divided by the flat's row in the same loop
+    /// ([`crate::flat::FlatRows`]: data / f, variance / f^2 + max(data / f, 0)^2 var_f / f^2,
+    /// BAD and no division where the flat is unusable). Returns the count of non-finite raw
+    /// values.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn row<const FLAT: bool>(
+        &self,
+        y: usize,
+        srow: &mut [f32],
+        rrow: &mut [f32],
+        mrow: &mut [u8],
+        vrow: Option<&mut [f32]>,
+        cnt: Option<&[u8]>,
+        (level, (inv_g, rv)): (f32, (f32, f32)),
+        flat: Option<crate::flat::FlatRow>,
+    ) -> usize {
+        let (scaling, c_over_m) = (self.scaling, self.c_over_m);
+        self.mask_row(y, mrow, rrow);
+        let bad = rrow.iter().filter(|r| !r.is_finite()).count();
+        let nx = srow.len();
+        let (finv, fvar) = match flat {
+            Some(f) => {
+                mrow.iter_mut().zip(&f.bad[..nx]).for_each(|(m, b)| *m |= b);
+                (&f.inv[..nx], &f.var[..nx])
+            }
+            None => (&[][..], &[][..]),
+        };
+        // data and variance of one pixel, divided by the flat with FLAT.
+        let fin = |x: usize, d: f32, v: f32| -> (f32, f32) {
+            if FLAT {
+                let a = finv[x];
+                let o = d * a;
+                let ex = o.max(0.0);
+                (o, (v + ex * ex * fvar[x]) * (a * a))
+            } else {
+                (d, v)
+            }
+        };
+        match vrow {
+            Some(vrow) => {
+                let mut one = |x: usize, com: f32| {
+                    let r = rrow[x];
+                    let s = scale(srow[x], level, scaling);
+                    (srow[x], vrow[x]) = fin(x, r - s, vrow[x] + com * (s.max(0.0) * inv_g + rv));
+                };
+                match cnt {
+                    None => (0..nx).for_each(|x| one(x, c_over_m)),
+                    Some(c) => (0..nx).for_each(|x| one(x, self.c_over_count[c[x] as usize])),
+                }
+            }
+            None => {
+                let mut one = |x: usize, com: f32| {
+                    let r = rrow[x];
+                    let s = scale(srow[x], level, scaling);
+                    (srow[x], rrow[x]) = fin(x, r - s, r.max(0.0) * inv_g + rv + com * (s.max(0.0) * inv_g + rv));
+                };
+                match cnt {
+                    None => (0..nx).for_each(|x| one(x, c_over_m)),
+                    Some(c) => (0..nx).for_each(|x| one(x, self.c_over_count[c[x] as usize])),
+                }
+            }
+        }
+        bad
     }
 
     /// OFF_STRIP, SATURATED and NONLINEAR bits of one row (from the raw values).

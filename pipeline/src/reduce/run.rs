@@ -272,14 +272,16 @@ pub fn reduce_loaded(
     times.bad_pixels = t.elapsed().as_secs_f64();
 
     let t = std::time::Instant::now();
-    let (orients, flats_used) = match flats {
-        Some(set) if !set.is_empty() => flat_field(orients, set, &seq.filter, crop, profile, &mut flags),
-        _ => (orients, Vec::new()),
+    let (flat_rows, mut flats_used) = match flats {
+        Some(set) if !set.is_empty() => choose_flats(&orients, set, &seq.filter, crop, profile, &mut flags),
+        _ => (vec![None; orients.len()], Vec::new()),
     };
     times.flat = t.elapsed().as_secs_f64();
 
+    // The flat is divided out in the sky stage's last pass (its time counts there).
     let t = std::time::Instant::now();
-    let cal = subtract_sky(orients, mask.as_ref(), profile, params, &mut flags);
+    let cal = subtract_sky(orients, &flat_rows, mask.as_ref(), profile, params, &mut flags);
+    flats_used.retain(|u| cal.iter().any(|o| u.starts_with(&format!("POSANG {}:", o.posang_deg))));
     times.sky = t.elapsed().as_secs_f64();
 
     if let Some(dir) = &params.save_intermediate {
@@ -345,49 +347,47 @@ pub fn reduce_loaded(
     }
 }
 
-/// Divide every frame by the flat of its orientation (rotator angle and filter), in place;
-/// frames holding only the rows `crop` use those rows of a full-height flat (no copy).
-/// Returns the frames and one provenance line per orientation; an orientation without a
-/// flat, or a flat that does not fit one of its frames, is flagged and left as it is.
-fn flat_field(
-    orients: Vec<LoadedOrientation>,
-    set: &FlatSet,
+/// The flat of every orientation (rotator angle and filter) and its row of the frames' row
+/// 0 (frames holding only the rows `crop` use those rows of a full-height flat, no copy),
+/// checked against every frame; the sky stage divides it out in its last pass
+/// ([`sky::sky_subtract_flat`]). Returns one entry per orientation and one provenance line
+/// per flat-fielded orientation; an orientation without a flat, or with a flat that does
+/// not fit one of its frames, is flagged and reduced without (an orientation is
+/// flat-fielded whole or not at all).
+fn choose_flats<'a>(
+    orients: &[LoadedOrientation],
+    set: &'a FlatSet,
     filter: &str,
     crop: Option<(usize, usize)>,
     profile: &Profile,
     flags: &mut Vec<String>,
-) -> (Vec<LoadedOrientation>, Vec<String>) {
+) -> (Vec<Option<flat::FlatRows<'a>>>, Vec<String>) {
     let mut used = Vec::new();
-    let out = orients
-        .into_iter()
-        .map(|(pa, phi, mut frames, offs)| {
+    let chosen = orients
+        .iter()
+        .map(|(pa, _, frames, _)| {
+            let pa = *pa;
             let Some(flat) = set.for_frame(pa, filter) else {
                 flags.push(format!("no flat for POSANG {pa} filter {filter}: not flat-fielded"));
-                return (pa, phi, frames, offs);
+                return None;
             };
             let row0 = match crop {
                 Some((r0, r1)) if flat.shape().0 >= r1 && frames.first().is_some_and(|f| f.shape().0 == r1 - r0) => r0,
                 _ => 0,
             };
-            // Every frame is checked first: an orientation is flat-fielded whole or not at all.
             if let Some(e) = frames
                 .iter()
                 .find_map(|f| flat::check_flat(f, flat, row0, profile).err())
             {
                 flags.push(format!("POSANG {pa} not flat-fielded: {e}"));
-                return (pa, phi, frames, offs);
+                return None;
             }
-            let res: Result<(), _> = frames
-                .iter_mut()
-                .try_for_each(|f| flat::apply_flat_in_place(f, flat, row0, profile));
-            match res {
-                Ok(()) => used.push(format!("POSANG {pa}: {}", flat.describe())),
-                Err(e) => flags.push(format!("POSANG {pa} partly flat-fielded: {e}")),
-            }
-            (pa, phi, frames, offs)
+            used.push(format!("POSANG {pa}: {}", flat.describe()));
+            let ny = frames.first().map_or(0, |f| f.shape().0);
+            Some(flat::FlatRows::new(flat, row0, ny))
         })
         .collect();
-    (out, used)
+    (chosen, used)
 }
 
 /// The detector rows `[r0, r1)` the reduction works on (the o- and e-target strips), unless
@@ -486,13 +486,14 @@ fn bad_pixel_mask(
 /// with fewer than 2 readable dithers, or whose sky fails, is dropped and flagged.
 fn subtract_sky(
     orients: Vec<LoadedOrientation>,
+    flats: &[Option<flat::FlatRows>],
     mask: Option<&Array2<u8>>,
     profile: &Profile,
     params: &TargetParams,
     flags: &mut Vec<String>,
 ) -> Vec<CalibratedOrientation> {
     let mut cal = Vec::new();
-    for (posang, phi, frames, offs) in orients {
+    for ((posang, phi, frames, offs), fl) in orients.into_iter().zip(flats) {
         if frames.len() < 2 {
             flags.push(format!(
                 "orientation POSANG {posang} dropped: {} readable dither(s), need 2 for the sky",
@@ -507,7 +508,7 @@ fn subtract_sky(
                 continue;
             }
         }
-        match sky::sky_subtract_owned(frames, profile, &params.sky) {
+        match sky::sky_subtract_flat(frames, profile, &params.sky, fl.as_ref()) {
             Ok((s, _)) => cal.push(CalibratedOrientation {
                 posang_deg: posang,
                 analyzer_deg: phi,
