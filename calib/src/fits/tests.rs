@@ -335,9 +335,7 @@ fn direct_reads_equal_cfitsio_bit_for_bit() {
         })
         .collect();
     let card = |k: &str, v: &str| format!("{k:<8}= {v:>20}");
-    // (file name, BITPIX, extra cards, data, the encoding read directly or None)
-    type Case<'a> = (&'a str, i64, Vec<String>, &'a [u8], Option<DirectEncoding>);
-    let cases: Vec<Case> = vec![
+    let cases: Vec<(&str, i64, Vec<String>, &[u8], Option<DirectEncoding>)> = vec![
         (
             "u16",
             16,
