@@ -458,38 +458,17 @@ pub(super) fn read_rows_direct(
             });
         }
         match enc {
-            // Native-endian loads, then the swap: whole words move (SIMD), not bytes.
-            DirectEncoding::I16 { zero } => convert_be(&buf, &mut out, |b: [u8; 2]| {
-                i16::from_be(i16::from_ne_bytes(b)) as f32 + zero
-            }),
-            DirectEncoding::F32 => convert_be(&buf, &mut out, |b: [u8; 4]| {
-                f32::from_bits(u32::from_be(u32::from_ne_bytes(b)))
-            }),
+            DirectEncoding::I16 { zero } => out.extend(
+                buf.chunks_exact(2)
+                    .map(|b| i16::from_be_bytes([b[0], b[1]]) as f32 + zero),
+            ),
+            DirectEncoding::F32 => out.extend(
+                buf.chunks_exact(4)
+                    .map(|b| f32::from_bits(u32::from_be_bytes([b[0], b[1], b[2], b[3]]))),
+            ),
         }
     }
     to_array(out, ny, nx, path)
-}
-
-/// Appends `f` of every `B`-byte group of `bytes` to `out`, in blocks of a fixed number
-/// of pixels through a small array (fixed trip counts: the byte swap and conversion
-/// compile to SIMD instructions, where an iterator over `chunks_exact` stayed scalar).
-#[inline]
-fn convert_be<const B: usize>(bytes: &[u8], out: &mut Vec<f32>, f: impl Fn([u8; B]) -> f32) {
-    const K: usize = 64;
-    let mut tmp = [0f32; K];
-    let mut blocks = bytes.chunks_exact(B * K);
-    for blk in &mut blocks {
-        for (i, t) in tmp.iter_mut().enumerate() {
-            *t = f(blk[i * B..(i + 1) * B].try_into().expect("B bytes"));
-        }
-        out.extend_from_slice(&tmp);
-    }
-    out.extend(
-        blocks
-            .remainder()
-            .chunks_exact(B)
-            .map(|b| f(std::array::from_fn(|j| b[j]))),
-    );
 }
 
 pub(super) fn to_array<T>(v: Vec<T>, ny: usize, nx: usize, path: &Path) -> Result<Array2<T>> {
