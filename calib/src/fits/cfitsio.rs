@@ -80,26 +80,6 @@ pub(super) enum RawOp<'a> {
     Flush,
 }
 
-/// Byte offset in the file of the data of HDU `index` (0-based), as cfitsio computed it
-/// from the headers. Meaningful for a plain (not compressed) file only.
-#[allow(unsafe_code)]
-pub(super) fn hdu_data_start(f: &mut FitsFile, index: usize) -> fitsio::errors::Result<u64> {
-    use fitsio::sys;
-    // SAFETY: as in `cfitsio_raw`: `f` is an open cfitsio file borrowed mutably for the
-    // whole call; the out-parameters are local integers; failures come back in `status`.
-    let fptr = unsafe { f.as_raw() };
-    let (mut status, mut hdutype): (c_int, c_int) = (0, 0);
-    let (mut head, mut data, mut end): (sys::LONGLONG, sys::LONGLONG, sys::LONGLONG) = (0, 0, 0);
-    let hdunum = c_int::try_from(index + 1).unwrap_or(c_int::MAX);
-    // SAFETY: see above.
-    unsafe {
-        sys::ffmahd(fptr, hdunum, &mut hdutype, &mut status);
-        sys::ffghadll(fptr, &mut head, &mut data, &mut end, &mut status);
-    }
-    fitsio::errors::check_status(status)?;
-    Ok(data.max(0) as u64)
-}
-
 /// Run one raw header operation on an open file.
 #[allow(unsafe_code)]
 pub(super) fn cfitsio_raw(f: &mut FitsFile, op: RawOp<'_>) -> fitsio::errors::Result<Vec<String>> {

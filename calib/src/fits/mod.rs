@@ -10,16 +10,8 @@
 //!
 //! Header cards are read and written as raw 80-character records, parsed and formatted
 //! here, because the safe `fitsio` API can neither enumerate keywords nor write HISTORY
-//! cards, logical values or full-precision doubles. All direct cfitsio calls sit in
-//! `cfitsio.rs` (`cfitsio_raw`, and `hdu_data_start` for the direct reads below).
-//!
-//! The pixels of a plain (uncompressed, not gzipped) file with BITPIX 16 (BSCALE 1,
-//! BZERO 0 or 32768, as raw SOFI frames) or -32 (BSCALE 1, BZERO 0) are read without
-//! cfitsio's conversion: only the wanted rows' bytes, straight from the file into the
-//! `f32` array with the byte swap and the 16-bit conversion on the fly; the values are
-//! exact integers or the same bits, so identical to cfitsio's (tests compare them).
-//! Every other file (tile-compressed, gzip, other pixel types or scalings) goes through
-//! cfitsio.
+//! cards, logical values or full-precision doubles. All direct cfitsio calls sit in the
+//! single function `cfitsio::cfitsio_raw`.
 //!
 //! Pixel layout: arrays are indexed `[y, x]`; row 0 is FITS row 1 (the bottom of the
 //! image), column 0 is FITS column 1.

@@ -68,23 +68,17 @@ pub fn read_frame_rows(path: &Path, rows: Option<(usize, usize)>) -> Result<Fram
     let (hdu_index, cards) = find_image_hdu(&mut f, path)?;
     let (header, history) = parse_cards(&cards, path);
     let (ny_full, nx) = image_dims(&cards, path)?;
-    let plain = check_size_against_file(&cards, path, ny_full, nx)?;
+    check_size_against_file(&cards, path, ny_full, nx)?;
     let rows = rows.filter(|&(r0, r1)| r0 < r1 && r1 <= ny_full);
     let ny = rows.map_or(ny_full, |(r0, r1)| r1 - r0);
-    let read = |f: &mut FitsFile, i: usize, cards: &[String]| -> Result<Array2<f32>> {
-        let r0 = rows.map_or(0, |(r0, _)| r0);
-        if let Some(enc) = direct_encoding(cards).filter(|_| plain) {
-            let start =
-                hdu_data_start(f, i).map_err(|e| fits_err(path, &format!("locating the data of HDU {i}"), e))?;
-            return read_rows_direct(path, enc, start, nx, r0, ny);
-        }
+    let read = |f: &mut FitsFile, i: usize| -> Result<Array2<f32>> {
         match rows {
             None => read_f32(f, path, i, ny_full, nx),
-            Some(_) => read_f32_rows(f, path, i, (ny_full, nx), r0, ny),
+            Some((r0, _)) => read_f32_rows(f, path, i, (ny_full, nx), r0, ny),
         }
     };
 
-    let data = read(&mut f, hdu_index, &cards)?;
+    let data = read(&mut f, hdu_index)?;
 
     // Look for VARIANCE / MASK extensions after the image HDU.
     let mut variance = None;
@@ -94,7 +88,7 @@ pub fn read_frame_rows(path: &Path, rows: Option<(usize, usize)>) -> Result<Fram
         match extname(&cards).as_deref() {
             Some(VARIANCE_EXTNAME) if variance.is_none() => {
                 check_same_shape(&cards, path, VARIANCE_EXTNAME, (ny_full, nx))?;
-                variance = Some(read(&mut f, i, &cards)?);
+                variance = Some(read(&mut f, i)?);
             }
             Some(MASK_EXTNAME) if mask.is_none() => {
                 check_same_shape(&cards, path, MASK_EXTNAME, (ny_full, nx))?;
@@ -249,22 +243,19 @@ pub const MAX_COMPRESSION_RATIO: u64 = 1000;
 /// and aborted the process. An uncompressed image needs NAXIS1 x NAXIS2 x |BITPIX|/8
 /// bytes of file; a compressed one (tile compression, gzip) at most
 /// [`MAX_COMPRESSION_RATIO`] output bytes per file byte.
-///
-/// Returns whether the file is plain FITS on disk (it starts with `SIMPLE  =`: not gzip or
-/// another compression cfitsio unpacks in memory), whose HDU data offsets are file offsets.
-pub(super) fn check_size_against_file(cards: &[String], path: &Path, ny: usize, nx: usize) -> Result<bool> {
+pub(super) fn check_size_against_file(cards: &[String], path: &Path, ny: usize, nx: usize) -> Result<()> {
     let file_len = std::fs::metadata(path)
         .map_err(|e| Error::Io {
             path: path.to_path_buf(),
             source: e,
         })?
         .len();
-    let mut magic = [0u8; 9];
-    let got_magic = std::fs::File::open(path)
-        .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut magic))
-        .is_ok();
-    let gz = got_magic && magic[..2] == [0x1f, 0x8b];
-    let plain = got_magic && &magic == b"SIMPLE  =";
+    let gz = std::fs::File::open(path)
+        .and_then(|mut f| {
+            let mut m = [0u8; 2];
+            std::io::Read::read_exact(&mut f, &mut m).map(|_| m == [0x1f, 0x8b])
+        })
+        .unwrap_or(false);
     let pixels = (nx as u64).checked_mul(ny as u64);
     let (need, limit, what) = if is_compressed(cards) || gz {
         (
@@ -284,7 +275,7 @@ pub(super) fn check_size_against_file(cards: &[String], path: &Path, ny: usize, 
         )
     };
     match need {
-        Some(n) if n <= limit => Ok(plain),
+        Some(n) if n <= limit => Ok(()),
         _ => Err(Error::BadImage {
             path: path.to_path_buf(),
             reason: format!(
@@ -347,7 +338,7 @@ pub(super) fn read_f32(f: &mut FitsFile, path: &Path, index: usize, ny: usize, n
 }
 
 /// Rows `[r0, r0 + n)` of the image HDU `index` of shape `full` (ny, nx), as `f32`.
-pub(super) fn read_f32_rows(
+fn read_f32_rows(
     f: &mut FitsFile,
     path: &Path,
     index: usize,
@@ -374,101 +365,6 @@ pub(super) fn read_f32_rows(
         .read_rows(f, r0, n)
         .map_err(|e| fits_err(path, &format!("reading rows [{r0}, {}) of HDU {index}", r0 + n), e))?;
     to_array(v, n, full.1, path)
-}
-
-/// Pixel storage that [`read_rows_direct`] converts exactly as cfitsio would.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub(super) enum DirectEncoding {
-    /// BITPIX 16, BSCALE 1, BZERO `zero` (0 or 32768): every value an integer of at most
-    /// 17 bits, exact in `f32` whichever way it is computed.
-    I16 {
-        /// BZERO.
-        zero: f32,
-    },
-    /// BITPIX -32, BSCALE 1, BZERO 0: the big-endian bits as they are (NaN included).
-    F32,
-}
-
-/// The encoding of an uncompressed image HDU from its cards, when [`read_rows_direct`]
-/// handles it; `None`: read through cfitsio.
-pub(super) fn direct_encoding(cards: &[String]) -> Option<DirectEncoding> {
-    if is_compressed(cards) {
-        return None;
-    }
-    let num = |key: &str, default: f64| match raw_value(cards, key) {
-        None => Some(default),
-        Some(HeaderValue::Int(i)) => Some(i as f64),
-        Some(HeaderValue::Float(x)) => Some(x),
-        Some(_) => None,
-    };
-    if num("BSCALE", 1.0)? != 1.0 {
-        return None;
-    }
-    let zero = num("BZERO", 0.0)?;
-    match raw_int(cards, "BITPIX")? {
-        16 if zero == 0.0 || zero == 32768.0 => Some(DirectEncoding::I16 { zero: zero as f32 }),
-        -32 if zero == 0.0 => Some(DirectEncoding::F32),
-        _ => None,
-    }
-}
-
-/// Bytes read from the file per step of [`read_rows_direct`] (the buffer stays in cache).
-const DIRECT_CHUNK_BYTES: usize = 1 << 17;
-
-/// Rows `[r0, r0 + ny)` of an image of `nx` columns whose data start at byte `start` of
-/// the plain FITS file `path`, as `f32`: only those rows' bytes are read, in chunks
-/// converted (byte swap, 16-bit to float) straight into the array, no zeroed buffer and
-/// no second copy. Identical to what cfitsio returns (see [`DirectEncoding`]).
-pub(super) fn read_rows_direct(
-    path: &Path,
-    enc: DirectEncoding,
-    start: u64,
-    nx: usize,
-    r0: usize,
-    ny: usize,
-) -> Result<Array2<f32>> {
-    use std::io::{Read, Seek, SeekFrom};
-    let bytes_per = match enc {
-        DirectEncoding::I16 { .. } => 2,
-        DirectEncoding::F32 => 4,
-    };
-    let n = ny * nx;
-    let io = |source: std::io::Error| Error::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let mut file = std::fs::File::open(path).map_err(io)?;
-    file.seek(SeekFrom::Start(start + (r0 * nx * bytes_per) as u64))
-        .map_err(io)?;
-    let mut out: Vec<f32> = Vec::with_capacity(n);
-    let mut buf: Vec<u8> = Vec::with_capacity(DIRECT_CHUNK_BYTES);
-    while out.len() < n {
-        let want = ((n - out.len()) * bytes_per).min(DIRECT_CHUNK_BYTES / bytes_per * bytes_per);
-        buf.clear();
-        // `read_to_end` fills the spare capacity without zeroing it first.
-        (&mut file).take(want as u64).read_to_end(&mut buf).map_err(io)?;
-        if buf.len() != want {
-            return Err(Error::Fits {
-                path: path.to_path_buf(),
-                message: format!(
-                    "reading rows [{r0}, {}) of the image: the file ends {} pixels early (is the file truncated?)",
-                    r0 + ny,
-                    n - out.len() - buf.len() / bytes_per
-                ),
-            });
-        }
-        match enc {
-            DirectEncoding::I16 { zero } => out.extend(
-                buf.chunks_exact(2)
-                    .map(|b| i16::from_be_bytes([b[0], b[1]]) as f32 + zero),
-            ),
-            DirectEncoding::F32 => out.extend(
-                buf.chunks_exact(4)
-                    .map(|b| f32::from_bits(u32::from_be_bytes([b[0], b[1], b[2], b[3]]))),
-            ),
-        }
-    }
-    to_array(out, ny, nx, path)
 }
 
 pub(super) fn to_array<T>(v: Vec<T>, ny: usize, nx: usize, path: &Path) -> Result<Array2<T>> {
