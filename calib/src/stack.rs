@@ -28,6 +28,7 @@
 //! Inputs must be NaN-free (masked pixels carry values; the median is robust to them).
 //! The slow, obviously correct [`reference_median`] and [`reference_leave_one_out`]
 //! (collect, sort, take the middle) define the results; tests compare them bit for bit.
+use std::mem::MaybeUninit;
 use std::time::Instant;
 
 use ndarray::{Array2, ArrayView2, CowArray, Ix2};
@@ -306,32 +307,34 @@ pub fn median_stack_affine(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Resul
     let slices: Vec<&[f32]> = frames.iter().map(|f| f.as_slice().expect("standard layout")).collect();
     let ranks = median_ranks(n);
     let net = Network::selecting(n, &ranks);
-    let mut out = Array2::<f32>::zeros((ny, nx));
-    if nx == 0 || ny == 0 {
-        return Ok(out);
-    }
-    out.as_slice_mut()
-        .expect("fresh array")
-        .par_chunks_mut(nx * BAND_ROWS)
-        .enumerate()
-        .for_each(|(band, chunk)| {
-            let mut w = vec![[0f32; BLOCK]; n];
-            for (r, orow) in chunk.chunks_mut(nx).enumerate() {
-                let y = band * BAND_ROWS + r;
-                sort_row_blocks(&mut w, &slices, maps, &net, y, nx, |w, _rows, x0, len| {
-                    let o = &mut orow[x0..x0 + len];
-                    if ranks.len() == 1 {
-                        o.copy_from_slice(&w[ranks[0]][..len]);
-                    } else {
-                        let (a, b) = (&w[ranks[0]][..len], &w[ranks[1]][..len]);
-                        for ((o, &a), &b) in o.iter_mut().zip(a).zip(b) {
-                            *o = mid(a, b);
+    let mut out = filled_buffers(1, ny * nx, |mut outs| {
+        if nx == 0 || ny == 0 {
+            return;
+        }
+        // Every band, row and block of the output is written once.
+        outs.pop()
+            .expect("one output")
+            .par_chunks_mut(nx * BAND_ROWS)
+            .enumerate()
+            .for_each(|(band, chunk)| {
+                let mut w = vec![[0f32; BLOCK]; n];
+                for (r, orow) in chunk.chunks_mut(nx).enumerate() {
+                    let y = band * BAND_ROWS + r;
+                    sort_row_blocks(&mut w, &slices, maps, &net, y, nx, |w, _rows, x0, len| {
+                        let o = &mut orow[x0..x0 + len];
+                        if ranks.len() == 1 {
+                            o.iter_mut().zip(&w[ranks[0]][..len]).for_each(|(o, &v)| o.put(v));
+                        } else {
+                            let (a, b) = (&w[ranks[0]][..len], &w[ranks[1]][..len]);
+                            for ((o, &a), &b) in o.iter_mut().zip(a).zip(b) {
+                                o.put(mid(a, b));
+                            }
                         }
-                    }
-                });
-            }
-        });
-    Ok(out)
+                    });
+                }
+            });
+    });
+    Ok(Array2::from_shape_vec((ny, nx), out.pop().expect("one output")).expect("ny x nx elements"))
 }
 
 /// Leave-one-out medians without mapping: element i is the per-pixel median of all
@@ -346,11 +349,50 @@ pub fn leave_one_out_medians(frames: &[ArrayView2<f32>]) -> Result<Vec<Array2<f3
 /// [`reference_leave_one_out`].
 pub fn leave_one_out_medians_affine(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Vec<Array2<f32>>> {
     check_stack(frames, maps, 2, "leave-one-out median")?;
-    let mut outs: Vec<Array2<f32>> = (0..frames.len())
-        .map(|_| Array2::<f32>::zeros(frames[0].raw_dim()))
-        .collect();
-    leave_one_out_medians_into(frames, maps, &mut outs)?;
-    Ok(outs)
+    let (ny, nx) = frames[0].dim();
+    // Fresh outputs are not zeroed first: the kernel writes every element.
+    let bufs = filled_buffers(frames.len(), ny * nx, |outs| loo_kernel(frames, maps, outs));
+    bufs.into_iter()
+        .map(|v| Ok(Array2::from_shape_vec((ny, nx), v).expect("ny x nx elements")))
+        .collect()
+}
+
+/// One output element, written once: `f32` (caller-owned buffers) or `MaybeUninit<f32>`
+/// (fresh buffers, not zeroed first).
+trait Slot: Send {
+    fn put(&mut self, v: f32);
+}
+
+impl Slot for f32 {
+    #[inline(always)]
+    fn put(&mut self, v: f32) {
+        *self = v;
+    }
+}
+
+impl Slot for MaybeUninit<f32> {
+    #[inline(always)]
+    fn put(&mut self, v: f32) {
+        self.write(v);
+    }
+}
+
+/// `n` buffers of `len` values filled by `fill`, which is given their uninitialised
+/// storage and MUST write every element (the kernels here write each output pixel once):
+/// zeroing 4 MiB buffers that are overwritten anyway cost as much as a pass of the median.
+fn filled_buffers(n: usize, len: usize, fill: impl FnOnce(Vec<&mut [MaybeUninit<f32>]>)) -> Vec<Vec<f32>> {
+    let mut bufs: Vec<Vec<f32>> = (0..n).map(|_| Vec::with_capacity(len)).collect();
+    fill(bufs.iter_mut().map(|v| &mut v.spare_capacity_mut()[..len]).collect());
+    for v in &mut bufs {
+        // SAFETY: the capacity is at least `len` and `fill` wrote all `len` elements (the
+        // contract of this private helper, kept by every kernel that calls it: each
+        // writes every pixel of every band). A panic in `fill` never gets here.
+        #[allow(unsafe_code)]
+        unsafe {
+            v.set_len(len)
+        };
+    }
+    bufs
 }
 
 /// [`leave_one_out_medians_affine`] into caller-owned outputs (one per frame, each of
@@ -366,22 +408,32 @@ pub fn leave_one_out_medians_into(frames: &[ArrayView2<f32>], maps: &[Affine], o
             reason: format!("leave-one-out median: need {n} standard-layout outputs of {ny}x{nx}"),
         });
     }
+    loo_kernel(
+        frames,
+        maps,
+        outs.iter_mut()
+            .map(|o| o.as_slice_mut().expect("standard layout"))
+            .collect(),
+    );
+    Ok(())
+}
+
+/// The leave-one-out medians of checked inputs into `outs` (one slice of ny x nx per
+/// frame), every element written.
+fn loo_kernel<T: Slot>(frames: &[ArrayView2<f32>], maps: &[Affine], outs: Vec<&mut [T]>) {
+    let n = frames.len();
+    let (ny, nx) = frames[0].dim();
     let frames = standard(frames);
     let slices: Vec<&[f32]> = frames.iter().map(|f| f.as_slice().expect("standard layout")).collect();
     let ranks = loo_ranks(n);
     let net = Network::selecting(n, &ranks);
     if nx == 0 || ny == 0 {
-        return Ok(());
+        return;
     }
     // Band b of every output, grouped, so that one task writes all N outputs of its rows.
-    let mut bands: Vec<Vec<&mut [f32]>> = Vec::new();
-    for o in outs.iter_mut() {
-        for (b, chunk) in o
-            .as_slice_mut()
-            .expect("standard layout")
-            .chunks_mut(nx * BAND_ROWS)
-            .enumerate()
-        {
+    let mut bands: Vec<Vec<&mut [T]>> = Vec::new();
+    for o in outs {
+        for (b, chunk) in o.chunks_mut(nx * BAND_ROWS).enumerate() {
             if bands.len() <= b {
                 bands.push(Vec::with_capacity(n));
             }
@@ -407,20 +459,19 @@ pub fn leave_one_out_medians_into(frames: &[ArrayView2<f32>], maps: &[Affine], o
                             let above = mid(l, c);
                             let equal = mid(l, h);
                             let r = if v > c { above } else { equal };
-                            *o = if v < c { below } else { r };
+                            o.put(if v < c { below } else { r });
                         }
                     } else {
                         let (lo, hi) = (&w[k - 1][..len], &w[k][..len]);
                         for (((o, &s), &l), &h) in o.iter_mut().zip(src).zip(lo).zip(hi) {
                             let v = m.apply(s);
-                            *o = if v >= h { l } else { h };
+                            o.put(if v >= h { l } else { h });
                         }
                     }
                 }
             });
         }
     });
-    Ok(())
 }
 
 /// Running median along x of every row: `out[y, x]` is the median of

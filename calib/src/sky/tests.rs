@@ -171,6 +171,83 @@ fn cosmic_flags_single_pixel_and_track_but_not_a_broad_bump() {
     assert!(e.contains("a.fits") && e.contains("variance"), "{e}");
 }
 
+/// The seeds of the cosmic-ray test, pixel by pixel as documented (the slow reference of
+/// the chunked candidate scan): value > k sigma and value - ratio x max(mean of the
+/// unmasked 4-neighbours, 0) > k sigma, skipping BAD / OFF_STRIP / SATURATED pixels.
+fn reference_seeds(d: &Array2<f32>, var: &Array2<f32>, m: &Array2<u8>, o: &CosmicOptions) -> Vec<(usize, usize)> {
+    let skip = mask::BAD | mask::OFF_STRIP | mask::SATURATED;
+    let (ny, nx) = d.dim();
+    let (k, r) = (o.sigma_clip as f32, o.sharpness_ratio as f32);
+    let mut out = Vec::new();
+    for y in 0..ny {
+        for x in 0..nx {
+            let (v, s) = (d[[y, x]], var[[y, x]].max(0.0).sqrt());
+            if m[[y, x]] & skip != 0 || !(v > 0.0 && v * v > k * k * var[[y, x]]) {
+                continue;
+            }
+            let nb: Vec<f32> = [(-1i64, 0i64), (1, 0), (0, -1), (0, 1)]
+                .iter()
+                .map(|(dy, dx)| (y as i64 + dy, x as i64 + dx))
+                .filter(|&(yy, xx)| yy >= 0 && xx >= 0 && (yy as usize) < ny && (xx as usize) < nx)
+                .map(|(yy, xx)| (yy as usize, xx as usize))
+                .filter(|&p| m[p] & skip == 0)
+                .map(|p| d[p])
+                .collect();
+            if nb.is_empty() {
+                continue;
+            }
+            let mean4 = (nb.iter().sum::<f32>() / nb.len() as f32).max(0.0);
+            if v - r * mean4 > k * s {
+                out.push((y, x));
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn cosmic_seeds_match_a_pixel_by_pixel_reference() {
+    // Noise with many candidates (a low threshold), masked pixels, widths around the
+    // 64-pixel chunks of the candidate scan.
+    let mut g = Gauss(0x00c0_ffee);
+    for (ny, nx) in [(5, 1), (7, 63), (9, 64), (6, 65), (11, 200), (3, 1024)] {
+        let d = Array2::from_shape_fn((ny, nx), |_| (g.n() * 3.0) as f32);
+        let var = Array2::from_shape_fn((ny, nx), |_| (1.0 + g.u() * 2.0) as f32);
+        let m = Array2::from_shape_fn((ny, nx), |_| {
+            let u = g.u();
+            if u < 0.05 {
+                mask::BAD
+            } else if u < 0.08 {
+                mask::SATURATED
+            } else if u < 0.1 {
+                mask::NONLINEAR
+            } else {
+                0
+            }
+        });
+        let o = CosmicOptions {
+            sigma_clip: 1.5,
+            sharpness_ratio: 0.5,
+            grow_iterations: 0,
+            ..CosmicOptions::default()
+        };
+        let mut got = m.clone();
+        let rep = cosmic_flags(&d, &var.view(), &mut got, &o);
+        let want = reference_seeds(&d, &var, &m, &o);
+        assert!(
+            want.len() > ny * nx / 50,
+            "{ny}x{nx}: too few seeds to test ({})",
+            want.len()
+        );
+        assert_eq!(rep.seeds, want.len(), "{ny}x{nx}");
+        let mut want_mask = m.clone();
+        for &p in &want {
+            want_mask[p] |= mask::COSMIC;
+        }
+        assert_eq!(got, want_mask, "{ny}x{nx}");
+    }
+}
+
 /// Frames of 1024 x 64 px: level `l` in the strips plus Gaussian noise (sigma `s`), 0 off-strip.
 fn noisy_frames(levels: &[f32], s: f64, seed: u64) -> Vec<Frame> {
     let p = Profile::sofi();

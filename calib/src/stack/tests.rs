@@ -97,6 +97,33 @@ fn leave_one_out_matches_reference_exactly() {
 }
 
 #[test]
+fn every_output_pixel_is_written_for_any_band_and_block_split() {
+    // The fresh outputs are not zeroed: shapes around the band height (BAND_ROWS rows)
+    // and the block width (BLOCK pixels) must still give every pixel its median, and the
+    // caller-owned outputs, filled with NaN first, must come back equal to them.
+    let mut r = Rng(0x5eed_0000_0000_0010);
+    for ny in [1, BAND_ROWS - 1, BAND_ROWS, BAND_ROWS + 1, 3 * BAND_ROWS + 5] {
+        for nx in [1, BLOCK - 1, BLOCK, BLOCK + 1, 2 * BLOCK + 44] {
+            for n in [2, 3, 4, 5, 6, 9] {
+                let frames: Vec<Array2<f32>> = (0..n)
+                    .map(|_| Array2::from_shape_fn((ny, nx), |_| 1.0 + r.below(6) as f32))
+                    .collect();
+                let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.view()).collect();
+                let maps = vec![Affine::IDENTITY; n];
+                let fast = leave_one_out_medians_affine(&views, &maps).unwrap();
+                let slow = reference_leave_one_out(&views, &maps).unwrap();
+                assert_eq!(fast, slow, "{ny}x{nx}, {n} frames");
+                let mut outs = vec![Array2::from_elem((ny, nx), f32::NAN); n];
+                leave_one_out_medians_into(&views, &maps, &mut outs).unwrap();
+                assert_eq!(outs, slow, "into: {ny}x{nx}, {n} frames");
+                let med = median_stack_affine(&views, &maps).unwrap();
+                assert_eq!(med, reference_median_stack(&views, &maps).unwrap(), "{ny}x{nx}, {n}");
+            }
+        }
+    }
+}
+
+#[test]
 fn median_matches_reference_exactly() {
     let mut r = Rng(0xfeed_beef_1234_0001);
     for case in 0..300 {
