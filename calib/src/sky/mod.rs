@@ -643,10 +643,10 @@ impl Finish {
             .into_iter()
             .zip(skies)
             .map(|(mut f, sky)| {
-                let raw = std::mem::take(&mut f.data).as_standard_layout().into_owned();
-                f.mask = f.mask.as_standard_layout().into_owned();
-                let vin = f.variance.take().map(|v| v.as_standard_layout().into_owned());
-                (f, raw, sky.as_standard_layout().into_owned(), vin)
+                let raw = standard(std::mem::take(&mut f.data));
+                f.mask = standard(std::mem::take(&mut f.mask));
+                let vin = f.variance.take().map(standard);
+                (f, raw, standard(sky), vin)
             })
             .collect();
         let chunk = BLOCK * nx;
@@ -802,6 +802,15 @@ impl Finish {
         for (b, &r) in mrow.iter_mut().zip(rrow) {
             *b |= off | (((r >= sat) as u8) * mask::SATURATED) | (((r >= nonlin) as u8) * mask::NONLINEAR);
         }
+    }
+}
+
+/// The array itself when it is in standard layout (no copy), else a standard copy.
+fn standard<T: Clone>(a: Array2<T>) -> Array2<T> {
+    if a.is_standard_layout() {
+        a
+    } else {
+        a.as_standard_layout().into_owned()
     }
 }
 
