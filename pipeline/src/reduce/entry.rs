@@ -5,6 +5,20 @@ use super::{CalibratedOrientation, DitherValue, MeasureParams, Measured};
 use crate::catalog::{self, Component, Status, Target};
 use crate::stokes::inversion::{clip_dithers, combine_dithers, fit_qu, LinearPolarization, Polarization};
 
+/// Component flags that keep a value from passing the cut, whatever its S/N: dithers that
+/// were all flagged (`used_flagged_dithers`: a saturated core may be far off) and an A/B
+/// identity that could not be established at some orientation (`ab_identity_unverified`:
+/// q and u may mix the two stars). Shared with the calibration, which recomputes the cut.
+pub fn refused_by_flags(flags: &[String]) -> bool {
+    flags
+        .iter()
+        .any(|f| f == "used_flagged_dithers" || f == AB_IDENTITY_UNVERIFIED)
+}
+
+/// The component flag of a pair whose A/B identity could not be established at every
+/// orientation (the target carries `ab_identity_unverified: ...` with the orientation).
+pub const AB_IDENTITY_UNVERIFIED: &str = "ab_identity_unverified";
+
 /// Turn the per-dither values of one component into its catalog entry.
 pub fn component_from_dithers(
     name: &str,
@@ -108,7 +122,7 @@ pub fn component_from_dithers(
                 pol: lp.pol,
                 // A value from dithers that were all flagged (saturated, bad pixels...) is
                 // reported, never a detection: it may be far off (a saturated core).
-                passes_cut: lp.passes_cut(params.cut_snr) && !flags.iter().any(|f| f == "used_flagged_dithers"),
+                passes_cut: lp.passes_cut(params.cut_snr) && !refused_by_flags(&flags),
                 flags,
                 extra,
             }
@@ -130,11 +144,21 @@ pub fn component_from_dithers(
 pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measured, params: &MeasureParams) -> Target {
     let phis: Vec<f64> = orients.iter().map(|o| o.analyzer_deg).collect();
     let names = ["A", "B"];
+    // Which star was measured at some orientation is not known: every component may mix
+    // the two stars' q and u. Reported, flagged, never a detection.
+    let unverified = m.flags.iter().any(|f| f.starts_with(AB_IDENTITY_UNVERIFIED));
     let components: Vec<Component> = m
         .dithers
         .iter()
         .enumerate()
-        .map(|(i, d)| component_from_dithers(names[i], d, &phis, params))
+        .map(|(i, d)| {
+            let mut c = component_from_dithers(names[i], d, &phis, params);
+            if unverified {
+                c.flags.push(AB_IDENTITY_UNVERIFIED.into());
+                c.passes_cut = false;
+            }
+            c
+        })
         .collect();
     let delta = if components.len() == 2 && components.iter().all(|c| c.passes_cut) {
         Some(catalog::fold_delta_gamma(
