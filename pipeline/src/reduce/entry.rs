@@ -203,3 +203,80 @@ pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measure
         extra,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::reduce::{BeamFlux, DitherValue};
+
+    /// Two components, both with a 10-sigma polarization at 0/45/90/135 (q = 0.03, u = 0.02,
+    /// sigma_F = 0.001 per dither, 3 dithers).
+    fn measured(flags: Vec<String>) -> Measured {
+        let phis = [0.0f64, 45.0, 90.0, 135.0];
+        let comp = |q: f64, u: f64| -> Vec<Vec<DitherValue>> {
+            phis.iter()
+                .map(|phi| {
+                    let t = (2.0 * phi).to_radians();
+                    let f = q * t.cos() + u * t.sin();
+                    (0..3)
+                        .map(|i| DitherValue {
+                            f: f + 0.0005 * (i as f64 - 1.0),
+                            sigma_f: 0.001,
+                            o: BeamFlux {
+                                flux: 1e4,
+                                ..BeamFlux::missing()
+                            },
+                            e: BeamFlux {
+                                flux: 1e4,
+                                ..BeamFlux::missing()
+                            },
+                            rejected: None,
+                        })
+                        .collect()
+                })
+                .collect()
+        };
+        Measured {
+            eo_offset_px: (0.0, 167.0),
+            fwhm_px: 3.0,
+            geometry: Some((5.0, 340.0)),
+            photometry: "aperture".into(),
+            aperture_px: 3.0,
+            dithers: vec![comp(0.03, 0.02), comp(-0.02, 0.04)],
+            flags,
+        }
+    }
+
+    fn orients() -> Vec<CalibratedOrientation> {
+        [0.0, 45.0, 90.0, 135.0]
+            .iter()
+            .map(|&p| CalibratedOrientation {
+                posang_deg: p,
+                analyzer_deg: p,
+                frames: Vec::new(),
+                offsets: Vec::new(),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn unverified_ab_identity_fails_the_cut_whatever_the_snr() {
+        let params = MeasureParams::default();
+        let t = target_entry("X", &orients(), &measured(Vec::new()), &params);
+        assert!(t.components.iter().all(|c| c.passes_cut), "{t:?}");
+        assert!(t.delta_gamma_deg.is_some());
+        let flag =
+            "ab_identity_unverified: companion not found at POSANG 90.0 and the components are near equal in flux";
+        let t = target_entry("X", &orients(), &measured(vec![flag.into()]), &params);
+        for c in &t.components {
+            assert!(!c.passes_cut, "{c:?}");
+            assert!(c.flags.iter().any(|f| f == AB_IDENTITY_UNVERIFIED), "{c:?}");
+            // Still reported (the value is there, not a detection).
+            assert!(c.q.is_finite() && c.extra["snr"].as_f64().unwrap() > 10.0, "{c:?}");
+        }
+        assert!(t.delta_gamma_deg.is_none());
+        assert!(refused_by_flags(&[AB_IDENTITY_UNVERIFIED.to_string()]));
+        assert!(refused_by_flags(&["used_flagged_dithers".to_string()]));
+        assert!(!refused_by_flags(&["low_snr".to_string(), "bad_pixels".to_string()]));
+    }
+}
