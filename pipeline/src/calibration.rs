@@ -209,8 +209,9 @@ pub fn resolve_component(
     if !lp.passes_cut(cut_snr) {
         c.flags.push("low_snr".into());
     }
-    // As in reduce::entry: a value from all-flagged dithers never passes the cut.
-    c.passes_cut = lp.passes_cut(cut_snr) && !c.flags.iter().any(|f| f == "used_flagged_dithers");
+    // As in reduce::entry: a value from all-flagged dithers, or of a component whose A/B
+    // identity is not established, never passes the cut.
+    c.passes_cut = lp.passes_cut(cut_snr) && !crate::reduce::entry::refused_by_flags(&c.flags);
     if sol.uncalibrated {
         c.flags.push("uncalibrated".into());
     }

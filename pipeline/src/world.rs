@@ -22,7 +22,7 @@
 //! Pulls are `(q - q_true)/sigma_q` and `(u - u_true)/sigma_u` of both components; the A/B
 //! labels of the catalog are matched to the truth by position angle, and a swap of a pair
 //! whose flux ratio is below [`RELABEL_RATIO`] is counted as a relabelling error.
-//! Components flagged `saturated` are refused: counted, not scored.
+//! Components flagged `saturated` or `ab_identity_unverified` are refused: counted, not scored.
 use std::path::{Path, PathBuf};
 
 use rand::{RngExt, SeedableRng};
@@ -121,7 +121,7 @@ pub struct WorldTarget {
     pub sigmas: Vec<f64>,
     /// Components not measured.
     pub missing: usize,
-    /// Components refused (flagged `saturated`, not scored).
+    /// Components refused (flagged `saturated` or `ab_identity_unverified`, not scored).
     pub refused: usize,
     /// A was made bright enough to saturate (flux above [`SATURATED_FLUX_ADU`]).
     pub saturated: bool,
@@ -153,7 +153,7 @@ pub struct WorldBin {
     pub median_sigma: f64,
     /// Components not measured.
     pub missing: usize,
-    /// Components refused as saturated.
+    /// Components refused (saturated, or A/B identity unverified).
     pub refused: usize,
     /// Pairs relabelled.
     pub relabelled: usize,
@@ -390,8 +390,17 @@ pub fn night_calibration(cfg: &WorldConfig, inst: &Instrument, params: &TargetPa
     }
 }
 
-/// Match the catalog's components to the truth and compute the pulls. Components flagged
-/// `saturated` are refused (counted, not scored); the others are scored.
+/// A component the reduction refuses to vouch for: flagged `saturated`, or
+/// `ab_identity_unverified` (which star was measured at some orientation is not known:
+/// it fails the cut). Counted as refused, not scored.
+fn refused_component(c: &crate::catalog::Component) -> bool {
+    c.flags
+        .iter()
+        .any(|f| f == "saturated" || f == crate::reduce::entry::AB_IDENTITY_UNVERIFIED)
+}
+
+/// Match the catalog's components to the truth and compute the pulls. Refused components
+/// ([`refused_component`]) are counted, not scored; the others are scored.
 fn score(target: &Target, tt: &TargetTruth, ratio: f64) -> (Vec<f64>, Vec<f64>, usize, usize, bool) {
     let found_pa = target.extra.get("pa_deg").and_then(|v| v.as_f64());
     let swapped = found_pa.is_some_and(|pa| {
@@ -405,7 +414,7 @@ fn score(target: &Target, tt: &TargetTruth, ratio: f64) -> (Vec<f64>, Vec<f64>, 
     let (mut pulls, mut sigmas, mut missing, mut refused) = (Vec::new(), Vec::new(), 0, 0);
     for (i, tc) in truth.iter().enumerate() {
         match target.components.get(i) {
-            Some(c) if c.flags.iter().any(|f| f == "saturated") => refused += 1,
+            Some(c) if refused_component(c) => refused += 1,
             Some(c) if c.q.is_finite() && c.sigma_q > 0.0 && c.sigma_u > 0.0 => {
                 pulls.push((c.q - tc.q) / c.sigma_q);
                 pulls.push((c.u - tc.u) / c.sigma_u);
@@ -482,7 +491,7 @@ fn scored(r: Reduced, saturated_design: bool) -> WorldTarget {
     let dither_chi2 = target
         .components
         .iter()
-        .filter(|c| c.q.is_finite() && !c.flags.iter().any(|f| f == "saturated"))
+        .filter(|c| c.q.is_finite() && !refused_component(c))
         .filter_map(|c| c.extra.get("orientations").and_then(|v| v.as_array()))
         .flatten()
         .filter_map(|o| Some((o.get("chi2")?.as_f64()?, o.get("n_dithers")?.as_u64()? as usize)))
@@ -490,7 +499,7 @@ fn scored(r: Reduced, saturated_design: bool) -> WorldTarget {
     let orientation_f = target
         .components
         .iter()
-        .filter(|c| c.q.is_finite() && !c.flags.iter().any(|f| f == "saturated"))
+        .filter(|c| c.q.is_finite() && !refused_component(c))
         .filter_map(|c| c.extra.get("orientations").and_then(|v| v.as_array()))
         .map(|os| {
             os.iter()

@@ -135,3 +135,96 @@ fn bench_target_40_anchor_is_not_taken_from_one_frame_with_a_hit_core() {
         }
     }
 }
+
+/// A near-equal pair (B 7.5 % brighter than A) seen at `orientations`, with the night's
+/// effects.
+fn near_equal_scene(sep: f64, pa: f64, fwhm: f64, orientations: &[f64], seed: u64) -> String {
+    format!(
+        r#"name = "near_equal"
+seed = {seed}
+effects = ["psf", "sky", "strips", "photon_noise", "read_noise", "bad_pixels", "transparency", "pointing_error", "cosmic_rays"]
+[observation]
+orientations_deg = {orientations:?}
+dithers = 5
+[psf]
+kind = "moffat"
+fwhm_arcsec = {fwhm}
+[[binary]]
+name = "NearEqual"
+separation_arcsec = {sep}
+pa_deg = {pa}
+flux_a = 40000.0
+flux_b = 43000.0
+p_a = 0.03
+gamma_a_deg = 30.0
+p_b = 0.045
+gamma_b_deg = 5.0
+"#
+    )
+}
+
+/// Reduce a near-equal pair and check that both components are measured, with the same
+/// star called A at every orientation: the catalog's PA is the truth's (A = the scene's A)
+/// or opposite (A = the scene's B), and q, u of each component are its own star's.
+fn check_near_equal(sep: f64, pa: f64, fwhm: f64, orientations: &[f64], seed: u64) {
+    let text = near_equal_scene(sep, pa, fwhm, orientations, seed);
+    let profile = Profile::sofi();
+    let sim = Simulator::new(Scene::from_toml(&text, "t").unwrap(), profile.clone()).unwrap();
+    let (frames, _) = sim.run_in_memory();
+    let (seq, orients) = loaded_from_sim(frames, &profile);
+    let t = reduce_loaded(&seq, orients, &profile, &TargetParams::default(), None, None, false).target;
+    let case = format!("{sep}\" PA {pa} at {orientations:?}");
+    let flags = t.extra["flags"].as_array().unwrap();
+    assert!(
+        !flags.iter().any(|f| {
+            let f = f.as_str().unwrap();
+            f.contains("primary not found") || f.starts_with("ab_identity") || f.starts_with("companion_")
+        }),
+        "{case}: {flags:?}"
+    );
+    assert_eq!(t.components.len(), 2, "{case}: {t:?}");
+    let found_sep = t.extra["separation_arcsec"].as_f64().unwrap();
+    let found_pa = t.extra["pa_deg"].as_f64().unwrap();
+    assert!((found_sep - sep).abs() < 0.1, "{case}: separation {found_sep}");
+    // Which true star the catalog calls A, from the PA of B from A.
+    let d = (found_pa - pa).rem_euclid(360.0);
+    let swapped = d > 90.0 && d < 270.0;
+    let dpa = if swapped { (d - 180.0).abs() } else { d.min(360.0 - d) };
+    assert!(dpa < 2.0, "{case}: PA {found_pa}");
+    let mut truth = [qu(0.03, 30.0), qu(0.045, 5.0)];
+    if swapped {
+        truth.swap(0, 1);
+    }
+    for (c, tr) in t.components.iter().zip(truth) {
+        let (pq, pu) = ((c.q - tr.0) / c.sigma_q, (c.u - tr.1) / c.sigma_u);
+        assert!(
+            pq.abs() < 5.0 && pu.abs() < 5.0 && c.passes_cut,
+            "{case}: {} pulls {pq:.1} {pu:.1}: {c:?}",
+            c.name
+        );
+    }
+}
+
+/// World seed 16, target W5_3 (B/A 1.00, 5.0", FWHM 1.09"): the anchor is the star found at
+/// POSANG 0, which rotates 24.5 px away by POSANG 90. The brightest point within 8 px of the
+/// anchor was then the wing of the other star on the rim of the search disc, accepted as
+/// "the primary": the stacks at 90 and 135 were centred on empty sky, the companion was not
+/// found there and the near-equal pair was left `ab_identity_unverified` (A's q from one
+/// star, u from the other: pulls of 28 and 55 in the world harness).
+#[test]
+fn near_equal_wide_pair_keeps_its_identity_at_four_orientations() {
+    check_near_equal(5.0, 339.6, 1.09, &[0.0, 45.0, 90.0, 135.0], 16);
+}
+
+/// Two orientations, 0 and 135 (the anchored star moves 32 px): the same.
+#[test]
+fn near_equal_wide_pair_keeps_its_identity_at_two_orientations() {
+    check_near_equal(5.0, 339.6, 1.09, &[0.0, 135.0], 17);
+}
+
+/// A near-equal pair at 1.5" (5.2 px; the anchored star moves 4 px between 0 and 45 deg)
+/// at two orientations.
+#[test]
+fn near_equal_close_pair_keeps_its_identity_at_two_orientations() {
+    check_near_equal(1.5, 120.0, 0.8, &[0.0, 45.0], 18);
+}

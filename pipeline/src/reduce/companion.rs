@@ -286,11 +286,13 @@ pub fn find_companion(
     let search_px = params.companion_search_arcsec / scale;
     let h = (search_px + 3.0 * fwhm_guess).ceil() as usize;
     let mut found: Vec<Option<PairOnStack>> = Vec::new();
+    let mut stacks: Vec<Option<Stack>> = Vec::new();
     let mut fwhms = Vec::new();
     for (k, (o, ms)) in orients.iter().zip(masks).enumerate() {
         let (fr, cc) = primary.found_in(k, o, ms);
         if fr.is_empty() {
             found.push(None);
+            stacks.push(None);
             continue;
         }
         let (stack, smask, frac) = stack_cutouts(&fr, &cc, h);
@@ -302,8 +304,9 @@ pub fn find_companion(
             fwhms.push(p.fwhm_px);
         }
         found.push(p);
+        stacks.push(Some((stack, smask)));
     }
-    let geometry = label_and_combine(&mut found, orients, params, scale, flags);
+    let geometry = label_and_combine(&mut found, &stacks, orients, params, scale, flags);
     if geometry.is_none() {
         flags.push("companion_not_found".into());
     }
@@ -317,6 +320,7 @@ pub fn find_companion(
 /// separation and PA when the companion is accepted.
 fn label_and_combine(
     found: &mut [Option<PairOnStack>],
+    stacks: &[Option<Stack>],
     orients: &[CalibratedOrientation],
     params: &MeasureParams,
     scale: f64,
@@ -367,7 +371,7 @@ fn label_and_combine(
             o.1 = (-o.1 .0, -o.1 .1);
         }
     }
-    verify_identity(found, orients, ib, (sep0, pa0), params, scale, flags);
+    verify_identity(found, stacks, orients, ib, (sep0, pa0), params, scale, flags);
     // A real companion is seen at every orientation where the rotation puts it; a fit
     // artefact (blur, a cosmic ray in a stack) is not.
     let need = orients.len().min(2);
@@ -398,6 +402,61 @@ fn label_and_combine(
     }
 }
 
+/// A registered stack and its mask (as [`stack_cutouts`] makes them).
+pub type Stack = (Array2<f32>, Array2<u8>);
+
+/// Which side of the star at `star` (offset from the stack centre, as in [`PairOnStack`])
+/// the other star of the pair is: `Some(true)` when the stack is significantly brighter
+/// (5 sigma) within one FWHM of `star + pred` than of `star - pred` (the star found is
+/// A), `Some(false)` for the opposite (it is B), None when neither side stands out (a
+/// companion off the stack or too faint) or a side has too few usable pixels.
+pub fn side_of_companion(st: &Stack, star: (f64, f64), pred: (f64, f64), fwhm_px: f64) -> Option<bool> {
+    let (stack, smask) = st;
+    let n = stack.dim().0;
+    let half = (n / 2) as f64;
+    let (sx, sy) = (star.0 + half, star.1 + half);
+    if !(sx.is_finite() && sy.is_finite()) {
+        return None;
+    }
+    let r = if fwhm_px.is_finite() { fwhm_px.max(2.0) } else { 2.0 };
+    let disc = |x0: f64, y0: f64| -> (f64, usize) {
+        let (mut s, mut k) = (0.0, 0);
+        for ((j, i), &v) in stack.indexed_iter() {
+            if smask[[j, i]] == 0 && v.is_finite() && (i as f64 - x0).hypot(j as f64 - y0) <= r {
+                s += v as f64;
+                k += 1;
+            }
+        }
+        (if k > 0 { s / k as f64 } else { f64::NAN }, k)
+    };
+    let (mp, np) = disc(sx + pred.0, sy + pred.1);
+    let (mm, nm) = disc(sx - pred.0, sy - pred.1);
+    if np < 5 || nm < 5 {
+        return None;
+    }
+    // Pixel noise of the stack: the MAD of its usable pixels (the stars cover few of them).
+    let mut vals: Vec<f64> = stack
+        .iter()
+        .zip(smask.iter())
+        .filter(|(v, &m)| m == 0 && v.is_finite())
+        .map(|(&v, _)| v as f64)
+        .collect();
+    if vals.len() < 20 {
+        return None;
+    }
+    vals.sort_by(f64::total_cmp);
+    let med = vals[vals.len() / 2];
+    let mut dev: Vec<f64> = vals.iter().map(|v| (v - med).abs()).collect();
+    dev.sort_by(f64::total_cmp);
+    let sigma = 1.4826 * dev[dev.len() / 2];
+    let noise = sigma * (1.0 / np as f64 + 1.0 / nm as f64).sqrt();
+    let d = mp - mm;
+    if !(noise > 0.0) || !d.is_finite() || d.abs() < 5.0 * noise {
+        return None;
+    }
+    Some(d > 0.0)
+}
+
 /// Flux ratio (B/A on the stack) above which the components cannot be told apart by flux.
 const NEAR_EQUAL_RATIO: f64 = 0.8;
 
@@ -406,8 +465,10 @@ const NEAR_EQUAL_RATIO: f64 = 0.8;
 /// `ib` (the labels there are final), and put A where the geometry `(sep, pa)` of the best
 /// orientation predicts it when that star is B. A near-equal pair cannot be told apart:
 /// flagged, never relabelled silently.
+#[allow(clippy::too_many_arguments)]
 fn verify_identity(
     found: &mut [Option<PairOnStack>],
+    stacks: &[Option<Stack>],
     orients: &[CalibratedOrientation],
     ib: usize,
     (sep0, pa0): (f64, f64),
@@ -440,6 +501,25 @@ fn verify_identity(
         if !(f > 0.0) {
             continue;
         }
+        let pred = companion_offset_px(sep, pa, orients[i].posang_deg, scale);
+        // By the geometry: the other star is on one side of the star found, at the offset
+        // of B from A the other orientations measured, or on the opposite side.
+        if let Some(Some(st)) = stacks.get(i) {
+            match side_of_companion(st, p.a, pred, p.fwhm_px) {
+                Some(true) => continue,
+                Some(false) => {
+                    p.b = p.a;
+                    p.a = (p.a.0 - pred.0, p.a.1 - pred.1);
+                    p.flux = (0.0, f);
+                    flags.push(format!(
+                        "ab_identity_from_geometry: at POSANG {:.1} the star found is B (the other star lies where the geometry puts A, companion not significant there)",
+                        orients[i].posang_deg
+                    ));
+                    continue;
+                }
+                None => {}
+            }
+        }
         if fb.min(fa) / fb.max(fa) > NEAR_EQUAL_RATIO {
             flags.push(format!(
                 "ab_identity_unverified: companion not found at POSANG {:.1} and the components are near equal in flux",
@@ -449,7 +529,6 @@ fn verify_identity(
         }
         let (la, lb, lf) = (fa.ln(), fb.ln(), f.ln());
         if (lf - lb).abs() < (lf - la).abs() {
-            let pred = companion_offset_px(sep, pa, orients[i].posang_deg, scale);
             p.b = p.a;
             p.a = (p.a.0 - pred.0, p.a.1 - pred.1);
             p.flux = (0.0, f);
@@ -505,7 +584,7 @@ mod tests {
         let params = MeasureParams::default();
         let scale = Profile::sofi().geometry.pixscale_arcsec;
         let mut flags = Vec::new();
-        let geometry = label_and_combine(&mut found, &orients, &params, scale, &mut flags);
+        let geometry = label_and_combine(&mut found, &[], &orients, &params, scale, &mut flags);
         // Seen at one orientation of two: rejected, as before.
         assert!(geometry.is_none(), "{geometry:?}");
         // B from A at POSANG 0 is (-15.06, 2.81); at POSANG 45 the geometry predicts it
@@ -527,9 +606,47 @@ mod tests {
         // The star found is A (flux like A's): left where it is, no flag.
         let (mut found, orients) = bench_40(28500.0, 14803.0);
         let mut flags = Vec::new();
-        label_and_combine(&mut found, &orients, &params, scale, &mut flags);
+        label_and_combine(&mut found, &[], &orients, &params, scale, &mut flags);
         assert_eq!(found[1].unwrap().a, (0.07, -0.12));
         assert!(!flags.iter().any(|f| f.starts_with("ab_identity")), "{flags:?}");
+    }
+
+    /// A 61x61 stack holding a star at the centre and, if `other`, a second one at `other`
+    /// (offset from the centre), both of FWHM 3 px, with +-1 pseudo-random noise.
+    fn two_star_stack(other: Option<(f64, f64)>, flux: f64) -> Stack {
+        let n = 61;
+        let s = 3.0 / 2.3548;
+        let g = |x: f64, y: f64, cx: f64, cy: f64| {
+            flux / (2.0 * std::f64::consts::PI * s * s) * (-((x - cx).powi(2) + (y - cy).powi(2)) / (2.0 * s * s)).exp()
+        };
+        let mut seed = 12345u64;
+        let stack = Array2::from_shape_fn((n, n), |(j, i)| {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            let noise = ((seed >> 33) as f64 / (1u64 << 31) as f64) * 2.0 - 1.0;
+            let (x, y) = (i as f64, j as f64);
+            let mut v = g(x, y, 30.0, 30.0) + noise;
+            if let Some((dx, dy)) = other {
+                v += g(x, y, 30.0 + dx, 30.0 + dy);
+            }
+            v as f32
+        });
+        (stack, Array2::zeros((n, n)))
+    }
+
+    #[test]
+    fn the_side_of_the_other_star_tells_a_from_b() {
+        let pred = (-15.8, 5.4);
+        // The other star where the geometry puts B: the star found is A.
+        let st = two_star_stack(Some(pred), 2000.0);
+        assert_eq!(side_of_companion(&st, (0.0, 0.0), pred, 3.0), Some(true));
+        // On the opposite side: the star found is B.
+        let st = two_star_stack(Some((-pred.0, -pred.1)), 2000.0);
+        assert_eq!(side_of_companion(&st, (0.0, 0.0), pred, 3.0), Some(false));
+        // A lone star, or another star too faint to stand out: not decided.
+        let st = two_star_stack(None, 2000.0);
+        assert_eq!(side_of_companion(&st, (0.0, 0.0), pred, 3.0), None);
+        let st = two_star_stack(Some(pred), 5.0);
+        assert_eq!(side_of_companion(&st, (0.0, 0.0), pred, 3.0), None);
     }
 
     #[test]
@@ -537,7 +654,7 @@ mod tests {
         let (mut found, orients) = bench_40(26000.0, 26000.0);
         let mut flags = Vec::new();
         let scale = Profile::sofi().geometry.pixscale_arcsec;
-        label_and_combine(&mut found, &orients, &MeasureParams::default(), scale, &mut flags);
+        label_and_combine(&mut found, &[], &orients, &MeasureParams::default(), scale, &mut flags);
         assert_eq!(found[1].unwrap().a, (0.07, -0.12));
         assert!(
             flags.iter().any(|f| f.starts_with("ab_identity_unverified")),

@@ -5,6 +5,20 @@ use super::{CalibratedOrientation, DitherValue, MeasureParams, Measured};
 use crate::catalog::{self, Component, Status, Target};
 use crate::stokes::inversion::{clip_dithers, combine_dithers, fit_qu, LinearPolarization, Polarization};
 
+/// Component flags that keep a value from passing the cut, whatever its S/N: dithers that
+/// were all flagged (`used_flagged_dithers`: a saturated core may be far off) and an A/B
+/// identity that could not be established at some orientation (`ab_identity_unverified`:
+/// q and u may mix the two stars). Shared with the calibration, which recomputes the cut.
+pub fn refused_by_flags(flags: &[String]) -> bool {
+    flags
+        .iter()
+        .any(|f| f == "used_flagged_dithers" || f == AB_IDENTITY_UNVERIFIED)
+}
+
+/// The component flag of a pair whose A/B identity could not be established at every
+/// orientation (the target carries `ab_identity_unverified: ...` with the orientation).
+pub const AB_IDENTITY_UNVERIFIED: &str = "ab_identity_unverified";
+
 /// Turn the per-dither values of one component into its catalog entry.
 pub fn component_from_dithers(
     name: &str,
@@ -108,7 +122,7 @@ pub fn component_from_dithers(
                 pol: lp.pol,
                 // A value from dithers that were all flagged (saturated, bad pixels...) is
                 // reported, never a detection: it may be far off (a saturated core).
-                passes_cut: lp.passes_cut(params.cut_snr) && !flags.iter().any(|f| f == "used_flagged_dithers"),
+                passes_cut: lp.passes_cut(params.cut_snr) && !refused_by_flags(&flags),
                 flags,
                 extra,
             }
@@ -130,11 +144,21 @@ pub fn component_from_dithers(
 pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measured, params: &MeasureParams) -> Target {
     let phis: Vec<f64> = orients.iter().map(|o| o.analyzer_deg).collect();
     let names = ["A", "B"];
+    // Which star was measured at some orientation is not known: every component may mix
+    // the two stars' q and u. Reported, flagged, never a detection.
+    let unverified = m.flags.iter().any(|f| f.starts_with(AB_IDENTITY_UNVERIFIED));
     let components: Vec<Component> = m
         .dithers
         .iter()
         .enumerate()
-        .map(|(i, d)| component_from_dithers(names[i], d, &phis, params))
+        .map(|(i, d)| {
+            let mut c = component_from_dithers(names[i], d, &phis, params);
+            if unverified {
+                c.flags.push(AB_IDENTITY_UNVERIFIED.into());
+                c.passes_cut = false;
+            }
+            c
+        })
         .collect();
     let delta = if components.len() == 2 && components.iter().all(|c| c.passes_cut) {
         Some(catalog::fold_delta_gamma(
@@ -177,5 +201,82 @@ pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measure
         components,
         delta_gamma_deg: delta,
         extra,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::reduce::{BeamFlux, DitherValue};
+
+    /// Two components, both with a 10-sigma polarization at 0/45/90/135 (q = 0.03, u = 0.02,
+    /// sigma_F = 0.001 per dither, 3 dithers).
+    fn measured(flags: Vec<String>) -> Measured {
+        let phis = [0.0f64, 45.0, 90.0, 135.0];
+        let comp = |q: f64, u: f64| -> Vec<Vec<DitherValue>> {
+            phis.iter()
+                .map(|phi| {
+                    let t = (2.0 * phi).to_radians();
+                    let f = q * t.cos() + u * t.sin();
+                    (0..3)
+                        .map(|i| DitherValue {
+                            f: f + 0.0005 * (i as f64 - 1.0),
+                            sigma_f: 0.001,
+                            o: BeamFlux {
+                                flux: 1e4,
+                                ..BeamFlux::missing()
+                            },
+                            e: BeamFlux {
+                                flux: 1e4,
+                                ..BeamFlux::missing()
+                            },
+                            rejected: None,
+                        })
+                        .collect()
+                })
+                .collect()
+        };
+        Measured {
+            eo_offset_px: (0.0, 167.0),
+            fwhm_px: 3.0,
+            geometry: Some((5.0, 340.0)),
+            photometry: "aperture".into(),
+            aperture_px: 3.0,
+            dithers: vec![comp(0.03, 0.02), comp(-0.02, 0.04)],
+            flags,
+        }
+    }
+
+    fn orients() -> Vec<CalibratedOrientation> {
+        [0.0, 45.0, 90.0, 135.0]
+            .iter()
+            .map(|&p| CalibratedOrientation {
+                posang_deg: p,
+                analyzer_deg: p,
+                frames: Vec::new(),
+                offsets: Vec::new(),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn unverified_ab_identity_fails_the_cut_whatever_the_snr() {
+        let params = MeasureParams::default();
+        let t = target_entry("X", &orients(), &measured(Vec::new()), &params);
+        assert!(t.components.iter().all(|c| c.passes_cut), "{t:?}");
+        assert!(t.delta_gamma_deg.is_some());
+        let flag =
+            "ab_identity_unverified: companion not found at POSANG 90.0 and the components are near equal in flux";
+        let t = target_entry("X", &orients(), &measured(vec![flag.into()]), &params);
+        for c in &t.components {
+            assert!(!c.passes_cut, "{c:?}");
+            assert!(c.flags.iter().any(|f| f == AB_IDENTITY_UNVERIFIED), "{c:?}");
+            // Still reported (the value is there, not a detection).
+            assert!(c.q.is_finite() && c.extra["snr"].as_f64().unwrap() > 10.0, "{c:?}");
+        }
+        assert!(t.delta_gamma_deg.is_none());
+        assert!(refused_by_flags(&[AB_IDENTITY_UNVERIFIED.to_string()]));
+        assert!(refused_by_flags(&["used_flagged_dithers".to_string()]));
+        assert!(!refused_by_flags(&["low_snr".to_string(), "bad_pixels".to_string()]));
     }
 }

@@ -314,6 +314,13 @@ fn nominal_from_data(o: &CalibratedOrientation, ms: &[Array2<u8>], orow: [usize;
     (2 * agree >= at_zero.len()).then_some(m)
 }
 
+/// Search radius about the anchor for the first frame of an orientation, px.
+const NEAR_ANCHOR_PX: f64 = 8.0;
+/// A peak near the anchor fainter than this fraction of the brightest peak within reach of
+/// the rotation is noise or a wing, not the anchored star (the components of the pairs
+/// measured are within a factor 4 in flux).
+const NEAR_ANCHOR_MIN_PEAK: f64 = 0.1;
+
 /// The primary in the frames of one orientation, starting from `anchor` (its position at
 /// zero jitter offset).
 fn centres_in_orientation(
@@ -339,13 +346,19 @@ fn centres_in_orientation(
             }
             None => {
                 let guess = (anchor.0 + off[0], anchor.1 + off[1]);
-                let at = |r: f64| {
-                    brightest_peak(f.data.view(), m.view(), guess.0, guess.1, r, orow)
-                        .and_then(|(x, y, _)| refine(f.data.view(), m.view(), x, y, fwhm_guess, 4.0))
-                };
-                // Near the anchor first; when nothing is there (the anchored component
-                // rotated away), the brightest star within reach of the rotation.
-                let c = at(8.0).or_else(|| at(wide));
+                let peak = |r: f64| brightest_peak(f.data.view(), m.view(), guess.0, guess.1, r, orow);
+                let star = |(x, y, _): (f64, f64, f64)| refine(f.data.view(), m.view(), x, y, fwhm_guess, 4.0);
+                // Near the anchor first; when no star is there (the anchored component
+                // rotated away), the brightest star within reach of the rotation. The
+                // brightest point near the anchor is a star only when it is a peak of its
+                // own: inside the search disc (the wing of a star beyond it peaks on the
+                // rim) and not much fainter than the brightest star within reach (noise).
+                let far = peak(wide);
+                let near = peak(NEAR_ANCHOR_PX).filter(|&(x, y, v)| {
+                    (x - guess.0).hypot(y - guess.1) <= NEAR_ANCHOR_PX - 1.5
+                        && far.is_none_or(|(_, _, vf)| v >= NEAR_ANCHOR_MIN_PEAK * vf)
+                });
+                let c = near.and_then(star).or_else(|| far.and_then(star));
                 if let Some(c) = c {
                     first = Some((c, *off));
                 }
