@@ -432,7 +432,7 @@ pub fn night_flats(mode: FlatMode, sim: &Simulator, profile: &Profile) -> Option
             }
             let frames: Vec<_> = picks.par_iter().map(|&(t, k)| sim.frame(t, k).frame).collect();
             let f = superflat(&frames, profile, &opts).expect("superflat of a simulated night");
-            Some(FlatSet { flats: vec![f] })
+            Some(FlatSet::new(vec![f]))
         }
         FlatMode::Dome => {
             let all = sim.dome_flat_frames();
@@ -450,7 +450,7 @@ pub fn night_flats(mode: FlatMode, sim: &Simulator, profile: &Profile) -> Option
                     dome_flat(&on, &off, profile, &opts).expect("dome flat of a simulated night")
                 })
                 .collect();
-            Some(FlatSet { flats })
+            Some(FlatSet::new(flats))
         }
     }
 }

@@ -159,7 +159,7 @@ pub fn night_flats(
         }) {
             Ok(f) => {
                 out.provenance = serde_json::json!({"mode": "file", "flats": [f.provenance()]});
-                out.set = Some(FlatSet { flats: vec![f] });
+                out.set = Some(FlatSet::new(vec![f]));
             }
             Err(e) => {
                 out.provenance =
@@ -235,7 +235,7 @@ pub fn night_flats(
         "notes": notes,
     });
     if !flats.is_empty() {
-        out.set = Some(FlatSet { flats });
+        out.set = Some(FlatSet::new(flats));
     }
     out
 }

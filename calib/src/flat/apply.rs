@@ -141,6 +141,13 @@ pub struct FlatRows<'a> {
     pub flat: &'a Flat,
     /// Flat row of the frames' row 0.
     pub row0: usize,
+    maps: std::sync::Arc<Prepared>,
+}
+
+/// The per-pixel maps of [`FlatRows`] (shared between the targets of a night through
+/// [`FlatSet::rows`]).
+#[derive(Debug)]
+pub(crate) struct Prepared {
     nx: usize,
     /// 1 / flat, 1 where unusable.
     inv: Vec<f32>,
@@ -152,18 +159,9 @@ pub struct FlatRows<'a> {
     n_bad: usize,
 }
 
-/// One row of [`FlatRows`].
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct FlatRow<'a> {
-    pub(crate) inv: &'a [f32],
-    pub(crate) var: &'a [f32],
-    pub(crate) bad: &'a [u8],
-}
-
-impl<'a> FlatRows<'a> {
-    /// Rows `row0..row0 + ny` of `flat` (clamped to the flat's rows; the sky stage refuses
-    /// frames the rows do not cover).
-    pub fn new(flat: &'a Flat, row0: usize, ny: usize) -> FlatRows<'a> {
+impl Prepared {
+    /// Rows `row0..row0 + ny` of `flat`, clamped to the flat's rows.
+    pub(crate) fn new(flat: &Flat, row0: usize, ny: usize) -> Prepared {
         let (fny, nx) = flat.shape();
         let (a, b) = (row0.min(fny), (row0 + ny).min(fny));
         let rows = s![a..b, ..];
@@ -176,9 +174,7 @@ impl<'a> FlatRows<'a> {
             .map_collect(|&v, &b| if b != 0 { 0.0 } else { v });
         let bits = bad.map(|&b| u8::from(b != 0) * mask::BAD);
         let n_bad = bad.iter().filter(|&&b| b != 0).count();
-        FlatRows {
-            flat,
-            row0,
+        Prepared {
             nx,
             inv: inv.into_raw_vec_and_offset().0,
             var: var.into_raw_vec_and_offset().0,
@@ -186,19 +182,44 @@ impl<'a> FlatRows<'a> {
             n_bad,
         }
     }
+}
+
+/// One row of [`FlatRows`].
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct FlatRow<'a> {
+    pub(crate) inv: &'a [f32],
+    pub(crate) var: &'a [f32],
+    pub(crate) bad: &'a [u8],
+}
+
+impl<'a> FlatRows<'a> {
+    /// Rows `row0..row0 + ny` of `flat` (clamped to the flat's rows; the sky stage refuses
+    /// frames the rows do not cover). [`FlatSet::rows`] shares them between targets.
+    pub fn new(flat: &'a Flat, row0: usize, ny: usize) -> FlatRows<'a> {
+        FlatRows {
+            flat,
+            row0,
+            maps: std::sync::Arc::new(Prepared::new(flat, row0, ny)),
+        }
+    }
+
+    pub(crate) fn from_prepared(flat: &'a Flat, row0: usize, maps: std::sync::Arc<Prepared>) -> FlatRows<'a> {
+        FlatRows { flat, row0, maps }
+    }
 
     /// Frame rows covered.
     pub fn ny(&self) -> usize {
-        self.inv.len() / self.nx.max(1)
+        self.maps.inv.len() / self.maps.nx.max(1)
     }
 
     /// Frame row `y`.
     pub(crate) fn row(&self, y: usize) -> FlatRow<'_> {
-        let r = y * self.nx..(y + 1) * self.nx;
+        let nx = self.maps.nx;
+        let r = y * nx..(y + 1) * nx;
         FlatRow {
-            inv: &self.inv[r.clone()],
-            var: &self.var[r.clone()],
-            bad: &self.bad[r],
+            inv: &self.maps.inv[r.clone()],
+            var: &self.maps.var[r.clone()],
+            bad: &self.maps.bad[r],
         }
     }
 
@@ -211,7 +232,7 @@ impl<'a> FlatRows<'a> {
                  (raw variance + sky-estimate variance) / flat^2 + data^2 var_flat / flat^2 (the flat's noise \
                  on the signal above the sky); {} pixels unusable in the flat marked BAD",
                 self.flat.describe(),
-                self.n_bad
+                self.maps.n_bad
             ),
         )
     }

@@ -200,5 +200,5 @@ pub fn build_flats(paths: &[PathBuf], profile: &Profile, opts: &FlatOptions) -> 
             }
         }
     }
-    (FlatSet { flats }, problems)
+    (FlatSet::new(flats), problems)
 }

@@ -194,7 +194,7 @@ fn flat_file_round_trip_and_choice_by_angle() {
     assert_eq!(back.sources.len(), 3);
     let mut f0 = back.clone();
     f0.posang_deg = Some(0.0);
-    let set = FlatSet { flats: vec![f0, back] };
+    let set = FlatSet::new(vec![f0, back]);
     assert_eq!(set.for_frame(90.2, "Ks").unwrap().posang_deg, Some(90.0));
     assert_eq!(set.for_frame(359.9, "ks").unwrap().posang_deg, Some(0.0));
     assert_eq!(set.for_frame(80.0, "Ks").unwrap().posang_deg, Some(90.0));

@@ -750,6 +750,10 @@ impl Finish {
         self.mask_row(y, mrow, rrow);
         let bad = rrow.iter().filter(|r| !r.is_finite()).count();
         let nx = srow.len();
+        // Every row resliced to nx: the index checks of the loops below fold away and the
+        // loops vectorise.
+        let rrow = &mut rrow[..nx];
+        let cnt = cnt.map(|c| &c[..nx]);
         let (finv, fvar) = match flat {
             Some(f) => {
                 mrow.iter_mut().zip(&f.bad[..nx]).for_each(|(m, b)| *m |= b);
@@ -770,6 +774,7 @@ impl Finish {
         };
         match vrow {
             Some(vrow) => {
+                let vrow = &mut vrow[..nx];
                 let mut one = |x: usize, com: f32| {
                     let r = rrow[x];
                     let s = scale(srow[x], level, scaling);

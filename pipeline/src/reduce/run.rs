@@ -384,7 +384,7 @@ fn choose_flats<'a>(
             }
             used.push(format!("POSANG {pa}: {}", flat.describe()));
             let ny = frames.first().map_or(0, |f| f.shape().0);
-            Some(flat::FlatRows::new(flat, row0, ny))
+            Some(set.rows(flat, row0, ny))
         })
         .collect();
     (chosen, used)
