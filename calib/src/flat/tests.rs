@@ -12,6 +12,21 @@ fn response(ny: usize, nx: usize) -> Array2<f32> {
     })
 }
 
+/// A superflat of response `resp` with variance 1e-4 everywhere, no unusable pixel.
+fn superflat_of(resp: &Array2<f32>) -> Flat {
+    Flat {
+        data: resp.clone(),
+        variance: Array2::from_elem(resp.dim(), 1e-4),
+        bad: Array2::zeros(resp.dim()),
+        kind: FlatKind::Superflat,
+        posang_deg: None,
+        filter: None,
+        sources: vec![],
+        detail: String::new(),
+        path: None,
+    }
+}
+
 fn header(posang: f64, lamp: Option<bool>) -> Header {
     let p = profile();
     let mut h = Header::new("");
@@ -123,18 +138,7 @@ fn superflat_recovers_the_response_with_stars_present() {
 fn apply_divides_and_propagates_the_flat_noise() {
     let g = profile().geometry;
     let resp = response(g.ny, g.nx);
-    let flat = Flat {
-        data: resp.clone(),
-        variance: Array2::from_elem(resp.dim(), 1e-4),
-        bad: Array2::zeros(resp.dim()),
-        kind: FlatKind::Superflat,
-        posang_deg: None,
-        filter: None,
-        sources: vec![],
-        detail: String::new(),
-        path: None,
-    };
-    let mut flat = flat;
+    let mut flat = superflat_of(&resp);
     flat.bad[[400, 10]] = 1;
     let mut data = Array2::from_shape_fn(resp.dim(), |(y, x)| 1000.0 * resp[[y, x]]);
     data[[400, 500]] += 3000.0 * resp[[400, 500]];
@@ -243,17 +247,7 @@ fn the_sky_stage_divides_by_the_flat_like_dividing_first() {
     let p = profile();
     let g = p.geometry.clone();
     let resp = response(g.ny, g.nx);
-    let mut flat = Flat {
-        data: resp.clone(),
-        variance: Array2::from_elem(resp.dim(), 1e-4),
-        bad: Array2::zeros(resp.dim()),
-        kind: FlatKind::Superflat,
-        posang_deg: None,
-        filter: None,
-        sources: vec![],
-        detail: String::new(),
-        path: None,
-    };
+    let mut flat = superflat_of(&resp);
     flat.bad[[400, 10]] = 1;
     let frames = dithers_through(&resp);
     let opts = SkyOptions {

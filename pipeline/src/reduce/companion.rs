@@ -460,6 +460,14 @@ pub fn side_of_companion(st: &Stack, star: (f64, f64), pred: (f64, f64), fwhm_px
 /// Flux ratio (B/A on the stack) above which the components cannot be told apart by flux.
 const NEAR_EQUAL_RATIO: f64 = 0.8;
 
+/// The single star found on a stack is B: it becomes B (flux `f`), and A goes where the
+/// geometry puts it, `pred` (B's offset from A at this orientation) before it.
+fn found_is_b(p: &mut PairOnStack, pred: (f64, f64), f: f64) {
+    p.b = p.a;
+    p.a = (p.a.0 - pred.0, p.a.1 - pred.1);
+    p.flux = (0.0, f);
+}
+
 /// Where the companion was not found at an orientation, the star the stack is centred on
 /// may be either component: tell which by its flux against A and B of the best orientation
 /// `ib` (the labels there are final), and put A where the geometry `(sep, pa)` of the best
@@ -508,9 +516,7 @@ fn verify_identity(
             match side_of_companion(st, p.a, pred, p.fwhm_px) {
                 Some(true) => continue,
                 Some(false) => {
-                    p.b = p.a;
-                    p.a = (p.a.0 - pred.0, p.a.1 - pred.1);
-                    p.flux = (0.0, f);
+                    found_is_b(p, pred, f);
                     flags.push(format!(
                         "ab_identity_from_geometry: at POSANG {:.1} the star found is B (the other star lies where the geometry puts A, companion not significant there)",
                         orients[i].posang_deg
@@ -529,9 +535,7 @@ fn verify_identity(
         }
         let (la, lb, lf) = (fa.ln(), fb.ln(), f.ln());
         if (lf - lb).abs() < (lf - la).abs() {
-            p.b = p.a;
-            p.a = (p.a.0 - pred.0, p.a.1 - pred.1);
-            p.flux = (0.0, f);
+            found_is_b(p, pred, f);
             flags.push(format!(
                 "ab_identity_from_flux: at POSANG {:.1} the star found is B (companion not found there); A placed by the geometry",
                 orients[i].posang_deg
