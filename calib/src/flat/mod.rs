@@ -252,20 +252,16 @@ fn median_f32(v: &mut [f32]) -> Option<f32> {
     }
     let k = v.len() / 2;
     // Selected on integer keys in the order of `f32::total_cmp` (the same element, bit for
-    // bit; integer comparisons are cheaper): the superflat takes one median per pixel.
-    let key = |x: f32| {
-        let b = x.to_bits() as i32;
-        b ^ (((b >> 31) as u32) >> 1) as i32
-    };
-    let back = |k: i32| f32::from_bits((k ^ (((k >> 31) as u32) >> 1) as i32) as u32);
+    // bit; integer comparisons are cheaper).
+    use lanes::{from_key, key};
     if v.len() <= 64 {
         let mut keys = [0i32; 64];
         let keys = &mut keys[..v.len()];
         keys.iter_mut().zip(v.iter()).for_each(|(k, &x)| *k = key(x));
-        return Some(back(*keys.select_nth_unstable(k).1));
+        return Some(from_key(*keys.select_nth_unstable(k).1));
     }
     let mut keys: Vec<i32> = v.iter().map(|&x| key(x)).collect();
-    Some(back(*keys.select_nth_unstable(k).1))
+    Some(from_key(*keys.select_nth_unstable(k).1))
 }
 
 /// Median of the finite values of rows [a, b) where `ok` says so (one pixel in 4).
@@ -449,6 +445,7 @@ impl FlatSet {
 mod apply;
 mod dome;
 mod io;
+mod lanes;
 mod superflat;
 
 pub(crate) use apply::FlatRow;

@@ -1,0 +1,179 @@
+//! Per-pixel medians of a few values (one per frame), many pixels side by side: each
+//! pixel's values are sorted by the same fixed sorting network, so a block of
+//! [`LANES`] neighbouring pixels is sorted with vector min/max instructions and no
+//! branch. Values are compared as integer keys in the order of `f32::total_cmp`, so the
+//! median is the element [`super::median_f32`] picks, bit for bit.
+
+/// Pixels sorted side by side.
+pub(super) const LANES: usize = 16;
+
+/// Integer key of an `f32` whose order is `f32::total_cmp`'s.
+#[inline(always)]
+pub(super) fn key(x: f32) -> i32 {
+    let b = x.to_bits() as i32;
+    b ^ (((b >> 31) as u32) >> 1) as i32
+}
+
+/// The `f32` of a [`key`].
+#[inline(always)]
+pub(super) fn from_key(k: i32) -> f32 {
+    f32::from_bits((k ^ (((k >> 31) as u32) >> 1) as i32) as u32)
+}
+
+/// The key that sorts after every value: a slot without a value holds it.
+pub(super) const NO_VALUE: i32 = i32::MAX;
+
+/// Compare-exchange pairs `(i, j)`, `i < j`, of Batcher's odd-even merge sort for `n`
+/// inputs: the network of the next power of two with every pair that touches an input at
+/// `n` or beyond left out (those inputs would hold [`NO_VALUE`], which never moves: every
+/// pair puts its larger key at its higher index).
+pub(super) fn sorting_network(n: usize) -> Vec<(u16, u16)> {
+    assert!(n <= u16::MAX as usize, "{n} values per pixel");
+    let size = n.next_power_of_two();
+    let mut pairs = Vec::new();
+    let mut p = 1;
+    while p < size {
+        let mut k = p;
+        while k >= 1 {
+            let mut j = k % p;
+            while j + k < size {
+                for i in 0..k.min(size - j - k) {
+                    let (a, b) = (i + j, i + j + k);
+                    if a / (2 * p) == b / (2 * p) && b < n {
+                        pairs.push((a as u16, b as u16));
+                    }
+                }
+                j += 2 * k;
+            }
+            k /= 2;
+        }
+        p *= 2;
+    }
+    pairs
+}
+
+/// Sort every lane of `keys` (`keys[i][lane]`: value `i` of the pixel in `lane`) by the
+/// network `net` of `keys.len()` inputs.
+#[inline(always)]
+fn sort_lanes_generic(keys: &mut [[i32; LANES]], net: &[(u16, u16)]) {
+    for &(a, b) in net {
+        let (lo, hi) = keys.split_at_mut(b as usize);
+        let (x, y) = (&mut lo[a as usize], &mut hi[0]);
+        for l in 0..LANES {
+            let (p, q) = (x[l], y[l]);
+            x[l] = p.min(q);
+            y[l] = p.max(q);
+        }
+    }
+}
+
+/// [`sort_lanes_generic`] compiled for AVX2 (8 integer lanes with one min and one max
+/// instruction each; SSE2 has no 32-bit integer min/max).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn sort_lanes_avx2(keys: &mut [[i32; LANES]], net: &[(u16, u16)]) {
+    sort_lanes_generic(keys, net)
+}
+
+/// Sort every lane of `keys` by the network `net` (from [`sorting_network`] of
+/// `keys.len()`), with the widest integer vectors this CPU has.
+pub(super) fn sort_lanes(keys: &mut [[i32; LANES]], net: &[(u16, u16)]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above); the only unsafe operation here.
+            #[allow(unsafe_code)]
+            return unsafe { sort_lanes_avx2(keys, net) };
+        }
+    }
+    sort_lanes_generic(keys, net)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The 0-1 principle: a comparator network sorts every input iff it sorts every 0/1
+    /// input. Checked exhaustively up to 14 inputs (the pruning included).
+    #[test]
+    fn the_network_sorts_every_zero_one_input() {
+        for n in 1..=14usize {
+            let net = sorting_network(n);
+            let cases = 1usize << n;
+            let mut keys = vec![[NO_VALUE; LANES]; n];
+            for base in (0..cases).step_by(LANES) {
+                for l in 0..LANES {
+                    let c = (base + l) % cases;
+                    for (i, k) in keys.iter_mut().enumerate() {
+                        k[l] = ((c >> i) & 1) as i32;
+                    }
+                }
+                sort_lanes(&mut keys, &net);
+                for l in 0..LANES {
+                    let col: Vec<i32> = keys.iter().map(|k| k[l]).collect();
+                    assert!(col.windows(2).all(|w| w[0] <= w[1]), "n {n}: {col:?}");
+                }
+            }
+        }
+    }
+
+    /// Larger networks sort random keys like `sort` does; slots without a value stay last.
+    #[test]
+    fn the_network_sorts_like_sort() {
+        let mut state = 99u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 33) as i32 - (1 << 30)
+        };
+        for n in [15usize, 16, 17, 25, 31, 32, 33, 50, 64, 100] {
+            let net = sorting_network(n);
+            for _ in 0..20 {
+                let mut keys = vec![[0i32; LANES]; n];
+                for k in keys.iter_mut() {
+                    for v in k.iter_mut() {
+                        *v = next() % 50;
+                    }
+                }
+                // Some slots hold no value in some lanes.
+                for l in (0..LANES).step_by(3) {
+                    keys[n - 1][l] = NO_VALUE;
+                }
+                let mut want: Vec<Vec<i32>> = (0..LANES).map(|l| keys.iter().map(|k| k[l]).collect()).collect();
+                want.iter_mut().for_each(|w| w.sort());
+                sort_lanes(&mut keys, &net);
+                for (l, w) in want.iter().enumerate() {
+                    let col: Vec<i32> = keys.iter().map(|k| k[l]).collect();
+                    assert_eq!(&col, w, "n {n} lane {l}");
+                }
+            }
+        }
+    }
+
+    /// Keys order floats like `total_cmp` and convert back bit for bit.
+    #[test]
+    fn keys_are_total_cmp_order() {
+        let xs = [
+            f32::NEG_INFINITY,
+            -3.0e38,
+            -1.0,
+            -1e-40,
+            -0.0,
+            0.0,
+            1e-40,
+            0.97,
+            1.0,
+            f32::INFINITY,
+            f32::NAN,
+            -f32::NAN,
+        ];
+        for &a in &xs {
+            assert_eq!(from_key(key(a)).to_bits(), a.to_bits());
+            for &b in &xs {
+                assert_eq!(key(a).cmp(&key(b)), a.total_cmp(&b), "{a} {b}");
+            }
+        }
+        assert!(key(f32::NAN) < NO_VALUE);
+    }
+}
