@@ -614,6 +614,11 @@ struct FinishInputs<'a> {
     flat: Option<&'a FlatRows<'a>>,
 }
 
+/// Tests: run the last pass in the baseline build only (to compare it with the AVX2 one;
+/// both give the same numbers, so other tests running meanwhile are not affected).
+#[cfg(test)]
+pub(crate) static BASELINE_ONLY: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
 /// The last pass of the sky stage, shared by every frame of an orientation.
 struct Finish {
     scaling: SkyScaling,
@@ -678,24 +683,7 @@ impl Finish {
             .enumerate()
             .map(|(b, mut rows)| {
                 let mut out = vec![0usize; n];
-                for r in 0..rows[0].sky.len() / nx {
-                    let y = b * BLOCK + r;
-                    let span = r * nx..(r + 1) * nx;
-                    for (i, fr) in rows.iter_mut().enumerate() {
-                        let (srow, rrow, mrow) = (
-                            &mut fr.sky[span.clone()],
-                            &mut fr.raw[span.clone()],
-                            &mut fr.mask[span.clone()],
-                        );
-                        let cnt = fr.count.map(|c| &c[span.clone()]);
-                        let vrow = fr.vin.as_deref_mut().map(|v| &mut v[span.clone()]);
-                        let px = (inp.levels[i], inp.noise[i]);
-                        out[i] += match inp.flat {
-                            None => self.row::<false>(y, srow, rrow, mrow, vrow, cnt, px, None),
-                            Some(fl) => self.row::<true>(y, srow, rrow, mrow, vrow, cnt, px, Some(fl.row(y))),
-                        };
-                    }
-                }
+                self.block(b * BLOCK, nx, &mut rows, inp, &mut out);
                 out
             })
             .reduce(
@@ -725,6 +713,54 @@ impl Finish {
                 f
             })
             .collect())
+    }
+
+    /// The rows of one block (first row `y0`) of every frame, with the widest vectors this
+    /// CPU has (AVX2 or the SSE2 baseline: the same operations, the same numbers).
+    fn block(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, out: &mut [usize]) {
+        #[cfg(test)]
+        if BASELINE_ONLY.load(std::sync::atomic::Ordering::Relaxed) {
+            return self.block_generic(y0, nx, rows, inp, out);
+        }
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU supports AVX2 (checked just above); the only unsafe operation here.
+                #[allow(unsafe_code)]
+                return unsafe { self.block_avx2(y0, nx, rows, inp, out) };
+            }
+        }
+        self.block_generic(y0, nx, rows, inp, out)
+    }
+
+    /// [`Finish::block_generic`] compiled for AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn block_avx2(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, out: &mut [usize]) {
+        self.block_generic(y0, nx, rows, inp, out)
+    }
+
+    /// See [`Finish::block`].
+    #[inline(always)]
+    fn block_generic(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, out: &mut [usize]) {
+        for r in 0..rows[0].sky.len() / nx {
+            let y = y0 + r;
+            let span = r * nx..(r + 1) * nx;
+            for (i, fr) in rows.iter_mut().enumerate() {
+                let (srow, rrow, mrow) = (
+                    &mut fr.sky[span.clone()],
+                    &mut fr.raw[span.clone()],
+                    &mut fr.mask[span.clone()],
+                );
+                let cnt = fr.count.map(|c| &c[span.clone()]);
+                let vrow = fr.vin.as_deref_mut().map(|v| &mut v[span.clone()]);
+                let px = (inp.levels[i], inp.noise[i]);
+                out[i] += match inp.flat {
+                    None => self.row::<false>(y, srow, rrow, mrow, vrow, cnt, px, None),
+                    Some(fl) => self.row::<true>(y, srow, rrow, mrow, vrow, cnt, px, Some(fl.row(y))),
+                };
+            }
+        }
     }
 
     /// One row of one frame: mask bits from the raw values, the variance (into `vrow` when
