@@ -80,8 +80,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if let Some(d) = &png_dir {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }
-    let (night_mask, night_mask_files) = pool.install(|| night_mask(&plan, &profile, &params, args.verbose));
-    let flats = pool.install(|| night_flats(&plan, &profile, &params, args.verbose));
+    let ((night_mask, night_mask_files), flats) = pool.install(|| {
+        rayon::join(
+            || night_mask(&plan, &profile, &params, args.verbose),
+            || night_flats(&plan, &profile, &params, args.verbose),
+        )
+    });
     let res = pool.install(|| {
         reduce_with_progress(
             &plan,
