@@ -673,7 +673,15 @@ mod tests {
         // (2.0, 4.0): the same cost as (2.0, 3.0) and 33 % more error: not near.
         // (1.02, 5.05): 2 % / 1 % off (1.0, 5.0): near. (3.0, 3.05): 1.7 % more error than
         // (2.0, 3.0) at 1.5x its cost: not near. (2.1, 3.02): 5 % / 0.7 % off: near.
-        let pts = [(1.0, 5.0), (2.0, 3.0), (2.0, 4.0), (1.02, 5.05), (3.0, 3.05), (3.0, 3.2), (2.1, 3.02)];
+        let pts = [
+            (1.0, 5.0),
+            (2.0, 3.0),
+            (2.0, 4.0),
+            (1.02, 5.05),
+            (3.0, 3.05),
+            (3.0, 3.2),
+            (2.1, 3.02),
+        ];
         let near = near_pareto(&pts);
         assert_eq!(near, vec![true, true, false, true, false, false, true]);
         assert_eq!(near_pareto(&[(1.0, f64::NAN)]), vec![false]);

@@ -60,7 +60,7 @@ pub fn apply_flat_in_place(frame: &mut Frame, flat: &Flat, row0: usize, profile:
         if a >= b {
             continue;
         }
-        let l = strip_median_step(&frame.data, a, b, 16, |y, x, v| frame.mask[[y, x]] == 0 && v < sat).unwrap_or(0.0);
+        let l = strip_median_step(&frame.data, &frame.mask, a, b, 16, |v| v < sat).unwrap_or(0.0);
         for lr in &mut level_of_row[a..b] {
             *lr = l;
         }

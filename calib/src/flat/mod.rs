@@ -264,30 +264,65 @@ fn median_f32(v: &mut [f32]) -> Option<f32> {
     Some(from_key(*keys.select_nth_unstable(k).1))
 }
 
-/// Median of the finite values of rows [a, b) where `ok` says so (one pixel in 4).
-fn strip_median(data: &Array2<f32>, a: usize, b: usize, ok: impl Fn(usize, usize, f32) -> bool) -> Option<f32> {
-    strip_median_step(data, a, b, 4, ok)
+/// Median of the finite values of rows [a, b) whose `mask` is 0 and which `ok` accepts (one
+/// pixel in 4).
+fn strip_median(data: &Array2<f32>, mask: &Array2<u8>, a: usize, b: usize, ok: impl Fn(f32) -> bool) -> Option<f32> {
+    strip_median_step(data, mask, a, b, 4, ok)
 }
 
-/// Median of the finite values of rows [a, b) where `ok` says so (one pixel in `step`).
+/// Median of the finite values of rows [a, b) whose `mask` is 0 and which `ok` accepts (one
+/// pixel in `step`, the phase shifted row to row). Rows are read as slices.
 fn strip_median_step(
     data: &Array2<f32>,
+    mask: &Array2<u8>,
     a: usize,
     b: usize,
     step: usize,
-    ok: impl Fn(usize, usize, f32) -> bool,
+    ok: impl Fn(f32) -> bool,
 ) -> Option<f32> {
-    let mut v = Vec::new();
+    let mut v = Vec::with_capacity(b.saturating_sub(a) * data.ncols() / step.max(1) + 1);
     for y in a..b {
-        let row = data.row(y);
-        for x in ((y % step)..row.len()).step_by(step) {
-            let val = row[x];
-            if val.is_finite() && ok(y, x, val) {
-                v.push(val);
+        let (row, mrow) = (data.row(y), mask.row(y));
+        match (row.as_slice(), mrow.as_slice()) {
+            (Some(r), Some(m)) => {
+                let m = &m[..r.len()];
+                for x in ((y % step)..r.len()).step_by(step) {
+                    let val = r[x];
+                    if val.is_finite() && m[x] == 0 && ok(val) {
+                        v.push(val);
+                    }
+                }
+            }
+            _ => {
+                for x in ((y % step)..row.len()).step_by(step) {
+                    let val = row[x];
+                    if val.is_finite() && mrow[x] == 0 && ok(val) {
+                        v.push(val);
+                    }
+                }
             }
         }
     }
     median_f32(&mut v)
+}
+
+/// The median of the values whose [`lanes::key`]s are `keys` (the element [`median_f32`]
+/// picks) and their `i`-th smallest (`i` at most half the count), in `f32::total_cmp` order,
+/// by two selections on the keys (the second only on the lower part). None when empty.
+fn median_and_lower(keys: &mut [i32], i: usize) -> Option<(f32, f32)> {
+    if keys.is_empty() {
+        return None;
+    }
+    let k = keys.len() / 2;
+    assert!(i <= k, "order {i} above the median's {k}");
+    let (lower, m, _) = keys.select_nth_unstable(k);
+    let med = lanes::from_key(*m);
+    let p = if i == k {
+        med
+    } else {
+        lanes::from_key(*lower.select_nth_unstable(i).1)
+    };
+    Some((med, p))
 }
 
 /// Normalize every strip of a raw response (and its variance) to median 1 over its good
@@ -306,7 +341,7 @@ fn normalize_strips(
         if a >= b || b > resp.dim().0 {
             continue; // a strip outside the rows at hand (cropped frames)
         }
-        let med = strip_median(resp, a, b, |y, x, v| bad[[y, x]] == 0 && v > 0.0).ok_or_else(|| Error::Stage {
+        let med = strip_median(resp, bad, a, b, |v| v > 0.0).ok_or_else(|| Error::Stage {
             stage,
             reason: format!("strip {name} (rows {a}-{b}) has no usable pixel"),
         })?;
@@ -519,5 +554,31 @@ mod median_tests {
             assert_eq!(super::median_f32(&mut v).unwrap().to_bits(), want[len / 2].to_bits());
         }
         assert!(super::median_f32(&mut []).is_none());
+    }
+
+    /// Median and the lower order statistic from one key vector: the elements a full
+    /// `total_cmp` sort puts at len/2 and at i.
+    #[test]
+    fn median_and_lower_are_the_sorted_elements() {
+        let mut state = 777u64;
+        for len in 1..200usize {
+            let v: Vec<f32> = (0..len)
+                .map(|_| {
+                    state = state
+                        .wrapping_mul(6364136223846793005)
+                        .wrapping_add(1442695040888963407);
+                    ((state >> 40) % 97) as f32 * 0.5 - 20.0
+                })
+                .collect();
+            let mut sorted = v.clone();
+            sorted.sort_by(|a, b| a.total_cmp(b));
+            for i in [0, len / 7, (len as f64 * 0.1587) as usize, len / 2] {
+                let mut keys: Vec<i32> = v.iter().map(|&x| super::lanes::key(x)).collect();
+                let (m, p) = super::median_and_lower(&mut keys, i).unwrap();
+                assert_eq!(m.to_bits(), sorted[len / 2].to_bits(), "len {len}");
+                assert_eq!(p.to_bits(), sorted[i].to_bits(), "len {len} i {i}");
+            }
+        }
+        assert!(super::median_and_lower(&mut [], 0).is_none());
     }
 }

@@ -143,7 +143,7 @@ fn fixed_defects(frames: &[&Frame], lay: &Layout, opts: &FlatOptions) -> Array2<
         .map(|f| {
             let mut l = [0f32; 6];
             for (k, (_, [a, b])) in strips.iter().enumerate() {
-                let m = strip_median(&f.data, *a, *b, |y, x, v| f.mask[[y, x]] == 0 && v < sat).unwrap_or(0.0);
+                let m = strip_median(&f.data, &f.mask, *a, *b, |v| v < sat).unwrap_or(0.0);
                 l[k] = if m > 0.0 { 1.0 / m } else { 0.0 };
             }
             l
@@ -204,7 +204,7 @@ fn prep_frame(f: &Frame, profile: &Profile, lay: &Layout, defect: &Array2<u8>, o
     let mut inv_level = [0f32; 6];
     let mut sigma = [f32::INFINITY; 6];
     for (k, (_, [a, b])) in strips.iter().enumerate() {
-        if let Some(l) = strip_median(&f.data, *a, *b, |y, x, v| f.mask[[y, x]] == 0 && v < sat) {
+        if let Some(l) = strip_median(&f.data, &f.mask, *a, *b, |v| v < sat) {
             if l > 0.0 {
                 inv_level[k] = 1.0 / l;
                 sigma[k] = (l * inv_g + rv).sqrt() / l;
@@ -219,24 +219,25 @@ fn prep_frame(f: &Frame, profile: &Profile, lay: &Layout, defect: &Array2<u8>, o
     // pixel response itself, which looks like noise within one frame).
     let mut local = vec![[0f32; 6]; nb];
     let mut scatter = vec![[0f32; 6]; nb];
+    // Keys of one block's values (reused): median and 15.9th percentile selected on them.
+    let mut keys: Vec<i32> = Vec::new();
     for (k, (_, [a, b])) in strips.iter().enumerate() {
         for bi in 0..nb {
-            let lv = &mut local[bi];
             let (x0, x1) = (bi * BLOCK, ((bi + 1) * BLOCK).min(nx));
-            let mut v: Vec<f32> = Vec::with_capacity((b - a) * (x1 - x0) / 2 + 1);
+            keys.clear();
             for y in *a..*b {
+                let (drow, mrow) = (row_of(&f.data, y), row_of(&f.mask, y));
                 for x in (x0 + (y % 2)..x1).step_by(2) {
-                    let d = f.data[[y, x]];
-                    if f.mask[[y, x]] == 0 && d.is_finite() && d < sat {
-                        v.push(d);
+                    let d = drow[x];
+                    if mrow[x] == 0 && d.is_finite() && d < sat {
+                        keys.push(key(d));
                     }
                 }
             }
-            lv[k] = median_f32(&mut v).unwrap_or(0.0);
-            if !v.is_empty() {
-                let i16 = (v.len() as f64 * 0.1587) as usize;
-                let p16 = *v.select_nth_unstable_by(i16, |a, b| a.total_cmp(b)).1;
-                scatter[bi][k] = (lv[k] - p16).max(0.0);
+            let i16 = (keys.len() as f64 * 0.1587) as usize;
+            if let Some((med, p16)) = median_and_lower(&mut keys, i16) {
+                local[bi][k] = med;
+                scatter[bi][k] = (med - p16).max(0.0);
             }
         }
     }
@@ -281,19 +282,20 @@ fn prep_frame(f: &Frame, profile: &Profile, lay: &Layout, defect: &Array2<u8>, o
     if r > 0 {
         let mut grow = Vec::new();
         for y in 1..ny.saturating_sub(1) {
+            let (up, row, down) = (row_of(&seed, y - 1), row_of(&seed, y), row_of(&seed, y + 1));
+            // Most rows hold no star: skip them in one scan.
+            if !row.contains(&2) {
+                continue;
+            }
             for x in 1..nx.saturating_sub(1) {
-                if seed[[y, x]] == 2
-                    && (seed[[y, x - 1]] > 0 || seed[[y, x + 1]] > 0 || seed[[y - 1, x]] > 0 || seed[[y + 1, x]] > 0)
-                {
+                if row[x] == 2 && (row[x - 1] > 0 || row[x + 1] > 0 || up[x] > 0 || down[x] > 0) {
                     grow.push((y, x));
                 }
             }
         }
         for (y, x) in grow {
             for yy in y.saturating_sub(r)..(y + r + 1).min(ny) {
-                for xx in x.saturating_sub(r)..(x + r + 1).min(nx) {
-                    excl[[yy, xx]] = 1;
-                }
+                row_of_mut(&mut excl, yy)[x.saturating_sub(r)..(x + r + 1).min(nx)].fill(1);
             }
         }
     }
@@ -570,8 +572,7 @@ mod tests {
                 .map(|f| {
                     std::array::from_fn(|k| {
                         let [a, b] = lay.strips[k].1;
-                        let m =
-                            strip_median(&f.data, a, b, |y, x, v| f.mask[[y, x]] == 0 && v < lay.sat).unwrap_or(0.0);
+                        let m = strip_median(&f.data, &f.mask, a, b, |v| v < lay.sat).unwrap_or(0.0);
                         if m > 0.0 {
                             1.0 / m
                         } else {
