@@ -150,6 +150,35 @@ fn check_stack(frames: &[ArrayView2<f32>], maps: &[Affine], min: usize, what: &s
     Ok(())
 }
 
+/// Compare-exchange pairs `(i, j)`, `i < j`, of Batcher's odd-even merge sort for `n`
+/// wires (Knuth's iterative formulation): the network of the next power of two with every
+/// pair that touches a wire at `n` or beyond left out (such wires would hold +inf, which
+/// never moves: every pair puts its larger value at its higher index).
+pub(crate) fn batcher_pairs(n: usize) -> Vec<(u16, u16)> {
+    assert!(n <= u16::MAX as usize, "{n} wires");
+    let p = n.next_power_of_two();
+    let mut all = Vec::new();
+    let mut pp = 1;
+    while pp < p {
+        let mut k = pp;
+        while k >= 1 {
+            let mut j = k % pp;
+            while j + k < p {
+                for i in 0..k.min(p - j - k) {
+                    let (a, b) = (i + j, i + j + k);
+                    if (a / (pp * 2)) == (b / (pp * 2)) && b < n {
+                        all.push((a as u16, b as u16));
+                    }
+                }
+                j += 2 * k;
+            }
+            k /= 2;
+        }
+        pp *= 2;
+    }
+    all
+}
+
 /// A comparator network on `n` wires: after running, the `wanted` wires hold the sorted
 /// values at those ranks.
 #[derive(Debug, Clone)]
@@ -162,27 +191,8 @@ impl Network {
     /// wires, whose comparators are no-ops and are dropped), pruned to the comparators
     /// whose results reach one of the `wanted` output wires.
     fn selecting(n: usize, wanted: &[usize]) -> Network {
-        let p = n.next_power_of_two();
-        let mut all = Vec::new();
-        // Knuth's iterative formulation of Batcher's odd-even merge sort.
-        let mut pp = 1;
-        while pp < p {
-            let mut k = pp;
-            while k >= 1 {
-                let mut j = k % pp;
-                while j + k < p {
-                    for i in 0..k.min(p - j - k) {
-                        let (a, b) = (i + j, i + j + k);
-                        if (a / (pp * 2)) == (b / (pp * 2)) && b < n {
-                            all.push((a as u8, b as u8));
-                        }
-                    }
-                    j += 2 * k;
-                }
-                k /= 2;
-            }
-            pp *= 2;
-        }
+        assert!(n <= u8::MAX as usize + 1, "{n} wires");
+        let all: Vec<(u8, u8)> = batcher_pairs(n).into_iter().map(|(a, b)| (a as u8, b as u8)).collect();
         // Backward pruning: a comparator matters only if one of its wires is still read.
         let mut needed = vec![false; n];
         for &w in wanted {

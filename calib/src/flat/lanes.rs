@@ -24,32 +24,11 @@ pub(super) fn from_key(k: i32) -> f32 {
 pub(super) const NO_VALUE: i32 = i32::MAX;
 
 /// Compare-exchange pairs `(i, j)`, `i < j`, of Batcher's odd-even merge sort for `n`
-/// inputs: the network of the next power of two with every pair that touches an input at
-/// `n` or beyond left out (those inputs would hold [`NO_VALUE`], which never moves: every
-/// pair puts its larger key at its higher index).
+/// inputs ([`crate::stack::batcher_pairs`]): pairs touching an input at `n` or beyond are
+/// left out, which is right here too, as a slot without a value holds [`NO_VALUE`], the
+/// largest key.
 pub(super) fn sorting_network(n: usize) -> Vec<(u16, u16)> {
-    assert!(n <= u16::MAX as usize, "{n} values per pixel");
-    let size = n.next_power_of_two();
-    let mut pairs = Vec::new();
-    let mut p = 1;
-    while p < size {
-        let mut k = p;
-        while k >= 1 {
-            let mut j = k % p;
-            while j + k < size {
-                for i in 0..k.min(size - j - k) {
-                    let (a, b) = (i + j, i + j + k);
-                    if a / (2 * p) == b / (2 * p) && b < n {
-                        pairs.push((a as u16, b as u16));
-                    }
-                }
-                j += 2 * k;
-            }
-            k /= 2;
-        }
-        p *= 2;
-    }
-    pairs
+    crate::stack::batcher_pairs(n)
 }
 
 /// Sort every lane of `keys` (`keys[i][lane]`: value `i` of the pixel in `lane`) by the

@@ -241,15 +241,22 @@ fn dithers_through(resp: &Array2<f32>) -> Vec<Frame> {
         .collect()
 }
 
-#[test]
-fn the_sky_stage_divides_by_the_flat_like_dividing_first() {
-    use crate::sky::{sky_subtract, sky_subtract_flat, SkyOptions, SkyScaling};
+/// The sky-stage scene: the profile, its geometry, a response map, its superflat with one
+/// unusable pixel at (400, 10), and dithered frames through the response.
+fn sky_scene() -> (Profile, crate::profile::Geometry, Array2<f32>, Flat, Vec<Frame>) {
     let p = profile();
     let g = p.geometry.clone();
     let resp = response(g.ny, g.nx);
     let mut flat = superflat_of(&resp);
     flat.bad[[400, 10]] = 1;
     let frames = dithers_through(&resp);
+    (p, g, resp, flat, frames)
+}
+
+#[test]
+fn the_sky_stage_divides_by_the_flat_like_dividing_first() {
+    use crate::sky::{sky_subtract, sky_subtract_flat, SkyOptions, SkyScaling};
+    let (p, g, resp, flat, frames) = sky_scene();
     let opts = SkyOptions {
         cosmic_rays: None,
         ..Default::default()
@@ -321,13 +328,8 @@ fn the_sky_stage_divides_by_the_flat_like_dividing_first() {
 fn the_sky_pass_is_the_same_in_every_vector_build() {
     use crate::sky::{sky_subtract_flat, SkyOptions, SkyScaling, BASELINE_ONLY};
     use std::sync::atomic::Ordering;
-    let p = profile();
-    let g = p.geometry.clone();
-    let resp = response(g.ny, g.nx);
-    let mut flat = superflat_of(&resp);
-    flat.bad[[400, 10]] = 1;
+    let (p, g, _, mut flat, frames) = sky_scene();
     flat.variance[[401, 11]] = 0.3;
-    let frames = dithers_through(&resp);
     let fr = FlatRows::new(&flat, 0, g.ny);
     let mut compared = 0;
     for scaling in [SkyScaling::Multiplicative, SkyScaling::Additive] {

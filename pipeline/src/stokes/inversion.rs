@@ -354,6 +354,18 @@ pub fn angle_density_per_deg(dtheta_deg: f64, p0: f64) -> f64 {
     g * std::f64::consts::PI / 180.0
 }
 
+/// Probability that the NKC angle error lies within +-w deg (S/N `p0`): Simpson's rule on
+/// 400 intervals of [0, w], doubled (the density is even and smooth).
+fn nkc_cumulative_deg(w: f64, p0: f64) -> f64 {
+    let n = 400;
+    let h = w / n as f64;
+    let mut s = angle_density_per_deg(0.0, p0) + angle_density_per_deg(w, p0);
+    for i in 1..n {
+        s += if i % 2 == 1 { 4.0 } else { 2.0 } * angle_density_per_deg(i as f64 * h, p0);
+    }
+    2.0 * s * h / 3.0
+}
+
 /// Half-width (deg) of the interval about the true angle holding 68.27 % of the
 /// Naghizadeh-Khouei & Clarke distribution, for S/N `p0` (90/sqrt(3) * 0.6827... limit at 0).
 pub fn angle_half_width_68_deg(p0: f64) -> f64 {
@@ -365,15 +377,7 @@ pub fn angle_half_width_68_deg(p0: f64) -> f64 {
     // by Newton steps (the derivative is twice the density at w), kept inside a bracket
     // that shrinks with every step and bisected when a step would leave it: ~5 steps
     // instead of bisection's 50 (test `newton_half_width_is_the_bisected_one`).
-    let cum = |w: f64| -> f64 {
-        let n = 400;
-        let h = w / n as f64;
-        let mut s = angle_density_per_deg(0.0, p0) + angle_density_per_deg(w, p0);
-        for i in 1..n {
-            s += if i % 2 == 1 { 4.0 } else { 2.0 } * angle_density_per_deg(i as f64 * h, p0);
-        }
-        2.0 * s * h / 3.0
-    };
+    let cum = |w: f64| nkc_cumulative_deg(w, p0);
     let (mut lo, mut hi) = (0.0f64, 90.0f64);
     // Start: Wardle & Kronberg's 28.65 deg / S/N, inside the bracket.
     let mut w = (WK_ANGLE_FACTOR_DEG / p0.abs().max(1e-3)).clamp(1e-3, 0.6827 * 90.0);
@@ -569,23 +573,15 @@ mod tests {
     }
 
     /// The Newton root is the root bisection finds (the slow way: 50 halvings of [0, 90]
-    /// on the same Simpson cumulative), to 1e-9 deg, from S/N 0 to 1000.
+    /// on the same Simpson cumulative, `nkc_cumulative_deg`, whose accuracy the scipy
+    /// references above check), to 1e-9 deg, from S/N 0 to 1000.
     #[test]
     fn newton_half_width_is_the_bisected_one() {
         let bisected = |p0: f64| -> f64 {
-            let cum = |w: f64| -> f64 {
-                let n = 400;
-                let h = w / n as f64;
-                let mut s = angle_density_per_deg(0.0, p0) + angle_density_per_deg(w, p0);
-                for i in 1..n {
-                    s += if i % 2 == 1 { 4.0 } else { 2.0 } * angle_density_per_deg(i as f64 * h, p0);
-                }
-                2.0 * s * h / 3.0
-            };
             let (mut lo, mut hi) = (0.0, 90.0);
             for _ in 0..50 {
                 let mid = 0.5 * (lo + hi);
-                if cum(mid) < 0.682_689_492_137_085_9 {
+                if nkc_cumulative_deg(mid, p0) < 0.682_689_492_137_085_9 {
                     lo = mid
                 } else {
                     hi = mid
