@@ -13,9 +13,10 @@
 //! (medians of 5, interleaved), peak RSS 146 -> 160 MB.
 
 /// Keep freed memory in the process for reuse: blocks up to 32 MB come from the heap,
-/// which grows by at least 64 MB at a time, and up to 256 MB of free heap top is kept. Only on glibc (elsewhere a no-op). Call once,
-/// first thing in `main`, before threads start. The one `unsafe` of the binary (the
-/// workspace denies unsafe code): a call into glibc with constant arguments.
+/// which grows by at least 64 MB at a time, and up to 256 MB of free heap top is kept.
+/// Only on glibc (elsewhere a no-op). Call once, first thing in `main`, before threads
+/// start. The one `unsafe` of the binary (the workspace denies unsafe code): a call into
+/// glibc with constant arguments.
 #[allow(unsafe_code)]
 pub fn keep_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
