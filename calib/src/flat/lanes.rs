@@ -9,14 +9,14 @@ pub(super) const LANES: usize = 16;
 
 /// Integer key of an `f32` whose order is `f32::total_cmp`'s.
 #[inline(always)]
-pub(super) fn key(x: f32) -> i32 {
+pub(crate) fn key(x: f32) -> i32 {
     let b = x.to_bits() as i32;
     b ^ (((b >> 31) as u32) >> 1) as i32
 }
 
 /// The `f32` of a [`key`].
 #[inline(always)]
-pub(super) fn from_key(k: i32) -> f32 {
+pub(crate) fn from_key(k: i32) -> f32 {
     f32::from_bits((k ^ (((k >> 31) as u32) >> 1) as i32) as u32)
 }
 

@@ -480,7 +480,7 @@ impl FlatSet {
 mod apply;
 mod dome;
 mod io;
-mod lanes;
+pub(crate) mod lanes;
 mod superflat;
 
 pub(crate) use apply::FlatRow;

@@ -317,13 +317,15 @@ pub fn sky_level(frame: &Frame, profile: &Profile) -> Result<f64> {
     let (ny, nx) = frame.shape();
     let g = &profile.geometry;
     let sat = profile.detector.saturation_adu as f32;
-    let mut v: Vec<f32> = Vec::with_capacity(ny * nx / STEP + ny);
+    // Integer keys in `total_cmp` order: the same element is selected, with integer
+    // comparisons.
+    let mut v: Vec<i32> = Vec::with_capacity(ny * nx / STEP + ny);
     for y in (0..ny).filter(|&y| g.row_in_strip(y)) {
         let (d, m) = (frame.data.row(y), frame.mask.row(y));
         for x in ((y * 3) % STEP..nx).step_by(STEP) {
             let val = d[x];
             if m[x] == 0 && val < sat && val.is_finite() {
-                v.push(val);
+                v.push(crate::flat::lanes::key(val));
             }
         }
     }
@@ -337,8 +339,8 @@ pub fn sky_level(frame: &Frame, profile: &Profile) -> Result<f64> {
         });
     }
     let k = v.len() / 2;
-    let (_, m, _) = v.select_nth_unstable_by(k, |a, b| a.total_cmp(b));
-    Ok(*m as f64)
+    let (_, m, _) = v.select_nth_unstable(k);
+    Ok(crate::flat::lanes::from_key(*m) as f64)
 }
 
 /// Sky-subtract the dithers of ONE orientation (see the module documentation). Output
