@@ -108,3 +108,105 @@ impl Frame {
         &self.header.path
     }
 }
+
+/// How many pixel values are not finite (NaN, +-inf), and the smallest and largest finite
+/// value (`+inf` and `-inf` when there is none): what the reduction checks of every frame
+/// it reads. The night's frames get it from their conversion pass
+/// ([`crate::fits::read_frame_rows_with_summary`]), other arrays from [`PixelSummary::of`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PixelSummary {
+    /// Values that are NaN or infinite.
+    pub non_finite: usize,
+    /// Smallest finite value.
+    pub min: f32,
+    /// Largest finite value.
+    pub max: f32,
+}
+
+impl PixelSummary {
+    /// The summary of `values` (compiled for AVX2 when the CPU has it; the same numbers
+    /// either way).
+    pub fn of(values: &[f32]) -> Self {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU supports AVX2 (checked just above).
+                #[allow(unsafe_code)]
+                return unsafe { summary_avx2(values) };
+            }
+        }
+        let mut l = SummaryLanes::new();
+        l.add(values);
+        l.finish()
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn summary_avx2(values: &[f32]) -> PixelSummary {
+    let mut l = SummaryLanes::new();
+    l.add(values);
+    l.finish()
+}
+
+/// The running [`PixelSummary`] of values added slice by slice, in lanes of 16 (vector
+/// code; a value's lane is its index mod 16 within its slice, which changes nothing:
+/// counts, minima and maxima do not depend on the order).
+pub(crate) struct SummaryLanes {
+    bad: [u32; SummaryLanes::L],
+    lo: [f32; SummaryLanes::L],
+    hi: [f32; SummaryLanes::L],
+    /// Values of slices' remainders (not a multiple of 16).
+    rest: PixelSummary,
+}
+
+impl SummaryLanes {
+    const L: usize = 16;
+
+    pub(crate) fn new() -> Self {
+        SummaryLanes {
+            bad: [0; Self::L],
+            lo: [f32::INFINITY; Self::L],
+            hi: [f32::NEG_INFINITY; Self::L],
+            rest: PixelSummary {
+                non_finite: 0,
+                min: f32::INFINITY,
+                max: f32::NEG_INFINITY,
+            },
+        }
+    }
+
+    #[inline(always)]
+    pub(crate) fn add(&mut self, values: &[f32]) {
+        const L: usize = SummaryLanes::L;
+        let mut c = values.chunks_exact(L);
+        for ch in &mut c {
+            for i in 0..L {
+                let v = ch[i];
+                // |v| < inf is false for NaN and +-inf.
+                let fin = v.abs() < f32::INFINITY;
+                self.bad[i] += u32::from(!fin);
+                let w = if fin { v } else { self.lo[i] };
+                self.lo[i] = if w < self.lo[i] { w } else { self.lo[i] };
+                let w = if fin { v } else { self.hi[i] };
+                self.hi[i] = if w > self.hi[i] { w } else { self.hi[i] };
+            }
+        }
+        for &v in c.remainder() {
+            if v.is_finite() {
+                self.rest.min = self.rest.min.min(v);
+                self.rest.max = self.rest.max.max(v);
+            } else {
+                self.rest.non_finite += 1;
+            }
+        }
+    }
+
+    pub(crate) fn finish(self) -> PixelSummary {
+        PixelSummary {
+            non_finite: self.rest.non_finite + self.bad.iter().map(|&b| b as usize).sum::<usize>(),
+            min: self.lo.iter().copied().fold(self.rest.min, f32::min),
+            max: self.hi.iter().copied().fold(self.rest.max, f32::max),
+        }
+    }
+}

@@ -30,6 +30,6 @@ pub mod sky;
 pub mod stack;
 
 pub use error::{Error, Result};
-pub use frame::{Frame, HistoryRecord};
+pub use frame::{Frame, HistoryRecord, PixelSummary};
 pub use header::{Card, Header, HeaderValue};
 pub use profile::Profile;

@@ -137,3 +137,21 @@ pub(super) fn cfitsio_raw(f: &mut FitsFile, op: RawOp<'_>) -> fitsio::errors::Re
     }
     Ok(out)
 }
+
+/// Byte offset in the file of the data of HDU `index` (0-based), from cfitsio's HDU map.
+#[allow(unsafe_code)]
+pub(super) fn data_start(f: &mut FitsFile, index: usize) -> fitsio::errors::Result<u64> {
+    use fitsio::sys;
+    let hdunum = c_int::try_from(index + 1).unwrap_or(c_int::MAX);
+    let (mut hdutype, mut status): (c_int, c_int) = (0, 0);
+    let (mut head, mut data, mut end): (sys::LONGLONG, sys::LONGLONG, sys::LONGLONG) = (0, 0, 0);
+    // SAFETY: as in `cfitsio_raw`: `f` is an open file borrowed mutably for the call; the
+    // out-parameters are local integers; `status` is checked after the calls.
+    unsafe {
+        let fptr = f.as_raw();
+        sys::ffmahd(fptr, hdunum, &mut hdutype, &mut status);
+        sys::ffghadll(fptr, &mut head, &mut data, &mut end, &mut status);
+    }
+    fitsio::errors::check_status(status)?;
+    u64::try_from(data).map_err(|_| fitsio::errors::Error::Message(format!("negative data offset {data}")))
+}

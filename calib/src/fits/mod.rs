@@ -10,8 +10,8 @@
 //!
 //! Header cards are read and written as raw 80-character records, parsed and formatted
 //! here, because the safe `fitsio` API can neither enumerate keywords nor write HISTORY
-//! cards, logical values or full-precision doubles. All direct cfitsio calls sit in the
-//! single function `cfitsio::cfitsio_raw`.
+//! cards, logical values or full-precision doubles. All direct cfitsio calls sit in
+//! `cfitsio.rs` (`cfitsio_raw`, and `data_start` for the plain reads of `raw.rs`).
 //!
 //! Pixel layout: arrays are indexed `[y, x]`; row 0 is FITS row 1 (the bottom of the
 //! image), column 0 is FITS column 1.
@@ -21,16 +21,19 @@
 //!
 //! Files: `read.rs` (finding the image HDU, pixels, extensions), `write.rs` (images,
 //! extensions, compression), `cards.rs` (parsing and formatting 80-character header cards,
-//! HISTORY records), `cfitsio.rs` (opening files, error messages, the raw cfitsio calls).
+//! HISTORY records), `cfitsio.rs` (opening files, error messages, the raw cfitsio calls),
+//! `raw.rs` (plain 16-bit and float images read straight from the file, the night's
+//! frames: cfitsio locates the data, the bytes are converted in one pass).
 //! The temporary file of the atomic write is [`crate::atomic::TempFile`].
 mod cards;
 mod cfitsio;
+mod raw;
 mod read;
 #[cfg(test)]
 mod tests;
 mod write;
 
-pub use read::{read_frame, read_frame_rows, read_header};
+pub use read::{read_frame, read_frame_rows, read_frame_rows_with_summary, read_header};
 pub use write::write_frame;
 
 /// On-disk pixel type of a written image.

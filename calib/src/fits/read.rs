@@ -6,7 +6,7 @@ use fitsio::FitsFile;
 use ndarray::Array2;
 
 use crate::error::{Error, Result};
-use crate::frame::Frame;
+use crate::frame::{Frame, PixelSummary};
 use crate::header::{Header, HeaderValue};
 
 use super::cards::*;
@@ -64,6 +64,25 @@ pub fn read_frame(path: &Path) -> Result<Frame> {
 /// cost. An image with fewer than `r1` rows (or `r0 >= r1`) is read whole and uncropped, as
 /// the reduction's cropping leaves such frames. `None`: the whole image.
 pub fn read_frame_rows(path: &Path, rows: Option<(usize, usize)>) -> Result<Frame> {
+    read_rows_inner(path, rows, false).map(|(f, _)| f)
+}
+
+/// [`read_frame_rows`] and the [`PixelSummary`] of the image's pixels as read (non-finite
+/// count, finite minimum and maximum), which the night's frames get almost for free from
+/// their conversion pass.
+pub fn read_frame_rows_with_summary(path: &Path, rows: Option<(usize, usize)>) -> Result<(Frame, PixelSummary)> {
+    read_rows_inner(path, rows, true).map(|(f, s)| {
+        let s = s.unwrap_or_else(|| PixelSummary::of(f.data.as_slice().expect("standard layout")));
+        (f, s)
+    })
+}
+
+/// The frame, and the pixels' summary when the conversion gave it (or `want_summary`).
+fn read_rows_inner(
+    path: &Path,
+    rows: Option<(usize, usize)>,
+    want_summary: bool,
+) -> Result<(Frame, Option<PixelSummary>)> {
     let mut f = open(path)?;
     let (hdu_index, cards) = find_image_hdu(&mut f, path)?;
     let (header, history) = parse_cards(&cards, path);
@@ -78,7 +97,18 @@ pub fn read_frame_rows(path: &Path, rows: Option<(usize, usize)>) -> Result<Fram
         }
     };
 
-    let data = read(&mut f, hdu_index)?;
+    // The usual night frame (plain BITPIX 16 or -32) is read straight from the file.
+    let (data, summary) = match super::raw::plain_image(&mut f, path, hdu_index, &cards)? {
+        Some(plain) => {
+            let (d, s) = plain.read_rows(path, nx, rows.map_or(0, |r| r.0), ny)?;
+            (d, Some(s))
+        }
+        None => {
+            let d = read(&mut f, hdu_index)?;
+            let s = want_summary.then(|| PixelSummary::of(d.as_slice().expect("standard layout")));
+            (d, s)
+        }
+    };
 
     // Look for VARIANCE / MASK extensions after the image HDU.
     let mut variance = None;
@@ -112,14 +142,15 @@ pub fn read_frame_rows(path: &Path, rows: Option<(usize, usize)>) -> Result<Fram
         header,
         history,
     };
-    Ok(match rows {
+    let frame = match rows {
         None => frame,
         // The record Frame::crop_rows writes.
         Some((r0, r1)) => frame.with_history(
             "crop",
             format!("rows [{r0}, {r1}) of the detector; row {r0} is row 0 here"),
         ),
-    })
+    };
+    Ok((frame, summary))
 }
 
 /// Header cards of HDU `index` (0-based), or `None` past the last HDU.

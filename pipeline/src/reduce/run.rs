@@ -5,7 +5,7 @@ use std::path::Path;
 use ndarray::{s, Array2};
 use serde::Serialize;
 use sofipol_calib::flat::{self, FlatSet};
-use sofipol_calib::{badpix, fits, sky, Frame, Profile};
+use sofipol_calib::{badpix, fits, sky, Frame, PixelSummary, Profile};
 
 use super::{measure_sequence, target_entry, CalibratedOrientation, TargetParams};
 use crate::catalog::{Failure, Status, Target};
@@ -90,9 +90,9 @@ pub fn reduce_sequence(
         let mut offs = Vec::new();
         ro.exposures.clear();
         for e in &o.exposures {
-            match fits::read_frame_rows(&e.path, rows)
+            match fits::read_frame_rows_with_summary(&e.path, rows)
                 .map_err(|e| e.to_string())
-                .and_then(|f| usable_frame(f, profile, rows).map_err(|e| e.to_string()))
+                .and_then(|(f, s)| usable_frame(f, &s, profile, rows).map_err(|e| e.to_string()))
             {
                 Ok(f) => {
                     frames.push(f);
@@ -123,7 +123,12 @@ pub fn reduce_sequence(
 /// all equal (all zero...) is unusable as a whole and dropped by name with the reason (the
 /// other dithers carry on). A few non-finite pixels (NaN, Inf) are bad pixels: set to the
 /// frame's median and masked BAD, so an aperture that holds one flags its dither.
-pub fn usable_frame(mut f: Frame, profile: &Profile, rows: Option<(usize, usize)>) -> crate::error::Result<Frame> {
+pub fn usable_frame(
+    mut f: Frame,
+    summary: &PixelSummary,
+    profile: &Profile,
+    rows: Option<(usize, usize)>,
+) -> crate::error::Result<Frame> {
     let g = &profile.geometry;
     let want = match rows {
         Some((r0, r1)) => (r1 - r0, g.nx),
@@ -137,8 +142,8 @@ pub fn usable_frame(mut f: Frame, profile: &Profile, rows: Option<(usize, usize)
         )));
     }
     let n = f.data.len();
-    // One pass over the pixels (this runs on every frame read); a copy only when needed.
-    let (n_bad, lo, hi) = finite_count_min_max(&f.data);
+    // The summary comes from the reading's conversion pass; a copy only when needed.
+    let (n_bad, lo, hi) = (summary.non_finite, summary.min, summary.max);
     if 2 * n_bad > n {
         return Err(crate::error::Error::UnusableFrame(format!(
             "{n_bad} of {n} pixels are not finite (NaN or Inf): frame unusable"
@@ -166,48 +171,6 @@ pub fn usable_frame(mut f: Frame, profile: &Profile, rows: Option<(usize, usize)
         );
     }
     Ok(f)
-}
-
-/// Non-finite count, min and max of the finite values (lanes of 8: vectorised; this
-/// pass runs over every pixel read).
-fn finite_count_min_max(a: &Array2<f32>) -> (usize, f32, f32) {
-    const L: usize = 16;
-    let Some(s) = a.as_slice() else {
-        return a.iter().fold((0, f32::INFINITY, f32::NEG_INFINITY), |(k, lo, hi), &v| {
-            if v.is_finite() {
-                (k, lo.min(v), hi.max(v))
-            } else {
-                (k + 1, lo, hi)
-            }
-        });
-    };
-    let (mut bad, mut lo, mut hi) = ([0u32; L], [f32::INFINITY; L], [f32::NEG_INFINITY; L]);
-    let mut c = s.chunks_exact(L);
-    for ch in &mut c {
-        for i in 0..L {
-            let v = ch[i];
-            // |v| < inf is false for NaN and +-inf; NaN compares false too.
-            let fin = v.abs() < f32::INFINITY;
-            bad[i] += u32::from(!fin);
-            let w = if fin { v } else { lo[i] };
-            lo[i] = if w < lo[i] { w } else { lo[i] };
-            let w = if fin { v } else { hi[i] };
-            hi[i] = if w > hi[i] { w } else { hi[i] };
-        }
-    }
-    let (mut k, mut l, mut h) = (
-        bad.iter().map(|&b| b as usize).sum::<usize>(),
-        lo.iter().copied().fold(f32::INFINITY, f32::min),
-        hi.iter().copied().fold(f32::NEG_INFINITY, f32::max),
-    );
-    for &v in c.remainder() {
-        if v.is_finite() {
-            (l, h) = (l.min(v), h.max(v));
-        } else {
-            k += 1;
-        }
-    }
-    (k, l, h)
 }
 
 /// Frames of one orientation already in memory: (POSANG, analyzer angle, frames, header

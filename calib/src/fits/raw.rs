@@ -1,0 +1,359 @@
+//! The pixels of a plain FITS image read straight from the file: the frames of a night
+//! (BITPIX 16 with BZERO/BSCALE, or -32, uncompressed) are read this way, a row range at a
+//! time, and converted to `f32` in one pass, without cfitsio's zero-filled output buffer,
+//! its I/O buffers and its separate byte-swap and scaling passes. cfitsio still finds the
+//! HDU and says where its data start; every other file (tile-compressed, gzip, other
+//! BITPIX, odd scaling keywords) is read by cfitsio.
+//!
+//! The numbers are cfitsio's, bit for bit: integers are scaled as `(float)(v * BSCALE +
+//! BZERO)` in double precision (cfitsio's `fffi2r4`), floats copied (or scaled the same
+//! way when BSCALE/BZERO are not 1/0), NaN passed through; no BLANK substitution, like the
+//! cfitsio reads of this crate (null value 0: no null checking). The test
+//! `plain_reads_equal_cfitsio_reads` compares the two for both pixel types, many scalings,
+//! extreme values and row ranges.
+use std::cell::RefCell;
+use std::io::{Read, Seek, SeekFrom};
+use std::path::Path;
+
+use fitsio::FitsFile;
+use ndarray::Array2;
+
+use crate::error::{Error, Result};
+use crate::frame::{PixelSummary, SummaryLanes};
+use crate::header::HeaderValue;
+
+use super::cfitsio::{data_start, fits_err};
+use super::read::{is_compressed, raw_int, raw_value, to_array};
+
+/// How to read and convert the pixels of a plain image HDU.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct PlainImage {
+    /// File offset of the first data byte.
+    start: u64,
+    /// 16 or -32.
+    bitpix: i64,
+    scale: f64,
+    zero: f64,
+}
+
+/// The value of a scaling keyword: absent = `default`; `None` when it is present but not a
+/// finite number this module is sure to parse as cfitsio does (left to cfitsio).
+fn scaling(cards: &[String], key: &str, default: f64) -> Option<f64> {
+    let v = match raw_value(cards, key) {
+        None => return Some(default),
+        Some(HeaderValue::Int(i)) => i as f64,
+        Some(HeaderValue::Float(x)) => x,
+        Some(_) => return None,
+    };
+    v.is_finite().then_some(v)
+}
+
+/// Whether the file is plain FITS on disk (it starts with the SIMPLE card), so that file
+/// offsets are data offsets (cfitsio reads gzip, compress... files through memory).
+fn plain_file(path: &Path) -> bool {
+    let mut m = [0u8; 9];
+    std::fs::File::open(path)
+        .and_then(|mut f| f.read_exact(&mut m))
+        .map(|_| &m == b"SIMPLE  =")
+        .unwrap_or(false)
+}
+
+/// The plan for reading HDU `index` (header `cards`) directly, or `None` when cfitsio must
+/// read it.
+pub(super) fn plain_image(f: &mut FitsFile, path: &Path, index: usize, cards: &[String]) -> Result<Option<PlainImage>> {
+    if is_compressed(cards) {
+        return Ok(None);
+    }
+    let Some(bitpix @ (16 | -32)) = raw_int(cards, "BITPIX") else {
+        return Ok(None);
+    };
+    let (Some(scale), Some(zero)) = (scaling(cards, "BSCALE", 1.0), scaling(cards, "BZERO", 0.0)) else {
+        return Ok(None);
+    };
+    if scale == 0.0 || !plain_file(path) {
+        return Ok(None);
+    }
+    let start = data_start(f, index).map_err(|e| fits_err(path, &format!("locating the data of HDU {index}"), e))?;
+    Ok(Some(PlainImage {
+        start,
+        bitpix,
+        scale,
+        zero,
+    }))
+}
+
+thread_local! {
+    /// The raw bytes of the last rows read on this thread (reused: no allocation, no
+    /// zeroing per frame).
+    static RAW: RefCell<Vec<u8>> = const { RefCell::new(Vec::new()) };
+}
+
+impl PlainImage {
+    /// Rows `[r0, r0 + n)` of an image `nx` pixels wide, as `f32`, and their summary.
+    pub(super) fn read_rows(&self, path: &Path, nx: usize, r0: usize, n: usize) -> Result<(Array2<f32>, PixelSummary)> {
+        let width = if self.bitpix == 16 { 2 } else { 4 };
+        let bytes = n * nx * width;
+        let offset = self.start + (r0 * nx * width) as u64;
+        RAW.with_borrow_mut(|raw| {
+            raw.resize(bytes, 0);
+            let io = |source: std::io::Error| Error::Io {
+                path: path.to_path_buf(),
+                source,
+            };
+            let mut file = std::fs::File::open(path).map_err(io)?;
+            file.seek(SeekFrom::Start(offset)).map_err(io)?;
+            file.read_exact(raw).map_err(|e| match e.kind() {
+                std::io::ErrorKind::UnexpectedEof => Error::Fits {
+                    path: path.to_path_buf(),
+                    message: format!(
+                        "reading rows [{r0}, {}): the file ends inside the image data (is the file truncated?)",
+                        r0 + n
+                    ),
+                },
+                _ => io(e),
+            })?;
+            let mut out = Vec::with_capacity(n * nx);
+            let summary = convert(raw, self.bitpix, self.scale, self.zero, &mut out);
+            Ok((to_array(out, n, nx, path)?, summary))
+        })
+    }
+}
+
+/// The raw bytes `raw` of pixel type `bitpix` (16 or -32) as `f32` appended to `out`, and
+/// their summary, taken block by block as they are converted (the block is still in the
+/// first-level cache). Compiled for AVX2 when the CPU has it (byte shuffles); the same
+/// numbers either way.
+fn convert(raw: &[u8], bitpix: i64, scale: f64, zero: f64, out: &mut Vec<f32>) -> PixelSummary {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            #[allow(unsafe_code)]
+            return unsafe { convert_avx2(raw, bitpix, scale, zero, out) };
+        }
+    }
+    convert_generic(raw, bitpix, scale, zero, out)
+}
+
+/// [`convert_generic`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn convert_avx2(raw: &[u8], bitpix: i64, scale: f64, zero: f64, out: &mut Vec<f32>) -> PixelSummary {
+    convert_generic(raw, bitpix, scale, zero, out)
+}
+
+#[inline(always)]
+fn convert_generic(raw: &[u8], bitpix: i64, scale: f64, zero: f64, out: &mut Vec<f32>) -> PixelSummary {
+    /// Pixels per block (16 kB of output).
+    const BLOCK: usize = 4096;
+    let width = if bitpix == 16 { 2 } else { 4 };
+    let mut lanes = SummaryLanes::new();
+    for block in raw.chunks(BLOCK * width) {
+        let start = out.len();
+        if bitpix == 16 {
+            convert_i16(block, scale, zero, out)
+        } else {
+            convert_f32(block, scale, zero, out)
+        }
+        lanes.add(&out[start..]);
+    }
+    lanes.finish()
+}
+
+/// Big-endian 16-bit integers to `f32`, `(float)(v * scale + zero)` as cfitsio computes
+/// it. With scale 1 and an integer zero the sum is exact in `i32` as in `f64`, and both
+/// round the same exact value to `f32`: the integer form is taken (it vectorises).
+#[inline(always)]
+fn convert_i16(raw: &[u8], scale: f64, zero: f64, out: &mut Vec<f32>) {
+    let words = raw.chunks_exact(2).map(|b| i16::from_be_bytes([b[0], b[1]]));
+    if scale == 1.0 && zero == zero.trunc() && zero.abs() <= (1 << 30) as f64 {
+        let z = zero as i32;
+        out.extend(words.map(|v| (v as i32 + z) as f32));
+    } else {
+        out.extend(words.map(|v| (v as f64 * scale + zero) as f32));
+    }
+}
+
+/// Big-endian IEEE floats to `f32`: copied, or `(float)(v * scale + zero)` when scaled.
+#[inline(always)]
+fn convert_f32(raw: &[u8], scale: f64, zero: f64, out: &mut Vec<f32>) {
+    let floats = raw.chunks_exact(4).map(|b| f32::from_be_bytes([b[0], b[1], b[2], b[3]]));
+    if scale == 1.0 && zero == 0.0 {
+        out.extend(floats);
+    } else {
+        out.extend(floats.map(|v| (v as f64 * scale + zero) as f32));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fits::{read_frame, read_frame_rows, read_frame_rows_with_summary};
+
+    /// A minimal plain FITS file: the given extra cards, big-endian `data` bytes.
+    fn fits_bytes(bitpix: i64, nx: usize, ny: usize, extra: &[&str], data: &[u8]) -> Vec<u8> {
+        let mut cards = vec![
+            format!("{:<8}= {:>20}", "SIMPLE", "T"),
+            format!("{:<8}= {:>20}", "BITPIX", bitpix),
+            format!("{:<8}= {:>20}", "NAXIS", 2),
+            format!("{:<8}= {:>20}", "NAXIS1", nx),
+            format!("{:<8}= {:>20}", "NAXIS2", ny),
+        ];
+        cards.extend(extra.iter().map(|s| s.to_string()));
+        cards.push("END".into());
+        let mut out: Vec<u8> = cards.iter().flat_map(|c| format!("{c:<80}").into_bytes()).collect();
+        out.resize(out.len().div_ceil(2880) * 2880, b' ');
+        out.extend_from_slice(data);
+        out.resize(out.len().div_ceil(2880) * 2880, 0);
+        out
+    }
+
+    /// A small deterministic generator (xorshift).
+    struct Rng(u64);
+    impl Rng {
+        fn next(&mut self) -> u64 {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            self.0
+        }
+    }
+
+    /// Pixel bytes with the extreme values first, then random ones.
+    fn pixels(bitpix: i64, n: usize, rng: &mut Rng) -> Vec<u8> {
+        if bitpix == 16 {
+            let special: [i16; 5] = [i16::MIN, i16::MAX, 0, -1, 1];
+            (0..n)
+                .flat_map(|i| special.get(i).copied().unwrap_or(rng.next() as i16).to_be_bytes())
+                .collect()
+        } else {
+            let special = [
+                f32::NAN,
+                f32::INFINITY,
+                f32::NEG_INFINITY,
+                -0.0,
+                f32::MIN_POSITIVE / 4.0,
+                f32::MAX,
+                f32::MIN,
+            ];
+            (0..n)
+                .flat_map(|i| {
+                    let v = special.get(i).copied().unwrap_or_else(|| {
+                        // Mostly sky-like values, sometimes any bit pattern.
+                        if rng.next() % 8 == 0 {
+                            f32::from_bits(rng.next() as u32)
+                        } else {
+                            (rng.next() % 2_000_000) as f32 * 0.01 - 100.0
+                        }
+                    });
+                    v.to_be_bytes()
+                })
+                .collect()
+        }
+    }
+
+    fn plain_summary(v: &[f32]) -> PixelSummary {
+        let fin: Vec<f32> = v.iter().copied().filter(|x| x.is_finite()).collect();
+        PixelSummary {
+            non_finite: v.len() - fin.len(),
+            min: fin.iter().copied().fold(f32::INFINITY, f32::min),
+            max: fin.iter().copied().fold(f32::NEG_INFINITY, f32::max),
+        }
+    }
+
+    fn bits(v: &[f32]) -> Vec<u32> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    /// The direct reads give cfitsio's numbers bit for bit (cfitsio read through `fitsio`
+    /// is the reference): both pixel types, scalings that take the integer, the double and
+    /// the copying conversions, keywords written in several forms, extreme values, NaN and
+    /// infinities, whole images and row ranges; and the summary is that of the pixels.
+    #[test]
+    fn plain_reads_equal_cfitsio_reads() {
+        let dir = tempfile::tempdir().unwrap();
+        let (nx, ny) = (37, 23);
+        let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+        let scalings: &[&[&str]] = &[
+            &[],
+            &["BZERO   =                32768", "BSCALE  =                    1"],
+            &["BZERO   =                  0.0", "BSCALE  =                  1.0"],
+            &["BZERO   =               -17.25", "BSCALE  =                  2.5"],
+            &["BZERO   =              32768.5"],
+            &["BZERO   =         3000000000.0"],
+            &["BSCALE  =                 -1.0"],
+            &["BSCALE  =               1.0E-3", "BZERO   =               1.0E+4"],
+            &["BSCALE  =                2.0D0"],
+            &["BZERO   =     0.30000000000000004"],
+        ];
+        let mut n_plain = 0;
+        for bitpix in [16, -32] {
+            for (k, extra) in scalings.iter().enumerate() {
+                let path = dir.path().join(format!("f{bitpix}_{k}.fits"));
+                std::fs::write(&path, fits_bytes(bitpix, nx, ny, extra, &pixels(bitpix, nx * ny, &mut rng))).unwrap();
+                let mut f = FitsFile::open(&path).unwrap();
+                let hdu = f.hdu(0).unwrap();
+                let whole: Vec<f32> = hdu.read_image(&mut f).unwrap();
+                // Which keyword forms this module reads itself (the others go to cfitsio).
+                let cards = super::super::read::hdu_cards(&mut f, &path, 0).unwrap().unwrap();
+                n_plain += plain_image(&mut f, &path, 0, &cards).unwrap().is_some() as usize;
+                for rows in [None, Some((0, ny)), Some((3, 17)), Some((ny - 1, ny))] {
+                    let (r0, n) = rows.map_or((0, ny), |(a, b)| (a, b - a));
+                    let want: Vec<f32> = hdu.read_rows(&mut f, r0, n).unwrap();
+                    assert_eq!(bits(&want), bits(&whole[r0 * nx..(r0 + n) * nx]));
+                    let (got, summary) = read_frame_rows_with_summary(&path, rows).unwrap();
+                    let what = format!("BITPIX {bitpix}, {extra:?}, rows {rows:?}");
+                    assert_eq!(bits(got.data.as_slice().unwrap()), bits(&want), "{what}");
+                    let s = plain_summary(&want);
+                    assert_eq!(
+                        (summary.non_finite, summary.min.to_bits(), summary.max.to_bits()),
+                        (s.non_finite, s.min.to_bits(), s.max.to_bits()),
+                        "{what}"
+                    );
+                    let plain = read_frame_rows(&path, rows).unwrap();
+                    assert_eq!(bits(plain.data.as_slice().unwrap()), bits(&want), "{what}");
+                }
+            }
+        }
+        // All but the Fortran exponent are read directly, in both pixel types.
+        assert!(n_plain >= 2 * (scalings.len() - 1), "{n_plain} direct reads");
+    }
+
+    /// The AVX2 build of the conversion gives the baseline build's numbers and summary.
+    #[test]
+    fn the_conversion_is_the_same_in_every_vector_build() {
+        let mut rng = Rng(12345);
+        for bitpix in [16, -32] {
+            for n in [0, 1, 15, 16, 17, 4095, 4096, 4097, 10_000] {
+                let raw = pixels(bitpix, n, &mut rng);
+                for (scale, zero) in [(1.0, 0.0), (1.0, 32768.0), (2.5, -17.25), (1.0, 0.5)] {
+                    let (mut a, mut b) = (Vec::new(), Vec::new());
+                    let sa = convert(&raw, bitpix, scale, zero, &mut a);
+                    let sb = convert_generic(&raw, bitpix, scale, zero, &mut b);
+                    assert_eq!(bits(&a), bits(&b), "BITPIX {bitpix} n {n} scale {scale} zero {zero}");
+                    assert_eq!(sa, sb);
+                    let s = plain_summary(&b);
+                    assert_eq!((sb.non_finite, sb.min, sb.max), (s.non_finite, s.min, s.max));
+                }
+            }
+        }
+    }
+
+    /// A file cut inside its data (but not by a whole block, which the size check before
+    /// allocating catches) is an error naming the file and the rows.
+    #[test]
+    fn a_file_cut_inside_its_data_is_an_error_naming_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cut.fits");
+        let mut rng = Rng(7);
+        let mut b = fits_bytes(-32, 100, 100, &[], &pixels(-32, 100 * 100, &mut rng));
+        b.truncate(2880 + 100 * 100 * 4 - 1000);
+        std::fs::write(&path, b).unwrap();
+        let e = read_frame(&path).unwrap_err().to_string();
+        assert!(e.contains("cut.fits") && e.contains("truncated"), "{e}");
+        let e = read_frame_rows(&path, Some((90, 100))).unwrap_err().to_string();
+        assert!(e.contains("cut.fits") && e.contains("rows [90, 100)"), "{e}");
+        // Rows before the cut read.
+        assert_eq!(read_frame_rows(&path, Some((0, 50))).unwrap().shape(), (50, 100));
+    }
+}
