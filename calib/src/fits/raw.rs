@@ -177,7 +177,9 @@ fn convert_i16(raw: &[u8], scale: f64, zero: f64, out: &mut Vec<f32>) {
 /// Big-endian IEEE floats to `f32`: copied, or `(float)(v * scale + zero)` when scaled.
 #[inline(always)]
 fn convert_f32(raw: &[u8], scale: f64, zero: f64, out: &mut Vec<f32>) {
-    let floats = raw.chunks_exact(4).map(|b| f32::from_be_bytes([b[0], b[1], b[2], b[3]]));
+    let floats = raw
+        .chunks_exact(4)
+        .map(|b| f32::from_be_bytes([b[0], b[1], b[2], b[3]]));
     if scale == 1.0 && zero == 0.0 {
         out.extend(floats);
     } else {
@@ -290,7 +292,11 @@ mod tests {
         for bitpix in [16, -32] {
             for (k, extra) in scalings.iter().enumerate() {
                 let path = dir.path().join(format!("f{bitpix}_{k}.fits"));
-                std::fs::write(&path, fits_bytes(bitpix, nx, ny, extra, &pixels(bitpix, nx * ny, &mut rng))).unwrap();
+                std::fs::write(
+                    &path,
+                    fits_bytes(bitpix, nx, ny, extra, &pixels(bitpix, nx * ny, &mut rng)),
+                )
+                .unwrap();
                 let mut f = FitsFile::open(&path).unwrap();
                 let hdu = f.hdu(0).unwrap();
                 let whole: Vec<f32> = hdu.read_image(&mut f).unwrap();

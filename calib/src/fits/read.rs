@@ -188,12 +188,37 @@ pub(super) fn find_image_hdu(f: &mut FitsFile, path: &Path) -> Result<(usize, Ve
     })
 }
 
-/// The value of a structural keyword straight from the raw cards.
+/// The value of a structural keyword straight from the raw cards. Cards whose name field
+/// cannot give `key` are skipped without parsing them (this runs a dozen times per file
+/// read): the same answer as parsing every card.
 pub(super) fn raw_value(cards: &[String], key: &str) -> Option<HeaderValue> {
-    cards.iter().find_map(|c| match parse_card(c) {
-        Parsed::Key { key: k, value, .. } if k == key => Some(value),
-        _ => None,
-    })
+    cards
+        .iter()
+        .filter(|c| may_define(c, key))
+        .find_map(|c| match parse_card(c) {
+            Parsed::Key { key: k, value, .. } if k == key => Some(value),
+            _ => None,
+        })
+}
+
+/// Whether [`parse_card`] could return `key` for this card: its 8-character name field (as
+/// parse_card reads it: non-ASCII as '?', upper case, trailing blanks dropped) is `key`, or
+/// the card is a HIERARCH card (whose key comes from the text after the name field).
+fn may_define(card: &str, key: &str) -> bool {
+    let mut name = [b' '; 8];
+    for (slot, c) in name.iter_mut().zip(card.chars()) {
+        *slot = if c.is_ascii() {
+            c.to_ascii_uppercase() as u8
+        } else {
+            b'?'
+        };
+    }
+    let len = name
+        .iter()
+        .rposition(|&b| !(b as char).is_whitespace())
+        .map_or(0, |i| i + 1);
+    let name = &name[..len];
+    name == key.as_bytes() || name == b"HIERARCH"
 }
 
 pub(super) fn raw_int(cards: &[String], key: &str) -> Option<i64> {

@@ -253,3 +253,61 @@ fn read_frame_rows_equals_read_then_crop() {
         assert_eq!(read_frame_rows(&path, Some((11, 65))).unwrap().shape(), (64, 64));
     }
 }
+
+/// `raw_value` skips cards by their name field: the same answers as parsing every card,
+/// for standard, HIERARCH (a HIERARCH card may define a short key), lower-case, non-ASCII,
+/// blank-padded and tab-padded names, commentary cards and short cards.
+#[test]
+fn raw_value_finds_what_parsing_every_card_finds() {
+    use super::read::raw_value;
+    let cards: Vec<String> = [
+        "SIMPLE  =                    T",
+        "COMMENT NAXIS = 3",
+        "HISTORY NAXIS = 4",
+        "naxis   =                    2 / lower case",
+        "NAXIS1  =                   64",
+        "NAXIS\t  =                    5 / tab in the name field",
+        "HIERARCH NAXIS2 = 99",
+        "NAXIS2  =                   64",
+        "BZ\u{e9}RO   =                    7",
+        "BZERO   =                32768",
+        "BSCALE  = 'text'",
+        "BSCALE  =                  1.0",
+        "EXTNAME = 'MASK    '",
+        "ZIMAGE",
+        "",
+        "CONTINUE  'x'",
+        "HIERARCH ESO ADA POSANG = 45.0",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    let every = |key: &str| {
+        cards.iter().find_map(|c| match parse_card(c) {
+            Parsed::Key { key: k, value, .. } if k == key => Some(value),
+            _ => None,
+        })
+    };
+    for key in [
+        "SIMPLE",
+        "NAXIS",
+        "NAXIS1",
+        "NAXIS2",
+        "NAXIS3",
+        "BZERO",
+        "BZ?RO",
+        "BSCALE",
+        "EXTNAME",
+        "ZIMAGE",
+        "ESO ADA POSANG",
+        "COMMENT",
+        "HISTORY",
+        "CONTINUE",
+        "",
+    ] {
+        assert_eq!(raw_value(&cards, key), every(key), "{key}");
+    }
+    // The cases that matter here: the lower-case and tab-padded names, and HIERARCH.
+    assert_eq!(raw_value(&cards, "NAXIS"), Some(HeaderValue::Int(2)));
+    assert_eq!(raw_value(&cards, "NAXIS2"), Some(HeaderValue::Int(99)));
+}
