@@ -264,6 +264,19 @@ pub fn fit_psf(
     guesses: &[(f64, f64)],
     params: &PsfFitParams,
 ) -> Result<PsfFit, PsfFitError> {
+    fit_psf_until(img, var, mask, guesses, params, false)
+}
+
+/// [`fit_psf`]; `to_the_end`: without the early stops (only the damping limit or
+/// `max_iter` end the iteration), the reference the stopping rules are tested against.
+fn fit_psf_until(
+    img: ArrayView2<f32>,
+    var: Option<ArrayView2<f32>>,
+    mask: Option<ArrayView2<u8>>,
+    guesses: &[(f64, f64)],
+    params: &PsfFitParams,
+    to_the_end: bool,
+) -> Result<PsfFit, PsfFitError> {
     check_params(guesses, params)?;
     let lay = Layout::new(
         guesses.len(),
@@ -286,6 +299,7 @@ pub fn fit_psf(
         bx,
         guesses,
         rf: params.fit_radius_px,
+        to_the_end,
     };
     let sol = problem.solve(p, params.max_iter);
     finish(&problem, sol, params, var.is_some())
@@ -430,6 +444,8 @@ struct Problem<'a> {
     guesses: &'a [(f64, f64)],
     /// Fit radius: no star may move farther from its guess.
     rf: f64,
+    /// No early stops (see [`fit_psf_until`]).
+    to_the_end: bool,
 }
 
 /// Where the iteration stopped.
@@ -519,6 +535,9 @@ impl Problem<'_> {
                     std::mem::swap(&mut a, &mut a_trial);
                     std::mem::swap(&mut g, &mut g_trial);
                     lambda = (lambda * 0.1).max(1e-12);
+                    if self.to_the_end {
+                        continue;
+                    }
                     if small_step || small_gain || chi2 == 0.0 {
                         converged = true;
                         break;
@@ -623,4 +642,95 @@ fn finish(problem: &Problem, sol: Solution, params: &PsfFitParams, weighted: boo
         iterations: sol.iterations,
         converged: sol.converged,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::photometry::psf::PsfModel;
+    use ndarray::Array2;
+
+    /// The stopping rules leave every fitted parameter within 1e-2 of its error of where
+    /// the iteration run to the end (until no downhill step exists) arrives, and the
+    /// chi-square within 1e-4 of it: close pairs and single stars, beta free and fixed,
+    /// S/N from 30 to 3000 (Moffat images with Gaussian noise, deterministic).
+    #[test]
+    fn the_early_stops_leave_the_fit_at_its_minimum() {
+        let mut state = 0x853c_49e6_748f_ea9bu64;
+        let mut gauss = move || {
+            let mut u = || {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+            };
+            let (a, b) = (u(), u());
+            (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
+        };
+        let mut worst = (0.0f64, 0.0f64);
+        let mut saved = 0;
+        for case in 0..24 {
+            let (beta, fwhm) = (2.5 + 0.25 * (case % 7) as f64, 3.0 + 0.3 * (case % 5) as f64);
+            let alpha = moffat_alpha(fwhm, beta);
+            let flux = [3e3, 3e4, 3e5][case % 3];
+            let pair = case % 2 == 0;
+            let (x0, y0, x1, y1) = (15.3, 14.8, 15.3 + 2.2 + 0.1 * (case % 4) as f64, 14.8 + 0.9);
+            let img = Array2::from_shape_fn((30, 30), |(y, x)| {
+                let mut v = flux * moffat_pixel(x as f64 - x0, y as f64 - y0, alpha, beta);
+                if pair {
+                    v += 0.4 * flux * moffat_pixel(x as f64 - x1, y as f64 - y1, alpha, beta);
+                }
+                (v + 10.0 * gauss()) as f32
+            });
+            let var = Array2::from_elem((30, 30), 100.0f32);
+            let guesses: Vec<(f64, f64)> = if pair {
+                vec![(x0 + 0.3, y0 - 0.2), (x1 - 0.3, y1 + 0.2)]
+            } else {
+                vec![(x0 + 0.3, y0 - 0.2)]
+            };
+            let params = PsfFitParams {
+                fwhm_px: fwhm * 1.1,
+                fit_radius_px: 6.0,
+                background: Some(0.0),
+                model: PsfModel::Moffat {
+                    beta: (case % 3 == 1).then_some(beta),
+                },
+                ..PsfFitParams::default()
+            };
+            let fast = fit_psf(img.view(), Some(var.view()), None, &guesses, &params).unwrap();
+            let end = fit_psf_until(img.view(), Some(var.view()), None, &guesses, &params, true).unwrap();
+            saved += end.iterations as i64 - fast.iterations as i64;
+            for (i, name) in fast.param_names.iter().enumerate() {
+                let value = |f: &PsfFit| match name.as_str() {
+                    "alpha" => f.alpha,
+                    "beta" => f.beta,
+                    _ => {
+                        let (k, what) = (
+                            name[name.len() - 1..].parse::<usize>().unwrap(),
+                            &name[..name.len() - 2],
+                        );
+                        let s = f.stars[k];
+                        match what {
+                            "flux" => s.flux,
+                            "x" => s.x,
+                            _ => s.y,
+                        }
+                    }
+                };
+                let err = end.covariance[i][i].sqrt();
+                let d = (value(&fast) - value(&end)).abs() / err;
+                assert!(d < 1e-2, "case {case}: {name} differs by {d:.2e} of its error");
+                worst.0 = worst.0.max(d);
+            }
+            let dchi = fast.chi2 - end.chi2;
+            assert!(dchi < 1e-4, "case {case}: chi2 {} against {}", fast.chi2, end.chi2);
+            worst.1 = worst.1.max(dchi);
+        }
+        // The early stops do stop early.
+        assert!(saved >= 24, "{saved} iterations saved");
+        eprintln!(
+            "early stops: worst parameter change {:.1e} sigma, chi2 {:.1e}, {saved} iterations saved",
+            worst.0, worst.1
+        );
+    }
 }
