@@ -181,11 +181,17 @@ fn check_inputs(
 /// Median stack of the frames scaled (or offset) to their mean sky level; with too few
 /// dither positions, a median per position and then the minimum / median of those.
 fn common_level_median(frames: &[&Frame], offsets: Option<&[[f64; 2]]>, profile: &Profile) -> Result<Array2<f32>> {
-    let n = frames.len();
     let levels: Vec<f64> = frames
         .par_iter()
         .map(|f| crate::sky::sky_level(f, profile))
         .collect::<Result<_>>()?;
+    let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.data.view()).collect();
+    median_at_levels(&views, &levels, offsets)
+}
+
+/// The stack of [`common_level_median`] of `views` at the frames' sky `levels`.
+fn median_at_levels(views: &[ArrayView2<f32>], levels: &[f64], offsets: Option<&[[f64; 2]]>) -> Result<Array2<f32>> {
+    let n = views.len();
     let mean_level = levels.iter().sum::<f64>() / n as f64;
     let maps: Vec<Affine> = if levels.iter().all(|&l| l > 0.0) {
         levels
@@ -204,7 +210,6 @@ fn common_level_median(frames: &[&Frame], offsets: Option<&[[f64; 2]]>, profile:
             })
             .collect()
     };
-    let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.data.view()).collect();
     let groups = offsets.map(dither_groups).unwrap_or_else(|| (0..n).collect());
     let n_groups = groups.iter().max().map_or(0, |g| g + 1);
     let largest = (0..n_groups)
@@ -212,7 +217,7 @@ fn common_level_median(frames: &[&Frame], offsets: Option<&[[f64; 2]]>, profile:
         .max()
         .unwrap_or(0);
     let med = if 2 * largest < n {
-        stack::median_stack_affine(&views, &maps)?
+        stack::median_stack_affine(views, &maps)?
     } else {
         if n_groups < 2 {
             return Err(stage_err(format!(
@@ -223,7 +228,7 @@ fn common_level_median(frames: &[&Frame], offsets: Option<&[[f64; 2]]>, profile:
         let per_group: Vec<Array2<f32>> = (0..n_groups)
             .map(|g| {
                 let idx: Vec<usize> = (0..n).filter(|&j| groups[j] == g).collect();
-                let v: Vec<ArrayView2<f32>> = idx.iter().map(|&j| views[j]).collect();
+                let v: Vec<ArrayView2<f32>> = idx.iter().map(|&j| views[j].view()).collect();
                 let m: Vec<Affine> = idx.iter().map(|&j| maps[j]).collect();
                 stack::median_stack_affine(&v, &m)
             })
@@ -291,13 +296,64 @@ pub fn detect_bad_pixels_at(
     profile: &Profile,
     opts: &BadPixelOptions,
 ) -> Result<(Array2<u8>, BadPixelReport)> {
-    let n = frames.len();
     let shape = check_inputs(frames, offsets, profile, opts)?;
-    let (ny, nx) = shape;
-
     // 1. Median stack at a common level.
     let med = common_level_median(frames, offsets, profile)?;
+    defects_of_stack(med, shape, frames.len(), profile, opts)
+}
 
+/// [`detect_bad_pixels_at`] on the rows `[r0, r1)` only, for a reduction that uses only
+/// those rows: every frame's sky level is measured on the whole frame as there, the stack,
+/// its running median and the strips' thresholds are computed on those rows alone (a third
+/// of the work on SOFI). The rows must hold whole strips of the profile (the target strips:
+/// each strip's threshold comes from its own pixels), so the mask of those rows is the
+/// one [`detect_bad_pixels_at`] finds there, bit for bit. Returns the mask of the rows
+/// `[r0, r1)` (`r1 - r0` rows; its row 0 is row r0 of the frames).
+pub fn detect_bad_pixels_in_rows(
+    frames: &[&Frame],
+    offsets: Option<&[[f64; 2]]>,
+    profile: &Profile,
+    opts: &BadPixelOptions,
+    (r0, r1): (usize, usize),
+) -> Result<(Array2<u8>, BadPixelReport)> {
+    let (ny, nx) = check_inputs(frames, offsets, profile, opts)?;
+    let g = &profile.geometry;
+    let whole = g
+        .strips()
+        .iter()
+        .all(|(_, [a, b])| b <= &r0 || a >= &r1 || (a >= &r0 && b <= &r1));
+    if !(r0 < r1 && r1 <= ny) || !whole {
+        return Err(stage_err(format!(
+            "rows [{r0}, {r1}) of {ny}: not whole strips of the profile, or outside the frames"
+        )));
+    }
+    let med = stack_in_rows(frames, offsets, profile, (r0, r1))?;
+    defects_of_stack(med, (r1 - r0, nx), frames.len(), &profile.cropped_rows(r0, r1), opts)
+}
+
+/// The rows `[r0, r1)` of [`common_level_median`]: the levels from the whole frames.
+fn stack_in_rows(
+    frames: &[&Frame],
+    offsets: Option<&[[f64; 2]]>,
+    profile: &Profile,
+    (r0, r1): (usize, usize),
+) -> Result<Array2<f32>> {
+    let levels: Vec<f64> = frames
+        .par_iter()
+        .map(|f| crate::sky::sky_level(f, profile))
+        .collect::<Result<_>>()?;
+    let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.data.slice(ndarray::s![r0..r1, ..])).collect();
+    median_at_levels(&views, &levels, offsets)
+}
+
+/// Steps 2 and 3 of [`detect_bad_pixels_at`] on the median stack `med` of `n` frames.
+fn defects_of_stack(
+    med: Array2<f32>,
+    (ny, nx): (usize, usize),
+    n: usize,
+    profile: &Profile,
+    opts: &BadPixelOptions,
+) -> Result<(Array2<u8>, BadPixelReport)> {
     // 2. Residual from a running median along x (all rows: the few blocked rows cost
     //    less than skipping them).
     let h = opts.window_px / 2;
@@ -488,6 +544,54 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("2 frames") && e.contains("at least 3"), "{e}");
+    }
+
+    /// Detection on the target strips' rows finds, there, the mask detection on whole
+    /// frames finds, bit for bit: defects inside and outside those rows, frames at
+    /// different sky levels (the levels come from the whole frames), the plain median and
+    /// the per-position stacks (header offsets with 2 positions); rows that cut a strip
+    /// are refused.
+    #[test]
+    fn detection_on_the_target_rows_is_detection_on_whole_frames_there() {
+        let p = Profile::sofi();
+        let frames: Vec<Frame> = (0..5)
+            .map(|j| {
+                let mut f = synthetic(j);
+                f.data.mapv_inplace(|v| v * (1.0 + 0.07 * j as f32));
+                f.data[[500, 200]] = 20000.0;
+                f.data[[600, 700]] = 0.0;
+                for y in 520..560 {
+                    f.data[[y, 800]] += 900.0;
+                }
+                f
+            })
+            .collect();
+        let refs: Vec<&Frame> = frames.iter().collect();
+        let opts = BadPixelOptions::default();
+        let rows = (345, 679);
+        let two = [[0.0, 0.0], [87.0, 0.0], [0.0, 0.0], [87.0, 0.0], [0.0, 0.0]];
+        for offsets in [None, Some(&two[..])] {
+            // The stack itself (levels from the whole frames), bit for bit.
+            let bits = |a: ndarray::ArrayView2<f32>| a.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            let full = common_level_median(&refs, offsets, &p).unwrap();
+            let cut = stack_in_rows(&refs, offsets, &p, rows).unwrap();
+            assert_eq!(
+                bits(cut.view()),
+                bits(full.slice(ndarray::s![345..679, ..])),
+                "offsets {offsets:?}"
+            );
+            let (whole, _) = detect_bad_pixels_at(&refs, offsets, &p, &opts).unwrap();
+            let (part, rep) = detect_bad_pixels_in_rows(&refs, offsets, &p, &opts, rows).unwrap();
+            assert_eq!(part, whole.slice(ndarray::s![345..679, ..]), "offsets {offsets:?}");
+            assert_eq!(part[[500 - 345, 200]], mask::BAD);
+            assert_eq!(part[[600 - 345, 700]], mask::BAD);
+            assert!((520..560).all(|y| part[[y - 345, 800]] == mask::BAD));
+            assert_eq!(rep.strip_sigma_adu.len(), 2, "{rep:?}");
+        }
+        let e = detect_bad_pixels_in_rows(&refs, None, &p, &opts, (300, 679))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("[300, 679)") && e.contains("whole strips"), "{e}");
     }
 
     /// The dense, obviously correct definition of [`set_bad_sparse`].

@@ -353,9 +353,10 @@ pub fn reduce_night(
 pub fn night_bad_pixel_mask(
     plan: &NightPlan,
     profile: &Profile,
-    opts: &sofipol_calib::badpix::BadPixelOptions,
+    params: &TargetParams,
     max_frames: usize,
-) -> Option<(ndarray::Array2<u8>, Vec<String>)> {
+) -> Option<NightMask> {
+    let opts = &params.bad_pixels;
     let picks: Vec<PathBuf> = plan.mask_frames.iter().take(max_frames).cloned().collect();
     let frames: Vec<sofipol_calib::Frame> = picks
         .par_iter()
@@ -378,9 +379,40 @@ pub fn night_bad_pixel_mask(
             _ => None,
         })
         .collect();
-    let (mask, _report) =
-        sofipol_calib::badpix::detect_bad_pixels_at(&frames, offsets.as_deref(), profile, opts).ok()?;
-    Some((mask, frames.iter().map(|f| f.path().display().to_string()).collect()))
+    // A reduction of the target strips only needs the mask there: detected on those rows
+    // (a third of the work; the same mask there, see `detect_bad_pixels_in_rows`).
+    let rows = crate::reduce::run::crop_of(profile, params);
+    let mask = match rows {
+        Some((r0, r1)) => {
+            let (part, _report) =
+                sofipol_calib::badpix::detect_bad_pixels_in_rows(&frames, offsets.as_deref(), profile, opts, (r0, r1))
+                    .ok()?;
+            let mut m = ndarray::Array2::<u8>::zeros(shape);
+            m.slice_mut(ndarray::s![r0..r1, ..]).assign(&part);
+            m
+        }
+        None => {
+            sofipol_calib::badpix::detect_bad_pixels_at(&frames, offsets.as_deref(), profile, opts)
+                .ok()?
+                .0
+        }
+    };
+    Some(NightMask {
+        mask,
+        files: frames.iter().map(|f| f.path().display().to_string()).collect(),
+        rows,
+    })
+}
+
+/// The night's bad-pixel mask ([`night_bad_pixel_mask`]).
+pub struct NightMask {
+    /// Full-frame mask (`BAD` where defective). With `rows`, only those rows were examined:
+    /// the others are 0 and must not be used (the reduction uses only those rows).
+    pub mask: ndarray::Array2<u8>,
+    /// The frames it was detected on.
+    pub files: Vec<String>,
+    /// The rows examined (`[r0, r1)`), when not the whole frame.
+    pub rows: Option<(usize, usize)>,
 }
 
 /// Join shard catalogs: targets ordered by sequence, failures by file, duplicates (the same

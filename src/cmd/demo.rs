@@ -57,7 +57,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mut plan = night::plan(std::slice::from_ref(&raw), &profile, None)?;
     let (science, stds) = calibration::split_standards(std::mem::take(&mut plan.sequences), &profile);
     plan.sequences = science;
-    let night_mask = night::night_bad_pixel_mask(&plan, &profile, &params.bad_pixels, 15).map(|(m, _)| m);
+    let night_mask = night::night_bad_pixel_mask(&plan, &profile, &params, 15).map(|m| m.mask);
     let flats = night::night_flats(&plan.dome_flats, &plan.superflat_frames, &profile, &params);
     let fig_dir = args.output.join("figures");
     std::fs::create_dir_all(&fig_dir)?;

@@ -200,18 +200,21 @@ fn night_mask(
         return (None, Vec::new());
     }
     let t = Instant::now();
-    let Some((m, files)) = night::night_bad_pixel_mask(plan, profile, &params.bad_pixels, 15) else {
+    let Some(nm) = night::night_bad_pixel_mask(plan, profile, params, 15) else {
         return (None, Vec::new());
     };
     if verbose > 0 {
         eprintln!(
-            "night bad-pixel mask: {} pixels from {} frames in {:.2} s",
-            m.iter().filter(|&&v| v != 0).count(),
-            files.len(),
+            "night bad-pixel mask: {} pixels{} from {} frames in {:.2} s",
+            nm.mask.iter().filter(|&&v| v != 0).count(),
+            nm.rows
+                .map(|(r0, r1)| format!(" in rows [{r0}, {r1}) (the target strips, all the reduction uses)"))
+                .unwrap_or_default(),
+            nm.files.len(),
             t.elapsed().as_secs_f64()
         );
     }
-    (Some(m), files)
+    (Some(nm.mask), nm.files)
 }
 
 /// The night's flats (dome flats, else a superflat from the night's sky), built from the

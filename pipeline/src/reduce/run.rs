@@ -355,7 +355,7 @@ fn choose_flats<'a>(
 
 /// The detector rows `[r0, r1)` the reduction works on (the o- and e-target strips), unless
 /// whole frames are wanted.
-fn crop_of(profile: &Profile, params: &TargetParams) -> Option<(usize, usize)> {
+pub(crate) fn crop_of(profile: &Profile, params: &TargetParams) -> Option<(usize, usize)> {
     let g = &profile.geometry;
     let (r0, r1) = (g.o_target[0].min(g.e_target[0]), g.o_target[1].max(g.e_target[1]));
     (!params.full_frame_sky && params.save_intermediate.is_none() && r1 > r0).then_some((r0, r1))
