@@ -34,8 +34,15 @@ pub fn brightest_peak(
             return brightest_peak_scan(img, mask, x0, y0, radius, rows);
         };
         let cols = (w.x_lo - 1) as usize..=(w.x_hi + 1) as usize;
-        let (m, any_not_finite) = unmasked_max(&vals[cols.clone()], &ms[cols]);
-        if any_not_finite {
+        // Branch-free (vectorised): the largest unmasked value, and whether any is not finite.
+        let mut m = f32::NEG_INFINITY;
+        let mut exp_all_ones = 0u32;
+        for (&v, &k) in vals[cols.clone()].iter().zip(&ms[cols]) {
+            exp_all_ones |= u32::from(v.to_bits() & 0x7f80_0000 == 0x7f80_0000);
+            let c = if k == 0 { v } else { f32::NEG_INFINITY };
+            m = if c > m { c } else { m };
+        }
+        if exp_all_ones != 0 {
             return brightest_peak_scan(img, mask, x0, y0, radius, rows);
         }
         row_max.push(m);
@@ -66,39 +73,6 @@ pub fn brightest_peak(
         }
     }
     best
-}
-
-/// The largest value whose mask is 0 (`-inf` when none), and whether any value is not
-/// finite. Branch-free, compiled for AVX2 when the CPU has it (the same answer either way:
-/// a maximum does not depend on the order).
-fn unmasked_max(vals: &[f32], ms: &[u8]) -> (f32, bool) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU supports AVX2 (checked just above).
-            #[allow(unsafe_code)]
-            return unsafe { unmasked_max_avx2(vals, ms) };
-        }
-    }
-    unmasked_max_generic(vals, ms)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn unmasked_max_avx2(vals: &[f32], ms: &[u8]) -> (f32, bool) {
-    unmasked_max_generic(vals, ms)
-}
-
-#[inline(always)]
-fn unmasked_max_generic(vals: &[f32], ms: &[u8]) -> (f32, bool) {
-    let mut m = f32::NEG_INFINITY;
-    let mut exp_all_ones = 0u32;
-    for (&v, &k) in vals.iter().zip(ms) {
-        exp_all_ones |= u32::from(v.to_bits() & 0x7f80_0000 == 0x7f80_0000);
-        let c = if k == 0 { v } else { f32::NEG_INFINITY };
-        m = if c > m { c } else { m };
-    }
-    (m, exp_all_ones != 0)
 }
 
 /// The candidate box centres of [`brightest_peak`].
