@@ -287,6 +287,7 @@ mod tests {
             &["BSCALE  =               1.0E-3", "BZERO   =               1.0E+4"],
             &["BSCALE  =                2.0D0"],
             &["BZERO   =     0.30000000000000004"],
+            &["BLANK   =                -32768", "BZERO   =                32768"],
         ];
         let mut n_plain = 0;
         for bitpix in [16, -32] {
@@ -323,6 +324,49 @@ mod tests {
         }
         // All but the Fortran exponent are read directly, in both pixel types.
         assert!(n_plain >= 2 * (scalings.len() - 1), "{n_plain} direct reads");
+    }
+
+    /// An image in the first extension of a plain file (empty primary HDU) is read
+    /// directly too, from that extension's data offset, with cfitsio's numbers.
+    #[test]
+    fn an_image_extension_is_read_from_its_own_offset() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("ext.fits");
+        let (nx, ny) = (20, 11);
+        let mut rng = Rng(99);
+        let mut primary: Vec<u8> = [
+            "SIMPLE  =                    T",
+            "BITPIX  =                    8",
+            "NAXIS   =                    0",
+            "EXTEND  =                    T",
+            "END",
+        ]
+        .iter()
+        .flat_map(|c| format!("{c:<80}").into_bytes())
+        .collect();
+        primary.resize(2880, b' ');
+        let mut ext = fits_bytes(
+            16,
+            nx,
+            ny,
+            &[
+                "PCOUNT  =                    0",
+                "GCOUNT  =                    1",
+                "BZERO   =                32768",
+            ],
+            &pixels(16, nx * ny, &mut rng),
+        );
+        // XTENSION replaces SIMPLE as the extension's first card.
+        ext[..80].copy_from_slice(format!("{:<80}", "XTENSION= 'IMAGE   '").as_bytes());
+        primary.extend(ext);
+        std::fs::write(&path, &primary).unwrap();
+        let mut f = FitsFile::open(&path).unwrap();
+        let cards = super::super::read::hdu_cards(&mut f, &path, 1).unwrap().unwrap();
+        assert!(plain_image(&mut f, &path, 1, &cards).unwrap().is_some());
+        let hdu = f.hdu(1).unwrap();
+        let want: Vec<f32> = hdu.read_rows(&mut f, 2, 7).unwrap();
+        let got = read_frame_rows(&path, Some((2, 9))).unwrap();
+        assert_eq!(bits(got.data.as_slice().unwrap()), bits(&want));
     }
 
     /// The AVX2 build of the conversion gives the baseline build's numbers and summary.
