@@ -210,23 +210,22 @@ mod tests {
         out
     }
 
-    /// A small deterministic generator (xorshift).
-    struct Rng(u64);
-    impl Rng {
-        fn next(&mut self) -> u64 {
-            self.0 ^= self.0 << 13;
-            self.0 ^= self.0 >> 7;
-            self.0 ^= self.0 << 17;
-            self.0
-        }
-    }
+    use rand::{rngs::Xoshiro256PlusPlus, RngExt, SeedableRng};
+
+    type Rng = Xoshiro256PlusPlus;
 
     /// Pixel bytes with the extreme values first, then random ones.
     fn pixels(bitpix: i64, n: usize, rng: &mut Rng) -> Vec<u8> {
         if bitpix == 16 {
             let special: [i16; 5] = [i16::MIN, i16::MAX, 0, -1, 1];
             (0..n)
-                .flat_map(|i| special.get(i).copied().unwrap_or(rng.next() as i16).to_be_bytes())
+                .flat_map(|i| {
+                    special
+                        .get(i)
+                        .copied()
+                        .unwrap_or_else(|| rng.random::<i16>())
+                        .to_be_bytes()
+                })
                 .collect()
         } else {
             let special = [
@@ -242,10 +241,10 @@ mod tests {
                 .flat_map(|i| {
                     let v = special.get(i).copied().unwrap_or_else(|| {
                         // Mostly sky-like values, sometimes any bit pattern.
-                        if rng.next() % 8 == 0 {
-                            f32::from_bits(rng.next() as u32)
+                        if rng.random_range(0..8) == 0 {
+                            f32::from_bits(rng.random::<u32>())
                         } else {
-                            (rng.next() % 2_000_000) as f32 * 0.01 - 100.0
+                            rng.random_range(0..2_000_000) as f32 * 0.01 - 100.0
                         }
                     });
                     v.to_be_bytes()
@@ -275,7 +274,7 @@ mod tests {
     fn plain_reads_equal_cfitsio_reads() {
         let dir = tempfile::tempdir().unwrap();
         let (nx, ny) = (37, 23);
-        let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+        let mut rng = Rng::seed_from_u64(0x9e37_79b9_7f4a_7c15);
         let scalings: &[&[&str]] = &[
             &[],
             &["BZERO   =                32768", "BSCALE  =                    1"],
@@ -333,7 +332,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("ext.fits");
         let (nx, ny) = (20, 11);
-        let mut rng = Rng(99);
+        let mut rng = Rng::seed_from_u64(99);
         let mut primary: Vec<u8> = [
             "SIMPLE  =                    T",
             "BITPIX  =                    8",
@@ -372,7 +371,7 @@ mod tests {
     /// The AVX2 build of the conversion gives the baseline build's numbers and summary.
     #[test]
     fn the_conversion_is_the_same_in_every_vector_build() {
-        let mut rng = Rng(12345);
+        let mut rng = Rng::seed_from_u64(12345);
         for bitpix in [16, -32] {
             for n in [0, 1, 15, 16, 17, 4095, 4096, 4097, 10_000] {
                 let raw = pixels(bitpix, n, &mut rng);
@@ -395,7 +394,7 @@ mod tests {
     fn a_file_cut_inside_its_data_is_an_error_naming_it() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("cut.fits");
-        let mut rng = Rng(7);
+        let mut rng = Rng::seed_from_u64(7);
         let mut b = fits_bytes(-32, 100, 100, &[], &pixels(-32, 100 * 100, &mut rng));
         b.truncate(2880 + 100 * 100 * 4 - 1000);
         std::fs::write(&path, b).unwrap();

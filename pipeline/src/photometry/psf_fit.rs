@@ -656,17 +656,9 @@ mod tests {
     /// S/N from 30 to 3000 (Moffat images with Gaussian noise, deterministic).
     #[test]
     fn the_early_stops_leave_the_fit_at_its_minimum() {
-        let mut state = 0x853c_49e6_748f_ea9bu64;
-        let mut gauss = move || {
-            let mut u = || {
-                state ^= state << 13;
-                state ^= state >> 7;
-                state ^= state << 17;
-                ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-            };
-            let (a, b) = (u(), u());
-            (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
-        };
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(0x853c_49e6_748f_ea9b);
+        let mut gauss = move || rng.sample::<f64, _>(rand_distr::StandardNormal);
         let mut worst = (0.0f64, 0.0f64);
         let mut saved = 0;
         for case in 0..24 {

@@ -36,24 +36,27 @@ pub fn eo_offset_by_correlation(
     h: usize,
     search: i64,
 ) -> Option<(f64, f64)> {
+    let score = correlation_scores(frames, centres, start, h, search)?;
+    Some(peak_offset(&score, start, search))
+}
+
+/// The correlation of [`eo_offset_by_correlation`] at every integer shift, row-major over
+/// (dy, dx) in `-search..=search`; `None` when no frame has its windows inside the image.
+fn correlation_scores(
+    frames: &[(&Array2<f32>, &Array2<u8>)],
+    centres: &[(f64, f64)],
+    start: (f64, f64),
+    h: usize,
+    search: i64,
+) -> Option<Vec<f64>> {
     let n = 2 * search as usize + 1;
     let mut score = vec![0.0f64; n * n];
     let mut used = 0;
-    for (&(img, mask), &(cx, cy)) in frames.iter().zip(centres) {
-        let (ny, nx) = img.dim();
-        let (ox, oy) = (cx.round() as i64, cy.round() as i64);
-        let (ex0, ey0) = ((cx + start.0).round() as i64, (cy + start.1).round() as i64);
-        let hh = h as i64;
-        if ox - hh < 0 || oy - hh < 0 || ox + hh >= nx as i64 || oy + hh >= ny as i64 {
+    let hh = h as i64;
+    for (&(img, mask), &c) in frames.iter().zip(centres) {
+        let Some((ox, oy, ex0, ey0)) = windows(img.dim(), c, start, h, search) else {
             continue;
-        }
-        if ex0 - hh - search < 0
-            || ey0 - hh - search < 0
-            || ex0 + hh + search >= nx as i64
-            || ey0 + hh + search >= ny as i64
-        {
-            continue;
-        }
+        };
         used += 1;
         // The o window and the e region it slides over, as f64 with masked pixels 0: a
         // product with a masked pixel then adds +-0, which leaves every sum (never -0: it
@@ -87,9 +90,30 @@ pub fn eo_offset_by_correlation(
             }
         }
     }
-    if used == 0 {
-        return None;
-    }
+    (used > 0).then_some(score)
+}
+
+/// The centre pixels of the o window and of the e region (before the shift) of a frame
+/// with the star at `c`, when both windows (half-width `h`, the e one widened by `search`)
+/// lie inside an image of `(ny, nx)` pixels.
+fn windows(
+    (ny, nx): (usize, usize),
+    (cx, cy): (f64, f64),
+    start: (f64, f64),
+    h: usize,
+    search: i64,
+) -> Option<(i64, i64, i64, i64)> {
+    let (ox, oy) = (cx.round() as i64, cy.round() as i64);
+    let (ex0, ey0) = ((cx + start.0).round() as i64, (cy + start.1).round() as i64);
+    let hh = h as i64;
+    let inside = |x: i64, y: i64, r: i64| x - r >= 0 && y - r >= 0 && x + r < nx as i64 && y + r < ny as i64;
+    (inside(ox, oy, hh) && inside(ex0, ey0, hh + search)).then_some((ox, oy, ex0, ey0))
+}
+
+/// The offset at the best score: the integer shift, refined by a parabola through the
+/// peak and its neighbours on each axis (at most half a pixel).
+fn peak_offset(score: &[f64], start: (f64, f64), search: i64) -> (f64, f64) {
+    let n = 2 * search as usize + 1;
     let (mut bi, mut bv) = (0, f64::NEG_INFINITY);
     for (k, &v) in score.iter().enumerate() {
         if v > bv {
@@ -118,8 +142,9 @@ pub fn eo_offset_by_correlation(
     };
     let fx = (start.0).round() + (bx as f64 - search as f64) + dx.clamp(-0.5, 0.5) - start.0;
     let fy = (start.1).round() + (by as f64 - search as f64) + dy.clamp(-0.5, 0.5) - start.1;
-    Some((start.0 + fx, start.1 + fy))
+    (start.0 + fx, start.1 + fy)
 }
+
 /// Stage 2: the e-o offset, by cross-correlating the o and e images of the target in every
 /// frame where the primary was found. Flags an offset more than 3 px from the profile's.
 pub fn measure_eo_offset(
@@ -151,33 +176,23 @@ pub fn measure_eo_offset(
 mod tests {
     use super::*;
 
-    /// The correlation as first written: every product read through the masks, pixel by
-    /// pixel (the slow, obviously right version).
+    /// The correlation scores as first written: every product read through the masks,
+    /// pixel by pixel (the slow, obviously right version).
     fn reference(
         frames: &[(&Array2<f32>, &Array2<u8>)],
         centres: &[(f64, f64)],
         start: (f64, f64),
         h: usize,
         search: i64,
-    ) -> Option<(f64, f64)> {
+    ) -> Option<Vec<f64>> {
         let n = 2 * search as usize + 1;
         let mut score = vec![0.0f64; n * n];
         let mut used = 0;
-        for (&(img, mask), &(cx, cy)) in frames.iter().zip(centres) {
-            let (ny, nx) = img.dim();
-            let (ox, oy) = (cx.round() as i64, cy.round() as i64);
-            let (ex0, ey0) = ((cx + start.0).round() as i64, (cy + start.1).round() as i64);
+        for (&(img, mask), &c) in frames.iter().zip(centres) {
             let hh = h as i64;
-            if ox - hh < 0 || oy - hh < 0 || ox + hh >= nx as i64 || oy + hh >= ny as i64 {
+            let Some((ox, oy, ex0, ey0)) = windows(img.dim(), c, start, h, search) else {
                 continue;
-            }
-            if ex0 - hh - search < 0
-                || ey0 - hh - search < 0
-                || ex0 + hh + search >= nx as i64
-                || ey0 + hh + search >= ny as i64
-            {
-                continue;
-            }
+            };
             used += 1;
             for sy in -search..=search {
                 for sx in -search..=search {
@@ -195,53 +210,18 @@ mod tests {
                 }
             }
         }
-        if used == 0 {
-            return None;
-        }
-        let (mut bi, mut bv) = (0, f64::NEG_INFINITY);
-        for (k, &v) in score.iter().enumerate() {
-            if v > bv {
-                bv = v;
-                bi = k;
-            }
-        }
-        let (by, bx) = (bi / n, bi % n);
-        let para = |m: f64, c: f64, p: f64| {
-            let d = m - 2.0 * c + p;
-            if d < 0.0 {
-                0.5 * (m - p) / d
-            } else {
-                0.0
-            }
-        };
-        let dx = if bx > 0 && bx + 1 < n {
-            para(score[by * n + bx - 1], bv, score[by * n + bx + 1])
-        } else {
-            0.0
-        };
-        let dy = if by > 0 && by + 1 < n {
-            para(score[(by - 1) * n + bx], bv, score[(by + 1) * n + bx])
-        } else {
-            0.0
-        };
-        let fx = (start.0).round() + (bx as f64 - search as f64) + dx.clamp(-0.5, 0.5) - start.0;
-        let fy = (start.1).round() + (by as f64 - search as f64) + dy.clamp(-0.5, 0.5) - start.1;
-        Some((start.0 + fx, start.1 + fy))
+        (used > 0).then_some(score)
     }
 
-    /// The windowed correlation gives the reference's offsets bit for bit: noise with a
+    /// The windowed correlation gives the reference's scores bit for bit: noise with a
     /// star pair in each beam, a quarter of the pixels masked (masked values huge, so a
     /// masked product that counted would show), zeros and negative values, several frames,
     /// frames too near the edge skipped.
     #[test]
     fn the_windowed_correlation_is_the_pixel_by_pixel_one() {
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut rnd = move || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(0x2545_f491_4f6c_dd1d);
+        let mut rnd = move || rng.random::<f64>();
         for trial in 0..6 {
             let (ny, nx) = (90, 80);
             let mut frames = Vec::new();
@@ -273,12 +253,9 @@ mod tests {
             let refs: Vec<(&Array2<f32>, &Array2<u8>)> = frames.iter().map(|(i, m)| (i, m)).collect();
             for (h, search) in [(9, 5), (6, 3)] {
                 let want = reference(&refs, &centres, (0.0, 40.0), h, search).unwrap();
-                let got = eo_offset_by_correlation(&refs, &centres, (0.0, 40.0), h, search).unwrap();
-                assert_eq!(
-                    (got.0.to_bits(), got.1.to_bits()),
-                    (want.0.to_bits(), want.1.to_bits()),
-                    "trial {trial}"
-                );
+                let got = correlation_scores(&refs, &centres, (0.0, 40.0), h, search).unwrap();
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&got), bits(&want), "trial {trial}");
             }
         }
     }
