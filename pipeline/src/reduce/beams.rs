@@ -77,7 +77,7 @@ fn correlation_scores(
         let e = cut(ex0 - hh - search, ey0 - hh - search, eside);
         for sy in 0..n {
             for sx in 0..n {
-                // Summed in the same order as before: rows, then pixels along a row.
+                // Summed in the pixel-by-pixel order: rows, then pixels along a row.
                 let mut acc = 0.0;
                 for j in 0..side {
                     let orow = &o[j * side..(j + 1) * side];
