@@ -40,7 +40,7 @@ use crate::error::{Error, Result};
 pub const MAX_STACK: usize = 32;
 
 /// Pixels processed together per network pass (16 KiB of f32 scratch at N = 32).
-const BLOCK: usize = 128;
+pub(crate) const BLOCK: usize = 128;
 
 /// SIMD lanes handled together by a comparator (two SSE or one AVX register).
 const LANES: usize = 8;
@@ -287,17 +287,26 @@ fn sort_row_blocks<F>(
     net: &Network,
     y: usize,
     nx: usize,
-    mut emit: F,
+    emit: F,
 ) where
     F: FnMut(&[[f32; BLOCK]], &[&[f32]], usize, usize),
 {
     let rows: Vec<&[f32]> = slices.iter().map(|s| &s[y * nx..(y + 1) * nx]).collect();
+    sort_rows(w, &rows, maps, net, nx, emit);
+}
+
+/// [`sort_row_blocks`] of rows given directly (`rows[i]`: frame i's row of `nx` values).
+#[inline]
+fn sort_rows<F>(w: &mut [[f32; BLOCK]], rows: &[&[f32]], maps: &[Affine], net: &Network, nx: usize, mut emit: F)
+where
+    F: FnMut(&[[f32; BLOCK]], &[&[f32]], usize, usize),
+{
     let mut x0 = 0;
     while x0 < nx {
         let len = BLOCK.min(nx - x0);
-        load(w, &rows, maps, x0, len);
+        load(w, rows, maps, x0, len);
         net.run(w, len);
-        emit(w, &rows, x0, len);
+        emit(w, rows, x0, len);
         x0 += len;
     }
 }
@@ -450,7 +459,6 @@ fn loo_kernel<T: Slot>(frames: &[ArrayView2<f32>], maps: &[Affine], outs: Vec<&m
             bands[b].push(chunk);
         }
     }
-    let k = n / 2;
     bands.into_par_iter().enumerate().for_each(|(band, mut chunks)| {
         let mut w = vec![[0f32; BLOCK]; n];
         let rows_here = chunks[0].len() / nx;
@@ -458,30 +466,75 @@ fn loo_kernel<T: Slot>(frames: &[ArrayView2<f32>], maps: &[Affine], outs: Vec<&m
             let y = band * BAND_ROWS + r;
             sort_row_blocks(&mut w, &slices, maps, &net, y, nx, |w, rows, x0, len| {
                 for (i, chunk) in chunks.iter_mut().enumerate() {
-                    let o = &mut chunk[r * nx + x0..r * nx + x0 + len];
-                    let src = &rows[i][x0..x0 + len];
-                    let m = maps[i];
-                    if n % 2 == 1 {
-                        let (lo, md, hi) = (&w[k - 1][..len], &w[k][..len], &w[k + 1][..len]);
-                        for ((((o, &s), &l), &c), &h) in o.iter_mut().zip(src).zip(lo).zip(md).zip(hi) {
-                            let v = m.apply(s);
-                            let below = mid(c, h);
-                            let above = mid(l, c);
-                            let equal = mid(l, h);
-                            let r = if v > c { above } else { equal };
-                            o.put(if v < c { below } else { r });
-                        }
-                    } else {
-                        let (lo, hi) = (&w[k - 1][..len], &w[k][..len]);
-                        for (((o, &s), &l), &h) in o.iter_mut().zip(src).zip(lo).zip(hi) {
-                            let v = m.apply(s);
-                            o.put(if v >= h { l } else { h });
-                        }
-                    }
+                    loo_emit(w, rows[i], maps[i], x0, len, &mut chunk[r * nx + x0..r * nx + x0 + len]);
                 }
             });
         }
     });
+}
+
+/// Frame `i`'s leave-one-out medians of block `[x0, x0+len)` of a row into `o` (`len`
+/// values), from the sorted wires `w` of all frames' mapped values and frame i's own row
+/// `src`: the median of the others is read off the sorted stack by where frame i's value
+/// sits in it.
+#[inline(always)]
+fn loo_emit<T: Slot>(w: &[[f32; BLOCK]], src: &[f32], m: Affine, x0: usize, len: usize, o: &mut [T]) {
+    let n = w.len();
+    let k = n / 2;
+    let src = &src[x0..x0 + len];
+    if n % 2 == 1 {
+        let (lo, md, hi) = (&w[k - 1][..len], &w[k][..len], &w[k + 1][..len]);
+        for ((((o, &s), &l), &c), &h) in o.iter_mut().zip(src).zip(lo).zip(md).zip(hi) {
+            let v = m.apply(s);
+            let below = mid(c, h);
+            let above = mid(l, c);
+            let equal = mid(l, h);
+            let r = if v > c { above } else { equal };
+            o.put(if v < c { below } else { r });
+        }
+    } else {
+        let (lo, hi) = (&w[k - 1][..len], &w[k][..len]);
+        for (((o, &s), &l), &h) in o.iter_mut().zip(src).zip(lo).zip(hi) {
+            let v = m.apply(s);
+            o.put(if v >= h { l } else { h });
+        }
+    }
+}
+
+/// [`leave_one_out_medians_affine`] one row at a time, for a caller that consumes each
+/// row of medians while it is in cache (the sky stage's last pass): the same kernel, the
+/// same numbers.
+pub(crate) struct LooRows<'a> {
+    maps: &'a [Affine],
+    net: Network,
+}
+
+impl<'a> LooRows<'a> {
+    /// For stacks of `maps.len()` frames (2..=[`MAX_STACK`]), mapped by `maps`.
+    pub(crate) fn new(maps: &'a [Affine]) -> LooRows<'a> {
+        let n = maps.len();
+        assert!((2..=MAX_STACK).contains(&n), "leave-one-out medians of {n} frames");
+        LooRows {
+            maps,
+            net: Network::selecting(n, &loo_ranks(n)),
+        }
+    }
+
+    /// Scratch wires for [`LooRows::row`] (one set per thread).
+    pub(crate) fn scratch(&self) -> Vec<[f32; BLOCK]> {
+        vec![[0f32; BLOCK]; self.maps.len()]
+    }
+
+    /// The leave-one-out medians of one row: `rows[i]` is frame i's row (all of one
+    /// length), `outs[i]` receives its medians, every element written.
+    pub(crate) fn row(&self, w: &mut [[f32; BLOCK]], rows: &[&[f32]], outs: &mut [&mut [MaybeUninit<f32>]]) {
+        let nx = rows[0].len();
+        sort_rows(w, rows, self.maps, &self.net, nx, |w, rows, x0, len| {
+            for (i, o) in outs.iter_mut().enumerate() {
+                loo_emit(w, rows[i], self.maps[i], x0, len, &mut o[x0..x0 + len]);
+            }
+        });
+    }
 }
 
 /// Running median along x of every row: `out[y, x]` is the median of

@@ -83,75 +83,109 @@ pub(super) fn cosmic_flags(
     opts: &CosmicOptions,
 ) -> CosmicReport {
     let (ny, nx) = d.dim();
+    let k2 = candidate_threshold(opts);
+    let (ds, vs) = (
+        d.as_slice().expect("standard layout"),
+        var.as_slice().expect("standard layout"),
+    );
+    // Candidates row-parallel, in row-major order.
+    let candidates: Vec<u32> = (0..ny)
+        .into_par_iter()
+        .flat_map_iter(|y| {
+            let row = y * nx..(y + 1) * nx;
+            let mut c = Vec::new();
+            push_candidates(&ds[row.clone()], &vs[row], k2, (y * nx) as u32, &mut c);
+            c.into_iter()
+        })
+        .collect();
+    cosmic_flags_from(d, var, msk, opts, &candidates)
+}
+
+/// The squared threshold of [`push_candidates`] for `opts`.
+pub(super) fn candidate_threshold(opts: &CosmicOptions) -> f32 {
+    let k = opts.sigma_clip as f32;
+    k * k
+}
+
+/// The candidate seeds of one row (data `drow`, variance `vrow`; `first` = the flat index
+/// of its first pixel), appended to `out` in order: value > k sigma (squared, `k2` =
+/// [`candidate_threshold`]: no sqrt), the cheap test that rejects almost every pixel
+/// before the neighbours are read. Branch-free (vectorised) over chunks of the row, then a
+/// scan of the rare candidates only in the chunks that hold one: a per-pixel
+/// `v > 0 && ...` branch mispredicts half the time. The sky stage runs it on each row it
+/// has just written, while the row is in cache.
+#[inline]
+pub(super) fn push_candidates(drow: &[f32], vrow: &[f32], k2: f32, first: u32, out: &mut Vec<u32>) {
+    let mut cand = [0u8; SEED_CHUNK];
+    for (c, (dch, vch)) in drow.chunks(SEED_CHUNK).zip(vrow.chunks(SEED_CHUNK)).enumerate() {
+        for ((o, &v), &vv) in cand.iter_mut().zip(dch).zip(vch) {
+            *o = u8::from(v > 0.0) & u8::from(v * v > k2 * vv);
+        }
+        let cand = &cand[..dch.len()];
+        if cand.iter().fold(0u8, |a, &b| a | b) == 0 {
+            continue;
+        }
+        for (j, _) in cand.iter().enumerate().filter(|(_, &f)| f != 0) {
+            out.push(first + (c * SEED_CHUNK + j) as u32);
+        }
+    }
+}
+
+/// [`cosmic_flags`] from its candidates ([`push_candidates`] over every row, in row-major
+/// order; flat indices): the seed test on each, then the growth.
+pub(super) fn cosmic_flags_from(
+    d: &Array2<f32>,
+    var: &ndarray::ArrayView2<f32>,
+    msk: &mut Array2<u8>,
+    opts: &CosmicOptions,
+    candidates: &[u32],
+) -> CosmicReport {
+    let (ny, nx) = d.dim();
     let (k, r) = (opts.sigma_clip as f32, opts.sharpness_ratio as f32);
-    let k2 = k * k;
     let mk: &Array2<u8> = msk;
     let (ds, vs, ms) = (
         d.as_slice().expect("standard layout"),
         var.as_slice().expect("standard layout"),
         mk.as_slice().expect("standard layout"),
     );
-    // Seeds, row-parallel. The cheap test (value > k sigma, squared: no sqrt) rejects
-    // almost every pixel before the neighbours are read.
-    let seeds: Vec<(usize, usize)> = (0..ny)
-        .into_par_iter()
-        .flat_map_iter(|y| {
-            let row = y * nx..(y + 1) * nx;
-            let (drow, vrow) = (&ds[row.clone()], &vs[row]);
-            let mut hits = Vec::new();
-            // The seed test of one candidate pixel x of row y.
-            let seed = |x: usize| {
-                let (v, vv) = (drow[x], vrow[x]);
-                let i = y * nx + x;
-                if ms[i] & CR_SKIP != 0 {
-                    return false;
-                }
-                let (mut sum, mut cnt) = (0f32, 0u32);
-                let mut add = |j: usize| {
-                    if ms[j] & CR_SKIP == 0 {
-                        sum += ds[j];
-                        cnt += 1;
-                    }
-                };
-                if y > 0 {
-                    add(i - nx);
-                }
-                if y + 1 < ny {
-                    add(i + nx);
-                }
-                if x > 0 {
-                    add(i - 1);
-                }
-                if x + 1 < nx {
-                    add(i + 1);
-                }
-                if cnt == 0 {
-                    return false;
-                }
-                let mean4 = (sum / cnt as f32).max(0.0);
-                v - r * mean4 > k * vv.max(0.0).sqrt()
-            };
-            // Candidate flags in a branch-free (vectorised) pass over chunks of the row,
-            // then a scan of the rare candidates, only in the chunks that hold one: a
-            // per-pixel `v > 0 && ...` branch mispredicts half the time.
-            let mut cand = [0u8; SEED_CHUNK];
-            for (c, (dch, vch)) in drow.chunks(SEED_CHUNK).zip(vrow.chunks(SEED_CHUNK)).enumerate() {
-                for ((o, &v), &vv) in cand.iter_mut().zip(dch).zip(vch) {
-                    *o = u8::from(v > 0.0) & u8::from(v * v > k2 * vv);
-                }
-                let cand = &cand[..dch.len()];
-                if cand.iter().fold(0u8, |a, &b| a | b) == 0 {
-                    continue;
-                }
-                for (j, _) in cand.iter().enumerate().filter(|(_, &f)| f != 0) {
-                    let x = c * SEED_CHUNK + j;
-                    if seed(x) {
-                        hits.push((y, x));
-                    }
-                }
+    // The seed test of one candidate pixel: unmasked, and above k sigma over `r` times
+    // the mean of its usable 4-neighbours.
+    let seed = |i: usize| {
+        let (y, x) = (i / nx, i % nx);
+        let (v, vv) = (ds[i], vs[i]);
+        if ms[i] & CR_SKIP != 0 {
+            return false;
+        }
+        let (mut sum, mut cnt) = (0f32, 0u32);
+        let mut add = |j: usize| {
+            if ms[j] & CR_SKIP == 0 {
+                sum += ds[j];
+                cnt += 1;
             }
-            hits.into_iter()
-        })
+        };
+        if y > 0 {
+            add(i - nx);
+        }
+        if y + 1 < ny {
+            add(i + nx);
+        }
+        if x > 0 {
+            add(i - 1);
+        }
+        if x + 1 < nx {
+            add(i + 1);
+        }
+        if cnt == 0 {
+            return false;
+        }
+        let mean4 = (sum / cnt as f32).max(0.0);
+        v - r * mean4 > k * vv.max(0.0).sqrt()
+    };
+    let seeds: Vec<(usize, usize)> = candidates
+        .iter()
+        .map(|&i| i as usize)
+        .filter(|&i| seed(i))
+        .map(|i| (i / nx, i % nx))
         .collect();
     for &(y, x) in &seeds {
         msk[[y, x]] |= mask::COSMIC;

@@ -25,11 +25,17 @@
 //! orientation row block by row block, the flat's rows read once for all of them):
 //! data = (raw - sky) / flat, variance / flat^2 plus the flat's noise on the signal
 //! ([`crate::flat::FlatRows`]; the same reduction as dividing the raw frames first, for
-//! the default multiplicative scaling).
+//! the default multiplicative scaling). With the default estimator (the plain median of
+//! the other dithers) that pass computes the leave-one-out medians itself, a row block at a
+//! time while the raw rows are in cache, instead of writing whole sky frames out and
+//! reading them back (the same numbers; test `the_fused_sky_pass_matches_the_two_pass_stage`),
+//! and it collects the cosmic-ray candidates of each row it has just written.
 //!
 //! [`flag_cosmic_rays`] then marks sharp positive outliers of the sky-subtracted frame
 //! (outliers in time, because the sky is the other dithers, *and* in space, because they
 //! are much sharper than the PSF) with [`mask::COSMIC`].
+use std::mem::MaybeUninit;
+
 use ndarray::{Array2, ArrayView2};
 use rayon::prelude::*;
 
@@ -451,7 +457,15 @@ pub fn sky_subtract_flat(
         .iter()
         .map(|&nd| ((1.0 / det.effective_gain(nd)) as f32, det.read_variance_adu2(nd) as f32))
         .collect();
-    let (skies, counts) = {
+    // The plain leave-one-out median (the default) is computed inside the last pass, a
+    // row block at a time, while the raw rows are in cache (the same numbers as computing
+    // it first); the other estimators first, over whole frames.
+    let fused = opts.estimator == SkyEstimator::Median && !opts.mask_sources;
+    #[cfg(test)]
+    let fused = fused && !UNFUSED_ONLY.load(std::sync::atomic::Ordering::Relaxed);
+    let (skies, counts) = if fused {
+        (SkySource::Loo(stack::LooRows::new(&maps)), vec![None; n])
+    } else {
         let views: Vec<ArrayView2<f32>> = frames.iter().map(|f| f.data.view()).collect();
         let ctx = estimate::Ctx {
             frames: &views,
@@ -460,7 +474,8 @@ pub fn sky_subtract_flat(
             noise: &noise,
             opts,
         };
-        estimate::skies(&ctx)?
+        let (skies, counts) = estimate::skies(&ctx)?;
+        (SkySource::Given(skies), counts)
     };
     let m = n - 1;
     let c = estimate::variance_factor(opts.estimator, m);
@@ -473,6 +488,7 @@ pub fn sky_subtract_flat(
         nonlin: det.nonlinear_warn_adu as f32,
         c_over_m: (c / m as f64) as f32,
         c_over_count: estimate::c_over_count_table(opts.estimator),
+        cosmic_k2: opts.cosmic().map(cosmic::candidate_threshold),
     };
     let has_vin: Vec<bool> = frames.iter().map(|f| f.variance.is_some()).collect();
     let inp = FinishInputs {
@@ -482,10 +498,10 @@ pub fn sky_subtract_flat(
         names: &names,
         flat,
     };
-    let done = fin.frames(frames, skies, &inp)?;
+    let (done, candidates) = fin.frames(frames, skies, &inp)?;
     let mut out = Vec::with_capacity(n);
     let mut cosmic = Vec::new();
-    for (i, mut frame) in done.into_iter().enumerate() {
+    for (i, (mut frame, candidates)) in done.into_iter().zip(candidates).enumerate() {
         let (has_vin, ndit) = (has_vin[i], ndits[i]);
         let others: Vec<&str> = (0..n).filter(|&j| j != i).map(|j| names[j].as_str()).collect();
         let detail = format!(
@@ -508,7 +524,7 @@ pub fn sky_subtract_flat(
         frame.history.push(crate::frame::HistoryRecord::new("sky", detail));
         if let Some(co) = opts.cosmic() {
             let var = frame.variance.as_ref().expect("set by the sky stage");
-            let rep = cosmic_flags(&frame.data, &var.view(), &mut frame.mask, co);
+            let rep = cosmic_flags_from(&frame.data, &var.view(), &mut frame.mask, co, &candidates);
             frame.history.push(cosmic_record(co, &rep));
             cosmic.push(rep);
         }
@@ -598,6 +614,78 @@ fn check_inputs(frames: &[Frame], profile: &Profile, opts: &SkyOptions) -> Resul
     Ok(())
 }
 
+/// Where the last pass ([`Finish::frames`]) gets each frame's level-normalized sky.
+enum SkySource<'a> {
+    /// Estimated before, over whole frames.
+    Given(Vec<Array2<f32>>),
+    /// The leave-one-out medians, computed by the pass itself row by row.
+    Loo(stack::LooRows<'a>),
+}
+
+/// A frame's sky buffer in [`Finish::frames`] (it becomes the frame's data): the given
+/// sky, or fresh storage (not zeroed: the leave-one-out medians write every element first).
+enum SkyBuf {
+    Given(Array2<f32>),
+    Fresh(Vec<f32>),
+}
+
+/// A frame's sky rows of one block: estimated already, or storage the leave-one-out
+/// medians are written to first.
+enum SkyRows<'a> {
+    Ready(&'a mut [f32]),
+    Fresh(&'a mut [MaybeUninit<f32>]),
+}
+
+/// One frame's rows of one block in [`Finish::frames`], before its sky rows are ready.
+struct BlockRows<'a> {
+    sky: SkyRows<'a>,
+    raw: &'a mut [f32],
+    mask: &'a mut [u8],
+    vin: Option<&'a mut [f32]>,
+    count: Option<&'a [u8]>,
+}
+
+impl<'a> BlockRows<'a> {
+    /// The leave-one-out medians of the block's rows (`nx` each) into the `Fresh` sky rows
+    /// of every frame (from the frames' raw rows, read before the pass overwrites them),
+    /// then the rows for [`Finish::block`].
+    fn ready(rows: Vec<BlockRows<'a>>, nx: usize, loo: Option<&stack::LooRows>, w: &mut [[f32; stack::BLOCK]]) -> Vec<Rows<'a>> {
+        let mut rows = rows;
+        if let Some(loo) = loo {
+            let nrows = rows[0].raw.len() / nx;
+            for r in 0..nrows {
+                let span = r * nx..(r + 1) * nx;
+                let mut raws: Vec<&[f32]> = Vec::with_capacity(rows.len());
+                let mut outs: Vec<&mut [MaybeUninit<f32>]> = Vec::with_capacity(rows.len());
+                for BlockRows { sky, raw, .. } in rows.iter_mut() {
+                    raws.push(&raw[span.clone()]);
+                    match sky {
+                        SkyRows::Fresh(o) => outs.push(&mut o[span.clone()]),
+                        SkyRows::Ready(_) => unreachable!("leave-one-out rows are fresh storage"),
+                    }
+                }
+                loo.row(w, &raws, &mut outs);
+            }
+        }
+        rows.into_iter()
+            .map(|b| Rows {
+                sky: match b.sky {
+                    SkyRows::Ready(s) => s,
+                    // SAFETY: `Fresh` rows exist only with `loo`, whose `row` wrote every
+                    // element of every row of the block just above (LooRows::row writes all
+                    // `nx` values of each output); MaybeUninit<f32> has f32's layout.
+                    #[allow(unsafe_code)]
+                    SkyRows::Fresh(o) => unsafe { &mut *(o as *mut [MaybeUninit<f32>] as *mut [f32]) },
+                },
+                raw: b.raw,
+                mask: b.mask,
+                vin: b.vin,
+                count: b.count,
+            })
+            .collect()
+    }
+}
+
 /// One frame's rows of one block in [`Finish::frames`].
 struct Rows<'a> {
     sky: &'a mut [f32],
@@ -621,6 +709,12 @@ struct FinishInputs<'a> {
 #[cfg(test)]
 pub(crate) static BASELINE_ONLY: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
 
+/// Tests: compute the leave-one-out medians over whole frames before the last pass, as
+/// the other estimators are (the reference the fused pass is compared with; both give the
+/// same numbers, so other tests running meanwhile are not affected).
+#[cfg(test)]
+pub(crate) static UNFUSED_ONLY: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
 /// The last pass of the sky stage, shared by every frame of an orientation.
 struct Finish {
     scaling: SkyScaling,
@@ -631,47 +725,65 @@ struct Finish {
     c_over_m: f32,
     /// c(k)/k by the number k of dithers in a pixel's sky (source-masked pass).
     c_over_count: [f32; stack::MAX_STACK + 1],
+    /// With cosmic-ray flagging: the squared threshold of its candidate test, run on each
+    /// row as it is written ([`cosmic::push_candidates`]).
+    cosmic_k2: Option<f32>,
 }
 
 impl Finish {
     /// One pass over the frames of an orientation, in their own buffers, row block by row
     /// block in parallel (all frames of a block together, so that the flat's rows are read
-    /// once for all of them): sky <- level-scaled estimate, data = raw - sky (in the sky's
+    /// once for all of them and, with [`SkySource::Loo`], the block's leave-one-out medians
+    /// are computed first from the raw rows): sky <- level-scaled estimate, data = raw - sky (in the sky's
     /// buffer), the variance in the input's variance map or else in the raw data's buffer,
     /// mask bits alongside, then the flat divided out when there is one. Counts non-finite
     /// inputs, which the medians cannot handle (checked here rather than in a separate
-    /// pass): an error names the first frame holding any.
-    fn frames(&self, frames: Vec<Frame>, skies: Vec<Array2<f32>>, inp: &FinishInputs) -> Result<Vec<Frame>> {
+    /// pass): an error names the first frame holding any. Returns with each frame its
+    /// cosmic-ray candidates (flat indices in row-major order; empty without
+    /// `cosmic_k2`).
+    fn frames(&self, frames: Vec<Frame>, skies: SkySource, inp: &FinishInputs) -> Result<(Vec<Frame>, Vec<Vec<u32>>)> {
         /// Rows per parallel task.
         const BLOCK: usize = 4;
         let n = frames.len();
         let (ny, nx) = frames[0].shape();
-        let mut parts: Vec<(Frame, Array2<f32>, Array2<f32>, Option<Array2<f32>>)> = frames
+        let len = ny * nx;
+        // Each frame's sky buffer, which becomes its data: the given sky, or fresh storage
+        // (not zeroed: the leave-one-out medians write every element first).
+        let (given, loo) = match skies {
+            SkySource::Given(g) => (Some(g), None),
+            SkySource::Loo(l) => (None, Some(l)),
+        };
+        let mut given = given.map(|g| g.into_iter().map(standard));
+        let mut parts: Vec<(Frame, Array2<f32>, SkyBuf, Option<Array2<f32>>)> = frames
             .into_iter()
-            .zip(skies)
-            .map(|(mut f, sky)| {
+            .map(|mut f| {
                 let raw = standard(std::mem::take(&mut f.data));
                 f.mask = standard(std::mem::take(&mut f.mask));
                 let vin = f.variance.take().map(standard);
-                (f, raw, standard(sky), vin)
+                let sky = match given.as_mut().and_then(|g| g.next()) {
+                    Some(s) => SkyBuf::Given(s),
+                    None => SkyBuf::Fresh(Vec::with_capacity(len)),
+                };
+                (f, raw, sky, vin)
             })
             .collect();
         let chunk = BLOCK * nx;
         // blocks[b][i]: frame i's rows of block b.
-        let mut blocks: Vec<Vec<Rows>> = (0..ny.div_ceil(BLOCK)).map(|_| Vec::with_capacity(n)).collect();
+        let mut blocks: Vec<Vec<BlockRows>> = (0..ny.div_ceil(BLOCK)).map(|_| Vec::with_capacity(n)).collect();
         for (i, (f, raw, sky, vin)) in parts.iter_mut().enumerate() {
             let cnt = inp.counts[i].as_ref().map(|c| c.as_slice().expect("standard layout"));
             let mut vin = vin
                 .as_mut()
                 .map(|v| v.as_slice_mut().expect("standard layout").chunks_mut(chunk));
-            let it = sky
-                .as_slice_mut()
-                .expect("standard layout")
-                .chunks_mut(chunk)
+            let skies: Box<dyn Iterator<Item = SkyRows>> = match sky {
+                SkyBuf::Given(s) => Box::new(s.as_slice_mut().expect("standard layout").chunks_mut(chunk).map(SkyRows::Ready)),
+                SkyBuf::Fresh(v) => Box::new(v.spare_capacity_mut()[..len].chunks_mut(chunk).map(SkyRows::Fresh)),
+            };
+            let it = skies
                 .zip(raw.as_slice_mut().expect("standard layout").chunks_mut(chunk))
                 .zip(f.mask.as_slice_mut().expect("standard layout").chunks_mut(chunk));
             for (b, ((s, r), m)) in it.enumerate() {
-                blocks[b].push(Rows {
+                blocks[b].push(BlockRows {
                     sky: s,
                     raw: r,
                     mask: m,
@@ -680,21 +792,29 @@ impl Finish {
                 });
             }
         }
-        let nonfinite: Vec<usize> = blocks
+        // Per block (in order): non-finite counts and cosmic-ray candidates per frame.
+        let per_block: Vec<(Vec<usize>, Vec<Vec<u32>>)> = blocks
             .into_par_iter()
             .enumerate()
-            .map(|(b, mut rows)| {
-                let mut out = vec![0usize; n];
-                self.block(b * BLOCK, nx, &mut rows, inp, &mut out);
-                out
-            })
-            .reduce(
-                || vec![0; n],
-                |mut a, b| {
-                    a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
-                    a
+            .map_init(
+                || loo.as_ref().map(|l| l.scratch()).unwrap_or_default(),
+                |w, (b, rows)| {
+                    let mut rows = BlockRows::ready(rows, nx, loo.as_ref(), w);
+                    let mut out = vec![0usize; n];
+                    let mut cand = vec![Vec::new(); n];
+                    self.block(b * BLOCK, nx, &mut rows, inp, &mut out, &mut cand);
+                    (out, cand)
                 },
-            );
+            )
+            .collect();
+        let mut nonfinite = vec![0usize; n];
+        let mut candidates: Vec<Vec<u32>> = vec![Vec::new(); n];
+        for (counts, cands) in per_block {
+            for (i, (c, cd)) in counts.into_iter().zip(cands).enumerate() {
+                nonfinite[i] += c;
+                candidates[i].extend(cd);
+            }
+        }
         if let Some(i) = nonfinite.iter().position(|&c| c > 0) {
             return Err(Error::Stage {
                 stage: "sky",
@@ -704,47 +824,60 @@ impl Finish {
                 ),
             });
         }
-        Ok(parts
+        let frames = parts
             .into_iter()
             .map(|(mut f, raw, sky, vin)| {
-                f.data = sky;
+                f.data = match sky {
+                    SkyBuf::Given(s) => s,
+                    SkyBuf::Fresh(mut v) => {
+                        // SAFETY: the capacity is `len` and every block wrote its rows of
+                        // this buffer (BlockRows::ready: all `nx` values of each row), the
+                        // blocks covering all `ny` rows; an error or panic never gets here.
+                        #[allow(unsafe_code)]
+                        unsafe {
+                            v.set_len(len)
+                        };
+                        Array2::from_shape_vec((ny, nx), v).expect("ny x nx elements")
+                    }
+                };
                 f.variance = Some(vin.unwrap_or(raw));
                 if let Some(fl) = inp.flat {
                     f.history.push(fl.history());
                 }
                 f
             })
-            .collect())
+            .collect();
+        Ok((frames, candidates))
     }
 
     /// The rows of one block (first row `y0`) of every frame, with the widest vectors this
     /// CPU has (AVX2 or the SSE2 baseline: the same operations, the same numbers).
-    fn block(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, out: &mut [usize]) {
+    fn block(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, out: &mut [usize], cand: &mut [Vec<u32>]) {
         #[cfg(test)]
         if BASELINE_ONLY.load(std::sync::atomic::Ordering::Relaxed) {
-            return self.block_generic(y0, nx, rows, inp, out);
+            return self.block_generic(y0, nx, rows, inp, out, cand);
         }
         #[cfg(target_arch = "x86_64")]
         {
             if std::arch::is_x86_feature_detected!("avx2") {
                 // SAFETY: the CPU supports AVX2 (checked just above); the only unsafe operation here.
                 #[allow(unsafe_code)]
-                return unsafe { self.block_avx2(y0, nx, rows, inp, out) };
+                return unsafe { self.block_avx2(y0, nx, rows, inp, out, cand) };
             }
         }
-        self.block_generic(y0, nx, rows, inp, out)
+        self.block_generic(y0, nx, rows, inp, out, cand)
     }
 
     /// [`Finish::block_generic`] compiled for AVX2.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    fn block_avx2(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, out: &mut [usize]) {
-        self.block_generic(y0, nx, rows, inp, out)
+    fn block_avx2(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, out: &mut [usize], cand: &mut [Vec<u32>]) {
+        self.block_generic(y0, nx, rows, inp, out, cand)
     }
 
     /// See [`Finish::block`].
     #[inline(always)]
-    fn block_generic(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, out: &mut [usize]) {
+    fn block_generic(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, out: &mut [usize], cand: &mut [Vec<u32>]) {
         for r in 0..rows[0].sky.len() / nx {
             let y = y0 + r;
             let span = r * nx..(r + 1) * nx;
@@ -761,6 +894,14 @@ impl Finish {
                     None => self.row::<false>(y, srow, rrow, mrow, vrow, cnt, px, None),
                     Some(fl) => self.row::<true>(y, srow, rrow, mrow, vrow, cnt, px, Some(fl.row(y))),
                 };
+                if let Some(k2) = self.cosmic_k2 {
+                    // The row's final data and variance, still in cache.
+                    let var: &[f32] = match fr.vin.as_deref() {
+                        Some(v) => &v[span.clone()],
+                        None => &fr.raw[span.clone()],
+                    };
+                    cosmic::push_candidates(&fr.sky[span.clone()], var, k2, (y * nx) as u32, &mut cand[i]);
+                }
             }
         }
     }
@@ -870,7 +1011,9 @@ mod cosmic;
 mod estimate;
 
 pub use cosmic::flag_cosmic_rays;
-use cosmic::{check_cosmic_options, cosmic_flags, cosmic_record};
+#[cfg(test)]
+use cosmic::cosmic_flags;
+use cosmic::{check_cosmic_options, cosmic_flags_from, cosmic_record};
 
 #[cfg(test)]
 mod tests;

@@ -381,3 +381,102 @@ fn sky_options_are_checked_and_defaults_are_not_written() {
     assert_eq!(o.estimator, SkyEstimator::ClippedMean);
     assert!(o.mask_sources && o.cosmic_rays.is_some());
 }
+
+/// The default sky stage computes the leave-one-out medians inside its last pass, row
+/// block by row block, and takes the cosmic-ray candidates from the rows it has just
+/// written. Both must give what the two-pass stage gives (medians over whole frames first;
+/// cosmic rays flagged afterwards by a scan of every pixel), bit for bit: for 2 to 6
+/// dithers (odd and even medians), both scalings, with and without a flat (with an unusable
+/// pixel), with an input variance map in one frame, bad pixels, a star, cosmic-ray hits and
+/// thresholds low enough to flag noise peaks near them.
+#[test]
+fn the_fused_sky_pass_matches_the_two_pass_stage() {
+    use crate::flat::{Flat, FlatKind, FlatRows};
+    use std::sync::atomic::Ordering;
+    let p = Profile::sofi();
+    let (ny, nx) = (1024, 64);
+    let mut g = Gauss(4242);
+    let flat = Flat {
+        data: Array2::from_shape_fn((ny, nx), |(y, x)| 1.0 + 0.02 * (((y * 31 + x * 17) % 13) as f32 / 6.0 - 1.0)),
+        variance: Array2::from_elem((ny, nx), 1e-4),
+        bad: Array2::from_shape_fn((ny, nx), |(y, x)| u8::from(y == 400 && x == 10)),
+        kind: FlatKind::Superflat,
+        posang_deg: None,
+        filter: None,
+        sources: vec![],
+        detail: String::new(),
+        path: None,
+    };
+    let fr = FlatRows::new(&flat, 0, ny);
+    let mut compared = 0;
+    for n in 2..=6usize {
+        let levels: Vec<f32> = (0..n).map(|i| 900.0 + 40.0 * i as f32).collect();
+        let mut frames = noisy_frames(&levels, 6.0, 77 + n as u64);
+        for (i, f) in frames.iter_mut().enumerate() {
+            let sx = 8.0 + 10.0 * i as f32;
+            for y in 380..420 {
+                for x in 0..nx {
+                    let r2 = (x as f32 - sx).powi(2) + (y as f32 - 400.0).powi(2);
+                    f.data[[y, x]] += 4000.0 * (-r2 / 4.5).exp();
+                }
+            }
+            // Cosmic-ray hits: a single pixel and a two-pixel track.
+            let (cy, cx) = (350 + 37 * i, 5 + 9 * i % 50);
+            f.data[[cy, cx]] += 3000.0;
+            f.data[[cy + 200, cx + 3]] += 2500.0;
+            f.data[[cy + 200, cx + 4]] += 2000.0;
+            for _ in 0..20 {
+                let (y, x) = ((g.u() * ny as f64) as usize, (g.u() * nx as f64) as usize);
+                f.mask[[y, x]] |= mask::BAD;
+            }
+        }
+        frames[n - 1].variance = Some(Array2::from_shape_fn((ny, nx), |_| (4.0 + g.u()) as f32));
+        for scaling in [SkyScaling::Multiplicative, SkyScaling::Additive] {
+            for with_flat in [false, true] {
+                // Thresholds low enough that noise peaks near them are flagged too.
+                let opts = SkyOptions {
+                    scaling,
+                    cosmic_rays: Some(CosmicOptions {
+                        sigma_clip: 2.5,
+                        sharpness_ratio: 0.5,
+                        ..CosmicOptions::default()
+                    }),
+                    ..SkyOptions::default()
+                };
+                let run = |opts: &SkyOptions, unfused: bool| {
+                    UNFUSED_ONLY.store(unfused, Ordering::Relaxed);
+                    let out = sky_subtract_flat(frames.clone(), &p, opts, with_flat.then_some(&fr));
+                    UNFUSED_ONLY.store(false, Ordering::Relaxed);
+                    out.unwrap()
+                };
+                let (fused, rep) = run(&opts, false);
+                let (two_pass, rep2) = run(&opts, true);
+                // Cosmic rays flagged afterwards by the whole-frame scan.
+                let plain = SkyOptions {
+                    cosmic_rays: None,
+                    ..opts.clone()
+                };
+                let (unflagged, _) = run(&plain, false);
+                let what = format!("{n} dithers, {scaling:?}, flat {with_flat}");
+                let mut flagged = 0;
+                for ((a, b), c) in fused.iter().zip(&two_pass).zip(&unflagged) {
+                    let bits = |v: &Array2<f32>| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                    assert!(bits(&a.data) == bits(&b.data), "{what}: data differ");
+                    assert!(
+                        bits(a.variance.as_ref().unwrap()) == bits(b.variance.as_ref().unwrap()),
+                        "{what}: variance differs"
+                    );
+                    assert_eq!(a.mask, b.mask, "{what}");
+                    let (scanned, _) = flag_cosmic_rays(c, opts.cosmic().unwrap()).unwrap();
+                    assert_eq!(a.mask, scanned.mask, "{what}: cosmic-ray flags differ from the scan's");
+                    flagged += a.mask.iter().filter(|&&m| m & mask::COSMIC != 0).count();
+                    compared += 1;
+                }
+                assert_eq!(rep.cosmic, rep2.cosmic, "{what}");
+                // The hits and noise peaks are found (not two empty masks compared).
+                assert!(flagged >= 50 * n, "{what}: {flagged} cosmic-ray pixels");
+            }
+        }
+    }
+    assert_eq!(compared, 4 * (2..=6).sum::<usize>());
+}

@@ -34,17 +34,9 @@ pub fn brightest_peak(
             return brightest_peak_scan(img, mask, x0, y0, radius, rows);
         };
         let cols = (w.x_lo - 1) as usize..=(w.x_hi + 1) as usize;
-        // Branch-free (vectorised): the largest unmasked value, and whether any is not finite.
-        let mut m = f32::NEG_INFINITY;
-        let mut exp_all_ones = 0u32;
-        for (&v, &k) in vals[cols.clone()].iter().zip(&ms[cols]) {
-            exp_all_ones |= u32::from(v.to_bits() & 0x7f80_0000 == 0x7f80_0000);
-            let c = if k == 0 { v } else { f32::NEG_INFINITY };
-            m = if c > m { c } else { m };
-        }
-        if exp_all_ones != 0 {
+        let Some(m) = unmasked_max(&vals[cols.clone()], &ms[cols]) else {
             return brightest_peak_scan(img, mask, x0, y0, radius, rows);
-        }
+        };
         row_max.push(m);
     }
     let mut order: Vec<(f32, i64)> = (w.y_lo..=w.y_hi)
@@ -73,6 +65,37 @@ pub fn brightest_peak(
         }
     }
     best
+}
+
+/// The largest of `vals` where `mask` is 0 (-inf when there is none), or None when any
+/// value is not finite. Branch-free, in 16 independent lanes: one running maximum would
+/// chain every compare-and-select on the previous one (a float reduction the compiler may
+/// not reorder), at a few cycles a pixel over whole strips. The maximum of finite values
+/// does not depend on the order they are compared in.
+#[inline]
+fn unmasked_max(vals: &[f32], mask: &[u8]) -> Option<f32> {
+    const L: usize = 16;
+    let mut lanes = [f32::NEG_INFINITY; L];
+    let mut exp_all_ones = [0u32; L];
+    let mut fold = |lane: usize, v: f32, k: u8| {
+        exp_all_ones[lane] |= u32::from(v.to_bits() & 0x7f80_0000 == 0x7f80_0000);
+        let c = if k == 0 { v } else { f32::NEG_INFINITY };
+        lanes[lane] = if c > lanes[lane] { c } else { lanes[lane] };
+    };
+    let (vc, mc) = (vals.chunks_exact(L), mask.chunks_exact(L));
+    let (vr, mr) = (vc.remainder(), mc.remainder());
+    for (v, k) in vc.zip(mc) {
+        for j in 0..L {
+            fold(j, v[j], k[j]);
+        }
+    }
+    for (j, (&v, &k)) in vr.iter().zip(mr).enumerate() {
+        fold(j, v, k);
+    }
+    if exp_all_ones.iter().any(|&e| e != 0) {
+        return None;
+    }
+    Some(lanes.iter().fold(f32::NEG_INFINITY, |m, &c| if c > m { c } else { m }))
 }
 
 /// The candidate box centres of [`brightest_peak`].
