@@ -95,59 +95,71 @@ impl PlainImage {
         let bytes = n * nx * width;
         let offset = self.start + (r0 * nx * width) as u64;
         RAW.with_borrow_mut(|raw| {
-            raw.resize(bytes, 0);
             let io = |source: std::io::Error| Error::Io {
                 path: path.to_path_buf(),
                 source,
             };
             let mut file = std::fs::File::open(path).map_err(io)?;
             file.seek(SeekFrom::Start(offset)).map_err(io)?;
-            file.read_exact(raw).map_err(|e| match e.kind() {
-                std::io::ErrorKind::UnexpectedEof => Error::Fits {
-                    path: path.to_path_buf(),
-                    message: format!(
-                        "reading rows [{r0}, {}): the file ends inside the image data (is the file truncated?)",
-                        r0 + n
-                    ),
-                },
-                _ => io(e),
-            })?;
+            // Read and converted a piece at a time: each piece is converted while it is
+            // still in the cache the read copied it to.
+            let piece = READ_PIECE_PX * width;
+            raw.resize(piece.min(bytes), 0);
             let mut out = Vec::with_capacity(n * nx);
-            let summary = convert(raw, self.bitpix, self.scale, self.zero, &mut out);
-            Ok((to_array(out, n, nx, path)?, summary))
+            let mut lanes = SummaryLanes::new();
+            let mut done = 0;
+            while done < bytes {
+                let len = piece.min(bytes - done);
+                file.read_exact(&mut raw[..len]).map_err(|e| match e.kind() {
+                    std::io::ErrorKind::UnexpectedEof => Error::Fits {
+                        path: path.to_path_buf(),
+                        message: format!(
+                            "reading rows [{r0}, {}): the file ends inside the image data (is the file truncated?)",
+                            r0 + n
+                        ),
+                    },
+                    _ => io(e),
+                })?;
+                convert(&raw[..len], self.bitpix, self.scale, self.zero, &mut out, &mut lanes);
+                done += len;
+            }
+            Ok((to_array(out, n, nx, path)?, lanes.finish()))
         })
     }
 }
 
+/// Pixels per conversion block (16 kB of output).
+const BLOCK: usize = 4096;
+/// Pixels read per `read` call of [`PlainImage::read_rows`] (a whole number of blocks, so
+/// that the blocks and their summaries are those of one conversion of the whole range).
+const READ_PIECE_PX: usize = 8 * BLOCK;
+
 /// The raw bytes `raw` of pixel type `bitpix` (16 or -32) as `f32` appended to `out`, and
-/// their summary, taken block by block as they are converted (the block is still in the
-/// first-level cache). Compiled for AVX2 when the CPU has it (byte shuffles); the same
-/// numbers either way.
-fn convert(raw: &[u8], bitpix: i64, scale: f64, zero: f64, out: &mut Vec<f32>) -> PixelSummary {
+/// their summary added to `lanes`, taken block by block as they are converted (the block
+/// is still in the first-level cache). Compiled for AVX2 when the CPU has it (byte
+/// shuffles); the same numbers either way.
+fn convert(raw: &[u8], bitpix: i64, scale: f64, zero: f64, out: &mut Vec<f32>, lanes: &mut SummaryLanes) {
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU supports AVX2 (checked just above).
             #[allow(unsafe_code)]
-            return unsafe { convert_avx2(raw, bitpix, scale, zero, out) };
+            return unsafe { convert_avx2(raw, bitpix, scale, zero, out, lanes) };
         }
     }
-    convert_generic(raw, bitpix, scale, zero, out)
+    convert_generic(raw, bitpix, scale, zero, out, lanes)
 }
 
 /// [`convert_generic`] compiled for AVX2.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn convert_avx2(raw: &[u8], bitpix: i64, scale: f64, zero: f64, out: &mut Vec<f32>) -> PixelSummary {
-    convert_generic(raw, bitpix, scale, zero, out)
+fn convert_avx2(raw: &[u8], bitpix: i64, scale: f64, zero: f64, out: &mut Vec<f32>, lanes: &mut SummaryLanes) {
+    convert_generic(raw, bitpix, scale, zero, out, lanes)
 }
 
 #[inline(always)]
-fn convert_generic(raw: &[u8], bitpix: i64, scale: f64, zero: f64, out: &mut Vec<f32>) -> PixelSummary {
-    /// Pixels per block (16 kB of output).
-    const BLOCK: usize = 4096;
+fn convert_generic(raw: &[u8], bitpix: i64, scale: f64, zero: f64, out: &mut Vec<f32>, lanes: &mut SummaryLanes) {
     let width = if bitpix == 16 { 2 } else { 4 };
-    let mut lanes = SummaryLanes::new();
     for block in raw.chunks(BLOCK * width) {
         let start = out.len();
         if bitpix == 16 {
@@ -157,7 +169,6 @@ fn convert_generic(raw: &[u8], bitpix: i64, scale: f64, zero: f64, out: &mut Vec
         }
         lanes.add(&out[start..]);
     }
-    lanes.finish()
 }
 
 /// Big-endian 16-bit integers to `f32`, `(float)(v * scale + zero)` as cfitsio computes
@@ -273,7 +284,9 @@ mod tests {
     #[test]
     fn plain_reads_equal_cfitsio_reads() {
         let dir = tempfile::tempdir().unwrap();
-        let (nx, ny) = (37, 23);
+        // More pixels than two read pieces (READ_PIECE_PX), not a whole number of them.
+        let (nx, ny) = (301, 233);
+        assert!(nx * ny > 2 * READ_PIECE_PX && (nx * ny) % READ_PIECE_PX != 0);
         let mut rng = Rng::seed_from_u64(0x9e37_79b9_7f4a_7c15);
         let scalings: &[&[&str]] = &[
             &[],
@@ -303,7 +316,7 @@ mod tests {
                 // Which keyword forms this module reads itself (the others go to cfitsio).
                 let cards = super::super::read::hdu_cards(&mut f, &path, 0).unwrap().unwrap();
                 n_plain += plain_image(&mut f, &path, 0, &cards).unwrap().is_some() as usize;
-                for rows in [None, Some((0, ny)), Some((3, 17)), Some((ny - 1, ny))] {
+                for rows in [None, Some((0, ny)), Some((3, 17)), Some((3, 150)), Some((ny - 1, ny))] {
                     let (r0, n) = rows.map_or((0, ny), |(a, b)| (a, b - a));
                     let want: Vec<f32> = hdu.read_rows(&mut f, r0, n).unwrap();
                     assert_eq!(bits(&want), bits(&whole[r0 * nx..(r0 + n) * nx]));
@@ -377,8 +390,10 @@ mod tests {
                 let raw = pixels(bitpix, n, &mut rng);
                 for (scale, zero) in [(1.0, 0.0), (1.0, 32768.0), (2.5, -17.25), (1.0, 0.5)] {
                     let (mut a, mut b) = (Vec::new(), Vec::new());
-                    let sa = convert(&raw, bitpix, scale, zero, &mut a);
-                    let sb = convert_generic(&raw, bitpix, scale, zero, &mut b);
+                    let (mut la, mut lb) = (SummaryLanes::new(), SummaryLanes::new());
+                    convert(&raw, bitpix, scale, zero, &mut a, &mut la);
+                    convert_generic(&raw, bitpix, scale, zero, &mut b, &mut lb);
+                    let (sa, sb) = (la.finish(), lb.finish());
                     assert_eq!(bits(&a), bits(&b), "BITPIX {bitpix} n {n} scale {scale} zero {zero}");
                     assert_eq!(sa, sb);
                     let s = plain_summary(&b);
