@@ -20,45 +20,6 @@ pub(crate) fn from_key(k: i32) -> f32 {
     f32::from_bits((k ^ (((k >> 31) as u32) >> 1) as i32) as u32)
 }
 
-/// The `k`-th smallest of `keys` (0-based; `k < keys.len()`): the element
-/// `keys.select_nth_unstable(k)` gives, the same value. Large inputs (sky levels: ~40k
-/// keys per frame) are first bracketed by two order statistics of every 16th key, a few
-/// standard deviations of their rank around k; one branch-free pass counts the keys below
-/// the bracket and gathers those inside it (~10 %), and only they are selected among. When
-/// the k-th is not inside the bracket (never seen on real data), it is selected plainly.
-/// `keys` is left reordered.
-pub(crate) fn kth_key(keys: &mut [i32], k: usize) -> i32 {
-    /// Below this many keys the plain selection is as fast.
-    const MIN_LEN: usize = 4096;
-    /// One key in this many forms the subsample.
-    const STEP: usize = 16;
-    let n = keys.len();
-    assert!(k < n, "order {k} of {n} keys");
-    if n < MIN_LEN {
-        return *keys.select_nth_unstable(k).1;
-    }
-    let mut sub: Vec<i32> = keys.iter().step_by(STEP).copied().collect();
-    let m = sub.len();
-    // The k-th key's rank in the subsample is ~ m k / n, binomial: half-width 6 sigma (the
-    // sigma is at most sqrt(m) / 2) plus one.
-    let centre = ((k as f64 / n as f64) * m as f64) as usize;
-    let half = 3 * (m as f64).sqrt().ceil() as usize + 1;
-    let (i_lo, i_hi) = (centre.saturating_sub(half), (centre + half).min(m - 1));
-    let lo = *sub.select_nth_unstable(i_lo).1;
-    let hi = *sub[i_lo..].select_nth_unstable(i_hi - i_lo).1;
-    let mut inside = vec![0i32; n];
-    let (mut below, mut n_in) = (0usize, 0usize);
-    for &x in keys.iter() {
-        below += usize::from(x < lo);
-        inside[n_in] = x;
-        n_in += usize::from(lo <= x && x <= hi);
-    }
-    if (below..below + n_in).contains(&k) {
-        return *inside[..n_in].select_nth_unstable(k - below).1;
-    }
-    *keys.select_nth_unstable(k).1
-}
-
 /// The key that sorts after every value: a slot without a value holds it.
 pub(super) const NO_VALUE: i32 = i32::MAX;
 
@@ -105,45 +66,6 @@ pub(super) fn sort_lanes(keys: &mut [[i32; LANES]], net: &[(u16, u16)]) {
         }
     }
     sort_lanes_generic(keys, net)
-}
-
-#[cfg(test)]
-mod kth_tests {
-    use super::kth_key;
-    use rand::{RngExt, SeedableRng};
-
-    /// The bracketed selection gives the plain selection's value, for every k tried, on
-    /// sky-like values (narrow spread), heavy ties, sorted and reversed inputs, outliers on
-    /// one side (the bracket off centre), and sizes around the threshold; and a bracket that
-    /// misses (a subsample unlike the rest) still gives the right value.
-    #[test]
-    fn the_bracketed_selection_equals_the_plain_one() {
-        let mut rng = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(3);
-        let mut cases: Vec<Vec<i32>> = Vec::new();
-        for n in [1, 2, 100, 4095, 4096, 4097, 40_000, 123_457] {
-            cases.push((0..n).map(|_| rng.random_range(1_000_000..1_003_000)).collect());
-            cases.push((0..n).map(|_| rng.random_range(-3..3)).collect());
-            let mut s: Vec<i32> = (0..n).map(|_| rng.random_range(i32::MIN..i32::MAX)).collect();
-            s.sort();
-            cases.push(s.clone());
-            s.reverse();
-            cases.push(s);
-            cases.push(
-                (0..n)
-                    .map(|i| if i % 3 == 0 { i32::MAX - i as i32 } else { rng.random_range(0..1000) })
-                    .collect(),
-            );
-            // Every 16th key (the subsample) far above the others: the bracket misses.
-            cases.push((0..n).map(|i| if i % 16 == 0 { 1 << 30 } else { i as i32 }).collect());
-        }
-        for v in &cases {
-            let n = v.len();
-            for k in [0, n / 4, n / 2, n / 2 + 1, n - 1].into_iter().filter(|&k| k < n) {
-                let want = *v.clone().select_nth_unstable(k).1;
-                assert_eq!(kth_key(&mut v.clone(), k), want, "n {n} k {k}");
-            }
-        }
-    }
 }
 
 #[cfg(test)]

@@ -261,7 +261,7 @@ fn median_f32(v: &mut [f32]) -> Option<f32> {
         return Some(from_key(*keys.select_nth_unstable(k).1));
     }
     let mut keys: Vec<i32> = v.iter().map(|&x| key(x)).collect();
-    Some(from_key(lanes::kth_key(&mut keys, k)))
+    Some(from_key(*keys.select_nth_unstable(k).1))
 }
 
 /// Median of the finite values of rows [a, b) whose `mask` is 0 and which `ok` accepts (one

@@ -345,7 +345,8 @@ pub fn sky_level(frame: &Frame, profile: &Profile) -> Result<f64> {
         });
     }
     let k = v.len() / 2;
-    Ok(crate::flat::lanes::from_key(crate::flat::lanes::kth_key(&mut v, k)) as f64)
+    let (_, m, _) = v.select_nth_unstable(k);
+    Ok(crate::flat::lanes::from_key(*m) as f64)
 }
 
 /// Sky-subtract the dithers of ONE orientation (see the module documentation). Output
