@@ -331,6 +331,38 @@ pub fn detect_bad_pixels_in_rows(
     defects_of_stack(med, (r1 - r0, nx), frames.len(), &profile.cropped_rows(r0, r1), opts)
 }
 
+/// [`detect_bad_pixels_in_rows`] from the rows `[r0, r1)` of the frames alone (`parts[i]`:
+/// frame i cropped to them, [`Frame::crop_rows`]) and the sky levels of the whole frames
+/// (`levels[i]`: [`crate::sky::sky_level`] of frame i before cropping), so that a caller
+/// reading many frames keeps only their rows: the same mask, bit for bit.
+pub fn detect_bad_pixels_from_rows(
+    parts: &[&Frame],
+    levels: &[f64],
+    offsets: Option<&[[f64; 2]]>,
+    profile: &Profile,
+    opts: &BadPixelOptions,
+    (r0, r1): (usize, usize),
+) -> Result<(Array2<u8>, BadPixelReport)> {
+    let cropped = profile.cropped_rows(r0, r1);
+    let (ny, nx) = check_inputs(parts, offsets, &cropped, opts)?;
+    let g = &profile.geometry;
+    let whole = g
+        .strips()
+        .iter()
+        .all(|(_, [a, b])| b <= &r0 || a >= &r1 || (a >= &r0 && b <= &r1));
+    if !(r0 < r1 && r1 <= g.ny) || !whole || ny != r1 - r0 || levels.len() != parts.len() {
+        return Err(stage_err(format!(
+            "rows [{r0}, {r1}) of {}: not whole strips of the profile, or {} frames of {ny} rows with {} levels",
+            g.ny,
+            parts.len(),
+            levels.len()
+        )));
+    }
+    let views: Vec<ArrayView2<f32>> = parts.iter().map(|f| f.data.view()).collect();
+    let med = median_at_levels(&views, levels, offsets)?;
+    defects_of_stack(med, (ny, nx), parts.len(), &cropped, opts)
+}
+
 /// The rows `[r0, r1)` of [`common_level_median`]: the levels from the whole frames.
 fn stack_in_rows(
     frames: &[&Frame],
@@ -583,6 +615,19 @@ mod tests {
             let (whole, _) = detect_bad_pixels_at(&refs, offsets, &p, &opts).unwrap();
             let (part, rep) = detect_bad_pixels_in_rows(&refs, offsets, &p, &opts, rows).unwrap();
             assert_eq!(part, whole.slice(ndarray::s![345..679, ..]), "offsets {offsets:?}");
+            // From the rows alone and the whole frames' levels: the same.
+            let levels: Vec<f64> = refs.iter().map(|f| crate::sky::sky_level(f, &p).unwrap()).collect();
+            let cut: Vec<Frame> = refs.iter().map(|f| (*f).clone().crop_rows(345, 679)).collect();
+            let cut_refs: Vec<&Frame> = cut.iter().collect();
+            let (from_rows, rep2) = detect_bad_pixels_from_rows(&cut_refs, &levels, offsets, &p, &opts, rows).unwrap();
+            assert_eq!(from_rows, part, "offsets {offsets:?}");
+            assert_eq!(rep2.total, rep.total);
+            // Levels of the rows alone would be another stack (the test above would fail).
+            let row_levels: Vec<f64> = cut_refs
+                .iter()
+                .map(|f| crate::sky::sky_level(f, &p.cropped_rows(345, 679)).unwrap())
+                .collect();
+            assert_ne!(row_levels, levels);
             assert_eq!(part[[500 - 345, 200]], mask::BAD);
             assert_eq!(part[[600 - 345, 700]], mask::BAD);
             assert!((520..560).all(|y| part[[y - 345, 800]] == mask::BAD));

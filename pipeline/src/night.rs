@@ -358,15 +358,28 @@ pub fn night_bad_pixel_mask(
 ) -> Option<NightMask> {
     let opts = &params.bad_pixels;
     let picks: Vec<PathBuf> = plan.mask_frames.iter().take(max_frames).cloned().collect();
-    let frames: Vec<sofipol_calib::Frame> = picks
-        .par_iter()
-        .filter_map(|p| sofipol_calib::fits::read_frame(p).ok())
-        .collect();
+    // A reduction of the target strips only needs the mask there: detected on those rows
+    // (a third of the work; the same mask there, see `detect_bad_pixels_in_rows`).
+    let rows = crate::reduce::run::crop_of(profile, params);
     // Only frames of the profile's detector size (a sequence of another size, observed
     // first, used to give the mask its size, and every valid target then failed on it;
-    // such frames are refused by name when their sequence is reduced).
+    // such frames are refused by name when their sequence is reduced). With `rows`, each
+    // frame is kept as those rows and the sky level of the whole frame (measured as it is
+    // read): two thirds less memory held.
     let shape = (profile.geometry.ny, profile.geometry.nx);
-    let frames: Vec<&sofipol_calib::Frame> = frames.iter().filter(|f| f.shape() == shape).collect();
+    let read: Vec<(sofipol_calib::Frame, Option<f64>)> = picks
+        .par_iter()
+        .filter_map(|p| sofipol_calib::fits::read_frame(p).ok())
+        .filter(|f| f.shape() == shape)
+        .map(|f| match rows {
+            Some((r0, r1)) => {
+                let level = sofipol_calib::sky::sky_level(&f, profile).ok();
+                (f.crop_rows(r0, r1), level)
+            }
+            None => (f, None),
+        })
+        .collect();
+    let frames: Vec<&sofipol_calib::Frame> = read.iter().map(|(f, _)| f).collect();
     if frames.len() < 3 {
         return None;
     }
@@ -379,14 +392,19 @@ pub fn night_bad_pixel_mask(
             _ => None,
         })
         .collect();
-    // A reduction of the target strips only needs the mask there: detected on those rows
-    // (a third of the work; the same mask there, see `detect_bad_pixels_in_rows`).
-    let rows = crate::reduce::run::crop_of(profile, params);
     let mask = match rows {
         Some((r0, r1)) => {
-            let (part, _report) =
-                sofipol_calib::badpix::detect_bad_pixels_in_rows(&frames, offsets.as_deref(), profile, opts, (r0, r1))
-                    .ok()?;
+            // A frame without a sky level fails the mask, as it fails the stack of whole frames.
+            let levels: Vec<f64> = read.iter().map(|(_, l)| *l).collect::<Option<_>>()?;
+            let (part, _report) = sofipol_calib::badpix::detect_bad_pixels_from_rows(
+                &frames,
+                &levels,
+                offsets.as_deref(),
+                profile,
+                opts,
+                (r0, r1),
+            )
+            .ok()?;
             let mut m = ndarray::Array2::<u8>::zeros(shape);
             m.slice_mut(ndarray::s![r0..r1, ..]).assign(&part);
             m
