@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 
 use super::model::{add_gaussian, FWHM_PER_SIGMA};
 use super::moffat::{add_moffat, add_moffat_where, moffat_fwhm, moffat_pixel};
-pub use super::psf_fit::fit_psf;
+pub use super::psf_fit::{fit_psf, fit_psf_from, PsfStart};
 
 /// Range of the Moffat `alpha` accepted by the fit, px.
 pub const MOFFAT_ALPHA_RANGE: (f64, f64) = (0.3, 30.0);

@@ -264,7 +264,35 @@ pub fn fit_psf(
     guesses: &[(f64, f64)],
     params: &PsfFitParams,
 ) -> Result<PsfFit, PsfFitError> {
-    fit_psf_until(img, var, mask, guesses, params, false)
+    fit_psf_until(img, var, mask, guesses, params, None, false)
+}
+
+/// Where a fit starts instead of its own start values: each star's (flux, x, y) and the
+/// shape (Moffat alpha or Gaussian sigma, px; Moffat beta, used when fitted), e.g. the fit
+/// of the same stars in the other beam of the frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PsfStart {
+    /// Per star: flux, x, y (the image's pixel coordinates).
+    pub stars: Vec<(f64, f64, f64)>,
+    /// Moffat alpha or Gaussian sigma, px.
+    pub shape: f64,
+    /// Moffat beta (a start when beta is fitted; ignored otherwise).
+    pub beta: f64,
+}
+
+/// [`fit_psf`] from `start` when it fits the problem (one entry per guess, each star
+/// within the fit radius of its guess, the shape in range; else from the usual start):
+/// the same pixels, the same minimum (to the stopping rules' ~1e-3 sigma), reached in
+/// fewer steps from a good start.
+pub fn fit_psf_from(
+    img: ArrayView2<f32>,
+    var: Option<ArrayView2<f32>>,
+    mask: Option<ArrayView2<u8>>,
+    guesses: &[(f64, f64)],
+    params: &PsfFitParams,
+    start: &PsfStart,
+) -> Result<PsfFit, PsfFitError> {
+    fit_psf_until(img, var, mask, guesses, params, Some(start), false)
 }
 
 /// [`fit_psf`]; `to_the_end`: without the early stops (only the damping limit or
@@ -275,6 +303,7 @@ fn fit_psf_until(
     mask: Option<ArrayView2<u8>>,
     guesses: &[(f64, f64)],
     params: &PsfFitParams,
+    start: Option<&PsfStart>,
     to_the_end: bool,
 ) -> Result<PsfFit, PsfFitError> {
     check_params(guesses, params)?;
@@ -291,7 +320,10 @@ fn fit_psf_until(
             n_params: lay.n,
         });
     }
-    let p = start_values(params, &lay, &pixels, guesses);
+    let mut p = start_values(params, &lay, &pixels, guesses);
+    if let Some(st) = start {
+        apply_start(&mut p, &lay, st, guesses, params.fit_radius_px);
+    }
     let problem = Problem {
         lay: &lay,
         fixed_b: params.background,
@@ -431,6 +463,38 @@ fn start_values(params: &PsfFitParams, lay: &Layout, pixels: &[Pixel], guesses: 
         p[ib] = b0;
     }
     p
+}
+
+/// `start` as the start values `p` when it is usable: a star per guess, each within the
+/// fit radius `rf` of its guess (the fit never moves a star farther), finite positive
+/// fluxes and a shape (and a fitted beta) inside the accepted ranges.
+fn apply_start(p: &mut [f64], lay: &Layout, start: &PsfStart, guesses: &[(f64, f64)], rf: f64) {
+    let stars_ok = start.stars.len() == guesses.len()
+        && start.stars.iter().zip(guesses).all(|(&(f, x, y), &(gx, gy))| {
+            f.is_finite() && f > 0.0 && (x - gx).hypot(y - gy) <= rf
+        });
+    let shape_ok = match lay.moffat {
+        None => (0.05..=50.0).contains(&start.shape),
+        Some(_) => {
+            (MOFFAT_ALPHA_RANGE.0..=MOFFAT_ALPHA_RANGE.1).contains(&start.shape)
+                && lay
+                    .i_beta
+                    .is_none_or(|_| (MOFFAT_BETA_RANGE.0..=MOFFAT_BETA_RANGE.1).contains(&start.beta))
+        }
+    };
+    if !(stars_ok && shape_ok) {
+        return;
+    }
+    for (k, &(f, x, y)) in start.stars.iter().enumerate() {
+        p[3 * k] = f;
+        p[3 * k + 1] = x;
+        p[3 * k + 2] = y;
+    }
+    p[lay.i_sx] = start.shape;
+    p[lay.i_sy] = start.shape;
+    if let Some(ib) = lay.i_beta {
+        p[ib] = start.beta;
+    }
 }
 
 /// What one fit works on.
@@ -690,7 +754,7 @@ mod tests {
                 ..PsfFitParams::default()
             };
             let fast = fit_psf(img.view(), Some(var.view()), None, &guesses, &params).unwrap();
-            let end = fit_psf_until(img.view(), Some(var.view()), None, &guesses, &params, true).unwrap();
+            let end = fit_psf_until(img.view(), Some(var.view()), None, &guesses, &params, None, true).unwrap();
             saved += end.iterations as i64 - fast.iterations as i64;
             for (i, name) in fast.param_names.iter().enumerate() {
                 let value = |f: &PsfFit| match name.as_str() {
@@ -725,4 +789,79 @@ mod tests {
             worst.0, worst.1
         );
     }
+
+    /// A fit started from another fit of the same stars (the other beam: fluxes 10 %
+    /// different, positions 0.2 px off, the shape 5 % off) reaches the minimum the usual
+    /// start reaches, within 1e-2 of every parameter's error, in fewer iterations over the
+    /// cases; a start that does not fit the problem (a star beyond the fit radius, a shape
+    /// out of range, a star missing) is not used: the same fit as without it.
+    #[test]
+    fn a_fit_started_from_another_fit_reaches_the_same_minimum() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(0x5eed);
+        let mut gauss = move || rng.sample::<f64, _>(rand_distr::StandardNormal);
+        let (mut its_plain, mut its_started) = (0, 0);
+        for case in 0..12 {
+            let (beta, fwhm) = (2.6 + 0.2 * (case % 6) as f64, 2.8 + 0.3 * (case % 4) as f64);
+            let alpha = moffat_alpha(fwhm, beta);
+            let flux = [5e3, 5e4, 5e5][case % 3];
+            let (x0, y0, x1, y1) = (15.2, 14.9, 19.0 + 0.4 * (case % 3) as f64, 16.1);
+            let img = Array2::from_shape_fn((30, 30), |(y, x)| {
+                let v = flux * moffat_pixel(x as f64 - x0, y as f64 - y0, alpha, beta)
+                    + 0.5 * flux * moffat_pixel(x as f64 - x1, y as f64 - y1, alpha, beta);
+                (v + 10.0 * gauss()) as f32
+            });
+            let var = Array2::from_elem((30, 30), 100.0f32);
+            let guesses = vec![(x0 + 0.4, y0 - 0.3), (x1 - 0.3, y1 + 0.4)];
+            let params = PsfFitParams {
+                fwhm_px: fwhm * 1.15,
+                fit_radius_px: 4.5,
+                background: Some(0.0),
+                model: PsfModel::Moffat {
+                    beta: (case % 2 == 0).then_some(beta),
+                },
+                ..PsfFitParams::default()
+            };
+            let plain = fit_psf(img.view(), Some(var.view()), None, &guesses, &params).unwrap();
+            let start = PsfStart {
+                stars: vec![(1.1 * flux, x0 + 0.2, y0 - 0.1), (0.45 * flux, x1 - 0.1, y1 + 0.2)],
+                shape: alpha * 1.05,
+                beta: beta * 0.97,
+            };
+            let started = fit_psf_from(img.view(), Some(var.view()), None, &guesses, &params, &start).unwrap();
+            its_plain += plain.iterations;
+            its_started += started.iterations;
+            for (i, name) in plain.param_names.iter().enumerate() {
+                let err = plain.covariance[i][i].sqrt();
+                let d = (started.covariance[i][i].sqrt() - err).abs() / err;
+                assert!(d < 1e-2, "case {case}: error of {name} differs by {d:.1e}");
+            }
+            for (a, b) in plain.stars.iter().zip(&started.stars) {
+                assert!((a.flux - b.flux).abs() < 1e-2 * a.flux_err, "case {case}: flux");
+                assert!((a.x - b.x).abs() < 1e-2 * a.x_err && (a.y - b.y).abs() < 1e-2 * a.y_err, "case {case}: position");
+            }
+            assert!((plain.alpha - started.alpha).abs() < 1e-2 * plain.covariance[6][6].sqrt(), "case {case}: alpha");
+            // Starts that do not fit the problem are ignored.
+            for bad in [
+                PsfStart {
+                    stars: vec![(flux, x0 + 6.0, y0), (0.5 * flux, x1, y1)],
+                    ..start.clone()
+                },
+                PsfStart {
+                    shape: 100.0,
+                    ..start.clone()
+                },
+                PsfStart {
+                    stars: vec![(flux, x0, y0)],
+                    ..start.clone()
+                },
+            ] {
+                let f = fit_psf_from(img.view(), Some(var.view()), None, &guesses, &params, &bad).unwrap();
+                assert_eq!((f.chi2, f.iterations), (plain.chi2, plain.iterations), "case {case}: {bad:?}");
+            }
+        }
+        assert!(its_started < its_plain, "{its_started} iterations started, {its_plain} plain");
+        eprintln!("started fits: {its_started} iterations against {its_plain}");
+    }
+
 }

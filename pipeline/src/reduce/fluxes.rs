@@ -12,8 +12,8 @@ use super::{BeamFlux, CalibratedOrientation, DitherValue, MeasureParams};
 use crate::photometry::model::add_gaussian;
 use crate::photometry::moffat::add_moffat;
 use crate::photometry::{
-    aperture_sum, fit_psf, measure, subtract_star_near_where, Aperture, Flags, MaskFill, PhotParams, PsfFit,
-    PsfFitParams, PsfModel,
+    aperture_sum, fit_psf, fit_psf_from, measure, subtract_star_near_where, Aperture, Flags, MaskFill, PhotParams,
+    PsfFit, PsfFitParams, PsfModel, PsfStart,
 };
 use crate::stokes::model::companion_offset_px;
 
@@ -130,6 +130,9 @@ pub fn measure_fluxes(
             let mut fitted_a: [Option<(f64, f64)>; 2] = [None, None];
             let mut frame_fwhm = choice.fwhm_px;
             let mut frame_shape: Option<[f64; 4]> = None;
+            // The e beam's fit starts from the o beam's (the same stars and seeing, moved
+            // by the e-o offset): the same minimum in fewer steps.
+            let mut e_start: Option<PsfStart> = None;
             for (bi, shift) in [(0.0, 0.0), eo].into_iter().enumerate() {
                 let b = measure_beam(
                     f,
@@ -137,9 +140,19 @@ pub fn measure_fluxes(
                     shift,
                     bi == 0,
                     (&mut frame_fwhm, &mut frame_shape),
+                    e_start.as_ref(),
                     choice,
                     params,
                 );
+                if bi == 0 {
+                    e_start = b.fit_start.map(|mut st| {
+                        st.stars.iter_mut().for_each(|s| {
+                            s.1 += eo.0;
+                            s.2 += eo.1;
+                        });
+                        st
+                    });
+                }
                 fitted_a[bi] = b.fitted_a;
                 if let Some(d) = b.pair_offset {
                     out.pair_offsets.push((o.posang_deg, d, 1.0));
@@ -170,6 +183,8 @@ struct BeamResult {
     pair_offset: Option<(f64, f64)>,
     /// Aperture radius, px.
     r_ap: f64,
+    /// The converged fit as a start for another fit of these stars (frame coordinates).
+    fit_start: Option<PsfStart>,
 }
 
 /// Fit and measure the stars at `stars` + `shift` in one beam of frame `f`. The o beam
@@ -182,6 +197,7 @@ fn measure_beam(
     shift: (f64, f64),
     first: bool,
     (frame_fwhm, frame_shape): (&mut f64, &mut Option<[f64; 4]>),
+    start: Option<&PsfStart>,
     choice: &PsfChoice,
     params: &MeasureParams,
 ) -> BeamResult {
@@ -201,14 +217,26 @@ fn measure_beam(
         model: choice.frame_model,
         ..PsfFitParams::default()
     };
-    let fit = fit_psf(
-        cut.img.view(),
-        Some(cut.var.view()),
-        Some(cut.bad.view()),
-        &local,
-        &fitp,
-    )
+    let fit = match start {
+        Some(st) => {
+            let mut st = st.clone();
+            st.stars.iter_mut().for_each(|s| {
+                s.1 -= x0;
+                s.2 -= y0;
+            });
+            fit_psf_from(cut.img.view(), Some(cut.var.view()), Some(cut.bad.view()), &local, &fitp, &st)
+        }
+        None => fit_psf(cut.img.view(), Some(cut.var.view()), Some(cut.bad.view()), &local, &fitp),
+    }
     .ok();
+    let fit_start = fit.as_ref().filter(|ft| ft.converged).map(|ft| PsfStart {
+        stars: ft.stars.iter().map(|s| (s.flux, s.x + x0, s.y + y0)).collect(),
+        shape: match ft.model {
+            PsfModel::Gaussian => ft.sigma_x,
+            PsfModel::Moffat { .. } => ft.alpha,
+        },
+        beta: ft.beta,
+    });
     if first {
         if let Some(ft) = &fit {
             *frame_fwhm = ft.fwhm_x().clamp(0.5 * fwhm_med, 2.0 * fwhm_med);
@@ -237,6 +265,7 @@ fn measure_beam(
         fitted_a,
         pair_offset,
         r_ap,
+        fit_start,
     }
 }
 
