@@ -490,7 +490,7 @@ pub use io::{flat_file_name, read_flat, write_flat};
 pub use superflat::superflat;
 
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;
 
 #[cfg(test)]
 mod median_tests {

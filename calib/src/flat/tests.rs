@@ -13,7 +13,7 @@ fn response(ny: usize, nx: usize) -> Array2<f32> {
 }
 
 /// A superflat of response `resp` with variance 1e-4 everywhere, no unusable pixel.
-fn superflat_of(resp: &Array2<f32>) -> Flat {
+pub(crate) fn superflat_of(resp: &Array2<f32>) -> Flat {
     Flat {
         data: resp.clone(),
         variance: Array2::from_elem(resp.dim(), 1e-4),

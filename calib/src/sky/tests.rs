@@ -391,22 +391,15 @@ fn sky_options_are_checked_and_defaults_are_not_written() {
 /// thresholds low enough to flag noise peaks near them.
 #[test]
 fn the_fused_sky_pass_matches_the_two_pass_stage() {
-    use crate::flat::{Flat, FlatKind, FlatRows};
+    use crate::flat::FlatRows;
     use std::sync::atomic::Ordering;
     let p = Profile::sofi();
     let (ny, nx) = (1024, 64);
     let mut g = Gauss(4242);
-    let flat = Flat {
-        data: Array2::from_shape_fn((ny, nx), |(y, x)| 1.0 + 0.02 * (((y * 31 + x * 17) % 13) as f32 / 6.0 - 1.0)),
-        variance: Array2::from_elem((ny, nx), 1e-4),
-        bad: Array2::from_shape_fn((ny, nx), |(y, x)| u8::from(y == 400 && x == 10)),
-        kind: FlatKind::Superflat,
-        posang_deg: None,
-        filter: None,
-        sources: vec![],
-        detail: String::new(),
-        path: None,
-    };
+    let mut flat = crate::flat::tests::superflat_of(&Array2::from_shape_fn((ny, nx), |(y, x)| {
+        1.0 + 0.02 * (((y * 31 + x * 17) % 13) as f32 / 6.0 - 1.0)
+    }));
+    flat.bad[[400, 10]] = 1;
     let fr = FlatRows::new(&flat, 0, ny);
     let mut compared = 0;
     for n in 2..=6usize {

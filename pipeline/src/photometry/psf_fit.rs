@@ -718,6 +718,35 @@ mod tests {
     /// the iteration run to the end (until no downhill step exists) arrives, and the
     /// chi-square within 1e-4 of it: close pairs and single stars, beta free and fixed,
     /// S/N from 30 to 3000 (Moffat images with Gaussian noise, deterministic).
+    /// A 30 x 30 image of Moffat stars (flux, x, y) of one shape plus Gaussian noise of
+    /// sigma 10 from `gauss`, and its variance map.
+    fn moffat_scene(
+        stars: &[(f64, f64, f64)],
+        alpha: f64,
+        beta: f64,
+        gauss: &mut impl FnMut() -> f64,
+    ) -> (Array2<f32>, Array2<f32>) {
+        let img = Array2::from_shape_fn((30, 30), |(y, x)| {
+            let v: f64 = stars
+                .iter()
+                .map(|&(f, sx, sy)| f * moffat_pixel(x as f64 - sx, y as f64 - sy, alpha, beta))
+                .sum();
+            (v + 10.0 * gauss()) as f32
+        });
+        (img, Array2::from_elem((30, 30), 100.0f32))
+    }
+
+    /// Moffat fit settings: start FWHM, fit radius, beta fixed (Some) or fitted; background 0.
+    fn moffat_params(fwhm_px: f64, fit_radius_px: f64, beta: Option<f64>) -> PsfFitParams {
+        PsfFitParams {
+            fwhm_px,
+            fit_radius_px,
+            background: Some(0.0),
+            model: PsfModel::Moffat { beta },
+            ..PsfFitParams::default()
+        }
+    }
+
     #[test]
     fn the_early_stops_leave_the_fit_at_its_minimum() {
         use rand::{RngExt, SeedableRng};
@@ -731,28 +760,17 @@ mod tests {
             let flux = [3e3, 3e4, 3e5][case % 3];
             let pair = case % 2 == 0;
             let (x0, y0, x1, y1) = (15.3, 14.8, 15.3 + 2.2 + 0.1 * (case % 4) as f64, 14.8 + 0.9);
-            let img = Array2::from_shape_fn((30, 30), |(y, x)| {
-                let mut v = flux * moffat_pixel(x as f64 - x0, y as f64 - y0, alpha, beta);
-                if pair {
-                    v += 0.4 * flux * moffat_pixel(x as f64 - x1, y as f64 - y1, alpha, beta);
-                }
-                (v + 10.0 * gauss()) as f32
-            });
-            let var = Array2::from_elem((30, 30), 100.0f32);
+            let mut stars = vec![(flux, x0, y0)];
+            if pair {
+                stars.push((0.4 * flux, x1, y1));
+            }
+            let (img, var) = moffat_scene(&stars, alpha, beta, &mut gauss);
             let guesses: Vec<(f64, f64)> = if pair {
                 vec![(x0 + 0.3, y0 - 0.2), (x1 - 0.3, y1 + 0.2)]
             } else {
                 vec![(x0 + 0.3, y0 - 0.2)]
             };
-            let params = PsfFitParams {
-                fwhm_px: fwhm * 1.1,
-                fit_radius_px: 6.0,
-                background: Some(0.0),
-                model: PsfModel::Moffat {
-                    beta: (case % 3 == 1).then_some(beta),
-                },
-                ..PsfFitParams::default()
-            };
+            let params = moffat_params(fwhm * 1.1, 6.0, (case % 3 == 1).then_some(beta));
             let fast = fit_psf(img.view(), Some(var.view()), None, &guesses, &params).unwrap();
             let end = fit_psf_until(img.view(), Some(var.view()), None, &guesses, &params, None, true).unwrap();
             saved += end.iterations as i64 - fast.iterations as i64;
@@ -806,22 +824,9 @@ mod tests {
             let alpha = moffat_alpha(fwhm, beta);
             let flux = [5e3, 5e4, 5e5][case % 3];
             let (x0, y0, x1, y1) = (15.2, 14.9, 19.0 + 0.4 * (case % 3) as f64, 16.1);
-            let img = Array2::from_shape_fn((30, 30), |(y, x)| {
-                let v = flux * moffat_pixel(x as f64 - x0, y as f64 - y0, alpha, beta)
-                    + 0.5 * flux * moffat_pixel(x as f64 - x1, y as f64 - y1, alpha, beta);
-                (v + 10.0 * gauss()) as f32
-            });
-            let var = Array2::from_elem((30, 30), 100.0f32);
+            let (img, var) = moffat_scene(&[(flux, x0, y0), (0.5 * flux, x1, y1)], alpha, beta, &mut gauss);
             let guesses = vec![(x0 + 0.4, y0 - 0.3), (x1 - 0.3, y1 + 0.4)];
-            let params = PsfFitParams {
-                fwhm_px: fwhm * 1.15,
-                fit_radius_px: 4.5,
-                background: Some(0.0),
-                model: PsfModel::Moffat {
-                    beta: (case % 2 == 0).then_some(beta),
-                },
-                ..PsfFitParams::default()
-            };
+            let params = moffat_params(fwhm * 1.15, 4.5, (case % 2 == 0).then_some(beta));
             let plain = fit_psf(img.view(), Some(var.view()), None, &guesses, &params).unwrap();
             let start = PsfStart {
                 stars: vec![(1.1 * flux, x0 + 0.2, y0 - 0.1), (0.45 * flux, x1 - 0.1, y1 + 0.2)],
