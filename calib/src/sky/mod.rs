@@ -649,7 +649,12 @@ impl<'a> BlockRows<'a> {
     /// The leave-one-out medians of the block's rows (`nx` each) into the `Fresh` sky rows
     /// of every frame (from the frames' raw rows, read before the pass overwrites them),
     /// then the rows for [`Finish::block`].
-    fn ready(rows: Vec<BlockRows<'a>>, nx: usize, loo: Option<&stack::LooRows>, w: &mut [[f32; stack::BLOCK]]) -> Vec<Rows<'a>> {
+    fn ready(
+        rows: Vec<BlockRows<'a>>,
+        nx: usize,
+        loo: Option<&stack::LooRows>,
+        w: &mut [[f32; stack::BLOCK]],
+    ) -> Vec<Rows<'a>> {
         let mut rows = rows;
         if let Some(loo) = loo {
             let nrows = rows[0].raw.len() / nx;
@@ -776,7 +781,12 @@ impl Finish {
                 .as_mut()
                 .map(|v| v.as_slice_mut().expect("standard layout").chunks_mut(chunk));
             let skies: Box<dyn Iterator<Item = SkyRows>> = match sky {
-                SkyBuf::Given(s) => Box::new(s.as_slice_mut().expect("standard layout").chunks_mut(chunk).map(SkyRows::Ready)),
+                SkyBuf::Given(s) => Box::new(
+                    s.as_slice_mut()
+                        .expect("standard layout")
+                        .chunks_mut(chunk)
+                        .map(SkyRows::Ready),
+                ),
                 SkyBuf::Fresh(v) => Box::new(v.spare_capacity_mut()[..len].chunks_mut(chunk).map(SkyRows::Fresh)),
             };
             let it = skies
@@ -852,7 +862,15 @@ impl Finish {
 
     /// The rows of one block (first row `y0`) of every frame, with the widest vectors this
     /// CPU has (AVX2 or the SSE2 baseline: the same operations, the same numbers).
-    fn block(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, out: &mut [usize], cand: &mut [Vec<u32>]) {
+    fn block(
+        &self,
+        y0: usize,
+        nx: usize,
+        rows: &mut [Rows],
+        inp: &FinishInputs,
+        out: &mut [usize],
+        cand: &mut [Vec<u32>],
+    ) {
         #[cfg(test)]
         if BASELINE_ONLY.load(std::sync::atomic::Ordering::Relaxed) {
             return self.block_generic(y0, nx, rows, inp, out, cand);
@@ -871,13 +889,29 @@ impl Finish {
     /// [`Finish::block_generic`] compiled for AVX2.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    fn block_avx2(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, out: &mut [usize], cand: &mut [Vec<u32>]) {
+    fn block_avx2(
+        &self,
+        y0: usize,
+        nx: usize,
+        rows: &mut [Rows],
+        inp: &FinishInputs,
+        out: &mut [usize],
+        cand: &mut [Vec<u32>],
+    ) {
         self.block_generic(y0, nx, rows, inp, out, cand)
     }
 
     /// See [`Finish::block`].
     #[inline(always)]
-    fn block_generic(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, out: &mut [usize], cand: &mut [Vec<u32>]) {
+    fn block_generic(
+        &self,
+        y0: usize,
+        nx: usize,
+        rows: &mut [Rows],
+        inp: &FinishInputs,
+        out: &mut [usize],
+        cand: &mut [Vec<u32>],
+    ) {
         for r in 0..rows[0].sky.len() / nx {
             let y = y0 + r;
             let span = r * nx..(r + 1) * nx;
@@ -1010,9 +1044,9 @@ fn scale(s: f32, level: f32, scaling: SkyScaling) -> f32 {
 mod cosmic;
 mod estimate;
 
-pub use cosmic::flag_cosmic_rays;
 #[cfg(test)]
 use cosmic::cosmic_flags;
+pub use cosmic::flag_cosmic_rays;
 use cosmic::{check_cosmic_options, cosmic_flags_from, cosmic_record};
 
 #[cfg(test)]

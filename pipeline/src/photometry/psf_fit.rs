@@ -470,9 +470,11 @@ fn start_values(params: &PsfFitParams, lay: &Layout, pixels: &[Pixel], guesses: 
 /// fluxes and a shape (and a fitted beta) inside the accepted ranges.
 fn apply_start(p: &mut [f64], lay: &Layout, start: &PsfStart, guesses: &[(f64, f64)], rf: f64) {
     let stars_ok = start.stars.len() == guesses.len()
-        && start.stars.iter().zip(guesses).all(|(&(f, x, y), &(gx, gy))| {
-            f.is_finite() && f > 0.0 && (x - gx).hypot(y - gy) <= rf
-        });
+        && start
+            .stars
+            .iter()
+            .zip(guesses)
+            .all(|(&(f, x, y), &(gx, gy))| f.is_finite() && f > 0.0 && (x - gx).hypot(y - gy) <= rf);
     let shape_ok = match lay.moffat {
         None => (0.05..=50.0).contains(&start.shape),
         Some(_) => {
@@ -843,9 +845,15 @@ mod tests {
             }
             for (a, b) in plain.stars.iter().zip(&started.stars) {
                 assert!((a.flux - b.flux).abs() < 1e-2 * a.flux_err, "case {case}: flux");
-                assert!((a.x - b.x).abs() < 1e-2 * a.x_err && (a.y - b.y).abs() < 1e-2 * a.y_err, "case {case}: position");
+                assert!(
+                    (a.x - b.x).abs() < 1e-2 * a.x_err && (a.y - b.y).abs() < 1e-2 * a.y_err,
+                    "case {case}: position"
+                );
             }
-            assert!((plain.alpha - started.alpha).abs() < 1e-2 * plain.covariance[6][6].sqrt(), "case {case}: alpha");
+            assert!(
+                (plain.alpha - started.alpha).abs() < 1e-2 * plain.covariance[6][6].sqrt(),
+                "case {case}: alpha"
+            );
             // Starts that do not fit the problem are ignored.
             for bad in [
                 PsfStart {
@@ -862,11 +870,17 @@ mod tests {
                 },
             ] {
                 let f = fit_psf_from(img.view(), Some(var.view()), None, &guesses, &params, &bad).unwrap();
-                assert_eq!((f.chi2, f.iterations), (plain.chi2, plain.iterations), "case {case}: {bad:?}");
+                assert_eq!(
+                    (f.chi2, f.iterations),
+                    (plain.chi2, plain.iterations),
+                    "case {case}: {bad:?}"
+                );
             }
         }
-        assert!(its_started < its_plain, "{its_started} iterations started, {its_plain} plain");
+        assert!(
+            its_started < its_plain,
+            "{its_started} iterations started, {its_plain} plain"
+        );
         eprintln!("started fits: {its_started} iterations against {its_plain}");
     }
-
 }

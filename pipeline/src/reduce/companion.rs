@@ -701,7 +701,11 @@ mod tests {
             }
             let pair = find_pair(&stack, &smask, (0.0, 0.0), fwhm, 22.0, None, PsfModel::Gaussian).unwrap();
             assert!(pair.a.0.hypot(pair.a.1) < 0.1, "({dx}, {dy}): A at {:?}", pair.a);
-            assert!((pair.b.0 - dx).hypot(pair.b.1 - dy) < 0.1, "({dx}, {dy}): B at {:?}", pair.b);
+            assert!(
+                (pair.b.0 - dx).hypot(pair.b.1 - dy) < 0.1,
+                "({dx}, {dy}): B at {:?}",
+                pair.b
+            );
         }
     }
 

@@ -224,9 +224,22 @@ fn measure_beam(
                 s.1 -= x0;
                 s.2 -= y0;
             });
-            fit_psf_from(cut.img.view(), Some(cut.var.view()), Some(cut.bad.view()), &local, &fitp, &st)
+            fit_psf_from(
+                cut.img.view(),
+                Some(cut.var.view()),
+                Some(cut.bad.view()),
+                &local,
+                &fitp,
+                &st,
+            )
         }
-        None => fit_psf(cut.img.view(), Some(cut.var.view()), Some(cut.bad.view()), &local, &fitp),
+        None => fit_psf(
+            cut.img.view(),
+            Some(cut.var.view()),
+            Some(cut.bad.view()),
+            &local,
+            &fitp,
+        ),
     }
     .ok();
     let fit_start = fit.as_ref().filter(|ft| ft.converged).map(|ft| PsfStart {
