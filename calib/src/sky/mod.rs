@@ -720,6 +720,31 @@ pub(crate) static BASELINE_ONLY: std::sync::atomic::AtomicBool = std::sync::atom
 #[cfg(test)]
 pub(crate) static UNFUSED_ONLY: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
 
+/// What the last pass counts per frame (over a block of rows, then over the frames):
+/// non-finite raw values, and the cosmic-ray candidates (flat indices, row-major).
+struct Tally {
+    nonfinite: Vec<usize>,
+    candidates: Vec<Vec<u32>>,
+}
+
+impl Tally {
+    fn new(n: usize) -> Tally {
+        Tally {
+            nonfinite: vec![0; n],
+            candidates: vec![Vec::new(); n],
+        }
+    }
+
+    /// This tally followed by `next` (the next block: candidates stay in row order).
+    fn then(mut self, next: Tally) -> Tally {
+        for (i, (c, cd)) in next.nonfinite.into_iter().zip(next.candidates).enumerate() {
+            self.nonfinite[i] += c;
+            self.candidates[i].extend(cd);
+        }
+        self
+    }
+}
+
 /// The last pass of the sky stage, shared by every frame of an orientation.
 struct Finish {
     scaling: SkyScaling,
@@ -803,28 +828,20 @@ impl Finish {
             }
         }
         // Per block (in order): non-finite counts and cosmic-ray candidates per frame.
-        let per_block: Vec<(Vec<usize>, Vec<Vec<u32>>)> = blocks
+        let per_block: Vec<Tally> = blocks
             .into_par_iter()
             .enumerate()
             .map_init(
                 || loo.as_ref().map(|l| l.scratch()).unwrap_or_default(),
                 |w, (b, rows)| {
                     let mut rows = BlockRows::ready(rows, nx, loo.as_ref(), w);
-                    let mut out = vec![0usize; n];
-                    let mut cand = vec![Vec::new(); n];
-                    self.block(b * BLOCK, nx, &mut rows, inp, &mut out, &mut cand);
-                    (out, cand)
+                    let mut t = Tally::new(n);
+                    self.block(b * BLOCK, nx, &mut rows, inp, &mut t);
+                    t
                 },
             )
             .collect();
-        let mut nonfinite = vec![0usize; n];
-        let mut candidates: Vec<Vec<u32>> = vec![Vec::new(); n];
-        for (counts, cands) in per_block {
-            for (i, (c, cd)) in counts.into_iter().zip(cands).enumerate() {
-                nonfinite[i] += c;
-                candidates[i].extend(cd);
-            }
-        }
+        let Tally { nonfinite, candidates } = per_block.into_iter().fold(Tally::new(n), Tally::then);
         if let Some(i) = nonfinite.iter().position(|&c| c > 0) {
             return Err(Error::Stage {
                 stage: "sky",
@@ -862,56 +879,32 @@ impl Finish {
 
     /// The rows of one block (first row `y0`) of every frame, with the widest vectors this
     /// CPU has (AVX2 or the SSE2 baseline: the same operations, the same numbers).
-    fn block(
-        &self,
-        y0: usize,
-        nx: usize,
-        rows: &mut [Rows],
-        inp: &FinishInputs,
-        out: &mut [usize],
-        cand: &mut [Vec<u32>],
-    ) {
+    fn block(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, tally: &mut Tally) {
         #[cfg(test)]
         if BASELINE_ONLY.load(std::sync::atomic::Ordering::Relaxed) {
-            return self.block_generic(y0, nx, rows, inp, out, cand);
+            return self.block_generic(y0, nx, rows, inp, tally);
         }
         #[cfg(target_arch = "x86_64")]
         {
             if std::arch::is_x86_feature_detected!("avx2") {
                 // SAFETY: the CPU supports AVX2 (checked just above); the only unsafe operation here.
                 #[allow(unsafe_code)]
-                return unsafe { self.block_avx2(y0, nx, rows, inp, out, cand) };
+                return unsafe { self.block_avx2(y0, nx, rows, inp, tally) };
             }
         }
-        self.block_generic(y0, nx, rows, inp, out, cand)
+        self.block_generic(y0, nx, rows, inp, tally)
     }
 
     /// [`Finish::block_generic`] compiled for AVX2.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    fn block_avx2(
-        &self,
-        y0: usize,
-        nx: usize,
-        rows: &mut [Rows],
-        inp: &FinishInputs,
-        out: &mut [usize],
-        cand: &mut [Vec<u32>],
-    ) {
-        self.block_generic(y0, nx, rows, inp, out, cand)
+    fn block_avx2(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, tally: &mut Tally) {
+        self.block_generic(y0, nx, rows, inp, tally)
     }
 
     /// See [`Finish::block`].
     #[inline(always)]
-    fn block_generic(
-        &self,
-        y0: usize,
-        nx: usize,
-        rows: &mut [Rows],
-        inp: &FinishInputs,
-        out: &mut [usize],
-        cand: &mut [Vec<u32>],
-    ) {
+    fn block_generic(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, tally: &mut Tally) {
         for r in 0..rows[0].sky.len() / nx {
             let y = y0 + r;
             let span = r * nx..(r + 1) * nx;
@@ -924,7 +917,7 @@ impl Finish {
                 let cnt = fr.count.map(|c| &c[span.clone()]);
                 let vrow = fr.vin.as_deref_mut().map(|v| &mut v[span.clone()]);
                 let px = (inp.levels[i], inp.noise[i]);
-                out[i] += match inp.flat {
+                tally.nonfinite[i] += match inp.flat {
                     None => self.row::<false>(y, srow, rrow, mrow, vrow, cnt, px, None),
                     Some(fl) => self.row::<true>(y, srow, rrow, mrow, vrow, cnt, px, Some(fl.row(y))),
                 };
@@ -934,7 +927,13 @@ impl Finish {
                         Some(v) => &v[span.clone()],
                         None => &fr.raw[span.clone()],
                     };
-                    cosmic::push_candidates(&fr.sky[span.clone()], var, k2, (y * nx) as u32, &mut cand[i]);
+                    cosmic::push_candidates(
+                        &fr.sky[span.clone()],
+                        var,
+                        k2,
+                        (y * nx) as u32,
+                        &mut tally.candidates[i],
+                    );
                 }
             }
         }

@@ -183,7 +183,7 @@ struct BeamResult {
     pair_offset: Option<(f64, f64)>,
     /// Aperture radius, px.
     r_ap: f64,
-    /// The converged fit as a start for another fit of these stars (frame coordinates).
+    /// The o beam's converged fit as a start for the e beam's (frame coordinates).
     fit_start: Option<PsfStart>,
 }
 
@@ -242,7 +242,8 @@ fn measure_beam(
         ),
     }
     .ok();
-    let fit_start = fit.as_ref().filter(|ft| ft.converged).map(|ft| PsfStart {
+    // Only the o beam's fit starts another (the e beam's).
+    let fit_start = fit.as_ref().filter(|ft| first && ft.converged).map(|ft| PsfStart {
         stars: ft.stars.iter().map(|s| (s.flux, s.x + x0, s.y + y0)).collect(),
         shape: match ft.model {
             PsfModel::Gaussian => ft.sigma_x,
