@@ -5,7 +5,7 @@
 use ndarray::ArrayView2;
 
 use super::model::{gauss_pixel_1d, gauss_pixel_1d_derivs, FWHM_PER_SIGMA};
-use super::moffat::{moffat_alpha, moffat_fwhm, moffat_pixel, moffat_pixel_derivs};
+use super::moffat::{moffat_alpha, moffat_fwhm, moffat_pixel, moffat_pixels, moffat_pixels_derivs};
 use super::psf::{
     PsfFit, PsfFitError, PsfFitParams, PsfModel, PsfStar, MOFFAT_ALPHA_RANGE, MOFFAT_BETA_RANGE, MOFFAT_BETA_START,
 };
@@ -133,8 +133,33 @@ fn evaluate(
         a.iter_mut().for_each(|v| *v = 0.0);
         g.iter_mut().for_each(|v| *v = 0.0);
     }
+    // A Moffat's pixel values (and derivatives) of every star at every pixel, from the
+    // batched kernel: star k's at [k * pixels.len()..].
+    let np = pixels.len();
+    let (mut values, mut derivs) = (Vec::new(), Vec::new());
+    if lay.moffat.is_some() {
+        let mut offsets = Vec::with_capacity(np);
+        if normal.is_some() {
+            derivs = vec![[0.0; 5]; np * lay.n_src];
+        } else {
+            values = vec![0.0; np * lay.n_src];
+        }
+        for k in 0..lay.n_src {
+            offsets.clear();
+            offsets.extend(
+                pixels
+                    .iter()
+                    .map(|px| (px.ix as f64 - p[3 * k + 1], px.iy as f64 - p[3 * k + 2])),
+            );
+            if normal.is_some() {
+                moffat_pixels_derivs(&offsets, alpha, beta, &mut derivs[k * np..(k + 1) * np]);
+            } else {
+                moffat_pixels(&offsets, alpha, beta, &mut values[k * np..(k + 1) * np]);
+            }
+        }
+    }
     let mut chi2 = 0.0;
-    for px in pixels {
+    for (ip, px) in pixels.iter().enumerate() {
         let mut m = b;
         if normal.is_some() {
             jrow.iter_mut().for_each(|v| *v = 0.0);
@@ -159,9 +184,8 @@ fn evaluate(
             None => {
                 for k in 0..lay.n_src {
                     let flux = p[3 * k];
-                    let (dx, dy) = (px.ix as f64 - p[3 * k + 1], px.iy as f64 - p[3 * k + 2]);
                     if normal.is_some() {
-                        let d = moffat_pixel_derivs(dx, dy, alpha, beta);
+                        let d = derivs[k * np + ip];
                         m += flux * d[0];
                         jrow[3 * k] = d[0];
                         jrow[3 * k + 1] = flux * d[1];
@@ -171,7 +195,7 @@ fn evaluate(
                             jrow[ib] += flux * d[4];
                         }
                     } else {
-                        m += flux * moffat_pixel(dx, dy, alpha, beta);
+                        m += flux * values[k * np + ip];
                     }
                 }
             }
