@@ -203,8 +203,46 @@ pub(super) fn raw_value(cards: &[String], key: &str) -> Option<HeaderValue> {
 
 /// Whether [`parse_card`] could return `key` for this card: its 8-character name field (as
 /// parse_card reads it: non-ASCII as '?', upper case, trailing blanks dropped) is `key`, or
-/// the card is a HIERARCH card (whose key comes from the text after the name field).
+/// the card is a HIERARCH card whose key (the text between the name field and '=', trimmed,
+/// upper case) is `key`. ASCII cards are judged on their bytes (a SOFI header is mostly
+/// HIERARCH cards, looked up a dozen times per file); others as parse_card reads them.
 fn may_define(card: &str, key: &str) -> bool {
+    let b = card.as_bytes();
+    let head = &b[..b.len().min(8)];
+    if !head.is_ascii() {
+        return may_define_chars(card, key);
+    }
+    // Blanks as `char::is_whitespace` has them among ASCII characters.
+    let blank = |c: &u8| matches!(c, b' ' | b'\t' | b'\n' | 0x0b | 0x0c | b'\r');
+    let trimmed = |s: &[u8]| -> std::ops::Range<usize> {
+        let start = s.iter().position(|c| !blank(c)).unwrap_or(s.len());
+        let end = s.iter().rposition(|c| !blank(c)).map_or(start, |i| i + 1);
+        start..end
+    };
+    let upper_is =
+        |s: &[u8], k: &[u8]| s.len() == k.len() && s.iter().zip(k).all(|(c, k)| c.to_ascii_uppercase() == *k);
+    let name = &head[..head.iter().rposition(|c| !blank(c)).map_or(0, |i| i + 1)];
+    if upper_is(name, key.as_bytes()) {
+        return true;
+    }
+    if !upper_is(name, b"HIERARCH") || b.get(8) != Some(&b' ') {
+        // Only a HIERARCH card (name field and a blank) takes its key from further on.
+        return false;
+    }
+    let Some(eq) = b.iter().position(|&c| c == b'=') else {
+        return false; // commentary
+    };
+    if !b[..eq].is_ascii() {
+        return true; // parse_card decides
+    }
+    // normalize_key: "HIERARCH " dropped, then trimmed (a blank key is "HIERARCH" itself,
+    // matched above).
+    let rest = &b[9..eq]; // eq > 8: b[8] is a blank
+    upper_is(&rest[trimmed(rest)], key.as_bytes())
+}
+
+/// [`may_define`] of any card, char by char as [`parse_card`] reads it.
+fn may_define_chars(card: &str, key: &str) -> bool {
     let mut name = [b' '; 8];
     for (slot, c) in name.iter_mut().zip(card.chars()) {
         *slot = if c.is_ascii() {

@@ -278,6 +278,12 @@ fn raw_value_finds_what_parsing_every_card_finds() {
         "",
         "CONTINUE  'x'",
         "HIERARCH ESO ADA POSANG = 45.0",
+        "HIERARCH  naxis3\t = 7 / lower case, blanks and a tab around the key",
+        "hierarch eso det dit = 1.5",
+        "HIERARCH \u{e9}SO X = 1",
+        "HIERARCH    = 5",
+        "HIERARCH NAXIS4",
+        "HIERARCH=6",
     ]
     .iter()
     .map(|s| s.to_string())
@@ -300,6 +306,11 @@ fn raw_value_finds_what_parsing_every_card_finds() {
         "EXTNAME",
         "ZIMAGE",
         "ESO ADA POSANG",
+        "NAXIS3",
+        "NAXIS4",
+        "ESO DET DIT",
+        "?SO X",
+        "HIERARCH",
         "COMMENT",
         "HISTORY",
         "CONTINUE",
@@ -310,4 +321,8 @@ fn raw_value_finds_what_parsing_every_card_finds() {
     // The cases that matter here: the lower-case and tab-padded names, and HIERARCH.
     assert_eq!(raw_value(&cards, "NAXIS"), Some(HeaderValue::Int(2)));
     assert_eq!(raw_value(&cards, "NAXIS2"), Some(HeaderValue::Int(99)));
+    assert_eq!(raw_value(&cards, "NAXIS3"), Some(HeaderValue::Int(7)));
+    assert_eq!(raw_value(&cards, "ESO DET DIT"), Some(HeaderValue::Float(1.5)));
+    assert_eq!(raw_value(&cards, "?SO X"), Some(HeaderValue::Int(1)));
+    assert_eq!(raw_value(&cards, "HIERARCH"), Some(HeaderValue::Int(5)));
 }

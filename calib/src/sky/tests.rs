@@ -473,3 +473,59 @@ fn the_fused_sky_pass_matches_the_two_pass_stage() {
     }
     assert_eq!(compared, 4 * (2..=6).sum::<usize>());
 }
+
+#[test]
+#[ignore]
+fn tmp_bench_sky_level() {
+    let p = Profile::sofi().cropped_rows(345, 679);
+    let mk = |s: u64| {
+        let mut z = s;
+        let data = Array2::from_shape_fn((334, 1024), |_| {
+            z = z.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            1000.0 + ((z >> 40) as f32) / 1e5
+        });
+        Frame::new(data, crate::header::Header::new(""))
+    };
+    let frames: Vec<Frame> = (0..10).map(mk).collect();
+    let mut acc = 0.0;
+    let t0 = std::time::Instant::now();
+    for _ in 0..20 {
+        for f in &frames {
+            acc += sky_level(f, &p).unwrap();
+        }
+    }
+    let cold = t0.elapsed().as_secs_f64() / 200.0;
+    let t0 = std::time::Instant::now();
+    for _ in 0..200 {
+        acc += sky_level(&frames[3], &p).unwrap();
+    }
+    let hot = t0.elapsed().as_secs_f64() / 200.0;
+    eprintln!(
+        "sky_level: rotating 10 frames {:.1} us, same frame {:.1} us ({acc})",
+        cold * 1e6,
+        hot * 1e6
+    );
+}
+
+#[test]
+#[ignore]
+fn tmp_bench_select() {
+    let mut z = 5u64;
+    let keys: Vec<i32> = (0..42_700)
+        .map(|_| {
+            z = z.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            crate::flat::lanes::key(1000.0 + ((z >> 40) as f32) / 1e5)
+        })
+        .collect();
+    let t0 = std::time::Instant::now();
+    let mut acc = 0i64;
+    for _ in 0..200 {
+        let mut v = keys.clone();
+        let k = v.len() / 2;
+        acc += *v.select_nth_unstable(k).1 as i64;
+    }
+    eprintln!(
+        "select 42.7k: {:.1} us ({acc})",
+        t0.elapsed().as_secs_f64() / 200.0 * 1e6
+    );
+}
