@@ -61,25 +61,114 @@ fn plain_file(path: &Path) -> bool {
 /// The plan for reading HDU `index` (header `cards`) directly, or `None` when cfitsio must
 /// read it.
 pub(super) fn plain_image(f: &mut FitsFile, path: &Path, index: usize, cards: &[String]) -> Result<Option<PlainImage>> {
-    if is_compressed(cards) {
-        return Ok(None);
-    }
-    let Some(bitpix @ (16 | -32)) = raw_int(cards, "BITPIX") else {
-        return Ok(None);
-    };
-    let (Some(scale), Some(zero)) = (scaling(cards, "BSCALE", 1.0), scaling(cards, "BZERO", 0.0)) else {
-        return Ok(None);
-    };
-    if scale == 0.0 || !plain_file(path) {
+    if plain_pixels(cards).is_none() || !plain_file(path) {
         return Ok(None);
     }
     let start = data_start(f, index).map_err(|e| fits_err(path, &format!("locating the data of HDU {index}"), e))?;
-    Ok(Some(PlainImage {
-        start,
-        bitpix,
-        scale,
-        zero,
-    }))
+    Ok(PlainImage::at(cards, start))
+}
+
+/// BITPIX, BSCALE and BZERO of an image this module reads: uncompressed, BITPIX 16 or -32,
+/// finite numeric scaling with BSCALE != 0.
+fn plain_pixels(cards: &[String]) -> Option<(i64, f64, f64)> {
+    if is_compressed(cards) {
+        return None;
+    }
+    let bitpix @ (16 | -32) = raw_int(cards, "BITPIX")? else {
+        return None;
+    };
+    let (scale, zero) = (scaling(cards, "BSCALE", 1.0)?, scaling(cards, "BZERO", 0.0)?);
+    (scale != 0.0).then_some((bitpix, scale, zero))
+}
+
+impl PlainImage {
+    /// The image of `cards` whose data start at byte `start`, when this module reads it.
+    pub(super) fn at(cards: &[String], start: u64) -> Option<PlainImage> {
+        plain_pixels(cards).map(|(bitpix, scale, zero)| PlainImage {
+            start,
+            bitpix,
+            scale,
+            zero,
+        })
+    }
+}
+
+/// A FITS file that is one primary image and nothing else, its header read straight from
+/// the file (see [`plain_primary`]).
+pub(super) struct PlainPrimary {
+    /// The header cards as cfitsio lists them: END and the blank cards just before it
+    /// left out, trailing blanks removed.
+    pub cards: Vec<String>,
+    /// File offset of the first data byte.
+    pub start: u64,
+}
+
+/// Header blocks read before giving up on finding END (and leaving the file to cfitsio).
+const MAX_HEADER_BLOCKS: usize = 64;
+
+/// The header of a night frame read without cfitsio (whose open, HDU map and card-by-card
+/// reads cost more than reading the pixels' header twice over): the file starts with the
+/// mandatory keywords of a primary image in order (SIMPLE = T, BITPIX, NAXIS = 2, NAXIS1,
+/// NAXIS2, all positive), its header is printable ASCII up to an END card within
+/// [`MAX_HEADER_BLOCKS`] blocks, and the file ends with the image's data (padded to a
+/// 2880-byte block or not): no extension. Anything else (compressed, gzip, extensions,
+/// another layout, an unreadable or truncated file) gives None, and cfitsio reads the file
+/// and words any error as before. The cards and data offset are cfitsio's (test
+/// `plain_primary_headers_are_cfitsio_headers`).
+pub(super) fn plain_primary(path: &Path) -> Option<PlainPrimary> {
+    const BLOCK_BYTES: usize = 2880;
+    let mut file = std::fs::File::open(path).ok()?;
+    let len = file.metadata().ok().filter(|m| m.is_file())?.len();
+    let mut cards: Vec<String> = Vec::new();
+    // Blank cards since the last non-blank one (cfitsio leaves those just before END out).
+    let mut blanks = 0;
+    let mut block = [0u8; BLOCK_BYTES];
+    for b in 0..MAX_HEADER_BLOCKS {
+        file.read_exact(&mut block).ok()?;
+        if !block.iter().all(|c| (b' '..=b'~').contains(c)) {
+            return None;
+        }
+        for card in block.chunks_exact(80) {
+            if card.starts_with(b"END     ") {
+                cards.truncate(cards.len() - blanks);
+                let start = ((b + 1) * BLOCK_BYTES) as u64;
+                return primary_layout_ok(&cards, start, len).then_some(PlainPrimary { cards, start });
+            }
+            let text = std::str::from_utf8(card).ok()?.trim_end_matches(' ');
+            blanks = if text.is_empty() { blanks + 1 } else { 0 };
+            cards.push(text.to_string());
+        }
+    }
+    None
+}
+
+/// The mandatory keywords of a 2-D primary image in order, and a file that ends with its
+/// data.
+fn primary_layout_ok(cards: &[String], start: u64, len: u64) -> bool {
+    use super::cards::{parse_card, Parsed};
+    let value = |i: usize, key: &str| match cards.get(i).map(|c| parse_card(c)) {
+        Some(Parsed::Key { key: k, value, .. }) if k == key => Some(value),
+        _ => None,
+    };
+    let int = |i: usize, key: &str| match value(i, key) {
+        Some(HeaderValue::Int(v)) => Some(v),
+        _ => None,
+    };
+    if value(0, "SIMPLE") != Some(HeaderValue::Bool(true)) || int(2, "NAXIS") != Some(2) {
+        return false;
+    }
+    let (Some(bitpix @ (8 | 16 | 32 | 64 | -32 | -64)), Some(nx @ 1..), Some(ny @ 1..)) =
+        (int(1, "BITPIX"), int(3, "NAXIS1"), int(4, "NAXIS2"))
+    else {
+        return false;
+    };
+    let bytes = (nx as u64)
+        .checked_mul(ny as u64)
+        .and_then(|p| p.checked_mul(bitpix.unsigned_abs() / 8));
+    match bytes.and_then(|b| Some((b, b.checked_next_multiple_of(2880)?))) {
+        Some((b, padded)) => len == start.saturating_add(b) || len == start.saturating_add(padded),
+        None => false,
+    }
 }
 
 thread_local! {
@@ -336,6 +425,97 @@ mod tests {
         }
         // All but the Fortran exponent are read directly, in both pixel types.
         assert!(n_plain >= 2 * (scalings.len() - 1), "{n_plain} direct reads");
+    }
+
+    /// The header read without cfitsio is cfitsio's: the same cards (trailing blanks
+    /// removed, the blank cards just before END left out, blank and commentary cards
+    /// elsewhere kept) and the same data offset, for headers of one to three blocks, data
+    /// padded or not; and it declines (cfitsio reads the file) whatever is not one plain
+    /// 2-D primary image: extensions, a short or long file, another NAXIS, the mandatory
+    /// keywords out of order, a non-ASCII byte in the header, no END, a gzip file.
+    #[test]
+    fn plain_primary_headers_are_cfitsio_headers() {
+        let dir = tempfile::tempdir().unwrap();
+        let (nx, ny) = (37, 21);
+        let mut rng = Rng::seed_from_u64(5);
+        let data = pixels(16, nx * ny, &mut rng);
+        let many: Vec<String> = (0..70).map(|i| format!("HIERARCH ESO DET CHIP{i} X = {i}")).collect();
+        let mut headers: Vec<Vec<&str>> = vec![
+            vec![],
+            vec![
+                "BZERO   =                32768",
+                "OBJECT  = 'HK Tau  '   / target",
+                "",
+                "COMMENT a comment   ",
+            ],
+            vec!["HIERARCH ESO ADA POSANG = 45.0", "", "HISTORY x", "  ", "", ""],
+        ];
+        headers.push(many.iter().map(|s| s.as_str()).collect());
+        let mut checked = 0;
+        for (k, extra) in headers.iter().enumerate() {
+            for padded in [true, false] {
+                let mut bytes = fits_bytes(16, nx, ny, extra, &data);
+                if !padded {
+                    let head = bytes.len() - data.len().next_multiple_of(2880);
+                    bytes.truncate(head + data.len());
+                }
+                let path = dir.path().join(format!("h{k}_{padded}.fits"));
+                std::fs::write(&path, &bytes).unwrap();
+                let got = plain_primary(&path).expect("a plain primary image");
+                let mut f = FitsFile::open(&path).unwrap();
+                let want = super::super::read::hdu_cards(&mut f, &path, 0).unwrap().unwrap();
+                assert_eq!(got.cards, want, "header {k}");
+                assert_eq!(got.start, data_start(&mut f, 0).unwrap(), "header {k}");
+                checked += 1;
+            }
+        }
+        assert_eq!(checked, 8);
+        // Declined.
+        let good = fits_bytes(16, nx, ny, &[], &data);
+        let mut cases: Vec<(&str, Vec<u8>)> = vec![
+            ("an extension after the image", [good.clone(), good.clone()].concat()),
+            ("a file cut inside the data", good[..good.len() - 2880].to_vec()),
+            ("a byte after the padding", [good.clone(), vec![0]].concat()),
+            ("NAXIS 3", fits_bytes(16, nx, ny, &[], &data)),
+            ("NAXIS1 after NAXIS2", fits_bytes(16, nx, ny, &[], &data)),
+            ("a non-ASCII byte", fits_bytes(16, nx, ny, &["OBJECT  = 'x'"], &data)),
+            (
+                "no END",
+                good[..2880].iter().map(|&b| if b == b'E' { b'X' } else { b }).collect(),
+            ),
+            ("SIMPLE = F", fits_bytes(16, nx, ny, &[], &data)),
+        ];
+        let find = |b: &[u8], key: &str| {
+            (0..b.len() / 80)
+                .map(|i| i * 80)
+                .find(|&i| b[i..].starts_with(key.as_bytes()))
+                .unwrap()
+        };
+        let at = find(&cases[3].1, "NAXIS   ");
+        cases[3].1[at..at + 30].copy_from_slice(format!("{:<8}= {:>20}", "NAXIS", 3).as_bytes());
+        let (a, b) = (find(&cases[4].1, "NAXIS1"), find(&cases[4].1, "NAXIS2"));
+        let (c1, c2) = (cases[4].1[a..a + 80].to_vec(), cases[4].1[b..b + 80].to_vec());
+        cases[4].1[a..a + 80].copy_from_slice(&c2);
+        cases[4].1[b..b + 80].copy_from_slice(&c1);
+        let at = find(&cases[5].1, "OBJECT");
+        cases[5].1[at + 12] = 0xe9;
+        let at = find(&cases[7].1, "SIMPLE");
+        cases[7].1[at + 29] = b'F';
+        for (what, bytes) in &cases {
+            let path = dir.path().join("declined.fits");
+            std::fs::write(&path, bytes).unwrap();
+            assert!(plain_primary(&path).is_none(), "{what}");
+        }
+        // gzip
+        let path = dir.path().join("g.fits.gz");
+        let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+        std::io::Write::write_all(&mut enc, &good).unwrap();
+        std::fs::write(&path, enc.finish().unwrap()).unwrap();
+        assert!(plain_primary(&path).is_none());
+        // The control: the good file is taken.
+        let path = dir.path().join("good.fits");
+        std::fs::write(&path, &good).unwrap();
+        assert!(plain_primary(&path).is_some());
     }
 
     /// An image in the first extension of a plain file (empty primary HDU) is read

@@ -31,6 +31,9 @@ use super::{MASK_EXTNAME, VARIANCE_EXTNAME};
 /// # Ok::<(), sofipol_calib::Error>(())
 /// ```
 pub fn read_header(path: &Path) -> Result<Header> {
+    if let Some(p) = super::raw::plain_primary(path) {
+        return Ok(parse_cards(&p.cards, path).0);
+    }
     let mut f = open(path)?;
     let (_, cards) = find_image_hdu(&mut f, path)?;
     Ok(parse_cards(&cards, path).0)
@@ -83,6 +86,24 @@ fn read_rows_inner(
     rows: Option<(usize, usize)>,
     want_summary: bool,
 ) -> Result<(Frame, Option<PixelSummary>)> {
+    // A night frame (one plain primary image) is read without cfitsio.
+    if let Some(p) = super::raw::plain_primary(path) {
+        if let Some(plain) = super::raw::PlainImage::at(&p.cards, p.start) {
+            let (header, history) = parse_cards(&p.cards, path);
+            let (ny_full, nx) = image_dims(&p.cards, path)?;
+            let rows = rows.filter(|&(r0, r1)| r0 < r1 && r1 <= ny_full);
+            let ny = rows.map_or(ny_full, |(r0, r1)| r1 - r0);
+            let (data, summary) = plain.read_rows(path, nx, rows.map_or(0, |r| r.0), ny)?;
+            let frame = Frame {
+                mask: Array2::zeros((ny, nx)),
+                data,
+                variance: None,
+                header,
+                history,
+            };
+            return Ok((with_crop_record(frame, rows), Some(summary)));
+        }
+    }
     let mut f = open(path)?;
     let (hdu_index, cards) = find_image_hdu(&mut f, path)?;
     let (header, history) = parse_cards(&cards, path);
@@ -142,15 +163,18 @@ fn read_rows_inner(
         header,
         history,
     };
-    let frame = match rows {
+    Ok((with_crop_record(frame, rows), summary))
+}
+
+/// The frame with the record [`Frame::crop_rows`] writes when only `rows` were read.
+fn with_crop_record(frame: Frame, rows: Option<(usize, usize)>) -> Frame {
+    match rows {
         None => frame,
-        // The record Frame::crop_rows writes.
         Some((r0, r1)) => frame.with_history(
             "crop",
             format!("rows [{r0}, {r1}) of the detector; row {r0} is row 0 here"),
         ),
-    };
-    Ok((frame, summary))
+    }
 }
 
 /// Header cards of HDU `index` (0-based), or `None` past the last HDU.
