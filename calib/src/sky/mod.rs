@@ -328,16 +328,10 @@ pub fn sky_level(frame: &Frame, profile: &Profile) -> Result<f64> {
     let mut v: Vec<i32> = Vec::with_capacity(ny * nx / STEP + ny);
     for y in (0..ny).filter(|&y| g.row_in_strip(y)) {
         let (d, m) = (frame.data.row(y), frame.mask.row(y));
-        let x0 = (y * 3) % STEP;
-        match (d.as_slice(), m.as_slice()) {
-            (Some(d), Some(m)) if x0 < nx => push_level_samples::<STEP>(&d[x0..], &m[x0..], sat, &mut v),
-            _ => {
-                for x in (x0..nx).step_by(STEP) {
-                    let val = d[x];
-                    if m[x] == 0 && val < sat && val.is_finite() {
-                        v.push(crate::flat::lanes::key(val));
-                    }
-                }
+        for x in ((y * 3) % STEP..nx).step_by(STEP) {
+            let val = d[x];
+            if m[x] == 0 && val < sat && val.is_finite() {
+                v.push(crate::flat::lanes::key(val));
             }
         }
     }
@@ -353,23 +347,6 @@ pub fn sky_level(frame: &Frame, profile: &Profile) -> Result<f64> {
     let k = v.len() / 2;
     let (_, m, _) = v.select_nth_unstable(k);
     Ok(crate::flat::lanes::from_key(*m) as f64)
-}
-
-/// Appends to `out` the keys of `d[0]`, `d[STEP]`, ... that are unmasked (`m` 0), finite
-/// and below `sat`, in order: branch-free, a block of samples at a time (the samples of
-/// [`sky_level`]).
-#[inline]
-fn push_level_samples<const STEP: usize>(d: &[f32], m: &[u8], sat: f32, out: &mut Vec<i32>) {
-    const BLOCK: usize = 64;
-    let mut buf = [0i32; BLOCK];
-    for (dc, mc) in d.chunks(STEP * BLOCK).zip(m.chunks(STEP * BLOCK)) {
-        let mut n = 0;
-        for (&val, &mv) in dc.iter().step_by(STEP).zip(mc.iter().step_by(STEP)) {
-            buf[n & (BLOCK - 1)] = crate::flat::lanes::key(val);
-            n += usize::from((mv == 0) & (val < sat) & val.is_finite());
-        }
-        out.extend_from_slice(&buf[..n]);
-    }
 }
 
 /// Sky-subtract the dithers of ONE orientation (see the module documentation). Output
