@@ -1,9 +1,10 @@
 //! The pixels of a plain FITS image read straight from the file: the frames of a night
 //! (BITPIX 16 with BZERO/BSCALE, or -32, uncompressed) are read this way, a row range at a
 //! time, and converted to `f32` in one pass, without cfitsio's zero-filled output buffer,
-//! its I/O buffers and its separate byte-swap and scaling passes. cfitsio still finds the
-//! HDU and says where its data start; every other file (tile-compressed, gzip, other
-//! BITPIX, odd scaling keywords) is read by cfitsio.
+//! its I/O buffers and its separate byte-swap and scaling passes. A file that is one plain
+//! 2-D primary image and nothing else has its header read here too ([`plain_primary`]);
+//! for other plain files cfitsio finds the HDU and says where its data start; every other
+//! file (tile-compressed, gzip, other BITPIX, odd scaling keywords) is read by cfitsio.
 //!
 //! The numbers are cfitsio's, bit for bit: integers are scaled as `(float)(v * BSCALE +
 //! BZERO)` in double precision (cfitsio's `fffi2r4`), floats copied (or scaled the same

@@ -35,7 +35,10 @@
 //! 3.7e-16 x (1 + beta ln(1 + t)) (the conditioning of any `exp`), pixel values and
 //! derivatives within 3e-14 of their scale (tests `photometry_moffat_*_matches_libm*`). The
 //! PSF fits of `sofipol night` on the 49-target bench night: 0.88 -> 0.61 CPU-s (perf
-//! samples), measure stage 3.09 -> 2.34 s (medians of 5, same run).
+//! samples), measure stage 3.09 -> 2.34 s (medians of 5, same run). Many pixels at once
+//! ([`moffat_pixels`], [`moffat_pixels_derivs`]): their nodes fill whole vectors (the wings'
+//! 1 to 9 nodes per pixel would fill one partly and wait on its latency), the same values
+//! bit for bit; measure stage 0.45 -> 0.35 s.
 
 use ndarray::ArrayViewMut2;
 
@@ -505,7 +508,7 @@ fn derivs_of_sums([s0, sx, sy, st, sl]: [f64; 5], alpha: f64, ia2: f64, beta: f6
     ]
 }
 
-/// [`moffat_pixel`] for many pixels at once (faster: see [`batch_sums_generic`]):
+/// [`moffat_pixel`] for many pixels at once (faster: their nodes fill whole vectors):
 /// `out[i]` is `moffat_pixel(offsets[i].0, offsets[i].1, alpha, beta)`, bit for bit.
 /// Panics if the lengths differ.
 pub fn moffat_pixels(offsets: &[(f64, f64)], alpha: f64, beta: f64, out: &mut [f64]) {
