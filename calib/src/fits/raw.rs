@@ -118,8 +118,10 @@ const MAX_HEADER_BLOCKS: usize = 64;
 /// `plain_primary_headers_are_cfitsio_headers`).
 pub(super) fn plain_primary(path: &Path) -> Option<PlainPrimary> {
     const BLOCK_BYTES: usize = 2880;
+    // A regular file only, checked before opening (opening a named pipe would wait for a
+    // writer); cfitsio's path refuses the others by name.
+    let len = std::fs::metadata(path).ok().filter(|m| m.is_file())?.len();
     let mut file = std::fs::File::open(path).ok()?;
-    let len = file.metadata().ok().filter(|m| m.is_file())?.len();
     let mut cards: Vec<String> = Vec::new();
     // Blank cards since the last non-blank one (cfitsio leaves those just before END out).
     let mut blanks = 0;
@@ -517,6 +519,27 @@ mod tests {
         let path = dir.path().join("good.fits");
         std::fs::write(&path, &good).unwrap();
         assert!(plain_primary(&path).is_some());
+        // A named pipe is declined without opening it (opening would wait for a writer),
+        // and the reader refuses it by name.
+        let fifo = dir.path().join("pipe.fits");
+        if std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .is_ok_and(|s| s.success())
+        {
+            // On a thread: a reader that opened the pipe would wait forever.
+            let (tx, rx) = std::sync::mpsc::channel();
+            let f = fifo.clone();
+            std::thread::spawn(move || {
+                let _ = tx.send((plain_primary(&f).is_none(), crate::fits::read_header(&f).map(|_| ())));
+            });
+            let (declined, read) = rx
+                .recv_timeout(std::time::Duration::from_secs(10))
+                .expect("reading a named pipe's header must not wait for a writer");
+            assert!(declined);
+            let e = read.unwrap_err().to_string();
+            assert!(e.contains("pipe.fits") && e.contains("not a regular file"), "{e}");
+        }
     }
 
     /// An image in the first extension of a plain file (empty primary HDU) is read
