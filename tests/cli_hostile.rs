@@ -751,3 +751,47 @@ fn a_flat_file_of_the_wrong_size_or_with_nan_pixels_is_refused_or_flagged_by_nam
         }
     }
 }
+
+/// A named pipe among the night's files (`*.fits`: a copy tool's leftover, or a file being
+/// streamed in) is named as "not a regular file" and the night goes on, the targets as in
+/// a clean run. Reading it would wait for a writer forever: the run is killed after 120 s.
+#[test]
+fn a_named_pipe_among_the_files_is_named_and_the_night_does_not_wait_on_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = night(dir.path());
+    let clean = clean_catalog(dir.path(), &n);
+    let pipe = n.join("SOFI_hx_zz_pipe.fits");
+    if !Command::new("mkfifo").arg(&pipe).status().is_ok_and(|s| s.success()) {
+        eprintln!("no mkfifo here: nothing to check");
+        return;
+    }
+    let out = dir.path().join("c.json");
+    let mut child = common::sofipol()
+        .args(["night", s(&n), "-o", s(&out), "-q", "--no-png"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    let code = loop {
+        if let Some(st) = child.try_wait().unwrap() {
+            break st.code();
+        }
+        if t0.elapsed().as_secs() > 120 {
+            let _ = child.kill();
+            panic!("the night waited on the named pipe");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
+    assert_eq!(code, Some(2));
+    let c = catalog(&out);
+    let fl = failures(&c);
+    assert!(
+        fl.iter()
+            .any(|(file, e)| file.ends_with("SOFI_hx_zz_pipe.fits") && e == "not a regular file"),
+        "{fl:?}"
+    );
+    for name in ["Alpha", "Beta"] {
+        assert_eq!(components(target(&c, name)), components(target(&clean, name)), "{name}");
+    }
+}
