@@ -118,7 +118,7 @@ impl Flat {
 
     /// This flat (made on rows [r0, r0 + its height) of a detector of `ny` rows) placed in
     /// a full-height flat: 1 with variance 0 elsewhere.
-    pub fn embed_rows(&self, r0: usize, ny: usize) -> Flat {
+    pub fn embed_rows(self, r0: usize, ny: usize) -> Flat {
         let (h, nx) = self.shape();
         let r1 = (r0 + h).min(ny);
         let mut data = Array2::<f32>::ones((ny, nx));
@@ -130,12 +130,13 @@ impl Flat {
             .slice_mut(s![r0..r1, ..])
             .assign(&self.variance.slice(s![..r1 - r0, ..]));
         bad.slice_mut(s![r0..r1, ..]).assign(&self.bad.slice(s![..r1 - r0, ..]));
+        // The rest moves over (the cropped maps are not copied).
         Flat {
             data,
             variance,
             bad,
             detail: format!("{} (rows {r0}-{r1} of the detector; 1 elsewhere)", self.detail),
-            ..self.clone()
+            ..self
         }
     }
 
