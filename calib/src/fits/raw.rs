@@ -128,7 +128,7 @@ pub(super) fn plain_primary(path: &Path) -> Option<PlainPrimary> {
     let mut block = [0u8; BLOCK_BYTES];
     for b in 0..MAX_HEADER_BLOCKS {
         file.read_exact(&mut block).ok()?;
-        if !block.iter().all(|c| (b' '..=b'~').contains(c)) {
+        if (b == 0 && !block.starts_with(b"SIMPLE  =")) || !block.iter().all(|c| (b' '..=b'~').contains(c)) {
             return None;
         }
         for card in block.chunks_exact(80) {
