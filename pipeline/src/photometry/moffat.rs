@@ -212,7 +212,10 @@ fn rule(dx: f64, dy: f64, alpha: f64) -> (&'static [f64], &'static [f64]) {
 /// Sums over the `N = n x n` nodes `(xs, ws)` of a pixel at `(dx, dy)` from the star of
 /// `w p`, `w p X/u`, `w p Y/u`, `w p t/u`, `w p ln u` (with `t = r^2/alpha^2`, `u = 1 + t`,
 /// `p = u^-beta`, `(X, Y)` = node - star), or only the first when `!DERIVS`. The nodes are
-/// processed as arrays so that the compiler vectorises the `ln`/`exp` kernel over them.
+/// processed as arrays so that the compiler vectorises the `ln`/`exp` kernel over them. The
+/// definition of a pixel's sums, one pixel at a time: the tests' reference for the batched
+/// kernel below, which gives the same values bit for bit.
+#[cfg(test)]
 #[inline(always)]
 fn node_sums<const N: usize, const DERIVS: bool>(
     dx: f64,
@@ -263,6 +266,7 @@ fn node_sums<const N: usize, const DERIVS: bool>(
 }
 
 /// [`node_sums`] with the rule of the pixel at `(dx, dy)`.
+#[cfg(test)]
 #[inline(always)]
 fn pixel_sums_generic<const DERIVS: bool>(dx: f64, dy: f64, alpha: f64, ia2: f64, beta: f64) -> [f64; 5] {
     let (xs, ws) = rule(dx, dy, alpha);
@@ -275,41 +279,6 @@ fn pixel_sums_generic<const DERIVS: bool>(dx: f64, dy: f64, alpha: f64, ia2: f64
     }
 }
 
-/// [`pixel_sums_generic`] compiled for AVX2 (4 lanes instead of SSE2's 2). Only the vector
-/// width differs: no FMA contraction, so the values are bit-identical to the generic code's
-/// (test `photometry_moffat_avx2_path_is_bit_identical`).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn pixel_sums_avx2<const DERIVS: bool>(dx: f64, dy: f64, alpha: f64, ia2: f64, beta: f64) -> [f64; 5] {
-    pixel_sums_generic::<DERIVS>(dx, dy, alpha, ia2, beta)
-}
-
-/// [`pixel_sums_generic`] compiled for AVX-512 (8 lanes); bit-identical like the AVX2 build.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-fn pixel_sums_avx512<const DERIVS: bool>(dx: f64, dy: f64, alpha: f64, ia2: f64, beta: f64) -> [f64; 5] {
-    pixel_sums_generic::<DERIVS>(dx, dy, alpha, ia2, beta)
-}
-
-/// [`pixel_sums_generic`] with the widest vector code this CPU runs.
-#[inline(always)]
-fn pixel_sums<const DERIVS: bool>(dx: f64, dy: f64, alpha: f64, ia2: f64, beta: f64) -> [f64; 5] {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx512f") {
-            // SAFETY: the CPU supports AVX-512F (checked just above).
-            #[allow(unsafe_code)]
-            return unsafe { pixel_sums_avx512::<DERIVS>(dx, dy, alpha, ia2, beta) };
-        }
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU supports AVX2 (checked just above); the only unsafe operation here.
-            #[allow(unsafe_code)]
-            return unsafe { pixel_sums_avx2::<DERIVS>(dx, dy, alpha, ia2, beta) };
-        }
-    }
-    pixel_sums_generic::<DERIVS>(dx, dy, alpha, ia2, beta)
-}
-
 /// Node capacity of one batch of [`batch_sums`] (a pixel has at most 64 nodes; a
 /// multiple of 8, the widest vector).
 const BATCH_NODES: usize = 256;
@@ -318,7 +287,7 @@ const BATCH_NODES: usize = 256;
 /// [`BATCH_NODES`] at a time go through `node_kernel` in one vectorised loop (whole vectors
 /// even for the 1-, 4- and 9-node pixels of the wings, which alone would fill a vector
 /// partly and wait on its latency), then each pixel's sums are taken in `node_sums`' order.
-/// `out[i]` gets pixel `i`'s sums, bit for bit those of [`pixel_sums`] (test
+/// `out[i]` gets pixel `i`'s sums, bit for bit those of `node_sums` (test
 /// `photometry_moffat_batch_is_the_per_pixel_kernel`); only `out[i][0]` when `!DERIVS`.
 #[inline(always)]
 fn batch_sums_generic<const DERIVS: bool>(
@@ -440,14 +409,16 @@ fn reduce_nodes<const M: usize, const DERIVS: bool>(
     [sum(s0), sum(sx), sum(sy), sum(st), sum(sl)]
 }
 
-/// [`batch_sums_generic`] compiled for AVX2; bit-identical like [`pixel_sums_avx2`].
+/// [`batch_sums_generic`] compiled for AVX2 (4 lanes instead of SSE2's 2). Only the vector
+/// width differs: no FMA contraction, so the values are bit-identical to the generic code's
+/// (test `photometry_moffat_avx2_path_is_bit_identical`).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn batch_sums_avx2<const DERIVS: bool>(offsets: &[(f64, f64)], alpha: f64, ia2: f64, beta: f64, out: &mut [[f64; 5]]) {
     batch_sums_generic::<DERIVS>(offsets, alpha, ia2, beta, out)
 }
 
-/// [`batch_sums_generic`] compiled for AVX-512; bit-identical like [`pixel_sums_avx512`].
+/// [`batch_sums_generic`] compiled for AVX-512 (8 lanes); bit-identical like the AVX2 build.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 fn batch_sums_avx512<const DERIVS: bool>(
@@ -481,17 +452,17 @@ fn batch_sums<const DERIVS: bool>(offsets: &[(f64, f64)], alpha: f64, ia2: f64, 
 /// Fraction of a unit-flux Moffat `(alpha, beta)` falling in the pixel whose centre is at
 /// `(dx, dy)` px from the star's centre (`dx = ix - x`).
 pub fn moffat_pixel(dx: f64, dy: f64, alpha: f64, beta: f64) -> f64 {
-    let ia2 = 1.0 / (alpha * alpha);
-    // Same operations and order as moffat_pixel_derivs: bit-identical values.
-    let s = pixel_sums::<false>(dx, dy, alpha, ia2, beta);
-    (beta - 1.0) / std::f64::consts::PI * ia2 * s[0]
+    let mut v = [0.0];
+    moffat_pixels(&[(dx, dy)], alpha, beta, &mut v);
+    v[0]
 }
 
 /// [`moffat_pixel`] and its derivatives: `[P, dP/dx, dP/dy, dP/dalpha, dP/dbeta]`, where `x`,
 /// `y` are the star's centre (so `dP/dx = -dP/d(dx)`).
 pub fn moffat_pixel_derivs(dx: f64, dy: f64, alpha: f64, beta: f64) -> [f64; 5] {
-    let ia2 = 1.0 / (alpha * alpha);
-    derivs_of_sums(pixel_sums::<true>(dx, dy, alpha, ia2, beta), alpha, ia2, beta)
+    let mut d = [[0.0; 5]];
+    moffat_pixels_derivs(&[(dx, dy)], alpha, beta, &mut d);
+    d[0]
 }
 
 /// The pixel value and derivatives from the node sums.
@@ -514,10 +485,19 @@ fn derivs_of_sums([s0, sx, sy, st, sl]: [f64; 5], alpha: f64, ia2: f64, beta: f6
 pub fn moffat_pixels(offsets: &[(f64, f64)], alpha: f64, beta: f64, out: &mut [f64]) {
     assert_eq!(offsets.len(), out.len(), "one output per pixel");
     let ia2 = 1.0 / (alpha * alpha);
+    // Same operations and order as moffat_pixels_derivs' value: bit-identical values.
+    let norm = |s: &[f64; 5]| (beta - 1.0) / std::f64::consts::PI * ia2 * s[0];
+    if let [one] = out {
+        // One pixel (a fit's start, a model value): no allocation.
+        let mut s = [[0.0; 5]];
+        batch_sums::<false>(offsets, alpha, ia2, beta, &mut s);
+        *one = norm(&s[0]);
+        return;
+    }
     let mut sums = vec![[0.0; 5]; offsets.len()];
     batch_sums::<false>(offsets, alpha, ia2, beta, &mut sums);
     for (o, s) in out.iter_mut().zip(&sums) {
-        *o = (beta - 1.0) / std::f64::consts::PI * ia2 * s[0];
+        *o = norm(s);
     }
 }
 
@@ -900,24 +880,40 @@ mod tests {
                 if avx512 { " and AVX-512" } else { "" }
             );
             let mut rng = Rng(7);
-            for n in 0..20_000 {
+            for n in 0..400 {
                 let alpha = 0.3 * 100f64.powf(rng.next());
                 let beta = 1.01 + 19.0 * rng.next();
-                let (dx, dy) = ((rng.next() - 0.5) * 8.0 * alpha, (rng.next() - 0.5) * 8.0 * alpha);
                 let ia2 = 1.0 / (alpha * alpha);
-                let g = pixel_sums_generic::<true>(dx, dy, alpha, ia2, beta);
+                let offsets: Vec<(f64, f64)> = (0..(rng.next() * 120.0) as usize)
+                    .map(|_| ((rng.next() - 0.5) * 8.0 * alpha, (rng.next() - 0.5) * 8.0 * alpha))
+                    .collect();
+                let mut g = vec![[0.0; 5]; offsets.len()];
+                batch_sums_generic::<true>(&offsets, alpha, ia2, beta, &mut g);
+                let mut v = vec![[0.0; 5]; offsets.len()];
                 // SAFETY: AVX2 checked above.
                 #[allow(unsafe_code)]
-                let v = unsafe { pixel_sums_avx2::<true>(dx, dy, alpha, ia2, beta) };
-                for i in 0..5 {
-                    assert_eq!(g[i].to_bits(), v[i].to_bits(), "AVX2 case {n} component {i}");
+                unsafe {
+                    batch_sums_avx2::<true>(&offsets, alpha, ia2, beta, &mut v)
+                };
+                for (i, (a, b)) in g.iter().zip(&v).enumerate() {
+                    for c in 0..5 {
+                        assert_eq!(a[c].to_bits(), b[c].to_bits(), "AVX2 batch {n} pixel {i} component {c}");
+                    }
                 }
                 if avx512 {
                     // SAFETY: AVX-512F checked above.
                     #[allow(unsafe_code)]
-                    let v = unsafe { pixel_sums_avx512::<true>(dx, dy, alpha, ia2, beta) };
-                    for i in 0..5 {
-                        assert_eq!(g[i].to_bits(), v[i].to_bits(), "AVX-512 case {n} component {i}");
+                    unsafe {
+                        batch_sums_avx512::<true>(&offsets, alpha, ia2, beta, &mut v)
+                    };
+                    for (i, (a, b)) in g.iter().zip(&v).enumerate() {
+                        for c in 0..5 {
+                            assert_eq!(
+                                a[c].to_bits(),
+                                b[c].to_bits(),
+                                "AVX-512 batch {n} pixel {i} component {c}"
+                            );
+                        }
                     }
                 }
             }
@@ -951,16 +947,27 @@ mod tests {
             let mut derivs = vec![[f64::NAN; 5]; n];
             moffat_pixels(&offsets, alpha, beta, &mut values);
             moffat_pixels_derivs(&offsets, alpha, beta, &mut derivs);
+            let ia2 = 1.0 / (alpha * alpha);
             for (i, &(dx, dy)) in offsets.iter().enumerate() {
+                // The per-pixel definition (node_sums), and the one-pixel functions.
+                let s = pixel_sums_generic::<true>(dx, dy, alpha, ia2, beta);
+                let want_value = (beta - 1.0) / std::f64::consts::PI * ia2 * s[0];
+                let want = derivs_of_sums(s, alpha, ia2, beta);
+                assert_eq!(values[i].to_bits(), want_value.to_bits(), "case {case} pixel {i}");
                 assert_eq!(
-                    values[i].to_bits(),
                     moffat_pixel(dx, dy, alpha, beta).to_bits(),
+                    want_value.to_bits(),
                     "case {case} pixel {i}"
                 );
-                let want = moffat_pixel_derivs(dx, dy, alpha, beta);
+                let one = moffat_pixel_derivs(dx, dy, alpha, beta);
                 for c in 0..5 {
                     assert_eq!(
                         derivs[i][c].to_bits(),
+                        want[c].to_bits(),
+                        "case {case} pixel {i} component {c}"
+                    );
+                    assert_eq!(
+                        one[c].to_bits(),
                         want[c].to_bits(),
                         "case {case} pixel {i} component {c}"
                     );
