@@ -231,23 +231,25 @@ pub fn unreadable_reason(path: &Path, message: &str) -> String {
     let mut head = [0u8; 30];
     // Only a regular file is opened: opening a named pipe would wait for a writer (the
     // message already says what it is).
-    let regular = std::fs::metadata(path).is_ok_and(|m| m.is_file());
-    let n = (if regular {
-        std::fs::File::open(path)
-    } else {
-        Err(std::io::Error::other("not a regular file"))
-    })
-    .and_then(|mut f| {
-        let mut n = 0;
-        while n < head.len() {
-            match std::io::Read::read(&mut f, &mut head[n..])? {
-                0 => break,
-                k => n += k,
-            }
+    let open_regular = || {
+        if std::fs::metadata(path)?.is_file() {
+            std::fs::File::open(path)
+        } else {
+            Err(std::io::Error::other("not a regular file"))
         }
-        Ok(n)
-    })
-    .unwrap_or(usize::MAX);
+    };
+    let n = open_regular()
+        .and_then(|mut f| {
+            let mut n = 0;
+            while n < head.len() {
+                match std::io::Read::read(&mut f, &mut head[n..])? {
+                    0 => break,
+                    k => n += k,
+                }
+            }
+            Ok(n)
+        })
+        .unwrap_or(usize::MAX);
     if n != usize::MAX && !head[..n].starts_with(b"SIMPLE  =") && !head[..n].starts_with(&[0x1f, 0x8b]) {
         if n == 0 {
             return "not a FITS file: empty".into();
