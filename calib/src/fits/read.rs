@@ -32,6 +32,8 @@ use super::{MASK_EXTNAME, VARIANCE_EXTNAME};
 /// ```
 pub fn read_header(path: &Path) -> Result<Header> {
     if let Some(p) = super::raw::plain_primary(path) {
+        // The checks find_image_hdu makes (e.g. an unsigned 64-bit image is refused here).
+        image_dims(&p.cards, path)?;
         return Ok(parse_cards(&p.cards, path).0);
     }
     let mut f = open(path)?;
