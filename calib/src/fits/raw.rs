@@ -515,6 +515,18 @@ mod tests {
         std::io::Write::write_all(&mut enc, &good).unwrap();
         std::fs::write(&path, enc.finish().unwrap()).unwrap();
         assert!(plain_primary(&path).is_none());
+        // An unsigned 64-bit image (BITPIX 64, BZERO 2^63) has a plain header, and its header
+        // and pixels are still refused by name, as through cfitsio.
+        let u64_bytes = fits_bytes(64, nx, ny, &["BZERO   =  9223372036854775808"], &vec![0u8; nx * ny * 8]);
+        let path = dir.path().join("u64.fits");
+        std::fs::write(&path, &u64_bytes).unwrap();
+        assert!(plain_primary(&path).is_some());
+        for e in [
+            crate::fits::read_header(&path).unwrap_err().to_string(),
+            crate::fits::read_frame(&path).unwrap_err().to_string(),
+        ] {
+            assert!(e.contains("u64.fits") && e.contains("unsupported pixel type"), "{e}");
+        }
         // The control: the good file is taken.
         let path = dir.path().join("good.fits");
         std::fs::write(&path, &good).unwrap();
