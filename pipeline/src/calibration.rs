@@ -547,5 +547,8 @@ pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::Target
     s
 }
 
+pub mod setup;
+pub use setup::CalibSetup;
+
 #[cfg(test)]
 mod tests;

@@ -370,7 +370,13 @@ pub fn night_calibration(cfg: &WorldConfig, inst: &Instrument, params: &TargetPa
     let sim = Simulator::new(calibration_scene(cfg, inst), Profile::sofi()).expect("valid scene");
     sim.write_to_dir(&dir, &|_| {}).expect("calibration frames written");
     let profile = Profile::sofi();
-    let plan = crate::night::plan(std::slice::from_ref(&dir), &profile, None).expect("scratch folder");
+    let plan = crate::night::plan(
+        std::slice::from_ref(&dir),
+        &profile,
+        params.flat_options.max_frames,
+        None,
+        |_| false,
+    );
     let flats = crate::night::night_flats(&plan.dome_flats, &Default::default(), &profile, params).set;
     let sp = crate::calibration::standard_params(params);
     let standards = plan

@@ -8,14 +8,8 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use sofipol_calib::Profile;
-use sofipol_pipeline::calibration::{
-    self, Calibration, CalibrationParams, CalibrationSource, CalibrationSummary, CALIBRATION_FILE,
-};
-use sofipol_pipeline::catalog::{Catalog, Target};
-use sofipol_pipeline::night;
-use sofipol_pipeline::reduce::TargetParams;
-use sofipol_pipeline::sequence::Sequence;
-use sofipol_pipeline::standards::StandardsTable;
+use sofipol_pipeline::calibration::{CalibSetup, Calibration, CalibrationParams, CALIBRATION_FILE};
+use sofipol_pipeline::night::{self, NightSetup, RunOptions};
 use sofipol_pipeline::stokes::calibration::StokesMethod;
 
 use super::common::ProfileArgs;
@@ -39,24 +33,6 @@ pub struct CalibArgs {
     pub no_calibration: bool,
 }
 
-/// What the calibration options resolve to.
-pub struct CalibSetup {
-    /// Settings.
-    pub params: CalibrationParams,
-    /// Standards table.
-    pub table: StandardsTable,
-    /// A calibration read with --calib.
-    pub external: Option<(PathBuf, Calibration)>,
-}
-
-impl CalibSetup {
-    /// The catalog's `provenance.calibration`: settings, standards tables, `--calib` directory.
-    pub fn provenance(&self) -> serde_json::Value {
-        serde_json::json!({"params": self.params, "standards_table": self.table.sources,
-            "calib_dir": self.external.as_ref().map(|e| e.0.display().to_string())})
-    }
-}
-
 impl CalibArgs {
     /// Validate; the flags override `base` (the `[calibration]` section of --params).
     pub fn setup(&self, base: &CalibrationParams) -> anyhow::Result<CalibSetup> {
@@ -65,82 +41,12 @@ impl CalibArgs {
         if let Some(m) = self.stokes_method {
             params.stokes_method = m;
         }
-        let table = match &self.standards {
-            Some(f) => StandardsTable::with_file(f).map_err(anyhow::Error::msg)?,
-            None => StandardsTable::builtin(),
-        };
-        let external = match &self.calib {
-            Some(p) => {
-                anyhow::ensure!(
-                    !params.no_calibration,
-                    "--calib and --no-calibration exclude each other"
-                );
-                Some((p.clone(), Calibration::read(p).map_err(anyhow::Error::msg)?))
-            }
-            None => None,
-        };
-        Ok(CalibSetup {
-            params,
-            table,
-            external,
-        })
+        anyhow::ensure!(
+            !(params.no_calibration && self.calib.is_some()),
+            "--calib and --no-calibration exclude each other"
+        );
+        CalibSetup::new(params, self.standards.as_deref(), self.calib.as_deref()).map_err(anyhow::Error::msg)
     }
-}
-
-/// Reduce standard sequences as single stars (in the current rayon pool).
-pub fn reduce_standards(
-    stds: &[Sequence],
-    profile: &Profile,
-    params: &TargetParams,
-    night_mask: Option<&ndarray::Array2<u8>>,
-    flats: Option<&sofipol_calib::flat::FlatSet>,
-) -> (Vec<Target>, Catalog) {
-    let plan = night::NightPlan {
-        sequences: stds.to_vec(),
-        ..Default::default()
-    };
-    let sp = calibration::standard_params(params);
-    let res = night::reduce_night(&plan, profile, &sp, night_mask, flats, false, &|_| {}, &|_| {});
-    let targets = res.catalog.targets.clone();
-    (targets, res.catalog)
-}
-
-/// Calibrate a reduced catalog of targets: reduce the standards (unless a calibration was
-/// given or none is wanted), measure, re-solve the targets. Returns the summary lines.
-pub fn calibrate(
-    cat: &mut Catalog,
-    stds: &[Sequence],
-    profile: &Profile,
-    params: &TargetParams,
-    night_mask: Option<&ndarray::Array2<u8>>,
-    flats: Option<&sofipol_calib::flat::FlatSet>,
-    setup: &CalibSetup,
-) -> CalibrationSummary {
-    let (std_targets, std_cat) = if stds.is_empty() {
-        (vec![], Catalog::default())
-    } else {
-        reduce_standards(stds, profile, params, night_mask, flats)
-    };
-    cat.failures.extend(std_cat.failures);
-    cat.failures.sort_by(|a, b| a.file.cmp(&b.file));
-    let source = if setup.params.no_calibration {
-        CalibrationSource::Disabled
-    } else if let Some((p, c)) = &setup.external {
-        CalibrationSource::File(p.clone(), Box::new(c.clone()))
-    } else {
-        CalibrationSource::Night
-    };
-    let (_, summary) = calibration::calibrate_catalog(
-        cat,
-        std_targets,
-        &setup.table,
-        profile,
-        source,
-        &setup.params,
-        params.measure.debias,
-        params.measure.cut_snr,
-    );
-    summary
 }
 
 /// Arguments of `sofipol calib`.
@@ -186,30 +92,37 @@ fn build_flat_products(flats: &night::NightFlats, caldir: &Path) -> anyhow::Resu
     Ok(names)
 }
 
-/// Run.
+/// Run: the night's flats and standards, reduced as `sofipol night` does, give the
+/// calibration; both are written into CALDIR.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let profile = args.profile.load()?;
     let params = args.reduce.params()?;
-    let table = match &args.standards {
-        Some(f) => StandardsTable::with_file(f).map_err(anyhow::Error::msg)?,
-        None => StandardsTable::builtin(),
-    };
     for d in &args.dirs {
         anyhow::ensure!(d.exists(), "{}: no such file or directory", d.display());
     }
-    let plan = night::plan(&args.dirs, &profile, None).context("scanning the night")?;
-    let (_, stds) = calibration::split_standards(plan.sequences.clone(), &profile);
+    // The calibration is measured from this night's standards whatever the settings say.
+    let mut cal_params = params.calibration.clone();
+    cal_params.no_calibration = false;
+    let calibration = CalibSetup::new(cal_params, args.standards.as_deref(), None).map_err(anyhow::Error::msg)?;
+    let setup = NightSetup {
+        profile,
+        params,
+        calibration,
+    };
+    let mut plan = setup.plan(&args.dirs, None);
+    // Only the standards: the science sequences are reduced by `sofipol night`.
+    plan.sequences.clear();
     if !args.quiet {
         eprintln!(
             "sofipol calib: {} files, {} standard sequence(s)",
             plan.n_files,
-            stds.len()
+            plan.standards.len()
         );
     }
-    let night_flats = night::night_flats(&plan.dome_flats, &plan.superflat_frames, &profile, &params);
-    let (std_targets, _) = reduce_standards(&stds, &profile, &params, None, night_flats.set.as_ref());
-    let flats = build_flat_products(&night_flats, &args.output)?;
-    let mut cal = calibration::measure(&std_targets, &table, &profile).ok_or_else(|| {
+    let out = night::run_night(&plan, &setup, &RunOptions::default());
+    let flats = build_flat_products(&out.flats, &args.output)?;
+    let standards = &out.catalog.standards;
+    let mut cal = out.calibration.ok_or_else(|| {
         anyhow::anyhow!(
             "{}: no usable standard (DPR TYPE 'STD' sequences matched to the standards table: {} found, {})",
             args.dirs
@@ -217,13 +130,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 .map(|d| d.display().to_string())
                 .collect::<Vec<_>>()
                 .join(", "),
-            stds.len(),
-            std_targets
+            standards.len(),
+            standards
                 .iter()
-                .map(|t| format!(
+                .map(|s| format!(
                     "'{}'{}",
-                    t.object,
-                    if table.knows(&t.object) {
+                    s.object,
+                    if setup.calibration.table.knows(&s.object) {
                         ""
                     } else {
                         " not in the table"
@@ -238,37 +151,42 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
         "command_line": std::env::args().collect::<Vec<_>>(),
         "inputs": args.dirs,
-        "standards_table": table.sources,
-        "standard_sequences": std_targets.iter().map(|t| t.extra.get("sequence").cloned()).collect::<Vec<_>>(),
-        "profile_angles": {"zero_point_deg": profile.angles.zero_point_deg, "parity": profile.angles.parity},
+        "standards_table": setup.calibration.table.sources,
+        "standard_sequences": standards.iter().map(|s| &s.sequence).collect::<Vec<_>>(),
+        "profile_angles": {"zero_point_deg": setup.profile.angles.zero_point_deg, "parity": setup.profile.angles.parity},
     });
     let path = cal
         .write(&args.output)
         .with_context(|| format!("writing {}", args.output.join(CALIBRATION_FILE).display()))?;
     if !args.quiet {
-        for f in &cal.filters {
-            println!(
-                "{}: c = {} ; theta0 = {} ; parity {}",
-                f.filter,
-                f.offset
-                    .map(|o| format!("{:.5} +- {:.5} from {:?}", o.c, o.sigma_c, f.offset_standards))
-                    .unwrap_or_else(|| "not measured (no unpolarized standard)".into()),
-                f.angles
-                    .map(|a| format!(
-                        "{:.2} +- {:.2} deg from {:?}",
-                        a.theta0_deg, a.sigma_theta0_deg, f.angle_standards
-                    ))
-                    .unwrap_or_else(|| "not measured (no polarized standard)".into()),
-                f.angles
-                    .map(|a| format!(
-                        "{:+} ({})",
-                        a.parity,
-                        if a.parity_measured { "measured" } else { "profile" }
-                    ))
-                    .unwrap_or_else(|| format!("{:+} (profile)", profile.angles.parity)),
-            );
-        }
+        print_calibration(&cal, &setup.profile);
         println!("-> {}", path.display());
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The calibration per filter, one line each, on stdout.
+fn print_calibration(cal: &Calibration, profile: &Profile) {
+    for f in &cal.filters {
+        println!(
+            "{}: c = {} ; theta0 = {} ; parity {}",
+            f.filter,
+            f.offset
+                .map(|o| format!("{:.5} +- {:.5} from {:?}", o.c, o.sigma_c, f.offset_standards))
+                .unwrap_or_else(|| "not measured (no unpolarized standard)".into()),
+            f.angles
+                .map(|a| format!(
+                    "{:.2} +- {:.2} deg from {:?}",
+                    a.theta0_deg, a.sigma_theta0_deg, f.angle_standards
+                ))
+                .unwrap_or_else(|| "not measured (no polarized standard)".into()),
+            f.angles
+                .map(|a| format!(
+                    "{:+} ({})",
+                    a.parity,
+                    if a.parity_measured { "measured" } else { "profile" }
+                ))
+                .unwrap_or_else(|| format!("{:+} (profile)", profile.angles.parity)),
+        );
+    }
 }

@@ -3,9 +3,9 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use sofipol_pipeline::catalog::Catalog;
+use sofipol_pipeline::night::{self, Hooks, NightSetup, RunOptions};
 use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sim::{Scene, Truth};
-use sofipol_pipeline::{calibration, night};
 
 use super::common::ProfileArgs;
 
@@ -49,16 +49,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         t0.elapsed().as_secs_f64()
     );
 
-    // Reduce the night exactly as `sofipol night` does: scan, classify, group; the
-    // night's bad-pixel mask and flats; the targets; the standards and the calibration.
+    // Reduce the night exactly as `sofipol night` does ([`night::run_night`]): scan,
+    // classify, group; the night's bad-pixel mask and flats; the targets; the standards
+    // and the calibration.
     let t1 = std::time::Instant::now();
     let params = TargetParams::default();
-    let setup = super::calib::CalibArgs::default().setup(&params.calibration)?;
-    let mut plan = night::plan(std::slice::from_ref(&raw), &profile, None)?;
-    let (science, stds) = calibration::split_standards(std::mem::take(&mut plan.sequences), &profile);
-    plan.sequences = science;
-    let night_mask = night::night_bad_pixel_mask(&plan, &profile, &params, 15).map(|m| m.mask);
-    let flats = night::night_flats(&plan.dome_flats, &plan.superflat_frames, &profile, &params);
+    let calibration = super::calib::CalibArgs::default().setup(&params.calibration)?;
+    let setup = NightSetup {
+        profile,
+        params,
+        calibration,
+    };
+    let plan = setup.plan(std::slice::from_ref(&raw), None);
     let fig_dir = args.output.join("figures");
     std::fs::create_dir_all(&fig_dir)?;
     let plot = |out: &sofipol_pipeline::reduce::run::TargetOutcome| {
@@ -67,31 +69,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             eprintln!("sofipol: warning: {}: {e}", png.display());
         }
     };
-    let res = night::reduce_night(
-        &plan,
-        &profile,
-        &params,
-        night_mask.as_ref(),
-        flats.set.as_ref(),
-        true,
-        &|_| {},
-        &plot,
-    );
-    let mut cat = res.catalog;
-    let summary = super::calib::calibrate(
-        &mut cat,
-        &stds,
-        &profile,
-        &params,
-        night_mask.as_ref(),
-        flats.set.as_ref(),
-        &setup,
-    );
-    let mut prov = super::report::provenance(&profile, &params);
-    prov["flat"] = flats.provenance.clone();
-    prov["calibration"] = serde_json::json!({"params": setup.params, "standards_table": setup.table.sources});
-    cat.provenance = prov;
-    cat.failures.extend(flats.failures.iter().cloned());
+    let opts = RunOptions {
+        night_mask: true,
+        inputs: vec![raw.clone()],
+        hooks: Hooks {
+            on_done: None,
+            on_outcome: Some(&plot),
+        },
+        ..Default::default()
+    };
+    let out = night::run_night(&plan, &setup, &opts);
+    let (cat, summary, stds) = (out.catalog, out.summary, plan.standards);
+    let flats = out.flats;
     let cat_path = args.output.join("catalog.json");
     sofipol_pipeline::io::write_json_atomic(&cat_path, &cat)?;
     println!(

@@ -6,13 +6,10 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use anyhow::Context;
-use ndarray::Array2;
-use sofipol_calib::Profile;
 use sofipol_pipeline::catalog::{Catalog, Status, Target};
-use sofipol_pipeline::night::{self, Shard};
+use sofipol_pipeline::io;
+use sofipol_pipeline::night::{self, Hooks, NightOutput, NightPlan, NightSetup, RunOptions, Shard};
 use sofipol_pipeline::reduce::run::{StageTimes, TargetOutcome};
-use sofipol_pipeline::reduce::TargetParams;
-use sofipol_pipeline::sequence::Sequence;
 
 use super::common::progress;
 use super::target::SetupArgs;
@@ -49,10 +46,11 @@ pub struct Args {
     pub verbose: u8,
 }
 
-/// Run: check the options, plan the night, the night-wide calibration frames (bad-pixel
-/// mask, flats), reduce every sequence, calibrate with the standards, write the catalog.
+/// Run: check the options, plan the night, reduce it ([`night::run_night`]: the night-wide
+/// bad-pixel mask and flats, every sequence, the standards and the calibration), write the
+/// catalog.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let (profile, params, setup) = args.setup.load()?;
+    let setup = args.setup.load()?;
     let jobs = capped_jobs(args.jobs, args.quiet)?;
     for d in &args.dirs {
         anyhow::ensure!(d.exists(), "{}: no such file or directory", d.display());
@@ -62,17 +60,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .build()
         .context("starting worker threads")?;
     let t0 = Instant::now();
-    let (plan, stds) = plan_night(&args, &profile)?;
+    let plan = pool.install(|| plan_night(&args, &setup))?;
     if !args.quiet {
         eprintln!(
             "sofipol night: {} files, {} sequences + {} standard(s){}, {} inputs not used (found while scanning); {} threads",
             plan.n_files,
             plan.sequences.len(),
-            stds.len(),
+            plan.standards.len(),
             args.shard
                 .map(|s| format!(" in shard {}/{}", s.k, s.n))
                 .unwrap_or_default(),
-            plan.failures.len(),
+            plan.failures.len() + plan.not_science.len(),
             pool.current_num_threads()
         );
     }
@@ -80,63 +78,27 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if let Some(d) = &png_dir {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }
-    let ((night_mask, night_mask_files), flats) = pool.install(|| {
-        rayon::join(
-            || night_mask(&plan, &profile, &params, args.verbose),
-            || night_flats(&plan, &profile, &params, args.verbose),
-        )
-    });
-    let res = pool.install(|| {
-        reduce_with_progress(
-            &plan,
-            &profile,
-            &params,
-            night_mask.as_ref(),
-            &flats,
-            png_dir.as_deref(),
-            args.quiet,
-        )
-    });
-    let mut cat = res.catalog;
-    let t_cal = Instant::now();
-    let cal_summary = pool.install(|| {
-        super::calib::calibrate(
-            &mut cat,
-            &stds,
-            &profile,
-            &params,
-            night_mask.as_ref(),
-            flats.set.as_ref(),
-            &setup,
-        )
-    });
-    let cal_s = t_cal.elapsed().as_secs_f64();
-    let mut prov = super::report::provenance(&profile, &params);
-    prov["shard"] = serde_json::json!(args.shard.map(|s| format!("{}/{}", s.k, s.n)));
-    prov["inputs"] = serde_json::json!(args.dirs);
-    prov["night_bad_pixel_mask_from"] = serde_json::json!(night_mask_files);
-    prov["flat"] = flats.provenance;
-    let owned_flat_failures = flats
-        .failures
-        .into_iter()
-        .filter(|f| args.shard.is_none_or(|sh| sh.owns(&f.file)));
-    cat.failures.extend(owned_flat_failures);
-    cat.failures.sort_by(|a, b| a.file.cmp(&b.file));
-    prov["calibration"] = setup.provenance();
-    cat.provenance = prov;
+    let out = pool.install(|| reduce_with_progress(&plan, &setup, &args, png_dir.as_deref()));
+    let cat = &out.catalog;
     if !args.quiet {
-        for l in &cal_summary.lines {
+        for l in &out.summary.lines {
             eprintln!("sofipol night: {l}");
         }
     }
-    sofipol_pipeline::io::write_json_atomic(&args.output, &cat)
+    sofipol_pipeline::io::write_json_atomic(&args.output, cat)
         .with_context(|| format!("writing {}", args.output.display()))?;
     let wall = t0.elapsed().as_secs_f64();
     if !args.quiet {
-        print_summary(&cat, plan.failures.len(), wall, &args.output, png_dir.as_deref());
+        print_summary(
+            cat,
+            plan.failures.len() + plan.not_science.len(),
+            wall,
+            &args.output,
+            png_dir.as_deref(),
+        );
     }
     if args.verbose > 0 {
-        print_stage_times(&res.times, cal_s, wall);
+        print_verbose(&out, wall);
     }
     let bad = cat.targets.iter().any(|t| t.status != Status::Ok) || !cat.failures.is_empty();
     Ok(if bad { ExitCode::from(2) } else { ExitCode::SUCCESS })
@@ -159,11 +121,10 @@ fn capped_jobs(jobs: Option<usize>, quiet: bool) -> anyhow::Result<Option<usize>
     Ok(Some(j))
 }
 
-/// Scan the night, check the outputs against its files (never overwrite an input), split
-/// off the standards (before sharding: every shard calibrates with all of them) and keep
-/// this shard's sequences and failures. Returns the plan and the standard sequences.
-fn plan_night(args: &Args, profile: &Profile) -> anyhow::Result<(night::NightPlan, Vec<Sequence>)> {
-    let mut plan = night::plan(&args.dirs, profile, None).context("scanning the night")?;
+/// Scan the night (standards apart, this shard's sequences and failures) and check the
+/// outputs against its files (never overwrite an input).
+fn plan_night(args: &Args, setup: &NightSetup) -> anyhow::Result<NightPlan> {
+    let plan = setup.plan(&args.dirs, args.shard);
     anyhow::ensure!(
         plan.n_files > 0,
         "no FITS files (.fits, .fit, .fits.gz, .fit.gz, .fz) in {}",
@@ -179,72 +140,14 @@ fn plan_night(args: &Args, profile: &Profile) -> anyhow::Result<(night::NightPla
     if let Some(d) = &args.setup.reduce.save_intermediate {
         super::common::check_output_dir(d, "--save-intermediate")?;
     }
-    let (science, stds) = sofipol_pipeline::calibration::split_standards(std::mem::take(&mut plan.sequences), profile);
-    plan.sequences = science;
-    if let Some(sh) = args.shard {
-        plan.sequences.retain(|q| sh.owns(&q.id));
-        plan.failures.retain(|f| sh.owns(&f.file));
-    }
-    Ok((plan, stds))
+    Ok(plan)
 }
 
-/// The detector's defects, detected once for the night (in the current rayon pool), and
-/// the frames they came from; none when only a calibration mask is wanted.
-fn night_mask(
-    plan: &night::NightPlan,
-    profile: &Profile,
-    params: &TargetParams,
-    verbose: u8,
-) -> (Option<Array2<u8>>, Vec<String>) {
-    if params.no_detect_bad_pixels {
-        return (None, Vec::new());
-    }
-    let t = Instant::now();
-    let Some(nm) = night::night_bad_pixel_mask(plan, profile, params, 15) else {
-        return (None, Vec::new());
-    };
-    if verbose > 0 {
-        eprintln!(
-            "night bad-pixel mask: {} pixels{} from {} frames in {:.2} s",
-            nm.mask.iter().filter(|&&v| v != 0).count(),
-            nm.rows
-                .map(|(r0, r1)| format!(" in rows [{r0}, {r1}) (the target strips, all the reduction uses)"))
-                .unwrap_or_default(),
-            nm.files.len(),
-            t.elapsed().as_secs_f64()
-        );
-    }
-    (Some(nm.mask), nm.files)
-}
-
-/// The night's flats (dome flats, else a superflat from the night's sky), built from the
-/// whole night's frame list so that every shard gets the same flats.
-fn night_flats(plan: &night::NightPlan, profile: &Profile, params: &TargetParams, verbose: u8) -> night::NightFlats {
-    let t = Instant::now();
-    let flats = night::night_flats(&plan.dome_flats, &plan.superflat_frames, profile, params);
-    if verbose > 0 {
-        eprintln!(
-            "flats: {} in {:.2} s",
-            flats.provenance.get("mode").and_then(|m| m.as_str()).unwrap_or("none"),
-            t.elapsed().as_secs_f64()
-        );
-    }
-    flats
-}
-
-/// Reduce every sequence of the plan (in the current rayon pool) with a progress bar on a
-/// terminal, else a line per target (nothing if `quiet`); writes each target's figure
-/// into `png_dir` when given.
-fn reduce_with_progress(
-    plan: &night::NightPlan,
-    profile: &Profile,
-    params: &TargetParams,
-    night_mask: Option<&Array2<u8>>,
-    flats: &night::NightFlats,
-    png_dir: Option<&Path>,
-    quiet: bool,
-) -> night::NightResult {
+/// Run the night (in the current rayon pool) with a progress bar on a terminal, else a line
+/// per target (nothing if `quiet`); writes each target's figure into `png_dir` when given.
+fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, png_dir: Option<&Path>) -> NightOutput {
     let n = plan.sequences.len();
+    let quiet = args.quiet;
     let tty = std::io::stderr().is_terminal();
     let pb = progress(n as u64, "reduce", quiet || !tty);
     let done = AtomicUsize::new(0);
@@ -271,18 +174,18 @@ fn reduce_with_progress(
             plot_target(d, out);
         }
     };
-    let res = night::reduce_night(
-        plan,
-        profile,
-        params,
-        night_mask,
-        flats.set.as_ref(),
-        png_dir.is_some(),
-        &on_done,
-        &plot,
-    );
+    let opts = RunOptions {
+        night_mask: true,
+        shard: args.shard,
+        inputs: args.dirs.clone(),
+        hooks: Hooks {
+            on_done: Some(&on_done),
+            on_outcome: png_dir.is_some().then_some(&plot as &(dyn Fn(&TargetOutcome) + Sync)),
+        },
+    };
+    let out = night::run_night(plan, setup, &opts);
     pb.finish_and_clear();
-    res
+    out
 }
 
 /// The night's summary on stdout: the targets, their status, the inputs not used
@@ -307,20 +210,42 @@ fn print_summary(cat: &Catalog, scan_failures: usize, wall: f64, output: &Path, 
     }
 }
 
-/// `-v`: the stage times summed over the targets, the calibration and wall times, CPU time
-/// and peak memory, on stderr.
-fn print_stage_times(times: &[StageTimes], cal_s: f64, wall: f64) {
+/// `-v`: the night's bad-pixel mask and flats, the stage times summed over the targets, the
+/// calibration and wall times, CPU time and peak memory, on stderr.
+fn print_verbose(out: &NightOutput, wall: f64) {
+    if let Some(nm) = &out.mask {
+        eprintln!(
+            "night bad-pixel mask: {} pixels{} from {} frames in {:.2} s",
+            nm.mask.iter().filter(|&&v| v != 0).count(),
+            nm.rows
+                .map(|(r0, r1)| format!(" in rows [{r0}, {r1}) (the target strips, all the reduction uses)"))
+                .unwrap_or_default(),
+            nm.files.len(),
+            out.seconds.mask
+        );
+    }
+    eprintln!(
+        "flats: {} in {:.2} s",
+        out.flats
+            .provenance
+            .get("mode")
+            .and_then(|m| m.as_str())
+            .unwrap_or("none"),
+        out.seconds.flats
+    );
+    let times: &[StageTimes] = &out.times;
     let sum = |f: fn(&StageTimes) -> f64| times.iter().fold(0.0, |a, t| a + f(t));
     eprintln!(
-        "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, flat {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; calibration {cal_s:.2} s; wall {wall:.2} s; cpu {:.2} s; peak RSS {:.0} MB",
+        "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, flat {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; calibration {:.2} s; wall {wall:.2} s; cpu {:.2} s; peak RSS {:.0} MB",
         sum(|t| t.read),
         sum(|t| t.bad_pixels),
         sum(|t| t.flat),
         sum(|t| t.sky),
         sum(|t| t.measure),
         sum(|t| t.write),
-        night::cpu_seconds().unwrap_or(f64::NAN),
-        night::peak_rss_bytes().unwrap_or(0) as f64 / 1e6
+        out.seconds.calibration,
+        io::cpu_seconds().unwrap_or(f64::NAN),
+        io::peak_rss_bytes().unwrap_or(0) as f64 / 1e6
     );
 }
 

@@ -1,21 +1,5 @@
-//! Provenance and the human summary shared by `target`, `night` and `demo`.
-use sofipol_calib::Profile;
+//! The human summary shared by `target`, `night` and `demo`.
 use sofipol_pipeline::catalog::{Catalog, Status};
-
-/// Provenance block of a catalog: software, command line, profile, parameters, time.
-pub fn provenance(profile: &Profile, params: &impl serde::Serialize) -> serde_json::Value {
-    let now = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_secs_f64())
-        .unwrap_or(0.0);
-    serde_json::json!({
-        "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
-        "command_line": std::env::args().collect::<Vec<_>>(),
-        "created_utc": sofipol_pipeline::sim::effects::iso_from_mjd(40587.0 + now / 86400.0, false),
-        "profile": profile,
-        "parameters": params,
-    })
-}
 
 /// A table of the catalog for a terminal.
 pub fn summary(cat: &Catalog) -> String {

@@ -3,16 +3,13 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Context;
-use sofipol_pipeline::catalog::{Catalog, Status, SCHEMA_VERSION};
+use sofipol_pipeline::catalog::Status;
+use sofipol_pipeline::night::{self, NightSetup, RunOptions};
 use sofipol_pipeline::photometry::Method;
-use sofipol_pipeline::reduce::run::reduce_sequence;
 use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::stokes::inversion::Debias;
-use sofipol_pipeline::{scan, sequence};
 
-use sofipol_calib::Profile;
-
-use super::calib::{CalibArgs, CalibSetup};
+use super::calib::CalibArgs;
 use super::common::ProfileArgs;
 
 /// Arguments of `sofipol target`.
@@ -49,11 +46,15 @@ pub struct SetupArgs {
 impl SetupArgs {
     /// The validated profile, reduction parameters and calibration setup (the calibration
     /// flags override the `[calibration]` section of `--params`).
-    pub fn load(&self) -> anyhow::Result<(Profile, TargetParams, CalibSetup)> {
+    pub fn load(&self) -> anyhow::Result<NightSetup> {
         let profile = self.profile.load()?;
         let params = self.reduce.params()?;
-        let setup = self.calib.setup(&params.calibration)?;
-        Ok((profile, params, setup))
+        let calibration = self.calib.setup(&params.calibration)?;
+        Ok(NightSetup {
+            profile,
+            params,
+            calibration,
+        })
     }
 
     /// Files these options read (outputs must not overwrite them).
@@ -150,91 +151,69 @@ impl ReduceArgs {
     }
 }
 
-/// Run.
+/// Run: the sequence is reduced as one target of a night ([`night::run_night`]), with the
+/// flats built from all the inputs and the standards among them calibrating it.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let (profile, params, setup) = args.setup.load()?;
+    let setup = args.setup.load()?;
     for i in &args.inputs {
         anyhow::ensure!(i.exists(), "{}: no such file or directory", i.display());
     }
-    let (s, files) = scan::scan(&args.inputs, &profile);
+    let mut plan = setup.plan(&args.inputs, None);
     anyhow::ensure!(
-        !files.is_empty(),
+        plan.n_files > 0,
         "no FITS files (.fits, .fit, .fits.gz, .fz) in {:?}",
         args.inputs
     );
-    let s_science_all = s.science.clone();
-    let s_dome_flats = s.dome_flats.clone();
-    // Standard stars in the inputs calibrate the target; they are not the target.
-    let (mut seqs, stds) =
-        sofipol_pipeline::calibration::split_standards(sequence::group(s.science, &profile), &profile);
     if let Some(obj) = &args.object {
-        seqs.retain(|q| &q.object == obj);
+        plan.sequences.retain(|q| &q.object == obj);
         anyhow::ensure!(
-            !seqs.is_empty(),
+            !plan.sequences.is_empty(),
             "no polarimetric sequence of object '{obj}' in the inputs"
         );
-    } else if seqs.len() > 1 {
-        let names: Vec<&str> = seqs.iter().map(|q| q.object.as_str()).collect();
+    } else if plan.sequences.len() > 1 {
+        let names: Vec<&str> = plan.sequences.iter().map(|q| q.object.as_str()).collect();
         anyhow::bail!(
             "the inputs hold {} sequences ({}): choose one with --object",
-            seqs.len(),
+            plan.sequences.len(),
             names.join(", ")
         );
     }
     anyhow::ensure!(
-        !seqs.is_empty(),
+        !plan.sequences.is_empty(),
         "no polarimetric science frames among {} file(s)",
-        files.len()
+        plan.n_files
     );
-    let mut inputs = files.clone();
+    let mut inputs = plan.files.clone();
     inputs.extend(args.setup.input_files());
     super::common::check_output(&args.output, &inputs)?;
     if let Some(d) = &args.setup.reduce.save_intermediate {
         super::common::check_output_dir(d, "--save-intermediate")?;
     }
-    let mut cat = Catalog {
-        schema_version: SCHEMA_VERSION.into(),
-        ..Default::default()
-    };
-    cat.failures.extend(s.unreadable);
-    cat.failures.extend(s.duplicates);
-    // Non-science files count as failures only when they were named explicitly.
+    // Files that are not SOFI polarimetric frames count as failures only when they were
+    // named explicitly (a directory may hold anything).
     let explicit: Vec<String> = args
         .inputs
         .iter()
         .filter(|p| p.is_file())
         .map(|p| p.display().to_string())
         .collect();
-    cat.failures
-        .extend(s.other.into_iter().filter(|f| explicit.contains(&f.file)));
-    // The flat: from the whole of the inputs (dome flats, else a superflat from every
-    // sequence found, not only the one reduced).
-    let all_seqs = sequence::group(s_science_all, &profile);
-    let flats = sofipol_pipeline::night::night_flats(
-        &s_dome_flats,
-        &sofipol_pipeline::night::pick_superflat_frames(&all_seqs, params.flat_options.max_frames),
-        &profile,
-        &params,
-    );
-    cat.failures.extend(flats.failures);
-    for q in &seqs {
-        let out = reduce_sequence(q, &profile, &params, None, flats.set.as_ref(), false);
-        cat.failures.extend(out.failures);
-        cat.targets.push(out.target);
-    }
-    let cal_summary = super::calib::calibrate(&mut cat, &stds, &profile, &params, None, flats.set.as_ref(), &setup);
-    cat.provenance = super::report::provenance(&profile, &params);
-    cat.provenance["flat"] = flats.provenance;
-    cat.provenance["calibration"] = setup.provenance();
+    plan.not_science.retain(|f| explicit.contains(&f.file));
+    // One sequence: its bad pixels are detected from its own frames.
+    let opts = RunOptions {
+        inputs: args.inputs.clone(),
+        ..Default::default()
+    };
+    let out = night::run_night(&plan, &setup, &opts);
+    let cat = &out.catalog;
     if !args.quiet {
-        for l in &cal_summary.lines {
+        for l in &out.summary.lines {
             eprintln!("sofipol target: {l}");
         }
     }
-    sofipol_pipeline::io::write_json_atomic(&args.output, &cat)
+    sofipol_pipeline::io::write_json_atomic(&args.output, cat)
         .with_context(|| format!("writing {}", args.output.display()))?;
     if !args.quiet {
-        print!("{}", super::report::summary(&cat));
+        print!("{}", super::report::summary(cat));
         println!("catalog: {}", args.output.display());
     }
     let failed = cat.targets.iter().any(|t| t.status != Status::Ok);
@@ -306,8 +285,8 @@ mod tests {
     fn stokes_method(args: &[&str]) -> Result<StokesMethod, String> {
         let a =
             SetupCli::try_parse_from(std::iter::once("t").chain(args.iter().copied())).map_err(|e| e.to_string())?;
-        let (_, _, setup) = a.setup.load().map_err(|e| format!("{e:#}"))?;
-        Ok(setup.params.stokes_method)
+        let setup = a.setup.load().map_err(|e| format!("{e:#}"))?;
+        Ok(setup.calibration.params.stokes_method)
     }
 
     #[test]

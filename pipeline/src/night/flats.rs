@@ -1,0 +1,140 @@
+//! The night's flats: a calibration flat file, else dome flats, else a superflat from the
+//! night's own sky, built once for the whole night.
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use rayon::prelude::*;
+use sofipol_calib::Profile;
+
+use crate::catalog::Failure;
+use crate::reduce::TargetParams;
+
+/// The flats a night uses, and what was done.
+#[derive(Debug, Default)]
+pub struct NightFlats {
+    /// The flats (None: no flat-fielding).
+    pub set: Option<sofipol_calib::flat::FlatSet>,
+    /// Provenance: which flats, from which frames (catalog provenance `flat`).
+    pub provenance: serde_json::Value,
+    /// Flat frames that could not be used, with the reason.
+    pub failures: Vec<Failure>,
+}
+
+/// Build the night's flats: the calibration flat file of the settings when given; else
+/// dome flats (lamp on - off per rotator angle) when the night has them; else a superflat
+/// per filter from `superflat_frames` (at least `flat_options.min_values` frames).
+/// `params.no_flat`: none.
+pub fn night_flats(
+    dome_flats: &[PathBuf],
+    superflat_frames: &BTreeMap<String, Vec<PathBuf>>,
+    profile: &Profile,
+    params: &TargetParams,
+) -> NightFlats {
+    use sofipol_calib::flat::{build_flats, read_flat, superflat, FlatSet};
+    let mut out = NightFlats::default();
+    if params.no_flat {
+        out.provenance = serde_json::json!({"mode": "none (no_flat)"});
+        return out;
+    }
+    if let Some(p) = &params.flat {
+        let want = (profile.geometry.ny, profile.geometry.nx);
+        match read_flat(p).and_then(|f| {
+            // A flat of another geometry would leave every orientation un-flat-fielded
+            // (flagged per target): refused once, by name, instead.
+            if f.shape() == want {
+                Ok(f)
+            } else {
+                Err(sofipol_calib::Error::Stage {
+                    stage: "flat",
+                    reason: format!(
+                        "image is {} x {} px (NAXIS2 x NAXIS1), the instrument profile's detector is {} x {}: not used",
+                        f.shape().0,
+                        f.shape().1,
+                        want.0,
+                        want.1
+                    ),
+                })
+            }
+        }) {
+            Ok(f) => {
+                out.provenance = serde_json::json!({"mode": "file", "flats": [f.provenance()]});
+                out.set = Some(FlatSet::new(vec![f]));
+            }
+            Err(e) => {
+                out.provenance =
+                    serde_json::json!({"mode": "none", "file": p.display().to_string(), "error": e.to_string()});
+                out.failures.push(Failure {
+                    file: p.display().to_string(),
+                    error: format!("calibration flat: {e}"),
+                });
+            }
+        }
+        return out;
+    }
+    if !dome_flats.is_empty() {
+        let (set, problems) = build_flats(dome_flats, profile, &params.flat_options);
+        out.failures.extend(problems.into_iter().map(|(p, e)| Failure {
+            file: p.display().to_string(),
+            error: e,
+        }));
+        if !set.is_empty() {
+            out.provenance = serde_json::json!({
+                "mode": "dome",
+                "flats": set.flats.iter().map(|f| f.provenance()).collect::<Vec<_>>()
+            });
+            out.set = Some(set);
+            return out;
+        }
+    }
+    let mut flats = Vec::new();
+    let mut notes = Vec::new();
+    // Only the target strips are reduced unless whole frames are wanted: build the
+    // superflat on those rows (a third of the detector) and leave 1 elsewhere.
+    let g = &profile.geometry;
+    let (r0, r1) = (g.o_target[0].min(g.e_target[0]), g.o_target[1].max(g.e_target[1]));
+    let crop = !params.full_frame_sky && params.save_intermediate.is_none() && r1 > r0;
+    let cropped_profile = profile.cropped_rows(r0, r1);
+    for (filter, paths) in superflat_frames {
+        // Only the rows used are read (cfitsio reads a row range).
+        let rows = crop.then_some((r0, r1));
+        let frames: Vec<sofipol_calib::Frame> = paths
+            .par_iter()
+            .filter_map(|p| sofipol_calib::fits::read_frame_rows(p, rows).ok())
+            .map(|f| {
+                if crop && f.shape().0 >= r1 {
+                    f.crop_rows(r0, r1)
+                } else {
+                    f
+                }
+            })
+            .collect();
+        let cropped = crop && frames.first().is_some_and(|f| f.shape().0 == r1 - r0);
+        let built = if cropped {
+            superflat(&frames, &cropped_profile, &params.flat_options).map(|f| {
+                let ny = paths
+                    .first()
+                    .and_then(|p| sofipol_calib::fits::read_header(p).ok())
+                    .and_then(|h| h.get_i64("NAXIS2").ok())
+                    .map(|n| n as usize)
+                    .unwrap_or(g.ny)
+                    .max(r1);
+                f.embed_rows(r0, ny)
+            })
+        } else {
+            superflat(&frames, profile, &params.flat_options)
+        };
+        match built {
+            Ok(f) => flats.push(f),
+            Err(e) => notes.push(format!("filter {filter}: no superflat: {e}")),
+        }
+    }
+    out.provenance = serde_json::json!({
+        "mode": if flats.is_empty() { "none" } else { "superflat" },
+        "flats": flats.iter().map(|f| f.provenance()).collect::<Vec<_>>(),
+        "notes": notes,
+    });
+    if !flats.is_empty() {
+        out.set = Some(FlatSet::new(flats));
+    }
+    out
+}

@@ -1,0 +1,264 @@
+//! A whole night, one way: every command that reduces frames (`night`, `target`, `demo`,
+//! `calib`) and every harness goes through [`run_night`].
+//!
+//! ```text
+//! plan (scan, classify, group, standards apart, mask/superflat frames, shard)
+//!   -> night-wide bad-pixel mask  ┐ in parallel
+//!   -> night's flats              ┘ (dome flats, else a superflat; or a calibration flat)
+//!   -> every science sequence reduced in parallel (reduce::run::reduce_sequence)
+//!   -> standards reduced as single stars -> calibration -> targets re-solved
+//!   -> catalog with provenance
+//! ```
+//! Nothing dies on one bad input: unreadable, foreign and non-polarimetric files are
+//! reported under `failures` with their reason; a degraded sequence is flagged; every other
+//! target is still reduced.
+use std::path::PathBuf;
+use std::time::Instant;
+
+use ndarray::Array2;
+use rayon::prelude::*;
+use sofipol_calib::flat::FlatSet;
+use sofipol_calib::Profile;
+
+use crate::calibration::{CalibSetup, Calibration, CalibrationSummary};
+use crate::catalog::{Catalog, Failure, Target, SCHEMA_VERSION};
+use crate::reduce::run::{reduce_sequence, StageTimes, TargetOutcome};
+use crate::reduce::TargetParams;
+use crate::sequence::Sequence;
+
+mod calibrate;
+mod flats;
+mod mask;
+mod merge;
+mod plan;
+mod products;
+
+pub use calibrate::{calibrate, reduce_standards};
+pub use flats::{night_flats, NightFlats};
+pub use mask::{night_bad_pixel_mask, NightMask};
+pub use merge::merge;
+pub use plan::{pick_superflat_frames, plan, stable_hash, NightPlan, Shard};
+pub use products::{products_dir, slug};
+
+/// Most frames stacked for the night-wide bad-pixel mask.
+pub const MASK_FRAMES: usize = 15;
+
+/// Everything a reduction is set up with, validated before any frame is read.
+#[derive(Debug, Clone)]
+pub struct NightSetup {
+    /// The instrument profile.
+    pub profile: Profile,
+    /// The reduction settings.
+    pub params: TargetParams,
+    /// The calibration settings, standards table and any external calibration.
+    pub calibration: CalibSetup,
+}
+
+impl NightSetup {
+    /// The plan of a night in `roots` with these settings: see [`plan`].
+    pub fn plan(&self, roots: &[PathBuf], shard: Option<Shard>) -> NightPlan {
+        plan(roots, &self.profile, self.params.flat_options.max_frames, shard, |q| {
+            crate::calibration::is_standard_sequence(q, &self.profile)
+        })
+    }
+}
+
+/// What a caller is told while the night runs.
+#[derive(Default, Clone, Copy)]
+pub struct Hooks<'a> {
+    /// Called once per finished target (progress).
+    pub on_done: Option<&'a (dyn Fn(&Target) + Sync)>,
+    /// Called with each target's outcome (products such as figures) before its frames are
+    /// dropped.
+    pub on_outcome: Option<&'a (dyn Fn(&TargetOutcome) + Sync)>,
+}
+
+/// How a night is run: what differs between the commands.
+#[derive(Default, Clone)]
+pub struct RunOptions<'a> {
+    /// Detect the detector's defects once for the night (else per target, as a single
+    /// sequence needs).
+    pub night_mask: bool,
+    /// The shard of the night reduced, for the provenance and the flats' failures.
+    pub shard: Option<Shard>,
+    /// The inputs as given (provenance).
+    pub inputs: Vec<PathBuf>,
+    /// Progress and products.
+    pub hooks: Hooks<'a>,
+}
+
+/// Wall time of the night's stages, seconds.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct NightSeconds {
+    /// The bad-pixel mask (in parallel with the flats).
+    pub mask: f64,
+    /// The flats (in parallel with the mask).
+    pub flats: f64,
+    /// Reducing the science sequences.
+    pub reduce: f64,
+    /// Reducing the standards and calibrating.
+    pub calibration: f64,
+}
+
+/// What a night produced.
+pub struct NightOutput {
+    /// The catalog, provenance included.
+    pub catalog: Catalog,
+    /// Each science target's stage times, in catalog order.
+    pub times: Vec<StageTimes>,
+    /// The calibration applied (measured from the standards or read), if any.
+    pub calibration: Option<Calibration>,
+    /// What the calibration did, in lines for a terminal.
+    pub summary: CalibrationSummary,
+    /// The night's bad-pixel mask, when detected once for the night.
+    pub mask: Option<NightMask>,
+    /// The night's flats.
+    pub flats: NightFlats,
+    /// Wall times of the stages.
+    pub seconds: NightSeconds,
+}
+
+/// Reduce a planned night (in the current rayon pool): the bad-pixel mask and the flats,
+/// every science sequence, the standards and the calibration, the provenance.
+pub fn run_night(plan: &NightPlan, setup: &NightSetup, opts: &RunOptions) -> NightOutput {
+    let (profile, params) = (&setup.profile, &setup.params);
+    let ((mask, t_mask), (flats, t_flats)) = rayon::join(
+        || {
+            timed(|| {
+                (opts.night_mask && !params.no_detect_bad_pixels)
+                    .then(|| night_bad_pixel_mask(plan, profile, params, MASK_FRAMES))
+                    .flatten()
+            })
+        },
+        || timed(|| night_flats(&plan.dome_flats, &plan.superflat_frames, profile, params)),
+    );
+    let mask_array = mask.as_ref().map(|m| &m.mask);
+    let t = Instant::now();
+    let mut reduced = reduce_sequences(
+        &plan.sequences,
+        profile,
+        params,
+        mask_array,
+        flats.set.as_ref(),
+        &opts.hooks,
+    );
+    let t_reduce = t.elapsed().as_secs_f64();
+    let mut cat = std::mem::take(&mut reduced.catalog);
+    let mut failures: Vec<Failure> = plan.failures.iter().chain(&plan.not_science).cloned().collect();
+    failures.sort_by(|a, b| a.file.cmp(&b.file));
+    failures.append(&mut cat.failures);
+    failures.sort_by(|a, b| a.file.cmp(&b.file));
+    cat.failures = failures;
+    let t = Instant::now();
+    let (calibration, summary) = calibrate(
+        &mut cat,
+        &plan.standards,
+        profile,
+        params,
+        &setup.calibration,
+        mask_array,
+        flats.set.as_ref(),
+    );
+    let t_cal = t.elapsed().as_secs_f64();
+    let shard = opts.shard;
+    cat.failures.extend(
+        flats
+            .failures
+            .iter()
+            .filter(|f| shard.is_none_or(|sh| sh.owns(&f.file)))
+            .cloned(),
+    );
+    cat.failures.sort_by(|a, b| a.file.cmp(&b.file));
+    let mut prov = provenance(profile, params);
+    prov["shard"] = serde_json::json!(shard.map(|s| format!("{}/{}", s.k, s.n)));
+    prov["inputs"] = serde_json::json!(opts.inputs);
+    prov["night_bad_pixel_mask_from"] = serde_json::json!(mask.as_ref().map(|m| m.files.clone()).unwrap_or_default());
+    prov["flat"] = flats.provenance.clone();
+    prov["calibration"] = setup.calibration.provenance();
+    cat.provenance = prov;
+    NightOutput {
+        catalog: cat,
+        times: reduced.times,
+        calibration,
+        summary,
+        mask,
+        flats,
+        seconds: NightSeconds {
+            mask: t_mask,
+            flats: t_flats,
+            reduce: t_reduce,
+            calibration: t_cal,
+        },
+    }
+}
+
+/// The value of `f` and the wall time it took, seconds.
+fn timed<T>(f: impl FnOnce() -> T) -> (T, f64) {
+    let t = Instant::now();
+    let v = f();
+    (v, t.elapsed().as_secs_f64())
+}
+
+/// Sequences reduced, in order: the catalog (provenance left empty) and stage times.
+pub struct Reduced {
+    /// The targets and the files that could not be used (sorted by file).
+    pub catalog: Catalog,
+    /// Per-target stage times, in catalog order.
+    pub times: Vec<StageTimes>,
+}
+
+/// Reduce sequences in parallel (in the current rayon pool), in their order. `night_mask`:
+/// the detector's defects found once for the night ([`night_bad_pixel_mask`]), used
+/// instead of per-target detection; `flats`: the night's flats. Frames are kept in each
+/// outcome only while `hooks.on_outcome` (when given) looks at it.
+pub fn reduce_sequences(
+    sequences: &[Sequence],
+    profile: &Profile,
+    params: &TargetParams,
+    night_mask: Option<&Array2<u8>>,
+    flats: Option<&FlatSet>,
+    hooks: &Hooks,
+) -> Reduced {
+    let keep_frames = hooks.on_outcome.is_some();
+    let outs: Vec<(Target, Vec<Failure>, StageTimes)> = sequences
+        .par_iter()
+        .map(|q| {
+            let out = reduce_sequence(q, profile, params, night_mask, flats, keep_frames);
+            if let Some(f) = hooks.on_outcome {
+                f(&out);
+            }
+            if let Some(f) = hooks.on_done {
+                f(&out.target);
+            }
+            (out.target, out.failures, out.times)
+        })
+        .collect();
+    let mut catalog = Catalog {
+        schema_version: SCHEMA_VERSION.into(),
+        ..Default::default()
+    };
+    let mut times = Vec::with_capacity(outs.len());
+    for (t, f, tm) in outs {
+        catalog.targets.push(t);
+        catalog.failures.extend(f);
+        times.push(tm);
+    }
+    catalog.failures.sort_by(|a, b| a.file.cmp(&b.file));
+    Reduced { catalog, times }
+}
+
+/// The provenance every catalog starts with: software, command line, time (UTC), instrument
+/// profile and reduction settings.
+pub fn provenance(profile: &Profile, params: &impl serde::Serialize) -> serde_json::Value {
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0);
+    serde_json::json!({
+        "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
+        "command_line": std::env::args().collect::<Vec<_>>(),
+        "created_utc": crate::sim::effects::iso_from_mjd(40587.0 + now / 86400.0, false),
+        "profile": profile,
+        "parameters": params,
+    })
+}
