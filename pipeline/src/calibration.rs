@@ -42,6 +42,14 @@ pub struct CalibrationParams {
     /// Ignore the night's standards and any calibration (q, u from the plain solve;
     /// 2-orientation targets are flagged `uncalibrated`).
     pub no_calibration: bool,
+    /// A standards table (TOML) adding to or overriding the built-in one by name and filter
+    /// (`--standards`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub standards: Option<std::path::PathBuf>,
+    /// The calibration products of another night (a directory written by `sofipol calib`,
+    /// or its calibration.json), used instead of this night's standards (`--calib`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub calib_dir: Option<std::path::PathBuf>,
 }
 
 /// The calibration of one filter.

@@ -61,7 +61,7 @@ enum What {
         #[arg(long, requires = "report")]
         quick: bool,
         #[command(flatten)]
-        reduce: super::target::ReduceArgs,
+        reduce: super::setup::ReduceArgs,
     },
 }
 

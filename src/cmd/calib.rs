@@ -8,46 +8,11 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use sofipol_calib::Profile;
-use sofipol_pipeline::calibration::{CalibSetup, Calibration, CalibrationParams, CALIBRATION_FILE};
+use sofipol_pipeline::calibration::{CalibSetup, Calibration, CALIBRATION_FILE};
 use sofipol_pipeline::night::{self, NightSetup, RunOptions};
-use sofipol_pipeline::stokes::calibration::StokesMethod;
 
 use super::common::ProfileArgs;
-use super::target::ReduceArgs;
-
-/// Calibration options shared by `night` and `target`.
-#[derive(clap::Args, Debug, Clone, Default)]
-pub struct CalibArgs {
-    /// Use the calibration products of another night (a directory written by `sofipol
-    /// calib`, or its calibration.json) instead of this night's standards.
-    #[arg(long, value_name = "CALDIR")]
-    pub calib: Option<PathBuf>,
-    /// Standards table (TOML) adding to or overriding the built-in one by name and filter.
-    #[arg(long, value_name = "FILE")]
-    pub standards: Option<PathBuf>,
-    /// How q, u are solved: auto, least_squares, free_offset, difference, ratio.
-    #[arg(long, value_name = "METHOD")]
-    pub stokes_method: Option<StokesMethod>,
-    /// Use no calibration at all (2-orientation components are flagged `uncalibrated`).
-    #[arg(long)]
-    pub no_calibration: bool,
-}
-
-impl CalibArgs {
-    /// Validate; the flags override `base` (the `[calibration]` section of --params).
-    pub fn setup(&self, base: &CalibrationParams) -> anyhow::Result<CalibSetup> {
-        let mut params = base.clone();
-        params.no_calibration |= self.no_calibration;
-        if let Some(m) = self.stokes_method {
-            params.stokes_method = m;
-        }
-        anyhow::ensure!(
-            !(params.no_calibration && self.calib.is_some()),
-            "--calib and --no-calibration exclude each other"
-        );
-        CalibSetup::new(params, self.standards.as_deref(), self.calib.as_deref()).map_err(anyhow::Error::msg)
-    }
-}
+use super::setup::ReduceArgs;
 
 /// Arguments of `sofipol calib`.
 #[derive(clap::Args, Debug)]
@@ -97,13 +62,21 @@ fn build_flat_products(flats: &night::NightFlats, caldir: &Path) -> anyhow::Resu
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let profile = args.profile.load()?;
     let params = args.reduce.params()?;
+    if args.reduce.dump_params {
+        print!("{}", super::setup::dump_params(&params)?);
+        return Ok(ExitCode::SUCCESS);
+    }
     for d in &args.dirs {
         anyhow::ensure!(d.exists(), "{}: no such file or directory", d.display());
     }
     // The calibration is measured from this night's standards whatever the settings say.
     let mut cal_params = params.calibration.clone();
     cal_params.no_calibration = false;
-    let calibration = CalibSetup::new(cal_params, args.standards.as_deref(), None).map_err(anyhow::Error::msg)?;
+    cal_params.calib_dir = None;
+    if let Some(f) = &args.standards {
+        cal_params.standards = Some(f.clone());
+    }
+    let calibration = CalibSetup::new(cal_params).map_err(anyhow::Error::msg)?;
     let setup = NightSetup {
         profile,
         params,

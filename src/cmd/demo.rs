@@ -54,7 +54,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     // and the calibration.
     let t1 = std::time::Instant::now();
     let params = TargetParams::default();
-    let calibration = super::calib::CalibArgs::default().setup(&params.calibration)?;
+    let calibration = super::setup::CalibArgs::default().setup(&params.calibration)?;
     let setup = NightSetup {
         profile,
         params,

@@ -11,6 +11,7 @@ pub mod mc;
 pub mod merge;
 pub mod night;
 pub mod report;
+pub mod setup;
 pub mod simulate;
 pub mod stats;
 pub mod target;

@@ -12,7 +12,7 @@ use sofipol_pipeline::night::{self, Hooks, NightOutput, NightPlan, NightSetup, R
 use sofipol_pipeline::reduce::run::{StageTimes, TargetOutcome};
 
 use super::common::progress;
-use super::target::SetupArgs;
+use super::setup::SetupArgs;
 
 /// `--jobs` is capped at this many threads per core.
 pub const MAX_JOBS_PER_CORE: usize = 4;
@@ -51,6 +51,10 @@ pub struct Args {
 /// catalog.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let setup = args.setup.load()?;
+    if args.setup.reduce.dump_params {
+        print!("{}", super::setup::dump_params(&setup.params)?);
+        return Ok(ExitCode::SUCCESS);
+    }
     let jobs = capped_jobs(args.jobs, args.quiet)?;
     for d in &args.dirs {
         anyhow::ensure!(d.exists(), "{}: no such file or directory", d.display());

@@ -1,6 +1,6 @@
 //! What the calibration options of a reduction resolve to: the settings, the standards
 //! table and, when another night's products are used, their calibration.
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use super::{Calibration, CalibrationParams, CalibrationSource};
 use crate::standards::StandardsTable;
@@ -18,20 +18,16 @@ pub struct CalibSetup {
 }
 
 impl CalibSetup {
-    /// Set up from the settings, an optional user standards table (TOML, adding to or
-    /// overriding the built-in one by name and filter) and an optional calibration directory
-    /// or `calibration.json` of another night. Errors name the file and what is wrong.
-    pub fn new(
-        params: CalibrationParams,
-        standards: Option<&Path>,
-        calib: Option<&Path>,
-    ) -> crate::error::Result<Self> {
-        let table = match standards {
+    /// Set up from the settings: the standards table (the built-in one, with the user
+    /// table of `params.standards` added) and the calibration of another night
+    /// (`params.calib_dir`), both read now. Errors name the file and what is wrong.
+    pub fn new(params: CalibrationParams) -> crate::error::Result<Self> {
+        let table = match &params.standards {
             Some(f) => StandardsTable::with_file(f)?,
             None => StandardsTable::builtin(),
         };
-        let external = match calib {
-            Some(p) => Some((p.to_path_buf(), Calibration::read(p)?)),
+        let external = match &params.calib_dir {
+            Some(p) => Some((p.clone(), Calibration::read(p)?)),
             None => None,
         };
         Ok(CalibSetup {
