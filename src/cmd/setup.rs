@@ -69,16 +69,20 @@ pub struct ReduceArgs {
     /// Calibration bad-pixel mask (FITS, nonzero = bad).
     #[arg(long, value_name = "FILE")]
     pub badpix: Option<PathBuf>,
-    /// Aperture radius in units of the FWHM.
+    /// Aperture radius in units of each frame's FWHM (at least 1 px; the catalog's
+    /// `aperture_radius_px` gives the radius used) [default: 1.0].
     #[arg(long)]
     pub aperture_fwhm: Option<f64>,
-    /// Aperture method: exact, center, or subpixel:N (as `measure.method` in TOML).
+    /// Aperture pixel weighting: exact (overlap area), center, or subpixel:N (N x N samples
+    /// per pixel), as `measure.method` [default: exact].
     #[arg(long)]
     pub method: Option<Method>,
-    /// Debiasing of P: wk (Wardle & Kronberg) or mas (Plaszczynski et al. 2014), as `measure.debias`.
+    /// Debiasing of P: wk (Wardle & Kronberg 1974) or mas (Plaszczynski et al. 2014), as
+    /// `measure.debias` [default: wk].
     #[arg(long)]
     pub debias: Option<Debias>,
-    /// Known companion separation and PA, "SEP_ARCSEC,PA_DEG" (optional hint).
+    /// Known companion separation (arcsec) and position angle (deg east of north),
+    /// "SEP_ARCSEC,PA_DEG" (optional hint; default: searched for).
     #[arg(long, value_name = "SEP,PA")]
     pub companion: Option<String>,
     /// Write sky-subtracted FITS (with VARIANCE and MASK) into this directory.
@@ -179,7 +183,8 @@ pub struct CalibArgs {
     /// Standards table (TOML) adding to or overriding the built-in one by name and filter.
     #[arg(long, value_name = "FILE")]
     pub standards: Option<PathBuf>,
-    /// How q, u are solved: auto, least_squares, free_offset, difference, ratio.
+    /// How q, u are solved: auto, least_squares, free_offset, difference, ratio
+    /// (docs/configuration.md) [default: auto].
     #[arg(long, value_name = "METHOD")]
     pub stokes_method: Option<StokesMethod>,
     /// Use no calibration at all (2-orientation components are flagged `uncalibrated`).

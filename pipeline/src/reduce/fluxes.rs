@@ -259,7 +259,7 @@ fn measure_beam(
             }
         }
     }
-    let r_ap = (params.aperture_fwhm * *frame_fwhm).max(1.0);
+    let r_ap = (params.aperture_fwhm * *frame_fwhm).max(super::params::MIN_APERTURE_RADIUS_PX);
     // Centre apertures on the fitted positions (both beams are fitted freely, so the e-o
     // offset found before only needs to be good to a pixel).
     let local: Vec<(f64, f64)> = match &fit {

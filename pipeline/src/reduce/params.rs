@@ -10,11 +10,16 @@ pub use crate::error::SettingError;
 use crate::photometry::{Method, PsfModel};
 use crate::stokes::inversion::Debias;
 
+/// Smallest aperture radius, px: `aperture_fwhm` x the frame's FWHM below this is raised to
+/// it (a radius under a pixel would hold less than the centre pixel's area).
+pub const MIN_APERTURE_RADIUS_PX: f64 = 1.0;
+
 /// Settings of the measurement (defaults are the documented choices, docs/configuration.md).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MeasureParams {
-    /// Aperture radius in units of the frame's FWHM.
+    /// Aperture radius in units of the frame's FWHM (at least
+    /// [`MIN_APERTURE_RADIUS_PX`]; the radius used, px, is the catalog's `aperture_radius_px`).
     pub aperture_fwhm: f64,
     /// Residual-background annulus (inner, outer) in units of the median FWHM.
     pub annulus_fwhm: (f64, f64),
