@@ -1,68 +1,40 @@
-//! `sofipol bench ...`: benchmarks that print figures (medians of repeated runs).
-//! Timing targets are checked here, never in unit tests.
-use std::process::ExitCode;
+//! `sofipol bench sim|stages|accuracy`: benchmarks that print figures (medians of repeated
+//! runs). Timing targets are checked here, never in unit tests.
 use std::time::Instant;
 
 use sofipol_calib::Profile;
+use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sim::{EffectKind, Scene, Simulator};
 
-/// Arguments of `sofipol bench`.
-#[derive(clap::Args, Debug)]
-pub struct Args {
-    #[command(subcommand)]
-    what: What,
-}
+use crate::timing::median_ms;
 
-#[derive(clap::Subcommand, Debug)]
-enum What {
-    /// Simulator: one 1024x1024 frame with all effects, with none, and each effect alone.
-    Sim {
-        /// Frames timed per configuration (the median is reported).
-        #[arg(long, default_value_t = 21)]
-        repeats: usize,
-    },
-    /// A 49-target night (490 frames of 1024x1024, half float, half 16-bit): simulate it (not
-    /// timed), then time `sofipol night` on it in a child process: wall and CPU time,
-    /// per-stage breakdown, peak RSS, and right after each run the `cat` floor (time `cat`
-    /// needs to read the same files, page cache warm) and the ratio wall / cat. With
-    /// --python: the expert Python reduction of the same night, the ratios and the
-    /// comparison of the two catalogs.
-    Night(super::bench_night::NightArgs),
-    /// Cost of each reduction stage on one simulated 10-frame sequence (medians).
-    Stages {
-        /// Repeats per stage.
-        #[arg(long, default_value_t = 5)]
-        repeats: usize,
-    },
-    /// Reduction accuracy on simulated nights: pull widths by separation bin, and time.
-    Accuracy {
-        /// Targets per separation bin.
-        #[arg(long, default_value_t = 24)]
-        targets: usize,
-        /// Seed.
-        #[arg(long, default_value_t = 7)]
-        seed: u64,
-        /// Simulate a pixel response non-uniformity of this rms (fraction, e.g. 0.01; no
-        /// large-scale vignetting). 0: none.
-        #[arg(long, default_value_t = 0.0)]
-        pixel_response: f64,
-        /// Flat field applied before the reduction: none, superflat (from the night's sky),
-        /// dome (the nights get dome flats).
-        #[arg(long, default_value = "none", value_parser = ["none", "superflat", "dome"])]
-        flat: String,
-        /// Hold the PSF fixed in shape (beta 3, no FWHM spread; only the 8 % seeing change).
-        #[arg(long)]
-        fixed_psf: bool,
-        /// Write the full accuracy-against-time report (Markdown tables, JSON, PNG Pareto
-        /// plots) of every trade-off into this directory instead of one table.
-        #[arg(long, value_name = "DIR")]
-        report: Option<std::path::PathBuf>,
-        /// With --report: tiny sizes (a smoke test; the figures mean nothing).
-        #[arg(long, requires = "report")]
-        quick: bool,
-        #[command(flatten)]
-        reduce: super::target::ReduceArgs,
-    },
+/// Arguments of `sofipol bench accuracy` (the binary adds the reduction settings).
+#[derive(clap::Args, Debug)]
+pub struct AccuracyArgs {
+    /// Targets per separation bin.
+    #[arg(long, default_value_t = 24)]
+    targets: usize,
+    /// Seed.
+    #[arg(long, default_value_t = 7)]
+    seed: u64,
+    /// Simulate a pixel response non-uniformity of this rms (fraction, e.g. 0.01; no
+    /// large-scale vignetting). 0: none.
+    #[arg(long, default_value_t = 0.0)]
+    pixel_response: f64,
+    /// Flat field applied before the reduction: none, superflat (from the night's sky),
+    /// dome (the nights get dome flats).
+    #[arg(long, default_value = "none", value_parser = ["none", "superflat", "dome"])]
+    flat: String,
+    /// Hold the PSF fixed in shape (beta 3, no FWHM spread; only the 8 % seeing change).
+    #[arg(long)]
+    fixed_psf: bool,
+    /// Write the full accuracy-against-time report (Markdown tables, JSON, PNG Pareto
+    /// plots) of every trade-off into this directory instead of one table.
+    #[arg(long, value_name = "DIR")]
+    report: Option<std::path::PathBuf>,
+    /// With --report: tiny sizes (a smoke test; the figures mean nothing).
+    #[arg(long, requires = "report")]
+    quick: bool,
 }
 
 const BENCH_SCENE: &str = r#"
@@ -112,118 +84,110 @@ fn time_frames(effects: &[EffectKind], n: usize) -> (f64, f64) {
     (ts[ts.len() / 2], setup_ms)
 }
 
-/// Run.
-pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    match args.what {
-        What::Sim { repeats } => {
-            let threads = rayon::current_num_threads();
-            println!("sofipol bench sim: one 1024x1024 frame, median of {repeats}, {threads} rayon threads");
-            let (all, all_setup) = time_frames(&EffectKind::ALL, repeats);
-            let (none, _) = time_frames(&[], repeats);
-            println!(
-                "  {:<28} {:>9.2} ms/frame   (one-off detector maps: {:.1} ms)",
-                "all 15 effects", all, all_setup
-            );
-            println!("  {:<28} {:>9.2} ms/frame", "no effects", none);
-            println!("  {:<28} {:>9}", "effect alone", "ms/frame (minus no-effect)");
-            for k in EffectKind::ALL {
-                let (t, setup) = time_frames(&[k], repeats);
-                let extra = if setup > 1.0 {
-                    format!("   (setup {setup:.1} ms)")
-                } else {
-                    String::new()
-                };
-                println!("  {:<28} {:>9.2} ms  (+{:.2}){extra}", k.name(), t, t - none);
-            }
-            println!(
-                "target: all effects <= 50 ms/frame on 2 cores: {}",
-                if all <= 50.0 { "met" } else { "NOT met" }
-            );
-        }
-        What::Night(a) => super::bench_night::run(a)?,
-        What::Stages { repeats } => bench_stages(repeats)?,
-        What::Accuracy {
-            targets,
-            seed,
-            report: Some(dir),
-            quick,
-            reduce,
-            ..
-        } => {
-            let params = reduce.params()?;
-            let command = std::env::args().collect::<Vec<_>>().join(" ");
-            let opts = super::accuracy_report::ReportOptions {
-                targets,
-                seed,
-                quick,
-                command,
-            };
-            let t0 = Instant::now();
-            super::accuracy_report::run(&dir, &params, &opts)?;
-            println!(
-                "sofipol bench accuracy: report written to {} in {:.1} s",
-                dir.display(),
-                t0.elapsed().as_secs_f64()
-            );
-        }
-        What::Accuracy {
-            targets,
-            seed,
-            report: None,
-            reduce,
-            pixel_response,
-            flat,
-            fixed_psf,
-            ..
-        } => {
-            let params = reduce.params()?;
-            let cfg = sofipol_pipeline::accuracy::AccuracyConfig::with_flat_field(
-                sofipol_pipeline::accuracy::AccuracyConfig {
-                    targets_per_bin: targets,
-                    seed,
-                    ..Default::default()
-                },
-                pixel_response,
-                match flat.as_str() {
-                    "superflat" => sofipol_pipeline::accuracy::FlatMode::Superflat,
-                    "dome" => sofipol_pipeline::accuracy::FlatMode::Dome,
-                    _ => sofipol_pipeline::accuracy::FlatMode::None,
-                },
-            );
-            let cfg = if fixed_psf {
-                sofipol_pipeline::accuracy::AccuracyConfig {
-                    fwhm_spread_frac: 0.0,
-                    beta_range: None,
-                    ..cfg
-                }
-            } else {
-                cfg
-            };
-            println!(
-                "sofipol bench accuracy: {} targets per bin, seeing {}\" (FWHM spread +-{:.0} %, beta {:?}), pixel response {}, flat {:?}, effects [{}], method {:?}, aperture {} FWHM",
-                targets,
-                cfg.fwhm_arcsec,
-                100.0 * cfg.fwhm_spread_frac,
-                cfg.beta_range.unwrap_or([3.0, 3.0]),
-                pixel_response,
-                cfg.flat,
-                cfg.effects.join(", "),
-                params.measure.method,
-                params.measure.aperture_fwhm
-            );
-            let t0 = Instant::now();
-            let r = sofipol_pipeline::accuracy::run(&cfg, &params);
-            print!("{}", sofipol_pipeline::accuracy::table(&r));
-            println!("total {:.1} s (simulation included)", t0.elapsed().as_secs_f64());
-        }
+/// `sofipol bench sim`: one 1024x1024 frame with all effects, with none, and each effect
+/// alone (medians of `repeats` frames).
+pub fn sim(repeats: usize) {
+    let threads = rayon::current_num_threads();
+    println!("sofipol bench sim: one 1024x1024 frame, median of {repeats}, {threads} rayon threads");
+    let (all, all_setup) = time_frames(&EffectKind::ALL, repeats);
+    let (none, _) = time_frames(&[], repeats);
+    println!(
+        "  {:<28} {:>9.2} ms/frame   (one-off detector maps: {:.1} ms)",
+        "all 15 effects", all, all_setup
+    );
+    println!("  {:<28} {:>9.2} ms/frame", "no effects", none);
+    println!("  {:<28} {:>9}", "effect alone", "ms/frame (minus no-effect)");
+    for k in EffectKind::ALL {
+        let (t, setup) = time_frames(&[k], repeats);
+        let extra = if setup > 1.0 {
+            format!("   (setup {setup:.1} ms)")
+        } else {
+            String::new()
+        };
+        println!("  {:<28} {:>9.2} ms  (+{:.2}){extra}", k.name(), t, t - none);
     }
-    Ok(ExitCode::SUCCESS)
+    println!(
+        "target: all effects <= 50 ms/frame on 2 cores: {}",
+        if all <= 50.0 { "met" } else { "NOT met" }
+    );
 }
 
-fn bench_stages(repeats: usize) -> anyhow::Result<()> {
+/// `sofipol bench accuracy`: the pull table of one configuration, or with `--report` the
+/// full accuracy-against-time report; `params` are the reduction settings.
+pub fn accuracy(args: AccuracyArgs, params: &TargetParams) -> anyhow::Result<()> {
+    let AccuracyArgs {
+        targets,
+        seed,
+        pixel_response,
+        flat,
+        fixed_psf,
+        report,
+        quick,
+    } = args;
+    if let Some(dir) = report {
+        let command = std::env::args().collect::<Vec<_>>().join(" ");
+        let opts = crate::accuracy_report::ReportOptions {
+            targets,
+            seed,
+            quick,
+            command,
+        };
+        let t0 = Instant::now();
+        crate::accuracy_report::run(&dir, params, &opts)?;
+        println!(
+            "sofipol bench accuracy: report written to {} in {:.1} s",
+            dir.display(),
+            t0.elapsed().as_secs_f64()
+        );
+        return Ok(());
+    }
+    let cfg = crate::accuracy::AccuracyConfig::with_flat_field(
+        crate::accuracy::AccuracyConfig {
+            targets_per_bin: targets,
+            seed,
+            ..Default::default()
+        },
+        pixel_response,
+        match flat.as_str() {
+            "superflat" => crate::accuracy::FlatMode::Superflat,
+            "dome" => crate::accuracy::FlatMode::Dome,
+            _ => crate::accuracy::FlatMode::None,
+        },
+    );
+    let cfg = if fixed_psf {
+        crate::accuracy::AccuracyConfig {
+            fwhm_spread_frac: 0.0,
+            beta_range: None,
+            ..cfg
+        }
+    } else {
+        cfg
+    };
+    println!(
+        "sofipol bench accuracy: {} targets per bin, seeing {}\" (FWHM spread +-{:.0} %, beta {:?}), pixel response {}, flat {:?}, effects [{}], method {:?}, aperture {} FWHM",
+        targets,
+        cfg.fwhm_arcsec,
+        100.0 * cfg.fwhm_spread_frac,
+        cfg.beta_range.unwrap_or([3.0, 3.0]),
+        pixel_response,
+        cfg.flat,
+        cfg.effects.join(", "),
+        params.measure.method,
+        params.measure.aperture_fwhm
+    );
+    let t0 = Instant::now();
+    let r = crate::accuracy::run(&cfg, params);
+    print!("{}", crate::accuracy::table(&r));
+    println!("total {:.1} s (simulation included)", t0.elapsed().as_secs_f64());
+    Ok(())
+}
+
+/// `sofipol bench stages`: the cost of each reduction stage on one simulated 10-frame
+/// sequence (medians of `repeats`).
+pub fn stages(repeats: usize) -> anyhow::Result<()> {
     use sofipol_calib::{badpix, fits, sky, stack};
     use sofipol_pipeline::reduce::{measure_sequence, target_entry, CalibratedOrientation, MeasureParams};
-    let scene = Scene::from_toml(&super::bench_night::night_scene(1, 5), "bench").map_err(anyhow::Error::msg)?;
+    let scene = Scene::from_toml(&crate::night::night_scene(1, 5), "bench").map_err(anyhow::Error::msg)?;
     let profile = Profile::sofi();
     let sim = Simulator::new(scene, profile.clone()).map_err(anyhow::Error::msg)?;
     let frames: Vec<_> = (0..sim.frames_per_target()).map(|k| sim.frame(0, k)).collect();
@@ -233,16 +197,16 @@ fn bench_stages(repeats: usize) -> anyhow::Result<()> {
         "sofipol bench stages: one sequence (2 orientations x 5 dithers, 1024x1024), median of {repeats}, {} threads",
         rayon::current_num_threads()
     );
-    let w = stack::median_ms(repeats, || {
+    let w = median_ms(repeats, || {
         fits::write_frame(&path, &frames[0].frame, &Default::default()).expect("write")
     });
-    let r = stack::median_ms(repeats, || {
+    let r = median_ms(repeats, || {
         std::hint::black_box(fits::read_frame(&path).expect("read"));
     });
     println!("  {:<44} {:>8.2} ms", "FITS write (f32, atomic, fsync) / frame", w);
     println!("  {:<44} {:>8.2} ms", "FITS read / frame", r);
     let all: Vec<&sofipol_calib::Frame> = frames.iter().map(|f| &f.frame).collect();
-    let bp = stack::median_ms(repeats, || {
+    let bp = median_ms(repeats, || {
         std::hint::black_box(badpix::detect_bad_pixels(&all, &profile, &Default::default()).expect("badpix"));
     });
     println!("  {:<44} {:>8.2} ms", "bad-pixel detection / sequence (10 frames)", bp);
@@ -252,7 +216,7 @@ fn bench_stages(repeats: usize) -> anyhow::Result<()> {
         .map(|f| badpix::apply_mask(&f.frame, &mask))
         .collect::<Result<_, _>>()?;
     let views: Vec<ndarray::ArrayView2<f32>> = o0.iter().map(|f| f.data.view()).collect();
-    let loo = stack::median_ms(repeats, || {
+    let loo = median_ms(repeats, || {
         std::hint::black_box(stack::leave_one_out_medians(&views).expect("loo"));
     });
     println!("  {:<44} {:>8.2} ms", "leave-one-out medians / orientation (5)", loo);
@@ -266,17 +230,17 @@ fn bench_stages(repeats: usize) -> anyhow::Result<()> {
     };
     let full = sky::SkyOptions::recommended();
     let rec = sky::SkyOptions::recommended();
-    let s0 = stack::median_ms(repeats, || {
+    let s0 = median_ms(repeats, || {
         std::hint::black_box(sky::sky_subtract(&o0, &profile, &full).expect("sky"));
     });
     println!(
         "  {:<44} {:>8.2} ms",
         "sky subtraction / orientation, full frame, CR", s0
     );
-    let s1 = stack::median_ms(repeats, || {
+    let s1 = median_ms(repeats, || {
         std::hint::black_box(sky::sky_subtract(&o0, &profile, &plain).expect("sky"));
     });
-    let s2 = stack::median_ms(repeats, || {
+    let s2 = median_ms(repeats, || {
         std::hint::black_box(sky::sky_subtract(&o0c, &cropped_profile, &rec).expect("sky"));
     });
     println!("  {:<44} {:>8.2} ms", "sky subtraction / orientation, no CR flags", s1);
@@ -299,7 +263,7 @@ fn bench_stages(repeats: usize) -> anyhow::Result<()> {
         let _ = i;
     }
     let mp = MeasureParams::default();
-    let m = stack::median_ms(repeats, || {
+    let m = median_ms(repeats, || {
         let m = measure_sequence(&cal, &profile, &mp).expect("measure");
         std::hint::black_box(target_entry("x", &cal, &m, &mp));
     });

@@ -1,0 +1,51 @@
+//! `sofipol bench ...`: the command line of the benchmarks; the benchmarks themselves are
+//! the crate sofipol-bench (bench/).
+use std::process::ExitCode;
+
+/// Arguments of `sofipol bench`.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    #[command(subcommand)]
+    what: What,
+}
+
+#[derive(clap::Subcommand, Debug)]
+enum What {
+    /// Simulator: one 1024x1024 frame with all effects, with none, and each effect alone.
+    Sim {
+        /// Frames timed per configuration (the median is reported).
+        #[arg(long, default_value_t = 21)]
+        repeats: usize,
+    },
+    /// A 49-target night (490 frames of 1024x1024, half float, half 16-bit): simulate it (not
+    /// timed), then time `sofipol night` on it in a child process: wall and CPU time,
+    /// per-stage breakdown, peak RSS, and right after each run the `cat` floor (time `cat`
+    /// needs to read the same files, page cache warm) and the ratio wall / cat. With
+    /// --python: the expert Python reduction of the same night, the ratios and the
+    /// comparison of the two catalogs.
+    Night(sofipol_bench::night::NightArgs),
+    /// Cost of each reduction stage on one simulated 10-frame sequence (medians).
+    Stages {
+        /// Repeats per stage.
+        #[arg(long, default_value_t = 5)]
+        repeats: usize,
+    },
+    /// Reduction accuracy on simulated nights: pull widths by separation bin, and time.
+    Accuracy {
+        #[command(flatten)]
+        accuracy: sofipol_bench::commands::AccuracyArgs,
+        #[command(flatten)]
+        reduce: super::target::ReduceArgs,
+    },
+}
+
+/// Run.
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    match args.what {
+        What::Sim { repeats } => sofipol_bench::commands::sim(repeats),
+        What::Night(a) => sofipol_bench::night::run(a)?,
+        What::Stages { repeats } => sofipol_bench::commands::stages(repeats)?,
+        What::Accuracy { accuracy, reduce } => sofipol_bench::commands::accuracy(accuracy, &reduce.params()?)?,
+    }
+    Ok(ExitCode::SUCCESS)
+}
