@@ -81,7 +81,7 @@ fn python() -> Option<PathBuf> {
     ok.then_some(py)
 }
 
-/// The bench night's truth, from the formulas of `night_scene` (src/cmd/bench_night.rs):
+/// The bench night's truth, from the formulas of `night_scene` (bench/src/night.rs):
 /// (flux, q, u) of components a and b of target i of n.
 fn truth(i: usize, n: usize) -> [(f64, f64, f64); 2] {
     let _ = n;

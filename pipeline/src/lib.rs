@@ -22,7 +22,6 @@
 //! ```
 #![deny(missing_docs)]
 
-pub mod accuracy;
 pub mod calibration;
 pub mod catalog;
 pub mod error;
@@ -39,4 +38,3 @@ pub mod sim;
 pub mod standards;
 pub mod stats;
 pub mod stokes;
-pub mod world;

@@ -1,15 +1,14 @@
 //! A/B identity across orientations (issues 9 and 13): the two targets of the 49-target
 //! `sofipol bench night` that an independent Python reduction measured within its errors
 //! and sofipol did not. Each scene has the truth parameters of that bench target (from
-//! `night_scene(49, 2001)` in src/cmd/bench_night.rs: i = 40 and i = 43) and the night's
+//! `night_scene(49, 2001)` in bench/src/night.rs: i = 40 and i = 43) and the night's
 //! effects.
 use sofipol_calib::frame::mask as mbits;
 use sofipol_calib::{sky, Profile};
-use sofipol_pipeline::accuracy::loaded_from_sim;
 use sofipol_pipeline::reduce::run::reduce_loaded;
 use sofipol_pipeline::reduce::sources::{locate_primary, unusable_masks};
 use sofipol_pipeline::reduce::{CalibratedOrientation, MeasureParams, TargetParams};
-use sofipol_pipeline::sim::{Scene, Simulator};
+use sofipol_pipeline::sim::{loaded_from_sim, Scene, Simulator};
 
 /// One binary of the bench night (its effects, PSF and seed), with these truth parameters.
 fn bench_scene(sep: f64, pa: f64, flux_a: f64, flux_b: f64, pol_a: (f64, f64), pol_b: (f64, f64)) -> String {

@@ -3,12 +3,11 @@
 //! way) and checks the property named by the test; the undamaged Beta must come out
 //! exactly as in the clean reduction.
 use sofipol_calib::{Frame, Profile};
-use sofipol_pipeline::accuracy::loaded_from_sim;
 use sofipol_pipeline::catalog::Target;
 use sofipol_pipeline::reduce::run::{reduce_loaded, LoadedOrientation};
 use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sequence::Sequence;
-use sofipol_pipeline::sim::{FrameTruth, Scene, Simulator, Truth};
+use sofipol_pipeline::sim::{loaded_from_sim, FrameTruth, Scene, Simulator, Truth};
 
 /// The scene: `obs` is the `[observation]` body, `alpha` and `beta` the binaries' keys
 /// after the name.

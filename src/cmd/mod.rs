@@ -1,8 +1,5 @@
 //! One module per subcommand. Each has `Args` (clap) and `run(Args) -> anyhow::Result<ExitCode>`.
-pub mod accuracy_report;
 pub mod bench;
-pub mod bench_night;
-pub mod bench_python;
 pub mod calib;
 pub mod common;
 pub mod demo;

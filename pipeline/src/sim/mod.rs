@@ -18,10 +18,11 @@
 //! Submodules: [`scene`] (the TOML scene), [`effects`] (one function per effect), [`psf`]
 //! (PSF rendering), [`truth`] (what was simulated), `frame` (one science frame: parameters,
 //! sources, detector, header), `dome` (dome-flat frames), `output` (whole scenes in
-//! memory or written to a folder).
+//! memory or written to a folder), `loaded` (one target's frames as the reduction's input).
 mod dome;
 pub mod effects;
 mod frame;
+mod loaded;
 mod output;
 pub mod psf;
 pub mod rng;
@@ -38,6 +39,7 @@ use rand_distr::{Distribution, StandardNormal};
 use sofipol_calib::Profile;
 
 pub use dome::SimFlatFrame;
+pub use loaded::loaded_from_sim;
 pub use scene::{Binary, EffectKind, Scene, StandardSource};
 pub use truth::{ComponentTruth, FlatFrameTruth, FrameTruth, SimFrame, SourceTruth, TargetTruth, Truth};
 

@@ -8,7 +8,7 @@
 //! (dome flats and four standards through the same detector). Both sides are asserted:
 //! errors neither too small nor too large. Two nights (seeds 13 and 15: each its own
 //! instrument, calibration and targets), 16 targets per bin each, pooled per bin.
-use sofipol_pipeline::world::{run, table, WorldBin, WorldConfig};
+use sofipol_bench::world::{run, table, WorldBin, WorldConfig};
 
 /// The bins of several nights, pooled: targets concatenated, statistics recomputed.
 fn pool_nights(nights: &[Vec<WorldBin>]) -> Vec<WorldBin> {

@@ -7,7 +7,7 @@
 //! * 4 orientations, no calibration data, k and p_inst (zero-point 0: nothing but a
 //!   polarized standard measures it): the ratio method gives rms 0.8-1.2, mean < 0.3.
 //! Two wide separation bins (1.6-4"), 8 binaries each, seed 41.
-use sofipol_pipeline::accuracy::{run, AccuracyConfig, BinReport};
+use sofipol_bench::accuracy::{run, AccuracyConfig, BinReport};
 use sofipol_pipeline::reduce::TargetParams;
 
 fn pooled(r: &[BinReport]) -> (usize, f64, f64) {
@@ -43,7 +43,7 @@ fn standards_and_the_ratio_method_give_unbiased_pulls_in_the_accuracy_harness() 
     let cal = run(&cfg(true, false), &params);
     let (n, rms, mean) = pooled(&cal);
     eprintln!("2 orientations + standards: n = {n}, rms pull {rms:.3}, mean {mean:.3}");
-    eprint!("{}", sofipol_pipeline::accuracy::table(&cal));
+    eprint!("{}", sofipol_bench::accuracy::table(&cal));
     assert!(n >= 56, "{n}");
     assert!((0.8..=1.2).contains(&rms) && mean.abs() < 0.3, "rms {rms} mean {mean}");
 
@@ -55,7 +55,7 @@ fn standards_and_the_ratio_method_give_unbiased_pulls_in_the_accuracy_harness() 
     let ratio = run(&cfg(false, true), &params);
     let (n4, rms4, mean4) = pooled(&ratio);
     eprintln!("4 orientations, ratio method: n = {n4}, rms pull {rms4:.3}, mean {mean4:.3}");
-    eprint!("{}", sofipol_pipeline::accuracy::table(&ratio));
+    eprint!("{}", sofipol_bench::accuracy::table(&ratio));
     assert!(n4 >= 56, "{n4}");
     assert!(
         (0.8..=1.2).contains(&rms4) && mean4.abs() < 0.3,

@@ -5,14 +5,19 @@ use std::time::Instant;
 
 use sofipol_pipeline::sim::Scene;
 
-use super::bench_night::NightSummary;
-
 /// The expert Python reduction (bench/python/reduce_night.py), embedded so that the bench
 /// runs from any directory.
-const PYTHON_REDUCTION: &str = include_str!("../../bench/python/reduce_night.py");
+const PYTHON_REDUCTION: &str = include_str!("../python/reduce_night.py");
+
+/// Medians of the sofipol runs that the Python comparison needs.
+pub(crate) struct NightSummary {
+    pub(crate) wall: f64,
+    pub(crate) cpu: f64,
+    pub(crate) cat: f64,
+}
 
 /// One run of the Python reduction.
-pub(super) struct PythonRun {
+pub(crate) struct PythonRun {
     /// Wall time of the child process (interpreter start-up and imports included), s.
     wall: f64,
     /// The child's CPU time (user + sys, its own getrusage at exit), s.
@@ -25,7 +30,7 @@ pub(super) struct PythonRun {
 
 /// Runs the Python reduction on the first `n` sequences of `raw`, single-threaded (one
 /// process; BLAS/OpenMP threads pinned to 1).
-pub(super) fn run_python(
+pub(crate) fn run_python(
     py: &std::path::Path,
     raw: &std::path::Path,
     root: &std::path::Path,
@@ -73,7 +78,7 @@ pub(super) fn run_python(
 
 /// Prints the Python timings (scaled to the whole night when it ran on fewer targets), the
 /// ratios against sofipol and the comparison of the two catalogs.
-pub(super) fn print_python(
+pub(crate) fn print_python(
     p: &PythonRun,
     s: &NightSummary,
     targets: usize,

@@ -30,13 +30,13 @@ use rayon::prelude::*;
 use serde::Serialize;
 use sofipol_calib::Profile;
 
-use crate::calibration::{calibrate_catalog, CalibrationParams, CalibrationSource};
-use crate::catalog::{Catalog, Target};
-use crate::reduce::run::reduce_sequence;
-use crate::reduce::TargetParams;
-use crate::sim::{Scene, Simulator, TargetTruth};
-use crate::standards::StandardsTable;
-use crate::{scan, sequence};
+use sofipol_pipeline::calibration::{calibrate_catalog, CalibrationParams, CalibrationSource};
+use sofipol_pipeline::catalog::{Catalog, Target};
+use sofipol_pipeline::reduce::run::reduce_sequence;
+use sofipol_pipeline::reduce::TargetParams;
+use sofipol_pipeline::sim::{Scene, Simulator, TargetTruth};
+use sofipol_pipeline::standards::StandardsTable;
+use sofipol_pipeline::{scan, sequence};
 
 /// A/B swaps of pairs fainter than this flux ratio B/A are labelling errors (closer to
 /// equal, noise may legitimately reorder them).
@@ -370,15 +370,15 @@ pub fn night_calibration(cfg: &WorldConfig, inst: &Instrument, params: &TargetPa
     let sim = Simulator::new(calibration_scene(cfg, inst), Profile::sofi()).expect("valid scene");
     sim.write_to_dir(&dir, &|_| {}).expect("calibration frames written");
     let profile = Profile::sofi();
-    let plan = crate::night::plan(
+    let plan = sofipol_pipeline::night::plan(
         std::slice::from_ref(&dir),
         &profile,
         params.flat_options.max_frames,
         None,
         |_| false,
     );
-    let flats = crate::night::night_flats(&plan.dome_flats, &Default::default(), &profile, params).set;
-    let sp = crate::calibration::standard_params(params);
+    let flats = sofipol_pipeline::night::night_flats(&plan.dome_flats, &Default::default(), &profile, params).set;
+    let sp = sofipol_pipeline::calibration::standard_params(params);
     let standards = plan
         .sequences
         .par_iter()
@@ -399,10 +399,10 @@ pub fn night_calibration(cfg: &WorldConfig, inst: &Instrument, params: &TargetPa
 /// A component the reduction refuses to vouch for: flagged `saturated`, or
 /// `ab_identity_unverified` (which star was measured at some orientation is not known:
 /// it fails the cut). Counted as refused, not scored.
-fn refused_component(c: &crate::catalog::Component) -> bool {
+fn refused_component(c: &sofipol_pipeline::catalog::Component) -> bool {
     c.flags
         .iter()
-        .any(|f| f == "saturated" || f == crate::reduce::entry::AB_IDENTITY_UNVERIFIED)
+        .any(|f| f == "saturated" || f == sofipol_pipeline::reduce::entry::AB_IDENTITY_UNVERIFIED)
 }
 
 /// Match the catalog's components to the truth and compute the pulls. Refused components

@@ -5,7 +5,7 @@
 //! 1.5 for closer pairs (FWHM 0.8"). With ~140 pulls per group the rms is known to ~6 %,
 //! so the bounds fail a correct pipeline with probability well below 1e-3 and catch a
 //! 25 % error misestimate.
-use sofipol_pipeline::accuracy::{run, table, AccuracyConfig};
+use sofipol_bench::accuracy::{run, table, AccuracyConfig};
 use sofipol_pipeline::reduce::TargetParams;
 
 #[test]

@@ -11,14 +11,14 @@
 //! Frames are simulated and reduced one sequence at a time (streaming: a night of 1024^2
 //! frames does not fit in memory), in parallel over sequences.
 use rayon::prelude::*;
+use sofipol_bench::accuracy::{night_flats, FlatMode};
 use sofipol_calib::flat::FlatSet;
 use sofipol_calib::Profile;
-use sofipol_pipeline::accuracy::{loaded_from_sim, night_flats, FlatMode};
 use sofipol_pipeline::calibration::{calibrate_catalog, standard_params, CalibrationParams, CalibrationSource};
 use sofipol_pipeline::catalog::{Catalog, Target};
 use sofipol_pipeline::reduce::run::reduce_loaded;
 use sofipol_pipeline::reduce::TargetParams;
-use sofipol_pipeline::sim::{EffectKind, Scene, Simulator, Truth};
+use sofipol_pipeline::sim::{loaded_from_sim, EffectKind, Scene, Simulator, Truth};
 use sofipol_pipeline::standards::StandardsTable;
 use sofipol_pipeline::stokes::inversion::Debias;
 

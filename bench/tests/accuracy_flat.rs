@@ -3,7 +3,7 @@
 //! night's dome flats, bring the pull rms of q and u back into 0.8-1.2. PSF FWHM and Moffat
 //! beta vary frame to frame (+-20 %, 2.5-4). Wide pairs only (two bins, 2-5 FWHM), 12
 //! targets per bin: 94-96 pulls per case, rms known to ~7 %.
-use sofipol_pipeline::accuracy::{run, table, AccuracyConfig, FlatMode};
+use sofipol_bench::accuracy::{run, table, AccuracyConfig, FlatMode};
 use sofipol_pipeline::reduce::TargetParams;
 
 fn pooled(mode: FlatMode) -> (f64, usize, String) {

@@ -1,5 +1,5 @@
 //! Run the world-sampling accuracy harness:
-//! `cargo run --release -p sofipol-pipeline --example world -- [targets per bin]`, or write
+//! `cargo run --release -p sofipol-bench --example world -- [targets per bin]`, or write
 //! one drawn target's frames to look at: `... --example world -- write BIN T DIR`;
 //! `-- N nocal` leaves the night's calibration unused, `-- N noinst` turns the instrument off,
 //! `noell` / `nonl` only the PSF ellipticity / the non-linearity (`full`: everything); a
@@ -9,11 +9,11 @@
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let dir = std::env::temp_dir().join(format!("sofipol-world-{}", std::process::id()));
-    let mut cfg = sofipol_pipeline::world::WorldConfig::new(&dir);
+    let mut cfg = sofipol_bench::world::WorldConfig::new(&dir);
     if args.get(1).map(String::as_str) == Some("write") {
         let (bin, t): (usize, usize) = (args[2].parse().unwrap(), args[3].parse().unwrap());
         let (lo, hi) = (cfg.bins_arcsec[bin], cfg.bins_arcsec[bin + 1]);
-        let (tt, cond, _) = sofipol_pipeline::world::write_target(&cfg, bin, t, lo, hi, std::path::Path::new(&args[4]));
+        let (tt, cond, _) = sofipol_bench::world::write_target(&cfg, bin, t, lo, hi, std::path::Path::new(&args[4]));
         println!("{cond:?}\n{}", serde_json::to_string_pretty(&tt.components).unwrap());
         return;
     }
@@ -34,9 +34,9 @@ fn main() {
     if std::env::var("WORLD_BETA_FREE").is_ok() {
         params.measure.beta_from_stack = false;
     }
-    let bins = sofipol_pipeline::world::run(&cfg, &params);
-    println!("{:?}", sofipol_pipeline::world::draw_instrument(&cfg));
-    print!("{}", sofipol_pipeline::world::table(&bins, true));
+    let bins = sofipol_bench::world::run(&cfg, &params);
+    println!("{:?}", sofipol_bench::world::draw_instrument(&cfg));
+    print!("{}", sofipol_bench::world::table(&bins, true));
     // `WORLD_JSON=path`: every target's conditions, pulls and sigmas, for a closer look.
     if let Ok(p) = std::env::var("WORLD_JSON") {
         std::fs::write(&p, serde_json::to_string(&bins).unwrap()).unwrap();

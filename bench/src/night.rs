@@ -1,12 +1,15 @@
 //! `sofipol bench night`: a 49-target night (half float, half 16-bit frames) reduced by
 //! `sofipol night` in a child process against the `cat` floor and, with `--python`, against
 //! the expert Python reduction of bench/python/ (timed in the same run, catalogs compared).
+//! The child is the current executable ([`std::env::current_exe`]): [`run`] is meant to be
+//! called from the `sofipol` binary.
 use std::time::Instant;
 
 use sofipol_calib::Profile;
 use sofipol_pipeline::sim::{Scene, Simulator};
 
-use super::bench_python::{print_python, run_python};
+use crate::python::{print_python, run_python, NightSummary};
+
 /// Arguments of `sofipol bench night`.
 #[derive(clap::Args, Debug, Clone)]
 pub struct NightArgs {
@@ -89,6 +92,22 @@ fn night_scene_text(a: &NightArgs) -> String {
     text
 }
 
+/// A progress bar on stderr when it is a terminal (as the binary's), hidden otherwise.
+fn progress(len: u64, what: &str) -> indicatif::ProgressBar {
+    use std::io::IsTerminal;
+    if !std::io::stderr().is_terminal() {
+        return indicatif::ProgressBar::hidden();
+    }
+    let pb = indicatif::ProgressBar::new(len);
+    pb.set_style(
+        indicatif::ProgressStyle::with_template("{prefix:>10} [{bar:40}] {pos}/{len} {msg} ({elapsed}, eta {eta})")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    pb.set_prefix(what.to_string());
+    pb
+}
+
 /// Simulate the night into `raw` as SOFI writes it: half the targets float (BITPIX -32),
 /// half 16-bit (BITPIX 16, BZERO 32768, BSCALE 1), alternating so that any first N targets
 /// hold both. Also writes `pairs.csv`, the binaries' nominal separation and PA (what an
@@ -112,7 +131,7 @@ fn simulate_mixed_night(text: &str, raw: &std::path::Path) -> anyhow::Result<(us
     }
     let n = sim.frames_per_target();
     let jobs: Vec<(usize, usize)> = (0..n_targets).flat_map(|t| (0..n).map(move |k| (t, k))).collect();
-    let pb = super::common::progress(jobs.len() as u64, "simulate", false);
+    let pb = progress(jobs.len() as u64, "simulate");
     jobs.par_iter().try_for_each(|&(t, k)| -> anyhow::Result<()> {
         let f = sim.frame(t, k);
         let opts = WriteOptions {
@@ -263,13 +282,6 @@ fn time_sofipol_night(
         });
     }
     Ok((runs, last))
-}
-
-/// Medians of the sofipol runs that the Python comparison needs.
-pub(super) struct NightSummary {
-    pub(super) wall: f64,
-    pub(super) cpu: f64,
-    pub(super) cat: f64,
 }
 
 /// Prints the sofipol runs: wall, CPU, floors, ratios, stages, RSS.

@@ -6,10 +6,11 @@ use rayon::prelude::*;
 use serde::Serialize;
 use sofipol_calib::Profile;
 
-use crate::reduce::run::{reduce_loaded, LoadedOrientation};
-use crate::reduce::TargetParams;
-use crate::sequence::Sequence;
-use crate::sim::{Scene, Simulator};
+use sofipol_pipeline::reduce::run::{reduce_loaded, LoadedOrientation};
+use sofipol_pipeline::reduce::TargetParams;
+use sofipol_pipeline::sequence::Sequence;
+use sofipol_pipeline::sim::loaded_from_sim;
+use sofipol_pipeline::sim::{Scene, Simulator};
 
 /// What to simulate.
 #[derive(Debug, Clone)]
@@ -111,8 +112,8 @@ reference = "sofipol accuracy harness"
 "#;
 
 /// The built-in standards table plus [`ACCURACY_STANDARDS`].
-pub fn standards_table() -> crate::standards::StandardsTable {
-    let mut t = crate::standards::StandardsTable::builtin();
+pub fn standards_table() -> sofipol_pipeline::standards::StandardsTable {
+    let mut t = sofipol_pipeline::standards::StandardsTable::builtin();
     t.merge_toml(ACCURACY_STANDARDS, "accuracy harness")
         .expect("valid table");
     t
@@ -257,7 +258,7 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
                 }
                 loaded_from_sim(frames, &profile)
             };
-            let mut reduced: Vec<(crate::catalog::Target, f64)> = (0..cfg.targets_per_bin)
+            let mut reduced: Vec<(sofipol_pipeline::catalog::Target, f64)> = (0..cfg.targets_per_bin)
                 .into_par_iter()
                 .map(|t| {
                     let (seq, orients) = load(t);
@@ -287,20 +288,20 @@ fn calibrate_bin<L>(
     profile: &Profile,
     sim: &Simulator,
     load: &L,
-    reduced: &mut [(crate::catalog::Target, f64)],
+    reduced: &mut [(sofipol_pipeline::catalog::Target, f64)],
 ) where
     L: Fn(usize) -> (Sequence, Vec<LoadedOrientation>) + Sync,
 {
-    use crate::calibration::{calibrate_catalog, standard_params, CalibrationSource};
+    use sofipol_pipeline::calibration::{calibrate_catalog, standard_params, CalibrationSource};
     let sp = standard_params(params);
-    let stds: Vec<crate::catalog::Target> = (cfg.targets_per_bin..sim.n_sequences())
+    let stds: Vec<sofipol_pipeline::catalog::Target> = (cfg.targets_per_bin..sim.n_sequences())
         .into_par_iter()
         .map(|t| {
             let (seq, orients) = load(t);
             reduce_loaded(&seq, orients, profile, &sp, None, None, false).target
         })
         .collect();
-    let mut cat = crate::catalog::Catalog {
+    let mut cat = sofipol_pipeline::catalog::Catalog {
         targets: reduced.iter().map(|r| r.0.clone()).collect(),
         ..Default::default()
     };
@@ -320,7 +321,11 @@ fn calibrate_bin<L>(
 }
 
 /// Compare one reduced target with its truth: pulls, errors, and a note when it is an outlier.
-fn score_target(target: &crate::catalog::Target, tt: &crate::sim::TargetTruth, reduce_s: f64) -> One {
+fn score_target(
+    target: &sofipol_pipeline::catalog::Target,
+    tt: &sofipol_pipeline::sim::TargetTruth,
+    reduce_s: f64,
+) -> One {
     let mut one = One {
         note: None,
         pulls: vec![],
@@ -482,46 +487,4 @@ pub fn table(r: &[BinReport]) -> String {
         }
     }
     s
-}
-
-/// Group simulated frames of one target (in exposure order) into the [`Sequence`] and the
-/// loaded orientations [`reduce_loaded`] takes: what `night` would build from the files,
-/// without writing them (tests, the accuracy harness).
-pub fn loaded_from_sim(frames: Vec<crate::sim::SimFrame>, profile: &Profile) -> (Sequence, Vec<LoadedOrientation>) {
-    use crate::sequence::Orientation;
-    use sofipol_calib::classify::{classify, Classification};
-    let mut orients: Vec<LoadedOrientation> = Vec::new();
-    let mut seq_or: Vec<Orientation> = Vec::new();
-    let (mut object, mut tpl_start, mut filter) = (String::new(), String::new(), String::new());
-    for f in frames {
-        let pa = f.truth.posang_deg;
-        // The pipeline knows the profile's analyzer angle, not the simulated instrument's
-        // true one (they differ when the scene lists `analyzer_angle`).
-        let phi = profile.angles.analyzer_angle_deg(pa);
-        if orients.last().is_none_or(|o| o.0 != pa) {
-            orients.push((pa, phi, vec![], vec![]));
-            seq_or.push(Orientation {
-                posang_deg: pa,
-                analyzer_deg: phi,
-                exposures: vec![],
-            });
-        }
-        if let Classification::Science(info) = classify(&f.frame.header, profile) {
-            object.clone_from(&info.object);
-            tpl_start.clone_from(&info.tpl_start);
-            filter.clone_from(&info.filter);
-            seq_or.last_mut().expect("pushed").exposures.push(*info);
-        }
-        let o = orients.last_mut().expect("pushed");
-        o.3.push(f.truth.header_offset_px);
-        o.2.push(f.frame);
-    }
-    let seq = Sequence {
-        id: format!("{object}@{tpl_start}"),
-        object,
-        tpl_start,
-        filter,
-        orientations: seq_or,
-    };
-    (seq, orients)
 }

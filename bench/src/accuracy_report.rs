@@ -12,10 +12,11 @@ use std::time::Instant;
 
 use serde::Serialize;
 use sofipol_calib::sky::{SkyEstimator, SkyScaling};
-use sofipol_pipeline::accuracy::{AccuracyConfig, BinReport};
 use sofipol_pipeline::photometry::{Method, PsfModel};
 use sofipol_pipeline::plots::{Figure, LegendPos, Panel, Series, Style};
 use sofipol_pipeline::reduce::TargetParams;
+
+use crate::accuracy::{AccuracyConfig, BinReport};
 
 /// Changes a variant makes to the simulated night and to the reduction settings.
 pub type Apply = Box<dyn Fn(&mut AccuracyConfig, &mut TargetParams) + Sync + Send>;
@@ -188,7 +189,7 @@ pub fn variants() -> Vec<Variant> {
 /// instrument (k = 0.97, p_inst 0.3 %, zero-point 3 deg) calibrated by standards (2
 /// orientations) or cancelled by the ratio method (4 orientations, no calibration data).
 fn calibration_variants() -> Vec<Variant> {
-    use sofipol_pipeline::accuracy::FlatMode;
+    use crate::accuracy::FlatMode;
     let flat = |m: FlatMode| {
         move |c: &mut AccuracyConfig, _: &mut TargetParams| *c = AccuracyConfig::with_flat_field(c.clone(), 0.01, m)
     };
@@ -370,7 +371,7 @@ pub fn run(dir: &Path, base: &TargetParams, opts: &ReportOptions) -> anyhow::Res
         let mut params = base.clone();
         (var.apply)(&mut cfg, &mut params);
         let t0 = Instant::now();
-        let mut bins = sofipol_pipeline::accuracy::run(&cfg, &params);
+        let mut bins = crate::accuracy::run(&cfg, &params);
         if opts.quick {
             // Only the first and last bins were asked for.
             bins = bins.into_iter().step_by(2).collect();

@@ -1,0 +1,27 @@
+//! # sofipol-bench: benchmarks and accuracy harnesses
+//!
+//! The measuring tools of sofipol, kept out of the product crates' API (not published).
+//! The binary's `sofipol bench ...` parses the command line and calls:
+//!
+//! ```text
+//!  commands         bench sim (simulator cost), bench stages (cost of each reduction stage),
+//!                   bench accuracy (pull table of one configuration)
+//!  accuracy_report  bench accuracy --report DIR: accuracy against time of every trade-off
+//!  night            bench night: a 49-target night reduced by `sofipol night` in a child
+//!                   process, against the `cat` floor
+//!  python           bench night --python: the expert Python reduction (bench/python/), timed
+//!                   and compared
+//!  accuracy         the accuracy harness: simulated nights by separation bin, pulls, time
+//!  world            the world-sampling harness (drawn conditions, the file path of `night`;
+//!                   run by examples/world.rs and tests/accuracy_world.rs)
+//!  timing           median of repeated timings; the stack kernels timed on sky-like frames
+//! ```
+#![deny(missing_docs)]
+
+pub mod accuracy;
+pub mod accuracy_report;
+pub mod commands;
+pub mod night;
+pub mod python;
+pub mod timing;
+pub mod world;
