@@ -47,6 +47,10 @@ struct BlockRows<'a> {
     count: Option<&'a [u8]>,
 }
 
+/// One frame in the pass: the frame (mask, header, history), its raw data, its sky buffer
+/// and its input variance map, if any.
+type Part = (Frame, Array2<f32>, SkyBuf, Option<Array2<f32>>);
+
 /// Rows per parallel task.
 const BLOCK: usize = 4;
 
@@ -73,7 +77,7 @@ pub(super) fn subtract_skies(
         SkySource::Loo(l) => (None, Some(l)),
     };
     let mut given = given.map(|g| g.into_iter().map(standard));
-    let mut parts: Vec<(Frame, Array2<f32>, SkyBuf, Option<Array2<f32>>)> = frames
+    let mut parts: Vec<Part> = frames
         .into_iter()
         .map(|mut f| {
             let raw = standard(std::mem::take(&mut f.data));
@@ -140,7 +144,7 @@ pub(super) fn subtract_skies(
 /// The frames' buffers (`parts`: frame, raw data, sky buffer, input variance) cut into
 /// blocks of [`BLOCK`] rows: `blocks[b][i]` holds frame i's rows of block b.
 fn split_blocks<'a>(
-    parts: &'a mut [(Frame, Array2<f32>, SkyBuf, Option<Array2<f32>>)],
+    parts: &'a mut [Part],
     ny: usize,
     nx: usize,
     inp: &'a FinishInputs,
