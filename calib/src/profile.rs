@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 use crate::error::{Error, Result};
+use crate::frame::Frame;
 
 /// The embedded SOFI profile text.
 pub const SOFI_TOML: &str = include_str!("../profiles/sofi.toml");
@@ -353,6 +354,25 @@ impl Profile {
     pub fn opti_key(&self, i: u32) -> String {
         format!("{}{} ID", self.keywords.opti_prefix, i)
     }
+}
+
+/// Reads averaged in the frame: the profile's NDIT keyword, 1 when absent (an error when
+/// present but not a positive integer).
+pub fn frame_ndit(frame: &Frame, profile: &Profile) -> Result<u32> {
+    let key = &profile.keywords.ndit;
+    if !frame.header.contains(key) {
+        return Ok(1);
+    }
+    let v = frame.header.get_i64(key)?;
+    if v < 1 || v > u32::MAX as i64 {
+        return Err(Error::BadKeyword {
+            path: frame.header.path.clone(),
+            keyword: key.clone(),
+            value: v.to_string(),
+            reason: "NDIT must be a positive integer".into(),
+        });
+    }
+    Ok(v as u32)
 }
 
 #[cfg(test)]

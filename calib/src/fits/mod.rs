@@ -27,6 +27,8 @@
 //! The temporary file of the atomic write is [`crate::atomic::TempFile`].
 mod cards;
 mod cfitsio;
+mod convert;
+mod keys;
 mod raw;
 mod read;
 #[cfg(test)]
@@ -73,3 +75,13 @@ pub const HISTORY_CHUNK: usize = 70;
 /// Prefix of a HISTORY card that continues the previous sofipol record (long lines are
 /// split over several cards).
 pub const HISTORY_CONTINUATION: &str = "sofipol& ";
+
+/// `v` as an `ny` x `nx` array, or [`crate::Error::BadImage`] naming the file when the
+/// count is not `ny * nx`.
+fn to_array<T>(v: Vec<T>, ny: usize, nx: usize, path: &std::path::Path) -> crate::Result<ndarray::Array2<T>> {
+    let n = v.len();
+    ndarray::Array2::from_shape_vec((ny, nx), v).map_err(|_| crate::Error::BadImage {
+        path: path.to_path_buf(),
+        reason: format!("read {n} pixels, expected {nx} x {ny}"),
+    })
+}

@@ -24,7 +24,9 @@ use crate::frame::{PixelSummary, SummaryLanes};
 use crate::header::HeaderValue;
 
 use super::cfitsio::{data_start, fits_err};
-use super::read::{is_compressed, raw_int, raw_value, to_array};
+use super::convert::{convert, BLOCK};
+use super::keys::{is_compressed, raw_int, raw_value};
+use super::to_array;
 
 /// How to read and convert the pixels of a plain image HDU.
 #[derive(Debug, Clone, Copy)]
@@ -220,78 +222,14 @@ impl PlainImage {
     }
 }
 
-/// Pixels per conversion block (16 kB of output).
-const BLOCK: usize = 4096;
-/// Pixels read per `read` call of [`PlainImage::read_rows`] (a whole number of blocks, so
-/// that the blocks and their summaries are those of one conversion of the whole range).
+/// Pixels read per `read` call of [`PlainImage::read_rows`] (a whole number of conversion
+/// blocks, so that the blocks and their summaries are those of one conversion of the whole
+/// range).
 const READ_PIECE_PX: usize = 8 * BLOCK;
-
-/// The raw bytes `raw` of pixel type `bitpix` (16 or -32) as `f32` appended to `out`, and
-/// their summary added to `lanes`, taken block by block as they are converted (the block
-/// is still in the first-level cache). Compiled for AVX2 when the CPU has it (byte
-/// shuffles); the same numbers either way.
-fn convert(raw: &[u8], bitpix: i64, scale: f64, zero: f64, out: &mut Vec<f32>, lanes: &mut SummaryLanes) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU supports AVX2 (checked just above).
-            #[allow(unsafe_code)]
-            return unsafe { convert_avx2(raw, bitpix, scale, zero, out, lanes) };
-        }
-    }
-    convert_generic(raw, bitpix, scale, zero, out, lanes)
-}
-
-/// [`convert_generic`] compiled for AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn convert_avx2(raw: &[u8], bitpix: i64, scale: f64, zero: f64, out: &mut Vec<f32>, lanes: &mut SummaryLanes) {
-    convert_generic(raw, bitpix, scale, zero, out, lanes)
-}
-
-#[inline(always)]
-fn convert_generic(raw: &[u8], bitpix: i64, scale: f64, zero: f64, out: &mut Vec<f32>, lanes: &mut SummaryLanes) {
-    let width = if bitpix == 16 { 2 } else { 4 };
-    for block in raw.chunks(BLOCK * width) {
-        let start = out.len();
-        if bitpix == 16 {
-            convert_i16(block, scale, zero, out)
-        } else {
-            convert_f32(block, scale, zero, out)
-        }
-        lanes.add(&out[start..]);
-    }
-}
-
-/// Big-endian 16-bit integers to `f32`, `(float)(v * scale + zero)` as cfitsio computes
-/// it. With scale 1 and an integer zero the sum is exact in `i32` as in `f64`, and both
-/// round the same exact value to `f32`: the integer form is taken (it vectorises).
-#[inline(always)]
-fn convert_i16(raw: &[u8], scale: f64, zero: f64, out: &mut Vec<f32>) {
-    let words = raw.chunks_exact(2).map(|b| i16::from_be_bytes([b[0], b[1]]));
-    if scale == 1.0 && zero == zero.trunc() && zero.abs() <= (1 << 30) as f64 {
-        let z = zero as i32;
-        out.extend(words.map(|v| (v as i32 + z) as f32));
-    } else {
-        out.extend(words.map(|v| (v as f64 * scale + zero) as f32));
-    }
-}
-
-/// Big-endian IEEE floats to `f32`: copied, or `(float)(v * scale + zero)` when scaled.
-#[inline(always)]
-fn convert_f32(raw: &[u8], scale: f64, zero: f64, out: &mut Vec<f32>) {
-    let floats = raw
-        .chunks_exact(4)
-        .map(|b| f32::from_be_bytes([b[0], b[1], b[2], b[3]]));
-    if scale == 1.0 && zero == 0.0 {
-        out.extend(floats);
-    } else {
-        out.extend(floats.map(|v| (v as f64 * scale + zero) as f32));
-    }
-}
 
 #[cfg(test)]
 mod tests {
+    use super::super::convert::convert_portable;
     use super::*;
     use crate::fits::{read_frame, read_frame_rows, read_frame_rows_with_summary};
 
@@ -608,7 +546,7 @@ mod tests {
                     let (mut a, mut b) = (Vec::new(), Vec::new());
                     let (mut la, mut lb) = (SummaryLanes::new(), SummaryLanes::new());
                     convert(&raw, bitpix, scale, zero, &mut a, &mut la);
-                    convert_generic(&raw, bitpix, scale, zero, &mut b, &mut lb);
+                    convert_portable(&raw, bitpix, scale, zero, &mut b, &mut lb);
                     let (sa, sb) = (la.finish(), lb.finish());
                     assert_eq!(bits(&a), bits(&b), "BITPIX {bitpix} n {n} scale {scale} zero {zero}");
                     assert_eq!(sa, sb);

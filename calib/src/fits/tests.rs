@@ -259,7 +259,7 @@ fn read_frame_rows_equals_read_then_crop() {
 /// blank-padded and tab-padded names, commentary cards and short cards.
 #[test]
 fn raw_value_finds_what_parsing_every_card_finds() {
-    use super::read::raw_value;
+    use super::keys::raw_value;
     let cards: Vec<String> = [
         "SIMPLE  =                    T",
         "COMMENT NAXIS = 3",

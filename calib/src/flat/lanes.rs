@@ -32,9 +32,10 @@ pub(super) fn sorting_network(n: usize) -> Vec<(u16, u16)> {
 }
 
 /// Sort every lane of `keys` (`keys[i][lane]`: value `i` of the pixel in `lane`) by the
-/// network `net` of `keys.len()` inputs.
+/// network `net` of `keys.len()` inputs: the portable build, and the definition
+/// [`sort_lanes`] must equal bit for bit.
 #[inline(always)]
-fn sort_lanes_generic(keys: &mut [[i32; LANES]], net: &[(u16, u16)]) {
+pub(crate) fn sort_lanes_portable(keys: &mut [[i32; LANES]], net: &[(u16, u16)]) {
     for &(a, b) in net {
         let (lo, hi) = keys.split_at_mut(b as usize);
         let (x, y) = (&mut lo[a as usize], &mut hi[0]);
@@ -46,31 +47,18 @@ fn sort_lanes_generic(keys: &mut [[i32; LANES]], net: &[(u16, u16)]) {
     }
 }
 
-/// [`sort_lanes_generic`] compiled for AVX2 (8 integer lanes with one min and one max
-/// instruction each; SSE2 has no 32-bit integer min/max).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn sort_lanes_avx2(keys: &mut [[i32; LANES]], net: &[(u16, u16)]) {
-    sort_lanes_generic(keys, net)
-}
-
-/// Sort every lane of `keys` by the network `net` (from [`sorting_network`] of
-/// `keys.len()`), with the widest integer vectors this CPU has.
-pub(super) fn sort_lanes(keys: &mut [[i32; LANES]], net: &[(u16, u16)]) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU supports AVX2 (checked just above); the only unsafe operation here.
-            #[allow(unsafe_code)]
-            return unsafe { sort_lanes_avx2(keys, net) };
-        }
-    }
-    sort_lanes_generic(keys, net)
+/// [`sort_lanes_portable`] with the widest integer vectors this CPU has (AVX2: 8 integer
+/// lanes with one min and one max instruction each; SSE2 has no 32-bit integer min/max),
+/// chosen at run time. `net` comes from [`sorting_network`] of `keys.len()`.
+#[multiversion::multiversion(targets("x86_64+avx2"))]
+pub(crate) fn sort_lanes(keys: &mut [[i32; LANES]], net: &[(u16, u16)]) {
+    sort_lanes_portable(keys, net)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rand::{rngs::Xoshiro256PlusPlus, RngExt, SeedableRng};
 
     /// The 0-1 principle: a comparator network sorts every input iff it sorts every 0/1
     /// input. Checked exhaustively up to 14 inputs (the pruning included).
@@ -127,6 +115,68 @@ mod tests {
                     assert_eq!(&col, w, "n {n} lane {l}");
                 }
             }
+        }
+    }
+
+    /// Keys of seeded random values: special floats (NaN of both signs, infinities, signed
+    /// zeros, subnormals), random bit patterns, ties, and slots without a value.
+    fn random_keys(rng: &mut Xoshiro256PlusPlus, n: usize) -> Vec<[i32; LANES]> {
+        const SPECIAL: [f32; 10] = [
+            f32::NAN,
+            -f32::NAN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            0.0,
+            -0.0,
+            1e-45,
+            -1e-45,
+            f32::MAX,
+            f32::MIN,
+        ];
+        (0..n)
+            .map(|_| {
+                std::array::from_fn(|_| match rng.random_range(0..5) {
+                    0 => key(SPECIAL[rng.random_range(0..SPECIAL.len())]),
+                    1 => key(f32::from_bits(rng.random())),
+                    2 => NO_VALUE,
+                    _ => key(rng.random_range(0..8) as f32 * 0.5),
+                })
+            })
+            .collect()
+    }
+
+    /// The run-time chosen build of the sort against the portable build, bit for bit, for
+    /// every input count from 0 (no value) to 40 and a few larger ones.
+    #[test]
+    fn the_sort_is_the_same_in_every_vector_build() {
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(31);
+        for n in (0..=40).chain([63, 64, 65, 100]) {
+            let net = sorting_network(n);
+            for _ in 0..30 {
+                let keys = random_keys(&mut rng, n);
+                let (mut fast, mut portable) = (keys.clone(), keys);
+                sort_lanes(&mut fast, &net);
+                sort_lanes_portable(&mut portable, &net);
+                assert_eq!(fast, portable, "n {n}");
+            }
+        }
+    }
+
+    proptest::proptest! {
+        /// Any keys, any count up to 48.
+        #[test]
+        fn the_sort_of_any_keys_is_the_same_in_every_vector_build(
+            flat in proptest::collection::vec(proptest::prelude::any::<i32>(), 0..48 * LANES)
+        ) {
+            let keys: Vec<[i32; LANES]> = flat
+                .chunks_exact(LANES)
+                .map(|c| std::array::from_fn(|l| c[l]))
+                .collect();
+            let net = sorting_network(keys.len());
+            let (mut fast, mut portable) = (keys.clone(), keys);
+            sort_lanes(&mut fast, &net);
+            sort_lanes_portable(&mut portable, &net);
+            proptest::prop_assert_eq!(fast, portable);
         }
     }
 

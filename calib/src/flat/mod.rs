@@ -382,7 +382,7 @@ fn normalize_strips(
 
 /// Per-pixel variance of a raw frame from its own values: Poisson + read noise.
 fn raw_variance(frame: &Frame, profile: &Profile) -> Result<(f32, f32)> {
-    let ndit = crate::sky::frame_ndit(frame, profile)?;
+    let ndit = crate::profile::frame_ndit(frame, profile)?;
     let det = &profile.detector;
     Ok((
         (1.0 / det.effective_gain(ndit)) as f32,

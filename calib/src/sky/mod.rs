@@ -33,16 +33,19 @@
 //!
 //! [`flag_cosmic_rays`] then marks sharp positive outliers of the sky-subtracted frame
 //! (outliers in time, because the sky is the other dithers, *and* in space, because they
-//! are much sharper than the PSF) with [`mask::COSMIC`].
-use std::mem::MaybeUninit;
-
-use ndarray::{Array2, ArrayView2};
+//! are much sharper than the PSF) with [`crate::frame::mask::COSMIC`].
+//!
+//! Files: this one (options, levels, the stage [`sky_subtract_by`] step by step, history);
+//! `fused.rs` (the last pass over the frames' buffers, block by block); `lanes.rs` (its
+//! arithmetic on a block, portable and vector builds); `estimate.rs` (the clipped mean and
+//! the source-masked pass); `cosmic.rs` (cosmic-ray flagging).
+use ndarray::ArrayView2;
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::flat::FlatRows;
-use crate::frame::{mask, Frame};
-use crate::profile::Profile;
+use crate::frame::Frame;
+use crate::profile::{frame_ndit, Profile};
 use crate::stack::{self, Affine};
 
 /// How the other dithers are brought to this frame's sky level.
@@ -277,25 +280,6 @@ pub fn median_variance_factor(m: usize) -> f64 {
     }
 }
 
-/// Reads averaged in the frame: the profile's NDIT keyword, 1 when absent (an error when
-/// present but not a positive integer).
-pub fn frame_ndit(frame: &Frame, profile: &Profile) -> Result<u32> {
-    let key = &profile.keywords.ndit;
-    if !frame.header.contains(key) {
-        return Ok(1);
-    }
-    let v = frame.header.get_i64(key)?;
-    if v < 1 || v > u32::MAX as i64 {
-        return Err(Error::BadKeyword {
-            path: frame.header.path.clone(),
-            keyword: key.clone(),
-            value: v.to_string(),
-            reason: "NDIT must be a positive integer".into(),
-        });
-    }
-    Ok(v as u32)
-}
-
 fn posang_text(frame: &Frame, profile: &Profile) -> String {
     match frame.header.opt_f64(&profile.keywords.posang) {
         Ok(Some(p)) => format!("{p}"),
@@ -383,62 +367,48 @@ pub fn sky_subtract_owned(frames: Vec<Frame>, profile: &Profile, opts: &SkyOptio
 /// by the flat first ([`crate::flat::apply_flat_in_place`]). Errors name the flat when its
 /// rows do not cover the frames.
 pub fn sky_subtract_flat(
-    mut frames: Vec<Frame>,
+    frames: Vec<Frame>,
     profile: &Profile,
     opts: &SkyOptions,
     flat: Option<&FlatRows>,
 ) -> Result<(Vec<Frame>, SkyReport)> {
-    check_inputs(&frames, profile, opts)?;
-    let flat = match flat {
-        Some(fr) => {
-            let (ny, nx) = frames[0].shape();
-            let (fny, fnx) = fr.flat.shape();
-            if fnx != nx || fr.row0 + ny > fny || fr.ny() != ny {
-                return Err(Error::Stage {
-                    stage: "flat",
-                    reason: format!(
-                        "{}: frame shape {:?} at flat row {} does not fit the {} of shape {:?}{}",
-                        frame_name(&frames[0], 0),
-                        (ny, nx),
-                        fr.row0,
-                        fr.flat.describe(),
-                        fr.flat.shape(),
-                        fr.flat
-                            .path
-                            .as_ref()
-                            .map(|p| format!(" ({})", p.display()))
-                            .unwrap_or_default()
-                    ),
-                });
-            }
-            if opts.scaling == SkyScaling::Additive {
-                for f in &mut frames {
-                    crate::flat::apply_flat_in_place(f, fr.flat, fr.row0, profile)?;
-                }
-                None
-            } else {
-                Some(fr)
-            }
-        }
-        None => None,
+    sky_subtract_by(frames, profile, opts, flat, Route::FAST)
+}
+
+/// How [`sky_subtract_by`] computes: the fast way ([`Route::FAST`], what the reduction
+/// uses), or a reference way the tests compare it with bit for bit.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Route {
+    /// The plain leave-one-out medians (the default estimator) inside the last pass, a
+    /// row block at a time while the raw rows are in cache (`true`), or over whole frames
+    /// before it, as the other estimators are (`false`).
+    pub(crate) fuse_medians: bool,
+    /// The build of the last pass's row kernel.
+    pub(crate) kernel: Kernel,
+}
+
+impl Route {
+    /// Medians in the last pass, the fastest kernel build.
+    pub(crate) const FAST: Route = Route {
+        fuse_medians: true,
+        kernel: Kernel::Fastest,
     };
+}
+
+/// [`sky_subtract_flat`] the `route` way (the same numbers every way).
+pub(crate) fn sky_subtract_by(
+    mut frames: Vec<Frame>,
+    profile: &Profile,
+    opts: &SkyOptions,
+    flat: Option<&FlatRows>,
+    route: Route,
+) -> Result<(Vec<Frame>, SkyReport)> {
+    check_inputs(&frames, profile, opts)?;
+    let flat = flat_in_the_pass(&mut frames, profile, opts, flat)?;
     let n = frames.len();
-    let levels: Vec<f64> = frames
-        .par_iter()
-        .map(|f| sky_level(f, profile))
-        .collect::<Result<_>>()?;
-    if opts.scaling == SkyScaling::Multiplicative {
-        if let Some((i, l)) = levels.iter().enumerate().find(|(_, l)| l.is_nan() || **l <= 0.0) {
-            return Err(Error::Stage {
-                stage: "sky",
-                reason: format!(
-                    "{}: sky level {l} ADU <= 0: multiplicative scaling impossible (use additive)",
-                    frame_name(&frames[i], i)
-                ),
-            });
-        }
-    }
+    let levels = sky_levels(&frames, profile, opts.scaling)?;
     let ndits: Vec<u32> = frames.iter().map(|f| frame_ndit(f, profile)).collect::<Result<_>>()?;
+    // Each frame brought to a common level before the medians.
     let maps: Vec<Affine> = levels
         .iter()
         .map(|&l| match opts.scaling {
@@ -453,6 +423,7 @@ pub fn sky_subtract_flat(
         })
         .collect();
     let det = &profile.detector;
+    // Per frame: 1 / effective gain and the read variance, ADU.
     let noise: Vec<(f32, f32)> = ndits
         .iter()
         .map(|&nd| ((1.0 / det.effective_gain(nd)) as f32, det.read_variance_adu2(nd) as f32))
@@ -460,9 +431,7 @@ pub fn sky_subtract_flat(
     // The plain leave-one-out median (the default) is computed inside the last pass, a
     // row block at a time, while the raw rows are in cache (the same numbers as computing
     // it first); the other estimators first, over whole frames.
-    let fused = opts.estimator == SkyEstimator::Median && !opts.mask_sources;
-    #[cfg(test)]
-    let fused = fused && !UNFUSED_ONLY.load(std::sync::atomic::Ordering::Relaxed);
+    let fused = route.fuse_medians && opts.estimator == SkyEstimator::Median && !opts.mask_sources;
     let (skies, counts) = if fused {
         (SkySource::Loo(stack::LooRows::new(&maps)), vec![None; n])
     } else {
@@ -498,29 +467,12 @@ pub fn sky_subtract_flat(
         names: &names,
         flat,
     };
-    let (done, candidates) = fin.frames(frames, skies, &inp)?;
+    let (done, candidates) = fused::subtract_skies(&fin, frames, skies, &inp, route.kernel)?;
     let mut out = Vec::with_capacity(n);
     let mut cosmic = Vec::new();
     for (i, (mut frame, candidates)) in done.into_iter().zip(candidates).enumerate() {
-        let (has_vin, ndit) = (has_vin[i], ndits[i]);
-        let others: Vec<&str> = (0..n).filter(|&j| j != i).map(|j| names[j].as_str()).collect();
-        let detail = format!(
-            "{} scaling, level {:.2} ADU; sky = {} of the other {m} dithers [{}] (levels {}); \
-             variance = Poisson (gain {} e-/ADU x NDIT {}) + read ({} e-)^2/gain^2/NDIT{} + c({m}) = {:.6} / {m} x sky variance; \
-             mask: SATURATED >= {} ADU, NONLINEAR >= {} ADU, OFF_STRIP outside the strips",
-            opts.scaling.name(),
-            levels[i],
-            estimate::describe(opts),
-            others.join(", "),
-            (0..n).filter(|&j| j != i).map(|j| format!("{:.2}", levels[j])).collect::<Vec<_>>().join(", "),
-            det.gain_e_per_adu,
-            ndit,
-            det.read_noise_e,
-            if has_vin { " (input variance map used for this frame)" } else { "" },
-            c,
-            det.saturation_adu,
-            det.nonlinear_warn_adu,
-        );
+        let others: Vec<usize> = (0..n).filter(|&j| j != i).collect();
+        let detail = sky_record(opts, profile, &levels, &names, i, &others, ndits[i], has_vin[i], c);
         frame.history.push(crate::frame::HistoryRecord::new("sky", detail));
         if let Some(co) = opts.cosmic() {
             let var = frame.variance.as_ref().expect("set by the sky stage");
@@ -546,6 +498,104 @@ pub fn sky_subtract_flat(
             cosmic,
         },
     ))
+}
+
+/// The flat to divide out in the last pass: `flat` when its rows cover the frames (else
+/// an error naming it), with multiplicative scaling; with additive scaling the frames are
+/// divided by it here, first, and the pass gets none.
+fn flat_in_the_pass<'f>(
+    frames: &mut [Frame],
+    profile: &Profile,
+    opts: &SkyOptions,
+    flat: Option<&'f FlatRows<'f>>,
+) -> Result<Option<&'f FlatRows<'f>>> {
+    let Some(fr) = flat else {
+        return Ok(None);
+    };
+    let (ny, nx) = frames[0].shape();
+    let (fny, fnx) = fr.flat.shape();
+    if fnx != nx || fr.row0 + ny > fny || fr.ny() != ny {
+        return Err(Error::Stage {
+            stage: "flat",
+            reason: format!(
+                "{}: frame shape {:?} at flat row {} does not fit the {} of shape {:?}{}",
+                frame_name(&frames[0], 0),
+                (ny, nx),
+                fr.row0,
+                fr.flat.describe(),
+                fr.flat.shape(),
+                fr.flat
+                    .path
+                    .as_ref()
+                    .map(|p| format!(" ({})", p.display()))
+                    .unwrap_or_default()
+            ),
+        });
+    }
+    if opts.scaling == SkyScaling::Additive {
+        for f in frames.iter_mut() {
+            crate::flat::apply_flat_in_place(f, fr.flat, fr.row0, profile)?;
+        }
+        return Ok(None);
+    }
+    Ok(Some(fr))
+}
+
+/// The sky level L_i of every frame ([`sky_level`]), in parallel; with multiplicative
+/// scaling an error names the first frame whose level is not positive.
+fn sky_levels(frames: &[Frame], profile: &Profile, scaling: SkyScaling) -> Result<Vec<f64>> {
+    let levels: Vec<f64> = frames
+        .par_iter()
+        .map(|f| sky_level(f, profile))
+        .collect::<Result<_>>()?;
+    if scaling == SkyScaling::Multiplicative {
+        if let Some((i, l)) = levels.iter().enumerate().find(|(_, l)| l.is_nan() || **l <= 0.0) {
+            return Err(Error::Stage {
+                stage: "sky",
+                reason: format!(
+                    "{}: sky level {l} ADU <= 0: multiplicative scaling impossible (use additive)",
+                    frame_name(&frames[i], i)
+                ),
+            });
+        }
+    }
+    Ok(levels)
+}
+
+/// The sky stage's history record of frame `i` (its sky from the frames `others`): the
+/// scaling and levels, the estimator, the variance model with its numbers (c = c(m)), the
+/// mask bits set.
+#[allow(clippy::too_many_arguments)]
+fn sky_record(
+    opts: &SkyOptions,
+    profile: &Profile,
+    levels: &[f64],
+    names: &[String],
+    i: usize,
+    others: &[usize],
+    ndit: u32,
+    has_vin: bool,
+    c: f64,
+) -> String {
+    let det = &profile.detector;
+    let m = others.len();
+    format!(
+        "{} scaling, level {:.2} ADU; sky = {} of the other {m} dithers [{}] (levels {}); \
+         variance = Poisson (gain {} e-/ADU x NDIT {}) + read ({} e-)^2/gain^2/NDIT{} + c({m}) = {:.6} / {m} x sky variance; \
+         mask: SATURATED >= {} ADU, NONLINEAR >= {} ADU, OFF_STRIP outside the strips",
+        opts.scaling.name(),
+        levels[i],
+        estimate::describe(opts),
+        others.iter().map(|&j| names[j].as_str()).collect::<Vec<_>>().join(", "),
+        others.iter().map(|&j| format!("{:.2}", levels[j])).collect::<Vec<_>>().join(", "),
+        det.gain_e_per_adu,
+        ndit,
+        det.read_noise_e,
+        if has_vin { " (input variance map used for this frame)" } else { "" },
+        c,
+        det.saturation_adu,
+        det.nonlinear_warn_adu,
+    )
 }
 
 /// The checks of [`sky_subtract`]: 2..=MAX_STACK frames of one shape, masks and variance
@@ -614,434 +664,14 @@ fn check_inputs(frames: &[Frame], profile: &Profile, opts: &SkyOptions) -> Resul
     Ok(())
 }
 
-/// Where the last pass ([`Finish::frames`]) gets each frame's level-normalized sky.
-enum SkySource<'a> {
-    /// Estimated before, over whole frames.
-    Given(Vec<Array2<f32>>),
-    /// The leave-one-out medians, computed by the pass itself row by row.
-    Loo(stack::LooRows<'a>),
-}
-
-/// A frame's sky buffer in [`Finish::frames`] (it becomes the frame's data): the given
-/// sky, or fresh storage (not zeroed: the leave-one-out medians write every element first).
-enum SkyBuf {
-    Given(Array2<f32>),
-    Fresh(Vec<f32>),
-}
-
-/// A frame's sky rows of one block: estimated already, or storage the leave-one-out
-/// medians are written to first.
-enum SkyRows<'a> {
-    Ready(&'a mut [f32]),
-    Fresh(&'a mut [MaybeUninit<f32>]),
-}
-
-/// One frame's rows of one block in [`Finish::frames`], before its sky rows are ready.
-struct BlockRows<'a> {
-    sky: SkyRows<'a>,
-    raw: &'a mut [f32],
-    mask: &'a mut [u8],
-    vin: Option<&'a mut [f32]>,
-    count: Option<&'a [u8]>,
-}
-
-impl<'a> BlockRows<'a> {
-    /// The leave-one-out medians of the block's rows (`nx` each) into the `Fresh` sky rows
-    /// of every frame (from the frames' raw rows, read before the pass overwrites them),
-    /// then the rows for [`Finish::block`].
-    fn ready(
-        rows: Vec<BlockRows<'a>>,
-        nx: usize,
-        loo: Option<&stack::LooRows>,
-        w: &mut [[f32; stack::BLOCK]],
-    ) -> Vec<Rows<'a>> {
-        let mut rows = rows;
-        if let Some(loo) = loo {
-            let nrows = rows[0].raw.len() / nx;
-            for r in 0..nrows {
-                let span = r * nx..(r + 1) * nx;
-                let mut raws: Vec<&[f32]> = Vec::with_capacity(rows.len());
-                let mut outs: Vec<&mut [MaybeUninit<f32>]> = Vec::with_capacity(rows.len());
-                for BlockRows { sky, raw, .. } in rows.iter_mut() {
-                    raws.push(&raw[span.clone()]);
-                    match sky {
-                        SkyRows::Fresh(o) => outs.push(&mut o[span.clone()]),
-                        SkyRows::Ready(_) => unreachable!("leave-one-out rows are fresh storage"),
-                    }
-                }
-                loo.row(w, &raws, &mut outs);
-            }
-        }
-        rows.into_iter()
-            .map(|b| Rows {
-                sky: match b.sky {
-                    SkyRows::Ready(s) => s,
-                    // SAFETY: `Fresh` rows exist only with `loo`, whose `row` wrote every
-                    // element of every row of the block just above (LooRows::row writes all
-                    // `nx` values of each output); MaybeUninit<f32> has f32's layout.
-                    #[allow(unsafe_code)]
-                    SkyRows::Fresh(o) => unsafe { &mut *(o as *mut [MaybeUninit<f32>] as *mut [f32]) },
-                },
-                raw: b.raw,
-                mask: b.mask,
-                vin: b.vin,
-                count: b.count,
-            })
-            .collect()
-    }
-}
-
-/// One frame's rows of one block in [`Finish::frames`].
-struct Rows<'a> {
-    sky: &'a mut [f32],
-    raw: &'a mut [f32],
-    mask: &'a mut [u8],
-    vin: Option<&'a mut [f32]>,
-    count: Option<&'a [u8]>,
-}
-
-/// Per-frame inputs of [`Finish::frames`].
-struct FinishInputs<'a> {
-    counts: &'a [Option<Array2<u8>>],
-    levels: Vec<f32>,
-    noise: &'a [(f32, f32)],
-    names: &'a [String],
-    flat: Option<&'a FlatRows<'a>>,
-}
-
-/// Tests: run the last pass in the baseline build only (to compare it with the AVX2 one;
-/// both give the same numbers, so other tests running meanwhile are not affected).
-#[cfg(test)]
-pub(crate) static BASELINE_ONLY: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
-
-/// Tests: compute the leave-one-out medians over whole frames before the last pass, as
-/// the other estimators are (the reference the fused pass is compared with; both give the
-/// same numbers, so other tests running meanwhile are not affected).
-#[cfg(test)]
-pub(crate) static UNFUSED_ONLY: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
-
-/// What the last pass counts per frame (over a block of rows, then over the frames):
-/// non-finite raw values, and the cosmic-ray candidates (flat indices, row-major).
-struct Tally {
-    nonfinite: Vec<usize>,
-    candidates: Vec<Vec<u32>>,
-}
-
-impl Tally {
-    fn new(n: usize) -> Tally {
-        Tally {
-            nonfinite: vec![0; n],
-            candidates: vec![Vec::new(); n],
-        }
-    }
-
-    /// This tally followed by `next` (the next block: candidates stay in row order).
-    fn then(mut self, next: Tally) -> Tally {
-        for (i, (c, cd)) in next.nonfinite.into_iter().zip(next.candidates).enumerate() {
-            self.nonfinite[i] += c;
-            self.candidates[i].extend(cd);
-        }
-        self
-    }
-}
-
-/// The last pass of the sky stage, shared by every frame of an orientation.
-struct Finish {
-    scaling: SkyScaling,
-    off_rows: Vec<bool>,
-    sat: f32,
-    nonlin: f32,
-    /// c(m)/m with m = N - 1 (every pixel's sky from all other dithers).
-    c_over_m: f32,
-    /// c(k)/k by the number k of dithers in a pixel's sky (source-masked pass).
-    c_over_count: [f32; stack::MAX_STACK + 1],
-    /// With cosmic-ray flagging: the squared threshold of its candidate test, run on each
-    /// row as it is written ([`cosmic::push_candidates`]).
-    cosmic_k2: Option<f32>,
-}
-
-impl Finish {
-    /// One pass over the frames of an orientation, in their own buffers, row block by row
-    /// block in parallel (all frames of a block together, so that the flat's rows are read
-    /// once for all of them and, with [`SkySource::Loo`], the block's leave-one-out medians
-    /// are computed first from the raw rows): sky <- level-scaled estimate, data = raw - sky (in the sky's
-    /// buffer), the variance in the input's variance map or else in the raw data's buffer,
-    /// mask bits alongside, then the flat divided out when there is one. Counts non-finite
-    /// inputs, which the medians cannot handle (checked here rather than in a separate
-    /// pass): an error names the first frame holding any. Returns with each frame its
-    /// cosmic-ray candidates (flat indices in row-major order; empty without
-    /// `cosmic_k2`).
-    fn frames(&self, frames: Vec<Frame>, skies: SkySource, inp: &FinishInputs) -> Result<(Vec<Frame>, Vec<Vec<u32>>)> {
-        /// Rows per parallel task.
-        const BLOCK: usize = 4;
-        let n = frames.len();
-        let (ny, nx) = frames[0].shape();
-        let len = ny * nx;
-        // Each frame's sky buffer, which becomes its data: the given sky, or fresh storage
-        // (not zeroed: the leave-one-out medians write every element first).
-        let (given, loo) = match skies {
-            SkySource::Given(g) => (Some(g), None),
-            SkySource::Loo(l) => (None, Some(l)),
-        };
-        let mut given = given.map(|g| g.into_iter().map(standard));
-        let mut parts: Vec<(Frame, Array2<f32>, SkyBuf, Option<Array2<f32>>)> = frames
-            .into_iter()
-            .map(|mut f| {
-                let raw = standard(std::mem::take(&mut f.data));
-                f.mask = standard(std::mem::take(&mut f.mask));
-                let vin = f.variance.take().map(standard);
-                let sky = match given.as_mut().and_then(|g| g.next()) {
-                    Some(s) => SkyBuf::Given(s),
-                    None => SkyBuf::Fresh(Vec::with_capacity(len)),
-                };
-                (f, raw, sky, vin)
-            })
-            .collect();
-        let chunk = BLOCK * nx;
-        // blocks[b][i]: frame i's rows of block b.
-        let mut blocks: Vec<Vec<BlockRows>> = (0..ny.div_ceil(BLOCK)).map(|_| Vec::with_capacity(n)).collect();
-        for (i, (f, raw, sky, vin)) in parts.iter_mut().enumerate() {
-            let cnt = inp.counts[i].as_ref().map(|c| c.as_slice().expect("standard layout"));
-            let mut vin = vin
-                .as_mut()
-                .map(|v| v.as_slice_mut().expect("standard layout").chunks_mut(chunk));
-            let skies: Box<dyn Iterator<Item = SkyRows>> = match sky {
-                SkyBuf::Given(s) => Box::new(
-                    s.as_slice_mut()
-                        .expect("standard layout")
-                        .chunks_mut(chunk)
-                        .map(SkyRows::Ready),
-                ),
-                SkyBuf::Fresh(v) => Box::new(v.spare_capacity_mut()[..len].chunks_mut(chunk).map(SkyRows::Fresh)),
-            };
-            let it = skies
-                .zip(raw.as_slice_mut().expect("standard layout").chunks_mut(chunk))
-                .zip(f.mask.as_slice_mut().expect("standard layout").chunks_mut(chunk));
-            for (b, ((s, r), m)) in it.enumerate() {
-                blocks[b].push(BlockRows {
-                    sky: s,
-                    raw: r,
-                    mask: m,
-                    vin: vin.as_mut().and_then(|v| v.next()),
-                    count: cnt.map(|c| &c[b * chunk..(b * chunk + chunk).min(c.len())]),
-                });
-            }
-        }
-        // Per block (in order): non-finite counts and cosmic-ray candidates per frame.
-        let per_block: Vec<Tally> = blocks
-            .into_par_iter()
-            .enumerate()
-            .map_init(
-                || loo.as_ref().map(|l| l.scratch()).unwrap_or_default(),
-                |w, (b, rows)| {
-                    let mut rows = BlockRows::ready(rows, nx, loo.as_ref(), w);
-                    let mut t = Tally::new(n);
-                    self.block(b * BLOCK, nx, &mut rows, inp, &mut t);
-                    t
-                },
-            )
-            .collect();
-        let Tally { nonfinite, candidates } = per_block.into_iter().fold(Tally::new(n), Tally::then);
-        if let Some(i) = nonfinite.iter().position(|&c| c > 0) {
-            return Err(Error::Stage {
-                stage: "sky",
-                reason: format!(
-                    "{}: {} non-finite pixel values (NaN/inf); sky medians need finite data",
-                    inp.names[i], nonfinite[i]
-                ),
-            });
-        }
-        let frames = parts
-            .into_iter()
-            .map(|(mut f, raw, sky, vin)| {
-                f.data = match sky {
-                    SkyBuf::Given(s) => s,
-                    SkyBuf::Fresh(mut v) => {
-                        // SAFETY: the capacity is `len` and every block wrote its rows of
-                        // this buffer (BlockRows::ready: all `nx` values of each row), the
-                        // blocks covering all `ny` rows; an error or panic never gets here.
-                        #[allow(unsafe_code)]
-                        unsafe {
-                            v.set_len(len)
-                        };
-                        Array2::from_shape_vec((ny, nx), v).expect("ny x nx elements")
-                    }
-                };
-                f.variance = Some(vin.unwrap_or(raw));
-                if let Some(fl) = inp.flat {
-                    f.history.push(fl.history());
-                }
-                f
-            })
-            .collect();
-        Ok((frames, candidates))
-    }
-
-    /// The rows of one block (first row `y0`) of every frame, with the widest vectors this
-    /// CPU has (AVX2 or the SSE2 baseline: the same operations, the same numbers).
-    fn block(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, tally: &mut Tally) {
-        #[cfg(test)]
-        if BASELINE_ONLY.load(std::sync::atomic::Ordering::Relaxed) {
-            return self.block_generic(y0, nx, rows, inp, tally);
-        }
-        #[cfg(target_arch = "x86_64")]
-        {
-            if std::arch::is_x86_feature_detected!("avx2") {
-                // SAFETY: the CPU supports AVX2 (checked just above); the only unsafe operation here.
-                #[allow(unsafe_code)]
-                return unsafe { self.block_avx2(y0, nx, rows, inp, tally) };
-            }
-        }
-        self.block_generic(y0, nx, rows, inp, tally)
-    }
-
-    /// [`Finish::block_generic`] compiled for AVX2.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    fn block_avx2(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, tally: &mut Tally) {
-        self.block_generic(y0, nx, rows, inp, tally)
-    }
-
-    /// See [`Finish::block`].
-    #[inline(always)]
-    fn block_generic(&self, y0: usize, nx: usize, rows: &mut [Rows], inp: &FinishInputs, tally: &mut Tally) {
-        for r in 0..rows[0].sky.len() / nx {
-            let y = y0 + r;
-            let span = r * nx..(r + 1) * nx;
-            for (i, fr) in rows.iter_mut().enumerate() {
-                let (srow, rrow, mrow) = (
-                    &mut fr.sky[span.clone()],
-                    &mut fr.raw[span.clone()],
-                    &mut fr.mask[span.clone()],
-                );
-                let cnt = fr.count.map(|c| &c[span.clone()]);
-                let vrow = fr.vin.as_deref_mut().map(|v| &mut v[span.clone()]);
-                let px = (inp.levels[i], inp.noise[i]);
-                tally.nonfinite[i] += match inp.flat {
-                    None => self.row::<false>(y, srow, rrow, mrow, vrow, cnt, px, None),
-                    Some(fl) => self.row::<true>(y, srow, rrow, mrow, vrow, cnt, px, Some(fl.row(y))),
-                };
-                if let Some(k2) = self.cosmic_k2 {
-                    // The row's final data and variance, still in cache.
-                    let var: &[f32] = match fr.vin.as_deref() {
-                        Some(v) => &v[span.clone()],
-                        None => &fr.raw[span.clone()],
-                    };
-                    cosmic::push_candidates(
-                        &fr.sky[span.clone()],
-                        var,
-                        k2,
-                        (y * nx) as u32,
-                        &mut tally.candidates[i],
-                    );
-                }
-            }
-        }
-    }
-
-    /// One row of one frame: mask bits from the raw values, the variance (into `vrow` when
-    /// the frame has a variance map, else over the raw values), data = raw - sky into the
-    /// sky's row; with `FLAT`, divided by the flat's row in the same loop
-    /// ([`crate::flat::FlatRows`]: data / f, variance / f^2 + max(data / f, 0)^2 var_f / f^2,
-    /// BAD and no division where the flat is unusable). Returns the count of non-finite raw
-    /// values.
-    #[allow(clippy::too_many_arguments)]
-    #[inline(always)]
-    fn row<const FLAT: bool>(
-        &self,
-        y: usize,
-        srow: &mut [f32],
-        rrow: &mut [f32],
-        mrow: &mut [u8],
-        vrow: Option<&mut [f32]>,
-        cnt: Option<&[u8]>,
-        (level, (inv_g, rv)): (f32, (f32, f32)),
-        flat: Option<crate::flat::FlatRow>,
-    ) -> usize {
-        let (scaling, c_over_m) = (self.scaling, self.c_over_m);
-        self.mask_row(y, mrow, rrow);
-        let bad = rrow.iter().filter(|r| !r.is_finite()).count();
-        let nx = srow.len();
-        // Every row resliced to nx: the index checks of the loops below fold away and the
-        // loops vectorise.
-        let rrow = &mut rrow[..nx];
-        let cnt = cnt.map(|c| &c[..nx]);
-        let (finv, fvar) = match flat {
-            Some(f) => {
-                mrow.iter_mut().zip(&f.bad[..nx]).for_each(|(m, b)| *m |= b);
-                (&f.inv[..nx], &f.var[..nx])
-            }
-            None => (&[][..], &[][..]),
-        };
-        // data and variance of one pixel, divided by the flat with FLAT.
-        let fin = |x: usize, d: f32, v: f32| -> (f32, f32) {
-            if FLAT {
-                let a = finv[x];
-                let o = d * a;
-                let ex = o.max(0.0);
-                (o, (v + ex * ex * fvar[x]) * (a * a))
-            } else {
-                (d, v)
-            }
-        };
-        match vrow {
-            Some(vrow) => {
-                let vrow = &mut vrow[..nx];
-                let mut one = |x: usize, com: f32| {
-                    let r = rrow[x];
-                    let s = scale(srow[x], level, scaling);
-                    (srow[x], vrow[x]) = fin(x, r - s, vrow[x] + com * (s.max(0.0) * inv_g + rv));
-                };
-                match cnt {
-                    None => (0..nx).for_each(|x| one(x, c_over_m)),
-                    Some(c) => (0..nx).for_each(|x| one(x, self.c_over_count[c[x] as usize])),
-                }
-            }
-            None => {
-                let mut one = |x: usize, com: f32| {
-                    let r = rrow[x];
-                    let s = scale(srow[x], level, scaling);
-                    (srow[x], rrow[x]) = fin(x, r - s, r.max(0.0) * inv_g + rv + com * (s.max(0.0) * inv_g + rv));
-                };
-                match cnt {
-                    None => (0..nx).for_each(|x| one(x, c_over_m)),
-                    Some(c) => (0..nx).for_each(|x| one(x, self.c_over_count[c[x] as usize])),
-                }
-            }
-        }
-        bad
-    }
-
-    /// OFF_STRIP, SATURATED and NONLINEAR bits of one row (from the raw values).
-    fn mask_row(&self, y: usize, mrow: &mut [u8], rrow: &[f32]) {
-        let off = if self.off_rows[y] { mask::OFF_STRIP } else { 0 };
-        let (sat, nonlin) = (self.sat, self.nonlin);
-        for (b, &r) in mrow.iter_mut().zip(rrow) {
-            *b |= off | (((r >= sat) as u8) * mask::SATURATED) | (((r >= nonlin) as u8) * mask::NONLINEAR);
-        }
-    }
-}
-
-/// The array itself when it is in standard layout (no copy), else a standard copy.
-fn standard<T: Clone>(a: Array2<T>) -> Array2<T> {
-    if a.is_standard_layout() {
-        a
-    } else {
-        a.as_standard_layout().into_owned()
-    }
-}
-
-/// The sky at one pixel from the level-normalized estimate.
-#[inline(always)]
-fn scale(s: f32, level: f32, scaling: SkyScaling) -> f32 {
-    match scaling {
-        SkyScaling::Multiplicative => s * level,
-        SkyScaling::Additive => s + level,
-    }
-}
-
 mod cosmic;
 mod estimate;
+mod fused;
+mod lanes;
+
+use fused::SkySource;
+pub(crate) use lanes::Kernel;
+use lanes::{Finish, FinishInputs};
 
 #[cfg(test)]
 use cosmic::cosmic_flags;

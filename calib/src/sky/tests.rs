@@ -1,5 +1,7 @@
 use super::*;
+use crate::frame::mask;
 use crate::header::Header;
+use ndarray::Array2;
 
 fn frame_from(data: Array2<f32>, ndit: i64, posang: f64) -> Frame {
     let p = Profile::sofi();
@@ -392,7 +394,6 @@ fn sky_options_are_checked_and_defaults_are_not_written() {
 #[test]
 fn the_fused_sky_pass_matches_the_two_pass_stage() {
     use crate::flat::FlatRows;
-    use std::sync::atomic::Ordering;
     let p = Profile::sofi();
     let (ny, nx) = (1024, 64);
     let mut g = Gauss(4242);
@@ -437,10 +438,11 @@ fn the_fused_sky_pass_matches_the_two_pass_stage() {
                     ..SkyOptions::default()
                 };
                 let run = |opts: &SkyOptions, unfused: bool| {
-                    UNFUSED_ONLY.store(unfused, Ordering::Relaxed);
-                    let out = sky_subtract_flat(frames.clone(), &p, opts, with_flat.then_some(&fr));
-                    UNFUSED_ONLY.store(false, Ordering::Relaxed);
-                    out.unwrap()
+                    let route = Route {
+                        fuse_medians: !unfused,
+                        ..Route::FAST
+                    };
+                    sky_subtract_by(frames.clone(), &p, opts, with_flat.then_some(&fr), route).unwrap()
                 };
                 let (fused, rep) = run(&opts, false);
                 let (two_pass, rep2) = run(&opts, true);
