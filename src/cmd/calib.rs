@@ -239,7 +239,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         "command_line": std::env::args().collect::<Vec<_>>(),
         "inputs": args.dirs,
         "standards_table": table.sources,
-        "standard_sequences": std_targets.iter().map(|t| t.extra.get("sequence").cloned()).collect::<Vec<_>>(),
+        "standard_sequences": std_targets.iter().map(|t| t.sequence.clone()).collect::<Vec<_>>(),
         "profile_angles": {"zero_point_deg": profile.angles.zero_point_deg, "parity": profile.angles.parity},
     });
     let path = cal
