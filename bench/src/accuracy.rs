@@ -336,7 +336,7 @@ fn score_target(
     };
     // The reduction calls the brighter star A as measured; near-equal pairs may
     // be labelled the other way round from the scene: match by position angle.
-    let found_pa = target.extra.get("pa_deg").and_then(|v| v.as_f64());
+    let found_pa = target.pa_deg;
     let swapped = found_pa.is_some_and(|pa| {
         let d = (pa - tt.pa_deg).rem_euclid(360.0);
         d > 90.0 && d < 270.0
@@ -371,7 +371,7 @@ fn score_target(
                     c.u,
                     tc.u,
                     c.sigma_q,
-                    c.extra.get("flux_adu").and_then(|v| v.as_f64()).unwrap_or(f64::NAN),
+                    c.flux_adu.unwrap_or(f64::NAN),
                     tc.flux,
                     c.flags.join(",")
                 )
@@ -382,11 +382,11 @@ fn score_target(
             tt.object,
             tt.separation_arcsec,
             tt.pa_deg,
-            target.extra.get("separation_arcsec"),
-            target.extra.get("pa_deg"),
-            target.extra.get("photometry"),
+            target.separation_arcsec,
+            target.pa_deg,
+            target.photometry,
             comps.join(" ; "),
-            target.extra.get("flags")
+            target.flags
         ));
     }
     one

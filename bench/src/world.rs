@@ -408,7 +408,7 @@ fn refused_component(c: &sofipol_pipeline::catalog::Component) -> bool {
 /// Match the catalog's components to the truth and compute the pulls. Refused components
 /// ([`refused_component`]) are counted, not scored; the others are scored.
 fn score(target: &Target, tt: &TargetTruth, ratio: f64) -> (Vec<f64>, Vec<f64>, usize, usize, bool) {
-    let found_pa = target.extra.get("pa_deg").and_then(|v| v.as_f64());
+    let found_pa = target.pa_deg;
     let swapped = found_pa.is_some_and(|pa| {
         let d = (pa - tt.pa_deg).rem_euclid(360.0);
         d > 90.0 && d < 270.0
@@ -498,35 +498,26 @@ fn scored(r: Reduced, saturated_design: bool) -> WorldTarget {
         .components
         .iter()
         .filter(|c| c.q.is_finite() && !refused_component(c))
-        .filter_map(|c| c.extra.get("orientations").and_then(|v| v.as_array()))
+        .filter_map(|c| c.orientations.as_ref())
         .flatten()
-        .filter_map(|o| Some((o.get("chi2")?.as_f64()?, o.get("n_dithers")?.as_u64()? as usize)))
+        .filter(|o| o.chi2.is_finite())
+        .map(|o| (o.chi2, o.n_dithers))
         .collect();
     let orientation_f = target
         .components
         .iter()
         .filter(|c| c.q.is_finite() && !refused_component(c))
-        .filter_map(|c| c.extra.get("orientations").and_then(|v| v.as_array()))
+        .filter_map(|c| c.orientations.as_ref())
         .map(|os| {
             os.iter()
-                .filter_map(|o| {
-                    Some((
-                        o.get("analyzer_deg")?.as_f64()?,
-                        o.get("f")?.as_f64()?,
-                        o.get("sigma_f")?.as_f64()?,
-                    ))
-                })
+                .filter(|o| [o.analyzer_deg, o.f, o.sigma_f].iter().all(|v| v.is_finite()))
+                .map(|o| (o.analyzer_deg, o.f, o.sigma_f))
                 .collect()
         })
         .collect();
     WorldTarget {
         orientation_f,
-        photometry: target
-            .extra
-            .get("photometry")
-            .and_then(|v| v.as_str())
-            .unwrap_or("")
-            .to_string(),
+        photometry: target.photometry.clone().unwrap_or_default(),
         dither_chi2,
         object: r.truth.object.clone(),
         separation_arcsec: r.truth.separation_arcsec,
@@ -548,7 +539,7 @@ fn scored(r: Reduced, saturated_design: bool) -> WorldTarget {
                 .map(|c| format!("{}[{}]", c.name, c.flags.join(",")))
                 .collect::<Vec<_>>()
                 .join(" "),
-            target.extra.get("flags"),
+            target.flags,
             target.error
         ),
     }

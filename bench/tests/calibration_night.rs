@@ -281,7 +281,7 @@ fn four_orientations_with_a_beam_ratio_need_no_calibration() {
     assert_eq!(calibrate(&mut cat, stds, CalibrationSource::Night), 0);
     for t in &cat.targets {
         for c in &t.components {
-            assert_eq!(c.extra["stokes_method"], "ratio");
+            assert_eq!(c.stokes_method.as_deref(), Some("ratio"));
             assert!(!c.flags.contains(&"uncalibrated".to_string()));
         }
     }

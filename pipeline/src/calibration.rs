@@ -20,7 +20,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 use sofipol_calib::Profile;
 
-use crate::catalog::{fold_delta_gamma, Catalog, Component, StandardResult, Status, Target};
+use crate::catalog::{fold_delta_gamma, Catalog, Component, InstrumentalOffset, StandardResult, Status, Target};
 use crate::standards::{StandardStar, StandardsTable};
 use crate::stokes::calibration::{
     measure_angles, measure_offset, solve, AngleCalibration, Offset, OrientationF, StandardObservation, StokesMethod,
@@ -136,15 +136,18 @@ fn posang_of(profile: &Profile, phi: f64) -> f64 {
 }
 
 /// Per-orientation (POSANG, F, sigma_F) of a measured component (its `orientations` field).
+/// An orientation without a finite F, sigma_F or angle (JSON null) is left out.
 pub fn orientation_values(c: &Component, profile: &Profile) -> Vec<(f64, f64, f64)> {
-    let Some(list) = c.extra.get("orientations").and_then(|v| v.as_array()) else {
-        return vec![];
-    };
-    list.iter()
+    let finite = |v: f64| v.is_finite().then_some(v);
+    c.orientations
+        .iter()
+        .flatten()
         .filter_map(|o| {
-            let num = |k: &str| o.get(k).and_then(|v| v.as_f64());
-            let pa = num("posang_deg").or_else(|| num("analyzer_deg").map(|phi| posang_of(profile, phi)))?;
-            Some((pa, num("f")?, num("sigma_f")?))
+            let pa = o
+                .posang_deg
+                .and_then(finite)
+                .or_else(|| finite(o.analyzer_deg).map(|phi| posang_of(profile, phi)))?;
+            Some((pa, finite(o.f)?, finite(o.sigma_f)?))
         })
         .collect()
 }
@@ -223,31 +226,31 @@ pub fn resolve_component(
     if sol.uncalibrated {
         c.flags.push("uncalibrated".into());
     }
-    c.extra.insert("snr".into(), serde_json::json!(lp.snr));
-    c.extra
-        .insert("sigma_gamma_nkc_deg".into(), serde_json::json!(lp.sigma_gamma_nkc_deg));
-    c.extra.insert("cov_qu".into(), serde_json::json!(fit.cov_qu));
-    c.extra
-        .insert("stokes_method".into(), serde_json::json!(sol.method.name()));
+    c.snr = Some(lp.snr);
+    c.sigma_gamma_nkc_deg = Some(lp.sigma_gamma_nkc_deg);
+    c.cov_qu = Some(fit.cov_qu);
+    c.stokes_method = Some(sol.method.name().to_string());
     if let Some(o) = sol.offset {
-        c.extra.insert(
-            "instrumental_offset".into(),
-            serde_json::json!({"c": o.c, "sigma_c": o.sigma_c,
-                "source": if sol.method == StokesMethod::FreeOffset { "fitted" } else { "calibration" }}),
-        );
+        c.instrumental_offset = Some(InstrumentalOffset {
+            c: o.c,
+            sigma_c: o.sigma_c,
+            source: if sol.method == StokesMethod::FreeOffset {
+                "fitted"
+            } else {
+                "calibration"
+            }
+            .into(),
+        });
     }
     if let Some(a) = cal.and_then(|c| c.angles.as_ref()) {
         // Included in sigma_q, sigma_u and sigma_gamma above; common to every target.
-        c.extra.insert(
-            "sigma_gamma_zero_point_deg".into(),
-            serde_json::json!(a.sigma_theta0_deg),
-        );
+        c.sigma_gamma_zero_point_deg = Some(a.sigma_theta0_deg);
     }
     sol.uncalibrated
 }
 
 fn table_entry_for(t: &Target, table: &StandardsTable) -> (Option<StandardStar>, Vec<String>) {
-    let filter = t.extra.get("filter").and_then(|v| v.as_str()).unwrap_or("");
+    let filter = t.filter.as_deref().unwrap_or("");
     match table.find(&t.object, filter) {
         Some(e) => (Some(e.clone()), vec![]),
         None if table.knows(&t.object) => (None, vec![format!("no_table_values_for_filter: {filter}")]),
@@ -256,15 +259,11 @@ fn table_entry_for(t: &Target, table: &StandardsTable) -> (Option<StandardStar>,
 }
 
 fn sequence_of(t: &Target) -> String {
-    t.extra
-        .get("sequence")
-        .and_then(|v| v.as_str())
-        .unwrap_or(&t.object)
-        .to_string()
+    t.sequence_id().to_string()
 }
 
 fn filter_of(t: &Target) -> String {
-    t.extra.get("filter").and_then(|v| v.as_str()).unwrap_or("").to_string()
+    t.filter.clone().unwrap_or_default()
 }
 
 /// Measure the calibration from reduced standard sequences (raw values: before any
@@ -298,9 +297,7 @@ pub fn measure(standards: &[Target], table: &StandardsTable, profile: &Profile) 
             gamma_deg: entry.gamma_deg,
             sigma_gamma_deg: entry.sigma_gamma_deg,
         };
-        if let Some(files) = t.extra.get("input_files").and_then(|v| v.as_array()) {
-            frames.extend(files.iter().filter_map(|f| f.as_str().map(String::from)));
-        }
+        frames.extend(t.input_files.iter().flatten().cloned());
         by_filter.entry(filter_of(t)).or_default().push((sequence_of(t), so));
     }
     let mut filters = Vec::new();

@@ -20,6 +20,10 @@ pub enum Status {
 }
 
 /// One binary component's polarimetry.
+///
+/// Key order in the JSON: the fixed fields (`name`, the [`Polarization`] keys, `passes_cut`,
+/// `flags`), then the optional fields in alphabetical order (declared so: serde writes
+/// fields in declaration order; an absent optional field writes no key), then `extra`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Component {
     /// "A" (brighter) or "B".
@@ -33,9 +37,103 @@ pub struct Component {
     /// Per-source flags (e.g. "truncated", "bad_pixels", "saturated", "companion_overlap", "low_snr").
     #[serde(default)]
     pub flags: Vec<String>,
-    /// Further per-component fields (fluxes, positions, scatter-based errors...).
+    /// Covariance of q and u (absent when q and u are not constrained).
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub cov_qu: Option<f64>,
+    /// Mean o+e flux per dither, ADU (NaN when no dither was kept).
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub flux_adu: Option<f64>,
+    /// The instrumental offset subtracted from F or fitted (calibration).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub instrumental_offset: Option<InstrumentalOffset>,
+    /// F combined over the dithers of each orientation: what the calibration re-solves
+    /// q and u from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub orientations: Option<Vec<CombinedF>>,
+    /// 68.27 % half-width of the Naghizadeh-Khouei & Clarke angle distribution, deg.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub sigma_gamma_nkc_deg: Option<f64>,
+    /// Error of the angle zero-point (already in sigma_q, sigma_u, sigma_gamma), deg.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub sigma_gamma_zero_point_deg: Option<f64>,
+    /// P / sigma_P.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub snr: Option<f64>,
+    /// How q and u were solved (`least_squares`, `free_offset`, `difference`, `ratio`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stokes_method: Option<String>,
+    /// Keys this build does not know (other tools, other versions): kept as read and
+    /// written after the known ones. Nothing in sofipol reads or writes them.
     #[serde(flatten, default)]
     pub extra: serde_json::Map<String, serde_json::Value>,
+}
+
+impl Component {
+    /// A component with its polarization and nothing else (no flags, no optional field).
+    pub fn new(name: impl Into<String>, pol: Polarization) -> Component {
+        Component {
+            name: name.into(),
+            pol,
+            passes_cut: false,
+            flags: Vec::new(),
+            cov_qu: None,
+            flux_adu: None,
+            instrumental_offset: None,
+            orientations: None,
+            sigma_gamma_nkc_deg: None,
+            sigma_gamma_zero_point_deg: None,
+            snr: None,
+            stokes_method: None,
+            extra: serde_json::Map::new(),
+        }
+    }
+}
+
+/// F = (o - e)/(o + e) of one orientation combined over its dithers (a component's
+/// `orientations` entry). The keys are in alphabetical order, as before they were typed.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct CombinedF {
+    /// Analyzer angle of the orientation (the profile's relation), deg.
+    #[serde(default = "nullable::nan", deserialize_with = "nullable::num")]
+    pub analyzer_deg: f64,
+    /// Chi-square of the kept dithers about their weighted mean.
+    #[serde(default = "nullable::nan", deserialize_with = "nullable::num")]
+    pub chi2: f64,
+    /// Weighted mean of F over the kept dithers.
+    #[serde(default = "nullable::nan", deserialize_with = "nullable::num")]
+    pub f: f64,
+    /// Dithers kept.
+    #[serde(default)]
+    pub n_dithers: usize,
+    /// Dithers measured.
+    #[serde(default)]
+    pub n_dithers_total: usize,
+    /// Rotator angle, deg: not written by sofipol; when a catalog has it, the calibration
+    /// takes it instead of inverting `analyzer_deg` with the profile.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub posang_deg: Option<f64>,
+    /// Reported error of `f` (the propagated one, inflated when the scatter is significantly larger).
+    #[serde(default = "nullable::nan", deserialize_with = "nullable::num")]
+    pub sigma_f: f64,
+    /// Error of `f` propagated from the photometry.
+    #[serde(default = "nullable::nan", deserialize_with = "nullable::num")]
+    pub sigma_f_propagated: f64,
+    /// Error of `f` from the dither-to-dither scatter.
+    #[serde(default = "nullable::nan", deserialize_with = "nullable::num")]
+    pub sigma_f_scatter: f64,
+}
+
+/// The instrumental offset of F applied to a component (docs/calibration.md).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InstrumentalOffset {
+    /// Offset c of F.
+    #[serde(deserialize_with = "nullable::num")]
+    pub c: f64,
+    /// Its error.
+    #[serde(deserialize_with = "nullable::num")]
+    pub sigma_c: f64,
+    /// `calibration` (from standards) or `fitted` (free-offset solve).
+    pub source: String,
 }
 
 impl std::ops::Deref for Component {
@@ -52,6 +150,10 @@ impl std::ops::DerefMut for Component {
 }
 
 /// One target sequence.
+///
+/// Key order in the JSON: `object`, `status`, `error`, `components`, `delta_gamma_deg`, then
+/// the optional fields in alphabetical order (declared so; an absent one writes no key),
+/// then `extra`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Target {
     /// Object name.
@@ -67,9 +169,143 @@ pub struct Target {
     /// |gamma_A - gamma_B| folded into [0, 90] when both components pass the cut.
     #[serde(default)]
     pub delta_gamma_deg: Option<f64>,
-    /// Further per-target fields (sequence id, input files, e-o offset, flags...).
+    /// Median aperture radius, px.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub aperture_radius_px: Option<f64>,
+    /// Pixels masked (calibration + detected).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bad_pixels_masked: Option<usize>,
+    /// e-o beam offset measured from the data, [dx, dy] px.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "nullable::pair"
+    )]
+    pub eo_offset_px: Option<[f64; 2]>,
+    /// Filter.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub filter: Option<String>,
+    /// Target-level flags (docs/catalog-schema.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub flags: Option<Vec<String>>,
+    /// The flat of each orientation; `Some(None)` (JSON null) when no flat was applied.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "nullable::present"
+    )]
+    pub flat: Option<Option<Vec<String>>>,
+    /// Median seeing FWHM, px.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub fwhm_px: Option<f64>,
+    /// Every frame of the sequence.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub input_files: Option<Vec<String>>,
+    /// Rotator angles used, deg.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "nullable::list"
+    )]
+    pub orientations_deg: Option<Vec<f64>>,
+    /// Position angle of B from A found, deg east of north.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub pa_deg: Option<f64>,
+    /// How fluxes were measured: `aperture` or `psf_fit`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub photometry: Option<String>,
+    /// Separation of B from A found, arcsec.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub separation_arcsec: Option<f64>,
+    /// Sequence id, `object@TPL START`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sequence: Option<String>,
+    /// TPL START of the sequence.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tpl_start: Option<String>,
+    /// Keys this build does not know (other tools, other versions): kept as read and
+    /// written after the known ones. Nothing in sofipol reads or writes them.
     #[serde(flatten, default)]
     pub extra: serde_json::Map<String, serde_json::Value>,
+}
+
+impl Target {
+    /// A target with its outcome and nothing else (no component, no optional field).
+    pub fn new(object: impl Into<String>, status: Status) -> Target {
+        Target {
+            object: object.into(),
+            status,
+            error: None,
+            components: Vec::new(),
+            delta_gamma_deg: None,
+            aperture_radius_px: None,
+            bad_pixels_masked: None,
+            eo_offset_px: None,
+            filter: None,
+            flags: None,
+            flat: None,
+            fwhm_px: None,
+            input_files: None,
+            orientations_deg: None,
+            pa_deg: None,
+            photometry: None,
+            separation_arcsec: None,
+            sequence: None,
+            tpl_start: None,
+            extra: serde_json::Map::new(),
+        }
+    }
+
+    /// The sequence id, or the object name when the catalog has none: what identifies a
+    /// target in a night (merge, figure names, calibration).
+    pub fn sequence_id(&self) -> &str {
+        self.sequence.as_deref().unwrap_or(&self.object)
+    }
+
+    /// The target-level flags (none when the catalog has no `flags`).
+    pub fn target_flags(&self) -> &[String] {
+        self.flags.as_deref().unwrap_or_default()
+    }
+}
+
+/// Reading numbers back as written: serde_json writes a non-finite f64 as `null`, which
+/// plain `f64` refuses. These read `null` as NaN, and keep a key that was present present
+/// (`Some(NaN)`), so a catalog read and written again is unchanged.
+mod nullable {
+    use serde::{Deserialize, Deserializer};
+
+    /// NaN: the default of a number a catalog lacks.
+    pub fn nan() -> f64 {
+        f64::NAN
+    }
+
+    /// A number, `null` read as NaN.
+    pub fn num<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+        Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
+    }
+
+    /// A present number (`null` read as NaN); an absent key is `None` (`serde(default)`).
+    pub fn opt<'de, D: Deserializer<'de>>(d: D) -> Result<Option<f64>, D::Error> {
+        num(d).map(Some)
+    }
+
+    /// A present list of numbers, each `null` read as NaN.
+    pub fn list<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Vec<f64>>, D::Error> {
+        let v = Vec::<Option<f64>>::deserialize(d)?;
+        Ok(Some(v.into_iter().map(|x| x.unwrap_or(f64::NAN)).collect()))
+    }
+
+    /// A present pair of numbers, each `null` read as NaN.
+    pub fn pair<'de, D: Deserializer<'de>>(d: D) -> Result<Option<[f64; 2]>, D::Error> {
+        let [a, b] = <[Option<f64>; 2]>::deserialize(d)?;
+        Ok(Some([a.unwrap_or(f64::NAN), b.unwrap_or(f64::NAN)]))
+    }
+
+    /// A present value that may be `null` (`Some(None)`), unlike serde's `Option<Option<T>>`,
+    /// which reads `null` as absent.
+    pub fn present<'de, D: Deserializer<'de>, T: Deserialize<'de>>(d: D) -> Result<Option<Option<T>>, D::Error> {
+        Option::<T>::deserialize(d).map(Some)
+    }
 }
 
 /// An input that could not be used.
@@ -151,77 +387,4 @@ pub fn fold_delta_gamma(gamma_a_deg: f64, gamma_b_deg: f64) -> f64 {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn catalog_floats_round_trip_bit_exactly() {
-        // Regression: serde_json's default float parser is not exact; `merge` and `stats`
-        // re-read catalogs, so a merged catalog differed from a single run in the last digit.
-        let values: [f64; 5] = [
-            0.037803643548976563,
-            0.00044009000027138596,
-            -9.993711226758646e-24,
-            150.23621383361115,
-            1.0 / 3.0,
-        ];
-        for v in values {
-            let text = serde_json::to_string(&v).unwrap();
-            let back: f64 = serde_json::from_str(&text).unwrap();
-            assert_eq!(back.to_bits(), v.to_bits(), "{v:e} -> {text} -> {back:e}");
-        }
-    }
-
-    #[test]
-    fn component_keys_keep_the_documented_order_and_round_trip() {
-        use crate::stokes::inversion::{Debias, LinearPolarization};
-        let lp = LinearPolarization::from_qu(0.03, -0.04, 0.004, 0.005, Debias::WardleKronberg);
-        let mut extra = serde_json::Map::new();
-        extra.insert("snr".into(), serde_json::json!(lp.snr));
-        let c = Component {
-            name: "A".into(),
-            pol: lp.pol,
-            passes_cut: true,
-            flags: vec!["low_snr".into()],
-            extra,
-        };
-        let text = serde_json::to_string(&c).unwrap();
-        let keys: Vec<&str> = text.split('"').skip(1).step_by(2).filter(|k| !k.is_empty()).collect();
-        let want = [
-            "name",
-            "A",
-            "q",
-            "u",
-            "sigma_q",
-            "sigma_u",
-            "p",
-            "sigma_p",
-            "p_debiased",
-            "gamma_deg",
-            "sigma_gamma_deg",
-            "passes_cut",
-            "flags",
-            "low_snr",
-            "snr",
-        ];
-        assert_eq!(keys, want, "{text}");
-        let back: Component = serde_json::from_str(&text).unwrap();
-        assert_eq!(back, c);
-        assert_eq!(back.extra.len(), 1, "the flattened fields must not leak into extra");
-        // LinearPolarization itself serializes as before: the shared fields, then the S/N measures.
-        let lp_text = serde_json::to_string(&lp).unwrap();
-        assert!(
-            lp_text.starts_with("{\"q\":") && lp_text.ends_with(&format!("\"snr\":{}}}", lp.snr)),
-            "{lp_text}"
-        );
-    }
-
-    #[test]
-    fn fold_is_axial_and_symmetric() {
-        assert_eq!(fold_delta_gamma(10.0, 170.0), 20.0);
-        assert_eq!(fold_delta_gamma(170.0, 10.0), 20.0);
-        assert_eq!(fold_delta_gamma(0.0, 90.0), 90.0);
-        assert_eq!(fold_delta_gamma(45.0, 45.0), 0.0);
-        assert!((fold_delta_gamma(179.9, 0.1) - 0.2).abs() < 1e-9);
-    }
-}
+mod tests;

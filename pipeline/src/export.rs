@@ -104,12 +104,7 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
             .ok()
             .and_then(|v| v.as_str().map(String::from))
             .unwrap_or_default();
-        let tf = t
-            .extra
-            .get("flags")
-            .and_then(|v| v.as_array())
-            .map(|a| a.iter().filter_map(|x| x.as_str()).collect::<Vec<_>>().join(";"))
-            .unwrap_or_default();
+        let tf = t.target_flags().join(";");
         for c in &t.components {
             target.push(t.object.clone());
             status.push(st.clone());
@@ -117,7 +112,6 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
             flags.push(c.flags.join(";"));
             tflags.push(tf.clone());
             cut.push(c.passes_cut);
-            let extra = |k: &str| c.extra.get(k).and_then(|v| v.as_f64()).unwrap_or(f64::NAN);
             let vals = [
                 c.q,
                 c.sigma_q,
@@ -128,10 +122,10 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
                 c.p_debiased,
                 c.gamma_deg,
                 c.sigma_gamma_deg,
-                extra("sigma_gamma_nkc_deg"),
-                extra("snr"),
+                c.sigma_gamma_nkc_deg.unwrap_or(f64::NAN),
+                c.snr.unwrap_or(f64::NAN),
                 t.delta_gamma_deg.unwrap_or(f64::NAN),
-                extra("flux_adu"),
+                c.flux_adu.unwrap_or(f64::NAN),
             ];
             for (col, v) in num.iter_mut().zip(vals) {
                 col.push(v);

@@ -188,12 +188,8 @@ fn plot_target_png_survives_degenerate_input() {
 
     // A failed target: text only.
     let failed = Target {
-        object: "Broken Ori".into(),
-        status: Status::Failed,
         error: Some("no readable frame: every file of the sequence failed to open (a long message that has to wrap over several lines of the text band)".into()),
-        components: vec![],
-        delta_gamma_deg: None,
-        extra: Default::default(),
+        ..Target::new("Broken Ori", Status::Failed)
     };
     let p = dir.path().join("failed.png");
     let t = Instant::now();

@@ -51,9 +51,9 @@ fn bench_target_43_brighter_companion_rotated_away_is_found_at_every_orientation
     let (frames, _) = sim.run_in_memory();
     let (seq, orients) = loaded_from_sim(frames, &profile);
     let t = reduce_loaded(&seq, orients, &profile, &TargetParams::default(), None, None, false).target;
-    let flags = t.extra["flags"].as_array().unwrap();
+    let flags = t.flags.as_ref().unwrap();
     assert!(
-        !flags.iter().any(|f| f.as_str().unwrap().contains("primary not found")),
+        !flags.iter().any(|f| f.as_str().contains("primary not found")),
         "{flags:?}"
     );
     assert_eq!(t.components.len(), 2, "{t:?}");
@@ -173,17 +173,17 @@ fn check_near_equal(sep: f64, pa: f64, fwhm: f64, orientations: &[f64], seed: u6
     let (seq, orients) = loaded_from_sim(frames, &profile);
     let t = reduce_loaded(&seq, orients, &profile, &TargetParams::default(), None, None, false).target;
     let case = format!("{sep}\" PA {pa} at {orientations:?}");
-    let flags = t.extra["flags"].as_array().unwrap();
+    let flags = t.flags.as_ref().unwrap();
     assert!(
         !flags.iter().any(|f| {
-            let f = f.as_str().unwrap();
+            let f = f.as_str();
             f.contains("primary not found") || f.starts_with("ab_identity") || f.starts_with("companion_")
         }),
         "{case}: {flags:?}"
     );
     assert_eq!(t.components.len(), 2, "{case}: {t:?}");
-    let found_sep = t.extra["separation_arcsec"].as_f64().unwrap();
-    let found_pa = t.extra["pa_deg"].as_f64().unwrap();
+    let found_sep = t.separation_arcsec.unwrap();
+    let found_pa = t.pa_deg.unwrap();
     assert!((found_sep - sep).abs() < 0.1, "{case}: separation {found_sep}");
     // Which true star the catalog calls A, from the PA of B from A.
     let d = (found_pa - pa).rem_euclid(360.0);

@@ -43,7 +43,7 @@ gamma_b_deg = 0.0
 fn a_lone_star_is_not_split_into_a_binary() {
     let (t, truth) = reduce(&scene(0.0, 0.0, 2.0));
     assert_eq!(t.components.len(), 1, "{t:?}");
-    let flags = t.extra["flags"].as_array().unwrap();
+    let flags = t.flags.as_ref().unwrap();
     assert!(flags.iter().any(|f| f == "companion_not_found"), "{flags:?}");
     let a = &t.components[0];
     let ta = &truth.targets[0].components[0];
@@ -92,11 +92,7 @@ fn a_saturated_primary_is_flagged_not_silently_used() {
     // reported as not found: never a crash, never a silent NaN.
     match t.components.get(1) {
         Some(b) => assert!(!b.flags.iter().any(|f| f == "saturated") && b.q.is_finite(), "{b:?}"),
-        None => assert!(t.extra["flags"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .any(|f| f == "companion_not_found")),
+        None => assert!(t.flags.as_ref().unwrap().iter().any(|f| f == "companion_not_found")),
     }
 }
 
@@ -113,11 +109,11 @@ fn one_dither_per_orientation_is_refused_by_name() {
     assert!(t.components.is_empty(), "{t:?}");
     let err = t.error.clone().unwrap_or_default();
     assert!(err.contains("at least 2 analyzer angles"), "{err}");
-    let flags = t.extra["flags"].as_array().unwrap();
+    let flags = t.flags.as_ref().unwrap();
     for pa in ["0", "45"] {
         assert!(
             flags.iter().any(|f| {
-                let f = f.as_str().unwrap();
+                let f = f.as_str();
                 f.contains(&format!("POSANG {pa} dropped")) && f.contains("1 readable dither(s), need 2")
             }),
             "{flags:?}"

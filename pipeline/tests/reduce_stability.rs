@@ -120,7 +120,7 @@ fn paint(f: &mut Frame, xy: [f64; 2], r: f64, v: f32) {
 }
 
 fn describe(t: &Target) -> String {
-    let mut s = format!("{} {:?} {:?} flags {}\n", t.object, t.status, t.error, t.extra["flags"]);
+    let mut s = format!("{} {:?} {:?} flags {:?}\n", t.object, t.status, t.error, t.flags);
     for c in &t.components {
         s += &format!(
             "  {}: q {:.4} +- {:.4} u {:.4} +- {:.4} flags {:?}\n",
@@ -272,11 +272,11 @@ fn mixed_dit_within_a_sequence_is_normalised_and_flagged() {
         }
     });
     let t = reduce(l);
-    let flags = t.extra["flags"].as_array().unwrap();
+    let flags = t.flags.as_ref().unwrap();
     assert!(
         flags
             .iter()
-            .any(|f| f.as_str().unwrap().starts_with("mixed_exposure: DIT [10.0, 20.0]")),
+            .any(|f| f.as_str().starts_with("mixed_exposure: DIT [10.0, 20.0]")),
         "{}",
         describe(&t)
     );
@@ -321,7 +321,7 @@ fn an_aperture_truncated_by_a_strip_edge_is_flagged_or_refused() {
             "{}",
             describe(&t)
         ),
-        None => assert!(!t.extra["flags"].as_array().unwrap().is_empty(), "{}", describe(&t)),
+        None => assert!(!t.flags.as_ref().unwrap().is_empty(), "{}", describe(&t)),
     }
     assert!(pulls_ok(&t.components[0]), "{}", describe(&t));
 }
@@ -337,7 +337,7 @@ fn equal_pairs_at_half_an_arcsec_keep_their_labels() {
     let t = reduce(load(&sim, 0));
     assert_eq!(t.components.len(), 2, "{}", describe(&t));
     // Equal fluxes: the reduction may call either star A; match the truth by position angle.
-    let pa = t.extra["pa_deg"].as_f64().unwrap();
+    let pa = t.pa_deg.unwrap();
     let swapped = (pa - 30.0).rem_euclid(360.0) > 90.0 && (pa - 30.0).rem_euclid(360.0) < 270.0;
     let tt = &truth.targets[0].components;
     for (i, c) in t.components.iter().enumerate() {
@@ -385,11 +385,8 @@ fn faint_companions_next_to_bright_or_saturated_primaries_are_measured_or_flagge
             );
         }
         if t.components.len() < 2 {
-            let flags = t.extra["flags"].as_array().unwrap();
-            assert!(
-                flags.iter().any(|f| f.as_str().unwrap().starts_with("companion_")),
-                "{case}"
-            );
+            let flags = t.flags.as_ref().unwrap();
+            assert!(flags.iter().any(|f| f.as_str().starts_with("companion_")), "{case}");
         }
         if !sat.is_empty() {
             assert!(t.components[0].flags.iter().any(|f| f == "saturated"), "{case}");

@@ -104,7 +104,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             continue;
         };
         // Match components by position angle: near-equal pairs may be labelled either way.
-        let swapped = t.extra.get("pa_deg").and_then(|v| v.as_f64()).is_some_and(|pa| {
+        let swapped = t.pa_deg.is_some_and(|pa| {
             let d = (pa - tt.pa_deg).rem_euclid(360.0);
             d > 90.0 && d < 270.0
         });
@@ -248,7 +248,7 @@ pub fn check_against_truth(truth: &[sofipol_pipeline::sim::TargetTruth], cat: &C
             problems.push(format!("{}: not in the catalog", tt.object));
             continue;
         };
-        let swapped = t.extra.get("pa_deg").and_then(|v| v.as_f64()).is_some_and(|pa| {
+        let swapped = t.pa_deg.is_some_and(|pa| {
             let d = (pa - tt.pa_deg).rem_euclid(360.0);
             d > 90.0 && d < 270.0
         });

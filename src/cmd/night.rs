@@ -255,12 +255,7 @@ fn print_verbose(out: &NightOutput, wall: f64) {
 
 /// Write the per-target figure (never fails the night: a problem is printed).
 fn plot_target(dir: &Path, out: &TargetOutcome) {
-    let seq = out
-        .target
-        .extra
-        .get("sequence")
-        .and_then(|v| v.as_str())
-        .unwrap_or(&out.target.object);
+    let seq = out.target.sequence_id();
     let path = dir.join(format!("{}.png", night::slug(seq)));
     if let Err(e) = sofipol_pipeline::plots::target::outcome_png(&path, out) {
         eprintln!("sofipol: warning: {}: could not write the figure: {e}", path.display());

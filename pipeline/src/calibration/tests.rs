@@ -1,36 +1,34 @@
 use super::*;
+use crate::catalog::CombinedF;
 use crate::stokes::model::{normalized_difference, Polarization};
 
 fn component(name: &str, pol: Polarization, posangs: &[f64], theta0: f64, c: f64, sigma: f64) -> Component {
-    let orients: Vec<serde_json::Value> = posangs
+    let orients: Vec<CombinedF> = posangs
         .iter()
-        .map(|&pa| {
-            serde_json::json!({"posang_deg": pa, "analyzer_deg": pa,
-                "f": normalized_difference(pol, pa + theta0) + c, "sigma_f": sigma})
+        .map(|&pa| CombinedF {
+            posang_deg: Some(pa),
+            analyzer_deg: pa,
+            f: normalized_difference(pol, pa + theta0) + c,
+            sigma_f: sigma,
+            chi2: f64::NAN,
+            n_dithers: 0,
+            n_dithers_total: 0,
+            sigma_f_propagated: f64::NAN,
+            sigma_f_scatter: f64::NAN,
         })
         .collect();
-    let mut extra = serde_json::Map::new();
-    extra.insert("orientations".into(), serde_json::Value::Array(orients));
     Component {
-        name: name.into(),
-        pol: crate::stokes::inversion::Polarization::UNDEFINED,
-        passes_cut: false,
-        flags: vec![],
-        extra,
+        orientations: Some(orients),
+        ..Component::new(name, crate::stokes::inversion::Polarization::UNDEFINED)
     }
 }
 
 fn target(object: &str, comps: Vec<Component>) -> Target {
-    let mut extra = serde_json::Map::new();
-    extra.insert("filter".into(), serde_json::json!("Ks"));
-    extra.insert("sequence".into(), serde_json::json!(format!("{object}@t")));
     Target {
-        object: object.into(),
-        status: Status::Ok,
-        error: None,
         components: comps,
-        delta_gamma_deg: None,
-        extra,
+        filter: Some("Ks".into()),
+        sequence: Some(format!("{object}@t")),
+        ..Target::new(object, Status::Ok)
     }
 }
 
@@ -174,9 +172,8 @@ fn four_orientations_need_no_calibration() {
     let mut c = component("A", truth, &pa, 0.0, 0.0, 1e-3);
     // A pure beam ratio k: F_obs = (F + ck)/(1 + ck F).
     let ck = (1.0 - 0.97) / 1.97;
-    for o in c.extra.get_mut("orientations").unwrap().as_array_mut().unwrap() {
-        let f = o["f"].as_f64().unwrap();
-        o["f"] = serde_json::json!((f + ck) / (1.0 + ck * f));
+    for o in c.orientations.as_mut().unwrap() {
+        o.f = (o.f + ck) / (1.0 + ck * o.f);
     }
     let unc = resolve_component(
         &mut c,
@@ -187,15 +184,14 @@ fn four_orientations_need_no_calibration() {
         3.0,
     );
     assert!(!unc);
-    assert_eq!(c.extra["stokes_method"], "ratio");
+    assert_eq!(c.stokes_method.as_deref(), Some("ratio"));
     assert!((c.q - truth.q).abs() < 1e-14 && (c.u - truth.u).abs() < 1e-14);
 }
 
 fn target_in(object: &str, filter: &str, comps: Vec<Component>) -> Target {
     let mut t = target(object, comps);
-    t.extra.insert("filter".into(), serde_json::json!(filter));
-    t.extra
-        .insert("sequence".into(), serde_json::json!(format!("{object}@{filter}")));
+    t.filter = Some(filter.into());
+    t.sequence = Some(format!("{object}@{filter}"));
     t
 }
 

@@ -1,5 +1,5 @@
 //! Joining the catalogs of the shards of one night.
-use crate::catalog::{Catalog, Target, SCHEMA_VERSION};
+use crate::catalog::{Catalog, SCHEMA_VERSION};
 
 /// Join shard catalogs: targets ordered by sequence, failures by file, duplicates (the same
 /// sequence in two shards) refused.
@@ -21,12 +21,7 @@ pub fn merge(parts: Vec<(String, Catalog)>) -> crate::error::Result<Catalog> {
             });
         }
         for t in c.targets {
-            let key = t
-                .extra
-                .get("sequence")
-                .and_then(|v| v.as_str())
-                .unwrap_or(&t.object)
-                .to_string();
+            let key = t.sequence_id().to_string();
             if let Some(prev) = seen.insert(key.clone(), name.clone()) {
                 return Err(crate::error::Error::Merge {
                     reason: format!("sequence {key} appears in both {prev} and {name}"),
@@ -47,16 +42,7 @@ pub fn merge(parts: Vec<(String, Catalog)>) -> crate::error::Result<Catalog> {
         }
         provs.push(serde_json::json!({"file": name, "provenance": c.provenance}));
     }
-    out.targets.sort_by(|a, b| {
-        let k = |t: &Target| {
-            t.extra
-                .get("sequence")
-                .and_then(|v| v.as_str())
-                .unwrap_or(&t.object)
-                .to_string()
-        };
-        k(a).cmp(&k(b))
-    });
+    out.targets.sort_by(|a, b| a.sequence_id().cmp(b.sequence_id()));
     out.failures.sort_by(|a, b| a.file.cmp(&b.file));
     out.failures.dedup();
     out.provenance = serde_json::json!({"merged_from": provs});

@@ -2,7 +2,7 @@
 //! orientation combined (rejections, clipping, weighted mean, honest error), then q and u by
 //! least squares over the orientations, P, gamma and their errors, debiasing and the cut.
 use super::{CalibratedOrientation, DitherValue, MeasureParams, Measured};
-use crate::catalog::{self, Component, Status, Target};
+use crate::catalog::{self, CombinedF, Component, Status, Target};
 use crate::stokes::inversion::{clip_dithers, combine_dithers, fit_qu, LinearPolarization, Polarization};
 
 /// Component flags that keep a value from passing the cut, whatever its S/N: dithers that
@@ -28,7 +28,6 @@ pub fn component_from_dithers(
 ) -> Component {
     let mut flags: Vec<String> = Vec::new();
     let (mut phis, mut fs, mut ss) = (Vec::new(), Vec::new(), Vec::new());
-    let mut extra = serde_json::Map::new();
     let mut per_orientation = Vec::new();
     let mut sum_flux = 0.0;
     let mut n_flux = 0;
@@ -96,46 +95,46 @@ pub fn component_from_dithers(
             phis.push(analyzer_deg[k]);
             fs.push(c.value);
             ss.push(sigma);
-            per_orientation.push(serde_json::json!({
-                "analyzer_deg": analyzer_deg[k], "f": c.value, "sigma_f": sigma, "sigma_f_propagated": c.sigma,
-                "sigma_f_scatter": c.sigma_scatter, "chi2": c.chi2, "n_dithers": c.n, "n_dithers_total": dv.len(),
-            }));
+            per_orientation.push(CombinedF {
+                analyzer_deg: analyzer_deg[k],
+                chi2: c.chi2,
+                f: c.value,
+                n_dithers: c.n,
+                n_dithers_total: dv.len(),
+                posang_deg: None,
+                sigma_f: sigma,
+                sigma_f_propagated: c.sigma,
+                sigma_f_scatter: c.sigma_scatter,
+            });
         }
     }
-    extra.insert("orientations".into(), serde_json::Value::Array(per_orientation));
-    extra.insert(
-        "flux_adu".into(),
-        serde_json::json!(if n_flux > 0 { sum_flux / n_flux as f64 } else { f64::NAN }),
-    );
+    let measured = Component {
+        orientations: Some(per_orientation),
+        flux_adu: Some(if n_flux > 0 { sum_flux / n_flux as f64 } else { f64::NAN }),
+        ..Component::new(name, Polarization::UNDEFINED)
+    };
     let fit = fit_qu(&phis, &fs, &ss);
     match fit {
         Some(r) => {
             let lp = LinearPolarization::from_qu(r.q, r.u, r.var_q.sqrt(), r.var_u.sqrt(), params.debias);
-            extra.insert("snr".into(), serde_json::json!(lp.snr));
-            extra.insert("sigma_gamma_nkc_deg".into(), serde_json::json!(lp.sigma_gamma_nkc_deg));
-            extra.insert("cov_qu".into(), serde_json::json!(r.cov_qu));
             if lp.snr <= params.cut_snr {
                 flags.push("low_snr".into());
             }
             Component {
-                name: name.into(),
                 pol: lp.pol,
                 // A value from dithers that were all flagged (saturated, bad pixels...) is
                 // reported, never a detection: it may be far off (a saturated core).
                 passes_cut: lp.passes_cut(params.cut_snr) && !refused_by_flags(&flags),
                 flags,
-                extra,
+                snr: Some(lp.snr),
+                sigma_gamma_nkc_deg: Some(lp.sigma_gamma_nkc_deg),
+                cov_qu: Some(r.cov_qu),
+                ..measured
             }
         }
         None => {
             flags.push("undefined_polarization: orientations do not constrain q and u".into());
-            Component {
-                name: name.into(),
-                pol: Polarization::UNDEFINED,
-                passes_cut: false,
-                flags,
-                extra,
-            }
+            Component { flags, ..measured }
         }
     }
 }
@@ -173,26 +172,7 @@ pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measure
     } else {
         Status::Partial
     };
-    let mut extra = serde_json::Map::new();
-    extra.insert(
-        "eo_offset_px".into(),
-        serde_json::json!([m.eo_offset_px.0, m.eo_offset_px.1]),
-    );
-    extra.insert("fwhm_px".into(), serde_json::json!(m.fwhm_px));
-    extra.insert("photometry".into(), serde_json::json!(m.photometry));
-    extra.insert("aperture_radius_px".into(), serde_json::json!(m.aperture_px));
-    if let Some((sep, pa)) = m.geometry {
-        extra.insert("separation_arcsec".into(), serde_json::json!(sep));
-        extra.insert("pa_deg".into(), serde_json::json!(pa));
-    }
-    extra.insert(
-        "orientations_deg".into(),
-        serde_json::json!(orients.iter().map(|o| o.posang_deg).collect::<Vec<_>>()),
-    );
-    extra.insert("flags".into(), serde_json::json!(m.flags));
     Target {
-        object: object.into(),
-        status,
         error: if status == Status::Partial {
             m.flags.first().cloned().or(Some("companion not measured".into()))
         } else {
@@ -200,7 +180,15 @@ pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measure
         },
         components,
         delta_gamma_deg: delta,
-        extra,
+        eo_offset_px: Some([m.eo_offset_px.0, m.eo_offset_px.1]),
+        fwhm_px: Some(m.fwhm_px),
+        photometry: Some(m.photometry.clone()),
+        aperture_radius_px: Some(m.aperture_px),
+        separation_arcsec: m.geometry.map(|g| g.0),
+        pa_deg: m.geometry.map(|g| g.1),
+        orientations_deg: Some(orients.iter().map(|o| o.posang_deg).collect()),
+        flags: Some(m.flags.clone()),
+        ..Target::new(object, status)
     }
 }
 
@@ -272,7 +260,7 @@ mod tests {
             assert!(!c.passes_cut, "{c:?}");
             assert!(c.flags.iter().any(|f| f == AB_IDENTITY_UNVERIFIED), "{c:?}");
             // Still reported (the value is there, not a detection).
-            assert!(c.q.is_finite() && c.extra["snr"].as_f64().unwrap() > 10.0, "{c:?}");
+            assert!(c.q.is_finite() && c.snr.unwrap() > 10.0, "{c:?}");
         }
         assert!(t.delta_gamma_deg.is_none());
         assert!(refused_by_flags(&[AB_IDENTITY_UNVERIFIED.to_string()]));

@@ -45,18 +45,13 @@ pub struct TargetOutcome {
 
 /// A failed target, keeping the diagnostic flags gathered before the failure.
 fn failed(seq: &Sequence, msg: String, flags: &[String], failures: Vec<Failure>, times: StageTimes) -> TargetOutcome {
-    let mut extra = serde_json::Map::new();
-    extra.insert("sequence".into(), serde_json::json!(seq.id));
-    extra.insert("input_files".into(), serde_json::json!(seq.files()));
-    extra.insert("flags".into(), serde_json::json!(flags));
     TargetOutcome {
         target: Target {
-            object: seq.object.clone(),
-            status: Status::Failed,
             error: Some(msg),
-            components: vec![],
-            delta_gamma_deg: None,
-            extra,
+            sequence: Some(seq.id.clone()),
+            input_files: Some(seq.files()),
+            flags: Some(flags.to_vec()),
+            ..Target::new(seq.object.clone(), Status::Failed)
         },
         failures,
         times,
@@ -109,9 +104,7 @@ pub fn reduce_sequence(
     }
     let read = t.elapsed().as_secs_f64();
     let mut out = reduce_loaded(&readable, orients, profile, params, night_mask, flats, keep_frames);
-    out.target
-        .extra
-        .insert("input_files".into(), serde_json::json!(seq.files()));
+    out.target.input_files = Some(seq.files());
     out.times.read = read;
     failures.extend(out.failures);
     out.failures = failures;
@@ -278,28 +271,15 @@ pub fn reduce_loaded(
         target.status = Status::Partial;
         target.error = seq.problems().first().cloned();
     }
-    target.extra.insert("sequence".into(), serde_json::json!(seq.id));
-    target
-        .extra
-        .insert("tpl_start".into(), serde_json::json!(seq.tpl_start));
-    target.extra.insert("filter".into(), serde_json::json!(seq.filter));
-    target
-        .extra
-        .insert("input_files".into(), serde_json::json!(seq.files()));
-    target.extra.insert("flags".into(), serde_json::json!(flags));
-    target.extra.insert(
-        "flat".into(),
-        if flats_used.is_empty() {
-            serde_json::Value::Null
-        } else {
-            serde_json::json!(flats_used)
-        },
-    );
+    target.sequence = Some(seq.id.clone());
+    target.tpl_start = Some(seq.tpl_start.clone());
+    target.filter = Some(seq.filter.clone());
+    target.input_files = Some(seq.files());
+    target.flags = Some(flags);
+    // JSON null when no flat was applied.
+    target.flat = Some((!flats_used.is_empty()).then_some(flats_used));
     if let Some(m) = &mask {
-        target.extra.insert(
-            "bad_pixels_masked".into(),
-            serde_json::json!(m.iter().filter(|&&v| v != 0).count()),
-        );
+        target.bad_pixels_masked = Some(m.iter().filter(|&&v| v != 0).count());
     }
     TargetOutcome {
         target,

@@ -752,7 +752,6 @@ fn histogram_tables_and_catalog_p_are_drawn_from() {
 
 fn component(name: &str, p: f64, sigma_p: f64, gamma: f64) -> Component {
     Component {
-        name: name.into(),
         pol: crate::stokes::inversion::Polarization {
             q: p,
             u: 0.0,
@@ -765,19 +764,15 @@ fn component(name: &str, p: f64, sigma_p: f64, gamma: f64) -> Component {
             sigma_gamma_deg: 28.65 * sigma_p / p,
         },
         passes_cut: p / sigma_p > 3.0,
-        flags: vec![],
-        extra: Default::default(),
+        ..Component::new(name, crate::stokes::inversion::Polarization::UNDEFINED)
     }
 }
 
 fn target(name: &str, status: Status, comps: Vec<Component>, stored: Option<f64>) -> Target {
     Target {
-        object: name.into(),
-        status,
-        error: None,
         components: comps,
         delta_gamma_deg: stored,
-        extra: Default::default(),
+        ..Target::new(name, status)
     }
 }
 

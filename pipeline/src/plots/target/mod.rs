@@ -258,7 +258,7 @@ fn draw_title(root: &Area, target: &Target, w: u32) -> io::Result<()> {
         status_color(target.status).filled(),
     ))
     .map_err(de)?;
-    if let Some(seq) = target.extra.get("sequence").and_then(|v| v.as_str()) {
+    if let Some(seq) = &target.sequence {
         let st = (FONT, 14)
             .into_font()
             .color(&RGBColor(90, 90, 90))

@@ -250,7 +250,7 @@ pub(super) fn measurement_lines(
             RGBColor(90, 90, 90),
         ));
     }
-    if let Some(v) = target.extra.get("sequence").and_then(|v| v.as_str()) {
+    if let Some(v) = &target.sequence {
         wrap(Line::plain(format!("sequence {v}")), COL_W, out);
     }
 }
@@ -269,11 +269,9 @@ pub(super) fn status_lines(target: &Target, m: Option<&Measured>, out: &mut Vec<
         );
     }
     let mut flags: Vec<String> = m.map(|m| m.flags.clone()).unwrap_or_default();
-    if let Some(arr) = target.extra.get("flags").and_then(|v| v.as_array()) {
-        for f in arr.iter().filter_map(|v| v.as_str()) {
-            if !flags.iter().any(|g| g == f) {
-                flags.push(f.to_string());
-            }
+    for f in target.target_flags() {
+        if !flags.iter().any(|g| g == f) {
+            flags.push(f.clone());
         }
     }
     if flags.is_empty() {
