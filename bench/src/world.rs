@@ -2,7 +2,9 @@
 //!
 //! Every target of every separation bin draws its own observing conditions from the ranges
 //! real SOFI nights show, is written to FITS (float or 16-bit) and is reduced through the
-//! same file path as `sofipol night` ([`reduce_sequence`]):
+//! same file path as `sofipol night` (its folder planned and reduced by
+//! [`night::reduce_sequences`]; the night's flats and calibration measured by
+//! [`night::run_night`] on the calibration frames, as `sofipol calib` does):
 //!
 //! | condition | drawn from |
 //! |---|---|
@@ -30,13 +32,12 @@ use rayon::prelude::*;
 use serde::Serialize;
 use sofipol_calib::Profile;
 
-use sofipol_pipeline::calibration::{calibrate_catalog, CalibrationParams, CalibrationSource};
+use sofipol_pipeline::calibration::{calibrate_catalog, CalibSetup, Calibration, CalibrationParams, CalibrationSource};
 use sofipol_pipeline::catalog::{Catalog, Target};
-use sofipol_pipeline::reduce::run::reduce_sequence;
+use sofipol_pipeline::night::{self, Hooks, NightSetup, RunOptions};
 use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sim::{Scene, Simulator, TargetTruth};
 use sofipol_pipeline::standards::StandardsTable;
-use sofipol_pipeline::{scan, sequence};
 
 /// A/B swaps of pairs fainter than this flux ratio B/A are labelling errors (closer to
 /// equal, noise may legitimately reorder them).
@@ -352,47 +353,47 @@ gamma_deg = 115.0
     Scene::from_toml(&text, "world calibration scene").expect("valid generated scene")
 }
 
-/// What the night provides for the calibration, reduced as `sofipol night` does: the
-/// flats (dome flats) and the standards reduced as single stars.
+/// What the night provides for the calibration, measured as `sofipol calib` measures it
+/// ([`night::run_night`] on the night's calibration frames): the flats (dome flats) and the
+/// calibration from the standards, reduced as single stars.
 pub struct NightCalibration {
     /// Flats.
     pub flats: Option<sofipol_calib::flat::FlatSet>,
-    /// Standards, reduced.
-    pub standards: Vec<Target>,
-    /// Standards table (built-in + [`WORLD_STANDARDS`]).
-    pub table: StandardsTable,
+    /// The calibration measured from the standards (None: no usable standard).
+    pub calibration: Option<Calibration>,
 }
 
-/// Simulate the night's calibration frames into `dir`, build the flats and reduce the
-/// standards.
-pub fn night_calibration(cfg: &WorldConfig, inst: &Instrument, params: &TargetParams) -> NightCalibration {
-    let dir = cfg.work_dir.join("calibration");
-    let sim = Simulator::new(calibration_scene(cfg, inst), Profile::sofi()).expect("valid scene");
-    sim.write_to_dir(&dir, &|_| {}).expect("calibration frames written");
-    let profile = Profile::sofi();
-    let plan = sofipol_pipeline::night::plan(
-        std::slice::from_ref(&dir),
-        &profile,
-        params.flat_options.max_frames,
-        None,
-        |_| false,
-    );
-    let flats = sofipol_pipeline::night::night_flats(&plan.dome_flats, &Default::default(), &profile, params).set;
-    let sp = sofipol_pipeline::calibration::standard_params(params);
-    let standards = plan
-        .sequences
-        .par_iter()
-        .map(|q| reduce_sequence(q, &profile, &sp, None, flats.as_ref(), false).target)
-        .collect();
-    let _ = std::fs::remove_dir_all(&dir);
+/// The setup of the world's reductions: the SOFI profile, `params`, the built-in standards
+/// table with [`WORLD_STANDARDS`] added.
+fn world_setup(params: &TargetParams) -> NightSetup {
     let mut table = StandardsTable::builtin();
     table
         .merge_toml(WORLD_STANDARDS, "world standards")
         .expect("valid standards table");
+    NightSetup {
+        profile: Profile::sofi(),
+        params: params.clone(),
+        calibration: CalibSetup {
+            params: CalibrationParams::default(),
+            table,
+            external: None,
+        },
+    }
+}
+
+/// Simulate the night's calibration frames into a scratch folder and measure the flats and
+/// the calibration from them.
+pub fn night_calibration(cfg: &WorldConfig, inst: &Instrument, params: &TargetParams) -> NightCalibration {
+    let dir = cfg.work_dir.join("calibration");
+    let sim = Simulator::new(calibration_scene(cfg, inst), Profile::sofi()).expect("valid scene");
+    sim.write_to_dir(&dir, &|_| {}).expect("calibration frames written");
+    let setup = world_setup(params);
+    let plan = setup.plan(std::slice::from_ref(&dir), None);
+    let out = night::run_night(&plan, &setup, &RunOptions::default());
+    let _ = std::fs::remove_dir_all(&dir);
     NightCalibration {
-        flats,
-        standards,
-        table,
+        flats: out.flats.set,
+        calibration: out.calibration,
     }
 }
 
@@ -474,17 +475,16 @@ fn one_target(
 ) -> Reduced {
     let dir = cfg.work_dir.join(format!("w{bin}_{t}"));
     let (truth, cond, ratio) = write_target(cfg, bin, t, lo, hi, &dir);
-    // Reduce as `sofipol night` would: scan, classify, group, reduce from the files, with the
-    // instrument profile's defaults (not the drawn e-o offset).
-    let profile = Profile::sofi();
-    let files = scan::find_files(&dir).expect("scratch folder");
-    let s = scan::classify_all(&files, &profile);
-    let seqs = sequence::group(s.science, &profile);
-    let out = reduce_sequence(&seqs[0], &profile, params, None, flats, false);
+    // Reduce as `sofipol night` would: plan the folder, reduce its sequence from the files
+    // with the night's flats, the instrument profile's defaults (not the drawn e-o offset).
+    let setup = world_setup(params);
+    let plan = setup.plan(std::slice::from_ref(&dir), None);
+    let mut reduced = night::reduce_sequences(&plan.sequences, &setup.profile, params, None, flats, &Hooks::default());
+    let target = reduced.catalog.targets.swap_remove(0);
     let _ = std::fs::remove_dir_all(&dir);
     Reduced {
         bin,
-        target: out.target,
+        target,
         truth,
         cond,
         ratio,
@@ -573,16 +573,17 @@ pub fn run(cfg: &WorldConfig, params: &TargetParams) -> Vec<WorldBin> {
     if cfg.instrument {
         // The night's calibration, as `sofipol night` applies it (without it, every
         // 2-orientation component is flagged `uncalibrated` and left as measured).
-        let (standards, table) = match cal {
-            Some(c) => (c.standards, c.table),
-            None => (vec![], StandardsTable::builtin()),
+        // The calibration measured from the night's standards, applied to every target.
+        let source = match cal.and_then(|c| c.calibration) {
+            Some(c) => CalibrationSource::File("the night's standards".into(), Box::new(c)),
+            None => CalibrationSource::Night,
         };
         calibrate_catalog(
             &mut cat,
-            standards,
-            &table,
+            vec![],
+            &StandardsTable::builtin(),
             &Profile::sofi(),
-            CalibrationSource::Night,
+            source,
             &CalibrationParams::default(),
             params.measure.debias,
             params.measure.cut_snr,
