@@ -46,32 +46,8 @@ pub enum PsfModel {
     },
 }
 
-/// Errors of [`fit_psf`](super::fit_psf).
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum PsfFitError {
-    /// No initial position was given.
-    #[error("PSF fit: no source position given")]
-    NoSources,
-    /// Too few usable pixels.
-    #[error("PSF fit: {n_pixels} usable pixels for {n_params} parameters")]
-    TooFewPixels {
-        /// Usable pixels found.
-        n_pixels: usize,
-        /// Parameters to fit.
-        n_params: usize,
-    },
-    /// A setting is out of range.
-    #[error("PSF fit: invalid setting {name} = {value}")]
-    InvalidParams {
-        /// Setting name.
-        name: &'static str,
-        /// Its value.
-        value: f64,
-    },
-    /// The normal matrix could not be inverted at the solution (degenerate model).
-    #[error("PSF fit: singular normal matrix at the solution (degenerate sources?)")]
-    Singular,
-}
+/// Errors of [`fit_psf`](super::fit_psf) (defined with the crate's other errors).
+pub use crate::error::PsfFitError;
 
 /// Settings of [`fit_psf`](super::fit_psf).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
