@@ -16,7 +16,7 @@
 //! [`alignment`] (tests + verdict), [`figures`] (the paper-style PNGs).
 //! Conventions, methods and references: docs/statistics.md.
 // `!(x > 0.0)` is used on purpose: it also rejects NaN. `n % k != 0` keeps the code
-// within the workspace's rust-version (1.80; `is_multiple_of` is 1.87).
+// within the workspace's rust-version (1.86; `is_multiple_of` is 1.87).
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::manual_is_multiple_of)]
 
 use serde::{Deserialize, Serialize};
