@@ -1,4 +1,7 @@
-//! The one error type of the pipeline crate. Messages name the file, the key and the value.
+//! The one error type of the pipeline crate, and the errors of its modules that it wraps
+//! (re-exported there under their own names: `reduce::MeasureError`,
+//! `photometry::PsfFitError`, `plots::Error`, `stats::Error`). Messages name the file, the
+//! key and the value. A leaf: it imports nothing from the crate, so every module can use it.
 use std::path::PathBuf;
 /// Result alias of the pipeline crate.
 pub type Result<T> = std::result::Result<T, Error>;
@@ -81,16 +84,16 @@ pub enum Error {
     UnusableFrame(String),
     /// The measurement of a sequence stopped.
     #[error(transparent)]
-    Measure(#[from] crate::reduce::MeasureError),
+    Measure(#[from] MeasureError),
     /// A PSF fit failed.
     #[error(transparent)]
-    PsfFit(#[from] crate::photometry::PsfFitError),
+    PsfFit(#[from] PsfFitError),
     /// A figure could not be drawn or written.
     #[error(transparent)]
-    Plot(#[from] crate::plots::Error),
+    Plot(#[from] PlotError),
     /// A statistics parameter, table or file is bad.
     #[error(transparent)]
-    Stats(#[from] crate::stats::Error),
+    Stats(#[from] StatsError),
 }
 
 impl Error {
@@ -101,4 +104,115 @@ impl Error {
             source,
         }
     }
+}
+
+/// An error that stops the measurement of a sequence (`reduce::MeasureError`).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct MeasureError(pub String);
+
+impl MeasureError {
+    /// An error with this message.
+    pub fn new(msg: impl Into<String>) -> Self {
+        MeasureError(msg.into())
+    }
+}
+
+/// Errors of the PSF fit (`photometry::fit_psf`).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PsfFitError {
+    /// No initial position was given.
+    #[error("PSF fit: no source position given")]
+    NoSources,
+    /// Too few usable pixels.
+    #[error("PSF fit: {n_pixels} usable pixels for {n_params} parameters")]
+    TooFewPixels {
+        /// Usable pixels found.
+        n_pixels: usize,
+        /// Parameters to fit.
+        n_params: usize,
+    },
+    /// A setting is out of range.
+    #[error("PSF fit: invalid setting {name} = {value}")]
+    InvalidParams {
+        /// Setting name.
+        name: &'static str,
+        /// Its value.
+        value: f64,
+    },
+    /// The normal matrix could not be inverted at the solution (degenerate model).
+    #[error("PSF fit: singular normal matrix at the solution (degenerate sources?)")]
+    Singular,
+}
+
+/// Errors of the plotting module (`plots::Error`).
+#[derive(Debug, thiserror::Error)]
+pub enum PlotError {
+    /// Drawing failed inside plotters.
+    #[error("drawing {what}: {reason}")]
+    Draw {
+        /// What was being drawn.
+        what: String,
+        /// The plotters error.
+        reason: String,
+    },
+    /// The embedded font could not be registered.
+    #[error("registering the embedded DejaVu Sans font failed")]
+    Font,
+    /// Bad input (e.g. mismatched lengths).
+    #[error("invalid plot input: {0}")]
+    Input(String),
+    /// Writing the file failed.
+    #[error("writing {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// PNG encoding failed.
+    #[error("encoding PNG: {0}")]
+    Encode(String),
+}
+
+/// Errors of the statistics module (`stats::Error`).
+#[derive(Debug, thiserror::Error)]
+pub enum StatsError {
+    /// A parameter is out of range or malformed.
+    #[error("invalid {name} = '{value}': {reason}")]
+    InvalidParameter {
+        /// Parameter name (with unit).
+        name: String,
+        /// The value given.
+        value: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A table file is malformed.
+    #[error("table {table}: {reason}")]
+    Table {
+        /// File name.
+        table: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A file could not be read.
+    #[error("reading {path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// A catalog could not be parsed.
+    #[error("catalog {path}: {reason}")]
+    Catalog {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A figure could not be drawn or written.
+    #[error(transparent)]
+    Plot(#[from] PlotError),
 }

@@ -10,13 +10,16 @@
 //! `F_0, x_0, y_0, ..., alpha, [beta if fitted], [b if fitted]` (Moffat).
 //! Deblending a close pair: fit both, then [`subtract_star`] the companion's model from the
 //! image and do aperture photometry of the target on the result.
+//!
+//! This file holds the model, settings and result types and the star subtraction; the fit
+//! itself ([`fit_psf`](super::fit_psf), [`fit_two_psf`](super::fit_two_psf)) is in
+//! `psf_fit/`.
 
 use ndarray::{Array2, ArrayView2, ArrayViewMut2};
 use serde::{Deserialize, Serialize};
 
 use super::model::{add_gaussian, FWHM_PER_SIGMA};
 use super::moffat::{add_moffat, add_moffat_where, moffat_fwhm, moffat_pixel};
-pub use super::psf_fit::{fit_psf, fit_psf_from, PsfStart};
 
 /// Range of the Moffat `alpha` accepted by the fit, px.
 pub const MOFFAT_ALPHA_RANGE: (f64, f64) = (0.3, 30.0);
@@ -25,7 +28,7 @@ pub const MOFFAT_BETA_RANGE: (f64, f64) = (1.2, 10.0);
 /// Starting `beta` of a Moffat fit with a free `beta` (typical of seeing-limited PSFs).
 pub const MOFFAT_BETA_START: f64 = 3.0;
 
-/// The PSF model of [`fit_psf`]. In TOML: `{ kind = "gaussian" }`, `{ kind = "moffat" }`
+/// The PSF model of [`fit_psf`](super::fit_psf). In TOML: `{ kind = "gaussian" }`, `{ kind = "moffat" }`
 /// (free beta) or `{ kind = "moffat", beta = 3.0 }` (fixed beta).
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
@@ -43,34 +46,10 @@ pub enum PsfModel {
     },
 }
 
-/// Errors of [`fit_psf`].
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum PsfFitError {
-    /// No initial position was given.
-    #[error("PSF fit: no source position given")]
-    NoSources,
-    /// Too few usable pixels.
-    #[error("PSF fit: {n_pixels} usable pixels for {n_params} parameters")]
-    TooFewPixels {
-        /// Usable pixels found.
-        n_pixels: usize,
-        /// Parameters to fit.
-        n_params: usize,
-    },
-    /// A setting is out of range.
-    #[error("PSF fit: invalid setting {name} = {value}")]
-    InvalidParams {
-        /// Setting name.
-        name: &'static str,
-        /// Its value.
-        value: f64,
-    },
-    /// The normal matrix could not be inverted at the solution (degenerate model).
-    #[error("PSF fit: singular normal matrix at the solution (degenerate sources?)")]
-    Singular,
-}
+/// Errors of [`fit_psf`](super::fit_psf) (defined with the crate's other errors).
+pub use crate::error::PsfFitError;
 
-/// Settings of [`fit_psf`].
+/// Settings of [`fit_psf`](super::fit_psf).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct PsfFitParams {
     /// Initial FWHM, px.
@@ -119,7 +98,7 @@ pub struct PsfStar {
     pub y_err: f64,
 }
 
-/// Result of [`fit_psf`].
+/// Result of [`fit_psf`](super::fit_psf).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PsfFit {
     /// The stars, in the order of the initial positions.
@@ -204,32 +183,6 @@ impl PsfFit {
             PsfModel::Moffat { .. } => add_moffat(img, scale * s.flux, s.x, s.y, self.alpha, self.beta),
         }
     }
-}
-
-/// [`fit_psf`] for a pair: `a` and `b` are the initial positions of the two components.
-///
-/// ```
-/// use ndarray::Array2;
-/// use sofipol_pipeline::photometry::{fit_two_psf, model::add_gaussian, subtract_star, PsfFitParams};
-/// // Two stars 4 px apart (1.4 FWHM), on a sky of 5 ADU.
-/// let mut img = Array2::<f32>::from_elem((40, 40), 5.0);
-/// add_gaussian(&mut img.view_mut(), 2e4, 18.0, 20.0, 1.2, 1.2);
-/// add_gaussian(&mut img.view_mut(), 5e3, 22.0, 20.5, 1.2, 1.2);
-/// let fit = fit_two_psf(img.view(), None, None, (18.3, 19.8), (21.6, 20.9), &PsfFitParams::default()).unwrap();
-/// assert!((fit.stars[1].flux / 5e3 - 1.0).abs() < 1e-4);
-/// // Deblend: the primary alone (plus sky).
-/// let primary = subtract_star(img.view(), &fit, 1);
-/// assert!((primary[[20, 22]] - 5.0) < 0.1 * (img[[20, 22]] - 5.0));
-/// ```
-pub fn fit_two_psf(
-    img: ArrayView2<f32>,
-    var: Option<ArrayView2<f32>>,
-    mask: Option<ArrayView2<u8>>,
-    a: (f64, f64),
-    b: (f64, f64),
-    params: &PsfFitParams,
-) -> Result<PsfFit, PsfFitError> {
-    fit_psf(img, var, mask, &[a, b], params)
 }
 
 /// A copy of `img` with the fitted model of star `k` (not the background) subtracted: the

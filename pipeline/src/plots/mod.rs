@@ -13,7 +13,7 @@
 //!     .with(Series::bars("34 binaries", edges, vec![9.0, 7.0, 5.0, 4.0, 3.0, 2.0, 2.0, 1.0, 1.0]));
 //! Figure::single(panel).save_png(std::path::Path::new("dg.png")).unwrap();
 //! ```
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::OnceLock;
 
 use plotters::prelude::*;
@@ -21,35 +21,8 @@ use plotters::style::FontStyle;
 
 pub mod target;
 
-/// Errors of the plotting module.
-#[derive(Debug, thiserror::Error)]
-pub enum Error {
-    /// Drawing failed inside plotters.
-    #[error("drawing {what}: {reason}")]
-    Draw {
-        /// What was being drawn.
-        what: String,
-        /// The plotters error.
-        reason: String,
-    },
-    /// The embedded font could not be registered.
-    #[error("registering the embedded DejaVu Sans font failed")]
-    Font,
-    /// Bad input (e.g. mismatched lengths).
-    #[error("invalid plot input: {0}")]
-    Input(String),
-    /// Writing the file failed.
-    #[error("writing {path}: {source}")]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The cause.
-        source: std::io::Error,
-    },
-    /// PNG encoding failed.
-    #[error("encoding PNG: {0}")]
-    Encode(String),
-}
+/// Errors of the plotting module (defined with the crate's other errors).
+pub use crate::error::PlotError as Error;
 
 /// Result of this module.
 pub type Result<T> = std::result::Result<T, Error>;

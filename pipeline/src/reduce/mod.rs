@@ -103,17 +103,8 @@ pub struct Measured {
     pub flags: Vec<String>,
 }
 
-/// An error that stops the measurement of a sequence.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("{0}")]
-pub struct MeasureError(pub String);
-
-impl MeasureError {
-    /// An error with this message.
-    pub fn new(msg: impl Into<String>) -> Self {
-        MeasureError(msg.into())
-    }
-}
+/// An error that stops the measurement of a sequence (defined with the crate's other errors).
+pub use crate::error::MeasureError;
 
 impl BeamFlux {
     /// No measurement (NaN flux and variance).

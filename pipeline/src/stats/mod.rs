@@ -16,10 +16,8 @@
 //! [`alignment`] (tests + verdict), [`figures`] (the paper-style PNGs).
 //! Conventions, methods and references: docs/statistics.md.
 // `!(x > 0.0)` is used on purpose: it also rejects NaN. `n % k != 0` keeps the code
-// within the workspace's rust-version (1.80; `is_multiple_of` is 1.87).
+// within the workspace's rust-version (1.86; `is_multiple_of` is 1.87).
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::manual_is_multiple_of)]
-
-use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
 
@@ -46,47 +44,8 @@ pub use mc::{simulate, simulate_samples, Ism, McConfig, McOutput, PIntDist, PofI
 pub use model::{AlignmentModel, AlphaMeasure, AlphaTable};
 pub use sample::BinarySample;
 
-/// Errors of the statistics module.
-#[derive(Debug, thiserror::Error)]
-pub enum Error {
-    /// A parameter is out of range or malformed.
-    #[error("invalid {name} = '{value}': {reason}")]
-    InvalidParameter {
-        /// Parameter name (with unit).
-        name: String,
-        /// The value given.
-        value: String,
-        /// What is wrong.
-        reason: String,
-    },
-    /// A table file is malformed.
-    #[error("table {table}: {reason}")]
-    Table {
-        /// File name.
-        table: String,
-        /// What is wrong.
-        reason: String,
-    },
-    /// A file could not be read.
-    #[error("reading {path}: {source}")]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The cause.
-        source: std::io::Error,
-    },
-    /// A catalog could not be parsed.
-    #[error("catalog {path}: {reason}")]
-    Catalog {
-        /// The file.
-        path: PathBuf,
-        /// What is wrong.
-        reason: String,
-    },
-    /// A figure could not be drawn or written.
-    #[error(transparent)]
-    Plot(#[from] crate::plots::Error),
-}
+/// Errors of the statistics module (defined with the crate's other errors).
+pub use crate::error::StatsError as Error;
 
 /// Result of this module.
 pub type Result<T> = std::result::Result<T, Error>;

@@ -1,277 +1,21 @@
-//! The Levenberg-Marquardt fit behind [`fit_psf`]: parameter layout, pixels, start values,
-//! normal equations (analytic Jacobians of the pixel-integrated models), the damped
-//! iteration and the covariance. The model, settings and result types are in [`super::psf`].
+//! The PSF fit: [`fit_psf`] and its variants, the fitted pixels, start values and the result
+//! with its covariance. The normal equations (parameter layout, analytic Jacobians) are in
+//! `normal.rs`, the damped Levenberg-Marquardt iteration in `solve.rs`; the model, settings
+//! and result types in [`super::psf`].
 
 use ndarray::ArrayView2;
 
-use super::model::{gauss_pixel_1d, gauss_pixel_1d_derivs, FWHM_PER_SIGMA};
-use super::moffat::{moffat_alpha, moffat_fwhm, moffat_pixel, moffat_pixels, moffat_pixels_derivs};
+use super::model::{gauss_pixel_1d, FWHM_PER_SIGMA};
+use super::moffat::{moffat_alpha, moffat_fwhm, moffat_pixel};
 use super::psf::{
     PsfFit, PsfFitError, PsfFitParams, PsfModel, PsfStar, MOFFAT_ALPHA_RANGE, MOFFAT_BETA_RANGE, MOFFAT_BETA_START,
 };
 
-struct Layout {
-    n_src: usize,
-    /// sigma_x (Gaussian) or alpha (Moffat).
-    i_sx: usize,
-    /// sigma_y (= i_sx unless elliptical; = i_sx for a Moffat).
-    i_sy: usize,
-    /// Moffat beta, when fitted.
-    i_beta: Option<usize>,
-    i_b: Option<usize>,
-    n: usize,
-    /// Some(fixed beta or NaN when fitted) for a Moffat.
-    moffat: Option<f64>,
-}
+mod normal;
+mod solve;
 
-impl Layout {
-    fn new(n_src: usize, elliptical: bool, fit_b: bool, model: PsfModel) -> Layout {
-        let i_sx = 3 * n_src;
-        match model {
-            PsfModel::Gaussian => {
-                let i_sy = if elliptical { i_sx + 1 } else { i_sx };
-                let i_b = fit_b.then_some(i_sy + 1);
-                Layout {
-                    n_src,
-                    i_sx,
-                    i_sy,
-                    i_beta: None,
-                    i_b,
-                    n: i_sy + 1 + fit_b as usize,
-                    moffat: None,
-                }
-            }
-            PsfModel::Moffat { beta } => {
-                let i_beta = beta.is_none().then_some(i_sx + 1);
-                let last = i_beta.unwrap_or(i_sx);
-                let i_b = fit_b.then_some(last + 1);
-                Layout {
-                    n_src,
-                    i_sx,
-                    i_sy: i_sx,
-                    i_beta,
-                    i_b,
-                    n: last + 1 + fit_b as usize,
-                    moffat: Some(beta.unwrap_or(f64::NAN)),
-                }
-            }
-        }
-    }
-
-    /// Moffat beta at parameters `p`.
-    fn beta(&self, p: &[f64]) -> f64 {
-        match self.i_beta {
-            Some(i) => p[i],
-            None => self.moffat.unwrap_or(f64::NAN),
-        }
-    }
-}
-
-struct Pixel {
-    ix: usize,
-    iy: usize,
-    v: f64,
-    w: f64, // 1 / sigma
-}
-
-/// The model's 1-D factors for every column/row of the fitted box, per star.
-struct Factors {
-    x0: usize,
-    y0: usize,
-    // [star][col] -> (P, dP/dmu, dP/dsigma)
-    fx: Vec<Vec<(f64, f64, f64)>>,
-    fy: Vec<Vec<(f64, f64, f64)>>,
-}
-
-impl Factors {
-    fn new(p: &[f64], lay: &Layout, bx: (usize, usize, usize, usize)) -> Factors {
-        let (x0, x1, y0, y1) = bx;
-        let (sx, sy) = (p[lay.i_sx], p[lay.i_sy]);
-        let fx = (0..lay.n_src)
-            .map(|k| {
-                (x0..=x1)
-                    .map(|ix| gauss_pixel_1d_derivs(ix as i64, p[3 * k + 1], sx))
-                    .collect()
-            })
-            .collect();
-        let fy = (0..lay.n_src)
-            .map(|k| {
-                (y0..=y1)
-                    .map(|iy| gauss_pixel_1d_derivs(iy as i64, p[3 * k + 2], sy))
-                    .collect()
-            })
-            .collect();
-        Factors { x0, y0, fx, fy }
-    }
-}
-
-fn background_of(p: &[f64], lay: &Layout, fixed: Option<f64>) -> f64 {
-    match lay.i_b {
-        Some(i) => p[i],
-        None => fixed.unwrap_or(0.0),
-    }
-}
-
-/// chi2, and when `normal` is given, fills it with (J^T W J, J^T W r).
-fn evaluate(
-    p: &[f64],
-    lay: &Layout,
-    fixed_b: Option<f64>,
-    pixels: &[Pixel],
-    bx: (usize, usize, usize, usize),
-    mut normal: Option<(&mut [f64], &mut [f64])>,
-) -> f64 {
-    let f = match lay.moffat {
-        None => Some(Factors::new(p, lay, bx)),
-        Some(_) => None,
-    };
-    let (alpha, beta) = (p[lay.i_sx], lay.beta(p));
-    let b = background_of(p, lay, fixed_b);
-    let n = lay.n;
-    let mut jrow = vec![0.0; n];
-    if let Some((a, g)) = normal.as_mut() {
-        a.iter_mut().for_each(|v| *v = 0.0);
-        g.iter_mut().for_each(|v| *v = 0.0);
-    }
-    // A Moffat's pixel values (and derivatives) of every star at every pixel, from the
-    // batched kernel: star k's at [k * pixels.len()..].
-    let np = pixels.len();
-    let (mut values, mut derivs) = (Vec::new(), Vec::new());
-    if lay.moffat.is_some() {
-        let mut offsets = Vec::with_capacity(np);
-        if normal.is_some() {
-            derivs = vec![[0.0; 5]; np * lay.n_src];
-        } else {
-            values = vec![0.0; np * lay.n_src];
-        }
-        for k in 0..lay.n_src {
-            offsets.clear();
-            offsets.extend(
-                pixels
-                    .iter()
-                    .map(|px| (px.ix as f64 - p[3 * k + 1], px.iy as f64 - p[3 * k + 2])),
-            );
-            if normal.is_some() {
-                moffat_pixels_derivs(&offsets, alpha, beta, &mut derivs[k * np..(k + 1) * np]);
-            } else {
-                moffat_pixels(&offsets, alpha, beta, &mut values[k * np..(k + 1) * np]);
-            }
-        }
-    }
-    let mut chi2 = 0.0;
-    for (ip, px) in pixels.iter().enumerate() {
-        let mut m = b;
-        if normal.is_some() {
-            jrow.iter_mut().for_each(|v| *v = 0.0);
-        }
-        match &f {
-            Some(f) => {
-                let (cx, cy) = (px.ix - f.x0, px.iy - f.y0);
-                for k in 0..lay.n_src {
-                    let flux = p[3 * k];
-                    let (gx, dgx, sgx) = f.fx[k][cx];
-                    let (gy, dgy, sgy) = f.fy[k][cy];
-                    m += flux * gx * gy;
-                    if normal.is_some() {
-                        jrow[3 * k] = gx * gy;
-                        jrow[3 * k + 1] = flux * dgx * gy;
-                        jrow[3 * k + 2] = flux * gx * dgy;
-                        jrow[lay.i_sx] += flux * sgx * gy;
-                        jrow[lay.i_sy] += flux * gx * sgy; // same slot as sx when circular
-                    }
-                }
-            }
-            None => {
-                for k in 0..lay.n_src {
-                    let flux = p[3 * k];
-                    if normal.is_some() {
-                        let d = derivs[k * np + ip];
-                        m += flux * d[0];
-                        jrow[3 * k] = d[0];
-                        jrow[3 * k + 1] = flux * d[1];
-                        jrow[3 * k + 2] = flux * d[2];
-                        jrow[lay.i_sx] += flux * d[3];
-                        if let Some(ib) = lay.i_beta {
-                            jrow[ib] += flux * d[4];
-                        }
-                    } else {
-                        m += flux * values[k * np + ip];
-                    }
-                }
-            }
-        }
-        let r = (px.v - m) * px.w;
-        chi2 += r * r;
-        if let Some((a, g)) = normal.as_mut() {
-            if let Some(ib) = lay.i_b {
-                jrow[ib] = 1.0;
-            }
-            for i in 0..n {
-                let ji = jrow[i] * px.w;
-                g[i] += ji * r;
-                for j in 0..=i {
-                    a[i * n + j] += ji * jrow[j] * px.w;
-                }
-            }
-        }
-    }
-    if let Some((a, _)) = normal.as_mut() {
-        for i in 0..n {
-            for j in 0..i {
-                a[j * n + i] = a[i * n + j];
-            }
-        }
-    }
-    chi2
-}
-
-/// In-place Cholesky factorisation of the symmetric n x n matrix `a` (lower triangle).
-fn cholesky(a: &mut [f64], n: usize) -> bool {
-    for j in 0..n {
-        let mut d = a[j * n + j];
-        for k in 0..j {
-            d -= a[j * n + k] * a[j * n + k];
-        }
-        if d.is_nan() || d <= 0.0 {
-            return false;
-        }
-        let d = d.sqrt();
-        a[j * n + j] = d;
-        for i in j + 1..n {
-            let mut s = a[i * n + j];
-            for k in 0..j {
-                s -= a[i * n + k] * a[j * n + k];
-            }
-            a[i * n + j] = s / d;
-        }
-    }
-    true
-}
-
-/// The chi-square decrease `g . d` of the undamped Gauss-Newton step `A d = g`, by the
-/// quadratic model; `None` when `A` is not positive definite.
-fn predicted_gain(a: &[f64], g: &[f64], n: usize) -> Option<f64> {
-    let mut l = a.to_vec();
-    cholesky(&mut l, n).then(|| cholesky_solve(&l, n, g).iter().zip(g).map(|(d, g)| d * g).sum())
-}
-
-/// Solves `L L^T x = b` with the factor from [`cholesky`].
-fn cholesky_solve(l: &[f64], n: usize, b: &[f64]) -> Vec<f64> {
-    let mut y = b.to_vec();
-    for i in 0..n {
-        for k in 0..i {
-            y[i] -= l[i * n + k] * y[k];
-        }
-        y[i] /= l[i * n + i];
-    }
-    for i in (0..n).rev() {
-        for k in i + 1..n {
-            y[i] -= l[k * n + i] * y[k];
-        }
-        y[i] /= l[i * n + i];
-    }
-    y
-}
+use normal::{background_of, Layout, Pixel};
+use solve::{cholesky, cholesky_solve, Problem, Solution};
 
 /// Fits `guesses.len()` pixel-integrated Gaussians or Moffats ([`PsfFitParams::model`]) with a
 /// shared shape to the image near the initial positions `guesses` (px). `var` (ADU^2) weights
@@ -289,6 +33,32 @@ pub fn fit_psf(
     params: &PsfFitParams,
 ) -> Result<PsfFit, PsfFitError> {
     fit_psf_until(img, var, mask, guesses, params, None, false)
+}
+
+/// [`fit_psf`] for a pair: `a` and `b` are the initial positions of the two components.
+///
+/// ```
+/// use ndarray::Array2;
+/// use sofipol_pipeline::photometry::{fit_two_psf, model::add_gaussian, subtract_star, PsfFitParams};
+/// // Two stars 4 px apart (1.4 FWHM), on a sky of 5 ADU.
+/// let mut img = Array2::<f32>::from_elem((40, 40), 5.0);
+/// add_gaussian(&mut img.view_mut(), 2e4, 18.0, 20.0, 1.2, 1.2);
+/// add_gaussian(&mut img.view_mut(), 5e3, 22.0, 20.5, 1.2, 1.2);
+/// let fit = fit_two_psf(img.view(), None, None, (18.3, 19.8), (21.6, 20.9), &PsfFitParams::default()).unwrap();
+/// assert!((fit.stars[1].flux / 5e3 - 1.0).abs() < 1e-4);
+/// // Deblend: the primary alone (plus sky).
+/// let primary = subtract_star(img.view(), &fit, 1);
+/// assert!((primary[[20, 22]] - 5.0) < 0.1 * (img[[20, 22]] - 5.0));
+/// ```
+pub fn fit_two_psf(
+    img: ArrayView2<f32>,
+    var: Option<ArrayView2<f32>>,
+    mask: Option<ArrayView2<u8>>,
+    a: (f64, f64),
+    b: (f64, f64),
+    params: &PsfFitParams,
+) -> Result<PsfFit, PsfFitError> {
+    fit_psf(img, var, mask, &[a, b], params)
 }
 
 /// Where a fit starts instead of its own start values: each star's (flux, x, y) and the
@@ -522,146 +292,6 @@ fn apply_start(p: &mut [f64], lay: &Layout, start: &PsfStart, guesses: &[(f64, f
         p[ib] = start.beta;
     }
 }
-
-/// What one fit works on.
-struct Problem<'a> {
-    lay: &'a Layout,
-    /// The background when it is held fixed.
-    fixed_b: Option<f64>,
-    pixels: &'a [Pixel],
-    /// Bounding box of the pixels (x0, x1, y0, y1).
-    bx: (usize, usize, usize, usize),
-    guesses: &'a [(f64, f64)],
-    /// Fit radius: no star may move farther from its guess.
-    rf: f64,
-    /// No early stops (see [`fit_psf_until`]).
-    to_the_end: bool,
-}
-
-/// Where the iteration stopped.
-struct Solution {
-    p: Vec<f64>,
-    chi2: f64,
-    /// The undamped normal matrix at `p`.
-    a: Vec<f64>,
-    iterations: u32,
-    converged: bool,
-}
-
-impl Problem<'_> {
-    /// Whether a trial point is inside the accepted ranges.
-    fn acceptable(&self, q: &[f64]) -> bool {
-        let lay = self.lay;
-        let widths_ok = match lay.moffat {
-            None => [q[lay.i_sx], q[lay.i_sy]].iter().all(|&s| (0.05..=50.0).contains(&s)),
-            Some(_) => {
-                (MOFFAT_ALPHA_RANGE.0..=MOFFAT_ALPHA_RANGE.1).contains(&q[lay.i_sx])
-                    && lay
-                        .i_beta
-                        .is_none_or(|i| (MOFFAT_BETA_RANGE.0..=MOFFAT_BETA_RANGE.1).contains(&q[i]))
-            }
-        };
-        let pos_ok = self
-            .guesses
-            .iter()
-            .enumerate()
-            .all(|(k, &(gx, gy))| (q[3 * k + 1] - gx).hypot(q[3 * k + 2] - gy) <= self.rf);
-        widths_ok && pos_ok && q.iter().all(|v| v.is_finite())
-    }
-
-    /// chi2 at `p`, and the normal equations there into `normal`.
-    fn evaluate(&self, p: &[f64], normal: Option<(&mut [f64], &mut [f64])>) -> f64 {
-        evaluate(p, self.lay, self.fixed_b, self.pixels, self.bx, normal)
-    }
-
-    /// The damped Levenberg-Marquardt iteration from `p`.
-    fn solve(&self, mut p: Vec<f64>, max_iter: u32) -> Solution {
-        /// Absolute chi-square gain of an accepted Gauss-Newton step below which the fit
-        /// has converged.
-        const CHI2_GAIN_DONE: f64 = 1e-6;
-        let n = self.lay.n;
-        let mut a = vec![0.0; n * n];
-        let mut g = vec![0.0; n];
-        // The trial point's normal equations are built with its chi-square (same operations,
-        // bit-identical chi-square): an accepted step then needs no second evaluation.
-        let mut a_trial = vec![0.0; n * n];
-        let mut g_trial = vec![0.0; n];
-        let mut chi2 = self.evaluate(&p, Some((&mut a, &mut g)));
-        let mut lambda = 1e-3;
-        let mut converged = false;
-        let mut iterations = 0;
-        while iterations < max_iter {
-            iterations += 1;
-            let mut damped = a.clone();
-            for i in 0..n {
-                let d = a[i * n + i];
-                damped[i * n + i] = d + lambda * d.max(1e-300);
-            }
-            let step = if cholesky(&mut damped, n) {
-                Some(cholesky_solve(&damped, n, &g))
-            } else {
-                None
-            };
-            let trial: Option<Vec<f64>> = step.map(|d| p.iter().zip(&d).map(|(x, dx)| x + dx).collect());
-            let improved = match &trial {
-                Some(q) if self.acceptable(q) => {
-                    let c = self.evaluate(q, Some((&mut a_trial, &mut g_trial)));
-                    (c <= chi2).then_some(c)
-                }
-                _ => None,
-            };
-            match (improved, trial) {
-                (Some(c), Some(q)) => {
-                    let small_step = p.iter().zip(&q).all(|(x, y)| (x - y).abs() <= 1e-10 * (x.abs() + 1e-6));
-                    // Converged when the step gained less than 1e-13 of chi-square, or less
-                    // than 1e-6 in absolute terms at Gauss-Newton damping: from there the
-                    // minimum is within ~1e-3 sigma of every parameter (chi-square rises by 1
-                    // at 1 sigma), far below the noise (q, u of the bench night move by
-                    // <= 1e-5 sigma), and the last iterations cost 12 % of the fits.
-                    let small_gain = chi2 - c <= 1e-13 * chi2 || (chi2 - c <= CHI2_GAIN_DONE && lambda <= 1e-2);
-                    let gauss_newton = lambda <= 1e-2;
-                    p = q;
-                    chi2 = c;
-                    std::mem::swap(&mut a, &mut a_trial);
-                    std::mem::swap(&mut g, &mut g_trial);
-                    lambda = (lambda * 0.1).max(1e-12);
-                    if self.to_the_end {
-                        continue;
-                    }
-                    if small_step || small_gain || chi2 == 0.0 {
-                        converged = true;
-                        break;
-                    }
-                    // The same rule one step ahead: when the next Gauss-Newton step would
-                    // gain less than CHI2_GAIN_DONE by the quadratic model (g.d with
-                    // A d = g, which the last steps follow closely), stop here rather
-                    // than evaluate it (the fits' last evaluation; the parameters stay
-                    // within ~1e-3 sigma of the minimum, as with the rule above).
-                    if gauss_newton && predicted_gain(&a, &g, n).is_some_and(|d| d <= CHI2_GAIN_DONE) {
-                        converged = true;
-                        break;
-                    }
-                }
-                _ => {
-                    lambda *= 10.0;
-                    if lambda > 1e12 {
-                        // No downhill step exists at working precision: we are at the minimum.
-                        converged = true;
-                        break;
-                    }
-                }
-            }
-        }
-        Solution {
-            p,
-            chi2,
-            a,
-            iterations,
-            converged,
-        }
-    }
-}
-
 /// The result: covariance from the undamped normal matrix, stars, shape, names.
 fn finish(problem: &Problem, sol: Solution, params: &PsfFitParams, weighted: bool) -> Result<PsfFit, PsfFitError> {
     let (lay, p, chi2) = (problem.lay, &sol.p, sol.chi2);
