@@ -1,4 +1,4 @@
-//! Hostile but realistic use of the `sofipol` binary (issue 9): each test simulates a
+//! Hostile but realistic use of the `sofipol` binary: each test simulates a
 //! 2-target night, damages it or the command line in one way, and checks that nothing is
 //! lost and nothing is silently wrong: the undamaged target is reduced exactly as in a
 //! clean run, and every unused input is named under `failures`.

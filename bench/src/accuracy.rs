@@ -38,7 +38,7 @@ pub struct AccuracyConfig {
     pub extra_scene: String,
     /// Flat field applied to the raw frames before the reduction.
     pub flat: FlatMode,
-    /// Calibrate each bin's night as `night` does (issue 8): its standards (scene
+    /// Calibrate each bin's night as `night` does: its standards (scene
     /// `[[standard]]`s, after the binaries) reduced as single stars, the offset and angle
     /// zero-point measured against the built-in table, every component re-solved with the
     /// automatic Stokes method (the ratio method for balanced angles).
@@ -61,7 +61,7 @@ impl AccuracyConfig {
         cfg
     }
 
-    /// `cfg` with the instrument of issue 8 (beam ratio k = T_e/T_o = 0.97, instrumental
+    /// `cfg` with the instrument (beam ratio k = T_e/T_o = 0.97, instrumental
     /// polarization 0.3 % along the analyzer, angle zero-point 3 deg) and calibration on; with
     /// `standards`, each bin's night also holds two unpolarized standards of the built-in
     /// table (HD 64299, HD 98161) and two polarized ones with K-band values known to 0.02 %
@@ -246,7 +246,7 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
             let (scene, _) = scene_for(cfg, w[0], w[1], bin);
             let sim = Simulator::new(scene, profile.clone()).expect("valid");
             let n = sim.frames_per_target();
-            let flats = night_flats(cfg.flat, &sim, &profile);
+            let flats = simulated_flats(cfg.flat, &sim, &profile);
             let load = |t: usize| {
                 let mut frames: Vec<_> = (0..n).map(|k| sim.frame(t, k)).collect();
                 if let Some(set) = &flats {
@@ -417,8 +417,10 @@ fn bin_report(w: &[f64], fwhm: f64, ones: &[One]) -> BinReport {
     }
 }
 
-/// The flats of one simulated night (one separation bin), as `night` would build them.
-pub fn night_flats(mode: FlatMode, sim: &Simulator, profile: &Profile) -> Option<sofipol_calib::flat::FlatSet> {
+/// The flats of one simulated night (one separation bin), built from the simulated frames in
+/// memory with the library's `dome_flat` / `superflat` (`night::night_flats` builds the same
+/// kinds from files; this harness never writes any).
+pub fn simulated_flats(mode: FlatMode, sim: &Simulator, profile: &Profile) -> Option<sofipol_calib::flat::FlatSet> {
     use sofipol_calib::flat::{dome_flat, superflat, FlatOptions, FlatSet};
     let opts = FlatOptions::default();
     match mode {

@@ -56,10 +56,10 @@ pub const G_REDUCTION: &str = "reduction";
 /// Group of the observing choices (x axis: exposure time per target).
 pub const G_EXPOSURE: &str = "exposure";
 
-/// Group of the flat-field choices on a night with a 1 % pixel response (issue 8; x axis:
+/// Group of the flat-field choices on a night with a 1 % pixel response (x axis:
 /// reduction time per target).
 pub const G_FLAT: &str = "flat field";
-/// Group of the instrumental calibration (issue 8; x axis: reduction time per target).
+/// Group of the instrumental calibration (x axis: reduction time per target).
 pub const G_INSTRUMENT: &str = "instrument calibration";
 
 /// Every trade-off of the report. The DIT of the simulated frames is 10 s (1 NDIT).
@@ -185,7 +185,7 @@ pub fn variants() -> Vec<Variant> {
     out
 }
 
-/// Calibration rows (issue 8): the flat on a night with a 1 % pixel response, and the
+/// Calibration rows: the flat on a night with a 1 % pixel response, and the
 /// instrument (k = 0.97, p_inst 0.3 %, zero-point 3 deg) calibrated by standards (2
 /// orientations) or cancelled by the ratio method (4 orientations, no calibration data).
 fn calibration_variants() -> Vec<Variant> {

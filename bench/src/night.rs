@@ -216,7 +216,7 @@ pub fn run(a: NightArgs) -> anyhow::Result<()> {
             "  Python reference: not run (give --python PATH or set SOFIPOL_PYTHON to an interpreter with numpy, scipy, astropy, photutils)"
         ),
     }
-    println!("  targets (issue 10): wall <= 5x cat, >= 50x faster than the Python reduction, peak RSS <= 1 GB");
+    println!("  targets: wall <= 5x cat, >= 50x faster than the Python reduction, peak RSS <= 1 GB");
     Ok(())
 }
 
@@ -266,7 +266,7 @@ fn time_sofipol_night(
         let cat = cat_floor(files)?;
         let read = read_floor(files)?;
         // The same night without any calibration (no flat, no standards), right after: what
-        // calibration costs is the difference (issue 8).
+        // calibration costs is the difference.
         let (base_wall, base_err) = night(
             &root.join("catalog-uncalibrated.json"),
             &["--no-flat", "--no-calibration"],
@@ -352,7 +352,7 @@ fn print_night_runs(runs: &[NightRun], files: &[std::path::PathBuf], last: &str)
     s
 }
 
-/// Median per-stage times and the cost of calibration (issue 8: <= 15 % of the night).
+/// Median per-stage times and the cost of calibration (<= 15 % of the night).
 fn print_stages(runs: &[NightRun]) {
     let med = |f: &dyn Fn(&NightRun) -> f64| -> f64 {
         let mut v: Vec<f64> = runs.iter().map(f).filter(|x| x.is_finite()).collect();
@@ -379,7 +379,7 @@ fn print_stages(runs: &[NightRun]) {
             .join(" ")
     };
     println!(
-        "  calibration (issue 8: adds <= 15 %): night without flat and standards {:.2} CPU-s / {:.2} s wall (median); \
+        "  calibration (target: adds <= 15 %): night without flat and standards {:.2} CPU-s / {:.2} s wall (median); \
          calibration adds {:+.1} % CPU [{}], {:+.1} % wall [{}] (median of per-run ratios; flat build {:.2} s, \
          flat check {:.2} s, standards {:.2} s; the flat is divided out in the sky stage's pass)",
         med(&|r| r.base.get("cpu")),

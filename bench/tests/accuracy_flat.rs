@@ -1,4 +1,4 @@
-//! Acceptance (issue 8): a 1 % pixel response non-uniformity with no flat-fielding makes
+//! Acceptance: a 1 % pixel response non-uniformity with no flat-fielding makes
 //! the errors of wide pairs dishonest; the superflat from the night's own sky, or the
 //! night's dome flats, bring the pull rms of q and u back into 0.8-1.2. PSF FWHM and Moffat
 //! beta vary frame to frame (+-20 %, 2.5-4). Wide pairs only (two bins, 2-5 FWHM), 12

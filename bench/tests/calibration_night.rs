@@ -1,4 +1,4 @@
-//! Acceptance of the instrumental calibration (issue 8) on simulated nights, fixed seeds:
+//! Acceptance of the instrumental calibration on simulated nights, fixed seeds:
 //! beam ratio k = 0.97, instrumental polarization 0.3 %, angle zero-point 3 deg.
 //!
 //! * 2 orientations with 2 unpolarized + 2 polarized standards: q, u pulls of the pooled
@@ -11,7 +11,7 @@
 //! Frames are simulated and reduced one sequence at a time (streaming: a night of 1024^2
 //! frames does not fit in memory), in parallel over sequences.
 use rayon::prelude::*;
-use sofipol_bench::accuracy::{night_flats, FlatMode};
+use sofipol_bench::accuracy::{simulated_flats, FlatMode};
 use sofipol_calib::flat::FlatSet;
 use sofipol_calib::Profile;
 use sofipol_pipeline::calibration::{calibrate_catalog, standard_params, CalibrationParams, CalibrationSource};
@@ -136,7 +136,7 @@ fn reduce_night(sc: Scene) -> (Catalog, Vec<Target>, Truth) {
     } else {
         FlatMode::None
     };
-    let flats = night_flats(mode, &sim, &profile);
+    let flats = simulated_flats(mode, &sim, &profile);
     let targets: Vec<Target> = (0..sim.n_sequences())
         .into_par_iter()
         .map(|t| reduce_one(&sim, t, &profile, &params, flats.as_ref()))

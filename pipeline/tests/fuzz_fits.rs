@@ -1,4 +1,4 @@
-//! Fuzzing `read_frame` (header *and* pixel data) with proptest (issue 9): arbitrary
+//! Fuzzing `read_frame` (header *and* pixel data) with proptest: arbitrary
 //! bytes, and valid FITS files mutated (bytes flipped anywhere, truncated, header values
 //! replaced by wild ones). Property: no panic, and an error names the file.
 use proptest::prelude::*;

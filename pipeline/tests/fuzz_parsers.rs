@@ -1,4 +1,4 @@
-//! Fuzzing the parsers of untrusted input with proptest (issue 9): the FITS header reader
+//! Fuzzing the parsers of untrusted input with proptest: the FITS header reader
 //! (cfitsio plus our card parser and classification), the scene and parameter TOML, the
 //! catalog JSON and the Monte-Carlo table/spec parsers. Property: no panic, and an error
 //! (never a half-parsed value with NaN) when the input is not valid.

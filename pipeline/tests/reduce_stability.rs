@@ -1,4 +1,4 @@
-//! The reduction-level cases of issue 9's numerical-stability suite. Each simulates a
+//! The reduction-level cases of the numerical-stability suite. Each simulates a
 //! 2-target scene (Alpha, Beta), damages Alpha in one way (or observes both in an unusual
 //! way) and checks the property named by the test; the undamaged Beta must come out
 //! exactly as in the clean reduction.

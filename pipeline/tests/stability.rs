@@ -1,4 +1,4 @@
-//! The numerical-stability suite of issue 9, for the parts that do not need a reduction:
+//! The numerical-stability suite, for the parts that do not need a reduction:
 //! the Stokes inversion at P = 0, P << sigma and P = 0.05 % on a very bright star, the
 //! angle wrap at 0/180 and the Delta-gamma fold at 0/90, property tests of the forward
 //! model and inversion, and the Monte Carlo at alpha exactly 0 and 180 deg.

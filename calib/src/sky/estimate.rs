@@ -1,6 +1,6 @@
 //! The sky estimate of every dither from the other dithers: the median (fast path,
 //! [`crate::stack`]), a sigma-clipped mean, and a second pass with the sources of the
-//! first pass masked (issue 10: the trade-offs shown by `sofipol bench accuracy --report`).
+//! first pass masked (the trade-offs shown by `sofipol bench accuracy --report`).
 use ndarray::{Array2, ArrayView2};
 use rayon::prelude::*;
 

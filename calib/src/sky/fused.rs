@@ -143,12 +143,7 @@ pub(super) fn subtract_skies(
 
 /// The frames' buffers (`parts`: frame, raw data, sky buffer, input variance) cut into
 /// blocks of [`BLOCK`] rows: `blocks[b][i]` holds frame i's rows of block b.
-fn split_blocks<'a>(
-    parts: &'a mut [Part],
-    ny: usize,
-    nx: usize,
-    inp: &'a FinishInputs,
-) -> Vec<Vec<BlockRows<'a>>> {
+fn split_blocks<'a>(parts: &'a mut [Part], ny: usize, nx: usize, inp: &'a FinishInputs) -> Vec<Vec<BlockRows<'a>>> {
     let (n, len, chunk) = (parts.len(), ny * nx, BLOCK * nx);
     let mut blocks: Vec<Vec<BlockRows>> = (0..ny.div_ceil(BLOCK)).map(|_| Vec::with_capacity(n)).collect();
     for (i, (f, raw, sky, vin)) in parts.iter_mut().enumerate() {

@@ -195,7 +195,7 @@ fn target_in(object: &str, filter: &str, comps: Vec<Component>) -> Target {
     t
 }
 
-/// The offset is per filter (issue 8): a night in J and Ks with different offsets gets one
+/// The offset is per filter: a night in J and Ks with different offsets gets one
 /// entry per filter in calibration.json, and each target is corrected with its own
 /// filter's entry (also when the calibration is read back from the file, as `--calib`
 /// does); a filter without standards is flagged `uncalibrated`.

@@ -910,7 +910,7 @@ fn figure_counts_use_superscripts_and_mc_mean_comes_from_the_pairs() {
     );
 }
 
-// ---- issue 12: perpendicular polarization and P(i) tables ----
+// ---- perpendicular polarization and P(i) tables ----
 
 fn with_perp(cfg: McConfig, f: [f64; 2]) -> McConfig {
     McConfig {

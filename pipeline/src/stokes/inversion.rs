@@ -536,7 +536,7 @@ mod tests {
                 );
             }
         }
-        // The measured S/N would give the narrower, wrong widths quoted in issue 12.
+        // The measured S/N would give the narrower, wrong widths quoted in an earlier report.
         let (w084, w3) = (half_width_by_quadrature(0.84), half_width_by_quadrature(3.0));
         assert!((w084 - 33.2).abs() < 0.1 && (w3 - 9.7).abs() < 0.05, "{w084} {w3}");
         // MAS debiasing: P0 from the MAS estimator.
