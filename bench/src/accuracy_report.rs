@@ -266,8 +266,8 @@ pub struct VariantResult {
     pub bins: Vec<BinReport>,
     /// On the Pareto front of its group (error against the group's cost).
     pub on_front: bool,
-    /// Not on the front, but within the noise of it ([`near_pareto`]: no other variant is
-    /// both [`NEAR_COST`] cheaper and [`NEAR_ERROR`] more accurate).
+    /// Not on the front, but within the noise of it (`near_pareto`: no other variant is
+    /// both `NEAR_COST` cheaper and `NEAR_ERROR` more accurate).
     pub near_front: bool,
 }
 

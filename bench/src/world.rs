@@ -249,12 +249,12 @@ fn draw_scene(
     let (pa_, pb) = (0.01 + 0.07 * r.random::<f64>(), 0.01 + 0.07 * r.random::<f64>());
     let (ga, gb) = (180.0 * r.random::<f64>(), 180.0 * r.random::<f64>());
     let pa = 360.0 * r.random::<f64>();
-    let orientations: Vec<f64> = if t % 2 == 0 {
+    let orientations: Vec<f64> = if t.is_multiple_of(2) {
         vec![0.0, 45.0]
     } else {
         vec![0.0, 45.0, 90.0, 135.0]
     };
-    let bitpix = if (t / 2) % 2 == 0 { -32 } else { 16 };
+    let bitpix = if (t / 2).is_multiple_of(2) { -32 } else { 16 };
     let (effects, sections) = night_sections(cfg, inst);
     let text = format!(
         r#"name = "world{bin}_{t}"

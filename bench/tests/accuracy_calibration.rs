@@ -1,4 +1,4 @@
-//! Issue 8 acceptance in the `bench accuracy` harness (varying PSF, bad pixels, cosmic
+//! Acceptance of the instrumental calibration in the `bench accuracy` harness (varying PSF, bad pixels, cosmic
 //! rays, transparency, pointing errors): beam ratio k = 0.97, instrumental polarization
 //! 0.3 %, zero-point 3 deg.
 //! * 2 orientations with 2 unpolarized + 2 polarized standards in each night: pooled q, u
@@ -6,6 +6,7 @@
 //! * the same without standards: flagged `uncalibrated` and biased (why the flag exists);
 //! * 4 orientations, no calibration data, k and p_inst (zero-point 0: nothing but a
 //!   polarized standard measures it): the ratio method gives rms 0.8-1.2, mean < 0.3.
+//!
 //! Two wide separation bins (1.6-4"), 8 binaries each, seed 41.
 use sofipol_bench::accuracy::{run, AccuracyConfig, BinReport};
 use sofipol_pipeline::reduce::TargetParams;

@@ -322,7 +322,7 @@ pub fn detect_bad_pixels_in_rows(
         .strips()
         .iter()
         .all(|(_, [a, b])| b <= &r0 || a >= &r1 || (a >= &r0 && b <= &r1));
-    if !(r0 < r1 && r1 <= ny) || !whole {
+    if r0 >= r1 || r1 > ny || !whole {
         return Err(stage_err(format!(
             "rows [{r0}, {r1}) of {ny}: not whole strips of the profile, or outside the frames"
         )));
@@ -350,7 +350,7 @@ pub fn detect_bad_pixels_from_rows(
         .strips()
         .iter()
         .all(|(_, [a, b])| b <= &r0 || a >= &r1 || (a >= &r0 && b <= &r1));
-    if !(r0 < r1 && r1 <= g.ny) || !whole || ny != r1 - r0 || levels.len() != parts.len() {
+    if r0 >= r1 || r1 > g.ny || !whole || ny != r1 - r0 || levels.len() != parts.len() {
         return Err(stage_err(format!(
             "rows [{r0}, {r1}) of {}: not whole strips of the profile, or {} frames of {ny} rows with {} levels",
             g.ny,

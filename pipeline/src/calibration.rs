@@ -378,6 +378,7 @@ pub enum CalibrationSource {
 /// component with the calibration and the chosen Stokes method, flag `uncalibrated`
 /// components and record what was used in `catalog.calibration`. Returns the calibration
 /// used and the summary.
+#[allow(clippy::too_many_arguments)] // each is a separate input of the calibration
 pub fn calibrate_catalog(
     cat: &mut Catalog,
     standards: Vec<Target>,

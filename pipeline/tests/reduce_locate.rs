@@ -166,7 +166,7 @@ fn combine_geometry_inverts_the_rotation_convention_and_wraps_the_pa() {
     // PAs of 359 and 1 deg average to 0, not 180; the disagreement is reported in px.
     let off = |pa: f64| (0.0, companion_offset_px(3.0, pa, 0.0, scale), 1.0);
     let (_, p, worst) = combine_geometry(&[off(359.0), off(1.0)], scale).unwrap();
-    assert!(p < 1e-9 || p > 360.0 - 1e-9, "{p}");
+    assert!(!(1e-9..=360.0 - 1e-9).contains(&p), "{p}");
     let chord = 3.0 / scale * (2.0 * (1f64).to_radians().sin() / 2.0) * 2.0 / 2.0;
     assert!((worst - chord).abs() < 0.01, "{worst} vs {chord}");
     assert!(combine_geometry(&[], scale).is_none());

@@ -4,7 +4,10 @@ use sofipol_pipeline::photometry::PsfModel;
 use sofipol_pipeline::reduce::{measure_sequence, target_entry, CalibratedOrientation, MeasureParams};
 use sofipol_pipeline::sim::{Scene, SimFrame, Simulator, Truth};
 
-fn scene_text(psf: &str, orientations: &str, binaries: &[(f64, f64, f64, f64, f64, f64, f64, f64)]) -> String {
+/// A binary: separation ("), PA (deg), fluxes of A and B (ADU), P and gamma (deg) of A and B.
+type Binary = (f64, f64, f64, f64, f64, f64, f64, f64);
+
+fn scene_text(psf: &str, orientations: &str, binaries: &[Binary]) -> String {
     let mut s = format!(
         "name = \"nl\"\nseed = 5\neffects = [\"psf\"]\n[observation]\norientations_deg = [{orientations}]\ndithers = 3\n[psf]\n{psf}\n"
     );
@@ -71,7 +74,7 @@ fn check(truth: &Truth, frames: &[SimFrame], tol: f64, params: &MeasureParams) -
     worst
 }
 
-const BINARIES: [(f64, f64, f64, f64, f64, f64, f64, f64); 5] = [
+const BINARIES: [Binary; 5] = [
     (5.3, 120.0, 150000.0, 90000.0, 0.06, 40.0, 0.045, 52.0),
     (2.2, 300.0, 120000.0, 40000.0, 0.03, 150.0, 0.05, 95.0),
     (1.1, 20.0, 100000.0, 60000.0, 0.04, 10.0, 0.035, 170.0),

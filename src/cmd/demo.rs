@@ -352,14 +352,14 @@ mod tests {
         let t = truth([0.05, -0.02], [0.01, 0.03]);
         // 4.9 sigma off in q of A: passes; 5.1 sigma: fails, naming the component and value.
         let ok = catalog([0.05 + 4.9e-3, -0.02], [0.01, 0.03], 1e-3, 30.0);
-        assert!(check_against_truth(&[t.clone()], &ok, 5.0).is_empty());
+        assert!(check_against_truth(std::slice::from_ref(&t), &ok, 5.0).is_empty());
         let bad = catalog([0.05 + 5.1e-3, -0.02], [0.01, 0.03], 1e-3, 30.0);
-        let p = check_against_truth(&[t.clone()], &bad, 5.0);
+        let p = check_against_truth(std::slice::from_ref(&t), &bad, 5.0);
         assert_eq!(p.len(), 1, "{p:?}");
         assert!(p[0].contains("T A: q") && p[0].contains("pull 5.1"), "{p:?}");
         // u of B off by -6 sigma.
         let bad_u = catalog([0.05, -0.02], [0.01, 0.03 - 6e-3], 1e-3, 30.0);
-        assert!(check_against_truth(&[t.clone()], &bad_u, 5.0)[0].contains("T B: u"));
+        assert!(check_against_truth(std::slice::from_ref(&t), &bad_u, 5.0)[0].contains("T B: u"));
     }
 
     #[test]
@@ -367,15 +367,17 @@ mod tests {
         let t = truth([0.05, -0.02], [0.01, 0.03]);
         // The reduction labelled the stars the other way round (PA off by 180 deg).
         let swapped = catalog([-0.02, 0.05], [0.03, 0.01], 1e-3, 210.0);
-        assert!(check_against_truth(&[t.clone()], &swapped, 5.0).is_empty());
+        assert!(check_against_truth(std::slice::from_ref(&t), &swapped, 5.0).is_empty());
         // ... but the same values without the PA flip are 70 sigma off.
         let wrong = catalog([-0.02, 0.05], [0.03, 0.01], 1e-3, 30.0);
-        assert_eq!(check_against_truth(&[t.clone()], &wrong, 5.0).len(), 4);
+        assert_eq!(check_against_truth(std::slice::from_ref(&t), &wrong, 5.0).len(), 4);
         // A component missing, a target missing, a NaN error.
         let mut one = catalog([0.05, -0.02], [0.01, 0.03], 1e-3, 30.0);
         one.targets[0].components.pop();
-        assert!(check_against_truth(&[t.clone()], &one, 5.0)[0].contains("not measured"));
-        assert!(check_against_truth(&[t.clone()], &Catalog::default(), 5.0)[0].contains("not in the catalog"));
+        assert!(check_against_truth(std::slice::from_ref(&t), &one, 5.0)[0].contains("not measured"));
+        assert!(
+            check_against_truth(std::slice::from_ref(&t), &Catalog::default(), 5.0)[0].contains("not in the catalog")
+        );
         let mut nan = catalog([0.05, -0.02], [0.01, 0.03], 1e-3, 30.0);
         nan.targets[0].components[1].sigma_u = f64::NAN;
         let p = check_against_truth(&[t], &nan, 5.0);

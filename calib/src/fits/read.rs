@@ -45,7 +45,7 @@ pub fn read_header(path: &Path) -> Result<Header> {
 /// Read a frame: the image as `f32` (`[y, x]`, row 0 = FITS row 1), its header, HISTORY
 /// cards as provenance records, and VARIANCE / MASK extensions when present.
 ///
-/// HISTORY cards of the form `sofipol <stage>: <detail>` (as written by [`write_frame`],
+/// HISTORY cards of the form `sofipol <stage>: <detail>` (as written by [`super::write_frame`],
 /// continuation cards joined) become records of that stage; any other HISTORY card
 /// becomes a record of stage `"file"`. Without a MASK extension the mask is all zeros.
 ///

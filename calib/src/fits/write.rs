@@ -24,8 +24,8 @@ use super::{Bitpix, WriteOptions, MASK_EXTNAME, VARIANCE_EXTNAME};
 /// as `HIERARCH` cards; strings longer than a card with the CONTINUE convention; floats
 /// with the shortest representation that reads back bit-exactly; comments when they
 /// fit), then one HISTORY entry per `frame.history` record (`record.line()`, split into
-/// cards of at most [`HISTORY_CHUNK`] characters; continuation cards start with
-/// [`HISTORY_CONTINUATION`]). Structural keywords in `frame.header` are ignored (the
+/// cards of at most [`super::HISTORY_CHUNK`] characters; continuation cards start with
+/// [`super::HISTORY_CONTINUATION`]). Structural keywords in `frame.header` are ignored (the
 /// file layout decides them). Non-ASCII characters in comments and HISTORY become `?`;
 /// in keyword names or string values they are an error, as are non-finite floats.
 ///

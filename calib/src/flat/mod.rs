@@ -399,9 +399,12 @@ pub struct FlatSet {
     prepared: PreparedCache,
 }
 
+/// One cached entry: (flat index, row0, ny) and its maps.
+type PreparedEntry = ((usize, usize, usize), std::sync::Arc<apply::Prepared>);
+
 /// Cache of [`FlatSet::rows`]: (flat index, row0, ny) -> maps. A clone starts empty.
 #[derive(Default)]
-struct PreparedCache(std::sync::Mutex<Vec<((usize, usize, usize), std::sync::Arc<apply::Prepared>)>>);
+struct PreparedCache(std::sync::Mutex<Vec<PreparedEntry>>);
 
 impl Clone for PreparedCache {
     fn clone(&self) -> Self {
@@ -524,7 +527,7 @@ mod median_tests {
                             .wrapping_mul(6364136223846793005)
                             .wrapping_add(1442695040888963407);
                         let i = (state >> 33) as usize;
-                        if i % 3 == 0 {
+                        if i.is_multiple_of(3) {
                             pool[i % pool.len()]
                         } else {
                             1.0 + (i % 1000) as f32 * 1e-4

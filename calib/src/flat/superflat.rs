@@ -249,8 +249,8 @@ fn prep_frame(f: &Frame, profile: &Profile, lay: &Layout, defect: &Array2<u8>, o
     let sigs: Vec<[f32; 6]> = (0..nb)
         .map(|bi| std::array::from_fn(|k| scatter[bi][k].max((local[bi][k] * inv_g + rv).sqrt())))
         .collect();
-    for y in 0..ny {
-        let Some(k) = strip_of[y] else { continue };
+    for (y, strip) in strip_of.iter().enumerate().take(ny) {
+        let Some(k) = *strip else { continue };
         let (drow, mrow, defrow) = (row_of(&f.data, y), row_of(&f.mask, y), row_of(defect, y));
         let (erow, srow) = (row_of_mut(&mut excl, y), row_of_mut(&mut seed, y));
         for bi in 0..nb {

@@ -17,8 +17,8 @@ pub struct PixelSummary {
 }
 
 impl PixelSummary {
-    /// The summary of `values`, with the widest vectors this CPU has ([`summary_of`]; the
-    /// same numbers as the portable build [`summary_portable`]).
+    /// The summary of `values`, with the widest vectors this CPU has (`summary_of`; the
+    /// same numbers as the portable build `summary_portable`).
     pub fn of(values: &[f32]) -> Self {
         summary_of(values)
     }
@@ -71,6 +71,8 @@ impl SummaryLanes {
         const L: usize = SummaryLanes::L;
         let mut c = values.chunks_exact(L);
         for ch in &mut c {
+            // `i` is the vector lane: the indexed form is what the compiler vectorizes.
+            #[allow(clippy::needless_range_loop)]
             for i in 0..L {
                 let v = ch[i];
                 // |v| < inf is false for NaN and +-inf.

@@ -35,7 +35,7 @@
 //! (outliers in time, because the sky is the other dithers, *and* in space, because they
 //! are much sharper than the PSF) with [`crate::frame::mask::COSMIC`].
 //!
-//! Files: this one (options, levels, the stage [`sky_subtract_by`] step by step, history);
+//! Files: this one (options, levels, the stage `sky_subtract_by` step by step, history);
 //! `fused.rs` (the last pass over the frames' buffers, block by block); `lanes.rs` (its
 //! arithmetic on a block, portable and vector builds); `estimate.rs` (the clipped mean and
 //! the source-masked pass); `cosmic.rs` (cosmic-ray flagging).

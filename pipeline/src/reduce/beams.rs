@@ -6,8 +6,11 @@ use sofipol_calib::Profile;
 use super::sources::Primary;
 use super::{CalibratedOrientation, MeasureError};
 
+/// The (o, e) centroids of one frame, px.
+pub type CentroidPair = ((f64, f64), (f64, f64));
+
 /// Median e-o offset from per-frame (o, e) centroids.
-pub fn median_offset(pairs: &[((f64, f64), (f64, f64))]) -> Option<(f64, f64)> {
+pub fn median_offset(pairs: &[CentroidPair]) -> Option<(f64, f64)> {
     if pairs.is_empty() {
         return None;
     }

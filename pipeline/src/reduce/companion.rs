@@ -189,7 +189,7 @@ pub fn find_pair(
                 model: PsfModel::Moffat {
                     beta: Some(single.beta),
                 },
-                ..p2.clone()
+                ..p2
             };
             if let Some(f) = two_star(&fixed) {
                 if (f.2 < fitted.2 && !lost(&f)) || (lost(&fitted) && !lost(&f)) {

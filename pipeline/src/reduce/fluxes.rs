@@ -90,6 +90,7 @@ pub struct Fluxes {
 }
 
 /// Stage 5: photometry of both components in both beams of every frame.
+#[allow(clippy::too_many_arguments)] // the stage's inputs, each from a different stage
 pub fn measure_fluxes(
     orients: &[CalibratedOrientation],
     primary: &Primary,
@@ -191,6 +192,7 @@ struct BeamResult {
 /// (`first`) sets `frame_fwhm` and the PSF shape (alpha, beta, sigma_x, sigma_y) from its
 /// fit; both beams size their apertures with the one and correct them with the other (two
 /// independently fitted widths would put their noise into F).
+#[allow(clippy::too_many_arguments)]
 fn measure_beam(
     f: &Frame,
     stars: &[(f64, f64)],

@@ -160,7 +160,7 @@ pub fn usable_frame(
         });
         f = f.with_history(
             "read",
-            &format!("{n_bad} non-finite pixels set to the median {med} and masked BAD"),
+            format!("{n_bad} non-finite pixels set to the median {med} and masked BAD"),
         );
     }
     Ok(f)

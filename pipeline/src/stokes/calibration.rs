@@ -168,7 +168,7 @@ fn merged(obs: &[OrientationF]) -> Vec<OrientationF> {
 /// (within 0.01 deg); `None` otherwise.
 pub fn balanced_pairs(obs: &[OrientationF]) -> Option<Vec<(OrientationF, OrientationF)>> {
     let m = merged(obs);
-    if m.len() < 4 || m.len() % 2 != 0 {
+    if m.len() < 4 || !m.len().is_multiple_of(2) {
         return None;
     }
     let mut pairs = Vec::new();

@@ -5,7 +5,7 @@
 //! * Orientations: weighted least squares of `F_i = q cos 2phi_i + u sin 2phi_i`
 //!   ([`fit_qu`]); for 0/45 it is `q = F(0)`, `u = F(45)`; for 0/45/90/135 the difference
 //!   method `q = (F0 - F90)/2`, `u = (F45 - F135)/2`.
-//! * [`Polarization::from_qu`]: P = hypot(q, u), gamma = 1/2 atan2(u, q) in [0, 180),
+//! * [`LinearPolarization::from_qu`]: P = hypot(q, u), gamma = 1/2 atan2(u, q) in [0, 180),
 //!   sigma_P = sqrt(q^2 sigma_q^2 + u^2 sigma_u^2)/P, sigma_gamma = 28.65 deg sigma_P/P
 //!   (Wardle & Kronberg 1974), debiased P (WK or MAS, Plaszczynski et al. 2014), and the
 //!   68.27 % half-width of the Naghizadeh-Khouei & Clarke (1993) angle distribution.

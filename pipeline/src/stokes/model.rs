@@ -39,6 +39,7 @@ impl Polarization {
     }
     /// Sum of two polarizations (valid for the small degrees of the NIR regime; exact
     /// for Stokes parameters of light passing through a weak polarizer to first order).
+    #[allow(clippy::should_implement_trait)] // by name: a first-order sum, not an exact one
     pub fn add(self, other: Polarization) -> Polarization {
         Polarization {
             q: self.q + other.q,

@@ -315,7 +315,7 @@ fn draw_cell(
     }
     if let Some(m) = m {
         f_panel(
-            &root,
+            root,
             cell.x,
             cell.y + CELL_LABEL_H + TILE + 6,
             2 * TILE + TILE_GAP,

@@ -1,6 +1,7 @@
 //! The panels: per-dither F by orientation, and the polarization vectors on the sky.
 use super::*;
 
+#[allow(clippy::too_many_arguments)] // the panel's place, size and what it draws
 pub(super) fn f_panel(
     root: &Area,
     x0: u32,

@@ -202,8 +202,8 @@ pub(super) fn measurement_lines(
         fmt(m.eo_offset_px.1, 2)
     )));
     if let Some(cal) = cal.filter(|c| !c.is_empty()) {
-        let pas: Vec<String> = cal.iter().map(|o| format!("{}", fmt(o.posang_deg, 1))).collect();
-        let phis: Vec<String> = cal.iter().map(|o| format!("{}", fmt(o.analyzer_deg, 1))).collect();
+        let pas: Vec<String> = cal.iter().map(|o| fmt(o.posang_deg, 1).to_string()).collect();
+        let phis: Vec<String> = cal.iter().map(|o| fmt(o.analyzer_deg, 1).to_string()).collect();
         wrap(
             Line::plain(format!("POSANG {}°;  φ {}°", pas.join(", "), phis.join(", "))),
             COL_W,

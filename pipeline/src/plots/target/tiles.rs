@@ -65,7 +65,7 @@ pub(super) fn stack(o: &CalibratedOrientation, m: &Measured, k: usize, e_beam: b
     }
     // Offset of B from A in this beam: median over dithers.
     let rel = b.and_then(|b| {
-        let (mut dx, mut dy): (Vec<f64>, Vec<f64>) = a
+        let (dx, dy): (Vec<f64>, Vec<f64>) = a
             .iter()
             .zip(b)
             .map(|(da, db)| {
@@ -73,7 +73,7 @@ pub(super) fn stack(o: &CalibratedOrientation, m: &Measured, k: usize, e_beam: b
                 (pb.0 - pa.0, pb.1 - pa.1)
             })
             .unzip();
-        Some((median(&mut dx)?, median(&mut dy)?))
+        Some((median(&dx)?, median(&dy)?))
     });
     let ap = if m.aperture_px.is_finite() && m.aperture_px > 0.0 {
         m.aperture_px.min(30.0)
@@ -119,17 +119,17 @@ pub(super) fn stack(o: &CalibratedOrientation, m: &Measured, k: usize, e_beam: b
 
 /// asinh stretch parameters (low, soft, high) shared by the tiles of one orientation.
 pub(super) fn stretch(stacks: &[&Stack]) -> (f32, f32, f32) {
-    let mut all: Vec<f64> = stacks
+    let all: Vec<f64> = stacks
         .iter()
         .flat_map(|s| s.pix.iter())
         .filter(|v| v.is_finite())
         .map(|&v| v as f64)
         .collect();
-    let Some(bg) = median(&mut all) else {
+    let Some(bg) = median(&all) else {
         return (0.0, 1.0, 1.0);
     };
-    let mut dev: Vec<f64> = all.iter().map(|v| (v - bg).abs()).collect();
-    let noise = 1.4826 * median(&mut dev).unwrap_or(0.0);
+    let dev: Vec<f64> = all.iter().map(|v| (v - bg).abs()).collect();
+    let noise = 1.4826 * median(&dev).unwrap_or(0.0);
     let peak = all.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     let lo = bg - noise;
     let span = (peak - lo).max(1e-6);

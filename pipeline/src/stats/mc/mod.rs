@@ -279,7 +279,7 @@ mod hard_case_tests {
         assert!(c
             .iter()
             .enumerate()
-            .all(|(i, &(k, n))| k == i as u64 && n >= 1 && n <= CHUNK_PAIRS));
+            .all(|(i, &(k, n))| k == i as u64 && (1..=CHUNK_PAIRS).contains(&n)));
         assert_eq!(c.last().unwrap().1, pairs - (c.len() as u64 - 1) * CHUNK_PAIRS);
         let cfg = McConfig::geometry(AlignmentModel::Random, pairs, 1);
         let e = simulate_samples(&cfg).unwrap_err().to_string();
