@@ -55,6 +55,36 @@ fn demo_simulates_reduces_checks_and_writes_figures() {
         .unwrap()
         .filter(|e| e.as_ref().unwrap().path().extension().is_some_and(|x| x == "png"));
     assert_eq!(pngs.count(), 5);
+
+    // One night, one way: `night` on the demo's frames gives the demo's catalog, the
+    // provenance included (the same keys; the same flats, mask frames and calibration
+    // settings), apart from the time, the command line and the inputs as given.
+    let night_cat = dir.path().join("night.json");
+    let raw = out.join("raw");
+    let (code, _, err) = run(&[
+        "night",
+        raw.to_str().unwrap(),
+        "-o",
+        night_cat.to_str().unwrap(),
+        "-q",
+        "--no-png",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let mut night = json(&night_cat);
+    let mut demo = cat.clone();
+    for key in ["created_utc", "command_line", "inputs"] {
+        for c in [&mut night, &mut demo] {
+            c["provenance"].as_object_mut().unwrap().remove(key);
+        }
+    }
+    assert_eq!(
+        night["provenance"].as_object().unwrap().keys().collect::<Vec<_>>(),
+        demo["provenance"].as_object().unwrap().keys().collect::<Vec<_>>()
+    );
+    assert_eq!(
+        night, demo,
+        "the demo's catalog differs from the night's on the same frames"
+    );
 }
 
 const ONE: &str = r#"

@@ -26,7 +26,7 @@
 //! written, in the fast path and in the reference alike.
 //!
 //! Inputs must be NaN-free (masked pixels carry values; the median is robust to them).
-//! The slow, obviously correct [`reference_median`] and [`reference_leave_one_out`]
+//! The slow, obviously correct `reference_median` and `reference_leave_one_out`
 //! (collect, sort, take the middle) define the results; tests compare them bit for bit.
 use std::mem::MaybeUninit;
 
@@ -78,7 +78,7 @@ fn mid(a: f32, b: f32) -> f32 {
 
 /// Median of a slice of NaN-free values (sorts a copy; the reference definition).
 /// Even counts give the mean of the two middle values. Panics on an empty slice.
-pub fn reference_median(values: &[f32]) -> f32 {
+pub(crate) fn reference_median(values: &[f32]) -> f32 {
     let mut v = values.to_vec();
     v.sort_by(|a, b| a.total_cmp(b));
     let n = v.len();
@@ -92,7 +92,7 @@ pub fn reference_median(values: &[f32]) -> f32 {
 
 /// Slow reference: for every frame i and pixel, collect the other frames' mapped values,
 /// sort them and take the median. Defines what [`leave_one_out_medians_affine`] returns.
-pub fn reference_leave_one_out(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Vec<Array2<f32>>> {
+pub(crate) fn reference_leave_one_out(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Vec<Array2<f32>>> {
     check_stack(frames, maps, 2, "leave-one-out median")?;
     let (ny, nx) = frames[0].dim();
     let n = frames.len();
@@ -110,7 +110,7 @@ pub fn reference_leave_one_out(frames: &[ArrayView2<f32>], maps: &[Affine]) -> R
 }
 
 /// Slow reference of [`median_stack_affine`].
-pub fn reference_median_stack(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Array2<f32>> {
+pub(crate) fn reference_median_stack(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Array2<f32>> {
     check_stack(frames, maps, 1, "median stack")?;
     let (ny, nx) = frames[0].dim();
     Ok(Array2::from_shape_fn((ny, nx), |(y, x)| {
@@ -316,7 +316,7 @@ pub fn median_stack(frames: &[ArrayView2<f32>]) -> Result<Array2<f32>> {
 }
 
 /// Per-pixel median of `maps[j].apply(frames[j])` over the stack (even counts: mean of
-/// the two middle values). Bit-identical to [`reference_median_stack`].
+/// the two middle values). Bit-identical to `reference_median_stack`.
 pub fn median_stack_affine(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Array2<f32>> {
     check_stack(frames, maps, 1, "median stack")?;
     let n = frames.len();
@@ -364,7 +364,7 @@ pub fn leave_one_out_medians(frames: &[ArrayView2<f32>]) -> Result<Vec<Array2<f3
 /// Leave-one-out medians of the mapped stack: element i is, at every pixel, the median
 /// of `maps[j].apply(frames[j])` over j != i. Needs 2..=[`MAX_STACK`] frames of one
 /// shape. One selection network per pixel serves all N outputs; bit-identical to
-/// [`reference_leave_one_out`].
+/// `reference_leave_one_out`.
 pub fn leave_one_out_medians_affine(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Vec<Array2<f32>>> {
     check_stack(frames, maps, 2, "leave-one-out median")?;
     let (ny, nx) = frames[0].dim();
@@ -540,7 +540,7 @@ impl<'a> LooRows<'a> {
 /// `image[y, x-h ..= x+h]`, the window clipped at the row ends (clipped windows of even
 /// length give the upper of the two middle values). `2 h + 1 <= MAX_STACK`. Interior
 /// pixels go through a median-selection network on 2h+1 shifted copies of the row;
-/// bit-identical to [`reference_running_median_x`].
+/// bit-identical to `reference_running_median_x`.
 pub fn running_median_x(image: ArrayView2<f32>, half_window: usize) -> Result<Array2<f32>> {
     let h = half_window;
     let n = 2 * h + 1;
@@ -596,7 +596,7 @@ pub fn running_median_x(image: ArrayView2<f32>, half_window: usize) -> Result<Ar
 }
 
 /// Slow reference of [`running_median_x`]: sort each clipped window.
-pub fn reference_running_median_x(image: ArrayView2<f32>, half_window: usize) -> Array2<f32> {
+pub(crate) fn reference_running_median_x(image: ArrayView2<f32>, half_window: usize) -> Array2<f32> {
     let (ny, nx) = image.dim();
     let h = half_window;
     Array2::from_shape_fn((ny, nx), |(y, x)| {

@@ -525,7 +525,7 @@ pub fn calibrate_catalog(
 }
 
 /// Whether a sequence observes a standard star: `DPR TYPE` of its first readable frame is
-/// 'STD' (frame-format.md). Unreadable headers count as science (the reduction reports them).
+/// 'STD' (docs/frame-format.md). Unreadable headers count as science (the reduction reports them).
 pub fn is_standard_sequence(seq: &crate::sequence::Sequence, profile: &Profile) -> bool {
     let key = &profile.keywords.dpr_type;
     seq.orientations

@@ -1,7 +1,7 @@
 //! The table of polarimetric standard stars: built-in entries
 //! (`pipeline/standards/builtin.toml`, each with its band and literature reference) plus a
 //! user file (`--standards FILE`) in the same TOML format that adds entries or overrides
-//! them by name and filter (frame-format.md, "Calibration frames and standards").
+//! them by name and filter (docs/frame-format.md, "Standard stars and the standards table").
 //!
 //! Names match an OBJECT or OBS TARG NAME ignoring case, spaces and '_' ("HD_64299",
 //! "hd64299" and "HD 64299" are one star). Filter "*" applies to every filter; an entry for

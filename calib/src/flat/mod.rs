@@ -38,8 +38,8 @@ use crate::frame::{mask, Frame, HistoryRecord};
 use crate::header::Header;
 use crate::profile::Profile;
 
-/// Header keyword telling lamp on (T) from lamp off (F) in a dome flat (keyword
-/// *profile*, unverified on real data; ../shared/docs/frame-format.md).
+/// Header keyword telling lamp on (T) from lamp off (F) in a dome flat (a fixed name, not
+/// yet a profile setting; unverified on real data; docs/frame-format.md).
 pub const LAMP_KEYWORD: &str = "ESO INS LAMP1 ST";
 /// TPL ID of a dome-flat template.
 pub const DOME_FLAT_TEMPLATE: &str = "SOFI_img_cal_DomeFlat";

@@ -2,7 +2,7 @@
 //! parity, and the four-orientation difference and ratio methods.
 //!
 //! The instrument adds to the normalised difference of every orientation a constant
-//! (polarimetry.md, frame-format.md "Calibration frames and standards"):
+//! (docs/polarimetry.md, docs/frame-format.md "Standard stars and the standards table"):
 //!
 //! ```text
 //! F(phi) = q cos 2phi + u sin 2phi + c,   c ~ (1 - k)/(1 + k) + p_inst,   k = T_e/T_o

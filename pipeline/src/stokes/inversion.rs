@@ -572,6 +572,33 @@ mod tests {
         }
     }
 
+    /// sigma_P against the scatter of P over Gaussian draws of (q, u) with unequal errors and
+    /// q u != 0, where swapping sigma_q and sigma_u (or dropping either term) changes
+    /// sigma_P by 40 %: the delta method must hold to 2 % at this S/N (13).
+    #[test]
+    fn sigma_p_is_the_scatter_of_p_when_the_errors_differ() {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, StandardNormal};
+        let mut r = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(29);
+        for (q, u, sq, su) in [(0.03, 0.02, 0.001, 0.004), (-0.02, 0.03, 0.004, 0.0015)] {
+            let lp = LinearPolarization::from_qu(q, u, sq, su, Debias::WardleKronberg);
+            let n = 200_000;
+            let ps: Vec<f64> = (0..n)
+                .map(|_| {
+                    let (a, b): (f64, f64) = (StandardNormal.sample(&mut r), StandardNormal.sample(&mut r));
+                    (q + sq * a).hypot(u + su * b)
+                })
+                .collect();
+            let mean = ps.iter().sum::<f64>() / n as f64;
+            let sd = (ps.iter().map(|p| (p - mean).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt();
+            assert!(
+                (lp.sigma_p / sd - 1.0).abs() < 0.02,
+                "q {q}, u {u}, sigma_q {sq}, sigma_u {su}: sigma_P {} vs Monte Carlo {sd}",
+                lp.sigma_p
+            );
+        }
+    }
+
     /// The Newton root is the root bisection finds (the slow way: 50 halvings of [0, 90]
     /// on the same Simpson cumulative, `nkc_cumulative_deg`, whose accuracy the scipy
     /// references above check), to 1e-9 deg, from S/N 0 to 1000.
