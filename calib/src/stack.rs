@@ -78,6 +78,7 @@ fn mid(a: f32, b: f32) -> f32 {
 
 /// Median of a slice of NaN-free values (sorts a copy; the reference definition).
 /// Even counts give the mean of the two middle values. Panics on an empty slice.
+#[cfg(test)]
 pub(crate) fn reference_median(values: &[f32]) -> f32 {
     let mut v = values.to_vec();
     v.sort_by(|a, b| a.total_cmp(b));
@@ -92,6 +93,7 @@ pub(crate) fn reference_median(values: &[f32]) -> f32 {
 
 /// Slow reference: for every frame i and pixel, collect the other frames' mapped values,
 /// sort them and take the median. Defines what [`leave_one_out_medians_affine`] returns.
+#[cfg(test)]
 pub(crate) fn reference_leave_one_out(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Vec<Array2<f32>>> {
     check_stack(frames, maps, 2, "leave-one-out median")?;
     let (ny, nx) = frames[0].dim();
@@ -110,6 +112,7 @@ pub(crate) fn reference_leave_one_out(frames: &[ArrayView2<f32>], maps: &[Affine
 }
 
 /// Slow reference of [`median_stack_affine`].
+#[cfg(test)]
 pub(crate) fn reference_median_stack(frames: &[ArrayView2<f32>], maps: &[Affine]) -> Result<Array2<f32>> {
     check_stack(frames, maps, 1, "median stack")?;
     let (ny, nx) = frames[0].dim();
@@ -596,6 +599,7 @@ pub fn running_median_x(image: ArrayView2<f32>, half_window: usize) -> Result<Ar
 }
 
 /// Slow reference of [`running_median_x`]: sort each clipped window.
+#[cfg(test)]
 pub(crate) fn reference_running_median_x(image: ArrayView2<f32>, half_window: usize) -> Array2<f32> {
     let (ny, nx) = image.dim();
     let h = half_window;
