@@ -10,7 +10,7 @@ pub mod mask {
     pub const BAD: u8 = 1;
     /// At or above the profile's saturation level.
     pub const SATURATED: u8 = 2;
-    /// Above the profile's linearity limit (usable with care).
+    /// At or above the profile's `nonlinear_warn_adu` (usable with care).
     pub const NONLINEAR: u8 = 4;
     /// Hit by a cosmic ray (detected outlier in time).
     pub const COSMIC: u8 = 8;

@@ -300,3 +300,56 @@ fn two_filter_night_gets_one_offset_per_filter_and_targets_use_their_own() {
     let (cat2, _, _) = run(CalibrationSource::File(path, Box::new(back)));
     check(&cat2, "--calib");
 }
+
+/// The zero-point's error turns (q, u) about the origin: it must add to the tangential
+/// variance only, (2 sigma_theta0)^2 P^2, and leave the radial one (what sigma_P is made of)
+/// as it was. The sign of its q-u covariance term decides that (with the opposite sign the
+/// radial variance grows by 4 q^2 u^2 (2 sigma_theta0)^2 / P^2).
+#[test]
+fn the_zero_point_error_adds_tangential_variance_only() {
+    let pa = [0.0, 45.0, 90.0, 135.0];
+    let truth = Polarization::from_p_gamma(0.04, 30.0);
+    let parity = Profile::sofi().angles.parity;
+    let resolved = |sigma_theta0_deg: f64| {
+        let mut c = component("A", truth, &pa, 0.0, 0.0, 1e-3);
+        let fc = FilterCalibration {
+            filter: "Ks".into(),
+            offset: None,
+            offset_standards: vec![],
+            angles: Some(AngleCalibration {
+                theta0_deg: 0.0,
+                sigma_theta0_deg,
+                parity,
+                parity_measured: false,
+                n_standards: 1,
+            }),
+            angle_standards: vec![],
+        };
+        resolve_component(
+            &mut c,
+            &Profile::sofi(),
+            Some(&fc),
+            StokesMethod::Auto,
+            Debias::WardleKronberg,
+            3.0,
+        );
+        c
+    };
+    let split = |c: &Component| {
+        let (q, u, vq, vu, cqu) = (c.q, c.u, c.sigma_q.powi(2), c.sigma_u.powi(2), c.cov_qu.unwrap());
+        let p2 = q * q + u * u;
+        let radial = (q * q * vq + u * u * vu + 2.0 * q * u * cqu) / p2;
+        let tangential = (u * u * vq + q * q * vu - 2.0 * q * u * cqu) / p2;
+        (radial, tangential, p2)
+    };
+    let (r0, t0, p2) = split(&resolved(0.0));
+    let sigma = 5.0_f64;
+    let (r1, t1, _) = split(&resolved(sigma));
+    let added = (2.0 * sigma.to_radians()).powi(2) * p2;
+    assert!((r1 - r0).abs() <= 1e-9 * r0, "radial variance {r0:e} -> {r1:e}");
+    assert!(
+        ((t1 - t0) - added).abs() <= 1e-9 * added,
+        "tangential variance grows by {:e}, expected {added:e}",
+        t1 - t0
+    );
+}
