@@ -65,6 +65,9 @@ pub struct FilterCalibration {
     pub angles: Option<AngleCalibration>,
     /// Polarized standards (sequence ids) the angles come from.
     pub angle_standards: Vec<String>,
+    /// Covariance of c and theta0 (units of c times deg), when both come from one fit.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cov_c_theta0_deg: Option<f64>,
 }
 
 /// The calibration products of a night (`calibration.json`).
@@ -335,6 +338,7 @@ pub fn measure(standards: &[Target], table: &StandardsTable, profile: &Profile) 
             offset_standards: if offset.is_some() { offset_standards } else { vec![] },
             angle_standards: if angles.is_some() { pol } else { vec![] },
             angles,
+            cov_c_theta0_deg: None,
         });
     }
     if filters.is_empty() {

@@ -37,15 +37,28 @@ pub struct Component {
     /// Per-source flags (e.g. "truncated", "bad_pixels", "saturated", "companion_overlap", "low_snr").
     #[serde(default)]
     pub flags: Vec<String>,
-    /// Covariance of q and u (absent when q and u are not constrained).
+    /// Covariance of q and u, measurement and calibration together (absent when q and u
+    /// are not constrained).
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
     pub cov_qu: Option<f64>,
+    /// Covariance of q and u from the measurement alone (the F errors of this star).
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub cov_qu_stat: Option<f64>,
     /// Mean o+e flux per dither, ADU (NaN when no dither was kept).
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
     pub flux_adu: Option<f64>,
     /// The instrumental offset subtracted from F or fitted (calibration).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub instrumental_offset: Option<InstrumentalOffset>,
+    /// d(q, u)/dc: how an error of the calibration's offset c moves this star's q and u
+    /// (absent when no calibration offset was subtracted). The offset is common to every
+    /// target of a night, so this is what correlates the two stars of a binary.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "nullable::pair"
+    )]
+    pub offset_gradient: Option<[f64; 2]>,
     /// F combined over the dithers of each orientation: what the calibration re-solves
     /// q and u from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -53,9 +66,21 @@ pub struct Component {
     /// 68.27 % half-width of the Naghizadeh-Khouei & Clarke angle distribution, deg.
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
     pub sigma_gamma_nkc_deg: Option<f64>,
-    /// Error of the angle zero-point (already in sigma_q, sigma_u, sigma_gamma), deg.
+    /// The angle error from the measurement alone (the F errors of this star, full q-u
+    /// covariance), deg.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub sigma_gamma_stat_deg: Option<f64>,
+    /// The angle error from the night's calibration (offset c and zero-point theta0 with
+    /// their covariance; common to every target), deg. `sigma_gamma_deg` is the two in
+    /// quadrature.
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
     pub sigma_gamma_zero_point_deg: Option<f64>,
+    /// Error of q from the measurement alone.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub sigma_q_stat: Option<f64>,
+    /// Error of u from the measurement alone.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub sigma_u_stat: Option<f64>,
     /// P / sigma_P.
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
     pub snr: Option<f64>,
@@ -77,11 +102,16 @@ impl Component {
             passes_cut: false,
             flags: Vec::new(),
             cov_qu: None,
+            cov_qu_stat: None,
             flux_adu: None,
             instrumental_offset: None,
+            offset_gradient: None,
             orientations: None,
             sigma_gamma_nkc_deg: None,
+            sigma_gamma_stat_deg: None,
             sigma_gamma_zero_point_deg: None,
+            sigma_q_stat: None,
+            sigma_u_stat: None,
             snr: None,
             stokes_method: None,
             extra: serde_json::Map::new(),
@@ -151,7 +181,8 @@ impl std::ops::DerefMut for Component {
 
 /// One target sequence.
 ///
-/// Key order in the JSON: `object`, `status`, `error`, `components`, `delta_gamma_deg`, then
+/// Key order in the JSON: `object`, `status`, `error`, `components`, `delta_gamma_deg`
+/// (with `sigma_delta_gamma_deg` and `delta_gamma_interval_deg` when present), then
 /// the optional fields in alphabetical order (declared so; an absent one writes no key),
 /// then `extra`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -169,6 +200,20 @@ pub struct Target {
     /// |gamma_A - gamma_B| folded into [0, 90] when both components pass the cut.
     #[serde(default)]
     pub delta_gamma_deg: Option<f64>,
+    /// 1-sigma error of `delta_gamma_deg` (delta method): both stars' measurement
+    /// covariances and the part of the offset c that does not cancel; the angle zero-point
+    /// theta0 cancels and is not in it.
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub sigma_delta_gamma_deg: Option<f64>,
+    /// Central 68.27 % interval of the folded Delta-gamma [low, high], deg, from Monte Carlo
+    /// draws of the same covariance: the one to use at low S/N, where the fold makes the
+    /// distribution skewed.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "nullable::pair"
+    )]
+    pub delta_gamma_interval_deg: Option<[f64; 2]>,
     /// Median aperture radius, px.
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
     pub aperture_radius_px: Option<f64>,
@@ -238,6 +283,8 @@ impl Target {
             error: None,
             components: Vec::new(),
             delta_gamma_deg: None,
+            sigma_delta_gamma_deg: None,
+            delta_gamma_interval_deg: None,
             aperture_radius_px: None,
             bad_pixels_masked: None,
             eo_offset_px: None,

@@ -324,6 +324,7 @@ fn the_zero_point_error_adds_tangential_variance_only() {
                 n_standards: 1,
             }),
             angle_standards: vec![],
+            cov_c_theta0_deg: None,
         };
         resolve_component(
             &mut c,
