@@ -20,12 +20,13 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 use sofipol_calib::Profile;
 
-use crate::catalog::{fold_delta_gamma, Catalog, Component, InstrumentalOffset, StandardResult, Status, Target};
+use crate::catalog::{Catalog, Component, InstrumentalOffset, StandardResult, Status, Target};
 use crate::standards::{StandardStar, StandardsTable};
 use crate::stokes::calibration::{
     measure_angles, measure_offset, solve, AngleCalibration, Offset, OrientationF, StandardObservation, StokesMethod,
 };
 use crate::stokes::inversion::{Debias, LinearPolarization};
+use crate::stokes::propagation::{self, calibration_covariance, CalibrationErrors, QuCovariance};
 
 /// File name of the calibration product in a calibration directory.
 pub const CALIBRATION_FILE: &str = "calibration.json";
@@ -164,6 +165,21 @@ fn analyzer(cal: Option<&FilterCalibration>, profile: &Profile, posang: f64) -> 
     }
 }
 
+/// The errors of the calibration that enter a component: the zero-point's when the
+/// calibration has angles, the offset's when one was subtracted (`offset`), and their
+/// covariance when both are there.
+fn calibration_errors(cal: Option<&FilterCalibration>, offset: Option<Offset>) -> CalibrationErrors {
+    let angles = cal.and_then(|c| c.angles.as_ref());
+    let var_theta0_deg2 = angles.map_or(0.0, |a| a.sigma_theta0_deg.powi(2));
+    let var_c = offset.map_or(0.0, |o| o.sigma_c.powi(2));
+    let both = angles.is_some() && offset.is_some();
+    CalibrationErrors {
+        var_c,
+        var_theta0_deg2,
+        cov_c_theta0_deg: if both { cal.and_then(|c| c.cov_c_theta0_deg).unwrap_or(0.0) } else { 0.0 },
+    }
+}
+
 /// Re-solve one component's q, u from its per-orientation F with the calibration (offset,
 /// zero-point, parity) and the chosen method; P, gamma, errors, the cut and the flags follow.
 /// Returns whether the result is uncalibrated.
@@ -197,29 +213,28 @@ pub fn resolve_component(
             return false;
         }
     };
-    // P, sigma_P and the statistical sigma_gamma from the measurement errors.
-    let lp = LinearPolarization::from_qu(sol.fit.q, sol.fit.u, sol.fit.var_q.sqrt(), sol.fit.var_u.sqrt(), debias);
-    let mut fit = sol.fit;
-    let mut sigma_gamma = lp.sigma_gamma_deg;
-    if let Some(a) = cal.and_then(|c| c.angles.as_ref()) {
-        // An error d of theta0 rotates (q, u) by 2d: dq = -2u d, du = 2q d. It leaves P and
-        // sigma_P alone, adds sigma_theta0 to sigma_gamma, and is common to every target
-        // (it cancels in Delta-gamma).
-        let v = (2.0 * a.sigma_theta0_deg.to_radians()).powi(2);
-        fit.var_q += fit.u * fit.u * v;
-        fit.var_u += fit.q * fit.q * v;
-        fit.cov_qu -= fit.q * fit.u * v;
-        sigma_gamma = sigma_gamma.hypot(a.sigma_theta0_deg);
-    }
-    c.q = lp.q;
-    c.u = lp.u;
-    c.sigma_q = fit.var_q.sqrt();
-    c.sigma_u = fit.var_u.sqrt();
-    c.p = lp.p;
-    c.sigma_p = lp.sigma_p;
-    c.p_debiased = lp.p_debiased;
-    c.gamma_deg = lp.gamma_deg;
-    c.sigma_gamma_deg = sigma_gamma;
+    // The measurement's covariance, and what the calibration adds: the offset c along the
+    // star's offset gradient, and theta0, which rotates (q, u) by twice its error (common to
+    // every target; it leaves P alone and cancels in Delta-gamma), with their covariance.
+    let (q, u) = (sol.fit.q, sol.fit.u);
+    let stat = QuCovariance {
+        var_q: sol.fit.var_q,
+        var_u: sol.fit.var_u,
+        cov_qu: sol.fit.cov_qu,
+    };
+    let errors = calibration_errors(cal, sol.offset_gradient.and(sol.offset));
+    let zero_point = calibration_covariance(q, u, sol.offset_gradient, &errors);
+    let total = stat.plus(&zero_point);
+    let lp = LinearPolarization::from_qu_cov(q, u, &total, debias);
+    let calibrated = sol.offset_gradient.is_some() || cal.is_some_and(|c| c.angles.is_some());
+    c.pol = lp.pol;
+    c.cov_qu = Some(total.cov_qu);
+    c.cov_qu_stat = Some(stat.cov_qu);
+    c.sigma_q_stat = Some(stat.var_q.max(0.0).sqrt());
+    c.sigma_u_stat = Some(stat.var_u.max(0.0).sqrt());
+    c.sigma_gamma_stat_deg = Some(propagation::sigma_gamma_deg(q, u, &stat));
+    c.sigma_gamma_zero_point_deg = calibrated.then(|| propagation::sigma_gamma_deg(q, u, &zero_point));
+    c.offset_gradient = sol.offset_gradient;
     if !lp.passes_cut(cut_snr) {
         c.flags.push("low_snr".into());
     }
@@ -231,8 +246,8 @@ pub fn resolve_component(
     }
     c.snr = Some(lp.snr);
     c.sigma_gamma_nkc_deg = Some(lp.sigma_gamma_nkc_deg);
-    c.cov_qu = Some(fit.cov_qu);
     c.stokes_method = Some(sol.method.name().to_string());
+    c.instrumental_offset = None;
     if let Some(o) = sol.offset {
         c.instrumental_offset = Some(InstrumentalOffset {
             c: o.c,
@@ -244,10 +259,6 @@ pub fn resolve_component(
             }
             .into(),
         });
-    }
-    if let Some(a) = cal.and_then(|c| c.angles.as_ref()) {
-        // Included in sigma_q, sigma_u and sigma_gamma above; common to every target.
-        c.sigma_gamma_zero_point_deg = Some(a.sigma_theta0_deg);
     }
     sol.uncalibrated
 }
@@ -407,11 +418,7 @@ pub fn calibrate_catalog(
             n_unc += usize::from(resolve_component(c, profile, fc, method, debias, cut_snr));
         }
         summary.n_uncalibrated += n_unc;
-        t.delta_gamma_deg = if t.components.len() == 2 && t.components.iter().all(|c| c.passes_cut) {
-            Some(fold_delta_gamma(t.components[0].gamma_deg, t.components[1].gamma_deg))
-        } else {
-            None
-        };
+        t.update_delta_gamma();
     }
     // The standards, reduced as single stars, calibrated like the targets.
     let used_offset: Vec<String> = cal

@@ -94,6 +94,24 @@ pub struct Component {
 }
 
 impl Component {
+    /// q, u, the measurement's covariance and the offset gradient, as the Delta-gamma error
+    /// needs them (the totals where the measurement's part was not recorded).
+    pub fn star_qu(&self) -> crate::stokes::propagation::StarQu {
+        let sq = self.sigma_q_stat.unwrap_or(self.sigma_q);
+        let su = self.sigma_u_stat.unwrap_or(self.sigma_u);
+        let c = self.cov_qu_stat.or(self.cov_qu).unwrap_or(0.0);
+        crate::stokes::propagation::StarQu {
+            q: self.q,
+            u: self.u,
+            stat: crate::stokes::propagation::QuCovariance {
+                var_q: sq * sq,
+                var_u: su * su,
+                cov_qu: c,
+            },
+            offset_gradient: self.offset_gradient.unwrap_or([0.0, 0.0]),
+        }
+    }
+
     /// A component with its polarization and nothing else (no flags, no optional field).
     pub fn new(name: impl Into<String>, pol: Polarization) -> Component {
         Component {
@@ -300,6 +318,34 @@ impl Target {
             sequence: None,
             tpl_start: None,
             extra: serde_json::Map::new(),
+        }
+    }
+
+    /// Set `delta_gamma_deg`, `sigma_delta_gamma_deg` and `delta_gamma_interval_deg` from the
+    /// two components (all `None` unless there are two and both pass the cut). The error is
+    /// the delta method on both stars' measurement covariances and the night's offset c,
+    /// which moves the two angles differently; the zero-point theta0 cancels
+    /// ([`crate::stokes::propagation`]). A catalog written before the measurement
+    /// covariances were kept apart falls back on the totals (which then include theta0).
+    pub fn update_delta_gamma(&mut self) {
+        use crate::stokes::propagation::{delta_gamma_interval_deg, sigma_delta_gamma_deg};
+        (self.delta_gamma_deg, self.sigma_delta_gamma_deg, self.delta_gamma_interval_deg) = (None, None, None);
+        let [a, b] = self.components.as_slice() else { return };
+        if !(a.passes_cut && b.passes_cut) {
+            return;
+        }
+        self.delta_gamma_deg = Some(fold_delta_gamma(a.gamma_deg, b.gamma_deg));
+        let var_c = [a, b]
+            .iter()
+            .filter(|c| c.offset_gradient.is_some())
+            .filter_map(|c| c.instrumental_offset.as_ref())
+            .map(|o| o.sigma_c * o.sigma_c)
+            .fold(0.0, f64::max);
+        let (sa, sb) = (a.star_qu(), b.star_qu());
+        let sigma = sigma_delta_gamma_deg(&sa, &sb, var_c);
+        if sigma.is_finite() {
+            self.sigma_delta_gamma_deg = Some(sigma);
+            self.delta_gamma_interval_deg = Some(delta_gamma_interval_deg(&sa, &sb, var_c));
         }
     }
 

@@ -93,7 +93,7 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
         .unwrap_or("unknown")
         .to_string();
     let (mut target, mut status, mut comp, mut flags, mut tflags) = (vec![], vec![], vec![], vec![], vec![]);
-    let mut num: Vec<Vec<f64>> = vec![Vec::new(); 13];
+    let mut num: Vec<Vec<f64>> = vec![Vec::new(); 22];
     let mut cut = vec![];
     let mut without = 0;
     for t in &cat.targets {
@@ -117,14 +117,23 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
                 c.sigma_q,
                 c.u,
                 c.sigma_u,
+                c.cov_qu.unwrap_or(f64::NAN),
+                c.sigma_q_stat.unwrap_or(f64::NAN),
+                c.sigma_u_stat.unwrap_or(f64::NAN),
+                c.cov_qu_stat.unwrap_or(f64::NAN),
                 c.p,
                 c.sigma_p,
                 c.p_debiased,
                 c.gamma_deg,
                 c.sigma_gamma_deg,
+                c.sigma_gamma_stat_deg.unwrap_or(f64::NAN),
+                c.sigma_gamma_zero_point_deg.unwrap_or(f64::NAN),
                 c.sigma_gamma_nkc_deg.unwrap_or(f64::NAN),
                 c.snr.unwrap_or(f64::NAN),
                 t.delta_gamma_deg.unwrap_or(f64::NAN),
+                t.sigma_delta_gamma_deg.unwrap_or(f64::NAN),
+                t.delta_gamma_interval_deg.map_or(f64::NAN, |i| i[0]),
+                t.delta_gamma_interval_deg.map_or(f64::NAN, |i| i[1]),
                 c.flux_adu.unwrap_or(f64::NAN),
             ];
             for (col, v) in num.iter_mut().zip(vals) {
@@ -160,18 +169,40 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
             data: Data::Str(comp),
         },
         f("q", "", "normalised Stokes q, sky frame (fraction)"),
-        f("sigma_q", "", "1-sigma error of q (fraction)"),
+        f("sigma_q", "", "1-sigma error of q: measurement and calibration"),
         f("u", "", "normalised Stokes u, sky frame (fraction)"),
-        f("sigma_u", "", "1-sigma error of u (fraction)"),
+        f("sigma_u", "", "1-sigma error of u: measurement and calibration"),
+        f("cov_qu", "", "covariance of q and u: measurement and calibration"),
+        f("sigma_q_stat", "", "1-sigma error of q from the measurement alone"),
+        f("sigma_u_stat", "", "1-sigma error of u from the measurement alone"),
+        f("cov_qu_stat", "", "covariance of q and u from the measurement alone"),
         f("p", "", "P = hypot(q, u), not debiased (fraction)"),
-        f("sigma_p", "", "1-sigma error of P (fraction)"),
+        f(
+            "sigma_p",
+            "",
+            "1-sigma error of P from the full q-u covariance",
+        ),
         f(
             "p_debiased",
             "",
             "debiased P (fraction), estimator in the catalog provenance",
         ),
         f("gamma", "deg", "polarization angle, east of north, [0, 180)"),
-        f("sigma_gamma", "deg", "Wardle-Kronberg 28.65 deg sigma_P / P"),
+        f(
+            "sigma_gamma",
+            "deg",
+            "1-sigma angle error, full q-u covariance (measurement+calibration)",
+        ),
+        f(
+            "sigma_gamma_stat",
+            "deg",
+            "1-sigma angle error from the measurement alone",
+        ),
+        f(
+            "sigma_gamma_zero_point",
+            "deg",
+            "1-sigma angle error from the night's calibration (c, theta0)",
+        ),
         f(
             "sigma_gamma_nkc",
             "deg",
@@ -182,6 +213,21 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
             "delta_gamma",
             "deg",
             "target: |gamma_A - gamma_B| folded to [0, 90]; NaN unless both pass",
+        ),
+        f(
+            "sigma_delta_gamma",
+            "deg",
+            "target: 1-sigma error of delta_gamma (theta0 cancels, c does not)",
+        ),
+        f(
+            "delta_gamma_lo",
+            "deg",
+            "target: low end of the central 68.27% interval of delta_gamma",
+        ),
+        f(
+            "delta_gamma_hi",
+            "deg",
+            "target: high end of the central 68.27% interval of delta_gamma",
         ),
         f("flux", "adu", "mean o+e flux per dither"),
         Column {

@@ -354,3 +354,89 @@ fn the_zero_point_error_adds_tangential_variance_only() {
         t1 - t0
     );
 }
+
+/// Through `calibrate_catalog`: a binary at 2 orientations calibrated with an offset and a
+/// zero-point. sigma_gamma is the measurement's and the calibration's parts in quadrature;
+/// the zero-point's error (here 6 deg, ten times the stars' own) must not enter
+/// sigma_delta_gamma, the offset's must (it moves the two angles differently), and the
+/// catalog's value equals the delta method computed here from the F errors by hand.
+#[test]
+fn delta_gamma_error_has_the_offset_and_not_the_zero_point() {
+    let pa = [0.0, 45.0];
+    let (a_pol, b_pol) = (Polarization::from_p_gamma(0.03, 20.0), Polarization::from_p_gamma(0.02, 70.0));
+    let (sf, sc) = (4e-4, 6e-4);
+    let parity = Profile::sofi().angles.parity;
+    let run = |sigma_theta0_deg: f64| {
+        let mut cat = Catalog {
+            targets: vec![target(
+                "Pair",
+                vec![
+                    component("A", a_pol, &pa, 0.0, 0.01, sf),
+                    component("B", b_pol, &pa, 0.0, 0.01, sf),
+                ],
+            )],
+            ..Default::default()
+        };
+        let fc = FilterCalibration {
+            filter: "Ks".into(),
+            offset: Some(Offset { c: 0.01, sigma_c: sc }),
+            offset_standards: vec![],
+            angles: Some(AngleCalibration {
+                theta0_deg: 0.0,
+                sigma_theta0_deg,
+                parity,
+                parity_measured: false,
+                n_standards: 1,
+            }),
+            angle_standards: vec![],
+            cov_c_theta0_deg: Some(-0.5 * sc * sigma_theta0_deg),
+        };
+        let cal = Calibration {
+            schema_version: CALIBRATION_SCHEMA.into(),
+            filters: vec![fc],
+            frames: vec![],
+            flats: vec![],
+            provenance: serde_json::json!({}),
+        };
+        calibrate_catalog(
+            &mut cat,
+            vec![],
+            &StandardsTable::builtin(),
+            &Profile::sofi(),
+            CalibrationSource::File("cal".into(), Box::new(cal)),
+            &CalibrationParams::default(),
+            Debias::WardleKronberg,
+            3.0,
+        );
+        cat.targets.remove(0)
+    };
+    let (t0, t6) = (run(0.0), run(6.0));
+    let (s0, s6) = (t0.sigma_delta_gamma_deg.unwrap(), t6.sigma_delta_gamma_deg.unwrap());
+    assert!((s0 - s6).abs() < 1e-12, "theta0's error entered sigma_delta_gamma: {s0} -> {s6}");
+    // By hand: with 2 orientations q = F(0) - c, u = F(45) - c (analyzer = posang here:
+    // theta0 = 0 and the parity's sign only mirrors u), so each star has Var q = Var u = sf^2,
+    // no covariance, and d(q, u)/dc = (-1, -1) up to the parity's sign on u.
+    let grad = |c: &Component| {
+        let p2 = c.q * c.q + c.u * c.u;
+        [-c.u / (2.0 * p2), c.q / (2.0 * p2)]
+    };
+    let (a, b) = (&t6.components[0], &t6.components[1]);
+    let (ga, gb) = (grad(a), grad(b));
+    let (da, db) = (a.offset_gradient.unwrap(), b.offset_gradient.unwrap());
+    assert!((da[0] + 1.0).abs() < 1e-12 && (da[1].abs() - 1.0).abs() < 1e-12, "{da:?}");
+    let own = (ga[0] * ga[0] + ga[1] * ga[1] + gb[0] * gb[0] + gb[1] * gb[1]) * sf * sf;
+    let common = ga[0] * da[0] + ga[1] * da[1] - gb[0] * db[0] - gb[1] * db[1];
+    let want = (own + common * common * sc * sc).sqrt().to_degrees();
+    assert!((s6 / want - 1.0).abs() < 1e-9, "{s6} vs by hand {want}");
+    assert!(common.abs() * sc > 0.3 * own.sqrt(), "the offset's term matters in this test");
+    // Per star: the total angle error is the two parts in quadrature, and the zero-point part
+    // holds the 6 deg.
+    for c in [a, b] {
+        let (st, zp) = (c.sigma_gamma_stat_deg.unwrap(), c.sigma_gamma_zero_point_deg.unwrap());
+        assert!((c.sigma_gamma_deg - st.hypot(zp)).abs() < 1e-9 * c.sigma_gamma_deg);
+        assert!(zp > 4.5 && st < 1.0, "stat {st}, zero-point {zp}");
+    }
+    let iv = t6.delta_gamma_interval_deg.unwrap();
+    let dg = t6.delta_gamma_deg.unwrap();
+    assert!(iv[0] < dg && dg < iv[1] && (iv[1] - iv[0] - 2.0 * s6).abs() < 0.1 * s6, "{iv:?} {dg} {s6}");
+}

@@ -2,8 +2,9 @@
 //! orientation combined (rejections, clipping, weighted mean, honest error), then q and u by
 //! least squares over the orientations, P, gamma and their errors, debiasing and the cut.
 use super::{CalibratedOrientation, DitherValue, MeasureParams, Measured};
-use crate::catalog::{self, CombinedF, Component, Status, Target};
+use crate::catalog::{CombinedF, Component, Status, Target};
 use crate::stokes::inversion::{clip_dithers, combine_dithers, fit_qu, LinearPolarization, Polarization};
+use crate::stokes::propagation::QuCovariance;
 
 /// Component flags that keep a value from passing the cut, whatever its S/N: dithers that
 /// were all flagged (`used_flagged_dithers`: a saturated core may be far off) and an A/B
@@ -116,7 +117,12 @@ pub fn component_from_dithers(
     let fit = fit_qu(&phis, &fs, &ss);
     match fit {
         Some(r) => {
-            let lp = LinearPolarization::from_qu(r.q, r.u, r.var_q.sqrt(), r.var_u.sqrt(), params.debias);
+            let cov = QuCovariance {
+                var_q: r.var_q,
+                var_u: r.var_u,
+                cov_qu: r.cov_qu,
+            };
+            let lp = LinearPolarization::from_qu_cov(r.q, r.u, &cov, params.debias);
             if lp.snr <= params.cut_snr {
                 flags.push("low_snr".into());
             }
@@ -129,6 +135,10 @@ pub fn component_from_dithers(
                 snr: Some(lp.snr),
                 sigma_gamma_nkc_deg: Some(lp.sigma_gamma_nkc_deg),
                 cov_qu: Some(r.cov_qu),
+                cov_qu_stat: Some(r.cov_qu),
+                sigma_q_stat: Some(lp.sigma_q),
+                sigma_u_stat: Some(lp.sigma_u),
+                sigma_gamma_stat_deg: Some(lp.sigma_gamma_deg),
                 ..measured
             }
         }
@@ -159,27 +169,18 @@ pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measure
             c
         })
         .collect();
-    let delta = if components.len() == 2 && components.iter().all(|c| c.passes_cut) {
-        Some(catalog::fold_delta_gamma(
-            components[0].gamma_deg,
-            components[1].gamma_deg,
-        ))
-    } else {
-        None
-    };
     let status = if components.len() == 2 && components.iter().all(|c| c.q.is_finite()) {
         Status::Ok
     } else {
         Status::Partial
     };
-    Target {
+    let mut t = Target {
         error: if status == Status::Partial {
             m.flags.first().cloned().or(Some("companion not measured".into()))
         } else {
             None
         },
         components,
-        delta_gamma_deg: delta,
         eo_offset_px: Some([m.eo_offset_px.0, m.eo_offset_px.1]),
         fwhm_px: Some(m.fwhm_px),
         photometry: Some(m.photometry.clone()),
@@ -189,7 +190,9 @@ pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measure
         orientations_deg: Some(orients.iter().map(|o| o.posang_deg).collect()),
         flags: Some(m.flags.clone()),
         ..Target::new(object, status)
-    }
+    };
+    t.update_delta_gamma();
+    t
 }
 
 #[cfg(test)]

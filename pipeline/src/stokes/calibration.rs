@@ -128,6 +128,9 @@ pub struct StokesSolution {
     pub method: StokesMethod,
     /// The offset subtracted (calibration) or fitted (free offset), when any.
     pub offset: Option<Offset>,
+    /// d(q, u)/dc when a calibration offset was subtracted: its error moves q and u along
+    /// this vector. Not in `fit`, whose (co)variances are the measurement's alone.
+    pub offset_gradient: Option<[f64; 2]>,
     /// Neither a calibration offset nor a method that cancels or fits it: q and u carry
     /// the instrumental offset.
     pub uncalibrated: bool,
@@ -266,21 +269,32 @@ fn invert3(a: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
     Some(inv)
 }
 
-/// Least squares of `F - c` with the error of `c` propagated into (co)variances.
-pub fn fit_qu_calibrated(obs: &[OrientationF], offset: Offset) -> Option<QuFit> {
+/// Least squares of `F - c`: the fit (with the measurement's (co)variances only) and
+/// `d(q, u)/dc`, the gradient along which the error of `c` moves q and u. (q, u) are
+/// linear in F, so a common shift of every F by dc moves them by minus the fit of an
+/// all-ones F, times dc.
+pub fn fit_qu_calibrated(obs: &[OrientationF], offset: Offset) -> Option<(QuFit, [f64; 2])> {
     let m = merged(obs);
     let phis: Vec<f64> = m.iter().map(|o| o.analyzer_deg).collect();
     let fs: Vec<f64> = m.iter().map(|o| o.f - offset.c).collect();
     let ss: Vec<f64> = m.iter().map(|o| o.sigma_f).collect();
-    let mut r = fit_qu(&phis, &fs, &ss)?;
-    // (q, u) are linear in F: a common shift of every F by dc moves them by (q1, u1) dc.
-    let ones = vec![1.0; phis.len()];
-    let one = fit_qu(&phis, &ones, &ss)?;
-    let v = offset.sigma_c.powi(2);
-    r.var_q += one.q * one.q * v;
-    r.var_u += one.u * one.u * v;
-    r.cov_qu += one.q * one.u * v;
-    Some(r)
+    let r = fit_qu(&phis, &fs, &ss)?;
+    let one = fit_qu(&phis, &vec![1.0; phis.len()], &ss)?;
+    Some((r, [-one.q, -one.u]))
+}
+
+impl StokesSolution {
+    /// The fit with the error of a subtracted calibration offset added to its (co)variances.
+    pub fn fit_with_offset_error(&self) -> QuFit {
+        let mut r = self.fit;
+        if let (Some(d), Some(o)) = (self.offset_gradient, self.offset) {
+            let v = o.sigma_c * o.sigma_c;
+            r.var_q += d[0] * d[0] * v;
+            r.var_u += d[1] * d[1] * v;
+            r.cov_qu += d[0] * d[1] * v;
+        }
+        r
+    }
 }
 
 /// Solve for q, u with the chosen method (see [`StokesMethod::Auto`] for the automatic
@@ -333,6 +347,7 @@ pub fn solve(
                 fit,
                 method,
                 offset: None,
+                offset_gradient: None,
                 uncalibrated: false,
             })
         }
@@ -346,16 +361,21 @@ pub fn solve(
                 fit,
                 method,
                 offset: Some(off),
+                offset_gradient: None,
                 uncalibrated: false,
             })
         }
         StokesMethod::LeastSquares | StokesMethod::Auto => match offset {
-            Some(off) => Ok(StokesSolution {
-                fit: fit_qu_calibrated(obs, off).ok_or_else(undefined)?,
-                method: StokesMethod::LeastSquares,
-                offset: Some(off),
-                uncalibrated: false,
-            }),
+            Some(off) => {
+                let (fit, gradient) = fit_qu_calibrated(obs, off).ok_or_else(undefined)?;
+                Ok(StokesSolution {
+                    fit,
+                    method: StokesMethod::LeastSquares,
+                    offset: Some(off),
+                    offset_gradient: Some(gradient),
+                    uncalibrated: false,
+                })
+            }
             None => {
                 let m = merged(obs);
                 let phis: Vec<f64> = m.iter().map(|o| o.analyzer_deg).collect();
@@ -365,6 +385,7 @@ pub fn solve(
                     fit: fit_qu(&phis, &fs, &ss).ok_or_else(undefined)?,
                     method: StokesMethod::LeastSquares,
                     offset: None,
+                    offset_gradient: None,
                     uncalibrated: pairs.is_none(),
                 })
             }
@@ -484,7 +505,7 @@ fn raw_angle(s: &StandardObservation, offset: Offset) -> Option<(f64, f64, f64)>
             .zip(&s.posang_deg)
             .map(|(o, &pa)| OrientationF { analyzer_deg: pa, ..*o })
             .collect();
-    let r = solve(&obs, StokesMethod::LeastSquares, Some(offset)).ok()?.fit;
+    let r = solve(&obs, StokesMethod::LeastSquares, Some(offset)).ok()?.fit_with_offset_error();
     let p = r.q.hypot(r.u);
     if !(p > 0.0) {
         return None;

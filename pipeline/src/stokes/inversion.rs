@@ -5,11 +5,14 @@
 //! * Orientations: weighted least squares of `F_i = q cos 2phi_i + u sin 2phi_i`
 //!   ([`fit_qu`]); for 0/45 it is `q = F(0)`, `u = F(45)`; for 0/45/90/135 the difference
 //!   method `q = (F0 - F90)/2`, `u = (F45 - F135)/2`.
-//! * [`LinearPolarization::from_qu`]: P = hypot(q, u), gamma = 1/2 atan2(u, q) in [0, 180),
-//!   sigma_P = sqrt(q^2 sigma_q^2 + u^2 sigma_u^2)/P, sigma_gamma = 28.65 deg sigma_P/P
-//!   (Wardle & Kronberg 1974), debiased P (WK or MAS, Plaszczynski et al. 2014), and the
+//! * [`LinearPolarization::from_qu_cov`]: P = hypot(q, u), gamma = 1/2 atan2(u, q) in
+//!   [0, 180), sigma_P = sqrt(q^2 Vq + u^2 Vu + 2 q u C)/P and sigma_gamma =
+//!   (90/pi) sqrt(u^2 Vq + q^2 Vu - 2 q u C)/P^2 deg from the full covariance (Wardle &
+//!   Kronberg 1974's 28.65 deg sigma_P/P for equal, uncorrelated errors), debiased P (WK or MAS, Plaszczynski et al. 2014), and the
 //!   68.27 % half-width of the Naghizadeh-Khouei & Clarke (1993) angle distribution.
 use serde::{Deserialize, Serialize};
+
+use super::propagation::{self, QuCovariance};
 
 /// sigma_P -> sigma_gamma factor: 90/pi = 28.6479 deg per unit sigma_P/P.
 pub const WK_ANGLE_FACTOR_DEG: f64 = 90.0 / std::f64::consts::PI;
@@ -244,8 +247,10 @@ pub struct Polarization {
     pub p_debiased: f64,
     /// Polarization angle gamma, degrees east of north, in [0, 180).
     pub gamma_deg: f64,
-    /// Wardle-Kronberg sigma_gamma = 28.65 deg sigma_P / P, at most 90/sqrt(3) = 51.96 deg
-    /// (the standard deviation of a uniform angle; reached for P below ~0.55 sigma_P).
+    /// 1-sigma error of gamma, deg: the tangential error over 2P from the full q-u
+    /// covariance, (90/pi) sqrt(u^2 Vq + q^2 Vu - 2 q u C) / P^2 (Wardle & Kronberg's
+    /// 28.65 deg sigma_P/P when the errors are equal and uncorrelated), at most 90/sqrt(3) =
+    /// 51.96 deg (the standard deviation of a uniform angle; reached at S/N below ~0.55).
     pub sigma_gamma_deg: f64,
 }
 
@@ -286,14 +291,22 @@ impl std::ops::Deref for LinearPolarization {
 }
 
 impl LinearPolarization {
-    /// From q, u and their errors.
+    /// From q, u and their errors (no covariance).
     pub fn from_qu(q: f64, u: f64, sigma_q: f64, sigma_u: f64, how: Debias) -> Self {
-        let p = q.hypot(u);
-        let sigma_p = if p > 0.0 {
-            ((q * sigma_q).powi(2) + (u * sigma_u).powi(2)).sqrt() / p
-        } else {
-            (0.5 * (sigma_q * sigma_q + sigma_u * sigma_u)).sqrt()
+        let cov = QuCovariance {
+            var_q: sigma_q * sigma_q,
+            var_u: sigma_u * sigma_u,
+            cov_qu: 0.0,
         };
+        Self::from_qu_cov(q, u, &cov, how)
+    }
+
+    /// From q, u and their full covariance: sigma_P and sigma_gamma by the delta method
+    /// ([`crate::stokes::propagation`]): sigma_P the radial error, sigma_gamma the
+    /// tangential one over 2P (in degrees, at most 90/sqrt(3)).
+    pub fn from_qu_cov(q: f64, u: f64, cov: &QuCovariance, how: Debias) -> Self {
+        let p = q.hypot(u);
+        let sigma_p = propagation::sigma_p(q, u, cov);
         let gamma_deg = crate::stokes::model::normalize_axial_deg(0.5 * u.atan2(q).to_degrees());
         let snr = if p == 0.0 {
             0.0
@@ -304,11 +317,7 @@ impl LinearPolarization {
         };
         // At low S/N the linear formula explodes (P << sigma gave 10^5 deg); no axial angle
         // error exceeds that of an angle uniform on [-90, 90): 90/sqrt(3) = 51.96 deg.
-        let sigma_gamma_deg = if p > 0.0 {
-            (WK_ANGLE_FACTOR_DEG * sigma_p / p).min(UNIFORM_ANGLE_SIGMA_DEG)
-        } else {
-            UNIFORM_ANGLE_SIGMA_DEG
-        };
+        let sigma_gamma_deg = propagation::sigma_gamma_deg(q, u, cov);
         let p_debiased = debias(p, sigma_p, how);
         // The NKC width at the debiased S/N; P = 0 (even with zero errors) is S/N 0.
         let snr0 = if p_debiased == 0.0 {
@@ -322,8 +331,8 @@ impl LinearPolarization {
             pol: Polarization {
                 q,
                 u,
-                sigma_q,
-                sigma_u,
+                sigma_q: cov.var_q.max(0.0).sqrt(),
+                sigma_u: cov.var_u.max(0.0).sqrt(),
                 p,
                 sigma_p,
                 p_debiased,

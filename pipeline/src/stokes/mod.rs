@@ -2,5 +2,6 @@
 pub mod calibration;
 pub mod inversion;
 pub mod model;
+pub mod propagation;
 
 pub use model::{beam_fluxes, companion_offset_px, normalized_difference, Polarization};

@@ -107,13 +107,20 @@ fn calibrated_least_squares_subtracts_the_offset_and_propagates_its_error() {
     let s = solve(&o, StokesMethod::Auto, Some(off)).unwrap();
     assert!(!s.uncalibrated && s.method == StokesMethod::LeastSquares);
     assert!((s.fit.q - pol.q).abs() < 1e-15 && (s.fit.u - pol.u).abs() < 1e-15);
-    // Two orientations: q = F0 - c, u = F45 - c, so Var q = s0^2 + sc^2 and Cov = sc^2.
-    assert!((s.fit.var_q - (1e-6 + 9e-8)).abs() < 1e-18);
-    assert!((s.fit.cov_qu - 9e-8).abs() < 1e-18);
+    // Two orientations: q = F0 - c, u = F45 - c, so d(q, u)/dc = (-1, -1), the fit keeps the
+    // measurement's Var q = s0^2, and with the offset's error Var q = s0^2 + sc^2, Cov = sc^2.
+    let g = s.offset_gradient.unwrap();
+    assert!((g[0] + 1.0).abs() < 1e-12 && (g[1] + 1.0).abs() < 1e-12, "{g:?}");
+    assert!((s.fit.var_q - 1e-6).abs() < 1e-18 && s.fit.cov_qu.abs() < 1e-20);
+    let total = s.fit_with_offset_error();
+    assert!((total.var_q - (1e-6 + 9e-8)).abs() < 1e-18);
+    assert!((total.cov_qu - 9e-8).abs() < 1e-18);
     // Balanced angles: the offset cancels in the least squares, its error too.
     let o4 = obs(pol, &[0.0, 45.0, 90.0, 135.0], 1.0, 0.005);
     let s4 = solve(&o4, StokesMethod::LeastSquares, Some(off)).unwrap();
     assert!((s4.fit.var_q - 0.5e-6).abs() < 1e-18);
+    let g = s4.offset_gradient.unwrap();
+    assert!(g[0].abs() < 1e-15 && g[1].abs() < 1e-15, "{g:?}");
 }
 
 fn std_obs(name: &str, pol: Polarization, posangs: &[f64], theta0: f64, parity: i32, c: f64) -> StandardObservation {
