@@ -188,6 +188,11 @@ pub struct BinReport {
     pub median_reduce_s: f64,
     /// Targets with a pull beyond 5: what went wrong, in words.
     pub outliers: Vec<String>,
+    /// Pulls of Delta-gamma, `wrap(dgamma - dgamma_true) / sigma_delta_gamma_deg`, with
+    /// the unfolded signed differences `dgamma = wrap(gamma_A - gamma_B)` (what the error
+    /// describes; folding would bias the pull near 0 and 90 deg): one per binary with a
+    /// Delta-gamma.
+    pub delta_gamma_pulls: Vec<f64>,
 }
 
 /// The scene of separation bin `bin` (edges `lo`, `hi` arcsec) and its (sep, flux A, flux B, 0) draws.
@@ -231,6 +236,7 @@ struct One {
     pulls: Vec<f64>,
     errors: Vec<f64>,
     sigmas: Vec<f64>,
+    delta_gamma_pull: Option<f64>,
     missing: usize,
     reduce_s: f64,
 }
@@ -331,6 +337,7 @@ fn score_target(
         pulls: vec![],
         errors: vec![],
         sigmas: vec![],
+        delta_gamma_pull: None,
         missing: 0,
         reduce_s,
     };
@@ -356,6 +363,17 @@ fn score_target(
             }
             _ => one.missing += 1,
         }
+    }
+    if let (Some(s), [a, b], [ta, tb]) = (
+        target.sigma_delta_gamma_deg,
+        target.components.as_slice(),
+        truth_comps.as_slice(),
+    ) {
+        let wrap = |d: f64| (d + 90.0).rem_euclid(180.0) - 90.0;
+        let angle = |q: f64, u: f64| 0.5 * u.atan2(q).to_degrees();
+        let d = wrap(a.gamma_deg - b.gamma_deg);
+        let d_true = wrap(angle(ta.q, ta.u) - angle(tb.q, tb.u));
+        one.delta_gamma_pull = Some(wrap(d - d_true) / s);
     }
     if one.pulls.iter().any(|p| p.abs() > 5.0) || one.missing > 0 {
         let comps: Vec<String> = target
@@ -414,6 +432,7 @@ fn bin_report(w: &[f64], fwhm: f64, ones: &[One]) -> BinReport {
         missing: ones.iter().map(|o| o.missing).sum(),
         median_reduce_s: ts.get(ts.len() / 2).copied().unwrap_or(f64::NAN),
         outliers: ones.iter().filter_map(|o| o.note.clone()).collect(),
+        delta_gamma_pulls: ones.iter().filter_map(|o| o.delta_gamma_pull).collect(),
     }
 }
 
