@@ -3,15 +3,18 @@
 //! ```text
 //! standard sequences (DPR TYPE 'STD'), reduced as single stars
 //!   -> matched to the standards table (name ignoring case, spaces, '_'; filter)
-//!   -> per filter: offset c from the unpolarized ones (weighted mean of F)
-//!                  theta0 (and parity) from the polarized ones (offset removed)
-//!                  c again with the polarized ones added (their known q, u removed)
+//!   -> per filter: c and theta0 (and parity) fitted jointly over every orientation of
+//!      every standard, table values as nuisances with their errors
+//!      (stokes::calibration::joint); when the standards cannot separate c from theta0:
+//!      c from the unpolarized ones only, the profile's angles, `incomplete` says why
 //!   -> Calibration (written as calibration.json by `sofipol calib`, read with --calib)
 //! every target component: per-orientation F (from the measurement)
 //!   -> analyzer angles from the calibration's theta0, parity (else the profile's)
-//!   -> Stokes solve (stokes::calibration::solve): ratio method on balanced angles,
-//!      else F - c with sigma_c propagated, else free offset (3+ angles), else
-//!      plain least squares flagged `uncalibrated`
+//!   -> Stokes solve (stokes::calibration::solve_with_fallback): ratio method on balanced
+//!      angles, else F - c with sigma_c propagated, else free offset (3+ angles), else
+//!      plain least squares flagged `uncalibrated`; a chosen method that cannot apply
+//!      falls back to that choice (flag `stokes_method_failed: ...; fell back to ...`)
+//!   -> flag `calibration_incomplete` when the filter's calibration is incomplete
 //! ```
 //! The photometry is not redone: the solve works on the per-orientation F values each
 //! component carries in its `orientations` field.
@@ -23,7 +26,7 @@ use sofipol_calib::Profile;
 use crate::catalog::{fold_delta_gamma, Catalog, Component, InstrumentalOffset, StandardResult, Status, Target};
 use crate::standards::{StandardStar, StandardsTable};
 use crate::stokes::calibration::{
-    measure_angles, measure_offset, solve, AngleCalibration, Offset, OrientationF, StandardObservation, StokesMethod,
+    joint::fit_joint, solve_with_fallback, AngleCalibration, Offset, OrientationF, StandardObservation, StokesMethod,
 };
 use crate::stokes::inversion::{Debias, LinearPolarization};
 
@@ -68,6 +71,10 @@ pub struct FilterCalibration {
     /// Covariance of c and theta0 (units of c times deg), when both come from one fit.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cov_c_theta0_deg: Option<f64>,
+    /// Why the standards could not separate c from theta0 (the angles are then the
+    /// profile's and every component of the filter is flagged `calibration_incomplete`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub incomplete: Option<String>,
 }
 
 /// The calibration products of a night (`calibration.json`).
@@ -120,6 +127,8 @@ impl Calibration {
                 ),
             });
         }
+        let mut c = c;
+        validate::validate(&mut c).map_err(|reason| Error::CalibrationFile { path: file, reason })?;
         Ok(c)
     }
 
@@ -190,10 +199,14 @@ pub fn resolve_component(
     let offset = cal.and_then(|c| c.offset);
     c.flags
         .retain(|f| f != "uncalibrated" && f != "low_snr" && !f.starts_with("stokes_method_failed"));
-    let sol = match solve(&obs, method, offset) {
-        Ok(s) => s,
+    let sol = match solve_with_fallback(&obs, method, offset) {
+        Ok((s, fell_back)) => {
+            c.flags.extend(fell_back);
+            s
+        }
         Err(e) => {
             c.flags.push(format!("stokes_method_failed: {e}"));
+            c.passes_cut = false;
             return false;
         }
     };
@@ -306,39 +319,18 @@ pub fn measure(standards: &[Target], table: &StandardsTable, profile: &Profile) 
     let mut filters = Vec::new();
     for (filter, list) in by_filter {
         let obs: Vec<StandardObservation> = list.iter().map(|(_, o)| o.clone()).collect();
-        let unpol: Vec<String> = list
-            .iter()
-            .filter(|(_, o)| !o.polarized())
-            .map(|(s, _)| s.clone())
-            .collect();
-        let pol: Vec<String> = list
-            .iter()
-            .filter(|(_, o)| o.polarized())
-            .map(|(s, _)| s.clone())
-            .collect();
-        let first = measure_offset(&obs, None).map(|(o, _)| o);
-        let angles = measure_angles(
-            &obs,
-            first.unwrap_or(Offset { c: 0.0, sigma_c: 0.0 }),
-            profile.angles.parity,
-        );
-        // With the angles known, the polarized standards also measure the offset.
-        let offset = match (&angles, first) {
-            (Some(a), _) => measure_offset(&obs, Some(a)).map(|(o, _)| o),
-            (None, f) => f,
+        let Some(j) = fit_joint(&obs, profile.angles.parity) else {
+            continue;
         };
-        let offset_standards = if angles.is_some() {
-            unpol.iter().chain(&pol).cloned().collect()
-        } else {
-            unpol
-        };
+        let ids = |from: &[usize]| from.iter().map(|&i| list[i].0.clone()).collect::<Vec<String>>();
         filters.push(FilterCalibration {
             filter,
-            offset,
-            offset_standards: if offset.is_some() { offset_standards } else { vec![] },
-            angle_standards: if angles.is_some() { pol } else { vec![] },
-            angles,
-            cov_c_theta0_deg: None,
+            offset: j.offset,
+            offset_standards: ids(&j.offset_from),
+            angle_standards: ids(&j.angles_from),
+            angles: j.angles,
+            cov_c_theta0_deg: j.cov_c_theta0_deg,
+            incomplete: j.incomplete,
         });
     }
     if filters.is_empty() {
@@ -559,6 +551,7 @@ pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::Target
 
 pub mod setup;
 pub use setup::CalibSetup;
+pub mod validate;
 
 #[cfg(test)]
 mod tests;

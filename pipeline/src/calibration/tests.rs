@@ -325,6 +325,7 @@ fn the_zero_point_error_adds_tangential_variance_only() {
             }),
             angle_standards: vec![],
             cov_c_theta0_deg: None,
+            incomplete: None,
         };
         resolve_component(
             &mut c,
@@ -353,4 +354,52 @@ fn the_zero_point_error_adds_tangential_variance_only() {
         "tangential variance grows by {:e}, expected {added:e}",
         t1 - t0
     );
+}
+
+fn written_calibration(filter: serde_json::Value) -> (tempfile::TempDir, std::path::PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let doc = serde_json::json!({
+        "schema_version": CALIBRATION_SCHEMA, "filters": [filter], "frames": [], "provenance": {}
+    });
+    let p = dir.path().join(CALIBRATION_FILE);
+    std::fs::write(&p, serde_json::to_string(&doc).unwrap()).unwrap();
+    (dir, p)
+}
+
+/// `calibration.json` is checked on reading: an absurd number is refused with the file, the
+/// key path and the value; sane ones pass, theta0 normalised into [0, 180).
+#[test]
+fn calibration_file_with_absurd_numbers_is_refused_naming_file_key_and_value() {
+    let good = serde_json::json!({
+        "filter": "Ks", "offset": {"c": 0.018, "sigma_c": 0.0002}, "offset_standards": [],
+        "angles": {"theta0_deg": -177.0, "sigma_theta0_deg": 0.5, "parity": -1,
+                   "parity_measured": true, "n_standards": 2},
+        "angle_standards": [], "cov_c_theta0_deg": -7e-5
+    });
+    let (dir, _) = written_calibration(good.clone());
+    let c = Calibration::read(dir.path()).unwrap();
+    assert!((c.filters[0].angles.unwrap().theta0_deg - 3.0).abs() < 1e-12);
+    let cases: [(&str, serde_json::Value, &str); 8] = [
+        ("/offset/c", 5.0.into(), "filters[0].offset.c = 5"),
+        ("/offset/sigma_c", (-1e-3).into(), "filters[0].offset.sigma_c = -0.001"),
+        ("/angles/parity", 7.into(), "filters[0].angles.parity = 7"),
+        ("/angles/theta0_deg", 1e300.into(), "filters[0].angles.theta0_deg = 1000000"),
+        ("/angles/sigma_theta0_deg", 91.0.into(), "filters[0].angles.sigma_theta0_deg = 91"),
+        ("/angles/sigma_theta0_deg", (-0.1).into(), "filters[0].angles.sigma_theta0_deg = -0.1"),
+        ("/cov_c_theta0_deg", 2e-4.into(), "filters[0].cov_c_theta0_deg = 0.0002"),
+        ("/cov_c_theta0_deg", 1e300.into(), "filters[0].cov_c_theta0_deg = 1000000"),
+    ];
+    for (ptr, v, expect) in cases {
+        let mut f = good.clone();
+        *f.pointer_mut(ptr).unwrap() = v;
+        let (_dir, p) = written_calibration(f);
+        let e = Calibration::read(&p).unwrap_err().to_string();
+        assert!(e.contains(&p.display().to_string()) && e.contains(expect), "{ptr}: {e}");
+    }
+    // A covariance without the angles it belongs to.
+    let mut f = good;
+    f["angles"] = serde_json::Value::Null;
+    let (_dir, p) = written_calibration(f);
+    let e = Calibration::read(&p).unwrap_err().to_string();
+    assert!(e.contains("filters[0].cov_c_theta0_deg"), "{e}");
 }

@@ -372,6 +372,44 @@ pub fn solve(
     }
 }
 
+/// Prefix of the component flag of a Stokes method that could not be applied.
+pub const STOKES_METHOD_FAILED: &str = "stokes_method_failed";
+
+/// The end of that flag when the automatic fallback carries no offset correction: such a
+/// component never passes the cut ([`fallback_refuses_cut`]).
+const FALLBACK_UNCALIBRATED: &str = "(uncalibrated)";
+
+/// The chosen method when it applies; otherwise the automatic choice
+/// ([`StokesMethod::Auto`]) and the flag saying so,
+/// `stokes_method_failed: <reason>; fell back to <method>` (ending in ` (uncalibrated)`
+/// when the fallback corrects no offset). An error only when the automatic choice fails
+/// too (the orientations do not constrain q and u).
+pub fn solve_with_fallback(
+    obs: &[OrientationF],
+    method: StokesMethod,
+    offset: Option<Offset>,
+) -> crate::error::Result<(StokesSolution, Option<String>)> {
+    match solve(obs, method, offset) {
+        Ok(s) => Ok((s, None)),
+        Err(e) if method != StokesMethod::Auto => {
+            let s = solve(obs, StokesMethod::Auto, offset)?;
+            let unc = if s.uncalibrated {
+                format!(" {FALLBACK_UNCALIBRATED}")
+            } else {
+                String::new()
+            };
+            Ok((s, Some(format!("{STOKES_METHOD_FAILED}: {e}; fell back to {}{unc}", s.method))))
+        }
+        Err(e) => Err(e),
+    }
+}
+
+/// Whether a component flag is the fallback flag of [`solve_with_fallback`] for a fallback
+/// without offset correction (the value must not pass the cut).
+pub fn fallback_refuses_cut(flag: &str) -> bool {
+    flag.starts_with(STOKES_METHOD_FAILED) && flag.ends_with(FALLBACK_UNCALIBRATED)
+}
+
 /// A standard as the calibration sees it: its per-orientation F at the rotator angles, and
 /// its table polarization (sky frame; p = 0 for unpolarized standards).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -567,6 +605,8 @@ pub fn measure_angles(stds: &[StandardObservation], offset: Offset, default_pari
         n_standards: raws.len(),
     })
 }
+
+pub mod joint;
 
 #[cfg(test)]
 mod tests;
