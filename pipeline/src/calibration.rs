@@ -26,7 +26,7 @@ use sofipol_calib::Profile;
 use crate::catalog::{fold_delta_gamma, Catalog, Component, InstrumentalOffset, StandardResult, Status, Target};
 use crate::standards::{StandardStar, StandardsTable};
 use crate::stokes::calibration::{
-    joint::fit_joint, solve_with_fallback, AngleCalibration, Offset, OrientationF, StandardObservation, StokesMethod,
+    joint::fit_joint, solve_with_fallback, AngleCalibration, STOKES_METHOD_FAILED, Offset, OrientationF, StandardObservation, StokesMethod,
 };
 use crate::stokes::inversion::{Debias, LinearPolarization};
 
@@ -356,6 +356,31 @@ pub struct CalibrationSummary {
     pub lines: Vec<String>,
     /// Components flagged `uncalibrated`.
     pub n_uncalibrated: usize,
+    /// Components flagged `calibration_incomplete`.
+    pub n_incomplete: usize,
+    /// Components whose chosen Stokes method could not apply (`stokes_method_failed`).
+    pub n_method_failed: usize,
+}
+
+/// The component flag of a filter whose standards could not separate c from theta0.
+pub const CALIBRATION_INCOMPLETE: &str = "calibration_incomplete";
+
+/// Flag `calibration_incomplete` when the filter's calibration is incomplete (its angles
+/// are the profile's; `FilterCalibration::incomplete` says why). Returns whether flagged.
+fn flag_incomplete(c: &mut Component, cal: Option<&FilterCalibration>) -> bool {
+    c.flags.retain(|f| f != CALIBRATION_INCOMPLETE);
+    let incomplete = cal.is_some_and(|f| f.incomplete.is_some());
+    if incomplete {
+        c.flags.push(CALIBRATION_INCOMPLETE.into());
+    }
+    incomplete
+}
+
+/// After a target component is re-solved: flag an incomplete calibration and count it,
+/// and count a Stokes method that could not apply, for the run summary.
+fn note_calibration_state(c: &mut Component, cal: Option<&FilterCalibration>, summary: &mut CalibrationSummary) {
+    summary.n_incomplete += usize::from(flag_incomplete(c, cal));
+    summary.n_method_failed += usize::from(c.flags.iter().any(|f| f.starts_with(STOKES_METHOD_FAILED)));
 }
 
 /// Where a calibration came from.
@@ -397,6 +422,7 @@ pub fn calibrate_catalog(
         let mut n_unc = 0;
         for c in t.components.iter_mut() {
             n_unc += usize::from(resolve_component(c, profile, fc, method, debias, cut_snr));
+            note_calibration_state(c, fc, &mut summary);
         }
         summary.n_uncalibrated += n_unc;
         t.delta_gamma_deg = if t.components.len() == 2 && t.components.iter().all(|c| c.passes_cut) {
@@ -423,21 +449,22 @@ pub fn calibrate_catalog(
         if let Some(c) = measured.as_mut() {
             c.flags.retain(|f| f != "companion_not_found");
             resolve_component(c, profile, fc, method, debias, cut_snr);
+            flag_incomplete(c, fc);
         }
         if let Some(e) = t.error.as_ref().filter(|_| t.status == Status::Failed) {
             flags.push(format!("failed: {e}"));
         }
-        let (mut rp, mut rg, mut rgs) = (None, None, None);
-        if let (Some(e), Some(m)) = (&entry, &measured) {
-            if m.p.is_finite() {
-                rp = Some((m.p - e.p) / m.sigma_p.hypot(e.sigma_p));
-                if e.polarized() {
-                    let d = (m.gamma_deg - e.gamma_deg + 90.0).rem_euclid(180.0) - 90.0;
-                    rg = Some(d);
-                    rgs = Some(d / m.sigma_gamma_deg.hypot(e.sigma_gamma_deg));
-                }
-            }
+        let res = match (&entry, &measured) {
+            (Some(e), Some(m)) if m.p.is_finite() => residuals::table_residuals(m, e, profile, fc),
+            _ => Default::default(),
+        };
+        for f in &res.flags {
+            summary.lines.push(format!(
+                "standard {} ({seq}, {filter}): {f} (measurement error and table error only)",
+                entry.as_ref().map_or(t.object.as_str(), |e| e.name.as_str())
+            ));
         }
+        flags.extend(res.flags);
         let mut used_for = Vec::new();
         if used_offset.contains(&seq) {
             used_for.push("offset".to_string());
@@ -460,9 +487,10 @@ pub fn calibrate_catalog(
             },
             table: entry,
             measured,
-            residual_p_sigma: rp,
-            residual_gamma_deg: rg,
-            residual_gamma_sigma: rgs,
+            residual_p_sigma: res.p_sigma,
+            residual_gamma_deg: res.gamma_deg,
+            residual_gamma_sigma: res.gamma_sigma,
+            residual_qu_chi2: res.qu_chi2,
             used_for,
             flags,
         });
@@ -487,7 +515,24 @@ pub fn calibrate_catalog(
             }
         ));
     }
+    if summary.n_method_failed > 0 {
+        summary.lines.push(format!(
+            "{} component(s) flagged 'stokes_method_failed': --stokes-method {method} cannot be applied to \
+             their orientations; solved with the automatic choice instead (the flag names it; an \
+             uncalibrated fallback never passes the cut)",
+            summary.n_method_failed
+        ));
+    }
     if let Some(c) = &cal {
+        for f in &c.filters {
+            if let Some(why) = &f.incomplete {
+                summary.lines.push(format!(
+                    "calibration ({origin}) {} incomplete: {why}; angle zero-point from the profile, \
+                     its components flagged '{CALIBRATION_INCOMPLETE}' ({} in all filters)",
+                    f.filter, summary.n_incomplete
+                ));
+            }
+        }
         for f in &c.filters {
             let off = f
                 .offset
@@ -551,6 +596,7 @@ pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::Target
 
 pub mod setup;
 pub use setup::CalibSetup;
+pub mod residuals;
 pub mod validate;
 
 #[cfg(test)]
