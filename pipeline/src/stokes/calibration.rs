@@ -18,9 +18,12 @@
 //!   `(R - 1)/(R + 1)` with `R^2 = (f_o/f_e)(phi) / (f_o/f_e)(phi + 90)`) cancels any beam
 //!   ratio `k` exactly. `G = q cos 2phi + u sin 2phi` is then fitted over the pairs.
 //! * Three or more distinct angles allow a free offset in the least squares.
-//! * Standards: [`measure_offset`] (weighted mean of F minus the known polarization, over
-//!   every orientation of every standard) and [`measure_angles`] (theta0 and parity from
-//!   the polarized ones).
+//! * Standards: [`joint::fit_joint`] fits c and theta0 (and the parity) together over every
+//!   orientation of every standard, with their covariance, and says when the standards
+//!   cannot separate the two. [`measure_offset`] and [`measure_angles`] are the former
+//!   sequential estimates (c, then theta0 with c removed), kept for comparison.
+//! * A chosen method that cannot apply falls back to the automatic one
+//!   ([`solve_with_fallback`]).
 use serde::{Deserialize, Serialize};
 
 use super::inversion::{fit_qu, QuFit, WK_ANGLE_FACTOR_DEG};
