@@ -163,3 +163,46 @@ fn calib_products_serve_another_night_and_uncalibrated_is_flagged_and_explained(
     assert_eq!(code, 1);
     assert!(err.contains("no usable standard"), "{err}");
 }
+
+/// An absurd calibration.json (c = 5, parity 7, theta0 1e300) is refused before anything is
+/// reduced: exit 1, the message naming the file, the key path and the value.
+#[test]
+fn night_with_an_absurd_calibration_file_exits_1_naming_file_key_and_value() {
+    let tmp = tempfile::tempdir().unwrap();
+    let night = tmp.path().join("night");
+    std::fs::create_dir(&night).unwrap();
+    let caldir = tmp.path().join("cal");
+    std::fs::create_dir(&caldir).unwrap();
+    let write = |c: f64, parity: i32, theta0: f64| {
+        let doc = serde_json::json!({
+            "schema_version": "1.0",
+            "filters": [{"filter": "Ks", "offset": {"c": c, "sigma_c": 0.0002}, "offset_standards": [],
+                         "angles": {"theta0_deg": theta0, "sigma_theta0_deg": 0.5, "parity": parity,
+                                    "parity_measured": false, "n_standards": 1},
+                         "angle_standards": []}],
+            "frames": [], "provenance": {}
+        });
+        std::fs::write(caldir.join("calibration.json"), doc.to_string()).unwrap();
+    };
+    let file = caldir.join("calibration.json");
+    for (c, parity, theta0, expect) in [
+        (5.0, 7, 1e300, "filters[0].offset.c = 5"),
+        (0.018, 7, 3.0, "filters[0].angles.parity = 7"),
+        (0.018, 1, 1e300, "filters[0].angles.theta0_deg = 1000000"),
+    ] {
+        write(c, parity, theta0);
+        let out = tmp.path().join("c.json");
+        let (code, _, err) = run(&[
+            "night",
+            night.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--no-png",
+            "--calib",
+            caldir.to_str().unwrap(),
+        ]);
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains(file.to_str().unwrap()) && err.contains(expect), "{expect}: {err}");
+        assert!(!out.exists());
+    }
+}

@@ -248,12 +248,16 @@ fn two_orientations_with_standards_give_unbiased_pulls_and_without_them_are_flag
     assert_eq!(cat.standards.len(), 4);
     for s in &cat.standards {
         eprintln!(
-            "standard {}: P residual {:?} sigma, angle residual {:?} deg ({:?} sigma)",
-            s.name, s.residual_p_sigma, s.residual_gamma_deg, s.residual_gamma_sigma
+            "standard {}: P residual {:?} sigma, (q, u) chi2 {:?}, angle residual {:?} deg ({:?} sigma)",
+            s.name, s.residual_p_sigma, s.residual_qu_chi2, s.residual_gamma_deg, s.residual_gamma_sigma
         );
         assert!(s.table.is_some(), "{}", s.object);
-        let rp = s.residual_p_sigma.unwrap();
-        assert!(rp.abs() < 3.0, "{}: P residual {rp} sigma", s.name);
+        // Polarized: P against the table; unpolarized: (q, u) against 0 (chi^2, 2 dof).
+        match (s.residual_p_sigma, s.residual_qu_chi2) {
+            (Some(rp), None) => assert!(rp.abs() < 3.0, "{}: P residual {rp} sigma", s.name),
+            (None, Some(chi2)) => assert!(chi2 < 11.83, "{}: (q, u) chi2 {chi2}", s.name),
+            other => panic!("{}: residuals {other:?}", s.name),
+        }
         if let Some(rg) = s.residual_gamma_sigma {
             assert!(rg.abs() < 3.0, "{}: angle residual {rg} sigma", s.name);
         }

@@ -3,15 +3,18 @@
 //! ```text
 //! standard sequences (DPR TYPE 'STD'), reduced as single stars
 //!   -> matched to the standards table (name ignoring case, spaces, '_'; filter)
-//!   -> per filter: offset c from the unpolarized ones (weighted mean of F)
-//!                  theta0 (and parity) from the polarized ones (offset removed)
-//!                  c again with the polarized ones added (their known q, u removed)
+//!   -> per filter: c and theta0 (and parity) fitted jointly over every orientation of
+//!      every standard, table values as nuisances with their errors
+//!      (stokes::calibration::joint); when the standards cannot separate c from theta0:
+//!      c from the unpolarized ones only, the profile's angles, `incomplete` says why
 //!   -> Calibration (written as calibration.json by `sofipol calib`, read with --calib)
 //! every target component: per-orientation F (from the measurement)
 //!   -> analyzer angles from the calibration's theta0, parity (else the profile's)
-//!   -> Stokes solve (stokes::calibration::solve): ratio method on balanced angles,
-//!      else F - c with sigma_c propagated, else free offset (3+ angles), else
-//!      plain least squares flagged `uncalibrated`
+//!   -> Stokes solve (stokes::calibration::solve_with_fallback): ratio method on balanced
+//!      angles, else F - c with sigma_c propagated, else free offset (3+ angles), else
+//!      plain least squares flagged `uncalibrated`; a chosen method that cannot apply
+//!      falls back to that choice (flag `stokes_method_failed: ...; fell back to ...`)
+//!   -> flag `calibration_incomplete` when the filter's calibration is incomplete
 //! ```
 //! The photometry is not redone: the solve works on the per-orientation F values each
 //! component carries in its `orientations` field.
@@ -23,7 +26,7 @@ use sofipol_calib::Profile;
 use crate::catalog::{Catalog, Component, InstrumentalOffset, StandardResult, Status, Target};
 use crate::standards::{StandardStar, StandardsTable};
 use crate::stokes::calibration::{
-    measure_angles, measure_offset, solve, AngleCalibration, Offset, OrientationF, StandardObservation, StokesMethod,
+    joint::fit_joint, solve_with_fallback, AngleCalibration, STOKES_METHOD_FAILED, Offset, OrientationF, StandardObservation, StokesMethod,
 };
 use crate::stokes::inversion::{Debias, LinearPolarization};
 use crate::stokes::propagation::{self, calibration_covariance, CalibrationErrors, QuCovariance};
@@ -69,6 +72,10 @@ pub struct FilterCalibration {
     /// Covariance of c and theta0 (units of c times deg), when both come from one fit.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cov_c_theta0_deg: Option<f64>,
+    /// Why the standards could not separate c from theta0 (the angles are then the
+    /// profile's and every component of the filter is flagged `calibration_incomplete`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub incomplete: Option<String>,
 }
 
 /// The calibration products of a night (`calibration.json`).
@@ -121,6 +128,8 @@ impl Calibration {
                 ),
             });
         }
+        let mut c = c;
+        validate::validate(&mut c).map_err(|reason| Error::CalibrationFile { path: file, reason })?;
         Ok(c)
     }
 
@@ -206,10 +215,14 @@ pub fn resolve_component(
     let offset = cal.and_then(|c| c.offset);
     c.flags
         .retain(|f| f != "uncalibrated" && f != "low_snr" && !f.starts_with("stokes_method_failed"));
-    let sol = match solve(&obs, method, offset) {
-        Ok(s) => s,
+    let sol = match solve_with_fallback(&obs, method, offset) {
+        Ok((s, fell_back)) => {
+            c.flags.extend(fell_back);
+            s
+        }
         Err(e) => {
             c.flags.push(format!("stokes_method_failed: {e}"));
+            c.passes_cut = false;
             return false;
         }
     };
@@ -317,39 +330,18 @@ pub fn measure(standards: &[Target], table: &StandardsTable, profile: &Profile) 
     let mut filters = Vec::new();
     for (filter, list) in by_filter {
         let obs: Vec<StandardObservation> = list.iter().map(|(_, o)| o.clone()).collect();
-        let unpol: Vec<String> = list
-            .iter()
-            .filter(|(_, o)| !o.polarized())
-            .map(|(s, _)| s.clone())
-            .collect();
-        let pol: Vec<String> = list
-            .iter()
-            .filter(|(_, o)| o.polarized())
-            .map(|(s, _)| s.clone())
-            .collect();
-        let first = measure_offset(&obs, None).map(|(o, _)| o);
-        let angles = measure_angles(
-            &obs,
-            first.unwrap_or(Offset { c: 0.0, sigma_c: 0.0 }),
-            profile.angles.parity,
-        );
-        // With the angles known, the polarized standards also measure the offset.
-        let offset = match (&angles, first) {
-            (Some(a), _) => measure_offset(&obs, Some(a)).map(|(o, _)| o),
-            (None, f) => f,
+        let Some(j) = fit_joint(&obs, profile.angles.parity) else {
+            continue;
         };
-        let offset_standards = if angles.is_some() {
-            unpol.iter().chain(&pol).cloned().collect()
-        } else {
-            unpol
-        };
+        let ids = |from: &[usize]| from.iter().map(|&i| list[i].0.clone()).collect::<Vec<String>>();
         filters.push(FilterCalibration {
             filter,
-            offset,
-            offset_standards: if offset.is_some() { offset_standards } else { vec![] },
-            angle_standards: if angles.is_some() { pol } else { vec![] },
-            angles,
-            cov_c_theta0_deg: None,
+            offset: j.offset,
+            offset_standards: ids(&j.offset_from),
+            angle_standards: ids(&j.angles_from),
+            angles: j.angles,
+            cov_c_theta0_deg: j.cov_c_theta0_deg,
+            incomplete: j.incomplete,
         });
     }
     if filters.is_empty() {
@@ -375,6 +367,31 @@ pub struct CalibrationSummary {
     pub lines: Vec<String>,
     /// Components flagged `uncalibrated`.
     pub n_uncalibrated: usize,
+    /// Components flagged `calibration_incomplete`.
+    pub n_incomplete: usize,
+    /// Components whose chosen Stokes method could not apply (`stokes_method_failed`).
+    pub n_method_failed: usize,
+}
+
+/// The component flag of a filter whose standards could not separate c from theta0.
+pub const CALIBRATION_INCOMPLETE: &str = "calibration_incomplete";
+
+/// Flag `calibration_incomplete` when the filter's calibration is incomplete (its angles
+/// are the profile's; `FilterCalibration::incomplete` says why). Returns whether flagged.
+fn flag_incomplete(c: &mut Component, cal: Option<&FilterCalibration>) -> bool {
+    c.flags.retain(|f| f != CALIBRATION_INCOMPLETE);
+    let incomplete = cal.is_some_and(|f| f.incomplete.is_some());
+    if incomplete {
+        c.flags.push(CALIBRATION_INCOMPLETE.into());
+    }
+    incomplete
+}
+
+/// After a target component is re-solved: flag an incomplete calibration and count it,
+/// and count a Stokes method that could not apply, for the run summary.
+fn note_calibration_state(c: &mut Component, cal: Option<&FilterCalibration>, summary: &mut CalibrationSummary) {
+    summary.n_incomplete += usize::from(flag_incomplete(c, cal));
+    summary.n_method_failed += usize::from(c.flags.iter().any(|f| f.starts_with(STOKES_METHOD_FAILED)));
 }
 
 /// Where a calibration came from.
@@ -416,6 +433,7 @@ pub fn calibrate_catalog(
         let mut n_unc = 0;
         for c in t.components.iter_mut() {
             n_unc += usize::from(resolve_component(c, profile, fc, method, debias, cut_snr));
+            note_calibration_state(c, fc, &mut summary);
         }
         summary.n_uncalibrated += n_unc;
         t.update_delta_gamma();
@@ -438,21 +456,22 @@ pub fn calibrate_catalog(
         if let Some(c) = measured.as_mut() {
             c.flags.retain(|f| f != "companion_not_found");
             resolve_component(c, profile, fc, method, debias, cut_snr);
+            flag_incomplete(c, fc);
         }
         if let Some(e) = t.error.as_ref().filter(|_| t.status == Status::Failed) {
             flags.push(format!("failed: {e}"));
         }
-        let (mut rp, mut rg, mut rgs) = (None, None, None);
-        if let (Some(e), Some(m)) = (&entry, &measured) {
-            if m.p.is_finite() {
-                rp = Some((m.p - e.p) / m.sigma_p.hypot(e.sigma_p));
-                if e.polarized() {
-                    let d = (m.gamma_deg - e.gamma_deg + 90.0).rem_euclid(180.0) - 90.0;
-                    rg = Some(d);
-                    rgs = Some(d / m.sigma_gamma_deg.hypot(e.sigma_gamma_deg));
-                }
-            }
+        let res = match (&entry, &measured) {
+            (Some(e), Some(m)) if m.p.is_finite() => residuals::table_residuals(m, e, profile, fc),
+            _ => Default::default(),
+        };
+        for f in &res.flags {
+            summary.lines.push(format!(
+                "standard {} ({seq}, {filter}): {f} (measurement error and table error only)",
+                entry.as_ref().map_or(t.object.as_str(), |e| e.name.as_str())
+            ));
         }
+        flags.extend(res.flags);
         let mut used_for = Vec::new();
         if used_offset.contains(&seq) {
             used_for.push("offset".to_string());
@@ -475,9 +494,10 @@ pub fn calibrate_catalog(
             },
             table: entry,
             measured,
-            residual_p_sigma: rp,
-            residual_gamma_deg: rg,
-            residual_gamma_sigma: rgs,
+            residual_p_sigma: res.p_sigma,
+            residual_gamma_deg: res.gamma_deg,
+            residual_gamma_sigma: res.gamma_sigma,
+            residual_qu_chi2: res.qu_chi2,
             used_for,
             flags,
         });
@@ -502,7 +522,24 @@ pub fn calibrate_catalog(
             }
         ));
     }
+    if summary.n_method_failed > 0 {
+        summary.lines.push(format!(
+            "{} component(s) flagged 'stokes_method_failed': --stokes-method {method} cannot be applied to \
+             their orientations; solved with the automatic choice instead (the flag names it; an \
+             uncalibrated fallback never passes the cut)",
+            summary.n_method_failed
+        ));
+    }
     if let Some(c) = &cal {
+        for f in &c.filters {
+            if let Some(why) = &f.incomplete {
+                summary.lines.push(format!(
+                    "calibration ({origin}) {} incomplete: {why}; angle zero-point from the profile, \
+                     its components flagged '{CALIBRATION_INCOMPLETE}' ({} in all filters)",
+                    f.filter, summary.n_incomplete
+                ));
+            }
+        }
         for f in &c.filters {
             let off = f
                 .offset
@@ -566,6 +603,8 @@ pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::Target
 
 pub mod setup;
 pub use setup::CalibSetup;
+pub mod residuals;
+pub mod validate;
 
 #[cfg(test)]
 mod tests;

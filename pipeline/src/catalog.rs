@@ -452,15 +452,20 @@ pub struct StandardResult {
     /// Measured polarization (sky frame, calibration applied), when measured.
     #[serde(default)]
     pub measured: Option<Component>,
-    /// (P - p_table) / sqrt(sigma_P^2 + sigma_p_table^2).
+    /// (P - p_table) / sqrt(sigma_P,stat^2 + sigma_p_table^2), polarized standards only
+    /// (sigma_P,stat: the measurement's error without the calibration's).
     #[serde(default)]
     pub residual_p_sigma: Option<f64>,
     /// gamma - gamma_table folded into [-90, 90), deg (polarized standards only).
     #[serde(default)]
     pub residual_gamma_deg: Option<f64>,
-    /// The angle residual in units of the combined error.
+    /// The angle residual in units of the combined error (measurement and table errors).
     #[serde(default)]
     pub residual_gamma_sigma: Option<f64>,
+    /// chi^2 of the measured (q, u) against 0 with their statistical covariance plus the
+    /// table's sigma_p^2/2 in each, 2 dof (unpolarized standards).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub residual_qu_chi2: Option<f64>,
     /// What the calibration used it for: "offset", "angles".
     #[serde(default)]
     pub used_for: Vec<String>,

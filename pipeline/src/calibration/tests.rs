@@ -102,8 +102,13 @@ fn night_calibration_recovers_truth_and_flags_uncalibrated_without_it() {
     let t = 6f64.to_radians();
     // ... and the zero-point error, which rotates (q, u): dq = -2u dtheta0.
     let st = f.angles.unwrap().sigma_theta0_deg.to_radians();
-    let expect =
-        1e-6 + (t.cos() - t.sin()).powi(2) * f.offset.unwrap().sigma_c.powi(2) + (2.0 * truth_a.u * st).powi(2);
+    // c and theta0 come from one fit: their covariance adds 2 (dq/dc)(dq/dtheta0) cov, with
+    // dq/dc = -(cos 6 - sin 6) and dq/dtheta0 = -2u per rad.
+    let cov = f.cov_c_theta0_deg.unwrap().to_radians();
+    let expect = 1e-6
+        + (t.cos() - t.sin()).powi(2) * f.offset.unwrap().sigma_c.powi(2)
+        + (2.0 * truth_a.u * st).powi(2)
+        + 2.0 * (t.cos() - t.sin()) * (2.0 * truth_a.u) * cov;
     assert!(f.offset.unwrap().sigma_c > 0.0);
     assert!(
         (a.sigma_q.powi(2) - expect).abs() < 1e-18,
@@ -325,6 +330,7 @@ fn the_zero_point_error_adds_tangential_variance_only() {
             }),
             angle_standards: vec![],
             cov_c_theta0_deg: None,
+            incomplete: None,
         };
         resolve_component(
             &mut c,
@@ -390,6 +396,7 @@ fn delta_gamma_error_has_the_offset_and_not_the_zero_point() {
             }),
             angle_standards: vec![],
             cov_c_theta0_deg: Some(-0.5 * sc * sigma_theta0_deg),
+            incomplete: None,
         };
         let cal = Calibration {
             schema_version: CALIBRATION_SCHEMA.into(),
@@ -439,4 +446,276 @@ fn delta_gamma_error_has_the_offset_and_not_the_zero_point() {
     let iv = t6.delta_gamma_interval_deg.unwrap();
     let dg = t6.delta_gamma_deg.unwrap();
     assert!(iv[0] < dg && dg < iv[1] && (iv[1] - iv[0] - 2.0 * s6).abs() < 0.1 * s6, "{iv:?} {dg} {s6}");
+}
+
+fn written_calibration(filter: serde_json::Value) -> (tempfile::TempDir, std::path::PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let doc = serde_json::json!({
+        "schema_version": CALIBRATION_SCHEMA, "filters": [filter], "frames": [], "provenance": {}
+    });
+    let p = dir.path().join(CALIBRATION_FILE);
+    std::fs::write(&p, serde_json::to_string(&doc).unwrap()).unwrap();
+    (dir, p)
+}
+
+/// `calibration.json` is checked on reading: an absurd number is refused with the file, the
+/// key path and the value; sane ones pass, theta0 normalised into [0, 180).
+#[test]
+fn calibration_file_with_absurd_numbers_is_refused_naming_file_key_and_value() {
+    let good = serde_json::json!({
+        "filter": "Ks", "offset": {"c": 0.018, "sigma_c": 0.0002}, "offset_standards": [],
+        "angles": {"theta0_deg": -177.0, "sigma_theta0_deg": 0.5, "parity": -1,
+                   "parity_measured": true, "n_standards": 2},
+        "angle_standards": [], "cov_c_theta0_deg": -7e-5
+    });
+    let (dir, _) = written_calibration(good.clone());
+    let c = Calibration::read(dir.path()).unwrap();
+    assert!((c.filters[0].angles.unwrap().theta0_deg - 3.0).abs() < 1e-12);
+    let cases: [(&str, serde_json::Value, &str); 8] = [
+        ("/offset/c", 5.0.into(), "filters[0].offset.c = 5"),
+        ("/offset/sigma_c", (-1e-3).into(), "filters[0].offset.sigma_c = -0.001"),
+        ("/angles/parity", 7.into(), "filters[0].angles.parity = 7"),
+        ("/angles/theta0_deg", 1e300.into(), "filters[0].angles.theta0_deg = 1000000"),
+        ("/angles/sigma_theta0_deg", 91.0.into(), "filters[0].angles.sigma_theta0_deg = 91"),
+        ("/angles/sigma_theta0_deg", (-0.1).into(), "filters[0].angles.sigma_theta0_deg = -0.1"),
+        ("/cov_c_theta0_deg", 2e-4.into(), "filters[0].cov_c_theta0_deg = 0.0002"),
+        ("/cov_c_theta0_deg", 1e300.into(), "filters[0].cov_c_theta0_deg = 1000000"),
+    ];
+    for (ptr, v, expect) in cases {
+        let mut f = good.clone();
+        *f.pointer_mut(ptr).unwrap() = v;
+        let (_dir, p) = written_calibration(f);
+        let e = Calibration::read(&p).unwrap_err().to_string();
+        assert!(e.contains(&p.display().to_string()) && e.contains(expect), "{ptr}: {e}");
+    }
+    // A covariance without the angles it belongs to.
+    let mut f = good;
+    f["angles"] = serde_json::Value::Null;
+    let (_dir, p) = written_calibration(f);
+    let e = Calibration::read(&p).unwrap_err().to_string();
+    assert!(e.contains("filters[0].cov_c_theta0_deg"), "{e}");
+}
+
+fn run_night(stds: Vec<Target>, cat: &mut Catalog, table: &StandardsTable, params: &CalibrationParams) -> (Option<Calibration>, CalibrationSummary) {
+    calibrate_catalog(
+        cat,
+        stds,
+        table,
+        &Profile::sofi(),
+        CalibrationSource::Night,
+        params,
+        Debias::WardleKronberg,
+        3.0,
+    )
+}
+
+const PRECISE_POL: &str = r#"
+[[standard]]
+name = "Pol A"
+filter = "Ks"
+p = 0.025
+sigma_p = 0.0002
+gamma_deg = 40.0
+sigma_gamma_deg = 0.1
+[[standard]]
+name = "Pol B"
+filter = "Ks"
+p = 0.02
+sigma_p = 0.0002
+gamma_deg = 100.0
+sigma_gamma_deg = 0.1
+"#;
+
+/// One polarized standard at 0/45 and no unpolarized one: the data cannot separate c from
+/// theta0 (the sequential estimate took c = 0 and turned every angle by the offset's
+/// share). The calibration says so, keeps the profile's angles, and every component of the
+/// filter is flagged `calibration_incomplete` (and `uncalibrated`: no offset either).
+#[test]
+fn one_polarized_standard_at_two_orientations_gives_an_incomplete_flagged_calibration() {
+    let pa = [0.0, 45.0];
+    let (theta0, c) = (3.0, 0.0152);
+    let mut table = StandardsTable::builtin();
+    table.merge_toml(PRECISE_POL, "test").unwrap();
+    let pol = Polarization::from_p_gamma(0.025, 40.0);
+    let stds = vec![target("Pol A", vec![component("A", pol, &pa, theta0, c, 3e-4)])];
+    // What the sequential estimate made of it.
+    let seq = crate::stokes::calibration::measure_angles(
+        &[StandardObservation {
+            name: "Pol A".into(),
+            posang_deg: pa.to_vec(),
+            f: stds[0].components[0]
+                .orientations
+                .as_ref()
+                .unwrap()
+                .iter()
+                .map(|o| OrientationF { analyzer_deg: f64::NAN, f: o.f, sigma_f: o.sigma_f })
+                .collect(),
+            p: 0.025,
+            sigma_p: 0.0002,
+            gamma_deg: 40.0,
+            sigma_gamma_deg: 0.1,
+        }],
+        Offset { c: 0.0, sigma_c: 0.0 },
+        1,
+    )
+    .unwrap();
+    eprintln!(
+        "one polarized standard, 0/45: sequential theta0 = {:.2} +- {:.2} deg (truth {theta0})",
+        seq.theta0_deg, seq.sigma_theta0_deg
+    );
+    let truth = Polarization::from_p_gamma(0.04, 35.0);
+    let mut cat = Catalog {
+        targets: vec![target(
+            "T",
+            vec![component("A", truth, &pa, theta0, c, 1e-3), component("B", truth, &pa, theta0, c, 1e-3)],
+        )],
+        ..Default::default()
+    };
+    let (cal, sum) = run_night(stds, &mut cat, &table, &CalibrationParams::default());
+    let f = cal.unwrap().for_filter("Ks").unwrap().clone();
+    assert!(f.angles.is_none(), "no theta0 from a standard that cannot give it: {f:?}");
+    assert!(f.offset.is_none() && f.cov_c_theta0_deg.is_none());
+    assert!(f.incomplete.as_deref().unwrap().contains("cannot separate"), "{f:?}");
+    for comp in &cat.targets[0].components {
+        assert!(comp.flags.contains(&CALIBRATION_INCOMPLETE.to_string()), "{:?}", comp.flags);
+        assert!(comp.flags.contains(&"uncalibrated".to_string()));
+    }
+    assert_eq!(sum.n_incomplete, 2);
+    assert!(
+        sum.lines.iter().any(|l| l.contains("incomplete") && l.contains("cannot separate")),
+        "{:?}",
+        sum.lines
+    );
+    // The file keeps the reason and serves another night with the same flags.
+    let dir = tempfile::tempdir().unwrap();
+    let cal = measure(&[target("Pol A", vec![component("A", pol, &pa, theta0, c, 3e-4)])], &table, &Profile::sofi()).unwrap();
+    cal.write(dir.path()).unwrap();
+    assert_eq!(Calibration::read(dir.path()).unwrap().filters[0].incomplete, f.incomplete);
+
+    // Two polarized standards at different angles separate them: c and theta0 exact, and
+    // nothing flagged.
+    let stds = vec![
+        target("Pol A", vec![component("A", pol, &pa, theta0, c, 3e-4)]),
+        target("Pol B", vec![component("A", Polarization::from_p_gamma(0.02, 100.0), &pa, theta0, c, 3e-4)]),
+    ];
+    let mut cat2 = Catalog {
+        targets: vec![target("T", vec![component("A", truth, &pa, theta0, c, 1e-3)])],
+        ..Default::default()
+    };
+    let (cal, sum) = run_night(stds, &mut cat2, &table, &CalibrationParams::default());
+    let f = cal.unwrap().for_filter("Ks").unwrap().clone();
+    assert!(f.incomplete.is_none(), "{f:?}");
+    assert!((f.angles.unwrap().theta0_deg - theta0).abs() < 1e-9 && (f.offset.unwrap().c - c).abs() < 1e-12);
+    let cov = f.cov_c_theta0_deg.unwrap();
+    let corr = cov / (f.offset.unwrap().sigma_c * f.angles.unwrap().sigma_theta0_deg);
+    eprintln!("two polarized standards, 0/45: corr(c, theta0) = {corr:.3}");
+    assert!(corr.abs() < 1.0);
+    let a = &cat2.targets[0].components[0];
+    assert!((a.q - truth.q).abs() < 1e-9 && (a.u - truth.u).abs() < 1e-9, "{a:?}");
+    assert!(a.flags.is_empty(), "{:?}", a.flags);
+    assert_eq!(sum.n_incomplete, 0);
+}
+
+/// A polarized standard whose P is off its table value by many sigma is flagged, with the
+/// residual in units of the measurement's statistical error and the table error (not the
+/// calibration's); an unpolarized standard is tested in (q, u) against 0 with 2 dof.
+#[test]
+fn standards_disagreeing_with_their_table_are_flagged_with_statistical_residuals() {
+    let pa = [0.0, 45.0];
+    let (theta0, c, sf) = (0.0, 0.0152, 3e-4);
+    let mut table = StandardsTable::builtin();
+    table.merge_toml(PRECISE_POL, "test").unwrap();
+    // Pol A is in truth 3 % (table 2.5 +- 0.02 %); HD 94851 carries 0.4 % (table 0 +- 0.05 %).
+    let stds = vec![
+        target("HD 64299", vec![component("A", Polarization::default(), &pa, theta0, c, sf)]),
+        target("HD 98161", vec![component("A", Polarization::default(), &pa, theta0, c, sf)]),
+        target("HD 94851", vec![component("A", Polarization::from_p_gamma(0.004, 10.0), &pa, theta0, c, sf)]),
+        target("Pol A", vec![component("A", Polarization::from_p_gamma(0.03, 40.0), &pa, theta0, c, sf)]),
+        target("Pol B", vec![component("A", Polarization::from_p_gamma(0.02, 100.0), &pa, theta0, c, sf)]),
+    ];
+    let mut cat = Catalog::default();
+    let (cal, sum) = run_night(stds, &mut cat, &table, &CalibrationParams::default());
+    let f = cal.unwrap().for_filter("Ks").unwrap().clone();
+    let by = |n: &str| cat.standards.iter().find(|s| s.name == n).unwrap().clone();
+    let a = by("Pol A");
+    let m = a.measured.as_ref().unwrap();
+    // 0/45: sigma_P,stat = sigma_F (q = F0 - c, u = F45 - c up to the theta0 rotation).
+    let expect = (m.p - 0.025) / sf.hypot(0.0002);
+    assert!((a.residual_p_sigma.unwrap() - expect).abs() < 1e-6 * expect.abs(), "{:?} vs {expect}", a.residual_p_sigma);
+    assert!(expect > 3.0, "{expect}");
+    assert!(
+        a.flags.iter().any(|x| x == &format!("p_disagrees_with_table: {:.1} sigma", expect)),
+        "{:?}",
+        a.flags
+    );
+    assert!(sum.lines.iter().any(|l| l.contains("Pol A") && l.contains("p_disagrees_with_table")), "{:?}", sum.lines);
+    // Unpolarized: chi^2 of (q, u) with Var = sigma_F^2 + sigma_p^2/2 each (0/45: no covariance
+    // once theta0 is the profile's... here theta0 comes from Pol A and B, a rotation, which
+    // leaves the isotropic covariance isotropic).
+    assert!(f.angles.is_some());
+    let hd = by("HD 94851");
+    let mh = hd.measured.as_ref().unwrap();
+    let chi2 = (mh.q * mh.q + mh.u * mh.u) / (sf * sf + 0.0005f64.powi(2) / 2.0);
+    assert!((hd.residual_qu_chi2.unwrap() - chi2).abs() < 1e-6 * chi2, "{:?} vs {chi2}", hd.residual_qu_chi2);
+    assert!(hd.residual_p_sigma.is_none());
+    assert!(hd.flags.iter().any(|x| x.starts_with("qu_disagrees_with_table")), "{:?}", hd.flags);
+
+    // Every standard at its table values: nothing flagged, residuals 0.
+    let stds = vec![
+        target("HD 64299", vec![component("A", Polarization::default(), &pa, theta0, c, sf)]),
+        target("Pol A", vec![component("A", Polarization::from_p_gamma(0.025, 40.0), &pa, theta0, c, sf)]),
+        target("Pol B", vec![component("A", Polarization::from_p_gamma(0.02, 100.0), &pa, theta0, c, sf)]),
+    ];
+    let mut cat = Catalog::default();
+    let (_, sum) = run_night(stds, &mut cat, &table, &CalibrationParams::default());
+    for s in &cat.standards {
+        assert!(s.flags.is_empty(), "{s:?}");
+        let r = s.residual_p_sigma.or(s.residual_qu_chi2).unwrap();
+        assert!(r.abs() < 1e-6, "{}: {r}", s.name);
+    }
+    assert!(!sum.lines.iter().any(|l| l.contains("disagrees")), "{:?}", sum.lines);
+}
+
+/// A Stokes method that cannot apply (ratio on 0/45) falls back to the automatic choice:
+/// with a calibration offset the least squares of F - c (flag names both, the value may
+/// pass the cut); without, the plain fit, flagged `uncalibrated`, and it never passes the cut.
+#[test]
+fn an_impossible_stokes_method_falls_back_to_auto_and_never_passes_silently() {
+    let pa = [0.0, 45.0];
+    let (theta0, c) = (0.0, 0.0152);
+    let table = StandardsTable::builtin();
+    let truth = Polarization::from_p_gamma(0.05, 30.0);
+    let science = || Catalog {
+        targets: vec![target("T", vec![component("A", truth, &pa, theta0, c, 1e-3)])],
+        ..Default::default()
+    };
+    let params = CalibrationParams {
+        stokes_method: StokesMethod::Ratio,
+        ..Default::default()
+    };
+    let stds = || {
+        vec![
+            target("HD 64299", vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)]),
+            target("HD 98161", vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)]),
+        ]
+    };
+    let mut cat = science();
+    let (_, sum) = run_night(stds(), &mut cat, &table, &params);
+    let a = &cat.targets[0].components[0];
+    assert_eq!(a.stokes_method.as_deref(), Some("least_squares"));
+    assert!((a.q - truth.q).abs() < 1e-9 && (a.u - truth.u).abs() < 1e-9, "{a:?}");
+    let flag = a.flags.iter().find(|f| f.starts_with("stokes_method_failed")).expect("flagged");
+    assert!(flag.contains("ratio") && flag.ends_with("; fell back to least_squares"), "{flag}");
+    assert!(a.passes_cut && !a.flags.contains(&"uncalibrated".to_string()));
+    assert_eq!(sum.n_method_failed, 1);
+    assert!(sum.lines.iter().any(|l| l.contains("stokes_method_failed")), "{:?}", sum.lines);
+
+    // No calibration: the fallback is uncalibrated; flagged, and refused by the cut.
+    let mut cat = science();
+    run_night(vec![], &mut cat, &table, &params);
+    let a = &cat.targets[0].components[0];
+    assert!(a.q.is_finite() && (a.q - (truth.q + c)).abs() < 1e-9, "{a:?}");
+    assert!(a.flags.iter().any(|f| f.starts_with("stokes_method_failed") && f.contains("fell back to least_squares")));
+    assert!(a.flags.contains(&"uncalibrated".to_string()), "{:?}", a.flags);
+    assert!(!a.passes_cut, "an uncalibrated fallback passed the cut: {:?}", a.flags);
 }

@@ -9,11 +9,15 @@ use crate::stokes::propagation::QuCovariance;
 /// Component flags that keep a value from passing the cut, whatever its S/N: dithers that
 /// were all flagged (`used_flagged_dithers`: a saturated core may be far off) and an A/B
 /// identity that could not be established at some orientation (`ab_identity_unverified`:
-/// q and u may mix the two stars). Shared with the calibration, which recomputes the cut.
+/// q and u may mix the two stars), and a chosen Stokes method replaced by an uncalibrated
+/// fallback (`stokes_method_failed: ... (uncalibrated)`). Shared with the calibration, which
+/// recomputes the cut.
 pub fn refused_by_flags(flags: &[String]) -> bool {
-    flags
-        .iter()
-        .any(|f| f == "used_flagged_dithers" || f == AB_IDENTITY_UNVERIFIED)
+    flags.iter().any(|f| {
+        f == "used_flagged_dithers"
+            || f == AB_IDENTITY_UNVERIFIED
+            || crate::stokes::calibration::fallback_refuses_cut(f)
+    })
 }
 
 /// The component flag of a pair whose A/B identity could not be established at every

@@ -18,9 +18,12 @@
 //!   `(R - 1)/(R + 1)` with `R^2 = (f_o/f_e)(phi) / (f_o/f_e)(phi + 90)`) cancels any beam
 //!   ratio `k` exactly. `G = q cos 2phi + u sin 2phi` is then fitted over the pairs.
 //! * Three or more distinct angles allow a free offset in the least squares.
-//! * Standards: [`measure_offset`] (weighted mean of F minus the known polarization, over
-//!   every orientation of every standard) and [`measure_angles`] (theta0 and parity from
-//!   the polarized ones).
+//! * Standards: [`joint::fit_joint`] fits c and theta0 (and the parity) together over every
+//!   orientation of every standard, with their covariance, and says when the standards
+//!   cannot separate the two. [`measure_offset`] and [`measure_angles`] are the former
+//!   sequential estimates (c, then theta0 with c removed), kept for comparison.
+//! * A chosen method that cannot apply falls back to the automatic one
+//!   ([`solve_with_fallback`]).
 use serde::{Deserialize, Serialize};
 
 use super::inversion::{fit_qu, QuFit, WK_ANGLE_FACTOR_DEG};
@@ -393,6 +396,44 @@ pub fn solve(
     }
 }
 
+/// Prefix of the component flag of a Stokes method that could not be applied.
+pub const STOKES_METHOD_FAILED: &str = "stokes_method_failed";
+
+/// The end of that flag when the automatic fallback carries no offset correction: such a
+/// component never passes the cut ([`fallback_refuses_cut`]).
+const FALLBACK_UNCALIBRATED: &str = "(uncalibrated)";
+
+/// The chosen method when it applies; otherwise the automatic choice
+/// ([`StokesMethod::Auto`]) and the flag saying so,
+/// `stokes_method_failed: <reason>; fell back to <method>` (ending in ` (uncalibrated)`
+/// when the fallback corrects no offset). An error only when the automatic choice fails
+/// too (the orientations do not constrain q and u).
+pub fn solve_with_fallback(
+    obs: &[OrientationF],
+    method: StokesMethod,
+    offset: Option<Offset>,
+) -> crate::error::Result<(StokesSolution, Option<String>)> {
+    match solve(obs, method, offset) {
+        Ok(s) => Ok((s, None)),
+        Err(e) if method != StokesMethod::Auto => {
+            let s = solve(obs, StokesMethod::Auto, offset)?;
+            let unc = if s.uncalibrated {
+                format!(" {FALLBACK_UNCALIBRATED}")
+            } else {
+                String::new()
+            };
+            Ok((s, Some(format!("{STOKES_METHOD_FAILED}: {e}; fell back to {}{unc}", s.method))))
+        }
+        Err(e) => Err(e),
+    }
+}
+
+/// Whether a component flag is the fallback flag of [`solve_with_fallback`] for a fallback
+/// without offset correction (the value must not pass the cut).
+pub fn fallback_refuses_cut(flag: &str) -> bool {
+    flag.starts_with(STOKES_METHOD_FAILED) && flag.ends_with(FALLBACK_UNCALIBRATED)
+}
+
 /// A standard as the calibration sees it: its per-orientation F at the rotator angles, and
 /// its table polarization (sky frame; p = 0 for unpolarized standards).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -588,6 +629,8 @@ pub fn measure_angles(stds: &[StandardObservation], offset: Offset, default_pari
         n_standards: raws.len(),
     })
 }
+
+pub mod joint;
 
 #[cfg(test)]
 mod tests;

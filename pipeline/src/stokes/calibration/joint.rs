@@ -1,0 +1,480 @@
+//! Joint fit of the instrumental offset `c` and the angle zero-point `theta0` over every
+//! orientation of every standard, with the table values of the standards as nuisance
+//! parameters (docs/polarimetry.md, "Calibration from standards").
+//!
+//! ```text
+//! polarized standard j, orientation i:   F_ji = p_j cos 2(phi_ji - gamma_j) + c
+//! unpolarized standard k, orientation i: F_ki = a_k cos 2s PA_ki + b_k sin 2s PA_ki + c
+//! phi = s PA + theta0
+//!
+//! chi^2 = sum_ji (F_ji - model)^2 / sigma_F^2
+//!       + sum_j (p_j - p_table)^2 / sigma_p^2 + (gamma_j - gamma_table)^2 / sigma_gamma^2
+//!       + sum_k (a_k^2 + b_k^2) / (sigma_p,k^2 / 2)
+//! ```
+//!
+//! minimised over x = (c, theta0, p_j, gamma_j, a_k, b_k) by Gauss-Newton. An unpolarized
+//! standard's own polarization (table: 0 +- sigma_p) is the pair (a_k, b_k) of its q, u turned
+//! into the analyzer frame (the prior is isotropic, so theta0 drops out); a polarized
+//! standard's table error enters once, through its (p_j, gamma_j), and correlates its
+//! orientations as it should. `cov(c, theta0)` is the (c, theta0) block of the inverse of
+//! the normal matrix (the nuisances marginalised), multiplied by chi^2/dof when the scatter
+//! exceeds the errors (dof = orientations - 2).
+//!
+//! The standards separate c from theta0 only when there are more orientations than the two
+//! unknowns and the normal matrix is far from singular; otherwise the fit is reported
+//! incomplete (see [`fit_joint`]).
+use super::{AngleCalibration, Offset, StandardObservation};
+use crate::stokes::model::normalize_axial_deg;
+
+/// |corr(c, theta0)| above which the standards are taken not to separate c from theta0.
+pub const MAX_CORRELATION: f64 = 0.95;
+
+/// chi^2 difference between two parities above which the parity counts as measured (the
+/// rule of [`super::measure_angles`]).
+const PARITY_DCHI2: f64 = 25.0;
+
+/// Starting values of theta0, deg (the fit is not linear in theta0; F varies as
+/// cos 2 theta0, so a start within 15 deg of every point of the 180 deg period).
+const THETA0_STARTS: [f64; 6] = [0.0, 30.0, 60.0, 90.0, 120.0, 150.0];
+
+/// The calibration of one filter from its standards.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JointCalibration {
+    /// c and its error (inflated by sqrt(chi^2/dof) when the scatter exceeds the errors);
+    /// `None` without any usable standard, or when incomplete without an unpolarized one.
+    pub offset: Option<Offset>,
+    /// theta0 and parity; `None` without polarized standards or when incomplete.
+    pub angles: Option<AngleCalibration>,
+    /// cov(c, theta0), units of c x deg (with the same inflation), when both were fitted.
+    pub cov_c_theta0_deg: Option<f64>,
+    /// chi^2 (data and priors) at the solution and its degrees of freedom.
+    pub chi2: f64,
+    /// Orientations minus the fitted instrument parameters.
+    pub dof: usize,
+    /// Why c and theta0 could not be separated, when they could not.
+    pub incomplete: Option<String>,
+    /// Input indices of the standards the offset comes from.
+    pub offset_from: Vec<usize>,
+    /// Input indices of the standards the angles come from.
+    pub angles_from: Vec<usize>,
+}
+
+/// One usable standard: its valid orientations (PA, F, sigma_F) and table values.
+struct Std<'a> {
+    index: usize,
+    obs: &'a StandardObservation,
+    rows: Vec<(f64, f64, f64)>,
+}
+
+/// The least-squares problem of one parity: instrument parameters (c, and theta0 when
+/// `fit_theta0`), then two nuisances per standard.
+struct Problem<'a> {
+    stds: Vec<Std<'a>>,
+    parity: f64,
+    fit_theta0: bool,
+}
+
+/// A converged fit: parameters, the inverse of the normal matrix (not inflated), chi^2.
+#[derive(Debug, Clone)]
+struct Solution {
+    x: Vec<f64>,
+    cov: Vec<Vec<f64>>,
+    chi2: f64,
+}
+
+fn floor(s: f64) -> f64 {
+    s.max(1e-12)
+}
+
+impl Problem<'_> {
+    fn n_inst(&self) -> usize {
+        1 + usize::from(self.fit_theta0)
+    }
+
+    fn n_params(&self) -> usize {
+        self.n_inst() + 2 * self.stds.len()
+    }
+
+    fn n_data(&self) -> usize {
+        self.stds.iter().map(|s| s.rows.len()).sum()
+    }
+
+    /// Normalised residuals (observed - model)/sigma and their derivatives d model/dx / sigma,
+    /// data rows then prior rows.
+    fn residuals(&self, x: &[f64]) -> (Vec<f64>, Vec<Vec<f64>>) {
+        let n = self.n_params();
+        let (mut r, mut jac) = (Vec::new(), Vec::new());
+        let theta0 = if self.fit_theta0 { x[1] } else { 0.0 };
+        let d2 = 2f64.to_radians(); // d(2 angle_rad)/d(angle_deg)
+        for (j, s) in self.stds.iter().enumerate() {
+            let b = self.n_inst() + 2 * j;
+            let pol = s.obs.polarized();
+            for &(pa, f, sf) in &s.rows {
+                let mut row = vec![0.0; n];
+                row[0] = 1.0;
+                let model = if pol {
+                    let (p, gamma) = (x[b], x[b + 1]);
+                    let t = 2.0 * (self.parity * pa + theta0 - gamma).to_radians();
+                    if self.fit_theta0 {
+                        row[1] = -p * t.sin() * d2;
+                    }
+                    row[b] = t.cos();
+                    row[b + 1] = p * t.sin() * d2;
+                    x[0] + p * t.cos()
+                } else {
+                    let t = 2.0 * (self.parity * pa).to_radians();
+                    row[b] = t.cos();
+                    row[b + 1] = t.sin();
+                    x[0] + x[b] * t.cos() + x[b + 1] * t.sin()
+                };
+                r.push((f - model) / sf);
+                jac.push(row.iter().map(|v| v / sf).collect());
+            }
+        }
+        for (j, s) in self.stds.iter().enumerate() {
+            let b = self.n_inst() + 2 * j;
+            let o = s.obs;
+            let priors = if o.polarized() {
+                [(o.p, floor(o.sigma_p)), (o.gamma_deg, floor(o.sigma_gamma_deg))]
+            } else {
+                let s = floor(o.sigma_p / 2f64.sqrt());
+                [(0.0, s), (0.0, s)]
+            };
+            for (k, (v, s)) in priors.into_iter().enumerate() {
+                let mut row = vec![0.0; n];
+                row[b + k] = 1.0 / s;
+                let d = if o.polarized() && k == 1 {
+                    // An axial angle: the residual folded into [-90, 90).
+                    (v - x[b + k] + 90.0).rem_euclid(180.0) - 90.0
+                } else {
+                    v - x[b + k]
+                };
+                r.push(d / s);
+                jac.push(row);
+            }
+        }
+        (r, jac)
+    }
+
+    fn chi2(&self, x: &[f64]) -> f64 {
+        self.residuals(x).0.iter().map(|v| v * v).sum()
+    }
+
+    /// Starting point: c = 0, theta0 given, the nuisances at their table values.
+    fn start(&self, theta0: f64) -> Vec<f64> {
+        let mut x = vec![0.0; self.n_params()];
+        if self.fit_theta0 {
+            x[1] = theta0;
+        }
+        for (j, s) in self.stds.iter().enumerate() {
+            if s.obs.polarized() {
+                let b = self.n_inst() + 2 * j;
+                x[b] = s.obs.p;
+                x[b + 1] = s.obs.gamma_deg;
+            }
+        }
+        x
+    }
+
+    /// Gauss-Newton from `x` (step halved while chi^2 grows). `None` when the normal
+    /// matrix is singular.
+    fn gauss_newton(&self, mut x: Vec<f64>) -> Option<Solution> {
+        let mut chi2 = self.chi2(&x);
+        for _ in 0..200 {
+            let (r, jac) = self.residuals(&x);
+            let (normal, grad) = normal_equations(&r, &jac);
+            let inv = invert_spd(&normal)?;
+            let step: Vec<f64> = inv.iter().map(|row| dot(row, &grad)).collect();
+            let mut t = 1.0;
+            let (mut trial, mut chi2_trial);
+            loop {
+                trial = x.iter().zip(&step).map(|(a, d)| a + t * d).collect::<Vec<f64>>();
+                chi2_trial = self.chi2(&trial);
+                if chi2_trial <= chi2 || t < 1e-6 {
+                    break;
+                }
+                t *= 0.5;
+            }
+            let small = step.iter().zip(&trial).all(|(d, v)| (t * d).abs() <= 1e-13 * (1.0 + v.abs()));
+            let no_gain = chi2 - chi2_trial <= 1e-14 * (1.0 + chi2);
+            if chi2_trial <= chi2 {
+                x = trial;
+                chi2 = chi2_trial;
+            }
+            if small || (no_gain && t < 1.0) {
+                break;
+            }
+        }
+        let (r, jac) = self.residuals(&x);
+        let cov = invert_spd(&normal_equations(&r, &jac).0)?;
+        if self.fit_theta0 {
+            x[1] = normalize_axial_deg(x[1]);
+        }
+        Some(Solution { x, cov, chi2 })
+    }
+
+    /// The best of the fits from every theta0 start, and the other minima found.
+    fn solve(&self) -> Option<(Solution, Vec<Solution>)> {
+        let starts: &[f64] = if self.fit_theta0 { &THETA0_STARTS } else { &[0.0] };
+        let mut all: Vec<Solution> = starts
+            .iter()
+            .filter_map(|&t| self.gauss_newton(self.start(t)))
+            .collect();
+        all.sort_by(|a, b| a.chi2.total_cmp(&b.chi2));
+        let best = all.first()?.clone();
+        Some((best, all))
+    }
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// J^T J and J^T r.
+fn normal_equations(r: &[f64], jac: &[Vec<f64>]) -> (Vec<Vec<f64>>, Vec<f64>) {
+    let n = jac.first().map_or(0, Vec::len);
+    let mut a = vec![vec![0.0; n]; n];
+    let mut g = vec![0.0; n];
+    for (ri, row) in r.iter().zip(jac) {
+        for i in 0..n {
+            if row[i] == 0.0 {
+                continue;
+            }
+            g[i] += row[i] * ri;
+            for j in 0..n {
+                a[i][j] += row[i] * row[j];
+            }
+        }
+    }
+    (a, g)
+}
+
+/// Inverse of a symmetric positive (semi-)definite matrix by Gauss-Jordan elimination on
+/// its unit-diagonal (correlation) form; `None` when a pivot falls below 1e-10 (singular or
+/// nearly so).
+fn invert_spd(a: &[Vec<f64>]) -> Option<Vec<Vec<f64>>> {
+    let n = a.len();
+    let d: Vec<f64> = (0..n).map(|i| a[i][i]).collect();
+    if d.iter().any(|v| !(*v > 0.0 && v.is_finite())) {
+        return None;
+    }
+    let s: Vec<f64> = d.iter().map(|v| v.sqrt().recip()).collect();
+    let mut m: Vec<Vec<f64>> = (0..n)
+        .map(|i| {
+            let mut row: Vec<f64> = (0..n).map(|j| a[i][j] * s[i] * s[j]).collect();
+            row.extend((0..n).map(|j| f64::from(u8::from(i == j))));
+            row
+        })
+        .collect();
+    for col in 0..n {
+        let piv = (col..n).max_by(|&i, &j| m[i][col].abs().total_cmp(&m[j][col].abs()))?;
+        if !(m[piv][col].abs() > 1e-10) {
+            return None;
+        }
+        m.swap(col, piv);
+        let p = m[col][col];
+        m[col].iter_mut().for_each(|v| *v /= p);
+        let pivot_row = m[col].clone();
+        for (i, row) in m.iter_mut().enumerate() {
+            if i != col && row[col] != 0.0 {
+                let f = row[col];
+                row.iter_mut().zip(&pivot_row).for_each(|(v, pv)| *v -= f * pv);
+            }
+        }
+    }
+    Some(
+        (0..n)
+            .map(|i| (0..n).map(|j| m[i][n + j] * s[i] * s[j]).collect())
+            .collect(),
+    )
+}
+
+/// The usable standards: those with at least one orientation with finite PA, F and a
+/// positive sigma_F.
+fn usable(stds: &[StandardObservation]) -> Vec<Std<'_>> {
+    stds.iter()
+        .enumerate()
+        .filter_map(|(index, obs)| {
+            let rows: Vec<(f64, f64, f64)> = obs
+                .f
+                .iter()
+                .zip(&obs.posang_deg)
+                .filter(|(o, pa)| o.f.is_finite() && pa.is_finite() && o.sigma_f.is_finite() && o.sigma_f > 0.0)
+                .map(|(o, &pa)| (pa, o.f, o.sigma_f))
+                .collect();
+            (!rows.is_empty()).then_some(Std { index, obs, rows })
+        })
+        .collect()
+}
+
+/// chi^2/dof when the scatter exceeds the errors (dof > 0), else 1.
+fn inflation(chi2: f64, dof: usize) -> f64 {
+    if dof > 0 {
+        (chi2 / dof as f64).max(1.0)
+    } else {
+        1.0
+    }
+}
+
+/// The offset alone from the unpolarized standards (theta0 does not enter their model).
+fn offset_only(stds: Vec<Std<'_>>) -> Option<(Offset, f64, usize, Vec<usize>)> {
+    let pb = Problem {
+        stds: stds.into_iter().filter(|s| !s.obs.polarized()).collect(),
+        parity: 1.0,
+        fit_theta0: false,
+    };
+    if pb.stds.is_empty() {
+        return None;
+    }
+    let (sol, _) = pb.solve()?;
+    let dof = pb.n_data() - 1;
+    let k = inflation(sol.chi2, dof);
+    let off = Offset {
+        c: sol.x[0],
+        sigma_c: (sol.cov[0][0] * k).sqrt(),
+    };
+    Some((off, sol.chi2, dof, pb.stds.iter().map(|s| s.index).collect()))
+}
+
+/// Why the fit cannot separate c from theta0, if it cannot: no degree of freedom (as many
+/// orientations as unknowns: a polarized standard at two orientations fits any c with a
+/// matching theta0), a correlation beyond [`MAX_CORRELATION`], or another solution as good
+/// as the best (chi^2 within 1) more than 3 sigma away.
+fn separation_problem(pb: &Problem, best: &Solution, others: &[Solution]) -> Option<String> {
+    let dof = pb.n_data() as i64 - 2;
+    let n_pol = pb.stds.iter().filter(|s| s.obs.polarized()).count();
+    let what = format!(
+        "{} orientation(s) of {} standard(s), {} of them polarized",
+        pb.n_data(),
+        pb.stds.len(),
+        n_pol
+    );
+    if dof <= 0 {
+        return Some(format!(
+            "{what}: as many data as the unknowns c and theta0, which they cannot separate \
+             (observe an unpolarized standard, a second polarized one at another angle, or 4 orientations)"
+        ));
+    }
+    let corr = best.cov[0][1] / (best.cov[0][0] * best.cov[1][1]).sqrt();
+    if !(corr.abs() <= MAX_CORRELATION) {
+        return Some(format!(
+            "{what}: corr(c, theta0) = {corr:.3}, beyond +-{MAX_CORRELATION}: the standards do not separate c from theta0"
+        ));
+    }
+    let (sc, st) = (best.cov[0][0].sqrt(), best.cov[1][1].sqrt());
+    let other = others.iter().find(|o| {
+        let dt = (o.x[1] - best.x[1] + 90.0).rem_euclid(180.0) - 90.0;
+        o.chi2 - best.chi2 < 1.0 && (dt.abs() > 3.0 * st || (o.x[0] - best.x[0]).abs() > 3.0 * sc)
+    });
+    other.map(|o| {
+        format!(
+            "{what}: two solutions fit equally well (c = {:.5}, theta0 = {:.2} deg and c = {:.5}, theta0 = {:.2} deg)",
+            best.x[0], best.x[1], o.x[0], o.x[1]
+        )
+    })
+}
+
+/// The joint fit of c and theta0 from a filter's standards. Parity: with two or more
+/// polarized standards, the one whose fit has the smaller chi^2 when the two differ by more
+/// than 25 (measured), else `default_parity`. Without polarized standards only c is fitted.
+/// When the standards cannot separate c from theta0 ([`JointCalibration::incomplete`]), the
+/// angles are left to the profile and c comes from the unpolarized standards alone (none
+/// without them). `None` without any usable standard.
+pub fn fit_joint(stds: &[StandardObservation], default_parity: i32) -> Option<JointCalibration> {
+    let all = usable(stds);
+    if all.is_empty() {
+        return None;
+    }
+    let n_pol = all.iter().filter(|s| s.obs.polarized()).count();
+    let from_unpolarized = |why: Option<String>| {
+        let (offset, chi2, dof, from) = match offset_only(usable(stds)) {
+            Some((o, chi2, dof, from)) => (Some(o), chi2, dof, from),
+            None => (None, 0.0, 0, vec![]),
+        };
+        Some(JointCalibration {
+            offset,
+            angles: None,
+            cov_c_theta0_deg: None,
+            chi2,
+            dof,
+            incomplete: why,
+            offset_from: from,
+            angles_from: vec![],
+        })
+    };
+    if n_pol == 0 {
+        return from_unpolarized(None);
+    }
+    let problem = |parity: i32| Problem {
+        stds: usable(stds),
+        parity: parity as f64,
+        fit_theta0: true,
+    };
+    let fit = |parity: i32| {
+        let pb = problem(parity);
+        pb.solve().map(|(best, others)| (pb, best, others))
+    };
+    let trials: Vec<(i32, _)> = if n_pol >= 2 {
+        vec![(1, fit(1)), (-1, fit(-1))]
+    } else {
+        vec![(default_parity, fit(default_parity))]
+    };
+    let chi2_of = |p: i32| {
+        trials
+            .iter()
+            .find(|t| t.0 == p)
+            .and_then(|t| t.1.as_ref().map(|f| f.1.chi2))
+    };
+    let measured = match (chi2_of(1), chi2_of(-1)) {
+        (Some(a), Some(b)) => (a - b).abs() > PARITY_DCHI2,
+        _ => false,
+    };
+    let parity = if measured {
+        if chi2_of(1) <= chi2_of(-1) {
+            1
+        } else {
+            -1
+        }
+    } else {
+        default_parity
+    };
+    let Some((pb, best, others)) = trials.into_iter().find(|t| t.0 == parity).and_then(|t| t.1) else {
+        return from_unpolarized(Some(format!(
+            "{} polarized standard(s): the normal matrix of (c, theta0) is singular",
+            n_pol
+        )));
+    };
+    if let Some(why) = separation_problem(&pb, &best, &others) {
+        return from_unpolarized(Some(why));
+    }
+    let dof = pb.n_data() - 2;
+    let k = inflation(best.chi2, dof);
+    let idx: Vec<usize> = pb.stds.iter().map(|s| s.index).collect();
+    Some(JointCalibration {
+        offset: Some(Offset {
+            c: best.x[0],
+            sigma_c: (best.cov[0][0] * k).sqrt(),
+        }),
+        angles: Some(AngleCalibration {
+            theta0_deg: best.x[1],
+            sigma_theta0_deg: (best.cov[1][1] * k).sqrt(),
+            parity,
+            parity_measured: measured,
+            n_standards: n_pol,
+        }),
+        cov_c_theta0_deg: Some(best.cov[0][1] * k),
+        chi2: best.chi2,
+        dof,
+        incomplete: None,
+        angles_from: pb
+            .stds
+            .iter()
+            .filter(|s| s.obs.polarized())
+            .map(|s| s.index)
+            .collect(),
+        offset_from: idx,
+    })
+}
+
+#[cfg(test)]
+mod tests;
