@@ -32,8 +32,8 @@ fn pair_scene(sep_px: f64, ratio: f64, seed: u64) -> (String, f64) {
     let sep = sep_px * 0.288;
     let x = 250.0 + 524.0 * u();
     let y = 345.0 + 30.0 + (167.0 - 60.0) * u();
-    let orientations = if seed % 2 == 0 { "[0.0, 45.0]" } else { "[0.0, 45.0, 90.0, 135.0]" };
-    let bitpix = if (seed / 2) % 2 == 0 { -32 } else { 16 };
+    let orientations = if seed.is_multiple_of(2) { "[0.0, 45.0]" } else { "[0.0, 45.0, 90.0, 135.0]" };
+    let bitpix = if (seed / 2).is_multiple_of(2) { -32 } else { 16 };
     let k = 0.96 + 0.03 * u();
     let zp = -5.0 + 10.0 * u();
     let parity = if u() < 0.5 { 1 } else { -1 };
