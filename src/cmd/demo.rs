@@ -63,9 +63,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let plan = setup.plan(std::slice::from_ref(&raw), None);
     let fig_dir = args.output.join("figures");
     std::fs::create_dir_all(&fig_dir)?;
-    let plot = |out: &sofipol_pipeline::reduce::run::TargetOutcome| {
-        let png = fig_dir.join(format!("{}.png", night::slug(&out.target.object)));
-        if let Err(e) = sofipol_pipeline::plots::target::outcome_png(&png, out) {
+    // Drawn from the calibrated catalog, as written.
+    let plot = |fig: &sofipol_pipeline::plots::target::TargetFigure| {
+        let png = fig_dir.join(format!("{}.png", night::slug(&fig.target.object)));
+        if let Err(e) = fig.png(&png) {
             eprintln!("sofipol: warning: {}: {e}", png.display());
         }
     };
@@ -74,7 +75,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         inputs: vec![raw.clone()],
         hooks: Hooks {
             on_done: None,
-            on_outcome: Some(&plot),
+            on_figure: Some(&plot),
         },
         ..Default::default()
     };

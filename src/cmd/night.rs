@@ -9,7 +9,8 @@ use anyhow::Context;
 use sofipol_pipeline::catalog::{Catalog, Status, Target};
 use sofipol_pipeline::io;
 use sofipol_pipeline::night::{self, Hooks, NightOutput, NightPlan, NightSetup, RunOptions, Shard};
-use sofipol_pipeline::reduce::run::{StageTimes, TargetOutcome};
+use sofipol_pipeline::plots::target::TargetFigure;
+use sofipol_pipeline::reduce::run::StageTimes;
 
 use super::common::progress;
 use super::setup::SetupArgs;
@@ -173,9 +174,10 @@ fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, png_d
             );
         }
     };
-    let plot = |out: &TargetOutcome| {
+    // Drawn after the calibration, from the catalog's final numbers.
+    let plot = |fig: &TargetFigure| {
         if let Some(d) = png_dir {
-            plot_target(d, out);
+            plot_target(d, fig);
         }
     };
     let opts = RunOptions {
@@ -184,7 +186,7 @@ fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, png_d
         inputs: args.dirs.clone(),
         hooks: Hooks {
             on_done: Some(&on_done),
-            on_outcome: png_dir.is_some().then_some(&plot as &(dyn Fn(&TargetOutcome) + Sync)),
+            on_figure: png_dir.is_some().then_some(&plot as &(dyn Fn(&TargetFigure) + Sync)),
         },
     };
     let out = night::run_night(plan, setup, &opts);
@@ -240,7 +242,7 @@ fn print_verbose(out: &NightOutput, wall: f64) {
     let times: &[StageTimes] = &out.times;
     let sum = |f: fn(&StageTimes) -> f64| times.iter().fold(0.0, |a, t| a + f(t));
     eprintln!(
-        "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, flat {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; calibration {:.2} s; wall {wall:.2} s; cpu {:.2} s; peak RSS {:.0} MB",
+        "stage time summed over targets: read {:.2} s, bad pixels {:.2} s, flat {:.2} s, sky {:.2} s, measure {:.2} s, write {:.2} s; calibration {:.2} s; figures {:.2} s; wall {wall:.2} s; cpu {:.2} s; peak RSS {:.0} MB",
         sum(|t| t.read),
         sum(|t| t.bad_pixels),
         sum(|t| t.flat),
@@ -248,16 +250,17 @@ fn print_verbose(out: &NightOutput, wall: f64) {
         sum(|t| t.measure),
         sum(|t| t.write),
         out.seconds.calibration,
+        out.seconds.figures,
         io::cpu_seconds().unwrap_or(f64::NAN),
         io::peak_rss_bytes().unwrap_or(0) as f64 / 1e6
     );
 }
 
 /// Write the per-target figure (never fails the night: a problem is printed).
-fn plot_target(dir: &Path, out: &TargetOutcome) {
-    let seq = out.target.sequence_id();
+fn plot_target(dir: &Path, fig: &TargetFigure) {
+    let seq = fig.target.sequence_id();
     let path = dir.join(format!("{}.png", night::slug(seq)));
-    if let Err(e) = sofipol_pipeline::plots::target::outcome_png(&path, out) {
+    if let Err(e) = fig.png(&path) {
         eprintln!("sofipol: warning: {}: could not write the figure: {e}", path.display());
     }
 }

@@ -7,6 +7,7 @@
 //!   -> night's flats              ┘ (dome flats, else a superflat; or a calibration flat)
 //!   -> every science sequence reduced in parallel (reduce::run::reduce_sequence)
 //!   -> standards reduced as single stars -> calibration -> targets re-solved
+//!   -> per-target figures from the calibrated catalog (in parallel; when asked)
 //!   -> catalog with provenance
 //! ```
 //! Nothing dies on one bad input: unreadable, foreign and non-polarimetric files are
@@ -22,7 +23,8 @@ use sofipol_calib::Profile;
 
 use crate::calibration::{CalibSetup, Calibration, CalibrationSummary};
 use crate::catalog::{Catalog, Failure, Target, SCHEMA_VERSION};
-use crate::reduce::run::{reduce_sequence, StageTimes, TargetOutcome};
+use crate::plots::target::{FigureInputs, TargetFigure};
+use crate::reduce::run::{reduce_sequence, StageTimes};
 use crate::reduce::TargetParams;
 use crate::sequence::Sequence;
 
@@ -68,9 +70,10 @@ impl NightSetup {
 pub struct Hooks<'a> {
     /// Called once per finished target (progress).
     pub on_done: Option<&'a (dyn Fn(&Target) + Sync)>,
-    /// Called with each target's outcome (products such as figures) before its frames are
-    /// dropped.
-    pub on_outcome: Option<&'a (dyn Fn(&TargetOutcome) + Sync)>,
+    /// Called with each science target's figure once the calibration has re-solved the
+    /// catalog (in parallel): the figure draws the catalog's final numbers. When given, the
+    /// cut-outs the figure shows are stacked while each target's frames are in memory.
+    pub on_figure: Option<&'a (dyn Fn(&TargetFigure) + Sync)>,
 }
 
 /// How a night is run: what differs between the commands.
@@ -98,6 +101,8 @@ pub struct NightSeconds {
     pub reduce: f64,
     /// Reducing the standards and calibrating.
     pub calibration: f64,
+    /// Drawing the figures (after the calibration; 0 without `on_figure`).
+    pub figures: f64,
 }
 
 /// What a night produced.
@@ -160,6 +165,11 @@ pub fn run_night(plan: &NightPlan, setup: &NightSetup, opts: &RunOptions) -> Nig
         flats.set.as_ref(),
     );
     let t_cal = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    if let Some(draw) = opts.hooks.on_figure {
+        draw_figures(&cat.targets, &reduced.figures, calibration.as_ref(), draw);
+    }
+    let t_fig = t.elapsed().as_secs_f64();
     let shard = opts.shard;
     cat.failures.extend(
         flats
@@ -188,8 +198,27 @@ pub fn run_night(plan: &NightPlan, setup: &NightSetup, opts: &RunOptions) -> Nig
             flats: t_flats,
             reduce: t_reduce,
             calibration: t_cal,
+            figures: t_fig,
         },
     }
+}
+
+/// Call `draw` with the figure of every target (in parallel, in the current rayon pool):
+/// `targets` as calibrated, `figures` the pixels prepared during the reduction (same order).
+fn draw_figures(
+    targets: &[Target],
+    figures: &[FigureInputs],
+    calibration: Option<&Calibration>,
+    draw: &(dyn Fn(&TargetFigure) + Sync),
+) {
+    targets.par_iter().zip(figures).for_each(|(target, inputs)| {
+        let calibration = calibration.and_then(|c| c.for_filter(target.filter.as_deref().unwrap_or("")));
+        draw(&TargetFigure {
+            target,
+            inputs,
+            calibration,
+        });
+    });
 }
 
 /// The value of `f` and the wall time it took, seconds.
@@ -205,12 +234,16 @@ pub struct Reduced {
     pub catalog: Catalog,
     /// Per-target stage times, in catalog order.
     pub times: Vec<StageTimes>,
+    /// Per target, in catalog order, what its figure needs besides the catalog entry
+    /// (empty unless `hooks.on_figure` is given).
+    pub figures: Vec<FigureInputs>,
 }
 
 /// Reduce sequences in parallel (in the current rayon pool), in their order. `night_mask`:
 /// the detector's defects found once for the night ([`night_bad_pixel_mask`]), used
-/// instead of per-target detection; `flats`: the night's flats. Frames are kept in each
-/// outcome only while `hooks.on_outcome` (when given) looks at it.
+/// instead of per-target detection; `flats`: the night's flats. With `hooks.on_figure`,
+/// each target's figure cut-outs are stacked while its frames are in memory (the frames are
+/// then dropped; the figure itself is drawn later, from the calibrated catalog).
 pub fn reduce_sequences(
     sequences: &[Sequence],
     profile: &Profile,
@@ -219,18 +252,16 @@ pub fn reduce_sequences(
     flats: Option<&FlatSet>,
     hooks: &Hooks,
 ) -> Reduced {
-    let keep_frames = hooks.on_outcome.is_some();
-    let outs: Vec<(Target, Vec<Failure>, StageTimes)> = sequences
+    let keep_frames = hooks.on_figure.is_some();
+    let outs: Vec<(Target, Vec<Failure>, StageTimes, Option<FigureInputs>)> = sequences
         .par_iter()
         .map(|q| {
             let out = reduce_sequence(q, profile, params, night_mask, flats, keep_frames);
-            if let Some(f) = hooks.on_outcome {
-                f(&out);
-            }
+            let fig = keep_frames.then(|| FigureInputs::from_outcome(&out));
             if let Some(f) = hooks.on_done {
                 f(&out.target);
             }
-            (out.target, out.failures, out.times)
+            (out.target, out.failures, out.times, fig)
         })
         .collect();
     let mut catalog = Catalog {
@@ -238,13 +269,19 @@ pub fn reduce_sequences(
         ..Default::default()
     };
     let mut times = Vec::with_capacity(outs.len());
-    for (t, f, tm) in outs {
+    let mut figures = Vec::new();
+    for (t, f, tm, fig) in outs {
         catalog.targets.push(t);
         catalog.failures.extend(f);
         times.push(tm);
+        figures.extend(fig);
     }
     catalog.failures.sort_by(|a, b| a.file.cmp(&b.file));
-    Reduced { catalog, times }
+    Reduced {
+        catalog,
+        times,
+        figures,
+    }
 }
 
 /// The provenance every catalog starts with: software, command line, time (UTC), instrument

@@ -17,6 +17,9 @@
 //!                    F = (o - e)/(o + e) per dither; dithers with bad pixels / cosmics /
 //!                    saturation in an aperture rejected
 //!   (this file)   6. e-o offset and geometry refined from the per-frame fits
+//!   identity.rs   7. A/B identity on the per-dither photometry: B at one sky position
+//!                    angle from A at every orientation, A the brighter in o+e flux when
+//!                    the ratio is significant (else `ab_identity_unverified`)
 //! entry.rs      per component: clipped weighted mean of F per orientation, q, u (least
 //!               squares over orientations), P, gamma, errors, debiasing, cut; catalog entry
 //! params.rs     the settings of all stages, validated once when read
@@ -29,6 +32,7 @@ pub mod beams;
 pub mod companion;
 pub mod entry;
 pub mod fluxes;
+pub mod identity;
 pub mod params;
 pub mod run;
 pub mod sources;
@@ -155,7 +159,7 @@ pub fn measure_sequence(
         Some((sep, pa, _)) if companion.geometry.is_some() => Some((sep, pa)),
         _ => companion.geometry,
     };
-    Ok(Measured {
+    let mut measured = Measured {
         eo_offset_px: eo,
         fwhm_px: choice.fwhm_px,
         geometry,
@@ -167,5 +171,7 @@ pub fn measure_sequence(
         aperture_px: fl.apertures.get(fl.apertures.len() / 2).copied().unwrap_or(f64::NAN),
         dithers: fl.dithers,
         flags,
-    })
+    };
+    identity::verify_pair(&mut measured, orients, scale);
+    Ok(measured)
 }

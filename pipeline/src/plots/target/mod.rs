@@ -19,9 +19,12 @@
 //! measurements (failed) gets a text-only figure. Rendering never panics: a drawing
 //! failure falls back to a text-only figure. The width is fixed ([`WIDTH`]); the height
 //! depends on the number of orientations and lines of text.
+mod figure;
 mod panels;
 mod text;
 mod tiles;
+
+pub use figure::{ComponentNumbers, FigureInputs, FigureNumbers, OrientationSketch, TargetFigure};
 
 use std::io;
 use std::path::Path;
@@ -33,7 +36,7 @@ use sofipol_calib::frame::mask as mbits;
 use sofipol_calib::Frame;
 
 use super::{ensure_font, write_atomic, Error, FONT};
-use crate::catalog::{Component, Status, Target};
+use crate::catalog::{Status, Target};
 use crate::reduce::run::TargetOutcome;
 use crate::reduce::{CalibratedOrientation, DitherValue, Measured};
 use panels::*;
@@ -83,13 +86,16 @@ fn comp_color(c: usize, dark: bool) -> RGBColor {
 const REJECT: RGBColor = RGBColor(220, 20, 20);
 const COMP_NAMES: [&str; 2] = ["A", "B"];
 
-/// Write the diagnostic figure of one reduced target to `path` (atomically).
+/// Write the diagnostic figure of one reduced target to `path` (atomically), with the
+/// numbers of `target` as given (no calibration).
 pub fn target_png(path: &Path, target: &Target, cal: &[CalibratedOrientation], m: &Measured) -> io::Result<()> {
     target_png_opt(path, target, Some(cal), Some(m))
 }
 
 /// [`target_png`] of a [`TargetOutcome`] (kept frames and measurements when present; a
-/// failed target gets the text-only figure).
+/// failed target gets the text-only figure). The numbers are the outcome's, before any
+/// calibration: a night draws its figures from the calibrated catalog instead
+/// ([`TargetFigure`]).
 pub fn outcome_png(path: &Path, outcome: &TargetOutcome) -> io::Result<()> {
     target_png_opt(
         path,
@@ -106,17 +112,13 @@ pub fn target_png_opt(
     cal: Option<&[CalibratedOrientation]>,
     m: Option<&Measured>,
 ) -> io::Result<()> {
-    let (w, h, rgb) = render_target_rgb(target, cal, m)?;
-    let mut png = Vec::new();
-    image::ImageEncoder::write_image(
-        image::codecs::png::PngEncoder::new(&mut png),
-        &rgb,
-        w,
-        h,
-        image::ExtendedColorType::Rgb8,
-    )
-    .map_err(de)?;
-    write_atomic(path, &png).map_err(to_io)
+    let inputs = FigureInputs::new(cal, m);
+    TargetFigure {
+        target,
+        inputs: &inputs,
+        calibration: None,
+    }
+    .png(path)
 }
 
 /// Render the figure to an RGB8 buffer (width, height, pixels). Falls back to a text-only
@@ -126,35 +128,24 @@ pub fn render_target_rgb(
     cal: Option<&[CalibratedOrientation]>,
     m: Option<&Measured>,
 ) -> io::Result<(u32, u32, Vec<u8>)> {
-    ensure_font().map_err(to_io)?;
-    let full = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| render(target, cal, m)));
-    match full {
-        Ok(Ok(v)) => Ok(v),
-        Ok(Err(e)) => render(target, None, None).map_err(|_| e),
-        Err(_) => render(target, None, None),
+    let inputs = FigureInputs::new(cal, m);
+    TargetFigure {
+        target,
+        inputs: &inputs,
+        calibration: None,
     }
+    .rgb()
 }
 
 // ---------------------------------------------------------------------------------------
 // The figure
 
-fn render(
-    target: &Target,
-    cal: Option<&[CalibratedOrientation]>,
-    m: Option<&Measured>,
-) -> io::Result<(u32, u32, Vec<u8>)> {
-    let cal = cal.unwrap_or(&[]);
-    let n_or = match m {
-        Some(m) => cal.len().max(
-            m.dithers
-                .first()
-                .filter(|c| c.iter().any(|o| !o.is_empty()))
-                .map(|c| c.len())
-                .unwrap_or(0),
-        ),
-        None => 0,
-    }
-    .min(16);
+/// Draw the figure of `target` from the prepared pixels `inputs` and the catalog values
+/// `nums` (every number drawn comes from `nums`).
+fn render(target: &Target, inputs: &FigureInputs, nums: &FigureNumbers) -> io::Result<(u32, u32, Vec<u8>)> {
+    let m = inputs.measured.as_ref();
+    let ors = &inputs.orientations;
+    let n_or = ors.len();
     let rows = n_or.div_ceil(2) as u32;
     let body_h = if n_or == 0 {
         70
@@ -164,8 +155,8 @@ fn render(
 
     // Text band: three columns.
     let mut cols: [Vec<Line>; 3] = [Vec::new(), Vec::new(), Vec::new()];
-    component_lines(target, &mut cols[0]);
-    measurement_lines(target, Some(cal), m, &mut cols[1]);
+    component_lines(nums, &mut cols[0]);
+    measurement_lines(target, ors, &nums.analyzer_deg, m, &mut cols[1]);
     status_lines(target, m, &mut cols[2]);
     for c in cols.iter_mut() {
         c.truncate(40);
@@ -177,21 +168,17 @@ fn render(
     let mut buf = vec![255u8; (w * h * 3) as usize];
     // Grey-scale cut-outs go straight into the buffer; overlays are drawn afterwards.
     let mut cells: Vec<Cell> = Vec::new();
-    for k in 0..n_or {
+    for (k, o) in ors.iter().enumerate() {
         let x = (k as u32 % 2) * CELL_W + 8;
         let y = TITLE_H + (k as u32 / 2) * CELL_H;
-        let tiles = match (cal.get(k), m) {
-            (Some(o), Some(m)) => [stack(o, m, k, false), stack(o, m, k, true)],
-            _ => [None, None],
-        };
-        let refs: Vec<&Stack> = tiles.iter().flatten().collect();
+        let refs: Vec<&Stack> = o.tiles.iter().flatten().collect();
         let st = stretch(&refs);
-        for (b, t) in tiles.iter().enumerate() {
+        for (b, t) in o.tiles.iter().enumerate() {
             if let Some(t) = t {
                 paint_tile(&mut buf, w, x + b as u32 * (TILE + TILE_GAP), y + CELL_LABEL_H, t, st);
             }
         }
-        cells.push(Cell { x, y, tiles });
+        cells.push(Cell { x, y });
     }
 
     {
@@ -199,10 +186,9 @@ fn render(
         draw_title(&root, target, w)?;
 
         if n_or == 0 {
-            let msg = match (cal.is_empty(), m.is_none()) {
-                (true, _) => "No calibrated frames to show (the reduction stopped before photometry).",
-                (false, true) => "No measurement to show.",
-                _ => "No orientation measured.",
+            let msg = match m {
+                None => "No calibrated frames to show (the reduction stopped before photometry).",
+                Some(_) => "No orientation measured.",
             };
             let st = (FONT, 18)
                 .into_font()
@@ -213,10 +199,10 @@ fn render(
         }
 
         for (k, cell) in cells.iter().enumerate() {
-            draw_cell(&root, cell, k, cal, m, target)?;
+            draw_cell(&root, cell, k, &ors[k], nums, m)?;
         }
         if n_or > 0 {
-            pol_panel(&root, POL_X, TITLE_H, POL_S, target, m)?;
+            pol_panel(&root, POL_X, TITLE_H, POL_S, nums, m)?;
         }
 
         draw_text_band(&root, &cols, TITLE_H + body_h, w)?;
@@ -225,11 +211,10 @@ fn render(
     Ok((w, h, buf))
 }
 
-/// One orientation's cell: two tiles (o, e) and the F panel below them.
+/// Where one orientation's cell (two tiles, o and e, and the F panel below them) goes.
 struct Cell {
     x: u32,
     y: u32,
-    tiles: [Option<Stack>; 2],
 }
 
 /// The title band: object, status word and colour, sequence id.
@@ -278,15 +263,14 @@ fn draw_cell(
     root: &Area,
     cell: &Cell,
     k: usize,
-    cal: &[CalibratedOrientation],
+    o: &OrientationSketch,
+    nums: &FigureNumbers,
     m: Option<&Measured>,
-    target: &Target,
 ) -> io::Result<()> {
-    let o = cal.get(k);
-    let posang = o.map(|o| o.posang_deg).unwrap_or(f64::NAN);
-    let phi = o.map(|o| o.analyzer_deg).unwrap_or(f64::NAN);
-    let nfr = o.map(|o| o.frames.len()).unwrap_or(0);
-    let used = cell.tiles.iter().flatten().map(|t| t.used).max().unwrap_or(0);
+    let posang = o.posang_deg;
+    let phi = nums.analyzer_deg.get(k).copied().unwrap_or(f64::NAN);
+    let nfr = o.n_frames;
+    let used = o.tiles.iter().flatten().map(|t| t.used).max().unwrap_or(0);
     let label = format!("POSANG {}°   (φ = {}°)", fmt(posang, 1), fmt(phi, 1));
     let st = (FONT, 15).into_font().style(FontStyle::Bold).color(&BLACK);
     root.draw(&Text::new(label, (cell.x as i32 + 2, cell.y as i32 + 3), st))
@@ -303,7 +287,7 @@ fn draw_cell(
     ))
     .map_err(de)?;
     let ap = m.map(|m| m.aperture_px).unwrap_or(f64::NAN);
-    for (b, t) in cell.tiles.iter().enumerate() {
+    for (b, t) in o.tiles.iter().enumerate() {
         let tx = cell.x + b as u32 * (TILE + TILE_GAP);
         let ty = cell.y + CELL_LABEL_H;
         let beam = if b == 0 { "o" } else { "e" };
@@ -322,8 +306,7 @@ fn draw_cell(
             F_H,
             m,
             k,
-            phi,
-            target,
+            nums,
         )?;
     }
     Ok(())

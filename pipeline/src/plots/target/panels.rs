@@ -10,8 +10,7 @@ pub(super) fn f_panel(
     h: u32,
     m: &Measured,
     k: usize,
-    phi: f64,
-    target: &Target,
+    nums: &FigureNumbers,
 ) -> io::Result<()> {
     let area = root.clone().shrink((x0, y0), (w, h));
     let per: Vec<&[DitherValue]> = m
@@ -20,12 +19,10 @@ pub(super) fn f_panel(
         .filter_map(|c| c.get(k).map(|v| v.as_slice()))
         .collect();
     let nd = per.iter().map(|v| v.len()).max().unwrap_or(0);
-    // Model F from the fitted q, u of each component.
+    // Model F from the catalog's q, u (and offset c) of each component.
     let model: Vec<Option<f64>> = (0..per.len())
         .map(|c| {
-            let comp: &Component = target.components.get(c)?;
-            let t = 2.0 * phi.to_radians();
-            let v = comp.q * t.cos() + comp.u * t.sin();
+            let v = *nums.components.get(c)?.model_f.get(k)?;
             v.is_finite().then_some(100.0 * v)
         })
         .collect();
@@ -199,7 +196,7 @@ pub(super) fn pol_panel(
     x0: u32,
     y0: u32,
     s: u32,
-    target: &Target,
+    nums: &FigureNumbers,
     m: Option<&Measured>,
 ) -> io::Result<()> {
     let (x0i, y0i, si) = (x0 as i32, y0 as i32, s as i32);
@@ -226,7 +223,7 @@ pub(super) fn pol_panel(
     let grey = RGBColor(110, 110, 110);
     // Compass, top left: north up, east left.
     draw_compass(root, (left + 54, top + 46), grey)?;
-    let comps = &target.components;
+    let comps = &nums.components;
     if comps.is_empty() {
         let st = (FONT, 14)
             .into_font()

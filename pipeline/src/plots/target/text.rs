@@ -117,12 +117,12 @@ pub(super) fn wrap(line: Line, width: u32, out: &mut Vec<Line>) {
     }
 }
 
-pub(super) fn component_lines(target: &Target, out: &mut Vec<Line>) {
+pub(super) fn component_lines(nums: &FigureNumbers, out: &mut Vec<Line>) {
     out.push(Line::head("Polarization (sky frame)"));
-    if target.components.is_empty() {
+    if nums.components.is_empty() {
         out.push(Line::plain("no component measured"));
     }
-    for (i, c) in target.components.iter().enumerate() {
+    for (i, c) in nums.components.iter().enumerate() {
         let col = comp_color(i, false);
         let pct = |v: f64| fmt(100.0 * v, 2);
         out.push(Line::col(
@@ -164,7 +164,7 @@ pub(super) fn component_lines(target: &Target, out: &mut Vec<Line>) {
             );
         }
     }
-    let dg = match target.delta_gamma_deg {
+    let dg = match nums.delta_gamma_deg {
         Some(d) if d.is_finite() => format!("Δγ = |γA − γB| = {d:.1}°"),
         _ => "Δγ: — (needs two components passing the cut)".into(),
     };
@@ -173,7 +173,8 @@ pub(super) fn component_lines(target: &Target, out: &mut Vec<Line>) {
 
 pub(super) fn measurement_lines(
     target: &Target,
-    cal: Option<&[CalibratedOrientation]>,
+    ors: &[OrientationSketch],
+    analyzer_deg: &[f64],
     m: Option<&Measured>,
     out: &mut Vec<Line>,
 ) {
@@ -201,9 +202,9 @@ pub(super) fn measurement_lines(
         fmt(m.eo_offset_px.0, 2),
         fmt(m.eo_offset_px.1, 2)
     )));
-    if let Some(cal) = cal.filter(|c| !c.is_empty()) {
-        let pas: Vec<String> = cal.iter().map(|o| fmt(o.posang_deg, 1).to_string()).collect();
-        let phis: Vec<String> = cal.iter().map(|o| fmt(o.analyzer_deg, 1).to_string()).collect();
+    if ors.iter().any(|o| o.posang_deg.is_finite()) {
+        let pas: Vec<String> = ors.iter().map(|o| fmt(o.posang_deg, 1).to_string()).collect();
+        let phis: Vec<String> = analyzer_deg.iter().map(|&phi| fmt(phi, 1).to_string()).collect();
         wrap(
             Line::plain(format!("POSANG {}°;  φ {}°", pas.join(", "), phis.join(", "))),
             COL_W,
@@ -225,7 +226,8 @@ pub(super) fn measurement_lines(
                     let r = r.split(':').next_back().unwrap_or(r).trim().to_string();
                     let at = format!(
                         "{}°#{}",
-                        cal.and_then(|c| c.get(k))
+                        ors.get(k)
+                            .filter(|o| o.posang_deg.is_finite())
                             .map(|o| fmt(o.posang_deg, 0))
                             .unwrap_or(format!("{k}")),
                         i + 1

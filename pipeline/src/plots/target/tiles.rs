@@ -2,6 +2,7 @@
 use super::*;
 
 /// Median of the registered dithers of one beam around the binary.
+#[derive(Clone)]
 pub(super) struct Stack {
     /// Side, px (odd).
     pub(super) n: usize,
