@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 use super::alignment::format_p;
 use super::errors::{convolve_with_errors, ErrorSource, SampleErrors};
 use super::hist::Histogram;
-use super::ks::ks_two_sample_presorted;
+use super::ks::ks_two_sample_against_large;
 use super::mc::McOutput;
 use super::TestOutcome;
 
@@ -49,9 +49,9 @@ pub struct ModelComparison {
     pub with_errors: Option<Convolved>,
 }
 
-/// Summarize `sim` (sorted here) and test the sorted `observed` against it.
+/// Summarize `sim` (reordered here: the median is selected in place) and test the sorted
+/// `observed` against it. No sort of `sim`: O(len) plus the KS count.
 pub fn predict(observed_sorted: &[f64], sim: &mut [f64], threshold_deg: f64) -> Prediction {
-    sim.sort_unstable_by(|a, b| a.total_cmp(b));
     let n = sim.len();
     if n == 0 {
         return Prediction {
@@ -66,16 +66,22 @@ pub fn predict(observed_sorted: &[f64], sim: &mut [f64], threshold_deg: f64) -> 
             },
         };
     }
+    let mean_deg = sim.iter().sum::<f64>() / n as f64;
+    let fraction_below_threshold = sim.iter().filter(|&&d| d < threshold_deg).count() as f64 / n as f64;
+    let ks = ks_two_sample_against_large(observed_sorted, sim);
+    let (_, &mut upper, _) = sim.select_nth_unstable_by(n / 2, |a, b| a.total_cmp(b));
     let median_deg = if n % 2 == 1 {
-        sim[n / 2]
+        upper
     } else {
-        0.5 * (sim[n / 2 - 1] + sim[n / 2])
+        // The lower middle value is the largest of the elements before n/2.
+        let lower = sim[..n / 2].iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        0.5 * (lower + upper)
     };
     Prediction {
-        mean_deg: sim.iter().sum::<f64>() / n as f64,
+        mean_deg,
         median_deg,
-        fraction_below_threshold: sim.partition_point(|&d| d < threshold_deg) as f64 / n as f64,
-        ks: ks_two_sample_presorted(observed_sorted, sim),
+        fraction_below_threshold,
+        ks,
     }
 }
 

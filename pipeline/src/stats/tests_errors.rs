@@ -255,3 +255,55 @@ fn analyse_reports_each_prediction_with_and_without_the_errors() {
     assert!(r.models.iter().all(|m| m.with_errors.is_none()) && r.ism[0].with_errors.is_none());
     assert!(r.verdict.contains("none of the 40 binaries has one"), "{}", r.verdict);
 }
+
+#[test]
+fn ks_against_a_large_unsorted_sample_equals_the_sorted_merge() {
+    // The counting form against the merge of two sorted samples (ks_two_sample), with ties
+    // inside and across the samples (values rounded to 0.5 deg), and the median/mean/fraction
+    // of `predict` against a sort.
+    use super::ks::{ks_two_sample, ks_two_sample_against_large};
+    use super::predictions::predict;
+    let mut rng = Xoshiro256pp::from_seed(5);
+    // x skewed to small values (F_x ahead of F_y: D at a value of x) and to large values
+    // (F_y ahead: D just below a value of x).
+    for (n1, n2, round, skew) in [
+        (34, 100_001, true, 1.5),
+        (34, 100_000, false, 0.4),
+        (7, 5000, true, 0.5),
+        (40, 200_000, false, 1.5),
+        (1, 10, false, 1.0),
+        (3, 4, true, 0.7),
+    ] {
+        let mut draw = |n: usize, skew: f64| -> Vec<f64> {
+            (0..n)
+                .map(|_| {
+                    let v = 90.0 * rng.uniform().powf(skew);
+                    if round {
+                        (2.0 * v).round() / 2.0
+                    } else {
+                        v
+                    }
+                })
+                .collect()
+        };
+        let mut x = draw(n1, skew);
+        let y = draw(n2, 1.0);
+        x.sort_by(|a, b| a.total_cmp(b));
+        let fast = ks_two_sample_against_large(&x, &y);
+        let slow = ks_two_sample(&x, &y);
+        assert_eq!(fast.statistic, slow.statistic, "n1 {n1} n2 {n2}");
+        assert_eq!(fast.p_value, slow.p_value);
+        let mut sorted = y.clone();
+        sorted.sort_by(|a, b| a.total_cmp(b));
+        let median = if n2 % 2 == 1 {
+            sorted[n2 / 2]
+        } else {
+            0.5 * (sorted[n2 / 2 - 1] + sorted[n2 / 2])
+        };
+        let mut y2 = y.clone();
+        let p = predict(&x, &mut y2, 30.0);
+        assert_eq!(p.median_deg, median, "n2 {n2}");
+        assert_eq!(p.fraction_below_threshold, sorted.partition_point(|&d| d < 30.0) as f64 / n2 as f64);
+        assert_eq!(p.ks.statistic, slow.statistic);
+    }
+}
