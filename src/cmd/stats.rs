@@ -198,34 +198,27 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 }
 
 /// The alignment models the sample is compared with: perfect alignment, then the reference
-/// study's models (a)-(d).
+/// study's models (b)-(d). Model (a), random orientation, is the uniform law of the KS and
+/// Kuiper tests, which the errors leave unchanged.
 fn comparison_models() -> Vec<(String, AlignmentModel)> {
     let mut m = vec![("aligned (α = 0)".to_string(), AlignmentModel::Aligned)];
-    m.extend(paper_models());
+    m.extend(paper_models().into_iter().filter(|(_, m)| *m != AlignmentModel::Random));
     m
 }
 
-/// Rows of the models figure: the report's simulations of models (a)-(d) (with their
-/// convolved histograms), or fresh ones when the report has none (n < 2).
+/// Rows of the models figure: models (a)-(d) simulated with `pairs`, each with the
+/// report's convolved histogram of the same model where there is one.
 fn model_rows(report: &AlignmentReport, pairs: u64, seed: u64, pool: &rayon::ThreadPool) -> anyhow::Result<Vec<ModelRow>> {
-    let paper = paper_models();
-    let from_report: Vec<ModelRow> = paper
-        .iter()
-        .filter_map(|(label, model)| {
-            let m = report.models.iter().find(|m| &m.label == label)?;
-            Some((
-                label.clone(),
-                model.clone(),
-                m.mc.clone(),
-                m.with_errors.as_ref().map(|c| c.histogram.clone()),
-            ))
-        })
-        .collect();
-    if from_report.len() == paper.len() {
-        return Ok(from_report);
-    }
     let base = McConfig::geometry(AlignmentModel::Random, pairs, seed);
-    Ok(pool.install(|| simulate_models(&paper, &base))?)
+    let mut rows = pool.install(|| simulate_models(&paper_models(), &base))?;
+    for (label, _, _, convolved) in &mut rows {
+        *convolved = report
+            .models
+            .iter()
+            .find(|m| &m.label == label)
+            .and_then(|m| m.with_errors.as_ref().map(|c| c.histogram.clone()));
+    }
+    Ok(rows)
 }
 
 fn report_subtitle(mc: &McConfig) -> String {

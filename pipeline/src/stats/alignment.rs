@@ -14,6 +14,9 @@ use super::{Result, TestOutcome};
 pub const DEFAULT_SIGNIFICANCE: f64 = 0.05;
 /// Default threshold of the binomial test, degrees (probability 1/3 under the null).
 pub const DEFAULT_THRESHOLD_DEG: f64 = 30.0;
+/// Most pairs simulated per alignment model for the model comparisons: the KS test of a
+/// few dozen binaries does not need more (the simulated CDF is then known to ~0.001).
+pub const MODEL_PAIRS: u64 = 200_000;
 /// Fewer binaries than this: no test is run (the verdict says so).
 pub const MIN_N_FOR_TESTS: usize = 2;
 
@@ -31,7 +34,7 @@ pub struct AnalysisParams {
     /// Base Monte-Carlo configuration (its `ism` is replaced by each level).
     pub mc: McConfig,
     /// Alignment models to compare with (geometry only: no ISM, no noise), with labels;
-    /// simulated with the pairs, seed and bins of `mc`.
+    /// simulated with the seed and bins of `mc` and min(its pairs, [`MODEL_PAIRS`]) pairs.
     pub models: Vec<(String, AlignmentModel)>,
     /// The sample's Delta-gamma errors: the predictions are also compared convolved with
     /// them (those that do not simulate measurement noise themselves).
@@ -127,7 +130,7 @@ pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<Align
             let cfg = McConfig {
                 model: model.clone(),
                 bins,
-                ..McConfig::geometry(model.clone(), params.mc.pairs, seed)
+                ..McConfig::geometry(model.clone(), params.mc.pairs.min(MODEL_PAIRS), seed)
             };
             let (mut sim, out) = simulate_samples(&cfg)?;
             let prediction = predict(&observed, &mut sim, t);
