@@ -134,7 +134,17 @@ fn stats_with_delta_gamma_errors_reports_the_broadening_and_both_p_values() {
     let dir = tempfile::tempdir().unwrap();
     let cat = catalog_with_errors(dir.path());
     let out = sofipol()
-        .args(["stats", cat.to_str().unwrap(), "--pairs", "5e4", "--p-ism", "1", "--noise", "none", "-o"])
+        .args([
+            "stats",
+            cat.to_str().unwrap(),
+            "--pairs",
+            "5e4",
+            "--p-ism",
+            "1",
+            "--noise",
+            "none",
+            "-o",
+        ])
         .arg(dir.path().join("out"))
         .output()
         .unwrap();
@@ -152,7 +162,10 @@ fn stats_with_delta_gamma_errors_reports_the_broadening_and_both_p_values() {
     ] {
         assert!(stdout.contains(s), "missing '{s}' in:\n{stdout}");
     }
-    assert!(stdout.contains("SYN-07 (Delta gamma") && stdout.contains("interval [0.0, 45.0]"), "{stdout}");
+    assert!(
+        stdout.contains("SYN-07 (Delta gamma") && stdout.contains("interval [0.0, 45.0]"),
+        "{stdout}"
+    );
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("out/stats.json")).unwrap()).unwrap();
     let r = &json["report"];

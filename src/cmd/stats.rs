@@ -18,8 +18,8 @@ use sofipol_pipeline::stats::alignment::{format_p, DEFAULT_SIGNIFICANCE, DEFAULT
 use sofipol_pipeline::stats::figures::{
     ism_figure, models_figure, observed_figure, paper_models, simulate_models, ModelRow,
 };
-use sofipol_pipeline::stats::predictions::source_name;
 use sofipol_pipeline::stats::mc::{McConfig, PIntDist, DEFAULT_BINS, DEFAULT_P_INT, DEFAULT_SEED};
+use sofipol_pipeline::stats::predictions::source_name;
 use sofipol_pipeline::stats::{analyse, AlignmentModel, AlignmentReport, AnalysisParams, BinarySample};
 
 use super::mc::{parse_count, parse_levels, pool};
@@ -208,7 +208,12 @@ fn comparison_models() -> Vec<(String, AlignmentModel)> {
 
 /// Rows of the models figure: models (a)-(d) simulated with `pairs`, each with the
 /// report's convolved histogram of the same model where there is one.
-fn model_rows(report: &AlignmentReport, pairs: u64, seed: u64, pool: &rayon::ThreadPool) -> anyhow::Result<Vec<ModelRow>> {
+fn model_rows(
+    report: &AlignmentReport,
+    pairs: u64,
+    seed: u64,
+    pool: &rayon::ThreadPool,
+) -> anyhow::Result<Vec<ModelRow>> {
     let base = McConfig::geometry(AlignmentModel::Random, pairs, seed);
     let mut rows = pool.install(|| simulate_models(&paper_models(), &base))?;
     for (label, _, _, convolved) in &mut rows {
@@ -249,7 +254,10 @@ fn print_report(path: &Path, sample: &BinarySample, r: &AlignmentReport) {
     }
     if sample.binaries.iter().any(|b| b.sigma_source.is_some()) {
         println!("\nDelta gamma per binary [deg]:");
-        println!("  {:<16} {:>7} {:>7} {:>16}  error from", "object", "dg", "sigma", "68 % interval");
+        println!(
+            "  {:<16} {:>7} {:>7} {:>16}  error from",
+            "object", "dg", "sigma", "68 % interval"
+        );
         for b in &sample.binaries {
             let sigma = b.sigma_delta_gamma_deg.map_or("-".to_string(), |s| format!("{s:.1}"));
             let iv = b
@@ -266,7 +274,8 @@ fn print_report(path: &Path, sample: &BinarySample, r: &AlignmentReport) {
         }
     }
     let p_err = |c: &Option<sofipol_pipeline::stats::predictions::Convolved>| {
-        c.as_ref().map_or("-".to_string(), |c| format_p(c.prediction.ks.p_value))
+        c.as_ref()
+            .map_or("-".to_string(), |c| format_p(c.prediction.ks.p_value))
     };
     if !r.models.is_empty() {
         println!("\nalignment models (geometry only; \"err\": convolved with the measured Delta-gamma errors):");

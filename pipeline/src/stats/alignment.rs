@@ -157,7 +157,11 @@ pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<Align
             report.ism.push(IsmComparison {
                 p_ism_percent: level,
                 ks: p.ks,
-                mc_fraction_below_threshold: if sim.is_empty() { 0.0 } else { p.fraction_below_threshold },
+                mc_fraction_below_threshold: if sim.is_empty() {
+                    0.0
+                } else {
+                    p.fraction_below_threshold
+                },
                 mc_median_delta_gamma_deg: p.median_deg,
                 with_errors: predict_convolved(&observed, &sim, ism_sigmas, conv_seed, t, bins),
                 mc: out,
@@ -184,7 +188,10 @@ fn broadening(r: &AlignmentReport, mc_has_noise: bool) -> String {
     let mut crossings = Vec::new();
     let mut note = |label: String, without: &super::predictions::Prediction, with: &Option<Convolved>| {
         if let Some(c) = with {
-            lines.push(format!("  {}", broadening_line(&label, without, &c.prediction, r.threshold_deg)));
+            lines.push(format!(
+                "  {}",
+                broadening_line(&label, without, &c.prediction, r.threshold_deg)
+            ));
             let (p0, p1) = (without.ks.p_value, c.prediction.ks.p_value);
             if !(p0 >= a) && p1 >= a {
                 crossings.push(format!("{label} becomes consistent with the sample (KS p >= {a})"));
@@ -203,7 +210,11 @@ fn broadening(r: &AlignmentReport, mc_has_noise: bool) -> String {
             fraction_below_threshold: c.mc_fraction_below_threshold,
             ks: c.ks.clone(),
         };
-        note(format!("random + P_ism = {} %", c.p_ism_percent), &without, &c.with_errors);
+        note(
+            format!("random + P_ism = {} %", c.p_ism_percent),
+            &without,
+            &c.with_errors,
+        );
     }
     if !lines.is_empty() {
         s += " Convolved with these errors (each simulated pair gets a sigma drawn from the sample's and a Gaussian angle error, folded into [0, 90] deg), the predictions change (without -> with errors):\n";

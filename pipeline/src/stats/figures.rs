@@ -96,7 +96,11 @@ pub fn models_figure(path: &Path, rows: &[ModelRow], errors_note: Option<&str>) 
             .legend(LegendPos::None)
             .note(format!("{} pairs", format_count(out.accepted)));
         if let Some(h) = convolved {
-            right = right.with(relative_line("with measured errors", h).color(c).style(Style::Dashed(2)));
+            right = right.with(
+                relative_line("with measured errors", h)
+                    .color(c)
+                    .style(Style::Dashed(2)),
+            );
         }
         panels.push(right);
     }
@@ -273,7 +277,11 @@ pub fn observed_figure(path: &Path, sample: &BinarySample, dg_bins: usize, notes
         b = b.y_range(0.0, top * (1.15 + 0.08 * notes.len() as f64));
     }
     let mut panels = vec![a, b];
-    if sample.binaries.iter().any(|b| b.sigma_delta_gamma_deg.is_some() || b.delta_gamma_interval_deg.is_some()) {
+    if sample
+        .binaries
+        .iter()
+        .any(|b| b.sigma_delta_gamma_deg.is_some() || b.delta_gamma_interval_deg.is_some())
+    {
         panels.push(error_bar_panel(sample));
     }
     let cols = panels.len();
@@ -287,10 +295,14 @@ fn error_bar_panel(sample: &BinarySample) -> Panel {
     let mut rows: Vec<_> = sample.binaries.iter().collect();
     rows.sort_by(|x, y| x.delta_gamma_deg.total_cmp(&y.delta_gamma_deg));
     let n = rows.len();
-    let mut c = Panel::new(format!("[C] Δγ per binary, 1σ / 68 % interval (n = {n})"), DG, "binary (sorted by Δγ)")
-        .x_range(0.0, 90.0)
-        .y_range(0.0, n as f64 + 1.0)
-        .legend(LegendPos::None);
+    let mut c = Panel::new(
+        format!("[C] Δγ per binary, 1σ / 68 % interval (n = {n})"),
+        DG,
+        "binary (sorted by Δγ)",
+    )
+    .x_range(0.0, 90.0)
+    .y_range(0.0, n as f64 + 1.0)
+    .legend(LegendPos::None);
     c.integer_y = true;
     let (mut xs, mut ys) = (Vec::new(), Vec::new());
     for (k, b) in rows.iter().enumerate() {
@@ -305,17 +317,27 @@ fn error_bar_panel(sample: &BinarySample) -> Panel {
             } else {
                 crate::plots::Rgb(0, 0, 0)
             };
-            c = c.with(Series::line("", vec![lo, hi], vec![y, y]).color(color).style(Style::Line(1)).unlabelled());
+            c = c.with(
+                Series::line("", vec![lo, hi], vec![y, y])
+                    .color(color)
+                    .style(Style::Line(1))
+                    .unlabelled(),
+            );
         }
         xs.push(dg);
         ys.push(y);
     }
-    c.with(Series::line("", xs, ys).color(palette(0)).style(Style::Points(3)).unlabelled())
-        .note(format!(
-            "orange: σ > {}° or interval > {}°",
-            super::errors::LARGE_SIGMA_DEG,
-            super::errors::LARGE_INTERVAL_DEG
-        ))
+    c.with(
+        Series::line("", xs, ys)
+            .color(palette(0))
+            .style(Style::Points(3))
+            .unlabelled(),
+    )
+    .note(format!(
+        "orange: σ > {}° or interval > {}°",
+        super::errors::LARGE_SIGMA_DEG,
+        super::errors::LARGE_INTERVAL_DEG
+    ))
 }
 
 /// Pi(Delta gamma) of one or more Monte-Carlo runs (the figure of `sofipol mc`).

@@ -153,7 +153,10 @@ pub fn describe_errors(e: &SampleErrors, n: usize) -> String {
         );
     }
     if e.n_without_error > 0 {
-        s += &format!(" {} binaries without an error are left out of the error draw.", e.n_without_error);
+        s += &format!(
+            " {} binaries without an error are left out of the error draw.",
+            e.n_without_error
+        );
     }
     if e.large.is_empty() {
         s += &format!(

@@ -28,7 +28,10 @@ fn convolving_a_uniform_delta_gamma_leaves_it_uniform() {
     let se = (0.25 / n as f64).sqrt();
     for sigmas in [vec![3.0], vec![10.0], vec![30.0], vec![2.0, 25.0, 70.0], vec![150.0]] {
         let conv = convolve_with_errors(&uniform, &sigmas, 5);
-        assert!(conv.iter().all(|&d| (0.0..=90.0).contains(&d)), "not folded into [0, 90]");
+        assert!(
+            conv.iter().all(|&d| (0.0..=90.0).contains(&d)),
+            "not folded into [0, 90]"
+        );
         let ks = ks_uniform(&conv, 0.0, 90.0);
         assert!(ks.p_value > 1e-3, "sigmas {sigmas:?}: KS p = {}", ks.p_value);
         for x in [1.0, 5.0, 20.0, 45.0, 70.0, 85.0, 89.0] {
@@ -63,7 +66,11 @@ fn a_point_mass_at_zero_becomes_the_half_normal() {
     let sigmas = [2.0, 8.0];
     let conv = convolve_with_errors(&zeros, &sigmas, 3);
     for x in [1.0, 3.0, 6.0, 12.0] {
-        let f: f64 = sigmas.iter().map(|s| erf(x / (s * std::f64::consts::SQRT_2))).sum::<f64>() / 2.0;
+        let f: f64 = sigmas
+            .iter()
+            .map(|s| erf(x / (s * std::f64::consts::SQRT_2)))
+            .sum::<f64>()
+            / 2.0;
         let got = ecdf(&conv, x);
         let se = (f * (1.0 - f) / n as f64).sqrt();
         assert!((got - f).abs() < 4.0 * se, "mixture: F({x}) = {got} vs {f}");
@@ -98,10 +105,16 @@ fn convolution_near_the_fold_matches_the_folded_normal() {
         for x in [2.0, 10.0, 30.0, 60.0, 75.0, 85.0, 89.5] {
             let exact = folded_normal_cdf(x, mu, sigma);
             let slow = folded_cdf_by_quadrature(x, mu, sigma);
-            assert!((exact - slow).abs() < 1e-4, "mu {mu} sigma {sigma} x {x}: {exact} vs {slow}");
+            assert!(
+                (exact - slow).abs() < 1e-4,
+                "mu {mu} sigma {sigma} x {x}: {exact} vs {slow}"
+            );
             let got = ecdf(&conv, x);
             let se = (exact * (1.0 - exact) / n as f64).sqrt().max(1e-6);
-            assert!((got - exact).abs() < 4.5 * se, "mu {mu} sigma {sigma}: F({x}) = {got} vs {exact}");
+            assert!(
+                (got - exact).abs() < 4.5 * se,
+                "mu {mu} sigma {sigma}: F({x}) = {got} vs {exact}"
+            );
         }
     }
 }
@@ -155,14 +168,20 @@ fn each_binary_takes_its_error_from_the_best_available_field() {
             // Propagated error wins over the components' errors.
             target(
                 "prop",
-                vec![component("A", 10.0, 3.0, Some(2.0)), component("B", 20.0, 4.0, Some(1.5))],
+                vec![
+                    component("A", 10.0, 3.0, Some(2.0)),
+                    component("B", 20.0, 4.0, Some(1.5)),
+                ],
                 Some(2.2),
                 Some([8.0, 12.5]),
             ),
             // Statistical component errors in quadrature: hypot(2, 1.5) = 2.5.
             target(
                 "stat",
-                vec![component("A", 10.0, 3.0, Some(2.0)), component("B", 40.0, 4.0, Some(1.5))],
+                vec![
+                    component("A", 10.0, 3.0, Some(2.0)),
+                    component("B", 40.0, 4.0, Some(1.5)),
+                ],
                 None,
                 None,
             ),
@@ -184,14 +203,26 @@ fn each_binary_takes_its_error_from_the_best_available_field() {
         ..Default::default()
     };
     let s = BinarySample::from_catalog(&cat, None);
-    let e: Vec<_> = s.binaries.iter().map(|b| (b.sigma_delta_gamma_deg, b.sigma_source)).collect();
+    let e: Vec<_> = s
+        .binaries
+        .iter()
+        .map(|b| (b.sigma_delta_gamma_deg, b.sigma_source))
+        .collect();
     assert_eq!(e[0], (Some(2.2), Some(ErrorSource::Propagated)));
     assert_eq!(e[1], (Some(2.5), Some(ErrorSource::ComponentStat)));
     assert_eq!(e[2], (Some(25.0), Some(ErrorSource::ComponentTotal)));
     assert_eq!(e[3], (None, None));
     let errs = s.errors();
     assert_eq!(errs.sigmas_deg, vec![2.2, 2.5, 25.0]);
-    assert_eq!((errs.n_propagated, errs.n_component_stat, errs.n_component_total, errs.n_without_error), (1, 1, 1, 1));
+    assert_eq!(
+        (
+            errs.n_propagated,
+            errs.n_component_stat,
+            errs.n_component_total,
+            errs.n_without_error
+        ),
+        (1, 1, 1, 1)
+    );
     assert_eq!(errs.median_deg(), Some(2.5));
     assert_eq!(errs.max_deg(), Some(25.0));
     let large: Vec<&str> = errs.large.iter().map(|l| l.object.as_str()).collect();
@@ -242,7 +273,11 @@ fn analyse_reports_each_prediction_with_and_without_the_errors() {
     assert!((random.prediction.fraction_below_threshold - 1.0 / 3.0).abs() < 0.006);
     // Noise-free ISM Monte Carlo: convolved too.
     assert!(r.ism[0].with_errors.is_some());
-    for s in ["median sigma = 8.0 deg", "aligned: mean 0.0 -> ", "uniform Delta gamma stays uniform"] {
+    for s in [
+        "median sigma = 8.0 deg",
+        "aligned: mean 0.0 -> ",
+        "uniform Delta gamma stays uniform",
+    ] {
         assert!(r.verdict.contains(s), "missing '{s}' in {}", r.verdict);
     }
     assert!(r.verdict.contains("aligned becomes consistent"), "{}", r.verdict);
@@ -303,7 +338,10 @@ fn ks_against_a_large_unsorted_sample_equals_the_sorted_merge() {
         let mut y2 = y.clone();
         let p = predict(&x, &mut y2, 30.0);
         assert_eq!(p.median_deg, median, "n2 {n2}");
-        assert_eq!(p.fraction_below_threshold, sorted.partition_point(|&d| d < 30.0) as f64 / n2 as f64);
+        assert_eq!(
+            p.fraction_below_threshold,
+            sorted.partition_point(|&d| d < 30.0) as f64 / n2 as f64
+        );
         assert_eq!(p.ks.statistic, slow.statistic);
     }
 }
