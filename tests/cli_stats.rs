@@ -106,3 +106,83 @@ fn mc_refuses_a_cut_without_noise() {
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("snr-cut"));
 }
+
+/// catalog_aligned.json with a Delta-gamma error on every binary: 6 deg, except SYN-05
+/// (25 deg, interval [10, 70]) and SYN-07 (interval only, [0, 45]: wider than 40 deg).
+fn catalog_with_errors(dir: &std::path::Path) -> std::path::PathBuf {
+    let text = std::fs::read_to_string(testdata("catalog_aligned.json")).unwrap();
+    let mut cat: serde_json::Value = serde_json::from_str(&text).unwrap();
+    for t in cat["targets"].as_array_mut().unwrap() {
+        let obj = t["object"].as_str().unwrap().to_string();
+        let t = t.as_object_mut().unwrap();
+        t.insert("sigma_delta_gamma_deg".into(), serde_json::json!(6.0));
+        if obj == "SYN-05" {
+            t.insert("sigma_delta_gamma_deg".into(), serde_json::json!(25.0));
+            t.insert("delta_gamma_interval_deg".into(), serde_json::json!([10.0, 70.0]));
+        }
+        if obj == "SYN-07" {
+            t.insert("delta_gamma_interval_deg".into(), serde_json::json!([0.0, 45.0]));
+        }
+    }
+    let path = dir.join("catalog_errors.json");
+    std::fs::write(&path, serde_json::to_string(&cat).unwrap()).unwrap();
+    path
+}
+
+#[test]
+fn stats_with_delta_gamma_errors_reports_the_broadening_and_both_p_values() {
+    let dir = tempfile::tempdir().unwrap();
+    let cat = catalog_with_errors(dir.path());
+    let out = sofipol()
+        .args([
+            "stats",
+            cat.to_str().unwrap(),
+            "--pairs",
+            "5e4",
+            "--p-ism",
+            "1",
+            "--noise",
+            "none",
+            "-o",
+        ])
+        .arg(dir.path().join("out"))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
+    for s in [
+        "Measurement errors of Delta gamma: 34 of 34 binaries have one (34 from sigma_delta_gamma_deg)",
+        "median sigma = 6.0 deg, max 25.0 deg",
+        "Large errors",
+        "SYN-05 (Delta gamma",
+        "sigma 25.0, 68 % interval [10.0, 70.0]",
+        "aligned (α = 0): mean 0.0 -> ",
+        "random + P_ism = 1 %: mean",
+        "KS p err",
+    ] {
+        assert!(stdout.contains(s), "missing '{s}' in:\n{stdout}");
+    }
+    assert!(
+        stdout.contains("SYN-07 (Delta gamma") && stdout.contains("interval [0.0, 45.0]"),
+        "{stdout}"
+    );
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("out/stats.json")).unwrap()).unwrap();
+    let r = &json["report"];
+    assert_eq!(r["errors"]["sigmas_deg"].as_array().unwrap().len(), 34);
+    // Perfect alignment: without errors every simulated Delta gamma is 0 (KS p = 0); with
+    // 6-deg errors the prediction has a mean of about 6 sqrt(2/pi) = 4.8 deg and a p > 0.
+    let aligned = &r["models"][0];
+    assert_eq!(aligned["prediction"]["mean_deg"].as_f64().unwrap(), 0.0);
+    let with = &aligned["with_errors"];
+    let mean = with["mean_deg"].as_f64().unwrap();
+    assert!((4.0..7.0).contains(&mean), "convolved mean {mean}");
+    assert!(with["ks"]["p_value"].as_f64().unwrap() > aligned["prediction"]["ks"]["p_value"].as_f64().unwrap());
+    // The noise-free ISM prediction is convolved too, and each comparison has both p-values.
+    let ism = &r["ism"][0];
+    assert!(ism["ks"]["p_value"].is_number() && ism["with_errors"]["ks"]["p_value"].is_number());
+    assert_eq!(json["sample"]["binaries"][0]["sigma_source"], "propagated");
+    for f in ["observed.png", "models.png", "ism_levels.png"] {
+        assert!(dir.path().join("out").join(f).is_file(), "{f} missing");
+    }
+}

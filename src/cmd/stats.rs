@@ -15,8 +15,11 @@ use anyhow::{bail, Context};
 use sofipol_pipeline::catalog::Catalog;
 use sofipol_pipeline::plots::write_atomic;
 use sofipol_pipeline::stats::alignment::{format_p, DEFAULT_SIGNIFICANCE, DEFAULT_THRESHOLD_DEG};
-use sofipol_pipeline::stats::figures::{ism_figure, models_figure, observed_figure, paper_models};
+use sofipol_pipeline::stats::figures::{
+    ism_figure, models_figure, observed_figure, paper_models, simulate_models, ModelRow,
+};
 use sofipol_pipeline::stats::mc::{McConfig, PIntDist, DEFAULT_BINS, DEFAULT_P_INT, DEFAULT_SEED};
+use sofipol_pipeline::stats::predictions::source_name;
 use sofipol_pipeline::stats::{analyse, AlignmentModel, AlignmentReport, AnalysisParams, BinarySample};
 
 use super::mc::{parse_count, parse_levels, pool};
@@ -140,6 +143,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         ism_levels_percent: parse_levels(&args.p_ism)?,
         ism_angle_deg: args.ism_angle,
         mc,
+        models: comparison_models(),
+        errors: sample.errors(),
     };
     let pool = pool(args.threads)?;
     let dg = sample.delta_gamma_deg();
@@ -179,13 +184,46 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             written.push(&ism_levels);
         }
         if !args.no_model_figure {
-            let base = McConfig::geometry(AlignmentModel::Random, args.pairs, args.seed);
-            pool.install(|| models_figure(&dir.join(&models), &paper_models(), &base))?;
+            let rows = model_rows(&report, args.pairs, args.seed, &pool)?;
+            let note = report
+                .errors
+                .median_deg()
+                .map(|m| format!("dashed: with the measured errors (median σ = {m:.1}°)"));
+            models_figure(&dir.join(&models), &rows, note.as_deref())?;
             written.push(&models);
         }
         println!("\nwrote {} in {}", written.join(", "), dir.display());
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The alignment models the sample is compared with: perfect alignment, then the reference
+/// study's models (b)-(d). Model (a), random orientation, is the uniform law of the KS and
+/// Kuiper tests, which the errors leave unchanged.
+fn comparison_models() -> Vec<(String, AlignmentModel)> {
+    let mut m = vec![("aligned (α = 0)".to_string(), AlignmentModel::Aligned)];
+    m.extend(paper_models().into_iter().filter(|(_, m)| *m != AlignmentModel::Random));
+    m
+}
+
+/// Rows of the models figure: models (a)-(d) simulated with `pairs`, each with the
+/// report's convolved histogram of the same model where there is one.
+fn model_rows(
+    report: &AlignmentReport,
+    pairs: u64,
+    seed: u64,
+    pool: &rayon::ThreadPool,
+) -> anyhow::Result<Vec<ModelRow>> {
+    let base = McConfig::geometry(AlignmentModel::Random, pairs, seed);
+    let mut rows = pool.install(|| simulate_models(&paper_models(), &base))?;
+    for (label, _, _, convolved) in &mut rows {
+        *convolved = report
+            .models
+            .iter()
+            .find(|m| &m.label == label)
+            .and_then(|m| m.with_errors.as_ref().map(|c| c.histogram.clone()));
+    }
+    Ok(rows)
 }
 
 fn report_subtitle(mc: &McConfig) -> String {
@@ -214,20 +252,66 @@ fn print_report(path: &Path, sample: &BinarySample, r: &AlignmentReport) {
     for e in &sample.excluded {
         println!("  excluded {}: {}", e.object, e.reason);
     }
+    if sample.binaries.iter().any(|b| b.sigma_source.is_some()) {
+        println!("\nDelta gamma per binary [deg]:");
+        println!(
+            "  {:<16} {:>7} {:>7} {:>16}  error from",
+            "object", "dg", "sigma", "68 % interval"
+        );
+        for b in &sample.binaries {
+            let sigma = b.sigma_delta_gamma_deg.map_or("-".to_string(), |s| format!("{s:.1}"));
+            let iv = b
+                .delta_gamma_interval_deg
+                .map_or("-".to_string(), |[lo, hi]| format!("[{lo:.1}, {hi:.1}]"));
+            println!(
+                "  {:<16} {:>7.1} {:>7} {:>16}  {}",
+                b.object,
+                b.delta_gamma_deg,
+                sigma,
+                iv,
+                source_name(b.sigma_source)
+            );
+        }
+    }
+    let p_err = |c: &Option<sofipol_pipeline::stats::predictions::Convolved>| {
+        c.as_ref()
+            .map_or("-".to_string(), |c| format_p(c.prediction.ks.p_value))
+    };
+    if !r.models.is_empty() {
+        println!("\nalignment models (geometry only; \"err\": convolved with the measured Delta-gamma errors):");
+        println!(
+            "  {:<22} {:>9} {:>9} {:>9} {:>9} {:>10} {:>10}",
+            "model", "mean", "mean err", "frac<30", "f<30 err", "KS p", "KS p err"
+        );
+        for m in &r.models {
+            let w = m.with_errors.as_ref().map(|c| &c.prediction);
+            println!(
+                "  {:<22} {:>9.1} {:>9} {:>9.3} {:>9} {:>10} {:>10}",
+                m.label,
+                m.prediction.mean_deg,
+                w.map_or("-".to_string(), |p| format!("{:.1}", p.mean_deg)),
+                m.prediction.fraction_below_threshold,
+                w.map_or("-".to_string(), |p| format!("{:.3}", p.fraction_below_threshold)),
+                format_p(m.prediction.ks.p_value),
+                p_err(&m.with_errors)
+            );
+        }
+    }
     if !r.ism.is_empty() {
         println!("\nrandom disks + ISM (Monte Carlo: {}):", r.mc_description);
         println!(
-            "  {:>10} {:>10} {:>9} {:>10} {:>10}",
-            "P_ism [%]", "accepted", "frac<30", "KS D", "KS p"
+            "  {:>10} {:>10} {:>9} {:>10} {:>10} {:>10}",
+            "P_ism [%]", "accepted", "frac<30", "KS D", "KS p", "KS p err"
         );
         for c in &r.ism {
             println!(
-                "  {:>10} {:>10} {:>9.3} {:>10.3} {:>10}",
+                "  {:>10} {:>10} {:>9.3} {:>10.3} {:>10} {:>10}",
                 c.p_ism_percent,
                 c.mc.accepted,
                 c.mc_fraction_below_threshold,
                 c.ks.statistic,
-                format_p(c.ks.p_value)
+                format_p(c.ks.p_value),
+                p_err(&c.with_errors)
             );
         }
     }

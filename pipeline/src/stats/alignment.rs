@@ -2,15 +2,21 @@
 use serde::{Deserialize, Serialize};
 
 use super::binomial::{binomial_test, BinomialOutcome};
-use super::ks::{ks_two_sample_presorted, ks_uniform};
+use super::errors::{convolution_seed, SampleErrors};
+use super::ks::ks_uniform;
 use super::kuiper::kuiper_uniform;
 use super::mc::{simulate_samples, Ism, McConfig, McOutput};
+use super::model::AlignmentModel;
+use super::predictions::{broadening_line, describe_errors, predict, predict_convolved, Convolved, ModelComparison};
 use super::{Result, TestOutcome};
 
 /// Default significance level of the verdict.
 pub const DEFAULT_SIGNIFICANCE: f64 = 0.05;
 /// Default threshold of the binomial test, degrees (probability 1/3 under the null).
 pub const DEFAULT_THRESHOLD_DEG: f64 = 30.0;
+/// Most pairs simulated per alignment model for the model comparisons: the KS test of a
+/// few dozen binaries does not need more (the simulated CDF is then known to ~0.001).
+pub const MODEL_PAIRS: u64 = 200_000;
 /// Fewer binaries than this: no test is run (the verdict says so).
 pub const MIN_N_FOR_TESTS: usize = 2;
 
@@ -27,6 +33,12 @@ pub struct AnalysisParams {
     pub ism_angle_deg: f64,
     /// Base Monte-Carlo configuration (its `ism` is replaced by each level).
     pub mc: McConfig,
+    /// Alignment models to compare with (geometry only: no ISM, no noise), with labels;
+    /// simulated with the seed and bins of `mc` and min(its pairs, [`MODEL_PAIRS`]) pairs.
+    pub models: Vec<(String, AlignmentModel)>,
+    /// The sample's Delta-gamma errors: the predictions are also compared convolved with
+    /// them (those that do not simulate measurement noise themselves).
+    pub errors: SampleErrors,
 }
 
 /// Comparison of the observed Delta gamma with one ISM level of the Monte Carlo.
@@ -38,8 +50,14 @@ pub struct IsmComparison {
     pub ks: TestOutcome,
     /// Simulated fraction below the threshold.
     pub mc_fraction_below_threshold: f64,
+    /// Median simulated Delta gamma, deg.
+    pub mc_median_delta_gamma_deg: f64,
     /// The simulated Pi(Delta gamma).
     pub mc: McOutput,
+    /// The prediction convolved with the measured Delta-gamma errors: None when no binary
+    /// has an error, or when the Monte Carlo already draws (q, u) noise (convolving again
+    /// would count the measurement error twice).
+    pub with_errors: Option<Convolved>,
 }
 
 /// Everything `sofipol stats` reports.
@@ -59,6 +77,10 @@ pub struct AlignmentReport {
     pub kuiper_uniform: Option<TestOutcome>,
     /// Two-sample KS against each ISM level.
     pub ism: Vec<IsmComparison>,
+    /// Two-sample KS against each alignment model, without and with the errors.
+    pub models: Vec<ModelComparison>,
+    /// The sample's Delta-gamma errors.
+    pub errors: SampleErrors,
     /// Significance level of the verdict.
     pub significance: f64,
     /// The Monte-Carlo set-up in words.
@@ -89,6 +111,8 @@ pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<Align
         ks_uniform: None,
         kuiper_uniform: None,
         ism: Vec::new(),
+        models: Vec::new(),
+        errors: params.errors.clone(),
         significance: params.significance,
         mc_description,
         verdict: String::new(),
@@ -100,35 +124,109 @@ pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<Align
         report.kuiper_uniform = Some(kuiper_uniform(delta_gamma_deg, 0.0, 90.0));
         let mut observed = delta_gamma_deg.to_vec();
         observed.sort_by(|a, b| a.total_cmp(b));
-        for &level in &params.ism_levels_percent {
+        let sigmas = &params.errors.sigmas_deg;
+        let (seed, bins) = (params.mc.seed, params.mc.bins);
+        for (i, (label, model)) in params.models.iter().enumerate() {
+            let cfg = McConfig {
+                model: model.clone(),
+                bins,
+                ..McConfig::geometry(model.clone(), params.mc.pairs.min(MODEL_PAIRS), seed)
+            };
+            let (mut sim, out) = simulate_samples(&cfg)?;
+            let prediction = predict(&observed, &mut sim, t);
+            let with_errors = predict_convolved(&observed, &sim, sigmas, convolution_seed(seed, i as u64), t, bins);
+            report.models.push(ModelComparison {
+                label: label.clone(),
+                model: model.spec(),
+                mc: out,
+                prediction,
+                with_errors,
+            });
+        }
+        // A Monte Carlo with (q, u) noise already carries measurement errors.
+        let ism_sigmas: &[f64] = if params.mc.noise_percent.is_some() { &[] } else { sigmas };
+        for (i, &level) in params.ism_levels_percent.iter().enumerate() {
             let mut cfg = params.mc.clone();
             cfg.ism = Some(Ism {
                 p_percent: level,
                 angle_deg: params.ism_angle_deg,
             });
             let (mut sim, out) = simulate_samples(&cfg)?;
-            let below = sim.iter().filter(|&&d| d < t).count() as f64 / sim.len().max(1) as f64;
-            let ks = if sim.is_empty() {
-                TestOutcome {
-                    statistic: f64::NAN,
-                    p_value: f64::NAN,
-                    n: 0,
-                    method: "no simulated pair passed the cut".into(),
-                }
-            } else {
-                sim.sort_by(|a, b| a.total_cmp(b));
-                ks_two_sample_presorted(&observed, &sim)
-            };
+            let p = predict(&observed, &mut sim, t);
+            let conv_seed = convolution_seed(seed, 1000 + i as u64);
             report.ism.push(IsmComparison {
                 p_ism_percent: level,
-                ks,
-                mc_fraction_below_threshold: below,
+                ks: p.ks,
+                mc_fraction_below_threshold: if sim.is_empty() {
+                    0.0
+                } else {
+                    p.fraction_below_threshold
+                },
+                mc_median_delta_gamma_deg: p.median_deg,
+                with_errors: predict_convolved(&observed, &sim, ism_sigmas, conv_seed, t, bins),
                 mc: out,
             });
         }
     }
     report.verdict = verdict(&report, delta_gamma_deg);
+    if n >= MIN_N_FOR_TESTS {
+        report.verdict += "\n";
+        report.verdict += &broadening(&report, params.mc.noise_percent.is_some());
+    }
     Ok(report)
+}
+
+/// How the measurement errors broaden the predictions, in words and figures.
+fn broadening(r: &AlignmentReport, mc_has_noise: bool) -> String {
+    let a = r.significance;
+    let mut s = describe_errors(&r.errors, r.n);
+    if !r.errors.any() {
+        return s;
+    }
+    s += " Random orientation is unchanged by angle errors (a uniform Delta gamma stays uniform), so the KS and Kuiper p-values against it above hold with the errors.";
+    let mut lines = Vec::new();
+    let mut crossings = Vec::new();
+    let mut note = |label: String, without: &super::predictions::Prediction, with: &Option<Convolved>| {
+        if let Some(c) = with {
+            lines.push(format!(
+                "  {}",
+                broadening_line(&label, without, &c.prediction, r.threshold_deg)
+            ));
+            let (p0, p1) = (without.ks.p_value, c.prediction.ks.p_value);
+            if !(p0 >= a) && p1 >= a {
+                crossings.push(format!("{label} becomes consistent with the sample (KS p >= {a})"));
+            } else if p0 >= a && !(p1 >= a) {
+                crossings.push(format!("{label} becomes inconsistent (KS p < {a})"));
+            }
+        }
+    };
+    for m in &r.models {
+        note(m.label.clone(), &m.prediction, &m.with_errors);
+    }
+    for c in &r.ism {
+        let without = super::predictions::Prediction {
+            mean_deg: c.mc.mean_delta_gamma_deg,
+            median_deg: c.mc_median_delta_gamma_deg,
+            fraction_below_threshold: c.mc_fraction_below_threshold,
+            ks: c.ks.clone(),
+        };
+        note(
+            format!("random + P_ism = {} %", c.p_ism_percent),
+            &without,
+            &c.with_errors,
+        );
+    }
+    if !lines.is_empty() {
+        s += " Convolved with these errors (each simulated pair gets a sigma drawn from the sample's and a Gaussian angle error, folded into [0, 90] deg), the predictions change (without -> with errors):\n";
+        s += &lines.join("\n");
+    }
+    if mc_has_noise && !r.ism.is_empty() {
+        s += "\n  The random disks + ISM predictions already draw (q, u) measurement noise: they are not convolved again.";
+    }
+    if !crossings.is_empty() {
+        s += &format!("\nWith the errors: {}.", crossings.join("; "));
+    }
+    s
 }
 
 fn describe_mc(cfg: &McConfig) -> String {

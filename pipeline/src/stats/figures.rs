@@ -34,6 +34,13 @@ fn relative_steps(label: &str, h: &Histogram) -> Series {
     Series::steps(label, h.edges(), rel)
 }
 
+/// Relative density (uniform = 1) of a Delta-gamma histogram as a line through the bin
+/// centres (for a dashed curve next to the steps of another histogram).
+fn relative_line(label: &str, h: &Histogram) -> Series {
+    let rel: Vec<f64> = h.density().iter().map(|d| d * (h.hi - h.lo)).collect();
+    Series::line(label, h.centers(), rel)
+}
+
 fn uniform_line() -> Series {
     Series::line("uniform", vec![0.0, 90.0], vec![1.0, 1.0])
         .style(Style::Dashed(1))
@@ -53,15 +60,28 @@ fn pi_alpha_series(model: &AlignmentModel) -> Series {
     }
 }
 
-/// Models (a)-(d): Pi(alpha) (left) and the simulated Pi(Delta gamma) (right), one row each.
-/// `base` supplies pairs, seed and bins (its model is replaced).
-pub fn models_figure(path: &Path, models: &[(String, AlignmentModel)], base: &McConfig) -> Result<Vec<McOutput>> {
+/// One row of the models figure: label, model, its simulated Pi(Delta gamma) and, if
+/// the sample has measurement errors, the same convolved with them.
+pub type ModelRow = (String, AlignmentModel, McOutput, Option<Histogram>);
+
+/// Simulate `models` with the pairs, seed and bins of `base` (its model is replaced): rows
+/// for [`models_figure`] without convolution.
+pub fn simulate_models(models: &[(String, AlignmentModel)], base: &McConfig) -> Result<Vec<ModelRow>> {
+    models
+        .iter()
+        .map(|(label, model)| {
+            let mut cfg = base.clone();
+            cfg.model = model.clone();
+            Ok((label.clone(), model.clone(), simulate(&cfg)?, None))
+        })
+        .collect()
+}
+
+/// Models (a)-(d): Pi(alpha) (left) and the simulated Pi(Delta gamma) (right), one row each;
+/// with a dashed curve of the prediction convolved with the measurement errors where given.
+pub fn models_figure(path: &Path, rows: &[ModelRow], errors_note: Option<&str>) -> Result<()> {
     let mut panels = Vec::new();
-    let mut outs = Vec::new();
-    for (i, (label, model)) in models.iter().enumerate() {
-        let mut cfg = base.clone();
-        cfg.model = model.clone();
-        let out = simulate(&cfg)?;
+    for (i, (label, model, out, convolved)) in rows.iter().enumerate() {
         let c = palette(i);
         panels.push(
             Panel::new(format!("{label}: Π(α)"), "α [deg]", "Π(α) per solid angle / isotropic")
@@ -69,24 +89,30 @@ pub fn models_figure(path: &Path, models: &[(String, AlignmentModel)], base: &Mc
                 .with(pi_alpha_series(model).color(c))
                 .legend(LegendPos::None),
         );
-        panels.push(
-            Panel::new(format!("{label}: Π(Δγ)"), DG, PI_DG)
-                .x_range(0.0, 90.0)
-                .with(uniform_line())
-                .with(relative_steps("", &out.histogram).color(c).unlabelled())
-                .legend(LegendPos::None)
-                .note(format!("{} pairs", format_count(out.accepted))),
-        );
-        outs.push(out);
+        let mut right = Panel::new(format!("{label}: Π(Δγ)"), DG, PI_DG)
+            .x_range(0.0, 90.0)
+            .with(uniform_line())
+            .with(relative_steps("no errors", &out.histogram).color(c))
+            .legend(LegendPos::None)
+            .note(format!("{} pairs", format_count(out.accepted)));
+        if let Some(h) = convolved {
+            right = right.with(
+                relative_line("with measured errors", h)
+                    .color(c)
+                    .style(Style::Dashed(2)),
+            );
+        }
+        panels.push(right);
     }
+    let title = "Alignment Π(α) and the projected position-angle difference Π(Δγ)";
     let fig = Figure::grid(
-        Some("Alignment Π(α) and the projected position-angle difference Π(Δγ)".into()),
+        Some(errors_note.map_or(title.to_string(), |n| format!("{title}; {n}"))),
         panels,
         2,
         (560, 330),
     );
     fig.save(path)?;
-    Ok(outs)
+    Ok(())
 }
 
 /// Pi(Delta gamma) of random disks for each interstellar polarization level, with the
@@ -250,8 +276,68 @@ pub fn observed_figure(path: &Path, sample: &BinarySample, dg_bins: usize, notes
             .fold(1.0, f64::max);
         b = b.y_range(0.0, top * (1.15 + 0.08 * notes.len() as f64));
     }
-    Figure::grid(None, vec![a, b], 2, (620, 440)).save(path)?;
+    let mut panels = vec![a, b];
+    if sample
+        .binaries
+        .iter()
+        .any(|b| b.sigma_delta_gamma_deg.is_some() || b.delta_gamma_interval_deg.is_some())
+    {
+        panels.push(error_bar_panel(sample));
+    }
+    let cols = panels.len();
+    Figure::grid(None, panels, cols, (620, 440)).save(path)?;
     Ok(())
+}
+
+/// [C]: each binary's Delta gamma (sorted) with its error: the catalog's 68.27 % interval
+/// where given, else +- sigma clipped to [0, 90].
+fn error_bar_panel(sample: &BinarySample) -> Panel {
+    let mut rows: Vec<_> = sample.binaries.iter().collect();
+    rows.sort_by(|x, y| x.delta_gamma_deg.total_cmp(&y.delta_gamma_deg));
+    let n = rows.len();
+    let mut c = Panel::new(
+        format!("[C] Δγ per binary, 1σ / 68 % interval (n = {n})"),
+        DG,
+        "binary (sorted by Δγ)",
+    )
+    .x_range(0.0, 90.0)
+    .y_range(0.0, n as f64 + 1.0)
+    .legend(LegendPos::None);
+    c.integer_y = true;
+    let (mut xs, mut ys) = (Vec::new(), Vec::new());
+    for (k, b) in rows.iter().enumerate() {
+        let y = k as f64 + 1.0;
+        let dg = b.delta_gamma_deg;
+        let bar = b
+            .delta_gamma_interval_deg
+            .or(b.sigma_delta_gamma_deg.map(|s| [(dg - s).max(0.0), (dg + s).min(90.0)]));
+        if let Some([lo, hi]) = bar {
+            let color = if super::errors::is_large(b.sigma_delta_gamma_deg, b.delta_gamma_interval_deg) {
+                palette(1)
+            } else {
+                crate::plots::Rgb(0, 0, 0)
+            };
+            c = c.with(
+                Series::line("", vec![lo, hi], vec![y, y])
+                    .color(color)
+                    .style(Style::Line(1))
+                    .unlabelled(),
+            );
+        }
+        xs.push(dg);
+        ys.push(y);
+    }
+    c.with(
+        Series::line("", xs, ys)
+            .color(palette(0))
+            .style(Style::Points(3))
+            .unlabelled(),
+    )
+    .note(format!(
+        "orange: σ > {}° or interval > {}°",
+        super::errors::LARGE_SIGMA_DEG,
+        super::errors::LARGE_INTERVAL_DEG
+    ))
 }
 
 /// Pi(Delta gamma) of one or more Monte-Carlo runs (the figure of `sofipol mc`).

@@ -13,6 +13,8 @@
 //!   n_e = round(n1 n2 / (n1 + n2)), exactly what scipy's `ks_2samp(method="asymp")` does;
 //!   when one sample is a large Monte Carlo (n2 >> n1) this is the exact one-sample law
 //!   for the observed sample.
+use rayon::prelude::*;
+
 use super::TestOutcome;
 
 /// Largest n for which the one-sample p-value is exact (Marsaglia-Tsang-Wang).
@@ -81,6 +83,60 @@ pub fn ks_two_sample_presorted(x: &[f64], y: &[f64]) -> TestOutcome {
     let (n1, n2) = (x.len(), y.len());
     let d = ks_two_sample_sorted(x, y);
     let ne = ((n1 as f64 * n2 as f64) / (n1 as f64 + n2 as f64)).round().max(1.0) as usize;
+    let (p, method) = kolmogorov_sf(d, ne);
+    TestOutcome {
+        statistic: d,
+        p_value: p,
+        n: ne,
+        method: format!("two-sample, n_e = {ne}: {method}"),
+    }
+}
+
+/// Two-sample KS test of a small sorted sample `x` against a large unsorted one `y`, as
+/// [`ks_two_sample_presorted`] but without sorting `y`: both empirical CDFs are
+/// right-continuous steps, so D is the largest of |F_x - F_y| at each distinct value u of
+/// `x` and just below it, and F_y(u) = #{y <= u}/n2, F_y(u-) = #{y < u}/n2 are counted
+/// with two binary searches of each y among the distinct u. O(n2 log n1).
+pub fn ks_two_sample_against_large(x: &[f64], y: &[f64]) -> TestOutcome {
+    let (n1, n2) = (x.len(), y.len());
+    if n1 == 0 || n2 == 0 {
+        return ks_two_sample(x, y);
+    }
+    let mut u = x.to_vec();
+    u.dedup();
+    let k = u.len();
+    // le_from[j]: the y whose first distinct value >= y is u_j (y <= u_i for every i >= j);
+    // lt_from[j]: the y whose first distinct value > y is u_j (y < u_i for every i >= j).
+    let (le_from, lt_from) = y
+        .par_chunks(1 << 16)
+        .map(|c| {
+            let (mut le, mut lt) = (vec![0u64; k + 1], vec![0u64; k + 1]);
+            for &v in c {
+                le[u.partition_point(|&w| w < v)] += 1;
+                lt[u.partition_point(|&w| w <= v)] += 1;
+            }
+            (le, lt)
+        })
+        .reduce(
+            || (vec![0u64; k + 1], vec![0u64; k + 1]),
+            |(mut a, mut b), (c, e)| {
+                a.iter_mut().zip(&c).for_each(|(p, q)| *p += q);
+                b.iter_mut().zip(&e).for_each(|(p, q)| *p += q);
+                (a, b)
+            },
+        );
+    let (nf1, nf2) = (n1 as f64, n2 as f64);
+    let (mut y_le, mut y_lt, mut d) = (0u64, 0u64, 0.0f64);
+    for (j, &uj) in u.iter().enumerate() {
+        y_le += le_from[j];
+        y_lt += lt_from[j];
+        let x_lt = x.partition_point(|&w| w < uj);
+        let x_le = x.partition_point(|&w| w <= uj);
+        d = d
+            .max((x_le as f64 / nf1 - y_le as f64 / nf2).abs())
+            .max((x_lt as f64 / nf1 - y_lt as f64 / nf2).abs());
+    }
+    let ne = ((nf1 * nf2) / (nf1 + nf2)).round().max(1.0) as usize;
     let (p, method) = kolmogorov_sf(d, ne);
     TestOutcome {
         statistic: d,

@@ -13,7 +13,7 @@
 //!
 //! Modules: [`rng`] (xoshiro256++ streams), [`model`] (Pi(alpha)), [`mc`] (the Monte
 //! Carlo), [`hist`], [`ks`], [`kuiper`], [`binomial`], [`sample`] (catalog -> sample),
-//! [`alignment`] (tests + verdict), [`figures`] (the paper-style PNGs).
+//! [`errors`] (Delta-gamma errors, convolution of predictions), [`alignment`] (tests + verdict), [`figures`] (the paper-style PNGs).
 //! Conventions, methods and references: docs/statistics.md.
 // `!(x > 0.0)` is used on purpose: it also rejects NaN. `n % k != 0` keeps the code
 // within the workspace's rust-version (1.86; `is_multiple_of` is 1.87).
@@ -23,17 +23,21 @@ use serde::{Deserialize, Serialize};
 
 pub mod alignment;
 pub mod binomial;
+pub mod errors;
 pub mod figures;
 pub mod hist;
 pub mod ks;
 pub mod kuiper;
 pub mod mc;
 pub mod model;
+pub mod predictions;
 pub mod rng;
 pub mod sample;
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_errors;
 
 pub use alignment::{analyse, AlignmentReport, AnalysisParams, IsmComparison};
 pub use binomial::{binomial_test, BinomialOutcome};

@@ -1,7 +1,8 @@
 //! The Delta-gamma sample of a catalog: binaries whose two components both pass the cut.
 use serde::{Deserialize, Serialize};
 
-use crate::catalog::{fold_delta_gamma, Catalog, Component, Status};
+use super::errors::{is_large, ErrorSource, LargeError, SampleErrors};
+use crate::catalog::{fold_delta_gamma, Catalog, Component, Status, Target};
 
 /// One binary of the sample.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -14,6 +15,32 @@ pub struct SampleBinary {
     pub p_percent: [f64; 2],
     /// sigma_P of the two components, percent.
     pub sigma_p_percent: [f64; 2],
+    /// 1-sigma error of Delta gamma, deg (see `sigma_source`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma_delta_gamma_deg: Option<f64>,
+    /// Where `sigma_delta_gamma_deg` comes from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma_source: Option<ErrorSource>,
+    /// The catalog's central 68.27 % interval of Delta gamma, deg.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub delta_gamma_interval_deg: Option<[f64; 2]>,
+}
+
+/// The Delta-gamma error of a binary: the catalog's `sigma_delta_gamma_deg`, else the
+/// components' `sigma_gamma_stat_deg` in quadrature, else their `sigma_gamma_deg` in
+/// quadrature (an overestimate: it includes the common zero-point), else none.
+pub fn delta_gamma_error(t: &Target, a: &Component, b: &Component) -> Option<(f64, ErrorSource)> {
+    let ok = |s: f64| s.is_finite() && s >= 0.0;
+    if let Some(s) = t.sigma_delta_gamma_deg.filter(|&s| ok(s)) {
+        return Some((s, ErrorSource::Propagated));
+    }
+    if let (Some(sa), Some(sb)) = (a.sigma_gamma_stat_deg, b.sigma_gamma_stat_deg) {
+        if ok(sa) && ok(sb) {
+            return Some((sa.hypot(sb), ErrorSource::ComponentStat));
+        }
+    }
+    let (sa, sb) = (a.sigma_gamma_deg, b.sigma_gamma_deg);
+    (ok(sa) && ok(sb)).then(|| (sa.hypot(sb), ErrorSource::ComponentTotal))
 }
 
 /// A target left out of the sample, and why.
@@ -89,11 +116,17 @@ impl BinarySample {
                     ));
                 }
             }
+            let error = delta_gamma_error(t, a, b);
             s.binaries.push(SampleBinary {
                 object: t.object.clone(),
                 delta_gamma_deg: dg,
                 p_percent: [100.0 * a.p_debiased, 100.0 * b.p_debiased],
                 sigma_p_percent: [100.0 * a.sigma_p, 100.0 * b.sigma_p],
+                sigma_delta_gamma_deg: error.map(|e| e.0),
+                sigma_source: error.map(|e| e.1),
+                delta_gamma_interval_deg: t
+                    .delta_gamma_interval_deg
+                    .filter(|[lo, hi]| lo.is_finite() && hi.is_finite()),
             });
         }
         s
@@ -117,6 +150,29 @@ impl BinarySample {
     /// Debiased P of every component in the sample (2 per binary), percent.
     pub fn p_percent(&self) -> Vec<f64> {
         self.binaries.iter().flat_map(|b| b.p_percent).collect()
+    }
+
+    /// The Delta-gamma errors of the sample: the sigmas, their sources, the large ones.
+    pub fn errors(&self) -> SampleErrors {
+        let mut e = SampleErrors::default();
+        for b in &self.binaries {
+            match b.sigma_source {
+                Some(ErrorSource::Propagated) => e.n_propagated += 1,
+                Some(ErrorSource::ComponentStat) => e.n_component_stat += 1,
+                Some(ErrorSource::ComponentTotal) => e.n_component_total += 1,
+                None => e.n_without_error += 1,
+            }
+            e.sigmas_deg.extend(b.sigma_delta_gamma_deg);
+            if is_large(b.sigma_delta_gamma_deg, b.delta_gamma_interval_deg) {
+                e.large.push(LargeError {
+                    object: b.object.clone(),
+                    delta_gamma_deg: b.delta_gamma_deg,
+                    sigma_deg: b.sigma_delta_gamma_deg,
+                    interval_deg: b.delta_gamma_interval_deg,
+                });
+            }
+        }
+        e
     }
 
     /// Median sigma_P over all measured components of two-component targets, percent.

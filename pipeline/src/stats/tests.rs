@@ -842,6 +842,8 @@ fn params(pairs: u64) -> AnalysisParams {
             },
             ..geometry(AlignmentModel::Random, pairs, 9)
         },
+        models: Vec::new(),
+        errors: Default::default(),
     }
 }
 
