@@ -14,10 +14,14 @@
 //!   every orientation, with the larger of its propagated error and its scatter error.
 //!   `|mean l| > 3 sigma`: the ratio is significant, and when B is the brighter the labels
 //!   are exchanged (dithers, and the position angle turned by 180 deg). Otherwise the two
-//!   stars cannot be told apart by flux: the identity is unverified.
+//!   stars cannot be told apart by flux: the geometry has already made the labels the same
+//!   star at every orientation, so q and u are each one star's and Delta-gamma is unchanged
+//!   by the naming; which of two equal stars is called A is then a convention, said by the
+//!   target flag `ab_near_equal_flux: ...` (reported, not refused).
 //!
-//! An unverified identity is the target flag `ab_identity_unverified: ...`; every component
-//! is then flagged and fails the cut ([`super::entry::target_entry`]).
+//! An unverified identity (the geometry fails) is the target flag
+//! `ab_identity_unverified: ...`; every component is then flagged and fails the cut
+//! ([`super::entry::target_entry`]).
 use super::entry::AB_IDENTITY_UNVERIFIED;
 use super::{CalibratedOrientation, DitherValue, Measured};
 use crate::stokes::model::offset_to_sep_pa;
@@ -149,9 +153,10 @@ pub fn verify_pair(m: &mut Measured, orients: &[CalibratedOrientation], scale: f
         Some(_) => {}
     }
     let Some(r) = flux_ratio(&m.dithers[0], &m.dithers[1]) else {
-        m.flags.push(format!(
-            "{AB_IDENTITY_UNVERIFIED}: fewer than 2 dithers measure both stars' flux"
-        ));
+        m.flags.push(
+            "ab_near_equal_flux: fewer than 2 dithers measure both stars' flux; the labels follow the geometry"
+                .to_string(),
+        );
         return;
     };
     let text = format!(
@@ -162,7 +167,7 @@ pub fn verify_pair(m: &mut Measured, orients: &[CalibratedOrientation], scale: f
     );
     if !r.significant() {
         m.flags.push(format!(
-            "{AB_IDENTITY_UNVERIFIED}: {text}, within {FLUX_RATIO_SIGMA} sigma of 1: the stars cannot be told apart by flux"
+            "ab_near_equal_flux: {text}, within {FLUX_RATIO_SIGMA} sigma of 1: the labels follow the geometry (the same star is A at every orientation)"
         ));
     } else if r.ln_ratio > 0.0 {
         m.dithers.swap(0, 1);
