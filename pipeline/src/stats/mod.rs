@@ -34,6 +34,8 @@ pub mod sample;
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_pvalues;
 
 pub use alignment::{analyse, AlignmentReport, AnalysisParams, IsmComparison};
 pub use binomial::{binomial_test, BinomialOutcome};
