@@ -32,6 +32,8 @@ pub mod fluxes;
 pub mod params;
 pub mod run;
 pub mod sources;
+#[cfg(test)]
+mod tests_offset;
 
 use serde::Serialize;
 use sofipol_calib::{Frame, Profile};
