@@ -59,7 +59,6 @@ time cargo mutants \
     --package sofipol-pipeline \
     --in-place \
     --profile mutants \
-    --jobs 1 \
     --timeout "${MUTANTS_TIMEOUT:-300}" \
     --build-timeout "${MUTANTS_BUILD_TIMEOUT:-1200}" \
     --output "$root/target/mutants-out" \
