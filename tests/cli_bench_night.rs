@@ -1,11 +1,14 @@
 //! `sofipol bench night`: the night's pixel-type mix, the re-simulation of a cached night
-//! made with another mix, and (when a Python with numpy, scipy, astropy and photutils is
-//! available) the expert Python reduction against sofipol and against the simulated truth.
+//! made with another mix, and the expert Python reduction (numpy, scipy, astropy,
+//! photutils: `$SOFIPOL_PYTHON`, set by scripts/test.sh; fails without it unless
+//! SOFIPOL_SKIP_PYTHON=1) against sofipol and against the simulated truth.
 //! No timing is checked here.
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 use serde_json::Value;
+
+mod common;
 
 const BIN: &str = env!("CARGO_BIN_EXE_sofipol");
 
@@ -71,16 +74,6 @@ fn bench_night_is_half_float_half_16_bit_and_resimulates_another_mix() {
     assert!(stale.contains("simulated 4 targets"), "{stale}");
 }
 
-/// A Python interpreter with the reduction's packages: $SOFIPOL_PYTHON, else python3.
-fn python() -> Option<PathBuf> {
-    let py = std::env::var_os("SOFIPOL_PYTHON").map_or_else(|| PathBuf::from("python3"), PathBuf::from);
-    let ok = Command::new(&py)
-        .args(["-c", "import numpy, scipy, astropy, photutils"])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    ok.then_some(py)
-}
-
 /// The bench night's truth, from the formulas of `night_scene` (bench/src/night.rs):
 /// (flux, q, u) of components a and b of target i of n.
 fn truth(i: usize, n: usize) -> [(f64, f64, f64); 2] {
@@ -95,8 +88,10 @@ fn truth(i: usize, n: usize) -> [(f64, f64, f64); 2] {
 
 #[test]
 fn python_reduction_agrees_with_sofipol_and_with_the_truth() {
-    let Some(py) = python() else {
-        println!("SKIPPED: no Python with numpy, scipy, astropy and photutils (set SOFIPOL_PYTHON)");
+    let Some(py) = common::python_with(
+        "numpy, scipy, astropy, photutils",
+        "python_reduction_agrees_with_sofipol_and_with_the_truth",
+    ) else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();

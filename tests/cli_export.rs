@@ -144,16 +144,10 @@ fn fits_reads_back_with_units() {
 }
 
 #[test]
-fn astropy_reads_ecsv_and_fits_if_available() {
-    let python = std::env::var("SOFIPOL_PYTHON").unwrap_or_else(|_| "python3".into());
-    let has = Command::new(&python)
-        .args(["-c", "import astropy"])
-        .output()
-        .map(|o| o.status.success());
-    if !matches!(has, Ok(true)) {
-        println!("SKIPPED: astropy not importable by {python} (set SOFIPOL_PYTHON to a python with astropy)");
+fn astropy_reads_ecsv_and_fits() {
+    let Some(python) = common::python_with("astropy", "astropy_reads_ecsv_and_fits") else {
         return;
-    }
+    };
     let dir = tempfile::tempdir().unwrap();
     let (ecsv, fits) = (dir.path().join("t.ecsv"), dir.path().join("t.fits"));
     export("ecsv", &ecsv);

@@ -70,3 +70,34 @@ gamma_a_deg = 60.0
 p_b = 0.06
 gamma_b_deg = 150.0
 "#;
+
+/// The Python interpreter of the Python-dependent tests: `$SOFIPOL_PYTHON` (set by
+/// scripts/test.sh, the project's test command, to the venv of scripts/python-env.sh),
+/// checked to import `modules`. A missing variable or a missing package fails the test;
+/// only `SOFIPOL_SKIP_PYTHON=1` skips it (None, after printing `SKIPPED` and why).
+pub fn python_with(modules: &str, test: &str) -> Option<std::path::PathBuf> {
+    if std::env::var("SOFIPOL_SKIP_PYTHON").is_ok_and(|v| v == "1") {
+        println!("SKIPPED (SOFIPOL_SKIP_PYTHON=1): {test} needs Python with {modules}");
+        eprintln!("SKIPPED (SOFIPOL_SKIP_PYTHON=1): {test} needs Python with {modules}");
+        return None;
+    }
+    let Some(py) = std::env::var_os("SOFIPOL_PYTHON") else {
+        panic!(
+            "{test} needs Python with {modules}: run the tests with scripts/test.sh (it sets \
+             SOFIPOL_PYTHON to the venv of scripts/python-env.sh), set SOFIPOL_PYTHON to such an \
+             interpreter, or skip these tests explicitly with SOFIPOL_SKIP_PYTHON=1"
+        )
+    };
+    let py = std::path::PathBuf::from(py);
+    let o = Command::new(&py)
+        .args(["-c", &format!("import {modules}")])
+        .output()
+        .unwrap_or_else(|e| panic!("{test}: SOFIPOL_PYTHON={}: {e}", py.display()));
+    assert!(
+        o.status.success(),
+        "{test}: SOFIPOL_PYTHON={} cannot import {modules} (scripts/python-env.sh installs them): {}",
+        py.display(),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    Some(py)
+}

@@ -384,4 +384,25 @@ mod tests {
         );
         assert!(m.variance.is_nan() && m.flags == Flags::LOW_SNR);
     }
+
+    /// An empty image (no rows or no columns) with a valid region: nothing to measure, so
+    /// NaN flux flagged `truncated`, not a panic from slicing the region out of it.
+    #[test]
+    fn photometry_measure_empty_image_with_region() {
+        let reg = Region {
+            x_min: 0,
+            x_max: 10,
+            y_min: 0,
+            y_max: 10,
+        };
+        let p = PhotParams {
+            valid_region: Some(reg),
+            ..PhotParams::default()
+        };
+        for shape in [(0, 12), (12, 0), (0, 0)] {
+            let img = Array2::<f32>::zeros(shape);
+            let m = measure(img.view(), None, None, &p, 5.0, 5.0, &[]);
+            assert!(m.flux.is_nan() && m.flags.contains(Flags::TRUNCATED), "{shape:?}: {m:?}");
+        }
+    }
 }

@@ -361,6 +361,65 @@ fn photometry_flux_variance_matches_monte_carlo() {
     }
 }
 
+/// A faint star on a bright sky with a small annulus: the error of the background level,
+/// A^2 sigma^2 / n_sky, is a large part of the flux variance (here ~60 % of the aperture's
+/// own A sigma^2). The predicted flux variance must match both the analytic
+/// A sigma^2 + A^2 sigma^2 / n_sky (pixel counts of the aperture and the annulus counted
+/// here directly) to 2 %, and the scatter of 3000 noise realisations to 8 % (3 sigma of
+/// the scatter's own error); dropping the background term predicts 0.61 of it and fails.
+#[test]
+fn photometry_flux_error_includes_the_background_level_error() {
+    let (n, sky, sigma, flux) = (40, 5000.0, 70.7, 800.0);
+    let (xc, yc) = (19.6, 20.3);
+    let truth = render(n, n, &[(flux, xc, yc)], 1.4, sky);
+    let var = Array2::<f32>::from_elem((n, n), (sigma * sigma) as f32);
+    // Centre weights, so that the aperture area and the annulus count are pixel counts.
+    let params = PhotParams {
+        r_ap_px: 6.0,
+        annulus_px: Some((8.0, 11.0)),
+        method: Method::Center,
+        clip_sigma: 10.0, // no clipping: the annulus mean is the plain mean
+        ..PhotParams::default()
+    };
+    let count = |lo: f64, hi: f64| {
+        (0..n)
+            .flat_map(|iy| (0..n).map(move |ix| (ix as f64 - xc).hypot(iy as f64 - yc)))
+            .filter(|&r| r >= lo && r <= hi)
+            .count() as f64
+    };
+    let (a, n_sky) = (count(0.0, 6.0), count(8.0, 11.0));
+    let analytic = a * sigma * sigma + a * a * sigma * sigma / n_sky;
+    assert!(a * a / n_sky > 0.5 * a, "the background term matters here: A {a}, n_sky {n_sky}");
+    let mut rng = Rng(7);
+    let trials = 3000;
+    let mut img = Array2::<f32>::zeros((n, n));
+    let (mut fl_map, mut fl_nomap, mut v_map, mut v_nomap) = (Vec::new(), Vec::new(), 0.0, 0.0);
+    for _ in 0..trials {
+        for ((iy, ix), v) in img.indexed_iter_mut() {
+            *v = (truth[[iy, ix]] + sigma * rng.normal()) as f32;
+        }
+        let m = measure(img.view(), Some(var.view()), None, &params, xc, yc, &[]);
+        assert_eq!(m.background.unwrap().n as f64, n_sky);
+        assert_eq!(m.aperture.area, a);
+        fl_map.push(m.flux);
+        v_map += m.variance / trials as f64;
+        let m = measure(img.view(), None, None, &params, xc, yc, &[]);
+        fl_nomap.push(m.flux);
+        v_nomap += m.variance / trials as f64;
+    }
+    let scatter = |f: &[f64]| {
+        let mean = f.iter().sum::<f64>() / f.len() as f64;
+        f.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (f.len() - 1) as f64
+    };
+    // 3000 trials: the empirical variance is known to sqrt(2/3000) = 2.6 % (1 sigma).
+    for (name, f, v) in [("variance map", &fl_map, v_map), ("no map", &fl_nomap, v_nomap)] {
+        let emp = scatter(f);
+        assert!((v / analytic - 1.0).abs() < 0.02, "{name}: predicted {v} vs analytic {analytic}");
+        assert!((emp / analytic - 1.0).abs() < 0.08, "{name}: scatter {emp} vs analytic {analytic}");
+        assert!((v / emp - 1.0).abs() < 0.08, "{name}: predicted {v} vs scatter {emp}");
+    }
+}
+
 #[test]
 #[ignore]
 fn photometry_timing_breakdown() {

@@ -36,6 +36,8 @@ pub mod identity;
 pub mod params;
 pub mod run;
 pub mod sources;
+#[cfg(test)]
+mod tests_offset;
 
 use serde::Serialize;
 use sofipol_calib::{Frame, Profile};

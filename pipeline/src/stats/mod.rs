@@ -38,6 +38,8 @@ pub mod sample;
 mod tests;
 #[cfg(test)]
 mod tests_errors;
+#[cfg(test)]
+mod tests_pvalues;
 
 pub use alignment::{analyse, AlignmentReport, AnalysisParams, IsmComparison};
 pub use binomial::{binomial_test, BinomialOutcome};
