@@ -404,5 +404,73 @@ mod tests {
             let m = measure(img.view(), None, None, &p, 5.0, 5.0, &[]);
             assert!(m.flux.is_nan() && m.flags.contains(Flags::TRUNCATED), "{shape:?}: {m:?}");
         }
+        // A region reaching past the image is clamped to it: the same measurement as
+        // without a region.
+        let img = star_image(40, 20.3, 19.6, 1.0e4, 30.0);
+        let big = Region {
+            x_min: 0,
+            x_max: 100,
+            y_min: 0,
+            y_max: 70,
+        };
+        let plain = measure(img.view(), None, None, &PhotParams::default(), 20.3, 19.6, &[]);
+        let clamped = measure(
+            img.view(),
+            None,
+            None,
+            &PhotParams {
+                valid_region: Some(big),
+                ..PhotParams::default()
+            },
+            20.3,
+            19.6,
+            &[],
+        );
+        assert_eq!(plain, clamped);
+        // A region wholly beyond the image is clamped to its last row and column: the
+        // aperture is cut off (truncated), nothing is read outside the image.
+        let off = Region {
+            x_min: 50,
+            x_max: 60,
+            y_min: 45,
+            y_max: 60,
+        };
+        let m = measure(
+            img.view(),
+            None,
+            None,
+            &PhotParams {
+                valid_region: Some(off),
+                ..PhotParams::default()
+            },
+            20.3,
+            19.6,
+            &[],
+        );
+        assert!(m.flags.contains(Flags::TRUNCATED), "{m:?}");
+        // A region with its origin away from (0, 0) that holds the aperture and the
+        // annulus: the same measurement (positions in full-image coordinates).
+        let inner = Region {
+            x_min: 3,
+            x_max: 38,
+            y_min: 2,
+            y_max: 37,
+        };
+        let m = measure(
+            img.view(),
+            None,
+            None,
+            &PhotParams {
+                valid_region: Some(inner),
+                ..PhotParams::default()
+            },
+            20.3,
+            19.6,
+            &[],
+        );
+        assert_eq!((m.x, m.y), (20.3, 19.6));
+        assert!((m.flux - plain.flux).abs() < 1e-9 * plain.flux, "{} vs {}", m.flux, plain.flux);
+        assert_eq!(m.background.map(|b| b.n), plain.background.map(|b| b.n));
+        assert_eq!(m.flags, plain.flags);
     }
 }
