@@ -202,7 +202,10 @@ fn night_with_an_absurd_calibration_file_exits_1_naming_file_key_and_value() {
             caldir.to_str().unwrap(),
         ]);
         assert_eq!(code, 1, "{err}");
-        assert!(err.contains(file.to_str().unwrap()) && err.contains(expect), "{expect}: {err}");
+        assert!(
+            err.contains(file.to_str().unwrap()) && err.contains(expect),
+            "{expect}: {err}"
+        );
         assert!(!out.exists());
     }
 }

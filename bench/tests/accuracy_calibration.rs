@@ -34,7 +34,10 @@ const RMS_BAND: std::ops::RangeInclusive<f64> = 0.8..=1.2;
 
 fn nights() -> Vec<u64> {
     match std::env::var("SOFIPOL_ACCEPT_NIGHTS") {
-        Ok(s) => s.split(',').map(|x| x.trim().parse().expect("SOFIPOL_ACCEPT_NIGHTS: seeds")).collect(),
+        Ok(s) => s
+            .split(',')
+            .map(|x| x.trim().parse().expect("SOFIPOL_ACCEPT_NIGHTS: seeds"))
+            .collect(),
         Err(_) => NIGHTS.to_vec(),
     }
 }
@@ -99,8 +102,14 @@ fn standards_and_the_ratio_method_give_unbiased_pulls_pooled_over_nights() {
     // shifts the mean only through the targets' common sign, at most sqrt(f) of a pull,
     // and the angle part changes sign with each target's polarization angle); over 8
     // nights that is <= 0.11: |mean| < 0.3 is >= 2.7 sigma.
-    assert!(RMS_BAND.contains(&rms) && mean.abs() < 0.3, "standards: rms {rms} mean {mean}\n{report}");
-    assert!(RMS_BAND.contains(&rms4) && mean4.abs() < 0.3, "ratio method: rms {rms4} mean {mean4}\n{report}");
+    assert!(
+        RMS_BAND.contains(&rms) && mean.abs() < 0.3,
+        "standards: rms {rms} mean {mean}\n{report}"
+    );
+    assert!(
+        RMS_BAND.contains(&rms4) && mean4.abs() < 0.3,
+        "ratio method: rms {rms4} mean {mean4}\n{report}"
+    );
 
     // One night without its standards: the instrument shows (why the flag exists).
     let unc = run(&cfg(seeds[0], false, false), &params);

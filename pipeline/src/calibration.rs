@@ -26,7 +26,8 @@ use sofipol_calib::Profile;
 use crate::catalog::{Catalog, Component, InstrumentalOffset, StandardResult, Status, Target};
 use crate::standards::{StandardStar, StandardsTable};
 use crate::stokes::calibration::{
-    joint::fit_joint, solve_with_fallback, AngleCalibration, STOKES_METHOD_FAILED, Offset, OrientationF, StandardObservation, StokesMethod,
+    joint::fit_joint, solve_with_fallback, AngleCalibration, Offset, OrientationF, StandardObservation, StokesMethod,
+    STOKES_METHOD_FAILED,
 };
 use crate::stokes::inversion::{Debias, LinearPolarization};
 use crate::stokes::propagation::{self, calibration_covariance, CalibrationErrors, QuCovariance};
@@ -185,7 +186,11 @@ fn calibration_errors(cal: Option<&FilterCalibration>, offset: Option<Offset>) -
     CalibrationErrors {
         var_c,
         var_theta0_deg2,
-        cov_c_theta0_deg: if both { cal.and_then(|c| c.cov_c_theta0_deg).unwrap_or(0.0) } else { 0.0 },
+        cov_c_theta0_deg: if both {
+            cal.and_then(|c| c.cov_c_theta0_deg).unwrap_or(0.0)
+        } else {
+            0.0
+        },
     }
 }
 

@@ -329,7 +329,11 @@ impl Target {
     /// covariances were kept apart falls back on the totals (which then include theta0).
     pub fn update_delta_gamma(&mut self) {
         use crate::stokes::propagation::{delta_gamma_interval_deg, sigma_delta_gamma_deg};
-        (self.delta_gamma_deg, self.sigma_delta_gamma_deg, self.delta_gamma_interval_deg) = (None, None, None);
+        (
+            self.delta_gamma_deg,
+            self.sigma_delta_gamma_deg,
+            self.delta_gamma_interval_deg,
+        ) = (None, None, None);
         let [a, b] = self.components.as_slice() else { return };
         if !(a.passes_cut && b.passes_cut) {
             return;

@@ -177,11 +177,7 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
         f("sigma_u_stat", "", "1-sigma error of u from the measurement alone"),
         f("cov_qu_stat", "", "covariance of q and u from the measurement alone"),
         f("p", "", "P = hypot(q, u), not debiased (fraction)"),
-        f(
-            "sigma_p",
-            "",
-            "1-sigma error of P from the full q-u covariance",
-        ),
+        f("sigma_p", "", "1-sigma error of P from the full q-u covariance"),
         f(
             "p_debiased",
             "",

@@ -33,7 +33,11 @@ fn pair_scene(sep_px: f64, ratio: f64, seed: u64) -> (String, f64) {
     let sep = sep_px * 0.288;
     let x = 250.0 + 524.0 * u();
     let y = 345.0 + 30.0 + (167.0 - 60.0) * u();
-    let orientations = if seed.is_multiple_of(2) { "[0.0, 45.0]" } else { "[0.0, 45.0, 90.0, 135.0]" };
+    let orientations = if seed.is_multiple_of(2) {
+        "[0.0, 45.0]"
+    } else {
+        "[0.0, 45.0, 90.0, 135.0]"
+    };
     let bitpix = if (seed / 2).is_multiple_of(2) { -32 } else { 16 };
     let k = 0.96 + 0.03 * u();
     let zp = -5.0 + 10.0 * u();
@@ -140,14 +144,19 @@ fn near_equal_pair_is_never_silently_swapped_over_many_nights() {
         }
         if *unver {
             assert!(
-                t.components.iter().all(|c| !c.passes_cut && c.flags.iter().any(|f| f == AB_IDENTITY_UNVERIFIED)),
+                t.components
+                    .iter()
+                    .all(|c| !c.passes_cut && c.flags.iter().any(|f| f == AB_IDENTITY_UNVERIFIED)),
                 "seed {seed}: {:?}",
                 t.components
             );
         }
     }
     // The pair is resolved in (nearly) every night: the test looks at real labels.
-    assert!(found >= SEEDS as usize * 3 / 4, "companion found in {found} of {SEEDS} nights");
+    assert!(
+        found >= SEEDS as usize * 3 / 4,
+        "companion found in {found} of {SEEDS} nights"
+    );
 }
 
 /// A pair with B/A 0.5 is told apart by flux in every night: never flagged, never swapped.
@@ -159,14 +168,25 @@ fn clearly_unequal_pair_is_never_flagged() {
         .map(|seed| {
             let (text, pa) = pair_scene(8.3, 0.5, 1000 + seed);
             let t = reduce(&text);
-            (seed, swapped(&t, pa), unverified(&t), t.flags.clone().unwrap_or_default())
+            (
+                seed,
+                swapped(&t, pa),
+                unverified(&t),
+                t.flags.clone().unwrap_or_default(),
+            )
         })
         .collect();
     for (seed, sw, unver, flags) in rows {
         assert!(!unver, "seed {seed}: flagged: {flags:?}");
         assert_ne!(sw, Some(true), "seed {seed}: swapped: {flags:?}");
-        assert!(!flags.iter().any(|f| f.starts_with("ab_relabelled")), "seed {seed}: {flags:?}");
-        assert!(!flags.iter().any(|f| f.starts_with("ab_near_equal_flux")), "seed {seed}: {flags:?}");
+        assert!(
+            !flags.iter().any(|f| f.starts_with("ab_relabelled")),
+            "seed {seed}: {flags:?}"
+        );
+        assert!(
+            !flags.iter().any(|f| f.starts_with("ab_near_equal_flux")),
+            "seed {seed}: {flags:?}"
+        );
     }
 }
 
@@ -196,7 +216,11 @@ fn fainter_star_labelled_a_at_every_orientation_is_relabelled_by_flux() {
     assert_eq!(m.dithers.len(), 2);
     assert!(!m.flags.iter().any(|f| f.starts_with("ab_")), "{:?}", m.flags);
     let right = target_entry("t", &orients, &m, &params.measure);
-    assert_eq!(swapped(&right, pa), Some(false), "the reduction's own labels are the truth's");
+    assert_eq!(
+        swapped(&right, pa),
+        Some(false),
+        "the reduction's own labels are the truth's"
+    );
     // The labels as the referee found them: the fainter star is A everywhere.
     m.dithers.swap(0, 1);
     let g = m.geometry.as_mut().unwrap();
@@ -209,7 +233,11 @@ fn fainter_star_labelled_a_at_every_orientation_is_relabelled_by_flux() {
         "{r:?}"
     );
     identity::verify_pair(&mut m, &orients, profile.geometry.pixscale_arcsec);
-    assert!(m.flags.iter().any(|f| f.starts_with("ab_relabelled_by_flux")), "{:?}", m.flags);
+    assert!(
+        m.flags.iter().any(|f| f.starts_with("ab_relabelled_by_flux")),
+        "{:?}",
+        m.flags
+    );
     let t = target_entry("t", &orients, &m, &params.measure);
     assert!((t.pa_deg.unwrap() - right.pa_deg.unwrap()).abs() < 1e-9);
     for (c, r) in t.components.iter().zip(&right.components) {
@@ -218,7 +246,10 @@ fn fainter_star_labelled_a_at_every_orientation_is_relabelled_by_flux() {
     }
     // Without the check, A's q and u are B's: many sigma off A's own.
     let (a, w) = (&right.components[0], &wrong.components[0]);
-    assert!(((w.q - a.q) / a.sigma_q).hypot((w.u - a.u) / a.sigma_u) > 5.0, "{a:?} {w:?}");
+    assert!(
+        ((w.q - a.q) / a.sigma_q).hypot((w.u - a.u) / a.sigma_u) > 5.0,
+        "{a:?} {w:?}"
+    );
 }
 
 #[test]
@@ -236,5 +267,7 @@ fn survey() {
         let fl: Vec<f64> = t.components.iter().map(|c| c.flux_adu.unwrap_or(f64::NAN)).collect();
         format!("seed {seed} fwhm {:.2} pa {pa:.1} found {:?} swapped {swapped:?} unverified {unver} fluxes {fl:?} flags {flags:?}", t.fwhm_px.unwrap_or(0.0), t.pa_deg)
     }).collect();
-    for r in rows { println!("{r}"); }
+    for r in rows {
+        println!("{r}");
+    }
 }

@@ -118,7 +118,10 @@ fn calibrate(cat: &mut Catalog, stds: Vec<Target>) -> (serde_json::Value, Vec<St
         Debias::WardleKronberg,
         3.0,
     );
-    (cat.calibration.as_ref().unwrap()["calibration"]["filters"][0].clone(), sum.lines)
+    (
+        cat.calibration.as_ref().unwrap()["calibration"]["filters"][0].clone(),
+        sum.lines,
+    )
 }
 
 #[test]
@@ -131,8 +134,14 @@ fn the_standards_geometry_decides_between_a_joint_fit_and_an_incomplete_flagged_
     let mut cat = raw.clone();
     let (f, _) = calibrate(&mut cat, stds.clone());
     assert!(f.get("incomplete").is_none(), "{f}");
-    let (th, sth) = (f["angles"]["theta0_deg"].as_f64().unwrap(), f["angles"]["sigma_theta0_deg"].as_f64().unwrap());
-    let (c, sc) = (f["offset"]["c"].as_f64().unwrap(), f["offset"]["sigma_c"].as_f64().unwrap());
+    let (th, sth) = (
+        f["angles"]["theta0_deg"].as_f64().unwrap(),
+        f["angles"]["sigma_theta0_deg"].as_f64().unwrap(),
+    );
+    let (c, sc) = (
+        f["offset"]["c"].as_f64().unwrap(),
+        f["offset"]["sigma_c"].as_f64().unwrap(),
+    );
     let cov = f["cov_c_theta0_deg"].as_f64().unwrap();
     eprintln!(
         "two polarized standards: theta0 = {th:.2} +- {sth:.2} deg (truth 3), c = {c:.5} +- {sc:.5} (truth {c_true:.5}), \
@@ -143,7 +152,14 @@ fn the_standards_geometry_decides_between_a_joint_fit_and_an_incomplete_flagged_
     assert!((c - c_true).abs() < 3.0 * sc, "c {c} +- {sc}");
     for t in &cat.targets {
         for comp in &t.components {
-            assert!(!comp.flags.iter().any(|x| x == "calibration_incomplete" || x == "uncalibrated"), "{:?}", comp.flags);
+            assert!(
+                !comp
+                    .flags
+                    .iter()
+                    .any(|x| x == "calibration_incomplete" || x == "uncalibrated"),
+                "{:?}",
+                comp.flags
+            );
         }
     }
 
@@ -159,7 +175,11 @@ fn the_standards_geometry_decides_between_a_joint_fit_and_an_incomplete_flagged_
     let mut n = 0;
     for t in &cat.targets {
         for comp in &t.components {
-            assert!(comp.flags.iter().any(|x| x == "calibration_incomplete"), "{:?}", comp.flags);
+            assert!(
+                comp.flags.iter().any(|x| x == "calibration_incomplete"),
+                "{:?}",
+                comp.flags
+            );
             n += 1;
         }
     }

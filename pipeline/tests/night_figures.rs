@@ -97,7 +97,11 @@ fn night_figures_show_the_calibrated_catalog() {
             for (k, &pa) in posangs.iter().enumerate() {
                 let phi = (angles.parity as f64 * pa + angles.theta0_deg).to_radians();
                 let want = c.q * (2.0 * phi).cos() + c.u * (2.0 * phi).sin() + offset;
-                assert!((n.model_f[k] - want).abs() < 1e-12, "{who}: F line at {pa}: {} vs {want}", n.model_f[k]);
+                assert!(
+                    (n.model_f[k] - want).abs() < 1e-12,
+                    "{who}: F line at {pa}: {} vs {want}",
+                    n.model_f[k]
+                );
                 // The line goes through the catalog's combined F of that orientation (within
                 // a few of its errors: two orientations, two unknowns, an exact fit).
                 let of = &c.orientations.as_ref().unwrap()[k];

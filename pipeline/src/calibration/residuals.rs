@@ -100,7 +100,8 @@ pub fn table_residuals(
         let chi2 = (b * q * q - 2.0 * c * q * u + a * u * u) / det;
         r.qu_chi2 = Some(chi2);
         if chi2 > QU_DISAGREES_CHI2 {
-            r.flags.push(format!("qu_disagrees_with_table: chi2 = {chi2:.1} (2 dof)"));
+            r.flags
+                .push(format!("qu_disagrees_with_table: chi2 = {chi2:.1} (2 dof)"));
         }
     }
     r

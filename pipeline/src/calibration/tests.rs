@@ -369,7 +369,10 @@ fn the_zero_point_error_adds_tangential_variance_only() {
 #[test]
 fn delta_gamma_error_has_the_offset_and_not_the_zero_point() {
     let pa = [0.0, 45.0];
-    let (a_pol, b_pol) = (Polarization::from_p_gamma(0.03, 20.0), Polarization::from_p_gamma(0.02, 70.0));
+    let (a_pol, b_pol) = (
+        Polarization::from_p_gamma(0.03, 20.0),
+        Polarization::from_p_gamma(0.02, 70.0),
+    );
     let (sf, sc) = (4e-4, 6e-4);
     let parity = Profile::sofi().angles.parity;
     let run = |sigma_theta0_deg: f64| {
@@ -419,7 +422,10 @@ fn delta_gamma_error_has_the_offset_and_not_the_zero_point() {
     };
     let (t0, t6) = (run(0.0), run(6.0));
     let (s0, s6) = (t0.sigma_delta_gamma_deg.unwrap(), t6.sigma_delta_gamma_deg.unwrap());
-    assert!((s0 - s6).abs() < 1e-12, "theta0's error entered sigma_delta_gamma: {s0} -> {s6}");
+    assert!(
+        (s0 - s6).abs() < 1e-12,
+        "theta0's error entered sigma_delta_gamma: {s0} -> {s6}"
+    );
     // By hand: with 2 orientations q = F(0) - c, u = F(45) - c (analyzer = posang here:
     // theta0 = 0 and the parity's sign only mirrors u), so each star has Var q = Var u = sf^2,
     // no covariance, and d(q, u)/dc = (-1, -1) up to the parity's sign on u.
@@ -430,12 +436,18 @@ fn delta_gamma_error_has_the_offset_and_not_the_zero_point() {
     let (a, b) = (&t6.components[0], &t6.components[1]);
     let (ga, gb) = (grad(a), grad(b));
     let (da, db) = (a.offset_gradient.unwrap(), b.offset_gradient.unwrap());
-    assert!((da[0] + 1.0).abs() < 1e-12 && (da[1].abs() - 1.0).abs() < 1e-12, "{da:?}");
+    assert!(
+        (da[0] + 1.0).abs() < 1e-12 && (da[1].abs() - 1.0).abs() < 1e-12,
+        "{da:?}"
+    );
     let own = (ga[0] * ga[0] + ga[1] * ga[1] + gb[0] * gb[0] + gb[1] * gb[1]) * sf * sf;
     let common = ga[0] * da[0] + ga[1] * da[1] - gb[0] * db[0] - gb[1] * db[1];
     let want = (own + common * common * sc * sc).sqrt().to_degrees();
     assert!((s6 / want - 1.0).abs() < 1e-9, "{s6} vs by hand {want}");
-    assert!(common.abs() * sc > 0.3 * own.sqrt(), "the offset's term matters in this test");
+    assert!(
+        common.abs() * sc > 0.3 * own.sqrt(),
+        "the offset's term matters in this test"
+    );
     // Per star: the total angle error is the two parts in quadrature, and the zero-point part
     // holds the 6 deg.
     for c in [a, b] {
@@ -445,7 +457,10 @@ fn delta_gamma_error_has_the_offset_and_not_the_zero_point() {
     }
     let iv = t6.delta_gamma_interval_deg.unwrap();
     let dg = t6.delta_gamma_deg.unwrap();
-    assert!(iv[0] < dg && dg < iv[1] && (iv[1] - iv[0] - 2.0 * s6).abs() < 0.1 * s6, "{iv:?} {dg} {s6}");
+    assert!(
+        iv[0] < dg && dg < iv[1] && (iv[1] - iv[0] - 2.0 * s6).abs() < 0.1 * s6,
+        "{iv:?} {dg} {s6}"
+    );
 }
 
 fn written_calibration(filter: serde_json::Value) -> (tempfile::TempDir, std::path::PathBuf) {
@@ -475,11 +490,27 @@ fn calibration_file_with_absurd_numbers_is_refused_naming_file_key_and_value() {
         ("/offset/c", 5.0.into(), "filters[0].offset.c = 5"),
         ("/offset/sigma_c", (-1e-3).into(), "filters[0].offset.sigma_c = -0.001"),
         ("/angles/parity", 7.into(), "filters[0].angles.parity = 7"),
-        ("/angles/theta0_deg", 1e300.into(), "filters[0].angles.theta0_deg = 1000000"),
-        ("/angles/sigma_theta0_deg", 91.0.into(), "filters[0].angles.sigma_theta0_deg = 91"),
-        ("/angles/sigma_theta0_deg", (-0.1).into(), "filters[0].angles.sigma_theta0_deg = -0.1"),
+        (
+            "/angles/theta0_deg",
+            1e300.into(),
+            "filters[0].angles.theta0_deg = 1000000",
+        ),
+        (
+            "/angles/sigma_theta0_deg",
+            91.0.into(),
+            "filters[0].angles.sigma_theta0_deg = 91",
+        ),
+        (
+            "/angles/sigma_theta0_deg",
+            (-0.1).into(),
+            "filters[0].angles.sigma_theta0_deg = -0.1",
+        ),
         ("/cov_c_theta0_deg", 2e-4.into(), "filters[0].cov_c_theta0_deg = 0.0002"),
-        ("/cov_c_theta0_deg", 1e300.into(), "filters[0].cov_c_theta0_deg = 1000000"),
+        (
+            "/cov_c_theta0_deg",
+            1e300.into(),
+            "filters[0].cov_c_theta0_deg = 1000000",
+        ),
     ];
     for (ptr, v, expect) in cases {
         let mut f = good.clone();
@@ -496,7 +527,12 @@ fn calibration_file_with_absurd_numbers_is_refused_naming_file_key_and_value() {
     assert!(e.contains("filters[0].cov_c_theta0_deg"), "{e}");
 }
 
-fn run_night(stds: Vec<Target>, cat: &mut Catalog, table: &StandardsTable, params: &CalibrationParams) -> (Option<Calibration>, CalibrationSummary) {
+fn run_night(
+    stds: Vec<Target>,
+    cat: &mut Catalog,
+    table: &StandardsTable,
+    params: &CalibrationParams,
+) -> (Option<Calibration>, CalibrationSummary) {
     calibrate_catalog(
         cat,
         stds,
@@ -548,7 +584,11 @@ fn one_polarized_standard_at_two_orientations_gives_an_incomplete_flagged_calibr
                 .as_ref()
                 .unwrap()
                 .iter()
-                .map(|o| OrientationF { analyzer_deg: f64::NAN, f: o.f, sigma_f: o.sigma_f })
+                .map(|o| OrientationF {
+                    analyzer_deg: f64::NAN,
+                    f: o.f,
+                    sigma_f: o.sigma_f,
+                })
                 .collect(),
             p: 0.025,
             sigma_p: 0.0002,
@@ -567,36 +607,66 @@ fn one_polarized_standard_at_two_orientations_gives_an_incomplete_flagged_calibr
     let mut cat = Catalog {
         targets: vec![target(
             "T",
-            vec![component("A", truth, &pa, theta0, c, 1e-3), component("B", truth, &pa, theta0, c, 1e-3)],
+            vec![
+                component("A", truth, &pa, theta0, c, 1e-3),
+                component("B", truth, &pa, theta0, c, 1e-3),
+            ],
         )],
         ..Default::default()
     };
     let (cal, sum) = run_night(stds, &mut cat, &table, &CalibrationParams::default());
     let f = cal.unwrap().for_filter("Ks").unwrap().clone();
-    assert!(f.angles.is_none(), "no theta0 from a standard that cannot give it: {f:?}");
+    assert!(
+        f.angles.is_none(),
+        "no theta0 from a standard that cannot give it: {f:?}"
+    );
     assert!(f.offset.is_none() && f.cov_c_theta0_deg.is_none());
     assert!(f.incomplete.as_deref().unwrap().contains("cannot separate"), "{f:?}");
     for comp in &cat.targets[0].components {
-        assert!(comp.flags.contains(&CALIBRATION_INCOMPLETE.to_string()), "{:?}", comp.flags);
+        assert!(
+            comp.flags.contains(&CALIBRATION_INCOMPLETE.to_string()),
+            "{:?}",
+            comp.flags
+        );
         assert!(comp.flags.contains(&"uncalibrated".to_string()));
     }
     assert_eq!(sum.n_incomplete, 2);
     assert!(
-        sum.lines.iter().any(|l| l.contains("incomplete") && l.contains("cannot separate")),
+        sum.lines
+            .iter()
+            .any(|l| l.contains("incomplete") && l.contains("cannot separate")),
         "{:?}",
         sum.lines
     );
     // The file keeps the reason and serves another night with the same flags.
     let dir = tempfile::tempdir().unwrap();
-    let cal = measure(&[target("Pol A", vec![component("A", pol, &pa, theta0, c, 3e-4)])], &table, &Profile::sofi()).unwrap();
+    let cal = measure(
+        &[target("Pol A", vec![component("A", pol, &pa, theta0, c, 3e-4)])],
+        &table,
+        &Profile::sofi(),
+    )
+    .unwrap();
     cal.write(dir.path()).unwrap();
-    assert_eq!(Calibration::read(dir.path()).unwrap().filters[0].incomplete, f.incomplete);
+    assert_eq!(
+        Calibration::read(dir.path()).unwrap().filters[0].incomplete,
+        f.incomplete
+    );
 
     // Two polarized standards at different angles separate them: c and theta0 exact, and
     // nothing flagged.
     let stds = vec![
         target("Pol A", vec![component("A", pol, &pa, theta0, c, 3e-4)]),
-        target("Pol B", vec![component("A", Polarization::from_p_gamma(0.02, 100.0), &pa, theta0, c, 3e-4)]),
+        target(
+            "Pol B",
+            vec![component(
+                "A",
+                Polarization::from_p_gamma(0.02, 100.0),
+                &pa,
+                theta0,
+                c,
+                3e-4,
+            )],
+        ),
     ];
     let mut cat2 = Catalog {
         targets: vec![target("T", vec![component("A", truth, &pa, theta0, c, 1e-3)])],
@@ -627,11 +697,47 @@ fn standards_disagreeing_with_their_table_are_flagged_with_statistical_residuals
     table.merge_toml(PRECISE_POL, "test").unwrap();
     // Pol A is in truth 3 % (table 2.5 +- 0.02 %); HD 94851 carries 0.4 % (table 0 +- 0.05 %).
     let stds = vec![
-        target("HD 64299", vec![component("A", Polarization::default(), &pa, theta0, c, sf)]),
-        target("HD 98161", vec![component("A", Polarization::default(), &pa, theta0, c, sf)]),
-        target("HD 94851", vec![component("A", Polarization::from_p_gamma(0.004, 10.0), &pa, theta0, c, sf)]),
-        target("Pol A", vec![component("A", Polarization::from_p_gamma(0.03, 40.0), &pa, theta0, c, sf)]),
-        target("Pol B", vec![component("A", Polarization::from_p_gamma(0.02, 100.0), &pa, theta0, c, sf)]),
+        target(
+            "HD 64299",
+            vec![component("A", Polarization::default(), &pa, theta0, c, sf)],
+        ),
+        target(
+            "HD 98161",
+            vec![component("A", Polarization::default(), &pa, theta0, c, sf)],
+        ),
+        target(
+            "HD 94851",
+            vec![component(
+                "A",
+                Polarization::from_p_gamma(0.004, 10.0),
+                &pa,
+                theta0,
+                c,
+                sf,
+            )],
+        ),
+        target(
+            "Pol A",
+            vec![component(
+                "A",
+                Polarization::from_p_gamma(0.03, 40.0),
+                &pa,
+                theta0,
+                c,
+                sf,
+            )],
+        ),
+        target(
+            "Pol B",
+            vec![component(
+                "A",
+                Polarization::from_p_gamma(0.02, 100.0),
+                &pa,
+                theta0,
+                c,
+                sf,
+            )],
+        ),
     ];
     let mut cat = Catalog::default();
     let (cal, sum) = run_night(stds, &mut cat, &table, &CalibrationParams::default());
@@ -641,14 +747,26 @@ fn standards_disagreeing_with_their_table_are_flagged_with_statistical_residuals
     let m = a.measured.as_ref().unwrap();
     // 0/45: sigma_P,stat = sigma_F (q = F0 - c, u = F45 - c up to the theta0 rotation).
     let expect = (m.p - 0.025) / sf.hypot(0.0002);
-    assert!((a.residual_p_sigma.unwrap() - expect).abs() < 1e-6 * expect.abs(), "{:?} vs {expect}", a.residual_p_sigma);
+    assert!(
+        (a.residual_p_sigma.unwrap() - expect).abs() < 1e-6 * expect.abs(),
+        "{:?} vs {expect}",
+        a.residual_p_sigma
+    );
     assert!(expect > 3.0, "{expect}");
     assert!(
-        a.flags.iter().any(|x| x == &format!("p_disagrees_with_table: {:.1} sigma", expect)),
+        a.flags
+            .iter()
+            .any(|x| x == &format!("p_disagrees_with_table: {:.1} sigma", expect)),
         "{:?}",
         a.flags
     );
-    assert!(sum.lines.iter().any(|l| l.contains("Pol A") && l.contains("p_disagrees_with_table")), "{:?}", sum.lines);
+    assert!(
+        sum.lines
+            .iter()
+            .any(|l| l.contains("Pol A") && l.contains("p_disagrees_with_table")),
+        "{:?}",
+        sum.lines
+    );
     // Unpolarized: chi^2 of (q, u) with Var = sigma_F^2 + sigma_p^2/2 each (0/45: no covariance
     // once theta0 is the profile's... here theta0 comes from Pol A and B, a rotation, which
     // leaves the isotropic covariance isotropic).
@@ -656,15 +774,46 @@ fn standards_disagreeing_with_their_table_are_flagged_with_statistical_residuals
     let hd = by("HD 94851");
     let mh = hd.measured.as_ref().unwrap();
     let chi2 = (mh.q * mh.q + mh.u * mh.u) / (sf * sf + 0.0005f64.powi(2) / 2.0);
-    assert!((hd.residual_qu_chi2.unwrap() - chi2).abs() < 1e-6 * chi2, "{:?} vs {chi2}", hd.residual_qu_chi2);
+    assert!(
+        (hd.residual_qu_chi2.unwrap() - chi2).abs() < 1e-6 * chi2,
+        "{:?} vs {chi2}",
+        hd.residual_qu_chi2
+    );
     assert!(hd.residual_p_sigma.is_none());
-    assert!(hd.flags.iter().any(|x| x.starts_with("qu_disagrees_with_table")), "{:?}", hd.flags);
+    assert!(
+        hd.flags.iter().any(|x| x.starts_with("qu_disagrees_with_table")),
+        "{:?}",
+        hd.flags
+    );
 
     // Every standard at its table values: nothing flagged, residuals 0.
     let stds = vec![
-        target("HD 64299", vec![component("A", Polarization::default(), &pa, theta0, c, sf)]),
-        target("Pol A", vec![component("A", Polarization::from_p_gamma(0.025, 40.0), &pa, theta0, c, sf)]),
-        target("Pol B", vec![component("A", Polarization::from_p_gamma(0.02, 100.0), &pa, theta0, c, sf)]),
+        target(
+            "HD 64299",
+            vec![component("A", Polarization::default(), &pa, theta0, c, sf)],
+        ),
+        target(
+            "Pol A",
+            vec![component(
+                "A",
+                Polarization::from_p_gamma(0.025, 40.0),
+                &pa,
+                theta0,
+                c,
+                sf,
+            )],
+        ),
+        target(
+            "Pol B",
+            vec![component(
+                "A",
+                Polarization::from_p_gamma(0.02, 100.0),
+                &pa,
+                theta0,
+                c,
+                sf,
+            )],
+        ),
     ];
     let mut cat = Catalog::default();
     let (_, sum) = run_night(stds, &mut cat, &table, &CalibrationParams::default());
@@ -695,8 +844,14 @@ fn an_impossible_stokes_method_falls_back_to_auto_and_never_passes_silently() {
     };
     let stds = || {
         vec![
-            target("HD 64299", vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)]),
-            target("HD 98161", vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)]),
+            target(
+                "HD 64299",
+                vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)],
+            ),
+            target(
+                "HD 98161",
+                vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)],
+            ),
         ]
     };
     let mut cat = science();
@@ -704,18 +859,32 @@ fn an_impossible_stokes_method_falls_back_to_auto_and_never_passes_silently() {
     let a = &cat.targets[0].components[0];
     assert_eq!(a.stokes_method.as_deref(), Some("least_squares"));
     assert!((a.q - truth.q).abs() < 1e-9 && (a.u - truth.u).abs() < 1e-9, "{a:?}");
-    let flag = a.flags.iter().find(|f| f.starts_with("stokes_method_failed")).expect("flagged");
-    assert!(flag.contains("ratio") && flag.ends_with("; fell back to least_squares"), "{flag}");
+    let flag = a
+        .flags
+        .iter()
+        .find(|f| f.starts_with("stokes_method_failed"))
+        .expect("flagged");
+    assert!(
+        flag.contains("ratio") && flag.ends_with("; fell back to least_squares"),
+        "{flag}"
+    );
     assert!(a.passes_cut && !a.flags.contains(&"uncalibrated".to_string()));
     assert_eq!(sum.n_method_failed, 1);
-    assert!(sum.lines.iter().any(|l| l.contains("stokes_method_failed")), "{:?}", sum.lines);
+    assert!(
+        sum.lines.iter().any(|l| l.contains("stokes_method_failed")),
+        "{:?}",
+        sum.lines
+    );
 
     // No calibration: the fallback is uncalibrated; flagged, and refused by the cut.
     let mut cat = science();
     run_night(vec![], &mut cat, &table, &params);
     let a = &cat.targets[0].components[0];
     assert!(a.q.is_finite() && (a.q - (truth.q + c)).abs() < 1e-9, "{a:?}");
-    assert!(a.flags.iter().any(|f| f.starts_with("stokes_method_failed") && f.contains("fell back to least_squares")));
+    assert!(a
+        .flags
+        .iter()
+        .any(|f| f.starts_with("stokes_method_failed") && f.contains("fell back to least_squares")));
     assert!(a.flags.contains(&"uncalibrated".to_string()), "{:?}", a.flags);
     assert!(!a.passes_cut, "an uncalibrated fallback passed the cut: {:?}", a.flags);
 }

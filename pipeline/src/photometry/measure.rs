@@ -402,7 +402,10 @@ mod tests {
         for shape in [(0, 12), (12, 0), (0, 0)] {
             let img = Array2::<f32>::zeros(shape);
             let m = measure(img.view(), None, None, &p, 5.0, 5.0, &[]);
-            assert!(m.flux.is_nan() && m.flags.contains(Flags::TRUNCATED), "{shape:?}: {m:?}");
+            assert!(
+                m.flux.is_nan() && m.flags.contains(Flags::TRUNCATED),
+                "{shape:?}: {m:?}"
+            );
         }
         // A region reaching past the image is clamped to it: the same measurement as
         // without a region.
@@ -469,7 +472,12 @@ mod tests {
             &[],
         );
         assert_eq!((m.x, m.y), (20.3, 19.6));
-        assert!((m.flux - plain.flux).abs() < 1e-9 * plain.flux, "{} vs {}", m.flux, plain.flux);
+        assert!(
+            (m.flux - plain.flux).abs() < 1e-9 * plain.flux,
+            "{} vs {}",
+            m.flux,
+            plain.flux
+        );
         assert_eq!(m.background.map(|b| b.n), plain.background.map(|b| b.n));
         assert_eq!(m.flags, plain.flags);
     }

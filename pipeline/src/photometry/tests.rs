@@ -389,7 +389,10 @@ fn photometry_flux_error_includes_the_background_level_error() {
     };
     let (a, n_sky) = (count(0.0, 6.0), count(8.0, 11.0));
     let analytic = a * sigma * sigma + a * a * sigma * sigma / n_sky;
-    assert!(a * a / n_sky > 0.5 * a, "the background term matters here: A {a}, n_sky {n_sky}");
+    assert!(
+        a * a / n_sky > 0.5 * a,
+        "the background term matters here: A {a}, n_sky {n_sky}"
+    );
     let mut rng = Rng(7);
     let trials = 3000;
     let mut img = Array2::<f32>::zeros((n, n));
@@ -414,8 +417,14 @@ fn photometry_flux_error_includes_the_background_level_error() {
     // 3000 trials: the empirical variance is known to sqrt(2/3000) = 2.6 % (1 sigma).
     for (name, f, v) in [("variance map", &fl_map, v_map), ("no map", &fl_nomap, v_nomap)] {
         let emp = scatter(f);
-        assert!((v / analytic - 1.0).abs() < 0.02, "{name}: predicted {v} vs analytic {analytic}");
-        assert!((emp / analytic - 1.0).abs() < 0.08, "{name}: scatter {emp} vs analytic {analytic}");
+        assert!(
+            (v / analytic - 1.0).abs() < 0.02,
+            "{name}: predicted {v} vs analytic {analytic}"
+        );
+        assert!(
+            (emp / analytic - 1.0).abs() < 0.08,
+            "{name}: scatter {emp} vs analytic {analytic}"
+        );
         assert!((v / emp - 1.0).abs() < 0.08, "{name}: predicted {v} vs scatter {emp}");
     }
 }

@@ -106,10 +106,7 @@ pub fn position_angles(
                 .map(|(da, db)| (db.o.xy.0 - da.o.xy.0, db.o.xy.1 - da.o.xy.1))
                 .filter(|d| d.0.is_finite() && d.1.is_finite())
                 .unzip();
-            let (mx, my) = (
-                crate::numeric::median_finite(&dx)?,
-                crate::numeric::median_finite(&dy)?,
-            );
+            let (mx, my) = (crate::numeric::median_finite(&dx)?, crate::numeric::median_finite(&dy)?);
             Some(offset_to_sep_pa(mx, my, o.posang_deg, scale).1)
         })
         .collect()
@@ -118,10 +115,9 @@ pub fn position_angles(
 /// The largest angle between an orientation's position angle and the circular mean of all
 /// of them, deg, with the rotator angle where it occurs (None when no angle was measured).
 fn worst_disagreement(pas: &[Option<f64>], orients: &[CalibratedOrientation]) -> Option<(f64, f64)> {
-    let (cx, cy) = pas
-        .iter()
-        .flatten()
-        .fold((0.0, 0.0), |a, p| (a.0 + p.to_radians().cos(), a.1 + p.to_radians().sin()));
+    let (cx, cy) = pas.iter().flatten().fold((0.0, 0.0), |a, p| {
+        (a.0 + p.to_radians().cos(), a.1 + p.to_radians().sin())
+    });
     let mean = cy.atan2(cx).to_degrees();
     pas.iter()
         .zip(orients)
@@ -174,6 +170,7 @@ pub fn verify_pair(m: &mut Measured, orients: &[CalibratedOrientation], scale: f
         if let Some((_, pa)) = m.geometry.as_mut() {
             *pa = (*pa + 180.0).rem_euclid(360.0);
         }
-        m.flags.push(format!("ab_relabelled_by_flux: {text}: A is the brighter"));
+        m.flags
+            .push(format!("ab_relabelled_by_flux: {text}: A is the brighter"));
     }
 }

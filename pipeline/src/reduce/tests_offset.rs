@@ -26,7 +26,10 @@ fn night() -> (Vec<SimFrame>, Truth) {
 
 fn orientations<'a>(frames: &'a [SimFrame], object: &str) -> (Vec<CalibratedOrientation>, Vec<Vec<&'a SimFrame>>) {
     let (mut out, mut sims): (Vec<CalibratedOrientation>, Vec<Vec<&'a SimFrame>>) = (Vec::new(), Vec::new());
-    for f in frames.iter().filter(|f| f.frame.header.get_str("OBJECT").unwrap() == object) {
+    for f in frames
+        .iter()
+        .filter(|f| f.frame.header.get_str("OBJECT").unwrap() == object)
+    {
         let pa = f.truth.posang_deg;
         if out.last().is_none_or(|o| o.posang_deg != pa) {
             out.push(CalibratedOrientation {

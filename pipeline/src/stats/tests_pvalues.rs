@@ -30,7 +30,11 @@ fn ks_cdf_by_sweep(d: f64, n: usize) -> f64 {
     dist[0] = 1.0;
     let mut prev = 0.0f64;
     for &(c, hi, lo) in &cons {
-        let p = if prev < 1.0 { ((c - prev) / (1.0 - prev)).clamp(0.0, 1.0) } else { 1.0 };
+        let p = if prev < 1.0 {
+            ((c - prev) / (1.0 - prev)).clamp(0.0, 1.0)
+        } else {
+            1.0
+        };
         let mut next = vec![0.0f64; n + 1];
         for (k, &w) in dist.iter().enumerate() {
             if w == 0.0 {
@@ -66,7 +70,10 @@ fn ks_sweep_reference_matches_closed_forms() {
             let d = t / nf;
             let want = fact * (2.0 * d - 1.0 / nf).powi(n as i32);
             let got = ks_cdf_by_sweep(d, n);
-            assert!((got - want).abs() < 1e-12 * want.max(1e-300) + 1e-15, "n {n} d {d}: {got} vs {want}");
+            assert!(
+                (got - want).abs() < 1e-12 * want.max(1e-300) + 1e-15,
+                "n {n} d {d}: {got} vs {want}"
+            );
         }
     }
 }
@@ -91,8 +98,14 @@ fn ks_p_value_at_n9_matches_slow_exact_and_scipy() {
     for (d, scipy) in SCIPY_KSTWO_SF_N9 {
         let (p, method) = kolmogorov_sf(d, 9);
         let slow = 1.0 - ks_cdf_by_sweep(d, 9);
-        assert!((slow - scipy).abs() <= 1e-10 * scipy, "d {d}: sweep {slow} vs scipy {scipy}");
-        assert!((p - slow).abs() <= 1e-9 * slow, "d {d}: {p} ({method}) vs slow exact {slow}");
+        assert!(
+            (slow - scipy).abs() <= 1e-10 * scipy,
+            "d {d}: sweep {slow} vs scipy {scipy}"
+        );
+        assert!(
+            (p - slow).abs() <= 1e-9 * slow,
+            "d {d}: {p} ({method}) vs slow exact {slow}"
+        );
     }
     // Through the data path: nine angles on [0, 90) whose D is known.
     let data = [3.0, 7.5, 12.0, 20.0, 24.0, 31.0, 40.0, 52.0, 88.0];

@@ -422,7 +422,10 @@ pub fn solve_with_fallback(
             } else {
                 String::new()
             };
-            Ok((s, Some(format!("{STOKES_METHOD_FAILED}: {e}; fell back to {}{unc}", s.method))))
+            Ok((
+                s,
+                Some(format!("{STOKES_METHOD_FAILED}: {e}; fell back to {}{unc}", s.method)),
+            ))
         }
         Err(e) => Err(e),
     }
@@ -546,7 +549,9 @@ fn raw_angle(s: &StandardObservation, offset: Offset) -> Option<(f64, f64, f64)>
             .zip(&s.posang_deg)
             .map(|(o, &pa)| OrientationF { analyzer_deg: pa, ..*o })
             .collect();
-    let r = solve(&obs, StokesMethod::LeastSquares, Some(offset)).ok()?.fit_with_offset_error();
+    let r = solve(&obs, StokesMethod::LeastSquares, Some(offset))
+        .ok()?
+        .fit_with_offset_error();
     let p = r.q.hypot(r.u);
     if !(p > 0.0) {
         return None;

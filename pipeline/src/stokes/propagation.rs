@@ -99,7 +99,11 @@ pub fn sigma_gamma_deg(q: f64, u: f64, cov: &QuCovariance) -> f64 {
     if !(q.hypot(u) > 0.0) {
         return UNIFORM_ANGLE_SIGMA_DEG;
     }
-    let s = cov.quadratic_form(gamma_gradient_rad(q, u)).max(0.0).sqrt().to_degrees();
+    let s = cov
+        .quadratic_form(gamma_gradient_rad(q, u))
+        .max(0.0)
+        .sqrt()
+        .to_degrees();
     s.min(UNIFORM_ANGLE_SIGMA_DEG)
 }
 

@@ -195,7 +195,10 @@ impl Problem<'_> {
                 }
                 t *= 0.5;
             }
-            let small = step.iter().zip(&trial).all(|(d, v)| (t * d).abs() <= 1e-13 * (1.0 + v.abs()));
+            let small = step
+                .iter()
+                .zip(&trial)
+                .all(|(d, v)| (t * d).abs() <= 1e-13 * (1.0 + v.abs()));
             let no_gain = chi2 - chi2_trial <= 1e-14 * (1.0 + chi2);
             if chi2_trial <= chi2 {
                 x = trial;
@@ -466,12 +469,7 @@ pub fn fit_joint(stds: &[StandardObservation], default_parity: i32) -> Option<Jo
         chi2: best.chi2,
         dof,
         incomplete: None,
-        angles_from: pb
-            .stds
-            .iter()
-            .filter(|s| s.obs.polarized())
-            .map(|s| s.index)
-            .collect(),
+        angles_from: pb.stds.iter().filter(|s| s.obs.polarized()).map(|s| s.index).collect(),
         offset_from: idx,
     })
 }

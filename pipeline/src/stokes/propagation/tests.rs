@@ -35,9 +35,33 @@ fn wrap(d: f64) -> f64 {
 /// Strongly correlated, unequal errors at S/N ~ 40: dropping the covariance term, or
 /// flipping its sign, changes sigma_gamma by 30-60 % and sigma_P by 20-40 %.
 const CASES: [(f64, f64, QuCovariance); 3] = [
-    (0.03, 0.02, QuCovariance { var_q: 1.0e-6, var_u: 0.64e-6, cov_qu: 0.6e-6 }),
-    (-0.02, 0.03, QuCovariance { var_q: 0.49e-6, var_u: 1.0e-6, cov_qu: -0.55e-6 }),
-    (0.025, -0.025, QuCovariance { var_q: 0.9e-6, var_u: 0.4e-6, cov_qu: 0.5e-6 }),
+    (
+        0.03,
+        0.02,
+        QuCovariance {
+            var_q: 1.0e-6,
+            var_u: 0.64e-6,
+            cov_qu: 0.6e-6,
+        },
+    ),
+    (
+        -0.02,
+        0.03,
+        QuCovariance {
+            var_q: 0.49e-6,
+            var_u: 1.0e-6,
+            cov_qu: -0.55e-6,
+        },
+    ),
+    (
+        0.025,
+        -0.025,
+        QuCovariance {
+            var_q: 0.9e-6,
+            var_u: 0.4e-6,
+            cov_qu: 0.5e-6,
+        },
+    ),
 ];
 
 #[test]
@@ -53,8 +77,16 @@ fn sigma_p_and_sigma_gamma_are_the_scatter_of_draws_from_the_covariance() {
             gs.push(wrap(0.5 * (u + du).atan2(q + dq).to_degrees() - g0));
         }
         let (sp, sg) = (sigma_p(q, u, &c), sigma_gamma_deg(q, u, &c));
-        assert!((sp / sd(&ps) - 1.0).abs() < 0.02, "q {q} u {u}: sigma_P {sp} vs MC {}", sd(&ps));
-        assert!((sg / sd(&gs) - 1.0).abs() < 0.02, "q {q} u {u}: sigma_gamma {sg} vs MC {}", sd(&gs));
+        assert!(
+            (sp / sd(&ps) - 1.0).abs() < 0.02,
+            "q {q} u {u}: sigma_P {sp} vs MC {}",
+            sd(&ps)
+        );
+        assert!(
+            (sg / sd(&gs) - 1.0).abs() < 0.02,
+            "q {q} u {u}: sigma_gamma {sg} vs MC {}",
+            sd(&gs)
+        );
         // The covariance matters here: without it the formulas are off by > 10 %.
         let diag = QuCovariance { cov_qu: 0.0, ..c };
         assert!((sigma_p(q, u, &diag) / sp - 1.0).abs() > 0.1);
@@ -93,7 +125,11 @@ fn the_calibration_covariance_is_the_scatter_of_correlated_c_and_theta0() {
     let (vq, vu) = (sd(&xs).powi(2), sd(&ys).powi(2));
     assert!((want.var_q / vq - 1.0).abs() < 0.03, "{} vs {vq}", want.var_q);
     assert!((want.var_u / vu - 1.0).abs() < 0.03, "{} vs {vu}", want.var_u);
-    assert!((want.cov_qu - cov).abs() < 0.03 * (vq * vu).sqrt(), "{} vs {cov}", want.cov_qu);
+    assert!(
+        (want.cov_qu - cov).abs() < 0.03 * (vq * vu).sqrt(),
+        "{} vs {cov}",
+        want.cov_qu
+    );
     // theta0 is tangential: it adds nothing to sigma_P.
     let rot = CalibrationErrors {
         var_theta0_deg2: 9.0,
@@ -109,13 +145,21 @@ fn binary() -> (StarQu, StarQu, f64) {
     let a = StarQu {
         q: 0.030,
         u: 0.012,
-        stat: QuCovariance { var_q: 0.64e-6, var_u: 1.0e-6, cov_qu: 0.3e-6 },
+        stat: QuCovariance {
+            var_q: 0.64e-6,
+            var_u: 1.0e-6,
+            cov_qu: 0.3e-6,
+        },
         offset_gradient: [-1.0, 0.0],
     };
     let b = StarQu {
         q: -0.008,
         u: 0.021,
-        stat: QuCovariance { var_q: 1.2e-6, var_u: 0.8e-6, cov_qu: -0.4e-6 },
+        stat: QuCovariance {
+            var_q: 1.2e-6,
+            var_u: 0.8e-6,
+            cov_qu: -0.4e-6,
+        },
         offset_gradient: [-0.9, 0.2],
     };
     (a, b, (1.5e-3f64).powi(2))
@@ -134,8 +178,14 @@ fn sigma_delta_gamma_is_the_scatter_of_draws_and_theta0_cancels() {
         let (dqa, dua) = draw(&a.stat, &mut r);
         let (dqb, dub) = draw(&b.stat, &mut r);
         let dc = var_c.sqrt() * normal(&mut r);
-        let (qa, ua) = (a.q + dqa + a.offset_gradient[0] * dc, a.u + dua + a.offset_gradient[1] * dc);
-        let (qb, ub) = (b.q + dqb + b.offset_gradient[0] * dc, b.u + dub + b.offset_gradient[1] * dc);
+        let (qa, ua) = (
+            a.q + dqa + a.offset_gradient[0] * dc,
+            a.u + dua + a.offset_gradient[1] * dc,
+        );
+        let (qb, ub) = (
+            b.q + dqb + b.offset_gradient[0] * dc,
+            b.u + dub + b.offset_gradient[1] * dc,
+        );
         let d = wrap(0.5 * (ua.atan2(qa) - ub.atan2(qb)).to_degrees() - d0);
         ds.push(d);
         // A common zero-point error of 5 deg rotates both stars: the difference is unchanged.
@@ -144,14 +194,25 @@ fn sigma_delta_gamma_is_the_scatter_of_draws_and_theta0_cancels() {
         let ((qa2, ua2), (qb2, ub2)) = (rot(qa, ua), rot(qb, ub));
         ds_theta0.push(wrap(0.5 * (ua2.atan2(qa2) - ub2.atan2(qb2)).to_degrees() - d0));
     }
-    assert!((want / sd(&ds) - 1.0).abs() < 0.02, "delta method {want} vs MC {}", sd(&ds));
-    assert!((want / sd(&ds_theta0) - 1.0).abs() < 0.02, "theta0 must cancel: {want} vs {}", sd(&ds_theta0));
+    assert!(
+        (want / sd(&ds) - 1.0).abs() < 0.02,
+        "delta method {want} vs MC {}",
+        sd(&ds)
+    );
+    assert!(
+        (want / sd(&ds_theta0) - 1.0).abs() < 0.02,
+        "theta0 must cancel: {want} vs {}",
+        sd(&ds_theta0)
+    );
     // The offset's term is there and does not cancel (leaving it out is off by > 10 %).
     assert!((sigma_delta_gamma_deg(&a, &b, 0.0) / want - 1.0).abs() > 0.1);
     // The folded interval at this S/N is Delta-gamma +- sigma (the fold is far away).
     let iv = delta_gamma_interval_deg(&a, &b, var_c);
     let dg = d0.abs();
-    assert!(((iv[1] - iv[0]) / (2.0 * want) - 1.0).abs() < 0.05, "{iv:?} vs {dg} +- {want}");
+    assert!(
+        ((iv[1] - iv[0]) / (2.0 * want) - 1.0).abs() < 0.05,
+        "{iv:?} vs {dg} +- {want}"
+    );
     assert!(((iv[0] + iv[1]) / 2.0 - dg).abs() < 0.1 * want, "{iv:?} vs {dg}");
 }
 
@@ -159,12 +220,29 @@ fn sigma_delta_gamma_is_the_scatter_of_draws_and_theta0_cancels() {
 fn the_interval_is_skewed_near_zero_and_reproducible() {
     // Two stars 1 deg apart, each with a 4 deg angle error: the folded difference cannot be
     // negative, so the interval lies above 0 and is wider above the value than below.
-    let s = QuCovariance { var_q: 1e-5, var_u: 1e-5, cov_qu: 0.0 };
-    let a = StarQu { q: 0.045, u: 0.0, stat: s, offset_gradient: [0.0; 2] };
+    let s = QuCovariance {
+        var_q: 1e-5,
+        var_u: 1e-5,
+        cov_qu: 0.0,
+    };
+    let a = StarQu {
+        q: 0.045,
+        u: 0.0,
+        stat: s,
+        offset_gradient: [0.0; 2],
+    };
     let g = 2.0f64.to_radians();
-    let b = StarQu { q: 0.045 * g.cos(), u: 0.045 * g.sin(), stat: s, offset_gradient: [0.0; 2] };
+    let b = StarQu {
+        q: 0.045 * g.cos(),
+        u: 0.045 * g.sin(),
+        stat: s,
+        offset_gradient: [0.0; 2],
+    };
     let iv = delta_gamma_interval_deg(&a, &b, 0.0);
-    assert!(iv[0] >= 0.0 && iv[0] < 1.0 && iv[1] > 1.0 + sigma_delta_gamma_deg(&a, &b, 0.0) * 0.9, "{iv:?}");
+    assert!(
+        iv[0] >= 0.0 && iv[0] < 1.0 && iv[1] > 1.0 + sigma_delta_gamma_deg(&a, &b, 0.0) * 0.9,
+        "{iv:?}"
+    );
     assert_eq!(iv, delta_gamma_interval_deg(&a, &b, 0.0));
     // Against a folded normal: with true difference 1 deg and sigma ~ 5.9 deg, |N(1, s)|'s
     // 15.87 % and 84.13 % quantiles, computed here by bisection on its CDF.
@@ -186,5 +264,8 @@ fn the_interval_is_skewed_near_zero_and_reproducible() {
         lo
     };
     let (lo, hi) = (quantile(0.158_655), quantile(0.841_345));
-    assert!((iv[0] - lo).abs() < 0.3 && (iv[1] - hi).abs() < 0.3, "{iv:?} vs folded normal [{lo}, {hi}]");
+    assert!(
+        (iv[0] - lo).abs() < 0.3 && (iv[1] - hi).abs() < 0.3,
+        "{iv:?} vs folded normal [{lo}, {hi}]"
+    );
 }

@@ -54,7 +54,10 @@ fn noiseless_standards_give_c_and_theta0_exactly_in_every_separable_geometry() {
                         standard(p2, &TWO, theta0, parity, c, 3e-4),
                     ],
                 ),
-                ("one polarized, 4 orientations", vec![standard(p1, &FOUR, theta0, parity, c, 3e-4)]),
+                (
+                    "one polarized, 4 orientations",
+                    vec![standard(p1, &FOUR, theta0, parity, c, 3e-4)],
+                ),
             ];
             for (what, stds) in sets {
                 // The profile's parity is the truth where it cannot be measured.
@@ -105,7 +108,10 @@ fn one_polarized_standard_at_two_orientations_cannot_separate_c_from_theta0() {
 #[test]
 fn two_copies_of_one_polarized_standard_are_reported_incomplete() {
     let pol = Polarization::from_p_gamma(0.02, 40.0);
-    let stds = vec![standard(pol, &TWO, 3.0, 1, 0.0167, 3e-4), standard(pol, &TWO, 3.0, 1, 0.0167, 3e-4)];
+    let stds = vec![
+        standard(pol, &TWO, 3.0, 1, 0.0167, 3e-4),
+        standard(pol, &TWO, 3.0, 1, 0.0167, 3e-4),
+    ];
     let j = fit_joint(&stds, 1).unwrap();
     assert!(j.incomplete.is_some(), "{j:?}");
     assert!(j.angles.is_none());
@@ -143,7 +149,10 @@ fn joint_covariance_matches_the_scatter_of_the_estimates() {
                     t
                 } else {
                     let k = s.sigma_p / 2f64.sqrt();
-                    Polarization { q: k * gauss(), u: k * gauss() }
+                    Polarization {
+                        q: k * gauss(),
+                        u: k * gauss(),
+                    }
                 };
                 for (o, &pa) in s.f.iter_mut().zip(&s.posang_deg) {
                     o.f = normalized_difference(actual, parity as f64 * pa + theta0) + c + sigma_f * gauss();
@@ -159,7 +168,11 @@ fn joint_covariance_matches_the_scatter_of_the_estimates() {
         ts.push(theta0 + axial_diff(a.theta0_deg, theta0));
         if reported.is_none() {
             let k = inflation(j.chi2, j.dof);
-            reported = Some((o.sigma_c.powi(2) / k, a.sigma_theta0_deg.powi(2) / k, j.cov_c_theta0_deg.unwrap() / k));
+            reported = Some((
+                o.sigma_c.powi(2) / k,
+                a.sigma_theta0_deg.powi(2) / k,
+                j.cov_c_theta0_deg.unwrap() / k,
+            ));
         }
     }
     let (vc, vt, cov) = reported.unwrap();
@@ -179,7 +192,10 @@ fn joint_covariance_matches_the_scatter_of_the_estimates() {
     );
     assert!((sc / vc - 1.0).abs() < 0.05, "var c: scatter {sc:e}, fit {vc:e}");
     assert!((st / vt - 1.0).abs() < 0.05, "var theta0: scatter {st}, fit {vt}");
-    assert!((corr_mc - corr_fit).abs() < 0.03, "corr: scatter {corr_mc}, fit {corr_fit}");
+    assert!(
+        (corr_mc - corr_fit).abs() < 0.03,
+        "corr: scatter {corr_mc}, fit {corr_fit}"
+    );
     // Unbiased within the MC error.
     assert!((mc - c).abs() < 4.0 * (sc / n as f64).sqrt());
     assert!((mt - theta0).abs() < 4.0 * (st / n as f64).sqrt());
