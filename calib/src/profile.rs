@@ -39,8 +39,41 @@ pub struct Keywords {
     pub offset_y: String,
     pub dit: String,
     pub ndit: String,
+    /// Parallactic angle at the exposure's start, deg (PA of the direction to the zenith).
     pub parang: String,
+    /// Parallactic angle at the exposure's end, deg.
+    pub parang_end: String,
     pub airmass: String,
+    pub airmass_end: String,
+    /// Telescope altitude, deg.
+    pub altitude: String,
+}
+
+impl Keywords {
+    /// The parallactic angle of an exposure, deg in (-180, 180]: the mean of `parang`
+    /// (start) and `parang_end` (end) taken along the shorter arc (so -179 and 179 give
+    /// 180), or the start alone when the end is absent. `Ok(None)` when the start is absent;
+    /// an error naming the keyword when either is present but not a finite number.
+    pub fn parallactic_angle_deg(&self, h: &crate::header::Header) -> Result<Option<f64>> {
+        let Some(start) = h.opt_f64(&self.parang)? else {
+            return Ok(None);
+        };
+        let mean = match h.opt_f64(&self.parang_end)? {
+            Some(end) => start + 0.5 * wrap_deg(end - start),
+            None => start,
+        };
+        Ok(Some(wrap_deg(mean)))
+    }
+}
+
+/// An angle in degrees mapped into (-180, 180].
+fn wrap_deg(a: f64) -> f64 {
+    let r = a.rem_euclid(360.0);
+    if r > 180.0 {
+        r - 360.0
+    } else {
+        r
+    }
 }
 
 /// Values that identify polarimetric science frames.
@@ -396,6 +429,32 @@ mod tests {
         for (_, r) in s {
             assert_eq!(r[1] - r[0], p.geometry.strip_height_px);
         }
+    }
+
+    #[test]
+    fn parallactic_angle_is_the_mean_of_start_and_end_along_the_shorter_arc() {
+        let kw = Profile::sofi().keywords;
+        let h = |start: Option<f64>, end: Option<f64>| {
+            let mut h = crate::header::Header::new("f.fits");
+            if let Some(v) = start {
+                h.set(&kw.parang, v);
+            }
+            if let Some(v) = end {
+                h.set(&kw.parang_end, v);
+            }
+            h
+        };
+        let eta = |s, e| kw.parallactic_angle_deg(&h(s, e)).unwrap();
+        assert_eq!(eta(Some(-157.1), Some(-156.9)), Some(-157.0));
+        // Through +-180 (transit south of the zenith): the mean is 180, not 0.
+        assert_eq!(eta(Some(-179.0), Some(179.0)), Some(180.0));
+        assert_eq!(eta(Some(170.0), Some(-170.0)), Some(180.0));
+        assert_eq!(eta(Some(10.0), None), Some(10.0));
+        assert_eq!(eta(None, Some(10.0)), None);
+        let mut bad = h(Some(1.0), None);
+        bad.set(&kw.parang_end, "north");
+        let err = kw.parallactic_angle_deg(&bad).unwrap_err().to_string();
+        assert!(err.contains("PARANG END"), "{err}");
     }
 
     #[test]

@@ -48,6 +48,32 @@ impl Polarization {
     }
 }
 
+/// The polarization the telescope itself adds (the NTT's tertiary mirror M3, in front of the
+/// rotator): fixed relative to the mirror's plane of incidence, which on the sky is the local
+/// vertical, so in the sky frame it turns with the parallactic angle eta:
+/// `(q_tel, u_tel) = p_tel (cos 2(eta + psi_tel), sin 2(eta + psi_tel))`
+/// (docs/frame-format.md, "Polarization of the telescope itself").
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct TelescopePolarization {
+    /// p_tel, fraction.
+    pub p_tel: f64,
+    /// psi_tel, deg: the angle of the telescope's polarization from the vertical.
+    pub psi_tel_deg: f64,
+}
+
+impl TelescopePolarization {
+    /// Sky-frame (q_tel, u_tel) at parallactic angle `eta_deg`.
+    pub fn at(&self, eta_deg: f64) -> Polarization {
+        Polarization::from_p_gamma(self.p_tel, eta_deg + self.psi_tel_deg)
+    }
+    /// The vertical-frame components `(a, b) = p_tel (cos 2psi_tel, sin 2psi_tel)`, in which
+    /// the model is linear: `q_tel = a cos 2eta - b sin 2eta`, `u_tel = a sin 2eta + b cos 2eta`.
+    pub fn ab(&self) -> [f64; 2] {
+        let t = 2.0 * self.psi_tel_deg.to_radians();
+        [self.p_tel * t.cos(), self.p_tel * t.sin()]
+    }
+}
+
 /// Map an axial angle (degrees) into [0, 180).
 pub fn normalize_axial_deg(a: f64) -> f64 {
     let r = a.rem_euclid(180.0);
@@ -101,6 +127,30 @@ mod tests {
             let f = (o - e) / (o + e);
             let t = 2.0 * f64::to_radians(phi);
             assert!((f - (pol.q * t.cos() + pol.u * t.sin())).abs() < 1e-15);
+        }
+    }
+
+    #[test]
+    fn telescope_polarization_turns_with_the_parallactic_angle() {
+        let t = TelescopePolarization {
+            p_tel: 0.006,
+            psi_tel_deg: 20.0,
+        };
+        // At eta = 0 its angle on the sky is psi_tel; it turns one for one with eta.
+        assert!((t.at(0.0).gamma_deg() - 20.0).abs() < 1e-9);
+        assert!((t.at(30.0).gamma_deg() - 50.0).abs() < 1e-9);
+        assert!((t.at(-60.0).gamma_deg() - 140.0).abs() < 1e-9);
+        // An axial quantity: eta and eta + 180 give the same polarization.
+        let (a, b) = (t.at(-157.0), t.at(23.0));
+        assert!((a.q - b.q).abs() < 1e-15 && (a.u - b.u).abs() < 1e-15);
+        // The linear form in (a, b).
+        let [ca, cb] = t.ab();
+        for eta in [-170.0, -45.0, 0.0, 12.5, 99.0] {
+            let e = 2.0 * f64::to_radians(eta);
+            let p = t.at(eta);
+            assert!((p.q - (ca * e.cos() - cb * e.sin())).abs() < 1e-15);
+            assert!((p.u - (ca * e.sin() + cb * e.cos())).abs() < 1e-15);
+            assert!((p.p() - 0.006).abs() < 1e-15);
         }
     }
 
