@@ -16,6 +16,11 @@
 //!      falls back to that choice (flag `stokes_method_failed: ...; fell back to ...`)
 //!   -> flag `calibration_incomplete` when the filter's calibration is incomplete
 //! ```
+//! The telescope's own polarization (tertiary mirror, turning with the parallactic angle) is
+//! fitted with c and theta0 when the standards separate it, and removed from every
+//! component's F at its frames' parallactic angles before the solve (`telescope`); otherwise
+//! the components are flagged `telescope_polarization_uncorrected`.
+//!
 //! The photometry is not redone: the solve works on the per-orientation F values each
 //! component carries in its `orientations` field.
 use std::path::Path;
@@ -23,14 +28,16 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 use sofipol_calib::Profile;
 
-use crate::catalog::{Catalog, Component, InstrumentalOffset, StandardResult, Status, Target};
+use crate::catalog::{Catalog, Component, StandardResult, Status, Target};
 use crate::standards::{StandardStar, StandardsTable};
 use crate::stokes::calibration::{
-    joint::fit_joint, solve_with_fallback, AngleCalibration, Offset, OrientationF, StandardObservation, StokesMethod,
-    STOKES_METHOD_FAILED,
+    joint::{fit_joint_with, JointOptions},
+    AngleCalibration, Offset, OrientationF, StandardObservation, StokesMethod, STOKES_METHOD_FAILED,
 };
-use crate::stokes::inversion::{Debias, LinearPolarization};
-use crate::stokes::propagation::{self, calibration_covariance, CalibrationErrors, QuCovariance};
+use crate::stokes::inversion::Debias;
+use crate::stokes::propagation::{self, CalibrationCovariance, CAL_C, CAL_THETA0};
+pub use resolve::{orientation_values, resolve_component};
+pub use telescope::{TelescopeCalibration, TELESCOPE_UNCORRECTED};
 
 /// File name of the calibration product in a calibration directory.
 pub const CALIBRATION_FILE: &str = "calibration.json";
@@ -55,6 +62,9 @@ pub struct CalibrationParams {
     /// or its calibration.json), used instead of this night's standards (`--calib`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub calib_dir: Option<std::path::PathBuf>,
+    /// Neither fit nor remove the telescope's own polarization (`--no-telescope-correction`;
+    /// the components are flagged `telescope_polarization_uncorrected`).
+    pub no_telescope_correction: bool,
 }
 
 /// The calibration of one filter.
@@ -77,6 +87,43 @@ pub struct FilterCalibration {
     /// profile's and every component of the filter is flagged `calibration_incomplete`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub incomplete: Option<String>,
+    /// The telescope's own polarization, measured from the standards and removed from every
+    /// component of the filter.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub telescope: Option<TelescopeCalibration>,
+    /// Why the telescope's polarization was not measured (too few standards, or all at
+    /// nearly the same parallactic angle...): the filter's components are flagged
+    /// `telescope_polarization_uncorrected`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub telescope_uncorrected: Option<String>,
+    /// Covariance of the calibration parameters in the order of `covariance_parameters`
+    /// (c, theta0 in deg, the telescope's a and b); zero rows for what was not fitted.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub covariance: Option<CalibrationCovariance>,
+    /// The names of `covariance`'s rows: `["c", "theta0_deg", "tel_a", "tel_b"]`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub covariance_parameters: Option<Vec<String>>,
+}
+
+impl FilterCalibration {
+    /// The covariance of (c, theta0, a, b): `covariance` when written, else built from the
+    /// offset's and zero-point's errors and their covariance (files without it).
+    pub fn covariance_matrix(&self) -> CalibrationCovariance {
+        if let Some(m) = self.covariance {
+            return m;
+        }
+        let mut m = [[0.0; 4]; 4];
+        m[CAL_C][CAL_C] = self.offset.map_or(0.0, |o| o.sigma_c.powi(2));
+        m[CAL_THETA0][CAL_THETA0] = self.angles.map_or(0.0, |a| a.sigma_theta0_deg.powi(2));
+        let cross = if self.offset.is_some() && self.angles.is_some() {
+            self.cov_c_theta0_deg.unwrap_or(0.0)
+        } else {
+            0.0
+        };
+        m[CAL_C][CAL_THETA0] = cross;
+        m[CAL_THETA0][CAL_C] = cross;
+        m
+    }
 }
 
 /// The calibration products of a night (`calibration.json`).
@@ -143,144 +190,6 @@ impl Calibration {
     }
 }
 
-/// The rotator angle of an analyzer angle under the profile's relation (inverse of
-/// phi = s POSANG + theta0).
-fn posang_of(profile: &Profile, phi: f64) -> f64 {
-    profile.angles.parity as f64 * (phi - profile.angles.zero_point_deg)
-}
-
-/// Per-orientation (POSANG, F, sigma_F) of a measured component (its `orientations` field).
-/// An orientation without a finite F, sigma_F or angle (JSON null) is left out.
-pub fn orientation_values(c: &Component, profile: &Profile) -> Vec<(f64, f64, f64)> {
-    let finite = |v: f64| v.is_finite().then_some(v);
-    c.orientations
-        .iter()
-        .flatten()
-        .filter_map(|o| {
-            let pa = o
-                .posang_deg
-                .and_then(finite)
-                .or_else(|| finite(o.analyzer_deg).map(|phi| posang_of(profile, phi)))?;
-            Some((pa, finite(o.f)?, finite(o.sigma_f)?))
-        })
-        .collect()
-}
-
-/// Analyzer angle of a rotator angle: the calibration's relation when it has one, else the
-/// profile's.
-fn analyzer(cal: Option<&FilterCalibration>, profile: &Profile, posang: f64) -> f64 {
-    match cal.and_then(|c| c.angles.as_ref()) {
-        Some(a) => a.analyzer_deg(posang),
-        None => profile.angles.analyzer_angle_deg(posang),
-    }
-}
-
-/// The errors of the calibration that enter a component: the zero-point's when the
-/// calibration has angles, the offset's when one was subtracted (`offset`), and their
-/// covariance when both are there.
-fn calibration_errors(cal: Option<&FilterCalibration>, offset: Option<Offset>) -> CalibrationErrors {
-    let angles = cal.and_then(|c| c.angles.as_ref());
-    let var_theta0_deg2 = angles.map_or(0.0, |a| a.sigma_theta0_deg.powi(2));
-    let var_c = offset.map_or(0.0, |o| o.sigma_c.powi(2));
-    let both = angles.is_some() && offset.is_some();
-    CalibrationErrors {
-        var_c,
-        var_theta0_deg2,
-        cov_c_theta0_deg: if both {
-            cal.and_then(|c| c.cov_c_theta0_deg).unwrap_or(0.0)
-        } else {
-            0.0
-        },
-    }
-}
-
-/// Re-solve one component's q, u from its per-orientation F with the calibration (offset,
-/// zero-point, parity) and the chosen method; P, gamma, errors, the cut and the flags follow.
-/// Returns whether the result is uncalibrated.
-pub fn resolve_component(
-    c: &mut Component,
-    profile: &Profile,
-    cal: Option<&FilterCalibration>,
-    method: StokesMethod,
-    debias: Debias,
-    cut_snr: f64,
-) -> bool {
-    let vals = orientation_values(c, profile);
-    if vals.is_empty() {
-        return false;
-    }
-    let obs: Vec<OrientationF> = vals
-        .iter()
-        .map(|&(pa, f, s)| OrientationF {
-            analyzer_deg: analyzer(cal, profile, pa),
-            f,
-            sigma_f: s,
-        })
-        .collect();
-    let offset = cal.and_then(|c| c.offset);
-    c.flags
-        .retain(|f| f != "uncalibrated" && f != "low_snr" && !f.starts_with("stokes_method_failed"));
-    let sol = match solve_with_fallback(&obs, method, offset) {
-        Ok((s, fell_back)) => {
-            c.flags.extend(fell_back);
-            s
-        }
-        Err(e) => {
-            c.flags.push(format!("stokes_method_failed: {e}"));
-            c.passes_cut = false;
-            return false;
-        }
-    };
-    // The measurement's covariance, and what the calibration adds: the offset c along the
-    // star's offset gradient, and theta0, which rotates (q, u) by twice its error (common to
-    // every target; it leaves P alone and cancels in Delta-gamma), with their covariance.
-    let (q, u) = (sol.fit.q, sol.fit.u);
-    let stat = QuCovariance {
-        var_q: sol.fit.var_q,
-        var_u: sol.fit.var_u,
-        cov_qu: sol.fit.cov_qu,
-    };
-    let errors = calibration_errors(cal, sol.offset_gradient.and(sol.offset));
-    let zero_point = calibration_covariance(q, u, sol.offset_gradient, &errors);
-    let total = stat.plus(&zero_point);
-    let lp = LinearPolarization::from_qu_cov(q, u, &total, debias);
-    let calibrated = sol.offset_gradient.is_some() || cal.is_some_and(|c| c.angles.is_some());
-    c.pol = lp.pol;
-    c.cov_qu = Some(total.cov_qu);
-    c.cov_qu_stat = Some(stat.cov_qu);
-    c.sigma_q_stat = Some(stat.var_q.max(0.0).sqrt());
-    c.sigma_u_stat = Some(stat.var_u.max(0.0).sqrt());
-    c.sigma_gamma_stat_deg = Some(propagation::sigma_gamma_deg(q, u, &stat));
-    c.sigma_gamma_zero_point_deg = calibrated.then(|| propagation::sigma_gamma_deg(q, u, &zero_point));
-    c.offset_gradient = sol.offset_gradient;
-    if !lp.passes_cut(cut_snr) {
-        c.flags.push("low_snr".into());
-    }
-    // As in reduce::entry: a value from all-flagged dithers, or of a component whose A/B
-    // identity is not established, never passes the cut.
-    c.passes_cut = lp.passes_cut(cut_snr) && !crate::reduce::entry::refused_by_flags(&c.flags);
-    if sol.uncalibrated {
-        c.flags.push("uncalibrated".into());
-    }
-    c.snr = Some(lp.snr);
-    c.sigma_gamma_nkc_deg = Some(lp.sigma_gamma_nkc_deg);
-    c.stokes_method = Some(sol.method.name().to_string());
-    c.instrumental_offset = None;
-    if let Some(o) = sol.offset {
-        c.instrumental_offset = Some(InstrumentalOffset {
-            c: o.c,
-            sigma_c: o.sigma_c,
-            source: if sol.method == StokesMethod::FreeOffset {
-                "fitted"
-            } else {
-                "calibration"
-            }
-            .into(),
-        });
-    }
-    sol.uncalibrated
-}
-
 fn table_entry_for(t: &Target, table: &StandardsTable) -> (Option<StandardStar>, Vec<String>) {
     let filter = t.filter.as_deref().unwrap_or("");
     match table.find(&t.object, filter) {
@@ -300,8 +209,14 @@ fn filter_of(t: &Target) -> String {
 
 /// Measure the calibration from reduced standard sequences (raw values: before any
 /// calibration). Standards not in the table, without a measurement, or in a filter without
-/// table values are skipped. `None` when no filter gets anything.
-pub fn measure(standards: &[Target], table: &StandardsTable, profile: &Profile) -> Option<Calibration> {
+/// table values are skipped. With `fit_telescope`, the telescope's polarization is fitted
+/// too when the standards separate it. `None` when no filter gets anything.
+pub fn measure(
+    standards: &[Target],
+    table: &StandardsTable,
+    profile: &Profile,
+    fit_telescope: bool,
+) -> Option<Calibration> {
     let mut by_filter: std::collections::BTreeMap<String, Vec<(String, StandardObservation)>> = Default::default();
     let mut frames = Vec::new();
     for t in standards {
@@ -309,21 +224,22 @@ pub fn measure(standards: &[Target], table: &StandardsTable, profile: &Profile) 
             continue;
         };
         let Some(c) = t.components.first() else { continue };
-        let vals = orientation_values(c, profile);
-        if vals.len() < 2 {
+        let rows = resolve::orientation_rows(c, profile);
+        if rows.len() < 2 {
             continue;
         }
         let so = StandardObservation {
             name: entry.name.clone(),
-            posang_deg: vals.iter().map(|v| v.0).collect(),
-            f: vals
+            posang_deg: rows.iter().map(|r| r.posang_deg).collect(),
+            f: rows
                 .iter()
-                .map(|&(_, f, s)| OrientationF {
+                .map(|r| OrientationF {
                     analyzer_deg: f64::NAN,
-                    f,
-                    sigma_f: s,
+                    f: r.f,
+                    sigma_f: r.sigma_f,
                 })
                 .collect(),
+            parallactic_2eta: rows.iter().map(|r| r.parallactic_2eta).collect(),
             p: entry.p,
             sigma_p: entry.sigma_p,
             gamma_deg: entry.gamma_deg,
@@ -335,7 +251,12 @@ pub fn measure(standards: &[Target], table: &StandardsTable, profile: &Profile) 
     let mut filters = Vec::new();
     for (filter, list) in by_filter {
         let obs: Vec<StandardObservation> = list.iter().map(|(_, o)| o.clone()).collect();
-        let Some(j) = fit_joint(&obs, profile.angles.parity) else {
+        let opts = JointOptions {
+            default_parity: profile.angles.parity,
+            profile_theta0_deg: profile.angles.zero_point_deg,
+            fit_telescope,
+        };
+        let Some(j) = fit_joint_with(&obs, &opts) else {
             continue;
         };
         let ids = |from: &[usize]| from.iter().map(|&i| list[i].0.clone()).collect::<Vec<String>>();
@@ -347,6 +268,14 @@ pub fn measure(standards: &[Target], table: &StandardsTable, profile: &Profile) 
             angles: j.angles,
             cov_c_theta0_deg: j.cov_c_theta0_deg,
             incomplete: j.incomplete,
+            telescope: j.telescope.map(|t| TelescopeCalibration::from_fit(&t, &j.covariance)),
+            telescope_uncorrected: if fit_telescope {
+                j.telescope_problem
+            } else {
+                Some(TELESCOPE_NOT_FITTED.into())
+            },
+            covariance: Some(j.covariance),
+            covariance_parameters: Some(propagation::CAL_PARAMETERS.iter().map(|s| s.to_string()).collect()),
         });
     }
     if filters.is_empty() {
@@ -365,6 +294,9 @@ pub fn measure(standards: &[Target], table: &StandardsTable, profile: &Profile) 
     })
 }
 
+/// Why the telescope's polarization is not corrected when the settings say so.
+const TELESCOPE_NOT_FITTED: &str = "not fitted (calibration.no_telescope_correction)";
+
 /// What [`calibrate_catalog`] did, for the run summary.
 #[derive(Debug, Clone, Default)]
 pub struct CalibrationSummary {
@@ -376,6 +308,8 @@ pub struct CalibrationSummary {
     pub n_incomplete: usize,
     /// Components whose chosen Stokes method could not apply (`stokes_method_failed`).
     pub n_method_failed: usize,
+    /// Components flagged `telescope_polarization_uncorrected`.
+    pub n_telescope_uncorrected: usize,
 }
 
 /// The component flag of a filter whose standards could not separate c from theta0.
@@ -397,6 +331,7 @@ fn flag_incomplete(c: &mut Component, cal: Option<&FilterCalibration>) -> bool {
 fn note_calibration_state(c: &mut Component, cal: Option<&FilterCalibration>, summary: &mut CalibrationSummary) {
     summary.n_incomplete += usize::from(flag_incomplete(c, cal));
     summary.n_method_failed += usize::from(c.flags.iter().any(|f| f.starts_with(STOKES_METHOD_FAILED)));
+    summary.n_telescope_uncorrected += usize::from(c.flags.iter().any(|f| f == TELESCOPE_UNCORRECTED));
 }
 
 /// Where a calibration came from.
@@ -427,11 +362,20 @@ pub fn calibrate_catalog(
     cut_snr: f64,
 ) -> (Option<Calibration>, CalibrationSummary) {
     let mut summary = CalibrationSummary::default();
-    let (cal, origin) = match source {
+    let fit_telescope = !params.no_telescope_correction;
+    let (mut cal, origin) = match source {
         CalibrationSource::Disabled => (None, "disabled".to_string()),
         CalibrationSource::File(p, c) => (Some(*c), p.display().to_string()),
-        CalibrationSource::Night => (measure(&standards, table, profile), "night".to_string()),
+        CalibrationSource::Night => (measure(&standards, table, profile, fit_telescope), "night".to_string()),
     };
+    if !fit_telescope {
+        // Another night's telescope term is not applied either.
+        for f in cal.iter_mut().flat_map(|c| c.filters.iter_mut()) {
+            if f.telescope.take().is_some() {
+                f.telescope_uncorrected = Some(TELESCOPE_NOT_FITTED.into());
+            }
+        }
+    }
     let method = params.stokes_method;
     for t in cat.targets.iter_mut() {
         let fc = cal.as_ref().and_then(|c| c.for_filter(&filter_of(t)));
@@ -441,7 +385,7 @@ pub fn calibrate_catalog(
             note_calibration_state(c, fc, &mut summary);
         }
         summary.n_uncalibrated += n_unc;
-        t.update_delta_gamma();
+        t.update_delta_gamma(fc.map(FilterCalibration::covariance_matrix).as_ref());
     }
     // The standards, reduced as single stars, calibrated like the targets.
     let used_offset: Vec<String> = cal
@@ -572,7 +516,32 @@ pub fn calibrate_catalog(
             summary
                 .lines
                 .push(format!("calibration ({origin}) {}: {off}; {ang}", f.filter));
+            match (&f.telescope, &f.telescope_uncorrected) {
+                (Some(t), _) => summary.lines.push(format!(
+                    "calibration ({origin}) {}: telescope polarization p_tel = {:.3} +- {:.3} %, \
+                     psi_tel = {:.1} +- {:.1} deg, removed from every component at its frames' parallactic angles",
+                    f.filter,
+                    100.0 * t.p_tel,
+                    100.0 * t.sigma_p_tel,
+                    t.psi_tel_deg,
+                    t.sigma_psi_tel_deg
+                )),
+                (None, why) => summary.lines.push(format!(
+                    "calibration ({origin}) {}: telescope polarization not corrected: {}",
+                    f.filter,
+                    why.as_deref().unwrap_or("the calibration has no telescope term")
+                )),
+            }
         }
+    }
+    if summary.n_telescope_uncorrected > 0 {
+        summary.lines.push(format!(
+            "{} component(s) flagged '{TELESCOPE_UNCORRECTED}': the telescope's own polarization \
+             (tertiary mirror, of order 0.5 % in Ks, turning with the parallactic angle) is in their q and u; \
+             it is the same vector for both stars of a binary and pulls their angles together. Observe \
+             unpolarized standards at parallactic angles far apart, or use --calib CALDIR from a night that did.",
+            summary.n_telescope_uncorrected
+        ));
     }
     (cal, summary)
 }
@@ -609,7 +578,11 @@ pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::Target
 pub mod setup;
 pub use setup::CalibSetup;
 pub mod residuals;
+mod resolve;
+pub mod telescope;
 pub mod validate;
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_telescope;

@@ -87,6 +87,27 @@ pub struct Component {
     /// How q and u were solved (`least_squares`, `free_offset`, `difference`, `ratio`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stokes_method: Option<String>,
+    /// d(q, u)/da and d(q, u)/db: how an error of the telescope's polarization (a, b) =
+    /// p_tel (cos 2psi_tel, sin 2psi_tel) moves this star's q and u (absent when the
+    /// telescope's polarization was not removed). Common to every target of a night.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub telescope_gradient: Option<[[f64; 2]; 2]>,
+    /// The telescope's polarization removed from this star, sky frame (q_tel, u_tel) at the
+    /// mean parallactic angle of its frames (absent when not removed).
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "nullable::pair"
+    )]
+    pub telescope_qu: Option<[f64; 2]>,
+    /// d(q, u)/d theta0 per deg (absent when no calibration was applied: a rotation,
+    /// (-2u, 2q) pi/180, is then assumed).
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "nullable::pair"
+    )]
+    pub zero_point_gradient: Option<[f64; 2]>,
     /// Keys this build does not know (other tools, other versions): kept as read and
     /// written after the known ones. Nothing in sofipol reads or writes them.
     #[serde(flatten, default)]
@@ -100,7 +121,16 @@ impl Component {
         let sq = self.sigma_q_stat.unwrap_or(self.sigma_q);
         let su = self.sigma_u_stat.unwrap_or(self.sigma_u);
         let c = self.cov_qu_stat.or(self.cov_qu).unwrap_or(0.0);
-        crate::stokes::propagation::StarQu {
+        use crate::stokes::propagation::{rotation_gradient_per_deg, StarQu, CAL_C, CAL_TEL_A, CAL_TEL_B, CAL_THETA0};
+        let mut jacobian = [[0.0; 2]; 4];
+        jacobian[CAL_C] = self.offset_gradient.unwrap_or([0.0, 0.0]);
+        jacobian[CAL_THETA0] = self
+            .zero_point_gradient
+            .unwrap_or_else(|| rotation_gradient_per_deg(self.q, self.u));
+        if let Some([ga, gb]) = self.telescope_gradient {
+            (jacobian[CAL_TEL_A], jacobian[CAL_TEL_B]) = (ga, gb);
+        }
+        StarQu {
             q: self.q,
             u: self.u,
             stat: crate::stokes::propagation::QuCovariance {
@@ -108,7 +138,7 @@ impl Component {
                 var_u: su * su,
                 cov_qu: c,
             },
-            offset_gradient: self.offset_gradient.unwrap_or([0.0, 0.0]),
+            jacobian,
         }
     }
 
@@ -132,6 +162,9 @@ impl Component {
             sigma_u_stat: None,
             snr: None,
             stokes_method: None,
+            telescope_gradient: None,
+            telescope_qu: None,
+            zero_point_gradient: None,
             extra: serde_json::Map::new(),
         }
     }
@@ -156,6 +189,14 @@ pub struct CombinedF {
     /// Dithers measured.
     #[serde(default)]
     pub n_dithers_total: usize,
+    /// Weighted mean over the kept dithers of (cos 2eta, sin 2eta), eta each frame's
+    /// parallactic angle, with the weights of `f`: the telescope's own polarization in this
+    /// orientation's F is linear in it. Absent when a frame has no parallactic angle.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub parallactic_2eta: Option<[f64; 2]>,
+    /// Weighted circular mean of the kept dithers' parallactic angles, deg (for reading).
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub parallactic_deg: Option<f64>,
     /// Rotator angle, deg: not written by sofipol; when a catalog has it, the calibration
     /// takes it instead of inverting `analyzer_deg` with the profile.
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
@@ -323,11 +364,13 @@ impl Target {
 
     /// Set `delta_gamma_deg`, `sigma_delta_gamma_deg` and `delta_gamma_interval_deg` from the
     /// two components (all `None` unless there are two and both pass the cut). The error is
-    /// the delta method on both stars' measurement covariances and the night's offset c,
-    /// which moves the two angles differently; the zero-point theta0 cancels
-    /// ([`crate::stokes::propagation`]). A catalog written before the measurement
-    /// covariances were kept apart falls back on the totals (which then include theta0).
-    pub fn update_delta_gamma(&mut self) {
+    /// the delta method on both stars' measurement covariances and the night's calibration
+    /// `cal` (covariance of c, theta0, and the telescope's a, b), common to both stars through
+    /// their Jacobians: c and the telescope's term move the two angles differently, theta0
+    /// cancels ([`crate::stokes::propagation`]). `None`: no calibration was applied (the
+    /// offsets the components carry, if any, are used alone). A catalog written before the
+    /// measurement covariances were kept apart falls back on the totals.
+    pub fn update_delta_gamma(&mut self, cal: Option<&crate::stokes::propagation::CalibrationCovariance>) {
         use crate::stokes::propagation::{delta_gamma_interval_deg, sigma_delta_gamma_deg};
         (
             self.delta_gamma_deg,
@@ -339,17 +382,20 @@ impl Target {
             return;
         }
         self.delta_gamma_deg = Some(fold_delta_gamma(a.gamma_deg, b.gamma_deg));
-        let var_c = [a, b]
-            .iter()
-            .filter(|c| c.offset_gradient.is_some())
-            .filter_map(|c| c.instrumental_offset.as_ref())
-            .map(|o| o.sigma_c * o.sigma_c)
-            .fold(0.0, f64::max);
+        let cal = cal.copied().unwrap_or_else(|| {
+            let var_c = [a, b]
+                .iter()
+                .filter(|c| c.offset_gradient.is_some())
+                .filter_map(|c| c.instrumental_offset.as_ref())
+                .map(|o| o.sigma_c * o.sigma_c)
+                .fold(0.0, f64::max);
+            crate::stokes::propagation::offset_covariance(var_c)
+        });
         let (sa, sb) = (a.star_qu(), b.star_qu());
-        let sigma = sigma_delta_gamma_deg(&sa, &sb, var_c);
+        let sigma = sigma_delta_gamma_deg(&sa, &sb, &cal);
         if sigma.is_finite() {
             self.sigma_delta_gamma_deg = Some(sigma);
-            self.delta_gamma_interval_deg = Some(delta_gamma_interval_deg(&sa, &sb, var_c));
+            self.delta_gamma_interval_deg = Some(delta_gamma_interval_deg(&sa, &sb, &cal));
         }
     }
 

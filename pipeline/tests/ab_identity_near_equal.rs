@@ -215,7 +215,7 @@ fn fainter_star_labelled_a_at_every_orientation_is_relabelled_by_flux() {
     let mut m = measure_sequence(&orients, &profile, &params.measure).unwrap();
     assert_eq!(m.dithers.len(), 2);
     assert!(!m.flags.iter().any(|f| f.starts_with("ab_")), "{:?}", m.flags);
-    let right = target_entry("t", &orients, &m, &params.measure);
+    let right = target_entry("t", &orients, &m, &params.measure, &profile.keywords);
     assert_eq!(
         swapped(&right, pa),
         Some(false),
@@ -225,7 +225,7 @@ fn fainter_star_labelled_a_at_every_orientation_is_relabelled_by_flux() {
     m.dithers.swap(0, 1);
     let g = m.geometry.as_mut().unwrap();
     g.1 = (g.1 + 180.0).rem_euclid(360.0);
-    let wrong = target_entry("t", &orients, &m, &params.measure);
+    let wrong = target_entry("t", &orients, &m, &params.measure, &profile.keywords);
     assert_eq!(swapped(&wrong, pa), Some(true));
     let r = identity::flux_ratio(&m.dithers[0], &m.dithers[1]).unwrap();
     assert!(
@@ -238,7 +238,7 @@ fn fainter_star_labelled_a_at_every_orientation_is_relabelled_by_flux() {
         "{:?}",
         m.flags
     );
-    let t = target_entry("t", &orients, &m, &params.measure);
+    let t = target_entry("t", &orients, &m, &params.measure, &profile.keywords);
     assert!((t.pa_deg.unwrap() - right.pa_deg.unwrap()).abs() < 1e-9);
     for (c, r) in t.components.iter().zip(&right.components) {
         assert_eq!((c.name.as_str(), c.q, c.u), (r.name.as_str(), r.q, r.u));

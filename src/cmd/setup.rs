@@ -190,6 +190,10 @@ pub struct CalibArgs {
     /// Use no calibration at all (2-orientation components are flagged `uncalibrated`).
     #[arg(long)]
     pub no_calibration: bool,
+    /// Neither fit nor remove the telescope's own polarization (components are flagged
+    /// `telescope_polarization_uncorrected`).
+    #[arg(long)]
+    pub no_telescope_correction: bool,
 }
 
 impl CalibArgs {
@@ -197,6 +201,7 @@ impl CalibArgs {
     pub fn setup(&self, base: &CalibrationParams) -> anyhow::Result<CalibSetup> {
         let mut params = base.clone();
         params.no_calibration |= self.no_calibration;
+        params.no_telescope_correction |= self.no_telescope_correction;
         if let Some(m) = self.stokes_method {
             params.stokes_method = m;
         }

@@ -10,10 +10,10 @@
 //!   `qu_disagrees_with_table: chi2 = X (2 dof)` beyond 11.83 (the 3-sigma tail, p = 0.0027).
 use sofipol_calib::Profile;
 
-use super::{analyzer, orientation_values, FilterCalibration};
+use super::{resolve::calibrated_obs, FilterCalibration};
 use crate::catalog::Component;
 use crate::standards::StandardStar;
-use crate::stokes::calibration::{solve, Offset, OrientationF, StokesMethod};
+use crate::stokes::calibration::{solve, Offset, StokesMethod};
 use crate::stokes::inversion::{QuFit, WK_ANGLE_FACTOR_DEG};
 use crate::stokes::model::normalize_axial_deg;
 
@@ -39,17 +39,10 @@ pub struct TableResiduals {
 }
 
 /// q, u of a calibrated standard with their statistical covariance only: the component's
-/// orientations solved again with the calibration's offset taken as exact and the method the
-/// component was solved with.
+/// orientations solved again with the calibration's offset (and telescope term) taken as
+/// exact and the method the component was solved with.
 fn statistical_fit(m: &Component, profile: &Profile, cal: Option<&FilterCalibration>) -> Option<QuFit> {
-    let obs: Vec<OrientationF> = orientation_values(m, profile)
-        .into_iter()
-        .map(|(pa, f, sigma_f)| OrientationF {
-            analyzer_deg: analyzer(cal, profile, pa),
-            f,
-            sigma_f,
-        })
-        .collect();
+    let obs = calibrated_obs(m, profile, cal);
     let offset = cal.and_then(|c| c.offset).map(|o| Offset { c: o.c, sigma_c: 0.0 });
     let method = m
         .stokes_method

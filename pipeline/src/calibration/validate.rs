@@ -9,6 +9,10 @@
 //! | `filters[i].angles.theta0_deg` | finite, \|theta0\| <= 360 (normalised to [0, 180) on reading) |
 //! | `filters[i].angles.sigma_theta0_deg` | finite, in [0, 90] |
 //! | `filters[i].cov_c_theta0_deg` | finite, \|cov\| <= sigma_c sigma_theta0 (\|corr\| <= 1), only with both |
+//! | `filters[i].telescope.p_tel` | finite, in [0, 0.2] |
+//! | `filters[i].telescope.sigma_p_tel`, `sigma_psi_tel_deg` | finite, >= 0 (the angle's at most 90) |
+//! | `filters[i].telescope.psi_tel_deg` | finite; with `a`, `b` consistent: `p_tel = hypot(a, b)`, `psi_tel = atan2(b, a)/2` |
+//! | `filters[i].covariance` | finite, symmetric, diagonal >= 0, every \|correlation\| <= 1 |
 use super::Calibration;
 use crate::stokes::model::normalize_axial_deg;
 
@@ -72,6 +76,78 @@ pub fn validate(cal: &mut Calibration) -> Result<(), String> {
                     o.sigma_c,
                     a.sigma_theta0_deg
                 ));
+            }
+        }
+        if let Some(t) = &f.telescope {
+            validate_telescope(t, &key)?;
+        }
+        if let Some(m) = &f.covariance {
+            validate_covariance(m, &key("covariance"))?;
+        }
+    }
+    Ok(())
+}
+
+/// The telescope's polarization: finite, plausible, its (a, b) consistent with (p, psi).
+fn validate_telescope(t: &super::TelescopeCalibration, key: &dyn Fn(&str) -> String) -> Result<(), String> {
+    let check = |name: &str, v: f64, ok: bool, what: &str| {
+        if v.is_finite() && ok {
+            Ok(())
+        } else {
+            Err(format!("{} = {v}: must be {what}", key(&format!("telescope.{name}"))))
+        }
+    };
+    check("p_tel", t.p_tel, (0.0..=0.2).contains(&t.p_tel), "finite, in [0, 0.2]")?;
+    check("sigma_p_tel", t.sigma_p_tel, t.sigma_p_tel >= 0.0, "finite and >= 0")?;
+    check("psi_tel_deg", t.psi_tel_deg, true, "finite")?;
+    check(
+        "sigma_psi_tel_deg",
+        t.sigma_psi_tel_deg,
+        (0.0..=90.0).contains(&t.sigma_psi_tel_deg),
+        "finite, in [0, 90]",
+    )?;
+    check("a", t.a, t.a.abs() <= 0.2, "finite, |a| <= 0.2")?;
+    check("b", t.b, t.b.abs() <= 0.2, "finite, |b| <= 0.2")?;
+    let want = crate::stokes::model::TelescopePolarization {
+        p_tel: t.p_tel,
+        psi_tel_deg: t.psi_tel_deg,
+    }
+    .ab();
+    if (want[0] - t.a).abs() > 1e-6 || (want[1] - t.b).abs() > 1e-6 {
+        return Err(format!(
+            "{} = ({}, {}) disagrees with p_tel = {} and psi_tel_deg = {} (expected ({:.6}, {:.6}))",
+            key("telescope.(a, b)"),
+            t.a,
+            t.b,
+            t.p_tel,
+            t.psi_tel_deg,
+            want[0],
+            want[1]
+        ));
+    }
+    Ok(())
+}
+
+/// A covariance matrix: finite, symmetric, non-negative variances, correlations within +-1.
+fn validate_covariance(m: &crate::stokes::propagation::CalibrationCovariance, key: &str) -> Result<(), String> {
+    for i in 0..4 {
+        for j in 0..4 {
+            let v = m[i][j];
+            if !v.is_finite() {
+                return Err(format!("{key}[{i}][{j}] = {v}: must be finite"));
+            }
+            if i == j && v < 0.0 {
+                return Err(format!("{key}[{i}][{i}] = {v}: a variance must be >= 0"));
+            }
+            if (v - m[j][i]).abs() > 1e-12 * v.abs().max(m[j][i].abs()).max(f64::MIN_POSITIVE) {
+                return Err(format!(
+                    "{key}[{i}][{j}] = {v} differs from [{j}][{i}] = {}: must be symmetric",
+                    m[j][i]
+                ));
+            }
+            let bound = (m[i][i] * m[j][j]).max(0.0).sqrt();
+            if i != j && v.abs() > bound * (1.0 + CORR_SLACK) {
+                return Err(format!("{key}[{i}][{j}] = {v}: |correlation| exceeds 1"));
             }
         }
     }

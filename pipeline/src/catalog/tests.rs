@@ -61,6 +61,8 @@ fn combined_f(analyzer_deg: f64) -> CombinedF {
         f: 0.031,
         n_dithers: 4,
         n_dithers_total: 5,
+        parallactic_2eta: None,
+        parallactic_deg: None,
         posang_deg: None,
         sigma_f: 4e-4,
         sigma_f_propagated: 3e-4,

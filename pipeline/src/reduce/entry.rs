@@ -5,6 +5,7 @@ use super::{CalibratedOrientation, DitherValue, MeasureParams, Measured};
 use crate::catalog::{CombinedF, Component, Status, Target};
 use crate::stokes::inversion::{clip_dithers, combine_dithers, fit_qu, LinearPolarization, Polarization};
 use crate::stokes::propagation::QuCovariance;
+use sofipol_calib::profile::Keywords;
 
 /// Component flags that keep a value from passing the cut, whatever its S/N: dithers that
 /// were all flagged (`used_flagged_dithers`: a saturated core may be far off) and an A/B
@@ -24,11 +25,14 @@ pub fn refused_by_flags(flags: &[String]) -> bool {
 /// orientation (the target carries `ab_identity_unverified: ...` with the orientation).
 pub const AB_IDENTITY_UNVERIFIED: &str = "ab_identity_unverified";
 
-/// Turn the per-dither values of one component into its catalog entry.
+/// Turn the per-dither values of one component into its catalog entry. `parallactic_deg`
+/// holds each dither's parallactic angle (per orientation, in dither order; `None` when the
+/// frame has none).
 pub fn component_from_dithers(
     name: &str,
     per_orient: &[Vec<DitherValue>],
     analyzer_deg: &[f64],
+    parallactic_deg: &[Vec<Option<f64>>],
     params: &MeasureParams,
 ) -> Component {
     let mut flags: Vec<String> = Vec::new();
@@ -100,12 +104,19 @@ pub fn component_from_dithers(
             phis.push(analyzer_deg[k]);
             fs.push(c.value);
             ss.push(sigma);
+            let etas: Option<Vec<f64>> = keep
+                .iter()
+                .map(|&i| parallactic_deg.get(k).and_then(|v| v.get(usable[i]).copied().flatten()))
+                .collect();
+            let parallactic = etas.and_then(|e| ParallacticMean::of(&e, &ks));
             per_orientation.push(CombinedF {
                 analyzer_deg: analyzer_deg[k],
                 chi2: c.chi2,
                 f: c.value,
                 n_dithers: c.n,
                 n_dithers_total: dv.len(),
+                parallactic_2eta: parallactic.map(|p| p.cos_sin_2eta),
+                parallactic_deg: parallactic.map(|p| p.eta_deg),
                 posang_deg: None,
                 sigma_f: sigma,
                 sigma_f_propagated: c.sigma,
@@ -153,9 +164,76 @@ pub fn component_from_dithers(
     }
 }
 
-/// Build the catalog entry of a measured sequence.
-pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measured, params: &MeasureParams) -> Target {
+/// The parallactic angle of an orientation's dithers, weighted as F is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct ParallacticMean {
+    /// Weighted mean of (cos 2eta, sin 2eta): the telescope's polarization is linear in
+    /// these, so its weighted mean over the dithers is exact with them.
+    cos_sin_2eta: [f64; 2],
+    /// Weighted circular mean of eta, deg in (-180, 180] (for reading).
+    eta_deg: f64,
+}
+
+impl ParallacticMean {
+    /// With the weights 1/sigma^2 of the weighted mean of F. `None` without a finite angle
+    /// and weight for every dither.
+    fn of(eta_deg: &[f64], sigma: &[f64]) -> Option<ParallacticMean> {
+        let (mut sw, mut c2, mut s2, mut c1, mut s1) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for (&eta, &s) in eta_deg.iter().zip(sigma) {
+            let w = s.powi(-2);
+            if !(eta.is_finite() && w.is_finite() && w > 0.0) {
+                return None;
+            }
+            let e = eta.to_radians();
+            sw += w;
+            c2 += w * (2.0 * e).cos();
+            s2 += w * (2.0 * e).sin();
+            c1 += w * e.cos();
+            s1 += w * e.sin();
+        }
+        (sw > 0.0).then(|| ParallacticMean {
+            cos_sin_2eta: [c2 / sw, s2 / sw],
+            eta_deg: s1.atan2(c1).to_degrees(),
+        })
+    }
+}
+
+/// Each dither's parallactic angle from its frame's header (`None` when absent or unreadable;
+/// an unreadable value is named in `flags`).
+fn parallactic_angles(
+    orients: &[CalibratedOrientation],
+    kw: &Keywords,
+    flags: &mut Vec<String>,
+) -> Vec<Vec<Option<f64>>> {
+    orients
+        .iter()
+        .map(|o| {
+            o.frames
+                .iter()
+                .map(|f| match kw.parallactic_angle_deg(&f.header) {
+                    Ok(eta) => eta,
+                    Err(e) => {
+                        flags.push(format!("parallactic angle not used: {e}"));
+                        None
+                    }
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// Build the catalog entry of a measured sequence (`kw`: the profile's header keywords,
+/// for the frames' parallactic angles).
+pub fn target_entry(
+    object: &str,
+    orients: &[CalibratedOrientation],
+    m: &Measured,
+    params: &MeasureParams,
+    kw: &Keywords,
+) -> Target {
     let phis: Vec<f64> = orients.iter().map(|o| o.analyzer_deg).collect();
+    let mut target_flags = m.flags.clone();
+    let etas = parallactic_angles(orients, kw, &mut target_flags);
     let names = ["A", "B"];
     // Which star was measured at some orientation is not known: every component may mix
     // the two stars' q and u. Reported, flagged, never a detection.
@@ -165,7 +243,7 @@ pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measure
         .iter()
         .enumerate()
         .map(|(i, d)| {
-            let mut c = component_from_dithers(names[i], d, &phis, params);
+            let mut c = component_from_dithers(names[i], d, &phis, &etas, params);
             if unverified {
                 c.flags.push(AB_IDENTITY_UNVERIFIED.into());
                 c.passes_cut = false;
@@ -192,10 +270,10 @@ pub fn target_entry(object: &str, orients: &[CalibratedOrientation], m: &Measure
         separation_arcsec: m.geometry.map(|g| g.0),
         pa_deg: m.geometry.map(|g| g.1),
         orientations_deg: Some(orients.iter().map(|o| o.posang_deg).collect()),
-        flags: Some(m.flags.clone()),
+        flags: Some(target_flags),
         ..Target::new(object, status)
     };
-    t.update_delta_gamma();
+    t.update_delta_gamma(None);
     t
 }
 
@@ -257,12 +335,24 @@ mod tests {
     #[test]
     fn unverified_ab_identity_fails_the_cut_whatever_the_snr() {
         let params = MeasureParams::default();
-        let t = target_entry("X", &orients(), &measured(Vec::new()), &params);
+        let t = target_entry(
+            "X",
+            &orients(),
+            &measured(Vec::new()),
+            &params,
+            &sofipol_calib::Profile::sofi().keywords,
+        );
         assert!(t.components.iter().all(|c| c.passes_cut), "{t:?}");
         assert!(t.delta_gamma_deg.is_some());
         let flag =
             "ab_identity_unverified: companion not found at POSANG 90.0 and the components are near equal in flux";
-        let t = target_entry("X", &orients(), &measured(vec![flag.into()]), &params);
+        let t = target_entry(
+            "X",
+            &orients(),
+            &measured(vec![flag.into()]),
+            &params,
+            &sofipol_calib::Profile::sofi().keywords,
+        );
         for c in &t.components {
             assert!(!c.passes_cut, "{c:?}");
             assert!(c.flags.iter().any(|f| f == AB_IDENTITY_UNVERIFIED), "{c:?}");

@@ -264,7 +264,7 @@ pub fn reduce_loaded(
         Ok(m) => m,
         Err(e) => return failed(seq, e.0, &flags, failures, times),
     };
-    let mut target = target_entry(&seq.object, &cal, &measured, &params.measure);
+    let mut target = target_entry(&seq.object, &cal, &measured, &params.measure, &profile.keywords);
     times.measure = t.elapsed().as_secs_f64();
     flags.extend(measured.flags.iter().cloned());
     if !flags.is_empty() && target.status == Status::Ok && !seq.problems().is_empty() {

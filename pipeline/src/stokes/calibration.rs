@@ -456,6 +456,10 @@ pub struct StandardObservation {
     pub gamma_deg: f64,
     /// Its error, deg.
     pub sigma_gamma_deg: f64,
+    /// Per orientation, the weighted mean (cos 2eta, sin 2eta) of its frames' parallactic
+    /// angles (`None` or absent: unknown; the telescope's polarization is then not fitted).
+    #[serde(default)]
+    pub parallactic_2eta: Vec<Option<[f64; 2]>>,
 }
 
 impl StandardObservation {

@@ -15,13 +15,20 @@
 //! `J = [d, (-2u, 2q)]` on (c, theta0 in rad), so the calibration adds `J Sigma_cal J^T`.
 //! The theta0 column is purely tangential: it leaves P and sigma_P alone.
 //!
+//! More generally the calibration is a parameter vector theta = (c, theta0 in deg, a, b), (a, b)
+//! the telescope's polarization in the frame of the vertical, with covariance Sigma_cal; each
+//! star carries its Jacobian `J = d(q, u)/d theta` (2 x 4) and the calibration adds
+//! `J Sigma_cal J^T` ([`calibration_covariance_of`]).
+//!
 //! Delta-gamma = gamma_A - gamma_B (folded into [0, 90] deg, which keeps the derivative's
-//! magnitude). theta0 moves both angles by the same amount and cancels; the stars' own
-//! errors are independent; the offset c is common to the night and moves the two angles by
-//! `gamma_A' . d_A` and `gamma_B' . d_B` per unit c, which do not cancel:
+//! magnitude). The stars' own errors are independent; the calibration is common to both, so
+//! its part is the variance of `(gA^T J_A - gB^T J_B) theta`. theta0 rotates both angles by
+//! the same amount and cancels; the offset c moves the two angles by `gamma_A' . d_A` and
+//! `gamma_B' . d_B` per unit c, and the telescope's term by the same vector in (q, u), which do
+//! not cancel:
 //!
 //! ```text
-//! sigma_dgamma^2 = gA^T S_A gA + gB^T S_B gB + (gA . d_A - gB . d_B)^2 sigma_c^2
+//! sigma_dgamma^2 = gA^T S_A gA + gB^T S_B gB + w^T Sigma_cal w,   w = J_A^T gA - J_B^T gB
 //! ```
 use rand::SeedableRng;
 use rand_distr::{Distribution, StandardNormal};
@@ -107,6 +114,48 @@ pub fn sigma_gamma_deg(q: f64, u: f64, cov: &QuCovariance) -> f64 {
     s.min(UNIFORM_ANGLE_SIGMA_DEG)
 }
 
+/// Index of the offset c in the calibration's parameter vector.
+pub const CAL_C: usize = 0;
+/// Index of the zero-point theta0 (deg).
+pub const CAL_THETA0: usize = 1;
+/// Index of the telescope's `a = p_tel cos 2psi_tel`.
+pub const CAL_TEL_A: usize = 2;
+/// Index of the telescope's `b = p_tel sin 2psi_tel`.
+pub const CAL_TEL_B: usize = 3;
+/// Names of the calibration parameters, in order (as written in calibration.json).
+pub const CAL_PARAMETERS: [&str; 4] = ["c", "theta0_deg", "tel_a", "tel_b"];
+
+/// Covariance of the calibration parameters (c, theta0 deg, a, b).
+pub type CalibrationCovariance = [[f64; 4]; 4];
+
+/// A star's `d(q, u)/d theta_k` for each calibration parameter (per deg for theta0).
+pub type CalibrationJacobian = [[f64; 2]; 4];
+
+/// The Jacobian of a pure rotation by theta0: `d(q, u)/d theta0 = (-2u, 2q)` per rad,
+/// in per deg.
+pub fn rotation_gradient_per_deg(q: f64, u: f64) -> [f64; 2] {
+    let rad = std::f64::consts::PI / 180.0;
+    [-2.0 * u * rad, 2.0 * q * rad]
+}
+
+/// What the calibration adds to one star's (q, u) covariance: `J Sigma_cal J^T`.
+pub fn calibration_covariance_of(jac: &CalibrationJacobian, cov: &CalibrationCovariance) -> QuCovariance {
+    let entry = |i: usize, j: usize| {
+        let mut s = 0.0;
+        for k in 0..4 {
+            for l in 0..4 {
+                s += jac[k][i] * cov[k][l] * jac[l][j];
+            }
+        }
+        s
+    };
+    QuCovariance {
+        var_q: entry(0, 0),
+        var_u: entry(1, 1),
+        cov_qu: entry(0, 1),
+    }
+}
+
 /// The errors of a night's calibration: the offset c and the zero-point theta0.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct CalibrationErrors {
@@ -127,15 +176,21 @@ pub fn calibration_covariance(
     offset_gradient: Option<[f64; 2]>,
     cal: &CalibrationErrors,
 ) -> QuCovariance {
-    let d = offset_gradient.unwrap_or([0.0, 0.0]);
-    let r = [-2.0 * u, 2.0 * q]; // d(q, u)/d theta0 per rad
-    let rad = std::f64::consts::PI / 180.0;
-    let (vc, vt, ct) = (cal.var_c, cal.var_theta0_deg2 * rad * rad, cal.cov_c_theta0_deg * rad);
-    let entry = |i: usize, j: usize| d[i] * d[j] * vc + r[i] * r[j] * vt + (d[i] * r[j] + r[i] * d[j]) * ct;
-    QuCovariance {
-        var_q: entry(0, 0),
-        var_u: entry(1, 1),
-        cov_qu: entry(0, 1),
+    let mut jac = [[0.0; 2]; 4];
+    jac[CAL_C] = offset_gradient.unwrap_or([0.0, 0.0]);
+    jac[CAL_THETA0] = rotation_gradient_per_deg(q, u);
+    calibration_covariance_of(&jac, &cal.covariance())
+}
+
+impl CalibrationErrors {
+    /// As a covariance of (c, theta0 deg, a, b) (no telescope term).
+    pub fn covariance(&self) -> CalibrationCovariance {
+        let mut m = [[0.0; 4]; 4];
+        m[CAL_C][CAL_C] = self.var_c;
+        m[CAL_THETA0][CAL_THETA0] = self.var_theta0_deg2;
+        m[CAL_C][CAL_THETA0] = self.cov_c_theta0_deg;
+        m[CAL_THETA0][CAL_C] = self.cov_c_theta0_deg;
+        m
     }
 }
 
@@ -148,20 +203,69 @@ pub struct StarQu {
     pub u: f64,
     /// Covariance from this star's own measurement.
     pub stat: QuCovariance,
-    /// d(q, u)/dc (zero when no offset was subtracted).
-    pub offset_gradient: [f64; 2],
+    /// d(q, u)/d theta for the calibration parameters (zero columns for those that do not
+    /// enter: c when no offset was subtracted, the telescope's when not removed).
+    pub jacobian: CalibrationJacobian,
+}
+
+impl StarQu {
+    /// A star whose calibration is the offset c alone (`offset_gradient = d(q, u)/dc`) and
+    /// a zero-point that rotates it.
+    pub fn with_offset_gradient(q: f64, u: f64, stat: QuCovariance, offset_gradient: [f64; 2]) -> StarQu {
+        let mut jacobian = [[0.0; 2]; 4];
+        jacobian[CAL_C] = offset_gradient;
+        jacobian[CAL_THETA0] = rotation_gradient_per_deg(q, u);
+        StarQu { q, u, stat, jacobian }
+    }
+}
+
+/// A covariance of the offset c alone.
+pub fn offset_covariance(var_c: f64) -> CalibrationCovariance {
+    let mut m = [[0.0; 4]; 4];
+    m[CAL_C][CAL_C] = var_c;
+    m
+}
+
+/// `w = J_A^T gA - J_B^T gB`: how the calibration parameters move Delta-gamma (rad per unit).
+fn common_weights(a: &StarQu, b: &StarQu) -> [f64; 4] {
+    let (ga, gb) = (gamma_gradient_rad(a.q, a.u), gamma_gradient_rad(b.q, b.u));
+    let dot = |g: [f64; 2], d: [f64; 2]| g[0] * d[0] + g[1] * d[1];
+    std::array::from_fn(|k| dot(ga, a.jacobian[k]) - dot(gb, b.jacobian[k]))
 }
 
 /// Delta-method 1-sigma error of Delta-gamma, deg: both stars' own covariances and the
-/// common offset c (variance `var_c`); the zero-point theta0 cancels and does not enter.
-pub fn sigma_delta_gamma_deg(a: &StarQu, b: &StarQu, var_c: f64) -> f64 {
+/// calibration common to both (`cal`, the covariance of (c, theta0, a, b)); theta0, a pure
+/// rotation of both, cancels.
+pub fn sigma_delta_gamma_deg(a: &StarQu, b: &StarQu, cal: &CalibrationCovariance) -> f64 {
     let (ga, gb) = (gamma_gradient_rad(a.q, a.u), gamma_gradient_rad(b.q, b.u));
-    let dot = |g: [f64; 2], d: [f64; 2]| g[0] * d[0] + g[1] * d[1];
-    let common = dot(ga, a.offset_gradient) - dot(gb, b.offset_gradient);
-    (a.stat.quadratic_form(ga) + b.stat.quadratic_form(gb) + common * common * var_c)
+    let w = common_weights(a, b);
+    let mut common = 0.0;
+    for k in 0..4 {
+        for l in 0..4 {
+            common += w[k] * cal[k][l] * w[l];
+        }
+    }
+    (a.stat.quadratic_form(ga) + b.stat.quadratic_form(gb) + common)
         .max(0.0)
         .sqrt()
         .to_degrees()
+}
+
+/// Lower Cholesky factor of a positive semi-definite matrix (a pivot at or below zero, from
+/// a parameter that was not fitted or round-off, gives a zero column).
+fn cholesky_psd(m: &CalibrationCovariance) -> [[f64; 4]; 4] {
+    let mut l = [[0.0; 4]; 4];
+    for j in 0..4 {
+        let d = m[j][j] - (0..j).map(|k| l[j][k] * l[j][k]).sum::<f64>();
+        if !(d > 1e-14 * m[j][j].abs().max(f64::MIN_POSITIVE)) {
+            continue;
+        }
+        l[j][j] = d.sqrt();
+        for i in j + 1..4 {
+            l[i][j] = (m[i][j] - (0..j).map(|k| l[i][k] * l[j][k]).sum::<f64>()) / l[j][j];
+        }
+    }
+    l
 }
 
 /// The folded difference of two axial angles computed from (q, u) pairs, deg in [0, 90].
@@ -179,12 +283,14 @@ pub const INTERVAL_DRAWS: usize = 8192;
 
 /// Central 68.27 % interval [low, high] of the folded Delta-gamma, deg, over
 /// [`INTERVAL_DRAWS`] Gaussian draws of (q_A, u_A, q_B, u_B) about the measured values
-/// with the stars' own covariances and the common offset c. Seeded from the inputs, so
+/// with the stars' own covariances and the calibration common to both (each draw moves
+/// both stars by their Jacobians times one draw of the calibration parameters). Seeded from the inputs, so
 /// the same catalog gives the same interval. Near 0 or 90 deg, and at low S/N, the
 /// folded distribution is skewed: the interval is then the honest summary.
-pub fn delta_gamma_interval_deg(a: &StarQu, b: &StarQu, var_c: f64) -> [f64; 2] {
-    let seed = [a.q, a.u, b.q, b.u, var_c]
+pub fn delta_gamma_interval_deg(a: &StarQu, b: &StarQu, cal: &CalibrationCovariance) -> [f64; 2] {
+    let seed = [a.q, a.u, b.q, b.u]
         .iter()
+        .chain(cal.iter().flatten())
         .fold(0x5eed_u64, |h, v| (h ^ v.to_bits()).wrapping_mul(0x100_0000_01b3));
     let mut rng = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(seed);
     let chol = |s: &QuCovariance| {
@@ -195,15 +301,22 @@ pub fn delta_gamma_interval_deg(a: &StarQu, b: &StarQu, var_c: f64) -> [f64; 2] 
         (l11, l21, l22)
     };
     let (la, lb) = (chol(&a.stat), chol(&b.stat));
-    let sc = var_c.max(0.0).sqrt();
+    let lc = cholesky_psd(cal);
     let mut z = || -> f64 { StandardNormal.sample(&mut rng) };
+    let shift = |j: &CalibrationJacobian, t: &[f64; 4]| -> [f64; 2] {
+        std::array::from_fn(|i| (0..4).map(|k| j[k][i] * t[k]).sum())
+    };
     let mut draws: Vec<f64> = (0..INTERVAL_DRAWS)
         .map(|_| {
-            let (z1, z2, z3, z4, zc) = (z(), z(), z(), z(), z());
-            let qa = a.q + la.0 * z1 + a.offset_gradient[0] * sc * zc;
-            let ua = a.u + la.1 * z1 + la.2 * z2 + a.offset_gradient[1] * sc * zc;
-            let qb = b.q + lb.0 * z3 + b.offset_gradient[0] * sc * zc;
-            let ub = b.u + lb.1 * z3 + lb.2 * z4 + b.offset_gradient[1] * sc * zc;
+            let (z1, z2, z3, z4) = (z(), z(), z(), z());
+            let zc: [f64; 4] = std::array::from_fn(|_| z());
+            // One draw of the common calibration, theta = L z.
+            let t: [f64; 4] = std::array::from_fn(|i| (0..=i).map(|k| lc[i][k] * zc[k]).sum());
+            let (da, db) = (shift(&a.jacobian, &t), shift(&b.jacobian, &t));
+            let qa = a.q + la.0 * z1 + da[0];
+            let ua = a.u + la.1 * z1 + la.2 * z2 + da[1];
+            let qb = b.q + lb.0 * z3 + db[0];
+            let ub = b.u + lb.1 * z3 + lb.2 * z4 + db[1];
             folded_delta_deg(qa, ua, qb, ub)
         })
         .collect();

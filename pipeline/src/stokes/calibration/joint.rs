@@ -24,7 +24,8 @@
 //! unknowns and the normal matrix is far from singular; otherwise the fit is reported
 //! incomplete (see [`fit_joint`]).
 use super::{AngleCalibration, Offset, StandardObservation};
-use crate::stokes::model::normalize_axial_deg;
+use crate::stokes::model::{normalize_axial_deg, TelescopePolarization};
+pub use crate::stokes::propagation::{CAL_C, CAL_TEL_A, CAL_TEL_B, CAL_THETA0};
 
 /// |corr(c, theta0)| above which the standards are taken not to separate c from theta0.
 pub const MAX_CORRELATION: f64 = 0.95;
@@ -57,21 +58,54 @@ pub struct JointCalibration {
     pub offset_from: Vec<usize>,
     /// Input indices of the standards the angles come from.
     pub angles_from: Vec<usize>,
+    /// The telescope's own polarization, when fitted and separated from c and theta0.
+    pub telescope: Option<TelescopePolarization>,
+    /// Why the telescope's polarization was not measured, when it was asked for and not.
+    pub telescope_problem: Option<String>,
+    /// Covariance of (c, theta0 in deg, a, b) with the same inflation as the errors;
+    /// zero rows and columns for what was not fitted ([`CAL_C`], [`CAL_THETA0`],
+    /// [`CAL_TEL_A`], [`CAL_TEL_B`]).
+    pub covariance: [[f64; 4]; 4],
 }
 
-/// One usable standard: its valid orientations (PA, F, sigma_F) and table values.
+/// What the joint fit needs besides the standards.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct JointOptions {
+    /// The profile's parity, kept unless two or more polarized standards measure it.
+    pub default_parity: i32,
+    /// The profile's theta0, deg: the analyzer angles of the telescope's term when the
+    /// standards do not fit theta0.
+    pub profile_theta0_deg: f64,
+    /// Also fit the telescope's polarization (kept only when the standards separate it).
+    pub fit_telescope: bool,
+}
+
+/// One orientation of a standard: PA, F, sigma_F and the weighted mean (cos 2eta, sin 2eta)
+/// of its frames' parallactic angles (`None`: unknown).
+#[derive(Debug, Clone, Copy)]
+struct Row {
+    pa: f64,
+    f: f64,
+    sigma_f: f64,
+    parallactic_2eta: Option<[f64; 2]>,
+}
+
+/// One usable standard: its valid orientations and table values.
 struct Std<'a> {
     index: usize,
     obs: &'a StandardObservation,
-    rows: Vec<(f64, f64, f64)>,
+    rows: Vec<Row>,
 }
 
-/// The least-squares problem of one parity: instrument parameters (c, and theta0 when
-/// `fit_theta0`), then two nuisances per standard.
+/// The least-squares problem of one parity: instrument parameters (c; theta0 when
+/// `fit_theta0`, else `theta0_fixed`; the telescope's (a, b) when `fit_telescope`), then two
+/// nuisances per standard.
 struct Problem<'a> {
     stds: Vec<Std<'a>>,
     parity: f64,
     fit_theta0: bool,
+    theta0_fixed: f64,
+    fit_telescope: bool,
 }
 
 /// A converged fit: parameters, the inverse of the normal matrix (not inflated), chi^2.
@@ -88,6 +122,11 @@ fn floor(s: f64) -> f64 {
 
 impl Problem<'_> {
     fn n_inst(&self) -> usize {
+        1 + usize::from(self.fit_theta0) + 2 * usize::from(self.fit_telescope)
+    }
+
+    /// Index of the telescope's `a` (then `b`) in x.
+    fn i_tel(&self) -> usize {
         1 + usize::from(self.fit_theta0)
     }
 
@@ -104,14 +143,32 @@ impl Problem<'_> {
     fn residuals(&self, x: &[f64]) -> (Vec<f64>, Vec<Vec<f64>>) {
         let n = self.n_params();
         let (mut r, mut jac) = (Vec::new(), Vec::new());
-        let theta0 = if self.fit_theta0 { x[1] } else { 0.0 };
+        let theta0 = if self.fit_theta0 { x[1] } else { self.theta0_fixed };
         let d2 = 2f64.to_radians(); // d(2 angle_rad)/d(angle_deg)
         for (j, s) in self.stds.iter().enumerate() {
             let b = self.n_inst() + 2 * j;
             let pol = s.obs.polarized();
-            for &(pa, f, sf) in &s.rows {
+            for r_ in &s.rows {
+                let (pa, f, sf) = (r_.pa, r_.f, r_.sigma_f);
                 let mut row = vec![0.0; n];
                 row[0] = 1.0;
+                let telescope = if self.fit_telescope {
+                    // T = a r_a + b r_b, r_a = cos 2(phi - eta), r_b = sin 2(phi - eta)
+                    // (each averaged over the orientation's frames).
+                    let [cos_2eta, sin_2eta] = r_.parallactic_2eta.unwrap_or([0.0, 0.0]);
+                    let t = 2.0 * (self.parity * pa + theta0).to_radians();
+                    let r_a = cos_2eta * t.cos() + sin_2eta * t.sin();
+                    let r_b = cos_2eta * t.sin() - sin_2eta * t.cos();
+                    let (i, a, bt) = (self.i_tel(), x[self.i_tel()], x[self.i_tel() + 1]);
+                    row[i] = r_a;
+                    row[i + 1] = r_b;
+                    if self.fit_theta0 {
+                        row[1] += (bt * r_a - a * r_b) * d2;
+                    }
+                    a * r_a + bt * r_b
+                } else {
+                    0.0
+                };
                 let model = if pol {
                     let (p, gamma) = (x[b], x[b + 1]);
                     let t = 2.0 * (self.parity * pa + theta0 - gamma).to_radians();
@@ -126,7 +183,7 @@ impl Problem<'_> {
                     row[b] = t.cos();
                     row[b + 1] = t.sin();
                     x[0] + x[b] * t.cos() + x[b + 1] * t.sin()
-                };
+                } + telescope;
                 r.push((f - model) / sf);
                 jac.push(row.iter().map(|v| v / sf).collect());
             }
@@ -298,12 +355,23 @@ fn usable(stds: &[StandardObservation]) -> Vec<Std<'_>> {
     stds.iter()
         .enumerate()
         .filter_map(|(index, obs)| {
-            let rows: Vec<(f64, f64, f64)> = obs
+            let rows: Vec<Row> = obs
                 .f
                 .iter()
                 .zip(&obs.posang_deg)
-                .filter(|(o, pa)| o.f.is_finite() && pa.is_finite() && o.sigma_f.is_finite() && o.sigma_f > 0.0)
-                .map(|(o, &pa)| (pa, o.f, o.sigma_f))
+                .enumerate()
+                .filter(|(_, (o, pa))| o.f.is_finite() && pa.is_finite() && o.sigma_f.is_finite() && o.sigma_f > 0.0)
+                .map(|(i, (o, &pa))| Row {
+                    pa,
+                    f: o.f,
+                    sigma_f: o.sigma_f,
+                    parallactic_2eta: obs
+                        .parallactic_2eta
+                        .get(i)
+                        .copied()
+                        .flatten()
+                        .filter(|v| v.iter().all(|x| x.is_finite())),
+                })
                 .collect();
             (!rows.is_empty()).then_some(Std { index, obs, rows })
         })
@@ -325,6 +393,8 @@ fn offset_only(stds: Vec<Std<'_>>) -> Option<(Offset, f64, usize, Vec<usize>)> {
         stds: stds.into_iter().filter(|s| !s.obs.polarized()).collect(),
         parity: 1.0,
         fit_theta0: false,
+        theta0_fixed: 0.0,
+        fit_telescope: false,
     };
     if pb.stds.is_empty() {
         return None;
@@ -344,7 +414,7 @@ fn offset_only(stds: Vec<Std<'_>>) -> Option<(Offset, f64, usize, Vec<usize>)> {
 /// matching theta0), a correlation beyond [`MAX_CORRELATION`], or another solution as good
 /// as the best (chi^2 within 1) more than 3 sigma away.
 fn separation_problem(pb: &Problem, best: &Solution, others: &[Solution]) -> Option<String> {
-    let dof = pb.n_data() as i64 - 2;
+    let dof = pb.n_data() as i64 - pb.n_inst() as i64;
     let n_pol = pb.stds.iter().filter(|s| s.obs.polarized()).count();
     let what = format!(
         "{} orientation(s) of {} standard(s), {} of them polarized",
@@ -384,6 +454,35 @@ fn separation_problem(pb: &Problem, best: &Solution, others: &[Solution]) -> Opt
 /// angles are left to the profile and c comes from the unpolarized standards alone (none
 /// without them). `None` without any usable standard.
 pub fn fit_joint(stds: &[StandardObservation], default_parity: i32) -> Option<JointCalibration> {
+    fit_joint_with(
+        stds,
+        &JointOptions {
+            default_parity,
+            profile_theta0_deg: 0.0,
+            fit_telescope: false,
+        },
+    )
+}
+
+/// [`fit_joint`], and with `fit_telescope` the telescope's polarization (a, b) fitted
+/// together with c and theta0 ([`telescope::refit`]); when the standards cannot separate
+/// it, the fit without it and [`JointCalibration::telescope_problem`] saying why.
+pub fn fit_joint_with(stds: &[StandardObservation], opts: &JointOptions) -> Option<JointCalibration> {
+    let base = fit_instrument(stds, opts.default_parity)?;
+    if !opts.fit_telescope {
+        return Some(base);
+    }
+    Some(match telescope::refit(stds, opts, &base) {
+        Ok(j) => j,
+        Err(why) => JointCalibration {
+            telescope_problem: Some(why),
+            ..base
+        },
+    })
+}
+
+/// c and theta0 (and parity) without the telescope's term.
+fn fit_instrument(stds: &[StandardObservation], default_parity: i32) -> Option<JointCalibration> {
     let all = usable(stds);
     if all.is_empty() {
         return None;
@@ -394,6 +493,8 @@ pub fn fit_joint(stds: &[StandardObservation], default_parity: i32) -> Option<Jo
             Some((o, chi2, dof, from)) => (Some(o), chi2, dof, from),
             None => (None, 0.0, 0, vec![]),
         };
+        let mut covariance = [[0.0; 4]; 4];
+        covariance[CAL_C][CAL_C] = offset.map_or(0.0, |o| o.sigma_c * o.sigma_c);
         Some(JointCalibration {
             offset,
             angles: None,
@@ -403,6 +504,9 @@ pub fn fit_joint(stds: &[StandardObservation], default_parity: i32) -> Option<Jo
             incomplete: why,
             offset_from: from,
             angles_from: vec![],
+            telescope: None,
+            telescope_problem: None,
+            covariance,
         })
     };
     if n_pol == 0 {
@@ -412,6 +516,8 @@ pub fn fit_joint(stds: &[StandardObservation], default_parity: i32) -> Option<Jo
         stds: usable(stds),
         parity: parity as f64,
         fit_theta0: true,
+        theta0_fixed: 0.0,
+        fit_telescope: false,
     };
     let fit = |parity: i32| {
         let pb = problem(parity);
@@ -453,6 +559,12 @@ pub fn fit_joint(stds: &[StandardObservation], default_parity: i32) -> Option<Jo
     let dof = pb.n_data() - 2;
     let k = inflation(best.chi2, dof);
     let idx: Vec<usize> = pb.stds.iter().map(|s| s.index).collect();
+    let mut covariance = [[0.0; 4]; 4];
+    for (i, ci) in [(0, CAL_C), (1, CAL_THETA0)] {
+        for (j, cj) in [(0, CAL_C), (1, CAL_THETA0)] {
+            covariance[ci][cj] = best.cov[i][j] * k;
+        }
+    }
     Some(JointCalibration {
         offset: Some(Offset {
             c: best.x[0],
@@ -471,8 +583,13 @@ pub fn fit_joint(stds: &[StandardObservation], default_parity: i32) -> Option<Jo
         incomplete: None,
         angles_from: pb.stds.iter().filter(|s| s.obs.polarized()).map(|s| s.index).collect(),
         offset_from: idx,
+        telescope: None,
+        telescope_problem: None,
+        covariance,
     })
 }
+
+mod telescope;
 
 #[cfg(test)]
 mod tests;

@@ -139,6 +139,7 @@ fn std_obs(name: &str, pol: Polarization, posangs: &[f64], theta0: f64, parity: 
         sigma_p: if pol.p() > 0.0 { 0.0002 } else { 0.0005 },
         gamma_deg: pol.gamma_deg(),
         sigma_gamma_deg: 0.5,
+        parallactic_2eta: vec![],
     }
 }
 

@@ -142,33 +142,40 @@ fn the_calibration_covariance_is_the_scatter_of_correlated_c_and_theta0() {
 
 /// Two stars at different angles with a common offset whose contribution does not cancel.
 fn binary() -> (StarQu, StarQu, f64) {
-    let a = StarQu {
-        q: 0.030,
-        u: 0.012,
-        stat: QuCovariance {
+    let a = StarQu::with_offset_gradient(
+        0.030,
+        0.012,
+        QuCovariance {
             var_q: 0.64e-6,
             var_u: 1.0e-6,
             cov_qu: 0.3e-6,
         },
-        offset_gradient: [-1.0, 0.0],
-    };
-    let b = StarQu {
-        q: -0.008,
-        u: 0.021,
-        stat: QuCovariance {
+        [-1.0, 0.0],
+    );
+    let b = StarQu::with_offset_gradient(
+        -0.008,
+        0.021,
+        QuCovariance {
             var_q: 1.2e-6,
             var_u: 0.8e-6,
             cov_qu: -0.4e-6,
         },
-        offset_gradient: [-0.9, 0.2],
-    };
+        [-0.9, 0.2],
+    );
     (a, b, (1.5e-3f64).powi(2))
 }
 
 #[test]
 fn sigma_delta_gamma_is_the_scatter_of_draws_and_theta0_cancels() {
     let (a, b, var_c) = binary();
-    let want = sigma_delta_gamma_deg(&a, &b, var_c);
+    let cal = offset_covariance(var_c);
+    let want = sigma_delta_gamma_deg(&a, &b, &cal);
+    // With a 5-deg zero-point error (correlated with c) in the calibration: unchanged.
+    let mut with_theta0 = cal;
+    with_theta0[CAL_THETA0][CAL_THETA0] = 25.0;
+    with_theta0[CAL_C][CAL_THETA0] = -0.5 * 5.0 * var_c.sqrt();
+    with_theta0[CAL_THETA0][CAL_C] = with_theta0[CAL_C][CAL_THETA0];
+    assert!((sigma_delta_gamma_deg(&a, &b, &with_theta0) / want - 1.0).abs() < 1e-9);
     let mut r = rng(3);
     let n = 200_000;
     let d0 = 0.5 * (a.u.atan2(a.q) - b.u.atan2(b.q)).to_degrees();
@@ -179,12 +186,12 @@ fn sigma_delta_gamma_is_the_scatter_of_draws_and_theta0_cancels() {
         let (dqb, dub) = draw(&b.stat, &mut r);
         let dc = var_c.sqrt() * normal(&mut r);
         let (qa, ua) = (
-            a.q + dqa + a.offset_gradient[0] * dc,
-            a.u + dua + a.offset_gradient[1] * dc,
+            a.q + dqa + a.jacobian[CAL_C][0] * dc,
+            a.u + dua + a.jacobian[CAL_C][1] * dc,
         );
         let (qb, ub) = (
-            b.q + dqb + b.offset_gradient[0] * dc,
-            b.u + dub + b.offset_gradient[1] * dc,
+            b.q + dqb + b.jacobian[CAL_C][0] * dc,
+            b.u + dub + b.jacobian[CAL_C][1] * dc,
         );
         let d = wrap(0.5 * (ua.atan2(qa) - ub.atan2(qb)).to_degrees() - d0);
         ds.push(d);
@@ -205,9 +212,9 @@ fn sigma_delta_gamma_is_the_scatter_of_draws_and_theta0_cancels() {
         sd(&ds_theta0)
     );
     // The offset's term is there and does not cancel (leaving it out is off by > 10 %).
-    assert!((sigma_delta_gamma_deg(&a, &b, 0.0) / want - 1.0).abs() > 0.1);
+    assert!((sigma_delta_gamma_deg(&a, &b, &offset_covariance(0.0)) / want - 1.0).abs() > 0.1);
     // The folded interval at this S/N is Delta-gamma +- sigma (the fold is far away).
-    let iv = delta_gamma_interval_deg(&a, &b, var_c);
+    let iv = delta_gamma_interval_deg(&a, &b, &cal);
     let dg = d0.abs();
     assert!(
         ((iv[1] - iv[0]) / (2.0 * want) - 1.0).abs() < 0.05,
@@ -225,28 +232,19 @@ fn the_interval_is_skewed_near_zero_and_reproducible() {
         var_u: 1e-5,
         cov_qu: 0.0,
     };
-    let a = StarQu {
-        q: 0.045,
-        u: 0.0,
-        stat: s,
-        offset_gradient: [0.0; 2],
-    };
+    let a = StarQu::with_offset_gradient(0.045, 0.0, s, [0.0; 2]);
     let g = 2.0f64.to_radians();
-    let b = StarQu {
-        q: 0.045 * g.cos(),
-        u: 0.045 * g.sin(),
-        stat: s,
-        offset_gradient: [0.0; 2],
-    };
-    let iv = delta_gamma_interval_deg(&a, &b, 0.0);
+    let b = StarQu::with_offset_gradient(0.045 * g.cos(), 0.045 * g.sin(), s, [0.0; 2]);
+    let none = offset_covariance(0.0);
+    let iv = delta_gamma_interval_deg(&a, &b, &none);
     assert!(
-        iv[0] >= 0.0 && iv[0] < 1.0 && iv[1] > 1.0 + sigma_delta_gamma_deg(&a, &b, 0.0) * 0.9,
+        iv[0] >= 0.0 && iv[0] < 1.0 && iv[1] > 1.0 + sigma_delta_gamma_deg(&a, &b, &none) * 0.9,
         "{iv:?}"
     );
-    assert_eq!(iv, delta_gamma_interval_deg(&a, &b, 0.0));
+    assert_eq!(iv, delta_gamma_interval_deg(&a, &b, &none));
     // Against a folded normal: with true difference 1 deg and sigma ~ 5.9 deg, |N(1, s)|'s
     // 15.87 % and 84.13 % quantiles, computed here by bisection on its CDF.
-    let sig = sigma_delta_gamma_deg(&a, &b, 0.0);
+    let sig = sigma_delta_gamma_deg(&a, &b, &none);
     let cdf = |x: f64| {
         let phi = |z: f64| 0.5 * statrs::function::erf::erfc(-z / std::f64::consts::SQRT_2);
         phi((x - 1.0) / sig) - phi((-x - 1.0) / sig)
@@ -268,4 +266,77 @@ fn the_interval_is_skewed_near_zero_and_reproducible() {
         (iv[0] - lo).abs() < 0.3 && (iv[1] - hi).abs() < 0.3,
         "{iv:?} vs folded normal [{lo}, {hi}]"
     );
+}
+
+/// The telescope's (a, b) subtracted from both stars at the mean parallactic angle eta:
+/// `d(q, u)/da = -(cos 2eta, sin 2eta)`, `d(q, u)/db = (sin 2eta, -cos 2eta)`.
+fn with_telescope(mut s: StarQu, eta_deg: f64) -> StarQu {
+    let e = 2.0 * eta_deg.to_radians();
+    s.jacobian[CAL_TEL_A] = [-e.cos(), -e.sin()];
+    s.jacobian[CAL_TEL_B] = [e.sin(), -e.cos()];
+    s
+}
+
+#[test]
+fn the_telescope_term_is_common_to_both_stars_and_does_not_cancel() {
+    // Two stars 40 deg apart; the telescope's (a, b) known to 0.3 % (correlated with c):
+    // the delta method against the scatter of Delta-gamma over draws of the whole
+    // calibration, each moving both stars by their Jacobians.
+    let (a, b, var_c) = binary();
+    let (a, b) = (with_telescope(a, -140.0), with_telescope(b, -140.0));
+    let mut cal = offset_covariance(var_c);
+    let st = 3.0e-3;
+    cal[CAL_TEL_A][CAL_TEL_A] = st * st;
+    cal[CAL_TEL_B][CAL_TEL_B] = 0.7 * st * st;
+    cal[CAL_TEL_A][CAL_TEL_B] = 0.2 * st * st;
+    cal[CAL_TEL_B][CAL_TEL_A] = 0.2 * st * st;
+    cal[CAL_C][CAL_TEL_A] = -0.6 * st * var_c.sqrt();
+    cal[CAL_TEL_A][CAL_C] = cal[CAL_C][CAL_TEL_A];
+    let want = sigma_delta_gamma_deg(&a, &b, &cal);
+    let without = sigma_delta_gamma_deg(&a, &b, &offset_covariance(var_c));
+    assert!(want > 1.1 * without, "{want} vs {without} without the telescope");
+    let l = cholesky_psd(&cal);
+    let mut r = rng(11);
+    let d0 = 0.5 * (a.u.atan2(a.q) - b.u.atan2(b.q)).to_degrees();
+    let ds: Vec<f64> = (0..200_000)
+        .map(|_| {
+            let (dqa, dua) = draw(&a.stat, &mut r);
+            let (dqb, dub) = draw(&b.stat, &mut r);
+            let z: [f64; 4] = std::array::from_fn(|_| normal(&mut r));
+            let t: [f64; 4] = std::array::from_fn(|i| (0..=i).map(|k| l[i][k] * z[k]).sum());
+            let mv = |s: &StarQu, i: usize| (0..4).map(|k| s.jacobian[k][i] * t[k]).sum::<f64>();
+            let (qa, ua) = (a.q + dqa + mv(&a, 0), a.u + dua + mv(&a, 1));
+            let (qb, ub) = (b.q + dqb + mv(&b, 0), b.u + dub + mv(&b, 1));
+            wrap(0.5 * (ua.atan2(qa) - ub.atan2(qb)).to_degrees() - d0)
+        })
+        .collect();
+    assert!(
+        (want / sd(&ds) - 1.0).abs() < 0.02,
+        "delta method {want} vs MC {}",
+        sd(&ds)
+    );
+    // The interval carries the same term.
+    let iv = delta_gamma_interval_deg(&a, &b, &cal);
+    assert!(
+        ((iv[1] - iv[0]) / (2.0 * want) - 1.0).abs() < 0.05,
+        "{iv:?} vs +- {want}"
+    );
+}
+
+#[test]
+fn cholesky_of_a_calibration_without_some_parameters_reproduces_it() {
+    let mut m = offset_covariance(4e-6);
+    m[CAL_TEL_A][CAL_TEL_A] = 1e-6;
+    m[CAL_TEL_B][CAL_TEL_B] = 2e-6;
+    m[CAL_TEL_A][CAL_TEL_B] = 0.5e-6;
+    m[CAL_TEL_B][CAL_TEL_A] = 0.5e-6;
+    m[CAL_C][CAL_TEL_B] = -1e-6;
+    m[CAL_TEL_B][CAL_C] = -1e-6;
+    let l = cholesky_psd(&m);
+    for i in 0..4 {
+        for j in 0..4 {
+            let llt: f64 = (0..4).map(|k| l[i][k] * l[j][k]).sum();
+            assert!((llt - m[i][j]).abs() < 1e-18, "{i}{j}: {llt} vs {}", m[i][j]);
+        }
+    }
 }

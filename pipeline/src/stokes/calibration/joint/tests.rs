@@ -22,6 +22,7 @@ fn standard(pol: Polarization, posangs: &[f64], theta0: f64, parity: i32, c: f64
         sigma_p: if polarized { 0.1 * pol.p() } else { 0.0005 },
         gamma_deg: pol.gamma_deg(),
         sigma_gamma_deg: 1.0,
+        parallactic_2eta: vec![],
     }
 }
 

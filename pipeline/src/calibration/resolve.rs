@@ -1,0 +1,279 @@
+//! One component re-solved with the night's calibration: the telescope's polarization removed
+//! from each orientation's F, the Stokes solve, and what the calibration's errors do to the
+//! result (its Jacobian in the calibration parameters).
+use sofipol_calib::Profile;
+
+use super::telescope::{self, TELESCOPE_UNCORRECTED};
+use super::FilterCalibration;
+use crate::catalog::{Component, InstrumentalOffset};
+use crate::stokes::calibration::{solve, solve_with_fallback, OrientationF, StokesMethod};
+use crate::stokes::inversion::{Debias, LinearPolarization};
+use crate::stokes::propagation::{
+    self, calibration_covariance_of, rotation_gradient_per_deg, CalibrationJacobian, QuCovariance, CAL_C, CAL_TEL_A,
+    CAL_TEL_B, CAL_THETA0,
+};
+
+/// Step of the central differences in theta0, deg.
+const STEP_THETA0_DEG: f64 = 0.01;
+/// Step of the central differences in the telescope's (a, b).
+const STEP_TEL: f64 = 1e-4;
+
+/// The rotator angle of an analyzer angle under the profile's relation (inverse of
+/// phi = s POSANG + theta0).
+fn posang_of(profile: &Profile, phi: f64) -> f64 {
+    profile.angles.parity as f64 * (phi - profile.angles.zero_point_deg)
+}
+
+/// One usable orientation of a component: POSANG, F, sigma_F and the weighted mean
+/// (cos 2eta, sin 2eta) of its frames' parallactic angles.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct OrientationRow {
+    pub posang_deg: f64,
+    pub f: f64,
+    pub sigma_f: f64,
+    pub parallactic_2eta: Option<[f64; 2]>,
+}
+
+/// The usable orientations of a measured component (its `orientations` field). An
+/// orientation without a finite F, sigma_F or angle (JSON null) is left out.
+pub(super) fn orientation_rows(c: &Component, profile: &Profile) -> Vec<OrientationRow> {
+    let finite = |v: f64| v.is_finite().then_some(v);
+    c.orientations
+        .iter()
+        .flatten()
+        .filter_map(|o| {
+            let pa = o
+                .posang_deg
+                .and_then(finite)
+                .or_else(|| finite(o.analyzer_deg).map(|phi| posang_of(profile, phi)))?;
+            Some(OrientationRow {
+                posang_deg: pa,
+                f: finite(o.f)?,
+                sigma_f: finite(o.sigma_f)?,
+                parallactic_2eta: o.parallactic_2eta.filter(|v| v.iter().all(|x| x.is_finite())),
+            })
+        })
+        .collect()
+}
+
+/// Per-orientation (POSANG, F, sigma_F) of a measured component (its `orientations` field).
+/// An orientation without a finite F, sigma_F or angle (JSON null) is left out.
+pub fn orientation_values(c: &Component, profile: &Profile) -> Vec<(f64, f64, f64)> {
+    orientation_rows(c, profile)
+        .into_iter()
+        .map(|r| (r.posang_deg, r.f, r.sigma_f))
+        .collect()
+}
+
+/// A component's orientations with the calibration's analyzer angles, the telescope's
+/// polarization removed from F when the calibration measured it.
+pub(super) fn calibrated_obs(c: &Component, profile: &Profile, cal: Option<&FilterCalibration>) -> Vec<OrientationF> {
+    let inputs = Inputs::new(c, profile, cal);
+    inputs.obs(0.0, inputs.telescope())
+}
+
+/// Analyzer angle of a rotator angle: the calibration's relation when it has one, else the
+/// profile's.
+fn analyzer(cal: Option<&FilterCalibration>, profile: &Profile, posang: f64) -> f64 {
+    match cal.and_then(|c| c.angles.as_ref()) {
+        Some(a) => a.analyzer_deg(posang),
+        None => profile.angles.analyzer_angle_deg(posang),
+    }
+}
+
+/// A component's orientations under a calibration, with the calibration parameters
+/// perturbed (for the Jacobian): theta0 shifted by `dtheta0`, the telescope's (a, b) =
+/// `tel` removed (`None`: not removed).
+struct Inputs<'a> {
+    rows: Vec<OrientationRow>,
+    cal: Option<&'a FilterCalibration>,
+    profile: &'a Profile,
+}
+
+impl<'a> Inputs<'a> {
+    fn new(c: &Component, profile: &'a Profile, cal: Option<&'a FilterCalibration>) -> Inputs<'a> {
+        Inputs {
+            rows: orientation_rows(c, profile),
+            cal,
+            profile,
+        }
+    }
+
+    /// The telescope's (a, b) to remove: when the calibration measured it and every
+    /// orientation has its frames' parallactic angle.
+    fn telescope(&self) -> Option<[f64; 2]> {
+        self.cal
+            .and_then(|f| f.telescope.as_ref())
+            .map(|t| t.ab())
+            .filter(|_| self.rows.iter().all(|r| r.parallactic_2eta.is_some()))
+    }
+
+    fn obs(&self, dtheta0: f64, tel: Option<[f64; 2]>) -> Vec<OrientationF> {
+        self.rows
+            .iter()
+            .map(|r| {
+                let phi = analyzer(self.cal, self.profile, r.posang_deg) + dtheta0;
+                let t = match (tel, r.parallactic_2eta) {
+                    (Some(ab), Some(eta)) => telescope::telescope_f(ab, phi, eta),
+                    _ => 0.0,
+                };
+                OrientationF {
+                    analyzer_deg: phi,
+                    f: r.f - t,
+                    sigma_f: r.sigma_f,
+                }
+            })
+            .collect()
+    }
+
+    /// (q, u) by `method` (no fallback) with the inputs perturbed.
+    fn qu(&self, method: StokesMethod, dtheta0: f64, tel: Option<[f64; 2]>) -> Option<[f64; 2]> {
+        let offset = self.cal.and_then(|c| c.offset);
+        solve(&self.obs(dtheta0, tel), method, offset)
+            .ok()
+            .map(|s| [s.fit.q, s.fit.u])
+            .filter(|v| v.iter().all(|x| x.is_finite()))
+    }
+
+    /// d(q, u)/d theta0 (per deg) and d(q, u)/d(a, b) by central differences of the same solve.
+    fn jacobian(&self, method: StokesMethod, tel: Option<[f64; 2]>) -> (Option<[f64; 2]>, Option<[[f64; 2]; 2]>) {
+        let diff = |p: Option<[f64; 2]>, m: Option<[f64; 2]>, h: f64| -> Option<[f64; 2]> {
+            let (p, m) = (p?, m?);
+            Some([(p[0] - m[0]) / (2.0 * h), (p[1] - m[1]) / (2.0 * h)])
+        };
+        // theta0 enters through cos and sin: the fourth-order central difference.
+        let h = STEP_THETA0_DEG;
+        let theta0 = (|| {
+            let (p1, m1) = (self.qu(method, h, tel)?, self.qu(method, -h, tel)?);
+            let (p2, m2) = (self.qu(method, 2.0 * h, tel)?, self.qu(method, -2.0 * h, tel)?);
+            Some(std::array::from_fn(|i| {
+                (8.0 * (p1[i] - m1[i]) - (p2[i] - m2[i])) / (12.0 * h)
+            }))
+        })();
+        let tel_gradient = tel.and_then(|[a, b]| {
+            let h = STEP_TEL;
+            let ga = diff(
+                self.qu(method, 0.0, Some([a + h, b])),
+                self.qu(method, 0.0, Some([a - h, b])),
+                h,
+            )?;
+            let gb = diff(
+                self.qu(method, 0.0, Some([a, b + h])),
+                self.qu(method, 0.0, Some([a, b - h])),
+                h,
+            )?;
+            Some([ga, gb])
+        });
+        (theta0, tel_gradient)
+    }
+}
+
+/// Re-solve one component's q, u from its per-orientation F with the calibration (offset,
+/// zero-point, parity, the telescope's polarization) and the chosen method; P, gamma, errors,
+/// the cut and the flags follow. Returns whether the result is uncalibrated.
+pub fn resolve_component(
+    c: &mut Component,
+    profile: &Profile,
+    cal: Option<&FilterCalibration>,
+    method: StokesMethod,
+    debias: Debias,
+    cut_snr: f64,
+) -> bool {
+    let inputs = Inputs::new(c, profile, cal);
+    if inputs.rows.is_empty() {
+        return false;
+    }
+    c.flags.retain(|f| {
+        f != "uncalibrated" && f != "low_snr" && f != TELESCOPE_UNCORRECTED && !f.starts_with("stokes_method_failed")
+    });
+    // The telescope's term is removed only when measured and every orientation has its
+    // frames' parallactic angle.
+    let tel = inputs.telescope();
+    let offset = cal.and_then(|c| c.offset);
+    let obs = inputs.obs(0.0, tel);
+    let sol = match solve_with_fallback(&obs, method, offset) {
+        Ok((s, fell_back)) => {
+            c.flags.extend(fell_back);
+            s
+        }
+        Err(e) => {
+            c.flags.push(format!("stokes_method_failed: {e}"));
+            c.passes_cut = false;
+            return false;
+        }
+    };
+    let (q, u) = (sol.fit.q, sol.fit.u);
+    let stat = QuCovariance {
+        var_q: sol.fit.var_q,
+        var_u: sol.fit.var_u,
+        cov_qu: sol.fit.cov_qu,
+    };
+    // What the calibration adds: J Sigma_cal J^T, J = d(q, u)/d(c, theta0, a, b). c enters
+    // along the offset gradient when an offset was subtracted; theta0 (a rotation, measured
+    // by re-solving) when the calibration has angles; the telescope's (a, b) when removed.
+    let angles = cal.is_some_and(|f| f.angles.is_some());
+    let (theta0_gradient, tel_gradient) = inputs.jacobian(sol.method, tel);
+    let mut jac: CalibrationJacobian = [[0.0; 2]; 4];
+    jac[CAL_C] = sol.offset_gradient.unwrap_or([0.0, 0.0]);
+    jac[CAL_THETA0] = theta0_gradient.unwrap_or_else(|| rotation_gradient_per_deg(q, u));
+    if let Some([ga, gb]) = tel_gradient {
+        (jac[CAL_TEL_A], jac[CAL_TEL_B]) = (ga, gb);
+    }
+    let mut sigma_cal = cal.map(FilterCalibration::covariance_matrix).unwrap_or_default();
+    if sol.offset_gradient.is_none() {
+        // No calibration offset subtracted (cancelled or fitted): its error does not enter.
+        sigma_cal[CAL_C] = [0.0; 4];
+        for row in sigma_cal.iter_mut() {
+            row[CAL_C] = 0.0;
+        }
+    }
+    let zero_point = calibration_covariance_of(&jac, &sigma_cal);
+    let total = stat.plus(&zero_point);
+    let lp = LinearPolarization::from_qu_cov(q, u, &total, debias);
+    let calibrated = sol.offset_gradient.is_some() || angles || tel.is_some();
+    c.pol = lp.pol;
+    c.cov_qu = Some(total.cov_qu);
+    c.cov_qu_stat = Some(stat.cov_qu);
+    c.sigma_q_stat = Some(stat.var_q.max(0.0).sqrt());
+    c.sigma_u_stat = Some(stat.var_u.max(0.0).sqrt());
+    c.sigma_gamma_stat_deg = Some(propagation::sigma_gamma_deg(q, u, &stat));
+    c.sigma_gamma_zero_point_deg = calibrated.then(|| propagation::sigma_gamma_deg(q, u, &zero_point));
+    c.offset_gradient = sol.offset_gradient;
+    c.zero_point_gradient = angles.then_some(jac[CAL_THETA0]);
+    c.telescope_gradient = tel.and(tel_gradient);
+    c.telescope_qu = tel
+        .and_then(|ab| {
+            let etas: Vec<Option<[f64; 2]>> = inputs.rows.iter().map(|r| r.parallactic_2eta).collect();
+            telescope::mean_removed(&obs, &etas, ab)
+        })
+        .map(|p| [p.q, p.u]);
+    if !lp.passes_cut(cut_snr) {
+        c.flags.push("low_snr".into());
+    }
+    // As in reduce::entry: a value from all-flagged dithers, or of a component whose A/B
+    // identity is not established, never passes the cut.
+    c.passes_cut = lp.passes_cut(cut_snr) && !crate::reduce::entry::refused_by_flags(&c.flags);
+    if sol.uncalibrated {
+        c.flags.push("uncalibrated".into());
+    }
+    if tel.is_none() {
+        c.flags.push(TELESCOPE_UNCORRECTED.into());
+    }
+    c.snr = Some(lp.snr);
+    c.sigma_gamma_nkc_deg = Some(lp.sigma_gamma_nkc_deg);
+    c.stokes_method = Some(sol.method.name().to_string());
+    c.instrumental_offset = None;
+    if let Some(o) = sol.offset {
+        c.instrumental_offset = Some(InstrumentalOffset {
+            c: o.c,
+            sigma_c: o.sigma_c,
+            source: if sol.method == StokesMethod::FreeOffset {
+                "fitted"
+            } else {
+                "calibration"
+            }
+            .into(),
+        });
+    }
+    sol.uncalibrated
+}

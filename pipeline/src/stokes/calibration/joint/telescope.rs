@@ -1,0 +1,192 @@
+//! The telescope's own polarization in the joint fit of the standards.
+//!
+//! The tertiary mirror adds to every source the sky-frame polarization
+//! `(q_tel, u_tel) = R(2 eta) (a, b)`, `(a, b) = p_tel (cos 2psi_tel, sin 2psi_tel)`, so an
+//! orientation whose frames have parallactic angles eta sees in F the extra term
+//!
+//! ```text
+//! T = a <cos 2(phi - eta)> + b <sin 2(phi - eta)>
+//!   = a (C cos 2phi + S sin 2phi) + b (C sin 2phi - S cos 2phi),   (C, S) = <(cos 2eta, sin 2eta)>
+//! ```
+//!
+//! (`<>`: the weighted mean over the orientation's frames, as F is). (a, b) join c and theta0
+//! as instrument parameters of the joint fit. Unpolarized standards at different parallactic
+//! angles separate them from c: at one parallactic angle, T is a constant per orientation
+//! that c and the standards' own polarization absorb as well. The fit is kept only when every
+//! instrument parameter is determined on its own: its multiple correlation with the others
+//! at most [`MAX_CORRELATION`], more orientations than instrument parameters, and no second
+//! solution as good.
+use super::{
+    inflation, separation_problem, usable, JointCalibration, JointOptions, Offset, Problem, StandardObservation, Std,
+    CAL_C, CAL_TEL_A, CAL_TEL_B, CAL_THETA0, MAX_CORRELATION, PARITY_DCHI2,
+};
+use crate::stokes::calibration::AngleCalibration;
+use crate::stokes::model::TelescopePolarization;
+
+/// The joint fit with the telescope's term, from the fit without it (`base`: its parity, and
+/// whether it fitted theta0). `Err` says why the standards cannot measure the telescope.
+pub(super) fn refit<'a>(
+    stds: &'a [StandardObservation],
+    opts: &JointOptions,
+    base: &JointCalibration,
+) -> Result<JointCalibration, String> {
+    let angles = base.angles;
+    let all = usable(stds);
+    let chosen: Vec<Std<'_>> = if angles.is_some() {
+        all
+    } else {
+        // c from the unpolarized standards only (as without the telescope's term), with the
+        // profile's analyzer angles.
+        all.into_iter().filter(|s| !s.obs.polarized()).collect()
+    };
+    if chosen.is_empty() {
+        return Err("no unpolarized standard, and the polarized ones do not fix theta0".into());
+    }
+    let missing = chosen
+        .iter()
+        .filter(|s| s.rows.iter().any(|r| r.parallactic_2eta.is_none()))
+        .count();
+    if missing > 0 {
+        return Err(format!(
+            "{missing} standard(s) without a parallactic angle in their frames (TEL PARANG)"
+        ));
+    }
+    let problem = |parity: i32, stds: Vec<Std<'a>>| Problem {
+        stds,
+        parity: parity as f64,
+        fit_theta0: angles.is_some(),
+        theta0_fixed: opts.profile_theta0_deg,
+        fit_telescope: true,
+    };
+    // The parity chosen again with the telescope's term in the model (without it, a
+    // telescope polarization large against the errors can make the wrong parity fit better).
+    let n_pol = chosen.iter().filter(|s| s.obs.polarized()).count();
+    let (parity, parity_measured) = if angles.is_some() && n_pol >= 2 {
+        let chi2 = |p: i32| problem(p, usable(stds).into_iter().collect()).solve().map(|s| s.0.chi2);
+        match (chi2(1), chi2(-1)) {
+            (Some(a), Some(b)) if (a - b).abs() > PARITY_DCHI2 => (if a <= b { 1 } else { -1 }, true),
+            _ => (opts.default_parity, false),
+        }
+    } else {
+        (
+            angles.map_or(opts.default_parity, |a| a.parity),
+            angles.is_some_and(|a| a.parity_measured),
+        )
+    };
+    let pb = problem(parity, chosen);
+    let what = describe(&pb);
+    let n_inst = pb.n_inst();
+    if pb.n_data() <= n_inst {
+        return Err(format!(
+            "{what}: no more orientations than the {n_inst} instrument parameters"
+        ));
+    }
+    let (best, others) = pb.solve().ok_or_else(|| {
+        format!("{what}: the normal matrix is singular (the telescope's term is not separable from c)")
+    })?;
+    if let Some(why) = separation_problem(&pb, &best, &others) {
+        return Err(why);
+    }
+    let names = if pb.fit_theta0 {
+        vec!["c", "theta0", "a", "b"]
+    } else {
+        vec!["c", "a", "b"]
+    };
+    if let Some((k, r)) = worst_multiple_correlation(&best.cov, n_inst) {
+        if r > MAX_CORRELATION {
+            return Err(format!(
+                "{what}: {} is not determined on its own (multiple correlation {r:.3} with the other \
+                 instrument parameters, beyond {MAX_CORRELATION}); observe unpolarized standards at \
+                 parallactic angles further apart",
+                names[k]
+            ));
+        }
+    }
+    let dof = pb.n_data() - n_inst;
+    let k = inflation(best.chi2, dof);
+    let it = pb.i_tel();
+    let index = |i: usize| match (pb.fit_theta0, i) {
+        (_, 0) => CAL_C,
+        (true, 1) => CAL_THETA0,
+        (_, i) if i == it => CAL_TEL_A,
+        _ => CAL_TEL_B,
+    };
+    let mut covariance = [[0.0; 4]; 4];
+    for i in 0..n_inst {
+        for j in 0..n_inst {
+            covariance[index(i)][index(j)] = best.cov[i][j] * k;
+        }
+    }
+    let (a, b) = (best.x[it], best.x[it + 1]);
+    let ids = |pol: bool| {
+        pb.stds
+            .iter()
+            .filter(|s| !pol || s.obs.polarized())
+            .map(|s| s.index)
+            .collect::<Vec<usize>>()
+    };
+    Ok(JointCalibration {
+        offset: Some(Offset {
+            c: best.x[0],
+            sigma_c: covariance[CAL_C][CAL_C].sqrt(),
+        }),
+        angles: angles.map(|a| AngleCalibration {
+            theta0_deg: best.x[1],
+            sigma_theta0_deg: covariance[CAL_THETA0][CAL_THETA0].sqrt(),
+            parity,
+            parity_measured,
+            ..a
+        }),
+        cov_c_theta0_deg: angles.map(|_| covariance[CAL_C][CAL_THETA0]),
+        chi2: best.chi2,
+        dof,
+        incomplete: base.incomplete.clone(),
+        offset_from: ids(false),
+        angles_from: if angles.is_some() { ids(true) } else { vec![] },
+        telescope: Some(TelescopePolarization {
+            p_tel: a.hypot(b),
+            psi_tel_deg: crate::stokes::model::normalize_axial_deg(0.5 * b.atan2(a).to_degrees()),
+        }),
+        telescope_problem: None,
+        covariance,
+    })
+}
+
+/// The largest multiple correlation of one of the first `n` parameters with the other
+/// `n - 1`, `R_k^2 = 1 - 1/(Sigma_kk (Sigma^-1)_kk)` on the `n x n` block: (index, R).
+fn worst_multiple_correlation(cov: &[Vec<f64>], n: usize) -> Option<(usize, f64)> {
+    let block: Vec<Vec<f64>> = (0..n).map(|i| cov[i][..n].to_vec()).collect();
+    let Some(inv) = super::invert_spd(&block) else {
+        return Some((0, 1.0));
+    };
+    (0..n)
+        .map(|k| (k, (1.0 - 1.0 / (block[k][k] * inv[k][k])).max(0.0).sqrt()))
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+}
+
+/// "N orientation(s) of M standard(s) whose parallactic angles span X deg".
+fn describe(pb: &Problem) -> String {
+    let mut etas: Vec<f64> = pb
+        .stds
+        .iter()
+        .flat_map(|s| s.rows.iter())
+        .filter_map(|r| r.parallactic_2eta)
+        .map(|[c, s]| (0.5 * s.atan2(c).to_degrees()).rem_euclid(180.0))
+        .collect();
+    etas.sort_by(f64::total_cmp);
+    // The smallest arc of the 180-deg circle holding every angle: 180 minus the largest gap.
+    let largest_gap = etas
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .chain(etas.first().zip(etas.last()).map(|(f, l)| f + 180.0 - l))
+        .fold(0.0, f64::max);
+    format!(
+        "{} orientation(s) of {} standard(s) whose parallactic angles span {:.1} deg (mod 180)",
+        pb.n_data(),
+        pb.stds.len(),
+        (180.0 - largest_gap).max(0.0)
+    )
+}
+
+#[cfg(test)]
+mod tests;

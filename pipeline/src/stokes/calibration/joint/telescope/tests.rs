@@ -1,0 +1,293 @@
+//! The joint fit with the telescope's term against standards made with the forward model
+//! (`TelescopePolarization::at` added to each star's sky-frame polarization), noiseless and
+//! over noise draws.
+use super::super::{fit_joint_with, inflation, JointOptions};
+use crate::stokes::calibration::{OrientationF, StandardObservation};
+use crate::stokes::model::{normalized_difference, Polarization, TelescopePolarization};
+use crate::stokes::propagation::{CAL_C, CAL_TEL_A, CAL_TEL_B, CAL_THETA0};
+use rand::{RngExt, SeedableRng};
+use rand_distr::StandardNormal;
+
+const TWO: [f64; 2] = [0.0, 45.0];
+
+/// The night's instrument: offset, zero-point, parity, telescope.
+#[derive(Clone, Copy)]
+struct Instrument {
+    c: f64,
+    theta0: f64,
+    parity: i32,
+    tel: TelescopePolarization,
+}
+
+const NTT: Instrument = Instrument {
+    c: 0.0182,
+    theta0: 3.0,
+    parity: 1,
+    tel: TelescopePolarization {
+        p_tel: 0.006,
+        psi_tel_deg: 25.0,
+    },
+};
+
+/// A standard observed at rotator angles `posangs`, orientation i at parallactic angle
+/// `eta[i]`: F = (star + telescope at eta) at phi = s PA + theta0, plus c.
+fn standard(star: Polarization, posangs: &[f64], eta: &[f64], ins: Instrument, sigma_f: f64) -> StandardObservation {
+    let polarized = star.p() > 0.0;
+    StandardObservation {
+        name: "S".into(),
+        posang_deg: posangs.to_vec(),
+        f: posangs
+            .iter()
+            .zip(eta)
+            .map(|(&pa, &e)| OrientationF {
+                analyzer_deg: f64::NAN,
+                f: normalized_difference(star.add(ins.tel.at(e)), ins.parity as f64 * pa + ins.theta0) + ins.c,
+                sigma_f,
+            })
+            .collect(),
+        p: star.p(),
+        sigma_p: if polarized { 0.1 * star.p() } else { 0.0005 },
+        gamma_deg: star.gamma_deg(),
+        sigma_gamma_deg: 1.0,
+        parallactic_2eta: eta
+            .iter()
+            .map(|e| Some([(2.0 * e.to_radians()).cos(), (2.0 * e.to_radians()).sin()]))
+            .collect(),
+    }
+}
+
+fn opts(ins: Instrument) -> JointOptions {
+    JointOptions {
+        default_parity: ins.parity,
+        profile_theta0_deg: 0.0,
+        fit_telescope: true,
+    }
+}
+
+/// Six standards over a night: four unpolarized, two polarized, parallactic angles spread
+/// (each orientation a few degrees on from the previous one).
+fn six_standards(ins: Instrument, sigma_f: f64) -> Vec<StandardObservation> {
+    let unpol = Polarization::default();
+    [
+        (unpol, -150.0),
+        (Polarization::from_p_gamma(0.025, 40.0), -100.0),
+        (unpol, -40.0),
+        (unpol, 20.0),
+        (Polarization::from_p_gamma(0.02, 100.0), 75.0),
+        (unpol, 140.0),
+    ]
+    .iter()
+    .map(|&(star, eta)| standard(star, &TWO, &[eta, eta + 4.0], ins, sigma_f))
+    .collect()
+}
+
+fn axial_diff(a: f64, b: f64) -> f64 {
+    (a - b + 90.0).rem_euclid(180.0) - 90.0
+}
+
+#[test]
+fn noiseless_standards_at_spread_parallactic_angles_give_the_telescope_exactly() {
+    for parity in [1, -1] {
+        for (c, theta0, p_tel, psi) in [(0.0182, 3.0, 0.006, 25.0), (-0.011, 171.0, 0.009, 140.0)] {
+            let ins = Instrument {
+                c,
+                theta0,
+                parity,
+                tel: TelescopePolarization {
+                    p_tel,
+                    psi_tel_deg: psi,
+                },
+            };
+            let j = fit_joint_with(&six_standards(ins, 3e-4), &opts(ins)).unwrap();
+            assert!(j.telescope_problem.is_none(), "{:?}", j.telescope_problem);
+            let t = j.telescope.unwrap();
+            assert!((t.p_tel - p_tel).abs() < 1e-10, "p_tel {} vs {p_tel}", t.p_tel);
+            assert!(
+                axial_diff(t.psi_tel_deg, psi).abs() < 1e-7,
+                "psi {} vs {psi}",
+                t.psi_tel_deg
+            );
+            assert!((j.offset.unwrap().c - c).abs() < 1e-10);
+            assert!(axial_diff(j.angles.unwrap().theta0_deg, theta0).abs() < 1e-7);
+            assert!(j.chi2 < 1e-12, "{}", j.chi2);
+            for k in [CAL_C, CAL_THETA0, CAL_TEL_A, CAL_TEL_B] {
+                assert!(j.covariance[k][k] > 0.0, "{k}: {:?}", j.covariance);
+            }
+        }
+    }
+}
+
+#[test]
+fn unpolarized_standards_alone_measure_the_telescope_in_the_profiles_frame() {
+    // No polarized standard: theta0 is the profile's (here the truth, 3 deg), the
+    // telescope's term is fitted at the profile's analyzer angles.
+    let ins = NTT;
+    let stds: Vec<StandardObservation> = [-150.0, -60.0, 10.0, 95.0]
+        .iter()
+        .map(|&e| standard(Polarization::default(), &TWO, &[e, e + 3.0], ins, 3e-4))
+        .collect();
+    let j = fit_joint_with(
+        &stds,
+        &JointOptions {
+            profile_theta0_deg: ins.theta0,
+            ..opts(ins)
+        },
+    )
+    .unwrap();
+    assert!(j.angles.is_none());
+    let t = j.telescope.expect("telescope measured");
+    assert!(
+        (t.p_tel - 0.006).abs() < 1e-10 && axial_diff(t.psi_tel_deg, 25.0).abs() < 1e-7,
+        "{t:?}"
+    );
+    assert!((j.offset.unwrap().c - ins.c).abs() < 1e-10);
+}
+
+#[test]
+fn standards_at_one_parallactic_angle_cannot_separate_the_telescope_from_c() {
+    // Every standard within 2 deg of eta = -150: the telescope's term is a constant per
+    // orientation, which c and the stars' own polarization absorb.
+    let ins = NTT;
+    let mut stds = six_standards(ins, 3e-4);
+    for (i, s) in stds.iter_mut().enumerate() {
+        let e = -150.0 + 0.3 * i as f64;
+        *s = standard(
+            if s.polarized() {
+                Polarization::from_p_gamma(s.p, s.gamma_deg)
+            } else {
+                Polarization::default()
+            },
+            &TWO,
+            &[e, e + 0.5],
+            ins,
+            3e-4,
+        );
+    }
+    let j = fit_joint_with(&stds, &opts(ins)).unwrap();
+    assert!(j.telescope.is_none());
+    let why = j.telescope_problem.expect("a reason");
+    assert!(why.contains("span") && why.contains("deg"), "{why}");
+    // The fit without the telescope's term is kept (c and theta0 as before, biased by it).
+    assert!(j.offset.is_some() && j.angles.is_some());
+    assert_eq!(j.covariance[CAL_TEL_A][CAL_TEL_A], 0.0);
+    // Without parallactic angles the reason says so.
+    for s in &mut stds {
+        s.parallactic_2eta.clear();
+    }
+    let why = fit_joint_with(&stds, &opts(ins)).unwrap().telescope_problem.unwrap();
+    assert!(why.contains("parallactic angle"), "{why}");
+    // Too few: one unpolarized standard at two orientations (2 data, 3 unknowns).
+    let one = [standard(Polarization::default(), &TWO, &[-20.0, 40.0], ins, 3e-4)];
+    let j = fit_joint_with(&one, &opts(ins)).unwrap();
+    assert!(j.telescope.is_none(), "{j:?}");
+    assert!(j.telescope_problem.unwrap().contains("no more orientations"));
+}
+
+/// Over noise draws (F, the polarized standards' table values, the unpolarized ones'
+/// residual polarization), the fitted (c, theta0, a, b) scatter as their reported
+/// covariance says (inflation divided out), and are unbiased.
+#[test]
+fn the_covariance_with_the_telescope_matches_the_scatter_of_the_estimates() {
+    let ins = NTT;
+    let sigma_f = 3e-4;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(20261126);
+    let mut gauss = || -> f64 { rng.sample(StandardNormal) };
+    let n = 4000;
+    let template = six_standards(ins, sigma_f);
+    let mut est: Vec<[f64; 4]> = Vec::with_capacity(n);
+    let mut reported = [[0.0; 4]; 4];
+    for _ in 0..n {
+        let stds: Vec<StandardObservation> = template
+            .iter()
+            .map(|t| {
+                let eta: Vec<f64> = t
+                    .parallactic_2eta
+                    .iter()
+                    .map(|v| 0.5 * v.unwrap()[1].atan2(v.unwrap()[0]).to_degrees())
+                    .collect();
+                let (star, mut s) = if t.polarized() {
+                    let star = Polarization::from_p_gamma(t.p, t.gamma_deg);
+                    let mut s = standard(star, &TWO, &eta, ins, sigma_f);
+                    s.p = t.p + t.sigma_p * gauss();
+                    s.gamma_deg = t.gamma_deg + t.sigma_gamma_deg * gauss();
+                    (star, s)
+                } else {
+                    let k = t.sigma_p / 2f64.sqrt();
+                    let star = Polarization {
+                        q: k * gauss(),
+                        u: k * gauss(),
+                    };
+                    // Observed with its residual polarization; the table says 0 +- sigma_p.
+                    let s = StandardObservation {
+                        p: 0.0,
+                        sigma_p: t.sigma_p,
+                        gamma_deg: 0.0,
+                        ..standard(star, &TWO, &eta, ins, sigma_f)
+                    };
+                    (star, s)
+                };
+                let _ = star;
+                for o in &mut s.f {
+                    o.f += sigma_f * gauss();
+                }
+                s.p = s.p.max(0.0);
+                s
+            })
+            .collect();
+        let j = fit_joint_with(&stds, &opts(ins)).unwrap();
+        let t = j.telescope.unwrap_or_else(|| panic!("{:?}", j.telescope_problem));
+        let [a, b] = t.ab();
+        est.push([
+            j.offset.unwrap().c,
+            ins.theta0 + axial_diff(j.angles.unwrap().theta0_deg, ins.theta0),
+            a,
+            b,
+        ]);
+        if reported[0][0] == 0.0 {
+            let k = inflation(j.chi2, j.dof);
+            reported = j.covariance.map(|row| row.map(|v| v / k));
+        }
+    }
+    let truth = {
+        let [a, b] = ins.tel.ab();
+        [ins.c, ins.theta0, a, b]
+    };
+    let mean: [f64; 4] = std::array::from_fn(|k| est.iter().map(|e| e[k]).sum::<f64>() / n as f64);
+    let cov =
+        |i: usize, j: usize| est.iter().map(|e| (e[i] - mean[i]) * (e[j] - mean[j])).sum::<f64>() / (n - 1) as f64;
+    let names = ["c", "theta0", "a", "b"];
+    for k in 0..4 {
+        let ratio = cov(k, k) / reported[k][k];
+        eprintln!(
+            "{}: mean - truth {:+.2e} (MC error {:.1e}); var scatter/fit {ratio:.3}",
+            names[k],
+            mean[k] - truth[k],
+            (cov(k, k) / n as f64).sqrt()
+        );
+        assert!((ratio - 1.0).abs() < 0.07, "{}: scatter/fit = {ratio}", names[k]);
+        assert!(
+            (mean[k] - truth[k]).abs() < 4.0 * (cov(k, k) / n as f64).sqrt(),
+            "{} biased: {} vs {}",
+            names[k],
+            mean[k],
+            truth[k]
+        );
+    }
+    for (i, j) in [
+        (CAL_C, CAL_TEL_A),
+        (CAL_C, CAL_TEL_B),
+        (CAL_TEL_A, CAL_TEL_B),
+        (CAL_C, CAL_THETA0),
+    ] {
+        let corr_mc = cov(i, j) / (cov(i, i) * cov(j, j)).sqrt();
+        let corr_fit = reported[i][j] / (reported[i][i] * reported[j][j]).sqrt();
+        eprintln!(
+            "corr({}, {}): scatter {corr_mc:.3}, fit {corr_fit:.3}",
+            names[i], names[j]
+        );
+        assert!(
+            (corr_mc - corr_fit).abs() < 0.05,
+            "corr {i}{j}: {corr_mc} vs {corr_fit}"
+        );
+    }
+}
