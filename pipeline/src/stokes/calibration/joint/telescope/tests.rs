@@ -291,3 +291,40 @@ fn the_covariance_with_the_telescope_matches_the_scatter_of_the_estimates() {
         );
     }
 }
+
+/// How well a night measures the telescope: N standards (one in three polarized) at
+/// parallactic angles spread evenly over [-150, 150] deg, sigma_F = 3e-4 per orientation,
+/// 0/45. The errors come from the fit's covariance (noiseless data: no inflation). Quoted in
+/// docs/calibration.md.
+#[test]
+fn the_telescope_is_measured_better_with_more_standards() {
+    let ins = NTT;
+    let mut last = f64::INFINITY;
+    for n in [3usize, 6, 10] {
+        let stds: Vec<StandardObservation> = (0..n)
+            .map(|i| {
+                let eta = -150.0 + 300.0 * i as f64 / (n - 1) as f64;
+                let star = if i % 3 == 1 {
+                    Polarization::from_p_gamma(0.008, 40.0 + 30.0 * i as f64)
+                } else {
+                    Polarization::default()
+                };
+                standard(star, &TWO, &[eta, eta + 3.0], ins, 3e-4)
+            })
+            .collect();
+        let j = fit_joint_with(&stds, &opts(ins)).unwrap();
+        let t = j.telescope.unwrap_or_else(|| panic!("{n}: {:?}", j.telescope_problem));
+        let tc = crate::calibration::TelescopeCalibration::from_fit(&t, &j.covariance);
+        eprintln!(
+            "{n} standards: p_tel = {:.3} +- {:.3} %, psi_tel = {:.1} +- {:.1} deg; sigma_c = {:.5}, sigma_theta0 = {:.2} deg",
+            100.0 * tc.p_tel,
+            100.0 * tc.sigma_p_tel,
+            tc.psi_tel_deg,
+            tc.sigma_psi_tel_deg,
+            j.covariance[CAL_C][CAL_C].sqrt(),
+            j.covariance[CAL_THETA0][CAL_THETA0].sqrt()
+        );
+        assert!(tc.sigma_p_tel < last, "{n}: {} not below {last}", tc.sigma_p_tel);
+        last = tc.sigma_p_tel;
+    }
+}
