@@ -329,3 +329,73 @@ fn impossible_pointings_are_refused_naming_the_target_and_key() {
     assert!(e.contains("S1") && e.contains("S2") && e.contains("02:05:00"), "{e}");
     assert_eq!(err(&std("dec_deg = -30.0\nhour_angle_h = 2.0")), "");
 }
+
+/// Per standard of a scene: (name, TPL START, circular mean of its frames' eta in deg).
+fn standards_eta(text: &str) -> Vec<(String, String, f64)> {
+    let sim = Simulator::new(Scene::from_toml(text, "scene").unwrap(), Profile::sofi()).unwrap();
+    let sc = sim.scene();
+    (sc.binary.len()..sim.n_sequences())
+        .map(|t| {
+            let plan = sim.sequence_plan(t);
+            let (mut c, mut s) = (0.0, 0.0);
+            for k in 0..sim.frames_per_target() {
+                let (a, b) = schedule::exposure_pointing(sc, plan, k);
+                let eta = pointing::mean_angle_deg(a.parang_deg, b.parang_deg).to_radians();
+                (c, s) = (c + eta.cos(), s + eta.sin());
+            }
+            let name = sc.standard[t - sc.binary.len()].name.clone();
+            (name, plan.tpl_start.clone(), f64::atan2(s, c).to_degrees())
+        })
+        .collect()
+}
+
+/// The arc of the circle that the angles 2 eta cover: 360 deg minus the largest gap.
+fn two_eta_coverage_deg(etas: &[f64]) -> f64 {
+    let mut a: Vec<f64> = etas.iter().map(|e| (2.0 * e).rem_euclid(360.0)).collect();
+    a.sort_by(f64::total_cmp);
+    let gap = a
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .fold(a[0] + 360.0 - a[a.len() - 1], f64::max);
+    360.0 - gap
+}
+
+#[test]
+fn telescope_polarization_nights_spread_or_bunch_their_standards_parallactic_angles() {
+    let table = sofipol_pipeline::standards::StandardsTable::builtin();
+    let wide = include_str!("../../testdata/scenes/telpol_night.toml");
+    let same = include_str!("../../testdata/scenes/telpol_night_same_eta.toml");
+    for text in [wide, same] {
+        let sc = Scene::from_toml(text, "scene").unwrap();
+        let tel = sc.telescope_polarization.clone().unwrap();
+        assert!(sc.effects.iter().any(|e| e.name() == "telescope_polarization") && tel.p_tel == 0.006);
+        assert_eq!(sc.standard.len(), 6);
+        assert!(sc.binary.len() >= 3);
+        // The standards are table entries with the table's values, both kinds.
+        let mut pol = 0;
+        for s in &sc.standard {
+            let e = table
+                .find(&s.name, &sc.observation.filter)
+                .expect("in the built-in table");
+            assert!((s.p - e.p).abs() < 1e-12 && (e.p == 0.0 || (s.gamma_deg - e.gamma_deg).abs() < 1e-12));
+            pol += (e.p > 0.0) as usize;
+        }
+        assert!((2..=4).contains(&pol), "{pol} polarized standards");
+    }
+    let w = standards_eta(wide);
+    let s = standards_eta(same);
+    for (name, start, eta) in w.iter().chain(&s) {
+        eprintln!("{name:10} {start} eta {eta:7.1}");
+    }
+    let cover = |v: &[(String, String, f64)]| two_eta_coverage_deg(&v.iter().map(|x| x.2).collect::<Vec<_>>());
+    // Spread over the night: 2 eta covers far more than 90 deg; bunched: less than 15 deg.
+    assert!(cover(&w) > 180.0, "2 eta covers {}", cover(&w));
+    assert!(cover(&s) < 15.0, "2 eta covers {}", cover(&s));
+    // Over the night, hours apart.
+    let hours = |v: &[(String, String, f64)]| {
+        let t: Vec<&str> = v.iter().map(|x| x.1.as_str()).collect();
+        (t[0].to_string(), t[t.len() - 1].to_string())
+    };
+    assert_eq!(hours(&w), hours(&s));
+    assert_eq!(hours(&w), ("1999-03-03T00:30:00".into(), "1999-03-03T08:00:00".into()));
+}
