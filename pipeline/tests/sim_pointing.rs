@@ -303,7 +303,7 @@ fn sequences_follow_each_other_around_fixed_starts_and_default_pointings_are_hig
 
 #[test]
 fn impossible_pointings_are_refused_naming_the_target_and_key() {
-    let err = |st: &str| match Scene::from_toml(&format!("name = \"x\"\n{st}"), "s") {
+    let err = |st: &str| match Scene::from_toml(&format!("name = \"x\"\n{st}"), "night.toml") {
         Err(e) => e.to_string(),
         Ok(sc) => match Simulator::new(sc, Profile::sofi()) {
             Err(e) => e.to_string(),
@@ -319,14 +319,20 @@ fn impossible_pointings_are_refused_naming_the_target_and_key() {
     assert!(e.contains("start_ut") && e.contains("late"), "{e}");
     // Dec +70 never rises at La Silla (at most 90 - 70 - 29.26 = -9.3 deg).
     let e = err(&std("dec_deg = 70.0"));
-    assert!(e.contains("S1") && e.contains("below the horizon"), "{e}");
+    assert!(
+        e.contains("night.toml") && e.contains("S1") && e.contains("below the horizon"),
+        "{e}"
+    );
     // Two fixed sequences 5 min apart overlap.
     let two = format!(
         "{}[[standard]]\nname = \"S2\"\nflux = 1.0\nstart_ut = \"02:05:00\"\n",
         std("start_ut = \"02:00:00\"")
     );
     let e = err(&two);
-    assert!(e.contains("S1") && e.contains("S2") && e.contains("02:05:00"), "{e}");
+    assert!(
+        e.contains("night.toml") && e.contains("S1") && e.contains("S2") && e.contains("02:05:00"),
+        "{e}"
+    );
     assert_eq!(err(&std("dec_deg = -30.0\nhour_angle_h = 2.0")), "");
 }
 

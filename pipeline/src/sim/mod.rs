@@ -131,10 +131,8 @@ impl Simulator {
                 start_ut: st.start_ut.clone(),
             }))
             .collect();
-        // When each sequence starts and where it points.
-        let keys: Vec<(&str, schedule::TargetPointing)> =
-            targets.iter().map(|b| (b.name.as_str(), b.pointing())).collect();
-        let plan = schedule::plan_sequences(&scene, &keys)?;
+        // When each sequence starts and where it points (binaries, then standards).
+        let plan = scene.plan()?;
         Ok(Simulator {
             scene,
             profile,

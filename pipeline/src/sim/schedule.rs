@@ -80,6 +80,17 @@ impl Scene {
         nframes as f64 * (self.exposure_s() + o.overhead_s) + SEQUENCE_OVERHEAD_S
     }
 
+    /// The plan of every sequence: binaries, then standards ([`plan_sequences`]).
+    pub fn plan(&self) -> Result<Vec<SequencePlan>> {
+        let keys: Vec<(&str, TargetPointing)> = self
+            .binary
+            .iter()
+            .map(|b| (b.name.as_str(), b.pointing()))
+            .chain(self.standard.iter().map(|s| (s.name.as_str(), s.pointing())))
+            .collect();
+        plan_sequences(self, &keys)
+    }
+
     /// MJD of the observation's start (`date`, `start_ut`).
     pub fn start_mjd(&self) -> Result<f64> {
         let o = &self.observation;

@@ -122,7 +122,9 @@ impl Scene {
                 return Err(invalid(format!("dome_flats: lamp_p = {} must be in [0, 1)", d.lamp_p)));
             }
         }
-        Ok(())
+        // When and where every sequence is observed: fixed starts that overlap and targets
+        // below the horizon are refused here, so that the error names the scene file.
+        self.plan().map(|_| ())
     }
 }
 
