@@ -20,6 +20,7 @@
 //! | effects | psf, sky (gradient, 3 % level changes), strips, photon and read noise, bad pixels, transparency, pointing error, cosmic rays |
 //! | instrument (one per night) | 1 % pixel response + 5 % vignetting (one detector: `detector_seed`), k = T_e/T_o 0.96-0.99, instrumental polarization 0.3 %, analyzer zero-point -5..5 deg and parity +-1, non-linearity, saturation |
 //! | calibration | dome flats and 2 unpolarized + 2 polarized standards of the same night and detector, reduced and applied as `sofipol night` does |
+//! | telescope (off by default) | with `telescope_polarization`: p_tel 0-1 %, psi_tel 0-180 deg for the night; with `spread_standards`: the standards hours apart at spread parallactic angles |
 //!
 //! Pulls are `(q - q_true)/sigma_q` and `(u - u_true)/sigma_u` of both components; the A/B
 //! labels of the catalog are matched to the truth by position angle, and a swap of a pair
@@ -38,6 +39,7 @@ use sofipol_pipeline::night::{self, Hooks, NightSetup, RunOptions};
 use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sim::{Scene, Simulator, TargetTruth};
 use sofipol_pipeline::standards::StandardsTable;
+use sofipol_pipeline::stokes::model::TelescopePolarization;
 
 /// A/B swaps of pairs fainter than this flux ratio B/A are labelling errors (closer to
 /// equal, noise may legitimately reorder them).
@@ -68,7 +70,24 @@ pub struct WorldConfig {
     pub nonlinearity: bool,
     /// Every this many targets of a bin has a saturated primary (2e6-4e6 ADU; 0: none).
     pub saturated_every: usize,
+    /// The telescope's polarization (effect `telescope_polarization`) in every scene, drawn
+    /// once for the night: p_tel uniform in [0, 1 %), psi_tel uniform in [0, 180) deg.
+    pub telescope_polarization: bool,
+    /// The night's standards observed hours apart at hour angles and declinations
+    /// ([`SPREAD_STANDARDS`]) that spread their parallactic angles, instead of one after
+    /// another at pointings drawn from their names.
+    pub spread_standards: bool,
 }
+
+/// (start UT, Dec, hour angle at the start in h) of the four standards of the world night
+/// with `spread_standards`: mean parallactic angles -56, 57, 114 and -149 deg (2 eta covers
+/// 187 deg of the circle).
+pub const SPREAD_STANDARDS: [(&str, f64, f64); 4] = [
+    ("01:00:00", -50.0, -2.0),
+    ("03:00:00", -40.0, 1.0),
+    ("05:00:00", -20.0, 2.0),
+    ("07:00:00", -10.0, -1.0),
+];
 
 impl WorldConfig {
     /// The default draw, frames under `work_dir`.
@@ -84,6 +103,8 @@ impl WorldConfig {
             ellipticity: true,
             nonlinearity: true,
             saturated_every: 6,
+            telescope_polarization: false,
+            spread_standards: false,
         }
     }
 }
@@ -175,6 +196,9 @@ pub struct Instrument {
     pub zero_point_deg: f64,
     /// True analyzer parity (the profile says +1).
     pub parity: i32,
+    /// The telescope's polarization (with `telescope_polarization`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub telescope: Option<TelescopePolarization>,
 }
 
 /// Draw the night's instrument from the seed.
@@ -186,6 +210,14 @@ pub fn draw_instrument(cfg: &WorldConfig) -> Instrument {
         p_inst_angle_deg: 180.0 * r.random::<f64>(),
         zero_point_deg: -5.0 + 10.0 * r.random::<f64>(),
         parity: if r.random::<f64>() < 0.5 { 1 } else { -1 },
+        // Its own stream: the draws above do not depend on it.
+        telescope: cfg.telescope_polarization.then(|| {
+            let mut r = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(cfg.seed ^ 0x7E1E_5C0E);
+            TelescopePolarization {
+                p_tel: 0.01 * r.random::<f64>(),
+                psi_tel_deg: 180.0 * r.random::<f64>(),
+            }
+        }),
     }
 }
 
@@ -213,10 +245,19 @@ fn night_sections(cfg: &WorldConfig, inst: &Instrument) -> (String, String) {
             inst.k, inst.p_inst, inst.p_inst_angle_deg, inst.zero_point_deg, inst.parity
         );
     }
+    if let Some(t) = &inst.telescope {
+        effects += r#", "telescope_polarization""#;
+        sections += &format!(
+            "[telescope_polarization]\np_tel = {}\npsi_tel_deg = {}\n",
+            t.p_tel, t.psi_tel_deg
+        );
+    }
     (effects, sections)
 }
 
-fn draw_scene(
+/// Draw the scene of target `t` of bin `bin` (separations `lo`..`hi`): the scene, its
+/// conditions and the flux ratio B/A.
+pub fn draw_scene(
     cfg: &WorldConfig,
     inst: &Instrument,
     bin: usize,
@@ -317,9 +358,16 @@ sigma_gamma_deg = 0.1
 
 /// The calibration scene of the world night: two unpolarized standards of the built-in
 /// table and two polarized ones ([`WORLD_STANDARDS`]), observed at 0/45/90/135, and dome
-/// flats at those angles, through the same detector and instrument as the targets.
-fn calibration_scene(cfg: &WorldConfig, inst: &Instrument) -> Scene {
+/// flats at those angles, through the same detector and instrument as the targets (with
+/// `spread_standards`, at the times and pointings of [`SPREAD_STANDARDS`]).
+pub fn calibration_scene(cfg: &WorldConfig, inst: &Instrument) -> Scene {
     let (effects, sections) = night_sections(cfg, inst);
+    let at = |i: usize| match SPREAD_STANDARDS[i] {
+        (ut, dec, h) if cfg.spread_standards => {
+            format!("start_ut = \"{ut}\"\ndec_deg = {dec}\nhour_angle_h = {h}\n")
+        }
+        _ => String::new(),
+    };
     let text = format!(
         r#"name = "worldcal"
 seed = {seed}
@@ -332,20 +380,24 @@ dithers = 3
 [[standard]]
 name = "HD 64299"
 flux = 150000.0
-[[standard]]
+{at0}[[standard]]
 name = "HD_98161"
 flux = 150000.0
-[[standard]]
+{at1}[[standard]]
 name = "World Pol A"
 flux = 150000.0
 p = 0.025
 gamma_deg = 40.0
-[[standard]]
+{at2}[[standard]]
 name = "World Pol B"
 flux = 150000.0
 p = 0.02
 gamma_deg = 115.0
-"#,
+{at3}"#,
+        at0 = at(0),
+        at1 = at(1),
+        at2 = at(2),
+        at3 = at(3),
         seed = cfg.seed.wrapping_mul(1000).wrapping_add(99_999),
         dseed = cfg.seed,
         sections = sections.replace("{fwhm}", "0.8"),

@@ -211,3 +211,101 @@ fn psf_ellipticity_is_drawn_per_frame_in_its_range_and_seen_in_the_image() {
     let e = Scene::from_toml(&text, "g").and_then(|s| s.validate().map(|_| s));
     assert!(e.is_err_and(|e| e.to_string().contains("axis_ratio_range")));
 }
+
+/// telescope_polarization: in the sky frame every source gains
+/// `(q_tel, u_tel) = p_tel (cos 2(eta + psi_tel), sin 2(eta + psi_tel))`, eta the frame's
+/// parallactic angle as the reduction reads it from the header (mean of PARANG START and
+/// END), before the analyzer: an unpolarized star shows F = q_tel cos 2phi + u_tel sin 2phi.
+/// The sky's o and e strips differ by the same F. The star's truth stays its own.
+#[test]
+fn telescope_polarization_adds_p_tel_at_each_frames_parallactic_angle() {
+    let prof = Profile::sofi();
+    let kw = &prof.keywords;
+    let (p_tel, psi) = (0.006, 25.0);
+    // The star transits 0.26 deg from the zenith during its sequence: eta sweeps ~180 deg.
+    let pointing = "dec_deg = -29.0\nhour_angle_h = -0.1\n";
+    let tel = format!("[telescope_polarization]\np_tel = {p_tel}\npsi_tel_deg = {psi}\n");
+    let orients = "0.0, 45.0, 90.0, 135.0";
+    let g = &prof.geometry;
+    for p_star in [0.0, 0.05] {
+        let sc = scene(
+            "\"telescope_polarization\"",
+            orients,
+            &format!("{pointing}{tel}"),
+            p_star,
+            40000.0,
+        );
+        let sim = Simulator::new(sc, prof.clone()).unwrap();
+        let (frames, truth) = sim.run_in_memory();
+        assert_eq!(sim.calls().get("telescope_polarization"), Some(&(frames.len() as u64)));
+        let t = truth.telescope_polarization.expect("p_tel, psi_tel in the truth");
+        assert_eq!((t.p_tel, t.psi_tel_deg), (p_tel, psi));
+        // The star's truth is its own polarization, without the telescope's.
+        let a = &truth.targets[0].components[0];
+        let own = Polarization::from_p_gamma(p_star, 71.0);
+        assert!((a.q - own.q).abs() < 1e-15 && (a.u - own.u).abs() < 1e-15);
+        let mut etas = Vec::new();
+        for f in &frames {
+            let eta = kw.parallactic_angle_deg(&f.frame.header).unwrap().expect("PARANG");
+            etas.push(eta);
+            let two = 2.0 * f64::to_radians(eta + psi);
+            let (q_tel, u_tel) = (p_tel * two.cos(), p_tel * two.sin());
+            let rec = f.truth.telescope.expect("telescope (q, u) in the frame truth");
+            assert!((rec.q - q_tel).abs() < 1e-12 && (rec.u - u_tel).abs() < 1e-12);
+            let o = f
+                .frame
+                .data
+                .slice(s![g.o_target[0]..g.o_target[1], ..])
+                .iter()
+                .map(|&v| v as f64)
+                .sum::<f64>();
+            let e = f
+                .frame
+                .data
+                .slice(s![g.e_target[0]..g.e_target[1], ..])
+                .iter()
+                .map(|&v| v as f64)
+                .sum::<f64>();
+            let phi = 2.0 * f.truth.analyzer_deg.to_radians();
+            let want = (own.q + q_tel) * phi.cos() + (own.u + u_tel) * phi.sin();
+            assert!(((o + e) / 40000.0 - 1.0).abs() < 2e-6, "o + e = {}", o + e);
+            assert!(
+                ((o - e) / (o + e) - want).abs() < 2e-6,
+                "p {p_star}, eta {eta}, phi {}: F {} vs {want}",
+                f.truth.analyzer_deg,
+                (o - e) / (o + e)
+            );
+        }
+        let swing: f64 = etas
+            .windows(2)
+            .map(|w| (w[1] - w[0] + 540.0).rem_euclid(360.0) - 180.0)
+            .sum();
+        assert!(swing.abs() > 90.0, "eta covers {swing} deg: {etas:?}");
+    }
+    // The sky passes the telescope too: o strips 1000 (1 + F_tel), e strips 1000 (1 - F_tel).
+    let sc = scene(
+        "\"sky\", \"telescope_polarization\"",
+        orients,
+        &format!("{pointing}{FLAT_SKY}{tel}"),
+        0.0,
+        0.0,
+    );
+    let sim = Simulator::new(sc, prof.clone()).unwrap();
+    for f in sim.run_in_memory().0 {
+        let eta = kw.parallactic_angle_deg(&f.frame.header).unwrap().unwrap();
+        let two = 2.0 * f64::to_radians(eta + psi);
+        let phi = 2.0 * f.truth.analyzer_deg.to_radians();
+        let f_tel = p_tel * (two.cos() * phi.cos() + two.sin() * phi.sin());
+        for (name, rows) in g.strips() {
+            let v = f.frame.data[[(rows[0] + rows[1]) / 2, 300]] as f64;
+            let want = 1000.0
+                * if name.starts_with("o_") {
+                    1.0 + f_tel
+                } else {
+                    1.0 - f_tel
+                };
+            assert!((v - want).abs() < 1e-3, "{name}: {v} vs {want}");
+        }
+        assert_eq!(f.frame.data[[3, 300]], 1000.0, "outside the strips: unchanged");
+    }
+}

@@ -215,6 +215,9 @@ frames_off = 1
 [analyzer_angle]
 zero_point_deg = 7.0
 parity = -1
+[telescope_polarization]
+p_tel = 0.02
+psi_tel_deg = 10.0
 "#;
 
 #[test]
@@ -236,7 +239,7 @@ fn unlisted_effects_leave_frames_bit_identical_and_are_never_called() {
     let calls = configured.calls();
     let names: Vec<&str> = calls.keys().copied().collect();
     assert_eq!(names, vec!["photon_noise", "read_noise", "strips"]);
-    assert_eq!(tb.ignored_sections.len(), 14, "{:?}", tb.ignored_sections);
+    assert_eq!(tb.ignored_sections.len(), 15, "{:?}", tb.ignored_sections);
     assert_eq!(configured.n_dome_flat_frames(), 0);
     assert!(tb.dome_flats.is_empty());
 }
@@ -484,4 +487,50 @@ flux = 20000.0
     let calls = sim.calls();
     assert!(calls.contains_key("analyzer_angle") && calls.contains_key("throughput"));
     assert!(!calls.contains_key("interstellar_polarization"));
+}
+
+/// Telescope polarization is simulated only when listed: unlisted (section or not) or
+/// listed with p_tel = 0, the frames are bit-identical and the headers equal; listed with
+/// p_tel > 0 only the pixels change, the headers (pointing included) stay the same.
+#[test]
+fn telescope_polarization_changes_only_the_pixels_and_only_when_asked() {
+    let base = "\"psf\", \"sky\", \"photon_noise\"";
+    let with = format!("{base}, \"telescope_polarization\"");
+    let tel = |p: f64| format!("[psf]\nfwhm_arcsec = 0.9\n[telescope_polarization]\np_tel = {p}\npsi_tel_deg = 30.0\n");
+    let run = |effects: &str, extra: &str| {
+        let sim = Simulator::new(scene(effects, extra, "0.0, 45.0"), Profile::sofi()).unwrap();
+        let (frames, truth) = sim.run_in_memory();
+        (frames, truth, sim.calls())
+    };
+    let (plain, tp, calls) = run(base, "[psf]\nfwhm_arcsec = 0.9\n");
+    assert!(!calls.contains_key("telescope_polarization") && tp.telescope_polarization.is_none());
+    let (ignored, _, calls) = run(base, &tel(0.01));
+    assert!(!calls.contains_key("telescope_polarization"));
+    let (zero, tz, calls) = run(&with, &tel(0.0));
+    assert_eq!(
+        calls.get("telescope_polarization"),
+        Some(&(2 * 4)),
+        "per frame: sources and sky"
+    );
+    assert!(tz.telescope_polarization.is_some());
+    let (on, _, _) = run(&with, &tel(0.01));
+    let same = |a: &[sofipol_pipeline::sim::SimFrame], b: &[sofipol_pipeline::sim::SimFrame]| {
+        a.iter().zip(b).all(|(x, y)| {
+            x.frame
+                .data
+                .iter()
+                .zip(y.frame.data.iter())
+                .all(|(p, q)| p.to_bits() == q.to_bits())
+        })
+    };
+    let headers = |a: &[sofipol_pipeline::sim::SimFrame], b: &[sofipol_pipeline::sim::SimFrame]| {
+        a.iter()
+            .zip(b)
+            .all(|(x, y)| x.frame.header.cards == y.frame.header.cards)
+    };
+    assert!(same(&plain, &ignored) && same(&plain, &zero));
+    assert!(headers(&plain, &ignored) && headers(&plain, &zero) && headers(&plain, &on));
+    assert!(!same(&plain, &on), "p_tel = 1 % changed nothing");
+    assert!(plain.iter().all(|f| f.truth.telescope.is_none()));
+    assert!(on.iter().all(|f| f.truth.telescope.is_some()));
 }

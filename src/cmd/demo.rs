@@ -296,6 +296,8 @@ mod tests {
         TargetTruth {
             object: "T".into(),
             tpl_start: "x".into(),
+            ra_deg: 0.0,
+            dec_deg: 0.0,
             separation_arcsec: 2.0,
             pa_deg: 30.0,
             components: vec![comp("A", 0), comp("B", 1)],

@@ -13,6 +13,7 @@ use super::psf::Psf;
 use super::rng::stream;
 use super::scene::*;
 use super::{normal, uniform, EffectCalls};
+use crate::stokes::model::Polarization;
 
 /// Above this many electrons the Poisson draw is replaced by a Gaussian of the same mean
 /// and variance (skewness 1/sqrt(1e4) = 0.01: far below anything measurable here).
@@ -232,6 +233,31 @@ pub fn instrumental_polarization(calls: &EffectCalls, c: &PolConfig) -> f64 {
 pub fn analyzer_angle(calls: &EffectCalls, c: &AnalyzerAngleConfig, posang_deg: f64) -> f64 {
     calls.hit(EffectKind::AnalyzerAngle);
     c.parity as f64 * posang_deg + c.zero_point_deg
+}
+
+/// The sky-frame polarization the telescope adds to every source of a frame at parallactic
+/// angle `eta_deg`: `p_tel (cos 2(eta + psi_tel), sin 2(eta + psi_tel))`.
+pub fn telescope_polarization(calls: &EffectCalls, c: &TelescopePolConfig, eta_deg: f64) -> Polarization {
+    calls.hit(EffectKind::TelescopePolarization);
+    c.model().at(eta_deg)
+}
+
+/// The sky seen through the polarizing telescope: the sky already in `img` (uniform in o
+/// and e) becomes `sky (1 + F_tel)` in the o strips and `sky (1 - F_tel)` in the e strips,
+/// `F_tel = q_tel cos 2phi + u_tel sin 2phi` ([`crate::stokes::model::normalized_difference`]);
+/// rows outside the strips are left as they are.
+pub fn telescope_polarization_sky(calls: &EffectCalls, img: &mut Array2<f32>, g: &Geometry, f_tel: f64) {
+    calls.hit(EffectKind::TelescopePolarization);
+    for (name, rows) in g.strips() {
+        let factor = if name.starts_with("o_") {
+            1.0 + f_tel
+        } else {
+            1.0 - f_tel
+        };
+        for y in rows[0]..rows[1].min(img.nrows()) {
+            img.row_mut(y).mapv_inplace(|v| (v as f64 * factor) as f32);
+        }
+    }
 }
 
 /// Focal mask: zero every row outside the six strips.

@@ -2,9 +2,10 @@
 use ndarray::Array2;
 use sofipol_calib::{Frame, Header};
 
-use super::truth::{ComponentTruth, FrameTruth, SimFrame, SourceTruth, TargetTruth};
-use super::{effects, psf, rng, EffectKind, Simulator};
-use crate::stokes::model::{beam_fluxes, companion_offset_px, Polarization};
+use super::pointing::mean_angle_deg;
+use super::truth::{ComponentTruth, FramePointing, FrameTruth, SimFrame, SourceTruth, TargetTruth};
+use super::{effects, psf, schedule, EffectKind, Simulator};
+use crate::stokes::model::{beam_fluxes, companion_offset_px, normalized_difference, Polarization};
 
 /// Per-frame parameters drawn before rendering.
 struct FrameParams {
@@ -16,13 +17,18 @@ struct FrameParams {
     sky_level: f64,
     psf: psf::Psf,
     mjd: f64,
+    pointing: FramePointing,
+    /// Sky-frame polarization of the telescope (None: effect not listed).
+    telescope: Option<Polarization>,
 }
 impl Simulator {
     pub(super) fn target_truth(&self, t: usize, frames: &[Vec<FrameTruth>]) -> TargetTruth {
         let b = &self.targets[t];
         TargetTruth {
             object: b.name.clone(),
-            tpl_start: self.tpl_starts[t].1.clone(),
+            tpl_start: self.plan[t].tpl_start.clone(),
+            ra_deg: self.plan[t].ra_deg,
+            dec_deg: self.plan[t].dec_deg,
             separation_arcsec: b.separation_arcsec,
             pa_deg: b.pa_deg,
             components: self.component_truth(t),
@@ -71,7 +77,20 @@ impl Simulator {
         } else {
             psf::Psf::Point
         };
-        let mjd = self.tpl_starts[t].0 + (k as f64 * (o.dit_s * o.ndit as f64 + o.overhead_s) + 20.0) / 86400.0;
+        let mjd = schedule::exposure_mjd(s, self.plan[t].mjd, k);
+        let (start, end) = schedule::exposure_pointing(s, &self.plan[t], k);
+        let pointing = FramePointing {
+            start,
+            end,
+            parallactic_angle_deg: mean_angle_deg(start.parang_deg, end.parang_deg),
+        };
+        let telescope = s.has(EffectKind::TelescopePolarization).then(|| {
+            effects::telescope_polarization(
+                &self.calls,
+                &s.telescope_polarization.clone().unwrap_or_default(),
+                pointing.parallactic_angle_deg,
+            )
+        });
         FrameParams {
             posang,
             phi: if s.has(EffectKind::AnalyzerAngle) {
@@ -85,6 +104,8 @@ impl Simulator {
             sky_level,
             psf,
             mjd,
+            pointing,
+            telescope,
         }
     }
 
@@ -138,6 +159,10 @@ impl Simulator {
 
         if s.has(EffectKind::Sky) {
             effects::sky(&self.calls, &mut img, fp.sky_level, &s.sky.clone().unwrap_or_default());
+            if let Some(tel) = fp.telescope {
+                // The sky's light passes the telescope's mirrors too.
+                effects::telescope_polarization_sky(&self.calls, &mut img, g, normalized_difference(tel, fp.phi));
+            }
         }
 
         // Sources: A, B and field stars, each as (name, offset from A in px, flux, pol).
@@ -185,7 +210,12 @@ impl Simulator {
         }
         let mut sources = Vec::with_capacity(srcs.len());
         for (name, (dx, dy), flux, pol) in srcs {
-            let pol = pol.add(ism);
+            // Sky frame: the source's own polarization, the ISM in front of it, then the
+            // telescope's (M3 is in front of the rotator: it does not turn with phi).
+            let mut pol = pol.add(ism);
+            if let Some(tel) = fp.telescope {
+                pol = pol.add(tel);
+            }
             let (mut fo, mut fe) = beam_fluxes(flux * fp.transparency, pol, fp.phi, t_o, t_e);
             let tot = fo + fe;
             if inst != 0.0 && tot > 0.0 {
@@ -251,6 +281,8 @@ impl Simulator {
             },
             sources,
             cosmic_ray_pixels: cr_pixels,
+            pointing: fp.pointing,
+            telescope: fp.telescope,
         };
         SimFrame {
             file_name,
@@ -343,14 +375,9 @@ impl Simulator {
         h.set(&kw.date_obs, effects::iso_from_mjd(fp.mjd, true));
         h.set(&kw.mjd_obs, fp.mjd);
         h.set(&kw.exptime, o.dit_s);
-        // A fixed fake pointing per target, from its name.
-        let hash = rng::splitmix64(
-            b.name
-                .bytes()
-                .fold(7u64, |a, c| a.wrapping_mul(31).wrapping_add(c as u64)),
-        );
-        h.set("RA", (hash % 36000) as f64 / 100.0);
-        h.set("DEC", -60.0 + ((hash >> 20) % 9000) as f64 / 100.0);
+        h.set("RA", self.plan[t].ra_deg);
+        h.set("DEC", self.plan[t].dec_deg);
+        h.set("LST", fp.pointing.start.lst_deg * 240.0);
         if self.is_standard(t) {
             h.set(&kw.dpr_catg, "CALIB");
             h.set(&kw.dpr_type, "STD");
@@ -360,7 +387,7 @@ impl Simulator {
         }
         h.set(&kw.dpr_tech, self.profile.matching.polarimetry_tech.as_str());
         h.set(&kw.tpl_id, self.profile.matching.polarimetry_template.as_str());
-        h.set(&kw.tpl_start, self.tpl_starts[t].1.as_str());
+        h.set(&kw.tpl_start, self.plan[t].tpl_start.as_str());
         h.set(&kw.tpl_nexp, self.frames_per_target() as i64);
         h.set(&kw.tpl_expno, (k + 1) as i64);
         h.set(&kw.targ_name, b.name.replace(' ', "_"));
@@ -373,8 +400,12 @@ impl Simulator {
         h.set(&kw.offset_y, fp.header_off[1]);
         h.set(&kw.dit, o.dit_s);
         h.set(&kw.ndit, o.ndit as i64);
-        h.set(&kw.parang, -150.0 + 2.0 * k as f64);
-        h.set(&kw.airmass, 1.05 + 0.002 * k as f64);
+        let (start, end) = (&fp.pointing.start, &fp.pointing.end);
+        h.set(&kw.parang, start.parang_deg);
+        h.set(&kw.parang_end, end.parang_deg);
+        h.set(&kw.airmass, start.airmass);
+        h.set(&kw.airmass_end, end.airmass);
+        h.set(&kw.altitude, start.alt_deg);
         h
     }
 }

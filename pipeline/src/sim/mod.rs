@@ -8,15 +8,19 @@
 //!
 //! Per frame, in this order (each step its own function in [`effects`]):
 //! ```text
-//! frame parameters: header offset (+ pointing_error), transparency, sky level, seeing
-//! expectation: sky -> sources (psf | point; throughput, ISM, instrumental pol.)
+//! frame parameters: time and pointing (parallactic angle), header offset (+ pointing_error),
+//!   transparency, sky level, seeing, telescope polarization
+//! expectation: sky (telescope pol.) -> sources (psf | point; ISM, telescope pol.,
+//!   throughput, instrumental pol.)
 //!   -> strips (focal mask) -> flat_field -> nonlinearity
 //! noise: photon_noise -> read_noise
 //! detector: cosmic_rays -> bad_pixels -> saturation
 //! ```
 //!
-//! Submodules: [`scene`] (the TOML scene), [`effects`] (one function per effect), [`psf`]
-//! (PSF rendering), [`truth`] (what was simulated), `frame` (one science frame: parameters,
+//! Submodules: [`scene`] (the TOML scene), [`schedule`] (when each sequence starts, where it
+//! points), [`pointing`] (sidereal time, hour angle, airmass, parallactic angle at La
+//! Silla), [`effects`] (one function per effect), [`psf`] (PSF rendering), [`truth`] (what
+//! was simulated), `frame` (one science frame: parameters,
 //! sources, detector, header), `dome` (dome-flat frames), `output` (whole scenes in
 //! memory or written to a folder), `loaded` (one target's frames as the reduction's input).
 mod dome;
@@ -24,9 +28,11 @@ pub mod effects;
 mod frame;
 mod loaded;
 mod output;
+pub mod pointing;
 pub mod psf;
 pub mod rng;
 pub mod scene;
+pub mod schedule;
 pub mod truth;
 mod validate;
 
@@ -41,7 +47,7 @@ use sofipol_calib::Profile;
 pub use dome::SimFlatFrame;
 pub use loaded::loaded_from_sim;
 pub use scene::{Binary, EffectKind, Scene, StandardSource};
-pub use truth::{ComponentTruth, FlatFrameTruth, FrameTruth, SimFrame, SourceTruth, TargetTruth, Truth};
+pub use truth::{ComponentTruth, FlatFrameTruth, FramePointing, FrameTruth, SimFrame, SourceTruth, TargetTruth, Truth};
 
 /// Per-effect call counters.
 #[derive(Debug, Default)]
@@ -71,7 +77,8 @@ pub struct Simulator {
     calls: EffectCalls,
     bad: Option<effects::BadPixelMap>,
     flat: Option<Array2<f32>>,
-    tpl_starts: Vec<(f64, String)>,
+    /// Sequence `t`'s start and pointing.
+    plan: Vec<schedule::SequencePlan>,
     /// Binaries, then the standards as single stars (flux_b = 0): sequence `t` observes
     /// `targets[t]`.
     targets: Vec<Binary>,
@@ -101,14 +108,6 @@ impl Simulator {
                 nx,
             )
         });
-        // Sequence start times: targets one after another through the night.
-        let o = &scene.observation;
-        let mjd0 = effects::mjd_from_date_time(&o.date, &o.start_ut).ok_or_else(|| crate::error::Error::Scene {
-            origin: "scene".into(),
-            reason: format!("observation.date/start_ut '{} {}' not understood", o.date, o.start_ut),
-        })?;
-        let nframes = o.orientations_deg.len() * o.dithers;
-        let per_seq_s = nframes as f64 * (o.dit_s * o.ndit as f64 + o.overhead_s) + 120.0;
         let targets: Vec<Binary> = scene
             .binary
             .iter()
@@ -126,21 +125,21 @@ impl Simulator {
                 x_px: None,
                 y_px: None,
                 field_star: vec![],
+                ra_deg: st.ra_deg,
+                dec_deg: st.dec_deg,
+                hour_angle_h: st.hour_angle_h,
+                start_ut: st.start_ut.clone(),
             }))
             .collect();
-        let tpl_starts = (0..targets.len())
-            .map(|t| {
-                let mjd = mjd0 + t as f64 * per_seq_s / 86400.0;
-                (mjd, effects::iso_from_mjd(mjd, false))
-            })
-            .collect();
+        // When each sequence starts and where it points (binaries, then standards).
+        let plan = scene.plan()?;
         Ok(Simulator {
             scene,
             profile,
             calls,
             bad,
             flat,
-            tpl_starts,
+            plan,
             targets,
         })
     }
@@ -158,6 +157,11 @@ impl Simulator {
     /// The scene.
     pub fn scene(&self) -> &Scene {
         &self.scene
+    }
+
+    /// Sequence `t`'s start (TPL START) and pointing.
+    pub fn sequence_plan(&self, t: usize) -> &schedule::SequencePlan {
+        &self.plan[t]
     }
 
     /// Frames per target.

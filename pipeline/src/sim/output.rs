@@ -36,6 +36,9 @@ impl Simulator {
             profile: self.profile.name.clone(),
             effects: s.effects.iter().map(|e| e.name()).collect(),
             ignored_sections: s.ignored_sections(),
+            telescope_polarization: s
+                .has(EffectKind::TelescopePolarization)
+                .then(|| s.telescope_polarization.clone().unwrap_or_default().model()),
             detector: serde_json::Value::Object(detector),
             targets: (0..s.binary.len()).map(|t| self.target_truth(t, frames)).collect(),
             standards: (s.binary.len()..self.targets.len())

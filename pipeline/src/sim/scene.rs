@@ -47,11 +47,16 @@ pub enum EffectKind {
     /// The instrument's true analyzer angle phi = s POSANG + theta0 differs from the
     /// profile's (angle zero-point and image parity, section `analyzer_angle`).
     AnalyzerAngle,
+    /// Polarization of the telescope (the NTT's tertiary mirror, in front of the rotator):
+    /// `p_tel` at `psi_tel_deg` from the vertical adds to every source and to the sky in
+    /// the sky frame, turning with each frame's parallactic angle.
+    TelescopePolarization,
 }
 
 impl EffectKind {
     /// All effects.
-    pub const ALL: [EffectKind; 17] = [
+    /// (New effects go at the end: an effect's index seeds its random streams.)
+    pub const ALL: [EffectKind; 18] = [
         EffectKind::Psf,
         EffectKind::Sky,
         EffectKind::Strips,
@@ -69,6 +74,7 @@ impl EffectKind {
         EffectKind::Saturation,
         EffectKind::DomeFlats,
         EffectKind::AnalyzerAngle,
+        EffectKind::TelescopePolarization,
     ];
     /// snake_case name as used in scene files.
     pub fn name(self) -> &'static str {
@@ -90,6 +96,7 @@ impl EffectKind {
             EffectKind::Saturation => "saturation",
             EffectKind::DomeFlats => "dome_flats",
             EffectKind::AnalyzerAngle => "analyzer_angle",
+            EffectKind::TelescopePolarization => "telescope_polarization",
         }
     }
     /// Index into per-effect tables.
@@ -122,7 +129,8 @@ pub struct Observation {
     pub date: String,
     /// UT of the first exposure, HH:MM:SS.
     pub start_ut: String,
-    /// Overhead between exposures, seconds.
+    /// Overhead between exposures, seconds: exposure k of a sequence starts
+    /// 20 s + k (DIT x NDIT + overhead_s) after the sequence's start.
     pub overhead_s: f64,
 }
 
@@ -193,6 +201,22 @@ pub struct Binary {
     /// Field stars.
     #[serde(default)]
     pub field_star: Vec<FieldStar>,
+    /// Right ascension, deg in [0, 360) (equator and equinox of the date; docs/simulator.md,
+    /// "Pointing"). Absent: from `hour_angle_h`, else drawn from the name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ra_deg: Option<f64>,
+    /// Declination, deg. Absent: drawn from the name in [-75, 5].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dec_deg: Option<f64>,
+    /// Hour angle at the sequence's start, hours (instead of `ra_deg`: the RA is then
+    /// LST(start) - H). Absent with `ra_deg`: drawn from the name in [-3, 3].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hour_angle_h: Option<f64>,
+    /// UT of the sequence's start (TPL START), HH:MM:SS, within the 24 h from the
+    /// observation's `start_ut` (an earlier clock time is on the next UT day). Absent: the
+    /// sequence follows the previous one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start_ut: Option<String>,
 }
 
 /// PSF settings.
@@ -465,6 +489,51 @@ pub struct StandardSource {
     /// Angle, degrees east of north.
     #[serde(default)]
     pub gamma_deg: f64,
+    /// Right ascension, deg in [0, 360) (equator and equinox of the date; docs/simulator.md,
+    /// "Pointing"). Absent: from `hour_angle_h`, else drawn from the name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ra_deg: Option<f64>,
+    /// Declination, deg. Absent: drawn from the name in [-75, 5].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dec_deg: Option<f64>,
+    /// Hour angle at the sequence's start, hours (instead of `ra_deg`: the RA is then
+    /// LST(start) - H). Absent with `ra_deg`: drawn from the name in [-3, 3].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hour_angle_h: Option<f64>,
+    /// UT of the sequence's start (TPL START), HH:MM:SS, within the 24 h from the
+    /// observation's `start_ut` (an earlier clock time is on the next UT day). Absent: the
+    /// sequence follows the previous one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start_ut: Option<String>,
+}
+
+/// Polarization of the telescope (effect `telescope_polarization`): in the sky frame every
+/// source and the sky gain `p_tel (cos 2(eta + psi_tel), sin 2(eta + psi_tel))`, eta the
+/// frame's parallactic angle ([`crate::stokes::model::TelescopePolarization`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TelescopePolConfig {
+    /// p_tel, fraction.
+    pub p_tel: f64,
+    /// psi_tel, deg from the vertical.
+    pub psi_tel_deg: f64,
+}
+impl Default for TelescopePolConfig {
+    fn default() -> Self {
+        TelescopePolConfig {
+            p_tel: 0.005,
+            psi_tel_deg: 0.0,
+        }
+    }
+}
+impl TelescopePolConfig {
+    /// The model it configures.
+    pub fn model(&self) -> crate::stokes::model::TelescopePolarization {
+        crate::stokes::model::TelescopePolarization {
+            p_tel: self.p_tel,
+            psi_tel_deg: self.psi_tel_deg,
+        }
+    }
 }
 
 /// The instrument's true analyzer-angle relation (effect `analyzer_angle`).
@@ -554,6 +623,9 @@ pub struct Scene {
     /// True analyzer angle (used only when `analyzer_angle` is listed).
     #[serde(default)]
     pub analyzer_angle: Option<AnalyzerAngleConfig>,
+    /// Telescope polarization (used only when `telescope_polarization` is listed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub telescope_polarization: Option<TelescopePolConfig>,
 }
 
 impl Scene {
@@ -599,6 +671,7 @@ impl Scene {
             (EffectKind::Saturation, self.saturation.is_some()),
             (EffectKind::DomeFlats, self.dome_flats.is_some()),
             (EffectKind::AnalyzerAngle, self.analyzer_angle.is_some()),
+            (EffectKind::TelescopePolarization, self.telescope_polarization.is_some()),
         ];
         present
             .iter()

@@ -2,9 +2,23 @@
 use serde::Serialize;
 use sofipol_calib::Frame;
 
-use crate::stokes::model::Polarization;
+use crate::stokes::model::{Polarization, TelescopePolarization};
 
+use super::pointing::Pointing;
 use super::Scene;
+
+/// Where the telescope pointed during one exposure (written to the header as `TEL PARANG
+/// START/END`, `TEL AIRM START/END`, `TEL ALT`, `LST`, `MJD-OBS`).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct FramePointing {
+    /// At the exposure's start.
+    pub start: Pointing,
+    /// At its end (DIT x NDIT later).
+    pub end: Pointing,
+    /// The frame's parallactic angle eta, deg: the mean of start and end along the shorter
+    /// arc (as the reduction reads it from the header).
+    pub parallactic_angle_deg: f64,
+}
 
 /// Where a source landed in one frame and with what fluxes (ADU, before noise).
 #[derive(Debug, Clone, Serialize)]
@@ -51,6 +65,12 @@ pub struct FrameTruth {
     pub sources: Vec<SourceTruth>,
     /// Cosmic-ray pixels hit.
     pub cosmic_ray_pixels: usize,
+    /// Time and pointing of the exposure.
+    pub pointing: FramePointing,
+    /// The sky-frame (q, u) the telescope added to every source of this frame (effect
+    /// `telescope_polarization`, at `pointing.parallactic_angle_deg`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub telescope: Option<Polarization>,
 }
 
 /// A binary component's truth.
@@ -62,7 +82,8 @@ pub struct ComponentTruth {
     pub flux: f64,
     /// Intrinsic polarization.
     pub intrinsic: Polarization,
-    /// What a perfect reduction should report in the sky frame: intrinsic + ISM.
+    /// What a perfect reduction should report in the sky frame: intrinsic + ISM (the
+    /// telescope's polarization is not the star's: it is in each frame's truth).
     pub q: f64,
     /// Sky-frame u (intrinsic + ISM).
     pub u: f64,
@@ -79,6 +100,10 @@ pub struct TargetTruth {
     pub object: String,
     /// TPL START of the sequence.
     pub tpl_start: String,
+    /// Right ascension, deg (the header's `RA`).
+    pub ra_deg: f64,
+    /// Declination, deg (`DEC`).
+    pub dec_deg: f64,
     /// Separation, arcsec.
     pub separation_arcsec: f64,
     /// PA of B from A, deg.
@@ -102,6 +127,9 @@ pub struct Truth {
     pub effects: Vec<&'static str>,
     /// Effect sections present but not listed (ignored).
     pub ignored_sections: Vec<&'static str>,
+    /// p_tel and psi_tel of the telescope (effect `telescope_polarization`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub telescope_polarization: Option<TelescopePolarization>,
     /// Fixed detector realisations (bad-pixel counts, flat statistics...).
     pub detector: serde_json::Value,
     /// Targets.

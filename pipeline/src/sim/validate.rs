@@ -1,6 +1,8 @@
 //! Scene validation: values that would make a meaningless simulation are refused with
 //! the section, key and value.
+use super::effects::mjd_from_date_time;
 use super::scene::{PsfKind, Scene};
+use super::schedule::TargetPointing;
 use crate::error::Error;
 
 impl Scene {
@@ -24,6 +26,28 @@ impl Scene {
                 "observation.bitpix = {} (expected -32 or 16)",
                 o.bitpix
             )));
+        }
+        if !(o.overhead_s >= 0.0) {
+            return Err(invalid(format!(
+                "observation.overhead_s = {} must be >= 0",
+                o.overhead_s
+            )));
+        }
+        for (kind, name, p) in self
+            .binary
+            .iter()
+            .map(|b| ("binary", &b.name, b.pointing()))
+            .chain(self.standard.iter().map(|s| ("standard", &s.name, s.pointing())))
+        {
+            check_pointing(kind, name, &p, &o.date)?;
+        }
+        if let Some(t) = &self.telescope_polarization {
+            if !(0.0..1.0).contains(&t.p_tel) || !t.psi_tel_deg.is_finite() {
+                return Err(invalid(format!(
+                    "telescope_polarization: p_tel = {} must be in [0, 1) and psi_tel_deg = {} finite",
+                    t.p_tel, t.psi_tel_deg
+                )));
+            }
         }
         for b in &self.binary {
             for (what, v) in [("flux_a", b.flux_a), ("flux_b", b.flux_b)] {
@@ -98,8 +122,40 @@ impl Scene {
                 return Err(invalid(format!("dome_flats: lamp_p = {} must be in [0, 1)", d.lamp_p)));
             }
         }
-        Ok(())
+        // When and where every sequence is observed: fixed starts that overlap and targets
+        // below the horizon are refused here, so that the error names the scene file.
+        self.plan().map(|_| ())
     }
+}
+
+/// The pointing keys of one target: RA in [0, 360), Dec in [-90, 90], hour angle in
+/// [-12, 12] h and not together with RA, a start time that parses.
+fn check_pointing(kind: &str, name: &str, p: &TargetPointing, date: &str) -> crate::error::Result<()> {
+    let bad = |key: &str, v: String, want: &str| Err(invalid(format!("{kind} '{name}': {key} = {v} {want}")));
+    if let Some(ra) = p.ra_deg.filter(|ra| !(0.0..360.0).contains(ra)) {
+        return bad("ra_deg", ra.to_string(), "must be in [0, 360)");
+    }
+    if let Some(dec) = p.dec_deg.filter(|d| !(-90.0..=90.0).contains(d)) {
+        return bad("dec_deg", dec.to_string(), "must be in [-90, 90]");
+    }
+    if let Some(h) = p.hour_angle_h {
+        if !(-12.0..=12.0).contains(&h) {
+            return bad("hour_angle_h", h.to_string(), "must be in [-12, 12]");
+        }
+        if p.ra_deg.is_some() {
+            return bad(
+                "hour_angle_h",
+                h.to_string(),
+                "given together with ra_deg: give one of the two",
+            );
+        }
+    }
+    if let Some(ut) = p.start_ut {
+        if mjd_from_date_time(date, ut).is_none() {
+            return bad("start_ut", format!("'{ut}'"), "not understood (HH:MM:SS)");
+        }
+    }
+    Ok(())
 }
 
 /// A scene error without its origin (added by [`Scene::from_toml`]).
