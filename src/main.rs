@@ -9,15 +9,30 @@ use clap::{Parser, Subcommand};
 // nor stop the work: std's `print!` family panics on a write error (EPIPE). These
 // replacements, visible in every module below, write through a locked handle and drop
 // write errors, as ripgrep does on a broken pipe; the run goes on, writes its outputs
-// and exits with its usual code (docs/cli.md).
+// and exits with its usual code (docs/cli.md). They also escape every control character
+// but the line breaks sofipol lays out itself (`sofipol_calib::text::printable_lines`): a
+// file name or header value holding ESC or CR cannot drive the terminal. Values read from
+// files are escaped where they are printed (`printable`), newlines included.
 macro_rules! print {
-    ($($t:tt)*) => {{ use std::io::Write as _; let _ = write!(std::io::stdout().lock(), $($t)*); }};
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let s = format!($($t)*);
+        let _ = write!(std::io::stdout().lock(), "{}", sofipol_calib::text::printable_lines(&s));
+    }};
 }
 macro_rules! println {
-    ($($t:tt)*) => {{ use std::io::Write as _; let _ = writeln!(std::io::stdout().lock(), $($t)*); }};
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let s = format!($($t)*);
+        let _ = writeln!(std::io::stdout().lock(), "{}", sofipol_calib::text::printable_lines(&s));
+    }};
 }
 macro_rules! eprintln {
-    ($($t:tt)*) => {{ use std::io::Write as _; let _ = writeln!(std::io::stderr().lock(), $($t)*); }};
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let s = format!($($t)*);
+        let _ = writeln!(std::io::stderr().lock(), "{}", sofipol_calib::text::printable_lines(&s));
+    }};
 }
 
 mod alloc;

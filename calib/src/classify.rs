@@ -126,7 +126,19 @@ pub fn classify_file(path: &Path, profile: &Profile) -> Result<Classification> {
 pub fn classify(header: &Header, profile: &Profile) -> Classification {
     match science_info(header, profile) {
         Ok(info) => Classification::Science(Box::new(info)),
-        Err(e) => Classification::Rejected { reason: e.to_string() },
+        Err(e) => {
+            let mut reason = e.to_string();
+            // Keywords of a primary header without image are not the image's: say where
+            // they were looked for.
+            if header.image_hdu > 0 && reason.contains("missing keyword") {
+                reason.push_str(&format!(
+                    " in the header of HDU {}, the image extension (the primary HDU holds no image; \
+                     its keywords are not read)",
+                    header.image_hdu
+                ));
+            }
+            Classification::Rejected { reason }
+        }
     }
 }
 

@@ -54,6 +54,14 @@ pub struct Header {
     /// File the header was read from (empty for headers built in memory).
     #[serde(default)]
     pub path: PathBuf,
+    /// HDU of the file the image and these cards come from (0: the primary; 1 and more: an
+    /// image extension, e.g. of a tile-compressed file).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub image_hdu: usize,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// Normalise a keyword for comparison: trim, upper case, drop a leading `HIERARCH `.
@@ -71,6 +79,7 @@ impl Header {
         Header {
             cards: Vec::new(),
             path: path.as_ref().to_path_buf(),
+            image_hdu: 0,
         }
     }
 

@@ -36,9 +36,11 @@ pub mod fits;
 pub mod flat;
 pub mod frame;
 pub mod header;
+pub mod input;
 pub mod profile;
 pub mod sky;
 pub mod stack;
+pub mod text;
 
 pub use error::{Error, Result};
 pub use frame::{Frame, HistoryRecord, PixelSummary};

@@ -215,6 +215,10 @@ fn merge(base: &mut toml::Value, over: toml::Value) {
     }
 }
 
+/// Largest detector side a profile may give, px (SOFI's is 1024): beyond it, a typo would
+/// size every per-frame buffer.
+pub const MAX_DETECTOR_SIDE_PX: usize = 4096;
+
 impl Profile {
     /// The embedded SOFI profile.
     pub fn sofi() -> Profile {
@@ -223,7 +227,7 @@ impl Profile {
 
     /// The SOFI profile with a user TOML file merged over it.
     pub fn sofi_with_override(path: &Path) -> Result<Profile> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::Io {
+        let text = crate::input::read_to_string(path, crate::input::MAX_OPTION_FILE_BYTES).map_err(|e| Error::Io {
             path: path.to_path_buf(),
             source: e,
         })?;
@@ -349,8 +353,27 @@ impl Profile {
                 d.nonlin_coeff_per_adu
             ));
         }
-        if g.nx == 0 || g.ny == 0 {
-            return err(format!("geometry.nx = {}, ny = {}: must be >= 1", g.nx, g.ny));
+        if !(1..=MAX_DETECTOR_SIDE_PX).contains(&g.nx) || !(1..=MAX_DETECTOR_SIDE_PX).contains(&g.ny) {
+            return err(format!(
+                "geometry.nx = {}, ny = {}: each must be in 1..={MAX_DETECTOR_SIDE_PX}",
+                g.nx, g.ny
+            ));
+        }
+        if !(g.pixscale_arcsec <= 10.0) {
+            return err(format!(
+                "geometry.pixscale_arcsec = {} must be in (0, 10]",
+                g.pixscale_arcsec
+            ));
+        }
+        let side = MAX_DETECTOR_SIDE_PX as f64;
+        for (name, v) in [
+            ("geometry.eo_offset_px[0]", g.eo_offset_px[0]),
+            ("geometry.eo_offset_px[1]", g.eo_offset_px[1]),
+            ("geometry.jitter_step_px", g.jitter_step_px),
+        ] {
+            if !(v.abs() <= side) {
+                return err(format!("{name} = {v} must be in [-{side}, {side}]"));
+            }
         }
         if self.angles.parity != 1 && self.angles.parity != -1 {
             return err(format!("angles.parity = {} must be +1 or -1", self.angles.parity));

@@ -159,10 +159,12 @@ impl Calibration {
         } else {
             path.to_path_buf()
         };
-        let text = std::fs::read_to_string(&file).map_err(|source| Error::Io {
-            path: file.clone(),
-            source,
-        })?;
+        let text = sofipol_calib::input::read_to_string(&file, sofipol_calib::input::MAX_OPTION_FILE_BYTES).map_err(
+            |source| Error::Io {
+                path: file.clone(),
+                source,
+            },
+        )?;
         let c: Calibration = serde_json::from_str(&text).map_err(|e| Error::CalibrationFile {
             path: file.clone(),
             reason: e.to_string(),

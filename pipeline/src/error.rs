@@ -70,6 +70,14 @@ pub enum Error {
         /// Why (names the method and the angles present).
         reason: String,
     },
+    /// A catalog given as an input cannot be read as one (`input::read_catalog`).
+    #[error("{path}: {reason}")]
+    CatalogFile {
+        /// File concerned.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
     /// Plain I/O error on a file.
     #[error("{path}: {source}")]
     Io {

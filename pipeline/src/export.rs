@@ -278,8 +278,22 @@ fn csv_field(s: &str) -> String {
     }
 }
 
-fn cell(c: &Column, i: usize) -> String {
+/// A text cell of a plain CSV file, safe to open in a spreadsheet: a cell starting with
+/// `=`, `+`, `-`, `@`, a tab or a carriage return would be read as a formula (CSV formula
+/// injection: an OBJECT of `=HYPERLINK(...)`), so it gets a leading `'`, which
+/// spreadsheets show as text. Only text columns: numbers (a negative q) stay numbers.
+/// ECSV and FITS keep the value (astropy reads them as data, never as formulas).
+fn spreadsheet_safe(s: &str) -> std::borrow::Cow<'_, str> {
+    if s.starts_with(['=', '+', '-', '@', '\t', '\r']) {
+        format!("'{s}").into()
+    } else {
+        s.into()
+    }
+}
+
+fn cell(c: &Column, i: usize, csv: bool) -> String {
     match &c.data {
+        Data::Str(v) if csv => csv_field(&spreadsheet_safe(&v[i])),
         Data::Str(v) => csv_field(&v[i]),
         // `{}` prints the shortest string that parses back to the same f64.
         Data::F64(v) => {
@@ -293,11 +307,13 @@ fn cell(c: &Column, i: usize) -> String {
     }
 }
 
-fn body(t: &Table) -> String {
+/// The header line and the rows; `csv`: plain CSV, whose text cells are made
+/// [`spreadsheet_safe`].
+fn body(t: &Table, csv: bool) -> String {
     let mut s = t.columns.iter().map(|c| c.name).collect::<Vec<_>>().join(",");
     s.push('\n');
     for i in 0..t.rows() {
-        s += &t.columns.iter().map(|c| cell(c, i)).collect::<Vec<_>>().join(",");
+        s += &t.columns.iter().map(|c| cell(c, i, csv)).collect::<Vec<_>>().join(",");
         s.push('\n');
     }
     s
@@ -328,12 +344,12 @@ pub fn to_ecsv(t: &Table) -> String {
         h += &format!("# - {{{k}: {}}}\n", y(v));
     }
     h += "# schema: astropy-2.0\n";
-    h + &body(t)
+    h + &body(t, false)
 }
 
-/// The plain CSV text of the table.
+/// The plain CSV text of the table (text cells [`spreadsheet_safe`]).
 pub fn to_csv(t: &Table) -> String {
-    body(t)
+    body(t, true)
 }
 
 /// Errors of the export.

@@ -26,6 +26,7 @@ pub mod calibration;
 pub mod catalog;
 pub mod error;
 pub mod export;
+pub mod input;
 pub mod io;
 pub mod night;
 pub mod numeric;

@@ -208,6 +208,15 @@ pub struct Scan {
     /// Dome-flat frames (DPR TYPE 'FLAT' with a valid lamp keyword): calibration for the
     /// flat builder, not failures.
     pub dome_flats: Vec<PathBuf>,
+    /// Set when the process ran out of file handles (EMFILE, ENFILE) while reading headers:
+    /// the files it could not open are not unusable, the scan is (a fatal error).
+    pub out_of_file_handles: Option<String>,
+}
+
+/// Whether `e` is the system refusing to open one more file (EMFILE: this process's limit,
+/// `ulimit -n`; ENFILE: the system's): not a fault of the file.
+pub fn is_out_of_file_handles(e: &sofipol_calib::Error) -> bool {
+    matches!(e, sofipol_calib::Error::Io { source, .. } if matches!(source.raw_os_error(), Some(23) | Some(24)))
 }
 
 /// List the FITS files under `roots` ([`list`]), classify them ([`classify_all`]) and keep
@@ -274,11 +283,19 @@ pub fn unreadable_reason(path: &Path, message: &str) -> String {
 
 /// Classify files by header (in parallel; the order of the result does not depend on it).
 pub fn classify_all(files: &[PathBuf], profile: &Profile) -> Scan {
+    classify_with(files, profile, &sofipol_calib::fits::read_header)
+}
+
+/// The header reader of [`classify_all`] (tests inject errors with it).
+type ReadHeader = dyn Fn(&Path) -> sofipol_calib::Result<sofipol_calib::Header> + Sync;
+
+/// [`classify_all`] with the header reader given.
+pub fn classify_with(files: &[PathBuf], profile: &Profile, read_header: &ReadHeader) -> Scan {
     use rayon::prelude::*;
     let results: Vec<(PathBuf, sofipol_calib::Result<(Classification, bool)>)> = files
         .par_iter()
         .map(|f| {
-            let r = sofipol_calib::fits::read_header(f).map(|h| {
+            let r = read_header(f).map(|h| {
                 let c = classify(&h, profile);
                 // A rejected frame that is a dome flat goes to the flat builder; a flat with
                 // a bad lamp keyword stays a failure with that reason.
@@ -303,6 +320,9 @@ pub fn classify_all(files: &[PathBuf], profile: &Profile) -> Scan {
                 file: f.display().to_string(),
                 error: reason,
             }),
+            Err(e) if is_out_of_file_handles(&e) => {
+                s.out_of_file_handles.get_or_insert_with(|| e.to_string());
+            }
             Err(e) => s.unreadable.push(Failure {
                 file: f.display().to_string(),
                 error: unreadable_reason(&f, &e.to_string()),
@@ -370,6 +390,35 @@ mod tests {
         assert_eq!(get(&empty), "not a FITS file: empty");
         let e = get(&trunc);
         assert!(!e.contains(&trunc.display().to_string()) && e.contains("FITS"), "{e}");
+    }
+
+    #[test]
+    fn running_out_of_file_handles_is_not_a_fault_of_the_files() {
+        // Regression: with too low a `ulimit -n` every file of the night was listed as
+        // unusable ("cfitsio status 104"), 85 of them, and the night went on without them.
+        let d = tempfile::tempdir().unwrap();
+        let files: Vec<PathBuf> = (0..4).map(|i| d.path().join(format!("f{i}.fits"))).collect();
+        let read = |p: &Path| -> sofipol_calib::Result<sofipol_calib::Header> {
+            if p.ends_with("f0.fits") {
+                Err(sofipol_calib::Error::Io {
+                    path: p.into(),
+                    source: std::io::Error::other("disk on fire"),
+                })
+            } else {
+                Err(sofipol_calib::Error::Io {
+                    path: p.into(),
+                    source: std::io::Error::from_raw_os_error(24),
+                })
+            }
+        };
+        let s = classify_with(&files, &Profile::sofi(), &read);
+        // The file that failed for its own reason is named; the others are not blamed.
+        assert_eq!(s.unreadable.len(), 1, "{:?}", s.unreadable);
+        assert!(s.unreadable[0].file.ends_with("f0.fits"));
+        let e = s.out_of_file_handles.expect("out of file handles noticed");
+        assert!(e.contains("os error 24"), "{e}");
+        let ok = classify_with(&files[..1], &Profile::sofi(), &read);
+        assert!(ok.out_of_file_handles.is_none());
     }
 
     #[cfg(unix)]

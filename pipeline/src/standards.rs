@@ -131,10 +131,12 @@ impl StandardsTable {
 
     /// The built-in table plus a user file.
     pub fn with_file(path: &Path) -> Result<StandardsTable> {
-        let text = std::fs::read_to_string(path).map_err(|source| Error::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let text = sofipol_calib::input::read_to_string(path, sofipol_calib::input::MAX_OPTION_FILE_BYTES).map_err(
+            |source| Error::Io {
+                path: path.to_path_buf(),
+                source,
+            },
+        )?;
         let mut t = StandardsTable::builtin();
         t.merge_toml(&text, &path.display().to_string())?;
         Ok(t)

@@ -69,6 +69,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     for d in &args.dirs {
         anyhow::ensure!(d.exists(), "{}: no such file or directory", d.display());
     }
+    // CALDIR is checked before the reduction: it must accept files, and calibration.json
+    // must not replace an input.
+    let mut inputs = args.reduce.input_files();
+    inputs.extend(args.profile.profile.clone());
+    inputs.extend(args.standards.clone());
+    let inputs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
+    super::common::check_outputs_in_dir(&args.output, &[CALIBRATION_FILE], &inputs, "-o")?;
+    super::setup::check_input_frames(&params)?;
     // The calibration is measured from this night's standards whatever the settings say.
     let mut cal_params = params.calibration.clone();
     cal_params.no_calibration = false;
@@ -83,6 +91,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         calibration,
     };
     let mut plan = setup.plan(&args.dirs, None);
+    super::common::check_scan_complete(&plan)?;
     // Only the standards: the science sequences are reduced by `sofipol night`.
     plan.sequences.clear();
     if !args.quiet {
@@ -93,33 +102,20 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         );
     }
     let out = night::run_night(&plan, &setup, &RunOptions::default());
-    let flats = build_flat_products(&out.flats, &args.output)?;
     let standards = &out.catalog.standards;
     let mut cal = out.calibration.ok_or_else(|| {
         anyhow::anyhow!(
-            "{}: no usable standard (DPR TYPE 'STD' sequences matched to the standards table: {} found, {})",
+            "{}: no usable standard (DPR TYPE 'STD' sequences matched to the standards table): {}",
             args.dirs
                 .iter()
                 .map(|d| d.display().to_string())
                 .collect::<Vec<_>>()
                 .join(", "),
-            standards.len(),
-            standards
-                .iter()
-                .map(|s| format!(
-                    "'{}'{}",
-                    s.object,
-                    if setup.calibration.table.knows(&s.object) {
-                        ""
-                    } else {
-                        " not in the table"
-                    }
-                ))
-                .collect::<Vec<_>>()
-                .join(", ")
+            standards_found(standards, &setup.calibration.table)
         )
     })?;
-    cal.flats = flats;
+    // Written only once the calibration exists: a failed run writes nothing.
+    cal.flats = build_flat_products(&out.flats, &args.output)?;
     cal.provenance = serde_json::json!({
         "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
         "command_line": std::env::args().collect::<Vec<_>>(),
@@ -138,12 +134,38 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// The standard sequences found, in words: "none found" or "2 found: 'HD 1', 'X' (not in
+/// the table)".
+fn standards_found(
+    standards: &[sofipol_pipeline::catalog::StandardResult],
+    table: &sofipol_pipeline::standards::StandardsTable,
+) -> String {
+    if standards.is_empty() {
+        return "none found (no frame with DPR TYPE 'STD')".into();
+    }
+    let names: Vec<String> = standards
+        .iter()
+        .map(|s| {
+            format!(
+                "'{}'{}",
+                sofipol_calib::text::printable(&s.object),
+                if table.knows(&s.object) {
+                    ""
+                } else {
+                    " (not in the table)"
+                }
+            )
+        })
+        .collect();
+    format!("{} found: {}", standards.len(), names.join(", "))
+}
+
 /// The calibration per filter, one line each, on stdout.
 fn print_calibration(cal: &Calibration, profile: &Profile) {
     for f in &cal.filters {
         println!(
             "{}: c = {} ; theta0 = {} ; parity {}",
-            f.filter,
+            sofipol_calib::text::printable(&f.filter),
             f.offset
                 .map(|o| format!("{:.5} +- {:.5} from {:?}", o.c, o.sigma_c, f.offset_standards))
                 .unwrap_or_else(|| "not measured (no unpolarized standard)".into()),

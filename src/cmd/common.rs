@@ -58,6 +58,7 @@ pub fn check_output<P: AsRef<std::path::Path>>(out: &std::path::Path, inputs: &[
     let name = out
         .file_name()
         .ok_or_else(|| anyhow::anyhow!("-o {}: not a file name", out.display()))?;
+    check_name_length(out, name)?;
     let parent = match out.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
@@ -98,10 +99,86 @@ pub fn check_output<P: AsRef<std::path::Path>>(out: &std::path::Path, inputs: &[
             .map(|_| &head == b"SIMPLE  =")
             .unwrap_or(false);
         anyhow::ensure!(
-            !is_fits,
-            "-o {}: is a FITS file; sofipol writes JSON there and never overwrites a frame",
+            !is_fits || is_sofipol_table(out),
+            "-o {}: is a FITS file; sofipol never overwrites a frame (only a table it exported itself)",
             out.display()
         );
+    }
+    Ok(())
+}
+
+/// Longest output file name, bytes: the file system's 255 less room for the temporary
+/// file (`.NAME.tmp-...`) the atomic write renames.
+pub const MAX_OUTPUT_NAME_BYTES: usize = 200;
+
+/// Refuse, before any work, an output name the atomic write could not create next to it.
+fn check_name_length(out: &std::path::Path, name: &std::ffi::OsStr) -> anyhow::Result<()> {
+    let n = name.as_encoded_bytes().len();
+    anyhow::ensure!(
+        n <= MAX_OUTPUT_NAME_BYTES,
+        "-o {}: the file name is {n} bytes long, more than the {MAX_OUTPUT_NAME_BYTES} sofipol accepts \
+         (file systems allow 255, and the atomic write needs room for a temporary name)",
+        out.display()
+    );
+    Ok(())
+}
+
+/// Whether `path` is a FITS table written by `sofipol export` (an empty primary HDU and a
+/// binary table `EXTNAME = 'SOFIPOL'`): the one kind of FITS file an output may replace.
+pub fn is_sofipol_table(path: &std::path::Path) -> bool {
+    let mut head = vec![0u8; 16 * 2880];
+    let n = std::fs::File::open(path)
+        .and_then(|mut f| {
+            let mut n = 0;
+            while n < head.len() {
+                match std::io::Read::read(&mut f, &mut head[n..])? {
+                    0 => break,
+                    k => n += k,
+                }
+            }
+            Ok(n)
+        })
+        .unwrap_or(0);
+    let cards: Vec<&[u8]> = head[..n].chunks_exact(80).collect();
+    let value = |c: &&[u8], key: &[u8]| c.starts_with(key);
+    let naxis0 = cards
+        .iter()
+        .take(36)
+        .any(|c| value(c, b"NAXIS   =") && std::str::from_utf8(&c[10..30]).is_ok_and(|v| v.trim() == "0"));
+    let table = cards.iter().any(|c| value(c, b"XTENSION= 'BINTABLE'"));
+    let ours = cards.iter().any(|c| value(c, b"EXTNAME = 'SOFIPOL "));
+    naxis0 && table && ours
+}
+
+/// Check, before any work, that the files `names` can be written into `dir` (created if
+/// needed) without replacing an input (compared by canonical path) or a directory.
+pub fn check_outputs_in_dir(
+    dir: &std::path::Path,
+    names: &[&str],
+    inputs: &[&std::path::Path],
+    what: &str,
+) -> anyhow::Result<()> {
+    check_output_dir(dir, what)?;
+    for name in names {
+        let out = dir.join(name);
+        anyhow::ensure!(
+            !out.is_dir(),
+            "{what} {}: {} is a directory",
+            dir.display(),
+            out.display()
+        );
+        let Ok(canon) = std::fs::canonicalize(&out) else {
+            continue;
+        };
+        for i in inputs {
+            if std::fs::canonicalize(i).is_ok_and(|c| c == canon) {
+                anyhow::bail!(
+                    "{what} {}: would replace {} with {name}; sofipol never overwrites its inputs",
+                    dir.display(),
+                    i.display()
+                );
+            }
+        }
     }
     Ok(())
 }
@@ -111,5 +188,71 @@ pub fn check_output<P: AsRef<std::path::Path>>(out: &std::path::Path, inputs: &[
 pub fn check_output_dir(dir: &std::path::Path, what: &str) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("{what} {}: cannot create the directory", dir.display()))?;
     tempfile::tempfile_in(dir).with_context(|| format!("{what} {}: cannot create files there", dir.display()))?;
+    Ok(())
+}
+
+/// The per-target figures of a run, written into one products folder (`night`:
+/// `<stem>_products/`, `demo`: `figures/`). A figure that cannot be written is counted
+/// (the run then exits 2: its products are incomplete, docs/cli.md); when the run ends,
+/// [`Figures::finish`] removes what earlier runs left there and this one did not write:
+/// figures of targets no longer in the catalog and temporary files of interrupted writes.
+pub struct Figures {
+    dir: std::path::PathBuf,
+    written: std::sync::Mutex<Vec<std::ffi::OsString>>,
+    failed: std::sync::Mutex<Vec<String>>,
+}
+
+impl Figures {
+    /// Figures written into `dir` (which exists).
+    pub fn new(dir: &std::path::Path) -> Self {
+        Figures {
+            dir: dir.to_path_buf(),
+            written: Default::default(),
+            failed: Default::default(),
+        }
+    }
+
+    /// Write `fig` as `<slug>.png`; a failure is printed and counted.
+    pub fn write(&self, slug: &str, fig: &sofipol_pipeline::plots::target::TargetFigure) {
+        let name = format!("{slug}.png");
+        let path = self.dir.join(&name);
+        match fig.png(&path) {
+            Ok(()) => self.written.lock().expect("not poisoned").push(name.into()),
+            Err(e) => {
+                let msg = format!("{}: could not write the figure: {e}", path.display());
+                eprintln!("sofipol: warning: {msg}");
+                self.failed.lock().expect("not poisoned").push(msg);
+            }
+        }
+    }
+
+    /// Remove the PNG files and `.*.tmp-*` temporaries of the folder that this run did not
+    /// write (best effort), and return (figures written, figures that failed).
+    pub fn finish(self) -> (usize, Vec<String>) {
+        let written = self.written.into_inner().expect("not poisoned");
+        if let Ok(entries) = std::fs::read_dir(&self.dir) {
+            for e in entries.flatten() {
+                let name = e.file_name();
+                let text = name.to_string_lossy();
+                let stale_png = text.ends_with(".png") && !written.contains(&name);
+                let stale_tmp = text.starts_with('.') && text.contains(".tmp-");
+                if (stale_png || stale_tmp) && e.file_type().is_ok_and(|t| t.is_file()) {
+                    let _ = std::fs::remove_file(e.path());
+                }
+            }
+        }
+        (written.len(), self.failed.into_inner().expect("not poisoned"))
+    }
+}
+
+/// Refuse to reduce a night whose scan ran out of file handles: its files are not
+/// unusable, the process could not open them (exit 1, nothing written).
+pub fn check_scan_complete(plan: &sofipol_pipeline::night::NightPlan) -> anyhow::Result<()> {
+    if let Some(e) = &plan.out_of_file_handles {
+        anyhow::bail!(
+            "ran out of file handles while reading the headers ({e}): the inputs were not all \
+             read; raise the limit (`ulimit -n`) or use fewer --jobs. Nothing was reduced"
+        );
+    }
     Ok(())
 }

@@ -5,7 +5,7 @@ use std::process::ExitCode;
 use sofipol_pipeline::catalog::Catalog;
 use sofipol_pipeline::night::{self, Hooks, NightSetup, RunOptions};
 use sofipol_pipeline::reduce::TargetParams;
-use sofipol_pipeline::sim::{Scene, Truth};
+use sofipol_pipeline::sim::{Scene, Simulator, Truth};
 
 use super::common::ProfileArgs;
 
@@ -28,6 +28,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let scene = Scene::from_toml(DEMO_SCENE, "embedded demo scene").map_err(anyhow::Error::msg)?;
     let profile = ProfileArgs::default().load()?;
     let raw = args.output.join("raw");
+    let sim = Simulator::new(scene, profile.clone()).map_err(anyhow::Error::msg)?;
+    check_demo_dir(&args.output, &sim.file_names())?;
+    let scene = sim.scene();
     let t0 = std::time::Instant::now();
     println!(
         "sofipol demo: simulating the embedded scene '{}' (seed {}) into {}",
@@ -39,7 +42,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         "  effects: {}",
         scene.effects.iter().map(|e| e.name()).collect::<Vec<_>>().join(", ")
     );
-    let truth = super::simulate::simulate_into(scene, profile.clone(), &raw, None, args.quiet)?;
+    let truth = super::simulate::simulate_with(&sim, &raw, None, args.quiet)?;
     let nframes: usize = truth.targets.iter().map(|t| t.frames.len()).sum();
     let nstd: usize = truth.standards.iter().map(|t| t.frames.len()).sum();
     println!(
@@ -63,12 +66,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let plan = setup.plan(std::slice::from_ref(&raw), None);
     let fig_dir = args.output.join("figures");
     std::fs::create_dir_all(&fig_dir)?;
+    let figures = super::common::Figures::new(&fig_dir);
     // Drawn from the calibrated catalog, as written.
     let plot = |fig: &sofipol_pipeline::plots::target::TargetFigure| {
-        let png = fig_dir.join(format!("{}.png", night::slug(&fig.target.object)));
-        if let Err(e) = fig.png(&png) {
-            eprintln!("sofipol: warning: {}: {e}", png.display());
-        }
+        figures.write(&night::slug(&fig.target.object), fig);
     };
     let opts = RunOptions {
         night_mask: true,
@@ -131,9 +132,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     println!("\n  (P found is debiased (Wardle & Kronberg); pulls use the raw P.)");
     println!("  catalog: {}   figures: {}", cat_path.display(), fig_dir.display());
+    let (_, figures_failed) = figures.finish();
     let problems = check_against_truth(&truth.targets, &cat, PULL_LIMIT);
     if problems.is_empty() {
         println!("  check: every component's q and u within {PULL_LIMIT} sigma of the truth");
+        if !figures_failed.is_empty() {
+            eprintln!(
+                "sofipol demo: {} figure(s) could not be written: the products are incomplete (exit 2)",
+                figures_failed.len()
+            );
+            return Ok(ExitCode::from(2));
+        }
         Ok(ExitCode::SUCCESS)
     } else {
         for p in &problems {
@@ -141,6 +150,44 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
         Ok(ExitCode::from(DEMO_CHECK_FAILED))
     }
+}
+
+/// Refuse, before anything is written, an output folder the demo would mix with or
+/// overwrite foreign data: the demo reduces every frame of `DIR/raw`, so `DIR/raw` may hold
+/// only files the demo writes itself (`names`: its frames and truth.json, or their
+/// temporaries), and `DIR/catalog.json` is replaced only in the folder of an earlier demo
+/// (one with `DIR/raw/truth.json`). An empty or new folder is always fine.
+pub fn check_demo_dir(dir: &std::path::Path, names: &[String]) -> anyhow::Result<()> {
+    let raw = dir.join("raw");
+    if raw.exists() {
+        let entries =
+            std::fs::read_dir(&raw).map_err(|e| anyhow::anyhow!("-o {}: {}: {e}", dir.display(), raw.display()))?;
+        for e in entries {
+            let e = e.map_err(|e| anyhow::anyhow!("-o {}: {}: {e}", dir.display(), raw.display()))?;
+            let name = e.file_name().to_string_lossy().into_owned();
+            let ours = names
+                .iter()
+                .any(|n| *n == name || name.strip_prefix(&format!(".{n}.tmp-")).is_some());
+            anyhow::ensure!(
+                ours && e.file_type().is_ok_and(|t| t.is_file()),
+                "-o {}: {} is not a file of the demo: the demo would reduce it with its own frames; \
+                 give an empty or new folder",
+                dir.display(),
+                e.path().display()
+            );
+        }
+    }
+    let cat = dir.join("catalog.json");
+    if cat.exists() || cat.is_symlink() {
+        anyhow::ensure!(
+            cat.is_file() && raw.join("truth.json").is_file(),
+            "-o {}: {} exists and the folder is not an earlier demo's (no raw/truth.json): not overwritten; \
+             give an empty or new folder",
+            dir.display(),
+            cat.display()
+        );
+    }
+    Ok(())
 }
 
 /// What the calibration found against what the scene simulated: the flat, the offset c
@@ -209,7 +256,7 @@ pub fn calibration_report(truth: &Truth, flat: &serde_json::Value, cat: &Catalog
         let m = s.measured.as_ref();
         out += &format!(
             "    standard {:<10} P = {:.2} +- {:.2} % (table {}), gamma {} {}\n",
-            s.name,
+            sofipol_calib::text::printable(&s.name),
             m.map_or(f64::NAN, |m| 100.0 * m.p),
             m.map_or(f64::NAN, |m| 100.0 * m.sigma_p),
             s.table
@@ -227,7 +274,7 @@ pub fn calibration_report(truth: &Truth, flat: &serde_json::Value, cat: &Catalog
         );
     }
     for l in lines {
-        out += &format!("    {l}\n");
+        out += &format!("    {}\n", sofipol_calib::text::printable(l));
     }
     out
 }
@@ -348,6 +395,38 @@ mod tests {
             }
         }
         assert!(unpol >= 2 && pol >= 1, "{unpol} unpolarized, {pol} polarized");
+    }
+
+    #[test]
+    fn the_demo_folder_may_be_new_or_an_earlier_demos_but_holds_no_foreign_data() {
+        let d = tempfile::tempdir().unwrap();
+        let names = vec!["SOFI_demo_T_01.fits".to_string(), "truth.json".to_string()];
+        let dir = d.path().join("out");
+        check_demo_dir(&dir, &names).unwrap();
+        // An earlier demo's folder (its files, a temporary of an interrupted write, its
+        // catalog) is fine: re-running the demo replaces them.
+        std::fs::create_dir_all(dir.join("raw")).unwrap();
+        for n in ["SOFI_demo_T_01.fits", "truth.json", ".SOFI_demo_T_01.fits.tmp-12-0"] {
+            std::fs::write(dir.join("raw").join(n), b"x").unwrap();
+        }
+        std::fs::write(dir.join("catalog.json"), b"{}").unwrap();
+        check_demo_dir(&dir, &names).unwrap();
+        // A frame of another night in raw/.
+        std::fs::write(dir.join("raw/night1_0001.fits"), b"x").unwrap();
+        let e = check_demo_dir(&dir, &names).unwrap_err().to_string();
+        assert!(
+            e.contains("night1_0001.fits") && e.contains("not a file of the demo"),
+            "{e}"
+        );
+        std::fs::remove_file(dir.join("raw/night1_0001.fits")).unwrap();
+        std::fs::create_dir(dir.join("raw/sub")).unwrap();
+        assert!(check_demo_dir(&dir, &names).is_err());
+        // A catalog in a folder that is not a demo's.
+        let other = d.path().join("other");
+        std::fs::create_dir(&other).unwrap();
+        std::fs::write(other.join("catalog.json"), b"{}").unwrap();
+        let e = check_demo_dir(&other, &names).unwrap_err().to_string();
+        assert!(e.contains("catalog.json") && e.contains("not overwritten"), "{e}");
     }
 
     #[test]

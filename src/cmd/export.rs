@@ -3,7 +3,6 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::Context;
 use sofipol_pipeline::catalog::Catalog;
 use sofipol_pipeline::export::{self, Format};
 
@@ -22,27 +21,11 @@ pub struct Args {
 
 /// Run.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    // Never overwrite the input (by canonical path: `./x`, `d/../x` or a symlink count),
-    // checked before anything is read or written.
-    anyhow::ensure!(
-        !args.output.is_dir(),
-        "-o {}: is a directory; give a file name",
-        args.output.display()
-    );
-    if let (Ok(a), Ok(b)) = (
-        std::fs::canonicalize(&args.output),
-        std::fs::canonicalize(&args.catalog),
-    ) {
-        anyhow::ensure!(
-            a != b,
-            "-o {}: is the input catalog ({}); sofipol never overwrites its inputs",
-            args.output.display(),
-            args.catalog.display()
-        );
-    }
-    let text = std::fs::read_to_string(&args.catalog).with_context(|| format!("reading {}", args.catalog.display()))?;
-    let cat: Catalog =
-        serde_json::from_str(&text).with_context(|| format!("{}: not a sofipol catalog", args.catalog.display()))?;
+    // Checked before anything is read or written, as `night` and `merge` check theirs:
+    // never the input (by canonical path: `./x`, `d/../x` or a symlink count), a directory,
+    // or a FITS file other than a table sofipol exported (a raw frame).
+    super::common::check_output(&args.output, &[&args.catalog])?;
+    let cat: Catalog = sofipol_pipeline::input::read_catalog(&args.catalog)?;
     let t = export::table(&cat, &args.catalog.display().to_string());
     export::write(&t, args.format, &args.output)?;
     println!(

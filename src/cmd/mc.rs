@@ -126,6 +126,13 @@ pub fn parse_levels(s: &str) -> anyhow::Result<Vec<f64>> {
         .collect()
 }
 
+/// The file a `--model` or `--p-int` spec reads (`table:FILE`, `pofi:FILE`,
+/// `catalog:FILE`), if any: an input that outputs must not replace.
+pub fn spec_file(spec: &str) -> Option<&Path> {
+    let (kind, arg) = spec.split_once(':')?;
+    matches!(kind.trim(), "table" | "pofi" | "catalog").then(|| Path::new(arg.trim()))
+}
+
 /// Validated settings of one invocation.
 struct Settings {
     base: McConfig,
@@ -136,7 +143,8 @@ struct Settings {
 fn settings(args: &Args) -> anyhow::Result<Settings> {
     let file: McFile = match &args.config {
         Some(p) => {
-            let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            let text = sofipol_calib::input::read_to_string(p, sofipol_calib::input::MAX_OPTION_FILE_BYTES)
+                .with_context(|| format!("reading {}", p.display()))?;
             toml::from_str(&text).with_context(|| format!("parsing {}", p.display()))?
         }
         None => McFile::default(),
@@ -222,6 +230,13 @@ pub fn summary(out: &McOutput) -> (f64, f64, f64) {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let s = settings(&args)?;
     let pool = pool(args.threads)?;
+    if let (Some(dir), false) = (&args.out, args.bench) {
+        let mut inputs: Vec<&Path> = args.config.iter().map(PathBuf::as_path).collect();
+        inputs.extend(args.model.as_deref().and_then(spec_file));
+        inputs.extend(args.p_int.as_deref().and_then(spec_file));
+        let figure = format!("pi_delta_gamma.{}", args.format);
+        super::common::check_outputs_in_dir(dir, &["pi_delta_gamma.json", &figure], &inputs, "-o")?;
+    }
     if args.bench {
         return bench(&s, args.bench_runs.max(1));
     }

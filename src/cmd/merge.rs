@@ -107,9 +107,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     super::common::check_output(&args.output, &args.catalogs)?;
     let mut parts = Vec::new();
     for p in &args.catalogs {
-        let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-        let c: Catalog =
-            serde_json::from_str(&text).with_context(|| format!("{}: not a sofipol catalog", p.display()))?;
+        let c: Catalog = sofipol_pipeline::input::read_catalog(p)?;
         parts.push((p.display().to_string(), c));
     }
     let provs: Vec<(String, &Value)> = parts.iter().map(|(n, c)| (n.clone(), &c.provenance)).collect();

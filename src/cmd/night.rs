@@ -6,13 +6,14 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use anyhow::Context;
+use sofipol_calib::text::printable;
 use sofipol_pipeline::catalog::{Catalog, Status, Target};
 use sofipol_pipeline::io;
 use sofipol_pipeline::night::{self, Hooks, NightOutput, NightPlan, NightSetup, RunOptions, Shard};
 use sofipol_pipeline::plots::target::TargetFigure;
 use sofipol_pipeline::reduce::run::StageTimes;
 
-use super::common::progress;
+use super::common::{progress, Figures};
 use super::setup::SetupArgs;
 
 /// `--jobs` is capped at this many threads per core.
@@ -57,6 +58,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     }
     let jobs = capped_jobs(args.jobs, args.quiet)?;
+    super::setup::check_input_frames(&setup.params)?;
     for d in &args.dirs {
         anyhow::ensure!(d.exists(), "{}: no such file or directory", d.display());
     }
@@ -83,11 +85,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if let Some(d) = &png_dir {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }
-    let out = pool.install(|| reduce_with_progress(&plan, &setup, &args, png_dir.as_deref()));
+    let figures = png_dir.as_deref().map(Figures::new);
+    let out = pool.install(|| reduce_with_progress(&plan, &setup, &args, figures.as_ref()));
     let cat = &out.catalog;
     if !args.quiet {
         for l in &out.summary.lines {
-            eprintln!("sofipol night: {l}");
+            eprintln!("sofipol night: {}", printable(l));
         }
     }
     sofipol_pipeline::io::write_json_atomic(&args.output, cat)
@@ -105,8 +108,19 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if args.verbose > 0 {
         print_verbose(&out, wall);
     }
+    let figures_failed = figures.map(|f| f.finish().1).unwrap_or_default();
+    if !figures_failed.is_empty() {
+        eprintln!(
+            "sofipol night: {} figure(s) could not be written: the products are incomplete (exit 2)",
+            figures_failed.len()
+        );
+    }
     let bad = cat.targets.iter().any(|t| t.status != Status::Ok) || !cat.failures.is_empty();
-    Ok(if bad { ExitCode::from(2) } else { ExitCode::SUCCESS })
+    Ok(if bad || !figures_failed.is_empty() {
+        ExitCode::from(2)
+    } else {
+        ExitCode::SUCCESS
+    })
 }
 
 /// `--jobs`, checked (at least 1) and capped at [`MAX_JOBS_PER_CORE`] x the cores (with a
@@ -130,6 +144,7 @@ fn capped_jobs(jobs: Option<usize>, quiet: bool) -> anyhow::Result<Option<usize>
 /// outputs against its files (never overwrite an input).
 fn plan_night(args: &Args, setup: &NightSetup) -> anyhow::Result<NightPlan> {
     let plan = setup.plan(&args.dirs, args.shard);
+    super::common::check_scan_complete(&plan)?;
     anyhow::ensure!(
         plan.n_files > 0,
         "no FITS files (.fits, .fit, .fits.gz, .fit.gz, .fz) in {}",
@@ -149,8 +164,8 @@ fn plan_night(args: &Args, setup: &NightSetup) -> anyhow::Result<NightPlan> {
 }
 
 /// Run the night (in the current rayon pool) with a progress bar on a terminal, else a line
-/// per target (nothing if `quiet`); writes each target's figure into `png_dir` when given.
-fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, png_dir: Option<&Path>) -> NightOutput {
+/// per target (nothing if `quiet`); writes each target's figure into `figures` when given.
+fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, figures: Option<&Figures>) -> NightOutput {
     let n = plan.sequences.len();
     let quiet = args.quiet;
     let tty = std::io::stderr().is_terminal();
@@ -165,19 +180,22 @@ fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, png_d
         };
         if tty && !quiet {
             pb.inc(1);
-            pb.set_message(format!("{} {st}", t.object));
+            pb.set_message(format!("{} {st}", printable(&t.object)));
         } else if !quiet {
             eprintln!(
                 "[{k}/{n}] {} {st}{}",
-                t.object,
-                t.error.as_deref().map(|e| format!(": {e}")).unwrap_or_default()
+                printable(&t.object),
+                t.error
+                    .as_deref()
+                    .map(|e| format!(": {}", printable(e)))
+                    .unwrap_or_default()
             );
         }
     };
     // Drawn after the calibration, from the catalog's final numbers.
     let plot = |fig: &TargetFigure| {
-        if let Some(d) = png_dir {
-            plot_target(d, fig);
+        if let Some(f) = figures {
+            f.write(&night::slug(fig.target.sequence_id()), fig);
         }
     };
     let opts = RunOptions {
@@ -186,7 +204,7 @@ fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, png_d
         inputs: args.dirs.clone(),
         hooks: Hooks {
             on_done: Some(&on_done),
-            on_figure: png_dir.is_some().then_some(&plot as &(dyn Fn(&TargetFigure) + Sync)),
+            on_figure: figures.is_some().then_some(&plot as &(dyn Fn(&TargetFigure) + Sync)),
         },
     };
     let out = night::run_night(plan, setup, &opts);
@@ -254,13 +272,4 @@ fn print_verbose(out: &NightOutput, wall: f64) {
         io::cpu_seconds().unwrap_or(f64::NAN),
         io::peak_rss_bytes().unwrap_or(0) as f64 / 1e6
     );
-}
-
-/// Write the per-target figure (never fails the night: a problem is printed).
-fn plot_target(dir: &Path, fig: &TargetFigure) {
-    let seq = fig.target.sequence_id();
-    let path = dir.join(format!("{}.png", night::slug(seq)));
-    if let Err(e) = fig.png(&path) {
-        eprintln!("sofipol: warning: {}: could not write the figure: {e}", path.display());
-    }
 }

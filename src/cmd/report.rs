@@ -1,4 +1,5 @@
 //! The human summary shared by `target`, `night` and `demo`.
+use sofipol_calib::text::printable;
 use sofipol_pipeline::catalog::{Catalog, Status};
 
 /// A table of the catalog for a terminal.
@@ -15,7 +16,12 @@ pub fn summary(cat: &Catalog) -> String {
             Status::Failed => "FAILED",
         };
         if t.components.is_empty() {
-            s += &format!("{:<16} {:<7}  {}\n", t.object, st, t.error.as_deref().unwrap_or(""));
+            s += &format!(
+                "{:<16} {:<7}  {}\n",
+                printable(&t.object),
+                st,
+                printable(t.error.as_deref().unwrap_or(""))
+            );
             continue;
         }
         for (i, c) in t.components.iter().enumerate() {
@@ -25,7 +31,7 @@ pub fn summary(cat: &Catalog) -> String {
             };
             s += &format!(
                 "{:<16} {:<7} {:>4} {:>8.3} {:>7.3} {:>7.1} {:>6.1} {:>5} {}  {}\n",
-                if i == 0 { t.object.as_str() } else { "" },
+                if i == 0 { printable(&t.object) } else { "".into() },
                 if i == 0 { st } else { "" },
                 c.name,
                 100.0 * c.p,
@@ -34,14 +40,14 @@ pub fn summary(cat: &Catalog) -> String {
                 c.sigma_gamma_deg,
                 if c.passes_cut { "pass" } else { "-" },
                 dg,
-                c.flags.join(",")
+                printable(&c.flags.join(","))
             );
         }
     }
     if !cat.failures.is_empty() {
         s += &format!("\n{} input(s) not used:\n", cat.failures.len());
         for f in &cat.failures {
-            s += &format!("  {}: {}\n", f.file, f.error);
+            s += &format!("  {}: {}\n", printable(&f.file), printable(&f.error));
         }
     }
     s

@@ -108,7 +108,8 @@ impl ReduceArgs {
     fn file_and_param_keys(&self) -> anyhow::Result<TargetParams> {
         let mut table = match &self.params {
             Some(f) => {
-                let text = std::fs::read_to_string(f).with_context(|| format!("reading {}", f.display()))?;
+                let text = sofipol_calib::input::read_to_string(f, sofipol_calib::input::MAX_OPTION_FILE_BYTES)
+                    .with_context(|| format!("reading {}", f.display()))?;
                 if self.param.is_empty() {
                     return toml::from_str(&text).with_context(|| format!("parameters file {}", f.display()));
                 }
@@ -171,6 +172,22 @@ impl ReduceArgs {
         p.validate()?;
         Ok(p)
     }
+}
+
+/// Check, before any reduction, that the calibration frames the settings name
+/// (`--badpix` / `calib_mask`, `--flat` / `flat`) exist and are FITS images: a missing or
+/// foreign file is an error naming the option and the file (exit 1), not a failure of
+/// every target found after the work.
+pub fn check_input_frames(params: &TargetParams) -> anyhow::Result<()> {
+    for (what, file) in [
+        ("--badpix (calib_mask)", &params.calib_mask),
+        ("--flat (flat)", &params.flat),
+    ] {
+        if let Some(f) = file {
+            sofipol_calib::fits::read_header(f).with_context(|| format!("{what} {}", f.display()))?;
+        }
+    }
+    Ok(())
 }
 
 /// Calibration options shared by `night` and `target`.

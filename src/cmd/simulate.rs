@@ -24,25 +24,42 @@ pub struct Args {
     /// No progress bar or summary.
     #[arg(short, long)]
     pub quiet: bool,
+    /// Write the frames even when they take more than 4 GiB (docs/simulator.md).
+    #[arg(long)]
+    pub force: bool,
     #[command(flatten)]
     pub profile: ProfileArgs,
 }
 
 /// Load a scene file.
 pub fn load_scene(path: &Path) -> anyhow::Result<Scene> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading scene {}", path.display()))?;
+    let text = sofipol_calib::input::read_to_string(path, sofipol_calib::input::MAX_OPTION_FILE_BYTES)
+        .with_context(|| format!("reading scene {}", path.display()))?;
     Scene::from_toml(&text, &path.display().to_string()).map_err(anyhow::Error::msg)
 }
 
-/// Simulate `scene` into `dir`, with a progress bar unless quiet. Returns the truth.
-pub fn simulate_into(
-    scene: Scene,
-    profile: sofipol_calib::Profile,
-    dir: &Path,
-    badpix: Option<&Path>,
-    quiet: bool,
-) -> anyhow::Result<Truth> {
-    let sim = Simulator::new(scene, profile).map_err(anyhow::Error::msg)?;
+/// Most bytes `simulate` writes without `--force` (a night of 50 targets is about 1 GB).
+pub const MAX_OUTPUT_BYTES: u64 = 4 << 30;
+
+/// Refuse, before writing anything, a scene whose frames would take more than
+/// [`MAX_OUTPUT_BYTES`] (unless `force`).
+pub fn check_output_size(sim: &Simulator, dir: &Path, force: bool) -> anyhow::Result<()> {
+    let bytes = sim.output_bytes();
+    anyhow::ensure!(
+        force || bytes <= MAX_OUTPUT_BYTES,
+        "the scene's {} frames would take {:.1} GB in {} (more than the {:.1} GB simulate writes \
+         without --force): fewer targets, orientations or dithers, or --force",
+        sim.file_names().len() - 1,
+        bytes as f64 / 1e9,
+        dir.display(),
+        MAX_OUTPUT_BYTES as f64 / 1e9
+    );
+    Ok(())
+}
+
+/// Simulate into `dir` with a progress bar unless quiet (and the true bad-pixel map into
+/// `badpix`). Returns the truth.
+pub fn simulate_with(sim: &Simulator, dir: &Path, badpix: Option<&Path>, quiet: bool) -> anyhow::Result<Truth> {
     let total = (sim.frames_per_target() * sim.scene().binary.len()) as u64;
     let pb = progress(total, "simulate", quiet);
     let truth = sim
@@ -79,7 +96,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let profile = args.profile.load()?;
     let t0 = std::time::Instant::now();
-    let truth = simulate_into(scene, profile, &args.output, args.badpix_mask.as_deref(), args.quiet)?;
+    let sim = Simulator::new(scene, profile).map_err(anyhow::Error::msg)?;
+    check_output_size(&sim, &args.output, args.force)?;
+    let truth = simulate_with(&sim, &args.output, args.badpix_mask.as_deref(), args.quiet)?;
     if !args.quiet {
         let nframes: usize = truth.targets.iter().map(|t| t.frames.len()).sum();
         println!(

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{bail, Context};
-use sofipol_pipeline::catalog::Catalog;
+use sofipol_calib::text::printable;
 use sofipol_pipeline::plots::write_atomic;
 use sofipol_pipeline::stats::alignment::{format_p, DEFAULT_SIGNIFICANCE, DEFAULT_THRESHOLD_DEG};
 use sofipol_pipeline::stats::figures::{
@@ -90,12 +90,25 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if args.bins == 0 || args.bins > 90 {
         bail!("--bins {} must be in 1..=90", args.bins);
     }
-    let text = std::fs::read_to_string(&args.catalog).with_context(|| format!("reading {}", args.catalog.display()))?;
-    let catalog: Catalog =
-        serde_json::from_str(&text).with_context(|| format!("parsing catalog {}", args.catalog.display()))?;
+    // The outputs are checked before the (long) analysis: the directory must accept files
+    // and none of them may replace an input (`-o DIR` holding the catalog as stats.json).
+    let ext = &args.format;
+    let names = [
+        "stats.json".to_string(),
+        format!("observed.{ext}"),
+        format!("ism_levels.{ext}"),
+        format!("models.{ext}"),
+    ];
+    if let Some(dir) = &args.out {
+        let mut inputs = vec![args.catalog.as_path()];
+        inputs.extend(super::mc::spec_file(&args.p_int));
+        let names: Vec<&str> = names.iter().map(String::as_str).collect();
+        super::common::check_outputs_in_dir(dir, &names, &inputs, "-o")?;
+    }
+    let catalog = sofipol_pipeline::input::read_catalog(&args.catalog)?;
     let sample = BinarySample::from_catalog(&catalog, args.cut);
     for w in &sample.warnings {
-        eprintln!("sofipol stats: warning: {w}");
+        eprintln!("sofipol stats: warning: {}", printable(w));
     }
 
     let p_int = if args.p_int == "catalog" {
@@ -152,15 +165,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     print_report(&args.catalog, &sample, &report);
 
     if let Some(dir) = &args.out {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         write_json(dir, &args, &sample, &report)?;
         let mut written = vec!["stats.json"];
-        let ext = &args.format;
-        let (observed, ism_levels, models) = (
-            format!("observed.{ext}"),
-            format!("ism_levels.{ext}"),
-            format!("models.{ext}"),
-        );
+        let [_, observed, ism_levels, models] = &names;
         if !sample.is_empty() {
             let notes: Vec<String> = match (&report.ks_uniform, &report.kuiper_uniform, &report.below_threshold) {
                 (Some(ks), Some(kp), Some(bt)) => vec![
@@ -170,18 +177,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 ],
                 _ => Vec::new(),
             };
-            observed_figure(&dir.join(&observed), &sample, args.bins, &notes)?;
-            written.push(&observed);
+            observed_figure(&dir.join(observed), &sample, args.bins, &notes)?;
+            written.push(observed);
         }
         if !report.ism.is_empty() {
             ism_figure(
-                &dir.join(&ism_levels),
+                &dir.join(ism_levels),
                 &report.ism,
                 &dg,
                 args.bins,
                 &report_subtitle(&params.mc),
             )?;
-            written.push(&ism_levels);
+            written.push(ism_levels);
         }
         if !args.no_model_figure {
             let rows = model_rows(&report, args.pairs, args.seed, &pool)?;
@@ -189,8 +196,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 .errors
                 .median_deg()
                 .map(|m| format!("dashed: with the measured errors (median σ = {m:.1}°)"));
-            models_figure(&dir.join(&models), &rows, note.as_deref())?;
-            written.push(&models);
+            models_figure(&dir.join(models), &rows, note.as_deref())?;
+            written.push(models);
         }
         println!("\nwrote {} in {}", written.join(", "), dir.display());
     }
@@ -250,7 +257,7 @@ fn print_report(path: &Path, sample: &BinarySample, r: &AlignmentReport) {
         sample.excluded.len()
     );
     for e in &sample.excluded {
-        println!("  excluded {}: {}", e.object, e.reason);
+        println!("  excluded {}: {}", printable(&e.object), printable(&e.reason));
     }
     if sample.binaries.iter().any(|b| b.sigma_source.is_some()) {
         println!("\nDelta gamma per binary [deg]:");
@@ -265,7 +272,7 @@ fn print_report(path: &Path, sample: &BinarySample, r: &AlignmentReport) {
                 .map_or("-".to_string(), |[lo, hi]| format!("[{lo:.1}, {hi:.1}]"));
             println!(
                 "  {:<16} {:>7.1} {:>7} {:>16}  {}",
-                b.object,
+                printable(&b.object),
                 b.delta_gamma_deg,
                 sigma,
                 iv,

@@ -38,7 +38,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     for i in &args.inputs {
         anyhow::ensure!(i.exists(), "{}: no such file or directory", i.display());
     }
+    super::setup::check_input_frames(&setup.params)?;
     let mut plan = setup.plan(&args.inputs, None);
+    super::common::check_scan_complete(&plan)?;
     anyhow::ensure!(
         plan.n_files > 0,
         "no FITS files (.fits, .fit, .fits.gz, .fz) in {:?}",
@@ -51,7 +53,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             "no polarimetric sequence of object '{obj}' in the inputs"
         );
     } else if plan.sequences.len() > 1 {
-        let names: Vec<&str> = plan.sequences.iter().map(|q| q.object.as_str()).collect();
+        let names: Vec<String> = plan
+            .sequences
+            .iter()
+            .map(|q| sofipol_calib::text::printable(&q.object).into_owned())
+            .collect();
         anyhow::bail!(
             "the inputs hold {} sequences ({}): choose one with --object",
             plan.sequences.len(),
@@ -87,7 +93,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let cat = &out.catalog;
     if !args.quiet {
         for l in &out.summary.lines {
-            eprintln!("sofipol target: {l}");
+            eprintln!("sofipol target: {}", sofipol_calib::text::printable(l));
         }
     }
     sofipol_pipeline::io::write_json_atomic(&args.output, cat)

@@ -65,7 +65,16 @@ pub(super) fn open(path: &Path) -> Result<FitsFile> {
         });
     }
     let name = cfitsio_name(path)?;
-    FitsFile::open(&name).map_err(|e| fits_err(path, "opening as FITS", e))
+    // Opened by the OS first: a file that cannot be opened (permission denied, too many
+    // open files) is reported with the OS's reason, not cfitsio's "could not open".
+    super::gzip::check_compressed(path)?;
+    FitsFile::open(&name).map_err(|e| match super::diagnose::primary_keyword_problem(path) {
+        Some(problem) => Error::BadImage {
+            path: path.to_path_buf(),
+            reason: format!("not a valid FITS header: {problem}"),
+        },
+        None => fits_err(path, "opening as FITS", e),
+    })
 }
 
 /// Header operations that the safe `fitsio` API lacks.
@@ -136,6 +145,24 @@ pub(super) fn cfitsio_raw(f: &mut FitsFile, op: RawOp<'_>) -> fitsio::errors::Re
         }
     }
     Ok(out)
+}
+
+/// Byte offset in the file of the end of HDU `index` (0-based: its header and padded data),
+/// from cfitsio's HDU map.
+#[allow(unsafe_code)]
+pub(super) fn hdu_end(f: &mut FitsFile, index: usize) -> fitsio::errors::Result<u64> {
+    use fitsio::sys;
+    let hdunum = c_int::try_from(index + 1).unwrap_or(c_int::MAX);
+    let (mut hdutype, mut status): (c_int, c_int) = (0, 0);
+    let (mut head, mut data, mut end): (sys::LONGLONG, sys::LONGLONG, sys::LONGLONG) = (0, 0, 0);
+    // SAFETY: as in `data_start`.
+    unsafe {
+        let fptr = f.as_raw();
+        sys::ffmahd(fptr, hdunum, &mut hdutype, &mut status);
+        sys::ffghadll(fptr, &mut head, &mut data, &mut end, &mut status);
+    }
+    fitsio::errors::check_status(status)?;
+    u64::try_from(end).map_err(|_| fitsio::errors::Error::Message(format!("negative HDU end {end}")))
 }
 
 /// Byte offset in the file of the data of HDU `index` (0-based), from cfitsio's HDU map.

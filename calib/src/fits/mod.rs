@@ -28,6 +28,8 @@
 mod cards;
 mod cfitsio;
 mod convert;
+mod diagnose;
+mod gzip;
 mod keys;
 mod raw;
 mod read;
@@ -35,7 +37,8 @@ mod read;
 mod tests;
 mod write;
 
-pub use read::{read_frame, read_frame_rows, read_frame_rows_with_summary, read_header};
+pub use gzip::{MAX_GZIP_BYTES, MAX_IMAGE_PIXELS};
+pub use read::{read_frame, read_frame_rows, read_frame_rows_with_summary, read_header, read_image_shape};
 pub use write::write_frame;
 
 /// On-disk pixel type of a written image.

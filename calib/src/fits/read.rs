@@ -38,8 +38,21 @@ pub fn read_header(path: &Path) -> Result<Header> {
         return Ok(parse_cards(&p.cards, path).0);
     }
     let mut f = open(path)?;
+    let (index, cards) = find_image_hdu(&mut f, path)?;
+    let mut header = parse_cards(&cards, path).0;
+    header.image_hdu = index;
+    Ok(header)
+}
+
+/// The (NAXIS2, NAXIS1) of the image HDU, from its header (no pixels read): the size of
+/// the whole image when only some rows were read ([`read_frame_rows`]).
+pub fn read_image_shape(path: &Path) -> Result<(usize, usize)> {
+    if let Some(p) = super::raw::plain_primary(path) {
+        return image_dims(&p.cards, path);
+    }
+    let mut f = open(path)?;
     let (_, cards) = find_image_hdu(&mut f, path)?;
-    Ok(parse_cards(&cards, path).0)
+    image_dims(&cards, path)
 }
 
 /// Read a frame: the image as `f32` (`[y, x]`, row 0 = FITS row 1), its header, HISTORY
@@ -109,7 +122,8 @@ fn read_rows_inner(
     }
     let mut f = open(path)?;
     let (hdu_index, cards) = find_image_hdu(&mut f, path)?;
-    let (header, history) = parse_cards(&cards, path);
+    let (mut header, history) = parse_cards(&cards, path);
+    header.image_hdu = hdu_index;
     let (ny_full, nx) = image_dims(&cards, path)?;
     check_size_against_file(&cards, path, ny_full, nx)?;
     let rows = rows.filter(|&(r0, r1)| r0 < r1 && r1 <= ny_full);
@@ -187,11 +201,28 @@ pub(super) fn hdu_cards(f: &mut FitsFile, path: &Path, index: usize) -> Result<O
         // END_OF_FILE: no such HDU. (A file truncated inside a later HDU's header ends the
         // scan here too; the image HDU itself was read in full before.)
         Err(fitsio::errors::Error::Fits(fe)) if index > 0 && fe.status == END_OF_FILE => Ok(None),
+        Err(fitsio::errors::Error::Fits(fe)) if index > 0 && matches!(fe.status, NOT_AN_EXTENSION | READ_ERROR) => {
+            match super::diagnose::trailing_junk(f, path, index) {
+                Some(reason) => Err(Error::BadImage {
+                    path: path.to_path_buf(),
+                    reason,
+                }),
+                None => Err(fits_err(
+                    path,
+                    &format!("reading the header of HDU {index}"),
+                    fitsio::errors::Error::Fits(fe),
+                )),
+            }
+        }
         Err(e) => Err(fits_err(path, &format!("reading the header of HDU {index}"), e)),
     }
 }
 
 pub(super) const END_OF_FILE: i32 = 107;
+/// cfitsio's "1st key not SIMPLE or XTENSION" (UNKNOWN_REC) where an extension should start.
+const NOT_AN_EXTENSION: i32 = 252;
+/// cfitsio's READ_ERROR: also what less than a block of bytes after the last HDU gives.
+const READ_ERROR: i32 = 108;
 
 /// Find the image HDU: the primary if it has NAXIS > 0, else the first image extension
 /// (plain or tile-compressed) with NAXIS > 0. The image must be 2-D and non-empty.
@@ -313,8 +344,16 @@ pub(super) fn check_size_against_file(cards: &[String], path: &Path, ny: usize, 
             "the file".to_string(),
         )
     };
+    let too_many = pixels.is_some_and(|p| p > super::MAX_IMAGE_PIXELS);
     match need {
-        Some(n) if n <= limit => Ok(()),
+        Some(n) if n <= limit && !too_many => Ok(()),
+        Some(n) if n <= limit => Err(Error::BadImage {
+            path: path.to_path_buf(),
+            reason: format!(
+                "image is NAXIS1 x NAXIS2 = {nx} x {ny} px, more than the {side} x {side} px sofipol reads: refused before reading",
+                side = crate::profile::MAX_DETECTOR_SIDE_PX
+            ),
+        }),
         _ => Err(Error::BadImage {
             path: path.to_path_buf(),
             reason: format!(

@@ -33,6 +33,12 @@ pub fn write_flat(path: &Path, flat: &Flat) -> Result<()> {
         h.set(FILTER_KEYWORD, f.as_str());
     }
     h.set(NCOMBINE_KEYWORD, flat.sources.len() as i64);
+    // A product: found again in a night folder, it is skipped by name, never read as raw.
+    h.set_with_comment(
+        crate::classify::PRODUCT_KEYWORD,
+        "FLAT",
+        "sofipol product (calibration flat), not a raw frame",
+    );
     let mut frame = Frame {
         data: flat.data.clone(),
         variance: Some(flat.variance.clone()),

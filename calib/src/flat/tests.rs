@@ -196,6 +196,11 @@ fn flat_file_round_trip_and_choice_by_angle() {
     assert_eq!(back.posang_deg, Some(90.0));
     assert_eq!(back.filter.as_deref(), Some("Ks"));
     assert_eq!(back.sources.len(), 3);
+    // Found again in a night folder, the written flat is skipped as a sofipol product,
+    // not reported as a foreign ("not SOFI") frame.
+    let c = crate::classify::classify(&crate::fits::read_header(&p).unwrap(), &profile());
+    let reason = c.reason().unwrap();
+    assert!(reason.contains("a sofipol product (SOFIPROD = 'FLAT')"), "{reason}");
     let mut f0 = back.clone();
     f0.posang_deg = Some(0.0);
     let set = FlatSet::new(vec![f0, back]);

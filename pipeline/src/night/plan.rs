@@ -80,6 +80,9 @@ pub struct NightPlan {
     /// Frames for the superflat, by filter, from every sequence of the night (before
     /// sharding), cycling through the dither positions like `mask_frames`.
     pub superflat_frames: BTreeMap<String, Vec<PathBuf>>,
+    /// The scan ran out of file handles (the first such error): the plan is incomplete and
+    /// must not be reduced ([`crate::scan::Scan::out_of_file_handles`]).
+    pub out_of_file_handles: Option<String>,
 }
 
 /// Frames for a superflat, by filter: sequence `i` contributes its exposure
@@ -181,6 +184,7 @@ pub fn plan(
         mask_frames,
         dome_flats: s.dome_flats,
         superflat_frames,
+        out_of_file_handles: s.out_of_file_handles,
     }
 }
 

@@ -55,7 +55,7 @@ pub fn component_from_dithers(
             usable = (0..dv.len())
                 .filter(|&i| dv[i].f.is_finite() && dv[i].sigma_f > 0.0)
                 .collect();
-            if !usable.is_empty() {
+            if !usable.is_empty() && !flags.iter().any(|f| f == "used_flagged_dithers") {
                 flags.push("used_flagged_dithers".into());
             }
         }
@@ -251,16 +251,22 @@ pub fn target_entry(
             c
         })
         .collect();
+    // No component with a value (all null) is a failure, not a partial result.
     let status = if components.len() == 2 && components.iter().all(|c| c.q.is_finite()) {
         Status::Ok
-    } else {
+    } else if components.iter().any(|c| c.q.is_finite()) {
         Status::Partial
+    } else {
+        Status::Failed
     };
     let mut t = Target {
-        error: if status == Status::Partial {
-            m.flags.first().cloned().or(Some("companion not measured".into()))
-        } else {
-            None
+        error: match status {
+            Status::Ok => None,
+            Status::Partial => m.flags.first().cloned().or(Some("companion not measured".into())),
+            Status::Failed => Some(format!(
+                "no component could be measured{}",
+                m.flags.first().map(|f| format!(": {f}")).unwrap_or_default()
+            )),
         },
         components,
         eo_offset_px: Some([m.eo_offset_px.0, m.eo_offset_px.1]),
@@ -330,6 +336,39 @@ mod tests {
                 offsets: Vec::new(),
             })
             .collect()
+    }
+
+    #[test]
+    fn flagged_dithers_are_flagged_once_and_a_target_without_any_value_fails() {
+        let params = MeasureParams::default();
+        // Every dither of every orientation flagged (finite values): used, flagged once.
+        let mut m = measured(Vec::new());
+        for d in m.dithers.iter_mut().flatten().flatten() {
+            d.rejected = Some("saturated".into());
+        }
+        let t = target_entry("X", &orients(), &m, &params);
+        for c in &t.components {
+            let n = c.flags.iter().filter(|f| *f == "used_flagged_dithers").count();
+            assert_eq!(n, 1, "{:?}", c.flags);
+            assert!(!c.passes_cut && c.q.is_finite());
+        }
+        // One component (no companion), no dither measured: nothing to report, failed.
+        let mut m = measured(Vec::new());
+        m.dithers.truncate(1);
+        for d in m.dithers.iter_mut().flatten().flatten() {
+            *d = DitherValue::missing("primary_not_found");
+        }
+        let t = target_entry("X", &orients(), &m, &params);
+        assert!(t.components.iter().all(|c| c.q.is_nan()), "{t:?}");
+        assert_eq!(t.status, Status::Failed, "{t:?}");
+        assert!(
+            t.error.as_deref().unwrap().contains("no component could be measured"),
+            "{t:?}"
+        );
+        // A measured primary without its companion stays partial.
+        let mut m = measured(Vec::new());
+        m.dithers.truncate(1);
+        assert_eq!(target_entry("X", &orients(), &m, &params).status, Status::Partial);
     }
 
     #[test]

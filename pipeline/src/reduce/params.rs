@@ -146,13 +146,33 @@ fn check(ok: bool, key: &'static str, value: impl std::fmt::Debug, allowed: &'st
     }
 }
 
+/// `v` finite and in `(lo, hi]`.
+fn in_open_closed(v: f64, lo: f64, hi: f64) -> bool {
+    v.is_finite() && v > lo && v <= hi
+}
+
+/// `v` finite and in `[lo, hi]`.
+fn in_closed(v: f64, lo: f64, hi: f64) -> bool {
+    v.is_finite() && v >= lo && v <= hi
+}
+
+/// Largest subpixel sampling N of `measure.method` (N x N samples per pixel).
+pub const MAX_SUBPIXEL: u32 = 32;
+
 impl TargetParams {
     /// Check every setting once, when the settings are read (file, then command-line
-    /// overrides). The one place where allowed ranges are written down.
+    /// overrides). The one place where allowed ranges are written down: every number has a
+    /// lower and an upper bound (a radius of 1e20 FWHM or 1e8 x 1e8 samples per pixel
+    /// would never finish), documented in docs/configuration.md.
     pub fn validate(&self) -> Result<(), SettingError> {
         self.measure.validate()?;
         let b = &self.bad_pixels;
-        check(b.sigma.is_finite() && b.sigma > 0.0, "bad_pixels.sigma", b.sigma, "> 0")?;
+        check(
+            in_open_closed(b.sigma, 0.0, 1000.0),
+            "bad_pixels.sigma",
+            b.sigma,
+            "in (0, 1000]",
+        )?;
         check(
             (1..=31).contains(&b.window_px),
             "bad_pixels.window_px",
@@ -160,23 +180,23 @@ impl TargetParams {
             "in 1..=31",
         )?;
         check(
-            b.min_deviation_adu.is_finite() && b.min_deviation_adu >= 0.0,
+            in_closed(b.min_deviation_adu, 0.0, 1e6),
             "bad_pixels.min_deviation_adu",
             b.min_deviation_adu,
-            ">= 0",
+            "in [0, 1e6]",
         )?;
         let sk = &self.sky;
         check(
-            sk.clip_sigma.is_finite() && sk.clip_sigma > 0.0,
+            in_open_closed(sk.clip_sigma, 0.0, 100.0),
             "sky.clip_sigma",
             sk.clip_sigma,
-            "> 0",
+            "in (0, 100]",
         )?;
         check(
-            sk.source_sigma.is_finite() && sk.source_sigma > 0.0,
+            in_open_closed(sk.source_sigma, 0.0, 1000.0),
             "sky.source_sigma",
             sk.source_sigma,
-            "> 0",
+            "in (0, 1000]",
         )?;
         check(
             sk.source_grow_px <= 10,
@@ -186,22 +206,22 @@ impl TargetParams {
         )?;
         if let Some(c) = &self.sky.cosmic_rays {
             check(
-                c.sigma_clip.is_finite() && c.sigma_clip > 0.0,
+                in_open_closed(c.sigma_clip, 0.0, 1000.0),
                 "sky.cosmic_rays.sigma_clip",
                 c.sigma_clip,
-                "> 0",
+                "in (0, 1000]",
             )?;
             check(
-                c.sharpness_ratio.is_finite() && c.sharpness_ratio >= 0.0,
+                in_closed(c.sharpness_ratio, 0.0, 1000.0),
                 "sky.cosmic_rays.sharpness_ratio",
                 c.sharpness_ratio,
-                ">= 0",
+                "in [0, 1000]",
             )?;
             check(
-                c.grow_sigma.is_finite() && c.grow_sigma > 0.0,
+                in_open_closed(c.grow_sigma, 0.0, 1000.0),
                 "sky.cosmic_rays.grow_sigma",
                 c.grow_sigma,
-                "> 0",
+                "in (0, 1000]",
             )?;
             check(
                 c.grow_iterations <= 100,
@@ -210,92 +230,154 @@ impl TargetParams {
                 "in 0..=100",
             )?;
         }
-        Ok(())
+        validate_flat_options(&self.flat_options)
     }
+}
+
+/// The `[flat_options]` ranges: a normalized response of 1 must lie strictly between
+/// `min_response` and `max_response` (else every pixel is unusable and the superflat
+/// fails), and a pixel cannot need more values than the frames combined.
+fn validate_flat_options(f: &sofipol_calib::flat::FlatOptions) -> Result<(), SettingError> {
+    let (lo, hi) = (f64::from(f.min_response), f64::from(f.max_response));
+    check(
+        in_open_closed(lo, 0.0, 1.0) && lo < 1.0,
+        "flat_options.min_response",
+        f.min_response,
+        "in (0, 1) (below max_response)",
+    )?;
+    check(
+        in_open_closed(hi, 1.0, 100.0),
+        "flat_options.max_response",
+        f.max_response,
+        "in (1, 100] (above min_response)",
+    )?;
+    check(
+        in_open_closed(f64::from(f.star_sigma), 0.0, 1000.0),
+        "flat_options.star_sigma",
+        f.star_sigma,
+        "in (0, 1000]",
+    )?;
+    check(
+        f.star_grow_px <= 20,
+        "flat_options.star_grow_px",
+        f.star_grow_px,
+        "in 0..=20",
+    )?;
+    check(
+        in_open_closed(f64::from(f.clip_sigma), 0.0, 100.0),
+        "flat_options.clip_sigma",
+        f.clip_sigma,
+        "in (0, 100]",
+    )?;
+    check(
+        (1..=1000).contains(&f.max_frames),
+        "flat_options.max_frames",
+        f.max_frames,
+        "in 1..=1000",
+    )?;
+    check(
+        f.min_values >= 1 && f.min_values <= f.max_frames,
+        "flat_options.min_values",
+        f.min_values,
+        "in 1..=max_frames",
+    )
 }
 
 impl MeasureParams {
     /// Check the measurement settings (see [`TargetParams::validate`]).
     pub fn validate(&self) -> Result<(), SettingError> {
-        let pos = |v: f64| v.is_finite() && v > 0.0;
-        let nonneg = |v: f64| v.is_finite() && v >= 0.0;
         check(
-            pos(self.aperture_fwhm),
+            in_open_closed(self.aperture_fwhm, 0.0, 10.0),
             "measure.aperture_fwhm",
             self.aperture_fwhm,
-            "> 0",
+            "in (0, 10]",
         )?;
         let (a, b) = self.annulus_fwhm;
         check(
-            pos(a) && pos(b) && a < b,
+            in_open_closed(a, 0.0, 20.0) && in_open_closed(b, 0.0, 20.0) && a < b,
             "measure.annulus_fwhm",
             self.annulus_fwhm,
-            "(inner, outer) with 0 < inner < outer",
+            "(inner, outer) with 0 < inner < outer <= 20",
         )?;
         if let Method::Subpixel(n) = self.method {
             check(
-                n >= 1,
+                (1..=MAX_SUBPIXEL).contains(&n),
                 "measure.method",
                 self.method,
-                "exact, center, or subpixel with N >= 1",
+                "exact, center, or subpixel:N with N in 1..=32",
             )?;
         }
         check(
-            nonneg(self.psf_photometry_below_fwhm),
+            in_closed(self.psf_photometry_below_fwhm, 0.0, 20.0),
             "measure.psf_photometry_below_fwhm",
             self.psf_photometry_below_fwhm,
-            ">= 0",
+            "in [0, 20]",
         )?;
         check(
-            pos(self.primary_search_px),
+            in_open_closed(self.primary_search_px, 0.0, 1024.0),
             "measure.primary_search_px",
             self.primary_search_px,
-            "> 0",
+            "in (0, 1024]",
         )?;
         if let Some((x, y)) = self.nominal_xy_px {
             check(
-                x.is_finite() && y.is_finite(),
+                in_closed(x, 0.0, 4096.0) && in_closed(y, 0.0, 4096.0),
                 "measure.nominal_xy_px",
                 (x, y),
-                "finite (x, y)",
+                "(x, y) on the detector, each in [0, 4096]",
             )?;
         }
         check(
-            pos(self.companion_search_arcsec),
+            in_open_closed(self.companion_search_arcsec, 0.0, 60.0),
             "measure.companion_search_arcsec",
             self.companion_search_arcsec,
-            "> 0",
+            "in (0, 60]",
         )?;
         check(
-            nonneg(self.min_companion_snr),
+            in_closed(self.min_companion_snr, 0.0, 1e6),
             "measure.min_companion_snr",
             self.min_companion_snr,
-            ">= 0",
+            "in [0, 1e6]",
         )?;
         check(
-            nonneg(self.min_companion_f),
+            in_closed(self.min_companion_f, 0.0, 1e9),
             "measure.min_companion_f",
             self.min_companion_f,
-            ">= 0",
+            "in [0, 1e9]",
         )?;
         check(
-            nonneg(self.min_companion_sep_arcsec),
+            in_closed(self.min_companion_sep_arcsec, 0.0, 60.0),
             "measure.min_companion_sep_arcsec",
             self.min_companion_sep_arcsec,
-            ">= 0",
+            "in [0, 60]",
         )?;
-        check(pos(self.clip_sigma), "measure.clip_sigma", self.clip_sigma, "> 0")?;
-        check(nonneg(self.cut_snr), "measure.cut_snr", self.cut_snr, ">= 0")?;
+        check(
+            in_open_closed(self.clip_sigma, 0.0, 100.0),
+            "measure.clip_sigma",
+            self.clip_sigma,
+            "in (0, 100]",
+        )?;
+        check(
+            in_closed(self.cut_snr, 0.0, 1000.0),
+            "measure.cut_snr",
+            self.cut_snr,
+            "in [0, 1000]",
+        )?;
         if let Some((sep, pa)) = self.companion_hint {
             check(
-                pos(sep) && pa.is_finite(),
+                in_open_closed(sep, 0.0, 60.0) && in_closed(pa, -360.0, 360.0),
                 "measure.companion_hint",
                 (sep, pa),
-                "(separation > 0, finite PA)",
+                "(separation in (0, 60] arcsec, PA in [-360, 360] deg)",
             )?;
         }
         if let PsfModel::Moffat { beta: Some(b) } = self.psf_model {
-            check(b.is_finite() && b > 1.0, "measure.psf_model.beta", b, "> 1")?;
+            check(
+                in_open_closed(b, 1.0, 100.0),
+                "measure.psf_model.beta",
+                b,
+                "in (1, 100]",
+            )?;
         }
         Ok(())
     }
@@ -321,5 +403,68 @@ mod tests {
         let mut p = TargetParams::default();
         p.measure.psf_model = PsfModel::Moffat { beta: Some(1.0) };
         assert_eq!(p.validate().unwrap_err().key, "measure.psf_model.beta");
+    }
+
+    #[test]
+    fn every_number_has_an_upper_bound_and_the_flat_options_a_consistent_range() {
+        // Each setting just inside and just outside its range.
+        type Set = fn(&mut TargetParams, f64);
+        let cases: [(&str, Set, f64, f64); 10] = [
+            ("measure.aperture_fwhm", |p, v| p.measure.aperture_fwhm = v, 10.0, 10.01),
+            (
+                "measure.primary_search_px",
+                |p, v| p.measure.primary_search_px = v,
+                1024.0,
+                1025.0,
+            ),
+            (
+                "measure.companion_search_arcsec",
+                |p, v| p.measure.companion_search_arcsec = v,
+                60.0,
+                61.0,
+            ),
+            ("measure.clip_sigma", |p, v| p.measure.clip_sigma = v, 100.0, 101.0),
+            ("measure.cut_snr", |p, v| p.measure.cut_snr = v, 1000.0, 1001.0),
+            ("bad_pixels.sigma", |p, v| p.bad_pixels.sigma = v, 1000.0, 1001.0),
+            ("sky.clip_sigma", |p, v| p.sky.clip_sigma = v, 100.0, 101.0),
+            (
+                "flat_options.min_response",
+                |p, v| p.flat_options.min_response = v as f32,
+                0.99,
+                1.0,
+            ),
+            (
+                "flat_options.max_response",
+                |p, v| p.flat_options.max_response = v as f32,
+                1.01,
+                1.0,
+            ),
+            (
+                "flat_options.clip_sigma",
+                |p, v| p.flat_options.clip_sigma = v as f32,
+                100.0,
+                1e20,
+            ),
+        ];
+        for (key, set, inside, outside) in cases {
+            let mut p = TargetParams::default();
+            set(&mut p, inside);
+            assert_eq!(p.validate(), Ok(()), "{key} = {inside}");
+            set(&mut p, outside);
+            assert_eq!(p.validate().unwrap_err().key, key, "{key} = {outside}");
+        }
+        let mut p = TargetParams::default();
+        p.measure.method = Method::Subpixel(MAX_SUBPIXEL);
+        assert_eq!(p.validate(), Ok(()));
+        p.measure.method = Method::Subpixel(100_000_000);
+        assert_eq!(p.validate().unwrap_err().key, "measure.method");
+        // A pixel cannot need more values than the frames combined, nor 0 frames.
+        let mut p = TargetParams::default();
+        p.flat_options.max_frames = 0;
+        assert_eq!(p.validate().unwrap_err().key, "flat_options.max_frames");
+        p.flat_options.max_frames = 4;
+        assert_eq!(p.validate().unwrap_err().key, "flat_options.min_values");
+        p.flat_options.min_values = 4;
+        assert_eq!(p.validate(), Ok(()));
     }
 }

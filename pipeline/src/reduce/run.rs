@@ -86,7 +86,7 @@ pub fn reduce_sequence(
         ro.exposures.clear();
         for e in &o.exposures {
             match fits::read_frame_rows_with_summary(&e.path, rows)
-                .map_err(|e| e.to_string())
+                .map_err(|err| crate::scan::unreadable_reason(&e.path, &err.to_string()))
                 .and_then(|(f, s)| usable_frame(f, &s, profile, rows).map_err(|e| e.to_string()))
             {
                 Ok(f) => {
@@ -129,9 +129,14 @@ pub fn usable_frame(
     };
     let got = f.shape();
     if got != want && got != (g.ny, g.nx) {
+        // Only some rows may have been read: the message gives the whole image's size.
+        let whole = match rows {
+            Some(_) => fits::read_image_shape(f.path()).unwrap_or(got),
+            None => got,
+        };
         return Err(crate::error::Error::UnusableFrame(format!(
             "image is {} x {} px (NAXIS2 x NAXIS1), the instrument profile's detector is {} x {}: frame not used",
-            got.0, got.1, g.ny, g.nx
+            whole.0, whole.1, g.ny, g.nx
         )));
     }
     let n = f.data.len();
@@ -190,7 +195,7 @@ pub fn reduce_loaded(
     };
     let profile = cropped_profile.as_ref().unwrap_or(profile);
     let mut times = StageTimes::default();
-    let failures = Vec::new();
+    let mut failures = Vec::new();
     let mut flags: Vec<String> = seq.problems();
     if let Some(m) = mixed_exposure(seq) {
         flags.push(m);
@@ -265,6 +270,7 @@ pub fn reduce_loaded(
         Err(e) => return failed(seq, e.0, &flags, failures, times),
     };
     let mut target = target_entry(&seq.object, &cal, &measured, &params.measure, &profile.keywords);
+    failures.extend(primary_not_found(&cal, &measured, &params.measure));
     times.measure = t.elapsed().as_secs_f64();
     flags.extend(measured.flags.iter().cloned());
     if !flags.is_empty() && target.status == Status::Ok && !seq.problems().is_empty() {
@@ -288,6 +294,31 @@ pub fn reduce_loaded(
         calibrated: if keep_frames { Some(cal) } else { None },
         measured: Some(measured),
     }
+}
+
+/// The frames in which the primary star was not found (its dither dropped, flag
+/// `primary_not_found`), as failures: an input the catalog did not use is listed by name.
+fn primary_not_found(
+    cal: &[CalibratedOrientation],
+    m: &super::Measured,
+    params: &super::MeasureParams,
+) -> Vec<Failure> {
+    let Some(first) = m.dithers.first() else {
+        return Vec::new();
+    };
+    cal.iter()
+        .zip(first)
+        .flat_map(|(o, values)| o.frames.iter().zip(values))
+        .filter(|(_, v)| v.rejected.as_deref() == Some("primary_not_found"))
+        .map(|(f, _)| Failure {
+            file: f.path().display().to_string(),
+            error: format!(
+                "primary star not found within measure.primary_search_px = {} px of its expected position \
+                 (header offsets): dither not used",
+                params.primary_search_px
+            ),
+        })
+        .collect()
 }
 
 /// The flat of every orientation (rotator angle and filter) and its row of the frames' row

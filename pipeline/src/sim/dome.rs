@@ -47,11 +47,7 @@ impl Simulator {
             (1.0, 1.0)
         };
         let lamp = if lamp_on { c.lamp_adu } else { 0.0 };
-        let slug: String = s
-            .name
-            .chars()
-            .map(|ch| if ch.is_ascii_alphanumeric() { ch } else { '_' })
-            .collect();
+        let slug = super::file_slug(&s.name);
         let ext = if s.observation.compress { "fits.fz" } else { "fits" };
         let file = format!(
             "SOFI_{slug}_FLAT_pa{:03}_{}_{:02}.{ext}",

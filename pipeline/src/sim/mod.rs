@@ -184,24 +184,33 @@ impl Simulator {
         self.flat.as_ref()
     }
 
-    /// File name of frame `k` of target `t`.
+    /// File name of frame `k` of target `t`: the scene and target names reduced to
+    /// [`file_slug`]s (a name holding `/` or `..` stays inside the output folder).
     pub fn file_name(&self, t: usize, k: usize) -> String {
-        let slug: String = self.targets[t]
-            .name
-            .chars()
-            .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
-            .collect();
         let ext = if self.scene.observation.compress {
             "fits.fz"
         } else {
             "fits"
         };
-        format!("SOFI_{}_{slug}_{:02}.{ext}", self.scene.name, k + 1)
+        format!(
+            "SOFI_{}_{}_{:02}.{ext}",
+            file_slug(&self.scene.name),
+            file_slug(&self.targets[t].name),
+            k + 1
+        )
     }
 
     fn scale(&self) -> f64 {
         self.profile.geometry.pixscale_arcsec
     }
+}
+
+/// A name as a part of a file name: ASCII letters and digits kept, everything else
+/// (`/`, `.`, spaces, control characters...) `_`.
+pub fn file_slug(name: &str) -> String {
+    name.chars()
+        .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+        .collect()
 }
 
 /// Draw a standard normal (helper shared by effects).

@@ -73,6 +73,28 @@ impl Simulator {
 }
 
 impl Simulator {
+    /// The names of every file [`Simulator::write_to_dir`] writes: the frames of every
+    /// sequence, the dome flats, `truth.json`.
+    pub fn file_names(&self) -> Vec<String> {
+        let mut names: Vec<String> = (0..self.targets.len())
+            .flat_map(|t| (0..self.frames_per_target()).map(move |k| (t, k)))
+            .map(|(t, k)| self.file_name(t, k))
+            .collect();
+        names.extend((0..self.n_dome_flat_frames()).map(|i| self.dome_flat_plan(i).1.file));
+        names.push("truth.json".into());
+        names
+    }
+
+    /// Bytes [`Simulator::write_to_dir`] writes at most: every frame uncompressed (its
+    /// pixels and a header of two 2880-byte blocks; tile compression only makes less).
+    pub fn output_bytes(&self) -> u64 {
+        let g = &self.profile.geometry;
+        let px = if self.scene.observation.bitpix == 16 { 2 } else { 4 };
+        let frame = (g.nx as u64 * g.ny as u64 * px).div_ceil(2880) * 2880 + 2 * 2880;
+        let frames = (self.targets.len() * self.frames_per_target() + self.n_dome_flat_frames()) as u64;
+        frames.saturating_mul(frame)
+    }
+
     /// Simulate every frame and write it to `dir` (FITS, atomically) together with
     /// `truth.json`. Frames stream: at most one frame per worker thread is in memory.
     /// `on_frame` is called after each frame is written (progress reporting).

@@ -8,13 +8,8 @@ use crate::error::Error;
 impl Scene {
     /// Check values that would make a meaningless simulation.
     pub fn validate(&self) -> crate::error::Result<()> {
+        self.validate_counts_and_names()?;
         let o = &self.observation;
-        if o.orientations_deg.is_empty() {
-            return Err(invalid("observation.orientations_deg is empty".into()));
-        }
-        if o.dithers == 0 {
-            return Err(invalid("observation.dithers = 0".into()));
-        }
         if o.ndit == 0 || !(o.dit_s > 0.0) {
             return Err(invalid(format!(
                 "observation: ndit = {} and dit_s = {} must be > 0",
@@ -156,6 +151,73 @@ fn check_pointing(kind: &str, name: &str, p: &TargetPointing, date: &str) -> cra
         }
     }
     Ok(())
+}
+
+/// Most dithers per orientation of a simulated sequence.
+pub const MAX_DITHERS: usize = 100;
+/// Most orientations (rotator angles) of a simulated sequence.
+pub const MAX_ORIENTATIONS: usize = 36;
+/// Most binaries and standards of one scene, each.
+pub const MAX_TARGETS: usize = 10_000;
+/// Most lamp-on and lamp-off dome-flat frames per rotator angle, each.
+pub const MAX_DOME_FRAMES: usize = 100;
+/// Longest scene or target name, characters.
+pub const MAX_NAME_CHARS: usize = 64;
+
+impl Scene {
+    /// The counts bounded (a `dithers = 100000` would write terabytes) and the names usable:
+    /// not empty, at most [`MAX_NAME_CHARS`], and distinct once reduced to the file-name
+    /// slugs of the frames (two targets `A/B` and `A_B` would write the same files).
+    fn validate_counts_and_names(&self) -> crate::error::Result<()> {
+        let o = &self.observation;
+        let count = |key: &str, n: usize, max: usize| {
+            if (1..=max).contains(&n) {
+                Ok(())
+            } else {
+                Err(invalid(format!("{key} = {n} must be in 1..={max}")))
+            }
+        };
+        count(
+            "observation.orientations_deg (count)",
+            o.orientations_deg.len(),
+            MAX_ORIENTATIONS,
+        )?;
+        count("observation.dithers", o.dithers, MAX_DITHERS)?;
+        for (key, n) in [
+            ("binary (count)", self.binary.len()),
+            ("standard (count)", self.standard.len()),
+        ] {
+            if n > MAX_TARGETS {
+                return Err(invalid(format!("{key} = {n} must be at most {MAX_TARGETS}")));
+            }
+        }
+        if let Some(d) = &self.dome_flats {
+            count("dome_flats.frames_on", d.frames_on, MAX_DOME_FRAMES)?;
+            count("dome_flats.frames_off", d.frames_off, MAX_DOME_FRAMES)?;
+        }
+        let names = std::iter::once(("name", &self.name))
+            .chain(self.binary.iter().map(|b| ("binary name", &b.name)))
+            .chain(self.standard.iter().map(|s| ("standard name", &s.name)));
+        let mut slugs = std::collections::HashMap::new();
+        for (i, (key, name)) in names.enumerate() {
+            let n = name.chars().count();
+            if n == 0 || n > MAX_NAME_CHARS {
+                return Err(invalid(format!(
+                    "{key} {name:?} is {n} characters long: must be 1..={MAX_NAME_CHARS}"
+                )));
+            }
+            if i == 0 {
+                continue;
+            }
+            if let Some(prev) = slugs.insert(super::file_slug(name), name) {
+                return Err(invalid(format!(
+                    "targets {prev:?} and {name:?} would write the same frame files ({}): rename one",
+                    super::file_slug(name)
+                )));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// A scene error without its origin (added by [`Scene::from_toml`]).

@@ -56,9 +56,10 @@ pub use crate::error::StatsError as Error;
 /// Result of this module.
 pub type Result<T> = std::result::Result<T, Error>;
 
-/// The text of a table or catalog file; the error names the file.
+/// The text of a table file (a regular file of at most
+/// [`sofipol_calib::input::MAX_OPTION_FILE_BYTES`]); the error names the file.
 pub(crate) fn read_text(path: &std::path::Path) -> Result<String> {
-    std::fs::read_to_string(path).map_err(|e| Error::Io {
+    sofipol_calib::input::read_to_string(path, sofipol_calib::input::MAX_OPTION_FILE_BYTES).map_err(|e| Error::Io {
         path: path.to_path_buf(),
         source: e,
     })

@@ -45,6 +45,14 @@ pub use pofi::PofITable;
 pub const CHUNK_PAIRS: u64 = 1 << 16;
 /// Default number of pairs (the reference study used 10^7).
 pub const DEFAULT_PAIRS: u64 = 10_000_000;
+/// Most pairs of one run (about 100 CPU-seconds per 10^9 pairs; the reference study used
+/// 10^7). More is refused by name before anything is allocated.
+pub const MAX_PAIRS: u64 = 10_000_000_000;
+/// Most Delta-gamma bins on [0, 90] deg (0.01 deg each).
+pub const MAX_BINS: usize = 9000;
+/// Chunks simulated in parallel before their results are added (in chunk order): bounds the
+/// memory of a run by `BATCH_CHUNKS` histograms whatever the number of pairs.
+const BATCH_CHUNKS: u64 = 1024;
 /// Most pairs [`simulate_samples`] keeps in memory (800 MB).
 pub const MAX_SAMPLE_PAIRS: u64 = 100_000_000;
 /// Default seed.
@@ -118,11 +126,11 @@ impl McConfig {
         };
         self.model.validate()?;
         self.p_int.validate()?;
-        if self.pairs == 0 {
-            return bad("pairs", "0".into(), "must be >= 1");
+        if self.pairs == 0 || self.pairs > MAX_PAIRS {
+            return bad("pairs", self.pairs.to_string(), "must be in 1..=1e10");
         }
-        if self.bins == 0 || self.bins > 1_000_000 {
-            return bad("bins", self.bins.to_string(), "must be in 1..=1000000");
+        if self.bins == 0 || self.bins > MAX_BINS {
+            return bad("bins", self.bins.to_string(), "must be in 1..=9000");
         }
         if let Some(ism) = self.ism {
             if !(ism.p_percent >= 0.0 && ism.p_percent.is_finite()) {
@@ -185,25 +193,33 @@ pub fn simulate(cfg: &McConfig) -> Result<McOutput> {
     let kernel = Kernel::new(cfg);
     let bins = cfg.bins;
     let inv_width = bins as f64 / 90.0;
-    let parts: Vec<(Vec<u64>, u64, f64)> = chunks(cfg.pairs)
-        .into_par_iter()
-        .map(|(chunk, n)| {
-            let mut counts = vec![0u64; bins];
-            let mut sum = 0.0;
-            let accepted = kernel.run_chunk(chunk, n, &mut |dg| {
-                counts[((dg * inv_width) as usize).min(bins - 1)] += 1;
-                sum += dg;
-            });
-            (counts, accepted, sum)
-        })
-        .collect();
     let (mut counts, mut accepted, mut sum) = (vec![0u64; bins], 0u64, 0.0f64);
-    for (c, a, s) in parts {
-        for (x, y) in counts.iter_mut().zip(&c) {
-            *x += *y;
+    let n_chunks = cfg.pairs.div_ceil(CHUNK_PAIRS);
+    let mut first = 0;
+    while first < n_chunks {
+        let last = n_chunks.min(first + BATCH_CHUNKS);
+        let parts: Vec<(Vec<u64>, u64, f64)> = (first..last)
+            .into_par_iter()
+            .map(|chunk| {
+                let n = CHUNK_PAIRS.min(cfg.pairs - chunk * CHUNK_PAIRS);
+                let mut counts = vec![0u64; bins];
+                let mut sum = 0.0;
+                let accepted = kernel.run_chunk(chunk, n, &mut |dg| {
+                    counts[((dg * inv_width) as usize).min(bins - 1)] += 1;
+                    sum += dg;
+                });
+                (counts, accepted, sum)
+            })
+            .collect();
+        // In chunk order: the float sum does not depend on the thread count.
+        for (c, a, s) in parts {
+            for (x, y) in counts.iter_mut().zip(&c) {
+                *x += *y;
+            }
+            accepted += a;
+            sum += s;
         }
-        accepted += a;
-        sum += s;
+        first = last;
     }
     Ok(McOutput {
         histogram: Histogram {

@@ -102,8 +102,7 @@ impl PIntDist {
             "pofi" => Self::Inclination(PofITable::from_file(Path::new(arg.trim()))?),
             "catalog" => {
                 let path = Path::new(arg.trim());
-                let text = read_text(path)?;
-                let cat: Catalog = serde_json::from_str(&text).map_err(|e| Error::Catalog {
+                let cat: Catalog = crate::input::read_catalog(path).map_err(|e| Error::Catalog {
                     path: path.into(),
                     reason: e.to_string(),
                 })?;
