@@ -346,7 +346,7 @@ mod tests {
         for d in m.dithers.iter_mut().flatten().flatten() {
             d.rejected = Some("saturated".into());
         }
-        let t = target_entry("X", &orients(), &m, &params);
+        let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords);
         for c in &t.components {
             let n = c.flags.iter().filter(|f| *f == "used_flagged_dithers").count();
             assert_eq!(n, 1, "{:?}", c.flags);
@@ -358,7 +358,7 @@ mod tests {
         for d in m.dithers.iter_mut().flatten().flatten() {
             *d = DitherValue::missing("primary_not_found");
         }
-        let t = target_entry("X", &orients(), &m, &params);
+        let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords);
         assert!(t.components.iter().all(|c| c.q.is_nan()), "{t:?}");
         assert_eq!(t.status, Status::Failed, "{t:?}");
         assert!(
@@ -368,7 +368,10 @@ mod tests {
         // A measured primary without its companion stays partial.
         let mut m = measured(Vec::new());
         m.dithers.truncate(1);
-        assert_eq!(target_entry("X", &orients(), &m, &params).status, Status::Partial);
+        assert_eq!(
+            target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords).status,
+            Status::Partial
+        );
     }
 
     #[test]
