@@ -341,7 +341,15 @@ fn simulate_writes_only_inside_its_folder_and_bounds_what_it_writes() {
     // anything is written.
     for (body, want) in [
         (scene("big", 100_000, 1), "observation.dithers = 100000"),
-        (scene("huge", 100, 600), "--force"),
+        // 7 targets x 200 frames of 4 MiB (short exposures: the night's schedule keeps
+        // every target above the horizon).
+        (
+            scene("huge", 100, 7).replace(
+                "dithers = 100\n",
+                "dithers = 100\ndit_s = 1.0\nndit = 1\noverhead_s = 1.0\n",
+            ),
+            "--force",
+        ),
     ] {
         std::fs::write(&sc, body).unwrap();
         let o = dir.path().join("big");
