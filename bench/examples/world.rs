@@ -3,9 +3,13 @@
 //! one drawn target's frames to look at: `... --example world -- write BIN T DIR`;
 //! `-- N nocal` leaves the night's calibration unused, `-- N noinst` turns the instrument off,
 //! `noell` / `nonl` only the PSF ellipticity / the non-linearity (`full`: everything); a
-//! third argument is the seed. Environment: `WORLD_JSON=file` writes every target (conditions,
+//! third argument is the seed, or seeds (`13,15,21`: every night's table, then the bins
+//! pooled over the nights). Environment: `WORLD_JSON=file` writes every target (conditions,
 //! pulls, photometry method, dither chi2, per-orientation F) as JSON; `WORLD_BETA_FREE=1`
-//! fits Moffat beta in every frame for every target (`[measure] beta_from_stack = false`).
+//! fits Moffat beta in every frame for every target (`[measure] beta_from_stack = false`);
+//! `WORLD_SEPARATE_BEAMS=1` fits the o and e beams of each exposure on their own
+//! (`[measure] joint_beams = false`); `WORLD_PSF_BELOW=x` sets
+//! `[measure] psf_photometry_below_fwhm`.
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let dir = std::env::temp_dir().join(format!("sofipol-world-{}", std::process::id()));
@@ -19,9 +23,10 @@ fn main() {
     }
     cfg.targets_per_bin = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(6);
     // `-- N nocal`: the instrument without its calibration; `-- N noinst`: no instrument effects.
-    if let Some(seed) = args.get(3).and_then(|s| s.parse().ok()) {
-        cfg.seed = seed;
-    }
+    let seeds: Vec<u64> = match args.get(3) {
+        Some(list) => list.split(',').map(|s| s.parse().expect("a seed")).collect(),
+        None => vec![cfg.seed],
+    };
     match args.get(2).map(String::as_str) {
         Some("nocal") => cfg.calibrate = false,
         Some("noinst") => cfg.instrument = false,
@@ -34,9 +39,25 @@ fn main() {
     if std::env::var("WORLD_BETA_FREE").is_ok() {
         params.measure.beta_from_stack = false;
     }
-    let bins = sofipol_bench::world::run(&cfg, &params);
-    println!("{:?}", sofipol_bench::world::draw_instrument(&cfg));
-    print!("{}", sofipol_bench::world::table(&bins, true));
+    if std::env::var("WORLD_SEPARATE_BEAMS").is_ok() {
+        params.measure.joint_beams = false;
+    }
+    if let Some(x) = std::env::var("WORLD_PSF_BELOW").ok().and_then(|s| s.parse().ok()) {
+        params.measure.psf_photometry_below_fwhm = x;
+    }
+    let mut nights = Vec::new();
+    for &seed in &seeds {
+        cfg.seed = seed;
+        let bins = sofipol_bench::world::run(&cfg, &params);
+        println!("seed {seed}: {:?}", sofipol_bench::world::draw_instrument(&cfg));
+        print!("{}", sofipol_bench::world::table(&bins, true));
+        nights.push(bins);
+    }
+    let bins = sofipol_bench::world::pool_nights(&nights);
+    if seeds.len() > 1 {
+        println!("pooled over seeds {seeds:?}:");
+        print!("{}", sofipol_bench::world::table(&bins, false));
+    }
     // `WORLD_JSON=path`: every target's conditions, pulls and sigmas, for a closer look.
     if let Ok(p) = std::env::var("WORLD_JSON") {
         std::fs::write(&p, serde_json::to_string(&bins).unwrap()).unwrap();

@@ -141,6 +141,8 @@ pub struct WorldTarget {
     pub pulls: Vec<f64>,
     /// sigma_q of the measured components.
     pub sigmas: Vec<f64>,
+    /// True errors (q - q_true, u - u_true of A then B; only measured components).
+    pub errors: Vec<f64>,
     /// Components not measured.
     pub missing: usize,
     /// Components refused (flagged `saturated` or `ab_identity_unverified`, not scored).
@@ -173,6 +175,8 @@ pub struct WorldBin {
     pub mean_pull: f64,
     /// Median sigma_q.
     pub median_sigma: f64,
+    /// rms of the true errors of q and u.
+    pub rms_error: f64,
     /// Components not measured.
     pub missing: usize,
     /// Components refused (saturated, or A/B identity unverified).
@@ -460,7 +464,7 @@ fn refused_component(c: &sofipol_pipeline::catalog::Component) -> bool {
 
 /// Match the catalog's components to the truth and compute the pulls. Refused components
 /// ([`refused_component`]) are counted, not scored; the others are scored.
-fn score(target: &Target, tt: &TargetTruth, ratio: f64) -> (Vec<f64>, Vec<f64>, usize, usize, bool) {
+fn score(target: &Target, tt: &TargetTruth, ratio: f64) -> Score {
     let found_pa = target.pa_deg;
     let swapped = found_pa.is_some_and(|pa| {
         let d = (pa - tt.pa_deg).rem_euclid(360.0);
@@ -470,26 +474,38 @@ fn score(target: &Target, tt: &TargetTruth, ratio: f64) -> (Vec<f64>, Vec<f64>, 
     if swapped {
         truth.swap(0, 1);
     }
-    let (mut pulls, mut sigmas, mut missing, mut refused) = (Vec::new(), Vec::new(), 0, 0);
+    let (mut pulls, mut sigmas, mut errors, mut missing, mut refused) = (Vec::new(), Vec::new(), Vec::new(), 0, 0);
     for (i, tc) in truth.iter().enumerate() {
         match target.components.get(i) {
             Some(c) if refused_component(c) => refused += 1,
             Some(c) if c.q.is_finite() && c.sigma_q > 0.0 && c.sigma_u > 0.0 => {
                 pulls.push((c.q - tc.q) / c.sigma_q);
                 pulls.push((c.u - tc.u) / c.sigma_u);
+                errors.extend([c.q - tc.q, c.u - tc.u]);
                 sigmas.push(c.sigma_q);
             }
             _ => missing += 1,
         }
     }
     // A/B labels are judged where both components were measured unflagged by saturation.
-    (
+    Score {
         pulls,
         sigmas,
+        errors,
         missing,
         refused,
-        swapped && ratio < RELABEL_RATIO && refused == 0,
-    )
+        relabelled: swapped && ratio < RELABEL_RATIO && refused == 0,
+    }
+}
+
+/// A target's components scored against the truth.
+struct Score {
+    pulls: Vec<f64>,
+    sigmas: Vec<f64>,
+    errors: Vec<f64>,
+    missing: usize,
+    refused: usize,
+    relabelled: bool,
 }
 
 /// Draw target `t` of bin `bin` (separations `lo`..`hi`) and write its frames and
@@ -544,7 +560,14 @@ fn one_target(
 }
 
 fn scored(r: Reduced, saturated_design: bool) -> WorldTarget {
-    let (pulls, sigmas, missing, refused, relabelled) = score(&r.target, &r.truth, r.ratio);
+    let Score {
+        pulls,
+        sigmas,
+        errors,
+        missing,
+        refused,
+        relabelled,
+    } = score(&r.target, &r.truth, r.ratio);
     let target = &r.target;
     let dither_chi2 = target
         .components
@@ -578,6 +601,7 @@ fn scored(r: Reduced, saturated_design: bool) -> WorldTarget {
         conditions: r.cond,
         pulls,
         sigmas,
+        errors,
         missing,
         refused,
         saturated: saturated_design,
@@ -658,22 +682,39 @@ pub fn run(cfg: &WorldConfig, params: &TargetParams) -> Vec<WorldBin> {
     cfg.bins_arcsec
         .windows(2)
         .zip(targets)
-        .map(|(w, targets)| {
-            let pulls: Vec<f64> = targets.iter().flat_map(|t| t.pulls.iter().copied()).collect();
-            let mut sig: Vec<f64> = targets.iter().flat_map(|t| t.sigmas.iter().copied()).collect();
-            sig.sort_by(f64::total_cmp);
-            let np = pulls.len().max(1) as f64;
-            WorldBin {
-                sep_arcsec: (w[0], w[1]),
-                n_pulls: pulls.len(),
-                rms_pull: (pulls.iter().map(|p| p * p).sum::<f64>() / np).sqrt(),
-                mean_pull: pulls.iter().sum::<f64>() / np,
-                median_sigma: sig.get(sig.len() / 2).copied().unwrap_or(f64::NAN),
-                missing: targets.iter().map(|t| t.missing).sum(),
-                refused: targets.iter().map(|t| t.refused).sum(),
-                relabelled: targets.iter().filter(|t| t.relabelled).count(),
-                targets,
-            }
+        .map(|(w, targets)| bin_of((w[0], w[1]), targets))
+        .collect()
+}
+
+/// A bin's statistics from its targets.
+fn bin_of(sep_arcsec: (f64, f64), targets: Vec<WorldTarget>) -> WorldBin {
+    let pulls: Vec<f64> = targets.iter().flat_map(|t| t.pulls.iter().copied()).collect();
+    let mut sig: Vec<f64> = targets.iter().flat_map(|t| t.sigmas.iter().copied()).collect();
+    sig.sort_by(f64::total_cmp);
+    let np = pulls.len().max(1) as f64;
+    let errors: Vec<f64> = targets.iter().flat_map(|t| t.errors.iter().copied()).collect();
+    let rms_error = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len().max(1) as f64).sqrt();
+    WorldBin {
+        sep_arcsec,
+        n_pulls: pulls.len(),
+        rms_pull: (pulls.iter().map(|p| p * p).sum::<f64>() / np).sqrt(),
+        mean_pull: pulls.iter().sum::<f64>() / np,
+        median_sigma: sig.get(sig.len() / 2).copied().unwrap_or(f64::NAN),
+        rms_error,
+        missing: targets.iter().map(|t| t.missing).sum(),
+        refused: targets.iter().map(|t| t.refused).sum(),
+        relabelled: targets.iter().filter(|t| t.relabelled).count(),
+        targets,
+    }
+}
+
+/// The bins of several nights (each from [`run`], the same bins), pooled: targets
+/// concatenated, statistics recomputed.
+pub fn pool_nights(nights: &[Vec<WorldBin>]) -> Vec<WorldBin> {
+    (0..nights.first().map_or(0, Vec::len))
+        .map(|i| {
+            let targets = nights.iter().flat_map(|n| n[i].targets.iter().cloned()).collect();
+            bin_of(nights[0][i].sep_arcsec, targets)
         })
         .collect()
 }
@@ -682,18 +723,19 @@ pub fn run(cfg: &WorldConfig, params: &TargetParams) -> Vec<WorldBin> {
 /// that lost a component.
 pub fn table(bins: &[WorldBin], detail: bool) -> String {
     let mut s = format!(
-        "{:>11} {:>6} {:>9} {:>9} {:>10} {:>8} {:>8} {:>10}\n",
-        "sep [\"]", "pulls", "rms pull", "mean", "med sig_q", "missing", "refused", "relabelled"
+        "{:>11} {:>6} {:>9} {:>9} {:>10} {:>10} {:>8} {:>8} {:>10}\n",
+        "sep [\"]", "pulls", "rms pull", "mean", "med sig_q", "rms error", "missing", "refused", "relabelled"
     );
     for b in bins {
         s += &format!(
-            "{:>5.2}-{:<5.2} {:>6} {:>9.3} {:>9.3} {:>10.5} {:>8} {:>8} {:>10}\n",
+            "{:>5.2}-{:<5.2} {:>6} {:>9.3} {:>9.3} {:>10.5} {:>10.5} {:>8} {:>8} {:>10}\n",
             b.sep_arcsec.0,
             b.sep_arcsec.1,
             b.n_pulls,
             b.rms_pull,
             b.mean_pull,
             b.median_sigma,
+            b.rms_error,
             b.missing,
             b.refused,
             b.relabelled

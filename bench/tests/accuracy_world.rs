@@ -8,27 +8,7 @@
 //! (dome flats and four standards through the same detector). Both sides are asserted:
 //! errors neither too small nor too large. Two nights (seeds 13 and 15: each its own
 //! instrument, calibration and targets), 16 targets per bin each, pooled per bin.
-use sofipol_bench::world::{run, table, WorldBin, WorldConfig};
-
-/// The bins of several nights, pooled: targets concatenated, statistics recomputed.
-fn pool_nights(nights: &[Vec<WorldBin>]) -> Vec<WorldBin> {
-    let mut out = nights[0].clone();
-    for (i, b) in out.iter_mut().enumerate() {
-        b.targets = nights.iter().flat_map(|n| n[i].targets.iter().cloned()).collect();
-        let pulls: Vec<f64> = b.targets.iter().flat_map(|t| t.pulls.iter().copied()).collect();
-        let np = pulls.len().max(1) as f64;
-        b.n_pulls = pulls.len();
-        b.rms_pull = (pulls.iter().map(|p| p * p).sum::<f64>() / np).sqrt();
-        b.mean_pull = pulls.iter().sum::<f64>() / np;
-        let mut sig: Vec<f64> = b.targets.iter().flat_map(|t| t.sigmas.iter().copied()).collect();
-        sig.sort_by(f64::total_cmp);
-        b.median_sigma = sig.get(sig.len() / 2).copied().unwrap_or(f64::NAN);
-        b.missing = nights.iter().map(|n| n[i].missing).sum();
-        b.refused = nights.iter().map(|n| n[i].refused).sum();
-        b.relabelled = nights.iter().map(|n| n[i].relabelled).sum();
-    }
-    out
-}
+use sofipol_bench::world::{pool_nights, run, table, WorldBin, WorldConfig};
 
 fn pooled(bins: &[WorldBin]) -> (f64, f64, usize) {
     let all: Vec<f64> = bins

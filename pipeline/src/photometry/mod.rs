@@ -70,4 +70,4 @@ pub use psf::{
     subtract_star, subtract_star_near, subtract_star_near_in_place, subtract_star_near_where, PsfFit, PsfFitError,
     PsfFitParams, PsfModel, PsfStar, MOFFAT_ALPHA_RANGE, MOFFAT_BETA_RANGE, MOFFAT_BETA_START,
 };
-pub use psf_fit::{fit_psf, fit_psf_from, fit_two_psf, PsfStart};
+pub use psf_fit::{fit_psf, fit_psf_from, fit_psf_joint, fit_two_psf, FitImage, JointFit, PsfStart};

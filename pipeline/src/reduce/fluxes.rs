@@ -12,8 +12,8 @@ use super::{BeamFlux, CalibratedOrientation, DitherValue, MeasureParams};
 use crate::photometry::model::add_gaussian;
 use crate::photometry::moffat::add_moffat;
 use crate::photometry::{
-    aperture_sum, fit_psf, fit_psf_from, measure, subtract_star_near_where, Aperture, Flags, MaskFill, PhotParams,
-    PsfFit, PsfFitParams, PsfModel, PsfStart,
+    aperture_sum, fit_psf, fit_psf_from, fit_psf_joint, measure, subtract_star_near_where, Aperture, FitImage, Flags,
+    MaskFill, PhotParams, PsfFit, PsfFitParams, PsfModel, PsfStart,
 };
 use crate::stokes::model::companion_offset_px;
 
@@ -127,33 +127,20 @@ pub fn measure_fluxes(
             if let Some(ob) = off_b {
                 stars.push((a_o.0 + ob.0, a_o.1 + ob.1));
             }
+            let joint = params
+                .joint_beams
+                .then(|| measure_beams_jointly(f, &stars, eo, choice, params))
+                .flatten();
+            let (results, cov_oe) = match joint {
+                Some(j) => j,
+                None => (
+                    measure_beams_separately(f, &stars, eo, choice, params),
+                    vec![0.0; stars.len()],
+                ),
+            };
             let mut beams: Vec<Vec<(BeamFlux, u8)>> = Vec::new();
             let mut fitted_a: [Option<(f64, f64)>; 2] = [None, None];
-            let mut frame_fwhm = choice.fwhm_px;
-            let mut frame_shape: Option<[f64; 4]> = None;
-            // The e beam's fit starts from the o beam's (the same stars and seeing, moved
-            // by the e-o offset): the same minimum in fewer steps.
-            let mut e_start: Option<PsfStart> = None;
-            for (bi, shift) in [(0.0, 0.0), eo].into_iter().enumerate() {
-                let b = measure_beam(
-                    f,
-                    &stars,
-                    shift,
-                    bi == 0,
-                    (&mut frame_fwhm, &mut frame_shape),
-                    e_start.as_ref(),
-                    choice,
-                    params,
-                );
-                if bi == 0 {
-                    e_start = b.fit_start.map(|mut st| {
-                        st.stars.iter_mut().for_each(|s| {
-                            s.1 += eo.0;
-                            s.2 += eo.1;
-                        });
-                        st
-                    });
-                }
+            for (bi, b) in results.into_iter().enumerate() {
                 fitted_a[bi] = b.fitted_a;
                 if let Some(d) = b.pair_offset {
                     out.pair_offsets.push((o.posang_deg, d, 1.0));
@@ -167,11 +154,132 @@ pub fn measure_fluxes(
                 out.fitted_a_oe.push((a, b));
             }
             for (si, comp) in out.dithers.iter_mut().enumerate() {
-                comp[k].push(dither_value(beams[0][si], beams[1][si]));
+                comp[k].push(dither_value(beams[0][si], beams[1][si], cov_oe[si]));
             }
         }
     }
     out
+}
+
+/// Both beams of frame `f` fitted on their own, the o beam first (its fit starts the e
+/// beam's and sets the frame's FWHM and PSF shape for both).
+fn measure_beams_separately(
+    f: &Frame,
+    stars: &[(f64, f64)],
+    eo: (f64, f64),
+    choice: &PsfChoice,
+    params: &MeasureParams,
+) -> Vec<BeamResult> {
+    let mut frame_fwhm = choice.fwhm_px;
+    let mut frame_shape: Option<[f64; 4]> = None;
+    // The e beam's fit starts from the o beam's (the same stars and seeing, moved by the
+    // e-o offset): the same minimum in fewer steps.
+    let mut e_start: Option<PsfStart> = None;
+    let mut out = Vec::with_capacity(2);
+    for (bi, shift) in [(0.0, 0.0), eo].into_iter().enumerate() {
+        let b = measure_beam(
+            f,
+            stars,
+            shift,
+            bi == 0,
+            (&mut frame_fwhm, &mut frame_shape),
+            e_start.as_ref(),
+            choice,
+            params,
+        );
+        if bi == 0 {
+            e_start = b.fit_start.clone().map(|mut st| {
+                st.stars.iter_mut().for_each(|s| {
+                    s.1 += eo.0;
+                    s.2 += eo.1;
+                });
+                st
+            });
+        }
+        out.push(b);
+    }
+    out
+}
+
+/// Both beams of frame `f` fitted jointly ([`fit_psf_joint`]: one shape, one pair geometry,
+/// a flux per star and beam), then measured as [`measure_beam`] measures one; with the
+/// covariance of each star's o and e PSF-fit fluxes (0 for aperture fluxes). None when the
+/// joint fit cannot be made (too few pixels, a singular fit): the beams are then fitted on
+/// their own.
+fn measure_beams_jointly(
+    f: &Frame,
+    stars: &[(f64, f64)],
+    eo: (f64, f64),
+    choice: &PsfChoice,
+    params: &MeasureParams,
+) -> Option<(Vec<BeamResult>, Vec<f64>)> {
+    let fwhm_med = choice.fwhm_px;
+    let cuts: Vec<(Cutout, Vec<(f64, f64)>)> = [(0.0, 0.0), eo]
+        .into_iter()
+        .map(|shift| beam_cutout(f, stars, shift, choice, params))
+        .collect();
+    let images: Vec<FitImage> = cuts
+        .iter()
+        .map(|(cut, local)| FitImage {
+            img: cut.img.view(),
+            var: Some(cut.var.view()),
+            mask: Some(cut.bad.view()),
+            guesses: local,
+        })
+        .collect();
+    let joint = fit_psf_joint(&images, &fit_params(choice)).ok()?;
+    let shape_fit = &joint.fits[0];
+    let frame_fwhm = shape_fit.fwhm_x().clamp(0.5 * fwhm_med, 2.0 * fwhm_med);
+    let frame_shape =
+        shape_fit
+            .converged
+            .then_some([shape_fit.alpha, shape_fit.beta, shape_fit.sigma_x, shape_fit.sigma_y]);
+    let r_ap = (params.aperture_fwhm * frame_fwhm).max(super::params::MIN_APERTURE_RADIUS_PX);
+    let results = cuts
+        .iter()
+        .zip(&joint.fits)
+        .map(|((cut, guesses), fit)| measured_beam(cut, guesses, Some(fit), frame_shape, r_ap, choice, params))
+        .collect();
+    let cov_oe = (0..stars.len())
+        .map(|k| {
+            if choice.use_psf {
+                joint.flux_covariance((0, k), (1, k))
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    Some((results, cov_oe))
+}
+
+/// The cut-out of one beam about the stars at `stars` + `shift`, and their positions in it.
+fn beam_cutout(
+    f: &Frame,
+    stars: &[(f64, f64)],
+    shift: (f64, f64),
+    choice: &PsfChoice,
+    params: &MeasureParams,
+) -> (Cutout, Vec<(f64, f64)>) {
+    let pos: Vec<(f64, f64)> = stars.iter().map(|&(x, y)| (x + shift.0, y + shift.1)).collect();
+    let (cx, cy) = pos.iter().fold((0.0, 0.0), |a, p| {
+        (a.0 + p.0 / pos.len() as f64, a.1 + p.1 / pos.len() as f64)
+    });
+    let half = (params.annulus_fwhm.1 * choice.fwhm_px + choice.sep_px.min(40.0) + 4.0).ceil() as usize;
+    let cut = Cutout::new(f, cx, cy, half);
+    let (x0, y0) = cut.origin;
+    let local = pos.iter().map(|&(x, y)| (x - x0, y - y0)).collect();
+    (cut, local)
+}
+
+/// The per-frame PSF fit's settings.
+fn fit_params(choice: &PsfChoice) -> PsfFitParams {
+    PsfFitParams {
+        fwhm_px: choice.fwhm_px,
+        fit_radius_px: (1.5 * choice.fwhm_px).max(3.0),
+        background: Some(0.0),
+        model: choice.frame_model,
+        ..PsfFitParams::default()
+    }
 }
 
 /// One beam of one frame.
@@ -204,21 +312,9 @@ fn measure_beam(
     params: &MeasureParams,
 ) -> BeamResult {
     let fwhm_med = choice.fwhm_px;
-    let pos: Vec<(f64, f64)> = stars.iter().map(|&(x, y)| (x + shift.0, y + shift.1)).collect();
-    let (cx, cy) = pos.iter().fold((0.0, 0.0), |a, p| {
-        (a.0 + p.0 / pos.len() as f64, a.1 + p.1 / pos.len() as f64)
-    });
-    let half = (params.annulus_fwhm.1 * fwhm_med + choice.sep_px.min(40.0) + 4.0).ceil() as usize;
-    let cut = Cutout::new(f, cx, cy, half);
+    let (cut, local) = beam_cutout(f, stars, shift, choice, params);
     let (x0, y0) = cut.origin;
-    let local: Vec<(f64, f64)> = pos.iter().map(|&(x, y)| (x - x0, y - y0)).collect();
-    let fitp = PsfFitParams {
-        fwhm_px: fwhm_med,
-        fit_radius_px: (1.5 * fwhm_med).max(3.0),
-        background: Some(0.0),
-        model: choice.frame_model,
-        ..PsfFitParams::default()
-    };
+    let fitp = fit_params(choice);
     let fit = match start {
         Some(st) => {
             let mut st = st.clone();
@@ -244,15 +340,6 @@ fn measure_beam(
         ),
     }
     .ok();
-    // Only the o beam's fit starts another (the e beam's).
-    let fit_start = fit.as_ref().filter(|ft| first && ft.converged).map(|ft| PsfStart {
-        stars: ft.stars.iter().map(|s| (s.flux, s.x + x0, s.y + y0)).collect(),
-        shape: match ft.model {
-            PsfModel::Gaussian => ft.sigma_x,
-            PsfModel::Moffat { .. } => ft.alpha,
-        },
-        beta: ft.beta,
-    });
     if first {
         if let Some(ft) = &fit {
             *frame_fwhm = ft.fwhm_x().clamp(0.5 * fwhm_med, 2.0 * fwhm_med);
@@ -262,26 +349,51 @@ fn measure_beam(
         }
     }
     let r_ap = (params.aperture_fwhm * *frame_fwhm).max(super::params::MIN_APERTURE_RADIUS_PX);
+    let mut out = measured_beam(&cut, &local, fit.as_ref(), *frame_shape, r_ap, choice, params);
+    // Only the o beam's fit starts another (the e beam's).
+    out.fit_start = fit.as_ref().filter(|ft| first && ft.converged).map(|ft| PsfStart {
+        stars: ft.stars.iter().map(|s| (s.flux, s.x + x0, s.y + y0)).collect(),
+        shape: match ft.model {
+            PsfModel::Gaussian => ft.sigma_x,
+            PsfModel::Moffat { .. } => ft.alpha,
+        },
+        beta: ft.beta,
+    });
+    out
+}
+
+/// The stars of one beam's cut-out `cut` measured with its PSF fit `fit` (positions from
+/// the fit when it converged, else `guesses`), apertures of radius `r_ap`.
+fn measured_beam(
+    cut: &Cutout,
+    guesses: &[(f64, f64)],
+    fit: Option<&PsfFit>,
+    frame_shape: Option<[f64; 4]>,
+    r_ap: f64,
+    choice: &PsfChoice,
+    params: &MeasureParams,
+) -> BeamResult {
+    let (x0, y0) = cut.origin;
     // Centre apertures on the fitted positions (both beams are fitted freely, so the e-o
     // offset found before only needs to be good to a pixel).
-    let local: Vec<(f64, f64)> = match &fit {
+    let local: Vec<(f64, f64)> = match fit {
         Some(ft) if ft.converged => ft.stars.iter().map(|st| (st.x, st.y)).collect(),
-        _ => local,
+        _ => guesses.to_vec(),
     };
     let fitted_a = local.first().map(|&(ax, ay)| (ax + x0, ay + y0));
-    let pair_offset = match (&fit, local.len()) {
+    let pair_offset = match (fit, local.len()) {
         (Some(ft), 2) if ft.converged => Some((local[1].0 - local[0].0, local[1].1 - local[0].1)),
         _ => None,
     };
     let stars = (0..local.len())
-        .map(|si| measure_star(&cut, &local, si, fit.as_ref(), *frame_shape, r_ap, choice, params))
+        .map(|si| measure_star(cut, &local, si, fit, frame_shape, r_ap, choice, params))
         .collect();
     BeamResult {
         stars,
         fitted_a,
         pair_offset,
         r_ap,
-        fit_start,
+        fit_start: None,
     }
 }
 
@@ -455,7 +567,7 @@ fn model_fraction_in_aperture(
 
 /// F = (o - e)/(o + e) of one dither from the o and e beam fluxes (with the mask bits in
 /// their apertures), and why it is not used, if so.
-fn dither_value((mut o_b, ob): (BeamFlux, u8), (mut e_b, eb): (BeamFlux, u8)) -> DitherValue {
+fn dither_value((mut o_b, ob): (BeamFlux, u8), (mut e_b, eb): (BeamFlux, u8), mut cov_oe: f64) -> DitherValue {
     // Aperture correction, only when both beams have one (else F would mix corrected and
     // uncorrected fluxes).
     if let (Some(fo), Some(fe)) = (o_b.aperture_fraction, e_b.aperture_fraction) {
@@ -463,10 +575,11 @@ fn dither_value((mut o_b, ob): (BeamFlux, u8), (mut e_b, eb): (BeamFlux, u8)) ->
             b.flux /= f;
             b.var /= f * f;
         }
+        cov_oe /= fo * fe;
     }
     let tot = o_b.flux + e_b.flux;
     let fval = (o_b.flux - e_b.flux) / tot;
-    let sigma_f = 2.0 * ((e_b.flux.powi(2) * o_b.var) + (o_b.flux.powi(2) * e_b.var)).sqrt() / tot.powi(2);
+    let sigma_f = f_error(o_b.flux, e_b.flux, o_b.var, e_b.var, cov_oe);
     let blocking = (ob | eb) & (mbits::BAD | mbits::COSMIC | mbits::SATURATED | mbits::OFF_STRIP);
     let pf = Flags(o_b.phot_flags | e_b.phot_flags);
     let rejected = if !(fval.is_finite() && sigma_f.is_finite() && sigma_f > 0.0 && tot > 0.0) {
@@ -485,6 +598,15 @@ fn dither_value((mut o_b, ob): (BeamFlux, u8), (mut e_b, eb): (BeamFlux, u8)) ->
         e: e_b,
         rejected,
     }
+}
+
+/// The error of F = (o - e)/(o + e) from the fluxes' variances and covariance (first
+/// order): dF/do = 2e/(o + e)^2, dF/de = -2o/(o + e)^2, so a positive covariance (a common
+/// error of both beams, e.g. the PSF shape's in a joint fit) lowers it.
+fn f_error(o: f64, e: f64, var_o: f64, var_e: f64, cov_oe: f64) -> f64 {
+    let tot2 = (o + e).powi(2);
+    let (dfo, dfe) = (2.0 * e / tot2, -2.0 * o / tot2);
+    (dfo * dfo * var_o + dfe * dfe * var_e + 2.0 * dfo * dfe * cov_oe).sqrt()
 }
 
 /// A square cut-out of a frame around the target.

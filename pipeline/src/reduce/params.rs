@@ -59,6 +59,11 @@ pub struct MeasureParams {
     /// fixed in the per-frame fits of pairs measured by apertures (2 FWHM and wider); pairs
     /// measured by PSF-fit fluxes fit beta in every frame (`reduce::fluxes::choose_psf`).
     pub beta_from_stack: bool,
+    /// Fit the o and e images of each exposure jointly: one PSF shape and one pair
+    /// geometry for both beams, a flux per star and beam (`photometry::fit_psf_joint`);
+    /// the o-e flux covariance of PSF-fit fluxes enters sigma_F. Off: each beam is fitted
+    /// on its own.
+    pub joint_beams: bool,
 }
 
 impl Default for MeasureParams {
@@ -78,6 +83,7 @@ impl Default for MeasureParams {
             cut_snr: 3.0,
             debias: Debias::WardleKronberg,
             companion_hint: None,
+            joint_beams: true,
             psf_model: PsfModel::Moffat { beta: None },
             beta_from_stack: true,
         }

@@ -11,8 +11,11 @@ use super::psf::{
     PsfFit, PsfFitError, PsfFitParams, PsfModel, PsfStar, MOFFAT_ALPHA_RANGE, MOFFAT_BETA_RANGE, MOFFAT_BETA_START,
 };
 
+mod joint;
 mod normal;
 mod solve;
+
+pub use joint::{fit_psf_joint, FitImage, JointFit};
 
 use normal::{background_of, Layout, Pixel};
 use solve::{cholesky, cholesky_solve, Problem, Solution};
@@ -124,6 +127,7 @@ fn fit_psf_until(
         pixels: &pixels,
         bx,
         guesses,
+        shift_guesses: &[],
         rf: params.fit_radius_px,
         to_the_end,
     };
@@ -200,7 +204,13 @@ fn fit_pixels(
                     }
                     None => 1.0,
                 };
-                pixels.push(Pixel { ix, iy, v: v as f64, w });
+                pixels.push(Pixel {
+                    ix,
+                    iy,
+                    v: v as f64,
+                    w,
+                    panel: 0,
+                });
                 bx0 = bx0.min(ix);
                 bx1 = bx1.max(ix);
                 by0 = by0.min(iy);
@@ -292,16 +302,16 @@ fn apply_start(p: &mut [f64], lay: &Layout, start: &PsfStart, guesses: &[(f64, f
         p[ib] = start.beta;
     }
 }
-/// The result: covariance from the undamped normal matrix, stars, shape, names.
-fn finish(problem: &Problem, sol: Solution, params: &PsfFitParams, weighted: bool) -> Result<PsfFit, PsfFitError> {
-    let (lay, p, chi2) = (problem.lay, &sol.p, sol.chi2);
-    let n = lay.n;
+/// The parameters' covariance: the inverse of the undamped normal matrix at the solution,
+/// scaled by the reduced chi-square when the pixels were not weighted by a variance map.
+fn covariance_of(problem: &Problem, sol: &Solution, weighted: bool) -> Result<Vec<Vec<f64>>, PsfFitError> {
+    let n = problem.lay.n;
     let mut l = sol.a.clone();
     if !cholesky(&mut l, n) {
         return Err(PsfFitError::Singular);
     }
     let dof = problem.pixels.len() - n;
-    let scale = if weighted { 1.0 } else { chi2 / dof as f64 };
+    let scale = if weighted { 1.0 } else { sol.chi2 / dof as f64 };
     let mut cov = vec![vec![0.0; n]; n];
     for j in 0..n {
         let mut e = vec![0.0; n];
@@ -311,6 +321,40 @@ fn finish(problem: &Problem, sol: Solution, params: &PsfFitParams, weighted: boo
             cov[i][j] = col[i] * scale;
         }
     }
+    Ok(cov)
+}
+
+/// The result: covariance from the undamped normal matrix, stars, shape, names.
+fn finish(problem: &Problem, sol: Solution, params: &PsfFitParams, weighted: bool) -> Result<PsfFit, PsfFitError> {
+    let cov = covariance_of(problem, &sol, weighted)?;
+    let dof = problem.pixels.len() - problem.lay.n;
+    Ok(assemble(
+        problem.lay,
+        &sol.p,
+        cov,
+        params,
+        Fitted {
+            chi2: sol.chi2,
+            dof,
+            n_pixels: problem.pixels.len(),
+            iterations: sol.iterations,
+            converged: sol.converged,
+        },
+    ))
+}
+
+/// What a fit reports besides its parameters.
+struct Fitted {
+    chi2: f64,
+    dof: usize,
+    n_pixels: usize,
+    iterations: u32,
+    converged: bool,
+}
+
+/// A single image's [`PsfFit`] from its parameters `p` and their covariance `cov` in the
+/// single-panel layout `lay`.
+fn assemble(lay: &Layout, p: &[f64], cov: Vec<Vec<f64>>, params: &PsfFitParams, fitted: Fitted) -> PsfFit {
     let err = |i: usize| cov[i][i].max(0.0).sqrt();
     let stars = (0..lay.n_src)
         .map(|k| PsfStar {
@@ -346,7 +390,7 @@ fn finish(problem: &Problem, sol: Solution, params: &PsfFitParams, weighted: boo
     if lay.i_b.is_some() {
         names.push("background".into());
     }
-    Ok(PsfFit {
+    PsfFit {
         stars,
         model: params.model,
         sigma_x,
@@ -356,12 +400,12 @@ fn finish(problem: &Problem, sol: Solution, params: &PsfFitParams, weighted: boo
         background: background_of(p, lay, params.background),
         covariance: cov,
         param_names: names,
-        chi2,
-        dof,
-        n_pixels: problem.pixels.len(),
-        iterations: sol.iterations,
-        converged: sol.converged,
-    })
+        chi2: fitted.chi2,
+        dof: fitted.dof,
+        n_pixels: fitted.n_pixels,
+        iterations: fitted.iterations,
+        converged: fitted.converged,
+    }
 }
 
 #[cfg(test)]

@@ -61,7 +61,9 @@ pub(super) struct Problem<'a> {
     /// Bounding box of the pixels (x0, x1, y0, y1).
     pub(super) bx: (usize, usize, usize, usize),
     pub(super) guesses: &'a [(f64, f64)],
-    /// Fit radius: no star may move farther from its guess.
+    /// Per panel after the first, the shift of its stars from panel 0's it starts from.
+    pub(super) shift_guesses: &'a [(f64, f64)],
+    /// Fit radius: no star (and no panel's shift) may move farther from its guess.
     pub(super) rf: f64,
     /// No early stops (see [`super::fit_psf_until`]).
     pub(super) to_the_end: bool,
@@ -95,7 +97,15 @@ impl Problem<'_> {
             .iter()
             .enumerate()
             .all(|(k, &(gx, gy))| (q[3 * k + 1] - gx).hypot(q[3 * k + 2] - gy) <= self.rf);
-        widths_ok && pos_ok && q.iter().all(|v| v.is_finite())
+        let shifts_ok = lay
+            .srcs
+            .iter()
+            .filter_map(|s| s.shift.map(|sh| (s.panel, sh)))
+            .all(|(panel, (sx, sy))| {
+                let (gx, gy) = self.shift_guesses[panel as usize - 1];
+                (q[sx] - gx).hypot(q[sy] - gy) <= self.rf
+            });
+        widths_ok && pos_ok && shifts_ok && q.iter().all(|v| v.is_finite())
     }
 
     /// chi2 at `p`, and the normal equations there into `normal`.
