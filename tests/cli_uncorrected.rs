@@ -165,7 +165,7 @@ fn an_absurd_or_foreign_calibration_file_never_lets_an_uncorrected_value_pass() 
         (
             "theta0_null",
             edit(&|v| v["filters"][0]["angles"]["theta0_deg"] = Value::Null),
-            "null",
+            "filters[0].angles.theta0_deg = NaN",
         ),
         (
             "sigma_c_negative",
