@@ -190,10 +190,7 @@ fn one_frame_without_a_measurable_sky_is_dropped_by_name_and_the_target_is_reduc
         let what = format!("{how:?}");
         let alpha = target(&c, "Alpha");
         assert_eq!(alpha["status"], "partial", "{how:?}: {alpha}");
-        assert!(
-            alpha["error"].as_str().unwrap().contains("dropped"),
-            "{how:?}: {alpha}"
-        );
+        assert!(alpha["error"].as_str().unwrap().contains("dropped"), "{how:?}: {alpha}");
         agrees_with_truth(&c, &truth, "Alpha", &what);
         assert_eq!(target(&c, "Beta")["status"], "ok", "{how:?}");
         agrees_with_truth(&c, &truth, "Beta", &what);

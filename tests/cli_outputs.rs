@@ -71,7 +71,15 @@ fn output_onto_a_symlink_or_a_named_pipe_is_refused_and_left_alone() {
     std::fs::create_dir(&out).unwrap();
     let planted = out.join("stats.json");
     std::os::unix::fs::symlink(&target, &planted).unwrap();
-    let (code, _, err) = run(&["stats", cat.as_str(), "-o", s(&out), "--pairs", "1000", "--no-model-figure"]);
+    let (code, _, err) = run(&[
+        "stats",
+        cat.as_str(),
+        "-o",
+        s(&out),
+        "--pairs",
+        "1000",
+        "--no-model-figure",
+    ]);
     assert_eq!(code, 1, "{err}");
     assert!(err.contains("stats.json") && err.contains("symbolic link"), "{err}");
     assert!(is_symlink(&planted));

@@ -110,7 +110,15 @@ gamma_deg = 58.7
     let ecsv = std::fs::read_to_string(d.join("t.ecsv")).unwrap();
     assert!(ecsv.lines().filter(|l| l.starts_with("Alpha")).count() == 2, "{ecsv}");
 
-    let (code, _, err) = run(&["stats", s(&bad), "-o", s(&d.join("st")), "--pairs", "1000", "--no-model-figure"]);
+    let (code, _, err) = run(&[
+        "stats",
+        s(&bad),
+        "-o",
+        s(&d.join("st")),
+        "--pairs",
+        "1000",
+        "--no-model-figure",
+    ]);
     assert!(code == 0, "stats: {err}");
     assert!(!err.contains("parsing catalog"), "{err}");
 

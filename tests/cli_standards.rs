@@ -52,7 +52,10 @@ fn a_standards_table_with_absurd_numbers_or_duplicates_is_refused_by_entry_and_k
         ),
         (
             "duplicate",
-            format!("{ENTRY}{}", ENTRY.replace("HD 204827", "HD_204827").replace("58.7", "149.7")),
+            format!(
+                "{ENTRY}{}",
+                ENTRY.replace("HD 204827", "HD_204827").replace("58.7", "149.7")
+            ),
             "standard[1] 'HD_204827' (filter 'Ks'): the same star and filter as standard[0] 'HD 204827'",
         ),
     ];

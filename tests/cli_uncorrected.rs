@@ -97,7 +97,16 @@ fn a_stokes_method_that_cannot_apply_never_lets_an_uncorrected_value_pass() {
     let with_std = night(d, "std", true);
     let reduce = |n: &Path, method: &str| {
         let out = d.join(format!("{}_{method}.json", n.file_name().unwrap().to_str().unwrap()));
-        let (code, _, err) = run(&["night", s(n), "-o", s(&out), "-q", "--no-png", "--stokes-method", method]);
+        let (code, _, err) = run(&[
+            "night",
+            s(n),
+            "-o",
+            s(&out),
+            "-q",
+            "--no-png",
+            "--stokes-method",
+            method,
+        ]);
         assert!(code == 0 || code == 2, "{method}: {err}");
         catalog(&out)
     };
@@ -156,7 +165,11 @@ fn an_absurd_or_foreign_calibration_file_never_lets_an_uncorrected_value_pass() 
         serde_json::to_string_pretty(&v).unwrap()
     };
     let absurd: Vec<(&str, String, &str)> = vec![
-        ("c5", edit(&|v| v["filters"][0]["offset"]["c"] = 5.0.into()), "filters[0].offset.c = 5"),
+        (
+            "c5",
+            edit(&|v| v["filters"][0]["offset"]["c"] = 5.0.into()),
+            "filters[0].offset.c = 5",
+        ),
         (
             "theta0_nan",
             text.replace(&format!("\"theta0_deg\": {theta0}"), "\"theta0_deg\": NaN"),
@@ -182,8 +195,16 @@ fn an_absurd_or_foreign_calibration_file_never_lets_an_uncorrected_value_pass() 
             edit(&|v| v["filters"][0]["offset"]["c"] = "0.0186".into()),
             "invalid type: string",
         ),
-        ("parity_0", edit(&|v| v["filters"][0]["angles"]["parity"] = 0.into()), "parity = 0"),
-        ("filters_object", edit(&|v| v["filters"] = serde_json::json!({})), "invalid type: map"),
+        (
+            "parity_0",
+            edit(&|v| v["filters"][0]["angles"]["parity"] = 0.into()),
+            "parity = 0",
+        ),
+        (
+            "filters_object",
+            edit(&|v| v["filters"] = serde_json::json!({})),
+            "invalid type: map",
+        ),
         ("empty", String::new(), "EOF"),
     ];
     for (name, body, want) in absurd {
@@ -193,7 +214,10 @@ fn an_absurd_or_foreign_calibration_file_never_lets_an_uncorrected_value_pass() 
         let out = d.join(format!("{name}.json"));
         let (code, _, err) = run(&["night", s(&bare), "-o", s(&out), "-q", "--no-png", "--calib", s(&cd)]);
         assert_eq!(code, 1, "{name}: {err}");
-        assert!(err.contains(&format!("{name}/calibration.json")) && err.contains(want), "{name}: {err}");
+        assert!(
+            err.contains(&format!("{name}/calibration.json")) && err.contains(want),
+            "{name}: {err}"
+        );
         assert!(!out.exists(), "{name}");
     }
 
@@ -225,7 +249,8 @@ fn an_absurd_or_foreign_calibration_file_never_lets_an_uncorrected_value_pass() 
             assert_eq!(comp["passes_cut"], false, "{name}: {comp}");
             assert!(f.contains(&"uncalibrated"), "{name}: {f:?}");
             assert!(
-                f.iter().any(|f| f.starts_with("calibration_lacks_filter: ") && f.contains("Ks")),
+                f.iter()
+                    .any(|f| f.starts_with("calibration_lacks_filter: ") && f.contains("Ks")),
                 "{name}: {f:?}"
             );
         }
@@ -234,7 +259,10 @@ fn an_absurd_or_foreign_calibration_file_never_lets_an_uncorrected_value_pass() 
         }
         let fl = c["failures"].as_array().unwrap();
         assert!(
-            fl.iter().any(|f| f["file"].as_str().unwrap().ends_with(&format!("{name}/calibration.json"))
+            fl.iter().any(|f| f["file"]
+                .as_str()
+                .unwrap()
+                .ends_with(&format!("{name}/calibration.json"))
                 && f["error"].as_str().unwrap().contains("no offset")),
             "{name}: {fl:?}"
         );

@@ -108,8 +108,18 @@ fn parse(text: &str, origin: &str) -> Result<Vec<StandardStar>> {
         }
         let checks: [(&str, f64, bool, &str); 4] = [
             ("p", s.p, (0.0..1.0).contains(&s.p), "a fraction in [0, 1)"),
-            ("sigma_p", s.sigma_p, s.sigma_p > 0.0 && s.sigma_p <= 1.0, "a fraction in (0, 1]"),
-            ("gamma_deg", s.gamma_deg, (0.0..180.0).contains(&s.gamma_deg), "in [0, 180) deg"),
+            (
+                "sigma_p",
+                s.sigma_p,
+                s.sigma_p > 0.0 && s.sigma_p <= 1.0,
+                "a fraction in (0, 1]",
+            ),
+            (
+                "gamma_deg",
+                s.gamma_deg,
+                (0.0..180.0).contains(&s.gamma_deg),
+                "in [0, 180) deg",
+            ),
             (
                 "sigma_gamma_deg",
                 s.sigma_gamma_deg,
@@ -292,16 +302,18 @@ sigma_p = 0.0005
     #[test]
     fn out_of_range_numbers_and_duplicate_entries_are_refused_by_file_entry_and_key() {
         let entry = |k: &str, v: &str| {
-            let mut fields = vec![
-                ("name", "\"HD 204827\"".to_string()),
-                ("filter", "\"Ks\"".to_string()),
-                ("p", "0.0088".to_string()),
-                ("sigma_p", "0.0022".to_string()),
-                ("gamma_deg", "58.7".to_string()),
-                ("sigma_gamma_deg", "2.0".to_string()),
+            let fields = [
+                ("name", "\"HD 204827\""),
+                ("filter", "\"Ks\""),
+                ("p", "0.0088"),
+                ("sigma_p", "0.0022"),
+                ("gamma_deg", "58.7"),
+                ("sigma_gamma_deg", "2.0"),
             ];
-            fields.iter_mut().filter(|f| f.0 == k).for_each(|f| f.1 = v.to_string());
-            let body: Vec<String> = fields.iter().map(|(k, v)| format!("{k} = {v}")).collect();
+            let body: Vec<String> = fields
+                .iter()
+                .map(|&(key, value)| format!("{key} = {}", if key == k { v } else { value }))
+                .collect();
             format!("[[standard]]\n{}\n", body.join("\n"))
         };
         let mut t = StandardsTable::builtin();
@@ -349,7 +361,9 @@ sigma_p = 0.0005
         let before = t.clone();
         let e = t.merge_toml(&two, "dup.toml").unwrap_err().to_string();
         assert!(
-            e.starts_with("dup.toml: standard[1] 'HD_204827' (filter 'ks'): the same star and filter as standard[0] 'HD 204827'"),
+            e.starts_with(
+                "dup.toml: standard[1] 'HD_204827' (filter 'ks'): the same star and filter as standard[0] 'HD 204827'"
+            ),
             "{e}"
         );
         assert_eq!(t, before, "a refused file changes nothing");

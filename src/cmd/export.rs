@@ -43,10 +43,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             args.catalog.display()
         );
     }
-    super::common::check_regular_output(
-        &args.output,
-        "; give a regular file name, or -o - for standard output",
-    )?;
+    super::common::check_regular_output(&args.output, "; give a regular file name, or -o - for standard output")?;
     let (cat, t) = read_table(&args)?;
     export::write(&t, args.format, &args.output)?;
     println!("{} -> {}", summary(&cat, &t), args.output.display());

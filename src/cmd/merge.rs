@@ -112,12 +112,10 @@ pub fn check_calibrations(parts: &[(String, &Value, Option<&Value>)]) -> anyhow:
 /// A short description of where two JSON values first differ (the key path).
 fn first_difference(a: &Value, b: &Value, path: &str) -> String {
     match (a, b) {
-        (Value::Array(x), Value::Array(y)) if x.len() == y.len() => {
-            match x.iter().zip(y).position(|(v, w)| v != w) {
-                Some(i) => first_difference(&x[i], &y[i], &format!("{path}[{i}]")),
-                None => path.to_string(),
-            }
-        }
+        (Value::Array(x), Value::Array(y)) if x.len() == y.len() => match x.iter().zip(y).position(|(v, w)| v != w) {
+            Some(i) => first_difference(&x[i], &y[i], &format!("{path}[{i}]")),
+            None => path.to_string(),
+        },
         (Value::Object(x), Value::Object(y)) => {
             for (k, v) in x {
                 match y.get(k) {

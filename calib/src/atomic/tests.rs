@@ -102,7 +102,11 @@ fn a_destination_that_is_not_a_regular_file_is_refused_and_left_alone() {
     let made = std::process::Command::new("mkfifo").arg(&fifo).status();
     let sub = d.path().join("sub");
     std::fs::create_dir(&sub).unwrap();
-    let mut cases = vec![(link.clone(), "a symbolic link (to "), (dangling.clone(), "a symbolic link"), (sub, "a directory")];
+    let mut cases = vec![
+        (link.clone(), "a symbolic link (to "),
+        (dangling.clone(), "a symbolic link"),
+        (sub, "a directory"),
+    ];
     if made.is_ok_and(|s| s.success()) {
         cases.push((fifo.clone(), "a named pipe"));
     }
@@ -110,7 +114,9 @@ fn a_destination_that_is_not_a_regular_file_is_refused_and_left_alone() {
         let e = write_atomic(&dest, b"new").unwrap_err().to_string();
         assert!(e.contains(&dest.display().to_string()) && e.contains(what), "{e}");
         let f = crate::Frame::new(ndarray::Array2::from_elem((2, 2), 1.0), crate::Header::new(""));
-        let e = crate::fits::write_frame(&dest, &f, &Default::default()).unwrap_err().to_string();
+        let e = crate::fits::write_frame(&dest, &f, &Default::default())
+            .unwrap_err()
+            .to_string();
         assert!(e.contains(what), "{e}");
     }
     assert!(std::fs::symlink_metadata(&link).unwrap().file_type().is_symlink());

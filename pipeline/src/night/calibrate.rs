@@ -78,7 +78,11 @@ fn refuse_uncorrected(cat: &mut Catalog, dir: &std::path::Path, summary: &mut Ca
     for t in cat.targets.iter_mut() {
         let filter = t.filter.clone().unwrap_or_default();
         let mut changed = false;
-        for c in t.components.iter_mut().filter(|c| c.flags.iter().any(|f| f == "uncalibrated")) {
+        for c in t
+            .components
+            .iter_mut()
+            .filter(|c| c.flags.iter().any(|f| f == "uncalibrated"))
+        {
             c.passes_cut = false;
             c.flags.push(format!(
                 "{CALIBRATION_LACKS_FILTER}: {} has no offset c for filter {filter}: q and u uncorrected",

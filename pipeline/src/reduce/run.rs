@@ -457,7 +457,11 @@ fn drop_frames_without_sky(
             continue;
         }
         // Header offsets are used only when every frame has one.
-        let old_offs = if offs.len() == frames.len() { std::mem::take(offs) } else { Vec::new() };
+        let old_offs = if offs.len() == frames.len() {
+            std::mem::take(offs)
+        } else {
+            Vec::new()
+        };
         offs.clear();
         for (i, (f, why)) in std::mem::take(frames).into_iter().zip(verdicts).enumerate() {
             let Some(why) = why else {
