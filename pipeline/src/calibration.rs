@@ -81,7 +81,11 @@ pub struct FilterCalibration {
     /// Polarized standards (sequence ids) the angles come from.
     pub angle_standards: Vec<String>,
     /// Covariance of c and theta0 (units of c times deg), when both come from one fit.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::catalog::nullable::opt"
+    )]
     pub cov_c_theta0_deg: Option<f64>,
     /// Why the standards could not separate c from theta0 (the angles are then the
     /// profile's and every component of the filter is flagged `calibration_incomplete`).

@@ -414,7 +414,7 @@ impl Target {
 /// Reading numbers back as written: serde_json writes a non-finite f64 as `null`, which
 /// plain `f64` refuses. These read `null` as NaN, and keep a key that was present present
 /// (`Some(NaN)`), so a catalog read and written again is unchanged.
-mod nullable {
+pub(crate) mod nullable {
     use serde::{Deserialize, Deserializer};
 
     /// NaN: the default of a number a catalog lacks.
@@ -514,7 +514,7 @@ pub struct StandardResult {
     pub residual_gamma_sigma: Option<f64>,
     /// chi^2 of the measured (q, u) against 0 with their statistical covariance plus the
     /// table's sigma_p^2/2 in each, 2 dof (unpolarized standards).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
     pub residual_qu_chi2: Option<f64>,
     /// What the calibration used it for: "offset", "angles".
     #[serde(default)]
