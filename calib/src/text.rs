@@ -24,7 +24,7 @@ fn escape_into(out: &mut String, c: char) {
     }
 }
 
-/// `s` as one line of printable text: every character of [`hidden`] kind (newlines
+/// `s` as one line of printable text: every character of `hidden` kind (newlines
 /// included) written as an escape (`\x1b`, `\n`, `\r`, `\u{202e}`). The string itself
 /// when there is nothing to escape. Use it wherever a value read from a file (OBJECT,
 /// FILTER, a file name) reaches stdout or stderr.

@@ -347,7 +347,7 @@ pub fn to_ecsv(t: &Table) -> String {
     h + &body(t, false)
 }
 
-/// The plain CSV text of the table (text cells [`spreadsheet_safe`]).
+/// The plain CSV text of the table (text cells made spreadsheet-safe).
 pub fn to_csv(t: &Table) -> String {
     body(t, true)
 }

@@ -465,7 +465,7 @@ pub fn fit_joint(stds: &[StandardObservation], default_parity: i32) -> Option<Jo
 }
 
 /// [`fit_joint`], and with `fit_telescope` the telescope's polarization (a, b) fitted
-/// together with c and theta0 ([`telescope::refit`]); when the standards cannot separate
+/// together with c and theta0 (`telescope::refit`); when the standards cannot separate
 /// it, the fit without it and [`JointCalibration::telescope_problem`] saying why.
 pub fn fit_joint_with(stds: &[StandardObservation], opts: &JointOptions) -> Option<JointCalibration> {
     let base = fit_instrument(stds, opts.default_parity)?;
