@@ -92,7 +92,7 @@ fn refuse_uncorrected(cat: &mut Catalog, dir: &std::path::Path, summary: &mut Ca
             changed = true;
         }
         if changed {
-            t.update_delta_gamma();
+            t.update_delta_gamma(None);
         }
     }
     for (filter, n) in per_filter {
