@@ -365,7 +365,7 @@ pub enum Error {
     },
 }
 
-/// The bytes [`write`] would write (`-o -`: standard output). FITS goes through a file in
+/// The bytes [`write()`] would write (`-o -`: standard output). FITS goes through a file in
 /// a private temporary directory (cfitsio writes files).
 pub fn to_bytes(t: &Table, format: Format) -> Result<Vec<u8>, Error> {
     match format {
