@@ -102,7 +102,11 @@ pub struct FilterCalibration {
     pub telescope_uncorrected: Option<String>,
     /// Covariance of the calibration parameters in the order of `covariance_parameters`
     /// (c, theta0 in deg, the telescope's a and b); zero rows for what was not fitted.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::catalog::nullable::square"
+    )]
     pub covariance: Option<CalibrationCovariance>,
     /// The names of `covariance`'s rows: `["c", "theta0_deg", "tel_a", "tel_b"]`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
