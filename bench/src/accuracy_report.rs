@@ -571,10 +571,7 @@ fn write_report(dir: &Path, r: &Report) -> anyhow::Result<()> {
 }
 
 fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
-    let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, bytes)?;
-    std::fs::rename(&tmp, path)?;
-    Ok(())
+    Ok(sofipol_pipeline::io::write_atomic(path, bytes)?)
 }
 
 fn plot_group(dir: &Path, g: &str, all: &[VariantResult]) -> anyhow::Result<()> {

@@ -143,7 +143,7 @@ fn simulate_mixed_night(text: &str, raw: &std::path::Path) -> anyhow::Result<(us
         Ok(())
     })?;
     pb.finish_and_clear();
-    std::fs::write(raw.join("pairs.csv"), pairs)?;
+    sofipol_pipeline::io::write_atomic(&raw.join("pairs.csv"), pairs.as_bytes())?;
     let f32_frames = n_targets.div_ceil(2) * n;
     Ok((jobs.len(), f32_frames))
 }
@@ -171,7 +171,7 @@ fn ensure_night(a: &NightArgs, raw: &std::path::Path, keep: bool) -> anyhow::Res
         t0.elapsed().as_secs_f64()
     );
     if keep {
-        std::fs::write(&reuse, &tag)?;
+        sofipol_pipeline::io::write_atomic(&reuse, tag.as_bytes())?;
     }
     Ok(())
 }

@@ -38,7 +38,7 @@ pub(crate) fn run_python(
 ) -> anyhow::Result<PythonRun> {
     use anyhow::Context;
     let script = root.join("reduce_night.py");
-    std::fs::write(&script, PYTHON_REDUCTION)?;
+    sofipol_pipeline::io::write_atomic(&script, PYTHON_REDUCTION.as_bytes())?;
     let out = root.join("catalog_python.json");
     std::fs::remove_file(&out).ok();
     let mut cmd = std::process::Command::new(py);

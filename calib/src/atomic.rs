@@ -1,140 +1,196 @@
-//! Output files are never half-written: every writer of the workspace (FITS frames,
-//! catalogs, PNG figures, JSON) writes a temporary file in the destination's directory,
-//! flushes and syncs it, then renames it over the destination.
+//! Output files are never half-written, and writing one never touches anything but that
+//! file: every writer of the workspace (FITS frames, catalogs, PNG figures, JSON) writes a
+//! temporary file in the destination's directory, flushes and syncs it, then renames it
+//! over the destination.
+//!
+//! The temporary is created with a random name and `O_CREAT | O_EXCL` (the `tempfile`
+//! crate), which never follows a symbolic link: in a shared directory (`/tmp`, sticky)
+//! another user cannot plant a link at a predictable name and make the run overwrite a
+//! file of theirs choosing. Writers that need a file *name* (cfitsio creates the file
+//! itself) get one inside a fresh private directory (mode 0700, random name) instead.
+//!
+//! The destination must be absent or a regular file ([`check_destination`]): the rename
+//! would replace a symbolic link or a device node (`-o /dev/stdout` as root replaced the
+//! system's link) with a regular file, so such a destination is refused by name.
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
 
 use crate::error::{Error, Result};
 
-static TMP_COUNTER: AtomicU64 = AtomicU64::new(0);
+fn io(p: &Path, e: std::io::Error) -> Error {
+    Error::Io {
+        path: p.to_path_buf(),
+        source: e,
+    }
+}
 
-/// A temporary file next to the destination, removed unless committed.
+/// The directory a destination lives in (`.` for a bare file name).
+fn dir_of(dest: &Path) -> &Path {
+    match dest.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    }
+}
+
+/// The destination's file name reduced to plain characters (`[A-Za-z0-9._-]`, others
+/// `_`): temporary names go through cfitsio's file-name parser.
+fn safe_name(dest: &Path) -> Result<String> {
+    let name = dest.file_name().ok_or_else(|| {
+        io(
+            dest,
+            std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a file name"),
+        )
+    })?;
+    Ok(name
+        .to_string_lossy()
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || "._-".contains(c) {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect())
+}
+
+/// What a non-regular file is, for a message.
+fn kind_of(meta: &std::fs::Metadata, dest: &Path) -> String {
+    let ft = meta.file_type();
+    if ft.is_symlink() {
+        return match std::fs::read_link(dest) {
+            Ok(t) => format!("a symbolic link (to {})", t.display()),
+            Err(_) => "a symbolic link".into(),
+        };
+    }
+    if ft.is_dir() {
+        return "a directory".into();
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if ft.is_char_device() {
+            return "a character device".into();
+        }
+        if ft.is_block_device() {
+            return "a block device".into();
+        }
+        if ft.is_fifo() {
+            return "a named pipe (FIFO)".into();
+        }
+        if ft.is_socket() {
+            return "a socket".into();
+        }
+    }
+    "not a regular file".into()
+}
+
+/// Refuse to replace anything but a regular file: `dest` must be absent or a regular file
+/// (not followed when it is a symbolic link). The error names it and what it is.
+pub fn check_destination(dest: &Path) -> Result<()> {
+    match std::fs::symlink_metadata(dest) {
+        Ok(m) if !m.file_type().is_file() => Err(io(
+            dest,
+            std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                format!(
+                    "is {}, not a regular file: sofipol writes its outputs by replacing the file, \
+                     which would replace it; not written",
+                    kind_of(&m, dest)
+                ),
+            ),
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// Sync a file's data, rename it over `dest` (checked first with [`check_destination`]),
+/// then sync the directory (best effort: makes the rename itself durable).
+fn sync_and_rename(tmp: &Path, dest: &Path) -> Result<()> {
+    std::fs::File::open(tmp)
+        .and_then(|f| f.sync_all())
+        .map_err(|e| io(tmp, e))?;
+    check_destination(dest)?;
+    std::fs::rename(tmp, dest).map_err(|e| io(dest, e))?;
+    let _ = std::fs::File::open(dir_of(dest)).and_then(|d| d.sync_all());
+    Ok(())
+}
+
+/// A temporary file name next to the destination for writers that create the file
+/// themselves (cfitsio): `path` lies in a fresh private directory (mode 0700, random
+/// name) in the destination's directory, so nobody else can have put anything there. The
+/// directory is removed when the `TempFile` is committed or dropped (with the file, when
+/// it was not committed).
 pub struct TempFile {
     /// Where to write before [`TempFile::commit`].
     pub path: PathBuf,
-    committed: bool,
+    dir: tempfile::TempDir,
 }
 
 impl TempFile {
-    /// A fresh temporary name next to `dest` (a stale file of that name is removed).
+    /// A fresh temporary name for `dest` (the file is not created).
     pub fn new(dest: &Path) -> Result<TempFile> {
-        let name = dest.file_name().ok_or_else(|| Error::Io {
-            path: dest.to_path_buf(),
-            source: std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a file name"),
-        })?;
-        // Only plain characters: the name goes through cfitsio's file-name parser.
-        let safe: String = name
-            .to_string_lossy()
-            .chars()
-            .map(|c| {
-                if c.is_ascii_alphanumeric() || "._-".contains(c) {
-                    c
-                } else {
-                    '_'
-                }
-            })
-            .collect();
-        let n = TMP_COUNTER.fetch_add(1, Ordering::Relaxed);
-        let tmp_name = format!(".{safe}.tmp-{}-{n}", std::process::id());
-        let path = match dest.parent() {
-            Some(p) if !p.as_os_str().is_empty() => p.join(tmp_name),
-            _ => PathBuf::from(tmp_name),
-        };
-        // A stale file of this name (from a crashed process with a recycled pid) would
-        // make cfitsio refuse to create: it is ours to remove.
-        let _ = std::fs::remove_file(&path);
-        Ok(TempFile { path, committed: false })
+        let safe = safe_name(dest)?;
+        check_destination(dest)?;
+        let prefix = format!(".{safe}.");
+        let mut b = tempfile::Builder::new();
+        b.prefix(&prefix).suffix(".tmp");
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            b.permissions(std::fs::Permissions::from_mode(0o700));
+        }
+        let parent = dir_of(dest);
+        let dir = b.tempdir_in(parent).map_err(|e| io(parent, e))?;
+        let path = dir.path().join(safe);
+        Ok(TempFile { path, dir })
     }
 
-    /// Sync the temporary file and rename it over `dest` (then sync the directory, best
-    /// effort).
-    pub fn commit(mut self, dest: &Path) -> Result<()> {
-        let io = |p: &Path, e| Error::Io {
-            path: p.to_path_buf(),
-            source: e,
-        };
-        // Data on disk before the rename makes it visible.
-        std::fs::File::open(&self.path)
-            .and_then(|f| f.sync_all())
-            .map_err(|e| io(&self.path, e))?;
-        std::fs::rename(&self.path, dest).map_err(|e| io(dest, e))?;
-        self.committed = true;
-        if let Some(dir) = dest.parent().filter(|p| !p.as_os_str().is_empty()) {
-            // Best effort: make the rename itself durable.
-            let _ = std::fs::File::open(dir).and_then(|d| d.sync_all());
-        }
+    /// Sync the temporary file and rename it over `dest` (which must be absent or a
+    /// regular file), then sync the directory (best effort).
+    pub fn commit(self, dest: &Path) -> Result<()> {
+        sync_and_rename(&self.path, dest)?;
+        drop(self.dir);
         Ok(())
     }
 }
 
-impl Drop for TempFile {
-    fn drop(&mut self) {
-        if !self.committed {
-            let _ = std::fs::remove_file(&self.path);
-        }
-    }
-}
-
-/// Write `bytes` to `path` atomically (temporary file + rename in the same directory; the
-/// directory must exist).
+/// Write `bytes` to `path` atomically (a temporary file of random name created
+/// exclusively in the same directory, synced, renamed; the directory must exist and
+/// `path` be absent or a regular file). The file's permissions follow the umask, like a
+/// file created the usual way (0644 with the usual 022).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let io = |p: &Path, e| Error::Io {
-        path: p.to_path_buf(),
-        source: e,
-    };
-    let tmp = TempFile::new(path)?;
-    std::fs::File::create(&tmp.path)
-        .and_then(|mut f| f.write_all(bytes))
-        .map_err(|e| io(&tmp.path, e))?;
-    tmp.commit(path)
+    let safe = safe_name(path)?;
+    check_destination(path)?;
+    let prefix = format!(".{safe}.");
+    let mut b = tempfile::Builder::new();
+    b.prefix(&prefix).suffix(".tmp");
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        b.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    let dir = dir_of(path);
+    let mut tmp = b.tempfile_in(dir).map_err(|e| io(dir, e))?;
+    tmp.write_all(bytes)
+        .and_then(|_| tmp.as_file().sync_all())
+        .map_err(|e| io(tmp.path(), e))?;
+    check_destination(path)?;
+    tmp.persist(path).map_err(|e| io(path, e.error))?;
+    let _ = std::fs::File::open(dir).and_then(|d| d.sync_all());
+    Ok(())
 }
 
 /// Serialize `value` as pretty JSON (with a final newline) and write it atomically,
 /// creating the directory if needed.
 pub fn write_json_atomic<T: serde::Serialize>(path: &Path, value: &T) -> Result<()> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|e| Error::Io {
-            path: dir.to_path_buf(),
-            source: e,
-        })?;
+        std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
     }
-    let mut text = serde_json::to_vec_pretty(value).map_err(|e| Error::Io {
-        path: path.to_path_buf(),
-        source: std::io::Error::other(e),
-    })?;
+    let mut text = serde_json::to_vec_pretty(value).map_err(|e| io(path, std::io::Error::other(e)))?;
     text.push(b'\n');
     write_atomic(path, &text)
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn atomic_write_replaces_and_leaves_no_temporaries() {
-        let d = tempfile::tempdir().unwrap();
-        let p = d.path().join("sub").join("cat.json");
-        assert!(write_atomic(&p, b"first").is_err(), "the directory must exist");
-        write_json_atomic(&p, &1).unwrap();
-        write_atomic(&p, b"second").unwrap();
-        assert_eq!(std::fs::read(&p).unwrap(), b"second");
-        let names: Vec<_> = std::fs::read_dir(p.parent().unwrap())
-            .unwrap()
-            .map(|e| e.unwrap().file_name())
-            .collect();
-        assert_eq!(names.len(), 1, "{names:?}");
-    }
-
-    #[test]
-    fn dropped_temporary_leaves_destination_untouched() {
-        let d = tempfile::tempdir().unwrap();
-        let p = d.path().join("cat.json");
-        write_atomic(&p, b"old").unwrap();
-        let tmp = TempFile::new(&p).unwrap();
-        std::fs::write(&tmp.path, b"partial").unwrap();
-        drop(tmp);
-        assert_eq!(std::fs::read(&p).unwrap(), b"old");
-        assert_eq!(std::fs::read_dir(d.path()).unwrap().count(), 1);
-    }
-}
+mod tests;

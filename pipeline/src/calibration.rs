@@ -81,7 +81,11 @@ pub struct FilterCalibration {
     /// Polarized standards (sequence ids) the angles come from.
     pub angle_standards: Vec<String>,
     /// Covariance of c and theta0 (units of c times deg), when both come from one fit.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::catalog::nullable::opt"
+    )]
     pub cov_c_theta0_deg: Option<f64>,
     /// Why the standards could not separate c from theta0 (the angles are then the
     /// profile's and every component of the filter is flagged `calibration_incomplete`).
@@ -98,7 +102,11 @@ pub struct FilterCalibration {
     pub telescope_uncorrected: Option<String>,
     /// Covariance of the calibration parameters in the order of `covariance_parameters`
     /// (c, theta0 in deg, the telescope's a and b); zero rows for what was not fitted.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::catalog::nullable::square"
+    )]
     pub covariance: Option<CalibrationCovariance>,
     /// The names of `covariance`'s rows: `["c", "theta0_deg", "tel_a", "tel_b"]`.
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -90,7 +90,11 @@ pub struct Component {
     /// d(q, u)/da and d(q, u)/db: how an error of the telescope's polarization (a, b) =
     /// p_tel (cos 2psi_tel, sin 2psi_tel) moves this star's q and u (absent when the
     /// telescope's polarization was not removed). Common to every target of a night.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "nullable::square"
+    )]
     pub telescope_gradient: Option<[[f64; 2]; 2]>,
     /// The telescope's polarization removed from this star, sky frame (q_tel, u_tel) at the
     /// mean parallactic angle of its frames (absent when not removed).
@@ -192,7 +196,11 @@ pub struct CombinedF {
     /// Weighted mean over the kept dithers of (cos 2eta, sin 2eta), eta each frame's
     /// parallactic angle, with the weights of `f`: the telescope's own polarization in this
     /// orientation's F is linear in it. Absent when a frame has no parallactic angle.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "nullable::pair"
+    )]
     pub parallactic_2eta: Option<[f64; 2]>,
     /// Weighted circular mean of the kept dithers' parallactic angles, deg (for reading).
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
@@ -414,7 +422,7 @@ impl Target {
 /// Reading numbers back as written: serde_json writes a non-finite f64 as `null`, which
 /// plain `f64` refuses. These read `null` as NaN, and keep a key that was present present
 /// (`Some(NaN)`), so a catalog read and written again is unchanged.
-mod nullable {
+pub(crate) mod nullable {
     use serde::{Deserialize, Deserializer};
 
     /// NaN: the default of a number a catalog lacks.
@@ -442,6 +450,21 @@ mod nullable {
     pub fn pair<'de, D: Deserializer<'de>>(d: D) -> Result<Option<[f64; 2]>, D::Error> {
         let [a, b] = <[Option<f64>; 2]>::deserialize(d)?;
         Ok(Some([a.unwrap_or(f64::NAN), b.unwrap_or(f64::NAN)]))
+    }
+
+    /// A present N x N matrix of numbers, each `null` read as NaN; another shape is refused.
+    pub fn square<'de, D: Deserializer<'de>, const N: usize>(d: D) -> Result<Option<[[f64; N]; N]>, D::Error> {
+        let rows = Vec::<Vec<Option<f64>>>::deserialize(d)?;
+        let mut m = [[f64::NAN; N]; N];
+        if rows.len() != N || rows.iter().any(|r| r.len() != N) {
+            return Err(serde::de::Error::custom(format_args!("expected a {N} x {N} matrix")));
+        }
+        for (row, r) in m.iter_mut().zip(rows) {
+            for (v, x) in row.iter_mut().zip(r) {
+                *v = x.unwrap_or(f64::NAN);
+            }
+        }
+        Ok(Some(m))
     }
 
     /// A present value that may be `null` (`Some(None)`), unlike serde's `Option<Option<T>>`,
@@ -514,7 +537,7 @@ pub struct StandardResult {
     pub residual_gamma_sigma: Option<f64>,
     /// chi^2 of the measured (q, u) against 0 with their statistical covariance plus the
     /// table's sigma_p^2/2 in each, 2 dof (unpolarized standards).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
     pub residual_qu_chi2: Option<f64>,
     /// What the calibration used it for: "offset", "angles".
     #[serde(default)]

@@ -365,6 +365,25 @@ pub enum Error {
     },
 }
 
+/// The bytes [`write()`] would write (`-o -`: standard output). FITS goes through a file in
+/// a private temporary directory (cfitsio writes files).
+pub fn to_bytes(t: &Table, format: Format) -> Result<Vec<u8>, Error> {
+    match format {
+        Format::Ecsv => Ok(to_ecsv(t).into_bytes()),
+        Format::Csv => Ok(to_csv(t).into_bytes()),
+        Format::Fits => {
+            let werr = |reason: String| Error::Write {
+                path: "standard output".into(),
+                reason,
+            };
+            let dir = tempfile::tempdir().map_err(|e| werr(format!("temporary directory: {e}")))?;
+            let p = dir.path().join("table.fits");
+            write_fits(t, &p).map_err(|e| werr(format!("cfitsio: {e}")))?;
+            std::fs::read(&p).map_err(|e| werr(e.to_string()))
+        }
+    }
+}
+
 /// Write `t` to `path` in `format`, atomically (temporary file in the same directory, renamed).
 pub fn write(t: &Table, format: Format, path: &Path) -> Result<(), Error> {
     let werr = |reason: String| Error::Write {
@@ -375,18 +394,10 @@ pub fn write(t: &Table, format: Format, path: &Path) -> Result<(), Error> {
         Format::Ecsv => crate::io::write_atomic(path, to_ecsv(t).as_bytes()).map_err(|e| werr(e.to_string())),
         Format::Csv => crate::io::write_atomic(path, to_csv(t).as_bytes()).map_err(|e| werr(e.to_string())),
         Format::Fits => {
-            let dir = path
-                .parent()
-                .filter(|d| !d.as_os_str().is_empty())
-                .unwrap_or(Path::new("."));
-            let tmp = tempfile::Builder::new()
-                .prefix(".sofipol-export-")
-                .suffix(".fits")
-                .tempdir_in(dir)
-                .map_err(|e| werr(format!("temporary directory in {}: {e}", dir.display())))?;
-            let tmp_path = tmp.path().join("table.fits");
-            write_fits(t, &tmp_path).map_err(|e| werr(format!("cfitsio: {e}")))?;
-            std::fs::rename(&tmp_path, path).map_err(|e| werr(e.to_string()))
+            // cfitsio creates the file by name: in a private directory next to `path`.
+            let tmp = sofipol_calib::atomic::TempFile::new(path).map_err(|e| werr(e.to_string()))?;
+            write_fits(t, &tmp.path).map_err(|e| werr(format!("cfitsio: {e}")))?;
+            tmp.commit(path).map_err(|e| werr(e.to_string()))
         }
     }
 }

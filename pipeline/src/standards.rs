@@ -24,14 +24,16 @@ pub struct StandardStar {
     /// Filter the values are for ("*": any).
     pub filter: String,
     /// Degree of linear polarization (fraction, sky frame); 0 for unpolarized standards.
+    #[serde(deserialize_with = "crate::catalog::nullable::num")]
     pub p: f64,
     /// 1-sigma error of p.
+    #[serde(deserialize_with = "crate::catalog::nullable::num")]
     pub sigma_p: f64,
     /// Polarization angle, degrees east of north (ignored when p = 0).
-    #[serde(default)]
+    #[serde(default, deserialize_with = "crate::catalog::nullable::num")]
     pub gamma_deg: f64,
     /// 1-sigma error of the angle, deg.
-    #[serde(default = "default_sigma_gamma")]
+    #[serde(default = "default_sigma_gamma", deserialize_with = "crate::catalog::nullable::num")]
     pub sigma_gamma_deg: f64,
     /// Band the values were measured in (or how they were derived).
     #[serde(default)]
@@ -76,28 +78,65 @@ pub fn match_key(name: &str) -> String {
         .collect()
 }
 
+/// The key an entry is matched by: its name reduced by [`match_key`] and its filter
+/// (trimmed, lower case).
+fn entry_key(s: &StandardStar) -> (String, String) {
+    (match_key(&s.name), s.filter.trim().to_ascii_lowercase())
+}
+
+/// The entries of a table file, each checked: a name, a filter (`"*"` for any), `p` in
+/// [0, 1), `sigma_p` in (0, 1], `gamma_deg` in [0, 180), `sigma_gamma_deg` in (0, 90] (the
+/// standard deviation of a uniform angle is 52 deg), every number finite; and no two
+/// entries of the same star and filter in one file ([`entry_key`]: `HD 204827` and
+/// `HD_204827` are one star), where the second would silently replace the first. Errors
+/// name the file (`origin`), the entry (`standard[i] 'NAME' (filter 'F')`), the key and
+/// the value.
 fn parse(text: &str, origin: &str) -> Result<Vec<StandardStar>> {
     let err = |reason: String| Error::Standards {
         origin: origin.to_string(),
         reason,
     };
     let f: File = toml::from_str(text).map_err(|e| err(e.to_string()))?;
-    for s in &f.standard {
-        let bad = |what: &str, v: f64| err(format!("standard '{}': {what} = {v}", s.name));
+    let mut seen: std::collections::HashMap<(String, String), usize> = Default::default();
+    for (i, s) in f.standard.iter().enumerate() {
+        let entry = format!("standard[{i}] '{}' (filter '{}')", s.name, s.filter);
         if match_key(&s.name).is_empty() {
-            return Err(err("a standard has an empty name".to_string()));
+            return Err(err(format!("{entry}: name is empty")));
         }
-        if !(0.0..1.0).contains(&s.p) {
-            return Err(bad("p (a fraction in [0, 1))", s.p));
+        if s.filter.trim().is_empty() {
+            return Err(err(format!("{entry}: filter is empty (\"*\" applies to every filter)")));
         }
-        if !(s.sigma_p > 0.0) {
-            return Err(bad("sigma_p (must be > 0)", s.sigma_p));
+        let checks: [(&str, f64, bool, &str); 4] = [
+            ("p", s.p, (0.0..1.0).contains(&s.p), "a fraction in [0, 1)"),
+            (
+                "sigma_p",
+                s.sigma_p,
+                s.sigma_p > 0.0 && s.sigma_p <= 1.0,
+                "a fraction in (0, 1]",
+            ),
+            (
+                "gamma_deg",
+                s.gamma_deg,
+                (0.0..180.0).contains(&s.gamma_deg),
+                "in [0, 180) deg",
+            ),
+            (
+                "sigma_gamma_deg",
+                s.sigma_gamma_deg,
+                s.sigma_gamma_deg > 0.0 && s.sigma_gamma_deg <= 90.0,
+                "in (0, 90] deg",
+            ),
+        ];
+        if let Some((key, v, _, want)) = checks.iter().find(|c| !c.2) {
+            return Err(err(format!("{entry}: {key} = {v:?}: must be {want}")));
         }
-        if !(s.sigma_gamma_deg > 0.0) {
-            return Err(bad("sigma_gamma_deg (must be > 0)", s.sigma_gamma_deg));
-        }
-        if !s.gamma_deg.is_finite() {
-            return Err(bad("gamma_deg", s.gamma_deg));
+        if let Some(j) = seen.insert(entry_key(s), i) {
+            let first = &f.standard[j];
+            return Err(err(format!(
+                "{entry}: the same star and filter as standard[{j}] '{}' (filter '{}') (names match ignoring \
+                 case, spaces and '_'): the second entry would silently replace the first; keep one",
+                first.name, first.filter
+            )));
         }
     }
     Ok(f.standard)
@@ -115,12 +154,8 @@ impl StandardsTable {
     /// Add or override entries (same name and filter) from TOML text.
     pub fn merge_toml(&mut self, text: &str, origin: &str) -> Result<()> {
         for s in parse(text, origin)? {
-            let k = (match_key(&s.name), s.filter.to_ascii_lowercase());
-            match self
-                .entries
-                .iter_mut()
-                .find(|e| (match_key(&e.name), e.filter.to_ascii_lowercase()) == k)
-            {
+            let k = entry_key(&s);
+            match self.entries.iter_mut().find(|e| entry_key(e) == k) {
                 Some(e) => *e = s,
                 None => self.entries.push(s),
             }
@@ -261,5 +296,82 @@ sigma_p = 0.0005
             .unwrap_err()
             .to_string()
             .contains("bad2.toml"));
+    }
+
+    /// Every number of an entry is checked (finite, in range) and two entries of one star
+    /// and filter in one file are refused, each naming the file, the entry and the key; a
+    /// user entry replacing a built-in one is not a duplicate.
+    #[test]
+    fn out_of_range_numbers_and_duplicate_entries_are_refused_by_file_entry_and_key() {
+        let entry = |k: &str, v: &str| {
+            let fields = [
+                ("name", "\"HD 204827\""),
+                ("filter", "\"Ks\""),
+                ("p", "0.0088"),
+                ("sigma_p", "0.0022"),
+                ("gamma_deg", "58.7"),
+                ("sigma_gamma_deg", "2.0"),
+            ];
+            let body: Vec<String> = fields
+                .iter()
+                .map(|&(key, value)| format!("{key} = {}", if key == k { v } else { value }))
+                .collect();
+            format!("[[standard]]\n{}\n", body.join("\n"))
+        };
+        let mut t = StandardsTable::builtin();
+        t.merge_toml(&entry("gamma_deg", "60.0"), "ok.toml").unwrap();
+        assert_eq!(t.find("HD 204827", "Ks").unwrap().gamma_deg, 60.0);
+        for (key, v) in [
+            ("p", "nan"),
+            ("p", "-0.01"),
+            ("sigma_p", "0.0"),
+            ("sigma_p", "inf"),
+            ("sigma_p", "2.0"),
+            ("gamma_deg", "nan"),
+            ("gamma_deg", "-inf"),
+            ("gamma_deg", "180.0"),
+            ("gamma_deg", "-5.0"),
+            ("sigma_gamma_deg", "1e200"),
+            ("sigma_gamma_deg", "inf"),
+            ("sigma_gamma_deg", "0.0"),
+            ("sigma_gamma_deg", "-1.0"),
+            ("sigma_gamma_deg", "nan"),
+            ("sigma_gamma_deg", "90.5"),
+        ] {
+            let e = t.merge_toml(&entry(key, v), "bad.toml").unwrap_err().to_string();
+            assert!(
+                e.starts_with("bad.toml: standard[0] 'HD 204827' (filter 'Ks'): ") && e.contains(&format!("{key} = ")),
+                "{key} = {v}: {e}"
+            );
+        }
+        let e = t
+            .merge_toml(&entry("name", "\"\""), "bad.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("name is empty"), "{e}");
+        let e = t
+            .merge_toml(&entry("filter", "\" \""), "bad.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("filter is empty"), "{e}");
+        // The same star twice in one file (name spelt another way, filter in another case).
+        let two = format!(
+            "{}{}",
+            entry("gamma_deg", "58.7"),
+            entry("name", "\"HD_204827\"").replace("\"Ks\"", "\"ks\"")
+        );
+        let before = t.clone();
+        let e = t.merge_toml(&two, "dup.toml").unwrap_err().to_string();
+        assert!(
+            e.starts_with(
+                "dup.toml: standard[1] 'HD_204827' (filter 'ks'): the same star and filter as standard[0] 'HD 204827'"
+            ),
+            "{e}"
+        );
+        assert_eq!(t, before, "a refused file changes nothing");
+        // The same star in two filters is two entries.
+        let two_filters = format!("{}{}", entry("p", "0.0088"), entry("filter", "\"H\""));
+        t.merge_toml(&two_filters, "filters.toml").unwrap();
+        assert!(t.find("HD 204827", "H").is_some());
     }
 }

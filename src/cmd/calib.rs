@@ -69,6 +69,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     for d in &args.dirs {
         anyhow::ensure!(d.exists(), "{}: no such file or directory", d.display());
     }
+    // The calibration is measured from this night's standards whatever the settings say.
+    // The standards table is read (and refused) before CALDIR is made.
+    let mut cal_params = params.calibration.clone();
+    cal_params.no_calibration = false;
+    cal_params.calib_dir = None;
+    if let Some(f) = &args.standards {
+        cal_params.standards = Some(f.clone());
+    }
+    let calibration = CalibSetup::new(cal_params).map_err(anyhow::Error::msg)?;
     // CALDIR is checked before the reduction: it must accept files, and calibration.json
     // must not replace an input.
     let mut inputs = args.reduce.input_files();
@@ -77,14 +86,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let inputs: Vec<&Path> = inputs.iter().map(PathBuf::as_path).collect();
     super::common::check_outputs_in_dir(&args.output, &[CALIBRATION_FILE], &inputs, "-o")?;
     super::setup::check_input_frames(&params)?;
-    // The calibration is measured from this night's standards whatever the settings say.
-    let mut cal_params = params.calibration.clone();
-    cal_params.no_calibration = false;
-    cal_params.calib_dir = None;
-    if let Some(f) = &args.standards {
-        cal_params.standards = Some(f.clone());
-    }
-    let calibration = CalibSetup::new(cal_params).map_err(anyhow::Error::msg)?;
     let setup = NightSetup {
         profile,
         params,

@@ -43,10 +43,18 @@ pub fn progress(len: u64, what: &str, quiet: bool) -> ProgressBar {
     pb
 }
 
+/// Check that `-o out` is absent or a regular file: its outputs are written by renaming a
+/// complete temporary file over it, which would replace a symbolic link or a device node
+/// (`/dev/stdout`) with a regular file. `hint` ends the message (what to do instead).
+pub fn check_regular_output(out: &std::path::Path, hint: &str) -> anyhow::Result<()> {
+    sofipol_calib::atomic::check_destination(out).map_err(|e| anyhow::anyhow!("-o {e}{hint}"))
+}
+
 /// Check, before any work, that `-o out` can be written and is not an input: not a
-/// directory, not one of `inputs` (by canonical path: a symlink or `./x` alias counts),
-/// not an existing FITS file, and in a directory (or under an existing ancestor) where a
-/// file can be created. sofipol never overwrites an input.
+/// directory, not a symbolic link or device ([`check_regular_output`]), not one of
+/// `inputs` (by canonical path: a symlink or `./x` alias counts), not an existing FITS
+/// file, and in a directory (or under an existing ancestor) where a file can be created.
+/// sofipol never overwrites an input.
 pub fn check_output<P: AsRef<std::path::Path>>(out: &std::path::Path, inputs: &[P]) -> anyhow::Result<()> {
     use std::path::Path;
     anyhow::ensure!(
@@ -92,6 +100,7 @@ pub fn check_output<P: AsRef<std::path::Path>>(out: &std::path::Path, inputs: &[
             );
         }
     }
+    check_regular_output(out, "; give a regular file name")?;
     if out.is_file() {
         let mut head = [0u8; 9];
         let is_fits = std::fs::File::open(out)

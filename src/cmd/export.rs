@@ -14,27 +14,53 @@ pub struct Args {
     /// ecsv (astropy), fits (binary table) or csv.
     #[arg(long, default_value = "ecsv")]
     pub format: Format,
-    /// Output file.
+    /// Output file (`-`: standard output).
     #[arg(short, long)]
     pub output: PathBuf,
 }
 
 /// Run.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    if args.output.as_os_str() == "-" {
+        return to_stdout(&args);
+    }
     // Checked before anything is read or written, as `night` and `merge` check theirs:
     // never the input (by canonical path: `./x`, `d/../x` or a symlink count), a directory,
-    // or a FITS file other than a table sofipol exported (a raw frame).
+    // a FITS file other than a table sofipol exported (a raw frame), a symbolic link or a
+    // device.
     super::common::check_output(&args.output, &[&args.catalog])?;
+    super::common::check_regular_output(&args.output, "; give a regular file name, or -o - for standard output")?;
+    let (cat, t) = read_table(&args)?;
+    export::write(&t, args.format, &args.output)?;
+    println!("{} -> {}", summary(&cat, &t), args.output.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The catalog and its table.
+fn read_table(args: &Args) -> anyhow::Result<(Catalog, export::Table)> {
     let cat: Catalog = sofipol_pipeline::input::read_catalog(&args.catalog)?;
     let t = export::table(&cat, &args.catalog.display().to_string());
-    export::write(&t, args.format, &args.output)?;
-    println!(
-        "{} rows ({} components of {} targets; {} targets without components not exported) -> {}",
+    Ok((cat, t))
+}
+
+fn summary(cat: &Catalog, t: &export::Table) -> String {
+    format!(
+        "{} rows ({} components of {} targets; {} targets without components not exported)",
         t.rows(),
         t.rows(),
         cat.targets.len(),
-        t.targets_without_components,
-        args.output.display()
-    );
+        t.targets_without_components
+    )
+}
+
+/// `-o -`: the table on standard output (the same bytes as the file), the summary on
+/// stderr. A closed stdout is not an error (docs/cli.md).
+fn to_stdout(args: &Args) -> anyhow::Result<ExitCode> {
+    use std::io::Write as _;
+    let (cat, t) = read_table(args)?;
+    let bytes = export::to_bytes(&t, args.format)?;
+    let mut out = std::io::stdout().lock();
+    let _ = out.write_all(&bytes).and_then(|_| out.flush());
+    eprintln!("{} -> standard output", summary(&cat, &t));
     Ok(ExitCode::SUCCESS)
 }

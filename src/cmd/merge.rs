@@ -1,7 +1,10 @@
 //! `sofipol merge a.json b.json ... -o night.json`: join shard catalogs.
 //!
-//! The catalogs must form one run: the same instrument profile and reduction parameters
-//! (always refused otherwise). Shards of the same inputs must have the same N, each K
+//! The catalogs must form one run: the same instrument profile, reduction parameters and
+//! calibration settings (`provenance.calibration`: `--standards`, `--calib`,
+//! `--stokes-method`, `--no-calibration`; always refused otherwise), and shards of the
+//! same inputs must have applied the same calibration (the catalogs' `calibration`: a
+//! standards file edited between the shards). Shards of the same inputs must have the same N, each K
 //! once, and every K of 1..=N present; a missing shard is refused unless
 //! `--allow-partial`, which merges what is there, lists the missing shards in the
 //! provenance (`missing_shards`) and exits 2. A catalog written without `--shard` is a
@@ -31,10 +34,10 @@ pub struct Args {
 /// The shards' coverage: `Ok(missing "K/N of inputs")` or the reason the set cannot be merged. Parts
 /// are (name, provenance).
 pub fn check_shards(parts: &[(String, &Value)], allow_partial: bool) -> anyhow::Result<Vec<String>> {
-    // One run: identical profile and parameters.
+    // One run: identical profile, parameters and calibration settings.
     let (first_name, first) = &parts[0];
     for (name, p) in &parts[1..] {
-        for key in ["parameters", "profile"] {
+        for key in ["parameters", "profile", "calibration"] {
             if p[key] != first[key] {
                 let detail = first_difference(&first[key], &p[key], key);
                 anyhow::bail!(
@@ -82,9 +85,37 @@ pub fn check_shards(parts: &[(String, &Value)], allow_partial: bool) -> anyhow::
     Ok(missing)
 }
 
+/// Shards of the same inputs measure the same standards with the same settings: the
+/// calibrations they applied (each catalog's `calibration`) must be identical. `parts` are
+/// (name, provenance, calibration). A catalog written without `--shard` is a whole run,
+/// calibrated by its own night.
+pub fn check_calibrations(parts: &[(String, &Value, Option<&Value>)]) -> anyhow::Result<()> {
+    let mut first: std::collections::BTreeMap<String, (&str, Option<&Value>)> = Default::default();
+    for (name, p, cal) in parts {
+        if p["shard"].as_str().is_none() {
+            continue;
+        }
+        let (first_name, first_cal) = *first.entry(p["inputs"].to_string()).or_insert((name.as_str(), *cal));
+        if *cal != first_cal {
+            let null = Value::Null;
+            let detail = first_difference(first_cal.unwrap_or(&null), cal.unwrap_or(&null), "calibration");
+            anyhow::bail!(
+                "{name} and {first_name} are shards of the same inputs but applied different calibrations \
+                 ({detail}): not one run; reduce the shards again with the same standards table and \
+                 calibration files"
+            );
+        }
+    }
+    Ok(())
+}
+
 /// A short description of where two JSON values first differ (the key path).
 fn first_difference(a: &Value, b: &Value, path: &str) -> String {
     match (a, b) {
+        (Value::Array(x), Value::Array(y)) if x.len() == y.len() => match x.iter().zip(y).position(|(v, w)| v != w) {
+            Some(i) => first_difference(&x[i], &y[i], &format!("{path}[{i}]")),
+            None => path.to_string(),
+        },
         (Value::Object(x), Value::Object(y)) => {
             for (k, v) in x {
                 match y.get(k) {
@@ -112,6 +143,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let provs: Vec<(String, &Value)> = parts.iter().map(|(n, c)| (n.clone(), &c.provenance)).collect();
     let missing = check_shards(&provs, args.allow_partial)?;
+    let cals: Vec<(String, &Value, Option<&Value>)> = parts
+        .iter()
+        .map(|(n, c)| (n.clone(), &c.provenance, c.calibration.as_ref()))
+        .collect();
+    check_calibrations(&cals)?;
     let mut merged = sofipol_pipeline::night::merge(parts).map_err(anyhow::Error::msg)?;
     merged.provenance["missing_shards"] = serde_json::json!(missing);
     sofipol_pipeline::io::write_json_atomic(&args.output, &merged)

@@ -15,10 +15,12 @@ use super::cfitsio::*;
 use super::read::check_extension_shape;
 use super::{Bitpix, WriteOptions, MASK_EXTNAME, VARIANCE_EXTNAME};
 
-/// Write a frame atomically: the file is written to a temporary file in the same
-/// directory (`.<name>.tmp-<pid>-<n>`), flushed, synced and renamed over `path`, so a
-/// crash never leaves a half-written file and an existing file is replaced only by a
-/// complete one.
+/// Write a frame atomically: the file is written to a temporary file in a fresh private
+/// directory next to `path` ([`crate::atomic::TempFile`]: random name, mode 0700),
+/// flushed, synced and renamed over `path`, so a crash never leaves a half-written file,
+/// an existing file is replaced only by a complete one, and nothing but `path` is ever
+/// written (`path` must be absent or a regular file: a symbolic link or device there is
+/// refused).
 ///
 /// Header: every card of `frame.header` (keys longer than 8 characters or with spaces
 /// as `HIERARCH` cards; strings longer than a card with the CONTINUE convention; floats

@@ -303,6 +303,13 @@ fn frame_name(frame: &Frame, i: usize) -> String {
 /// (phase shifted row to row: ~125k pixels on SOFI, so the median's statistical error
 /// is ~0.004 sigma_pixel, 2e-5 of the level, and it costs ~1 ms).
 pub fn sky_level(frame: &Frame, profile: &Profile) -> Result<f64> {
+    let mut v = strip_sample(frame, profile)?;
+    Ok(median_of_keys(&mut v))
+}
+
+/// The pixels [`sky_level`] takes its median of, as `total_cmp`-ordered integer keys; an
+/// error naming the frame when there is none.
+fn strip_sample(frame: &Frame, profile: &Profile) -> Result<Vec<i32>> {
     const STEP: usize = 8;
     let (ny, nx) = frame.shape();
     let g = &profile.geometry;
@@ -328,9 +335,59 @@ pub fn sky_level(frame: &Frame, profile: &Profile) -> Result<f64> {
             ),
         });
     }
+    Ok(v)
+}
+
+/// The median (upper middle element) of a non-empty sample of keys, ADU.
+fn median_of_keys(v: &mut [i32]) -> f64 {
     let k = v.len() / 2;
     let (_, m, _) = v.select_nth_unstable(k);
-    Ok(crate::flat::lanes::from_key(*m) as f64)
+    crate::flat::lanes::from_key(*m) as f64
+}
+
+/// The sky level L of a frame ([`sky_level`]) when the sky stage can use it with
+/// `scaling`, else an error naming the frame and saying why. Additive scaling needs a
+/// measurable level. Multiplicative scaling divides each frame by its level, so the level
+/// must stand out of the pixel noise: L > sigma, with sigma = 1.4826 x the median absolute
+/// deviation of the same pixels (a real sky of L ADU has sigma ~ sqrt(L / gain) and more,
+/// L / sigma ~ 40 at 1500 ADU; a frame whose data were negated, byte-swapped or already
+/// sky-subtracted has L <= 0 or L of the order of sigma, and would put its own noise
+/// divided by ~0 into the other dithers' skies).
+pub fn usable_sky_level(frame: &Frame, profile: &Profile, scaling: SkyScaling) -> Result<f64> {
+    let mut v = strip_sample(frame, profile)?;
+    let level = median_of_keys(&mut v);
+    if scaling == SkyScaling::Additive {
+        return Ok(level);
+    }
+    let mut dev: Vec<i32> = v
+        .iter()
+        .map(|&k| crate::flat::lanes::key((crate::flat::lanes::from_key(k) as f64 - level).abs() as f32))
+        .collect();
+    let sigma = 1.4826 * median_of_keys(&mut dev);
+    if level > sigma {
+        return Ok(level);
+    }
+    Err(Error::Stage {
+        stage: "sky",
+        reason: format!(
+            "{}: sky level {} ADU is not above the pixel scatter {} ADU (1.4826 x MAD of the {} unmasked, \
+             unsaturated pixels sampled in the strip rows): no sky to scale the dithers by (saturated, negated, \
+             byte-swapped or already sky-subtracted data?)",
+            frame_name(frame, 0),
+            adu(level),
+            adu(sigma),
+            v.len()
+        ),
+    })
+}
+
+/// A level in ADU for a message: 2 decimals, or 3 significant digits when tiny.
+fn adu(x: f64) -> String {
+    if x != 0.0 && x.abs() < 0.01 {
+        format!("{x:.2e}")
+    } else {
+        format!("{x:.2}")
+    }
 }
 
 /// Sky-subtract the dithers of ONE orientation (see the module documentation). Output

@@ -26,17 +26,23 @@ pub const TELESCOPE_UNCORRECTED: &str = "telescope_polarization_uncorrected";
 #[serde(deny_unknown_fields)]
 pub struct TelescopeCalibration {
     /// p_tel, fraction.
+    #[serde(deserialize_with = "crate::catalog::nullable::num")]
     pub p_tel: f64,
     /// Its 1-sigma error.
+    #[serde(deserialize_with = "crate::catalog::nullable::num")]
     pub sigma_p_tel: f64,
     /// psi_tel, deg in [0, 180): the angle of the telescope's polarization from the vertical.
+    #[serde(deserialize_with = "crate::catalog::nullable::num")]
     pub psi_tel_deg: f64,
     /// Its 1-sigma error, deg.
+    #[serde(deserialize_with = "crate::catalog::nullable::num")]
     pub sigma_psi_tel_deg: f64,
     /// `a = p_tel cos 2psi_tel`: the fitted parameter (with `b`; their covariance is in the
     /// filter's `covariance`).
+    #[serde(deserialize_with = "crate::catalog::nullable::num")]
     pub a: f64,
     /// `b = p_tel sin 2psi_tel`.
+    #[serde(deserialize_with = "crate::catalog::nullable::num")]
     pub b: f64,
 }
 

@@ -302,7 +302,7 @@ fn an_absurd_telescope_or_covariance_in_calibration_json_is_refused_by_key() {
         (
             "/filters/0/telescope/p_tel",
             serde_json::Value::Null,
-            "invalid type: null",
+            "filters[0].telescope.p_tel",
         ),
     ];
     for (path, value, want) in cases {

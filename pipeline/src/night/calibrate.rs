@@ -6,7 +6,7 @@ use sofipol_calib::Profile;
 
 use super::{reduce_sequences, Hooks};
 use crate::calibration::{self, CalibSetup, Calibration, CalibrationSummary};
-use crate::catalog::{Catalog, Target};
+use crate::catalog::{Catalog, Failure, Target};
 use crate::reduce::TargetParams;
 use crate::sequence::Sequence;
 
@@ -44,7 +44,7 @@ pub fn calibrate(
     cat.failures.extend(std_cat.failures);
     cat.failures.sort_by(|a, b| a.file.cmp(&b.file));
     let std_targets: Vec<Target> = std_cat.targets;
-    calibration::calibrate_catalog(
+    let (cal, mut summary) = calibration::calibrate_catalog(
         cat,
         std_targets,
         &setup.table,
@@ -53,5 +53,58 @@ pub fn calibrate(
         &setup.params,
         params.measure.debias,
         params.measure.cut_snr,
-    )
+    );
+    if let (Some((dir, _)), false) = (&setup.external, setup.params.no_calibration) {
+        refuse_uncorrected(cat, dir, &mut summary);
+    }
+    (cal, summary)
+}
+
+/// The component flag of a value left uncorrected because the calibration given with
+/// `--calib` has no offset for its filter (with `uncalibrated`; never passes the cut).
+pub const CALIBRATION_LACKS_FILTER: &str = "calibration_lacks_filter";
+
+/// With another night's calibration (`--calib`), a component left `uncalibrated` is one
+/// whose filter that calibration has no offset c for: asked to be corrected and not
+/// corrected, it never passes the cut (flag `calibration_lacks_filter: ...`), and the
+/// calibration file is named under `failures` once per filter.
+fn refuse_uncorrected(cat: &mut Catalog, dir: &std::path::Path, summary: &mut CalibrationSummary) {
+    let file = if dir.is_dir() {
+        dir.join(calibration::CALIBRATION_FILE)
+    } else {
+        dir.to_path_buf()
+    };
+    let mut per_filter: std::collections::BTreeMap<String, usize> = Default::default();
+    for t in cat.targets.iter_mut() {
+        let filter = t.filter.clone().unwrap_or_default();
+        let mut changed = false;
+        for c in t
+            .components
+            .iter_mut()
+            .filter(|c| c.flags.iter().any(|f| f == "uncalibrated"))
+        {
+            c.passes_cut = false;
+            c.flags.push(format!(
+                "{CALIBRATION_LACKS_FILTER}: {} has no offset c for filter {filter}: q and u uncorrected",
+                file.display()
+            ));
+            *per_filter.entry(filter.clone()).or_default() += 1;
+            changed = true;
+        }
+        if changed {
+            t.update_delta_gamma(None);
+        }
+    }
+    for (filter, n) in per_filter {
+        let error = format!(
+            "no offset c for filter {filter}: {n} component(s) of filter {filter} left uncorrected \
+             (flags uncalibrated, {CALIBRATION_LACKS_FILTER}), never passing the cut"
+        );
+        summary.lines.push(format!("{}: {error}", file.display()));
+        cat.failures.push(Failure {
+            file: file.display().to_string(),
+            error,
+        });
+    }
+    cat.failures.sort_by(|a, b| a.file.cmp(&b.file));
 }

@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 
 use rayon::prelude::*;
+use sofipol_calib::sky::SkyScaling;
 use sofipol_calib::Profile;
 
 use super::NightPlan;
@@ -29,16 +30,18 @@ pub fn night_bad_pixel_mask(
     // frame is kept as those rows and the sky level of the whole frame (measured as it is
     // read): two thirds less memory held.
     let shape = (profile.geometry.ny, profile.geometry.nx);
-    let read: Vec<(sofipol_calib::Frame, Option<f64>)> = picks
+    // A frame without a usable sky level (saturated, negated, byte-swapped data: dropped by
+    // name when its sequence is reduced) is left out: the stack scales every frame by it.
+    let read: Vec<(sofipol_calib::Frame, f64)> = picks
         .par_iter()
         .filter_map(|p| sofipol_calib::fits::read_frame(p).ok())
         .filter(|f| f.shape() == shape)
-        .map(|f| match rows {
-            Some((r0, r1)) => {
-                let level = sofipol_calib::sky::sky_level(&f, profile).ok();
-                (f.crop_rows(r0, r1), level)
-            }
-            None => (f, None),
+        .filter_map(|f| {
+            let level = sofipol_calib::sky::usable_sky_level(&f, profile, SkyScaling::Multiplicative).ok()?;
+            Some(match rows {
+                Some((r0, r1)) => (f.crop_rows(r0, r1), level),
+                None => (f, level),
+            })
         })
         .collect();
     let frames: Vec<&sofipol_calib::Frame> = read.iter().map(|(f, _)| f).collect();
@@ -56,8 +59,7 @@ pub fn night_bad_pixel_mask(
         .collect();
     let mask = match rows {
         Some((r0, r1)) => {
-            // A frame without a sky level fails the mask, as it fails the stack of whole frames.
-            let levels: Vec<f64> = read.iter().map(|(_, l)| *l).collect::<Option<_>>()?;
+            let levels: Vec<f64> = read.iter().map(|(_, l)| *l).collect();
             let (part, _report) = sofipol_calib::badpix::detect_bad_pixels_from_rows(
                 &frames,
                 &levels,

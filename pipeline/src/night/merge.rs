@@ -2,13 +2,17 @@
 use crate::catalog::{Catalog, SCHEMA_VERSION};
 
 /// Join shard catalogs: targets ordered by sequence, failures by file, duplicates (the same
-/// sequence in two shards) refused.
+/// sequence in two shards) refused. The merged `calibration` is the catalogs' when they
+/// all applied the same one (shards of one night: the caller checks that), else (whole
+/// runs of several nights, each calibrated by its own standards) `{"source":
+/// "per_catalog", "catalogs": [{"file", "calibration"}, ...]}`, every catalog's.
 pub fn merge(parts: Vec<(String, Catalog)>) -> crate::error::Result<Catalog> {
     let mut out = Catalog {
         schema_version: SCHEMA_VERSION.into(),
         ..Default::default()
     };
     let mut provs = Vec::new();
+    let mut cals: Vec<(String, Option<serde_json::Value>)> = Vec::new();
     let mut seen = std::collections::BTreeMap::new();
     for (name, c) in parts {
         if !c.schema_version.is_empty() && c.schema_version.split('.').next() != SCHEMA_VERSION.split('.').next() {
@@ -37,14 +41,57 @@ pub fn merge(parts: Vec<(String, Catalog)>) -> crate::error::Result<Catalog> {
                 out.standards.push(s);
             }
         }
-        if out.calibration.is_none() {
-            out.calibration = c.calibration;
-        }
+        cals.push((name.clone(), c.calibration));
         provs.push(serde_json::json!({"file": name, "provenance": c.provenance}));
     }
+    out.calibration = if cals.iter().all(|(_, c)| *c == cals[0].1) {
+        cals.into_iter().next().and_then(|(_, c)| c)
+    } else {
+        Some(serde_json::json!({
+            "source": "per_catalog",
+            "catalogs": cals
+                .into_iter()
+                .map(|(file, calibration)| serde_json::json!({"file": file, "calibration": calibration}))
+                .collect::<Vec<_>>(),
+        }))
+    };
     out.targets.sort_by(|a, b| a.sequence_id().cmp(b.sequence_id()));
     out.failures.sort_by(|a, b| a.file.cmp(&b.file));
     out.failures.dedup();
     out.provenance = serde_json::json!({"merged_from": provs});
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn part(name: &str, seq: &str, cal: serde_json::Value) -> (String, Catalog) {
+        let mut t = crate::catalog::Target::new(seq.to_string(), crate::catalog::Status::Ok);
+        t.sequence = Some(format!("{seq}@2000"));
+        let c = Catalog {
+            targets: vec![t],
+            calibration: Some(cal),
+            ..Default::default()
+        };
+        (name.into(), c)
+    }
+
+    /// The merged calibration is the common one, or every catalog's when they differ
+    /// (never the first one alone).
+    #[test]
+    fn the_merged_calibration_is_the_common_one_or_every_catalogs() {
+        let a = serde_json::json!({"source": "night", "calibration": {"filters": [{"c": 0.018}]}});
+        let b = serde_json::json!({"source": "night", "calibration": {"filters": [{"c": 0.021}]}});
+        let m = merge(vec![part("a.json", "X", a.clone()), part("b.json", "Y", a.clone())]).unwrap();
+        assert_eq!(m.calibration, Some(a.clone()));
+        let m = merge(vec![part("a.json", "X", a.clone()), part("b.json", "Y", b.clone())]).unwrap();
+        assert_eq!(
+            m.calibration,
+            Some(serde_json::json!({"source": "per_catalog", "catalogs": [
+                {"file": "a.json", "calibration": a},
+                {"file": "b.json", "calibration": b},
+            ]}))
+        );
+    }
 }

@@ -217,6 +217,13 @@ pub fn reduce_loaded(
         );
     }
 
+    // A frame without a sky to scale by would break its orientation's sky (and the
+    // bad-pixel stack): dropped by name before either, the other dithers carry on.
+    let t = std::time::Instant::now();
+    let mut orients = orients;
+    let dropped = drop_frames_without_sky(&mut orients, profile, params.sky.scaling, &mut failures, &mut flags);
+    times.sky = t.elapsed().as_secs_f64();
+
     // Bad pixels: calibration mask and/or detection on all frames of the sequence.
     let t = std::time::Instant::now();
     let all: Vec<&Frame> = orients.iter().flat_map(|o| o.2.iter()).collect();
@@ -243,7 +250,7 @@ pub fn reduce_loaded(
     let t = std::time::Instant::now();
     let cal = subtract_sky(orients, &flat_rows, mask.as_ref(), profile, params, &mut flags);
     flats_used.retain(|u| cal.iter().any(|o| u.starts_with(&format!("POSANG {}:", o.posang_deg))));
-    times.sky = t.elapsed().as_secs_f64();
+    times.sky += t.elapsed().as_secs_f64();
 
     if let Some(dir) = &params.save_intermediate {
         let t = std::time::Instant::now();
@@ -276,6 +283,10 @@ pub fn reduce_loaded(
     if !flags.is_empty() && target.status == Status::Ok && !seq.problems().is_empty() {
         target.status = Status::Partial;
         target.error = seq.problems().first().cloned();
+    }
+    if let (Some(first), Status::Ok) = (dropped.first(), target.status) {
+        target.status = Status::Partial;
+        target.error = Some(first.clone());
     }
     target.sequence = Some(seq.id.clone());
     target.tpl_start = Some(seq.tpl_start.clone());
@@ -454,6 +465,52 @@ fn bad_pixel_mask(
         }
     }
     Ok(mask)
+}
+
+/// Leave out of `orients` every frame whose sky level the sky stage cannot use
+/// ([`sky::usable_sky_level`] with `scaling`: saturated, negated, byte-swapped or
+/// background-free data), each named under `failures` with the reason and flagged; the
+/// other dithers of its orientation carry on. Returns the flags added.
+fn drop_frames_without_sky(
+    orients: &mut [LoadedOrientation],
+    profile: &Profile,
+    scaling: sky::SkyScaling,
+    failures: &mut Vec<Failure>,
+    flags: &mut Vec<String>,
+) -> Vec<String> {
+    let mut dropped = Vec::new();
+    for (posang, _, frames, offs) in orients.iter_mut() {
+        let verdicts: Vec<Option<String>> = frames
+            .iter()
+            .map(|f| sky::usable_sky_level(f, profile, scaling).err().map(|e| e.to_string()))
+            .collect();
+        if verdicts.iter().all(Option::is_none) {
+            continue;
+        }
+        // Header offsets are used only when every frame has one.
+        let old_offs = if offs.len() == frames.len() {
+            std::mem::take(offs)
+        } else {
+            Vec::new()
+        };
+        offs.clear();
+        for (i, (f, why)) in std::mem::take(frames).into_iter().zip(verdicts).enumerate() {
+            let Some(why) = why else {
+                frames.push(f);
+                offs.extend(old_offs.get(i));
+                continue;
+            };
+            let file = f.path().display().to_string();
+            let flag = format!("dither of POSANG {posang} dropped: {why}");
+            failures.push(Failure {
+                file,
+                error: format!("{why}: frame not used, the other dithers of POSANG {posang} carry on"),
+            });
+            flags.push(flag.clone());
+            dropped.push(flag);
+        }
+    }
+    dropped
 }
 
 /// Sky subtraction, orientation by orientation (the mask applied first). An orientation
