@@ -290,7 +290,7 @@ pub fn draw_scene(
     if cfg.instrument && cfg.saturated_every > 0 && t % cfg.saturated_every == cfg.saturated_every - 1 {
         fa = 2e6 * (1.0 + r.random::<f64>());
     }
-    let ratio = 0.25 + 0.75 * r.random::<f64>();
+    let ratio = 0.15 + 0.85 * r.random::<f64>();
     let (pa_, pb) = (0.01 + 0.07 * r.random::<f64>(), 0.01 + 0.07 * r.random::<f64>());
     let (ga, gb) = (180.0 * r.random::<f64>(), 180.0 * r.random::<f64>());
     let pa = 360.0 * r.random::<f64>();
