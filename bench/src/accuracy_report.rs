@@ -67,7 +67,7 @@ pub fn variants() -> Vec<Variant> {
     let mut out = vec![
         v(
             G_REDUCTION,
-            "Moffat (beta from stacks), exact 1-FWHM apertures, multiplicative sky + CR flags, target strips",
+            "Moffat (beta from stacks), o and e fitted jointly, exact 1-FWHM apertures, multiplicative sky + CR flags, target strips",
             "",
             true,
             |_, _| {},
@@ -85,6 +85,13 @@ pub fn variants() -> Vec<Variant> {
             "--params: [measure] beta_from_stack=false",
             false,
             |_, p| p.measure.beta_from_stack = false,
+        ),
+        v(
+            G_REDUCTION,
+            "o and e beams fitted separately (shape and pair geometry per beam)",
+            "--params: [measure] joint_beams=false",
+            false,
+            |_, p| p.measure.joint_beams = false,
         ),
         v(
             G_REDUCTION,

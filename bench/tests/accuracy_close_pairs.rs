@@ -34,7 +34,7 @@ fn nights(seeds: &[u64], joint: bool) -> Vec<Vec<WorldBin>> {
 fn the_joint_fit_measures_close_pairs_better_with_honest_errors() {
     let seeds = [31, 32, 33];
     let (joint, separate) = (nights(&seeds, true), nights(&seeds, false));
-    // Per matched component and Stokes parameter: the true errors of both estimators in
+    // Per matched component and Stokes parameter of a pair closer than 2 FWHM: the true errors of both estimators in
     // units of the separate fit's sigma (sigma = error / pull), and the joint fit's pulls.
     let (mut sum_j, mut sum_s, mut n) = (0.0, 0.0, 0usize);
     let (mut pulls, mut lost_j, mut lost_s) = (Vec::new(), 0, 0);
@@ -45,7 +45,9 @@ fn the_joint_fit_measures_close_pairs_better_with_honest_errors() {
                 lost_j += tj.missing;
                 lost_s += ts.missing;
                 pulls.extend(tj.pulls.iter().copied());
-                if tj.errors.len() != ts.errors.len() {
+                // Pairs closer than 2 FWHM (the seeing the target drew).
+                let close = tj.separation_arcsec < 2.0 * tj.conditions.fwhm_arcsec;
+                if tj.errors.len() != ts.errors.len() || !close {
                     continue;
                 }
                 for i in 0..ts.errors.len() {
@@ -69,7 +71,8 @@ fn the_joint_fit_measures_close_pairs_better_with_honest_errors() {
         pulls.len()
     );
     assert!(n >= 200, "{n} matched values");
-    // At least 20 % below the separate fits' true error (measured 0.7-0.8).
+    // At least 20 % below the separate fits' true error (measured 0.776 here, 0.751 on
+    // seeds 41-43).
     assert!(ratio <= 0.8, "rms true error joint/separate {ratio}");
     assert!(lost_j <= lost_s, "components lost: joint {lost_j}, separate {lost_s}");
     // ~250 pulls: the rms spreads by 4.5 % (1 sigma); the band allows the close pairs'
