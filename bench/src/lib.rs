@@ -12,6 +12,7 @@
 //!  python           bench night --python: the expert Python reduction (bench/python/), timed
 //!                   and compared
 //!  accuracy         the accuracy harness: simulated nights by separation bin, pulls, time
+//!  standards_truth  the true polarization of simulated standards, drawn from their table
 //!  world            the world-sampling harness (drawn conditions, the file path of `night`;
 //!                   run by examples/world.rs and tests/accuracy_world.rs)
 //!  timing           median of repeated timings; the stack kernels timed on sky-like frames
@@ -23,5 +24,6 @@ pub mod accuracy_report;
 pub mod commands;
 pub mod night;
 pub mod python;
+pub mod standards_truth;
 pub mod timing;
 pub mod world;

@@ -19,7 +19,7 @@
 //! | file format | BITPIX -32 or 16 (BZERO 32768), alternating |
 //! | effects | psf, sky (gradient, 3 % level changes), strips, photon and read noise, bad pixels, transparency, pointing error, cosmic rays |
 //! | instrument (one per night) | 1 % pixel response + 5 % vignetting (one detector: `detector_seed`), k = T_e/T_o 0.96-0.99, instrumental polarization 0.3 %, analyzer zero-point -5..5 deg and parity +-1, non-linearity, saturation |
-//! | calibration | dome flats and 2 unpolarized + 2 polarized standards of the same night and detector, reduced and applied as `sofipol night` does |
+//! | calibration | dome flats and 2 unpolarized + 2 polarized standards of the same night and detector (their true polarization drawn from the table's values and errors), reduced and applied as `sofipol night` does |
 //! | telescope (off by default) | with `telescope_polarization`: p_tel 0-1 %, psi_tel 0-180 deg for the night; with `spread_standards`: the standards hours apart at spread parallactic angles |
 //!
 //! Pulls are `(q - q_true)/sigma_q` and `(u - u_true)/sigma_u` of both components; the A/B
@@ -363,9 +363,18 @@ sigma_gamma_deg = 0.1
 /// The calibration scene of the world night: two unpolarized standards of the built-in
 /// table and two polarized ones ([`WORLD_STANDARDS`]), observed at 0/45/90/135, and dome
 /// flats at those angles, through the same detector and instrument as the targets (with
-/// `spread_standards`, at the times and pointings of [`SPREAD_STANDARDS`]).
+/// `spread_standards`, at the times and pointings of [`SPREAD_STANDARDS`]). Each standard's
+/// true polarization is drawn from its table value and error
+/// ([`crate::standards_truth::draw_night`]), as the calibration's covariance assumes.
 pub fn calibration_scene(cfg: &WorldConfig, inst: &Instrument) -> Scene {
     let (effects, sections) = night_sections(cfg, inst);
+    let table = world_standards_table();
+    let entries: Vec<_> = WORLD_NIGHT_STANDARDS
+        .iter()
+        .map(|n| table.find(n, "Ks").expect("a world standard in the table"))
+        .collect();
+    let truth = crate::standards_truth::draw_night(&entries, cfg.seed);
+    let pol = |i: usize| format!("p = {}\ngamma_deg = {}\n", truth[i].0, truth[i].1);
     let at = |i: usize| match SPREAD_STANDARDS[i] {
         (ut, dec, h) if cfg.spread_standards => {
             format!("start_ut = \"{ut}\"\ndec_deg = {dec}\nhour_angle_h = {h}\n")
@@ -384,20 +393,20 @@ dithers = 3
 [[standard]]
 name = "HD 64299"
 flux = 150000.0
-{at0}[[standard]]
+{pol0}{at0}[[standard]]
 name = "HD_98161"
 flux = 150000.0
-{at1}[[standard]]
+{pol1}{at1}[[standard]]
 name = "World Pol A"
 flux = 150000.0
-p = 0.025
-gamma_deg = 40.0
-{at2}[[standard]]
+{pol2}{at2}[[standard]]
 name = "World Pol B"
 flux = 150000.0
-p = 0.02
-gamma_deg = 115.0
-{at3}"#,
+{pol3}{at3}"#,
+        pol0 = pol(0),
+        pol1 = pol(1),
+        pol2 = pol(2),
+        pol3 = pol(3),
         at0 = at(0),
         at1 = at(1),
         at2 = at(2),
@@ -422,19 +431,27 @@ pub struct NightCalibration {
 /// The setup of the world's reductions: the SOFI profile, `params`, the built-in standards
 /// table with [`WORLD_STANDARDS`] added.
 fn world_setup(params: &TargetParams) -> NightSetup {
-    let mut table = StandardsTable::builtin();
-    table
-        .merge_toml(WORLD_STANDARDS, "world standards")
-        .expect("valid standards table");
     NightSetup {
         profile: Profile::sofi(),
         params: params.clone(),
         calibration: CalibSetup {
             params: CalibrationParams::default(),
-            table,
+            table: world_standards_table(),
             external: None,
         },
     }
+}
+
+/// The standards of the world night, in the calibration scene's order.
+pub const WORLD_NIGHT_STANDARDS: [&str; 4] = ["HD 64299", "HD_98161", "World Pol A", "World Pol B"];
+
+/// The standards table of the world night: the built-in table with [`WORLD_STANDARDS`].
+pub fn world_standards_table() -> StandardsTable {
+    let mut table = StandardsTable::builtin();
+    table
+        .merge_toml(WORLD_STANDARDS, "world standards")
+        .expect("valid standards table");
+    table
 }
 
 /// Simulate the night's calibration frames into a scratch folder and measure the flats and
