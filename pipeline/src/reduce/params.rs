@@ -56,7 +56,7 @@ pub struct MeasureParams {
     /// `{ kind = "gaussian" }` restores the Gaussian fit.
     pub psf_model: PsfModel,
     /// With a Moffat model of free beta: measure beta on the registered stacks and hold it
-    /// fixed in the per-frame fits of pairs measured by apertures (2 FWHM and wider); pairs
+    /// fixed in the per-frame fits of pairs measured by apertures (3 FWHM and wider); pairs
     /// measured by PSF-fit fluxes fit beta in every frame (`reduce::fluxes::choose_psf`).
     pub beta_from_stack: bool,
     /// Fit the o and e images of each exposure jointly: one PSF shape and one pair
@@ -72,7 +72,7 @@ impl Default for MeasureParams {
             aperture_fwhm: 1.0,
             annulus_fwhm: (4.0, 6.0),
             method: Method::Exact,
-            psf_photometry_below_fwhm: 2.0,
+            psf_photometry_below_fwhm: 3.0,
             primary_search_px: 60.0,
             nominal_xy_px: None,
             companion_search_arcsec: 6.0,
