@@ -12,44 +12,10 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
-use common::{bin, json, run, ALPHA_BETA};
+use common::{bin, frames_of, json, night, run};
 
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()
-}
-
-/// A simulated 2-target night (Alpha, Beta; 2 orientations x 3 dithers) in `dir/night`.
-fn night(dir: &Path) -> PathBuf {
-    let n = dir.join("night");
-    let scene = dir.join("scene.toml");
-    std::fs::write(
-        &scene,
-        format!(
-            "name = \"hx\"\nseed = 7\neffects = [\"psf\", \"sky\", \"strips\", \"photon_noise\", \"read_noise\"]\n\
-             [observation]\norientations_deg = [0.0, 45.0]\ndithers = 3\n[psf]\nkind = \"moffat\"\nfwhm_arcsec = 0.8\n{ALPHA_BETA}"
-        ),
-    )
-    .unwrap();
-    let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&n), "-q"]);
-    assert_eq!(code, 0, "{err}");
-    std::fs::remove_file(n.join("truth.json")).unwrap();
-    n
-}
-
-fn frames_of(n: &Path, object: &str) -> Vec<PathBuf> {
-    let mut v: Vec<PathBuf> = std::fs::read_dir(n)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| {
-            p.file_name()
-                .unwrap()
-                .to_str()
-                .unwrap()
-                .contains(&format!("_{object}_"))
-        })
-        .collect();
-    v.sort();
-    v
 }
 
 /// An 80-character header card `KEY = value`.

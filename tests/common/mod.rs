@@ -101,3 +101,39 @@ pub fn python_with(modules: &str, test: &str) -> Option<std::path::PathBuf> {
     );
     Some(py)
 }
+
+/// A simulated 2-target night (Alpha, Beta; 2 orientations x 3 dithers) in `dir/night`.
+pub fn night(dir: &Path) -> std::path::PathBuf {
+    let n = dir.join("night");
+    let scene = dir.join("scene.toml");
+    std::fs::write(
+        &scene,
+        format!(
+            "name = \"hx\"\nseed = 7\neffects = [\"psf\", \"sky\", \"strips\", \"photon_noise\", \"read_noise\"]\n\
+             [observation]\norientations_deg = [0.0, 45.0]\ndithers = 3\n[psf]\nkind = \"moffat\"\nfwhm_arcsec = 0.8\n{ALPHA_BETA}"
+        ),
+    )
+    .unwrap();
+    let (code, _, err) = run(&["simulate", scene.to_str().unwrap(), "-o", n.to_str().unwrap(), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_file(n.join("truth.json")).unwrap();
+    n
+}
+
+/// The frames of `object` in the night folder `n`.
+pub fn frames_of(n: &Path, object: &str) -> Vec<std::path::PathBuf> {
+    let mut v: Vec<std::path::PathBuf> = std::fs::read_dir(n)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| {
+            p.file_name()
+                .unwrap()
+                .to_str()
+                .unwrap()
+                .contains(&format!("_{object}_"))
+        })
+        .collect();
+    v.sort();
+    assert!(!v.is_empty(), "no frames of {object} in {}", n.display());
+    v
+}
