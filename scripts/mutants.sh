@@ -8,6 +8,9 @@
 #   scripts/mutants.sh pipeline/src/stats/ks.rs ...   # only these files
 #   MUTANTS_SHARD=0/4 scripts/mutants.sh       # a quarter of the mutants (cargo-mutants --shard)
 #   MUTANTS_TESTS="--lib --test reduce_locate" scripts/mutants.sh   # another test subset
+#   MUTANTS_TESTS="--lib -- stats::" scripts/mutants.sh pipeline/src/stats/ks.rs   # unit tests of a module
+#   MUTANTS_OUT=target/mutants-stats scripts/mutants.sh ...   # results elsewhere (default target/mutants-out)
+#   MUTANTS_ITERATE=1 scripts/mutants.sh ...  # resume: skip the mutants already caught there (--iterate)
 #
 # The mutants are applied in a clone of HEAD (target/mutants-tree, refreshed every run), so
 # the working tree is never touched; its build directory (target/mutants-target, profile
@@ -46,6 +49,9 @@ args=()
 for f in "${files[@]}"; do
     args+=(--file "$f")
 done
+if [[ -n "${MUTANTS_ITERATE:-}" ]]; then
+    args+=(--iterate)
+fi
 if [[ -n "${MUTANTS_SHARD:-}" ]]; then
     args+=(--shard "$MUTANTS_SHARD")
 fi
@@ -61,6 +67,6 @@ time cargo mutants \
     --profile mutants \
     --timeout "${MUTANTS_TIMEOUT:-300}" \
     --build-timeout "${MUTANTS_BUILD_TIMEOUT:-1200}" \
-    --output "$root/target/mutants-out" \
+    --output "$(cd "$root" && realpath -m "${MUTANTS_OUT:-target/mutants-out}")" \
     "${args[@]}" \
     -- "${tests[@]}"
