@@ -8,7 +8,8 @@
 //! pulls, photometry method, dither chi2, per-orientation F) as JSON; `WORLD_BETA_FREE=1`
 //! fits Moffat beta in every frame for every target (`[measure] beta_from_stack = false`);
 //! `WORLD_SEPARATE_BEAMS=1` fits the o and e beams of each exposure on their own
-//! (`[measure] joint_beams = false`); `WORLD_PSF_BELOW=x` sets
+//! (`[measure] joint_beams = false`); `WORLD_CIRCULAR=1` circular Moffats for PSF-fit pairs
+//! (`[measure] psf_elliptical = false`); `WORLD_PSF_BELOW=x` sets
 //! `[measure] psf_photometry_below_fwhm`.
 fn main() {
     let args: Vec<String> = std::env::args().collect();
@@ -38,6 +39,9 @@ fn main() {
     let mut params = sofipol_pipeline::reduce::TargetParams::default();
     if std::env::var("WORLD_BETA_FREE").is_ok() {
         params.measure.beta_from_stack = false;
+    }
+    if std::env::var("WORLD_CIRCULAR").is_ok() {
+        params.measure.psf_elliptical = false;
     }
     if std::env::var("WORLD_SEPARATE_BEAMS").is_ok() {
         params.measure.joint_beams = false;

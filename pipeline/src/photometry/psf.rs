@@ -19,12 +19,17 @@ use ndarray::{Array2, ArrayView2, ArrayViewMut2};
 use serde::{Deserialize, Serialize};
 
 use super::model::{add_gaussian, FWHM_PER_SIGMA};
-use super::moffat::{add_moffat, add_moffat_where, moffat_fwhm, moffat_pixel};
+use super::moffat::{
+    add_moffat, add_moffat_elliptical, add_moffat_elliptical_where, add_moffat_where, moffat_fwhm, moffat_pixel,
+    moffat_pixel_elliptical,
+};
 
 /// Range of the Moffat `alpha` accepted by the fit, px.
 pub const MOFFAT_ALPHA_RANGE: (f64, f64) = (0.3, 30.0);
 /// Range of the Moffat `beta` accepted by the fit (when fitted).
 pub const MOFFAT_BETA_RANGE: (f64, f64) = (1.2, 10.0);
+/// Largest ellipticity `|e|` an elliptical Moffat fit accepts (axis ratio 0.58).
+pub const MOFFAT_ELLIPTICITY_MAX: f64 = 0.5;
 /// Starting `beta` of a Moffat fit with a free `beta` (typical of seeing-limited PSFs).
 pub const MOFFAT_BETA_START: f64 = 3.0;
 
@@ -56,14 +61,16 @@ pub struct PsfFitParams {
     pub fwhm_px: f64,
     /// Pixels whose centre is within this distance of any initial position are fitted, px.
     pub fit_radius_px: f64,
-    /// Fit separate widths along x and y (axis-aligned ellipse) instead of one.
+    /// An elliptical shape: a Gaussian gets separate widths along x and y (axis-aligned); a
+    /// Moffat gets an ellipticity `(e1, e2)` at any angle ([`super::moffat`]), started
+    /// circular, `|e|` at most [`MOFFAT_ELLIPTICITY_MAX`].
     pub elliptical: bool,
     /// None: fit a constant background; Some(b): hold it fixed at b ADU (e.g. 0 on
     /// sky-subtracted frames).
     pub background: Option<f64>,
     /// Maximum Levenberg-Marquardt iterations.
     pub max_iter: u32,
-    /// PSF model (default Gaussian). `elliptical` is for the Gaussian only.
+    /// PSF model (default Gaussian).
     #[serde(default)]
     pub model: PsfModel,
 }
@@ -115,6 +122,10 @@ pub struct PsfFit {
     pub alpha: f64,
     /// Moffat beta, fitted or fixed (NaN for a Gaussian).
     pub beta: f64,
+    /// An elliptical Moffat's ellipticity `(e1, e2)` ([`super::moffat`]; `[0, 0]`: circular,
+    /// and for a Gaussian).
+    #[serde(default)]
+    pub ellipticity: [f64; 2],
     /// Background level, ADU (fitted or fixed).
     pub background: f64,
     /// Covariance matrix of the parameters, in the order of `param_names`. With a variance
@@ -122,7 +133,7 @@ pub struct PsfFit {
     /// `covariance[i][j]`, row-major.
     pub covariance: Vec<Vec<f64>>,
     /// Parameter names: `flux_0, x_0, y_0, ..., sigma_x, [sigma_y], [background]` (Gaussian)
-    /// or `flux_0, x_0, y_0, ..., alpha, [beta], [background]` (Moffat).
+    /// or `flux_0, x_0, y_0, ..., alpha, [beta], [e1, e2], [background]` (Moffat).
     pub param_names: Vec<String>,
     /// Final chi-square (weighted by 1/variance when a variance map was given).
     pub chi2: f64,
@@ -137,27 +148,35 @@ pub struct PsfFit {
 }
 
 impl PsfFit {
-    /// FWHM along x, px (the circular FWHM for a Moffat).
+    /// FWHM along x, px (for a Moffat [`PsfFit::fwhm`]).
     pub fn fwhm_x(&self) -> f64 {
         match self.model {
             PsfModel::Gaussian => FWHM_PER_SIGMA * self.sigma_x,
             PsfModel::Moffat { .. } => self.fwhm(),
         }
     }
-    /// FWHM along y, px (the circular FWHM for a Moffat).
+    /// FWHM along y, px (for a Moffat [`PsfFit::fwhm`]).
     pub fn fwhm_y(&self) -> f64 {
         match self.model {
             PsfModel::Gaussian => FWHM_PER_SIGMA * self.sigma_y,
             PsfModel::Moffat { .. } => self.fwhm(),
         }
     }
-    /// FWHM, px: `2 alpha sqrt(2^(1/beta) - 1)` for a Moffat, the geometric mean of the x and y
-    /// FWHMs for a Gaussian.
+    /// FWHM, px: `2 alpha sqrt(2^(1/beta) - 1)` for a circular Moffat, the geometric mean of
+    /// the two axes' FWHMs for an elliptical one (`/ (1 - |e|^2)^(1/4)`) and for a Gaussian.
     pub fn fwhm(&self) -> f64 {
         match self.model {
             PsfModel::Gaussian => FWHM_PER_SIGMA * (self.sigma_x * self.sigma_y).sqrt(),
+            PsfModel::Moffat { .. } if self.is_elliptical() => {
+                let [e1, e2] = self.ellipticity;
+                moffat_fwhm(self.alpha, self.beta) / (1.0 - e1 * e1 - e2 * e2).powf(0.25)
+            }
             PsfModel::Moffat { .. } => moffat_fwhm(self.alpha, self.beta),
         }
+    }
+    /// Whether the fitted shape is an elliptical Moffat (a nonzero ellipticity).
+    pub fn is_elliptical(&self) -> bool {
+        self.ellipticity != [0.0; 2]
     }
     /// Model flux (ADU, background excluded) of star `k` in the pixel centred at `(px, py)`
     /// (pixel centres are integers; any position is accepted). Panics if `k` is out of range.
@@ -171,6 +190,9 @@ impl PsfFit {
                     super::model::normal_cdf_diff((py - 0.5 - s.y) / self.sigma_y, (py + 0.5 - s.y) / self.sigma_y);
                 s.flux * fx * fy
             }
+            PsfModel::Moffat { .. } if self.is_elliptical() => {
+                s.flux * moffat_pixel_elliptical(px - s.x, py - s.y, self.alpha, self.beta, self.ellipticity)
+            }
             PsfModel::Moffat { .. } => s.flux * moffat_pixel(px - s.x, py - s.y, self.alpha, self.beta),
         }
     }
@@ -180,6 +202,9 @@ impl PsfFit {
         let s = &self.stars[k];
         match self.model {
             PsfModel::Gaussian => add_gaussian(img, scale * s.flux, s.x, s.y, self.sigma_x, self.sigma_y),
+            PsfModel::Moffat { .. } if self.is_elliptical() => {
+                add_moffat_elliptical(img, scale * s.flux, s.x, s.y, self.alpha, self.beta, self.ellipticity)
+            }
             PsfModel::Moffat { .. } => add_moffat(img, scale * s.flux, s.x, s.y, self.alpha, self.beta),
         }
     }
@@ -242,6 +267,16 @@ pub fn subtract_star_near_where(
     let (x, y) = (s.x - x0 as f64, s.y - y0 as f64);
     match fit.model {
         PsfModel::Gaussian => add_gaussian(&mut view, -s.flux, x, y, fit.sigma_x, fit.sigma_y),
+        PsfModel::Moffat { .. } if fit.is_elliptical() => add_moffat_elliptical_where(
+            &mut view,
+            -s.flux,
+            x,
+            y,
+            fit.alpha,
+            fit.beta,
+            fit.ellipticity,
+            |ix, iy| keep(ix + x0, iy + y0),
+        ),
         PsfModel::Moffat { .. } => add_moffat_where(&mut view, -s.flux, x, y, fit.alpha, fit.beta, |ix, iy| {
             keep(ix + x0, iy + y0)
         }),

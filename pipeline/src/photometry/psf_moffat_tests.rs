@@ -340,15 +340,19 @@ fn photometry_moffat_fixed_beta_and_settings() {
     let free = fit_two_psf(img.view(), None, None, (14.8, 15.0), (17.6, 16.3), &fitted).unwrap();
     assert_eq!(free.param_names[6..], ["alpha", "beta", "background"]);
     assert_eq!(free.covariance.len(), 9);
-    // Moffat is circular; beta must be > 1.
-    let bad = PsfFitParams {
+    // An elliptical Moffat fits (e1, e2) after beta (a circular star: e about 0); beta
+    // must be > 1.
+    let ell = PsfFitParams {
         elliptical: true,
         ..fitted
     };
-    assert!(matches!(
-        fit_psf(img.view(), None, None, &[(14.8, 15.0)], &bad),
-        Err(PsfFitError::InvalidParams { .. })
-    ));
+    let fe = fit_two_psf(img.view(), None, None, (14.8, 15.0), (17.6, 16.3), &ell).unwrap();
+    assert_eq!(fe.param_names[6..], ["alpha", "beta", "e1", "e2", "background"]);
+    assert!(
+        fe.ellipticity[0].hypot(fe.ellipticity[1]) < 1e-4,
+        "{:?}",
+        fe.ellipticity
+    );
     let bad = PsfFitParams {
         model: PsfModel::Moffat { beta: Some(1.0) },
         ..fitted
@@ -425,7 +429,12 @@ fn photometry_subtract_star_near_is_exact_inside_its_window() {
     for (i, v) in img.iter_mut().enumerate() {
         *v = 100.0 + (i % 17) as f32 * 0.37;
     }
-    for model in [PsfModel::Gaussian, PsfModel::Moffat { beta: None }] {
+    // A Gaussian, a circular and an elliptical Moffat.
+    for (model, ellipticity) in [
+        (PsfModel::Gaussian, [0.0; 2]),
+        (PsfModel::Moffat { beta: None }, [0.0; 2]),
+        (PsfModel::Moffat { beta: None }, [0.12, -0.2]),
+    ] {
         for &(x, y) in &[(30.37, 29.81), (3.2, 58.6), (65.9, 0.4), (12.123_456_789, 40.5)] {
             let fit = PsfFit {
                 stars: vec![PsfStar {
@@ -441,6 +450,7 @@ fn photometry_subtract_star_near_is_exact_inside_its_window() {
                 sigma_y: 1.1,
                 alpha: 2.6,
                 beta: 2.9,
+                ellipticity,
                 background: 0.0,
                 covariance: vec![],
                 param_names: vec![],

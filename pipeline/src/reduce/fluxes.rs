@@ -10,7 +10,7 @@ use super::companion::Companion;
 use super::sources::{Primary, UNUSABLE};
 use super::{BeamFlux, CalibratedOrientation, DitherValue, MeasureParams};
 use crate::photometry::model::add_gaussian;
-use crate::photometry::moffat::add_moffat;
+use crate::photometry::moffat::{add_moffat, add_moffat_elliptical};
 use crate::photometry::{
     aperture_sum, fit_psf, fit_psf_from, fit_psf_joint, measure, subtract_star_near_where, Aperture, FitImage, Flags,
     MaskFill, PhotParams, PsfFit, PsfFitParams, PsfModel, PsfStart,
@@ -26,6 +26,8 @@ pub struct PsfChoice {
     pub frame_model: PsfModel,
     /// PSF-fit fluxes (pair closer than `psf_photometry_below_fwhm`) instead of apertures.
     pub use_psf: bool,
+    /// An elliptical Moffat in the per-frame fits (`psf_elliptical`, for PSF-fit fluxes).
+    pub elliptical: bool,
     /// Separation of the pair, px (infinite without a companion).
     pub sep_px: f64,
 }
@@ -68,10 +70,12 @@ pub fn choose_psf(companion: &Companion, fwhm_guess: f64, scale: f64, params: &M
         (PsfModel::Moffat { beta: None }, true, Some(&b)) => PsfModel::Moffat { beta: Some(b) },
         (m, _, _) => m,
     };
+    let elliptical = params.psf_elliptical && use_psf && matches!(frame_model, PsfModel::Moffat { .. });
     PsfChoice {
         fwhm_px,
         frame_model,
         use_psf,
+        elliptical,
         sep_px,
     }
 }
@@ -171,7 +175,7 @@ fn measure_beams_separately(
     params: &MeasureParams,
 ) -> Vec<BeamResult> {
     let mut frame_fwhm = choice.fwhm_px;
-    let mut frame_shape: Option<[f64; 4]> = None;
+    let mut frame_shape: Option<FrameShape> = None;
     // The e beam's fit starts from the o beam's (the same stars and seeing, moved by the
     // e-o offset): the same minimum in fewer steps.
     let mut e_start: Option<PsfStart> = None;
@@ -230,10 +234,7 @@ fn measure_beams_jointly(
     let joint = fit_psf_joint(&images, &fit_params(choice)).ok()?;
     let shape_fit = &joint.fits[0];
     let frame_fwhm = shape_fit.fwhm_x().clamp(0.5 * fwhm_med, 2.0 * fwhm_med);
-    let frame_shape =
-        shape_fit
-            .converged
-            .then_some([shape_fit.alpha, shape_fit.beta, shape_fit.sigma_x, shape_fit.sigma_y]);
+    let frame_shape = shape_fit.converged.then(|| FrameShape::of(shape_fit));
     let r_ap = (params.aperture_fwhm * frame_fwhm).max(super::params::MIN_APERTURE_RADIUS_PX);
     let results = cuts
         .iter()
@@ -278,6 +279,7 @@ fn fit_params(choice: &PsfChoice) -> PsfFitParams {
         fit_radius_px: (1.5 * choice.fwhm_px).max(3.0),
         background: Some(0.0),
         model: choice.frame_model,
+        elliptical: choice.elliptical,
         ..PsfFitParams::default()
     }
 }
@@ -306,7 +308,7 @@ fn measure_beam(
     stars: &[(f64, f64)],
     shift: (f64, f64),
     first: bool,
-    (frame_fwhm, frame_shape): (&mut f64, &mut Option<[f64; 4]>),
+    (frame_fwhm, frame_shape): (&mut f64, &mut Option<FrameShape>),
     start: Option<&PsfStart>,
     choice: &PsfChoice,
     params: &MeasureParams,
@@ -344,7 +346,7 @@ fn measure_beam(
         if let Some(ft) = &fit {
             *frame_fwhm = ft.fwhm_x().clamp(0.5 * fwhm_med, 2.0 * fwhm_med);
             if ft.converged {
-                *frame_shape = Some([ft.alpha, ft.beta, ft.sigma_x, ft.sigma_y]);
+                *frame_shape = Some(FrameShape::of(ft));
             }
         }
     }
@@ -358,8 +360,32 @@ fn measure_beam(
             PsfModel::Moffat { .. } => ft.alpha,
         },
         beta: ft.beta,
+        ellipticity: ft.ellipticity,
     });
     out
+}
+
+/// The frame's PSF shape (from the o beam's fit, or the joint fit's), for the aperture
+/// correction of both beams.
+#[derive(Debug, Clone, Copy)]
+struct FrameShape {
+    alpha: f64,
+    beta: f64,
+    sigma_x: f64,
+    sigma_y: f64,
+    ellipticity: [f64; 2],
+}
+
+impl FrameShape {
+    fn of(ft: &PsfFit) -> FrameShape {
+        FrameShape {
+            alpha: ft.alpha,
+            beta: ft.beta,
+            sigma_x: ft.sigma_x,
+            sigma_y: ft.sigma_y,
+            ellipticity: ft.ellipticity,
+        }
+    }
 }
 
 /// The stars of one beam's cut-out `cut` measured with its PSF fit `fit` (positions from
@@ -368,7 +394,7 @@ fn measured_beam(
     cut: &Cutout,
     guesses: &[(f64, f64)],
     fit: Option<&PsfFit>,
-    frame_shape: Option<[f64; 4]>,
+    frame_shape: Option<FrameShape>,
     r_ap: f64,
     choice: &PsfChoice,
     params: &MeasureParams,
@@ -405,7 +431,7 @@ fn measure_star(
     local: &[(f64, f64)],
     si: usize,
     fit: Option<&PsfFit>,
-    shape: Option<[f64; 4]>,
+    shape: Option<FrameShape>,
     r_ap: f64,
     choice: &PsfChoice,
     params: &MeasureParams,
@@ -520,7 +546,7 @@ fn pixels_read<'a>(
 #[allow(clippy::too_many_arguments)]
 fn model_fraction_in_aperture(
     fit: &PsfFit,
-    [alpha, beta, sigma_x, sigma_y]: [f64; 4],
+    shape: FrameShape,
     si: usize,
     dim: (usize, usize),
     x: f64,
@@ -552,8 +578,18 @@ fn model_fraction_in_aperture(
     let mut model = Array2::<f32>::zeros((wy1 - wy0 + 1, wx1 - wx0 + 1));
     let (sx, sy) = (st.x - wx0 as f64, st.y - wy0 as f64);
     let flux = 1.0 / st.flux * st.flux; // as `render_star` scales it
+    let FrameShape {
+        alpha,
+        beta,
+        sigma_x,
+        sigma_y,
+        ellipticity,
+    } = shape;
     match fit.model {
         PsfModel::Gaussian => add_gaussian(&mut model.view_mut(), flux, sx, sy, sigma_x, sigma_y),
+        PsfModel::Moffat { .. } if ellipticity != [0.0; 2] => {
+            add_moffat_elliptical(&mut model.view_mut(), flux, sx, sy, alpha, beta, ellipticity)
+        }
         PsfModel::Moffat { .. } => add_moffat(&mut model.view_mut(), flux, sx, sy, alpha, beta),
     }
     let ap = Aperture {

@@ -64,6 +64,12 @@ pub struct MeasureParams {
     /// the o-e flux covariance of PSF-fit fluxes enters sigma_F. Off: each beam is fitted
     /// on its own.
     pub joint_beams: bool,
+    /// Pairs measured by PSF-fit fluxes (closer than `psf_photometry_below_fwhm`) get an
+    /// elliptical Moffat in their per-frame fits: an ellipticity (e1, e2) at any angle, two
+    /// more parameters shared by both stars (and both beams). Real PSFs have axis ratios of
+    /// 0.9-1 from guiding, wind shake and optics; a circular fit of an elongated pair moves
+    /// flux from one star to the other along the elongation. Off: circular.
+    pub psf_elliptical: bool,
 }
 
 impl Default for MeasureParams {
@@ -84,6 +90,7 @@ impl Default for MeasureParams {
             debias: Debias::WardleKronberg,
             companion_hint: None,
             joint_beams: true,
+            psf_elliptical: true,
             psf_model: PsfModel::Moffat { beta: None },
             beta_from_stack: true,
         }

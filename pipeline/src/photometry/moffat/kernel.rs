@@ -391,9 +391,7 @@ pub(crate) fn moffat_pixels_derivs_any(
 #[cfg(test)]
 mod tests {
     use super::super::tests::Rng;
-    use super::super::{
-        moffat_pixel, moffat_pixel_derivs, moffat_pixel_derivs_elliptical, moffat_pixel_elliptical,
-    };
+    use super::super::{moffat_pixel, moffat_pixel_derivs, moffat_pixel_derivs_elliptical, moffat_pixel_elliptical};
     use super::*;
     use crate::photometry::moffat::rule_of;
 
@@ -675,7 +673,11 @@ mod tests {
         for case in 0..300 {
             let alpha = 0.5 * 20f64.powf(rng.next());
             let beta = 1.05 + 9.0 * rng.next();
-            let e = if case % 10 == 0 { [0.0; 2] } else { ellipticity(&mut rng) };
+            let e = if case % 10 == 0 {
+                [0.0; 2]
+            } else {
+                ellipticity(&mut rng)
+            };
             let n = (rng.next() * 300.0) as usize;
             let offsets: Vec<(f64, f64)> = (0..n)
                 .map(|_| {
@@ -702,14 +704,26 @@ mod tests {
                 );
                 let one = moffat_pixel_derivs_elliptical(dx, dy, alpha, beta, e);
                 for c in 0..7 {
-                    assert_eq!(derivs[i][c].to_bits(), want[c].to_bits(), "case {case} pixel {i} component {c}");
-                    assert_eq!(one[c].to_bits(), want[c].to_bits(), "case {case} pixel {i} component {c}");
+                    assert_eq!(
+                        derivs[i][c].to_bits(),
+                        want[c].to_bits(),
+                        "case {case} pixel {i} component {c}"
+                    );
+                    assert_eq!(
+                        one[c].to_bits(),
+                        want[c].to_bits(),
+                        "case {case} pixel {i} component {c}"
+                    );
                 }
                 if e == [0.0; 2] {
                     assert_eq!(values[i].to_bits(), moffat_pixel(dx, dy, alpha, beta).to_bits());
                     let circ = moffat_pixel_derivs(dx, dy, alpha, beta);
                     for c in 0..5 {
-                        assert_eq!(derivs[i][c].to_bits(), circ[c].to_bits(), "case {case} pixel {i} component {c}");
+                        assert_eq!(
+                            derivs[i][c].to_bits(),
+                            circ[c].to_bits(),
+                            "case {case} pixel {i} component {c}"
+                        );
                     }
                 }
             }

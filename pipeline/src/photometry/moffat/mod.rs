@@ -266,7 +266,15 @@ pub fn add_moffat_where(
 }
 
 /// [`add_moffat`] for an elliptical star of ellipticity `e` (see the module's doc; `|e| < 1`).
-pub fn add_moffat_elliptical(img: &mut ArrayViewMut2<f32>, flux: f64, x: f64, y: f64, alpha: f64, beta: f64, e: [f64; 2]) {
+pub fn add_moffat_elliptical(
+    img: &mut ArrayViewMut2<f32>,
+    flux: f64,
+    x: f64,
+    y: f64,
+    alpha: f64,
+    beta: f64,
+    e: [f64; 2],
+) {
     add_star(img, flux, (x, y), alpha, beta, Some(e), |_, _| true);
 }
 
@@ -299,14 +307,8 @@ fn add_star(
 ) {
     let (ny, nx) = img.dim();
     let e_ok = e.is_none_or(|e| e[0].hypot(e[1]) < 1.0);
-    let ok = nx > 0
-        && ny > 0
-        && alpha > 0.0
-        && alpha.is_finite()
-        && beta > 1.0
-        && x.is_finite()
-        && y.is_finite()
-        && e_ok;
+    let ok =
+        nx > 0 && ny > 0 && alpha > 0.0 && alpha.is_finite() && beta > 1.0 && x.is_finite() && y.is_finite() && e_ok;
     if !ok {
         return;
     }
@@ -592,7 +594,11 @@ mod tests {
     fn photometry_moffat_elliptical_is_the_simulators() {
         use crate::sim::psf::{render, Psf};
         for &(alpha_sim, beta, ratio, pa) in &[(2.2, 3.0, 0.9, 20.0), (1.8, 2.6, 0.75, 115.0)] {
-            let psf = Psf::Moffat { alpha_px: alpha_sim, beta }.with_ellipticity(ratio, pa);
+            let psf = Psf::Moffat {
+                alpha_px: alpha_sim,
+                beta,
+            }
+            .with_ellipticity(ratio, pa);
             let (cx, cy) = (20.37, 19.71);
             let st = render(psf, cx, cy);
             // Our parametrisation: the same metric scaled to trace 2.

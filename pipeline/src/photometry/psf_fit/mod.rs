@@ -9,6 +9,7 @@ use super::model::{gauss_pixel_1d, FWHM_PER_SIGMA};
 use super::moffat::{moffat_alpha, moffat_fwhm, moffat_pixel};
 use super::psf::{
     PsfFit, PsfFitError, PsfFitParams, PsfModel, PsfStar, MOFFAT_ALPHA_RANGE, MOFFAT_BETA_RANGE, MOFFAT_BETA_START,
+    MOFFAT_ELLIPTICITY_MAX,
 };
 
 mod joint;
@@ -75,6 +76,9 @@ pub struct PsfStart {
     pub shape: f64,
     /// Moffat beta (a start when beta is fitted; ignored otherwise).
     pub beta: f64,
+    /// An elliptical Moffat's (e1, e2) (a start when the fit is elliptical; ignored
+    /// otherwise).
+    pub ellipticity: [f64; 2],
 }
 
 /// [`fit_psf`] from `start` when it fits the problem (one entry per guess, each star
@@ -153,12 +157,6 @@ fn check_params(guesses: &[(f64, f64)], params: &PsfFitParams) -> Result<(), Psf
         });
     }
     if let PsfModel::Moffat { beta } = params.model {
-        if params.elliptical {
-            return Err(PsfFitError::InvalidParams {
-                name: "elliptical (Moffat is circular)",
-                value: 1.0,
-            });
-        }
         if let Some(b) = beta {
             if !(b > 1.0 && b.is_finite()) {
                 return Err(PsfFitError::InvalidParams { name: "beta", value: b });
@@ -286,6 +284,10 @@ fn apply_start(p: &mut [f64], lay: &Layout, start: &PsfStart, guesses: &[(f64, f
                 && lay
                     .i_beta
                     .is_none_or(|_| (MOFFAT_BETA_RANGE.0..=MOFFAT_BETA_RANGE.1).contains(&start.beta))
+                && lay.i_e.is_none_or(|_| {
+                    let [e1, e2] = start.ellipticity;
+                    e1.hypot(e2) <= MOFFAT_ELLIPTICITY_MAX
+                })
         }
     };
     if !(stars_ok && shape_ok) {
@@ -300,6 +302,10 @@ fn apply_start(p: &mut [f64], lay: &Layout, start: &PsfStart, guesses: &[(f64, f
     p[lay.i_sy] = start.shape;
     if let Some(ib) = lay.i_beta {
         p[ib] = start.beta;
+    }
+    if let Some(ie) = lay.i_e {
+        p[ie] = start.ellipticity[0];
+        p[ie + 1] = start.ellipticity[1];
     }
 }
 /// The parameters' covariance: the inverse of the undamped normal matrix at the solution,
@@ -382,6 +388,9 @@ fn assemble(lay: &Layout, p: &[f64], cov: Vec<Vec<f64>>, params: &PsfFitParams, 
             if lay.i_beta.is_some() {
                 names.push("beta".into());
             }
+            if lay.i_e.is_some() {
+                names.extend(["e1".into(), "e2".into()]);
+            }
             let (a, b) = (p[lay.i_sx], lay.beta(p));
             let s = moffat_fwhm(a, b) / FWHM_PER_SIGMA;
             (s, s, a, b)
@@ -397,6 +406,7 @@ fn assemble(lay: &Layout, p: &[f64], cov: Vec<Vec<f64>>, params: &PsfFitParams, 
         sigma_y,
         alpha,
         beta,
+        ellipticity: lay.ellipticity(p).unwrap_or([0.0; 2]),
         background: background_of(p, lay, params.background),
         covariance: cov,
         param_names: names,
@@ -532,6 +542,7 @@ mod tests {
                 stars: vec![(1.1 * flux, x0 + 0.2, y0 - 0.1), (0.45 * flux, x1 - 0.1, y1 + 0.2)],
                 shape: alpha * 1.05,
                 beta: beta * 0.97,
+                ellipticity: [0.0; 2],
             };
             let started = fit_psf_from(img.view(), Some(var.view()), None, &guesses, &params, &start).unwrap();
             its_plain += plain.iterations;

@@ -7,7 +7,7 @@
 //! position, every other panel its own flux per star and one shift of all positions.
 
 use crate::photometry::model::gauss_pixel_1d_derivs;
-use crate::photometry::moffat::{moffat_pixels, moffat_pixels_derivs};
+use crate::photometry::moffat::{moffat_pixels, moffat_pixels_derivs_any, moffat_pixels_elliptical};
 use crate::photometry::psf::PsfModel;
 
 /// One star as seen in one panel: where its flux and position sit in the parameter vector.
@@ -36,6 +36,8 @@ pub(super) struct Layout {
     pub(super) i_sy: usize,
     /// Moffat beta, when fitted.
     pub(super) i_beta: Option<usize>,
+    /// An elliptical Moffat's (e1, e2), at `i_e` and `i_e + 1`.
+    pub(super) i_e: Option<usize>,
     pub(super) i_b: Option<usize>,
     pub(super) n: usize,
     /// Some(fixed beta or NaN when fitted) for a Moffat.
@@ -56,6 +58,7 @@ impl Layout {
                     i_sx,
                     i_sy,
                     i_beta: None,
+                    i_e: None,
                     i_b,
                     n: i_sy + 1 + fit_b as usize,
                     moffat: None,
@@ -64,7 +67,8 @@ impl Layout {
             }
             PsfModel::Moffat { beta } => {
                 let i_beta = beta.is_none().then_some(i_sx + 1);
-                let last = i_beta.unwrap_or(i_sx);
+                let i_e = elliptical.then_some(i_beta.unwrap_or(i_sx) + 1);
+                let last = i_e.map_or(i_beta.unwrap_or(i_sx), |i| i + 1);
                 let i_b = fit_b.then_some(last + 1);
                 Layout {
                     n_src,
@@ -72,6 +76,7 @@ impl Layout {
                     i_sx,
                     i_sy: i_sx,
                     i_beta,
+                    i_e,
                     i_b,
                     n: last + 1 + fit_b as usize,
                     moffat: Some(beta.unwrap_or(f64::NAN)),
@@ -108,6 +113,11 @@ impl Layout {
             Some((sx, sy)) => (p[src.x] + p[sx], p[src.y] + p[sy]),
             None => (p[src.x], p[src.y]),
         }
+    }
+
+    /// An elliptical Moffat's (e1, e2) at parameters `p` (None: circular).
+    pub(super) fn ellipticity(&self, p: &[f64]) -> Option<[f64; 2]> {
+        self.i_e.map(|i| [p[i], p[i + 1]])
     }
 
     /// Moffat beta at parameters `p`.
@@ -189,7 +199,7 @@ pub(super) fn evaluate(
         None => Some(Factors::new(p, lay, bx)),
         Some(_) => None,
     };
-    let (alpha, beta) = (p[lay.i_sx], lay.beta(p));
+    let (alpha, beta, ell) = (p[lay.i_sx], lay.beta(p), lay.ellipticity(p));
     let b = background_of(p, lay, fixed_b);
     let n = lay.n;
     let mut jrow = vec![0.0; n];
@@ -219,7 +229,7 @@ pub(super) fn evaluate(
     if lay.moffat.is_some() {
         let mut offsets = Vec::with_capacity(np);
         if normal.is_some() {
-            derivs = vec![[0.0; 5]; np * lay.srcs.len()];
+            derivs = vec![[0.0; 7]; np * lay.srcs.len()];
         } else {
             values = vec![0.0; np * lay.srcs.len()];
         }
@@ -233,10 +243,10 @@ pub(super) fn evaluate(
                     .map(|px| (px.ix as f64 - x, px.iy as f64 - y)),
             );
             let at = j * np + range.start..j * np + range.end;
-            if normal.is_some() {
-                moffat_pixels_derivs(&offsets, alpha, beta, &mut derivs[at]);
-            } else {
-                moffat_pixels(&offsets, alpha, beta, &mut values[at]);
+            match (normal.is_some(), ell) {
+                (true, _) => moffat_pixels_derivs_any(&offsets, alpha, beta, ell, &mut derivs[at]),
+                (false, None) => moffat_pixels(&offsets, alpha, beta, &mut values[at]),
+                (false, Some(e)) => moffat_pixels_elliptical(&offsets, alpha, beta, e, &mut values[at]),
             }
         }
     }
@@ -251,18 +261,19 @@ pub(super) fn evaluate(
             let flux = p[src.flux];
             // The model's value at the pixel per unit flux and its derivatives in x, y and
             // the shape (width; beta for a fitted Moffat beta).
-            let (v, dx, dy, dsx, dsy, dbeta) = match &f {
+            // (and the ellipticity's for an elliptical Moffat).
+            let (v, dx, dy, dsx, dsy, dbeta, de) = match &f {
                 Some(f) => {
                     let (cx, cy) = (px.ix - f.x0, px.iy - f.y0);
                     let (gx, dgx, sgx) = f.fx[j][cx];
                     let (gy, dgy, sgy) = f.fy[j][cy];
-                    (gx * gy, dgx * gy, gx * dgy, sgx * gy, gx * sgy, 0.0)
+                    (gx * gy, dgx * gy, gx * dgy, sgx * gy, gx * sgy, 0.0, [0.0; 2])
                 }
                 None if normal.is_some() => {
                     let d = derivs[j * np + ip];
-                    (d[0], d[1], d[2], d[3], 0.0, d[4])
+                    (d[0], d[1], d[2], d[3], 0.0, d[4], [d[5], d[6]])
                 }
-                None => (values[j * np + ip], 0.0, 0.0, 0.0, 0.0, 0.0),
+                None => (values[j * np + ip], 0.0, 0.0, 0.0, 0.0, 0.0, [0.0; 2]),
             };
             m += flux * v;
             if normal.is_some() {
@@ -278,6 +289,10 @@ pub(super) fn evaluate(
                     jrow[lay.i_sy] += flux * dsy; // same slot as sx when circular
                 } else if let Some(ib) = lay.i_beta {
                     jrow[ib] += flux * dbeta;
+                }
+                if let Some(ie) = lay.i_e {
+                    jrow[ie] += flux * de[0];
+                    jrow[ie + 1] += flux * de[1];
                 }
             }
         }

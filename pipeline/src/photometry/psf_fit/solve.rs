@@ -2,7 +2,7 @@
 //! factorisation and solve of the small normal matrix).
 
 use super::normal::{evaluate, Layout, Pixel};
-use crate::photometry::psf::{MOFFAT_ALPHA_RANGE, MOFFAT_BETA_RANGE};
+use crate::photometry::psf::{MOFFAT_ALPHA_RANGE, MOFFAT_BETA_RANGE, MOFFAT_ELLIPTICITY_MAX};
 
 /// In-place Cholesky factorisation of the symmetric n x n matrix `a` (lower triangle).
 pub(super) fn cholesky(a: &mut [f64], n: usize) -> bool {
@@ -90,6 +90,9 @@ impl Problem<'_> {
                     && lay
                         .i_beta
                         .is_none_or(|i| (MOFFAT_BETA_RANGE.0..=MOFFAT_BETA_RANGE.1).contains(&q[i]))
+                    && lay
+                        .ellipticity(q)
+                        .is_none_or(|e| e[0].hypot(e[1]) <= MOFFAT_ELLIPTICITY_MAX)
             }
         };
         let pos_ok = self
