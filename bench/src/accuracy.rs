@@ -243,8 +243,37 @@ struct One {
 
 /// Simulate and reduce, bin by bin.
 pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
-    let profile = Profile::sofi();
+    run_scored(cfg, params)
+        .iter()
+        .map(|(w, ones)| bin_report(w, cfg.fwhm_arcsec, ones))
+        .collect()
+}
+
+/// [`run`] for the seeds `seeds` (each a night of its own: its own draws, and its own
+/// calibration when `cfg.calibrate`): each seed's bins, and the bins pooled over the seeds
+/// (every pull of every seed; the median time over all targets).
+pub fn run_seeds(cfg: &AccuracyConfig, params: &TargetParams, seeds: &[u64]) -> (Vec<Vec<BinReport>>, Vec<BinReport>) {
     let fwhm = cfg.fwhm_arcsec;
+    let mut per_seed = Vec::new();
+    let mut pooled: Vec<(Vec<f64>, Vec<One>)> = Vec::new();
+    for &seed in seeds {
+        let c = AccuracyConfig { seed, ..cfg.clone() };
+        let scored = run_scored(&c, params);
+        per_seed.push(scored.iter().map(|(w, ones)| bin_report(w, fwhm, ones)).collect());
+        for (i, (w, ones)) in scored.into_iter().enumerate() {
+            match pooled.get_mut(i) {
+                Some(p) => p.1.extend(ones),
+                None => pooled.push((w, ones)),
+            }
+        }
+    }
+    let pooled = pooled.iter().map(|(w, ones)| bin_report(w, fwhm, ones)).collect();
+    (per_seed, pooled)
+}
+
+/// Simulate, reduce and score, bin by bin: each bin's edges and its targets' scores.
+fn run_scored(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<(Vec<f64>, Vec<One>)> {
+    let profile = Profile::sofi();
     cfg.bins_arcsec
         .windows(2)
         .enumerate()
@@ -282,7 +311,7 @@ pub fn run(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<BinReport> {
                 .enumerate()
                 .map(|(t, (target, reduce_s))| score_target(&target, &truth.targets[t], reduce_s))
                 .collect();
-            bin_report(w, fwhm, &ones)
+            (w.to_vec(), ones)
         })
         .collect()
 }

@@ -156,11 +156,9 @@ fn check_params(guesses: &[(f64, f64)], params: &PsfFitParams) -> Result<(), Psf
             value: params.fit_radius_px,
         });
     }
-    if let PsfModel::Moffat { beta } = params.model {
-        if let Some(b) = beta {
-            if !(b > 1.0 && b.is_finite()) {
-                return Err(PsfFitError::InvalidParams { name: "beta", value: b });
-            }
+    if let PsfModel::Moffat { beta: Some(b) } = params.model {
+        if !(b > 1.0 && b.is_finite()) {
+            return Err(PsfFitError::InvalidParams { name: "beta", value: b });
         }
     }
     Ok(())

@@ -327,7 +327,7 @@ fn an_elongated_pair_is_measured_by_the_elliptical_fit() {
 #[test]
 fn the_elliptical_joint_fit_errors_are_honest() {
     use crate::sim::psf::Psf;
-    let mut rng = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(0xe11_1);
+    let mut rng = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(0xe111);
     let (beta, fwhm) = (3.0, 2.8);
     let (xa, ya) = (15.1, 15.7);
     let (xb, yb) = (xa + 2.8, ya + 1.3);
