@@ -1,6 +1,6 @@
 //! Run the world-sampling accuracy harness:
 //! `cargo run --release -p sofipol-bench --example world -- [targets per bin]`, or write
-//! one drawn target's frames to look at: `... --example world -- write BIN T DIR`;
+//! one drawn target's frames to look at: `... --example world -- write BIN T DIR [SEED]`;
 //! `-- N nocal` leaves the night's calibration unused, `-- N noinst` turns the instrument off,
 //! `noell` / `nonl` only the PSF ellipticity / the non-linearity (`full`: everything); a
 //! third argument is the seed, or seeds (`13,15,21`: every night's table, then the bins
@@ -17,6 +17,9 @@ fn main() {
     let mut cfg = sofipol_bench::world::WorldConfig::new(&dir);
     if args.get(1).map(String::as_str) == Some("write") {
         let (bin, t): (usize, usize) = (args[2].parse().unwrap(), args[3].parse().unwrap());
+        if let Some(seed) = args.get(5).and_then(|s| s.parse().ok()) {
+            cfg.seed = seed;
+        }
         let (lo, hi) = (cfg.bins_arcsec[bin], cfg.bins_arcsec[bin + 1]);
         let (tt, cond, _) = sofipol_bench::world::write_target(&cfg, bin, t, lo, hi, std::path::Path::new(&args[4]));
         println!("{cond:?}\n{}", serde_json::to_string_pretty(&tt.components).unwrap());
