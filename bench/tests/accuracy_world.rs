@@ -6,8 +6,11 @@
 //! vignetting, k = T_e/T_o 0.96-0.99, instrumental polarization 0.3 %, analyzer zero-point
 //! and parity, non-linearity, saturation) with the calibration the same night provides
 //! (dome flats and four standards through the same detector). Both sides are asserted:
-//! errors neither too small nor too large. Two nights (seeds 13 and 15: each its own
-//! instrument, calibration and targets), 16 targets per bin each, pooled per bin.
+//! errors neither too small nor too large. Eight nights (seeds 13, 15, 17-22: each its own
+//! instrument, calibration and targets), 16 targets per bin each, pooled per bin: a night's
+//! calibration is common to all its targets, so one night's rms per bin spreads by ~0.2 and
+//! only many nights can carry a band (docs/accuracy.md shows the same band on eight other
+//! nights, seeds 31-38).
 use sofipol_bench::world::{pool_nights, run, table, WorldBin, WorldConfig};
 
 fn pooled(bins: &[WorldBin]) -> (f64, f64, usize) {
@@ -27,7 +30,7 @@ fn pooled(bins: &[WorldBin]) -> (f64, f64, usize) {
 fn pulls_are_unit_wide_and_unbiased_on_a_sampled_night_with_its_calibration() {
     let mut nights = Vec::new();
     let mut report = String::new();
-    for seed in [13, 15] {
+    for seed in [13, 15, 17, 18, 19, 20, 21, 22] {
         let dir = tempfile::tempdir().unwrap();
         let mut cfg = WorldConfig::new(dir.path());
         cfg.targets_per_bin = 16;
@@ -37,26 +40,22 @@ fn pulls_are_unit_wide_and_unbiased_on_a_sampled_night_with_its_calibration() {
         nights.push(bins);
     }
     let bins = pool_nights(&nights);
-    report += &format!("both nights:\n{}", table(&bins, false));
+    report += &format!("the eight nights:\n{}", table(&bins, false));
     eprintln!("{report}");
     for b in &bins {
-        // ~110 pulls per bin: the rms of unit Gaussian pulls spreads by 1/sqrt(2n) = 7 %
-        // (1 sigma), so 0.8-1.2 is a ~3-sigma band. One night of 16 targets a bin (56 pulls,
-        // 10 %) is not enough: over 7 nights the bins' rms ranged 0.74-1.52 (one more at 3.9: a
-        // near-equal 5" pair whose identity was lost, an open defect; docs/accuracy.md).
-        assert!(b.n_pulls >= 90, "{report}");
+        // ~450 pulls per bin: the rms of unit Gaussian pulls spreads by 1/sqrt(2n) = 3.3 %
+        // (1 sigma), and the nights' calibrations add their share. Measured: 0.906-1.075 on
+        // these nights, 0.958-1.063 on seeds 31-38; 0.88-1.12 holds both with room.
+        assert!(b.n_pulls >= 400, "{report}");
         // Every bin, close pairs too, both sides: errors neither too small nor too large.
-        // Pairs measured by PSF-fit fluxes fit beta per frame: with beta held at the stack's
-        // value the 0.5-0.8" bin of these nights is at 1.335 (the components' polarizations
-        // mix), with it 1.159 (docs/accuracy.md).
         assert!(
-            (0.8..=1.2).contains(&b.rms_pull),
+            (0.88..=1.12).contains(&b.rms_pull),
             "bin {:?}: rms {}\n{report}",
             b.sep_arcsec,
             b.rms_pull
         );
-        // The mean of n unit pulls spreads by 1/sqrt(n) (0.095 for 110): 3 sigma per bin; the
-        // pooled mean below is held to 0.2.
+        // The mean of n unit pulls spreads by 1/sqrt(n) (0.047 for 450): 3 sigma per bin; the
+        // pooled mean below is held to 0.1.
         let lim = 3.0 / (b.n_pulls as f64).sqrt();
         assert!(
             b.mean_pull.abs() <= lim,
@@ -66,11 +65,11 @@ fn pulls_are_unit_wide_and_unbiased_on_a_sampled_night_with_its_calibration() {
         );
         assert_eq!(b.relabelled, 0, "{report}");
     }
-    // Pooled over every bin (~670 pulls, 1-sigma spread of the rms 3 %, of the mean 0.04).
+    // Pooled over every bin (~2700 pulls, 1-sigma spread of the rms 1.4 %, of the mean 0.02).
     let (rms, mean, n) = pooled(&bins);
     eprintln!("pooled: {n} pulls, rms {rms:.3}, mean {mean:+.3}");
-    assert!((0.85..=1.15).contains(&rms), "pooled rms {rms}\n{report}");
-    assert!(mean.abs() <= 0.2, "pooled mean {mean}\n{report}");
+    assert!((0.9..=1.1).contains(&rms), "pooled rms {rms}\n{report}");
+    assert!(mean.abs() <= 0.1, "pooled mean {mean}\n{report}");
     for b in &bins {
         for t in &b.targets {
             if t.saturated {
