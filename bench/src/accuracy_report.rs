@@ -67,7 +67,7 @@ pub fn variants() -> Vec<Variant> {
     let mut out = vec![
         v(
             G_REDUCTION,
-            "Moffat (beta from stacks), o and e fitted jointly, exact 1-FWHM apertures, multiplicative sky + CR flags, target strips",
+            "Moffat (beta from stacks; elliptical for PSF-fit pairs), o and e fitted jointly, exact 1-FWHM apertures, multiplicative sky + CR flags, target strips",
             "",
             true,
             |_, _| {},
@@ -92,6 +92,13 @@ pub fn variants() -> Vec<Variant> {
             "--params: [measure] joint_beams=false",
             false,
             |_, p| p.measure.joint_beams = false,
+        ),
+        v(
+            G_REDUCTION,
+            "circular Moffat for PSF-fit pairs (no ellipticity)",
+            "--params: [measure] psf_elliptical=false",
+            false,
+            |_, p| p.measure.psf_elliptical = false,
         ),
         v(
             G_REDUCTION,
