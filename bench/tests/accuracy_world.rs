@@ -1,5 +1,5 @@
 //! Acceptance of the reduction on conditions drawn from the ranges real nights show
-//! (pipeline/src/world.rs): seeing per target with FWHM +-20 % and Moffat beta 2.5-4 and
+//! (bench/src/world/): seeing per target with FWHM +-20 % and Moffat beta 2.5-4 and
 //! axis ratio 0.9-1 drawn per frame, fractional and tilted e-o offsets, the primary anywhere
 //! in the strip, fluxes from 2e3 ADU, 2 and 4 orientations, float and 16-bit FITS read back
 //! through the file path, and every instrument effect of one night (1 % pixel response with
