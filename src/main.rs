@@ -38,9 +38,13 @@ macro_rules! eprintln {
 mod alloc;
 mod cmd;
 
+/// `sofipol --version`: the version and the git commit built from (build.rs; `-dirty` when
+/// tracked files had changes, "unknown" without git), as every provenance records it.
+const VERSION: &str = concat!(env!("CARGO_PKG_VERSION"), " (commit ", env!("SOFIPOL_GIT_COMMIT"), ")");
+
 /// Dual-beam near-infrared imaging polarimetry with SOFI (ESO NTT).
 #[derive(Parser, Debug)]
-#[command(name = "sofipol", version, about, long_about = None)]
+#[command(name = "sofipol", version = VERSION, about, long_about = None)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -72,6 +76,7 @@ enum Command {
 
 fn main() -> ExitCode {
     alloc::keep_freed_memory();
+    sofipol_pipeline::build_info::set_commit(env!("SOFIPOL_GIT_COMMIT"));
     // Usage errors exit 1 (clap's own default of 2 means "reduced with failures" here).
     let cli = match Cli::try_parse() {
         Ok(c) => c,

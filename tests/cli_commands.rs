@@ -18,6 +18,14 @@ fn demo_simulates_reduces_checks_and_writes_figures() {
     let cat = json(&out.join("catalog.json"));
     let targets = cat["targets"].as_array().unwrap();
     assert_eq!(targets.len(), 5);
+    // The provenance names the commit `--version` prints (docs/cli.md).
+    let (_, version, _) = run(&["--version"]);
+    let commit = cat["provenance"]["commit"].as_str().unwrap_or("(none)");
+    assert!(
+        commit != "unknown" || !std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(".git").exists(),
+        "{commit}"
+    );
+    assert!(version.contains(&format!("(commit {commit})")), "{version} vs {commit}");
     let truth = json(&out.join("raw/truth.json"));
     assert_eq!(truth["targets"].as_array().unwrap().len(), 5);
     // The night's dome flats and standards calibrate it: flat, offset c within 3 sigma of

@@ -299,6 +299,7 @@ pub fn measure(
         flats: vec![],
         provenance: serde_json::json!({
             "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
+            "commit": crate::build_info::commit(),
             "standards_table": table.sources,
         }),
     })

@@ -22,6 +22,7 @@
 //! ```
 #![deny(missing_docs)]
 
+pub mod build_info;
 pub mod calibration;
 pub mod catalog;
 pub mod error;

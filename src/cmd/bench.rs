@@ -31,6 +31,7 @@ enum What {
         repeats: usize,
     },
     /// Reduction accuracy on simulated nights: pull widths by separation bin, and time.
+    /// (`--flat` is the bench's flat mode; the reduction options of `night` but the flat's.)
     Accuracy {
         #[command(flatten)]
         accuracy: sofipol_bench::commands::AccuracyArgs,

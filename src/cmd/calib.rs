@@ -12,7 +12,7 @@ use sofipol_pipeline::calibration::{CalibSetup, Calibration, CALIBRATION_FILE};
 use sofipol_pipeline::night::{self, NightSetup, RunOptions};
 
 use super::common::ProfileArgs;
-use super::setup::ReduceArgs;
+use super::setup::{FlatArgs, ReduceArgs};
 
 /// Arguments of `sofipol calib`.
 #[derive(clap::Args, Debug)]
@@ -20,19 +20,25 @@ pub struct Args {
     /// Night directories (searched recursively).
     #[arg(required = true)]
     pub dirs: Vec<PathBuf>,
-    /// Calibration directory to write (calibration.json, flats).
+    /// Calibration directory to write (calibration.json, flats; required).
     #[arg(short, long, value_name = "CALDIR")]
     pub output: PathBuf,
-    /// Standards table (TOML) adding to or overriding the built-in one.
+    /// Standards table (TOML) adding to or overriding the built-in one [default: none, the
+    /// built-in table].
     #[arg(long, value_name = "FILE")]
     pub standards: Option<PathBuf>,
     #[command(flatten)]
     pub reduce: ReduceArgs,
     #[command(flatten)]
+    pub flat: FlatArgs,
+    #[command(flatten)]
     pub profile: ProfileArgs,
     /// Print only errors.
     #[arg(short, long)]
     pub quiet: bool,
+    /// More detail: the stage-time summary and peak memory (on stderr).
+    #[arg(short, long, action = clap::ArgAction::Count)]
+    pub verbose: u8,
 }
 
 /// Flat-field products of the night, written into `caldir`; paths relative to it.
@@ -61,7 +67,7 @@ fn build_flat_products(flats: &night::NightFlats, caldir: &Path) -> anyhow::Resu
 /// calibration; both are written into CALDIR.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let profile = args.profile.load()?;
-    let params = args.reduce.params()?;
+    let params = args.reduce.params_with(&args.flat)?;
     if args.reduce.dump_params {
         print!("{}", super::setup::dump_params(&params)?);
         return Ok(ExitCode::SUCCESS);
@@ -102,9 +108,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             plan.standards.len()
         );
     }
+    let t0 = std::time::Instant::now();
     let out = night::run_night(&plan, &setup, &RunOptions::default());
     let standards = &out.catalog.standards;
-    let mut cal = out.calibration.ok_or_else(|| {
+    let mut cal = out.calibration.clone().ok_or_else(|| {
         anyhow::anyhow!(
             "{}: no usable standard (DPR TYPE 'STD' sequences matched to the standards table): {}",
             args.dirs
@@ -119,6 +126,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     cal.flats = build_flat_products(&out.flats, &args.output)?;
     cal.provenance = serde_json::json!({
         "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
+        "commit": sofipol_pipeline::build_info::commit(),
         "command_line": std::env::args().collect::<Vec<_>>(),
         "inputs": args.dirs,
         "standards_table": setup.calibration.table.sources,
@@ -131,6 +139,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if !args.quiet {
         print_calibration(&cal, &setup.profile);
         println!("-> {}", path.display());
+    }
+    if args.verbose > 0 {
+        super::night::print_verbose(&out, t0.elapsed().as_secs_f64());
     }
     Ok(ExitCode::SUCCESS)
 }

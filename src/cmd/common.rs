@@ -9,7 +9,8 @@ use sofipol_calib::Profile;
 /// Instrument-profile options.
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct ProfileArgs {
-    /// TOML file merged over the embedded SOFI profile (any subset of its keys).
+    /// TOML file merged over the embedded SOFI profile (any subset of its keys) [default:
+    /// none, the embedded SOFI profile].
     #[arg(long, value_name = "FILE")]
     pub profile: Option<PathBuf>,
     /// Override one profile value, e.g. `--set detector.gain_e_per_adu=5.6` (repeatable).

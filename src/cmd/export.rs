@@ -14,9 +14,12 @@ pub struct Args {
     /// ecsv (astropy), fits (binary table) or csv.
     #[arg(long, default_value = "ecsv")]
     pub format: Format,
-    /// Output file (`-`: standard output).
-    #[arg(short, long)]
+    /// Output file (`-`: standard output; required).
+    #[arg(short, long, value_name = "FILE")]
     pub output: PathBuf,
+    /// Print only errors (not the summary line).
+    #[arg(short, long)]
+    pub quiet: bool,
 }
 
 /// Run.
@@ -32,7 +35,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     super::common::check_regular_output(&args.output, "; give a regular file name, or -o - for standard output")?;
     let (cat, t) = read_table(&args)?;
     export::write(&t, args.format, &args.output)?;
-    println!("{} -> {}", summary(&cat, &t), args.output.display());
+    if !args.quiet {
+        println!("{} -> {}", summary(&cat, &t), args.output.display());
+    }
     Ok(ExitCode::SUCCESS)
 }
 
@@ -61,6 +66,8 @@ fn to_stdout(args: &Args) -> anyhow::Result<ExitCode> {
     let bytes = export::to_bytes(&t, args.format)?;
     let mut out = std::io::stdout().lock();
     let _ = out.write_all(&bytes).and_then(|_| out.flush());
-    eprintln!("{} -> standard output", summary(&cat, &t));
+    if !args.quiet {
+        eprintln!("{} -> standard output", summary(&cat, &t));
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -3,7 +3,9 @@
 //! Settings: an optional TOML file (`--config`), overridden by flags, validated into one
 //! `McConfig` per ISM level. Output: a summary table on stdout; with `-o DIR`,
 //! `pi_delta_gamma.json` (counts, densities, provenance) and `pi_delta_gamma.png`, both
-//! written atomically. `--bench` prints timing figures instead.
+//! written atomically. A run estimated longer than a few seconds prints its estimated time
+//! and shows a progress bar on stderr ([`Eta`]; not with `-q`). `--bench` prints timing
+//! figures instead.
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
@@ -14,10 +16,12 @@ use sofipol_pipeline::numeric::median_in_place;
 use sofipol_pipeline::plots::write_atomic;
 use sofipol_pipeline::stats::figures::{format_count, mc_figure};
 use sofipol_pipeline::stats::mc::{
-    self, simulate, Ism, McConfig, McOutput, PIntDist, CHUNK_PAIRS, DEFAULT_BINS, DEFAULT_PAIRS, DEFAULT_P_INT,
-    DEFAULT_SEED, PAPER_ISM_LEVELS_PERCENT,
+    self, simulate_with_progress, Ism, McConfig, McOutput, PIntDist, CHUNK_PAIRS, DEFAULT_BINS, DEFAULT_PAIRS,
+    DEFAULT_P_INT, DEFAULT_SEED, PAPER_ISM_LEVELS_PERCENT,
 };
 use sofipol_pipeline::stats::AlignmentModel;
+
+use super::eta::Eta;
 
 /// Arguments of `sofipol mc`.
 #[derive(clap::Args, Debug)]
@@ -26,49 +30,51 @@ use sofipol_pipeline::stats::AlignmentModel;
 )]
 pub struct Args {
     /// Pi(alpha): random | aligned | spread:SIGMA_DEG | uniform:ALPHA0_DEG | table:FILE [default: random]
-    #[arg(long)]
+    #[arg(long, value_name = "MODEL")]
     model: Option<String>,
     /// Number of simulated pairs (1e7 style accepted) [default: 1e7]
-    #[arg(long, value_parser = parse_count)]
+    #[arg(long, value_name = "N", value_parser = parse_count)]
     pairs: Option<u64>,
     /// Seed of the random streams [default: 20010101]
     #[arg(long)]
     seed: Option<u64>,
     /// Number of Delta-gamma bins on [0, 90] deg [default: 90]
-    #[arg(long)]
+    #[arg(long, value_name = "N")]
     bins: Option<usize>,
     /// Interstellar polarization degrees in percent, comma-separated, or "paper" for
     /// 0.1,0.2,0.4,0.7,1,1.5,2,3,4,5 [default: no ISM]
-    #[arg(long)]
+    #[arg(long, value_name = "PERCENT,...")]
     p_ism: Option<String>,
-    /// Angle of the interstellar polarization, deg east of north [default: 0]
-    #[arg(long, allow_hyphen_values = true)]
+    /// Angle of the interstellar polarization, deg east of north [default: 0 deg]
+    #[arg(long, value_name = "DEG", allow_hyphen_values = true)]
     ism_angle: Option<f64>,
     /// Intrinsic P distribution (percent): fixed:P | uniform:LO,HI | lognormal:MEDIAN,SIGMA_LN |
     /// sin2i:PMAX | pofi:FILE (P(i) table, CSV inclination_deg,p) | table:FILE | catalog:FILE
     /// [default: sin2i:6]
-    #[arg(long)]
+    #[arg(long, value_name = "SPEC")]
     p_int: Option<String>,
     /// Fraction (0..1) of disks polarized perpendicular to their projected long axis (angle
     /// rotated by 90 deg), drawn independently for each component [default: 0]
-    #[arg(long)]
+    #[arg(long, value_name = "F")]
     perpendicular_fraction: Option<f64>,
     /// Gaussian noise sigma of q and u of each component, percent [default: none]
-    #[arg(long)]
+    #[arg(long, value_name = "PERCENT")]
     noise: Option<f64>,
     /// Keep a pair only if both components have measured P/sigma above this (needs --noise)
-    #[arg(long)]
+    /// [default: none, no cut]
+    #[arg(long, value_name = "P/SIGMA")]
     snr_cut: Option<f64>,
-    /// Worker threads [default: all cores]; results do not depend on it
-    #[arg(long)]
-    threads: Option<usize>,
+    /// Worker threads; results do not depend on it [default: all cores]
+    #[arg(short, long, value_name = "N", alias = "threads")]
+    jobs: Option<usize>,
     /// TOML file with any of: model, pairs, seed, bins, p_ism (list), ism_angle_deg, p_int,
-    /// perpendicular_fraction, noise_percent, snr_cut; flags override it
-    #[arg(long)]
+    /// perpendicular_fraction, noise_percent, snr_cut; flags override it [default: none]
+    #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
-    /// Output directory for pi_delta_gamma.json and pi_delta_gamma.png
-    #[arg(short, long)]
-    out: Option<PathBuf>,
+    /// Output directory for pi_delta_gamma.json and the figure [default: none, only the
+    /// table on stdout]
+    #[arg(short, long, value_name = "DIR", alias = "out")]
+    output: Option<PathBuf>,
     /// Figure format: png, or svg (vector, for papers)
     #[arg(long, default_value = "png", value_parser = ["png", "svg"])]
     format: String,
@@ -76,8 +82,12 @@ pub struct Args {
     #[arg(long)]
     bench: bool,
     /// Runs per benchmark configuration
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, value_name = "N", default_value_t = 5)]
     bench_runs: usize,
+    /// Print only errors: no table, no time estimate, no progress bar (the files of -o are
+    /// written)
+    #[arg(short, long)]
+    quiet: bool,
 }
 
 /// The TOML model file.
@@ -203,12 +213,12 @@ fn runs(s: &Settings) -> Vec<(String, McConfig)> {
     }
 }
 
-/// Build a rayon pool of `threads` (None: the global pool's size).
-pub fn pool(threads: Option<usize>) -> anyhow::Result<rayon::ThreadPool> {
+/// Build a rayon pool of `jobs` threads (None: the global pool's size).
+pub fn pool(jobs: Option<usize>) -> anyhow::Result<rayon::ThreadPool> {
     let mut b = rayon::ThreadPoolBuilder::new();
-    if let Some(t) = threads {
+    if let Some(t) = jobs {
         if t == 0 {
-            bail!("--threads must be >= 1");
+            bail!("--jobs must be >= 1");
         }
         b = b.num_threads(t);
     }
@@ -229,8 +239,8 @@ pub fn summary(out: &McOutput) -> (f64, f64, f64) {
 /// Run `sofipol mc`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let s = settings(&args)?;
-    let pool = pool(args.threads)?;
-    if let (Some(dir), false) = (&args.out, args.bench) {
+    let pool = pool(args.jobs)?;
+    if let (Some(dir), false) = (&args.output, args.bench) {
         let mut inputs: Vec<&Path> = args.config.iter().map(PathBuf::as_path).collect();
         inputs.extend(args.model.as_deref().and_then(spec_file));
         inputs.extend(args.p_int.as_deref().and_then(spec_file));
@@ -241,12 +251,50 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         return bench(&s, args.bench_runs.max(1));
     }
     let runs = runs(&s);
+    let quiet = args.quiet;
+    if !quiet {
+        print_header(&s, &runs, pool.current_num_threads());
+    }
+    // One estimate and one bar for all the runs (ISM levels) of the invocation.
+    let eta = Eta::new("mc", runs.iter().map(|(_, c)| c.pairs).sum(), quiet);
+    let mut results = Vec::new();
+    for (label, cfg) in &runs {
+        let t0 = Instant::now();
+        let out = pool.install(|| simulate_with_progress(cfg, &|n| eta.add(n)))?;
+        let dt = t0.elapsed().as_secs_f64();
+        let (mean, below, ratio) = summary(&out);
+        if !quiet {
+            eta.suspend(|| {
+                println!(
+                    "{label:<18} {:>12} {mean:>10.2} {below:>12.4} {ratio:>16.3} {dt:>9.3}",
+                    out.accepted
+                )
+            });
+        }
+        results.push((label.clone(), cfg.clone(), out));
+    }
+    eta.finish();
+    if let Some(dir) = &args.output {
+        write_outputs(dir, &s, &results, &args.format)?;
+        if !quiet {
+            println!(
+                "wrote {} and {}",
+                dir.join("pi_delta_gamma.json").display(),
+                dir.join(format!("pi_delta_gamma.{}", args.format)).display()
+            );
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The settings and the table's header, on stdout.
+fn print_header(s: &Settings, runs: &[(String, McConfig)], threads: usize) {
     println!(
         "sofipol mc: model {}, {} pairs, seed {}, {} threads{}{}",
         s.base.model.spec(),
         s.base.pairs,
         s.base.seed,
-        pool.current_num_threads(),
+        threads,
         perpendicular_note(&s.base),
         if runs[0].1.simulates_polarization() {
             format!(
@@ -263,27 +311,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         "{:<18} {:>12} {:>10} {:>12} {:>16} {:>9}",
         "run", "accepted", "mean [deg]", "frac < 30", "Pi(0-10)/Pi(80-90)", "time [s]"
     );
-    let mut results = Vec::new();
-    for (label, cfg) in &runs {
-        let t0 = Instant::now();
-        let out = pool.install(|| simulate(cfg))?;
-        let dt = t0.elapsed().as_secs_f64();
-        let (mean, below, ratio) = summary(&out);
-        println!(
-            "{label:<18} {:>12} {mean:>10.2} {below:>12.4} {ratio:>16.3} {dt:>9.3}",
-            out.accepted
-        );
-        results.push((label.clone(), cfg.clone(), out));
-    }
-    if let Some(dir) = &args.out {
-        write_outputs(dir, &s, &results, &args.format)?;
-        println!(
-            "wrote {} and {}",
-            dir.join("pi_delta_gamma.json").display(),
-            dir.join(format!("pi_delta_gamma.{}", args.format)).display()
-        );
-    }
-    Ok(ExitCode::SUCCESS)
 }
 
 fn write_outputs(
@@ -308,7 +335,7 @@ fn write_outputs(
         })
         .collect();
     let json = serde_json::json!({
-        "software": { "name": "sofipol", "version": env!("CARGO_PKG_VERSION") },
+        "software": { "name": "sofipol", "version": env!("CARGO_PKG_VERSION"), "commit": sofipol_pipeline::build_info::commit() },
         "command": std::env::args().collect::<Vec<_>>().join(" "),
         "parameters": {
             "model": s.base.model.spec(),

@@ -22,13 +22,16 @@ pub struct Args {
     /// Shard catalogs.
     #[arg(required = true)]
     pub catalogs: Vec<PathBuf>,
-    /// Output catalog.
-    #[arg(short, long)]
+    /// Output catalog (JSON, written atomically; required).
+    #[arg(short, long, value_name = "FILE")]
     pub output: PathBuf,
     /// Merge even when shards are missing; the missing shards are listed in the
     /// provenance and the exit code is 2.
     #[arg(long)]
     pub allow_partial: bool,
+    /// Print only errors (the exit code still says 2 when shards are missing).
+    #[arg(short, long)]
+    pub quiet: bool,
 }
 
 /// The shards' coverage: `Ok(missing "K/N of inputs")` or the reason the set cannot be merged. Parts
@@ -152,18 +155,22 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     merged.provenance["missing_shards"] = serde_json::json!(missing);
     sofipol_pipeline::io::write_json_atomic(&args.output, &merged)
         .with_context(|| format!("writing {}", args.output.display()))?;
-    println!(
-        "merged {} catalogs: {} targets, {} failures -> {}",
-        args.catalogs.len(),
-        merged.targets.len(),
-        merged.failures.len(),
-        args.output.display()
-    );
-    if !missing.is_empty() {
-        eprintln!(
-            "sofipol merge: warning: shard(s) {} missing (--allow-partial)",
-            missing.join(", ")
+    if !args.quiet {
+        println!(
+            "merged {} catalogs: {} targets, {} failures -> {}",
+            args.catalogs.len(),
+            merged.targets.len(),
+            merged.failures.len(),
+            args.output.display()
         );
+    }
+    if !missing.is_empty() {
+        if !args.quiet {
+            eprintln!(
+                "sofipol merge: warning: shard(s) {} missing (--allow-partial)",
+                missing.join(", ")
+            );
+        }
         return Ok(ExitCode::from(2));
     }
     Ok(ExitCode::SUCCESS)

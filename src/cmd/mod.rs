@@ -3,6 +3,7 @@ pub mod bench;
 pub mod calib;
 pub mod common;
 pub mod demo;
+pub mod eta;
 pub mod export;
 pub mod mc;
 pub mod merge;

@@ -26,13 +26,14 @@ pub struct Args {
     #[arg(required = true)]
     pub dirs: Vec<PathBuf>,
     /// Output catalog (JSON, written atomically).
-    #[arg(short, long, default_value = "catalog.json")]
+    #[arg(short, long, value_name = "FILE", default_value = "catalog.json")]
     pub output: PathBuf,
-    /// Worker threads (default: all cores; at most 4 x the cores: more are capped, with a note).
-    #[arg(short, long)]
+    /// Worker threads (at most 4 x the cores: more are capped, with a note) [default: all
+    /// cores].
+    #[arg(short, long, value_name = "N")]
     pub jobs: Option<usize>,
     /// Reduce only shard K of N (1-based), a deterministic partition of the sequences; join
-    /// the shard catalogs with `sofipol merge`.
+    /// the shard catalogs with `sofipol merge` [default: the whole night].
     #[arg(long, value_name = "K/N")]
     pub shard: Option<Shard>,
     /// Do not write the per-target PNG figures.
@@ -236,7 +237,7 @@ fn print_summary(cat: &Catalog, scan_failures: usize, wall: f64, output: &Path, 
 
 /// `-v`: the night's bad-pixel mask and flats, the stage times summed over the targets, the
 /// calibration and wall times, CPU time and peak memory, on stderr.
-fn print_verbose(out: &NightOutput, wall: f64) {
+pub fn print_verbose(out: &NightOutput, wall: f64) {
     if let Some(nm) = &out.mask {
         eprintln!(
             "night bad-pixel mask: {} pixels{} from {} frames in {:.2} s",

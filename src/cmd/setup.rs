@@ -22,6 +22,8 @@ pub struct SetupArgs {
     #[command(flatten)]
     pub reduce: ReduceArgs,
     #[command(flatten)]
+    pub flat: FlatArgs,
+    #[command(flatten)]
     pub calib: CalibArgs,
     #[command(flatten)]
     pub profile: ProfileArgs,
@@ -32,7 +34,7 @@ impl SetupArgs {
     /// flags override the `[calibration]` section of `--params`).
     pub fn load(&self) -> anyhow::Result<NightSetup> {
         let profile = self.profile.load()?;
-        let mut params = self.reduce.params()?;
+        let mut params = self.reduce.params_with(&self.flat)?;
         let calibration = self.calib.setup(&params.calibration)?;
         params.calibration = calibration.params.clone();
         Ok(NightSetup {
@@ -55,7 +57,7 @@ impl SetupArgs {
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct ReduceArgs {
     /// Reduction parameters (TOML, sections as in docs/configuration.md); `--param` and the
-    /// flags override.
+    /// flags override [default: none, the built-in settings].
     #[arg(long, value_name = "FILE")]
     pub params: Option<PathBuf>,
     /// Set one key of the reduction parameters, as in the settings file, e.g.
@@ -66,12 +68,13 @@ pub struct ReduceArgs {
     /// Print the reduction parameters in force (TOML, as --params reads them) and exit.
     #[arg(long)]
     pub dump_params: bool,
-    /// Calibration bad-pixel mask (FITS, nonzero = bad).
+    /// Calibration bad-pixel mask (FITS, nonzero = bad) [default: none, bad pixels are
+    /// found from the frames].
     #[arg(long, value_name = "FILE")]
     pub badpix: Option<PathBuf>,
     /// Aperture radius in units of each frame's FWHM (at least 1 px; the catalog's
-    /// `aperture_radius_px` gives the radius used) [default: 1.0].
-    #[arg(long)]
+    /// `aperture_radius_px` gives the radius used) [default: 1.0 FWHM].
+    #[arg(long, value_name = "FWHM")]
     pub aperture_fwhm: Option<f64>,
     /// Aperture pixel weighting: exact (overlap area), center, or subpixel:N (N x N samples
     /// per pixel), as `measure.method` [default: exact].
@@ -82,14 +85,21 @@ pub struct ReduceArgs {
     #[arg(long)]
     pub debias: Option<Debias>,
     /// Known companion separation (arcsec) and position angle (deg east of north),
-    /// "SEP_ARCSEC,PA_DEG" (optional hint; default: searched for).
-    #[arg(long, value_name = "SEP,PA")]
+    /// "SEP_ARCSEC,PA_DEG", a hint [default: none, the companion is searched for].
+    #[arg(long, value_name = "ARCSEC,DEG")]
     pub companion: Option<String>,
-    /// Write sky-subtracted FITS (with VARIANCE and MASK) into this directory.
+    /// Write sky-subtracted FITS (with VARIANCE and MASK) into this directory [default:
+    /// none, not written].
     #[arg(long, value_name = "DIR")]
     pub save_intermediate: Option<PathBuf>,
-    /// Calibration flat (FITS, e.g. from `sofipol calib`) instead of building one from
-    /// the night (dome flats, else a superflat from the night's sky).
+}
+
+/// The flat-field options of `target`, `night` and `calib` (apart from [`ReduceArgs`]:
+/// `bench accuracy` has its own `--flat` mode).
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct FlatArgs {
+    /// Calibration flat (FITS, e.g. from `sofipol calib`) [default: built from the night:
+    /// its dome flats, else a superflat from its sky].
     #[arg(long, value_name = "FILE", conflicts_with = "no_flat")]
     pub flat: Option<PathBuf>,
     /// Do not flat-field.
@@ -133,13 +143,18 @@ impl ReduceArgs {
             .with_context(|| what)
     }
 
-    /// Validated parameters.
+    /// Validated parameters (the flat as the settings file says).
     pub fn params(&self) -> anyhow::Result<TargetParams> {
+        self.params_with(&FlatArgs::default())
+    }
+
+    /// Validated parameters, with the flat-field flags over the settings file.
+    pub fn params_with(&self, flat: &FlatArgs) -> anyhow::Result<TargetParams> {
         let mut p = self.file_and_param_keys()?;
-        if let Some(f) = &self.flat {
+        if let Some(f) = &flat.flat {
             p.flat = Some(f.clone());
         }
-        if self.no_flat {
+        if flat.no_flat {
             p.no_flat = true;
         }
         if let Some(a) = self.aperture_fwhm {
@@ -194,10 +209,11 @@ pub fn check_input_frames(params: &TargetParams) -> anyhow::Result<()> {
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct CalibArgs {
     /// Use the calibration products of another night (a directory written by `sofipol
-    /// calib`, or its calibration.json) instead of this night's standards.
+    /// calib`, or its calibration.json) [default: none, this night's standards calibrate].
     #[arg(long, value_name = "CALDIR")]
     pub calib: Option<PathBuf>,
-    /// Standards table (TOML) adding to or overriding the built-in one by name and filter.
+    /// Standards table (TOML) adding to or overriding the built-in one by name and filter
+    /// [default: none, the built-in table].
     #[arg(long, value_name = "FILE")]
     pub standards: Option<PathBuf>,
     /// How q, u are solved: auto, least_squares, free_offset, difference, ratio
@@ -283,11 +299,13 @@ mod tests {
     struct Cli {
         #[command(flatten)]
         reduce: ReduceArgs,
+        #[command(flatten)]
+        flat: FlatArgs,
     }
 
     fn cli(args: &[&str]) -> Result<TargetParams, String> {
         let a = Cli::try_parse_from(std::iter::once("t").chain(args.iter().copied())).map_err(|e| e.to_string())?;
-        a.reduce.params().map_err(|e| format!("{e:#}"))
+        a.reduce.params_with(&a.flat).map_err(|e| format!("{e:#}"))
     }
 
     fn toml_file(body: &str) -> Result<TargetParams, String> {

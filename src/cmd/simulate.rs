@@ -12,16 +12,17 @@ use super::common::{progress, ProfileArgs};
 pub struct Args {
     /// Scene file (TOML): observing setup, binaries, effects. See docs/simulator.md.
     pub scene: PathBuf,
-    /// Output directory (created).
+    /// Output directory (created; required).
     #[arg(short, long, value_name = "DIR")]
     pub output: PathBuf,
-    /// Replace the scene's seed.
+    /// Replace the scene's seed [default: the scene's `seed`].
     #[arg(long)]
     pub seed: Option<u64>,
-    /// Also write the true bad-pixel map as a FITS mask (1 = bad), e.g. for `--badpix`.
+    /// Also write the true bad-pixel map as a FITS mask (1 = bad), e.g. for `--badpix`
+    /// [default: none, not written].
     #[arg(long, value_name = "FILE")]
     pub badpix_mask: Option<PathBuf>,
-    /// No progress bar or summary.
+    /// Print only errors (no progress bar or summary).
     #[arg(short, long)]
     pub quiet: bool,
     /// Write the frames even when they take more than 4 GiB (docs/simulator.md).

@@ -32,54 +32,61 @@ use super::mc::{parse_count, parse_levels, pool};
 pub struct Args {
     /// The catalog JSON written by `sofipol target` / `sofipol night`
     catalog: PathBuf,
-    /// Output directory for stats.json and the PNG figures
-    #[arg(short, long)]
-    out: Option<PathBuf>,
+    /// Output directory for stats.json and the figures [default: none, only the report on
+    /// stdout]
+    #[arg(short, long, value_name = "DIR", alias = "out")]
+    output: Option<PathBuf>,
     /// Interstellar polarization levels to compare with, percent, comma-separated, or "paper"
-    #[arg(long, default_value = "paper")]
+    /// (0.1,0.2,0.4,0.7,1,1.5,2,3,4,5)
+    #[arg(long, value_name = "PERCENT,...", default_value = "paper")]
     p_ism: String,
-    /// Angle of the interstellar polarization, deg (irrelevant for isotropic disks)
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    /// Angle of the interstellar polarization, deg east of north (irrelevant for isotropic
+    /// disks)
+    #[arg(long, value_name = "DEG", default_value_t = 0.0, allow_hyphen_values = true)]
     ism_angle: f64,
     /// Monte-Carlo pairs per ISM level (1e6 style accepted)
-    #[arg(long, default_value = "1000000", value_parser = parse_count)]
+    #[arg(long, value_name = "N", default_value = "1000000", value_parser = parse_count)]
     pairs: u64,
     /// Seed of the Monte Carlo
     #[arg(long, default_value_t = DEFAULT_SEED)]
     seed: u64,
     /// Intrinsic P distribution of the Monte Carlo: "catalog" (the debiased P of the sample's
-    /// components) or any `sofipol mc --p-int` spec
-    #[arg(long, default_value = "catalog")]
+    /// components) or any `sofipol mc --p-int` spec (percent)
+    #[arg(long, value_name = "SPEC", default_value = "catalog")]
     p_int: String,
     /// Fraction (0..1) of simulated disks polarized perpendicular to their projected long
     /// axis, drawn independently for each component
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, value_name = "F", default_value_t = 0.0)]
     perpendicular_fraction: f64,
     /// Measurement noise of the Monte Carlo: "auto" (median sigma_P of the catalog's
     /// components), "none", or sigma in percent
-    #[arg(long, default_value = "auto")]
+    #[arg(long, value_name = "auto|none|PERCENT", default_value = "auto")]
     noise: String,
     /// P/sigma cut applied to simulated pairs when there is noise ("none" to disable)
-    #[arg(long, default_value = "3")]
+    #[arg(long, value_name = "P/SIGMA", default_value = "3")]
     snr_cut: String,
     /// Recompute the sample cut as P/sigma_P > K instead of using the catalog's passes_cut
-    #[arg(long)]
+    /// [default: none, the catalog's passes_cut]
+    #[arg(long, value_name = "K")]
     cut: Option<f64>,
     /// Significance level of the verdict
     #[arg(long, default_value_t = DEFAULT_SIGNIFICANCE)]
     significance: f64,
     /// Bins of the observed Delta-gamma histogram on [0, 90] deg
-    #[arg(long, default_value_t = 9)]
+    #[arg(long, value_name = "N", default_value_t = 9)]
     bins: usize,
-    /// Worker threads [default: all cores]; results do not depend on it
-    #[arg(long)]
-    threads: Option<usize>,
+    /// Worker threads; results do not depend on it [default: all cores]
+    #[arg(short, long, value_name = "N", alias = "threads")]
+    jobs: Option<usize>,
     /// Figure format: png, or svg (vector, for papers)
     #[arg(long, default_value = "png", value_parser = ["png", "svg"])]
     format: String,
     /// Skip the models (a)-(d) figure (4 extra Monte-Carlo runs)
     #[arg(long)]
     no_model_figure: bool,
+    /// Print only errors: no report, no warnings (the files of -o are written)
+    #[arg(short, long)]
+    quiet: bool,
 }
 
 /// Run `sofipol stats`.
@@ -99,7 +106,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         format!("ism_levels.{ext}"),
         format!("models.{ext}"),
     ];
-    if let Some(dir) = &args.out {
+    if let Some(dir) = &args.output {
         let mut inputs = vec![args.catalog.as_path()];
         inputs.extend(super::mc::spec_file(&args.p_int));
         let names: Vec<&str> = names.iter().map(String::as_str).collect();
@@ -107,7 +114,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let catalog = sofipol_pipeline::input::read_catalog(&args.catalog)?;
     let sample = BinarySample::from_catalog(&catalog, args.cut);
-    for w in &sample.warnings {
+    for w in sample.warnings.iter().filter(|_| !args.quiet) {
         eprintln!("sofipol stats: warning: {}", printable(w));
     }
 
@@ -159,12 +166,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         models: comparison_models(),
         errors: sample.errors(),
     };
-    let pool = pool(args.threads)?;
+    let pool = pool(args.jobs)?;
     let dg = sample.delta_gamma_deg();
     let report = pool.install(|| analyse(&dg, &params))?;
-    print_report(&args.catalog, &sample, &report);
+    if !args.quiet {
+        print_report(&args.catalog, &sample, &report);
+    }
 
-    if let Some(dir) = &args.out {
+    if let Some(dir) = &args.output {
         write_json(dir, &args, &sample, &report)?;
         let mut written = vec!["stats.json"];
         let [_, observed, ism_levels, models] = &names;
@@ -199,7 +208,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             models_figure(&dir.join(models), &rows, note.as_deref())?;
             written.push(models);
         }
-        println!("\nwrote {} in {}", written.join(", "), dir.display());
+        if !args.quiet {
+            println!("\nwrote {} in {}", written.join(", "), dir.display());
+        }
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -328,7 +339,7 @@ fn print_report(path: &Path, sample: &BinarySample, r: &AlignmentReport) {
 fn write_json(dir: &Path, args: &Args, sample: &BinarySample, r: &AlignmentReport) -> anyhow::Result<()> {
     // The per-level Monte-Carlo histograms are kept (counts on 1-deg bins).
     let json = serde_json::json!({
-        "software": { "name": "sofipol", "version": env!("CARGO_PKG_VERSION") },
+        "software": { "name": "sofipol", "version": env!("CARGO_PKG_VERSION"), "commit": sofipol_pipeline::build_info::commit() },
         "command": std::env::args().collect::<Vec<_>>().join(" "),
         "catalog": args.catalog.display().to_string(),
         "parameters": {

@@ -14,7 +14,8 @@ pub struct Args {
     /// FITS files and/or directories holding the sequence.
     #[arg(required = true)]
     pub inputs: Vec<PathBuf>,
-    /// Target name (OBJECT); needed when the inputs hold several targets.
+    /// Target name (OBJECT); needed when the inputs hold several targets [default: the
+    /// inputs' one target].
     #[arg(long)]
     pub object: Option<String>,
     /// Output catalog (JSON, written atomically).
@@ -22,9 +23,13 @@ pub struct Args {
     pub output: PathBuf,
     #[command(flatten)]
     pub setup: SetupArgs,
-    /// Print nothing but errors.
+    /// Print only errors.
     #[arg(short, long)]
     pub quiet: bool,
+    /// More detail: the night's bad-pixel mask, the stage-time summary and peak memory (on
+    /// stderr).
+    #[arg(short, long, action = clap::ArgAction::Count)]
+    pub verbose: u8,
 }
 
 /// Run: the sequence is reduced as one target of a night ([`night::run_night`]), with the
@@ -89,6 +94,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         inputs: args.inputs.clone(),
         ..Default::default()
     };
+    let t0 = std::time::Instant::now();
     let out = night::run_night(&plan, &setup, &opts);
     let cat = &out.catalog;
     if !args.quiet {
@@ -101,6 +107,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if !args.quiet {
         print!("{}", super::report::summary(cat));
         println!("catalog: {}", args.output.display());
+    }
+    if args.verbose > 0 {
+        super::night::print_verbose(&out, t0.elapsed().as_secs_f64());
     }
     let failed = cat.targets.iter().any(|t| t.status != Status::Ok);
     Ok(if failed || !cat.failures.is_empty() {

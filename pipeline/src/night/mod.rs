@@ -284,7 +284,8 @@ pub fn reduce_sequences(
     }
 }
 
-/// The provenance every catalog starts with: software, command line, time (UTC), instrument
+/// The provenance every catalog starts with: software, git commit of the build
+/// ([`crate::build_info::commit`]), command line, time (UTC), instrument
 /// profile and reduction settings.
 pub fn provenance(profile: &Profile, params: &impl serde::Serialize) -> serde_json::Value {
     let now = std::time::SystemTime::now()
@@ -293,6 +294,7 @@ pub fn provenance(profile: &Profile, params: &impl serde::Serialize) -> serde_js
         .unwrap_or(0.0);
     serde_json::json!({
         "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
+        "commit": crate::build_info::commit(),
         "command_line": std::env::args().collect::<Vec<_>>(),
         "created_utc": crate::sim::effects::iso_from_mjd(40587.0 + now / 86400.0, false),
         "profile": profile,
