@@ -260,8 +260,12 @@ pub fn locate_primary(
         .ok_or_else(|| MeasureError::new("no frames"))?;
     let (_, nx) = first.shape();
     let o0 = &orients[0];
+    // Frames agree on the target when their brightest sources are within a pair's
+    // separation (plus the pointing tolerance) of each other.
+    let reach = params.companion_search_arcsec / g.pixscale_arcsec + POINTING_TOL_PX;
     let nominal = params.nominal_xy_px.unwrap_or_else(|| {
-        nominal_from_data(o0, &masks[0], orow).unwrap_or((nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5))
+        nominal_from_data(o0, &masks[0], orow, reach)
+            .unwrap_or((nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5))
     });
     let fwhm_guess = 0.8 / g.pixscale_arcsec;
     // The star at the nominal position in every frame of the first orientation, carried
@@ -283,7 +287,12 @@ pub fn locate_primary(
             at_zero.push((c.0 - off[0], c.1 - off[1]));
         }
     }
-    let votes = |p: &(f64, f64)| at_zero.iter().filter(|q| (q.0 - p.0).hypot(q.1 - p.1) <= 3.0).count();
+    let votes = |p: &(f64, f64)| {
+        at_zero
+            .iter()
+            .filter(|q| (q.0 - p.0).hypot(q.1 - p.1) <= POINTING_TOL_PX)
+            .count()
+    };
     let anchor = at_zero
         .iter()
         .enumerate()
@@ -310,10 +319,15 @@ pub fn locate_primary(
 
 /// Where the target sits at zero jitter offset when no position is given: the brightest
 /// source of the o-target strip in each frame of the first orientation, carried back by the
-/// header offset; the median over the frames, accepted when at least half of them agree
-/// within 3 px (a cosmic ray or a defect that escaped the masks wins in one frame, not in
-/// most). None: no agreement (the caller falls back to the strip centre).
-fn nominal_from_data(o: &CalibratedOrientation, ms: &[Array2<u8>], orow: [usize; 2]) -> Option<(f64, f64)> {
+/// header offset. The brightest source is either star of a near-equal pair (a different one
+/// from frame to frame) and the header offsets miss the true pointing by a pixel or two, so
+/// frames agree on the target when their positions are within `reach` (the largest pair
+/// separation searched plus the pointing tolerance): the position most frames agree with
+/// (the earliest wins ties), accepted when at least half of them do (a cosmic ray or a
+/// defect that escaped the masks wins in one frame, not in most); the nominal position is
+/// the median of the agreeing positions on each axis. None: no agreement (the caller falls
+/// back to the strip centre).
+fn nominal_from_data(o: &CalibratedOrientation, ms: &[Array2<u8>], orow: [usize; 2], reach: f64) -> Option<(f64, f64)> {
     let mut at_zero = Vec::new();
     for ((f, off), m) in o.frames.iter().zip(&o.offsets).zip(ms) {
         let (_, nx) = f.shape();
@@ -322,21 +336,35 @@ fn nominal_from_data(o: &CalibratedOrientation, ms: &[Array2<u8>], orow: [usize;
             at_zero.push((x - off[0], y - off[1]));
         }
     }
-    if at_zero.is_empty() {
+    let agreeing = |p: &(f64, f64)| -> Vec<(f64, f64)> {
+        at_zero
+            .iter()
+            .filter(|q| (q.0 - p.0).hypot(q.1 - p.1) <= reach)
+            .copied()
+            .collect()
+    };
+    let group = at_zero
+        .iter()
+        .enumerate()
+        .map(|(i, p)| (agreeing(p), i))
+        .max_by_key(|(g, i)| (g.len(), std::cmp::Reverse(*i)))?
+        .0;
+    if 2 * group.len() < at_zero.len() {
         return None;
     }
     let med = |mut v: Vec<f64>| {
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]
     };
-    let m = (
-        med(at_zero.iter().map(|p| p.0).collect()),
-        med(at_zero.iter().map(|p| p.1).collect()),
-    );
-    let agree = at_zero.iter().filter(|p| (p.0 - m.0).hypot(p.1 - m.1) <= 3.0).count();
-    (2 * agree >= at_zero.len()).then_some(m)
+    Some((
+        med(group.iter().map(|p| p.0).collect()),
+        med(group.iter().map(|p| p.1).collect()),
+    ))
 }
 
+/// How far the true pointing may be from the header offsets, px (the agreement radius of
+/// positions carried back to zero offset).
+const POINTING_TOL_PX: f64 = 3.0;
 /// Search radius about the anchor for the first frame of an orientation, px.
 const NEAR_ANCHOR_PX: f64 = 8.0;
 /// A peak near the anchor fainter than this fraction of the brightest peak within reach of
