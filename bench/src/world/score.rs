@@ -186,7 +186,7 @@ pub fn rms_and_mean(x: &[f64]) -> (f64, f64) {
     )
 }
 
-/// The bins of several nights (each from [`run`], the same bins), pooled: targets
+/// The bins of several nights (each from [`run`](super::run), the same bins), pooled: targets
 /// concatenated, statistics recomputed.
 pub fn pool_nights(nights: &[Vec<WorldBin>]) -> Vec<WorldBin> {
     (0..nights.first().map_or(0, Vec::len))

@@ -68,6 +68,6 @@ pub use measure::{measure, PhotParams, Photometry, Region};
 pub use overlap::{for_each_weight, overlap_circle_pixel, overlap_circle_rect, pixel_weight, Method};
 pub use psf::{
     subtract_star, subtract_star_near, subtract_star_near_in_place, subtract_star_near_where, PsfFit, PsfFitError,
-    PsfFitParams, PsfModel, PsfStar, MOFFAT_ALPHA_RANGE, MOFFAT_BETA_RANGE, MOFFAT_BETA_START,
+    PsfFitParams, PsfModel, PsfStar, MOFFAT_ALPHA_RANGE, MOFFAT_BETA_RANGE, MOFFAT_BETA_START, MOFFAT_ELLIPTICITY_MAX,
 };
 pub use psf_fit::{fit_psf, fit_psf_from, fit_psf_joint, fit_two_psf, FitImage, JointFit, PsfStart};

@@ -156,3 +156,25 @@ fn ks_asymptotic_p_value_matches_scipy_kstwo_at_conventional_levels() {
         );
     }
 }
+
+/// `ks_uniform` on [lo, hi] tests (x - lo)/(hi - lo) against U(0, 1), also when lo != 0
+/// (the alignment test uses [0, 90]; a sample of angles on [10, 100] must give the same
+/// outcome as the same angles shifted to [0, 90]): an evenly filled sample has D = 1/(2n)
+/// exactly and is not rejected; the same sample against [0, 90] unshifted is.
+#[test]
+fn ks_uniform_tests_the_sample_on_its_own_interval() {
+    let n = 20;
+    let on = |lo: f64, hi: f64| -> Vec<f64> { (0..n).map(|i| lo + (hi - lo) * (i as f64 + 0.5) / n as f64).collect() };
+    let shifted = ks_uniform(&on(10.0, 100.0), 10.0, 100.0);
+    let at_zero = ks_uniform(&on(0.0, 90.0), 0.0, 90.0);
+    assert!(
+        (shifted.statistic - 0.5 / n as f64).abs() < 1e-12,
+        "D {}",
+        shifted.statistic
+    );
+    assert!((shifted.statistic - at_zero.statistic).abs() < 1e-12);
+    assert!((shifted.p_value - at_zero.p_value).abs() < 1e-12 && shifted.p_value > 0.99);
+    // The interval matters: the same angles tested against [0, 90] are off by 10 deg.
+    let wrong = ks_uniform(&on(10.0, 100.0), 0.0, 90.0);
+    assert!(wrong.statistic > 0.1, "D {}", wrong.statistic);
+}
