@@ -239,9 +239,10 @@ pub fn moffat_pixel(dx: f64, dy: f64, alpha: f64, beta: f64) -> f64 {
 /// [`moffat_pixel`] and its derivatives: `[P, dP/dx, dP/dy, dP/dalpha, dP/dbeta]`, where `x`,
 /// `y` are the star's centre (so `dP/dx = -dP/d(dx)`).
 pub fn moffat_pixel_derivs(dx: f64, dy: f64, alpha: f64, beta: f64) -> [f64; 5] {
-    let mut d = [[0.0; 5]];
-    moffat_pixels_derivs(&[(dx, dy)], alpha, beta, &mut d);
-    d[0]
+    // One pixel: no allocation (the batch form copies through a buffer of 7 entries).
+    let mut d = [[0.0; 7]];
+    moffat_pixels_derivs_any(&[(dx, dy)], alpha, beta, None, &mut d);
+    [d[0][0], d[0][1], d[0][2], d[0][3], d[0][4]]
 }
 
 /// Adds a pixel-integrated Moffat star (total flux `flux` ADU, centre `(x, y)` px, `alpha` px,
