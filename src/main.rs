@@ -58,6 +58,9 @@ enum Command {
     Simulate(cmd::simulate::Args),
     /// Reduce a whole night directory in parallel into one catalog.
     Night(cmd::night::Args),
+    /// Reduce a night while it is observed: follow its folder, reduce each template as it
+    /// completes.
+    Watch(cmd::watch::Args),
     /// Calibration products of a night (calibration.json) from its standard stars.
     Calib(cmd::calib::Args),
     /// Join shard catalogs written with `night --shard K/N`.
@@ -91,6 +94,7 @@ fn main() -> ExitCode {
         Command::Simulate(a) => cmd::simulate::run(a),
         Command::Target(a) => cmd::target::run(a),
         Command::Night(a) => cmd::night::run(a),
+        Command::Watch(a) => cmd::watch::run(a),
         Command::Merge(a) => cmd::merge::run(a),
         Command::Calib(a) => cmd::calib::run(a),
         Command::Mc(a) => cmd::mc::run(a),

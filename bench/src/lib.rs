@@ -16,6 +16,8 @@
 //!  world            the world-sampling harness (drawn conditions, the file path of `night`;
 //!                   run by examples/world.rs and tests/accuracy_world.rs)
 //!  timing           median of repeated timings; the stack kernels timed on sky-like frames
+//!  watch            bench watch: a night copied frame by frame into a folder followed by
+//!                   `sofipol watch`: latency per template, final catalog against `night`'s
 //! ```
 #![deny(missing_docs)]
 
@@ -26,4 +28,5 @@ pub mod night;
 pub mod python;
 pub mod standards_truth;
 pub mod timing;
+pub mod watch;
 pub mod world;

@@ -186,6 +186,29 @@ fn fits_files(raw: &std::path::Path) -> anyhow::Result<Vec<std::path::PathBuf>> 
     Ok(files)
 }
 
+/// The bench night of `targets` binaries (with the 3 standards and their instrumental
+/// effects when `with_standards`) simulated into `root/raw` (reused when simulated there
+/// before), and its frames, sorted by name.
+pub fn prepare_night(
+    targets: usize,
+    with_standards: bool,
+    root: &std::path::Path,
+) -> anyhow::Result<(std::path::PathBuf, Vec<std::path::PathBuf>)> {
+    let a = NightArgs {
+        targets,
+        jobs: None,
+        repeats: 1,
+        dir: Some(root.to_path_buf()),
+        with_standards,
+        python: None,
+        python_targets: None,
+    };
+    let raw = root.join("raw");
+    ensure_night(&a, &raw, true)?;
+    let files = fits_files(&raw)?;
+    Ok((raw, files))
+}
+
 /// Run `sofipol bench night`.
 pub fn run(a: NightArgs) -> anyhow::Result<()> {
     let tmp = tempfile::tempdir()?;

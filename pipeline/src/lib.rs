@@ -29,6 +29,7 @@ pub mod error;
 pub mod export;
 pub mod input;
 pub mod io;
+pub mod live;
 pub mod night;
 pub mod numeric;
 pub mod photometry;

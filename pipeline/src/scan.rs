@@ -222,7 +222,12 @@ pub fn is_out_of_file_handles(e: &sofipol_calib::Error) -> bool {
 /// List the FITS files under `roots` ([`list`]), classify them ([`classify_all`]) and keep
 /// each exposure once ([`drop_duplicate_exposures`]). Returns the scan and the files found.
 pub fn scan(roots: &[PathBuf], profile: &Profile) -> (Scan, Vec<PathBuf>) {
-    let l = list(roots);
+    scan_listing(list(roots), profile)
+}
+
+/// [`scan`] of files already listed ([`list`]; live reduction lists only the files that
+/// are complete).
+pub fn scan_listing(l: Listing, profile: &Profile) -> (Scan, Vec<PathBuf>) {
     let mut s = classify_all(&l.files, profile);
     s.unreadable.extend(l.unreadable_dirs);
     let (science, dups) = drop_duplicate_exposures(std::mem::take(&mut s.science));

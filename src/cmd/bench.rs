@@ -24,6 +24,10 @@ enum What {
     /// --python: the expert Python reduction of the same night, the ratios and the
     /// comparison of the two catalogs.
     Night(sofipol_bench::night::NightArgs),
+    /// Live reduction: the bench night copied frame by frame (one every --interval s) into
+    /// a folder that `sofipol watch` follows in a child process: each template's latency
+    /// (last frame copied to its catalog entry) and the final catalog against `night`'s.
+    Watch(sofipol_bench::watch::WatchArgs),
     /// Cost of each reduction stage on one simulated 10-frame sequence (medians).
     Stages {
         /// Repeats per stage.
@@ -45,6 +49,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     match args.what {
         What::Sim { repeats } => sofipol_bench::commands::sim(repeats),
         What::Night(a) => sofipol_bench::night::run(a)?,
+        What::Watch(a) => sofipol_bench::watch::run(a)?,
         What::Stages { repeats } => sofipol_bench::commands::stages(repeats)?,
         What::Accuracy { accuracy, reduce } => sofipol_bench::commands::accuracy(accuracy, &reduce.params()?)?,
     }

@@ -13,3 +13,4 @@ pub mod setup;
 pub mod simulate;
 pub mod stats;
 pub mod target;
+pub mod watch;

@@ -207,6 +207,7 @@ fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, figur
             on_done: Some(&on_done),
             on_figure: figures.is_some().then_some(&plot as &(dyn Fn(&TargetFigure) + Sync)),
         },
+        cache: None,
     };
     let out = night::run_night(plan, setup, &opts);
     pb.finish_and_clear();

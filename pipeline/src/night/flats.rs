@@ -10,7 +10,7 @@ use crate::catalog::Failure;
 use crate::reduce::TargetParams;
 
 /// The flats a night uses, and what was done.
-#[derive(Debug, Default)]
+#[derive(Debug, Clone, Default)]
 pub struct NightFlats {
     /// The flats (None: no flat-fielding).
     pub set: Option<sofipol_calib::flat::FlatSet>,

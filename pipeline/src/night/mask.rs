@@ -87,6 +87,7 @@ pub fn night_bad_pixel_mask(
 }
 
 /// The night's bad-pixel mask ([`night_bad_pixel_mask`]).
+#[derive(Debug, Clone)]
 pub struct NightMask {
     /// Full-frame mask (`BAD` where defective). With `rows`, only those rows were examined:
     /// the others are 0 and must not be used (the reduction uses only those rows).

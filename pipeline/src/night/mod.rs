@@ -28,6 +28,7 @@ use crate::reduce::run::{reduce_sequence, StageTimes};
 use crate::reduce::TargetParams;
 use crate::sequence::Sequence;
 
+mod cache;
 mod calibrate;
 mod flats;
 mod mask;
@@ -35,11 +36,12 @@ mod merge;
 mod plan;
 mod products;
 
+pub use cache::{files_key, CacheCounts, CachedTarget, NightCache};
 pub use calibrate::{calibrate, reduce_standards};
 pub use flats::{night_flats, NightFlats};
 pub use mask::{night_bad_pixel_mask, NightMask};
 pub use merge::merge;
-pub use plan::{pick_superflat_frames, plan, stable_hash, NightPlan, Shard};
+pub use plan::{pick_superflat_frames, plan, plan_listing, stable_hash, NightPlan, Shard};
 pub use products::{products_dir, slug};
 
 /// Most frames stacked for the night-wide bad-pixel mask.
@@ -88,6 +90,10 @@ pub struct RunOptions<'a> {
     pub inputs: Vec<PathBuf>,
     /// Progress and products.
     pub hooks: Hooks<'a>,
+    /// Results of earlier runs over the same night, reused where their inputs are
+    /// unchanged and updated with this run's (live reduction). Not used for the targets
+    /// when `hooks.on_figure` is given (figures need the frames).
+    pub cache: Option<&'a NightCache>,
 }
 
 /// Wall time of the night's stages, seconds.
@@ -127,25 +133,40 @@ pub struct NightOutput {
 /// every science sequence, the standards and the calibration, the provenance.
 pub fn run_night(plan: &NightPlan, setup: &NightSetup, opts: &RunOptions) -> NightOutput {
     let (profile, params) = (&setup.profile, &setup.params);
-    let ((mask, t_mask), (flats, t_flats)) = rayon::join(
+    let compute_mask = || {
+        (opts.night_mask && !params.no_detect_bad_pixels)
+            .then(|| night_bad_pixel_mask(plan, profile, params, MASK_FRAMES))
+            .flatten()
+    };
+    let compute_flats = || night_flats(&plan.dome_flats, &plan.superflat_frames, profile, params);
+    let (((mask, mask_key), t_mask), ((flats, flats_key), t_flats)) = rayon::join(
         || {
-            timed(|| {
-                (opts.night_mask && !params.no_detect_bad_pixels)
-                    .then(|| night_bad_pixel_mask(plan, profile, params, MASK_FRAMES))
-                    .flatten()
+            timed(|| match opts.cache {
+                Some(c) => c.mask(&plan.mask_frames, compute_mask),
+                None => (compute_mask(), 0),
             })
         },
-        || timed(|| night_flats(&plan.dome_flats, &plan.superflat_frames, profile, params)),
+        || {
+            timed(|| match opts.cache {
+                Some(c) => c.flats(&plan.dome_flats, &plan.superflat_frames, compute_flats),
+                None => (compute_flats(), 0),
+            })
+        },
     );
     let mask_array = mask.as_ref().map(|m| &m.mask);
     let t = Instant::now();
-    let mut reduced = reduce_sequences(
+    let cache = opts
+        .cache
+        .filter(|_| opts.hooks.on_figure.is_none())
+        .map(|c| (c, mask_key, flats_key));
+    let mut reduced = reduce_sequences_cached(
         &plan.sequences,
         profile,
         params,
         mask_array,
         flats.set.as_ref(),
         &opts.hooks,
+        cache,
     );
     let t_reduce = t.elapsed().as_secs_f64();
     let mut cat = std::mem::take(&mut reduced.catalog);
@@ -252,16 +273,44 @@ pub fn reduce_sequences(
     flats: Option<&FlatSet>,
     hooks: &Hooks,
 ) -> Reduced {
+    reduce_sequences_cached(sequences, profile, params, night_mask, flats, hooks, None)
+}
+
+/// [`reduce_sequences`], taking each target from `cache` (with the keys of the mask and
+/// flats given) when its inputs are unchanged, and keeping the others there.
+fn reduce_sequences_cached(
+    sequences: &[Sequence],
+    profile: &Profile,
+    params: &TargetParams,
+    night_mask: Option<&Array2<u8>>,
+    flats: Option<&FlatSet>,
+    hooks: &Hooks,
+    cache: Option<(&NightCache, u64, u64)>,
+) -> Reduced {
     let keep_frames = hooks.on_figure.is_some();
     let outs: Vec<(Target, Vec<Failure>, StageTimes, Option<FigureInputs>)> = sequences
         .par_iter()
         .map(|q| {
-            let out = reduce_sequence(q, profile, params, night_mask, flats, keep_frames);
-            let fig = keep_frames.then(|| FigureInputs::from_outcome(&out));
+            let (target, failures, times, fig) = match cache {
+                Some((c, mask_key, flats_key)) => {
+                    let mut times = StageTimes::default();
+                    let (t, f, _) = c.target(c.target_key(q, mask_key, flats_key), || {
+                        let out = reduce_sequence(q, profile, params, night_mask, flats, false);
+                        times = out.times;
+                        (out.target, out.failures)
+                    });
+                    (t, f, times, None)
+                }
+                None => {
+                    let out = reduce_sequence(q, profile, params, night_mask, flats, keep_frames);
+                    let fig = keep_frames.then(|| FigureInputs::from_outcome(&out));
+                    (out.target, out.failures, out.times, fig)
+                }
+            };
             if let Some(f) = hooks.on_done {
-                f(&out.target);
+                f(&target);
             }
-            (out.target, out.failures, out.times, fig)
+            (target, failures, times, fig)
         })
         .collect();
     let mut catalog = Catalog {

@@ -80,6 +80,10 @@ pub struct NightPlan {
     /// Frames for the superflat, by filter, from every sequence of the night (before
     /// sharding), cycling through the dither positions like `mask_frames`.
     pub superflat_frames: BTreeMap<String, Vec<PathBuf>>,
+    /// Sequences set aside by the caller's `keep` ([`plan_listing`]; live reduction holds
+    /// back templates still being observed): not reduced, not in the mask or superflat
+    /// picks. Empty for [`plan`].
+    pub held: Vec<Sequence>,
     /// The scan ran out of file handles (the first such error): the plan is incomplete and
     /// must not be reduced ([`crate::scan::Scan::out_of_file_handles`]).
     pub out_of_file_handles: Option<String>,
@@ -158,12 +162,34 @@ pub fn plan(
     shard: Option<Shard>,
     is_standard: impl Fn(&Sequence) -> bool,
 ) -> NightPlan {
-    let (s, files) = scan::scan(roots, profile);
+    plan_listing(
+        scan::list(roots),
+        profile,
+        max_superflat_frames,
+        shard,
+        is_standard,
+        |_| true,
+    )
+}
+
+/// [`plan`] of files already listed, keeping only the sequences `keep` accepts (the others
+/// are `held`, and give no frame to the mask or the superflat): with every file listed
+/// and every sequence kept, exactly [`plan`].
+pub fn plan_listing(
+    listing: scan::Listing,
+    profile: &Profile,
+    max_superflat_frames: usize,
+    shard: Option<Shard>,
+    is_standard: impl Fn(&Sequence) -> bool,
+    keep: impl Fn(&Sequence) -> bool,
+) -> NightPlan {
+    let (s, files) = scan::scan_listing(listing, profile);
     let n_files = files.len();
     let mut failures: Vec<Failure> = s.unreadable;
     failures.extend(s.duplicates);
     let mut not_science = s.other;
-    let all = sequence::group(s.science, profile);
+    let (all, held): (Vec<Sequence>, Vec<Sequence>) =
+        sequence::group(s.science, profile).into_iter().partition(|q| keep(q));
     let mask_frames = pick_mask_frames(&all, 15);
     let superflat_frames = pick_superflat_frames(&all, max_superflat_frames);
     let (mut sequences, standards): (Vec<Sequence>, Vec<Sequence>) = all.into_iter().partition(|q| !is_standard(q));
@@ -184,6 +210,7 @@ pub fn plan(
         mask_frames,
         dome_flats: s.dome_flats,
         superflat_frames,
+        held,
         out_of_file_handles: s.out_of_file_handles,
     }
 }

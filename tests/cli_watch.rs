@@ -1,0 +1,297 @@
+//! `sofipol watch`: a night reduced while its frames arrive. Frames are copied into a
+//! followed folder one by one (a file half-written for a while, an aborted template, the
+//! standards after the targets, a restart, Ctrl-C), and the final catalog is compared with
+//! the one `sofipol night` writes on the same frames.
+//!
+//! `SOFIPOL_BIN=/path/to/sofipol cargo test --test cli_watch` runs these tests against
+//! another build.
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Stdio};
+use std::time::{Duration, Instant};
+
+use common::*;
+use serde_json::Value;
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// A 2-binary night (Alpha, Beta: 2 orientations x 3 dithers, TPL NEXP 6) with an
+/// unpolarized and a polarized standard and the instrumental effects they calibrate, in
+/// `dir/night`.
+fn night_with_standards(dir: &Path) -> PathBuf {
+    let n = dir.join("night");
+    let scene = dir.join("scene.toml");
+    std::fs::write(
+        &scene,
+        format!(
+            "name = \"live\"\nseed = 11\neffects = [\"psf\", \"sky\", \"strips\", \"photon_noise\", \"read_noise\", \
+             \"throughput\", \"instrumental_polarization\", \"analyzer_angle\"]\n\
+             [observation]\norientations_deg = [0.0, 45.0]\ndithers = 3\n[psf]\nkind = \"moffat\"\nfwhm_arcsec = 0.8\n\
+             [throughput]\nt_e = 0.97\n[instrumental_polarization]\np = 0.003\nangle_deg = 0.0\n\
+             [analyzer_angle]\nzero_point_deg = 3.0\n\
+             [[standard]]\nname = \"HD 64299\"\nflux = 150000.0\n\
+             [[standard]]\nname = \"HD 204827\"\nflux = 150000.0\np = 0.0088\ngamma_deg = 58.7\n{ALPHA_BETA}"
+        ),
+    )
+    .unwrap();
+    let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&n), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_file(n.join("truth.json")).unwrap();
+    n
+}
+
+/// The frames of the night whose name holds `part`, sorted.
+fn frames(n: &Path, part: &str) -> Vec<PathBuf> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(n)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.file_name().unwrap().to_str().unwrap().contains(part))
+        .collect();
+    v.sort();
+    assert!(!v.is_empty(), "no frames with '{part}' in {}", n.display());
+    v
+}
+
+/// Start `sofipol watch DIR -o OUT ARGS` (stdout and stderr captured).
+fn start_watch(dir: &Path, out: &Path, args: &[&str]) -> Child {
+    sofipol()
+        .args(["watch", s(dir), "-o", s(out)])
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start sofipol watch")
+}
+
+/// Wait for the child (at most `limit`), then (exit code, stdout, stderr).
+fn finish(mut child: Child, limit: Duration) -> (i32, String, String) {
+    let t = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if t.elapsed() > limit {
+            child.kill().ok();
+            let o = child.wait_with_output().unwrap();
+            panic!(
+                "sofipol watch still running after {limit:?}: {}\n{}",
+                String::from_utf8_lossy(&o.stdout),
+                String::from_utf8_lossy(&o.stderr)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let o = child.wait_with_output().unwrap();
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stdout).into(),
+        String::from_utf8_lossy(&o.stderr).into(),
+    )
+}
+
+/// Copy `files` into `dir`, one every `every`.
+fn copy_slowly(files: &[PathBuf], dir: &Path, every: Duration) {
+    for f in files {
+        std::fs::copy(f, dir.join(f.file_name().unwrap())).unwrap();
+        std::thread::sleep(every);
+    }
+}
+
+/// `sofipol night` on `dir`: the catalog.
+fn night_catalog(dir: &Path, out: &Path) -> Value {
+    let (code, _, err) = run(&["night", s(dir), "-o", s(out), "-q", "--no-png"]);
+    assert!(code == 0 || code == 2, "{err}");
+    json(out)
+}
+
+/// Targets and failures equal (the provenance differs by command line and times).
+fn assert_same_reduction(live: &Value, night: &Value) {
+    assert_eq!(live["failures"], night["failures"], "failures differ");
+    let (a, b) = (
+        live["targets"].as_array().unwrap(),
+        night["targets"].as_array().unwrap(),
+    );
+    assert_eq!(a.len(), b.len(), "targets: {} live, {} night", a.len(), b.len());
+    for (x, y) in a.iter().zip(b) {
+        assert_eq!(x, y, "target {} differs from night's", x["object"]);
+    }
+}
+
+#[test]
+fn frames_arriving_one_by_one_give_the_nights_catalog_and_late_standards_recalibrate() {
+    let d = tempfile::tempdir().unwrap();
+    let n = night_with_standards(d.path());
+    let live = d.path().join("live");
+    std::fs::create_dir(&live).unwrap();
+    let out = d.path().join("watch.json");
+    let child = start_watch(&live, &out, &["--exit-when-idle", "2", "-v"]);
+    std::thread::sleep(Duration::from_millis(300));
+    let alpha = frames(&n, "_Alpha_");
+    let beta = frames(&n, "_Beta_");
+    let standards = frames(&n, "_HD_");
+    // Alpha, then Beta's first frame half-written for 1.5 s (a frame being written by
+    // the instrument must be waited for, not failed), then the rest, then the standards.
+    copy_slowly(&alpha, &live, Duration::from_millis(100));
+    let first = &beta[0];
+    let bytes = std::fs::read(first).unwrap();
+    let target = live.join(first.file_name().unwrap());
+    std::fs::write(&target, &bytes[..bytes.len() / 2]).unwrap();
+    std::thread::sleep(Duration::from_millis(1500));
+    {
+        use std::io::Write;
+        let mut f = std::fs::OpenOptions::new().append(true).open(&target).unwrap();
+        f.write_all(&bytes[bytes.len() / 2..]).unwrap();
+    }
+    copy_slowly(&beta[1..], &live, Duration::from_millis(100));
+    std::thread::sleep(Duration::from_millis(1500));
+    copy_slowly(&standards, &live, Duration::from_millis(100));
+    let (code, stdout, stderr) = finish(child, Duration::from_secs(120));
+    assert!(code == 0 || code == 2, "exit {code}: {stderr}");
+    // One line per target when it completes, naming P/sigma of each component.
+    for obj in ["Alpha ok", "Beta ok"] {
+        assert_eq!(
+            stdout.lines().filter(|l| l.contains(obj)).count(),
+            1,
+            "{obj}:\n{stdout}\n{stderr}"
+        );
+    }
+    assert!(stdout.contains("P/sig"), "{stdout}");
+    // The standards arrived after both targets: the line says they re-calibrated them.
+    assert!(
+        stdout
+            .lines()
+            .any(|l| l.contains("earlier target(s) updated") && l.contains("standard(s) arrived")),
+        "no re-calibration line:\n{stdout}\n{stderr}"
+    );
+    assert!(
+        stderr.contains("still being written"),
+        "the half-written frame was not waited for:\n{stderr}"
+    );
+    let w = json(&out);
+    let night = night_catalog(&live, &d.path().join("night.json"));
+    assert_same_reduction(&w, &night);
+    assert!(w["failures"].as_array().unwrap().is_empty(), "{}", w["failures"]);
+    // Calibrated by the standards: no component flagged uncalibrated.
+    for t in w["targets"].as_array().unwrap() {
+        for c in t["components"].as_array().unwrap() {
+            assert!(
+                !c["flags"].as_array().unwrap().iter().any(|f| f == "uncalibrated"),
+                "{}",
+                t["object"]
+            );
+        }
+    }
+}
+
+#[test]
+fn an_aborted_template_is_reduced_after_the_time_out_and_ctrl_c_leaves_a_complete_catalog() {
+    let d = tempfile::tempdir().unwrap();
+    let n = night(d.path());
+    let live = d.path().join("live");
+    std::fs::create_dir(&live).unwrap();
+    let out = d.path().join("watch.json");
+    let alpha = frames_of(&n, "Alpha");
+    let beta = frames_of(&n, "Beta");
+    // Alpha aborted after 4 of its 6 frames; Beta complete.
+    copy_slowly(&alpha[..4], &live, Duration::ZERO);
+    copy_slowly(&beta, &live, Duration::ZERO);
+    let t0 = Instant::now();
+    let child = start_watch(&live, &out, &["--template-timeout", "3", "--exit-when-idle", "1", "-v"]);
+    let (code, stdout, stderr) = finish(child, Duration::from_secs(120));
+    assert!(t0.elapsed() >= Duration::from_secs(3), "did not wait for the time-out");
+    assert!(code == 0 || code == 2, "exit {code}: {stderr}");
+    let beta_line = stdout.find("Beta ok").unwrap_or_else(|| panic!("{stdout}"));
+    let alpha_line = stdout.find("Alpha").unwrap_or_else(|| panic!("{stdout}"));
+    assert!(beta_line < alpha_line, "Alpha reduced before its time-out:\n{stdout}");
+    assert!(stderr.contains("waiting for Alpha"), "{stderr}");
+    let w = json(&out);
+    let a = w["targets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|t| t["object"] == "Alpha")
+        .unwrap();
+    assert!(a["flags"].to_string().contains("4 of 6 exposures"), "{}", a["flags"]);
+    assert_same_reduction(&w, &night_catalog(&live, &d.path().join("night.json")));
+
+    // Ctrl-C: a template still arriving is reduced as it is, the catalog is whole.
+    let live2 = d.path().join("live2");
+    std::fs::create_dir(&live2).unwrap();
+    let out2 = d.path().join("watch2.json");
+    copy_slowly(&beta, &live2, Duration::ZERO);
+    copy_slowly(&alpha[..2], &live2, Duration::ZERO);
+    let child = start_watch(&live2, &out2, &["--template-timeout", "1000"]);
+    let t = Instant::now();
+    while !out2.exists() && t.elapsed() < Duration::from_secs(60) {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert_eq!(
+        json(&out2)["targets"].as_array().unwrap().len(),
+        1,
+        "only Beta is complete"
+    );
+    let st = std::process::Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let (code, _, stderr) = finish(child, Duration::from_secs(60));
+    assert!(code == 0 || code == 2, "exit {code}: {stderr}");
+    let w2 = json(&out2);
+    assert_eq!(w2["targets"].as_array().unwrap().len(), 2, "{stderr}");
+    assert_same_reduction(&w2, &night_catalog(&live2, &d.path().join("night2.json")));
+}
+
+#[test]
+fn a_restart_resumes_from_the_catalog_without_reducing_again() {
+    let d = tempfile::tempdir().unwrap();
+    let n = night(d.path());
+    let live = d.path().join("live");
+    std::fs::create_dir(&live).unwrap();
+    let out = d.path().join("watch.json");
+    copy_slowly(&frames_of(&n, "Alpha"), &live, Duration::ZERO);
+    let (code, stdout, stderr) = finish(
+        start_watch(&live, &out, &["--exit-when-idle", "1"]),
+        Duration::from_secs(60),
+    );
+    assert!(code == 0 || code == 2, "{stderr}");
+    assert!(stdout.contains("Alpha ok"), "{stdout}");
+    let before = json(&out);
+
+    // Restarted with nothing new: nothing reduced, nothing reported again.
+    let (code, stdout, stderr) = finish(
+        start_watch(&live, &out, &["--exit-when-idle", "1", "-v"]),
+        Duration::from_secs(60),
+    );
+    assert!(code == 0 || code == 2, "{stderr}");
+    assert!(stderr.contains("resuming from"), "{stderr}");
+    assert!(stderr.contains("0 template(s) reduced, 1 reused"), "{stderr}");
+    assert!(!stdout.contains("Alpha ok"), "reported again:\n{stdout}");
+    assert_eq!(json(&out)["targets"], before["targets"]);
+
+    // Restarted while Beta arrives: Beta is reduced and reported; the catalog ends equal
+    // to night's.
+    let child = start_watch(&live, &out, &["--exit-when-idle", "2"]);
+    std::thread::sleep(Duration::from_millis(500));
+    copy_slowly(&frames_of(&n, "Beta"), &live, Duration::from_millis(100));
+    let (code, stdout, stderr) = finish(child, Duration::from_secs(60));
+    assert!(code == 0 || code == 2, "{stderr}");
+    assert!(stdout.contains("Beta ok") && !stdout.contains("Alpha ok"), "{stdout}");
+    assert_same_reduction(&json(&out), &night_catalog(&live, &d.path().join("night.json")));
+}
+
+#[test]
+fn polling_finds_frames_too() {
+    let d = tempfile::tempdir().unwrap();
+    let n = night(d.path());
+    let live = d.path().join("live");
+    std::fs::create_dir(&live).unwrap();
+    let out = d.path().join("watch.json");
+    let child = start_watch(&live, &out, &["--poll", "0.2", "--exit-when-idle", "2"]);
+    std::thread::sleep(Duration::from_millis(300));
+    copy_slowly(&frames_of(&n, "Beta"), &live, Duration::from_millis(50));
+    let (code, stdout, stderr) = finish(child, Duration::from_secs(60));
+    assert!(code == 0 || code == 2, "{stderr}");
+    assert!(stdout.contains("Beta ok"), "{stdout}\n{stderr}");
+    assert!(stderr.contains("polling every 0.2 s"), "{stderr}");
+}
