@@ -62,7 +62,8 @@ fn observation_order(files: &[PathBuf]) -> anyhow::Result<Vec<Frame>> {
     Ok(frames.into_iter().map(|(_, f)| f).collect())
 }
 
-/// Read the catalog every 20 ms until `stop`: when each sequence id first appeared.
+/// Read the catalog every 20 ms until `stop`: when each sequence id first appeared (a
+/// target, or a standard in the calibration's `standards`).
 fn monitor(catalog: PathBuf, t0: Instant, stop: Arc<AtomicBool>, seen: Arc<Mutex<HashMap<String, f64>>>) {
     while !stop.load(Ordering::Relaxed) {
         if let Some(v) = std::fs::read_to_string(&catalog)
@@ -71,7 +72,8 @@ fn monitor(catalog: PathBuf, t0: Instant, stop: Arc<AtomicBool>, seen: Arc<Mutex
         {
             let now = t0.elapsed().as_secs_f64();
             let mut seen = seen.lock().unwrap_or_else(|e| e.into_inner());
-            for t in v["targets"].as_array().into_iter().flatten() {
+            let standards = v["standards"].as_array().into_iter().flatten();
+            for t in v["targets"].as_array().into_iter().flatten().chain(standards) {
                 if let Some(id) = t["sequence"].as_str() {
                     seen.entry(id.to_string()).or_insert(now);
                 }

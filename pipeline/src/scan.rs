@@ -228,7 +228,13 @@ pub fn scan(roots: &[PathBuf], profile: &Profile) -> (Scan, Vec<PathBuf>) {
 /// [`scan`] of files already listed ([`list`]; live reduction lists only the files that
 /// are complete).
 pub fn scan_listing(l: Listing, profile: &Profile) -> (Scan, Vec<PathBuf>) {
-    let mut s = classify_all(&l.files, profile);
+    scan_listing_with(l, profile, &sofipol_calib::fits::read_header)
+}
+
+/// [`scan_listing`] with the header reader given (live reduction keeps the headers it has
+/// read).
+pub fn scan_listing_with(l: Listing, profile: &Profile, read_header: &ReadHeader<'_>) -> (Scan, Vec<PathBuf>) {
+    let mut s = classify_with(&l.files, profile, read_header);
     s.unreadable.extend(l.unreadable_dirs);
     let (science, dups) = drop_duplicate_exposures(std::mem::take(&mut s.science));
     s.science = science;
@@ -292,10 +298,10 @@ pub fn classify_all(files: &[PathBuf], profile: &Profile) -> Scan {
 }
 
 /// The header reader of [`classify_all`] (tests inject errors with it).
-type ReadHeader = dyn Fn(&Path) -> sofipol_calib::Result<sofipol_calib::Header> + Sync;
+pub type ReadHeader<'a> = dyn Fn(&Path) -> sofipol_calib::Result<sofipol_calib::Header> + Sync + 'a;
 
 /// [`classify_all`] with the header reader given.
-pub fn classify_with(files: &[PathBuf], profile: &Profile, read_header: &ReadHeader) -> Scan {
+pub fn classify_with(files: &[PathBuf], profile: &Profile, read_header: &ReadHeader<'_>) -> Scan {
     use rayon::prelude::*;
     let results: Vec<(PathBuf, sofipol_calib::Result<(Classification, bool)>)> = files
         .par_iter()

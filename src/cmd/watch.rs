@@ -143,12 +143,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mut last: Option<Catalog> = None;
     let mut calibration_lines = Vec::new();
     loop {
-        let woke = wait_for_events(&rx, Duration::from_millis(250));
+        let wait = if live.wants_update() { Duration::ZERO } else { Duration::from_millis(250) };
+        let woke = wait_for_events(&rx, wait);
         let finish = stop.load(Ordering::SeqCst);
         if woke {
             last_change = Instant::now();
         }
-        if woke || finish || last_scan.elapsed() >= rescan {
+        if woke || finish || live.wants_update() || last_scan.elapsed() >= rescan {
             last_scan = Instant::now();
             if let Some(u) = pool.install(|| live.update(finish)) {
                 last_change = Instant::now();

@@ -10,8 +10,11 @@
 //! standard arriving late re-calibrates every target. When every template is complete
 //! the catalog is the one `sofipol night` writes on the same frames.
 use std::collections::{BTreeMap, HashMap};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 use std::time::{Duration, Instant, SystemTime};
+
+use sofipol_calib::Header;
 
 use crate::catalog::{Catalog, Target};
 use crate::night::{self, CacheCounts, NightCache, NightSetup, RunOptions};
@@ -75,6 +78,10 @@ pub struct Held {
 
 /// What one update did.
 pub struct Update {
+    /// Reduced with the mask and flats of the update before, although new frames change
+    /// them: the next update rebuilds them and reduces every target again
+    /// ([`LiveNight::wants_update`]).
+    pub provisional: bool,
     /// The catalog of the complete templates (provenance included).
     pub catalog: Catalog,
     /// Targets reduced for the first time, in catalog order.
@@ -113,6 +120,36 @@ pub struct LiveNight {
     held: Vec<Held>,
     seen: Seen,
     dirty: bool,
+    /// The last update was provisional: this one rebuilds the mask and flats.
+    rebuild: bool,
+    headers: HeaderCache,
+}
+
+/// Headers read, by path, with the size and time of the file they were read from.
+#[derive(Default)]
+struct HeaderCache(Mutex<HashMap<PathBuf, (u64, Option<SystemTime>, Header)>>);
+
+impl HeaderCache {
+    /// The header of `p`: the one read before when the file is unchanged, else read now.
+    fn read(&self, p: &Path) -> sofipol_calib::Result<Header> {
+        let meta = std::fs::metadata(p).ok();
+        let stamp = (meta.as_ref().map(|m| m.len()), meta.as_ref().and_then(|m| m.modified().ok()));
+        if let (Some(len), modified) = stamp {
+            if let Some((l, m, h)) = self.0.lock().unwrap_or_else(|e| e.into_inner()).get(p) {
+                if *l == len && *m == modified {
+                    return Ok(h.clone());
+                }
+            }
+        }
+        let h = sofipol_calib::fits::read_header(p)?;
+        if let (Some(len), modified) = stamp {
+            self.0
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .insert(p.to_path_buf(), (len, modified, h.clone()));
+        }
+        Ok(h)
+    }
 }
 
 impl LiveNight {
@@ -129,6 +166,8 @@ impl LiveNight {
             held: Vec::new(),
             seen: Seen::default(),
             dirty: true,
+            rebuild: false,
+            headers: HeaderCache::default(),
         }
     }
 
@@ -202,6 +241,8 @@ impl LiveNight {
             keep
         };
         let setup = &self.setup;
+        let headers = &self.headers;
+        let read_header = |p: &Path| headers.read(p);
         let plan = night::plan_listing(
             ready_listing,
             &setup.profile,
@@ -209,9 +250,19 @@ impl LiveNight {
             None,
             |q| crate::calibration::is_standard_sequence(q, &setup.profile),
             keep,
+            &read_header,
         );
         self.templates = templates.into_inner();
         self.held = held.into_inner();
+        // New frames for the mask or the flats: first a provisional run with those held
+        // (a new target's numbers at once), then, at the next update, the run that rebuilds
+        // them and reduces every target again.
+        let provisional = !self.rebuild
+            && self.cache.holds_any()
+            && !self
+                .cache
+                .holds(&plan.mask_frames, &plan.dome_flats, &plan.superflat_frames);
+        self.cache.hold(provisional);
         let opts = RunOptions {
             night_mask: true,
             inputs: self.roots.clone(),
@@ -219,6 +270,9 @@ impl LiveNight {
             ..Default::default()
         };
         let out = night::run_night(&plan, setup, &opts);
+        self.cache.hold(false);
+        self.dirty = provisional;
+        self.rebuild = provisional;
         self.cache.prune();
         let counts = self.cache.take_counts();
         let mut catalog = out.catalog;
@@ -232,6 +286,7 @@ impl LiveNight {
             catalog: Some(catalog.clone()),
         };
         Some(Update {
+            provisional,
             catalog,
             new_targets,
             changed,
@@ -241,6 +296,12 @@ impl LiveNight {
             calibration_lines: out.summary.lines,
             seconds: t0.elapsed().as_secs_f64(),
         })
+    }
+
+    /// Whether the next [`LiveNight::update`] has work whatever arrives (after a
+    /// provisional update, or when files changed).
+    pub fn wants_update(&self) -> bool {
+        self.dirty
     }
 
     /// Whether every template seen is reduced and no file is being written.

@@ -8,7 +8,7 @@
 //! dome flat changes the flats, every target is reduced again.
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Mutex;
 
 use serde::{Deserialize, Serialize};
@@ -52,6 +52,8 @@ pub struct NightCache {
     used: Mutex<HashSet<u64>>,
     reduced: AtomicUsize,
     reused: AtomicUsize,
+    /// Keep the mask and flats held even when their frames changed ([`NightCache::hold`]).
+    hold: AtomicBool,
 }
 
 /// Targets reduced and reused since the last call of [`NightCache::take_counts`].
@@ -97,17 +99,57 @@ impl NightCache {
             used: Mutex::new(HashSet::new()),
             reduced: AtomicUsize::new(0),
             reused: AtomicUsize::new(0),
+            hold: AtomicBool::new(false),
         }
     }
 
+    /// While `on`, the mask and flats held are used even when their frames changed: a
+    /// provisional run that gives a new target's numbers at once, before the run that
+    /// rebuilds them and reduces every target again.
+    pub fn hold(&self, on: bool) {
+        self.hold.store(on, Ordering::Relaxed);
+    }
+
+    /// Whether a mask and flats are held, and they are those of these frames.
+    pub fn holds(
+        &self,
+        mask_frames: &[PathBuf],
+        dome_flats: &[PathBuf],
+        superflat_frames: &BTreeMap<String, Vec<PathBuf>>,
+    ) -> bool {
+        let mask = self.mask.lock().unwrap_or_else(|e| e.into_inner()).as_ref().map(|m| m.0);
+        let flats = self.flats.lock().unwrap_or_else(|e| e.into_inner()).as_ref().map(|f| f.0);
+        mask == Some(self.mask_key(mask_frames)) && flats == Some(self.flats_key(dome_flats, superflat_frames))
+    }
+
+    /// Whether a mask and flats are held (whatever their frames).
+    pub fn holds_any(&self) -> bool {
+        self.mask.lock().unwrap_or_else(|e| e.into_inner()).is_some()
+            && self.flats.lock().unwrap_or_else(|e| e.into_inner()).is_some()
+    }
+
+    fn mask_key(&self, frames: &[PathBuf]) -> u64 {
+        files_key(self.settings ^ 0x6d61_736b, frames)
+    }
+
+    fn flats_key(&self, dome_flats: &[PathBuf], superflat_frames: &BTreeMap<String, Vec<PathBuf>>) -> u64 {
+        let named = superflat_frames
+            .iter()
+            .flat_map(|(filter, v)| std::iter::once(PathBuf::from(format!("filter {filter}"))).chain(v.iter().cloned()));
+        files_key(
+            self.settings ^ 0x666c_6174,
+            dome_flats.iter().cloned().chain(std::iter::once("superflat".into())).chain(named),
+        )
+    }
+
     /// The night's bad-pixel mask from these frames: the cached one when the frames are
-    /// unchanged, else `compute()` (kept). Returns the mask and its key.
+    /// unchanged (or while held), else `compute()` (kept). Returns the mask and its key.
     pub fn mask(&self, frames: &[PathBuf], compute: impl FnOnce() -> Option<NightMask>) -> (Option<NightMask>, u64) {
-        let key = files_key(self.settings ^ 0x6d61_736b, frames);
+        let key = self.mask_key(frames);
         let mut slot = self.mask.lock().unwrap_or_else(|e| e.into_inner());
         if let Some((k, m)) = slot.as_ref() {
-            if *k == key {
-                return (m.clone(), key);
+            if *k == key || self.hold.load(Ordering::Relaxed) {
+                return (m.clone(), *k);
             }
         }
         let m = compute();
@@ -115,29 +157,19 @@ impl NightCache {
         (m, key)
     }
 
-    /// The night's flats from these frames: cached when unchanged, else `compute()`.
-    /// Returns the flats and their key.
+    /// The night's flats from these frames: cached when unchanged (or while held), else
+    /// `compute()`. Returns the flats and their key.
     pub fn flats(
         &self,
         dome_flats: &[PathBuf],
         superflat_frames: &BTreeMap<String, Vec<PathBuf>>,
         compute: impl FnOnce() -> NightFlats,
     ) -> (NightFlats, u64) {
-        let named = superflat_frames.iter().flat_map(|(filter, v)| {
-            std::iter::once(PathBuf::from(format!("filter {filter}"))).chain(v.iter().cloned())
-        });
-        let key = files_key(
-            self.settings ^ 0x666c_6174,
-            dome_flats
-                .iter()
-                .cloned()
-                .chain(std::iter::once("superflat".into()))
-                .chain(named),
-        );
+        let key = self.flats_key(dome_flats, superflat_frames);
         let mut slot = self.flats.lock().unwrap_or_else(|e| e.into_inner());
         if let Some((k, f)) = slot.as_ref() {
-            if *k == key {
-                return (f.clone(), key);
+            if *k == key || self.hold.load(Ordering::Relaxed) {
+                return (f.clone(), *k);
             }
         }
         let f = compute();

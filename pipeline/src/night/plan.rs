@@ -169,12 +169,13 @@ pub fn plan(
         shard,
         is_standard,
         |_| true,
+        &sofipol_calib::fits::read_header,
     )
 }
 
 /// [`plan`] of files already listed, keeping only the sequences `keep` accepts (the others
 /// are `held`, and give no frame to the mask or the superflat): with every file listed
-/// and every sequence kept, exactly [`plan`].
+/// and every sequence kept, exactly [`plan`]. Headers are read with `read_header`.
 pub fn plan_listing(
     listing: scan::Listing,
     profile: &Profile,
@@ -182,8 +183,9 @@ pub fn plan_listing(
     shard: Option<Shard>,
     is_standard: impl Fn(&Sequence) -> bool,
     keep: impl Fn(&Sequence) -> bool,
+    read_header: &scan::ReadHeader<'_>,
 ) -> NightPlan {
-    let (s, files) = scan::scan_listing(listing, profile);
+    let (s, files) = scan::scan_listing_with(listing, profile, read_header);
     let n_files = files.len();
     let mut failures: Vec<Failure> = s.unreadable;
     failures.extend(s.duplicates);
