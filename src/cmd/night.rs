@@ -216,7 +216,7 @@ fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, figur
 /// The night's summary on stdout: the targets, their status, the inputs not used
 /// (`scan_failures` of them found while scanning), the wall time, where the outputs are.
 fn print_summary(cat: &Catalog, scan_failures: usize, wall: f64, output: &Path, png_dir: Option<&Path>) {
-    print!("{}", super::report::summary(cat));
+    print!("{}", super::summary::summary(cat));
     let count = |s: Status| cat.targets.iter().filter(|t| t.status == s).count();
     println!(
         "{} targets: {} ok, {} partial, {} failed; {} inputs not used ({} found while scanning, {} during the reduction); {:.2} s wall -> {}",
