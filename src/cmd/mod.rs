@@ -8,6 +8,7 @@ pub mod export;
 pub mod mc;
 pub mod merge;
 pub mod night;
+pub mod report;
 pub mod setup;
 pub mod simulate;
 pub mod stats;

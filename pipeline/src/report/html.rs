@@ -274,11 +274,11 @@ pub fn image(h: &mut String, caption: &str, png: &[u8]) {
 
 fn target_figures(h: &mut String, input: &ReportInput) {
     h.push_str("<section id=\"figures\"><h2>Per-target figures</h2>\n");
-    let _ = writeln!(
-        h,
-        "<p class=\"muted\">From <code>{}</code>.</p>",
-        escape(&input.figures_dir)
-    );
+    let Some(dir) = &input.figures_dir else {
+        h.push_str("<p>None: the night was reduced without figures (<code>--no-png</code>).</p>\n</section>\n");
+        return;
+    };
+    let _ = writeln!(h, "<p class=\"muted\">From <code>{}</code>.</p>", escape(dir));
     if input.target_figures.is_empty() {
         h.push_str("<p>No per-target figures were found (the night was reduced with <code>--no-png</code>, or its products folder is elsewhere: <code>sofipol report --figures DIR</code>).</p>\n");
     } else {

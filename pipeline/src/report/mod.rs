@@ -61,8 +61,8 @@ pub struct ReportInput {
     pub catalog: Catalog,
     /// Where it was read from (as given).
     pub catalog_path: String,
-    /// The folder the per-target figures were looked for in.
-    pub figures_dir: String,
+    /// The folder the per-target figures were looked for in (`None`: not looked for).
+    pub figures_dir: Option<String>,
     /// Per-target figures by sequence id (those found).
     pub target_figures: BTreeMap<String, Vec<u8>>,
     /// The statistics, or why they could not be computed.
@@ -71,32 +71,36 @@ pub struct ReportInput {
     pub command_line: String,
 }
 
-/// Gather the page's content: the figures `<slug(sequence id)>.png` found in `figures_dir`
-/// (the night's products folder, `night::products_dir(catalog)`, by default), and the
+/// Gather the page's content: the figures `<slug(sequence id)>.png` (else
+/// `<slug(object)>.png`) found in `figures_dir`
+/// (the night's products folder, `night::products_dir(catalog)`, by default; `None`: the
+/// night was reduced without figures), and the
 /// statistics of the sample run with `opts` (in the current rayon pool). A figure that cannot
 /// be read is left out; statistics that cannot be computed are replaced by the reason.
 pub fn collect(
     catalog: Catalog,
     catalog_path: &Path,
-    figures_dir: &Path,
+    figures_dir: Option<&Path>,
     opts: &setup::Options,
     command_line: String,
 ) -> ReportInput {
     let mut target_figures = BTreeMap::new();
-    for t in &catalog.targets {
+    for (t, dir) in catalog.targets.iter().filter_map(|t| Some((t, figures_dir?))) {
         let id = t.sequence_id();
-        let path = figures_dir.join(format!("{}.png", crate::night::slug(id)));
-        if let Ok(png) = std::fs::read(&path) {
-            if png.starts_with(b"\x89PNG\r\n\x1a\n") {
-                target_figures.insert(id.to_string(), png);
-            }
+        // `night` names a figure by the sequence id, `demo` and `target` by the object.
+        let png = [id, t.object.as_str()].iter().find_map(|name| {
+            let png = std::fs::read(dir.join(format!("{}.png", crate::night::slug(name)))).ok()?;
+            png.starts_with(b"\x89PNG\r\n\x1a\n").then_some(png)
+        });
+        if let Some(png) = png {
+            target_figures.insert(id.to_string(), png);
         }
     }
     let stats = statistics(&catalog, &catalog_path.display().to_string(), opts).map_err(|e| e.to_string());
     ReportInput {
         catalog,
         catalog_path: catalog_path.display().to_string(),
-        figures_dir: figures_dir.display().to_string(),
+        figures_dir: figures_dir.map(|d| d.display().to_string()),
         target_figures,
         stats,
         command_line,

@@ -1,5 +1,6 @@
 // Self-test of the page, run only when the URL has ?selftest=1 or #selftest (the browser
-// test opens it so in headless Chromium and reads the JSON written into <pre id="selftest">).
+// test opens it so in headless Chromium and reads the JSON written into the pre element
+// of id "selftest").
 // Not part of the page's behaviour: it records errors, then on load exercises the page's
 // own sorting and filtering code as a reader would (clicks, typing) and reports what it saw.
 (function () {

@@ -27,7 +27,7 @@ fn input(catalog: Catalog, stats: std::result::Result<StatsSection, String>) -> 
     ReportInput {
         catalog,
         catalog_path: "night/catalog.json".into(),
-        figures_dir: "night/catalog_products".into(),
+        figures_dir: Some("night/catalog_products".into()),
         target_figures: Default::default(),
         stats,
         command_line: "sofipol report night/catalog.json".into(),

@@ -1,0 +1,90 @@
+//! `sofipol report CATALOG -o night.html`: the night's self-contained HTML page
+//! (`sofipol_pipeline::report`: summary, targets table, figures, calibration, statistics,
+//! provenance). Also written by `sofipol night --report FILE` after the catalog.
+//!
+//! Exit code 0 when the page was written (also when the statistics could not be computed:
+//! the page says why); 1 on an unreadable catalog or an unwritable output.
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::Context;
+use sofipol_pipeline::catalog::Catalog;
+use sofipol_pipeline::report::{self, DEFAULT_REPORT_PAIRS};
+use sofipol_pipeline::stats::mc::DEFAULT_SEED;
+use sofipol_pipeline::stats::setup;
+
+use super::mc::{parse_count, pool};
+
+/// Arguments of `sofipol report`.
+#[derive(clap::Args, Debug)]
+#[command(after_help = "Examples:\n  sofipol report night1/catalog.json -o night1/night.html\n  \
+                        sofipol report sofipol-demo/catalog.json --figures sofipol-demo/figures -o demo.html")]
+pub struct Args {
+    /// The catalog JSON written by `sofipol night` / `sofipol target`
+    catalog: PathBuf,
+    /// The HTML page to write (atomically)
+    #[arg(short, long, value_name = "FILE", default_value = "night.html")]
+    output: PathBuf,
+    /// Folder of the per-target figures (`<slug of the sequence id>.png`) [default: the
+    /// catalog's products folder, `<dir>/<stem>_products/`, where `night` writes them]
+    #[arg(long, value_name = "DIR")]
+    figures: Option<PathBuf>,
+    /// Monte-Carlo pairs per ISM level of the statistics (1e6 style accepted)
+    #[arg(long, value_name = "N", default_value_t = DEFAULT_REPORT_PAIRS, value_parser = parse_count)]
+    pairs: u64,
+    /// Seed of the Monte Carlo
+    #[arg(long, default_value_t = DEFAULT_SEED)]
+    seed: u64,
+    /// Worker threads; results do not depend on it [default: all cores]
+    #[arg(short, long, value_name = "N")]
+    jobs: Option<usize>,
+    /// Print only errors
+    #[arg(short, long)]
+    quiet: bool,
+}
+
+/// Run `sofipol report`.
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    super::common::check_output(&args.output, &[&args.catalog])?;
+    let catalog = sofipol_pipeline::input::read_catalog(&args.catalog)?;
+    let figures = args
+        .figures
+        .clone()
+        .unwrap_or_else(|| sofipol_pipeline::night::products_dir(&args.catalog));
+    anyhow::ensure!(
+        args.figures.is_none() || figures.is_dir(),
+        "--figures {}: not a folder",
+        figures.display()
+    );
+    let pool = pool(args.jobs)?;
+    pool.install(|| write_page(catalog, &args.catalog, Some(&figures), &args.output, args.pairs, args.seed))?;
+    if !args.quiet {
+        println!("sofipol report: wrote {}", args.output.display());
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Gather the page of `catalog` (read from `catalog_path`; per-target figures from
+/// `figures`, none when `None`; statistics with `pairs` and `seed`, in the current rayon pool) and write it
+/// to `output` atomically, creating its folder.
+pub fn write_page(
+    catalog: Catalog,
+    catalog_path: &Path,
+    figures: Option<&Path>,
+    output: &Path,
+    pairs: u64,
+    seed: u64,
+) -> anyhow::Result<()> {
+    let opts = setup::Options {
+        pairs,
+        seed,
+        ..Default::default()
+    };
+    let command_line = std::env::args().collect::<Vec<_>>().join(" ");
+    let input = report::collect(catalog, catalog_path, figures, &opts, command_line);
+    if let Some(d) = output.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+    }
+    report::write(output, &report::html::render(&input))?;
+    Ok(())
+}
