@@ -174,13 +174,26 @@ fn the_night_report_loads_sorts_filters_and_shows_every_image_in_chromium() {
     let cat = json(&cat_path);
     let rows = rows(&cat);
     let status = |s: &str| rows.iter().filter(|r| r.2 == s).count();
-    assert!(status("ok") >= 2 && status("partial") >= 1 && status("failed") >= 1, "{rows:?}");
+    assert!(
+        status("ok") >= 2 && status("partial") >= 1 && status("failed") >= 1,
+        "{rows:?}"
+    );
 
     let page = dir.path().join("report.html");
-    let (code, out, err) = run(&["report", cat_path.to_str().unwrap(), "-o", page.to_str().unwrap(), "--pairs", "20000"]);
+    let (code, out, err) = run(&[
+        "report",
+        cat_path.to_str().unwrap(),
+        "-o",
+        page.to_str().unwrap(),
+        "--pairs",
+        "20000",
+    ]);
     assert_eq!(code, 0, "{out}\n{err}");
     let html = std::fs::read_to_string(&page).unwrap();
-    assert!(!html.contains("http://") && !html.contains("https://"), "the page refers to the network");
+    assert!(
+        !html.contains("http://") && !html.contains("https://"),
+        "the page refers to the network"
+    );
     let figures = std::fs::read_dir(sofipol_pipeline::night::products_dir(&cat_path))
         .unwrap()
         .filter(|e| e.as_ref().unwrap().path().extension().is_some_and(|x| x == "png"))
@@ -194,7 +207,9 @@ fn the_night_report_loads_sorts_filters_and_shows_every_image_in_chromium() {
         &["--virtual-time-budget=5000".into(), "--dump-dom".into()],
         &url,
     );
-    let start = dom.rfind("<pre id=\"selftest\"").expect("no selftest element in the DOM");
+    let start = dom
+        .rfind("<pre id=\"selftest\"")
+        .expect("no selftest element in the DOM");
     let body = &dom[start + dom[start..].find('>').unwrap() + 1..];
     let text = &body[..body.find("</pre>").unwrap()];
     let st: Value = serde_json::from_str(text).unwrap_or_else(|e| panic!("self-test output {text:?}: {e}"));
@@ -202,7 +217,10 @@ fn the_night_report_loads_sorts_filters_and_shows_every_image_in_chromium() {
     assert_eq!(st["errors"], Value::Array(vec![]), "errors in the page");
     let images = st["images"].as_array().unwrap();
     assert_eq!(images.len(), html.matches("<img ").count());
-    assert!(images.len() > figures, "the night's figures and the statistics' figures: {images:?}");
+    assert!(
+        images.len() > figures,
+        "the night's figures and the statistics' figures: {images:?}"
+    );
     for im in images {
         assert!(im["naturalWidth"].as_u64().unwrap() > 0, "image not decoded: {im}");
     }
@@ -214,7 +232,11 @@ fn the_night_report_loads_sorts_filters_and_shows_every_image_in_chromium() {
     assert_eq!(strings(&st["sort_snr_first"]), up, "first click: P/sigma ascending");
     assert_eq!(st["sort_snr_first_dir"], "ascending");
     let down = sorted(&rows, false);
-    assert_eq!(strings(&st["sort_snr_second"]), down, "second click: P/sigma descending");
+    assert_eq!(
+        strings(&st["sort_snr_second"]),
+        down,
+        "second click: P/sigma descending"
+    );
 
     let failed: Vec<&String> = rows.iter().filter(|r| r.2 == "failed").map(|r| &r.0).collect();
     let kept: Vec<String> = down.iter().filter(|r| !failed.contains(r)).cloned().collect();
@@ -225,18 +247,28 @@ fn the_night_report_loads_sorts_filters_and_shows_every_image_in_chromium() {
     assert_eq!(strings(&st["after_clear"]), down, "filter cleared");
 
     // The screenshot, kept as a test artifact.
-    let artifacts = Path::new(env!("CARGO_TARGET_TMPDIR")).parent().unwrap().join("test-artifacts");
+    let artifacts = Path::new(env!("CARGO_TARGET_TMPDIR"))
+        .parent()
+        .unwrap()
+        .join("test-artifacts");
     std::fs::create_dir_all(&artifacts).unwrap();
     let shot = artifacts.join("report.png");
     let _ = std::fs::remove_file(&shot);
     headless(
         &chromium,
         dir.path(),
-        &["--window-size=1280,2000".into(), format!("--screenshot={}", shot.display())],
+        &[
+            "--window-size=1280,2000".into(),
+            format!("--screenshot={}", shot.display()),
+        ],
         &format!("file://{}", page.display()),
     );
     let png = std::fs::read(&shot).unwrap_or_else(|e| panic!("{}: {e}", shot.display()));
-    assert!(png.starts_with(b"\x89PNG\r\n\x1a\n") && png.len() > 20_000, "{} bytes", png.len());
+    assert!(
+        png.starts_with(b"\x89PNG\r\n\x1a\n") && png.len() > 20_000,
+        "{} bytes",
+        png.len()
+    );
     let width = u32::from_be_bytes(png[16..20].try_into().unwrap());
     assert_eq!(width, 1280, "screenshot width");
     println!("screenshot: {}", shot.display());

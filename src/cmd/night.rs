@@ -101,7 +101,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .with_context(|| format!("writing {}", args.output.display()))?;
     if let Some(r) = &args.report {
         let products = (!args.no_png).then(|| night::products_dir(&args.output));
-        let (pairs, seed) = (sofipol_pipeline::report::DEFAULT_REPORT_PAIRS, sofipol_pipeline::stats::mc::DEFAULT_SEED);
+        let (pairs, seed) = (
+            sofipol_pipeline::report::DEFAULT_REPORT_PAIRS,
+            sofipol_pipeline::stats::mc::DEFAULT_SEED,
+        );
         pool.install(|| super::report::write_page(cat.clone(), &args.output, products.as_deref(), r, pairs, seed))?;
     }
     let wall = t0.elapsed().as_secs_f64();

@@ -17,8 +17,10 @@ use super::mc::{parse_count, pool};
 
 /// Arguments of `sofipol report`.
 #[derive(clap::Args, Debug)]
-#[command(after_help = "Examples:\n  sofipol report night1/catalog.json -o night1/night.html\n  \
-                        sofipol report sofipol-demo/catalog.json --figures sofipol-demo/figures -o demo.html")]
+#[command(
+    after_help = "Examples:\n  sofipol report night1/catalog.json -o night1/night.html\n  \
+                        sofipol report sofipol-demo/catalog.json --figures sofipol-demo/figures -o demo.html"
+)]
 pub struct Args {
     /// The catalog JSON written by `sofipol night` / `sofipol target`
     catalog: PathBuf,
@@ -57,7 +59,16 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         figures.display()
     );
     let pool = pool(args.jobs)?;
-    pool.install(|| write_page(catalog, &args.catalog, Some(&figures), &args.output, args.pairs, args.seed))?;
+    pool.install(|| {
+        write_page(
+            catalog,
+            &args.catalog,
+            Some(&figures),
+            &args.output,
+            args.pairs,
+            args.seed,
+        )
+    })?;
     if !args.quiet {
         println!("sofipol report: wrote {}", args.output.display());
     }

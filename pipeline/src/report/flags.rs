@@ -67,9 +67,15 @@ mod tests {
             Some("The companion was not found: only the primary was measured.")
         );
         let s = explain("p_disagrees_with_table: 4.2 sigma").unwrap();
-        assert!(s.starts_with("The measured P disagrees") && s.ends_with("(4.2 sigma)"), "{s}");
+        assert!(
+            s.starts_with("The measured P disagrees") && s.ends_with("(4.2 sigma)"),
+            "{s}"
+        );
         assert_eq!(explain("some_future_flag"), None);
-        assert_eq!(flag_name("stokes_method_failed: x; fell back to y"), "stokes_method_failed");
+        assert_eq!(
+            flag_name("stokes_method_failed: x; fell back to y"),
+            "stokes_method_failed"
+        );
         // Every entry is a snake_case name (or the one historical phrase) and a sentence.
         for (k, v) in FLAGS {
             assert!(k.chars().all(|c| c.is_ascii_lowercase() || c == '_' || c == ' '), "{k}");

@@ -163,7 +163,11 @@ fn targets_table(h: &mut String, cat: &Catalog) {
         let _ = write!(
             h,
             "<th data-key=\"{key}\"{}><button type=\"button\">{label}</button></th>",
-            if numeric { " data-type=\"num\" class=\"num\"" } else { "" }
+            if numeric {
+                " data-type=\"num\" class=\"num\""
+            } else {
+                ""
+            }
         );
     }
     h.push_str("</tr></thead>\n<tbody>\n");
@@ -198,7 +202,7 @@ fn target_row(h: &mut String, t: &Target, c: Option<&Component>) {
     let st = status_word(t.status);
     let _ = write!(
         h,
-        "<tr data-status=\"{st}\" data-target=\"{}\" data-comp=\"{}\"><td><strong>{}</strong><br><span class=\"muted\">{}</span></td>\
+        "<tr data-status=\"{st}\" data-target=\"{}\" data-comp=\"{}\"><td class=\"obj\"><strong>{}</strong><br><span class=\"muted\">{}</span></td>\
          <td class=\"st-{st}\">{st}</td><td>{}</td>",
         escape(&t.object),
         escape(c.map_or("", |c| &c.name)),

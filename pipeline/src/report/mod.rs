@@ -137,7 +137,8 @@ pub fn statistics(catalog: &Catalog, source: &str, opts: &setup::Options) -> Res
         let p = tmp.path().join("ism_levels.png");
         ism_figure(&p, &report.ism, &sample.delta_gamma_deg(), OBSERVED_BINS, &mc)?;
         figures.push(Image {
-            caption: "Observed Δγ histogram against the predictions of random disks with interstellar polarization".into(),
+            caption: "Observed Δγ histogram against the predictions of random disks with interstellar polarization"
+                .into(),
             png: read(p)?,
         });
     }

@@ -79,7 +79,9 @@ pub fn calibration(h: &mut String, cat: &Catalog) {
 fn flats(h: &mut String, prov: &Value) {
     let mode = text(prov, &["flat", "mode"]).unwrap_or_else(|| "none".into());
     let _ = writeln!(h, "<h3>Flats</h3>\n<p>Mode: <strong>{}</strong>.</p>", escape(&mode));
-    let Some(list) = prov.pointer("/flat/flats").and_then(Value::as_array) else { return };
+    let Some(list) = prov.pointer("/flat/flats").and_then(Value::as_array) else {
+        return;
+    };
     if list.is_empty() {
         return;
     }
@@ -178,7 +180,11 @@ pub fn statistics(h: &mut String, stats: &Result<StatsSection, String>) {
     h.push_str("<section id=\"statistics\"><h2>Alignment statistics (Δγ)</h2>\n");
     let s = match stats {
         Err(e) => {
-            let _ = writeln!(h, "<p>The statistics could not be computed: {}</p>\n</section>", escape(e));
+            let _ = writeln!(
+                h,
+                "<p>The statistics could not be computed: {}</p>\n</section>",
+                escape(e)
+            );
             return;
         }
         Ok(s) => s,
@@ -270,7 +276,12 @@ pub fn statistics(h: &mut String, stats: &Result<StatsSection, String>) {
     if !s.sample.excluded.is_empty() {
         h.push_str("<h3>Excluded from the sample</h3>\n<ul>\n");
         for e in &s.sample.excluded {
-            let _ = writeln!(h, "<li><strong>{}</strong>: {}</li>", escape(&e.object), escape(&e.reason));
+            let _ = writeln!(
+                h,
+                "<li><strong>{}</strong>: {}</li>",
+                escape(&e.object),
+                escape(&e.reason)
+            );
         }
         h.push_str("</ul>\n");
     }

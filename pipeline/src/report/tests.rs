@@ -8,7 +8,10 @@ use crate::stokes::inversion::{Debias, LinearPolarization};
 const HOSTILE: &str = "<script>alert(\"x\")</script> & 'q' </td></table>";
 
 fn comp(name: &str, q: f64, u: f64, sigma: f64, flags: &[&str]) -> Component {
-    let mut c = Component::new(name, LinearPolarization::from_qu(q, u, sigma, sigma, Debias::WardleKronberg).pol);
+    let mut c = Component::new(
+        name,
+        LinearPolarization::from_qu(q, u, sigma, sigma, Debias::WardleKronberg).pol,
+    );
     c.passes_cut = c.p / c.sigma_p > 3.0;
     c.snr = Some(c.p / c.sigma_p);
     c.flags = flags.iter().map(|f| f.to_string()).collect();
@@ -56,7 +59,11 @@ fn assert_balanced(page: &str) {
             .to_ascii_lowercase();
         rest = &rest[end + 1..];
         if closing {
-            assert_eq!(stack.pop().as_deref(), Some(name.as_str()), "</{name}> closes the wrong element");
+            assert_eq!(
+                stack.pop().as_deref(),
+                Some(name.as_str()),
+                "</{name}> closes the wrong element"
+            );
         } else if !VOID.contains(&name.as_str()) {
             if name == "script" || name == "style" {
                 let close = format!("</{name}>");
@@ -90,7 +97,14 @@ fn hostile_names_are_escaped_everywhere() {
     let mut failed = Target::new(HOSTILE, Status::Failed);
     failed.error = Some(format!("no sources in {HOSTILE}"));
     let mut cat = Catalog {
-        targets: vec![binary(HOSTILE, comp("A\"><b>", 0.03, 0.01, 0.002, &[HOSTILE]), comp("B", 0.0, 0.04, 0.002, &[])), failed],
+        targets: vec![
+            binary(
+                HOSTILE,
+                comp("A\"><b>", 0.03, 0.01, 0.002, &[HOSTILE]),
+                comp("B", 0.0, 0.04, 0.002, &[]),
+            ),
+            failed,
+        ],
         failures: vec![Failure {
             file: format!("{HOSTILE}.fits"),
             error: HOSTILE.into(),
@@ -116,7 +130,11 @@ fn every_target_and_component_has_a_row_with_its_numbers_in_percent_and_degrees(
     // P = 0.05 (q = 0.03, u = 0.04), gamma = 26.565 deg; B: P = 0.02, gamma = 45 deg.
     let a = comp("A", 0.03, 0.04, 0.001, &[]);
     let b = comp("B", 0.0, 0.02, 0.001, &[]);
-    let mut partial = binary("Beta", comp("A", -0.01, 0.0, 0.001, &[]), comp("B", 0.0, -0.001, 0.001, &["low_snr"]));
+    let mut partial = binary(
+        "Beta",
+        comp("A", -0.01, 0.0, 0.001, &[]),
+        comp("B", 0.0, -0.001, 0.001, &["low_snr"]),
+    );
     partial.status = Status::Partial;
     let mut failed = Target::new("Gamma", Status::Failed);
     failed.error = Some("primary not found".into());
@@ -125,7 +143,13 @@ fn every_target_and_component_has_a_row_with_its_numbers_in_percent_and_degrees(
         ..Default::default()
     };
     let page = render(&input(cat, Err("not run".into())));
-    for (t, c) in [("Alpha", "A"), ("Alpha", "B"), ("Beta", "A"), ("Beta", "B"), ("Gamma", "")] {
+    for (t, c) in [
+        ("Alpha", "A"),
+        ("Alpha", "B"),
+        ("Beta", "A"),
+        ("Beta", "B"),
+        ("Gamma", ""),
+    ] {
         assert_eq!(
             page.matches(&format!("data-target=\"{t}\" data-comp=\"{c}\"")).count(),
             1,
@@ -151,7 +175,13 @@ fn flags_are_explained_in_words_and_unknown_ones_shown_as_they_are() {
     let mut t = binary(
         "Alpha",
         comp("A", 0.03, 0.04, 0.001, &["companion_overlap", "a_flag_from_the_future"]),
-        comp("B", 0.0, 0.02, 0.001, &["stokes_method_failed: no angles; fell back to least_squares"]),
+        comp(
+            "B",
+            0.0,
+            0.02,
+            0.001,
+            &["stokes_method_failed: no angles; fell back to least_squares"],
+        ),
     );
     t.flags = Some(vec!["companion_not_found".into()]);
     let cat = Catalog {

@@ -2,7 +2,9 @@
 //! from the sample (intrinsic P, noise, cut), the models compared with, and the texts of
 //! its figures. `sofipol stats` and the HTML night report (`crate::report`) both call
 //! [`params`] and [`analyse_sample`], so that the two say the same.
-use super::alignment::{analyse, format_p, AlignmentReport, AnalysisParams, DEFAULT_SIGNIFICANCE, DEFAULT_THRESHOLD_DEG};
+use super::alignment::{
+    analyse, format_p, AlignmentReport, AnalysisParams, DEFAULT_SIGNIFICANCE, DEFAULT_THRESHOLD_DEG,
+};
 use super::figures::paper_models;
 use super::mc::{McConfig, PIntDist, DEFAULT_BINS, DEFAULT_P_INT, DEFAULT_SEED, PAPER_ISM_LEVELS_PERCENT};
 use super::model::AlignmentModel;
