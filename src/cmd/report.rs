@@ -28,7 +28,7 @@ pub struct Args {
     #[arg(short, long, value_name = "FILE", default_value = "night.html")]
     output: PathBuf,
     /// Folder of the per-target figures (`<slug of the sequence id>.png`) [default: the
-    /// catalog's products folder, `<dir>/<stem>_products/`, where `night` writes them]
+    /// catalog's products folder, DIR/STEM_products/, where night writes them]
     #[arg(long, value_name = "DIR")]
     figures: Option<PathBuf>,
     /// Monte-Carlo pairs per ISM level of the statistics (1e6 style accepted)

@@ -1,5 +1,5 @@
 //! The page: head (inline CSS, the self-test hook), summary, targets table, per-target
-//! figures, calibration and statistics ([`super::sections`]), provenance, inline script.
+//! figures, calibration and statistics (`sections.rs`), provenance, inline script.
 use std::fmt::Write as _;
 
 use super::{base64, flags, ReportInput};

@@ -10,7 +10,7 @@
 //! Content-Security-Policy forbids any network access.
 //!
 //! [`collect`] gathers what the page shows (reads the figures, runs the statistics);
-//! [`html::render`] turns it into the page (pure: the unit tests call it); [`write`] writes
+//! [`html::render`] turns it into the page (pure: the unit tests call it); [`write()`] writes
 //! it atomically. Every text from the catalog is HTML-escaped ([`html::escape`]).
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
