@@ -39,7 +39,8 @@ pub struct Args {
     /// Do not write the per-target PNG figures.
     #[arg(long)]
     pub no_png: bool,
-    /// Also write the night's HTML page (`sofipol report`) to FILE, after the catalog.
+    /// Also write the night's HTML page (`sofipol report`) to FILE, after the catalog
+    /// [default: none].
     #[arg(long, value_name = "FILE")]
     pub report: Option<PathBuf>,
     #[command(flatten)]
