@@ -3,7 +3,8 @@
 //! the page loaded with `?selftest=1`: its self-test script (pipeline/src/report/selftest.js)
 //! clicks the P/sigma header, ticks "hide failed targets", types in the filter and writes
 //! what it saw into `<pre id="selftest">`, which this test reads from the dumped DOM and
-//! checks against the catalog. A screenshot is kept in target/test-artifacts/report.png.
+//! checks against the catalog (in a phone-sized window: the page must not scroll sideways,
+//! the table scrolls in its box). A screenshot is kept in target/test-artifacts/report.png.
 //!
 //! The browser: `$SOFIPOL_CHROMIUM` (scripts/test.sh sets it from scripts/browser-env.sh,
 //! which installs Debian's chromium), else /usr/bin/chromium or chromium on the PATH; none:
@@ -204,7 +205,11 @@ fn the_night_report_loads_sorts_filters_and_shows_every_image_in_chromium() {
     let dom = headless(
         &chromium,
         dir.path(),
-        &["--virtual-time-budget=5000".into(), "--dump-dom".into()],
+        &[
+            "--virtual-time-budget=5000".into(),
+            "--window-size=500,900".into(),
+            "--dump-dom".into(),
+        ],
         &url,
     );
     let start = dom
@@ -224,6 +229,24 @@ fn the_night_report_loads_sorts_filters_and_shows_every_image_in_chromium() {
     for im in images {
         assert!(im["naturalWidth"].as_u64().unwrap() > 0, "image not decoded: {im}");
     }
+
+    // In a narrow window (500 px: headless Chromium's smallest) the page does not scroll sideways; the table scrolls in its box.
+    let w = |k: &str| {
+        st["layout"][k]
+            .as_u64()
+            .unwrap_or_else(|| panic!("layout.{k}: {}", st["layout"]))
+    };
+    assert!(w("inner_width") <= 500, "{}", st["layout"]);
+    assert!(
+        w("page_width") <= w("inner_width"),
+        "the page is wider than the window: {}",
+        st["layout"]
+    );
+    assert!(
+        w("table_width") > w("table_box"),
+        "the table does not scroll in its box: {}",
+        st["layout"]
+    );
 
     let initial: Vec<String> = rows.iter().map(|r| r.0.clone()).collect();
     assert_eq!(strings(&st["initial"]), initial, "rows in catalog order");

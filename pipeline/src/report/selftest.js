@@ -2,7 +2,8 @@
 // test opens it so in headless Chromium and reads the JSON written into the pre element
 // of id "selftest").
 // Not part of the page's behaviour: it records errors, then on load exercises the page's
-// own sorting and filtering code as a reader would (clicks, typing) and reports what it saw.
+// own sorting and filtering code as a reader would (clicks, typing) and reports what it saw,
+// with the widths of the page and of the table's scrolling box.
 (function () {
   "use strict";
   if (!/[?&]selftest=1\b/.test(location.search) && location.hash !== "#selftest") { return; }
@@ -23,6 +24,9 @@
       out.images = Array.prototype.map.call(document.images, function (im) {
         return { alt: im.alt, complete: im.complete, naturalWidth: im.naturalWidth };
       });
+      var box = document.getElementById("targets").parentNode;
+      out.layout = { inner_width: window.innerWidth, page_width: document.documentElement.scrollWidth,
+        table_box: box.clientWidth, table_width: box.scrollWidth };
       out.initial = visible();
       header("snr").click();
       out.sort_snr_first = visible();
