@@ -71,6 +71,8 @@ enum Command {
     Mc(cmd::mc::Args),
     /// Alignment statistics of a catalog: histograms, KS, Kuiper, binomial, verdict.
     Stats(cmd::stats::Args),
+    /// The night's self-contained HTML page of a catalog: summary, table, figures, statistics.
+    Report(cmd::report::Args),
     /// Export a catalog as a table (ECSV, FITS binary table, CSV), one row per component.
     Export(cmd::export::Args),
     /// Benchmarks that print figures (simulator, ...).
@@ -99,6 +101,7 @@ fn main() -> ExitCode {
         Command::Calib(a) => cmd::calib::run(a),
         Command::Mc(a) => cmd::mc::run(a),
         Command::Stats(a) => cmd::stats::run(a),
+        Command::Report(a) => cmd::report::run(a),
         Command::Export(a) => cmd::export::run(a),
         Command::Bench(a) => cmd::bench::run(a),
     };

@@ -130,14 +130,17 @@ fn every_subcommand_spells_each_flag_one_way() {
         let has = |l: &str| opts.iter().any(|o| o.long == l);
         // Every command that writes a file names it with -o, --output.
         if [
-            "night", "target", "calib", "merge", "export", "simulate", "stats", "mc", "demo",
+            "night", "target", "calib", "merge", "export", "simulate", "stats", "mc", "demo", "report",
         ]
         .contains(&cmd.as_str())
             && !has("output")
         {
             problems.push(format!("sofipol {cmd}: no -o, --output"));
         }
-        if ["night", "target", "calib", "merge", "export", "simulate", "stats", "mc"].contains(&cmd.as_str())
+        if [
+            "night", "target", "calib", "merge", "export", "simulate", "stats", "mc", "report",
+        ]
+        .contains(&cmd.as_str())
             && !has("quiet")
         {
             problems.push(format!("sofipol {cmd}: no -q, --quiet"));
@@ -145,7 +148,7 @@ fn every_subcommand_spells_each_flag_one_way() {
         if ["night", "target", "calib"].contains(&cmd.as_str()) && !has("verbose") {
             problems.push(format!("sofipol {cmd}: no -v, --verbose"));
         }
-        if ["night", "stats", "mc"].contains(&cmd.as_str()) && !has("jobs") {
+        if ["night", "stats", "mc", "report"].contains(&cmd.as_str()) && !has("jobs") {
             problems.push(format!("sofipol {cmd}: no --jobs"));
         }
     }
@@ -181,7 +184,9 @@ const NO_DEFAULT: &[&str] = &["param", "set"];
 #[test]
 fn options_state_their_defaults_and_units() {
     let mut problems = Vec::new();
-    for cmd in ["night", "target", "calib", "stats", "mc", "simulate", "export", "merge"] {
+    for cmd in [
+        "night", "target", "calib", "stats", "mc", "simulate", "export", "merge", "report",
+    ] {
         let (_, help, _) = run(&[cmd, "--help"]);
         for o in options(&help) {
             let required = o.help.contains("required");

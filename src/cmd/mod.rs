@@ -12,5 +12,6 @@ pub mod report;
 pub mod setup;
 pub mod simulate;
 pub mod stats;
+pub mod summary;
 pub mod target;
 pub mod watch;

@@ -39,6 +39,10 @@ pub struct Args {
     /// Do not write the per-target PNG figures.
     #[arg(long)]
     pub no_png: bool,
+    /// Also write the night's HTML page (`sofipol report`) to FILE, after the catalog
+    /// [default: none].
+    #[arg(long, value_name = "FILE")]
+    pub report: Option<PathBuf>,
     #[command(flatten)]
     pub setup: SetupArgs,
     /// Print only errors.
@@ -96,6 +100,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     sofipol_pipeline::io::write_json_atomic(&args.output, cat)
         .with_context(|| format!("writing {}", args.output.display()))?;
+    if let Some(r) = &args.report {
+        let products = (!args.no_png).then(|| night::products_dir(&args.output));
+        let (pairs, seed) = (
+            sofipol_pipeline::report::DEFAULT_REPORT_PAIRS,
+            sofipol_pipeline::stats::mc::DEFAULT_SEED,
+        );
+        pool.install(|| super::report::write_page(cat.clone(), &args.output, products.as_deref(), r, pairs, seed))?;
+    }
     let wall = t0.elapsed().as_secs_f64();
     if !args.quiet {
         print_summary(
@@ -104,6 +116,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             wall,
             &args.output,
             png_dir.as_deref(),
+            args.report.as_deref(),
         );
     }
     if args.verbose > 0 {
@@ -158,6 +171,10 @@ fn plan_night(args: &Args, setup: &NightSetup) -> anyhow::Result<NightPlan> {
     let mut inputs = plan.files.clone();
     inputs.extend(args.setup.input_files());
     super::common::check_output(&args.output, &inputs)?;
+    if let Some(r) = &args.report {
+        inputs.push(args.output.clone());
+        super::common::check_output(r, &inputs)?;
+    }
     if let Some(d) = &args.setup.reduce.save_intermediate {
         super::common::check_output_dir(d, "--save-intermediate")?;
     }
@@ -216,8 +233,15 @@ fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, figur
 
 /// The night's summary on stdout: the targets, their status, the inputs not used
 /// (`scan_failures` of them found while scanning), the wall time, where the outputs are.
-fn print_summary(cat: &Catalog, scan_failures: usize, wall: f64, output: &Path, png_dir: Option<&Path>) {
-    print!("{}", super::report::summary(cat));
+fn print_summary(
+    cat: &Catalog,
+    scan_failures: usize,
+    wall: f64,
+    output: &Path,
+    png_dir: Option<&Path>,
+    report: Option<&Path>,
+) {
+    print!("{}", super::summary::summary(cat));
     let count = |s: Status| cat.targets.iter().filter(|t| t.status == s).count();
     println!(
         "{} targets: {} ok, {} partial, {} failed; {} inputs not used ({} found while scanning, {} during the reduction); {:.2} s wall -> {}",
@@ -233,6 +257,9 @@ fn print_summary(cat: &Catalog, scan_failures: usize, wall: f64, output: &Path, 
     );
     if let Some(d) = png_dir {
         println!("figures: {}", d.display());
+    }
+    if let Some(r) = report {
+        println!("report: {}", r.display());
     }
 }
 

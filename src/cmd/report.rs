@@ -1,54 +1,101 @@
-//! The human summary shared by `target`, `night` and `demo`.
-use sofipol_calib::text::printable;
-use sofipol_pipeline::catalog::{Catalog, Status};
+//! `sofipol report CATALOG -o night.html`: the night's self-contained HTML page
+//! (`sofipol_pipeline::report`: summary, targets table, figures, calibration, statistics,
+//! provenance). Also written by `sofipol night --report FILE` after the catalog.
+//!
+//! Exit code 0 when the page was written (also when the statistics could not be computed:
+//! the page says why); 1 on an unreadable catalog or an unwritable output.
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
 
-/// A table of the catalog for a terminal.
-pub fn summary(cat: &Catalog) -> String {
-    let mut s = String::new();
-    s += &format!(
-        "{:<16} {:<7} {:>4} {:>8} {:>7} {:>7} {:>6} {:>5} {:>6}  {}\n",
-        "object", "status", "comp", "P [%]", "sig_P", "gamma", "sig_g", "cut", "dgamma", "flags"
+use anyhow::Context;
+use sofipol_pipeline::catalog::Catalog;
+use sofipol_pipeline::report::{self, DEFAULT_REPORT_PAIRS};
+use sofipol_pipeline::stats::mc::DEFAULT_SEED;
+use sofipol_pipeline::stats::setup;
+
+use super::mc::{parse_count, pool};
+
+/// Arguments of `sofipol report`.
+#[derive(clap::Args, Debug)]
+#[command(
+    after_help = "Examples:\n  sofipol report night1/catalog.json -o night1/night.html\n  \
+                        sofipol report sofipol-demo/catalog.json --figures sofipol-demo/figures -o demo.html"
+)]
+pub struct Args {
+    /// The catalog JSON written by `sofipol night` / `sofipol target`
+    catalog: PathBuf,
+    /// The HTML page to write (atomically)
+    #[arg(short, long, value_name = "FILE", default_value = "night.html")]
+    output: PathBuf,
+    /// Folder of the per-target figures (`<slug of the sequence id>.png`) [default: the
+    /// catalog's products folder, DIR/STEM_products/, where night writes them]
+    #[arg(long, value_name = "DIR")]
+    figures: Option<PathBuf>,
+    /// Monte-Carlo pairs per ISM level of the statistics (1e6 style accepted)
+    #[arg(long, value_name = "N", default_value_t = DEFAULT_REPORT_PAIRS, value_parser = parse_count)]
+    pairs: u64,
+    /// Seed of the Monte Carlo
+    #[arg(long, default_value_t = DEFAULT_SEED)]
+    seed: u64,
+    /// Worker threads; results do not depend on it [default: all cores]
+    #[arg(short, long, value_name = "N")]
+    jobs: Option<usize>,
+    /// Print only errors
+    #[arg(short, long)]
+    quiet: bool,
+}
+
+/// Run `sofipol report`.
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    super::common::check_output(&args.output, &[&args.catalog])?;
+    let catalog = sofipol_pipeline::input::read_catalog(&args.catalog)?;
+    let figures = args
+        .figures
+        .clone()
+        .unwrap_or_else(|| sofipol_pipeline::night::products_dir(&args.catalog));
+    anyhow::ensure!(
+        args.figures.is_none() || figures.is_dir(),
+        "--figures {}: not a folder",
+        figures.display()
     );
-    for t in &cat.targets {
-        let st = match t.status {
-            Status::Ok => "ok",
-            Status::Partial => "partial",
-            Status::Failed => "FAILED",
-        };
-        if t.components.is_empty() {
-            s += &format!(
-                "{:<16} {:<7}  {}\n",
-                printable(&t.object),
-                st,
-                printable(t.error.as_deref().unwrap_or(""))
-            );
-            continue;
-        }
-        for (i, c) in t.components.iter().enumerate() {
-            let dg = match (i, t.delta_gamma_deg) {
-                (0, Some(d)) => format!("{d:6.1}"),
-                _ => "     -".into(),
-            };
-            s += &format!(
-                "{:<16} {:<7} {:>4} {:>8.3} {:>7.3} {:>7.1} {:>6.1} {:>5} {}  {}\n",
-                if i == 0 { printable(&t.object) } else { "".into() },
-                if i == 0 { st } else { "" },
-                c.name,
-                100.0 * c.p,
-                100.0 * c.sigma_p,
-                c.gamma_deg,
-                c.sigma_gamma_deg,
-                if c.passes_cut { "pass" } else { "-" },
-                dg,
-                printable(&c.flags.join(","))
-            );
-        }
+    let pool = pool(args.jobs)?;
+    pool.install(|| {
+        write_page(
+            catalog,
+            &args.catalog,
+            Some(&figures),
+            &args.output,
+            args.pairs,
+            args.seed,
+        )
+    })?;
+    if !args.quiet {
+        println!("sofipol report: wrote {}", args.output.display());
     }
-    if !cat.failures.is_empty() {
-        s += &format!("\n{} input(s) not used:\n", cat.failures.len());
-        for f in &cat.failures {
-            s += &format!("  {}: {}\n", printable(&f.file), printable(&f.error));
-        }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Gather the page of `catalog` (read from `catalog_path`; per-target figures from
+/// `figures`, none when `None`; statistics with `pairs` and `seed`, in the current rayon pool) and write it
+/// to `output` atomically, creating its folder.
+pub fn write_page(
+    catalog: Catalog,
+    catalog_path: &Path,
+    figures: Option<&Path>,
+    output: &Path,
+    pairs: u64,
+    seed: u64,
+) -> anyhow::Result<()> {
+    let opts = setup::Options {
+        pairs,
+        seed,
+        ..Default::default()
+    };
+    let command_line = std::env::args().collect::<Vec<_>>().join(" ");
+    let input = report::collect(catalog, catalog_path, figures, &opts, command_line);
+    if let Some(d) = output.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }
-    s
+    report::write(output, &report::html::render(&input))?;
+    Ok(())
 }

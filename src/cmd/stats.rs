@@ -14,13 +14,14 @@ use std::process::ExitCode;
 use anyhow::{bail, Context};
 use sofipol_calib::text::printable;
 use sofipol_pipeline::plots::write_atomic;
-use sofipol_pipeline::stats::alignment::{format_p, DEFAULT_SIGNIFICANCE, DEFAULT_THRESHOLD_DEG};
+use sofipol_pipeline::stats::alignment::{format_p, DEFAULT_SIGNIFICANCE};
 use sofipol_pipeline::stats::figures::{
     ism_figure, models_figure, observed_figure, paper_models, simulate_models, ModelRow,
 };
-use sofipol_pipeline::stats::mc::{McConfig, PIntDist, DEFAULT_BINS, DEFAULT_P_INT, DEFAULT_SEED};
+use sofipol_pipeline::stats::mc::{McConfig, PIntDist, DEFAULT_SEED};
 use sofipol_pipeline::stats::predictions::source_name;
-use sofipol_pipeline::stats::{analyse, AlignmentModel, AlignmentReport, AnalysisParams, BinarySample};
+use sofipol_pipeline::stats::setup::{self, Noise};
+use sofipol_pipeline::stats::{AlignmentModel, AlignmentReport, BinarySample};
 
 use super::mc::{parse_count, parse_levels, pool};
 
@@ -118,57 +119,36 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         eprintln!("sofipol stats: warning: {}", printable(w));
     }
 
-    let p_int = if args.p_int == "catalog" {
-        if sample.is_empty() {
-            PIntDist::parse(DEFAULT_P_INT)?
-        } else {
-            PIntDist::empirical(
-                &format!("{} (sample components)", args.catalog.display()),
-                sample.p_percent(),
-            )?
-        }
-    } else {
-        PIntDist::parse(&args.p_int)?
-    };
-    let noise = match args.noise.as_str() {
-        "auto" => sample.median_sigma_p_percent(),
-        "none" => None,
-        s => Some(
-            s.parse::<f64>()
-                .with_context(|| format!("--noise '{s}': expected auto, none or percent"))?,
-        ),
-    };
-    let snr_cut = match (args.snr_cut.as_str(), noise) {
-        ("none", _) | (_, None) => None,
-        (s, Some(_)) => Some(
-            s.parse::<f64>()
-                .with_context(|| format!("--snr-cut '{s}': expected a number or none"))?,
-        ),
-    };
-    let mc = McConfig {
-        model: AlignmentModel::Random,
-        pairs: args.pairs,
-        seed: args.seed,
-        bins: DEFAULT_BINS,
-        p_int,
-        ism: None,
-        noise_percent: noise,
-        snr_cut,
-        perpendicular_fraction: [args.perpendicular_fraction; 2],
-    };
-    mc.validate()?;
-    let params = AnalysisParams {
-        significance: args.significance,
-        threshold_deg: DEFAULT_THRESHOLD_DEG,
+    let opts = setup::Options {
         ism_levels_percent: parse_levels(&args.p_ism)?,
         ism_angle_deg: args.ism_angle,
-        mc,
-        models: comparison_models(),
-        errors: sample.errors(),
+        pairs: args.pairs,
+        seed: args.seed,
+        p_int: (args.p_int != "catalog")
+            .then(|| PIntDist::parse(&args.p_int))
+            .transpose()?,
+        perpendicular_fraction: args.perpendicular_fraction,
+        noise: match args.noise.as_str() {
+            "auto" => Noise::Auto,
+            "none" => Noise::None,
+            s => Noise::Percent(
+                s.parse::<f64>()
+                    .with_context(|| format!("--noise '{s}': expected auto, none or percent"))?,
+            ),
+        },
+        snr_cut: match args.snr_cut.as_str() {
+            "none" => None,
+            s => Some(
+                s.parse::<f64>()
+                    .with_context(|| format!("--snr-cut '{s}': expected a number or none"))?,
+            ),
+        },
+        significance: args.significance,
     };
+    let params = setup::params(&sample, &opts, &args.catalog.display().to_string())?;
     let pool = pool(args.jobs)?;
     let dg = sample.delta_gamma_deg();
-    let report = pool.install(|| analyse(&dg, &params))?;
+    let report = pool.install(|| setup::analyse_sample(&sample, &params))?;
     if !args.quiet {
         print_report(&args.catalog, &sample, &report);
     }
@@ -178,14 +158,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         let mut written = vec!["stats.json"];
         let [_, observed, ism_levels, models] = &names;
         if !sample.is_empty() {
-            let notes: Vec<String> = match (&report.ks_uniform, &report.kuiper_uniform, &report.below_threshold) {
-                (Some(ks), Some(kp), Some(bt)) => vec![
-                    format!("KS vs uniform: p = {}", format_p(ks.p_value)),
-                    format!("Kuiper: p = {}", format_p(kp.p_value)),
-                    format!("{}/{} below 30°: p = {}", bt.k, bt.n, format_p(bt.p_greater)),
-                ],
-                _ => Vec::new(),
-            };
+            let notes = setup::observed_notes(&report);
             observed_figure(&dir.join(observed), &sample, args.bins, &notes)?;
             written.push(observed);
         }
@@ -195,7 +168,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 &report.ism,
                 &dg,
                 args.bins,
-                &report_subtitle(&params.mc),
+                &setup::mc_subtitle(&params.mc),
             )?;
             written.push(ism_levels);
         }
@@ -213,15 +186,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
-}
-
-/// The alignment models the sample is compared with: perfect alignment, then the reference
-/// study's models (b)-(d). Model (a), random orientation, is the uniform law of the KS and
-/// Kuiper tests, which the errors leave unchanged.
-fn comparison_models() -> Vec<(String, AlignmentModel)> {
-    let mut m = vec![("aligned (α = 0)".to_string(), AlignmentModel::Aligned)];
-    m.extend(paper_models().into_iter().filter(|(_, m)| *m != AlignmentModel::Random));
-    m
 }
 
 /// Rows of the models figure: models (a)-(d) simulated with `pairs`, each with the
@@ -242,21 +206,6 @@ fn model_rows(
             .and_then(|m| m.with_errors.as_ref().map(|c| c.histogram.clone()));
     }
     Ok(rows)
-}
-
-fn report_subtitle(mc: &McConfig) -> String {
-    let noise = mc
-        .noise_percent
-        .map_or("no noise".to_string(), |s| format!("σ = {s:.2} %"));
-    let cut = mc.snr_cut.map_or(String::new(), |k| format!(", P/σ > {k}"));
-    format!("Pᵢₙₜ {}, {noise}{cut}", short_spec(&mc.p_int))
-}
-
-fn short_spec(p: &PIntDist) -> String {
-    match p {
-        PIntDist::Empirical { values, .. } => format!("= observed ({} values)", values.len()),
-        other => other.spec(),
-    }
 }
 
 fn print_report(path: &Path, sample: &BinarySample, r: &AlignmentReport) {

@@ -105,7 +105,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     sofipol_pipeline::io::write_json_atomic(&args.output, cat)
         .with_context(|| format!("writing {}", args.output.display()))?;
     if !args.quiet {
-        print!("{}", super::report::summary(cat));
+        print!("{}", super::summary::summary(cat));
         println!("catalog: {}", args.output.display());
     }
     if args.verbose > 0 {

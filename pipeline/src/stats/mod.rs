@@ -13,7 +13,7 @@
 //!
 //! Modules: [`rng`] (xoshiro256++ streams), [`model`] (Pi(alpha)), [`mc`] (the Monte
 //! Carlo), [`hist`], [`ks`], [`kuiper`], [`binomial`], [`sample`] (catalog -> sample),
-//! [`errors`] (Delta-gamma errors, convolution of predictions), [`alignment`] (tests + verdict), [`figures`] (the paper-style PNGs).
+//! [`errors`] (Delta-gamma errors, convolution of predictions), [`alignment`] (tests + verdict), [`setup`] (the analysis of a catalog's sample as `sofipol stats` runs it), [`figures`] (the paper-style PNGs).
 //! Conventions, methods and references: docs/statistics.md.
 // `!(x > 0.0)` is used on purpose: it also rejects NaN. `n % k != 0` keeps the code
 // within the workspace's rust-version (1.86; `is_multiple_of` is 1.87).
@@ -33,6 +33,7 @@ pub mod model;
 pub mod predictions;
 pub mod rng;
 pub mod sample;
+pub mod setup;
 
 #[cfg(test)]
 mod tests;

@@ -1,0 +1,355 @@
+//! The page: head (inline CSS, the self-test hook), summary, targets table, per-target
+//! figures, calibration and statistics (`sections.rs`), provenance, inline script.
+use std::fmt::Write as _;
+
+use super::{base64, flags, ReportInput};
+use crate::catalog::{Catalog, Component, Status, Target};
+
+const CSS: &str = include_str!("page.css");
+const SCRIPT: &str = include_str!("page.js");
+const SELFTEST: &str = include_str!("selftest.js");
+
+/// Nothing is fetched: images are `data:` URIs, style and scripts inline.
+const CSP: &str = "default-src 'none'; img-src data:; style-src 'unsafe-inline'; script-src 'unsafe-inline'";
+
+/// `s` with `&`, `<`, `>`, `"` and `'` replaced by their character references: safe in
+/// element content and in quoted attribute values.
+pub fn escape(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&#39;"),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+/// A number with `decimals` decimals, "–" when absent or not finite.
+pub fn fmt(x: Option<f64>, decimals: usize) -> String {
+    match x {
+        Some(v) if v.is_finite() => format!("{v:.decimals$}"),
+        _ => "–".to_string(),
+    }
+}
+
+/// A fraction as percent (P = 0.0123 -> "1.23").
+pub fn pct(x: Option<f64>) -> String {
+    fmt(x.map(|v| 100.0 * v), 2)
+}
+
+/// The status in words, as the table and the counts show it.
+pub fn status_word(s: Status) -> &'static str {
+    match s {
+        Status::Ok => "ok",
+        Status::Partial => "partial",
+        Status::Failed => "failed",
+    }
+}
+
+/// The whole page.
+pub fn render(input: &ReportInput) -> String {
+    let cat = &input.catalog;
+    let mut h = String::with_capacity(64 * 1024);
+    let title = format!("sofipol night report: {}", input.catalog_path);
+    let _ = write!(
+        h,
+        "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n\
+         <meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n\
+         <meta http-equiv=\"Content-Security-Policy\" content=\"{CSP}\">\n<title>{}</title>\n\
+         <style>\n{CSS}</style>\n<script id=\"sofipol-selftest\">\n{SELFTEST}</script>\n</head>\n<body>\n",
+        escape(&title)
+    );
+    let _ = write!(
+        h,
+        "<header><h1>Night report</h1><p class=\"muted\">catalog <code>{}</code></p>\n\
+         <nav><a href=\"#summary\">Summary</a><a href=\"#targets-section\">Targets</a>\
+         <a href=\"#figures\">Figures</a><a href=\"#calibration\">Calibration</a>\
+         <a href=\"#statistics\">Statistics</a><a href=\"#provenance\">Provenance</a></nav></header>\n<main>\n",
+        escape(&input.catalog_path)
+    );
+    summary(&mut h, cat);
+    targets_table(&mut h, cat);
+    target_figures(&mut h, input);
+    super::sections::calibration(&mut h, cat);
+    super::sections::statistics(&mut h, &input.stats);
+    provenance(&mut h, input);
+    let _ = write!(
+        h,
+        "</main>\n<pre id=\"selftest\" hidden></pre>\n<script>\n{SCRIPT}</script>\n</body>\n</html>\n"
+    );
+    h
+}
+
+fn summary(h: &mut String, cat: &Catalog) {
+    let count = |s: Status| cat.targets.iter().filter(|t| t.status == s).count();
+    let _ = write!(
+        h,
+        "<section id=\"summary\"><h2>Summary</h2>\n<ul class=\"counts\">\
+         <li>{} targets</li><li class=\"st-ok\">{} ok</li><li class=\"st-partial\">{} partial</li>\
+         <li class=\"st-failed\">{} failed</li><li>{} inputs not used</li></ul>\n",
+        cat.targets.len(),
+        count(Status::Ok),
+        count(Status::Partial),
+        count(Status::Failed),
+        cat.failures.len()
+    );
+    let troubled: Vec<&Target> = cat.targets.iter().filter(|t| t.status != Status::Ok).collect();
+    if !troubled.is_empty() {
+        h.push_str("<h3>Targets not fully reduced</h3>\n<ul>\n");
+        for t in troubled {
+            let _ = writeln!(
+                h,
+                "<li><span class=\"st-{s}\">{s}</span> <strong>{}</strong>: {}</li>",
+                escape(&t.object),
+                escape(t.error.as_deref().unwrap_or("(no message)")),
+                s = status_word(t.status)
+            );
+        }
+        h.push_str("</ul>\n");
+    }
+    if cat.targets.is_empty() {
+        h.push_str("<p>The catalog has no targets.</p>\n");
+    }
+    if cat.failures.is_empty() {
+        h.push_str("<p>Every input was used.</p>\n");
+    } else {
+        h.push_str("<h3>Inputs not used</h3>\n<div class=\"scroll\"><table id=\"failures\"><thead><tr><th>file</th><th>why</th></tr></thead><tbody>\n");
+        for f in &cat.failures {
+            let _ = writeln!(
+                h,
+                "<tr><td><code>{}</code></td><td>{}</td></tr>",
+                escape(&f.file),
+                escape(&f.error)
+            );
+        }
+        h.push_str("</tbody></table></div>\n");
+    }
+    h.push_str("</section>\n");
+}
+
+/// Columns of the targets table: key (for the self-test and the CSS), header, numeric.
+const COLUMNS: [(&str, &str, bool); 13] = [
+    ("target", "Target", false),
+    ("status", "Status", false),
+    ("comp", "Comp.", false),
+    ("p", "P [%]", true),
+    ("sigma_p", "σP [%]", true),
+    ("gamma", "γ [deg]", true),
+    ("sigma_gamma", "σγ [deg]", true),
+    ("snr", "P/σ", true),
+    ("cut", "Cut", false),
+    ("dgamma", "Δγ [deg]", true),
+    ("sigma_dgamma", "σΔγ [deg]", true),
+    ("filter", "Filter", false),
+    ("flags", "Flags", false),
+];
+
+fn targets_table(h: &mut String, cat: &Catalog) {
+    h.push_str(
+        "<section id=\"targets-section\"><h2>Targets and components</h2>\n\
+         <p class=\"muted\">One row per component. Click a column header to sort (again to reverse); \
+         P is debiased, γ east of north, Δγ = |γA − γB| folded into [0°, 90°] when both components pass the P/σ cut.</p>\n\
+         <div class=\"controls\"><label><input type=\"checkbox\" id=\"hide-failed\"> hide failed targets</label>\
+         <label>filter <input type=\"search\" id=\"filter\" placeholder=\"object, flag, status…\"></label>\
+         <span id=\"shown\" class=\"muted\"></span></div>\n\
+         <div class=\"scroll\"><table id=\"targets\"><thead><tr>",
+    );
+    for (key, label, numeric) in COLUMNS {
+        let _ = write!(
+            h,
+            "<th data-key=\"{key}\"{}><button type=\"button\">{label}</button></th>",
+            if numeric {
+                " data-type=\"num\" class=\"num\""
+            } else {
+                ""
+            }
+        );
+    }
+    h.push_str("</tr></thead>\n<tbody>\n");
+    for t in &cat.targets {
+        if t.components.is_empty() {
+            target_row(h, t, None);
+        }
+        for c in &t.components {
+            target_row(h, t, Some(c));
+        }
+    }
+    h.push_str("</tbody></table></div>\n");
+    if cat.targets.is_empty() {
+        h.push_str("<p>No targets.</p>\n");
+    }
+    h.push_str("</section>\n");
+}
+
+/// A numeric cell: the shown text and the raw value (`data-v`) it sorts by.
+fn num_cell(h: &mut String, shown: String, value: Option<f64>) {
+    match value.filter(|v| v.is_finite()) {
+        Some(v) => {
+            let _ = write!(h, "<td class=\"num\" data-v=\"{v}\">{shown}</td>");
+        }
+        None => {
+            let _ = write!(h, "<td class=\"num\" data-v=\"\">{shown}</td>");
+        }
+    }
+}
+
+fn target_row(h: &mut String, t: &Target, c: Option<&Component>) {
+    let st = status_word(t.status);
+    let _ = write!(
+        h,
+        "<tr data-status=\"{st}\" data-target=\"{}\" data-comp=\"{}\"><td class=\"obj\"><strong>{}</strong><br><span class=\"muted\">{}</span></td>\
+         <td class=\"st-{st}\">{st}</td><td>{}</td>",
+        escape(&t.object),
+        escape(c.map_or("", |c| &c.name)),
+        escape(&t.object),
+        escape(t.tpl_start.as_deref().unwrap_or("")),
+        escape(c.map_or("–", |c| &c.name)),
+    );
+    let p = c.map(|c| c.p_debiased);
+    num_cell(h, pct(p), p.map(|v| 100.0 * v));
+    let sp = c.map(|c| c.sigma_p);
+    num_cell(h, pct(sp), sp.map(|v| 100.0 * v));
+    let g = c.map(|c| c.gamma_deg);
+    num_cell(h, fmt(g, 1), g);
+    let sg = c.map(|c| c.sigma_gamma_deg);
+    num_cell(h, fmt(sg, 1), sg);
+    let snr = c.map(|c| c.snr.unwrap_or(c.p / c.sigma_p));
+    num_cell(h, fmt(snr, 1), snr);
+    let cut = match c {
+        Some(c) if c.passes_cut => "pass",
+        Some(_) => "fail",
+        None => "–",
+    };
+    let _ = write!(h, "<td>{cut}</td>");
+    num_cell(h, fmt(t.delta_gamma_deg, 1), t.delta_gamma_deg);
+    num_cell(h, fmt(t.sigma_delta_gamma_deg, 1), t.sigma_delta_gamma_deg);
+    let _ = write!(h, "<td>{}</td><td>", escape(t.filter.as_deref().unwrap_or("")));
+    let mut all: Vec<&String> = t.target_flags().iter().collect();
+    if let Some(c) = c {
+        all.extend(&c.flags);
+    }
+    if let (None, Some(e)) = (c, &t.error) {
+        let _ = write!(h, "<span class=\"st-failed\">{}</span>", escape(e));
+    }
+    flag_list(h, &all);
+    h.push_str("</td></tr>\n");
+}
+
+/// The flags as a list: each in words, with the flag itself as the tooltip; an unknown flag
+/// as it is.
+pub fn flag_list(h: &mut String, all: &[&String]) {
+    if all.is_empty() {
+        return;
+    }
+    h.push_str("<ul class=\"flags\">");
+    for f in all {
+        match flags::explain(f) {
+            Some(words) => {
+                let _ = write!(
+                    h,
+                    "<li title=\"{}\"><code>{}</code>: {}</li>",
+                    escape(f),
+                    escape(flags::flag_name(f)),
+                    escape(&words)
+                );
+            }
+            None => {
+                let _ = write!(h, "<li><code>{}</code></li>", escape(f));
+            }
+        }
+    }
+    h.push_str("</ul>");
+}
+
+/// An `<img>` of PNG bytes as a `data:` URI, with its caption.
+pub fn image(h: &mut String, caption: &str, png: &[u8]) {
+    let _ = writeln!(
+        h,
+        "<figure><img alt=\"{c}\" src=\"data:image/png;base64,{}\"><figcaption>{c}</figcaption></figure>",
+        base64(png),
+        c = escape(caption)
+    );
+}
+
+fn target_figures(h: &mut String, input: &ReportInput) {
+    h.push_str("<section id=\"figures\"><h2>Per-target figures</h2>\n");
+    let Some(dir) = &input.figures_dir else {
+        h.push_str("<p>None: the night was reduced without figures (<code>--no-png</code>).</p>\n</section>\n");
+        return;
+    };
+    let _ = writeln!(h, "<p class=\"muted\">From <code>{}</code>.</p>", escape(dir));
+    if input.target_figures.is_empty() {
+        h.push_str("<p>No per-target figures were found (the night was reduced with <code>--no-png</code>, or its products folder is elsewhere: <code>sofipol report --figures DIR</code>).</p>\n");
+    } else {
+        h.push_str("<div class=\"grid\">\n");
+        for t in &input.catalog.targets {
+            let id = t.sequence_id();
+            if let Some(png) = input.target_figures.get(id) {
+                image(h, &format!("{} ({})", t.object, id), png);
+            }
+        }
+        h.push_str("</div>\n");
+        let missing: Vec<String> = input
+            .catalog
+            .targets
+            .iter()
+            .filter(|t| !input.target_figures.contains_key(t.sequence_id()))
+            .map(|t| escape(&t.object))
+            .collect();
+        if !missing.is_empty() {
+            let _ = writeln!(h, "<p>No figure for: {}.</p>", missing.join(", "));
+        }
+    }
+    h.push_str("</section>\n");
+}
+
+fn provenance(h: &mut String, input: &ReportInput) {
+    let p = &input.catalog.provenance;
+    let s = |k: &str| p.get(k).and_then(|v| v.as_str()).unwrap_or("–").to_string();
+    let list = |k: &str| match p.get(k) {
+        Some(serde_json::Value::Array(a)) => a
+            .iter()
+            .map(|v| v.as_str().map_or_else(|| v.to_string(), str::to_string))
+            .collect::<Vec<_>>()
+            .join(" "),
+        Some(serde_json::Value::String(x)) => x.clone(),
+        _ => "–".to_string(),
+    };
+    h.push_str("<section id=\"provenance\"><h2>Provenance</h2>\n<dl class=\"kv\">\n");
+    let rows = [
+        ("catalog", input.catalog_path.clone()),
+        ("schema version", input.catalog.schema_version.clone()),
+        ("reduced with", s("software")),
+        ("its commit", s("commit")),
+        ("reduced (UTC)", s("created_utc")),
+        ("its command line", list("command_line")),
+        ("inputs", list("inputs")),
+        (
+            "page written by",
+            format!(
+                "sofipol {} (commit {})",
+                env!("CARGO_PKG_VERSION"),
+                crate::build_info::commit()
+            ),
+        ),
+        ("page command line", input.command_line.clone()),
+    ];
+    for (k, v) in rows {
+        let _ = writeln!(h, "<dt>{k}</dt><dd><code>{}</code></dd>", escape(&v));
+    }
+    h.push_str("</dl>\n");
+    if !p.is_null() {
+        let json = serde_json::to_string_pretty(p).unwrap_or_default();
+        let _ = writeln!(
+            h,
+            "<details><summary>The catalog's whole provenance (JSON)</summary><pre>{}</pre></details>",
+            escape(&json)
+        );
+    }
+    h.push_str("</section>\n");
+}

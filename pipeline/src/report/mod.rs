@@ -1,0 +1,178 @@
+//! # The night report: one self-contained HTML page of a catalog
+//!
+//! `sofipol report CATALOG -o night.html` (and `sofipol night --report FILE`) write it:
+//! the night's summary (targets ok / partial / failed, the inputs not used and why), a
+//! sortable, filterable table of targets and components, the per-target figures of the
+//! night's products folder, the calibration (flats, standards and their residuals, c,
+//! theta0, the telescope's polarization), the Delta-gamma statistics of `sofipol stats`
+//! (the same library calls, [`crate::stats::setup`]) with their figures, and the
+//! provenance. Images are embedded as `data:` URIs and the page loads nothing: a
+//! Content-Security-Policy forbids any network access.
+//!
+//! [`collect`] gathers what the page shows (reads the figures, runs the statistics);
+//! [`html::render`] turns it into the page (pure: the unit tests call it); [`write()`] writes
+//! it atomically. Every text from the catalog is HTML-escaped ([`html::escape`]).
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use crate::catalog::Catalog;
+use crate::error::{Error, Result};
+use crate::stats::alignment::AlignmentReport;
+use crate::stats::figures::{ism_figure, observed_figure};
+use crate::stats::sample::BinarySample;
+use crate::stats::setup;
+
+pub mod flags;
+pub mod html;
+mod sections;
+
+/// Bins of the observed Delta-gamma histogram (as `sofipol stats`' default).
+pub const OBSERVED_BINS: usize = 9;
+/// Monte-Carlo pairs per ISM level of the report's statistics by default (fewer than
+/// `sofipol stats`: the page is for a night's look, the KS p-values change in the 3rd digit).
+pub const DEFAULT_REPORT_PAIRS: u64 = 200_000;
+
+/// A PNG embedded in the page.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Image {
+    /// What it shows (the `alt` text and the caption).
+    pub caption: String,
+    /// The PNG file's bytes.
+    pub png: Vec<u8>,
+}
+
+/// The statistics section: the sample, the tests and verdict, and their figures.
+#[derive(Debug, Clone)]
+pub struct StatsSection {
+    /// The binaries both of whose components pass the cut.
+    pub sample: BinarySample,
+    /// What `sofipol stats` reports.
+    pub report: AlignmentReport,
+    /// The Monte Carlo in words (the ISM figure's subtitle).
+    pub mc: String,
+    /// The observed histograms and the Delta-gamma histogram against the predictions.
+    pub figures: Vec<Image>,
+}
+
+/// Everything the page shows.
+#[derive(Debug, Clone)]
+pub struct ReportInput {
+    /// The catalog.
+    pub catalog: Catalog,
+    /// Where it was read from (as given).
+    pub catalog_path: String,
+    /// The folder the per-target figures were looked for in (`None`: not looked for).
+    pub figures_dir: Option<String>,
+    /// Per-target figures by sequence id (those found).
+    pub target_figures: BTreeMap<String, Vec<u8>>,
+    /// The statistics, or why they could not be computed.
+    pub stats: std::result::Result<StatsSection, String>,
+    /// The command line that wrote the page.
+    pub command_line: String,
+}
+
+/// Gather the page's content: the figures `<slug(sequence id)>.png` (else
+/// `<slug(object)>.png`) found in `figures_dir`
+/// (the night's products folder, `night::products_dir(catalog)`, by default; `None`: the
+/// night was reduced without figures), and the
+/// statistics of the sample run with `opts` (in the current rayon pool). A figure that cannot
+/// be read is left out; statistics that cannot be computed are replaced by the reason.
+pub fn collect(
+    catalog: Catalog,
+    catalog_path: &Path,
+    figures_dir: Option<&Path>,
+    opts: &setup::Options,
+    command_line: String,
+) -> ReportInput {
+    let mut target_figures = BTreeMap::new();
+    for (t, dir) in catalog.targets.iter().filter_map(|t| Some((t, figures_dir?))) {
+        let id = t.sequence_id();
+        // `night` names a figure by the sequence id, `demo` and `target` by the object.
+        let png = [id, t.object.as_str()].iter().find_map(|name| {
+            let png = std::fs::read(dir.join(format!("{}.png", crate::night::slug(name)))).ok()?;
+            png.starts_with(b"\x89PNG\r\n\x1a\n").then_some(png)
+        });
+        if let Some(png) = png {
+            target_figures.insert(id.to_string(), png);
+        }
+    }
+    let stats = statistics(&catalog, &catalog_path.display().to_string(), opts).map_err(|e| e.to_string());
+    ReportInput {
+        catalog,
+        catalog_path: catalog_path.display().to_string(),
+        figures_dir: figures_dir.map(|d| d.display().to_string()),
+        target_figures,
+        stats,
+        command_line,
+    }
+}
+
+/// The statistics of `sofipol stats` with `opts`, and the observed and ISM figures (drawn
+/// by the same functions into a temporary folder and read back).
+pub fn statistics(catalog: &Catalog, source: &str, opts: &setup::Options) -> Result<StatsSection> {
+    let sample = BinarySample::from_catalog(catalog, None);
+    let params = setup::params(&sample, opts, source)?;
+    let report = setup::analyse_sample(&sample, &params)?;
+    let mc = setup::mc_subtitle(&params.mc);
+    let tmp = tempfile::tempdir().map_err(|e| Error::Io {
+        path: std::env::temp_dir(),
+        source: e,
+    })?;
+    let read = |p: PathBuf| {
+        std::fs::read(&p).map_err(|e| Error::Io {
+            path: p.clone(),
+            source: e,
+        })
+    };
+    let mut figures = Vec::new();
+    if !sample.is_empty() {
+        let p = tmp.path().join("observed.png");
+        observed_figure(&p, &sample, OBSERVED_BINS, &setup::observed_notes(&report))?;
+        figures.push(Image {
+            caption: "Observed: P of the sample's components, Δγ of its binaries (with the tests), Δγ per binary with its error".into(),
+            png: read(p)?,
+        });
+    }
+    if !report.ism.is_empty() {
+        let p = tmp.path().join("ism_levels.png");
+        ism_figure(&p, &report.ism, &sample.delta_gamma_deg(), OBSERVED_BINS, &mc)?;
+        figures.push(Image {
+            caption: "Observed Δγ histogram against the predictions of random disks with interstellar polarization"
+                .into(),
+            png: read(p)?,
+        });
+    }
+    Ok(StatsSection {
+        sample,
+        report,
+        mc,
+        figures,
+    })
+}
+
+/// Write the page atomically (temporary file in the same folder, renamed); the error names
+/// the file.
+pub fn write(path: &Path, page: &str) -> Result<()> {
+    crate::io::write_atomic(path, page.as_bytes()).map_err(|e| Error::calib("writing the HTML report", e))
+}
+
+/// Standard base64 (RFC 4648, with padding) of `bytes`, for `data:` URIs.
+pub fn base64(bytes: &[u8]) -> String {
+    const A: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut s = String::with_capacity(bytes.len().div_ceil(3) * 4);
+    for chunk in bytes.chunks(3) {
+        let b = [chunk[0], *chunk.get(1).unwrap_or(&0), *chunk.get(2).unwrap_or(&0)];
+        let n = (b[0] as u32) << 16 | (b[1] as u32) << 8 | b[2] as u32;
+        for i in 0..4 {
+            if i <= chunk.len() {
+                s.push(A[(n >> (18 - 6 * i) & 63) as usize] as char);
+            } else {
+                s.push('=');
+            }
+        }
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,289 @@
+//! The calibration and statistics sections of the page.
+use std::fmt::Write as _;
+
+use serde_json::Value;
+
+use super::html::{escape, flag_list, fmt, image, pct, status_word};
+use super::StatsSection;
+use crate::catalog::Catalog;
+use crate::stats::alignment::format_p;
+use crate::stats::predictions::source_name;
+
+/// A number at `path` (keys) of a JSON value.
+fn num(v: &Value, path: &[&str]) -> Option<f64> {
+    path.iter().try_fold(v, |v, k| v.get(k))?.as_f64()
+}
+
+/// A string at `path` of a JSON value (numbers and booleans as written).
+fn text(v: &Value, path: &[&str]) -> Option<String> {
+    match path.iter().try_fold(v, |v, k| v.get(k))? {
+        Value::String(s) => Some(s.clone()),
+        Value::Null => None,
+        other => Some(other.to_string()),
+    }
+}
+
+/// "x ± s" with `d` decimals.
+fn pm(x: Option<f64>, s: Option<f64>, d: usize) -> String {
+    format!("{} ± {}", fmt(x, d), fmt(s, d))
+}
+
+/// Flats, the calibration per filter (c, theta0, parity, the telescope's polarization),
+/// the standards with their residuals, and the telescope's polarization removed from each
+/// target over the night.
+pub fn calibration(h: &mut String, cat: &Catalog) {
+    h.push_str("<section id=\"calibration\"><h2>Calibration</h2>\n");
+    flats(h, &cat.provenance);
+    match &cat.calibration {
+        None => h.push_str("<p>No instrumental calibration was applied (no standards, or <code>--no-calibration</code>): the components are flagged <code>uncalibrated</code>.</p>\n"),
+        Some(cal) => {
+            let _ = writeln!(
+                h,
+                "<p>Calibration from: <strong>{}</strong>{}.</p>",
+                escape(&text(cal, &["source"]).unwrap_or_else(|| "–".into())),
+                text(cal, &["stokes_method"]).map_or(String::new(), |m| format!("; Stokes method {}", escape(&m)))
+            );
+            let filters = cal.pointer("/calibration/filters").and_then(Value::as_array);
+            h.push_str("<div class=\"scroll\"><table id=\"calibration-filters\"><thead><tr><th>filter</th><th class=\"num\">offset c</th>\
+                <th class=\"num\">θ₀ [deg]</th><th class=\"num\">parity</th><th class=\"num\">p_tel [%]</th><th class=\"num\">ψ_tel [deg]</th>\
+                <th>standards</th><th>notes</th></tr></thead><tbody>\n");
+            for f in filters.into_iter().flatten() {
+                let n_std = f.get("offset_standards").and_then(Value::as_array).map_or(0, Vec::len);
+                let notes: Vec<String> = ["incomplete", "telescope_uncorrected"]
+                    .iter()
+                    .filter_map(|k| text(f, &[k]).map(|t| format!("{k}: {}", escape(&t))))
+                    .collect();
+                let _ = writeln!(
+                    h,
+                    "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td>\
+                     <td class=\"num\">{} ± {}</td><td class=\"num\">{}</td><td>{n_std} for c, {} for θ₀</td><td>{}</td></tr>",
+                    escape(&text(f, &["filter"]).unwrap_or_default()),
+                    pm(num(f, &["offset", "c"]), num(f, &["offset", "sigma_c"]), 5),
+                    pm(num(f, &["angles", "theta0_deg"]), num(f, &["angles", "sigma_theta0_deg"]), 2),
+                    escape(&text(f, &["angles", "parity"]).unwrap_or_else(|| "–".into())),
+                    pct(num(f, &["telescope", "p_tel"])),
+                    pct(num(f, &["telescope", "sigma_p_tel"])),
+                    pm(num(f, &["telescope", "psi_tel_deg"]), num(f, &["telescope", "sigma_psi_tel_deg"]), 1),
+                    f.get("angle_standards").and_then(Value::as_array).map_or(0, Vec::len),
+                    notes.join("; ")
+                );
+            }
+            h.push_str("</tbody></table></div>\n");
+        }
+    }
+    standards(h, cat);
+    telescope_over_night(h, cat);
+    h.push_str("</section>\n");
+}
+
+fn flats(h: &mut String, prov: &Value) {
+    let mode = text(prov, &["flat", "mode"]).unwrap_or_else(|| "none".into());
+    let _ = writeln!(h, "<h3>Flats</h3>\n<p>Mode: <strong>{}</strong>.</p>", escape(&mode));
+    let Some(list) = prov.pointer("/flat/flats").and_then(Value::as_array) else {
+        return;
+    };
+    if list.is_empty() {
+        return;
+    }
+    h.push_str("<div class=\"scroll\"><table id=\"flats\"><thead><tr><th>kind</th><th>filter</th><th class=\"num\">POSANG [deg]</th>\
+        <th class=\"num\">frames</th><th class=\"num\">bad pixels</th><th>detail</th></tr></thead><tbody>\n");
+    for f in list {
+        let frames = f.get("frames").and_then(Value::as_array).map_or(0, Vec::len);
+        let _ = writeln!(
+            h,
+            "<tr><td>{}</td><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{frames}</td><td class=\"num\">{}</td><td>{}</td></tr>",
+            escape(&text(f, &["kind"]).unwrap_or_default()),
+            escape(&text(f, &["filter"]).unwrap_or_default()),
+            fmt(num(f, &["posang_deg"]), 1),
+            escape(&text(f, &["bad_pixels"]).unwrap_or_else(|| "–".into())),
+            escape(&text(f, &["detail"]).or_else(|| text(f, &["file"])).unwrap_or_default())
+        );
+    }
+    h.push_str("</tbody></table></div>\n");
+}
+
+fn standards(h: &mut String, cat: &Catalog) {
+    h.push_str("<h3>Standard stars</h3>\n");
+    if cat.standards.is_empty() {
+        h.push_str("<p>No standard star in this catalog.</p>\n");
+        return;
+    }
+    h.push_str("<div class=\"scroll\"><table id=\"standards\"><thead><tr><th>star</th><th>status</th><th>filter</th>\
+        <th class=\"num\">P [%]</th><th class=\"num\">γ [deg]</th><th class=\"num\">table P [%]</th><th class=\"num\">table γ [deg]</th>\
+        <th class=\"num\">ΔP [σ]</th><th class=\"num\">Δγ [deg]</th><th class=\"num\">χ²(q,u=0)</th><th>used for</th><th>flags</th></tr></thead><tbody>\n");
+    for s in &cat.standards {
+        let m = s.measured.as_ref();
+        let t = s.table.as_ref();
+        let _ = write!(
+            h,
+            "<tr><td><strong>{}</strong><br><span class=\"muted\">{}</span></td><td class=\"st-{st}\">{st}</td><td>{}</td>\
+             <td class=\"num\">{} ± {}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td>\
+             <td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td>{}</td><td>",
+            escape(&s.name),
+            escape(&s.sequence),
+            escape(&s.filter),
+            pct(m.map(|c| c.p)),
+            pct(m.map(|c| c.sigma_p)),
+            pm(m.map(|c| c.gamma_deg), m.map(|c| c.sigma_gamma_deg), 1),
+            pct(t.map(|t| t.p)),
+            fmt(t.map(|t| t.gamma_deg), 1),
+            fmt(s.residual_p_sigma, 2),
+            fmt(s.residual_gamma_deg, 1),
+            fmt(s.residual_qu_chi2, 2),
+            escape(&s.used_for.join(", ")),
+            st = status_word(s.status)
+        );
+        let all: Vec<&String> = s.flags.iter().collect();
+        flag_list(h, &all);
+        h.push_str("</td></tr>\n");
+    }
+    h.push_str("</tbody></table></div>\n");
+}
+
+/// The telescope's polarization removed from each target (component A's `telescope_qu`, sky
+/// frame at the mean parallactic angle of its frames), in the order of the night.
+fn telescope_over_night(h: &mut String, cat: &Catalog) {
+    let mut rows: Vec<(&str, &str, [f64; 2])> = cat
+        .targets
+        .iter()
+        .filter_map(|t| {
+            let qu = t.components.iter().find_map(|c| c.telescope_qu)?;
+            Some((t.tpl_start.as_deref().unwrap_or(""), t.object.as_str(), qu))
+        })
+        .collect();
+    h.push_str("<h3>Telescope polarization over the night</h3>\n");
+    if rows.is_empty() {
+        h.push_str("<p>The telescope's polarization was not removed from any target.</p>\n");
+        return;
+    }
+    rows.sort_by(|a, b| a.0.cmp(b.0));
+    h.push_str("<div class=\"scroll\"><table id=\"telescope\"><thead><tr><th>start</th><th>target</th><th class=\"num\">q_tel [%]</th>\
+        <th class=\"num\">u_tel [%]</th><th class=\"num\">p_tel [%]</th><th class=\"num\">angle [deg]</th></tr></thead><tbody>\n");
+    for (start, object, [q, u]) in rows {
+        let angle = (0.5 * u.atan2(q).to_degrees()).rem_euclid(180.0);
+        let _ = writeln!(
+            h,
+            "<tr><td>{}</td><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
+            escape(start),
+            escape(object),
+            fmt(Some(100.0 * q), 3),
+            fmt(Some(100.0 * u), 3),
+            fmt(Some(100.0 * q.hypot(u)), 3),
+            fmt(Some(angle), 1)
+        );
+    }
+    h.push_str("</tbody></table></div>\n");
+}
+
+/// The verdict, the tests, the comparisons with the models and the ISM levels, the figures.
+pub fn statistics(h: &mut String, stats: &Result<StatsSection, String>) {
+    h.push_str("<section id=\"statistics\"><h2>Alignment statistics (Δγ)</h2>\n");
+    let s = match stats {
+        Err(e) => {
+            let _ = writeln!(
+                h,
+                "<p>The statistics could not be computed: {}</p>\n</section>",
+                escape(e)
+            );
+            return;
+        }
+        Ok(s) => s,
+    };
+    let r = &s.report;
+    let _ = writeln!(
+        h,
+        "<p>Sample: {} binaries with both components above the cut; {} targets excluded. \
+         As <code>sofipol stats</code> computes them (Monte Carlo: {}).</p>\n<div class=\"verdict\" id=\"verdict\">{}</div>",
+        s.sample.len(),
+        s.sample.excluded.len(),
+        escape(&r.mc_description),
+        escape(&r.verdict)
+    );
+    if let (Some(ks), Some(kp), Some(bt)) = (&r.ks_uniform, &r.kuiper_uniform, &r.below_threshold) {
+        let _ = writeln!(
+            h,
+            "<ul><li>KS against uniform: D = {:.3}, p = {}</li><li>Kuiper against uniform: V = {:.3}, p = {}</li>\
+             <li>{} of {} below {}°: binomial p = {}</li><li>mean Δγ = {}°</li></ul>",
+            ks.statistic,
+            format_p(ks.p_value),
+            kp.statistic,
+            format_p(kp.p_value),
+            bt.k,
+            bt.n,
+            r.threshold_deg,
+            format_p(bt.p_greater),
+            fmt(r.mean_delta_gamma_deg, 1)
+        );
+    }
+    for f in &s.figures {
+        image(h, &f.caption, &f.png);
+    }
+    if !r.models.is_empty() {
+        h.push_str("<h3>Against the alignment models</h3>\n<div class=\"scroll\"><table id=\"models\"><thead><tr><th>model</th>\
+            <th class=\"num\">mean Δγ [deg]</th><th class=\"num\">fraction &lt; 30°</th><th class=\"num\">KS p</th>\
+            <th class=\"num\">KS p with errors</th></tr></thead><tbody>\n");
+        for m in &r.models {
+            let w = m.with_errors.as_ref().map(|c| &c.prediction);
+            let _ = writeln!(
+                h,
+                "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
+                escape(&m.label),
+                fmt(Some(m.prediction.mean_deg), 1),
+                fmt(Some(m.prediction.fraction_below_threshold), 3),
+                format_p(m.prediction.ks.p_value),
+                w.map_or("–".into(), |p| format_p(p.ks.p_value))
+            );
+        }
+        h.push_str("</tbody></table></div>\n");
+    }
+    if !r.ism.is_empty() {
+        let _ = writeln!(
+            h,
+            "<h3>Against random disks with interstellar polarization</h3>\n<p class=\"muted\">{}</p>\
+             <div class=\"scroll\"><table id=\"ism\"><thead><tr><th class=\"num\">P_ism [%]</th><th class=\"num\">fraction &lt; 30°</th>\
+             <th class=\"num\">KS D</th><th class=\"num\">KS p</th></tr></thead><tbody>",
+            escape(&s.mc)
+        );
+        for c in &r.ism {
+            let _ = writeln!(
+                h,
+                "<tr><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
+                c.p_ism_percent,
+                fmt(Some(c.mc_fraction_below_threshold), 3),
+                fmt(Some(c.ks.statistic), 3),
+                format_p(c.ks.p_value)
+            );
+        }
+        h.push_str("</tbody></table></div>\n");
+    }
+    if !s.sample.binaries.is_empty() {
+        h.push_str("<h3>Δγ per binary</h3>\n<div class=\"scroll\"><table id=\"sample\"><thead><tr><th>object</th><th class=\"num\">Δγ [deg]</th>\
+            <th class=\"num\">σ [deg]</th><th class=\"num\">68 % interval [deg]</th><th>error from</th></tr></thead><tbody>\n");
+        for b in &s.sample.binaries {
+            let _ = writeln!(
+                h,
+                "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td>{}</td></tr>",
+                escape(&b.object),
+                fmt(Some(b.delta_gamma_deg), 1),
+                fmt(b.sigma_delta_gamma_deg, 1),
+                b.delta_gamma_interval_deg
+                    .map_or("–".into(), |[lo, hi]| format!("[{lo:.1}, {hi:.1}]")),
+                escape(source_name(b.sigma_source))
+            );
+        }
+        h.push_str("</tbody></table></div>\n");
+    }
+    if !s.sample.excluded.is_empty() {
+        h.push_str("<h3>Excluded from the sample</h3>\n<ul>\n");
+        for e in &s.sample.excluded {
+            let _ = writeln!(
+                h,
+                "<li><strong>{}</strong>: {}</li>",
+                escape(&e.object),
+                escape(&e.reason)
+            );
+        }
+        h.push_str("</ul>\n");
+    }
+    h.push_str("</section>\n");
+}

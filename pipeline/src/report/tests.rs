@@ -1,0 +1,264 @@
+//! The page builder: escaping, completeness, number formats, flags in words, degenerate
+//! catalogs, base64 against RFC 4648's vectors.
+use super::html::{escape, render};
+use super::*;
+use crate::catalog::{Catalog, Component, Failure, Status, Target};
+use crate::stokes::inversion::{Debias, LinearPolarization};
+
+const HOSTILE: &str = "<script>alert(\"x\")</script> & 'q' </td></table>";
+
+fn comp(name: &str, q: f64, u: f64, sigma: f64, flags: &[&str]) -> Component {
+    let mut c = Component::new(
+        name,
+        LinearPolarization::from_qu(q, u, sigma, sigma, Debias::WardleKronberg).pol,
+    );
+    c.passes_cut = c.p / c.sigma_p > 3.0;
+    c.snr = Some(c.p / c.sigma_p);
+    c.flags = flags.iter().map(|f| f.to_string()).collect();
+    c
+}
+
+fn binary(object: &str, a: Component, b: Component) -> Target {
+    let mut t = Target::new(object, Status::Ok);
+    t.sequence = Some(format!("{object}@1999-03-03T01:00:00"));
+    t.components = vec![a, b];
+    t.update_delta_gamma(None);
+    t
+}
+
+fn input(catalog: Catalog, stats: std::result::Result<StatsSection, String>) -> ReportInput {
+    ReportInput {
+        catalog,
+        catalog_path: "night/catalog.json".into(),
+        figures_dir: Some("night/catalog_products".into()),
+        target_figures: Default::default(),
+        stats,
+        command_line: "sofipol report night/catalog.json".into(),
+    }
+}
+
+/// Non-void elements open and close in order (script and style content skipped): the
+/// page is well-formed as far as its structure goes.
+fn assert_balanced(page: &str) {
+    const VOID: [&str; 6] = ["meta", "br", "img", "input", "hr", "link"];
+    let mut stack: Vec<String> = Vec::new();
+    let mut rest = page;
+    while let Some(i) = rest.find('<') {
+        rest = &rest[i + 1..];
+        if rest.starts_with('!') {
+            continue;
+        }
+        let end = rest.find('>').expect("unclosed tag");
+        let tag = &rest[..end];
+        let closing = tag.starts_with('/');
+        let name: String = tag
+            .trim_start_matches('/')
+            .chars()
+            .take_while(|c| c.is_ascii_alphanumeric())
+            .collect::<String>()
+            .to_ascii_lowercase();
+        rest = &rest[end + 1..];
+        if closing {
+            assert_eq!(
+                stack.pop().as_deref(),
+                Some(name.as_str()),
+                "</{name}> closes the wrong element"
+            );
+        } else if !VOID.contains(&name.as_str()) {
+            if name == "script" || name == "style" {
+                let close = format!("</{name}>");
+                rest = &rest[rest.find(&close).expect("script or style not closed") + close.len()..];
+            } else {
+                stack.push(name);
+            }
+        }
+    }
+    assert!(stack.is_empty(), "not closed: {stack:?}");
+}
+
+#[test]
+fn base64_matches_the_rfc_4648_test_vectors() {
+    for (plain, coded) in [
+        ("", ""),
+        ("f", "Zg=="),
+        ("fo", "Zm8="),
+        ("foo", "Zm9v"),
+        ("foob", "Zm9vYg=="),
+        ("fooba", "Zm9vYmE="),
+        ("foobar", "Zm9vYmFy"),
+    ] {
+        assert_eq!(base64(plain.as_bytes()), coded, "{plain}");
+    }
+    assert_eq!(base64(&[0xff, 0xfe, 0x00]), "//4A");
+}
+
+#[test]
+fn hostile_names_are_escaped_everywhere() {
+    let mut failed = Target::new(HOSTILE, Status::Failed);
+    failed.error = Some(format!("no sources in {HOSTILE}"));
+    let mut cat = Catalog {
+        targets: vec![
+            binary(
+                HOSTILE,
+                comp("A\"><b>", 0.03, 0.01, 0.002, &[HOSTILE]),
+                comp("B", 0.0, 0.04, 0.002, &[]),
+            ),
+            failed,
+        ],
+        failures: vec![Failure {
+            file: format!("{HOSTILE}.fits"),
+            error: HOSTILE.into(),
+        }],
+        provenance: serde_json::json!({"command_line": ["sofipol", HOSTILE], "software": HOSTILE}),
+        ..Default::default()
+    };
+    cat.schema_version = HOSTILE.into();
+    let mut inp = input(cat, Err(HOSTILE.into()));
+    inp.catalog_path = HOSTILE.into();
+    inp.command_line = HOSTILE.into();
+    let page = render(&inp);
+    assert!(!page.contains("<script>alert"), "an object name became a script");
+    assert!(!page.contains("A\"><b>"));
+    assert_eq!(page.matches("<script").count(), 2, "the page's own two scripts only");
+    assert!(page.contains("&lt;script&gt;alert(&quot;x&quot;)&lt;/script&gt; &amp; &#39;q&#39;"));
+    assert_balanced(&page);
+    assert_eq!(escape("a&b<c>d\"e'f"), "a&amp;b&lt;c&gt;d&quot;e&#39;f");
+}
+
+#[test]
+fn every_target_and_component_has_a_row_with_its_numbers_in_percent_and_degrees() {
+    // P = 0.05 (q = 0.03, u = 0.04), gamma = 26.565 deg; B: P = 0.02, gamma = 45 deg.
+    let a = comp("A", 0.03, 0.04, 0.001, &[]);
+    let b = comp("B", 0.0, 0.02, 0.001, &[]);
+    let mut partial = binary(
+        "Beta",
+        comp("A", -0.01, 0.0, 0.001, &[]),
+        comp("B", 0.0, -0.001, 0.001, &["low_snr"]),
+    );
+    partial.status = Status::Partial;
+    let mut failed = Target::new("Gamma", Status::Failed);
+    failed.error = Some("primary not found".into());
+    let cat = Catalog {
+        targets: vec![binary("Alpha", a.clone(), b.clone()), partial, failed],
+        ..Default::default()
+    };
+    let page = render(&input(cat, Err("not run".into())));
+    for (t, c) in [
+        ("Alpha", "A"),
+        ("Alpha", "B"),
+        ("Beta", "A"),
+        ("Beta", "B"),
+        ("Gamma", ""),
+    ] {
+        assert_eq!(
+            page.matches(&format!("data-target=\"{t}\" data-comp=\"{c}\"")).count(),
+            1,
+            "{t}/{c}"
+        );
+    }
+    assert_eq!(page.matches("<tr data-status=").count(), 5);
+    assert!(page.contains("<tr data-status=\"failed\" data-target=\"Gamma\""));
+    assert!(page.contains("<tr data-status=\"partial\" data-target=\"Beta\""));
+    // P in percent (debiased), gamma in degrees, Delta gamma folded.
+    let pd = 100.0 * a.p_debiased;
+    assert!(page.contains(&format!("data-v=\"{pd}\">{pd:.2}</td>")), "P of Alpha A");
+    assert!((a.gamma_deg - 26.565).abs() < 1e-3 && (b.gamma_deg - 45.0).abs() < 1e-9);
+    assert!(page.contains(&format!("data-v=\"{}\">26.6</td>", a.gamma_deg)));
+    assert!(page.contains(">18.4</td>"), "Delta gamma = 45 - 26.57");
+    assert!(page.contains(">primary not found<"));
+    assert!(page.contains("1 partial") && page.contains("1 failed") && page.contains("3 targets"));
+    assert_balanced(&page);
+}
+
+#[test]
+fn flags_are_explained_in_words_and_unknown_ones_shown_as_they_are() {
+    let mut t = binary(
+        "Alpha",
+        comp("A", 0.03, 0.04, 0.001, &["companion_overlap", "a_flag_from_the_future"]),
+        comp(
+            "B",
+            0.0,
+            0.02,
+            0.001,
+            &["stokes_method_failed: no angles; fell back to least_squares"],
+        ),
+    );
+    t.flags = Some(vec!["companion_not_found".into()]);
+    let cat = Catalog {
+        targets: vec![t],
+        ..Default::default()
+    };
+    let page = render(&input(cat, Err("not run".into())));
+    assert!(page.contains("The two stars&#39; apertures overlap (reported only)."));
+    assert!(page.contains("The companion was not found"));
+    assert!(page.contains("<li><code>a_flag_from_the_future</code></li>"));
+    assert!(page.contains("another one was used (or none). (no angles; fell back to least_squares)"));
+}
+
+#[test]
+fn an_empty_catalog_and_one_of_failures_only_give_whole_pages() {
+    let empty = render(&input(Catalog::default(), Err("no sample".into())));
+    assert_balanced(&empty);
+    assert!(empty.contains("The catalog has no targets."));
+    assert!(empty.contains("No per-target figures were found"));
+    let mut f = Target::new("Alpha", Status::Failed);
+    f.error = Some("no frames".into());
+    let cat = Catalog {
+        targets: vec![f],
+        failures: vec![Failure {
+            file: "x.fits".into(),
+            error: "truncated".into(),
+        }],
+        ..Default::default()
+    };
+    let stats = statistics(
+        &cat,
+        "failures only",
+        &setup::Options {
+            pairs: 1000,
+            ..Default::default()
+        },
+    );
+    let s = stats.expect("the statistics of an empty sample");
+    assert_eq!(s.sample.len(), 0);
+    assert!(s.figures.is_empty());
+    let page = render(&input(cat, Ok(s)));
+    assert_balanced(&page);
+    assert!(page.contains("<code>x.fits</code></td><td>truncated</td>"));
+    assert!(page.contains("0 binaries with both components above the cut"));
+}
+
+#[test]
+fn the_statistics_section_is_what_sofipol_stats_computes_with_its_figures_embedded() {
+    // Five aligned binaries: Delta gamma small for all.
+    let targets: Vec<Target> = (0..5)
+        .map(|i| {
+            let g = 0.3 * i as f64;
+            let a = comp("A", 0.04 * g.cos(), 0.04 * g.sin(), 0.002, &[]);
+            let b = comp("B", 0.03 * (g + 0.1).cos(), 0.03 * (g + 0.1).sin(), 0.002, &[]);
+            binary(&format!("T{i}"), a, b)
+        })
+        .collect();
+    let cat = Catalog {
+        targets,
+        ..Default::default()
+    };
+    let opts = setup::Options {
+        pairs: 5000,
+        ism_levels_percent: vec![0.5, 2.0],
+        ..Default::default()
+    };
+    let s = statistics(&cat, "test", &opts).unwrap();
+    // The same call as `sofipol stats`.
+    let sample = BinarySample::from_catalog(&cat, None);
+    let direct = setup::analyse_sample(&sample, &setup::params(&sample, &opts, "test").unwrap()).unwrap();
+    assert_eq!(s.report.verdict, direct.verdict);
+    assert_eq!(s.report.n, 5);
+    assert_eq!(s.figures.len(), 2);
+    assert!(s.figures.iter().all(|f| f.png.starts_with(b"\x89PNG")));
+    let page = render(&input(cat, Ok(s)));
+    assert_eq!(page.matches("src=\"data:image/png;base64,iVBORw0KGgo").count(), 2);
+    assert!(page.contains(&escape(&direct.verdict)));
+    assert!(page.contains("KS against uniform"));
+    assert_balanced(&page);
+}

@@ -1,0 +1,54 @@
+//! The human summary shared by `target`, `night` and `demo`.
+use sofipol_calib::text::printable;
+use sofipol_pipeline::catalog::{Catalog, Status};
+
+/// A table of the catalog for a terminal.
+pub fn summary(cat: &Catalog) -> String {
+    let mut s = String::new();
+    s += &format!(
+        "{:<16} {:<7} {:>4} {:>8} {:>7} {:>7} {:>6} {:>5} {:>6}  {}\n",
+        "object", "status", "comp", "P [%]", "sig_P", "gamma", "sig_g", "cut", "dgamma", "flags"
+    );
+    for t in &cat.targets {
+        let st = match t.status {
+            Status::Ok => "ok",
+            Status::Partial => "partial",
+            Status::Failed => "FAILED",
+        };
+        if t.components.is_empty() {
+            s += &format!(
+                "{:<16} {:<7}  {}\n",
+                printable(&t.object),
+                st,
+                printable(t.error.as_deref().unwrap_or(""))
+            );
+            continue;
+        }
+        for (i, c) in t.components.iter().enumerate() {
+            let dg = match (i, t.delta_gamma_deg) {
+                (0, Some(d)) => format!("{d:6.1}"),
+                _ => "     -".into(),
+            };
+            s += &format!(
+                "{:<16} {:<7} {:>4} {:>8.3} {:>7.3} {:>7.1} {:>6.1} {:>5} {}  {}\n",
+                if i == 0 { printable(&t.object) } else { "".into() },
+                if i == 0 { st } else { "" },
+                c.name,
+                100.0 * c.p,
+                100.0 * c.sigma_p,
+                c.gamma_deg,
+                c.sigma_gamma_deg,
+                if c.passes_cut { "pass" } else { "-" },
+                dg,
+                printable(&c.flags.join(","))
+            );
+        }
+    }
+    if !cat.failures.is_empty() {
+        s += &format!("\n{} input(s) not used:\n", cat.failures.len());
+        for f in &cat.failures {
+            s += &format!("  {}: {}\n", printable(&f.file), printable(&f.error));
+        }
+    }
+    s
+}
