@@ -71,10 +71,7 @@ pub fn state_path(output: &Path) -> PathBuf {
 
 /// Seconds given on the command line, checked.
 fn seconds(what: &str, s: f64) -> anyhow::Result<Duration> {
-    anyhow::ensure!(
-        (0.0..1e9).contains(&s),
-        "{what} {s}: need a number of seconds >= 0"
-    );
+    anyhow::ensure!((0.0..1e9).contains(&s), "{what} {s}: need a number of seconds >= 0");
     Ok(Duration::from_secs_f64(s))
 }
 
@@ -143,7 +140,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mut last: Option<Catalog> = None;
     let mut calibration_lines = Vec::new();
     loop {
-        let wait = if live.wants_update() { Duration::ZERO } else { Duration::from_millis(250) };
+        let wait = if live.wants_update() {
+            Duration::ZERO
+        } else {
+            Duration::from_millis(250)
+        };
         let woke = wait_for_events(&rx, wait);
         let finish = stop.load(Ordering::SeqCst);
         if woke {

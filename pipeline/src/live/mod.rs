@@ -1,7 +1,7 @@
 //! Live reduction: a night reduced while it is observed.
 //!
 //! Each [`LiveNight::update`] lists the night's folders, waits for frames still being
-//! written ([`readiness`]), holds back templates still being observed (fewer frames than
+//! written ([`readiness()`]), holds back templates still being observed (fewer frames than
 //! `TPL NEXP`, unless no frame has arrived for the time-out: an aborted template), and
 //! reduces the night's complete templates as `sofipol night` does
 //! ([`run_night`](crate::night::run_night)), with a [`NightCache`]: a target is reduced
@@ -127,13 +127,19 @@ pub struct LiveNight {
 
 /// Headers read, by path, with the size and time of the file they were read from.
 #[derive(Default)]
-struct HeaderCache(Mutex<HashMap<PathBuf, (u64, Option<SystemTime>, Header)>>);
+struct HeaderCache(Mutex<HashMap<PathBuf, StampedHeader>>);
+
+/// A header with the size and modification time of the file it was read from.
+type StampedHeader = (u64, Option<SystemTime>, Header);
 
 impl HeaderCache {
     /// The header of `p`: the one read before when the file is unchanged, else read now.
     fn read(&self, p: &Path) -> sofipol_calib::Result<Header> {
         let meta = std::fs::metadata(p).ok();
-        let stamp = (meta.as_ref().map(|m| m.len()), meta.as_ref().and_then(|m| m.modified().ok()));
+        let stamp = (
+            meta.as_ref().map(|m| m.len()),
+            meta.as_ref().and_then(|m| m.modified().ok()),
+        );
         if let (Some(len), modified) = stamp {
             if let Some((l, m, h)) = self.0.lock().unwrap_or_else(|e| e.into_inner()).get(p) {
                 if *l == len && *m == modified {
@@ -256,8 +262,9 @@ impl LiveNight {
         self.held = held.into_inner();
         // New frames for the mask or the flats: first a provisional run with those held
         // (a new target's numbers at once), then, at the next update, the run that rebuilds
-        // them and reduces every target again.
-        let provisional = !self.rebuild
+        // them and reduces every target again. A finishing update is never provisional.
+        let provisional = !finish
+            && !self.rebuild
             && self.cache.holds_any()
             && !self
                 .cache

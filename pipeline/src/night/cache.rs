@@ -117,8 +117,18 @@ impl NightCache {
         dome_flats: &[PathBuf],
         superflat_frames: &BTreeMap<String, Vec<PathBuf>>,
     ) -> bool {
-        let mask = self.mask.lock().unwrap_or_else(|e| e.into_inner()).as_ref().map(|m| m.0);
-        let flats = self.flats.lock().unwrap_or_else(|e| e.into_inner()).as_ref().map(|f| f.0);
+        let mask = self
+            .mask
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .as_ref()
+            .map(|m| m.0);
+        let flats = self
+            .flats
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .as_ref()
+            .map(|f| f.0);
         mask == Some(self.mask_key(mask_frames)) && flats == Some(self.flats_key(dome_flats, superflat_frames))
     }
 
@@ -133,12 +143,16 @@ impl NightCache {
     }
 
     fn flats_key(&self, dome_flats: &[PathBuf], superflat_frames: &BTreeMap<String, Vec<PathBuf>>) -> u64 {
-        let named = superflat_frames
-            .iter()
-            .flat_map(|(filter, v)| std::iter::once(PathBuf::from(format!("filter {filter}"))).chain(v.iter().cloned()));
+        let named = superflat_frames.iter().flat_map(|(filter, v)| {
+            std::iter::once(PathBuf::from(format!("filter {filter}"))).chain(v.iter().cloned())
+        });
         files_key(
             self.settings ^ 0x666c_6174,
-            dome_flats.iter().cloned().chain(std::iter::once("superflat".into())).chain(named),
+            dome_flats
+                .iter()
+                .cloned()
+                .chain(std::iter::once("superflat".into()))
+                .chain(named),
         )
     }
 
