@@ -34,7 +34,12 @@ if ! apt-cache show chromium >/dev/null 2>&1; then
     apt-get update -q >&2
 fi
 echo "browser-env: apt-get install chromium (Debian package)" >&2
-apt-get install -y -q --no-install-recommends chromium >&2
+if ! apt-get install -y -q --no-install-recommends chromium >&2; then
+    # Package lists older than the mirror's files: refresh them and try once more.
+    echo "browser-env: apt-get install failed: apt-get update, then again" >&2
+    apt-get update -q >&2
+    apt-get install -y -q --no-install-recommends chromium >&2
+fi
 b="$(find_chromium)" || { echo "browser-env: chromium still not found after apt-get install" >&2; exit 1; }
 "$b" --version >&2 || true
 echo "$b"
