@@ -570,6 +570,32 @@ pub struct StandardResult {
     pub mjd_mean: Option<f64>,
 }
 
+/// The distinct values, in order, of the provenance entry `key` (`software`, `commit`):
+/// the catalog's own (a string, or a list of strings as `merge` writes when its inputs
+/// differ), else, for a merged catalog written without it, those of the catalogs it was
+/// merged from (`merged_from[].provenance`, recursively). Empty when none is known.
+pub fn provenance_values(prov: &serde_json::Value, key: &str) -> Vec<String> {
+    fn collect(prov: &serde_json::Value, key: &str, out: &mut Vec<String>) {
+        let mut push = |s: &str| {
+            if !out.iter().any(|o| o == s) {
+                out.push(s.to_string());
+            }
+        };
+        match &prov[key] {
+            serde_json::Value::String(s) => push(s),
+            serde_json::Value::Array(a) => a.iter().filter_map(|x| x.as_str()).for_each(push),
+            _ => {
+                for part in prov["merged_from"].as_array().into_iter().flatten() {
+                    collect(&part["provenance"], key, out);
+                }
+            }
+        }
+    }
+    let mut out = Vec::new();
+    collect(prov, key, &mut out);
+    out
+}
+
 /// Fold an angle difference of two axial angles (degrees) into [0, 90].
 pub fn fold_delta_gamma(gamma_a_deg: f64, gamma_b_deg: f64) -> f64 {
     let d = (gamma_a_deg - gamma_b_deg).rem_euclid(180.0);
