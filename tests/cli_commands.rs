@@ -176,7 +176,14 @@ fn target_reduces_one_sequence_to_the_truth_and_names_a_missing_object() {
     assert!(!none.exists());
     // A name that differs in case and blanks, or by one letter: the close match is named.
     for wrong in ["solo", "SO LO", "Sola"] {
-        let (code, _, err) = run(&["target", raw.to_str().unwrap(), "--object", wrong, "-o", none.to_str().unwrap()]);
+        let (code, _, err) = run(&[
+            "target",
+            raw.to_str().unwrap(),
+            "--object",
+            wrong,
+            "-o",
+            none.to_str().unwrap(),
+        ]);
         assert_eq!(code, 1, "{err}");
         assert!(
             err.contains(&format!("object '{wrong}'")) && err.contains("did you mean --object 'Solo'?"),

@@ -183,8 +183,17 @@ fn with_standards(path: &Path) -> Vec<[f64; 5]> {
         serde_json::from_str(&std::fs::read_to_string(testdata("catalog_aligned.json")).unwrap()).unwrap();
     let mut set = Vec::new();
     for (i, t) in cat["targets"].as_array_mut().unwrap().iter_mut().enumerate() {
-        let v = [10.0 + 7.25 * i as f64, -30.5 + i as f64, 51240.0 + 0.015625 * i as f64, 2.5 + i as f64, 15.0 * i as f64];
-        for (key, x) in ["ra_deg", "dec_deg", "mjd_mean", "separation_arcsec", "pa_deg"].iter().zip(v) {
+        let v = [
+            10.0 + 7.25 * i as f64,
+            -30.5 + i as f64,
+            51240.0 + 0.015625 * i as f64,
+            2.5 + i as f64,
+            15.0 * i as f64,
+        ];
+        for (key, x) in ["ra_deg", "dec_deg", "mjd_mean", "separation_arcsec", "pa_deg"]
+            .iter()
+            .zip(v)
+        {
             t[*key] = x.into();
         }
         set.extend(std::iter::repeat_n(v, t["components"].as_array().unwrap().len()));

@@ -222,11 +222,19 @@ fn merged_shards_keep_the_nights_order_and_software() {
     assert!(rows.iter().all(|r| r[col("software")] == software), "{text}");
     let kinds: Vec<&str> = rows.iter().map(|r| r[col("kind")]).collect();
     assert_eq!(kinds.iter().filter(|k| **k == "standard").count(), n_std, "{text}");
-    let targets: Vec<&str> = rows.iter().filter(|r| r[col("kind")] == "target").map(|r| r[col("target")]).collect();
+    let targets: Vec<&str> = rows
+        .iter()
+        .filter(|r| r[col("kind")] == "target")
+        .map(|r| r[col("target")])
+        .collect();
     assert_eq!(targets, ["Zulu", "Zulu", "Beta", "Beta"], "{text}");
 
     // Pointing and time: the means of the frames' headers.
-    let entries = whole["targets"].as_array().unwrap().iter().chain(whole["standards"].as_array().unwrap());
+    let entries = whole["targets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .chain(whole["standards"].as_array().unwrap());
     for t in entries {
         let seq = t["sequence"].as_str().unwrap();
         for (key, keyword) in [("ra_deg", "RA"), ("dec_deg", "DEC"), ("mjd_mean", "MJD-OBS")] {

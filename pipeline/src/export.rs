@@ -90,7 +90,11 @@ impl Table {
 
 /// The numeric columns, in table order: (name, unit, description).
 const NUMERIC: [(&str, &str, &str); 27] = [
-    ("ra", "deg", "right ascension of the pointing (ICRS), mean over the frames"),
+    (
+        "ra",
+        "deg",
+        "right ascension of the pointing (ICRS), mean over the frames",
+    ),
     ("dec", "deg", "declination of the pointing (ICRS), mean over the frames"),
     ("mjd", "d", "mean MJD-OBS of the sequence's frames"),
     ("separation", "arcsec", "target: separation of B from A found"),
@@ -306,11 +310,9 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
         data: Data::Bool(rows.iter().map(|r| r.passes_cut).collect()),
     });
     columns.push(text("flags", "component flags, ';'-separated", |r| r.flags.clone()));
-    columns.push(text(
-        "target_flags",
-        "target (or standard) flags, ';'-separated",
-        |r| r.target_flags.clone(),
-    ));
+    columns.push(text("target_flags", "target (or standard) flags, ';'-separated", |r| {
+        r.target_flags.clone()
+    }));
     columns.push(Column {
         name: "software",
         unit: "",

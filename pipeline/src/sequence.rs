@@ -201,8 +201,8 @@ mod tests {
             expno: Some(expno),
             nexp: Some(10),
             mjd: None,
-                    ra_deg: None,
-                    dec_deg: None,
+            ra_deg: None,
+            dec_deg: None,
             pixscale_arcsec: 0.288,
         }
     }

@@ -124,7 +124,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 /// one ([`closest_object`]), if any.
 fn no_such_object(wanted: &str, found: &[&str]) -> String {
     use sofipol_calib::text::printable;
-    let mut msg = format!("no polarimetric sequence of object '{}' in the inputs", printable(wanted));
+    let mut msg = format!(
+        "no polarimetric sequence of object '{}' in the inputs",
+        printable(wanted)
+    );
     if let Some(c) = closest_object(wanted, found) {
         msg += &format!("; did you mean --object '{}'?", printable(c));
     }
@@ -144,7 +147,12 @@ fn no_such_object(wanted: &str, found: &[&str]) -> String {
 /// and whitespace are ignored, else the nearest by Levenshtein distance (of the lower-case
 /// names) when that distance is at most a third of the name's length (at least 2).
 fn closest_object<'a>(wanted: &str, found: &[&'a str]) -> Option<&'a str> {
-    let fold = |s: &str| s.chars().filter(|c| !c.is_whitespace()).collect::<String>().to_lowercase();
+    let fold = |s: &str| {
+        s.chars()
+            .filter(|c| !c.is_whitespace())
+            .collect::<String>()
+            .to_lowercase()
+    };
     let w = fold(wanted);
     if let Some(f) = found.iter().find(|f| fold(f) == w) {
         return Some(f);

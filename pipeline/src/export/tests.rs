@@ -120,7 +120,10 @@ fn standards_are_rows_of_kind_standard_with_pointing_time_and_units() {
     assert_eq!(nums(&t, "mjd"), [51240.0625, 51240.0625, 51240.21]);
     let (sep, pa, dg) = (nums(&t, "separation"), nums(&t, "pa"), nums(&t, "delta_gamma"));
     assert_eq!((sep[0], sep[1], pa[0], pa[1], dg[0]), (4.0, 4.0, 30.0, 30.0, 48.0));
-    assert!(sep[2].is_nan() && pa[2].is_nan() && dg[2].is_nan(), "a standard has no pair");
+    assert!(
+        sep[2].is_nan() && pa[2].is_nan() && dg[2].is_nan(),
+        "a standard has no pair"
+    );
     for (name, unit) in [
         ("ra", "deg"),
         ("dec", "deg"),
@@ -138,7 +141,10 @@ fn standards_are_rows_of_kind_standard_with_pointing_time_and_units() {
     assert!(t.meta.contains(&("commit", "abc".into())), "{:?}", t.meta);
     let ecsv = to_ecsv(&t);
     assert!(ecsv.contains("# - {name: mjd, unit: d, datatype: float64,"), "{ecsv}");
-    assert!(ecsv.contains("# - {name: separation, unit: arcsec, datatype: float64,"), "{ecsv}");
+    assert!(
+        ecsv.contains("# - {name: separation, unit: arcsec, datatype: float64,"),
+        "{ecsv}"
+    );
 }
 
 /// Inputs of different software versions: every version, not one of them nor `unknown`.

@@ -55,7 +55,11 @@ pub fn component_from_dithers(
     let n_bad_pixels = per_orient
         .iter()
         .flatten()
-        .filter(|d| d.rejected.as_deref().is_some_and(|r| r.split(',').any(|x| x == BAD_PIXELS)))
+        .filter(|d| {
+            d.rejected
+                .as_deref()
+                .is_some_and(|r| r.split(',').any(|x| x == BAD_PIXELS))
+        })
         .count();
     for (k, dv) in per_orient.iter().enumerate() {
         let mut usable: Vec<usize> = (0..dv.len()).filter(|&i| dv[i].rejected.is_none()).collect();
@@ -407,7 +411,11 @@ mod tests {
         let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords);
         let flags = &t.components[0].flags;
         let want = "bad_pixels: 2 of 12 dithers dropped (a masked pixel within the aperture)";
-        assert_eq!(flags.iter().filter(|f| f.starts_with("bad_pixels")).collect::<Vec<_>>(), [want], "{flags:?}");
+        assert_eq!(
+            flags.iter().filter(|f| f.starts_with("bad_pixels")).collect::<Vec<_>>(),
+            [want],
+            "{flags:?}"
+        );
         assert!(flags.iter().any(|f| f == "cosmic_ray"), "{flags:?}");
         assert!(t.components[1].flags.is_empty(), "{:?}", t.components[1].flags);
     }
