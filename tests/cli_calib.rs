@@ -105,6 +105,25 @@ fn calib_products_serve_another_night_and_uncalibrated_is_flagged_and_explained(
     );
     assert_eq!(f["offset_standards"].as_array().unwrap().len(), 3);
     assert!(cal["frames"].as_array().unwrap().len() == 18);
+    // The terminal line: numbers with their names and units, standards by name (no
+    // `["...", "..."]` of a Rust debug print).
+    let line = out
+        .lines()
+        .find(|l| l.starts_with("Ks: "))
+        .unwrap_or_else(|| panic!("{out}"));
+    let sigma_th = f["angles"]["sigma_theta0_deg"].as_f64().unwrap();
+    for part in [
+        format!(
+            "instrumental offset c = {c:.5} +- {:.5}",
+            f["offset"]["sigma_c"].as_f64().unwrap()
+        ),
+        "from 3 unpolarized standards: ".to_string(),
+        format!("angle zero-point theta0 = {th:.2} +- {sigma_th:.2} deg"),
+        "telescope polarization".to_string(),
+    ] {
+        assert!(line.contains(&part), "{part} not in {line}");
+    }
+    assert!(!line.contains('[') && !line.contains('"'), "{line}");
 
     // The night without standards, calibrated from the other night's products.
     let cat_path = tmp.path().join("c1.json");

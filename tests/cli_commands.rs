@@ -171,7 +171,26 @@ fn target_reduces_one_sequence_to_the_truth_and_names_a_missing_object() {
     ]);
     assert_eq!(code, 1, "{err}");
     assert!(err.contains("Nobody"), "{err}");
+    assert!(err.contains("objects found: 'Solo'"), "{err}");
+    assert!(!err.contains("did you mean"), "nothing is close to Nobody: {err}");
     assert!(!none.exists());
+    // A name that differs in case and blanks, or by one letter: the close match is named.
+    for wrong in ["solo", "SO LO", "Sola"] {
+        let (code, _, err) = run(&[
+            "target",
+            raw.to_str().unwrap(),
+            "--object",
+            wrong,
+            "-o",
+            none.to_str().unwrap(),
+        ]);
+        assert_eq!(code, 1, "{err}");
+        assert!(
+            err.contains(&format!("object '{wrong}'")) && err.contains("did you mean --object 'Solo'?"),
+            "{wrong}: {err}"
+        );
+        assert!(!none.exists());
+    }
 }
 
 #[test]

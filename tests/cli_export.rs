@@ -175,6 +175,93 @@ print(len(a), "rows")
     assert_eq!(String::from_utf8_lossy(&o.stdout).trim(), format!("{n} rows"));
 }
 
+/// `catalog_aligned.json` with a pointing, a time and a geometry for every target and two
+/// standards (one measured: its component is the first target's A), written to `path`;
+/// returns the values set, one per component (row), (ra, dec, mjd, separation, pa).
+fn with_standards(path: &Path) -> Vec<[f64; 5]> {
+    let mut cat: Value =
+        serde_json::from_str(&std::fs::read_to_string(testdata("catalog_aligned.json")).unwrap()).unwrap();
+    let mut set = Vec::new();
+    for (i, t) in cat["targets"].as_array_mut().unwrap().iter_mut().enumerate() {
+        let v = [
+            10.0 + 7.25 * i as f64,
+            -30.5 + i as f64,
+            51240.0 + 0.015625 * i as f64,
+            2.5 + i as f64,
+            15.0 * i as f64,
+        ];
+        for (key, x) in ["ra_deg", "dec_deg", "mjd_mean", "separation_arcsec", "pa_deg"]
+            .iter()
+            .zip(v)
+        {
+            t[*key] = x.into();
+        }
+        set.extend(std::iter::repeat_n(v, t["components"].as_array().unwrap().len()));
+    }
+    let measured = cat["targets"][0]["components"][0].clone();
+    cat["standards"] = serde_json::json!([
+        {"name": "HD 64299", "object": "HD 64299", "sequence": "HD 64299@1999-03-03T05:00:00",
+         "filter": "Ks", "status": "ok", "measured": measured, "used_for": ["offset"],
+         "flags": [], "ra_deg": 98.5, "dec_deg": -23.25, "mjd_mean": 51240.25},
+        {"name": "HD 98161", "object": "HD 98161", "sequence": "HD 98161@1999-03-03T06:00:00",
+         "filter": "Ks", "status": "failed", "measured": null, "used_for": [], "flags": ["failed: x"]}
+    ]);
+    std::fs::write(path, serde_json::to_string(&cat).unwrap()).unwrap();
+    set
+}
+
+/// astropy reads the pointing, time and geometry columns with their units (deg, d,
+/// arcsec) from ECSV and FITS, and the measured standard as a row of kind `standard`.
+#[test]
+fn astropy_reads_the_position_time_and_standards() {
+    let Some(python) = common::python_with("astropy", "astropy_reads_the_position_time_and_standards") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let cat = dir.path().join("cat.json");
+    let set = with_standards(&cat);
+    let (ecsv, fits) = (dir.path().join("t.ecsv"), dir.path().join("t.fits"));
+    for (format, out) in [("ecsv", &ecsv), ("fits", &fits)] {
+        let o = sofipol()
+            .args(["export", cat.to_str().unwrap(), "--format", format, "-q", "-o"])
+            .arg(out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    }
+    let script = r#"
+import sys, json
+import astropy.units as u
+from astropy.table import Table
+want = json.loads(sys.argv[3])
+for t in (Table.read(sys.argv[1], format="ascii.ecsv"), Table.read(sys.argv[2], hdu="SOFIPOL")):
+    for name, unit in [("ra", u.deg), ("dec", u.deg), ("mjd", u.d), ("separation", u.arcsec), ("pa", u.deg)]:
+        assert t[name].unit == unit, (name, t[name].unit)
+    kind = [str(k).strip() for k in t["kind"]]
+    targets = t[[k == "target" for k in kind]]
+    stds = t[[k == "standard" for k in kind]]
+    assert len(stds) == 1, kind
+    assert str(stds["target"][0]).strip() == "HD 64299"
+    assert stds["ra"].quantity[0] == 98.5 * u.deg and stds["mjd"].quantity[0] == 51240.25 * u.d
+    assert stds["q"][0] == targets["q"][0]
+    assert len(targets) == len(want)
+    for row, (ra, dec, mjd, sep, pa) in zip(targets, want):
+        assert (row["ra"], row["dec"], row["mjd"], row["separation"], row["pa"]) == (ra, dec, mjd, sep, pa), row
+    assert targets["separation"].quantity.to(u.deg)[0] == want[0][3] / 3600 * u.deg
+    print(len(targets), len(stds))
+"#;
+    let o = Command::new(&python)
+        .args(["-c", script])
+        .arg(&ecsv)
+        .arg(&fits)
+        .arg(serde_json::to_string(&set).unwrap())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "astropy: {}", String::from_utf8_lossy(&o.stderr));
+    let n = expected().len();
+    assert_eq!(String::from_utf8_lossy(&o.stdout).trim(), format!("{n} 1\n{n} 1"));
+}
+
 #[test]
 fn export_errors_name_the_file() {
     let o = sofipol()

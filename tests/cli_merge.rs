@@ -16,6 +16,11 @@ fn s(p: &Path) -> &str {
 /// observes, a beam ratio of 0.97, 0.3 % of instrumental polarization and an angle
 /// zero-point of 3 deg (2 orientations x 3 dithers), in `dir/night`.
 fn night(dir: &Path) -> PathBuf {
+    night_of(dir, ALPHA_BETA)
+}
+
+/// [`night`] with other `[[binary]]` tables.
+fn night_of(dir: &Path, binaries: &str) -> PathBuf {
     let scene = dir.join("scene.toml");
     std::fs::write(
         &scene,
@@ -51,7 +56,7 @@ name = "HD 204827"
 flux = 200000.0
 p = 0.0088
 gamma_deg = 58.7
-{ALPHA_BETA}"#
+{binaries}"#
         ),
     )
     .unwrap();
@@ -143,4 +148,99 @@ fn merge_refuses_shards_reduced_with_another_calibration() {
         "{err}"
     );
     assert!(!m.exists());
+}
+
+/// `object` of every target, in catalog order.
+fn objects(cat: &serde_json::Value) -> Vec<String> {
+    cat["targets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t["object"].as_str().unwrap().to_string())
+        .collect()
+}
+
+/// The mean of `keyword` over the headers of the frames of the sequence `sequence`
+/// (`object@TPL START`), read by the project's header reader.
+fn header_mean(n: &Path, sequence: &str, keyword: &str) -> f64 {
+    let tpl = sequence.rsplit_once('@').unwrap().1;
+    let values: Vec<f64> = std::fs::read_dir(n)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "fits"))
+        .map(|p| sofipol_calib::fits::read_header(&p).unwrap())
+        .filter(|h| h.get_str("ESO TPL START").is_ok_and(|t| t == tpl))
+        .map(|h| h.get_f64(keyword).unwrap())
+        .collect();
+    assert!(values.len() >= 6, "{sequence}: {} frames", values.len());
+    values.iter().sum::<f64>() / values.len() as f64
+}
+
+/// The shards of a night merged: the targets in the unsharded night's order (by TPL
+/// START: Zulu was observed before Beta, so not alphabetical), the software and commit of
+/// the shards in the provenance and in the exported table (it said `unknown`), the
+/// standards once. The catalog's `ra_deg`, `dec_deg` and `mjd_mean` of every target and
+/// standard are the means of its frames' `RA`, `DEC` and `MJD-OBS`.
+#[test]
+fn merged_shards_keep_the_nights_order_and_software() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let n = night_of(d, &ALPHA_BETA.replace("Alpha", "Zulu"));
+    let reduce = |name: &str, extra: &[&str]| {
+        let out = d.join(format!("{name}.json"));
+        let mut a = vec!["night", s(&n), "-o", s(&out), "-q", "--no-png"];
+        a.extend_from_slice(extra);
+        let (code, _, err) = run(&a);
+        assert!(code == 0 || code == 2, "{name}: {err}");
+        out
+    };
+    let whole = catalog(&reduce("whole", &[]));
+    let (s1, s2) = (reduce("s1", &["--shard", "1/2"]), reduce("s2", &["--shard", "2/2"]));
+    let m = d.join("m.json");
+    let (code, _, err) = run(&["merge", s(&s1), s(&s2), "-o", s(&m)]);
+    assert_eq!(code, 0, "{err}");
+    let merged = catalog(&m);
+    assert_eq!(objects(&whole), ["Zulu", "Beta"], "the night's order is by TPL START");
+    assert_eq!(objects(&merged), objects(&whole));
+    let software = whole["provenance"]["software"].as_str().unwrap();
+    assert!(software.starts_with("sofipol "), "{software}");
+    assert_eq!(merged["provenance"]["software"], software);
+    assert_eq!(merged["provenance"]["commit"], whole["provenance"]["commit"]);
+    let n_std = whole["standards"].as_array().unwrap().len();
+    assert_eq!(n_std, 3);
+    assert_eq!(merged["standards"].as_array().unwrap().len(), n_std);
+
+    // The export of the merged catalog names the software.
+    let csv = d.join("m.csv");
+    let (code, _, err) = run(&["export", s(&m), "--format", "csv", "-o", s(&csv)]);
+    assert_eq!(code, 0, "{err}");
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert!(rows.iter().all(|r| r[col("software")] == software), "{text}");
+    let kinds: Vec<&str> = rows.iter().map(|r| r[col("kind")]).collect();
+    assert_eq!(kinds.iter().filter(|k| **k == "standard").count(), n_std, "{text}");
+    let targets: Vec<&str> = rows
+        .iter()
+        .filter(|r| r[col("kind")] == "target")
+        .map(|r| r[col("target")])
+        .collect();
+    assert_eq!(targets, ["Zulu", "Zulu", "Beta", "Beta"], "{text}");
+
+    // Pointing and time: the means of the frames' headers.
+    let entries = whole["targets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .chain(whole["standards"].as_array().unwrap());
+    for t in entries {
+        let seq = t["sequence"].as_str().unwrap();
+        for (key, keyword) in [("ra_deg", "RA"), ("dec_deg", "DEC"), ("mjd_mean", "MJD-OBS")] {
+            let want = header_mean(&n, seq, keyword);
+            let got = t[key].as_f64().unwrap_or_else(|| panic!("{seq}: no {key} in {t}"));
+            assert!((got - want).abs() < 1e-9, "{seq} {key}: {got} vs {want}");
+        }
+    }
 }

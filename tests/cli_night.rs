@@ -117,6 +117,15 @@ fn a_night_with_bad_inputs_reduces_every_good_target_and_names_every_bad_file() 
         stdout.contains("Alpha") && stdout.contains("truncated.fits"),
         "{stdout}"
     );
+    // The summary says which P is which: P not debiased, Pdb debiased (as `demo`).
+    let head = stdout.lines().find(|l| l.starts_with("object")).unwrap();
+    assert!(head.contains(" P [%]") && head.contains("Pdb [%]"), "{head}");
+    let alpha = &targets.iter().find(|t| t["object"] == "Alpha").unwrap()["components"][0];
+    let row = stdout.lines().find(|l| l.starts_with("Alpha ")).unwrap();
+    for key in ["p", "p_debiased"] {
+        let v = format!("{:.3}", 100.0 * alpha[key].as_f64().unwrap());
+        assert!(row.split_whitespace().any(|w| w == v), "{key} {v} not in {row}");
+    }
 
     // Same inputs, one thread: identical catalog (timestamps aside).
     let out2 = dir.path().join("cat2.json");

@@ -17,7 +17,8 @@
 //!    NDIT is required (no default of 1): the noise model depends on it, so a missing
 //!    NDIT is reported rather than guessed.
 //!
-//! Optional: TPL EXPNO / NEXP, MJD-OBS, INS PIXSCALE (else the profile's pixel scale);
+//! Optional: TPL EXPNO / NEXP, MJD-OBS, RA and DEC (deg), INS PIXSCALE (else the profile's
+//! pixel scale);
 //! present but malformed optional keywords are also rejected, never silently ignored.
 //! String comparisons ignore case and surrounding blanks. Every keyword name comes from
 //! the [`Profile`].
@@ -68,6 +69,12 @@ pub struct ScienceInfo {
     pub nexp: Option<u32>,
     /// MJD-OBS when present.
     pub mjd: Option<f64>,
+    /// Right ascension of the pointing (profile keyword `ra`), deg in [0, 360), when present.
+    #[serde(default)]
+    pub ra_deg: Option<f64>,
+    /// Declination of the pointing (profile keyword `dec`), deg in [-90, 90], when present.
+    #[serde(default)]
+    pub dec_deg: Option<f64>,
     /// Pixel scale, arcsec/px (INS PIXSCALE, else the profile's).
     pub pixscale_arcsec: f64,
 }
@@ -340,6 +347,8 @@ fn science_info(h: &Header, p: &Profile) -> Result<ScienceInfo> {
     let expno = opt_count(h, &k.tpl_expno)?;
     let nexp = opt_count(h, &k.tpl_nexp)?;
     let mjd = h.opt_f64(&k.mjd_obs).map_err(reason_of)?;
+    let ra_deg = opt_in_range(h, &k.ra, 0.0..=360.0, "right ascension must be in [0, 360] deg")?.map(|a| a % 360.0);
+    let dec_deg = opt_in_range(h, &k.dec, -90.0..=90.0, "declination must be in [-90, 90] deg")?;
     let pixscale_arcsec = match h.opt_f64(&k.pixscale).map_err(reason_of)? {
         Some(s) if s > 0.0 => s,
         Some(s) => {
@@ -365,6 +374,17 @@ fn science_info(h: &Header, p: &Profile) -> Result<ScienceInfo> {
         expno,
         nexp,
         mjd,
+        ra_deg,
+        dec_deg,
         pixscale_arcsec,
     })
+}
+
+/// An optional number that, when present, must lie in `range` (else the frame is rejected
+/// naming the keyword and its value).
+fn opt_in_range(h: &Header, key: &str, range: std::ops::RangeInclusive<f64>, why: &str) -> Result<Option<f64>> {
+    match h.opt_f64(key).map_err(reason_of)? {
+        Some(v) if !range.contains(&v) => Err(reject(format!("bad keyword {key} = {v}: {why}"))),
+        v => Ok(v),
+    }
 }

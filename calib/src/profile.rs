@@ -47,6 +47,22 @@ pub struct Keywords {
     pub airmass_end: String,
     /// Telescope altitude, deg.
     pub altitude: String,
+    /// Right ascension of the pointing, deg (optional in a frame; catalog position).
+    #[serde(default = "default_ra")]
+    pub ra: String,
+    /// Declination of the pointing, deg (optional in a frame; catalog position).
+    #[serde(default = "default_dec")]
+    pub dec: String,
+}
+
+/// `RA`: the keyword of a profile written before `ra` was a key.
+fn default_ra() -> String {
+    "RA".into()
+}
+
+/// `DEC`: the keyword of a profile written before `dec` was a key.
+fn default_dec() -> String {
+    "DEC".into()
 }
 
 impl Keywords {

@@ -248,3 +248,24 @@ fn classify_a_file() {
     assert_eq!(c.science().unwrap().path, path);
     assert!(classify_file(&dir.path().join("none.fits"), &Profile::sofi()).is_err());
 }
+
+/// `RA` and `DEC` (profile keys `ra`, `dec`) are read in degrees when present, absent
+/// otherwise; a declination outside [-90, 90] rejects the frame naming the keyword.
+#[test]
+fn ra_and_dec_are_optional_degrees() {
+    let h = sofi_science_header(0.0, 1);
+    let info = science(&h);
+    assert_eq!((info.ra_deg, info.dec_deg), (Some(67.86), Some(24.41)));
+    let mut h = sofi_science_header(0.0, 1);
+    h.cards.retain(|c| c.key != "RA" && c.key != "DEC");
+    let info = science(&h);
+    assert_eq!((info.ra_deg, info.dec_deg), (None, None));
+    let mut h = sofi_science_header(0.0, 1);
+    h.set("DEC", 95.0);
+    let r = reason(&h);
+    assert!(r.contains("DEC") && r.contains("95"), "{r}");
+    let mut h = sofi_science_header(0.0, 1);
+    h.set("RA", "04:31:26.2");
+    let r = reason(&h);
+    assert!(r.contains("RA"), "{r}");
+}

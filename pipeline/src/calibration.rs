@@ -460,6 +460,9 @@ pub fn calibrate_catalog(
             residual_qu_chi2: res.qu_chi2,
             used_for,
             flags,
+            ra_deg: t.ra_deg,
+            dec_deg: t.dec_deg,
+            mjd_mean: t.mjd_mean,
         });
     }
     cat.calibration = Some(serde_json::json!({

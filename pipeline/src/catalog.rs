@@ -287,6 +287,10 @@ pub struct Target {
     /// Pixels masked (calibration + detected).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub bad_pixels_masked: Option<usize>,
+    /// Declination of the pointing, deg: mean `DEC` of the sequence's frames (absent when
+    /// the frames lack it).
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub dec_deg: Option<f64>,
     /// e-o beam offset measured from the data, [dx, dy] px.
     #[serde(
         default,
@@ -313,6 +317,9 @@ pub struct Target {
     /// Every frame of the sequence.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub input_files: Option<Vec<String>>,
+    /// Mean MJD-OBS of the sequence's frames, d (absent when the frames lack it).
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub mjd_mean: Option<f64>,
     /// Rotator angles used, deg.
     #[serde(
         default,
@@ -326,6 +333,10 @@ pub struct Target {
     /// How fluxes were measured: `aperture` or `psf_fit`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub photometry: Option<String>,
+    /// Right ascension of the pointing, deg in [0, 360): circular mean of `RA` over the
+    /// sequence's frames (absent when the frames lack it).
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub ra_deg: Option<f64>,
     /// Separation of B from A found, arcsec.
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
     pub separation_arcsec: Option<f64>,
@@ -354,15 +365,18 @@ impl Target {
             delta_gamma_interval_deg: None,
             aperture_radius_px: None,
             bad_pixels_masked: None,
+            dec_deg: None,
             eo_offset_px: None,
             filter: None,
             flags: None,
             flat: None,
             fwhm_px: None,
             input_files: None,
+            mjd_mean: None,
             orientations_deg: None,
             pa_deg: None,
             photometry: None,
+            ra_deg: None,
             separation_arcsec: None,
             sequence: None,
             tpl_start: None,
@@ -545,6 +559,41 @@ pub struct StandardResult {
     /// Flags ("not_in_standards_table", "no_table_values_for_filter", ...).
     #[serde(default)]
     pub flags: Vec<String>,
+    /// Right ascension of the pointing, deg (as [`Target::ra_deg`]).
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub ra_deg: Option<f64>,
+    /// Declination of the pointing, deg (as [`Target::dec_deg`]).
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub dec_deg: Option<f64>,
+    /// Mean MJD-OBS of the sequence's frames, d (as [`Target::mjd_mean`]).
+    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    pub mjd_mean: Option<f64>,
+}
+
+/// The distinct values, in order, of the provenance entry `key` (`software`, `commit`):
+/// the catalog's own (a string, or a list of strings as `merge` writes when its inputs
+/// differ), else, for a merged catalog written without it, those of the catalogs it was
+/// merged from (`merged_from[].provenance`, recursively). Empty when none is known.
+pub fn provenance_values(prov: &serde_json::Value, key: &str) -> Vec<String> {
+    fn collect(prov: &serde_json::Value, key: &str, out: &mut Vec<String>) {
+        let mut push = |s: &str| {
+            if !out.iter().any(|o| o == s) {
+                out.push(s.to_string());
+            }
+        };
+        match &prov[key] {
+            serde_json::Value::String(s) => push(s),
+            serde_json::Value::Array(a) => a.iter().filter_map(|x| x.as_str()).for_each(push),
+            _ => {
+                for part in prov["merged_from"].as_array().into_iter().flatten() {
+                    collect(&part["provenance"], key, out);
+                }
+            }
+        }
+    }
+    let mut out = Vec::new();
+    collect(prov, key, &mut out);
+    out
 }
 
 /// Fold an angle difference of two axial angles (degrees) into [0, 90].

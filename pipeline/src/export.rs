@@ -1,14 +1,16 @@
 //! Catalog export to table formats astronomers load in one line (docs/cli.md, "export"):
 //! ECSV (astropy `Table.read`), FITS binary table (astropy, TOPCAT, fitsio) and plain CSV.
 //!
-//! One row per component; targets without components (failed) have no row. Units are in
-//! the column metadata (ECSV header YAML `unit`; FITS `TUNITn`, descriptions in `TCOMMn`);
-//! flags are one string (`;`-separated); every row carries its target, status, the
-//! software that made the catalog and the catalog file. All files are written to a
+//! One row per component of a target (`kind` = `target`), then one per measured standard
+//! star (`kind` = `standard`); targets without components (failed) and unmeasured
+//! standards have no row. Units are in the column metadata (ECSV header YAML `unit`; FITS
+//! `TUNITn`, descriptions in `TCOMMn`); flags are one string (`;`-separated); every row
+//! carries its target, sequence, filter, pointing and time, status, the software that
+//! made the catalog and the catalog file. All files are written to a
 //! temporary file in the same directory and renamed.
 use std::path::Path;
 
-use crate::catalog::Catalog;
+use crate::catalog::{Catalog, Component, Status};
 
 /// Output format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -70,6 +72,8 @@ pub struct Table {
     pub meta: Vec<(&'static str, String)>,
     /// Targets without any component (not in the table).
     pub targets_without_components: usize,
+    /// Standards without a measurement (not in the table).
+    pub standards_without_measurement: usize,
 }
 
 impl Table {
@@ -84,181 +88,246 @@ impl Table {
     }
 }
 
-/// Build the table of `cat` (read from `source`, stored in the provenance columns).
-pub fn table(cat: &Catalog, source: &str) -> Table {
-    let software = cat
-        .provenance
-        .get("software")
-        .and_then(|v| v.as_str())
-        .unwrap_or("unknown")
-        .to_string();
-    let (mut target, mut status, mut comp, mut flags, mut tflags) = (vec![], vec![], vec![], vec![], vec![]);
-    let mut num: Vec<Vec<f64>> = vec![Vec::new(); 22];
-    let mut cut = vec![];
+/// The numeric columns, in table order: (name, unit, description).
+const NUMERIC: [(&str, &str, &str); 27] = [
+    (
+        "ra",
+        "deg",
+        "right ascension of the pointing (ICRS), mean over the frames",
+    ),
+    ("dec", "deg", "declination of the pointing (ICRS), mean over the frames"),
+    ("mjd", "d", "mean MJD-OBS of the sequence's frames"),
+    ("separation", "arcsec", "target: separation of B from A found"),
+    ("pa", "deg", "target: position angle of B from A found, east of north"),
+    ("q", "", "normalised Stokes q, sky frame (fraction)"),
+    ("sigma_q", "", "1-sigma error of q: measurement and calibration"),
+    ("u", "", "normalised Stokes u, sky frame (fraction)"),
+    ("sigma_u", "", "1-sigma error of u: measurement and calibration"),
+    ("cov_qu", "", "covariance of q and u: measurement and calibration"),
+    ("sigma_q_stat", "", "1-sigma error of q from the measurement alone"),
+    ("sigma_u_stat", "", "1-sigma error of u from the measurement alone"),
+    ("cov_qu_stat", "", "covariance of q and u from the measurement alone"),
+    ("p", "", "P = hypot(q, u), not debiased (fraction)"),
+    ("sigma_p", "", "1-sigma error of P from the full q-u covariance"),
+    (
+        "p_debiased",
+        "",
+        "debiased P (fraction), estimator in the catalog provenance",
+    ),
+    ("gamma", "deg", "polarization angle, east of north, [0, 180)"),
+    (
+        "sigma_gamma",
+        "deg",
+        "1-sigma angle error, full q-u covariance (measurement+calibration)",
+    ),
+    (
+        "sigma_gamma_stat",
+        "deg",
+        "1-sigma angle error from the measurement alone",
+    ),
+    (
+        "sigma_gamma_zero_point",
+        "deg",
+        "1-sigma angle error from the night's calibration (c, theta0)",
+    ),
+    (
+        "sigma_gamma_nkc",
+        "deg",
+        "68.27% half-width, Naghizadeh-Khouei & Clarke at the debiased S/N",
+    ),
+    ("snr", "", "P / sigma_P"),
+    (
+        "delta_gamma",
+        "deg",
+        "target: |gamma_A - gamma_B| folded to [0, 90]; NaN unless both pass",
+    ),
+    (
+        "sigma_delta_gamma",
+        "deg",
+        "target: 1-sigma error of delta_gamma (theta0 cancels, c does not)",
+    ),
+    (
+        "delta_gamma_lo",
+        "deg",
+        "target: low end of the central 68.27% interval of delta_gamma",
+    ),
+    (
+        "delta_gamma_hi",
+        "deg",
+        "target: high end of the central 68.27% interval of delta_gamma",
+    ),
+    ("flux", "adu", "mean o+e flux per dither"),
+];
+
+/// One row of the table: a component of a target, or a standard star's measurement.
+struct Row {
+    target: String,
+    kind: &'static str,
+    sequence: String,
+    filter: String,
+    status: String,
+    component: String,
+    num: [f64; NUMERIC.len()],
+    passes_cut: bool,
+    flags: String,
+    target_flags: String,
+}
+
+/// The row of component `c` of a target or standard: its sequence's values `seq`
+/// (RA, Dec, MJD, separation, PA) and its target's Delta-gamma `dg` (value, error, interval).
+fn row_values(c: &Component, seq: [Option<f64>; 5], dg: [Option<f64>; 4]) -> [f64; NUMERIC.len()] {
+    let o = |v: Option<f64>| v.unwrap_or(f64::NAN);
+    [
+        o(seq[0]),
+        o(seq[1]),
+        o(seq[2]),
+        o(seq[3]),
+        o(seq[4]),
+        c.q,
+        c.sigma_q,
+        c.u,
+        c.sigma_u,
+        o(c.cov_qu),
+        o(c.sigma_q_stat),
+        o(c.sigma_u_stat),
+        o(c.cov_qu_stat),
+        c.p,
+        c.sigma_p,
+        c.p_debiased,
+        c.gamma_deg,
+        c.sigma_gamma_deg,
+        o(c.sigma_gamma_stat_deg),
+        o(c.sigma_gamma_zero_point_deg),
+        o(c.sigma_gamma_nkc_deg),
+        o(c.snr),
+        o(dg[0]),
+        o(dg[1]),
+        o(dg[2]),
+        o(dg[3]),
+        o(c.flux_adu),
+    ]
+}
+
+/// A status as the catalog writes it.
+fn status_text(s: Status) -> String {
+    serde_json::to_value(s)
+        .ok()
+        .and_then(|v| v.as_str().map(String::from))
+        .unwrap_or_default()
+}
+
+/// The rows of the targets' components, then of the standards' measurements, in catalog
+/// order; and the number of targets without a component and of standards without a
+/// measurement (no row).
+fn rows(cat: &Catalog) -> (Vec<Row>, usize, usize) {
+    let mut rows = Vec::new();
     let mut without = 0;
     for t in &cat.targets {
         if t.components.is_empty() {
             without += 1;
         }
-        let st = serde_json::to_value(t.status)
-            .ok()
-            .and_then(|v| v.as_str().map(String::from))
-            .unwrap_or_default();
-        let tf = t.target_flags().join(";");
+        let seq = [t.ra_deg, t.dec_deg, t.mjd_mean, t.separation_arcsec, t.pa_deg];
+        let interval = t.delta_gamma_interval_deg;
+        let dg = [
+            t.delta_gamma_deg,
+            t.sigma_delta_gamma_deg,
+            interval.map(|i| i[0]),
+            interval.map(|i| i[1]),
+        ];
         for c in &t.components {
-            target.push(t.object.clone());
-            status.push(st.clone());
-            comp.push(c.name.clone());
-            flags.push(c.flags.join(";"));
-            tflags.push(tf.clone());
-            cut.push(c.passes_cut);
-            let vals = [
-                c.q,
-                c.sigma_q,
-                c.u,
-                c.sigma_u,
-                c.cov_qu.unwrap_or(f64::NAN),
-                c.sigma_q_stat.unwrap_or(f64::NAN),
-                c.sigma_u_stat.unwrap_or(f64::NAN),
-                c.cov_qu_stat.unwrap_or(f64::NAN),
-                c.p,
-                c.sigma_p,
-                c.p_debiased,
-                c.gamma_deg,
-                c.sigma_gamma_deg,
-                c.sigma_gamma_stat_deg.unwrap_or(f64::NAN),
-                c.sigma_gamma_zero_point_deg.unwrap_or(f64::NAN),
-                c.sigma_gamma_nkc_deg.unwrap_or(f64::NAN),
-                c.snr.unwrap_or(f64::NAN),
-                t.delta_gamma_deg.unwrap_or(f64::NAN),
-                t.sigma_delta_gamma_deg.unwrap_or(f64::NAN),
-                t.delta_gamma_interval_deg.map_or(f64::NAN, |i| i[0]),
-                t.delta_gamma_interval_deg.map_or(f64::NAN, |i| i[1]),
-                c.flux_adu.unwrap_or(f64::NAN),
-            ];
-            for (col, v) in num.iter_mut().zip(vals) {
-                col.push(v);
-            }
+            rows.push(Row {
+                target: t.object.clone(),
+                kind: "target",
+                sequence: t.sequence_id().to_string(),
+                filter: t.filter.clone().unwrap_or_default(),
+                status: status_text(t.status),
+                component: c.name.clone(),
+                num: row_values(c, seq, dg),
+                passes_cut: c.passes_cut,
+                flags: c.flags.join(";"),
+                target_flags: t.target_flags().join(";"),
+            });
         }
     }
-    let n = target.len();
-    let mut num = num.into_iter();
-    let mut f = |name, unit, description| Column {
+    let mut unmeasured = 0;
+    for s in &cat.standards {
+        let Some(c) = &s.measured else {
+            unmeasured += 1;
+            continue;
+        };
+        rows.push(Row {
+            target: s.name.clone(),
+            kind: "standard",
+            sequence: s.sequence.clone(),
+            filter: s.filter.clone(),
+            status: status_text(s.status),
+            component: String::new(),
+            num: row_values(c, [s.ra_deg, s.dec_deg, s.mjd_mean, None, None], [None; 4]),
+            passes_cut: c.passes_cut,
+            flags: c.flags.join(";"),
+            target_flags: s.flags.join(";"),
+        });
+    }
+    (rows, without, unmeasured)
+}
+
+/// Build the table of `cat` (read from `source`, stored in the provenance columns).
+pub fn table(cat: &Catalog, source: &str) -> Table {
+    let software = provenance_text(&cat.provenance, "software");
+    let commit = provenance_text(&cat.provenance, "commit");
+    let (rows, without, unmeasured) = rows(cat);
+    let n = rows.len();
+    let text = |name, description, f: fn(&Row) -> String| Column {
         name,
-        unit,
+        unit: "",
         description,
-        data: Data::F64(num.next().unwrap()),
+        data: Data::Str(rows.iter().map(f).collect()),
     };
-    let columns = vec![
-        Column {
-            name: "target",
-            unit: "",
-            description: "object name",
-            data: Data::Str(target),
-        },
-        Column {
-            name: "status",
-            unit: "",
-            description: "target status: ok, partial, failed",
-            data: Data::Str(status),
-        },
-        Column {
-            name: "component",
-            unit: "",
-            description: "A (brighter) or B",
-            data: Data::Str(comp),
-        },
-        f("q", "", "normalised Stokes q, sky frame (fraction)"),
-        f("sigma_q", "", "1-sigma error of q: measurement and calibration"),
-        f("u", "", "normalised Stokes u, sky frame (fraction)"),
-        f("sigma_u", "", "1-sigma error of u: measurement and calibration"),
-        f("cov_qu", "", "covariance of q and u: measurement and calibration"),
-        f("sigma_q_stat", "", "1-sigma error of q from the measurement alone"),
-        f("sigma_u_stat", "", "1-sigma error of u from the measurement alone"),
-        f("cov_qu_stat", "", "covariance of q and u from the measurement alone"),
-        f("p", "", "P = hypot(q, u), not debiased (fraction)"),
-        f("sigma_p", "", "1-sigma error of P from the full q-u covariance"),
-        f(
-            "p_debiased",
-            "",
-            "debiased P (fraction), estimator in the catalog provenance",
-        ),
-        f("gamma", "deg", "polarization angle, east of north, [0, 180)"),
-        f(
-            "sigma_gamma",
-            "deg",
-            "1-sigma angle error, full q-u covariance (measurement+calibration)",
-        ),
-        f(
-            "sigma_gamma_stat",
-            "deg",
-            "1-sigma angle error from the measurement alone",
-        ),
-        f(
-            "sigma_gamma_zero_point",
-            "deg",
-            "1-sigma angle error from the night's calibration (c, theta0)",
-        ),
-        f(
-            "sigma_gamma_nkc",
-            "deg",
-            "68.27% half-width, Naghizadeh-Khouei & Clarke at the debiased S/N",
-        ),
-        f("snr", "", "P / sigma_P"),
-        f(
-            "delta_gamma",
-            "deg",
-            "target: |gamma_A - gamma_B| folded to [0, 90]; NaN unless both pass",
-        ),
-        f(
-            "sigma_delta_gamma",
-            "deg",
-            "target: 1-sigma error of delta_gamma (theta0 cancels, c does not)",
-        ),
-        f(
-            "delta_gamma_lo",
-            "deg",
-            "target: low end of the central 68.27% interval of delta_gamma",
-        ),
-        f(
-            "delta_gamma_hi",
-            "deg",
-            "target: high end of the central 68.27% interval of delta_gamma",
-        ),
-        f("flux", "adu", "mean o+e flux per dither"),
-        Column {
-            name: "passes_cut",
-            unit: "",
-            description: "P / sigma_P > 3",
-            data: Data::Bool(cut),
-        },
-        Column {
-            name: "flags",
-            unit: "",
-            description: "component flags, ';'-separated",
-            data: Data::Str(flags),
-        },
-        Column {
-            name: "target_flags",
-            unit: "",
-            description: "target flags, ';'-separated",
-            data: Data::Str(tflags),
-        },
-        Column {
-            name: "software",
-            unit: "",
-            description: "software that made the catalog",
-            data: Data::Str(vec![software.clone(); n]),
-        },
-        Column {
-            name: "catalog",
-            unit: "",
-            description: "catalog file exported",
-            data: Data::Str(vec![source.to_string(); n]),
-        },
+    let mut columns = vec![
+        text("target", "object name (standards: name in the standards table)", |r| {
+            r.target.clone()
+        }),
+        text("kind", "target (a binary's component) or standard", |r| r.kind.into()),
+        text("sequence", "sequence id, object@TPL START", |r| r.sequence.clone()),
+        text("filter", "filter", |r| r.filter.clone()),
+        text("status", "target status: ok, partial, failed", |r| r.status.clone()),
+        text("component", "A (brighter) or B; empty for a standard", |r| {
+            r.component.clone()
+        }),
     ];
+    for (i, (name, unit, description)) in NUMERIC.into_iter().enumerate() {
+        columns.push(Column {
+            name,
+            unit,
+            description,
+            data: Data::F64(rows.iter().map(|r| r.num[i]).collect()),
+        });
+    }
+    columns.push(Column {
+        name: "passes_cut",
+        unit: "",
+        description: "P / sigma_P > 3",
+        data: Data::Bool(rows.iter().map(|r| r.passes_cut).collect()),
+    });
+    columns.push(text("flags", "component flags, ';'-separated", |r| r.flags.clone()));
+    columns.push(text("target_flags", "target (or standard) flags, ';'-separated", |r| {
+        r.target_flags.clone()
+    }));
+    columns.push(Column {
+        name: "software",
+        unit: "",
+        description: "software that made the catalog",
+        data: Data::Str(vec![software.clone(); n]),
+    });
+    columns.push(Column {
+        name: "catalog",
+        unit: "",
+        description: "catalog file exported",
+        data: Data::Str(vec![source.to_string(); n]),
+    });
     let meta = vec![
         ("software", software),
+        ("commit", commit),
         ("catalog", source.to_string()),
         ("schema_version", cat.schema_version.clone()),
         ("exported_by", format!("sofipol export {}", env!("CARGO_PKG_VERSION"))),
@@ -267,6 +336,19 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
         columns,
         meta,
         targets_without_components: without,
+        standards_without_measurement: unmeasured,
+    }
+}
+
+/// A provenance entry as one text: the catalog's value of `key` (`software`, `commit`),
+/// or for a merged catalog the distinct values of the catalogs it was merged from
+/// ([`crate::catalog::provenance_values`]) joined by `; `; `unknown` when there is none.
+fn provenance_text(prov: &serde_json::Value, key: &str) -> String {
+    let v = crate::catalog::provenance_values(prov, key);
+    if v.is_empty() {
+        "unknown".into()
+    } else {
+        v.join("; ")
     }
 }
 
@@ -447,3 +529,6 @@ fn write_fits(t: &Table, path: &Path) -> Result<(), fitsio::errors::Error> {
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests;

@@ -46,6 +46,29 @@ impl Sequence {
             .collect()
     }
 
+    /// Every exposure of the sequence.
+    fn exposures(&self) -> impl Iterator<Item = &ScienceInfo> {
+        self.orientations.iter().flat_map(|o| o.exposures.iter())
+    }
+
+    /// Mean MJD-OBS of the frames that have one (`None` when none has).
+    pub fn mean_mjd(&self) -> Option<f64> {
+        mean(self.exposures().filter_map(|e| e.mjd))
+    }
+
+    /// Mean pointing (RA, Dec) in degrees over the frames that have both: Dec the
+    /// arithmetic mean, RA the circular mean (frames at 359.99 and 0.01 deg give 0, not
+    /// 180) in [0, 360). `None` when no frame has both.
+    pub fn mean_ra_dec_deg(&self) -> Option<(f64, f64)> {
+        let pts: Vec<(f64, f64)> = self.exposures().filter_map(|e| e.ra_deg.zip(e.dec_deg)).collect();
+        let dec = mean(pts.iter().map(|p| p.1))?;
+        let (s, c) = pts.iter().fold((0.0, 0.0), |(s, c), p| {
+            let a = p.0.to_radians();
+            (s + a.sin(), c + a.cos())
+        });
+        Some((s.atan2(c).to_degrees().rem_euclid(360.0), dec))
+    }
+
     /// POSANG of the orientations whose dithers all sit at one position (header offsets
     /// within [`STATIONARY_PX`] of each other): the sky median of such dithers contains
     /// the star itself, and the star stays put on the detector like a defect.
@@ -104,6 +127,12 @@ impl Sequence {
         }
         out
     }
+}
+
+/// Arithmetic mean (`None` of nothing).
+fn mean(v: impl Iterator<Item = f64>) -> Option<f64> {
+    let (n, sum) = v.fold((0usize, 0.0), |(n, s), x| (n + 1, s + x));
+    (n > 0).then(|| sum / n as f64)
 }
 
 /// Group science frames into sequences, sorted by (TPL START, object) so that the order,
@@ -172,6 +201,8 @@ mod tests {
             expno: Some(expno),
             nexp: Some(10),
             mjd: None,
+            ra_deg: None,
+            dec_deg: None,
             pixscale_arcsec: 0.288,
         }
     }

@@ -172,28 +172,81 @@ fn standards_found(
     format!("{} found: {}", standards.len(), names.join(", "))
 }
 
-/// The calibration per filter, one line each, on stdout.
+/// The calibration per filter, one line each, on stdout: every number with its name and
+/// unit, the standards by name.
 fn print_calibration(cal: &Calibration, profile: &Profile) {
     for f in &cal.filters {
-        println!(
-            "{}: c = {} ; theta0 = {} ; parity {}",
-            sofipol_calib::text::printable(&f.filter),
-            f.offset
-                .map(|o| format!("{:.5} +- {:.5} from {:?}", o.c, o.sigma_c, f.offset_standards))
-                .unwrap_or_else(|| "not measured (no unpolarized standard)".into()),
-            f.angles
-                .map(|a| format!(
-                    "{:.2} +- {:.2} deg from {:?}",
-                    a.theta0_deg, a.sigma_theta0_deg, f.angle_standards
-                ))
-                .unwrap_or_else(|| "not measured (no polarized standard)".into()),
-            f.angles
-                .map(|a| format!(
-                    "{:+} ({})",
-                    a.parity,
-                    if a.parity_measured { "measured" } else { "profile" }
-                ))
-                .unwrap_or_else(|| format!("{:+} (profile)", profile.angles.parity)),
-        );
+        println!("{}", calibration_line(f, profile));
     }
+}
+
+/// `n standard(s): a, b` (sequence ids, printable).
+fn from_standards(kind: &str, seqs: &[String]) -> String {
+    let names: Vec<String> = seqs
+        .iter()
+        .map(|s| sofipol_calib::text::printable(s).into_owned())
+        .collect();
+    let plural = if seqs.len() == 1 { "" } else { "s" };
+    format!("from {} {kind} standard{plural}: {}", seqs.len(), names.join(", "))
+}
+
+/// One filter's calibration in words.
+fn calibration_line(f: &sofipol_pipeline::calibration::FilterCalibration, profile: &Profile) -> String {
+    let offset = f
+        .offset
+        .map(|o| {
+            format!(
+                "instrumental offset c = {:.5} +- {:.5} ({:.3} +- {:.3} % in F; {})",
+                o.c,
+                o.sigma_c,
+                100.0 * o.c,
+                100.0 * o.sigma_c,
+                from_standards("unpolarized", &f.offset_standards)
+            )
+        })
+        .unwrap_or_else(|| "instrumental offset c not measured (no unpolarized standard)".into());
+    let angles = f
+        .angles
+        .map(|a| {
+            format!(
+                "angle zero-point theta0 = {:.2} +- {:.2} deg ({})",
+                a.theta0_deg,
+                a.sigma_theta0_deg,
+                from_standards("polarized", &f.angle_standards)
+            )
+        })
+        .unwrap_or_else(|| "angle zero-point not measured (no polarized standard)".into());
+    let parity = f
+        .angles
+        .map(|a| {
+            format!(
+                "parity {:+} ({})",
+                a.parity,
+                if a.parity_measured { "measured" } else { "profile" }
+            )
+        })
+        .unwrap_or_else(|| format!("parity {:+} (profile)", profile.angles.parity));
+    let telescope = f
+        .telescope
+        .as_ref()
+        .map(|t| {
+            format!(
+                "telescope polarization p_tel = {:.3} +- {:.3} %, psi_tel = {:.1} +- {:.1} deg",
+                100.0 * t.p_tel,
+                100.0 * t.sigma_p_tel,
+                t.psi_tel_deg,
+                t.sigma_psi_tel_deg
+            )
+        })
+        .unwrap_or_else(|| match &f.telescope_uncorrected {
+            Some(why) => format!(
+                "telescope polarization not measured ({})",
+                sofipol_calib::text::printable(why)
+            ),
+            None => "telescope polarization not measured".into(),
+        });
+    format!(
+        "{}: {offset}; {angles}; {parity}; {telescope}",
+        sofipol_calib::text::printable(&f.filter)
+    )
 }

@@ -99,7 +99,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 
     println!(
         "  {:<11} {:>5} {:>4} | {:>6} {:>15} {:>6} | {:>6} {:>13} {:>6} | {}",
-        "target", "sep\"", "comp", "P true", "P found [%]", "pull", "g true", "gamma found", "pull", "cut"
+        "target", "sep\"", "comp", "P true", "Pdb found [%]", "pull", "g true", "gamma found", "pull", "cut"
     );
     for tt in &truth.targets {
         let Some(t) = cat.targets.iter().find(|t| t.object == tt.object) else {
@@ -130,7 +130,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             );
         }
     }
-    println!("\n  (P found is debiased (Wardle & Kronberg); pulls use the raw P.)");
+    println!("\n  (Pdb: P debiased (Wardle & Kronberg); P: not debiased, as in `sofipol night`; pulls use P.)");
     println!("  catalog: {}   figures: {}", cat_path.display(), fig_dir.display());
     let (_, figures_failed) = figures.finish();
     let problems = check_against_truth(&truth.targets, &cat, PULL_LIMIT);

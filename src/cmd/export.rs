@@ -1,5 +1,5 @@
 //! `sofipol export CATALOG --format ecsv|fits|csv -o FILE`: the catalog as a table, one
-//! row per component, for astropy / TOPCAT (docs/cli.md, "export").
+//! row per component of a target and per measured standard, for astropy / TOPCAT (docs/cli.md, "export").
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -49,12 +49,17 @@ fn read_table(args: &Args) -> anyhow::Result<(Catalog, export::Table)> {
 }
 
 fn summary(cat: &Catalog, t: &export::Table) -> String {
+    let components: usize = cat.targets.iter().map(|t| t.components.len()).sum();
     format!(
-        "{} rows ({} components of {} targets; {} targets without components not exported)",
+        "{} rows ({} components of {} targets, {} of {} standards; {} targets without components \
+         and {} standards without a measurement not exported)",
         t.rows(),
-        t.rows(),
+        components,
         cat.targets.len(),
-        t.targets_without_components
+        cat.standards.len() - t.standards_without_measurement,
+        cat.standards.len(),
+        t.targets_without_components,
+        t.standards_without_measurement
     )
 }
 

@@ -2,12 +2,26 @@
 use sofipol_calib::text::printable;
 use sofipol_pipeline::catalog::{Catalog, Status};
 
-/// A table of the catalog for a terminal.
+/// A component flag as the table shows it: `bad_pixels: k of n dithers dropped (...)` as
+/// `bad_pixels(k/n)`, the others as they are.
+fn short_flag(f: &str) -> std::borrow::Cow<'_, str> {
+    let counts = f
+        .strip_prefix("bad_pixels: ")
+        .and_then(|d| d.split_once(" dithers dropped"))
+        .and_then(|(c, _)| c.split_once(" of "));
+    match counts {
+        Some((k, n)) => format!("bad_pixels({k}/{n})").into(),
+        None => f.into(),
+    }
+}
+
+/// A table of the catalog for a terminal: P is not debiased, Pdb debiased (the
+/// catalog's `p_debiased`).
 pub fn summary(cat: &Catalog) -> String {
     let mut s = String::new();
     s += &format!(
-        "{:<16} {:<7} {:>4} {:>8} {:>7} {:>7} {:>6} {:>5} {:>6}  {}\n",
-        "object", "status", "comp", "P [%]", "sig_P", "gamma", "sig_g", "cut", "dgamma", "flags"
+        "{:<16} {:<7} {:>4} {:>8} {:>8} {:>7} {:>7} {:>6} {:>5} {:>6}  {}\n",
+        "object", "status", "comp", "P [%]", "Pdb [%]", "sig_P", "gamma", "sig_g", "cut", "dgamma", "flags"
     );
     for t in &cat.targets {
         let st = match t.status {
@@ -30,17 +44,18 @@ pub fn summary(cat: &Catalog) -> String {
                 _ => "     -".into(),
             };
             s += &format!(
-                "{:<16} {:<7} {:>4} {:>8.3} {:>7.3} {:>7.1} {:>6.1} {:>5} {}  {}\n",
+                "{:<16} {:<7} {:>4} {:>8.3} {:>8.3} {:>7.3} {:>7.1} {:>6.1} {:>5} {}  {}\n",
                 if i == 0 { printable(&t.object) } else { "".into() },
                 if i == 0 { st } else { "" },
                 c.name,
                 100.0 * c.p,
+                100.0 * c.p_debiased,
                 100.0 * c.sigma_p,
                 c.gamma_deg,
                 c.sigma_gamma_deg,
                 if c.passes_cut { "pass" } else { "-" },
                 dg,
-                printable(&c.flags.join(","))
+                printable(&c.flags.iter().map(|f| short_flag(f)).collect::<Vec<_>>().join(","))
             );
         }
     }

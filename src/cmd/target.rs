@@ -52,11 +52,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         args.inputs
     );
     if let Some(obj) = &args.object {
+        let mut found: Vec<&str> = plan.sequences.iter().map(|q| q.object.as_str()).collect();
+        found.dedup();
+        if !found.contains(&obj.as_str()) {
+            anyhow::bail!("{}", no_such_object(obj, &found));
+        }
         plan.sequences.retain(|q| &q.object == obj);
-        anyhow::ensure!(
-            !plan.sequences.is_empty(),
-            "no polarimetric sequence of object '{obj}' in the inputs"
-        );
     } else if plan.sequences.len() > 1 {
         let names: Vec<String> = plan
             .sequences
@@ -117,4 +118,66 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     } else {
         ExitCode::SUCCESS
     })
+}
+
+/// The error of an `--object` that names no sequence: the objects found and the closest
+/// one ([`closest_object`]), if any.
+fn no_such_object(wanted: &str, found: &[&str]) -> String {
+    use sofipol_calib::text::printable;
+    let mut msg = format!(
+        "no polarimetric sequence of object '{}' in the inputs",
+        printable(wanted)
+    );
+    if let Some(c) = closest_object(wanted, found) {
+        msg += &format!("; did you mean --object '{}'?", printable(c));
+    }
+    if found.is_empty() {
+        msg += " (no science sequence found)";
+    } else {
+        let names: Vec<String> = found.iter().map(|n| format!("'{}'", printable(n))).collect();
+        msg += &format!(
+            " (--object is exact and case-sensitive; objects found: {})",
+            names.join(", ")
+        );
+    }
+    msg
+}
+
+/// The object of `found` that `wanted` most likely means: the one equal to it when case
+/// and whitespace are ignored, else the nearest by Levenshtein distance (of the lower-case
+/// names) when that distance is at most a third of the name's length (at least 2).
+fn closest_object<'a>(wanted: &str, found: &[&'a str]) -> Option<&'a str> {
+    let fold = |s: &str| {
+        s.chars()
+            .filter(|c| !c.is_whitespace())
+            .collect::<String>()
+            .to_lowercase()
+    };
+    let w = fold(wanted);
+    if let Some(f) = found.iter().find(|f| fold(f) == w) {
+        return Some(f);
+    }
+    let w = wanted.trim().to_lowercase();
+    let limit = (w.chars().count() / 3).max(2);
+    found
+        .iter()
+        .map(|f| (strsim::levenshtein(&w, &f.trim().to_lowercase()), *f))
+        .filter(|(d, _)| *d <= limit)
+        .min_by_key(|(d, _)| *d)
+        .map(|(_, f)| f)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::closest_object;
+
+    #[test]
+    fn the_closest_object_ignores_case_and_blanks_then_takes_the_edit_distance() {
+        let found = ["HK Tau", "V773 Tau", "Elias 2-12"];
+        assert_eq!(closest_object("hktau", &found), Some("HK Tau"));
+        assert_eq!(closest_object(" hk  TAU ", &found), Some("HK Tau"));
+        assert_eq!(closest_object("V733 Tau", &found), Some("V773 Tau"));
+        assert_eq!(closest_object("Elias 2-21", &found), Some("Elias 2-12"));
+        assert_eq!(closest_object("Nobody", &found), None);
+    }
 }

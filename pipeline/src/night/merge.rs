@@ -1,7 +1,8 @@
 //! Joining the catalogs of the shards of one night.
-use crate::catalog::{Catalog, SCHEMA_VERSION};
+use crate::catalog::{Catalog, Target, SCHEMA_VERSION};
 
-/// Join shard catalogs: targets ordered by sequence, failures by file, duplicates (the same
+/// Join shard catalogs: targets in the order `night` gives them (TPL START, then object),
+/// failures by file, duplicates (the same
 /// sequence in two shards) refused. The merged `calibration` is the catalogs' when they
 /// all applied the same one (shards of one night: the caller checks that), else (whole
 /// runs of several nights, each calibrated by its own standards) `{"source":
@@ -55,11 +56,39 @@ pub fn merge(parts: Vec<(String, Catalog)>) -> crate::error::Result<Catalog> {
                 .collect::<Vec<_>>(),
         }))
     };
-    out.targets.sort_by(|a, b| a.sequence_id().cmp(b.sequence_id()));
+    // The order of `night`: sequences by (TPL START, object) (crate::sequence::group).
+    out.targets.sort_by(|a, b| night_order(a).cmp(&night_order(b)));
     out.failures.sort_by(|a, b| a.file.cmp(&b.file));
     out.failures.dedup();
-    out.provenance = serde_json::json!({"merged_from": provs});
+    out.provenance = merged_provenance(provs);
     Ok(out)
+}
+
+/// Where `night` puts a target: by (TPL START, object); the sequence id breaks ties (and
+/// orders the targets of catalogs written without `tpl_start`).
+fn night_order(t: &Target) -> (&str, &str, &str) {
+    (t.tpl_start.as_deref().unwrap_or(""), &t.object, t.sequence_id())
+}
+
+/// The merged provenance: `software` and `commit` of the inputs (one string when they
+/// agree, else the list of the distinct values) and every input's provenance
+/// (`merged_from`).
+fn merged_provenance(provs: Vec<serde_json::Value>) -> serde_json::Value {
+    let from = serde_json::json!({ "merged_from": provs });
+    let mut prov = serde_json::Map::new();
+    for key in ["software", "commit"] {
+        match crate::catalog::provenance_values(&from, key).as_slice() {
+            [] => {}
+            [one] => {
+                prov.insert(key.into(), one.clone().into());
+            }
+            many => {
+                prov.insert(key.into(), many.into());
+            }
+        }
+    }
+    prov.insert("merged_from".into(), from["merged_from"].clone());
+    prov.into()
 }
 
 #[cfg(test)]

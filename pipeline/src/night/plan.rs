@@ -243,6 +243,8 @@ mod tests {
                     expno: Some(k),
                     nexp: Some(5),
                     mjd: None,
+                    ra_deg: None,
+                    dec_deg: None,
                     pixscale_arcsec: 0.288,
                 });
             }

@@ -25,6 +25,17 @@ pub fn refused_by_flags(flags: &[String]) -> bool {
 /// orientation (the target carries `ab_identity_unverified: ...` with the orientation).
 pub const AB_IDENTITY_UNVERIFIED: &str = "ab_identity_unverified";
 
+/// The reason a dither is dropped when a masked pixel (a detector defect, a pixel the
+/// flat cannot correct, off the strip) lies within its aperture (radius + 0.71 px); the
+/// component's flag is `bad_pixels: k of n dithers dropped (...)` ([`bad_pixels_flag`]).
+pub const BAD_PIXELS: &str = "bad_pixels";
+
+/// The component flag of `k` of its `n` dithers dropped for masked pixels in the aperture:
+/// the flag's name, then what it cost.
+pub fn bad_pixels_flag(k: usize, n: usize) -> String {
+    format!("{BAD_PIXELS}: {k} of {n} dithers dropped (a masked pixel within the aperture)")
+}
+
 /// Turn the per-dither values of one component into its catalog entry. `parallactic_deg`
 /// holds each dither's parallactic angle (per orientation, in dither order; `None` when the
 /// frame has none).
@@ -40,6 +51,16 @@ pub fn component_from_dithers(
     let mut per_orientation = Vec::new();
     let mut sum_flux = 0.0;
     let mut n_flux = 0;
+    let n_dithers: usize = per_orient.iter().map(Vec::len).sum();
+    let n_bad_pixels = per_orient
+        .iter()
+        .flatten()
+        .filter(|d| {
+            d.rejected
+                .as_deref()
+                .is_some_and(|r| r.split(',').any(|x| x == BAD_PIXELS))
+        })
+        .count();
     for (k, dv) in per_orient.iter().enumerate() {
         let mut usable: Vec<usize> = (0..dv.len()).filter(|&i| dv[i].rejected.is_none()).collect();
         for d in dv.iter().filter(|d| d.rejected.is_some()) {
@@ -123,6 +144,9 @@ pub fn component_from_dithers(
                 sigma_f_scatter: c.sigma_scatter,
             });
         }
+    }
+    if let Some(f) = flags.iter_mut().find(|f| *f == BAD_PIXELS) {
+        *f = bad_pixels_flag(n_bad_pixels, n_dithers);
     }
     let measured = Component {
         orientations: Some(per_orientation),
@@ -372,6 +396,28 @@ mod tests {
             target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords).status,
             Status::Partial
         );
+    }
+
+    /// The `bad_pixels` flag counts the dithers it dropped, of every dither of the
+    /// component (12 here); a dither dropped for two reasons counts once for each.
+    #[test]
+    fn the_bad_pixels_flag_says_how_many_dithers_it_dropped() {
+        let params = MeasureParams::default();
+        let mut m = measured(Vec::new());
+        let a = &mut m.dithers[0];
+        a[0][1].rejected = Some("bad_pixels".into());
+        a[2][0].rejected = Some("cosmic_ray,bad_pixels".into());
+        a[3][2].rejected = Some("cosmic_ray".into());
+        let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords);
+        let flags = &t.components[0].flags;
+        let want = "bad_pixels: 2 of 12 dithers dropped (a masked pixel within the aperture)";
+        assert_eq!(
+            flags.iter().filter(|f| f.starts_with("bad_pixels")).collect::<Vec<_>>(),
+            [want],
+            "{flags:?}"
+        );
+        assert!(flags.iter().any(|f| f == "cosmic_ray"), "{flags:?}");
+        assert!(t.components[1].flags.is_empty(), "{:?}", t.components[1].flags);
     }
 
     #[test]

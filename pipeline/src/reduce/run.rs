@@ -43,6 +43,16 @@ pub struct TargetOutcome {
     pub measured: Option<super::Measured>,
 }
 
+/// `target` with the sequence's mean pointing and time from the frames' headers
+/// ([`Sequence::mean_ra_dec_deg`], [`Sequence::mean_mjd`]).
+fn pointed(mut target: Target, seq: &Sequence) -> Target {
+    let radec = seq.mean_ra_dec_deg();
+    target.ra_deg = radec.map(|p| p.0);
+    target.dec_deg = radec.map(|p| p.1);
+    target.mjd_mean = seq.mean_mjd();
+    target
+}
+
 /// A failed target, keeping the diagnostic flags gathered before the failure.
 fn failed(seq: &Sequence, msg: String, flags: &[String], failures: Vec<Failure>, times: StageTimes) -> TargetOutcome {
     TargetOutcome {
@@ -51,7 +61,7 @@ fn failed(seq: &Sequence, msg: String, flags: &[String], failures: Vec<Failure>,
             sequence: Some(seq.id.clone()),
             input_files: Some(seq.files()),
             flags: Some(flags.to_vec()),
-            ..Target::new(seq.object.clone(), Status::Failed)
+            ..pointed(Target::new(seq.object.clone(), Status::Failed), seq)
         },
         failures,
         times,
@@ -288,6 +298,7 @@ pub fn reduce_loaded(
         target.status = Status::Partial;
         target.error = Some(first.clone());
     }
+    let mut target = pointed(target, seq);
     target.sequence = Some(seq.id.clone());
     target.tpl_start = Some(seq.tpl_start.clone());
     target.filter = Some(seq.filter.clone());

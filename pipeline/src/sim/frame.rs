@@ -375,8 +375,8 @@ impl Simulator {
         h.set(&kw.date_obs, effects::iso_from_mjd(fp.mjd, true));
         h.set(&kw.mjd_obs, fp.mjd);
         h.set(&kw.exptime, o.dit_s);
-        h.set("RA", self.plan[t].ra_deg);
-        h.set("DEC", self.plan[t].dec_deg);
+        h.set(&kw.ra, self.plan[t].ra_deg);
+        h.set(&kw.dec, self.plan[t].dec_deg);
         h.set("LST", fp.pointing.start.lst_deg * 240.0);
         if self.is_standard(t) {
             h.set(&kw.dpr_catg, "CALIB");

@@ -1,0 +1,161 @@
+//! The table of a catalog with targets and standards: one row per target component and
+//! per measured standard, with the pointing, time, geometry and provenance of each.
+use super::*;
+use crate::catalog::{StandardResult, Target};
+use crate::stokes::inversion::{Debias, LinearPolarization};
+
+fn component(name: &str, q: f64, u: f64) -> Component {
+    let lp = LinearPolarization::from_qu(q, u, 0.002, 0.003, Debias::WardleKronberg);
+    Component {
+        passes_cut: true,
+        flags: vec![format!("flag_{name}")],
+        ..Component::new(name, lp.pol)
+    }
+}
+
+fn standard(name: &str, measured: Option<Component>) -> StandardResult {
+    StandardResult {
+        name: name.into(),
+        object: format!("{name} obj"),
+        sequence: format!("{name} obj@1999-03-03T05:00:00"),
+        filter: "Ks".into(),
+        status: if measured.is_some() { Status::Ok } else { Status::Failed },
+        table: None,
+        measured,
+        residual_p_sigma: None,
+        residual_gamma_deg: None,
+        residual_gamma_sigma: None,
+        residual_qu_chi2: None,
+        used_for: vec!["offset".into()],
+        flags: vec![format!("std_flag_{name}")],
+        ra_deg: Some(101.5),
+        dec_deg: Some(-33.25),
+        mjd_mean: Some(51240.21),
+    }
+}
+
+/// A merged catalog (software only in its inputs' provenance) of one binary and two
+/// standards, one of them not measured.
+fn catalog() -> Catalog {
+    let target = Target {
+        components: vec![component("A", 0.03, -0.01), component("B", -0.02, 0.04)],
+        ra_deg: Some(67.625),
+        dec_deg: Some(18.125),
+        mjd_mean: Some(51240.0625),
+        separation_arcsec: Some(4.0),
+        pa_deg: Some(30.0),
+        filter: Some("Ks".into()),
+        sequence: Some("Alpha@1999-03-03T01:00:00".into()),
+        delta_gamma_deg: Some(48.0),
+        ..Target::new("Alpha", Status::Ok)
+    };
+    Catalog {
+        schema_version: "1.0".into(),
+        targets: vec![target, Target::new("Lost", Status::Failed)],
+        standards: vec![
+            standard("HD 64299", Some(component("A", 0.0005, -0.0002))),
+            standard("HD 98161", None),
+        ],
+        provenance: serde_json::json!({"merged_from": [
+            {"file": "s1.json", "provenance": {"software": "sofipol 9.9.9", "commit": "abc"}},
+            {"file": "s2.json", "provenance": {"software": "sofipol 9.9.9", "commit": "abc"}},
+        ]}),
+        ..Default::default()
+    }
+}
+
+fn column<'a>(t: &'a Table, name: &str) -> &'a Column {
+    t.columns
+        .iter()
+        .find(|c| c.name == name)
+        .unwrap_or_else(|| panic!("no column {name}"))
+}
+
+fn strs<'a>(t: &'a Table, name: &str) -> &'a [String] {
+    match &column(t, name).data {
+        Data::Str(v) => v,
+        d => panic!("{name}: {d:?}"),
+    }
+}
+
+fn nums<'a>(t: &'a Table, name: &str) -> &'a [f64] {
+    match &column(t, name).data {
+        Data::F64(v) => v,
+        d => panic!("{name}: {d:?}"),
+    }
+}
+
+#[test]
+fn standards_are_rows_of_kind_standard_with_pointing_time_and_units() {
+    let cat = catalog();
+    let t = table(&cat, "m.json");
+    assert_eq!(t.rows(), 3, "two components and one measured standard");
+    assert_eq!((t.targets_without_components, t.standards_without_measurement), (1, 1));
+    assert_eq!(strs(&t, "kind"), ["target", "target", "standard"]);
+    assert_eq!(strs(&t, "target"), ["Alpha", "Alpha", "HD 64299"]);
+    assert_eq!(strs(&t, "component"), ["A", "B", ""]);
+    assert_eq!(
+        strs(&t, "sequence"),
+        [
+            "Alpha@1999-03-03T01:00:00",
+            "Alpha@1999-03-03T01:00:00",
+            "HD 64299 obj@1999-03-03T05:00:00"
+        ]
+    );
+    assert_eq!(strs(&t, "filter"), ["Ks", "Ks", "Ks"]);
+    assert_eq!(strs(&t, "status"), ["ok", "ok", "ok"]);
+    assert_eq!(strs(&t, "flags"), ["flag_A", "flag_B", "flag_A"]);
+    assert_eq!(strs(&t, "target_flags"), ["", "", "std_flag_HD 64299"]);
+    // The values are the catalog's, row by row.
+    let std = cat.standards[0].measured.as_ref().unwrap();
+    let comps = [&cat.targets[0].components[0], &cat.targets[0].components[1], std];
+    for (i, c) in comps.iter().enumerate() {
+        assert_eq!(nums(&t, "q")[i], c.q);
+        assert_eq!(nums(&t, "u")[i], c.u);
+        assert_eq!(nums(&t, "gamma")[i], c.gamma_deg);
+        assert_eq!(nums(&t, "p_debiased")[i], c.p_debiased);
+    }
+    assert_eq!(nums(&t, "ra"), [67.625, 67.625, 101.5]);
+    assert_eq!(nums(&t, "dec"), [18.125, 18.125, -33.25]);
+    assert_eq!(nums(&t, "mjd"), [51240.0625, 51240.0625, 51240.21]);
+    let (sep, pa, dg) = (nums(&t, "separation"), nums(&t, "pa"), nums(&t, "delta_gamma"));
+    assert_eq!((sep[0], sep[1], pa[0], pa[1], dg[0]), (4.0, 4.0, 30.0, 30.0, 48.0));
+    assert!(
+        sep[2].is_nan() && pa[2].is_nan() && dg[2].is_nan(),
+        "a standard has no pair"
+    );
+    for (name, unit) in [
+        ("ra", "deg"),
+        ("dec", "deg"),
+        ("mjd", "d"),
+        ("separation", "arcsec"),
+        ("pa", "deg"),
+        ("gamma", "deg"),
+        ("q", ""),
+    ] {
+        assert_eq!(column(&t, name).unit, unit, "{name}");
+    }
+    // The software of a merged catalog is its inputs'.
+    assert_eq!(strs(&t, "software"), ["sofipol 9.9.9"; 3]);
+    assert!(t.meta.contains(&("software", "sofipol 9.9.9".into())), "{:?}", t.meta);
+    assert!(t.meta.contains(&("commit", "abc".into())), "{:?}", t.meta);
+    let ecsv = to_ecsv(&t);
+    assert!(ecsv.contains("# - {name: mjd, unit: d, datatype: float64,"), "{ecsv}");
+    assert!(
+        ecsv.contains("# - {name: separation, unit: arcsec, datatype: float64,"),
+        "{ecsv}"
+    );
+}
+
+/// Inputs of different software versions: every version, not one of them nor `unknown`.
+#[test]
+fn a_merge_of_different_versions_exports_every_version() {
+    let mut cat = catalog();
+    cat.provenance["merged_from"][1]["provenance"]["software"] = "sofipol 9.9.10".into();
+    let t = table(&cat, "m.json");
+    assert_eq!(strs(&t, "software")[0], "sofipol 9.9.9; sofipol 9.9.10");
+    cat.provenance = serde_json::json!({"software": ["sofipol 1", "sofipol 2"], "merged_from": []});
+    assert_eq!(strs(&table(&cat, "m.json"), "software")[0], "sofipol 1; sofipol 2");
+    cat.provenance = serde_json::json!({});
+    assert_eq!(strs(&table(&cat, "m.json"), "software")[0], "unknown");
+}
