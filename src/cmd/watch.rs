@@ -139,6 +139,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mut last_scan = Instant::now() - rescan;
     let mut last: Option<Catalog> = None;
     let mut calibration_lines = Vec::new();
+    // Files announced as being written (once each).
+    let mut announced = std::collections::HashSet::new();
     loop {
         let wait = if live.wants_update() {
             Duration::ZERO
@@ -158,6 +160,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 print_update(&u, cut, &args, u.calibration_lines != calibration_lines);
                 calibration_lines = u.calibration_lines.clone();
                 last = Some(u.catalog);
+            }
+            if args.verbose > 0 && !args.quiet {
+                for (p, why) in live.waiting() {
+                    if announced.insert(p.clone()) {
+                        eprintln!("[{}] {} still being written ({why})", clock(), p.display());
+                    }
+                }
             }
         }
         if finish {
@@ -295,8 +304,8 @@ fn write(u: &Update, live: &LiveNight, output: &Path, state: &Path) -> anyhow::R
 }
 
 /// The observer's lines: one per new target, one per reason earlier targets changed, and
-/// with `-v` the calibration's lines (when `calibration_changed`), the templates and files
-/// still arriving and the update's time.
+/// with `-v` the calibration's lines (when `calibration_changed`), the templates still
+/// arriving and the update's time (the files being written are announced by the loop).
 fn print_update(u: &Update, cut: f64, args: &Args, calibration_changed: bool) {
     if args.quiet {
         return;
@@ -324,9 +333,6 @@ fn print_update(u: &Update, cut: f64, args: &Args, calibration_changed: bool) {
                 h.nexp.map(|n| n.to_string()).unwrap_or_else(|| "?".into()),
                 h.idle_s
             );
-        }
-        for (p, why) in &u.waiting {
-            eprintln!("[{now}] {} still being written ({why})", p.display());
         }
         eprintln!(
             "[{now}] update {:.2} s: {} template(s) reduced, {} reused",

@@ -122,6 +122,8 @@ pub struct LiveNight {
     dirty: bool,
     /// The last update was provisional: this one rebuilds the mask and flats.
     rebuild: bool,
+    /// Files still being written at the last look.
+    waiting: Vec<(PathBuf, String)>,
     headers: HeaderCache,
 }
 
@@ -173,6 +175,7 @@ impl LiveNight {
             seen: Seen::default(),
             dirty: true,
             rebuild: false,
+            waiting: Vec::new(),
             headers: HeaderCache::default(),
         }
     }
@@ -202,6 +205,7 @@ impl LiveNight {
         let t0 = Instant::now();
         let listing = scan::list(&self.roots);
         let waiting = self.look_at_files(&listing, t0);
+        self.waiting = waiting.clone();
         let timed_out = self
             .held
             .iter()
@@ -314,6 +318,12 @@ impl LiveNight {
     /// Whether every template seen is reduced and no file is being written.
     pub fn settled(&self) -> bool {
         self.held.is_empty() && !self.dirty && self.files.values().all(|f| f.ready)
+    }
+
+    /// Files still being written at the last look (path, why), whether or not that look
+    /// led to a reduction.
+    pub fn waiting(&self) -> &[(PathBuf, String)] {
+        &self.waiting
     }
 
     /// Templates still being observed.
