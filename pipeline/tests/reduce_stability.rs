@@ -173,7 +173,7 @@ fn beta_untouched(sim: &Simulator, clean_b: &Target) {
 fn has_flag(t: &Target, comp: &str, flag: &str) -> bool {
     t.components
         .iter()
-        .any(|c| c.name == comp && c.flags.iter().any(|f| f == flag))
+        .any(|c| c.name == comp && c.flags.iter().any(|f| f.split(':').next() == Some(flag)))
 }
 
 /// Every number a component promises is finite.
