@@ -1,72 +1,141 @@
 #!/usr/bin/env bash
 # Mutation testing of the error-propagation and p-value code with cargo-mutants (not run in
 # CI: hours on 2 cores). Each mutant (an operator flipped, a constant or a return value
-# replaced, ...) is built and the test subset below is run; a mutant whose tests still pass
+# replaced, ...) is built and a test subset is run; a mutant whose tests still pass
 # "survives" and needs a test or an explanation (docs/testing.md).
 #
-#   scripts/mutants.sh                        # all the files below
-#   scripts/mutants.sh pipeline/src/stats/ks.rs ...   # only these files
-#   MUTANTS_SHARD=0/4 scripts/mutants.sh       # a quarter of the mutants (cargo-mutants --shard)
-#   MUTANTS_TESTS="--lib --test reduce_locate" scripts/mutants.sh   # another test subset
-#   MUTANTS_TESTS="--lib -- stats::" scripts/mutants.sh pipeline/src/stats/ks.rs   # unit tests of a module
-#   MUTANTS_OUT=target/mutants-stats scripts/mutants.sh ...   # results elsewhere (default target/mutants-out)
-#   MUTANTS_ITERATE=1 scripts/mutants.sh ...  # resume: skip the mutants already caught there (--iterate)
+#   scripts/mutants.sh                     # every group below, each with its own tests
+#   scripts/mutants.sh stats photometry    # some groups
+#   scripts/mutants.sh pipeline/src/stats/ks.rs ...   # these files, tests from MUTANTS_TESTS
+#   scripts/mutants.sh --summary [DIR]     # kill rate per file of the results under DIR
 #
-# The mutants are applied in a clone of HEAD (target/mutants-tree, refreshed every run), so
-# the working tree is never touched; its build directory (target/mutants-target, profile
-# `mutants`: release code, incremental) is kept between runs. Results: target/mutants-out/
-# mutants.out/{caught,missed,timeout,unviable}.txt and outcomes.json. Needs
-# `cargo install cargo-mutants` (version 27 used).
+# Settings (environment):
+#   MUTANTS_TESTS="--lib -- stats::"   cargo test arguments for files given by path
+#                                      (default: the pipeline crate's unit tests)
+#   MUTANTS_OUT=target/mutants-out     results: MUTANTS_OUT/<group>/mutants.out/
+#   MUTANTS_SLOT=2                     a second source clone and build directory, so two
+#                                      runs can go side by side (one core each)
+#   MUTANTS_SHARD=0/4                  a quarter of the mutants (cargo-mutants --shard)
+#   MUTANTS_ITERATE=1                  resume: skip the mutants an earlier run in the same
+#                                      output directory caught (cargo-mutants --iterate)
+#   MUTANTS_TIMEOUT=300                seconds a mutant's tests may take
+#
+# The mutants are applied in a clone of HEAD (target/mutants-tree[-SLOT], brought to HEAD
+# at every run), never in the working tree; its build directory
+# (target/mutants-target[-SLOT], profile `mutants`: release code, incremental) is kept
+# between runs, so after the first build a mutant costs an incremental rebuild (~6 s on a
+# quiet 2-core machine) plus its tests. Needs `cargo install cargo-mutants` (version 27).
 set -euo pipefail
 root="$(cd "$(dirname "$0")/.." && pwd)"
-files=("$@")
-if [[ ${#files[@]} -eq 0 ]]; then
-    files=(
-        pipeline/src/stokes/inversion.rs
-        pipeline/src/stokes/calibration.rs
-        pipeline/src/calibration.rs
-        pipeline/src/photometry/measure.rs
-        pipeline/src/photometry/aperture.rs
-        pipeline/src/reduce/beams.rs
-        pipeline/src/reduce/entry.rs
-        pipeline/src/stats/ks.rs
-        pipeline/src/stats/kuiper.rs
-        pipeline/src/stats/binomial.rs
-    )
+out_root="$(cd "$root" && realpath -m "${MUTANTS_OUT:-target/mutants-out}")"
+
+# The groups: the files whose mutants are counted, and the tests that judge them. The two
+# Monte Carlo covariance tests of the joint calibration (~40 s together) are left out of
+# the first pass; `--iterate` with MUTANTS_TESTS="--lib" re-judges the survivors with them.
+slow="--skip the_covariance_with_the_telescope_matches --skip joint_covariance_matches_the_scatter"
+group_files() {
+    case "$1" in
+        stats) echo "pipeline/src/stats/ks.rs pipeline/src/stats/kuiper.rs pipeline/src/stats/binomial.rs" ;;
+        photometry) echo "pipeline/src/photometry/measure.rs pipeline/src/photometry/aperture.rs" ;;
+        inversion) echo "pipeline/src/stokes/inversion.rs" ;;
+        calibration) echo "pipeline/src/stokes/calibration.rs pipeline/src/calibration.rs" ;;
+        reduce) echo "pipeline/src/reduce/beams.rs pipeline/src/reduce/entry.rs" ;;
+        *) return 1 ;;
+    esac
+}
+group_tests() {
+    case "$1" in
+        stats) echo "--lib -- stats::" ;;
+        photometry) echo "--lib -- photometry::" ;;
+        inversion) echo "--lib -- stokes:: $slow" ;;
+        calibration) echo "--lib -- stokes:: calibration:: $slow" ;;
+        reduce) echo "--lib --test reduce_locate --test reduce_noiseless --test reduce_hard_cases -- $slow" ;;
+    esac
+}
+all_groups=(stats photometry inversion calibration reduce)
+
+# Kill rate per file over every outcome under a directory: caught / (caught + missed +
+# timeout); unviable mutants (that do not build) are counted apart.
+summary() {
+    local dir="$1"
+    printf '%-40s %7s %7s %7s %7s %9s  %s\n' file caught missed timeout unviable "kill rate" ""
+    for kind in caught missed timeout unviable; do
+        find "$dir" -path '*mutants.out/'"$kind"'.txt' -exec cat {} + 2>/dev/null | sed "s/^/$kind /"
+    done | awk '{split($2, a, ":"); n[a[1] SUBSEP $1]++; files[a[1]] = 1}
+        END {
+            for (f in files) {
+                c = n[f SUBSEP "caught"] + 0; m = n[f SUBSEP "missed"] + 0
+                t = n[f SUBSEP "timeout"] + 0; u = n[f SUBSEP "unviable"] + 0
+                tested = c + m + t
+                printf "%-40s %7d %7d %7d %7d %8.1f%%\n", f, c, m, t, u, tested ? 100 * c / tested : 0
+            }
+        }' | sort
+}
+
+if [[ "${1:-}" == "--summary" ]]; then
+    summary "${2:-$out_root}"
+    exit 0
 fi
+
 cargo mutants --version >/dev/null 2>&1 || {
     echo "mutants.sh: cargo-mutants is not installed (cargo install cargo-mutants)" >&2
     exit 1
 }
-tree="$root/target/mutants-tree"
-rm -rf "$tree"
-git clone --quiet --local --no-hardlinks "$root" "$tree"
-# Uncommitted changes are not tested: say so.
+suffix="${MUTANTS_SLOT:+-$MUTANTS_SLOT}"
+tree="$root/target/mutants-tree$suffix"
+export CARGO_TARGET_DIR="$root/target/mutants-target$suffix"
+# Bring the clone to HEAD; files that did not change keep their times, so the kept build
+# directory stays incremental.
+if [[ -d "$tree/.git" ]]; then
+    git -C "$tree" fetch --quiet "$root" HEAD
+    git -C "$tree" reset --quiet --hard FETCH_HEAD
+    git -C "$tree" clean --quiet -fdx
+else
+    rm -rf "$tree"
+    git clone --quiet --local --no-hardlinks "$root" "$tree"
+    git -C "$tree" checkout --quiet "$(git -C "$root" rev-parse HEAD)"
+fi
 if [[ -n "$(git -C "$root" status --porcelain --untracked-files=no)" ]]; then
     echo "mutants.sh: testing HEAD ($(git -C "$root" rev-parse --short HEAD)); uncommitted changes are left out" >&2
 fi
-args=()
-for f in "${files[@]}"; do
-    args+=(--file "$f")
-done
-if [[ -n "${MUTANTS_ITERATE:-}" ]]; then
-    args+=(--iterate)
+
+# run NAME "FILES" "TESTS"
+run() {
+    local name="$1" files="$2" tests="$3" args=()
+    for f in $files; do
+        args+=(--file "$f")
+    done
+    [[ -n "${MUTANTS_ITERATE:-}" ]] && args+=(--iterate)
+    [[ -n "${MUTANTS_SHARD:-}" ]] && args+=(--shard "$MUTANTS_SHARD")
+    local -a test_args
+    read -r -a test_args <<<"$tests"
+    echo "mutants.sh: $name: $files; tests: cargo test $tests" >&2
+    (
+        cd "$tree"
+        time cargo mutants \
+            --package sofipol-pipeline \
+            --in-place \
+            --profile mutants \
+            --timeout "${MUTANTS_TIMEOUT:-300}" \
+            --build-timeout "${MUTANTS_BUILD_TIMEOUT:-1200}" \
+            --output "$out_root/$name" \
+            "${args[@]}" \
+            -- "${test_args[@]}"
+    ) || true # survivors make cargo-mutants exit non-zero; the summary says what happened
+}
+
+if [[ $# -eq 0 ]]; then
+    set -- "${all_groups[@]}"
 fi
-if [[ -n "${MUTANTS_SHARD:-}" ]]; then
-    args+=(--shard "$MUTANTS_SHARD")
+if [[ "$1" == *.rs ]]; then
+    run files "$*" "${MUTANTS_TESTS:---lib}"
+else
+    for g in "$@"; do
+        files="$(group_files "$g")" || {
+            echo "mutants.sh: no group '$g' (groups: ${all_groups[*]}; or give files)" >&2
+            exit 2
+        }
+        run "$g" "$files" "${MUTANTS_TESTS:-$(group_tests "$g")}"
+    done
 fi
-# The test subset: the pipeline crate's unit tests (the numerical references of photometry,
-# Stokes inversion, calibration, statistics and the e-o offset) plus, by default, the
-# integration tests of the reduction's locating stages and of noiseless inversions.
-read -r -a tests <<<"${MUTANTS_TESTS:---lib --test reduce_locate --test reduce_noiseless}"
-cd "$tree"
-export CARGO_TARGET_DIR="$root/target/mutants-target"
-time cargo mutants \
-    --package sofipol-pipeline \
-    --in-place \
-    --profile mutants \
-    --timeout "${MUTANTS_TIMEOUT:-300}" \
-    --build-timeout "${MUTANTS_BUILD_TIMEOUT:-1200}" \
-    --output "$(cd "$root" && realpath -m "${MUTANTS_OUT:-target/mutants-out}")" \
-    "${args[@]}" \
-    -- "${tests[@]}"
+summary "$out_root"
