@@ -109,6 +109,7 @@ run() {
     [[ -n "${MUTANTS_SHARD:-}" ]] && args+=(--shard "$MUTANTS_SHARD")
     local -a test_args
     read -r -a test_args <<<"$tests"
+    mkdir -p "$out_root/$name"
     echo "mutants.sh: $name: $files; tests: cargo test $tests" >&2
     (
         cd "$tree"
