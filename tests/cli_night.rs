@@ -127,6 +127,41 @@ fn a_night_with_bad_inputs_reduces_every_good_target_and_names_every_bad_file() 
         assert!(row.split_whitespace().any(|w| w == v), "{key} {v} not in {row}");
     }
 
+    // The night log beside the catalog: one line per file of the folder, used or not,
+    // with its outcome and what it was used for or why not.
+    assert!(
+        stdout.contains(&format!("night log: {}", dir.path().join("cat1.log").display())),
+        "{stdout}"
+    );
+    let log = std::fs::read_to_string(dir.path().join("cat1.log")).unwrap();
+    let files: Vec<String> = walk(&night);
+    assert_eq!(files.len(), 27, "{files:?}");
+    for f in &files {
+        let rel = f.strip_prefix(&format!("{}/", night.display())).unwrap();
+        let lines: Vec<&str> = log
+            .lines()
+            .filter(|l| l.split_whitespace().next() == Some(rel))
+            .collect();
+        assert_eq!(lines.len(), 1, "{rel}: {lines:?}\n{log}");
+        let l = lines[0];
+        let (outcome, why) = match rel {
+            // Its header groups it with Alpha's frames; its data cannot be read.
+            "sub/truncated.fits" => ("dropped", find(rel).unwrap()),
+            "notes.fits" | "nokey.fits" => ("not used", find(rel).unwrap()),
+            "flat_0001.fits" => ("not used", find(rel).unwrap()),
+            _ => ("used", String::new()),
+        };
+        assert!(l.contains(&format!("  {outcome} ")), "{l}");
+        assert!(l.contains(why.split_whitespace().next().unwrap_or("")), "{l} / {why}");
+        if rel.starts_with("SOFI_it_Alpha") || rel == "sub/truncated.fits" {
+            assert!(l.contains("target Alpha"), "{l}");
+        }
+        if rel.starts_with("SOFI_it_Beta") {
+            assert!(l.contains("target Beta"), "{l}");
+        }
+    }
+    assert!(log.contains("## Targets: 3"), "{log}");
+
     // Same inputs, one thread: identical catalog (timestamps aside).
     let out2 = dir.path().join("cat2.json");
     let (code, _, _) = run(&[
@@ -181,6 +216,20 @@ fn a_night_with_bad_inputs_reduces_every_good_target_and_names_every_bad_file() 
     let m = catalog(&merged);
     assert_eq!(m["targets"], c["targets"]);
     assert_eq!(m["failures"], c["failures"]);
+}
+
+/// Every file under `dir`, recursively, as paths.
+fn walk(dir: &std::path::Path) -> Vec<String> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p.display().to_string());
+        }
+    }
+    out
 }
 
 #[test]

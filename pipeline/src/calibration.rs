@@ -463,6 +463,7 @@ pub fn calibrate_catalog(
             ra_deg: t.ra_deg,
             dec_deg: t.dec_deg,
             mjd_mean: t.mjd_mean,
+            input_files: t.input_files.clone(),
         });
     }
     cat.calibration = Some(serde_json::json!({

@@ -44,6 +44,10 @@ pub struct Component {
     /// Covariance of q and u from the measurement alone (the F errors of this star).
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
     pub cov_qu_stat: Option<f64>,
+    /// The dithers left out of the combined F (flagged, clipped or without a value), by
+    /// frame, with the reason (absent when every dither was used).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dropped_dithers: Option<Vec<DroppedDither>>,
     /// Mean o+e flux per dither, ADU (NaN when no dither was kept).
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
     pub flux_adu: Option<f64>,
@@ -155,6 +159,7 @@ impl Component {
             flags: Vec::new(),
             cov_qu: None,
             cov_qu_stat: None,
+            dropped_dithers: None,
             flux_adu: None,
             instrumental_offset: None,
             offset_gradient: None,
@@ -172,6 +177,17 @@ impl Component {
             extra: serde_json::Map::new(),
         }
     }
+}
+
+/// A dither left out of a component's combined F.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DroppedDither {
+    /// The dither's frame.
+    pub file: String,
+    /// Why: the dither's flags (`bad_pixels`, `cosmic_ray`, `saturated`, `truncated`,
+    /// `primary_not_found`, comma-separated), `clipped` (an outlier of its orientation's
+    /// dithers) or `no value`.
+    pub reason: String,
 }
 
 /// F = (o - e)/(o + e) of one orientation combined over its dithers (a component's
@@ -568,6 +584,9 @@ pub struct StandardResult {
     /// Mean MJD-OBS of the sequence's frames, d (as [`Target::mjd_mean`]).
     #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
     pub mjd_mean: Option<f64>,
+    /// The sequence's frames (as [`Target::input_files`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub input_files: Option<Vec<String>>,
 }
 
 /// The distinct values, in order, of the provenance entry `key` (`software`, `commit`):

@@ -100,6 +100,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     sofipol_pipeline::io::write_json_atomic(&args.output, cat)
         .with_context(|| format!("writing {}", args.output.display()))?;
+    let log = night::write_night_log(&args.output, cat)
+        .with_context(|| format!("writing {}", night::log_path(&args.output).display()))?;
     if let Some(r) = &args.report {
         let products = (!args.no_png).then(|| night::products_dir(&args.output));
         let (pairs, seed) = (
@@ -117,6 +119,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             &args.output,
             png_dir.as_deref(),
             args.report.as_deref(),
+            &log,
         );
     }
     if args.verbose > 0 {
@@ -240,6 +243,7 @@ fn print_summary(
     output: &Path,
     png_dir: Option<&Path>,
     report: Option<&Path>,
+    log: &Path,
 ) {
     print!("{}", super::summary::summary(cat));
     let count = |s: Status| cat.targets.iter().filter(|t| t.status == s).count();
@@ -258,6 +262,7 @@ fn print_summary(
     if let Some(d) = png_dir {
         println!("figures: {}", d.display());
     }
+    println!("night log: {}", log.display());
     if let Some(r) = report {
         println!("report: {}", r.display());
     }

@@ -298,6 +298,8 @@ fn read_catalog(path: &Path) -> Option<Catalog> {
 fn write(u: &Update, live: &LiveNight, output: &Path, state: &Path) -> anyhow::Result<()> {
     sofipol_pipeline::io::write_json_atomic(output, &u.catalog)
         .with_context(|| format!("writing {}", output.display()))?;
+    sofipol_pipeline::night::write_night_log(output, &u.catalog)
+        .with_context(|| format!("writing {}", sofipol_pipeline::night::log_path(output).display()))?;
     live.cache()
         .save(state)
         .with_context(|| format!("writing {}", state.display()))

@@ -81,6 +81,10 @@ fn full_component() -> Component {
         flags: vec!["low_snr".into()],
         cov_qu: Some(-4.25e-6),
         cov_qu_stat: Some(-3.5e-6),
+        dropped_dithers: Some(vec![DroppedDither {
+            file: "raw/SOFI_0003.fits".into(),
+            reason: "bad_pixels".into(),
+        }]),
         flux_adu: Some(142096.5),
         instrumental_offset: Some(InstrumentalOffset {
             c: 0.0183,
@@ -121,6 +125,7 @@ fn component_keys_keep_the_documented_order_and_round_trip() {
         // The optional fields, alphabetical (as when they were a sorted map).
         "cov_qu",
         "cov_qu_stat",
+        "dropped_dithers",
         "flux_adu",
         "instrumental_offset",
         "offset_gradient",

@@ -31,6 +31,7 @@ fn standard(name: &str, measured: Option<Component>) -> StandardResult {
         ra_deg: Some(101.5),
         dec_deg: Some(-33.25),
         mjd_mean: Some(51240.21),
+        input_files: None,
     }
 }
 

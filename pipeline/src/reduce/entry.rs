@@ -2,7 +2,7 @@
 //! orientation combined (rejections, clipping, weighted mean, honest error), then q and u by
 //! least squares over the orientations, P, gamma and their errors, debiasing and the cut.
 use super::{CalibratedOrientation, DitherValue, MeasureParams, Measured};
-use crate::catalog::{CombinedF, Component, Status, Target};
+use crate::catalog::{CombinedF, Component, DroppedDither, Status, Target};
 use crate::stokes::inversion::{clip_dithers, combine_dithers, fit_qu, LinearPolarization, Polarization};
 use crate::stokes::propagation::QuCovariance;
 use sofipol_calib::profile::Keywords;
@@ -37,15 +37,17 @@ pub fn bad_pixels_flag(k: usize, n: usize) -> String {
 }
 
 /// Turn the per-dither values of one component into its catalog entry. `parallactic_deg`
-/// holds each dither's parallactic angle (per orientation, in dither order; `None` when the
-/// frame has none).
+/// holds each dither's parallactic angle and `files` its frame (per orientation, in dither
+/// order; `None` when the frame has no angle).
 pub fn component_from_dithers(
     name: &str,
     per_orient: &[Vec<DitherValue>],
     analyzer_deg: &[f64],
     parallactic_deg: &[Vec<Option<f64>>],
+    files: &[Vec<String>],
     params: &MeasureParams,
 ) -> Component {
+    let mut dropped: Vec<DroppedDither> = Vec::new();
     let mut flags: Vec<String> = Vec::new();
     let (mut phis, mut fs, mut ss) = (Vec::new(), Vec::new(), Vec::new());
     let mut per_orientation = Vec::new();
@@ -96,6 +98,23 @@ pub fn component_from_dithers(
         let keep = clip_dithers(&vals, &sig, params.clip_sigma, 2);
         if keep.len() < vals.len() && !flags.contains(&"dither_clipped".to_string()) {
             flags.push("dither_clipped".into());
+        }
+        // Every dither not kept, by frame, with why.
+        for (i, d) in dv.iter().enumerate() {
+            if keep.iter().any(|&j| usable[j] == i) {
+                continue;
+            }
+            let reason = match d.rejected.as_deref() {
+                Some(r) if !usable.contains(&i) => r.split(',').collect::<Vec<_>>().join(", "),
+                _ if usable.contains(&i) => "clipped".to_string(),
+                _ => "no value".to_string(),
+            };
+            let file = files
+                .get(k)
+                .and_then(|f| f.get(i))
+                .cloned()
+                .unwrap_or_else(|| format!("orientation {} dither {}", k + 1, i + 1));
+            dropped.push(DroppedDither { file, reason });
         }
         let kv: Vec<f64> = keep.iter().map(|&i| vals[i]).collect();
         let ks: Vec<f64> = keep.iter().map(|&i| sig[i]).collect();
@@ -150,6 +169,7 @@ pub fn component_from_dithers(
     }
     let measured = Component {
         orientations: Some(per_orientation),
+        dropped_dithers: (!dropped.is_empty()).then_some(dropped),
         flux_adu: Some(if n_flux > 0 { sum_flux / n_flux as f64 } else { f64::NAN }),
         ..Component::new(name, Polarization::UNDEFINED)
     };
@@ -258,6 +278,10 @@ pub fn target_entry(
     let phis: Vec<f64> = orients.iter().map(|o| o.analyzer_deg).collect();
     let mut target_flags = m.flags.clone();
     let etas = parallactic_angles(orients, kw, &mut target_flags);
+    let files: Vec<Vec<String>> = orients
+        .iter()
+        .map(|o| o.frames.iter().map(|f| f.path().display().to_string()).collect())
+        .collect();
     let names = ["A", "B"];
     // Which star was measured at some orientation is not known: every component may mix
     // the two stars' q and u. Reported, flagged, never a detection.
@@ -267,7 +291,7 @@ pub fn target_entry(
         .iter()
         .enumerate()
         .map(|(i, d)| {
-            let mut c = component_from_dithers(names[i], d, &phis, &etas, params);
+            let mut c = component_from_dithers(names[i], d, &phis, &etas, &files, params);
             if unverified {
                 c.flags.push(AB_IDENTITY_UNVERIFIED.into());
                 c.passes_cut = false;
@@ -418,6 +442,42 @@ mod tests {
         );
         assert!(flags.iter().any(|f| f == "cosmic_ray"), "{flags:?}");
         assert!(t.components[1].flags.is_empty(), "{:?}", t.components[1].flags);
+        // Each dither left out is named with its reason (the frames are not known here:
+        // orientation and dither); the other component used all of its dithers.
+        let dropped: Vec<(String, String)> = t.components[0]
+            .dropped_dithers
+            .iter()
+            .flatten()
+            .map(|d| (d.file.clone(), d.reason.clone()))
+            .collect();
+        let want = [
+            ("orientation 1 dither 2", "bad_pixels"),
+            ("orientation 3 dither 1", "cosmic_ray, bad_pixels"),
+            ("orientation 4 dither 3", "cosmic_ray"),
+        ]
+        .map(|(a, b)| (a.to_string(), b.to_string()));
+        assert_eq!(dropped, want);
+        assert_eq!(t.components[1].dropped_dithers, None);
+    }
+
+    /// An outlier among an orientation's dithers is clipped and listed as such.
+    #[test]
+    fn a_clipped_dither_is_listed_as_clipped() {
+        let mut m = measured(Vec::new());
+        m.dithers[1][1][0].f += 0.05;
+        m.dithers[1][2][0].f += 0.05;
+        m.dithers[1][2][0].rejected = Some("saturated".into());
+        let params = MeasureParams::default();
+        let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords);
+        let d = t.components[1].dropped_dithers.clone().unwrap();
+        let got: Vec<(&str, &str)> = d.iter().map(|d| (d.file.as_str(), d.reason.as_str())).collect();
+        assert_eq!(
+            got,
+            [
+                ("orientation 2 dither 1", "clipped"),
+                ("orientation 3 dither 1", "saturated")
+            ]
+        );
     }
 
     #[test]

@@ -1,0 +1,294 @@
+//! The night log: a plain-text file beside the catalog saying, frame by frame, what each
+//! input was used for and what happened to it (used, dropped and why, not used and why),
+//! then each target's outcome with its flags in words. Everything in it comes from the
+//! catalog, so the log of any catalog can be written again (`sofipol report --log`).
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::Path;
+
+use crate::catalog::{provenance_values, Catalog, Status};
+use crate::report::flags::{explain, flag_name};
+
+/// What one input file was used for and what happened to it.
+#[derive(Default)]
+struct FrameEntry {
+    /// "target HK Tau", "standard HD 64299 (offset)", "superflat Ks", "bad-pixel mask".
+    roles: Vec<String>,
+    /// Why the frame was dropped or not used (the catalog's failures naming it).
+    problems: Vec<String>,
+    /// The components whose combined F left this frame's dither out, with why.
+    left_out: Vec<String>,
+}
+
+/// Where a night log goes for a catalog path: the catalog's name with `.log` in place of
+/// its extension (`night.json` -> `night.log`; a catalog named `*.log` gets `*.log.log`).
+pub fn log_path(catalog: &Path) -> std::path::PathBuf {
+    let p = catalog.with_extension("log");
+    if p == catalog {
+        catalog.with_extension("log.log")
+    } else {
+        p
+    }
+}
+
+/// Write the night log of `cat` beside the catalog at `catalog` (atomically: a temporary
+/// file renamed), returning its path.
+pub fn write_night_log(catalog: &Path, cat: &Catalog) -> sofipol_calib::Result<std::path::PathBuf> {
+    let path = log_path(catalog);
+    let name = catalog
+        .file_name()
+        .map_or_else(|| catalog.display().to_string(), |n| n.to_string_lossy().into());
+    crate::io::write_atomic(&path, night_log(cat, &name).as_bytes())?;
+    Ok(path)
+}
+
+/// The night log of `cat` (see the module's documentation), `catalog_name` naming the
+/// catalog it belongs to.
+pub fn night_log(cat: &Catalog, catalog_name: &str) -> String {
+    let frames = frame_entries(cat);
+    let root = common_dir(frames.keys().map(String::as_str));
+    let shown = |f: &str| one_line(f.strip_prefix(root.as_str()).unwrap_or(f).trim_start_matches('/'));
+    let mut s = String::new();
+    header(&mut s, cat, catalog_name, &root);
+    let n_used = frames
+        .values()
+        .filter(|e| !e.roles.is_empty() && e.problems.is_empty() && e.left_out.is_empty())
+        .count();
+    let n_partly = frames
+        .values()
+        .filter(|e| !e.roles.is_empty() && e.problems.is_empty() && !e.left_out.is_empty())
+        .count();
+    let n_dropped = frames
+        .values()
+        .filter(|e| !e.roles.is_empty() && !e.problems.is_empty())
+        .count();
+    let n_unused = frames.values().filter(|e| e.roles.is_empty()).count();
+    let _ = writeln!(
+        s,
+        "\n## Frames: {} in all, {n_used} used, {n_partly} used in part, {n_dropped} dropped, {n_unused} not used\n",
+        frames.len()
+    );
+    let width = frames
+        .keys()
+        .map(|f| shown(f).chars().count())
+        .max()
+        .unwrap_or(5)
+        .max(5);
+    let _ = writeln!(s, "{:<width$}  OUTCOME  USED FOR / WHY", "FRAME");
+    for (file, e) in &frames {
+        let outcome = match (e.roles.is_empty(), e.problems.is_empty(), e.left_out.is_empty()) {
+            (false, true, true) => "used",
+            (false, true, false) => "in part",
+            (false, false, _) => "dropped",
+            (true, _, _) => "not used",
+        };
+        let mut what = e.roles.join("; ");
+        for l in &e.left_out {
+            what.push_str(&format!("; {l}"));
+        }
+        for p in &e.problems {
+            if !what.is_empty() {
+                what.push_str(" | ");
+            }
+            what.push_str(p);
+        }
+        let _ = writeln!(s, "{:<width$}  {outcome:<7}  {}", shown(file), one_line(&what));
+    }
+    targets(&mut s, cat);
+    s
+}
+
+/// Every file the catalog names, with what it was used for and its problems.
+fn frame_entries(cat: &Catalog) -> BTreeMap<String, FrameEntry> {
+    let mut frames: BTreeMap<String, FrameEntry> = BTreeMap::new();
+    for t in &cat.targets {
+        for f in t.input_files.iter().flatten() {
+            frames
+                .entry(f.clone())
+                .or_default()
+                .roles
+                .push(format!("target {}", t.object));
+        }
+        for c in &t.components {
+            for d in c.dropped_dithers.iter().flatten() {
+                frames
+                    .entry(d.file.clone())
+                    .or_default()
+                    .left_out
+                    .push(format!("{} left out of {}: {}", t.object, c.name, d.reason));
+            }
+        }
+    }
+    for st in &cat.standards {
+        let used = if st.used_for.is_empty() {
+            "not used by the calibration".to_string()
+        } else {
+            format!("calibration: {}", st.used_for.join(", "))
+        };
+        for f in st.input_files.iter().flatten() {
+            frames
+                .entry(f.clone())
+                .or_default()
+                .roles
+                .push(format!("standard {} ({used})", st.name));
+        }
+    }
+    let prov = &cat.provenance;
+    for fl in prov["flat"]["flats"].as_array().into_iter().flatten() {
+        let kind = match fl["kind"].as_str() {
+            Some("superflat") => "superflat",
+            Some(k) => &format!("{k} flat"),
+            None => "flat",
+        };
+        let filter = fl["filter"].as_str().unwrap_or("");
+        let angle = fl["posang_deg"]
+            .as_f64()
+            .map(|a| format!(" POSANG {a}"))
+            .unwrap_or_default();
+        for f in fl["frames"].as_array().into_iter().flatten().filter_map(|f| f.as_str()) {
+            frames
+                .entry(f.to_string())
+                .or_default()
+                .roles
+                .push(format!("{kind} {filter}{angle}").trim_end().to_string());
+        }
+    }
+    for f in prov["night_bad_pixel_mask_from"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|f| f.as_str())
+    {
+        frames
+            .entry(f.to_string())
+            .or_default()
+            .roles
+            .push("bad-pixel mask".into());
+    }
+    for fail in &cat.failures {
+        frames
+            .entry(fail.file.clone())
+            .or_default()
+            .problems
+            .push(fail.error.clone());
+    }
+    frames
+}
+
+/// The directory (ending in `/`) all `files` share, or "" when none.
+fn common_dir<'a>(files: impl Iterator<Item = &'a str>) -> String {
+    let mut common: Option<&str> = None;
+    for f in files {
+        let dir = f.rfind('/').map_or("", |i| &f[..=i]);
+        common = Some(match common {
+            None => dir,
+            Some(c) => {
+                let n = c
+                    .char_indices()
+                    .zip(dir.chars())
+                    .take_while(|((_, a), b)| a == b)
+                    .last()
+                    .map_or(0, |((i, a), _)| i + a.len_utf8());
+                // Back to the last '/' of the shared prefix.
+                c[..n].rfind('/').map_or("", |i| &c[..=i])
+            }
+        });
+    }
+    common.unwrap_or("").to_string()
+}
+
+fn header(s: &mut String, cat: &Catalog, catalog_name: &str, root: &str) {
+    let prov = &cat.provenance;
+    let join = |key: &str| {
+        let v = provenance_values(prov, key);
+        if v.is_empty() {
+            "unknown".to_string()
+        } else {
+            v.join(", ")
+        }
+    };
+    let _ = writeln!(s, "# sofipol night log of {catalog_name}");
+    let _ = writeln!(s, "software: {} (commit {})", join("software"), join("commit"));
+    if let Some(t) = prov["created_utc"].as_str() {
+        let _ = writeln!(s, "created: {t} UTC");
+    }
+    if let Some(cmd) = prov["command_line"].as_array() {
+        let words: Vec<&str> = cmd.iter().filter_map(|w| w.as_str()).collect();
+        let _ = writeln!(s, "command: {}", words.join(" "));
+    }
+    if !root.is_empty() {
+        let _ = writeln!(s, "frames under: {root}");
+    }
+    let flat = &prov["flat"];
+    if let Some(mode) = flat["mode"].as_str() {
+        let n = flat["flats"].as_array().map_or(0, |a| a.len());
+        let _ = writeln!(s, "flat field: {mode} ({n} flat(s))");
+    }
+    if let Some(m) = prov["night_bad_pixel_mask_from"].as_array() {
+        let _ = writeln!(s, "night bad-pixel mask: from {} frame(s)", m.len());
+    }
+    let n_std = cat.standards.iter().filter(|st| !st.used_for.is_empty()).count();
+    let _ = writeln!(
+        s,
+        "calibration: {} standard(s) observed, {n_std} used",
+        cat.standards.len()
+    );
+}
+
+fn targets(s: &mut String, cat: &Catalog) {
+    let _ = writeln!(s, "\n## Targets: {}\n", cat.targets.len());
+    for t in &cat.targets {
+        let status = match t.status {
+            Status::Ok => "ok",
+            Status::Partial => "partial",
+            Status::Failed => "failed",
+        };
+        let seq = t.sequence.as_deref().map(|q| format!(" [{q}]")).unwrap_or_default();
+        let _ = write!(s, "{}: {status}", one_line(&format!("{}{seq}", t.object)));
+        if let Some(e) = &t.error {
+            let _ = write!(s, " ({})", one_line(e));
+        }
+        let _ = writeln!(s);
+        for c in &t.components {
+            let snr = c.p_debiased / c.sigma_p;
+            let cut = if c.passes_cut {
+                "passes the cut"
+            } else {
+                "below the cut"
+            };
+            let _ = writeln!(
+                s,
+                "  {}: P = {:.2} +- {:.2} %, gamma = {:.1} +- {:.1} deg, P/sigma = {:.1}, {cut}",
+                c.name,
+                100.0 * c.p,
+                100.0 * c.sigma_p,
+                c.gamma_deg,
+                c.sigma_gamma_deg,
+                snr
+            );
+            for f in &c.flags {
+                let _ = writeln!(s, "    {}: {}", c.name, flag_line(f));
+            }
+        }
+        for f in t.flags.iter().flatten() {
+            let _ = writeln!(s, "  {}", flag_line(f));
+        }
+    }
+}
+
+/// A flag as written, with its sentence when this build knows it.
+fn flag_line(flag: &str) -> String {
+    match explain(flag) {
+        Some(sentence) => format!("{} -- {}", flag_name(flag), one_line(&sentence)),
+        None => one_line(flag),
+    }
+}
+
+/// `text` on one line (newlines and tabs as spaces), every other non-printable character
+/// escaped as on the terminal.
+fn one_line(text: &str) -> String {
+    sofipol_calib::text::printable(&text.split_whitespace().collect::<Vec<_>>().join(" ")).into_owned()
+}
+
+#[cfg(test)]
+mod tests;
