@@ -35,6 +35,7 @@ pub mod night;
 pub mod numeric;
 pub mod photometry;
 pub mod plots;
+pub mod products;
 pub mod reduce;
 pub mod report;
 pub mod scan;

@@ -47,6 +47,7 @@ fn night_figures_show_the_calibrated_catalog() {
         hooks: Hooks {
             on_done: None,
             on_figure: Some(&on_figure),
+            on_reduced: None,
         },
         ..Default::default()
     };

@@ -77,6 +77,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         hooks: Hooks {
             on_done: None,
             on_figure: Some(&plot),
+            on_reduced: None,
         },
         ..Default::default()
     };

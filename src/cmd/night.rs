@@ -11,7 +11,8 @@ use sofipol_pipeline::catalog::{Catalog, Status, Target};
 use sofipol_pipeline::io;
 use sofipol_pipeline::night::{self, Hooks, NightOutput, NightPlan, NightSetup, RunOptions, Shard};
 use sofipol_pipeline::plots::target::TargetFigure;
-use sofipol_pipeline::reduce::run::StageTimes;
+use sofipol_pipeline::products::regions;
+use sofipol_pipeline::reduce::run::{StageTimes, TargetOutcome};
 
 use super::common::{progress, Figures};
 use super::setup::SetupArgs;
@@ -39,6 +40,11 @@ pub struct Args {
     /// Do not write the per-target PNG figures.
     #[arg(long)]
     pub no_png: bool,
+    /// Also write DS9 region files, one per frame (both stars' apertures and sky annuli in
+    /// the o and e beams, dithers left out in red), into `<catalog stem>_products/regions/`
+    /// [default: none].
+    #[arg(long)]
+    pub regions: bool,
     /// Also write the night's HTML page (`sofipol report`) to FILE, after the catalog
     /// [default: none].
     #[arg(long, value_name = "FILE")]
@@ -91,7 +97,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }
     let figures = png_dir.as_deref().map(Figures::new);
-    let out = pool.install(|| reduce_with_progress(&plan, &setup, &args, figures.as_ref()));
+    let regions = args
+        .regions
+        .then(|| Regions::new(night::products_dir(&args.output).join("regions"), &setup));
+    let out = pool.install(|| reduce_with_progress(&plan, &setup, &args, figures.as_ref(), regions.as_ref()));
     let cat = &out.catalog;
     if !args.quiet {
         for l in &out.summary.lines {
@@ -112,18 +121,27 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let wall = t0.elapsed().as_secs_f64();
     if !args.quiet {
-        print_summary(
-            cat,
-            plan.failures.len() + plan.not_science.len(),
-            wall,
-            &args.output,
-            png_dir.as_deref(),
-            args.report.as_deref(),
-            &log,
-        );
+        let written = Written {
+            catalog: &args.output,
+            log: &log,
+            figures: png_dir.as_deref(),
+            regions: regions.as_ref().map(|r| r.dir.as_path()),
+            report: args.report.as_deref(),
+        };
+        print_summary(cat, plan.failures.len() + plan.not_science.len(), wall, &written);
     }
     if args.verbose > 0 {
         print_verbose(&out, wall);
+    }
+    let regions_failed = regions.as_ref().map(Regions::finish).unwrap_or_default();
+    for (p, e) in &regions_failed {
+        eprintln!("sofipol night: region file {}: {}", p.display(), printable(e));
+    }
+    if !regions_failed.is_empty() {
+        eprintln!(
+            "sofipol night: {} region file(s) could not be written: the products are incomplete (exit 2)",
+            regions_failed.len()
+        );
     }
     let figures_failed = figures.map(|f| f.finish().1).unwrap_or_default();
     if !figures_failed.is_empty() {
@@ -133,7 +151,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         );
     }
     let bad = cat.targets.iter().any(|t| t.status != Status::Ok) || !cat.failures.is_empty();
-    Ok(if bad || !figures_failed.is_empty() {
+    Ok(if bad || !figures_failed.is_empty() || !regions_failed.is_empty() {
         ExitCode::from(2)
     } else {
         ExitCode::SUCCESS
@@ -186,7 +204,13 @@ fn plan_night(args: &Args, setup: &NightSetup) -> anyhow::Result<NightPlan> {
 
 /// Run the night (in the current rayon pool) with a progress bar on a terminal, else a line
 /// per target (nothing if `quiet`); writes each target's figure into `figures` when given.
-fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, figures: Option<&Figures>) -> NightOutput {
+fn reduce_with_progress(
+    plan: &NightPlan,
+    setup: &NightSetup,
+    args: &Args,
+    figures: Option<&Figures>,
+    regions: Option<&Regions>,
+) -> NightOutput {
     let n = plan.sequences.len();
     let quiet = args.quiet;
     let tty = std::io::stderr().is_terminal();
@@ -219,6 +243,11 @@ fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, figur
             f.write(&night::slug(fig.target.sequence_id()), fig);
         }
     };
+    let write_regions = |out: &TargetOutcome| {
+        if let Some(r) = regions {
+            r.write(out);
+        }
+    };
     let opts = RunOptions {
         night_mask: true,
         shard: args.shard,
@@ -226,6 +255,9 @@ fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, figur
         hooks: Hooks {
             on_done: Some(&on_done),
             on_figure: figures.is_some().then_some(&plot as &(dyn Fn(&TargetFigure) + Sync)),
+            on_reduced: regions
+                .is_some()
+                .then_some(&write_regions as &(dyn Fn(&TargetOutcome) + Sync)),
         },
         cache: None,
     };
@@ -234,17 +266,18 @@ fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, figur
     out
 }
 
+/// Where a night's outputs went.
+struct Written<'a> {
+    catalog: &'a Path,
+    log: &'a Path,
+    figures: Option<&'a Path>,
+    regions: Option<&'a Path>,
+    report: Option<&'a Path>,
+}
+
 /// The night's summary on stdout: the targets, their status, the inputs not used
 /// (`scan_failures` of them found while scanning), the wall time, where the outputs are.
-fn print_summary(
-    cat: &Catalog,
-    scan_failures: usize,
-    wall: f64,
-    output: &Path,
-    png_dir: Option<&Path>,
-    report: Option<&Path>,
-    log: &Path,
-) {
+fn print_summary(cat: &Catalog, scan_failures: usize, wall: f64, written: &Written) {
     print!("{}", super::summary::summary(cat));
     let count = |s: Status| cat.targets.iter().filter(|t| t.status == s).count();
     println!(
@@ -257,13 +290,16 @@ fn print_summary(
         scan_failures,
         cat.failures.len() - scan_failures,
         wall,
-        output.display()
+        written.catalog.display()
     );
-    if let Some(d) = png_dir {
+    if let Some(d) = written.figures {
         println!("figures: {}", d.display());
     }
-    println!("night log: {}", log.display());
-    if let Some(r) = report {
+    if let Some(d) = written.regions {
+        println!("DS9 regions: {}", d.display());
+    }
+    println!("night log: {}", written.log.display());
+    if let Some(r) = written.report {
         println!("report: {}", r.display());
     }
 }
@@ -306,4 +342,40 @@ pub fn print_verbose(out: &NightOutput, wall: f64) {
         io::cpu_seconds().unwrap_or(f64::NAN),
         io::peak_rss_bytes().unwrap_or(0) as f64 / 1e6
     );
+}
+
+/// Writes each reduced target's DS9 region files into `dir`, keeping the problems.
+struct Regions {
+    dir: PathBuf,
+    measure: sofipol_pipeline::reduce::MeasureParams,
+    software: String,
+    problems: std::sync::Mutex<Vec<(PathBuf, String)>>,
+}
+
+impl Regions {
+    fn new(dir: PathBuf, setup: &NightSetup) -> Regions {
+        Regions {
+            dir,
+            measure: setup.params.measure.clone(),
+            software: format!(
+                "sofipol {} (commit {})",
+                env!("CARGO_PKG_VERSION"),
+                sofipol_pipeline::build_info::commit()
+            ),
+            problems: Default::default(),
+        }
+    }
+
+    fn write(&self, out: &TargetOutcome) {
+        let files = regions::target_regions(out, &self.measure, &self.software);
+        let problems = regions::write_regions(&self.dir, &files);
+        if !problems.is_empty() {
+            self.problems.lock().unwrap_or_else(|e| e.into_inner()).extend(problems);
+        }
+    }
+
+    /// The files that could not be written, with why.
+    fn finish(&self) -> Vec<(PathBuf, String)> {
+        std::mem::take(&mut *self.problems.lock().unwrap_or_else(|e| e.into_inner()))
+    }
 }

@@ -78,6 +78,10 @@ pub struct Hooks<'a> {
     /// catalog (in parallel): the figure draws the catalog's final numbers. When given, the
     /// cut-outs the figure shows are stacked while each target's frames are in memory.
     pub on_figure: Option<&'a (dyn Fn(&TargetFigure) + Sync)>,
+    /// Called with each science target as its reduction ends (in parallel, before the
+    /// calibration): its measured positions and frames, e.g. for DS9 region files
+    /// ([`crate::products::regions`]). Not called for targets taken from a cache.
+    pub on_reduced: Option<&'a (dyn Fn(&crate::reduce::run::TargetOutcome) + Sync)>,
 }
 
 /// How a night is run: what differs between the commands.
@@ -305,6 +309,9 @@ fn reduce_sequences_cached(
                 }
                 None => {
                     let out = reduce_sequence(q, profile, params, night_mask, flats, keep_frames);
+                    if let Some(f) = hooks.on_reduced {
+                        f(&out);
+                    }
                     let fig = keep_frames.then(|| FigureInputs::from_outcome(&out));
                     (out.target, out.failures, out.times, fig)
                 }

@@ -1,6 +1,6 @@
 //! One target sequence from raw files to a catalog entry: read -> bad pixels -> sky ->
 //! measure ([`super::measure_sequence`]) -> Stokes ([`super::target_entry`]).
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use ndarray::{s, Array2};
 use serde::Serialize;
@@ -41,6 +41,12 @@ pub struct TargetOutcome {
     pub calibrated: Option<Vec<CalibratedOrientation>>,
     /// Intermediate measurements (for plots).
     pub measured: Option<super::Measured>,
+    /// The frame of every dither, per orientation in the order of `measured`'s dithers
+    /// (empty when the target failed before its frames were calibrated).
+    pub frame_files: Vec<Vec<PathBuf>>,
+    /// The detector row of the measured positions' y = 0 (the positions are in the
+    /// target strips' rows when only those were reduced): add it for detector pixels.
+    pub row_offset: usize,
 }
 
 /// `target` with the sequence's mean pointing and time from the frames' headers
@@ -67,6 +73,8 @@ fn failed(seq: &Sequence, msg: String, flags: &[String], failures: Vec<Failure>,
         times,
         calibrated: None,
         measured: None,
+        frame_files: Vec::new(),
+        row_offset: 0,
     }
 }
 
@@ -313,6 +321,11 @@ pub fn reduce_loaded(
         target,
         failures,
         times,
+        frame_files: cal
+            .iter()
+            .map(|o| o.frames.iter().map(|f| f.path().to_path_buf()).collect())
+            .collect(),
+        row_offset: crop.map_or(0, |(r0, _)| r0),
         calibrated: if keep_frames { Some(cal) } else { None },
         measured: Some(measured),
     }

@@ -1,0 +1,3 @@
+//! Products beside the catalog for looking at a reduction in other tools: DS9 region files
+//! ([`regions`]).
+pub mod regions;
