@@ -228,3 +228,94 @@ fn night_with_an_absurd_calibration_file_exits_1_naming_file_key_and_value() {
         assert!(!out.exists());
     }
 }
+
+/// `calib` on a night with dome flats at both rotator angles writes one flat per angle;
+/// another night (no dome flats) reduced with `--calib CALDIR` uses them, each orientation
+/// the flat of its angle, as it does with the two files given as `--flat A --flat B`.
+#[test]
+fn the_flats_of_a_calibration_directory_serve_another_night_one_per_rotator_angle() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sc = tmp.path().join("domes.toml");
+    let scene = scene(true).replace(
+        "\"analyzer_angle\"]",
+        "\"analyzer_angle\", \"dome_flats\"]\n[dome_flats]\nframes_on = 3\nframes_off = 3",
+    );
+    std::fs::write(&sc, scene).unwrap();
+    let domes = tmp.path().join("domes");
+    let (code, _, err) = run(&["simulate", sc.to_str().unwrap(), "-o", domes.to_str().unwrap(), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    let without = simulate(tmp.path(), "without", false);
+    let stds = tmp.path().join("stds.toml");
+    std::fs::write(&stds, STANDARDS).unwrap();
+    let caldir = tmp.path().join("cal");
+    let (code, out, err) = run(&[
+        "calib",
+        domes.to_str().unwrap(),
+        "-o",
+        caldir.to_str().unwrap(),
+        "--standards",
+        stds.to_str().unwrap(),
+        "-q",
+    ]);
+    assert_eq!(code, 0, "{out}\n{err}");
+    let cal: Value = serde_json::from_str(&std::fs::read_to_string(caldir.join("calibration.json")).unwrap()).unwrap();
+    let mut flats: Vec<&str> = cal["flats"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f.as_str().unwrap())
+        .collect();
+    flats.sort();
+    assert_eq!(flats, ["flat_dome_Ks_pa000.fits", "flat_dome_Ks_pa045.fits"], "{cal}");
+
+    let reduce = |name: &str, extra: &[&str]| -> Value {
+        let cat = tmp.path().join(name);
+        let mut args = vec!["night", without.as_str(), "-o", cat.to_str().unwrap(), "--no-png", "-q"];
+        args.extend_from_slice(extra);
+        let (code, out, err) = run(&args);
+        assert!(code == 0 || code == 2, "{out}\n{err}");
+        serde_json::from_str(&std::fs::read_to_string(&cat).unwrap()).unwrap()
+    };
+    let by_calib = reduce("c1.json", &["--calib", caldir.to_str().unwrap()]);
+    let prov = &by_calib["provenance"]["flat"];
+    assert_eq!(prov["mode"], "file", "{prov}");
+    assert_eq!(prov["from"], "calib_dir", "{prov}");
+    assert_eq!(prov["flats"].as_array().unwrap().len(), 2, "{prov}");
+    // Each orientation divided by the flat of its rotator angle.
+    let used = by_calib["targets"][0]["flat"].as_array().unwrap();
+    let text: Vec<&str> = used.iter().map(|u| u.as_str().unwrap()).collect();
+    assert_eq!(text.len(), 2, "{text:?}");
+    assert!(
+        text.iter().any(|u| u.starts_with("POSANG 0:") && u.contains("pa000")),
+        "{text:?}"
+    );
+    assert!(
+        text.iter().any(|u| u.starts_with("POSANG 45:") && u.contains("pa045")),
+        "{text:?}"
+    );
+
+    // The same two files given one by one: the same flats, the same numbers.
+    let (a, b) = (caldir.join(flats[0]), caldir.join(flats[1]));
+    let by_files = reduce(
+        "c2.json",
+        &["--flat", a.to_str().unwrap(), "--flat", b.to_str().unwrap()],
+    );
+    assert_eq!(by_files["provenance"]["flat"]["from"], "flat");
+    assert_eq!(by_files["targets"][0]["flat"], by_calib["targets"][0]["flat"]);
+    let q = |c: &Value| c["targets"][0]["components"][0]["q"].as_f64().unwrap();
+    let uncal = reduce(
+        "c3.json",
+        &[
+            "--flat",
+            a.to_str().unwrap(),
+            "--flat",
+            b.to_str().unwrap(),
+            "--calib",
+            caldir.to_str().unwrap(),
+        ],
+    );
+    assert_eq!(q(&uncal), q(&by_calib));
+    // Without them the night builds a superflat of its own.
+    let own = reduce("c4.json", &[]);
+    assert_eq!(own["provenance"]["flat"]["mode"], "superflat");
+}

@@ -49,6 +49,7 @@ impl SetupArgs {
         let mut files = self.reduce.input_files();
         files.extend(self.profile.profile.clone());
         files.extend(self.calib.standards.clone());
+        files.extend(self.flat.flat.iter().cloned());
         files
     }
 }
@@ -98,10 +99,12 @@ pub struct ReduceArgs {
 /// `bench accuracy` has its own `--flat` mode).
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct FlatArgs {
-    /// Calibration flat (FITS, e.g. from `sofipol calib`) [default: built from the night:
-    /// its dome flats, else a superflat from its sky].
+    /// Calibration flat (FITS, e.g. from `sofipol calib`); repeat it for one flat per
+    /// rotator angle (each frame takes the flat at its POSANG and filter) [default: built
+    /// from the night: its dome flats, else the flats of --calib CALDIR, else a superflat
+    /// from its sky].
     #[arg(long, value_name = "FILE", conflicts_with = "no_flat")]
-    pub flat: Option<PathBuf>,
+    pub flat: Vec<PathBuf>,
     /// Do not flat-field.
     #[arg(long)]
     pub no_flat: bool,
@@ -151,8 +154,8 @@ impl ReduceArgs {
     /// Validated parameters, with the flat-field flags over the settings file.
     pub fn params_with(&self, flat: &FlatArgs) -> anyhow::Result<TargetParams> {
         let mut p = self.file_and_param_keys()?;
-        if let Some(f) = &flat.flat {
-            p.flat = Some(f.clone());
+        if !flat.flat.is_empty() {
+            p.flat = flat.flat.clone();
         }
         if flat.no_flat {
             p.no_flat = true;
@@ -194,13 +197,9 @@ impl ReduceArgs {
 /// foreign file is an error naming the option and the file (exit 1), not a failure of
 /// every target found after the work.
 pub fn check_input_frames(params: &TargetParams) -> anyhow::Result<()> {
-    for (what, file) in [
-        ("--badpix (calib_mask)", &params.calib_mask),
-        ("--flat (flat)", &params.flat),
-    ] {
-        if let Some(f) = file {
-            sofipol_calib::fits::read_header(f).with_context(|| format!("{what} {}", f.display()))?;
-        }
+    let files = params.calib_mask.iter().map(|f| ("--badpix (calib_mask)", f));
+    for (what, f) in files.chain(params.flat.iter().map(|f| ("--flat (flat)", f))) {
+        sofipol_calib::fits::read_header(f).with_context(|| format!("{what} {}", f.display()))?;
     }
     Ok(())
 }

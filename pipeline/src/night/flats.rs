@@ -20,24 +20,34 @@ pub struct NightFlats {
     pub failures: Vec<Failure>,
 }
 
-/// Build the night's flats: the calibration flat file of the settings when given; else
-/// dome flats (lamp on - off per rotator angle) when the night has them; else a superflat
-/// per filter from `superflat_frames` (at least `flat_options.min_values` frames).
-/// `params.no_flat`: none.
-pub fn night_flats(
-    dome_flats: &[PathBuf],
-    superflat_frames: &BTreeMap<String, Vec<PathBuf>>,
-    profile: &Profile,
-    params: &TargetParams,
-) -> NightFlats {
-    use sofipol_calib::flat::{build_flats, read_flat, superflat, FlatSet};
+/// The flats that `calibration.json` of `calibration.calib_dir` (`--calib CALDIR`, a
+/// directory written by `sofipol calib` or its calibration.json) lists, as paths in that
+/// directory; none when it lists none or cannot be read (the calibration's own reading
+/// reports that).
+pub fn calib_dir_flat_files(params: &TargetParams) -> Vec<PathBuf> {
+    let Some(dir) = params.calibration.calib_dir.as_ref() else {
+        return Vec::new();
+    };
+    let dir = if dir.is_dir() {
+        dir.clone()
+    } else {
+        dir.parent().map(PathBuf::from).unwrap_or_default()
+    };
+    crate::calibration::Calibration::read(&dir)
+        .map(|c| c.flats.iter().map(|f| dir.join(f)).collect())
+        .unwrap_or_default()
+}
+
+/// The night's flats from calibration flat files (`origin`: "flat" for `--flat`,
+/// "calib_dir" for `--calib`): each read and checked against the detector's size; a file
+/// that cannot be used is a failure, the others are used.
+fn flats_from_files(files: &[PathBuf], origin: &str, profile: &Profile) -> NightFlats {
+    use sofipol_calib::flat::{read_flat, FlatSet};
     let mut out = NightFlats::default();
-    if params.no_flat {
-        out.provenance = serde_json::json!({"mode": "none (no_flat)"});
-        return out;
-    }
-    if let Some(p) = &params.flat {
-        let want = (profile.geometry.ny, profile.geometry.nx);
+    let want = (profile.geometry.ny, profile.geometry.nx);
+    let mut flats = Vec::new();
+    let mut errors = Vec::new();
+    for p in files {
         match read_flat(p).and_then(|f| {
             // A flat of another geometry would leave every orientation un-flat-fielded
             // (flagged per target): refused once, by name, instead.
@@ -56,20 +66,50 @@ pub fn night_flats(
                 })
             }
         }) {
-            Ok(f) => {
-                out.provenance = serde_json::json!({"mode": "file", "flats": [f.provenance()]});
-                out.set = Some(FlatSet::new(vec![f]));
-            }
+            Ok(f) => flats.push(f),
             Err(e) => {
-                out.provenance =
-                    serde_json::json!({"mode": "none", "file": p.display().to_string(), "error": e.to_string()});
+                errors.push(serde_json::json!({"file": p.display().to_string(), "error": e.to_string()}));
                 out.failures.push(Failure {
                     file: p.display().to_string(),
                     error: format!("calibration flat: {e}"),
                 });
             }
         }
+    }
+    out.provenance = if flats.is_empty() {
+        serde_json::json!({"mode": "none", "from": origin, "errors": errors})
+    } else {
+        serde_json::json!({
+            "mode": "file",
+            "from": origin,
+            "flats": flats.iter().map(|f| f.provenance()).collect::<Vec<_>>(),
+            "errors": errors,
+        })
+    };
+    if !flats.is_empty() {
+        out.set = Some(FlatSet::new(flats));
+    }
+    out
+}
+
+/// Build the night's flats, the first of: the calibration flat files of the settings
+/// (`--flat`); the night's dome flats (lamp on - off per rotator angle); the flats of the
+/// other night's calibration directory (`--calib CALDIR`); a superflat per filter from
+/// `superflat_frames` (at least `flat_options.min_values` frames). `params.no_flat`: none.
+pub fn night_flats(
+    dome_flats: &[PathBuf],
+    superflat_frames: &BTreeMap<String, Vec<PathBuf>>,
+    profile: &Profile,
+    params: &TargetParams,
+) -> NightFlats {
+    use sofipol_calib::flat::{build_flats, superflat, FlatSet};
+    let mut out = NightFlats::default();
+    if params.no_flat {
+        out.provenance = serde_json::json!({"mode": "none (no_flat)"});
         return out;
+    }
+    if !params.flat.is_empty() {
+        return flats_from_files(&params.flat, "flat", profile);
     }
     if !dome_flats.is_empty() {
         let (set, problems) = build_flats(dome_flats, profile, &params.flat_options);
@@ -85,6 +125,10 @@ pub fn night_flats(
             out.set = Some(set);
             return out;
         }
+    }
+    let caldir = calib_dir_flat_files(params);
+    if !caldir.is_empty() {
+        return flats_from_files(&caldir, "calib_dir", profile);
     }
     let mut flats = Vec::new();
     let mut notes = Vec::new();

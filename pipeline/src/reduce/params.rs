@@ -117,9 +117,14 @@ pub struct TargetParams {
     /// e-target rows, all the measurement uses) are sky-subtracted, about a third of the
     /// detector; whole frames are always done when intermediates are saved.
     pub full_frame_sky: bool,
-    /// A calibration flat file (FITS, as written by `sofipol calib` or any pixel-response
-    /// image): used instead of building one from the night.
-    pub flat: Option<PathBuf>,
+    /// Calibration flat files (FITS, as written by `sofipol calib` or any pixel-response
+    /// image), used instead of building flats from the night: each frame takes the flat of
+    /// its filter at its rotator angle (`POSANG` of the flat's header), else one without an
+    /// angle, else the nearest angle. In the settings file a path or a list of paths.
+    /// Empty: the flats of `calibration.calib_dir` when it lists some, else built from the
+    /// night.
+    #[serde(deserialize_with = "one_or_many")]
+    pub flat: Vec<PathBuf>,
     /// Do not flat-field (no dome flat, no superflat).
     pub no_flat: bool,
     /// How flats are built (dome flats and superflat).
@@ -138,7 +143,7 @@ impl Default for TargetParams {
             no_detect_bad_pixels: false,
             save_intermediate: None,
             full_frame_sky: false,
-            flat: None,
+            flat: Vec::new(),
             no_flat: false,
             flat_options: sofipol_calib::flat::FlatOptions::default(),
             calibration: Default::default(),
@@ -479,5 +484,38 @@ mod tests {
         assert_eq!(p.validate().unwrap_err().key, "flat_options.min_values");
         p.flat_options.min_values = 4;
         assert_eq!(p.validate(), Ok(()));
+    }
+}
+
+/// A path or a list of paths (the settings file's `flat = "a.fits"` or `flat = ["a", "b"]`).
+fn one_or_many<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<PathBuf>, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum OneOrMany {
+        One(PathBuf),
+        Many(Vec<PathBuf>),
+    }
+    Ok(match OneOrMany::deserialize(d)? {
+        OneOrMany::One(p) => vec![p],
+        OneOrMany::Many(v) => v,
+    })
+}
+
+#[cfg(test)]
+mod tests_flat {
+    use super::*;
+
+    #[test]
+    fn the_settings_flat_is_a_path_or_a_list_of_paths() {
+        let one: TargetParams = toml::from_str("flat = \"cal/flat_dome_Ks_pa000.fits\"").unwrap();
+        assert_eq!(one.flat, [PathBuf::from("cal/flat_dome_Ks_pa000.fits")]);
+        let two: TargetParams = toml::from_str("flat = [\"a.fits\", \"b.fits\"]").unwrap();
+        assert_eq!(two.flat, [PathBuf::from("a.fits"), PathBuf::from("b.fits")]);
+        assert!(TargetParams::default().flat.is_empty());
+        let e = toml::from_str::<TargetParams>("flat = 3").unwrap_err().to_string();
+        assert!(e.contains("flat"), "{e}");
+        // Written back (as `--dump-params` does) and read again: the same list.
+        let back: TargetParams = toml::from_str(&toml::to_string(&two).unwrap()).unwrap();
+        assert_eq!(back.flat, two.flat);
     }
 }
