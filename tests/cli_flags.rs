@@ -145,7 +145,12 @@ fn every_subcommand_spells_each_flag_one_way() {
         {
             problems.push(format!("sofipol {cmd}: no -q, --quiet"));
         }
-        if ["night", "target", "calib"].contains(&cmd.as_str()) && !has("verbose") {
+        if [
+            "night", "target", "calib", "watch", "merge", "export", "stats", "mc", "report",
+        ]
+        .contains(&cmd.as_str())
+            && !has("verbose")
+        {
             problems.push(format!("sofipol {cmd}: no -v, --verbose"));
         }
         if ["night", "stats", "mc", "report"].contains(&cmd.as_str()) && !has("jobs") {
@@ -312,4 +317,59 @@ fn a_long_mc_prints_its_estimated_time_and_quiet_silences_it() {
         (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr)),
         ("".into(), "".into())
     );
+}
+
+/// `-v` says more on stderr wherever it exists, and the normal output is unchanged.
+#[test]
+fn verbose_adds_detail_on_stderr_to_every_command_that_has_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = common::night(dir.path());
+    let cat = dir.path().join("n.json");
+    let (code, _, err) = run(&[
+        "night",
+        n.to_str().unwrap(),
+        "-o",
+        cat.to_str().unwrap(),
+        "--no-png",
+        "-q",
+    ]);
+    assert!(code == 0 || code == 2, "{err}");
+    let c = cat.to_str().unwrap();
+    let out = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    let cases: Vec<(Vec<String>, &str)> = vec![
+        (vec!["export".into(), c.into(), "-o".into(), out("t.ecsv")], "columns ("),
+        (
+            vec!["merge".into(), c.into(), "-o".into(), out("m.json")],
+            ": whole night, 2 targets",
+        ),
+        (
+            vec!["stats".into(), c.into(), "--pairs".into(), "2000".into()],
+            "analysis (",
+        ),
+        (
+            vec![
+                "report".into(),
+                c.into(),
+                "-o".into(),
+                out("r.html"),
+                "--pairs".into(),
+                "2000".into(),
+            ],
+            "figures found",
+        ),
+        (vec!["mc".into(), "--pairs".into(), "5000".into()], "pairs drawn"),
+    ];
+    for (args, want) in cases {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let (code, stdout, stderr) = run(&args);
+        assert_eq!(code, 0, "{args:?}\n{stderr}");
+        assert!(!stderr.contains(want), "{args:?} says {want:?} without -v:\n{stderr}");
+        let mut v = args.clone();
+        v.push("-v");
+        let (code, stdout_v, stderr_v) = run(&v);
+        assert_eq!(code, 0, "{v:?}\n{stderr_v}");
+        assert!(stderr_v.contains(want), "{v:?}: {want:?} not in\n{stderr_v}");
+        // The normal output is the same apart from times (stdout of stats/mc has timings).
+        assert_eq!(stdout.lines().count(), stdout_v.lines().count(), "{v:?}");
+    }
 }

@@ -20,6 +20,9 @@ pub struct Args {
     /// Print only errors (not the summary line).
     #[arg(short, long)]
     pub quiet: bool,
+    /// Also list the columns written, with their units (on stderr).
+    #[arg(short, long)]
+    pub verbose: bool,
 }
 
 /// Run.
@@ -35,6 +38,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     super::common::check_regular_output(&args.output, "; give a regular file name, or -o - for standard output")?;
     let (cat, t) = read_table(&args)?;
     export::write(&t, args.format, &args.output)?;
+    if args.verbose {
+        print_columns(&t);
+    }
     if !args.quiet {
         println!("{} -> {}", summary(&cat, &t), args.output.display());
     }
@@ -71,8 +77,29 @@ fn to_stdout(args: &Args) -> anyhow::Result<ExitCode> {
     let bytes = export::to_bytes(&t, args.format)?;
     let mut out = std::io::stdout().lock();
     let _ = out.write_all(&bytes).and_then(|_| out.flush());
+    if args.verbose {
+        print_columns(&t);
+    }
     if !args.quiet {
         eprintln!("{} -> standard output", summary(&cat, &t));
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// `-v`: the columns written, `name [unit]`, and the table's metadata keys, on stderr.
+fn print_columns(t: &export::Table) {
+    let cols: Vec<String> = t
+        .columns
+        .iter()
+        .map(|c| {
+            if c.unit.is_empty() {
+                c.name.to_string()
+            } else {
+                format!("{} [{}]", c.name, c.unit)
+            }
+        })
+        .collect();
+    eprintln!("columns ({}): {}", cols.len(), cols.join(", "));
+    let meta: Vec<&str> = t.meta.iter().map(|(k, _)| *k).collect();
+    eprintln!("metadata: {}", meta.join(", "));
 }

@@ -88,6 +88,9 @@ pub struct Args {
     /// written)
     #[arg(short, long)]
     quiet: bool,
+    /// Also print, per run, the pairs drawn and accepted and the rate (on stderr)
+    #[arg(short, long)]
+    verbose: bool,
 }
 
 /// The TOML model file.
@@ -268,6 +271,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 println!(
                     "{label:<18} {:>12} {mean:>10.2} {below:>12.4} {ratio:>16.3} {dt:>9.3}",
                     out.accepted
+                )
+            });
+        }
+        if args.verbose {
+            eta.suspend(|| {
+                eprintln!(
+                    "{label}: {} pairs drawn, {} accepted ({:.1} %), {:.3e} pairs/s on {} threads",
+                    cfg.pairs,
+                    out.accepted,
+                    100.0 * out.accepted as f64 / cfg.pairs.max(1) as f64,
+                    cfg.pairs as f64 / dt.max(1e-9),
+                    pool.current_num_threads()
                 )
             });
         }

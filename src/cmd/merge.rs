@@ -14,6 +14,7 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use serde_json::Value;
+use sofipol_calib::text::printable;
 use sofipol_pipeline::catalog::Catalog;
 
 /// Arguments of `sofipol merge`.
@@ -32,6 +33,9 @@ pub struct Args {
     /// Print only errors (the exit code still says 2 when shards are missing).
     #[arg(short, long)]
     pub quiet: bool,
+    /// Also print each input catalog: its shard, targets, failures and software (on stderr).
+    #[arg(short, long)]
+    pub verbose: bool,
 }
 
 /// The shards' coverage: `Ok(missing "K/N of inputs")` or the reason the set cannot be merged. Parts
@@ -143,6 +147,24 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     for p in &args.catalogs {
         let c: Catalog = sofipol_pipeline::input::read_catalog(p)?;
         parts.push((p.display().to_string(), c));
+    }
+    if args.verbose {
+        for (name, c) in &parts {
+            let prov = &c.provenance;
+            let shard = prov["shard"]
+                .as_str()
+                .map_or("whole night".to_string(), |s| format!("shard {s}"));
+            let join = |key: &str| sofipol_pipeline::catalog::provenance_values(prov, key).join(", ");
+            eprintln!(
+                "{}: {shard}, {} targets, {} standards, {} failures; {} (commit {})",
+                printable(name),
+                c.targets.len(),
+                c.standards.len(),
+                c.failures.len(),
+                join("software"),
+                join("commit")
+            );
+        }
     }
     let provs: Vec<(String, &Value)> = parts.iter().map(|(n, c)| (n.clone(), &c.provenance)).collect();
     let missing = check_shards(&provs, args.allow_partial)?;

@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::Context;
+use sofipol_calib::text::printable;
 use sofipol_pipeline::catalog::Catalog;
 use sofipol_pipeline::report::{self, DEFAULT_REPORT_PAIRS};
 use sofipol_pipeline::stats::mc::DEFAULT_SEED;
@@ -43,6 +44,10 @@ pub struct Args {
     /// Print only errors
     #[arg(short, long)]
     quiet: bool,
+    /// Also print what the page holds: targets, figures found, statistics, size and time
+    /// (on stderr)
+    #[arg(short, long)]
+    verbose: bool,
 }
 
 /// Run `sofipol report`.
@@ -59,7 +64,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         figures.display()
     );
     let pool = pool(args.jobs)?;
-    pool.install(|| {
+    let t0 = std::time::Instant::now();
+    let page = pool.install(|| {
         write_page(
             catalog,
             &args.catalog,
@@ -69,10 +75,36 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             args.seed,
         )
     })?;
+    if args.verbose {
+        eprintln!(
+            "sofipol report: {} targets, {} figures found in {} ({:.0} kB), statistics: {}; page {:.0} kB in {:.2} s",
+            page.targets,
+            page.figures,
+            figures.display(),
+            page.figure_bytes as f64 / 1e3,
+            page.stats,
+            page.bytes as f64 / 1e3,
+            t0.elapsed().as_secs_f64()
+        );
+    }
     if !args.quiet {
         println!("sofipol report: wrote {}", args.output.display());
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// What a written page holds.
+pub struct PageSummary {
+    /// Targets in the table.
+    pub targets: usize,
+    /// Per-target figures embedded, and their bytes.
+    pub figures: usize,
+    /// Bytes of those figures.
+    pub figure_bytes: usize,
+    /// "computed" or why the statistics are missing.
+    pub stats: String,
+    /// Size of the page, bytes.
+    pub bytes: usize,
 }
 
 /// Gather the page of `catalog` (read from `catalog_path`; per-target figures from
@@ -85,7 +117,7 @@ pub fn write_page(
     output: &Path,
     pairs: u64,
     seed: u64,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<PageSummary> {
     let opts = setup::Options {
         pairs,
         seed,
@@ -96,6 +128,16 @@ pub fn write_page(
     if let Some(d) = output.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }
-    report::write(output, &report::html::render(&input))?;
-    Ok(())
+    let html = report::html::render(&input);
+    report::write(output, &html)?;
+    Ok(PageSummary {
+        targets: input.catalog.targets.len(),
+        figures: input.target_figures.len(),
+        figure_bytes: input.target_figures.values().map(Vec::len).sum(),
+        stats: match &input.stats {
+            Ok(_) => "computed".into(),
+            Err(e) => printable(e).into_owned(),
+        },
+        bytes: html.len(),
+    })
 }

@@ -88,6 +88,10 @@ pub struct Args {
     /// Print only errors: no report, no warnings (the files of -o are written)
     #[arg(short, long)]
     quiet: bool,
+    /// Also print the time of each step (reading, analysis, figures) and the threads (on
+    /// stderr)
+    #[arg(short, long)]
+    verbose: bool,
 }
 
 /// Run `sofipol stats`.
@@ -113,8 +117,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         let names: Vec<&str> = names.iter().map(String::as_str).collect();
         super::common::check_outputs_in_dir(dir, &names, &inputs, "-o")?;
     }
+    let t_read = std::time::Instant::now();
     let catalog = sofipol_pipeline::input::read_catalog(&args.catalog)?;
     let sample = BinarySample::from_catalog(&catalog, args.cut);
+    let step = |what: &str, t: std::time::Instant| {
+        if args.verbose {
+            eprintln!("sofipol stats: {what} in {:.2} s", t.elapsed().as_secs_f64());
+        }
+    };
+    step("catalog read and sample built", t_read);
     for w in sample.warnings.iter().filter(|_| !args.quiet) {
         eprintln!("sofipol stats: warning: {}", printable(w));
     }
@@ -148,12 +159,23 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let params = setup::params(&sample, &opts, &args.catalog.display().to_string())?;
     let pool = pool(args.jobs)?;
     let dg = sample.delta_gamma_deg();
+    let t_analysis = std::time::Instant::now();
     let report = pool.install(|| setup::analyse_sample(&sample, &params))?;
+    step(
+        &format!(
+            "analysis ({} binaries, {} pairs a model, {} threads)",
+            sample.len(),
+            args.pairs,
+            pool.current_num_threads()
+        ),
+        t_analysis,
+    );
     if !args.quiet {
         print_report(&args.catalog, &sample, &report);
     }
 
     if let Some(dir) = &args.output {
+        let t_files = std::time::Instant::now();
         write_json(dir, &args, &sample, &report)?;
         let mut written = vec!["stats.json"];
         let [_, observed, ism_levels, models] = &names;
@@ -181,6 +203,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             models_figure(&dir.join(models), &rows, note.as_deref())?;
             written.push(models);
         }
+        step("files and figures written", t_files);
         if !args.quiet {
             println!("\nwrote {} in {}", written.join(", "), dir.display());
         }
