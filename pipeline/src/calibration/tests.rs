@@ -902,3 +902,48 @@ fn an_impossible_stokes_method_falls_back_to_auto_and_never_passes_silently() {
     assert!(a.flags.contains(&"uncalibrated".to_string()), "{:?}", a.flags);
     assert!(!a.passes_cut, "an uncalibrated fallback passed the cut: {:?}", a.flags);
 }
+
+/// A calibration file without the full covariance (older files): the matrix is built from
+/// the offset's and zero-point's errors, with their covariance only when both were
+/// measured (a cross term next to a missing parameter would be a stray number).
+#[test]
+fn the_covariance_of_a_file_without_one_is_built_from_what_it_has() {
+    let parity = Profile::sofi().angles.parity;
+    let fc = |offset: bool, angles: bool| FilterCalibration {
+        filter: "Ks".into(),
+        offset: offset.then_some(crate::stokes::calibration::Offset {
+            c: 0.015,
+            sigma_c: 2e-4,
+        }),
+        offset_standards: vec![],
+        angles: angles.then_some(AngleCalibration {
+            theta0_deg: 3.0,
+            sigma_theta0_deg: 0.5,
+            parity,
+            parity_measured: true,
+            n_standards: 1,
+        }),
+        angle_standards: vec![],
+        cov_c_theta0_deg: Some(-4e-5),
+        incomplete: None,
+        telescope: None,
+        telescope_uncorrected: None,
+        covariance: None,
+        covariance_parameters: None,
+    };
+    let both = fc(true, true).covariance_matrix();
+    assert_eq!(both[CAL_C][CAL_C], 4e-8);
+    assert_eq!(both[CAL_THETA0][CAL_THETA0], 0.25);
+    assert_eq!(both[CAL_C][CAL_THETA0], -4e-5);
+    assert_eq!(both[CAL_THETA0][CAL_C], -4e-5);
+    for (o, a) in [(true, false), (false, true), (false, false)] {
+        let m = fc(o, a).covariance_matrix();
+        assert_eq!(m[CAL_C][CAL_THETA0], 0.0, "offset {o}, angles {a}");
+        assert_eq!(m[CAL_THETA0][CAL_C], 0.0, "offset {o}, angles {a}");
+        assert_eq!(m[CAL_C][CAL_C], if o { 4e-8 } else { 0.0 });
+    }
+    // A written covariance is taken as it is.
+    let mut written = fc(true, true);
+    written.covariance = Some([[1.0, 2.0, 0.0, 0.0], [2.0, 5.0, 0.0, 0.0], [0.0; 4], [0.0; 4]]);
+    assert_eq!(written.covariance_matrix()[CAL_C][CAL_THETA0], 2.0);
+}
