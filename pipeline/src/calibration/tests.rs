@@ -947,3 +947,20 @@ fn the_covariance_of_a_file_without_one_is_built_from_what_it_has() {
     written.covariance = Some([[1.0, 2.0, 0.0, 0.0], [2.0, 5.0, 0.0, 0.0], [0.0; 4], [0.0; 4]]);
     assert_eq!(written.covariance_matrix()[CAL_C][CAL_THETA0], 2.0);
 }
+
+/// A standard the table knows but not in the filter observed is named for what is missing
+/// (its values in that filter), not as a star the table lacks.
+#[test]
+fn a_known_standard_in_a_filter_without_values_is_flagged_for_the_filter() {
+    let table = crate::standards::StandardsTable::builtin();
+    let mut t = Target::new("HD 204827", Status::Ok);
+    t.filter = Some("Ks".into());
+    let (entry, flags) = table_entry_for(&t, &table);
+    assert!(entry.is_some() && flags.is_empty(), "{flags:?}");
+    t.filter = Some("J".into());
+    let (entry, flags) = table_entry_for(&t, &table);
+    assert!(entry.is_none());
+    assert_eq!(flags, ["no_table_values_for_filter: J"]);
+    let unknown = Target::new("Not A Standard", Status::Ok);
+    assert_eq!(table_entry_for(&unknown, &table).1, ["not_in_standards_table"]);
+}
