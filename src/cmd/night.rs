@@ -11,6 +11,7 @@ use sofipol_pipeline::catalog::{Catalog, Status, Target};
 use sofipol_pipeline::io;
 use sofipol_pipeline::night::{self, Hooks, NightOutput, NightPlan, NightSetup, RunOptions, Shard};
 use sofipol_pipeline::plots::target::TargetFigure;
+use sofipol_pipeline::products::FitsProducts;
 use sofipol_pipeline::reduce::run::StageTimes;
 
 use super::common::{progress, Figures};
@@ -39,6 +40,11 @@ pub struct Args {
     /// Do not write the per-target PNG figures.
     #[arg(long)]
     pub no_png: bool,
+    /// Also write FITS products into `<catalog stem>_products/fits/`: per target and
+    /// orientation the combined o and e cut-outs, per target Stokes I, Q, U, the night's
+    /// bad-pixel mask (docs/products.md) [default: not written].
+    #[arg(long)]
+    pub fits_products: bool,
     /// Also write the night's HTML page (`sofipol report`) to FILE, after the catalog
     /// [default: none].
     #[arg(long, value_name = "FILE")]
@@ -91,7 +97,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }
     let figures = png_dir.as_deref().map(Figures::new);
-    let out = pool.install(|| reduce_with_progress(&plan, &setup, &args, figures.as_ref()));
+    let fits = super::common::fits_products(args.fits_products, &args.output)?;
+    let out = pool.install(|| reduce_with_progress(&plan, &setup, &args, figures.as_ref(), fits.as_ref()));
     let cat = &out.catalog;
     if !args.quiet {
         for l in &out.summary.lines {
@@ -129,8 +136,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             figures_failed.len()
         );
     }
+    let fits_failed = super::common::finish_fits_products(fits, args.quiet, "night");
     let bad = cat.targets.iter().any(|t| t.status != Status::Ok) || !cat.failures.is_empty();
-    Ok(if bad || !figures_failed.is_empty() {
+    Ok(if bad || !figures_failed.is_empty() || fits_failed {
         ExitCode::from(2)
     } else {
         ExitCode::SUCCESS
@@ -182,8 +190,15 @@ fn plan_night(args: &Args, setup: &NightSetup) -> anyhow::Result<NightPlan> {
 }
 
 /// Run the night (in the current rayon pool) with a progress bar on a terminal, else a line
-/// per target (nothing if `quiet`); writes each target's figure into `figures` when given.
-fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, figures: Option<&Figures>) -> NightOutput {
+/// per target (nothing if `quiet`); writes each target's figure into `figures` and its FITS
+/// products into `fits` when given.
+fn reduce_with_progress(
+    plan: &NightPlan,
+    setup: &NightSetup,
+    args: &Args,
+    figures: Option<&Figures>,
+    fits: Option<&FitsProducts>,
+) -> NightOutput {
     let n = plan.sequences.len();
     let quiet = args.quiet;
     let tty = std::io::stderr().is_terminal();
@@ -225,6 +240,7 @@ fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, figur
             on_figure: figures.is_some().then_some(&plot as &(dyn Fn(&TargetFigure) + Sync)),
         },
         cache: None,
+        fits_products: fits,
     };
     let out = night::run_night(plan, setup, &opts);
     pb.finish_and_clear();
