@@ -344,7 +344,10 @@ fn write_images_writes_every_hdu_with_its_cards() {
     h0.set("BUNIT", "adu");
     let history = [HistoryRecord::new(
         "combine",
-        "a record long enough to need more than one HISTORY card: ".repeat(3),
+        format!(
+            "{}end",
+            "a record long enough to need more than one HISTORY card: ".repeat(3)
+        ),
     )];
     let mut hv = crate::Header::new("");
     hv.set("BUNIT", "adu2");

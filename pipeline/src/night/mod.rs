@@ -5,7 +5,8 @@
 //! plan (scan, classify, group, standards apart, mask/superflat frames, shard)
 //!   -> night-wide bad-pixel mask  ┐ in parallel
 //!   -> night's flats              ┘ (dome flats, else a superflat; or a calibration flat)
-//!   -> every science sequence reduced in parallel (reduce::run::reduce_sequence)
+//!   -> every science sequence reduced in parallel (reduce::run::reduce_sequence), with its
+//!      FITS products written while its frames are in memory (when asked: crate::products)
 //!   -> standards reduced as single stars -> calibration -> targets re-solved
 //!   -> per-target figures from the calibrated catalog (in parallel; when asked)
 //!   -> catalog with provenance

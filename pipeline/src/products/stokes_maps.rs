@@ -238,10 +238,13 @@ pub struct StokesMaps {
     pub mask: Array2<u8>,
 }
 
+/// Per orientation used (its index), the coefficients (cq, cu) of its D in Q and U.
+type QuCoefficients = Vec<(usize, f64, f64)>;
+
 /// The least-squares solution as linear coefficients, `Q = sum_k cq_k D_k`, `U = sum_k
 /// cu_k D_k`, for the orientations `set` (a bit per orientation): [`fit_qu`] of each unit
 /// vector with the weights `weights`. `None` when the set does not constrain Q and U.
-fn qu_coefficients(set: u64, orients: &[OrientationBeams], weights: &[f64]) -> Option<Vec<(usize, f64, f64)>> {
+fn qu_coefficients(set: u64, orients: &[OrientationBeams], weights: &[f64]) -> Option<QuCoefficients> {
     let ks: Vec<usize> = (0..orients.len()).filter(|k| (set >> k) & 1 == 1).collect();
     if ks.len() < 2 {
         return None;
@@ -274,7 +277,7 @@ pub fn stokes_maps(orients: &[OrientationBeams], scales: &[f64]) -> StokesMaps {
     };
     let orients = &orients[..orients.len().min(64)];
     let weights = orientation_weights(orients, scales);
-    let mut solutions: HashMap<u64, Option<Vec<(usize, f64, f64)>>> = HashMap::new();
+    let mut solutions: HashMap<u64, Option<QuCoefficients>> = HashMap::new();
     for ((j, i), mask) in m.mask.indexed_iter_mut() {
         let set = (0..orients.len())
             .filter(|&k| orients[k].usable(j, i) && weights[k].is_finite() && weights[k] > 0.0)

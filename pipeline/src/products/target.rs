@@ -62,12 +62,14 @@ pub struct TargetProducts {
     pub half: usize,
     /// The orientations whose two beams could be combined.
     pub orientations: Vec<OrientationProduct>,
+    /// The orientations that could not (POSANG, why).
+    pub missing: Vec<(f64, String)>,
     /// The Stokes maps, or why there are none.
     pub stokes: Result<StokesProduct, String>,
 }
 
-/// The products of a reduced target, or `None` when it has no frames or no measured
-/// positions (a failed target). The cut-out size follows the pair and its photometry
+/// The products of a reduced target, or `None` when it has no frames or no measurements (a
+/// failed target). The cut-out size follows the pair and its photometry
 /// ([`cutout_half_size`]: the separation, `measure.annulus_fwhm` outer radius x the FWHM).
 pub fn build(outcome: &TargetOutcome, params: &TargetParams, pixscale_arcsec: f64) -> Option<TargetProducts> {
     let cal = outcome.calibrated.as_deref()?;
@@ -75,19 +77,19 @@ pub fn build(outcome: &TargetOutcome, params: &TargetParams, pixscale_arcsec: f6
     let a = m.dithers.first()?;
     let sep_px = m.geometry.map_or(0.0, |(sep, _)| sep / pixscale_arcsec);
     let half = cutout_half_size(m.fwhm_px, params.measure.annulus_fwhm.1, sep_px);
-    let orientations: Vec<OrientationProduct> = cal
-        .iter()
-        .zip(a)
-        .enumerate()
-        .filter_map(|(index, (o, dithers))| orientation_product(index, o, dithers, half, m.eo_offset_px))
-        .collect();
-    if orientations.is_empty() {
-        return None;
+    let mut orientations = Vec::new();
+    let mut missing = Vec::new();
+    for (index, (o, dithers)) in cal.iter().zip(a).enumerate() {
+        match orientation_product(index, o, dithers, half, m.eo_offset_px) {
+            Ok(p) => orientations.push(p),
+            Err(why) => missing.push((o.posang_deg, why)),
+        }
     }
     let stokes = stokes_product(&orientations, m);
     Some(TargetProducts {
         half,
         orientations,
+        missing,
         stokes,
     })
 }
@@ -98,13 +100,23 @@ fn orientation_product(
     dithers: &[crate::reduce::DitherValue],
     half: usize,
     eo_offset_px: (f64, f64),
-) -> Option<OrientationProduct> {
+) -> Result<OrientationProduct, String> {
     let frames: Vec<&Frame> = o.frames.iter().collect();
     let positions: Vec<Option<(f64, f64)>> = (0..frames.len()).map(|i| dithers.get(i).map(|d| d.o.xy)).collect();
-    let ob = combine_beam(&frames, &positions, half)?;
-    let eb = combine_following(&ob, &frames, eo_offset_px)?;
+    let ob = combine_beam(&frames, &positions, half).ok_or_else(|| {
+        format!(
+            "POSANG {}: no dither with a measured target position and a usable background",
+            o.posang_deg
+        )
+    })?;
+    let eb = combine_following(&ob, &frames, eo_offset_px).ok_or_else(|| {
+        format!(
+            "POSANG {}: no usable e-beam pixel at the measured e-o offset {eo_offset_px:?} px",
+            o.posang_deg
+        )
+    })?;
     let first = frames[ob.anchors[0].index];
-    Some(OrientationProduct {
+    Ok(OrientationProduct {
         index,
         posang_deg: o.posang_deg,
         analyzer_deg: o.analyzer_deg,
@@ -207,7 +219,8 @@ pub fn angle_tag(deg: f64) -> String {
 }
 
 /// Write every product of `p` for `target` into `dir` (names from `slug`): the result of
-/// each file, in order.
+/// each file, in order; a product that could not be made (an orientation without a
+/// combined beam, the Stokes maps) is an error too.
 pub fn write(
     dir: &Path,
     slug: &str,
@@ -223,11 +236,18 @@ pub fn write(
             out.push((path, r));
         }
     }
-    if let Ok(s) = &p.stokes {
-        let path = dir.join(file_name(slug, None, "stokes"));
-        let r = write_stokes(&path, target, m, p, s).map_err(|e| e.to_string());
-        out.push((path, r));
+    for (pa, why) in &p.missing {
+        out.push((
+            dir.join(file_name(slug, Some(*pa), "o")),
+            Err(format!("o and e not made: {why}")),
+        ));
     }
+    let path = dir.join(file_name(slug, None, "stokes"));
+    let r = match &p.stokes {
+        Ok(s) => write_stokes(&path, target, m, p, s).map_err(|e| e.to_string()),
+        Err(why) => Err(format!("not made: {why}")),
+    };
+    out.push((path, r));
     out
 }
 
