@@ -524,3 +524,43 @@ print("ok")
         String::from_utf8_lossy(&o.stderr)
     );
 }
+
+/// A product that cannot be written (a directory stands where its file goes) is a flag on
+/// its target and a line on stderr, the run exits 2 and writes everything else.
+#[test]
+fn a_product_not_written_flags_its_target_and_the_night_goes_on() {
+    let root = Path::new(env!("CARGO_TARGET_TMPDIR")).join("cli_fits_products_blocked");
+    let _ = std::fs::remove_dir_all(&root);
+    std::fs::create_dir_all(&root).unwrap();
+    let night = common::night(&root);
+    let cat = root.join("out").join("cat.json");
+    let fits = root.join("out").join("cat_products").join("fits");
+    let blocked = fits.join("Alpha_1999-03-03T01_00_00_pa45_e.fits");
+    std::fs::create_dir_all(&blocked).unwrap();
+    let (code, out, err) = run(&[
+        "night",
+        night.to_str().unwrap(),
+        "-o",
+        cat.to_str().unwrap(),
+        "--fits-products",
+        "--no-png",
+    ]);
+    assert_eq!(code, 2, "{out}\n{err}");
+    assert!(err.contains("FITS product not written") && err.contains("pa45_e.fits"), "{err}");
+    assert!(err.contains("the products are incomplete"), "{err}");
+    let cat = json(&cat);
+    let alpha = target(&cat, "Alpha");
+    let flags: Vec<&str> = alpha["flags"].as_array().unwrap().iter().map(|f| f.as_str().unwrap()).collect();
+    assert!(
+        flags.iter().any(|f| f.starts_with("fits_product_not_written: ") && f.contains("pa45_e.fits")),
+        "{flags:?}"
+    );
+    // Everything else was written: Alpha's other files, Beta's, the mask.
+    for what in ["pa0_o", "pa0_e", "pa45_o", "stokes"] {
+        assert!(fits.join(format!("Alpha_1999-03-03T01_00_00_{what}.fits")).is_file(), "{what}");
+    }
+    assert!(fits.join("night_badpix.fits").is_file());
+    assert!(blocked.is_dir());
+    let beta = target(&cat, "Beta");
+    assert!(!beta["flags"].as_array().unwrap().iter().any(|f| f.as_str().unwrap().starts_with("fits_product")));
+}

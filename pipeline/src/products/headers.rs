@@ -115,7 +115,7 @@ pub fn target_cards(h: &mut Header, target: &Target) {
     if let Some(s) = &target.sequence {
         set(
             h,
-            "ESO OBS SEQUENCE",
+            "SEQUENCE",
             s.as_str(),
             "sofipol sequence id (object@TPL START)",
         );
