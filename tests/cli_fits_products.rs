@@ -546,21 +546,38 @@ fn a_product_not_written_flags_its_target_and_the_night_goes_on() {
         "--no-png",
     ]);
     assert_eq!(code, 2, "{out}\n{err}");
-    assert!(err.contains("FITS product not written") && err.contains("pa45_e.fits"), "{err}");
+    assert!(
+        err.contains("FITS product not written") && err.contains("pa45_e.fits"),
+        "{err}"
+    );
     assert!(err.contains("the products are incomplete"), "{err}");
     let cat = json(&cat);
     let alpha = target(&cat, "Alpha");
-    let flags: Vec<&str> = alpha["flags"].as_array().unwrap().iter().map(|f| f.as_str().unwrap()).collect();
+    let flags: Vec<&str> = alpha["flags"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f.as_str().unwrap())
+        .collect();
     assert!(
-        flags.iter().any(|f| f.starts_with("fits_product_not_written: ") && f.contains("pa45_e.fits")),
+        flags
+            .iter()
+            .any(|f| f.starts_with("fits_product_not_written: ") && f.contains("pa45_e.fits")),
         "{flags:?}"
     );
     // Everything else was written: Alpha's other files, Beta's, the mask.
     for what in ["pa0_o", "pa0_e", "pa45_o", "stokes"] {
-        assert!(fits.join(format!("Alpha_1999-03-03T01_00_00_{what}.fits")).is_file(), "{what}");
+        assert!(
+            fits.join(format!("Alpha_1999-03-03T01_00_00_{what}.fits")).is_file(),
+            "{what}"
+        );
     }
     assert!(fits.join("night_badpix.fits").is_file());
     assert!(blocked.is_dir());
     let beta = target(&cat, "Beta");
-    assert!(!beta["flags"].as_array().unwrap().iter().any(|f| f.as_str().unwrap().starts_with("fits_product")));
+    assert!(!beta["flags"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .any(|f| f.as_str().unwrap().starts_with("fits_product")));
 }

@@ -113,12 +113,7 @@ pub fn target_cards(h: &mut Header, target: &Target) {
         set(h, "ESO TPL START", t.as_str(), "template start");
     }
     if let Some(s) = &target.sequence {
-        set(
-            h,
-            "SEQUENCE",
-            s.as_str(),
-            "sofipol sequence id (object@TPL START)",
-        );
+        set(h, "SEQUENCE", s.as_str(), "sofipol sequence id (object@TPL START)");
     }
     if let Some(ra) = target.ra_deg {
         set(h, "RA", ra, "deg, mean pointing of the frames");

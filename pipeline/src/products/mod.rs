@@ -98,7 +98,7 @@ impl FitsProducts {
         let Some(m) = outcome.measured.as_ref() else {
             return Vec::new();
         };
-        let Some(p) = target::build(outcome, params, profile.geometry.pixscale_arcsec) else {
+        let Some(p) = target::build(outcome, profile, params) else {
             return Vec::new();
         };
         let slug = crate::night::slug(outcome.target.sequence_id());

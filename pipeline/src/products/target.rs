@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use sofipol_calib::fits::{write_images, ImageHdu, ImagePixels};
-use sofipol_calib::{Frame, Header, HistoryRecord};
+use sofipol_calib::{Frame, Header, HistoryRecord, Profile};
 
 use super::combine::{combine_beam, combine_following, cutout_half_size, BeamStack};
 use super::headers::{self, ProductKind};
@@ -71,16 +71,20 @@ pub struct TargetProducts {
 /// The products of a reduced target, or `None` when it has no frames or no measurements (a
 /// failed target). The cut-out size follows the pair and its photometry
 /// ([`cutout_half_size`]: the separation, `measure.annulus_fwhm` outer radius x the FWHM).
-pub fn build(outcome: &TargetOutcome, params: &TargetParams, pixscale_arcsec: f64) -> Option<TargetProducts> {
+pub fn build(outcome: &TargetOutcome, profile: &Profile, params: &TargetParams) -> Option<TargetProducts> {
     let cal = outcome.calibrated.as_deref()?;
     let m = outcome.measured.as_ref()?;
     let a = m.dithers.first()?;
-    let sep_px = m.geometry.map_or(0.0, |(sep, _)| sep / pixscale_arcsec);
+    // The reduction keeps the target strips only: the detector row of the frames' row 0.
+    let row0 = crate::reduce::run::crop_of(profile, params).map_or(0, |(r0, _)| r0);
+    let sep_px = m
+        .geometry
+        .map_or(0.0, |(sep, _)| sep / profile.geometry.pixscale_arcsec);
     let half = cutout_half_size(m.fwhm_px, params.measure.annulus_fwhm.1, sep_px);
     let mut orientations = Vec::new();
     let mut missing = Vec::new();
     for (index, (o, dithers)) in cal.iter().zip(a).enumerate() {
-        match orientation_product(index, o, dithers, half, m.eo_offset_px) {
+        match orientation_product(index, o, dithers, (half, row0), m.eo_offset_px) {
             Ok(p) => orientations.push(p),
             Err(why) => missing.push((o.posang_deg, why)),
         }
@@ -98,7 +102,7 @@ fn orientation_product(
     index: usize,
     o: &CalibratedOrientation,
     dithers: &[crate::reduce::DitherValue],
-    half: usize,
+    (half, row0): (usize, usize),
     eo_offset_px: (f64, f64),
 ) -> Result<OrientationProduct, String> {
     let frames: Vec<&Frame> = o.frames.iter().collect();
@@ -120,24 +124,12 @@ fn orientation_product(
         index,
         posang_deg: o.posang_deg,
         analyzer_deg: o.analyzer_deg,
-        row0: crop_row0(first),
+        row0,
         history: first.history.clone(),
         files: frames.iter().map(|f| f.path().to_path_buf()).collect(),
         o: ob,
         e: eb,
     })
-}
-
-/// The detector row of a frame's row 0, from its `crop` record (0 when it was not cropped).
-fn crop_row0(f: &Frame) -> usize {
-    f.history
-        .iter()
-        .rev()
-        .find(|r| r.stage == "crop")
-        .and_then(|r| r.detail.strip_prefix("rows ["))
-        .and_then(|d| d.split(',').next())
-        .and_then(|n| n.trim().parse().ok())
-        .unwrap_or(0)
 }
 
 /// Stokes maps from every orientation's beams (both onto the grid centred on the target,
