@@ -19,6 +19,7 @@
 //!  sim:   scene simulator (the same forward model the inversion tests invert)
 //!  stats: projection / ISM Monte Carlo, KS and Kuiper tests, histograms
 //!  plots: PNG figures
+//!  products: FITS products (combined o/e cut-outs, Stokes I, Q, U, bad-pixel mask)
 //!  report: the night's HTML page (summary, table, figures, calibration, statistics)
 //! ```
 #![deny(missing_docs)]

@@ -266,3 +266,47 @@ pub fn check_scan_complete(plan: &sofipol_pipeline::night::NightPlan) -> anyhow:
     }
     Ok(())
 }
+
+/// `--fits-products`: the products folder of the catalog `output`
+/// (`<stem>_products/fits/`), created and checked before any work.
+pub fn fits_products(
+    want: bool,
+    output: &std::path::Path,
+) -> anyhow::Result<Option<sofipol_pipeline::products::FitsProducts>> {
+    if !want {
+        return Ok(None);
+    }
+    let dir = sofipol_pipeline::products::fits_dir(output);
+    check_output_dir(&dir, "--fits-products")?;
+    Ok(Some(sofipol_pipeline::products::FitsProducts::new(dir)))
+}
+
+/// The end of a run's FITS products: the folder, files and size on stdout (unless
+/// `quiet`), each file not written on stderr. Returns whether one was not written (the run
+/// then exits 2: its products are incomplete).
+pub fn finish_fits_products(p: Option<sofipol_pipeline::products::FitsProducts>, quiet: bool, cmd: &str) -> bool {
+    let Some(p) = p else { return false };
+    let dir = p.dir().to_path_buf();
+    let s = p.finish();
+    if !quiet {
+        println!(
+            "fits products: {} files, {:.1} MB -> {}",
+            s.written.len(),
+            s.bytes as f64 / 1e6,
+            dir.display()
+        );
+    }
+    for f in &s.failed {
+        eprintln!(
+            "sofipol {cmd}: FITS product not written: {}",
+            sofipol_calib::text::printable(f)
+        );
+    }
+    if !s.failed.is_empty() {
+        eprintln!(
+            "sofipol {cmd}: {} FITS product(s) could not be written: the products are incomplete (exit 2)",
+            s.failed.len()
+        );
+    }
+    !s.failed.is_empty()
+}

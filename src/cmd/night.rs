@@ -11,7 +11,7 @@ use sofipol_pipeline::catalog::{Catalog, Status, Target};
 use sofipol_pipeline::io;
 use sofipol_pipeline::night::{self, Hooks, NightOutput, NightPlan, NightSetup, RunOptions, Shard};
 use sofipol_pipeline::plots::target::TargetFigure;
-use sofipol_pipeline::products::regions;
+use sofipol_pipeline::products::{regions, FitsProducts};
 use sofipol_pipeline::reduce::run::{StageTimes, TargetOutcome};
 
 use super::common::{progress, Figures};
@@ -45,6 +45,11 @@ pub struct Args {
     /// [default: none].
     #[arg(long)]
     pub regions: bool,
+    /// Also write FITS products into `<catalog stem>_products/fits/`: per target and
+    /// orientation the combined o and e cut-outs, per target Stokes I, Q, U, the night's
+    /// bad-pixel mask (docs/products.md) [default: not written].
+    #[arg(long)]
+    pub fits_products: bool,
     /// Also write the night's HTML page (`sofipol report`) to FILE, after the catalog
     /// [default: none].
     #[arg(long, value_name = "FILE")]
@@ -100,7 +105,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let regions = args
         .regions
         .then(|| Regions::new(night::products_dir(&args.output).join("regions"), &setup));
-    let out = pool.install(|| reduce_with_progress(&plan, &setup, &args, figures.as_ref(), regions.as_ref()));
+    let fits = super::common::fits_products(args.fits_products, &args.output)?;
+    let out =
+        pool.install(|| reduce_with_progress(&plan, &setup, &args, figures.as_ref(), regions.as_ref(), fits.as_ref()));
     let cat = &out.catalog;
     if !args.quiet {
         for l in &out.summary.lines {
@@ -150,12 +157,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             figures_failed.len()
         );
     }
+    let fits_failed = super::common::finish_fits_products(fits, args.quiet, "night");
     let bad = cat.targets.iter().any(|t| t.status != Status::Ok) || !cat.failures.is_empty();
-    Ok(if bad || !figures_failed.is_empty() || !regions_failed.is_empty() {
-        ExitCode::from(2)
-    } else {
-        ExitCode::SUCCESS
-    })
+    Ok(
+        if bad || !figures_failed.is_empty() || !regions_failed.is_empty() || fits_failed {
+            ExitCode::from(2)
+        } else {
+            ExitCode::SUCCESS
+        },
+    )
 }
 
 /// `--jobs`, checked (at least 1) and capped at [`MAX_JOBS_PER_CORE`] x the cores (with a
@@ -203,13 +213,15 @@ fn plan_night(args: &Args, setup: &NightSetup) -> anyhow::Result<NightPlan> {
 }
 
 /// Run the night (in the current rayon pool) with a progress bar on a terminal, else a line
-/// per target (nothing if `quiet`); writes each target's figure into `figures` when given.
+/// per target (nothing if `quiet`); writes each target's figure into `figures`, its DS9
+/// regions into `regions` and its FITS products into `fits` when given.
 fn reduce_with_progress(
     plan: &NightPlan,
     setup: &NightSetup,
     args: &Args,
     figures: Option<&Figures>,
     regions: Option<&Regions>,
+    fits: Option<&FitsProducts>,
 ) -> NightOutput {
     let n = plan.sequences.len();
     let quiet = args.quiet;
@@ -260,6 +272,7 @@ fn reduce_with_progress(
                 .then_some(&write_regions as &(dyn Fn(&TargetOutcome) + Sync)),
         },
         cache: None,
+        fits_products: fits,
     };
     let out = night::run_night(plan, setup, &opts);
     pb.finish_and_clear();

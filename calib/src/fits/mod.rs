@@ -39,7 +39,7 @@ mod write;
 
 pub use gzip::{MAX_GZIP_BYTES, MAX_IMAGE_PIXELS};
 pub use read::{read_frame, read_frame_rows, read_frame_rows_with_summary, read_header, read_image_shape};
-pub use write::write_frame;
+pub use write::{write_frame, write_images, ImageHdu, ImagePixels};
 
 /// On-disk pixel type of a written image.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]

@@ -326,3 +326,82 @@ fn raw_value_finds_what_parsing_every_card_finds() {
     assert_eq!(raw_value(&cards, "?SO X"), Some(HeaderValue::Int(1)));
     assert_eq!(raw_value(&cards, "HIERARCH"), Some(HeaderValue::Int(5)));
 }
+
+/// `write_images`: the primary and every named extension come back with their pixels,
+/// cards (HIERARCH included) and HISTORY; `read_frame` finds VARIANCE and MASK among other
+/// extensions.
+#[test]
+fn write_images_writes_every_hdu_with_its_cards() {
+    use super::{write_images, ImageHdu, ImagePixels};
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("product.fits");
+    let data = ndarray::Array2::from_shape_fn((5, 7), |(y, x)| (10 * y + x) as f32 - 3.5);
+    let var = data.mapv(|v| v * v + 1.0);
+    let mask = ndarray::Array2::from_shape_fn((5, 7), |(y, x)| u8::from(x == y));
+    let other = ndarray::Array2::from_shape_fn((5, 7), |(y, x)| if x == 2 { f32::NAN } else { y as f32 });
+    let mut h0 = crate::Header::new("");
+    h0.set_with_comment("ESO PRO CATG", "SOFIPOL_TEST", "product category");
+    h0.set("BUNIT", "adu");
+    let history = [HistoryRecord::new(
+        "combine",
+        format!(
+            "{}end",
+            "a record long enough to need more than one HISTORY card: ".repeat(3)
+        ),
+    )];
+    let mut hv = crate::Header::new("");
+    hv.set("BUNIT", "adu2");
+    let empty = crate::Header::new("");
+    write_images(
+        &path,
+        &[
+            ImageHdu {
+                extname: "",
+                header: &h0,
+                history: &history,
+                pixels: ImagePixels::F32(&data),
+            },
+            ImageHdu {
+                extname: "OTHER",
+                header: &empty,
+                history: &[],
+                pixels: ImagePixels::F32(&other),
+            },
+            ImageHdu {
+                extname: "VARIANCE",
+                header: &hv,
+                history: &[],
+                pixels: ImagePixels::F32(&var),
+            },
+            ImageHdu {
+                extname: "MASK",
+                header: &empty,
+                history: &[],
+                pixels: ImagePixels::U8(&mask),
+            },
+        ],
+    )
+    .unwrap();
+    let back = read_frame(&path).unwrap();
+    assert_eq!(back.data, data);
+    assert_eq!(back.variance.as_ref(), Some(&var));
+    assert_eq!(back.mask, mask);
+    assert_eq!(back.header.get_str("ESO PRO CATG").unwrap(), "SOFIPOL_TEST");
+    assert_eq!(back.history, history);
+    // The extension by name, through cfitsio: its pixels (NaN kept) and its own cards.
+    let mut f = fitsio::FitsFile::open(&path).unwrap();
+    let hdu = f.hdu("OTHER").unwrap();
+    let v: Vec<f32> = hdu.read_image(&mut f).unwrap();
+    for (a, b) in v.iter().zip(other.iter()) {
+        assert!(a == b || (a.is_nan() && b.is_nan()), "{a} vs {b}");
+    }
+    let hdu = f.hdu("VARIANCE").unwrap();
+    let unit: String = hdu.read_key(&mut f, "BUNIT").unwrap();
+    assert_eq!(unit, "adu2");
+    // Nothing but the file was written into the folder.
+    let names: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(names, vec![std::ffi::OsString::from("product.fits")]);
+}

@@ -170,3 +170,116 @@ pub(super) fn to_u16(v: f32) -> u16 {
         v.round().clamp(0.0, 65535.0) as u16
     }
 }
+
+/// The pixels of one HDU written by [`write_images`].
+#[derive(Debug, Clone, Copy)]
+pub enum ImagePixels<'a> {
+    /// BITPIX = -32 (NaN allowed: a float image's blank).
+    F32(&'a Array2<f32>),
+    /// BITPIX = 8 (unsigned bytes: masks, counts).
+    U8(&'a Array2<u8>),
+}
+
+impl ImagePixels<'_> {
+    fn dim(&self) -> (usize, usize) {
+        match self {
+            ImagePixels::F32(a) => a.dim(),
+            ImagePixels::U8(a) => a.dim(),
+        }
+    }
+}
+
+/// One image HDU of a file written by [`write_images`]: its name (`EXTNAME`; none for the
+/// primary), its cards (formatted as [`write_frame`] formats a header) and HISTORY records,
+/// and its pixels.
+#[derive(Debug, Clone, Copy)]
+pub struct ImageHdu<'a> {
+    /// `EXTNAME` of an extension (ignored for the first HDU, the primary).
+    pub extname: &'a str,
+    /// Header cards (structural keywords ignored: the layout decides them).
+    pub header: &'a crate::Header,
+    /// HISTORY records, one entry each (split over cards as [`write_frame`] does).
+    pub history: &'a [crate::HistoryRecord],
+    /// The image.
+    pub pixels: ImagePixels<'a>,
+}
+
+/// Write several images into one FITS file atomically, as [`write_frame`] writes one: the
+/// first HDU is the primary image, each following one an image extension named by its
+/// `extname`; every HDU gets its own cards and HISTORY. Cards are formatted before
+/// anything touches the disk (a bad keyword leaves no trace); the file is written to a
+/// temporary in a private directory, flushed, synced and renamed over `path`.
+pub fn write_images(path: &Path, hdus: &[ImageHdu]) -> Result<()> {
+    let bad = |reason: String| Error::BadImage {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let Some(first) = hdus.first() else {
+        return Err(bad("no image to write".into()));
+    };
+    let mut cards = Vec::with_capacity(hdus.len());
+    for h in hdus {
+        let (ny, nx) = h.pixels.dim();
+        if ny == 0 || nx == 0 {
+            return Err(bad(format!(
+                "cannot write an empty image ({ny} x {nx} pixels) in HDU '{}'",
+                h.extname
+            )));
+        }
+        let mut c = format_header(h.header, path)?;
+        c.extend(format_history(h.history));
+        cards.push(c);
+    }
+    let tmp = TempFile::new(path)?;
+    let tmp_name = cfitsio_name(&tmp.path)?;
+    let tpath = tmp.path.clone();
+    let ferr = |what: &str, e: fitsio::errors::Error| fits_err(&tpath, what, e);
+    let desc_of = |p: &ImagePixels| -> ImageType {
+        match p {
+            ImagePixels::F32(_) => ImageType::Float,
+            ImagePixels::U8(_) => ImageType::UnsignedByte,
+        }
+    };
+    {
+        let (ny, nx) = first.pixels.dim();
+        let shape = [ny, nx];
+        let desc = ImageDescription {
+            data_type: desc_of(&first.pixels),
+            dimensions: &shape,
+        };
+        let mut f = FitsFile::create(&tmp_name)
+            .with_custom_primary(&desc)
+            .open()
+            .map_err(|e| ferr("creating", e))?;
+        let primary = f.primary_hdu().map_err(|e| ferr("primary HDU", e))?;
+        // fitsio names the primary '_PRIMARY': drop it, a primary needs no name.
+        cfitsio_raw(&mut f, RawOp::Delete("EXTNAME")).map_err(|e| ferr("deleting EXTNAME", e))?;
+        // Header before data: appending cards later would make cfitsio shift the data.
+        cfitsio_raw(&mut f, RawOp::Append(&cards[0])).map_err(|e| ferr("writing header cards", e))?;
+        write_pixels(&mut f, &primary, first.pixels).map_err(|e| ferr("writing the primary image", e))?;
+        for (h, c) in hdus.iter().zip(&cards).skip(1) {
+            let (ny, nx) = h.pixels.dim();
+            let shape = [ny, nx];
+            let desc = ImageDescription {
+                data_type: desc_of(&h.pixels),
+                dimensions: &shape,
+            };
+            let what = |s: &str| format!("{s} {}", h.extname);
+            let hdu = f
+                .create_image(h.extname, &desc)
+                .map_err(|e| ferr(&what("creating"), e))?;
+            cfitsio_raw(&mut f, RawOp::Append(c)).map_err(|e| ferr(&what("writing the cards of"), e))?;
+            write_pixels(&mut f, &hdu, h.pixels).map_err(|e| ferr(&what("writing"), e))?;
+        }
+        // Drop (fits_close_file) cannot report errors: flush explicitly first.
+        cfitsio_raw(&mut f, RawOp::Flush).map_err(|e| ferr("flushing", e))?;
+    }
+    tmp.commit(path)
+}
+
+fn write_pixels(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, p: ImagePixels) -> fitsio::errors::Result<()> {
+    match p {
+        ImagePixels::F32(a) => hdu.write_image(f, &contiguous(a)),
+        ImagePixels::U8(a) => hdu.write_image(f, &contiguous(a)),
+    }
+}

@@ -5,7 +5,8 @@
 //! plan (scan, classify, group, standards apart, mask/superflat frames, shard)
 //!   -> night-wide bad-pixel mask  ┐ in parallel
 //!   -> night's flats              ┘ (dome flats, else a superflat; or a calibration flat)
-//!   -> every science sequence reduced in parallel (reduce::run::reduce_sequence)
+//!   -> every science sequence reduced in parallel (reduce::run::reduce_sequence), with its
+//!      FITS products written while its frames are in memory (when asked: crate::products)
 //!   -> standards reduced as single stars -> calibration -> targets re-solved
 //!   -> per-target figures from the calibrated catalog (in parallel; when asked)
 //!   -> catalog with provenance
@@ -98,8 +99,11 @@ pub struct RunOptions<'a> {
     pub hooks: Hooks<'a>,
     /// Results of earlier runs over the same night, reused where their inputs are
     /// unchanged and updated with this run's (live reduction). Not used for the targets
-    /// when `hooks.on_figure` is given (figures need the frames).
+    /// when `hooks.on_figure` or `fits_products` is given (both need the frames).
     pub cache: Option<&'a NightCache>,
+    /// Write FITS products (docs/products.md): each target's while its frames are in memory
+    /// (a file not written flags the target), the night's bad-pixel mask once detected.
+    pub fits_products: Option<&'a crate::products::FitsProducts>,
 }
 
 /// Wall time of the night's stages, seconds.
@@ -159,11 +163,14 @@ pub fn run_night(plan: &NightPlan, setup: &NightSetup, opts: &RunOptions) -> Nig
             })
         },
     );
+    if let (Some(p), Some(m)) = (opts.fits_products, &mask) {
+        p.write_bad_pixel_mask(m, params);
+    }
     let mask_array = mask.as_ref().map(|m| &m.mask);
     let t = Instant::now();
     let cache = opts
         .cache
-        .filter(|_| opts.hooks.on_figure.is_none())
+        .filter(|_| opts.hooks.on_figure.is_none() && opts.fits_products.is_none())
         .map(|c| (c, mask_key, flats_key));
     let mut reduced = reduce_sequences_cached(
         &plan.sequences,
@@ -171,7 +178,7 @@ pub fn run_night(plan: &NightPlan, setup: &NightSetup, opts: &RunOptions) -> Nig
         params,
         mask_array,
         flats.set.as_ref(),
-        &opts.hooks,
+        (&opts.hooks, opts.fits_products),
         cache,
     );
     let t_reduce = t.elapsed().as_secs_f64();
@@ -279,21 +286,23 @@ pub fn reduce_sequences(
     flats: Option<&FlatSet>,
     hooks: &Hooks,
 ) -> Reduced {
-    reduce_sequences_cached(sequences, profile, params, night_mask, flats, hooks, None)
+    reduce_sequences_cached(sequences, profile, params, night_mask, flats, (hooks, None), None)
 }
 
 /// [`reduce_sequences`], taking each target from `cache` (with the keys of the mask and
-/// flats given) when its inputs are unchanged, and keeping the others there.
+/// flats given) when its inputs are unchanged, and keeping the others there; with
+/// `products`, each target's FITS products are written while its frames are in memory.
 fn reduce_sequences_cached(
     sequences: &[Sequence],
     profile: &Profile,
     params: &TargetParams,
     night_mask: Option<&Array2<u8>>,
     flats: Option<&FlatSet>,
-    hooks: &Hooks,
+    (hooks, products): (&Hooks, Option<&crate::products::FitsProducts>),
     cache: Option<(&NightCache, u64, u64)>,
 ) -> Reduced {
-    let keep_frames = hooks.on_figure.is_some();
+    let want_figures = hooks.on_figure.is_some();
+    let keep_frames = want_figures || products.is_some();
     let outs: Vec<(Target, Vec<Failure>, StageTimes, Option<FigureInputs>)> = sequences
         .par_iter()
         .map(|q| {
@@ -308,11 +317,17 @@ fn reduce_sequences_cached(
                     (t, f, times, None)
                 }
                 None => {
-                    let out = reduce_sequence(q, profile, params, night_mask, flats, keep_frames);
+                    let mut out = reduce_sequence(q, profile, params, night_mask, flats, keep_frames);
                     if let Some(f) = hooks.on_reduced {
                         f(&out);
                     }
-                    let fig = keep_frames.then(|| FigureInputs::from_outcome(&out));
+                    if let Some(p) = products {
+                        let t = Instant::now();
+                        let not_written = p.write_target(&out, profile, params);
+                        out.target.flags.get_or_insert_with(Vec::new).extend(not_written);
+                        out.times.write += t.elapsed().as_secs_f64();
+                    }
+                    let fig = want_figures.then(|| FigureInputs::from_outcome(&out));
                     (out.target, out.failures, out.times, fig)
                 }
             };

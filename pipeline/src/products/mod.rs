@@ -1,3 +1,155 @@
-//! Products beside the catalog for looking at a reduction in other tools: DS9 region files
-//! ([`regions`]).
+//! FITS products an astronomer opens in DS9 or astropy to check a reduction
+//! (docs/products.md), written when asked (`night --fits-products`) into
+//! `<catalog stem>_products/fits/`:
+//!
+//! ```text
+//! per target, per orientation   <slug>_pa<angle>_o.fits, _e.fits   combine.rs
+//!     the dithers of one beam registered on the target by whole pixels and combined
+//!     (inverse-variance weighted mean; VARIANCE, MASK, NCOMBINE extensions)
+//! per target                    <slug>_stokes.fits                 stokes_maps.rs
+//!     o and e onto one grid (Lanczos-3, at the measured e-o offset), Stokes I, Q, U by the
+//!     catalog's least squares per pixel; instrumental (before the night's calibration)
+//! per night                     night_badpix.fits                  badpix.rs
+//!     the night's bad-pixel mask, readable by --badpix
+//! every product                 SOFIPROD, HIERARCH ESO PRO ..., QC, HISTORY   headers.rs
+//! per frame (night --regions)    regions/<frame>.reg (DS9 regions)  regions.rs
+//! ```
+//!
+//! The per-target products are made while the target's frames are in memory, during the
+//! reduction ([`FitsProducts::write_target`], called by `night::run_night`). Every file is
+//! written atomically; a file that cannot be written is a flag on its target
+//! (`fits_product_not_written: ...`) and a line in [`ProductsSummary::failed`], never a
+//! failed night.
+pub mod badpix;
+pub mod combine;
+pub mod headers;
 pub mod regions;
+pub mod stokes_maps;
+pub mod target;
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+use sofipol_calib::Profile;
+
+use crate::reduce::run::TargetOutcome;
+use crate::reduce::TargetParams;
+
+/// The flag a target gets for each product that could not be written.
+pub const NOT_WRITTEN_FLAG: &str = "fits_product_not_written";
+
+/// Where the FITS products of a catalog go: `<dir>/<stem>_products/fits/`.
+pub fn fits_dir(catalog: &Path) -> PathBuf {
+    crate::night::products_dir(catalog).join("fits")
+}
+
+/// The FITS products of one run, written into one folder (which exists) from the reduction's
+/// threads; [`FitsProducts::finish`] says what was written.
+pub struct FitsProducts {
+    dir: PathBuf,
+    written: Mutex<Vec<PathBuf>>,
+    failed: Mutex<Vec<String>>,
+}
+
+/// What a run's FITS products came to.
+#[derive(Debug, Clone, Default)]
+pub struct ProductsSummary {
+    /// Files written, sorted.
+    pub written: Vec<PathBuf>,
+    /// Their size, bytes.
+    pub bytes: u64,
+    /// One line per file that could not be written (file and reason).
+    pub failed: Vec<String>,
+}
+
+impl FitsProducts {
+    /// Products written into `dir` (which must exist).
+    pub fn new(dir: impl Into<PathBuf>) -> Self {
+        FitsProducts {
+            dir: dir.into(),
+            written: Default::default(),
+            failed: Default::default(),
+        }
+    }
+
+    /// The folder.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Record a file's outcome; the target flag when it was not written.
+    fn record(&self, path: &Path, result: Result<(), String>) -> Option<String> {
+        match result {
+            Ok(()) => {
+                self.written.lock().expect("not poisoned").push(path.to_path_buf());
+                None
+            }
+            Err(e) => {
+                let line = format!("{}: {e}", path.display());
+                self.failed.lock().expect("not poisoned").push(line.clone());
+                Some(format!("{NOT_WRITTEN_FLAG}: {line}"))
+            }
+        }
+    }
+
+    /// Write the products of one reduced target (its frames kept: `outcome.calibrated`),
+    /// named after its sequence id: the combined o and e cut-outs of every orientation and
+    /// the Stokes maps. Returns one flag per file not written (for the target's flags). A
+    /// target that was not measured (failed) has no products.
+    pub fn write_target(&self, outcome: &TargetOutcome, profile: &Profile, params: &TargetParams) -> Vec<String> {
+        let Some(m) = outcome.measured.as_ref() else {
+            return Vec::new();
+        };
+        let Some(p) = target::build(outcome, profile, params) else {
+            return Vec::new();
+        };
+        let slug = crate::night::slug(outcome.target.sequence_id());
+        target::write(&self.dir, &slug, &outcome.target, m, &p)
+            .into_iter()
+            .filter_map(|(path, r)| self.record(&path, r))
+            .collect()
+    }
+
+    /// Write the night's bad-pixel mask as `night_badpix.fits` ([`badpix::write`]); a
+    /// failure is recorded (and returned).
+    pub fn write_bad_pixel_mask(&self, mask: &crate::night::NightMask, params: &TargetParams) -> Option<String> {
+        let path = self.dir.join(badpix::FILE_NAME);
+        let r = badpix::write(&path, mask, params).map_err(|e| e.to_string());
+        self.record(&path, r)
+    }
+
+    /// What was written and what failed. The folder is cleared of what earlier runs left
+    /// there and this one did not write: sofipol FITS products (files with `SOFIPROD`) of
+    /// targets no longer reduced, and the temporary directories of interrupted writes.
+    pub fn finish(self) -> ProductsSummary {
+        let mut written = self.written.into_inner().expect("not poisoned");
+        written.sort();
+        if let Ok(entries) = std::fs::read_dir(&self.dir) {
+            for e in entries.flatten() {
+                let path = e.path();
+                let name = e.file_name().to_string_lossy().into_owned();
+                let Ok(ft) = e.file_type() else { continue };
+                if ft.is_dir() && name.starts_with('.') && name.ends_with(".tmp") {
+                    let _ = std::fs::remove_dir_all(&path);
+                } else if ft.is_file() && name.ends_with(".fits") && !written.contains(&path) && is_product(&path) {
+                    let _ = std::fs::remove_file(&path);
+                }
+            }
+        }
+        let bytes = written
+            .iter()
+            .filter_map(|p| std::fs::metadata(p).ok())
+            .map(|m| m.len())
+            .sum();
+        ProductsSummary {
+            written,
+            bytes,
+            failed: self.failed.into_inner().expect("not poisoned"),
+        }
+    }
+}
+
+/// Whether `path` is a sofipol FITS product (its header has `SOFIPROD`).
+fn is_product(path: &Path) -> bool {
+    sofipol_calib::fits::read_header(path).is_ok_and(|h| h.contains(sofipol_calib::classify::PRODUCT_KEYWORD))
+}

@@ -1,0 +1,559 @@
+//! One target's FITS products from its reduction (frames still in memory): per orientation
+//! the combined o and e cut-outs, then the Stokes I, Q, U maps.
+use std::path::{Path, PathBuf};
+
+use sofipol_calib::fits::{write_images, ImageHdu, ImagePixels};
+use sofipol_calib::{Frame, Header, HistoryRecord, Profile};
+
+use super::combine::{combine_beam, combine_following, cutout_half_size, BeamStack};
+use super::headers::{self, ProductKind};
+use super::stokes_maps::{e_to_o_shift, stokes_maps, transparency_scales, OrientationBeams, StokesMaps};
+use crate::catalog::Target;
+use crate::reduce::run::TargetOutcome;
+use crate::reduce::{CalibratedOrientation, Measured, TargetParams};
+
+/// One orientation's combined beams.
+pub struct OrientationProduct {
+    /// Index of the orientation in the reduction (and in its measurements).
+    pub index: usize,
+    /// Rotator angle, deg.
+    pub posang_deg: f64,
+    /// Analyzer angle the reduction used (the profile's relation), deg.
+    pub analyzer_deg: f64,
+    /// The o beam's dithers combined.
+    pub o: BeamStack,
+    /// The e beam's dithers combined.
+    pub e: BeamStack,
+    /// The orientation's frames (files), in dither order.
+    pub files: Vec<PathBuf>,
+    /// The detector row of the frames' row 0 (the reduction reads the target strips only).
+    pub row0: usize,
+    /// The stages each frame went through (those of the first frame combined).
+    pub history: Vec<HistoryRecord>,
+}
+
+/// How one orientation went into the Stokes maps.
+pub struct OrientationStokes {
+    /// Rotator angle, deg.
+    pub posang_deg: f64,
+    /// Analyzer angle, deg.
+    pub analyzer_deg: f64,
+    /// The o stack resampled at (x, y) + this, px (its target onto the centre pixel).
+    pub o_shift: (f64, f64),
+    /// The e stack's target from the o stack's, px: e resampled at (x, y) + o_shift + this.
+    pub eo_shift: (f64, f64),
+    /// Transparency normalisation a_k.
+    pub scale: f64,
+}
+
+/// The Stokes maps and how they were made.
+pub struct StokesProduct {
+    /// I, Q, U and their variances.
+    pub maps: StokesMaps,
+    /// The orientations used.
+    pub orientations: Vec<OrientationStokes>,
+    /// Why the transparency scales are all 1, if they are.
+    pub unscaled: Option<String>,
+}
+
+/// Everything one target's products hold.
+pub struct TargetProducts {
+    /// Half-size of the cut-outs, px.
+    pub half: usize,
+    /// The orientations whose two beams could be combined.
+    pub orientations: Vec<OrientationProduct>,
+    /// The orientations that could not (POSANG, why).
+    pub missing: Vec<(f64, String)>,
+    /// The Stokes maps, or why there are none.
+    pub stokes: Result<StokesProduct, String>,
+}
+
+/// The products of a reduced target, or `None` when it has no frames or no measurements (a
+/// failed target). The cut-out size follows the pair and its photometry
+/// ([`cutout_half_size`]: the separation, `measure.annulus_fwhm` outer radius x the FWHM).
+pub fn build(outcome: &TargetOutcome, profile: &Profile, params: &TargetParams) -> Option<TargetProducts> {
+    let cal = outcome.calibrated.as_deref()?;
+    let m = outcome.measured.as_ref()?;
+    let a = m.dithers.first()?;
+    // The reduction keeps the target strips only: the detector row of the frames' row 0.
+    let row0 = crate::reduce::run::crop_of(profile, params).map_or(0, |(r0, _)| r0);
+    let sep_px = m
+        .geometry
+        .map_or(0.0, |(sep, _)| sep / profile.geometry.pixscale_arcsec);
+    let half = cutout_half_size(m.fwhm_px, params.measure.annulus_fwhm.1, sep_px);
+    let mut orientations = Vec::new();
+    let mut missing = Vec::new();
+    for (index, (o, dithers)) in cal.iter().zip(a).enumerate() {
+        match orientation_product(index, o, dithers, (half, row0), m.eo_offset_px) {
+            Ok(p) => orientations.push(p),
+            Err(why) => missing.push((o.posang_deg, why)),
+        }
+    }
+    let stokes = stokes_product(&orientations, m);
+    Some(TargetProducts {
+        half,
+        orientations,
+        missing,
+        stokes,
+    })
+}
+
+fn orientation_product(
+    index: usize,
+    o: &CalibratedOrientation,
+    dithers: &[crate::reduce::DitherValue],
+    (half, row0): (usize, usize),
+    eo_offset_px: (f64, f64),
+) -> Result<OrientationProduct, String> {
+    let frames: Vec<&Frame> = o.frames.iter().collect();
+    let positions: Vec<Option<(f64, f64)>> = (0..frames.len()).map(|i| dithers.get(i).map(|d| d.o.xy)).collect();
+    let ob = combine_beam(&frames, &positions, half).ok_or_else(|| {
+        format!(
+            "POSANG {}: no dither with a measured target position and a usable background",
+            o.posang_deg
+        )
+    })?;
+    let eb = combine_following(&ob, &frames, eo_offset_px).ok_or_else(|| {
+        format!(
+            "POSANG {}: no usable e-beam pixel at the measured e-o offset {eo_offset_px:?} px",
+            o.posang_deg
+        )
+    })?;
+    let first = frames[ob.anchors[0].index];
+    Ok(OrientationProduct {
+        index,
+        posang_deg: o.posang_deg,
+        analyzer_deg: o.analyzer_deg,
+        row0,
+        history: first.history.clone(),
+        files: frames.iter().map(|f| f.path().to_path_buf()).collect(),
+        o: ob,
+        e: eb,
+    })
+}
+
+/// Stokes maps from every orientation's beams (both onto the grid centred on the target,
+/// the transparency normalised by the target's fluxes), or why there are none.
+fn stokes_product(orients: &[OrientationProduct], m: &Measured) -> Result<StokesProduct, String> {
+    let a = m.dithers.first();
+    let mut beams = Vec::new();
+    let mut info = Vec::new();
+    let mut fluxes = Vec::new();
+    for o in orients {
+        let Some(shift) = e_to_o_shift(&o.o, &o.e, m.eo_offset_px) else {
+            continue;
+        };
+        beams.push(OrientationBeams::centred(o.analyzer_deg, &o.o, &o.e, shift));
+        let dithers = a.and_then(|a| a.get(o.index)).map_or(&[][..], |d| d.as_slice());
+        fluxes.push(stack_flux(&o.o, dithers, false) + stack_flux(&o.e, dithers, true));
+        let t = o.o.target_xy();
+        let c = o.o.half as f64;
+        info.push(OrientationStokes {
+            posang_deg: o.posang_deg,
+            analyzer_deg: o.analyzer_deg,
+            o_shift: (t.0 - c, t.1 - c),
+            eo_shift: shift,
+            scale: 1.0,
+        });
+    }
+    if beams.len() < 2 {
+        return Err(format!(
+            "{} orientation(s) with both beams: Q and U need 2",
+            beams.len()
+        ));
+    }
+    let (scales, unscaled) = match transparency_scales(&fluxes) {
+        Ok(s) => (s, None),
+        Err(why) => (vec![1.0; beams.len()], Some(why)),
+    };
+    let maps = stokes_maps(&beams, &scales);
+    if maps.mask.iter().all(|&v| v != 0) {
+        return Err("the orientations' analyzer angles do not constrain Q and U".into());
+    }
+    for (i, a) in info.iter_mut().zip(&scales) {
+        i.scale = *a;
+    }
+    Ok(StokesProduct {
+        maps,
+        orientations: info,
+        unscaled,
+    })
+}
+
+/// The target's flux in a combined stack: the reduction's per-dither fluxes of A in that
+/// beam, weighted as the dithers were combined (NaN when one is not finite).
+fn stack_flux(stack: &BeamStack, dithers: &[crate::reduce::DitherValue], e_beam: bool) -> f64 {
+    let (mut sw, mut swf) = (0.0, 0.0);
+    for a in &stack.anchors {
+        let f = dithers
+            .get(a.index)
+            .map_or(f64::NAN, |d| if e_beam { d.e.flux } else { d.o.flux });
+        sw += a.weight;
+        swf += a.weight * f;
+    }
+    swf / sw
+}
+
+/// File name of a product of the target `slug`: `<slug>_pa<angle>_o.fits`, `_e.fits`,
+/// `<slug>_stokes.fits`.
+pub fn file_name(slug: &str, posang_deg: Option<f64>, what: &str) -> String {
+    match posang_deg {
+        Some(pa) => format!("{slug}_pa{}_{what}.fits", angle_tag(pa)),
+        None => format!("{slug}_{what}.fits"),
+    }
+}
+
+/// An angle in a file name: `45`, `22p5`, `m45` (to 0.1 deg).
+pub fn angle_tag(deg: f64) -> String {
+    let s = format!("{:.1}", deg);
+    let s = s.strip_suffix(".0").unwrap_or(&s);
+    s.replace('-', "m").replace('.', "p")
+}
+
+/// Write every product of `p` for `target` into `dir` (names from `slug`): the result of
+/// each file, in order; a product that could not be made (an orientation without a
+/// combined beam, the Stokes maps) is an error too.
+pub fn write(
+    dir: &Path,
+    slug: &str,
+    target: &Target,
+    m: &Measured,
+    p: &TargetProducts,
+) -> Vec<(PathBuf, Result<(), String>)> {
+    let mut out = Vec::new();
+    for o in &p.orientations {
+        for (kind, beam, stack) in [(headers::COMBINED_O, "o", &o.o), (headers::COMBINED_E, "e", &o.e)] {
+            let path = dir.join(file_name(slug, Some(o.posang_deg), beam));
+            let r = write_beam(&path, kind, target, m, o, stack).map_err(|e| e.to_string());
+            out.push((path, r));
+        }
+    }
+    for (pa, why) in &p.missing {
+        out.push((
+            dir.join(file_name(slug, Some(*pa), "o")),
+            Err(format!("o and e not made: {why}")),
+        ));
+    }
+    let path = dir.join(file_name(slug, None, "stokes"));
+    let r = match &p.stokes {
+        Ok(s) => write_stokes(&path, target, m, p, s).map_err(|e| e.to_string()),
+        Err(why) => Err(format!("not made: {why}")),
+    };
+    out.push((path, r));
+    out
+}
+
+/// The cards a target's products share: product kind, target, the catalog's measurement.
+fn target_header(kind: ProductKind, target: &Target, m: &Measured, half: usize) -> Header {
+    let mut h = headers::product_header(kind);
+    headers::target_cards(&mut h, target);
+    headers::qc(&mut h, "FWHM", m.fwhm_px, "px, median FWHM of the target's frames");
+    headers::qc(
+        &mut h,
+        "EO OFFSET X",
+        m.eo_offset_px.0,
+        "px, measured e - o offset on the detector",
+    );
+    headers::qc(
+        &mut h,
+        "EO OFFSET Y",
+        m.eo_offset_px.1,
+        "px, measured e - o offset on the detector",
+    );
+    headers::qc(
+        &mut h,
+        "APERTURE RADIUS",
+        m.aperture_px,
+        "px, the catalog's aperture radius",
+    );
+    headers::qc(
+        &mut h,
+        "CUTOUT HALF",
+        half as i64,
+        "px, the cut-out is 2 x HALF + 1 px wide",
+    );
+    if let Some((sep, pa)) = m.geometry {
+        headers::qc(&mut h, "PAIR SEP", sep, "arcsec, separation of B from A");
+        headers::qc(&mut h, "PAIR PA", pa, "deg, position angle of B from A");
+    }
+    h
+}
+
+fn write_beam(
+    path: &Path,
+    kind: ProductKind,
+    target: &Target,
+    m: &Measured,
+    o: &OrientationProduct,
+    stack: &BeamStack,
+) -> sofipol_calib::Result<()> {
+    let mut h = target_header(kind, target, m, stack.half);
+    headers::set(&mut h, "POSANG", o.posang_deg, "deg, rotator position angle");
+    headers::set(
+        &mut h,
+        "ANALYZER",
+        o.analyzer_deg,
+        "deg, analyzer angle (the profile's)",
+    );
+    h.set_with_comment("BUNIT", "adu", headers::unit_comment("adu"));
+    let used: Vec<&Path> = stack.anchors.iter().map(|a| o.files[a.index].as_path()).collect();
+    headers::raw_cards(&mut h, &used, "POL_SCIENCE");
+    headers::qc(&mut h, "NDITHER", stack.anchors.len() as i64, "dithers combined");
+    let (tx, ty) = stack.target_xy();
+    headers::qc(&mut h, "TARGET X", tx + 1.0, "FITS px, target's mean position here");
+    headers::qc(&mut h, "TARGET Y", ty + 1.0, "FITS px, target's mean position here");
+    let mut history = o.history.clone();
+    history.push(register_record(o, stack, kind == headers::COMBINED_E, m.eo_offset_px));
+    history.push(combine_record(stack));
+    write_images(
+        path,
+        &[
+            ImageHdu {
+                extname: "",
+                header: &h,
+                history: &history,
+                pixels: ImagePixels::F32(&stack.data),
+            },
+            ImageHdu {
+                extname: "VARIANCE",
+                header: &headers::extension_header(Some("adu2"), "variance of the combined image"),
+                history: &[],
+                pixels: ImagePixels::F32(&stack.variance),
+            },
+            ImageHdu {
+                extname: "MASK",
+                header: &headers::extension_header(None, "1 = no dither usable at this pixel (value NaN)"),
+                history: &[],
+                pixels: ImagePixels::U8(&stack.mask),
+            },
+            ImageHdu {
+                extname: "NCOMBINE",
+                header: &headers::extension_header(None, "number of dithers combined at this pixel"),
+                history: &[],
+                pixels: ImagePixels::U8(&stack.n_combined),
+            },
+        ],
+    )
+}
+
+fn register_record(o: &OrientationProduct, stack: &BeamStack, e_beam: bool, eo: (f64, f64)) -> HistoryRecord {
+    let h = stack.half as i64;
+    let anchors: Vec<String> = stack
+        .anchors
+        .iter()
+        .map(|a| {
+            let name = o.files[a.index]
+                .file_name()
+                .map(|n| n.to_string_lossy())
+                .unwrap_or_default();
+            format!(
+                "{name}: target at detector ({:.2}, {:.2}), pixel ({}, {}) here ({}, {})",
+                a.position.0 + 1.0,
+                a.position.1 + 1.0 + o.row0 as f64,
+                a.origin.0 + h + 1,
+                a.origin.1 + h + 1 + o.row0 as i64,
+                h + 1,
+                h + 1
+            )
+        })
+        .collect();
+    let how = if e_beam {
+        format!(
+            "each dither shifted by whole pixels (no interpolation: the pixels' noise stays independent) \
+             as its o beam was, plus the whole-pixel part of the measured e-o offset ({:.3}, {:.3}) px, \
+             i.e. ({}, {}): o and e carry the same registration, the e target at the o target's position \
+             + ({:.3}, {:.3}) px",
+            eo.0,
+            eo.1,
+            eo.0.round(),
+            eo.1.round(),
+            eo.0 - eo.0.round(),
+            eo.1 - eo.1.round()
+        )
+    } else {
+        "each dither shifted by whole pixels (no interpolation: the pixels' noise stays independent) so \
+         that the pixel holding the target (component A, its position fitted by the reduction in this \
+         dither) is the cut-out's centre pixel"
+            .to_string()
+    };
+    HistoryRecord::new("register", format!("{how}; FITS coordinates: {}", anchors.join("; ")))
+}
+
+fn combine_record(stack: &BeamStack) -> HistoryRecord {
+    HistoryRecord::new(
+        "combine",
+        format!(
+            "{} dithers: weighted mean over the usable dithers of each pixel (BAD, COSMIC, SATURATED, \
+             OFF_STRIP and non-finite pixels left out), one weight per dither, w = 1/b, b its background \
+             variance (the median of its variance over the cut-out; a pixel's own variance holds the \
+             star's photon noise and would bias the star's flux): value = sum(w v)/sum(w); VARIANCE = \
+             sum(w^2 var)/sum(w)^2 (1/sum(w) on the sky); MASK = 1 where no dither is usable; NCOMBINE = \
+             the dithers at each pixel",
+            stack.anchors.len()
+        ),
+    )
+}
+
+fn write_stokes(
+    path: &Path,
+    target: &Target,
+    m: &Measured,
+    p: &TargetProducts,
+    s: &StokesProduct,
+) -> sofipol_calib::Result<()> {
+    let mut h = target_header(headers::STOKES, target, m, p.half);
+    h.set_with_comment("BUNIT", "adu", headers::unit_comment("adu"));
+    h.set_with_comment(
+        "POLCALIB",
+        false,
+        "instrumental: night calibration not applied (HISTORY)",
+    );
+    let files: Vec<&Path> = p
+        .orientations
+        .iter()
+        .flat_map(|o| o.o.anchors.iter().map(|a| o.files[a.index].as_path()))
+        .collect();
+    headers::raw_cards(&mut h, &files, "POL_SCIENCE");
+    headers::qc(&mut h, "NORIENT", s.orientations.len() as i64, "orientations combined");
+    for (k, o) in s.orientations.iter().enumerate() {
+        let k = k + 1;
+        headers::qc(
+            &mut h,
+            &format!("ORI{k} POSANG"),
+            o.posang_deg,
+            "deg, rotator position angle",
+        );
+        headers::qc(
+            &mut h,
+            &format!("ORI{k} PHI"),
+            o.analyzer_deg,
+            "deg, analyzer angle (the profile's)",
+        );
+        headers::qc(
+            &mut h,
+            &format!("ORI{k} OSHIFT X"),
+            o.o_shift.0,
+            "px, o cut-out resampled at x + this",
+        );
+        headers::qc(
+            &mut h,
+            &format!("ORI{k} OSHIFT Y"),
+            o.o_shift.1,
+            "px, o cut-out resampled at y + this",
+        );
+        headers::qc(
+            &mut h,
+            &format!("ORI{k} EOSHIFT X"),
+            o.eo_shift.0,
+            "px, e target - o target in the cut-outs",
+        );
+        headers::qc(
+            &mut h,
+            &format!("ORI{k} EOSHIFT Y"),
+            o.eo_shift.1,
+            "px, e target - o target in the cut-outs",
+        );
+        headers::qc(
+            &mut h,
+            &format!("ORI{k} SCALE"),
+            o.scale,
+            "transparency normalisation a_k",
+        );
+    }
+    if let Some(c) = target.components.first() {
+        headers::qc(&mut h, "A Q", c.q, "catalog q of A before the night calibration");
+        headers::qc(&mut h, "A U", c.u, "catalog u of A before the night calibration");
+        headers::qc(&mut h, "A SIGQ", c.sigma_q, "its error");
+        headers::qc(&mut h, "A SIGU", c.sigma_u, "its error");
+    }
+    let c = (p.half + 1) as f64;
+    headers::qc(&mut h, "TARGET X", c, "FITS px, target's position (the centre pixel)");
+    headers::qc(&mut h, "TARGET Y", c, "FITS px, target's position (the centre pixel)");
+    let mut history = p.orientations[0].history.clone();
+    history.push(HistoryRecord::new(
+        "register",
+        "the o and e cut-outs of every orientation as in the SOFIPOL_COMBINED_O/E products: \
+         whole-pixel shifts on the target's measured position in each dither (e: the o shift + the \
+         whole-pixel part of the e-o offset), weighted mean (one weight per dither)",
+    ));
+    history.push(HistoryRecord::new(
+        "resample",
+        "every orientation's o and e cut-outs onto one grid, the target at its centre pixel: \
+         o'(x, y) = o(x + OSHIFT), e'(x, y) = e(x + OSHIFT + EOSHIFT) (QC ORIi), EOSHIFT the measured \
+         e-o offset less the mean whole-pixel registration difference of the dithers; Lanczos-3 \
+         interpolation (6 x 6 taps, normalised: flux and a well-sampled star's shape kept); variance \
+         sum(w var), what an aperture sum carries (neighbouring pixels are correlated); a pixel with a \
+         masked tap is masked",
+    ));
+    history.push(HistoryRecord::new(
+        "normalise",
+        match &s.unscaled {
+            None => "o' and e' of orientation k times a_k = mean(T)/T_k (QC ORIi SCALE), T_k the target's \
+                     o + e flux in the combined cut-outs (the reduction's per-dither fluxes of A, weighted as \
+                     combined): transparency changes between orientations cancel as in F = (o-e)/(o+e)"
+                .to_string(),
+            Some(why) => format!("not normalised (a_k = 1): {why}"),
+        },
+    ));
+    history.push(HistoryRecord::new(
+        "stokes",
+        "per pixel, D_k = a_k (o' - e') = Q cos 2phi_k + U sin 2phi_k over the usable orientations, by \
+         the catalog's weighted least squares (stokes::inversion::fit_qu) with one weight per \
+         orientation, 1/B_k, B_k the median of V_k = a_k^2 (var_o' + var_e') (a pixel's own variance \
+         would bias the star); Q = sum c_k D_k, VAR_Q = sum c_k^2 V_k (U, VAR_U, COV_QU alike); I = \
+         sum(a_k (o' + e')/B_k)/sum(1/B_k), VARIANCE = sum(V_k/B_k^2)/sum(1/B_k)^2; MASK = 1 where the \
+         usable orientations do not constrain Q and U. Over an aperture, sum(Q)/sum(I) is the \
+         least-squares q of the aperture's F_k: the star's q before the night calibration",
+    ));
+    history.push(HistoryRecord::new(
+        "calibration",
+        "NOT applied (instrumental Q, U): the instrumental offset c (beam ratio and instrumental \
+         polarization), the analyzer angles' zero-point theta0 and parity (the profile's angles are \
+         used, QC ORIi PHI) and the telescope's polarization; the catalog's q, u have the night's \
+         calibration applied when it has one",
+    ));
+    let mp = &s.maps;
+    let ext = |unit: Option<&str>, what: &str| headers::extension_header(unit, what);
+    let hdus = [
+        (
+            "Q",
+            ext(Some("adu"), "Stokes Q (instrumental)"),
+            ImagePixels::F32(&mp.q),
+        ),
+        (
+            "U",
+            ext(Some("adu"), "Stokes U (instrumental)"),
+            ImagePixels::F32(&mp.u),
+        ),
+        (
+            "VARIANCE",
+            ext(Some("adu2"), "variance of I"),
+            ImagePixels::F32(&mp.var_i),
+        ),
+        ("VAR_Q", ext(Some("adu2"), "variance of Q"), ImagePixels::F32(&mp.var_q)),
+        ("VAR_U", ext(Some("adu2"), "variance of U"), ImagePixels::F32(&mp.var_u)),
+        (
+            "COV_QU",
+            ext(Some("adu2"), "covariance of Q and U"),
+            ImagePixels::F32(&mp.cov_qu),
+        ),
+        (
+            "MASK",
+            ext(None, "1 = Q and U not constrained here (values NaN)"),
+            ImagePixels::U8(&mp.mask),
+        ),
+    ];
+    let mut all = vec![ImageHdu {
+        extname: "",
+        header: &h,
+        history: &history,
+        pixels: ImagePixels::F32(&mp.i),
+    }];
+    all.extend(hdus.iter().map(|(name, header, pixels)| ImageHdu {
+        extname: name,
+        header,
+        history: &[],
+        pixels: *pixels,
+    }));
+    write_images(path, &all)
+}
