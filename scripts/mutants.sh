@@ -43,6 +43,9 @@ group_files() {
         *) return 1 ;;
     esac
 }
+# The tests of a group: the test targets (`--lib`, `--test NAME`), given to every cargo
+# invocation so that a mutant's build compiles only them (building every test target of the
+# crate made a mutant cost 30-170 s instead of seconds), then `--` and the test filters.
 group_tests() {
     case "$1" in
         stats) echo "--lib -- stats::" ;;
@@ -55,14 +58,27 @@ group_tests() {
 all_groups=(stats photometry inversion calibration reduce)
 
 # Kill rate per file over every outcome under a directory: caught / (caught + missed +
-# timeout); unviable mutants (that do not build) are counted apart.
+# timeout); unviable mutants (that do not build) are counted apart. A group's history.txt
+# (the outcomes of its earlier runs, kept by `run` below because `--iterate` moves them
+# away) is read first, then its latest run; a mutant's latest outcome counts.
+outcomes() {
+    local out="$1/mutants.out"
+    for kind in caught missed timeout unviable; do
+        [[ -f "$out/$kind.txt" ]] && sed "s/^/$kind /" "$out/$kind.txt"
+    done
+    return 0
+}
 summary() {
     local dir="$1"
     printf '%-40s %7s %7s %7s %7s %9s  %s\n' file caught missed timeout unviable "kill rate" ""
-    for kind in caught missed timeout unviable; do
-        find "$dir" -path '*mutants.out/'"$kind"'.txt' -exec cat {} + 2>/dev/null | sed "s/^/$kind /"
-    done | awk '{split($2, a, ":"); n[a[1] SUBSEP $1]++; files[a[1]] = 1}
+    for group in "$dir"/*/; do
+        [[ -f "$group/history.txt" ]] && cat "$group/history.txt"
+        outcomes "$group"
+    done | awk '{kind = $1; $1 = ""; last[substr($0, 2)] = kind}
         END {
+            for (name in last) {
+                split(name, a, ":"); f = a[1]; n[f SUBSEP last[name]]++; files[f] = 1
+            }
             for (f in files) {
                 c = n[f SUBSEP "caught"] + 0; m = n[f SUBSEP "missed"] + 0
                 t = n[f SUBSEP "timeout"] + 0; u = n[f SUBSEP "unviable"] + 0
@@ -99,7 +115,7 @@ if [[ -n "$(git -C "$root" status --porcelain --untracked-files=no)" ]]; then
     echo "mutants.sh: testing HEAD ($(git -C "$root" rev-parse --short HEAD)); uncommitted changes are left out" >&2
 fi
 
-# run NAME "FILES" "TESTS"
+# run NAME "FILES" "TESTS": TESTS is "TARGETS -- FILTERS" (cargo test's own syntax)
 run() {
     local name="$1" files="$2" tests="$3" args=()
     for f in $files; do
@@ -107,9 +123,20 @@ run() {
     done
     [[ -n "${MUTANTS_ITERATE:-}" ]] && args+=(--iterate)
     [[ -n "${MUTANTS_SHARD:-}" ]] && args+=(--shard "$MUTANTS_SHARD")
-    local -a test_args
-    read -r -a test_args <<<"$tests"
+    local -a words filters=()
+    read -r -a words <<<"$tests"
+    local seen_dashes=""
+    for w in "${words[@]}"; do
+        if [[ -n "$seen_dashes" ]]; then
+            filters+=("$w")
+        elif [[ "$w" == "--" ]]; then
+            seen_dashes=1
+        else
+            args+=("--cargo-arg=$w")
+        fi
+    done
     mkdir -p "$out_root/$name"
+    outcomes "$out_root/$name" >>"$out_root/$name/history.txt"
     echo "mutants.sh: $name: $files; tests: cargo test $tests" >&2
     (
         cd "$tree"
@@ -121,7 +148,7 @@ run() {
             --build-timeout "${MUTANTS_BUILD_TIMEOUT:-1200}" \
             --output "$out_root/$name" \
             "${args[@]}" \
-            -- "${test_args[@]}"
+            -- -- "${filters[@]}"
     ) || true # survivors make cargo-mutants exit non-zero; the summary says what happened
 }
 
