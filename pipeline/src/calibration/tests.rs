@@ -964,3 +964,37 @@ fn a_known_standard_in_a_filter_without_values_is_flagged_for_the_filter() {
     let unknown = Target::new("Not A Standard", Status::Ok);
     assert_eq!(table_entry_for(&unknown, &table).1, ["not_in_standards_table"]);
 }
+
+/// A standard observed at four orientations is used (more orientations only help); one seen
+/// at a single orientation cannot give both q and u and is left out, even when its F is
+/// far off.
+#[test]
+fn standards_at_four_orientations_are_used_and_at_one_are_not() {
+    let (theta0, c) = (3.0, 0.0152);
+    let table = StandardsTable::builtin();
+    let hd = table.find("HD 204827", "Ks").unwrap().clone();
+    let four = [0.0, 22.5, 45.0, 67.5];
+    let polarized = Polarization::from_p_gamma(hd.p, hd.gamma_deg);
+    let stds = vec![
+        target(
+            "HD 64299",
+            vec![component("A", Polarization::default(), &four, theta0, c, 3e-4)],
+        ),
+        target("HD 204827", vec![component("A", polarized, &four, theta0, c, 3e-4)]),
+        // At one orientation, with an offset ten times the true one.
+        target(
+            "HD_98161",
+            vec![component("A", Polarization::default(), &[0.0], theta0, 0.15, 3e-4)],
+        ),
+    ];
+    let cal = measure(&stds, &table, &Profile::sofi(), false).expect("two usable standards");
+    let f = cal.for_filter("ks").unwrap();
+    assert!((f.offset.unwrap().c - c).abs() < 1e-9, "{f:?}");
+    assert!((f.angles.unwrap().theta0_deg - theta0).abs() < 1e-6, "{f:?}");
+    assert_eq!(f.offset_standards.len(), 2, "{:?}", f.offset_standards);
+    assert!(
+        f.offset_standards.iter().all(|s| !s.contains("98161")),
+        "{:?}",
+        f.offset_standards
+    );
+}
