@@ -451,7 +451,7 @@ fn unknown_keys_and_out_of_range_values_are_refused_naming_the_key() {
     assert_eq!(sky["scaling"], "additive", "{sky}");
 }
 
-/// Issue 9, item 1 (and 5 for one frame): one NaN pixel used to fail the whole target and
+/// One NaN pixel used to fail the whole target and
 /// an all-NaN or foreign-size frame was never named. A non-finite pixel is now a bad pixel;
 /// a frame unusable as a whole is dropped by name and the other dithers carry on.
 #[test]
@@ -524,7 +524,7 @@ fn a_nan_pixel_is_a_bad_pixel_and_unusable_frames_are_dropped_by_name() {
     assert_eq!(target(&c, "Beta")["status"], "ok");
 }
 
-/// Issue 9 (2 dithers): every target of a night sits on the same pixels for a given dither
+/// 2 dithers: every target of a night sits on the same pixels for a given dither
 /// offset, so with 2 dithers per orientation half of the frames picked for the night's
 /// bad-pixel mask held a star on the same pixels: the mask took the star cores for
 /// defects and the primaries came out unmeasured ("photometry failed", q and u null, the
@@ -582,7 +582,7 @@ fn a_night_of_two_dithers_per_orientation_measures_every_component() {
     }
 }
 
-/// Issue 9, item 5: a sequence of another frame size (Gamma, 1024 rows x 512 columns,
+/// A sequence of another frame size (Gamma, 1024 rows x 512 columns,
 /// observed first in the night) used to give the night's bad-pixel mask its size: every valid target then
 /// failed on the mask. The night mask is built only from frames of the profile's detector
 /// size; Gamma's frames are refused by name ("detector is 1024 x 1024") and Alpha and

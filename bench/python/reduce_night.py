@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Reduce a night of SOFI dual-beam imaging polarimetry of binaries, as an astronomer
 would with numpy + scipy + astropy + photutils (the Python reference of `sofipol bench
-night`, issue 10; an independent cross-check of sofipol's catalog).
+night`; an independent cross-check of sofipol's catalog).
 
 Steps, per target sequence (template run: 2 or more rotator angles x N dithers):
  1. Group the frames by their headers: OBJECT (or OBS TARG NAME) and TPL START give the

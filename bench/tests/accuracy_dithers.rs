@@ -25,7 +25,7 @@ fn dither_pulls(orientations: &[f64], dithers: usize) -> (f64, usize, String) {
     ((s2 / n.max(1) as f64).sqrt(), missing, table(&r))
 }
 
-/// Issue 9 (1, 3 and 4 dithers): with 2 dithers per orientation the target sits on the
+/// 1, 3 and 4 dithers: with 2 dithers per orientation the target sits on the
 /// same pixels in half of the frames, so the per-pixel median of the sequence used to
 /// find bad pixels kept half the star, and its core was masked as a defect: fluxes a
 /// tenth of the truth, rms pulls 8-220 and a quarter of the components lost. The stack is

@@ -38,7 +38,7 @@ fn pull_widths_by_separation() {
         "pairs < 2 FWHM: rms pull {close:.3} over {nc} pulls\n{}",
         table(&r)
     );
-    // Issue 8: the PSF varies frame to frame (FWHM +-20 %, beta 2.5-4, the harness's
+    // Real nights: the PSF varies frame to frame (FWHM +-20 %, beta 2.5-4, the harness's
     // default): every separation bin stays within 0.8-1.25 (48 pulls a bin: rms known to
     // ~10 %).
     for b in &r {

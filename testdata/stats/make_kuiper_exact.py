@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Independent references for the exact small-n Kuiper p-value (sofipol issue 12).
+"""Independent references for the exact small-n Kuiper p-value of sofipol.
 
 Regenerate (only on purpose) with:
     pip install numpy mpmath astropy

@@ -481,4 +481,32 @@ mod tests {
         assert_eq!(m.background.map(|b| b.n), plain.background.map(|b| b.n));
         assert_eq!(m.flags, plain.flags);
     }
+    /// `companion_overlap` is set for another source closer than `r_ap + companion_radius`
+    /// (strictly), in full-image coordinates also when the valid region's origin is not
+    /// (0, 0): the other sources are shifted to the region like the star.
+    #[test]
+    fn companion_overlap_is_judged_in_the_region_at_the_strict_limit() {
+        let img = star_image(60, 30.0, 28.0, 1.0e4, 30.0);
+        let region = Region {
+            x_min: 12,
+            x_max: 55,
+            y_min: 9,
+            y_max: 50,
+        };
+        let p = PhotParams {
+            valid_region: Some(region),
+            companion_radius_px: 3.0,
+            ..PhotParams::default()
+        };
+        let limit = p.r_ap_px + p.companion_radius_px;
+        let flagged = |dx: f64| {
+            measure(img.view(), None, None, &p, 30.0, 28.0, &[(30.0 + dx, 28.0)])
+                .flags
+                .contains(Flags::COMPANION_OVERLAP)
+        };
+        assert!(flagged(limit - 0.5), "inside r_ap + companion_radius");
+        assert!(flagged(p.r_ap_px - p.companion_radius_px + 0.5), "well inside");
+        assert!(!flagged(limit), "at exactly the limit: not closer than it");
+        assert!(!flagged(limit + 0.5), "outside");
+    }
 }

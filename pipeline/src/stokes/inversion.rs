@@ -653,4 +653,22 @@ mod tests {
         let keep = clip_dithers(&[0.010, 0.011, 0.009, 0.0105, 0.010], &[0.001; 5], 4.0, 3);
         assert_eq!(keep.len(), 5);
     }
+
+    /// A dither without a usable value or error (NaN value; error NaN, infinite, zero or
+    /// negative) is left out of the mean, its error and its chi^2, and not counted: the
+    /// result is that of the usable dithers alone (by hand: weights 1 and 1/4).
+    #[test]
+    fn dithers_without_a_usable_value_or_error_are_skipped() {
+        let values = [1.0, f64::NAN, 2.0, 5.0, 7.0, 9.0, 3.0];
+        let sigmas = [1.0, 1.0, 0.0, f64::NAN, -1.0, f64::INFINITY, 2.0];
+        let c = combine_dithers(&values, &sigmas).unwrap();
+        let (m, sw) = ((1.0 + 3.0 / 4.0) / 1.25, 1.25);
+        assert_eq!(c.n, 2, "{c:?}");
+        assert!((c.value - m).abs() < 1e-15, "{c:?}");
+        assert!((c.sigma - (1.0f64 / sw).sqrt()).abs() < 1e-15, "{c:?}");
+        let chi2 = (1.0f64 - m).powi(2) + ((3.0 - m) / 2.0).powi(2);
+        assert!((c.chi2 - chi2).abs() < 1e-14, "{c:?}");
+        assert!((c.sigma_scatter - (chi2 / sw).sqrt()).abs() < 1e-14, "{c:?}");
+        assert_eq!(combine_dithers(&values[1..6], &sigmas[1..6]), None);
+    }
 }
