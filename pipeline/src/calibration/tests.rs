@@ -998,3 +998,59 @@ fn standards_at_four_orientations_are_used_and_at_one_are_not() {
         f.offset_standards
     );
 }
+
+/// What the standards section keeps of a standard's reduction: its own flags but not
+/// `companion_not_found` (a standard is a single star); `failed: ...` for a failed
+/// reduction only; residuals against the table only for a measured P.
+#[test]
+fn the_standards_section_keeps_flags_failures_and_residuals_only_where_they_apply() {
+    let pa = [0.0, 45.0];
+    let (theta0, c) = (3.0, 0.0152);
+    let table = StandardsTable::builtin();
+    let hd = table.find("HD 204827", "Ks").unwrap().clone();
+    let polarized = Polarization::from_p_gamma(hd.p, hd.gamma_deg);
+    let mut measured = target(
+        "HD 64299",
+        vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)],
+    );
+    measured.components[0].flags = vec!["companion_not_found".into(), "bad_pixels".into()];
+    // A note that is not a failure: the reduction succeeded.
+    measured.error = Some("one dither dropped".into());
+    let mut failed = target(
+        "HD_98161",
+        vec![component("A", Polarization::default(), &[], theta0, c, 3e-4)],
+    );
+    failed.status = Status::Failed;
+    failed.error = Some("no star found".into());
+    let stds = vec![
+        measured,
+        failed,
+        target("HD 204827", vec![component("A", polarized, &pa, theta0, c, 3e-4)]),
+    ];
+    let mut cat = Catalog::default();
+    let (cal, _) = calibrate_catalog(
+        &mut cat,
+        stds,
+        &table,
+        &Profile::sofi(),
+        CalibrationSource::Night,
+        &CalibrationParams::default(),
+        Debias::WardleKronberg,
+        3.0,
+    );
+    assert!(cal.is_some());
+    let by = |object: &str| cat.standards.iter().find(|s| s.object == object).unwrap();
+    let m = by("HD 64299");
+    let flags = &m.measured.as_ref().unwrap().flags;
+    assert!(flags.iter().any(|f| f == "bad_pixels"), "{flags:?}");
+    assert!(!flags.iter().any(|f| f == "companion_not_found"), "{flags:?}");
+    assert!(!m.flags.iter().any(|f| f.starts_with("failed")), "{:?}", m.flags);
+    assert!(m.residual_qu_chi2.is_some_and(f64::is_finite), "{m:?}");
+    let f = by("HD_98161");
+    assert!(f.flags.iter().any(|x| x == "failed: no star found"), "{:?}", f.flags);
+    assert_eq!(f.status, Status::Failed);
+    assert!(
+        f.residual_qu_chi2.is_none() && f.residual_p_sigma.is_none() && f.residual_gamma_deg.is_none(),
+        "{f:?}"
+    );
+}

@@ -151,6 +151,14 @@ fn the_telescope_is_measured_from_the_standards_and_removed_from_every_method() 
         assert_truth(&cat, tol);
         assert_eq!(sum.n_telescope_uncorrected, 0);
         assert!(sum.lines.iter().any(|l| l.contains("p_tel = 0.600")), "{:?}", sum.lines);
+        // Nothing flagged, so no line says something was.
+        for flag in [TELESCOPE_UNCORRECTED, "uncalibrated", "stokes_method_failed"] {
+            assert!(
+                !sum.lines.iter().any(|l| l.contains(&format!("flagged '{flag}'"))),
+                "{flag}: {:?}",
+                sum.lines
+            );
+        }
         let a = &cat.targets[0].components[0];
         // The removed vector is the telescope's at the sequence's parallactic angles.
         let removed = a.telescope_qu.unwrap();
@@ -236,6 +244,8 @@ fn without_the_correction_the_components_are_flagged_and_biased() {
     let why = f.telescope_uncorrected.unwrap();
     assert!(why.contains("span"), "{why}");
     assert_eq!(sum.n_telescope_uncorrected, 2);
+    let said = format!("2 component(s) flagged '{TELESCOPE_UNCORRECTED}'");
+    assert!(sum.lines.iter().any(|l| l.starts_with(&said)), "{:?}", sum.lines);
     assert!(
         sum.lines
             .iter()

@@ -654,6 +654,42 @@ mod tests {
         assert_eq!(keep.len(), 5);
     }
 
+    /// The clipping rule at its edges: the z of a dither uses its own error combined with
+    /// the error of the others' mean (sqrt(s^2 + s^2/4) for five equal errors); a dither
+    /// exactly at k sigma stays; `min_keep` dithers always remain; of two equally bad
+    /// dithers the first goes; a NaN value or a zero error is never kept.
+    #[test]
+    fn clipping_at_its_edges() {
+        let s = [0.001; 5];
+        // 4 sigma from the others: z = 4 / sqrt(1.25) = 3.58 (kept at k = 4; with the
+        // errors subtracted instead it would be 4 / sqrt(0.75) = 4.62).
+        assert_eq!(clip_dithers(&[0.010, 0.010, 0.010, 0.010, 0.014], &s, 4.0, 2).len(), 5);
+        // 5 sigma: z = 4.47, clipped.
+        assert_eq!(
+            clip_dithers(&[0.010, 0.010, 0.010, 0.010, 0.015], &s, 4.0, 2),
+            vec![0, 1, 2, 3]
+        );
+        // Exactly at k: kept ("further than k sigma" is strict).
+        let values = [0.010, 0.011, 0.009, 0.010, 0.016];
+        let c = combine_dithers(&values[..4], &s[..4]).unwrap();
+        let z = (values[4] - c.value).abs() / (s[4].powi(2) + c.sigma.powi(2)).sqrt();
+        assert_eq!(clip_dithers(&values, &s, z, 2).len(), 5);
+        assert_eq!(clip_dithers(&values, &s, z * (1.0 - 1e-12), 2), vec![0, 1, 2, 3]);
+        // min_keep: three dithers with an outlier and min_keep 3 stay three.
+        assert_eq!(clip_dithers(&[0.010, 0.011, 0.060], &s[..3], 4.0, 3).len(), 3);
+        assert_eq!(
+            clip_dithers(&[0.010, 0.011, 0.010, 0.060], &s[..4], 4.0, 3),
+            vec![0, 1, 2]
+        );
+        // Two outliers equally far on either side, one removal allowed: the first goes.
+        let d = 0.01;
+        let keep = clip_dithers(&[0.0, 0.0, 0.0, 0.0, d, -d], &[0.001; 6], 4.0, 5);
+        assert_eq!(keep, vec![0, 1, 2, 3, 5]);
+        // Unusable dithers are not kept.
+        let keep = clip_dithers(&[0.010, f64::NAN, 0.011, 0.010], &[0.001, 0.001, 0.0, 0.001], 4.0, 2);
+        assert_eq!(keep, vec![0, 3]);
+    }
+
     /// A dither without a usable value or error (NaN value; error NaN, infinite, zero or
     /// negative) is left out of the mean, its error and its chi^2, and not counted: the
     /// result is that of the usable dithers alone (by hand: weights 1 and 1/4).

@@ -171,3 +171,46 @@ fn standards_give_offset_zero_point_and_parity() {
     let a = measure_angles(&stds, Offset { c: 0.0, sigma_c: 0.0 }, 1).unwrap();
     assert!(!a.parity_measured && (a.theta0_deg - 3.0).abs() < 1e-9);
 }
+
+/// Every method's name parses back to it (from `&str` and from `String`, as TOML and JSON
+/// give it); other spellings are refused with the setting's key.
+#[test]
+fn method_names_round_trip_and_other_spellings_are_refused() {
+    use StokesMethod::*;
+    for m in [Auto, LeastSquares, FreeOffset, Difference, Ratio] {
+        assert_eq!(m.name().parse::<StokesMethod>().unwrap(), m);
+        let s = String::from(m);
+        assert_eq!(s, m.name());
+        assert_eq!(StokesMethod::try_from(s).unwrap(), m);
+        assert_eq!(m.to_string(), m.name());
+    }
+    for bad in ["Ratio", "least-squares", "", "xyzzy"] {
+        let e = bad.parse::<StokesMethod>().unwrap_err();
+        assert_eq!(e.key, "calibration.stokes_method");
+        assert!(e.value.contains(bad), "{e:?}");
+        assert!(StokesMethod::try_from(bad.to_string()).is_err());
+    }
+}
+
+/// Merging orientations by angle leaves out an F or an error that is not a number, an
+/// infinite error, and a zero one, and averages the rest with inverse-variance weights.
+#[test]
+fn merging_orientations_skips_unusable_values() {
+    let o = |phi: f64, f: f64, s: f64| OrientationF {
+        analyzer_deg: phi,
+        f,
+        sigma_f: s,
+    };
+    let m = merged(&[
+        o(0.0, 0.010, 1e-3),
+        o(180.0, 0.013, 2e-3),
+        o(0.0, f64::NAN, 1e-3),
+        o(45.0, 0.02, f64::INFINITY),
+        o(90.0, 0.03, f64::NAN),
+        o(135.0, 0.04, 0.0),
+    ]);
+    assert_eq!(m.len(), 1, "{m:?}");
+    let (w1, w2) = (1e6, 0.25e6);
+    assert!((m[0].f - (0.010 * w1 + 0.013 * w2) / (w1 + w2)).abs() < 1e-15, "{m:?}");
+    assert!((m[0].sigma_f - (w1 + w2).recip().sqrt()).abs() < 1e-15, "{m:?}");
+}
