@@ -573,14 +573,6 @@ pub fn is_standard_sequence(seq: &crate::sequence::Sequence, profile: &Profile) 
         .is_some_and(|t| t.trim().eq_ignore_ascii_case("STD"))
 }
 
-/// Split sequences into (science, standards).
-pub fn split_standards(
-    seqs: Vec<crate::sequence::Sequence>,
-    profile: &Profile,
-) -> (Vec<crate::sequence::Sequence>, Vec<crate::sequence::Sequence>) {
-    seqs.into_iter().partition(|q| !is_standard_sequence(q, profile))
-}
-
 /// Reduction settings for a standard: a single star, never a binary (no companion is
 /// accepted, so none is searched for in the photometry).
 pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::TargetParams {

@@ -1054,3 +1054,21 @@ fn the_standards_section_keeps_flags_failures_and_residuals_only_where_they_appl
         "{f:?}"
     );
 }
+
+/// A standard is reduced as a single star: no companion accepted or hinted; every other
+/// setting is the targets'.
+#[test]
+fn standards_are_reduced_as_single_stars_with_the_targets_settings() {
+    let mut p = crate::reduce::TargetParams::default();
+    p.measure.companion_hint = Some((3.0, 120.0));
+    p.measure.min_companion_snr = 7.0;
+    p.measure.clip_sigma = 4.5;
+    let s = standard_params(&p);
+    assert_eq!(s.measure.min_companion_snr, f64::INFINITY);
+    assert!(s.measure.companion_hint.is_none());
+    assert_eq!(s.measure.clip_sigma, 4.5);
+    let mut back = s.clone();
+    back.measure.companion_hint = p.measure.companion_hint;
+    back.measure.min_companion_snr = p.measure.min_companion_snr;
+    assert_eq!(serde_json::to_value(&back).unwrap(), serde_json::to_value(&p).unwrap());
+}

@@ -214,3 +214,17 @@ fn merging_orientations_skips_unusable_values() {
     assert!((m[0].f - (0.010 * w1 + 0.013 * w2) / (w1 + w2)).abs() < 1e-15, "{m:?}");
     assert!((m[0].sigma_f - (w1 + w2).recip().sqrt()).abs() < 1e-15, "{m:?}");
 }
+
+/// Pairs for the difference and ratio methods need at least two pairs (four angles, 90 deg
+/// apart two by two): one pair alone, an odd count or an angle without a partner gives none.
+#[test]
+fn balanced_pairs_need_two_full_pairs() {
+    let pol = Polarization::from_p_gamma(0.03, 40.0);
+    assert!(balanced_pairs(&obs(pol, &[0.0, 90.0], 1.0, 0.0)).is_none());
+    assert!(balanced_pairs(&obs(pol, &[0.0, 45.0, 90.0], 1.0, 0.0)).is_none());
+    assert!(balanced_pairs(&obs(pol, &[0.0, 45.0, 90.0, 135.0, 30.0], 1.0, 0.0)).is_none());
+    assert!(balanced_pairs(&obs(pol, &[0.0, 45.0, 90.0, 120.0], 1.0, 0.0)).is_none());
+    let pairs = balanced_pairs(&obs(pol, &[0.0, 45.0, 90.0, 135.0], 1.0, 0.0)).unwrap();
+    let keys: Vec<(f64, f64)> = pairs.iter().map(|(a, b)| (a.analyzer_deg, b.analyzer_deg)).collect();
+    assert_eq!(keys, vec![(0.0, 90.0), (45.0, 135.0)]);
+}
