@@ -690,6 +690,22 @@ mod tests {
         assert_eq!(keep, vec![0, 3]);
     }
 
+    /// The fit refuses angles that do not separate q from u: nothing at all, all weights
+    /// zero, or two angles closer than det/(a + c)^2 = sin^2(2 dphi)/4 = 1e-10 allows
+    /// (dphi < 5.7e-4 deg), whatever the errors' scale and the angles' direction.
+    #[test]
+    fn fit_refuses_angles_that_do_not_separate_q_and_u() {
+        assert!(fit_qu(&[], &[], &[]).is_none());
+        assert!(fit_qu(&[0.0, 45.0], &[0.01, 0.02], &[f64::INFINITY; 2]).is_none());
+        for base in [0.0, 22.5, 60.0] {
+            for sigma in [1e-3, 1.0] {
+                let fit = |dphi: f64| fit_qu(&[base, base + dphi], &[0.01, 0.0100001], &[sigma; 2]);
+                assert!(fit(3e-4).is_none(), "base {base}, sigma {sigma}");
+                assert!(fit(1e-3).is_some(), "base {base}, sigma {sigma}");
+            }
+        }
+    }
+
     /// A dither without a usable value or error (NaN value; error NaN, infinite, zero or
     /// negative) is left out of the mean, its error and its chi^2, and not counted: the
     /// result is that of the usable dithers alone (by hand: weights 1 and 1/4).

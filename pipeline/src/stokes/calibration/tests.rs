@@ -228,3 +228,21 @@ fn balanced_pairs_need_two_full_pairs() {
     let keys: Vec<(f64, f64)> = pairs.iter().map(|(a, b)| (a.analyzer_deg, b.analyzer_deg)).collect();
     assert_eq!(keys, vec![(0.0, 90.0), (45.0, 135.0)]);
 }
+
+/// The automatic choice without a calibration offset: three distinct angles without
+/// balanced pairs fit the offset freely; two cannot and stay least squares (uncalibrated).
+/// A method that needs pairs says how many distinct angles there are.
+#[test]
+fn auto_without_an_offset_fits_it_from_three_angles() {
+    let pol = Polarization::from_p_gamma(0.03, 40.0);
+    let three = obs(pol, &[0.0, 30.0, 60.0], 0.97, 0.002);
+    let s = solve(&three, StokesMethod::Auto, None).unwrap();
+    assert_eq!(s.method, StokesMethod::FreeOffset);
+    assert!(!s.uncalibrated);
+    let two = obs(pol, &[0.0, 45.0], 0.97, 0.002);
+    let s = solve(&two, StokesMethod::Auto, None).unwrap();
+    assert_eq!(s.method, StokesMethod::LeastSquares);
+    assert!(s.uncalibrated);
+    let e = solve(&three, StokesMethod::Ratio, None).unwrap_err().to_string();
+    assert!(e.contains("3 distinct analyzer angle(s)"), "{e}");
+}
