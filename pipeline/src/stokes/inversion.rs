@@ -706,6 +706,79 @@ mod tests {
         }
     }
 
+    /// q and u are linear in the F values, so their covariance is sum_i g_q,i g_u,i s_i^2
+    /// with g the response of the fit to a unit change of F_i, measured here through the
+    /// fit itself; chi^2 is the weighted sum of the residuals. Three angles not 45 deg
+    /// apart and unequal errors, so that the off-diagonal terms are not zero.
+    #[test]
+    fn fit_covariance_is_the_propagated_one_and_chi2_the_residual_sum() {
+        let phi = [10.0, 50.0, 75.0];
+        let f = [0.021, -0.013, 0.004];
+        let s = [0.002, 0.003, 0.0015];
+        let fit = fit_qu(&phi, &f, &s).unwrap();
+        let (mut vq, mut vu, mut cqu) = (0.0, 0.0, 0.0);
+        for i in 0..3 {
+            let mut g = f;
+            g[i] += 1.0;
+            let moved = fit_qu(&phi, &g, &s).unwrap();
+            let (gq, gu) = (moved.q - fit.q, moved.u - fit.u);
+            vq += (gq * s[i]).powi(2);
+            vu += (gu * s[i]).powi(2);
+            cqu += gq * gu * s[i] * s[i];
+        }
+        assert!((fit.var_q - vq).abs() < 1e-9 * vq, "{} vs {vq}", fit.var_q);
+        assert!((fit.var_u - vu).abs() < 1e-9 * vu, "{} vs {vu}", fit.var_u);
+        assert!(cqu.abs() > 0.1 * (vq * vu).sqrt(), "a case with correlation: {cqu}");
+        assert!((fit.cov_qu - cqu).abs() < 1e-9 * cqu.abs(), "{} vs {cqu}", fit.cov_qu);
+        let chi2: f64 = (0..3)
+            .map(|i| {
+                let t = 2.0 * phi[i].to_radians();
+                ((f[i] - fit.q * t.cos() - fit.u * t.sin()) / s[i]).powi(2)
+            })
+            .sum();
+        assert!(chi2 > 1.0, "the data do not fit exactly: {chi2}");
+        assert!((fit.chi2 - chi2).abs() < 1e-9 * chi2, "{} vs {chi2}", fit.chi2);
+    }
+
+    /// The debiasing spellings round trip; old and loose spellings parse; others are
+    /// refused with the setting's key.
+    #[test]
+    fn debias_spellings() {
+        for d in [Debias::WardleKronberg, Debias::Mas] {
+            let s = String::from(d);
+            assert_eq!(s, d.to_string());
+            assert_eq!(Debias::try_from(s.clone()).unwrap(), d);
+            assert_eq!(s.parse::<Debias>().unwrap(), d);
+        }
+        assert_eq!(Debias::WardleKronberg.to_string(), "wk");
+        assert_eq!(Debias::Mas.to_string(), "mas");
+        assert_eq!(" WK ".parse::<Debias>().unwrap(), Debias::WardleKronberg);
+        assert_eq!("wardle_kronberg".parse::<Debias>().unwrap(), Debias::WardleKronberg);
+        assert_eq!("MAS".parse::<Debias>().unwrap(), Debias::Mas);
+        let e = "ml".parse::<Debias>().unwrap_err();
+        assert_eq!(e.key, "measure.debias");
+        assert!(Debias::try_from("xyzzy".to_string()).is_err());
+    }
+
+    /// The MAS estimator (Plaszczynski et al. 2014),
+    /// p - s^2 (1 - exp(-p^2/s^2)) / (2p), at p = s and p = 2s by hand:
+    /// (1 + e^-1)/2 s and (2 - (1 - e^-4)/4) s.
+    #[test]
+    fn mas_at_low_signal_to_noise() {
+        let s = 0.02;
+        let want = (1.0 + (-1.0f64).exp()) / 2.0 * s;
+        assert!(
+            (debias(s, s, Debias::Mas) - want).abs() < 1e-15,
+            "{}",
+            debias(s, s, Debias::Mas)
+        );
+        let want = (2.0 - (1.0 - (-4.0f64).exp()) / 4.0) * s;
+        assert!((debias(2.0 * s, s, Debias::Mas) - want).abs() < 1e-15);
+        // Wardle & Kronberg at and below P = sigma: zero.
+        assert_eq!(debias(s, s, Debias::WardleKronberg), 0.0);
+        assert!((debias(2.0 * s, s, Debias::WardleKronberg) - 3f64.sqrt() * s).abs() < 1e-15);
+    }
+
     /// A dither without a usable value or error (NaN value; error NaN, infinite, zero or
     /// negative) is left out of the mean, its error and its chi^2, and not counted: the
     /// result is that of the usable dithers alone (by hand: weights 1 and 1/4).
