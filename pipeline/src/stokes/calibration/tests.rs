@@ -246,3 +246,47 @@ fn auto_without_an_offset_fits_it_from_three_angles() {
     let e = solve(&three, StokesMethod::Ratio, None).unwrap_err().to_string();
     assert!(e.contains("3 distinct analyzer angle(s)"), "{e}");
 }
+
+/// The free-offset fit: q, u and c are linear in the F values, so their (co)variances
+/// are sum_i g_i g_i' s_i^2 with g the response to a unit change of F_i, measured through
+/// the fit itself. Four angles without pairs and unequal errors (weights matter).
+#[test]
+fn free_offset_covariance_is_the_propagated_one() {
+    let phis = [0.0, 30.0, 70.0, 120.0];
+    let fs = [0.031, 0.012, -0.02, 0.007];
+    let ss = [0.002, 0.004, 0.001, 0.003];
+    let o = |f: &[f64]| -> Vec<OrientationF> {
+        phis.iter()
+            .zip(f)
+            .zip(&ss)
+            .map(|((&p, &f), &s)| OrientationF {
+                analyzer_deg: p,
+                f,
+                sigma_f: s,
+            })
+            .collect()
+    };
+    let (fit, off) = fit_qu_offset(&o(&fs)).unwrap();
+    let (mut vq, mut vu, mut cqu, mut vc) = (0.0, 0.0, 0.0, 0.0);
+    for i in 0..4 {
+        let mut g = fs;
+        g[i] += 1.0;
+        let (m, mo) = fit_qu_offset(&o(&g)).unwrap();
+        let (gq, gu, gc) = (m.q - fit.q, m.u - fit.u, mo.c - off.c);
+        let v = ss[i] * ss[i];
+        (vq, vu, cqu, vc) = (vq + gq * gq * v, vu + gu * gu * v, cqu + gq * gu * v, vc + gc * gc * v);
+    }
+    let close = |a: f64, b: f64| (a - b).abs() < 1e-8 * b.abs();
+    assert!(close(fit.var_q, vq), "{} vs {vq}", fit.var_q);
+    assert!(close(fit.var_u, vu), "{} vs {vu}", fit.var_u);
+    assert!(close(fit.cov_qu, cqu), "{} vs {cqu}", fit.cov_qu);
+    assert!(close(off.sigma_c, vc.sqrt()), "{} vs {}", off.sigma_c, vc.sqrt());
+    // chi^2: the weighted residual sum, one degree of freedom here.
+    let chi2: f64 = (0..4)
+        .map(|i| {
+            let t = 2.0 * phis[i].to_radians();
+            ((fs[i] - fit.q * t.cos() - fit.u * t.sin() - off.c) / ss[i]).powi(2)
+        })
+        .sum();
+    assert!(chi2 > 0.1 && close(fit.chi2, chi2), "{} vs {chi2}", fit.chi2);
+}
