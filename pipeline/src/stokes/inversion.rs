@@ -779,6 +779,16 @@ mod tests {
         assert!((debias(2.0 * s, s, Debias::WardleKronberg) - 3f64.sqrt() * s).abs() < 1e-15);
     }
 
+    /// The cut keeps P/sigma_P > 3 strictly (the reference study drops P/sigma_P <= 3):
+    /// exactly 3 (P = 3, sigma_P = 1, exact in binary) is dropped.
+    #[test]
+    fn the_cut_is_strict() {
+        let lp = LinearPolarization::from_qu(3.0, 0.0, 1.0, 1.0, Debias::WardleKronberg);
+        assert_eq!(lp.snr, 3.0);
+        assert!(!lp.passes_cut(3.0));
+        assert!(lp.passes_cut(2.999));
+    }
+
     /// A dither without a usable value or error (NaN value; error NaN, infinite, zero or
     /// negative) is left out of the mean, its error and its chi^2, and not counted: the
     /// result is that of the usable dithers alone (by hand: weights 1 and 1/4).

@@ -290,3 +290,25 @@ fn free_offset_covariance_is_the_propagated_one() {
         .sum();
     assert!(chi2 > 0.1 && close(fit.chi2, chi2), "{} vs {chi2}", fit.chi2);
 }
+
+/// The 3x3 inverse: times the matrix it is the identity (a general, non-symmetric
+/// matrix, so that every cofactor counts); singular or all-zero matrices, and one whose
+/// determinant is below 1e-10 of its scale cubed, have none.
+#[test]
+fn invert3_inverts_and_refuses_singular_matrices() {
+    let a = [[4.0, -2.0, 1.0], [3.0, 6.0, -4.0], [2.0, 1.0, 8.0]];
+    let inv = invert3(&a).unwrap();
+    for i in 0..3 {
+        for j in 0..3 {
+            let prod: f64 = (0..3).map(|k| inv[i][k] * a[k][j]).sum();
+            let want = if i == j { 1.0 } else { 0.0 };
+            assert!((prod - want).abs() < 1e-14, "({i}, {j}): {prod}");
+        }
+    }
+    assert!(invert3(&[[0.0; 3]; 3]).is_none());
+    assert!(invert3(&[[1.0, 2.0, 3.0], [2.0, 4.0, 6.0], [1.0, 0.0, 1.0]]).is_none());
+    // det 0.01 at scale 1e3: relative 1e-11, refused; det 10 accepted.
+    let diag = |d: f64| [[1e3, 0.0, 0.0], [0.0, 1e3, 0.0], [0.0, 0.0, d]];
+    assert!(invert3(&diag(1e-8)).is_none());
+    assert!(invert3(&diag(1e-5)).is_some());
+}
