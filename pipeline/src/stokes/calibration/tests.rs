@@ -312,3 +312,27 @@ fn invert3_inverts_and_refuses_singular_matrices() {
     assert!(invert3(&diag(1e-8)).is_none());
     assert!(invert3(&diag(1e-5)).is_some());
 }
+
+/// The error of a subtracted offset c moves q and u along d(q, u)/dc: the fit with the
+/// offset's error adds (dq/dc)^2 sigma_c^2 to var q, and so on, with the gradient measured
+/// here by solving again with c + 1 (q, u are linear in c). Three angles without pairs, so
+/// that the gradient is not (-1, -1).
+#[test]
+fn the_offset_error_adds_along_the_measured_gradient() {
+    let pol = Polarization::from_p_gamma(0.03, 40.0);
+    let o = obs(pol, &[0.0, 30.0, 70.0], 1.0, 0.01);
+    let offset = Offset {
+        c: 0.01,
+        sigma_c: 0.003,
+    };
+    let s = solve(&o, StokesMethod::LeastSquares, Some(offset)).unwrap();
+    let moved = solve(&o, StokesMethod::LeastSquares, Some(Offset { c: 1.01, ..offset })).unwrap();
+    let (gq, gu) = (moved.fit.q - s.fit.q, moved.fit.u - s.fit.u);
+    assert!((gq + 1.0).abs() > 0.05 && (gu + 1.0).abs() > 0.05, "({gq}, {gu})");
+    let v = offset.sigma_c.powi(2);
+    let full = s.fit_with_offset_error();
+    let close = |a: f64, b: f64| (a - b).abs() < 1e-9 * b.abs();
+    assert!(close(full.var_q, s.fit.var_q + gq * gq * v), "{full:?}");
+    assert!(close(full.var_u, s.fit.var_u + gu * gu * v), "{full:?}");
+    assert!(close(full.cov_qu, s.fit.cov_qu + gq * gu * v), "{full:?}");
+}
