@@ -298,9 +298,9 @@ fn free_offset_covariance_is_the_propagated_one() {
 fn invert3_inverts_and_refuses_singular_matrices() {
     let a = [[4.0, -2.0, 1.0], [3.0, 6.0, -4.0], [2.0, 1.0, 8.0]];
     let inv = invert3(&a).unwrap();
-    for i in 0..3 {
+    for (i, row) in inv.iter().enumerate() {
         for j in 0..3 {
-            let prod: f64 = (0..3).map(|k| inv[i][k] * a[k][j]).sum();
+            let prod: f64 = row.iter().zip(&a).map(|(x, arow)| x * arow[j]).sum();
             let want = if i == j { 1.0 } else { 0.0 };
             assert!((prod - want).abs() < 1e-14, "({i}, {j}): {prod}");
         }
