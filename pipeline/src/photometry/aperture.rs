@@ -546,4 +546,34 @@ mod tests {
         assert_eq!(na.masked_area, 1.0);
         assert!(na.sum.is_finite());
     }
+
+    /// The mirror stencil is the bilinear one at (2 cx - ix, 2 cy - iy): four pixels and
+    /// weights summing to 1, on the image up to its last row and column (a point exactly on
+    /// the last column needs no pixel beyond it); a mirror image off the image's low edges
+    /// (where a cast to usize would clamp to 0) or past its high edges has none.
+    #[test]
+    fn mirror_stencil_at_the_edges() {
+        let all = |_: usize, _: usize| true;
+        let dim = (10, 12); // (ny, nx)
+                            // Mirror of (2, 3) through (5.25, 4.5): (8.5, 6.0).
+        let st = mirror_stencil(dim, all, 5.25, 4.5, 2, 3).unwrap();
+        let w: f64 = st.iter().map(|s| s.2).sum();
+        assert!((w - 1.0).abs() < 1e-15);
+        assert_eq!(st.map(|s| (s.0, s.1)), [(8, 6), (9, 6), (8, 7), (9, 7)]);
+        assert_eq!(st.map(|s| s.2), [0.5, 0.5, 0.0, 0.0]);
+        // Next to the last column: x0 = nx - 2 = 10, tx = 0.5.
+        let st = mirror_stencil(dim, all, 6.25, 4.0, 2, 3).unwrap();
+        assert_eq!((st[0].0, st[1].0), (10, 11));
+        // Exactly on the last column and row (weights 1, 0, 0, 0).
+        let st = mirror_stencil(dim, all, 6.5, 5.0, 2, 1).unwrap();
+        assert_eq!((st[0].0, st[0].1, st[0].2), (11, 9, 1.0));
+        // Past the high edges, and off the low ones (mirror at x = -0.5, or y = -0.5).
+        assert!(mirror_stencil(dim, all, 6.5, 4.0, 1, 3).is_none());
+        assert!(mirror_stencil(dim, all, 4.0, 6.5, 2, 3).is_none());
+        assert!(mirror_stencil(dim, all, 1.75, 4.0, 4, 3).is_none(), "x = -0.5");
+        assert!(mirror_stencil(dim, all, 5.0, 1.75, 3, 4).is_none(), "y = -0.5");
+        // A stencil that would use a bad pixel or the pixel itself has none.
+        assert!(mirror_stencil(dim, |x, y| (x, y) != (9, 6), 5.25, 4.5, 2, 3).is_none());
+        assert!(mirror_stencil(dim, all, 2.0, 3.0, 2, 3).is_none(), "its own mirror");
+    }
 }
