@@ -584,36 +584,6 @@ fn one_polarized_standard_at_two_orientations_gives_an_incomplete_flagged_calibr
     table.merge_toml(PRECISE_POL, "test").unwrap();
     let pol = Polarization::from_p_gamma(0.025, 40.0);
     let stds = vec![target("Pol A", vec![component("A", pol, &pa, theta0, c, 3e-4)])];
-    // What the sequential estimate made of it.
-    let seq = crate::stokes::calibration::measure_angles(
-        &[StandardObservation {
-            name: "Pol A".into(),
-            posang_deg: pa.to_vec(),
-            f: stds[0].components[0]
-                .orientations
-                .as_ref()
-                .unwrap()
-                .iter()
-                .map(|o| OrientationF {
-                    analyzer_deg: f64::NAN,
-                    f: o.f,
-                    sigma_f: o.sigma_f,
-                })
-                .collect(),
-            p: 0.025,
-            sigma_p: 0.0002,
-            gamma_deg: 40.0,
-            sigma_gamma_deg: 0.1,
-            parallactic_2eta: vec![],
-        }],
-        Offset { c: 0.0, sigma_c: 0.0 },
-        1,
-    )
-    .unwrap();
-    eprintln!(
-        "one polarized standard, 0/45: sequential theta0 = {:.2} +- {:.2} deg (truth {theta0})",
-        seq.theta0_deg, seq.sigma_theta0_deg
-    );
     let truth = Polarization::from_p_gamma(0.04, 35.0);
     let mut cat = Catalog {
         targets: vec![target(

@@ -20,14 +20,12 @@
 //! * Three or more distinct angles allow a free offset in the least squares.
 //! * Standards: [`joint::fit_joint`] fits c and theta0 (and the parity) together over every
 //!   orientation of every standard, with their covariance, and says when the standards
-//!   cannot separate the two. [`measure_offset`] and [`measure_angles`] are the former
-//!   sequential estimates (c, then theta0 with c removed), kept for comparison.
+//!   cannot separate the two.
 //! * A chosen method that cannot apply falls back to the automatic one
 //!   ([`solve_with_fallback`]).
 use serde::{Deserialize, Serialize};
 
-use super::inversion::{fit_qu, QuFit, WK_ANGLE_FACTOR_DEG};
-use super::model::normalize_axial_deg;
+use super::inversion::{fit_qu, QuFit};
 
 /// How q and u are obtained from the per-orientation F.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -494,153 +492,6 @@ impl AngleCalibration {
     pub fn analyzer_deg(&self, posang_deg: f64) -> f64 {
         self.parity as f64 * posang_deg + self.theta0_deg
     }
-}
-
-/// The instrumental offset from standards: weighted mean over every orientation of every
-/// standard of `F - F_model` (F_model from the table polarization at the analyzer angle of
-/// `angles`; 0 for unpolarized standards). The table errors enter the weights. When the
-/// scatter exceeds the errors (chi^2/dof > 1) the error is inflated by sqrt(chi^2/dof).
-/// Polarized standards are used only when `angles` is given. `None` when nothing is usable.
-pub fn measure_offset(stds: &[StandardObservation], angles: Option<&AngleCalibration>) -> Option<(Offset, usize)> {
-    let (mut sw, mut swx, mut vals) = (0.0, 0.0, Vec::new());
-    let mut used = 0;
-    for s in stds {
-        let pol = s.polarized();
-        if pol && angles.is_none() {
-            continue;
-        }
-        let mut any = false;
-        for (o, &pa) in s.f.iter().zip(&s.posang_deg) {
-            if !(o.f.is_finite() && o.sigma_f > 0.0) {
-                continue;
-            }
-            let (model, var_model) = if pol {
-                let phi = angles.expect("checked").analyzer_deg(pa);
-                let t = 2.0 * (phi - s.gamma_deg).to_radians();
-                let sg = 2.0 * s.sigma_gamma_deg.to_radians();
-                (
-                    s.p * t.cos(),
-                    (s.sigma_p * t.cos()).powi(2) + (s.p * sg * t.sin()).powi(2),
-                )
-            } else {
-                (0.0, s.sigma_p.powi(2) / 2.0)
-            };
-            let var = o.sigma_f.powi(2) + var_model;
-            let w = 1.0 / var;
-            sw += w;
-            swx += w * (o.f - model);
-            vals.push((o.f - model, var));
-            any = true;
-        }
-        used += usize::from(any);
-    }
-    if vals.is_empty() {
-        return None;
-    }
-    let c = swx / sw;
-    let mut sigma_c = sw.recip().sqrt();
-    if vals.len() > 1 {
-        let chi2: f64 = vals.iter().map(|(x, v)| (x - c).powi(2) / v).sum();
-        let r = chi2 / (vals.len() - 1) as f64;
-        if r > 1.0 {
-            sigma_c *= r.sqrt();
-        }
-    }
-    Some((Offset { c, sigma_c }, used))
-}
-
-/// Measured angle of a standard with the raw convention phi = POSANG (s = +1, theta0 = 0),
-/// after subtracting the offset: (gamma_raw, sigma_gamma, P).
-fn raw_angle(s: &StandardObservation, offset: Offset) -> Option<(f64, f64, f64)> {
-    let obs: Vec<OrientationF> =
-        s.f.iter()
-            .zip(&s.posang_deg)
-            .map(|(o, &pa)| OrientationF { analyzer_deg: pa, ..*o })
-            .collect();
-    let r = solve(&obs, StokesMethod::LeastSquares, Some(offset))
-        .ok()?
-        .fit_with_offset_error();
-    let p = r.q.hypot(r.u);
-    if !(p > 0.0) {
-        return None;
-    }
-    let sp = ((r.q.powi(2) * r.var_q + r.u.powi(2) * r.var_u + 2.0 * r.q * r.u * r.cov_qu) / (p * p)).sqrt();
-    Some((
-        normalize_axial_deg(0.5 * r.u.atan2(r.q).to_degrees()),
-        WK_ANGLE_FACTOR_DEG * sp / p,
-        p,
-    ))
-}
-
-/// Weighted axial mean (period 180 deg) of angles with errors: (mean, error, chi^2).
-fn axial_mean(vals: &[(f64, f64)]) -> (f64, f64, f64) {
-    let (mut c, mut s, mut sw) = (0.0, 0.0, 0.0);
-    for &(a, e) in vals {
-        let w = e.powi(-2);
-        let t = 2.0 * a.to_radians();
-        c += w * t.cos();
-        s += w * t.sin();
-        sw += w;
-    }
-    let mean = normalize_axial_deg(0.5 * s.atan2(c).to_degrees());
-    let chi2 = vals
-        .iter()
-        .map(|&(a, e)| {
-            let d = (a - mean + 90.0).rem_euclid(180.0) - 90.0;
-            (d / e).powi(2)
-        })
-        .sum();
-    (mean, sw.recip().sqrt(), chi2)
-}
-
-/// Angle zero-point (and parity) from the polarized standards, with the offset `offset`
-/// already known: for each, `theta0 = gamma_table - s gamma_raw` (gamma_raw measured with
-/// phi = POSANG). The parity is the one with the smaller chi^2 when two or more polarized
-/// standards differ in angle by more than 5 of their errors; else `default_parity`.
-/// `None` without a usable polarized standard.
-pub fn measure_angles(stds: &[StandardObservation], offset: Offset, default_parity: i32) -> Option<AngleCalibration> {
-    let raws: Vec<(f64, f64, f64)> = stds
-        .iter()
-        .filter(|s| s.polarized())
-        .filter_map(|s| raw_angle(s, offset).map(|(g, sg, _)| (g, sg.hypot(s.sigma_gamma_deg), s.gamma_deg)))
-        .collect();
-    if raws.is_empty() {
-        return None;
-    }
-    let trial = |par: i32| {
-        let v: Vec<(f64, f64)> = raws
-            .iter()
-            .map(|&(g, e, table)| (normalize_axial_deg(table - par as f64 * g), e))
-            .collect();
-        axial_mean(&v)
-    };
-    let (p, m) = (trial(1), trial(-1));
-    // The parities are told apart only when the two trials disagree strongly (two
-    // standards whose table angles differ by 90 deg fit either parity equally well).
-    let measured = raws.len() >= 2 && (p.2 - m.2).abs() > 25.0;
-    let parity = if measured {
-        if p.2 <= m.2 {
-            1
-        } else {
-            -1
-        }
-    } else {
-        default_parity
-    };
-    let (theta0, mut sigma, chi2) = if parity == 1 { p } else { m };
-    if raws.len() > 1 {
-        let r = chi2 / (raws.len() - 1) as f64;
-        if r > 1.0 {
-            sigma *= r.sqrt();
-        }
-    }
-    Some(AngleCalibration {
-        theta0_deg: theta0,
-        sigma_theta0_deg: sigma,
-        parity,
-        parity_measured: measured,
-        n_standards: raws.len(),
-    })
 }
 
 pub mod joint;

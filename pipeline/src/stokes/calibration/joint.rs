@@ -30,8 +30,8 @@ pub use crate::stokes::propagation::{CAL_C, CAL_TEL_A, CAL_TEL_B, CAL_THETA0};
 /// |corr(c, theta0)| above which the standards are taken not to separate c from theta0.
 pub const MAX_CORRELATION: f64 = 0.95;
 
-/// chi^2 difference between two parities above which the parity counts as measured (the
-/// rule of [`super::measure_angles`]).
+/// chi^2 difference between two parities above which the parity counts as measured
+/// (5 sigma; below it the profile's parity is kept).
 const PARITY_DCHI2: f64 = 25.0;
 
 /// Starting values of theta0, deg (the fit is not linear in theta0; F varies as

@@ -123,55 +123,6 @@ fn calibrated_least_squares_subtracts_the_offset_and_propagates_its_error() {
     assert!(g[0].abs() < 1e-15 && g[1].abs() < 1e-15, "{g:?}");
 }
 
-fn std_obs(name: &str, pol: Polarization, posangs: &[f64], theta0: f64, parity: i32, c: f64) -> StandardObservation {
-    StandardObservation {
-        name: name.into(),
-        posang_deg: posangs.to_vec(),
-        f: posangs
-            .iter()
-            .map(|&pa| OrientationF {
-                analyzer_deg: f64::NAN,
-                f: crate::stokes::model::normalized_difference(pol, parity as f64 * pa + theta0) + c,
-                sigma_f: 0.0005,
-            })
-            .collect(),
-        p: pol.p(),
-        sigma_p: if pol.p() > 0.0 { 0.0002 } else { 0.0005 },
-        gamma_deg: pol.gamma_deg(),
-        sigma_gamma_deg: 0.5,
-        parallactic_2eta: vec![],
-    }
-}
-
-#[test]
-fn standards_give_offset_zero_point_and_parity() {
-    let pa = [0.0, 45.0];
-    for parity in [1, -1] {
-        let (theta0, c) = (3.0, 0.0167);
-        let stds = vec![
-            std_obs("U1", Polarization::default(), &pa, theta0, parity, c),
-            std_obs("U2", Polarization::default(), &pa, theta0, parity, c),
-            std_obs("P1", Polarization::from_p_gamma(0.02, 40.0), &pa, theta0, parity, c),
-            std_obs("P2", Polarization::from_p_gamma(0.015, 125.0), &pa, theta0, parity, c),
-        ];
-        let (off, n) = measure_offset(&stds, None).unwrap();
-        assert_eq!(n, 2);
-        assert!((off.c - c).abs() < 1e-12 && off.sigma_c > 0.0);
-        let ang = measure_angles(&stds, off, 1).unwrap();
-        assert!(ang.parity_measured);
-        assert_eq!(ang.parity, parity);
-        assert!((ang.theta0_deg - theta0).abs() < 1e-9, "{ang:?}");
-        // With the angles known, polarized standards join the offset.
-        let (off2, n2) = measure_offset(&stds, Some(&ang)).unwrap();
-        assert_eq!(n2, 4);
-        assert!((off2.c - c).abs() < 1e-12);
-    }
-    // One polarized standard: theta0 measured, parity from the profile.
-    let stds = vec![std_obs("P1", Polarization::from_p_gamma(0.02, 40.0), &pa, 3.0, 1, 0.0)];
-    let a = measure_angles(&stds, Offset { c: 0.0, sigma_c: 0.0 }, 1).unwrap();
-    assert!(!a.parity_measured && (a.theta0_deg - 3.0).abs() < 1e-9);
-}
-
 /// Every method's name parses back to it (from `&str` and from `String`, as TOML and JSON
 /// give it); other spellings are refused with the setting's key.
 #[test]
@@ -335,4 +286,24 @@ fn the_offset_error_adds_along_the_measured_gradient() {
     assert!(close(full.var_q, s.fit.var_q + gq * gq * v), "{full:?}");
     assert!(close(full.var_u, s.fit.var_u + gu * gu * v), "{full:?}");
     assert!(close(full.cov_qu, s.fit.cov_qu + gq * gu * v), "{full:?}");
+}
+
+/// A table star counts as polarized when p > 3 sigma_p strictly (as the cut): exactly 3
+/// sigma is not; p = sigma is not.
+#[test]
+fn polarized_standards_are_more_than_three_sigma() {
+    let star = |p: f64, sigma_p: f64| StandardObservation {
+        name: "S".into(),
+        posang_deg: vec![],
+        f: vec![],
+        p,
+        sigma_p,
+        gamma_deg: 0.0,
+        sigma_gamma_deg: 1.0,
+        parallactic_2eta: vec![],
+    };
+    assert!(star(3.5, 1.0).polarized());
+    assert!(!star(3.0, 1.0).polarized());
+    assert!(!star(0.01, 0.01).polarized());
+    assert!(!star(0.0, 0.0).polarized());
 }
