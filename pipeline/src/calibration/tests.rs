@@ -998,16 +998,7 @@ fn the_standards_section_keeps_flags_failures_and_residuals_only_where_they_appl
         target("HD 204827", vec![component("A", polarized, &pa, theta0, c, 3e-4)]),
     ];
     let mut cat = Catalog::default();
-    let (cal, _) = calibrate_catalog(
-        &mut cat,
-        stds,
-        &table,
-        &Profile::sofi(),
-        CalibrationSource::Night,
-        &CalibrationParams::default(),
-        Debias::WardleKronberg,
-        3.0,
-    );
+    let (cal, _) = run_night(stds, &mut cat, &table, &CalibrationParams::default());
     assert!(cal.is_some());
     let by = |object: &str| cat.standards.iter().find(|s| s.object == object).unwrap();
     let m = by("HD 64299");
