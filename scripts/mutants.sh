@@ -118,6 +118,16 @@ if [[ -n "$(git -C "$root" status --porcelain --untracked-files=no)" ]]; then
     echo "mutants.sh: testing HEAD ($(git -C "$root" rev-parse --short HEAD)); uncommitted changes are left out" >&2
 fi
 
+# The dependencies built first, one slot at a time: fitsio-sys configures and builds its
+# bundled cfitsio inside cargo's registry sources, so two first builds at once (two slots
+# started together on a fresh machine) break each other's baseline.
+mkdir -p "$root/target"
+(
+    cd "$tree"
+    flock "$root/target/mutants-deps.lock" \
+        cargo build --quiet --profile mutants --package sofipol-pipeline --lib
+)
+
 # run NAME "FILES" "TESTS": TESTS is "TARGETS -- FILTERS" (cargo test's own syntax)
 run() {
     local name="$1" files="$2" tests="$3" args=()

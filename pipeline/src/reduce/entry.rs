@@ -106,7 +106,9 @@ pub fn component_from_dithers(
             }
             let reason = match d.rejected.as_deref() {
                 Some(r) if !usable.contains(&i) => r.split(',').collect::<Vec<_>>().join(", "),
-                _ if usable.contains(&i) => "clipped".to_string(),
+                // Usable but left out by the clipping: an outlier, or a value or error that
+                // is not a number (never combined).
+                _ if d.f.is_finite() && d.sigma_f > 0.0 => "clipped".to_string(),
                 _ => "no value".to_string(),
             };
             let file = files
@@ -511,5 +513,242 @@ mod tests {
         assert!(refused_by_flags(&[AB_IDENTITY_UNVERIFIED.to_string()]));
         assert!(refused_by_flags(&["used_flagged_dithers".to_string()]));
         assert!(!refused_by_flags(&["low_snr".to_string(), "bad_pixels".to_string()]));
+    }
+
+    /// One orientation's dithers as values (F, sigma_F) with unit beam fluxes.
+    fn dithers(values: &[(f64, f64)]) -> Vec<DitherValue> {
+        values
+            .iter()
+            .map(|&(f, sigma_f)| DitherValue {
+                f,
+                sigma_f,
+                o: BeamFlux {
+                    flux: 1e4,
+                    ..BeamFlux::missing()
+                },
+                e: BeamFlux {
+                    flux: 1e4,
+                    ..BeamFlux::missing()
+                },
+                rejected: None,
+            })
+            .collect()
+    }
+
+    /// Three dithers that agree (sigma 0.001) at orientation `k` of 0/45/90/135, of q = 0.01,
+    /// u = 0.
+    fn agreeing(k: usize) -> Vec<DitherValue> {
+        dithers(&[([0.01, 0.0, -0.01, 0.0][k], 0.001); 3])
+    }
+
+    /// A component at 0/45/90/135 whose first orientation is `first` and the others
+    /// [`agreeing`].
+    fn component_with_first(first: Vec<DitherValue>) -> Component {
+        let per = vec![first, agreeing(1), agreeing(2), agreeing(3)];
+        let none = vec![vec![None; 3]; 4];
+        component_from_dithers(
+            "A",
+            &per,
+            &[0.0, 45.0, 90.0, 135.0],
+            &none,
+            &[],
+            &MeasureParams::default(),
+        )
+    }
+
+    /// Two dithers at F = 0.01 -+ d (sigma 0.001): chi2 = 2 (d/0.001)^2 on one degree of
+    /// freedom. The error is inflated by sqrt(chi2/dof) exactly when the chi2 probability
+    /// is below 0.01 (chi2 > 6.635), and flagged; else it is the propagated 0.001/sqrt 2.
+    #[test]
+    fn excess_dither_scatter_inflates_the_error_by_sqrt_chi2_per_dof() {
+        let prop = 0.001 / 2f64.sqrt();
+        for (chi2, inflated) in [(0.5, false), (6.4, false), (6.9, true), (18.0, true)] {
+            let d: f64 = 0.001 * (chi2 / 2.0f64).sqrt();
+            let c = component_with_first(dithers(&[(0.01 - d, 0.001), (0.01 + d, 0.001)]));
+            let o = &c.orientations.as_ref().unwrap()[0];
+            assert_eq!(o.n_dithers, 2);
+            assert!((o.chi2 - chi2).abs() < 1e-9, "{o:?}");
+            assert!((o.sigma_f_propagated - prop).abs() < 1e-15, "{o:?}");
+            let want = if inflated { prop * chi2.sqrt() } else { prop };
+            assert!((o.sigma_f - want).abs() < 1e-12 * want, "chi2 {chi2}: {o:?}");
+            assert_eq!(
+                c.flags.iter().any(|f| f == "excess_dither_scatter"),
+                inflated,
+                "{:?}",
+                c.flags
+            );
+            // The other orientations agree: not inflated.
+            let o = &c.orientations.as_ref().unwrap()[1];
+            assert!((o.sigma_f - 0.001 / 3f64.sqrt()).abs() < 1e-15, "{o:?}");
+        }
+        // A single dither has no scatter to judge: its own error.
+        let c = component_with_first(dithers(&[(0.5, 0.001)]));
+        let o = &c.orientations.as_ref().unwrap()[0];
+        assert_eq!((o.n_dithers, o.sigma_f), (1, 0.001));
+    }
+
+    /// The weighted parallactic mean, against values worked by hand: weights 1/sigma^2,
+    /// (cos 2eta, sin 2eta) averaged as they are, eta as a circular mean.
+    #[test]
+    fn the_parallactic_mean_is_weighted_as_f_is() {
+        // eta = 0 and 90 deg with weights 1 and 3: cos 2eta = (1 - 3)/4, sin 2eta = 0, and
+        // the circular mean atan2(3, 1).
+        let m = ParallacticMean::of(&[0.0, 90.0], &[1.0, 1.0 / 3f64.sqrt()]).unwrap();
+        assert!(
+            (m.cos_sin_2eta[0] + 0.5).abs() < 1e-12 && m.cos_sin_2eta[1].abs() < 1e-12,
+            "{m:?}"
+        );
+        assert!((m.eta_deg - 3f64.atan().to_degrees()).abs() < 1e-9, "{m:?}");
+        // +-20 deg, equal weights: (cos 40, 0), mean 0.
+        let m = ParallacticMean::of(&[20.0, -20.0], &[0.5, 0.5]).unwrap();
+        assert!((m.cos_sin_2eta[0] - 40f64.to_radians().cos()).abs() < 1e-12, "{m:?}");
+        assert!(m.cos_sin_2eta[1].abs() < 1e-12 && m.eta_deg.abs() < 1e-9, "{m:?}");
+        // Across +-180: 170 and -174 average to 178, not to -2.
+        let m = ParallacticMean::of(&[170.0, -174.0], &[1.0, 1.0]).unwrap();
+        assert!((m.eta_deg - 178.0).abs() < 1e-9, "{m:?}");
+        let (c, s) = ((340f64.to_radians()).cos(), (-348f64.to_radians()).sin());
+        let want = [
+            (c + (-348f64.to_radians()).cos()) / 2.0,
+            ((340f64.to_radians()).sin() + s) / 2.0,
+        ];
+        assert!((m.cos_sin_2eta[0] - want[0]).abs() < 1e-12 && (m.cos_sin_2eta[1] - want[1]).abs() < 1e-12);
+        // Without a finite angle and weight for every dither: no mean.
+        assert_eq!(ParallacticMean::of(&[], &[]), None);
+        assert_eq!(ParallacticMean::of(&[10.0, f64::NAN], &[1.0, 1.0]), None);
+        assert_eq!(ParallacticMean::of(&[10.0, 20.0], &[1.0, 0.0]), None);
+        assert_eq!(ParallacticMean::of(&[10.0, 20.0], &[1.0, f64::INFINITY]), None);
+    }
+
+    /// The component's parallactic angle and flux come from the dithers kept, matched by
+    /// index after the rejected ones are left out; photometry flags of a used dither reach
+    /// the component; a value that is not a number is "no value", not "clipped".
+    #[test]
+    fn kept_dithers_carry_their_angle_flux_and_photometry_flags() {
+        let mut first = dithers(&[(0.01, 0.001), (0.01, 0.002), (0.01, 0.001), (f64::NAN, 0.001)]);
+        first[0].rejected = Some("cosmic_ray".into());
+        first[0].o.flux = 9e9;
+        first[1].o.flux = 3e4;
+        first[1].e.phot_flags = crate::photometry::Flags::ANNULUS_CONTAMINATED.0;
+        first[2].o.phot_flags = crate::photometry::Flags::COMPANION_OVERLAP.0;
+        let per = vec![first, agreeing(1), agreeing(2), agreeing(3)];
+        let mut eta = vec![vec![Some(0.0); 3]; 4];
+        // Dither 0 (rejected) at 50 deg must not count; kept dithers 1 and 2 at 0 and 90 deg
+        // with weights 1/4 and 1: cos 2eta = (1/4 - 1)/(5/4) = -0.6.
+        eta[0] = vec![Some(50.0), Some(0.0), Some(90.0), Some(0.0)];
+        let files = vec![vec![
+            "a.fits".to_string(),
+            "b.fits".into(),
+            "c.fits".into(),
+            "d.fits".into(),
+        ]];
+        let c = component_from_dithers(
+            "A",
+            &per,
+            &[0.0, 45.0, 90.0, 135.0],
+            &eta,
+            &files,
+            &MeasureParams::default(),
+        );
+        let o = &c.orientations.as_ref().unwrap()[0];
+        assert_eq!((o.n_dithers, o.n_dithers_total), (2, 4));
+        let p = o.parallactic_2eta.unwrap();
+        assert!((p[0] + 0.6).abs() < 1e-12 && p[1].abs() < 1e-12, "{o:?}");
+        assert!(
+            (o.parallactic_deg.unwrap() - 4f64.atan().to_degrees()).abs() < 1e-9,
+            "{o:?}"
+        );
+        // Orientations without an angle for every kept dither get none.
+        assert!(c.orientations.as_ref().unwrap()[1].parallactic_deg.is_some());
+        // Flux: o + e averaged over the 11 dithers kept (the 3e4 one once), the rejected
+        // 9e9 and the NaN left out.
+        let want = (3e4 + 1e4 + 10.0 * 2e4) / 11.0;
+        assert!((c.flux_adu.unwrap() - want).abs() < 1e-6, "{:?}", c.flux_adu);
+        for f in ["companion_overlap", "annulus_contaminated", "cosmic_ray"] {
+            assert_eq!(c.flags.iter().filter(|x| *x == f).count(), 1, "{f}: {:?}", c.flags);
+        }
+        let dropped: Vec<(&str, &str)> = c
+            .dropped_dithers
+            .iter()
+            .flatten()
+            .map(|d| (d.file.as_str(), d.reason.as_str()))
+            .collect();
+        assert_eq!(dropped, [("a.fits", "cosmic_ray"), ("d.fits", "no value")]);
+        assert!(c.passes_cut && c.snr.unwrap() > 3.0, "{c:?}");
+        assert!(!c.flags.iter().any(|f| f == "low_snr"), "{:?}", c.flags);
+    }
+
+    /// The cut and its flag: a component below S/N 3 is flagged `low_snr` and fails; the
+    /// catalog values are those of the inversion (the fit's covariance kept).
+    #[test]
+    fn a_faint_polarization_is_flagged_low_snr_and_its_covariance_kept() {
+        let per: Vec<Vec<DitherValue>> = [0.001, 0.0, -0.001, 0.0]
+            .iter()
+            .map(|&f| dithers(&[(f, 0.001); 3]))
+            .collect();
+        let none = vec![vec![None; 3]; 4];
+        let c = component_from_dithers(
+            "B",
+            &per,
+            &[0.0, 45.0, 90.0, 135.0],
+            &none,
+            &[],
+            &MeasureParams::default(),
+        );
+        // q = 0.001, sigma_q = sigma_u = (0.001/sqrt 3)/sqrt 2: S/N = sqrt 6 < 3.
+        let s = 0.001 / 6f64.sqrt();
+        assert!((c.q - 0.001).abs() < 1e-15 && c.u.abs() < 1e-15, "{c:?}");
+        assert!((c.sigma_q_stat.unwrap() - s).abs() < 1e-15, "{c:?}");
+        assert!((c.snr.unwrap() - 6f64.sqrt()).abs() < 1e-9, "{c:?}");
+        assert!(c.cov_qu.unwrap().abs() < 1e-20 && c.cov_qu == c.cov_qu_stat, "{c:?}");
+        assert!(!c.passes_cut);
+        assert!(c.flags.iter().any(|f| f == "low_snr"), "{:?}", c.flags);
+        // Angles that do not separate q from u: no value, said so.
+        let c = component_from_dithers("B", &per[..1], &[0.0], &none, &[], &MeasureParams::default());
+        assert!(c.q.is_nan() && !c.passes_cut);
+        assert!(
+            c.flags.iter().any(|f| f.starts_with("undefined_polarization")),
+            "{:?}",
+            c.flags
+        );
+    }
+
+    /// Status and error of the target: both components measured is OK (no error); one is
+    /// partial, with the measurement's first flag as its reason (or "companion not
+    /// measured"); none is failed, with that flag after the reason.
+    #[test]
+    fn the_status_and_error_say_what_was_measured() {
+        let params = MeasureParams::default();
+        let kw = &sofipol_calib::Profile::sofi().keywords;
+        let t = target_entry("X", &orients(), &measured(Vec::new()), &params, kw);
+        assert_eq!((t.status, t.error.clone()), (Status::Ok, None));
+        assert_eq!(t.eo_offset_px, Some([0.0, 167.0]));
+        assert_eq!((t.separation_arcsec, t.pa_deg), (Some(5.0), Some(340.0)));
+        assert_eq!(t.orientations_deg, Some(vec![0.0, 45.0, 90.0, 135.0]));
+        let mut m = measured(Vec::new());
+        m.dithers.truncate(1);
+        let t = target_entry("X", &orients(), &m, &params, kw);
+        assert_eq!(t.error.as_deref(), Some("companion not measured"));
+        m.flags = vec!["companion_not_found".into()];
+        let t = target_entry("X", &orients(), &m, &params, kw);
+        assert_eq!(
+            (t.status, t.error.as_deref()),
+            (Status::Partial, Some("companion_not_found"))
+        );
+        // The companion measured, the primary not: partial too.
+        let mut m = measured(Vec::new());
+        for d in m.dithers[0].iter_mut().flatten() {
+            *d = DitherValue::missing("primary_not_found");
+        }
+        assert_eq!(target_entry("X", &orients(), &m, &params, kw).status, Status::Partial);
+        for d in m.dithers[1].iter_mut().flatten() {
+            *d = DitherValue::missing("primary_not_found");
+        }
+        m.flags = vec!["sky too bright".into()];
+        let t = target_entry("X", &orients(), &m, &params, kw);
+        assert_eq!(t.status, Status::Failed);
+        assert_eq!(
+            t.error.as_deref(),
+            Some("no component could be measured: sky too bright")
+        );
     }
 }
