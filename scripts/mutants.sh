@@ -52,7 +52,7 @@ reduce_tests="reduce:: brightest median_offset eo_offset combine_geometry primar
 group_tests() {
     case "$1" in
         stats) echo "--lib -- stats::tests_pvalues stats::tests::k stats::tests::binomial" ;;
-        photometry) echo "--lib -- photometry::" ;;
+        photometry) echo "--lib -- photometry:: --skip photometry::psf_fit::joint" ;;
         inversion) echo "--lib -- stokes:: $slow" ;;
         calibration) echo "--lib -- stokes:: calibration:: $slow" ;;
         reduce) echo "--lib --test reduce_locate --test reduce_noiseless --test reduce_hard_cases -- $reduce_tests" ;;

@@ -262,4 +262,101 @@ mod tests {
             }
         }
     }
+
+    /// The windows fit exactly when every pixel of the o window (half-width h) and of the
+    /// e region (half-width h + search, around the star shifted by the rounded start) lies
+    /// in the image: one pixel further out on any side and the frame is not used.
+    #[test]
+    fn the_windows_reach_every_edge_of_the_image_and_no_further() {
+        let (dim, h, search) = ((50, 40), 4, 2);
+        // o at (10, 20) rounded from (9.6, 20.4), e at (10 + 3, 20 + 21) from start (3.3, 20.8).
+        assert_eq!(
+            windows(dim, (9.6, 20.4), (3.3, 20.8), h, search),
+            Some((10, 20, 13, 41))
+        );
+        let ok = |c: (f64, f64), start: (f64, f64)| windows(dim, c, start, h, search).is_some();
+        // The o window at the low edges (x - 4 = 0, y - 4 = 0), the e region well inside.
+        assert!(ok((4.0, 4.0), (10.0, 10.0)));
+        assert!(!ok((3.0, 10.0), (10.0, 10.0)) && !ok((10.0, 3.0), (10.0, 10.0)));
+        // The o window at the high edges (x + 4 = 39, y + 4 = 49).
+        assert!(ok((35.0, 45.0), (-10.0, -10.0)));
+        assert!(!ok((36.0, 30.0), (-10.0, -10.0)) && !ok((20.0, 46.0), (-10.0, -10.0)));
+        // The e region (half-width 6) at each edge, the o window inside.
+        assert!(ok((20.0, 20.0), (-14.0, -14.0)));
+        assert!(!ok((20.0, 20.0), (-15.0, -10.0)) && !ok((20.0, 20.0), (-10.0, -15.0)));
+        assert!(ok((20.0, 20.0), (13.0, 23.0)));
+        assert!(!ok((20.0, 20.0), (14.0, 10.0)) && !ok((20.0, 20.0), (10.0, 24.0)));
+    }
+
+    /// The scores of a 5 x 5 search (search 2): zero but for `peak` at (row, col) and its
+    /// neighbours along both axes (left, right, up, down).
+    fn scores(peak: (usize, usize), v: f64, nb: [f64; 4]) -> Vec<f64> {
+        let mut s = vec![0.0; 25];
+        let (r, c) = peak;
+        s[r * 5 + c] = v;
+        if c > 0 {
+            s[r * 5 + c - 1] = nb[0];
+        }
+        if c < 4 {
+            s[r * 5 + c + 1] = nb[1];
+        }
+        if r > 0 {
+            s[(r - 1) * 5 + c] = nb[2];
+        }
+        if r < 4 {
+            s[(r + 1) * 5 + c] = nb[3];
+        }
+        s
+    }
+
+    /// The peak's offset: its integer shift from the rounded start, refined by the vertex
+    /// of the parabola through it and its two neighbours on each axis,
+    /// 0.5 (m - p)/(m - 2c + p); on the edge of the search, where one neighbour is missing,
+    /// no refinement; the first of equal maxima.
+    #[test]
+    fn the_peak_is_refined_by_a_parabola_inside_the_search_only() {
+        let start: (f64, f64) = (0.3, 166.8);
+        let base = (start.0.round(), start.1.round());
+        // Interior (row 1, column 3): dx = 0.5 (8 - 2)/(8 - 20 + 2) = -0.3,
+        // dy = 0.5 (4 - 9)/(4 - 20 + 9) = 5/14.
+        let (x, y) = peak_offset(&scores((1, 3), 10.0, [8.0, 2.0, 4.0, 9.0]), start, 2);
+        assert!((x - (base.0 + 1.0 - 0.3)).abs() < 1e-12, "{x}");
+        assert!((y - (base.1 - 1.0 + 5.0 / 14.0)).abs() < 1e-12, "{y}");
+        // A neighbour nearly as high: the vertex near half a pixel, 0.5 * 9.9/(9.9 - 20).
+        let (x, _) = peak_offset(&scores((2, 2), 10.0, [9.9, 0.0, 0.0, 0.0]), start, 2);
+        assert!((x - (base.0 - 0.5 * 9.9 / 10.1)).abs() < 1e-12, "{x}");
+        // On each edge of the search the offset is the integer shift, whatever the one
+        // neighbour there is (and whatever lies in the next row or column).
+        for (peak, want) in [
+            ((2, 0), (-2.0, 0.0)),
+            ((2, 4), (2.0, 0.0)),
+            ((0, 2), (0.0, -2.0)),
+            ((4, 2), (0.0, 2.0)),
+        ] {
+            let mut s = scores(peak, 10.0, [7.0, 3.0, 6.0, 2.0]);
+            // Large values beside the edges, where an index past the edge would land.
+            for (i, v) in s.iter_mut().enumerate() {
+                if *v == 0.0 {
+                    *v = 5.0 + (i % 3) as f64;
+                }
+            }
+            let (x, y) = peak_offset(&s, start, 2);
+            let (dx, dy) = (x - base.0 - want.0, y - base.1 - want.1);
+            let on_x_edge = peak.1 == 0 || peak.1 == 4;
+            let (edge, other) = if on_x_edge { (dx, dy) } else { (dy, dx) };
+            assert!(edge.abs() < 1e-12, "{peak:?}: ({x}, {y})");
+            // Along the other axis both neighbours are there: refined (not zero).
+            assert!(other.abs() > 0.01 && other.abs() <= 0.5, "{peak:?}: ({x}, {y})");
+        }
+        // Equal maxima: the first in row-major order (row 1, column 1), unrefined where its
+        // neighbours are equal on both sides.
+        let mut s = vec![1.0; 25];
+        s[6] = 10.0;
+        s[18] = 10.0;
+        let (x, y) = peak_offset(&s, start, 2);
+        assert!(
+            (x - (base.0 - 1.0)).abs() < 1e-12 && (y - (base.1 - 1.0)).abs() < 1e-12,
+            "({x}, {y})"
+        );
+    }
 }
