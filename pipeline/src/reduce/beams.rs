@@ -96,8 +96,8 @@ fn correlation_scores(
     (used > 0).then_some(score)
 }
 
-/// The centre pixels of the o window and of the e region (before the shift) of a frame
-/// with the star at `c`, when both windows (half-width `h`, the e one widened by `search`)
+/// The centre pixels of the o window (the star at `c`, rounded) and of the e region
+/// before the shift (the o centre moved by the rounded `start`), when both windows (half-width `h`, the e one widened by `search`)
 /// lie inside an image of `(ny, nx)` pixels.
 fn windows(
     (ny, nx): (usize, usize),
@@ -107,7 +107,11 @@ fn windows(
     search: i64,
 ) -> Option<(i64, i64, i64, i64)> {
     let (ox, oy) = (cx.round() as i64, cy.round() as i64);
-    let (ex0, ey0) = ((cx + start.0).round() as i64, (cy + start.1).round() as i64);
+    // The e region is the o window moved by the rounded start, so that a shift s of the
+    // search is the offset round(start) + s in every frame (rounding cx + start instead
+    // moved it by a pixel in the frames where the fractions add up past one half, and the
+    // summed scores mixed two offsets).
+    let (ex0, ey0) = (ox + start.0.round() as i64, oy + start.1.round() as i64);
     let hh = h as i64;
     let inside = |x: i64, y: i64, r: i64| x - r >= 0 && y - r >= 0 && x + r < nx as i64 && y + r < ny as i64;
     (inside(ox, oy, hh) && inside(ex0, ey0, hh + search)).then_some((ox, oy, ex0, ey0))

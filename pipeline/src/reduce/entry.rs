@@ -432,11 +432,12 @@ mod tests {
         let mut m = measured(Vec::new());
         let a = &mut m.dithers[0];
         a[0][1].rejected = Some("bad_pixels".into());
+        a[1][0].rejected = Some("bad_pixels".into());
         a[2][0].rejected = Some("cosmic_ray,bad_pixels".into());
         a[3][2].rejected = Some("cosmic_ray".into());
         let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords);
         let flags = &t.components[0].flags;
-        let want = "bad_pixels: 2 of 12 dithers dropped (a masked pixel within the aperture)";
+        let want = "bad_pixels: 3 of 12 dithers dropped (a masked pixel within the aperture)";
         assert_eq!(
             flags.iter().filter(|f| f.starts_with("bad_pixels")).collect::<Vec<_>>(),
             [want],
@@ -454,6 +455,7 @@ mod tests {
             .collect();
         let want = [
             ("orientation 1 dither 2", "bad_pixels"),
+            ("orientation 2 dither 1", "bad_pixels"),
             ("orientation 3 dither 1", "cosmic_ray, bad_pixels"),
             ("orientation 4 dither 3", "cosmic_ray"),
         ]

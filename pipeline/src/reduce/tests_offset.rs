@@ -71,6 +71,21 @@ fn eo_offset_and_e_positions_match_the_simulated_ones_off_the_starting_values() 
             "{}: correlation offset {eo:?} vs {EO_TRUE:?}",
             t.object
         );
+        // 1.9 px from the profile's offset: not flagged. Started from offsets 2.3 and 3.7
+        // px from the true one, the correlation finds it (the search reaches 5 px; to a
+        // few tenths of a pixel from a start whose fraction differs: the parabola through
+        // integer shifts, refined at stage 6) and flags the profile's offset as wrong
+        // beyond 3 px only.
+        let differs = |f: &Vec<String>| f.iter().any(|f| f.starts_with("eo_offset_differs_from_profile"));
+        assert!(!differs(&flags), "{flags:?}");
+        for (shift, flagged) in [([2.1, 0.9], false), ([3.6, 0.8], true), ([-0.6, -3.7], true)] {
+            let mut moved = profile.clone();
+            moved.geometry.eo_offset_px = [EO_TRUE[0] + shift[0], EO_TRUE[1] + shift[1]];
+            let mut flags = Vec::new();
+            let eo = beams::measure_eo_offset(&orients, &primary, &masks, &moved, &mut flags).unwrap();
+            assert!((eo.0 - EO_TRUE[0]).hypot(eo.1 - EO_TRUE[1]) < 0.4, "{shift:?}: {eo:?}");
+            assert_eq!(differs(&flags), flagged, "{shift:?}: {flags:?}");
+        }
         // The whole measurement: the reported (refined) offset and every e position.
         let m = measure_sequence(&orients, &profile, &params).unwrap();
         assert!(
