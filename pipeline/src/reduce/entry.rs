@@ -482,6 +482,38 @@ mod tests {
                 ("orientation 3 dither 1", "saturated")
             ]
         );
+        let clipped = |t: &Target, i: usize| t.components[i].flags.iter().filter(|f| *f == "dither_clipped").count();
+        assert_eq!((clipped(&t, 0), clipped(&t, 1)), (0, 1), "{t:?}");
+    }
+
+    /// Every dither of an orientation flagged: the finite values with a positive error
+    /// are used (flagged `used_flagged_dithers`); a NaN value or a zero error is left out
+    /// with its own flag as the reason.
+    #[test]
+    fn all_flagged_dithers_fall_back_to_the_finite_ones() {
+        let mut first = dithers(&[(0.01, 0.001), (0.011, 0.001), (f64::NAN, 0.001), (0.5, 0.0)]);
+        for d in first.iter_mut() {
+            d.rejected = Some("saturated".into());
+        }
+        let c = component_with_first(first);
+        let o = &c.orientations.as_ref().unwrap()[0];
+        assert_eq!((o.n_dithers, o.n_dithers_total), (2, 4), "{o:?}");
+        assert!((o.f - 0.0105).abs() < 1e-15, "{o:?}");
+        let dropped: Vec<(&str, &str)> = c
+            .dropped_dithers
+            .iter()
+            .flatten()
+            .map(|d| (d.file.as_str(), d.reason.as_str()))
+            .collect();
+        assert_eq!(
+            dropped,
+            [
+                ("orientation 1 dither 3", "saturated"),
+                ("orientation 1 dither 4", "saturated")
+            ]
+        );
+        assert!(c.flags.iter().any(|f| f == "used_flagged_dithers"), "{:?}", c.flags);
+        assert!(!c.flags.iter().any(|f| f == "dither_clipped"), "{:?}", c.flags);
     }
 
     #[test]
@@ -631,8 +663,12 @@ mod tests {
         first[0].o.flux = 9e9;
         first[1].o.flux = 3e4;
         first[1].e.phot_flags = crate::photometry::Flags::ANNULUS_CONTAMINATED.0;
-        first[2].o.phot_flags = crate::photometry::Flags::COMPANION_OVERLAP.0;
-        let per = vec![first, agreeing(1), agreeing(2), agreeing(3)];
+        // The same flag on both beams of a dither, and on a second dither: flagged once.
+        let overlap = crate::photometry::Flags::COMPANION_OVERLAP.0;
+        (first[2].o.phot_flags, first[2].e.phot_flags) = (overlap, overlap);
+        let mut second = agreeing(1);
+        second[0].e.phot_flags = overlap;
+        let per = vec![first, second, agreeing(2), agreeing(3)];
         let mut eta = vec![vec![Some(0.0); 3]; 4];
         // Dither 0 (rejected) at 50 deg must not count; kept dithers 1 and 2 at 0 and 90 deg
         // with weights 1/4 and 1: cos 2eta = (1/4 - 1)/(5/4) = -0.6.
