@@ -572,8 +572,43 @@ mod tests {
         assert!(mirror_stencil(dim, all, 4.0, 6.5, 2, 3).is_none());
         assert!(mirror_stencil(dim, all, 1.75, 4.0, 4, 3).is_none(), "x = -0.5");
         assert!(mirror_stencil(dim, all, 5.0, 1.75, 3, 4).is_none(), "y = -0.5");
+        // On the last column (row) with weight on the next, which is off the image: none,
+        // though the point itself is inside (mirror at x = 11.5; at y = 9.5).
+        assert!(mirror_stencil(dim, all, 6.75, 4.0, 2, 3).is_none(), "x = 11.5");
+        assert!(mirror_stencil(dim, all, 5.0, 6.25, 3, 3).is_none(), "y = 9.5");
         // A stencil that would use a bad pixel or the pixel itself has none.
         assert!(mirror_stencil(dim, |x, y| (x, y) != (9, 6), 5.25, 4.5, 2, 3).is_none());
         assert!(mirror_stencil(dim, all, 2.0, 3.0, 2, 3).is_none(), "its own mirror");
+    }
+
+    /// An aperture that is not one (radius zero, negative or not finite; a centre not
+    /// finite) sums nothing and reports nothing outside; an image without pixels has the
+    /// whole disc outside.
+    #[test]
+    fn apertures_that_are_not_one_sum_nothing() {
+        let img = Array2::<f32>::ones((20, 20));
+        let empty = |s: &ApertureSum| {
+            s.sum == 0.0 && s.area == 0.0 && s.n_pixels == 0 && s.outside_area == 0.0 && s.max_value.is_none()
+        };
+        for (x, y, r) in [
+            (10.0, 10.0, f64::NAN),
+            (10.0, 10.0, 0.0),
+            (10.0, 10.0, -2.0),
+            (10.0, 10.0, f64::INFINITY),
+            (f64::NAN, 10.0, 3.0),
+            (10.0, f64::INFINITY, 3.0),
+            (f64::NEG_INFINITY, f64::NAN, 3.0),
+        ] {
+            let ap = Aperture { x, y, r };
+            let s = aperture_sum(img.view(), None, None, &ap, Method::Exact, MaskFill::Exclude);
+            assert!(empty(&s), "({x}, {y}, {r}): {s:?}");
+        }
+        for dim in [(0, 20), (20, 0)] {
+            let img = Array2::<f32>::ones(dim);
+            let ap = Aperture { x: 3.0, y: 3.0, r: 2.0 };
+            let s = aperture_sum(img.view(), None, None, &ap, Method::Exact, MaskFill::Exclude);
+            assert_eq!((s.sum, s.n_pixels, s.outside_area), (0.0, 0, ap.area()), "{dim:?}");
+            assert!(s.truncated());
+        }
     }
 }

@@ -738,6 +738,23 @@ mod tests {
         assert!((c.sigma_q_stat.unwrap() - s).abs() < 1e-15, "{c:?}");
         assert!((c.snr.unwrap() - 6f64.sqrt()).abs() < 1e-9, "{c:?}");
         assert!(c.cov_qu.unwrap().abs() < 1e-20 && c.cov_qu == c.cov_qu_stat, "{c:?}");
+        // The statistical errors are the inversion's, of this q, u and covariance.
+        let cov = QuCovariance {
+            var_q: s * s,
+            var_u: s * s,
+            cov_qu: c.cov_qu.unwrap(),
+        };
+        let lp = LinearPolarization::from_qu_cov(c.q, c.u, &cov, MeasureParams::default().debias);
+        assert!((c.sigma_u_stat.unwrap() - s).abs() < 1e-15, "{c:?}");
+        assert!(
+            (c.sigma_gamma_stat_deg.unwrap() - lp.sigma_gamma_deg).abs() < 1e-9,
+            "{c:?}"
+        );
+        assert!(
+            (c.sigma_gamma_nkc_deg.unwrap() - lp.sigma_gamma_nkc_deg).abs() < 1e-9,
+            "{c:?}"
+        );
+        assert!(lp.sigma_gamma_deg > 5.0 && lp.sigma_gamma_nkc_deg > 5.0, "{lp:?}");
         assert!(!c.passes_cut);
         assert!(c.flags.iter().any(|f| f == "low_snr"), "{:?}", c.flags);
         // Angles that do not separate q from u: no value, said so.
