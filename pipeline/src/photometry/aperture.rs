@@ -611,4 +611,34 @@ mod tests {
             assert!(s.truncated());
         }
     }
+
+    /// The part of the disc off the image, against the geometry: the image spans
+    /// -0.5 .. n - 0.5 on each axis, so a disc centred on an edge has half its area
+    /// outside and one centred on a corner three quarters; the sum of an image of ones is
+    /// the rest. The largest value is that of the pixels, also when all are negative.
+    #[test]
+    fn the_area_off_the_image_is_the_geometric_one() {
+        let (ny, nx) = (30, 40);
+        let img = Array2::<f32>::from_elem((ny, nx), -2.0);
+        let r = 4.3;
+        let full = PI * r * r;
+        let (xe, ye) = (nx as f64 - 0.5, ny as f64 - 0.5);
+        for (x, y, out) in [
+            (-0.5, 15.0, 0.5),
+            (xe, 15.0, 0.5),
+            (20.0, -0.5, 0.5),
+            (20.0, ye, 0.5),
+            (-0.5, -0.5, 0.75),
+            (xe, ye, 0.75),
+            (xe, -0.5, 0.75),
+            (20.0, 15.0, 0.0),
+        ] {
+            let ap = Aperture { x, y, r };
+            let s = aperture_sum(img.view(), None, None, &ap, Method::Exact, MaskFill::Exclude);
+            assert!((s.outside_area - out * full).abs() < 1e-9, "({x}, {y}): {s:?}");
+            assert!((s.sum + 2.0 * (1.0 - out) * full).abs() < 1e-9, "({x}, {y}): {s:?}");
+            assert_eq!(s.truncated(), out > 0.0);
+            assert_eq!(s.max_value, Some(-2.0));
+        }
+    }
 }
