@@ -806,4 +806,68 @@ mod tests {
             Some("no component could be measured: sky too bright")
         );
     }
+
+    /// The frames' parallactic angles reach the catalog: each dither's from its header (the
+    /// mean of start and end), averaged per orientation; a frame whose angle cannot be
+    /// read leaves its orientation without one and is named in the target's flags; the
+    /// frames name the dithers left out.
+    #[test]
+    fn the_frames_parallactic_angles_reach_each_orientation() {
+        let kw = sofipol_calib::Profile::sofi().keywords;
+        let mut orients = orients();
+        for (k, o) in orients.iter_mut().enumerate() {
+            for i in 0..3 {
+                let mut h = sofipol_calib::header::Header::new(format!("o{k}d{i}.fits"));
+                let start = 10.0 * k as f64 + i as f64;
+                if (k, i) == (3, 1) {
+                    h.set(&kw.parang, "east");
+                } else {
+                    h.set(&kw.parang, start);
+                    h.set(&kw.parang_end, start + 2.0);
+                }
+                o.frames
+                    .push(sofipol_calib::frame::Frame::new(ndarray::Array2::zeros((1, 1)), h));
+            }
+        }
+        let mut m = measured(Vec::new());
+        m.dithers[0][2][1].rejected = Some("cosmic_ray".into());
+        let t = target_entry("X", &orients, &m, &MeasureParams::default(), &kw);
+        let flags = t.flags.clone().unwrap();
+        assert_eq!(flags.len(), 1, "{flags:?}");
+        assert!(flags[0].starts_with("parallactic angle not used"), "{flags:?}");
+        for (ci, c) in t.components.iter().enumerate() {
+            let per = c.orientations.as_ref().unwrap();
+            for (k, o) in per.iter().enumerate() {
+                // Dithers at 10k + 1, + 2, + 3 deg (equal weights); A's dither 2 of the third
+                // orientation dropped: 21 and 23, mean 22 all the same.
+                let want = 10.0 * k as f64 + 2.0;
+                if k == 3 {
+                    assert_eq!(o.parallactic_deg, None, "{o:?}");
+                } else {
+                    let got = o.parallactic_deg.unwrap();
+                    assert!((got - want).abs() < 1e-9, "component {ci} orientation {k}: {got}");
+                    let c2 = o.parallactic_2eta.unwrap()[0];
+                    let mean_cos: f64 = if ci == 0 && k == 2 {
+                        [21.0f64, 23.0]
+                            .iter()
+                            .map(|e| (2.0 * e.to_radians()).cos())
+                            .sum::<f64>()
+                            / 2.0
+                    } else {
+                        (1..=3)
+                            .map(|i| (2.0 * (want - 2.0 + i as f64).to_radians()).cos())
+                            .sum::<f64>()
+                            / 3.0
+                    };
+                    assert!((c2 - mean_cos).abs() < 1e-12, "component {ci} orientation {k}");
+                }
+            }
+        }
+        let dropped = t.components[0].dropped_dithers.clone().unwrap();
+        assert_eq!(dropped.len(), 1);
+        assert_eq!(
+            (dropped[0].file.as_str(), dropped[0].reason.as_str()),
+            ("o2d1.fits", "cosmic_ray")
+        );
+    }
 }
