@@ -641,4 +641,49 @@ mod tests {
             assert_eq!(s.max_value, Some(-2.0));
         }
     }
+
+    /// A pixel whose variance is negative or not a number is a bad pixel: the sums are
+    /// those of the same image with that pixel masked instead (one in an interior run of
+    /// the aperture, one on its edge).
+    #[test]
+    fn a_pixel_with_an_unusable_variance_is_a_masked_pixel() {
+        let (ny, nx) = (30, 30);
+        let img = Array2::<f32>::from_shape_fn((ny, nx), |(y, x)| 1.0 + 0.01 * (x + 2 * y) as f32);
+        let mut var = Array2::<f32>::from_elem((ny, nx), 2.0);
+        let mut mask = Array2::<u8>::zeros((ny, nx));
+        let ap = Aperture {
+            x: 15.2,
+            y: 14.7,
+            r: 6.0,
+        };
+        for (bad, (y, x)) in [(-1.0f32, (15, 14)), (f32::NAN, (12, 16)), (-0.5, (14, 21))] {
+            var[[y, x]] = bad;
+            mask[[y, x]] = 1;
+        }
+        let good_var = Array2::<f32>::from_elem((ny, nx), 2.0);
+        for method in [Method::Exact, Method::Center] {
+            let by_var = aperture_sum(img.view(), Some(var.view()), None, &ap, method, MaskFill::Exclude);
+            let by_mask = aperture_sum(
+                img.view(),
+                Some(good_var.view()),
+                Some(mask.view()),
+                &ap,
+                method,
+                MaskFill::Exclude,
+            );
+            assert!(by_var.masked_area > 1.9, "{by_var:?}");
+            for (a, b) in [
+                (by_var.sum, by_mask.sum),
+                (by_var.variance.unwrap(), by_mask.variance.unwrap()),
+                (by_var.area, by_mask.area),
+                (by_var.masked_area, by_mask.masked_area),
+            ] {
+                assert!(
+                    (a - b).abs() < 1e-9 * b.abs().max(1.0),
+                    "{method:?}: {by_var:?} vs {by_mask:?}"
+                );
+            }
+            assert_eq!(by_var.n_pixels, by_mask.n_pixels);
+        }
+    }
 }
