@@ -686,4 +686,57 @@ mod tests {
             assert_eq!(by_var.n_pixels, by_mask.n_pixels);
         }
     }
+
+    /// Mirror filling against a plane, where bilinear interpolation is exact: a masked
+    /// interior pixel is filled with the plane's value at its mirror point through the
+    /// centre, and its variance is the interpolation's, q sum b^2; edge pixels enter the
+    /// variance with their weight squared.
+    #[test]
+    fn a_mirror_filled_pixel_has_the_planes_value_and_the_interpolations_variance() {
+        let (ny, nx) = (30, 30);
+        let plane = |x: f64, y: f64| 50.0 + 0.7 * x - 0.3 * y;
+        let img = Array2::<f32>::from_shape_fn((ny, nx), |(y, x)| plane(x as f64, y as f64) as f32);
+        let q = 3.0f32;
+        let var = Array2::<f32>::from_elem((ny, nx), q);
+        let mut mask = Array2::<u8>::zeros((ny, nx));
+        mask[[16, 17]] = 1;
+        let ap = Aperture {
+            x: 15.3,
+            y: 14.6,
+            r: 5.5,
+        };
+        let full = aperture_sum(
+            img.view(),
+            Some(var.view()),
+            None,
+            &ap,
+            Method::Exact,
+            MaskFill::Exclude,
+        );
+        // Fractional edge weights: sum w^2 below sum w, and the variance q sum w^2.
+        assert!(full.area_w2 < full.area - 1.0, "{full:?}");
+        assert!(
+            (full.variance.unwrap() - q as f64 * full.area_w2).abs() < 1e-9,
+            "{full:?}"
+        );
+        let filled = aperture_sum(
+            img.view(),
+            Some(var.view()),
+            Some(mask.view()),
+            &ap,
+            Method::Exact,
+            MaskFill::Mirror,
+        );
+        // Mirror of (17, 16) through (15.3, 14.6): (13.6, 13.2); weights (0.4, 0.6) x (0.8, 0.2).
+        let want_sum = full.sum - img[[16, 17]] as f64 + plane(13.6, 13.2);
+        assert!((filled.sum - want_sum).abs() < 1e-3, "{} vs {want_sum}", filled.sum);
+        let sum_b2 = (0.4f64.powi(2) + 0.6f64.powi(2)) * (0.8f64.powi(2) + 0.2f64.powi(2));
+        let want_var = q as f64 * (full.area_w2 - 1.0 + sum_b2);
+        assert!(
+            (filled.variance.unwrap() - want_var).abs() < 1e-6,
+            "{filled:?} vs {want_var}"
+        );
+        assert_eq!((filled.masked_area, filled.filled_area), (1.0, 1.0));
+        assert!((filled.area - full.area).abs() < 1e-12 && (filled.area_w2 - full.area_w2).abs() < 1e-12);
+    }
 }
