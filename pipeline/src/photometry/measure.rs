@@ -508,5 +508,45 @@ mod tests {
         assert!(flagged(p.r_ap_px - p.companion_radius_px + 0.5), "well inside");
         assert!(!flagged(limit), "at exactly the limit: not closer than it");
         assert!(!flagged(limit + 0.5), "outside");
+        // Along a diagonal, the distance is the Euclidean one (3-4-5 directions).
+        let flagged_at = |f: f64| {
+            let (dx, dy) = (-0.6 * limit * f, 0.8 * limit * f);
+            measure(img.view(), None, None, &p, 30.0, 28.0, &[(30.0 + dx, 28.0 + dy)])
+                .flags
+                .contains(Flags::COMPANION_OVERLAP)
+        };
+        assert!(flagged_at(0.97) && !flagged_at(1.03));
+    }
+
+    /// Annulus pixels near a listed source are left out of the background (the sample is
+    /// smaller than without the source); a valid region reaching beyond the image is the
+    /// image.
+    #[test]
+    fn the_annulus_leaves_out_the_other_sources_and_the_region_is_clamped() {
+        let img = star_image(64, 30.0, 31.0, 1.0e4, 40.0);
+        let p = PhotParams::default();
+        let alone = measure(img.view(), None, None, &p, 30.0, 31.0, &[]);
+        let with = measure(img.view(), None, None, &p, 30.0, 31.0, &[(30.0, 31.0 + 13.0)]);
+        let (n_alone, n_with) = (alone.background.unwrap().n, with.background.unwrap().n);
+        assert!(n_with + 20 < n_alone, "{n_with} vs {n_alone}");
+        let wide = Region {
+            x_min: 0,
+            x_max: 1000,
+            y_min: 0,
+            y_max: 1000,
+        };
+        let in_wide = measure(
+            img.view(),
+            None,
+            None,
+            &PhotParams {
+                valid_region: Some(wide),
+                ..p
+            },
+            30.0,
+            31.0,
+            &[],
+        );
+        assert_eq!(in_wide, alone);
     }
 }

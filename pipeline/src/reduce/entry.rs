@@ -514,6 +514,19 @@ mod tests {
         );
         assert!(c.flags.iter().any(|f| f == "used_flagged_dithers"), "{:?}", c.flags);
         assert!(!c.flags.iter().any(|f| f == "dither_clipped"), "{:?}", c.flags);
+        // An outlier among flagged values in use is clipped, and said so.
+        let mut first = dithers(&[(0.01, 0.001), (0.0101, 0.001), (0.0099, 0.001), (0.05, 0.001)]);
+        for d in first.iter_mut() {
+            d.rejected = Some("saturated".into());
+        }
+        let c = component_with_first(first);
+        let dropped: Vec<(&str, &str)> = c
+            .dropped_dithers
+            .iter()
+            .flatten()
+            .map(|d| (d.file.as_str(), d.reason.as_str()))
+            .collect();
+        assert_eq!(dropped, [("orientation 1 dither 4", "clipped")]);
     }
 
     #[test]
@@ -658,7 +671,13 @@ mod tests {
     /// the component; a value that is not a number is "no value", not "clipped".
     #[test]
     fn kept_dithers_carry_their_angle_flux_and_photometry_flags() {
-        let mut first = dithers(&[(0.01, 0.001), (0.01, 0.002), (0.01, 0.001), (f64::NAN, 0.001)]);
+        let mut first = dithers(&[
+            (0.01, 0.001),
+            (0.01, 0.002),
+            (0.01, 0.001),
+            (f64::NAN, 0.001),
+            (0.01, 0.0),
+        ]);
         first[0].rejected = Some("cosmic_ray".into());
         first[0].o.flux = 9e9;
         first[1].o.flux = 3e4;
@@ -667,17 +686,18 @@ mod tests {
         let overlap = crate::photometry::Flags::COMPANION_OVERLAP.0;
         (first[2].o.phot_flags, first[2].e.phot_flags) = (overlap, overlap);
         let mut second = agreeing(1);
-        second[0].e.phot_flags = overlap;
+        (second[0].o.phot_flags, second[0].e.phot_flags) = (overlap, overlap);
         let per = vec![first, second, agreeing(2), agreeing(3)];
         let mut eta = vec![vec![Some(0.0); 3]; 4];
         // Dither 0 (rejected) at 50 deg must not count; kept dithers 1 and 2 at 0 and 90 deg
         // with weights 1/4 and 1: cos 2eta = (1/4 - 1)/(5/4) = -0.6.
-        eta[0] = vec![Some(50.0), Some(0.0), Some(90.0), Some(0.0)];
+        eta[0] = vec![Some(50.0), Some(0.0), Some(90.0), Some(0.0), Some(0.0)];
         let files = vec![vec![
             "a.fits".to_string(),
             "b.fits".into(),
             "c.fits".into(),
             "d.fits".into(),
+            "e.fits".into(),
         ]];
         let c = component_from_dithers(
             "A",
@@ -688,7 +708,7 @@ mod tests {
             &MeasureParams::default(),
         );
         let o = &c.orientations.as_ref().unwrap()[0];
-        assert_eq!((o.n_dithers, o.n_dithers_total), (2, 4));
+        assert_eq!((o.n_dithers, o.n_dithers_total), (2, 5));
         let p = o.parallactic_2eta.unwrap();
         assert!((p[0] + 0.6).abs() < 1e-12 && p[1].abs() < 1e-12, "{o:?}");
         assert!(
@@ -710,7 +730,10 @@ mod tests {
             .flatten()
             .map(|d| (d.file.as_str(), d.reason.as_str()))
             .collect();
-        assert_eq!(dropped, [("a.fits", "cosmic_ray"), ("d.fits", "no value")]);
+        assert_eq!(
+            dropped,
+            [("a.fits", "cosmic_ray"), ("d.fits", "no value"), ("e.fits", "no value")]
+        );
         assert!(c.passes_cut && c.snr.unwrap() > 3.0, "{c:?}");
         assert!(!c.flags.iter().any(|f| f == "low_snr"), "{:?}", c.flags);
     }
