@@ -518,6 +518,55 @@ mod tests {
         assert!(flagged_at(0.97) && !flagged_at(1.03));
     }
 
+    /// Without exclusion, a listed source whose disc (radius `companion_radius_px`) meets
+    /// the annulus sets `annulus_contaminated`, strictly inside its edges; so does an
+    /// annulus with fewer than `min_sky_pixels` pixels (as many is enough).
+    #[test]
+    fn the_annulus_is_contaminated_by_a_disc_that_meets_it_or_too_few_pixels() {
+        let img = star_image(80, 40.0, 40.0, 1.0e4, 40.0);
+        let p = PhotParams {
+            annulus_exclude_radius_px: 0.0,
+            companion_radius_px: 2.0,
+            ..PhotParams::default()
+        };
+        let (r_in, r_out) = p.annulus_px.unwrap();
+        let contaminated = |others: &[(f64, f64)], p: &PhotParams| {
+            measure(img.view(), None, None, p, 40.0, 40.0, others)
+                .flags
+                .contains(Flags::ANNULUS_CONTAMINATED)
+        };
+        assert!(!contaminated(&[], &p));
+        // Along x: d + 2 against r_in = 10 and d - 2 against r_out = 16, strictly.
+        for (d, want) in [
+            (r_in - 2.1, false),
+            (r_in - 2.0, false),
+            (r_in - 1.9, true),
+            (r_out + 1.9, true),
+            (r_out + 2.0, false),
+        ] {
+            assert_eq!(contaminated(&[(40.0 + d, 40.0)], &p), want, "d = {d}");
+        }
+        // Along a diagonal (3-4-5): the Euclidean distance.
+        for (d, want) in [
+            (r_in - 2.2, false),
+            (r_in - 1.8, true),
+            (r_out + 1.8, true),
+            (r_out + 2.2, false),
+        ] {
+            assert_eq!(
+                contaminated(&[(40.0 - 0.6 * d, 40.0 + 0.8 * d)], &p),
+                want,
+                "diagonal d = {d}"
+            );
+        }
+        let n = measure(img.view(), None, None, &p, 40.0, 40.0, &[])
+            .background
+            .unwrap()
+            .n;
+        let with_min = |m: usize| PhotParams { min_sky_pixels: m, ..p };
+        assert!(!contaminated(&[], &with_min(n)) && contaminated(&[], &with_min(n + 1)));
+    }
+
     /// Annulus pixels near a listed source are left out of the background (the sample is
     /// smaller than without the source); a valid region reaching beyond the image is the
     /// image.

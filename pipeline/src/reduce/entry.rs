@@ -628,6 +628,12 @@ mod tests {
             let o = &c.orientations.as_ref().unwrap()[1];
             assert!((o.sigma_f - 0.001 / 3f64.sqrt()).abs() < 1e-15, "{o:?}");
         }
+        // Three dithers at 0.01 - 3s, 0.01, 0.01 + 3s (none clipped at 4 sigma): chi2 = 18 on
+        // two degrees of freedom, the error inflated by sqrt(18/2) = 3.
+        let c = component_with_first(dithers(&[(0.007, 0.001), (0.01, 0.001), (0.013, 0.001)]));
+        let o = &c.orientations.as_ref().unwrap()[0];
+        assert_eq!(o.n_dithers, 3);
+        assert!((o.sigma_f - 3.0 * 0.001 / 3f64.sqrt()).abs() < 1e-12, "{o:?}");
         // A single dither has no scatter to judge: its own error.
         let c = component_with_first(dithers(&[(0.5, 0.001)]));
         let o = &c.orientations.as_ref().unwrap()[0];
