@@ -72,21 +72,36 @@ outcomes() {
     return 0
 }
 summary() {
-    local dir="$1"
-    printf '%-40s %7s %7s %7s %7s %9s  %s\n' file caught missed timeout unviable "kill rate" ""
-    for group in "$dir"/*/; do
-        [[ -f "$group/history.txt" ]] && cat "$group/history.txt"
-        outcomes "$group"
-    done | awk '{kind = $1; $1 = ""; last[substr($0, 2)] = kind}
+    local dir="$1" current args=()
+    for g in "${all_groups[@]}"; do
+        for f in $(group_files "$g"); do
+            args+=(--file "$f")
+        done
+    done
+    # The mutants of the code as it is now (the working tree; listing builds nothing): an
+    # outcome recorded under a name the code no longer has (its line moved) is not counted,
+    # and a mutant never judged on the present code is counted as untested.
+    current="$(cd "$root" && cargo mutants --list --package sofipol-pipeline "${args[@]}")"
+    printf '%-40s %7s %7s %7s %7s %8s %9s\n' file caught missed timeout unviable untested "kill rate"
+    {
+        sed 's/^/current /' <<<"$current"
+        for group in "$dir"/*/; do
+            [[ -f "$group/history.txt" ]] && cat "$group/history.txt"
+            outcomes "$group"
+        done
+    } | awk '{kind = $1; $1 = ""; name = substr($0, 2)}
+        kind == "current" {now[name] = 1; next}
+        {last[name] = kind}
         END {
-            for (name in last) {
-                split(name, a, ":"); f = a[1]; n[f SUBSEP last[name]]++; files[f] = 1
+            for (name in now) {
+                split(name, a, ":"); f = a[1]; files[f] = 1
+                n[f SUBSEP ((name in last) ? last[name] : "untested")]++
             }
             for (f in files) {
                 c = n[f SUBSEP "caught"] + 0; m = n[f SUBSEP "missed"] + 0
                 t = n[f SUBSEP "timeout"] + 0; u = n[f SUBSEP "unviable"] + 0
-                tested = c + m + t
-                printf "%-40s %7d %7d %7d %7d %8.1f%%\n", f, c, m, t, u, tested ? 100 * c / tested : 0
+                x = n[f SUBSEP "untested"] + 0; tested = c + m + t
+                printf "%-40s %7d %7d %7d %7d %8d %8.1f%%\n", f, c, m, t, u, x, tested ? 100 * c / tested : 0
             }
         }' | sort
 }
