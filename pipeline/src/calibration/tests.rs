@@ -1033,3 +1033,59 @@ fn standards_are_reduced_as_single_stars_with_the_targets_settings() {
     back.measure.min_companion_snr = p.measure.min_companion_snr;
     assert_eq!(serde_json::to_value(&back).unwrap(), serde_json::to_value(&p).unwrap());
 }
+
+/// A sequence is a standard's when `DPR TYPE` of its first readable frame is STD (any case,
+/// padded); frames that cannot be read are passed over; a sequence with no readable frame,
+/// or whose first readable frame says OBJECT, is science.
+#[test]
+fn a_standard_sequence_is_told_by_the_first_readable_dpr_type() {
+    use sofipol_calib::classify::ScienceInfo;
+    let dir = tempfile::tempdir().unwrap();
+    let profile = Profile::sofi();
+    let write = |name: &str, dpr: &str| {
+        let path = dir.path().join(name);
+        let mut h = sofipol_calib::header::Header::new(&path);
+        h.set(&profile.keywords.dpr_type, dpr);
+        let frame = sofipol_calib::frame::Frame::new(ndarray::Array2::zeros((4, 4)), h);
+        sofipol_calib::fits::write_frame(&path, &frame, &Default::default()).unwrap();
+        path
+    };
+    let info = |path: std::path::PathBuf| ScienceInfo {
+        path,
+        object: "S".into(),
+        tpl_start: "t".into(),
+        sequence: "S@t".into(),
+        posang_deg: 0.0,
+        offset_px: [0.0, 0.0],
+        filter: "Ks".into(),
+        wollaston: "WOLLASTON".into(),
+        dit_s: 10.0,
+        ndit: 6,
+        expno: Some(1),
+        nexp: Some(2),
+        mjd: None,
+        ra_deg: None,
+        dec_deg: None,
+        pixscale_arcsec: 0.288,
+    };
+    let seq = |paths: Vec<std::path::PathBuf>| crate::sequence::Sequence {
+        id: "S@t".into(),
+        object: "S".into(),
+        tpl_start: "t".into(),
+        filter: "Ks".into(),
+        orientations: vec![crate::sequence::Orientation {
+            posang_deg: 0.0,
+            analyzer_deg: 0.0,
+            exposures: paths.into_iter().map(info).collect(),
+        }],
+    };
+    let (std, obj, missing) = (
+        write("std.fits", " std "),
+        write("obj.fits", "OBJECT"),
+        dir.path().join("gone.fits"),
+    );
+    assert!(is_standard_sequence(&seq(vec![std.clone(), obj.clone()]), &profile));
+    assert!(is_standard_sequence(&seq(vec![missing.clone(), std.clone()]), &profile));
+    assert!(!is_standard_sequence(&seq(vec![obj, std]), &profile));
+    assert!(!is_standard_sequence(&seq(vec![missing]), &profile));
+}
