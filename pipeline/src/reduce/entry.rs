@@ -808,6 +808,9 @@ mod tests {
         assert_eq!(t.eo_offset_px, Some([0.0, 167.0]));
         assert_eq!((t.separation_arcsec, t.pa_deg), (Some(5.0), Some(340.0)));
         assert_eq!(t.orientations_deg, Some(vec![0.0, 45.0, 90.0, 135.0]));
+        assert_eq!((t.fwhm_px, t.aperture_radius_px), (Some(3.0), Some(3.0)));
+        assert_eq!(t.photometry.as_deref(), Some("aperture"));
+        assert_eq!(t.flags.as_deref(), Some(&[][..]));
         let mut m = measured(Vec::new());
         m.dithers.truncate(1);
         let t = target_entry("X", &orients(), &m, &params, kw);
