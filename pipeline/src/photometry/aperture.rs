@@ -738,5 +738,50 @@ mod tests {
         );
         assert_eq!((filled.masked_area, filled.filled_area), (1.0, 1.0));
         assert!((filled.area - full.area).abs() < 1e-12 && (filled.area_w2 - full.area_w2).abs() < 1e-12);
+        // An edge pixel of weight w < 1 filled from its mirror (15.6, 9.2): its value, area
+        // and variance enter with w, w, w^2 as an unmasked one would.
+        let mut mask = Array2::<u8>::zeros((ny, nx));
+        mask[[20, 15]] = 1;
+        let dropped = aperture_sum(
+            img.view(),
+            Some(var.view()),
+            Some(mask.view()),
+            &ap,
+            Method::Exact,
+            MaskFill::Exclude,
+        );
+        let w = full.area - dropped.area;
+        assert!(w > 0.05 && w < 0.95, "{w}");
+        let filled = aperture_sum(
+            img.view(),
+            Some(var.view()),
+            Some(mask.view()),
+            &ap,
+            Method::Exact,
+            MaskFill::Mirror,
+        );
+        let want_sum = full.sum - w * img[[20, 15]] as f64 + w * plane(15.6, 9.2);
+        assert!((filled.sum - want_sum).abs() < 1e-3, "{} vs {want_sum}", filled.sum);
+        assert!((filled.area_w2 - full.area_w2).abs() < 1e-12, "{filled:?}");
+        let want_var = q as f64 * (full.area_w2 - w * w + w * w * sum_b2);
+        assert!(
+            (filled.variance.unwrap() - want_var).abs() < 1e-6,
+            "{filled:?} vs {want_var}"
+        );
+    }
+
+    /// The largest value is found on the aperture's edge pixels too (summed one by one,
+    /// not in interior runs).
+    #[test]
+    fn the_largest_value_may_be_on_the_edge() {
+        let mut img = Array2::<f32>::ones((30, 30));
+        img[[20, 15]] = 9.0;
+        let ap = Aperture {
+            x: 15.3,
+            y: 14.6,
+            r: 5.5,
+        };
+        let s = aperture_sum(img.view(), None, None, &ap, Method::Exact, MaskFill::Exclude);
+        assert_eq!(s.max_value, Some(9.0));
     }
 }

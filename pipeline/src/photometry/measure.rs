@@ -567,6 +567,35 @@ mod tests {
         assert!(!contaminated(&[], &with_min(n)) && contaminated(&[], &with_min(n + 1)));
     }
 
+    /// Without a variance map, a gain adds the source's shot noise flux / g (ADU^2) to the
+    /// variance.
+    #[test]
+    fn a_gain_adds_the_source_shot_noise() {
+        let img = star_image(64, 30.0, 31.0, 2.0e4, 40.0);
+        let p = PhotParams::default();
+        let sky_only = measure(img.view(), None, None, &p, 30.0, 31.0, &[]);
+        let g = 4.0;
+        let with_gain = measure(
+            img.view(),
+            None,
+            None,
+            &PhotParams {
+                gain_e_per_adu: Some(g),
+                ..p
+            },
+            30.0,
+            31.0,
+            &[],
+        );
+        assert_eq!(with_gain.flux, sky_only.flux);
+        let shot = with_gain.variance - sky_only.variance;
+        assert!(
+            (shot - sky_only.flux / g).abs() < 1e-6 * shot,
+            "{shot} vs {}",
+            sky_only.flux / g
+        );
+    }
+
     /// Annulus pixels near a listed source are left out of the background (the sample is
     /// smaller than without the source); a valid region reaching beyond the image is the
     /// image.
