@@ -51,7 +51,7 @@ group_files() {
 reduce_tests="reduce:: brightest median_offset eo_offset combine_geometry primary_of noiseless lone_star unpolarized_faint saturated one_dither near_equal_faint"
 group_tests() {
     case "$1" in
-        stats) echo "--lib -- stats::tests_pvalues stats::tests::k stats::tests::binomial" ;;
+        stats) echo "--lib -- stats::tests_pvalues stats::tests::k stats::tests::binomial stats::tests_errors::ks_" ;;
         photometry) echo "--lib -- photometry:: --skip photometry::psf_fit::joint" ;;
         inversion) echo "--lib -- stokes:: $slow" ;;
         calibration) echo "--lib -- stokes:: calibration:: $slow" ;;
