@@ -179,15 +179,20 @@ fn ks_uniform_tests_the_sample_on_its_own_interval() {
     assert!(wrong.statistic > 0.1, "D {}", wrong.statistic);
 }
 
-/// A two-sample test with either sample empty has nothing to compare: D = 0, p = 1, said so.
+/// A two-sample test (either form) with either sample empty has nothing to compare: D = 0,
+/// p = 1, said so.
 #[test]
 fn ks_two_sample_with_an_empty_sample_is_trivial() {
     let some = [0.1, 0.5, 0.9];
     for (a, b) in [(&some[..], &[][..]), (&[][..], &some[..]), (&[][..], &[][..])] {
-        let t = super::ks::ks_two_sample(a, b);
-        assert_eq!(
-            (t.statistic, t.p_value, t.n, t.method.as_str()),
-            (0.0, 1.0, 0, "empty sample")
-        );
+        for t in [
+            super::ks::ks_two_sample(a, b),
+            super::ks::ks_two_sample_against_large(a, b),
+        ] {
+            assert_eq!(
+                (t.statistic, t.p_value, t.n, t.method.as_str()),
+                (0.0, 1.0, 0, "empty sample")
+            );
+        }
     }
 }
