@@ -347,21 +347,7 @@ mod tests {
                 .map(|phi| {
                     let t = (2.0 * phi).to_radians();
                     let f = q * t.cos() + u * t.sin();
-                    (0..3)
-                        .map(|i| DitherValue {
-                            f: f + 0.0005 * (i as f64 - 1.0),
-                            sigma_f: 0.001,
-                            o: BeamFlux {
-                                flux: 1e4,
-                                ..BeamFlux::missing()
-                            },
-                            e: BeamFlux {
-                                flux: 1e4,
-                                ..BeamFlux::missing()
-                            },
-                            rejected: None,
-                        })
-                        .collect()
+                    dithers(&[(f - 0.0005, 0.001), (f, 0.001), (f + 0.0005, 0.001)])
                 })
                 .collect()
         };
