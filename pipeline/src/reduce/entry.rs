@@ -96,9 +96,6 @@ pub fn component_from_dithers(
         let vals: Vec<f64> = usable.iter().map(|&i| dv[i].f).collect();
         let sig: Vec<f64> = usable.iter().map(|&i| dv[i].sigma_f).collect();
         let keep = clip_dithers(&vals, &sig, params.clip_sigma, 2);
-        if keep.len() < vals.len() && !flags.contains(&"dither_clipped".to_string()) {
-            flags.push("dither_clipped".into());
-        }
         // Every dither not kept, by frame, with why.
         for (i, d) in dv.iter().enumerate() {
             if keep.iter().any(|&j| usable[j] == i) {
@@ -111,6 +108,11 @@ pub fn component_from_dithers(
                 _ if d.f.is_finite() && d.sigma_f > 0.0 => "clipped".to_string(),
                 _ => "no value".to_string(),
             };
+            // Only an outlier clipped is `dither_clipped`; a value that is not a number
+            // was never a candidate.
+            if reason == "clipped" && !flags.iter().any(|f| f == "dither_clipped") {
+                flags.push("dither_clipped".into());
+            }
             let file = files
                 .get(k)
                 .and_then(|f| f.get(i))
@@ -312,7 +314,14 @@ pub fn target_entry(
     let mut t = Target {
         error: match status {
             Status::Ok => None,
-            Status::Partial => m.flags.first().cloned().or(Some("companion not measured".into())),
+            Status::Partial => m.flags.first().cloned().or(Some(
+                if components.first().is_some_and(|c| c.q.is_finite()) {
+                    "companion not measured"
+                } else {
+                    "primary not measured"
+                }
+                .into(),
+            )),
             Status::Failed => Some(format!(
                 "no component could be measured{}",
                 m.flags.first().map(|f| format!(": {f}")).unwrap_or_default()
@@ -660,7 +669,8 @@ mod tests {
 
     /// The component's parallactic angle and flux come from the dithers kept, matched by
     /// index after the rejected ones are left out; photometry flags of a used dither reach
-    /// the component; a value that is not a number is "no value", not "clipped".
+    /// the component; a value that is not a number is "no value", not "clipped", and does
+    /// not flag the component `dither_clipped`.
     #[test]
     fn kept_dithers_carry_their_angle_flux_and_photometry_flags() {
         let mut first = dithers(&[
@@ -726,6 +736,8 @@ mod tests {
             dropped,
             [("a.fits", "cosmic_ray"), ("d.fits", "no value"), ("e.fits", "no value")]
         );
+        // Values that are not numbers were never clipped: no `dither_clipped`.
+        assert!(!c.flags.iter().any(|f| f == "dither_clipped"), "{:?}", c.flags);
         assert!(c.passes_cut && c.snr.unwrap() > 3.0, "{c:?}");
         assert!(!c.flags.iter().any(|f| f == "low_snr"), "{:?}", c.flags);
     }
@@ -783,8 +795,8 @@ mod tests {
     }
 
     /// Status and error of the target: both components measured is OK (no error); one is
-    /// partial, with the measurement's first flag as its reason (or "companion not
-    /// measured"); none is failed, with that flag after the reason.
+    /// partial, with the measurement's first flag as its reason (or which star was not
+    /// measured); none is failed, with that flag after the reason.
     #[test]
     fn the_status_and_error_say_what_was_measured() {
         let params = MeasureParams::default();
@@ -807,12 +819,26 @@ mod tests {
             (t.status, t.error.as_deref()),
             (Status::Partial, Some("companion_not_found"))
         );
-        // The companion measured, the primary not: partial too.
+        // The companion measured, the primary not: partial too, and said which.
         let mut m = measured(Vec::new());
         for d in m.dithers[0].iter_mut().flatten() {
             *d = DitherValue::missing("primary_not_found");
         }
-        assert_eq!(target_entry("X", &orients(), &m, &params, kw).status, Status::Partial);
+        let t = target_entry("X", &orients(), &m, &params, kw);
+        assert_eq!(
+            (t.status, t.error.as_deref()),
+            (Status::Partial, Some("primary not measured"))
+        );
+        // The companion not measured while the primary was: named so.
+        let mut b = measured(Vec::new());
+        for d in b.dithers[1].iter_mut().flatten() {
+            *d = DitherValue::missing("companion_not_found");
+        }
+        let t = target_entry("X", &orients(), &b, &params, kw);
+        assert_eq!(
+            (t.status, t.error.as_deref()),
+            (Status::Partial, Some("companion not measured"))
+        );
         for d in m.dithers[1].iter_mut().flatten() {
             *d = DitherValue::missing("primary_not_found");
         }
