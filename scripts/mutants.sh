@@ -60,8 +60,10 @@ group_tests() {
 }
 all_groups=(stats photometry inversion calibration reduce)
 
-# Kill rate per file over every outcome under a directory: caught / (caught + missed +
-# timeout); unviable mutants (that do not build) are counted apart. A group's history.txt
+# Kill rate per file over every outcome under a directory: (caught + timeout) / (caught +
+# missed + timeout). A timeout is a mutant whose tests did not finish within
+# MUTANTS_TIMEOUT (for these files an endless loop: the tests did not let it pass; each is
+# read, docs/testing.md); unviable mutants (that do not build) are counted apart. A group's history.txt
 # (the outcomes of its earlier runs, kept by `run` below because `--iterate` moves them
 # away) is read first, then its latest run; a mutant's latest outcome counts.
 outcomes() {
@@ -101,7 +103,7 @@ summary() {
                 c = n[f SUBSEP "caught"] + 0; m = n[f SUBSEP "missed"] + 0
                 t = n[f SUBSEP "timeout"] + 0; u = n[f SUBSEP "unviable"] + 0
                 x = n[f SUBSEP "untested"] + 0; tested = c + m + t
-                printf "%-40s %7d %7d %7d %7d %8d %8.1f%%\n", f, c, m, t, u, x, tested ? 100 * c / tested : 0
+                printf "%-40s %7d %7d %7d %7d %8d %8.1f%%\n", f, c, m, t, u, x, tested ? 100 * (c + t) / tested : 0
             }
         }' | sort
 }
