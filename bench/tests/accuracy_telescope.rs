@@ -20,7 +20,7 @@
 use rand::{RngExt, SeedableRng};
 use sofipol_calib::Profile;
 use sofipol_pipeline::calibration::{CalibSetup, Calibration, CalibrationParams, TELESCOPE_UNCORRECTED};
-use sofipol_pipeline::catalog::Catalog;
+use sofipol_pipeline::catalog::{Catalog, Component};
 use sofipol_pipeline::night::{self, NightOutput, NightSetup, RunOptions};
 use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sim::{Scene, Simulator, Truth};
@@ -379,9 +379,9 @@ fn the_telescope_is_measured_removed_and_its_absence_flagged_over_many_nights() 
         root_mean_square(&dg_off) > 2.0 * root_mean_square(&dg),
         "the uncorrected scatter of Delta-gamma is not larger"
     );
-    // The Delta-gamma pulls are below 1 here (0.76) while the q, u pulls are not: the two
-    // stars' errors are taken as independent, and an error common to both (a dither-to-dither
-    // scatter of F common to the pair) is not modelled. Bounded, not yet explained.
+    // The Delta-gamma pulls of these 16 nights are 0.76 (75 binaries); over 32 nights they
+    // are 0.88 with the correction and without a telescope alike
+    // (`delta_gamma_pulls_do_not_depend_on_the_telescope_correction`).
     assert!((0.6..=1.25).contains(&rms_dgp), "Delta-gamma pull rms {rms_dgp}");
 }
 
@@ -472,4 +472,137 @@ fn four_orientations_and_another_nights_calibration_are_corrected_too() {
         (0.8..=1.25).contains(&rmsc) && meanc.abs() < 0.2,
         "--calib: {rmsc} {meanc}"
     );
+}
+
+/// What the Delta-gamma pulls of [`score`] are made of, on nights 1..=`nights`: the
+/// catalog's Delta-gamma error against the one of the two stars' measurement covariances
+/// alone, and each star's q, u error split along its true polarization (radial: P) and
+/// across it (tangential: the angle), with the statistical errors alone and the totals.
+#[derive(Default)]
+struct DeltaGammaParts {
+    /// Delta-gamma pulls with the catalog's error and with the measurement-only one
+    /// (binaries with true Delta-gamma 10-80 deg, both passing the cut).
+    pulls: Vec<(f64, f64)>,
+    /// Radial and tangential errors over the statistical and the total error of each
+    /// component.
+    radial: Vec<(f64, f64)>,
+    tangential: Vec<(f64, f64)>,
+}
+
+fn delta_gamma_parts(nights: std::ops::RangeInclusive<u64>, p_tel: f64, correct: bool) -> DeltaGammaParts {
+    let work = tempfile::tempdir().unwrap();
+    let mut out = DeltaGammaParts::default();
+    for seed in nights {
+        let n = Night {
+            p_tel: Some(p_tel),
+            ..Night::new(seed)
+        };
+        let dir = work.path().join(format!("night{seed}"));
+        let truth = simulate(&n, &dir);
+        let params = CalibrationParams {
+            no_telescope_correction: !correct,
+            ..Default::default()
+        };
+        let cat = reduce(&dir, params, None).catalog;
+        let _ = std::fs::remove_dir_all(&dir);
+        for tt in &truth.targets {
+            let Some(t) = cat.targets.iter().find(|t| t.object == tt.object) else {
+                continue;
+            };
+            let swapped = t
+                .pa_deg
+                .is_some_and(|pa| (90.0..270.0).contains(&(pa - tt.pa_deg).rem_euclid(360.0)));
+            let mut comps = tt.components.clone();
+            if swapped {
+                comps.swap(0, 1);
+            }
+            let usable = |c: &Component| {
+                !c.flags.iter().any(|f| f == "saturated" || f.starts_with("ab_identity"))
+                    && c.q.is_finite()
+                    && c.sigma_q_stat.is_some()
+                    && c.sigma_u_stat.is_some()
+            };
+            for (c, tc) in t.components.iter().zip(&comps).filter(|(c, _)| usable(c)) {
+                let (dq, du) = (c.q - tc.q, c.u - tc.u);
+                let p = tc.q.hypot(tc.u);
+                let (rq, ru) = (tc.q / p, tc.u / p);
+                let stat = c.sigma_q_stat.unwrap().hypot(c.sigma_u_stat.unwrap()) / 2f64.sqrt();
+                let total = c.sigma_q.hypot(c.sigma_u) / 2f64.sqrt();
+                let (radial, across) = (dq * rq + du * ru, du * rq - dq * ru);
+                out.radial.push((radial / stat, radial / total));
+                out.tangential.push((across / stat, across / total));
+            }
+            let ([a, b], Some(d), Some(sd)) = (t.components.as_slice(), t.delta_gamma_deg, t.sigma_delta_gamma_deg)
+            else {
+                continue;
+            };
+            let truth = fold(comps[0].gamma_deg - comps[1].gamma_deg);
+            if !(usable(a) && usable(b) && (10.0..=80.0).contains(&truth)) {
+                continue;
+            }
+            let measured = (gamma_variance_rad2(a) + gamma_variance_rad2(b)).sqrt().to_degrees();
+            out.pulls.push(((d - truth) / sd, (d - truth) / measured));
+        }
+    }
+    out
+}
+
+/// The variance of a component's angle (rad^2) from its statistical covariance alone.
+fn gamma_variance_rad2(c: &Component) -> f64 {
+    let p2 = c.q * c.q + c.u * c.u;
+    let g = [-0.5 * c.u / p2, 0.5 * c.q / p2];
+    let (sq, su) = (c.sigma_q_stat.unwrap(), c.sigma_u_stat.unwrap());
+    g[0] * g[0] * sq * sq + g[1] * g[1] * su * su + 2.0 * g[0] * g[1] * c.cov_qu_stat.unwrap_or(0.0)
+}
+
+/// The Delta-gamma pulls on 32 nights, with the telescope (0.6 %) corrected and with no
+/// telescope at all: the correction does not shrink them (the 0.76 of the first test's 16
+/// nights was partly those nights' draw), and each star's angle error is dominated by what
+/// Delta-gamma cancels (the zero-point's rotation: tangential pulls of the statistical
+/// error well above 1, radial ones near 1). The figures of docs/accuracy.md.
+#[test]
+#[ignore = "~2.5 min in release: run for the figures of docs/accuracy.md"]
+fn delta_gamma_pulls_do_not_depend_on_the_telescope_correction() {
+    let rms = |v: &mut dyn Iterator<Item = f64>| {
+        let v: Vec<f64> = v.collect();
+        (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt()
+    };
+    let mut pull_rms = Vec::new();
+    for (label, p_tel, correct) in [
+        ("telescope 0.6 %, corrected", 0.006, true),
+        ("no telescope, not corrected", 0.0, false),
+    ] {
+        let d = delta_gamma_parts(1..=32, p_tel, correct);
+        let (all, measured) = (
+            rms(&mut d.pulls.iter().map(|p| p.0)),
+            rms(&mut d.pulls.iter().map(|p| p.1)),
+        );
+        let (r_stat, r_total) = (
+            rms(&mut d.radial.iter().map(|p| p.0)),
+            rms(&mut d.radial.iter().map(|p| p.1)),
+        );
+        let (t_stat, t_total) = (
+            rms(&mut d.tangential.iter().map(|p| p.0)),
+            rms(&mut d.tangential.iter().map(|p| p.1)),
+        );
+        eprintln!(
+            "{label}: {} Delta-gamma pulls rms {all:.3} (measurement-only error {measured:.3}, sd of the rms {:.3}); \
+             {} components: radial rms {r_stat:.3} stat / {r_total:.3} total, tangential {t_stat:.3} / {t_total:.3}",
+            d.pulls.len(),
+            (0.5 / d.pulls.len() as f64).sqrt(),
+            d.radial.len()
+        );
+        assert!(d.pulls.len() >= 100, "{label}: {} pairs", d.pulls.len());
+        assert!((0.75..=1.15).contains(&all), "{label}: Delta-gamma pull rms {all}");
+        // The zero-point's rotation is in each angle (not in Delta-gamma): across the
+        // polarization the statistical error alone is too small.
+        assert!(
+            t_stat > 1.3 && (0.8..=1.25).contains(&t_total),
+            "{label}: {t_stat} {t_total}"
+        );
+        assert!((0.8..=1.2).contains(&r_stat), "{label}: radial {r_stat}");
+        pull_rms.push(all);
+    }
+    // The correction changes the pulls by less than their spread (both ~0.06).
+    assert!((pull_rms[0] - pull_rms[1]).abs() < 0.1, "{pull_rms:?}");
 }
