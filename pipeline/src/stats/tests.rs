@@ -293,6 +293,36 @@ fn ks_statistics_match_brute_force_and_statrs() {
     }
 }
 
+/// Q_KS(lambda) against scipy's `special.kolmogorov` (testdata/stats/kolmogorov_q.json) to
+/// 1e-11 relative: on both sides of the switch between the two series at lambda = 1, in the
+/// far tail (Q = 3e-8 to 1e-31, where 1 - sum would keep no digit) and near 0 (where the
+/// alternating series would need hundreds of terms).
+#[test]
+fn kolmogorov_q_matches_scipy_on_both_series_and_in_the_far_tail() {
+    let r: Value = serde_json::from_str(include_str!("../../../testdata/stats/kolmogorov_q.json")).unwrap();
+    for e in r["q"].as_array().unwrap() {
+        let (lambda, want) = (f(&e["lambda"]), f(&e["q"]));
+        let got = super::ks::kolmogorov_q(lambda);
+        assert!(
+            rel_close(got, want, 1e-11),
+            "lambda {lambda}: {got:e} vs scipy {want:e}"
+        );
+    }
+    assert_eq!(super::ks::kolmogorov_q(0.0), 1.0);
+    assert_eq!(super::ks::kolmogorov_q(-1.0), 1.0);
+}
+
+/// The trivial cases of P(D_n >= d): no data or d <= 0 give 1, d >= 1 gives 0 (D <= 1).
+#[test]
+fn kolmogorov_sf_trivial_cases() {
+    for (d, n) in [(0.5, 0), (0.0, 10), (-0.2, 10), (-0.2, 5000)] {
+        assert_eq!(kolmogorov_sf(d, n), (1.0, "trivial"), "d {d} n {n}");
+    }
+    for (d, n) in [(1.0, 10), (1.5, 5000)] {
+        assert_eq!(kolmogorov_sf(d, n), (0.0, "trivial"), "d {d} n {n}");
+    }
+}
+
 #[test]
 fn kolmogorov_tail_formula_agrees_with_exact_where_they_overlap() {
     // Around the switch both are valid: 2 P(D+ >= d) and 1 - K(d) agree to ~p^2.
