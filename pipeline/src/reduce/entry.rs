@@ -522,6 +522,9 @@ mod tests {
             .map(|d| (d.file.as_str(), d.reason.as_str()))
             .collect();
         assert_eq!(dropped, [("orientation 1 dither 4", "clipped")]);
+        // Flagged once, after the flags the fallback set (`saturated`, `used_flagged_dithers`).
+        let n = c.flags.iter().filter(|f| *f == "dither_clipped").count();
+        assert_eq!(n, 1, "{:?}", c.flags);
     }
 
     #[test]
