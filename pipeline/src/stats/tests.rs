@@ -293,13 +293,13 @@ fn ks_statistics_match_brute_force_and_statrs() {
     }
 }
 
-/// Q_KS(lambda) against scipy's `special.kolmogorov` (testdata/stats/kolmogorov_q.json) to
+/// Q_KS(lambda) against scipy's `special.kolmogorov` (testdata/stats/kolmogorov.json) to
 /// 1e-11 relative: on both sides of the switch between the two series at lambda = 1, in the
 /// far tail (Q = 3e-8 to 1e-31, where 1 - sum would keep no digit) and near 0 (where the
 /// alternating series would need hundreds of terms).
 #[test]
 fn kolmogorov_q_matches_scipy_on_both_series_and_in_the_far_tail() {
-    let r: Value = serde_json::from_str(include_str!("../../../testdata/stats/kolmogorov_q.json")).unwrap();
+    let r: Value = serde_json::from_str(include_str!("../../../testdata/stats/kolmogorov.json")).unwrap();
     for e in r["q"].as_array().unwrap() {
         let (lambda, want) = (f(&e["lambda"]), f(&e["q"]));
         let got = super::ks::kolmogorov_q(lambda);
@@ -310,6 +310,27 @@ fn kolmogorov_q_matches_scipy_on_both_series_and_in_the_far_tail() {
     }
     assert_eq!(super::ks::kolmogorov_q(0.0), 1.0);
     assert_eq!(super::ks::kolmogorov_q(-1.0), 1.0);
+}
+
+/// The exact P(D_n >= d) at odd n near the exact method's limit (999, 997): the matrix
+/// power's entries pass 1e140 and are rescaled, and its odd steps then add the exponents of
+/// A and A^(2k) (n = 1000, in `kolmogorov_sf_matches_kstwo_including_far_tail`, has no odd
+/// step after the rescaling begins). Against the same matrix formula in 50-digit mpmath
+/// (testdata/stats/kolmogorov.json) to 1e-10, and scipy's `kstwo`, an approximation here,
+/// to 1e-6 (it is off by up to 3.4e-7).
+#[test]
+fn kolmogorov_sf_at_odd_n_matches_the_50_digit_formula() {
+    let r: Value = serde_json::from_str(include_str!("../../../testdata/stats/kolmogorov.json")).unwrap();
+    for e in r["sf"].as_array().unwrap() {
+        let (d, n) = (f(&e["d"]), e["n"].as_u64().unwrap() as usize);
+        let (want, scipy) = (f(&e["sf"]), f(&e["sf_scipy"]));
+        let (p, method) = kolmogorov_sf(d, n);
+        assert!(
+            rel_close(p, want, 1e-10),
+            "d {d} n {n}: {p} ({method}) vs 50 digits {want}"
+        );
+        assert!(rel_close(p, scipy, 1e-6), "d {d} n {n}: {p} vs scipy {scipy}");
+    }
 }
 
 /// The trivial cases of P(D_n >= d): no data or d <= 0 give 1, d >= 1 gives 0 (D <= 1).
