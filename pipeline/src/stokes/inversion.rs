@@ -856,6 +856,21 @@ mod tests {
         // Near the root Newton alone converges: no bisection, a few steps.
         let (x, steps) = bracketed_newton(f, df, (-10.0, 30.0), 1.2);
         assert!((x - 1.0).abs() < 1e-12 && steps <= 5, "{x} {steps}");
+        // A derivative 1000 times too small: every Newton step leaves the bracket and
+        // bisection alone finds the root, every point inside the bracket, halving it from 2
+        // to 1e-12 (log2(2e12) = 41 halvings).
+        let seen = std::cell::RefCell::new(Vec::new());
+        let g = |x: f64| {
+            seen.borrow_mut().push(x);
+            x - 1.3
+        };
+        let (x, steps) = bracketed_newton(g, |_| 1e-3, (0.0, 2.0), 0.5);
+        assert!((x - 1.3).abs() < 1e-12 && (40..=42).contains(&steps), "{x} {steps}");
+        assert!(
+            seen.borrow().iter().all(|x| (0.0..=2.0).contains(x)),
+            "{:?}",
+            seen.borrow()
+        );
         // A root on the bracket's upper end.
         let g = |x: f64| x - 2.0;
         let (x, _) = bracketed_newton(g, |_| 1.0, (0.0, 2.0), 0.5);
