@@ -344,6 +344,30 @@ fn kolmogorov_sf_trivial_cases() {
     }
 }
 
+/// Kuiper's V on an interval that does not start at 0, by hand: u = 0.1, 0.35, 0.4, 0.9 of
+/// the interval give D+ = 0.75 - 0.4 = 0.35 and D- = 0.9 - 0.75 = 0.15, V = 0.5, on [10, 100]
+/// and on [-90, 0] alike; the p-value is the exact one of V = 0.5, n = 4.
+#[test]
+fn kuiper_uniform_scales_any_interval_to_the_unit_one() {
+    let u = [0.4, 0.1, 0.9, 0.35];
+    for (lo, hi) in [(10.0, 100.0), (-90.0, 0.0), (0.0, 1.0)] {
+        let data: Vec<f64> = u.iter().map(|x| lo + (hi - lo) * x).collect();
+        let t = kuiper_uniform(&data, lo, hi);
+        assert!((t.statistic - 0.5).abs() < 1e-12, "[{lo}, {hi}]: V {}", t.statistic);
+        assert_eq!(t.n, 4);
+        assert!((t.p_value - kuiper_p(0.5, 4).0).abs() < 1e-12, "[{lo}, {hi}]: {t:?}");
+    }
+}
+
+/// The trivial cases of the asymptotic P(V_n >= v): no data or v <= 0 give 1.
+#[test]
+fn kuiper_sf_trivial_cases() {
+    for (v, n) in [(0.5, 0), (0.0, 300), (-0.1, 300)] {
+        assert_eq!(kuiper_sf(v, n), 1.0, "v {v} n {n}");
+    }
+    assert!(kuiper_sf(0.5, 300) < 1e-20);
+}
+
 #[test]
 fn kolmogorov_tail_formula_agrees_with_exact_where_they_overlap() {
     // Around the switch both are valid: 2 P(D+ >= d) and 1 - K(d) agree to ~p^2.
