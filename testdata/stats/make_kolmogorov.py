@@ -54,8 +54,9 @@ def mtw_sf_mp(d, n):
     return float(1 - s)
 
 
-# Odd n: 999 = 2 * 499 + 1 and 997 end on an odd step after the rescaling has begun.
-ODD_N = [999, 997]
+# Odd n: 999 = 2 * 499 + 1 and 997 end on an odd step after the rescaling has begun; at
+# 513 the power is rescaled once (exponent 140), the smallest exponent the final loop undoes.
+ODD_N = [999, 997, 513]
 
 out = {
     "origin": {

@@ -315,7 +315,8 @@ fn kolmogorov_q_matches_scipy_on_both_series_and_in_the_far_tail() {
 /// The exact P(D_n >= d) at odd n near the exact method's limit (999, 997): the matrix
 /// power's entries pass 1e140 and are rescaled, and its odd steps then add the exponents of
 /// A and A^(2k) (n = 1000, in `kolmogorov_sf_matches_kstwo_including_far_tail`, has no odd
-/// step after the rescaling begins). Against the same matrix formula in 50-digit mpmath
+/// step after the rescaling begins); at n = 513 the power carries the exponent 140, which
+/// the final loop over n!/n^n must take back once. Against the same matrix formula in 50-digit mpmath
 /// (testdata/stats/kolmogorov.json) to 1e-10, and scipy's `kstwo`, an approximation here,
 /// to 1e-6 (it is off by up to 3.4e-7).
 #[test]
