@@ -20,10 +20,10 @@
 use rand::{RngExt, SeedableRng};
 use sofipol_calib::Profile;
 use sofipol_pipeline::calibration::{CalibSetup, Calibration, CalibrationParams, TELESCOPE_UNCORRECTED};
-use sofipol_pipeline::catalog::{Catalog, Component};
+use sofipol_pipeline::catalog::{Catalog, Component, Target};
 use sofipol_pipeline::night::{self, NightOutput, NightSetup, RunOptions};
 use sofipol_pipeline::reduce::TargetParams;
-use sofipol_pipeline::sim::{Scene, Simulator, Truth};
+use sofipol_pipeline::sim::{ComponentTruth, Scene, Simulator, Truth};
 use sofipol_pipeline::standards::StandardsTable;
 
 /// The nights (seeds). 16 nights of 6 binaries give ~380 q, u pulls; with a common share of
@@ -226,22 +226,26 @@ fn fold(d: f64) -> f64 {
     }
 }
 
-fn score(cat: &Catalog, truth: &Truth) -> Score {
-    let mut s = Score::default();
-    for tt in &truth.targets {
-        let Some(t) = cat.targets.iter().find(|t| t.object == tt.object) else {
-            continue;
-        };
-        // The fainter star is B (flux ratio <= 0.6): a found PA opposite to the truth's
-        // means the labels were swapped.
-        let swapped = t.pa_deg.is_some_and(|pa| {
-            let d = (pa - tt.pa_deg).rem_euclid(360.0);
-            d > 90.0 && d < 270.0
-        });
+/// Each catalog target with its truth's components in the catalog's order: the fainter
+/// star is B (flux ratio <= 0.6), so a found PA opposite to the truth's means the labels
+/// were swapped.
+fn matched<'a>(cat: &'a Catalog, truth: &'a Truth) -> impl Iterator<Item = (&'a Target, Vec<ComponentTruth>)> {
+    truth.targets.iter().filter_map(|tt| {
+        let t = cat.targets.iter().find(|t| t.object == tt.object)?;
+        let swapped = t
+            .pa_deg
+            .is_some_and(|pa| (90.0..270.0).contains(&(pa - tt.pa_deg).rem_euclid(360.0)));
         let mut comps = tt.components.clone();
         if swapped {
             comps.swap(0, 1);
         }
+        Some((t, comps))
+    })
+}
+
+fn score(cat: &Catalog, truth: &Truth) -> Score {
+    let mut s = Score::default();
+    for (t, comps) in matched(cat, truth) {
         for (c, tc) in t.components.iter().zip(&comps) {
             let refused = c.flags.iter().any(|f| f == "saturated" || f.starts_with("ab_identity"));
             if refused || !(c.q.is_finite() && c.sigma_q > 0.0 && c.sigma_u > 0.0) {
@@ -505,17 +509,7 @@ fn delta_gamma_parts(nights: std::ops::RangeInclusive<u64>, p_tel: f64, correct:
         };
         let cat = reduce(&dir, params, None).catalog;
         let _ = std::fs::remove_dir_all(&dir);
-        for tt in &truth.targets {
-            let Some(t) = cat.targets.iter().find(|t| t.object == tt.object) else {
-                continue;
-            };
-            let swapped = t
-                .pa_deg
-                .is_some_and(|pa| (90.0..270.0).contains(&(pa - tt.pa_deg).rem_euclid(360.0)));
-            let mut comps = tt.components.clone();
-            if swapped {
-                comps.swap(0, 1);
-            }
+        for (t, comps) in matched(&cat, &truth) {
             let usable = |c: &Component| {
                 !c.flags.iter().any(|f| f == "saturated" || f.starts_with("ab_identity"))
                     && c.q.is_finite()

@@ -822,26 +822,22 @@ mod tests {
             (t.status, t.error.as_deref()),
             (Status::Partial, Some("companion_not_found"))
         );
-        // The companion measured, the primary not: partial too, and said which.
-        let mut m = measured(Vec::new());
-        for d in m.dithers[0].iter_mut().flatten() {
-            *d = DitherValue::missing("primary_not_found");
+        // One star measured, the other not (every dither missing): partial, and said which.
+        let without = |star: usize, reason: &str| {
+            let mut m = measured(Vec::new());
+            for d in m.dithers[star].iter_mut().flatten() {
+                *d = DitherValue::missing(reason);
+            }
+            m
+        };
+        let mut m = without(0, "primary_not_found");
+        for (m, want) in [
+            (&m, "primary not measured"),
+            (&without(1, "companion_not_found"), "companion not measured"),
+        ] {
+            let t = target_entry("X", &orients(), m, &params, kw);
+            assert_eq!((t.status, t.error.as_deref()), (Status::Partial, Some(want)));
         }
-        let t = target_entry("X", &orients(), &m, &params, kw);
-        assert_eq!(
-            (t.status, t.error.as_deref()),
-            (Status::Partial, Some("primary not measured"))
-        );
-        // The companion not measured while the primary was: named so.
-        let mut b = measured(Vec::new());
-        for d in b.dithers[1].iter_mut().flatten() {
-            *d = DitherValue::missing("companion_not_found");
-        }
-        let t = target_entry("X", &orients(), &b, &params, kw);
-        assert_eq!(
-            (t.status, t.error.as_deref()),
-            (Status::Partial, Some("companion not measured"))
-        );
         for d in m.dithers[1].iter_mut().flatten() {
             *d = DitherValue::missing("primary_not_found");
         }
