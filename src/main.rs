@@ -108,7 +108,7 @@ fn main() -> ExitCode {
     match result {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("sofipol: error: {e:#}");
+            eprintln!("sofipol: error: {}", cmd::error_text(&cmd::chain_text(&e)));
             ExitCode::from(1)
         }
     }

@@ -207,7 +207,7 @@ fn night_with_an_absurd_calibration_file_exits_1_naming_file_key_and_value() {
     for (c, parity, theta0, expect) in [
         (5.0, 7, 1e300, "filters[0].offset.c = 5"),
         (0.018, 7, 3.0, "filters[0].angles.parity = 7"),
-        (0.018, 1, 1e300, "filters[0].angles.theta0_deg = 1000000"),
+        (0.018, 1, 1e300, "filters[0].angles.theta0_deg = 1e300"),
     ] {
         write(c, parity, theta0);
         let out = tmp.path().join("c.json");

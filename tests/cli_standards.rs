@@ -43,7 +43,12 @@ fn a_standards_table_with_absurd_numbers_or_duplicates_is_refused_by_entry_and_k
         (
             "gamma_out",
             ENTRY.replace("gamma_deg = 58.7", "gamma_deg = 400.0"),
-            "gamma_deg = 400.0",
+            "gamma_deg = 400:",
+        ),
+        (
+            "p_in_per_cent",
+            ENTRY.replace("p = 0.0088", "p = 0.88"),
+            "p = 0.88: must be a fraction in [0, 0.1] (0.0088 for 0.88 %",
         ),
         (
             "sigma_p_inf",

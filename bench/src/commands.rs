@@ -130,7 +130,7 @@ pub fn accuracy(args: AccuracyArgs, params: &TargetParams) -> anyhow::Result<()>
         quick,
     } = args;
     if let Some(dir) = report {
-        let command = std::env::args().collect::<Vec<_>>().join(" ");
+        let command = sofipol_pipeline::build_info::command_line_string();
         let opts = crate::accuracy_report::ReportOptions {
             targets,
             seed,

@@ -125,6 +125,8 @@ pub struct TempFile {
     /// Where to write before [`TempFile::commit`].
     pub path: PathBuf,
     dir: tempfile::TempDir,
+    /// The private directory held open, for [`TempFile::ascii_path`].
+    dir_handle: Option<std::fs::File>,
 }
 
 impl TempFile {
@@ -143,7 +145,39 @@ impl TempFile {
         let parent = dir_of(dest);
         let dir = b.tempdir_in(parent).map_err(|e| io(parent, e))?;
         let path = dir.path().join(safe);
-        Ok(TempFile { path, dir })
+        Ok(TempFile {
+            path,
+            dir,
+            dir_handle: None,
+        })
+    }
+
+    /// A name of [`TempFile::path`] made only of ASCII letters, digits, `/`, `.`, `_` and
+    /// `-`, for a library that takes file names as text and parses them (cfitsio): the
+    /// path itself when it is such a name, else (a folder named in another encoding, or
+    /// with brackets) the file inside the private directory held open, reached through
+    /// `/proc/self/fd` (Linux). `None` where neither exists.
+    pub fn ascii_path(&mut self) -> Option<String> {
+        let plain = |s: &str| s.bytes().all(|b| b.is_ascii_alphanumeric() || b"/._-".contains(&b));
+        if let Some(s) = self.path.to_str().filter(|s| plain(s) && !s.starts_with('-')) {
+            return Some(s.to_string());
+        }
+        let name = self.path.file_name()?.to_str()?.to_string();
+        if self.dir_handle.is_none() {
+            self.dir_handle = std::fs::File::open(self.dir.path()).ok();
+        }
+        #[cfg(target_os = "linux")]
+        {
+            use std::os::fd::AsRawFd;
+            let fd = self.dir_handle.as_ref()?.as_raw_fd();
+            let p = format!("/proc/self/fd/{fd}/{name}");
+            return Path::new(&p).parent()?.is_dir().then_some(p);
+        }
+        #[allow(unreachable_code)]
+        {
+            let _ = name;
+            None
+        }
     }
 
     /// Sync the temporary file and rename it over `dest` (which must be absent or a

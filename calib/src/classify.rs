@@ -149,6 +149,21 @@ pub fn classify(header: &Header, profile: &Profile) -> Classification {
     }
 }
 
+/// The template a header says it belongs to, `object@tpl_start` as
+/// [`ScienceInfo::sequence`], read leniently: only the object (or the target name behind
+/// the standard alias) and the template start are needed, so a frame refused for another
+/// keyword (a bad MJD-OBS, an instrument setting) can still be told to belong to its
+/// template. `None` when either is missing.
+pub fn template_id(h: &Header, p: &Profile) -> Option<String> {
+    let k = &p.keywords;
+    let tpl_start = text(h, &k.tpl_start)?;
+    let object = match text(h, &k.object) {
+        Some(o) if !same(&o, &p.matching.object_std_alias) => o,
+        _ => text(h, &k.targ_name)?,
+    };
+    Some(format!("{object}@{tpl_start}"))
+}
+
 fn same(a: &str, b: &str) -> bool {
     a.trim().eq_ignore_ascii_case(b.trim())
 }

@@ -70,17 +70,52 @@ impl Keywords {
     /// (start) and `parang_end` (end) taken along the shorter arc (so -179 and 179 give
     /// 180), or the start alone when the end is absent. `Ok(None)` when the start is absent;
     /// an error naming the keyword when either is present but not a finite number.
+    ///
+    /// A value outside [-360, 360] deg is refused (an angle is never written so), and so
+    /// is an end more than [`MAX_PARANG_CHANGE_DEG`] from the start: a corrupt card, never
+    /// an exposure (the angle turns that fast only within a fraction of a degree of the
+    /// zenith). Either error names the keyword and its value.
     pub fn parallactic_angle_deg(&self, h: &crate::header::Header) -> Result<Option<f64>> {
-        let Some(start) = h.opt_f64(&self.parang)? else {
+        let in_range = |key: &str| -> Result<Option<f64>> {
+            match h.opt_f64(key)? {
+                Some(v) if v.abs() > 360.0 => Err(crate::Error::BadKeyword {
+                    path: h.path.clone(),
+                    keyword: key.to_string(),
+                    value: crate::text::short_number(v),
+                    reason: "a parallactic angle must lie within [-360, 360] deg".into(),
+                }),
+                v => Ok(v),
+            }
+        };
+        let Some(start) = in_range(&self.parang)? else {
             return Ok(None);
         };
-        let mean = match h.opt_f64(&self.parang_end)? {
+        let mean = match in_range(&self.parang_end)? {
+            Some(end) if wrap_deg(end - start).abs() > MAX_PARANG_CHANGE_DEG => {
+                return Err(crate::Error::BadKeyword {
+                    path: h.path.clone(),
+                    keyword: self.parang_end.clone(),
+                    value: crate::text::short_number(end),
+                    reason: format!(
+                        "{:.1} deg from {} = {}: the parallactic angle cannot turn more than \
+                         {MAX_PARANG_CHANGE_DEG} deg in one exposure",
+                        wrap_deg(end - start).abs(),
+                        self.parang,
+                        crate::text::short_number(start)
+                    ),
+                })
+            }
             Some(end) => start + 0.5 * wrap_deg(end - start),
             None => start,
         };
         Ok(Some(wrap_deg(mean)))
     }
 }
+
+/// The largest change of the parallactic angle between the start and the end of one
+/// exposure that is taken as real, deg. At La Silla a star 1 deg from the zenith turns
+/// by about 12 deg/min at transit; a larger jump is a corrupt header.
+pub const MAX_PARANG_CHANGE_DEG: f64 = 90.0;
 
 /// An angle in degrees mapped into (-180, 180].
 fn wrap_deg(a: f64) -> f64 {
@@ -494,6 +529,23 @@ mod tests {
         bad.set(&kw.parang_end, "north");
         let err = kw.parallactic_angle_deg(&bad).unwrap_err().to_string();
         assert!(err.contains("PARANG END"), "{err}");
+        // Out of range, or an end too far from the start: refused by keyword, value short.
+        let e = |s, e| kw.parallactic_angle_deg(&h(s, e)).unwrap_err().to_string();
+        let err = e(Some(1e300), Some(80.0));
+        assert!(
+            err.contains("PARANG START = 1e300") && err.contains("[-360, 360]"),
+            "{err}"
+        );
+        let err = e(Some(80.0), Some(-400.0));
+        assert!(err.contains("PARANG END = -400"), "{err}");
+        let err = e(Some(10.0), Some(150.0));
+        assert!(
+            err.contains("PARANG END = 150") && err.contains("140.0 deg from"),
+            "{err}"
+        );
+        // 90 deg apart along the shorter arc is still an exposure (near the zenith).
+        assert_eq!(eta(Some(-135.0), Some(135.0)), Some(180.0));
+        assert_eq!(eta(Some(360.0), Some(0.0)), Some(0.0));
     }
 
     #[test]

@@ -55,9 +55,59 @@ fn escape(s: &str, keep_lines: bool) -> Cow<'_, str> {
     Cow::Owned(out)
 }
 
+/// A number for a message: as Rust writes it when that is short (`80.2`, `0.0088`),
+/// else in scientific notation with at most 6 significant digits (`1e300`, `1.23457e-9`),
+/// so that `1e300` is never printed with 300 digits.
+pub fn short_number(x: f64) -> String {
+    let plain = format!("{x}");
+    if plain.len() <= 16 {
+        return plain;
+    }
+    let e = format!("{x:.5e}");
+    // Trailing zeros of the mantissa dropped: 1.00000e300 -> 1e300.
+    match e.split_once('e') {
+        Some((m, exp)) if m.contains('.') => {
+            let m = m.trim_end_matches('0').trim_end_matches('.');
+            format!("{m}e{exp}")
+        }
+        _ => e,
+    }
+}
+
+/// `s` cut to at most `max` characters for a message, with how much was left out
+/// (`…(1048576 characters)`), and made [`printable`]: a value of a megabyte or with
+/// newlines is never echoed whole.
+pub fn short_text(s: &str, max: usize) -> String {
+    let n = s.chars().count();
+    if n <= max {
+        return printable(s).into_owned();
+    }
+    let head: String = s.chars().take(max).collect();
+    format!("{}…({n} characters)", printable(&head))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn short_numbers_stay_short() {
+        assert_eq!(short_number(80.2), "80.2");
+        assert_eq!(short_number(-0.0088), "-0.0088");
+        assert_eq!(short_number(1e300), "1e300");
+        assert_eq!(short_number(-1.234567891e-9), "-1.23457e-9");
+        assert_eq!(short_number(f64::NAN), "NaN");
+        assert!(short_number(f64::MAX).len() <= 16, "{}", short_number(f64::MAX));
+    }
+
+    #[test]
+    fn long_text_is_cut_and_made_printable() {
+        assert_eq!(short_text("HK Tau", 10), "HK Tau");
+        let big = "x".repeat(1 << 20);
+        let t = short_text(&big, 40);
+        assert!(t.len() < 80 && t.ends_with("(1048576 characters)"), "{t}");
+        assert_eq!(short_text("a\nb", 10), "a\\nb");
+    }
 
     #[test]
     fn control_and_bidi_characters_are_escaped_and_plain_text_is_untouched() {

@@ -19,3 +19,25 @@ pub fn set_commit(commit: &str) {
 pub fn commit() -> &'static str {
     COMMIT.get().map(String::as_str).unwrap_or("unknown")
 }
+
+/// The command line of this process, for provenance: each argument as given, with bytes
+/// that are not valid UTF-8 (a file name in another encoding) shown as U+FFFD, so that a
+/// product is never lost to an argument it cannot spell.
+pub fn command_line() -> Vec<String> {
+    std::env::args_os().map(|a| a.to_string_lossy().into_owned()).collect()
+}
+
+/// [`command_line`] joined by spaces.
+pub fn command_line_string() -> String {
+    command_line().join(" ")
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn the_command_line_is_this_process_arguments() {
+        let v = super::command_line();
+        assert!(!v.is_empty());
+        assert_eq!(super::command_line_string(), v.join(" "));
+    }
+}

@@ -36,7 +36,7 @@ use crate::stokes::calibration::{
 };
 use crate::stokes::inversion::Debias;
 use crate::stokes::propagation::{self, CalibrationCovariance, CAL_C, CAL_THETA0};
-pub use resolve::{orientation_values, resolve_component};
+pub use resolve::{orientation_values, resolve_component, P_ABOVE_ONE};
 pub use telescope::{TelescopeCalibration, TELESCOPE_UNCORRECTED};
 
 /// File name of the calibration product in a calibration directory.

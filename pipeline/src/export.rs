@@ -8,7 +8,7 @@
 //! carries its target, sequence, filter, pointing and time, status, the software that
 //! made the catalog and the catalog file. All files are written to a
 //! temporary file in the same directory and renamed.
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use crate::catalog::{Catalog, Component, Status};
 
@@ -477,11 +477,30 @@ pub fn write(t: &Table, format: Format, path: &Path) -> Result<(), Error> {
         Format::Csv => crate::io::write_atomic(path, to_csv(t).as_bytes()).map_err(|e| werr(e.to_string())),
         Format::Fits => {
             // cfitsio creates the file by name: in a private directory next to `path`.
-            let tmp = sofipol_calib::atomic::TempFile::new(path).map_err(|e| werr(e.to_string()))?;
-            write_fits(t, &tmp.path).map_err(|e| werr(format!("cfitsio: {e}")))?;
+            let mut tmp = sofipol_calib::atomic::TempFile::new(path).map_err(|e| werr(e.to_string()))?;
+            let name = tmp.ascii_path().map(PathBuf::from).unwrap_or_else(|| tmp.path.clone());
+            write_fits(t, &name).map_err(|e| werr(format!("cfitsio: {e}")))?;
             tmp.commit(path).map_err(|e| werr(e.to_string()))
         }
     }
+}
+
+/// The longest text a FITS table cell holds, characters (a value cut to it says how long
+/// it was; the JSON catalog keeps it whole).
+pub const MAX_FITS_TEXT: usize = 1024;
+
+/// A text value as a FITS table cell can hold it: control characters (a NUL would end the
+/// C string cfitsio writes) escaped as `printable` shows them, and at most
+/// [`MAX_FITS_TEXT`] characters, a longer value cut saying how long it was.
+pub fn fits_text(s: &str) -> String {
+    let p = sofipol_calib::text::printable(s);
+    let n = p.chars().count();
+    if n <= MAX_FITS_TEXT {
+        return p.into_owned();
+    }
+    let note = format!("...({n} characters)");
+    let head: String = p.chars().take(MAX_FITS_TEXT - note.len()).collect();
+    head + &note
 }
 
 fn write_fits(t: &Table, path: &Path) -> Result<(), fitsio::errors::Error> {
@@ -492,7 +511,7 @@ fn write_fits(t: &Table, path: &Path) -> Result<(), fitsio::errors::Error> {
         let mut d = ColumnDescription::new(c.name);
         match &c.data {
             Data::Str(v) => {
-                let w = v.iter().map(|s| s.len()).max().unwrap_or(1).max(1);
+                let w = v.iter().map(|s| fits_text(s).len()).max().unwrap_or(1).max(1);
                 d.with_type(ColumnDataType::String).that_repeats(w);
             }
             Data::F64(_) => {
@@ -508,7 +527,8 @@ fn write_fits(t: &Table, path: &Path) -> Result<(), fitsio::errors::Error> {
     for (i, c) in t.columns.iter().enumerate() {
         match &c.data {
             Data::Str(v) => {
-                hdu.write_col(&mut f, c.name, v)?;
+                let v: Vec<String> = v.iter().map(|s| fits_text(s)).collect();
+                hdu.write_col(&mut f, c.name, &v)?;
             }
             Data::F64(v) => {
                 hdu.write_col(&mut f, c.name, v)?;

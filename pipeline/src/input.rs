@@ -8,9 +8,9 @@ use crate::error::{Error, Result};
 pub use sofipol_calib::input::{MAX_CATALOG_BYTES, MAX_OPTION_FILE_BYTES};
 
 /// Whether a catalog of schema `version` can be read by this build: the same major version
-/// (an empty version is a catalog written before the field existed).
+/// (an empty version is none: [`read_catalog`] refuses it by name).
 pub fn schema_readable(version: &str) -> bool {
-    version.is_empty() || version.split('.').next() == SCHEMA_VERSION.split('.').next()
+    !version.is_empty() && version.split('.').next() == SCHEMA_VERSION.split('.').next()
 }
 
 /// Read a catalog (see the module documentation).
@@ -24,6 +24,12 @@ pub fn read_catalog(path: &Path) -> Result<Catalog> {
         reason,
     };
     let cat: Catalog = serde_json::from_str(&text).map_err(|e| bad(format!("not a sofipol catalog: {e}")))?;
+    if cat.schema_version.trim().is_empty() {
+        return Err(bad(format!(
+            "no schema_version: every catalog sofipol writes has one (this sofipol reads schema {SCHEMA_VERSION}); \
+             this JSON was not written by sofipol, or was cut"
+        )));
+    }
     if !schema_readable(&cat.schema_version) {
         return Err(bad(format!(
             "schema_version = '{}': this sofipol ({}) reads catalogs of schema {SCHEMA_VERSION} (major version {})",
@@ -44,9 +50,15 @@ mod tests {
         let d = tempfile::tempdir().unwrap();
         let f = d.path().join("c.json");
         let cat = |v: &str| format!(r#"{{"schema_version": "{v}", "targets": []}}"#);
-        for ok in [SCHEMA_VERSION, "1.7", ""] {
+        for ok in [SCHEMA_VERSION, "1.7"] {
             std::fs::write(&f, cat(ok)).unwrap();
             assert!(read_catalog(&f).is_ok(), "{ok}");
+        }
+        // Empty or missing: not a catalog sofipol wrote.
+        for text in [cat(""), r#"{"targets": []}"#.to_string()] {
+            std::fs::write(&f, text).unwrap();
+            let e = read_catalog(&f).unwrap_err().to_string();
+            assert!(e.contains("c.json") && e.contains("no schema_version"), "{e}");
         }
         std::fs::write(&f, cat("9.0")).unwrap();
         let e = read_catalog(&f).unwrap_err().to_string();

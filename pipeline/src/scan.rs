@@ -8,10 +8,11 @@ use crate::catalog::Failure;
 
 /// File names sofipol reads: `.fits`, `.fit`, `.fits.gz`, `.fit.gz`, `.fz` (any case).
 pub fn is_fits_name(p: &Path) -> bool {
+    // Lossy: a name that is not UTF-8 (another encoding) still ends in `.fits`.
     let n = p
         .file_name()
-        .and_then(|n| n.to_str())
-        .unwrap_or("")
+        .map(|n| n.to_string_lossy())
+        .unwrap_or_default()
         .to_ascii_lowercase();
     !n.starts_with('.')
         && [".fits", ".fit", ".fits.gz", ".fit.gz", ".fz"]

@@ -117,6 +117,18 @@ impl Sequence {
                 ));
             }
         }
+        let mjds: Vec<f64> = self.exposures().filter_map(|e| e.mjd).collect();
+        let lo = mjds.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = mjds.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        if hi - lo > MAX_TEMPLATE_DAYS {
+            out.push(format!(
+                "MJD-OBS of the frames spans {:.1} days ({} to {}): one template is observed within hours, \
+                 so some frames' dates are wrong",
+                hi - lo,
+                sofipol_calib::text::short_number(lo),
+                sofipol_calib::text::short_number(hi)
+            ));
+        }
         let filters: std::collections::BTreeSet<&str> = self
             .orientations
             .iter()
@@ -128,6 +140,10 @@ impl Sequence {
         out
     }
 }
+
+/// The longest a template's frames may span in MJD-OBS, days: a polarimetric template
+/// takes well under an hour; frames further apart carry wrong dates.
+pub const MAX_TEMPLATE_DAYS: f64 = 1.0;
 
 /// Arithmetic mean (`None` of nothing).
 fn mean(v: impl Iterator<Item = f64>) -> Option<f64> {
@@ -205,6 +221,36 @@ mod tests {
             dec_deg: None,
             pixscale_arcsec: 0.288,
         }
+    }
+
+    #[test]
+    fn frames_dated_far_apart_are_a_problem_naming_the_span() {
+        let mk = |mjds: &[f64]| {
+            let v: Vec<ScienceInfo> = mjds
+                .iter()
+                .enumerate()
+                .map(|(k, &m)| {
+                    let mut i = info(
+                        "Dated",
+                        "1999-03-03T03:00:00",
+                        if k % 2 == 0 { 0.0 } else { 45.0 },
+                        k as u32 + 1,
+                    );
+                    i.nexp = Some(mjds.len() as u32);
+                    i.mjd = Some(m);
+                    i
+                })
+                .collect();
+            group(v, &sofipol_calib::Profile::sofi()).remove(0).problems()
+        };
+        // Within a template's hour: no problem.
+        assert!(mk(&[51240.04, 51240.05, 51240.06, 51240.07]).is_empty());
+        // 1970, 1999 and 2100 in one template.
+        let p = mk(&[40587.0, 51240.04, 51240.05, 88069.0]).join("; ");
+        assert!(
+            p.contains("MJD-OBS") && p.contains("47482.0 days") && p.contains("40587"),
+            "{p}"
+        );
     }
 
     #[test]

@@ -84,13 +84,18 @@ fn entry_key(s: &StandardStar) -> (String, String) {
     (match_key(&s.name), s.filter.trim().to_ascii_lowercase())
 }
 
+/// Largest degree of polarization (and error) a standards table may give, as a fraction:
+/// the most polarized standards reach ~9 % in the optical and less in the infrared, so a
+/// larger number is a value written in per cent.
+pub const MAX_STANDARD_P: f64 = 0.1;
+
 /// The entries of a table file, each checked: a name, a filter (`"*"` for any), `p` in
-/// [0, 1), `sigma_p` in (0, 1], `gamma_deg` in [0, 180), `sigma_gamma_deg` in (0, 90] (the
-/// standard deviation of a uniform angle is 52 deg), every number finite; and no two
-/// entries of the same star and filter in one file ([`entry_key`]: `HD 204827` and
-/// `HD_204827` are one star), where the second would silently replace the first. Errors
-/// name the file (`origin`), the entry (`standard[i] 'NAME' (filter 'F')`), the key and
-/// the value.
+/// [0, [`MAX_STANDARD_P`]], `sigma_p` in (0, [`MAX_STANDARD_P`]], `gamma_deg` in [0, 180),
+/// `sigma_gamma_deg` in (0, 90] (the standard deviation of a uniform angle is 52 deg),
+/// every number finite; and no two entries of the same star and filter in one file
+/// ([`entry_key`]: `HD 204827` and `HD_204827` are one star), where the second would
+/// silently replace the first. Errors name the file (`origin`), the entry
+/// (`standard[i] 'NAME' (filter 'F')`), the key and the value.
 fn parse(text: &str, origin: &str) -> Result<Vec<StandardStar>> {
     let err = |reason: String| Error::Standards {
         origin: origin.to_string(),
@@ -99,7 +104,11 @@ fn parse(text: &str, origin: &str) -> Result<Vec<StandardStar>> {
     let f: File = toml::from_str(text).map_err(|e| err(e.to_string()))?;
     let mut seen: std::collections::HashMap<(String, String), usize> = Default::default();
     for (i, s) in f.standard.iter().enumerate() {
-        let entry = format!("standard[{i}] '{}' (filter '{}')", s.name, s.filter);
+        let entry = format!(
+            "standard[{i}] '{}' (filter '{}')",
+            sofipol_calib::text::short_text(&s.name, 60),
+            sofipol_calib::text::short_text(&s.filter, 20)
+        );
         if match_key(&s.name).is_empty() {
             return Err(err(format!("{entry}: name is empty")));
         }
@@ -107,12 +116,17 @@ fn parse(text: &str, origin: &str) -> Result<Vec<StandardStar>> {
             return Err(err(format!("{entry}: filter is empty (\"*\" applies to every filter)")));
         }
         let checks: [(&str, f64, bool, &str); 4] = [
-            ("p", s.p, (0.0..1.0).contains(&s.p), "a fraction in [0, 1)"),
+            (
+                "p",
+                s.p,
+                (0.0..=MAX_STANDARD_P).contains(&s.p),
+                "a fraction in [0, 0.1] (0.0088 for 0.88 %; no polarimetric standard exceeds 10 %)",
+            ),
             (
                 "sigma_p",
                 s.sigma_p,
-                s.sigma_p > 0.0 && s.sigma_p <= 1.0,
-                "a fraction in (0, 1]",
+                s.sigma_p > 0.0 && s.sigma_p <= MAX_STANDARD_P,
+                "a fraction in (0, 0.1] (0.0005 for 0.05 %)",
             ),
             (
                 "gamma_deg",
@@ -128,7 +142,10 @@ fn parse(text: &str, origin: &str) -> Result<Vec<StandardStar>> {
             ),
         ];
         if let Some((key, v, _, want)) = checks.iter().find(|c| !c.2) {
-            return Err(err(format!("{entry}: {key} = {v:?}: must be {want}")));
+            return Err(err(format!(
+                "{entry}: {key} = {}: must be {want}",
+                sofipol_calib::text::short_number(*v)
+            )));
         }
         if let Some(j) = seen.insert(entry_key(s), i) {
             let first = &f.standard[j];

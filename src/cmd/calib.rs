@@ -127,7 +127,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     cal.provenance = serde_json::json!({
         "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
         "commit": sofipol_pipeline::build_info::commit(),
-        "command_line": std::env::args().collect::<Vec<_>>(),
+        "command_line": sofipol_pipeline::build_info::command_line(),
         "inputs": args.dirs,
         "standards_table": setup.calibration.table.sources,
         "standard_sequences": standards.iter().map(|s| &s.sequence).collect::<Vec<_>>(),

@@ -310,3 +310,28 @@ pub fn finish_fits_products(p: Option<sofipol_pipeline::products::FitsProducts>,
     }
     !s.failed.is_empty()
 }
+
+/// `--jobs` is capped at this many threads per core.
+pub const MAX_JOBS_PER_CORE: usize = 4;
+
+/// The worker threads of command `cmd` for `--jobs` (`None`: one per core): at least 1,
+/// and capped at [`MAX_JOBS_PER_CORE`] x the cores (with a note unless `quiet`), since
+/// thousands of threads only thrash, and each may hold a frame set in memory.
+pub fn worker_pool(cmd: &str, jobs: Option<usize>, quiet: bool) -> anyhow::Result<rayon::ThreadPool> {
+    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+    let threads = match jobs {
+        None => cores,
+        Some(0) => anyhow::bail!("--jobs 0: need at least 1 worker thread"),
+        Some(j) => {
+            let cap = MAX_JOBS_PER_CORE * cores;
+            if j > cap && !quiet {
+                eprintln!("sofipol {cmd}: --jobs {j} capped at {cap} ({MAX_JOBS_PER_CORE} x {cores} cores)");
+            }
+            j.min(cap)
+        }
+    };
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .context("starting worker threads")
+}

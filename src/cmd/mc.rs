@@ -216,18 +216,6 @@ fn runs(s: &Settings) -> Vec<(String, McConfig)> {
     }
 }
 
-/// Build a rayon pool of `jobs` threads (None: the global pool's size).
-pub fn pool(jobs: Option<usize>) -> anyhow::Result<rayon::ThreadPool> {
-    let mut b = rayon::ThreadPoolBuilder::new();
-    if let Some(t) = jobs {
-        if t == 0 {
-            bail!("--jobs must be >= 1");
-        }
-        b = b.num_threads(t);
-    }
-    Ok(b.build()?)
-}
-
 /// Summary figures of a Pi(Delta gamma) histogram: (mean, fraction < 30 deg, first/last ninth).
 pub fn summary(out: &McOutput) -> (f64, f64, f64) {
     let h = &out.histogram;
@@ -242,7 +230,7 @@ pub fn summary(out: &McOutput) -> (f64, f64, f64) {
 /// Run `sofipol mc`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let s = settings(&args)?;
-    let pool = pool(args.jobs)?;
+    let pool = super::common::worker_pool("mc", args.jobs, args.quiet)?;
     if let (Some(dir), false) = (&args.output, args.bench) {
         let mut inputs: Vec<&Path> = args.config.iter().map(PathBuf::as_path).collect();
         inputs.extend(args.model.as_deref().and_then(spec_file));
@@ -351,7 +339,7 @@ fn write_outputs(
         .collect();
     let json = serde_json::json!({
         "software": { "name": "sofipol", "version": env!("CARGO_PKG_VERSION"), "commit": sofipol_pipeline::build_info::commit() },
-        "command": std::env::args().collect::<Vec<_>>().join(" "),
+        "command": sofipol_pipeline::build_info::command_line_string(),
         "parameters": {
             "model": s.base.model.spec(),
             "pairs": s.base.pairs,
@@ -444,7 +432,7 @@ fn bench(s: &Settings, runs: usize) -> anyhow::Result<ExitCode> {
     }
     for (name, cfg) in &configs {
         for &t in &threads {
-            let pool = pool(Some(t))?;
+            let pool = super::common::worker_pool("mc", Some(t), true)?;
             pool.install(|| {
                 mc::simulate(&McConfig {
                     pairs: cfg.pairs.min(1 << 20),

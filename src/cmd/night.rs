@@ -17,9 +17,6 @@ use sofipol_pipeline::reduce::run::{StageTimes, TargetOutcome};
 use super::common::{progress, Figures};
 use super::setup::SetupArgs;
 
-/// `--jobs` is capped at this many threads per core.
-pub const MAX_JOBS_PER_CORE: usize = 4;
-
 /// Arguments of `sofipol night`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -73,15 +70,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         print!("{}", super::setup::dump_params(&setup.params)?);
         return Ok(ExitCode::SUCCESS);
     }
-    let jobs = capped_jobs(args.jobs, args.quiet)?;
+    let pool = super::common::worker_pool("night", args.jobs, args.quiet)?;
     super::setup::check_input_frames(&setup.params)?;
     for d in &args.dirs {
         anyhow::ensure!(d.exists(), "{}: no such file or directory", d.display());
     }
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(jobs.unwrap_or(0))
-        .build()
-        .context("starting worker threads")?;
     let t0 = Instant::now();
     let plan = pool.install(|| plan_night(&args, &setup))?;
     if !args.quiet {
@@ -166,23 +159,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             ExitCode::SUCCESS
         },
     )
-}
-
-/// `--jobs`, checked (at least 1) and capped at [`MAX_JOBS_PER_CORE`] x the cores (with a
-/// note unless `quiet`): thousands of threads only thrash, and each holds a frame set in
-/// memory.
-fn capped_jobs(jobs: Option<usize>, quiet: bool) -> anyhow::Result<Option<usize>> {
-    let Some(j) = jobs else { return Ok(None) };
-    anyhow::ensure!(j >= 1, "--jobs {j}: need at least 1");
-    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-    let cap = MAX_JOBS_PER_CORE * cores;
-    if j > cap {
-        if !quiet {
-            eprintln!("sofipol night: --jobs {j} capped at {cap} ({MAX_JOBS_PER_CORE} x {cores} cores)");
-        }
-        return Ok(Some(cap));
-    }
-    Ok(Some(j))
 }
 
 /// Scan the night (standards apart, this shard's sequences and failures) and check the

@@ -14,7 +14,7 @@ use sofipol_pipeline::report::{self, DEFAULT_REPORT_PAIRS};
 use sofipol_pipeline::stats::mc::DEFAULT_SEED;
 use sofipol_pipeline::stats::setup;
 
-use super::mc::{parse_count, pool};
+use super::mc::parse_count;
 
 /// Arguments of `sofipol report`.
 #[derive(clap::Args, Debug)]
@@ -52,7 +52,11 @@ pub struct Args {
 
 /// Run `sofipol report`.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    super::common::check_output(&args.output, &[&args.catalog])?;
+    // `-o -`: the page on standard output (as `export` does), no file named `-`.
+    let to_stdout = args.output.as_os_str() == "-";
+    if !to_stdout {
+        super::common::check_output(&args.output, &[&args.catalog])?;
+    }
     let catalog = sofipol_pipeline::input::read_catalog(&args.catalog)?;
     let figures = args
         .figures
@@ -63,7 +67,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         "--figures {}: not a folder",
         figures.display()
     );
-    let pool = pool(args.jobs)?;
+    let pool = super::common::worker_pool("report", args.jobs, args.quiet)?;
     let t0 = std::time::Instant::now();
     let page = pool.install(|| {
         write_page(
@@ -87,7 +91,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             t0.elapsed().as_secs_f64()
         );
     }
-    if !args.quiet {
+    if !args.quiet && !to_stdout {
         println!("sofipol report: wrote {}", args.output.display());
     }
     Ok(ExitCode::SUCCESS)
@@ -123,13 +127,21 @@ pub fn write_page(
         seed,
         ..Default::default()
     };
-    let command_line = std::env::args().collect::<Vec<_>>().join(" ");
+    let command_line = sofipol_pipeline::build_info::command_line_string();
     let input = report::collect(catalog, catalog_path, figures, &opts, command_line);
-    if let Some(d) = output.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
-    }
     let html = report::html::render(&input);
-    report::write(output, &html)?;
+    if output.as_os_str() == "-" {
+        use std::io::Write;
+        let mut out = std::io::stdout().lock();
+        out.write_all(html.as_bytes())
+            .and_then(|()| out.flush())
+            .context("writing the page to standard output")?;
+    } else {
+        if let Some(d) = output.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+        }
+        report::write(output, &html)?;
+    }
     Ok(PageSummary {
         targets: input.catalog.targets.len(),
         figures: input.target_figures.len(),

@@ -132,6 +132,12 @@ impl ReduceArgs {
             None => toml::Table::new(),
         };
         for s in &self.param {
+            anyhow::ensure!(
+                !s.chars().any(char::is_control),
+                "--param {}: a value holds a line break or another control character; give one \
+                 SECTION.KEY=VALUE per --param",
+                sofipol_calib::text::printable(s)
+            );
             let (key, value) = s
                 .split_once('=')
                 .ok_or_else(|| anyhow::anyhow!("--param {s}: expected SECTION.KEY=VALUE, e.g. sky.estimator=median"))?;

@@ -23,7 +23,7 @@ use sofipol_pipeline::stats::predictions::source_name;
 use sofipol_pipeline::stats::setup::{self, Noise};
 use sofipol_pipeline::stats::{AlignmentModel, AlignmentReport, BinarySample};
 
-use super::mc::{parse_count, parse_levels, pool};
+use super::mc::{parse_count, parse_levels};
 
 /// Arguments of `sofipol stats`.
 #[derive(clap::Args, Debug)]
@@ -157,7 +157,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         significance: args.significance,
     };
     let params = setup::params(&sample, &opts, &args.catalog.display().to_string())?;
-    let pool = pool(args.jobs)?;
+    let pool = super::common::worker_pool("stats", args.jobs, args.quiet)?;
     let dg = sample.delta_gamma_deg();
     let t_analysis = std::time::Instant::now();
     let report = pool.install(|| setup::analyse_sample(&sample, &params))?;
@@ -312,7 +312,7 @@ fn write_json(dir: &Path, args: &Args, sample: &BinarySample, r: &AlignmentRepor
     // The per-level Monte-Carlo histograms are kept (counts on 1-deg bins).
     let json = serde_json::json!({
         "software": { "name": "sofipol", "version": env!("CARGO_PKG_VERSION"), "commit": sofipol_pipeline::build_info::commit() },
-        "command": std::env::args().collect::<Vec<_>>().join(" "),
+        "command": sofipol_pipeline::build_info::command_line_string(),
         "catalog": args.catalog.display().to_string(),
         "parameters": {
             "p_ism": args.p_ism, "ism_angle_deg": args.ism_angle, "pairs": args.pairs, "seed": args.seed,

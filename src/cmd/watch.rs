@@ -88,6 +88,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         anyhow::ensure!(d.is_dir(), "{}: not a directory to watch", d.display());
     }
     super::common::check_output(&args.output, &args.setup.input_files())?;
+    let state = state_path(&args.output);
+    if let Ok(m) = std::fs::symlink_metadata(&state) {
+        anyhow::ensure!(
+            m.is_file(),
+            "{}: the live state beside the catalog is not a regular file; move it away or choose another -o",
+            state.display()
+        );
+    }
     let options = LiveOptions {
         template_timeout: seconds("--template-timeout", args.template_timeout)?,
         file_timeout: seconds("--file-timeout", args.file_timeout)?,
@@ -96,13 +104,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .exit_when_idle
         .map(|s| seconds("--exit-when-idle", s))
         .transpose()?;
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(args.jobs.unwrap_or(0))
-        .build()
-        .context("starting worker threads")?;
+    let pool = super::common::worker_pool("watch", args.jobs, args.quiet)?;
     let cut = setup.params.measure.cut_snr;
     let mut live = LiveNight::new(setup, args.dirs.clone(), options);
-    let state = state_path(&args.output);
     if !args.fresh {
         resume(&mut live, &args.output, &state, args.quiet);
     }
@@ -114,7 +118,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 eprintln!("sofipol watch: stopped at once (the catalog on disk is complete as last written)");
                 std::process::exit(130);
             }
-            eprintln!("sofipol watch: stopping: reducing what has arrived (Ctrl-C again to stop at once)");
+            eprintln!("sofipol watch: stopping: reducing what has arrived (Ctrl-C or SIGTERM again to stop at once)");
         })
         .context("installing the Ctrl-C handler")?;
     }
@@ -141,6 +145,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mut calibration_lines = Vec::new();
     // Files announced as being written (once each).
     let mut announced = std::collections::HashSet::new();
+    // A catalog not yet on disk (the disk full, the folder not writable): written again
+    // until it is, warning once per distinct reason.
+    let mut unwritten: Option<(Catalog, String)> = None;
+    let mut last_try = Instant::now();
+    // The watched folders that were gone, as last warned about.
+    let mut missing_warned: Vec<(PathBuf, String)> = Vec::new();
+    let mut missing_since: Option<Instant> = None;
     loop {
         let wait = if live.wants_update() {
             Duration::ZERO
@@ -154,13 +165,24 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
         if woke || finish || live.wants_update() || last_scan.elapsed() >= rescan {
             last_scan = Instant::now();
-            if let Some(u) = pool.install(|| live.update(finish)) {
+            if let Some(mut u) = pool.install(|| live.update(finish)) {
                 last_change = Instant::now();
-                write(&u, &live, &args.output, &state)?;
+                if finish {
+                    not_reduced_at_stop(&mut u.catalog, live.waiting(), args.quiet);
+                }
+                let was = unwritten.take().map(|(_, why)| why);
+                unwritten = write(&u.catalog, &live, &args.output, &state)
+                    .err()
+                    .map(|e| (u.catalog.clone(), super::error_text(&super::chain_text(&e))));
+                if let Some((_, why)) = &unwritten {
+                    warn_unwritten(why, was.as_deref().is_none_or(|w| !same_reason(w, why)));
+                }
+                last_try = Instant::now();
                 print_update(&u, cut, &args, u.calibration_lines != calibration_lines);
                 calibration_lines = u.calibration_lines.clone();
                 last = Some(u.catalog);
             }
+            report_missing(&live, &mut missing_warned, &mut missing_since, args.quiet);
             if args.verbose > 0 && !args.quiet {
                 for (p, why) in live.waiting() {
                     if announced.insert(p.clone()) {
@@ -169,12 +191,59 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 }
             }
         }
+        if let Some((cat, why)) = unwritten.take() {
+            if finish || last_try.elapsed() >= Duration::from_secs(2) {
+                last_try = Instant::now();
+                match write(&cat, &live, &args.output, &state) {
+                    Ok(()) => {
+                        if !args.quiet {
+                            eprintln!("[{}] catalog written at last: {}", clock(), args.output.display());
+                        }
+                    }
+                    Err(e) => {
+                        let now = super::error_text(&super::chain_text(&e));
+                        warn_unwritten(&now, !same_reason(&now, &why));
+                        unwritten = Some((cat, now));
+                    }
+                }
+            } else {
+                unwritten = Some((cat, why));
+            }
+        }
         if finish {
             break;
+        }
+        if let (Some(d), Some(t)) = (idle_exit, missing_since) {
+            if t.elapsed() >= d {
+                eprintln!(
+                    "sofipol watch: stopping: {} still missing after {:.0} s; the catalog is as last written",
+                    missing_warned
+                        .iter()
+                        .map(|(p, _)| p.display().to_string())
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    d.as_secs_f64()
+                );
+                return Ok(ExitCode::from(2));
+            }
         }
         if idle_exit.is_some_and(|d| live.settled() && last_change.elapsed() >= d) {
             break;
         }
+    }
+    if let Some((_, why)) = &unwritten {
+        anyhow::bail!("the catalog could not be written ({why}); the last one on disk is older");
+    }
+    if !live.missing_roots().is_empty() {
+        eprintln!(
+            "sofipol watch: {} missing when stopped; the catalog is as last written",
+            live.missing_roots()
+                .iter()
+                .map(|(p, _)| p.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        return Ok(ExitCode::from(2));
     }
     let Some(cat) = last.or_else(|| read_catalog(&args.output)) else {
         if !args.quiet {
@@ -295,14 +364,83 @@ fn read_catalog(path: &Path) -> Option<Catalog> {
 }
 
 /// Write the catalog, then the state, each atomically.
-fn write(u: &Update, live: &LiveNight, output: &Path, state: &Path) -> anyhow::Result<()> {
-    sofipol_pipeline::io::write_json_atomic(output, &u.catalog)
-        .with_context(|| format!("writing {}", output.display()))?;
-    sofipol_pipeline::night::write_night_log(output, &u.catalog)
-        .with_context(|| format!("writing {}", sofipol_pipeline::night::log_path(output).display()))?;
-    live.cache()
-        .save(state)
-        .with_context(|| format!("writing {}", state.display()))
+fn write(catalog: &Catalog, live: &LiveNight, output: &Path, state: &Path) -> anyhow::Result<()> {
+    // The errors name their file already: no context that would repeat it.
+    sofipol_pipeline::io::write_json_atomic(output, catalog)?;
+    sofipol_pipeline::night::write_night_log(output, catalog)?;
+    Ok(live.cache().save(state)?)
+}
+
+/// Whether two write errors have the same cause (the last part of the message: the
+/// temporary file's random name differs between tries, `No space left on device` not).
+fn same_reason(a: &str, b: &str) -> bool {
+    let cause = |s: &str| {
+        let last = s.rsplit(": ").next().unwrap_or(s);
+        last.split(" at path ").next().unwrap_or(last).to_string()
+    };
+    cause(a) == cause(b)
+}
+
+/// Say that the catalog could not be written (when `first`: once per distinct reason).
+fn warn_unwritten(why: &str, first: bool) {
+    if first {
+        eprintln!(
+            "[{}] sofipol watch: WARNING: the catalog could not be written ({}); still watching, trying again",
+            clock(),
+            printable(why)
+        );
+    }
+}
+
+/// Warn when a watched folder goes missing or comes back; `since`: when the first went.
+fn report_missing(live: &LiveNight, warned: &mut Vec<(PathBuf, String)>, since: &mut Option<Instant>, quiet: bool) {
+    let now = live.missing_roots().to_vec();
+    if now == *warned {
+        return;
+    }
+    for (p, why) in now.iter().filter(|m| !warned.contains(m)) {
+        eprintln!(
+            "[{}] sofipol watch: WARNING: the watched folder {} is {}; the catalog is kept as last written, \
+             waiting for it to come back",
+            clock(),
+            printable(&p.display().to_string()),
+            printable(why)
+        );
+    }
+    for (p, _) in warned.iter().filter(|(p, _)| !now.iter().any(|(q, _)| q == p)) {
+        if !quiet {
+            eprintln!(
+                "[{}] sofipol watch: {} is back",
+                clock(),
+                printable(&p.display().to_string())
+            );
+        }
+    }
+    *since = if now.is_empty() {
+        None
+    } else {
+        since.or(Some(Instant::now()))
+    };
+    *warned = now;
+}
+
+/// Name the files still being written when watch stops: in the catalog's failures and on
+/// stderr, never silently left out.
+fn not_reduced_at_stop(catalog: &mut Catalog, waiting: &[(PathBuf, String)], quiet: bool) {
+    for (p, why) in waiting {
+        if !quiet {
+            eprintln!(
+                "sofipol watch: {} not reduced: still being written when stopped ({})",
+                printable(&p.display().to_string()),
+                printable(why)
+            );
+        }
+        catalog.failures.push(sofipol_pipeline::catalog::Failure {
+            file: p.display().to_string(),
+            error: format!("still being written when watch stopped ({why}): not reduced"),
+        });
+    }
+    catalog.failures.sort_by(|a, b| a.file.cmp(&b.file));
 }
 
 /// The observer's lines: one per new target, one per reason earlier targets changed, and
@@ -329,10 +467,9 @@ fn print_update(u: &Update, cut: f64, args: &Args, calibration_changed: bool) {
         }
         for h in &u.held {
             eprintln!(
-                "[{now}] waiting for {}: {} of {} frame(s), last {:.0} s ago",
+                "[{now}] waiting for {}: {}, last frame {:.0} s ago",
                 printable(&h.id),
-                h.frames,
-                h.nexp.map(|n| n.to_string()).unwrap_or_else(|| "?".into()),
+                printable(&h.why),
                 h.idle_s
             );
         }

@@ -78,8 +78,11 @@ pub fn write_frame(path: &Path, frame: &Frame, opts: &WriteOptions) -> Result<()
     let mut cards = format_header(&frame.header, path)?;
     cards.extend(format_history(&frame.history));
 
-    let tmp = TempFile::new(path)?;
-    let tmp_name = cfitsio_name(&tmp.path)?;
+    let mut tmp = TempFile::new(path)?;
+    let tmp_name = match tmp.ascii_path() {
+        Some(p) => p,
+        None => cfitsio_name(&tmp.path)?,
+    };
     let float_inside = opts.bitpix == Bitpix::F32 || variance.is_some();
     let create_name = match (opts.compress, float_inside) {
         (false, _) => tmp_name,
@@ -230,8 +233,11 @@ pub fn write_images(path: &Path, hdus: &[ImageHdu]) -> Result<()> {
         c.extend(format_history(h.history));
         cards.push(c);
     }
-    let tmp = TempFile::new(path)?;
-    let tmp_name = cfitsio_name(&tmp.path)?;
+    let mut tmp = TempFile::new(path)?;
+    let tmp_name = match tmp.ascii_path() {
+        Some(p) => p,
+        None => cfitsio_name(&tmp.path)?,
+    };
     let tpath = tmp.path.clone();
     let ferr = |what: &str, e: fitsio::errors::Error| fits_err(&tpath, what, e);
     let desc_of = |p: &ImagePixels| -> ImageType {

@@ -15,6 +15,10 @@ use crate::stokes::propagation::{
 
 /// Step of the central differences in theta0, deg.
 const STEP_THETA0_DEG: f64 = 0.01;
+
+/// The flag of a component whose degree of polarization came out above 1 (refused).
+pub const P_ABOVE_ONE: &str = "p_above_one";
+
 /// Step of the central differences in the telescope's (a, b).
 const STEP_TEL: f64 = 1e-4;
 
@@ -253,6 +257,13 @@ pub fn resolve_component(
     // As in reduce::entry: a value from all-flagged dithers, or of a component whose A/B
     // identity is not established, never passes the cut.
     c.passes_cut = lp.passes_cut(cut_snr) && !crate::reduce::entry::refused_by_flags(&c.flags);
+    // A degree of polarization above 1 is no light: a calibration or a measurement gone
+    // wrong, never a detection.
+    c.flags.retain(|f| f != P_ABOVE_ONE);
+    if lp.pol.p > 1.0 {
+        c.flags.push(P_ABOVE_ONE.into());
+        c.passes_cut = false;
+    }
     if sol.uncalibrated {
         c.flags.push("uncalibrated".into());
     }

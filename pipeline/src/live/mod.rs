@@ -9,15 +9,15 @@
 //! standards and the calibration are always redone (a few hundredths of a second), so a
 //! standard arriving late re-calibrates every target. When every template is complete
 //! the catalog is the one `sofipol night` writes on the same frames.
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
-use std::time::{Duration, Instant, SystemTime};
+use std::time::{Duration, Instant};
 
 use sofipol_calib::Header;
 
-use crate::catalog::{Catalog, Target};
-use crate::night::{self, CacheCounts, NightCache, NightSetup, RunOptions};
+use crate::catalog::{Catalog, Failure, Target};
+use crate::night::{self, CacheCounts, FileStamp, NightCache, NightSetup, RunOptions};
 use crate::scan::{self, Listing};
 use crate::sequence::Sequence;
 
@@ -49,10 +49,12 @@ impl Default for LiveOptions {
 
 /// A file seen in the folder.
 struct FileState {
-    len: u64,
-    modified: Option<SystemTime>,
-    /// When its size or time last changed.
+    /// Size, times and inode when last looked at (`None`: could not be read).
+    stamp: Option<FileStamp>,
+    /// When its stamp last changed.
     since: Instant,
+    /// When it was first seen.
+    first_seen: Instant,
     ready: bool,
 }
 
@@ -61,6 +63,25 @@ struct TemplateState {
     frames: usize,
     /// When its last frame arrived.
     since: Instant,
+}
+
+/// Why a template is held back, in words for the observer (`None`: not held).
+fn held_reason(frames: usize, nexp: Option<u32>, counts: &[usize]) -> Option<String> {
+    match nexp {
+        None => Some("no TPL NEXP: waiting for the template's time-out".into()),
+        Some(n) if frames < n as usize => Some(format!("{frames} of {n} frames")),
+        Some(n) if frames > n as usize => Some(format!(
+            "{frames} frames but TPL NEXP = {n}: the count is not trusted; waiting for the template's time-out"
+        )),
+        Some(n) if counts.len() < 2 => Some(format!(
+            "TPL NEXP = {n} reached at one orientation (q and u need two): the count is not trusted; \
+             waiting for the template's time-out"
+        )),
+        Some(_) if counts.iter().any(|&c| c != counts[0]) => Some(format!(
+            "TPL NEXP reached with unequal dithers per orientation {counts:?}: waiting for the template's time-out"
+        )),
+        Some(_) => None,
+    }
 }
 
 /// A template held back: still being observed.
@@ -74,6 +95,8 @@ pub struct Held {
     pub nexp: Option<u32>,
     /// Seconds since its last frame arrived.
     pub idle_s: f64,
+    /// Why it is held, in words.
+    pub why: String,
 }
 
 /// What one update did.
@@ -96,6 +119,9 @@ pub struct Update {
     pub counts: CacheCounts,
     /// The calibration's lines for a terminal.
     pub calibration_lines: Vec<String>,
+    /// Frames of reduced templates that vanished from the folder (they are under the
+    /// catalog's failures too), and frames refused that made a template complete.
+    pub lost_frames: Vec<Failure>,
     /// Wall time of the update, s.
     pub seconds: f64,
 }
@@ -125,38 +151,48 @@ pub struct LiveNight {
     /// Files still being written at the last look.
     waiting: Vec<(PathBuf, String)>,
     headers: HeaderCache,
+    /// Templates reduced once: never held back again (a frame lost later makes them
+    /// partial, it never takes them out of the catalog).
+    reduced: HashSet<String>,
+    /// Ready frames that vanished from the folder, with the template their header named.
+    vanished: BTreeMap<PathBuf, Option<String>>,
+    /// Watched folders that are gone or cannot be listed, with why (no update meanwhile:
+    /// the catalog stays as last written).
+    missing_roots: Vec<(PathBuf, String)>,
 }
 
-/// Headers read, by path, with the size and time of the file they were read from.
+/// Headers read, by path, with the stamp of the file they were read from.
 #[derive(Default)]
-struct HeaderCache(Mutex<HashMap<PathBuf, StampedHeader>>);
-
-/// A header with the size and modification time of the file it was read from.
-type StampedHeader = (u64, Option<SystemTime>, Header);
+struct HeaderCache(Mutex<HashMap<PathBuf, (FileStamp, Header)>>);
 
 impl HeaderCache {
     /// The header of `p`: the one read before when the file is unchanged, else read now.
     fn read(&self, p: &Path) -> sofipol_calib::Result<Header> {
-        let meta = std::fs::metadata(p).ok();
-        let stamp = (
-            meta.as_ref().map(|m| m.len()),
-            meta.as_ref().and_then(|m| m.modified().ok()),
-        );
-        if let (Some(len), modified) = stamp {
-            if let Some((l, m, h)) = self.0.lock().unwrap_or_else(|e| e.into_inner()).get(p) {
-                if *l == len && *m == modified {
+        let stamp = FileStamp::of(p);
+        if let Some(st) = stamp {
+            if let Some((s, h)) = self.0.lock().unwrap_or_else(|e| e.into_inner()).get(p) {
+                if *s == st {
                     return Ok(h.clone());
                 }
             }
         }
         let h = sofipol_calib::fits::read_header(p)?;
-        if let (Some(len), modified) = stamp {
+        if let Some(st) = stamp {
             self.0
                 .lock()
                 .unwrap_or_else(|e| e.into_inner())
-                .insert(p.to_path_buf(), (len, modified, h.clone()));
+                .insert(p.to_path_buf(), (st, h.clone()));
         }
         Ok(h)
+    }
+
+    /// The header last read from `p`, whatever the file is now (a file that vanished).
+    fn last(&self, p: &Path) -> Option<Header> {
+        self.0
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(p)
+            .map(|(_, h)| h.clone())
     }
 }
 
@@ -177,6 +213,9 @@ impl LiveNight {
             rebuild: false,
             waiting: Vec::new(),
             headers: HeaderCache::default(),
+            reduced: HashSet::new(),
+            vanished: BTreeMap::new(),
+            missing_roots: Vec::new(),
         }
     }
 
@@ -195,14 +234,27 @@ impl LiveNight {
             .unwrap_or_default();
         self.seen.flats = catalog.provenance.get("flat").cloned();
         self.seen.mask_from = catalog.provenance.get("night_bad_pixel_mask_from").cloned();
+        self.reduced
+            .extend(catalog.targets.iter().filter_map(|t| t.sequence.clone()));
         self.seen.catalog = Some(catalog);
     }
 
     /// Look at the folders; reduce when a template completed, timed out or a calibration
     /// frame arrived (`finish`: reduce every template now, complete or not, as at the end
-    /// of the night). `None` when nothing changed.
+    /// of the night). `None` when nothing changed, or when a watched folder is gone or
+    /// cannot be listed ([`LiveNight::missing_roots`]: the catalog is then kept as it is).
     pub fn update(&mut self, finish: bool) -> Option<Update> {
         let t0 = Instant::now();
+        self.missing_roots = self
+            .roots
+            .iter()
+            .filter_map(|r| root_problem(r).map(|why| (r.clone(), why)))
+            .collect();
+        if !self.missing_roots.is_empty() {
+            // Looked at again when they are back.
+            self.dirty = true;
+            return None;
+        }
         let listing = scan::list(&self.roots);
         let waiting = self.look_at_files(&listing, t0);
         self.waiting = waiting.clone();
@@ -221,49 +273,23 @@ impl LiveNight {
             .filter(|f| self.files.get(*f).is_some_and(|s| s.ready))
             .cloned()
             .collect();
-        let ready_listing = Listing {
-            files: ready,
-            unreadable_dirs: listing.unreadable_dirs,
-            duplicates: listing.duplicates,
+        let ready_listing = |files: Vec<PathBuf>| Listing {
+            files,
+            unreadable_dirs: listing.unreadable_dirs.clone(),
+            duplicates: listing.duplicates.clone(),
         };
-        let templates = std::cell::RefCell::new(std::mem::take(&mut self.templates));
-        let held = std::cell::RefCell::new(Vec::new());
-        let timeout = self.options.template_timeout;
-        let keep = |q: &Sequence| {
-            let frames: usize = q.orientations.iter().map(|o| o.exposures.len()).sum();
-            let mut t = templates.borrow_mut();
-            let st = t.entry(q.id.clone()).or_insert(TemplateState { frames, since: t0 });
-            if st.frames != frames {
-                *st = TemplateState { frames, since: t0 };
+        // First pass: which templates are complete. A held template whose missing frames
+        // are present but refused (a bad keyword, a broken file) is complete too: a second
+        // pass keeps it.
+        let mut force: HashSet<String> = HashSet::new();
+        let mut plan = self.plan(ready_listing(ready.clone()), finish, &force, t0);
+        if !self.held.is_empty() {
+            force = self.complete_by_refused(&plan);
+            if !force.is_empty() {
+                plan = self.plan(ready_listing(ready), finish, &force, t0);
             }
-            let nexp = q.orientations.iter().flat_map(|o| &o.exposures).find_map(|e| e.nexp);
-            let idle = t0.saturating_duration_since(st.since);
-            let complete = nexp.is_some_and(|n| frames >= n as usize);
-            let keep = finish || complete || idle >= timeout;
-            if !keep {
-                held.borrow_mut().push(Held {
-                    id: q.id.clone(),
-                    frames,
-                    nexp,
-                    idle_s: idle.as_secs_f64(),
-                });
-            }
-            keep
-        };
+        }
         let setup = &self.setup;
-        let headers = &self.headers;
-        let read_header = |p: &Path| headers.read(p);
-        let plan = night::plan_listing(
-            ready_listing,
-            &setup.profile,
-            setup.params.flat_options.max_frames,
-            None,
-            |q| crate::calibration::is_standard_sequence(q, &setup.profile),
-            keep,
-            &read_header,
-        );
-        self.templates = templates.into_inner();
-        self.held = held.into_inner();
         // New frames for the mask or the flats: first a provisional run with those held
         // (a new target's numbers at once), then, at the next update, the run that rebuilds
         // them and reduces every target again. A finishing update is never provisional.
@@ -287,9 +313,24 @@ impl LiveNight {
         self.cache.prune();
         let counts = self.cache.take_counts();
         let mut catalog = out.catalog;
+        self.reduced
+            .extend(plan.sequences.iter().chain(&plan.standards).map(|q| q.id.clone()));
+        // Frames of reduced templates that vanished: named in the catalog's failures (a
+        // frame moved or renamed within the folder is found again under its new name).
+        let lost_frames: Vec<Failure> = self
+            .vanished
+            .iter()
+            .filter(|(_, id)| id.as_ref().is_some_and(|id| self.reduced.contains(id)))
+            .map(|(p, _)| Failure {
+                file: p.display().to_string(),
+                error: "vanished from the folder after it arrived: its template was reduced without it".into(),
+            })
+            .collect();
+        catalog.failures.extend(lost_frames.iter().cloned());
+        catalog.failures.sort_by(|a, b| a.file.cmp(&b.file));
         let standards: Vec<String> = plan.standards.iter().map(|q| q.id.clone()).collect();
         catalog.provenance["live_standards"] = serde_json::json!(standards);
-        let (new_targets, changed) = self.compare(&catalog, &standards);
+        let (new_targets, changed) = self.compare(&catalog, &standards, &lost_frames);
         self.seen = Seen {
             flats: catalog.provenance.get("flat").cloned(),
             mask_from: catalog.provenance.get("night_bad_pixel_mask_from").cloned(),
@@ -305,8 +346,106 @@ impl LiveNight {
             waiting,
             counts,
             calibration_lines: out.summary.lines,
+            lost_frames,
             seconds: t0.elapsed().as_secs_f64(),
         })
+    }
+
+    /// Plan the night's ready files, holding back the templates still being observed
+    /// (`force`: templates kept whatever their count). Sets `held`.
+    fn plan(&mut self, listing: Listing, finish: bool, force: &HashSet<String>, t0: Instant) -> night::NightPlan {
+        let templates = std::cell::RefCell::new(std::mem::take(&mut self.templates));
+        let held = std::cell::RefCell::new(Vec::new());
+        let timeout = self.options.template_timeout;
+        let reduced = &self.reduced;
+        let keep = |q: &Sequence| {
+            let counts: Vec<usize> = q.orientations.iter().map(|o| o.exposures.len()).collect();
+            let frames: usize = counts.iter().sum();
+            let mut t = templates.borrow_mut();
+            let st = t.entry(q.id.clone()).or_insert(TemplateState { frames, since: t0 });
+            if st.frames != frames {
+                *st = TemplateState { frames, since: t0 };
+            }
+            let nexp = q.orientations.iter().flat_map(|o| &o.exposures).find_map(|e| e.nexp);
+            let idle = t0.saturating_duration_since(st.since);
+            let why = held_reason(frames, nexp, &counts);
+            let keep = finish || why.is_none() || idle >= timeout || reduced.contains(&q.id) || force.contains(&q.id);
+            if !keep {
+                held.borrow_mut().push(Held {
+                    id: q.id.clone(),
+                    frames,
+                    nexp,
+                    idle_s: idle.as_secs_f64(),
+                    why: why.unwrap_or_default(),
+                });
+            }
+            keep
+        };
+        let setup = &self.setup;
+        let headers = &self.headers;
+        let read_header = |p: &Path| headers.read(p);
+        let plan = night::plan_listing(
+            listing,
+            &setup.profile,
+            setup.params.flat_options.max_frames,
+            None,
+            |q| crate::calibration::is_standard_sequence(q, &setup.profile),
+            keep,
+            &read_header,
+        );
+        self.templates = templates.into_inner();
+        self.held = held.into_inner();
+        plan
+    }
+
+    /// The held templates whose missing frames are all present but refused: a refused
+    /// file counts for the template its header names (object and template start) or, when
+    /// its header cannot be read, for the template that was receiving frames when it
+    /// arrived (the held one whose last frame came before it, latest first).
+    fn complete_by_refused(&self, plan: &night::NightPlan) -> HashSet<String> {
+        let mut refused: HashMap<String, usize> = HashMap::new();
+        // A duplicate of a frame present is no missing frame.
+        let refused_files = plan
+            .failures
+            .iter()
+            .chain(&plan.not_science)
+            .filter(|f| !f.error.starts_with("duplicate of "));
+        for f in refused_files {
+            let p = PathBuf::from(&f.file);
+            let Some(state) = self.files.get(&p) else { continue };
+            let named = self
+                .headers
+                .read(&p)
+                .ok()
+                .and_then(|h| sofipol_calib::classify::template_id(&h, &self.setup.profile));
+            let id = match named {
+                Some(id) => Some(id),
+                None => self
+                    .held
+                    .iter()
+                    .filter_map(|h| self.templates.get(&h.id).map(|t| (h, t.since)))
+                    .filter(|(_, since)| *since <= state.first_seen)
+                    .max_by_key(|(_, since)| *since)
+                    .map(|(h, _)| h.id.clone()),
+            };
+            if let Some(id) = id {
+                *refused.entry(id).or_default() += 1;
+            }
+        }
+        self.held
+            .iter()
+            .filter(|h| {
+                h.nexp.is_some_and(|n| {
+                    h.frames < n as usize && h.frames + refused.get(&h.id).copied().unwrap_or(0) >= n as usize
+                })
+            })
+            .map(|h| h.id.clone())
+            .collect()
+    }
+
+    /// Watched folders that are gone or cannot be listed at the last look, with why.
+    pub fn missing_roots(&self) -> &[(PathBuf, String)] {
+        &self.missing_roots
     }
 
     /// Whether the next [`LiveNight::update`] has work whatever arrives (after a
@@ -317,7 +456,7 @@ impl LiveNight {
 
     /// Whether every template seen is reduced and no file is being written.
     pub fn settled(&self) -> bool {
-        self.held.is_empty() && !self.dirty && self.files.values().all(|f| f.ready)
+        self.missing_roots.is_empty() && self.held.is_empty() && !self.dirty && self.files.values().all(|f| f.ready)
     }
 
     /// Files still being written at the last look (path, why), whether or not that look
@@ -344,28 +483,37 @@ impl LiveNight {
     /// still being written.
     fn look_at_files(&mut self, listing: &Listing, now: Instant) -> Vec<(PathBuf, String)> {
         let mut waiting = Vec::new();
-        let before = self.files.len();
-        self.files.retain(|p, _| listing.files.binary_search(p).is_ok());
-        if self.files.len() != before {
+        let gone: Vec<PathBuf> = self
+            .files
+            .iter()
+            .filter(|(p, _)| listing.files.binary_search(p).is_err())
+            .map(|(p, _)| p.clone())
+            .collect();
+        for p in gone {
+            if self.files.remove(&p).is_some_and(|st| st.ready) {
+                let id = self
+                    .headers
+                    .last(&p)
+                    .and_then(|h| sofipol_calib::classify::template_id(&h, &self.setup.profile));
+                self.vanished.insert(p, id);
+            }
             self.dirty = true;
         }
         for p in &listing.files {
-            let meta = std::fs::metadata(p).ok();
-            let len = meta.as_ref().map(|m| m.len()).unwrap_or(0);
-            let modified = meta.as_ref().and_then(|m| m.modified().ok());
+            self.vanished.remove(p);
+            let stamp = FileStamp::of(p);
             let st = self.files.entry(p.clone()).or_insert(FileState {
-                len: u64::MAX,
-                modified: None,
+                stamp: None,
                 since: now,
+                first_seen: now,
                 ready: false,
             });
-            let changed = st.len != len || st.modified != modified;
-            if changed {
+            if st.stamp != stamp {
                 let was_ready = st.ready;
                 *st = FileState {
-                    len,
-                    modified,
+                    stamp,
                     since: now,
+                    first_seen: st.first_seen,
                     ready: false,
                 };
                 if was_ready {
@@ -391,11 +539,35 @@ impl LiveNight {
                 }
             }
         }
+        // A vanished frame found again under another name (moved within the folder) is
+        // not lost: the same template, exposure and orientation is present.
+        if !self.vanished.is_empty() {
+            let present: HashSet<(String, Option<u32>, String)> = listing
+                .files
+                .iter()
+                .filter(|p| self.files.get(*p).is_some_and(|st| st.ready))
+                .filter_map(|p| self.headers.read(p).ok())
+                .filter_map(|h| exposure_key(&h, &self.setup.profile))
+                .collect();
+            let profile = &self.setup.profile;
+            let headers = &self.headers;
+            self.vanished.retain(|p, _| {
+                headers
+                    .last(p)
+                    .and_then(|h| exposure_key(&h, profile))
+                    .is_none_or(|k| !present.contains(&k))
+            });
+        }
         waiting
     }
 
     /// The targets new since the last update, and those whose numbers changed with why.
-    fn compare(&self, catalog: &Catalog, standards: &[String]) -> (Vec<Target>, Vec<(String, String)>) {
+    fn compare(
+        &self,
+        catalog: &Catalog,
+        standards: &[String],
+        lost: &[Failure],
+    ) -> (Vec<Target>, Vec<(String, String)>) {
         let before: HashMap<&str, &Target> = self
             .seen
             .catalog
@@ -423,6 +595,13 @@ impl LiveNight {
                 standards.len()
             ));
         }
+        if !lost.is_empty() {
+            reasons.push(format!(
+                "{} frame(s) vanished from the folder: {}",
+                lost.len(),
+                lost.iter().map(|f| f.file.as_str()).collect::<Vec<_>>().join(", ")
+            ));
+        }
         let why = if reasons.is_empty() {
             "recalibrated".to_string()
         } else {
@@ -441,6 +620,27 @@ impl LiveNight {
         }
         (new_targets, changed)
     }
+}
+
+/// Why a watched folder cannot be followed now (`None`: it can): gone, not a folder, or
+/// not listable.
+fn root_problem(root: &Path) -> Option<String> {
+    match std::fs::metadata(root) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Some("gone (removed or renamed)".into()),
+        Err(e) => Some(format!("cannot be read: {e}")),
+        Ok(m) if !m.is_dir() => Some("no longer a folder".into()),
+        Ok(_) => std::fs::read_dir(root).err().map(|e| format!("cannot be listed: {e}")),
+    }
+}
+
+/// One exposure's identity in its header: template, exposure number and rotator angle
+/// (`None` for a file without a template).
+fn exposure_key(h: &Header, profile: &sofipol_calib::Profile) -> Option<(String, Option<u32>, String)> {
+    let id = sofipol_calib::classify::template_id(h, profile)?;
+    let k = &profile.keywords;
+    let expno = h.opt_f64(&k.tpl_expno).ok().flatten().map(|x| x as u32);
+    let pa = h.get_str(&k.posang).unwrap_or_default();
+    Some((id, expno, pa))
 }
 
 /// Whether two entries of a target carry the same status and polarimetry.

@@ -65,24 +65,66 @@ pub struct CacheCounts {
     pub reused: usize,
 }
 
-/// Hash of files by path, size and modification time (a file being rewritten changes
-/// its key), mixed with `salt`.
+/// What identifies one state of a file on disk: size, modification time, and (on Unix) the
+/// inode and the status-change time, so that a file replaced by another of the same size
+/// and modification time (`cp -p`, `touch -r`, a rename over it) is a new file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct FileStamp {
+    /// Size, bytes.
+    pub len: u64,
+    /// Modification time, ns since 1970 (0 when unknown).
+    pub mtime_ns: u128,
+    /// Inode number (0 off Unix).
+    pub ino: u64,
+    /// Status-change time, ns since 1970 (0 off Unix).
+    pub ctime_ns: i128,
+}
+
+impl FileStamp {
+    /// The stamp of `path` now (`None` when it cannot be read).
+    pub fn of(path: &Path) -> Option<FileStamp> {
+        let m = std::fs::metadata(path).ok()?;
+        let mtime_ns = m
+            .modified()
+            .ok()
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+            .map(|d| d.as_nanos())
+            .unwrap_or(0);
+        #[cfg(unix)]
+        let (ino, ctime_ns) = {
+            use std::os::unix::fs::MetadataExt;
+            (m.ino(), m.ctime() as i128 * 1_000_000_000 + m.ctime_nsec() as i128)
+        };
+        #[cfg(not(unix))]
+        let (ino, ctime_ns) = (0, 0);
+        Some(FileStamp {
+            len: m.len(),
+            mtime_ns,
+            ino,
+            ctime_ns,
+        })
+    }
+}
+
+/// Hash of files by path and [`FileStamp`] (a file rewritten or replaced changes its key),
+/// mixed with `salt`.
 pub fn files_key<P: AsRef<Path>>(salt: u64, files: impl IntoIterator<Item = P>) -> u64 {
     let mut s = format!("{salt:016x}");
     for f in files {
         let f = f.as_ref();
-        let (len, mtime) = std::fs::metadata(f)
-            .map(|m| {
-                let t = m
-                    .modified()
-                    .ok()
-                    .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
-                    .map(|d| d.as_nanos())
-                    .unwrap_or(0);
-                (m.len(), t)
-            })
-            .unwrap_or((u64::MAX, 0));
-        s += &format!("\n{}\t{len}\t{mtime}", f.display());
+        match FileStamp::of(f) {
+            Some(st) => {
+                s += &format!(
+                    "\n{}\t{}\t{}\t{}\t{}",
+                    f.display(),
+                    st.len,
+                    st.mtime_ns,
+                    st.ino,
+                    st.ctime_ns
+                )
+            }
+            None => s += &format!("\n{}\t{}\t0", f.display(), u64::MAX),
+        }
     }
     stable_hash(&s)
 }

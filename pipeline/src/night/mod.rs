@@ -38,7 +38,7 @@ mod merge;
 mod plan;
 mod products;
 
-pub use cache::{files_key, CacheCounts, CachedTarget, NightCache};
+pub use cache::{files_key, CacheCounts, CachedTarget, FileStamp, NightCache};
 pub use calibrate::{calibrate, reduce_standards};
 pub use flats::{night_flats, NightFlats};
 pub use log::{log_path, night_log, write_night_log};
@@ -368,7 +368,7 @@ pub fn provenance(profile: &Profile, params: &impl serde::Serialize) -> serde_js
     serde_json::json!({
         "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
         "commit": crate::build_info::commit(),
-        "command_line": std::env::args().collect::<Vec<_>>(),
+        "command_line": crate::build_info::command_line(),
         "created_utc": crate::sim::effects::iso_from_mjd(40587.0 + now / 86400.0, false),
         "profile": profile,
         "parameters": params,

@@ -30,6 +30,11 @@ pub const AB_IDENTITY_UNVERIFIED: &str = "ab_identity_unverified";
 /// component's flag is `bad_pixels: k of n dithers dropped (...)` ([`bad_pixels_flag`]).
 pub const BAD_PIXELS: &str = "bad_pixels";
 
+/// The reason a dither is dropped (and the component's flag) when its frame has no usable
+/// parallactic angle while other frames of the target have one: the telescope's
+/// polarization could not be removed from it.
+pub const NO_PARALLACTIC_ANGLE: &str = "no_parallactic_angle";
+
 /// The component flag of `k` of its `n` dithers dropped for masked pixels in the aperture:
 /// the flag's name, then what it cost.
 pub fn bad_pixels_flag(k: usize, n: usize) -> String {
@@ -63,8 +68,29 @@ pub fn component_from_dithers(
                 .is_some_and(|r| r.split(',').any(|x| x == BAD_PIXELS))
         })
         .count();
+    // When some frames have a parallactic angle, a dither whose frame has none cannot have
+    // the telescope's polarization removed: it is left out by name (the others keep the
+    // correction). With no angle anywhere, nothing is left out (the component is flagged
+    // uncorrected by the calibration).
+    let any_eta = parallactic_deg.iter().flatten().any(Option::is_some);
+    let no_eta = |k: usize, i: usize| {
+        any_eta
+            && parallactic_deg
+                .get(k)
+                .and_then(|v| v.get(i))
+                .copied()
+                .flatten()
+                .is_none()
+    };
     for (k, dv) in per_orient.iter().enumerate() {
-        let mut usable: Vec<usize> = (0..dv.len()).filter(|&i| dv[i].rejected.is_none()).collect();
+        let mut usable: Vec<usize> = (0..dv.len())
+            .filter(|&i| dv[i].rejected.is_none() && !no_eta(k, i))
+            .collect();
+        if (0..dv.len()).any(|i| dv[i].rejected.is_none() && no_eta(k, i))
+            && !flags.iter().any(|f| f == NO_PARALLACTIC_ANGLE)
+        {
+            flags.push(NO_PARALLACTIC_ANGLE.into());
+        }
         for d in dv.iter().filter(|d| d.rejected.is_some()) {
             for r in d.rejected.as_deref().unwrap_or("").split(',') {
                 let r = r.to_string();
@@ -103,6 +129,7 @@ pub fn component_from_dithers(
             }
             let reason = match d.rejected.as_deref() {
                 Some(r) if !usable.contains(&i) => r.split(',').collect::<Vec<_>>().join(", "),
+                None if !usable.contains(&i) && no_eta(k, i) => NO_PARALLACTIC_ANGLE.to_string(),
                 // Usable but left out by the clipping: an outlier, or a value or error that
                 // is not a number (never combined).
                 _ if d.f.is_finite() && d.sigma_f > 0.0 => "clipped".to_string(),
@@ -246,20 +273,34 @@ impl ParallacticMean {
     }
 }
 
-/// Each dither's parallactic angle from its frame's header (`None` when absent or unreadable;
-/// an unreadable value is named in `flags`).
+/// Each dither's parallactic angle from its frame's header (`None` when absent or unreadable).
+/// An unreadable value is named in `flags`, and so is an absent one when other frames
+/// have an angle (those dithers are then left out: [`component_from_dithers`]).
 fn parallactic_angles(
     orients: &[CalibratedOrientation],
     kw: &Keywords,
     flags: &mut Vec<String>,
 ) -> Vec<Vec<Option<f64>>> {
-    orients
+    let read: Vec<Vec<(String, sofipol_calib::Result<Option<f64>>)>> = orients
         .iter()
         .map(|o| {
             o.frames
                 .iter()
-                .map(|f| match kw.parallactic_angle_deg(&f.header) {
-                    Ok(eta) => eta,
+                .map(|f| (f.path().display().to_string(), kw.parallactic_angle_deg(&f.header)))
+                .collect()
+        })
+        .collect();
+    let any = read.iter().flatten().any(|(_, r)| matches!(r, Ok(Some(_))));
+    read.into_iter()
+        .map(|o| {
+            o.into_iter()
+                .map(|(path, r)| match r {
+                    Ok(eta) => {
+                        if eta.is_none() && any {
+                            flags.push(format!("parallactic angle not used: {path}: no {}", kw.parang));
+                        }
+                        eta
+                    }
                     Err(e) => {
                         flags.push(format!("parallactic angle not used: {e}"));
                         None
@@ -885,7 +926,10 @@ mod tests {
                 // orientation dropped: 21 and 23, mean 22 all the same.
                 let want = 10.0 * k as f64 + 2.0;
                 if k == 3 {
-                    assert_eq!(o.parallactic_deg, None, "{o:?}");
+                    // The dither whose frame has no readable angle is left out: 31 and 33
+                    // remain, the orientation keeps their mean.
+                    assert_eq!(o.n_dithers, 2, "{o:?}");
+                    assert!((o.parallactic_deg.unwrap() - 32.0).abs() < 1e-9, "{o:?}");
                 } else {
                     let got = o.parallactic_deg.unwrap();
                     assert!((got - want).abs() < 1e-9, "component {ci} orientation {k}: {got}");
@@ -907,10 +951,56 @@ mod tests {
             }
         }
         let dropped = t.components[0].dropped_dithers.clone().unwrap();
-        assert_eq!(dropped.len(), 1);
+        let pairs: Vec<(&str, &str)> = dropped.iter().map(|d| (d.file.as_str(), d.reason.as_str())).collect();
         assert_eq!(
-            (dropped[0].file.as_str(), dropped[0].reason.as_str()),
-            ("o2d1.fits", "cosmic_ray")
+            pairs,
+            [("o2d1.fits", "cosmic_ray"), ("o3d1.fits", NO_PARALLACTIC_ANGLE)]
         );
+        for c in &t.components {
+            assert!(c.flags.iter().any(|f| f == NO_PARALLACTIC_ANGLE), "{:?}", c.flags);
+        }
+    }
+
+    /// A frame without the keyword among frames with it: named, its dither left out; with
+    /// no angle anywhere, nothing is left out and nothing is flagged.
+    #[test]
+    fn a_frame_without_a_parallactic_angle_is_left_out_only_when_others_have_one() {
+        let kw = sofipol_calib::Profile::sofi().keywords;
+        let build = |with_angles: bool| {
+            let mut orients = orients();
+            for (k, o) in orients.iter_mut().enumerate() {
+                for i in 0..3 {
+                    let mut h = sofipol_calib::header::Header::new(format!("o{k}d{i}.fits"));
+                    if with_angles && (k, i) != (1, 0) {
+                        h.set(&kw.parang, 20.0);
+                    }
+                    o.frames
+                        .push(sofipol_calib::frame::Frame::new(ndarray::Array2::zeros((1, 1)), h));
+                }
+            }
+            target_entry("X", &orients, &measured(Vec::new()), &MeasureParams::default(), &kw)
+        };
+        let t = build(true);
+        let flags = t.flags.clone().unwrap();
+        assert_eq!(
+            flags,
+            ["parallactic angle not used: o1d0.fits: no ESO TEL PARANG START"]
+        );
+        let per = t.components[0].orientations.as_ref().unwrap();
+        assert_eq!(per[1].n_dithers, 2);
+        assert!(
+            per.iter().all(|o| (o.parallactic_deg.unwrap() - 20.0).abs() < 1e-9),
+            "{per:?}"
+        );
+        let t = build(false);
+        assert!(t.flags.clone().unwrap().is_empty());
+        let c = &t.components[0];
+        assert!(c.dropped_dithers.is_none() && !c.flags.iter().any(|f| f == NO_PARALLACTIC_ANGLE));
+        assert!(c
+            .orientations
+            .as_ref()
+            .unwrap()
+            .iter()
+            .all(|o| o.parallactic_deg.is_none() && o.n_dithers == 3));
     }
 }

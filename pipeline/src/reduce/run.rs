@@ -297,7 +297,8 @@ pub fn reduce_loaded(
     let mut target = target_entry(&seq.object, &cal, &measured, &params.measure, &profile.keywords);
     failures.extend(primary_not_found(&cal, &measured, &params.measure));
     times.measure = t.elapsed().as_secs_f64();
-    flags.extend(measured.flags.iter().cloned());
+    // The measurement's flags and the entry's own (a frame's parallactic angle not used).
+    flags.extend(target.flags.take().unwrap_or_default());
     if !flags.is_empty() && target.status == Status::Ok && !seq.problems().is_empty() {
         target.status = Status::Partial;
         target.error = seq.problems().first().cloned();

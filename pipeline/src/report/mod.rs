@@ -88,10 +88,9 @@ pub fn collect(
     for (t, dir) in catalog.targets.iter().filter_map(|t| Some((t, figures_dir?))) {
         let id = t.sequence_id();
         // `night` names a figure by the sequence id, `demo` and `target` by the object.
-        let png = [id, t.object.as_str()].iter().find_map(|name| {
-            let png = std::fs::read(dir.join(format!("{}.png", crate::night::slug(name)))).ok()?;
-            png.starts_with(b"\x89PNG\r\n\x1a\n").then_some(png)
-        });
+        let png = [id, t.object.as_str()]
+            .iter()
+            .find_map(|name| read_png_figure(&dir.join(format!("{}.png", crate::night::slug(name)))));
         if let Some(png) = png {
             target_figures.insert(id.to_string(), png);
         }
@@ -105,6 +104,27 @@ pub fn collect(
         stats,
         command_line,
     }
+}
+
+/// The largest figure file the page takes, bytes: a target's figure is a few hundred kB.
+pub const MAX_FIGURE_BYTES: u64 = 32 << 20;
+
+/// The PNG at `path` when it is a regular file of at most [`MAX_FIGURE_BYTES`] that starts
+/// like a PNG; `None` otherwise. The type and size are checked before the file is opened,
+/// so a named pipe (which would block the open for ever) or a huge file is never read.
+pub fn read_png_figure(path: &Path) -> Option<Vec<u8>> {
+    use std::io::Read;
+    let meta = std::fs::metadata(path).ok()?;
+    if !meta.is_file() || meta.len() > MAX_FIGURE_BYTES {
+        return None;
+    }
+    let mut png = Vec::with_capacity(meta.len() as usize);
+    std::fs::File::open(path)
+        .ok()?
+        .take(MAX_FIGURE_BYTES + 1)
+        .read_to_end(&mut png)
+        .ok()?;
+    (png.len() as u64 <= MAX_FIGURE_BYTES && png.starts_with(b"\x89PNG\r\n\x1a\n")).then_some(png)
 }
 
 /// The statistics of `sofipol stats` with `opts`, and the observed and ISM figures (drawn
