@@ -133,6 +133,7 @@ fn target_reduces_one_sequence_to_the_truth_and_names_a_missing_object() {
     let (code, stdout, err) = run(&[
         "target",
         raw.to_str().unwrap(),
+        "--allow-uncalibrated",
         "--object",
         "Solo",
         "-o",
@@ -164,6 +165,7 @@ fn target_reduces_one_sequence_to_the_truth_and_names_a_missing_object() {
     let (code, _, err) = run(&[
         "target",
         raw.to_str().unwrap(),
+        "--allow-uncalibrated",
         "--object",
         "Nobody",
         "-o",
@@ -179,6 +181,7 @@ fn target_reduces_one_sequence_to_the_truth_and_names_a_missing_object() {
         let (code, _, err) = run(&[
             "target",
             raw.to_str().unwrap(),
+            "--allow-uncalibrated",
             "--object",
             wrong,
             "-o",

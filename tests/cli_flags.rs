@@ -328,6 +328,7 @@ fn verbose_adds_detail_on_stderr_to_every_command_that_has_it() {
     let (code, _, err) = run(&[
         "night",
         n.to_str().unwrap(),
+        "--allow-uncalibrated",
         "-o",
         cat.to_str().unwrap(),
         "--no-png",
@@ -343,7 +344,13 @@ fn verbose_adds_detail_on_stderr_to_every_command_that_has_it() {
             ": whole night, 2 targets",
         ),
         (
-            vec!["stats".into(), c.into(), "--pairs".into(), "2000".into()],
+            vec![
+                "stats".into(),
+                c.into(),
+                "--pairs".into(),
+                "2000".into(),
+                "--allow-uncalibrated".into(),
+            ],
             "analysis (",
         ),
         (

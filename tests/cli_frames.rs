@@ -167,7 +167,15 @@ fn one_frame_without_a_measurable_sky_is_dropped_by_name_and_the_target_is_reduc
     let n = night(dir.path());
     let truth = catalog(&dir.path().join("truth.json"));
     let clean_out = dir.path().join("clean.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&clean_out), "-q", "--no-png"]);
+    let (code, _, err) = run(&[
+        "night",
+        s(&n),
+        "--allow-uncalibrated",
+        "-o",
+        s(&clean_out),
+        "-q",
+        "--no-png",
+    ]);
     assert_eq!(code, 0, "{err}");
     let clean = catalog(&clean_out);
     for object in ["Alpha", "Beta"] {
@@ -184,7 +192,7 @@ fn one_frame_without_a_measurable_sky_is_dropped_by_name_and_the_target_is_reduc
         std::fs::write(&frame, &original).unwrap();
         damage(&frame, how);
         let out = dir.path().join(format!("{how:?}.json"));
-        let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png"]);
+        let (code, _, err) = run(&["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "-q", "--no-png"]);
         assert_eq!(code, 2, "{how:?}: {err}");
         let c = catalog(&out);
         let what = format!("{how:?}");

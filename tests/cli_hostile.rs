@@ -71,7 +71,7 @@ fn failures(c: &Value) -> Vec<(String, String)> {
 /// The reference catalog of the undamaged night.
 fn clean_catalog(dir: &Path, n: &Path) -> Value {
     let out = dir.join("clean.json");
-    let (code, _, err) = run(&["night", s(n), "-o", s(&out), "-q", "--no-png"]);
+    let (code, _, err) = run(&["night", s(n), "--allow-uncalibrated", "-o", s(&out), "-q", "--no-png"]);
     assert_eq!(code, 0, "{err}");
     catalog(&out)
 }
@@ -87,7 +87,7 @@ fn closed_stdout_and_stderr_do_not_panic_and_the_catalog_is_written() {
     drop(r1);
     drop(r2);
     let st = Command::new(bin())
-        .args(["night", s(&n), "-o", s(&out), "--no-png", "-v"])
+        .args(["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "--no-png", "-v"])
         .stdout(Stdio::from(w1))
         .stderr(Stdio::from(w2))
         .status()
@@ -108,7 +108,15 @@ fn closed_stdout_and_stderr_do_not_panic_and_the_catalog_is_written() {
     let (r, w) = std::io::pipe().unwrap();
     drop(r);
     let st = Command::new(bin())
-        .args(["target", s(&n), "--object", "Beta", "-o", s(&out2)])
+        .args([
+            "target",
+            s(&n),
+            "--allow-uncalibrated",
+            "--object",
+            "Beta",
+            "-o",
+            s(&out2),
+        ])
         .stdout(Stdio::from(w))
         .status()
         .unwrap();
@@ -134,7 +142,17 @@ fn the_same_frame_reached_twice_is_used_once_and_reported() {
     let out = dir.path().join("cat.json");
     let o = Command::new(bin())
         .current_dir(dir.path())
-        .args(["night", "night", "./night", s(&n), "-o", s(&out), "-q", "--no-png"])
+        .args([
+            "night",
+            "night",
+            "./night",
+            s(&n),
+            "--allow-uncalibrated",
+            "-o",
+            s(&out),
+            "-q",
+            "--no-png",
+        ])
         .output()
         .unwrap();
     assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
@@ -170,18 +188,26 @@ fn output_onto_an_input_or_a_directory_or_an_unwritable_place_is_refused_before_
         (n.clone(), "directory"),
         (PathBuf::from("/proc/sofipol-cat.json"), "cannot create"),
     ] {
-        let (code, _, err) = run(&["night", s(&n), "-o", s(&o), "--no-png"]);
+        let (code, _, err) = run(&["night", s(&n), "--allow-uncalibrated", "-o", s(&o), "--no-png"]);
         assert_eq!(code, 1, "-o {}: {err}", o.display());
         assert!(err.contains(want) && err.contains(s(&o)), "-o {}: {err}", o.display());
         // Refused before any target was reduced.
         assert!(!err.contains("[1/2]"), "{err}");
-        let (code, _, err) = run(&["target", s(&n), "--object", "Alpha", "-o", s(&o)]);
+        let (code, _, err) = run(&[
+            "target",
+            s(&n),
+            "--allow-uncalibrated",
+            "--object",
+            "Alpha",
+            "-o",
+            s(&o),
+        ]);
         assert_eq!(code, 1, "target -o {}: {err}", o.display());
     }
     assert_eq!(std::fs::read(&frame).unwrap(), before, "an input frame was overwritten");
     // merge onto one of its own inputs.
     let c = dir.path().join("c.json");
-    let (code, _, _) = run(&["night", s(&n), "-o", s(&c), "-q", "--no-png"]);
+    let (code, _, _) = run(&["night", s(&n), "--allow-uncalibrated", "-o", s(&c), "-q", "--no-png"]);
     assert_eq!(code, 0);
     let c_before = std::fs::read(&c).unwrap();
     let (code, _, err) = run(&["merge", s(&c), "-o", s(&c), "--allow-partial"]);
@@ -197,7 +223,17 @@ fn merge_refuses_missing_shards_and_shards_with_different_parameters() {
         let out = dir
             .path()
             .join(format!("s{}{}.json", k.replace('/', "of"), extra.len()));
-        let mut a = vec!["night", s(&n), "-o", s(&out), "-q", "--no-png", "--shard", k];
+        let mut a = vec![
+            "night",
+            s(&n),
+            "--allow-uncalibrated",
+            "-o",
+            s(&out),
+            "-q",
+            "--no-png",
+            "--shard",
+            k,
+        ];
         a.extend_from_slice(extra);
         let (code, _, err) = run(&a);
         assert!(code == 0 || code == 2, "{err}");
@@ -253,7 +289,16 @@ fn jobs_2048_is_capped_and_finishes_and_unused_input_counts_agree() {
     std::fs::write(n.join("notes.fits"), "observing log\n").unwrap();
     let out = dir.path().join("c.json");
     let mut child = Command::new(bin())
-        .args(["night", s(&n), "-o", s(&out), "--no-png", "--jobs", "2048"])
+        .args([
+            "night",
+            s(&n),
+            "--allow-uncalibrated",
+            "-o",
+            s(&out),
+            "--no-png",
+            "--jobs",
+            "2048",
+        ])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -289,6 +334,7 @@ fn save_intermediate_inside_the_night_folder_is_skipped_by_the_next_run() {
     let (code, _, err) = run(&[
         "night",
         s(&n),
+        "--allow-uncalibrated",
         "-o",
         s(&first),
         "-q",
@@ -302,7 +348,15 @@ fn save_intermediate_inside_the_night_folder_is_skipped_by_the_next_run() {
     // The next run over the same folder finds the products, skips them by name, and
     // reduces the raw frames exactly as before.
     let second = dir.path().join("second.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&second), "-q", "--no-png"]);
+    let (code, _, err) = run(&[
+        "night",
+        s(&n),
+        "--allow-uncalibrated",
+        "-o",
+        s(&second),
+        "-q",
+        "--no-png",
+    ]);
     assert_eq!(code, 2, "{err}");
     let c = catalog(&second);
     for name in ["Alpha", "Beta"] {
@@ -347,7 +401,7 @@ fn all_dithers_at_one_position_are_refused_by_name_and_kept_out_of_the_night_mas
     let dir = tempfile::tempdir().unwrap();
     let n = night_with_a_stationary_target(dir.path());
     let out = dir.path().join("c.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png"]);
+    let (code, _, err) = run(&["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "-q", "--no-png"]);
     assert_eq!(code, 2, "{err}");
     let c = catalog(&out);
     let beta = target(&c, "Beta");
@@ -384,7 +438,7 @@ fn a_corrupt_naxis_of_100000_is_named_and_the_night_goes_on() {
     }
     std::fs::write(&f, &b).unwrap();
     let out = dir.path().join("c.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png"]);
+    let (code, _, err) = run(&["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "-q", "--no-png"]);
     assert_eq!(code, 2, "{err}");
     let c = catalog(&out);
     // The night's superflat is built from frames of every target, so the damaged frame
@@ -426,7 +480,7 @@ fn unknown_keys_and_out_of_range_values_are_refused_naming_the_key() {
     ];
     std::fs::write(&params, "[bad_pixels]\nwindow_px = 0\n").unwrap();
     for (extra, key) in cases {
-        let mut a = vec!["night", s(&n), "-o", s(&out), "--no-png"];
+        let mut a = vec!["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "--no-png"];
         a.extend(extra.iter().map(|x| x.as_str()));
         let (code, _, err) = run(&a);
         assert_eq!(code, 1, "{a:?}: {err}");
@@ -437,14 +491,33 @@ fn unknown_keys_and_out_of_range_values_are_refused_naming_the_key() {
         ("[bad_pixels]\nsigma = -1.0\n", "bad_pixels.sigma"),
     ] {
         std::fs::write(&params, text).unwrap();
-        let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "--no-png", "--params", s(&params)]);
+        let (code, _, err) = run(&[
+            "night",
+            s(&n),
+            "--allow-uncalibrated",
+            "-o",
+            s(&out),
+            "--no-png",
+            "--params",
+            s(&params),
+        ]);
         assert_eq!(code, 1, "{text}: {err}");
         assert!(err.contains(key), "{text}: {err}");
     }
     assert!(!out.exists());
     // A [sky] table with only `scaling` keeps cosmic-ray flagging (it silently dropped it).
     std::fs::write(&params, "[sky]\nscaling = \"additive\"\n").unwrap();
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--params", s(&params)]);
+    let (code, _, err) = run(&[
+        "night",
+        s(&n),
+        "--allow-uncalibrated",
+        "-o",
+        s(&out),
+        "-q",
+        "--no-png",
+        "--params",
+        s(&params),
+    ]);
     assert_eq!(code, 0, "{err}");
     let sky = &catalog(&out)["provenance"]["parameters"]["sky"];
     assert_eq!(sky["cosmic_rays"]["enabled"], true, "{sky}");
@@ -469,7 +542,16 @@ fn a_nan_pixel_is_a_bad_pixel_and_unusable_frames_are_dropped_by_name() {
     // The scene has no pixel response: runs without the night's superflat, which the dropped
     // frames would change for Beta too, so that Beta can be compared bit for bit.
     let clean_out = dir.path().join("clean.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&clean_out), "-q", "--no-png", "--no-flat"]);
+    let (code, _, err) = run(&[
+        "night",
+        s(&n),
+        "--allow-uncalibrated",
+        "-o",
+        s(&clean_out),
+        "-q",
+        "--no-png",
+        "--no-flat",
+    ]);
     assert_eq!(code, 0, "{err}");
     let clean = catalog(&clean_out);
     let frame = |k: u32| n.join(format!("SOFI_hx_Alpha_{k:02}.fits"));
@@ -488,7 +570,16 @@ fn a_nan_pixel_is_a_bad_pixel_and_unusable_frames_are_dropped_by_name() {
     fits::write_frame(&frame(6), &f6, &Default::default()).unwrap();
 
     let out = dir.path().join("c.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--no-flat"]);
+    let (code, _, err) = run(&[
+        "night",
+        s(&n),
+        "--allow-uncalibrated",
+        "-o",
+        s(&out),
+        "-q",
+        "--no-png",
+        "--no-flat",
+    ]);
     assert_eq!(code, 2, "{err}");
     let c = catalog(&out);
     let alpha = target(&c, "Alpha");
@@ -541,7 +632,7 @@ fn a_night_of_two_dithers_per_orientation_measures_every_component() {
     let truth = catalog(&n.join("truth.json"));
     std::fs::remove_file(n.join("truth.json")).unwrap();
     let out = dir.path().join("c.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png"]);
+    let (code, _, err) = run(&["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "-q", "--no-png"]);
     assert_eq!(code, 0, "{err}");
     let c = catalog(&out);
     assert!(
@@ -594,7 +685,16 @@ fn a_sequence_of_another_frame_size_fails_no_valid_target_via_the_night_mask() {
     let n = night(dir.path());
     // Without the night's superflat, which Gamma's frames would change (not the point here).
     let clean_out = dir.path().join("clean.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&clean_out), "-q", "--no-png", "--no-flat"]);
+    let (code, _, err) = run(&[
+        "night",
+        s(&n),
+        "--allow-uncalibrated",
+        "-o",
+        s(&clean_out),
+        "-q",
+        "--no-png",
+        "--no-flat",
+    ]);
     assert_eq!(code, 0, "{err}");
     let clean = catalog(&clean_out);
     let gamma = scene_toml()
@@ -621,7 +721,16 @@ fn a_sequence_of_another_frame_size_fails_no_valid_target_via_the_night_mask() {
     }
     assert_eq!(n_small, 6);
     let out = dir.path().join("c.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--no-flat"]);
+    let (code, _, err) = run(&[
+        "night",
+        s(&n),
+        "--allow-uncalibrated",
+        "-o",
+        s(&out),
+        "-q",
+        "--no-png",
+        "--no-flat",
+    ]);
     assert_eq!(code, 2, "{err}");
     let c = catalog(&out);
     for name in ["Alpha", "Beta"] {
@@ -696,7 +805,16 @@ fn a_flat_file_of_the_wrong_size_or_with_nan_pixels_is_refused_or_flagged_by_nam
     let dir = tempfile::tempdir().unwrap();
     let n = night(dir.path());
     let noflat = dir.path().join("noflat.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&noflat), "-q", "--no-png", "--no-flat"]);
+    let (code, _, err) = run(&[
+        "night",
+        s(&n),
+        "--allow-uncalibrated",
+        "-o",
+        s(&noflat),
+        "-q",
+        "--no-png",
+        "--no-flat",
+    ]);
     assert_eq!(code, 0, "{err}");
     let noflat = catalog(&noflat);
     let mut f = fits::read_frame(&n.join("SOFI_hx_Alpha_01.fits")).unwrap();
@@ -706,7 +824,17 @@ fn a_flat_file_of_the_wrong_size_or_with_nan_pixels_is_refused_or_flagged_by_nam
     g.mask = ndarray::Array2::zeros((512, 512));
     fits::write_frame(&small, &g, &Default::default()).unwrap();
     let out = dir.path().join("c.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--flat", s(&small)]);
+    let (code, _, err) = run(&[
+        "night",
+        s(&n),
+        "--allow-uncalibrated",
+        "-o",
+        s(&out),
+        "-q",
+        "--no-png",
+        "--flat",
+        s(&small),
+    ]);
     assert_eq!(code, 2, "{err}");
     let c = catalog(&out);
     let fl = failures(&c);
@@ -729,7 +857,17 @@ fn a_flat_file_of_the_wrong_size_or_with_nan_pixels_is_refused_or_flagged_by_nam
     f.mask = ndarray::Array2::zeros((1024, 1024));
     let nan = dir.path().join("nan_flat.fits");
     fits::write_frame(&nan, &f, &Default::default()).unwrap();
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q", "--no-png", "--flat", s(&nan)]);
+    let (code, _, err) = run(&[
+        "night",
+        s(&n),
+        "--allow-uncalibrated",
+        "-o",
+        s(&out),
+        "-q",
+        "--no-png",
+        "--flat",
+        s(&nan),
+    ]);
     assert!(code == 0 || code == 2, "{err}");
     let c = catalog(&out);
     let bad = c["provenance"]["flat"]["flats"][0]["bad_pixels"].as_u64().unwrap();
@@ -767,7 +905,7 @@ fn a_named_pipe_among_the_files_is_named_and_the_night_does_not_wait_on_it() {
     }
     let out = dir.path().join("c.json");
     let mut child = common::sofipol()
-        .args(["night", s(&n), "-o", s(&out), "-q", "--no-png"])
+        .args(["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "-q", "--no-png"])
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()

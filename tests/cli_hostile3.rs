@@ -76,7 +76,7 @@ fn control_characters_in_object_never_reach_the_terminal_or_the_log() {
     }
     let out = dir.path().join("cat.json");
     // stderr is a pipe: the per-target progress lines of a batch job's log.
-    let (code, stdout, stderr) = run(&["night", s(&n), "-o", s(&out), "--no-png"]);
+    let (code, stdout, stderr) = run(&["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "--no-png"]);
     assert_eq!(code, 0, "{stderr}");
     for (name, text) in [("stdout", &stdout), ("stderr", &stderr)] {
         assert!(
@@ -112,7 +112,7 @@ fn csv_export_neutralises_formulas_in_text_cells_and_keeps_numbers() {
         }
     }
     let cat = dir.path().join("cat.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&cat), "-q", "--no-png"]);
+    let (code, _, err) = run(&["night", s(&n), "--allow-uncalibrated", "-o", s(&cat), "-q", "--no-png"]);
     assert_eq!(code, 0, "{err}");
     let csv = dir.path().join("t.csv");
     let (code, _, err) = run(&["export", s(&cat), "--format", "csv", "-o", s(&csv)]);
@@ -170,7 +170,7 @@ fn parameters_without_an_upper_bound_are_refused_by_key_before_any_work() {
             "flat_options.min_values",
         ),
     ] {
-        let mut a = vec!["night", s(&n), "-o", s(&out), "-q", "--no-png"];
+        let mut a = vec!["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "-q", "--no-png"];
         a.extend(args);
         let (code, _, err) = run_limited(&a, limit);
         assert_eq!(code, 1, "{args:?}: {err}");
@@ -182,6 +182,7 @@ fn parameters_without_an_upper_bound_are_refused_by_key_before_any_work() {
         &[
             "night",
             s(&n),
+            "--allow-uncalibrated",
             "-o",
             s(&out),
             "-q",

@@ -124,7 +124,16 @@ fn a_gzip_frame_that_expands_past_any_detector_is_refused_before_it_is_inflated(
     gz.finish().unwrap();
     assert!(std::fs::metadata(&big).unwrap().len() > 268_435_456 / 1000);
     let out = dir.path().join("cat.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "--no-png", "-q", "-v"]);
+    let (code, _, err) = run(&[
+        "night",
+        s(&n),
+        "--allow-uncalibrated",
+        "-o",
+        s(&out),
+        "--no-png",
+        "-q",
+        "-v",
+    ]);
     assert_eq!(code, 2, "{err}");
     let c = json(&out);
     let e = failure_of(&c, "big.fits.gz");
@@ -161,18 +170,53 @@ fn option_files_and_catalogs_must_be_regular_files_of_bounded_size() {
         ),
         (vec!["mc", "--config", s(&fifo)], "a named pipe"),
         (
-            vec!["night", s(&n), "-o", s(&out), "--params", "/dev/zero"],
+            vec![
+                "night",
+                s(&n),
+                "--allow-uncalibrated",
+                "-o",
+                s(&out),
+                "--params",
+                "/dev/zero",
+            ],
             "a character device",
         ),
         (
-            vec!["night", s(&n), "-o", s(&out), "--standards", s(&fifo)],
+            vec![
+                "night",
+                s(&n),
+                "--allow-uncalibrated",
+                "-o",
+                s(&out),
+                "--standards",
+                s(&fifo),
+            ],
             "a named pipe",
         ),
         (
-            vec!["night", s(&n), "-o", s(&out), "--profile", s(&big)],
+            vec![
+                "night",
+                s(&n),
+                "--allow-uncalibrated",
+                "-o",
+                s(&out),
+                "--profile",
+                s(&big),
+            ],
             "more than the 4194304 bytes",
         ),
-        (vec!["night", s(&n), "-o", s(&out), "--calib", s(&fifo)], "a named pipe"),
+        (
+            vec![
+                "night",
+                s(&n),
+                "--allow-uncalibrated",
+                "-o",
+                s(&out),
+                "--calib",
+                s(&fifo),
+            ],
+            "a named pipe",
+        ),
         (
             vec!["export", "/dev/zero", "-o", s(&dir.path().join("t.ecsv"))],
             "a character device",
@@ -211,11 +255,33 @@ fn calibration_frames_and_outputs_are_checked_before_the_reduction() {
     let blocked = file.join("sub"); // under a regular file: no directory can be made
     for (args, want) in [
         (
-            vec!["night", s(&n), "-o", s(&out), "--badpix", "/no/such/mask.fits"],
+            vec![
+                "night",
+                s(&n),
+                "--allow-uncalibrated",
+                "-o",
+                s(&out),
+                "--badpix",
+                "/no/such/mask.fits",
+            ],
             "--badpix",
         ),
-        (vec!["night", s(&n), "-o", s(&out), "--flat", s(&text)], "--flat"),
-        (vec!["night", s(&n), "-o", s(&long)], "bytes long"),
+        (
+            vec![
+                "night",
+                s(&n),
+                "--allow-uncalibrated",
+                "-o",
+                s(&out),
+                "--flat",
+                s(&text),
+            ],
+            "--flat",
+        ),
+        (
+            vec!["night", s(&n), "--allow-uncalibrated", "-o", s(&long)],
+            "bytes long",
+        ),
         (vec!["calib", s(&n), "-o", s(&blocked)], "cannot create"),
         (
             vec!["stats", &common::testdata("catalog_aligned.json"), "-o", s(&blocked)],
@@ -281,7 +347,7 @@ fn unreadable_frames_are_reported_with_what_is_wrong() {
     std::fs::write(alpha2, &b).unwrap();
 
     let out = dir.path().join("cat.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "--no-png", "-q"]);
+    let (code, _, err) = run(&["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "--no-png", "-q"]);
     assert_eq!(code, 2, "{err}");
     let c = json(&out);
     for (name, want) in [
@@ -333,7 +399,7 @@ fn a_frame_that_cannot_be_opened_is_reported_with_the_systems_reason() {
         Command::new(&exe)
     };
     let o = cmd
-        .args(["night", s(&n), "-o", s(&out), "--no-png", "-q"])
+        .args(["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "--no-png", "-q"])
         .output()
         .unwrap();
     assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
@@ -346,7 +412,7 @@ fn figures_that_cannot_be_written_make_exit_2_and_stale_products_are_removed() {
     let dir = tempfile::tempdir().unwrap();
     let n = night(dir.path());
     let out = dir.path().join("cat.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q"]);
+    let (code, _, err) = run(&["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "-q"]);
     assert_eq!(code, 0, "{err}");
     let products = dir.path().join("cat_products");
     let mut pngs: Vec<PathBuf> = std::fs::read_dir(&products)
@@ -363,7 +429,7 @@ fn figures_that_cannot_be_written_make_exit_2_and_stale_products_are_removed() {
     std::fs::remove_file(beta).unwrap();
     std::fs::create_dir(beta).unwrap();
     std::fs::write(beta.join("keep"), b"").unwrap();
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "-q"]);
+    let (code, _, err) = run(&["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "-q"]);
     assert_eq!(code, 2, "{err}");
     assert!(
         err.contains("could not write the figure") && err.contains("products are incomplete"),
@@ -424,7 +490,7 @@ fn a_dither_whose_primary_is_not_found_is_listed_under_failures() {
     b[i..i + 80].copy_from_slice(&c);
     std::fs::write(f, b).unwrap();
     let out = dir.path().join("cat.json");
-    let (code, _, err) = run(&["night", s(&n), "-o", s(&out), "--no-png", "-q"]);
+    let (code, _, err) = run(&["night", s(&n), "--allow-uncalibrated", "-o", s(&out), "--no-png", "-q"]);
     assert_eq!(code, 2, "{err}");
     let e = failure_of(&json(&out), f.file_name().unwrap().to_str().unwrap());
     assert!(

@@ -43,6 +43,7 @@ fn region_files_mark_both_stars_in_both_beams_where_the_simulation_put_them() {
     let (code, out, err) = run(&[
         "night",
         n.to_str().unwrap(),
+        "--allow-uncalibrated",
         "-o",
         cat.to_str().unwrap(),
         "--regions",

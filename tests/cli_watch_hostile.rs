@@ -229,6 +229,19 @@ fn a_frame_that_vanishes_after_its_template_was_reduced_never_takes_the_target_o
         objects(&c)
     );
     assert!(failure_of(&c, &alpha_name).unwrap().contains("vanished"));
+    // A frame replaced by an incomplete one (a copy started over it): Beta stays in the
+    // catalog, reduced without it at once.
+    let beta3 = frame_named(&live, "_Beta_", 2);
+    let bytes = std::fs::read(&beta3).unwrap();
+    std::fs::write(&beta3, &bytes[..bytes.len() / 3]).unwrap();
+    let c = catalog_when(&mut child, &out, limit, "Beta partial without its third frame", |c| {
+        objects(c).contains(&("Beta".into(), "partial".into()))
+    });
+    assert!(has_both(&c) && calibrated(&c), "{:?}", objects(&c));
+    std::fs::write(&beta3, &bytes).unwrap();
+    catalog_when(&mut child, &out, limit, "Beta ok again", |c| {
+        objects(c).contains(&("Beta".into(), "ok".into()))
+    });
     // A frame renamed within the folder is found again, not lost.
     let beta1 = frame_named(&live, "_Beta_", 0);
     std::fs::rename(&beta1, live.join("renamed_beta.fits")).unwrap();
@@ -449,4 +462,23 @@ fn a_tpl_nexp_below_the_frame_count_is_not_trusted_and_gives_no_false_failure() 
     assert!(code == 0 || code == 2, "{err}");
     let nt = json(&night);
     assert_eq!(w["targets"], nt["targets"]);
+}
+
+#[test]
+fn a_state_path_that_is_a_folder_is_refused_before_anything_is_reduced() {
+    let d = tempfile::tempdir().unwrap();
+    let live = d.path().join("live");
+    std::fs::create_dir(&live).unwrap();
+    let out = d.path().join("w.json");
+    std::fs::create_dir(d.path().join("w.json.state.json")).unwrap();
+    let t0 = Instant::now();
+    let child = start_watch(&live, &out, &["--exit-when-idle", "30"]);
+    let (code, _, stderr) = finish(child, Duration::from_secs(20));
+    assert_eq!(code, 1, "{stderr}");
+    assert!(
+        stderr.contains("w.json.state.json") && stderr.contains("not a regular file"),
+        "{stderr}"
+    );
+    assert!(t0.elapsed() < Duration::from_secs(10));
+    assert!(!out.exists());
 }

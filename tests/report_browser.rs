@@ -19,6 +19,28 @@ mod common;
 use common::{json, run};
 
 /// A binary with every dither at one position (jitter step 0): the night refuses it.
+/// The night's standards (one unpolarized, one polarized), observed before the targets:
+/// a calibrated night, whose binaries the statistics take.
+const STANDARDS: &str = r#"name = "stds"
+seed = 9
+effects = ["psf", "sky", "strips", "photon_noise", "read_noise"]
+[observation]
+orientations_deg = [0.0, 45.0]
+dithers = 3
+start_ut = "00:10:00"
+[psf]
+kind = "moffat"
+fwhm_arcsec = 0.8
+[[standard]]
+name = "HD 64299"
+flux = 150000.0
+[[standard]]
+name = "HD 204827"
+flux = 150000.0
+p = 0.0088
+gamma_deg = 58.7
+"#;
+
 const STILL: &str = r#"name = "still"
 seed = 8
 effects = ["psf", "sky", "strips", "photon_noise", "read_noise"]
@@ -156,6 +178,11 @@ fn the_night_report_loads_sorts_filters_and_shows_every_image_in_chromium() {
     std::fs::remove_file(common::frames_of(&n, "Beta")[2].clone()).unwrap();
     let scene = dir.path().join("still.toml");
     std::fs::write(&scene, STILL).unwrap();
+    let (code, _, err) = run(&["simulate", scene.to_str().unwrap(), "-o", n.to_str().unwrap(), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_file(n.join("truth.json")).unwrap();
+    let scene = dir.path().join("standards.toml");
+    std::fs::write(&scene, STANDARDS).unwrap();
     let (code, _, err) = run(&["simulate", scene.to_str().unwrap(), "-o", n.to_str().unwrap(), "-q"]);
     assert_eq!(code, 0, "{err}");
     std::fs::remove_file(n.join("truth.json")).unwrap();

@@ -65,6 +65,11 @@ pub struct CalibrationParams {
     /// Neither fit nor remove the telescope's own polarization (`--no-telescope-correction`;
     /// the components are flagged `telescope_polarization_uncorrected`).
     pub no_telescope_correction: bool,
+    /// Let components flagged `uncalibrated` pass the P/sigma cut (`--allow-uncalibrated`):
+    /// without it they never do, since their q and u carry the instrument's offset c and
+    /// their angles the profile's zero-point.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub allow_uncalibrated: bool,
 }
 
 /// The calibration of one filter.
@@ -315,12 +320,32 @@ pub struct CalibrationSummary {
     pub lines: Vec<String>,
     /// Components flagged `uncalibrated`.
     pub n_uncalibrated: usize,
+    /// Of those, the components whose P/sigma passed but that were refused by the cut for
+    /// it (without `--allow-uncalibrated`).
+    pub n_refused_uncalibrated: usize,
     /// Components flagged `calibration_incomplete`.
     pub n_incomplete: usize,
     /// Components whose chosen Stokes method could not apply (`stokes_method_failed`).
     pub n_method_failed: usize,
     /// Components flagged `telescope_polarization_uncorrected`.
     pub n_telescope_uncorrected: usize,
+}
+
+/// The component flag of a 2-orientation measurement without an instrumental calibration.
+pub const UNCALIBRATED: &str = "uncalibrated";
+
+/// Whether component `c` is flagged [`UNCALIBRATED`].
+pub fn is_uncalibrated(c: &Component) -> bool {
+    c.flags.iter().any(|f| f == UNCALIBRATED)
+}
+
+/// The components of `cat`'s targets flagged [`UNCALIBRATED`].
+pub fn uncalibrated_components(cat: &Catalog) -> usize {
+    cat.targets
+        .iter()
+        .flat_map(|t| &t.components)
+        .filter(|c| is_uncalibrated(c))
+        .count()
 }
 
 /// The component flag of a filter whose standards could not separate c from theta0.
@@ -393,6 +418,10 @@ pub fn calibrate_catalog(
         let mut n_unc = 0;
         for c in t.components.iter_mut() {
             n_unc += usize::from(resolve_component(c, profile, fc, method, debias, cut_snr));
+            if is_uncalibrated(c) && !params.allow_uncalibrated {
+                summary.n_refused_uncalibrated += usize::from(c.passes_cut);
+                c.passes_cut = false;
+            }
             note_calibration_state(c, fc, &mut summary);
         }
         summary.n_uncalibrated += n_unc;
@@ -476,13 +505,18 @@ pub fn calibrate_catalog(
             "{} component(s) flagged 'uncalibrated': with 2 orientations the beam throughput ratio and the \
              instrumental polarization add a constant to F = (o-e)/(o+e) that biases q and u \
              (c ~ (1-k)/(1+k) + p_inst, e.g. 1.5 % for k = 0.97), and the angle zero-point is the \
-             profile's; the night has no usable standards ({}). Observe unpolarized and polarized \
+             profile's; the night has no usable standards ({}). {} Observe unpolarized and polarized \
              standards, use --calib CALDIR from another night, or observe 4 orientations.",
             summary.n_uncalibrated,
             if cal.is_none() {
                 "no calibration"
             } else {
                 "no offset for this filter"
+            },
+            if params.allow_uncalibrated {
+                "They may pass the cut (--allow-uncalibrated), flagged."
+            } else {
+                "They never pass the cut (--allow-uncalibrated lets them, flagged)."
             }
         ));
     }

@@ -151,7 +151,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         );
     }
     let fits_failed = super::common::finish_fits_products(fits, args.quiet, "night");
-    let bad = cat.targets.iter().any(|t| t.status != Status::Ok) || !cat.failures.is_empty();
+    let bad = cat.targets.iter().any(|t| t.status != Status::Ok)
+        || !cat.failures.is_empty()
+        || super::summary::uncalibrated_exit(cat, setup.calibration.params.allow_uncalibrated);
     Ok(
         if bad || !figures_failed.is_empty() || !regions_failed.is_empty() || fits_failed {
             ExitCode::from(2)

@@ -232,6 +232,10 @@ pub struct CalibArgs {
     /// `telescope_polarization_uncorrected`).
     #[arg(long)]
     pub no_telescope_correction: bool,
+    /// Let components without an instrumental calibration (flagged `uncalibrated`) pass the
+    /// P/sigma cut, flagged; without it they never do and the night exits 2.
+    #[arg(long)]
+    pub allow_uncalibrated: bool,
 }
 
 impl CalibArgs {
@@ -240,6 +244,7 @@ impl CalibArgs {
         let mut params = base.clone();
         params.no_calibration |= self.no_calibration;
         params.no_telescope_correction |= self.no_telescope_correction;
+        params.allow_uncalibrated |= self.allow_uncalibrated;
         if let Some(m) = self.stokes_method {
             params.stokes_method = m;
         }

@@ -70,6 +70,10 @@ pub struct Args {
     /// [default: none, the catalog's passes_cut]
     #[arg(long, value_name = "K")]
     cut: Option<f64>,
+    /// Take binaries whose components have no instrumental calibration (flagged
+    /// `uncalibrated`) [default: left out, counted in a warning].
+    #[arg(long)]
+    allow_uncalibrated: bool,
     /// Significance level of the verdict
     #[arg(long, default_value_t = DEFAULT_SIGNIFICANCE)]
     significance: f64,
@@ -119,7 +123,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let t_read = std::time::Instant::now();
     let catalog = sofipol_pipeline::input::read_catalog(&args.catalog)?;
-    let sample = BinarySample::from_catalog(&catalog, args.cut);
+    let sample = if args.allow_uncalibrated {
+        BinarySample::from_catalog_allowing_uncalibrated(&catalog, args.cut)
+    } else {
+        BinarySample::from_catalog(&catalog, args.cut)
+    };
     let step = |what: &str, t: std::time::Instant| {
         if args.verbose {
             eprintln!("sofipol stats: {what} in {:.2} s", t.elapsed().as_secs_f64());
@@ -129,6 +137,19 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     for w in sample.warnings.iter().filter(|_| !args.quiet) {
         eprintln!("sofipol stats: warning: {}", printable(w));
     }
+    let uncalibrated = sample
+        .excluded
+        .iter()
+        .filter(|e| e.reason.starts_with("uncalibrated"))
+        .count();
+    anyhow::ensure!(
+        !(sample.is_empty() && uncalibrated > 0),
+        "{}: no binary to test: {uncalibrated} of {} target(s) have no instrumental calibration \
+         (flagged 'uncalibrated'; their angles would fake an alignment). Reduce with standards or --calib, \
+         or give --allow-uncalibrated",
+        args.catalog.display(),
+        catalog.targets.len()
+    );
 
     let opts = setup::Options {
         ism_levels_percent: parse_levels(&args.p_ism)?,

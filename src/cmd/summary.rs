@@ -19,6 +19,10 @@ fn short_flag(f: &str) -> std::borrow::Cow<'_, str> {
 /// catalog's `p_debiased`).
 pub fn summary(cat: &Catalog) -> String {
     let mut s = String::new();
+    if let Some(l) = uncalibrated_line(cat) {
+        s += &l;
+        s.push('\n');
+    }
     s += &format!(
         "{:<16} {:<7} {:>4} {:>8} {:>8} {:>7} {:>7} {:>6} {:>5} {:>6}  {}\n",
         "object", "status", "comp", "P [%]", "Pdb [%]", "sig_P", "gamma", "sig_g", "cut", "dgamma", "flags"
@@ -66,4 +70,34 @@ pub fn summary(cat: &Catalog) -> String {
         }
     }
     s
+}
+
+/// The first line of a night's summary when components have no instrumental calibration:
+/// how many, why it matters, and whether they pass the cut. `None` when all are calibrated.
+pub fn uncalibrated_line(cat: &Catalog) -> Option<String> {
+    let n = sofipol_pipeline::calibration::uncalibrated_components(cat);
+    if n == 0 {
+        return None;
+    }
+    let passing = cat
+        .targets
+        .iter()
+        .flat_map(|t| &t.components)
+        .filter(|c| c.passes_cut && sofipol_pipeline::calibration::is_uncalibrated(c))
+        .count();
+    Some(format!(
+        "UNCALIBRATED: {n} component(s) have no instrumental calibration (no standards, or none that fix \
+         the offset c): their q, u and angles are biased; {}",
+        if passing > 0 {
+            format!("{passing} pass the cut only because of --allow-uncalibrated (flagged)")
+        } else {
+            "none passes the cut (observe standards, use --calib CALDIR, or --allow-uncalibrated)".to_string()
+        }
+    ))
+}
+
+/// Whether a night reduced with these settings must exit 2 for its calibration: some
+/// component is uncalibrated and `--allow-uncalibrated` was not given.
+pub fn uncalibrated_exit(cat: &Catalog, allowed: bool) -> bool {
+    !allowed && sofipol_pipeline::calibration::uncalibrated_components(cat) > 0
 }

@@ -119,7 +119,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         super::night::print_verbose(&out, t0.elapsed().as_secs_f64());
     }
     let fits_failed = super::common::finish_fits_products(fits, args.quiet, "target");
-    let failed = cat.targets.iter().any(|t| t.status != Status::Ok);
+    let failed = cat.targets.iter().any(|t| t.status != Status::Ok)
+        || super::summary::uncalibrated_exit(cat, setup.calibration.params.allow_uncalibrated);
     Ok(if failed || !cat.failures.is_empty() || fits_failed {
         ExitCode::from(2)
     } else {

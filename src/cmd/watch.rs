@@ -106,6 +106,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .transpose()?;
     let pool = super::common::worker_pool("watch", args.jobs, args.quiet)?;
     let cut = setup.params.measure.cut_snr;
+    let allow_uncalibrated = setup.calibration.params.allow_uncalibrated;
     let mut live = LiveNight::new(setup, args.dirs.clone(), options);
     if !args.fresh {
         resume(&mut live, &args.output, &state, args.quiet);
@@ -252,6 +253,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         return Ok(ExitCode::SUCCESS);
     };
     if !args.quiet {
+        if let Some(l) = super::summary::uncalibrated_line(&cat) {
+            println!("{l}");
+        }
         let count = |s: Status| cat.targets.iter().filter(|t| t.status == s).count();
         println!(
             "{} targets: {} ok, {} partial, {} failed; {} inputs not used; {} template(s) not complete -> {}",
@@ -264,7 +268,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             args.output.display()
         );
     }
-    let bad = cat.targets.iter().any(|t| t.status != Status::Ok) || !cat.failures.is_empty();
+    let bad = cat.targets.iter().any(|t| t.status != Status::Ok)
+        || !cat.failures.is_empty()
+        || super::summary::uncalibrated_exit(&cat, allow_uncalibrated);
     Ok(if bad { ExitCode::from(2) } else { ExitCode::SUCCESS })
 }
 
@@ -461,10 +467,24 @@ fn print_update(u: &Update, cut: f64, args: &Args, calibration_changed: bool) {
     for (w, n) in why {
         println!("[{now}] {n} earlier target(s) updated: {}", printable(w));
     }
-    if args.verbose > 0 {
-        for l in u.calibration_lines.iter().filter(|_| calibration_changed) {
-            eprintln!("[{now}] {}", printable(l));
+    // The new numbers of each earlier target that changed (a late standard recalibrates
+    // them): the observer never keeps a superseded value on screen.
+    for (seq, _) in &u.changed {
+        if let Some(t) = u
+            .catalog
+            .targets
+            .iter()
+            .find(|t| t.sequence.as_deref() == Some(seq.as_str()))
+        {
+            println!("[{now}]   now {}", target_line(t, cut));
         }
+    }
+    // The calibration's state (what calibrates each filter, or that nothing does) whenever
+    // it changes, with or without -v.
+    for l in u.calibration_lines.iter().filter(|_| calibration_changed) {
+        eprintln!("[{now}] {}", printable(l));
+    }
+    if args.verbose > 0 {
         for h in &u.held {
             eprintln!(
                 "[{now}] waiting for {}: {}, last frame {:.0} s ago",

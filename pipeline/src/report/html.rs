@@ -98,6 +98,16 @@ fn summary(h: &mut String, cat: &Catalog) {
         count(Status::Failed),
         cat.failures.len()
     );
+    let uncalibrated = crate::calibration::uncalibrated_components(cat);
+    if uncalibrated > 0 {
+        let _ = writeln!(
+            h,
+            "<p class=\"uncalibrated\" id=\"uncalibrated\"><strong>UNCALIBRATED</strong>: {uncalibrated} \
+             component(s) have no instrumental calibration (no standards, or none that fix the offset c): \
+             their q, u and angles are biased, they never pass the cut unless reduced with \
+             <code>--allow-uncalibrated</code>, and the statistics leave their binaries out.</p>"
+        );
+    }
     let troubled: Vec<&Target> = cat.targets.iter().filter(|t| t.status != Status::Ok).collect();
     if !troubled.is_empty() {
         h.push_str("<h3>Targets not fully reduced</h3>\n<ul>\n");

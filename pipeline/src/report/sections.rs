@@ -190,6 +190,9 @@ pub fn statistics(h: &mut String, stats: &Result<StatsSection, String>) {
         Ok(s) => s,
     };
     let r = &s.report;
+    for w in &s.sample.warnings {
+        let _ = writeln!(h, "<p class=\"warning\">{}</p>", escape(w));
+    }
     let _ = writeln!(
         h,
         "<p>Sample: {} binaries with both components above the cut; {} targets excluded. \

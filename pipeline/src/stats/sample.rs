@@ -70,8 +70,23 @@ impl BinarySample {
     /// Build the sample. A component passes when `passes_cut` is set, or, when `cut` is
     /// given, when P / sigma_P > cut (recomputed from `p` and `sigma_p`). Catalog P values
     /// are fractions; the sample stores percent.
+    ///
+    /// A binary with a component flagged `uncalibrated` is left out (its q, u carry the
+    /// instrument's offset, its angle the profile's zero-point: a fake alignment), with a
+    /// warning counting them; [`BinarySample::from_catalog_allowing_uncalibrated`] takes them.
     pub fn from_catalog(cat: &Catalog, cut: Option<f64>) -> Self {
+        Self::build(cat, cut, false)
+    }
+
+    /// [`BinarySample::from_catalog`] that also takes binaries flagged `uncalibrated`
+    /// (`stats --allow-uncalibrated`), with a warning counting them.
+    pub fn from_catalog_allowing_uncalibrated(cat: &Catalog, cut: Option<f64>) -> Self {
+        Self::build(cat, cut, true)
+    }
+
+    fn build(cat: &Catalog, cut: Option<f64>, allow_uncalibrated: bool) -> Self {
         let mut s = Self::default();
+        let mut n_uncalibrated = 0;
         let passes = |c: &Component| match cut {
             Some(k) => c.sigma_p > 0.0 && c.p / c.sigma_p > k,
             None => c.passes_cut,
@@ -102,6 +117,12 @@ impl BinarySample {
                 exclude("non-finite P, sigma_P or gamma".into());
                 continue;
             }
+            let uncalibrated = [a, b].iter().any(|c| crate::calibration::is_uncalibrated(c));
+            n_uncalibrated += usize::from(uncalibrated);
+            if uncalibrated && !allow_uncalibrated {
+                exclude("uncalibrated: no instrumental calibration (q, u carry the instrument's offset)".into());
+                continue;
+            }
             let failing: Vec<&str> = [a, b].iter().filter(|c| !passes(c)).map(|c| c.name.as_str()).collect();
             if !failing.is_empty() {
                 exclude(format!("component(s) {} below the P/sigma cut", failing.join(", ")));
@@ -127,6 +148,19 @@ impl BinarySample {
                 delta_gamma_interval_deg: t
                     .delta_gamma_interval_deg
                     .filter(|[lo, hi]| lo.is_finite() && hi.is_finite()),
+            });
+        }
+        if n_uncalibrated > 0 {
+            s.warnings.push(if allow_uncalibrated {
+                format!(
+                    "{n_uncalibrated} binary(ies) without an instrumental calibration taken in \
+                     (--allow-uncalibrated): their Delta-gamma is biased"
+                )
+            } else {
+                format!(
+                    "{n_uncalibrated} binary(ies) left out: no instrumental calibration (flagged 'uncalibrated'; \
+                     their q, u carry the instrument's offset and fake an alignment); --allow-uncalibrated takes them"
+                )
             });
         }
         s

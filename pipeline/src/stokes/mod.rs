@@ -1,5 +1,6 @@
 //! Stokes parameters: the instrument's forward model and its inversion.
 pub mod calibration;
+pub mod fresnel;
 pub mod inversion;
 pub mod model;
 pub mod propagation;
