@@ -21,23 +21,7 @@ fn s(p: &Path) -> &str {
 /// A 2-binary night (Alpha, Beta; 2 orientations x 3 dithers) with the instrument's
 /// offset and zero-point, and the standards named (`[[standard]]` tables), in `dir/night`.
 fn night_with(dir: &Path, standards: &str) -> PathBuf {
-    let n = dir.join("night");
-    let scene = dir.join("scene.toml");
-    std::fs::write(
-        &scene,
-        format!(
-            "name = \"unc\"\nseed = 5\neffects = [\"psf\", \"sky\", \"strips\", \"photon_noise\", \"read_noise\", \
-             \"throughput\", \"instrumental_polarization\", \"analyzer_angle\"]\n\
-             [observation]\norientations_deg = [0.0, 45.0]\ndithers = 3\n[psf]\nkind = \"moffat\"\nfwhm_arcsec = 0.8\n\
-             [throughput]\nt_e = 0.97\n[instrumental_polarization]\np = 0.003\nangle_deg = 0.0\n\
-             [analyzer_angle]\nzero_point_deg = 3.0\n{standards}{ALPHA_BETA}"
-        ),
-    )
-    .unwrap();
-    let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&n), "-q"]);
-    assert_eq!(code, 0, "{err}");
-    std::fs::remove_file(n.join("truth.json")).unwrap();
-    n
+    instrument_night(dir, "unc", 5, standards)
 }
 
 const ONE_POLARIZED: &str = "[[standard]]\nname = \"HD 204827\"\nflux = 150000.0\np = 0.0088\ngamma_deg = 58.7\n";

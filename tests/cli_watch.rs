@@ -22,25 +22,7 @@ fn s(p: &Path) -> &str {
 /// unpolarized and a polarized standard and the instrumental effects they calibrate, in
 /// `dir/night`.
 fn night_with_standards(dir: &Path) -> PathBuf {
-    let n = dir.join("night");
-    let scene = dir.join("scene.toml");
-    std::fs::write(
-        &scene,
-        format!(
-            "name = \"live\"\nseed = 11\neffects = [\"psf\", \"sky\", \"strips\", \"photon_noise\", \"read_noise\", \
-             \"throughput\", \"instrumental_polarization\", \"analyzer_angle\"]\n\
-             [observation]\norientations_deg = [0.0, 45.0]\ndithers = 3\n[psf]\nkind = \"moffat\"\nfwhm_arcsec = 0.8\n\
-             [throughput]\nt_e = 0.97\n[instrumental_polarization]\np = 0.003\nangle_deg = 0.0\n\
-             [analyzer_angle]\nzero_point_deg = 3.0\n\
-             [[standard]]\nname = \"HD 64299\"\nflux = 150000.0\n\
-             [[standard]]\nname = \"HD 204827\"\nflux = 150000.0\np = 0.0088\ngamma_deg = 58.7\n{ALPHA_BETA}"
-        ),
-    )
-    .unwrap();
-    let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&n), "-q"]);
-    assert_eq!(code, 0, "{err}");
-    std::fs::remove_file(n.join("truth.json")).unwrap();
-    n
+    instrument_night(dir, "live", 11, TWO_STANDARDS)
 }
 
 /// The frames of the night whose name holds `part`, sorted.
@@ -67,26 +49,8 @@ fn start_watch(dir: &Path, out: &Path, args: &[&str]) -> Child {
 }
 
 /// Wait for the child (at most `limit`), then (exit code, stdout, stderr).
-fn finish(mut child: Child, limit: Duration) -> (i32, String, String) {
-    let t = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if t.elapsed() > limit {
-            child.kill().ok();
-            let o = child.wait_with_output().unwrap();
-            panic!(
-                "sofipol watch still running after {limit:?}: {}\n{}",
-                String::from_utf8_lossy(&o.stdout),
-                String::from_utf8_lossy(&o.stderr)
-            );
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let o = child.wait_with_output().unwrap();
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into(),
-        String::from_utf8_lossy(&o.stderr).into(),
-    )
+fn finish(child: Child, limit: Duration) -> (i32, String, String) {
+    finish_child(child, limit)
 }
 
 /// Copy `files` into `dir`, one every `every`.

@@ -10,6 +10,7 @@
 //! so and pass without checking.
 use std::path::PathBuf;
 
+use sofipol_pipeline::calibration::TelescopeCalibration;
 use sofipol_pipeline::stokes::calibration::joint::{fit_joint_with, JointOptions};
 use sofipol_pipeline::stokes::calibration::{OrientationF, StandardObservation};
 use sofipol_pipeline::stokes::fresnel::mirror_polarization;
@@ -106,15 +107,10 @@ fn the_telescope_fit_reproduces_the_real_sofi_z_standards_and_fresnel_agrees() {
     let j = fit_joint_with(&stds, &opts).expect("a fit");
     assert!(j.telescope_problem.is_none(), "{:?}", j.telescope_problem);
     let t = j.telescope.expect("the telescope's term");
-    let [a, b] = t.ab();
-    use sofipol_pipeline::stokes::propagation::{CAL_TEL_A, CAL_TEL_B};
-    let (va, vb, cab) = (
-        j.covariance[CAL_TEL_A][CAL_TEL_A],
-        j.covariance[CAL_TEL_B][CAL_TEL_B],
-        j.covariance[CAL_TEL_A][CAL_TEL_B],
-    );
-    let sigma_p = ((a * a * va + b * b * vb + 2.0 * a * b * cab) / (a * a + b * b)).sqrt();
-    let sigma_psi = 0.5 * ((b * b * va + a * a * vb - 2.0 * a * b * cab).sqrt() / (a * a + b * b)).to_degrees();
+    // p_tel, psi_tel and their errors as a night's catalog writes them.
+    let tc = TelescopeCalibration::from_fit(&t, &j.covariance);
+    let [a, b] = tc.ab();
+    let (sigma_p, sigma_psi) = (tc.sigma_p_tel, tc.sigma_psi_tel_deg);
     let chi2_dof = j.chi2 / j.dof as f64;
     eprintln!(
         "SOFI Z, 14 unpolarized standards: p_tel = {:.3} +- {:.3} %, psi_tel = {:.2} +- {:.2} deg, \

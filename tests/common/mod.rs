@@ -137,3 +137,58 @@ pub fn frames_of(n: &Path, object: &str) -> Vec<std::path::PathBuf> {
     assert!(!v.is_empty(), "no frames of {object} in {}", n.display());
     v
 }
+
+/// The instrument of the calibration tests: beam ratio 0.97, instrumental polarization
+/// 0.3 %, analyzer zero-point 3 deg (the effects standards calibrate).
+pub const INSTRUMENT: &str = "[throughput]\nt_e = 0.97\n[instrumental_polarization]\np = 0.003\nangle_deg = 0.0\n\
+[analyzer_angle]\nzero_point_deg = 3.0\n";
+
+/// An unpolarized and a polarized standard, as `[[standard]]` tables of a scene.
+pub const TWO_STANDARDS: &str = "[[standard]]\nname = \"HD 64299\"\nflux = 150000.0\n\
+[[standard]]\nname = \"HD 204827\"\nflux = 150000.0\np = 0.0088\ngamma_deg = 58.7\n";
+
+/// A 2-binary night (Alpha, Beta: 2 orientations x 3 dithers, TPL NEXP 6) with the
+/// [`INSTRUMENT`]'s effects and the `standards` given (`[[standard]]` tables), simulated
+/// with `name` and `seed` into `dir/night` (its truth.json removed).
+pub fn instrument_night(dir: &Path, name: &str, seed: u64, standards: &str) -> std::path::PathBuf {
+    let n = dir.join("night");
+    let scene = dir.join("scene.toml");
+    std::fs::write(
+        &scene,
+        format!(
+            "name = \"{name}\"\nseed = {seed}\neffects = [\"psf\", \"sky\", \"strips\", \"photon_noise\", \"read_noise\", \
+             \"throughput\", \"instrumental_polarization\", \"analyzer_angle\"]\n\
+             [observation]\norientations_deg = [0.0, 45.0]\ndithers = 3\n[psf]\nkind = \"moffat\"\nfwhm_arcsec = 0.8\n\
+             {INSTRUMENT}{standards}{ALPHA_BETA}"
+        ),
+    )
+    .unwrap();
+    let (code, _, err) = run(&["simulate", scene.to_str().unwrap(), "-o", n.to_str().unwrap(), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_file(n.join("truth.json")).unwrap();
+    n
+}
+
+/// Wait for `child` (at most `limit`; past it the child is killed and the test fails with
+/// its output), then (exit code, stdout, stderr).
+pub fn finish_child(mut child: std::process::Child, limit: std::time::Duration) -> (i32, String, String) {
+    let t = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if t.elapsed() > limit {
+            child.kill().ok();
+            let o = child.wait_with_output().unwrap();
+            panic!(
+                "sofipol still running after {limit:?}: {}\n{}",
+                String::from_utf8_lossy(&o.stdout),
+                String::from_utf8_lossy(&o.stderr)
+            );
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let o = child.wait_with_output().unwrap();
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stdout).into(),
+        String::from_utf8_lossy(&o.stderr).into(),
+    )
+}
