@@ -247,6 +247,29 @@ fn a_frame_refused_from_the_start_completes_its_template_at_once() {
 }
 
 #[test]
+fn a_frame_whose_header_cannot_be_read_counts_for_the_template_being_observed() {
+    let d = tempfile::tempdir().unwrap();
+    let n = night_with_standards(d.path());
+    let live = live_copy(d.path(), &n);
+    // Beta's fifth frame is garbage (a transfer gone wrong): no header names its template.
+    let bad = frame_named(&live, "_Beta_", 4);
+    std::fs::write(&bad, vec![b'x'; 8640]).unwrap();
+    let out = d.path().join("w.json");
+    let t0 = Instant::now();
+    let child = start_watch(&live, &out, &["--exit-when-idle", "1"]);
+    let (code, stdout, stderr) = finish(child, Duration::from_secs(90));
+    assert_eq!(code, 2, "{stdout}\n{stderr}");
+    assert!(t0.elapsed() < Duration::from_secs(60), "{:?}", t0.elapsed());
+    let c = json(&out);
+    assert!(
+        objects(&c).contains(&("Beta".into(), "partial".into())),
+        "{:?}",
+        objects(&c)
+    );
+    assert!(failure_of(&c, bad.file_name().unwrap().to_str().unwrap()).is_some());
+}
+
+#[test]
 fn the_watched_folder_taken_away_keeps_the_catalog_and_never_exits_0() {
     let d = tempfile::tempdir().unwrap();
     let n = night_with_standards(d.path());
