@@ -1,9 +1,9 @@
-//! Real SOFI numbers: q, u of unpolarized standards measured with SOFI in Z at 14
-//! parallactic angles (Higgins, Covino & Wiersema's SOFI polarimetry calibration), fitted
-//! with the joint calibration fit a night's standards go through
-//! (`stokes::calibration::joint::fit_joint_with`, telescope term on), and the Fresnel
-//! polarization of a bare aluminium mirror at 45 deg (Rakic 1995 optical constants) against
-//! what that fit measures.
+//! Real numbers: q, u of unpolarized standards measured with SOFI in Z at 14 parallactic
+//! angles (Higgins, Covino & Wiersema's SOFI polarimetry calibration), fitted with the joint
+//! calibration fit a night's standards go through (`stokes::calibration::joint::fit_joint_with`,
+//! telescope term on); the Fresnel polarization of a bare aluminium mirror at 45 deg (Rakic
+//! 1995 optical constants) against what that fit measures; and the built-in table's J and H
+//! standards against Whittet et al. (1992)'s table they were entered from.
 //!
 //! The files are read from `../shared/real/` beside the repository (or the folder named by
 //! `SOFIPOL_REAL`); never copied into the repository. Where they are absent the tests say
@@ -11,6 +11,7 @@
 use std::path::PathBuf;
 
 use sofipol_pipeline::calibration::TelescopeCalibration;
+use sofipol_pipeline::standards::StandardsTable;
 use sofipol_pipeline::stokes::calibration::joint::{fit_joint_with, JointOptions};
 use sofipol_pipeline::stokes::calibration::{OrientationF, StandardObservation};
 use sofipol_pipeline::stokes::fresnel::mirror_polarization;
@@ -174,4 +175,64 @@ fn the_telescope_fit_reproduces_the_real_sofi_z_standards_and_fresnel_agrees() {
             100.0 * mirror_polarization(n, k, 45.0)
         );
     }
+}
+
+/// A fixed-width field of a catalogue line, by the columns of metadata.json (inclusive).
+fn field<'a>(line: &'a str, cols: &serde_json::Value, key: &str) -> &'a str {
+    let a = cols[key][0].as_u64().unwrap() as usize;
+    let b = cols[key][1].as_u64().unwrap() as usize;
+    line.get(a..(b + 1).min(line.len())).unwrap_or("").trim()
+}
+
+#[test]
+fn the_builtin_j_and_h_standards_are_whittet_1992s_values() {
+    let Some(dir) = real("whittet1992-standards") else {
+        return;
+    };
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("metadata.json")).unwrap()).unwrap();
+    let cols = &meta["tables"][0]["columns"];
+    let text = std::fs::read_to_string(dir.join("catalogue.txt")).unwrap();
+    let table = StandardsTable::builtin();
+    let mut checked = 0;
+    for e in table
+        .entries
+        .iter()
+        .filter(|e| e.reference.starts_with("Whittet et al. 1992, ApJ 386, 562,"))
+    {
+        let line = text
+            .lines()
+            .filter(|l| !l.starts_with('#'))
+            .find(|l| field(l, cols, "name") == e.name)
+            .unwrap_or_else(|| panic!("{} is not in Whittet et al.'s table", e.name));
+        let b = e.filter.as_str();
+        let num = |k: String| -> f64 { field(line, cols, &k).parse().unwrap() };
+        assert!(
+            (e.p - num(format!("pol_percent_{b}")) / 100.0).abs() < 1e-9,
+            "{} {b} p",
+            e.name
+        );
+        assert!(
+            (e.sigma_p - num(format!("pol_percent_{b}_err")) / 100.0).abs() < 1e-9,
+            "{} {b} sigma_p",
+            e.name
+        );
+        assert!(
+            (e.gamma_deg - num(format!("pol_angle_{b}"))).abs() < 1e-9,
+            "{} {b} angle",
+            e.name
+        );
+        assert!(
+            (e.sigma_gamma_deg - num(format!("pol_angle_{b}_err"))).abs() < 1e-9,
+            "{} {b} angle error",
+            e.name
+        );
+        // Their K (2.04 um) is quoted, never entered as Ks.
+        assert!(table
+            .find(&e.name, "Ks")
+            .is_none_or(|k| k.p == 0.0 || !k.reference.starts_with("Whittet")));
+        checked += 1;
+    }
+    assert_eq!(checked, 12, "six stars in J and H");
+    eprintln!("{checked} built-in J and H entries equal Whittet et al. (1992)'s table");
 }
