@@ -137,3 +137,59 @@ fn watch_on_a_night_without_standards_exits_2_and_says_uncalibrated() {
     assert!(stdout.contains("UNCALIBRATED: 4 component(s)"), "{stdout}");
     assert!(components(&json(&out)).iter().all(|x| x["passes_cut"] == false));
 }
+
+const TWO_UNPOLARIZED: &str = "[[standard]]\nname = \"HD 64299\"\nflux = 150000.0\n\
+[[standard]]\nname = \"HD 98161\"\nflux = 150000.0\n";
+
+/// Unpolarized standards only: c is measured, theta0 is not. The components are flagged
+/// `zero_point_from_profile` and the profile's uncertainty (5 deg) is in their angle
+/// errors, so the angles, 3 deg off the profile's zero-point, stay within their errors;
+/// Delta-gamma does not carry it (common to both stars).
+#[test]
+fn a_filter_without_a_polarized_standard_carries_the_profiles_zero_point_error() {
+    let d = tempfile::tempdir().unwrap();
+    let n = night_with(d.path(), TWO_UNPOLARIZED);
+    let out = d.path().join("c.json");
+    let (code, stdout, err) = run(&["night", s(&n), "-o", s(&out), "--no-png"]);
+    assert_eq!(code, 0, "{stdout}\n{err}");
+    assert!(err.contains("no polarized standard in this filter"), "{err}");
+    let c = json(&out);
+    let truth = [("Alpha", [20.0, 110.0]), ("Beta", [60.0, 150.0])];
+    for (object, gammas) in truth {
+        let t = c["targets"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|t| t["object"] == object)
+            .unwrap();
+        for (x, g) in t["components"].as_array().unwrap().iter().zip(gammas) {
+            assert!(
+                flagged(x, "zero_point_from_profile") && !flagged(x, "uncalibrated"),
+                "{x}"
+            );
+            let (gamma, sigma) = (x["gamma_deg"].as_f64().unwrap(), x["sigma_gamma_deg"].as_f64().unwrap());
+            // The zero-point's part is the profile's 5 deg (to the propagation's 2 %).
+            let zp = x["sigma_gamma_zero_point_deg"].as_f64().unwrap();
+            assert!((zp - 5.0).abs() < 0.1, "{object}: zero-point part {zp}");
+            assert!(sigma > 4.9 && sigma < 5.5, "{object}: sigma_gamma {sigma}");
+            let off = (gamma - g + 90.0).rem_euclid(180.0) - 90.0;
+            assert!(
+                off.abs() > 1.5 && off.abs() < sigma,
+                "{object}: gamma {gamma} vs {g} +- {sigma}"
+            );
+            assert_eq!(x["passes_cut"], true);
+        }
+        // Delta-gamma's error is the stars' own, not the zero-point's.
+        let sdg = t["sigma_delta_gamma_deg"].as_f64().unwrap();
+        assert!(sdg < 2.0, "{object}: sigma_delta_gamma {sdg}");
+    }
+    let cal = &c["calibration"]["calibration"]["filters"][0];
+    assert!(
+        cal["zero_point_from_profile"]
+            .as_str()
+            .unwrap()
+            .contains("theta0 = 0 +- 5 deg"),
+        "{cal}"
+    );
+    assert_eq!(cal["covariance"][1][1], 25.0);
+}

@@ -222,6 +222,16 @@ pub struct Angles {
     pub zero_point_deg: f64,
     /// Image parity s, +1 or -1.
     pub parity: i32,
+    /// The 1-sigma uncertainty of `zero_point_deg`, degrees: carried as a systematic error
+    /// of every angle of a filter whose standards do not measure theta0 (no polarized
+    /// standard in that filter).
+    #[serde(default = "default_sigma_zero_point_deg")]
+    pub sigma_zero_point_deg: f64,
+}
+
+/// The profile zero-point's uncertainty when a profile does not give one, deg.
+fn default_sigma_zero_point_deg() -> f64 {
+    5.0
 }
 
 impl Angles {
@@ -386,6 +396,7 @@ impl Profile {
             ("detector.saturation_adu", d.saturation_adu),
             ("detector.nonlin_coeff_per_adu", d.nonlin_coeff_per_adu),
             ("angles.zero_point_deg", self.angles.zero_point_deg),
+            ("angles.sigma_zero_point_deg", self.angles.sigma_zero_point_deg),
         ];
         for (name, v) in finite {
             if !v.is_finite() {
@@ -396,6 +407,12 @@ impl Profile {
             return err(format!(
                 "detector.linear_limit_adu = {} must be > 0",
                 d.linear_limit_adu
+            ));
+        }
+        if !(0.0..=90.0).contains(&self.angles.sigma_zero_point_deg) {
+            return err(format!(
+                "angles.sigma_zero_point_deg = {} must be in [0, 90]",
+                self.angles.sigma_zero_point_deg
             ));
         }
         if !(d.nonlin_coeff_per_adu >= 0.0) {

@@ -116,6 +116,12 @@ pub struct FilterCalibration {
     /// The names of `covariance`'s rows: `["c", "theta0_deg", "tel_a", "tel_b"]`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub covariance_parameters: Option<Vec<String>>,
+    /// Why theta0 is the profile's (no polarized standard in the filter): its uncertainty
+    /// (`angles.sigma_zero_point_deg` of the profile) is then the theta0 variance of
+    /// `covariance`, and every component of the filter is flagged
+    /// [`ZERO_POINT_FROM_PROFILE`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub zero_point_from_profile: Option<String>,
 }
 
 impl FilterCalibration {
@@ -275,6 +281,16 @@ pub fn measure(
             continue;
         };
         let ids = |from: &[usize]| from.iter().map(|&i| list[i].0.clone()).collect::<Vec<String>>();
+        let mut covariance = j.covariance;
+        // No polarized standard (and c measured): theta0 is the profile's, its uncertainty
+        // a systematic error of every angle of the filter.
+        let zero_point_from_profile = (j.angles.is_none() && j.incomplete.is_none() && j.offset.is_some()).then(|| {
+            covariance[CAL_THETA0][CAL_THETA0] = profile.angles.sigma_zero_point_deg.powi(2);
+            format!(
+                "no polarized standard in this filter: theta0 = {} +- {} deg is the profile's",
+                profile.angles.zero_point_deg, profile.angles.sigma_zero_point_deg
+            )
+        });
         filters.push(FilterCalibration {
             filter,
             offset: j.offset,
@@ -289,8 +305,9 @@ pub fn measure(
             } else {
                 Some(TELESCOPE_NOT_FITTED.into())
             },
-            covariance: Some(j.covariance),
+            covariance: Some(covariance),
             covariance_parameters: Some(propagation::CAL_PARAMETERS.iter().map(|s| s.to_string()).collect()),
+            zero_point_from_profile,
         });
     }
     if filters.is_empty() {
@@ -325,11 +342,17 @@ pub struct CalibrationSummary {
     pub n_refused_uncalibrated: usize,
     /// Components flagged `calibration_incomplete`.
     pub n_incomplete: usize,
+    /// Components flagged `zero_point_from_profile`.
+    pub n_zero_point_from_profile: usize,
     /// Components whose chosen Stokes method could not apply (`stokes_method_failed`).
     pub n_method_failed: usize,
     /// Components flagged `telescope_polarization_uncorrected`.
     pub n_telescope_uncorrected: usize,
 }
+
+/// The component flag of a filter without a polarized standard: theta0 is the profile's,
+/// with the profile's uncertainty in the angle's error.
+pub const ZERO_POINT_FROM_PROFILE: &str = "zero_point_from_profile";
 
 /// The component flag of a 2-orientation measurement without an instrumental calibration.
 pub const UNCALIBRATED: &str = "uncalibrated";
@@ -366,6 +389,11 @@ fn flag_incomplete(c: &mut Component, cal: Option<&FilterCalibration>) -> bool {
 /// and count a Stokes method that could not apply, for the run summary.
 fn note_calibration_state(c: &mut Component, cal: Option<&FilterCalibration>, summary: &mut CalibrationSummary) {
     summary.n_incomplete += usize::from(flag_incomplete(c, cal));
+    c.flags.retain(|f| f != ZERO_POINT_FROM_PROFILE);
+    if cal.is_some_and(|f| f.zero_point_from_profile.is_some()) && c.q.is_finite() {
+        c.flags.push(ZERO_POINT_FROM_PROFILE.into());
+        summary.n_zero_point_from_profile += 1;
+    }
     summary.n_method_failed += usize::from(c.flags.iter().any(|f| f.starts_with(STOKES_METHOD_FAILED)));
     summary.n_telescope_uncorrected += usize::from(c.flags.iter().any(|f| f == TELESCOPE_UNCORRECTED));
 }
@@ -535,6 +563,13 @@ pub fn calibrate_catalog(
                     "calibration ({origin}) {} incomplete: {why}; angle zero-point from the profile, \
                      its components flagged '{CALIBRATION_INCOMPLETE}' ({} in all filters)",
                     f.filter, summary.n_incomplete
+                ));
+            }
+            if let Some(why) = &f.zero_point_from_profile {
+                summary.lines.push(format!(
+                    "calibration ({origin}) {}: {why}, carried in every angle's error (not in Delta-gamma); \
+                     its components flagged '{ZERO_POINT_FROM_PROFILE}'. A polarized standard in {} measures it",
+                    f.filter, f.filter
                 ));
             }
         }

@@ -366,6 +366,7 @@ fn the_zero_point_error_adds_tangential_variance_only() {
             telescope_uncorrected: None,
             covariance: None,
             covariance_parameters: None,
+            zero_point_from_profile: None,
         };
         resolve_component(
             &mut c,
@@ -439,6 +440,7 @@ fn delta_gamma_error_has_the_offset_and_not_the_zero_point() {
             telescope_uncorrected: None,
             covariance: None,
             covariance_parameters: None,
+            zero_point_from_profile: None,
         };
         let cal = Calibration {
             schema_version: CALIBRATION_SCHEMA.into(),
@@ -925,6 +927,7 @@ fn the_covariance_of_a_file_without_one_is_built_from_what_it_has() {
         telescope_uncorrected: None,
         covariance: None,
         covariance_parameters: None,
+        zero_point_from_profile: None,
     };
     let both = fc(true, true).covariance_matrix();
     assert_eq!(both[CAL_C][CAL_C], 4e-8);

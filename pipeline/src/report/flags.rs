@@ -6,6 +6,7 @@
 const FLAGS: &[(&str, &str)] = &[
     ("uncalibrated", "No instrumental calibration: q and u carry the instrumental offset and the angles the profile's zero-point."),
     ("calibration_incomplete", "The night's standards could not separate the offset c from the zero-point θ₀: θ₀ and the parity are the profile's."),
+    ("zero_point_from_profile", "No polarized standard in this filter: the angle zero-point θ₀ is the profile's, and its uncertainty is carried in γ's error (not in Δγ's)."),
     ("calibration_lacks_filter", "The calibration given has no offset for this filter: q and u uncorrected."),
     ("telescope_polarization_uncorrected", "The telescope's own polarization was not removed (it turns with the parallactic angle)."),
     ("stokes_method_failed", "The chosen Stokes method could not be applied; another one was used (or none)."),
