@@ -270,7 +270,7 @@ fn version_names_the_git_commit_and_mc_records_it() {
     let (code, _, err) = run(&["mc", "--pairs", "1000", "-q", "-o", dir.path().to_str().unwrap()]);
     assert_eq!(code, 0, "{err}");
     let j = common::json(&dir.path().join("pi_delta_gamma.json"));
-    assert_eq!(j["software"]["commit"], commit, "{}", j["software"]);
+    assert_eq!(j["provenance"]["commit"], commit, "{}", j["provenance"]);
 }
 
 #[test]

@@ -92,9 +92,10 @@ fn mc_writes_a_reproducible_histogram_with_provenance() {
         .map(|c| c.as_u64().unwrap())
         .sum();
     assert_eq!(counts, 100_000);
-    assert_eq!(a["parameters"]["seed"], 5);
-    assert_eq!(a["parameters"]["model"], "spread:30");
-    assert!(a["software"]["version"].is_string());
+    assert_eq!(a["provenance"]["parameters"]["seed"], 5);
+    assert_eq!(a["provenance"]["parameters"]["model"], "spread:30");
+    let software = a["provenance"]["software"].as_str().unwrap();
+    assert_eq!(software, format!("sofipol {}", env!("CARGO_PKG_VERSION")));
 }
 
 #[test]

@@ -25,7 +25,57 @@ pub(crate) struct PythonRun {
     /// Sequences it reduced (and failed).
     sequences: usize,
     /// Its catalog.
-    catalog: serde_json::Value,
+    catalog: Compared,
+}
+
+/// What the comparison reads of a catalog, sofipol's or the Python reduction's (which
+/// writes the same keys for targets and components, plus its versions and times).
+#[derive(serde::Deserialize, Default)]
+#[serde(default)]
+struct Compared {
+    targets: Vec<ComparedTarget>,
+    failures: Vec<serde_json::Value>,
+    /// Python: the versions of numpy, scipy, astropy, photutils.
+    versions: std::collections::BTreeMap<String, String>,
+    /// Python: its CPU time, s.
+    #[serde(deserialize_with = "number")]
+    cpu_s: f64,
+    /// Python: wall time of the reduction itself (start-up excluded), s.
+    #[serde(deserialize_with = "number")]
+    wall_s: f64,
+    /// Python: CPU time of its start-up and imports, s.
+    #[serde(deserialize_with = "number")]
+    startup_cpu_s: f64,
+}
+
+#[derive(serde::Deserialize, Default)]
+#[serde(default)]
+struct ComparedTarget {
+    object: String,
+    tpl_start: Option<String>,
+    status: Option<String>,
+    photometry: Option<String>,
+    components: Vec<ComparedComponent>,
+}
+
+#[derive(serde::Deserialize, Default)]
+#[serde(default)]
+struct ComparedComponent {
+    name: String,
+    #[serde(deserialize_with = "number")]
+    q: f64,
+    #[serde(deserialize_with = "number")]
+    u: f64,
+    #[serde(deserialize_with = "number")]
+    sigma_q: f64,
+    #[serde(deserialize_with = "number")]
+    sigma_u: f64,
+}
+
+/// A number; `null` or another value as NaN.
+fn number<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    use serde::Deserialize as _;
+    Ok(serde_json::Value::deserialize(d)?.as_f64().unwrap_or(f64::NAN))
 }
 
 /// Runs the Python reduction on the first `n` sequences of `raw`, single-threaded (one
@@ -65,13 +115,11 @@ pub(crate) fn run_python(
         anyhow::bail!("{} exited with {}: {}", py.display(), o.status, tail.join(" | "));
     }
     let text = std::fs::read_to_string(&out).with_context(|| format!("reading {}", out.display()))?;
-    let catalog: serde_json::Value =
-        serde_json::from_str(&text).with_context(|| format!("parsing {}", out.display()))?;
-    let count = |k: &str| catalog[k].as_array().map_or(0, |v| v.len());
+    let catalog: Compared = serde_json::from_str(&text).with_context(|| format!("parsing {}", out.display()))?;
     Ok(PythonRun {
         wall,
-        cpu: catalog["cpu_s"].as_f64().unwrap_or(f64::NAN),
-        sequences: count("targets") + count("failures"),
+        cpu: catalog.cpu_s,
+        sequences: catalog.targets.len() + catalog.failures.len(),
         catalog,
     })
 }
@@ -86,13 +134,13 @@ pub(crate) fn print_python(
     scene: Option<&Scene>,
 ) {
     let scale = targets as f64 / p.sequences.max(1) as f64;
-    let v = &p.catalog["versions"];
+    let v = |k: &str| p.catalog.versions.get(k).map_or("?", |s| s.as_str());
     println!(
         "  Python reference (bench/python/reduce_night.py: numpy {}, scipy {}, astropy {}, photutils {}; one process, 1 thread), one run on {} of {} targets{}:",
-        v["numpy"].as_str().unwrap_or("?"),
-        v["scipy"].as_str().unwrap_or("?"),
-        v["astropy"].as_str().unwrap_or("?"),
-        v["photutils"].as_str().unwrap_or("?"),
+        v("numpy"),
+        v("scipy"),
+        v("astropy"),
+        v("photutils"),
         p.sequences,
         targets,
         if scale > 1.0 {
@@ -102,8 +150,9 @@ pub(crate) fn print_python(
         }
     );
     // Interpreter start-up and imports once, the reduction itself scaled.
-    let work_wall = p.catalog["wall_s"].as_f64().unwrap_or(p.wall).min(p.wall);
-    let startup_cpu = p.catalog["startup_cpu_s"].as_f64().unwrap_or(0.0).min(p.cpu);
+    let or = |x: f64, default: f64| if x.is_finite() { x } else { default };
+    let work_wall = or(p.catalog.wall_s, p.wall).min(p.wall);
+    let startup_cpu = or(p.catalog.startup_cpu_s, 0.0).min(p.cpu);
     let wall = p.wall - work_wall + work_wall * scale;
     let cpu = startup_cpu + (p.cpu - startup_cpu) * scale;
     println!(
@@ -118,7 +167,7 @@ pub(crate) fn print_python(
     );
     match std::fs::read_to_string(sofipol_catalog)
         .ok()
-        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .and_then(|t| serde_json::from_str::<Compared>(&t).ok())
     {
         Some(sp) => {
             print_comparison(&compare_catalogs(&sp, &p.catalog));
@@ -150,36 +199,25 @@ pub struct Diff {
 
 /// Differences of q and u between the Python and the sofipol catalog, per component of every
 /// target both measured (matched by OBJECT and TPL START, components by name).
-pub fn compare_catalogs(sofipol: &serde_json::Value, python: &serde_json::Value) -> Vec<Diff> {
-    let empty = Vec::new();
-    let sp_targets = sofipol["targets"].as_array().unwrap_or(&empty);
+fn compare_catalogs(sofipol: &Compared, python: &Compared) -> Vec<Diff> {
     let mut out = Vec::new();
-    for pt in python["targets"].as_array().unwrap_or(&empty) {
-        let key = (pt["object"].as_str(), pt["tpl_start"].as_str());
-        let Some(st) = sp_targets
-            .iter()
-            .find(|t| (t["object"].as_str(), t["tpl_start"].as_str()) == key)
-        else {
+    for pt in &python.targets {
+        let key = (&pt.object, &pt.tpl_start);
+        let Some(st) = sofipol.targets.iter().find(|t| (&t.object, &t.tpl_start) == key) else {
             continue;
         };
-        for pc in pt["components"].as_array().unwrap_or(&empty) {
-            let Some(sc) = st["components"]
-                .as_array()
-                .unwrap_or(&empty)
-                .iter()
-                .find(|c| c["name"] == pc["name"])
-            else {
+        for pc in &pt.components {
+            let Some(sc) = st.components.iter().find(|c| c.name == pc.name) else {
                 continue;
             };
-            let f = |c: &serde_json::Value, k: &str| c[k].as_f64().unwrap_or(f64::NAN);
-            let dq = (f(pc, "q") - f(sc, "q")) / f(sc, "sigma_q");
-            let du = (f(pc, "u") - f(sc, "u")) / f(sc, "sigma_u");
+            let dq = (pc.q - sc.q) / sc.sigma_q;
+            let du = (pc.u - sc.u) / sc.sigma_u;
             if dq.is_finite() && du.is_finite() {
                 out.push(Diff {
-                    object: key.0.unwrap_or("").to_string(),
-                    component: pc["name"].as_str().unwrap_or("").to_string(),
-                    photometry: st["photometry"].as_str().unwrap_or("").to_string(),
-                    status: st["status"].as_str().unwrap_or("ok").to_string(),
+                    object: pt.object.clone(),
+                    component: pc.name.clone(),
+                    photometry: st.photometry.clone().unwrap_or_default(),
+                    status: st.status.clone().unwrap_or_else(|| "ok".into()),
                     dq,
                     du,
                 });
@@ -252,16 +290,14 @@ fn print_comparison(d: &[Diff]) {
 /// Pulls (value - true) / sigma of q and u of every component of `catalog` against the
 /// scene, over the targets the Python catalog holds (A = the brighter true component).
 /// Returns (object and component, pull) pairs.
-fn truth_pulls(catalog: &serde_json::Value, scene: &Scene, only: Option<&serde_json::Value>) -> Vec<(String, f64)> {
-    let empty = Vec::new();
+fn truth_pulls(catalog: &Compared, scene: &Scene, only: Option<&Compared>) -> Vec<(String, f64)> {
     let wanted: Vec<&str> = only
-        .and_then(|c| c["targets"].as_array())
-        .map(|v| v.iter().filter_map(|t| t["object"].as_str()).collect())
+        .map(|c| c.targets.iter().map(|t| t.object.as_str()).collect())
         .unwrap_or_default();
     let qu = |p: f64, g: f64| [p * (2.0 * g.to_radians()).cos(), p * (2.0 * g.to_radians()).sin()];
     let mut out = Vec::new();
-    for t in catalog["targets"].as_array().unwrap_or(&empty) {
-        let Some(obj) = t["object"].as_str() else { continue };
+    for t in &catalog.targets {
+        let obj = t.object.as_str();
         let Some(b) = scene.binary.iter().find(|b| b.name == obj) else {
             continue;
         };
@@ -274,12 +310,12 @@ fn truth_pulls(catalog: &serde_json::Value, scene: &Scene, only: Option<&serde_j
         } else {
             (b_true, a_true)
         };
-        for c in t["components"].as_array().unwrap_or(&empty) {
-            let tr = if c["name"] == "A" { bright } else { faint };
-            for (k, s, v) in [("q", "sigma_q", tr[0]), ("u", "sigma_u", tr[1])] {
-                let pull = (c[k].as_f64().unwrap_or(f64::NAN) - v) / c[s].as_f64().unwrap_or(f64::NAN);
+        for c in &t.components {
+            let tr = if c.name == "A" { bright } else { faint };
+            for (k, x, s, v) in [("q", c.q, c.sigma_q, tr[0]), ("u", c.u, c.sigma_u, tr[1])] {
+                let pull = (x - v) / s;
                 if pull.is_finite() {
-                    out.push((format!("{obj} {} {k}", c["name"].as_str().unwrap_or("?")), pull));
+                    out.push((format!("{obj} {} {k}", c.name), pull));
                 }
             }
         }

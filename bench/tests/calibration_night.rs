@@ -210,17 +210,16 @@ fn two_orientations_with_standards_give_unbiased_pulls_and_without_them_are_flag
 
     let mut cat = raw.clone();
     assert_eq!(calibrate(&mut cat, stds.clone(), CalibrationSource::Night), 0);
-    let cal = &cat.calibration.as_ref().unwrap()["calibration"]["filters"][0];
-    let c = cal["offset"]["c"].as_f64().unwrap();
-    let sc = cal["offset"]["sigma_c"].as_f64().unwrap();
+    let cal = &cat.calibration.as_ref().unwrap().calibration().unwrap().filters[0];
+    let (offset, angles) = (cal.offset.unwrap(), cal.angles.unwrap());
+    let (c, sc) = (offset.c, offset.sigma_c);
     let c_true = 0.03 / 1.97 + 0.003;
-    let th = cal["angles"]["theta0_deg"].as_f64().unwrap();
-    let sth = cal["angles"]["sigma_theta0_deg"].as_f64().unwrap();
+    let (th, sth) = (angles.theta0_deg, angles.sigma_theta0_deg);
     eprintln!("c = {c:.5} +- {sc:.5} (true {c_true:.5}); theta0 = {th:.3} +- {sth:.3} (true 3)");
     assert!((c - c_true).abs() < 3.0 * sc, "c {c} +- {sc} vs {c_true}");
     assert!((th - 3.0).abs() < 3.0 * sth, "theta0 {th} +- {sth}");
-    assert_eq!(cal["angles"]["parity"], 1);
-    assert_eq!(cal["angles"]["parity_measured"], true);
+    assert_eq!(angles.parity, 1);
+    assert!(angles.parity_measured);
 
     let p = pulls(&cat, &truth);
     let (m, rms) = mean_rms(&p);

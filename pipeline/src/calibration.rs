@@ -32,18 +32,13 @@ use crate::catalog::{Catalog, Component, StandardResult, Status, Target};
 use crate::standards::{StandardStar, StandardsTable};
 use crate::stokes::calibration::{
     joint::{fit_joint_with, JointOptions},
-    AngleCalibration, Offset, OrientationF, StandardObservation, StokesMethod, STOKES_METHOD_FAILED,
+    OrientationF, StandardObservation, StokesMethod, STOKES_METHOD_FAILED,
 };
 use crate::stokes::inversion::Debias;
-use crate::stokes::propagation::{self, CalibrationCovariance, CAL_C, CAL_THETA0};
+use crate::stokes::propagation::{self, CAL_THETA0};
+pub use product::{Calibration, FilterCalibration, CALIBRATION_FILE, CALIBRATION_SCHEMA};
 pub use resolve::{orientation_values, resolve_component, P_ABOVE_ONE};
 pub use telescope::{TelescopeCalibration, TELESCOPE_UNCORRECTED};
-
-/// File name of the calibration product in a calibration directory.
-pub const CALIBRATION_FILE: &str = "calibration.json";
-
-/// Version of the `calibration.json` schema.
-pub const CALIBRATION_SCHEMA: &str = "1.0";
 
 /// Settings of the calibration and the Stokes solve (`[calibration]` in the settings file).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
@@ -72,104 +67,7 @@ pub struct CalibrationParams {
     pub allow_uncalibrated: bool,
 }
 
-/// The calibration of one filter.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct FilterCalibration {
-    /// Filter name.
-    pub filter: String,
-    /// Instrumental offset of F (c ~ (1 - k)/(1 + k) + p_inst along the analyzer).
-    pub offset: Option<Offset>,
-    /// Standards (sequence ids) the offset comes from.
-    pub offset_standards: Vec<String>,
-    /// Angle zero-point and parity.
-    pub angles: Option<AngleCalibration>,
-    /// Polarized standards (sequence ids) the angles come from.
-    pub angle_standards: Vec<String>,
-    /// Covariance of c and theta0 (units of c times deg), when both come from one fit.
-    #[serde(
-        default,
-        skip_serializing_if = "Option::is_none",
-        deserialize_with = "crate::catalog::nullable::opt"
-    )]
-    pub cov_c_theta0_deg: Option<f64>,
-    /// Why the standards could not separate c from theta0 (the angles are then the
-    /// profile's and every component of the filter is flagged `calibration_incomplete`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub incomplete: Option<String>,
-    /// The telescope's own polarization, measured from the standards and removed from every
-    /// component of the filter.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub telescope: Option<TelescopeCalibration>,
-    /// Why the telescope's polarization was not measured (too few standards, or all at
-    /// nearly the same parallactic angle...): the filter's components are flagged
-    /// `telescope_polarization_uncorrected`.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub telescope_uncorrected: Option<String>,
-    /// Covariance of the calibration parameters in the order of `covariance_parameters`
-    /// (c, theta0 in deg, the telescope's a and b); zero rows for what was not fitted.
-    #[serde(
-        default,
-        skip_serializing_if = "Option::is_none",
-        deserialize_with = "crate::catalog::nullable::square"
-    )]
-    pub covariance: Option<CalibrationCovariance>,
-    /// The names of `covariance`'s rows: `["c", "theta0_deg", "tel_a", "tel_b"]`.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub covariance_parameters: Option<Vec<String>>,
-    /// Why theta0 is the profile's (no polarized standard in the filter): its uncertainty
-    /// (`angles.sigma_zero_point_deg` of the profile) is then the theta0 variance of
-    /// `covariance`, and every component of the filter is flagged
-    /// [`ZERO_POINT_FROM_PROFILE`].
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub zero_point_from_profile: Option<String>,
-}
-
-impl FilterCalibration {
-    /// The covariance of (c, theta0, a, b): `covariance` when written, else built from the
-    /// offset's and zero-point's errors and their covariance (files without it).
-    pub fn covariance_matrix(&self) -> CalibrationCovariance {
-        if let Some(m) = self.covariance {
-            return m;
-        }
-        let mut m = [[0.0; 4]; 4];
-        m[CAL_C][CAL_C] = self.offset.map_or(0.0, |o| o.sigma_c.powi(2));
-        m[CAL_THETA0][CAL_THETA0] = self.angles.map_or(0.0, |a| a.sigma_theta0_deg.powi(2));
-        let cross = if self.offset.is_some() && self.angles.is_some() {
-            self.cov_c_theta0_deg.unwrap_or(0.0)
-        } else {
-            0.0
-        };
-        m[CAL_C][CAL_THETA0] = cross;
-        m[CAL_THETA0][CAL_C] = cross;
-        m
-    }
-}
-
-/// The calibration products of a night (`calibration.json`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Calibration {
-    /// Schema version of this file.
-    pub schema_version: String,
-    /// Per filter.
-    pub filters: Vec<FilterCalibration>,
-    /// Input frames of the standards used.
-    pub frames: Vec<String>,
-    /// Flat-field products (FITS per rotator angle, relative to the calibration
-    /// directory). Empty until the flat-field stage is connected.
-    #[serde(default)]
-    pub flats: Vec<String>,
-    /// Where it came from: software, night directory, standards table sources...
-    pub provenance: serde_json::Value,
-}
-
 impl Calibration {
-    /// The calibration of a filter (case-insensitive).
-    pub fn for_filter(&self, filter: &str) -> Option<&FilterCalibration> {
-        self.filters
-            .iter()
-            .find(|f| f.filter.eq_ignore_ascii_case(filter.trim()))
-    }
-
     /// Read `calibration.json` from a calibration directory (or a file path).
     pub fn read(path: &Path) -> crate::error::Result<Calibration> {
         use crate::error::Error;
@@ -319,11 +217,10 @@ pub fn measure(
         filters,
         frames,
         flats: vec![],
-        provenance: serde_json::json!({
-            "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
-            "commit": crate::build_info::commit(),
-            "standards_table": table.sources,
-        }),
+        provenance: crate::catalog::Provenance {
+            standards_table: Some(serde_json::json!(table.sources)),
+            ..crate::catalog::Provenance::build()
+        },
     })
 }
 
@@ -523,11 +420,11 @@ pub fn calibrate_catalog(
             input_files: t.input_files.clone(),
         });
     }
-    cat.calibration = Some(serde_json::json!({
-        "source": origin,
-        "stokes_method": method.name(),
-        "calibration": cal,
-    }));
+    cat.calibration = Some(crate::catalog::AppliedCalibration::new(
+        cal.clone(),
+        origin.clone(),
+        method.name(),
+    ));
     if summary.n_uncalibrated > 0 {
         summary.lines.push(format!(
             "{} component(s) flagged 'uncalibrated': with 2 orientations the beam throughput ratio and the \
@@ -651,6 +548,7 @@ pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::Target
     s
 }
 
+pub mod product;
 pub mod setup;
 pub use setup::CalibSetup;
 pub mod residuals;

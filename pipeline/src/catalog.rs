@@ -4,6 +4,12 @@ use serde::{Deserialize, Serialize};
 
 use crate::stokes::inversion::Polarization;
 
+pub mod applied;
+pub(crate) mod nullable;
+pub mod provenance;
+pub use applied::AppliedCalibration;
+pub use provenance::Provenance;
+
 /// Version of the catalog schema written by this build.
 pub const SCHEMA_VERSION: &str = "1.0";
 
@@ -449,61 +455,6 @@ impl Target {
     }
 }
 
-/// Reading numbers back as written: serde_json writes a non-finite f64 as `null`, which
-/// plain `f64` refuses. These read `null` as NaN, and keep a key that was present present
-/// (`Some(NaN)`), so a catalog read and written again is unchanged.
-pub(crate) mod nullable {
-    use serde::{Deserialize, Deserializer};
-
-    /// NaN: the default of a number a catalog lacks.
-    pub fn nan() -> f64 {
-        f64::NAN
-    }
-
-    /// A number, `null` read as NaN.
-    pub fn num<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
-        Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
-    }
-
-    /// A present number (`null` read as NaN); an absent key is `None` (`serde(default)`).
-    pub fn opt<'de, D: Deserializer<'de>>(d: D) -> Result<Option<f64>, D::Error> {
-        num(d).map(Some)
-    }
-
-    /// A present list of numbers, each `null` read as NaN.
-    pub fn list<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Vec<f64>>, D::Error> {
-        let v = Vec::<Option<f64>>::deserialize(d)?;
-        Ok(Some(v.into_iter().map(|x| x.unwrap_or(f64::NAN)).collect()))
-    }
-
-    /// A present pair of numbers, each `null` read as NaN.
-    pub fn pair<'de, D: Deserializer<'de>>(d: D) -> Result<Option<[f64; 2]>, D::Error> {
-        let [a, b] = <[Option<f64>; 2]>::deserialize(d)?;
-        Ok(Some([a.unwrap_or(f64::NAN), b.unwrap_or(f64::NAN)]))
-    }
-
-    /// A present N x N matrix of numbers, each `null` read as NaN; another shape is refused.
-    pub fn square<'de, D: Deserializer<'de>, const N: usize>(d: D) -> Result<Option<[[f64; N]; N]>, D::Error> {
-        let rows = Vec::<Vec<Option<f64>>>::deserialize(d)?;
-        let mut m = [[f64::NAN; N]; N];
-        if rows.len() != N || rows.iter().any(|r| r.len() != N) {
-            return Err(serde::de::Error::custom(format_args!("expected a {N} x {N} matrix")));
-        }
-        for (row, r) in m.iter_mut().zip(rows) {
-            for (v, x) in row.iter_mut().zip(r) {
-                *v = x.unwrap_or(f64::NAN);
-            }
-        }
-        Ok(Some(m))
-    }
-
-    /// A present value that may be `null` (`Some(None)`), unlike serde's `Option<Option<T>>`,
-    /// which reads `null` as absent.
-    pub fn present<'de, D: Deserializer<'de>, T: Deserialize<'de>>(d: D) -> Result<Option<Option<T>>, D::Error> {
-        Option::<T>::deserialize(d).map(Some)
-    }
-}
-
 /// An input that could not be used.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Failure {
@@ -514,7 +465,7 @@ pub struct Failure {
 }
 
 /// A whole catalog.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Debug, Clone, Serialize, Deserialize, Default)]
 pub struct Catalog {
     /// Schema version.
     #[serde(default)]
@@ -526,14 +477,14 @@ pub struct Catalog {
     pub failures: Vec<Failure>,
     /// Provenance: software version, command line, profile, parameters...
     #[serde(default)]
-    pub provenance: serde_json::Value,
+    pub provenance: Provenance,
     /// Standard stars of the night, reduced as single stars (docs/catalog-schema.md).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub standards: Vec<StandardResult>,
     /// The instrumental calibration applied to the targets (`calibration.json`'s content
-    /// and where it came from); absent when none was available.
+    /// and where it came from).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub calibration: Option<serde_json::Value>,
+    pub calibration: Option<AppliedCalibration>,
 }
 
 /// A standard star's table values, its measurement and the residuals.
@@ -587,32 +538,6 @@ pub struct StandardResult {
     /// The sequence's frames (as [`Target::input_files`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub input_files: Option<Vec<String>>,
-}
-
-/// The distinct values, in order, of the provenance entry `key` (`software`, `commit`):
-/// the catalog's own (a string, or a list of strings as `merge` writes when its inputs
-/// differ), else, for a merged catalog written without it, those of the catalogs it was
-/// merged from (`merged_from[].provenance`, recursively). Empty when none is known.
-pub fn provenance_values(prov: &serde_json::Value, key: &str) -> Vec<String> {
-    fn collect(prov: &serde_json::Value, key: &str, out: &mut Vec<String>) {
-        let mut push = |s: &str| {
-            if !out.iter().any(|o| o == s) {
-                out.push(s.to_string());
-            }
-        };
-        match &prov[key] {
-            serde_json::Value::String(s) => push(s),
-            serde_json::Value::Array(a) => a.iter().filter_map(|x| x.as_str()).for_each(push),
-            _ => {
-                for part in prov["merged_from"].as_array().into_iter().flatten() {
-                    collect(&part["provenance"], key, out);
-                }
-            }
-        }
-    }
-    let mut out = Vec::new();
-    collect(prov, key, &mut out);
-    out
 }
 
 /// Fold an angle difference of two axial angles (degrees) into [0, 90].

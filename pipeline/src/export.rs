@@ -273,8 +273,8 @@ fn rows(cat: &Catalog) -> (Vec<Row>, usize, usize) {
 
 /// Build the table of `cat` (read from `source`, stored in the provenance columns).
 pub fn table(cat: &Catalog, source: &str) -> Table {
-    let software = provenance_text(&cat.provenance, "software");
-    let commit = provenance_text(&cat.provenance, "commit");
+    let software = provenance_text(cat.provenance.softwares());
+    let commit = provenance_text(cat.provenance.commits());
     let (rows, without, unmeasured) = rows(cat);
     let n = rows.len();
     let text = |name, description, f: fn(&Row) -> String| Column {
@@ -314,7 +314,7 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
         r.target_flags.clone()
     }));
     columns.push(Column {
-        name: "software",
+        name: SOFTWARE,
         unit: "",
         description: "software that made the catalog",
         data: Data::Str(vec![software.clone(); n]),
@@ -326,7 +326,7 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
         data: Data::Str(vec![source.to_string(); n]),
     });
     let meta = vec![
-        ("software", software),
+        (SOFTWARE, software),
         ("commit", commit),
         ("catalog", source.to_string()),
         ("schema_version", cat.schema_version.clone()),
@@ -340,11 +340,13 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
     }
 }
 
-/// A provenance entry as one text: the catalog's value of `key` (`software`, `commit`),
-/// or for a merged catalog the distinct values of the catalogs it was merged from
-/// ([`crate::catalog::provenance_values`]) joined by `; `; `unknown` when there is none.
-fn provenance_text(prov: &serde_json::Value, key: &str) -> String {
-    let v = crate::catalog::provenance_values(prov, key);
+/// The column and table keyword naming the software that made the catalog.
+const SOFTWARE: &str = "software";
+
+/// A provenance entry as one text: the catalog's values of `software` or `commit` (for a
+/// merged catalog the distinct values of the catalogs it was merged from,
+/// [`crate::catalog::Provenance::softwares`]) joined by `; `; `unknown` when there is none.
+fn provenance_text(v: Vec<String>) -> String {
     if v.is_empty() {
         "unknown".into()
     } else {

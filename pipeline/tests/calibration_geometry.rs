@@ -119,7 +119,7 @@ fn calibrate(cat: &mut Catalog, stds: Vec<Target>) -> (serde_json::Value, Vec<St
         3.0,
     );
     (
-        cat.calibration.as_ref().unwrap()["calibration"]["filters"][0].clone(),
+        serde_json::to_value(&cat.calibration.as_ref().unwrap().calibration().unwrap().filters[0]).unwrap(),
         sum.lines,
     )
 }

@@ -181,7 +181,7 @@ fn no_effects_is_the_exact_noiseless_expectation() {
             assert!((ox - s.o_xy[0]).abs() < 1e-4 && (oy - s.o_xy[1]).abs() < 1e-4);
         }
     }
-    assert!(truth.detector.as_object().unwrap().is_empty());
+    assert_eq!(truth.detector, Default::default());
 }
 
 const ALL_SECTIONS: &str = r#"

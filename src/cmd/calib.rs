@@ -9,6 +9,7 @@ use std::process::ExitCode;
 use anyhow::Context;
 use sofipol_calib::Profile;
 use sofipol_pipeline::calibration::{CalibSetup, Calibration, CALIBRATION_FILE};
+use sofipol_pipeline::catalog::Provenance;
 use sofipol_pipeline::night::{self, NightSetup, RunOptions};
 
 use super::common::ProfileArgs;
@@ -124,15 +125,16 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     })?;
     // Written only once the calibration exists: a failed run writes nothing.
     cal.flats = build_flat_products(&out.flats, &args.output)?;
-    cal.provenance = serde_json::json!({
-        "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
-        "commit": sofipol_pipeline::build_info::commit(),
-        "command_line": sofipol_pipeline::build_info::command_line(),
-        "inputs": args.dirs,
-        "standards_table": setup.calibration.table.sources,
-        "standard_sequences": standards.iter().map(|s| &s.sequence).collect::<Vec<_>>(),
-        "profile_angles": {"zero_point_deg": setup.profile.angles.zero_point_deg, "parity": setup.profile.angles.parity},
-    });
+    cal.provenance = Provenance {
+        inputs: Some(args.dirs.iter().map(|d| d.display().to_string()).collect()),
+        standards_table: Some(serde_json::json!(setup.calibration.table.sources)),
+        standard_sequences: Some(standards.iter().map(|s| s.sequence.clone()).collect()),
+        profile_angles: Some(serde_json::json!({
+            "zero_point_deg": setup.profile.angles.zero_point_deg,
+            "parity": setup.profile.angles.parity
+        })),
+        ..Provenance::now()
+    };
     let path = cal
         .write(&args.output)
         .with_context(|| format!("writing {}", args.output.join(CALIBRATION_FILE).display()))?;

@@ -2,6 +2,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use sofipol_pipeline::catalog::provenance::FlatProvenance;
 use sofipol_pipeline::catalog::Catalog;
 use sofipol_pipeline::night::{self, Hooks, NightSetup, RunOptions};
 use sofipol_pipeline::reduce::TargetParams;
@@ -194,44 +195,32 @@ pub fn check_demo_dir(dir: &std::path::Path, names: &[String]) -> anyhow::Result
 /// What the calibration found against what the scene simulated: the flat, the offset c
 /// (true (T_o - T_e)/(T_o + T_e) + p_inst cos 2 angle), the angle zero-point, parity, and
 /// each standard against its table values.
-pub fn calibration_report(truth: &Truth, flat: &serde_json::Value, cat: &Catalog, lines: &[String]) -> String {
+pub fn calibration_report(truth: &Truth, flat: &FlatProvenance, cat: &Catalog, lines: &[String]) -> String {
     let mut out = String::from("\n  calibration derived from the night:\n");
-    let mode = flat.get("mode").and_then(|m| m.as_str()).unwrap_or("none");
-    let list = flat
-        .get("flats")
-        .and_then(|f| f.as_array())
-        .cloned()
-        .unwrap_or_default();
-    let nframes: usize = list.iter().map(|f| f["frames"].as_array().map_or(0, |v| v.len())).sum();
-    let rms = truth.detector["flat_field"]["rms"].as_f64();
+    let mode = &flat.mode;
+    let list = flat.flat_list();
+    let nframes: usize = list.iter().map(|f| f.frames.len()).sum();
+    let rms = truth.detector.flat_field.map(|f| f.rms);
     out += &format!(
         "    flat: {mode}, {} flat(s) from {nframes} frames{}\n",
         list.len(),
         rms.map(|r| format!("; simulated pixel response rms {:.2} %", 100.0 * r))
             .unwrap_or_default()
     );
-    let d = &truth.detector;
-    let c_true = d["throughput"]["t_o"]
-        .as_f64()
-        .zip(d["throughput"]["t_e"].as_f64())
-        .map(|(o, e)| {
-            (o - e) / (o + e)
-                + d["instrumental_polarization"]["q_inst_added_to_F"]
-                    .as_f64()
-                    .unwrap_or(0.0)
-        });
+    let c_true = truth.detector.offset_c();
     let aa = truth.scene.analyzer_angle.clone().unwrap_or_default();
     let filters = cat
         .calibration
         .as_ref()
-        .and_then(|c| c["calibration"]["filters"].as_array().cloned())
-        .unwrap_or_default();
+        .and_then(|c| c.calibration())
+        .map_or(&[][..], |c| &c.filters);
     if filters.is_empty() {
         out += "    no calibration (no usable standards)\n";
     }
-    for f in &filters {
-        let name = f["filter"].as_str().unwrap_or("?");
-        if let (Some(c), Some(s)) = (f["offset"]["c"].as_f64(), f["offset"]["sigma_c"].as_f64()) {
+    for f in filters {
+        let name = &f.filter;
+        if let Some(o) = &f.offset {
+            let (c, s) = (o.c, o.sigma_c);
             out += &format!(
                 "    {name}: offset c = {:.4} +- {:.4}{}\n",
                 c,
@@ -241,14 +230,14 @@ pub fn calibration_report(truth: &Truth, flat: &serde_json::Value, cat: &Catalog
                     .unwrap_or_default()
             );
         }
-        let a = &f["angles"];
-        if let (Some(t0), Some(st)) = (a["theta0_deg"].as_f64(), a["sigma_theta0_deg"].as_f64()) {
+        if let Some(a) = &f.angles {
+            let (t0, st) = (a.theta0_deg, a.sigma_theta0_deg);
             out += &format!(
                 "    {name}: angle zero-point theta0 = {t0:.2} +- {st:.2} deg (simulated {:.2}: {:+.1} sigma), parity {} ({}; simulated {:+})\n",
                 aa.zero_point_deg,
                 (t0 - aa.zero_point_deg) / st,
-                a["parity"],
-                if a["parity_measured"].as_bool() == Some(true) { "measured" } else { "profile" },
+                a.parity,
+                if a.parity_measured { "measured" } else { "profile" },
                 aa.parity
             );
         }

@@ -12,6 +12,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context};
 use serde::Deserialize;
+use sofipol_pipeline::catalog::Provenance;
 use sofipol_pipeline::numeric::median_in_place;
 use sofipol_pipeline::plots::write_atomic;
 use sofipol_pipeline::stats::figures::{format_count, mc_figure};
@@ -337,10 +338,7 @@ fn write_outputs(
             })
         })
         .collect();
-    let json = serde_json::json!({
-        "software": { "name": "sofipol", "version": env!("CARGO_PKG_VERSION"), "commit": sofipol_pipeline::build_info::commit() },
-        "command": sofipol_pipeline::build_info::command_line_string(),
-        "parameters": {
+    let parameters = serde_json::json!({
             "model": s.base.model.spec(),
             "pairs": s.base.pairs,
             "seed": s.base.seed,
@@ -353,7 +351,9 @@ fn write_outputs(
             "perpendicular_fraction": s.base.perpendicular_fraction[0],
             "rng": format!("xoshiro256++, one stream per chunk of {CHUNK_PAIRS} pairs seeded from (seed, chunk index) via splitmix64"),
             "conventions": "Delta gamma in [0, 90] deg; intrinsic polarization along the projected disk long axis (spin-axis PA + 90 deg); P in percent",
-        },
+    });
+    let json = serde_json::json!({
+        "provenance": Provenance { parameters: Some(parameters), ..Provenance::now() },
         "bin_edges_deg": edges,
         "runs": runs,
     });

@@ -15,7 +15,7 @@ use std::process::ExitCode;
 use anyhow::Context;
 use serde_json::Value;
 use sofipol_calib::text::printable;
-use sofipol_pipeline::catalog::Catalog;
+use sofipol_pipeline::catalog::{AppliedCalibration, Catalog, Provenance};
 
 /// Arguments of `sofipol merge`.
 #[derive(clap::Args, Debug)]
@@ -40,13 +40,21 @@ pub struct Args {
 
 /// The shards' coverage: `Ok(missing "K/N of inputs")` or the reason the set cannot be merged. Parts
 /// are (name, provenance).
-pub fn check_shards(parts: &[(String, &Value)], allow_partial: bool) -> anyhow::Result<Vec<String>> {
+pub fn check_shards(parts: &[(String, &Provenance)], allow_partial: bool) -> anyhow::Result<Vec<String>> {
     // One run: identical profile, parameters and calibration settings.
+    let settings = |p: &Provenance| {
+        [
+            ("parameters", serde_json::json!(p.parameters)),
+            ("profile", serde_json::json!(p.profile)),
+            ("calibration", serde_json::json!(p.calibration)),
+        ]
+    };
     let (first_name, first) = &parts[0];
+    let first = settings(first);
     for (name, p) in &parts[1..] {
-        for key in ["parameters", "profile", "calibration"] {
-            if p[key] != first[key] {
-                let detail = first_difference(&first[key], &p[key], key);
+        for ((key, a), (_, b)) in first.iter().zip(settings(p)) {
+            if *a != b {
+                let detail = first_difference(a, &b, key);
                 anyhow::bail!(
                     "{name} and {first_name} were reduced with different {key} ({detail}): not one run; \
                      reduce the shards again with the same settings"
@@ -59,12 +67,12 @@ pub fn check_shards(parts: &[(String, &Value)], allow_partial: bool) -> anyhow::
     let mut nights: std::collections::BTreeMap<String, (usize, std::collections::BTreeMap<usize, &str>)> =
         std::collections::BTreeMap::new();
     for (name, p) in parts {
-        let Some(sh) = p["shard"].as_str() else { continue };
+        let Some(Some(sh)) = &p.shard else { continue };
         let sh: sofipol_pipeline::night::Shard = sh
             .parse()
             .map_err(|e| anyhow::anyhow!("{name}: provenance.shard: {e}"))?;
         let (n, have) = nights
-            .entry(p["inputs"].to_string())
+            .entry(inputs_key(p))
             .or_insert_with(|| (sh.n, Default::default()));
         if *n != sh.n {
             anyhow::bail!(
@@ -96,16 +104,16 @@ pub fn check_shards(parts: &[(String, &Value)], allow_partial: bool) -> anyhow::
 /// calibrations they applied (each catalog's `calibration`) must be identical. `parts` are
 /// (name, provenance, calibration). A catalog written without `--shard` is a whole run,
 /// calibrated by its own night.
-pub fn check_calibrations(parts: &[(String, &Value, Option<&Value>)]) -> anyhow::Result<()> {
-    let mut first: std::collections::BTreeMap<String, (&str, Option<&Value>)> = Default::default();
+pub fn check_calibrations(parts: &[(String, &Provenance, Option<&AppliedCalibration>)]) -> anyhow::Result<()> {
+    let mut first: std::collections::BTreeMap<String, (&str, Value)> = Default::default();
     for (name, p, cal) in parts {
-        if p["shard"].as_str().is_none() {
+        if !matches!(p.shard, Some(Some(_))) {
             continue;
         }
-        let (first_name, first_cal) = *first.entry(p["inputs"].to_string()).or_insert((name.as_str(), *cal));
-        if *cal != first_cal {
-            let null = Value::Null;
-            let detail = first_difference(first_cal.unwrap_or(&null), cal.unwrap_or(&null), "calibration");
+        let cal = serde_json::json!(cal);
+        let (first_name, first_cal) = first.entry(inputs_key(p)).or_insert((name.as_str(), cal.clone()));
+        if cal != *first_cal {
+            let detail = first_difference(first_cal, &cal, "calibration");
             anyhow::bail!(
                 "{name} and {first_name} are shards of the same inputs but applied different calibrations \
                  ({detail}): not one run; reduce the shards again with the same standards table and \
@@ -114,6 +122,11 @@ pub fn check_calibrations(parts: &[(String, &Value, Option<&Value>)]) -> anyhow:
         }
     }
     Ok(())
+}
+
+/// The inputs a shard scanned, as one text: shards of the same night have the same.
+fn inputs_key(p: &Provenance) -> String {
+    serde_json::json!(p.inputs).to_string()
 }
 
 /// A short description of where two JSON values first differ (the key path).
@@ -151,30 +164,30 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if args.verbose {
         for (name, c) in &parts {
             let prov = &c.provenance;
-            let shard = prov["shard"]
-                .as_str()
-                .map_or("whole night".to_string(), |s| format!("shard {s}"));
-            let join = |key: &str| sofipol_pipeline::catalog::provenance_values(prov, key).join(", ");
+            let shard = match &prov.shard {
+                Some(Some(s)) => format!("shard {s}"),
+                _ => "whole night".to_string(),
+            };
             eprintln!(
                 "{}: {shard}, {} targets, {} standards, {} failures; {} (commit {})",
                 printable(name),
                 c.targets.len(),
                 c.standards.len(),
                 c.failures.len(),
-                join("software"),
-                join("commit")
+                prov.softwares().join(", "),
+                prov.commits().join(", ")
             );
         }
     }
-    let provs: Vec<(String, &Value)> = parts.iter().map(|(n, c)| (n.clone(), &c.provenance)).collect();
+    let provs: Vec<(String, &Provenance)> = parts.iter().map(|(n, c)| (n.clone(), &c.provenance)).collect();
     let missing = check_shards(&provs, args.allow_partial)?;
-    let cals: Vec<(String, &Value, Option<&Value>)> = parts
+    let cals: Vec<(String, &Provenance, Option<&AppliedCalibration>)> = parts
         .iter()
         .map(|(n, c)| (n.clone(), &c.provenance, c.calibration.as_ref()))
         .collect();
     check_calibrations(&cals)?;
     let mut merged = sofipol_pipeline::night::merge(parts).map_err(anyhow::Error::msg)?;
-    merged.provenance["missing_shards"] = serde_json::json!(missing);
+    merged.provenance.missing_shards = Some(missing.clone());
     sofipol_pipeline::io::write_json_atomic(&args.output, &merged)
         .with_context(|| format!("writing {}", args.output.display()))?;
     if !args.quiet {

@@ -309,15 +309,7 @@ pub fn print_verbose(out: &NightOutput, wall: f64) {
             out.seconds.mask
         );
     }
-    eprintln!(
-        "flats: {} in {:.2} s",
-        out.flats
-            .provenance
-            .get("mode")
-            .and_then(|m| m.as_str())
-            .unwrap_or("none"),
-        out.seconds.flats
-    );
+    eprintln!("flats: {} in {:.2} s", out.flats.provenance.mode, out.seconds.flats);
     let times: &[StageTimes] = &out.times;
     let sum = |f: fn(&StageTimes) -> f64| times.iter().fold(0.0, |a, t| a + f(t));
     eprintln!(

@@ -13,6 +13,7 @@ use std::process::ExitCode;
 
 use anyhow::{bail, Context};
 use sofipol_calib::text::printable;
+use sofipol_pipeline::catalog::Provenance;
 use sofipol_pipeline::plots::write_atomic;
 use sofipol_pipeline::stats::alignment::{format_p, DEFAULT_SIGNIFICANCE};
 use sofipol_pipeline::stats::figures::{
@@ -331,15 +332,18 @@ fn print_report(path: &Path, sample: &BinarySample, r: &AlignmentReport) {
 
 fn write_json(dir: &Path, args: &Args, sample: &BinarySample, r: &AlignmentReport) -> anyhow::Result<()> {
     // The per-level Monte-Carlo histograms are kept (counts on 1-deg bins).
+    let parameters = serde_json::json!({
+        "p_ism": args.p_ism, "ism_angle_deg": args.ism_angle, "pairs": args.pairs, "seed": args.seed,
+        "p_int": args.p_int, "noise": args.noise, "snr_cut": args.snr_cut, "cut": args.cut,
+        "significance": args.significance, "observed_bins": args.bins,
+    });
+    let provenance = Provenance {
+        catalog: Some(args.catalog.display().to_string()),
+        parameters: Some(parameters),
+        ..Provenance::now()
+    };
     let json = serde_json::json!({
-        "software": { "name": "sofipol", "version": env!("CARGO_PKG_VERSION"), "commit": sofipol_pipeline::build_info::commit() },
-        "command": sofipol_pipeline::build_info::command_line_string(),
-        "catalog": args.catalog.display().to_string(),
-        "parameters": {
-            "p_ism": args.p_ism, "ism_angle_deg": args.ism_angle, "pairs": args.pairs, "seed": args.seed,
-            "p_int": args.p_int, "noise": args.noise, "snr_cut": args.snr_cut, "cut": args.cut,
-            "significance": args.significance, "observed_bins": args.bins,
-        },
+        "provenance": provenance,
         "sample": sample,
         "report": r,
     });

@@ -156,18 +156,44 @@ impl Flat {
         s
     }
 
-    /// A provenance object (catalog `extra`, calibration.json).
-    pub fn provenance(&self) -> serde_json::Value {
-        serde_json::json!({
-            "kind": self.kind.name(),
-            "posang_deg": self.posang_deg,
-            "filter": self.filter,
-            "frames": self.sources,
-            "file": self.path.as_ref().map(|p| p.display().to_string()),
-            "bad_pixels": self.bad.iter().filter(|&&b| b != 0).count(),
-            "detail": self.detail,
-        })
+    /// What the catalog's provenance records of it.
+    pub fn provenance(&self) -> FlatRecord {
+        FlatRecord {
+            kind: self.kind.name().to_string(),
+            posang_deg: self.posang_deg,
+            filter: self.filter.clone(),
+            frames: self.sources.clone(),
+            file: self.path.as_ref().map(|p| p.display().to_string()),
+            bad_pixels: self.bad.iter().filter(|&&b| b != 0).count(),
+            detail: self.detail.clone(),
+        }
     }
+}
+
+/// One flat as a catalog's provenance records it (`provenance.flat.flats[]`; keys in
+/// alphabetical order, as written before it was typed).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FlatRecord {
+    /// Pixels the flat marks unusable.
+    #[serde(default)]
+    pub bad_pixels: usize,
+    /// What was done, with the parameters.
+    #[serde(default)]
+    pub detail: String,
+    /// The file it was read from, when read.
+    #[serde(default)]
+    pub file: Option<String>,
+    /// Filter, when known.
+    #[serde(default)]
+    pub filter: Option<String>,
+    /// The frames it was built from.
+    #[serde(default)]
+    pub frames: Vec<String>,
+    /// `dome`, `superflat` or `file`.
+    pub kind: String,
+    /// Rotator angle it applies to (none: every angle), deg.
+    #[serde(default)]
+    pub posang_deg: Option<f64>,
 }
 
 /// Settings of flat building.

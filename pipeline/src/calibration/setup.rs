@@ -50,8 +50,11 @@ impl CalibSetup {
 
     /// The catalog's `provenance.calibration`: settings, standards tables, calibration
     /// directory.
-    pub fn provenance(&self) -> serde_json::Value {
-        serde_json::json!({"params": self.params, "standards_table": self.table.sources,
-            "calib_dir": self.external.as_ref().map(|e| e.0.display().to_string())})
+    pub fn provenance(&self) -> crate::catalog::provenance::CalibrationInputs {
+        crate::catalog::provenance::CalibrationInputs {
+            calib_dir: self.external.as_ref().map(|e| e.0.display().to_string()),
+            params: serde_json::json!(self.params),
+            standards_table: serde_json::json!(self.table.sources),
+        }
     }
 }

@@ -1,6 +1,8 @@
 use super::*;
 use crate::catalog::CombinedF;
+use crate::stokes::calibration::{AngleCalibration, Offset};
 use crate::stokes::model::{normalized_difference, Polarization};
+use crate::stokes::propagation::CAL_C;
 
 fn component(name: &str, pol: Polarization, posangs: &[f64], theta0: f64, c: f64, sigma: f64) -> Component {
     let orients: Vec<CombinedF> = posangs
@@ -167,8 +169,8 @@ fn night_calibration_recovers_truth_and_flags_uncalibrated_without_it() {
     );
     assert!((other.targets[0].components[0].q - truth_a.q).abs() < 1e-12);
     assert_eq!(
-        other.calibration.as_ref().unwrap()["source"],
-        dir.path().display().to_string()
+        other.calibration.as_ref().unwrap().source.as_deref(),
+        Some(dir.path().display().to_string().as_str())
     );
 }
 
@@ -447,7 +449,7 @@ fn delta_gamma_error_has_the_offset_and_not_the_zero_point() {
             filters: vec![fc],
             frames: vec![],
             flats: vec![],
-            provenance: serde_json::json!({}),
+            provenance: Default::default(),
         };
         calibrate_catalog(
             &mut cat,

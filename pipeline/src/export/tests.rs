@@ -57,10 +57,11 @@ fn catalog() -> Catalog {
             standard("HD 64299", Some(component("A", 0.0005, -0.0002))),
             standard("HD 98161", None),
         ],
-        provenance: serde_json::json!({"merged_from": [
+        provenance: serde_json::from_value(serde_json::json!({"merged_from": [
             {"file": "s1.json", "provenance": {"software": "sofipol 9.9.9", "commit": "abc"}},
             {"file": "s2.json", "provenance": {"software": "sofipol 9.9.9", "commit": "abc"}},
-        ]}),
+        ]}))
+        .unwrap(),
         ..Default::default()
     }
 }
@@ -152,11 +153,13 @@ fn standards_are_rows_of_kind_standard_with_pointing_time_and_units() {
 #[test]
 fn a_merge_of_different_versions_exports_every_version() {
     let mut cat = catalog();
-    cat.provenance["merged_from"][1]["provenance"]["software"] = "sofipol 9.9.10".into();
+    let merged = cat.provenance.merged_from.as_mut().unwrap();
+    merged[1].provenance.software = Some(crate::catalog::provenance::OneOrMany::One("sofipol 9.9.10".into()));
     let t = table(&cat, "m.json");
     assert_eq!(strs(&t, "software")[0], "sofipol 9.9.9; sofipol 9.9.10");
-    cat.provenance = serde_json::json!({"software": ["sofipol 1", "sofipol 2"], "merged_from": []});
+    cat.provenance =
+        serde_json::from_value(serde_json::json!({"software": ["sofipol 1", "sofipol 2"], "merged_from": []})).unwrap();
     assert_eq!(strs(&table(&cat, "m.json"), "software")[0], "sofipol 1; sofipol 2");
-    cat.provenance = serde_json::json!({});
+    cat.provenance = Default::default();
     assert_eq!(strs(&table(&cat, "m.json"), "software")[0], "unknown");
 }

@@ -130,8 +130,8 @@ pub struct Update {
 #[derive(Default)]
 struct Seen {
     catalog: Option<Catalog>,
-    flats: Option<serde_json::Value>,
-    mask_from: Option<serde_json::Value>,
+    flats: Option<crate::catalog::provenance::FlatProvenance>,
+    mask_from: Option<Vec<String>>,
     standards: Vec<String>,
 }
 
@@ -227,13 +227,9 @@ impl LiveNight {
 
     /// Start from a catalog written earlier: its targets are not reported again as new.
     pub fn resume_from(&mut self, catalog: Catalog) {
-        self.seen.standards = catalog
-            .provenance
-            .get("live_standards")
-            .and_then(|v| serde_json::from_value(v.clone()).ok())
-            .unwrap_or_default();
-        self.seen.flats = catalog.provenance.get("flat").cloned();
-        self.seen.mask_from = catalog.provenance.get("night_bad_pixel_mask_from").cloned();
+        self.seen.standards = catalog.provenance.live_standards.clone().unwrap_or_default();
+        self.seen.flats = catalog.provenance.flat.clone();
+        self.seen.mask_from = catalog.provenance.night_bad_pixel_mask_from.clone();
         self.reduced
             .extend(catalog.targets.iter().filter_map(|t| t.sequence.clone()));
         self.seen.catalog = Some(catalog);
@@ -329,11 +325,11 @@ impl LiveNight {
         catalog.failures.extend(lost_frames.iter().cloned());
         catalog.failures.sort_by(|a, b| a.file.cmp(&b.file));
         let standards: Vec<String> = plan.standards.iter().map(|q| q.id.clone()).collect();
-        catalog.provenance["live_standards"] = serde_json::json!(standards);
+        catalog.provenance.live_standards = Some(standards.clone());
         let (new_targets, changed) = self.compare(&catalog, &standards, &lost_frames);
         self.seen = Seen {
-            flats: catalog.provenance.get("flat").cloned(),
-            mask_from: catalog.provenance.get("night_bad_pixel_mask_from").cloned(),
+            flats: catalog.provenance.flat.clone(),
+            mask_from: catalog.provenance.night_bad_pixel_mask_from.clone(),
             standards,
             catalog: Some(catalog.clone()),
         };
@@ -576,16 +572,11 @@ impl LiveNight {
             .filter_map(|t| t.sequence.as_deref().map(|s| (s, t)))
             .collect();
         let mut reasons = Vec::new();
-        if self.seen.flats.is_some() && self.seen.flats.as_ref() != catalog.provenance.get("flat") {
-            let mode = catalog.provenance["flat"]["mode"]
-                .as_str()
-                .unwrap_or("none")
-                .to_string();
-            reasons.push(format!("the flats changed (now {mode})"));
+        let prov = &catalog.provenance;
+        if self.seen.flats.is_some() && self.seen.flats != prov.flat {
+            reasons.push(format!("the flats changed (now {})", prov.flat_mode()));
         }
-        if self.seen.mask_from.is_some()
-            && self.seen.mask_from.as_ref() != catalog.provenance.get("night_bad_pixel_mask_from")
-        {
+        if self.seen.mask_from.is_some() && self.seen.mask_from != prov.night_bad_pixel_mask_from {
             reasons.push("the bad-pixel mask was detected on more frames".into());
         }
         let added = standards.iter().filter(|s| !self.seen.standards.contains(s)).count();

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use rayon::prelude::*;
 use sofipol_calib::Profile;
 
+use crate::catalog::provenance::{FlatFileError, FlatProvenance};
 use crate::catalog::Failure;
 use crate::reduce::TargetParams;
 
@@ -15,7 +16,7 @@ pub struct NightFlats {
     /// The flats (None: no flat-fielding).
     pub set: Option<sofipol_calib::flat::FlatSet>,
     /// Provenance: which flats, from which frames (catalog provenance `flat`).
-    pub provenance: serde_json::Value,
+    pub provenance: FlatProvenance,
     /// Flat frames that could not be used, with the reason.
     pub failures: Vec<Failure>,
 }
@@ -68,7 +69,10 @@ fn flats_from_files(files: &[PathBuf], origin: &str, profile: &Profile) -> Night
         }) {
             Ok(f) => flats.push(f),
             Err(e) => {
-                errors.push(serde_json::json!({"file": p.display().to_string(), "error": e.to_string()}));
+                errors.push(FlatFileError {
+                    file: p.display().to_string(),
+                    error: e.to_string(),
+                });
                 out.failures.push(Failure {
                     file: p.display().to_string(),
                     error: format!("calibration flat: {e}"),
@@ -76,15 +80,11 @@ fn flats_from_files(files: &[PathBuf], origin: &str, profile: &Profile) -> Night
             }
         }
     }
-    out.provenance = if flats.is_empty() {
-        serde_json::json!({"mode": "none", "from": origin, "errors": errors})
-    } else {
-        serde_json::json!({
-            "mode": "file",
-            "from": origin,
-            "flats": flats.iter().map(|f| f.provenance()).collect::<Vec<_>>(),
-            "errors": errors,
-        })
+    out.provenance = FlatProvenance {
+        errors: Some(errors),
+        flats: (!flats.is_empty()).then(|| flats.iter().map(|f| f.provenance()).collect()),
+        from: Some(origin.to_string()),
+        ..FlatProvenance::mode(if flats.is_empty() { "none" } else { "file" })
     };
     if !flats.is_empty() {
         out.set = Some(FlatSet::new(flats));
@@ -105,7 +105,7 @@ pub fn night_flats(
     use sofipol_calib::flat::{build_flats, superflat, FlatSet};
     let mut out = NightFlats::default();
     if params.no_flat {
-        out.provenance = serde_json::json!({"mode": "none (no_flat)"});
+        out.provenance = FlatProvenance::mode("none (no_flat)");
         return out;
     }
     if !params.flat.is_empty() {
@@ -118,10 +118,10 @@ pub fn night_flats(
             error: e,
         }));
         if !set.is_empty() {
-            out.provenance = serde_json::json!({
-                "mode": "dome",
-                "flats": set.flats.iter().map(|f| f.provenance()).collect::<Vec<_>>()
-            });
+            out.provenance = FlatProvenance {
+                flats: Some(set.flats.iter().map(|f| f.provenance()).collect()),
+                ..FlatProvenance::mode("dome")
+            };
             out.set = Some(set);
             return out;
         }
@@ -172,11 +172,11 @@ pub fn night_flats(
             Err(e) => notes.push(format!("filter {filter}: no superflat: {e}")),
         }
     }
-    out.provenance = serde_json::json!({
-        "mode": if flats.is_empty() { "none" } else { "superflat" },
-        "flats": flats.iter().map(|f| f.provenance()).collect::<Vec<_>>(),
-        "notes": notes,
-    });
+    out.provenance = FlatProvenance {
+        flats: Some(flats.iter().map(|f| f.provenance()).collect()),
+        notes: Some(notes),
+        ..FlatProvenance::mode(if flats.is_empty() { "none" } else { "superflat" })
+    };
     if !flats.is_empty() {
         out.set = Some(FlatSet::new(flats));
     }

@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
 
-use crate::catalog::{provenance_values, Catalog, Status};
+use crate::catalog::{Catalog, Status};
 use crate::report::flags::{explain, flag_name};
 
 /// What one input file was used for and what happened to it.
@@ -134,18 +134,14 @@ fn frame_entries(cat: &Catalog) -> BTreeMap<String, FrameEntry> {
         }
     }
     let prov = &cat.provenance;
-    for fl in prov["flat"]["flats"].as_array().into_iter().flatten() {
-        let kind = match fl["kind"].as_str() {
-            Some("superflat") => "superflat",
-            Some(k) => &format!("{k} flat"),
-            None => "flat",
+    for fl in prov.flat_list() {
+        let kind = match fl.kind.as_str() {
+            "superflat" => "superflat",
+            k => &format!("{k} flat"),
         };
-        let filter = fl["filter"].as_str().unwrap_or("");
-        let angle = fl["posang_deg"]
-            .as_f64()
-            .map(|a| format!(" POSANG {a}"))
-            .unwrap_or_default();
-        for f in fl["frames"].as_array().into_iter().flatten().filter_map(|f| f.as_str()) {
+        let filter = fl.filter.as_deref().unwrap_or("");
+        let angle = fl.posang_deg.map(|a| format!(" POSANG {a}")).unwrap_or_default();
+        for f in &fl.frames {
             frames
                 .entry(f.to_string())
                 .or_default()
@@ -153,12 +149,7 @@ fn frame_entries(cat: &Catalog) -> BTreeMap<String, FrameEntry> {
                 .push(format!("{kind} {filter}{angle}").trim_end().to_string());
         }
     }
-    for f in prov["night_bad_pixel_mask_from"]
-        .as_array()
-        .into_iter()
-        .flatten()
-        .filter_map(|f| f.as_str())
-    {
+    for f in prov.night_bad_pixel_mask_from.iter().flatten() {
         frames
             .entry(f.to_string())
             .or_default()
@@ -199,8 +190,7 @@ fn common_dir<'a>(files: impl Iterator<Item = &'a str>) -> String {
 
 fn header(s: &mut String, cat: &Catalog, catalog_name: &str, root: &str) {
     let prov = &cat.provenance;
-    let join = |key: &str| {
-        let v = provenance_values(prov, key);
+    let join = |v: Vec<String>| {
         if v.is_empty() {
             "unknown".to_string()
         } else {
@@ -208,23 +198,26 @@ fn header(s: &mut String, cat: &Catalog, catalog_name: &str, root: &str) {
         }
     };
     let _ = writeln!(s, "# sofipol night log of {catalog_name}");
-    let _ = writeln!(s, "software: {} (commit {})", join("software"), join("commit"));
-    if let Some(t) = prov["created_utc"].as_str() {
+    let _ = writeln!(
+        s,
+        "software: {} (commit {})",
+        join(prov.softwares()),
+        join(prov.commits())
+    );
+    if let Some(t) = &prov.created_utc {
         let _ = writeln!(s, "created: {t} UTC");
     }
-    if let Some(cmd) = prov["command_line"].as_array() {
-        let words: Vec<&str> = cmd.iter().filter_map(|w| w.as_str()).collect();
-        let _ = writeln!(s, "command: {}", words.join(" "));
+    if let Some(cmd) = &prov.command_line {
+        let _ = writeln!(s, "command: {}", cmd.join(" "));
     }
     if !root.is_empty() {
         let _ = writeln!(s, "frames under: {root}");
     }
-    let flat = &prov["flat"];
-    if let Some(mode) = flat["mode"].as_str() {
-        let n = flat["flats"].as_array().map_or(0, |a| a.len());
-        let _ = writeln!(s, "flat field: {mode} ({n} flat(s))");
+    if let Some(flat) = &prov.flat {
+        let n = flat.flat_list().len();
+        let _ = writeln!(s, "flat field: {} ({n} flat(s))", flat.mode);
     }
-    if let Some(m) = prov["night_bad_pixel_mask_from"].as_array() {
+    if let Some(m) = &prov.night_bad_pixel_mask_from {
         let _ = writeln!(s, "night bad-pixel mask: from {} frame(s)", m.len());
     }
     let n_std = cat.standards.iter().filter(|st| !st.used_for.is_empty()).count();

@@ -1,5 +1,6 @@
 //! Joining the catalogs of the shards of one night.
-use crate::catalog::{Catalog, Target, SCHEMA_VERSION};
+use crate::catalog::provenance::{MergedFrom, OneOrMany};
+use crate::catalog::{AppliedCalibration, Catalog, Provenance, Target, SCHEMA_VERSION};
 
 /// Join shard catalogs: targets in the order `night` gives them (TPL START, then object),
 /// failures by file, duplicates (the same
@@ -13,7 +14,7 @@ pub fn merge(parts: Vec<(String, Catalog)>) -> crate::error::Result<Catalog> {
         ..Default::default()
     };
     let mut provs = Vec::new();
-    let mut cals: Vec<(String, Option<serde_json::Value>)> = Vec::new();
+    let mut cals: Vec<(String, Option<AppliedCalibration>)> = Vec::new();
     let mut seen = std::collections::BTreeMap::new();
     for (name, c) in parts {
         if !c.schema_version.is_empty() && c.schema_version.split('.').next() != SCHEMA_VERSION.split('.').next() {
@@ -43,18 +44,19 @@ pub fn merge(parts: Vec<(String, Catalog)>) -> crate::error::Result<Catalog> {
             }
         }
         cals.push((name.clone(), c.calibration));
-        provs.push(serde_json::json!({"file": name, "provenance": c.provenance}));
+        provs.push(MergedFrom {
+            file: name.clone(),
+            provenance: c.provenance,
+        });
     }
-    out.calibration = if cals.iter().all(|(_, c)| *c == cals[0].1) {
+    let same = |a: &Option<AppliedCalibration>, b: &Option<AppliedCalibration>| match (a, b) {
+        (Some(a), Some(b)) => a.same_as(b),
+        (a, b) => a.is_none() && b.is_none(),
+    };
+    out.calibration = if cals.iter().all(|(_, c)| same(c, &cals[0].1)) {
         cals.into_iter().next().and_then(|(_, c)| c)
     } else {
-        Some(serde_json::json!({
-            "source": "per_catalog",
-            "catalogs": cals
-                .into_iter()
-                .map(|(file, calibration)| serde_json::json!({"file": file, "calibration": calibration}))
-                .collect::<Vec<_>>(),
-        }))
+        Some(AppliedCalibration::per_catalog(cals))
     };
     // The order of `night`: sequences by (TPL START, object) (crate::sequence::group).
     out.targets.sort_by(|a, b| night_order(a).cmp(&night_order(b)));
@@ -73,22 +75,16 @@ fn night_order(t: &Target) -> (&str, &str, &str) {
 /// The merged provenance: `software` and `commit` of the inputs (one string when they
 /// agree, else the list of the distinct values) and every input's provenance
 /// (`merged_from`).
-fn merged_provenance(provs: Vec<serde_json::Value>) -> serde_json::Value {
-    let from = serde_json::json!({ "merged_from": provs });
-    let mut prov = serde_json::Map::new();
-    for key in ["software", "commit"] {
-        match crate::catalog::provenance_values(&from, key).as_slice() {
-            [] => {}
-            [one] => {
-                prov.insert(key.into(), one.clone().into());
-            }
-            many => {
-                prov.insert(key.into(), many.into());
-            }
-        }
+fn merged_provenance(provs: Vec<MergedFrom>) -> Provenance {
+    let from = Provenance {
+        merged_from: Some(provs),
+        ..Provenance::default()
+    };
+    Provenance {
+        software: OneOrMany::from_values(from.softwares()),
+        commit: OneOrMany::from_values(from.commits()),
+        ..from
     }
-    prov.insert("merged_from".into(), from["merged_from"].clone());
-    prov.into()
 }
 
 #[cfg(test)]
@@ -96,6 +92,7 @@ mod tests {
     use super::*;
 
     fn part(name: &str, seq: &str, cal: serde_json::Value) -> (String, Catalog) {
+        let cal = serde_json::from_value(cal).unwrap();
         let mut t = crate::catalog::Target::new(seq.to_string(), crate::catalog::Status::Ok);
         t.sequence = Some(format!("{seq}@2000"));
         let c = Catalog {
@@ -113,14 +110,14 @@ mod tests {
         let a = serde_json::json!({"source": "night", "calibration": {"filters": [{"c": 0.018}]}});
         let b = serde_json::json!({"source": "night", "calibration": {"filters": [{"c": 0.021}]}});
         let m = merge(vec![part("a.json", "X", a.clone()), part("b.json", "Y", a.clone())]).unwrap();
-        assert_eq!(m.calibration, Some(a.clone()));
+        assert_eq!(serde_json::json!(m.calibration), a);
         let m = merge(vec![part("a.json", "X", a.clone()), part("b.json", "Y", b.clone())]).unwrap();
         assert_eq!(
-            m.calibration,
-            Some(serde_json::json!({"source": "per_catalog", "catalogs": [
+            serde_json::json!(m.calibration),
+            serde_json::json!({"source": "per_catalog", "catalogs": [
                 {"file": "a.json", "calibration": a},
                 {"file": "b.json", "calibration": b},
-            ]}))
+            ]})
         );
     }
 }

@@ -23,7 +23,7 @@ use sofipol_calib::flat::FlatSet;
 use sofipol_calib::Profile;
 
 use crate::calibration::{CalibSetup, Calibration, CalibrationSummary};
-use crate::catalog::{Catalog, Failure, Target, SCHEMA_VERSION};
+use crate::catalog::{Catalog, Failure, Provenance, Target, SCHEMA_VERSION};
 use crate::plots::target::{FigureInputs, TargetFigure};
 use crate::reduce::run::{reduce_sequence, StageTimes};
 use crate::reduce::TargetParams;
@@ -213,13 +213,14 @@ pub fn run_night(plan: &NightPlan, setup: &NightSetup, opts: &RunOptions) -> Nig
             .cloned(),
     );
     cat.failures.sort_by(|a, b| a.file.cmp(&b.file));
-    let mut prov = provenance(profile, params);
-    prov["shard"] = serde_json::json!(shard.map(|s| format!("{}/{}", s.k, s.n)));
-    prov["inputs"] = serde_json::json!(opts.inputs);
-    prov["night_bad_pixel_mask_from"] = serde_json::json!(mask.as_ref().map(|m| m.files.clone()).unwrap_or_default());
-    prov["flat"] = flats.provenance.clone();
-    prov["calibration"] = setup.calibration.provenance();
-    cat.provenance = prov;
+    cat.provenance = Provenance {
+        shard: Some(shard.map(|s| format!("{}/{}", s.k, s.n))),
+        inputs: Some(opts.inputs.iter().map(|p| p.display().to_string()).collect()),
+        night_bad_pixel_mask_from: Some(mask.as_ref().map(|m| m.files.clone()).unwrap_or_default()),
+        flat: Some(flats.provenance.clone()),
+        calibration: Some(setup.calibration.provenance()),
+        ..provenance(profile, params)
+    };
     NightOutput {
         catalog: cat,
         times: reduced.times,
@@ -360,17 +361,10 @@ fn reduce_sequences_cached(
 /// The provenance every catalog starts with: software, git commit of the build
 /// ([`crate::build_info::commit`]), command line, time (UTC), instrument
 /// profile and reduction settings.
-pub fn provenance(profile: &Profile, params: &impl serde::Serialize) -> serde_json::Value {
-    let now = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_secs_f64())
-        .unwrap_or(0.0);
-    serde_json::json!({
-        "software": format!("sofipol {}", env!("CARGO_PKG_VERSION")),
-        "commit": crate::build_info::commit(),
-        "command_line": crate::build_info::command_line(),
-        "created_utc": crate::sim::effects::iso_from_mjd(40587.0 + now / 86400.0, false),
-        "profile": profile,
-        "parameters": params,
-    })
+pub fn provenance(profile: &Profile, params: &impl serde::Serialize) -> Provenance {
+    Provenance {
+        profile: Some(serde_json::json!(profile)),
+        parameters: Some(serde_json::json!(params)),
+        ..Provenance::now()
+    }
 }

@@ -320,25 +320,17 @@ fn target_figures(h: &mut String, input: &ReportInput) {
 
 fn provenance(h: &mut String, input: &ReportInput) {
     let p = &input.catalog.provenance;
-    let s = |k: &str| p.get(k).and_then(|v| v.as_str()).unwrap_or("–").to_string();
-    let list = |k: &str| match p.get(k) {
-        Some(serde_json::Value::Array(a)) => a
-            .iter()
-            .map(|v| v.as_str().map_or_else(|| v.to_string(), str::to_string))
-            .collect::<Vec<_>>()
-            .join(" "),
-        Some(serde_json::Value::String(x)) => x.clone(),
-        _ => "–".to_string(),
-    };
+    let values = |v: Vec<String>| if v.is_empty() { "–".to_string() } else { v.join(" ") };
+    let words = |v: &Option<Vec<String>>| v.as_ref().map_or_else(|| "–".to_string(), |w| w.join(" "));
     h.push_str("<section id=\"provenance\"><h2>Provenance</h2>\n<dl class=\"kv\">\n");
     let rows = [
         ("catalog", input.catalog_path.clone()),
         ("schema version", input.catalog.schema_version.clone()),
-        ("reduced with", s("software")),
-        ("its commit", s("commit")),
-        ("reduced (UTC)", s("created_utc")),
-        ("its command line", list("command_line")),
-        ("inputs", list("inputs")),
+        ("reduced with", values(p.softwares())),
+        ("its commit", values(p.commits())),
+        ("reduced (UTC)", p.created_utc.clone().unwrap_or_else(|| "–".into())),
+        ("its command line", words(&p.command_line)),
+        ("inputs", words(&p.inputs)),
         (
             "page written by",
             format!(
@@ -353,7 +345,7 @@ fn provenance(h: &mut String, input: &ReportInput) {
         let _ = writeln!(h, "<dt>{k}</dt><dd><code>{}</code></dd>", escape(&v));
     }
     h.push_str("</dl>\n");
-    if !p.is_null() {
+    if !p.is_empty() {
         let json = serde_json::to_string_pretty(p).unwrap_or_default();
         let _ = writeln!(
             h,

@@ -1,27 +1,12 @@
 //! The calibration and statistics sections of the page.
 use std::fmt::Write as _;
 
-use serde_json::Value;
-
 use super::html::{escape, flag_list, fmt, image, pct, status_word};
 use super::StatsSection;
-use crate::catalog::Catalog;
+use crate::calibration::product::FilterCalibration;
+use crate::catalog::{Catalog, Provenance};
 use crate::stats::alignment::format_p;
 use crate::stats::predictions::source_name;
-
-/// A number at `path` (keys) of a JSON value.
-fn num(v: &Value, path: &[&str]) -> Option<f64> {
-    path.iter().try_fold(v, |v, k| v.get(k))?.as_f64()
-}
-
-/// A string at `path` of a JSON value (numbers and booleans as written).
-fn text(v: &Value, path: &[&str]) -> Option<String> {
-    match path.iter().try_fold(v, |v, k| v.get(k))? {
-        Value::String(s) => Some(s.clone()),
-        Value::Null => None,
-        other => Some(other.to_string()),
-    }
-}
 
 /// "x ± s" with `d` decimals.
 fn pm(x: Option<f64>, s: Option<f64>, d: usize) -> String {
@@ -40,33 +25,14 @@ pub fn calibration(h: &mut String, cat: &Catalog) {
             let _ = writeln!(
                 h,
                 "<p>Calibration from: <strong>{}</strong>{}.</p>",
-                escape(&text(cal, &["source"]).unwrap_or_else(|| "–".into())),
-                text(cal, &["stokes_method"]).map_or(String::new(), |m| format!("; Stokes method {}", escape(&m)))
+                escape(cal.source.as_deref().unwrap_or("–")),
+                cal.stokes_method.as_ref().map_or(String::new(), |m| format!("; Stokes method {}", escape(m)))
             );
-            let filters = cal.pointer("/calibration/filters").and_then(Value::as_array);
             h.push_str("<div class=\"scroll\"><table id=\"calibration-filters\"><thead><tr><th>filter</th><th class=\"num\">offset c</th>\
                 <th class=\"num\">θ₀ [deg]</th><th class=\"num\">parity</th><th class=\"num\">p_tel [%]</th><th class=\"num\">ψ_tel [deg]</th>\
                 <th>standards</th><th>notes</th></tr></thead><tbody>\n");
-            for f in filters.into_iter().flatten() {
-                let n_std = f.get("offset_standards").and_then(Value::as_array).map_or(0, Vec::len);
-                let notes: Vec<String> = ["incomplete", "telescope_uncorrected"]
-                    .iter()
-                    .filter_map(|k| text(f, &[k]).map(|t| format!("{k}: {}", escape(&t))))
-                    .collect();
-                let _ = writeln!(
-                    h,
-                    "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td>\
-                     <td class=\"num\">{} ± {}</td><td class=\"num\">{}</td><td>{n_std} for c, {} for θ₀</td><td>{}</td></tr>",
-                    escape(&text(f, &["filter"]).unwrap_or_default()),
-                    pm(num(f, &["offset", "c"]), num(f, &["offset", "sigma_c"]), 5),
-                    pm(num(f, &["angles", "theta0_deg"]), num(f, &["angles", "sigma_theta0_deg"]), 2),
-                    escape(&text(f, &["angles", "parity"]).unwrap_or_else(|| "–".into())),
-                    pct(num(f, &["telescope", "p_tel"])),
-                    pct(num(f, &["telescope", "sigma_p_tel"])),
-                    pm(num(f, &["telescope", "psi_tel_deg"]), num(f, &["telescope", "sigma_psi_tel_deg"]), 1),
-                    f.get("angle_standards").and_then(Value::as_array).map_or(0, Vec::len),
-                    notes.join("; ")
-                );
+            for f in cal.calibration().into_iter().flat_map(|c| &c.filters) {
+                filter_row(h, f);
             }
             h.push_str("</tbody></table></div>\n");
         }
@@ -76,27 +42,60 @@ pub fn calibration(h: &mut String, cat: &Catalog) {
     h.push_str("</section>\n");
 }
 
-fn flats(h: &mut String, prov: &Value) {
-    let mode = text(prov, &["flat", "mode"]).unwrap_or_else(|| "none".into());
-    let _ = writeln!(h, "<h3>Flats</h3>\n<p>Mode: <strong>{}</strong>.</p>", escape(&mode));
-    let Some(list) = prov.pointer("/flat/flats").and_then(Value::as_array) else {
-        return;
-    };
+/// One filter's row of the calibration table.
+fn filter_row(h: &mut String, f: &FilterCalibration) {
+    let notes: Vec<String> = [
+        ("incomplete", &f.incomplete),
+        ("telescope_uncorrected", &f.telescope_uncorrected),
+    ]
+    .into_iter()
+    .filter_map(|(k, t)| t.as_ref().map(|t| format!("{k}: {}", escape(t))))
+    .collect();
+    let (o, a, t) = (f.offset.as_ref(), f.angles.as_ref(), f.telescope.as_ref());
+    let _ = writeln!(
+        h,
+        "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td>\
+         <td class=\"num\">{} ± {}</td><td class=\"num\">{}</td><td>{} for c, {} for θ₀</td><td>{}</td></tr>",
+        escape(&f.filter),
+        pm(o.map(|o| o.c), o.map(|o| o.sigma_c), 5),
+        pm(a.map(|a| a.theta0_deg), a.map(|a| a.sigma_theta0_deg), 2),
+        a.map_or_else(|| "–".into(), |a| a.parity.to_string()),
+        pct(t.map(|t| t.p_tel)),
+        pct(t.map(|t| t.sigma_p_tel)),
+        pm(t.map(|t| t.psi_tel_deg), t.map(|t| t.sigma_psi_tel_deg), 1),
+        f.offset_standards.len(),
+        f.angle_standards.len(),
+        notes.join("; ")
+    );
+}
+
+fn flats(h: &mut String, prov: &Provenance) {
+    let _ = writeln!(
+        h,
+        "<h3>Flats</h3>\n<p>Mode: <strong>{}</strong>.</p>",
+        escape(prov.flat_mode())
+    );
+    let list = prov.flat_list();
     if list.is_empty() {
         return;
     }
     h.push_str("<div class=\"scroll\"><table id=\"flats\"><thead><tr><th>kind</th><th>filter</th><th class=\"num\">POSANG [deg]</th>\
         <th class=\"num\">frames</th><th class=\"num\">bad pixels</th><th>detail</th></tr></thead><tbody>\n");
     for f in list {
-        let frames = f.get("frames").and_then(Value::as_array).map_or(0, Vec::len);
+        let detail = if f.detail.is_empty() {
+            f.file.as_deref().unwrap_or("")
+        } else {
+            &f.detail
+        };
         let _ = writeln!(
             h,
-            "<tr><td>{}</td><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{frames}</td><td class=\"num\">{}</td><td>{}</td></tr>",
-            escape(&text(f, &["kind"]).unwrap_or_default()),
-            escape(&text(f, &["filter"]).unwrap_or_default()),
-            fmt(num(f, &["posang_deg"]), 1),
-            escape(&text(f, &["bad_pixels"]).unwrap_or_else(|| "–".into())),
-            escape(&text(f, &["detail"]).or_else(|| text(f, &["file"])).unwrap_or_default())
+            "<tr><td>{}</td><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td>{}</td></tr>",
+            escape(&f.kind),
+            escape(f.filter.as_deref().unwrap_or("")),
+            fmt(f.posang_deg, 1),
+            f.frames.len(),
+            f.bad_pixels,
+            escape(detail)
         );
     }
     h.push_str("</tbody></table></div>\n");

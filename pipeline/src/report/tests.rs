@@ -109,7 +109,10 @@ fn hostile_names_are_escaped_everywhere() {
             file: format!("{HOSTILE}.fits"),
             error: HOSTILE.into(),
         }],
-        provenance: serde_json::json!({"command_line": ["sofipol", HOSTILE], "software": HOSTILE}),
+        provenance: serde_json::from_value(
+            serde_json::json!({"command_line": ["sofipol", HOSTILE], "software": HOSTILE}),
+        )
+        .unwrap(),
         ..Default::default()
     };
     cat.schema_version = HOSTILE.into();

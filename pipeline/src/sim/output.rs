@@ -1,34 +1,37 @@
 //! Whole scenes: the truth, every frame in memory, or every frame written to a folder.
-use super::truth::{FrameTruth, SimFrame, Truth};
+use super::truth::{
+    DetectorTruth, FlatFieldTruth, FrameTruth, InstrumentalPolarizationTruth, SimFrame, ThroughputTruth, Truth,
+};
 use super::{effects, EffectKind, Simulator};
 
 impl Simulator {
     /// Truth of the whole scene (frames are re-derived cheaply: no images are rendered).
     pub fn truth(&self, frames: &[Vec<FrameTruth>]) -> Truth {
         let s = &self.scene;
-        let mut detector = serde_json::Map::new();
-        if let Some(b) = &self.bad {
-            detector.insert(
-                "bad_pixels".into(),
-                serde_json::to_value(&b.summary).unwrap_or_default(),
-            );
-        }
+        let mut detector = DetectorTruth {
+            bad_pixels: self
+                .bad
+                .as_ref()
+                .map(|b| serde_json::to_value(&b.summary).unwrap_or_default()),
+            ..DetectorTruth::default()
+        };
         if let Some(f) = &self.flat {
             let n = f.len() as f64;
             let mean = f.iter().map(|&v| v as f64).sum::<f64>() / n;
             let rms = (f.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n).sqrt();
-            detector.insert("flat_field".into(), serde_json::json!({"mean": mean, "rms": rms}));
+            detector.flat_field = Some(FlatFieldTruth { mean, rms });
         }
         if s.has(EffectKind::Throughput) {
             let (t_o, t_e) = effects::throughput(&self.calls, &s.throughput.clone().unwrap_or_default());
-            detector.insert("throughput".into(), serde_json::json!({"t_o": t_o, "t_e": t_e}));
+            detector.throughput = Some(ThroughputTruth { t_e, t_o });
         }
         if s.has(EffectKind::InstrumentalPolarization) {
             let c = s.instrumental_polarization.clone().unwrap_or_default();
-            detector.insert(
-                "instrumental_polarization".into(),
-                serde_json::json!({"p": c.p, "angle_deg": c.angle_deg, "q_inst_added_to_F": c.p * (2.0 * c.angle_deg.to_radians()).cos()}),
-            );
+            detector.instrumental_polarization = Some(InstrumentalPolarizationTruth {
+                angle_deg: c.angle_deg,
+                p: c.p,
+                q_inst_added_to_f: c.p * (2.0 * c.angle_deg.to_radians()).cos(),
+            });
         }
         Truth {
             software: format!("sofipol {}", env!("CARGO_PKG_VERSION")),
@@ -39,7 +42,7 @@ impl Simulator {
             telescope_polarization: s
                 .has(EffectKind::TelescopePolarization)
                 .then(|| s.telescope_polarization.clone().unwrap_or_default().model()),
-            detector: serde_json::Value::Object(detector),
+            detector,
             targets: (0..s.binary.len()).map(|t| self.target_truth(t, frames)).collect(),
             standards: (s.binary.len()..self.targets.len())
                 .map(|t| {

@@ -1,5 +1,5 @@
 //! What a simulation realised: per frame, per target, per scene (written as truth.json).
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use sofipol_calib::Frame;
 
 use crate::stokes::model::{Polarization, TelescopePolarization};
@@ -131,7 +131,7 @@ pub struct Truth {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub telescope_polarization: Option<TelescopePolarization>,
     /// Fixed detector realisations (bad-pixel counts, flat statistics...).
-    pub detector: serde_json::Value,
+    pub detector: DetectorTruth,
     /// Targets.
     pub targets: Vec<TargetTruth>,
     /// Dome-flat frames (the `dome_flats` effect), in exposure order.
@@ -167,4 +167,65 @@ pub struct SimFrame {
     pub frame: Frame,
     /// Its truth.
     pub truth: FrameTruth,
+}
+
+/// The detector's fixed realisations in a scene's truth (each present when its effect is
+/// simulated; keys in alphabetical order, as written before this was typed).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct DetectorTruth {
+    /// Bad-pixel counts by kind (effect `bad_pixels`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bad_pixels: Option<serde_json::Value>,
+    /// The pixel response's statistics (effect `flat_field`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub flat_field: Option<FlatFieldTruth>,
+    /// The instrument's own polarization added to F (effect `instrumental_polarization`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub instrumental_polarization: Option<InstrumentalPolarizationTruth>,
+    /// The two beams' throughputs (effect `throughput`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub throughput: Option<ThroughputTruth>,
+}
+
+impl DetectorTruth {
+    /// The offset c of F the calibration should find: (T_o - T_e)/(T_o + T_e) plus the
+    /// instrumental polarization along the analyzer (none without the throughput effect).
+    pub fn offset_c(&self) -> Option<f64> {
+        let t = self.throughput.as_ref()?;
+        let p = self
+            .instrumental_polarization
+            .as_ref()
+            .map_or(0.0, |i| i.q_inst_added_to_f);
+        Some((t.t_o - t.t_e) / (t.t_o + t.t_e) + p)
+    }
+}
+
+/// The simulated pixel response's mean and rms.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FlatFieldTruth {
+    /// Mean response.
+    pub mean: f64,
+    /// Its rms.
+    pub rms: f64,
+}
+
+/// The simulated instrumental polarization.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct InstrumentalPolarizationTruth {
+    /// Its angle, deg.
+    pub angle_deg: f64,
+    /// Its degree, fraction.
+    pub p: f64,
+    /// What it adds to F = (o - e)/(o + e): p cos 2 angle.
+    #[serde(rename = "q_inst_added_to_F")]
+    pub q_inst_added_to_f: f64,
+}
+
+/// The simulated throughputs of the two beams.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ThroughputTruth {
+    /// Extraordinary beam.
+    pub t_e: f64,
+    /// Ordinary beam.
+    pub t_o: f64,
 }

@@ -878,7 +878,7 @@ fn test_catalog() -> Catalog {
             ),
         ],
         failures: vec![],
-        provenance: Value::Null,
+        provenance: Default::default(),
         ..Default::default()
     }
 }

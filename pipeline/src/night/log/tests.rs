@@ -47,14 +47,15 @@ fn night() -> Catalog {
                 error: "not a FITS file: starts with 'junk'".into(),
             },
         ],
-        provenance: serde_json::json!({
+        provenance: serde_json::from_value(serde_json::json!({
             "software": "sofipol 9.9.9",
             "commit": "abc1234",
             "command_line": ["sofipol", "night", "raw", "-o", "night.json"],
             "flat": {"mode": "superflat", "flats": [{"kind": "superflat", "filter": "Ks", "posang_deg": null,
                 "frames": ["/data/night/raw/hk_1.fits", "/data/night/raw/hk_2.fits"]}]},
             "night_bad_pixel_mask_from": ["/data/night/raw/hk_1.fits", "/data/night/raw/std_1.fits"],
-        }),
+        }))
+        .unwrap(),
         ..Default::default()
     }
 }
