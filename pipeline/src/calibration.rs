@@ -29,10 +29,11 @@ use serde::{Deserialize, Serialize};
 use sofipol_calib::Profile;
 
 use crate::catalog::{Catalog, Component, StandardResult, Status, Target};
+pub use crate::reduce::params::CalibrationParams;
 use crate::standards::{StandardStar, StandardsTable};
 use crate::stokes::calibration::{
     joint::{fit_joint_with, JointOptions},
-    AngleCalibration, Offset, OrientationF, StandardObservation, StokesMethod, STOKES_METHOD_FAILED,
+    AngleCalibration, Offset, OrientationF, StandardObservation, STOKES_METHOD_FAILED,
 };
 use crate::stokes::inversion::Debias;
 use crate::stokes::propagation::{self, CalibrationCovariance, CAL_C, CAL_THETA0};
@@ -44,33 +45,6 @@ pub const CALIBRATION_FILE: &str = "calibration.json";
 
 /// Version of the `calibration.json` schema.
 pub const CALIBRATION_SCHEMA: &str = "1.0";
-
-/// Settings of the calibration and the Stokes solve (`[calibration]` in the settings file).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
-#[serde(default, deny_unknown_fields)]
-pub struct CalibrationParams {
-    /// How q, u are obtained from the per-orientation F (default `auto`).
-    pub stokes_method: StokesMethod,
-    /// Ignore the night's standards and any calibration (q, u from the plain solve;
-    /// 2-orientation targets are flagged `uncalibrated`).
-    pub no_calibration: bool,
-    /// A standards table (TOML) adding to or overriding the built-in one by name and filter
-    /// (`--standards`).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub standards: Option<std::path::PathBuf>,
-    /// The calibration products of another night (a directory written by `sofipol calib`,
-    /// or its calibration.json), used instead of this night's standards (`--calib`).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub calib_dir: Option<std::path::PathBuf>,
-    /// Neither fit nor remove the telescope's own polarization (`--no-telescope-correction`;
-    /// the components are flagged `telescope_polarization_uncorrected`).
-    pub no_telescope_correction: bool,
-    /// Let components flagged `uncalibrated` pass the P/sigma cut (`--allow-uncalibrated`):
-    /// without it they never do, since their q and u carry the instrument's offset c and
-    /// their angles the profile's zero-point.
-    #[serde(skip_serializing_if = "std::ops::Not::not")]
-    pub allow_uncalibrated: bool,
-}
 
 /// The calibration of one filter.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -1,5 +1,6 @@
 use super::*;
 use crate::catalog::CombinedF;
+use crate::stokes::calibration::StokesMethod;
 use crate::stokes::model::{normalized_difference, Polarization};
 
 fn component(name: &str, pol: Polarization, posangs: &[f64], theta0: f64, c: f64, sigma: f64) -> Component {

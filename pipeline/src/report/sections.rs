@@ -3,10 +3,10 @@ use std::fmt::Write as _;
 
 use serde_json::Value;
 
-use super::html::{escape, flag_list, fmt, image, pct, status_word};
+use super::markup::{escape, flag_list, fmt, image, pct, status_word};
 use super::StatsSection;
 use crate::catalog::Catalog;
-use crate::stats::alignment::format_p;
+use crate::stats::format_p;
 use crate::stats::predictions::source_name;
 
 /// A number at `path` (keys) of a JSON value.
