@@ -25,47 +25,20 @@
 //! component carries in its `orientations` field.
 use std::path::Path;
 
-use serde::{Deserialize, Serialize};
 use sofipol_calib::Profile;
 
 use crate::catalog::{Catalog, Component, StandardResult, Status, Target};
+pub use crate::reduce::params::CalibrationParams;
 use crate::standards::{StandardStar, StandardsTable};
 use crate::stokes::calibration::{
     joint::{fit_joint_with, JointOptions},
-    OrientationF, StandardObservation, StokesMethod, STOKES_METHOD_FAILED,
+    OrientationF, StandardObservation, STOKES_METHOD_FAILED,
 };
 use crate::stokes::inversion::Debias;
 use crate::stokes::propagation::{self, CAL_THETA0};
 pub use product::{Calibration, FilterCalibration, CALIBRATION_FILE, CALIBRATION_SCHEMA};
 pub use resolve::{orientation_values, resolve_component, P_ABOVE_ONE};
 pub use telescope::{TelescopeCalibration, TELESCOPE_UNCORRECTED};
-
-/// Settings of the calibration and the Stokes solve (`[calibration]` in the settings file).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
-#[serde(default, deny_unknown_fields)]
-pub struct CalibrationParams {
-    /// How q, u are obtained from the per-orientation F (default `auto`).
-    pub stokes_method: StokesMethod,
-    /// Ignore the night's standards and any calibration (q, u from the plain solve;
-    /// 2-orientation targets are flagged `uncalibrated`).
-    pub no_calibration: bool,
-    /// A standards table (TOML) adding to or overriding the built-in one by name and filter
-    /// (`--standards`).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub standards: Option<std::path::PathBuf>,
-    /// The calibration products of another night (a directory written by `sofipol calib`,
-    /// or its calibration.json), used instead of this night's standards (`--calib`).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub calib_dir: Option<std::path::PathBuf>,
-    /// Neither fit nor remove the telescope's own polarization (`--no-telescope-correction`;
-    /// the components are flagged `telescope_polarization_uncorrected`).
-    pub no_telescope_correction: bool,
-    /// Let components flagged `uncalibrated` pass the P/sigma cut (`--allow-uncalibrated`):
-    /// without it they never do, since their q and u carry the instrument's offset c and
-    /// their angles the profile's zero-point.
-    #[serde(skip_serializing_if = "std::ops::Not::not")]
-    pub allow_uncalibrated: bool,
-}
 
 impl Calibration {
     /// Read `calibration.json` from a calibration directory (or a file path).

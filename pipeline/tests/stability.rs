@@ -6,10 +6,9 @@ use proptest::prelude::*;
 use sofipol_pipeline::catalog::fold_delta_gamma;
 use sofipol_pipeline::stats::mc::{simulate, McConfig};
 use sofipol_pipeline::stats::model::{AlignmentModel, AlphaMeasure, AlphaTable};
-use sofipol_pipeline::stokes::inversion::{
-    combine_dithers, fit_qu, Debias, LinearPolarization, UNIFORM_ANGLE_SIGMA_DEG,
-};
+use sofipol_pipeline::stokes::inversion::{combine_dithers, fit_qu, Debias, LinearPolarization};
 use sofipol_pipeline::stokes::model::{beam_fluxes, Polarization};
+use sofipol_pipeline::stokes::propagation::UNIFORM_ANGLE_SIGMA_DEG;
 
 fn all_finite(lp: &LinearPolarization) -> bool {
     [

@@ -15,10 +15,11 @@ use anyhow::{bail, Context};
 use sofipol_calib::text::printable;
 use sofipol_pipeline::catalog::Provenance;
 use sofipol_pipeline::plots::write_atomic;
-use sofipol_pipeline::stats::alignment::{format_p, DEFAULT_SIGNIFICANCE};
+use sofipol_pipeline::stats::alignment::DEFAULT_SIGNIFICANCE;
 use sofipol_pipeline::stats::figures::{
     ism_figure, models_figure, observed_figure, paper_models, simulate_models, ModelRow,
 };
+use sofipol_pipeline::stats::format_p;
 use sofipol_pipeline::stats::mc::{McConfig, PIntDist, DEFAULT_SEED};
 use sofipol_pipeline::stats::predictions::source_name;
 use sofipol_pipeline::stats::setup::{self, Noise};

@@ -1,5 +1,5 @@
-//! Opening files by name (cfitsio's extended file-name syntax kept out), error messages,
-//! and the only direct cfitsio calls of the crate.
+//! File names for cfitsio (its extended file-name syntax kept out), error messages, and the
+//! only direct cfitsio calls of the crate.
 use std::ffi::{c_char, c_int, CString};
 use std::path::Path;
 
@@ -51,30 +51,6 @@ pub(super) fn cfitsio_name(path: &Path) -> Result<String> {
         return Ok(format!("./{s}"));
     }
     Ok(s.to_string())
-}
-
-pub(super) fn open(path: &Path) -> Result<FitsFile> {
-    let meta = std::fs::metadata(path).map_err(|e| Error::Io {
-        path: path.to_path_buf(),
-        source: e,
-    })?;
-    if !meta.is_file() {
-        return Err(Error::Io {
-            path: path.to_path_buf(),
-            source: std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a regular file"),
-        });
-    }
-    let name = cfitsio_name(path)?;
-    // Opened by the OS first: a file that cannot be opened (permission denied, too many
-    // open files) is reported with the OS's reason, not cfitsio's "could not open".
-    super::gzip::check_compressed(path)?;
-    FitsFile::open(&name).map_err(|e| match super::diagnose::primary_keyword_problem(path) {
-        Some(problem) => Error::BadImage {
-            path: path.to_path_buf(),
-            reason: format!("not a valid FITS header: {problem}"),
-        },
-        None => fits_err(path, "opening as FITS", e),
-    })
 }
 
 /// Header operations that the safe `fitsio` API lacks.

@@ -194,6 +194,32 @@ fn with_crop_record(frame: Frame, rows: Option<(usize, usize)>) -> Frame {
     }
 }
 
+/// Opens `path` for reading; a file the OS cannot open, or whose primary header is
+/// malformed, is reported in those words rather than in cfitsio's.
+fn open(path: &Path) -> Result<FitsFile> {
+    let meta = std::fs::metadata(path).map_err(|e| Error::Io {
+        path: path.to_path_buf(),
+        source: e,
+    })?;
+    if !meta.is_file() {
+        return Err(Error::Io {
+            path: path.to_path_buf(),
+            source: std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a regular file"),
+        });
+    }
+    let name = cfitsio_name(path)?;
+    // Opened by the OS first: a file that cannot be opened (permission denied, too many
+    // open files) is reported with the OS's reason, not cfitsio's "could not open".
+    super::gzip::check_compressed(path)?;
+    FitsFile::open(&name).map_err(|e| match super::diagnose::primary_keyword_problem(path) {
+        Some(problem) => Error::BadImage {
+            path: path.to_path_buf(),
+            reason: format!("not a valid FITS header: {problem}"),
+        },
+        None => fits_err(path, "opening as FITS", e),
+    })
+}
+
 /// Header cards of HDU `index` (0-based), or `None` past the last HDU.
 pub(super) fn hdu_cards(f: &mut FitsFile, path: &Path, index: usize) -> Result<Option<Vec<String>>> {
     match cfitsio_raw(f, RawOp::ReadCards(index)) {

@@ -1,6 +1,6 @@
 use super::*;
 use crate::catalog::CombinedF;
-use crate::stokes::calibration::{AngleCalibration, Offset};
+use crate::stokes::calibration::{AngleCalibration, Offset, StokesMethod};
 use crate::stokes::model::{normalized_difference, Polarization};
 use crate::stokes::propagation::CAL_C;
 

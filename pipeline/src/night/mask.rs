@@ -7,6 +7,7 @@ use sofipol_calib::sky::SkyScaling;
 use sofipol_calib::Profile;
 
 use super::NightPlan;
+use crate::products::badpix::NightMask;
 use crate::reduce::TargetParams;
 
 /// The detector's bad pixels for the whole night: detector defects stay put while stars
@@ -84,16 +85,4 @@ pub fn night_bad_pixel_mask(
         files: frames.iter().map(|f| f.path().display().to_string()).collect(),
         rows,
     })
-}
-
-/// The night's bad-pixel mask ([`night_bad_pixel_mask`]).
-#[derive(Debug, Clone)]
-pub struct NightMask {
-    /// Full-frame mask (`BAD` where defective). With `rows`, only those rows were examined:
-    /// the others are 0 and must not be used (the reduction uses only those rows).
-    pub mask: ndarray::Array2<u8>,
-    /// The frames it was detected on.
-    pub files: Vec<String>,
-    /// The rows examined (`[r0, r1)`), when not the whole frame.
-    pub rows: Option<(usize, usize)>,
 }

@@ -36,16 +36,16 @@ mod log;
 mod mask;
 mod merge;
 mod plan;
-mod products;
 
+pub use crate::products::badpix::NightMask;
+pub use crate::products::{products_dir, slug};
 pub use cache::{files_key, CacheCounts, CachedTarget, FileStamp, NightCache};
 pub use calibrate::{calibrate, reduce_standards};
 pub use flats::{night_flats, NightFlats};
 pub use log::{log_path, night_log, write_night_log};
-pub use mask::{night_bad_pixel_mask, NightMask};
+pub use mask::night_bad_pixel_mask;
 pub use merge::merge;
 pub use plan::{pick_superflat_frames, plan, plan_listing, stable_hash, NightPlan, Shard};
-pub use products::{products_dir, slug};
 
 /// Most frames stacked for the night-wide bad-pixel mask.
 pub const MASK_FRAMES: usize = 15;

@@ -7,8 +7,19 @@ use sofipol_calib::fits::{write_images, ImageHdu, ImagePixels};
 use sofipol_calib::HistoryRecord;
 
 use super::headers;
-use crate::night::NightMask;
 use crate::reduce::TargetParams;
+
+/// The night's bad-pixel mask ([`crate::night::night_bad_pixel_mask`]), as this file writes it.
+#[derive(Debug, Clone)]
+pub struct NightMask {
+    /// Full-frame mask (`BAD` where defective). With `rows`, only those rows were examined:
+    /// the others are 0 and must not be used (the reduction uses only those rows).
+    pub mask: ndarray::Array2<u8>,
+    /// The frames it was detected on.
+    pub files: Vec<String>,
+    /// The rows examined (`[r0, r1)`), when not the whole frame.
+    pub rows: Option<(usize, usize)>,
+}
 
 /// File name of the night's mask in the products folder.
 pub const FILE_NAME: &str = "night_badpix.fits";

@@ -23,6 +23,7 @@
 pub mod badpix;
 pub mod combine;
 pub mod headers;
+mod paths;
 pub mod regions;
 pub mod stokes_maps;
 pub mod target;
@@ -34,13 +35,14 @@ use sofipol_calib::Profile;
 
 use crate::reduce::run::TargetOutcome;
 use crate::reduce::TargetParams;
+pub use paths::{products_dir, slug};
 
 /// The flag a target gets for each product that could not be written.
 pub const NOT_WRITTEN_FLAG: &str = "fits_product_not_written";
 
 /// Where the FITS products of a catalog go: `<dir>/<stem>_products/fits/`.
 pub fn fits_dir(catalog: &Path) -> PathBuf {
-    crate::night::products_dir(catalog).join("fits")
+    products_dir(catalog).join("fits")
 }
 
 /// The FITS products of one run, written into one folder (which exists) from the reduction's
@@ -103,7 +105,7 @@ impl FitsProducts {
         let Some(p) = target::build(outcome, profile, params) else {
             return Vec::new();
         };
-        let slug = crate::night::slug(outcome.target.sequence_id());
+        let slug = slug(outcome.target.sequence_id());
         target::write(&self.dir, &slug, &outcome.target, m, &p)
             .into_iter()
             .filter_map(|(path, r)| self.record(&path, r))
@@ -112,7 +114,7 @@ impl FitsProducts {
 
     /// Write the night's bad-pixel mask as `night_badpix.fits` ([`badpix::write`]); a
     /// failure is recorded (and returned).
-    pub fn write_bad_pixel_mask(&self, mask: &crate::night::NightMask, params: &TargetParams) -> Option<String> {
+    pub fn write_bad_pixel_mask(&self, mask: &badpix::NightMask, params: &TargetParams) -> Option<String> {
         let path = self.dir.join(badpix::FILE_NAME);
         let r = badpix::write(&path, mask, params).map_err(|e| e.to_string());
         self.record(&path, r)

@@ -8,6 +8,7 @@ use sofipol_calib::sky::SkyOptions;
 
 pub use crate::error::SettingError;
 use crate::photometry::{Method, PsfModel};
+use crate::stokes::calibration::StokesMethod;
 use crate::stokes::inversion::Debias;
 
 /// Smallest aperture radius, px: `aperture_fwhm` x the frame's FWHM below this is raised to
@@ -130,7 +131,7 @@ pub struct TargetParams {
     /// How flats are built (dome flats and superflat).
     pub flat_options: sofipol_calib::flat::FlatOptions,
     /// Instrumental calibration and the Stokes method (`[calibration]`, docs/calibration.md).
-    pub calibration: crate::calibration::CalibrationParams,
+    pub calibration: CalibrationParams,
 }
 
 impl Default for TargetParams {
@@ -149,6 +150,34 @@ impl Default for TargetParams {
             calibration: Default::default(),
         }
     }
+}
+
+/// Settings of the calibration and the Stokes solve (`[calibration]` in the settings file;
+/// used by [`crate::calibration`], kept here with the rest of the settings).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct CalibrationParams {
+    /// How q, u are obtained from the per-orientation F (default `auto`).
+    pub stokes_method: StokesMethod,
+    /// Ignore the night's standards and any calibration (q, u from the plain solve;
+    /// 2-orientation targets are flagged `uncalibrated`).
+    pub no_calibration: bool,
+    /// A standards table (TOML) adding to or overriding the built-in one by name and filter
+    /// (`--standards`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub standards: Option<std::path::PathBuf>,
+    /// The calibration products of another night (a directory written by `sofipol calib`,
+    /// or its calibration.json), used instead of this night's standards (`--calib`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub calib_dir: Option<std::path::PathBuf>,
+    /// Neither fit nor remove the telescope's own polarization (`--no-telescope-correction`;
+    /// the components are flagged `telescope_polarization_uncorrected`).
+    pub no_telescope_correction: bool,
+    /// Let components flagged `uncalibrated` pass the P/sigma cut (`--allow-uncalibrated`):
+    /// without it they never do, since their q and u carry the instrument's offset c and
+    /// their angles the profile's zero-point.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub allow_uncalibrated: bool,
 }
 
 /// `Ok` when `ok`, else the error naming `key`, `value` and `allowed`.

@@ -11,7 +11,7 @@
 //!
 //! [`collect`] gathers what the page shows (reads the figures, runs the statistics);
 //! [`html::render`] turns it into the page (pure: the unit tests call it); [`write()`] writes
-//! it atomically. Every text from the catalog is HTML-escaped ([`html::escape`]).
+//! it atomically. Every text from the catalog is HTML-escaped ([`markup::escape`]).
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -24,6 +24,7 @@ use crate::stats::setup;
 
 pub mod flags;
 pub mod html;
+pub mod markup;
 mod sections;
 
 /// Bins of the observed Delta-gamma histogram (as `sofipol stats`' default).
@@ -90,7 +91,7 @@ pub fn collect(
         // `night` names a figure by the sequence id, `demo` and `target` by the object.
         let png = [id, t.object.as_str()]
             .iter()
-            .find_map(|name| read_png_figure(&dir.join(format!("{}.png", crate::night::slug(name)))));
+            .find_map(|name| read_png_figure(&dir.join(format!("{}.png", crate::products::slug(name)))));
         if let Some(png) = png {
             target_figures.insert(id.to_string(), png);
         }

@@ -1,11 +1,11 @@
 //! The calibration and statistics sections of the page.
 use std::fmt::Write as _;
 
-use super::html::{escape, flag_list, fmt, image, pct, status_word};
+use super::markup::{escape, flag_list, fmt, image, pct, status_word};
 use super::StatsSection;
 use crate::calibration::product::FilterCalibration;
 use crate::catalog::{Catalog, Provenance};
-use crate::stats::alignment::format_p;
+use crate::stats::format_p;
 use crate::stats::predictions::source_name;
 
 /// "x ± s" with `d` decimals.

@@ -1,6 +1,7 @@
 //! The page builder: escaping, completeness, number formats, flags in words, degenerate
 //! catalogs, base64 against RFC 4648's vectors.
-use super::html::{escape, render};
+use super::html::render;
+use super::markup::escape;
 use super::*;
 use crate::catalog::{Catalog, Component, Failure, Status, Target};
 use crate::stokes::inversion::{Debias, LinearPolarization};

@@ -8,7 +8,7 @@ use super::kuiper::kuiper_uniform;
 use super::mc::{simulate_samples, Ism, McConfig, McOutput};
 use super::model::AlignmentModel;
 use super::predictions::{broadening_line, describe_errors, predict, predict_convolved, Convolved, ModelComparison};
-use super::{Result, TestOutcome};
+use super::{format_p, Result, TestOutcome};
 
 /// Default significance level of the verdict.
 pub const DEFAULT_SIGNIFICANCE: f64 = 0.05;
@@ -87,15 +87,6 @@ pub struct AlignmentReport {
     pub mc_description: String,
     /// The verdict in plain words.
     pub verdict: String,
-}
-
-/// p-value as text: 4 decimals, or scientific below 1e-4.
-pub fn format_p(p: f64) -> String {
-    if p < 1e-4 {
-        format!("{p:.1e}")
-    } else {
-        format!("{p:.4}")
-    }
 }
 
 /// Run every test on `delta_gamma_deg` (degrees in [0, 90]) and write the verdict.

@@ -21,8 +21,7 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::mc::CHUNK_PAIRS;
-use super::rng::{mix64, Xoshiro256pp};
+use super::rng::{mix64, Xoshiro256pp, CHUNK_PAIRS};
 use crate::catalog::fold_delta_gamma;
 
 /// A binary whose Delta-gamma error is larger than this (deg) is listed as a large error.

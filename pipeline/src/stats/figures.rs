@@ -6,7 +6,8 @@
 //! Pi(alpha) per unit solid angle relative to isotropy (flat = 1), both folded to [0, 90].
 use std::path::Path;
 
-use super::alignment::{format_p, IsmComparison};
+use super::alignment::IsmComparison;
+use super::format_p;
 use super::hist::Histogram;
 use super::mc::{simulate, McConfig, McOutput};
 use super::model::AlignmentModel;

@@ -78,3 +78,12 @@ pub struct TestOutcome {
     /// How the p-value was computed.
     pub method: String,
 }
+
+/// p-value as text: 4 decimals, or scientific below 1e-4.
+pub fn format_p(p: f64) -> String {
+    if p < 1e-4 {
+        format!("{p:.1e}")
+    } else {
+        format!("{p:.4}")
+    }
+}

@@ -3,12 +3,11 @@
 //! [`super::errors::convolve_with_errors`]), and the broadening in words.
 use serde::{Deserialize, Serialize};
 
-use super::alignment::format_p;
 use super::errors::{convolve_with_errors, ErrorSource, SampleErrors};
 use super::hist::Histogram;
 use super::ks::ks_two_sample_against_large;
 use super::mc::McOutput;
-use super::TestOutcome;
+use super::{format_p, TestOutcome};
 
 /// Summary of a predicted Delta gamma and the two-sample KS test of the observed sample
 /// against it.

@@ -12,6 +12,10 @@
 
 pub use crate::numeric::mix64;
 
+/// Pairs per chunk (one RNG stream each) of the Monte Carlo and of the error convolution. Part of the definition of a seeded result:
+/// changing it changes every seeded histogram.
+pub const CHUNK_PAIRS: u64 = 1 << 16;
+
 /// splitmix64: used only to expand a 64-bit seed into a xoshiro state.
 #[derive(Debug, Clone)]
 pub struct SplitMix64 {

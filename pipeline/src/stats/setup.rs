@@ -2,14 +2,12 @@
 //! from the sample (intrinsic P, noise, cut), the models compared with, and the texts of
 //! its figures. `sofipol stats` and the HTML night report (`crate::report`) both call
 //! [`params`] and [`analyse_sample`], so that the two say the same.
-use super::alignment::{
-    analyse, format_p, AlignmentReport, AnalysisParams, DEFAULT_SIGNIFICANCE, DEFAULT_THRESHOLD_DEG,
-};
+use super::alignment::{analyse, AlignmentReport, AnalysisParams, DEFAULT_SIGNIFICANCE, DEFAULT_THRESHOLD_DEG};
 use super::figures::paper_models;
 use super::mc::{McConfig, PIntDist, DEFAULT_BINS, DEFAULT_P_INT, DEFAULT_SEED, PAPER_ISM_LEVELS_PERCENT};
 use super::model::AlignmentModel;
 use super::sample::BinarySample;
-use super::Result;
+use super::{format_p, Result};
 
 /// Default P/sigma cut of the simulated pairs when the Monte Carlo has noise.
 pub const DEFAULT_MC_SNR_CUT: f64 = 3.0;

@@ -16,9 +16,6 @@ use super::propagation::{self, QuCovariance};
 
 /// sigma_P -> sigma_gamma factor: 90/pi = 28.6479 deg per unit sigma_P/P.
 pub const WK_ANGLE_FACTOR_DEG: f64 = 90.0 / std::f64::consts::PI;
-/// Standard deviation of an axial angle uniform on [-90, 90) deg (no information): 90/sqrt(3).
-/// The upper bound of the reported `sigma_gamma_deg`.
-pub const UNIFORM_ANGLE_SIGMA_DEG: f64 = 51.961_524_227_066_32;
 
 /// A weighted combination of per-dither F values.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -33,7 +33,9 @@
 use rand::SeedableRng;
 use rand_distr::{Distribution, StandardNormal};
 
-use super::inversion::UNIFORM_ANGLE_SIGMA_DEG;
+/// Standard deviation of an axial angle uniform on [-90, 90) deg (no information): 90/sqrt(3).
+/// The upper bound of the reported `sigma_gamma_deg`.
+pub const UNIFORM_ANGLE_SIGMA_DEG: f64 = 51.961_524_227_066_32;
 
 /// The covariance of (q, u).
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -34,15 +34,13 @@ mod kernel;
 pub mod p_int;
 pub mod pofi;
 
+pub use super::rng::CHUNK_PAIRS;
 use kernel::Kernel;
 #[cfg(test)]
 pub(crate) use kernel::{delta_gamma_axes, delta_gamma_qu, intrinsic_qu};
 pub use p_int::PIntDist;
 pub use pofi::PofITable;
 
-/// Pairs per chunk (one RNG stream each). Part of the definition of a seeded result:
-/// changing it changes every seeded histogram.
-pub const CHUNK_PAIRS: u64 = 1 << 16;
 /// Default number of pairs (the reference study used 10^7).
 pub const DEFAULT_PAIRS: u64 = 10_000_000;
 /// Most pairs of one run (about 100 CPU-seconds per 10^9 pairs; the reference study used
