@@ -41,6 +41,7 @@ pub mod profile;
 pub mod sky;
 pub mod stack;
 pub mod text;
+pub mod time;
 
 pub use error::{Error, Result};
 pub use frame::{Frame, HistoryRecord, PixelSummary};

@@ -27,6 +27,9 @@ use std::path::Path;
 
 use sofipol_calib::Profile;
 
+pub use crate::catalog::polarimetric_calibration::{
+    Calibration, FilterCalibration, TelescopeCalibration, CALIBRATION_FILE, CALIBRATION_SCHEMA,
+};
 use crate::catalog::{Catalog, Component, StandardResult, Status, Target};
 pub use crate::reduce::params::CalibrationParams;
 use crate::standards::{StandardStar, StandardsTable};
@@ -36,9 +39,8 @@ use crate::stokes::calibration::{
 };
 use crate::stokes::inversion::Debias;
 use crate::stokes::propagation::{self, CAL_THETA0};
-pub use product::{Calibration, FilterCalibration, CALIBRATION_FILE, CALIBRATION_SCHEMA};
 pub use resolve::{orientation_values, resolve_component, P_ABOVE_ONE};
-pub use telescope::{TelescopeCalibration, TELESCOPE_UNCORRECTED};
+pub use telescope::TELESCOPE_UNCORRECTED;
 
 impl Calibration {
     /// Read `calibration.json` from a calibration directory (or a file path).
@@ -521,7 +523,6 @@ pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::Target
     s
 }
 
-pub mod product;
 pub mod setup;
 pub use setup::CalibSetup;
 pub mod residuals;

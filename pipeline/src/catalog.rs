@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 use crate::stokes::inversion::Polarization;
 
 pub mod applied;
-pub(crate) mod nullable;
+pub mod polarimetric_calibration;
 pub mod provenance;
 pub use applied::AppliedCalibration;
 pub use provenance::Provenance;
@@ -45,17 +45,29 @@ pub struct Component {
     pub flags: Vec<String>,
     /// Covariance of q and u, measurement and calibration together (absent when q and u
     /// are not constrained).
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub cov_qu: Option<f64>,
     /// Covariance of q and u from the measurement alone (the F errors of this star).
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub cov_qu_stat: Option<f64>,
     /// The dithers left out of the combined F (flagged, clipped or without a value), by
     /// frame, with the reason (absent when every dither was used).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dropped_dithers: Option<Vec<DroppedDither>>,
     /// Mean o+e flux per dither, ADU (NaN when no dither was kept).
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub flux_adu: Option<f64>,
     /// The instrumental offset subtracted from F or fitted (calibration).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -66,7 +78,7 @@ pub struct Component {
     #[serde(
         default,
         skip_serializing_if = "Option::is_none",
-        deserialize_with = "nullable::pair"
+        deserialize_with = "crate::nullable::pair"
     )]
     pub offset_gradient: Option<[f64; 2]>,
     /// F combined over the dithers of each orientation: what the calibration re-solves
@@ -74,25 +86,49 @@ pub struct Component {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub orientations: Option<Vec<CombinedF>>,
     /// 68.27 % half-width of the Naghizadeh-Khouei & Clarke angle distribution, deg.
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub sigma_gamma_nkc_deg: Option<f64>,
     /// The angle error from the measurement alone (the F errors of this star, full q-u
     /// covariance), deg.
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub sigma_gamma_stat_deg: Option<f64>,
     /// The angle error from the night's calibration (offset c and zero-point theta0 with
     /// their covariance; common to every target), deg. `sigma_gamma_deg` is the two in
     /// quadrature.
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub sigma_gamma_zero_point_deg: Option<f64>,
     /// Error of q from the measurement alone.
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub sigma_q_stat: Option<f64>,
     /// Error of u from the measurement alone.
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub sigma_u_stat: Option<f64>,
     /// P / sigma_P.
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub snr: Option<f64>,
     /// How q and u were solved (`least_squares`, `free_offset`, `difference`, `ratio`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -103,7 +139,7 @@ pub struct Component {
     #[serde(
         default,
         skip_serializing_if = "Option::is_none",
-        deserialize_with = "nullable::square"
+        deserialize_with = "crate::nullable::square"
     )]
     pub telescope_gradient: Option<[[f64; 2]; 2]>,
     /// The telescope's polarization removed from this star, sky frame (q_tel, u_tel) at the
@@ -111,7 +147,7 @@ pub struct Component {
     #[serde(
         default,
         skip_serializing_if = "Option::is_none",
-        deserialize_with = "nullable::pair"
+        deserialize_with = "crate::nullable::pair"
     )]
     pub telescope_qu: Option<[f64; 2]>,
     /// d(q, u)/d theta0 per deg (absent when no calibration was applied: a rotation,
@@ -119,7 +155,7 @@ pub struct Component {
     #[serde(
         default,
         skip_serializing_if = "Option::is_none",
-        deserialize_with = "nullable::pair"
+        deserialize_with = "crate::nullable::pair"
     )]
     pub zero_point_gradient: Option<[f64; 2]>,
     /// Keys this build does not know (other tools, other versions): kept as read and
@@ -201,13 +237,13 @@ pub struct DroppedDither {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct CombinedF {
     /// Analyzer angle of the orientation (the profile's relation), deg.
-    #[serde(default = "nullable::nan", deserialize_with = "nullable::num")]
+    #[serde(default = "crate::nullable::nan", deserialize_with = "crate::nullable::num")]
     pub analyzer_deg: f64,
     /// Chi-square of the kept dithers about their weighted mean.
-    #[serde(default = "nullable::nan", deserialize_with = "nullable::num")]
+    #[serde(default = "crate::nullable::nan", deserialize_with = "crate::nullable::num")]
     pub chi2: f64,
     /// Weighted mean of F over the kept dithers.
-    #[serde(default = "nullable::nan", deserialize_with = "nullable::num")]
+    #[serde(default = "crate::nullable::nan", deserialize_with = "crate::nullable::num")]
     pub f: f64,
     /// Dithers kept.
     #[serde(default)]
@@ -221,24 +257,32 @@ pub struct CombinedF {
     #[serde(
         default,
         skip_serializing_if = "Option::is_none",
-        deserialize_with = "nullable::pair"
+        deserialize_with = "crate::nullable::pair"
     )]
     pub parallactic_2eta: Option<[f64; 2]>,
     /// Weighted circular mean of the kept dithers' parallactic angles, deg (for reading).
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub parallactic_deg: Option<f64>,
     /// Rotator angle, deg: not written by sofipol; when a catalog has it, the calibration
     /// takes it instead of inverting `analyzer_deg` with the profile.
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub posang_deg: Option<f64>,
     /// Reported error of `f` (the propagated one, inflated when the scatter is significantly larger).
-    #[serde(default = "nullable::nan", deserialize_with = "nullable::num")]
+    #[serde(default = "crate::nullable::nan", deserialize_with = "crate::nullable::num")]
     pub sigma_f: f64,
     /// Error of `f` propagated from the photometry.
-    #[serde(default = "nullable::nan", deserialize_with = "nullable::num")]
+    #[serde(default = "crate::nullable::nan", deserialize_with = "crate::nullable::num")]
     pub sigma_f_propagated: f64,
     /// Error of `f` from the dither-to-dither scatter.
-    #[serde(default = "nullable::nan", deserialize_with = "nullable::num")]
+    #[serde(default = "crate::nullable::nan", deserialize_with = "crate::nullable::num")]
     pub sigma_f_scatter: f64,
 }
 
@@ -246,10 +290,10 @@ pub struct CombinedF {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct InstrumentalOffset {
     /// Offset c of F.
-    #[serde(deserialize_with = "nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub c: f64,
     /// Its error.
-    #[serde(deserialize_with = "nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub sigma_c: f64,
     /// `calibration` (from standards) or `fitted` (free-offset solve).
     pub source: String,
@@ -292,7 +336,11 @@ pub struct Target {
     /// 1-sigma error of `delta_gamma_deg` (delta method): both stars' measurement
     /// covariances and the part of the offset c that does not cancel; the angle zero-point
     /// theta0 cancels and is not in it.
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub sigma_delta_gamma_deg: Option<f64>,
     /// Central 68.27 % interval of the folded Delta-gamma [low, high], deg, from Monte Carlo
     /// draws of the same covariance: the one to use at low S/N, where the fold makes the
@@ -300,24 +348,32 @@ pub struct Target {
     #[serde(
         default,
         skip_serializing_if = "Option::is_none",
-        deserialize_with = "nullable::pair"
+        deserialize_with = "crate::nullable::pair"
     )]
     pub delta_gamma_interval_deg: Option<[f64; 2]>,
     /// Median aperture radius, px.
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub aperture_radius_px: Option<f64>,
     /// Pixels masked (calibration + detected).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub bad_pixels_masked: Option<usize>,
     /// Declination of the pointing, deg: mean `DEC` of the sequence's frames (absent when
     /// the frames lack it).
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub dec_deg: Option<f64>,
     /// e-o beam offset measured from the data, [dx, dy] px.
     #[serde(
         default,
         skip_serializing_if = "Option::is_none",
-        deserialize_with = "nullable::pair"
+        deserialize_with = "crate::nullable::pair"
     )]
     pub eo_offset_px: Option<[f64; 2]>,
     /// Filter.
@@ -330,37 +386,57 @@ pub struct Target {
     #[serde(
         default,
         skip_serializing_if = "Option::is_none",
-        deserialize_with = "nullable::present"
+        deserialize_with = "crate::nullable::present"
     )]
     pub flat: Option<Option<Vec<String>>>,
     /// Median seeing FWHM, px.
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub fwhm_px: Option<f64>,
     /// Every frame of the sequence.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub input_files: Option<Vec<String>>,
     /// Mean MJD-OBS of the sequence's frames, d (absent when the frames lack it).
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub mjd_mean: Option<f64>,
     /// Rotator angles used, deg.
     #[serde(
         default,
         skip_serializing_if = "Option::is_none",
-        deserialize_with = "nullable::list"
+        deserialize_with = "crate::nullable::list"
     )]
     pub orientations_deg: Option<Vec<f64>>,
     /// Position angle of B from A found, deg east of north.
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub pa_deg: Option<f64>,
     /// How fluxes were measured: `aperture` or `psf_fit`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub photometry: Option<String>,
     /// Right ascension of the pointing, deg in [0, 360): circular mean of `RA` over the
     /// sequence's frames (absent when the frames lack it).
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub ra_deg: Option<f64>,
     /// Separation of B from A found, arcsec.
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub separation_arcsec: Option<f64>,
     /// Sequence id, `object@TPL START`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -518,7 +594,11 @@ pub struct StandardResult {
     pub residual_gamma_sigma: Option<f64>,
     /// chi^2 of the measured (q, u) against 0 with their statistical covariance plus the
     /// table's sigma_p^2/2 in each, 2 dof (unpolarized standards).
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub residual_qu_chi2: Option<f64>,
     /// What the calibration used it for: "offset", "angles".
     #[serde(default)]
@@ -527,13 +607,25 @@ pub struct StandardResult {
     #[serde(default)]
     pub flags: Vec<String>,
     /// Right ascension of the pointing, deg (as [`Target::ra_deg`]).
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub ra_deg: Option<f64>,
     /// Declination of the pointing, deg (as [`Target::dec_deg`]).
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub dec_deg: Option<f64>,
     /// Mean MJD-OBS of the sequence's frames, d (as [`Target::mjd_mean`]).
-    #[serde(default, skip_serializing_if = "Option::is_none", deserialize_with = "nullable::opt")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
     pub mjd_mean: Option<f64>,
     /// The sequence's frames (as [`Target::input_files`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -33,6 +33,7 @@ pub mod input;
 pub mod io;
 pub mod live;
 pub mod night;
+pub(crate) mod nullable;
 pub mod numeric;
 pub mod photometry;
 pub mod plots;

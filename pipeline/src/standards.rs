@@ -24,16 +24,16 @@ pub struct StandardStar {
     /// Filter the values are for ("*": any).
     pub filter: String,
     /// Degree of linear polarization (fraction, sky frame); 0 for unpolarized standards.
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub p: f64,
     /// 1-sigma error of p.
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub sigma_p: f64,
     /// Polarization angle, degrees east of north (ignored when p = 0).
-    #[serde(default, deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(default, deserialize_with = "crate::nullable::num")]
     pub gamma_deg: f64,
     /// 1-sigma error of the angle, deg.
-    #[serde(default = "default_sigma_gamma", deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(default = "default_sigma_gamma", deserialize_with = "crate::nullable::num")]
     pub sigma_gamma_deg: f64,
     /// Band the values were measured in (or how they were derived).
     #[serde(default)]

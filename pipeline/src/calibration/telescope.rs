@@ -12,7 +12,7 @@
 //! which is subtracted from F before any Stokes method (least squares, free offset,
 //! difference, ratio). The calibration's (a, b) come from the standards
 //! ([`crate::stokes::calibration::joint`]).
-use serde::{Deserialize, Serialize};
+use crate::catalog::polarimetric_calibration::TelescopeCalibration;
 
 use crate::stokes::calibration::OrientationF;
 use crate::stokes::model::{Polarization, TelescopePolarization};
@@ -20,31 +20,6 @@ use crate::stokes::propagation::{self, CalibrationCovariance, QuCovariance, CAL_
 
 /// The component flag of a value from which the telescope's polarization was not removed.
 pub const TELESCOPE_UNCORRECTED: &str = "telescope_polarization_uncorrected";
-
-/// The telescope's polarization of one filter, as measured from the night's standards.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct TelescopeCalibration {
-    /// p_tel, fraction.
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
-    pub p_tel: f64,
-    /// Its 1-sigma error.
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
-    pub sigma_p_tel: f64,
-    /// psi_tel, deg in [0, 180): the angle of the telescope's polarization from the vertical.
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
-    pub psi_tel_deg: f64,
-    /// Its 1-sigma error, deg.
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
-    pub sigma_psi_tel_deg: f64,
-    /// `a = p_tel cos 2psi_tel`: the fitted parameter (with `b`; their covariance is in the
-    /// filter's `covariance`).
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
-    pub a: f64,
-    /// `b = p_tel sin 2psi_tel`.
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
-    pub b: f64,
-}
 
 impl TelescopeCalibration {
     /// From the fitted (a, b) and the calibration's covariance.

@@ -4,7 +4,7 @@
 use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
 
-use crate::calibration::product::Calibration;
+use super::polarimetric_calibration::Calibration;
 
 /// What a catalog records of its calibration (docs/catalog-schema.md).
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -14,7 +14,7 @@ pub struct AppliedCalibration {
     #[serde(
         default,
         skip_serializing_if = "Option::is_none",
-        deserialize_with = "super::nullable::present"
+        deserialize_with = "crate::nullable::present"
     )]
     pub calibration: Option<Option<Recorded>>,
     /// A catalog merged from catalogs calibrated apart: each one's calibration.

@@ -190,7 +190,7 @@ impl Provenance {
             .unwrap_or(0.0);
         Provenance {
             command_line: Some(crate::build_info::command_line()),
-            created_utc: Some(crate::sim::effects::iso_from_mjd(40587.0 + now / 86400.0, false)),
+            created_utc: Some(sofipol_calib::time::iso_from_mjd(40587.0 + now / 86400.0, false)),
             ..Provenance::build()
         }
     }

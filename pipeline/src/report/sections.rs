@@ -3,7 +3,7 @@ use std::fmt::Write as _;
 
 use super::markup::{escape, flag_list, fmt, image, pct, status_word};
 use super::StatsSection;
-use crate::calibration::product::FilterCalibration;
+use crate::catalog::polarimetric_calibration::FilterCalibration;
 use crate::catalog::{Catalog, Provenance};
 use crate::stats::format_p;
 use crate::stats::predictions::source_name;

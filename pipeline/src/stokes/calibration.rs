@@ -115,10 +115,10 @@ pub struct OrientationF {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Offset {
     /// c.
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub c: f64,
     /// 1-sigma error of c.
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub sigma_c: f64,
 }
 
@@ -473,10 +473,10 @@ impl StandardObservation {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct AngleCalibration {
     /// theta0, deg in [0, 180).
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub theta0_deg: f64,
     /// Its 1-sigma error, deg.
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub sigma_theta0_deg: f64,
     /// Image parity s (+1 or -1).
     pub parity: i32,

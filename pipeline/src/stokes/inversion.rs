@@ -229,34 +229,34 @@ pub fn debias(p: f64, sigma_p: f64, how: Debias) -> f64 {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Polarization {
     /// Normalised Stokes q (sky frame).
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub q: f64,
     /// Normalised Stokes u (sky frame).
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub u: f64,
     /// 1-sigma error of q.
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub sigma_q: f64,
     /// 1-sigma error of u.
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub sigma_u: f64,
     /// Degree of linear polarization P_l = hypot(q, u) (not debiased).
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub p: f64,
     /// 1-sigma error of P.
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub sigma_p: f64,
     /// Debiased P (Wardle & Kronberg 1974 unless `debias` says otherwise).
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub p_debiased: f64,
     /// Polarization angle gamma, degrees east of north, in [0, 180).
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub gamma_deg: f64,
     /// 1-sigma error of gamma, deg: the tangential error over 2P from the full q-u
     /// covariance, (90/pi) sqrt(u^2 Vq + q^2 Vu - 2 q u C) / P^2 (Wardle & Kronberg's
     /// 28.65 deg sigma_P/P when the errors are equal and uncorrelated), at most 90/sqrt(3) =
     /// 51.96 deg (the standard deviation of a uniform angle; reached at S/N below ~0.55).
-    #[serde(deserialize_with = "crate::catalog::nullable::num")]
+    #[serde(deserialize_with = "crate::nullable::num")]
     pub sigma_gamma_deg: f64,
 }
 

@@ -1,13 +1,38 @@
-//! The calibration products of a night as `calibration.json` holds them (and a catalog's
+//! The polarimetric calibration of a night as `calibration.json` holds it (and a catalog's
 //! `calibration`): per filter the offset c, the angle zero-point and parity, the
-//! telescope's polarization and their covariance. Only types: measuring them is
-//! `calibration.rs`, applying them `resolve.rs`.
+//! telescope's polarization and their covariance. Only types, here beside the catalog
+//! that embeds them: measuring them is the `calibration` module, applying them its
+//! `resolve.rs`. (The detector's signature, dark and flat, is the `calib` crate.)
 use serde::{Deserialize, Serialize};
 
-use super::telescope::TelescopeCalibration;
-use crate::catalog::Provenance;
+use super::Provenance;
 use crate::stokes::calibration::{AngleCalibration, Offset};
 use crate::stokes::propagation::{CalibrationCovariance, CAL_C, CAL_THETA0};
+
+/// The telescope's polarization of one filter, as measured from the night's standards.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TelescopeCalibration {
+    /// p_tel, fraction.
+    #[serde(deserialize_with = "crate::nullable::num")]
+    pub p_tel: f64,
+    /// Its 1-sigma error.
+    #[serde(deserialize_with = "crate::nullable::num")]
+    pub sigma_p_tel: f64,
+    /// psi_tel, deg in [0, 180): the angle of the telescope's polarization from the vertical.
+    #[serde(deserialize_with = "crate::nullable::num")]
+    pub psi_tel_deg: f64,
+    /// Its 1-sigma error, deg.
+    #[serde(deserialize_with = "crate::nullable::num")]
+    pub sigma_psi_tel_deg: f64,
+    /// `a = p_tel cos 2psi_tel`: the fitted parameter (with `b`; their covariance is in the
+    /// filter's `covariance`).
+    #[serde(deserialize_with = "crate::nullable::num")]
+    pub a: f64,
+    /// `b = p_tel sin 2psi_tel`.
+    #[serde(deserialize_with = "crate::nullable::num")]
+    pub b: f64,
+}
 
 /// File name of the calibration product in a calibration directory.
 pub const CALIBRATION_FILE: &str = "calibration.json";
@@ -32,7 +57,7 @@ pub struct FilterCalibration {
     #[serde(
         default,
         skip_serializing_if = "Option::is_none",
-        deserialize_with = "crate::catalog::nullable::opt"
+        deserialize_with = "crate::nullable::opt"
     )]
     pub cov_c_theta0_deg: Option<f64>,
     /// Why the standards could not separate c from theta0 (the angles are then the
@@ -53,7 +78,7 @@ pub struct FilterCalibration {
     #[serde(
         default,
         skip_serializing_if = "Option::is_none",
-        deserialize_with = "crate::catalog::nullable::square"
+        deserialize_with = "crate::nullable::square"
     )]
     pub covariance: Option<CalibrationCovariance>,
     /// The names of `covariance`'s rows: `["c", "theta0_deg", "tel_a", "tel_b"]`.
