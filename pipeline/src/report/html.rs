@@ -2,7 +2,8 @@
 //! figures, calibration and statistics (`sections.rs`), provenance, inline script.
 use std::fmt::Write as _;
 
-use super::{base64, flags, ReportInput};
+use super::{base64, ReportInput};
+use crate::catalog::Flag;
 use crate::catalog::{Catalog, Component, Status, Target};
 
 const CSS: &str = include_str!("page.css");
@@ -239,7 +240,7 @@ fn target_row(h: &mut String, t: &Target, c: Option<&Component>) {
     num_cell(h, fmt(t.delta_gamma_deg, 1), t.delta_gamma_deg);
     num_cell(h, fmt(t.sigma_delta_gamma_deg, 1), t.sigma_delta_gamma_deg);
     let _ = write!(h, "<td>{}</td><td>", escape(t.filter.as_deref().unwrap_or("")));
-    let mut all: Vec<&String> = t.target_flags().iter().collect();
+    let mut all: Vec<&Flag> = t.target_flags().iter().collect();
     if let Some(c) = c {
         all.extend(&c.flags);
     }
@@ -250,26 +251,26 @@ fn target_row(h: &mut String, t: &Target, c: Option<&Component>) {
     h.push_str("</td></tr>\n");
 }
 
-/// The flags as a list: each in words, with the flag itself as the tooltip; an unknown flag
-/// as it is.
-pub fn flag_list(h: &mut String, all: &[&String]) {
+/// The flags as a list: each in words ([`Flag::explain`]), with the flag itself as the
+/// tooltip; an unknown flag as it is.
+pub fn flag_list(h: &mut String, all: &[&Flag]) {
     if all.is_empty() {
         return;
     }
     h.push_str("<ul class=\"flags\">");
     for f in all {
-        match flags::explain(f) {
+        match f.explain() {
             Some(words) => {
                 let _ = write!(
                     h,
                     "<li title=\"{}\"><code>{}</code>: {}</li>",
-                    escape(f),
-                    escape(flags::flag_name(f)),
+                    escape(&f.to_string()),
+                    escape(&f.label()),
                     escape(&words)
                 );
             }
             None => {
-                let _ = write!(h, "<li><code>{}</code></li>", escape(f));
+                let _ = write!(h, "<li><code>{}</code></li>", escape(&f.to_string()));
             }
         }
     }
