@@ -420,7 +420,7 @@ fn score_target(
                     c.sigma_q,
                     c.flux_adu.unwrap_or(f64::NAN),
                     tc.flux,
-                    c.flags.join(",")
+                    sofipol_pipeline::catalog::flags::join(&c.flags, ",")
                 )
             })
             .collect();

@@ -19,8 +19,8 @@
 //! single night's rms spreads by ~0.2 (see [`NIGHTS`]).
 use rand::{RngExt, SeedableRng};
 use sofipol_calib::Profile;
-use sofipol_pipeline::calibration::{CalibSetup, Calibration, CalibrationParams, TELESCOPE_UNCORRECTED};
-use sofipol_pipeline::catalog::{Catalog, Component, Target};
+use sofipol_pipeline::calibration::{CalibSetup, Calibration, CalibrationParams};
+use sofipol_pipeline::catalog::{Catalog, Component, FlagCode, Target};
 use sofipol_pipeline::night::{self, NightOutput, NightSetup, RunOptions};
 use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sim::{ComponentTruth, Scene, Simulator, Truth};
@@ -247,14 +247,17 @@ fn score(cat: &Catalog, truth: &Truth) -> Score {
     let mut s = Score::default();
     for (t, comps) in matched(cat, truth) {
         for (c, tc) in t.components.iter().zip(&comps) {
-            let refused = c.flags.iter().any(|f| f == "saturated" || f.starts_with("ab_identity"));
+            let refused = c
+                .flags
+                .iter()
+                .any(|f| f.is(FlagCode::Saturated) || f.code.name().starts_with("ab_identity"));
             if refused || !(c.q.is_finite() && c.sigma_q > 0.0 && c.sigma_u > 0.0) {
                 continue;
             }
             s.pulls.push((c.q - tc.q) / c.sigma_q);
             s.pulls.push((c.u - tc.u) / c.sigma_u);
             s.components += 1;
-            s.flagged += usize::from(c.flags.iter().any(|f| f == TELESCOPE_UNCORRECTED));
+            s.flagged += usize::from(c.flags.iter().any(|f| f.is(FlagCode::TelescopeUncorrected)));
         }
         if let (Some(d), Some(sd)) = (t.delta_gamma_deg, t.sigma_delta_gamma_deg) {
             let truth = fold(comps[0].gamma_deg - comps[1].gamma_deg);
@@ -406,9 +409,14 @@ fn standards_at_one_parallactic_angle_leave_every_component_flagged() {
     assert!(why.contains("span"), "{why}");
     let comps: Vec<_> = out.catalog.targets.iter().flat_map(|t| &t.components).collect();
     assert!(!comps.is_empty());
-    assert!(comps.iter().all(|c| c.flags.iter().any(|f| f == TELESCOPE_UNCORRECTED)));
+    assert!(comps
+        .iter()
+        .all(|c| c.flags.iter().any(|f| f.is(FlagCode::TelescopeUncorrected))));
     assert!(
-        out.summary.lines.iter().any(|l| l.contains(TELESCOPE_UNCORRECTED)),
+        out.summary
+            .lines
+            .iter()
+            .any(|l| l.contains(FlagCode::TelescopeUncorrected.name())),
         "{:?}",
         out.summary.lines
     );
@@ -511,7 +519,9 @@ fn delta_gamma_parts(nights: std::ops::RangeInclusive<u64>, p_tel: f64, correct:
         let _ = std::fs::remove_dir_all(&dir);
         for (t, comps) in matched(&cat, &truth) {
             let usable = |c: &Component| {
-                !c.flags.iter().any(|f| f == "saturated" || f.starts_with("ab_identity"))
+                !c.flags
+                    .iter()
+                    .any(|f| f.is(FlagCode::Saturated) || f.code.name().starts_with("ab_identity"))
                     && c.q.is_finite()
                     && c.sigma_q_stat.is_some()
                     && c.sigma_u_stat.is_some()

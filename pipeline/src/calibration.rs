@@ -27,20 +27,20 @@ use std::path::Path;
 
 use sofipol_calib::Profile;
 
+use crate::catalog::flags::has;
 pub use crate::catalog::polarimetric_calibration::{
     Calibration, FilterCalibration, TelescopeCalibration, CALIBRATION_FILE, CALIBRATION_SCHEMA,
 };
-use crate::catalog::{Catalog, Component, StandardResult, Status, Target};
+use crate::catalog::{Catalog, Component, Flag, FlagCode, StandardResult, Status, Target};
 pub use crate::reduce::params::CalibrationParams;
 use crate::standards::{StandardStar, StandardsTable};
 use crate::stokes::calibration::{
     joint::{fit_joint_with, JointOptions},
-    OrientationF, StandardObservation, STOKES_METHOD_FAILED,
+    OrientationF, StandardObservation,
 };
 use crate::stokes::inversion::Debias;
 use crate::stokes::propagation::{self, CAL_THETA0};
-pub use resolve::{orientation_values, resolve_component, P_ABOVE_ONE};
-pub use telescope::TELESCOPE_UNCORRECTED;
+pub use resolve::{orientation_values, resolve_component};
 
 impl Calibration {
     /// Read `calibration.json` from a calibration directory (or a file path).
@@ -84,12 +84,12 @@ impl Calibration {
     }
 }
 
-fn table_entry_for(t: &Target, table: &StandardsTable) -> (Option<StandardStar>, Vec<String>) {
+fn table_entry_for(t: &Target, table: &StandardsTable) -> (Option<StandardStar>, Vec<Flag>) {
     let filter = t.filter.as_deref().unwrap_or("");
     match table.find(&t.object, filter) {
         Some(e) => (Some(e.clone()), vec![]),
-        None if table.knows(&t.object) => (None, vec![format!("no_table_values_for_filter: {filter}")]),
-        None => (None, vec!["not_in_standards_table".into()]),
+        None if table.knows(&t.object) => (None, vec![Flag::with_detail(FlagCode::NoTableValuesForFilter, filter)]),
+        None => (None, vec![Flag::new(FlagCode::NotInStandardsTable)]),
     }
 }
 
@@ -222,19 +222,13 @@ pub struct CalibrationSummary {
     pub n_telescope_uncorrected: usize,
 }
 
-/// The component flag of a filter without a polarized standard: theta0 is the profile's,
-/// with the profile's uncertainty in the angle's error.
-pub const ZERO_POINT_FROM_PROFILE: &str = "zero_point_from_profile";
-
-/// The component flag of a 2-orientation measurement without an instrumental calibration.
-pub const UNCALIBRATED: &str = "uncalibrated";
-
-/// Whether component `c` is flagged [`UNCALIBRATED`].
+/// Whether component `c` is flagged [`FlagCode::Uncalibrated`]: a 2-orientation
+/// measurement without an instrumental calibration.
 pub fn is_uncalibrated(c: &Component) -> bool {
-    c.flags.iter().any(|f| f == UNCALIBRATED)
+    has(&c.flags, FlagCode::Uncalibrated)
 }
 
-/// The components of `cat`'s targets flagged [`UNCALIBRATED`].
+/// The components of `cat`'s targets flagged [`FlagCode::Uncalibrated`].
 pub fn uncalibrated_components(cat: &Catalog) -> usize {
     cat.targets
         .iter()
@@ -243,16 +237,13 @@ pub fn uncalibrated_components(cat: &Catalog) -> usize {
         .count()
 }
 
-/// The component flag of a filter whose standards could not separate c from theta0.
-pub const CALIBRATION_INCOMPLETE: &str = "calibration_incomplete";
-
 /// Flag `calibration_incomplete` when the filter's calibration is incomplete (its angles
 /// are the profile's; `FilterCalibration::incomplete` says why). Returns whether flagged.
 fn flag_incomplete(c: &mut Component, cal: Option<&FilterCalibration>) -> bool {
-    c.flags.retain(|f| f != CALIBRATION_INCOMPLETE);
+    c.flags.retain(|f| !f.is(FlagCode::CalibrationIncomplete));
     let incomplete = cal.is_some_and(|f| f.incomplete.is_some());
     if incomplete {
-        c.flags.push(CALIBRATION_INCOMPLETE.into());
+        c.flags.push(Flag::new(FlagCode::CalibrationIncomplete));
     }
     incomplete
 }
@@ -261,13 +252,13 @@ fn flag_incomplete(c: &mut Component, cal: Option<&FilterCalibration>) -> bool {
 /// and count a Stokes method that could not apply, for the run summary.
 fn note_calibration_state(c: &mut Component, cal: Option<&FilterCalibration>, summary: &mut CalibrationSummary) {
     summary.n_incomplete += usize::from(flag_incomplete(c, cal));
-    c.flags.retain(|f| f != ZERO_POINT_FROM_PROFILE);
+    c.flags.retain(|f| !f.is(FlagCode::ZeroPointFromProfile));
     if cal.is_some_and(|f| f.zero_point_from_profile.is_some()) && c.q.is_finite() {
-        c.flags.push(ZERO_POINT_FROM_PROFILE.into());
+        c.flags.push(Flag::new(FlagCode::ZeroPointFromProfile));
         summary.n_zero_point_from_profile += 1;
     }
-    summary.n_method_failed += usize::from(c.flags.iter().any(|f| f.starts_with(STOKES_METHOD_FAILED)));
-    summary.n_telescope_uncorrected += usize::from(c.flags.iter().any(|f| f == TELESCOPE_UNCORRECTED));
+    summary.n_method_failed += usize::from(has(&c.flags, FlagCode::StokesMethodFailed));
+    summary.n_telescope_uncorrected += usize::from(has(&c.flags, FlagCode::TelescopeUncorrected));
 }
 
 /// Where a calibration came from.
@@ -343,12 +334,12 @@ pub fn calibrate_catalog(
         let fc = cal.as_ref().and_then(|c| c.for_filter(&filter));
         let mut measured = t.components.first().cloned();
         if let Some(c) = measured.as_mut() {
-            c.flags.retain(|f| f != "companion_not_found");
+            c.flags.retain(|f| !f.is(FlagCode::CompanionNotFound));
             resolve_component(c, profile, fc, method, debias, cut_snr);
             flag_incomplete(c, fc);
         }
         if let Some(e) = t.error.as_ref().filter(|_| t.status == Status::Failed) {
-            flags.push(format!("failed: {e}"));
+            flags.push(Flag::with_detail(FlagCode::Failed, e.as_str()));
         }
         let res = match (&entry, &measured) {
             (Some(e), Some(m)) if m.p.is_finite() => residuals::table_residuals(m, e, profile, fc),
@@ -433,15 +424,19 @@ pub fn calibrate_catalog(
             if let Some(why) = &f.incomplete {
                 summary.lines.push(format!(
                     "calibration ({origin}) {} incomplete: {why}; angle zero-point from the profile, \
-                     its components flagged '{CALIBRATION_INCOMPLETE}' ({} in all filters)",
-                    f.filter, summary.n_incomplete
+                     its components flagged '{}' ({} in all filters)",
+                    f.filter,
+                    FlagCode::CalibrationIncomplete.name(),
+                    summary.n_incomplete
                 ));
             }
             if let Some(why) = &f.zero_point_from_profile {
                 summary.lines.push(format!(
                     "calibration ({origin}) {}: {why}, carried in every angle's error (not in Delta-gamma); \
-                     its components flagged '{ZERO_POINT_FROM_PROFILE}'. A polarized standard in {} measures it",
-                    f.filter, f.filter
+                     its components flagged '{}'. A polarized standard in {} measures it",
+                    f.filter,
+                    FlagCode::ZeroPointFromProfile.name(),
+                    f.filter
                 ));
             }
         }
@@ -492,11 +487,12 @@ pub fn calibrate_catalog(
     }
     if summary.n_telescope_uncorrected > 0 {
         summary.lines.push(format!(
-            "{} component(s) flagged '{TELESCOPE_UNCORRECTED}': the telescope's own polarization \
+            "{} component(s) flagged '{}': the telescope's own polarization \
              (tertiary mirror, of order 0.5 % in Ks, turning with the parallactic angle) is in their q and u; \
              it is the same vector for both stars of a binary and pulls their angles together. Observe \
              unpolarized standards at parallactic angles far apart, or use --calib CALDIR from a night that did.",
-            summary.n_telescope_uncorrected
+            summary.n_telescope_uncorrected,
+            FlagCode::TelescopeUncorrected.name()
         ));
     }
     (cal, summary)

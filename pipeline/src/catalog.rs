@@ -5,9 +5,11 @@ use serde::{Deserialize, Serialize};
 use crate::stokes::inversion::Polarization;
 
 pub mod applied;
+pub mod flags;
 pub mod polarimetric_calibration;
 pub mod provenance;
 pub use applied::AppliedCalibration;
+pub use flags::{Flag, FlagCode};
 pub use provenance::Provenance;
 
 /// Version of the catalog schema written by this build.
@@ -40,9 +42,9 @@ pub struct Component {
     pub pol: Polarization,
     /// P / sigma_P > 3.
     pub passes_cut: bool,
-    /// Per-source flags (e.g. "truncated", "bad_pixels", "saturated", "companion_overlap", "low_snr").
+    /// Per-source flags (e.g. `truncated`, `bad_pixels`, `saturated`, `companion_overlap`, `low_snr`).
     #[serde(default)]
-    pub flags: Vec<String>,
+    pub flags: Vec<Flag>,
     /// Covariance of q and u, measurement and calibration together (absent when q and u
     /// are not constrained).
     #[serde(
@@ -381,7 +383,7 @@ pub struct Target {
     pub filter: Option<String>,
     /// Target-level flags (docs/catalog-schema.md).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub flags: Option<Vec<String>>,
+    pub flags: Option<Vec<Flag>>,
     /// The flat of each orientation; `Some(None)` (JSON null) when no flat was applied.
     #[serde(
         default,
@@ -526,7 +528,7 @@ impl Target {
     }
 
     /// The target-level flags (none when the catalog has no `flags`).
-    pub fn target_flags(&self) -> &[String] {
+    pub fn target_flags(&self) -> &[Flag] {
         self.flags.as_deref().unwrap_or_default()
     }
 }
@@ -603,9 +605,9 @@ pub struct StandardResult {
     /// What the calibration used it for: "offset", "angles".
     #[serde(default)]
     pub used_for: Vec<String>,
-    /// Flags ("not_in_standards_table", "no_table_values_for_filter", ...).
+    /// Flags (`not_in_standards_table`, `no_table_values_for_filter`, ...).
     #[serde(default)]
-    pub flags: Vec<String>,
+    pub flags: Vec<Flag>,
     /// Right ascension of the pointing, deg (as [`Target::ra_deg`]).
     #[serde(
         default,

@@ -10,6 +10,7 @@
 //! temporary file in the same directory and renamed.
 use std::path::{Path, PathBuf};
 
+use crate::catalog::flags::join;
 use crate::catalog::{Catalog, Component, Status};
 
 /// Output format.
@@ -244,8 +245,8 @@ fn rows(cat: &Catalog) -> (Vec<Row>, usize, usize) {
                 component: c.name.clone(),
                 num: row_values(c, seq, dg),
                 passes_cut: c.passes_cut,
-                flags: c.flags.join(";"),
-                target_flags: t.target_flags().join(";"),
+                flags: join(&c.flags, ";"),
+                target_flags: join(t.target_flags(), ";"),
             });
         }
     }
@@ -264,8 +265,8 @@ fn rows(cat: &Catalog) -> (Vec<Row>, usize, usize) {
             component: String::new(),
             num: row_values(c, [s.ra_deg, s.dec_deg, s.mjd_mean, None, None], [None; 4]),
             passes_cut: c.passes_cut,
-            flags: c.flags.join(";"),
-            target_flags: s.flags.join(";"),
+            flags: join(&c.flags, ";"),
+            target_flags: join(&s.flags, ";"),
         });
     }
     (rows, without, unmeasured)

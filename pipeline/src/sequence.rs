@@ -6,6 +6,8 @@ use serde::Serialize;
 use sofipol_calib::classify::ScienceInfo;
 use sofipol_calib::Profile;
 
+use crate::catalog::{Flag, FlagCode};
+
 /// Dithers whose header offsets all lie within this distance (pixels) of the first are
 /// "at one position" ([`Sequence::stationary_orientations`]); real jitter steps are tens
 /// of pixels (SOFI: 86.8).
@@ -89,31 +91,36 @@ impl Sequence {
     /// Things that degrade the sequence, in words (empty when complete): an orientation
     /// with fewer than 2 dithers, unequal dither counts, fewer exposures than TPL NEXP,
     /// mixed filters, dithers all at one position.
-    pub fn problems(&self) -> Vec<String> {
+    pub fn problems(&self) -> Vec<Flag> {
         let mut out = Vec::new();
         for pa in self.stationary_orientations() {
-            out.push(format!(
-                "all dithers at POSANG {pa} deg at one position (SEQ CUMOFFSET equal): the sky median contains the star"
+            out.push(Flag::with_detail(
+                FlagCode::StationaryDithers,
+                format!("{pa} deg at one position (SEQ CUMOFFSET equal): the sky median contains the star"),
             ));
         }
         let counts: Vec<usize> = self.orientations.iter().map(|o| o.exposures.len()).collect();
         for o in &self.orientations {
             if o.exposures.len() < 2 {
-                out.push(format!(
-                    "only {} dither at POSANG {} deg: cannot sky-subtract from the data itself",
-                    o.exposures.len(),
-                    o.posang_deg
+                out.push(Flag::with_detail(
+                    FlagCode::OneDither,
+                    format!(
+                        "{} dither at POSANG {} deg: cannot sky-subtract from the data itself",
+                        o.exposures.len(),
+                        o.posang_deg
+                    ),
                 ));
             }
         }
         if counts.iter().any(|&c| c != counts[0]) {
-            out.push(format!("unequal dithers per orientation: {counts:?}"));
+            out.push(Flag::with_detail(FlagCode::UnequalDithers, format!("{counts:?}")));
         }
         let total: usize = counts.iter().sum();
         if let Some(nexp) = self.orientations.iter().flat_map(|o| &o.exposures).find_map(|e| e.nexp) {
             if (total as u32) < nexp {
-                out.push(format!(
-                    "{total} of {nexp} exposures of the template present (TPL NEXP)"
+                out.push(Flag::with_detail(
+                    FlagCode::MissingExposures,
+                    format!("{total} of {nexp}"),
                 ));
             }
         }
@@ -121,12 +128,15 @@ impl Sequence {
         let lo = mjds.iter().copied().fold(f64::INFINITY, f64::min);
         let hi = mjds.iter().copied().fold(f64::NEG_INFINITY, f64::max);
         if hi - lo > MAX_TEMPLATE_DAYS {
-            out.push(format!(
-                "MJD-OBS of the frames spans {:.1} days ({} to {}): one template is observed within hours, \
-                 so some frames' dates are wrong",
-                hi - lo,
-                sofipol_calib::text::short_number(lo),
-                sofipol_calib::text::short_number(hi)
+            out.push(Flag::with_detail(
+                FlagCode::MjdSpread,
+                format!(
+                    "{:.1} days ({} to {}): one template is observed within hours, \
+                     so some frames' dates are wrong",
+                    hi - lo,
+                    sofipol_calib::text::short_number(lo),
+                    sofipol_calib::text::short_number(hi)
+                ),
             ));
         }
         let filters: std::collections::BTreeSet<&str> = self
@@ -135,7 +145,7 @@ impl Sequence {
             .flat_map(|o| o.exposures.iter().map(|e| e.filter.as_str()))
             .collect();
         if filters.len() > 1 {
-            out.push(format!("mixed filters {filters:?}"));
+            out.push(Flag::with_detail(FlagCode::MixedFilters, format!("{filters:?}")));
         }
         out
     }
@@ -246,7 +256,7 @@ mod tests {
         // Within a template's hour: no problem.
         assert!(mk(&[51240.04, 51240.05, 51240.06, 51240.07]).is_empty());
         // 1970, 1999 and 2100 in one template.
-        let p = mk(&[40587.0, 51240.04, 51240.05, 88069.0]).join("; ");
+        let p = crate::catalog::flags::join(&mk(&[40587.0, 51240.04, 51240.05, 88069.0]), "; ");
         assert!(
             p.contains("MJD-OBS") && p.contains("47482.0 days") && p.contains("40587"),
             "{p}"
@@ -272,7 +282,7 @@ mod tests {
         assert_eq!(seqs[0].stationary_orientations(), vec![0.0]);
         let p = seqs[0].problems();
         assert!(
-            p.len() == 1 && p[0].contains("one position") && p[0].contains("POSANG 0"),
+            p.len() == 1 && p[0].to_string().contains("one position") && p[0].to_string().contains("POSANG 0"),
             "{p:?}"
         );
     }
@@ -308,10 +318,7 @@ mod tests {
             .collect();
         assert_eq!(e, vec![1, 2, 3, 4, 5]);
         assert!(seqs[1].problems().is_empty());
-        let p = seqs[0].problems();
-        assert!(
-            p.iter().any(|s| s.contains("unequal")) && p.iter().any(|s| s.contains("9 of 10")),
-            "{p:?}"
-        );
+        let p = crate::catalog::flags::join(&seqs[0].problems(), "; ");
+        assert!(p.contains("unequal") && p.contains("9 of 10"), "{p}");
     }
 }

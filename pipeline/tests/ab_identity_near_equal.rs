@@ -6,8 +6,7 @@
 //! `ab_near_equal_flux` (the flux cannot tell them apart), and a clearly
 //! unequal pair (B/A 0.5) is never flagged.
 use sofipol_calib::Profile;
-use sofipol_pipeline::catalog::Target;
-use sofipol_pipeline::reduce::entry::AB_IDENTITY_UNVERIFIED;
+use sofipol_pipeline::catalog::{Flag, FlagCode, Target};
 use sofipol_pipeline::reduce::run::reduce_loaded;
 use sofipol_pipeline::reduce::{identity, measure_sequence, target_entry, CalibratedOrientation, TargetParams};
 use sofipol_pipeline::sim::{loaded_from_sim, Scene, Simulator};
@@ -109,12 +108,12 @@ fn swapped(t: &Target, true_pa: f64) -> Option<bool> {
 }
 
 fn unverified(t: &Target) -> bool {
-    t.flags.iter().flatten().any(|f| f.starts_with(AB_IDENTITY_UNVERIFIED))
+    t.flags.iter().flatten().any(|f| f.is(FlagCode::AbIdentityUnverified))
 }
 
 /// The flux could not tell the stars apart (the labels follow the geometry).
 fn near_equal(t: &Target) -> bool {
-    t.flags.iter().flatten().any(|f| f.starts_with("ab_near_equal_flux"))
+    t.flags.iter().flatten().any(|f| f.is(FlagCode::AbNearEqualFlux))
 }
 
 /// Over many nights of the near-equal pair, A is always the brighter true star unless the
@@ -146,7 +145,7 @@ fn near_equal_pair_is_never_silently_swapped_over_many_nights() {
             assert!(
                 t.components
                     .iter()
-                    .all(|c| !c.passes_cut && c.flags.iter().any(|f| f == AB_IDENTITY_UNVERIFIED)),
+                    .all(|c| !c.passes_cut && c.flags.iter().any(|f| f.is(FlagCode::AbIdentityUnverified))),
                 "seed {seed}: {:?}",
                 t.components
             );
@@ -163,7 +162,7 @@ fn near_equal_pair_is_never_silently_swapped_over_many_nights() {
 #[test]
 fn clearly_unequal_pair_is_never_flagged() {
     use rayon::prelude::*;
-    let rows: Vec<(u64, Option<bool>, bool, Vec<String>)> = (0..SEEDS)
+    let rows: Vec<(u64, Option<bool>, bool, Vec<Flag>)> = (0..SEEDS)
         .into_par_iter()
         .map(|seed| {
             let (text, pa) = pair_scene(8.3, 0.5, 1000 + seed);
@@ -180,11 +179,11 @@ fn clearly_unequal_pair_is_never_flagged() {
         assert!(!unver, "seed {seed}: flagged: {flags:?}");
         assert_ne!(sw, Some(true), "seed {seed}: swapped: {flags:?}");
         assert!(
-            !flags.iter().any(|f| f.starts_with("ab_relabelled")),
+            !flags.iter().any(|f| f.code.name().starts_with("ab_relabelled")),
             "seed {seed}: {flags:?}"
         );
         assert!(
-            !flags.iter().any(|f| f.starts_with("ab_near_equal_flux")),
+            !flags.iter().any(|f| f.is(FlagCode::AbNearEqualFlux)),
             "seed {seed}: {flags:?}"
         );
     }
@@ -214,7 +213,11 @@ fn fainter_star_labelled_a_at_every_orientation_is_relabelled_by_flux() {
         .collect();
     let mut m = measure_sequence(&orients, &profile, &params.measure).unwrap();
     assert_eq!(m.dithers.len(), 2);
-    assert!(!m.flags.iter().any(|f| f.starts_with("ab_")), "{:?}", m.flags);
+    assert!(
+        !m.flags.iter().any(|f| f.code.name().starts_with("ab_")),
+        "{:?}",
+        m.flags
+    );
     let right = target_entry("t", &orients, &m, &params.measure, &profile.keywords);
     assert_eq!(
         swapped(&right, pa),
@@ -234,7 +237,7 @@ fn fainter_star_labelled_a_at_every_orientation_is_relabelled_by_flux() {
     );
     identity::verify_pair(&mut m, &orients, profile.geometry.pixscale_arcsec);
     assert!(
-        m.flags.iter().any(|f| f.starts_with("ab_relabelled_by_flux")),
+        m.flags.iter().any(|f| f.is(FlagCode::AbRelabelledByFlux)),
         "{:?}",
         m.flags
     );
@@ -262,7 +265,7 @@ fn survey() {
         let (text, pa) = pair_scene(8.3, ratio, seed);
         let t = reduce(&text);
         let flags = t.flags.clone().unwrap_or_default();
-        let unver = flags.iter().any(|f| f.starts_with(AB_IDENTITY_UNVERIFIED));
+        let unver = flags.iter().any(|f| f.is(FlagCode::AbIdentityUnverified));
         let swapped = t.pa_deg.map(|p| { let d = (p - pa).rem_euclid(360.0); d > 90.0 && d < 270.0 });
         let fl: Vec<f64> = t.components.iter().map(|c| c.flux_adu.unwrap_or(f64::NAN)).collect();
         format!("seed {seed} fwhm {:.2} pa {pa:.1} found {:?} swapped {swapped:?} unverified {unver} fluxes {fl:?} flags {flags:?}", t.fwhm_px.unwrap_or(0.0), t.pa_deg)

@@ -10,7 +10,7 @@
 //!   component of the filter is flagged `calibration_incomplete`.
 use sofipol_calib::Profile;
 use sofipol_pipeline::calibration::{calibrate_catalog, standard_params, CalibrationParams, CalibrationSource};
-use sofipol_pipeline::catalog::{Catalog, Target};
+use sofipol_pipeline::catalog::{Catalog, FlagCode, Target};
 use sofipol_pipeline::reduce::run::reduce_loaded;
 use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sim::{loaded_from_sim, Scene, Simulator};
@@ -156,7 +156,7 @@ fn the_standards_geometry_decides_between_a_joint_fit_and_an_incomplete_flagged_
                 !comp
                     .flags
                     .iter()
-                    .any(|x| x == "calibration_incomplete" || x == "uncalibrated"),
+                    .any(|x| x.is(FlagCode::CalibrationIncomplete) || x.is(FlagCode::Uncalibrated)),
                 "{:?}",
                 comp.flags
             );
@@ -176,7 +176,7 @@ fn the_standards_geometry_decides_between_a_joint_fit_and_an_incomplete_flagged_
     for t in &cat.targets {
         for comp in &t.components {
             assert!(
-                comp.flags.iter().any(|x| x == "calibration_incomplete"),
+                comp.flags.iter().any(|x| x.is(FlagCode::CalibrationIncomplete)),
                 "{:?}",
                 comp.flags
             );

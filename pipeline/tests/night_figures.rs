@@ -4,6 +4,7 @@ use std::sync::Mutex;
 
 use sofipol_calib::Profile;
 use sofipol_pipeline::calibration::CalibSetup;
+use sofipol_pipeline::catalog::FlagCode;
 use sofipol_pipeline::night::{run_night, Hooks, NightSetup, RunOptions};
 use sofipol_pipeline::plots::target::{FigureNumbers, TargetFigure};
 use sofipol_pipeline::reduce::TargetParams;
@@ -88,7 +89,11 @@ fn night_figures_show_the_calibrated_catalog() {
             }
             assert_eq!(n.passes_cut, c.passes_cut, "{who}: cut");
             assert_eq!(n.flags, c.flags, "{who}: flags");
-            assert!(!c.flags.iter().any(|f| f == "uncalibrated"), "{who}: {:?}", c.flags);
+            assert!(
+                !c.flags.iter().any(|f| f.is(FlagCode::Uncalibrated)),
+                "{who}: {:?}",
+                c.flags
+            );
             // The fitted F lines: the calibration's analyzer angles and offset, evaluated
             // independently here from the calibration record and the catalog's orientations.
             let offset = c.instrumental_offset.as_ref().expect("offset subtracted").c;

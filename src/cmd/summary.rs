@@ -1,17 +1,18 @@
 //! The human summary shared by `target`, `night` and `demo`.
 use sofipol_calib::text::printable;
-use sofipol_pipeline::catalog::{Catalog, Status};
+use sofipol_pipeline::catalog::{Catalog, Flag, FlagCode, Status};
 
 /// A component flag as the table shows it: `bad_pixels: k of n dithers dropped (...)` as
-/// `bad_pixels(k/n)`, the others as they are.
-fn short_flag(f: &str) -> std::borrow::Cow<'_, str> {
-    let counts = f
-        .strip_prefix("bad_pixels: ")
+/// `bad_pixels(k/n)`, the others as the catalog writes them.
+fn short_flag(f: &Flag) -> String {
+    let counts = Some(f)
+        .filter(|f| f.is(FlagCode::BadPixels))
+        .and_then(|f| f.detail.as_deref())
         .and_then(|d| d.split_once(" dithers dropped"))
         .and_then(|(c, _)| c.split_once(" of "));
     match counts {
-        Some((k, n)) => format!("bad_pixels({k}/{n})").into(),
-        None => f.into(),
+        Some((k, n)) => format!("{}({k}/{n})", FlagCode::BadPixels.name()),
+        None => f.to_string(),
     }
 }
 
@@ -59,7 +60,7 @@ pub fn summary(cat: &Catalog) -> String {
                 c.sigma_gamma_deg,
                 if c.passes_cut { "pass" } else { "-" },
                 dg,
-                printable(&c.flags.iter().map(|f| short_flag(f)).collect::<Vec<_>>().join(","))
+                printable(&c.flags.iter().map(short_flag).collect::<Vec<_>>().join(","))
             );
         }
     }

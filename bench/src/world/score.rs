@@ -2,7 +2,8 @@
 //! gamma; components missing, refused, relabelled), the bins' statistics, the pooling of
 //! nights and the table.
 
-use sofipol_pipeline::catalog::Target;
+use sofipol_pipeline::catalog::flags::join;
+use sofipol_pipeline::catalog::{FlagCode, Target};
 use sofipol_pipeline::sim::TargetTruth;
 
 use super::{Reduced, WorldBin, WorldTarget, GAMMA_PULL_MIN_SNR, P_PULL_MIN_SNR, RELABEL_RATIO};
@@ -13,7 +14,7 @@ use super::{Reduced, WorldBin, WorldTarget, GAMMA_PULL_MIN_SNR, P_PULL_MIN_SNR, 
 fn refused_component(c: &sofipol_pipeline::catalog::Component) -> bool {
     c.flags
         .iter()
-        .any(|f| f == "saturated" || f == sofipol_pipeline::reduce::entry::AB_IDENTITY_UNVERIFIED)
+        .any(|f| matches!(f.code, FlagCode::Saturated | FlagCode::AbIdentityUnverified))
 }
 
 /// Match the catalog's components to the truth and compute the pulls. Refused components
@@ -136,7 +137,7 @@ pub(super) fn scored(r: Reduced, saturated_design: bool) -> WorldTarget {
             target
                 .components
                 .iter()
-                .map(|c| format!("{}[{}]", c.name, c.flags.join(",")))
+                .map(|c| format!("{}[{}]", c.name, join(&c.flags, ",")))
                 .collect::<Vec<_>>()
                 .join(" "),
             target.flags,

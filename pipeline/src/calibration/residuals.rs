@@ -11,7 +11,7 @@
 use sofipol_calib::Profile;
 
 use super::{resolve::calibrated_obs, FilterCalibration};
-use crate::catalog::Component;
+use crate::catalog::{Component, Flag, FlagCode};
 use crate::standards::StandardStar;
 use crate::stokes::calibration::{solve, Offset, StokesMethod};
 use crate::stokes::inversion::{QuFit, WK_ANGLE_FACTOR_DEG};
@@ -35,7 +35,7 @@ pub struct TableResiduals {
     /// chi^2 of (q, u) against 0 (unpolarized standards, 2 dof).
     pub qu_chi2: Option<f64>,
     /// `p_disagrees_with_table: ...`, `qu_disagrees_with_table: ...`.
-    pub flags: Vec<String>,
+    pub flags: Vec<Flag>,
 }
 
 /// q, u of a calibrated standard with their statistical covariance only: the component's
@@ -81,7 +81,10 @@ pub fn table_residuals(
         r.gamma_deg = Some(d);
         r.gamma_sigma = Some(d / sigma_gamma.hypot(entry.sigma_gamma_deg));
         if rp.abs() > P_DISAGREES_SIGMA {
-            r.flags.push(format!("p_disagrees_with_table: {:.1} sigma", rp.abs()));
+            r.flags.push(Flag::with_detail(
+                FlagCode::PDisagreesWithTable,
+                format!("{:.1} sigma", rp.abs()),
+            ));
         }
     } else {
         let v = entry.sigma_p.powi(2) / 2.0;
@@ -93,8 +96,10 @@ pub fn table_residuals(
         let chi2 = (b * q * q - 2.0 * c * q * u + a * u * u) / det;
         r.qu_chi2 = Some(chi2);
         if chi2 > QU_DISAGREES_CHI2 {
-            r.flags
-                .push(format!("qu_disagrees_with_table: chi2 = {chi2:.1} (2 dof)"));
+            r.flags.push(Flag::with_detail(
+                FlagCode::QuDisagreesWithTable,
+                format!("chi2 = {chi2:.1} (2 dof)"),
+            ));
         }
     }
     r

@@ -3,9 +3,9 @@
 //! result (its Jacobian in the calibration parameters).
 use sofipol_calib::Profile;
 
-use super::telescope::{self, TELESCOPE_UNCORRECTED};
+use super::telescope;
 use super::FilterCalibration;
-use crate::catalog::{Component, InstrumentalOffset};
+use crate::catalog::{Component, Flag, FlagCode, InstrumentalOffset};
 use crate::stokes::calibration::{solve, solve_with_fallback, OrientationF, StokesMethod};
 use crate::stokes::inversion::{Debias, LinearPolarization};
 use crate::stokes::propagation::{
@@ -15,9 +15,6 @@ use crate::stokes::propagation::{
 
 /// Step of the central differences in theta0, deg.
 const STEP_THETA0_DEG: f64 = 0.01;
-
-/// The flag of a component whose degree of polarization came out above 1 (refused).
-pub const P_ABOVE_ONE: &str = "p_above_one";
 
 /// Step of the central differences in the telescope's (a, b).
 const STEP_TEL: f64 = 1e-4;
@@ -187,8 +184,12 @@ pub fn resolve_component(
     if inputs.rows.is_empty() {
         return false;
     }
+    // The flags this solve sets afresh.
     c.flags.retain(|f| {
-        f != "uncalibrated" && f != "low_snr" && f != TELESCOPE_UNCORRECTED && !f.starts_with("stokes_method_failed")
+        !matches!(
+            f.code,
+            FlagCode::Uncalibrated | FlagCode::LowSnr | FlagCode::TelescopeUncorrected | FlagCode::StokesMethodFailed
+        )
     });
     // The telescope's term is removed only when measured and every orientation has its
     // frames' parallactic angle.
@@ -201,7 +202,8 @@ pub fn resolve_component(
             s
         }
         Err(e) => {
-            c.flags.push(format!("stokes_method_failed: {e}"));
+            c.flags
+                .push(Flag::with_detail(FlagCode::StokesMethodFailed, e.to_string()));
             c.passes_cut = false;
             return false;
         }
@@ -252,23 +254,23 @@ pub fn resolve_component(
         })
         .map(|p| [p.q, p.u]);
     if !lp.passes_cut(cut_snr) {
-        c.flags.push("low_snr".into());
+        c.flags.push(Flag::new(FlagCode::LowSnr));
     }
     // As in reduce::entry: a value from all-flagged dithers, or of a component whose A/B
     // identity is not established, never passes the cut.
     c.passes_cut = lp.passes_cut(cut_snr) && !crate::reduce::entry::refused_by_flags(&c.flags);
     // A degree of polarization above 1 is no light: a calibration or a measurement gone
     // wrong, never a detection.
-    c.flags.retain(|f| f != P_ABOVE_ONE);
+    c.flags.retain(|f| !f.is(FlagCode::PAboveOne));
     if lp.pol.p > 1.0 {
-        c.flags.push(P_ABOVE_ONE.into());
+        c.flags.push(Flag::new(FlagCode::PAboveOne));
         c.passes_cut = false;
     }
     if sol.uncalibrated {
-        c.flags.push("uncalibrated".into());
+        c.flags.push(Flag::new(FlagCode::Uncalibrated));
     }
     if tel.is_none() {
-        c.flags.push(TELESCOPE_UNCORRECTED.into());
+        c.flags.push(Flag::new(FlagCode::TelescopeUncorrected));
     }
     c.snr = Some(lp.snr);
     c.sigma_gamma_nkc_deg = Some(lp.sigma_gamma_nkc_deg);

@@ -18,9 +18,6 @@ use crate::stokes::calibration::OrientationF;
 use crate::stokes::model::{Polarization, TelescopePolarization};
 use crate::stokes::propagation::{self, CalibrationCovariance, QuCovariance, CAL_TEL_A, CAL_TEL_B};
 
-/// The component flag of a value from which the telescope's polarization was not removed.
-pub const TELESCOPE_UNCORRECTED: &str = "telescope_polarization_uncorrected";
-
 impl TelescopeCalibration {
     /// From the fitted (a, b) and the calibration's covariance.
     pub fn from_fit(t: &TelescopePolarization, cov: &CalibrationCovariance) -> TelescopeCalibration {

@@ -101,7 +101,7 @@ fn night_calibration_recovers_truth_and_flags_uncalibrated_without_it() {
         (a.q - truth_a.q).abs() < 1e-12 && (a.u - truth_a.u).abs() < 1e-12,
         "{a:?}"
     );
-    assert!(!a.flags.contains(&"uncalibrated".to_string()));
+    assert!(!a.flags.iter().any(|f| f.is(FlagCode::Uncalibrated)));
     // sigma_q holds sigma_F and sigma_c: at phi = 3 and 48 deg, q = F_a cos 6 - F_b sin 6.
     let t = 6f64.to_radians();
     // ... and the zero-point error, which rotates (q, u): dq = -2u dtheta0.
@@ -126,7 +126,7 @@ fn night_calibration_recovers_truth_and_flags_uncalibrated_without_it() {
     assert_eq!(hd_res.used_for, vec!["offset".to_string(), "angles".to_string()]);
     assert!(hd_res.residual_p_sigma.unwrap().abs() < 1e-6);
     let m = cat.standards.iter().find(|s| s.object == "Mystery").unwrap();
-    assert!(m.flags.contains(&"not_in_standards_table".to_string()) && m.used_for.is_empty());
+    assert!(m.flags.iter().any(|f| f.is(FlagCode::NotInStandardsTable)) && m.used_for.is_empty());
     assert_eq!(
         cat.standards.iter().find(|s| s.object == "HD_98161").unwrap().name,
         "HD 98161"
@@ -148,7 +148,7 @@ fn night_calibration_recovers_truth_and_flags_uncalibrated_without_it() {
     assert_eq!(sum.n_uncalibrated, 2);
     assert!(sum.lines[0].contains("uncalibrated") && sum.lines[0].contains("4 orientations"));
     let a = &raw.targets[0].components[0];
-    assert!(a.flags.contains(&"uncalibrated".to_string()));
+    assert!(a.flags.iter().any(|f| f.is(FlagCode::Uncalibrated)));
     assert!((a.q - truth_a.q).abs() > 0.01);
 
     // The calibration file round-trips and serves another night.
@@ -216,11 +216,11 @@ fn a_degree_of_polarization_above_one_is_flagged_and_refused() {
     };
     let c = resolved(1.32);
     assert!((c.p - 1.32).abs() < 1e-9, "{}", c.p);
-    assert!(c.flags.iter().any(|f| f == P_ABOVE_ONE), "{:?}", c.flags);
+    assert!(c.flags.iter().any(|f| f.is(FlagCode::PAboveOne)), "{:?}", c.flags);
     assert!(!c.passes_cut && c.snr.unwrap() > 100.0);
     let c = resolved(0.99);
     assert!(
-        c.passes_cut && !c.flags.iter().any(|f| f == P_ABOVE_ONE),
+        c.passes_cut && !c.flags.iter().any(|f| f.is(FlagCode::PAboveOne)),
         "{:?}",
         c.flags
     );
@@ -317,10 +317,14 @@ fn two_filter_night_gets_one_offset_per_filter_and_targets_use_their_own() {
                 truth.q,
                 truth.u
             );
-            assert!(!a.flags.contains(&"uncalibrated".to_string()), "{what} {object}");
+            assert!(!a.flags.iter().any(|f| f.is(FlagCode::Uncalibrated)), "{what} {object}");
         }
         let h = &cat.targets.iter().find(|t| t.object == "T H").unwrap().components[0];
-        assert!(h.flags.contains(&"uncalibrated".to_string()), "{what}: {:?}", h.flags);
+        assert!(
+            h.flags.iter().any(|f| f.is(FlagCode::Uncalibrated)),
+            "{what}: {:?}",
+            h.flags
+        );
     };
     check(&cat, "night");
     assert_eq!(sum.n_uncalibrated, 1);
@@ -634,11 +638,11 @@ fn one_polarized_standard_at_two_orientations_gives_an_incomplete_flagged_calibr
     assert!(f.incomplete.as_deref().unwrap().contains("cannot separate"), "{f:?}");
     for comp in &cat.targets[0].components {
         assert!(
-            comp.flags.contains(&CALIBRATION_INCOMPLETE.to_string()),
+            comp.flags.iter().any(|f| f.is(FlagCode::CalibrationIncomplete)),
             "{:?}",
             comp.flags
         );
-        assert!(comp.flags.contains(&"uncalibrated".to_string()));
+        assert!(comp.flags.iter().any(|f| f.is(FlagCode::Uncalibrated)));
     }
     assert_eq!(sum.n_incomplete, 2);
     assert!(
@@ -695,7 +699,7 @@ fn one_polarized_standard_at_two_orientations_gives_an_incomplete_flagged_calibr
     assert!((a.q - truth.q).abs() < 1e-9 && (a.u - truth.u).abs() < 1e-9, "{a:?}");
     // Only the telescope's polarization is not corrected (these components carry no
     // parallactic angles).
-    assert_eq!(a.flags, [TELESCOPE_UNCORRECTED], "{:?}", a.flags);
+    assert_eq!(a.flags, [Flag::new(FlagCode::TelescopeUncorrected)], "{:?}", a.flags);
     assert_eq!(sum.n_incomplete, 0);
 }
 
@@ -769,7 +773,7 @@ fn standards_disagreeing_with_their_table_are_flagged_with_statistical_residuals
     assert!(
         a.flags
             .iter()
-            .any(|x| x == &format!("p_disagrees_with_table: {:.1} sigma", expect)),
+            .any(|x| x.to_string() == format!("p_disagrees_with_table: {:.1} sigma", expect)),
         "{:?}",
         a.flags
     );
@@ -794,7 +798,7 @@ fn standards_disagreeing_with_their_table_are_flagged_with_statistical_residuals
     );
     assert!(hd.residual_p_sigma.is_none());
     assert!(
-        hd.flags.iter().any(|x| x.starts_with("qu_disagrees_with_table")),
+        hd.flags.iter().any(|x| x.is(FlagCode::QuDisagreesWithTable)),
         "{:?}",
         hd.flags
     );
@@ -875,13 +879,14 @@ fn an_impossible_stokes_method_falls_back_to_auto_and_never_passes_silently() {
     let flag = a
         .flags
         .iter()
-        .find(|f| f.starts_with("stokes_method_failed"))
+        .find(|f| f.is(FlagCode::StokesMethodFailed))
         .expect("flagged");
+    let detail = flag.detail.as_deref().unwrap_or_default();
     assert!(
-        flag.contains("ratio") && flag.ends_with("; fell back to least_squares"),
+        detail.contains("ratio") && detail.ends_with("; fell back to least_squares"),
         "{flag}"
     );
-    assert!(a.passes_cut && !a.flags.contains(&"uncalibrated".to_string()));
+    assert!(a.passes_cut && !a.flags.iter().any(|f| f.is(FlagCode::Uncalibrated)));
     assert_eq!(sum.n_method_failed, 1);
     assert!(
         sum.lines.iter().any(|l| l.contains("stokes_method_failed")),
@@ -897,8 +902,8 @@ fn an_impossible_stokes_method_falls_back_to_auto_and_never_passes_silently() {
     assert!(a
         .flags
         .iter()
-        .any(|f| f.starts_with("stokes_method_failed") && f.contains("fell back to least_squares")));
-    assert!(a.flags.contains(&"uncalibrated".to_string()), "{:?}", a.flags);
+        .any(|f| f.is(FlagCode::StokesMethodFailed) && f.to_string().contains("fell back to least_squares")));
+    assert!(a.flags.iter().any(|f| f.is(FlagCode::Uncalibrated)), "{:?}", a.flags);
     assert!(!a.passes_cut, "an uncalibrated fallback passed the cut: {:?}", a.flags);
 }
 
@@ -960,9 +965,13 @@ fn a_known_standard_in_a_filter_without_values_is_flagged_for_the_filter() {
     t.filter = Some("J".into());
     let (entry, flags) = table_entry_for(&t, &table);
     assert!(entry.is_none());
-    assert_eq!(flags, ["no_table_values_for_filter: J"]);
+    assert_eq!(flags, [Flag::with_detail(FlagCode::NoTableValuesForFilter, "J")]);
+    assert_eq!(flags[0].to_string(), "no_table_values_for_filter: J");
     let unknown = Target::new("Not A Standard", Status::Ok);
-    assert_eq!(table_entry_for(&unknown, &table).1, ["not_in_standards_table"]);
+    assert_eq!(
+        table_entry_for(&unknown, &table).1,
+        [Flag::new(FlagCode::NotInStandardsTable)]
+    );
 }
 
 /// A standard observed at four orientations is used (more orientations only help); one seen
@@ -1013,7 +1022,7 @@ fn the_standards_section_keeps_flags_failures_and_residuals_only_where_they_appl
         "HD 64299",
         vec![component("A", Polarization::default(), &pa, theta0, c, 3e-4)],
     );
-    measured.components[0].flags = vec!["companion_not_found".into(), "bad_pixels".into()];
+    measured.components[0].flags = vec![Flag::new(FlagCode::CompanionNotFound), Flag::new(FlagCode::BadPixels)];
     // A note that is not a failure: the reduction succeeded.
     measured.error = Some("one dither dropped".into());
     let mut failed = target(
@@ -1033,12 +1042,16 @@ fn the_standards_section_keeps_flags_failures_and_residuals_only_where_they_appl
     let by = |object: &str| cat.standards.iter().find(|s| s.object == object).unwrap();
     let m = by("HD 64299");
     let flags = &m.measured.as_ref().unwrap().flags;
-    assert!(flags.iter().any(|f| f == "bad_pixels"), "{flags:?}");
-    assert!(!flags.iter().any(|f| f == "companion_not_found"), "{flags:?}");
-    assert!(!m.flags.iter().any(|f| f.starts_with("failed")), "{:?}", m.flags);
+    assert!(flags.iter().any(|f| f.is(FlagCode::BadPixels)), "{flags:?}");
+    assert!(!flags.iter().any(|f| f.is(FlagCode::CompanionNotFound)), "{flags:?}");
+    assert!(!m.flags.iter().any(|f| f.is(FlagCode::Failed)), "{:?}", m.flags);
     assert!(m.residual_qu_chi2.is_some_and(f64::is_finite), "{m:?}");
     let f = by("HD_98161");
-    assert!(f.flags.iter().any(|x| x == "failed: no star found"), "{:?}", f.flags);
+    assert!(
+        f.flags.iter().any(|x| x.to_string() == "failed: no star found"),
+        "{:?}",
+        f.flags
+    );
     assert_eq!(f.status, Status::Failed);
     assert!(
         f.residual_qu_chi2.is_none() && f.residual_p_sigma.is_none() && f.residual_gamma_deg.is_none(),

@@ -118,7 +118,11 @@ fn assert_truth(cat: &Catalog, tol: f64) {
             c.u,
             c.flags
         );
-        assert!(!c.flags.iter().any(|f| f == TELESCOPE_UNCORRECTED), "{:?}", c.flags);
+        assert!(
+            !c.flags.iter().any(|f| f.is(FlagCode::TelescopeUncorrected)),
+            "{:?}",
+            c.flags
+        );
     }
 }
 
@@ -152,7 +156,13 @@ fn the_telescope_is_measured_from_the_standards_and_removed_from_every_method() 
         assert_eq!(sum.n_telescope_uncorrected, 0);
         assert!(sum.lines.iter().any(|l| l.contains("p_tel = 0.600")), "{:?}", sum.lines);
         // Nothing flagged, so no line says something was.
-        for flag in [TELESCOPE_UNCORRECTED, "uncalibrated", "stokes_method_failed"] {
+        for flag in [
+            FlagCode::TelescopeUncorrected,
+            FlagCode::Uncalibrated,
+            FlagCode::StokesMethodFailed,
+        ]
+        .map(FlagCode::name)
+        {
             assert!(
                 !sum.lines.iter().any(|l| l.contains(&format!("flagged '{flag}'"))),
                 "{flag}: {:?}",
@@ -229,7 +239,11 @@ fn without_the_correction_the_components_are_flagged_and_biased() {
     assert!(cal.unwrap().filters[0].telescope.is_none());
     assert_eq!(sum.n_telescope_uncorrected, 2);
     let a = &cat.targets[0].components[0];
-    assert!(a.flags.iter().any(|f| f == TELESCOPE_UNCORRECTED), "{:?}", a.flags);
+    assert!(
+        a.flags.iter().any(|f| f.is(FlagCode::TelescopeUncorrected)),
+        "{:?}",
+        a.flags
+    );
     assert!((a.q - TRUTH_A.q).hypot(a.u - TRUTH_A.u) > 1e-3, "{a:?}");
     // Standards all at one parallactic angle: flagged, with the reason in the calibration.
     let mut cat = science(&posangs, &etas);
@@ -244,7 +258,7 @@ fn without_the_correction_the_components_are_flagged_and_biased() {
     let why = f.telescope_uncorrected.unwrap();
     assert!(why.contains("span"), "{why}");
     assert_eq!(sum.n_telescope_uncorrected, 2);
-    let said = format!("2 component(s) flagged '{TELESCOPE_UNCORRECTED}'");
+    let said = format!("2 component(s) flagged '{}'", FlagCode::TelescopeUncorrected.name());
     assert!(sum.lines.iter().any(|l| l.starts_with(&said)), "{:?}", sum.lines);
     assert!(
         sum.lines

@@ -78,7 +78,7 @@ fn full_component() -> Component {
     extra.insert("a_key_from_elsewhere".into(), serde_json::json!({"x": 1}));
     Component {
         passes_cut: true,
-        flags: vec!["low_snr".into()],
+        flags: vec![Flag::new(FlagCode::LowSnr)],
         cov_qu: Some(-4.25e-6),
         cov_qu_stat: Some(-3.5e-6),
         dropped_dithers: Some(vec![DroppedDither {
@@ -202,7 +202,7 @@ fn full_target() -> Target {
         bad_pixels_masked: Some(316),
         eo_offset_px: Some([-0.002, 167.0]),
         filter: Some("Ks".into()),
-        flags: Some(vec!["companion_position_scatter: 0.4 px".into()]),
+        flags: Some(vec![Flag::with_detail(FlagCode::CompanionPositionScatter, "0.4 px")]),
         flat: Some(Some(vec!["POSANG 0: dome POSANG 0 filter Ks, 6 frames".into()])),
         fwhm_px: Some(2.89),
         input_files: Some(vec!["raw/a.fits".into(), "raw/b.fits".into()]),

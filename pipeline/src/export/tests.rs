@@ -1,14 +1,14 @@
 //! The table of a catalog with targets and standards: one row per target component and
 //! per measured standard, with the pointing, time, geometry and provenance of each.
 use super::*;
-use crate::catalog::{StandardResult, Target};
+use crate::catalog::{Flag, StandardResult, Target};
 use crate::stokes::inversion::{Debias, LinearPolarization};
 
 fn component(name: &str, q: f64, u: f64) -> Component {
     let lp = LinearPolarization::from_qu(q, u, 0.002, 0.003, Debias::WardleKronberg);
     Component {
         passes_cut: true,
-        flags: vec![format!("flag_{name}")],
+        flags: vec![Flag::parse(&format!("flag_{name}"))],
         ..Component::new(name, lp.pol)
     }
 }
@@ -27,7 +27,7 @@ fn standard(name: &str, measured: Option<Component>) -> StandardResult {
         residual_gamma_sigma: None,
         residual_qu_chi2: None,
         used_for: vec!["offset".into()],
-        flags: vec![format!("std_flag_{name}")],
+        flags: vec![Flag::parse(&format!("std_flag_{name}"))],
         ra_deg: Some(101.5),
         dec_deg: Some(-33.25),
         mjd_mean: Some(51240.21),

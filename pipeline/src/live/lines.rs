@@ -38,7 +38,10 @@ fn component_words(c: &Component, cut: f64) -> String {
         Some(n) if (n as f64) <= MAX_CYCLES && n > 1 => format!("{head}: {} more cycle(s) for P/sig > {cut}", n - 1),
         Some(1) => format!(
             "{head}: below the cut ({})",
-            c.flags.first().map(|f| printable(f)).unwrap_or_default()
+            c.flags
+                .first()
+                .map(|f| printable(&f.to_string()).into_owned())
+                .unwrap_or_default()
         ),
         _ => format!("{head}: P consistent with 0, no number of cycles reaches P/sig > {cut}"),
     }

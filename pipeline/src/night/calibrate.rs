@@ -6,7 +6,8 @@ use sofipol_calib::Profile;
 
 use super::{reduce_sequences, Hooks};
 use crate::calibration::{self, CalibSetup, Calibration, CalibrationSummary};
-use crate::catalog::{Catalog, Failure, Target};
+use crate::catalog::flags::has;
+use crate::catalog::{Catalog, Failure, Flag, FlagCode, Target};
 use crate::reduce::TargetParams;
 use crate::sequence::Sequence;
 
@@ -60,10 +61,6 @@ pub fn calibrate(
     (cal, summary)
 }
 
-/// The component flag of a value left uncorrected because the calibration given with
-/// `--calib` has no offset for its filter (with `uncalibrated`; never passes the cut).
-pub const CALIBRATION_LACKS_FILTER: &str = "calibration_lacks_filter";
-
 /// With another night's calibration (`--calib`), a component left `uncalibrated` is one
 /// whose filter that calibration has no offset c for: asked to be corrected and not
 /// corrected, it never passes the cut (flag `calibration_lacks_filter: ...`), and the
@@ -81,12 +78,15 @@ fn refuse_uncorrected(cat: &mut Catalog, dir: &std::path::Path, summary: &mut Ca
         for c in t
             .components
             .iter_mut()
-            .filter(|c| c.flags.iter().any(|f| f == "uncalibrated"))
+            .filter(|c| has(&c.flags, FlagCode::Uncalibrated))
         {
             c.passes_cut = false;
-            c.flags.push(format!(
-                "{CALIBRATION_LACKS_FILTER}: {} has no offset c for filter {filter}: q and u uncorrected",
-                file.display()
+            c.flags.push(Flag::with_detail(
+                FlagCode::CalibrationLacksFilter,
+                format!(
+                    "{} has no offset c for filter {filter}: q and u uncorrected",
+                    file.display()
+                ),
             ));
             *per_filter.entry(filter.clone()).or_default() += 1;
             changed = true;
@@ -98,7 +98,8 @@ fn refuse_uncorrected(cat: &mut Catalog, dir: &std::path::Path, summary: &mut Ca
     for (filter, n) in per_filter {
         let error = format!(
             "no offset c for filter {filter}: {n} component(s) of filter {filter} left uncorrected \
-             (flags uncalibrated, {CALIBRATION_LACKS_FILTER}), never passing the cut"
+             (flags uncalibrated, {}), never passing the cut",
+            FlagCode::CalibrationLacksFilter.name()
         );
         summary.lines.push(format!("{}: {error}", file.display()));
         cat.failures.push(Failure {

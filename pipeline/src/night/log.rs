@@ -6,8 +6,7 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
 
-use crate::catalog::{Catalog, Status};
-use crate::report::flags::{explain, flag_name};
+use crate::catalog::{Catalog, Flag, Status};
 
 /// What one input file was used for and what happened to it.
 #[derive(Default)]
@@ -270,10 +269,10 @@ fn targets(s: &mut String, cat: &Catalog) {
 }
 
 /// A flag as written, with its sentence when this build knows it.
-fn flag_line(flag: &str) -> String {
-    match explain(flag) {
-        Some(sentence) => format!("{} -- {}", flag_name(flag), one_line(&sentence)),
-        None => one_line(flag),
+fn flag_line(flag: &Flag) -> String {
+    match flag.explain() {
+        Some(sentence) => format!("{} -- {}", one_line(&flag.label()), one_line(&sentence)),
+        None => one_line(&flag.to_string()),
     }
 }
 

@@ -33,12 +33,10 @@ use std::sync::Mutex;
 
 use sofipol_calib::Profile;
 
+use crate::catalog::{Flag, FlagCode};
 use crate::reduce::run::TargetOutcome;
 use crate::reduce::TargetParams;
 pub use paths::{products_dir, slug};
-
-/// The flag a target gets for each product that could not be written.
-pub const NOT_WRITTEN_FLAG: &str = "fits_product_not_written";
 
 /// Where the FITS products of a catalog go: `<dir>/<stem>_products/fits/`.
 pub fn fits_dir(catalog: &Path) -> PathBuf {
@@ -79,8 +77,9 @@ impl FitsProducts {
         &self.dir
     }
 
-    /// Record a file's outcome; the target flag when it was not written.
-    fn record(&self, path: &Path, result: Result<(), String>) -> Option<String> {
+    /// Record a file's outcome; the target flag ([`FlagCode::FitsProductNotWritten`]) when
+    /// it was not written.
+    fn record(&self, path: &Path, result: Result<(), String>) -> Option<Flag> {
         match result {
             Ok(()) => {
                 self.written.lock().expect("not poisoned").push(path.to_path_buf());
@@ -89,7 +88,7 @@ impl FitsProducts {
             Err(e) => {
                 let line = format!("{}: {e}", path.display());
                 self.failed.lock().expect("not poisoned").push(line.clone());
-                Some(format!("{NOT_WRITTEN_FLAG}: {line}"))
+                Some(Flag::with_detail(FlagCode::FitsProductNotWritten, line))
             }
         }
     }
@@ -98,7 +97,7 @@ impl FitsProducts {
     /// named after its sequence id: the combined o and e cut-outs of every orientation and
     /// the Stokes maps. Returns one flag per file not written (for the target's flags). A
     /// target that was not measured (failed) has no products.
-    pub fn write_target(&self, outcome: &TargetOutcome, profile: &Profile, params: &TargetParams) -> Vec<String> {
+    pub fn write_target(&self, outcome: &TargetOutcome, profile: &Profile, params: &TargetParams) -> Vec<Flag> {
         let Some(m) = outcome.measured.as_ref() else {
             return Vec::new();
         };
@@ -114,7 +113,7 @@ impl FitsProducts {
 
     /// Write the night's bad-pixel mask as `night_badpix.fits` ([`badpix::write`]); a
     /// failure is recorded (and returned).
-    pub fn write_bad_pixel_mask(&self, mask: &badpix::NightMask, params: &TargetParams) -> Option<String> {
+    pub fn write_bad_pixel_mask(&self, mask: &badpix::NightMask, params: &TargetParams) -> Option<Flag> {
         let path = self.dir.join(badpix::FILE_NAME);
         let r = badpix::write(&path, mask, params).map_err(|e| e.to_string());
         self.record(&path, r)

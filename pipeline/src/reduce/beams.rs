@@ -5,6 +5,7 @@ use sofipol_calib::Profile;
 
 use super::sources::Primary;
 use super::{CalibratedOrientation, MeasureError};
+use crate::catalog::{Flag, FlagCode};
 
 /// The (o, e) centroids of one frame, px.
 pub type CentroidPair = ((f64, f64), (f64, f64));
@@ -159,7 +160,7 @@ pub fn measure_eo_offset(
     primary: &Primary,
     masks: &[Vec<Array2<u8>>],
     profile: &Profile,
-    flags: &mut Vec<String>,
+    flags: &mut Vec<Flag>,
 ) -> Result<(f64, f64), MeasureError> {
     let g = &profile.geometry;
     let (mut fr, mut cc) = (Vec::new(), Vec::new());
@@ -174,7 +175,10 @@ pub fn measure_eo_offset(
             MeasureError::new("could not measure the e-o beam offset (target too close to the strip edges)")
         })?;
     if (eo.0 - g.eo_offset_px[0]).hypot(eo.1 - g.eo_offset_px[1]) > 3.0 {
-        flags.push(format!("eo_offset_differs_from_profile: ({:.2}, {:.2}) px", eo.0, eo.1));
+        flags.push(Flag::with_detail(
+            FlagCode::EoOffsetDiffersFromProfile,
+            format!("({:.2}, {:.2}) px", eo.0, eo.1),
+        ));
     }
     Ok(eo)
 }

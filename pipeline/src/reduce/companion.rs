@@ -5,6 +5,7 @@ use sofipol_calib::Profile;
 
 use super::sources::{brightest_peak, Primary};
 use super::{CalibratedOrientation, MeasureParams};
+use crate::catalog::{Flag, FlagCode};
 use crate::photometry::{fit_psf, subtract_star_near, subtract_star_near_in_place, PsfFit, PsfFitParams, PsfModel};
 use crate::stokes::model::{companion_offset_px, offset_to_sep_pa};
 
@@ -293,7 +294,7 @@ pub fn find_companion(
     masks: &[Vec<Array2<u8>>],
     profile: &Profile,
     params: &MeasureParams,
-    flags: &mut Vec<String>,
+    flags: &mut Vec<Flag>,
 ) -> Companion {
     let scale = profile.geometry.pixscale_arcsec;
     let fwhm_guess = primary.fwhm_guess;
@@ -322,7 +323,7 @@ pub fn find_companion(
     }
     let geometry = label_and_combine(&mut found, &stacks, orients, params, scale, flags);
     if geometry.is_none() {
-        flags.push("companion_not_found".into());
+        flags.push(Flag::new(FlagCode::CompanionNotFound));
     }
     Companion { found, fwhms, geometry }
 }
@@ -338,7 +339,7 @@ fn label_and_combine(
     orients: &[CalibratedOrientation],
     params: &MeasureParams,
     scale: f64,
-    flags: &mut Vec<String>,
+    flags: &mut Vec<Flag>,
 ) -> Option<(f64, f64)> {
     let min_f = params.min_companion_f;
     let min_sep_px = params.min_companion_sep_arcsec / scale;
@@ -391,23 +392,24 @@ fn label_and_combine(
     let need = orients.len().min(2);
     match combine_geometry(&obs, scale) {
         Some(_) if obs.len() < need => {
-            flags.push(format!(
-                "companion_rejected: significant at {} of {} orientations",
-                obs.len(),
-                orients.len()
+            flags.push(Flag::with_detail(
+                FlagCode::CompanionRejected,
+                format!("significant at {} of {} orientations", obs.len(), orients.len()),
             ));
             None
         }
         Some((_, _, worst)) if worst > 1.5 => {
-            flags.push(format!(
-                "companion_rejected: positions disagree by {worst:.2} px between orientations"
+            flags.push(Flag::with_detail(
+                FlagCode::CompanionRejected,
+                format!("positions disagree by {worst:.2} px between orientations"),
             ));
             None
         }
         Some((sep, pa, worst)) => {
             if worst > 0.5 {
-                flags.push(format!(
-                    "companion_position_scatter: {worst:.2} px between orientations"
+                flags.push(Flag::with_detail(
+                    FlagCode::CompanionPositionScatter,
+                    format!("{worst:.2} px between orientations"),
                 ));
             }
             Some((sep, pa))
@@ -496,7 +498,7 @@ fn verify_identity(
     (sep0, pa0): (f64, f64),
     params: &MeasureParams,
     scale: f64,
-    flags: &mut Vec<String>,
+    flags: &mut Vec<Flag>,
 ) {
     let Some(pb) = found[ib] else { return };
     let (min_f, min_sep_px) = (params.min_companion_f, params.min_companion_sep_arcsec / scale);
@@ -531,9 +533,12 @@ fn verify_identity(
                 Some(true) => continue,
                 Some(false) => {
                     found_is_b(p, pred, f);
-                    flags.push(format!(
-                        "ab_identity_from_geometry: at POSANG {:.1} the star found is B (the other star lies where the geometry puts A, companion not significant there)",
-                        orients[i].posang_deg
+                    flags.push(Flag::with_detail(
+                        FlagCode::AbIdentityFromGeometry,
+                        format!(
+                            "at POSANG {:.1} the star found is B (the other star lies where the geometry puts A, companion not significant there)",
+                            orients[i].posang_deg
+                        ),
                     ));
                     continue;
                 }
@@ -541,18 +546,24 @@ fn verify_identity(
             }
         }
         if fb.min(fa) / fb.max(fa) > NEAR_EQUAL_RATIO {
-            flags.push(format!(
-                "ab_identity_unverified: companion not found at POSANG {:.1} and the components are near equal in flux",
-                orients[i].posang_deg
+            flags.push(Flag::with_detail(
+                FlagCode::AbIdentityUnverified,
+                format!(
+                    "companion not found at POSANG {:.1} and the components are near equal in flux",
+                    orients[i].posang_deg
+                ),
             ));
             continue;
         }
         let (la, lb, lf) = (fa.ln(), fb.ln(), f.ln());
         if (lf - lb).abs() < (lf - la).abs() {
             found_is_b(p, pred, f);
-            flags.push(format!(
-                "ab_identity_from_flux: at POSANG {:.1} the star found is B (companion not found there); A placed by the geometry",
-                orients[i].posang_deg
+            flags.push(Flag::with_detail(
+                FlagCode::AbIdentityFromFlux,
+                format!(
+                    "at POSANG {:.1} the star found is B (companion not found there); A placed by the geometry",
+                    orients[i].posang_deg
+                ),
             ));
         }
     }
@@ -617,16 +628,16 @@ mod tests {
             p.a,
             (0.07 - pred.0, -0.12 - pred.1)
         );
-        assert!(
-            flags.iter().any(|f| f.starts_with("ab_identity_from_flux")),
-            "{flags:?}"
-        );
+        assert!(flags.iter().any(|f| f.is(FlagCode::AbIdentityFromFlux)), "{flags:?}");
         // The star found is A (flux like A's): left where it is, no flag.
         let (mut found, orients) = bench_40(28500.0, 14803.0);
         let mut flags = Vec::new();
         label_and_combine(&mut found, &[], &orients, &params, scale, &mut flags);
         assert_eq!(found[1].unwrap().a, (0.07, -0.12));
-        assert!(!flags.iter().any(|f| f.starts_with("ab_identity")), "{flags:?}");
+        assert!(
+            !flags.iter().any(|f| f.code.name().starts_with("ab_identity")),
+            "{flags:?}"
+        );
     }
 
     /// A 61x61 stack holding a star at the centre and, if `other`, a second one at `other`
@@ -716,9 +727,6 @@ mod tests {
         let scale = Profile::sofi().geometry.pixscale_arcsec;
         label_and_combine(&mut found, &[], &orients, &MeasureParams::default(), scale, &mut flags);
         assert_eq!(found[1].unwrap().a, (0.07, -0.12));
-        assert!(
-            flags.iter().any(|f| f.starts_with("ab_identity_unverified")),
-            "{flags:?}"
-        );
+        assert!(flags.iter().any(|f| f.is(FlagCode::AbIdentityUnverified)), "{flags:?}");
     }
 }

@@ -2,7 +2,8 @@
 //! orientation combined (rejections, clipping, weighted mean, honest error), then q and u by
 //! least squares over the orientations, P, gamma and their errors, debiasing and the cut.
 use super::{CalibratedOrientation, DitherValue, MeasureParams, Measured};
-use crate::catalog::{CombinedF, Component, DroppedDither, Status, Target};
+use crate::catalog::flags::has;
+use crate::catalog::{CombinedF, Component, DroppedDither, Flag, FlagCode, Status, Target};
 use crate::stokes::inversion::{clip_dithers, combine_dithers, fit_qu, LinearPolarization, Polarization};
 use crate::stokes::propagation::QuCovariance;
 use sofipol_calib::profile::Keywords;
@@ -13,32 +14,22 @@ use sofipol_calib::profile::Keywords;
 /// q and u may mix the two stars), and a chosen Stokes method replaced by an uncalibrated
 /// fallback (`stokes_method_failed: ... (uncalibrated)`). Shared with the calibration, which
 /// recomputes the cut.
-pub fn refused_by_flags(flags: &[String]) -> bool {
+pub fn refused_by_flags(flags: &[Flag]) -> bool {
     flags.iter().any(|f| {
-        f == "used_flagged_dithers"
-            || f == AB_IDENTITY_UNVERIFIED
+        f.is(FlagCode::UsedFlaggedDithers)
+            || f == &Flag::new(FlagCode::AbIdentityUnverified)
             || crate::stokes::calibration::fallback_refuses_cut(f)
     })
 }
 
-/// The component flag of a pair whose A/B identity could not be established at every
-/// orientation (the target carries `ab_identity_unverified: ...` with the orientation).
-pub const AB_IDENTITY_UNVERIFIED: &str = "ab_identity_unverified";
-
-/// The reason a dither is dropped when a masked pixel (a detector defect, a pixel the
-/// flat cannot correct, off the strip) lies within its aperture (radius + 0.71 px); the
-/// component's flag is `bad_pixels: k of n dithers dropped (...)` ([`bad_pixels_flag`]).
-pub const BAD_PIXELS: &str = "bad_pixels";
-
-/// The reason a dither is dropped (and the component's flag) when its frame has no usable
-/// parallactic angle while other frames of the target have one: the telescope's
-/// polarization could not be removed from it.
-pub const NO_PARALLACTIC_ANGLE: &str = "no_parallactic_angle";
-
-/// The component flag of `k` of its `n` dithers dropped for masked pixels in the aperture:
-/// the flag's name, then what it cost.
-pub fn bad_pixels_flag(k: usize, n: usize) -> String {
-    format!("{BAD_PIXELS}: {k} of {n} dithers dropped (a masked pixel within the aperture)")
+/// The component flag of `k` of its `n` dithers dropped for masked pixels (a detector
+/// defect, a pixel the flat cannot correct, off the strip) within the aperture (radius +
+/// 0.71 px): the flag's name, then what it cost.
+pub fn bad_pixels_flag(k: usize, n: usize) -> Flag {
+    Flag::with_detail(
+        FlagCode::BadPixels,
+        format!("{k} of {n} dithers dropped (a masked pixel within the aperture)"),
+    )
 }
 
 /// Turn the per-dither values of one component into its catalog entry. `parallactic_deg`
@@ -53,7 +44,7 @@ pub fn component_from_dithers(
     params: &MeasureParams,
 ) -> Component {
     let mut dropped: Vec<DroppedDither> = Vec::new();
-    let mut flags: Vec<String> = Vec::new();
+    let mut flags: Vec<Flag> = Vec::new();
     let (mut phis, mut fs, mut ss) = (Vec::new(), Vec::new(), Vec::new());
     let mut per_orientation = Vec::new();
     let mut sum_flux = 0.0;
@@ -65,7 +56,7 @@ pub fn component_from_dithers(
         .filter(|d| {
             d.rejected
                 .as_deref()
-                .is_some_and(|r| r.split(',').any(|x| x == BAD_PIXELS))
+                .is_some_and(|r| r.split(',').any(|x| x == FlagCode::BadPixels.name()))
         })
         .count();
     // When some frames have a parallactic angle, a dither whose frame has none cannot have
@@ -86,15 +77,15 @@ pub fn component_from_dithers(
         let mut usable: Vec<usize> = (0..dv.len())
             .filter(|&i| dv[i].rejected.is_none() && !no_eta(k, i))
             .collect();
-        if (0..dv.len()).any(|i| dv[i].rejected.is_none() && no_eta(k, i))
-            && !flags.iter().any(|f| f == NO_PARALLACTIC_ANGLE)
+        if (0..dv.len()).any(|i| dv[i].rejected.is_none() && no_eta(k, i)) && !has(&flags, FlagCode::NoParallacticAngle)
         {
-            flags.push(NO_PARALLACTIC_ANGLE.into());
+            flags.push(Flag::new(FlagCode::NoParallacticAngle));
         }
         for d in dv.iter().filter(|d| d.rejected.is_some()) {
-            for r in d.rejected.as_deref().unwrap_or("").split(',') {
-                let r = r.to_string();
-                if !r.is_empty() && !flags.contains(&r) {
+            // A dither's reasons are flag names (`cosmic_ray,bad_pixels`).
+            for r in d.rejected.as_deref().unwrap_or("").split(',').filter(|r| !r.is_empty()) {
+                let r = Flag::parse(r);
+                if !flags.contains(&r) {
                     flags.push(r);
                 }
             }
@@ -104,18 +95,21 @@ pub fn component_from_dithers(
             usable = (0..dv.len())
                 .filter(|&i| dv[i].f.is_finite() && dv[i].sigma_f > 0.0)
                 .collect();
-            if !usable.is_empty() && !flags.iter().any(|f| f == "used_flagged_dithers") {
-                flags.push("used_flagged_dithers".into());
+            if !usable.is_empty() && !has(&flags, FlagCode::UsedFlaggedDithers) {
+                flags.push(Flag::new(FlagCode::UsedFlaggedDithers));
             }
         }
         for &i in &usable {
             let pf = crate::photometry::Flags(dv[i].o.phot_flags | dv[i].e.phot_flags);
-            for (bit, name) in [
-                (crate::photometry::Flags::COMPANION_OVERLAP, "companion_overlap"),
-                (crate::photometry::Flags::ANNULUS_CONTAMINATED, "annulus_contaminated"),
+            for (bit, code) in [
+                (crate::photometry::Flags::COMPANION_OVERLAP, FlagCode::CompanionOverlap),
+                (
+                    crate::photometry::Flags::ANNULUS_CONTAMINATED,
+                    FlagCode::AnnulusContaminated,
+                ),
             ] {
-                if pf.contains(bit) && !flags.iter().any(|f| f == name) {
-                    flags.push(name.to_string());
+                if pf.contains(bit) && !has(&flags, code) {
+                    flags.push(Flag::new(code));
                 }
             }
         }
@@ -129,7 +123,7 @@ pub fn component_from_dithers(
             }
             let reason = match d.rejected.as_deref() {
                 Some(r) if !usable.contains(&i) => r.split(',').collect::<Vec<_>>().join(", "),
-                None if !usable.contains(&i) && no_eta(k, i) => NO_PARALLACTIC_ANGLE.to_string(),
+                None if !usable.contains(&i) && no_eta(k, i) => FlagCode::NoParallacticAngle.name().to_string(),
                 // Usable but left out by the clipping: an outlier, or a value or error that
                 // is not a number (never combined).
                 _ if d.f.is_finite() && d.sigma_f > 0.0 => "clipped".to_string(),
@@ -137,8 +131,8 @@ pub fn component_from_dithers(
             };
             // Only an outlier clipped is `dither_clipped`; a value that is not a number
             // was never a candidate.
-            if reason == "clipped" && !flags.iter().any(|f| f == "dither_clipped") {
-                flags.push("dither_clipped".into());
+            if reason == "clipped" && !has(&flags, FlagCode::DitherClipped) {
+                flags.push(Flag::new(FlagCode::DitherClipped));
             }
             let file = files
                 .get(k)
@@ -167,8 +161,8 @@ pub fn component_from_dithers(
                     );
                 if p < 0.01 {
                     sigma *= (c.chi2 / dof).sqrt();
-                    if !flags.contains(&"excess_dither_scatter".to_string()) {
-                        flags.push("excess_dither_scatter".into());
+                    if !has(&flags, FlagCode::ExcessDitherScatter) {
+                        flags.push(Flag::new(FlagCode::ExcessDitherScatter));
                     }
                 }
             }
@@ -195,7 +189,7 @@ pub fn component_from_dithers(
             });
         }
     }
-    if let Some(f) = flags.iter_mut().find(|f| *f == BAD_PIXELS) {
+    if let Some(f) = flags.iter_mut().find(|f| **f == Flag::new(FlagCode::BadPixels)) {
         *f = bad_pixels_flag(n_bad_pixels, n_dithers);
     }
     let measured = Component {
@@ -214,7 +208,7 @@ pub fn component_from_dithers(
             };
             let lp = LinearPolarization::from_qu_cov(r.q, r.u, &cov, params.debias);
             if lp.snr <= params.cut_snr {
-                flags.push("low_snr".into());
+                flags.push(Flag::new(FlagCode::LowSnr));
             }
             Component {
                 pol: lp.pol,
@@ -233,7 +227,10 @@ pub fn component_from_dithers(
             }
         }
         None => {
-            flags.push("undefined_polarization: orientations do not constrain q and u".into());
+            flags.push(Flag::with_detail(
+                FlagCode::UndefinedPolarization,
+                "orientations do not constrain q and u",
+            ));
             Component { flags, ..measured }
         }
     }
@@ -279,7 +276,7 @@ impl ParallacticMean {
 fn parallactic_angles(
     orients: &[CalibratedOrientation],
     kw: &Keywords,
-    flags: &mut Vec<String>,
+    flags: &mut Vec<Flag>,
 ) -> Vec<Vec<Option<f64>>> {
     let read: Vec<Vec<(String, sofipol_calib::Result<Option<f64>>)>> = orients
         .iter()
@@ -297,12 +294,15 @@ fn parallactic_angles(
                 .map(|(path, r)| match r {
                     Ok(eta) => {
                         if eta.is_none() && any {
-                            flags.push(format!("parallactic angle not used: {path}: no {}", kw.parang));
+                            flags.push(Flag::with_detail(
+                                FlagCode::ParallacticAngleNotUsed,
+                                format!("{path}: no {}", kw.parang),
+                            ));
                         }
                         eta
                     }
                     Err(e) => {
-                        flags.push(format!("parallactic angle not used: {e}"));
+                        flags.push(Flag::with_detail(FlagCode::ParallacticAngleNotUsed, e.to_string()));
                         None
                     }
                 })
@@ -330,7 +330,7 @@ pub fn target_entry(
     let names = ["A", "B"];
     // Which star was measured at some orientation is not known: every component may mix
     // the two stars' q and u. Reported, flagged, never a detection.
-    let unverified = m.flags.iter().any(|f| f.starts_with(AB_IDENTITY_UNVERIFIED));
+    let unverified = has(&m.flags, FlagCode::AbIdentityUnverified);
     let components: Vec<Component> = m
         .dithers
         .iter()
@@ -338,7 +338,7 @@ pub fn target_entry(
         .map(|(i, d)| {
             let mut c = component_from_dithers(names[i], d, &phis, &etas, &files, params);
             if unverified {
-                c.flags.push(AB_IDENTITY_UNVERIFIED.into());
+                c.flags.push(Flag::new(FlagCode::AbIdentityUnverified));
                 c.passes_cut = false;
             }
             c
@@ -355,7 +355,7 @@ pub fn target_entry(
     let mut t = Target {
         error: match status {
             Status::Ok => None,
-            Status::Partial => m.flags.first().cloned().or(Some(
+            Status::Partial => m.flags.first().map(Flag::to_string).or(Some(
                 if components.first().is_some_and(|c| c.q.is_finite()) {
                     "companion not measured"
                 } else {
@@ -390,7 +390,7 @@ mod tests {
 
     /// Two components, both with a 10-sigma polarization at 0/45/90/135 (q = 0.03, u = 0.02,
     /// sigma_F = 0.001 per dither, 3 dithers).
-    fn measured(flags: Vec<String>) -> Measured {
+    fn measured(flags: Vec<Flag>) -> Measured {
         let phis = [0.0f64, 45.0, 90.0, 135.0];
         let comp = |q: f64, u: f64| -> Vec<Vec<DitherValue>> {
             phis.iter()
@@ -434,7 +434,7 @@ mod tests {
         }
         let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords);
         for c in &t.components {
-            let n = c.flags.iter().filter(|f| *f == "used_flagged_dithers").count();
+            let n = c.flags.iter().filter(|f| f.is(FlagCode::UsedFlaggedDithers)).count();
             assert_eq!(n, 1, "{:?}", c.flags);
             assert!(!c.passes_cut && c.q.is_finite());
         }
@@ -475,11 +475,11 @@ mod tests {
         let flags = &t.components[0].flags;
         let want = "bad_pixels: 3 of 12 dithers dropped (a masked pixel within the aperture)";
         assert_eq!(
-            flags.iter().filter(|f| f.starts_with("bad_pixels")).collect::<Vec<_>>(),
-            [want],
+            flags.iter().filter(|f| f.is(FlagCode::BadPixels)).collect::<Vec<_>>(),
+            [&Flag::parse(want)],
             "{flags:?}"
         );
-        assert!(flags.iter().any(|f| f == "cosmic_ray"), "{flags:?}");
+        assert!(flags.iter().any(|f| f.is(FlagCode::CosmicRay)), "{flags:?}");
         assert!(t.components[1].flags.is_empty(), "{:?}", t.components[1].flags);
         // Each dither left out is named with its reason (the frames are not known here:
         // orientation and dither); the other component used all of its dithers.
@@ -518,7 +518,13 @@ mod tests {
                 ("orientation 3 dither 1", "saturated")
             ]
         );
-        let clipped = |t: &Target, i: usize| t.components[i].flags.iter().filter(|f| *f == "dither_clipped").count();
+        let clipped = |t: &Target, i: usize| {
+            t.components[i]
+                .flags
+                .iter()
+                .filter(|f| f.is(FlagCode::DitherClipped))
+                .count()
+        };
         assert_eq!((clipped(&t, 0), clipped(&t, 1)), (0, 1), "{t:?}");
     }
 
@@ -548,8 +554,12 @@ mod tests {
                 ("orientation 1 dither 4", "saturated")
             ]
         );
-        assert!(c.flags.iter().any(|f| f == "used_flagged_dithers"), "{:?}", c.flags);
-        assert!(!c.flags.iter().any(|f| f == "dither_clipped"), "{:?}", c.flags);
+        assert!(
+            c.flags.iter().any(|f| f.is(FlagCode::UsedFlaggedDithers)),
+            "{:?}",
+            c.flags
+        );
+        assert!(!c.flags.iter().any(|f| f.is(FlagCode::DitherClipped)), "{:?}", c.flags);
         // An outlier among flagged values in use is clipped, and said so.
         let mut first = dithers(&[(0.01, 0.001), (0.0101, 0.001), (0.0099, 0.001), (0.05, 0.001)]);
         for d in first.iter_mut() {
@@ -564,7 +574,7 @@ mod tests {
             .collect();
         assert_eq!(dropped, [("orientation 1 dither 4", "clipped")]);
         // Flagged once, after the flags the fallback set (`saturated`, `used_flagged_dithers`).
-        let n = c.flags.iter().filter(|f| *f == "dither_clipped").count();
+        let n = c.flags.iter().filter(|f| f.is(FlagCode::DitherClipped)).count();
         assert_eq!(n, 1, "{:?}", c.flags);
     }
 
@@ -585,20 +595,23 @@ mod tests {
         let t = target_entry(
             "X",
             &orients(),
-            &measured(vec![flag.into()]),
+            &measured(vec![Flag::parse(flag)]),
             &params,
             &sofipol_calib::Profile::sofi().keywords,
         );
         for c in &t.components {
             assert!(!c.passes_cut, "{c:?}");
-            assert!(c.flags.iter().any(|f| f == AB_IDENTITY_UNVERIFIED), "{c:?}");
+            assert!(c.flags.iter().any(|f| f.is(FlagCode::AbIdentityUnverified)), "{c:?}");
             // Still reported (the value is there, not a detection).
             assert!(c.q.is_finite() && c.snr.unwrap() > 10.0, "{c:?}");
         }
         assert!(t.delta_gamma_deg.is_none());
-        assert!(refused_by_flags(&[AB_IDENTITY_UNVERIFIED.to_string()]));
-        assert!(refused_by_flags(&["used_flagged_dithers".to_string()]));
-        assert!(!refused_by_flags(&["low_snr".to_string(), "bad_pixels".to_string()]));
+        assert!(refused_by_flags(&[Flag::new(FlagCode::AbIdentityUnverified)]));
+        assert!(refused_by_flags(&[Flag::new(FlagCode::UsedFlaggedDithers)]));
+        assert!(!refused_by_flags(&[
+            Flag::new(FlagCode::LowSnr),
+            Flag::new(FlagCode::BadPixels)
+        ]));
     }
 
     /// One orientation's dithers as values (F, sigma_F) with unit beam fluxes.
@@ -658,7 +671,7 @@ mod tests {
             let want = if inflated { prop * chi2.sqrt() } else { prop };
             assert!((o.sigma_f - want).abs() < 1e-12 * want, "chi2 {chi2}: {o:?}");
             assert_eq!(
-                c.flags.iter().any(|f| f == "excess_dither_scatter"),
+                c.flags.iter().any(|f| f.is(FlagCode::ExcessDitherScatter)),
                 inflated,
                 "{:?}",
                 c.flags
@@ -767,8 +780,12 @@ mod tests {
         // 9e9 and the NaN left out.
         let want = (3e4 + 1e4 + 10.0 * 2e4) / 11.0;
         assert!((c.flux_adu.unwrap() - want).abs() < 1e-6, "{:?}", c.flux_adu);
-        for f in ["companion_overlap", "annulus_contaminated", "cosmic_ray"] {
-            assert_eq!(c.flags.iter().filter(|x| *x == f).count(), 1, "{f}: {:?}", c.flags);
+        for f in [
+            FlagCode::CompanionOverlap,
+            FlagCode::AnnulusContaminated,
+            FlagCode::CosmicRay,
+        ] {
+            assert_eq!(c.flags.iter().filter(|x| x.is(f)).count(), 1, "{f:?}: {:?}", c.flags);
         }
         let dropped: Vec<(&str, &str)> = c
             .dropped_dithers
@@ -781,9 +798,9 @@ mod tests {
             [("a.fits", "cosmic_ray"), ("d.fits", "no value"), ("e.fits", "no value")]
         );
         // Values that are not numbers were never clipped: no `dither_clipped`.
-        assert!(!c.flags.iter().any(|f| f == "dither_clipped"), "{:?}", c.flags);
+        assert!(!c.flags.iter().any(|f| f.is(FlagCode::DitherClipped)), "{:?}", c.flags);
         assert!(c.passes_cut && c.snr.unwrap() > 3.0, "{c:?}");
-        assert!(!c.flags.iter().any(|f| f == "low_snr"), "{:?}", c.flags);
+        assert!(!c.flags.iter().any(|f| f.is(FlagCode::LowSnr)), "{:?}", c.flags);
     }
 
     /// The cut and its flag: a component below S/N 3 is flagged `low_snr` and fails; the
@@ -827,12 +844,12 @@ mod tests {
         );
         assert!(lp.sigma_gamma_deg > 5.0 && lp.sigma_gamma_nkc_deg > 5.0, "{lp:?}");
         assert!(!c.passes_cut);
-        assert!(c.flags.iter().any(|f| f == "low_snr"), "{:?}", c.flags);
+        assert!(c.flags.iter().any(|f| f.is(FlagCode::LowSnr)), "{:?}", c.flags);
         // Angles that do not separate q from u: no value, said so.
         let c = component_from_dithers("B", &per[..1], &[0.0], &none, &[], &MeasureParams::default());
         assert!(c.q.is_nan() && !c.passes_cut);
         assert!(
-            c.flags.iter().any(|f| f.starts_with("undefined_polarization")),
+            c.flags.iter().any(|f| f.is(FlagCode::UndefinedPolarization)),
             "{:?}",
             c.flags
         );
@@ -857,7 +874,7 @@ mod tests {
         m.dithers.truncate(1);
         let t = target_entry("X", &orients(), &m, &params, kw);
         assert_eq!(t.error.as_deref(), Some("companion not measured"));
-        m.flags = vec!["companion_not_found".into()];
+        m.flags = vec![Flag::new(FlagCode::CompanionNotFound)];
         let t = target_entry("X", &orients(), &m, &params, kw);
         assert_eq!(
             (t.status, t.error.as_deref()),
@@ -882,7 +899,7 @@ mod tests {
         for d in m.dithers[1].iter_mut().flatten() {
             *d = DitherValue::missing("primary_not_found");
         }
-        m.flags = vec!["sky too bright".into()];
+        m.flags = vec![Flag::parse("sky too bright")];
         let t = target_entry("X", &orients(), &m, &params, kw);
         assert_eq!(t.status, Status::Failed);
         assert_eq!(
@@ -918,7 +935,7 @@ mod tests {
         let t = target_entry("X", &orients, &m, &MeasureParams::default(), &kw);
         let flags = t.flags.clone().unwrap();
         assert_eq!(flags.len(), 1, "{flags:?}");
-        assert!(flags[0].starts_with("parallactic angle not used"), "{flags:?}");
+        assert!(flags[0].is(FlagCode::ParallacticAngleNotUsed), "{flags:?}");
         for (ci, c) in t.components.iter().enumerate() {
             let per = c.orientations.as_ref().unwrap();
             for (k, o) in per.iter().enumerate() {
@@ -954,10 +971,14 @@ mod tests {
         let pairs: Vec<(&str, &str)> = dropped.iter().map(|d| (d.file.as_str(), d.reason.as_str())).collect();
         assert_eq!(
             pairs,
-            [("o2d1.fits", "cosmic_ray"), ("o3d1.fits", NO_PARALLACTIC_ANGLE)]
+            [("o2d1.fits", "cosmic_ray"), ("o3d1.fits", "no_parallactic_angle")]
         );
         for c in &t.components {
-            assert!(c.flags.iter().any(|f| f == NO_PARALLACTIC_ANGLE), "{:?}", c.flags);
+            assert!(
+                c.flags.iter().any(|f| f.is(FlagCode::NoParallacticAngle)),
+                "{:?}",
+                c.flags
+            );
         }
     }
 
@@ -984,8 +1005,11 @@ mod tests {
         let flags = t.flags.clone().unwrap();
         assert_eq!(
             flags,
-            ["parallactic angle not used: o1d0.fits: no ESO TEL PARANG START"]
+            [Flag::parse(
+                "parallactic angle not used: o1d0.fits: no ESO TEL PARANG START"
+            )]
         );
+        assert!(flags[0].is(FlagCode::ParallacticAngleNotUsed));
         let per = t.components[0].orientations.as_ref().unwrap();
         assert_eq!(per[1].n_dithers, 2);
         assert!(
@@ -995,7 +1019,7 @@ mod tests {
         let t = build(false);
         assert!(t.flags.clone().unwrap().is_empty());
         let c = &t.components[0];
-        assert!(c.dropped_dithers.is_none() && !c.flags.iter().any(|f| f == NO_PARALLACTIC_ANGLE));
+        assert!(c.dropped_dithers.is_none() && !c.flags.iter().any(|f| f.is(FlagCode::NoParallacticAngle)));
         assert!(c
             .orientations
             .as_ref()

@@ -9,6 +9,7 @@ use sofipol_calib::Frame;
 use super::companion::Companion;
 use super::sources::{Primary, UNUSABLE};
 use super::{BeamFlux, CalibratedOrientation, DitherValue, MeasureParams};
+use crate::catalog::{Flag, FlagCode};
 use crate::photometry::model::add_gaussian;
 use crate::photometry::moffat::{add_moffat, add_moffat_elliptical};
 use crate::photometry::{
@@ -103,7 +104,7 @@ pub fn measure_fluxes(
     eo: (f64, f64),
     scale: f64,
     params: &MeasureParams,
-    flags: &mut Vec<String>,
+    flags: &mut Vec<Flag>,
 ) -> Fluxes {
     let ncomp = if companion.geometry.is_some() { 2 } else { 1 };
     let mut out = Fluxes {
@@ -120,9 +121,12 @@ pub fn measure_fluxes(
         }
         for (f, c) in o.frames.iter().zip(cs) {
             let Some(c) = c else {
-                flags.push(format!("primary not found in {}", f.path().display()));
+                flags.push(Flag::with_detail(
+                    FlagCode::PrimaryNotFoundIn,
+                    f.path().display().to_string(),
+                ));
                 for comp in out.dithers.iter_mut() {
-                    comp[k].push(DitherValue::missing("primary_not_found"));
+                    comp[k].push(DitherValue::missing(FlagCode::PrimaryNotFound.name()));
                 }
                 continue;
             };
@@ -619,9 +623,9 @@ fn dither_value((mut o_b, ob): (BeamFlux, u8), (mut e_b, eb): (BeamFlux, u8), mu
     let blocking = (ob | eb) & (mbits::BAD | mbits::COSMIC | mbits::SATURATED | mbits::OFF_STRIP);
     let pf = Flags(o_b.phot_flags | e_b.phot_flags);
     let rejected = if !(fval.is_finite() && sigma_f.is_finite() && sigma_f > 0.0 && tot > 0.0) {
-        Some("photometry failed".to_string())
+        Some(FlagCode::PhotometryFailed.name().to_string())
     } else if pf.contains(Flags::TRUNCATED) {
-        Some("truncated".to_string())
+        Some(FlagCode::Truncated.name().to_string())
     } else if blocking != 0 {
         Some(bit_names(blocking).join(","))
     } else {
@@ -700,18 +704,14 @@ fn bits_inside(bits: &Array2<u8>, x: f64, y: f64, r: f64) -> u8 {
 
 /// Catalog flag names of blocking mask bits.
 fn bit_names(b: u8) -> Vec<String> {
-    let mut v = Vec::new();
-    if b & (mbits::BAD | mbits::OFF_STRIP) != 0 {
-        v.push("bad_pixels".to_string());
-    }
-    if b & mbits::COSMIC != 0 {
-        v.push("cosmic_ray".to_string());
-    }
-    if b & mbits::SATURATED != 0 {
-        v.push("saturated".to_string());
-    }
-    if b & mbits::NONLINEAR != 0 {
-        v.push("nonlinear".to_string());
-    }
-    v
+    [
+        (mbits::BAD | mbits::OFF_STRIP, FlagCode::BadPixels),
+        (mbits::COSMIC, FlagCode::CosmicRay),
+        (mbits::SATURATED, FlagCode::Saturated),
+        (mbits::NONLINEAR, FlagCode::Nonlinear),
+    ]
+    .into_iter()
+    .filter(|(bits, _)| b & bits != 0)
+    .map(|(_, code)| code.name().to_string())
+    .collect()
 }

@@ -22,8 +22,8 @@
 //! An unverified identity (the geometry fails) is the target flag
 //! `ab_identity_unverified: ...`; every component is then flagged and fails the cut
 //! ([`super::entry::target_entry`]).
-use super::entry::AB_IDENTITY_UNVERIFIED;
 use super::{CalibratedOrientation, DitherValue, Measured};
+use crate::catalog::{Flag, FlagCode};
 use crate::stokes::model::offset_to_sep_pa;
 
 /// The flux ratio must differ from 1 by this many sigma for A (the brighter) to be told
@@ -135,24 +135,28 @@ pub fn verify_pair(m: &mut Measured, orients: &[CalibratedOrientation], scale: f
     let pas = position_angles(&m.dithers[0], &m.dithers[1], orients, scale);
     match worst_disagreement(&pas, orients) {
         None => {
-            m.flags.push(format!(
-                "{AB_IDENTITY_UNVERIFIED}: B's position from A not measured at any orientation"
+            m.flags.push(Flag::with_detail(
+                FlagCode::AbIdentityUnverified,
+                "B's position from A not measured at any orientation",
             ));
             return;
         }
         Some((d, posang)) if d > 90.0 => {
-            m.flags.push(format!(
-                "{AB_IDENTITY_UNVERIFIED}: B's position angle from A at POSANG {posang:.1} is {d:.0} deg off the other orientations' (the labels disagree)"
+            m.flags.push(Flag::with_detail(
+                FlagCode::AbIdentityUnverified,
+                format!(
+                    "B's position angle from A at POSANG {posang:.1} is {d:.0} deg off the other orientations' (the labels disagree)"
+                ),
             ));
             return;
         }
         Some(_) => {}
     }
     let Some(r) = flux_ratio(&m.dithers[0], &m.dithers[1]) else {
-        m.flags.push(
-            "ab_near_equal_flux: fewer than 2 dithers measure both stars' flux; the labels follow the geometry"
-                .to_string(),
-        );
+        m.flags.push(Flag::with_detail(
+            FlagCode::AbNearEqualFlux,
+            "fewer than 2 dithers measure both stars' flux; the labels follow the geometry",
+        ));
         return;
     };
     let text = format!(
@@ -162,15 +166,20 @@ pub fn verify_pair(m: &mut Measured, orients: &[CalibratedOrientation], scale: f
         r.n
     );
     if !r.significant() {
-        m.flags.push(format!(
-            "ab_near_equal_flux: {text}, within {FLUX_RATIO_SIGMA} sigma of 1: the labels follow the geometry (the same star is A at every orientation)"
+        m.flags.push(Flag::with_detail(
+            FlagCode::AbNearEqualFlux,
+            format!(
+                "{text}, within {FLUX_RATIO_SIGMA} sigma of 1: the labels follow the geometry (the same star is A at every orientation)"
+            ),
         ));
     } else if r.ln_ratio > 0.0 {
         m.dithers.swap(0, 1);
         if let Some((_, pa)) = m.geometry.as_mut() {
             *pa = (*pa + 180.0).rem_euclid(360.0);
         }
-        m.flags
-            .push(format!("ab_relabelled_by_flux: {text}: A is the brighter"));
+        m.flags.push(Flag::with_detail(
+            FlagCode::AbRelabelledByFlux,
+            format!("{text}: A is the brighter"),
+        ));
     }
 }

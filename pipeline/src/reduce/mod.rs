@@ -106,7 +106,7 @@ pub struct Measured {
     /// Per component, per orientation, per dither.
     pub dithers: Vec<Vec<Vec<DitherValue>>>,
     /// Target flags.
-    pub flags: Vec<String>,
+    pub flags: Vec<crate::catalog::Flag>,
 }
 
 /// An error that stops the measurement of a sequence (defined with the crate's other errors).
@@ -145,7 +145,7 @@ pub fn measure_sequence(
     params: &MeasureParams,
 ) -> Result<Measured, MeasureError> {
     let scale = profile.geometry.pixscale_arcsec;
-    let mut flags: Vec<String> = Vec::new();
+    let mut flags = Vec::new();
     let masks = sources::unusable_masks(orients);
     let primary = sources::locate_primary(orients, &masks, profile, params)?;
     let eo = beams::measure_eo_offset(orients, &primary, &masks, profile, &mut flags)?;

@@ -8,7 +8,7 @@ use sofipol_calib::flat::{self, FlatSet};
 use sofipol_calib::{badpix, fits, sky, Frame, PixelSummary, Profile};
 
 use super::{measure_sequence, target_entry, CalibratedOrientation, TargetParams};
-use crate::catalog::{Failure, Status, Target};
+use crate::catalog::{Failure, Flag, FlagCode, Status, Target};
 use crate::error::Error;
 use crate::sequence::Sequence;
 
@@ -60,7 +60,7 @@ fn pointed(mut target: Target, seq: &Sequence) -> Target {
 }
 
 /// A failed target, keeping the diagnostic flags gathered before the failure.
-fn failed(seq: &Sequence, msg: String, flags: &[String], failures: Vec<Failure>, times: StageTimes) -> TargetOutcome {
+fn failed(seq: &Sequence, msg: String, flags: &[Flag], failures: Vec<Failure>, times: StageTimes) -> TargetOutcome {
     TargetOutcome {
         target: Target {
             error: Some(msg),
@@ -214,10 +214,8 @@ pub fn reduce_loaded(
     let profile = cropped_profile.as_ref().unwrap_or(profile);
     let mut times = StageTimes::default();
     let mut failures = Vec::new();
-    let mut flags: Vec<String> = seq.problems();
-    if let Some(m) = mixed_exposure(seq) {
-        flags.push(m);
-    }
+    let mut flags: Vec<Flag> = seq.problems();
+    flags.extend(mixed_exposure(seq));
     // Dithers that do not move leave the star in its own sky median: the result would be
     // wrong without a sign of it (gamma off by 10 deg and more, passing the cut). Refused.
     let still = seq.stationary_orientations();
@@ -301,11 +299,11 @@ pub fn reduce_loaded(
     flags.extend(target.flags.take().unwrap_or_default());
     if !flags.is_empty() && target.status == Status::Ok && !seq.problems().is_empty() {
         target.status = Status::Partial;
-        target.error = seq.problems().first().cloned();
+        target.error = seq.problems().first().map(Flag::to_string);
     }
     if let (Some(first), Status::Ok) = (dropped.first(), target.status) {
         target.status = Status::Partial;
-        target.error = Some(first.clone());
+        target.error = Some(first.to_string());
     }
     let mut target = pointed(target, seq);
     target.sequence = Some(seq.id.clone());
@@ -345,7 +343,7 @@ fn primary_not_found(
     cal.iter()
         .zip(first)
         .flat_map(|(o, values)| o.frames.iter().zip(values))
-        .filter(|(_, v)| v.rejected.as_deref() == Some("primary_not_found"))
+        .filter(|(_, v)| v.rejected.as_deref() == Some(FlagCode::PrimaryNotFound.name()))
         .map(|(f, _)| Failure {
             file: f.path().display().to_string(),
             error: format!(
@@ -370,7 +368,7 @@ fn choose_flats<'a>(
     filter: &str,
     crop: Option<(usize, usize)>,
     profile: &Profile,
-    flags: &mut Vec<String>,
+    flags: &mut Vec<Flag>,
 ) -> (Vec<Option<flat::FlatRows<'a>>>, Vec<String>) {
     let mut used = Vec::new();
     let chosen = orients
@@ -378,7 +376,10 @@ fn choose_flats<'a>(
         .map(|(pa, _, frames, _)| {
             let pa = *pa;
             let Some(flat) = set.for_frame(pa, filter) else {
-                flags.push(format!("no flat for POSANG {pa} filter {filter}: not flat-fielded"));
+                flags.push(Flag::with_detail(
+                    FlagCode::NoFlat,
+                    format!("{pa} filter {filter}: not flat-fielded"),
+                ));
                 return None;
             };
             let row0 = match crop {
@@ -389,7 +390,10 @@ fn choose_flats<'a>(
                 .iter()
                 .find_map(|f| flat::check_flat(f, flat, row0, profile).err())
             {
-                flags.push(format!("POSANG {pa} not flat-fielded: {e}"));
+                flags.push(Flag::with_detail(
+                    FlagCode::FlatDoesNotFit,
+                    format!("{pa} not flat-fielded: {e}"),
+                ));
                 return None;
             }
             used.push(format!("POSANG {pa}: {}", flat.describe()));
@@ -448,7 +452,7 @@ fn bad_pixel_mask(
     night_mask: Option<&Array2<u8>>,
     profile: &Profile,
     params: &TargetParams,
-    flags: &mut Vec<String>,
+    flags: &mut Vec<Flag>,
 ) -> crate::error::Result<Option<Array2<u8>>> {
     let mut mask = None;
     if let Some(p) = &params.calib_mask {
@@ -464,11 +468,14 @@ fn bad_pixel_mask(
         None => nm_fits(night_mask, g.ny, g.nx),
     };
     if let (Some(nm), false) = (night_mask, full) {
-        flags.push(format!(
-            "night bad-pixel mask is {} x {} px, the frames {} px wide: not used, defects detected on this sequence",
-            nm.dim().0,
-            nm.dim().1,
-            g.nx
+        flags.push(Flag::with_detail(
+            FlagCode::NightMaskUnfit,
+            format!(
+                "{} x {} px, the frames {} px wide: not used, defects detected on this sequence",
+                nm.dim().0,
+                nm.dim().1,
+                g.nx
+            ),
         ));
     }
     let night_mask = night_mask.filter(|_| full);
@@ -486,7 +493,7 @@ fn bad_pixel_mask(
                     None => m,
                 })
             }
-            Err(e) => flags.push(format!("bad-pixel detection failed: {e}")),
+            Err(e) => flags.push(Flag::with_detail(FlagCode::BadPixelDetectionFailed, e.to_string())),
         }
     }
     Ok(mask)
@@ -501,8 +508,8 @@ fn drop_frames_without_sky(
     profile: &Profile,
     scaling: sky::SkyScaling,
     failures: &mut Vec<Failure>,
-    flags: &mut Vec<String>,
-) -> Vec<String> {
+    flags: &mut Vec<Flag>,
+) -> Vec<Flag> {
     let mut dropped = Vec::new();
     for (posang, _, frames, offs) in orients.iter_mut() {
         let verdicts: Vec<Option<String>> = frames
@@ -526,7 +533,7 @@ fn drop_frames_without_sky(
                 continue;
             };
             let file = f.path().display().to_string();
-            let flag = format!("dither of POSANG {posang} dropped: {why}");
+            let flag = Flag::with_detail(FlagCode::DitherDropped, format!("{posang} dropped: {why}"));
             failures.push(Failure {
                 file,
                 error: format!("{why}: frame not used, the other dithers of POSANG {posang} carry on"),
@@ -546,21 +553,27 @@ fn subtract_sky(
     mask: Option<&Array2<u8>>,
     profile: &Profile,
     params: &TargetParams,
-    flags: &mut Vec<String>,
+    flags: &mut Vec<Flag>,
 ) -> Vec<CalibratedOrientation> {
     let mut cal = Vec::new();
     for ((posang, phi, frames, offs), fl) in orients.into_iter().zip(flats) {
         if frames.len() < 2 {
-            flags.push(format!(
-                "orientation POSANG {posang} dropped: {} readable dither(s), need 2 for the sky",
-                frames.len()
+            flags.push(Flag::with_detail(
+                FlagCode::OrientationDropped,
+                format!(
+                    "{posang} dropped: {} readable dither(s), need 2 for the sky",
+                    frames.len()
+                ),
             ));
             continue;
         }
         let mut frames = frames;
         if let Some(m) = mask {
             if let Err(e) = frames.iter_mut().try_for_each(|f| badpix::apply_mask_in_place(f, m)) {
-                flags.push(format!("orientation POSANG {posang} dropped: {e}"));
+                flags.push(Flag::with_detail(
+                    FlagCode::OrientationDropped,
+                    format!("{posang} dropped: {e}"),
+                ));
                 continue;
             }
         }
@@ -571,20 +584,26 @@ fn subtract_sky(
                 frames: s,
                 offsets: offs,
             }),
-            Err(e) => flags.push(format!("orientation POSANG {posang} dropped: {e}")),
+            Err(e) => flags.push(Flag::with_detail(
+                FlagCode::OrientationDropped,
+                format!("{posang} dropped: {e}"),
+            )),
         }
     }
     cal
 }
 
 /// Write the sky-subtracted frames (data, VARIANCE, MASK) into `dir` as `<name>_skysub.fits`.
-fn save_intermediates(cal: &[CalibratedOrientation], dir: &Path, flags: &mut Vec<String>) {
+fn save_intermediates(cal: &[CalibratedOrientation], dir: &Path, flags: &mut Vec<Flag>) {
     let opts = fits::WriteOptions {
         with_variance_and_mask: true,
         ..Default::default()
     };
     if let Err(e) = std::fs::create_dir_all(dir) {
-        flags.push(format!("could not create {}: {e}", dir.display()));
+        flags.push(Flag::with_detail(
+            FlagCode::IntermediateDirNotCreated,
+            format!("{}: {e}", dir.display()),
+        ));
     }
     for o in cal {
         for f in &o.frames {
@@ -596,7 +615,10 @@ fn save_intermediates(cal: &[CalibratedOrientation], dir: &Path, flags: &mut Vec
                 .trim_end_matches(".fit");
             let out = dir.join(format!("{base}_skysub.fits"));
             if let Err(e) = fits::write_frame(&out, f, &opts) {
-                flags.push(format!("could not write intermediate {}: {e}", out.display()));
+                flags.push(Flag::with_detail(
+                    FlagCode::IntermediateNotWritten,
+                    format!("{}: {e}", out.display()),
+                ));
             }
         }
     }
@@ -619,7 +641,7 @@ fn distinct_analyzer_angles(cal: &[CalibratedOrientation]) -> usize {
 /// scales sky and stars alike, so each frame's sky comes from the other dithers scaled to
 /// its own sky level (multiplicative sky scaling: exact; additive: the sky pattern is not
 /// rescaled) and F = (o - e)/(o + e) is a flux ratio within one frame.
-pub fn mixed_exposure(seq: &Sequence) -> Option<String> {
+pub fn mixed_exposure(seq: &Sequence) -> Option<Flag> {
     let mut dits: Vec<f64> = Vec::new();
     let mut ndits: Vec<u32> = Vec::new();
     for e in seq.orientations.iter().flat_map(|o| &o.exposures) {
@@ -631,9 +653,12 @@ pub fn mixed_exposure(seq: &Sequence) -> Option<String> {
         }
     }
     (dits.len() > 1 || ndits.len() > 1).then(|| {
-        format!(
-            "mixed_exposure: DIT {dits:?} s, NDIT {ndits:?} within the sequence: normalised \
-             (each frame's sky scaled to its own level, F a flux ratio within a frame, variance from its own NDIT)"
+        Flag::with_detail(
+            FlagCode::MixedExposure,
+            format!(
+                "DIT {dits:?} s, NDIT {ndits:?} within the sequence: normalised \
+                 (each frame's sky scaled to its own level, F a flux ratio within a frame, variance from its own NDIT)"
+            ),
         )
     })
 }

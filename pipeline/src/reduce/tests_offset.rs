@@ -76,7 +76,9 @@ fn eo_offset_and_e_positions_match_the_simulated_ones_off_the_starting_values() 
         // few tenths of a pixel from a start whose fraction differs: the parabola through
         // integer shifts, refined at stage 6) and flags the profile's offset as wrong
         // beyond 3 px only.
-        let differs = |f: &Vec<String>| f.iter().any(|f| f.starts_with("eo_offset_differs_from_profile"));
+        let differs = |f: &Vec<crate::catalog::Flag>| {
+            crate::catalog::flags::has(f, crate::catalog::FlagCode::EoOffsetDiffersFromProfile)
+        };
         assert!(!differs(&flags), "{flags:?}");
         for (shift, flagged) in [([2.1, 0.9], false), ([3.6, 0.8], true), ([-0.6, -3.7], true)] {
             let mut moved = profile.clone();

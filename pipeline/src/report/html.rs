@@ -4,6 +4,7 @@ use std::fmt::Write as _;
 
 use super::markup::{escape, flag_list, fmt, image, pct, status_word};
 use super::ReportInput;
+use crate::catalog::Flag;
 use crate::catalog::{Catalog, Component, Status, Target};
 
 const CSS: &str = include_str!("page.css");
@@ -201,7 +202,7 @@ fn target_row(h: &mut String, t: &Target, c: Option<&Component>) {
     num_cell(h, fmt(t.delta_gamma_deg, 1), t.delta_gamma_deg);
     num_cell(h, fmt(t.sigma_delta_gamma_deg, 1), t.sigma_delta_gamma_deg);
     let _ = write!(h, "<td>{}</td><td>", escape(t.filter.as_deref().unwrap_or("")));
-    let mut all: Vec<&String> = t.target_flags().iter().collect();
+    let mut all: Vec<&Flag> = t.target_flags().iter().collect();
     if let Some(c) = c {
         all.extend(&c.flags);
     }

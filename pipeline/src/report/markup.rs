@@ -2,8 +2,8 @@
 //! escaping, numbers, the status in words, flag lists and embedded images.
 use std::fmt::Write as _;
 
-use super::{base64, flags};
-use crate::catalog::Status;
+use super::base64;
+use crate::catalog::{Flag, Status};
 
 /// `s` with `&`, `<`, `>`, `"` and `'` replaced by their character references: safe in
 /// element content and in quoted attribute values.
@@ -44,26 +44,26 @@ pub fn status_word(s: Status) -> &'static str {
     }
 }
 
-/// The flags as a list: each in words, with the flag itself as the tooltip; an unknown flag
-/// as it is.
-pub fn flag_list(h: &mut String, all: &[&String]) {
+/// The flags as a list: each in words ([`Flag::explain`]), with the flag itself as the
+/// tooltip; an unknown flag as it is.
+pub fn flag_list(h: &mut String, all: &[&Flag]) {
     if all.is_empty() {
         return;
     }
     h.push_str("<ul class=\"flags\">");
     for f in all {
-        match flags::explain(f) {
+        match f.explain() {
             Some(words) => {
                 let _ = write!(
                     h,
                     "<li title=\"{}\"><code>{}</code>: {}</li>",
-                    escape(f),
-                    escape(flags::flag_name(f)),
+                    escape(&f.to_string()),
+                    escape(&f.label()),
                     escape(&words)
                 );
             }
             None => {
-                let _ = write!(h, "<li><code>{}</code></li>", escape(f));
+                let _ = write!(h, "<li><code>{}</code></li>", escape(&f.to_string()));
             }
         }
     }

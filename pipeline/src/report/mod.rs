@@ -22,7 +22,6 @@ use crate::stats::figures::{ism_figure, observed_figure};
 use crate::stats::sample::BinarySample;
 use crate::stats::setup;
 
-pub mod flags;
 pub mod html;
 pub mod markup;
 mod sections;

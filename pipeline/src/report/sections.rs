@@ -132,7 +132,7 @@ fn standards(h: &mut String, cat: &Catalog) {
             escape(&s.used_for.join(", ")),
             st = status_word(s.status)
         );
-        let all: Vec<&String> = s.flags.iter().collect();
+        let all: Vec<&crate::catalog::Flag> = s.flags.iter().collect();
         flag_list(h, &all);
         h.push_str("</td></tr>\n");
     }

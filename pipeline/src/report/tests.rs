@@ -3,7 +3,7 @@
 use super::html::render;
 use super::markup::escape;
 use super::*;
-use crate::catalog::{Catalog, Component, Failure, Status, Target};
+use crate::catalog::{Catalog, Component, Failure, Flag, FlagCode, Status, Target};
 use crate::stokes::inversion::{Debias, LinearPolarization};
 
 const HOSTILE: &str = "<script>alert(\"x\")</script> & 'q' </td></table>";
@@ -15,7 +15,7 @@ fn comp(name: &str, q: f64, u: f64, sigma: f64, flags: &[&str]) -> Component {
     );
     c.passes_cut = c.p / c.sigma_p > 3.0;
     c.snr = Some(c.p / c.sigma_p);
-    c.flags = flags.iter().map(|f| f.to_string()).collect();
+    c.flags = flags.iter().map(|f| Flag::parse(f)).collect();
     c
 }
 
@@ -187,7 +187,7 @@ fn flags_are_explained_in_words_and_unknown_ones_shown_as_they_are() {
             &["stokes_method_failed: no angles; fell back to least_squares"],
         ),
     );
-    t.flags = Some(vec!["companion_not_found".into()]);
+    t.flags = Some(vec![Flag::new(FlagCode::CompanionNotFound)]);
     let cat = Catalog {
         targets: vec![t],
         ..Default::default()

@@ -26,6 +26,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::inversion::{fit_qu, QuFit};
+use crate::catalog::{Flag, FlagCode};
 
 /// How q and u are obtained from the per-orientation F.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -396,9 +397,6 @@ pub fn solve(
     }
 }
 
-/// Prefix of the component flag of a Stokes method that could not be applied.
-pub const STOKES_METHOD_FAILED: &str = "stokes_method_failed";
-
 /// The end of that flag when the automatic fallback carries no offset correction: such a
 /// component never passes the cut ([`fallback_refuses_cut`]).
 const FALLBACK_UNCALIBRATED: &str = "(uncalibrated)";
@@ -412,7 +410,7 @@ pub fn solve_with_fallback(
     obs: &[OrientationF],
     method: StokesMethod,
     offset: Option<Offset>,
-) -> crate::error::Result<(StokesSolution, Option<String>)> {
+) -> crate::error::Result<(StokesSolution, Option<Flag>)> {
     match solve(obs, method, offset) {
         Ok(s) => Ok((s, None)),
         Err(e) if method != StokesMethod::Auto => {
@@ -424,7 +422,10 @@ pub fn solve_with_fallback(
             };
             Ok((
                 s,
-                Some(format!("{STOKES_METHOD_FAILED}: {e}; fell back to {}{unc}", s.method)),
+                Some(Flag::with_detail(
+                    FlagCode::StokesMethodFailed,
+                    format!("{e}; fell back to {}{unc}", s.method),
+                )),
             ))
         }
         Err(e) => Err(e),
@@ -433,8 +434,12 @@ pub fn solve_with_fallback(
 
 /// Whether a component flag is the fallback flag of [`solve_with_fallback`] for a fallback
 /// without offset correction (the value must not pass the cut).
-pub fn fallback_refuses_cut(flag: &str) -> bool {
-    flag.starts_with(STOKES_METHOD_FAILED) && flag.ends_with(FALLBACK_UNCALIBRATED)
+pub fn fallback_refuses_cut(flag: &Flag) -> bool {
+    flag.is(FlagCode::StokesMethodFailed)
+        && flag
+            .detail
+            .as_deref()
+            .is_some_and(|d| d.ends_with(FALLBACK_UNCALIBRATED))
 }
 
 /// A standard as the calibration sees it: its per-orientation F at the rotator angles, and

@@ -8,7 +8,7 @@ fn component(name: &str, flags: &[&str]) -> Component {
         "sigma_gamma_deg": 2.9, "passes_cut": true, "flags": []
     }))
     .unwrap();
-    c.flags = flags.iter().map(|f| f.to_string()).collect();
+    c.flags = flags.iter().map(|f| Flag::parse(f)).collect();
     c
 }
 
@@ -23,7 +23,7 @@ fn night() -> Catalog {
     ];
     target.sequence = Some("HK Tau@2026-11-26T01:00:00".into());
     target.input_files = Some((1..=4).map(|i| format!("/data/night/raw/hk_{i}.fits")).collect());
-    target.flags = Some(vec!["mystery_flag: x".into()]);
+    target.flags = Some(vec![Flag::parse("mystery_flag: x")]);
     target.components[0].dropped_dithers = Some(vec![crate::catalog::DroppedDither {
         file: "/data/night/raw/hk_2.fits".into(),
         reason: "bad_pixels".into(),

@@ -98,7 +98,7 @@ pub struct ComponentNumbers {
     /// Whether the component passes the cut.
     pub passes_cut: bool,
     /// Component flags.
-    pub flags: Vec<String>,
+    pub flags: Vec<crate::catalog::Flag>,
     /// The instrumental offset c in the component's solution (0 when none).
     pub offset_c: f64,
     /// The fitted F drawn on each orientation's panel: q cos 2 phi + u sin 2 phi + c.

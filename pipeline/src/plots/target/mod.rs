@@ -36,7 +36,8 @@ use sofipol_calib::frame::mask as mbits;
 use sofipol_calib::Frame;
 
 use super::{ensure_font, write_atomic, Error, FONT};
-use crate::catalog::{Status, Target};
+use crate::catalog::flags::join;
+use crate::catalog::{Flag, Status, Target};
 use crate::reduce::run::TargetOutcome;
 use crate::reduce::{CalibratedOrientation, DitherValue, Measured};
 use panels::*;

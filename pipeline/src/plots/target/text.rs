@@ -158,7 +158,7 @@ pub(super) fn component_lines(nums: &FigureNumbers, out: &mut Vec<Line>) {
         ));
         if !c.flags.is_empty() {
             wrap(
-                Line::col(format!("      flags: {}", c.flags.join(", ")), col),
+                Line::col(format!("      flags: {}", join(&c.flags, ", ")), col),
                 COL_W,
                 out,
             );
@@ -270,7 +270,7 @@ pub(super) fn status_lines(target: &Target, m: Option<&Measured>, out: &mut Vec<
             out,
         );
     }
-    let mut flags: Vec<String> = m.map(|m| m.flags.clone()).unwrap_or_default();
+    let mut flags: Vec<Flag> = m.map(|m| m.flags.clone()).unwrap_or_default();
     for f in target.target_flags() {
         if !flags.iter().any(|g| g == f) {
             flags.push(f.clone());
