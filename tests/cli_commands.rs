@@ -63,7 +63,7 @@ fn demo_simulates_reduces_checks_and_writes_figures() {
             None => assert!(s["residual_qu_chi2"].as_f64().unwrap() < 11.83, "{s}"),
         }
     }
-    let pngs = std::fs::read_dir(out.join("figures"))
+    let pngs = std::fs::read_dir(out.join("catalog_products"))
         .unwrap()
         .filter(|e| e.as_ref().unwrap().path().extension().is_some_and(|x| x == "png"));
     assert_eq!(pngs.count(), 5);

@@ -282,7 +282,7 @@ pub fn stages(repeats: usize) -> anyhow::Result<()> {
     let mp = MeasureParams::default();
     let m = median_ms(repeats, || {
         let m = measure_sequence(&cal, &profile, &mp).expect("measure");
-        std::hint::black_box(target_entry("x", &cal, &m, &mp, &profile.keywords));
+        std::hint::black_box(target_entry("x", &cal, &m, &mp, &profile));
     });
     println!(
         "  {:<44} {:>8.2} ms",

@@ -33,6 +33,7 @@ pub use crate::catalog::polarimetric_calibration::{
 };
 use crate::catalog::{Catalog, Component, Flag, FlagCode, StandardResult, Status, Target};
 pub use crate::reduce::params::CalibrationParams;
+pub use crate::solve::{orientation_values, resolve_component};
 use crate::standards::{StandardStar, StandardsTable};
 use crate::stokes::calibration::{
     joint::{fit_joint_with, JointOptions},
@@ -40,7 +41,6 @@ use crate::stokes::calibration::{
 };
 use crate::stokes::inversion::Debias;
 use crate::stokes::propagation::{self, CAL_THETA0};
-pub use resolve::{orientation_values, resolve_component};
 
 impl Calibration {
     /// Read `calibration.json` from a calibration directory (or a file path).
@@ -118,7 +118,7 @@ pub fn measure(
             continue;
         };
         let Some(c) = t.components.first() else { continue };
-        let rows = resolve::orientation_rows(c, profile);
+        let rows = crate::solve::orientation_rows(c, profile);
         if rows.len() < 2 {
             continue;
         }
@@ -522,8 +522,6 @@ pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::Target
 pub mod setup;
 pub use setup::CalibSetup;
 pub mod residuals;
-mod resolve;
-pub mod telescope;
 pub mod validate;
 
 #[cfg(test)]

@@ -43,6 +43,7 @@ pub mod report;
 pub mod scan;
 pub mod sequence;
 pub mod sim;
+pub mod solve;
 pub mod standards;
 pub mod stats;
 pub mod stokes;

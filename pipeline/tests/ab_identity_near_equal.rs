@@ -218,7 +218,7 @@ fn fainter_star_labelled_a_at_every_orientation_is_relabelled_by_flux() {
         "{:?}",
         m.flags
     );
-    let right = target_entry("t", &orients, &m, &params.measure, &profile.keywords);
+    let right = target_entry("t", &orients, &m, &params.measure, &profile);
     assert_eq!(
         swapped(&right, pa),
         Some(false),
@@ -228,7 +228,7 @@ fn fainter_star_labelled_a_at_every_orientation_is_relabelled_by_flux() {
     m.dithers.swap(0, 1);
     let g = m.geometry.as_mut().unwrap();
     g.1 = (g.1 + 180.0).rem_euclid(360.0);
-    let wrong = target_entry("t", &orients, &m, &params.measure, &profile.keywords);
+    let wrong = target_entry("t", &orients, &m, &params.measure, &profile);
     assert_eq!(swapped(&wrong, pa), Some(true));
     let r = identity::flux_ratio(&m.dithers[0], &m.dithers[1]).unwrap();
     assert!(
@@ -241,7 +241,7 @@ fn fainter_star_labelled_a_at_every_orientation_is_relabelled_by_flux() {
         "{:?}",
         m.flags
     );
-    let t = target_entry("t", &orients, &m, &params.measure, &profile.keywords);
+    let t = target_entry("t", &orients, &m, &params.measure, &profile);
     assert!((t.pa_deg.unwrap() - right.pa_deg.unwrap()).abs() < 1e-9);
     for (c, r) in t.components.iter().zip(&right.components) {
         assert_eq!((c.name.as_str(), c.q, c.u), (r.name.as_str(), r.q, r.u));

@@ -44,7 +44,7 @@ fn check(truth: &Truth, frames: &[SimFrame], tol: f64, params: &MeasureParams) -
     for t in &truth.targets {
         let o = orientations(frames, &t.object);
         let m = measure_sequence(&o, &Profile::sofi(), params).unwrap_or_else(|e| panic!("{}: {e}", t.object));
-        let entry = target_entry(&t.object, &o, &m, params, &Profile::sofi().keywords);
+        let entry = target_entry(&t.object, &o, &m, params, &Profile::sofi());
         assert_eq!(entry.components.len(), 2, "{}: {:?}", t.object, m.flags);
         let (sep, pa) = m.geometry.unwrap();
         assert!(

@@ -5,6 +5,8 @@ use std::path::PathBuf;
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use sofipol_calib::Profile;
+use sofipol_pipeline::night::NightSetup;
+use sofipol_pipeline::products::{outputs, OutputChoice, Outputs};
 
 /// Instrument-profile options.
 #[derive(clap::Args, Debug, Clone, Default)]
@@ -201,60 +203,6 @@ pub fn check_output_dir(dir: &std::path::Path, what: &str) -> anyhow::Result<()>
     Ok(())
 }
 
-/// The per-target figures of a run, written into one products folder (`night`:
-/// `<stem>_products/`, `demo`: `figures/`). A figure that cannot be written is counted
-/// (the run then exits 2: its products are incomplete, docs/cli.md); when the run ends,
-/// [`Figures::finish`] removes what earlier runs left there and this one did not write:
-/// figures of targets no longer in the catalog and temporary files of interrupted writes.
-pub struct Figures {
-    dir: std::path::PathBuf,
-    written: std::sync::Mutex<Vec<std::ffi::OsString>>,
-    failed: std::sync::Mutex<Vec<String>>,
-}
-
-impl Figures {
-    /// Figures written into `dir` (which exists).
-    pub fn new(dir: &std::path::Path) -> Self {
-        Figures {
-            dir: dir.to_path_buf(),
-            written: Default::default(),
-            failed: Default::default(),
-        }
-    }
-
-    /// Write `fig` as `<slug>.png`; a failure is printed and counted.
-    pub fn write(&self, slug: &str, fig: &sofipol_pipeline::plots::target::TargetFigure) {
-        let name = format!("{slug}.png");
-        let path = self.dir.join(&name);
-        match fig.png(&path) {
-            Ok(()) => self.written.lock().expect("not poisoned").push(name.into()),
-            Err(e) => {
-                let msg = format!("{}: could not write the figure: {e}", path.display());
-                eprintln!("sofipol: warning: {msg}");
-                self.failed.lock().expect("not poisoned").push(msg);
-            }
-        }
-    }
-
-    /// Remove the PNG files and `.*.tmp-*` temporaries of the folder that this run did not
-    /// write (best effort), and return (figures written, figures that failed).
-    pub fn finish(self) -> (usize, Vec<String>) {
-        let written = self.written.into_inner().expect("not poisoned");
-        if let Ok(entries) = std::fs::read_dir(&self.dir) {
-            for e in entries.flatten() {
-                let name = e.file_name();
-                let text = name.to_string_lossy();
-                let stale_png = text.ends_with(".png") && !written.contains(&name);
-                let stale_tmp = text.starts_with('.') && text.contains(".tmp-");
-                if (stale_png || stale_tmp) && e.file_type().is_ok_and(|t| t.is_file()) {
-                    let _ = std::fs::remove_file(e.path());
-                }
-            }
-        }
-        (written.len(), self.failed.into_inner().expect("not poisoned"))
-    }
-}
-
 /// Refuse to reduce a night whose scan ran out of file handles: its files are not
 /// unusable, the process could not open them (exit 1, nothing written).
 pub fn check_scan_complete(plan: &sofipol_pipeline::night::NightPlan) -> anyhow::Result<()> {
@@ -267,48 +215,81 @@ pub fn check_scan_complete(plan: &sofipol_pipeline::night::NightPlan) -> anyhow:
     Ok(())
 }
 
-/// `--fits-products`: the products folder of the catalog `output`
-/// (`<stem>_products/fits/`), created and checked before any work.
-pub fn fits_products(
-    want: bool,
-    output: &std::path::Path,
-) -> anyhow::Result<Option<sofipol_pipeline::products::FitsProducts>> {
-    if !want {
-        return Ok(None);
-    }
-    let dir = sofipol_pipeline::products::fits_dir(output);
-    check_output_dir(&dir, "--fits-products")?;
-    Ok(Some(sofipol_pipeline::products::FitsProducts::new(dir)))
+/// The per-target outputs wanted besides the catalog, wherever a night is reduced (night,
+/// target, watch).
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct OutputArgs {
+    /// Also write DS9 region files, one per frame (both stars' apertures and sky annuli in
+    /// the o and e beams, dithers left out in red), into `<catalog stem>_products/regions/`
+    /// [default: none].
+    #[arg(long)]
+    pub regions: bool,
+    /// Also write FITS products into `<catalog stem>_products/fits/`: per target and
+    /// orientation the combined o and e cut-outs, per target Stokes I, Q, U, the night's
+    /// bad-pixel mask (docs/products.md) [default: not written].
+    #[arg(long)]
+    pub fits_products: bool,
 }
 
-/// The end of a run's FITS products: the folder, files and size on stdout (unless
-/// `quiet`), each file not written on stderr. Returns whether one was not written (the run
-/// then exits 2: its products are incomplete).
-pub fn finish_fits_products(p: Option<sofipol_pipeline::products::FitsProducts>, quiet: bool, cmd: &str) -> bool {
-    let Some(p) = p else { return false };
-    let dir = p.dir().to_path_buf();
-    let s = p.finish();
-    if !quiet {
+impl OutputArgs {
+    /// The outputs asked for, with or without the figures.
+    pub fn choice(&self, figures: bool) -> OutputChoice {
+        OutputChoice {
+            figures,
+            regions: self.regions,
+            fits: self.fits_products,
+        }
+    }
+}
+
+/// The per-target outputs of a run beside `catalog` ([`Outputs`]): each folder asked for is
+/// created and checked writable first (a run never reduces a night to fail at its first
+/// product), naming the option that wants it.
+pub fn outputs(catalog: &std::path::Path, choice: OutputChoice, setup: &NightSetup) -> anyhow::Result<Outputs> {
+    let root = sofipol_pipeline::products::products_dir(catalog);
+    for (want, dir, what) in [
+        (choice.figures, root.clone(), "the figures' folder"),
+        (choice.regions, root.join(outputs::REGIONS_DIR), "--regions"),
+        (choice.fits, root.join(outputs::FITS_DIR), "--fits-products"),
+    ] {
+        if want {
+            check_output_dir(&dir, what)?;
+        }
+    }
+    Outputs::create(catalog, choice, &setup.params.measure).with_context(|| format!("creating {}", root.display()))
+}
+
+/// The end of a run's outputs (`clean`: a whole night, see [`Outputs::finish`]): the FITS
+/// products' files and size on stdout (unless `quiet`), every file not written on stderr.
+/// Returns whether one was not written (the run then exits 2: its products are incomplete).
+pub fn finish_outputs(o: Outputs, clean: bool, quiet: bool, cmd: &str) -> bool {
+    let s = o.finish(clean);
+    let kinds = [
+        (&s.regions, "region file", "region file(s)"),
+        (&s.figures, "figure", "figure(s)"),
+        (&s.fits, "FITS product not written", "FITS product(s)"),
+    ];
+    if let (Some(f), false) = (&s.fits, quiet) {
         println!(
             "fits products: {} files, {:.1} MB -> {}",
-            s.written.len(),
-            s.bytes as f64 / 1e6,
-            dir.display()
+            f.files.len(),
+            f.bytes as f64 / 1e6,
+            f.dir.display()
         );
     }
-    for f in &s.failed {
-        eprintln!(
-            "sofipol {cmd}: FITS product not written: {}",
-            sofipol_calib::text::printable(f)
-        );
+    for (written, what, many) in kinds {
+        let Some(w) = written else { continue };
+        for line in &w.failed {
+            eprintln!("sofipol {cmd}: {what}: {}", sofipol_calib::text::printable(line));
+        }
+        if !w.failed.is_empty() {
+            eprintln!(
+                "sofipol {cmd}: {} {many} could not be written: the products are incomplete (exit 2)",
+                w.failed.len()
+            );
+        }
     }
-    if !s.failed.is_empty() {
-        eprintln!(
-            "sofipol {cmd}: {} FITS product(s) could not be written: the products are incomplete (exit 2)",
-            s.failed.len()
-        );
-    }
-    !s.failed.is_empty()
+    s.incomplete()
 }
 
 /// `--jobs` is capped at this many threads per core.

@@ -1,10 +1,11 @@
 //! `sofipol demo`: simulate the embedded demo scene into ./sofipol-demo/ and report.
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use sofipol_pipeline::catalog::provenance::FlatProvenance;
 use sofipol_pipeline::catalog::Catalog;
-use sofipol_pipeline::night::{self, Hooks, NightSetup, RunOptions};
+use sofipol_pipeline::night::{self, NightSetup, RunOptions};
+use sofipol_pipeline::products::OutputChoice;
 use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sim::{Scene, Simulator, Truth};
 
@@ -65,27 +66,23 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         calibration,
     };
     let plan = setup.plan(std::slice::from_ref(&raw), None);
-    let fig_dir = args.output.join("figures");
-    std::fs::create_dir_all(&fig_dir)?;
-    let figures = super::common::Figures::new(&fig_dir);
-    // Drawn from the calibrated catalog, as written.
-    let plot = |fig: &sofipol_pipeline::plots::target::TargetFigure| {
-        figures.write(&night::slug(&fig.target.object), fig);
+    // The figures go where `night` puts them, so that `sofipol report` finds them.
+    let cat_path = args.output.join("catalog.json");
+    let choice = OutputChoice {
+        figures: true,
+        ..OutputChoice::default()
     };
+    let outputs = super::common::outputs(&cat_path, choice, &setup)?;
+    let fig_dir = outputs.figures_dir().map(Path::to_path_buf).unwrap_or_default();
     let opts = RunOptions {
         night_mask: true,
         inputs: vec![raw.clone()],
-        hooks: Hooks {
-            on_done: None,
-            on_figure: Some(&plot),
-            on_reduced: None,
-        },
+        outputs: Some(&outputs),
         ..Default::default()
     };
     let out = night::run_night(&plan, &setup, &opts);
     let (cat, summary, stds) = (out.catalog, out.summary, plan.standards);
     let flats = out.flats;
-    let cat_path = args.output.join("catalog.json");
     sofipol_pipeline::io::write_json_atomic(&cat_path, &cat)?;
     println!(
         "  reduced {} sequences and {} standards in {:.2} s -> {}",
@@ -134,15 +131,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     println!("\n  (Pdb: P debiased (Wardle & Kronberg); P: not debiased, as in `sofipol night`; pulls use P.)");
     println!("  catalog: {}   figures: {}", cat_path.display(), fig_dir.display());
-    let (_, figures_failed) = figures.finish();
+    let incomplete = super::common::finish_outputs(outputs, true, true, "demo");
     let problems = check_against_truth(&truth.targets, &cat, PULL_LIMIT);
     if problems.is_empty() {
         println!("  check: every component's q and u within {PULL_LIMIT} sigma of the truth");
-        if !figures_failed.is_empty() {
-            eprintln!(
-                "sofipol demo: {} figure(s) could not be written: the products are incomplete (exit 2)",
-                figures_failed.len()
-            );
+        if incomplete {
             return Ok(ExitCode::from(2));
         }
         Ok(ExitCode::SUCCESS)

@@ -13,8 +13,8 @@ use std::time::Instant;
 use anyhow::{bail, Context};
 use serde::Deserialize;
 use sofipol_pipeline::catalog::Provenance;
+use sofipol_pipeline::io::write_atomic;
 use sofipol_pipeline::numeric::median_in_place;
-use sofipol_pipeline::plots::write_atomic;
 use sofipol_pipeline::stats::figures::{format_count, mc_figure};
 use sofipol_pipeline::stats::mc::{
     self, simulate_with_progress, Ism, McConfig, McOutput, PIntDist, CHUNK_PAIRS, DEFAULT_BINS, DEFAULT_PAIRS,

@@ -10,11 +10,10 @@ use sofipol_calib::text::printable;
 use sofipol_pipeline::catalog::{Catalog, Status, Target};
 use sofipol_pipeline::io;
 use sofipol_pipeline::night::{self, Hooks, NightOutput, NightPlan, NightSetup, RunOptions, Shard};
-use sofipol_pipeline::plots::target::TargetFigure;
-use sofipol_pipeline::products::{regions, FitsProducts};
-use sofipol_pipeline::reduce::run::{StageTimes, TargetOutcome};
+use sofipol_pipeline::products::Outputs;
+use sofipol_pipeline::reduce::run::StageTimes;
 
-use super::common::{progress, Figures};
+use super::common::{progress, OutputArgs};
 use super::setup::SetupArgs;
 
 /// Arguments of `sofipol night`.
@@ -37,16 +36,8 @@ pub struct Args {
     /// Do not write the per-target PNG figures.
     #[arg(long)]
     pub no_png: bool,
-    /// Also write DS9 region files, one per frame (both stars' apertures and sky annuli in
-    /// the o and e beams, dithers left out in red), into `<catalog stem>_products/regions/`
-    /// [default: none].
-    #[arg(long)]
-    pub regions: bool,
-    /// Also write FITS products into `<catalog stem>_products/fits/`: per target and
-    /// orientation the combined o and e cut-outs, per target Stokes I, Q, U, the night's
-    /// bad-pixel mask (docs/products.md) [default: not written].
-    #[arg(long)]
-    pub fits_products: bool,
+    #[command(flatten)]
+    pub outputs: OutputArgs,
     /// Also write the night's HTML page (`sofipol report`) to FILE, after the catalog
     /// [default: none].
     #[arg(long, value_name = "FILE")]
@@ -90,17 +81,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             pool.current_num_threads()
         );
     }
-    let png_dir = (!args.no_png).then(|| night::products_dir(&args.output));
-    if let Some(d) = &png_dir {
-        std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
-    }
-    let figures = png_dir.as_deref().map(Figures::new);
-    let regions = args
-        .regions
-        .then(|| Regions::new(night::products_dir(&args.output).join("regions"), &setup));
-    let fits = super::common::fits_products(args.fits_products, &args.output)?;
-    let out =
-        pool.install(|| reduce_with_progress(&plan, &setup, &args, figures.as_ref(), regions.as_ref(), fits.as_ref()));
+    let outputs = super::common::outputs(&args.output, args.outputs.choice(!args.no_png), &setup)?;
+    let out = pool.install(|| reduce_with_progress(&plan, &setup, &args, &outputs));
     let cat = &out.catalog;
     if !args.quiet {
         for l in &out.summary.lines {
@@ -124,8 +106,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         let written = Written {
             catalog: &args.output,
             log: &log,
-            figures: png_dir.as_deref(),
-            regions: regions.as_ref().map(|r| r.dir.as_path()),
+            figures: outputs.figures_dir(),
+            regions: outputs.regions_dir(),
             report: args.report.as_deref(),
         };
         print_summary(cat, plan.failures.len() + plan.not_science.len(), wall, &written);
@@ -133,34 +115,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if args.verbose > 0 {
         print_verbose(&out, wall);
     }
-    let regions_failed = regions.as_ref().map(Regions::finish).unwrap_or_default();
-    for (p, e) in &regions_failed {
-        eprintln!("sofipol night: region file {}: {}", p.display(), printable(e));
-    }
-    if !regions_failed.is_empty() {
-        eprintln!(
-            "sofipol night: {} region file(s) could not be written: the products are incomplete (exit 2)",
-            regions_failed.len()
-        );
-    }
-    let figures_failed = figures.map(|f| f.finish().1).unwrap_or_default();
-    if !figures_failed.is_empty() {
-        eprintln!(
-            "sofipol night: {} figure(s) could not be written: the products are incomplete (exit 2)",
-            figures_failed.len()
-        );
-    }
-    let fits_failed = super::common::finish_fits_products(fits, args.quiet, "night");
+    let incomplete = super::common::finish_outputs(outputs, true, args.quiet, "night");
     let bad = cat.targets.iter().any(|t| t.status != Status::Ok)
         || !cat.failures.is_empty()
         || super::summary::uncalibrated_exit(cat, setup.calibration.params.allow_uncalibrated);
-    Ok(
-        if bad || !figures_failed.is_empty() || !regions_failed.is_empty() || fits_failed {
-            ExitCode::from(2)
-        } else {
-            ExitCode::SUCCESS
-        },
-    )
+    Ok(if bad || incomplete {
+        ExitCode::from(2)
+    } else {
+        ExitCode::SUCCESS
+    })
 }
 
 /// Scan the night (standards apart, this shard's sequences and failures) and check the
@@ -191,16 +154,9 @@ fn plan_night(args: &Args, setup: &NightSetup) -> anyhow::Result<NightPlan> {
 }
 
 /// Run the night (in the current rayon pool) with a progress bar on a terminal, else a line
-/// per target (nothing if `quiet`); writes each target's figure into `figures`, its DS9
-/// regions into `regions` and its FITS products into `fits` when given.
-fn reduce_with_progress(
-    plan: &NightPlan,
-    setup: &NightSetup,
-    args: &Args,
-    figures: Option<&Figures>,
-    regions: Option<&Regions>,
-    fits: Option<&FitsProducts>,
-) -> NightOutput {
+/// per target (nothing if `quiet`); each target's figure, DS9 regions and FITS products
+/// written through `outputs` as asked.
+fn reduce_with_progress(plan: &NightPlan, setup: &NightSetup, args: &Args, outputs: &Outputs) -> NightOutput {
     let n = plan.sequences.len();
     let quiet = args.quiet;
     let tty = std::io::stderr().is_terminal();
@@ -227,30 +183,16 @@ fn reduce_with_progress(
             );
         }
     };
-    // Drawn after the calibration, from the catalog's final numbers.
-    let plot = |fig: &TargetFigure| {
-        if let Some(f) = figures {
-            f.write(&night::slug(fig.target.sequence_id()), fig);
-        }
-    };
-    let write_regions = |out: &TargetOutcome| {
-        if let Some(r) = regions {
-            r.write(out);
-        }
-    };
     let opts = RunOptions {
         night_mask: true,
         shard: args.shard,
         inputs: args.dirs.clone(),
         hooks: Hooks {
             on_done: Some(&on_done),
-            on_figure: figures.is_some().then_some(&plot as &(dyn Fn(&TargetFigure) + Sync)),
-            on_reduced: regions
-                .is_some()
-                .then_some(&write_regions as &(dyn Fn(&TargetOutcome) + Sync)),
+            ..Hooks::default()
         },
         cache: None,
-        fits_products: fits,
+        outputs: Some(outputs),
     };
     let out = night::run_night(plan, setup, &opts);
     pb.finish_and_clear();
@@ -325,40 +267,4 @@ pub fn print_verbose(out: &NightOutput, wall: f64) {
         io::cpu_seconds().unwrap_or(f64::NAN),
         io::peak_rss_bytes().unwrap_or(0) as f64 / 1e6
     );
-}
-
-/// Writes each reduced target's DS9 region files into `dir`, keeping the problems.
-struct Regions {
-    dir: PathBuf,
-    measure: sofipol_pipeline::reduce::MeasureParams,
-    software: String,
-    problems: std::sync::Mutex<Vec<(PathBuf, String)>>,
-}
-
-impl Regions {
-    fn new(dir: PathBuf, setup: &NightSetup) -> Regions {
-        Regions {
-            dir,
-            measure: setup.params.measure.clone(),
-            software: format!(
-                "sofipol {} (commit {})",
-                env!("CARGO_PKG_VERSION"),
-                sofipol_pipeline::build_info::commit()
-            ),
-            problems: Default::default(),
-        }
-    }
-
-    fn write(&self, out: &TargetOutcome) {
-        let files = regions::target_regions(out, &self.measure, &self.software);
-        let problems = regions::write_regions(&self.dir, &files);
-        if !problems.is_empty() {
-            self.problems.lock().unwrap_or_else(|e| e.into_inner()).extend(problems);
-        }
-    }
-
-    /// The files that could not be written, with why.
-    fn finish(&self) -> Vec<(PathBuf, String)> {
-        std::mem::take(&mut *self.problems.lock().unwrap_or_else(|e| e.into_inner()))
-    }
 }

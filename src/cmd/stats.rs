@@ -14,7 +14,7 @@ use std::process::ExitCode;
 use anyhow::{bail, Context};
 use sofipol_calib::text::printable;
 use sofipol_pipeline::catalog::Provenance;
-use sofipol_pipeline::plots::write_atomic;
+use sofipol_pipeline::io::write_atomic;
 use sofipol_pipeline::stats::alignment::DEFAULT_SIGNIFICANCE;
 use sofipol_pipeline::stats::figures::{
     ism_figure, models_figure, observed_figure, paper_models, simulate_models, ModelRow,

@@ -21,10 +21,8 @@ pub struct Args {
     /// Output catalog (JSON, written atomically).
     #[arg(short, long, default_value = "catalog.json")]
     pub output: PathBuf,
-    /// Also write FITS products into `<catalog stem>_products/fits/`: per orientation the
-    /// combined o and e cut-outs, Stokes I, Q, U (docs/products.md) [default: not written].
-    #[arg(long)]
-    pub fits_products: bool,
+    #[command(flatten)]
+    pub outputs: super::common::OutputArgs,
     #[command(flatten)]
     pub setup: SetupArgs,
     /// Print only errors.
@@ -95,10 +93,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .collect();
     plan.not_science.retain(|f| explicit.contains(&f.file));
     // One sequence: its bad pixels are detected from its own frames.
-    let fits = super::common::fits_products(args.fits_products, &args.output)?;
+    let outputs = super::common::outputs(&args.output, args.outputs.choice(false), &setup)?;
     let opts = RunOptions {
         inputs: args.inputs.clone(),
-        fits_products: fits.as_ref(),
+        outputs: Some(&outputs),
         ..Default::default()
     };
     let t0 = std::time::Instant::now();
@@ -118,7 +116,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if args.verbose > 0 {
         super::night::print_verbose(&out, t0.elapsed().as_secs_f64());
     }
-    let fits_failed = super::common::finish_fits_products(fits, args.quiet, "target");
+    let fits_failed = super::common::finish_outputs(outputs, true, args.quiet, "target");
     let failed = cat.targets.iter().any(|t| t.status != Status::Ok)
         || super::summary::uncalibrated_exit(cat, setup.calibration.params.allow_uncalibrated);
     Ok(if failed || !cat.failures.is_empty() || fits_failed {

@@ -53,6 +53,8 @@ pub struct Args {
     #[arg(long)]
     pub fresh: bool,
     #[command(flatten)]
+    pub outputs: super::common::OutputArgs,
+    #[command(flatten)]
     pub setup: SetupArgs,
     /// Print only errors.
     #[arg(short, long)]
@@ -107,7 +109,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let pool = super::common::worker_pool("watch", args.jobs, args.quiet)?;
     let cut = setup.params.measure.cut_snr;
     let allow_uncalibrated = setup.calibration.params.allow_uncalibrated;
+    let outputs = super::common::outputs(&args.output, args.outputs.choice(false), &setup)?;
     let mut live = LiveNight::new(setup, args.dirs.clone(), options);
+    live.set_outputs(outputs);
     if !args.fresh {
         resume(&mut live, &args.output, &state, args.quiet);
     }
@@ -268,10 +272,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             args.output.display()
         );
     }
+    // Targets reduced across the updates: nothing earlier is cleared from the folders.
+    let incomplete = live
+        .take_outputs()
+        .is_some_and(|o| super::common::finish_outputs(o, false, args.quiet, "watch"));
     let bad = cat.targets.iter().any(|t| t.status != Status::Ok)
         || !cat.failures.is_empty()
         || super::summary::uncalibrated_exit(&cat, allow_uncalibrated);
-    Ok(if bad { ExitCode::from(2) } else { ExitCode::SUCCESS })
+    Ok(if bad || incomplete {
+        ExitCode::from(2)
+    } else {
+        ExitCode::SUCCESS
+    })
 }
 
 /// Start the folder watcher: OS notifications (falling back to polling every second when

@@ -10,8 +10,9 @@
 //!   `qu_disagrees_with_table: chi2 = X (2 dof)` beyond 11.83 (the 3-sigma tail, p = 0.0027).
 use sofipol_calib::Profile;
 
-use super::{resolve::calibrated_obs, FilterCalibration};
+use super::FilterCalibration;
 use crate::catalog::{Component, Flag, FlagCode};
+use crate::solve::calibrated_obs;
 use crate::standards::StandardStar;
 use crate::stokes::calibration::{solve, Offset, StokesMethod};
 use crate::stokes::inversion::{QuFit, WK_ANGLE_FACTOR_DEG};

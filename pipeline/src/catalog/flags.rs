@@ -305,6 +305,17 @@ impl Flag {
         self.code == code
     }
 
+    /// Whether this is the flag of a Stokes method that fell back to a solve without offset
+    /// correction (`stokes_method_failed: ...; fell back to ... (uncalibrated)`): such a value
+    /// never passes the cut.
+    pub fn is_uncalibrated_fallback(&self) -> bool {
+        self.is(FlagCode::StokesMethodFailed)
+            && self
+                .detail
+                .as_deref()
+                .is_some_and(|d| d.ends_with(crate::stokes::calibration::FALLBACK_UNCALIBRATED))
+    }
+
     /// The name a reader looks for: a named flag's name (`p_disagrees_with_table`), the
     /// whole text of a sentence-like or unknown flag.
     pub fn label(&self) -> String {

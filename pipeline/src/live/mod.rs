@@ -159,6 +159,8 @@ pub struct LiveNight {
     /// Watched folders that are gone or cannot be listed, with why (no update meanwhile:
     /// the catalog stays as last written).
     missing_roots: Vec<(PathBuf, String)>,
+    /// Per-target outputs (DS9 regions, FITS products) written for each target reduced.
+    outputs: Option<crate::products::Outputs>,
 }
 
 /// Headers read, by path, with the stamp of the file they were read from.
@@ -216,7 +218,19 @@ impl LiveNight {
             reduced: HashSet::new(),
             vanished: BTreeMap::new(),
             missing_roots: Vec::new(),
+            outputs: None,
         }
+    }
+
+    /// Write each target's outputs (DS9 regions, FITS products) as it is reduced; targets
+    /// taken unchanged from the cache keep the files written when they were reduced.
+    pub fn set_outputs(&mut self, outputs: crate::products::Outputs) {
+        self.outputs = Some(outputs);
+    }
+
+    /// The outputs, to finish them when the night is over.
+    pub fn take_outputs(&mut self) -> Option<crate::products::Outputs> {
+        self.outputs.take()
     }
 
     /// The cache of reduced targets (to save it, or to load a saved one before the first
@@ -300,6 +314,7 @@ impl LiveNight {
             night_mask: true,
             inputs: self.roots.clone(),
             cache: Some(&self.cache),
+            outputs: self.outputs.as_ref(),
             ..Default::default()
         };
         let out = night::run_night(&plan, setup, &opts);

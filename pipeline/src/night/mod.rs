@@ -99,11 +99,15 @@ pub struct RunOptions<'a> {
     pub hooks: Hooks<'a>,
     /// Results of earlier runs over the same night, reused where their inputs are
     /// unchanged and updated with this run's (live reduction). Not used for the targets
-    /// when `hooks.on_figure` or `fits_products` is given (both need the frames).
+    /// when figures are drawn (`hooks.on_figure` or `outputs` with figures: every target's
+    /// figure needs its frames); region files and FITS products are written for the
+    /// targets reduced, not for those taken from the cache.
     pub cache: Option<&'a NightCache>,
-    /// Write FITS products (docs/products.md): each target's while its frames are in memory
-    /// (a file not written flags the target), the night's bad-pixel mask once detected.
-    pub fits_products: Option<&'a crate::products::FitsProducts>,
+    /// The per-target outputs written as the night runs (figures, DS9 regions, FITS
+    /// products: [`crate::products::Outputs`]): each target's regions and FITS products
+    /// while its frames are in memory (a FITS file not written flags the target), its
+    /// figure once calibrated, the night's bad-pixel mask once detected.
+    pub outputs: Option<&'a crate::products::Outputs>,
 }
 
 /// Wall time of the night's stages, seconds.
@@ -163,22 +167,20 @@ pub fn run_night(plan: &NightPlan, setup: &NightSetup, opts: &RunOptions) -> Nig
             })
         },
     );
-    if let (Some(p), Some(m)) = (opts.fits_products, &mask) {
-        p.write_bad_pixel_mask(m, params);
+    if let (Some(o), Some(m)) = (opts.outputs, &mask) {
+        o.night_mask(m, params);
     }
+    let figures_wanted = opts.hooks.on_figure.is_some() || opts.outputs.is_some_and(|o| o.wants_figures());
     let mask_array = mask.as_ref().map(|m| &m.mask);
     let t = Instant::now();
-    let cache = opts
-        .cache
-        .filter(|_| opts.hooks.on_figure.is_none() && opts.fits_products.is_none())
-        .map(|c| (c, mask_key, flats_key));
+    let cache = opts.cache.filter(|_| !figures_wanted).map(|c| (c, mask_key, flats_key));
     let mut reduced = reduce_sequences_cached(
         &plan.sequences,
         profile,
         params,
         mask_array,
         flats.set.as_ref(),
-        (&opts.hooks, opts.fits_products),
+        (&opts.hooks, opts.outputs),
         cache,
     );
     let t_reduce = t.elapsed().as_secs_f64();
@@ -200,8 +202,16 @@ pub fn run_night(plan: &NightPlan, setup: &NightSetup, opts: &RunOptions) -> Nig
     );
     let t_cal = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    if let Some(draw) = opts.hooks.on_figure {
-        draw_figures(&cat.targets, &reduced.figures, calibration.as_ref(), draw);
+    if figures_wanted {
+        let draw = |fig: &TargetFigure| {
+            if let Some(f) = opts.hooks.on_figure {
+                f(fig);
+            }
+            if let Some(o) = opts.outputs {
+                o.figure(fig);
+            }
+        };
+        draw_figures(&cat.targets, &reduced.figures, calibration.as_ref(), &draw);
     }
     let t_fig = t.elapsed().as_secs_f64();
     let shard = opts.shard;
@@ -292,18 +302,30 @@ pub fn reduce_sequences(
 
 /// [`reduce_sequences`], taking each target from `cache` (with the keys of the mask and
 /// flats given) when its inputs are unchanged, and keeping the others there; with
-/// `products`, each target's FITS products are written while its frames are in memory.
+/// `outputs`, each target reduced has its regions and FITS products written while its
+/// frames are in memory.
 fn reduce_sequences_cached(
     sequences: &[Sequence],
     profile: &Profile,
     params: &TargetParams,
     night_mask: Option<&Array2<u8>>,
     flats: Option<&FlatSet>,
-    (hooks, products): (&Hooks, Option<&crate::products::FitsProducts>),
+    (hooks, outputs): (&Hooks, Option<&crate::products::Outputs>),
     cache: Option<(&NightCache, u64, u64)>,
 ) -> Reduced {
-    let want_figures = hooks.on_figure.is_some();
-    let keep_frames = want_figures || products.is_some();
+    let want_figures = hooks.on_figure.is_some() || outputs.is_some_and(|o| o.wants_figures());
+    let keep_frames = outputs.is_some_and(|o| o.wants_frames());
+    // A target just reduced, its frames in memory: the caller's hook and its outputs.
+    let reduced = |out: &mut crate::reduce::run::TargetOutcome| {
+        if let Some(f) = hooks.on_reduced {
+            f(out);
+        }
+        if let Some(o) = outputs {
+            let t = Instant::now();
+            o.reduced(out, profile, params);
+            out.times.write += t.elapsed().as_secs_f64();
+        }
+    };
     let outs: Vec<(Target, Vec<Failure>, StageTimes, Option<FigureInputs>)> = sequences
         .par_iter()
         .map(|q| {
@@ -311,23 +333,16 @@ fn reduce_sequences_cached(
                 Some((c, mask_key, flats_key)) => {
                     let mut times = StageTimes::default();
                     let (t, f, _) = c.target(c.target_key(q, mask_key, flats_key), || {
-                        let out = reduce_sequence(q, profile, params, night_mask, flats, false);
+                        let mut out = reduce_sequence(q, profile, params, night_mask, flats, keep_frames);
+                        reduced(&mut out);
                         times = out.times;
                         (out.target, out.failures)
                     });
                     (t, f, times, None)
                 }
                 None => {
-                    let mut out = reduce_sequence(q, profile, params, night_mask, flats, keep_frames);
-                    if let Some(f) = hooks.on_reduced {
-                        f(&out);
-                    }
-                    if let Some(p) = products {
-                        let t = Instant::now();
-                        let not_written = p.write_target(&out, profile, params);
-                        out.target.flags.get_or_insert_with(Vec::new).extend(not_written);
-                        out.times.write += t.elapsed().as_secs_f64();
-                    }
+                    let mut out = reduce_sequence(q, profile, params, night_mask, flats, want_figures || keep_frames);
+                    reduced(&mut out);
                     let fig = want_figures.then(|| FigureInputs::from_outcome(&out));
                     (out.target, out.failures, out.times, fig)
                 }

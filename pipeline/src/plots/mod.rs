@@ -561,9 +561,10 @@ where
     Ok(())
 }
 
-/// Write `bytes` to `path` atomically ([`sofipol_calib::atomic::write_atomic`]).
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    sofipol_calib::atomic::write_atomic(path, bytes).map_err(|e| match e {
+/// Write `bytes` to `path` atomically (the workspace's one writer, [`crate::io::write_atomic`]),
+/// its error as this module's.
+pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    crate::io::write_atomic(path, bytes).map_err(|e| match e {
         sofipol_calib::Error::Io { path, source } => Error::Io { path, source },
         other => Error::Io {
             path: path.to_path_buf(),

@@ -15,82 +15,62 @@
 //! per frame (night --regions)    regions/<frame>.reg (DS9 regions)  regions.rs
 //! ```
 //!
-//! The per-target products are made while the target's frames are in memory, during the
-//! reduction ([`FitsProducts::write_target`], called by `night::run_night`). Every file is
+//! Every per-target output (figures, regions, FITS products) is written through
+//! [`Outputs`] (outputs.rs: the folders and the names). The per-target products are made
+//! while the target's frames are in memory, during the reduction
+//! ([`FitsProducts::write_target`], called by `night::run_night` through [`Outputs`]). Every file is
 //! written atomically; a file that cannot be written is a flag on its target
-//! (`fits_product_not_written: ...`) and a line in [`ProductsSummary::failed`], never a
+//! (`fits_product_not_written: ...`) and a line in [`Written::failed`], never a
 //! failed night.
 pub mod badpix;
 pub mod combine;
 pub mod headers;
+pub mod outputs;
 mod paths;
 pub mod regions;
 pub mod stokes_maps;
 pub mod target;
 
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
 
 use sofipol_calib::Profile;
 
 use crate::catalog::{Flag, FlagCode};
 use crate::reduce::run::TargetOutcome;
 use crate::reduce::TargetParams;
+pub use outputs::{OutputChoice, Outputs, OutputsSummary, Written};
 pub use paths::{products_dir, slug};
 
 /// Where the FITS products of a catalog go: `<dir>/<stem>_products/fits/`.
 pub fn fits_dir(catalog: &Path) -> PathBuf {
-    products_dir(catalog).join("fits")
+    products_dir(catalog).join(outputs::FITS_DIR)
 }
 
 /// The FITS products of one run, written into one folder (which exists) from the reduction's
 /// threads; [`FitsProducts::finish`] says what was written.
 pub struct FitsProducts {
-    dir: PathBuf,
-    written: Mutex<Vec<PathBuf>>,
-    failed: Mutex<Vec<String>>,
-}
-
-/// What a run's FITS products came to.
-#[derive(Debug, Clone, Default)]
-pub struct ProductsSummary {
-    /// Files written, sorted.
-    pub written: Vec<PathBuf>,
-    /// Their size, bytes.
-    pub bytes: u64,
-    /// One line per file that could not be written (file and reason).
-    pub failed: Vec<String>,
+    files: outputs::Files,
 }
 
 impl FitsProducts {
     /// Products written into `dir` (which must exist).
     pub fn new(dir: impl Into<PathBuf>) -> Self {
         FitsProducts {
-            dir: dir.into(),
-            written: Default::default(),
-            failed: Default::default(),
+            files: outputs::Files::new(dir.into()),
         }
     }
 
     /// The folder.
     pub fn dir(&self) -> &Path {
-        &self.dir
+        self.files.dir()
     }
 
     /// Record a file's outcome; the target flag ([`FlagCode::FitsProductNotWritten`]) when
     /// it was not written.
     fn record(&self, path: &Path, result: Result<(), String>) -> Option<Flag> {
-        match result {
-            Ok(()) => {
-                self.written.lock().expect("not poisoned").push(path.to_path_buf());
-                None
-            }
-            Err(e) => {
-                let line = format!("{}: {e}", path.display());
-                self.failed.lock().expect("not poisoned").push(line.clone());
-                Some(Flag::with_detail(FlagCode::FitsProductNotWritten, line))
-            }
-        }
+        self.files
+            .record(path, result)
+            .map(|line| Flag::with_detail(FlagCode::FitsProductNotWritten, line))
     }
 
     /// Write the products of one reduced target (its frames kept: `outcome.calibrated`),
@@ -105,7 +85,7 @@ impl FitsProducts {
             return Vec::new();
         };
         let slug = slug(outcome.target.sequence_id());
-        target::write(&self.dir, &slug, &outcome.target, m, &p)
+        target::write(self.dir(), &slug, &outcome.target, m, &p)
             .into_iter()
             .filter_map(|(path, r)| self.record(&path, r))
             .collect()
@@ -114,39 +94,17 @@ impl FitsProducts {
     /// Write the night's bad-pixel mask as `night_badpix.fits` ([`badpix::write`]); a
     /// failure is recorded (and returned).
     pub fn write_bad_pixel_mask(&self, mask: &badpix::NightMask, params: &TargetParams) -> Option<Flag> {
-        let path = self.dir.join(badpix::FILE_NAME);
+        let path = self.dir().join(badpix::FILE_NAME);
         let r = badpix::write(&path, mask, params).map_err(|e| e.to_string());
         self.record(&path, r)
     }
 
-    /// What was written and what failed. The folder is cleared of what earlier runs left
-    /// there and this one did not write: sofipol FITS products (files with `SOFIPROD`) of
-    /// targets no longer reduced, and the temporary directories of interrupted writes.
-    pub fn finish(self) -> ProductsSummary {
-        let mut written = self.written.into_inner().expect("not poisoned");
-        written.sort();
-        if let Ok(entries) = std::fs::read_dir(&self.dir) {
-            for e in entries.flatten() {
-                let path = e.path();
-                let name = e.file_name().to_string_lossy().into_owned();
-                let Ok(ft) = e.file_type() else { continue };
-                if ft.is_dir() && name.starts_with('.') && name.ends_with(".tmp") {
-                    let _ = std::fs::remove_dir_all(&path);
-                } else if ft.is_file() && name.ends_with(".fits") && !written.contains(&path) && is_product(&path) {
-                    let _ = std::fs::remove_file(&path);
-                }
-            }
-        }
-        let bytes = written
-            .iter()
-            .filter_map(|p| std::fs::metadata(p).ok())
-            .map(|m| m.len())
-            .sum();
-        ProductsSummary {
-            written,
-            bytes,
-            failed: self.failed.into_inner().expect("not poisoned"),
-        }
+    /// What was written and what failed. With `clean` (a whole night), the folder is
+    /// cleared of what earlier runs left there and this one did not write: sofipol FITS
+    /// products (files with `SOFIPROD`) of targets no longer reduced, and the temporary
+    /// directories of interrupted writes.
+    pub fn finish(self, clean: bool) -> outputs::Written {
+        self.files.finish(clean, is_product)
     }
 }
 

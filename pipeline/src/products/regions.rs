@@ -47,18 +47,17 @@ pub fn target_regions(out: &TargetOutcome, params: &MeasureParams, software: &st
     files
 }
 
-/// Write `files` into `dir` (created), each atomically; the problems, by file.
-pub fn write_regions(dir: &Path, files: &[RegionFile]) -> Vec<(PathBuf, String)> {
+/// Write `files` into `dir` (created), each atomically; every file's outcome.
+pub fn write_regions(dir: &Path, files: &[RegionFile]) -> Vec<(PathBuf, Result<(), String>)> {
     if let Err(e) = std::fs::create_dir_all(dir) {
-        return vec![(dir.to_path_buf(), e.to_string())];
+        return vec![(dir.to_path_buf(), Err(e.to_string()))];
     }
     files
         .iter()
-        .filter_map(|f| {
+        .map(|f| {
             let p = dir.join(&f.name);
-            crate::io::write_atomic(&p, f.text.as_bytes())
-                .err()
-                .map(|e| (p, e.to_string()))
+            let r = crate::io::write_atomic(&p, f.text.as_bytes()).map_err(|e| e.to_string());
+            (p, r)
         })
         .collect()
 }

@@ -4,23 +4,9 @@
 use super::{CalibratedOrientation, DitherValue, MeasureParams, Measured};
 use crate::catalog::flags::has;
 use crate::catalog::{CombinedF, Component, DroppedDither, Flag, FlagCode, Status, Target};
-use crate::stokes::inversion::{clip_dithers, combine_dithers, fit_qu, LinearPolarization, Polarization};
-use crate::stokes::propagation::QuCovariance;
+use crate::stokes::inversion::{clip_dithers, combine_dithers, Polarization};
 use sofipol_calib::profile::Keywords;
-
-/// Component flags that keep a value from passing the cut, whatever its S/N: dithers that
-/// were all flagged (`used_flagged_dithers`: a saturated core may be far off) and an A/B
-/// identity that could not be established at some orientation (`ab_identity_unverified`:
-/// q and u may mix the two stars), and a chosen Stokes method replaced by an uncalibrated
-/// fallback (`stokes_method_failed: ... (uncalibrated)`). Shared with the calibration, which
-/// recomputes the cut.
-pub fn refused_by_flags(flags: &[Flag]) -> bool {
-    flags.iter().any(|f| {
-        f.is(FlagCode::UsedFlaggedDithers)
-            || f == &Flag::new(FlagCode::AbIdentityUnverified)
-            || crate::stokes::calibration::fallback_refuses_cut(f)
-    })
-}
+use sofipol_calib::Profile;
 
 /// The component flag of `k` of its `n` dithers dropped for masked pixels (a detector
 /// defect, a pixel the flat cannot correct, off the strip) within the aperture (radius +
@@ -42,51 +28,125 @@ pub fn component_from_dithers(
     parallactic_deg: &[Vec<Option<f64>>],
     files: &[Vec<String>],
     params: &MeasureParams,
+    profile: &Profile,
 ) -> Component {
-    let mut dropped: Vec<DroppedDither> = Vec::new();
-    let mut flags: Vec<Flag> = Vec::new();
-    let (mut phis, mut fs, mut ss) = (Vec::new(), Vec::new(), Vec::new());
-    let mut per_orientation = Vec::new();
-    let mut sum_flux = 0.0;
-    let mut n_flux = 0;
-    let n_dithers: usize = per_orient.iter().map(Vec::len).sum();
-    let n_bad_pixels = per_orient
-        .iter()
-        .flatten()
-        .filter(|d| {
-            d.rejected
-                .as_deref()
-                .is_some_and(|r| r.split(',').any(|x| x == FlagCode::BadPixels.name()))
-        })
-        .count();
-    // When some frames have a parallactic angle, a dither whose frame has none cannot have
-    // the telescope's polarization removed: it is left out by name (the others keep the
-    // correction). With no angle anywhere, nothing is left out (the component is flagged
-    // uncorrected by the calibration).
-    let any_eta = parallactic_deg.iter().flatten().any(Option::is_some);
-    let no_eta = |k: usize, i: usize| {
-        any_eta
-            && parallactic_deg
+    let mut acc = Combination {
+        parallactic_deg,
+        files,
+        any_eta: parallactic_deg.iter().flatten().any(Option::is_some),
+        ..Combination::default()
+    };
+    for (k, dv) in per_orient.iter().enumerate() {
+        acc.orientation(k, dv, analyzer_deg[k], params);
+    }
+    let mut c = acc.component(name, per_orient);
+    solve_provisionally(&mut c, profile, params);
+    c
+}
+
+/// The provisional q, u of a freshly measured component: the one Stokes solve
+/// ([`crate::solve::resolve_component`]) by least squares, without a calibration. It
+/// decides the target's status; the catalog keeps what the night's calibration re-solves.
+/// What the calibration has not yet said (`uncalibrated`, the telescope's term not
+/// removed) is left to it; orientations that do not constrain q and u are flagged
+/// `undefined_polarization`.
+fn solve_provisionally(c: &mut Component, profile: &Profile, params: &MeasureParams) {
+    use crate::stokes::calibration::StokesMethod;
+    crate::solve::resolve_component(
+        c,
+        profile,
+        None,
+        StokesMethod::LeastSquares,
+        params.debias,
+        params.cut_snr,
+    );
+    c.flags
+        .retain(|f| !f.is(FlagCode::Uncalibrated) && !f.is(FlagCode::TelescopeUncorrected));
+    if !c.q.is_finite() {
+        c.flags.retain(|f| !f.is(FlagCode::StokesMethodFailed));
+        c.flags.push(Flag::with_detail(
+            FlagCode::UndefinedPolarization,
+            "orientations do not constrain q and u",
+        ));
+        c.passes_cut = false;
+    }
+}
+
+/// A component's dithers combined orientation by orientation: the flags, the dithers left
+/// out with why, F per orientation, the flux.
+#[derive(Default)]
+struct Combination<'a> {
+    parallactic_deg: &'a [Vec<Option<f64>>],
+    files: &'a [Vec<String>],
+    /// Some frame has a parallactic angle: a dither whose frame has none is left out.
+    any_eta: bool,
+    flags: Vec<Flag>,
+    dropped: Vec<DroppedDither>,
+    per_orientation: Vec<CombinedF>,
+    sum_flux: f64,
+    n_flux: usize,
+}
+
+impl Combination<'_> {
+    /// Flag `code` once.
+    fn flag(&mut self, code: FlagCode) {
+        if !has(&self.flags, code) {
+            self.flags.push(Flag::new(code));
+        }
+    }
+
+    /// Dither `i` of orientation `k` has no parallactic angle while other frames have one:
+    /// the telescope's polarization cannot be removed from it, so it is left out by name
+    /// (the others keep the correction). With no angle anywhere, nothing is left out (the
+    /// calibration flags the component uncorrected).
+    fn no_eta(&self, k: usize, i: usize) -> bool {
+        self.any_eta
+            && self
+                .parallactic_deg
                 .get(k)
                 .and_then(|v| v.get(i))
                 .copied()
                 .flatten()
                 .is_none()
-    };
-    for (k, dv) in per_orient.iter().enumerate() {
+    }
+
+    /// Combine orientation `k` (analyzer angle `phi`): flag, choose the usable dithers,
+    /// clip, record what was left out, and combine what is kept.
+    fn orientation(&mut self, k: usize, dv: &[DitherValue], phi: f64, params: &MeasureParams) {
+        let usable = self.usable(k, dv);
+        let vals: Vec<f64> = usable.iter().map(|&i| dv[i].f).collect();
+        let sig: Vec<f64> = usable.iter().map(|&i| dv[i].sigma_f).collect();
+        let keep = clip_dithers(&vals, &sig, params.clip_sigma, 2);
+        self.left_out(k, dv, &usable, &keep);
+        let kept: Vec<usize> = keep.iter().map(|&j| usable[j]).collect();
+        for &i in &kept {
+            self.sum_flux += dv[i].o.flux + dv[i].e.flux;
+            self.n_flux += 1;
+        }
+        let kv: Vec<f64> = keep.iter().map(|&j| vals[j]).collect();
+        let ks: Vec<f64> = keep.iter().map(|&j| sig[j]).collect();
+        if let Some(f) = self.combined(k, dv.len(), phi, &kept, &kv, &ks) {
+            self.per_orientation.push(f);
+        }
+    }
+
+    /// The dithers of orientation `k` that enter its F, flagging what the others say: not
+    /// rejected and with an angle when others have one; all finite values (flagged
+    /// `used_flagged_dithers`) when that leaves none. Photometry flags of the usable ones
+    /// are carried.
+    fn usable(&mut self, k: usize, dv: &[DitherValue]) -> Vec<usize> {
         let mut usable: Vec<usize> = (0..dv.len())
-            .filter(|&i| dv[i].rejected.is_none() && !no_eta(k, i))
+            .filter(|&i| dv[i].rejected.is_none() && !self.no_eta(k, i))
             .collect();
-        if (0..dv.len()).any(|i| dv[i].rejected.is_none() && no_eta(k, i)) && !has(&flags, FlagCode::NoParallacticAngle)
-        {
-            flags.push(Flag::new(FlagCode::NoParallacticAngle));
+        if (0..dv.len()).any(|i| dv[i].rejected.is_none() && self.no_eta(k, i)) {
+            self.flag(FlagCode::NoParallacticAngle);
         }
         for d in dv.iter().filter(|d| d.rejected.is_some()) {
             // A dither's reasons are flag names (`cosmic_ray,bad_pixels`).
             for r in d.rejected.as_deref().unwrap_or("").split(',').filter(|r| !r.is_empty()) {
                 let r = Flag::parse(r);
-                if !flags.contains(&r) {
-                    flags.push(r);
+                if !self.flags.contains(&r) {
+                    self.flags.push(r);
                 }
             }
         }
@@ -95,8 +155,8 @@ pub fn component_from_dithers(
             usable = (0..dv.len())
                 .filter(|&i| dv[i].f.is_finite() && dv[i].sigma_f > 0.0)
                 .collect();
-            if !usable.is_empty() && !has(&flags, FlagCode::UsedFlaggedDithers) {
-                flags.push(Flag::new(FlagCode::UsedFlaggedDithers));
+            if !usable.is_empty() {
+                self.flag(FlagCode::UsedFlaggedDithers);
             }
         }
         for &i in &usable {
@@ -108,22 +168,24 @@ pub fn component_from_dithers(
                     FlagCode::AnnulusContaminated,
                 ),
             ] {
-                if pf.contains(bit) && !has(&flags, code) {
-                    flags.push(Flag::new(code));
+                if pf.contains(bit) {
+                    self.flag(code);
                 }
             }
         }
-        let vals: Vec<f64> = usable.iter().map(|&i| dv[i].f).collect();
-        let sig: Vec<f64> = usable.iter().map(|&i| dv[i].sigma_f).collect();
-        let keep = clip_dithers(&vals, &sig, params.clip_sigma, 2);
-        // Every dither not kept, by frame, with why.
+        usable
+    }
+
+    /// Every dither of orientation `k` not kept (`keep`: indices into `usable`), by frame,
+    /// with why.
+    fn left_out(&mut self, k: usize, dv: &[DitherValue], usable: &[usize], keep: &[usize]) {
         for (i, d) in dv.iter().enumerate() {
             if keep.iter().any(|&j| usable[j] == i) {
                 continue;
             }
             let reason = match d.rejected.as_deref() {
                 Some(r) if !usable.contains(&i) => r.split(',').collect::<Vec<_>>().join(", "),
-                None if !usable.contains(&i) && no_eta(k, i) => FlagCode::NoParallacticAngle.name().to_string(),
+                None if !usable.contains(&i) && self.no_eta(k, i) => FlagCode::NoParallacticAngle.name().to_string(),
                 // Usable but left out by the clipping: an outlier, or a value or error that
                 // is not a number (never combined).
                 _ if d.f.is_finite() && d.sigma_f > 0.0 => "clipped".to_string(),
@@ -131,107 +193,92 @@ pub fn component_from_dithers(
             };
             // Only an outlier clipped is `dither_clipped`; a value that is not a number
             // was never a candidate.
-            if reason == "clipped" && !has(&flags, FlagCode::DitherClipped) {
-                flags.push(Flag::new(FlagCode::DitherClipped));
+            if reason == "clipped" {
+                self.flag(FlagCode::DitherClipped);
             }
-            let file = files
+            let file = self
+                .files
                 .get(k)
                 .and_then(|f| f.get(i))
                 .cloned()
                 .unwrap_or_else(|| format!("orientation {} dither {}", k + 1, i + 1));
-            dropped.push(DroppedDither { file, reason });
-        }
-        let kv: Vec<f64> = keep.iter().map(|&i| vals[i]).collect();
-        let ks: Vec<f64> = keep.iter().map(|&i| sig[i]).collect();
-        for &i in &keep {
-            let d = &dv[usable[i]];
-            sum_flux += d.o.flux + d.e.flux;
-            n_flux += 1;
-        }
-        if let Some(c) = combine_dithers(&kv, &ks) {
-            // Honest error: the propagated one, inflated by sqrt(chi2/dof) when the dither
-            // scatter is significantly larger (p < 0.01).
-            let dof = (c.n.saturating_sub(1)) as f64;
-            let mut sigma = c.sigma;
-            if dof >= 1.0 {
-                let p = 1.0
-                    - statrs::distribution::ContinuousCDF::cdf(
-                        &statrs::distribution::ChiSquared::new(dof).expect("dof > 0"),
-                        c.chi2,
-                    );
-                if p < 0.01 {
-                    sigma *= (c.chi2 / dof).sqrt();
-                    if !has(&flags, FlagCode::ExcessDitherScatter) {
-                        flags.push(Flag::new(FlagCode::ExcessDitherScatter));
-                    }
-                }
-            }
-            phis.push(analyzer_deg[k]);
-            fs.push(c.value);
-            ss.push(sigma);
-            let etas: Option<Vec<f64>> = keep
-                .iter()
-                .map(|&i| parallactic_deg.get(k).and_then(|v| v.get(usable[i]).copied().flatten()))
-                .collect();
-            let parallactic = etas.and_then(|e| ParallacticMean::of(&e, &ks));
-            per_orientation.push(CombinedF {
-                analyzer_deg: analyzer_deg[k],
-                chi2: c.chi2,
-                f: c.value,
-                n_dithers: c.n,
-                n_dithers_total: dv.len(),
-                parallactic_2eta: parallactic.map(|p| p.cos_sin_2eta),
-                parallactic_deg: parallactic.map(|p| p.eta_deg),
-                posang_deg: None,
-                sigma_f: sigma,
-                sigma_f_propagated: c.sigma,
-                sigma_f_scatter: c.sigma_scatter,
-            });
+            self.dropped.push(DroppedDither { file, reason });
         }
     }
-    if let Some(f) = flags.iter_mut().find(|f| **f == Flag::new(FlagCode::BadPixels)) {
-        *f = bad_pixels_flag(n_bad_pixels, n_dithers);
-    }
-    let measured = Component {
-        orientations: Some(per_orientation),
-        dropped_dithers: (!dropped.is_empty()).then_some(dropped),
-        flux_adu: Some(if n_flux > 0 { sum_flux / n_flux as f64 } else { f64::NAN }),
-        ..Component::new(name, Polarization::UNDEFINED)
-    };
-    let fit = fit_qu(&phis, &fs, &ss);
-    match fit {
-        Some(r) => {
-            let cov = QuCovariance {
-                var_q: r.var_q,
-                var_u: r.var_u,
-                cov_qu: r.cov_qu,
-            };
-            let lp = LinearPolarization::from_qu_cov(r.q, r.u, &cov, params.debias);
-            if lp.snr <= params.cut_snr {
-                flags.push(Flag::new(FlagCode::LowSnr));
-            }
-            Component {
-                pol: lp.pol,
-                // A value from dithers that were all flagged (saturated, bad pixels...) is
-                // reported, never a detection: it may be far off (a saturated core).
-                passes_cut: lp.passes_cut(params.cut_snr) && !refused_by_flags(&flags),
-                flags,
-                snr: Some(lp.snr),
-                sigma_gamma_nkc_deg: Some(lp.sigma_gamma_nkc_deg),
-                cov_qu: Some(r.cov_qu),
-                cov_qu_stat: Some(r.cov_qu),
-                sigma_q_stat: Some(lp.sigma_q),
-                sigma_u_stat: Some(lp.sigma_u),
-                sigma_gamma_stat_deg: Some(lp.sigma_gamma_deg),
-                ..measured
+
+    /// F of orientation `k` from its kept dithers (`kept`: their indices, `kv`, `ks`: their
+    /// F and errors), the honest error: the propagated one, inflated by sqrt(chi2/dof)
+    /// when the dither scatter is significantly larger (p < 0.01).
+    fn combined(
+        &mut self,
+        k: usize,
+        n_total: usize,
+        phi: f64,
+        kept: &[usize],
+        kv: &[f64],
+        ks: &[f64],
+    ) -> Option<CombinedF> {
+        let c = combine_dithers(kv, ks)?;
+        let dof = (c.n.saturating_sub(1)) as f64;
+        let mut sigma = c.sigma;
+        if dof >= 1.0 {
+            let p = 1.0
+                - statrs::distribution::ContinuousCDF::cdf(
+                    &statrs::distribution::ChiSquared::new(dof).expect("dof > 0"),
+                    c.chi2,
+                );
+            if p < 0.01 {
+                sigma *= (c.chi2 / dof).sqrt();
+                self.flag(FlagCode::ExcessDitherScatter);
             }
         }
-        None => {
-            flags.push(Flag::with_detail(
-                FlagCode::UndefinedPolarization,
-                "orientations do not constrain q and u",
-            ));
-            Component { flags, ..measured }
+        let etas: Option<Vec<f64>> = kept
+            .iter()
+            .map(|&i| self.parallactic_deg.get(k).and_then(|v| v.get(i).copied().flatten()))
+            .collect();
+        let parallactic = etas.and_then(|e| ParallacticMean::of(&e, ks));
+        Some(CombinedF {
+            analyzer_deg: phi,
+            chi2: c.chi2,
+            f: c.value,
+            n_dithers: c.n,
+            n_dithers_total: n_total,
+            parallactic_2eta: parallactic.map(|p| p.cos_sin_2eta),
+            parallactic_deg: parallactic.map(|p| p.eta_deg),
+            posang_deg: None,
+            sigma_f: sigma,
+            sigma_f_propagated: c.sigma,
+            sigma_f_scatter: c.sigma_scatter,
+        })
+    }
+
+    /// The component, its q and u still to solve. The `bad_pixels` flag says how many
+    /// dithers it dropped.
+    fn component(mut self, name: &str, per_orient: &[Vec<DitherValue>]) -> Component {
+        let n_dithers: usize = per_orient.iter().map(Vec::len).sum();
+        let n_bad_pixels = per_orient
+            .iter()
+            .flatten()
+            .filter(|d| {
+                d.rejected
+                    .as_deref()
+                    .is_some_and(|r| r.split(',').any(|x| x == FlagCode::BadPixels.name()))
+            })
+            .count();
+        if let Some(f) = self.flags.iter_mut().find(|f| **f == Flag::new(FlagCode::BadPixels)) {
+            *f = bad_pixels_flag(n_bad_pixels, n_dithers);
+        }
+        let flux = if self.n_flux > 0 {
+            self.sum_flux / self.n_flux as f64
+        } else {
+            f64::NAN
+        };
+        Component {
+            orientations: Some(self.per_orientation),
+            dropped_dithers: (!self.dropped.is_empty()).then_some(self.dropped),
+            flux_adu: Some(flux),
+            flags: self.flags,
+            ..Component::new(name, Polarization::UNDEFINED)
         }
     }
 }
@@ -311,18 +358,18 @@ fn parallactic_angles(
         .collect()
 }
 
-/// Build the catalog entry of a measured sequence (`kw`: the profile's header keywords,
-/// for the frames' parallactic angles).
+/// Build the catalog entry of a measured sequence (`profile`: the header keywords of the
+/// frames' parallactic angles, the angles of the provisional Stokes solve).
 pub fn target_entry(
     object: &str,
     orients: &[CalibratedOrientation],
     m: &Measured,
     params: &MeasureParams,
-    kw: &Keywords,
+    profile: &Profile,
 ) -> Target {
     let phis: Vec<f64> = orients.iter().map(|o| o.analyzer_deg).collect();
     let mut target_flags = m.flags.clone();
-    let etas = parallactic_angles(orients, kw, &mut target_flags);
+    let etas = parallactic_angles(orients, &profile.keywords, &mut target_flags);
     let files: Vec<Vec<String>> = orients
         .iter()
         .map(|o| o.frames.iter().map(|f| f.path().display().to_string()).collect())
@@ -336,7 +383,7 @@ pub fn target_entry(
         .iter()
         .enumerate()
         .map(|(i, d)| {
-            let mut c = component_from_dithers(names[i], d, &phis, &etas, &files, params);
+            let mut c = component_from_dithers(names[i], d, &phis, &etas, &files, params, profile);
             if unverified {
                 c.flags.push(Flag::new(FlagCode::AbIdentityUnverified));
                 c.passes_cut = false;
@@ -387,6 +434,8 @@ pub fn target_entry(
 mod tests {
     use super::*;
     use crate::reduce::{BeamFlux, DitherValue};
+    use crate::stokes::inversion::LinearPolarization;
+    use crate::stokes::propagation::QuCovariance;
 
     /// Two components, both with a 10-sigma polarization at 0/45/90/135 (q = 0.03, u = 0.02,
     /// sigma_F = 0.001 per dither, 3 dithers).
@@ -432,7 +481,7 @@ mod tests {
         for d in m.dithers.iter_mut().flatten().flatten() {
             d.rejected = Some("saturated".into());
         }
-        let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords);
+        let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi());
         for c in &t.components {
             let n = c.flags.iter().filter(|f| f.is(FlagCode::UsedFlaggedDithers)).count();
             assert_eq!(n, 1, "{:?}", c.flags);
@@ -444,7 +493,7 @@ mod tests {
         for d in m.dithers.iter_mut().flatten().flatten() {
             *d = DitherValue::missing("primary_not_found");
         }
-        let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords);
+        let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi());
         assert!(t.components.iter().all(|c| c.q.is_nan()), "{t:?}");
         assert_eq!(t.status, Status::Failed, "{t:?}");
         assert!(
@@ -455,7 +504,7 @@ mod tests {
         let mut m = measured(Vec::new());
         m.dithers.truncate(1);
         assert_eq!(
-            target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords).status,
+            target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi()).status,
             Status::Partial
         );
     }
@@ -471,7 +520,7 @@ mod tests {
         a[1][0].rejected = Some("bad_pixels".into());
         a[2][0].rejected = Some("cosmic_ray,bad_pixels".into());
         a[3][2].rejected = Some("cosmic_ray".into());
-        let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords);
+        let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi());
         let flags = &t.components[0].flags;
         let want = "bad_pixels: 3 of 12 dithers dropped (a masked pixel within the aperture)";
         assert_eq!(
@@ -508,7 +557,7 @@ mod tests {
         m.dithers[1][2][0].f += 0.05;
         m.dithers[1][2][0].rejected = Some("saturated".into());
         let params = MeasureParams::default();
-        let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi().keywords);
+        let t = target_entry("X", &orients(), &m, &params, &sofipol_calib::Profile::sofi());
         let d = t.components[1].dropped_dithers.clone().unwrap();
         let got: Vec<(&str, &str)> = d.iter().map(|d| (d.file.as_str(), d.reason.as_str())).collect();
         assert_eq!(
@@ -586,7 +635,7 @@ mod tests {
             &orients(),
             &measured(Vec::new()),
             &params,
-            &sofipol_calib::Profile::sofi().keywords,
+            &sofipol_calib::Profile::sofi(),
         );
         assert!(t.components.iter().all(|c| c.passes_cut), "{t:?}");
         assert!(t.delta_gamma_deg.is_some());
@@ -597,7 +646,7 @@ mod tests {
             &orients(),
             &measured(vec![Flag::parse(flag)]),
             &params,
-            &sofipol_calib::Profile::sofi().keywords,
+            &sofipol_calib::Profile::sofi(),
         );
         for c in &t.components {
             assert!(!c.passes_cut, "{c:?}");
@@ -606,9 +655,13 @@ mod tests {
             assert!(c.q.is_finite() && c.snr.unwrap() > 10.0, "{c:?}");
         }
         assert!(t.delta_gamma_deg.is_none());
-        assert!(refused_by_flags(&[Flag::new(FlagCode::AbIdentityUnverified)]));
-        assert!(refused_by_flags(&[Flag::new(FlagCode::UsedFlaggedDithers)]));
-        assert!(!refused_by_flags(&[
+        assert!(crate::solve::refused_by_flags(&[Flag::new(
+            FlagCode::AbIdentityUnverified
+        )]));
+        assert!(crate::solve::refused_by_flags(&[Flag::new(
+            FlagCode::UsedFlaggedDithers
+        )]));
+        assert!(!crate::solve::refused_by_flags(&[
             Flag::new(FlagCode::LowSnr),
             Flag::new(FlagCode::BadPixels)
         ]));
@@ -652,6 +705,7 @@ mod tests {
             &none,
             &[],
             &MeasureParams::default(),
+            &sofipol_calib::Profile::sofi(),
         )
     }
 
@@ -765,6 +819,7 @@ mod tests {
             &eta,
             &files,
             &MeasureParams::default(),
+            &sofipol_calib::Profile::sofi(),
         );
         let o = &c.orientations.as_ref().unwrap()[0];
         assert_eq!((o.n_dithers, o.n_dithers_total), (2, 5));
@@ -819,6 +874,7 @@ mod tests {
             &none,
             &[],
             &MeasureParams::default(),
+            &sofipol_calib::Profile::sofi(),
         );
         // q = 0.001, sigma_q = sigma_u = (0.001/sqrt 3)/sqrt 2: S/N = sqrt 6 < 3.
         let s = 0.001 / 6f64.sqrt();
@@ -846,7 +902,15 @@ mod tests {
         assert!(!c.passes_cut);
         assert!(c.flags.iter().any(|f| f.is(FlagCode::LowSnr)), "{:?}", c.flags);
         // Angles that do not separate q from u: no value, said so.
-        let c = component_from_dithers("B", &per[..1], &[0.0], &none, &[], &MeasureParams::default());
+        let c = component_from_dithers(
+            "B",
+            &per[..1],
+            &[0.0],
+            &none,
+            &[],
+            &MeasureParams::default(),
+            &sofipol_calib::Profile::sofi(),
+        );
         assert!(c.q.is_nan() && !c.passes_cut);
         assert!(
             c.flags.iter().any(|f| f.is(FlagCode::UndefinedPolarization)),
@@ -861,7 +925,7 @@ mod tests {
     #[test]
     fn the_status_and_error_say_what_was_measured() {
         let params = MeasureParams::default();
-        let kw = &sofipol_calib::Profile::sofi().keywords;
+        let kw = &sofipol_calib::Profile::sofi();
         let t = target_entry("X", &orients(), &measured(Vec::new()), &params, kw);
         assert_eq!((t.status, t.error.clone()), (Status::Ok, None));
         assert_eq!(t.eo_offset_px, Some([0.0, 167.0]));
@@ -914,17 +978,17 @@ mod tests {
     /// frames name the dithers left out.
     #[test]
     fn the_frames_parallactic_angles_reach_each_orientation() {
-        let kw = sofipol_calib::Profile::sofi().keywords;
+        let kw = sofipol_calib::Profile::sofi();
         let mut orients = orients();
         for (k, o) in orients.iter_mut().enumerate() {
             for i in 0..3 {
                 let mut h = sofipol_calib::header::Header::new(format!("o{k}d{i}.fits"));
                 let start = 10.0 * k as f64 + i as f64;
                 if (k, i) == (3, 1) {
-                    h.set(&kw.parang, "east");
+                    h.set(&kw.keywords.parang, "east");
                 } else {
-                    h.set(&kw.parang, start);
-                    h.set(&kw.parang_end, start + 2.0);
+                    h.set(&kw.keywords.parang, start);
+                    h.set(&kw.keywords.parang_end, start + 2.0);
                 }
                 o.frames
                     .push(sofipol_calib::frame::Frame::new(ndarray::Array2::zeros((1, 1)), h));
@@ -986,14 +1050,14 @@ mod tests {
     /// no angle anywhere, nothing is left out and nothing is flagged.
     #[test]
     fn a_frame_without_a_parallactic_angle_is_left_out_only_when_others_have_one() {
-        let kw = sofipol_calib::Profile::sofi().keywords;
+        let kw = sofipol_calib::Profile::sofi();
         let build = |with_angles: bool| {
             let mut orients = orients();
             for (k, o) in orients.iter_mut().enumerate() {
                 for i in 0..3 {
                     let mut h = sofipol_calib::header::Header::new(format!("o{k}d{i}.fits"));
                     if with_angles && (k, i) != (1, 0) {
-                        h.set(&kw.parang, 20.0);
+                        h.set(&kw.keywords.parang, 20.0);
                     }
                     o.frames
                         .push(sofipol_calib::frame::Frame::new(ndarray::Array2::zeros((1, 1)), h));

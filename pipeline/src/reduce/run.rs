@@ -292,7 +292,7 @@ pub fn reduce_loaded(
         Ok(m) => m,
         Err(e) => return failed(seq, e.0, &flags, failures, times),
     };
-    let mut target = target_entry(&seq.object, &cal, &measured, &params.measure, &profile.keywords);
+    let mut target = target_entry(&seq.object, &cal, &measured, &params.measure, profile);
     failures.extend(primary_not_found(&cal, &measured, &params.measure));
     times.measure = t.elapsed().as_secs_f64();
     // The measurement's flags and the entry's own (a frame's parallactic angle not used).

@@ -26,7 +26,6 @@
 use serde::{Deserialize, Serialize};
 
 use super::inversion::{fit_qu, QuFit};
-use crate::catalog::{Flag, FlagCode};
 
 /// How q and u are obtained from the per-orientation F.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -398,19 +397,19 @@ pub fn solve(
 }
 
 /// The end of that flag when the automatic fallback carries no offset correction: such a
-/// component never passes the cut ([`fallback_refuses_cut`]).
-const FALLBACK_UNCALIBRATED: &str = "(uncalibrated)";
+/// component never passes the cut (`Flag::refuses_cut` of the catalog's flags).
+pub const FALLBACK_UNCALIBRATED: &str = "(uncalibrated)";
 
 /// The chosen method when it applies; otherwise the automatic choice
-/// ([`StokesMethod::Auto`]) and the flag saying so,
-/// `stokes_method_failed: <reason>; fell back to <method>` (ending in ` (uncalibrated)`
-/// when the fallback corrects no offset). An error only when the automatic choice fails
-/// too (the orientations do not constrain q and u).
+/// ([`StokesMethod::Auto`]) and why, the detail of the component's `stokes_method_failed`
+/// flag: `<reason>; fell back to <method>` (ending in ` (uncalibrated)` when the fallback
+/// corrects no offset). An error only when the automatic choice fails too (the
+/// orientations do not constrain q and u).
 pub fn solve_with_fallback(
     obs: &[OrientationF],
     method: StokesMethod,
     offset: Option<Offset>,
-) -> crate::error::Result<(StokesSolution, Option<Flag>)> {
+) -> crate::error::Result<(StokesSolution, Option<String>)> {
     match solve(obs, method, offset) {
         Ok(s) => Ok((s, None)),
         Err(e) if method != StokesMethod::Auto => {
@@ -420,26 +419,10 @@ pub fn solve_with_fallback(
             } else {
                 String::new()
             };
-            Ok((
-                s,
-                Some(Flag::with_detail(
-                    FlagCode::StokesMethodFailed,
-                    format!("{e}; fell back to {}{unc}", s.method),
-                )),
-            ))
+            Ok((s, Some(format!("{e}; fell back to {}{unc}", s.method))))
         }
         Err(e) => Err(e),
     }
-}
-
-/// Whether a component flag is the fallback flag of [`solve_with_fallback`] for a fallback
-/// without offset correction (the value must not pass the cut).
-pub fn fallback_refuses_cut(flag: &Flag) -> bool {
-    flag.is(FlagCode::StokesMethodFailed)
-        && flag
-            .detail
-            .as_deref()
-            .is_some_and(|d| d.ends_with(FALLBACK_UNCALIBRATED))
 }
 
 /// A standard as the calibration sees it: its per-orientation F at the rotator angles, and

@@ -1,10 +1,22 @@
-//! One component re-solved with the night's calibration: the telescope's polarization removed
-//! from each orientation's F, the Stokes solve, and what the calibration's errors do to the
-//! result (its Jacobian in the calibration parameters).
+//! The one Stokes solve of a component: q, u, P, gamma, their errors, the cut and its
+//! flags from the component's per-orientation F ([`resolve_component`]). Every q, u in a
+//! catalog comes from here: first provisionally, as each target is measured
+//! (`reduce::entry`, no calibration: what the target's status and its FITS products'
+//! "before the night calibration" cards use), then with the night's calibration
+//! (`calibration::calibrate_catalog`), which the catalog keeps. A correction of q, u goes
+//! here, so both see it:
+//!
+//! ```text
+//! per-orientation F (component.orientations)
+//!   -> analyzer angles: the calibration's theta0 and parity, else the profile's
+//!   -> the telescope's polarization removed from F (telescope.rs) when measured
+//!   -> Stokes method (stokes::calibration::solve_with_fallback), offset c subtracted
+//!   -> P, gamma and errors with the calibration's covariance (its Jacobian here)
+//!   -> the cut and the flags (low_snr, uncalibrated, p_above_one, ...)
+//! ```
 use sofipol_calib::Profile;
 
-use super::telescope;
-use super::FilterCalibration;
+use crate::catalog::polarimetric_calibration::FilterCalibration;
 use crate::catalog::{Component, Flag, FlagCode, InstrumentalOffset};
 use crate::stokes::calibration::{solve, solve_with_fallback, OrientationF, StokesMethod};
 use crate::stokes::inversion::{Debias, LinearPolarization};
@@ -12,6 +24,20 @@ use crate::stokes::propagation::{
     self, calibration_covariance_of, rotation_gradient_per_deg, CalibrationJacobian, QuCovariance, CAL_C, CAL_TEL_A,
     CAL_TEL_B, CAL_THETA0,
 };
+
+pub mod telescope;
+
+/// Whether a component's flags refuse it the cut whatever its P/sigma: a value from
+/// dithers that were all flagged (saturated, bad pixels...; it may be far off), of a
+/// component whose A/B identity is not established, or of a Stokes method that fell back
+/// to a solve without offset correction.
+pub fn refused_by_flags(flags: &[Flag]) -> bool {
+    flags.iter().any(|f| {
+        f.is(FlagCode::UsedFlaggedDithers)
+            || f == &Flag::new(FlagCode::AbIdentityUnverified)
+            || f.is_uncalibrated_fallback()
+    })
+}
 
 /// Step of the central differences in theta0, deg.
 const STEP_THETA0_DEG: f64 = 0.01;
@@ -28,16 +54,16 @@ fn posang_of(profile: &Profile, phi: f64) -> f64 {
 /// One usable orientation of a component: POSANG, F, sigma_F and the weighted mean
 /// (cos 2eta, sin 2eta) of its frames' parallactic angles.
 #[derive(Debug, Clone, Copy)]
-pub(super) struct OrientationRow {
-    pub posang_deg: f64,
-    pub f: f64,
-    pub sigma_f: f64,
-    pub parallactic_2eta: Option<[f64; 2]>,
+pub(crate) struct OrientationRow {
+    pub(crate) posang_deg: f64,
+    pub(crate) f: f64,
+    pub(crate) sigma_f: f64,
+    pub(crate) parallactic_2eta: Option<[f64; 2]>,
 }
 
 /// The usable orientations of a measured component (its `orientations` field). An
 /// orientation without a finite F, sigma_F or angle (JSON null) is left out.
-pub(super) fn orientation_rows(c: &Component, profile: &Profile) -> Vec<OrientationRow> {
+pub(crate) fn orientation_rows(c: &Component, profile: &Profile) -> Vec<OrientationRow> {
     let finite = |v: f64| v.is_finite().then_some(v);
     c.orientations
         .iter()
@@ -68,7 +94,7 @@ pub fn orientation_values(c: &Component, profile: &Profile) -> Vec<(f64, f64, f6
 
 /// A component's orientations with the calibration's analyzer angles, the telescope's
 /// polarization removed from F when the calibration measured it.
-pub(super) fn calibrated_obs(c: &Component, profile: &Profile, cal: Option<&FilterCalibration>) -> Vec<OrientationF> {
+pub(crate) fn calibrated_obs(c: &Component, profile: &Profile, cal: Option<&FilterCalibration>) -> Vec<OrientationF> {
     let inputs = Inputs::new(c, profile, cal);
     inputs.obs(0.0, inputs.telescope())
 }
@@ -198,7 +224,8 @@ pub fn resolve_component(
     let obs = inputs.obs(0.0, tel);
     let sol = match solve_with_fallback(&obs, method, offset) {
         Ok((s, fell_back)) => {
-            c.flags.extend(fell_back);
+            c.flags
+                .extend(fell_back.map(|why| Flag::with_detail(FlagCode::StokesMethodFailed, why)));
             s
         }
         Err(e) => {
@@ -256,9 +283,9 @@ pub fn resolve_component(
     if !lp.passes_cut(cut_snr) {
         c.flags.push(Flag::new(FlagCode::LowSnr));
     }
-    // As in reduce::entry: a value from all-flagged dithers, or of a component whose A/B
-    // identity is not established, never passes the cut.
-    c.passes_cut = lp.passes_cut(cut_snr) && !crate::reduce::entry::refused_by_flags(&c.flags);
+    // A value from all-flagged dithers, or of a component whose A/B identity is not
+    // established, never passes the cut.
+    c.passes_cut = lp.passes_cut(cut_snr) && !refused_by_flags(&c.flags);
     // A degree of polarization above 1 is no light: a calibration or a measurement gone
     // wrong, never a detection.
     c.flags.retain(|f| !f.is(FlagCode::PAboveOne));

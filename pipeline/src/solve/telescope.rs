@@ -1,5 +1,5 @@
 //! The telescope's own polarization in a night's calibration, and its removal from every
-//! component before the Stokes solve.
+//! component before the Stokes solve (part of the one solve, `solve.rs`).
 //!
 //! The tertiary mirror adds `(q_tel, u_tel) = R(2 eta) (a, b)` to every source, eta the
 //! frame's parallactic angle. An orientation whose frames have the weighted mean
