@@ -71,7 +71,7 @@ impl Calibration {
             });
         }
         let mut c = c;
-        validate::validate(&mut c).map_err(|reason| Error::CalibrationFile { path: file, reason })?;
+        validate::validate(&mut c).map_err(|source| Error::CalibrationValue { path: file, source })?;
         Ok(c)
     }
 

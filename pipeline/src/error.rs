@@ -64,6 +64,15 @@ pub enum Error {
         /// What is wrong.
         reason: String,
     },
+    /// A value of a calibration file (`calibration.json`) is refused: the file and the
+    /// value's key, as [`CalibrationValueError`] says them.
+    #[error("{path}: {source}")]
+    CalibrationValue {
+        /// File concerned.
+        path: PathBuf,
+        /// The key, the value and why it is refused.
+        source: CalibrationValueError,
+    },
     /// A Stokes method cannot be used with these orientations; says why.
     #[error("{reason}")]
     StokesMethod {
@@ -112,6 +121,44 @@ impl Error {
             source,
         }
     }
+}
+
+/// A value of `calibration.json` refused when the file is read (`calibration::validate`):
+/// the key path (`filters[0].offset.c`), the value as written and why. A caller can tell
+/// a value outside what is accepted from two values that contradict each other.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CalibrationValueError {
+    /// A value outside what is accepted.
+    #[error("{key} = {value}: {reason}")]
+    Refused {
+        /// Key path of the value (`filters[0].offset.c`).
+        key: String,
+        /// The value, short (`1e300`, a quoted text of at most 40 characters).
+        value: String,
+        /// What is accepted, or what is wrong.
+        reason: String,
+    },
+    /// A value that contradicts another of the file (an error written twice, a matrix
+    /// that is not symmetric, a name given twice).
+    #[error("{key} = {value} {conflict}")]
+    Contradicts {
+        /// Key path of the value.
+        key: String,
+        /// The value, short.
+        value: String,
+        /// What it contradicts and why they must agree, in words.
+        conflict: String,
+    },
+    /// A list of names of the wrong length.
+    #[error("{key} has {count} names: {expected}")]
+    NameCount {
+        /// Key path of the list.
+        key: String,
+        /// Names found.
+        count: usize,
+        /// The names expected, in words.
+        expected: String,
+    },
 }
 
 /// An error that stops the measurement of a sequence (`reduce::MeasureError`).

@@ -148,7 +148,7 @@ pub fn write_page(
         figure_bytes: input.target_figures.values().map(Vec::len).sum(),
         stats: match &input.stats {
             Ok(_) => "computed".into(),
-            Err(e) => printable(e).into_owned(),
+            Err(e) => printable(&e.to_string()).into_owned(),
         },
         bytes: html.len(),
     })

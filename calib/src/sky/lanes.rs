@@ -139,17 +139,18 @@ pub(super) fn subtract_block_portable(
         let y = y0 + r;
         let span = r * nx..(r + 1) * nx;
         for (i, fr) in rows.iter_mut().enumerate() {
-            let (srow, rrow, mrow) = (
-                &mut fr.sky[span.clone()],
-                &mut fr.raw[span.clone()],
-                &mut fr.mask[span.clone()],
-            );
-            let cnt = fr.count.map(|c| &c[span.clone()]);
-            let vrow = fr.vin.as_deref_mut().map(|v| &mut v[span.clone()]);
+            // The frame's row y: a block of one row.
+            let row = Rows {
+                sky: &mut fr.sky[span.clone()],
+                raw: &mut fr.raw[span.clone()],
+                mask: &mut fr.mask[span.clone()],
+                vin: fr.vin.as_deref_mut().map(|v| &mut v[span.clone()]),
+                count: fr.count.map(|c| &c[span.clone()]),
+            };
             let px = (inp.levels[i], inp.noise[i]);
             tally.nonfinite[i] += match inp.flat {
-                None => subtract_row::<false>(fin, y, srow, rrow, mrow, vrow, cnt, px, None),
-                Some(fl) => subtract_row::<true>(fin, y, srow, rrow, mrow, vrow, cnt, px, Some(fl.row(y))),
+                None => subtract_row::<false>(fin, y, row, px, None),
+                Some(fl) => subtract_row::<true>(fin, y, row, px, Some(fl.row(y))),
             };
             if let Some(k2) = fin.cosmic_k2 {
                 // The row's final data and variance, still in cache.
@@ -169,25 +170,28 @@ pub(super) fn subtract_block_portable(
     }
 }
 
-/// One row of one frame: mask bits from the raw values, the variance (into `vrow` when
-/// the frame has a variance map, else over the raw values), data = raw - sky into the
-/// sky's row; with `FLAT`, divided by the flat's row in the same loop
-/// ([`crate::flat::FlatRows`]: data / f, variance / f^2 + max(data / f, 0)^2 var_f / f^2,
-/// BAD and no division where the flat is unusable). Returns the count of non-finite raw
-/// values.
-#[allow(clippy::too_many_arguments)]
+/// One row `y` of one frame (`row`, a block of one row): mask bits from the raw values,
+/// the variance (into the row's `vin` when the frame has a variance map, else over the raw
+/// values), data = raw - sky into the sky's row; with `FLAT`, divided by the flat's row in
+/// the same loop ([`crate::flat::FlatRows`]: data / f, variance / f^2 + max(data / f, 0)^2
+/// var_f / f^2, BAD and no division where the flat is unusable). `(level, (inv_g, rv))`
+/// is the frame's sky level and noise, as [`FinishInputs`] holds them. Returns the count
+/// of non-finite raw values.
 #[inline(always)]
 fn subtract_row<const FLAT: bool>(
     fin: &Finish,
     y: usize,
-    srow: &mut [f32],
-    rrow: &mut [f32],
-    mrow: &mut [u8],
-    vrow: Option<&mut [f32]>,
-    cnt: Option<&[u8]>,
+    row: Rows,
     (level, (inv_g, rv)): (f32, (f32, f32)),
     flat: Option<FlatRow>,
 ) -> usize {
+    let Rows {
+        sky: srow,
+        raw: rrow,
+        mask: mrow,
+        vin: vrow,
+        count: cnt,
+    } = row;
     let (scaling, c_over_m) = (fin.scaling, fin.c_over_m);
     mask_row(fin, y, mrow, rrow);
     let bad = rrow.iter().filter(|r| !r.is_finite()).count();

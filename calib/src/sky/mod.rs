@@ -527,9 +527,16 @@ pub(crate) fn sky_subtract_by(
     let (done, candidates) = fused::subtract_skies(&fin, frames, skies, &inp, route.kernel)?;
     let mut out = Vec::with_capacity(n);
     let mut cosmic = Vec::new();
+    let record = RecordInputs {
+        opts,
+        profile,
+        levels_adu: &levels,
+        names: &names,
+        c,
+    };
     for (i, (mut frame, candidates)) in done.into_iter().zip(candidates).enumerate() {
         let others: Vec<usize> = (0..n).filter(|&j| j != i).collect();
-        let detail = sky_record(opts, profile, &levels, &names, i, &others, ndits[i], has_vin[i], c);
+        let detail = sky_record(&record, i, &others, ndits[i], has_vin[i]);
         frame.history.push(crate::frame::HistoryRecord::new("sky", detail));
         if let Some(co) = opts.cosmic() {
             let var = frame.variance.as_ref().expect("set by the sky stage");
@@ -619,21 +626,31 @@ fn sky_levels(frames: &[Frame], profile: &Profile, scaling: SkyScaling) -> Resul
     Ok(levels)
 }
 
-/// The sky stage's history record of frame `i` (its sky from the frames `others`): the
-/// scaling and levels, the estimator, the variance model with its numbers (c = c(m)), the
-/// mask bits set.
-#[allow(clippy::too_many_arguments)]
-fn sky_record(
-    opts: &SkyOptions,
-    profile: &Profile,
-    levels: &[f64],
-    names: &[String],
-    i: usize,
-    others: &[usize],
-    ndit: u32,
-    has_vin: bool,
+/// What the sky records of an orientation's frames share ([`sky_record`]).
+struct RecordInputs<'a> {
+    /// The sky stage's settings.
+    opts: &'a SkyOptions,
+    /// The instrument (detector numbers for the variance model and the mask).
+    profile: &'a Profile,
+    /// Sky level L_i of every frame, ADU.
+    levels_adu: &'a [f64],
+    /// Every frame's name.
+    names: &'a [String],
+    /// The variance factor c(m) of the estimator, m = the frames in a sky (dimensionless).
     c: f64,
-) -> String {
+}
+
+/// The sky stage's history record of frame `i` (its sky from the frames `others`, `ndit`
+/// DITs, `has_vin` with an input variance map): the scaling and levels, the estimator, the
+/// variance model with its numbers (c = c(m)), the mask bits set.
+fn sky_record(inputs: &RecordInputs, i: usize, others: &[usize], ndit: u32, has_vin: bool) -> String {
+    let RecordInputs {
+        opts,
+        profile,
+        levels_adu: levels,
+        names,
+        c,
+    } = *inputs;
     let det = &profile.detector;
     let m = others.len();
     format!(

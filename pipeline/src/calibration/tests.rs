@@ -562,6 +562,17 @@ fn calibration_file_with_absurd_numbers_is_refused_naming_file_key_and_value() {
         let e = Calibration::read(&p).unwrap_err().to_string();
         assert!(e.contains(&p.display().to_string()) && e.contains(expect), "{ptr}: {e}");
     }
+    // The refusal is a value a caller can match: the file, the key and the value apart.
+    let mut f = good.clone();
+    f["offset"]["c"] = 5.0.into();
+    let (_dir, p) = written_calibration(f);
+    match Calibration::read(&p).unwrap_err() {
+        crate::error::Error::CalibrationValue {
+            path,
+            source: crate::error::CalibrationValueError::Refused { key, value, .. },
+        } => assert_eq!((path, key.as_str(), value.as_str()), (p, "filters[0].offset.c", "5")),
+        e => panic!("not a refused value: {e:?}"),
+    }
     // A covariance without the angles it belongs to.
     let mut f = good;
     f["angles"] = serde_json::Value::Null;

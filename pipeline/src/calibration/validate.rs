@@ -16,7 +16,29 @@
 //! | `filters[i].covariance` | finite, symmetric, diagonal >= 0, every \|correlation\| <= 1; its c and theta0 entries agree with `sigma_c`, `sigma_theta0_deg` and `cov_c_theta0_deg` |
 //! | `filters[i].covariance_parameters` | the names c, theta0_deg, tel_a, tel_b, each once, in any order (the matrix is read by name) |
 use super::Calibration;
+pub use crate::error::CalibrationValueError;
 use crate::stokes::model::normalize_axial_deg;
+
+/// What the checks return: the first value refused.
+type Checked<T> = std::result::Result<T, CalibrationValueError>;
+
+/// A value outside what is accepted.
+fn refused(key: impl Into<String>, value: impl Into<String>, reason: impl Into<String>) -> CalibrationValueError {
+    CalibrationValueError::Refused {
+        key: key.into(),
+        value: value.into(),
+        reason: reason.into(),
+    }
+}
+
+/// A value that contradicts another of the file.
+fn contradicts(key: impl Into<String>, value: impl Into<String>, conflict: impl Into<String>) -> CalibrationValueError {
+    CalibrationValueError::Contradicts {
+        key: key.into(),
+        value: value.into(),
+        conflict: conflict.into(),
+    }
+}
 
 /// Largest |theta0| accepted before normalising (sofipol writes [0, 180); far beyond a
 /// turn, the normalised value would carry no digits of the original).
@@ -50,12 +72,13 @@ fn same_number(a: f64, b: f64) -> bool {
 
 /// Check every filter's numbers; normalise theta0 into [0, 180). The error names the key path
 /// (`filters[0].offset.c`), the value and what is accepted.
-pub fn validate(cal: &mut Calibration) -> Result<(), String> {
+pub fn validate(cal: &mut Calibration) -> Checked<()> {
     for (i, f) in cal.filters.iter().enumerate() {
         if let Some(j) = cal.filters[..i].iter().position(|g| g.filter == f.filter) {
-            return Err(format!(
-                "filters[{i}].filter = {:?}: the filter is also filters[{j}]; one entry per filter",
-                sofipol_calib::text::short_text(&f.filter, 40)
+            return Err(refused(
+                format!("filters[{i}].filter"),
+                format!("{:?}", sofipol_calib::text::short_text(&f.filter, 40)),
+                format!("the filter is also filters[{j}]; one entry per filter"),
             ));
         }
     }
@@ -63,37 +86,39 @@ pub fn validate(cal: &mut Calibration) -> Result<(), String> {
         let key = |k: &str| format!("filters[{i}].{k}");
         if let Some(o) = &f.offset {
             if !(o.c.is_finite() && o.c.abs() <= MAX_ABS_C) {
-                return Err(format!(
-                    "{} = {}: must be finite with |c| <= {MAX_ABS_C} (c ~ (1 - k)/(1 + k) + p_inst: \
-                     a beam ratio k beyond 0.67-1.5 is no working polarimeter)",
+                return Err(refused(
                     key("offset.c"),
-                    num(o.c)
+                    num(o.c),
+                    format!(
+                        "must be finite with |c| <= {MAX_ABS_C} (c ~ (1 - k)/(1 + k) + p_inst: \
+                         a beam ratio k beyond 0.67-1.5 is no working polarimeter)"
+                    ),
                 ));
             }
             if !(o.sigma_c.is_finite() && o.sigma_c >= 0.0) {
-                return Err(format!(
-                    "{} = {}: must be finite and >= 0",
+                return Err(refused(
                     key("offset.sigma_c"),
-                    num(o.sigma_c)
+                    num(o.sigma_c),
+                    "must be finite and >= 0",
                 ));
             }
         }
         if let Some(a) = f.angles.as_mut() {
             if a.parity != 1 && a.parity != -1 {
-                return Err(format!("{} = {}: must be +1 or -1", key("angles.parity"), a.parity));
+                return Err(refused(key("angles.parity"), a.parity.to_string(), "must be +1 or -1"));
             }
             if !(a.theta0_deg.is_finite() && a.theta0_deg.abs() <= MAX_ABS_THETA0_DEG) {
-                return Err(format!(
-                    "{} = {}: must be finite, within +-{MAX_ABS_THETA0_DEG} deg",
+                return Err(refused(
                     key("angles.theta0_deg"),
-                    num(a.theta0_deg)
+                    num(a.theta0_deg),
+                    format!("must be finite, within +-{MAX_ABS_THETA0_DEG} deg"),
                 ));
             }
             if !(a.sigma_theta0_deg.is_finite() && (0.0..=90.0).contains(&a.sigma_theta0_deg)) {
-                return Err(format!(
-                    "{} = {}: must be finite, in [0, 90]",
+                return Err(refused(
                     key("angles.sigma_theta0_deg"),
-                    num(a.sigma_theta0_deg)
+                    num(a.sigma_theta0_deg),
+                    "must be finite, in [0, 90]",
                 ));
             }
             a.theta0_deg = normalize_axial_deg(a.theta0_deg);
@@ -102,18 +127,22 @@ pub fn validate(cal: &mut Calibration) -> Result<(), String> {
             let k = key("cov_c_theta0_deg");
             let cov_shown = num(cov);
             if !cov.is_finite() {
-                return Err(format!("{k} = {cov_shown}: must be finite"));
+                return Err(refused(k, cov_shown, "must be finite"));
             }
             let (Some(o), Some(a)) = (&f.offset, &f.angles) else {
-                return Err(format!("{k} = {cov_shown}: given without both offset and angles"));
+                return Err(refused(k, cov_shown, "given without both offset and angles"));
             };
             let bound = o.sigma_c * a.sigma_theta0_deg;
             if cov.abs() > bound * (1.0 + CORR_SLACK) {
-                return Err(format!(
-                    "{k} = {cov_shown}: |correlation| = {:.4} exceeds 1 (sigma_c {} x sigma_theta0_deg {})",
-                    cov.abs() / bound,
-                    o.sigma_c,
-                    a.sigma_theta0_deg
+                return Err(refused(
+                    k,
+                    cov_shown,
+                    format!(
+                        "|correlation| = {:.4} exceeds 1 (sigma_c {} x sigma_theta0_deg {})",
+                        cov.abs() / bound,
+                        o.sigma_c,
+                        a.sigma_theta0_deg
+                    ),
                 ));
             }
         }
@@ -144,22 +173,30 @@ use crate::stokes::propagation::{CAL_C, CAL_PARAMETERS, CAL_THETA0};
 
 /// Where each written row of the covariance goes: `names` must hold each of
 /// [`CAL_PARAMETERS`] once.
-fn parameter_order(names: &[String], key: &str) -> Result<[usize; 4], String> {
+fn parameter_order(names: &[String], key: &str) -> Checked<[usize; 4]> {
     let expected = || format!("expected the names {} in any order", CAL_PARAMETERS.join(", "));
     if names.len() != CAL_PARAMETERS.len() {
-        return Err(format!("{key} has {} names: {}", names.len(), expected()));
+        return Err(CalibrationValueError::NameCount {
+            key: key.to_string(),
+            count: names.len(),
+            expected: expected(),
+        });
     }
     let mut order = [0; 4];
     for (i, n) in names.iter().enumerate() {
         let Some(k) = CAL_PARAMETERS.iter().position(|p| p == n) else {
-            return Err(format!(
-                "{key}[{i}] = {:?}: not a calibration parameter; {}",
-                sofipol_calib::text::short_text(n, 40),
-                expected()
+            return Err(refused(
+                format!("{key}[{i}]"),
+                format!("{:?}", sofipol_calib::text::short_text(n, 40)),
+                format!("not a calibration parameter; {}", expected()),
             ));
         };
         if names[..i].contains(n) {
-            return Err(format!("{key}[{i}] = {n:?} is named twice; {}", expected()));
+            return Err(contradicts(
+                format!("{key}[{i}]"),
+                format!("{n:?}"),
+                format!("is named twice; {}", expected()),
+            ));
         }
         order[i] = k;
     }
@@ -172,14 +209,16 @@ fn covariance_agrees(
     f: &super::FilterCalibration,
     m: &crate::stokes::propagation::CalibrationCovariance,
     key: &dyn Fn(&str) -> String,
-) -> Result<(), String> {
+) -> Checked<()> {
     let differ = |k: &str, v: f64, cov_key: &str, w: f64| {
-        Err(format!(
-            "{} = {} contradicts {} = {} (the same error written twice must agree)",
+        Err(contradicts(
             key(k),
             sofipol_calib::text::short_number(v),
-            key(cov_key),
-            sofipol_calib::text::short_number(w)
+            format!(
+                "contradicts {} = {} (the same error written twice must agree)",
+                key(cov_key),
+                sofipol_calib::text::short_number(w)
+            ),
         ))
     };
     if let Some(o) = &f.offset {
@@ -214,15 +253,15 @@ fn covariance_agrees(
 }
 
 /// The telescope's polarization: finite, plausible, its (a, b) consistent with (p, psi).
-fn validate_telescope(t: &super::TelescopeCalibration, key: &dyn Fn(&str) -> String) -> Result<(), String> {
+fn validate_telescope(t: &super::TelescopeCalibration, key: &dyn Fn(&str) -> String) -> Checked<()> {
     let check = |name: &str, v: f64, ok: bool, what: &str| {
         if v.is_finite() && ok {
             Ok(())
         } else {
-            Err(format!(
-                "{} = {}: must be {what}",
+            Err(refused(
                 key(&format!("telescope.{name}")),
-                num(v)
+                num(v),
+                format!("must be {what}"),
             ))
         }
     };
@@ -248,41 +287,39 @@ fn validate_telescope(t: &super::TelescopeCalibration, key: &dyn Fn(&str) -> Str
     }
     .ab();
     if (want[0] - t.a).abs() > 1e-6 || (want[1] - t.b).abs() > 1e-6 {
-        return Err(format!(
-            "{} = ({}, {}) disagrees with p_tel = {} and psi_tel_deg = {} (expected ({:.6}, {:.6}))",
+        return Err(contradicts(
             key("telescope.(a, b)"),
-            t.a,
-            t.b,
-            t.p_tel,
-            t.psi_tel_deg,
-            want[0],
-            want[1]
+            format!("({}, {})", t.a, t.b),
+            format!(
+                "disagrees with p_tel = {} and psi_tel_deg = {} (expected ({:.6}, {:.6}))",
+                t.p_tel, t.psi_tel_deg, want[0], want[1]
+            ),
         ));
     }
     Ok(())
 }
 
 /// A covariance matrix: finite, symmetric, non-negative variances, correlations within +-1.
-fn validate_covariance(m: &crate::stokes::propagation::CalibrationCovariance, key: &str) -> Result<(), String> {
+fn validate_covariance(m: &crate::stokes::propagation::CalibrationCovariance, key: &str) -> Checked<()> {
     for i in 0..4 {
         for j in 0..4 {
             let v = m[i][j];
             if !v.is_finite() {
-                return Err(format!("{key}[{i}][{j}] = {}: must be finite", num(v)));
+                return Err(refused(format!("{key}[{i}][{j}]"), num(v), "must be finite"));
             }
             if i == j && v < 0.0 {
-                return Err(format!("{key}[{i}][{i}] = {}: a variance must be >= 0", num(v)));
+                return Err(refused(format!("{key}[{i}][{i}]"), num(v), "a variance must be >= 0"));
             }
             if (v - m[j][i]).abs() > 1e-12 * v.abs().max(m[j][i].abs()).max(f64::MIN_POSITIVE) {
-                return Err(format!(
-                    "{key}[{i}][{j}] = {} differs from [{j}][{i}] = {}: must be symmetric",
+                return Err(contradicts(
+                    format!("{key}[{i}][{j}]"),
                     num(v),
-                    num(m[j][i])
+                    format!("differs from [{j}][{i}] = {}: must be symmetric", num(m[j][i])),
                 ));
             }
             let bound = (m[i][i] * m[j][j]).max(0.0).sqrt();
             if i != j && v.abs() > bound * (1.0 + CORR_SLACK) {
-                return Err(format!("{key}[{i}][{j}] = {}: |correlation| exceeds 1", num(v)));
+                return Err(refused(format!("{key}[{i}][{j}]"), num(v), "|correlation| exceeds 1"));
             }
         }
     }

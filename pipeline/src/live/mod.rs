@@ -25,7 +25,7 @@ mod lines;
 pub mod readiness;
 
 pub use lines::{cycles_needed, target_line};
-pub use readiness::{readiness, Readiness};
+pub use readiness::{readiness, HeaderProblem, Incomplete, Readiness};
 
 /// How long to wait before giving up on a template or a file.
 #[derive(Debug, Clone, Copy)]
@@ -545,7 +545,7 @@ impl LiveNight {
                         st.ready = true;
                         self.dirty = true;
                     } else {
-                        waiting.push((p.clone(), why));
+                        waiting.push((p.clone(), why.to_string()));
                     }
                 }
             }

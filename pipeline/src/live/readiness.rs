@@ -18,21 +18,84 @@ const BLOCK: u64 = 2880;
 pub enum Readiness {
     /// Whole: it can be read.
     Complete,
-    /// Still arriving (why, in words).
-    Incomplete(String),
+    /// Still arriving: what is missing.
+    Incomplete(Incomplete),
+}
+
+/// What a file still being written lacks (its `Display` is the reason shown while the
+/// frame is waited for).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum Incomplete {
+    /// The file cannot be opened (yet), with the system's reason when there is one.
+    #[error("cannot be opened yet{}", .reason.as_ref().map(|r| format!(": {r}")).unwrap_or_default())]
+    CannotOpen {
+        /// The system's reason, if any.
+        reason: Option<String>,
+    },
+    /// The file has no bytes yet.
+    #[error("empty")]
+    Empty,
+    /// A gzip stream that ends before its trailer.
+    #[error("gzip stream not finished")]
+    GzipUnfinished,
+    /// The header of an HDU is not all there (or cannot be sized).
+    #[error("HDU {hdu}: {problem}")]
+    Header {
+        /// HDU number, 1-based (as FITS counts them).
+        hdu: usize,
+        /// What is missing.
+        problem: HeaderProblem,
+    },
+    /// The data of an HDU are not all there.
+    #[error("HDU {hdu}: {present_bytes} of its {expected_bytes} data bytes present")]
+    Data {
+        /// HDU number, 1-based.
+        hdu: usize,
+        /// Data bytes the file holds, bytes.
+        present_bytes: u64,
+        /// Data bytes the header announces (unpadded), bytes.
+        expected_bytes: u64,
+    },
+    /// Every HDU is whole but none has data: a file cut after its primary header.
+    #[error("headers only, no data yet")]
+    HeadersOnly,
+}
+
+/// What is missing from an HDU's header.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum HeaderProblem {
+    /// The file could not be positioned at the header (the system's reason).
+    #[error("{0}")]
+    Seek(String),
+    /// The file ends before the END card.
+    #[error("header not finished (no END card yet)")]
+    NoEndYet,
+    /// A header block could not be read whole.
+    #[error("header not finished")]
+    ShortBlock,
+    /// No END card in the first 1000 blocks: not a header still being written.
+    #[error("no END card in 1000 header blocks")]
+    NoEnd,
+    /// A keyword that sizes the data is absent (`BITPIX`, `NAXIS`, `NAXISn`).
+    #[error("no {0}")]
+    MissingKeyword(String),
 }
 
 /// Whether the file at `path` is complete ([`Readiness`]).
 pub fn readiness(path: &Path) -> Readiness {
     let mut f = match std::fs::File::open(path) {
         Ok(f) => f,
-        Err(e) => return Readiness::Incomplete(format!("cannot be opened yet: {e}")),
+        Err(e) => {
+            return Readiness::Incomplete(Incomplete::CannotOpen {
+                reason: Some(e.to_string()),
+            })
+        }
     };
     let len = f.metadata().map(|m| m.len()).unwrap_or(0);
     let mut head = [0u8; 9];
     let n = read_up_to(&mut f, &mut head);
     if n == 0 {
-        return Readiness::Incomplete("empty".into());
+        return Readiness::Incomplete(Incomplete::Empty);
     }
     if head[..n.min(2)] == [0x1f, 0x8b][..n.min(2)] {
         return gzip_readiness(path);
@@ -61,14 +124,12 @@ fn read_up_to(r: &mut impl Read, buf: &mut [u8]) -> usize {
 /// A gzip stream is complete when it decompresses to its end without error.
 fn gzip_readiness(path: &Path) -> Readiness {
     let Ok(f) = std::fs::File::open(path) else {
-        return Readiness::Incomplete("cannot be opened yet".into());
+        return Readiness::Incomplete(Incomplete::CannotOpen { reason: None });
     };
     let mut d = flate2::read::MultiGzDecoder::new(std::io::BufReader::new(f));
     match std::io::copy(&mut d, &mut std::io::sink()) {
         Ok(_) => Readiness::Complete,
-        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => {
-            Readiness::Incomplete("gzip stream not finished".into())
-        }
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => Readiness::Incomplete(Incomplete::GzipUnfinished),
         // Corrupt rather than unfinished: the scan says so.
         Err(_) => Readiness::Complete,
     }
@@ -76,23 +137,23 @@ fn gzip_readiness(path: &Path) -> Readiness {
 
 /// Walk the HDUs of a FITS file of `len` bytes: `Ok` when every header and data unit is
 /// there, else what is missing.
-fn fits_length(file: &mut Option<std::fs::File>, len: u64) -> Result<(), String> {
+fn fits_length(file: &mut Option<std::fs::File>, len: u64) -> Result<(), Incomplete> {
     let Some(f) = file.as_mut() else {
-        return Err("cannot be opened yet".into());
+        return Err(Incomplete::CannotOpen { reason: None });
     };
     let mut offset = 0u64;
     let mut hdu = 0;
     let mut data = 0u64;
     while offset < len {
-        let (header_len, data_len) = read_hdu_header(f, offset, len).map_err(|e| format!("HDU {}: {e}", hdu + 1))?;
+        let (header_len, data_len) =
+            read_hdu_header(f, offset, len).map_err(|problem| Incomplete::Header { hdu: hdu + 1, problem })?;
         let end = offset + header_len + data_len.div_ceil(BLOCK) * BLOCK;
         if end > len {
-            return Err(format!(
-                "HDU {}: {} of its {} data bytes present",
-                hdu + 1,
-                len.saturating_sub(offset + header_len),
-                data_len
-            ));
+            return Err(Incomplete::Data {
+                hdu: hdu + 1,
+                present_bytes: len.saturating_sub(offset + header_len),
+                expected_bytes: data_len,
+            });
         }
         offset = end;
         data += data_len;
@@ -101,25 +162,26 @@ fn fits_length(file: &mut Option<std::fs::File>, len: u64) -> Result<(), String>
     // A frame has pixels: headers alone are a file cut after its primary header (a
     // tile-compressed frame keeps its image in the extension that follows).
     if data == 0 {
-        return Err("headers only, no data yet".into());
+        return Err(Incomplete::HeadersOnly);
     }
     Ok(())
 }
 
 /// The header of the HDU at `offset`: its length in bytes (whole blocks) and its data
 /// length (unpadded).
-fn read_hdu_header(f: &mut std::fs::File, offset: u64, len: u64) -> Result<(u64, u64), String> {
+fn read_hdu_header(f: &mut std::fs::File, offset: u64, len: u64) -> Result<(u64, u64), HeaderProblem> {
     use std::io::Seek;
-    f.seek(std::io::SeekFrom::Start(offset)).map_err(|e| e.to_string())?;
+    f.seek(std::io::SeekFrom::Start(offset))
+        .map_err(|e| HeaderProblem::Seek(e.to_string()))?;
     let mut block = [0u8; BLOCK as usize];
     let mut cards = HduCards::default();
     let mut header_len = 0u64;
     loop {
         if offset + header_len + BLOCK > len {
-            return Err("header not finished (no END card yet)".into());
+            return Err(HeaderProblem::NoEndYet);
         }
         if read_up_to(f, &mut block) < BLOCK as usize {
-            return Err("header not finished".into());
+            return Err(HeaderProblem::ShortBlock);
         }
         header_len += BLOCK;
         for card in block.chunks(80) {
@@ -129,7 +191,7 @@ fn read_hdu_header(f: &mut std::fs::File, offset: u64, len: u64) -> Result<(u64,
             cards.read(card);
         }
         if header_len > 1000 * BLOCK {
-            return Err("no END card in 1000 header blocks".into());
+            return Err(HeaderProblem::NoEnd);
         }
     }
 }
@@ -170,9 +232,10 @@ impl HduCards {
     }
 
     /// `|BITPIX|/8 * GCOUNT * (PCOUNT + NAXIS1 * ... * NAXISn)`, 0 without axes.
-    fn data_bytes(&self) -> Result<u64, String> {
-        let bitpix = self.bitpix.ok_or("no BITPIX")?;
-        let naxis = self.naxis.ok_or("no NAXIS")?;
+    fn data_bytes(&self) -> Result<u64, HeaderProblem> {
+        let missing = |k: &str| HeaderProblem::MissingKeyword(k.to_string());
+        let bitpix = self.bitpix.ok_or_else(|| missing("BITPIX"))?;
+        let naxis = self.naxis.ok_or_else(|| missing("NAXIS"))?;
         if naxis == 0 {
             return Ok(0);
         }
@@ -182,7 +245,7 @@ impl HduCards {
                 .axes
                 .iter()
                 .find(|(k, _)| *k == i)
-                .ok_or_else(|| format!("no NAXIS{i}"))?;
+                .ok_or_else(|| missing(&format!("NAXIS{i}")))?;
             n = n.saturating_mul(*v);
         }
         Ok((bitpix.unsigned_abs() / 8)
@@ -252,6 +315,21 @@ mod tests {
                 bytes.len()
             );
         }
+        // What is missing is told apart: the data of the primary HDU, its header.
+        std::fs::write(&cut, &bytes[..bytes.len() - 2880]).unwrap();
+        assert!(
+            matches!(readiness(&cut), Readiness::Incomplete(Incomplete::Data { hdu: 1, .. })),
+            "{:?}",
+            readiness(&cut)
+        );
+        std::fs::write(&cut, &bytes[..2879]).unwrap();
+        assert_eq!(
+            readiness(&cut),
+            Readiness::Incomplete(Incomplete::Header {
+                hdu: 1,
+                problem: HeaderProblem::NoEndYet
+            })
+        );
         // An extension appended and cut: incomplete; whole: complete.
         let mut two = bytes.clone();
         two.extend_from_slice(&bytes);

@@ -450,18 +450,26 @@ mod tests {
         fn simpson(fa: f64, fm: f64, fb: f64, a: f64, b: f64) -> f64 {
             (b - a) / 6.0 * (fa + 4.0 * fm + fb)
         }
-        #[allow(clippy::too_many_arguments)]
-        fn rec(
-            f: &dyn Fn(f64) -> f64,
+        /// An interval `[a, b]` with the integrand at its ends and middle, and its Simpson
+        /// estimate (what each level of the recursion hands to the next).
+        #[derive(Clone, Copy)]
+        struct Panel {
             a: f64,
             b: f64,
             fa: f64,
             fm: f64,
             fb: f64,
             whole: f64,
-            tol: f64,
-            depth: u32,
-        ) -> f64 {
+        }
+        fn rec(f: &dyn Fn(f64) -> f64, p: Panel, tol: f64, depth: u32) -> f64 {
+            let Panel {
+                a,
+                b,
+                fa,
+                fm,
+                fb,
+                whole,
+            } = p;
             let m = 0.5 * (a + b);
             let (lm, rm) = (0.5 * (a + m), 0.5 * (m + b));
             let (flm, frm) = (f(lm), f(rm));
@@ -471,13 +479,41 @@ mod tests {
             if depth == 0 || delta.abs() <= 15.0 * tol {
                 left + right + delta / 15.0
             } else {
-                rec(f, a, m, fa, flm, fm, left, (0.5 * tol).max(1e-17), depth - 1)
-                    + rec(f, m, b, fm, frm, fb, right, (0.5 * tol).max(1e-17), depth - 1)
+                let lp = Panel {
+                    a,
+                    b: m,
+                    fa,
+                    fm: flm,
+                    fb: fm,
+                    whole: left,
+                };
+                let rp = Panel {
+                    a: m,
+                    b,
+                    fa: fm,
+                    fm: frm,
+                    fb,
+                    whole: right,
+                };
+                rec(f, lp, (0.5 * tol).max(1e-17), depth - 1) + rec(f, rp, (0.5 * tol).max(1e-17), depth - 1)
             }
         }
         let m = 0.5 * (a + b);
         let (fa, fm, fb) = (f(a), f(m), f(b));
-        rec(f, a, b, fa, fm, fb, simpson(fa, fm, fb, a, b), tol, depth)
+        let whole = simpson(fa, fm, fb, a, b);
+        rec(
+            f,
+            Panel {
+                a,
+                b,
+                fa,
+                fm,
+                fb,
+                whole,
+            },
+            tol,
+            depth,
+        )
     }
 
     #[test]

@@ -21,7 +21,7 @@ use serde::{Deserialize, Serialize};
 use super::model::{add_gaussian, FWHM_PER_SIGMA};
 use super::moffat::{
     add_moffat, add_moffat_elliptical, add_moffat_elliptical_where, add_moffat_where, moffat_fwhm, moffat_pixel,
-    moffat_pixel_elliptical,
+    moffat_pixel_elliptical, MoffatStar,
 };
 
 /// Range of the Moffat `alpha` accepted by the fit, px.
@@ -269,12 +269,14 @@ pub fn subtract_star_near_where(
         PsfModel::Gaussian => add_gaussian(&mut view, -s.flux, x, y, fit.sigma_x, fit.sigma_y),
         PsfModel::Moffat { .. } if fit.is_elliptical() => add_moffat_elliptical_where(
             &mut view,
-            -s.flux,
-            x,
-            y,
-            fit.alpha,
-            fit.beta,
-            fit.ellipticity,
+            MoffatStar {
+                flux: -s.flux,
+                x_px: x,
+                y_px: y,
+                alpha_px: fit.alpha,
+                beta: fit.beta,
+                e: fit.ellipticity,
+            },
             |ix, iy| keep(ix + x0, iy + y0),
         ),
         PsfModel::Moffat { .. } => add_moffat_where(&mut view, -s.flux, x, y, fit.alpha, fit.beta, |ix, iy| {

@@ -321,11 +321,31 @@ pub fn find_companion(
         found.push(p);
         stacks.push(Some((stack, smask)));
     }
-    let geometry = label_and_combine(&mut found, &stacks, orients, params, scale, flags);
+    let seen = Seen {
+        stacks: &stacks,
+        orients,
+        params,
+        scale_arcsec_per_px: scale,
+    };
+    let geometry = label_and_combine(&mut found, &seen, flags);
     if geometry.is_none() {
         flags.push(Flag::new(FlagCode::CompanionNotFound));
     }
     Companion { found, fwhms, geometry }
+}
+
+/// What the pair was found on, read when it is labelled A and B at every orientation
+/// ([`label_and_combine`], [`verify_identity`]).
+struct Seen<'a> {
+    /// The registered stack of each orientation (None where no frame had the primary;
+    /// may be shorter than `orients`: no geometry test there).
+    stacks: &'a [Option<Stack>],
+    /// The orientations, in the order of the pairs found.
+    orients: &'a [CalibratedOrientation],
+    /// The measurement settings (companion thresholds).
+    params: &'a MeasureParams,
+    /// Pixel scale, arcsec per px.
+    scale_arcsec_per_px: f64,
 }
 
 /// Make A/B consistent across orientations: the companion of the best orientation predicts
@@ -333,14 +353,8 @@ pub fn find_companion(
 /// must both be significant in flux and improve the fit significantly over a single star
 /// (F test on the stack): a lone star is otherwise split in two. Returns the combined
 /// separation and PA when the companion is accepted.
-fn label_and_combine(
-    found: &mut [Option<PairOnStack>],
-    stacks: &[Option<Stack>],
-    orients: &[CalibratedOrientation],
-    params: &MeasureParams,
-    scale: f64,
-    flags: &mut Vec<Flag>,
-) -> Option<(f64, f64)> {
+fn label_and_combine(found: &mut [Option<PairOnStack>], seen: &Seen, flags: &mut Vec<Flag>) -> Option<(f64, f64)> {
+    let (orients, params, scale) = (seen.orients, seen.params, seen.scale_arcsec_per_px);
     let min_f = params.min_companion_f;
     let min_sep_px = params.min_companion_sep_arcsec / scale;
     let snr = |p: &PairOnStack| {
@@ -386,7 +400,7 @@ fn label_and_combine(
             o.1 = (-o.1 .0, -o.1 .1);
         }
     }
-    verify_identity(found, stacks, orients, ib, (sep0, pa0), params, scale, flags);
+    verify_identity(found, seen, ib, (sep0, pa0), flags);
     // A real companion is seen at every orientation where the rotation puts it; a fit
     // artefact (blur, a cosmic ray in a stack) is not.
     let need = orients.len().min(2);
@@ -486,20 +500,22 @@ fn found_is_b(p: &mut PairOnStack, pred: (f64, f64), f: f64) {
 
 /// Where the companion was not found at an orientation, the star the stack is centred on
 /// may be either component: tell which by its flux against A and B of the best orientation
-/// `ib` (the labels there are final), and put A where the geometry `(sep, pa)` of the best
-/// orientation predicts it when that star is B. A near-equal pair cannot be told apart:
-/// flagged, never relabelled silently.
-#[allow(clippy::too_many_arguments)]
+/// `ib` (the labels there are final), and put A where the geometry `(sep0, pa0)` (arcsec,
+/// deg) of the best orientation predicts it when that star is B. A near-equal pair cannot
+/// be told apart: flagged, never relabelled silently.
 fn verify_identity(
     found: &mut [Option<PairOnStack>],
-    stacks: &[Option<Stack>],
-    orients: &[CalibratedOrientation],
+    seen: &Seen,
     ib: usize,
     (sep0, pa0): (f64, f64),
-    params: &MeasureParams,
-    scale: f64,
     flags: &mut Vec<Flag>,
 ) {
+    let Seen {
+        stacks,
+        orients,
+        params,
+        scale_arcsec_per_px: scale,
+    } = *seen;
     let Some(pb) = found[ib] else { return };
     let (min_f, min_sep_px) = (params.min_companion_f, params.min_companion_sep_arcsec / scale);
     // Offset of B from A at the best orientation after the labelling (A may have been swapped).
@@ -607,13 +623,23 @@ mod tests {
         (vec![Some(pair0), Some(single45)], vec![orient(0.0), orient(45.0)])
     }
 
+    /// The pairs of `orients` labelled without their stacks (no geometry test), at SOFI's scale.
+    fn without_stacks<'a>(orients: &'a [CalibratedOrientation], params: &'a MeasureParams) -> Seen<'a> {
+        Seen {
+            stacks: &[],
+            orients,
+            params,
+            scale_arcsec_per_px: Profile::sofi().geometry.pixscale_arcsec,
+        }
+    }
+
     #[test]
     fn bench_target_40_star_left_without_its_companion_is_not_silently_a() {
         let (mut found, orients) = bench_40(14700.0, 14803.0);
         let params = MeasureParams::default();
         let scale = Profile::sofi().geometry.pixscale_arcsec;
         let mut flags = Vec::new();
-        let geometry = label_and_combine(&mut found, &[], &orients, &params, scale, &mut flags);
+        let geometry = label_and_combine(&mut found, &without_stacks(&orients, &params), &mut flags);
         // Seen at one orientation of two: rejected, as before.
         assert!(geometry.is_none(), "{geometry:?}");
         // B from A at POSANG 0 is (-15.06, 2.81); at POSANG 45 the geometry predicts it
@@ -632,7 +658,7 @@ mod tests {
         // The star found is A (flux like A's): left where it is, no flag.
         let (mut found, orients) = bench_40(28500.0, 14803.0);
         let mut flags = Vec::new();
-        label_and_combine(&mut found, &[], &orients, &params, scale, &mut flags);
+        label_and_combine(&mut found, &without_stacks(&orients, &params), &mut flags);
         assert_eq!(found[1].unwrap().a, (0.07, -0.12));
         assert!(
             !flags.iter().any(|f| f.code.name().starts_with("ab_identity")),
@@ -724,8 +750,11 @@ mod tests {
     fn near_equal_components_without_the_companion_are_flagged_not_relabelled() {
         let (mut found, orients) = bench_40(26000.0, 26000.0);
         let mut flags = Vec::new();
-        let scale = Profile::sofi().geometry.pixscale_arcsec;
-        label_and_combine(&mut found, &[], &orients, &MeasureParams::default(), scale, &mut flags);
+        label_and_combine(
+            &mut found,
+            &without_stacks(&orients, &MeasureParams::default()),
+            &mut flags,
+        );
         assert_eq!(found[1].unwrap().a, (0.07, -0.12));
         assert!(flags.iter().any(|f| f.is(FlagCode::AbIdentityUnverified)), "{flags:?}");
     }

@@ -14,7 +14,7 @@ use crate::photometry::model::add_gaussian;
 use crate::photometry::moffat::{add_moffat, add_moffat_elliptical};
 use crate::photometry::{
     aperture_sum, fit_psf, fit_psf_from, fit_psf_joint, measure, subtract_star_near_where, Aperture, FitImage, Flags,
-    MaskFill, PhotParams, PsfFit, PsfFitParams, PsfModel, PsfStart,
+    MaskFill, Method, PhotParams, PsfFit, PsfFitParams, PsfModel, PsfStart,
 };
 use crate::stokes::model::companion_offset_px;
 
@@ -94,18 +94,30 @@ pub struct Fluxes {
     pub pair_offsets: Vec<(f64, (f64, f64), f64)>,
 }
 
-/// Stage 5: photometry of both components in both beams of every frame.
-#[allow(clippy::too_many_arguments)] // the stage's inputs, each from a different stage
+/// What every frame of a sequence is measured with, the same for all: the PSF model and
+/// method ([`choose_psf`]), the beams' offset, the pixel scale and the settings.
+#[derive(Debug, Clone, Copy)]
+pub struct FluxSetup<'a> {
+    /// The PSF model and photometry method chosen from the stacks.
+    pub choice: &'a PsfChoice,
+    /// Offset of the e beam from the o beam (x, y), px.
+    pub eo_px: (f64, f64),
+    /// Pixel scale, arcsec per px.
+    pub scale_arcsec_per_px: f64,
+    /// The measurement settings.
+    pub params: &'a MeasureParams,
+}
+
+/// Stage 5: photometry of both components in both beams of every frame, where the
+/// primary (`primary`) and the companion (`companion`) were found, with `setup`.
 pub fn measure_fluxes(
     orients: &[CalibratedOrientation],
     primary: &Primary,
     companion: &Companion,
-    choice: &PsfChoice,
-    eo: (f64, f64),
-    scale: f64,
-    params: &MeasureParams,
+    setup: &FluxSetup,
     flags: &mut Vec<Flag>,
 ) -> Fluxes {
+    let (scale, params) = (setup.scale_arcsec_per_px, setup.params);
     let ncomp = if companion.geometry.is_some() { 2 } else { 1 };
     let mut out = Fluxes {
         dithers: vec![Vec::new(); ncomp],
@@ -137,14 +149,11 @@ pub fn measure_fluxes(
             }
             let joint = params
                 .joint_beams
-                .then(|| measure_beams_jointly(f, &stars, eo, choice, params))
+                .then(|| measure_beams_jointly(f, &stars, setup))
                 .flatten();
             let (results, cov_oe) = match joint {
                 Some(j) => j,
-                None => (
-                    measure_beams_separately(f, &stars, eo, choice, params),
-                    vec![0.0; stars.len()],
-                ),
+                None => (measure_beams_separately(f, &stars, setup), vec![0.0; stars.len()]),
             };
             let mut beams: Vec<Vec<(BeamFlux, u8)>> = Vec::new();
             let mut fitted_a: [Option<(f64, f64)>; 2] = [None, None];
@@ -171,30 +180,18 @@ pub fn measure_fluxes(
 
 /// Both beams of frame `f` fitted on their own, the o beam first (its fit starts the e
 /// beam's and sets the frame's FWHM and PSF shape for both).
-fn measure_beams_separately(
-    f: &Frame,
-    stars: &[(f64, f64)],
-    eo: (f64, f64),
-    choice: &PsfChoice,
-    params: &MeasureParams,
-) -> Vec<BeamResult> {
-    let mut frame_fwhm = choice.fwhm_px;
-    let mut frame_shape: Option<FrameShape> = None;
+fn measure_beams_separately(f: &Frame, stars: &[(f64, f64)], setup: &FluxSetup) -> Vec<BeamResult> {
+    let eo = setup.eo_px;
+    let mut frame = FramePsf {
+        fwhm_px: setup.choice.fwhm_px,
+        shape: None,
+    };
     // The e beam's fit starts from the o beam's (the same stars and seeing, moved by the
     // e-o offset): the same minimum in fewer steps.
     let mut e_start: Option<PsfStart> = None;
     let mut out = Vec::with_capacity(2);
     for (bi, shift) in [(0.0, 0.0), eo].into_iter().enumerate() {
-        let b = measure_beam(
-            f,
-            stars,
-            shift,
-            bi == 0,
-            (&mut frame_fwhm, &mut frame_shape),
-            e_start.as_ref(),
-            choice,
-            params,
-        );
+        let b = measure_beam(f, stars, shift, bi == 0, &mut frame, e_start.as_ref(), setup);
         if bi == 0 {
             e_start = b.fit_start.clone().map(|mut st| {
                 st.stars.iter_mut().for_each(|s| {
@@ -214,17 +211,12 @@ fn measure_beams_separately(
 /// covariance of each star's o and e PSF-fit fluxes (0 for aperture fluxes). None when the
 /// joint fit cannot be made (too few pixels, a singular fit): the beams are then fitted on
 /// their own.
-fn measure_beams_jointly(
-    f: &Frame,
-    stars: &[(f64, f64)],
-    eo: (f64, f64),
-    choice: &PsfChoice,
-    params: &MeasureParams,
-) -> Option<(Vec<BeamResult>, Vec<f64>)> {
+fn measure_beams_jointly(f: &Frame, stars: &[(f64, f64)], setup: &FluxSetup) -> Option<(Vec<BeamResult>, Vec<f64>)> {
+    let (choice, params) = (setup.choice, setup.params);
     let fwhm_med = choice.fwhm_px;
-    let cuts: Vec<(Cutout, Vec<(f64, f64)>)> = [(0.0, 0.0), eo]
+    let cuts: Vec<(Cutout, Vec<(f64, f64)>)> = [(0.0, 0.0), setup.eo_px]
         .into_iter()
-        .map(|shift| beam_cutout(f, stars, shift, choice, params))
+        .map(|shift| beam_cutout(f, stars, shift, setup))
         .collect();
     let images: Vec<FitImage> = cuts
         .iter()
@@ -243,7 +235,14 @@ fn measure_beams_jointly(
     let results = cuts
         .iter()
         .zip(&joint.fits)
-        .map(|((cut, guesses), fit)| measured_beam(cut, guesses, Some(fit), frame_shape, r_ap, choice, params))
+        .map(|((cut, guesses), fit)| {
+            let with = BeamFit {
+                fit: Some(fit),
+                shape: frame_shape,
+                r_ap_px: r_ap,
+            };
+            measured_beam(cut, guesses, &with, setup)
+        })
         .collect();
     let cov_oe = (0..stars.len())
         .map(|k| {
@@ -258,13 +257,8 @@ fn measure_beams_jointly(
 }
 
 /// The cut-out of one beam about the stars at `stars` + `shift`, and their positions in it.
-fn beam_cutout(
-    f: &Frame,
-    stars: &[(f64, f64)],
-    shift: (f64, f64),
-    choice: &PsfChoice,
-    params: &MeasureParams,
-) -> (Cutout, Vec<(f64, f64)>) {
+fn beam_cutout(f: &Frame, stars: &[(f64, f64)], shift: (f64, f64), setup: &FluxSetup) -> (Cutout, Vec<(f64, f64)>) {
+    let (choice, params) = (setup.choice, setup.params);
     let pos: Vec<(f64, f64)> = stars.iter().map(|&(x, y)| (x + shift.0, y + shift.1)).collect();
     let (cx, cy) = pos.iter().fold((0.0, 0.0), |a, p| {
         (a.0 + p.0 / pos.len() as f64, a.1 + p.1 / pos.len() as f64)
@@ -302,23 +296,34 @@ struct BeamResult {
     fit_start: Option<PsfStart>,
 }
 
+/// The frame's PSF as the o beam's fit sets it for both beams ([`measure_beam`]).
+struct FramePsf {
+    /// FWHM, px (the sequence's median until the o beam is fitted).
+    fwhm_px: f64,
+    /// The shape, when the o beam's fit converged.
+    shape: Option<FrameShape>,
+}
+
 /// Fit and measure the stars at `stars` + `shift` in one beam of frame `f`. The o beam
-/// (`first`) sets `frame_fwhm` and the PSF shape (alpha, beta, sigma_x, sigma_y) from its
+/// (`first`) sets `frame`'s FWHM and PSF shape (alpha, beta, sigma_x, sigma_y) from its
 /// fit; both beams size their apertures with the one and correct them with the other (two
 /// independently fitted widths would put their noise into F).
-#[allow(clippy::too_many_arguments)]
 fn measure_beam(
     f: &Frame,
     stars: &[(f64, f64)],
     shift: (f64, f64),
     first: bool,
-    (frame_fwhm, frame_shape): (&mut f64, &mut Option<FrameShape>),
+    frame: &mut FramePsf,
     start: Option<&PsfStart>,
-    choice: &PsfChoice,
-    params: &MeasureParams,
+    setup: &FluxSetup,
 ) -> BeamResult {
+    let (choice, params) = (setup.choice, setup.params);
+    let FramePsf {
+        fwhm_px: frame_fwhm,
+        shape: frame_shape,
+    } = frame;
     let fwhm_med = choice.fwhm_px;
-    let (cut, local) = beam_cutout(f, stars, shift, choice, params);
+    let (cut, local) = beam_cutout(f, stars, shift, setup);
     let (x0, y0) = cut.origin;
     let fitp = fit_params(choice);
     let fit = match start {
@@ -355,7 +360,12 @@ fn measure_beam(
         }
     }
     let r_ap = (params.aperture_fwhm * *frame_fwhm).max(super::params::MIN_APERTURE_RADIUS_PX);
-    let mut out = measured_beam(&cut, &local, fit.as_ref(), *frame_shape, r_ap, choice, params);
+    let with = BeamFit {
+        fit: fit.as_ref(),
+        shape: *frame_shape,
+        r_ap_px: r_ap,
+    };
+    let mut out = measured_beam(&cut, &local, &with, setup);
     // Only the o beam's fit starts another (the e beam's).
     out.fit_start = fit.as_ref().filter(|ft| first && ft.converged).map(|ft| PsfStart {
         stars: ft.stars.iter().map(|s| (s.flux, s.x + x0, s.y + y0)).collect(),
@@ -392,17 +402,22 @@ impl FrameShape {
     }
 }
 
-/// The stars of one beam's cut-out `cut` measured with its PSF fit `fit` (positions from
-/// the fit when it converged, else `guesses`), apertures of radius `r_ap`.
-fn measured_beam(
-    cut: &Cutout,
-    guesses: &[(f64, f64)],
-    fit: Option<&PsfFit>,
-    frame_shape: Option<FrameShape>,
-    r_ap: f64,
-    choice: &PsfChoice,
-    params: &MeasureParams,
-) -> BeamResult {
+/// What one beam's stars are measured with: its PSF fit, the frame's PSF shape (for the
+/// aperture correction) and the aperture radius.
+#[derive(Clone, Copy)]
+struct BeamFit<'a> {
+    /// The beam's PSF fit, if it was made.
+    fit: Option<&'a PsfFit>,
+    /// The frame's PSF shape, when a fit converged ([`FramePsf`]).
+    shape: Option<FrameShape>,
+    /// Aperture radius, px.
+    r_ap_px: f64,
+}
+
+/// The stars of one beam's cut-out `cut` measured `with` its PSF fit (positions from the
+/// fit when it converged, else `guesses`) and aperture.
+fn measured_beam(cut: &Cutout, guesses: &[(f64, f64)], with: &BeamFit, setup: &FluxSetup) -> BeamResult {
+    let (fit, r_ap) = (with.fit, with.r_ap_px);
     let (x0, y0) = cut.origin;
     // Centre apertures on the fitted positions (both beams are fitted freely, so the e-o
     // offset found before only needs to be good to a pixel).
@@ -416,7 +431,7 @@ fn measured_beam(
         _ => None,
     };
     let stars = (0..local.len())
-        .map(|si| measure_star(cut, &local, si, fit, frame_shape, r_ap, choice, params))
+        .map(|si| measure_star(cut, &local, si, with, setup))
         .collect();
     BeamResult {
         stars,
@@ -429,17 +444,13 @@ fn measured_beam(
 
 /// Flux of star `si` (at `local[si]` in the cut-out): PSF-fit flux, or aperture photometry
 /// with the other stars' fitted models subtracted.
-#[allow(clippy::too_many_arguments)]
-fn measure_star(
-    cut: &Cutout,
-    local: &[(f64, f64)],
-    si: usize,
-    fit: Option<&PsfFit>,
-    shape: Option<FrameShape>,
-    r_ap: f64,
-    choice: &PsfChoice,
-    params: &MeasureParams,
-) -> (BeamFlux, u8) {
+fn measure_star(cut: &Cutout, local: &[(f64, f64)], si: usize, with: &BeamFit, setup: &FluxSetup) -> (BeamFlux, u8) {
+    let (choice, params) = (setup.choice, setup.params);
+    let BeamFit {
+        fit,
+        shape,
+        r_ap_px: r_ap,
+    } = *with;
     let fwhm_med = choice.fwhm_px;
     let (x0, y0) = cut.origin;
     let (lx, ly) = local[si];
@@ -505,9 +516,10 @@ fn measure_star(
         var: ph.variance,
         xy: (lx + x0, ly + y0),
         phot_flags: ph.flags.0,
-        aperture_fraction: fit
-            .zip(shape)
-            .and_then(|(ft, sh)| model_fraction_in_aperture(ft, sh, si, cut.img.dim(), lx, ly, r_ap, params)),
+        aperture_fraction: fit.zip(shape).and_then(|(ft, sh)| {
+            let ap = Aperture { x: lx, y: ly, r: r_ap };
+            model_fraction_in_aperture(ft, sh, si, cut.img.dim(), &ap, params.method)
+        }),
     };
     (flux, bits_in)
 }
@@ -543,21 +555,20 @@ fn pixels_read<'a>(
 }
 
 /// The fraction of star `si`'s fitted PSF model (pixel-integrated) that falls in the
-/// aperture at (x, y), measured with the same pixel weights as the data. A small aperture
+/// aperture `ap` of the cut-out of size `dim` (ny, nx), measured with the same pixel weights
+/// (`method`) as the data. A small aperture
 /// on an undersampled star (FWHM ~2 px) catches a fraction that depends on the star's
 /// sub-pixel position, which differs between the o and e images: dividing both beams by
 /// their own fraction removes that difference from F (docs/photometry.md).
-#[allow(clippy::too_many_arguments)]
 fn model_fraction_in_aperture(
     fit: &PsfFit,
     shape: FrameShape,
     si: usize,
     dim: (usize, usize),
-    x: f64,
-    y: f64,
-    r_ap: f64,
-    params: &MeasureParams,
+    ap: &Aperture,
+    method: Method,
 ) -> Option<f64> {
+    let (x, y, r_ap) = (ap.x, ap.y, ap.r);
     let st = fit.stars.get(si)?;
     if !(fit.converged && st.flux.is_finite() && st.flux > 0.0) {
         return None;
@@ -601,7 +612,7 @@ fn model_fraction_in_aperture(
         y: y - wy0 as f64,
         r: r_ap,
     };
-    let frac = aperture_sum(model.view(), None, None, &ap, params.method, MaskFill::Exclude).sum;
+    let frac = aperture_sum(model.view(), None, None, &ap, method, MaskFill::Exclude).sum;
     (frac.is_finite() && frac > 0.2 && frac <= 1.0 + 1e-6).then_some(frac)
 }
 

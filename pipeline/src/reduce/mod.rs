@@ -151,7 +151,13 @@ pub fn measure_sequence(
     let eo = beams::measure_eo_offset(orients, &primary, &masks, profile, &mut flags)?;
     let companion = companion::find_companion(orients, &primary, &masks, profile, params, &mut flags);
     let choice = fluxes::choose_psf(&companion, primary.fwhm_guess, scale, params);
-    let mut fl = fluxes::measure_fluxes(orients, &primary, &companion, &choice, eo, scale, params, &mut flags);
+    let setup = fluxes::FluxSetup {
+        choice: &choice,
+        eo_px: eo,
+        scale_arcsec_per_px: scale,
+        params,
+    };
+    let mut fl = fluxes::measure_fluxes(orients, &primary, &companion, &setup, &mut flags);
 
     // 6. Refine the e-o offset and the geometry from the per-frame fits (the stack is
     // registered to whole pixels).

@@ -55,7 +55,7 @@ pub struct StatsSection {
 }
 
 /// Everything the page shows.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct ReportInput {
     /// The catalog.
     pub catalog: Catalog,
@@ -66,7 +66,7 @@ pub struct ReportInput {
     /// Per-target figures by sequence id (those found).
     pub target_figures: BTreeMap<String, Vec<u8>>,
     /// The statistics, or why they could not be computed.
-    pub stats: std::result::Result<StatsSection, String>,
+    pub stats: Result<StatsSection>,
     /// The command line that wrote the page.
     pub command_line: String,
 }
@@ -95,7 +95,7 @@ pub fn collect(
             target_figures.insert(id.to_string(), png);
         }
     }
-    let stats = statistics(&catalog, &catalog_path.display().to_string(), opts).map_err(|e| e.to_string());
+    let stats = statistics(&catalog, &catalog_path.display().to_string(), opts);
     ReportInput {
         catalog,
         catalog_path: catalog_path.display().to_string(),

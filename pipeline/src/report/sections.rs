@@ -175,14 +175,14 @@ fn telescope_over_night(h: &mut String, cat: &Catalog) {
 }
 
 /// The verdict, the tests, the comparisons with the models and the ISM levels, the figures.
-pub fn statistics(h: &mut String, stats: &Result<StatsSection, String>) {
+pub fn statistics(h: &mut String, stats: &crate::error::Result<StatsSection>) {
     h.push_str("<section id=\"statistics\"><h2>Alignment statistics (Δγ)</h2>\n");
     let s = match stats {
         Err(e) => {
             let _ = writeln!(
                 h,
                 "<p>The statistics could not be computed: {}</p>\n</section>",
-                escape(e)
+                escape(&e.to_string())
             );
             return;
         }

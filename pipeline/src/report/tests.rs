@@ -27,7 +27,15 @@ fn binary(object: &str, a: Component, b: Component) -> Target {
     t
 }
 
-fn input(catalog: Catalog, stats: std::result::Result<StatsSection, String>) -> ReportInput {
+/// Statistics that could not be computed: a statistics table named `why` unreadable.
+fn not_computed(why: &str) -> Error {
+    Error::Stats(crate::error::StatsError::Table {
+        table: why.into(),
+        reason: "unreadable".into(),
+    })
+}
+
+fn input(catalog: Catalog, stats: Result<StatsSection>) -> ReportInput {
     ReportInput {
         catalog,
         catalog_path: "night/catalog.json".into(),
@@ -117,7 +125,7 @@ fn hostile_names_are_escaped_everywhere() {
         ..Default::default()
     };
     cat.schema_version = HOSTILE.into();
-    let mut inp = input(cat, Err(HOSTILE.into()));
+    let mut inp = input(cat, Err(not_computed(HOSTILE)));
     inp.catalog_path = HOSTILE.into();
     inp.command_line = HOSTILE.into();
     let page = render(&inp);
@@ -146,7 +154,7 @@ fn every_target_and_component_has_a_row_with_its_numbers_in_percent_and_degrees(
         targets: vec![binary("Alpha", a.clone(), b.clone()), partial, failed],
         ..Default::default()
     };
-    let page = render(&input(cat, Err("not run".into())));
+    let page = render(&input(cat, Err(not_computed("not run"))));
     for (t, c) in [
         ("Alpha", "A"),
         ("Alpha", "B"),
@@ -192,7 +200,7 @@ fn flags_are_explained_in_words_and_unknown_ones_shown_as_they_are() {
         targets: vec![t],
         ..Default::default()
     };
-    let page = render(&input(cat, Err("not run".into())));
+    let page = render(&input(cat, Err(not_computed("not run"))));
     assert!(page.contains("The two stars&#39; apertures overlap (reported only)."));
     assert!(page.contains("The companion was not found"));
     assert!(page.contains("<li><code>a_flag_from_the_future</code></li>"));
@@ -201,7 +209,7 @@ fn flags_are_explained_in_words_and_unknown_ones_shown_as_they_are() {
 
 #[test]
 fn an_empty_catalog_and_one_of_failures_only_give_whole_pages() {
-    let empty = render(&input(Catalog::default(), Err("no sample".into())));
+    let empty = render(&input(Catalog::default(), Err(not_computed("no sample"))));
     assert_balanced(&empty);
     assert!(empty.contains("The catalog has no targets."));
     assert!(empty.contains("No per-target figures were found"));

@@ -57,7 +57,6 @@ fn rule_for<const ELL: bool>(dx: f64, dy: f64, alpha: f64, e: [f64; 2]) -> (&'st
 /// the same values bit for bit.
 #[cfg(test)]
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn node_sums<const N: usize, const DERIVS: bool, const ELL: bool>(
     dx: f64,
     dy: f64,

@@ -279,20 +279,40 @@ pub fn add_moffat_elliptical(
     add_star(img, flux, (x, y), alpha, beta, Some(e), |_, _| true);
 }
 
-/// [`add_moffat_elliptical`] on the pixels `(ix, iy)` for which `keep(ix, iy)` holds only;
-/// those get the values [`add_moffat_elliptical`] gives them, bit for bit.
-#[allow(clippy::too_many_arguments)]
+/// An elliptical Moffat star to draw ([`add_moffat_elliptical_where`]): its flux, where it
+/// is and its shape, the arguments of [`add_moffat_elliptical`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MoffatStar {
+    /// Total flux (the sum of its pixel values over the whole plane), image units.
+    pub flux: f64,
+    /// Centre, x (column), px (0-based, pixel centres at integers).
+    pub x_px: f64,
+    /// Centre, y (row), px.
+    pub y_px: f64,
+    /// Width alpha, px.
+    pub alpha_px: f64,
+    /// Power-law index beta (> 1).
+    pub beta: f64,
+    /// Ellipticity (e1, e2), `|e| < 1` (see the module's doc).
+    pub e: [f64; 2],
+}
+
+/// [`add_moffat_elliptical`] of `star` on the pixels `(ix, iy)` for which `keep(ix, iy)`
+/// holds only; those get the values [`add_moffat_elliptical`] gives them, bit for bit.
 pub fn add_moffat_elliptical_where(
     img: &mut ArrayViewMut2<f32>,
-    flux: f64,
-    x: f64,
-    y: f64,
-    alpha: f64,
-    beta: f64,
-    e: [f64; 2],
+    star: MoffatStar,
     keep: impl Fn(usize, usize) -> bool,
 ) {
-    add_star(img, flux, (x, y), alpha, beta, Some(e), keep);
+    add_star(
+        img,
+        star.flux,
+        (star.x_px, star.y_px),
+        star.alpha_px,
+        star.beta,
+        Some(star.e),
+        keep,
+    );
 }
 
 /// Adds a circular (`e` None) or elliptical star, over the pixels within the ellipse (in

@@ -299,16 +299,13 @@ fn draw_cell(
         }
     }
     if let Some(m) = m {
-        f_panel(
-            root,
-            cell.x,
-            cell.y + CELL_LABEL_H + TILE + 6,
-            2 * TILE + TILE_GAP,
-            F_H,
-            m,
-            k,
-            nums,
-        )?;
+        let place = PanelPlace {
+            x0_px: cell.x,
+            y0_px: cell.y + CELL_LABEL_H + TILE + 6,
+            w_px: 2 * TILE + TILE_GAP,
+            h_px: F_H,
+        };
+        f_panel(root, place, m, k, nums)?;
     }
     Ok(())
 }

@@ -1,18 +1,25 @@
 //! The panels: per-dither F by orientation, and the polarization vectors on the sky.
 use super::*;
 
-#[allow(clippy::too_many_arguments)] // the panel's place, size and what it draws
-pub(super) fn f_panel(
-    root: &Area,
-    x0: u32,
-    y0: u32,
-    w: u32,
-    h: u32,
-    m: &Measured,
-    k: usize,
-    nums: &FigureNumbers,
-) -> io::Result<()> {
-    let area = root.clone().shrink((x0, y0), (w, h));
+/// Where a panel goes in the figure: its top-left corner and size.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct PanelPlace {
+    /// Left edge, px from the figure's left.
+    pub(super) x0_px: u32,
+    /// Top edge, px from the figure's top.
+    pub(super) y0_px: u32,
+    /// Width, px.
+    pub(super) w_px: u32,
+    /// Height, px.
+    pub(super) h_px: u32,
+}
+
+/// The F panel of orientation `k` at `place`: per-dither F of each component with its
+/// error, and the model F from the catalog's q, u.
+pub(super) fn f_panel(root: &Area, place: PanelPlace, m: &Measured, k: usize, nums: &FigureNumbers) -> io::Result<()> {
+    let area = root
+        .clone()
+        .shrink((place.x0_px, place.y0_px), (place.w_px, place.h_px));
     let per: Vec<&[DitherValue]> = m
         .dithers
         .iter()
@@ -137,8 +144,12 @@ pub(super) fn f_panel(
             .into_font()
             .color(&RGBColor(120, 120, 120))
             .pos(Pos::new(HPos::Center, VPos::Center));
-        area.draw(&Text::new("no per-dither values", ((w / 2) as i32, (h / 2) as i32), st))
-            .map_err(de)?;
+        area.draw(&Text::new(
+            "no per-dither values",
+            ((place.w_px / 2) as i32, (place.h_px / 2) as i32),
+            st,
+        ))
+        .map_err(de)?;
     }
     Ok(())
 }

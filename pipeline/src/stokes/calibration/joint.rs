@@ -475,7 +475,7 @@ pub fn fit_joint_with(stds: &[StandardObservation], opts: &JointOptions) -> Opti
     Some(match telescope::refit(stds, opts, &base) {
         Ok(j) => j,
         Err(why) => JointCalibration {
-            telescope_problem: Some(why),
+            telescope_problem: Some(why.to_string()),
             ..base
         },
     })

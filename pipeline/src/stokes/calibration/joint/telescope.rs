@@ -23,13 +23,61 @@ use super::{
 use crate::stokes::calibration::AngleCalibration;
 use crate::stokes::model::TelescopePolarization;
 
+/// Why the standards cannot measure the telescope's polarization (its `Display` is
+/// [`JointCalibration::telescope_problem`]). `what` describes the standards fitted ("N
+/// orientation(s) of M standard(s) whose parallactic angles span X deg (mod 180)").
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub(super) enum TelescopeFitError {
+    /// No unpolarized standard, and theta0 is not fitted.
+    #[error("no unpolarized standard, and the polarized ones do not fix theta0")]
+    NoUnpolarized,
+    /// Standards whose frames carry no parallactic angle.
+    #[error("{missing} standard(s) without a parallactic angle in their frames (TEL PARANG)")]
+    NoParallacticAngle {
+        /// How many.
+        missing: usize,
+    },
+    /// No more orientations than instrument parameters.
+    #[error("{what}: no more orientations than the {n_inst} instrument parameters")]
+    TooFewOrientations {
+        /// The standards fitted.
+        what: String,
+        /// Instrument parameters fitted.
+        n_inst: usize,
+    },
+    /// The normal matrix cannot be inverted.
+    #[error("{what}: the normal matrix is singular (the telescope's term is not separable from c)")]
+    Singular {
+        /// The standards fitted.
+        what: String,
+    },
+    /// Another solution fits as well (the words of `separation_problem`).
+    #[error("{0}")]
+    NotSeparable(String),
+    /// An instrument parameter is nearly a combination of the others.
+    #[error(
+        "{what}: {parameter} is not determined on its own (multiple correlation {correlation:.3} with the other \
+         instrument parameters, beyond {max}); observe unpolarized standards at \
+         parallactic angles further apart",
+        max = MAX_CORRELATION
+    )]
+    Correlated {
+        /// The standards fitted.
+        what: String,
+        /// The parameter (c, theta0, a or b).
+        parameter: &'static str,
+        /// Its multiple correlation with the others.
+        correlation: f64,
+    },
+}
+
 /// The joint fit with the telescope's term, from the fit without it (`base`: its parity, and
 /// whether it fitted theta0). `Err` says why the standards cannot measure the telescope.
 pub(super) fn refit<'a>(
     stds: &'a [StandardObservation],
     opts: &JointOptions,
     base: &JointCalibration,
-) -> Result<JointCalibration, String> {
+) -> Result<JointCalibration, TelescopeFitError> {
     let angles = base.angles;
     let all = usable(stds);
     let chosen: Vec<Std<'_>> = if angles.is_some() {
@@ -40,16 +88,14 @@ pub(super) fn refit<'a>(
         all.into_iter().filter(|s| !s.obs.polarized()).collect()
     };
     if chosen.is_empty() {
-        return Err("no unpolarized standard, and the polarized ones do not fix theta0".into());
+        return Err(TelescopeFitError::NoUnpolarized);
     }
     let missing = chosen
         .iter()
         .filter(|s| s.rows.iter().any(|r| r.parallactic_2eta.is_none()))
         .count();
     if missing > 0 {
-        return Err(format!(
-            "{missing} standard(s) without a parallactic angle in their frames (TEL PARANG)"
-        ));
+        return Err(TelescopeFitError::NoParallacticAngle { missing });
     }
     let problem = |parity: i32, stds: Vec<Std<'a>>| Problem {
         stds,
@@ -77,15 +123,13 @@ pub(super) fn refit<'a>(
     let what = describe(&pb);
     let n_inst = pb.n_inst();
     if pb.n_data() <= n_inst {
-        return Err(format!(
-            "{what}: no more orientations than the {n_inst} instrument parameters"
-        ));
+        return Err(TelescopeFitError::TooFewOrientations { what, n_inst });
     }
-    let (best, others) = pb.solve().ok_or_else(|| {
-        format!("{what}: the normal matrix is singular (the telescope's term is not separable from c)")
-    })?;
+    let Some((best, others)) = pb.solve() else {
+        return Err(TelescopeFitError::Singular { what });
+    };
     if let Some(why) = separation_problem(&pb, &best, &others) {
-        return Err(why);
+        return Err(TelescopeFitError::NotSeparable(why));
     }
     let names = if pb.fit_theta0 {
         vec!["c", "theta0", "a", "b"]
@@ -94,12 +138,11 @@ pub(super) fn refit<'a>(
     };
     if let Some((k, r)) = worst_multiple_correlation(&best.cov, n_inst) {
         if r > MAX_CORRELATION {
-            return Err(format!(
-                "{what}: {} is not determined on its own (multiple correlation {r:.3} with the other \
-                 instrument parameters, beyond {MAX_CORRELATION}); observe unpolarized standards at \
-                 parallactic angles further apart",
-                names[k]
-            ));
+            return Err(TelescopeFitError::Correlated {
+                what,
+                parameter: names[k],
+                correlation: r,
+            });
         }
     }
     let dof = pb.n_data() - n_inst;
