@@ -327,7 +327,7 @@ fn calibrate_bin<L>(
 ) where
     L: Fn(usize) -> (Sequence, Vec<LoadedOrientation>) + Sync,
 {
-    use sofipol_pipeline::calibration::{calibrate_catalog, standard_params, CalibrationSource};
+    use sofipol_pipeline::calibration::{calibrate_catalog, standard_params, CalibrationContext, CalibrationSource};
     let sp = standard_params(params);
     let stds: Vec<sofipol_pipeline::catalog::Target> = (cfg.targets_per_bin..sim.n_sequences())
         .into_par_iter()
@@ -343,12 +343,14 @@ fn calibrate_bin<L>(
     calibrate_catalog(
         &mut cat,
         stds,
-        &standards_table(),
-        profile,
         CalibrationSource::Night,
-        &params.calibration,
-        params.measure.debias,
-        params.measure.cut_snr,
+        &CalibrationContext {
+            table: &standards_table(),
+            profile: profile,
+            params: &params.calibration,
+            debias: params.measure.debias,
+            cut_snr: params.measure.cut_snr,
+        },
     );
     for (r, t) in reduced.iter_mut().zip(cat.targets) {
         r.0 = t;

@@ -14,7 +14,9 @@ use rayon::prelude::*;
 use sofipol_bench::accuracy::{simulated_flats, FlatMode};
 use sofipol_calib::flat::FlatSet;
 use sofipol_calib::Profile;
-use sofipol_pipeline::calibration::{calibrate_catalog, standard_params, CalibrationParams, CalibrationSource};
+use sofipol_pipeline::calibration::{
+    calibrate_catalog, standard_params, CalibrationContext, CalibrationParams, CalibrationSource,
+};
 use sofipol_pipeline::catalog::{Catalog, FlagCode, Target};
 use sofipol_pipeline::reduce::run::reduce_loaded;
 use sofipol_pipeline::reduce::TargetParams;
@@ -183,12 +185,14 @@ fn calibrate(cat: &mut Catalog, stds: Vec<Target>, source: CalibrationSource) ->
     let (_, s) = calibrate_catalog(
         cat,
         stds,
-        &table,
-        &Profile::sofi(),
         source,
-        &CalibrationParams::default(),
-        Debias::WardleKronberg,
-        3.0,
+        &CalibrationContext {
+            table: &table,
+            profile: &Profile::sofi(),
+            params: &CalibrationParams::default(),
+            debias: Debias::WardleKronberg,
+            cut_snr: 3.0,
+        },
     );
     s.n_uncalibrated
 }

@@ -272,28 +272,66 @@ pub enum CalibrationSource {
     Disabled,
 }
 
+/// What the calibration of a catalog works with besides the catalog and its standards.
+#[derive(Clone, Copy)]
+pub struct CalibrationContext<'a> {
+    /// The standards table (built-in and `--standards`).
+    pub table: &'a StandardsTable,
+    /// The instrument profile (angles, keywords).
+    pub profile: &'a Profile,
+    /// The calibration settings (Stokes method, telescope correction, opt-ins).
+    pub params: &'a CalibrationParams,
+    /// How P is debiased (the reduction's measure settings).
+    pub debias: Debias,
+    /// The cut in P/sigma.
+    pub cut_snr: f64,
+}
+
 /// Calibrate a reduced catalog: measure the calibration from the standard sequences (or
-/// use the given one), report the standards in their own section, re-solve every target
-/// component with the calibration and the chosen Stokes method, flag `uncalibrated`
-/// components and record what was used in `catalog.calibration`. Returns the calibration
-/// used and the summary.
-#[allow(clippy::too_many_arguments)] // each is a separate input of the calibration
+/// use the given one), re-solve every target component with it and the chosen Stokes
+/// method (the cut refuses uncalibrated components unless allowed), report the standards
+/// in their own section, and record what was used in `catalog.calibration`. Returns the
+/// calibration used and the summary.
 pub fn calibrate_catalog(
     cat: &mut Catalog,
     standards: Vec<Target>,
-    table: &StandardsTable,
-    profile: &Profile,
     source: CalibrationSource,
-    params: &CalibrationParams,
-    debias: Debias,
-    cut_snr: f64,
+    ctx: &CalibrationContext,
 ) -> (Option<Calibration>, CalibrationSummary) {
     let mut summary = CalibrationSummary::default();
+    let (cal, origin) = calibration_from(source, &standards, ctx);
+    resolve_targets(cat, cal.as_ref(), ctx, &mut summary);
+    standards_section(cat, standards, cal.as_ref(), ctx, &mut summary);
+    cat.calibration = Some(crate::catalog::AppliedCalibration::new(
+        cal.clone(),
+        origin.clone(),
+        ctx.params.stokes_method.name(),
+    ));
+    summary_lines(&mut summary, cal.as_ref(), &origin, ctx);
+    (cal, summary)
+}
+
+/// The calibration to apply, and where it came from (`night`, the file, `disabled`):
+/// measured from the night's standards, read, or none; without the telescope's term when
+/// the settings say so.
+fn calibration_from(
+    source: CalibrationSource,
+    standards: &[Target],
+    ctx: &CalibrationContext,
+) -> (Option<Calibration>, String) {
+    let CalibrationContext {
+        table,
+        profile,
+        params,
+        debias,
+        cut_snr,
+    } = *ctx;
+    let _ = (table, profile, params, debias, cut_snr);
     let fit_telescope = !params.no_telescope_correction;
     let (mut cal, origin) = match source {
         CalibrationSource::Disabled => (None, "disabled".to_string()),
         CalibrationSource::File(p, c) => (Some(*c), p.display().to_string()),
-        CalibrationSource::Night => (measure(&standards, table, profile, fit_telescope), "night".to_string()),
+        CalibrationSource::Night => (measure(standards, table, profile, fit_telescope), "night".to_string()),
     };
     if !fit_telescope {
         // Another night's telescope term is not applied either.
@@ -303,6 +341,25 @@ pub fn calibrate_catalog(
             }
         }
     }
+    (cal, origin)
+}
+
+/// Re-solve every target component with the calibration ([`resolve_component`]); without
+/// `allow_uncalibrated`, an uncalibrated component fails the cut.
+fn resolve_targets(
+    cat: &mut Catalog,
+    cal: Option<&Calibration>,
+    ctx: &CalibrationContext,
+    summary: &mut CalibrationSummary,
+) {
+    let CalibrationContext {
+        table,
+        profile,
+        params,
+        debias,
+        cut_snr,
+    } = *ctx;
+    let _ = (table, profile, params, debias, cut_snr);
     let method = params.stokes_method;
     for t in cat.targets.iter_mut() {
         let fc = cal.as_ref().and_then(|c| c.for_filter(&filter_of(t)));
@@ -313,12 +370,31 @@ pub fn calibrate_catalog(
                 summary.n_refused_uncalibrated += usize::from(c.passes_cut);
                 c.passes_cut = false;
             }
-            note_calibration_state(c, fc, &mut summary);
+            note_calibration_state(c, fc, summary);
         }
         summary.n_uncalibrated += n_unc;
         t.update_delta_gamma(fc.map(FilterCalibration::covariance_matrix).as_ref());
     }
-    // The standards, reduced as single stars, calibrated like the targets.
+}
+
+/// The standards, reduced as single stars, calibrated like the targets: each with its
+/// table values, its measurement, the residuals and what the calibration took from it.
+fn standards_section(
+    cat: &mut Catalog,
+    standards: Vec<Target>,
+    cal: Option<&Calibration>,
+    ctx: &CalibrationContext,
+    summary: &mut CalibrationSummary,
+) {
+    let CalibrationContext {
+        table,
+        profile,
+        params,
+        debias,
+        cut_snr,
+    } = *ctx;
+    let _ = (table, profile, params, debias, cut_snr);
+    let method = params.stokes_method;
     let used_offset: Vec<String> = cal
         .iter()
         .flat_map(|c| c.filters.iter().flat_map(|f| f.offset_standards.clone()))
@@ -386,11 +462,12 @@ pub fn calibrate_catalog(
             input_files: t.input_files.clone(),
         });
     }
-    cat.calibration = Some(crate::catalog::AppliedCalibration::new(
-        cal.clone(),
-        origin.clone(),
-        method.name(),
-    ));
+}
+
+/// The summary's lines: what was refused and why, and the calibration of each filter.
+fn summary_lines(summary: &mut CalibrationSummary, cal: Option<&Calibration>, origin: &str, ctx: &CalibrationContext) {
+    let params = ctx.params;
+    let method = params.stokes_method;
     if summary.n_uncalibrated > 0 {
         summary.lines.push(format!(
             "{} component(s) flagged 'uncalibrated': with 2 orientations the beam throughput ratio and the \
@@ -495,7 +572,6 @@ pub fn calibrate_catalog(
             FlagCode::TelescopeUncorrected.name()
         ));
     }
-    (cal, summary)
 }
 
 /// Whether a sequence observes a standard star: `DPR TYPE` of its first readable frame is

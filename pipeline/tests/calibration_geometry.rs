@@ -9,7 +9,9 @@
 //!   incomplete (no theta0 taken from the standard, the profile's zero-point kept) and every
 //!   component of the filter is flagged `calibration_incomplete`.
 use sofipol_calib::Profile;
-use sofipol_pipeline::calibration::{calibrate_catalog, standard_params, CalibrationParams, CalibrationSource};
+use sofipol_pipeline::calibration::{
+    calibrate_catalog, standard_params, CalibrationContext, CalibrationParams, CalibrationSource,
+};
 use sofipol_pipeline::catalog::{Catalog, FlagCode, Target};
 use sofipol_pipeline::reduce::run::reduce_loaded;
 use sofipol_pipeline::reduce::TargetParams;
@@ -111,12 +113,14 @@ fn calibrate(cat: &mut Catalog, stds: Vec<Target>) -> (serde_json::Value, Vec<St
     let (_, sum) = calibrate_catalog(
         cat,
         stds,
-        &table,
-        &Profile::sofi(),
         CalibrationSource::Night,
-        &CalibrationParams::default(),
-        Debias::WardleKronberg,
-        3.0,
+        &CalibrationContext {
+            table: &table,
+            profile: &Profile::sofi(),
+            params: &CalibrationParams::default(),
+            debias: Debias::WardleKronberg,
+            cut_snr: 3.0,
+        },
     );
     (
         serde_json::to_value(&cat.calibration.as_ref().unwrap().calibration().unwrap().filters[0]).unwrap(),

@@ -36,7 +36,9 @@ use rayon::prelude::*;
 use serde::Serialize;
 use sofipol_calib::Profile;
 
-use sofipol_pipeline::calibration::{calibrate_catalog, CalibSetup, Calibration, CalibrationParams, CalibrationSource};
+use sofipol_pipeline::calibration::{
+    calibrate_catalog, CalibSetup, Calibration, CalibrationContext, CalibrationParams, CalibrationSource,
+};
 use sofipol_pipeline::catalog::{Catalog, Target};
 use sofipol_pipeline::night::{self, Hooks, NightSetup, RunOptions};
 use sofipol_pipeline::reduce::TargetParams;
@@ -599,12 +601,14 @@ pub fn run(cfg: &WorldConfig, params: &TargetParams) -> Vec<WorldBin> {
         calibrate_catalog(
             &mut cat,
             vec![],
-            &StandardsTable::builtin(),
-            &Profile::sofi(),
             source,
-            &CalibrationParams::default(),
-            params.measure.debias,
-            params.measure.cut_snr,
+            &CalibrationContext {
+                table: &StandardsTable::builtin(),
+                profile: &Profile::sofi(),
+                params: &CalibrationParams::default(),
+                debias: params.measure.debias,
+                cut_snr: params.measure.cut_snr,
+            },
         );
     }
     let mut targets: Vec<Vec<WorldTarget>> = vec![Vec::new(); cfg.bins_arcsec.len().saturating_sub(1)];

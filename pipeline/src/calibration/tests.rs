@@ -84,12 +84,14 @@ fn night_calibration_recovers_truth_and_flags_uncalibrated_without_it() {
     let (cal, sum) = calibrate_catalog(
         &mut cat,
         stds.clone(),
-        &table,
-        &profile,
         CalibrationSource::Night,
-        &CalibrationParams::default(),
-        Debias::WardleKronberg,
-        3.0,
+        &CalibrationContext {
+            table: &table,
+            profile: &profile,
+            params: &CalibrationParams::default(),
+            debias: Debias::WardleKronberg,
+            cut_snr: 3.0,
+        },
     );
     let cal = cal.unwrap();
     let f = cal.for_filter("ks").unwrap();
@@ -137,12 +139,14 @@ fn night_calibration_recovers_truth_and_flags_uncalibrated_without_it() {
     let (none, sum) = calibrate_catalog(
         &mut raw,
         vec![],
-        &table,
-        &profile,
         CalibrationSource::Night,
-        &CalibrationParams::default(),
-        Debias::WardleKronberg,
-        3.0,
+        &CalibrationContext {
+            table: &table,
+            profile: &profile,
+            params: &CalibrationParams::default(),
+            debias: Debias::WardleKronberg,
+            cut_snr: 3.0,
+        },
     );
     assert!(none.is_none());
     assert_eq!(sum.n_uncalibrated, 2);
@@ -160,12 +164,14 @@ fn night_calibration_recovers_truth_and_flags_uncalibrated_without_it() {
     calibrate_catalog(
         &mut other,
         vec![],
-        &table,
-        &profile,
         CalibrationSource::File(dir.path().into(), Box::new(back)),
-        &CalibrationParams::default(),
-        Debias::WardleKronberg,
-        3.0,
+        &CalibrationContext {
+            table: &table,
+            profile: &profile,
+            params: &CalibrationParams::default(),
+            debias: Debias::WardleKronberg,
+            cut_snr: 3.0,
+        },
     );
     assert!((other.targets[0].components[0].q - truth_a.q).abs() < 1e-12);
     assert_eq!(
@@ -285,12 +291,14 @@ fn two_filter_night_gets_one_offset_per_filter_and_targets_use_their_own() {
         let (cal, sum) = calibrate_catalog(
             &mut cat,
             stds.clone(),
-            &table,
-            &profile,
             source,
-            &CalibrationParams::default(),
-            Debias::WardleKronberg,
-            3.0,
+            &CalibrationContext {
+                table: &table,
+                profile: &profile,
+                params: &CalibrationParams::default(),
+                debias: Debias::WardleKronberg,
+                cut_snr: 3.0,
+            },
         );
         (cat, cal, sum)
     };
@@ -458,12 +466,14 @@ fn delta_gamma_error_has_the_offset_and_not_the_zero_point() {
         calibrate_catalog(
             &mut cat,
             vec![],
-            &StandardsTable::builtin(),
-            &Profile::sofi(),
             CalibrationSource::File("cal".into(), Box::new(cal)),
-            &CalibrationParams::default(),
-            Debias::WardleKronberg,
-            3.0,
+            &CalibrationContext {
+                table: &StandardsTable::builtin(),
+                profile: &Profile::sofi(),
+                params: &CalibrationParams::default(),
+                debias: Debias::WardleKronberg,
+                cut_snr: 3.0,
+            },
         );
         cat.targets.remove(0)
     };
@@ -590,12 +600,14 @@ fn run_night(
     calibrate_catalog(
         cat,
         stds,
-        table,
-        &Profile::sofi(),
         CalibrationSource::Night,
-        params,
-        Debias::WardleKronberg,
-        3.0,
+        &CalibrationContext {
+            table: table,
+            profile: &Profile::sofi(),
+            params: params,
+            debias: Debias::WardleKronberg,
+            cut_snr: 3.0,
+        },
     )
 }
 

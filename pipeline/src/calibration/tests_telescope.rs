@@ -99,12 +99,14 @@ fn calibrate(
     calibrate_catalog(
         cat,
         stds,
-        &StandardsTable::builtin(),
-        &Profile::sofi(),
         source,
-        params,
-        Debias::WardleKronberg,
-        3.0,
+        &CalibrationContext {
+            table: &StandardsTable::builtin(),
+            profile: &Profile::sofi(),
+            params: params,
+            debias: Debias::WardleKronberg,
+            cut_snr: 3.0,
+        },
     )
 }
 

@@ -5,7 +5,7 @@ use sofipol_calib::flat::FlatSet;
 use sofipol_calib::Profile;
 
 use super::{reduce_sequences, Hooks};
-use crate::calibration::{self, CalibSetup, Calibration, CalibrationSummary};
+use crate::calibration::{self, CalibSetup, Calibration, CalibrationContext, CalibrationSummary};
 use crate::catalog::flags::has;
 use crate::catalog::{Catalog, Failure, Flag, FlagCode, Target};
 use crate::reduce::TargetParams;
@@ -48,12 +48,14 @@ pub fn calibrate(
     let (cal, mut summary) = calibration::calibrate_catalog(
         cat,
         std_targets,
-        &setup.table,
-        profile,
         setup.source(),
-        &setup.params,
-        params.measure.debias,
-        params.measure.cut_snr,
+        &CalibrationContext {
+            table: &setup.table,
+            profile: profile,
+            params: &setup.params,
+            debias: params.measure.debias,
+            cut_snr: params.measure.cut_snr,
+        },
     );
     if let (Some((dir, _)), false) = (&setup.external, setup.params.no_calibration) {
         refuse_uncorrected(cat, dir, &mut summary);
