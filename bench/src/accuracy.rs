@@ -346,7 +346,7 @@ fn calibrate_bin<L>(
         CalibrationSource::Night,
         &CalibrationContext {
             table: &standards_table(),
-            profile: profile,
+            profile,
             params: &params.calibration,
             debias: params.measure.debias,
             cut_snr: params.measure.cut_snr,

@@ -602,9 +602,9 @@ fn run_night(
         stds,
         CalibrationSource::Night,
         &CalibrationContext {
-            table: table,
+            table,
             profile: &Profile::sofi(),
-            params: params,
+            params,
             debias: Debias::WardleKronberg,
             cut_snr: 3.0,
         },

@@ -103,7 +103,7 @@ fn calibrate(
         &CalibrationContext {
             table: &StandardsTable::builtin(),
             profile: &Profile::sofi(),
-            params: params,
+            params,
             debias: Debias::WardleKronberg,
             cut_snr: 3.0,
         },

@@ -51,7 +51,7 @@ pub fn calibrate(
         setup.source(),
         &CalibrationContext {
             table: &setup.table,
-            profile: profile,
+            profile,
             params: &setup.params,
             debias: params.measure.debias,
             cut_snr: params.measure.cut_snr,
