@@ -93,7 +93,7 @@ fn frame_regions(m: &Measured, k: usize, d: usize, row_offset: usize, params: &M
          highlite=1 dash=0 fixed=0 edit=1 move=1 delete=1 include=1 source=1\nimage\n",
     );
     let r_ap = m.aperture_px;
-    let (r_in, r_out) = (params.annulus_fwhm.0 * m.fwhm_px, params.annulus_fwhm.1 * m.fwhm_px);
+    let (r_in, r_out) = params.annulus_px(m.fwhm_px);
     for (c, per_orient) in m.dithers.iter().enumerate() {
         let Some(dv) = per_orient.get(k).and_then(|o| o.get(d)) else {
             continue;

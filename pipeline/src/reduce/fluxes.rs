@@ -231,7 +231,7 @@ fn measure_beams_jointly(f: &Frame, stars: &[(f64, f64)], setup: &FluxSetup) -> 
     let shape_fit = &joint.fits[0];
     let frame_fwhm = shape_fit.fwhm_x().clamp(0.5 * fwhm_med, 2.0 * fwhm_med);
     let frame_shape = shape_fit.converged.then(|| FrameShape::of(shape_fit));
-    let r_ap = (params.aperture_fwhm * frame_fwhm).max(super::params::MIN_APERTURE_RADIUS_PX);
+    let r_ap = params.aperture_radius_px(frame_fwhm);
     let results = cuts
         .iter()
         .zip(&joint.fits)
@@ -263,7 +263,7 @@ fn beam_cutout(f: &Frame, stars: &[(f64, f64)], shift: (f64, f64), setup: &FluxS
     let (cx, cy) = pos.iter().fold((0.0, 0.0), |a, p| {
         (a.0 + p.0 / pos.len() as f64, a.1 + p.1 / pos.len() as f64)
     });
-    let half = (params.annulus_fwhm.1 * choice.fwhm_px + choice.sep_px.min(40.0) + 4.0).ceil() as usize;
+    let half = (params.annulus_px(choice.fwhm_px).1 + choice.sep_px.min(40.0) + 4.0).ceil() as usize;
     let cut = Cutout::new(f, cx, cy, half);
     let (x0, y0) = cut.origin;
     let local = pos.iter().map(|&(x, y)| (x - x0, y - y0)).collect();
@@ -359,7 +359,7 @@ fn measure_beam(
             }
         }
     }
-    let r_ap = (params.aperture_fwhm * *frame_fwhm).max(super::params::MIN_APERTURE_RADIUS_PX);
+    let r_ap = params.aperture_radius_px(*frame_fwhm);
     let with = BeamFit {
         fit: fit.as_ref(),
         shape: *frame_shape,
@@ -483,7 +483,7 @@ fn measure_star(cut: &Cutout, local: &[(f64, f64)], si: usize, with: &BeamFit, s
         .collect();
     let pp = PhotParams {
         r_ap_px: r_ap,
-        annulus_px: Some((params.annulus_fwhm.0 * fwhm_med, params.annulus_fwhm.1 * fwhm_med)),
+        annulus_px: Some(params.annulus_px(fwhm_med)),
         method: params.method,
         companion_radius_px: r_ap,
         annulus_exclude_radius_px: 2.0 * fwhm_med,
@@ -493,7 +493,7 @@ fn measure_star(cut: &Cutout, local: &[(f64, f64)], si: usize, with: &BeamFit, s
     // subtracted there (the same pixel values as a whole-cutout subtraction), and not on
     // the annulus pixels it leaves out near them (their cores, the costly part).
     let mut work = cut.img.clone();
-    let reach = r_ap.max(params.annulus_fwhm.1 * fwhm_med) + 2.0;
+    let reach = r_ap.max(params.annulus_px(fwhm_med).1) + 2.0;
     if let Some(ft) = fit {
         let read = pixels_read(&pp, (lx, ly), &others);
         for other in 0..local.len() {

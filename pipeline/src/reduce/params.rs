@@ -73,6 +73,20 @@ pub struct MeasureParams {
     pub psf_elliptical: bool,
 }
 
+impl MeasureParams {
+    /// The photometry aperture's radius for a frame of FWHM `fwhm_px`, px: `aperture_fwhm`
+    /// x the FWHM, at least [`MIN_APERTURE_RADIUS_PX`]. The one place the FWHM becomes
+    /// the aperture.
+    pub fn aperture_radius_px(&self, fwhm_px: f64) -> f64 {
+        (self.aperture_fwhm * fwhm_px).max(MIN_APERTURE_RADIUS_PX)
+    }
+
+    /// The residual-background annulus (inner, outer radius) for a FWHM of `fwhm_px`, px.
+    pub fn annulus_px(&self, fwhm_px: f64) -> (f64, f64) {
+        (self.annulus_fwhm.0 * fwhm_px, self.annulus_fwhm.1 * fwhm_px)
+    }
+}
+
 impl Default for MeasureParams {
     fn default() -> Self {
         MeasureParams {
