@@ -1,7 +1,9 @@
 //! The one error type of the pipeline crate, and the errors of its modules that it wraps
 //! (re-exported there under their own names: `reduce::MeasureError`,
-//! `photometry::PsfFitError`, `plots::Error`, `stats::Error`). Messages name the file, the
-//! key and the value. A leaf: it imports nothing from the crate, so every module can use it.
+//! `photometry::PsfFitError`, `plots::Error`, `stats::Error`), and the errors of the
+//! per-target outputs (`products::ProductError`, `products::CombineError`,
+//! `products::StokesMapsError`). Messages name the file, the key and the value. A leaf: it
+//! imports nothing from the crate, so every module can use it.
 use std::path::PathBuf;
 /// Result alias of the pipeline crate.
 pub type Result<T> = std::result::Result<T, Error>;
@@ -111,6 +113,14 @@ pub enum Error {
     /// A statistics parameter, table or file is bad.
     #[error(transparent)]
     Stats(#[from] StatsError),
+    /// A saved live state (`sofipol watch`) was read but cannot be resumed from.
+    #[error("{path}: {source}")]
+    SavedState {
+        /// File concerned.
+        path: PathBuf,
+        /// Why it is not used.
+        source: SavedStateError,
+    },
 }
 
 impl Error {
@@ -270,4 +280,97 @@ pub enum StatsError {
     /// A figure could not be drawn or written.
     #[error(transparent)]
     Plot(#[from] PlotError),
+}
+
+/// Why a saved live state (`night::NightCache::load`) is not resumed from; the cache is
+/// then left as it was. A caller can tell a state saved with other settings (everything is
+/// reduced again, as expected) from one that is not a state at all.
+#[derive(Debug, thiserror::Error)]
+pub enum SavedStateError {
+    /// The file is not a saved live state (not JSON, or not its layout).
+    #[error("not a saved live state: {0}")]
+    NotAState(serde_json::Error),
+    /// The file was saved by a build with another layout.
+    #[error("saved by another version (layout {found}, this build reads {reads})")]
+    OtherVersion {
+        /// Layout of the file.
+        found: u32,
+        /// Layout this build reads.
+        reads: u32,
+    },
+    /// The file was saved with other settings.
+    #[error("saved with other settings: everything is reduced again")]
+    OtherSettings,
+}
+
+/// Why a per-target output file (figure, region file, FITS product) was not written or not
+/// made (`products::ProductError`): the text after the file's path in
+/// `products::Written::failed` and in the `fits_product_not_written` flag of its target.
+#[derive(Debug, thiserror::Error)]
+pub enum ProductError {
+    /// An orientation's o and e cut-outs could not be combined (no measurement to register
+    /// them on).
+    #[error("o and e not made: {0}")]
+    NoCombinedBeams(CombineError),
+    /// The Stokes maps could not be made from the orientations combined.
+    #[error("not made: {0}")]
+    NoStokesMaps(StokesMapsError),
+    /// Writing the file failed (FITS writer or atomic write; the message names the file).
+    #[error("{source}")]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: sofipol_calib::Error,
+    },
+    /// Creating the file's folder failed.
+    #[error("{source}")]
+    Io {
+        /// The folder.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// Drawing or writing a figure failed.
+    #[error("could not write the figure: {source}")]
+    Figure {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+}
+
+/// Why one orientation's o and e beams could not be combined into cut-outs
+/// (`products::CombineError`).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CombineError {
+    /// No dither has both a measured target position and a usable background.
+    #[error("POSANG {posang_deg}: no dither with a measured target position and a usable background")]
+    NoMeasuredDither {
+        /// Rotator angle of the orientation, deg.
+        posang_deg: f64,
+    },
+    /// No e-beam pixel is usable at the measured e-o offset.
+    #[error("POSANG {posang_deg}: no usable e-beam pixel at the measured e-o offset {eo_offset_px:?} px")]
+    NoEBeamPixel {
+        /// Rotator angle of the orientation, deg.
+        posang_deg: f64,
+        /// The measured e - o offset, px.
+        eo_offset_px: (f64, f64),
+    },
+}
+
+/// Why a target has no Stokes maps (`products::StokesMapsError`).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StokesMapsError {
+    /// Fewer than 2 orientations have both beams combined.
+    #[error("{found} orientation(s) with both beams: Q and U need 2")]
+    TooFewOrientations {
+        /// Orientations with both beams.
+        found: usize,
+    },
+    /// The analyzer angles of the orientations do not constrain Q and U anywhere.
+    #[error("the orientations' analyzer angles do not constrain Q and U")]
+    Unconstrained,
 }

@@ -372,7 +372,7 @@ fn resume(live: &mut LiveNight, output: &Path, state: &Path, quiet: bool) {
                 );
             }
         }
-        Err(e) => eprintln!("sofipol watch: not resuming: {}", printable(&e)),
+        Err(e) => eprintln!("sofipol watch: not resuming: {}", printable(&e.to_string())),
     }
 }
 

@@ -16,6 +16,7 @@ use serde::{Deserialize, Serialize};
 use super::plan::stable_hash;
 use super::{NightFlats, NightMask, NightSetup};
 use crate::catalog::{Failure, Target};
+use crate::error::{Error, SavedStateError};
 use crate::sequence::Sequence;
 
 /// Version of the saved state's layout ([`NightCache::save`]).
@@ -314,24 +315,26 @@ impl NightCache {
     }
 
     /// Load targets saved by [`NightCache::save`]. Returns how many were loaded, or why
-    /// none was (another version, other settings, unreadable): the cache is then left
-    /// as it was.
-    pub fn load(&self, path: &Path) -> Result<usize, String> {
-        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let state: SavedState =
-            serde_json::from_str(&text).map_err(|e| format!("{}: not a saved live state: {e}", path.display()))?;
+    /// none was (unreadable: [`Error::Io`]; another version, other settings, not a state:
+    /// [`Error::SavedState`]): the cache is then left as it was.
+    pub fn load(&self, path: &Path) -> crate::error::Result<usize> {
+        let refused = |source| Error::SavedState {
+            path: path.to_path_buf(),
+            source,
+        };
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let state: SavedState = serde_json::from_str(&text).map_err(|e| refused(SavedStateError::NotAState(e)))?;
         if state.version != STATE_VERSION {
-            return Err(format!(
-                "{}: saved by another version (layout {}, this build reads {STATE_VERSION})",
-                path.display(),
-                state.version
-            ));
+            return Err(refused(SavedStateError::OtherVersion {
+                found: state.version,
+                reads: STATE_VERSION,
+            }));
         }
         if state.settings != self.settings {
-            return Err(format!(
-                "{}: saved with other settings: everything is reduced again",
-                path.display()
-            ));
+            return Err(refused(SavedStateError::OtherSettings));
         }
         let n = state.targets.len();
         let mut map = self.targets.lock().unwrap_or_else(|e| e.into_inner());

@@ -36,6 +36,7 @@ use std::path::{Path, PathBuf};
 use sofipol_calib::Profile;
 
 use crate::catalog::{Flag, FlagCode};
+pub use crate::error::{CombineError, ProductError, StokesMapsError};
 use crate::reduce::run::TargetOutcome;
 use crate::reduce::TargetParams;
 pub use outputs::{OutputChoice, Outputs, OutputsSummary, Written};
@@ -67,7 +68,7 @@ impl FitsProducts {
 
     /// Record a file's outcome; the target flag ([`FlagCode::FitsProductNotWritten`]) when
     /// it was not written.
-    fn record(&self, path: &Path, result: Result<(), String>) -> Option<Flag> {
+    fn record(&self, path: &Path, result: Result<(), ProductError>) -> Option<Flag> {
         self.files
             .record(path, result)
             .map(|line| Flag::with_detail(FlagCode::FitsProductNotWritten, line))
@@ -95,7 +96,10 @@ impl FitsProducts {
     /// failure is recorded (and returned).
     pub fn write_bad_pixel_mask(&self, mask: &badpix::NightMask, params: &TargetParams) -> Option<Flag> {
         let path = self.dir().join(badpix::FILE_NAME);
-        let r = badpix::write(&path, mask, params).map_err(|e| e.to_string());
+        let r = badpix::write(&path, mask, params).map_err(|source| ProductError::Write {
+            path: path.clone(),
+            source,
+        });
         self.record(&path, r)
     }
 

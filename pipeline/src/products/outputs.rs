@@ -17,7 +17,7 @@ use std::sync::Mutex;
 use sofipol_calib::Profile;
 
 use super::badpix::NightMask;
-use super::{products_dir, regions, slug, FitsProducts};
+use super::{products_dir, regions, slug, FitsProducts, ProductError};
 use crate::catalog::Flag;
 use crate::plots::target::TargetFigure;
 use crate::reduce::run::TargetOutcome;
@@ -70,7 +70,7 @@ impl Files {
     }
 
     /// Record a file's outcome; the line naming it and why when it was not written.
-    pub(crate) fn record(&self, path: &Path, result: Result<(), String>) -> Option<String> {
+    pub(crate) fn record(&self, path: &Path, result: Result<(), ProductError>) -> Option<String> {
         match result {
             Ok(()) => {
                 self.written
@@ -236,7 +236,10 @@ impl Outputs {
     pub fn figure(&self, fig: &TargetFigure) {
         if let Some(f) = &self.figures {
             let path = f.dir().join(format!("{}.png", slug(fig.target.sequence_id())));
-            let r = fig.png(&path).map_err(|e| format!("could not write the figure: {e}"));
+            let r = fig.png(&path).map_err(|source| ProductError::Figure {
+                path: path.clone(),
+                source,
+            });
             f.record(&path, r);
         }
     }

@@ -10,6 +10,7 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
+use super::ProductError;
 use crate::reduce::run::TargetOutcome;
 use crate::reduce::{MeasureParams, Measured};
 
@@ -48,15 +49,19 @@ pub fn target_regions(out: &TargetOutcome, params: &MeasureParams, software: &st
 }
 
 /// Write `files` into `dir` (created), each atomically; every file's outcome.
-pub fn write_regions(dir: &Path, files: &[RegionFile]) -> Vec<(PathBuf, Result<(), String>)> {
-    if let Err(e) = std::fs::create_dir_all(dir) {
-        return vec![(dir.to_path_buf(), Err(e.to_string()))];
+pub fn write_regions(dir: &Path, files: &[RegionFile]) -> Vec<(PathBuf, Result<(), ProductError>)> {
+    if let Err(source) = std::fs::create_dir_all(dir) {
+        let path = dir.to_path_buf();
+        return vec![(path.clone(), Err(ProductError::Io { path, source }))];
     }
     files
         .iter()
         .map(|f| {
             let p = dir.join(&f.name);
-            let r = crate::io::write_atomic(&p, f.text.as_bytes()).map_err(|e| e.to_string());
+            let r = crate::io::write_atomic(&p, f.text.as_bytes()).map_err(|source| ProductError::Write {
+                path: p.clone(),
+                source,
+            });
             (p, r)
         })
         .collect()

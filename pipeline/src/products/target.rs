@@ -8,6 +8,7 @@ use sofipol_calib::{Frame, Header, HistoryRecord, Profile};
 use super::combine::{combine_beam, combine_following, cutout_half_size, BeamStack};
 use super::headers::{self, ProductKind};
 use super::stokes_maps::{e_to_o_shift, stokes_maps, transparency_scales, OrientationBeams, StokesMaps};
+use super::{CombineError, ProductError, StokesMapsError};
 use crate::catalog::Target;
 use crate::reduce::run::TargetOutcome;
 use crate::reduce::{CalibratedOrientation, Measured, TargetParams};
@@ -63,9 +64,9 @@ pub struct TargetProducts {
     /// The orientations whose two beams could be combined.
     pub orientations: Vec<OrientationProduct>,
     /// The orientations that could not (POSANG, why).
-    pub missing: Vec<(f64, String)>,
+    pub missing: Vec<(f64, CombineError)>,
     /// The Stokes maps, or why there are none.
-    pub stokes: Result<StokesProduct, String>,
+    pub stokes: Result<StokesProduct, StokesMapsError>,
 }
 
 /// The products of a reduced target, or `None` when it has no frames or no measurements (a
@@ -104,20 +105,15 @@ fn orientation_product(
     dithers: &[crate::reduce::DitherValue],
     (half, row0): (usize, usize),
     eo_offset_px: (f64, f64),
-) -> Result<OrientationProduct, String> {
+) -> Result<OrientationProduct, CombineError> {
     let frames: Vec<&Frame> = o.frames.iter().collect();
     let positions: Vec<Option<(f64, f64)>> = (0..frames.len()).map(|i| dithers.get(i).map(|d| d.o.xy)).collect();
-    let ob = combine_beam(&frames, &positions, half).ok_or_else(|| {
-        format!(
-            "POSANG {}: no dither with a measured target position and a usable background",
-            o.posang_deg
-        )
+    let ob = combine_beam(&frames, &positions, half).ok_or(CombineError::NoMeasuredDither {
+        posang_deg: o.posang_deg,
     })?;
-    let eb = combine_following(&ob, &frames, eo_offset_px).ok_or_else(|| {
-        format!(
-            "POSANG {}: no usable e-beam pixel at the measured e-o offset {eo_offset_px:?} px",
-            o.posang_deg
-        )
+    let eb = combine_following(&ob, &frames, eo_offset_px).ok_or(CombineError::NoEBeamPixel {
+        posang_deg: o.posang_deg,
+        eo_offset_px,
     })?;
     let first = frames[ob.anchors[0].index];
     Ok(OrientationProduct {
@@ -134,7 +130,7 @@ fn orientation_product(
 
 /// Stokes maps from every orientation's beams (both onto the grid centred on the target,
 /// the transparency normalised by the target's fluxes), or why there are none.
-fn stokes_product(orients: &[OrientationProduct], m: &Measured) -> Result<StokesProduct, String> {
+fn stokes_product(orients: &[OrientationProduct], m: &Measured) -> Result<StokesProduct, StokesMapsError> {
     let a = m.dithers.first();
     let mut beams = Vec::new();
     let mut info = Vec::new();
@@ -157,10 +153,7 @@ fn stokes_product(orients: &[OrientationProduct], m: &Measured) -> Result<Stokes
         });
     }
     if beams.len() < 2 {
-        return Err(format!(
-            "{} orientation(s) with both beams: Q and U need 2",
-            beams.len()
-        ));
+        return Err(StokesMapsError::TooFewOrientations { found: beams.len() });
     }
     let (scales, unscaled) = match transparency_scales(&fluxes) {
         Ok(s) => (s, None),
@@ -168,7 +161,7 @@ fn stokes_product(orients: &[OrientationProduct], m: &Measured) -> Result<Stokes
     };
     let maps = stokes_maps(&beams, &scales);
     if maps.mask.iter().all(|&v| v != 0) {
-        return Err("the orientations' analyzer angles do not constrain Q and U".into());
+        return Err(StokesMapsError::Unconstrained);
     }
     for (i, a) in info.iter_mut().zip(&scales) {
         i.scale = *a;
@@ -219,25 +212,31 @@ pub fn write(
     target: &Target,
     m: &Measured,
     p: &TargetProducts,
-) -> Vec<(PathBuf, Result<(), String>)> {
+) -> Vec<(PathBuf, Result<(), ProductError>)> {
     let mut out = Vec::new();
     for o in &p.orientations {
         for (kind, beam, stack) in [(headers::COMBINED_O, "o", &o.o), (headers::COMBINED_E, "e", &o.e)] {
             let path = dir.join(file_name(slug, Some(o.posang_deg), beam));
-            let r = write_beam(&path, kind, target, m, o, stack).map_err(|e| e.to_string());
+            let r = write_beam(&path, kind, target, m, o, stack).map_err(|source| ProductError::Write {
+                path: path.clone(),
+                source,
+            });
             out.push((path, r));
         }
     }
     for (pa, why) in &p.missing {
         out.push((
             dir.join(file_name(slug, Some(*pa), "o")),
-            Err(format!("o and e not made: {why}")),
+            Err(ProductError::NoCombinedBeams(why.clone())),
         ));
     }
     let path = dir.join(file_name(slug, None, "stokes"));
     let r = match &p.stokes {
-        Ok(s) => write_stokes(&path, target, m, p, s).map_err(|e| e.to_string()),
-        Err(why) => Err(format!("not made: {why}")),
+        Ok(s) => write_stokes(&path, target, m, p, s).map_err(|source| ProductError::Write {
+            path: path.clone(),
+            source,
+        }),
+        Err(why) => Err(ProductError::NoStokesMaps(why.clone())),
     };
     out.push((path, r));
     out
