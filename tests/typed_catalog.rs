@@ -14,7 +14,9 @@ fn sources(dir: &Path, out: &mut Vec<PathBuf>) {
             if name != "tests" {
                 sources(&p, out);
             }
-        } else if name.ends_with(".rs") && !(name == "tests.rs" || name.ends_with("_tests.rs") || name.starts_with("tests_")) {
+        } else if name.ends_with(".rs")
+            && !(name == "tests.rs" || name.ends_with("_tests.rs") || name.starts_with("tests_"))
+        {
             out.push(p);
         }
     }
@@ -35,7 +37,9 @@ fn json_index(line: &str) -> bool {
         i > 0
             && (b[i - 1].is_ascii_alphanumeric() || b[i - 1] == b'_' || b[i - 1] == b']' || b[i - 1] == b')')
             && !key.is_empty()
-            && key.chars().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_')
+            && key
+                .chars()
+                .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_')
             && rest[end + 1..].starts_with(']')
     })
 }
@@ -55,13 +59,26 @@ fn no_json_key_reads_and_no_string_flags_in_product_code() {
             lines += 1;
             let code = line.split("//").next().unwrap_or("");
             if json_index(code) || code.contains(".pointer(") || code.contains("flags.push(\"") {
-                found.push(format!("{}:{}: {}", f.strip_prefix(root).unwrap().display(), n + 1, line.trim()));
+                found.push(format!(
+                    "{}:{}: {}",
+                    f.strip_prefix(root).unwrap().display(),
+                    n + 1,
+                    line.trim()
+                ));
             }
         }
     }
     eprintln!("{} files, {lines} lines of product code scanned", files.len());
-    assert!(files.len() > 100, "{} files: the scan found too few sources", files.len());
-    assert!(found.is_empty(), "JSON read by key or a flag pushed as a string:\n{}", found.join("\n"));
+    assert!(
+        files.len() > 100,
+        "{} files: the scan found too few sources",
+        files.len()
+    );
+    assert!(
+        found.is_empty(),
+        "JSON read by key or a flag pushed as a string:\n{}",
+        found.join("\n")
+    );
 }
 
 #[test]

@@ -203,7 +203,7 @@ pub fn accuracy(args: AccuracyArgs, params: &TargetParams) -> anyhow::Result<()>
 /// sequence (medians of `repeats`).
 pub fn stages(repeats: usize) -> anyhow::Result<()> {
     use sofipol_calib::{badpix, fits, sky, stack};
-    use sofipol_pipeline::reduce::{measure_sequence, target_entry, CalibratedOrientation, MeasureParams};
+    use sofipol_pipeline::reduce::{measure_sequence, target_entry, MeasureParams, SkySubtractedOrientation};
     let scene = Scene::from_toml(&crate::night::night_scene(1, 5), "bench").map_err(anyhow::Error::msg)?;
     let profile = Profile::sofi();
     let sim = Simulator::new(scene, profile.clone()).map_err(anyhow::Error::msg)?;
@@ -271,7 +271,7 @@ pub fn stages(repeats: usize) -> anyhow::Result<()> {
             .iter()
             .map(|f| badpix::apply_mask(&f.frame, &mask))
             .collect::<Result<_, _>>()?;
-        cal.push(CalibratedOrientation {
+        cal.push(SkySubtractedOrientation {
             posang_deg: chunk[0].truth.posang_deg,
             analyzer_deg: chunk[0].truth.analyzer_deg,
             frames: sky::sky_subtract(&fr, &profile, &rec)?,

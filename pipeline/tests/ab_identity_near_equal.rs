@@ -8,7 +8,7 @@
 use sofipol_calib::Profile;
 use sofipol_pipeline::catalog::{Flag, FlagCode, Target};
 use sofipol_pipeline::reduce::run::reduce_loaded;
-use sofipol_pipeline::reduce::{identity, measure_sequence, target_entry, CalibratedOrientation, TargetParams};
+use sofipol_pipeline::reduce::{identity, measure_sequence, target_entry, SkySubtractedOrientation, TargetParams};
 use sofipol_pipeline::sim::{loaded_from_sim, Scene, Simulator};
 
 /// A pair `sep_px` apart (at the SOFI pixel scale), B/A = `ratio`, drawn conditions from `seed`.
@@ -202,9 +202,9 @@ fn fainter_star_labelled_a_at_every_orientation_is_relabelled_by_flux() {
     let (frames, _) = sim.run_in_memory();
     let (_, loaded) = loaded_from_sim(frames, &profile);
     let params = TargetParams::default();
-    let orients: Vec<CalibratedOrientation> = loaded
+    let orients: Vec<SkySubtractedOrientation> = loaded
         .into_iter()
-        .map(|(posang, phi, frames, offs)| CalibratedOrientation {
+        .map(|(posang, phi, frames, offs)| SkySubtractedOrientation {
             posang_deg: posang,
             analyzer_deg: phi,
             frames: sofipol_calib::sky::sky_subtract(&frames, &profile, &params.sky).unwrap(),

@@ -8,7 +8,7 @@ use sofipol_calib::{sky, Profile};
 use sofipol_pipeline::catalog::FlagCode;
 use sofipol_pipeline::reduce::run::reduce_loaded;
 use sofipol_pipeline::reduce::sources::{locate_primary, unusable_masks};
-use sofipol_pipeline::reduce::{CalibratedOrientation, MeasureParams, TargetParams};
+use sofipol_pipeline::reduce::{MeasureParams, SkySubtractedOrientation, TargetParams};
 use sofipol_pipeline::sim::{loaded_from_sim, Scene, Simulator};
 
 /// One binary of the bench night (its effects, PSF and seed), with these truth parameters.
@@ -98,9 +98,9 @@ fn bench_target_40_anchor_is_not_taken_from_one_frame_with_a_hit_core() {
     };
     let (_, loaded) = loaded_from_sim(frames, &profile);
     let params = TargetParams::default();
-    let mut orients: Vec<CalibratedOrientation> = loaded
+    let mut orients: Vec<SkySubtractedOrientation> = loaded
         .into_iter()
-        .map(|(posang, phi, frames, offs)| CalibratedOrientation {
+        .map(|(posang, phi, frames, offs)| SkySubtractedOrientation {
             posang_deg: posang,
             analyzer_deg: phi,
             frames: sky::sky_subtract(&frames, &profile, &params.sky).unwrap(),

@@ -183,7 +183,7 @@ fn combine_geometry_inverts_the_rotation_convention_and_wraps_the_pa() {
 fn primary_of_a_near_equal_pair_off_centre_is_found_when_the_brightest_alternates() {
     use sofipol_calib::{Frame, Header, Profile};
     use sofipol_pipeline::reduce::sources::{locate_primary, unusable_masks};
-    use sofipol_pipeline::reduce::{CalibratedOrientation, MeasureParams};
+    use sofipol_pipeline::reduce::{MeasureParams, SkySubtractedOrientation};
 
     let profile = Profile::sofi();
     let (nx, ny) = (profile.geometry.nx, profile.geometry.ny);
@@ -216,7 +216,7 @@ fn primary_of_a_near_equal_pair_off_centre_is_found_when_the_brightest_alternate
             Frame::new(img, Header::default())
         })
         .collect();
-    let orients = [CalibratedOrientation {
+    let orients = [SkySubtractedOrientation {
         posang_deg: 0.0,
         analyzer_deg: 0.0,
         frames,

@@ -1,7 +1,7 @@
 //! Inversion of noiseless simulated scenes: the measurement must undo the forward model.
 use sofipol_calib::Profile;
 use sofipol_pipeline::photometry::PsfModel;
-use sofipol_pipeline::reduce::{measure_sequence, target_entry, CalibratedOrientation, MeasureParams};
+use sofipol_pipeline::reduce::{measure_sequence, target_entry, MeasureParams, SkySubtractedOrientation};
 use sofipol_pipeline::sim::{Scene, SimFrame, Simulator, Truth};
 
 /// A binary: separation ("), PA (deg), fluxes of A and B (ADU), P and gamma (deg) of A and B.
@@ -20,12 +20,12 @@ fn scene_text(psf: &str, orientations: &str, binaries: &[Binary]) -> String {
     s
 }
 
-fn orientations(frames: &[SimFrame], t: &str) -> Vec<CalibratedOrientation> {
-    let mut out: Vec<CalibratedOrientation> = Vec::new();
+fn orientations(frames: &[SimFrame], t: &str) -> Vec<SkySubtractedOrientation> {
+    let mut out: Vec<SkySubtractedOrientation> = Vec::new();
     for f in frames.iter().filter(|f| f.frame.header.get_str("OBJECT").unwrap() == t) {
         let pa = f.truth.posang_deg;
         if out.last().is_none_or(|o| o.posang_deg != pa) {
-            out.push(CalibratedOrientation {
+            out.push(SkySubtractedOrientation {
                 posang_deg: pa,
                 analyzer_deg: f.truth.analyzer_deg,
                 frames: vec![],

@@ -11,7 +11,7 @@ use super::stokes_maps::{e_to_o_shift, stokes_maps, transparency_scales, Orienta
 use super::{CombineError, ProductError, StokesMapsError};
 use crate::catalog::Target;
 use crate::reduce::run::TargetOutcome;
-use crate::reduce::{CalibratedOrientation, Measured, TargetParams};
+use crate::reduce::{Measured, SkySubtractedOrientation, TargetParams};
 
 /// One orientation's combined beams.
 pub struct OrientationProduct {
@@ -101,7 +101,7 @@ pub fn build(outcome: &TargetOutcome, profile: &Profile, params: &TargetParams) 
 
 fn orientation_product(
     index: usize,
-    o: &CalibratedOrientation,
+    o: &SkySubtractedOrientation,
     dithers: &[crate::reduce::DitherValue],
     (half, row0): (usize, usize),
     eo_offset_px: (f64, f64),
@@ -400,117 +400,8 @@ fn write_stokes(
     p: &TargetProducts,
     s: &StokesProduct,
 ) -> sofipol_calib::Result<()> {
-    let mut h = target_header(headers::STOKES, target, m, p.half);
-    h.set_with_comment("BUNIT", "adu", headers::unit_comment("adu"));
-    h.set_with_comment(
-        "POLCALIB",
-        false,
-        "instrumental: night calibration not applied (HISTORY)",
-    );
-    let files: Vec<&Path> = p
-        .orientations
-        .iter()
-        .flat_map(|o| o.o.anchors.iter().map(|a| o.files[a.index].as_path()))
-        .collect();
-    headers::raw_cards(&mut h, &files, "POL_SCIENCE");
-    headers::qc(&mut h, "NORIENT", s.orientations.len() as i64, "orientations combined");
-    for (k, o) in s.orientations.iter().enumerate() {
-        let k = k + 1;
-        headers::qc(
-            &mut h,
-            &format!("ORI{k} POSANG"),
-            o.posang_deg,
-            "deg, rotator position angle",
-        );
-        headers::qc(
-            &mut h,
-            &format!("ORI{k} PHI"),
-            o.analyzer_deg,
-            "deg, analyzer angle (the profile's)",
-        );
-        headers::qc(
-            &mut h,
-            &format!("ORI{k} OSHIFT X"),
-            o.o_shift.0,
-            "px, o cut-out resampled at x + this",
-        );
-        headers::qc(
-            &mut h,
-            &format!("ORI{k} OSHIFT Y"),
-            o.o_shift.1,
-            "px, o cut-out resampled at y + this",
-        );
-        headers::qc(
-            &mut h,
-            &format!("ORI{k} EOSHIFT X"),
-            o.eo_shift.0,
-            "px, e target - o target in the cut-outs",
-        );
-        headers::qc(
-            &mut h,
-            &format!("ORI{k} EOSHIFT Y"),
-            o.eo_shift.1,
-            "px, e target - o target in the cut-outs",
-        );
-        headers::qc(
-            &mut h,
-            &format!("ORI{k} SCALE"),
-            o.scale,
-            "transparency normalisation a_k",
-        );
-    }
-    if let Some(c) = target.components.first() {
-        headers::qc(&mut h, "A Q", c.q, "catalog q of A before the night calibration");
-        headers::qc(&mut h, "A U", c.u, "catalog u of A before the night calibration");
-        headers::qc(&mut h, "A SIGQ", c.sigma_q, "its error");
-        headers::qc(&mut h, "A SIGU", c.sigma_u, "its error");
-    }
-    let c = (p.half + 1) as f64;
-    headers::qc(&mut h, "TARGET X", c, "FITS px, target's position (the centre pixel)");
-    headers::qc(&mut h, "TARGET Y", c, "FITS px, target's position (the centre pixel)");
-    let mut history = p.orientations[0].history.clone();
-    history.push(HistoryRecord::new(
-        "register",
-        "the o and e cut-outs of every orientation as in the SOFIPOL_COMBINED_O/E products: \
-         whole-pixel shifts on the target's measured position in each dither (e: the o shift + the \
-         whole-pixel part of the e-o offset), weighted mean (one weight per dither)",
-    ));
-    history.push(HistoryRecord::new(
-        "resample",
-        "every orientation's o and e cut-outs onto one grid, the target at its centre pixel: \
-         o'(x, y) = o(x + OSHIFT), e'(x, y) = e(x + OSHIFT + EOSHIFT) (QC ORIi), EOSHIFT the measured \
-         e-o offset less the mean whole-pixel registration difference of the dithers; Lanczos-3 \
-         interpolation (6 x 6 taps, normalised: flux and a well-sampled star's shape kept); variance \
-         sum(w var), what an aperture sum carries (neighbouring pixels are correlated); a pixel with a \
-         masked tap is masked",
-    ));
-    history.push(HistoryRecord::new(
-        "normalise",
-        match &s.unscaled {
-            None => "o' and e' of orientation k times a_k = mean(T)/T_k (QC ORIi SCALE), T_k the target's \
-                     o + e flux in the combined cut-outs (the reduction's per-dither fluxes of A, weighted as \
-                     combined): transparency changes between orientations cancel as in F = (o-e)/(o+e)"
-                .to_string(),
-            Some(why) => format!("not normalised (a_k = 1): {why}"),
-        },
-    ));
-    history.push(HistoryRecord::new(
-        "stokes",
-        "per pixel, D_k = a_k (o' - e') = Q cos 2phi_k + U sin 2phi_k over the usable orientations, by \
-         the catalog's weighted least squares (stokes::inversion::fit_qu) with one weight per \
-         orientation, 1/B_k, B_k the median of V_k = a_k^2 (var_o' + var_e') (a pixel's own variance \
-         would bias the star); Q = sum c_k D_k, VAR_Q = sum c_k^2 V_k (U, VAR_U, COV_QU alike); I = \
-         sum(a_k (o' + e')/B_k)/sum(1/B_k), VARIANCE = sum(V_k/B_k^2)/sum(1/B_k)^2; MASK = 1 where the \
-         usable orientations do not constrain Q and U. Over an aperture, sum(Q)/sum(I) is the \
-         least-squares q of the aperture's F_k: the star's q before the night calibration",
-    ));
-    history.push(HistoryRecord::new(
-        "calibration",
-        "NOT applied (instrumental Q, U): the instrumental offset c (beam ratio and instrumental \
-         polarization), the analyzer angles' zero-point theta0 and parity (the profile's angles are \
-         used, QC ORIi PHI) and the telescope's polarization; the catalog's q, u have the night's \
-         calibration applied when it has one",
-    ));
+    let h = stokes_header(target, m, p, s);
+    let history = stokes_history(p, s);
     let mp = &s.maps;
     let ext = |unit: Option<&str>, what: &str| headers::extension_header(unit, what);
     let hdus = [
@@ -555,4 +446,126 @@ fn write_stokes(
         pixels: *pixels,
     }));
     write_images(path, &all)
+}
+
+/// The primary header of the Stokes maps: the target's cards, where it came from, each
+/// orientation's registration and scale, the catalog's values before the calibration.
+fn stokes_header(target: &Target, m: &Measured, p: &TargetProducts, s: &StokesProduct) -> Header {
+    let mut h = target_header(headers::STOKES, target, m, p.half);
+    h.set_with_comment("BUNIT", "adu", headers::unit_comment("adu"));
+    h.set_with_comment(
+        "POLCALIB",
+        false,
+        "instrumental: night calibration not applied (HISTORY)",
+    );
+    let files: Vec<&Path> = p
+        .orientations
+        .iter()
+        .flat_map(|o| o.o.anchors.iter().map(|a| o.files[a.index].as_path()))
+        .collect();
+    headers::raw_cards(&mut h, &files, "POL_SCIENCE");
+    headers::qc(&mut h, "NORIENT", s.orientations.len() as i64, "orientations combined");
+    orientation_cards(&mut h, s);
+    if let Some(c) = target.components.first() {
+        headers::qc(&mut h, "A Q", c.q, "catalog q of A before the night calibration");
+        headers::qc(&mut h, "A U", c.u, "catalog u of A before the night calibration");
+        headers::qc(&mut h, "A SIGQ", c.sigma_q, "its error");
+        headers::qc(&mut h, "A SIGU", c.sigma_u, "its error");
+    }
+    let c = (p.half + 1) as f64;
+    headers::qc(&mut h, "TARGET X", c, "FITS px, target's position (the centre pixel)");
+    headers::qc(&mut h, "TARGET Y", c, "FITS px, target's position (the centre pixel)");
+    h
+}
+
+/// QC cards of each orientation combined: angles, the o and e shifts, the scale.
+fn orientation_cards(h: &mut Header, s: &StokesProduct) {
+    for (k, o) in s.orientations.iter().enumerate() {
+        let k = k + 1;
+        headers::qc(
+            h,
+            &format!("ORI{k} POSANG"),
+            o.posang_deg,
+            "deg, rotator position angle",
+        );
+        headers::qc(
+            h,
+            &format!("ORI{k} PHI"),
+            o.analyzer_deg,
+            "deg, analyzer angle (the profile's)",
+        );
+        headers::qc(
+            h,
+            &format!("ORI{k} OSHIFT X"),
+            o.o_shift.0,
+            "px, o cut-out resampled at x + this",
+        );
+        headers::qc(
+            h,
+            &format!("ORI{k} OSHIFT Y"),
+            o.o_shift.1,
+            "px, o cut-out resampled at y + this",
+        );
+        headers::qc(
+            h,
+            &format!("ORI{k} EOSHIFT X"),
+            o.eo_shift.0,
+            "px, e target - o target in the cut-outs",
+        );
+        headers::qc(
+            h,
+            &format!("ORI{k} EOSHIFT Y"),
+            o.eo_shift.1,
+            "px, e target - o target in the cut-outs",
+        );
+        headers::qc(h, &format!("ORI{k} SCALE"), o.scale, "transparency normalisation a_k");
+    }
+}
+
+/// The HISTORY of the Stokes maps: each step from the combined cut-outs to I, Q, U.
+fn stokes_history(p: &TargetProducts, s: &StokesProduct) -> Vec<HistoryRecord> {
+    let mut history = p.orientations[0].history.clone();
+    history.push(HistoryRecord::new(
+        "register",
+        "the o and e cut-outs of every orientation as in the SOFIPOL_COMBINED_O/E products: \
+         whole-pixel shifts on the target's measured position in each dither (e: the o shift + the \
+         whole-pixel part of the e-o offset), weighted mean (one weight per dither)",
+    ));
+    history.push(HistoryRecord::new(
+        "resample",
+        "every orientation's o and e cut-outs onto one grid, the target at its centre pixel: \
+         o'(x, y) = o(x + OSHIFT), e'(x, y) = e(x + OSHIFT + EOSHIFT) (QC ORIi), EOSHIFT the measured \
+         e-o offset less the mean whole-pixel registration difference of the dithers; Lanczos-3 \
+         interpolation (6 x 6 taps, normalised: flux and a well-sampled star's shape kept); variance \
+         sum(w var), what an aperture sum carries (neighbouring pixels are correlated); a pixel with a \
+         masked tap is masked",
+    ));
+    history.push(HistoryRecord::new(
+        "normalise",
+        match &s.unscaled {
+            None => "o' and e' of orientation k times a_k = mean(T)/T_k (QC ORIi SCALE), T_k the target's \
+                     o + e flux in the combined cut-outs (the reduction's per-dither fluxes of A, weighted as \
+                     combined): transparency changes between orientations cancel as in F = (o-e)/(o+e)"
+                .to_string(),
+            Some(why) => format!("not normalised (a_k = 1): {why}"),
+        },
+    ));
+    history.push(HistoryRecord::new(
+        "stokes",
+        "per pixel, D_k = a_k (o' - e') = Q cos 2phi_k + U sin 2phi_k over the usable orientations, by \
+         the catalog's weighted least squares (stokes::inversion::fit_qu) with one weight per \
+         orientation, 1/B_k, B_k the median of V_k = a_k^2 (var_o' + var_e') (a pixel's own variance \
+         would bias the star); Q = sum c_k D_k, VAR_Q = sum c_k^2 V_k (U, VAR_U, COV_QU alike); I = \
+         sum(a_k (o' + e')/B_k)/sum(1/B_k), VARIANCE = sum(V_k/B_k^2)/sum(1/B_k)^2; MASK = 1 where the \
+         usable orientations do not constrain Q and U. Over an aperture, sum(Q)/sum(I) is the \
+         least-squares q of the aperture's F_k: the star's q before the night calibration",
+    ));
+    history.push(HistoryRecord::new(
+        "calibration",
+        "NOT applied (instrumental Q, U): the instrumental offset c (beam ratio and instrumental \
+         polarization), the analyzer angles' zero-point theta0 and parity (the profile's angles are \
+         used, QC ORIi PHI) and the telescope's polarization; the catalog's q, u have the night's \
+         calibration applied when it has one",
+    ));
+    history
 }

@@ -4,7 +4,7 @@ use ndarray::{s, Array2, ArrayView2};
 use sofipol_calib::Profile;
 
 use super::sources::Primary;
-use super::{CalibratedOrientation, MeasureError};
+use super::{MeasureError, SkySubtractedOrientation};
 use crate::catalog::{Flag, FlagCode};
 
 /// The (o, e) centroids of one frame, px.
@@ -156,7 +156,7 @@ fn peak_offset(score: &[f64], start: (f64, f64), search: i64) -> (f64, f64) {
 /// Stage 2: the e-o offset, by cross-correlating the o and e images of the target in every
 /// frame where the primary was found. Flags an offset more than 3 px from the profile's.
 pub fn measure_eo_offset(
-    orients: &[CalibratedOrientation],
+    orients: &[SkySubtractedOrientation],
     primary: &Primary,
     masks: &[Vec<Array2<u8>>],
     profile: &Profile,

@@ -4,7 +4,7 @@ use ndarray::Array2;
 use sofipol_calib::Profile;
 
 use super::sources::{brightest_peak, Primary};
-use super::{CalibratedOrientation, MeasureParams};
+use super::{MeasureParams, SkySubtractedOrientation};
 use crate::catalog::{Flag, FlagCode};
 use crate::photometry::{fit_psf, subtract_star_near, subtract_star_near_in_place, PsfFit, PsfFitParams, PsfModel};
 use crate::stokes::model::{companion_offset_px, offset_to_sep_pa};
@@ -289,7 +289,7 @@ pub struct Companion {
 /// Stage 3: the companion, orientation by orientation, on registered stacks; then one
 /// separation and PA from the orientations where it is significant.
 pub fn find_companion(
-    orients: &[CalibratedOrientation],
+    orients: &[SkySubtractedOrientation],
     primary: &Primary,
     masks: &[Vec<Array2<u8>>],
     profile: &Profile,
@@ -341,7 +341,7 @@ struct Seen<'a> {
     /// may be shorter than `orients`: no geometry test there).
     stacks: &'a [Option<Stack>],
     /// The orientations, in the order of the pairs found.
-    orients: &'a [CalibratedOrientation],
+    orients: &'a [SkySubtractedOrientation],
     /// The measurement settings (companion thresholds).
     params: &'a MeasureParams,
     /// Pixel scale, arcsec per px.
@@ -589,8 +589,8 @@ fn verify_identity(
 mod tests {
     use super::*;
 
-    fn orient(posang: f64) -> CalibratedOrientation {
-        CalibratedOrientation {
+    fn orient(posang: f64) -> SkySubtractedOrientation {
+        SkySubtractedOrientation {
             posang_deg: posang,
             analyzer_deg: posang,
             frames: Vec::new(),
@@ -601,7 +601,7 @@ mod tests {
     /// The stacks of bench target 40 in the 49-target night (SOFIPOL_DEBUG_PAIR): at POSANG 0
     /// the stack, centred on B, holds A (28779) at (15.06, -2.81) and B (14803); at POSANG 45
     /// the two-star fit lost A and left one star, B (flux ~14800 on the stack), at the centre.
-    fn bench_40(flux_45: f64, flux_b0: f64) -> (Vec<Option<PairOnStack>>, Vec<CalibratedOrientation>) {
+    fn bench_40(flux_45: f64, flux_b0: f64) -> (Vec<Option<PairOnStack>>, Vec<SkySubtractedOrientation>) {
         let pair0 = PairOnStack {
             a: (15.06, -2.81),
             b: (0.0, 0.0),
@@ -624,7 +624,7 @@ mod tests {
     }
 
     /// The pairs of `orients` labelled without their stacks (no geometry test), at SOFI's scale.
-    fn without_stacks<'a>(orients: &'a [CalibratedOrientation], params: &'a MeasureParams) -> Seen<'a> {
+    fn without_stacks<'a>(orients: &'a [SkySubtractedOrientation], params: &'a MeasureParams) -> Seen<'a> {
         Seen {
             stacks: &[],
             orients,

@@ -1,7 +1,7 @@
 //! The catalog entry of a measured sequence: per component, the dither values of each
 //! orientation combined (rejections, clipping, weighted mean, honest error), then q and u by
 //! least squares over the orientations, P, gamma and their errors, debiasing and the cut.
-use super::{CalibratedOrientation, DitherValue, MeasureParams, Measured};
+use super::{DitherValue, MeasureParams, Measured, SkySubtractedOrientation};
 use crate::catalog::flags::has;
 use crate::catalog::{CombinedF, Component, DroppedDither, Flag, FlagCode, Status, Target};
 use crate::stokes::inversion::{clip_dithers, combine_dithers, Polarization};
@@ -321,7 +321,7 @@ impl ParallacticMean {
 /// An unreadable value is named in `flags`, and so is an absent one when other frames
 /// have an angle (those dithers are then left out: [`component_from_dithers`]).
 fn parallactic_angles(
-    orients: &[CalibratedOrientation],
+    orients: &[SkySubtractedOrientation],
     kw: &Keywords,
     flags: &mut Vec<Flag>,
 ) -> Vec<Vec<Option<f64>>> {
@@ -362,7 +362,7 @@ fn parallactic_angles(
 /// frames' parallactic angles, the angles of the provisional Stokes solve).
 pub fn target_entry(
     object: &str,
-    orients: &[CalibratedOrientation],
+    orients: &[SkySubtractedOrientation],
     m: &Measured,
     params: &MeasureParams,
     profile: &Profile,
@@ -461,10 +461,10 @@ mod tests {
         }
     }
 
-    fn orients() -> Vec<CalibratedOrientation> {
+    fn orients() -> Vec<SkySubtractedOrientation> {
         [0.0, 45.0, 90.0, 135.0]
             .iter()
-            .map(|&p| CalibratedOrientation {
+            .map(|&p| SkySubtractedOrientation {
                 posang_deg: p,
                 analyzer_deg: p,
                 frames: Vec::new(),

@@ -8,7 +8,7 @@ use sofipol_calib::Frame;
 
 use super::companion::Companion;
 use super::sources::{Primary, UNUSABLE};
-use super::{BeamFlux, CalibratedOrientation, DitherValue, MeasureParams};
+use super::{BeamFlux, DitherValue, MeasureParams, SkySubtractedOrientation};
 use crate::catalog::{Flag, FlagCode};
 use crate::photometry::model::add_gaussian;
 use crate::photometry::moffat::{add_moffat, add_moffat_elliptical};
@@ -111,7 +111,7 @@ pub struct FluxSetup<'a> {
 /// Stage 5: photometry of both components in both beams of every frame, where the
 /// primary (`primary`) and the companion (`companion`) were found, with `setup`.
 pub fn measure_fluxes(
-    orients: &[CalibratedOrientation],
+    orients: &[SkySubtractedOrientation],
     primary: &Primary,
     companion: &Companion,
     setup: &FluxSetup,

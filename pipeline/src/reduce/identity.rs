@@ -22,7 +22,7 @@
 //! An unverified identity (the geometry fails) is the target flag
 //! `ab_identity_unverified: ...`; every component is then flagged and fails the cut
 //! ([`super::entry::target_entry`]).
-use super::{CalibratedOrientation, DitherValue, Measured};
+use super::{DitherValue, Measured, SkySubtractedOrientation};
 use crate::catalog::{Flag, FlagCode};
 use crate::stokes::model::offset_to_sep_pa;
 
@@ -93,7 +93,7 @@ pub fn flux_ratio(a: &[Vec<DitherValue>], b: &[Vec<DitherValue>]) -> Option<Flux
 pub fn position_angles(
     a: &[Vec<DitherValue>],
     b: &[Vec<DitherValue>],
-    orients: &[CalibratedOrientation],
+    orients: &[SkySubtractedOrientation],
     scale: f64,
 ) -> Vec<Option<f64>> {
     a.iter()
@@ -114,7 +114,7 @@ pub fn position_angles(
 
 /// The largest angle between an orientation's position angle and the circular mean of all
 /// of them, deg, with the rotator angle where it occurs (None when no angle was measured).
-fn worst_disagreement(pas: &[Option<f64>], orients: &[CalibratedOrientation]) -> Option<(f64, f64)> {
+fn worst_disagreement(pas: &[Option<f64>], orients: &[SkySubtractedOrientation]) -> Option<(f64, f64)> {
     let (cx, cy) = pas.iter().flatten().fold((0.0, 0.0), |a, p| {
         (a.0 + p.to_radians().cos(), a.1 + p.to_radians().sin())
     });
@@ -128,7 +128,7 @@ fn worst_disagreement(pas: &[Option<f64>], orients: &[CalibratedOrientation]) ->
 /// Check (and where the flux says so, correct) the A/B labels of a measured pair: see the
 /// module documentation. Adds the target flags that say what was found. A single star
 /// (one component) is left alone.
-pub fn verify_pair(m: &mut Measured, orients: &[CalibratedOrientation], scale: f64) {
+pub fn verify_pair(m: &mut Measured, orients: &[SkySubtractedOrientation], scale: f64) {
     if m.dithers.len() != 2 || m.geometry.is_none() {
         return;
     }

@@ -45,9 +45,10 @@ use sofipol_calib::{Frame, Profile};
 pub use entry::{component_from_dithers, target_entry};
 pub use params::{MeasureParams, TargetParams};
 
-/// The dithers of one orientation after calibration.
+/// The dithers of one orientation with the detector's signature and the sky removed
+/// (flat-fielded, bad pixels masked, sky subtracted), ready to measure.
 #[derive(Debug, Clone)]
-pub struct CalibratedOrientation {
+pub struct SkySubtractedOrientation {
     /// Rotator position angle, deg.
     pub posang_deg: f64,
     /// Analyzer angle, deg.
@@ -140,7 +141,7 @@ impl DitherValue {
 
 /// Measure both components of a calibrated sequence: the stages in order.
 pub fn measure_sequence(
-    orients: &[CalibratedOrientation],
+    orients: &[SkySubtractedOrientation],
     profile: &Profile,
     params: &MeasureParams,
 ) -> Result<Measured, MeasureError> {

@@ -7,7 +7,7 @@ use serde::Serialize;
 use sofipol_calib::flat::{self, FlatSet};
 use sofipol_calib::{badpix, fits, sky, Frame, PixelSummary, Profile};
 
-use super::{measure_sequence, target_entry, CalibratedOrientation, TargetParams};
+use super::{measure_sequence, target_entry, SkySubtractedOrientation, TargetParams};
 use crate::catalog::{Failure, Flag, FlagCode, Status, Target};
 use crate::error::Error;
 use crate::sequence::Sequence;
@@ -38,7 +38,7 @@ pub struct TargetOutcome {
     /// Stage timings.
     pub times: StageTimes,
     /// Calibrated orientations (kept only when asked, for plots).
-    pub calibrated: Option<Vec<CalibratedOrientation>>,
+    pub calibrated: Option<Vec<SkySubtractedOrientation>>,
     /// Intermediate measurements (for plots).
     pub measured: Option<super::Measured>,
     /// The frame of every dither, per orientation in the order of `measured`'s dithers
@@ -333,7 +333,7 @@ pub fn reduce_loaded(
 /// The frames in which the primary star was not found (its dither dropped, flag
 /// `primary_not_found`), as failures: an input the catalog did not use is listed by name.
 fn primary_not_found(
-    cal: &[CalibratedOrientation],
+    cal: &[SkySubtractedOrientation],
     m: &super::Measured,
     params: &super::MeasureParams,
 ) -> Vec<Failure> {
@@ -554,7 +554,7 @@ fn subtract_sky(
     profile: &Profile,
     params: &TargetParams,
     flags: &mut Vec<Flag>,
-) -> Vec<CalibratedOrientation> {
+) -> Vec<SkySubtractedOrientation> {
     let mut cal = Vec::new();
     for ((posang, phi, frames, offs), fl) in orients.into_iter().zip(flats) {
         if frames.len() < 2 {
@@ -578,7 +578,7 @@ fn subtract_sky(
             }
         }
         match sky::sky_subtract_flat(frames, profile, &params.sky, fl.as_ref()) {
-            Ok((s, _)) => cal.push(CalibratedOrientation {
+            Ok((s, _)) => cal.push(SkySubtractedOrientation {
                 posang_deg: posang,
                 analyzer_deg: phi,
                 frames: s,
@@ -594,7 +594,7 @@ fn subtract_sky(
 }
 
 /// Write the sky-subtracted frames (data, VARIANCE, MASK) into `dir` as `<name>_skysub.fits`.
-fn save_intermediates(cal: &[CalibratedOrientation], dir: &Path, flags: &mut Vec<Flag>) {
+fn save_intermediates(cal: &[SkySubtractedOrientation], dir: &Path, flags: &mut Vec<Flag>) {
     let opts = fits::WriteOptions {
         with_variance_and_mask: true,
         ..Default::default()
@@ -625,7 +625,7 @@ fn save_intermediates(cal: &[CalibratedOrientation], dir: &Path, flags: &mut Vec
 }
 
 /// Number of distinct analyzer angles (mod 180 deg, to 0.01 deg).
-fn distinct_analyzer_angles(cal: &[CalibratedOrientation]) -> usize {
+fn distinct_analyzer_angles(cal: &[SkySubtractedOrientation]) -> usize {
     let mut v: Vec<i64> = cal
         .iter()
         .map(|o| ((o.analyzer_deg.rem_euclid(180.0)) * 100.0).round() as i64)

@@ -3,7 +3,7 @@
 use ndarray::{Array2, ArrayView2};
 use sofipol_calib::{Frame, Profile};
 
-use super::{CalibratedOrientation, MeasureError, MeasureParams};
+use super::{MeasureError, MeasureParams, SkySubtractedOrientation};
 use crate::photometry::{centroid, CentroidParams};
 
 /// Brightest point of a 3x3 box-smoothed image within `radius` of (x0, y0), restricted to
@@ -215,7 +215,7 @@ impl Primary {
     pub fn found_in<'a>(
         &self,
         k: usize,
-        orient: &'a CalibratedOrientation,
+        orient: &'a SkySubtractedOrientation,
         masks: &'a [Array2<u8>],
     ) -> FramesWithCentres<'a> {
         let (mut fr, mut cc) = (Vec::new(), Vec::new());
@@ -233,7 +233,7 @@ impl Primary {
 pub type FramesWithCentres<'a> = (Vec<(&'a Array2<f32>, &'a Array2<u8>)>, Vec<(f64, f64)>);
 
 /// Unusable-pixel masks, once per frame (centring, e-o correlation and stacks use them).
-pub fn unusable_masks(orients: &[CalibratedOrientation]) -> Vec<Vec<Array2<u8>>> {
+pub fn unusable_masks(orients: &[SkySubtractedOrientation]) -> Vec<Vec<Array2<u8>>> {
     orients
         .iter()
         .map(|o| o.frames.iter().map(unusable).collect())
@@ -247,7 +247,7 @@ pub fn unusable_masks(orients: &[CalibratedOrientation]) -> Vec<Vec<Array2<u8>>>
 /// refined by a centroid. Picking the brightest peak in every frame would jump between the
 /// components of a near-equal pair.
 pub fn locate_primary(
-    orients: &[CalibratedOrientation],
+    orients: &[SkySubtractedOrientation],
     masks: &[Vec<Array2<u8>>],
     profile: &Profile,
     params: &MeasureParams,
@@ -327,7 +327,12 @@ pub fn locate_primary(
 /// defect that escaped the masks wins in one frame, not in most); the nominal position is
 /// the median of the agreeing positions on each axis. None: no agreement (the caller falls
 /// back to the strip centre).
-fn nominal_from_data(o: &CalibratedOrientation, ms: &[Array2<u8>], orow: [usize; 2], reach: f64) -> Option<(f64, f64)> {
+fn nominal_from_data(
+    o: &SkySubtractedOrientation,
+    ms: &[Array2<u8>],
+    orow: [usize; 2],
+    reach: f64,
+) -> Option<(f64, f64)> {
     let mut at_zero = Vec::new();
     for ((f, off), m) in o.frames.iter().zip(&o.offsets).zip(ms) {
         let (_, nx) = f.shape();
@@ -375,7 +380,7 @@ const NEAR_ANCHOR_MIN_PEAK: f64 = 0.1;
 /// The primary in the frames of one orientation, starting from `anchor` (its position at
 /// zero jitter offset).
 fn centres_in_orientation(
-    o: &CalibratedOrientation,
+    o: &SkySubtractedOrientation,
     ms: &[Array2<u8>],
     anchor: (f64, f64),
     fwhm_guess: f64,

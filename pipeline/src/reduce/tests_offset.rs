@@ -4,7 +4,7 @@
 //! must show.
 use sofipol_calib::Profile;
 
-use super::{beams, measure_sequence, sources, CalibratedOrientation, MeasureParams};
+use super::{beams, measure_sequence, sources, MeasureParams, SkySubtractedOrientation};
 use crate::sim::{Scene, SimFrame, Simulator, Truth};
 
 /// The simulated e-o offset: fractional and tilted, 1.9 px from the profile's.
@@ -24,15 +24,15 @@ fn night() -> (Vec<SimFrame>, Truth) {
     sim.run_in_memory()
 }
 
-fn orientations<'a>(frames: &'a [SimFrame], object: &str) -> (Vec<CalibratedOrientation>, Vec<Vec<&'a SimFrame>>) {
-    let (mut out, mut sims): (Vec<CalibratedOrientation>, Vec<Vec<&'a SimFrame>>) = (Vec::new(), Vec::new());
+fn orientations<'a>(frames: &'a [SimFrame], object: &str) -> (Vec<SkySubtractedOrientation>, Vec<Vec<&'a SimFrame>>) {
+    let (mut out, mut sims): (Vec<SkySubtractedOrientation>, Vec<Vec<&'a SimFrame>>) = (Vec::new(), Vec::new());
     for f in frames
         .iter()
         .filter(|f| f.frame.header.get_str("OBJECT").unwrap() == object)
     {
         let pa = f.truth.posang_deg;
         if out.last().is_none_or(|o| o.posang_deg != pa) {
-            out.push(CalibratedOrientation {
+            out.push(SkySubtractedOrientation {
                 posang_deg: pa,
                 analyzer_deg: f.truth.analyzer_deg,
                 frames: vec![],

@@ -33,7 +33,7 @@ pub struct FigureInputs {
 impl FigureInputs {
     /// Stack the cut-outs of the kept frames `cal` (when present) around the measured
     /// positions of `m`.
-    pub fn new(cal: Option<&[CalibratedOrientation]>, m: Option<&Measured>) -> FigureInputs {
+    pub fn new(cal: Option<&[SkySubtractedOrientation]>, m: Option<&Measured>) -> FigureInputs {
         let cal = cal.unwrap_or(&[]);
         let n_or = match m {
             Some(m) => cal.len().max(

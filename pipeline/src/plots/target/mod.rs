@@ -39,7 +39,7 @@ use super::{ensure_font, write_atomic, Error, FONT};
 use crate::catalog::flags::join;
 use crate::catalog::{Flag, Status, Target};
 use crate::reduce::run::TargetOutcome;
-use crate::reduce::{CalibratedOrientation, DitherValue, Measured};
+use crate::reduce::{DitherValue, Measured, SkySubtractedOrientation};
 use panels::*;
 use text::*;
 use tiles::*;
@@ -89,7 +89,7 @@ const COMP_NAMES: [&str; 2] = ["A", "B"];
 
 /// Write the diagnostic figure of one reduced target to `path` (atomically), with the
 /// numbers of `target` as given (no calibration).
-pub fn target_png(path: &Path, target: &Target, cal: &[CalibratedOrientation], m: &Measured) -> io::Result<()> {
+pub fn target_png(path: &Path, target: &Target, cal: &[SkySubtractedOrientation], m: &Measured) -> io::Result<()> {
     target_png_opt(path, target, Some(cal), Some(m))
 }
 
@@ -110,7 +110,7 @@ pub fn outcome_png(path: &Path, outcome: &TargetOutcome) -> io::Result<()> {
 pub fn target_png_opt(
     path: &Path,
     target: &Target,
-    cal: Option<&[CalibratedOrientation]>,
+    cal: Option<&[SkySubtractedOrientation]>,
     m: Option<&Measured>,
 ) -> io::Result<()> {
     let inputs = FigureInputs::new(cal, m);
@@ -126,7 +126,7 @@ pub fn target_png_opt(
 /// figure when the full one cannot be drawn.
 pub fn render_target_rgb(
     target: &Target,
-    cal: Option<&[CalibratedOrientation]>,
+    cal: Option<&[SkySubtractedOrientation]>,
     m: Option<&Measured>,
 ) -> io::Result<(u32, u32, Vec<u8>)> {
     let inputs = FigureInputs::new(cal, m);

@@ -51,7 +51,7 @@ pub(super) fn beam_xy(d: &DitherValue, e_beam: bool) -> (f64, f64) {
 }
 
 /// Stack of beam `e_beam` of orientation `k` (None when no dither has a measured position).
-pub(super) fn stack(o: &CalibratedOrientation, m: &Measured, k: usize, e_beam: bool) -> Option<Stack> {
+pub(super) fn stack(o: &SkySubtractedOrientation, m: &Measured, k: usize, e_beam: bool) -> Option<Stack> {
     let a: &[DitherValue] = m.dithers.first()?.get(k)?;
     let b: Option<&[DitherValue]> = m.dithers.get(1).and_then(|c| c.get(k)).map(|v| v.as_slice());
     let anchors: Vec<Option<(f64, f64)>> = (0..o.frames.len())
