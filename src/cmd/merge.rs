@@ -188,6 +188,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     check_calibrations(&cals)?;
     let mut merged = sofipol_pipeline::night::merge(parts).map_err(anyhow::Error::msg)?;
     merged.provenance.missing_shards = Some(missing.clone());
+    // The merge's own run: when and how this file was written (the software and commit
+    // stay the inputs').
+    let now = Provenance::now();
+    merged.provenance.command_line = now.command_line;
+    merged.provenance.created_utc = now.created_utc;
     sofipol_pipeline::io::write_json_atomic(&args.output, &merged)
         .with_context(|| format!("writing {}", args.output.display()))?;
     if !args.quiet {
