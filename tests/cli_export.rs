@@ -276,3 +276,52 @@ fn export_errors_name_the_file() {
         .unwrap();
     assert_eq!(o.status.code(), Some(1));
 }
+
+/// The format follows the output's extension; a `--format` that contradicts it is refused
+/// before anything is written (an ECSV text named `.fits` is no table astropy can read).
+#[test]
+fn the_format_follows_the_extension_and_a_contradiction_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let cat = testdata("catalog_aligned.json");
+    let run = |args: &[&str]| sofipol().arg("export").arg(&cat).args(args).output().unwrap();
+    for (name, starts) in [
+        ("t.fits", "SIMPLE  ="),
+        ("t.FIT", "SIMPLE  ="),
+        ("t.ecsv", "# %ECSV 1.0"),
+        ("t.csv", "target,"),
+    ] {
+        let out = dir.path().join(name);
+        let o = run(&["-q", "-o", out.to_str().unwrap()]);
+        assert!(o.status.success(), "{name}: {}", String::from_utf8_lossy(&o.stderr));
+        let head = std::fs::read(&out).unwrap();
+        assert!(
+            head.starts_with(starts.as_bytes()),
+            "{name}: {:?}",
+            String::from_utf8_lossy(&head[..20])
+        );
+    }
+    // No extension that names a format: ECSV, as before.
+    let out = dir.path().join("t.txt");
+    assert!(run(&["-q", "-o", out.to_str().unwrap()]).status.success());
+    assert!(std::fs::read(&out).unwrap().starts_with(b"# %ECSV"));
+    // A contradiction: exit 1, the file and both formats named, nothing written.
+    let out = dir.path().join("c.fits");
+    let o = run(&["--format", "ecsv", "-o", out.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("c.fits") && err.contains("says fits") && err.contains("--format ecsv"),
+        "{err}"
+    );
+    assert!(!out.exists());
+    // The same format by name and by extension is fine.
+    assert!(run(&[
+        "-q",
+        "--format",
+        "csv",
+        "-o",
+        dir.path().join("d.csv").to_str().unwrap()
+    ])
+    .status
+    .success());
+}

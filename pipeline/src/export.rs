@@ -40,6 +40,22 @@ impl std::str::FromStr for Format {
     }
 }
 
+impl Format {
+    /// Its name for `--format`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Format::Ecsv => "ecsv",
+            Format::Fits => "fits",
+            Format::Csv => "csv",
+        }
+    }
+
+    /// The file extension that names it.
+    pub fn extension(self) -> &'static str {
+        self.name()
+    }
+}
+
 /// Column data.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Data {
