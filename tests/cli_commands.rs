@@ -208,3 +208,53 @@ fn bench_commands_print_figures() {
     assert_eq!(code, 0, "{stdout}\n{err}");
     assert!(stdout.to_lowercase().contains("wall"), "{stdout}");
 }
+
+/// `simulate -o DIR` into a folder that holds another scene's night refuses before writing
+/// (it used to add its frames and overwrite the other truth.json with exit 0); the same
+/// scene again into its own folder is fine.
+#[test]
+fn simulate_refuses_a_folder_holding_another_night() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = |name: &str| {
+        let p = dir.path().join(format!("{name}.toml"));
+        std::fs::write(
+            &p,
+            format!(
+                "name = \"{name}\"\nseed = 3\neffects = [\"psf\", \"sky\"]\n[observation]\n\
+                 orientations_deg = [0.0, 45.0]\ndithers = 2\n{}",
+                common::ALPHA_BETA
+            ),
+        )
+        .unwrap();
+        p
+    };
+    let (a, b) = (scene("first"), scene("second"));
+    let night = dir.path().join("night");
+    let sim =
+        |scene: &std::path::Path| run(&["simulate", scene.to_str().unwrap(), "-o", night.to_str().unwrap(), "-q"]);
+    let (code, _, err) = sim(&a);
+    assert_eq!(code, 0, "{err}");
+    let truth = std::fs::read(night.join("truth.json")).unwrap();
+    let before: Vec<_> = std::fs::read_dir(&night)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    let (code, _, err) = sim(&b);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("is not a file of this scene") && err.contains("night"),
+        "{err}"
+    );
+    let after: Vec<_> = std::fs::read_dir(&night)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(before.len(), after.len(), "nothing written");
+    assert_eq!(
+        std::fs::read(night.join("truth.json")).unwrap(),
+        truth,
+        "truth.json kept"
+    );
+    let (code, _, err) = sim(&a);
+    assert_eq!(code, 0, "the same scene again: {err}");
+}

@@ -390,9 +390,17 @@ fn night_with_a_stationary_target(dir: &Path) -> PathBuf {
         + &still[still.find("[[binary]]\nname = \"Beta\"").unwrap()..];
     let scene = dir.join("still.toml");
     std::fs::write(&scene, still).unwrap();
-    let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&n), "-q"]);
+    // Simulated apart (simulate refuses a folder holding another scene's frames), then
+    // moved into the night's folder.
+    let apart = dir.join("still_night");
+    let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&apart), "-q"]);
     assert_eq!(code, 0, "{err}");
-    std::fs::remove_file(n.join("truth.json")).unwrap();
+    for f in std::fs::read_dir(&apart).unwrap() {
+        let p = f.unwrap().path();
+        if p.extension().is_some_and(|e| e == "fits") {
+            std::fs::rename(&p, n.join(p.file_name().unwrap())).unwrap();
+        }
+    }
     n
 }
 

@@ -89,6 +89,30 @@ pub fn simulate_with(sim: &Simulator, dir: &Path, badpix: Option<&Path>, quiet: 
     Ok(truth)
 }
 
+/// Refuse, before anything is written, an output folder that holds anything but this
+/// scene's own files (`names`: its frames and truth.json, or their temporaries): another
+/// night's frames would be reduced with these, and its truth.json overwritten. Simulating
+/// the same scene again into its folder, or into an empty or new one, is fine.
+pub fn check_simulate_dir(dir: &Path, names: &[String]) -> anyhow::Result<()> {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return Ok(());
+    };
+    for e in entries {
+        let e = e.with_context(|| format!("-o {}: listing the folder", dir.display()))?;
+        let name = e.file_name().to_string_lossy().into_owned();
+        let ours = names
+            .iter()
+            .any(|n| *n == name || name.strip_prefix(&format!(".{n}.tmp-")).is_some());
+        anyhow::ensure!(
+            ours && e.file_type().is_ok_and(|t| t.is_file()),
+            "-o {}: {} is not a file of this scene: a night reduced from the folder would mix it              with the simulated frames (and another scene's truth.json would be overwritten); give              an empty or new folder",
+            dir.display(),
+            e.path().display()
+        );
+    }
+    Ok(())
+}
+
 /// Run.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mut scene = load_scene(&args.scene)?;
@@ -99,6 +123,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let t0 = std::time::Instant::now();
     let sim = Simulator::new(scene, profile).map_err(anyhow::Error::msg)?;
     check_output_size(&sim, &args.output, args.force)?;
+    check_simulate_dir(&args.output, &sim.file_names())?;
     let truth = simulate_with(&sim, &args.output, args.badpix_mask.as_deref(), args.quiet)?;
     if !args.quiet {
         let nframes: usize = truth.targets.iter().map(|t| t.frames.len()).sum();
