@@ -178,14 +178,10 @@ fn the_night_report_loads_sorts_filters_and_shows_every_image_in_chromium() {
     std::fs::remove_file(common::frames_of(&n, "Beta")[2].clone()).unwrap();
     let scene = dir.path().join("still.toml");
     std::fs::write(&scene, STILL).unwrap();
-    let (code, _, err) = run(&["simulate", scene.to_str().unwrap(), "-o", n.to_str().unwrap(), "-q"]);
-    assert_eq!(code, 0, "{err}");
-    std::fs::remove_file(n.join("truth.json")).unwrap();
+    common::simulate_into(&scene, &n);
     let scene = dir.path().join("standards.toml");
     std::fs::write(&scene, STANDARDS).unwrap();
-    let (code, _, err) = run(&["simulate", scene.to_str().unwrap(), "-o", n.to_str().unwrap(), "-q"]);
-    assert_eq!(code, 0, "{err}");
-    std::fs::remove_file(n.join("truth.json")).unwrap();
+    common::simulate_into(&scene, &n);
 
     let cat_path = dir.path().join("cat.json");
     let night_html = dir.path().join("out/night.html");

@@ -105,7 +105,9 @@ pub fn check_simulate_dir(dir: &Path, names: &[String]) -> anyhow::Result<()> {
             .any(|n| *n == name || name.strip_prefix(&format!(".{n}.tmp-")).is_some());
         anyhow::ensure!(
             ours && e.file_type().is_ok_and(|t| t.is_file()),
-            "-o {}: {} is not a file of this scene: a night reduced from the folder would mix it              with the simulated frames (and another scene's truth.json would be overwritten); give              an empty or new folder",
+            "-o {}: {} is not a file of this scene: a night reduced from the folder would mix it \
+             with the simulated frames (and another scene's truth.json would be overwritten); give \
+             an empty or new folder",
             dir.display(),
             e.path().display()
         );

@@ -120,6 +120,20 @@ pub fn night(dir: &Path) -> std::path::PathBuf {
     n
 }
 
+/// Simulate `scene` beside the night folder `n` (simulate refuses a folder holding another
+/// scene's frames) and move its frames into `n`, leaving its truth.json out.
+pub fn simulate_into(scene: &Path, n: &Path) {
+    let apart = n.with_file_name(format!("{}_apart", scene.file_stem().unwrap().to_string_lossy()));
+    let (code, _, err) = run(&["simulate", scene.to_str().unwrap(), "-o", apart.to_str().unwrap(), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    for f in std::fs::read_dir(&apart).unwrap() {
+        let p = f.unwrap().path();
+        if p.extension().is_some_and(|e| e == "fits") {
+            std::fs::rename(&p, n.join(p.file_name().unwrap())).unwrap();
+        }
+    }
+}
+
 /// The frames of `object` in the night folder `n`.
 pub fn frames_of(n: &Path, object: &str) -> Vec<std::path::PathBuf> {
     let mut v: Vec<std::path::PathBuf> = std::fs::read_dir(n)
