@@ -309,12 +309,7 @@ impl Profile {
                 source_name: "--set".into(),
                 reason: format!("'{s}' is not of the form section.key=value"),
             })?;
-            let parsed: toml::Value = format!("x = {val}")
-                .parse::<toml::Table>()
-                .ok()
-                .and_then(|t| t.get("x").cloned())
-                .unwrap_or_else(|| toml::Value::String(val.to_string()));
-            let mut over = parsed;
+            let mut over = toml_value(val);
             for part in path.trim().split('.').rev() {
                 let mut t = toml::Table::new();
                 t.insert(part.to_string(), over);
@@ -497,6 +492,15 @@ pub fn frame_ndit(frame: &Frame, profile: &Profile) -> Result<u32> {
         });
     }
     Ok(v as u32)
+}
+
+/// A value given on the command line (`--set`, `--param`) as TOML reads it (`4`, `true`,
+/// `"x"`, `[1, 2]`, `{ kind = "moffat" }`), else as a bare string (`median`).
+pub fn toml_value(text: &str) -> toml::Value {
+    match format!("x = {text}").parse::<toml::Table>() {
+        Ok(mut t) => t.remove("x").unwrap_or_else(|| toml::Value::String(text.to_string())),
+        Err(_) => toml::Value::String(text.to_string()),
+    }
 }
 
 #[cfg(test)]

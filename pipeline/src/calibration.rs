@@ -320,13 +320,8 @@ fn calibration_from(
     ctx: &CalibrationContext,
 ) -> (Option<Calibration>, String) {
     let CalibrationContext {
-        table,
-        profile,
-        params,
-        debias,
-        cut_snr,
+        table, profile, params, ..
     } = *ctx;
-    let _ = (table, profile, params, debias, cut_snr);
     let fit_telescope = !params.no_telescope_correction;
     let (mut cal, origin) = match source {
         CalibrationSource::Disabled => (None, "disabled".to_string()),
@@ -353,13 +348,12 @@ fn resolve_targets(
     summary: &mut CalibrationSummary,
 ) {
     let CalibrationContext {
-        table,
         profile,
         params,
         debias,
         cut_snr,
+        ..
     } = *ctx;
-    let _ = (table, profile, params, debias, cut_snr);
     let method = params.stokes_method;
     for t in cat.targets.iter_mut() {
         let fc = cal.as_ref().and_then(|c| c.for_filter(&filter_of(t)));
@@ -393,7 +387,6 @@ fn standards_section(
         debias,
         cut_snr,
     } = *ctx;
-    let _ = (table, profile, params, debias, cut_snr);
     let method = params.stokes_method;
     let used_offset: Vec<String> = cal
         .iter()

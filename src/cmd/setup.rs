@@ -3,6 +3,7 @@
 //! given on the command line (`--param SECTION.KEY=VALUE`), the common ones also as flags;
 //! flags override `--param`, which overrides the file; the ranges are checked once
 //! ([`TargetParams::validate`]). `--dump-params` prints the settings in force.
+use sofipol_calib::profile::toml_value;
 use std::path::PathBuf;
 
 use anyhow::Context;
@@ -260,16 +261,6 @@ impl CalibArgs {
         );
         CalibSetup::new(params).map_err(anyhow::Error::msg)
     }
-}
-
-/// A `--param` value as TOML reads it (`4`, `true`, `"x"`, `[1, 2]`, `{ kind = "moffat" }`),
-/// else as a bare string (`median`).
-fn toml_value(text: &str) -> toml::Value {
-    format!("x = {text}")
-        .parse::<toml::Table>()
-        .ok()
-        .and_then(|t| t.get("x").cloned())
-        .unwrap_or_else(|| toml::Value::String(text.to_string()))
 }
 
 /// Set `a.b.c = value` in a TOML table, making the sections on the way.
