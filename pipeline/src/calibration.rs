@@ -234,13 +234,17 @@ pub struct CalibrationSummary {
     pub n_refused_incomplete: usize,
 }
 
-/// Whether component `c` is flagged [`FlagCode::Uncalibrated`]: a 2-orientation
-/// measurement without an instrumental calibration.
+/// Whether component `c` is uncalibrated: a term that biases its P is neither removed nor
+/// carried in its error (its calibration state says so; flagged [`FlagCode::Uncalibrated`]:
+/// 2 orientations without the offset c, or [`FlagCode::TelescopeUnaccounted`]). Such
+/// components fail the cut, leave the statistics and make a night exit 2, unless allowed.
 pub fn is_uncalibrated(c: &Component) -> bool {
     has(&c.flags, FlagCode::Uncalibrated)
+        || has(&c.flags, FlagCode::TelescopeUnaccounted)
+        || c.calibration.is_some_and(|s| !s.complete_for_the_cut())
 }
 
-/// The components of `cat`'s targets flagged [`FlagCode::Uncalibrated`].
+/// The components of `cat`'s targets that are uncalibrated ([`is_uncalibrated`]).
 pub fn uncalibrated_components(cat: &Catalog) -> usize {
     cat.targets
         .iter()
@@ -409,7 +413,7 @@ fn note_origin(c: &mut Component, other_night: bool) {
 /// telescope's term without a prior for the filter).
 fn refuse_incomplete(c: &mut Component, summary: &mut CalibrationSummary) {
     if c.calibration.is_some_and(|s| !s.complete_for_the_cut()) {
-        if is_uncalibrated(c) {
+        if has(&c.flags, FlagCode::Uncalibrated) {
             summary.n_refused_uncalibrated += usize::from(c.passes_cut);
         } else {
             summary.n_refused_incomplete += usize::from(c.passes_cut);
@@ -594,20 +598,41 @@ fn summary_lines(summary: &mut CalibrationSummary, cal: Option<&Calibration>, or
             summary
                 .lines
                 .push(format!("calibration ({origin}) {}: {off}; {ang}", f.filter));
+            let prior = TelescopePrior::of(&ctx.profile.telescope, &f.filter);
             match (&f.telescope, &f.telescope_uncorrected) {
                 (Some(t), _) => summary.lines.push(format!(
                     "calibration ({origin}) {}: telescope polarization p_tel = {:.3} +- {:.3} %, \
-                     psi_tel = {:.1} +- {:.1} deg, removed from every component at its frames' parallactic angles",
+                     psi_tel = {:.1} +- {:.1} deg{}, removed from every component at its frames' parallactic angles",
                     f.filter,
                     100.0 * t.p_tel,
                     100.0 * t.sigma_p_tel,
                     t.psi_tel_deg,
-                    t.sigma_psi_tel_deg
+                    t.sigma_psi_tel_deg,
+                    match (&f.telescope_from_prior, prior) {
+                        (Some(why), Some(p)) => format!(
+                            " FROM THE MIRROR'S PRIOR ({:.2} +- {:.2} %, {:.0} +- {:.0} deg; the standards alone: {why})",
+                            100.0 * p.p_tel,
+                            100.0 * p.sigma_p_tel,
+                            p.psi_tel_deg,
+                            p.sigma_psi_tel_deg
+                        ),
+                        (Some(why), None) => format!(" from the mirror's prior (the standards alone: {why})"),
+                        _ => String::new(),
+                    }
                 )),
                 (None, why) => summary.lines.push(format!(
-                    "calibration ({origin}) {}: telescope polarization not corrected: {}",
+                    "calibration ({origin}) {}: telescope polarization not corrected: {}; {}",
                     f.filter,
-                    why.as_deref().unwrap_or("the calibration has no telescope term")
+                    why.as_deref().unwrap_or("the calibration has no telescope term"),
+                    match prior {
+                        Some(p) => format!(
+                            "its expected size from the mirror ({:.2} +- {:.2} %) is carried in every error",
+                            100.0 * p.p_tel,
+                            100.0 * p.sigma_p_tel
+                        ),
+                        None => "the profile gives no mirror index for this filter: its components cannot pass the cut"
+                            .to_string(),
+                    }
                 )),
             }
         }
@@ -615,11 +640,34 @@ fn summary_lines(summary: &mut CalibrationSummary, cal: Option<&Calibration>, or
     if summary.n_telescope_uncorrected > 0 {
         summary.lines.push(format!(
             "{} component(s) flagged '{}': the telescope's own polarization \
-             (tertiary mirror, of order 0.5 % in Ks, turning with the parallactic angle) is in their q and u; \
+             (tertiary mirror, of order 0.8 % in Ks, turning with the parallactic angle) is in their q and u, \
+             its expected size carried in their errors and in Delta-gamma's; \
              it is the same vector for both stars of a binary and pulls their angles together. Observe \
              unpolarized standards at parallactic angles far apart, or use --calib CALDIR from a night that did.",
             summary.n_telescope_uncorrected,
             FlagCode::TelescopeUncorrected.name()
+        ));
+    }
+    if summary.n_telescope_from_prior > 0 {
+        summary.lines.push(format!(
+            "{} component(s) flagged '{}': the standards did not separate the telescope's polarization; \
+             it was removed at the value fitted with the mirror's prior, whose width is in their errors. \
+             Unpolarized standards at parallactic angles far apart measure it.",
+            summary.n_telescope_from_prior,
+            FlagCode::TelescopeFromPrior.name()
+        ));
+    }
+    if summary.n_telescope_unaccounted > 0 {
+        summary.lines.push(format!(
+            "{} component(s) flagged '{}': the telescope's polarization was neither removed nor carried \
+             (the profile's [telescope.filters] has no index for their filter); {}",
+            summary.n_telescope_unaccounted,
+            FlagCode::TelescopeUnaccounted.name(),
+            if ctx.params.allow_uncalibrated {
+                "they may pass the cut (--allow-uncalibrated), flagged"
+            } else {
+                "they never pass the cut (--allow-uncalibrated lets them, flagged)"
+            }
         ));
     }
 }
