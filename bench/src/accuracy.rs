@@ -273,7 +273,10 @@ pub fn run_seeds(cfg: &AccuracyConfig, params: &TargetParams, seeds: &[u64]) -> 
 
 /// Simulate, reduce and score, bin by bin: each bin's edges and its targets' scores.
 fn run_scored(cfg: &AccuracyConfig, params: &TargetParams) -> Vec<(Vec<f64>, Vec<One>)> {
-    let profile = Profile::sofi();
+    // The instrument reduced is the one simulated: a telescope that polarizes only when the
+    // scene simulates it (else its expected size would be carried in every error).
+    let mut profile = Profile::sofi();
+    profile.telescope.polarizes = cfg.effects.iter().any(|e| e == "telescope_polarization");
     cfg.bins_arcsec
         .windows(2)
         .enumerate()

@@ -182,13 +182,17 @@ fn mean_rms(v: &[f64]) -> (f64, f64) {
 fn calibrate(cat: &mut Catalog, stds: Vec<Target>, source: CalibrationSource) -> usize {
     let mut table = StandardsTable::builtin();
     table.merge_toml(USER_STANDARDS, "test standards").unwrap();
+    // These scenes simulate no telescope polarization: the instrument reduced is one whose
+    // telescope adds none (with SOFI's M3 its expected size would be carried in every error).
+    let mut profile = Profile::sofi();
+    profile.telescope.polarizes = false;
     let (_, s) = calibrate_catalog(
         cat,
         stds,
         source,
         &CalibrationContext {
             table: &table,
-            profile: &Profile::sofi(),
+            profile: &profile,
             params: &CalibrationParams::default(),
             debias: Debias::WardleKronberg,
             cut_snr: 3.0,

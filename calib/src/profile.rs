@@ -248,6 +248,11 @@ impl Angles {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)] // a misspelt key in --profile or --set is an error, not ignored
 pub struct Telescope {
+    /// Whether the telescope adds a polarization that turns with the parallactic angle (an
+    /// oblique mirror in front of the rotator, as SOFI's M3). `false`: the model has no
+    /// such term (nothing to fit, remove or carry).
+    #[serde(default = "yes")]
+    pub polarizes: bool,
     /// The coating, in words (for the record).
     pub coating: String,
     /// Angle of incidence on the mirror, deg from the normal.
@@ -276,10 +281,15 @@ pub struct MirrorIndex {
     pub k: f64,
 }
 
+fn yes() -> bool {
+    true
+}
+
 impl Telescope {
     /// No mirror described: no prior for any filter.
     pub fn undescribed() -> Telescope {
         Telescope {
+            polarizes: true,
             coating: String::new(),
             incidence_deg: 45.0,
             psi_deg: 0.0,

@@ -177,8 +177,10 @@ pub fn measure(
             telescope: j.telescope.map(|t| TelescopeCalibration::from_fit(&t, &j.covariance)),
             telescope_uncorrected: if fit_telescope {
                 j.telescope_problem
-            } else {
+            } else if profile.telescope.polarizes {
                 Some(TELESCOPE_NOT_FITTED.into())
+            } else {
+                None
             },
             telescope_from_prior: j.telescope_from_prior,
             covariance: Some(covariance),
@@ -341,17 +343,18 @@ fn calibration_from(
     let CalibrationContext {
         table, profile, params, ..
     } = *ctx;
-    let fit_telescope = !params.no_telescope_correction;
+    let fit_telescope = !params.no_telescope_correction && profile.telescope.polarizes;
     let (mut cal, origin) = match source {
         CalibrationSource::Disabled => (None, "disabled".to_string()),
         CalibrationSource::File(p, c) => (Some(*c), p.display().to_string()),
         CalibrationSource::Night => (measure(standards, table, profile, fit_telescope), "night".to_string()),
     };
     if !fit_telescope {
-        // Another night's telescope term is not applied either.
+        // Another night's telescope term is not applied either (nor any, when the profile's
+        // telescope does not polarize).
         for f in cal.iter_mut().flat_map(|c| c.filters.iter_mut()) {
             if f.telescope.take().is_some() {
-                f.telescope_uncorrected = Some(TELESCOPE_NOT_FITTED.into());
+                f.telescope_uncorrected = profile.telescope.polarizes.then(|| TELESCOPE_NOT_FITTED.into());
             }
         }
     }
@@ -384,6 +387,7 @@ fn resolve_targets(
             debias,
             cut_snr,
             telescope_prior: TelescopePrior::of(&profile.telescope, &filter),
+            telescope_polarizes: profile.telescope.polarizes,
         };
         let mut n_unc = 0;
         for c in t.components.iter_mut() {
@@ -464,6 +468,7 @@ fn standards_section(
                     debias,
                     cut_snr,
                     telescope_prior: TelescopePrior::of(&profile.telescope, &filter),
+                    telescope_polarizes: profile.telescope.polarizes,
                 },
             );
             flag_incomplete(c, fc);
@@ -620,6 +625,7 @@ fn summary_lines(summary: &mut CalibrationSummary, cal: Option<&Calibration>, or
                         _ => String::new(),
                     }
                 )),
+                (None, _) if !ctx.profile.telescope.polarizes => {}
                 (None, why) => summary.lines.push(format!(
                     "calibration ({origin}) {}: telescope polarization not corrected: {}; {}",
                     f.filter,

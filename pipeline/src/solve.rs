@@ -212,6 +212,9 @@ pub struct SolveSettings<'a> {
     /// The profile's mirror prior of the telescope's term in the component's filter: when
     /// the term is not removed, its mean square is carried in the error.
     pub telescope_prior: Option<TelescopePrior>,
+    /// Whether the telescope polarizes at all (the profile's `telescope.polarizes`): when
+    /// not, there is no term to remove, carry or flag.
+    pub telescope_polarizes: bool,
 }
 
 /// The covariance of the calibration parameters (c, theta0, a, b) a component's errors take:
@@ -247,7 +250,9 @@ pub fn resolve_component(c: &mut Component, settings: &SolveSettings) -> bool {
         debias,
         cut_snr,
         telescope_prior,
+        telescope_polarizes,
     } = *settings;
+    let telescope_prior = telescope_prior.filter(|_| telescope_polarizes);
     let inputs = Inputs::new(c, profile, cal);
     if inputs.rows.is_empty() {
         return false;
@@ -356,8 +361,11 @@ pub fn resolve_component(c: &mut Component, settings: &SolveSettings) -> bool {
     if sol.uncalibrated {
         c.flags.push(Flag::new(FlagCode::Uncalibrated));
     }
-    let state = calibration_state(&sol, cal, tel.is_some(), carried);
-    if tel.is_none() {
+    let mut state = calibration_state(&sol, cal, tel.is_some(), carried);
+    if !telescope_polarizes && tel.is_none() {
+        state.telescope = TermSource::Absent;
+    }
+    if tel.is_none() && telescope_polarizes {
         c.flags.push(Flag::new(FlagCode::TelescopeUncorrected));
     }
     match state.telescope {

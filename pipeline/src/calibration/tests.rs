@@ -79,7 +79,10 @@ fn night_calibration_recovers_truth_and_flags_uncalibrated_without_it() {
         )],
         ..Default::default()
     };
-    let profile = Profile::sofi();
+    // A telescope that adds no polarization (these synthetic stars carry none): the errors
+    // below are sigma_F, c's and theta0's alone.
+    let mut profile = Profile::sofi();
+    profile.telescope.polarizes = false;
     let mut cat = science();
     let (cal, sum) = calibrate_catalog(
         &mut cat,
@@ -199,6 +202,7 @@ fn four_orientations_need_no_calibration() {
             debias: Debias::WardleKronberg,
             cut_snr: 3.0,
             telescope_prior: None,
+            telescope_polarizes: true,
         },
     );
     assert!(!unc);
@@ -222,6 +226,7 @@ fn a_degree_of_polarization_above_one_is_flagged_and_refused() {
                 debias: Debias::WardleKronberg,
                 cut_snr: 3.0,
                 telescope_prior: None,
+                telescope_polarizes: true,
             },
         );
         c
@@ -398,6 +403,7 @@ fn the_zero_point_error_adds_tangential_variance_only() {
                 debias: Debias::WardleKronberg,
                 cut_snr: 3.0,
                 telescope_prior: None,
+                telescope_polarizes: true,
             },
         );
         c

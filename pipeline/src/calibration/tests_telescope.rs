@@ -3,6 +3,7 @@
 //! angle): the calibration measures it, removes it, and says when it cannot.
 use super::*;
 use crate::catalog::CombinedF;
+use crate::catalog::TermSource;
 use crate::stokes::model::{normalized_difference, Polarization, TelescopePolarization};
 
 const TEL: TelescopePolarization = TelescopePolarization {
@@ -247,7 +248,9 @@ fn without_the_correction_the_components_are_flagged_and_biased() {
         a.flags
     );
     assert!((a.q - TRUTH_A.q).hypot(a.u - TRUTH_A.u) > 1e-3, "{a:?}");
-    // Standards all at one parallactic angle: flagged, with the reason in the calibration.
+    // Standards all at one parallactic angle: the term is fitted with the mirror's prior,
+    // the reason the standards alone did not suffice in the calibration, every component
+    // flagged and the summary saying so.
     let mut cat = science(&posangs, &etas);
     let (cal, sum) = calibrate(
         &mut cat,
@@ -256,16 +259,31 @@ fn without_the_correction_the_components_are_flagged_and_biased() {
         &CalibrationParams::default(),
     );
     let f = cal.unwrap().filters[0].clone();
-    assert!(f.telescope.is_none());
-    let why = f.telescope_uncorrected.unwrap();
+    assert!(f.telescope.is_some() && f.telescope_uncorrected.is_none(), "{f:?}");
+    let why = f.telescope_from_prior.unwrap();
     assert!(why.contains("span"), "{why}");
-    assert_eq!(sum.n_telescope_uncorrected, 2);
-    let said = format!("2 component(s) flagged '{}'", FlagCode::TelescopeUncorrected.name());
+    assert_eq!((sum.n_telescope_uncorrected, sum.n_telescope_from_prior), (0, 2));
+    let said = format!("2 component(s) flagged '{}'", FlagCode::TelescopeFromPrior.name());
     assert!(sum.lines.iter().any(|l| l.starts_with(&said)), "{:?}", sum.lines);
+    assert!(
+        sum.lines.iter().any(|l| l.contains("FROM THE MIRROR'S PRIOR")),
+        "{:?}",
+        sum.lines
+    );
+    for c in &cat.targets[0].components {
+        assert_eq!(c.calibration.unwrap().telescope, TermSource::Prior, "{c:?}");
+    }
+    // Asked not to correct: the term's expected size is carried in the errors (and in
+    // Delta-gamma's), and said.
+    let mut cat = science(&posangs, &etas);
+    let (_, sum) = calibrate(&mut cat, standards(&table, true), CalibrationSource::Night, &params);
+    let a = &cat.targets[0].components[0];
+    assert_eq!(a.calibration.unwrap().telescope, TermSource::Carried);
+    assert!(a.sigma_q > 0.005 && a.sigma_q_stat.unwrap() < 0.002, "{a:?}");
     assert!(
         sum.lines
             .iter()
-            .any(|l| l.contains("telescope polarization not corrected")),
+            .any(|l| l.contains("telescope polarization not corrected") && l.contains("carried in every error")),
         "{:?}",
         sum.lines
     );

@@ -24,6 +24,9 @@ pub enum TermSource {
     Carried,
     /// Neither removed nor carried: the values are biased by an unknown amount.
     Missing,
+    /// The instrument profile says there is no such term (the telescope's polarization of
+    /// a telescope without an oblique mirror in front of the rotator).
+    Absent,
 }
 
 impl TermSource {
@@ -42,6 +45,7 @@ impl TermSource {
             TermSource::Prior => "prior",
             TermSource::Carried => "carried",
             TermSource::Missing => "missing",
+            TermSource::Absent => "absent",
         }
     }
 
@@ -119,6 +123,7 @@ mod tests {
             TermSource::Prior,
             TermSource::Carried,
             TermSource::Missing,
+            TermSource::Absent,
         ];
         for t in all {
             let json = serde_json::to_string(&t).unwrap();

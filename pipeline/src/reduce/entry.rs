@@ -61,6 +61,7 @@ fn solve_provisionally(c: &mut Component, profile: &Profile, params: &MeasurePar
             debias: params.debias,
             cut_snr: params.cut_snr,
             telescope_prior: None,
+            telescope_polarizes: profile.telescope.polarizes,
         },
     );
     c.flags.retain(|f| {
