@@ -622,11 +622,19 @@ fn run_night(exe: &Path, case: Case, seed: u64, args: &CalibrationArgs, dir: &Pa
         ));
         return Ok(empty(night));
     }
-    let catalog = sofipol_pipeline::input::read_catalog(&catalog_path)?;
-    let truth: TruthFile = serde_json::from_str(
-        &std::fs::read_to_string(&truth_path).with_context(|| format!("reading {}", truth_path.display()))?,
-    )
-    .with_context(|| format!("reading {}", truth_path.display()))?;
+    let read = || -> anyhow::Result<(Catalog, TruthFile)> {
+        let catalog = sofipol_pipeline::input::read_catalog(&catalog_path)?;
+        let text = std::fs::read_to_string(&truth_path).with_context(|| format!("reading {}", truth_path.display()))?;
+        let truth = serde_json::from_str(&text).with_context(|| format!("reading {}", truth_path.display()))?;
+        Ok((catalog, truth))
+    };
+    let (catalog, truth) = match read() {
+        Ok(r) => r,
+        Err(e) => {
+            night.error = Some(format!("{e:#}"));
+            return Ok(empty(night));
+        }
+    };
     score_calibration(&mut night, &catalog, &truth);
     let (binaries, components) = score_binaries(case, seed, &catalog, &truth);
     Ok(NightResult {
@@ -1127,8 +1135,12 @@ pub fn run(args: CalibrationArgs) -> anyhow::Result<()> {
     let cases = if args.case.is_empty() {
         vec![Case::Clustered, Case::PolarizedOnly]
     } else {
-        let mut c = args.case.clone();
-        c.dedup();
+        let mut c: Vec<Case> = Vec::new();
+        for &k in &args.case {
+            if !c.contains(&k) {
+                c.push(k);
+            }
+        }
         c
     };
     let seeds: Vec<u64> = (args.first_seed..args.first_seed + args.seeds).collect();
