@@ -241,6 +241,64 @@ impl Angles {
     }
 }
 
+/// The mirror in front of the rotator (on SOFI the NTT's tertiary M3): the physical size
+/// of the telescope's own polarization. A metal mirror at oblique incidence polarizes by
+/// `(R_s - R_p)/(R_s + R_p)` (Fresnel) along a direction fixed to its plane of incidence,
+/// which on the sky turns with the parallactic angle.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)] // a misspelt key in --profile or --set is an error, not ignored
+pub struct Telescope {
+    /// The coating, in words (for the record).
+    pub coating: String,
+    /// Angle of incidence on the mirror, deg from the normal.
+    pub incidence_deg: f64,
+    /// psi_tel: the angle of its polarization from the parallactic direction, deg.
+    pub psi_deg: f64,
+    /// 1-sigma uncertainty of `psi_deg`, deg.
+    pub sigma_psi_deg: f64,
+    /// 1-sigma uncertainty of p_tel relative to its Fresnel value.
+    pub relative_width: f64,
+    /// The coating's complex refractive index at each filter's wavelength (filter names as
+    /// in the headers, compared ignoring case).
+    #[serde(default)]
+    pub filters: std::collections::BTreeMap<String, MirrorIndex>,
+}
+
+/// A coating's refractive index `n + i k` at one filter's wavelength.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MirrorIndex {
+    /// The filter's central wavelength, micron (for the record).
+    pub wavelength_um: f64,
+    /// Real part.
+    pub n: f64,
+    /// Imaginary part (extinction coefficient).
+    pub k: f64,
+}
+
+impl Telescope {
+    /// No mirror described: no prior for any filter.
+    pub fn undescribed() -> Telescope {
+        Telescope {
+            coating: String::new(),
+            incidence_deg: 45.0,
+            psi_deg: 0.0,
+            sigma_psi_deg: 90.0,
+            relative_width: 1.0,
+            filters: Default::default(),
+        }
+    }
+
+    /// The coating's index in `filter` (name compared ignoring case and blanks).
+    pub fn index(&self, filter: &str) -> Option<MirrorIndex> {
+        let f = filter.trim();
+        self.filters
+            .iter()
+            .find(|(name, _)| name.trim().eq_ignore_ascii_case(f))
+            .map(|(_, i)| *i)
+    }
+}
+
 /// A complete, validated instrument profile.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)] // a misspelt key in --profile or --set is an error, not ignored
@@ -258,6 +316,9 @@ pub struct Profile {
     pub detector: Detector,
     /// Angle conventions.
     pub angles: Angles,
+    /// The mirror in front of the rotator (the telescope's own polarization).
+    #[serde(default = "Telescope::undescribed")]
+    pub telescope: Telescope,
 }
 
 fn merge(base: &mut toml::Value, over: toml::Value) {
@@ -392,6 +453,10 @@ impl Profile {
             ("detector.nonlin_coeff_per_adu", d.nonlin_coeff_per_adu),
             ("angles.zero_point_deg", self.angles.zero_point_deg),
             ("angles.sigma_zero_point_deg", self.angles.sigma_zero_point_deg),
+            ("telescope.incidence_deg", self.telescope.incidence_deg),
+            ("telescope.psi_deg", self.telescope.psi_deg),
+            ("telescope.sigma_psi_deg", self.telescope.sigma_psi_deg),
+            ("telescope.relative_width", self.telescope.relative_width),
         ];
         for (name, v) in finite {
             if !v.is_finite() {
@@ -409,6 +474,39 @@ impl Profile {
                 "angles.sigma_zero_point_deg = {} must be in [0, 90]",
                 self.angles.sigma_zero_point_deg
             ));
+        }
+        let t = &self.telescope;
+        if !(0.0..90.0).contains(&t.incidence_deg) {
+            return err(format!(
+                "telescope.incidence_deg = {} must be in [0, 90)",
+                t.incidence_deg
+            ));
+        }
+        if !(t.sigma_psi_deg > 0.0 && t.sigma_psi_deg <= 90.0) {
+            return err(format!(
+                "telescope.sigma_psi_deg = {} must be in (0, 90]",
+                t.sigma_psi_deg
+            ));
+        }
+        if !(t.relative_width > 0.0 && t.relative_width <= 1.0) {
+            return err(format!(
+                "telescope.relative_width = {} must be in (0, 1]",
+                t.relative_width
+            ));
+        }
+        for (name, i) in &t.filters {
+            if !(i.n.is_finite() && i.n > 0.0 && i.k.is_finite() && i.k >= 0.0) {
+                return err(format!(
+                    "telescope.filters.{name}: n = {}, k = {} must be finite with n > 0 and k >= 0",
+                    i.n, i.k
+                ));
+            }
+            if !(i.wavelength_um.is_finite() && i.wavelength_um > 0.0) {
+                return err(format!(
+                    "telescope.filters.{name}.wavelength_um = {} must be > 0",
+                    i.wavelength_um
+                ));
+            }
         }
         if !(d.nonlin_coeff_per_adu >= 0.0) {
             return err(format!(

@@ -31,14 +31,15 @@ use crate::catalog::flags::has;
 pub use crate::catalog::polarimetric_calibration::{
     Calibration, FilterCalibration, TelescopeCalibration, CALIBRATION_FILE, CALIBRATION_SCHEMA,
 };
-use crate::catalog::{Catalog, Component, Flag, FlagCode, StandardResult, Status, Target};
+use crate::catalog::{CalibrationState, Catalog, Component, Flag, FlagCode, StandardResult, Status, Target};
 pub use crate::reduce::params::CalibrationParams;
-pub use crate::solve::{orientation_values, resolve_component};
+pub use crate::solve::{calibration_errors, orientation_values, resolve_component, SolveSettings};
 use crate::standards::{StandardStar, StandardsTable};
 use crate::stokes::calibration::{
     joint::{fit_joint_with, JointOptions},
     OrientationF, StandardObservation,
 };
+use crate::stokes::fresnel::TelescopePrior;
 use crate::stokes::inversion::Debias;
 use crate::stokes::propagation::{self, CAL_THETA0};
 
@@ -149,6 +150,7 @@ pub fn measure(
             default_parity: profile.angles.parity,
             profile_theta0_deg: profile.angles.zero_point_deg,
             fit_telescope,
+            telescope_prior: TelescopePrior::of(&profile.telescope, &filter),
         };
         let Some(j) = fit_joint_with(&obs, &opts) else {
             continue;
@@ -178,6 +180,7 @@ pub fn measure(
             } else {
                 Some(TELESCOPE_NOT_FITTED.into())
             },
+            telescope_from_prior: j.telescope_from_prior,
             covariance: Some(covariance),
             covariance_parameters: Some(propagation::CAL_PARAMETERS.iter().map(|s| s.to_string()).collect()),
             zero_point_from_profile,
@@ -220,15 +223,28 @@ pub struct CalibrationSummary {
     pub n_method_failed: usize,
     /// Components flagged `telescope_polarization_uncorrected`.
     pub n_telescope_uncorrected: usize,
+    /// Components whose telescope term was removed at the value fitted with the mirror's
+    /// prior (`telescope_polarization_from_prior`).
+    pub n_telescope_from_prior: usize,
+    /// Components whose telescope term was neither removed nor carried
+    /// (`telescope_polarization_unaccounted`).
+    pub n_telescope_unaccounted: usize,
+    /// Of the components whose P/sigma passed, those the cut refused because a term that
+    /// biases P is missing (the offset, the telescope's term), without `--allow-uncalibrated`.
+    pub n_refused_incomplete: usize,
 }
 
-/// Whether component `c` is flagged [`FlagCode::Uncalibrated`]: a 2-orientation
-/// measurement without an instrumental calibration.
+/// Whether component `c` is uncalibrated: a term that biases its P is neither removed nor
+/// carried in its error (its calibration state says so; flagged [`FlagCode::Uncalibrated`]:
+/// 2 orientations without the offset c, or [`FlagCode::TelescopeUnaccounted`]). Such
+/// components fail the cut, leave the statistics and make a night exit 2, unless allowed.
 pub fn is_uncalibrated(c: &Component) -> bool {
     has(&c.flags, FlagCode::Uncalibrated)
+        || has(&c.flags, FlagCode::TelescopeUnaccounted)
+        || c.calibration.is_some_and(|s| !s.complete_for_the_cut())
 }
 
-/// The components of `cat`'s targets flagged [`FlagCode::Uncalibrated`].
+/// The components of `cat`'s targets that are uncalibrated ([`is_uncalibrated`]).
 pub fn uncalibrated_components(cat: &Catalog) -> usize {
     cat.targets
         .iter()
@@ -259,6 +275,8 @@ fn note_calibration_state(c: &mut Component, cal: Option<&FilterCalibration>, su
     }
     summary.n_method_failed += usize::from(has(&c.flags, FlagCode::StokesMethodFailed));
     summary.n_telescope_uncorrected += usize::from(has(&c.flags, FlagCode::TelescopeUncorrected));
+    summary.n_telescope_from_prior += usize::from(has(&c.flags, FlagCode::TelescopeFromPrior));
+    summary.n_telescope_unaccounted += usize::from(has(&c.flags, FlagCode::TelescopeUnaccounted));
 }
 
 /// Where a calibration came from.
@@ -300,7 +318,8 @@ pub fn calibrate_catalog(
 ) -> (Option<Calibration>, CalibrationSummary) {
     let mut summary = CalibrationSummary::default();
     let (cal, origin) = calibration_from(source, &standards, ctx);
-    resolve_targets(cat, cal.as_ref(), ctx, &mut summary);
+    let other_night = !matches!(origin.as_str(), "night" | "disabled");
+    resolve_targets(cat, cal.as_ref(), ctx, other_night, &mut summary);
     standards_section(cat, standards, cal.as_ref(), ctx, &mut summary);
     cat.calibration = Some(crate::catalog::AppliedCalibration::new(
         cal.clone(),
@@ -345,6 +364,7 @@ fn resolve_targets(
     cat: &mut Catalog,
     cal: Option<&Calibration>,
     ctx: &CalibrationContext,
+    other_night: bool,
     summary: &mut CalibrationSummary,
 ) {
     let CalibrationContext {
@@ -354,20 +374,51 @@ fn resolve_targets(
         cut_snr,
         ..
     } = *ctx;
-    let method = params.stokes_method;
     for t in cat.targets.iter_mut() {
-        let fc = cal.as_ref().and_then(|c| c.for_filter(&filter_of(t)));
+        let filter = filter_of(t);
+        let fc = cal.as_ref().and_then(|c| c.for_filter(&filter));
+        let settings = SolveSettings {
+            profile,
+            cal: fc,
+            method: params.stokes_method,
+            debias,
+            cut_snr,
+            telescope_prior: TelescopePrior::of(&profile.telescope, &filter),
+        };
         let mut n_unc = 0;
         for c in t.components.iter_mut() {
-            n_unc += usize::from(resolve_component(c, profile, fc, method, debias, cut_snr));
-            if is_uncalibrated(c) && !params.allow_uncalibrated {
-                summary.n_refused_uncalibrated += usize::from(c.passes_cut);
-                c.passes_cut = false;
+            n_unc += usize::from(resolve_component(c, &settings));
+            note_origin(c, other_night);
+            if !params.allow_uncalibrated {
+                refuse_incomplete(c, summary);
             }
             note_calibration_state(c, fc, summary);
         }
         summary.n_uncalibrated += n_unc;
-        t.update_delta_gamma(fc.map(FilterCalibration::covariance_matrix).as_ref());
+        let errors = (fc.is_some() || settings.telescope_prior.is_some())
+            .then(|| calibration_errors(fc, settings.telescope_prior.as_ref()));
+        t.update_delta_gamma(errors.as_ref());
+    }
+}
+
+/// A calibration read from another night: the terms it measured are marked so.
+fn note_origin(c: &mut Component, other_night: bool) {
+    if other_night {
+        c.calibration = c.calibration.map(CalibrationState::from_another_night);
+    }
+}
+
+/// The cut refuses a component whose calibration leaves a term that biases P neither
+/// removed nor carried in its error (the offset c of 2 orientations without standards; the
+/// telescope's term without a prior for the filter).
+fn refuse_incomplete(c: &mut Component, summary: &mut CalibrationSummary) {
+    if c.calibration.is_some_and(|s| !s.complete_for_the_cut()) {
+        if has(&c.flags, FlagCode::Uncalibrated) {
+            summary.n_refused_uncalibrated += usize::from(c.passes_cut);
+        } else {
+            summary.n_refused_incomplete += usize::from(c.passes_cut);
+        }
+        c.passes_cut = false;
     }
 }
 
@@ -404,7 +455,17 @@ fn standards_section(
         let mut measured = t.components.first().cloned();
         if let Some(c) = measured.as_mut() {
             c.flags.retain(|f| !f.is(FlagCode::CompanionNotFound));
-            resolve_component(c, profile, fc, method, debias, cut_snr);
+            resolve_component(
+                c,
+                &SolveSettings {
+                    profile,
+                    cal: fc,
+                    method,
+                    debias,
+                    cut_snr,
+                    telescope_prior: TelescopePrior::of(&profile.telescope, &filter),
+                },
+            );
             flag_incomplete(c, fc);
         }
         if let Some(e) = t.error.as_ref().filter(|_| t.status == Status::Failed) {
@@ -537,20 +598,41 @@ fn summary_lines(summary: &mut CalibrationSummary, cal: Option<&Calibration>, or
             summary
                 .lines
                 .push(format!("calibration ({origin}) {}: {off}; {ang}", f.filter));
+            let prior = TelescopePrior::of(&ctx.profile.telescope, &f.filter);
             match (&f.telescope, &f.telescope_uncorrected) {
                 (Some(t), _) => summary.lines.push(format!(
                     "calibration ({origin}) {}: telescope polarization p_tel = {:.3} +- {:.3} %, \
-                     psi_tel = {:.1} +- {:.1} deg, removed from every component at its frames' parallactic angles",
+                     psi_tel = {:.1} +- {:.1} deg{}, removed from every component at its frames' parallactic angles",
                     f.filter,
                     100.0 * t.p_tel,
                     100.0 * t.sigma_p_tel,
                     t.psi_tel_deg,
-                    t.sigma_psi_tel_deg
+                    t.sigma_psi_tel_deg,
+                    match (&f.telescope_from_prior, prior) {
+                        (Some(why), Some(p)) => format!(
+                            " FROM THE MIRROR'S PRIOR ({:.2} +- {:.2} %, {:.0} +- {:.0} deg; the standards alone: {why})",
+                            100.0 * p.p_tel,
+                            100.0 * p.sigma_p_tel,
+                            p.psi_tel_deg,
+                            p.sigma_psi_tel_deg
+                        ),
+                        (Some(why), None) => format!(" from the mirror's prior (the standards alone: {why})"),
+                        _ => String::new(),
+                    }
                 )),
                 (None, why) => summary.lines.push(format!(
-                    "calibration ({origin}) {}: telescope polarization not corrected: {}",
+                    "calibration ({origin}) {}: telescope polarization not corrected: {}; {}",
                     f.filter,
-                    why.as_deref().unwrap_or("the calibration has no telescope term")
+                    why.as_deref().unwrap_or("the calibration has no telescope term"),
+                    match prior {
+                        Some(p) => format!(
+                            "its expected size from the mirror ({:.2} +- {:.2} %) is carried in every error",
+                            100.0 * p.p_tel,
+                            100.0 * p.sigma_p_tel
+                        ),
+                        None => "the profile gives no mirror index for this filter: its components cannot pass the cut"
+                            .to_string(),
+                    }
                 )),
             }
         }
@@ -558,11 +640,34 @@ fn summary_lines(summary: &mut CalibrationSummary, cal: Option<&Calibration>, or
     if summary.n_telescope_uncorrected > 0 {
         summary.lines.push(format!(
             "{} component(s) flagged '{}': the telescope's own polarization \
-             (tertiary mirror, of order 0.5 % in Ks, turning with the parallactic angle) is in their q and u; \
+             (tertiary mirror, of order 0.8 % in Ks, turning with the parallactic angle) is in their q and u, \
+             its expected size carried in their errors and in Delta-gamma's; \
              it is the same vector for both stars of a binary and pulls their angles together. Observe \
              unpolarized standards at parallactic angles far apart, or use --calib CALDIR from a night that did.",
             summary.n_telescope_uncorrected,
             FlagCode::TelescopeUncorrected.name()
+        ));
+    }
+    if summary.n_telescope_from_prior > 0 {
+        summary.lines.push(format!(
+            "{} component(s) flagged '{}': the standards did not separate the telescope's polarization; \
+             it was removed at the value fitted with the mirror's prior, whose width is in their errors. \
+             Unpolarized standards at parallactic angles far apart measure it.",
+            summary.n_telescope_from_prior,
+            FlagCode::TelescopeFromPrior.name()
+        ));
+    }
+    if summary.n_telescope_unaccounted > 0 {
+        summary.lines.push(format!(
+            "{} component(s) flagged '{}': the telescope's polarization was neither removed nor carried \
+             (the profile's [telescope.filters] has no index for their filter); {}",
+            summary.n_telescope_unaccounted,
+            FlagCode::TelescopeUnaccounted.name(),
+            if ctx.params.allow_uncalibrated {
+                "they may pass the cut (--allow-uncalibrated), flagged"
+            } else {
+                "they never pass the cut (--allow-uncalibrated lets them, flagged)"
+            }
         ));
     }
 }

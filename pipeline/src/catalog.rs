@@ -5,10 +5,12 @@ use serde::{Deserialize, Serialize};
 use crate::stokes::inversion::Polarization;
 
 pub mod applied;
+pub mod calibration_state;
 pub mod flags;
 pub mod polarimetric_calibration;
 pub mod provenance;
 pub use applied::AppliedCalibration;
+pub use calibration_state::{CalibrationState, TermSource};
 pub use flags::{Flag, FlagCode};
 pub use provenance::Provenance;
 
@@ -45,6 +47,10 @@ pub struct Component {
     /// Per-source flags (e.g. `truncated`, `bad_pixels`, `saturated`, `companion_overlap`, `low_snr`).
     #[serde(default)]
     pub flags: Vec<Flag>,
+    /// What was calibrated, term by term (offset c, zero-point, telescope), and how; absent
+    /// before the night's calibration is applied. It decides the cut.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<CalibrationState>,
     /// Covariance of q and u, measurement and calibration together (absent when q and u
     /// are not constrained).
     #[serde(
@@ -217,6 +223,7 @@ impl Component {
             stokes_method: None,
             telescope_gradient: None,
             telescope_qu: None,
+            calibration: None,
             zero_point_gradient: None,
             extra: serde_json::Map::new(),
         }

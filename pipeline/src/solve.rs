@@ -17,12 +17,13 @@
 use sofipol_calib::Profile;
 
 use crate::catalog::polarimetric_calibration::FilterCalibration;
-use crate::catalog::{Component, Flag, FlagCode, InstrumentalOffset};
+use crate::catalog::{CalibrationState, Component, Flag, FlagCode, InstrumentalOffset, TermSource};
 use crate::stokes::calibration::{solve, solve_with_fallback, OrientationF, StokesMethod};
+use crate::stokes::fresnel::TelescopePrior;
 use crate::stokes::inversion::{Debias, LinearPolarization};
 use crate::stokes::propagation::{
-    self, calibration_covariance_of, rotation_gradient_per_deg, CalibrationJacobian, QuCovariance, CAL_C, CAL_TEL_A,
-    CAL_TEL_B, CAL_THETA0,
+    self, calibration_covariance_of, rotation_gradient_per_deg, CalibrationCovariance, CalibrationJacobian,
+    QuCovariance, CAL_C, CAL_TEL_A, CAL_TEL_B, CAL_THETA0,
 };
 
 pub mod telescope;
@@ -195,17 +196,58 @@ impl<'a> Inputs<'a> {
     }
 }
 
+/// What one solve of a component works with besides the component.
+#[derive(Debug, Clone, Copy)]
+pub struct SolveSettings<'a> {
+    /// The instrument profile (the analyzer angles without a calibration).
+    pub profile: &'a Profile,
+    /// The calibration of the component's filter, if any.
+    pub cal: Option<&'a FilterCalibration>,
+    /// The Stokes method asked for.
+    pub method: StokesMethod,
+    /// How P is debiased.
+    pub debias: Debias,
+    /// The cut in P/sigma.
+    pub cut_snr: f64,
+    /// The profile's mirror prior of the telescope's term in the component's filter: when
+    /// the term is not removed, its mean square is carried in the error.
+    pub telescope_prior: Option<TelescopePrior>,
+}
+
+/// The covariance of the calibration parameters (c, theta0, a, b) a component's errors take:
+/// the calibration's, and where it removes no telescope term, the prior's mean square of
+/// (a, b) about zero (the term left in the values, at its expected size). The same matrix
+/// gives Delta-gamma's error, in which the term is common to the two stars.
+pub fn calibration_errors(cal: Option<&FilterCalibration>, prior: Option<&TelescopePrior>) -> CalibrationCovariance {
+    let mut m = cal.map(FilterCalibration::covariance_matrix).unwrap_or_default();
+    if let (None, Some(p)) = (cal.and_then(|f| f.telescope.as_ref()), prior) {
+        let s = p.second_moment();
+        for (i, ci) in [CAL_TEL_A, CAL_TEL_B].into_iter().enumerate() {
+            for (j, cj) in [CAL_TEL_A, CAL_TEL_B].into_iter().enumerate() {
+                m[ci][cj] = s[i][j];
+            }
+            m[ci][CAL_C] = 0.0;
+            m[CAL_C][ci] = 0.0;
+            m[ci][CAL_THETA0] = 0.0;
+            m[CAL_THETA0][ci] = 0.0;
+        }
+    }
+    m
+}
+
 /// Re-solve one component's q, u from its per-orientation F with the calibration (offset,
 /// zero-point, parity, the telescope's polarization) and the chosen method; P, gamma, errors,
-/// the cut and the flags follow. Returns whether the result is uncalibrated.
-pub fn resolve_component(
-    c: &mut Component,
-    profile: &Profile,
-    cal: Option<&FilterCalibration>,
-    method: StokesMethod,
-    debias: Debias,
-    cut_snr: f64,
-) -> bool {
+/// the cut, the flags and the calibration state follow. Returns whether the result is
+/// uncalibrated.
+pub fn resolve_component(c: &mut Component, settings: &SolveSettings) -> bool {
+    let SolveSettings {
+        profile,
+        cal,
+        method,
+        debias,
+        cut_snr,
+        telescope_prior,
+    } = *settings;
     let inputs = Inputs::new(c, profile, cal);
     if inputs.rows.is_empty() {
         return false;
@@ -214,7 +256,12 @@ pub fn resolve_component(
     c.flags.retain(|f| {
         !matches!(
             f.code,
-            FlagCode::Uncalibrated | FlagCode::LowSnr | FlagCode::TelescopeUncorrected | FlagCode::StokesMethodFailed
+            FlagCode::Uncalibrated
+                | FlagCode::LowSnr
+                | FlagCode::TelescopeUncorrected
+                | FlagCode::TelescopeFromPrior
+                | FlagCode::TelescopeUnaccounted
+                | FlagCode::StokesMethodFailed
         )
     });
     // The telescope's term is removed only when measured and every orientation has its
@@ -244,15 +291,20 @@ pub fn resolve_component(
     // What the calibration adds: J Sigma_cal J^T, J = d(q, u)/d(c, theta0, a, b). c enters
     // along the offset gradient when an offset was subtracted; theta0 (a rotation, measured
     // by re-solving) when the calibration has angles; the telescope's (a, b) when removed.
+    // A telescope term not removed is carried at its expected size (the prior's mean
+    // square), along the component's response to it: d(q, u)/d(a, b) at (a, b) = 0.
     let angles = cal.is_some_and(|f| f.angles.is_some());
-    let (theta0_gradient, tel_gradient) = inputs.jacobian(sol.method, tel);
+    let carried = tel.is_none() && telescope_prior.is_some();
+    let every_eta = inputs.rows.iter().all(|r| r.parallactic_2eta.is_some());
+    let response_at = tel.or_else(|| (carried && every_eta).then_some([0.0, 0.0]));
+    let (theta0_gradient, tel_gradient) = inputs.jacobian(sol.method, response_at);
     let mut jac: CalibrationJacobian = [[0.0; 2]; 4];
     jac[CAL_C] = sol.offset_gradient.unwrap_or([0.0, 0.0]);
     jac[CAL_THETA0] = theta0_gradient.unwrap_or_else(|| rotation_gradient_per_deg(q, u));
     if let Some([ga, gb]) = tel_gradient {
         (jac[CAL_TEL_A], jac[CAL_TEL_B]) = (ga, gb);
     }
-    let mut sigma_cal = cal.map(FilterCalibration::covariance_matrix).unwrap_or_default();
+    let mut sigma_cal = calibration_errors(cal, telescope_prior.as_ref());
     if sol.offset_gradient.is_none() {
         // No calibration offset subtracted (cancelled or fitted): its error does not enter.
         sigma_cal[CAL_C] = [0.0; 4];
@@ -260,10 +312,18 @@ pub fn resolve_component(
             row[CAL_C] = 0.0;
         }
     }
-    let zero_point = calibration_covariance_of(&jac, &sigma_cal);
+    let mut zero_point = calibration_covariance_of(&jac, &sigma_cal);
+    if carried && tel_gradient.is_none() {
+        // No response to the term (an orientation without a parallactic angle): it is of
+        // unknown direction, its mean square shared by q and u.
+        let s = telescope_prior.map_or([[0.0; 2]; 2], |p| p.second_moment());
+        let half = 0.5 * (s[0][0] + s[1][1]);
+        zero_point.var_q += half;
+        zero_point.var_u += half;
+    }
     let total = stat.plus(&zero_point);
     let lp = LinearPolarization::from_qu_cov(q, u, &total, debias);
-    let calibrated = sol.offset_gradient.is_some() || angles || tel.is_some();
+    let calibrated = sol.offset_gradient.is_some() || angles || tel.is_some() || carried;
     c.pol = lp.pol;
     c.cov_qu = Some(total.cov_qu);
     c.cov_qu_stat = Some(stat.cov_qu);
@@ -273,7 +333,7 @@ pub fn resolve_component(
     c.sigma_gamma_zero_point_deg = calibrated.then(|| propagation::sigma_gamma_deg(q, u, &zero_point));
     c.offset_gradient = sol.offset_gradient;
     c.zero_point_gradient = angles.then_some(jac[CAL_THETA0]);
-    c.telescope_gradient = tel.and(tel_gradient);
+    c.telescope_gradient = response_at.and(tel_gradient);
     c.telescope_qu = tel
         .and_then(|ab| {
             let etas: Vec<Option<[f64; 2]>> = inputs.rows.iter().map(|r| r.parallactic_2eta).collect();
@@ -296,9 +356,16 @@ pub fn resolve_component(
     if sol.uncalibrated {
         c.flags.push(Flag::new(FlagCode::Uncalibrated));
     }
+    let state = calibration_state(&sol, cal, tel.is_some(), carried);
     if tel.is_none() {
         c.flags.push(Flag::new(FlagCode::TelescopeUncorrected));
     }
+    match state.telescope {
+        TermSource::Prior => c.flags.push(Flag::new(FlagCode::TelescopeFromPrior)),
+        TermSource::Missing => c.flags.push(Flag::new(FlagCode::TelescopeUnaccounted)),
+        _ => {}
+    }
+    c.calibration = Some(state);
     c.snr = Some(lp.snr);
     c.sigma_gamma_nkc_deg = Some(lp.sigma_gamma_nkc_deg);
     c.stokes_method = Some(sol.method.name().to_string());
@@ -316,4 +383,42 @@ pub fn resolve_component(
         });
     }
     sol.uncalibrated
+}
+
+/// What a solve calibrated, term by term: the offset (subtracted, fitted, cancelled by the
+/// method, or missing), the zero-point (the standards', the profile's with its error, or
+/// missing) and the telescope's term (removed as measured or as fitted with the prior,
+/// carried at its expected size, or missing). A calibration read from another night is
+/// marked so by its caller.
+fn calibration_state(
+    sol: &crate::stokes::calibration::StokesSolution,
+    cal: Option<&FilterCalibration>,
+    telescope_removed: bool,
+    telescope_carried: bool,
+) -> CalibrationState {
+    let offset = if sol.uncalibrated {
+        TermSource::Missing
+    } else if sol.offset_gradient.is_some() {
+        TermSource::Measured
+    } else if sol.method == StokesMethod::FreeOffset {
+        TermSource::Fitted
+    } else {
+        TermSource::Cancelled
+    };
+    let zero_point = match cal {
+        Some(f) if f.angles.is_some() => TermSource::Measured,
+        Some(f) if f.zero_point_from_profile.is_some() => TermSource::Prior,
+        _ => TermSource::Missing,
+    };
+    let telescope = match (telescope_removed, telescope_carried) {
+        (true, _) if cal.is_some_and(|f| f.telescope_from_prior.is_some()) => TermSource::Prior,
+        (true, _) => TermSource::Measured,
+        (false, true) => TermSource::Carried,
+        (false, false) => TermSource::Missing,
+    };
+    CalibrationState {
+        offset,
+        telescope,
+        zero_point,
+    }
 }

@@ -14,7 +14,7 @@ use sofipol_pipeline::calibration::TelescopeCalibration;
 use sofipol_pipeline::standards::StandardsTable;
 use sofipol_pipeline::stokes::calibration::joint::{fit_joint_with, JointOptions};
 use sofipol_pipeline::stokes::calibration::{OrientationF, StandardObservation};
-use sofipol_pipeline::stokes::fresnel::mirror_polarization;
+use sofipol_pipeline::stokes::fresnel::{mirror_polarization, TelescopePrior};
 
 /// The real-data folder, or `None` (said on stderr) when it is not there.
 fn real(sub: &str) -> Option<PathBuf> {
@@ -100,13 +100,18 @@ fn the_telescope_fit_reproduces_the_real_sofi_z_standards_and_fresnel_agrees() {
     let rows = z_table(&dir);
     assert_eq!(rows.len(), 14);
     let stds: Vec<StandardObservation> = rows.iter().copied().map(standard).collect();
+    let profile = sofipol_calib::Profile::sofi();
+    let prior = TelescopePrior::of(&profile.telescope, "Z").expect("the profile's mirror in Z");
     let opts = JointOptions {
         default_parity: 1,
         profile_theta0_deg: 0.0,
         fit_telescope: true,
+        telescope_prior: Some(prior),
     };
     let j = fit_joint_with(&stds, &opts).expect("a fit");
     assert!(j.telescope_problem.is_none(), "{:?}", j.telescope_problem);
+    // 14 parallactic angles measure the term alone: the prior is not used.
+    assert!(j.telescope_from_prior.is_none(), "{:?}", j.telescope_from_prior);
     let t = j.telescope.expect("the telescope's term");
     // p_tel, psi_tel and their errors as a night's catalog writes them.
     let tc = TelescopeCalibration::from_fit(&t, &j.covariance);
@@ -167,6 +172,31 @@ fn the_telescope_fit_reproduces_the_real_sofi_z_standards_and_fresnel_agrees() {
         "fit {} against Fresnel {p_fresnel} +- {width}",
         t.p_tel
     );
+    // The profile's prior in Z (its stored n, k) is this Fresnel value, and the fit lies
+    // within the prior's stated widths: p_tel within relative_width, psi_tel within
+    // sigma_psi_deg of the mirror's angle.
+    assert!((prior.p_tel - p_fresnel).abs() < 1e-4, "{} vs {p_fresnel}", prior.p_tel);
+    assert!(
+        (t.p_tel - prior.p_tel).abs() < prior.sigma_p_tel,
+        "{} vs {prior:?}",
+        t.p_tel
+    );
+    let dpsi = (t.psi_tel_deg - prior.psi_tel_deg + 90.0).rem_euclid(180.0) - 90.0;
+    assert!(
+        dpsi.abs() < prior.sigma_psi_tel_deg,
+        "psi_tel {} vs {prior:?}",
+        t.psi_tel_deg
+    );
+    // Every filter of the profile's mirror holds Rakic's n, k at its wavelength.
+    for (band, index) in &profile.telescope.filters {
+        let (n, k) = aluminium(&al, index.wavelength_um);
+        assert!(
+            (index.n - n).abs() < 2e-3 && (index.k - k).abs() < 2e-3,
+            "profile telescope.filters.{band}: ({}, {}) against the table's ({n:.4}, {k:.4})",
+            index.n,
+            index.k
+        );
+    }
     // And the filters of the K-band work, for the record (docs/calibration.md).
     for (band, lambda) in [("J", 1.25), ("H", 1.65), ("Ks", 2.16)] {
         let (n, k) = aluminium(&al, lambda);

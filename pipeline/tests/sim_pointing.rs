@@ -374,7 +374,7 @@ fn telescope_polarization_nights_spread_or_bunch_their_standards_parallactic_ang
     for text in [wide, same] {
         let sc = Scene::from_toml(text, "scene").unwrap();
         let tel = sc.telescope_polarization.clone().unwrap();
-        assert!(sc.effects.iter().any(|e| e.name() == "telescope_polarization") && tel.p_tel == 0.006);
+        assert!(sc.effects.iter().any(|e| e.name() == "telescope_polarization") && tel.p_tel > 0.005);
         assert_eq!(sc.standard.len(), 6);
         assert!(sc.binary.len() >= 3);
         // The standards are table entries with the table's values, both kinds.

@@ -88,7 +88,8 @@ pub fn uncalibrated_line(cat: &Catalog) -> Option<String> {
         .count();
     Some(format!(
         "UNCALIBRATED: {n} component(s) have no instrumental calibration (no standards, or none that fix \
-         the offset c): their q, u and angles are biased; {}",
+         the offset c; or the telescope's polarization neither removed nor carried): their q, u and angles \
+         are biased; {}",
         if passing > 0 {
             format!("{passing} pass the cut only because of --allow-uncalibrated (flagged)")
         } else {

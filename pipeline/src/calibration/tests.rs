@@ -192,11 +192,14 @@ fn four_orientations_need_no_calibration() {
     }
     let unc = resolve_component(
         &mut c,
-        &Profile::sofi(),
-        None,
-        StokesMethod::Auto,
-        Debias::WardleKronberg,
-        3.0,
+        &SolveSettings {
+            profile: &Profile::sofi(),
+            cal: None,
+            method: StokesMethod::Auto,
+            debias: Debias::WardleKronberg,
+            cut_snr: 3.0,
+            telescope_prior: None,
+        },
     );
     assert!(!unc);
     assert_eq!(c.stokes_method.as_deref(), Some("ratio"));
@@ -212,11 +215,14 @@ fn a_degree_of_polarization_above_one_is_flagged_and_refused() {
         let mut c = component("A", Polarization::from_p_gamma(p, 30.0), &pa, 0.0, 0.0, 1e-3);
         resolve_component(
             &mut c,
-            &Profile::sofi(),
-            None,
-            StokesMethod::LeastSquares,
-            Debias::WardleKronberg,
-            3.0,
+            &SolveSettings {
+                profile: &Profile::sofi(),
+                cal: None,
+                method: StokesMethod::LeastSquares,
+                debias: Debias::WardleKronberg,
+                cut_snr: 3.0,
+                telescope_prior: None,
+            },
         );
         c
     };
@@ -378,17 +384,21 @@ fn the_zero_point_error_adds_tangential_variance_only() {
             incomplete: None,
             telescope: None,
             telescope_uncorrected: None,
+            telescope_from_prior: None,
             covariance: None,
             covariance_parameters: None,
             zero_point_from_profile: None,
         };
         resolve_component(
             &mut c,
-            &Profile::sofi(),
-            Some(&fc),
-            StokesMethod::Auto,
-            Debias::WardleKronberg,
-            3.0,
+            &SolveSettings {
+                profile: &Profile::sofi(),
+                cal: Some(&fc),
+                method: StokesMethod::Auto,
+                debias: Debias::WardleKronberg,
+                cut_snr: 3.0,
+                telescope_prior: None,
+            },
         );
         c
     };
@@ -452,6 +462,7 @@ fn delta_gamma_error_has_the_offset_and_not_the_zero_point() {
             incomplete: None,
             telescope: None,
             telescope_uncorrected: None,
+            telescope_from_prior: None,
             covariance: None,
             covariance_parameters: None,
             zero_point_from_profile: None,
@@ -955,6 +966,7 @@ fn the_covariance_of_a_file_without_one_is_built_from_what_it_has() {
         incomplete: None,
         telescope: None,
         telescope_uncorrected: None,
+        telescope_from_prior: None,
         covariance: None,
         covariance_parameters: None,
         zero_point_from_profile: None,

@@ -88,6 +88,12 @@ flag_codes! {
     /// The telescope's own polarization was not removed.
     TelescopeUncorrected = "telescope_polarization_uncorrected", Named,
         "The telescope's own polarization was not removed (it turns with the parallactic angle).";
+    /// The telescope's polarization was removed at the value fitted with the mirror's prior.
+    TelescopeFromPrior = "telescope_polarization_from_prior", Named,
+        "The night's standards did not separate the telescope's polarization: it was removed at the value fitted with the mirror's Fresnel prior, whose width is carried in the errors.";
+    /// The telescope's polarization was neither removed nor carried in the error.
+    TelescopeUnaccounted = "telescope_polarization_unaccounted", Named,
+        "The telescope's polarization was neither removed nor carried in the error (the profile gives no mirror index for this filter): never passes the cut unless uncalibrated values are allowed.";
     /// The chosen Stokes method could not be applied.
     StokesMethodFailed = "stokes_method_failed", Named,
         "The chosen Stokes method could not be applied; another one was used (or none).";

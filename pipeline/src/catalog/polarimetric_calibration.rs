@@ -73,6 +73,11 @@ pub struct FilterCalibration {
     /// `telescope_polarization_uncorrected`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub telescope_uncorrected: Option<String>,
+    /// Why the standards alone did not separate the telescope's polarization, when
+    /// `telescope` was fitted with the profile's mirror prior (its errors then mostly the
+    /// prior's); absent when the standards measured it alone.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub telescope_from_prior: Option<String>,
     /// Covariance of the calibration parameters in the order of `covariance_parameters`
     /// (c, theta0 in deg, the telescope's a and b); zero rows for what was not fitted.
     #[serde(

@@ -54,14 +54,19 @@ fn solve_provisionally(c: &mut Component, profile: &Profile, params: &MeasurePar
     use crate::stokes::calibration::StokesMethod;
     crate::solve::resolve_component(
         c,
-        profile,
-        None,
-        StokesMethod::LeastSquares,
-        params.debias,
-        params.cut_snr,
+        &crate::solve::SolveSettings {
+            profile,
+            cal: None,
+            method: StokesMethod::LeastSquares,
+            debias: params.debias,
+            cut_snr: params.cut_snr,
+            telescope_prior: None,
+        },
     );
-    c.flags
-        .retain(|f| !f.is(FlagCode::Uncalibrated) && !f.is(FlagCode::TelescopeUncorrected));
+    c.flags.retain(|f| {
+        !f.is(FlagCode::Uncalibrated) && !f.is(FlagCode::TelescopeUncorrected) && !f.is(FlagCode::TelescopeUnaccounted)
+    });
+    c.calibration = None;
     if !c.q.is_finite() {
         c.flags.retain(|f| !f.is(FlagCode::StokesMethodFailed));
         c.flags.push(Flag::with_detail(

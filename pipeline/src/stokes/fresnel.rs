@@ -85,9 +85,132 @@ pub fn mirror_polarization(n: f64, k: f64, incidence_deg: f64) -> f64 {
     (rs - rp) / (rs + rp)
 }
 
+/// What the profile's mirror says the telescope's term `(a, b) = p_tel (cos 2psi_tel,
+/// sin 2psi_tel)` is in one filter, before any standard is looked at: a Gaussian of mean
+/// `p (cos 2psi, sin 2psi)` with `p` the Fresnel value, a relative width along that
+/// direction and the angle's width across it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TelescopePrior {
+    /// p_tel from the Fresnel equations, fraction.
+    pub p_tel: f64,
+    /// Its 1-sigma uncertainty, fraction.
+    pub sigma_p_tel: f64,
+    /// psi_tel, deg (the mirror's plane of incidence).
+    pub psi_tel_deg: f64,
+    /// Its 1-sigma uncertainty, deg.
+    pub sigma_psi_tel_deg: f64,
+}
+
+impl TelescopePrior {
+    /// The prior of `filter` from the profile's mirror; `None` when the profile gives no
+    /// refractive index for that filter.
+    pub fn of(telescope: &sofipol_calib::profile::Telescope, filter: &str) -> Option<TelescopePrior> {
+        let i = telescope.index(filter)?;
+        let p = mirror_polarization(i.n, i.k, telescope.incidence_deg);
+        Some(TelescopePrior {
+            p_tel: p,
+            sigma_p_tel: telescope.relative_width * p,
+            psi_tel_deg: telescope.psi_deg,
+            sigma_psi_tel_deg: telescope.sigma_psi_deg,
+        })
+    }
+
+    /// The unit vectors along and across the mean direction in the (a, b) plane.
+    fn axes(&self) -> ([f64; 2], [f64; 2]) {
+        let t = 2.0 * self.psi_tel_deg.to_radians();
+        ([t.cos(), t.sin()], [-t.sin(), t.cos()])
+    }
+
+    /// The 1-sigma widths along and across the mean direction: `sigma_p` and `p 2 sigma_psi`
+    /// (the angle of (a, b) is 2 psi).
+    fn widths(&self) -> [f64; 2] {
+        [
+            self.sigma_p_tel.max(1e-12),
+            (self.p_tel * 2.0 * self.sigma_psi_tel_deg.to_radians()).max(1e-12),
+        ]
+    }
+
+    /// The mean `(a, b)`.
+    pub fn mean(&self) -> [f64; 2] {
+        let (along, _) = self.axes();
+        [self.p_tel * along[0], self.p_tel * along[1]]
+    }
+
+    /// The prior's two independent rows: for `v = (a, b)`, `(value - u . v) / sigma` with
+    /// `(u / sigma, value / sigma)` returned (the residual is `value/sigma - (u/sigma) . v`).
+    pub fn rows(&self) -> [([f64; 2], f64); 2] {
+        let (along, across) = self.axes();
+        let [s_along, s_across] = self.widths();
+        [
+            ([along[0] / s_along, along[1] / s_along], self.p_tel / s_along),
+            ([across[0] / s_across, across[1] / s_across], 0.0),
+        ]
+    }
+
+    /// The covariance of `(a, b)`.
+    pub fn covariance(&self) -> [[f64; 2]; 2] {
+        let (along, across) = self.axes();
+        let [s1, s2] = self.widths();
+        std::array::from_fn(|i| {
+            std::array::from_fn(|j| s1 * s1 * along[i] * along[j] + s2 * s2 * across[i] * across[j])
+        })
+    }
+
+    /// The mean square of `(a, b)` about zero, `m m^T + covariance`: the error of a q, u
+    /// from which the term was not removed.
+    pub fn second_moment(&self) -> [[f64; 2]; 2] {
+        let m = self.mean();
+        let c = self.covariance();
+        std::array::from_fn(|i| std::array::from_fn(|j| m[i] * m[j] + c[i][j]))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_prior_of_ks_is_the_fresnel_value_along_the_profiles_angle_with_its_widths() {
+        let prof = sofipol_calib::Profile::sofi();
+        let p = TelescopePrior::of(&prof.telescope, " ks ").unwrap();
+        assert!((p.p_tel - mirror_polarization(2.661, 21.878, 45.0)).abs() < 1e-15);
+        assert!((p.p_tel - 0.0077).abs() < 0.0002, "{}", p.p_tel);
+        assert!((p.sigma_p_tel - 0.2 * p.p_tel).abs() < 1e-15);
+        assert!(TelescopePrior::of(&prof.telescope, "NB_2.17").is_none());
+        // At psi = 30 deg: (a, b) along 60 deg; the variance along it is sigma_p^2, across
+        // it (p 2 sigma_psi)^2; the rows reproduce the inverse covariance.
+        let q = TelescopePrior { psi_tel_deg: 30.0, ..p };
+        let m = q.mean();
+        assert!((m[1].atan2(m[0]).to_degrees() - 60.0).abs() < 1e-9);
+        let c = q.covariance();
+        let along = [60f64.to_radians().cos(), 60f64.to_radians().sin()];
+        let var_along: f64 = (0..2)
+            .map(|i| (0..2).map(|j| along[i] * c[i][j] * along[j]).sum::<f64>())
+            .sum();
+        assert!((var_along - q.sigma_p_tel.powi(2)).abs() < 1e-18);
+        let across = [-along[1], along[0]];
+        let var_across: f64 = (0..2)
+            .map(|i| (0..2).map(|j| across[i] * c[i][j] * across[j]).sum::<f64>())
+            .sum();
+        assert!((var_across - (q.p_tel * 2.0 * 5f64.to_radians()).powi(2)).abs() < 1e-18);
+        // sum of row row^T = the inverse covariance.
+        let rows = q.rows();
+        let info: [[f64; 2]; 2] =
+            std::array::from_fn(|i| std::array::from_fn(|j| rows.iter().map(|(u, _)| u[i] * u[j]).sum()));
+        let prod: [[f64; 2]; 2] =
+            std::array::from_fn(|i| std::array::from_fn(|j| (0..2).map(|k| info[i][k] * c[k][j]).sum()));
+        for (i, row) in prod.iter().enumerate() {
+            for (j, v) in row.iter().enumerate() {
+                assert!((v - f64::from(u8::from(i == j))).abs() < 1e-9, "{prod:?}");
+            }
+        }
+        // The residuals vanish at the mean.
+        for (u, v) in rows {
+            assert!((v - (u[0] * m[0] + u[1] * m[1])).abs() < 1e-9);
+        }
+        let s = q.second_moment();
+        assert!((s[0][0] + s[1][1] - (q.p_tel.powi(2) + c[0][0] + c[1][1])).abs() < 1e-18);
+    }
 
     #[test]
     fn a_dielectric_follows_the_textbook_values() {

@@ -12,6 +12,8 @@ fn example(code: FlagCode) -> &'static str {
             "calibration_lacks_filter: cal/calibration.json has no offset c for filter H: q and u uncorrected"
         }
         TelescopeUncorrected => "telescope_polarization_uncorrected",
+        TelescopeFromPrior => "telescope_polarization_from_prior",
+        TelescopeUnaccounted => "telescope_polarization_unaccounted",
         StokesMethodFailed => "stokes_method_failed: needs 4 orientations; fell back to least_squares (uncalibrated)",
         BadPixels => "bad_pixels: 1 of 12 dithers dropped (a masked pixel within the aperture)",
         CosmicRay => "cosmic_ray",

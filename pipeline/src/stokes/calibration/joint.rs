@@ -24,6 +24,7 @@
 //! unknowns and the normal matrix is far from singular; otherwise the fit is reported
 //! incomplete (see [`fit_joint`]).
 use super::{AngleCalibration, Offset, StandardObservation};
+use crate::stokes::fresnel::TelescopePrior;
 use crate::stokes::model::{normalize_axial_deg, TelescopePolarization};
 pub use crate::stokes::propagation::{CAL_C, CAL_TEL_A, CAL_TEL_B, CAL_THETA0};
 
@@ -62,6 +63,9 @@ pub struct JointCalibration {
     pub telescope: Option<TelescopePolarization>,
     /// Why the telescope's polarization was not measured, when it was asked for and not.
     pub telescope_problem: Option<String>,
+    /// When the telescope's term comes from the fit with the profile's prior (the standards
+    /// alone did not separate it): why the standards alone did not.
+    pub telescope_from_prior: Option<String>,
     /// Covariance of (c, theta0 in deg, a, b) with the same inflation as the errors;
     /// zero rows and columns for what was not fitted ([`CAL_C`], [`CAL_THETA0`],
     /// [`CAL_TEL_A`], [`CAL_TEL_B`]).
@@ -78,6 +82,9 @@ pub struct JointOptions {
     pub profile_theta0_deg: f64,
     /// Also fit the telescope's polarization (kept only when the standards separate it).
     pub fit_telescope: bool,
+    /// The profile's prior of the telescope's term in this filter: used in the fit when the
+    /// standards alone do not separate the term.
+    pub telescope_prior: Option<TelescopePrior>,
 }
 
 /// One orientation of a standard: PA, F, sigma_F and the weighted mean (cos 2eta, sin 2eta)
@@ -106,6 +113,8 @@ struct Problem<'a> {
     fit_theta0: bool,
     theta0_fixed: f64,
     fit_telescope: bool,
+    /// The prior of the telescope's (a, b), when it is part of the fit (two rows more).
+    prior: Option<TelescopePrior>,
 }
 
 /// A converged fit: parameters, the inverse of the normal matrix (not inflated), chi^2.
@@ -136,6 +145,16 @@ impl Problem<'_> {
 
     fn n_data(&self) -> usize {
         self.stds.iter().map(|s| s.rows.len()).sum()
+    }
+
+    /// Rows of the telescope's prior (2 when it is part of the fit): data in the count of
+    /// the degrees of freedom.
+    fn n_prior(&self) -> usize {
+        if self.fit_telescope && self.prior.is_some() {
+            2
+        } else {
+            0
+        }
     }
 
     /// Normalised residuals (observed - model)/sigma and their derivatives d model/dx / sigma,
@@ -210,6 +229,16 @@ impl Problem<'_> {
                 jac.push(row);
             }
         }
+        if let (true, Some(prior)) = (self.fit_telescope, self.prior) {
+            let it = self.i_tel();
+            for (u, value) in prior.rows() {
+                let mut row = vec![0.0; n];
+                row[it] = u[0];
+                row[it + 1] = u[1];
+                r.push(value - u[0] * x[it] - u[1] * x[it + 1]);
+                jac.push(row);
+            }
+        }
         (r, jac)
     }
 
@@ -217,11 +246,17 @@ impl Problem<'_> {
         self.residuals(x).0.iter().map(|v| v * v).sum()
     }
 
-    /// Starting point: c = 0, theta0 given, the nuisances at their table values.
+    /// Starting point: c = 0, theta0 given, the telescope's term at its prior's mean, the
+    /// nuisances at their table values.
     fn start(&self, theta0: f64) -> Vec<f64> {
         let mut x = vec![0.0; self.n_params()];
         if self.fit_theta0 {
             x[1] = theta0;
+        }
+        if let (true, Some(prior)) = (self.fit_telescope, self.prior) {
+            let [a, b] = prior.mean();
+            x[self.i_tel()] = a;
+            x[self.i_tel() + 1] = b;
         }
         for (j, s) in self.stds.iter().enumerate() {
             if s.obs.polarized() {
@@ -395,6 +430,7 @@ fn offset_only(stds: Vec<Std<'_>>) -> Option<(Offset, f64, usize, Vec<usize>)> {
         fit_theta0: false,
         theta0_fixed: 0.0,
         fit_telescope: false,
+        prior: None,
     };
     if pb.stds.is_empty() {
         return None;
@@ -414,7 +450,7 @@ fn offset_only(stds: Vec<Std<'_>>) -> Option<(Offset, f64, usize, Vec<usize>)> {
 /// matching theta0), a correlation beyond [`MAX_CORRELATION`], or another solution as good
 /// as the best (chi^2 within 1) more than 3 sigma away.
 fn separation_problem(pb: &Problem, best: &Solution, others: &[Solution]) -> Option<String> {
-    let dof = pb.n_data() as i64 - pb.n_inst() as i64;
+    let dof = (pb.n_data() + pb.n_prior()) as i64 - pb.n_inst() as i64;
     let n_pol = pb.stds.iter().filter(|s| s.obs.polarized()).count();
     let what = format!(
         "{} orientation(s) of {} standard(s), {} of them polarized",
@@ -460,22 +496,41 @@ pub fn fit_joint(stds: &[StandardObservation], default_parity: i32) -> Option<Jo
             default_parity,
             profile_theta0_deg: 0.0,
             fit_telescope: false,
+            telescope_prior: None,
         },
     )
 }
 
 /// [`fit_joint`], and with `fit_telescope` the telescope's polarization (a, b) fitted
-/// together with c and theta0 (`telescope::refit`); when the standards cannot separate
-/// it, the fit without it and [`JointCalibration::telescope_problem`] saying why.
+/// together with c and theta0 (`telescope::refit`). When the standards alone cannot separate
+/// it, the fit again with the profile's prior of the term
+/// ([`JointCalibration::telescope_from_prior`] says why the standards alone did not: c and
+/// theta0 are then marginalised over the term instead of absorbing it); without a prior, or
+/// when even that fit fails, the fit without the term and
+/// [`JointCalibration::telescope_problem`] saying why.
 pub fn fit_joint_with(stds: &[StandardObservation], opts: &JointOptions) -> Option<JointCalibration> {
     let base = fit_instrument(stds, opts.default_parity)?;
     if !opts.fit_telescope {
         return Some(base);
     }
-    Some(match telescope::refit(stds, opts, &base) {
-        Ok(j) => j,
-        Err(why) => JointCalibration {
-            telescope_problem: Some(why.to_string()),
+    let alone = match telescope::refit(stds, opts, &base, None) {
+        Ok(j) => return Some(j),
+        Err(why) => why,
+    };
+    let with_prior = opts
+        .telescope_prior
+        .map(|prior| telescope::refit(stds, opts, &base, Some(prior)));
+    Some(match with_prior {
+        Some(Ok(j)) => JointCalibration {
+            telescope_from_prior: Some(alone.to_string()),
+            ..j
+        },
+        Some(Err(also)) => JointCalibration {
+            telescope_problem: Some(format!("{alone}; with the mirror's prior: {also}")),
+            ..base
+        },
+        None => JointCalibration {
+            telescope_problem: Some(alone.to_string()),
             ..base
         },
     })
@@ -506,6 +561,7 @@ fn fit_instrument(stds: &[StandardObservation], default_parity: i32) -> Option<J
             angles_from: vec![],
             telescope: None,
             telescope_problem: None,
+            telescope_from_prior: None,
             covariance,
         })
     };
@@ -518,6 +574,7 @@ fn fit_instrument(stds: &[StandardObservation], default_parity: i32) -> Option<J
         fit_theta0: true,
         theta0_fixed: 0.0,
         fit_telescope: false,
+        prior: None,
     };
     let fit = |parity: i32| {
         let pb = problem(parity);
@@ -585,6 +642,7 @@ fn fit_instrument(stds: &[StandardObservation], default_parity: i32) -> Option<J
         offset_from: idx,
         telescope: None,
         telescope_problem: None,
+        telescope_from_prior: None,
         covariance,
     })
 }

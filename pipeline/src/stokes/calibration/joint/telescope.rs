@@ -21,6 +21,7 @@ use super::{
     CAL_C, CAL_TEL_A, CAL_TEL_B, CAL_THETA0, MAX_CORRELATION, PARITY_DCHI2,
 };
 use crate::stokes::calibration::AngleCalibration;
+use crate::stokes::fresnel::TelescopePrior;
 use crate::stokes::model::TelescopePolarization;
 
 /// Why the standards cannot measure the telescope's polarization (its `Display` is
@@ -73,10 +74,16 @@ pub(super) enum TelescopeFitError {
 
 /// The joint fit with the telescope's term, from the fit without it (`base`: its parity, and
 /// whether it fitted theta0). `Err` says why the standards cannot measure the telescope.
+///
+/// With a `prior`, the prior's two rows join the data: the term is then determined by the
+/// prior where the standards do not determine it, and only c against theta0 must be
+/// separated by the standards (the rule of the fit without the term); a parameter
+/// correlated with the term is not refused, its error is the prior's.
 pub(super) fn refit<'a>(
     stds: &'a [StandardObservation],
     opts: &JointOptions,
     base: &JointCalibration,
+    prior: Option<TelescopePrior>,
 ) -> Result<JointCalibration, TelescopeFitError> {
     let angles = base.angles;
     let all = usable(stds);
@@ -103,6 +110,7 @@ pub(super) fn refit<'a>(
         fit_theta0: angles.is_some(),
         theta0_fixed: opts.profile_theta0_deg,
         fit_telescope: true,
+        prior,
     };
     // The parity chosen again with the telescope's term in the model (without it, a
     // telescope polarization large against the errors can make the wrong parity fit better).
@@ -122,21 +130,23 @@ pub(super) fn refit<'a>(
     let pb = problem(parity, chosen);
     let what = describe(&pb);
     let n_inst = pb.n_inst();
-    if pb.n_data() <= n_inst {
+    if pb.n_data() + pb.n_prior() <= n_inst {
         return Err(TelescopeFitError::TooFewOrientations { what, n_inst });
     }
     let Some((best, others)) = pb.solve() else {
         return Err(TelescopeFitError::Singular { what });
     };
-    if let Some(why) = separation_problem(&pb, &best, &others) {
-        return Err(TelescopeFitError::NotSeparable(why));
+    if prior.is_none() || pb.fit_theta0 {
+        if let Some(why) = separation_problem(&pb, &best, &others) {
+            return Err(TelescopeFitError::NotSeparable(why));
+        }
     }
     let names = if pb.fit_theta0 {
         vec!["c", "theta0", "a", "b"]
     } else {
         vec!["c", "a", "b"]
     };
-    if let Some((k, r)) = worst_multiple_correlation(&best.cov, n_inst) {
+    if let Some((k, r)) = worst_multiple_correlation(&best.cov, n_inst).filter(|_| prior.is_none()) {
         if r > MAX_CORRELATION {
             return Err(TelescopeFitError::Correlated {
                 what,
@@ -145,7 +155,7 @@ pub(super) fn refit<'a>(
             });
         }
     }
-    let dof = pb.n_data() - n_inst;
+    let dof = pb.n_data() + pb.n_prior() - n_inst;
     let k = inflation(best.chi2, dof);
     let it = pb.i_tel();
     let index = |i: usize| match (pb.fit_theta0, i) {
@@ -191,6 +201,7 @@ pub(super) fn refit<'a>(
             psi_tel_deg: crate::stokes::model::normalize_axial_deg(0.5 * b.atan2(a).to_degrees()),
         }),
         telescope_problem: None,
+        telescope_from_prior: None,
         covariance,
     })
 }
