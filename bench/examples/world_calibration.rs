@@ -128,6 +128,7 @@ fn main() {
                 default_parity: profile.angles.parity,
                 profile_theta0_deg: profile.angles.zero_point_deg,
                 fit_telescope: tel,
+                telescope_prior: None,
             };
             let Some(j) = fit_joint_with(&o, &opts) else { continue };
             let (Some(angles), cov) = (j.angles, j.covariance) else {

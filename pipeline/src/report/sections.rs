@@ -46,6 +46,7 @@ pub fn calibration(h: &mut String, cat: &Catalog) {
 fn filter_row(h: &mut String, f: &FilterCalibration) {
     let notes: Vec<String> = [
         ("incomplete", &f.incomplete),
+        ("telescope from the mirror's prior (the standards alone did not separate it)", &f.telescope_from_prior),
         ("telescope_uncorrected", &f.telescope_uncorrected),
     ]
     .into_iter()

@@ -31,6 +31,12 @@ pub use crate::stokes::propagation::{CAL_C, CAL_TEL_A, CAL_TEL_B, CAL_THETA0};
 /// |corr(c, theta0)| above which the standards are taken not to separate c from theta0.
 pub const MAX_CORRELATION: f64 = 0.95;
 
+/// |corr(c, theta0)| above which a fit with the telescope's prior is taken not to separate c
+/// from theta0. The prior makes the solution unique where the standards alone leave a
+/// direction free, and the covariance carries the correlation into every error; only a
+/// near-degeneracy (a variance inflation beyond ~50) is refused.
+pub const MAX_CORRELATION_WITH_PRIOR: f64 = 0.99;
+
 /// chi^2 difference between two parities above which the parity counts as measured
 /// (5 sigma; below it the profile's parity is kept).
 const PARITY_DCHI2: f64 = 25.0;
@@ -465,9 +471,14 @@ fn separation_problem(pb: &Problem, best: &Solution, others: &[Solution]) -> Opt
         ));
     }
     let corr = best.cov[0][1] / (best.cov[0][0] * best.cov[1][1]).sqrt();
-    if !(corr.abs() <= MAX_CORRELATION) {
+    let max = if pb.n_prior() > 0 {
+        MAX_CORRELATION_WITH_PRIOR
+    } else {
+        MAX_CORRELATION
+    };
+    if !(corr.abs() <= max) {
         return Some(format!(
-            "{what}: corr(c, theta0) = {corr:.3}, beyond +-{MAX_CORRELATION}: the standards do not separate c from theta0"
+            "{what}: corr(c, theta0) = {corr:.3}, beyond +-{max}: the standards do not separate c from theta0"
         ));
     }
     let (sc, st) = (best.cov[0][0].sqrt(), best.cov[1][1].sqrt());
