@@ -12,6 +12,9 @@
 //!  python           bench night --python: the expert Python reduction (bench/python/), timed
 //!                   and compared
 //!  accuracy         the accuracy harness: simulated nights by separation bin, pulls, time
+//!  calibration      bench calibration: the calibration's pooled accuracy over many nights in
+//!                   two hard cases (standards at one parallactic angle, polarized standards
+//!                   only), each night simulated and reduced by `sofipol` in child processes
 //!  standards_truth  the true polarization of simulated standards, drawn from their table
 //!  world            the world-sampling harness (drawn conditions, the file path of `night`;
 //!                   run by examples/world.rs and tests/accuracy_world.rs)
@@ -23,6 +26,7 @@
 
 pub mod accuracy;
 pub mod accuracy_report;
+pub mod calibration;
 pub mod commands;
 pub mod night;
 pub mod python;

@@ -28,6 +28,13 @@ enum What {
     /// a folder that `sofipol watch` follows in a child process: each template's latency
     /// (last frame copied to its catalog entry) and the final catalog against `night`'s.
     Watch(sofipol_bench::watch::WatchArgs),
+    /// Accuracy of the polarimetric calibration pooled over simulated nights in two hard
+    /// cases (standards at nearly one parallactic angle; polarized standards only): each
+    /// night drawn, simulated and reduced by `sofipol simulate` and `sofipol night` in child
+    /// processes, its catalog.json scored against truth.json: Delta-gamma pulls and the
+    /// coverage of their 68 % intervals, q and u pulls, theta0, c and the telescope's
+    /// polarization against the truth, flags, exit codes and times (docs/accuracy.md).
+    Calibration(sofipol_bench::calibration::CalibrationArgs),
     /// Cost of each reduction stage on one simulated 10-frame sequence (medians).
     Stages {
         /// Repeats per stage.
@@ -50,6 +57,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         What::Sim { repeats } => sofipol_bench::commands::sim(repeats),
         What::Night(a) => sofipol_bench::night::run(a)?,
         What::Watch(a) => sofipol_bench::watch::run(a)?,
+        What::Calibration(a) => sofipol_bench::calibration::run(a)?,
         What::Stages { repeats } => sofipol_bench::commands::stages(repeats)?,
         What::Accuracy { accuracy, reduce } => sofipol_bench::commands::accuracy(accuracy, &reduce.params()?)?,
     }
