@@ -155,6 +155,152 @@ fn frames_arriving_one_by_one_give_the_nights_catalog_and_late_standards_recalib
     }
 }
 
+/// Settings that keep the night's bad pixels and flats fixed (none detected, no flat): no
+/// update is provisional, so a target's numbers change only when the calibration does.
+const FIXED_MASK_AND_FLATS: [&str; 3] = ["--param", "no_detect_bad_pixels=true", "--no-flat"];
+
+/// Component `name`'s P, sigma_P (%) and P/sigma as a watch line `line` shows them
+/// (`A P 5.01+-0.07 % gamma 17 deg P/sig 68.9 ok`).
+fn shown(line: &str, name: &str) -> (f64, f64, f64) {
+    let part = line
+        .split(" | ")
+        .find(|p| p.starts_with(&format!("{name} P ")))
+        .unwrap_or_else(|| panic!("no component {name} on: {line}"));
+    let words: Vec<&str> = part.split_whitespace().collect();
+    let (p, s) = words[2].split_once("+-").unwrap();
+    let at = words.iter().position(|w| *w == "P/sig").unwrap();
+    let snr = words[at + 1].trim_end_matches(':');
+    (p.parse().unwrap(), s.parse().unwrap(), snr.parse().unwrap())
+}
+
+/// The line `line` shows the P, sigma_P and P/sigma of every component of `target` (a
+/// catalog entry), to the digits it prints.
+fn assert_line_shows(line: &str, target: &Value, what: &str) {
+    for c in target["components"].as_array().unwrap() {
+        let name = c["name"].as_str().unwrap();
+        let (p, s) = (c["p"].as_f64().unwrap(), c["sigma_p"].as_f64().unwrap());
+        let (lp, ls, lsnr) = shown(line, name);
+        assert!(
+            (lp - 100.0 * p).abs() <= 0.005 + 1e-9
+                && (ls - 100.0 * s).abs() <= 0.005 + 1e-9
+                && (lsnr - p / s).abs() <= 0.05 + 1e-9,
+            "{what}, {}: the line shows P {lp} +- {ls} %, P/sig {lsnr}; the catalog holds {:.4} +- {:.4} %, \
+             P/sig {:.2}\n{line}",
+            name,
+            100.0 * p,
+            100.0 * s,
+            p / s
+        );
+    }
+}
+
+/// The target `object` of a catalog.
+fn target_of<'a>(cat: &'a Value, object: &str) -> &'a Value {
+    cat["targets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|t| t["object"] == object)
+        .unwrap_or_else(|| panic!("no {object} in the catalog"))
+}
+
+/// The line printed when a target is reduced holds the numbers the catalog then holds:
+/// calibrated by the standards reduced before it, the calibration's error in sigma_P (not the
+/// provisional solve of the reduction, nor the measurement's error alone; "P/sig 232.9 on
+/// the line, 118.8 in the catalog" must not happen). Alpha arrives after one standard: its
+/// first line is `sofipol night` on the frames there then. The second standard recalibrates
+/// it: the `now` line shows the final catalog, as Beta's first line does.
+#[test]
+fn each_watch_line_shows_the_calibrated_numbers_the_catalog_holds_at_its_update() {
+    let d = tempfile::tempdir().unwrap();
+    let n = night_with_standards(d.path());
+    let (unpolarized, polarized) = (frames(&n, "_HD_64299_"), frames(&n, "_HD_204827_"));
+    let (alpha, beta) = (frames(&n, "_Alpha_"), frames(&n, "_Beta_"));
+    let live = d.path().join("live");
+    std::fs::create_dir(&live).unwrap();
+    let out = d.path().join("watch.json");
+    let mut args = vec!["--exit-when-idle", "3"];
+    args.extend(FIXED_MASK_AND_FLATS);
+    let child = start_watch(&live, &out, &args);
+    std::thread::sleep(Duration::from_millis(300));
+    copy_slowly(&unpolarized, &live, Duration::from_millis(50));
+    copy_slowly(&alpha, &live, Duration::from_millis(50));
+    // Alpha reduced (with HD 64299 alone) before the polarized standard arrives.
+    let t = Instant::now();
+    let has_alpha = || {
+        std::fs::read_to_string(&out)
+            .ok()
+            .and_then(|s| serde_json::from_str::<Value>(&s).ok())
+            .is_some_and(|c| {
+                c["targets"]
+                    .as_array()
+                    .is_some_and(|v| v.iter().any(|t| t["object"] == "Alpha"))
+            })
+    };
+    while !has_alpha() {
+        assert!(t.elapsed() < Duration::from_secs(60), "Alpha never reduced");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    copy_slowly(&polarized, &live, Duration::from_millis(50));
+    std::thread::sleep(Duration::from_millis(1000));
+    copy_slowly(&beta, &live, Duration::from_millis(50));
+    let (code, stdout, stderr) = finish(child, Duration::from_secs(120));
+    assert!(code == 0 || code == 2, "exit {code}: {stderr}");
+    let lines_of = |obj: &str| -> (Vec<&str>, Vec<&str>) {
+        let all = stdout
+            .lines()
+            .filter(|l| l.contains(&format!("] {obj} ok")) || l.contains(&format!("now {obj} ok")));
+        all.partition(|l| !l.contains("   now "))
+    };
+    let w = json(&out);
+
+    // Alpha's first line: the night of the frames there when it was reduced.
+    let upto = d.path().join("upto_alpha");
+    std::fs::create_dir(&upto).unwrap();
+    copy_slowly(&[unpolarized.clone(), alpha.clone()].concat(), &upto, Duration::ZERO);
+    let night_fixed = |dir: &Path, out: &Path| {
+        let mut a = vec!["night", s(dir), "-o", s(out), "-q", "--no-png"];
+        a.extend(FIXED_MASK_AND_FLATS);
+        let (code, _, err) = run(&a);
+        assert!(code == 0 || code == 2, "{err}");
+        json(out)
+    };
+    let then = night_fixed(&upto, &d.path().join("upto_alpha.json"));
+    let (first, now) = lines_of("Alpha");
+    assert_eq!(first.len(), 1, "{stdout}");
+    assert_line_shows(first[0], target_of(&then, "Alpha"), "Alpha when reduced after HD 64299");
+    // HD 204827 recalibrated Alpha: the last `now` line is the final catalog.
+    let last = now
+        .last()
+        .unwrap_or_else(|| panic!("Alpha not shown again after HD 204827:\n{stdout}"));
+    assert_line_shows(last, target_of(&w, "Alpha"), "Alpha recalibrated");
+    // Beta, reduced after both standards: nothing changes it later.
+    let (first, now) = lines_of("Beta");
+    assert_eq!((first.len(), now.len()), (1, 0), "{stdout}");
+    assert_line_shows(first[0], target_of(&w, "Beta"), "Beta");
+    // The final catalog is `night`'s on the same frames.
+    assert_same_reduction(&w, &night_fixed(&live, &d.path().join("night.json")));
+
+    // Those lines could tell a calibrated P/sigma from the others: every component is
+    // calibrated, and its P/sigma from the measurement's error alone (the reduction's
+    // provisional error) differs from the catalog's by more than the line's last digit.
+    for t in w["targets"].as_array().unwrap() {
+        for c in t["components"].as_array().unwrap() {
+            let who = format!("{} {}", t["object"], c["name"]);
+            assert!(!c["flags"].to_string().contains("\"uncalibrated\""), "{who}");
+            let f = |k: &str| c[k].as_f64().unwrap_or_else(|| panic!("{who}: no {k}"));
+            let (q, u, p) = (f("q"), f("u"), f("p"));
+            let (vq, vu, cqu) = (f("sigma_q_stat").powi(2), f("sigma_u_stat").powi(2), f("cov_qu_stat"));
+            let sigma_stat = (q * q * vq + u * u * vu + 2.0 * q * u * cqu).sqrt() / p;
+            let (snr, snr_stat) = (p / f("sigma_p"), p / sigma_stat);
+            assert!(
+                snr_stat - snr > 0.15,
+                "{who}: P/sig {snr:.2} with the calibration's error, {snr_stat:.2} without"
+            );
+        }
+    }
+}
+
 #[test]
 fn an_aborted_template_is_reduced_after_the_time_out_and_ctrl_c_leaves_a_complete_catalog() {
     let d = tempfile::tempdir().unwrap();

@@ -57,6 +57,10 @@ fn night_figures_show_the_calibrated_catalog() {
     let cal = out.calibration.as_ref().expect("the night's standards calibrate it");
     let fc = cal.for_filter("Ks").unwrap();
     let angles = fc.angles.as_ref().unwrap();
+    let tel = fc
+        .telescope
+        .as_ref()
+        .expect("the demo's standards measure the telescope's term");
     let drawn = drawn.into_inner().unwrap();
     assert_eq!(drawn.len(), cat.targets.len());
     assert_eq!(cat.targets.len(), 2);
@@ -69,6 +73,12 @@ fn night_figures_show_the_calibrated_catalog() {
             .unwrap_or_else(|| panic!("no figure for {}", t.object));
         assert_eq!(nums.status, t.status, "{}", t.object);
         assert_eq!(nums.delta_gamma_deg, t.delta_gamma_deg, "{}", t.object);
+        assert_eq!(nums.sigma_delta_gamma_deg, t.sigma_delta_gamma_deg, "{}", t.object);
+        assert_eq!(
+            nums.delta_gamma_interval_deg, t.delta_gamma_interval_deg,
+            "{}",
+            t.object
+        );
         assert_eq!(nums.components.len(), t.components.len(), "{}", t.object);
         for (n, c) in nums.components.iter().zip(&t.components) {
             let who = format!("{} {}", t.object, c.name);
@@ -94,26 +104,33 @@ fn night_figures_show_the_calibrated_catalog() {
                 "{who}: {:?}",
                 c.flags
             );
-            // The fitted F lines: the calibration's analyzer angles and offset, evaluated
-            // independently here from the calibration record and the catalog's orientations.
+            // The fitted F lines: the calibration's analyzer angles, offset and telescope's
+            // term, evaluated independently here from the calibration record and the
+            // catalog's orientations.
             let offset = c.instrumental_offset.as_ref().expect("offset subtracted").c;
             assert!((offset - fc.offset.as_ref().unwrap().c).abs() < 1e-12, "{who}");
+            assert!(c.telescope_qu.is_some(), "{who}: the telescope's term was not removed");
             let posangs = t.orientations_deg.as_ref().unwrap();
             assert_eq!(n.model_f.len(), posangs.len(), "{who}");
             for (k, &pa) in posangs.iter().enumerate() {
                 let phi = (angles.parity as f64 * pa + angles.theta0_deg).to_radians();
-                let want = c.q * (2.0 * phi).cos() + c.u * (2.0 * phi).sin() + offset;
+                let (c2, s2) = ((2.0 * phi).cos(), (2.0 * phi).sin());
+                let of = &c.orientations.as_ref().unwrap()[k];
+                let [cc, ss] = of.parallactic_2eta.expect("parallactic angle");
+                let tel_f = tel.a * (cc * c2 + ss * s2) + tel.b * (cc * s2 - ss * c2);
+                let want = c.q * c2 + c.u * s2 + offset + tel_f;
                 assert!(
                     (n.model_f[k] - want).abs() < 1e-12,
                     "{who}: F line at {pa}: {} vs {want}",
                     n.model_f[k]
                 );
-                // The line goes through the catalog's combined F of that orientation (within
-                // a few of its errors: two orientations, two unknowns, an exact fit).
-                let of = &c.orientations.as_ref().unwrap()[k];
+                assert!((n.telescope_f[k].unwrap() - tel_f).abs() < 1e-15, "{who}");
+                // The line goes through the catalog's combined F of that orientation: two
+                // orientations, two unknowns, an exact fit of F - c - T (without T in the
+                // line it would miss F by T).
                 assert!(
-                    (n.model_f[k] - of.f).abs() < 3.0 * of.sigma_f,
-                    "{who}: F line {} vs combined F {} +- {}",
+                    (n.model_f[k] - of.f).abs() < 1e-9,
+                    "{who}: F line {} vs combined F {} +- {} (T = {tel_f})",
                     n.model_f[k],
                     of.f,
                     of.sigma_f

@@ -1,6 +1,6 @@
 //! The line an observer reads when a template has been reduced: P/sigma of each component
 //! and, for one below the cut, how many more cycles of the same template would reach it.
-use crate::catalog::{Component, Status, Target};
+use crate::catalog::{Component, FlagCode, Status, Target};
 use sofipol_calib::text::printable;
 
 /// Most cycles worth naming: beyond, the line says the polarization is too small to reach.
@@ -16,6 +16,24 @@ pub fn cycles_needed(p_debiased: f64, sigma_p: f64, cut: f64) -> Option<u32> {
     }
     let n = (cut * sigma_p / p_debiased).powi(2);
     n.is_finite().then(|| n.ceil().max(1.0) as u32)
+}
+
+/// Why a component whose P/sigma is above the cut fails it: the flag that refuses it
+/// (`uncalibrated` first: its numbers still change with the calibration), else its first flag.
+fn cut_reason(c: &Component) -> String {
+    let refusing = [
+        FlagCode::Uncalibrated,
+        FlagCode::PAboveOne,
+        FlagCode::UsedFlaggedDithers,
+        FlagCode::AbIdentityUnverified,
+        FlagCode::StokesMethodFailed,
+    ];
+    refusing
+        .iter()
+        .find_map(|&code| c.flags.iter().find(|f| f.is(code)))
+        .or(c.flags.first())
+        .map(|f| printable(&f.to_string()).into_owned())
+        .unwrap_or_default()
 }
 
 /// One component: `A P/sig 5.2 ok`, `B P/sig 1.9: ~2 more cycles`, ...
@@ -36,13 +54,7 @@ fn component_words(c: &Component, cut: f64) -> String {
     }
     match cycles_needed(c.p_debiased, c.sigma_p, cut) {
         Some(n) if (n as f64) <= MAX_CYCLES && n > 1 => format!("{head}: {} more cycle(s) for P/sig > {cut}", n - 1),
-        Some(1) => format!(
-            "{head}: below the cut ({})",
-            c.flags
-                .first()
-                .map(|f| printable(&f.to_string()).into_owned())
-                .unwrap_or_default()
-        ),
+        Some(1) => format!("{head}: below the cut ({})", cut_reason(c)),
         _ => format!("{head}: P consistent with 0, no number of cycles reaches P/sig > {cut}"),
     }
 }
@@ -71,6 +83,27 @@ pub fn target_line(t: &Target, cut: f64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::catalog::Flag;
+    use crate::stokes::inversion::{Debias, LinearPolarization};
+
+    /// A bright star not yet calibrated (no standard reduced before it) says so, whatever
+    /// flag its photometry put first: its P/sig still changes with the calibration.
+    #[test]
+    fn an_uncalibrated_star_above_the_cut_says_it_is_uncalibrated() {
+        let lp = LinearPolarization::from_qu(0.05, 0.02, 2.3e-4, 2.3e-4, Debias::WardleKronberg);
+        let mut c = Component::new("A", lp.pol);
+        c.flags = vec![
+            Flag::with_detail(FlagCode::BadPixels, "1 of 10 dithers dropped"),
+            Flag::new(FlagCode::TelescopeUncorrected),
+            Flag::new(FlagCode::Uncalibrated),
+        ];
+        let words = component_words(&c, 3.0);
+        assert!(words.ends_with("P/sig 234.1: below the cut (uncalibrated)"), "{words}");
+        // Otherwise the first flag, as before.
+        c.flags.retain(|f| !f.is(FlagCode::Uncalibrated));
+        let words = component_words(&c, 3.0);
+        assert!(words.contains("below the cut (bad_pixels"), "{words}");
+    }
 
     /// The prediction against noise draws: with sigma_1 the error of one cycle, n cycles
     /// average to sigma_1/sqrt(n); at the predicted n the mean P/sigma is >= the cut and at

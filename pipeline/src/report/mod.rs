@@ -149,7 +149,7 @@ pub fn statistics(catalog: &Catalog, source: &str, opts: &setup::Options) -> Res
         let p = tmp.path().join("observed.png");
         observed_figure(&p, &sample, OBSERVED_BINS, &setup::observed_notes(&report))?;
         figures.push(Image {
-            caption: "Observed: P of the sample's components, Δγ of its binaries (with the tests), Δγ per binary with its error".into(),
+            caption: "Observed: P of the sample's components, Δγ of its binaries (with the tests), Δγ per binary with its ±σ and its 68 % interval".into(),
             png: read(p)?,
         });
     }

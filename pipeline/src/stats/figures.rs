@@ -290,14 +290,24 @@ pub fn observed_figure(path: &Path, sample: &BinarySample, dg_bins: usize, notes
     Ok(())
 }
 
-/// [C]: each binary's Delta gamma (sorted) with its error: the catalog's 68.27 % interval
-/// where given, else +- sigma clipped to [0, 90].
+/// The broad pale bar of a binary's 68.27 % interval in [C] (orange-tinted when large).
+const INTERVAL_BAR: crate::plots::Rgb = crate::plots::Rgb(160, 200, 235);
+const INTERVAL_BAR_LARGE: crate::plots::Rgb = crate::plots::Rgb(245, 195, 150);
+/// Half-height of the end ticks of +-sigma in [C] for `n` binaries, in rows: about 4 px in
+/// the panel's ~330 px for n + 1 rows, at most 0.3 of a row.
+fn sigma_tick(n: usize) -> f64 {
+    (0.012 * (n + 1) as f64).clamp(0.05, 0.3)
+}
+
+/// [C]: each binary's Delta gamma (sorted) with both of its errors: the catalog's central
+/// 68.27 % interval as a broad pale bar, +-sigma (clipped to [0, 90]) as a thin line with
+/// end ticks over it; orange where either is large.
 fn error_bar_panel(sample: &BinarySample) -> Panel {
     let mut rows: Vec<_> = sample.binaries.iter().collect();
     rows.sort_by(|x, y| x.delta_gamma_deg.total_cmp(&y.delta_gamma_deg));
     let n = rows.len();
     let mut c = Panel::new(
-        format!("[C] Δγ per binary, 1σ / 68 % interval (n = {n})"),
+        format!("[C] Δγ per binary: ±σ and 68 % interval (n = {n})"),
         DG,
         "binary (sorted by Δγ)",
     )
@@ -305,25 +315,29 @@ fn error_bar_panel(sample: &BinarySample) -> Panel {
     .y_range(0.0, n as f64 + 1.0)
     .legend(LegendPos::None);
     c.integer_y = true;
+    let segment = |x: [f64; 2], y: [f64; 2], color, width| {
+        Series::line("", x.to_vec(), y.to_vec())
+            .color(color)
+            .style(Style::Line(width))
+            .unlabelled()
+    };
+    let tick = sigma_tick(n);
     let (mut xs, mut ys) = (Vec::new(), Vec::new());
     for (k, b) in rows.iter().enumerate() {
         let y = k as f64 + 1.0;
         let dg = b.delta_gamma_deg;
-        let bar = b
-            .delta_gamma_interval_deg
-            .or(b.sigma_delta_gamma_deg.map(|s| [(dg - s).max(0.0), (dg + s).min(90.0)]));
-        if let Some([lo, hi]) = bar {
-            let color = if super::errors::is_large(b.sigma_delta_gamma_deg, b.delta_gamma_interval_deg) {
-                palette(1)
-            } else {
-                crate::plots::Rgb(0, 0, 0)
-            };
-            c = c.with(
-                Series::line("", vec![lo, hi], vec![y, y])
-                    .color(color)
-                    .style(Style::Line(1))
-                    .unlabelled(),
-            );
+        let large = super::errors::is_large(b.sigma_delta_gamma_deg, b.delta_gamma_interval_deg);
+        if let Some([lo, hi]) = b.delta_gamma_interval_deg {
+            let bar = if large { INTERVAL_BAR_LARGE } else { INTERVAL_BAR };
+            c = c.with(segment([lo, hi], [y, y], bar, 5));
+        }
+        if let Some(s) = b.sigma_delta_gamma_deg.filter(|s| s.is_finite()) {
+            let (lo, hi) = ((dg - s).max(0.0), (dg + s).min(90.0));
+            let color = if large { palette(1) } else { crate::plots::Rgb(0, 0, 0) };
+            c = c.with(segment([lo, hi], [y, y], color, 1));
+            for x in [lo, hi] {
+                c = c.with(segment([x, x], [y - tick, y + tick], color, 1));
+            }
         }
         xs.push(dg);
         ys.push(y);
@@ -334,6 +348,7 @@ fn error_bar_panel(sample: &BinarySample) -> Panel {
             .style(Style::Points(3))
             .unlabelled(),
     )
+    .note("pale bar: 68 % interval; |—|: ±σ")
     .note(format!(
         "orange: σ > {}° or interval > {}°",
         super::errors::LARGE_SIGMA_DEG,
@@ -359,4 +374,73 @@ pub fn mc_figure(path: &Path, runs: &[(String, McOutput)], title: &str) -> Resul
     }
     Figure::single(panel).save(path)?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stats::sample::SampleBinary;
+
+    fn binary(object: &str, dg: f64, sigma: Option<f64>, interval: Option<[f64; 2]>) -> SampleBinary {
+        SampleBinary {
+            object: object.into(),
+            delta_gamma_deg: dg,
+            p_percent: [2.0, 3.0],
+            sigma_p_percent: [0.1, 0.1],
+            sigma_delta_gamma_deg: sigma,
+            sigma_source: None,
+            delta_gamma_interval_deg: interval,
+        }
+    }
+
+    /// The horizontal segments of row `y` of panel [C]: (x from, x to, width).
+    fn segments_at(p: &Panel, y: f64) -> Vec<(f64, f64, u32)> {
+        p.series
+            .iter()
+            .filter_map(|s| match s.style {
+                Style::Line(w) if s.y == [y, y] => Some((s.x[0], s.x[1], w)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Panel [C] draws each binary's +-sigma and its 68 % interval, both: an asymmetric
+    /// interval near the fold at 0 (where sigma says less) and one in the middle.
+    #[test]
+    fn panel_c_shows_sigma_and_the_interval_of_each_binary() {
+        let sample = BinarySample {
+            binaries: vec![
+                binary("Middle", 40.0, Some(3.0), Some([37.2, 43.1])),
+                binary("Near zero", 4.0, Some(6.0), Some([1.5, 11.0])),
+                binary("Sigma only", 60.0, Some(2.0), None),
+            ],
+            excluded: vec![],
+            warnings: vec![],
+            all_sigma_p_percent: vec![],
+        };
+        let c = error_bar_panel(&sample);
+        // Sorted by Delta-gamma: Near zero (row 1), Middle (2), Sigma only (3).
+        let near = segments_at(&c, 1.0);
+        assert!(near.contains(&(1.5, 11.0, 5)), "interval bar: {near:?}");
+        assert!(near.contains(&(0.0, 10.0, 1)), "sigma clipped at 0: {near:?}");
+        let middle = segments_at(&c, 2.0);
+        assert!(middle.contains(&(37.2, 43.1, 5)), "{middle:?}");
+        assert!(middle.contains(&(37.0, 43.0, 1)), "{middle:?}");
+        let only = segments_at(&c, 3.0);
+        assert_eq!(only, vec![(58.0, 62.0, 1)], "no interval: sigma alone");
+        // The ends of +-sigma are ticked; the notes say what is drawn.
+        let ticks = c
+            .series
+            .iter()
+            .filter(|s| s.x.len() == 2 && s.x[0] == s.x[1] && s.y == [2.0 - sigma_tick(3), 2.0 + sigma_tick(3)])
+            .count();
+        assert_eq!(ticks, 2);
+        assert!(
+            c.notes.iter().any(|n| n.contains("68 % interval") && n.contains("±σ")),
+            "{:?}",
+            c.notes
+        );
+        // It renders.
+        Figure::single(c).render_rgb().unwrap();
+    }
 }

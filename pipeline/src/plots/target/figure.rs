@@ -5,6 +5,8 @@
 //! lines all read it, so a figure can be checked against the catalog it belongs to.
 use super::*;
 use crate::calibration::FilterCalibration;
+use crate::catalog::{CombinedF, Component};
+use crate::solve::telescope;
 
 /// The pixel part of one orientation's cell.
 #[derive(Clone)]
@@ -101,8 +103,16 @@ pub struct ComponentNumbers {
     pub flags: Vec<crate::catalog::Flag>,
     /// The instrumental offset c in the component's solution (0 when none).
     pub offset_c: f64,
-    /// The fitted F drawn on each orientation's panel: q cos 2 phi + u sin 2 phi + c.
+    /// The model of F drawn on each orientation's panel: q cos 2phi + u sin 2phi + c, plus
+    /// the telescope's term of that orientation where [`ComponentNumbers::telescope_f`]
+    /// has one.
     pub model_f: Vec<f64>,
+    /// The telescope's term of each orientation's model, `T(phi) = a (C cos 2phi + S sin
+    /// 2phi) + b (C sin 2phi - S cos 2phi)`: (a, b) the calibration's, (C, S) the
+    /// orientation's `parallactic_2eta`. `None` where it is not in the model: the
+    /// calibration has no telescope term, the solve did not remove it from this component
+    /// (no `telescope_qu`), or the orientation has no combined F with a parallactic angle.
+    pub telescope_f: Vec<Option<f64>>,
 }
 
 /// Every catalog number a target figure draws.
@@ -114,6 +124,10 @@ pub struct FigureNumbers {
     pub components: Vec<ComponentNumbers>,
     /// Delta-gamma, deg (None when not both components pass the cut).
     pub delta_gamma_deg: Option<f64>,
+    /// Its 1-sigma error (delta method), deg.
+    pub sigma_delta_gamma_deg: Option<f64>,
+    /// Its central 68.27 % interval [low, high], deg.
+    pub delta_gamma_interval_deg: Option<[f64; 2]>,
     /// Analyzer angle of each orientation: the calibration's relation when it has one, else
     /// the one the reduction used, deg.
     pub analyzer_deg: Vec<f64>,
@@ -144,17 +158,29 @@ impl TargetFigure<'_> {
                 _ => o.analyzer_deg,
             })
             .collect();
+        let tel_ab = self.calibration.and_then(|f| f.telescope.as_ref()).map(|t| t.ab());
         let components = self
             .target
             .components
             .iter()
             .map(|c| {
                 let offset_c = c.instrumental_offset.as_ref().map_or(0.0, |o| o.c);
+                // T is in the model only where the solve removed it from this component.
+                let telescope_f: Vec<Option<f64>> = analyzer_deg
+                    .iter()
+                    .enumerate()
+                    .map(|(k, &phi)| {
+                        let ab = tel_ab.filter(|_| c.telescope_qu.is_some())?;
+                        let eta = combined_f_of(c, &self.inputs.orientations, k)?.parallactic_2eta?;
+                        Some(telescope::telescope_f(ab, phi, eta))
+                    })
+                    .collect();
                 let model_f = analyzer_deg
                     .iter()
-                    .map(|phi| {
-                        let t = 2.0 * phi.to_radians();
-                        c.q * t.cos() + c.u * t.sin() + offset_c
+                    .zip(&telescope_f)
+                    .map(|(phi, t)| {
+                        let t2 = 2.0 * phi.to_radians();
+                        c.q * t2.cos() + c.u * t2.sin() + offset_c + t.unwrap_or(0.0)
                     })
                     .collect();
                 ComponentNumbers {
@@ -172,6 +198,7 @@ impl TargetFigure<'_> {
                     flags: c.flags.clone(),
                     offset_c,
                     model_f,
+                    telescope_f,
                 }
             })
             .collect();
@@ -179,6 +206,8 @@ impl TargetFigure<'_> {
             status: self.target.status,
             components,
             delta_gamma_deg: self.target.delta_gamma_deg,
+            sigma_delta_gamma_deg: self.target.sigma_delta_gamma_deg,
+            delta_gamma_interval_deg: self.target.delta_gamma_interval_deg,
             analyzer_deg,
         }
     }
@@ -212,5 +241,25 @@ impl TargetFigure<'_> {
         )
         .map_err(de)?;
         write_atomic(path, &png).map_err(to_io)
+    }
+}
+
+/// The catalog's combined F of the figure's orientation `k` of `sketches`: matched by the
+/// rotator angle when the catalog records it, else by the analyzer angle the reduction used
+/// (the profile's, as the sketch's); by position when the sketches do not know their angles
+/// and the counts agree. `None` when the orientation has no combined F (no usable dither).
+fn combined_f_of<'c>(c: &'c Component, sketches: &[OrientationSketch], k: usize) -> Option<&'c CombinedF> {
+    let ors = c.orientations.as_deref()?;
+    let o = sketches.get(k)?;
+    let near = |a: f64, b: f64| (a - b).abs() < 1e-6;
+    if o.analyzer_deg.is_finite() || o.posang_deg.is_finite() {
+        ors.iter().find(|f| match f.posang_deg {
+            Some(pa) if o.posang_deg.is_finite() => near(pa, o.posang_deg),
+            _ => near(f.analyzer_deg, o.analyzer_deg),
+        })
+    } else if ors.len() == sketches.len() {
+        ors.get(k)
+    } else {
+        None
     }
 }

@@ -7,16 +7,20 @@
 //! | POSANG 0°: o cut-out | e cut-out | POSANG 45°: o cut-out | e cut-out |    |
 //! |  (median of the registered dithers, asinh stretch, apertures A/B)    | pol|
 //! | F per dither (error bars, rejected | F per dither ...                 | on |
-//! |  hollow red, dashed: fitted q,u)   |                                  | sky|
+//! |  hollow red, dashed: model of F)   |                                  | sky|
 //! +----------------------------------+----------------------------------+----+
 //! | polarization table | measurement details | status, error, flags           |
 //! +--------------------------------------------------------------------------+
 //! ```
 //!
 //! Cut-outs are in detector orientation (row 0 of the frame at the bottom, as in DS9),
-//! labelled with POSANG and a small N/E compass; the polarization panel is on the sky (north
-//! up, east left). Orientations are laid out two per row. A target without frames or
-//! measurements (failed) gets a text-only figure. Rendering never panics: a drawing
+//! labelled with POSANG and a small N/E compass. Each orientation's F panel draws each star's
+//! model of F there, q cos 2phi + u sin 2phi + c + T (dashed), T the telescope's term at that
+//! orientation's parallactic angle when the calibration removed it from the star, and then the
+//! model without T (dotted), T written above the plot: T turns with the parallactic angle, so
+//! the model is one value per orientation, not one curve of phi. The polarization panel is on
+//! the sky (north up, east left). Orientations are laid out two per row. A target without
+//! frames or measurements (failed) gets a text-only figure. Rendering never panics: a drawing
 //! failure falls back to a text-only figure. The width is fixed ([`WIDTH`]); the height
 //! depends on the number of orientations and lines of text.
 mod figure;
@@ -157,7 +161,7 @@ fn render(target: &Target, inputs: &FigureInputs, nums: &FigureNumbers) -> io::R
     // Text band: three columns.
     let mut cols: [Vec<Line>; 3] = [Vec::new(), Vec::new(), Vec::new()];
     component_lines(nums, &mut cols[0]);
-    measurement_lines(target, ors, &nums.analyzer_deg, m, &mut cols[1]);
+    measurement_lines(target, ors, nums, m, &mut cols[1]);
     status_lines(target, m, &mut cols[2]);
     for c in cols.iter_mut() {
         c.truncate(40);
@@ -331,3 +335,6 @@ fn draw_text_band(root: &Area, cols: &[Vec<Line>; 3], ty: u32, w: u32) -> io::Re
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests;

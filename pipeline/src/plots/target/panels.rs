@@ -14,8 +14,16 @@ pub(super) struct PanelPlace {
     pub(super) h_px: u32,
 }
 
+/// Colour of the model of F without the telescope's term: the component's, paler.
+pub(super) const MODEL_NO_T_MIX: f64 = 0.4;
+/// Colour of the model of F: the component's, a little paler than its points.
+pub(super) const MODEL_MIX: f64 = 0.8;
+
 /// The F panel of orientation `k` at `place`: per-dither F of each component with its
-/// error, and the model F from the catalog's q, u.
+/// error, and the model of F from the catalog's q, u and the calibration: dashed,
+/// `q cos 2phi + u sin 2phi + c + T`, T the telescope's term at this orientation's
+/// parallactic angle when the calibration removed it; dotted, the same without T, with T's
+/// value written above the plot.
 pub(super) fn f_panel(root: &Area, place: PanelPlace, m: &Measured, k: usize, nums: &FigureNumbers) -> io::Result<()> {
     let area = root
         .clone()
@@ -26,13 +34,21 @@ pub(super) fn f_panel(root: &Area, place: PanelPlace, m: &Measured, k: usize, nu
         .filter_map(|c| c.get(k).map(|v| v.as_slice()))
         .collect();
     let nd = per.iter().map(|v| v.len()).max().unwrap_or(0);
-    // Model F from the catalog's q, u (and offset c) of each component.
+    // Model F from the catalog's q, u (and offset c, and the telescope's T) of each
+    // component, and the same without T where T is in it.
     let model: Vec<Option<f64>> = (0..per.len())
         .map(|c| {
             let v = *nums.components.get(c)?.model_f.get(k)?;
             v.is_finite().then_some(100.0 * v)
         })
         .collect();
+    let tel: Vec<Option<f64>> = (0..per.len())
+        .map(|c| {
+            let t = (*nums.components.get(c)?.telescope_f.get(k)?)?;
+            t.is_finite().then_some(100.0 * t)
+        })
+        .collect();
+    let without_t: Vec<Option<f64>> = model.iter().zip(&tel).map(|(m, t)| Some((*m)? - (*t)?)).collect();
     let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
     for d in per.iter().flat_map(|v| v.iter()) {
         let (f, s) = (100.0 * d.f, 100.0 * d.sigma_f);
@@ -42,7 +58,7 @@ pub(super) fn f_panel(root: &Area, place: PanelPlace, m: &Measured, k: usize, nu
             hi = hi.max(f + s);
         }
     }
-    for v in model.iter().flatten() {
+    for v in model.iter().chain(&without_t).flatten() {
         lo = lo.min(*v);
         hi = hi.max(*v);
     }
@@ -54,7 +70,8 @@ pub(super) fn f_panel(root: &Area, place: PanelPlace, m: &Measured, k: usize, nu
     let xmax = nd.max(1) as f64 + 0.5;
     let mut chart = ChartBuilder::on(&area)
         .margin_right(8)
-        .margin_top(4)
+        // Room above the plot for the telescope's note (kept without one: the same layout).
+        .margin_top(16)
         .x_label_area_size(34)
         .y_label_area_size(52)
         .build_cartesian_2d(0.5..xmax, lo..hi)
@@ -84,13 +101,23 @@ pub(super) fn f_panel(root: &Area, place: PanelPlace, m: &Measured, k: usize, nu
     let nc = per.len();
     for (c, vals) in per.iter().enumerate() {
         let col = comp_color(c, false);
+        if let Some(v) = without_t[c] {
+            chart
+                .draw_series(DashedLineSeries::new(
+                    vec![(0.5, v), (xmax, v)],
+                    2,
+                    3,
+                    col.mix(MODEL_NO_T_MIX).stroke_width(1),
+                ))
+                .map_err(de)?;
+        }
         if let Some(v) = model[c] {
             chart
                 .draw_series(DashedLineSeries::new(
                     vec![(0.5, v), (xmax, v)],
                     6,
                     4,
-                    col.mix(0.8).stroke_width(1),
+                    col.mix(MODEL_MIX).stroke_width(1),
                 ))
                 .map_err(de)?;
         }
@@ -139,6 +166,15 @@ pub(super) fn f_panel(root: &Area, place: PanelPlace, m: &Measured, k: usize, nu
             }
         }
     }
+    // The telescope's term of the models, above the plot, right.
+    if let Some(note) = telescope_note(nums, &tel) {
+        let st = (FONT, 11)
+            .into_font()
+            .color(&RGBColor(90, 90, 90))
+            .pos(Pos::new(HPos::Right, VPos::Top));
+        area.draw(&Text::new(note, (place.w_px as i32 - 10, 1), st))
+            .map_err(de)?;
+    }
     if nd == 0 {
         let st = (FONT, 13)
             .into_font()
@@ -152,6 +188,27 @@ pub(super) fn f_panel(root: &Area, place: PanelPlace, m: &Measured, k: usize, nu
         .map_err(de)?;
     }
     Ok(())
+}
+
+/// The telescope's term in the models of an orientation's panel (`tel`: per component, %):
+/// `model with telescope T = +0.432 %`, per component when they differ (their orientations
+/// weigh the dithers' parallactic angles with their own errors).
+fn telescope_note(nums: &FigureNumbers, tel: &[Option<f64>]) -> Option<String> {
+    let shown: Vec<(&str, String)> = tel
+        .iter()
+        .enumerate()
+        .filter_map(|(c, t)| {
+            let name = nums.components.get(c).map_or("", |n| n.name.as_str());
+            Some((name, format!("{:+.3} %", (*t)?)))
+        })
+        .collect();
+    let first = &shown.first()?.1;
+    Some(if shown.iter().all(|(_, v)| v == first) {
+        format!("model with telescope T = {first}")
+    } else {
+        let parts: Vec<String> = shown.iter().map(|(n, v)| format!("{n} {v}")).collect();
+        format!("model with telescope T: {}", parts.join(", "))
+    })
 }
 
 // ---------------------------------------------------------------------------------------

@@ -164,20 +164,37 @@ pub(super) fn component_lines(nums: &FigureNumbers, out: &mut Vec<Line>) {
             );
         }
     }
-    let dg = match nums.delta_gamma_deg {
-        Some(d) if d.is_finite() => format!("Δγ = |γA − γB| = {d:.1}°"),
-        _ => "Δγ: — (needs two components passing the cut)".into(),
+    delta_gamma_lines(nums, out);
+}
+
+/// Delta-gamma with its error and its central 68 % interval (the catalog's
+/// `sigma_delta_gamma_deg` and `delta_gamma_interval_deg`).
+pub(super) fn delta_gamma_lines(nums: &FigureNumbers, out: &mut Vec<Line>) {
+    let Some(d) = nums.delta_gamma_deg.filter(|d| d.is_finite()) else {
+        out.push(Line::head("Δγ: — (needs two components passing the cut)"));
+        return;
     };
-    out.push(Line::head(dg));
+    let sigma = nums
+        .sigma_delta_gamma_deg
+        .filter(|s| s.is_finite())
+        .map_or(String::new(), |s| format!(" ± {s:.1}"));
+    out.push(Line::head(format!("Δγ = |γA − γB| = {d:.1}{sigma}°")));
+    if let Some([lo, hi]) = nums
+        .delta_gamma_interval_deg
+        .filter(|v| v.iter().all(|x| x.is_finite()))
+    {
+        out.push(Line::plain(format!("      68 % interval of Δγ: [{lo:.1}°, {hi:.1}°]")));
+    }
 }
 
 pub(super) fn measurement_lines(
     target: &Target,
     ors: &[OrientationSketch],
-    analyzer_deg: &[f64],
+    nums: &FigureNumbers,
     m: Option<&Measured>,
     out: &mut Vec<Line>,
 ) {
+    let analyzer_deg = &nums.analyzer_deg;
     out.push(Line::head("Measurement"));
     let Some(m) = m else {
         out.push(Line::plain("no measurement"));
@@ -247,10 +264,18 @@ pub(super) fn measurement_lines(
         wrap(Line::col(text, comp_color(c, false)), COL_W, out);
     }
     if !m.dithers.is_empty() {
-        out.push(Line::col(
-            "F plots: ● used, red ○ rejected, dashed: fitted q, u",
-            RGBColor(90, 90, 90),
-        ));
+        let grey = RGBColor(90, 90, 90);
+        out.push(Line::col("F plots: ● used, red ○ rejected;", grey));
+        let with_t = nums
+            .components
+            .iter()
+            .any(|c| c.telescope_f.iter().any(Option::is_some));
+        let model = if with_t {
+            "dashed: model q cos2φ + u sin2φ + c + T, T the telescope's polarization at the orientation's parallactic angle (value above the panel); dotted: the model without T"
+        } else {
+            "dashed: model q cos2φ + u sin2φ + c (no telescope term)"
+        };
+        wrap(Line::col(format!("  {model}"), grey), COL_W, out);
     }
     if let Some(v) = &target.sequence {
         wrap(Line::plain(format!("sequence {v}")), COL_W, out);
