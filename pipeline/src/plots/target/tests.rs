@@ -43,6 +43,7 @@ fn calibration(telescope: bool) -> FilterCalibration {
             b: TEL_AB[1],
         }),
         telescope_uncorrected: None,
+        telescope_from_prior: None,
         covariance: None,
         covariance_parameters: None,
         zero_point_from_profile: None,

@@ -588,6 +588,18 @@ pub fn fit_joint_with(stds: &[StandardObservation], opts: &JointOptions) -> Opti
             telescope_from_prior: Some(alone.to_string()),
             ..j
         },
+        // With the term marginalised the polarized standards do not separate c from theta0:
+        // the fit without it would take the term into c and theta0 (and may measure the
+        // wrong parity), so theta0 is left to the profile and c to the unpolarized standards.
+        Some(Err(also @ telescope::TelescopeFitError::NotSeparable(_))) if base.angles.is_some() => JointCalibration {
+            telescope_problem: Some(format!("{alone}; with the mirror's prior: {also}")),
+            ..from_unpolarized(
+                stds,
+                Some(format!(
+                    "with the telescope's term marginalised over the mirror's prior, {also}"
+                )),
+            )
+        },
         Some(Err(also)) => JointCalibration {
             telescope_problem: Some(format!("{alone}; with the mirror's prior: {also}")),
             ..base
@@ -599,6 +611,32 @@ pub fn fit_joint_with(stds: &[StandardObservation], opts: &JointOptions) -> Opti
     })
 }
 
+/// The calibration when the polarized standards do not fix theta0 (`why`; `None`: there
+/// are none): c from the unpolarized standards alone (none without them), the angles left
+/// to the profile.
+fn from_unpolarized(stds: &[StandardObservation], why: Option<String>) -> JointCalibration {
+    let (offset, chi2, dof, from) = match offset_only(usable(stds)) {
+        Some((o, chi2, dof, from)) => (Some(o), chi2, dof, from),
+        None => (None, 0.0, 0, vec![]),
+    };
+    let mut covariance = [[0.0; 4]; 4];
+    covariance[CAL_C][CAL_C] = offset.map_or(0.0, |o| o.sigma_c * o.sigma_c);
+    JointCalibration {
+        offset,
+        angles: None,
+        cov_c_theta0_deg: None,
+        chi2,
+        dof,
+        incomplete: why,
+        offset_from: from,
+        angles_from: vec![],
+        telescope: None,
+        telescope_problem: None,
+        telescope_from_prior: None,
+        covariance,
+    }
+}
+
 /// c and theta0 (and parity) without the telescope's term.
 fn fit_instrument(stds: &[StandardObservation], default_parity: i32) -> Option<JointCalibration> {
     let all = usable(stds);
@@ -606,28 +644,7 @@ fn fit_instrument(stds: &[StandardObservation], default_parity: i32) -> Option<J
         return None;
     }
     let n_pol = all.iter().filter(|s| s.obs.polarized()).count();
-    let from_unpolarized = |why: Option<String>| {
-        let (offset, chi2, dof, from) = match offset_only(usable(stds)) {
-            Some((o, chi2, dof, from)) => (Some(o), chi2, dof, from),
-            None => (None, 0.0, 0, vec![]),
-        };
-        let mut covariance = [[0.0; 4]; 4];
-        covariance[CAL_C][CAL_C] = offset.map_or(0.0, |o| o.sigma_c * o.sigma_c);
-        Some(JointCalibration {
-            offset,
-            angles: None,
-            cov_c_theta0_deg: None,
-            chi2,
-            dof,
-            incomplete: why,
-            offset_from: from,
-            angles_from: vec![],
-            telescope: None,
-            telescope_problem: None,
-            telescope_from_prior: None,
-            covariance,
-        })
-    };
+    let from_unpolarized = |why: Option<String>| Some(from_unpolarized(stds, why));
     if n_pol == 0 {
         return from_unpolarized(None);
     }
