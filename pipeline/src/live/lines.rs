@@ -55,7 +55,26 @@ fn component_words(c: &Component, cut: f64) -> String {
     match cycles_needed(c.p_debiased, c.sigma_p, cut) {
         Some(n) if (n as f64) <= MAX_CYCLES && n > 1 => format!("{head}: {} more cycle(s) for P/sig > {cut}", n - 1),
         Some(1) => format!("{head}: below the cut ({})", cut_reason(c)),
-        _ => format!("{head}: P consistent with 0, no number of cycles reaches P/sig > {cut}"),
+        Some(_) => format!("{head}: more than {MAX_CYCLES} cycles for P/sig > {cut}"),
+        // Debiased to 0: not detected. The measured P is the most it is likely to be, so
+        // its cycles are the fewest that could reach the cut; a true P below it needs more.
+        None => match cycles_needed(c.p, c.sigma_p, cut) {
+            Some(n) if (n as f64) <= MAX_CYCLES && n > 1 => format!(
+                "{head}: not detected; if P is the {:.2} % measured, at least {} more cycle(s) for P/sig > {cut}",
+                100.0 * c.p,
+                n - 1
+            ),
+            _ => format!("{head}: not detected; more than {MAX_CYCLES} cycles even at the measured P"),
+        },
+    }
+}
+
+/// Delta-gamma and its error at the precision the error allows: `13+-2`, `13.4+-0.6`.
+fn delta_gamma_words(d: f64, e: f64) -> String {
+    if e < 1.0 {
+        format!("dgamma {d:.1}+-{e:.1} deg")
+    } else {
+        format!("dgamma {d:.0}+-{e:.0} deg")
     }
 }
 
@@ -75,7 +94,7 @@ pub fn target_line(t: &Target, cut: f64) -> String {
         s += &component_words(c, cut);
     }
     if let (Some(d), Some(e)) = (t.delta_gamma_deg, t.sigma_delta_gamma_deg) {
-        s += &format!(" | dgamma {d:.0}+-{e:.0} deg");
+        s += &format!(" | {}", delta_gamma_words(d, e));
     }
     s
 }
@@ -103,6 +122,28 @@ mod tests {
         c.flags.retain(|f| !f.is(FlagCode::Uncalibrated));
         let words = component_words(&c, 3.0);
         assert!(words.contains("below the cut (bad_pixels"), "{words}");
+    }
+
+    /// A 1 % star measured at 0.56 +- 0.56 % (debiased to 0) is not "never": at the measured
+    /// P it needs (3 x 0.56 / 0.56)^2 = 9 cycles, 8 more; Delta-gamma's error below 1 deg is
+    /// not printed as 0.
+    #[test]
+    fn an_undetected_star_gets_the_cycles_of_its_measured_p_and_small_errors_show() {
+        let lp = LinearPolarization::from_qu(0.0056, 0.0, 0.0056, 0.0056, Debias::WardleKronberg);
+        assert_eq!(lp.pol.p_debiased, 0.0);
+        let c = Component::new("B", lp.pol);
+        let words = component_words(&c, 3.0);
+        assert!(
+            words.ends_with("not detected; if P is the 0.56 % measured, at least 8 more cycle(s) for P/sig > 3"),
+            "{words}"
+        );
+        let tiny = Component::new(
+            "B",
+            LinearPolarization::from_qu(1e-5, 0.0, 0.0056, 0.0056, Debias::WardleKronberg).pol,
+        );
+        assert!(component_words(&tiny, 3.0).ends_with("more than 50 cycles even at the measured P"));
+        assert_eq!(delta_gamma_words(13.04, 0.41), "dgamma 13.0+-0.4 deg");
+        assert_eq!(delta_gamma_words(13.4, 2.2), "dgamma 13+-2 deg");
     }
 
     /// The prediction against noise draws: with sigma_1 the error of one cycle, n cycles
