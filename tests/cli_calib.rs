@@ -117,7 +117,9 @@ fn calib_products_serve_another_night_and_uncalibrated_is_flagged_and_explained(
             "instrumental offset c = {c:.5} +- {:.5}",
             f["offset"]["sigma_c"].as_f64().unwrap()
         ),
-        "from 3 unpolarized standards: ".to_string(),
+        // c comes from every standard of the joint fit; the polarized one is not called
+        // unpolarized.
+        "from 3 standards (2 unpolarized, 1 polarized): ".to_string(),
         format!("angle zero-point theta0 = {th:.2} +- {sigma_th:.2} deg"),
         "telescope polarization".to_string(),
     ] {

@@ -192,6 +192,34 @@ fn from_standards(kind: &str, seqs: &[String]) -> String {
     format!("from {} {kind} standard{plural}: {}", seqs.len(), names.join(", "))
 }
 
+/// The standards c comes from: every standard of the joint fit, the polarized ones among
+/// them (those the angles come from) counted apart.
+fn offset_from(f: &sofipol_pipeline::calibration::FilterCalibration) -> String {
+    let n = f.offset_standards.len();
+    let polarized = f
+        .offset_standards
+        .iter()
+        .filter(|s| f.angle_standards.contains(s))
+        .count();
+    let kind = match (n - polarized, polarized) {
+        (_, 0) => "unpolarized".to_string(),
+        (0, _) => "polarized".to_string(),
+        (u, p) => format!("({u} unpolarized, {p} polarized)"),
+    };
+    let (head, tail) = if kind.starts_with('(') {
+        (String::new(), format!(" {kind}"))
+    } else {
+        (format!(" {kind}"), String::new())
+    };
+    let names: Vec<String> = f
+        .offset_standards
+        .iter()
+        .map(|s| sofipol_calib::text::printable(s).into_owned())
+        .collect();
+    let plural = if n == 1 { "" } else { "s" };
+    format!("from {n}{head} standard{plural}{tail}: {}", names.join(", "))
+}
+
 /// One filter's calibration in words.
 fn calibration_line(f: &sofipol_pipeline::calibration::FilterCalibration, profile: &Profile) -> String {
     let offset = f
@@ -203,7 +231,7 @@ fn calibration_line(f: &sofipol_pipeline::calibration::FilterCalibration, profil
                 o.sigma_c,
                 100.0 * o.c,
                 100.0 * o.sigma_c,
-                from_standards("unpolarized", &f.offset_standards)
+                offset_from(f)
             )
         })
         .unwrap_or_else(|| "instrumental offset c not measured (no unpolarized standard)".into());
