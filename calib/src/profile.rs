@@ -504,7 +504,13 @@ impl Profile {
                 t.relative_width
             ));
         }
+        let mut seen = std::collections::BTreeSet::new();
         for (name, i) in &t.filters {
+            if !seen.insert(name.trim().to_ascii_lowercase()) {
+                return err(format!(
+                    "telescope.filters.{name}: the filter is given twice (names compared ignoring case)"
+                ));
+            }
             if !(i.n.is_finite() && i.n > 0.0 && i.k.is_finite() && i.k >= 0.0) {
                 return err(format!(
                     "telescope.filters.{name}: n = {}, k = {} must be finite with n > 0 and k >= 0",
@@ -614,6 +620,42 @@ pub fn toml_value(text: &str) -> toml::Value {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The mirror's values are checked by name: NaN, out of range, a non-boolean switch or an
+    /// unknown key is refused naming the key; a filter is found ignoring case and blanks.
+    #[test]
+    fn hostile_telescope_values_are_refused_by_key() {
+        let p = Profile::sofi();
+        assert!(p.telescope.polarizes);
+        assert_eq!(p.telescope.index(" ks ").map(|i| i.n), Some(2.661));
+        assert!(p.telescope.index("NB2.17").is_none());
+        for (set, key) in [
+            ("telescope.relative_width=nan", "telescope.relative_width"),
+            ("telescope.relative_width=0", "telescope.relative_width"),
+            ("telescope.sigma_psi_deg=-1", "telescope.sigma_psi_deg"),
+            ("telescope.incidence_deg=90", "telescope.incidence_deg"),
+            ("telescope.psi_deg=inf", "telescope.psi_deg"),
+            ("telescope.filters.Ks.n=nan", "telescope.filters.Ks"),
+            ("telescope.filters.Ks.k=-2", "telescope.filters.Ks"),
+            (
+                "telescope.filters.Ks.wavelength_um=0",
+                "telescope.filters.Ks.wavelength_um",
+            ),
+            ("telescope.polarizes=3", "polarizes"),
+            ("telescope.mirror=1", "mirror"),
+        ] {
+            let e = p.with_overrides(&[set.to_string()]).expect_err(set).to_string();
+            assert!(e.contains(key), "{set}: {e}");
+        }
+        let twice = p.with_overrides(&[
+            "telescope.filters.KS.n=2.6".into(),
+            "telescope.filters.KS.k=21.0".into(),
+            "telescope.filters.KS.wavelength_um=2.2".into(),
+        ]);
+        assert!(twice.expect_err("Ks twice").to_string().contains("given twice"));
+        let off = p.with_overrides(&["telescope.polarizes=false".into()]).unwrap();
+        assert!(!off.telescope.polarizes);
+    }
 
     #[test]
     fn embedded_profile_matches_frame_format_contract() {

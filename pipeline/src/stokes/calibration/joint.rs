@@ -306,12 +306,7 @@ impl Problem<'_> {
                 break;
             }
         }
-        let (r, jac) = self.residuals(&x);
-        let cov = invert_spd(&normal_equations(&r, &jac).0)?;
-        if self.fit_theta0 {
-            x[1] = normalize_axial_deg(x[1]);
-        }
-        Some(Solution { x, cov, chi2 })
+        self.solution_at(x, chi2)
     }
 
     /// Levenberg-Marquardt from `x`: the Gauss-Newton step of `(J^T J + lambda diag(J^T J))`,
@@ -352,6 +347,12 @@ impl Problem<'_> {
                 break;
             }
         }
+        self.solution_at(x, chi2)
+    }
+
+    /// The converged fit at `x`: the inverse of the normal matrix there, theta0 folded into
+    /// [0, 180). `None` when the normal matrix is singular.
+    fn solution_at(&self, mut x: Vec<f64>, chi2: f64) -> Option<Solution> {
         let (r, jac) = self.residuals(&x);
         let cov = invert_spd(&normal_equations(&r, &jac).0)?;
         if self.fit_theta0 {
