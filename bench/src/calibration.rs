@@ -11,8 +11,8 @@
 //! ```
 //!
 //! Per night (seed) the instrument and the telescope are drawn over a realistic range
-//! (t_e, the instrumental polarization, the analyzer's zero-point, p_tel around the Fresnel
-//! value of aluminium in Ks, psi_tel near 0), each standard's true p and gamma are drawn
+//! (t_e, the instrumental polarization, the analyzer's zero-point; the telescope's term from
+//! the profile's mirror prior in Ks, [`ks_prior`]), each standard's true p and gamma are drawn
 //! from its table value and error ([`crate::standards_truth`]), and ~10 binaries with drawn
 //! separations, fluxes and polarizations fill the night. Each night is a scene file written
 //! beside its results, simulated by `sofipol simulate` and reduced by `sofipol night` in
@@ -30,11 +30,29 @@ use sofipol_pipeline::catalog::{fold_delta_gamma, Catalog, Target};
 use sofipol_pipeline::sim::truth::DetectorTruth;
 use sofipol_pipeline::sim::Scene;
 use sofipol_pipeline::standards::StandardsTable;
+use sofipol_pipeline::stokes::fresnel::TelescopePrior;
 use sofipol_pipeline::stokes::model::TelescopePolarization;
 
-/// The Fresnel polarization of a bare aluminium mirror at 45 deg in Ks (docs/calibration.md,
-/// "The Fresnel size of the term"): the centre of the drawn p_tel.
-pub const FRESNEL_P_TEL_KS: f64 = 0.0077;
+/// The mirror's prior of the telescope's term in Ks from the built-in SOFI profile
+/// (docs/calibration.md, "The mirror's prior"): each night's true term is drawn from it, so
+/// the nights vary the term over the whole range the prior claims (0.77 +- 0.15 %, 0 +- 5
+/// deg), no narrower (the errors would then be conservative) and no wider.
+pub fn ks_prior() -> TelescopePrior {
+    TelescopePrior::of(&sofipol_calib::profile::Profile::sofi().telescope, "Ks")
+        .expect("the built-in SOFI profile gives the mirror's index in Ks")
+}
+
+/// A true telescope term drawn from `prior`: Gaussian along the prior's mean direction in
+/// the (a, b) plane with width sigma_p, and across it with width p 2 sigma_psi, as the joint
+/// fit's prior rows state it. Returns (p_tel, psi_tel in deg, within [-90, 90)).
+pub fn draw_telescope(prior: &TelescopePrior, rng: &mut impl rand::Rng) -> (f64, f64) {
+    let mut z = || -> f64 { rand_distr::Distribution::sample(&rand_distr::StandardNormal, rng) };
+    let along = prior.p_tel + prior.sigma_p_tel * z();
+    let across = prior.p_tel * 2.0 * prior.sigma_psi_tel_deg.to_radians() * z();
+    let t = 2.0 * prior.psi_tel_deg.to_radians();
+    let (a, b) = (along * t.cos() - across * t.sin(), along * t.sin() + across * t.cos());
+    (a.hypot(b), wrap_deg(0.5 * b.atan2(a).to_degrees()))
+}
 
 /// The two hard cases.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -73,7 +91,7 @@ pub struct CalibrationArgs {
     #[arg(long, value_enum)]
     case: Vec<Case>,
     /// Nights (seeds) per case: --first-seed, --first-seed + 1, ...
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u64).range(1..=1000))]
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u64).range(1..=1000))]
     seeds: u64,
     /// The first seed.
     #[arg(long, default_value_t = 1)]
@@ -195,8 +213,7 @@ pub fn scene_text(case: Case, seed: u64, binaries: usize) -> anyhow::Result<(Str
     let t_e = uniform(&mut rng, 0.95, 0.99);
     let p_inst = uniform(&mut rng, 0.001, 0.004);
     let zero_point_deg = uniform(&mut rng, 0.0, 6.0);
-    let p_tel = FRESNEL_P_TEL_KS * uniform(&mut rng, 0.8, 1.2);
-    let psi_tel_deg = uniform(&mut rng, -3.0, 3.0);
+    let (p_tel, psi_tel_deg) = draw_telescope(&ks_prior(), &mut rng);
     // (name, start UT, dec range, hour-angle range at the start).
     let plan: Vec<(&str, &str, [f64; 2], [f64; 2])> = match case {
         Case::Clustered => [
@@ -863,6 +880,13 @@ pub struct CaseSummary {
     pub dgamma_all: Moments,
     /// Coverage, every binary.
     pub coverage_all: (usize, usize),
+    /// The spread of the pooled figures from night to night: the 16th and 84th percentiles
+    /// of the Delta-gamma pulls' rms and of the coverage (both passing) over resamplings of
+    /// the nights with replacement ([`night_bootstrap`]). A night's calibration is common to
+    /// its binaries, so the nights, not the binaries, are the independent draws.
+    pub dgamma_pass_rms_68: [f64; 2],
+    /// Coverage's, as fractions.
+    pub coverage_pass_68: [f64; 2],
     /// Delta-gamma pulls of binaries passing with a true Delta-gamma of 10-80 deg (away from
     /// the fold).
     pub dgamma_pass_unfolded: Moments,
@@ -902,6 +926,55 @@ pub struct CaseSummary {
     pub median_night_s: f64,
 }
 
+/// Resamplings of the nights in [`night_bootstrap`].
+const BOOTSTRAP_RESAMPLINGS: usize = 2000;
+
+/// The 16th and 84th percentiles of the rms of the Delta-gamma pulls and of the coverage of
+/// `pass` (binaries whose two components pass) over resamplings of its nights with
+/// replacement (a fixed seed: the same figures for the same nights). NaN without binaries.
+pub fn night_bootstrap(pass: &[&BinaryScore]) -> ([f64; 2], [f64; 2]) {
+    let mut by_night: BTreeMap<u64, Vec<&BinaryScore>> = BTreeMap::new();
+    for b in pass {
+        by_night.entry(b.seed).or_default().push(b);
+    }
+    let nights: Vec<Vec<&BinaryScore>> = by_night.into_values().collect();
+    if nights.is_empty() {
+        return ([f64::NAN; 2], [f64::NAN; 2]);
+    }
+    let mut rng = rand::rngs::StdRng::seed_from_u64(0xB0075);
+    let (mut rms, mut cov) = (Vec::new(), Vec::new());
+    for _ in 0..BOOTSTRAP_RESAMPLINGS {
+        let (mut sum2, mut n, mut covered, mut counted) = (0.0, 0usize, 0usize, 0usize);
+        for _ in 0..nights.len() {
+            for b in &nights[rng.random_range(0..nights.len())] {
+                if let Some(p) = b.pull.filter(|p| p.is_finite()) {
+                    sum2 += p * p;
+                    n += 1;
+                }
+                if let Some(c) = b.covered {
+                    covered += usize::from(c);
+                    counted += 1;
+                }
+            }
+        }
+        if n > 0 {
+            rms.push((sum2 / n as f64).sqrt());
+        }
+        if counted > 0 {
+            cov.push(covered as f64 / counted as f64);
+        }
+    }
+    let band = |mut v: Vec<f64>| -> [f64; 2] {
+        if v.is_empty() {
+            return [f64::NAN; 2];
+        }
+        v.sort_by(f64::total_cmp);
+        let at = |q: f64| v[((q * (v.len() - 1) as f64).round() as usize).min(v.len() - 1)];
+        [at(0.16), at(0.84)]
+    };
+    (band(rms), band(cov))
+}
+
 /// Median of the finite values (NaN for none).
 fn median(mut v: Vec<f64>) -> f64 {
     v.retain(|x| x.is_finite());
@@ -931,6 +1004,7 @@ fn summarize(case: Case, nights: &[NightScore], bins: &[BinaryScore], comps: &[C
     let all: Vec<&BinaryScore> = bins.iter().filter(|b| b.pull.is_some()).collect();
     let pulls = |v: &[&BinaryScore]| Moments::of(v.iter().filter_map(|b| b.pull));
     let cp: Vec<&ComponentScore> = comps.iter().filter(|c| c.passes_cut).collect();
+    let (dgamma_pass_rms_68, coverage_pass_68) = night_bootstrap(&pass);
     CaseSummary {
         case,
         nights: nights.len(),
@@ -944,6 +1018,8 @@ fn summarize(case: Case, nights: &[NightScore], bins: &[BinaryScore], comps: &[C
         coverage_pass: coverage(pass.iter().map(|b| b.covered)),
         dgamma_all: pulls(&all),
         coverage_all: coverage(all.iter().map(|b| b.covered)),
+        dgamma_pass_rms_68,
+        coverage_pass_68,
         dgamma_pass_unfolded: Moments::of(
             pass.iter()
                 .filter(|b| (10.0..=80.0).contains(&b.true_dgamma_deg))
@@ -1056,6 +1132,13 @@ fn print_case(s: &CaseSummary, nights: &[NightScore]) {
         s.exit_codes, s.binaries, s.binaries_measured, s.binaries_both_pass
     );
     println!("  Delta-gamma pulls, both pass the cut:    {}", moments(&s.dgamma_pass));
+    println!(
+        "    night to night (nights resampled, 68 %): rms {:.2}-{:.2}, coverage {:.0}-{:.0} %",
+        s.dgamma_pass_rms_68[0],
+        s.dgamma_pass_rms_68[1],
+        100.0 * s.coverage_pass_68[0],
+        100.0 * s.coverage_pass_68[1]
+    );
     println!(
         "    of which true Delta-gamma 10-80 deg:   {}",
         moments(&s.dgamma_pass_unfolded)
@@ -1253,12 +1336,94 @@ mod tests {
         assert!(axial_span_deg(std::iter::empty()).is_nan());
     }
 
+    impl BinaryScore {
+        fn for_test(seed: u64) -> BinaryScore {
+            BinaryScore {
+                case: Case::Clustered,
+                seed,
+                object: String::new(),
+                status: "ok".into(),
+                separation_arcsec: 2.0,
+                flux_ratio: 0.5,
+                p_true: [0.02; 2],
+                swapped: false,
+                passes_cut: [true; 2],
+                both_measured: true,
+                true_dgamma_deg: 30.0,
+                dgamma_deg: None,
+                sigma_dgamma_deg: None,
+                dgamma_interval_deg: None,
+                dgamma_source: "catalog",
+                pull: None,
+                covered: None,
+                recompute_agrees: None,
+            }
+        }
+    }
+
+    /// The night-resampled band holds the pooled value, and narrows as nights are added.
+    #[test]
+    fn night_bootstrap_brackets_the_pooled_figures() {
+        let make = |nights: u64| -> Vec<BinaryScore> {
+            let mut rng = rand::rngs::StdRng::seed_from_u64(nights);
+            (0..nights)
+                .flat_map(|seed| {
+                    // A night-common error: every binary of a night shares a shift.
+                    let shift: f64 = rand_distr::Distribution::sample(&rand_distr::StandardNormal, &mut rng);
+                    (0..10)
+                        .map(|_| {
+                            let z: f64 = rand_distr::Distribution::sample(&rand_distr::StandardNormal, &mut rng);
+                            let pull = 0.6 * z + 0.8 * shift;
+                            let mut b = BinaryScore::for_test(seed);
+                            b.pull = Some(pull);
+                            b.covered = Some(pull.abs() <= 1.0);
+                            b
+                        })
+                        .collect::<Vec<_>>()
+                })
+                .collect()
+        };
+        let width = |n: u64| {
+            let bins = make(n);
+            let refs: Vec<&BinaryScore> = bins.iter().collect();
+            let (rms, cov) = night_bootstrap(&refs);
+            let pooled = Moments::of(refs.iter().filter_map(|b| b.pull)).rms;
+            assert!(rms[0] <= pooled && pooled <= rms[1], "{rms:?} {pooled}");
+            assert!(cov[0] < cov[1]);
+            rms[1] - rms[0]
+        };
+        let (w16, w256) = (width(16), width(256));
+        assert!(w256 < 0.5 * w16, "{w16} {w256}");
+    }
+
     #[test]
     fn moments_leave_out_non_finite_values() {
         let m = Moments::of([3.0, -3.0, f64::NAN, f64::INFINITY]);
         assert_eq!(m.n, 2);
         assert!((m.rms - 3.0).abs() < 1e-12 && m.mean.abs() < 1e-12 && m.median_abs == 3.0);
         assert_eq!(median(vec![4.0, 1.0, f64::NAN, 2.0, 3.0]), 2.5);
+    }
+
+    /// The drawn term follows the prior: over many draws the mean and spread along and across
+    /// the prior's direction are its mean and widths.
+    #[test]
+    fn the_telescope_is_drawn_from_the_prior() {
+        let prior = ks_prior();
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        let n = 20000;
+        let draws: Vec<(f64, f64)> = (0..n).map(|_| draw_telescope(&prior, &mut rng)).collect();
+        let along: Vec<f64> = draws.iter().map(|(p, s)| p * (2.0 * s.to_radians()).cos()).collect();
+        let across: Vec<f64> = draws.iter().map(|(p, s)| p * (2.0 * s.to_radians()).sin()).collect();
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        let sd = |v: &[f64]| {
+            let m = mean(v);
+            (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (v.len() - 1) as f64).sqrt()
+        };
+        let width_across = prior.p_tel * 2.0 * prior.sigma_psi_tel_deg.to_radians();
+        assert!((mean(&along) - prior.p_tel).abs() < 4.0 * prior.sigma_p_tel / (n as f64).sqrt());
+        assert!(mean(&across).abs() < 4.0 * width_across / (n as f64).sqrt());
+        assert!((sd(&along) / prior.sigma_p_tel - 1.0).abs() < 0.03);
+        assert!((sd(&across) / width_across - 1.0).abs() < 0.03);
     }
 
     #[test]
@@ -1268,8 +1433,13 @@ mod tests {
                 let (a, da) = scene_text(case, seed, 10).unwrap();
                 let (b, _) = scene_text(case, seed, 10).unwrap();
                 assert_eq!(a, b);
-                assert!((0.8 * FRESNEL_P_TEL_KS..1.2 * FRESNEL_P_TEL_KS).contains(&da.p_tel));
-                assert!((-3.0..3.0).contains(&da.psi_tel_deg));
+                let prior = ks_prior();
+                assert!((da.p_tel - prior.p_tel).abs() < 5.0 * prior.sigma_p_tel, "{}", da.p_tel);
+                assert!(
+                    da.psi_tel_deg.abs() < 5.0 * prior.sigma_psi_tel_deg,
+                    "{}",
+                    da.psi_tel_deg
+                );
                 // Each standard's truth is drawn, not the table's.
                 for s in &da.standards {
                     if s.table_p > 0.005 {

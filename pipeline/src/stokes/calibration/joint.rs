@@ -198,7 +198,8 @@ impl Problem<'_> {
                     let (p, gamma) = (x[b], x[b + 1]);
                     let t = 2.0 * (self.parity * pa + theta0 - gamma).to_radians();
                     if self.fit_theta0 {
-                        row[1] = -p * t.sin() * d2;
+                        // Added to the telescope's own d/dtheta0 (set above), not in place of it.
+                        row[1] += -p * t.sin() * d2;
                     }
                     row[b] = t.cos();
                     row[b + 1] = p * t.sin() * d2;
@@ -313,8 +314,9 @@ impl Problem<'_> {
     /// lambda divided by 10 after a step that lowers chi^2 and multiplied by 10 until one
     /// does. For the fit with the telescope's prior, whose valley of (c, theta0, a, b) can
     /// be long and curved (polarized standards only): plain Gauss-Newton with step halving
-    /// stops in it short of the minimum (chi^2 2.6 where the minimum is 1.8, theta0 5 deg
-    /// off, on a simulated night). `None` when the normal matrix is singular at the end.
+    /// stopped in it short of the minimum (chi^2 2.6 where the minimum is 1.8, theta0 5 deg
+    /// off, on a simulated night; measured while the polarized standards' rows still lacked
+    /// the term's d/dtheta0). `None` when the normal matrix is singular at the end.
     fn levenberg_marquardt(&self, mut x: Vec<f64>) -> Option<Solution> {
         let mut chi2 = self.chi2(&x);
         let mut lambda = 1e-3;
