@@ -124,14 +124,12 @@ fn fits_reads_back_with_units() {
     let comp: Vec<String> = hdu.read_col(&mut f, "component").unwrap();
     let gamma: Vec<f64> = hdu.read_col(&mut f, "gamma").unwrap();
     let p: Vec<f64> = hdu.read_col(&mut f, "p").unwrap();
-    let cut: Vec<i16> = hdu.read_col(&mut f, "passes_cut").unwrap();
     let flags: Vec<String> = hdu.read_col(&mut f, "flags").unwrap();
     let exp = expected();
     assert_eq!(target.len(), exp.len());
     for (i, e) in exp.iter().enumerate() {
         assert_eq!((&target[i], &comp[i]), (&e.0, &e.1));
         assert_eq!((gamma[i], p[i]), (e.2, e.3), "doubles are stored exactly");
-        assert_eq!(cut[i] == 1, e.4);
         assert_eq!(flags[i].trim_end(), e.5);
     }
     // Units: find the gamma column's TUNITn.
@@ -140,6 +138,12 @@ fn fits_reads_back_with_units() {
         .collect();
     let gi = ttype.iter().position(|t| t == "gamma").unwrap() + 1;
     assert_eq!(hdu.read_key::<String>(&mut f, &format!("TUNIT{gi}")).unwrap(), "deg");
+    // passes_cut is a logical column (T/F), which astropy reads as bool, not an integer (its
+    // values: `astropy_reads_ecsv_and_fits`; fitsio 0.21 reads no logical column, and reading
+    // one as text crashes it).
+    let ci = ttype.iter().position(|t| t == "passes_cut").unwrap() + 1;
+    let tform = hdu.read_key::<String>(&mut f, &format!("TFORM{ci}")).unwrap();
+    assert!(tform.trim().ends_with('L'), "TFORM{ci} = {tform}");
     assert!(hdu.read_key::<String>(&mut f, "SOFTWARE").is_ok());
 }
 
@@ -162,6 +166,8 @@ assert len(a) == len(b)
 assert list(a["target"]) == [s.strip() for s in b["target"]]
 assert all(x == y for x, y in zip(a["gamma"], b["gamma"]))
 assert a["passes_cut"].dtype == bool
+assert b["passes_cut"].dtype == bool, b["passes_cut"].dtype
+assert list(a["passes_cut"]) == list(b["passes_cut"])
 print(len(a), "rows")
 "#;
     let o = Command::new(&python)

@@ -63,7 +63,7 @@ pub enum Data {
     Str(Vec<String>),
     /// Numbers (NaN where the catalog has no value).
     F64(Vec<f64>),
-    /// Booleans (FITS: int16 0/1).
+    /// Booleans (FITS: a logical column, T/F).
     Bool(Vec<bool>),
 }
 
@@ -522,6 +522,37 @@ pub fn fits_text(s: &str) -> String {
     head + &note
 }
 
+/// Column `colnum` (1-based) of the current table HDU, a logical ('L') column, written as
+/// T/F cells (astropy reads them as bool; TOPCAT as Boolean). fitsio writes no logical
+/// column, so this calls cfitsio's `ffpcll` directly.
+fn write_logical_col(f: &mut fitsio::FitsFile, colnum: usize, values: &[bool]) -> Result<(), fitsio::errors::Error> {
+    if values.is_empty() {
+        return Ok(());
+    }
+    let mut cells: Vec<std::os::raw::c_char> = values
+        .iter()
+        .map(|&b| std::os::raw::c_char::from(b as u8 as i8))
+        .collect();
+    let colnum = i32::try_from(colnum).map_err(|_| fitsio::errors::Error::Message(format!("column {colnum}")))?;
+    let mut status = 0;
+    // SAFETY: `f` is an open file whose current HDU is the table just created (every
+    // `write_col` before this one made it current); `cells` holds `cells.len()` elements,
+    // which cfitsio reads and does not keep; `status` outlives the call.
+    #[allow(unsafe_code)]
+    unsafe {
+        fitsio::sys::ffpcll(
+            f.as_raw(),
+            colnum,
+            1,
+            1,
+            cells.len() as i64,
+            cells.as_mut_ptr(),
+            &mut status,
+        );
+    }
+    fitsio::errors::check_status(status)
+}
+
 fn write_fits(t: &Table, path: &Path) -> Result<(), fitsio::errors::Error> {
     use fitsio::tables::{ColumnDataType, ColumnDescription};
     let mut f = fitsio::FitsFile::create(path).open()?;
@@ -537,7 +568,7 @@ fn write_fits(t: &Table, path: &Path) -> Result<(), fitsio::errors::Error> {
                 d.with_type(ColumnDataType::Double);
             }
             Data::Bool(_) => {
-                d.with_type(ColumnDataType::Short);
+                d.with_type(ColumnDataType::Logical);
             }
         }
         descs.push(d.create()?);
@@ -552,10 +583,7 @@ fn write_fits(t: &Table, path: &Path) -> Result<(), fitsio::errors::Error> {
             Data::F64(v) => {
                 hdu.write_col(&mut f, c.name, v)?;
             }
-            Data::Bool(v) => {
-                let ints: Vec<i16> = v.iter().map(|&b| b as i16).collect();
-                hdu.write_col(&mut f, c.name, &ints)?;
-            }
+            Data::Bool(v) => write_logical_col(&mut f, i + 1, v)?,
         }
         if !c.unit.is_empty() {
             hdu.write_key(&mut f, &format!("TUNIT{}", i + 1), c.unit)?;

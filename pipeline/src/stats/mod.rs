@@ -79,9 +79,13 @@ pub struct TestOutcome {
     pub method: String,
 }
 
-/// p-value as text: 4 decimals, or scientific below 1e-4.
+/// p-value as text: 4 decimals, or scientific below 1e-4; a p-value that came out 0 (the
+/// distribution's tail below the smallest double) as `< 1e-300`, never "0.0e0", which reads
+/// as a certainty the test cannot give.
 pub fn format_p(p: f64) -> String {
-    if p < 1e-4 {
+    if p <= 0.0 {
+        "< 1e-300".into()
+    } else if p < 1e-4 {
         format!("{p:.1e}")
     } else {
         format!("{p:.4}")

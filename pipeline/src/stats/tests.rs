@@ -1183,3 +1183,15 @@ fn bad_p_of_i_files_are_refused_naming_file_line_and_value() {
         .to_string();
     assert!(err.contains("missing.csv"), "{err}");
 }
+
+/// A p-value of exactly 0 (the Kolmogorov tail below the smallest double: a sample that
+/// rejects the model beyond any doubt the double can hold) reads as a bound, not "0.0e0";
+/// the others as before.
+#[test]
+fn a_p_value_of_zero_is_printed_as_a_bound() {
+    let (p, _) = kolmogorov_sf(1.0, 2000);
+    assert_eq!(p, 0.0, "the series underflows at D = 1, n = 2000");
+    assert_eq!(super::format_p(p), "< 1e-300");
+    assert_eq!(super::format_p(0.5), "0.5000");
+    assert_eq!(super::format_p(2.5e-7), "2.5e-7");
+}
