@@ -237,6 +237,9 @@ pub struct Panel {
     pub notes: Vec<String>,
     /// Label only integer y ticks (count axes).
     pub integer_y: bool,
+    /// Names of the rows y = 1, 2, ...: every integer y tick is labelled with its name
+    /// instead of the number (one row per object, e.g. binaries); empty: numbers.
+    pub y_names: Vec<String>,
 }
 
 impl Panel {
@@ -252,6 +255,7 @@ impl Panel {
             legend: LegendPos::UpperRight,
             notes: Vec::new(),
             integer_y: false,
+            y_names: Vec::new(),
         }
     }
     /// Add a series.
@@ -462,6 +466,18 @@ impl Figure {
     }
 }
 
+/// Characters of a row name on the y axis ([`Panel::y_names`]).
+const NAME_LABEL_CHARS: usize = 14;
+
+/// `s` cut to `n` characters, the cut marked with an ellipsis.
+fn truncate_label(s: &str, n: usize) -> String {
+    if s.chars().count() <= n {
+        s.to_string()
+    } else {
+        s.chars().take(n - 1).chain(std::iter::once('…')).collect()
+    }
+}
+
 fn draw_panel<DB: DrawingBackend>(panel: &Panel, cell: &DrawingArea<DB, plotters::coord::Shift>) -> Result<()>
 where
     DB::ErrorType: 'static,
@@ -471,23 +487,44 @@ where
         .caption(&panel.title, (FONT, 20))
         .margin(12)
         .x_label_area_size(44)
-        .y_label_area_size(64)
+        .y_label_area_size(if panel.y_names.is_empty() { 64 } else { 118 })
         .build_cartesian_2d(x0..x1, y0..y1)
         .map_err(draw_err(&panel.title))?;
     let fmt = |v: &f64| tick(*v);
-    let integer_y = panel.integer_y;
+    let integer_y = panel.integer_y || !panel.y_names.is_empty();
+    let names = &panel.y_names;
     let yfmt = move |v: &f64| {
         if integer_y && (v.fract().abs() > 1e-9) {
             String::new()
+        } else if !names.is_empty() {
+            // Row k (1-based) by name, cut to what the label area holds.
+            let k = v.round() as i64;
+            usize::try_from(k - 1)
+                .ok()
+                .and_then(|i| names.get(i))
+                .map(|n| truncate_label(n, NAME_LABEL_CHARS))
+                .unwrap_or_default()
         } else {
             tick(*v)
+        }
+    };
+    // Every row named: one tick per integer (plotters would otherwise choose ~10), the font
+    // no taller than a row (the plot area is the cell less ~100 px of caption and axis), at
+    // least 5 px: small in a PNG of many rows, legible when the SVG is zoomed.
+    let (y_ticks, y_font) = match names.len() {
+        0 => (10, 15),
+        n => {
+            let row_px = (f64::from(cell.dim_in_pixel().1) - 100.0).max(50.0) / (n + 1) as f64;
+            (n + 2, row_px.clamp(5.0, 15.0).floor() as u32)
         }
     };
     chart
         .configure_mesh()
         .x_desc(panel.xlabel.as_str())
         .y_desc(panel.ylabel.as_str())
+        .y_labels(y_ticks)
         .label_style((FONT, 15))
+        .y_label_style((FONT, y_font))
         .axis_desc_style((FONT, 17))
         .x_label_formatter(&fmt)
         .y_label_formatter(&yfmt)

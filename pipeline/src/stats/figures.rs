@@ -315,6 +315,8 @@ fn error_bar_panel(sample: &BinarySample) -> Panel {
     .y_range(0.0, n as f64 + 1.0)
     .legend(LegendPos::None);
     c.integer_y = true;
+    // Each row named by its object, so that a reader finds a binary without the table.
+    c.y_names = rows.iter().map(|b| b.object.clone()).collect();
     let segment = |x: [f64; 2], y: [f64; 2], color, width| {
         Series::line("", x.to_vec(), y.to_vec())
             .color(color)
@@ -402,6 +404,45 @@ mod tests {
                 _ => None,
             })
             .collect()
+    }
+
+    /// Panel [C] names each row by its binary (sorted by Delta-gamma), not 1..n: the names
+    /// are the y tick labels of the drawn figure.
+    #[test]
+    fn panel_c_names_the_binaries() {
+        let sample = BinarySample {
+            binaries: vec![
+                binary("HK Tau", 40.0, Some(3.0), Some([37.2, 43.1])),
+                binary("V773 Tau", 4.0, Some(6.0), Some([1.5, 11.0])),
+                binary("A very long binary name", 60.0, Some(2.0), None),
+            ],
+            excluded: vec![],
+            warnings: vec![],
+            all_sigma_p_percent: vec![],
+        };
+        let c = error_bar_panel(&sample);
+        assert_eq!(c.y_names, ["V773 Tau", "HK Tau", "A very long binary name"]);
+        let svg = crate::plots::Figure {
+            title: None,
+            panels: vec![c],
+            cols: 1,
+            panel_size: (640, 420),
+        }
+        .render_svg()
+        .unwrap();
+        let labels: Vec<&str> = svg
+            .split("<text")
+            .skip(1)
+            .filter_map(|t| t.split('>').nth(1).and_then(|x| x.split('<').next()))
+            .map(str::trim)
+            .collect();
+        for name in ["V773 Tau", "HK Tau", "A very long b…"] {
+            assert!(labels.contains(&name), "{name} not among the labels {labels:?}");
+        }
+        // No row numbered instead.
+        for k in ["1", "2", "3"] {
+            assert!(!labels.contains(&k), "row number {k} drawn: {labels:?}");
+        }
     }
 
     /// Panel [C] draws each binary's +-sigma and its 68 % interval, both: an asymmetric
