@@ -170,7 +170,7 @@ fn moffat_fraction(fwhm: f64, beta: f64, r: f64) -> f64 {
 const POSANGS: [f64; 4] = [0.0, 45.0, 90.0, 135.0];
 
 /// The combined o image's flux within 5 FWHM equals the simulated o flux of the star (times
-/// the Moffat fraction inside) within 4 sigma of the VARIANCE summed there; its target
+/// the Moffat fraction inside) within 4 sigma of the UNCERT (variance) summed there; its target
 /// sits where its header says; the e image's star is where the o one is plus the shift the
 /// Stokes maps bring it back by.
 #[test]
@@ -238,7 +238,7 @@ fn combined_images_keep_the_flux_and_register_o_and_e() {
     }
 }
 
-/// The VARIANCE extension is the variance of the pixels: on blank sky (the cut-outs'
+/// The UNCERT extension (a variance) is the variance of the pixels: on blank sky (the cut-outs'
 /// corners, far from the star) the mean of value^2 / variance is 1.
 #[test]
 fn the_variance_extension_matches_the_scatter_of_blank_sky() {
@@ -264,7 +264,7 @@ fn the_variance_extension_matches_the_scatter_of_blank_sky() {
     // sqrt(2/n) = 0.03 of scatter: 0.85..1.15 is 5 sigma.
     assert!(
         (ratio - 1.0).abs() < 0.15,
-        "scatter^2 / VARIANCE = {ratio} over {n} pixels"
+        "scatter^2 / UNCERT = {ratio} over {n} pixels"
     );
 }
 
@@ -485,7 +485,8 @@ fn the_night_mask_is_read_back_by_badpix() {
 }
 
 /// astropy opens the products: extension names, data types and shapes, the HIERARCH cards
-/// and HISTORY.
+/// and HISTORY; `CCDData.read` with its defaults gets the data, the variance (as a
+/// `VarianceUncertainty`), the mask and the unit of a cut-out and of the Stokes maps.
 #[test]
 fn astropy_opens_the_products() {
     let Some(python) = common::python_with("astropy", "astropy_opens_the_products") else {
@@ -494,20 +495,34 @@ fn astropy_opens_the_products() {
     let (_, _, dir) = reduced();
     let script = r#"
 import sys
+import numpy as np
 from astropy.io import fits
+from astropy.nddata import CCDData, VarianceUncertainty
+import astropy.units as u
 with fits.open(sys.argv[1]) as h:
-    assert [x.name for x in h] == ["PRIMARY", "VARIANCE", "MASK", "NCOMBINE"], [x.name for x in h]
+    assert [x.name for x in h] == ["PRIMARY", "UNCERT", "MASK", "NCOMBINE"], [x.name for x in h]
     p = h[0].header
     assert p["ESO PRO CATG"] == "SOFIPOL_COMBINED_O", p["ESO PRO CATG"]
     assert p["SOFIPROD"] == "COMBINED" and p["BUNIT"] == "adu" and p["OBJECT"] == "Solo"
     assert p["HIERARCH ESO QC NDITHER"] == 3
     assert any("register" in str(c) for c in p["HISTORY"])
-    assert h[0].data.shape == h["VARIANCE"].data.shape == h["MASK"].data.shape
+    assert h[0].data.shape == h["UNCERT"].data.shape == h["MASK"].data.shape
     assert h["MASK"].data.dtype.name == "uint8" and h[0].data.dtype.name.startswith("float")
-    assert h["VARIANCE"].header["BUNIT"] == "adu2"
+    assert h["UNCERT"].header["BUNIT"] == "adu2"
+    assert h["UNCERT"].header["UTYPE"] == "VarianceUncertainty"
+    var, mask, data = h["UNCERT"].data, h["MASK"].data, h[0].data
+# CCDData with astropy's defaults: data, its variance, the mask and the unit.
+for path in sys.argv[1:3]:
+    c = CCDData.read(path)
+    assert c.unit == u.adu, (path, c.unit)
+    assert isinstance(c.uncertainty, VarianceUncertainty), (path, type(c.uncertainty))
+    assert c.mask is not None and c.mask.shape == c.data.shape, path
+c = CCDData.read(sys.argv[1])
+assert np.array_equal(c.uncertainty.array, var, equal_nan=True)
+assert np.array_equal(c.mask, mask != 0) and np.array_equal(c.data, data, equal_nan=True)
 with fits.open(sys.argv[2]) as h:
     names = [x.name for x in h]
-    assert names == ["PRIMARY", "Q", "U", "VARIANCE", "VAR_Q", "VAR_U", "COV_QU", "MASK"], names
+    assert names == ["PRIMARY", "Q", "U", "UNCERT", "VAR_Q", "VAR_U", "COV_QU", "MASK"], names
     assert h[0].header["ESO PRO CATG"] == "SOFIPOL_STOKES_IQU"
     assert h[0].header["POLCALIB"] is False
 with fits.open(sys.argv[3]) as h:

@@ -48,7 +48,7 @@ pub struct Args {
 /// built on another branch (`calib::flat::build_flats` / `write_flat`); when that lands,
 /// call it here and return the written file names so that `calibration.json` lists them.
 /// The night's flats (dome flats per rotator angle and filter, else superflats from the
-/// science frames), written into `caldir` as FITS with VARIANCE and MASK extensions (they
+/// science frames), written into `caldir` as FITS with UNCERT (variance) and MASK extensions (they
 /// open in DS9; `--flat FILE` takes one back). Returns the file names written.
 fn build_flat_products(flats: &night::NightFlats, caldir: &Path) -> anyhow::Result<Vec<String>> {
     use sofipol_calib::flat::{flat_file_name, write_flat};

@@ -90,7 +90,7 @@ pub struct ReduceArgs {
     /// "SEP_ARCSEC,PA_DEG", a hint [default: none, the companion is searched for].
     #[arg(long, value_name = "ARCSEC,DEG")]
     pub companion: Option<String>,
-    /// Write sky-subtracted FITS (with VARIANCE and MASK) into this directory [default:
+    /// Write sky-subtracted FITS (with UNCERT, the variance, and MASK) into this directory [default:
     /// none, not written].
     #[arg(long, value_name = "DIR")]
     pub save_intermediate: Option<PathBuf>,

@@ -69,8 +69,14 @@ pub struct WriteOptions {
     pub with_variance_and_mask: bool,
 }
 
-/// EXTNAME of the variance extension written by [`write_frame`].
-pub const VARIANCE_EXTNAME: &str = "VARIANCE";
+/// EXTNAME of the variance extension written by [`write_frame`] and the products: astropy's
+/// `CCDData.read` takes the extension `UNCERT` as the uncertainty of the primary image, of the
+/// kind its `UTYPE` card names ([`VARIANCE_UTYPE`]).
+pub const VARIANCE_EXTNAME: &str = "UNCERT";
+/// `UTYPE` of the variance extension: astropy's class of a variance.
+pub const VARIANCE_UTYPE: &str = "VarianceUncertainty";
+/// The variance extension's name in files sofipol wrote before (still read, as a variance).
+pub const LEGACY_VARIANCE_EXTNAME: &str = "VARIANCE";
 /// EXTNAME of the mask extension written by [`write_frame`].
 pub const MASK_EXTNAME: &str = "MASK";
 /// Maximum number of characters of text written on one HISTORY card.

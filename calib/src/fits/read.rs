@@ -12,7 +12,7 @@ use crate::header::{Header, HeaderValue};
 use super::cards::*;
 use super::cfitsio::*;
 use super::keys::{is_compressed, raw_int, raw_value};
-use super::{to_array, MASK_EXTNAME, VARIANCE_EXTNAME};
+use super::{to_array, LEGACY_VARIANCE_EXTNAME, MASK_EXTNAME, VARIANCE_EXTNAME, VARIANCE_UTYPE};
 
 /// Read the header of the image HDU only (see the module documentation for which HDU).
 ///
@@ -154,9 +154,10 @@ fn read_rows_inner(
     let mut i = hdu_index + 1;
     while let Some(cards) = hdu_cards(&mut f, path, i)? {
         match extname(&cards).as_deref() {
-            Some(VARIANCE_EXTNAME) if variance.is_none() => {
-                check_same_shape(&cards, path, VARIANCE_EXTNAME, (ny_full, nx))?;
-                variance = Some(read(&mut f, i)?);
+            Some(name @ (VARIANCE_EXTNAME | LEGACY_VARIANCE_EXTNAME)) if variance.is_none() => {
+                check_same_shape(&cards, path, name, (ny_full, nx))?;
+                let kind = uncertainty_kind(&cards, name, path)?;
+                variance = Some(kind.to_variance(read(&mut f, i)?));
             }
             Some(MASK_EXTNAME) if mask.is_none() => {
                 check_same_shape(&cards, path, MASK_EXTNAME, (ny_full, nx))?;
@@ -412,6 +413,52 @@ pub(super) fn check_extension_shape(path: &Path, name: &str, got: (usize, usize)
         });
     }
     Ok(())
+}
+
+/// What an uncertainty extension holds, as astropy's `UTYPE` names it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum UncertaintyKind {
+    /// `VarianceUncertainty` (sofipol's, and `VARIANCE` extensions).
+    Variance,
+    /// `StdDevUncertainty` (astropy's default for an `UNCERT` without `UTYPE`).
+    StdDev,
+    /// `InverseVariance`.
+    InverseVariance,
+}
+
+impl UncertaintyKind {
+    /// The extension's values as variances.
+    pub(super) fn to_variance(self, mut v: Array2<f32>) -> Array2<f32> {
+        match self {
+            UncertaintyKind::Variance => {}
+            UncertaintyKind::StdDev => v.mapv_inplace(|s| s * s),
+            UncertaintyKind::InverseVariance => v.mapv_inplace(|w| 1.0 / w),
+        }
+        v
+    }
+}
+
+/// The kind of the uncertainty extension `name` from its `UTYPE` card: `VARIANCE` holds
+/// variances; `UNCERT` what its `UTYPE` says, a standard deviation without one (as astropy
+/// reads it). Another `UTYPE` is refused, naming the file and the value.
+pub(super) fn uncertainty_kind(cards: &[String], name: &str, path: &Path) -> Result<UncertaintyKind> {
+    let utype = match raw_value(cards, "UTYPE") {
+        Some(HeaderValue::Str(s)) => Some(s.trim().to_string()),
+        _ => None,
+    };
+    match (name, utype.as_deref()) {
+        (_, Some(VARIANCE_UTYPE)) => Ok(UncertaintyKind::Variance),
+        (LEGACY_VARIANCE_EXTNAME, None) => Ok(UncertaintyKind::Variance),
+        (_, Some("StdDevUncertainty")) | (_, None) => Ok(UncertaintyKind::StdDev),
+        (_, Some("InverseVariance")) => Ok(UncertaintyKind::InverseVariance),
+        (_, Some(other)) => Err(Error::BadImage {
+            path: path.to_path_buf(),
+            reason: format!(
+                "{name} extension: UTYPE = '{other}' is not an uncertainty sofipol reads \
+                 (VarianceUncertainty, StdDevUncertainty or InverseVariance)"
+            ),
+        }),
+    }
 }
 
 pub(super) fn extname(cards: &[String]) -> Option<String> {

@@ -212,7 +212,7 @@ fn a_corrupt_naxis_larger_than_the_file_is_refused_before_allocating() {
 }
 
 /// `read_frame_rows` gives the frame `read_frame(..).crop_rows(..)` gives: 16-bit, tile
-/// compressed, and float with VARIANCE and MASK extensions; too-short images stay whole.
+/// compressed, and float with UNCERT and MASK extensions; too-short images stay whole.
 #[test]
 fn read_frame_rows_equals_read_then_crop() {
     use super::{read_frame, read_frame_rows, write_frame};
@@ -404,4 +404,100 @@ fn write_images_writes_every_hdu_with_its_cards() {
         .map(|e| e.unwrap().file_name())
         .collect();
     assert_eq!(names, vec![std::ffi::OsString::from("product.fits")]);
+}
+
+/// The variance is written as astropy's `CCDData` reads an uncertainty (extension `UNCERT`,
+/// `UTYPE` = 'VarianceUncertainty'); an `UNCERT` written by another tool is read as the kind
+/// its `UTYPE` says (a standard deviation without one, as astropy does), a legacy `VARIANCE`
+/// as a variance, and an unknown `UTYPE` is refused naming the file and the value.
+#[test]
+fn the_uncertainty_extension_is_read_as_its_utype_says() {
+    use super::{write_frame, write_images, ImageHdu, ImagePixels, VARIANCE_EXTNAME, VARIANCE_UTYPE};
+    let dir = tempfile::tempdir().unwrap();
+    let data = ndarray::Array2::from_shape_fn((4, 6), |(y, x)| (y * 6 + x) as f32);
+    let sigma = data.mapv(|v| 0.5 + v);
+    // write_frame: UNCERT with UTYPE, read back as the same variance.
+    let mut frame = read_frame(Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../testdata/fits/sofi_pol_64x64_i16.fits"
+    )))
+    .unwrap();
+    frame.variance = Some(frame.data.mapv(|v| v.abs() + 2.0));
+    let written = dir.path().join("frame.fits");
+    let opts = super::WriteOptions {
+        with_variance_and_mask: true,
+        ..Default::default()
+    };
+    write_frame(&written, &frame, &opts).unwrap();
+    let mut f = fitsio::FitsFile::open(&written).unwrap();
+    let hdu = f.hdu(VARIANCE_EXTNAME).unwrap();
+    assert_eq!(hdu.read_key::<String>(&mut f, "UTYPE").unwrap(), VARIANCE_UTYPE);
+    assert_eq!(read_frame(&written).unwrap().variance, frame.variance);
+    // Foreign files: (EXTNAME, UTYPE, values) -> the variance read.
+    let inverse = sigma.mapv(|s| 1.0 / (s * s));
+    let cases: [(&str, Option<&str>, &ndarray::Array2<f32>); 4] = [
+        ("UNCERT", Some("StdDevUncertainty"), &sigma),
+        ("UNCERT", None, &sigma),
+        ("UNCERT", Some("InverseVariance"), &inverse),
+        ("VARIANCE", None, &sigma),
+    ];
+    for (k, (name, utype, values)) in cases.into_iter().enumerate() {
+        let path = dir.path().join(format!("foreign{k}.fits"));
+        let mut hu = crate::Header::new("");
+        if let Some(u) = utype {
+            hu.set("UTYPE", u);
+        }
+        let empty = crate::Header::new("");
+        write_images(
+            &path,
+            &[
+                ImageHdu {
+                    extname: "",
+                    header: &empty,
+                    history: &[],
+                    pixels: ImagePixels::F32(&data),
+                },
+                ImageHdu {
+                    extname: name,
+                    header: &hu,
+                    history: &[],
+                    pixels: ImagePixels::F32(values),
+                },
+            ],
+        )
+        .unwrap();
+        let var = read_frame(&path).unwrap().variance.unwrap();
+        let want = if name == "VARIANCE" {
+            sigma.clone()
+        } else {
+            sigma.mapv(|s| s * s)
+        };
+        for (a, b) in var.iter().zip(want.iter()) {
+            assert!((a - b).abs() <= 1e-5 * b.abs(), "{name} {utype:?}: {a} vs {b}");
+        }
+    }
+    let path = dir.path().join("unknown.fits");
+    let mut hu = crate::Header::new("");
+    hu.set("UTYPE", "Smoothness");
+    let empty = crate::Header::new("");
+    write_images(
+        &path,
+        &[
+            ImageHdu {
+                extname: "",
+                header: &empty,
+                history: &[],
+                pixels: ImagePixels::F32(&data),
+            },
+            ImageHdu {
+                extname: "UNCERT",
+                header: &hu,
+                history: &[],
+                pixels: ImagePixels::F32(&sigma),
+            },
+        ],
+    )
+    .unwrap();
+    let err = read_frame(&path).unwrap_err().to_string();
+    assert!(err.contains("unknown.fits") && err.contains("Smoothness"), "{err}");
 }

@@ -13,7 +13,7 @@ use crate::frame::Frame;
 use super::cards::*;
 use super::cfitsio::*;
 use super::read::check_extension_shape;
-use super::{Bitpix, WriteOptions, MASK_EXTNAME, VARIANCE_EXTNAME};
+use super::{Bitpix, WriteOptions, MASK_EXTNAME, VARIANCE_EXTNAME, VARIANCE_UTYPE};
 
 /// Write a frame atomically: the file is written to a temporary file in a fresh private
 /// directory next to `path` ([`crate::atomic::TempFile`]: random name, mode 0700),
@@ -141,9 +141,11 @@ pub fn write_frame(path: &Path, frame: &Frame, opts: &WriteOptions) -> Result<()
                 };
                 let h = f
                     .create_image(VARIANCE_EXTNAME, &d)
-                    .map_err(|e| ferr("creating VARIANCE", e))?;
+                    .map_err(|e| ferr("creating UNCERT", e))?;
+                h.write_key(&mut f, "UTYPE", VARIANCE_UTYPE)
+                    .map_err(|e| ferr("writing UTYPE", e))?;
                 h.write_image(&mut f, &contiguous(v))
-                    .map_err(|e| ferr("writing VARIANCE", e))?;
+                    .map_err(|e| ferr("writing UNCERT", e))?;
             }
             let d = ImageDescription {
                 data_type: ImageType::UnsignedByte,

@@ -20,7 +20,7 @@ pub fn flat_file_name(flat: &Flat) -> String {
     }
 }
 
-/// Write a flat as FITS (atomically): the response in the primary HDU, VARIANCE and MASK
+/// Write a flat as FITS (atomically): the response in the primary HDU, UNCERT (variance) and MASK
 /// (1 = unusable) extensions, kind / angle / filter / frame count in the header, the
 /// detail and the files combined as HISTORY.
 pub fn write_flat(path: &Path, flat: &Flat) -> Result<()> {
@@ -60,8 +60,8 @@ pub fn write_flat(path: &Path, flat: &Flat) -> Result<()> {
 }
 
 /// Read a flat written by [`write_flat`], or any FITS image of the pixel response (then:
-/// kind superflat unless the header says otherwise, variance 0 when there is no VARIANCE
-/// extension, unusable where MASK is nonzero or the value is not finite or <= 0). The
+/// kind superflat unless the header says otherwise, variance 0 when there is no UNCERT (or
+/// legacy VARIANCE) extension, unusable where MASK is nonzero or the value is not finite or <= 0). The
 /// data are used as they are (not renormalized).
 pub fn read_flat(path: &Path) -> Result<Flat> {
     let f = crate::fits::read_frame(path)?;

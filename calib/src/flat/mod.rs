@@ -24,7 +24,7 @@
 //! variance therefore enters as `max(data - L, 0)^2 var_flat / flat^2`, L the strip's sky
 //! level. Off-strip rows (blocked by the focal mask) have flat 1 and variance 0.
 //!
-//! Flats are written as FITS ([`write_flat`]: the response in the primary HDU, VARIANCE
+//! Flats are written as FITS ([`write_flat`]: the response in the primary HDU, UNCERT
 //! and MASK extensions, what they were made of in the header and HISTORY: they open in
 //! DS9) and read back with [`read_flat`].
 use std::path::PathBuf;

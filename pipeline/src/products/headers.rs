@@ -151,6 +151,19 @@ pub fn extension_header(bunit: Option<&str>, what: &str) -> Header {
     h
 }
 
+/// The header of a variance extension (`UNCERT`): `BUNIT` adu2, `UTYPE` =
+/// 'VarianceUncertainty' (what astropy's `CCDData.read` needs to take it as the variance of the
+/// primary image) and a one-line description.
+pub fn variance_header(what: &str) -> Header {
+    let mut h = extension_header(Some("adu2"), what);
+    h.set_with_comment(
+        "UTYPE",
+        sofipol_calib::fits::VARIANCE_UTYPE,
+        "astropy uncertainty class of this extension",
+    );
+    h
+}
+
 /// The comment of a `BUNIT` card.
 pub fn unit_comment(unit: &str) -> &'static str {
     match unit {

@@ -5,7 +5,7 @@
 //! ```text
 //! per target, per orientation   <slug>_pa<angle>_o.fits, _e.fits   combine.rs
 //!     the dithers of one beam registered on the target by whole pixels and combined
-//!     (inverse-variance weighted mean; VARIANCE, MASK, NCOMBINE extensions)
+//!     (inverse-variance weighted mean; UNCERT (variance), MASK, NCOMBINE extensions)
 //! per target                    <slug>_stokes.fits                 stokes_maps.rs
 //!     o and e onto one grid (Lanczos-3, at the measured e-o offset), Stokes I, Q, U by the
 //!     catalog's least squares per pixel; instrumental (before the night's calibration)

@@ -314,8 +314,8 @@ fn write_beam(
                 pixels: ImagePixels::F32(&stack.data),
             },
             ImageHdu {
-                extname: "VARIANCE",
-                header: &headers::extension_header(Some("adu2"), "variance of the combined image"),
+                extname: sofipol_calib::fits::VARIANCE_EXTNAME,
+                header: &headers::variance_header("variance of the combined image"),
                 history: &[],
                 pixels: ImagePixels::F32(&stack.variance),
             },
@@ -385,7 +385,7 @@ fn combine_record(stack: &BeamStack) -> HistoryRecord {
             "{} dithers: weighted mean over the usable dithers of each pixel (BAD, COSMIC, SATURATED, \
              OFF_STRIP and non-finite pixels left out), one weight per dither, w = 1/b, b its background \
              variance (the median of its variance over the cut-out; a pixel's own variance holds the \
-             star's photon noise and would bias the star's flux): value = sum(w v)/sum(w); VARIANCE = \
+             star's photon noise and would bias the star's flux): value = sum(w v)/sum(w); UNCERT (variance) = \
              sum(w^2 var)/sum(w)^2 (1/sum(w) on the sky); MASK = 1 where no dither is usable; NCOMBINE = \
              the dithers at each pixel",
             stack.anchors.len()
@@ -416,8 +416,8 @@ fn write_stokes(
             ImagePixels::F32(&mp.u),
         ),
         (
-            "VARIANCE",
-            ext(Some("adu2"), "variance of I"),
+            sofipol_calib::fits::VARIANCE_EXTNAME,
+            headers::variance_header("variance of I"),
             ImagePixels::F32(&mp.var_i),
         ),
         ("VAR_Q", ext(Some("adu2"), "variance of Q"), ImagePixels::F32(&mp.var_q)),
@@ -556,7 +556,7 @@ fn stokes_history(p: &TargetProducts, s: &StokesProduct) -> Vec<HistoryRecord> {
          the catalog's weighted least squares (stokes::inversion::fit_qu) with one weight per \
          orientation, 1/B_k, B_k the median of V_k = a_k^2 (var_o' + var_e') (a pixel's own variance \
          would bias the star); Q = sum c_k D_k, VAR_Q = sum c_k^2 V_k (U, VAR_U, COV_QU alike); I = \
-         sum(a_k (o' + e')/B_k)/sum(1/B_k), VARIANCE = sum(V_k/B_k^2)/sum(1/B_k)^2; MASK = 1 where the \
+         sum(a_k (o' + e')/B_k)/sum(1/B_k), UNCERT (variance of I) = sum(V_k/B_k^2)/sum(1/B_k)^2; MASK = 1 where the \
          usable orientations do not constrain Q and U. Over an aperture, sum(Q)/sum(I) is the \
          least-squares q of the aperture's F_k: the star's q before the night calibration",
     ));

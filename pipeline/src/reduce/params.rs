@@ -126,7 +126,7 @@ pub struct TargetParams {
     pub calib_mask: Option<PathBuf>,
     /// Do not detect bad pixels from the data (use only the calibration mask).
     pub no_detect_bad_pixels: bool,
-    /// Write sky-subtracted FITS frames (data, VARIANCE, MASK) into this directory.
+    /// Write sky-subtracted FITS frames (data, UNCERT (variance), MASK) into this directory.
     pub save_intermediate: Option<PathBuf>,
     /// Sky-subtract whole frames. By default only the target strips (o-target and
     /// e-target rows, all the measurement uses) are sky-subtracted, about a third of the

@@ -593,7 +593,7 @@ fn subtract_sky(
     cal
 }
 
-/// Write the sky-subtracted frames (data, VARIANCE, MASK) into `dir` as `<name>_skysub.fits`.
+/// Write the sky-subtracted frames (data, UNCERT (variance), MASK) into `dir` as `<name>_skysub.fits`.
 fn save_intermediates(cal: &[SkySubtractedOrientation], dir: &Path, flags: &mut Vec<Flag>) {
     let opts = fits::WriteOptions {
         with_variance_and_mask: true,
