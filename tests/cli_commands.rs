@@ -18,6 +18,15 @@ fn demo_simulates_reduces_checks_and_writes_figures() {
     let cat = json(&out.join("catalog.json"));
     let targets = cat["targets"].as_array().unwrap();
     assert_eq!(targets.len(), 5);
+    // The science product in the table (one Delta-gamma line per binary, with the
+    // catalog's value where both stars pass), and where to go next.
+    assert_eq!(stdout.matches("Delta-gamma true").count(), 5, "{stdout}");
+    for t in targets {
+        if let Some(dg) = t["delta_gamma_deg"].as_f64() {
+            assert!(stdout.contains(&format!("found {dg:.1} +- ")), "{dg}: {stdout}");
+        }
+    }
+    assert!(stdout.contains("next: sofipol report"), "{stdout}");
     // The provenance names the commit `--version` prints (docs/cli.md).
     let (_, version, _) = run(&["--version"]);
     let commit = cat["provenance"]["commit"].as_str().unwrap_or("(none)");

@@ -128,9 +128,42 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 if c.passes_cut { "pass" } else { "fail (P/sigma <= 3)" }
             );
         }
+        // The science product: the binary's angle difference against the truth.
+        if tt.components.len() == 2 {
+            let truth_dg =
+                sofipol_pipeline::catalog::fold_delta_gamma(tt.components[0].gamma_deg, tt.components[1].gamma_deg);
+            match (t.delta_gamma_deg, t.sigma_delta_gamma_deg) {
+                (Some(dg), Some(s)) if s > 0.0 => println!(
+                    "  {:<11} {:>5} {:>4} | Delta-gamma true {:.1} deg, found {:.1} +- {:.1} deg (pull {:+.1})",
+                    "",
+                    "",
+                    "",
+                    truth_dg,
+                    dg,
+                    s,
+                    (dg - truth_dg) / s
+                ),
+                (Some(dg), _) => println!(
+                    "  {:<11} {:>5} {:>4} | Delta-gamma true {:.1} deg, found {:.1} deg",
+                    "", "", "", truth_dg, dg
+                ),
+                (None, _) => println!(
+                    "  {:<11} {:>5} {:>4} | Delta-gamma true {:.1} deg, none (a component fails the cut)",
+                    "", "", "", truth_dg
+                ),
+            }
+        }
     }
     println!("\n  (Pdb: P debiased (Wardle & Kronberg); P: not debiased, as in `sofipol night`; pulls use P.)");
     println!("  catalog: {}   figures: {}", cat_path.display(), fig_dir.display());
+    println!(
+        "  next: sofipol report {cat} -o {dir}/report.html   (the night on one page)\n        \
+         sofipol stats {cat}   (Delta-gamma against random orientation)",
+        cat = cat_path.display(),
+        dir = cat_path
+            .parent()
+            .map_or_else(|| ".".into(), |p| p.display().to_string())
+    );
     let incomplete = super::common::finish_outputs(outputs, true, true, "demo");
     let problems = check_against_truth(&truth.targets, &cat, PULL_LIMIT);
     if problems.is_empty() {

@@ -48,17 +48,32 @@ pub fn render(input: &ReportInput) -> String {
     h
 }
 
+/// The class of a summary count: its status colour when there is any, none at zero (a red
+/// "0 failed" reads as an alarm).
+fn count_class(n: usize, class: &str) -> String {
+    if n > 0 {
+        format!(" class=\"{class}\"")
+    } else {
+        String::new()
+    }
+}
+
 fn summary(h: &mut String, cat: &Catalog) {
     let count = |s: Status| cat.targets.iter().filter(|t| t.status == s).count();
+    let (ok, partial, failed) = (count(Status::Ok), count(Status::Partial), count(Status::Failed));
     let _ = write!(
         h,
         "<section id=\"summary\"><h2>Summary</h2>\n<ul class=\"counts\">\
-         <li>{} targets</li><li class=\"st-ok\">{} ok</li><li class=\"st-partial\">{} partial</li>\
-         <li class=\"st-failed\">{} failed</li><li>{} inputs not used</li></ul>\n",
+         <li>{} targets</li><li{}>{} ok</li><li{}>{} partial</li>\
+         <li{}>{} failed</li><li{}>{} inputs not used</li></ul>\n",
         cat.targets.len(),
-        count(Status::Ok),
-        count(Status::Partial),
-        count(Status::Failed),
+        count_class(ok, "st-ok"),
+        ok,
+        count_class(partial, "st-partial"),
+        partial,
+        count_class(failed, "st-failed"),
+        failed,
+        count_class(cat.failures.len(), "st-partial"),
         cat.failures.len()
     );
     let uncalibrated = crate::calibration::uncalibrated_components(cat);

@@ -211,13 +211,13 @@ pub fn statistics(h: &mut String, stats: &crate::error::Result<StatsSection>) {
             "<ul><li>KS against uniform: D = {:.3}, p = {}</li><li>Kuiper against uniform: V = {:.3}, p = {}</li>\
              <li>{} of {} below {}°: binomial p = {}</li><li>mean Δγ = {}°</li></ul>",
             ks.statistic,
-            format_p(ks.p_value),
+            escape(&format_p(ks.p_value)),
             kp.statistic,
-            format_p(kp.p_value),
+            escape(&format_p(kp.p_value)),
             bt.k,
             bt.n,
             r.threshold_deg,
-            format_p(bt.p_greater),
+            escape(&format_p(bt.p_greater)),
             fmt(r.mean_delta_gamma_deg, 1)
         );
     }
@@ -236,8 +236,8 @@ pub fn statistics(h: &mut String, stats: &crate::error::Result<StatsSection>) {
                 escape(&m.label),
                 fmt(Some(m.prediction.mean_deg), 1),
                 fmt(Some(m.prediction.fraction_below_threshold), 3),
-                format_p(m.prediction.ks.p_value),
-                w.map_or("–".into(), |p| format_p(p.ks.p_value))
+                escape(&format_p(m.prediction.ks.p_value)),
+                w.map_or("–".into(), |p| escape(&format_p(p.ks.p_value)))
             );
         }
         h.push_str("</tbody></table></div>\n");
@@ -257,7 +257,7 @@ pub fn statistics(h: &mut String, stats: &crate::error::Result<StatsSection>) {
                 c.p_ism_percent,
                 fmt(Some(c.mc_fraction_below_threshold), 3),
                 fmt(Some(c.ks.statistic), 3),
-                format_p(c.ks.p_value)
+                escape(&format_p(c.ks.p_value))
             );
         }
         h.push_str("</tbody></table></div>\n");

@@ -274,3 +274,41 @@ fn the_statistics_section_is_what_sofipol_stats_computes_with_its_figures_embedd
     assert!(page.contains("KS against uniform"));
     assert_balanced(&page);
 }
+
+/// A summary count is coloured only when it is not zero: "0 failed" is not red, "1 failed"
+/// is; the same for partial targets and unused inputs.
+#[test]
+fn zero_counts_in_the_summary_are_not_coloured() {
+    let ok = || {
+        binary(
+            "Good",
+            comp("A", 0.02, 0.0, 0.001, &[]),
+            comp("B", 0.0, 0.03, 0.001, &[]),
+        )
+    };
+    let page = render(&input(
+        Catalog {
+            targets: vec![ok()],
+            ..Default::default()
+        },
+        Err(not_computed("none")),
+    ));
+    assert!(page.contains("<li class=\"st-ok\">1 ok</li>"), "{page}");
+    for zero in ["<li>0 partial</li>", "<li>0 failed</li>", "<li>0 inputs not used</li>"] {
+        assert!(page.contains(zero), "{zero} missing");
+    }
+    let mut cat = Catalog {
+        targets: vec![ok(), Target::new("Lost", Status::Failed)],
+        ..Default::default()
+    };
+    cat.failures.push(Failure {
+        file: "x.fits".into(),
+        error: "unreadable".into(),
+    });
+    let page = render(&input(cat, Err(not_computed("none"))));
+    assert!(page.contains("<li class=\"st-failed\">1 failed</li>"), "{page}");
+    assert!(
+        page.contains("<li class=\"st-partial\">1 inputs not used</li>"),
+        "{page}"
+    );
+}
