@@ -216,8 +216,10 @@ fn with_standards(path: &Path) -> Vec<[f64; 5]> {
     set
 }
 
-/// astropy reads the pointing, time and geometry columns with their units (deg, d,
-/// arcsec) from ECSV and FITS, and the measured standard as a row of kind `standard`.
+/// astropy reads the position, time and geometry columns with their units (deg, d,
+/// arcsec) from ECSV and FITS, and the measured standard as a row of kind `standard`; each
+/// B lies at the catalog's separation and position angle from its A by astropy's
+/// `SkyCoord.separation` and `position_angle`.
 #[test]
 fn astropy_reads_the_position_time_and_standards() {
     let Some(python) = common::python_with("astropy", "astropy_reads_the_position_time_and_standards") else {
@@ -238,6 +240,7 @@ fn astropy_reads_the_position_time_and_standards() {
     let script = r#"
 import sys, json
 import astropy.units as u
+from astropy.coordinates import SkyCoord
 from astropy.table import Table
 want = json.loads(sys.argv[3])
 for t in (Table.read(sys.argv[1], format="ascii.ecsv"), Table.read(sys.argv[2], hdu="SOFIPOL")):
@@ -251,8 +254,19 @@ for t in (Table.read(sys.argv[1], format="ascii.ecsv"), Table.read(sys.argv[2], 
     assert stds["ra"].quantity[0] == 98.5 * u.deg and stds["mjd"].quantity[0] == 51240.25 * u.d
     assert stds["q"][0] == targets["q"][0]
     assert len(targets) == len(want)
+    last_a = None
     for row, (ra, dec, mjd, sep, pa) in zip(targets, want):
-        assert (row["ra"], row["dec"], row["mjd"], row["separation"], row["pa"]) == (ra, dec, mjd, sep, pa), row
+        assert (row["mjd"], row["separation"], row["pa"]) == (mjd, sep, pa), row
+        if str(row["component"]).strip() == "A":
+            assert (row["ra"], row["dec"]) == (ra, dec), row
+            last_a = SkyCoord(row["ra"] * u.deg, row["dec"] * u.deg)
+        else:
+            # B's own position: at the measured separation and PA from A (astropy's
+            # spherical trigonometry, independent of sofipol's).
+            b = SkyCoord(row["ra"] * u.deg, row["dec"] * u.deg)
+            assert abs(last_a.separation(b).arcsec - sep) < 1e-6, (last_a.separation(b).arcsec, sep)
+            d = (last_a.position_angle(b).deg - pa + 180) % 360 - 180
+            assert abs(d) < 1e-5, (last_a.position_angle(b).deg, pa)
     assert targets["separation"].quantity.to(u.deg)[0] == want[0][3] / 3600 * u.deg
     print(len(targets), len(stds))
 "#;

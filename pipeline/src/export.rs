@@ -110,9 +110,15 @@ const NUMERIC: [(&str, &str, &str); 27] = [
     (
         "ra",
         "deg",
-        "right ascension of the pointing (ICRS), mean over the frames",
+        "right ascension of this star (ICRS): A and standards at the pointing (mean over the frames), \
+         B offset from A by the measured separation and position angle",
     ),
-    ("dec", "deg", "declination of the pointing (ICRS), mean over the frames"),
+    (
+        "dec",
+        "deg",
+        "declination of this star (ICRS): A and standards at the pointing (mean over the frames), \
+         B offset from A by the measured separation and position angle",
+    ),
     ("mjd", "d", "mean MJD-OBS of the sequence's frames"),
     ("separation", "arcsec", "target: separation of B from A found"),
     ("pa", "deg", "target: position angle of B from A found, east of north"),
@@ -233,6 +239,23 @@ fn status_text(s: Status) -> String {
         .unwrap_or_default()
 }
 
+/// The sky position (ra, dec in deg, ra in [0, 360)) `sep_arcsec` from (`ra_deg`, `dec_deg`)
+/// at position angle `pa_deg` (east of north): the great circle's destination,
+/// `sin d1 = sin d0 cos r + cos d0 sin r cos pa`,
+/// `ra1 = ra0 + atan2(sin pa sin r cos d0, cos r - sin d0 sin d1)`.
+pub fn offset_position(ra_deg: f64, dec_deg: f64, sep_arcsec: f64, pa_deg: f64) -> (f64, f64) {
+    let (d0, r, pa) = (
+        dec_deg.to_radians(),
+        (sep_arcsec / 3600.0).to_radians(),
+        pa_deg.to_radians(),
+    );
+    let d1 = (d0.sin() * r.cos() + d0.cos() * r.sin() * pa.cos())
+        .clamp(-1.0, 1.0)
+        .asin();
+    let dra = (pa.sin() * r.sin() * d0.cos()).atan2(r.cos() - d0.sin() * d1.sin());
+    ((ra_deg + dra.to_degrees()).rem_euclid(360.0), d1.to_degrees())
+}
+
 /// The rows of the targets' components, then of the standards' measurements, in catalog
 /// order; and the number of targets without a component and of standards without a
 /// measurement (no row).
@@ -251,7 +274,18 @@ fn rows(cat: &Catalog) -> (Vec<Row>, usize, usize) {
             interval.map(|i| i[0]),
             interval.map(|i| i[1]),
         ];
-        for c in &t.components {
+        for (k, c) in t.components.iter().enumerate() {
+            // Each star's own position: A at the pointing, B where the measured geometry
+            // puts it (the separation and PA are of B from A).
+            let mut seq = seq;
+            if k == 1 {
+                let b = match (t.ra_deg, t.dec_deg, t.separation_arcsec, t.pa_deg) {
+                    (Some(ra), Some(dec), Some(sep), Some(pa)) => Some(offset_position(ra, dec, sep, pa)),
+                    _ => None,
+                };
+                seq[0] = b.map(|b| b.0);
+                seq[1] = b.map(|b| b.1);
+            }
             rows.push(Row {
                 target: t.object.clone(),
                 kind: "target",

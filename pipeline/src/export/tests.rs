@@ -117,8 +117,11 @@ fn standards_are_rows_of_kind_standard_with_pointing_time_and_units() {
         assert_eq!(nums(&t, "gamma")[i], c.gamma_deg);
         assert_eq!(nums(&t, "p_debiased")[i], c.p_debiased);
     }
-    assert_eq!(nums(&t, "ra"), [67.625, 67.625, 101.5]);
-    assert_eq!(nums(&t, "dec"), [18.125, 18.125, -33.25]);
+    // A and the standard at their pointings; B where the separation and PA put it (see
+    // `b_lies_at_the_measured_separation_and_position_angle_from_a`).
+    let (ra, dec) = (nums(&t, "ra"), nums(&t, "dec"));
+    assert_eq!((ra[0], dec[0], ra[2], dec[2]), (67.625, 18.125, 101.5, -33.25));
+    assert!(ra[1] != ra[0] && dec[1] != dec[0], "B has its own position");
     assert_eq!(nums(&t, "mjd"), [51240.0625, 51240.0625, 51240.21]);
     let (sep, pa, dg) = (nums(&t, "separation"), nums(&t, "pa"), nums(&t, "delta_gamma"));
     assert_eq!((sep[0], sep[1], pa[0], pa[1], dg[0]), (4.0, 4.0, 30.0, 30.0, 48.0));
@@ -162,4 +165,50 @@ fn a_merge_of_different_versions_exports_every_version() {
     assert_eq!(strs(&table(&cat, "m.json"), "software")[0], "sofipol 1; sofipol 2");
     cat.provenance = Default::default();
     assert_eq!(strs(&table(&cat, "m.json"), "software")[0], "unknown");
+}
+
+/// Separation (arcsec) and position angle (deg, east of north, [0, 360)) of (ra1, dec1) from
+/// (ra0, dec0) by the haversine and the initial bearing: the inverse of `offset_position`,
+/// written independently of it.
+fn separation_and_pa(ra0: f64, dec0: f64, ra1: f64, dec1: f64) -> (f64, f64) {
+    let (a0, d0, a1, d1) = (ra0.to_radians(), dec0.to_radians(), ra1.to_radians(), dec1.to_radians());
+    let h = ((d1 - d0) / 2.0).sin().powi(2) + d0.cos() * d1.cos() * ((a1 - a0) / 2.0).sin().powi(2);
+    let sep = 2.0 * h.sqrt().asin();
+    let pa = ((a1 - a0).sin() * d1.cos()).atan2(d0.cos() * d1.sin() - d0.sin() * d1.cos() * (a1 - a0).cos());
+    (sep.to_degrees() * 3600.0, pa.to_degrees().rem_euclid(360.0))
+}
+
+/// The exported B lies at the catalog's separation and position angle from A (the cross-match
+/// with 2MASS or Gaia needs each star's own position); checked against the haversine and the
+/// bearing, also across RA 0, near the pole and for wide and close pairs.
+#[test]
+fn b_lies_at_the_measured_separation_and_position_angle_from_a() {
+    let t = table(&catalog(), "cat.json");
+    let (ra, dec) = (nums(&t, "ra"), nums(&t, "dec"));
+    let (sep, pa) = separation_and_pa(ra[0], dec[0], ra[1], dec[1]);
+    assert!((sep - 4.0).abs() < 1e-7, "{sep}");
+    assert!((pa - 30.0).abs() < 1e-6, "{pa}");
+    for (ra0, dec0, s, p) in [
+        (0.0001, 10.0, 5.3, 250.0),
+        (359.9999, -45.0, 0.5, 95.0),
+        (120.0, 89.99, 3.0, 180.0),
+        (200.0, -89.5, 40.0, 10.0),
+        (67.6, 18.1, 1.0, 0.0),
+    ] {
+        let (ra1, dec1) = offset_position(ra0, dec0, s, p);
+        assert!((0.0..360.0).contains(&ra1), "{ra1}");
+        let (s1, p1) = separation_and_pa(ra0, dec0, ra1, dec1);
+        assert!(
+            (s1 - s).abs() < 1e-6 * s.max(1.0),
+            "{ra0} {dec0}: separation {s1} for {s}"
+        );
+        let dp = (p1 - p + 180.0).rem_euclid(360.0) - 180.0;
+        assert!(dp.abs() < 1e-5, "{ra0} {dec0}: PA {p1} for {p}");
+    }
+    // Flat-sky check at small separation: dDec = s cos PA, dRA cos Dec = s sin PA.
+    let (ra1, dec1) = offset_position(67.625, 18.125, 4.0, 30.0);
+    let ddec = (dec1 - 18.125) * 3600.0;
+    let dra = (ra1 - 67.625) * 3600.0 * 18.125f64.to_radians().cos();
+    assert!((ddec - 4.0 * 30f64.to_radians().cos()).abs() < 1e-4, "{ddec}");
+    assert!((dra - 4.0 * 30f64.to_radians().sin()).abs() < 1e-4, "{dra}");
 }
