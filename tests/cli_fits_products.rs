@@ -486,7 +486,8 @@ fn the_night_mask_is_read_back_by_badpix() {
 
 /// astropy opens the products: extension names, data types and shapes, the HIERARCH cards
 /// and HISTORY; `CCDData.read` with its defaults gets the data, the variance (as a
-/// `VarianceUncertainty`), the mask and the unit of a cut-out and of the Stokes maps.
+/// `VarianceUncertainty`), the mask and the unit of a cut-out and of the Stokes maps; every
+/// cut-out's WCS puts the target star on its pixel, +y at PA POSANG and -x to the east.
 #[test]
 fn astropy_opens_the_products() {
     let Some(python) = common::python_with("astropy", "astropy_opens_the_products") else {
@@ -519,6 +520,25 @@ for path in sys.argv[1:3]:
     assert c.mask is not None and c.mask.shape == c.data.shape, path
 c = CCDData.read(sys.argv[1])
 assert np.array_equal(c.uncertainty.array, var, equal_nan=True)
+# The cut-outs' WCS: the target star (at the pointing) on its pixel, +y towards PA POSANG,
+# the pixel scale the profile's, in the o and the e cut-out of every orientation.
+from astropy.wcs import WCS
+from astropy.coordinates import SkyCoord
+for path in sys.argv[4:]:
+    with fits.open(path) as h:
+        p = h[0].header
+    w = WCS(p)
+    star = SkyCoord(p["RA"] * u.deg, p["DEC"] * u.deg)
+    x, y = w.world_to_pixel(star)
+    tx, ty = p["HIERARCH ESO QC TARGET X"] - 1, p["HIERARCH ESO QC TARGET Y"] - 1
+    assert abs(x - tx) < 1e-6 and abs(y - ty) < 1e-6, (path, x, y, tx, ty)
+    up = w.pixel_to_world(tx, ty + 10)
+    d = (star.position_angle(up).deg - p["POSANG"] + 180) % 360 - 180
+    assert abs(d) < 1e-4, (path, star.position_angle(up).deg, p["POSANG"])
+    assert abs(star.separation(up).arcsec - 10 * 0.288) < 1e-6, star.separation(up).arcsec
+    left = w.pixel_to_world(tx - 10, ty)
+    d = (star.position_angle(left).deg - (p["POSANG"] + 90) + 180) % 360 - 180
+    assert abs(d) < 1e-4, (path, "-x is east of +y")
 assert np.array_equal(c.mask, mask != 0) and np.array_equal(c.data, data, equal_nan=True)
 with fits.open(sys.argv[2]) as h:
     names = [x.name for x in h]
@@ -535,6 +555,11 @@ print("ok")
         .arg(product(dir, "Solo", "pa45_o"))
         .arg(product(dir, "Solo", "stokes"))
         .arg(dir.join("night_badpix.fits"))
+        .args(
+            POSANGS
+                .iter()
+                .flat_map(|pa| ["o", "e"].map(|b| product(dir, "Solo", &format!("pa{pa}_{b}")))),
+        )
         .output()
         .unwrap();
     assert!(

@@ -126,6 +126,42 @@ pub fn target_cards(h: &mut Header, target: &Target) {
     }
 }
 
+/// The linear part of a cut-out's WCS, deg per px: the `CD` matrix `[[CD1_1, CD1_2], [CD2_1,
+/// CD2_2]]` of a detector whose +y points to position angle `posang_deg` and whose -x points
+/// east at POSANG 0 (the frame contract: a star at separation r and PA psi from another sits
+/// `(-r sin(psi - theta), r cos(psi - theta))/scale` px from it, `companion_offset_px`).
+pub fn cd_matrix(posang_deg: f64, scale_arcsec: f64) -> [[f64; 2]; 2] {
+    let (s, t) = (scale_arcsec / 3600.0, posang_deg.to_radians());
+    [[-s * t.cos(), s * t.sin()], [s * t.sin(), s * t.cos()]]
+}
+
+/// The celestial WCS of a cut-out (gnomonic, ICRS): the target star (A) at FITS pixel
+/// `crpix` is at the pointing (`ra_deg`, `dec_deg`), the axes turned by the rotator angle
+/// ([`cd_matrix`]). Absolute positions are as good as the telescope's pointing; offsets
+/// within the cut-out as the pixel scale.
+pub fn wcs_cards(h: &mut Header, (ra_deg, dec_deg): (f64, f64), crpix: (f64, f64), posang_deg: f64, scale_arcsec: f64) {
+    let cd = cd_matrix(posang_deg, scale_arcsec);
+    set(h, "WCSAXES", 2i64, "celestial WCS: the target star at the pointing");
+    set(h, "CTYPE1", "RA---TAN", "gnomonic projection");
+    set(h, "CTYPE2", "DEC--TAN", "gnomonic projection");
+    set(h, "CUNIT1", "deg", "");
+    set(h, "CUNIT2", "deg", "");
+    set(h, "CRPIX1", crpix.0, "FITS px of the target star (QC TARGET X)");
+    set(h, "CRPIX2", crpix.1, "FITS px of the target star (QC TARGET Y)");
+    set(h, "CRVAL1", ra_deg, "deg, the pointing, taken as the target star's RA");
+    set(
+        h,
+        "CRVAL2",
+        dec_deg,
+        "deg, the pointing, taken as the target star's Dec",
+    );
+    set(h, "CD1_1", cd[0][0], "deg/px; +y at PA POSANG, -x east at POSANG 0");
+    set(h, "CD1_2", cd[0][1], "deg/px");
+    set(h, "CD2_1", cd[1][0], "deg/px");
+    set(h, "CD2_2", cd[1][1], "deg/px");
+    set(h, "RADESYS", "ICRS", "");
+}
+
 /// The input frames, ESO style: `HIERARCH ESO PRO REC1 RAWi NAME` (file names, i from 1),
 /// `RAWi CATG`, and `HIERARCH ESO PRO DATANCOM` (how many).
 pub fn raw_cards<P: AsRef<Path>>(h: &mut Header, files: &[P], catg: &str) {
@@ -170,5 +206,38 @@ pub fn unit_comment(unit: &str) -> &'static str {
         "adu" => "ADU per DIT, averaged over NDIT reads",
         "adu2" => "ADU^2 (variance)",
         _ => "",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::cd_matrix;
+    use crate::stokes::model::companion_offset_px;
+
+    /// The CD matrix takes the detector offset of a companion (the frame contract, as the
+    /// reduction places it) to its offset on the sky: east rho sin(psi), north rho cos(psi),
+    /// at every rotator angle; the pixel area is the scale squared and the parity is the
+    /// sky's (east left of north: negative determinant).
+    #[test]
+    fn the_cd_matrix_maps_a_companions_detector_offset_to_its_sky_offset() {
+        let scale = 0.288;
+        for posang in [0.0, 45.0, 90.0, 135.0, -30.0, 217.5] {
+            let cd = cd_matrix(posang, scale);
+            let det = cd[0][0] * cd[1][1] - cd[0][1] * cd[1][0];
+            assert!((det + (scale / 3600.0f64).powi(2)).abs() < 1e-18, "{posang}: det {det}");
+            for (rho, psi) in [(2.0f64, 30.0f64), (5.3, 200.0), (0.6, 359.0)] {
+                let (dx, dy) = companion_offset_px(rho, psi, posang, scale);
+                let east = (cd[0][0] * dx + cd[0][1] * dy) * 3600.0;
+                let north = (cd[1][0] * dx + cd[1][1] * dy) * 3600.0;
+                assert!(
+                    (east - rho * psi.to_radians().sin()).abs() < 1e-9,
+                    "{posang} {psi}: east {east}"
+                );
+                assert!(
+                    (north - rho * psi.to_radians().cos()).abs() < 1e-9,
+                    "{posang} {psi}: north {north}"
+                );
+            }
+        }
     }
 }

@@ -61,6 +61,8 @@ pub struct StokesProduct {
 pub struct TargetProducts {
     /// Half-size of the cut-outs, px.
     pub half: usize,
+    /// The pixel scale the reduction used (the profile's), arcsec/px: the cut-outs' WCS.
+    pub pixscale_arcsec: f64,
     /// The orientations whose two beams could be combined.
     pub orientations: Vec<OrientationProduct>,
     /// The orientations that could not (POSANG, why).
@@ -93,6 +95,7 @@ pub fn build(outcome: &TargetOutcome, profile: &Profile, params: &TargetParams) 
     let stokes = stokes_product(&orientations, m);
     Some(TargetProducts {
         half,
+        pixscale_arcsec: profile.geometry.pixscale_arcsec,
         orientations,
         missing,
         stokes,
@@ -217,9 +220,11 @@ pub fn write(
     for o in &p.orientations {
         for (kind, beam, stack) in [(headers::COMBINED_O, "o", &o.o), (headers::COMBINED_E, "e", &o.e)] {
             let path = dir.join(file_name(slug, Some(o.posang_deg), beam));
-            let r = write_beam(&path, kind, target, m, o, stack).map_err(|source| ProductError::Write {
-                path: path.clone(),
-                source,
+            let r = write_beam(&path, kind, (target, m), o, stack, p.pixscale_arcsec).map_err(|source| {
+                ProductError::Write {
+                    path: path.clone(),
+                    source,
+                }
             });
             out.push((path, r));
         }
@@ -281,10 +286,10 @@ fn target_header(kind: ProductKind, target: &Target, m: &Measured, half: usize) 
 fn write_beam(
     path: &Path,
     kind: ProductKind,
-    target: &Target,
-    m: &Measured,
+    (target, m): (&Target, &Measured),
     o: &OrientationProduct,
     stack: &BeamStack,
+    pixscale_arcsec: f64,
 ) -> sofipol_calib::Result<()> {
     let mut h = target_header(kind, target, m, stack.half);
     headers::set(&mut h, "POSANG", o.posang_deg, "deg, rotator position angle");
@@ -301,6 +306,9 @@ fn write_beam(
     let (tx, ty) = stack.target_xy();
     headers::qc(&mut h, "TARGET X", tx + 1.0, "FITS px, target's mean position here");
     headers::qc(&mut h, "TARGET Y", ty + 1.0, "FITS px, target's mean position here");
+    if let (Some(ra), Some(dec)) = (target.ra_deg, target.dec_deg) {
+        headers::wcs_cards(&mut h, (ra, dec), (tx + 1.0, ty + 1.0), o.posang_deg, pixscale_arcsec);
+    }
     let mut history = o.history.clone();
     history.push(register_record(o, stack, kind == headers::COMBINED_E, m.eo_offset_px));
     history.push(combine_record(stack));
