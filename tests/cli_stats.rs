@@ -187,3 +187,49 @@ fn stats_with_delta_gamma_errors_reports_the_broadening_and_both_p_values() {
         assert!(dir.path().join("out").join(f).is_file(), "{f} missing");
     }
 }
+
+/// `sofipol report` computes its statistics with `sofipol stats`' defaults (pairs, seed, ISM
+/// levels, intrinsic P), so that the page shows the numbers `stats` prints: every ISM row of
+/// the page carries the KS D and p of `stats.json`, as the page formats them.
+#[test]
+fn report_statistics_use_the_defaults_of_stats() {
+    let dir = tempfile::tempdir().unwrap();
+    let cat = testdata("catalog_aligned.json");
+    let o = sofipol()
+        .args(["stats", &cat, "-q", "-o"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let page = dir.path().join("page.html");
+    let o = sofipol()
+        .args(["report", &cat, "-q", "-o"])
+        .arg(&page)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let html = std::fs::read_to_string(&page).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("stats.json")).unwrap()).unwrap();
+    let p_text = |p: f64| {
+        if p < 1e-4 {
+            format!("{p:.1e}")
+        } else {
+            format!("{p:.4}")
+        }
+    };
+    let ism = json["report"]["ism"].as_array().unwrap();
+    assert_eq!(ism.len(), 10, "the paper's ISM levels");
+    for row in ism {
+        let (d, p) = (
+            row["ks"]["statistic"].as_f64().unwrap(),
+            row["ks"]["p_value"].as_f64().unwrap(),
+        );
+        let cells = format!("<td class=\"num\">{d:.3}</td><td class=\"num\">{}</td>", p_text(p));
+        assert!(
+            html.contains(&cells),
+            "P_ism {}: {cells} not in the page",
+            row["p_ism_percent"]
+        );
+    }
+}

@@ -48,7 +48,7 @@ pub struct Args {
     #[arg(long, value_name = "DEG", default_value_t = 0.0, allow_hyphen_values = true)]
     ism_angle: f64,
     /// Monte-Carlo pairs per ISM level (1e6 style accepted)
-    #[arg(long, value_name = "N", default_value = "1000000", value_parser = parse_count)]
+    #[arg(long, value_name = "N", default_value_t = sofipol_pipeline::stats::setup::DEFAULT_PAIRS, value_parser = parse_count)]
     pairs: u64,
     /// Seed of the Monte Carlo
     #[arg(long, default_value_t = DEFAULT_SEED)]
