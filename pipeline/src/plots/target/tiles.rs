@@ -142,18 +142,28 @@ pub(super) fn stretch(stacks: &[&Stack]) -> (f32, f32, f32) {
 pub(super) fn paint_tile(buf: &mut [u8], width: u32, x0: u32, y0: u32, s: &Stack, (lo, soft, hi): (f32, f32, f32)) {
     let norm = ((hi - lo) / soft).asinh().max(1e-6);
     let n = s.n;
-    for py in 0..TILE {
-        let row = n - 1 - ((py as usize * n) / TILE as usize).min(n - 1);
-        for px in 0..TILE {
-            let col = ((px as usize * n) / TILE as usize).min(n - 1);
-            let v = s.pix[row * n + col];
-            let rgb = if v.is_finite() {
+    // The colour of each cut-out pixel once (a tile pixel repeats its source pixel's; the
+    // stretch per tile pixel cost ~(TILE/n)^2 as many asinh).
+    let colours: Vec<[u8; 3]> = s
+        .pix
+        .iter()
+        .map(|&v| {
+            if v.is_finite() {
                 let t = (((v - lo) / soft).asinh() / norm).clamp(0.0, 1.0);
                 let g = (255.0 * t).round() as u8;
                 [g, g, g]
             } else {
                 [70, 20, 20]
-            };
+            }
+        })
+        .collect();
+    let cols: Vec<usize> = (0..TILE)
+        .map(|px| ((px as usize * n) / TILE as usize).min(n - 1))
+        .collect();
+    for py in 0..TILE {
+        let row = n - 1 - ((py as usize * n) / TILE as usize).min(n - 1);
+        for (px, &col) in (0..TILE).zip(&cols) {
+            let rgb = colours[row * n + col];
             let at = (((y0 + py) * width + x0 + px) * 3) as usize;
             if at + 3 <= buf.len() {
                 buf[at..at + 3].copy_from_slice(&rgb);
