@@ -104,6 +104,7 @@ struct Row {
 }
 
 /// One usable standard: its valid orientations and table values.
+#[derive(Clone)]
 struct Std<'a> {
     index: usize,
     obs: &'a StandardObservation,

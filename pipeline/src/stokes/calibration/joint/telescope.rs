@@ -233,15 +233,7 @@ pub(super) fn refit<'a>(
 /// `pb` with theta0 held at `theta0_deg` instead of fitted (x without its theta0).
 fn with_theta0_held<'a>(pb: &Problem<'a>, theta0_deg: f64) -> Problem<'a> {
     Problem {
-        stds: pb
-            .stds
-            .iter()
-            .map(|s| Std {
-                index: s.index,
-                obs: s.obs,
-                rows: s.rows.clone(),
-            })
-            .collect(),
+        stds: pb.stds.clone(),
         parity: pb.parity,
         fit_theta0: false,
         theta0_fixed: theta0_deg,
@@ -387,16 +379,7 @@ fn log_det_spd(a: &[Vec<f64>]) -> Option<f64> {
 /// of theta0 and of the term's angle came out 2-6 times too small.
 fn unpolarized_measure_the_term(pb: &Problem) -> bool {
     let sub = Problem {
-        stds: pb
-            .stds
-            .iter()
-            .filter(|s| !s.obs.polarized())
-            .map(|s| Std {
-                index: s.index,
-                obs: s.obs,
-                rows: s.rows.clone(),
-            })
-            .collect(),
+        stds: pb.stds.iter().filter(|s| !s.obs.polarized()).cloned().collect(),
         parity: pb.parity,
         fit_theta0: false,
         theta0_fixed: pb.theta0_fixed,

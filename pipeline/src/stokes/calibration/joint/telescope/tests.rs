@@ -82,6 +82,16 @@ fn six_standards(ins: Instrument, sigma_f: f64) -> Vec<StandardObservation> {
     .collect()
 }
 
+/// The mirror's prior in Ks as the SOFI profile gives it: 0.77 +- 0.15 %, 0 +- 5 deg.
+fn ks_prior() -> crate::stokes::fresnel::TelescopePrior {
+    crate::stokes::fresnel::TelescopePrior {
+        p_tel: 0.0077,
+        sigma_p_tel: 0.2 * 0.0077,
+        psi_tel_deg: 0.0,
+        sigma_psi_tel_deg: 5.0,
+    }
+}
+
 fn axial_diff(a: f64, b: f64) -> f64 {
     (a - b + 90.0).rem_euclid(180.0) - 90.0
 }
@@ -337,13 +347,7 @@ fn the_telescope_is_measured_better_with_more_standards() {
 /// as the reported covariance says: pulls of rms 1, no bias.
 #[test]
 fn clustered_standards_with_the_mirrors_prior_give_honest_errors() {
-    use crate::stokes::fresnel::TelescopePrior;
-    let prior = TelescopePrior {
-        p_tel: 0.0077,
-        sigma_p_tel: 0.2 * 0.0077,
-        psi_tel_deg: 0.0,
-        sigma_psi_tel_deg: 5.0,
-    };
+    let prior = ks_prior();
     let sigma_f = 3e-4;
     let mut rng = rand::rngs::StdRng::seed_from_u64(20261129);
     let mut gauss = || -> f64 { rng.sample(StandardNormal) };
@@ -454,13 +458,7 @@ fn clustered_standards_with_the_mirrors_prior_give_honest_errors() {
 /// draws.
 #[test]
 fn polarized_standards_only_with_the_mirrors_prior_give_honest_errors() {
-    use crate::stokes::fresnel::TelescopePrior;
-    let prior = TelescopePrior {
-        p_tel: 0.0077,
-        sigma_p_tel: 0.2 * 0.0077,
-        psi_tel_deg: 0.0,
-        sigma_psi_tel_deg: 5.0,
-    };
+    let prior = ks_prior();
     let sigma_f = 3e-4;
     let mut rng = rand::rngs::StdRng::seed_from_u64(7);
     let mut gauss = || -> f64 { rng.sample(StandardNormal) };
