@@ -100,6 +100,45 @@ pub(crate) fn calibrated_obs(c: &Component, profile: &Profile, cal: Option<&Filt
     inputs.obs(0.0, inputs.telescope())
 }
 
+/// What the solve does to one orientation of a component: its analyzer angle, and what it
+/// takes from F before the Stokes method.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OrientationCorrection {
+    /// Rotator angle, deg.
+    pub posang_deg: f64,
+    /// Analyzer angle, deg: the calibration's relation when it has one, else the profile's.
+    pub analyzer_deg: f64,
+    /// The calibration's offset c (0 without one).
+    pub offset: f64,
+    /// The telescope's term removed, `T(phi)` (0 when the calibration removes none).
+    pub telescope: f64,
+}
+
+/// Per usable orientation of `c` (its `orientations` with a finite F), the analyzer angle
+/// and the offset and telescope term the solve takes from F under the calibration `cal`:
+/// what turns a map of the orientation's normalised differences into the catalog's
+/// calibrated q, u (the FITS Stokes maps).
+pub fn orientation_corrections(
+    c: &Component,
+    profile: &Profile,
+    cal: Option<&FilterCalibration>,
+) -> Vec<OrientationCorrection> {
+    let inputs = Inputs::new(c, profile, cal);
+    let tel = inputs.telescope();
+    let offset = cal.and_then(|f| f.offset).map_or(0.0, |o| o.c);
+    inputs
+        .rows
+        .iter()
+        .zip(inputs.obs(0.0, tel))
+        .map(|(r, o)| OrientationCorrection {
+            posang_deg: r.posang_deg,
+            analyzer_deg: o.analyzer_deg,
+            offset,
+            telescope: r.f - o.f,
+        })
+        .collect()
+}
+
 /// Analyzer angle of a rotator angle: the calibration's relation when it has one, else the
 /// profile's.
 fn analyzer(cal: Option<&FilterCalibration>, profile: &Profile, posang: f64) -> f64 {

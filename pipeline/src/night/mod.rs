@@ -201,6 +201,9 @@ pub fn run_night(plan: &NightPlan, setup: &NightSetup, opts: &RunOptions) -> Nig
         flats.set.as_ref(),
     );
     let t_cal = t.elapsed().as_secs_f64();
+    if let Some(o) = opts.outputs {
+        o.calibrated(&mut cat.targets, calibration.as_ref(), profile);
+    }
     let t = Instant::now();
     if figures_wanted {
         let draw = |fig: &TargetFigure| {

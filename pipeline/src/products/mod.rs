@@ -7,8 +7,9 @@
 //!     the dithers of one beam registered on the target by whole pixels and combined
 //!     (inverse-variance weighted mean; UNCERT (variance), MASK, NCOMBINE extensions)
 //! per target                    <slug>_stokes.fits                 stokes_maps.rs
-//!     o and e onto one grid (Lanczos-3, at the measured e-o offset), Stokes I, Q, U by the
-//!     catalog's least squares per pixel; instrumental (before the night's calibration)
+//!     o and e of every orientation onto one sky grid (north up, Lanczos-3, at the measured
+//!     e-o offset), Stokes I, Q, U by the catalog's least squares per pixel with the night's
+//!     calibration applied as to the catalog (written once the calibration is known)
 //! per night                     night_badpix.fits                  badpix.rs
 //!     the night's bad-pixel mask, readable by --badpix
 //! every product                 SOFIPROD, HIERARCH ESO PRO ..., QC, HISTORY   headers.rs
@@ -51,6 +52,8 @@ pub fn fits_dir(catalog: &Path) -> PathBuf {
 /// threads; [`FitsProducts::finish`] says what was written.
 pub struct FitsProducts {
     files: outputs::Files,
+    /// The Stokes maps of the targets reduced, waiting for the night's calibration.
+    pending: std::sync::Mutex<Vec<target::PendingStokes>>,
 }
 
 impl FitsProducts {
@@ -58,6 +61,7 @@ impl FitsProducts {
     pub fn new(dir: impl Into<PathBuf>) -> Self {
         FitsProducts {
             files: outputs::Files::new(dir.into()),
+            pending: std::sync::Mutex::new(Vec::new()),
         }
     }
 
@@ -75,9 +79,10 @@ impl FitsProducts {
     }
 
     /// Write the products of one reduced target (its frames kept: `outcome.calibrated`),
-    /// named after its sequence id: the combined o and e cut-outs of every orientation and
-    /// the Stokes maps. Returns one flag per file not written (for the target's flags). A
-    /// target that was not measured (failed) has no products.
+    /// named after its sequence id: the combined o and e cut-outs of every orientation; its
+    /// Stokes maps wait for the night's calibration ([`FitsProducts::write_stokes_maps`]).
+    /// Returns one flag per file not written (for the target's flags). A target that was
+    /// not measured (failed) has no products.
     pub fn write_target(&self, outcome: &TargetOutcome, profile: &Profile, params: &TargetParams) -> Vec<Flag> {
         let Some(m) = outcome.measured.as_ref() else {
             return Vec::new();
@@ -86,10 +91,42 @@ impl FitsProducts {
             return Vec::new();
         };
         let slug = slug(outcome.target.sequence_id());
-        target::write(self.dir(), &slug, &outcome.target, m, &p)
+        let (results, pending) = target::write(self.dir(), &slug, &outcome.target, m, p);
+        if let Some(p) = pending {
+            self.pending.lock().unwrap_or_else(|e| e.into_inner()).push(p);
+        }
+        results
             .into_iter()
             .filter_map(|(path, r)| self.record(&path, r))
             .collect()
+    }
+
+    /// Write the Stokes maps of every target reduced since the last call, with the night's
+    /// calibration `cal` applied as to the catalog's `targets` (calibrated; matched by
+    /// sequence id): a map not written is a flag on its target. `profile`: the one the
+    /// catalog's solve used.
+    pub fn write_stokes_maps(
+        &self,
+        targets: &mut [crate::catalog::Target],
+        cal: Option<&crate::catalog::polarimetric_calibration::Calibration>,
+        profile: &Profile,
+    ) {
+        use rayon::prelude::*;
+        let pending = std::mem::take(&mut *self.pending.lock().unwrap_or_else(|e| e.into_inner()));
+        let flags: Vec<(String, Flag)> = pending
+            .par_iter()
+            .filter_map(|p| {
+                let t = targets.iter().find(|t| t.sequence_id() == p.sequence)?;
+                let fc = cal.and_then(|c| c.for_filter(t.filter.as_deref().unwrap_or("")));
+                let flag = self.record(&p.path, p.write(t, fc, profile))?;
+                Some((p.sequence.clone(), flag))
+            })
+            .collect();
+        for (seq, flag) in flags {
+            if let Some(t) = targets.iter_mut().find(|t| t.sequence_id() == seq) {
+                t.flags.get_or_insert_with(Vec::new).push(flag);
+            }
+        }
     }
 
     /// Write the night's bad-pixel mask as `night_badpix.fits` ([`badpix::write`]); a

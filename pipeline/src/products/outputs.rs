@@ -18,7 +18,8 @@ use sofipol_calib::Profile;
 
 use super::badpix::NightMask;
 use super::{products_dir, regions, slug, FitsProducts, ProductError};
-use crate::catalog::Flag;
+use crate::catalog::polarimetric_calibration::Calibration;
+use crate::catalog::{Flag, Target};
 use crate::plots::target::TargetFigure;
 use crate::reduce::run::TargetOutcome;
 use crate::reduce::{MeasureParams, TargetParams};
@@ -229,6 +230,15 @@ impl Outputs {
             if !not_written.is_empty() {
                 out.target.flags.get_or_insert_with(Vec::new).extend(not_written);
             }
+        }
+    }
+
+    /// Write the Stokes maps of the targets reduced (FITS products), with the night's
+    /// calibration `cal` applied as to the calibrated catalog `targets`; a map not written
+    /// is a flag on its target.
+    pub fn calibrated(&self, targets: &mut [Target], cal: Option<&Calibration>, profile: &Profile) {
+        if let Some(p) = &self.fits {
+            p.write_stokes_maps(targets, cal, profile);
         }
     }
 

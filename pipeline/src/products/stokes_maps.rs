@@ -1,46 +1,51 @@
-//! Stokes I, Q, U maps of one target from its combined o and e cut-outs.
+//! Stokes I, Q, U maps of one target from its combined o and e cut-outs
+//! (docs/products.md, "Stokes I, Q, U").
 //!
-//! 1. One grid for every image: the target at its centre pixel c = (h, h). Each
-//!    orientation's o stack holds the target at `t_o` (within half a pixel of c: the
-//!    dithers were registered by whole pixels, a different half pixel at each
-//!    orientation), its e stack at `t_e = t_o + s`, where `s` is the measured e-o offset
-//!    less the whole-pixel registration difference of the dithers,
-//!    `s = eo - mean_d (E_d - O_d)` ([`e_to_o_shift`]; the e stack follows the o stack's
-//!    registration, E_d - O_d = round(eo), so |s| <= 0.5 px). Both are resampled onto the
-//!    common grid,
-//!    `o'(x, y) = o(x + t_o - c)` and `e'(x, y) = e(x + t_o + s - c)`, by **Lanczos-3
-//!    interpolation** (separable, 6 x 6 taps `L(t) = sinc(t) sinc(t/3)`, |t| < 3, each axis
-//!    normalised to sum 1: flux is conserved). Lanczos rather than bilinear: bilinear
-//!    interpolation smooths by an amount that depends on the sub-pixel shift (a
-//!    half-pixel shift widens a 3 px FWHM star by ~10 %), different for o and e, which moves
-//!    flux out of a small aperture in one beam more than in the other and biases F (by ~1 %
-//!    within 1 FWHM); Lanczos-3 keeps a well-sampled star's shape. The variance is
-//!    `sum_k w_k var_k`: what a sum over an aperture of many pixels carries (each input
-//!    pixel's weights sum to 1 over the output pixels), where the variance of one
+//! 1. One sky grid for every image, north up and east left, the target at its centre pixel
+//!    c = (h, h). Each orientation's o stack holds the target at `t_o` (within half a pixel
+//!    of c: the dithers were registered by whole pixels), its e stack at `t_e = t_o + s`,
+//!    where `s` is the measured e-o offset less the whole-pixel registration difference of
+//!    the dithers, `s = eo - mean_d (E_d - O_d)` ([`e_to_o_shift`], |s| <= 0.5 px). Both
+//!    are resampled onto the detector grid centred on the target, `o'(x, y) = o(x + t_o -
+//!    c)` and `e'(x, y) = e(x + t_o + s - c)` ([`OrientationBeams::centred`]), then both
+//!    turned about c by the rotator angle onto the sky grid ([`OrientationBeams::on_sky`],
+//!    [`sky_to_detector`]), by **Lanczos-3 interpolation** (taps `L(t) = sinc(t)
+//!    sinc(t/3)`, |t| < 3, at each point, each axis normalised to sum 1: flux is
+//!    conserved). Lanczos rather than bilinear: bilinear interpolation smooths by an amount
+//!    that depends on the sub-pixel shift (a half-pixel shift widens a 3 px FWHM star by ~10
+//!    %), different for o and e, which moves flux out of a small aperture in one beam more
+//!    than in the other and biases F (by ~1 % within 1 FWHM); Lanczos-3 keeps a
+//!    well-sampled star's shape, and the rotation samples o' and e' at the same points. The
+//!    variance is `sum_k w_k var_k`: what a sum over an aperture of many pixels carries (each
+//!    input pixel's weights sum to 1 over the output pixels), where the variance of one
 //!    interpolated pixel alone, `sum_k w_k^2 var_k`, would hide the covariance that
 //!    interpolation creates between neighbours. A pixel is masked when a tap with non-zero
-//!    weight is masked or off the cut-out (a border of 2 to 3 px; none
-//!    at a whole-pixel shift).
-//! 2. Per orientation k (analyzer angle phi_k): `S_k = o' + e'`, `D_k = o' - e'`, both with
-//!    variance `V_k = var_o' + var_e'`, times `a_k = mean_j T_j / T_k`, `T_k` the target's
-//!    o + e flux in the combined cut-outs (the reduction's per-dither fluxes of A, weighted
-//!    as the dithers were combined): a transparency change between orientations cancels as
-//!    it does in the catalog's per-dither normalised difference `F = (o - e)/(o + e)`.
-//! 3. Per pixel, the catalog's inversion: `D_k = Q cos 2phi_k + U sin 2phi_k`, i.e. F = q cos
-//!    2phi + u sin 2phi multiplied by I, solved by the catalog's weighted least squares
+//!    weight is masked or off the cut-out.
+//! 2. The orientations' PSFs matched ([`match_psfs`]): each orientation whose star is more
+//!    concentrated than the broadest orientation's is convolved (o' and e' alike) with the
+//!    Gaussian that brings it to the broadest's, so that the orientations' I agree in any
+//!    aperture.
+//! 3. Per orientation k (analyzer angle phi_k): `S_k = o' + e'`, `D_k = o' - e' - f_k S_k`
+//!    (`f_k`: what the calibration takes from F, 0 for instrumental maps), times `a_k =
+//!    mean_j T_j / T_k`, `T_k` the target's o' + e' flux in an aperture
+//!    ([`aperture_fluxes`]): a transparency change between orientations cancels as it does
+//!    in the catalog's per-dither normalised difference `F = (o - e)/(o + e)`.
+//! 4. Per pixel, the catalog's inversion: `D_k = Q cos 2phi_k + U sin 2phi_k`, i.e. F - f_k =
+//!    q cos 2phi + u sin 2phi multiplied by I, solved by the catalog's weighted least squares
 //!    ([`fit_qu`]) over the orientations usable at that pixel, with one weight per
 //!    orientation, `W_k = 1 / B_k`, B_k the median of a_k^2 V_k over the grid (the
 //!    background's variance; weights from each pixel's own variance would hold the star's
 //!    photon noise and bias the star's Q and U, as in the combination of the dithers). Q and
 //!    U are then fixed linear combinations `Q = sum_k c_k D_k` (for 0 and 45 deg: Q = D(0),
 //!    U = D(45)), so `Var Q = sum_k c_k^2 a_k^2 V_k` (likewise Var U, Cov(Q, U)), and
-//!    `I = sum_k W_k S_k / sum_k W_k`, `Var I = sum_k W_k^2 a_k^2 V_k / (sum_k W_k)^2`.
-//!    Summed over an aperture, `sum Q / sum I` is the least-squares q of the aperture's F_k
-//!    = sum D_k / sum S_k: the catalog's uncalibrated q of the star in it.
+//!    `I = sum_k W_k S_k / sum_k W_k`, `Var I = sum_k W_k^2 a_k^2 (var_o' + var_e') / (sum_k
+//!    W_k)^2`. Summed over an aperture, `sum Q / sum I` is the least-squares q of the
+//!    aperture's F_k - f_k: the catalog's q of the star in it.
 //!
-//! The maps are instrumental: the night's calibration (offset c, zero-point theta0 and
-//! parity of the analyzer angles, telescope polarization) is applied later to the catalog
-//! and not to them; the analyzer angles are the profile's.
+//! The night's calibration (analyzer angles with its zero-point theta0 and parity, the
+//! offset c, the telescope's polarization) enters as each orientation's phi_k and f_k
+//! ([`OrientationBeams::calibrate`], from [`crate::solve::orientation_corrections`]); the
+//! maps are made once the calibration is known.
 use std::collections::HashMap;
 
 use ndarray::Array2;
@@ -110,16 +115,40 @@ fn taps(f: f64) -> [f64; 6] {
 
 /// `stack` resampled at `(x + s_x, y + s_y)` by Lanczos-3 interpolation (module docs).
 pub fn shift_image(stack: &BeamStack, shift: (f64, f64)) -> Resampled {
-    let (ny, nx) = stack.data.dim();
+    resample((&stack.data, &stack.variance, &stack.mask), |x, y| {
+        (x + shift.0, y + shift.1)
+    })
+}
+
+/// `stack` resampled by Lanczos-3 interpolation at the point `at(x, y)` of every output
+/// pixel (x, y) (module docs): the taps of each point's fractional position, normalised
+/// per axis; masked where a tap with non-zero weight is masked or off the cut-out.
+fn resample(
+    (data_in, variance_in, mask_in): (&Array2<f32>, &Array2<f32>, &Array2<u8>),
+    at: impl Fn(f64, f64) -> (f64, f64),
+) -> Resampled {
+    let (ny, nx) = data_in.dim();
     let mut data = Array2::from_elem((ny, nx), f32::NAN);
     let mut variance = Array2::from_elem((ny, nx), f32::NAN);
     let mut mask = Array2::from_elem((ny, nx), 1u8);
-    // One shift for the whole image: the same taps at every pixel.
-    let (x0, y0) = (shift.0.floor(), shift.1.floor());
-    let (wx, wy) = (taps(shift.0 - x0), taps(shift.1 - y0));
-    let (x0, y0) = (x0 as i64, y0 as i64);
+    // The taps of the last fractional position, reused while it repeats (a pure shift
+    // has one for the whole image).
+    let mut cache: [(f64, [f64; 6]); 2] = [(f64::NAN, [0.0; 6]); 2];
+    let mut taps_of = |axis: usize, f: f64| -> [f64; 6] {
+        if cache[axis].0 != f {
+            cache[axis] = (f, taps(f));
+        }
+        cache[axis].1
+    };
     for j in 0..ny {
         for i in 0..nx {
+            let (sx, sy) = at(i as f64, j as f64);
+            if !(sx.is_finite() && sy.is_finite()) {
+                continue;
+            }
+            let (x0, y0) = (sx.floor(), sy.floor());
+            let (wx, wy) = (taps_of(0, sx - x0), taps_of(1, sy - y0));
+            let (x0, y0) = (x0 as i64, y0 as i64);
             let mut acc = (0.0f64, 0.0f64);
             let mut ok = true;
             'taps: for (n, &wy) in wy.iter().enumerate() {
@@ -128,19 +157,19 @@ pub fn shift_image(stack: &BeamStack, shift: (f64, f64)) -> Resampled {
                     if w == 0.0 {
                         continue;
                     }
-                    let (yy, xx) = (j as i64 + y0 + n as i64 - 2, i as i64 + x0 + m as i64 - 2);
+                    let (yy, xx) = (y0 + n as i64 - 2, x0 + m as i64 - 2);
                     if yy < 0
                         || xx < 0
                         || yy >= ny as i64
                         || xx >= nx as i64
-                        || stack.mask[[yy as usize, xx as usize]] != 0
+                        || mask_in[[yy as usize, xx as usize]] != 0
                     {
                         ok = false;
                         break 'taps;
                     }
                     let (yy, xx) = (yy as usize, xx as usize);
-                    acc.0 += w * stack.data[[yy, xx]] as f64;
-                    acc.1 += w * stack.variance[[yy, xx]] as f64;
+                    acc.0 += w * data_in[[yy, xx]] as f64;
+                    acc.1 += w * variance_in[[yy, xx]] as f64;
                 }
             }
             if ok {
@@ -153,11 +182,24 @@ pub fn shift_image(stack: &BeamStack, shift: (f64, f64)) -> Resampled {
     Resampled { data, variance, mask }
 }
 
+/// The detector offset, at rotator angle `posang_deg`, of the sky offset that is `(dx, dy)`
+/// px on a north-up, east-left grid (the frame contract's rotation: `R(-POSANG)`, so that
+/// a star at separation r and PA psi, `(-r sin psi, r cos psi)` on the sky grid, lands at
+/// `(-r sin(psi - POSANG), r cos(psi - POSANG))`).
+pub fn sky_to_detector(posang_deg: f64, (dx, dy): (f64, f64)) -> (f64, f64) {
+    let (s, c) = posang_deg.to_radians().sin_cos();
+    (c * dx + s * dy, -s * dx + c * dy)
+}
+
 /// One orientation's beams on the common grid.
 #[derive(Debug, Clone)]
 pub struct OrientationBeams {
-    /// Analyzer angle, deg.
+    /// Analyzer angle, deg: the profile's, or the calibration's once applied
+    /// ([`OrientationBeams::calibrate`]).
     pub analyzer_deg: f64,
+    /// What is taken from this orientation's normalised difference F before the solve: the
+    /// calibration's offset c and the telescope's term (0: instrumental).
+    pub f_offset: f64,
     /// The combined o cut-out, resampled.
     pub o: Resampled,
     /// The combined e cut-out, resampled.
@@ -166,14 +208,53 @@ pub struct OrientationBeams {
 
 impl OrientationBeams {
     /// The o and e stacks of one orientation onto the grid whose centre pixel holds the
-    /// target (module docs, step 1); `shift` is [`e_to_o_shift`].
+    /// target (module docs, step 1); `shift` is [`e_to_o_shift`]. The grid is the
+    /// detector's (no rotation).
     pub fn centred(analyzer_deg: f64, o: &BeamStack, e: &BeamStack, shift: (f64, f64)) -> OrientationBeams {
         let (t, c) = (o.target_xy(), o.half as f64);
         OrientationBeams {
             analyzer_deg,
+            f_offset: 0.0,
             o: shift_image(o, (t.0 - c, t.1 - c)),
             e: shift_image(e, (t.0 + shift.0 - c, t.1 + shift.1 - c)),
         }
+    }
+
+    /// The o and e stacks of one orientation, taken at rotator angle `posang_deg`, onto the
+    /// sky grid: north up, east left, the target on the centre pixel c (module docs, step
+    /// 1). First both onto the detector grid centred on the target ([`Self::centred`]), then
+    /// both turned about c by the same rotation: output pixel p takes the centred images at
+    /// `c + R(-POSANG) (p - c)` ([`sky_to_detector`]). The rotation samples o and e at the
+    /// same sub-pixel points, so it smooths them alike and keeps F = (o - e)/(o + e) of a
+    /// star in any aperture (sampling each stack at its own points, a sub-pixel apart,
+    /// biases F in a one-FWHM aperture by ~1e-3).
+    pub fn on_sky(
+        analyzer_deg: f64,
+        posang_deg: f64,
+        o: &BeamStack,
+        e: &BeamStack,
+        shift: (f64, f64),
+    ) -> OrientationBeams {
+        let mut b = Self::centred(analyzer_deg, o, e, shift);
+        if posang_deg.rem_euclid(360.0) != 0.0 {
+            let c = o.half as f64;
+            let turn = |r: &Resampled| {
+                resample((&r.data, &r.variance, &r.mask), |x, y| {
+                    let d = sky_to_detector(posang_deg, (x - c, y - c));
+                    (c + d.0, c + d.1)
+                })
+            };
+            b.o = turn(&b.o);
+            b.e = turn(&b.e);
+        }
+        b
+    }
+
+    /// The calibration of this orientation applied: its analyzer angle and what it takes
+    /// from F (`f_offset`).
+    pub fn calibrate(&mut self, analyzer_deg: f64, f_offset: f64) {
+        self.analyzer_deg = analyzer_deg;
+        self.f_offset = f_offset;
     }
 
     /// Whether pixel (j, i) is usable in both beams.
@@ -181,10 +262,146 @@ impl OrientationBeams {
         self.o.mask[[j, i]] == 0 && self.e.mask[[j, i]] == 0
     }
 
-    /// `V = var_o' + var_e'` at (j, i).
+    /// The variance of `D - f_offset S` at (j, i): `(1 - f)^2 var_o' + (1 + f)^2 var_e'`
+    /// (`var_o' + var_e'` for instrumental maps).
     fn var(&self, j: usize, i: usize) -> f64 {
-        self.o.variance[[j, i]] as f64 + self.e.variance[[j, i]] as f64
+        let f = self.f_offset;
+        (1.0 - f).powi(2) * self.o.variance[[j, i]] as f64 + (1.0 + f).powi(2) * self.e.variance[[j, i]] as f64
     }
+}
+
+/// The normalised taps of a Gaussian of `sigma` px, out to 3 sigma (one tap of 1 at 0).
+fn gaussian_taps(sigma: f64) -> Vec<f64> {
+    if sigma <= 0.0 {
+        return vec![1.0];
+    }
+    let n = (3.0 * sigma).ceil() as i64;
+    let w: Vec<f64> = (-n..=n).map(|k| (-0.5 * (k as f64 / sigma).powi(2)).exp()).collect();
+    let sum: f64 = w.iter().sum();
+    w.into_iter().map(|v| v / sum).collect()
+}
+
+/// `r` convolved with a Gaussian of `sigma` px (separable; variance `sum w var`, what an
+/// aperture sum carries, as in the resampling); a pixel is masked when a tap is masked or
+/// off the grid.
+fn convolve(r: &Resampled, sigma: f64) -> Resampled {
+    let w = gaussian_taps(sigma);
+    if w.len() == 1 {
+        return r.clone();
+    }
+    let h = (w.len() / 2) as i64;
+    let pass = |src: &Resampled, along_x: bool| -> Resampled {
+        let (ny, nx) = src.data.dim();
+        let mut out = Resampled {
+            data: Array2::from_elem((ny, nx), f32::NAN),
+            variance: Array2::from_elem((ny, nx), f32::NAN),
+            mask: Array2::from_elem((ny, nx), 1u8),
+        };
+        for j in 0..ny {
+            'px: for i in 0..nx {
+                let (mut d, mut v) = (0.0f64, 0.0f64);
+                for (k, &wk) in w.iter().enumerate() {
+                    let o = k as i64 - h;
+                    let (jj, ii) = if along_x {
+                        (j as i64, i as i64 + o)
+                    } else {
+                        (j as i64 + o, i as i64)
+                    };
+                    if jj < 0 || ii < 0 || jj >= ny as i64 || ii >= nx as i64 {
+                        continue 'px;
+                    }
+                    let (jj, ii) = (jj as usize, ii as usize);
+                    if src.mask[[jj, ii]] != 0 {
+                        continue 'px;
+                    }
+                    d += wk * src.data[[jj, ii]] as f64;
+                    v += wk * src.variance[[jj, ii]] as f64;
+                }
+                out.data[[j, i]] = d as f32;
+                out.variance[[j, i]] = v as f32;
+                out.mask[[j, i]] = 0;
+            }
+        }
+        out
+    };
+    pass(&pass(r, true), false)
+}
+
+/// Sum of `o + e` over the pixels within `radius` of `(c, c)` usable in `usable`.
+fn aperture_sum(b: &OrientationBeams, c: f64, radius: f64, usable: &Array2<u8>) -> f64 {
+    let mut s = 0.0;
+    for ((j, i), &u) in usable.indexed_iter() {
+        if u == 0 && (i as f64 - c).hypot(j as f64 - c) <= radius {
+            s += b.o.data[[j, i]] as f64 + b.e.data[[j, i]] as f64;
+        }
+    }
+    s
+}
+
+/// 0 where every orientation's two beams are usable, else 1.
+fn usable_everywhere(orients: &[OrientationBeams]) -> Array2<u8> {
+    let dim = orients.first().map_or((0, 0), |o| o.o.data.dim());
+    Array2::from_shape_fn(dim, |(j, i)| u8::from(!orients.iter().all(|o| o.usable(j, i))))
+}
+
+/// The star's concentration in one orientation: the share of its `o + e` flux within
+/// `inner` of the centre `c` of that within `outer` (pixels usable in every orientation).
+fn concentration(b: &OrientationBeams, c: f64, (inner, outer): (f64, f64), usable: &Array2<u8>) -> f64 {
+    aperture_sum(b, c, inner, usable) / aperture_sum(b, c, outer, usable)
+}
+
+/// Match the orientations' PSFs (module docs, step 2): each orientation sharper than the
+/// broadest (a larger share of the star's flux within `inner` of the centre `c` than
+/// within `outer`) has its o and e convolved with the Gaussian that brings its share to the
+/// broadest's (found by bisection, to 1e-4 px). o and e of an orientation get the same
+/// kernel, so a star's F = (o - e)/(o + e) is unchanged; the orientations' I then agree in
+/// an aperture of any size, and the least squares of the maps summed over an aperture is
+/// that of the aperture's F. Returns the Gaussian sigma applied to each orientation, px.
+pub fn match_psfs(orients: &mut [OrientationBeams], c: f64, (inner, outer): (f64, f64)) -> Vec<f64> {
+    let usable = usable_everywhere(orients);
+    let shares: Vec<f64> = orients
+        .iter()
+        .map(|b| concentration(b, c, (inner, outer), &usable))
+        .collect();
+    let Some(target) = shares.iter().copied().filter(|v| v.is_finite()).reduce(f64::min) else {
+        return vec![0.0; orients.len()];
+    };
+    orients
+        .iter_mut()
+        .zip(&shares)
+        .map(|(b, &share)| {
+            if !(share.is_finite() && share > target * (1.0 + 1e-6)) {
+                return 0.0;
+            }
+            let smoothed = |sigma: f64| OrientationBeams {
+                o: convolve(&b.o, sigma),
+                e: convolve(&b.e, sigma),
+                ..b.clone()
+            };
+            let (mut lo, mut hi) = (0.0f64, inner.max(1.0));
+            while concentration(&smoothed(hi), c, (inner, outer), &usable) > target && hi < 4.0 * outer {
+                hi *= 2.0;
+            }
+            while hi - lo > 1e-4 {
+                let mid = 0.5 * (lo + hi);
+                if concentration(&smoothed(mid), c, (inner, outer), &usable) > target {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            let sigma = 0.5 * (lo + hi);
+            *b = smoothed(sigma);
+            sigma
+        })
+        .collect()
+}
+
+/// The target's `o + e` flux of each orientation within `radius` of the centre `c`, over
+/// the pixels usable in every orientation: what [`transparency_scales`] normalises.
+pub fn aperture_fluxes(orients: &[OrientationBeams], c: f64, radius: f64) -> Vec<f64> {
+    let usable = usable_everywhere(orients);
+    orients.iter().map(|b| aperture_sum(b, c, radius, &usable)).collect()
 }
 
 /// The transparency normalisation `a_k = mean_j T_j / T_k` (module docs) from the
@@ -294,7 +511,8 @@ pub fn stokes_maps(orients: &[OrientationBeams], scales: &[f64]) -> StokesMaps {
             let (o, a, w) = (&orients[k], scales[k], weights[k]);
             let (vo, ve) = (o.o.data[[j, i]] as f64, o.e.data[[j, i]] as f64);
             let v = a * a * o.var(j, i);
-            let d = a * (vo - ve);
+            // F - f_offset for the star in an aperture: D - f_offset S.
+            let d = a * ((vo - ve) - o.f_offset * (vo + ve));
             q += cq * d;
             u += cu * d;
             vq += cq * cq * v;
@@ -302,7 +520,7 @@ pub fn stokes_maps(orients: &[OrientationBeams], scales: &[f64]) -> StokesMaps {
             cqu += cq * cu * v;
             sw += w;
             sws += w * a * (vo + ve);
-            sw2v += w * w * v;
+            sw2v += w * w * a * a * (o.o.variance[[j, i]] as f64 + o.e.variance[[j, i]] as f64);
         }
         *mask = 0;
         m.q[[j, i]] = q as f32;
@@ -566,5 +784,135 @@ mod tests {
         let two = observe(&[0.0, 90.0], 0.03, 0.01, &[1.0; 2]);
         let m = stokes_maps(&two, &[1.0; 2]);
         assert!(m.mask.iter().all(|&v| v == 1) && m.q.iter().all(|v| v.is_nan()));
+    }
+
+    /// A Gaussian star of `sigma` px (total flux `flux`) at (x, y) on an n x n grid.
+    fn star_sigma(n: usize, (x, y): (f64, f64), flux: f64, sigma: f64) -> Array2<f32> {
+        let s2 = sigma * sigma;
+        Array2::from_shape_fn((n, n), |(j, i)| {
+            let r2 = (i as f64 - x).powi(2) + (j as f64 - y).powi(2);
+            (flux * (-r2 / (2.0 * s2)).exp() / (2.0 * std::f64::consts::PI * s2)) as f32
+        })
+    }
+
+    /// On the sky grid, a companion at separation 6 px and position angle 30 deg sits at
+    /// (-6 sin 30, 6 cos 30) px from the target whatever the rotator angle: on the detector
+    /// it was at the frame contract's (-r sin(psi - POSANG), r cos(psi - POSANG)).
+    #[test]
+    fn on_the_sky_grid_north_is_up_and_east_left_at_every_rotator_angle() {
+        let (n, h) = (41usize, 20.0);
+        let (r, psi) = (6.0f64, 30f64.to_radians());
+        for posang in [0.0f64, 45.0, 90.0, 135.0, -60.0] {
+            let th = posang.to_radians();
+            let t = (h + 0.3, h - 0.2);
+            let b = (t.0 - r * (psi - th).sin(), t.1 + r * (psi - th).cos());
+            let img = &star_sigma(n, t, 1000.0, 1.3) + &star_sigma(n, b, 500.0, 1.3);
+            let o = stack(img.clone(), 1.0, (100.0 + 0.3, 50.0 - 0.2));
+            let e = stack(img, 1.0, (20.0, 20.0));
+            let beams = OrientationBeams::on_sky(0.0, posang, &o, &e, (0.0, 0.0));
+            let want = (h - r * psi.sin(), h + r * psi.cos());
+            // Centroids within 3 px of where each star should be.
+            let near = |x: f64, y: f64| {
+                let mut r = beams.o.clone();
+                for ((j, i), v) in r.data.indexed_iter_mut() {
+                    if (i as f64 - x).hypot(j as f64 - y) > 3.0 {
+                        *v = 0.0;
+                    }
+                }
+                centroid(&r)
+            };
+            let (bx, by) = near(want.0, want.1);
+            assert!(
+                (bx - want.0).hypot(by - want.1) < 0.05,
+                "POSANG {posang}: B at ({bx:.3}, {by:.3}), want ({:.3}, {:.3})",
+                want.0,
+                want.1
+            );
+            let (ax, ay) = near(h, h);
+            assert!(
+                (ax - h).abs() < 0.05 && (ay - h).abs() < 0.05,
+                "POSANG {posang}: A at ({ax}, {ay})"
+            );
+        }
+    }
+
+    /// Two orientations seen through different seeing (Gaussian sigma 1.2 and 1.9 px) and
+    /// transparency: summed over a small aperture (1.5 px), the maps give the star's q and u
+    /// once the PSFs are matched (the sharper orientation smoothed to sigma ~ sqrt(1.9^2 -
+    /// 1.2^2)), and are off by several 1e-3 without it.
+    #[test]
+    fn matched_psfs_make_a_small_aperture_give_the_stars_q_and_u() {
+        let (q, u) = (0.04, -0.03);
+        let n = 41;
+        let make = |phi: f64, sigma: f64, tr: f64| {
+            let f = q * (2.0 * phi.to_radians()).cos() + u * (2.0 * phi.to_radians()).sin();
+            let img = |frac: f64| {
+                let d = star_sigma(n, (20.0, 20.0), tr * 8000.0 * frac, sigma);
+                BeamStack {
+                    variance: d.mapv(|v| 5.0 + v),
+                    ..stack(d, 0.0, (100.0, 50.0))
+                }
+            };
+            OrientationBeams::on_sky(phi, 0.0, &img(0.5 * (1.0 + f)), &img(0.5 * (1.0 - f)), (0.0, 0.0))
+        };
+        let beams = vec![make(0.0, 1.2, 1.0), make(45.0, 1.9, 0.85)];
+        let in_aperture = |m: &StokesMaps| {
+            let sum = |a: &Array2<f32>| -> f64 {
+                a.indexed_iter()
+                    .filter(|((j, i), _)| (*i as f64 - 20.0).hypot(*j as f64 - 20.0) <= 1.5)
+                    .map(|(_, &v)| v as f64)
+                    .sum()
+            };
+            (sum(&m.q) / sum(&m.i), sum(&m.u) / sum(&m.i))
+        };
+        let unmatched = stokes_maps(
+            &beams,
+            &transparency_scales(&aperture_fluxes(&beams, 20.0, 9.0)).unwrap(),
+        );
+        let (uq, uu) = in_aperture(&unmatched);
+        assert!((uq - q).abs().max((uu - u).abs()) > 3e-3, "unmatched: {uq} {uu}");
+        let mut matched = beams.clone();
+        let sigmas = match_psfs(&mut matched, 20.0, (1.5, 9.0));
+        let expect = (1.9f64.powi(2) - 1.2f64.powi(2)).sqrt();
+        assert!(
+            sigmas[1] == 0.0 && (sigmas[0] - expect).abs() < 0.05,
+            "{sigmas:?} vs {expect}"
+        );
+        let m = stokes_maps(
+            &matched,
+            &transparency_scales(&aperture_fluxes(&matched, 20.0, 9.0)).unwrap(),
+        );
+        let (mq, mu) = in_aperture(&m);
+        assert!((mq - q).abs() < 3e-4 && (mu - u).abs() < 3e-4, "matched: {mq} {mu}");
+    }
+
+    /// With the calibration applied (analyzer angles moved by theta0, f_k taken from each
+    /// orientation's F), the maps summed over an aperture give the star's q, u on the sky.
+    #[test]
+    fn calibrated_orientations_give_the_sky_q_and_u() {
+        let (q, u, theta0, c) = (0.03, 0.02, 3.0f64, 0.018);
+        let tel = [0.004, -0.002, 0.001, 0.003];
+        let phis = [0.0, 45.0, 90.0, 135.0];
+        // F_k = q cos 2(phi_k + theta0) + u sin 2(phi_k + theta0) + c + T_k.
+        let mut beams: Vec<OrientationBeams> = phis
+            .iter()
+            .zip(tel)
+            .map(|(&p, t)| {
+                let phi = (p + theta0).to_radians();
+                let f = q * (2.0 * phi).cos() + u * (2.0 * phi).sin() + c + t;
+                let img = |frac: f64| {
+                    let d = star_sigma(41, (20.0, 20.0), 5000.0 * frac, 1.5);
+                    stack(d, 1.0, (100.0, 50.0))
+                };
+                OrientationBeams::on_sky(p, 0.0, &img(0.5 * (1.0 + f)), &img(0.5 * (1.0 - f)), (0.0, 0.0))
+            })
+            .collect();
+        for (b, (&p, t)) in beams.iter_mut().zip(phis.iter().zip(tel)) {
+            b.calibrate(p + theta0, c + t);
+        }
+        let m = stokes_maps(&beams, &[1.0; 4]);
+        let sum = |a: &Array2<f32>| -> f64 { a.iter().filter(|v| v.is_finite()).map(|&v| v as f64).sum() };
+        let (mq, mu) = (sum(&m.q) / sum(&m.i), sum(&m.u) / sum(&m.i));
+        assert!((mq - q).abs() < 1e-5 && (mu - u).abs() < 1e-5, "{mq} {mu}");
     }
 }

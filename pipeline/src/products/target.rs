@@ -7,11 +7,15 @@ use sofipol_calib::{Frame, Header, HistoryRecord, Profile};
 
 use super::combine::{combine_beam, combine_following, cutout_half_size, BeamStack};
 use super::headers::{self, ProductKind};
-use super::stokes_maps::{e_to_o_shift, stokes_maps, transparency_scales, OrientationBeams, StokesMaps};
+use super::stokes_maps::{
+    aperture_fluxes, e_to_o_shift, match_psfs, stokes_maps, transparency_scales, OrientationBeams, StokesMaps,
+};
 use super::{CombineError, ProductError, StokesMapsError};
+use crate::catalog::polarimetric_calibration::FilterCalibration;
 use crate::catalog::Target;
 use crate::reduce::run::TargetOutcome;
 use crate::reduce::{Measured, SkySubtractedOrientation, TargetParams};
+use crate::solve::OrientationCorrection;
 
 /// One orientation's combined beams.
 pub struct OrientationProduct {
@@ -34,17 +38,26 @@ pub struct OrientationProduct {
 }
 
 /// How one orientation went into the Stokes maps.
+#[derive(Debug, Clone)]
 pub struct OrientationStokes {
     /// Rotator angle, deg.
     pub posang_deg: f64,
-    /// Analyzer angle, deg.
+    /// Analyzer angle, deg: the calibration's when the maps are calibrated, else the
+    /// profile's.
     pub analyzer_deg: f64,
+    /// The calibration's offset c taken from F (0: instrumental).
+    pub offset: f64,
+    /// The telescope's term taken from F (0: instrumental or none removed).
+    pub telescope: f64,
     /// The o stack resampled at (x, y) + this, px (its target onto the centre pixel).
     pub o_shift: (f64, f64),
     /// The e stack's target from the o stack's, px: e resampled at (x, y) + o_shift + this.
     pub eo_shift: (f64, f64),
     /// Transparency normalisation a_k.
     pub scale: f64,
+    /// Sigma of the Gaussian its o and e were convolved with to match the broadest
+    /// orientation's PSF, px (0: none).
+    pub psf_sigma: f64,
 }
 
 /// The Stokes maps and how they were made.
@@ -55,6 +68,65 @@ pub struct StokesProduct {
     pub orientations: Vec<OrientationStokes>,
     /// Why the transparency scales are all 1, if they are.
     pub unscaled: Option<String>,
+    /// Whether the night's calibration was applied (`POLCALIB`); why not, when it was not.
+    pub calibrated: Result<(), String>,
+}
+
+/// What the Stokes maps are made from, kept from the reduction (the frames gone) until the
+/// night's calibration is known: every orientation's o and e beams on the sky grid.
+pub struct StokesInputs {
+    /// The beams, instrumental (the profile's analyzer angles, nothing taken from F).
+    pub beams: Vec<OrientationBeams>,
+    /// How each went in (same order).
+    pub orientations: Vec<OrientationStokes>,
+    /// Transparency normalisation a_k (same order).
+    pub scales: Vec<f64>,
+    /// Why the scales are all 1, if they are.
+    pub unscaled: Option<String>,
+}
+
+impl StokesInputs {
+    /// The maps under the calibration `corrections` (the component A's orientations,
+    /// [`crate::solve::orientation_corrections`]; `None`: instrumental, `why` not): each
+    /// orientation with its calibrated analyzer angle and the offset and telescope term
+    /// taken from F, as the catalog's solve does. An orientation the catalog did not use
+    /// (no correction at its rotator angle) is left out of calibrated maps.
+    pub fn maps(
+        &self,
+        corrections: Result<&[OrientationCorrection], String>,
+    ) -> Result<StokesProduct, StokesMapsError> {
+        let mut beams = Vec::new();
+        let mut info = Vec::new();
+        let mut scales = Vec::new();
+        for ((b, o), &a) in self.beams.iter().zip(&self.orientations).zip(&self.scales) {
+            let (mut b, mut o) = (b.clone(), o.clone());
+            if let Ok(cs) = &corrections {
+                let Some(c) = cs.iter().find(|c| (c.posang_deg - o.posang_deg).abs() < 1e-6) else {
+                    continue;
+                };
+                b.calibrate(c.analyzer_deg, c.offset + c.telescope);
+                o.analyzer_deg = c.analyzer_deg;
+                o.offset = c.offset;
+                o.telescope = c.telescope;
+            }
+            beams.push(b);
+            info.push(o);
+            scales.push(a);
+        }
+        if beams.len() < 2 {
+            return Err(StokesMapsError::TooFewOrientations { found: beams.len() });
+        }
+        let maps = stokes_maps(&beams, &scales);
+        if maps.mask.iter().all(|&v| v != 0) {
+            return Err(StokesMapsError::Unconstrained);
+        }
+        Ok(StokesProduct {
+            maps,
+            orientations: info,
+            unscaled: self.unscaled.clone(),
+            calibrated: corrections.map(|_| ()),
+        })
+    }
 }
 
 /// Everything one target's products hold.
@@ -67,8 +139,8 @@ pub struct TargetProducts {
     pub orientations: Vec<OrientationProduct>,
     /// The orientations that could not (POSANG, why).
     pub missing: Vec<(f64, CombineError)>,
-    /// The Stokes maps, or why there are none.
-    pub stokes: Result<StokesProduct, StokesMapsError>,
+    /// What the Stokes maps are made from, or why there are none.
+    pub stokes: Result<StokesInputs, StokesMapsError>,
 }
 
 /// The products of a reduced target, or `None` when it has no frames or no measurements (a
@@ -92,7 +164,7 @@ pub fn build(outcome: &TargetOutcome, profile: &Profile, params: &TargetParams) 
             Err(why) => missing.push((o.posang_deg, why)),
         }
     }
-    let stokes = stokes_product(&orientations, m);
+    let stokes = stokes_inputs(&orientations, m);
     Some(TargetProducts {
         half,
         pixscale_arcsec: profile.geometry.pixscale_arcsec,
@@ -131,63 +203,70 @@ fn orientation_product(
     })
 }
 
-/// Stokes maps from every orientation's beams (both onto the grid centred on the target,
-/// the transparency normalised by the target's fluxes), or why there are none.
-fn stokes_product(orients: &[OrientationProduct], m: &Measured) -> Result<StokesProduct, StokesMapsError> {
-    let a = m.dithers.first();
+/// Every orientation's beams onto the sky grid centred on the target (north up, east
+/// left), with the transparency normalisation from the target's fluxes, or why there can be
+/// no Stokes maps.
+fn stokes_inputs(orients: &[OrientationProduct], m: &Measured) -> Result<StokesInputs, StokesMapsError> {
     let mut beams = Vec::new();
     let mut info = Vec::new();
-    let mut fluxes = Vec::new();
     for o in orients {
         let Some(shift) = e_to_o_shift(&o.o, &o.e, m.eo_offset_px) else {
             continue;
         };
-        beams.push(OrientationBeams::centred(o.analyzer_deg, &o.o, &o.e, shift));
-        let dithers = a.and_then(|a| a.get(o.index)).map_or(&[][..], |d| d.as_slice());
-        fluxes.push(stack_flux(&o.o, dithers, false) + stack_flux(&o.e, dithers, true));
+        beams.push(OrientationBeams::on_sky(
+            o.analyzer_deg,
+            o.posang_deg,
+            &o.o,
+            &o.e,
+            shift,
+        ));
         let t = o.o.target_xy();
         let c = o.o.half as f64;
         info.push(OrientationStokes {
             posang_deg: o.posang_deg,
             analyzer_deg: o.analyzer_deg,
+            offset: 0.0,
+            telescope: 0.0,
             o_shift: (t.0 - c, t.1 - c),
             eo_shift: shift,
             scale: 1.0,
+            psf_sigma: 0.0,
         });
     }
     if beams.len() < 2 {
         return Err(StokesMapsError::TooFewOrientations { found: beams.len() });
     }
-    let (scales, unscaled) = match transparency_scales(&fluxes) {
+    let (inner, outer) = match_radii(orients[0].o.half, m.aperture_px);
+    let c = orients[0].o.half as f64;
+    for (i, sigma) in info.iter_mut().zip(match_psfs(&mut beams, c, (inner, outer))) {
+        i.psf_sigma = sigma;
+    }
+    let (scales, unscaled) = match transparency_scales(&aperture_fluxes(&beams, c, outer)) {
         Ok(s) => (s, None),
         Err(why) => (vec![1.0; beams.len()], Some(why)),
     };
-    let maps = stokes_maps(&beams, &scales);
-    if maps.mask.iter().all(|&v| v != 0) {
-        return Err(StokesMapsError::Unconstrained);
-    }
     for (i, a) in info.iter_mut().zip(&scales) {
         i.scale = *a;
     }
-    Ok(StokesProduct {
-        maps,
+    Ok(StokesInputs {
+        beams,
         orientations: info,
+        scales,
         unscaled,
     })
 }
 
-/// The target's flux in a combined stack: the reduction's per-dither fluxes of A in that
-/// beam, weighted as the dithers were combined (NaN when one is not finite).
-fn stack_flux(stack: &BeamStack, dithers: &[crate::reduce::DitherValue], e_beam: bool) -> f64 {
-    let (mut sw, mut swf) = (0.0, 0.0);
-    for a in &stack.anchors {
-        let f = dithers
-            .get(a.index)
-            .map_or(f64::NAN, |d| if e_beam { d.e.flux } else { d.o.flux });
-        sw += a.weight;
-        swf += a.weight * f;
-    }
-    swf / sw
+/// The radii of the PSF matching and the transparency normalisation, px: the catalog's
+/// aperture radius (a third of the grid's half-size when it has none), and three times it
+/// within the grid less the resampling's and the smoothing's masked border.
+fn match_radii(half: usize, aperture_px: f64) -> (f64, f64) {
+    let edge = (half as f64 - 8.0).max(2.0);
+    let inner = if aperture_px.is_finite() && aperture_px > 0.0 {
+        aperture_px
+    } else {
+        half as f64 / 3.0
+    };
+    (inner.min(edge / 2.0), (3.0 * inner).min(edge))
 }
 
 /// File name of a product of the target `slug`: `<slug>_pa<angle>_o.fits`, `_e.fits`,
@@ -206,16 +285,66 @@ pub fn angle_tag(deg: f64) -> String {
     s.replace('-', "m").replace('.', "p")
 }
 
-/// Write every product of `p` for `target` into `dir` (names from `slug`): the result of
+/// A file written, or why not.
+pub type FileResult = (PathBuf, Result<(), ProductError>);
+
+/// The Stokes maps of one target, waiting for the night's calibration
+/// ([`PendingStokes::write`]).
+pub struct PendingStokes {
+    /// Where they go.
+    pub path: PathBuf,
+    /// The target's sequence id (its entry in the catalog).
+    pub sequence: String,
+    /// The cards known at the reduction (target, measurement, frames).
+    header: Header,
+    /// The stages of the first orientation's frames.
+    history: Vec<HistoryRecord>,
+    /// Half-size of the grid, px.
+    half: usize,
+    /// The pixel scale, arcsec/px.
+    pixscale_arcsec: f64,
+    /// What the maps are made from.
+    inputs: StokesInputs,
+}
+
+impl PendingStokes {
+    /// Make and write the maps for `target` as the catalog has it after the calibration,
+    /// `cal` the calibration of its filter (`None`: the night has none, the maps are
+    /// instrumental as the catalog's values are) and `profile` the profile the catalog's
+    /// solve used.
+    pub fn write(
+        &self,
+        target: &Target,
+        cal: Option<&FilterCalibration>,
+        profile: &Profile,
+    ) -> Result<(), ProductError> {
+        let corrections = match (cal, target.components.first()) {
+            (Some(cal), Some(a)) => Ok(crate::solve::orientation_corrections(a, profile, Some(cal))),
+            (None, _) => Err("the night has no calibration for this filter".to_string()),
+            (Some(_), None) => Err("the target has no measured component".to_string()),
+        };
+        let s = self
+            .inputs
+            .maps(corrections.as_deref().map_err(String::clone))
+            .map_err(ProductError::NoStokesMaps)?;
+        write_stokes(&self.path, self, target, &s).map_err(|source| ProductError::Write {
+            path: self.path.clone(),
+            source,
+        })
+    }
+}
+
+/// Write the products of `p` for `target` into `dir` (names from `slug`): the result of
 /// each file, in order; a product that could not be made (an orientation without a
-/// combined beam, the Stokes maps) is an error too.
+/// combined beam, the Stokes maps) is an error too. The Stokes maps wait for the night's
+/// calibration: returned to be written with it ([`PendingStokes::write`]).
 pub fn write(
     dir: &Path,
     slug: &str,
     target: &Target,
     m: &Measured,
-    p: &TargetProducts,
-) -> Vec<(PathBuf, Result<(), ProductError>)> {
+    p: TargetProducts,
+) -> (Vec<FileResult>, Option<PendingStokes>) {
     let mut out = Vec::new();
     for o in &p.orientations {
         for (kind, beam, stack) in [(headers::COMBINED_O, "o", &o.o), (headers::COMBINED_E, "e", &o.e)] {
@@ -236,15 +365,24 @@ pub fn write(
         ));
     }
     let path = dir.join(file_name(slug, None, "stokes"));
-    let r = match &p.stokes {
-        Ok(s) => write_stokes(&path, target, m, p, s).map_err(|source| ProductError::Write {
-            path: path.clone(),
-            source,
+    let header = stokes_header(target, m, &p);
+    let history = p.orientations.first().map(|o| o.history.clone()).unwrap_or_default();
+    let pending = match p.stokes {
+        Ok(inputs) => Some(PendingStokes {
+            path,
+            sequence: target.sequence_id().to_string(),
+            header,
+            history,
+            half: p.half,
+            pixscale_arcsec: p.pixscale_arcsec,
+            inputs,
         }),
-        Err(why) => Err(ProductError::NoStokesMaps(why.clone())),
+        Err(why) => {
+            out.push((path, Err(ProductError::NoStokesMaps(why))));
+            None
+        }
     };
-    out.push((path, r));
-    out
+    (out, pending)
 }
 
 /// The cards a target's products share: product kind, target, the catalog's measurement.
@@ -401,26 +539,25 @@ fn combine_record(stack: &BeamStack) -> HistoryRecord {
     )
 }
 
-fn write_stokes(
-    path: &Path,
-    target: &Target,
-    m: &Measured,
-    p: &TargetProducts,
-    s: &StokesProduct,
-) -> sofipol_calib::Result<()> {
-    let h = stokes_header(target, m, p, s);
+fn write_stokes(path: &Path, p: &PendingStokes, target: &Target, s: &StokesProduct) -> sofipol_calib::Result<()> {
+    let h = stokes_calibration_cards(p, target, s);
     let history = stokes_history(p, s);
     let mp = &s.maps;
+    let kind = if s.calibrated.is_ok() {
+        "calibrated"
+    } else {
+        "instrumental"
+    };
     let ext = |unit: Option<&str>, what: &str| headers::extension_header(unit, what);
     let hdus = [
         (
             "Q",
-            ext(Some("adu"), "Stokes Q (instrumental)"),
+            ext(Some("adu"), &format!("Stokes Q ({kind}), north up, east left")),
             ImagePixels::F32(&mp.q),
         ),
         (
             "U",
-            ext(Some("adu"), "Stokes U (instrumental)"),
+            ext(Some("adu"), &format!("Stokes U ({kind}), north up, east left")),
             ImagePixels::F32(&mp.u),
         ),
         (
@@ -456,33 +593,50 @@ fn write_stokes(
     write_images(path, &all)
 }
 
-/// The primary header of the Stokes maps: the target's cards, where it came from, each
-/// orientation's registration and scale, the catalog's values before the calibration.
-fn stokes_header(target: &Target, m: &Measured, p: &TargetProducts, s: &StokesProduct) -> Header {
+/// The primary header of the Stokes maps known at the reduction: the target's cards and the
+/// frames they come from.
+fn stokes_header(target: &Target, m: &Measured, p: &TargetProducts) -> Header {
     let mut h = target_header(headers::STOKES, target, m, p.half);
     h.set_with_comment("BUNIT", "adu", headers::unit_comment("adu"));
-    h.set_with_comment(
-        "POLCALIB",
-        false,
-        "instrumental: night calibration not applied (HISTORY)",
-    );
     let files: Vec<&Path> = p
         .orientations
         .iter()
         .flat_map(|o| o.o.anchors.iter().map(|a| o.files[a.index].as_path()))
         .collect();
     headers::raw_cards(&mut h, &files, "POL_SCIENCE");
+    h
+}
+
+/// The primary header with what the calibration decided: whether it was applied, each
+/// orientation's angles, shifts, scale and what was taken from F, the catalog's values of A
+/// (calibrated as the maps are) and the sky grid's WCS (north up, east left, the target star
+/// at the centre pixel and at the pointing).
+fn stokes_calibration_cards(p: &PendingStokes, target: &Target, s: &StokesProduct) -> Header {
+    let mut h = p.header.clone();
+    let comment = match &s.calibrated {
+        Ok(()) => "night calibration applied, as to the catalog (HISTORY)",
+        Err(_) => "instrumental: no night calibration (HISTORY)",
+    };
+    h.set_with_comment("POLCALIB", s.calibrated.is_ok(), comment);
     headers::qc(&mut h, "NORIENT", s.orientations.len() as i64, "orientations combined");
     orientation_cards(&mut h, s);
     if let Some(c) = target.components.first() {
-        headers::qc(&mut h, "A Q", c.q, "catalog q of A before the night calibration");
-        headers::qc(&mut h, "A U", c.u, "catalog u of A before the night calibration");
+        let when = if s.calibrated.is_ok() {
+            "calibrated, as the maps"
+        } else {
+            "instrumental, as the maps"
+        };
+        headers::qc(&mut h, "A Q", c.q, &format!("catalog q of A, {when}"));
+        headers::qc(&mut h, "A U", c.u, &format!("catalog u of A, {when}"));
         headers::qc(&mut h, "A SIGQ", c.sigma_q, "its error");
         headers::qc(&mut h, "A SIGU", c.sigma_u, "its error");
     }
     let c = (p.half + 1) as f64;
     headers::qc(&mut h, "TARGET X", c, "FITS px, target's position (the centre pixel)");
     headers::qc(&mut h, "TARGET Y", c, "FITS px, target's position (the centre pixel)");
+    if let (Some(ra), Some(dec)) = (target.ra_deg, target.dec_deg) {
+        headers::wcs_cards(&mut h, (ra, dec), (c, c), 0.0, p.pixscale_arcsec);
+    }
     h
 }
 
@@ -500,7 +654,18 @@ fn orientation_cards(h: &mut Header, s: &StokesProduct) {
             h,
             &format!("ORI{k} PHI"),
             o.analyzer_deg,
-            "deg, analyzer angle (the profile's)",
+            if s.calibrated.is_ok() {
+                "deg, analyzer angle (the calibration's)"
+            } else {
+                "deg, analyzer angle (the profile's)"
+            },
+        );
+        headers::qc(h, &format!("ORI{k} OFFSET"), o.offset, "offset c taken from F");
+        headers::qc(
+            h,
+            &format!("ORI{k} TELPOL"),
+            o.telescope,
+            "telescope's term taken from F",
         );
         headers::qc(
             h,
@@ -527,12 +692,18 @@ fn orientation_cards(h: &mut Header, s: &StokesProduct) {
             "px, e target - o target in the cut-outs",
         );
         headers::qc(h, &format!("ORI{k} SCALE"), o.scale, "transparency normalisation a_k");
+        headers::qc(
+            h,
+            &format!("ORI{k} PSFMATCH"),
+            o.psf_sigma,
+            "px, sigma of the Gaussian matching the PSFs",
+        );
     }
 }
 
 /// The HISTORY of the Stokes maps: each step from the combined cut-outs to I, Q, U.
-fn stokes_history(p: &TargetProducts, s: &StokesProduct) -> Vec<HistoryRecord> {
-    let mut history = p.orientations[0].history.clone();
+fn stokes_history(p: &PendingStokes, s: &StokesProduct) -> Vec<HistoryRecord> {
+    let mut history = p.history.clone();
     history.push(HistoryRecord::new(
         "register",
         "the o and e cut-outs of every orientation as in the SOFIPOL_COMBINED_O/E products: \
@@ -541,39 +712,60 @@ fn stokes_history(p: &TargetProducts, s: &StokesProduct) -> Vec<HistoryRecord> {
     ));
     history.push(HistoryRecord::new(
         "resample",
-        "every orientation's o and e cut-outs onto one grid, the target at its centre pixel: \
-         o'(x, y) = o(x + OSHIFT), e'(x, y) = e(x + OSHIFT + EOSHIFT) (QC ORIi), EOSHIFT the measured \
-         e-o offset less the mean whole-pixel registration difference of the dithers; Lanczos-3 \
-         interpolation (6 x 6 taps, normalised: flux and a well-sampled star's shape kept); variance \
-         sum(w var), what an aperture sum carries (neighbouring pixels are correlated); a pixel with a \
-         masked tap is masked",
+        "every orientation's o and e cut-outs onto one sky grid, north up and east left, the target \
+         at its centre pixel c: o'(p) = o(t + R(-POSANG) (p - c)), e'(p) = e(t + EOSHIFT + R(-POSANG) \
+         (p - c)), t the o target's position in the cut-out (c + OSHIFT, QC ORIi), EOSHIFT the \
+         measured e-o offset less the mean whole-pixel registration difference of the dithers; \
+         Lanczos-3 interpolation (6 x 6 taps at each point, normalised per axis: flux and a \
+         well-sampled star's shape kept); variance sum(w var), what an aperture sum carries \
+         (neighbouring pixels are correlated); a pixel with a masked tap is masked",
+    ));
+    history.push(HistoryRecord::new(
+        "psf-match",
+        "the orientations' PSFs matched: o' and e' of each orientation whose star is more concentrated \
+         than the broadest orientation's (its o' + e' flux within the catalog's aperture radius r as a \
+         share of that within 3 r) convolved with the Gaussian (QC ORIi PSFMATCH, sigma in px) that \
+         brings the share to the broadest's; the same kernel for o' and e' keeps a star's F; the \
+         orientations' I then agree in an aperture of any size",
     ));
     history.push(HistoryRecord::new(
         "normalise",
         match &s.unscaled {
             None => "o' and e' of orientation k times a_k = mean(T)/T_k (QC ORIi SCALE), T_k the target's \
-                     o + e flux in the combined cut-outs (the reduction's per-dither fluxes of A, weighted as \
-                     combined): transparency changes between orientations cancel as in F = (o-e)/(o+e)"
+                     o' + e' flux within 3 r of the centre (pixels usable in every orientation): transparency \
+                     changes between orientations cancel as in F = (o-e)/(o+e)"
                 .to_string(),
             Some(why) => format!("not normalised (a_k = 1): {why}"),
         },
     ));
     history.push(HistoryRecord::new(
         "stokes",
-        "per pixel, D_k = a_k (o' - e') = Q cos 2phi_k + U sin 2phi_k over the usable orientations, by \
-         the catalog's weighted least squares (stokes::inversion::fit_qu) with one weight per \
-         orientation, 1/B_k, B_k the median of V_k = a_k^2 (var_o' + var_e') (a pixel's own variance \
-         would bias the star); Q = sum c_k D_k, VAR_Q = sum c_k^2 V_k (U, VAR_U, COV_QU alike); I = \
-         sum(a_k (o' + e')/B_k)/sum(1/B_k), UNCERT (variance of I) = sum(V_k/B_k^2)/sum(1/B_k)^2; MASK = 1 where the \
-         usable orientations do not constrain Q and U. Over an aperture, sum(Q)/sum(I) is the \
-         least-squares q of the aperture's F_k: the star's q before the night calibration",
+        "per pixel, D_k = a_k ((o' - e') - f_k (o' + e')) = Q cos 2phi_k + U sin 2phi_k over the usable \
+         orientations, f_k = OFFSET + TELPOL (QC ORIi), by the catalog's weighted least squares \
+         (stokes::inversion::fit_qu) with one weight per orientation, 1/B_k, B_k the median of V_k = \
+         a_k^2 ((1 - f_k)^2 var_o' + (1 + f_k)^2 var_e') (a pixel's own variance would bias the star); \
+         Q = sum c_k D_k, VAR_Q = sum c_k^2 V_k (U, VAR_U, COV_QU alike); I = sum(a_k (o' + e')/B_k) / \
+         sum(1/B_k), UNCERT (variance of I) = sum(a_k^2 (var_o' + var_e')/B_k^2)/sum(1/B_k)^2; MASK = 1 \
+         where the usable orientations do not constrain Q and U. Over an aperture, sum(Q)/sum(I) is the \
+         least-squares q of the aperture's F_k - f_k at the angles phi_k: the star's q as the catalog \
+         solves it",
     ));
     history.push(HistoryRecord::new(
         "calibration",
-        "NOT applied (instrumental Q, U): the instrumental offset c (beam ratio and instrumental \
-         polarization), the analyzer angles' zero-point theta0 and parity (the profile's angles are \
-         used, QC ORIi PHI) and the telescope's polarization; the catalog's q, u have the night's \
-         calibration applied when it has one",
+        match &s.calibrated {
+            Ok(()) => "applied as to the catalog: the analyzer angles phi_k = parity POSANG + theta0 of the \
+                       night's calibration (QC ORIi PHI), its offset c (QC ORIi OFFSET) and, where the \
+                       calibration measured it, the telescope's polarization at each orientation's \
+                       parallactic angles (QC ORIi TELPOL) taken from F; Q and U are on the sky, angles from \
+                       north through east. Their errors (VAR_Q, VAR_U) are the photometry's; the catalog's \
+                       also carry the calibration's"
+                .to_string(),
+            Err(why) => format!(
+                "NOT applied ({why}): the profile's analyzer angles (QC ORIi PHI), nothing taken from F \
+                 (instrumental offset c, telescope's polarization left in), as the catalog's values of this \
+                 target"
+            ),
+        },
     ));
     history
 }
