@@ -3,8 +3,12 @@
 //! the page loaded with `?selftest=1`: its self-test script (pipeline/src/report/selftest.js)
 //! clicks the P/sigma header, ticks "hide failed targets", types in the filter and writes
 //! what it saw into `<pre id="selftest">`, which this test reads from the dumped DOM and
-//! checks against the catalog (in a phone-sized window: the page must not scroll sideways,
-//! the table scrolls in its box). A screenshot is kept in target/test-artifacts/report.png.
+//! checks against the catalog (in a 500 px window: the page must not scroll sideways, nor
+//! the targets table, a card per row). Before that, the layout at 1400 px and on a 390 px
+//! phone, measured by the test's own probe (report_browser/layout.rs, probe.js): no
+//! sideways page, no cell cut off, every table whole at 1400 px, sequence ids broken only
+//! at '@', every per-target figure a link to its PNG file. A screenshot is kept in
+//! target/test-artifacts/report.png.
 //!
 //! The browser: `$SOFIPOL_CHROMIUM` (scripts/test.sh sets it from scripts/browser-env.sh,
 //! which installs Debian's chromium), else /usr/bin/chromium or chromium on the PATH; none:

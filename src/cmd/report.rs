@@ -131,7 +131,9 @@ pub fn write_page(
     let command_line = sofipol_pipeline::build_info::command_line_string();
     let to_stdout = output.as_os_str() == "-";
     // The folder first: the figures are linked relative to it, as it really is.
-    let page_dir = output.parent().map(|d| if d.as_os_str().is_empty() { Path::new(".") } else { d });
+    let page_dir = output
+        .parent()
+        .map(|d| if d.as_os_str().is_empty() { Path::new(".") } else { d });
     if let Some(d) = page_dir.filter(|_| !to_stdout) {
         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
     }

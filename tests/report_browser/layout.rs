@@ -2,9 +2,10 @@
 //! real browser by the test's own probe (`probe.js`, inserted into a copy of the page beside
 //! it, so that the figures' relative links still resolve): the page never scrolls sideways,
 //! no cell is cut off, at the desktop width every table shows all its columns without
-//! scrolling, the standards' sequence ids are laid out on at most two lines broken only at
-//! '@', and every per-target figure is a link to its PNG file (as wide as the column on the
-//! phone).
+//! scrolling (on the phone the targets table does, a card per row; the others may scroll in
+//! their boxes), the standards' sequence ids are laid out on at most two lines broken only
+//! at '@', and every per-target figure is a link to its PNG file (as wide as the column on
+//! the phone).
 //!
 //! Headless Chromium's window is at least 500 px wide: narrower widths are an `<iframe>` of
 //! that width in a page of the test, to which the probe posts its measurements.
@@ -123,7 +124,12 @@ pub fn problems(m: &Value, width: u64, figures: &Path) -> Vec<String> {
     assert!(!seqs.is_empty(), "no standards' sequence ids: {m}");
     for s in seqs {
         let text = s["text"].as_str().unwrap().trim();
-        let lines: Vec<&str> = s["lines"].as_array().unwrap().iter().map(|l| l.as_str().unwrap()).collect();
+        let lines: Vec<&str> = s["lines"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|l| l.as_str().unwrap())
+            .collect();
         if lines.len() > 2 || (lines.len() == 2 && !lines[0].ends_with('@')) {
             bad.push(format!(
                 "at {width} px the sequence id {text:?} is laid out on {lines:?} (at most two lines, broken at '@')"

@@ -219,3 +219,5 @@ pub fn base64(bytes: &[u8]) -> String {
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_layout;
