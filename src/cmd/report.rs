@@ -112,8 +112,9 @@ pub struct PageSummary {
 }
 
 /// Gather the page of `catalog` (read from `catalog_path`; per-target figures from
-/// `figures`, none when `None`; statistics with `pairs` and `seed`, in the current rayon pool) and write it
-/// to `output` atomically, creating its folder.
+/// `figures`, none when `None`, each linked relative to `output`'s folder; statistics with
+/// `pairs` and `seed`, in the current rayon pool) and write it to `output` atomically,
+/// creating its folder (`-`: standard output, the figures linked by absolute `file:` URLs).
 pub fn write_page(
     catalog: Catalog,
     catalog_path: &Path,
@@ -128,24 +129,36 @@ pub fn write_page(
         ..Default::default()
     };
     let command_line = sofipol_pipeline::build_info::command_line_string();
-    let input = report::collect(catalog, catalog_path, figures, &opts, command_line);
+    let to_stdout = output.as_os_str() == "-";
+    // The folder first: the figures are linked relative to it, as it really is.
+    let page_dir = output
+        .parent()
+        .map(|d| if d.as_os_str().is_empty() { Path::new(".") } else { d });
+    if let Some(d) = page_dir.filter(|_| !to_stdout) {
+        std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+    }
+    let input = report::collect(
+        catalog,
+        catalog_path,
+        figures,
+        page_dir.filter(|_| !to_stdout),
+        &opts,
+        command_line,
+    );
     let html = report::html::render(&input);
-    if output.as_os_str() == "-" {
+    if to_stdout {
         use std::io::Write;
         let mut out = std::io::stdout().lock();
         out.write_all(html.as_bytes())
             .and_then(|()| out.flush())
             .context("writing the page to standard output")?;
     } else {
-        if let Some(d) = output.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
-        }
         report::write(output, &html)?;
     }
     Ok(PageSummary {
         targets: input.catalog.targets.len(),
         figures: input.target_figures.len(),
-        figure_bytes: input.target_figures.values().map(Vec::len).sum(),
+        figure_bytes: input.target_figures.values().map(|f| f.png.len()).sum(),
         stats: match &input.stats {
             Ok(_) => "computed".into(),
             Err(e) => printable(&e.to_string()).into_owned(),

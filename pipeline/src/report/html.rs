@@ -110,7 +110,7 @@ fn summary(h: &mut String, cat: &Catalog) {
         for f in &cat.failures {
             let _ = writeln!(
                 h,
-                "<tr><td><code>{}</code></td><td>{}</td></tr>",
+                "<tr><td><code>{}</code></td><td class=\"prose\">{}</td></tr>",
                 escape(&f.file),
                 escape(&f.error)
             );
@@ -174,53 +174,70 @@ fn targets_table(h: &mut String, cat: &Catalog) {
     h.push_str("</section>\n");
 }
 
-/// A numeric cell: the shown text and the raw value (`data-v`) it sorts by.
-fn num_cell(h: &mut String, shown: String, value: Option<f64>) {
-    match value.filter(|v| v.is_finite()) {
-        Some(v) => {
-            let _ = write!(h, "<td class=\"num\" data-v=\"{v}\">{shown}</td>");
-        }
-        None => {
-            let _ = write!(h, "<td class=\"num\" data-v=\"\">{shown}</td>");
-        }
-    }
+/// The start of the targets table's cell of column `col`: its header as `data-label` (the
+/// phone's card layout shows it before the value) and its attributes.
+fn open_cell(h: &mut String, col: usize, attrs: &str) {
+    let _ = write!(h, "<td data-label=\"{}\"{attrs}>", COLUMNS[col].1);
+}
+
+/// A numeric cell of column `col`: the shown text and the raw value (`data-v`) it sorts by.
+fn num_cell(h: &mut String, col: usize, shown: String, value: Option<f64>) {
+    let v = value.filter(|v| v.is_finite()).map_or(String::new(), |v| v.to_string());
+    open_cell(h, col, &format!(" class=\"num\" data-v=\"{v}\""));
+    let _ = write!(h, "{shown}</td>");
+}
+
+/// A text cell of column `col` (`text` already escaped), with its class if any.
+fn text_cell(h: &mut String, col: usize, class: &str, text: &str) {
+    let attrs = if class.is_empty() {
+        String::new()
+    } else {
+        format!(" class=\"{class}\"")
+    };
+    open_cell(h, col, &attrs);
+    let _ = write!(h, "{text}</td>");
 }
 
 fn target_row(h: &mut String, t: &Target, c: Option<&Component>) {
     let st = status_word(t.status);
     let _ = write!(
         h,
-        "<tr data-status=\"{st}\" data-target=\"{}\" data-comp=\"{}\"><td class=\"obj\"><strong>{}</strong><br><span class=\"muted\">{}</span></td>\
-         <td class=\"st-{st}\">{st}</td><td>{}</td>",
+        "<tr data-status=\"{st}\" data-target=\"{}\" data-comp=\"{}\">",
         escape(&t.object),
         escape(c.map_or("", |c| &c.name)),
-        escape(&t.object),
-        escape(t.tpl_start.as_deref().unwrap_or("")),
-        escape(c.map_or("–", |c| &c.name)),
     );
+    let object = format!(
+        "<strong>{}</strong><br><span class=\"muted\">{}</span>",
+        escape(&t.object),
+        escape(t.tpl_start.as_deref().unwrap_or(""))
+    );
+    text_cell(h, 0, "obj", &object);
+    text_cell(h, 1, &format!("st-{st}"), st);
+    text_cell(h, 2, "", &escape(c.map_or("–", |c| &c.name)));
     let p = c.map(|c| c.p_debiased);
-    num_cell(h, pct(p), p.map(|v| 100.0 * v));
+    num_cell(h, 3, pct(p), p.map(|v| 100.0 * v));
     let sp = c.map(|c| c.sigma_p);
-    num_cell(h, pct(sp), sp.map(|v| 100.0 * v));
+    num_cell(h, 4, pct(sp), sp.map(|v| 100.0 * v));
     let g = c.map(|c| c.gamma_deg);
-    num_cell(h, fmt(g, 1), g);
+    num_cell(h, 5, fmt(g, 1), g);
     let sg = c.map(|c| c.sigma_gamma_deg);
-    num_cell(h, fmt(sg, 1), sg);
+    num_cell(h, 6, fmt(sg, 1), sg);
     let snr = c.map(|c| c.snr.unwrap_or(c.p / c.sigma_p));
-    num_cell(h, fmt(snr, 1), snr);
+    num_cell(h, 7, fmt(snr, 1), snr);
     let cut = match c {
         Some(c) if c.passes_cut => "pass",
         Some(_) => "fail",
         None => "–",
     };
-    let _ = write!(h, "<td>{cut}</td>");
-    num_cell(h, fmt(t.delta_gamma_deg, 1), t.delta_gamma_deg);
-    num_cell(h, fmt(t.sigma_delta_gamma_deg, 1), t.sigma_delta_gamma_deg);
-    let _ = write!(h, "<td>{}</td><td>", escape(t.filter.as_deref().unwrap_or("")));
+    text_cell(h, 8, "", cut);
+    num_cell(h, 9, fmt(t.delta_gamma_deg, 1), t.delta_gamma_deg);
+    num_cell(h, 10, fmt(t.sigma_delta_gamma_deg, 1), t.sigma_delta_gamma_deg);
+    text_cell(h, 11, "", &escape(t.filter.as_deref().unwrap_or("")));
     let mut all: Vec<&Flag> = t.target_flags().iter().collect();
     if let Some(c) = c {
         all.extend(&c.flags);
     }
+    open_cell(h, 12, " class=\"flags-cell\"");
     if let (None, Some(e)) = (c, &t.error) {
         let _ = write!(h, "<span class=\"st-failed\">{}</span>", escape(e));
     }
@@ -234,15 +251,19 @@ fn target_figures(h: &mut String, input: &ReportInput) {
         h.push_str("<p>None: the night was reduced without figures (<code>--no-png</code>).</p>\n</section>\n");
         return;
     };
-    let _ = writeln!(h, "<p class=\"muted\">From <code>{}</code>.</p>", escape(dir));
+    let _ = writeln!(
+        h,
+        "<p class=\"muted\">From <code>{}</code>; click a figure to open its PNG file at full size.</p>",
+        escape(dir)
+    );
     if input.target_figures.is_empty() {
         h.push_str("<p>No per-target figures were found (the night was reduced with <code>--no-png</code>, or its products folder is elsewhere: <code>sofipol report --figures DIR</code>).</p>\n");
     } else {
         h.push_str("<div class=\"grid\">\n");
         for t in &input.catalog.targets {
             let id = t.sequence_id();
-            if let Some(png) = input.target_figures.get(id) {
-                image(h, &format!("{} ({})", t.object, id), png);
+            if let Some(f) = input.target_figures.get(id) {
+                image(h, &format!("{} ({})", t.object, id), &f.png, Some(&f.href));
             }
         }
         h.push_str("</div>\n");

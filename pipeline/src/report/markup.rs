@@ -1,5 +1,5 @@
 //! HTML fragments shared by the page (`html.rs`) and its sections (`sections.rs`):
-//! escaping, numbers, the status in words, flag lists and embedded images.
+//! escaping, numbers, the status in words, flag lists, sequence ids and embedded images.
 use std::fmt::Write as _;
 
 use super::base64;
@@ -58,24 +58,57 @@ pub fn flag_list(h: &mut String, all: &[&Flag]) {
                     h,
                     "<li title=\"{}\"><code>{}</code>: {}</li>",
                     escape(&f.to_string()),
-                    escape(&f.label()),
+                    breakable_at(&f.label(), '_'),
                     escape(&words)
                 );
             }
             None => {
-                let _ = write!(h, "<li><code>{}</code></li>", escape(&f.to_string()));
+                let _ = write!(h, "<li><code>{}</code></li>", breakable_at(&f.to_string(), '_'));
             }
         }
     }
     h.push_str("</ul>");
 }
 
-/// An `<img>` of PNG bytes as a `data:` URI, with its caption.
-pub fn image(h: &mut String, caption: &str, png: &[u8]) {
+/// `s` escaped, with a line-break opportunity (`<wbr>`) after each `at`: a flag such as
+/// `telescope_polarization_from_prior` breaks between its words, not inside one.
+pub fn breakable_at(s: &str, at: char) -> String {
+    let sep = escape(&at.to_string());
+    s.split(at).map(escape).collect::<Vec<_>>().join(&format!("{sep}<wbr>"))
+}
+
+/// A sequence id (`object@start`) that breaks, when it must, only after its last '@': two
+/// unbreakable halves (class `seq`, the CSS's `white-space: nowrap`) with a `<wbr>` between.
+/// An id without '@' is one unbreakable piece.
+pub fn sequence_id(s: &str) -> String {
+    match s.rfind('@') {
+        Some(i) => format!(
+            "<span>{}</span><wbr><span>{}</span>",
+            escape(&s[..=i]),
+            escape(&s[i + 1..])
+        ),
+        None => format!("<span>{}</span>", escape(s)),
+    }
+}
+
+/// An `<img>` of PNG bytes as a `data:` URI, with its caption; inside a link to `href` (the
+/// image's file, opened at full size) when there is one.
+pub fn image(h: &mut String, caption: &str, png: &[u8], href: Option<&str>) {
+    let img = format!(
+        "<img alt=\"{}\" src=\"data:image/png;base64,{}\">",
+        escape(caption),
+        base64(png)
+    );
+    let shown = match href {
+        Some(href) => format!(
+            "<a href=\"{}\" title=\"open the figure at full size\">{img}</a>",
+            escape(href)
+        ),
+        None => img,
+    };
     let _ = writeln!(
         h,
-        "<figure><img alt=\"{c}\" src=\"data:image/png;base64,{}\"><figcaption>{c}</figcaption></figure>",
-        base64(png),
-        c = escape(caption)
+        "<figure>{shown}<figcaption>{}</figcaption></figure>",
+        escape(caption)
     );
 }

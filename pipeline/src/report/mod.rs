@@ -7,7 +7,14 @@
 //! theta0, the telescope's polarization), the Delta-gamma statistics of `sofipol stats`
 //! (the same library calls, [`crate::stats::setup`]) with their figures, and the
 //! provenance. Images are embedded as `data:` URIs and the page loads nothing: a
-//! Content-Security-Policy forbids any network access.
+//! Content-Security-Policy forbids any network access. Each per-target figure is also a
+//! link to its PNG file ([`links::href`], relative to the page's folder), to open it at full
+//! size.
+//!
+//! The page reads at a desktop width (every table's columns visible) and on a phone (the
+//! page never scrolls sideways: the targets table becomes one card per row, the other tables
+//! scroll in their own boxes, the figures take the column's width); `page.css` holds the
+//! layout.
 //!
 //! [`collect`] gathers what the page shows (reads the figures, runs the statistics);
 //! [`html::render`] turns it into the page (pure: the unit tests call it); [`write()`] writes
@@ -23,6 +30,7 @@ use crate::stats::sample::BinarySample;
 use crate::stats::setup;
 
 pub mod html;
+pub mod links;
 pub mod markup;
 mod sections;
 
@@ -56,6 +64,15 @@ pub struct StatsSection {
     pub figures: Vec<Image>,
 }
 
+/// A per-target figure: embedded in the page, and linked to its file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TargetFigure {
+    /// The link to the PNG file, relative to the page's folder ([`links::href`]).
+    pub href: String,
+    /// The PNG file's bytes.
+    pub png: Vec<u8>,
+}
+
 /// Everything the page shows.
 #[derive(Debug)]
 pub struct ReportInput {
@@ -66,7 +83,7 @@ pub struct ReportInput {
     /// The folder the per-target figures were looked for in (`None`: not looked for).
     pub figures_dir: Option<String>,
     /// Per-target figures by sequence id (those found).
-    pub target_figures: BTreeMap<String, Vec<u8>>,
+    pub target_figures: BTreeMap<String, TargetFigure>,
     /// The statistics, or why they could not be computed.
     pub stats: Result<StatsSection>,
     /// The command line that wrote the page.
@@ -74,15 +91,17 @@ pub struct ReportInput {
 }
 
 /// Gather the page's content: the figures `<slug(sequence id)>.png` (else
-/// `<slug(object)>.png`) found in `figures_dir`
-/// (the night's products folder, `night::products_dir(catalog)`, by default; `None`: the
-/// night was reduced without figures), and the
-/// statistics of the sample run with `opts` (in the current rayon pool). A figure that cannot
-/// be read is left out; statistics that cannot be computed are replaced by the reason.
+/// `<slug(object)>.png`) found in `figures_dir` (the night's products folder,
+/// `night::products_dir(catalog)`, by default; `None`: the night was reduced without
+/// figures), each linked from `page_dir`, the folder the page is written into (`None`: the
+/// page has no folder, as on standard output: absolute `file:` URLs), and the statistics of
+/// the sample run with `opts` (in the current rayon pool). A figure that cannot be read is
+/// left out; statistics that cannot be computed are replaced by the reason.
 pub fn collect(
     catalog: Catalog,
     catalog_path: &Path,
     figures_dir: Option<&Path>,
+    page_dir: Option<&Path>,
     opts: &setup::Options,
     command_line: String,
 ) -> ReportInput {
@@ -90,11 +109,13 @@ pub fn collect(
     for (t, dir) in catalog.targets.iter().filter_map(|t| Some((t, figures_dir?))) {
         let id = t.sequence_id();
         // `night` names a figure by the sequence id, `demo` and `target` by the object.
-        let png = [id, t.object.as_str()]
-            .iter()
-            .find_map(|name| read_png_figure(&dir.join(format!("{}.png", crate::products::slug(name)))));
-        if let Some(png) = png {
-            target_figures.insert(id.to_string(), png);
+        let found = [id, t.object.as_str()].iter().find_map(|name| {
+            let file = dir.join(format!("{}.png", crate::products::slug(name)));
+            Some((read_png_figure(&file)?, file))
+        });
+        if let Some((png, file)) = found {
+            let href = links::href(&file, page_dir);
+            target_figures.insert(id.to_string(), TargetFigure { href, png });
         }
     }
     let stats = statistics(&catalog, &catalog_path.display().to_string(), opts);
@@ -198,3 +219,5 @@ pub fn base64(bytes: &[u8]) -> String {
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_layout;

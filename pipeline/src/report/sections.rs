@@ -1,7 +1,7 @@
 //! The calibration and statistics sections of the page.
 use std::fmt::Write as _;
 
-use super::markup::{escape, flag_list, fmt, image, pct, status_word};
+use super::markup::{escape, flag_list, fmt, image, pct, sequence_id, status_word};
 use super::StatsSection;
 use crate::catalog::polarimetric_calibration::FilterCalibration;
 use crate::catalog::{Catalog, Provenance};
@@ -59,7 +59,7 @@ fn filter_row(h: &mut String, f: &FilterCalibration) {
     let _ = writeln!(
         h,
         "<tr><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td>\
-         <td class=\"num\">{} ± {}</td><td class=\"num\">{}</td><td>{} for c, {} for θ₀</td><td>{}</td></tr>",
+         <td class=\"num\">{} ± {}</td><td class=\"num\">{}</td><td>{} for c, {} for θ₀</td><td class=\"prose\">{}</td></tr>",
         escape(&f.filter),
         pm(o.map(|o| o.c), o.map(|o| o.sigma_c), 5),
         pm(a.map(|a| a.theta0_deg), a.map(|a| a.sigma_theta0_deg), 2),
@@ -93,7 +93,7 @@ fn flats(h: &mut String, prov: &Provenance) {
         };
         let _ = writeln!(
             h,
-            "<tr><td>{}</td><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td>{}</td></tr>",
+            "<tr><td>{}</td><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"prose\">{}</td></tr>",
             escape(&f.kind),
             escape(f.filter.as_deref().unwrap_or("")),
             fmt(f.posang_deg, 1),
@@ -119,11 +119,11 @@ fn standards(h: &mut String, cat: &Catalog) {
         let t = s.table.as_ref();
         let _ = write!(
             h,
-            "<tr><td><strong>{}</strong><br><span class=\"muted\">{}</span></td><td class=\"st-{st}\">{st}</td><td>{}</td>\
+            "<tr><td><strong>{}</strong><br><span class=\"muted seq\">{}</span></td><td class=\"st-{st}\">{st}</td><td>{}</td>\
              <td class=\"num\">{} ± {}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td>\
              <td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td>{}</td><td>",
             escape(&s.name),
-            escape(&s.sequence),
+            sequence_id(&s.sequence),
             escape(&s.filter),
             pct(m.map(|c| c.p)),
             pct(m.map(|c| c.sigma_p)),
@@ -222,7 +222,7 @@ pub fn statistics(h: &mut String, stats: &crate::error::Result<StatsSection>) {
         );
     }
     for f in &s.figures {
-        image(h, &f.caption, &f.png);
+        image(h, &f.caption, &f.png, None);
     }
     if !r.models.is_empty() {
         h.push_str("<h3>Against the alignment models</h3>\n<div class=\"scroll\"><table id=\"models\"><thead><tr><th>model</th>\

@@ -8,7 +8,7 @@ use crate::stokes::inversion::{Debias, LinearPolarization};
 
 const HOSTILE: &str = "<script>alert(\"x\")</script> & 'q' </td></table>";
 
-fn comp(name: &str, q: f64, u: f64, sigma: f64, flags: &[&str]) -> Component {
+pub(super) fn comp(name: &str, q: f64, u: f64, sigma: f64, flags: &[&str]) -> Component {
     let mut c = Component::new(
         name,
         LinearPolarization::from_qu(q, u, sigma, sigma, Debias::WardleKronberg).pol,
@@ -19,7 +19,7 @@ fn comp(name: &str, q: f64, u: f64, sigma: f64, flags: &[&str]) -> Component {
     c
 }
 
-fn binary(object: &str, a: Component, b: Component) -> Target {
+pub(super) fn binary(object: &str, a: Component, b: Component) -> Target {
     let mut t = Target::new(object, Status::Ok);
     t.sequence = Some(format!("{object}@1999-03-03T01:00:00"));
     t.components = vec![a, b];
@@ -28,14 +28,14 @@ fn binary(object: &str, a: Component, b: Component) -> Target {
 }
 
 /// Statistics that could not be computed: a statistics table named `why` unreadable.
-fn not_computed(why: &str) -> Error {
+pub(super) fn not_computed(why: &str) -> Error {
     Error::Stats(crate::error::StatsError::Table {
         table: why.into(),
         reason: "unreadable".into(),
     })
 }
 
-fn input(catalog: Catalog, stats: Result<StatsSection>) -> ReportInput {
+pub(super) fn input(catalog: Catalog, stats: Result<StatsSection>) -> ReportInput {
     ReportInput {
         catalog,
         catalog_path: "night/catalog.json".into(),
@@ -48,8 +48,8 @@ fn input(catalog: Catalog, stats: Result<StatsSection>) -> ReportInput {
 
 /// Non-void elements open and close in order (script and style content skipped): the
 /// page is well-formed as far as its structure goes.
-fn assert_balanced(page: &str) {
-    const VOID: [&str; 6] = ["meta", "br", "img", "input", "hr", "link"];
+pub(super) fn assert_balanced(page: &str) {
+    const VOID: [&str; 7] = ["meta", "br", "wbr", "img", "input", "hr", "link"];
     let mut stack: Vec<String> = Vec::new();
     let mut rest = page;
     while let Some(i) = rest.find('<') {
@@ -203,7 +203,7 @@ fn flags_are_explained_in_words_and_unknown_ones_shown_as_they_are() {
     let page = render(&input(cat, Err(not_computed("not run"))));
     assert!(page.contains("The two stars&#39; apertures overlap (reported only)."));
     assert!(page.contains("The companion was not found"));
-    assert!(page.contains("<li><code>a_flag_from_the_future</code></li>"));
+    assert!(page.contains("<li><code>a_<wbr>flag_<wbr>from_<wbr>the_<wbr>future</code></li>"));
     assert!(page.contains("another one was used (or none). (no angles; fell back to least_squares)"));
 }
 
@@ -236,7 +236,7 @@ fn an_empty_catalog_and_one_of_failures_only_give_whole_pages() {
     assert!(s.figures.is_empty());
     let page = render(&input(cat, Ok(s)));
     assert_balanced(&page);
-    assert!(page.contains("<code>x.fits</code></td><td>truncated</td>"));
+    assert!(page.contains("<code>x.fits</code></td><td class=\"prose\">truncated</td>"));
     assert!(page.contains("0 binaries with both components above the cut"));
 }
 
