@@ -42,6 +42,20 @@ pub(super) fn sample(f: &Frame, x: f64, y: f64) -> Option<f32> {
     Some(acc)
 }
 
+/// The `n x n` window of `f` whose pixel (0, 0) is at `origin` (x, y), bilinearly
+/// interpolated: [`sample`] at every pixel, row 0 first; NaN where it gives nothing.
+fn window(f: &Frame, origin: (f64, f64), n: usize) -> Vec<f32> {
+    let mut out = vec![f32::NAN; n * n];
+    for (j, row) in out.chunks_exact_mut(n).enumerate() {
+        for (i, v) in row.iter_mut().enumerate() {
+            if let Some(s) = sample(f, origin.0 + i as f64, origin.1 + j as f64) {
+                *v = s;
+            }
+        }
+    }
+    out
+}
+
 pub(super) fn beam_xy(d: &DitherValue, e_beam: bool) -> (f64, f64) {
     if e_beam {
         d.e.xy
@@ -85,29 +99,29 @@ pub(super) fn stack(o: &SkySubtractedOrientation, m: &Measured, k: usize, e_beam
     let h = ((0.5 * r + ap + 8.0).ceil() as usize).clamp(24, 60);
     let n = 2 * h + 1;
     let mid = rel.map(|r| (0.5 * r.0, 0.5 * r.1)).unwrap_or((0.0, 0.0));
+    // Each dither's window, sampled row by row (one bilinear weight set per dither: the
+    // window moves by whole pixels from one output pixel to the next), then the median
+    // over the dithers per pixel.
+    let windows: Vec<Vec<f32>> = o
+        .frames
+        .iter()
+        .zip(&anchors)
+        .filter_map(|(f, p)| p.map(|p| window(f, (p.0 + mid.0 - h as f64, p.1 + mid.1 - h as f64), n)))
+        .collect();
+    let used = windows.len();
     let mut pix = vec![f32::NAN; n * n];
-    let mut vals: Vec<f32> = Vec::with_capacity(anchors.len());
-    let used = anchors.iter().filter(|p| p.is_some()).count();
-    for j in 0..n {
-        for i in 0..n {
-            vals.clear();
-            for (f, p) in o.frames.iter().zip(&anchors) {
-                let Some(p) = p else { continue };
-                let x = p.0 + mid.0 + i as f64 - h as f64;
-                let y = p.1 + mid.1 + j as f64 - h as f64;
-                if let Some(v) = sample(f, x, y) {
-                    vals.push(v);
-                }
-            }
-            if !vals.is_empty() {
-                vals.sort_by(|a, b| a.total_cmp(b));
-                let q = vals.len();
-                pix[j * n + i] = if q % 2 == 1 {
-                    vals[q / 2]
-                } else {
-                    0.5 * (vals[q / 2 - 1] + vals[q / 2])
-                };
-            }
+    let mut vals: Vec<f32> = Vec::with_capacity(windows.len());
+    for (k, v) in pix.iter_mut().enumerate() {
+        vals.clear();
+        vals.extend(windows.iter().map(|w| w[k]).filter(|x| !x.is_nan()));
+        if !vals.is_empty() {
+            vals.sort_unstable_by(|a, b| a.total_cmp(b));
+            let q = vals.len();
+            *v = if q % 2 == 1 {
+                vals[q / 2]
+            } else {
+                0.5 * (vals[q / 2 - 1] + vals[q / 2])
+            };
         }
     }
     let pa = (h as f64 - mid.0, h as f64 - mid.1);
