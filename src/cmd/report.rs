@@ -141,6 +141,12 @@ pub fn write_page(
             std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
         }
         report::write(output, &html)?;
+        // The quality figure also as a file beside the page (the page embeds it).
+        if let Some(img) = &input.quality_figure {
+            let path = report::quality_figure_path(output);
+            sofipol_pipeline::io::write_atomic(&path, &img.png)
+                .with_context(|| format!("writing {}", path.display()))?;
+        }
     }
     Ok(PageSummary {
         targets: input.catalog.targets.len(),
