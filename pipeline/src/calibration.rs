@@ -519,6 +519,7 @@ fn standards_section(
             dec_deg: t.dec_deg,
             mjd_mean: t.mjd_mean,
             input_files: t.input_files.clone(),
+            frame_quality: t.frame_quality.clone(),
         });
     }
 }

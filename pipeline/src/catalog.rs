@@ -7,11 +7,13 @@ use crate::stokes::inversion::Polarization;
 pub mod applied;
 pub mod calibration_state;
 pub mod flags;
+pub mod frame_quality;
 pub mod polarimetric_calibration;
 pub mod provenance;
 pub use applied::AppliedCalibration;
 pub use calibration_state::{CalibrationState, TermSource};
 pub use flags::{Flag, FlagCode};
+pub use frame_quality::FrameQuality;
 pub use provenance::Provenance;
 
 /// Version of the catalog schema written by this build.
@@ -398,6 +400,10 @@ pub struct Target {
         deserialize_with = "crate::nullable::present"
     )]
     pub flat: Option<Option<Vec<String>>>,
+    /// Every frame the sequence was measured from, with its seeing, sky level, airmass and
+    /// transparency (absent in catalogs written before it was kept, and for failed targets).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame_quality: Option<Vec<FrameQuality>>,
     /// Median seeing FWHM, px.
     #[serde(
         default,
@@ -477,6 +483,7 @@ impl Target {
             filter: None,
             flags: None,
             flat: None,
+            frame_quality: None,
             fwhm_px: None,
             input_files: None,
             mjd_mean: None,
@@ -639,6 +646,9 @@ pub struct StandardResult {
     /// The sequence's frames (as [`Target::input_files`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub input_files: Option<Vec<String>>,
+    /// Each frame's seeing, sky level, airmass and transparency (as [`Target::frame_quality`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame_quality: Option<Vec<FrameQuality>>,
 }
 
 /// Fold an angle difference of two axial angles (degrees) into [0, 90].

@@ -154,6 +154,12 @@ pub fn write_page(
             .context("writing the page to standard output")?;
     } else {
         report::write(output, &html)?;
+        // The quality figure also as a file beside the page (the page embeds it).
+        if let Some(img) = &input.quality_figure {
+            let path = report::quality_figure_path(output);
+            sofipol_pipeline::io::write_atomic(&path, &img.png)
+                .with_context(|| format!("writing {}", path.display()))?;
+        }
     }
     Ok(PageSummary {
         targets: input.catalog.targets.len(),

@@ -32,6 +32,7 @@ fn standard(name: &str, measured: Option<Component>) -> StandardResult {
         dec_deg: Some(-33.25),
         mjd_mean: Some(51240.21),
         input_files: None,
+        frame_quality: None,
     }
 }
 

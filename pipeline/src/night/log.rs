@@ -1,7 +1,9 @@
 //! The night log: a plain-text file beside the catalog saying, frame by frame, what each
 //! input was used for and what happened to it (used, dropped and why, not used and why),
-//! then each target's outcome with its flags in words. Everything in it comes from the
-//! catalog, so the log of any catalog can be written again (`sofipol report --log`).
+//! then every science frame's observing conditions (airmass, seeing, sky, transparency:
+//! `log/quality.rs`), then each target's outcome with its flags in words. Everything in it
+//! comes from the catalog, so the log of any catalog can be written again (`sofipol report
+//! --log`).
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
@@ -93,6 +95,7 @@ pub fn night_log(cat: &Catalog, catalog_name: &str) -> String {
         }
         let _ = writeln!(s, "{:<width$}  {outcome:<7}  {}", shown(file), one_line(&what));
     }
+    quality::quality_table(&mut s, cat, &|f: &str| shown(f));
     targets(&mut s, cat);
     s
 }
@@ -282,5 +285,7 @@ fn one_line(text: &str) -> String {
     sofipol_calib::text::printable(&text.split_whitespace().collect::<Vec<_>>().join(" ")).into_owned()
 }
 
+mod quality;
+pub use quality::ut as log_ut;
 #[cfg(test)]
 mod tests;

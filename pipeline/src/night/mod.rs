@@ -42,7 +42,7 @@ pub use crate::products::{products_dir, slug};
 pub use cache::{files_key, CacheCounts, CachedTarget, FileStamp, NightCache};
 pub use calibrate::{calibrate, reduce_standards};
 pub use flats::{night_flats, NightFlats};
-pub use log::{log_path, night_log, write_night_log};
+pub use log::{log_path, log_ut, night_log, write_night_log};
 pub use mask::night_bad_pixel_mask;
 pub use merge::merge;
 pub use plan::{pick_superflat_frames, plan, plan_listing, stable_hash, NightPlan, Shard};

@@ -19,6 +19,7 @@ use std::sync::OnceLock;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 
+pub mod quality;
 pub mod target;
 
 /// Errors of the plotting module (defined with the crate's other errors).

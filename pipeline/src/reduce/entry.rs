@@ -459,6 +459,7 @@ mod tests {
         Measured {
             eo_offset_px: (0.0, 167.0),
             fwhm_px: 3.0,
+            frame_fwhm_px: Vec::new(),
             geometry: Some((5.0, 340.0)),
             photometry: "aperture".into(),
             aperture_px: 3.0,

@@ -92,6 +92,10 @@ pub struct Fluxes {
     pub fitted_a_oe: Vec<((f64, f64), (f64, f64))>,
     /// Offset of B from A fitted in every frame: (POSANG, offset, weight).
     pub pair_offsets: Vec<(f64, (f64, f64), f64)>,
+    /// Per orientation, per frame: the frame's seeing FWHM, px: the beta-free refit of the
+    /// o beam when beta was held fixed (`seeing_fwhm_px`), else the mean of the converged PSF
+    /// fits of the o and e beams; NaN when none converged.
+    pub frame_fwhm_px: Vec<Vec<f64>>,
 }
 
 /// What every frame of a sequence is measured with, the same for all: the PSF model and
@@ -131,8 +135,10 @@ pub fn measure_fluxes(
         for c in out.dithers.iter_mut() {
             c.push(Vec::new());
         }
+        out.frame_fwhm_px.push(Vec::with_capacity(o.frames.len()));
         for (f, c) in o.frames.iter().zip(cs) {
             let Some(c) = c else {
+                out.frame_fwhm_px[k].push(f64::NAN);
                 flags.push(Flag::with_detail(
                     FlagCode::PrimaryNotFoundIn,
                     f.path().display().to_string(),
@@ -155,6 +161,16 @@ pub fn measure_fluxes(
                 Some(j) => j,
                 None => (measure_beams_separately(f, &stars, setup), vec![0.0; stars.len()]),
             };
+            let fitted: Vec<f64> = results
+                .iter()
+                .map(|b| b.fit_fwhm_px)
+                .filter(|w| w.is_finite())
+                .collect();
+            out.frame_fwhm_px[k].push(if fitted.is_empty() {
+                f64::NAN
+            } else {
+                fitted.iter().sum::<f64>() / fitted.len() as f64
+            });
             let mut beams: Vec<Vec<(BeamFlux, u8)>> = Vec::new();
             let mut fitted_a: [Option<(f64, f64)>; 2] = [None, None];
             for (bi, b) in results.into_iter().enumerate() {
@@ -232,6 +248,7 @@ fn measure_beams_jointly(f: &Frame, stars: &[(f64, f64)], setup: &FluxSetup) -> 
     let frame_fwhm = shape_fit.fwhm_x().clamp(0.5 * fwhm_med, 2.0 * fwhm_med);
     let frame_shape = shape_fit.converged.then(|| FrameShape::of(shape_fit));
     let r_ap = params.aperture_radius_px(frame_fwhm);
+    let seeing = seeing_fwhm_px(&cuts[0], shape_fit, choice);
     let results = cuts
         .iter()
         .zip(&joint.fits)
@@ -241,7 +258,11 @@ fn measure_beams_jointly(f: &Frame, stars: &[(f64, f64)], setup: &FluxSetup) -> 
                 shape: frame_shape,
                 r_ap_px: r_ap,
             };
-            measured_beam(cut, guesses, &with, setup)
+            let mut b = measured_beam(cut, guesses, &with, setup);
+            if let Some(w) = seeing {
+                b.fit_fwhm_px = w;
+            }
+            b
         })
         .collect();
     let cov_oe = (0..stars.len())
@@ -254,6 +275,41 @@ fn measure_beams_jointly(f: &Frame, stars: &[(f64, f64)], setup: &FluxSetup) -> 
         })
         .collect();
     Some((results, cov_oe))
+}
+
+/// The frame's seeing FWHM, px, when the photometry's fit held Moffat beta at the stack's
+/// value: the o beam's stars fitted again with beta free, from the converged joint fit
+/// `fit` (a few iterations). A beta held at the stack's, which mixes the sequence's
+/// seeing, biases a frame's FWHM by a few per cent when the seeing changes much between
+/// frames; the photometry keeps its own fit (this one measures, it decides nothing).
+/// `None` when beta is already free (the photometry's FWHM is the seeing) or the fit does
+/// not converge.
+fn seeing_fwhm_px(cut: &(Cutout, Vec<(f64, f64)>), fit: &PsfFit, choice: &PsfChoice) -> Option<f64> {
+    if !(matches!(choice.frame_model, PsfModel::Moffat { beta: Some(_) }) && fit.converged) {
+        return None;
+    }
+    let (cut, guesses) = cut;
+    let params = PsfFitParams {
+        model: PsfModel::Moffat { beta: None },
+        ..fit_params(choice)
+    };
+    let start = PsfStart {
+        stars: fit.stars.iter().map(|s| (s.flux, s.x, s.y)).collect(),
+        shape: fit.alpha,
+        beta: fit.beta,
+        ellipticity: fit.ellipticity,
+    };
+    let free = fit_psf_from(
+        cut.img.view(),
+        Some(cut.var.view()),
+        Some(cut.bad.view()),
+        guesses,
+        &params,
+        &start,
+    )
+    .ok()?;
+    let w = free.fwhm();
+    (free.converged && w.is_finite() && w > 0.0).then_some(w)
 }
 
 /// The cut-out of one beam about the stars at `stars` + `shift`, and their positions in it.
@@ -294,6 +350,9 @@ struct BeamResult {
     r_ap: f64,
     /// The o beam's converged fit as a start for the e beam's (frame coordinates).
     fit_start: Option<PsfStart>,
+    /// FWHM of this beam's PSF fit when it converged (the geometric mean of the axes'), px;
+    /// NaN otherwise.
+    fit_fwhm_px: f64,
 }
 
 /// The frame's PSF as the o beam's fit sets it for both beams ([`measure_beam`]).
@@ -439,6 +498,7 @@ fn measured_beam(cut: &Cutout, guesses: &[(f64, f64)], with: &BeamFit, setup: &F
         pair_offset,
         r_ap,
         fit_start: None,
+        fit_fwhm_px: fit.filter(|ft| ft.converged).map_or(f64::NAN, PsfFit::fwhm),
     }
 }
 

@@ -34,6 +34,7 @@ pub mod entry;
 pub mod fluxes;
 pub mod identity;
 pub mod params;
+pub mod quality;
 pub mod run;
 pub mod sources;
 #[cfg(test)]
@@ -98,6 +99,9 @@ pub struct Measured {
     pub eo_offset_px: (f64, f64),
     /// Median FWHM, px.
     pub fwhm_px: f64,
+    /// Per orientation, per frame: the frame's seeing FWHM from the PSF fits of the
+    /// primary, px ([`fluxes::Fluxes::frame_fwhm_px`]; NaN when no fit converged).
+    pub frame_fwhm_px: Vec<Vec<f64>>,
     /// Separation (arcsec) and PA (deg) of B from A, when B was found.
     pub geometry: Option<(f64, f64)>,
     /// Photometry method: "aperture" or "psf_fit".
@@ -171,6 +175,7 @@ pub fn measure_sequence(
     let mut measured = Measured {
         eo_offset_px: eo,
         fwhm_px: choice.fwhm_px,
+        frame_fwhm_px: std::mem::take(&mut fl.frame_fwhm_px),
         geometry,
         photometry: if choice.use_psf {
             "psf_fit".into()

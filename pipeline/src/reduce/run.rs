@@ -264,7 +264,7 @@ pub fn reduce_loaded(
 
     // The flat is divided out in the sky stage's last pass (its time counts there).
     let t = std::time::Instant::now();
-    let cal = subtract_sky(orients, &flat_rows, mask.as_ref(), profile, params, &mut flags);
+    let (cal, sky_levels) = subtract_sky(orients, &flat_rows, mask.as_ref(), profile, params, &mut flags);
     flats_used.retain(|u| cal.iter().any(|o| u.starts_with(&format!("POSANG {}:", o.posang_deg))));
     times.sky += t.elapsed().as_secs_f64();
 
@@ -313,6 +313,7 @@ pub fn reduce_loaded(
     target.flags = Some(flags);
     // JSON null when no flat was applied.
     target.flat = Some((!flats_used.is_empty()).then_some(flats_used));
+    target.frame_quality = Some(super::quality::frame_quality(&cal, &sky_levels, &measured, profile));
     if let Some(m) = &mask {
         target.bad_pixels_masked = Some(m.iter().filter(|&&v| v != 0).count());
     }
@@ -546,7 +547,8 @@ fn drop_frames_without_sky(
 }
 
 /// Sky subtraction, orientation by orientation (the mask applied first). An orientation
-/// with fewer than 2 readable dithers, or whose sky fails, is dropped and flagged.
+/// with fewer than 2 readable dithers, or whose sky fails, is dropped and flagged. Returns
+/// the sky-subtracted orientations and the sky level of each of their frames, ADU.
 fn subtract_sky(
     orients: Vec<LoadedOrientation>,
     flats: &[Option<flat::FlatRows>],
@@ -554,8 +556,9 @@ fn subtract_sky(
     profile: &Profile,
     params: &TargetParams,
     flags: &mut Vec<Flag>,
-) -> Vec<SkySubtractedOrientation> {
+) -> (Vec<SkySubtractedOrientation>, Vec<Vec<f64>>) {
     let mut cal = Vec::new();
+    let mut levels = Vec::new();
     for ((posang, phi, frames, offs), fl) in orients.into_iter().zip(flats) {
         if frames.len() < 2 {
             flags.push(Flag::with_detail(
@@ -578,19 +581,22 @@ fn subtract_sky(
             }
         }
         match sky::sky_subtract_flat(frames, profile, &params.sky, fl.as_ref()) {
-            Ok((s, _)) => cal.push(SkySubtractedOrientation {
-                posang_deg: posang,
-                analyzer_deg: phi,
-                frames: s,
-                offsets: offs,
-            }),
+            Ok((s, report)) => {
+                levels.push(report.levels_adu);
+                cal.push(SkySubtractedOrientation {
+                    posang_deg: posang,
+                    analyzer_deg: phi,
+                    frames: s,
+                    offsets: offs,
+                })
+            }
             Err(e) => flags.push(Flag::with_detail(
                 FlagCode::OrientationDropped,
                 format!("{posang} dropped: {e}"),
             )),
         }
     }
-    cal
+    (cal, levels)
 }
 
 /// Write the sky-subtracted frames (data, UNCERT (variance), MASK) into `dir` as `<name>_skysub.fits`.

@@ -31,13 +31,14 @@ pub fn render(input: &ReportInput) -> String {
         h,
         "<header><h1>Night report</h1><p class=\"muted\">catalog <code>{}</code></p>\n\
          <nav><a href=\"#summary\">Summary</a><a href=\"#targets-section\">Targets</a>\
-         <a href=\"#figures\">Figures</a><a href=\"#calibration\">Calibration</a>\
+         <a href=\"#figures\">Figures</a><a href=\"#quality\">Quality</a><a href=\"#calibration\">Calibration</a>\
          <a href=\"#statistics\">Statistics</a><a href=\"#provenance\">Provenance</a></nav></header>\n<main>\n",
         escape(&input.catalog_path)
     );
     summary(&mut h, cat);
     targets_table(&mut h, cat);
     target_figures(&mut h, input);
+    super::quality::quality(&mut h, cat, input.quality_figure.as_ref());
     super::sections::calibration(&mut h, cat);
     super::sections::statistics(&mut h, &input.stats);
     provenance(&mut h, input);

@@ -3,7 +3,9 @@
 //! `sofipol report CATALOG -o night.html` (and `sofipol night --report FILE`) write it:
 //! the night's summary (targets ok / partial / failed, the inputs not used and why), a
 //! sortable, filterable table of targets and components, the per-target figures of the
-//! night's products folder, the calibration (flats, standards and their residuals, c,
+//! night's products folder, the frame quality (seeing, sky, airmass and transparency of
+//! every science frame, with a figure against time: `quality.rs`, [`quality_figure`]),
+//! the calibration (flats, standards and their residuals, c,
 //! theta0, the telescope's polarization), the Delta-gamma statistics of `sofipol stats`
 //! (the same library calls, [`crate::stats::setup`]) with their figures, and the
 //! provenance. Images are embedded as `data:` URIs and the page loads nothing: a
@@ -32,6 +34,7 @@ use crate::stats::setup;
 pub mod html;
 pub mod links;
 pub mod markup;
+mod quality;
 mod sections;
 
 /// Bins of the observed Delta-gamma histogram (as `sofipol stats`' default).
@@ -86,6 +89,9 @@ pub struct ReportInput {
     pub target_figures: BTreeMap<String, TargetFigure>,
     /// The statistics, or why they could not be computed.
     pub stats: Result<StatsSection>,
+    /// The night's seeing, sky and transparency against time (None: no frame has quality
+    /// and a time, or the figure could not be drawn).
+    pub quality_figure: Option<Image>,
     /// The command line that wrote the page.
     pub command_line: String,
 }
@@ -119,14 +125,37 @@ pub fn collect(
         }
     }
     let stats = statistics(&catalog, &catalog_path.display().to_string(), opts);
+    let quality_figure = quality_figure(&catalog);
     ReportInput {
         catalog,
         catalog_path: catalog_path.display().to_string(),
         figures_dir: figures_dir.map(|d| d.display().to_string()),
         target_figures,
         stats,
+        quality_figure,
         command_line,
     }
+}
+
+/// The frame-quality figure of `catalog` ([`crate::plots::quality`]), `None` when no frame
+/// has quality and an MJD or it could not be drawn.
+pub fn quality_figure(catalog: &Catalog) -> Option<Image> {
+    let rows = crate::catalog::frame_quality::night_frames(catalog);
+    let png = crate::plots::quality::quality_png(&rows).ok()??;
+    Some(Image {
+        caption: "Seeing, sky level and transparency of every science frame over the night, coloured by target                   (standards grey); dashed: the night's median, thin dashed: the outlier limits"
+            .into(),
+        png,
+    })
+}
+
+/// Where the page at `page` writes its frame-quality figure: beside it, `<stem>_quality.png`
+/// (`night.html` -> `night_quality.png`).
+pub fn quality_figure_path(page: &Path) -> PathBuf {
+    let stem = page
+        .file_stem()
+        .map_or_else(|| "report".into(), |s| s.to_string_lossy().into_owned());
+    page.with_file_name(format!("{stem}_quality.png"))
 }
 
 /// The largest figure file the page takes, bytes: a target's figure is a few hundred kB.

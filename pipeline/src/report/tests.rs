@@ -42,6 +42,7 @@ pub(super) fn input(catalog: Catalog, stats: Result<StatsSection>) -> ReportInpu
         figures_dir: Some("night/catalog_products".into()),
         target_figures: Default::default(),
         stats,
+        quality_figure: None,
         command_line: "sofipol report night/catalog.json".into(),
     }
 }
@@ -311,4 +312,93 @@ fn zero_counts_in_the_summary_are_not_coloured() {
         page.contains("<li class=\"st-partial\">1 inputs not used</li>"),
         "{page}"
     );
+}
+
+#[test]
+fn the_quality_section_has_a_row_per_frame_the_outliers_marked_and_the_figure() {
+    let mut t = binary(
+        "HK <Tau>",
+        comp("A", 0.03, 0.0, 0.003, &[]),
+        comp("B", 0.0, 0.02, 0.003, &[]),
+    );
+    let q = |i: usize, fwhm: f64, transparency: f64| crate::catalog::FrameQuality {
+        file: format!("/night/raw/hk_{i}.fits"),
+        posang_deg: if i < 3 { 0.0 } else { 45.0 },
+        dither: 1 + i % 3,
+        mjd: Some(61005.1 + 0.01 * i as f64),
+        airmass: Some(1.2),
+        fwhm_arcsec: Some(fwhm),
+        sky_adu: Some(1400.0 + 10.0 * i as f64),
+        transparency: Some(transparency),
+    };
+    t.frame_quality = Some(vec![
+        q(0, 0.8, 1.0),
+        q(1, 0.80, 0.99),
+        q(2, 1.5, 1.01),
+        q(3, 0.79, 1.0),
+        q(4, 0.81, 0.6),
+        q(5, 0.8, 1.0),
+    ]);
+    let cat = Catalog {
+        targets: vec![t],
+        ..Default::default()
+    };
+    let mut inp = input(cat, Err(not_computed("none")));
+    inp.quality_figure = quality_figure(&inp.catalog);
+    let png = &inp.quality_figure.as_ref().expect("a figure").png;
+    assert!(png.starts_with(b"\x89PNG\r\n\x1a\n"));
+    let page = render(&inp);
+    assert_balanced(&page);
+    let section = page
+        .split("<section id=\"quality\">")
+        .nth(1)
+        .unwrap()
+        .split("</section>")
+        .next()
+        .unwrap();
+    assert_eq!(section.matches("<tr><td title=").count(), 6, "{section}");
+    assert!(
+        section.contains("HK &lt;Tau&gt;") && !section.contains("HK <Tau>"),
+        "{section}"
+    );
+    assert!(section.contains("seeing <strong>0.80″</strong>"), "{section}");
+    let marked: Vec<&str> = section
+        .lines()
+        .filter(|l| l.contains("<span class=\"st-partial\">"))
+        .collect();
+    assert_eq!(marked.len(), 2, "{section}");
+    assert!(
+        marked[0].contains("hk_2.fits") && marked[0].contains(">seeing</span>"),
+        "{}",
+        marked[0]
+    );
+    assert!(
+        marked[1].contains("hk_4.fits") && marked[1].contains(">transparency</span>"),
+        "{}",
+        marked[1]
+    );
+    assert!(
+        section.contains("<img alt=\"Seeing, sky level and transparency"),
+        "{section}"
+    );
+    assert!(page.contains("<a href=\"#quality\">"), "no link to the section");
+    assert_eq!(
+        quality_figure_path(Path::new("out/night.html")),
+        Path::new("out/night_quality.png")
+    );
+}
+
+#[test]
+fn a_catalog_without_frame_quality_says_so_and_has_no_figure() {
+    let cat = Catalog {
+        targets: vec![binary(
+            "X",
+            comp("A", 0.03, 0.0, 0.003, &[]),
+            comp("B", 0.0, 0.02, 0.003, &[]),
+        )],
+        ..Default::default()
+    };
+    assert!(quality_figure(&cat).is_none());
+    let page = render(&input(cat, Err(not_computed("none"))));
+    assert!(page.contains("The catalog has no per-frame quality"), "{page}");
 }

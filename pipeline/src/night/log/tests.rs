@@ -146,3 +146,62 @@ fn text_from_headers_cannot_forge_lines_or_escape_sequences() {
     assert!(!log.contains('\x1b'), "{log}");
     assert!(!log.lines().any(|l| l.starts_with("FAKE")), "{log}");
 }
+
+/// `night()` with a quality entry for each of HK Tau's frames (hk_4 under a cloud, hk_2 in
+/// bad seeing) and the standard's.
+fn night_with_quality() -> Catalog {
+    let mut cat = night();
+    let q = |i: usize, fwhm: f64, t: f64| crate::catalog::FrameQuality {
+        file: format!("/data/night/raw/hk_{i}.fits"),
+        posang_deg: 0.0,
+        dither: i,
+        mjd: Some(61005.25 + 0.001 * i as f64),
+        airmass: Some(1.1 + 0.01 * i as f64),
+        fwhm_arcsec: Some(fwhm),
+        sky_adu: Some(1500.0 + i as f64),
+        transparency: Some(t),
+    };
+    cat.targets[0].frame_quality = Some(vec![
+        q(1, 0.80, 1.0),
+        q(2, 1.40, 1.01),
+        q(3, 0.82, 0.99),
+        q(4, 0.81, 0.55),
+    ]);
+    let mut s = q(9, 0.79, 1.0);
+    s.file = "/data/night/raw/std_1.fits".into();
+    s.mjd = Some(61005.2);
+    cat.standards[0].frame_quality = Some(vec![s]);
+    cat
+}
+
+#[test]
+fn the_quality_table_lists_every_frame_in_time_order_with_the_medians_and_marks_outliers() {
+    let log = night_log(&night_with_quality(), "night.json");
+    let table = log.split("## Frame quality").nth(1).expect(&log);
+    assert!(table.starts_with(": 5 frames of the targets and standards"), "{table}");
+    // Medians of the 5 frames: seeing 0.81, sky 1503 ADU, transparency 1.0.
+    assert!(
+        table.contains("night medians: airmass 1.130, seeing 0.81\", sky 1503.0 ADU, transparency 1.000"),
+        "{table}"
+    );
+    let rows: Vec<&str> = table.lines().filter(|l| l.starts_with("raw/")).collect();
+    assert_eq!(rows.len(), 5, "{table}");
+    // The standard was observed first (MJD), then hk_1 ... hk_4.
+    assert!(
+        rows[0].starts_with("raw/std_1.fits") && rows[0].contains("HD 64299 (std)"),
+        "{table}"
+    );
+    assert!(rows[1].contains("06:01:26") && rows[1].contains("1.110"), "{}", rows[1]);
+    assert!(rows[2].contains("1.40") && rows[2].ends_with("* seeing"), "{}", rows[2]);
+    assert!(
+        rows[4].contains("0.550") && rows[4].ends_with("* transparency"),
+        "{}",
+        rows[4]
+    );
+    assert!(!rows[3].contains('*') && !rows[1].contains('*'), "{table}");
+}
+
+#[test]
+fn a_catalog_without_quality_has_no_quality_table() {
+    assert!(!night_log(&night(), "night.json").contains("Frame quality"));
+}

@@ -123,6 +123,7 @@ fn inputs() -> FigureInputs {
         measured: Some(Measured {
             eo_offset_px: (0.0, 120.0),
             fwhm_px: 2.9,
+            frame_fwhm_px: Vec::new(),
             geometry: Some((3.0, 40.0)),
             photometry: "aperture".into(),
             aperture_px: 2.9,

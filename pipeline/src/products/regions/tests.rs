@@ -46,6 +46,7 @@ fn outcome() -> TargetOutcome {
     let measured = Measured {
         eo_offset_px: (0.5, 167.0),
         fwhm_px: 3.0,
+        frame_fwhm_px: Vec::new(),
         geometry: Some((1.0, 60.0)),
         photometry: "aperture".into(),
         aperture_px: 4.5,
