@@ -9,6 +9,12 @@
 //! file of theirs choosing. Writers that need a file *name* (cfitsio creates the file
 //! itself) get one inside a fresh private directory (mode 0700, random name) instead.
 //!
+//! Many small files written together (a night's figures) may instead be synced once, after
+//! the last ([`write_atomic_deferred`], then [`sync_filesystem`]): one flush of the
+//! filesystem's journal where a sync per file and per directory cost some 8 ms each on a
+//! virtual disk (0.4 s for 49 figures, more than drawing them). They are still never
+//! half-written: each is renamed into place whole.
+//!
 //! The destination must be absent or a regular file ([`check_destination`]): the rename
 //! would replace a symbolic link or a device node (`-o /dev/stdout` as root replaced the
 //! system's link) with a regular file, so such a destination is refused by name.
@@ -213,6 +219,48 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     tmp.persist(path).map_err(|e| io(path, e.error))?;
     let _ = std::fs::File::open(dir).and_then(|d| d.sync_all());
     Ok(())
+}
+
+/// [`write_atomic`] without the syncs: the file is renamed into place whole, and made
+/// durable by a later [`sync_filesystem`] of its directory (with the others written since).
+pub fn write_atomic_deferred(path: &Path, bytes: &[u8]) -> Result<()> {
+    let safe = safe_name(path)?;
+    check_destination(path)?;
+    let prefix = format!(".{safe}.");
+    let mut b = tempfile::Builder::new();
+    b.prefix(&prefix).suffix(".tmp");
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        b.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    let dir = dir_of(path);
+    let mut tmp = b.tempfile_in(dir).map_err(|e| io(dir, e))?;
+    tmp.write_all(bytes).map_err(|e| io(tmp.path(), e))?;
+    check_destination(path)?;
+    tmp.persist(path).map_err(|e| io(path, e.error))?;
+    Ok(())
+}
+
+/// Make everything written under `dir` durable: `syncfs` of its filesystem on Linux (one
+/// flush for many files), else a sync of the directory.
+pub fn sync_filesystem(dir: &Path) -> Result<()> {
+    let d = std::fs::File::open(dir).map_err(|e| io(dir, e))?;
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::fd::AsRawFd;
+        // SAFETY: `d` is an open file descriptor for the whole call; syncfs only reads it.
+        #[allow(unsafe_code)]
+        let r = unsafe { libc::syncfs(d.as_raw_fd()) };
+        if r != 0 {
+            return Err(io(dir, std::io::Error::last_os_error()));
+        }
+        Ok(())
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        d.sync_all().map_err(|e| io(dir, e))
+    }
 }
 
 /// Serialize `value` as pretty JSON (with a final newline) and write it atomically,

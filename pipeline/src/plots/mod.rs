@@ -19,6 +19,7 @@ use std::sync::OnceLock;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 
+pub mod glyphs;
 pub mod quality;
 pub mod target;
 
@@ -42,6 +43,13 @@ fn ensure_font() -> Result<()> {
     } else {
         Err(Error::Font)
     }
+}
+
+/// The PNG encoder of every figure: fast deflate and the Paeth filter on every row (the
+/// adaptive choice per row costs a quarter more time for 6 % smaller files).
+pub fn png_encoder<W: std::io::Write>(w: W) -> image::codecs::png::PngEncoder<W> {
+    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+    PngEncoder::new_with_quality(w, CompressionType::Fast, FilterType::Paeth)
 }
 
 /// An RGB colour.
@@ -439,7 +447,7 @@ impl Figure {
         let (rows, cols, w, h) = self.layout()?;
         let mut buf = vec![255u8; (w * h * 3) as usize];
         {
-            let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+            let root = glyphs::CachedText::with_buffer(&mut buf, (w, h)).into_drawing_area();
             self.draw_on(root, rows, cols)?;
         }
         Ok((w, h, buf))
@@ -449,14 +457,8 @@ impl Figure {
     pub fn render_png(&self) -> Result<Vec<u8>> {
         let (w, h, buf) = self.render_rgb()?;
         let mut out = Vec::new();
-        image::ImageEncoder::write_image(
-            image::codecs::png::PngEncoder::new(&mut out),
-            &buf,
-            w,
-            h,
-            image::ExtendedColorType::Rgb8,
-        )
-        .map_err(|e| Error::Encode(e.to_string()))?;
+        image::ImageEncoder::write_image(png_encoder(&mut out), &buf, w, h, image::ExtendedColorType::Rgb8)
+            .map_err(|e| Error::Encode(e.to_string()))?;
         Ok(out)
     }
 

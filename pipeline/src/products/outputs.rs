@@ -242,11 +242,12 @@ impl Outputs {
         }
     }
 
-    /// Write a target's figure as `<slug>.png`.
+    /// Write a target's figure as `<slug>.png` (renamed into place whole; synced to disk with
+    /// the others by [`Outputs::finish`]).
     pub fn figure(&self, fig: &TargetFigure) {
         if let Some(f) = &self.figures {
             let path = f.dir().join(format!("{}.png", slug(fig.target.sequence_id())));
-            let r = fig.png(&path).map_err(|source| ProductError::Figure {
+            let r = fig.png_deferred(&path).map_err(|source| ProductError::Figure {
                 path: path.clone(),
                 source,
             });
@@ -268,8 +269,21 @@ impl Outputs {
     pub fn finish(self, clean: bool) -> OutputsSummary {
         let is_png = |p: &Path| p.extension().is_some_and(|e| e == "png");
         let is_reg = |p: &Path| p.extension().is_some_and(|e| e == "reg");
+        // The figures were renamed into place one by one and are synced here at once.
+        let figures = self.figures.map(|f| {
+            let mut w = f.finish(clean, is_png);
+            if !w.files.is_empty() {
+                if let Err(e) = sofipol_calib::atomic::sync_filesystem(&w.dir) {
+                    w.failed.push(format!(
+                        "{}: the figures could not be synced to disk: {e}",
+                        w.dir.display()
+                    ));
+                }
+            }
+            w
+        });
         OutputsSummary {
-            figures: self.figures.map(|f| f.finish(clean, is_png)),
+            figures,
             regions: self.regions.map(|r| r.files.finish(clean, is_reg)),
             fits: self.fits.map(|p| p.finish(clean)),
         }

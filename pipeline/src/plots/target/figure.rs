@@ -230,17 +230,31 @@ impl TargetFigure<'_> {
 
     /// Write the figure to `path` as a PNG (atomically).
     pub fn png(&self, path: &Path) -> io::Result<()> {
+        write_atomic(path, &self.png_bytes()?).map_err(to_io)
+    }
+
+    /// Write the figure to `path` as a PNG, renamed into place whole but not synced: the
+    /// caller syncs the folder once after the last ([`sofipol_calib::atomic::sync_filesystem`]).
+    pub fn png_deferred(&self, path: &Path) -> io::Result<()> {
+        sofipol_calib::atomic::write_atomic_deferred(path, &self.png_bytes()?).map_err(|e| match e {
+            sofipol_calib::Error::Io { source, .. } => source,
+            other => io::Error::other(other.to_string()),
+        })
+    }
+
+    /// The figure as PNG bytes.
+    fn png_bytes(&self) -> io::Result<Vec<u8>> {
         let (w, h, rgb) = self.rgb()?;
         let mut png = Vec::new();
         image::ImageEncoder::write_image(
-            image::codecs::png::PngEncoder::new(&mut png),
+            crate::plots::png_encoder(&mut png),
             &rgb,
             w,
             h,
             image::ExtendedColorType::Rgb8,
         )
         .map_err(de)?;
-        write_atomic(path, &png).map_err(to_io)
+        Ok(png)
     }
 }
 

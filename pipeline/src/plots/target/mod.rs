@@ -65,7 +65,7 @@ const TEXT_FONT: u32 = 15;
 const COL_X: [u32; 3] = [12, 408, 800];
 const COL_W: u32 = 385;
 
-type Area<'a> = DrawingArea<BitMapBackend<'a>, plotters::coord::Shift>;
+type Area<'a> = DrawingArea<crate::plots::glyphs::CachedText<'a>, plotters::coord::Shift>;
 
 fn de<E: std::fmt::Display>(e: E) -> io::Error {
     io::Error::other(e.to_string())
@@ -187,7 +187,7 @@ fn render(target: &Target, inputs: &FigureInputs, nums: &FigureNumbers) -> io::R
     }
 
     {
-        let root: Area = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        let root: Area = crate::plots::glyphs::CachedText::with_buffer(&mut buf, (w, h)).into_drawing_area();
         draw_title(&root, target, w)?;
 
         if n_or == 0 {

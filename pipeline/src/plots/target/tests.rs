@@ -313,3 +313,36 @@ fn the_text_gives_delta_gamma_with_its_error_and_its_interval() {
     .unwrap();
     assert_ne!(a, b);
 }
+
+/// The cut-out window equals the point-by-point bilinear sample at every pixel (to float
+/// rounding of the weights), on a frame with masked (bad, cosmic, off-strip) and NaN pixels,
+/// at fractional and whole-pixel origins and across every edge.
+#[test]
+fn a_window_is_the_bilinear_sample_at_every_pixel() {
+    use sofipol_calib::frame::mask as mbits;
+    let (ny, nx) = (23usize, 31usize);
+    let data = ndarray::Array2::from_shape_fn((ny, nx), |(j, i)| (j * 37 + i * 11) as f32 * 0.5 - 40.0);
+    let mut f = sofipol_calib::Frame::new(data, sofipol_calib::Header::new(""));
+    f.mask[[5, 7]] = mbits::BAD;
+    f.mask[[12, 20]] = mbits::COSMIC;
+    f.mask[[0, 3]] = mbits::OFF_STRIP;
+    f.mask[[9, 9]] = mbits::SATURATED; // not a reason to leave a pixel out
+    f.data[[17, 2]] = f32::NAN;
+    for origin in [(-3.25, -2.5), (4.0, 6.0), (20.6, 14.3), (0.0, 0.75), (-8.0, 10.5)] {
+        let n = 15;
+        let w = tiles::window(&f, origin, n);
+        for j in 0..n {
+            for i in 0..n {
+                let want = tiles::sample(&f, origin.0 + i as f64, origin.1 + j as f64);
+                let got = w[j * n + i];
+                match want {
+                    None => assert!(got.is_nan(), "{origin:?} ({i}, {j}): {got}, want nothing"),
+                    Some(v) => assert!(
+                        (got - v).abs() <= 1e-5 * v.abs().max(1.0),
+                        "{origin:?} ({i}, {j}): {got}, want {v}"
+                    ),
+                }
+            }
+        }
+    }
+}

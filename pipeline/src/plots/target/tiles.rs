@@ -14,6 +14,7 @@ pub(super) struct Stack {
     pub(super) used: usize,
 }
 
+#[cfg(test)]
 pub(super) fn sample(f: &Frame, x: f64, y: f64) -> Option<f32> {
     let (ny, nx) = f.shape();
     if !(x >= 0.0 && y >= 0.0 && x <= (nx - 1) as f64 && y <= (ny - 1) as f64) {
@@ -43,17 +44,102 @@ pub(super) fn sample(f: &Frame, x: f64, y: f64) -> Option<f32> {
 }
 
 /// The `n x n` window of `f` whose pixel (0, 0) is at `origin` (x, y), bilinearly
-/// interpolated: [`sample`] at every pixel, row 0 first; NaN where it gives nothing.
-fn window(f: &Frame, origin: (f64, f64), n: usize) -> Vec<f32> {
+/// interpolated as [`sample`] does (a tap of zero weight is not read; a masked or non-finite
+/// tap gives nothing), row 0 first; NaN where it gives nothing. One set of weights serves
+/// the whole window: it moves by whole pixels.
+pub(super) fn window(f: &Frame, origin: (f64, f64), n: usize) -> Vec<f32> {
     let mut out = vec![f32::NAN; n * n];
+    let (ny, nx) = f.shape();
+    if !(origin.0.is_finite() && origin.1.is_finite()) || nx == 0 || ny == 0 {
+        return out;
+    }
+    let (bx, by) = (origin.0.floor(), origin.1.floor());
+    let (fx, fy) = ((origin.0 - bx) as f32, (origin.1 - by) as f32);
+    let (bx, by) = (bx as i64, by as i64);
+    let bad = mbits::BAD | mbits::COSMIC | mbits::OFF_STRIP;
+    let w = [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy];
+    let (Some(data), Some(mask)) = (f.data.as_slice(), f.mask.as_slice()) else {
+        // Not in standard layout (never for a frame read from a file): pixel by pixel.
+        for (j, row) in out.chunks_exact_mut(n).enumerate() {
+            for (i, v) in row.iter_mut().enumerate() {
+                if let Some(s) = sample_at(f, (bx + i as i64, by + j as i64), (fx, fy)) {
+                    *v = s;
+                }
+            }
+        }
+        return out;
+    };
+    let tap = |k: usize| -> Option<f32> {
+        let d = data[k];
+        (mask[k] & bad == 0 && d.is_finite()).then_some(d)
+    };
     for (j, row) in out.chunks_exact_mut(n).enumerate() {
+        let y0 = by + j as i64;
+        // The point's y within [0, ny - 1]: y0 >= 0 and y0 + fy <= ny - 1.
+        if y0 < 0 || y0 > ny as i64 - 1 || (y0 == ny as i64 - 1 && fy > 0.0) {
+            continue;
+        }
+        let r0 = y0 as usize * nx;
+        let r1 = (y0 as usize + 1).min(ny - 1) * nx;
         for (i, v) in row.iter_mut().enumerate() {
-            if let Some(s) = sample(f, origin.0 + i as f64, origin.1 + j as f64) {
+            let x0 = bx + i as i64;
+            if x0 < 0 || x0 > nx as i64 - 1 || (x0 == nx as i64 - 1 && fx > 0.0) {
+                continue;
+            }
+            let x0 = x0 as usize;
+            let x1 = (x0 + 1).min(nx - 1);
+            // A tap of zero weight is not read (as in `sample`).
+            let value = (|| {
+                let mut acc = w[0] * tap(r0 + x0)?;
+                if w[1] > 0.0 {
+                    acc += w[1] * tap(r0 + x1)?;
+                }
+                if w[2] > 0.0 {
+                    acc += w[2] * tap(r1 + x0)?;
+                }
+                if w[3] > 0.0 {
+                    acc += w[3] * tap(r1 + x1)?;
+                }
+                Some(acc)
+            })();
+            if let Some(s) = value {
                 *v = s;
             }
         }
     }
     out
+}
+
+/// The bilinear sample with weights from `(fx, fy)` at the whole pixel `(x0, y0)` (a frame
+/// not in standard layout), as [`window`] computes it.
+fn sample_at(f: &Frame, (x0, y0): (i64, i64), (fx, fy): (f32, f32)) -> Option<f32> {
+    let (ny, nx) = f.shape();
+    if x0 < 0 || y0 < 0 || x0 > nx as i64 - 1 || y0 > ny as i64 - 1 {
+        return None;
+    }
+    if (x0 == nx as i64 - 1 && fx > 0.0) || (y0 == ny as i64 - 1 && fy > 0.0) {
+        return None;
+    }
+    let (x0, y0) = (x0 as usize, y0 as usize);
+    let (x1, y1) = ((x0 + 1).min(nx - 1), (y0 + 1).min(ny - 1));
+    let bad = mbits::BAD | mbits::COSMIC | mbits::OFF_STRIP;
+    let mut acc = 0.0f32;
+    for (yy, xx, w) in [
+        (y0, x0, (1.0 - fx) * (1.0 - fy)),
+        (y0, x1, fx * (1.0 - fy)),
+        (y1, x0, (1.0 - fx) * fy),
+        (y1, x1, fx * fy),
+    ] {
+        if w <= 0.0 {
+            continue;
+        }
+        let v = f.data[[yy, xx]];
+        if f.mask[[yy, xx]] & bad != 0 || !v.is_finite() {
+            return None;
+        }
+        acc += w * v;
+    }
+    Some(acc)
 }
 
 pub(super) fn beam_xy(d: &DitherValue, e_beam: bool) -> (f64, f64) {
