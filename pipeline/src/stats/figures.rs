@@ -13,7 +13,7 @@ use super::mc::{simulate, McConfig, McOutput};
 use super::model::AlignmentModel;
 use super::sample::BinarySample;
 use super::Result;
-use crate::plots::{palette, sequential, Figure, LegendPos, Panel, Series, Style};
+use crate::plots::{palette, sequential, Figure, LegendPos, Panel, Series, Style, DOUBLE_COLUMN_MM};
 
 const DG: &str = "Δγ [deg]";
 const PI_DG: &str = "Π(Δγ) / uniform";
@@ -106,11 +106,13 @@ pub fn models_figure(path: &Path, rows: &[ModelRow], errors_note: Option<&str>) 
         panels.push(right);
     }
     let title = "Alignment Π(α) and the projected position-angle difference Π(Δγ)";
+    // Full page width, two panels of 90 mm per row (4 rows: 200 mm and the title).
     let fig = Figure::grid(
         Some(errors_note.map_or(title.to_string(), |n| format!("{title}; {n}"))),
         panels,
         2,
-        (560, 330),
+        DOUBLE_COLUMN_MM,
+        50.0,
     );
     fig.save(path)?;
     Ok(())
@@ -161,7 +163,8 @@ pub fn ism_figure(
                 .style(Style::Steps(2)),
         );
     }
-    Figure::single(panel).save(path)?;
+    // Full page width: the legend of up to ten levels and the note sit side by side.
+    Figure::grid(None, vec![panel], 1, DOUBLE_COLUMN_MM, 80.0).save(path)?;
     Ok(())
 }
 
@@ -275,7 +278,8 @@ pub fn observed_figure(path: &Path, sample: &BinarySample, dg_bins: usize, notes
             .iter()
             .map(|&c| c as f64 + (c as f64).sqrt())
             .fold(1.0, f64::max);
-        b = b.y_range(0.0, top * (1.15 + 0.08 * notes.len() as f64));
+        // Room for the legend's two lines and the notes under it (a third of the panel).
+        b = b.y_range(0.0, top * (1.3 + 0.1 * (notes.len() + 2) as f64));
     }
     let mut panels = vec![a, b];
     if sample
@@ -285,8 +289,9 @@ pub fn observed_figure(path: &Path, sample: &BinarySample, dg_bins: usize, notes
     {
         panels.push(error_bar_panel(sample));
     }
+    // Full page width: two or three panels side by side.
     let cols = panels.len();
-    Figure::grid(None, panels, cols, (620, 440)).save(path)?;
+    Figure::grid(None, panels, cols, DOUBLE_COLUMN_MM, 70.0).save(path)?;
     Ok(())
 }
 
@@ -312,7 +317,8 @@ fn error_bar_panel(sample: &BinarySample) -> Panel {
         "binary (sorted by Δγ)",
     )
     .x_range(0.0, 90.0)
-    .y_range(0.0, n as f64 + 1.0)
+    // The top quarter holds the key (the notes below, wrapped to the panel's width).
+    .y_range(0.0, (n as f64 + 1.0) * 1.35)
     .legend(LegendPos::None);
     c.integer_y = true;
     // Each row named by its object, so that a reader finds a binary without the table.
@@ -426,7 +432,8 @@ mod tests {
             title: None,
             panels: vec![c],
             cols: 1,
-            panel_size: (640, 420),
+            width_mm: 100.0,
+            panel_height_mm: 70.0,
         }
         .render_svg()
         .unwrap();
