@@ -55,7 +55,7 @@ pub const PANEL_TITLE_PT: f64 = 8.5;
 /// The figure's title (bold), points.
 pub const TITLE_PT: f64 = 9.0;
 /// Row names of [`Panel::y_names`] shrink to fit their rows, but not below this, points.
-pub const MIN_NAME_PT: f64 = 4.0;
+pub const MIN_NAME_PT: f64 = 2.0;
 
 /// Pixels per point at [`DPI`] (the SVG uses the same pixel grid as its user units).
 const PX_PER_PT: f64 = DPI / 72.0;

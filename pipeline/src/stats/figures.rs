@@ -298,8 +298,8 @@ pub fn observed_figure(path: &Path, sample: &BinarySample, dg_bins: usize, notes
 /// The broad pale bar of a binary's 68.27 % interval in [C] (orange-tinted when large).
 const INTERVAL_BAR: crate::plots::Rgb = crate::plots::Rgb(160, 200, 235);
 const INTERVAL_BAR_LARGE: crate::plots::Rgb = crate::plots::Rgb(245, 195, 150);
-/// Half-height of the end ticks of +-sigma in [C] for `n` binaries, in rows: about 4 px in
-/// the panel's ~330 px for n + 1 rows, at most 0.3 of a row.
+/// Half-height of the end ticks of +-sigma in [C] for `n` binaries, in rows: 1.2 % of the
+/// axis (about 0.6 mm in the printed panel), at most 0.3 of a row.
 fn sigma_tick(n: usize) -> f64 {
     (0.012 * (n + 1) as f64).clamp(0.05, 0.3)
 }
@@ -380,7 +380,20 @@ pub fn mc_figure(path: &Path, runs: &[(String, McOutput)], title: &str) -> Resul
     if n == 1 {
         panel.legend = LegendPos::None;
     }
-    Figure::single(panel).save(path)?;
+    if n <= 4 {
+        Figure::single(panel).save(path)?;
+    } else {
+        // A legend of many levels: the full page width, and the top third of the axis kept
+        // for it (the curves flatten to about 1 on its side).
+        let top = panel
+            .series
+            .iter()
+            .flat_map(|s| s.y.iter().copied())
+            .filter(|v| v.is_finite())
+            .fold(1.0, f64::max);
+        panel = panel.y_range(0.0, 1.5 * top);
+        Figure::grid(None, vec![panel], 1, DOUBLE_COLUMN_MM, 80.0).save(path)?;
+    }
     Ok(())
 }
 
