@@ -1,5 +1,12 @@
-//! PNG figures: a small, reusable plotting API on top of `plotters` (bitmap backend, no
-//! system fonts: DejaVu Sans is embedded through the `dejavu` crate).
+//! PNG and SVG figures: a small, reusable plotting API on top of `plotters` (bitmap and SVG
+//! backends, no system fonts: DejaVu Sans is embedded through the `dejavu` crate).
+//!
+//! Figures are laid out for print: a [`Figure`] has a printed width in mm (a journal's
+//! single column, [`SINGLE_COLUMN_MM`], or the full page, [`DOUBLE_COLUMN_MM`]), PNGs are
+//! rendered at [`DPI`] (written into the file's pHYs chunk), SVGs state the same width in
+//! mm, and every font, line and margin is given in points at that printed size
+//! ([`TICK_PT`], [`LABEL_PT`], ...). Scaled to its column a figure's tick labels are
+//! [`TICK_PT`]; on screen the PNGs are large and sharp.
 //!
 //! A [`Figure`] is a grid of [`Panel`]s; a panel holds [`Series`] drawn as lines, steps
 //! (histogram outlines) or filled bars, with an optional legend. Files are written
@@ -17,6 +24,7 @@ use std::path::Path;
 use std::sync::OnceLock;
 
 use plotters::prelude::*;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
 use plotters::style::FontStyle;
 
 pub mod glyphs;
@@ -31,6 +39,123 @@ pub type Result<T> = std::result::Result<T, Error>;
 
 /// The family name the embedded font is registered under.
 const FONT: &str = "sans-serif";
+
+/// Resolution of the PNGs, dots per inch (written into their pHYs chunk).
+pub const DPI: f64 = 300.0;
+/// Printed width of a single-column figure, mm (A&A 88 mm, MNRAS 84 mm, ApJ 85 mm).
+pub const SINGLE_COLUMN_MM: f64 = 88.0;
+/// Printed width of a full-page (two-column) figure, mm.
+pub const DOUBLE_COLUMN_MM: f64 = 180.0;
+/// Tick labels, points at the printed width (em size, as in a word processor).
+pub const TICK_PT: f64 = 7.5;
+/// Legend entries and notes, points.
+pub const LEGEND_PT: f64 = 7.0;
+/// Axis labels, points.
+pub const LABEL_PT: f64 = 8.5;
+/// Panel titles, points.
+pub const PANEL_TITLE_PT: f64 = 8.5;
+/// The figure's title (bold), points.
+pub const TITLE_PT: f64 = 9.0;
+/// Row names of [`Panel::y_names`] shrink to fit their rows, but not below this, points.
+pub const MIN_NAME_PT: f64 = 2.0;
+
+/// Pixels per point at [`DPI`] (the SVG uses the same pixel grid as its user units).
+const PX_PER_PT: f64 = DPI / 72.0;
+
+/// `mm` at [`DPI`], pixels.
+pub fn mm_to_px(mm: f64) -> u32 {
+    (mm / 25.4 * DPI).round() as u32
+}
+
+/// `pt` at [`DPI`], pixels.
+fn pt_px(pt: f64) -> f64 {
+    pt * PX_PER_PT
+}
+
+/// `pt` at [`DPI`], whole pixels (at least 1).
+fn pt_px_u(pt: f64) -> u32 {
+    pt_px(pt).round().max(1.0) as u32
+}
+
+/// The backend a figure is drawn on: plotters' font size means a different thing on each.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Target {
+    /// Bitmap: `ab_glyph` scales the line height (ascent - descent: (1901 + 483) / 2048 em
+    /// in DejaVu Sans) to the size.
+    Png,
+    /// SVG: plotters writes `font-size` = size / 1.24.
+    Svg,
+}
+
+impl Target {
+    /// plotters' font size for an em of `pt` points.
+    fn font_size(self, pt: f64) -> f64 {
+        let em = pt_px(pt);
+        match self {
+            Target::Png => em * 2384.0 / 2048.0,
+            Target::Svg => em * 1.24,
+        }
+    }
+    fn font(self, pt: f64) -> FontDesc<'static> {
+        (FONT, self.font_size(pt)).into_font()
+    }
+    /// The bold face (made bold: plotters' `FontDesc::style` keeps the face, and its
+    /// metrics, of the font it is called on).
+    fn bold_font(self, pt: f64) -> FontDesc<'static> {
+        FontDesc::new(FontFamily::Name(FONT), self.font_size(pt), FontStyle::Bold)
+    }
+}
+
+/// Width in pixels of `text` in `font` (DejaVu metrics; on SVG a little wider than drawn).
+fn text_width(font: &FontDesc<'_>, text: &str) -> f64 {
+    font.box_size(text).map_or(0.0, |(w, _)| f64::from(w))
+}
+
+/// `text` broken at spaces into lines no wider than `max_px` in `font` (a word longer than
+/// the line stands alone).
+fn wrap(font: &FontDesc<'_>, text: &str, max_px: f64) -> Vec<String> {
+    let mut lines: Vec<String> = Vec::new();
+    for word in text.split(' ') {
+        match lines.last_mut() {
+            Some(line) if text_width(font, &format!("{line} {word}")) <= max_px => {
+                line.push(' ');
+                line.push_str(word);
+            }
+            _ => lines.push(word.to_string()),
+        }
+    }
+    lines
+}
+
+/// Draw `lines` centred at the top of `area` (line height 1.25 em); returns the height used.
+fn draw_centered<DB: DrawingBackend>(
+    area: &DrawingArea<DB, plotters::coord::Shift>,
+    lines: &[String],
+    font: &FontDesc<'_>,
+    em_px: f64,
+) -> Result<u32>
+where
+    DB::ErrorType: 'static,
+{
+    let line_h = 1.25 * em_px;
+    let cx = area.dim_in_pixel().0 as i32 / 2;
+    for (k, line) in lines.iter().enumerate() {
+        let y = (0.25 * em_px + k as f64 * line_h).round() as i32;
+        let style = font.clone().color(&BLACK).pos(Pos::new(HPos::Center, VPos::Top));
+        area.draw(&Text::new(line.as_str(), (cx, y), style))
+            .map_err(draw_err("title"))?;
+    }
+    Ok(text_band(lines.len(), em_px))
+}
+
+/// Height of a band of `n` centred lines of `em_px` (see [`draw_centered`]).
+fn text_band(n: usize, em_px: f64) -> u32 {
+    if n == 0 {
+        0
+    } else {
+        (0.5 * em_px + 1.25 * em_px * n as f64).ceil() as u32
+    }
+}
 
 fn ensure_font() -> Result<()> {
     static REGISTERED: OnceLock<bool> = OnceLock::new();
@@ -103,15 +228,15 @@ pub fn sequential(i: usize, n: usize) -> Rgb {
 /// How a series is drawn.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Style {
-    /// Polyline through (x, y) (stroke width in pixels).
+    /// Polyline through (x, y) (stroke width in half points: 2 is a 1 pt line).
     Line(u32),
-    /// Dashed polyline (stroke width in pixels).
+    /// Dashed polyline (stroke width in half points).
     Dashed(u32),
-    /// Histogram outline: `x` are the bin edges (one more than `y`).
+    /// Histogram outline: `x` are the bin edges (one more than `y`); width in half points.
     Steps(u32),
     /// Filled histogram bars: `x` are the bin edges (one more than `y`).
     Bars,
-    /// Markers at (x, y) (radius in pixels).
+    /// Markers at (x, y) (radius in half points).
     Points(u32),
 }
 
@@ -317,18 +442,23 @@ impl Panel {
     }
 }
 
-/// A grid of panels, rendered to PNG.
+/// A grid of panels with a printed size, rendered to PNG or SVG.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Figure {
-    /// Overall title (None: no title band).
+    /// Overall title (None: no title band); wrapped to the width.
     pub title: Option<String>,
     /// Panels, row by row.
     pub panels: Vec<Panel>,
     /// Panels per row.
     pub cols: usize,
-    /// Size of one panel in pixels.
-    pub panel_size: (u32, u32),
+    /// Printed width of the whole figure, mm ([`SINGLE_COLUMN_MM`], [`DOUBLE_COLUMN_MM`]).
+    pub width_mm: f64,
+    /// Printed height of one row of panels, mm (the title band comes on top).
+    pub panel_height_mm: f64,
 }
+
+/// Height of a single-panel figure, mm (aspect 0.7 on a single column).
+pub const SINGLE_PANEL_HEIGHT_MM: f64 = 62.0;
 
 /// Tick labels without trailing zeros ("10", "0.25", "1e-05").
 fn tick(v: f64) -> String {
@@ -352,24 +482,45 @@ fn draw_err<E: std::fmt::Display>(what: &str) -> impl Fn(E) -> Error + '_ {
 }
 
 impl Figure {
-    /// One panel, 800 x 560 pixels.
+    /// One panel on a single column ([`SINGLE_COLUMN_MM`] x [`SINGLE_PANEL_HEIGHT_MM`]).
     pub fn single(panel: Panel) -> Self {
         Self {
             title: None,
             panels: vec![panel],
             cols: 1,
-            panel_size: (800, 560),
+            width_mm: SINGLE_COLUMN_MM,
+            panel_height_mm: SINGLE_PANEL_HEIGHT_MM,
         }
     }
 
-    /// A grid of panels with `cols` per row, each `panel_size` pixels.
-    pub fn grid(title: Option<String>, panels: Vec<Panel>, cols: usize, panel_size: (u32, u32)) -> Self {
+    /// A grid of panels with `cols` per row, `width_mm` wide, rows `panel_height_mm` high.
+    pub fn grid(title: Option<String>, panels: Vec<Panel>, cols: usize, width_mm: f64, panel_height_mm: f64) -> Self {
         Self {
             title,
             panels,
             cols: cols.max(1),
-            panel_size,
+            width_mm,
+            panel_height_mm,
         }
+    }
+
+    /// The title's lines at the figure's width (measured with the PNG's font metrics).
+    fn title_lines(&self) -> Vec<String> {
+        let font = Target::Png.bold_font(TITLE_PT);
+        let max = f64::from(mm_to_px(self.width_mm)) - 2.0 * pt_px(6.0);
+        self.title.as_deref().map_or_else(Vec::new, |t| wrap(&font, t, max))
+    }
+
+    /// Pixel size of the rendered figure (width, height) at [`DPI`].
+    pub fn pixel_size(&self) -> Result<(u32, u32)> {
+        ensure_font()?;
+        let cols = self.cols.min(self.panels.len().max(1));
+        let rows = self.panels.len().div_ceil(cols).max(1);
+        let title_h = text_band(self.title_lines().len(), pt_px(TITLE_PT));
+        Ok((
+            mm_to_px(self.width_mm),
+            mm_to_px(self.panel_height_mm) * rows as u32 + title_h,
+        ))
     }
 
     /// Check the series and return (rows, cols, width, height).
@@ -382,11 +533,7 @@ impl Figure {
         }
         let cols = self.cols.min(self.panels.len().max(1));
         let rows = self.panels.len().div_ceil(cols).max(1);
-        let title_h: u32 = if self.title.is_some() { 44 } else { 0 };
-        let (w, h) = (
-            self.panel_size.0 * cols as u32,
-            self.panel_size.1 * rows as u32 + title_h,
-        );
+        let (w, h) = self.pixel_size()?;
         Ok((rows, cols, w, h))
     }
 
@@ -396,35 +543,43 @@ impl Figure {
         root: DrawingArea<DB, plotters::coord::Shift>,
         rows: usize,
         cols: usize,
+        target: Target,
     ) -> Result<()>
     where
         DB::ErrorType: 'static,
     {
         root.fill(&WHITE).map_err(draw_err("background"))?;
-        let area = match &self.title {
-            Some(t) => root
-                .titled(t, (FONT, 26).into_font().style(FontStyle::Bold))
-                .map_err(draw_err("title"))?,
-            None => root.clone(),
+        let lines = self.title_lines();
+        let area = if lines.is_empty() {
+            root.clone()
+        } else {
+            let font = target.bold_font(TITLE_PT);
+            let band = draw_centered(&root, &lines, &font, pt_px(TITLE_PT))?;
+            root.split_vertically(band).1
         };
         let cells = area.split_evenly((rows, cols));
         for (panel, cell) in self.panels.iter().zip(cells.iter()) {
-            draw_panel(panel, cell)?;
+            draw_panel(panel, cell, target)?;
         }
         root.present().map_err(draw_err("figure"))?;
         Ok(())
     }
 
     /// Render as an SVG document (vector figure for papers; text as SVG `<text>`, no font
-    /// file embedded: the viewer's sans-serif is used).
+    /// file embedded: the viewer's sans-serif is used). Its `width` and `height` are the
+    /// printed size in mm (the viewBox the same pixels as the PNG): the fonts print at the
+    /// same points as the PNG's.
     pub fn render_svg(&self) -> Result<String> {
         let (rows, cols, w, h) = self.layout()?;
         let mut out = String::new();
         {
             let root = SVGBackend::with_string(&mut out, (w, h)).into_drawing_area();
-            self.draw_on(root, rows, cols)?;
+            self.draw_on(root, rows, cols, Target::Svg)?;
         }
-        Ok(out)
+        let mm = |px: u32| f64::from(px) / DPI * 25.4;
+        let unitless = format!("width=\"{w}\" height=\"{h}\"");
+        let printed = format!("width=\"{:.2}mm\" height=\"{:.2}mm\"", mm(w), mm(h));
+        Ok(out.replacen(&unitless, &printed, 1))
     }
 
     /// Render and write an SVG atomically.
@@ -448,17 +603,31 @@ impl Figure {
         let mut buf = vec![255u8; (w * h * 3) as usize];
         {
             let root = glyphs::CachedText::with_buffer(&mut buf, (w, h)).into_drawing_area();
-            self.draw_on(root, rows, cols)?;
+            self.draw_on(root, rows, cols, Target::Png)?;
         }
         Ok((w, h, buf))
     }
 
-    /// Render to PNG bytes.
+    /// Render to PNG bytes, with the resolution ([`DPI`]) in a pHYs chunk: a page-layout
+    /// program places the figure at its printed width.
     pub fn render_png(&self) -> Result<Vec<u8>> {
         let (w, h, buf) = self.render_rgb()?;
         let mut out = Vec::new();
-        image::ImageEncoder::write_image(png_encoder(&mut out), &buf, w, h, image::ExtendedColorType::Rgb8)
-            .map_err(|e| Error::Encode(e.to_string()))?;
+        {
+            let mut enc = png::Encoder::new(&mut out, w, h);
+            enc.set_color(png::ColorType::Rgb);
+            enc.set_depth(png::BitDepth::Eight);
+            let ppm = (DPI / 0.0254).round() as u32;
+            enc.set_pixel_dims(Some(png::PixelDimensions {
+                xppu: ppm,
+                yppu: ppm,
+                unit: png::Unit::Meter,
+            }));
+            let encode = |e: png::EncodingError| Error::Encode(e.to_string());
+            let mut writer = enc.write_header().map_err(encode)?;
+            writer.write_image_data(&buf).map_err(encode)?;
+            writer.finish().map_err(encode)?;
+        }
         Ok(out)
     }
 
@@ -481,21 +650,61 @@ fn truncate_label(s: &str, n: usize) -> String {
     }
 }
 
-fn draw_panel<DB: DrawingBackend>(panel: &Panel, cell: &DrawingArea<DB, plotters::coord::Shift>) -> Result<()>
+fn draw_panel<DB: DrawingBackend>(
+    panel: &Panel,
+    cell: &DrawingArea<DB, plotters::coord::Shift>,
+    target: Target,
+) -> Result<()>
 where
     DB::ErrorType: 'static,
 {
     let ((x0, x1), (y0, y1)) = panel.ranges();
-    let mut chart = ChartBuilder::on(cell)
-        .caption(&panel.title, (FONT, 20))
-        .margin(12)
-        .x_label_area_size(44)
-        .y_label_area_size(if panel.y_names.is_empty() { 64 } else { 118 })
+    // The title: centred, wrapped to the cell (plotters' caption would run past its edges).
+    let title_font = target.font(PANEL_TITLE_PT);
+    let measure = Target::Png.font(PANEL_TITLE_PT);
+    let (cell_w, cell_h) = cell.dim_in_pixel();
+    let title_lines = if panel.title.is_empty() {
+        Vec::new()
+    } else {
+        wrap(&measure, &panel.title, f64::from(cell_w) - 2.0 * pt_px(3.0))
+    };
+    let band = draw_centered(cell, &title_lines, &title_font, pt_px(PANEL_TITLE_PT))?;
+    let body = cell.split_vertically(band).1;
+    // Row names: one tick per integer (plotters would otherwise choose ~10), the font no
+    // taller than a row (the plot area is the cell less the title and the x axis), from
+    // MIN_NAME_PT to TICK_PT: small with many rows, legible when the SVG is zoomed.
+    let names = &panel.y_names;
+    let x_area = pt_px(TICK_PT + LABEL_PT) * 1.45;
+    let (y_ticks, y_pt) = match names.len() {
+        0 => (10, TICK_PT),
+        _ => {
+            let plot_h = (f64::from(cell_h) - f64::from(band) - x_area - pt_px(8.0)).max(pt_px(20.0));
+            let rows = (y1 - y0).max(1.0);
+            let row_pt = plot_h / rows / PX_PER_PT;
+            (rows.ceil() as usize + 2, row_pt.clamp(MIN_NAME_PT, TICK_PT))
+        }
+    };
+    let y_area = if names.is_empty() {
+        pt_px(TICK_PT) * 2.6 + pt_px(LABEL_PT) * 1.4
+    } else {
+        let font = Target::Png.font(y_pt);
+        let widest = names
+            .iter()
+            .map(|n| text_width(&font, &truncate_label(n, NAME_LABEL_CHARS)))
+            .fold(0.0, f64::max);
+        widest + pt_px(4.0) + pt_px(LABEL_PT) * 1.4
+    };
+    let mut chart = ChartBuilder::on(&body)
+        .margin_top(pt_px_u(2.0))
+        .margin_bottom(pt_px_u(1.0))
+        .margin_left(pt_px_u(3.0))
+        .margin_right(pt_px_u(5.0))
+        .x_label_area_size(x_area.round() as u32)
+        .y_label_area_size(y_area.round() as u32)
         .build_cartesian_2d(x0..x1, y0..y1)
         .map_err(draw_err(&panel.title))?;
     let fmt = |v: &f64| tick(*v);
-    let integer_y = panel.integer_y || !panel.y_names.is_empty();
-    let names = &panel.y_names;
+    let integer_y = panel.integer_y || !names.is_empty();
     let yfmt = move |v: &f64| {
         if integer_y && (v.fract().abs() > 1e-9) {
             String::new()
@@ -511,46 +720,46 @@ where
             tick(*v)
         }
     };
-    // Every row named: one tick per integer (plotters would otherwise choose ~10), the font
-    // no taller than a row (the plot area is the cell less ~100 px of caption and axis), at
-    // least 5 px: small in a PNG of many rows, legible when the SVG is zoomed.
-    let (y_ticks, y_font) = match names.len() {
-        0 => (10, 15),
-        n => {
-            let row_px = (f64::from(cell.dim_in_pixel().1) - 100.0).max(50.0) / (n + 1) as f64;
-            (n + 2, row_px.clamp(5.0, 15.0).floor() as u32)
-        }
-    };
+    // A light major grid only (one line per labelled tick), no minor grid: quiet in print.
     chart
         .configure_mesh()
         .x_desc(panel.xlabel.as_str())
         .y_desc(panel.ylabel.as_str())
+        .x_labels(8)
         .y_labels(y_ticks)
-        .label_style((FONT, 15))
-        .y_label_style((FONT, y_font))
-        .axis_desc_style((FONT, 17))
+        .max_light_lines(0)
+        .label_style(target.font(TICK_PT))
+        .y_label_style(target.font(y_pt))
+        .axis_desc_style(target.font(LABEL_PT))
         .x_label_formatter(&fmt)
         .y_label_formatter(&yfmt)
-        .light_line_style(RGBColor(246, 246, 246))
-        .bold_line_style(RGBColor(228, 228, 228))
+        .set_all_tick_mark_size(pt_px_u(2.5))
+        .axis_style(BLACK.stroke_width(pt_px_u(0.6)))
+        .bold_line_style(RGBColor(225, 225, 225).stroke_width(pt_px_u(0.3)))
         .draw()
         .map_err(draw_err(&panel.title))?;
+    let half_pt = |w: u32| pt_px_u(0.5 * f64::from(w));
     let mut labelled = false;
     for (i, s) in panel.series.iter().enumerate() {
         let color = s.color.unwrap_or_else(|| palette(i)).to_plotters();
         let anno = match s.style {
             Style::Line(wd) | Style::Steps(wd) => chart
-                .draw_series(LineSeries::new(s.outline(), color.stroke_width(wd)))
+                .draw_series(LineSeries::new(s.outline(), color.stroke_width(half_pt(wd))))
                 .map_err(draw_err(&panel.title))?,
             Style::Dashed(wd) => chart
-                .draw_series(DashedLineSeries::new(s.outline(), 8, 5, color.stroke_width(wd)))
+                .draw_series(DashedLineSeries::new(
+                    s.outline(),
+                    pt_px_u(3.0),
+                    pt_px_u(2.0),
+                    color.stroke_width(half_pt(wd)),
+                ))
                 .map_err(draw_err(&panel.title))?,
             Style::Bars => {
                 let rects = s.y.iter().enumerate().flat_map(|(k, &v)| {
                     let (a, b) = (s.x[k], s.x[k + 1]);
                     [
                         Rectangle::new([(a, 0.0), (b, v)], color.mix(0.45).filled()),
-                        Rectangle::new([(a, 0.0), (b, v)], color.stroke_width(1)),
+                        Rectangle::new([(a, 0.0), (b, v)], color.stroke_width(half_pt(1))),
                     ]
                 });
                 chart.draw_series(rects).map_err(draw_err(&panel.title))?
@@ -559,20 +768,29 @@ where
                 .draw_series(
                     s.x.iter()
                         .zip(&s.y)
-                        .map(|(&x, &y)| Circle::new((x, y), r, color.filled())),
+                        .map(|(&x, &y)| Circle::new((x, y), half_pt(r), color.filled())),
                 )
                 .map_err(draw_err(&panel.title))?,
         };
         if let Some(label) = &s.label {
             labelled = true;
             let style = s.style;
+            let (len, half_h, stroke) = (pt_px_u(10.0) as i32, pt_px_u(2.5) as i32, pt_px_u(1.2));
             anno.label(label.as_str()).legend(move |(x, y)| match style {
-                Style::Bars => Rectangle::new([(x, y - 5), (x + 18, y + 5)], color.mix(0.45).filled()).into_dyn(),
-                _ => PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(3)).into_dyn(),
+                Style::Bars => {
+                    Rectangle::new([(x, y - half_h), (x + len, y + half_h)], color.mix(0.45).filled()).into_dyn()
+                }
+                _ => PathElement::new(vec![(x, y), (x + len, y)], color.stroke_width(stroke)).into_dyn(),
             });
         }
     }
-    if labelled && panel.legend != LegendPos::None {
+    let plot = chart.plotting_area().dim_in_pixel();
+    let (plot_w, plot_h) = (f64::from(plot.0.max(1)), f64::from(plot.1.max(1)));
+    let legend_font = Target::Png.font(LEGEND_PT);
+    let (legend_margin, legend_symbol) = (pt_px(3.0), pt_px(13.0));
+    let labels: Vec<&str> = panel.series.iter().filter_map(|s| s.label.as_deref()).collect();
+    let legend_drawn = labelled && panel.legend != LegendPos::None;
+    if legend_drawn {
         let pos = match panel.legend {
             LegendPos::UpperLeft => SeriesLabelPosition::UpperLeft,
             LegendPos::LowerRight => SeriesLabelPosition::LowerRight,
@@ -581,20 +799,40 @@ where
         chart
             .configure_series_labels()
             .position(pos)
+            .margin(legend_margin.round() as u32)
+            .legend_area_size(legend_symbol.round() as u32)
             .background_style(WHITE.mix(0.85))
-            .border_style(RGBColor(150, 150, 150))
-            .label_font((FONT, 14))
+            .border_style(RGBColor(150, 150, 150).stroke_width(pt_px_u(0.3)))
+            .label_font(target.font(LEGEND_PT))
             .draw()
             .map_err(draw_err(&panel.title))?;
     }
-    // Notes: top left of the plot area, one line per 7 % of the height (data coordinates).
-    for (k, line) in panel.notes.iter().enumerate() {
-        let at = (x0 + 0.02 * (x1 - x0), y1 - (0.03 + 0.065 * k as f64) * (y1 - y0));
+    // Notes: top left of the plot area, wrapped to its width, one line per 1.3 em; below
+    // the legend when they would run into it.
+    let em = pt_px(LEGEND_PT);
+    let notes: Vec<String> = panel
+        .notes
+        .iter()
+        .flat_map(|n| wrap(&legend_font, n, 0.96 * plot_w))
+        .collect();
+    let notes_w = notes.iter().map(|n| text_width(&legend_font, n)).fold(0.0, f64::max);
+    let legend_w =
+        labels.iter().map(|l| text_width(&legend_font, l)).fold(0.0, f64::max) + legend_symbol + 2.0 * legend_margin;
+    let on_top = matches!(panel.legend, LegendPos::UpperLeft | LegendPos::UpperRight);
+    let below_legend = legend_drawn && on_top && notes_w + legend_w + pt_px(8.0) > plot_w;
+    let top_px = if below_legend {
+        labels.len() as f64 * 1.6 * em + 2.0 * legend_margin + pt_px(6.0)
+    } else {
+        0.03 * plot_h
+    };
+    let at_y = |k: usize| y1 - (top_px + 1.3 * em * k as f64) / plot_h * (y1 - y0);
+    for (k, text) in notes.iter().enumerate() {
+        let at = (x0 + 0.02 * (x1 - x0), at_y(k));
         chart
             .draw_series(std::iter::once(Text::new(
-                line.clone(),
+                text.clone(),
                 at,
-                (FONT, 14).into_font().color(&BLACK),
+                target.font(LEGEND_PT).color(&BLACK),
             )))
             .map_err(draw_err(&panel.title))?;
     }

@@ -108,7 +108,7 @@ pub fn quality_figure(rows: &[NightFrame]) -> Option<Figure> {
             [m.transparency, m.transparency_limit],
         ),
     ];
-    Some(Figure::grid(None, panels, 1, (900, 300)))
+    Some(Figure::grid(None, panels, 1, super::DOUBLE_COLUMN_MM, 55.0))
 }
 
 /// [`quality_figure`] as PNG bytes (`None`: no frame has an MJD).

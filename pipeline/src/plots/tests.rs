@@ -44,7 +44,7 @@ fn svg_is_well_formed_has_the_labels_and_is_written_atomically() {
             vec![9.0, 7.0, 5.0, 4.0, 3.0, 2.0, 2.0, 1.0, 1.0],
         ))
         .note("KS p < 0.001");
-    let fig = Figure::grid(Some("vector test".into()), vec![panel], 1, (500, 400));
+    let fig = Figure::grid(Some("vector test".into()), vec![panel], 1, SINGLE_COLUMN_MM, 60.0);
     let svg = fig.render_svg().unwrap();
     assert!(check_xml(&svg) > 20);
     assert_eq!(svg.matches("<text").count(), svg.matches("</text>").count());
@@ -91,15 +91,18 @@ fn renders_a_grid_with_text_and_writes_atomically() {
                 .style(Style::Steps(1))
                 .color(sequential(3, 5)),
         );
-    let fig = Figure::grid(Some("test".into()), vec![a, b], 2, (400, 300));
+    let fig = Figure::grid(Some("test".into()), vec![a, b], 2, DOUBLE_COLUMN_MM, 60.0);
     let (w, h, rgb) = fig.render_rgb().unwrap();
-    assert_eq!((w, h), (800, 344));
+    // 180 mm at 300 dpi; one row of 60 mm and the title's line.
+    assert_eq!((w, h), fig.pixel_size().unwrap());
+    assert_eq!(w, 2126);
+    assert!(h > mm_to_px(60.0) && h < mm_to_px(60.0) + 80, "{h}");
     // Something besides white was drawn, and some of it is dark (text, axes).
     assert!(rgb.chunks(3).filter(|p| p[0] < 60 && p[1] < 60 && p[2] < 60).count() > 500);
     let path = dir.path().join("f.png");
     fig.save_png(&path).unwrap();
     let img = image::open(&path).unwrap();
-    assert_eq!((img.width(), img.height()), (800, 344));
+    assert_eq!((img.width(), img.height()), (w, h));
     let leftovers: Vec<_> = std::fs::read_dir(dir.path()).unwrap().filter_map(|e| e.ok()).collect();
     assert_eq!(leftovers.len(), 1, "no temporary file left behind");
 }

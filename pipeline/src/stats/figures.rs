@@ -13,7 +13,7 @@ use super::mc::{simulate, McConfig, McOutput};
 use super::model::AlignmentModel;
 use super::sample::BinarySample;
 use super::Result;
-use crate::plots::{palette, sequential, Figure, LegendPos, Panel, Series, Style};
+use crate::plots::{palette, sequential, Figure, LegendPos, Panel, Series, Style, DOUBLE_COLUMN_MM};
 
 const DG: &str = "Δγ [deg]";
 const PI_DG: &str = "Π(Δγ) / uniform";
@@ -106,11 +106,13 @@ pub fn models_figure(path: &Path, rows: &[ModelRow], errors_note: Option<&str>) 
         panels.push(right);
     }
     let title = "Alignment Π(α) and the projected position-angle difference Π(Δγ)";
+    // Full page width, two panels of 90 mm per row (4 rows: 200 mm and the title).
     let fig = Figure::grid(
         Some(errors_note.map_or(title.to_string(), |n| format!("{title}; {n}"))),
         panels,
         2,
-        (560, 330),
+        DOUBLE_COLUMN_MM,
+        50.0,
     );
     fig.save(path)?;
     Ok(())
@@ -161,7 +163,8 @@ pub fn ism_figure(
                 .style(Style::Steps(2)),
         );
     }
-    Figure::single(panel).save(path)?;
+    // Full page width: the legend of up to ten levels and the note sit side by side.
+    Figure::grid(None, vec![panel], 1, DOUBLE_COLUMN_MM, 80.0).save(path)?;
     Ok(())
 }
 
@@ -275,7 +278,8 @@ pub fn observed_figure(path: &Path, sample: &BinarySample, dg_bins: usize, notes
             .iter()
             .map(|&c| c as f64 + (c as f64).sqrt())
             .fold(1.0, f64::max);
-        b = b.y_range(0.0, top * (1.15 + 0.08 * notes.len() as f64));
+        // Room for the legend's two lines and the notes under it (a third of the panel).
+        b = b.y_range(0.0, top * (1.3 + 0.1 * (notes.len() + 2) as f64));
     }
     let mut panels = vec![a, b];
     if sample
@@ -285,16 +289,17 @@ pub fn observed_figure(path: &Path, sample: &BinarySample, dg_bins: usize, notes
     {
         panels.push(error_bar_panel(sample));
     }
+    // Full page width: two or three panels side by side.
     let cols = panels.len();
-    Figure::grid(None, panels, cols, (620, 440)).save(path)?;
+    Figure::grid(None, panels, cols, DOUBLE_COLUMN_MM, 70.0).save(path)?;
     Ok(())
 }
 
 /// The broad pale bar of a binary's 68.27 % interval in [C] (orange-tinted when large).
 const INTERVAL_BAR: crate::plots::Rgb = crate::plots::Rgb(160, 200, 235);
 const INTERVAL_BAR_LARGE: crate::plots::Rgb = crate::plots::Rgb(245, 195, 150);
-/// Half-height of the end ticks of +-sigma in [C] for `n` binaries, in rows: about 4 px in
-/// the panel's ~330 px for n + 1 rows, at most 0.3 of a row.
+/// Half-height of the end ticks of +-sigma in [C] for `n` binaries, in rows: 1.2 % of the
+/// axis (about 0.6 mm in the printed panel), at most 0.3 of a row.
 fn sigma_tick(n: usize) -> f64 {
     (0.012 * (n + 1) as f64).clamp(0.05, 0.3)
 }
@@ -312,7 +317,8 @@ fn error_bar_panel(sample: &BinarySample) -> Panel {
         "binary (sorted by Δγ)",
     )
     .x_range(0.0, 90.0)
-    .y_range(0.0, n as f64 + 1.0)
+    // The top quarter holds the key (the notes below, wrapped to the panel's width).
+    .y_range(0.0, (n as f64 + 1.0) * 1.35)
     .legend(LegendPos::None);
     c.integer_y = true;
     // Each row named by its object, so that a reader finds a binary without the table.
@@ -374,7 +380,20 @@ pub fn mc_figure(path: &Path, runs: &[(String, McOutput)], title: &str) -> Resul
     if n == 1 {
         panel.legend = LegendPos::None;
     }
-    Figure::single(panel).save(path)?;
+    if n <= 4 {
+        Figure::single(panel).save(path)?;
+    } else {
+        // A legend of many levels: the full page width, and the top third of the axis kept
+        // for it (the curves flatten to about 1 on its side).
+        let top = panel
+            .series
+            .iter()
+            .flat_map(|s| s.y.iter().copied())
+            .filter(|v| v.is_finite())
+            .fold(1.0, f64::max);
+        panel = panel.y_range(0.0, 1.5 * top);
+        Figure::grid(None, vec![panel], 1, DOUBLE_COLUMN_MM, 80.0).save(path)?;
+    }
     Ok(())
 }
 
@@ -426,7 +445,8 @@ mod tests {
             title: None,
             panels: vec![c],
             cols: 1,
-            panel_size: (640, 420),
+            width_mm: 100.0,
+            panel_height_mm: 70.0,
         }
         .render_svg()
         .unwrap();

@@ -231,9 +231,7 @@ fn draw_title(root: &Area, target: &Target, w: u32) -> io::Result<()> {
     ))
     .map_err(de)?;
     let title = format!("{}  —  {}", target.object, status_word(target.status));
-    let st = (FONT, 24)
-        .into_font()
-        .style(FontStyle::Bold)
+    let st = FontDesc::new(FontFamily::Name(FONT), 24.0, FontStyle::Bold)
         .color(&BLACK)
         .pos(Pos::new(HPos::Left, VPos::Center));
     root.draw(&Text::new(title.clone(), (14, (TITLE_H as i32 - 6) / 2), st))
@@ -277,7 +275,7 @@ fn draw_cell(
     let nfr = o.n_frames;
     let used = o.tiles.iter().flatten().map(|t| t.used).max().unwrap_or(0);
     let label = format!("POSANG {}°   (φ = {}°)", fmt(posang, 1), fmt(phi, 1));
-    let st = (FONT, 15).into_font().style(FontStyle::Bold).color(&BLACK);
+    let st = FontDesc::new(FontFamily::Name(FONT), 15.0, FontStyle::Bold).color(&BLACK);
     root.draw(&Text::new(label, (cell.x as i32 + 2, cell.y as i32 + 3), st))
         .map_err(de)?;
     let st = (FONT, 12)

@@ -268,9 +268,7 @@ pub(super) fn pol_panel(
     m: Option<&Measured>,
 ) -> io::Result<()> {
     let (x0i, y0i, si) = (x0 as i32, y0 as i32, s as i32);
-    let title = (FONT, 16)
-        .into_font()
-        .style(FontStyle::Bold)
+    let title = FontDesc::new(FontFamily::Name(FONT), 16.0, FontStyle::Bold)
         .color(&BLACK)
         .pos(Pos::new(HPos::Center, VPos::Top));
     root.draw(&Text::new("Polarization on the sky", (x0i + si / 2, y0i), title))
@@ -377,9 +375,7 @@ pub(super) fn pol_panel(
         let axis = if ok { Some(comp.gamma_deg) } else { None };
         let (ox, oy) = label_dir((sx, sy), other, axis);
         let lp = ((sx + ox * 22.0) as i32, (sy + oy * 22.0) as i32);
-        let st = (FONT, 17)
-            .into_font()
-            .style(FontStyle::Bold)
+        let st = FontDesc::new(FontFamily::Name(FONT), 17.0, FontStyle::Bold)
             .color(&col)
             .pos(Pos::new(HPos::Center, VPos::Center));
         root.draw(&Text::new(comp.name.clone(), lp, st)).map_err(de)?;

@@ -313,9 +313,7 @@ pub(super) fn draw_tile_overlay(
         }
         let d = r as f64 + 11.0;
         let at = ((x as f64 + dx * d) as i32, (y as f64 + dy * d) as i32);
-        let style = (FONT, 17)
-            .into_font()
-            .style(FontStyle::Bold)
+        let style = FontDesc::new(FontFamily::Name(FONT), 17.0, FontStyle::Bold)
             .color(&col)
             .pos(Pos::new(HPos::Center, VPos::Center));
         root.draw(&Text::new(COMP_NAMES[c.min(1)], at, style)).map_err(de)?;
