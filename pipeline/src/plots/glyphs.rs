@@ -3,7 +3,7 @@
 //! target figure's cost (a night draws the same few dozen glyphs some 100 000 times).
 //!
 //! [`CachedText`] wraps plotters' `BitMapBackend` and passes every call through, except
-//! `draw_text` of the embedded font (family [`FONT`], normal or bold, unrotated): that one
+//! `draw_text` of the embedded font (family `FONT`, normal or bold, unrotated): that one
 //! lays the text out and places each glyph's coverage exactly as plotters' ab_glyph font
 //! does (the glyph rasterised at the origin, shifted by whole pixels: the truncated
 //! advance and kerning, `size / 2 + top` down), so the pixels are the same
