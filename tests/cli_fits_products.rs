@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
 
-use common::{json, run};
+use common::{aperture, centroid, json, run};
 use serde_json::Value;
 use sofipol_calib::fits::read_frame;
 use sofipol_calib::Frame;
@@ -134,30 +134,6 @@ fn hs(f: &Frame, key: &str) -> String {
     f.header
         .get_str(key)
         .unwrap_or_else(|e| panic!("{}: {key}: {e}", f.path().display()))
-}
-
-/// Flux-weighted centroid within `r` px of (x, y), iterated (0-based pixel coordinates).
-fn centroid(img: &ndarray::Array2<f32>, mut x: f64, mut y: f64, r: f64) -> (f64, f64) {
-    for _ in 0..20 {
-        let (mut s, mut sx, mut sy) = (0.0, 0.0, 0.0);
-        for ((j, i), &v) in img.indexed_iter() {
-            if v.is_finite() && (i as f64 - x).hypot(j as f64 - y) <= r {
-                s += v as f64;
-                sx += v as f64 * i as f64;
-                sy += v as f64 * j as f64;
-            }
-        }
-        (x, y) = (sx / s, sy / s);
-    }
-    (x, y)
-}
-
-/// Sum of the pixels whose centre lies within `r` of (x, y), NaN pixels left out.
-fn aperture(img: &ndarray::Array2<f32>, x: f64, y: f64, r: f64) -> f64 {
-    img.indexed_iter()
-        .filter(|((j, i), v)| v.is_finite() && (*i as f64 - x).hypot(*j as f64 - y) <= r)
-        .map(|(_, &v)| v as f64)
-        .sum()
 }
 
 /// The fraction of a Moffat star (FWHM `fwhm` px, `beta`) within `r`:

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
 
-use common::{json, run};
+use common::{aperture, centroid, json, run};
 use serde_json::Value;
 use sofipol_calib::fits::read_frame;
 
@@ -49,30 +49,6 @@ fn stokes(dir: &Path, object: &str) -> PathBuf {
             n.starts_with(&prefix) && n.ends_with("_stokes.fits")
         })
         .unwrap_or_else(|| panic!("no Stokes maps of {object} in {}", dir.display()))
-}
-
-/// Sum of the finite pixels whose centre lies within `r` of (x, y).
-fn aperture(img: &ndarray::Array2<f32>, x: f64, y: f64, r: f64) -> f64 {
-    img.indexed_iter()
-        .filter(|((j, i), v)| v.is_finite() && (*i as f64 - x).hypot(*j as f64 - y) <= r)
-        .map(|(_, &v)| v as f64)
-        .sum()
-}
-
-/// Flux-weighted centroid within `r` px of (x, y), iterated (0-based pixels).
-fn centroid(img: &ndarray::Array2<f32>, mut x: f64, mut y: f64, r: f64) -> (f64, f64) {
-    for _ in 0..20 {
-        let (mut s, mut sx, mut sy) = (0.0, 0.0, 0.0);
-        for ((j, i), &v) in img.indexed_iter() {
-            if v.is_finite() && (i as f64 - x).hypot(j as f64 - y) <= r {
-                s += v as f64;
-                sx += v as f64 * i as f64;
-                sy += v as f64 * j as f64;
-            }
-        }
-        (x, y) = (sx / s, sy / s);
-    }
-    (x, y)
 }
 
 fn f(v: &Value) -> f64 {

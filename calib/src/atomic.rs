@@ -200,6 +200,18 @@ impl TempFile {
 /// `path` be absent or a regular file). The file's permissions follow the umask, like a
 /// file created the usual way (0644 with the usual 022).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_renamed(path, bytes, true)
+}
+
+/// [`write_atomic`] without the syncs: the file is renamed into place whole, and made
+/// durable by a later [`sync_filesystem`] of its directory (with the others written since).
+pub fn write_atomic_deferred(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_renamed(path, bytes, false)
+}
+
+/// A temporary of random name created exclusively beside `path`, filled, synced with the
+/// directory when `sync`, and renamed over `path`.
+fn write_renamed(path: &Path, bytes: &[u8], sync: bool) -> Result<()> {
     let safe = safe_name(path)?;
     check_destination(path)?;
     let prefix = format!(".{safe}.");
@@ -213,32 +225,13 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let dir = dir_of(path);
     let mut tmp = b.tempfile_in(dir).map_err(|e| io(dir, e))?;
     tmp.write_all(bytes)
-        .and_then(|_| tmp.as_file().sync_all())
+        .and_then(|_| if sync { tmp.as_file().sync_all() } else { Ok(()) })
         .map_err(|e| io(tmp.path(), e))?;
     check_destination(path)?;
     tmp.persist(path).map_err(|e| io(path, e.error))?;
-    let _ = std::fs::File::open(dir).and_then(|d| d.sync_all());
-    Ok(())
-}
-
-/// [`write_atomic`] without the syncs: the file is renamed into place whole, and made
-/// durable by a later [`sync_filesystem`] of its directory (with the others written since).
-pub fn write_atomic_deferred(path: &Path, bytes: &[u8]) -> Result<()> {
-    let safe = safe_name(path)?;
-    check_destination(path)?;
-    let prefix = format!(".{safe}.");
-    let mut b = tempfile::Builder::new();
-    b.prefix(&prefix).suffix(".tmp");
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        b.permissions(std::fs::Permissions::from_mode(0o666));
+    if sync {
+        let _ = std::fs::File::open(dir).and_then(|d| d.sync_all());
     }
-    let dir = dir_of(path);
-    let mut tmp = b.tempfile_in(dir).map_err(|e| io(dir, e))?;
-    tmp.write_all(bytes).map_err(|e| io(tmp.path(), e))?;
-    check_destination(path)?;
-    tmp.persist(path).map_err(|e| io(path, e.error))?;
     Ok(())
 }
 

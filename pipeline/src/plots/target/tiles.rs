@@ -58,17 +58,13 @@ pub(super) fn window(f: &Frame, origin: (f64, f64), n: usize) -> Vec<f32> {
     let (bx, by) = (bx as i64, by as i64);
     let bad = mbits::BAD | mbits::COSMIC | mbits::OFF_STRIP;
     let w = [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy];
-    let (Some(data), Some(mask)) = (f.data.as_slice(), f.mask.as_slice()) else {
-        // Not in standard layout (never for a frame read from a file): pixel by pixel.
-        for (j, row) in out.chunks_exact_mut(n).enumerate() {
-            for (i, v) in row.iter_mut().enumerate() {
-                if let Some(s) = sample_at(f, (bx + i as i64, by + j as i64), (fx, fy)) {
-                    *v = s;
-                }
-            }
-        }
-        return out;
-    };
+    // Row-major slices (a copy only for a frame not in standard layout, never one read
+    // from a file).
+    let (data, mask) = (f.data.as_standard_layout(), f.mask.as_standard_layout());
+    let (data, mask) = (
+        data.as_slice().expect("standard layout"),
+        mask.as_slice().expect("standard layout"),
+    );
     let tap = |k: usize| -> Option<f32> {
         let d = data[k];
         (mask[k] & bad == 0 && d.is_finite()).then_some(d)
@@ -108,38 +104,6 @@ pub(super) fn window(f: &Frame, origin: (f64, f64), n: usize) -> Vec<f32> {
         }
     }
     out
-}
-
-/// The bilinear sample with weights from `(fx, fy)` at the whole pixel `(x0, y0)` (a frame
-/// not in standard layout), as [`window`] computes it.
-fn sample_at(f: &Frame, (x0, y0): (i64, i64), (fx, fy): (f32, f32)) -> Option<f32> {
-    let (ny, nx) = f.shape();
-    if x0 < 0 || y0 < 0 || x0 > nx as i64 - 1 || y0 > ny as i64 - 1 {
-        return None;
-    }
-    if (x0 == nx as i64 - 1 && fx > 0.0) || (y0 == ny as i64 - 1 && fy > 0.0) {
-        return None;
-    }
-    let (x0, y0) = (x0 as usize, y0 as usize);
-    let (x1, y1) = ((x0 + 1).min(nx - 1), (y0 + 1).min(ny - 1));
-    let bad = mbits::BAD | mbits::COSMIC | mbits::OFF_STRIP;
-    let mut acc = 0.0f32;
-    for (yy, xx, w) in [
-        (y0, x0, (1.0 - fx) * (1.0 - fy)),
-        (y0, x1, fx * (1.0 - fy)),
-        (y1, x0, (1.0 - fx) * fy),
-        (y1, x1, fx * fy),
-    ] {
-        if w <= 0.0 {
-            continue;
-        }
-        let v = f.data[[yy, xx]];
-        if f.mask[[yy, xx]] & bad != 0 || !v.is_finite() {
-            return None;
-        }
-        acc += w * v;
-    }
-    Some(acc)
 }
 
 pub(super) fn beam_xy(d: &DitherValue, e_beam: bool) -> (f64, f64) {
