@@ -128,3 +128,39 @@ fn a_destination_that_is_not_a_regular_file_is_refused_and_left_alone() {
     write_atomic(&plain, b"new").unwrap();
     assert_eq!(std::fs::read(&plain).unwrap(), b"new");
 }
+
+#[test]
+fn deferred_writes_land_whole_and_sync_together_naming_what_failed() {
+    let d = tempfile::tempdir().unwrap();
+    let sub = d.path().join("sub");
+    std::fs::create_dir(&sub).unwrap();
+    // More files than sync threads, in two directories, one of them replacing a file.
+    let mut files: Vec<PathBuf> = (0..40)
+        .map(|i| {
+            if i % 3 == 0 {
+                sub.join(format!("f{i}.png"))
+            } else {
+                d.path().join(format!("f{i}.png"))
+            }
+        })
+        .collect();
+    std::fs::write(&files[1], b"old").unwrap();
+    for (i, p) in files.iter().enumerate() {
+        write_atomic_deferred(p, &vec![i as u8; 1000 + i]).unwrap();
+    }
+    for (i, p) in files.iter().enumerate() {
+        assert_eq!(std::fs::read(p).unwrap(), vec![i as u8; 1000 + i], "{}", p.display());
+    }
+    assert!(sync_files(&files).is_empty());
+    // Only the destinations are left: no temporary beside them.
+    let n = |dir: &Path| std::fs::read_dir(dir).unwrap().count();
+    assert_eq!(n(d.path()), 26 + 1, "26 files and `sub`");
+    assert_eq!(n(&sub), 14);
+    // A file gone before the sync is named, the others are still synced.
+    let gone = d.path().join("gone.png");
+    files.push(gone.clone());
+    let errors = sync_files(&files);
+    assert_eq!(errors.len(), 1);
+    assert!(errors[0].to_string().contains("gone.png"), "{}", errors[0]);
+    assert!(sync_files(&[]).is_empty());
+}

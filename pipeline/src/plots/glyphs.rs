@@ -2,12 +2,16 @@
 //! rasterises every glyph's outline each time it draws it, which was the largest share of a
 //! target figure's cost (a night draws the same few dozen glyphs some 100 000 times).
 //!
-//! [`CachedText`] wraps plotters' `BitMapBackend` and passes every call through, except
-//! `draw_text` of the embedded font (family `FONT`, normal or bold, unrotated): that one
-//! lays the text out and places each glyph's coverage exactly as plotters' ab_glyph font
-//! does (the glyph rasterised at the origin, shifted by whole pixels: the truncated
-//! advance and kerning, `size / 2 + top` down), so the pixels are the same
-//! (`tests::cached_text_draws_the_same_pixels_as_plotters`). One difference on purpose:
+//! [`CachedText`] holds the RGB buffer and passes every call to plotters' `BitMapBackend`
+//! over it, except the text of the embedded font (family `FONT`, normal or bold,
+//! unrotated): its layout ([`text_size`]: plotters' sums of advances and kerning) and its
+//! drawing, which places each glyph's coverage exactly as plotters' ab_glyph font does
+//! (the glyph rasterised at the origin, shifted by whole pixels: the truncated advance and
+//! kerning, `size / 2 + top` down) and blends it into the buffer with plotters' integer
+//! arithmetic, so the pixels are the same
+//! (`tests::cached_text_draws_the_same_pixels_as_plotters`). Laying out through plotters
+//! looked the font up in its shared registry for every text, and drawing through it cost a
+//! call and a colour per pixel: together a fifth of a figure's drawing. One difference on purpose:
 //! plotters' `FontDesc::style` keeps the face the font was made with, so text styled bold
 //! that way was drawn in the regular face; here every text is drawn in the face its style
 //! names (the figures' titles and labels are bold, as meant).
@@ -79,16 +83,97 @@ fn kern(bold: bool, size: f64, a: GlyphId, b: GlyphId) -> f32 {
     FONTS.with(|f| f[usize::from(bold)].as_scaled(size as f32).kern(a, b))
 }
 
+/// The cached glyph of `c` in a face at a size.
+fn glyph(bold: bool, size: f64, c: char) -> Rc<Glyph> {
+    GLYPHS.with(|cache| {
+        cache
+            .borrow_mut()
+            .entry((bold, size.to_bits(), c))
+            .or_insert_with(|| Rc::new(rasterise(bold, size, c)))
+            .clone()
+    })
+}
+
+/// The width and height, px, plotters' ab_glyph font gives `text` in the embedded font
+/// (`FontDesc::box_size` of an unrotated font, the same sums in the same order: advances and
+/// kerning, truncated; the height is `size / 1.24` truncated), from the cached glyphs.
+pub fn text_size(bold: bool, size: f64, text: &str) -> (u32, u32) {
+    let mut x = 0f32;
+    let mut prev: Option<GlyphId> = None;
+    for c in text.chars() {
+        let g = glyph(bold, size, c);
+        x += g.advance;
+        if let Some(p) = prev {
+            x += kern(bold, size, p, g.id);
+        }
+        prev = Some(g.id);
+    }
+    ((x as i32).unsigned_abs(), ((size / 1.24) as i32).unsigned_abs())
+}
+
+/// Whether a text style is one [`CachedText`] draws itself: the embedded font (`FONT`),
+/// normal or bold, unrotated; which face.
+fn cached_face<S: BackendTextStyle>(style: &S) -> Option<bool> {
+    let bold = match style.style() {
+        FontStyle::Bold => true,
+        FontStyle::Normal => false,
+        _ => return None,
+    };
+    (style.family().as_str() == FONT && matches!(style.transform(), FontTransform::None)).then_some(bold)
+}
+
 /// A bitmap backend drawing the embedded font's text from cached glyphs (module docs).
 pub struct CachedText<'a> {
-    inner: BitMapBackend<'a>,
+    /// The RGB pixels, row by row.
+    buf: &'a mut [u8],
+    /// (width, height), px.
+    size: (u32, u32),
 }
 
 impl<'a> CachedText<'a> {
     /// Over an RGB buffer of `size` (width, height).
+    ///
+    /// # Panics
+    /// When the buffer holds fewer than width x height x 3 bytes (as plotters'
+    /// `BitMapBackend::with_buffer`).
     pub fn with_buffer(buf: &'a mut [u8], size: (u32, u32)) -> Self {
-        CachedText {
-            inner: BitMapBackend::with_buffer(buf, size),
+        assert!(
+            buf.len() >= size.0 as usize * size.1 as usize * 3,
+            "a {} x {} RGB image needs {} bytes, the buffer has {}",
+            size.0,
+            size.1,
+            size.0 as usize * size.1 as usize * 3,
+            buf.len()
+        );
+        CachedText { buf, size }
+    }
+
+    /// plotters' bitmap backend over the buffer, for everything but the cached text (it
+    /// holds nothing between calls: made for each).
+    fn inner(&mut self) -> BitMapBackend<'_> {
+        BitMapBackend::with_buffer(self.buf, self.size)
+    }
+
+    /// Blend `rgb` at opacity `alpha` into pixel (x, y) (inside the image), exactly as
+    /// plotters' RGB bitmap does: opaque from 255/256 up, nothing at 0 or below, else each
+    /// channel moved by floor(alpha * 256) / 256 of the way, in integers.
+    #[inline]
+    fn blend(&mut self, x: usize, y: usize, rgb: (u8, u8, u8), alpha: f64) {
+        let i = (y * self.size.0 as usize + x) * 3;
+        let px = &mut self.buf[i..i + 3];
+        if alpha >= 1.0 - 1.0 / 256.0 {
+            px.copy_from_slice(&[rgb.0, rgb.1, rgb.2]);
+        } else if alpha > 0.0 {
+            // floor(alpha * 256) as plotters, without the libm call (truncation of a
+            // positive value).
+            let a = (alpha * 256.0) as u64;
+            for (p, new) in px.iter_mut().zip([rgb.0, rgb.1, rgb.2]) {
+                if new > *p {
+                    *p += (u64::from(new - *p) * a / 256) as u8;
+                } else {
+                    *p -= (u64::from(*p - new) * a / 256) as u8;
+                }
+            }
         }
     }
 }
@@ -99,23 +184,23 @@ impl DrawingBackend for CachedText<'_> {
     type ErrorType = <BitMapBackend<'static> as DrawingBackend>::ErrorType;
 
     fn get_size(&self) -> (u32, u32) {
-        self.inner.get_size()
+        self.size
     }
 
     fn ensure_prepared(&mut self) -> Res<()> {
-        self.inner.ensure_prepared()
+        Ok(())
     }
 
     fn present(&mut self) -> Res<()> {
-        self.inner.present()
+        Ok(())
     }
 
     fn draw_pixel(&mut self, point: BackendCoord, color: BackendColor) -> Res<()> {
-        self.inner.draw_pixel(point, color)
+        self.inner().draw_pixel(point, color)
     }
 
     fn draw_line<S: BackendStyle>(&mut self, from: BackendCoord, to: BackendCoord, style: &S) -> Res<()> {
-        self.inner.draw_line(from, to, style)
+        self.inner().draw_line(from, to, style)
     }
 
     fn draw_rect<S: BackendStyle>(
@@ -125,47 +210,51 @@ impl DrawingBackend for CachedText<'_> {
         style: &S,
         fill: bool,
     ) -> Res<()> {
-        self.inner.draw_rect(upper_left, bottom_right, style, fill)
+        self.inner().draw_rect(upper_left, bottom_right, style, fill)
     }
 
     fn draw_path<S: BackendStyle, I: IntoIterator<Item = BackendCoord>>(&mut self, path: I, style: &S) -> Res<()> {
-        self.inner.draw_path(path, style)
+        self.inner().draw_path(path, style)
     }
 
     fn draw_circle<S: BackendStyle>(&mut self, center: BackendCoord, radius: u32, style: &S, fill: bool) -> Res<()> {
-        self.inner.draw_circle(center, radius, style, fill)
+        self.inner().draw_circle(center, radius, style, fill)
     }
 
     fn fill_polygon<S: BackendStyle, I: IntoIterator<Item = BackendCoord>>(&mut self, vert: I, style: &S) -> Res<()> {
-        self.inner.fill_polygon(vert, style)
+        self.inner().fill_polygon(vert, style)
     }
 
     fn estimate_text_size<TStyle: BackendTextStyle>(&self, text: &str, style: &TStyle) -> Res<(u32, u32)> {
-        self.inner.estimate_text_size(text, style)
+        match cached_face(style) {
+            Some(bold) => Ok(text_size(bold, style.size(), text)),
+            // plotters' default (DrawingBackend::estimate_text_size).
+            None => {
+                let ((x0, y0), (x1, y1)) = style
+                    .layout_box(text)
+                    .map_err(|e| DrawingErrorKind::FontError(Box::new(e)))?;
+                Ok(((x1 - x0) as u32, (y1 - y0) as u32))
+            }
+        }
     }
 
     fn blit_bitmap(&mut self, pos: BackendCoord, (iw, ih): (u32, u32), src: &[u8]) -> Res<()> {
-        self.inner.blit_bitmap(pos, (iw, ih), src)
+        self.inner().blit_bitmap(pos, (iw, ih), src)
     }
 
     fn draw_text<TStyle: BackendTextStyle>(&mut self, text: &str, style: &TStyle, pos: BackendCoord) -> Res<()> {
-        let bold = match style.style() {
-            FontStyle::Bold => true,
-            FontStyle::Normal => false,
-            _ => return self.inner.draw_text(text, style, pos),
+        let Some(bold) = cached_face(style) else {
+            return self.inner().draw_text(text, style, pos);
         };
-        if style.family().as_str() != FONT || !matches!(style.transform(), FontTransform::None) {
-            return self.inner.draw_text(text, style, pos);
-        }
         let color = style.color();
         if color.alpha == 0.0 {
             return Ok(());
         }
-        // plotters' layout and anchor (DrawingBackend::draw_text's default).
-        let ((min_x, min_y), (max_x, max_y)) = style
-            .layout_box(text)
-            .map_err(|e| DrawingErrorKind::FontError(Box::new(e)))?;
-        let (width, height) = (max_x - min_x, max_y - min_y);
+        // plotters' layout (its box starts at (0, 0)) and anchor (DrawingBackend::draw_text's
+        // default).
+        let size = style.size();
+        let (width, height) = text_size(bold, size, text);
+        let (width, height) = (width as i32, height as i32);
         let dx = match style.anchor().h_pos {
             HPos::Left => 0,
             HPos::Right => -width,
@@ -177,19 +266,12 @@ impl DrawingBackend for CachedText<'_> {
             VPos::Bottom => -height,
         };
         let (w, h) = self.get_size();
-        let size = style.size();
-        let (ox, oy) = (pos.0 + dx - min_x, pos.1 + dy - min_y);
+        let (ox, oy) = (pos.0 + dx, pos.1 + dy);
         // plotters' ab_glyph font's draw: the glyphs one after another.
         let mut x_shift = 0f32;
         let mut prev: Option<GlyphId> = None;
         for c in text.chars() {
-            let g = GLYPHS.with(|cache| {
-                cache
-                    .borrow_mut()
-                    .entry((bold, size.to_bits(), c))
-                    .or_insert_with(|| Rc::new(rasterise(bold, size, c)))
-                    .clone()
-            });
+            let g = glyph(bold, size, c);
             if let Some(p) = prev {
                 x_shift += kern(bold, size, p, g.id);
             }
@@ -198,7 +280,7 @@ impl DrawingBackend for CachedText<'_> {
             for &(x, y, a) in &g.coverage {
                 let (x, y) = (ox + x + xs, oy + y + g.y_shift);
                 if x >= 0 && x < w as i32 && y >= 0 && y < h as i32 {
-                    self.inner.draw_pixel((x, y), color.mix(a as f64))?;
+                    self.blend(x as usize, y as usize, color.rgb, color.alpha * a as f64);
                 }
             }
             x_shift += g.advance;
@@ -284,5 +366,36 @@ mod tests {
         assert_eq!(differ, 0, "{differ} bytes differ");
         // Twice in a row (the glyphs now from the cache): the same again.
         assert!(draw(true) == plain);
+    }
+
+    /// The layout from cached glyphs is plotters' (`FontDesc::box_size` of the same face and
+    /// size) for texts with kerning pairs, symbols, spaces and none.
+    #[test]
+    fn cached_text_size_is_plotters_layout() {
+        super::super::ensure_font().unwrap();
+        let texts = [
+            "",
+            " ",
+            "AVAWAY To Ty",
+            "P = 1.23 +- 0.04 % (ΔγΠ°′×)",
+            "ffi,.;: |[]{}",
+            "Bench 48 1999-03-03T01:00:00",
+        ];
+        for bold in [false, true] {
+            for size in [7.0, 10.5, 12.0, 15.0, 31.25] {
+                let font = FontDesc::new(
+                    FontFamily::Name(FONT),
+                    size,
+                    if bold { FontStyle::Bold } else { FontStyle::Normal },
+                );
+                for t in texts {
+                    assert_eq!(
+                        text_size(bold, size, t),
+                        font.box_size(t).unwrap(),
+                        "{t:?} bold {bold} size {size}"
+                    );
+                }
+            }
+        }
     }
 }

@@ -108,7 +108,20 @@ impl Target {
 
 /// Width in pixels of `text` in `font` (DejaVu metrics; on SVG a little wider than drawn).
 fn text_width(font: &FontDesc<'_>, text: &str) -> f64 {
-    font.box_size(text).map_or(0.0, |(w, _)| f64::from(w))
+    let bold = match font.get_style() {
+        FontStyle::Normal => Some(false),
+        FontStyle::Bold => Some(true),
+        _ => None,
+    };
+    match bold {
+        Some(bold)
+            if font.get_family().as_str() == FONT
+                && matches!(font.get_transform(), plotters::style::FontTransform::None) =>
+        {
+            f64::from(glyphs::text_size(bold, font.get_size(), text).0)
+        }
+        _ => font.box_size(text).map_or(0.0, |(w, _)| f64::from(w)),
+    }
 }
 
 /// `text` broken at spaces into lines no wider than `max_px` in `font` (a word longer than

@@ -269,16 +269,11 @@ impl Outputs {
     pub fn finish(self, clean: bool) -> OutputsSummary {
         let is_png = |p: &Path| p.extension().is_some_and(|e| e == "png");
         let is_reg = |p: &Path| p.extension().is_some_and(|e| e == "reg");
-        // The figures were renamed into place one by one and are synced here at once.
+        // The figures were renamed into place one by one and are synced here together.
         let figures = self.figures.map(|f| {
             let mut w = f.finish(clean, is_png);
-            if !w.files.is_empty() {
-                if let Err(e) = sofipol_calib::atomic::sync_filesystem(&w.dir) {
-                    w.failed.push(format!(
-                        "{}: the figures could not be synced to disk: {e}",
-                        w.dir.display()
-                    ));
-                }
+            for e in sofipol_calib::atomic::sync_files(&w.files) {
+                w.failed.push(format!("not synced to disk: {e}"));
             }
             w
         });

@@ -234,7 +234,7 @@ impl TargetFigure<'_> {
     }
 
     /// Write the figure to `path` as a PNG, renamed into place whole but not synced: the
-    /// caller syncs the folder once after the last ([`sofipol_calib::atomic::sync_filesystem`]).
+    /// caller syncs the figures together after the last ([`sofipol_calib::atomic::sync_files`]).
     pub fn png_deferred(&self, path: &Path) -> io::Result<()> {
         sofipol_calib::atomic::write_atomic_deferred(path, &self.png_bytes()?).map_err(|e| match e {
             sofipol_calib::Error::Io { source, .. } => source,

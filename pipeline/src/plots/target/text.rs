@@ -63,12 +63,10 @@ impl Line {
     }
 }
 
+/// Width of `t` in the figure's text font, px (as plotters lays it out, from the cached
+/// glyphs).
 pub(super) fn text_width(t: &str, bold: bool) -> u32 {
-    let style = if bold { FontStyle::Bold } else { FontStyle::Normal };
-    let font = FontDesc::new(FontFamily::Name(FONT), TEXT_FONT as f64, style);
-    font.box_size(t)
-        .map(|(w, _)| w)
-        .unwrap_or((t.chars().count() as u32) * TEXT_FONT * 6 / 10)
+    crate::plots::glyphs::text_size(bold, TEXT_FONT as f64, t).0
 }
 
 /// Wrap `line` at word (or comma) boundaries to `width` px; continuation lines indented.

@@ -114,6 +114,31 @@ pub(super) fn beam_xy(d: &DitherValue, e_beam: bool) -> (f64, f64) {
     }
 }
 
+/// Median of NaN-free, non-empty `v` (even counts: the mean of the two middle values),
+/// reordering it. A stack holds a few dithers: sorted by insertion, more than 32 by
+/// `sort_unstable_by`.
+fn median_in_place(v: &mut [f32]) -> f32 {
+    if v.len() <= 32 {
+        for i in 1..v.len() {
+            let x = v[i];
+            let mut j = i;
+            while j > 0 && v[j - 1] > x {
+                v[j] = v[j - 1];
+                j -= 1;
+            }
+            v[j] = x;
+        }
+    } else {
+        v.sort_unstable_by(|a, b| a.total_cmp(b));
+    }
+    let q = v.len();
+    if q % 2 == 1 {
+        v[q / 2]
+    } else {
+        0.5 * (v[q / 2 - 1] + v[q / 2])
+    }
+}
+
 /// Stack of beam `e_beam` of orientation `k` (None when no dither has a measured position).
 pub(super) fn stack(o: &SkySubtractedOrientation, m: &Measured, k: usize, e_beam: bool) -> Option<Stack> {
     let a: &[DitherValue] = m.dithers.first()?.get(k)?;
@@ -160,18 +185,17 @@ pub(super) fn stack(o: &SkySubtractedOrientation, m: &Measured, k: usize, e_beam
         .collect();
     let used = windows.len();
     let mut pix = vec![f32::NAN; n * n];
-    let mut vals: Vec<f32> = Vec::with_capacity(windows.len());
+    let mut vals = vec![0f32; windows.len()];
     for (k, v) in pix.iter_mut().enumerate() {
-        vals.clear();
-        vals.extend(windows.iter().map(|w| w[k]).filter(|x| !x.is_nan()));
-        if !vals.is_empty() {
-            vals.sort_unstable_by(|a, b| a.total_cmp(b));
-            let q = vals.len();
-            *v = if q % 2 == 1 {
-                vals[q / 2]
-            } else {
-                0.5 * (vals[q / 2 - 1] + vals[q / 2])
-            };
+        let mut q = 0;
+        for w in &windows {
+            if !w[k].is_nan() {
+                vals[q] = w[k];
+                q += 1;
+            }
+        }
+        if q > 0 {
+            *v = median_in_place(&mut vals[..q]);
         }
     }
     let pa = (h as f64 - mid.0, h as f64 - mid.1);
@@ -224,14 +248,23 @@ pub(super) fn paint_tile(buf: &mut [u8], width: u32, x0: u32, y0: u32, s: &Stack
     let cols: Vec<usize> = (0..TILE)
         .map(|px| ((px as usize * n) / TILE as usize).min(n - 1))
         .collect();
+    // One tile row per source row, copied into every image row it covers (the part inside
+    // the image).
+    let (x0, width) = (x0 as usize, width as usize);
+    let inside = (TILE as usize).min(width.saturating_sub(x0));
+    let mut line = vec![0u8; TILE as usize * 3];
+    let mut line_of = usize::MAX;
     for py in 0..TILE {
         let row = n - 1 - ((py as usize * n) / TILE as usize).min(n - 1);
-        for (px, &col) in (0..TILE).zip(&cols) {
-            let rgb = colours[row * n + col];
-            let at = (((y0 + py) * width + x0 + px) * 3) as usize;
-            if at + 3 <= buf.len() {
-                buf[at..at + 3].copy_from_slice(&rgb);
+        if row != line_of {
+            for (px, &col) in line.chunks_exact_mut(3).zip(&cols) {
+                px.copy_from_slice(&colours[row * n + col]);
             }
+            line_of = row;
+        }
+        let at = ((y0 + py) as usize * width + x0) * 3;
+        if let Some(dst) = buf.get_mut(at..at + inside * 3) {
+            dst.copy_from_slice(&line[..inside * 3]);
         }
     }
 }
@@ -336,4 +369,40 @@ pub(super) fn empty_tile(root: &Area, x0: u32, y0: u32, msg: &str) -> io::Result
     ))
     .map_err(de)?;
     Ok(())
+}
+
+#[cfg(test)]
+mod median_tests {
+    use super::median_in_place;
+
+    /// The obvious median: sort a copy, take the middle (or the mean of the two middle).
+    fn reference(v: &[f32]) -> f32 {
+        let mut s = v.to_vec();
+        s.sort_by(|a, b| a.total_cmp(b));
+        let q = s.len();
+        if q % 2 == 1 {
+            s[q / 2]
+        } else {
+            0.5 * (s[q / 2 - 1] + s[q / 2])
+        }
+    }
+
+    #[test]
+    fn median_in_place_is_the_sorted_middle_at_every_length_with_ties() {
+        let mut x = 0x9e3779b97f4a7c15u64;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            // Few distinct values (ties), signs mixed, some large.
+            ((x % 41) as f32 - 20.0) * if x % 7 == 0 { 1e6 } else { 0.25 }
+        };
+        for len in 1..=40 {
+            for _ in 0..50 {
+                let v: Vec<f32> = (0..len).map(|_| next()).collect();
+                let mut w = v.clone();
+                assert_eq!(median_in_place(&mut w), reference(&v), "{v:?}");
+            }
+        }
+    }
 }
