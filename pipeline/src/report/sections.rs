@@ -222,7 +222,7 @@ pub fn statistics(h: &mut String, stats: &crate::error::Result<StatsSection>) {
         );
     }
     for f in &s.figures {
-        image(h, &f.caption, &f.png, None);
+        image(h, &f.caption, &f.png, f.href.as_deref());
     }
     if !r.models.is_empty() {
         h.push_str("<h3>Against the alignment models</h3>\n<div class=\"scroll\"><table id=\"models\"><thead><tr><th>model</th>\
