@@ -91,6 +91,9 @@ struct Combination<'a> {
     per_orientation: Vec<CombinedF>,
     sum_flux: f64,
     n_flux: usize,
+    /// The kept dithers' o+e fluxes, and the sum of their variances (ADU^2).
+    fluxes: Vec<f64>,
+    sum_flux_var: f64,
 }
 
 impl Combination<'_> {
@@ -128,6 +131,8 @@ impl Combination<'_> {
         for &i in &kept {
             self.sum_flux += dv[i].o.flux + dv[i].e.flux;
             self.n_flux += 1;
+            self.fluxes.push(dv[i].o.flux + dv[i].e.flux);
+            self.sum_flux_var += dv[i].o.var + dv[i].e.var;
         }
         let kv: Vec<f64> = keep.iter().map(|&j| vals[j]).collect();
         let ks: Vec<f64> = keep.iter().map(|&j| sig[j]).collect();
@@ -279,14 +284,34 @@ impl Combination<'_> {
         } else {
             f64::NAN
         };
+        let sigma_flux = mean_flux_error(&self.fluxes, self.sum_flux_var);
         Component {
             orientations: Some(self.per_orientation),
             dropped_dithers: (!self.dropped.is_empty()).then_some(self.dropped),
             flux_adu: Some(flux),
+            sigma_flux_adu: Some(sigma_flux),
             flags: self.flags,
             ..Component::new(name, Polarization::UNDEFINED)
         }
     }
+}
+
+/// The 1-sigma error of the mean of `fluxes` (ADU), whose variances sum to `sum_var`: the
+/// propagated `sqrt(sum_var)/n`, or the standard error of their scatter `s/sqrt(n)` when that
+/// is larger (seeing and transparency move a star's flux from dither to dither beyond its
+/// photon noise). NaN without a flux.
+pub fn mean_flux_error(fluxes: &[f64], sum_var: f64) -> f64 {
+    let n = fluxes.len() as f64;
+    if fluxes.is_empty() {
+        return f64::NAN;
+    }
+    let propagated = sum_var.max(0.0).sqrt() / n;
+    if fluxes.len() < 2 {
+        return propagated;
+    }
+    let mean = fluxes.iter().sum::<f64>() / n;
+    let var = fluxes.iter().map(|f| (f - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    propagated.max((var / n).sqrt())
 }
 
 /// The parallactic angle of an orientation's dithers, weighted as F is.

@@ -151,6 +151,7 @@ fn every_cell_of_the_targets_table_carries_its_column_name() {
         "Cut",
         "Δγ [deg]",
         "σΔγ [deg]",
+        "Mag",
         "Filter",
         "Flags",
     ];
