@@ -10,7 +10,6 @@ use std::path::Path;
 mod common;
 use common::{json, run, ALPHA_BETA, INSTRUMENT};
 
-
 /// The simulated night's zero-point (magnitude of 1 ADU/s, o+e) and DIT.
 const ZP: f64 = 20.0;
 const DIT_S: f64 = 10.0;
@@ -109,7 +108,12 @@ fn a_night_with_photometric_standards_gives_magnitudes_that_agree_with_the_truth
             .iter()
             .find(|t| t["object"] == object)
             .unwrap_or_else(|| panic!("{object} not in truth.json"));
-        let c = t["components"].as_array().unwrap().iter().find(|c| c["name"] == comp).unwrap();
+        let c = t["components"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["name"] == comp)
+            .unwrap();
         c["flux"].as_f64().unwrap()
     };
     let mut pulls = Vec::new();
@@ -138,7 +142,10 @@ fn a_night_with_photometric_standards_gives_magnitudes_that_agree_with_the_truth
     assert!(log.contains("photometry: photometric zero-point Ks: ZP = "), "{log}");
     assert!(log.contains(" mag\n") && log.contains(", Ks = "), "{log}");
     let html = std::fs::read_to_string(&page).unwrap();
-    assert!(html.contains("<table id=\"photometry\">") && html.contains("data-label=\"Mag\""), "report");
+    assert!(
+        html.contains("<table id=\"photometry\">") && html.contains("data-label=\"Mag\""),
+        "report"
+    );
     let csv = dir.path().join("cat.csv");
     let (code, _, err) = run(&["export", s(&cat_path), "-o", s(&csv)]);
     assert_eq!(code, 0, "{err}");
@@ -168,7 +175,9 @@ fn a_night_without_a_magnitude_standard_gives_no_magnitudes_and_says_why() {
         .flat_map(|t| t["components"].as_array().unwrap())
         .collect();
     assert!(!comps.is_empty());
-    assert!(comps.iter().all(|c| c.get("mag").is_none() && c.get("sigma_mag").is_none()));
+    assert!(comps
+        .iter()
+        .all(|c| c.get("mag").is_none() && c.get("sigma_mag").is_none()));
     assert!(comps.iter().all(|c| c["flux_adu"].as_f64().is_some_and(|f| f > 0.0)));
     let why = "no magnitudes: the night has no standard with a magnitude in its filter (fluxes in ADU only";
     let notes = &cat["calibration"]["photometry"]["notes"];
@@ -183,5 +192,8 @@ fn a_night_without_a_magnitude_standard_gives_no_magnitudes_and_says_why() {
     std::fs::write(&scene, "name = \"bad\"\n[[standard]]\nname = \"S\"\nmag = 9.0\n").unwrap();
     let (code, _, err) = run(&["simulate", s(&scene), "-o", s(&dir.path().join("bad")), "-q"]);
     assert_eq!(code, 1, "{err}");
-    assert!(err.contains("standard 'S': mag = 9 needs observation.zero_point_mag"), "{err}");
+    assert!(
+        err.contains("standard 'S': mag = 9 needs observation.zero_point_mag"),
+        "{err}"
+    );
 }

@@ -504,8 +504,11 @@ impl Profile {
             ("telescope.relative_width", self.telescope.relative_width),
         ];
         let ph = &self.photometry;
-        let extinctions = std::iter::once(("photometry.extinction_mag_per_airmass".to_string(), ph.extinction_mag_per_airmass))
-            .chain(ph.filters.iter().map(|(f, k)| (format!("photometry.filters.{f}"), *k)));
+        let extinctions = std::iter::once((
+            "photometry.extinction_mag_per_airmass".to_string(),
+            ph.extinction_mag_per_airmass,
+        ))
+        .chain(ph.filters.iter().map(|(f, k)| (format!("photometry.filters.{f}"), *k)));
         for (key, k) in extinctions {
             if !(0.0..=MAX_EXTINCTION_MAG_PER_AIRMASS).contains(&k) {
                 return err(format!(
@@ -674,9 +677,16 @@ mod tests {
         assert!(p.telescope.polarizes);
         assert_eq!(p.telescope.index(" ks ").map(|i| i.n), Some(2.661));
         assert!(p.telescope.index("NB2.17").is_none());
-        assert_eq!(p.photometry.extinction("Ks"), 0.0, "no unverified extinction by default");
+        assert_eq!(
+            p.photometry.extinction("Ks"),
+            0.0,
+            "no unverified extinction by default"
+        );
         let k = p.with_overrides(&["photometry.filters.Ks=0.07".into()]).unwrap();
-        assert_eq!((k.photometry.extinction(" ks "), k.photometry.extinction("J")), (0.07, 0.0));
+        assert_eq!(
+            (k.photometry.extinction(" ks "), k.photometry.extinction("J")),
+            (0.07, 0.0)
+        );
         for (set, key) in [
             ("telescope.relative_width=nan", "telescope.relative_width"),
             ("telescope.relative_width=0", "telescope.relative_width"),

@@ -199,7 +199,10 @@ fn check_magnitude(s: &StandardStar) -> std::result::Result<(), String> {
             }
             Ok(())
         }
-        (Some(m), None) => Err(format!("mag = {}: needs sigma_mag (its 1-sigma error, mag)", short_number(m))),
+        (Some(m), None) => Err(format!(
+            "mag = {}: needs sigma_mag (its 1-sigma error, mag)",
+            short_number(m)
+        )),
         (None, Some(e)) => Err(format!("sigma_mag = {}: without mag", short_number(e))),
         (Some(m), Some(e)) => {
             if !MAG_RANGE.contains(&m) {
@@ -461,10 +464,16 @@ sigma_p = 0.0005
         assert_eq!(t, before, "a refused file changes nothing");
         // Photometric fields: checked, named, and only for one filter.
         let with = |extra: &str| format!("{}{extra}\n", entry("p", "0.0088"));
-        t.merge_toml(&with("mag = 7.25\nsigma_mag = 0.02\nmag_band = \"2MASS Ks\""), "mag.toml")
-            .unwrap();
+        t.merge_toml(
+            &with("mag = 7.25\nsigma_mag = 0.02\nmag_band = \"2MASS Ks\""),
+            "mag.toml",
+        )
+        .unwrap();
         let e = t.find("HD 204827", "Ks").unwrap();
-        assert_eq!((e.mag, e.sigma_mag, e.mag_band.as_str()), (Some(7.25), Some(0.02), "2MASS Ks"));
+        assert_eq!(
+            (e.mag, e.sigma_mag, e.mag_band.as_str()),
+            (Some(7.25), Some(0.02), "2MASS Ks")
+        );
         for (extra, want) in [
             ("mag = 7.25", "mag = 7.25: needs sigma_mag"),
             ("sigma_mag = 0.02", "sigma_mag = 0.02: without mag"),
@@ -482,7 +491,10 @@ sigma_p = 0.0005
         }
         let star = with("mag = 7.0\nsigma_mag = 0.02").replace("\"Ks\"", "\"*\"");
         let e = t.merge_toml(&star, "bad.toml").unwrap_err().to_string();
-        assert!(e.contains("mag = 7: a magnitude is for one band, and filter is \"*\""), "{e}");
+        assert!(
+            e.contains("mag = 7: a magnitude is for one band, and filter is \"*\""),
+            "{e}"
+        );
         assert!(
             StandardsTable::builtin().entries.iter().all(|e| e.mag.is_none()),
             "no built-in magnitude: none was verified"

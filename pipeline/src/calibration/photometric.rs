@@ -102,7 +102,14 @@ pub struct PhotometricStandard {
 
 /// One standard's zero-point and error: `m + 2.5 log10(r) + k X` (X = 0 when `airmass` is
 /// `None`), `sqrt(sigma_m^2 + (1.0857 sigma_r / r)^2)`.
-pub fn standard_zero_point(mag: f64, sigma_mag: f64, rate: f64, sigma_rate: f64, k: f64, airmass: Option<f64>) -> (f64, f64) {
+pub fn standard_zero_point(
+    mag: f64,
+    sigma_mag: f64,
+    rate: f64,
+    sigma_rate: f64,
+    k: f64,
+    airmass: Option<f64>,
+) -> (f64, f64) {
     let zp = mag + 2.5 * rate.log10() + k * airmass.unwrap_or(0.0);
     (zp, sigma_mag.hypot(MAG_PER_RELATIVE_FLUX * sigma_rate / rate))
 }
@@ -133,12 +140,23 @@ pub fn combine(points: &[(f64, f64)]) -> Option<(f64, f64, Option<f64>)> {
 /// A source's magnitude and error from its count rate `r` +- `sigma_r` (ADU/s) at airmass
 /// `airmass` with zero-point `zp` +- `sigma_zp` and extinction `k`. `None` when the rate is
 /// not a positive finite number.
-pub fn magnitude(zp: f64, sigma_zp: f64, k: f64, rate: f64, sigma_rate: f64, airmass: Option<f64>) -> Option<(f64, f64)> {
+pub fn magnitude(
+    zp: f64,
+    sigma_zp: f64,
+    k: f64,
+    rate: f64,
+    sigma_rate: f64,
+    airmass: Option<f64>,
+) -> Option<(f64, f64)> {
     if !(rate.is_finite() && rate > 0.0) {
         return None;
     }
     let m = zp - 2.5 * rate.log10() - k * airmass.unwrap_or(0.0);
-    let rel = if sigma_rate.is_finite() { sigma_rate / rate } else { f64::NAN };
+    let rel = if sigma_rate.is_finite() {
+        sigma_rate / rate
+    } else {
+        f64::NAN
+    };
     Some((m, (MAG_PER_RELATIVE_FLUX * rel).hypot(sigma_zp)))
 }
 
@@ -150,8 +168,12 @@ fn mean_airmass(q: Option<&Vec<crate::catalog::FrameQuality>>) -> Option<f64> {
 
 /// The rate and its error from a flux, its error and the integration time.
 fn rate(flux: Option<f64>, sigma: Option<f64>, dit: Option<f64>) -> Result<(f64, f64), &'static str> {
-    let dit = dit.filter(|d| d.is_finite() && *d > 0.0).ok_or("no single integration time (DIT) of its frames")?;
-    let f = flux.filter(|f| f.is_finite() && *f > 0.0).ok_or("no positive flux measured")?;
+    let dit = dit
+        .filter(|d| d.is_finite() && *d > 0.0)
+        .ok_or("no single integration time (DIT) of its frames")?;
+    let f = flux
+        .filter(|f| f.is_finite() && *f > 0.0)
+        .ok_or("no positive flux measured")?;
     let s = sigma.filter(|s| s.is_finite() && *s >= 0.0).ok_or("no flux error")?;
     Ok((f / dit, s / dit))
 }
@@ -164,11 +186,7 @@ pub fn apply(cat: &mut Catalog, photometry: &Photometry) -> PhotometricCalibrati
     let mut out = PhotometricCalibration::default();
     let mut by_filter: std::collections::BTreeMap<String, Vec<PhotometricStandard>> = Default::default();
     for s in &cat.standards {
-        let Some((t, mag, sigma_mag)) = s
-            .table
-            .as_ref()
-            .and_then(|t| Some((t, t.mag?, t.sigma_mag?)))
-        else {
+        let Some((t, mag, sigma_mag)) = s.table.as_ref().and_then(|t| Some((t, t.mag?, t.sigma_mag?))) else {
             continue;
         };
         let m = s.measured.as_ref();
@@ -181,7 +199,10 @@ pub fn apply(cat: &mut Catalog, photometry: &Photometry) -> PhotometricCalibrati
         let airmass = mean_airmass(s.frame_quality.as_ref());
         let (r, sr) = match (measured, airmass) {
             (Err(why), _) => {
-                out.notes.push(format!("photometric standard {} ({}) not used: {why}", s.name, s.sequence));
+                out.notes.push(format!(
+                    "photometric standard {} ({}) not used: {why}",
+                    s.name, s.sequence
+                ));
                 continue;
             }
             (Ok(_), None) if k != 0.0 => {
@@ -194,25 +215,30 @@ pub fn apply(cat: &mut Catalog, photometry: &Photometry) -> PhotometricCalibrati
             (Ok(rs), _) => rs,
         };
         let (zp, szp) = standard_zero_point(mag, sigma_mag, r, sr, k, airmass);
-        by_filter.entry(s.filter.trim().to_string()).or_default().push(PhotometricStandard {
-            name: s.name.clone(),
-            sequence: s.sequence.clone(),
-            mag,
-            sigma_mag,
-            mag_band: t.mag_band.clone(),
-            rate_adu_per_s: r,
-            sigma_rate_adu_per_s: sr,
-            airmass,
-            zero_point_mag: zp,
-            sigma_zero_point_mag: szp,
-        });
+        by_filter
+            .entry(s.filter.trim().to_string())
+            .or_default()
+            .push(PhotometricStandard {
+                name: s.name.clone(),
+                sequence: s.sequence.clone(),
+                mag,
+                sigma_mag,
+                mag_band: t.mag_band.clone(),
+                rate_adu_per_s: r,
+                sigma_rate_adu_per_s: sr,
+                airmass,
+                zero_point_mag: zp,
+                sigma_zero_point_mag: szp,
+            });
     }
     for (filter, standards) in by_filter {
         let points: Vec<(f64, f64)> = standards
             .iter()
             .map(|s| (s.zero_point_mag, s.sigma_zero_point_mag))
             .collect();
-        let Some((zp, sigma, scatter)) = combine(&points) else { continue };
+        let Some((zp, sigma, scatter)) = combine(&points) else {
+            continue;
+        };
         out.filters.push(ZeroPoint {
             extinction_mag_per_airmass: photometry.extinction(&filter),
             filter,
@@ -226,7 +252,10 @@ pub fn apply(cat: &mut Catalog, photometry: &Photometry) -> PhotometricCalibrati
     let mut no_dit = 0usize;
     for t in cat.targets.iter_mut() {
         let filter = t.filter.clone().unwrap_or_default();
-        let zp = out.filters.iter().find(|z| z.filter.eq_ignore_ascii_case(filter.trim()));
+        let zp = out
+            .filters
+            .iter()
+            .find(|z| z.filter.eq_ignore_ascii_case(filter.trim()));
         let airmass = mean_airmass(t.frame_quality.as_ref());
         for c in t.components.iter_mut() {
             (c.mag, c.sigma_mag) = (None, None);
@@ -242,7 +271,9 @@ pub fn apply(cat: &mut Catalog, photometry: &Photometry) -> PhotometricCalibrati
             if k != 0.0 && airmass.is_none() {
                 continue;
             }
-            let Ok((r, sr)) = rate(c.flux_adu, c.sigma_flux_adu, t.dit_s) else { continue };
+            let Ok((r, sr)) = rate(c.flux_adu, c.sigma_flux_adu, t.dit_s) else {
+                continue;
+            };
             if let Some((m, s)) = magnitude(z.zero_point_mag, z.sigma_zero_point_mag, k, r, sr, airmass) {
                 (c.mag, c.sigma_mag) = (Some(m), Some(s));
             }
@@ -255,7 +286,10 @@ pub fn apply(cat: &mut Catalog, photometry: &Photometry) -> PhotometricCalibrati
                 .into(),
         );
     } else {
-        for f in without.into_iter().filter(|f| !out.filters.iter().any(|z| z.filter.eq_ignore_ascii_case(f))) {
+        for f in without
+            .into_iter()
+            .filter(|f| !out.filters.iter().any(|z| z.filter.eq_ignore_ascii_case(f)))
+        {
             out.notes.push(format!(
                 "no magnitudes in filter '{f}': no photometric standard in that filter (fluxes in ADU only)"
             ));

@@ -196,7 +196,9 @@ pub fn quality_figure_path(page: &Path) -> PathBuf {
 /// beside it (both move together), percent-escaped.
 fn own_figure_href(page: &Path, file: &str) -> String {
     let dir = report_figures_dir(page);
-    let name = dir.file_name().map_or_else(|| "report_figures".into(), |n| n.to_os_string());
+    let name = dir
+        .file_name()
+        .map_or_else(|| "report_figures".into(), |n| n.to_os_string());
     links::escape_path(&Path::new(&name).join(file))
 }
 

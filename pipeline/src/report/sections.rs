@@ -152,11 +152,18 @@ fn photometry(h: &mut String, cat: &Catalog) {
         || vec!["no magnitudes: no calibration (fluxes in ADU only)".to_string()],
         |c| c.photometry_lines(),
     );
-    let zps = cat.calibration.as_ref().and_then(|c| c.photometry.as_ref()).map(|p| &p.filters[..]).unwrap_or_default();
+    let zps = cat
+        .calibration
+        .as_ref()
+        .and_then(|c| c.photometry.as_ref())
+        .map(|p| &p.filters[..])
+        .unwrap_or_default();
     if !zps.is_empty() {
-        h.push_str("<div class=\"scroll\"><table id=\"photometry\"><thead><tr><th>filter</th><th>standard</th>\
+        h.push_str(
+            "<div class=\"scroll\"><table id=\"photometry\"><thead><tr><th>filter</th><th>standard</th>\
             <th class=\"num\">table mag</th><th class=\"num\">rate [ADU/s]</th><th class=\"num\">airmass</th>\
-            <th class=\"num\">ZP [mag]</th></tr></thead><tbody>\n");
+            <th class=\"num\">ZP [mag]</th></tr></thead><tbody>\n",
+        );
         for z in zps {
             for s in &z.standards {
                 let _ = writeln!(

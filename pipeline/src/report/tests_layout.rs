@@ -187,7 +187,14 @@ fn the_pages_own_figures_are_files_beside_it_and_every_image_is_a_link() {
         ..Default::default()
     };
     let page_path = dir.path().join("my night.html");
-    let input = collect(cat, &dir.path().join("cat.json"), None, Some(&page_path), &opts, String::new());
+    let input = collect(
+        cat,
+        &dir.path().join("cat.json"),
+        None,
+        Some(&page_path),
+        &opts,
+        String::new(),
+    );
     let figs = &input.stats.as_ref().expect("statistics").figures;
     assert_eq!(figs.len(), 2, "the observed and the ISM figures");
     // A figure left by an earlier page of that name that this one does not show: removed.
@@ -203,7 +210,9 @@ fn the_pages_own_figures_are_files_beside_it_and_every_image_is_a_link() {
         let href = f.href.as_deref().unwrap();
         assert_eq!(href, format!("my%20night_figures/{}", f.file));
         assert_eq!(std::fs::read(file).unwrap(), f.png, "{}", file.display());
-        assert!(page.contains(&format!("<a href=\"{href}\" title=\"open the figure at full size\"><img alt=")));
+        assert!(page.contains(&format!(
+            "<a href=\"{href}\" title=\"open the figure at full size\"><img alt="
+        )));
     }
     assert_eq!(page.matches("<img ").count(), 2);
     assert_eq!(
