@@ -157,6 +157,17 @@ fn a_night_with_photometric_standards_gives_magnitudes_that_agree_with_the_truth
     let exported: f64 = first[col].parse().unwrap();
     let catalog_mag = cat["targets"][0]["components"][0]["mag"].as_f64().unwrap();
     assert!((exported - catalog_mag).abs() < 1e-9, "{exported} vs {catalog_mag}");
+    let ecsv = dir.path().join("cat.ecsv");
+    let (code, _, err) = run(&["export", s(&cat_path), "-o", s(&ecsv)]);
+    assert_eq!(code, 0, "{err}");
+    let text = std::fs::read_to_string(&ecsv).unwrap();
+    for col in ["mag", "sigma_mag"] {
+        assert!(
+            text.lines()
+                .any(|l| l.starts_with(&format!("# - {{name: {col}, unit: mag, datatype: float64"))),
+            "{col} in the ECSV header"
+        );
+    }
 }
 
 #[test]

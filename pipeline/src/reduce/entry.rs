@@ -468,6 +468,18 @@ mod tests {
     use crate::stokes::inversion::LinearPolarization;
     use crate::stokes::propagation::QuCovariance;
 
+    /// The mean flux's error by hand: fluxes 98, 100, 102 (standard deviation 2, standard
+    /// error 2/sqrt 3 = 1.1547) with summed variances 3 (propagated sqrt 3 / 3 = 0.5774):
+    /// the scatter's; with 300 (5.7735): the propagated; one flux: its own error.
+    #[test]
+    fn the_mean_fluxs_error_is_the_larger_of_propagated_and_scatter_by_hand() {
+        let f = [98.0, 100.0, 102.0];
+        assert!((mean_flux_error(&f, 3.0) - 2.0 / 3f64.sqrt()).abs() < 1e-12);
+        assert!((mean_flux_error(&f, 300.0) - 300f64.sqrt() / 3.0).abs() < 1e-12);
+        assert_eq!(mean_flux_error(&[50.0], 16.0), 4.0);
+        assert!(mean_flux_error(&[], 1.0).is_nan());
+    }
+
     /// Two components, both with a 10-sigma polarization at 0/45/90/135 (q = 0.03, u = 0.02,
     /// sigma_F = 0.001 per dither, 3 dithers).
     fn measured(flags: Vec<Flag>) -> Measured {
