@@ -165,7 +165,11 @@ fn every_science_frame_has_its_simulated_seeing_sky_airmass_and_transparency() {
         section.contains("<img alt=\"Seeing, sky level and transparency"),
         "figure not embedded"
     );
-    let png = std::fs::read(out.join("night_quality.png")).expect("the quality figure beside the report");
+    let png = std::fs::read(out.join("night_figures/quality.png")).expect("the quality figure beside the report");
+    assert!(
+        section.contains("<a href=\"night_figures/quality.png\""),
+        "the figure is not a link to its file"
+    );
     assert!(
         png.starts_with(b"\x89PNG\r\n\x1a\n") && png.len() > 10_000,
         "{} bytes",

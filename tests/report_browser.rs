@@ -7,7 +7,8 @@
 //! the targets table, a card per row). Before that, the layout at 1400 px and on a 390 px
 //! phone, measured by the test's own probe (report_browser/layout.rs, probe.js): no
 //! sideways page, no cell cut off, every table whole at 1400 px, sequence ids broken only
-//! at '@', every per-target figure a link to its PNG file. A screenshot is kept in
+//! at '@', every figure on the page (per target, frame quality, statistics) a link to its
+//! own PNG file. A screenshot is kept in
 //! target/test-artifacts/report.png.
 //!
 //! The browser: `$SOFIPOL_CHROMIUM` (scripts/test.sh sets it from scripts/browser-env.sh,
@@ -237,7 +238,8 @@ fn the_night_report_loads_sorts_filters_and_shows_every_image_in_chromium() {
     for width in [1400, 390] {
         let m = layout::measure(&chromium, dir.path(), &page, width);
         println!("layout at {width} px: {m}");
-        bad.extend(layout::problems(&m, width, &products));
+        let own = sofipol_pipeline::report::report_figures_dir(&page);
+        bad.extend(layout::problems(&m, width, &products, &own));
     }
     assert!(bad.is_empty(), "the page does not read well:\n{}", bad.join("\n"));
 

@@ -329,6 +329,41 @@ pub struct Profile {
     /// The mirror in front of the rotator (the telescope's own polarization).
     #[serde(default = "Telescope::undescribed")]
     pub telescope: Telescope,
+    /// Photometry: the atmospheric extinction of the magnitudes' airmass term.
+    #[serde(default)]
+    pub photometry: Photometry,
+}
+
+/// The atmosphere's extinction for the photometric zero-point (docs/calibration.md,
+/// "Magnitudes"): a star's magnitude is `ZP - 2.5 log10(flux / DIT) - k X` at airmass X.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Photometry {
+    /// k, mag per airmass, of every filter without its own entry in `filters`. Default 0:
+    /// no La Silla value per near-infrared band could be verified here (at Paranal, the
+    /// J, H and Ks extinction is below 0.1 mag per airmass: Lombardi et al. 2011, A&A 528,
+    /// A43); with 0 the zero-point absorbs the mean airmass of the standards.
+    #[serde(default)]
+    pub extinction_mag_per_airmass: f64,
+    /// k per filter (names as in the headers, compared ignoring case), mag per airmass.
+    #[serde(default)]
+    pub filters: std::collections::BTreeMap<String, f64>,
+}
+
+/// The largest extinction a profile may give, mag per airmass (the optical U band of a
+/// good site is about 0.5; the near-infrared below 0.1).
+pub const MAX_EXTINCTION_MAG_PER_AIRMASS: f64 = 2.0;
+
+impl Photometry {
+    /// k of `filter`, mag per airmass: its own entry (name compared ignoring case and
+    /// blanks), else `extinction_mag_per_airmass`.
+    pub fn extinction(&self, filter: &str) -> f64 {
+        let f = filter.trim();
+        self.filters
+            .iter()
+            .find(|(name, _)| name.trim().eq_ignore_ascii_case(f))
+            .map_or(self.extinction_mag_per_airmass, |(_, k)| *k)
+    }
 }
 
 fn merge(base: &mut toml::Value, over: toml::Value) {
@@ -468,6 +503,19 @@ impl Profile {
             ("telescope.sigma_psi_deg", self.telescope.sigma_psi_deg),
             ("telescope.relative_width", self.telescope.relative_width),
         ];
+        let ph = &self.photometry;
+        let extinctions = std::iter::once((
+            "photometry.extinction_mag_per_airmass".to_string(),
+            ph.extinction_mag_per_airmass,
+        ))
+        .chain(ph.filters.iter().map(|(f, k)| (format!("photometry.filters.{f}"), *k)));
+        for (key, k) in extinctions {
+            if !(0.0..=MAX_EXTINCTION_MAG_PER_AIRMASS).contains(&k) {
+                return err(format!(
+                    "{key} = {k} must be in [0, {MAX_EXTINCTION_MAG_PER_AIRMASS}] mag per airmass"
+                ));
+            }
+        }
         for (name, v) in finite {
             if !v.is_finite() {
                 return err(format!("{name} = {v} must be a finite number"));
@@ -629,6 +677,16 @@ mod tests {
         assert!(p.telescope.polarizes);
         assert_eq!(p.telescope.index(" ks ").map(|i| i.n), Some(2.661));
         assert!(p.telescope.index("NB2.17").is_none());
+        assert_eq!(
+            p.photometry.extinction("Ks"),
+            0.0,
+            "no unverified extinction by default"
+        );
+        let k = p.with_overrides(&["photometry.filters.Ks=0.07".into()]).unwrap();
+        assert_eq!(
+            (k.photometry.extinction(" ks "), k.photometry.extinction("J")),
+            (0.07, 0.0)
+        );
         for (set, key) in [
             ("telescope.relative_width=nan", "telescope.relative_width"),
             ("telescope.relative_width=0", "telescope.relative_width"),
@@ -643,6 +701,16 @@ mod tests {
             ),
             ("telescope.polarizes=3", "polarizes"),
             ("telescope.mirror=1", "mirror"),
+            (
+                "photometry.extinction_mag_per_airmass=nan",
+                "photometry.extinction_mag_per_airmass = NaN",
+            ),
+            (
+                "photometry.extinction_mag_per_airmass=-0.1",
+                "photometry.extinction_mag_per_airmass = -0.1",
+            ),
+            ("photometry.filters.Ks=3", "photometry.filters.Ks = 3"),
+            ("photometry.k=1", "k"),
         ] {
             let e = p.with_overrides(&[set.to_string()]).expect_err(set).to_string();
             assert!(e.contains(key), "{set}: {e}");

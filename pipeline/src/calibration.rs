@@ -310,8 +310,9 @@ pub struct CalibrationContext<'a> {
 /// Calibrate a reduced catalog: measure the calibration from the standard sequences (or
 /// use the given one), re-solve every target component with it and the chosen Stokes
 /// method (the cut refuses uncalibrated components unless allowed), report the standards
-/// in their own section, and record what was used in `catalog.calibration`. Returns the
-/// calibration used and the summary.
+/// in their own section, and record what was used in `catalog.calibration`; then the
+/// photometric zero-points of the standards with a magnitude and every component's magnitude
+/// ([`photometric::apply`]). Returns the calibration used and the summary.
 pub fn calibrate_catalog(
     cat: &mut Catalog,
     standards: Vec<Target>,
@@ -329,6 +330,8 @@ pub fn calibrate_catalog(
         ctx.params.stokes_method.name(),
     ));
     summary_lines(&mut summary, cal.as_ref(), &origin, ctx);
+    let photometry = photometric::apply(cat, &ctx.profile.photometry);
+    summary.lines.extend(photometric::lines(&photometry));
     (cal, summary)
 }
 
@@ -517,6 +520,7 @@ fn standards_section(
             flags,
             ra_deg: t.ra_deg,
             dec_deg: t.dec_deg,
+            dit_s: t.dit_s,
             mjd_mean: t.mjd_mean,
             input_files: t.input_files.clone(),
             frame_quality: t.frame_quality.clone(),
@@ -700,6 +704,7 @@ pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::Target
     s
 }
 
+pub mod photometric;
 pub mod setup;
 pub use setup::CalibSetup;
 pub mod residuals;

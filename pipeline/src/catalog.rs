@@ -82,6 +82,15 @@ pub struct Component {
     /// The instrumental offset subtracted from F or fitted (calibration).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub instrumental_offset: Option<InstrumentalOffset>,
+    /// Magnitude in the target's filter from the night's photometric zero-point
+    /// ([`crate::calibration::photometric`]); absent when the night has no photometric
+    /// standard in that filter.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
+    pub mag: Option<f64>,
     /// d(q, u)/dc: how an error of the calibration's offset c moves this star's q and u
     /// (absent when no calibration offset was subtracted). The offset is common to every
     /// target of a night, so this is what correlates the two stars of a binary.
@@ -95,6 +104,14 @@ pub struct Component {
     /// q and u from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub orientations: Option<Vec<CombinedF>>,
+    /// 1-sigma error of `flux_adu`: the propagated photometric error of the mean, or the
+    /// standard error of the dithers' scatter when that is larger, ADU.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
+    pub sigma_flux_adu: Option<f64>,
     /// 68.27 % half-width of the Naghizadeh-Khouei & Clarke angle distribution, deg.
     #[serde(
         default,
@@ -119,6 +136,13 @@ pub struct Component {
         deserialize_with = "crate::nullable::opt"
     )]
     pub sigma_gamma_zero_point_deg: Option<f64>,
+    /// 1-sigma error of `mag`: the flux's error and the zero-point's in quadrature, mag.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
+    pub sigma_mag: Option<f64>,
     /// Error of q from the measurement alone.
     #[serde(
         default,
@@ -214,11 +238,14 @@ impl Component {
             dropped_dithers: None,
             flux_adu: None,
             instrumental_offset: None,
+            mag: None,
             offset_gradient: None,
             orientations: None,
+            sigma_flux_adu: None,
             sigma_gamma_nkc_deg: None,
             sigma_gamma_stat_deg: None,
             sigma_gamma_zero_point_deg: None,
+            sigma_mag: None,
             sigma_q_stat: None,
             sigma_u_stat: None,
             snr: None,
@@ -380,6 +407,15 @@ pub struct Target {
         deserialize_with = "crate::nullable::opt"
     )]
     pub dec_deg: Option<f64>,
+    /// Integration time of each frame of the sequence (`DET DIT`, else `EXPTIME`), s: the
+    /// frames are NDIT-averaged, so `flux_adu / dit_s` is ADU per second. Absent when the
+    /// frames' times differ (no magnitude is then given) or in older catalogs.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
+    pub dit_s: Option<f64>,
     /// e-o beam offset measured from the data, [dx, dy] px.
     #[serde(
         default,
@@ -479,6 +515,7 @@ impl Target {
             aperture_radius_px: None,
             bad_pixels_masked: None,
             dec_deg: None,
+            dit_s: None,
             eo_offset_px: None,
             filter: None,
             flags: None,
@@ -636,6 +673,13 @@ pub struct StandardResult {
         deserialize_with = "crate::nullable::opt"
     )]
     pub dec_deg: Option<f64>,
+    /// Integration time of each frame, s (as [`Target::dit_s`]).
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
+    pub dit_s: Option<f64>,
     /// Mean MJD-OBS of the sequence's frames, d (as [`Target::mjd_mean`]).
     #[serde(
         default,

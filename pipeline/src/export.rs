@@ -106,7 +106,7 @@ impl Table {
 }
 
 /// The numeric columns, in table order: (name, unit, description).
-const NUMERIC: [(&str, &str, &str); 27] = [
+const NUMERIC: [(&str, &str, &str); 30] = [
     (
         "ra",
         "deg",
@@ -180,6 +180,17 @@ const NUMERIC: [(&str, &str, &str); 27] = [
         "target: high end of the central 68.27% interval of delta_gamma",
     ),
     ("flux", "adu", "mean o+e flux per dither"),
+    (
+        "sigma_flux",
+        "adu",
+        "1-sigma error of flux (propagated, or the dithers' scatter when larger)",
+    ),
+    (
+        "mag",
+        "mag",
+        "magnitude in the filter from the night's photometric zero-point; NaN without one",
+    ),
+    ("sigma_mag", "mag", "1-sigma error of mag: flux and zero-point"),
 ];
 
 /// One row of the table: a component of a target, or a standard star's measurement.
@@ -228,6 +239,9 @@ fn row_values(c: &Component, seq: [Option<f64>; 5], dg: [Option<f64>; 4]) -> [f6
         o(dg[2]),
         o(dg[3]),
         o(c.flux_adu),
+        o(c.sigma_flux_adu),
+        o(c.mag),
+        o(c.sigma_mag),
     ]
 }
 

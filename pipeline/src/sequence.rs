@@ -53,6 +53,16 @@ impl Sequence {
         self.orientations.iter().flat_map(|o| o.exposures.iter())
     }
 
+    /// The integration time every frame shares (`DET DIT`, else `EXPTIME`), s; `None` when
+    /// the frames' times differ (beyond 1e-9 relative) or there is no frame.
+    pub fn common_dit_s(&self) -> Option<f64> {
+        let mut dits = self.exposures().map(|e| e.dit_s);
+        let first = dits.next()?;
+        dits.all(|d| (d - first).abs() <= 1e-9 * first.abs())
+            .then_some(first)
+            .filter(|d| d.is_finite() && *d > 0.0)
+    }
+
     /// Mean MJD-OBS of the frames that have one (`None` when none has).
     pub fn mean_mjd(&self) -> Option<f64> {
         mean(self.exposures().filter_map(|e| e.mjd))

@@ -41,7 +41,34 @@ pub struct StandardStar {
     /// Literature reference.
     #[serde(default)]
     pub reference: String,
+    /// Magnitude of the star in this entry's filter (a photometric standard; absent: the
+    /// entry calibrates polarimetry only). Only for an entry of one filter, never `"*"`.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
+    pub mag: Option<f64>,
+    /// 1-sigma error of `mag`, mag (required with `mag`).
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
+    pub sigma_mag: Option<f64>,
+    /// The photometric system and band of `mag` (e.g. `"2MASS Ks"`).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub mag_band: String,
+    /// Where `mag` comes from.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub mag_reference: String,
 }
+
+/// The range a standard's `mag` may take: the brightest stars are near -1.5 mag in the
+/// near-infrared, and a standard fainter than 25 mag is not one a 3.6 m telescope measures.
+pub const MAG_RANGE: std::ops::RangeInclusive<f64> = -2.0..=25.0;
+/// The largest `sigma_mag` a standard may give, mag.
+pub const MAX_SIGMA_MAG: f64 = 1.0;
 
 fn default_sigma_gamma() -> f64 {
     1.0
@@ -147,6 +174,7 @@ fn parse(text: &str, origin: &str) -> Result<Vec<StandardStar>> {
                 sofipol_calib::text::short_number(*v)
             )));
         }
+        check_magnitude(s).map_err(|why| err(format!("{entry}: {why}")))?;
         if let Some(j) = seen.insert(entry_key(s), i) {
             let first = &f.standard[j];
             return Err(err(format!(
@@ -157,6 +185,49 @@ fn parse(text: &str, origin: &str) -> Result<Vec<StandardStar>> {
         }
     }
     Ok(f.standard)
+}
+
+/// An entry's photometric fields: `mag` and `sigma_mag` together, `mag` in [`MAG_RANGE`],
+/// `sigma_mag` in (0, [`MAX_SIGMA_MAG`]], both finite, and only on an entry of one filter
+/// (a magnitude is for one band); the band and reference only with a magnitude.
+fn check_magnitude(s: &StandardStar) -> std::result::Result<(), String> {
+    use sofipol_calib::text::short_number;
+    match (s.mag, s.sigma_mag) {
+        (None, None) => {
+            if !s.mag_band.is_empty() || !s.mag_reference.is_empty() {
+                return Err("mag_band or mag_reference without mag: give mag and sigma_mag".into());
+            }
+            Ok(())
+        }
+        (Some(m), None) => Err(format!(
+            "mag = {}: needs sigma_mag (its 1-sigma error, mag)",
+            short_number(m)
+        )),
+        (None, Some(e)) => Err(format!("sigma_mag = {}: without mag", short_number(e))),
+        (Some(m), Some(e)) => {
+            if !MAG_RANGE.contains(&m) {
+                return Err(format!(
+                    "mag = {}: must be a finite magnitude in [{}, {}]",
+                    short_number(m),
+                    MAG_RANGE.start(),
+                    MAG_RANGE.end()
+                ));
+            }
+            if !(e > 0.0 && e <= MAX_SIGMA_MAG) {
+                return Err(format!(
+                    "sigma_mag = {}: must be in (0, {MAX_SIGMA_MAG}] mag",
+                    short_number(e)
+                ));
+            }
+            if s.filter.trim() == "*" {
+                return Err(format!(
+                    "mag = {}: a magnitude is for one band, and filter is \"*\": give the entry for its filter (filter = \"Ks\")",
+                    short_number(m)
+                ));
+            }
+            Ok(())
+        }
+    }
 }
 
 impl StandardsTable {
@@ -391,6 +462,43 @@ sigma_p = 0.0005
             "{e}"
         );
         assert_eq!(t, before, "a refused file changes nothing");
+        // Photometric fields: checked, named, and only for one filter.
+        let with = |extra: &str| format!("{}{extra}\n", entry("p", "0.0088"));
+        t.merge_toml(
+            &with("mag = 7.25\nsigma_mag = 0.02\nmag_band = \"2MASS Ks\""),
+            "mag.toml",
+        )
+        .unwrap();
+        let e = t.find("HD 204827", "Ks").unwrap();
+        assert_eq!(
+            (e.mag, e.sigma_mag, e.mag_band.as_str()),
+            (Some(7.25), Some(0.02), "2MASS Ks")
+        );
+        for (extra, want) in [
+            ("mag = 7.25", "mag = 7.25: needs sigma_mag"),
+            ("sigma_mag = 0.02", "sigma_mag = 0.02: without mag"),
+            ("mag = nan\nsigma_mag = 0.02", "mag = NaN: must be a finite magnitude"),
+            ("mag = 30.0\nsigma_mag = 0.02", "mag = 30: must be a finite magnitude"),
+            ("mag = 7.0\nsigma_mag = 0.0", "sigma_mag = 0: must be in (0, 1]"),
+            ("mag = 7.0\nsigma_mag = inf", "sigma_mag = inf: must be in (0, 1]"),
+            ("mag_band = \"2MASS Ks\"", "mag_band or mag_reference without mag"),
+        ] {
+            let e = t.merge_toml(&with(extra), "bad.toml").unwrap_err().to_string();
+            assert!(
+                e.starts_with("bad.toml: standard[0] 'HD 204827' (filter 'Ks'): ") && e.contains(want),
+                "{extra}: {e}"
+            );
+        }
+        let star = with("mag = 7.0\nsigma_mag = 0.02").replace("\"Ks\"", "\"*\"");
+        let e = t.merge_toml(&star, "bad.toml").unwrap_err().to_string();
+        assert!(
+            e.contains("mag = 7: a magnitude is for one band, and filter is \"*\""),
+            "{e}"
+        );
+        assert!(
+            StandardsTable::builtin().entries.iter().all(|e| e.mag.is_none()),
+            "no built-in magnitude: none was verified"
+        );
         // The same star in two filters is two entries.
         let two_filters = format!("{}{}", entry("p", "0.0088"), entry("filter", "\"H\""));
         t.merge_toml(&two_filters, "filters.toml").unwrap();

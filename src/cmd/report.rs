@@ -114,7 +114,9 @@ pub struct PageSummary {
 /// Gather the page of `catalog` (read from `catalog_path`; per-target figures from
 /// `figures`, none when `None`, each linked relative to `output`'s folder; statistics with
 /// `pairs` and `seed`, in the current rayon pool) and write it to `output` atomically,
-/// creating its folder (`-`: standard output, the figures linked by absolute `file:` URLs).
+/// creating its folder, after its own figures (frame quality, statistics) into
+/// `<stem>_figures/` beside it (`-`: standard output, the per-target figures linked by
+/// absolute `file:` URLs, the page's own figures embedded only).
 pub fn write_page(
     catalog: Catalog,
     catalog_path: &Path,
@@ -141,7 +143,7 @@ pub fn write_page(
         catalog,
         catalog_path,
         figures,
-        page_dir.filter(|_| !to_stdout),
+        Some(output).filter(|_| !to_stdout),
         &opts,
         command_line,
     );
@@ -153,13 +155,9 @@ pub fn write_page(
             .and_then(|()| out.flush())
             .context("writing the page to standard output")?;
     } else {
+        // The page's own figures first, into the folder beside it: the page links to them.
+        report::write_figures(output, &input)?;
         report::write(output, &html)?;
-        // The quality figure also as a file beside the page (the page embeds it).
-        if let Some(img) = &input.quality_figure {
-            let path = report::quality_figure_path(output);
-            sofipol_pipeline::io::write_atomic(&path, &img.png)
-                .with_context(|| format!("writing {}", path.display()))?;
-        }
     }
     Ok(PageSummary {
         targets: input.catalog.targets.len(),

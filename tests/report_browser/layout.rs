@@ -4,8 +4,9 @@
 //! no cell is cut off, at the desktop width every table shows all its columns without
 //! scrolling (on the phone the targets table does, a card per row; the others may scroll in
 //! their boxes), the standards' sequence ids are laid out on at most two lines broken only
-//! at '@', and every per-target figure is a link to its PNG file (as wide as the column on
-//! the phone).
+//! at '@', and every figure on the page is a link to its own PNG file (the per-target ones
+//! into the night's products folder, as wide as the column on the phone; the frame quality
+//! and the statistics into the folder beside the page named after it).
 //!
 //! Headless Chromium's window is at least 500 px wide: narrower widths are an `<iframe>` of
 //! that width in a page of the test, to which the probe posts its measurements.
@@ -88,8 +89,9 @@ fn file_of(url: &str) -> PathBuf {
 }
 
 /// What is wrong with the layout at `width` px (nothing: empty); `figures` is the folder of
-/// the per-target PNGs.
-pub fn problems(m: &Value, width: u64, figures: &Path) -> Vec<String> {
+/// the per-target PNGs, `own_figures` the folder of the page's own (frame quality,
+/// statistics).
+pub fn problems(m: &Value, width: u64, figures: &Path, own_figures: &Path) -> Vec<String> {
     let mut bad = Vec::new();
     if let Some(e) = m.get("error") {
         return vec![format!("at {width} px: {e}")];
@@ -143,24 +145,53 @@ pub fn problems(m: &Value, width: u64, figures: &Path) -> Vec<String> {
         .filter(|p| p.extension().is_some_and(|x| x == "png"))
         .map(|p| p.canonicalize().unwrap())
         .collect();
-    let per_target: Vec<&Value> = m["figures"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|f| f["section"] == "figures")
-        .collect();
+    let all = m["figures"].as_array().unwrap();
+    let per_target: Vec<&Value> = all.iter().filter(|f| f["section"] == "figures").collect();
     assert_eq!(per_target.len(), on_disk.len(), "a figure per PNG: {per_target:?}");
-    let mut linked = Vec::new();
-    for f in per_target {
+    assert!(
+        all.len() > per_target.len(),
+        "the page's own figures (frame quality, statistics): {all:?}"
+    );
+    // Every figure on the page, in any section, is a link to its own PNG file: the per-target
+    // ones to the night's products folder, the page's own (frame quality, statistics) to the
+    // folder beside the page named after it; the file is the figure shown (its width is the
+    // image's natural width).
+    // (Not there: every link into it is reported below as missing.)
+    let own = own_figures.canonicalize().unwrap_or_else(|_| own_figures.to_path_buf());
+    let (mut linked, mut linked_own) = (Vec::new(), Vec::new());
+    for f in all {
         let Some(href) = f["href"].as_str() else {
-            bad.push(format!("at {width} px a figure is not a link: {}", f["alt"]));
+            bad.push(format!(
+                "at {width} px a figure of section #{} is not a link: {}",
+                f["section"].as_str().unwrap_or(""),
+                f["alt"]
+            ));
             continue;
         };
         let file = file_of(href);
         match std::fs::read(&file) {
-            Ok(png) if png.starts_with(b"\x89PNG\r\n\x1a\n") => linked.push(file.canonicalize().unwrap()),
+            Ok(png) if png.starts_with(b"\x89PNG\r\n\x1a\n") && png.len() > 24 => {
+                let w = u32::from_be_bytes(png[16..20].try_into().unwrap());
+                if Some(u64::from(w)) != f["natural_width"].as_u64() {
+                    bad.push(format!(
+                        "{href} is {w} px wide, the figure it is the link of {} px: {}",
+                        f["natural_width"], f["alt"]
+                    ));
+                }
+                let file = file.canonicalize().unwrap();
+                if f["section"] == "figures" {
+                    linked.push(file);
+                } else if file.parent() == Some(own.as_path()) {
+                    linked_own.push(file);
+                } else {
+                    bad.push(format!("{href} is not in {}: {}", own.display(), f["alt"]));
+                }
+            }
             Ok(_) => bad.push(format!("{href} is not a PNG")),
             Err(e) => bad.push(format!("{href} ({}): {e}", file.display())),
+        }
+        if f["section"] != "figures" {
+            continue;
         }
         let (w, col) = (f["width"].as_u64().unwrap(), f["column"].as_u64().unwrap());
         if width <= PHONE_PX && w + 2 < col {
@@ -175,6 +206,10 @@ pub fn problems(m: &Value, width: u64, figures: &Path) -> Vec<String> {
         let mut on_disk = on_disk;
         on_disk.sort();
         assert_eq!(linked, on_disk, "each figure links to its own PNG file");
+        let n = linked_own.len();
+        linked_own.sort();
+        linked_own.dedup();
+        assert_eq!(linked_own.len(), n, "two figures link to one file");
     }
     bad
 }

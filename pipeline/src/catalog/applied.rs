@@ -20,6 +20,10 @@ pub struct AppliedCalibration {
     /// A catalog merged from catalogs calibrated apart: each one's calibration.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub catalogs: Option<Vec<CatalogCalibration>>,
+    /// The photometric zero-points of the night and the standards they came from, or why
+    /// there are none (absent in older catalogs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub photometry: Option<crate::calibration::photometric::PhotometricCalibration>,
     /// `night` (the night's standards), the calibration file given, `disabled`, or
     /// `per_catalog` (merged).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -70,6 +74,7 @@ impl AppliedCalibration {
         AppliedCalibration {
             calibration: Some(calibration.map(|c| Recorded::Typed(Box::new(c)))),
             catalogs: None,
+            photometry: None,
             source: Some(source),
             stokes_method: Some(stokes_method.to_string()),
             extra: Map::new(),
@@ -89,9 +94,19 @@ impl AppliedCalibration {
                     })
                     .collect(),
             ),
+            photometry: None,
             source: Some(PER_CATALOG.into()),
             stokes_method: None,
             extra: Map::new(),
+        }
+    }
+
+    /// The photometric calibration, or why there is none, in lines (the night log's and the
+    /// report's): "fluxes in ADU only" when the catalog does not record any (older).
+    pub fn photometry_lines(&self) -> Vec<String> {
+        match &self.photometry {
+            Some(p) => crate::calibration::photometric::lines(p),
+            None => vec!["no magnitudes: the catalog records no photometric calibration (fluxes in ADU only)".into()],
         }
     }
 

@@ -30,6 +30,7 @@ fn standard(name: &str, measured: Option<Component>) -> StandardResult {
         flags: vec![Flag::parse(&format!("std_flag_{name}"))],
         ra_deg: Some(101.5),
         dec_deg: Some(-33.25),
+        dit_s: Some(2.0),
         mjd_mean: Some(51240.21),
         input_files: None,
         frame_quality: None,

@@ -228,6 +228,13 @@ fn header(s: &mut String, cat: &Catalog, catalog_name: &str, root: &str) {
         "calibration: {} standard(s) observed, {n_std} used",
         cat.standards.len()
     );
+    let photometry = cat.calibration.as_ref().map_or_else(
+        || vec!["no magnitudes: no calibration (fluxes in ADU only)".to_string()],
+        |c| c.photometry_lines(),
+    );
+    for l in photometry {
+        let _ = writeln!(s, "photometry: {}", one_line(&l));
+    }
 }
 
 fn targets(s: &mut String, cat: &Catalog) {
@@ -251,9 +258,14 @@ fn targets(s: &mut String, cat: &Catalog) {
             } else {
                 "below the cut"
             };
+            let brightness = match (c.mag, c.sigma_mag, c.flux_adu) {
+                (Some(m), Some(sm), _) => format!(", {} = {m:.3} +- {sm:.3} mag", t.filter.as_deref().unwrap_or("mag")),
+                (_, _, Some(f)) if f.is_finite() => format!(", flux = {f:.0} ADU"),
+                _ => String::new(),
+            };
             let _ = writeln!(
                 s,
-                "  {}: P = {:.2} +- {:.2} %, gamma = {:.1} +- {:.1} deg, P/sigma = {:.1}, {cut}",
+                "  {}: P = {:.2} +- {:.2} %, gamma = {:.1} +- {:.1} deg, P/sigma = {:.1}, {cut}{brightness}",
                 c.name,
                 100.0 * c.p,
                 100.0 * c.sigma_p,

@@ -91,6 +91,9 @@ struct Combination<'a> {
     per_orientation: Vec<CombinedF>,
     sum_flux: f64,
     n_flux: usize,
+    /// The kept dithers' o+e fluxes, and the sum of their variances (ADU^2).
+    fluxes: Vec<f64>,
+    sum_flux_var: f64,
 }
 
 impl Combination<'_> {
@@ -128,6 +131,8 @@ impl Combination<'_> {
         for &i in &kept {
             self.sum_flux += dv[i].o.flux + dv[i].e.flux;
             self.n_flux += 1;
+            self.fluxes.push(dv[i].o.flux + dv[i].e.flux);
+            self.sum_flux_var += dv[i].o.var + dv[i].e.var;
         }
         let kv: Vec<f64> = keep.iter().map(|&j| vals[j]).collect();
         let ks: Vec<f64> = keep.iter().map(|&j| sig[j]).collect();
@@ -279,14 +284,34 @@ impl Combination<'_> {
         } else {
             f64::NAN
         };
+        let sigma_flux = mean_flux_error(&self.fluxes, self.sum_flux_var);
         Component {
             orientations: Some(self.per_orientation),
             dropped_dithers: (!self.dropped.is_empty()).then_some(self.dropped),
             flux_adu: Some(flux),
+            sigma_flux_adu: Some(sigma_flux),
             flags: self.flags,
             ..Component::new(name, Polarization::UNDEFINED)
         }
     }
+}
+
+/// The 1-sigma error of the mean of `fluxes` (ADU), whose variances sum to `sum_var`: the
+/// propagated `sqrt(sum_var)/n`, or the standard error of their scatter `s/sqrt(n)` when that
+/// is larger (seeing and transparency move a star's flux from dither to dither beyond its
+/// photon noise). NaN without a flux.
+pub fn mean_flux_error(fluxes: &[f64], sum_var: f64) -> f64 {
+    let n = fluxes.len() as f64;
+    if fluxes.is_empty() {
+        return f64::NAN;
+    }
+    let propagated = sum_var.max(0.0).sqrt() / n;
+    if fluxes.len() < 2 {
+        return propagated;
+    }
+    let mean = fluxes.iter().sum::<f64>() / n;
+    let var = fluxes.iter().map(|f| (f - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    propagated.max((var / n).sqrt())
 }
 
 /// The parallactic angle of an orientation's dithers, weighted as F is.
@@ -442,6 +467,18 @@ mod tests {
     use crate::reduce::{BeamFlux, DitherValue};
     use crate::stokes::inversion::LinearPolarization;
     use crate::stokes::propagation::QuCovariance;
+
+    /// The mean flux's error by hand: fluxes 98, 100, 102 (standard deviation 2, standard
+    /// error 2/sqrt 3 = 1.1547) with summed variances 3 (propagated sqrt 3 / 3 = 0.5774):
+    /// the scatter's; with 300 (5.7735): the propagated; one flux: its own error.
+    #[test]
+    fn the_mean_fluxs_error_is_the_larger_of_propagated_and_scatter_by_hand() {
+        let f = [98.0, 100.0, 102.0];
+        assert!((mean_flux_error(&f, 3.0) - 2.0 / 3f64.sqrt()).abs() < 1e-12);
+        assert!((mean_flux_error(&f, 300.0) - 300f64.sqrt() / 3.0).abs() < 1e-12);
+        assert_eq!(mean_flux_error(&[50.0], 16.0), 4.0);
+        assert!(mean_flux_error(&[], 1.0).is_nan());
+    }
 
     /// Two components, both with a 10-sigma polarization at 0/45/90/135 (q = 0.03, u = 0.02,
     /// sigma_F = 0.001 per dither, 3 dithers).

@@ -50,12 +50,14 @@ pub struct TargetOutcome {
 }
 
 /// `target` with the sequence's mean pointing and time from the frames' headers
-/// ([`Sequence::mean_ra_dec_deg`], [`Sequence::mean_mjd`]).
+/// ([`Sequence::mean_ra_dec_deg`], [`Sequence::mean_mjd`]) and its frames' integration time
+/// ([`Sequence::common_dit_s`]).
 fn pointed(mut target: Target, seq: &Sequence) -> Target {
     let radec = seq.mean_ra_dec_deg();
     target.ra_deg = radec.map(|p| p.0);
     target.dec_deg = radec.map(|p| p.1);
     target.mjd_mean = seq.mean_mjd();
+    target.dit_s = seq.common_dit_s();
     target
 }
 

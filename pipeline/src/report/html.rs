@@ -122,7 +122,7 @@ fn summary(h: &mut String, cat: &Catalog) {
 }
 
 /// Columns of the targets table: key (for the self-test and the CSS), header, numeric.
-const COLUMNS: [(&str, &str, bool); 13] = [
+const COLUMNS: [(&str, &str, bool); 14] = [
     ("target", "Target", false),
     ("status", "Status", false),
     ("comp", "Comp.", false),
@@ -134,6 +134,7 @@ const COLUMNS: [(&str, &str, bool); 13] = [
     ("cut", "Cut", false),
     ("dgamma", "Δγ [deg]", true),
     ("sigma_dgamma", "σΔγ [deg]", true),
+    ("mag", "Mag", true),
     ("filter", "Filter", false),
     ("flags", "Flags", false),
 ];
@@ -142,7 +143,8 @@ fn targets_table(h: &mut String, cat: &Catalog) {
     h.push_str(
         "<section id=\"targets-section\"><h2>Targets and components</h2>\n\
          <p class=\"muted\">One row per component. Click a column header to sort (again to reverse); \
-         P is debiased, γ east of north, Δγ = |γA − γB| folded into [0°, 90°] when both components pass the P/σ cut.</p>\n\
+         P is debiased, γ east of north, Δγ = |γA − γB| folded into [0°, 90°] when both components pass the P/σ cut; \
+         Mag from the night's photometric zero-point (Calibration), – without one.</p>\n\
          <div class=\"controls\"><label><input type=\"checkbox\" id=\"hide-failed\"> hide failed targets</label>\
          <label>filter <input type=\"search\" id=\"filter\" placeholder=\"object, flag, status…\"></label>\
          <span id=\"shown\" class=\"muted\"></span></div>\n\
@@ -233,12 +235,18 @@ fn target_row(h: &mut String, t: &Target, c: Option<&Component>) {
     text_cell(h, 8, "", cut);
     num_cell(h, 9, fmt(t.delta_gamma_deg, 1), t.delta_gamma_deg);
     num_cell(h, 10, fmt(t.sigma_delta_gamma_deg, 1), t.sigma_delta_gamma_deg);
-    text_cell(h, 11, "", &escape(t.filter.as_deref().unwrap_or("")));
+    let mag = c.and_then(|c| c.mag);
+    let shown = match (mag, c.and_then(|c| c.sigma_mag)) {
+        (Some(m), Some(s)) => format!("{} ± {}", fmt(Some(m), 2), fmt(Some(s), 2)),
+        _ => "–".into(),
+    };
+    num_cell(h, 11, shown, mag);
+    text_cell(h, 12, "", &escape(t.filter.as_deref().unwrap_or("")));
     let mut all: Vec<&Flag> = t.target_flags().iter().collect();
     if let Some(c) = c {
         all.extend(&c.flags);
     }
-    open_cell(h, 12, " class=\"flags-cell\"");
+    open_cell(h, 13, " class=\"flags-cell\"");
     if let (None, Some(e)) = (c, &t.error) {
         let _ = write!(h, "<span class=\"st-failed\">{}</span>", escape(e));
     }

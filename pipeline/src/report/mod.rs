@@ -9,9 +9,11 @@
 //! theta0, the telescope's polarization), the Delta-gamma statistics of `sofipol stats`
 //! (the same library calls, [`crate::stats::setup`]) with their figures, and the
 //! provenance. Images are embedded as `data:` URIs and the page loads nothing: a
-//! Content-Security-Policy forbids any network access. Each per-target figure is also a
-//! link to its PNG file ([`links::href`], relative to the page's folder), to open it at full
-//! size.
+//! Content-Security-Policy forbids any network access. Every figure is also a link to its
+//! PNG file, to open it at full size: a per-target figure to its file in the night's
+//! products folder ([`links::href`], relative to the page's folder), the page's own figures
+//! (frame quality, statistics) to the files [`write_figures`] writes into the folder beside
+//! the page named after it ([`report_figures_dir`]: `night.html` -> `night_figures/`).
 //!
 //! The page reads at a desktop width (every table's columns visible) and on a phone (the
 //! page never scrolls sideways: the targets table becomes one card per row, the other tables
@@ -45,14 +47,25 @@ pub const OBSERVED_BINS: usize = 9;
 /// differed from `stats`' in the third digit).
 pub const DEFAULT_REPORT_PAIRS: u64 = crate::stats::setup::DEFAULT_PAIRS;
 
-/// A PNG embedded in the page.
+/// A figure of the page's own (frame quality, statistics): embedded in the page, and
+/// written as a PNG file into the page's figures folder ([`report_figures_dir`]), to which
+/// it links.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Image {
     /// What it shows (the `alt` text and the caption).
     pub caption: String,
     /// The PNG file's bytes.
     pub png: Vec<u8>,
+    /// Its file's name in the page's figures folder (one of [`REPORT_FIGURES`]).
+    pub file: &'static str,
+    /// The link to that file, relative to the page's folder (`None`: the page has no
+    /// folder, as on standard output, and the figure is not written).
+    pub href: Option<String>,
 }
+
+/// The names of the files the page writes into its figures folder ([`report_figures_dir`]):
+/// the frame quality and the two statistics figures (as `sofipol stats` names them).
+pub const REPORT_FIGURES: [&str; 3] = ["quality.png", "observed.png", "ism_levels.png"];
 
 /// The statistics section: the sample, the tests and verdict, and their figures.
 #[derive(Debug, Clone)]
@@ -99,18 +112,24 @@ pub struct ReportInput {
 /// Gather the page's content: the figures `<slug(sequence id)>.png` (else
 /// `<slug(object)>.png`) found in `figures_dir` (the night's products folder,
 /// `night::products_dir(catalog)`, by default; `None`: the night was reduced without
-/// figures), each linked from `page_dir`, the folder the page is written into (`None`: the
-/// page has no folder, as on standard output: absolute `file:` URLs), and the statistics of
-/// the sample run with `opts` (in the current rayon pool). A figure that cannot be read is
+/// figures), each linked from the folder of `page`, the file the page is written to
+/// (`None`: the page has no folder, as on standard output: absolute `file:` URLs), the
+/// frame-quality figure and the statistics of the sample run with `opts` (in the current
+/// rayon pool) with their figures, linked to their files in the page's figures folder
+/// ([`report_figures_dir`], written by [`write_figures`]). A figure that cannot be read is
 /// left out; statistics that cannot be computed are replaced by the reason.
 pub fn collect(
     catalog: Catalog,
     catalog_path: &Path,
     figures_dir: Option<&Path>,
-    page_dir: Option<&Path>,
+    page: Option<&Path>,
     opts: &setup::Options,
     command_line: String,
 ) -> ReportInput {
+    let page_dir = page.map(|p| match p.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    });
     let mut target_figures = BTreeMap::new();
     for (t, dir) in catalog.targets.iter().filter_map(|t| Some((t, figures_dir?))) {
         let id = t.sequence_id();
@@ -124,8 +143,15 @@ pub fn collect(
             target_figures.insert(id.to_string(), TargetFigure { href, png });
         }
     }
-    let stats = statistics(&catalog, &catalog_path.display().to_string(), opts);
-    let quality_figure = quality_figure(&catalog);
+    let mut stats = statistics(&catalog, &catalog_path.display().to_string(), opts);
+    let mut quality_figure = quality_figure(&catalog);
+    if let Some(page) = page {
+        let link = |img: &mut Image| img.href = Some(own_figure_href(page, img.file));
+        quality_figure.iter_mut().for_each(link);
+        if let Ok(s) = &mut stats {
+            s.figures.iter_mut().for_each(link);
+        }
+    }
     ReportInput {
         catalog,
         catalog_path: catalog_path.display().to_string(),
@@ -146,16 +172,70 @@ pub fn quality_figure(catalog: &Catalog) -> Option<Image> {
         caption: "Seeing, sky level and transparency of every science frame over the night, coloured by target                   (standards grey); dashed: the night's median, thin dashed: the outlier limits"
             .into(),
         png,
+        file: REPORT_FIGURES[0],
+        href: None,
     })
 }
 
-/// Where the page at `page` writes its frame-quality figure: beside it, `<stem>_quality.png`
-/// (`night.html` -> `night_quality.png`).
-pub fn quality_figure_path(page: &Path) -> PathBuf {
+/// The folder beside the page at `page` that holds the page's own figures (the frame
+/// quality, the statistics): `<stem>_figures/` (`night.html` -> `night_figures/`).
+pub fn report_figures_dir(page: &Path) -> PathBuf {
     let stem = page
         .file_stem()
         .map_or_else(|| "report".into(), |s| s.to_string_lossy().into_owned());
-    page.with_file_name(format!("{stem}_quality.png"))
+    page.with_file_name(format!("{stem}_figures"))
+}
+
+/// Where the page at `page` writes its frame-quality figure:
+/// `<stem>_figures/quality.png` ([`report_figures_dir`]).
+pub fn quality_figure_path(page: &Path) -> PathBuf {
+    report_figures_dir(page).join(REPORT_FIGURES[0])
+}
+
+/// The link from the page at `page` to its own figure `file`: relative, into the folder
+/// beside it (both move together), percent-escaped.
+fn own_figure_href(page: &Path, file: &str) -> String {
+    let dir = report_figures_dir(page);
+    let name = dir
+        .file_name()
+        .map_or_else(|| "report_figures".into(), |n| n.to_os_string());
+    links::escape_path(&Path::new(&name).join(file))
+}
+
+/// Write the page's own figures (those of `input` that have a link, [`Image::href`]) into
+/// its figures folder ([`report_figures_dir`] of `page`), each atomically, before the page
+/// that links to them; a figure of [`REPORT_FIGURES`] that this page does not show (left by
+/// an earlier page of the same name) is removed, so that the folder holds what the page
+/// shows. The files written; the error names the file.
+pub fn write_figures(page: &Path, input: &ReportInput) -> Result<Vec<PathBuf>> {
+    let images: Vec<&Image> = input
+        .quality_figure
+        .iter()
+        .chain(input.stats.iter().flat_map(|s| &s.figures))
+        .filter(|i| i.href.is_some())
+        .collect();
+    let dir = report_figures_dir(page);
+    let io = |path: &Path, e: std::io::Error| Error::Io {
+        path: path.to_path_buf(),
+        source: e,
+    };
+    if images.is_empty() && !dir.is_dir() {
+        return Ok(Vec::new());
+    }
+    std::fs::create_dir_all(&dir).map_err(|e| io(&dir, e))?;
+    let mut written = Vec::new();
+    for img in &images {
+        let path = dir.join(img.file);
+        crate::io::write_atomic(&path, &img.png).map_err(|e| Error::calib("writing a figure of the HTML report", e))?;
+        written.push(path);
+    }
+    for name in REPORT_FIGURES {
+        let path = dir.join(name);
+        if !written.contains(&path) && path.is_file() {
+            std::fs::remove_file(&path).map_err(|e| io(&path, e))?;
+        }
+    }
+    Ok(written)
 }
 
 /// The largest figure file the page takes, bytes: a target's figure is a few hundred kB.
@@ -180,7 +260,8 @@ pub fn read_png_figure(path: &Path) -> Option<Vec<u8>> {
 }
 
 /// The statistics of `sofipol stats` with `opts`, and the observed and ISM figures (drawn
-/// by the same functions into a temporary folder and read back).
+/// by the same functions into a temporary folder and read back; not yet linked: [`collect`]
+/// links them, [`write_figures`] writes them beside the page).
 pub fn statistics(catalog: &Catalog, source: &str, opts: &setup::Options) -> Result<StatsSection> {
     let sample = BinarySample::from_catalog(catalog, None);
     let params = setup::params(&sample, opts, source)?;
@@ -198,20 +279,24 @@ pub fn statistics(catalog: &Catalog, source: &str, opts: &setup::Options) -> Res
     };
     let mut figures = Vec::new();
     if !sample.is_empty() {
-        let p = tmp.path().join("observed.png");
+        let p = tmp.path().join(REPORT_FIGURES[1]);
         observed_figure(&p, &sample, OBSERVED_BINS, &setup::observed_notes(&report))?;
         figures.push(Image {
             caption: "Observed: P of the sample's components, Δγ of its binaries (with the tests), Δγ per binary with its ±σ and its 68 % interval".into(),
             png: read(p)?,
+            file: REPORT_FIGURES[1],
+            href: None,
         });
     }
     if !report.ism.is_empty() {
-        let p = tmp.path().join("ism_levels.png");
+        let p = tmp.path().join(REPORT_FIGURES[2]);
         ism_figure(&p, &report.ism, &sample.delta_gamma_deg(), OBSERVED_BINS, &mc)?;
         figures.push(Image {
             caption: "Observed Δγ histogram against the predictions of random disks with interstellar polarization"
                 .into(),
             png: read(p)?,
+            file: REPORT_FIGURES[2],
+            href: None,
         });
     }
     Ok(StatsSection {

@@ -34,7 +34,7 @@ pub fn quality(h: &mut String, cat: &Catalog, figure: Option<&Image>) {
         fmt(m.transparency_limit, 3)
     );
     if let Some(img) = figure {
-        image(h, &img.caption, &img.png, None);
+        image(h, &img.caption, &img.png, img.href.as_deref());
     }
     h.push_str(
         "<div class=\"scroll\"><table id=\"frame-quality\"><thead><tr><th>frame</th><th>target</th>\

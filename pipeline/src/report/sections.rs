@@ -38,6 +38,7 @@ pub fn calibration(h: &mut String, cat: &Catalog) {
         }
     }
     standards(h, cat);
+    photometry(h, cat);
     telescope_over_night(h, cat);
     h.push_str("</section>\n");
 }
@@ -143,6 +144,49 @@ fn standards(h: &mut String, cat: &Catalog) {
     h.push_str("</tbody></table></div>\n");
 }
 
+/// The photometric zero-point per filter and the standards it came from, or why the
+/// components have no magnitude (one line).
+fn photometry(h: &mut String, cat: &Catalog) {
+    h.push_str("<h3>Photometric zero-point</h3>\n");
+    let lines = cat.calibration.as_ref().map_or_else(
+        || vec!["no magnitudes: no calibration (fluxes in ADU only)".to_string()],
+        |c| c.photometry_lines(),
+    );
+    let zps = cat
+        .calibration
+        .as_ref()
+        .and_then(|c| c.photometry.as_ref())
+        .map(|p| &p.filters[..])
+        .unwrap_or_default();
+    if !zps.is_empty() {
+        h.push_str(
+            "<div class=\"scroll\"><table id=\"photometry\"><thead><tr><th>filter</th><th>standard</th>\
+            <th class=\"num\">table mag</th><th class=\"num\">rate [ADU/s]</th><th class=\"num\">airmass</th>\
+            <th class=\"num\">ZP [mag]</th></tr></thead><tbody>\n",
+        );
+        for z in zps {
+            for s in &z.standards {
+                let _ = writeln!(
+                    h,
+                    "<tr><td>{}</td><td>{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
+                    escape(&z.filter),
+                    escape(&s.name),
+                    pm(Some(s.mag), Some(s.sigma_mag), 3),
+                    pm(Some(s.rate_adu_per_s), Some(s.sigma_rate_adu_per_s), 1),
+                    fmt(s.airmass, 3),
+                    pm(Some(s.zero_point_mag), Some(s.sigma_zero_point_mag), 3)
+                );
+            }
+        }
+        h.push_str("</tbody></table></div>\n");
+    }
+    h.push_str("<ul>\n");
+    for l in lines {
+        let _ = writeln!(h, "<li>{}</li>", escape(&l));
+    }
+    h.push_str("</ul>\n");
+}
+
 /// The telescope's polarization removed from each target (component A's `telescope_qu`, sky
 /// frame at the mean parallactic angle of its frames), in the order of the night.
 fn telescope_over_night(h: &mut String, cat: &Catalog) {
@@ -222,7 +266,7 @@ pub fn statistics(h: &mut String, stats: &crate::error::Result<StatsSection>) {
         );
     }
     for f in &s.figures {
-        image(h, &f.caption, &f.png, None);
+        image(h, &f.caption, &f.png, f.href.as_deref());
     }
     if !r.models.is_empty() {
         h.push_str("<h3>Against the alignment models</h3>\n<div class=\"scroll\"><table id=\"models\"><thead><tr><th>model</th>\

@@ -384,7 +384,7 @@ fn the_quality_section_has_a_row_per_frame_the_outliers_marked_and_the_figure() 
     assert!(page.contains("<a href=\"#quality\">"), "no link to the section");
     assert_eq!(
         quality_figure_path(Path::new("out/night.html")),
-        Path::new("out/night_quality.png")
+        Path::new("out/night_figures/quality.png")
     );
 }
 

@@ -71,7 +71,7 @@ fn collect_links_each_figure_it_finds_from_the_page_folder() {
         cat,
         &dir.path().join("cat.json"),
         Some(&products),
-        Some(dir.path()),
+        Some(&dir.path().join("cat.html")),
         &opts,
         String::new(),
     );
@@ -151,6 +151,7 @@ fn every_cell_of_the_targets_table_carries_its_column_name() {
         "Cut",
         "Δγ [deg]",
         "σΔγ [deg]",
+        "Mag",
         "Filter",
         "Flags",
     ];
@@ -163,4 +164,70 @@ fn every_cell_of_the_targets_table_carries_its_column_name() {
             .collect();
         assert_eq!(labels, headers, "{row}");
     }
+}
+
+#[test]
+fn the_pages_own_figures_are_files_beside_it_and_every_image_is_a_link() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut targets = Vec::new();
+    for (i, g) in [10.0_f64, 40.0, 75.0].iter().enumerate() {
+        let r = (2.0 * g.to_radians()).sin_cos();
+        targets.push(binary(
+            &format!("B{i}"),
+            comp("A", 0.03, 0.0, 0.001, &[]),
+            comp("B", 0.02 * r.1, 0.02 * r.0, 0.001, &[]),
+        ));
+    }
+    let cat = Catalog {
+        targets,
+        ..Default::default()
+    };
+    let opts = setup::Options {
+        pairs: 1000,
+        ..Default::default()
+    };
+    let page_path = dir.path().join("my night.html");
+    let input = collect(
+        cat,
+        &dir.path().join("cat.json"),
+        None,
+        Some(&page_path),
+        &opts,
+        String::new(),
+    );
+    let figs = &input.stats.as_ref().expect("statistics").figures;
+    assert_eq!(figs.len(), 2, "the observed and the ISM figures");
+    // A figure left by an earlier page of that name that this one does not show: removed.
+    let own = report_figures_dir(&page_path);
+    assert_eq!(own, dir.path().join("my night_figures"));
+    std::fs::create_dir_all(&own).unwrap();
+    std::fs::write(own.join("quality.png"), b"old").unwrap();
+    let written = write_figures(&page_path, &input).unwrap();
+    assert_eq!(written, vec![own.join("observed.png"), own.join("ism_levels.png")]);
+    assert!(!own.join("quality.png").exists(), "a stale figure is left");
+    let page = render(&input);
+    for (f, file) in figs.iter().zip(&written) {
+        let href = f.href.as_deref().unwrap();
+        assert_eq!(href, format!("my%20night_figures/{}", f.file));
+        assert_eq!(std::fs::read(file).unwrap(), f.png, "{}", file.display());
+        assert!(page.contains(&format!(
+            "<a href=\"{href}\" title=\"open the figure at full size\"><img alt="
+        )));
+    }
+    assert_eq!(page.matches("<img ").count(), 2);
+    assert_eq!(
+        page.matches("<img ").count(),
+        page.matches("title=\"open the figure at full size\"><img ").count(),
+        "an image that is not a link"
+    );
+    // On standard output: no folder, nothing to link to.
+    let input = collect(
+        input.catalog,
+        &dir.path().join("cat.json"),
+        None,
+        None,
+        &opts,
+        String::new(),
+    );
+    assert!(input.stats.unwrap().figures.iter().all(|f| f.href.is_none()));
 }

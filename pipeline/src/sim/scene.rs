@@ -132,6 +132,11 @@ pub struct Observation {
     /// Overhead between exposures, seconds: exposure k of a sequence starts
     /// 20 s + k (DIT x NDIT + overhead_s) after the sequence's start.
     pub overhead_s: f64,
+    /// Photometric zero-point of the simulated night: the magnitude of a source of 1 ADU
+    /// per second in o+e (no extinction is simulated). A `[[standard]]` given by `mag` gets
+    /// the flux `dit_s 10^(-0.4 (mag - zero_point_mag))` ADU per NDIT-averaged frame.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub zero_point_mag: Option<f64>,
 }
 
 impl Default for Observation {
@@ -148,6 +153,7 @@ impl Default for Observation {
             date: "1999-03-03".into(),
             start_ut: "01:00:00".into(),
             overhead_s: 15.0,
+            zero_point_mag: None,
         }
     }
 }
@@ -480,8 +486,13 @@ pub struct SaturationConfig {
 pub struct StandardSource {
     /// Name written to OBJECT (match it to a standards-table entry).
     pub name: String,
-    /// Total flux (o + e), ADU per NDIT-averaged frame.
+    /// Total flux (o + e), ADU per NDIT-averaged frame (absent: from `mag`).
+    #[serde(default = "crate::nullable::nan")]
     pub flux: f64,
+    /// Magnitude: the flux from the observation's `zero_point_mag` (a photometric
+    /// standard of the simulated night); with `flux` too, the two must agree.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mag: Option<f64>,
     /// Degree of polarization (fraction, sky frame; 0 for an unpolarized standard). No
     /// interstellar polarization is added: this is the star's total polarization.
     #[serde(default)]
@@ -628,6 +639,12 @@ pub struct Scene {
     pub telescope_polarization: Option<TelescopePolConfig>,
 }
 
+/// The o+e flux per NDIT-averaged frame of DIT `dit_s` of a source of magnitude `mag` at
+/// zero-point `zero_point_mag` (the magnitude of 1 ADU/s): `dit_s 10^(-0.4 (mag - ZP))`.
+pub fn flux_of_magnitude(mag: f64, zero_point_mag: f64, dit_s: f64) -> f64 {
+    dit_s * 10f64.powf(-0.4 * (mag - zero_point_mag))
+}
+
 impl Scene {
     /// Parse a scene from TOML text; `origin` names the source in errors.
     pub fn from_toml(text: &str, origin: &str) -> crate::error::Result<Scene> {
@@ -635,12 +652,54 @@ impl Scene {
             origin: origin.to_string(),
             reason,
         };
-        let s: Scene = toml::from_str(text).map_err(|e| scene_err(e.to_string()))?;
+        let mut s: Scene = toml::from_str(text).map_err(|e| scene_err(e.to_string()))?;
+        s.resolve_magnitudes().map_err(scene_err)?;
         s.validate().map_err(|e| match e {
             Error::Scene { reason, .. } => scene_err(reason),
             e => e,
         })?;
         Ok(s)
+    }
+
+    /// The flux of each standard given by its magnitude: `dit_s 10^(-0.4 (mag -
+    /// zero_point_mag))` ADU per NDIT-averaged frame (the frames average NDIT reads of DIT
+    /// seconds). Refused, naming the standard and key: a `mag` without the observation's
+    /// `zero_point_mag`, a magnitude or zero-point that is not finite, a `flux` that
+    /// disagrees with its `mag`, neither `flux` nor `mag`.
+    pub fn resolve_magnitudes(&mut self) -> std::result::Result<(), String> {
+        let (zp, dit) = (self.observation.zero_point_mag, self.observation.dit_s);
+        if let Some(z) = zp.filter(|z| !z.is_finite()) {
+            return Err(format!("observation: zero_point_mag = {z} must be finite"));
+        }
+        for st in &mut self.standard {
+            let Some(m) = st.mag else {
+                if st.flux.is_nan() {
+                    return Err(format!(
+                        "standard '{}': give flux (ADU per frame) or mag (with observation.zero_point_mag)",
+                        st.name
+                    ));
+                }
+                continue;
+            };
+            let Some(z) = zp else {
+                return Err(format!(
+                    "standard '{}': mag = {m} needs observation.zero_point_mag (the magnitude of 1 ADU/s)",
+                    st.name
+                ));
+            };
+            if !m.is_finite() {
+                return Err(format!("standard '{}': mag = {m} must be finite", st.name));
+            }
+            let flux = flux_of_magnitude(m, z, dit);
+            if !st.flux.is_nan() && (st.flux - flux).abs() > 1e-9 * flux {
+                return Err(format!(
+                    "standard '{}': flux = {} disagrees with mag = {m} (flux {flux} at zero_point_mag = {z}, dit_s = {dit}): give one",
+                    st.name, st.flux
+                ));
+            }
+            st.flux = flux;
+        }
+        Ok(())
     }
 
     /// Whether an effect is listed.
