@@ -11,7 +11,7 @@ taken from it).
 Data (../shared/real/nirc2-abaur-lprime relative to the repository root): NIRC2 narrow
 camera, L' + Wollaston, rotating half-wave plate (HWP) angle in `PCUPR`; n0932-n0939 AB Aur
 (two complete cycles 0, 45, 22.5, 67.5 deg), n0902-n0905 sky frames at the same four HWP
-angles (one cycle, OBJECT 'sky_flat_hwp_*', taken 30 min before, 10" away), n0984-n0986
+angles (one cycle, OBJECT 'sky_flat_hwp_*', taken 34 min before, 7.3" away), n0984-n0986
 darks (shutter closed, same ITIME 0.45 s x COADDS 45, SAMPMODE 3 MCDS). Pixel values are
 ADU summed over the coadds (the darks' frame-to-frame noise is 33 ADU = 8 e-/ADU x 40 e- x
 sqrt(45) / 8: DETGAIN and DETRN per coadd, summed).
@@ -37,7 +37,7 @@ Steps
     cancels any constant beam ratio (first order), so q, u do not depend on this choice,
     the per-frame F and the fitted c do (the JSON gives the ratio both ways).
  4. Sky: for each science frame and beam region, the sky frame at the same HWP angle
-    (the sky's level changes by up to 3.4 % with the HWP angle, differently in the two
+    (the sky's level changes by up to 3.8 % with the HWP angle, differently in the two
     beams) scaled and offset, S = a K + b, fitted on region pixels more than 200 px from
     the star (4-sigma clipped least squares), then subtracted; the result is divided by
     the flat. AB Aur's halo is still ~0.2 % of the sky at 160-180 px, so no local
@@ -92,6 +92,11 @@ Steps
     turns by ~19 deg in Q/U over the 8 frames). No instrumental-polarization
     correction: NIRC2Pol-DPP's own estimate on this night (ipq = -0.76 %, instpol.py,
     fitted on the disk with the same assumption) is of the size of the result.
+
+Literature check (no published L' aperture value of AB Aur was found): Li et al. 2016
+(ApJ, GTC/CanariCam, 10.3 um) find ~0.44 % from the inner disk (r < 80 au), ~1.4 % further
+out; optical values of Herbig Ae stars are a few 0.1 % and variable. The 0.7-1.1 % found
+here (aperture-dependent, instrumental polarization included) is of that order, no more.
 
 Output: a JSON (default testdata/real/nirc2_abaur_reference.json): per frame the headers
 used, centres, fluxes and F; per cycle and combined q, u, P, angle with both errors, in
@@ -367,6 +372,9 @@ def polarimetry(frames, r_in, r_out, bad):
     for f in frames:
         o, so = photometry(f["img"], f["err"], bad, f["centers"]["top"], r_in, r_out)
         e, se = photometry(f["img"], f["err"], bad, f["centers"]["bottom"], r_in, r_out)
+        if abs(o / e - 1.0) > 0.2:
+            sys.exit(f"{f['file']}: top/bottom flux ratio {o / e:.3f} is not within 20 % of 1: "
+                     "the two images found are not the o and e images of one star")
         F = (o - e) / (o + e)
         sF = 2.0 * math.sqrt((e * so) ** 2 + (o * se) ** 2) / (o + e) ** 2
         rows.append({"o": o, "sigma_o": so, "e": e, "sigma_e": se, "F": F, "sigma_F": sF})
@@ -533,6 +541,9 @@ def main():
                 "angle": "east of north if theta_off is right",
                 "instrumental_polarization": "not corrected",
             },
+            "literature": "no published L' aperture polarization of AB Aur found; Li et al. "
+                          "2016 (ApJ, CanariCam 10.3 um): ~0.44 % inner disk (r < 80 au), "
+                          "~1.4 % beyond",
         },
         "frames": out_frames,
         "cycles": cycles,
