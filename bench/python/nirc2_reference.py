@@ -554,7 +554,7 @@ def main():
     out = os.path.abspath(args.output)
     os.makedirs(os.path.dirname(out), exist_ok=True)
     with open(out, "w") as fh:
-        json.dump(result, fh, indent=1)
+        json.dump(result, fh, indent=1, allow_nan=False)  # strict JSON for serde
         fh.write("\n")
 
     print(f"{len(frames)} science frames, r_in = {r_in:.0f} px, r_out = {R_OUT_MAIN:.0f} px; "
