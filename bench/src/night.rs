@@ -40,6 +40,11 @@ pub struct NightArgs {
     /// whole night (it is one run, single-threaded; the output says when it was scaled).
     #[arg(long, value_name = "N")]
     python_targets: Option<usize>,
+    /// Also time the night with its per-target PNG figures, alternated with the run
+    /// without (`--no-png`) in each repeat, and print the figures' share of the wall time
+    /// (target: under 10 %).
+    #[arg(long)]
+    figures: bool,
 }
 
 /// A night of `n` binaries like the reference study's: separations 0.5-5.3", K-band fluxes
@@ -202,6 +207,7 @@ pub fn prepare_night(
         with_standards,
         python: None,
         python_targets: None,
+        figures: false,
     };
     let raw = root.join("raw");
     ensure_night(&a, &raw, true)?;
@@ -258,14 +264,13 @@ fn time_sofipol_night(
     // One child `sofipol night`; returns its wall time and stderr.
     let night = |out: &std::path::Path, extra: &[&str]| -> anyhow::Result<(f64, String)> {
         let mut cmd = std::process::Command::new(&exe);
-        cmd.arg("night")
-            .arg(raw)
-            .arg("-o")
-            .arg(out)
-            .arg("-q")
-            .arg("-v")
-            .arg("--no-png")
-            .args(extra);
+        cmd.arg("night").arg(raw).arg("-o").arg(out).arg("-q").arg("-v");
+        // `--png` is this benchmark's own word for "with the figures".
+        if extra.first() == Some(&"--png") {
+            cmd.args(&extra[1..]);
+        } else {
+            cmd.arg("--no-png").args(extra);
+        }
         if let Some(j) = a.jobs {
             cmd.arg("--jobs").arg(j.to_string());
         }
@@ -294,8 +299,15 @@ fn time_sofipol_night(
             &root.join("catalog-uncalibrated.json"),
             &["--no-flat", "--no-calibration"],
         )?;
+        // With the figures, right after the same run without them.
+        let figures_wall = if a.figures {
+            night(&root.join("catalog-figures.json"), &["--png"])?.0
+        } else {
+            f64::NAN
+        };
         last = stderr.clone();
         runs.push(NightRun {
+            figures_wall,
             wall,
             cat,
             read,
@@ -415,6 +427,20 @@ fn print_stages(runs: &[NightRun]) {
         med(&|r| g(r, "flat")),
         med(&|r| g(r, "calibration")),
     );
+    if runs.iter().any(|r| r.figures_wall.is_finite()) {
+        let share = |r: &NightRun| 100.0 * (r.figures_wall - r.wall) / r.figures_wall;
+        println!(
+            "  figures (target: under 10 % of the night's wall): {:.3} s with them, {:.3} s without (medians); \
+             their share {:.1} % (median of per-run shares [{}])",
+            med(&|r| r.figures_wall),
+            med(&|r| r.wall),
+            med(&share),
+            runs.iter()
+                .map(|r| format!("{:.1}", share(r)))
+                .collect::<Vec<_>>()
+                .join(" "),
+        );
+    }
 }
 
 /// One repeat of `bench night`.
@@ -427,6 +453,9 @@ struct NightRun {
     base_wall: f64,
     /// Its stage line.
     base: StageLine,
+    /// Wall time of the same night with its figures, run right after (`--figures`; NaN
+    /// without).
+    figures_wall: f64,
 }
 
 /// The figures of the child's `-v` line.
