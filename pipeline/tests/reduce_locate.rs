@@ -274,7 +274,8 @@ fn dithered(stars: &[(f64, f64, f64)], saturation: f32) -> Vec<sofipol_pipeline:
 /// strip in y: (512, 428) at zero offset), not the brightest source of the strip: a
 /// saturated star 40 times brighter 69-441 px away along the strip (where a dither may put
 /// it on the binary's place in another frame, or off the detector) leaves every frame's
-/// centre on the binary and is named in `brighter_source_in_strip`; a fainter star there
+/// centre on the binary and is named in `brighter_source_in_strip` (also when the binary is
+/// 20 px off the pointing and the star 55 px from it); a fainter star there
 /// changes nothing and is not named; with nothing at the pointing the brightest source of
 /// the strip is still the target (a target placed elsewhere), without the flag.
 #[test]
@@ -312,6 +313,15 @@ fn the_target_is_the_binary_at_the_pointing_not_the_brightest_star_of_the_strip(
             assert_eq!(brighter(&p.flags), named, "star {flux} at ({dx}, {dy}): {:?}", p.flags);
         }
     }
+    // The binary 20 px from the pointing, the saturated star 75 px from the pointing on the
+    // same side: 55 px from the binary, within `primary_search_px` of it.
+    let mut stars = vec![(1.2e5, 532.0, 428.0), (6e4, 539.0, 437.0)];
+    stars.push((4.8e6, 587.0, 428.0));
+    let orients = dithered(&stars, sat);
+    let masks = unusable_masks(&orients);
+    let p = locate_primary(&orients, &masks, &profile, &MeasureParams::default()).unwrap();
+    assert!(on_a(&p.centres[0], (532.0, 428.0)), "centres {:?}", p.centres[0]);
+    assert_eq!(brighter(&p.flags), 1, "{:?}", p.flags);
     // The binary 200 px from the pointing, nothing at the pointing: the brightest source.
     let away = [(1.2e5, 312.0, 440.0), (6e4, 319.0, 449.0)];
     let orients = dithered(&away, sat);

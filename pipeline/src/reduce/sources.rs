@@ -276,6 +276,9 @@ pub fn locate_primary(
     // separation (plus the pointing tolerance) of each other.
     let reach = params.companion_search_arcsec / g.pixscale_arcsec + POINTING_TOL_PX;
     let mut flags = Vec::new();
+    // The anchor is searched within `primary_search_px` of the nominal position, or less
+    // when a brighter source set aside lies closer: half way to it.
+    let mut search_px = params.primary_search_px;
     let nominal = match params.nominal_xy_px {
         Some(xy) => xy,
         None => {
@@ -283,6 +286,7 @@ pub fn locate_primary(
             let pointing = (nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5);
             let found = target_at_zero_offset(o0, &masks[0], orow, pointing, reach, params.primary_search_px);
             if let Some(b) = found.brighter {
+                search_px = search_px.min(0.5 * (b.xy.0 - found.xy.0).hypot(b.xy.1 - found.xy.1));
                 let (sep, pa) = offset_to_sep_pa(
                     b.xy.0 - found.xy.0,
                     b.xy.1 - found.xy.1,
@@ -315,7 +319,7 @@ pub fn locate_primary(
             m.view(),
             nominal.0 + off[0],
             nominal.1 + off[1],
-            params.primary_search_px,
+            search_px,
             orow,
         );
         if let Some((px, py, _)) = peak {
@@ -336,8 +340,7 @@ pub fn locate_primary(
         .map(|(_, p)| *p)
         .ok_or_else(|| {
             MeasureError::new(format!(
-                "no source found within {} px of the nominal target position",
-                params.primary_search_px
+                "no source found within {search_px} px of the nominal target position"
             ))
         })?;
     // The star found at the anchor may be either component; the other rotates about the
