@@ -233,3 +233,100 @@ fn primary_of_a_near_equal_pair_off_centre_is_found_when_the_brightest_alternate
     };
     assert!(on(0) || on(1), "centres {:?}, truth {truth:?}", primary.centres[0]);
 }
+
+/// Frames of one orientation (POSANG 0, five dithers of 86.8 px along x, the true pointing
+/// off the header offsets by up to 1.4 px) holding Gaussian stars (flux, x, y at zero
+/// offset); pixels at or above `saturation` masked SATURATED as the sky stage masks them;
+/// a variance of 100 ADU^2 per pixel.
+fn dithered(stars: &[(f64, f64, f64)], saturation: f32) -> Vec<sofipol_pipeline::reduce::SkySubtractedOrientation> {
+    use sofipol_calib::frame::mask::SATURATED;
+    use sofipol_calib::{Frame, Header, Profile};
+    let g = Profile::sofi().geometry;
+    let header_dx = [-173.6, -86.8, 0.0, 86.8, 173.6];
+    let pointing = [(-0.3, -0.9), (-0.4, -1.4), (-0.1, 1.3), (0.8, -0.6), (1.2, 0.8)];
+    let sigma = 2.8 / (8f64.ln() * 2.0).sqrt();
+    let frames = header_dx
+        .iter()
+        .zip(&pointing)
+        .map(|(&hx, &(ex, ey))| {
+            let mut img = Array2::<f32>::zeros((g.ny, g.nx));
+            let mut v = img.view_mut();
+            for &(f, x, y) in stars {
+                add_gaussian(&mut v, f, x + hx + ex, y + ey, sigma, sigma);
+            }
+            let mask = img.mapv(|p| if p >= saturation { SATURATED } else { 0 });
+            let img = img.mapv(|p| p.min(saturation));
+            let mut frame = Frame::new(img, Header::default());
+            frame.mask = mask;
+            frame.variance = Some(Array2::from_elem((g.ny, g.nx), 100.0));
+            frame
+        })
+        .collect();
+    vec![sofipol_pipeline::reduce::SkySubtractedOrientation {
+        posang_deg: 0.0,
+        analyzer_deg: 0.0,
+        frames,
+        offsets: header_dx.iter().map(|&dx| [dx, 0.0]).collect(),
+    }]
+}
+
+/// The target is the binary at the pointing (detector centre in x, middle of the o-target
+/// strip in y: (512, 428) at zero offset), not the brightest source of the strip: a
+/// saturated star 40 times brighter 69-441 px away along the strip (where a dither may put
+/// it on the binary's place in another frame, or off the detector) leaves every frame's
+/// centre on the binary and is named in `brighter_source_in_strip` (also when the binary is
+/// 20 px off the pointing and the star 55 px from it); a fainter star there
+/// changes nothing and is not named; with nothing at the pointing the brightest source of
+/// the strip is still the target (a target placed elsewhere), without the flag.
+#[test]
+fn the_target_is_the_binary_at_the_pointing_not_the_brightest_star_of_the_strip() {
+    use sofipol_calib::Profile;
+    use sofipol_pipeline::catalog::FlagCode;
+    use sofipol_pipeline::reduce::sources::{locate_primary, unusable_masks};
+    use sofipol_pipeline::reduce::MeasureParams;
+
+    let profile = Profile::sofi();
+    let sat = profile.detector.saturation_adu as f32;
+    let pair = [(1.2e5, 512.0, 428.0), (6e4, 519.0, 437.0)];
+    let header_dx = [-173.6, -86.8, 0.0, 86.8, 173.6];
+    let on_a = |centres: &[Option<(f64, f64)>], a: (f64, f64)| {
+        centres
+            .iter()
+            .zip(&header_dx)
+            .all(|(c, hx)| c.is_some_and(|(x, y)| (x - (a.0 + hx)).hypot(y - a.1) < 2.0))
+    };
+    let brighter = |flags: &[sofipol_pipeline::catalog::Flag]| {
+        flags.iter().filter(|f| f.is(FlagCode::BrighterSourceInStrip)).count()
+    };
+    for (dx, dy) in [(-441.0, 0.0), (-102.6, -18.1), (65.2, -23.7), (86.8, 0.0), (0.0, 75.0)] {
+        for (flux, named) in [(4.8e6, 1), (2e4, 0)] {
+            let mut stars = pair.to_vec();
+            stars.push((flux, 512.0 + dx, 428.0 + dy));
+            let orients = dithered(&stars, sat);
+            let masks = unusable_masks(&orients);
+            let p = locate_primary(&orients, &masks, &profile, &MeasureParams::default()).unwrap();
+            assert!(
+                on_a(&p.centres[0], (512.0, 428.0)),
+                "star {flux} at ({dx}, {dy}): centres {:?}",
+                p.centres[0]
+            );
+            assert_eq!(brighter(&p.flags), named, "star {flux} at ({dx}, {dy}): {:?}", p.flags);
+        }
+    }
+    // The binary 20 px from the pointing, the saturated star 75 px from the pointing on the
+    // same side: 55 px from the binary, within `primary_search_px` of it.
+    let mut stars = vec![(1.2e5, 532.0, 428.0), (6e4, 539.0, 437.0)];
+    stars.push((4.8e6, 587.0, 428.0));
+    let orients = dithered(&stars, sat);
+    let masks = unusable_masks(&orients);
+    let p = locate_primary(&orients, &masks, &profile, &MeasureParams::default()).unwrap();
+    assert!(on_a(&p.centres[0], (532.0, 428.0)), "centres {:?}", p.centres[0]);
+    assert_eq!(brighter(&p.flags), 1, "{:?}", p.flags);
+    // The binary 200 px from the pointing, nothing at the pointing: the brightest source.
+    let away = [(1.2e5, 312.0, 440.0), (6e4, 319.0, 449.0)];
+    let orients = dithered(&away, sat);
+    let masks = unusable_masks(&orients);
+    let p = locate_primary(&orients, &masks, &profile, &MeasureParams::default()).unwrap();
+    assert!(on_a(&p.centres[0], (312.0, 440.0)), "centres {:?}", p.centres[0]);
+    assert!(p.flags.is_empty(), "{:?}", p.flags);
+}

@@ -175,6 +175,9 @@ flag_codes! {
     /// The e-o beam offset differs from the profile's.
     EoOffsetDiffersFromProfile = "eo_offset_differs_from_profile", Named,
         "The e-o beam offset measured differs from the profile's.";
+    /// A source brighter than the target in its strip, away from the pointing.
+    BrighterSourceInStrip = "brighter_source_in_strip", Named,
+        "A source brighter than the target lies in its strip away from the pointing: the target is the source at the pointing, the brighter one was left alone.";
     /// The primary star was not found in a frame (the frame is named).
     PrimaryNotFoundIn = "primary not found in", Leading,
         "The primary star was not found in this frame: its dithers were dropped.";

@@ -5,7 +5,9 @@
 //! run.rs        raw files -> read -> bad-pixel mask -> sky subtraction -> measure -> entry
 //!               (the calibration stages come from sofipol-calib)
 //! measure_sequence (this file), on the calibrated frames of every orientation:
-//!   sources.rs    1. the primary (blend centroid) in every frame: header offset + centroid
+//!   sources.rs    1. the primary (blend centroid) in every frame: the source at the
+//!                    pointing carried by the header offset + centroid (a brighter star of
+//!                    the strip elsewhere is flagged `brighter_source_in_strip`)
 //!   beams.rs      2. the e-o offset: cross-correlation of the o and e images of the target
 //!   companion.rs  3. the companion: two-star PSF fit on the registered stack of the dithers;
 //!                    the offsets found at all orientations give one separation and PA
@@ -153,6 +155,7 @@ pub fn measure_sequence(
     let mut flags = Vec::new();
     let masks = sources::unusable_masks(orients);
     let primary = sources::locate_primary(orients, &masks, profile, params)?;
+    flags.extend(primary.flags.iter().cloned());
     let eo = beams::measure_eo_offset(orients, &primary, &masks, profile, &mut flags)?;
     let companion = companion::find_companion(orients, &primary, &masks, profile, params, &mut flags);
     let choice = fluxes::choose_psf(&companion, primary.fwhm_guess, scale, params);

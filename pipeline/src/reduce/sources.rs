@@ -1,10 +1,14 @@
 //! The primary: its position in every frame (the brightest peak near the header jitter
 //! offset, refined by a windowed centroid), and the unusable-pixel masks the later stages use.
+//! The target is the source at the pointing, not the brightest of the strip: a brighter
+//! field star elsewhere in the strip is named in the flag `brighter_source_in_strip`.
 use ndarray::{Array2, ArrayView2};
 use sofipol_calib::{Frame, Profile};
 
 use super::{MeasureError, MeasureParams, SkySubtractedOrientation};
+use crate::catalog::{Flag, FlagCode};
 use crate::photometry::{centroid, CentroidParams};
+use crate::stokes::model::offset_to_sep_pa;
 
 /// Brightest point of a 3x3 box-smoothed image within `radius` of (x0, y0), restricted to
 /// rows [y_lo, y_hi) and unmasked pixels (boxes need >= 5 of their 9 pixels unmasked).
@@ -207,6 +211,8 @@ pub struct Primary {
     pub centres: Vec<Vec<Option<(f64, f64)>>>,
     /// FWHM assumed before any fit (0.8" seeing), px.
     pub fwhm_guess: f64,
+    /// Target-level flags of the identification (`brighter_source_in_strip`).
+    pub flags: Vec<Flag>,
 }
 
 impl Primary {
@@ -242,6 +248,12 @@ pub fn unusable_masks(orients: &[SkySubtractedOrientation]) -> Vec<Vec<Array2<u8
 
 /// Stage 1: the primary in every frame.
 ///
+/// The target is identified by its position: at `measure.nominal_xy_px` when given, else
+/// at the pointing (the detector centre in x, the middle of the o-target strip in y) moved
+/// by each frame's header jitter offset, brightness deciding only among the sources
+/// compatible with it ([`Primary::flags`] name a brighter source of the strip taken for a
+/// field star).
+///
 /// Within an orientation every frame is registered on the same star: the first frame's
 /// centre (brightest peak near the header position) carried by the header offsets and
 /// refined by a centroid. Picking the brightest peak in every frame would jump between the
@@ -263,10 +275,38 @@ pub fn locate_primary(
     // Frames agree on the target when their brightest sources are within a pair's
     // separation (plus the pointing tolerance) of each other.
     let reach = params.companion_search_arcsec / g.pixscale_arcsec + POINTING_TOL_PX;
-    let nominal = params.nominal_xy_px.unwrap_or_else(|| {
-        nominal_from_data(o0, &masks[0], orow, reach)
-            .unwrap_or((nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5))
-    });
+    let mut flags = Vec::new();
+    // The anchor is searched within `primary_search_px` of the nominal position, or less
+    // when a brighter source set aside lies closer: half way to it.
+    let mut search_px = params.primary_search_px;
+    let nominal = match params.nominal_xy_px {
+        Some(xy) => xy,
+        None => {
+            // The pointing: where the telescope puts the target at zero jitter offset.
+            let pointing = (nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5);
+            let found = target_at_zero_offset(o0, &masks[0], orow, pointing, reach, params.primary_search_px);
+            if let Some(b) = found.brighter {
+                search_px = search_px.min(0.5 * (b.xy.0 - found.xy.0).hypot(b.xy.1 - found.xy.1));
+                let (sep, pa) = offset_to_sep_pa(
+                    b.xy.0 - found.xy.0,
+                    b.xy.1 - found.xy.1,
+                    o0.posang_deg,
+                    g.pixscale_arcsec,
+                );
+                flags.push(Flag::with_detail(
+                    FlagCode::BrighterSourceInStrip,
+                    format!(
+                        "{sep:.1}\" at PA {pa:.1} deg from the target ({:.0} px at POSANG {}), its peak {:.1} times \
+                         the target's",
+                        (b.xy.0 - found.xy.0).hypot(b.xy.1 - found.xy.1),
+                        o0.posang_deg,
+                        b.peak / found.peak
+                    ),
+                ));
+            }
+            found.xy
+        }
+    };
     let fwhm_guess = 0.8 / g.pixscale_arcsec;
     // The star at the nominal position in every frame of the first orientation, carried
     // back by the header offsets; the anchor is the position most frames agree on (within
@@ -279,7 +319,7 @@ pub fn locate_primary(
             m.view(),
             nominal.0 + off[0],
             nominal.1 + off[1],
-            params.primary_search_px,
+            search_px,
             orow,
         );
         if let Some((px, py, _)) = peak {
@@ -300,8 +340,7 @@ pub fn locate_primary(
         .map(|(_, p)| *p)
         .ok_or_else(|| {
             MeasureError::new(format!(
-                "no source found within {} px of the nominal target position",
-                params.primary_search_px
+                "no source found within {search_px} px of the nominal target position"
             ))
         })?;
     // The star found at the anchor may be either component; the other rotates about the
@@ -314,34 +353,166 @@ pub fn locate_primary(
         .zip(masks)
         .map(|(o, ms)| centres_in_orientation(o, ms, anchor, fwhm_guess, orow, wide))
         .collect();
-    Ok(Primary { centres, fwhm_guess })
+    Ok(Primary {
+        centres,
+        fwhm_guess,
+        flags,
+    })
 }
 
-/// Where the target sits at zero jitter offset when no position is given: the brightest
-/// source of the o-target strip in each frame of the first orientation, carried back by the
-/// header offset. The brightest source is either star of a near-equal pair (a different one
-/// from frame to frame) and the header offsets miss the true pointing by a pixel or two, so
-/// frames agree on the target when their positions are within `reach` (the largest pair
-/// separation searched plus the pointing tolerance): the position most frames agree with
-/// (the earliest wins ties), accepted when at least half of them do (a cosmic ray or a
-/// defect that escaped the masks wins in one frame, not in most); the nominal position is
-/// the median of the agreeing positions on each axis. None: no agreement (the caller falls
-/// back to the strip centre).
-fn nominal_from_data(
+/// A source found in most frames of an orientation at one position at zero jitter offset.
+#[derive(Debug, Clone, Copy)]
+struct Agreed {
+    /// Position at zero offset, px (the median of the frames that agree, on each axis).
+    xy: (f64, f64),
+    /// Median peak (3x3 box mean of unmasked pixels) of those frames, ADU.
+    peak: f64,
+}
+
+/// The target's position at zero offset when no position is given ([`target_at_zero_offset`]).
+#[derive(Debug, Clone, Copy)]
+struct TargetAtZero {
+    /// The centre of the primary search at zero offset, px.
+    xy: (f64, f64),
+    /// Peak of the target found there, ADU (NaN: the pointing itself, nothing found).
+    peak: f64,
+    /// A brighter source of the strip that is not the target.
+    brighter: Option<Agreed>,
+}
+
+/// Smallest signal-to-noise ratio of the 3x3 box at a peak near the pointing for it to be
+/// taken as a star (noise, a cosmic-ray remnant, a star's wing: none agree across frames
+/// and reach this together).
+const POINTING_MIN_SNR: f64 = 5.0;
+
+/// Where the target sits at zero jitter offset when no position is given. The target is
+/// the binary at the pointing, not the brightest star of the strip: a brighter field star
+/// elsewhere in the target's strip must not take its place.
+///
+/// 1. The brightest source of the strip that most frames agree on ([`brightest_in_strip`]):
+///    when it lies within `search_px` (`measure.primary_search_px`) of the pointing, it is
+///    the target (brightness decides among sources compatible with the pointing).
+/// 2. Else the brightest source within `search_px` of the pointing in each frame (the
+///    pointing carried by the frame's header offset), a peak of its own (inside the search
+///    disc, at S/N >= [`POINTING_MIN_SNR`]) that at least half of the frames agree on: the
+///    target, and the brighter one is reported, unless the two are within `reach` (the
+///    two stars of one pair).
+/// 3. Else the brightest source of the strip (a target placed away from the pointing),
+///    else the pointing itself.
+fn target_at_zero_offset(
     o: &SkySubtractedOrientation,
     ms: &[Array2<u8>],
     orow: [usize; 2],
+    pointing: (f64, f64),
     reach: f64,
-) -> Option<(f64, f64)> {
+    search_px: f64,
+) -> TargetAtZero {
+    let at_pointing = |xy: (f64, f64)| (xy.0 - pointing.0).hypot(xy.1 - pointing.1) <= search_px;
+    let Some(bright) = brightest_in_strip(o, ms, orow, reach) else {
+        return TargetAtZero {
+            xy: pointing,
+            peak: f64::NAN,
+            brighter: None,
+        };
+    };
+    let as_target = |a: Agreed| TargetAtZero {
+        xy: a.xy,
+        peak: a.peak,
+        brighter: None,
+    };
+    // Without a header offset for every frame the pointing cannot be followed from frame
+    // to frame: the brightest source, as before the pointing was used.
+    if at_pointing(bright.xy) || o.offsets.len() != o.frames.len() {
+        return as_target(bright);
+    }
+    match source_at_pointing(o, ms, orow, pointing, reach, search_px) {
+        Some(t) if (t.xy.0 - bright.xy.0).hypot(t.xy.1 - bright.xy.1) > reach => TargetAtZero {
+            xy: t.xy,
+            peak: t.peak,
+            brighter: Some(bright),
+        },
+        _ => as_target(bright),
+    }
+}
+
+/// The brightest source of the o-target strip in each frame of the first orientation,
+/// carried back by the header offset. The brightest source is either star of a near-equal
+/// pair (a different one from frame to frame) and the header offsets miss the true pointing
+/// by a pixel or two, so frames agree on the target when their positions are within `reach`
+/// (the largest pair separation searched plus the pointing tolerance): the position most
+/// frames agree with (the earliest wins ties), accepted when at least half of them do (a
+/// cosmic ray or a defect that escaped the masks wins in one frame, not in most); the
+/// position is the median of the agreeing positions on each axis. None: no agreement.
+fn brightest_in_strip(o: &SkySubtractedOrientation, ms: &[Array2<u8>], orow: [usize; 2], reach: f64) -> Option<Agreed> {
     let mut at_zero = Vec::new();
     for ((f, off), m) in o.frames.iter().zip(&o.offsets).zip(ms) {
         let (_, nx) = f.shape();
         let centre = (nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0);
-        if let Some((x, y, _)) = brightest_peak(f.data.view(), m.view(), centre.0, centre.1, nx as f64, orow) {
-            at_zero.push((x - off[0], y - off[1]));
+        if let Some((x, y, v)) = brightest_peak(f.data.view(), m.view(), centre.0, centre.1, nx as f64, orow) {
+            at_zero.push((x - off[0], y - off[1], v));
         }
     }
-    let agreeing = |p: &(f64, f64)| -> Vec<(f64, f64)> {
+    agreed(&at_zero, reach, at_zero.len())
+}
+
+/// The brightest star within `search_px` of the pointing in each frame of the first
+/// orientation (the pointing moved by the frame's header offset), carried back to zero
+/// offset; only peaks of their own count (inside the disc by 1.5 px: a brighter star's wing
+/// beyond it peaks on the rim; S/N of the 3x3 box >= [`POINTING_MIN_SNR`] when the frame
+/// has a variance). Accepted when at least half of all the frames agree within `reach`.
+fn source_at_pointing(
+    o: &SkySubtractedOrientation,
+    ms: &[Array2<u8>],
+    orow: [usize; 2],
+    pointing: (f64, f64),
+    reach: f64,
+    search_px: f64,
+) -> Option<Agreed> {
+    let mut at_zero = Vec::new();
+    for ((f, off), m) in o.frames.iter().zip(&o.offsets).zip(ms) {
+        let guess = (pointing.0 + off[0], pointing.1 + off[1]);
+        let Some((x, y, v)) = brightest_peak(f.data.view(), m.view(), guess.0, guess.1, search_px, orow) else {
+            continue;
+        };
+        let inside = (x - guess.0).hypot(y - guess.1) <= search_px - 1.5;
+        let significant = f
+            .variance
+            .as_ref()
+            .is_none_or(|var| box_snr(f.data.view(), var.view(), m.view(), x, y) >= POINTING_MIN_SNR);
+        if inside && significant {
+            at_zero.push((x - off[0], y - off[1], v));
+        }
+    }
+    agreed(&at_zero, reach, o.frames.len())
+}
+
+/// Signal-to-noise ratio of the unmasked pixels of the 3x3 box at (x, y) (integers inside
+/// the image, as [`brightest_peak`] returns them): their sum over the square root of their
+/// summed variance (0 when nothing is unmasked or the variance is not positive).
+fn box_snr(img: ArrayView2<f32>, var: ArrayView2<f32>, mask: ArrayView2<u8>, x: f64, y: f64) -> f64 {
+    let (ny, nx) = img.dim();
+    let (xc, yc) = (x as usize, y as usize);
+    let (mut s, mut v) = (0.0, 0.0);
+    for j in yc.saturating_sub(1)..=(yc + 1).min(ny - 1) {
+        for i in xc.saturating_sub(1)..=(xc + 1).min(nx - 1) {
+            if mask[[j, i]] == 0 {
+                s += img[[j, i]] as f64;
+                v += var[[j, i]] as f64;
+            }
+        }
+    }
+    if v > 0.0 {
+        s / v.sqrt()
+    } else {
+        0.0
+    }
+}
+
+/// The position most of `at_zero` (x, y, peak) agree with within `reach` (the earliest
+/// wins ties), accepted when the agreeing ones are at least half of `n_frames`; position
+/// and peak the medians of the agreeing ones.
+fn agreed(at_zero: &[(f64, f64, f64)], reach: f64, n_frames: usize) -> Option<Agreed> {
+    let agreeing = |p: &(f64, f64, f64)| -> Vec<(f64, f64, f64)> {
         at_zero
             .iter()
             .filter(|q| (q.0 - p.0).hypot(q.1 - p.1) <= reach)
@@ -354,17 +525,20 @@ fn nominal_from_data(
         .map(|(i, p)| (agreeing(p), i))
         .max_by_key(|(g, i)| (g.len(), std::cmp::Reverse(*i)))?
         .0;
-    if 2 * group.len() < at_zero.len() {
+    if 2 * group.len() < n_frames {
         return None;
     }
     let med = |mut v: Vec<f64>| {
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]
     };
-    Some((
-        med(group.iter().map(|p| p.0).collect()),
-        med(group.iter().map(|p| p.1).collect()),
-    ))
+    Some(Agreed {
+        xy: (
+            med(group.iter().map(|p| p.0).collect()),
+            med(group.iter().map(|p| p.1).collect()),
+        ),
+        peak: med(group.iter().map(|p| p.2).collect()),
+    })
 }
 
 /// How far the true pointing may be from the header offsets, px (the agreement radius of

@@ -42,6 +42,9 @@ fn example(code: FlagCode) -> &'static str {
         AbNearEqualFlux => "ab_near_equal_flux: B/A = 0.990 +- 0.020 in o+e flux over 16 dithers, within 3 sigma of 1",
         AbRelabelledByFlux => "ab_relabelled_by_flux: B/A = 1.300 +- 0.020 in o+e flux over 16 dithers: A is the brighter",
         EoOffsetDiffersFromProfile => "eo_offset_differs_from_profile: (0.12, 340.50) px",
+        BrighterSourceInStrip => {
+            "brighter_source_in_strip: 127.0\" at PA 90.0 deg from the target (441 px at POSANG 0), its peak 8.3 times the target's"
+        }
         PrimaryNotFoundIn => "primary not found in /data/raw/SOFI.2026-11-26T01:00:00.fits",
         MixedExposure => "mixed_exposure: DIT [10.0, 20.0] s, NDIT [1] within the sequence: normalised",
         DitherDropped => "dither of POSANG 45 dropped: sky: a.fits: no background",
