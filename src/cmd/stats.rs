@@ -213,7 +213,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 &report.ism,
                 &dg,
                 args.bins,
-                &setup::mc_subtitle(&params.mc),
+                &setup::mc_subtitle(&params),
             )?;
             written.push(ism_levels);
         }

@@ -920,6 +920,7 @@ fn params(pairs: u64) -> AnalysisParams {
         },
         models: Vec::new(),
         errors: Default::default(),
+        per_binary: None,
     }
 }
 
