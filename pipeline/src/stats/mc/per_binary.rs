@@ -214,6 +214,18 @@ pub fn simulate_per_binary(cfg: &McConfig, binaries: &[BinarySetup], pairs: u64,
         .collect()
 }
 
+/// The accepted Delta gamma of `n` pairs (at most [`CHUNK_PAIRS`]) of one binary drawn
+/// from stream `seed` (no extension: fewer or none may pass its cut). Used to simulate
+/// observed samples.
+pub fn draw_pairs(cfg: &McConfig, b: &BinarySetup, n: u64, seed: u64) -> Vec<f64> {
+    let bcfg = McConfig { seed, ..cfg.clone() };
+    let fg = b.foreground;
+    let kernel = Kernel::with(&bcfg, (fg.q_percent, fg.u_percent), fg.cholesky(), b.noise_percent);
+    let mut v = Vec::new();
+    kernel.run_chunk(0, n.min(CHUNK_PAIRS), &mut |dg| v.push(dg));
+    v
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
