@@ -3,9 +3,9 @@ use serde::{Deserialize, Serialize};
 
 use super::binomial::{binomial_test, BinomialOutcome};
 use super::errors::{convolution_seed, SampleErrors};
+use super::hist::Histogram;
 use super::ks::ks_uniform;
 use super::kuiper::kuiper_uniform;
-use super::hist::Histogram;
 use super::mc::per_binary::pairs_per_binary;
 use super::mc::{simulate_per_binary, simulate_samples, BinarySetup, ForegroundQu, Ism, McConfig, McOutput};
 use super::model::AlignmentModel;
@@ -92,7 +92,10 @@ impl PerBinary {
         if k == n {
             format!("each binary's own foreground ({k} of {n} measured)")
         } else {
-            format!("each binary's own foreground where measured ({k} of {n}); the other {}: {rest}", n - k)
+            format!(
+                "each binary's own foreground where measured ({k} of {n}); the other {}: {rest}",
+                n - k
+            )
         }
     }
 }
@@ -225,23 +228,14 @@ pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<Align
                     angle_deg: params.ism_angle_deg,
                 });
                 let sims = simulate_per_binary(&params.mc, &pb.setups(|_| fg), pairs, 1000 + i as u64)?;
-                report.ism.push(per_binary_comparison(
-                    level,
-                    delta_gamma_deg,
-                    &observed,
-                    &sims,
-                    t,
-                    bins,
-                ));
+                report
+                    .ism
+                    .push(per_binary_comparison(level, delta_gamma_deg, &observed, &sims, t, bins));
             }
             if pb.n_own_foreground() > 0 {
                 let rest = pb.fallback.map_or(ForegroundQu::NONE, ForegroundQu::fixed);
-                let sims = simulate_per_binary(
-                    &params.mc,
-                    &pb.setups(|i| pb.foreground[i].unwrap_or(rest)),
-                    pairs,
-                    999,
-                )?;
+                let sims =
+                    simulate_per_binary(&params.mc, &pb.setups(|i| pb.foreground[i].unwrap_or(rest)), pairs, 999)?;
                 let mut c = per_binary_comparison(
                     pb.fallback.map_or(0.0, |f| f.p_percent),
                     delta_gamma_deg,
@@ -319,7 +313,11 @@ fn per_binary_comparison(
     IsmComparison {
         p_ism_percent: level,
         ks: p.ks,
-        mc_fraction_below_threshold: if mix.is_empty() { 0.0 } else { p.fraction_below_threshold },
+        mc_fraction_below_threshold: if mix.is_empty() {
+            0.0
+        } else {
+            p.fraction_below_threshold
+        },
         mc_median_delta_gamma_deg: p.median_deg,
         mc: out,
         with_errors: None,

@@ -216,7 +216,10 @@ pub fn per_binary_test(observed: &[f64], sims: &[BinarySim]) -> Option<TestOutco
         return None;
     }
     let mut t = ks_uniform(&u, 0.0, 1.0);
-    t.method = format!("one-sample KS of u_i = F_i(Delta gamma_i) vs uniform, F_i simulated per binary; {}", t.method);
+    t.method = format!(
+        "one-sample KS of u_i = F_i(Delta gamma_i) vs uniform, F_i simulated per binary; {}",
+        t.method
+    );
     Some(t)
 }
 

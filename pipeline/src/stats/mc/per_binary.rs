@@ -159,7 +159,12 @@ pub fn pairs_per_binary(pairs: u64, n: usize) -> u64 {
 /// `noise_percent` are not used): `pairs` pairs each, extended batch by batch while fewer
 /// than [`MIN_ACCEPTED`] passed the cut (at most [`MAX_BATCHES`] batches). `stream` tells
 /// predictions apart. Identical for any rayon pool size.
-pub fn simulate_per_binary(cfg: &McConfig, binaries: &[BinarySetup], pairs: u64, stream: u64) -> Result<Vec<BinarySim>> {
+pub fn simulate_per_binary(
+    cfg: &McConfig,
+    binaries: &[BinarySetup],
+    pairs: u64,
+    stream: u64,
+) -> Result<Vec<BinarySim>> {
     cfg.validate()?;
     for (i, b) in binaries.iter().enumerate() {
         b.foreground.validate(&format!("binary {i}"))?;
@@ -302,7 +307,10 @@ mod tests {
         let want = rice_tail(2.0, 0.3, 0.9) * rice_tail(2.0, 0.6, 1.8);
         let got = s.values.len() as f64 / pairs as f64;
         let se = (want * (1.0 - want) / pairs as f64).sqrt();
-        assert!((got - want).abs() < 4.0 * se, "acceptance {got} vs Rice {want} (se {se})");
+        assert!(
+            (got - want).abs() < 4.0 * se,
+            "acceptance {got} vs Rice {want} (se {se})"
+        );
         // One sigma for both (the old treatment) would give a different acceptance.
         let same = rice_tail(2.0, 0.45, 1.35).powi(2);
         assert!((same - want).abs() > 20.0 * se, "{same} vs {want}");
