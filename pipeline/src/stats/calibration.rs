@@ -182,10 +182,19 @@ fn draw_sample(setup: &NullSetup, s: u64) -> Sample {
     out
 }
 
+/// The outcome of one simulated sample: the three p-values (median noise, mixture, per
+/// binary), the targets drawn, the old treatment's noise and the binaries' median sigma_P.
+struct OneSample {
+    p: [f64; 3],
+    targets: u64,
+    median_noise: f64,
+    sample_median: f64,
+}
+
 /// Simulate `samples` observed samples under the null of `setup` and test each with the
 /// three treatments. Identical for any rayon pool size.
 pub fn null_p_values(setup: &NullSetup, samples: usize) -> Result<NullPValues> {
-    let per_sample: Vec<Result<(f64, f64, f64, u64, f64, f64)>> = (0..samples as u64)
+    let per_sample: Vec<Result<OneSample>> = (0..samples as u64)
         .into_par_iter()
         .map(|s| {
             let smp = draw_sample(setup, s);
@@ -219,19 +228,25 @@ pub fn null_p_values(setup: &NullSetup, samples: usize) -> Result<NullPValues> {
             let sample_median =
                 crate::numeric::median_finite(&smp.noise_percent.iter().flatten().cloned().collect::<Vec<_>>())
                     .unwrap_or(f64::NAN);
-            Ok((old_p, mix_p, pb, smp.targets, median_noise, sample_median))
+            Ok(OneSample {
+                p: [old_p, mix_p, pb],
+                targets: smp.targets,
+                median_noise,
+                sample_median,
+            })
         })
         .collect();
     let mut out = NullPValues::default();
     let (mut noises, mut sample_sigmas) = (Vec::new(), Vec::new());
     for r in per_sample {
-        let (a, b, c, t, m, sm) = r?;
+        let one = r?;
+        let [a, b, c] = one.p;
         out.median_noise.push(a);
         out.mixture.push(b);
         out.per_binary.push(c);
-        out.targets_drawn += t;
-        noises.push(m);
-        sample_sigmas.push(sm);
+        out.targets_drawn += one.targets;
+        noises.push(one.median_noise);
+        sample_sigmas.push(one.sample_median);
     }
     out.median_noise_percent = crate::numeric::median_finite(&noises).unwrap_or(f64::NAN);
     out.median_sample_sigma_percent = crate::numeric::median_finite(&sample_sigmas).unwrap_or(f64::NAN);
