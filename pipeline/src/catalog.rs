@@ -436,6 +436,11 @@ pub struct Target {
         deserialize_with = "crate::nullable::present"
     )]
     pub flat: Option<Option<Vec<String>>>,
+    /// The interstellar (foreground) polarization towards the target, e.g. measured on
+    /// field stars: used by `sofipol stats` as the binary's own foreground; absent: the
+    /// sample's foreground model (docs/statistics.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub foreground: Option<Foreground>,
     /// Every frame the sequence was measured from, with its seeing, sky level, airmass and
     /// transparency (absent in catalogs written before it was kept, and for failed targets).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -501,6 +506,32 @@ pub struct Target {
     pub extra: serde_json::Map<String, serde_json::Value>,
 }
 
+/// Interstellar (foreground) polarization towards a target, in the sky frame, fractions
+/// like the components' q and u (0.01 = 1 %): a mean (q, u) and its covariance, e.g. the
+/// weighted mean of field stars around the target. `sofipol stats` draws each simulated
+/// pair's foreground from N((q, u), covariance) (docs/statistics.md).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Foreground {
+    /// Foreground q.
+    #[serde(deserialize_with = "crate::nullable::num")]
+    pub q: f64,
+    /// Foreground u.
+    #[serde(deserialize_with = "crate::nullable::num")]
+    pub u: f64,
+    /// 1-sigma error of q.
+    #[serde(deserialize_with = "crate::nullable::num")]
+    pub sigma_q: f64,
+    /// 1-sigma error of u.
+    #[serde(deserialize_with = "crate::nullable::num")]
+    pub sigma_u: f64,
+    /// Covariance of q and u (0 when absent).
+    #[serde(default)]
+    pub cov_qu: f64,
+    /// How it was measured (e.g. `field stars, n = 12, within 5 arcmin`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source: Option<String>,
+}
+
 impl Target {
     /// A target with its outcome and nothing else (no component, no optional field).
     pub fn new(object: impl Into<String>, status: Status) -> Target {
@@ -520,6 +551,7 @@ impl Target {
             filter: None,
             flags: None,
             flat: None,
+            foreground: None,
             frame_quality: None,
             fwhm_px: None,
             input_files: None,

@@ -61,10 +61,17 @@ pub struct Args {
     /// axis, drawn independently for each component
     #[arg(long, value_name = "F", default_value_t = 0.0)]
     perpendicular_fraction: f64,
-    /// Measurement noise of the Monte Carlo: "auto" (median sigma_P of the catalog's
-    /// components), "none", or sigma in percent
-    #[arg(long, value_name = "auto|none|PERCENT", default_value = "auto")]
+    /// Measurement noise of the random disks + ISM Monte Carlo: "per-binary" (each binary
+    /// simulated with its components' own sigma_P and cut, and tested against its own
+    /// prediction), "auto" (one level for all: the median sigma_P of the catalog's
+    /// components), "none", or one sigma in percent
+    #[arg(long, value_name = "per-binary|auto|none|PERCENT", default_value = "per-binary")]
     noise: String,
+    /// In the own-foreground prediction (made when the catalog gives some targets a
+    /// `foreground`), the interstellar polarization of the binaries without one: "none" or
+    /// a degree in percent (at --ism-angle)
+    #[arg(long, value_name = "none|PERCENT", default_value = "none")]
+    ism_fallback: String,
     /// P/sigma cut applied to simulated pairs when there is noise ("none" to disable)
     #[arg(long, value_name = "P/SIGMA", default_value = "3")]
     snr_cut: String,
@@ -163,11 +170,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             .transpose()?,
         perpendicular_fraction: args.perpendicular_fraction,
         noise: match args.noise.as_str() {
+            "per-binary" => Noise::PerBinary,
             "auto" => Noise::Auto,
             "none" => Noise::None,
             s => Noise::Percent(
                 s.parse::<f64>()
-                    .with_context(|| format!("--noise '{s}': expected auto, none or percent"))?,
+                    .with_context(|| format!("--noise '{s}': expected per-binary, auto, none or percent"))?,
             ),
         },
         snr_cut: match args.snr_cut.as_str() {
@@ -178,6 +186,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             ),
         },
         significance: args.significance,
+        ism_fallback_percent: match args.ism_fallback.as_str() {
+            "none" => None,
+            s => Some(
+                s.parse::<f64>()
+                    .with_context(|| format!("--ism-fallback '{s}': expected none or percent"))?,
+            ),
+        },
     };
     let params = setup::params(&sample, &opts, &args.catalog.display().to_string())?;
     let pool = super::common::worker_pool("stats", args.jobs, args.quiet)?;
@@ -213,7 +228,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 &report.ism,
                 &dg,
                 args.bins,
-                &setup::mc_subtitle(&params.mc),
+                &setup::mc_subtitle(&params),
             )?;
             written.push(ism_levels);
         }
@@ -312,20 +327,49 @@ fn print_report(path: &Path, sample: &BinarySample, r: &AlignmentReport) {
     }
     if !r.ism.is_empty() {
         println!("\nrandom disks + ISM (Monte Carlo: {}):", r.mc_description);
+        let per_binary = r.ism.iter().any(|c| c.per_binary.is_some());
+        if per_binary {
+            println!("  (\"KS p\": two-sample KS against the equal-weight mixture of the binaries' own predictions; \"own p\": each binary against its own prediction, the calibrated test the verdict reads)");
+        }
         println!(
-            "  {:>10} {:>10} {:>9} {:>10} {:>10} {:>10}",
-            "P_ism [%]", "accepted", "frac<30", "KS D", "KS p", "KS p err"
+            "  {:>10} {:>10} {:>9} {:>10} {:>10} {:>10} {:>10}",
+            "P_ism [%]", "accepted", "frac<30", "KS D", "KS p", "KS p err", "own p"
         );
-        for c in &r.ism {
+        let p_own = |c: &sofipol_pipeline::stats::IsmComparison| {
+            c.per_binary.as_ref().map_or("-".to_string(), |t| format_p(t.p_value))
+        };
+        if let Some(ks) = &r.ks_uniform {
+            // Without a foreground random disks give a uniform Delta gamma whatever the noise.
             println!(
-                "  {:>10} {:>10} {:>9.3} {:>10.3} {:>10} {:>10}",
-                c.p_ism_percent,
+                "  {:>10} {:>10} {:>9.3} {:>10.3} {:>10} {:>10} {:>10}",
+                "0 (none)",
+                "-",
+                r.threshold_deg / 90.0,
+                ks.statistic,
+                format_p(ks.p_value),
+                format_p(ks.p_value),
+                format_p(ks.p_value)
+            );
+        }
+        for c in r.ism.iter().chain(&r.own_foreground) {
+            let level = if c.foreground.is_some() {
+                "own".to_string()
+            } else {
+                c.p_ism_percent.to_string()
+            };
+            println!(
+                "  {:>10} {:>10} {:>9.3} {:>10.3} {:>10} {:>10} {:>10}",
+                level,
                 c.mc.accepted,
                 c.mc_fraction_below_threshold,
                 c.ks.statistic,
                 format_p(c.ks.p_value),
-                p_err(&c.with_errors)
+                p_err(&c.with_errors),
+                p_own(c)
             );
+        }
+        if let Some(f) = r.own_foreground.as_ref().and_then(|c| c.foreground.as_ref()) {
+            println!("  own: {f}");
         }
     }
     println!("\n{}", r.verdict);
@@ -336,6 +380,7 @@ fn write_json(dir: &Path, args: &Args, sample: &BinarySample, r: &AlignmentRepor
     let parameters = serde_json::json!({
         "p_ism": args.p_ism, "ism_angle_deg": args.ism_angle, "pairs": args.pairs, "seed": args.seed,
         "p_int": args.p_int, "noise": args.noise, "snr_cut": args.snr_cut, "cut": args.cut,
+        "ism_fallback": args.ism_fallback,
         "significance": args.significance, "observed_bins": args.bins,
     });
     let provenance = Provenance {

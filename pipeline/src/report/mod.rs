@@ -266,7 +266,7 @@ pub fn statistics(catalog: &Catalog, source: &str, opts: &setup::Options) -> Res
     let sample = BinarySample::from_catalog(catalog, None);
     let params = setup::params(&sample, opts, source)?;
     let report = setup::analyse_sample(&sample, &params)?;
-    let mc = setup::mc_subtitle(&params.mc);
+    let mc = setup::mc_subtitle(&params);
     let tmp = tempfile::tempdir().map_err(|e| Error::Io {
         path: std::env::temp_dir(),
         source: e,

@@ -291,17 +291,22 @@ pub fn statistics(h: &mut String, stats: &crate::error::Result<StatsSection>) {
             h,
             "<h3>Against random disks with interstellar polarization</h3>\n<p class=\"muted\">{}</p>\
              <div class=\"scroll\"><table id=\"ism\"><thead><tr><th class=\"num\">P_ism [%]</th><th class=\"num\">fraction &lt; 30°</th>\
-             <th class=\"num\">KS D</th><th class=\"num\">KS p</th></tr></thead><tbody>",
+             <th class=\"num\">KS D</th><th class=\"num\">KS p</th><th class=\"num\">own p</th></tr></thead><tbody>",
             escape(&s.mc)
         );
-        for c in &r.ism {
+        for c in r.ism.iter().chain(&r.own_foreground) {
+            let level = match &c.foreground {
+                Some(f) => format!("own: {f}"),
+                None => c.p_ism_percent.to_string(),
+            };
             let _ = writeln!(
                 h,
-                "<tr><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
-                c.p_ism_percent,
+                "<tr><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td><td class=\"num\">{}</td></tr>",
+                escape(&level),
                 fmt(Some(c.mc_fraction_below_threshold), 3),
                 fmt(Some(c.ks.statistic), 3),
-                escape(&format_p(c.ks.p_value))
+                escape(&format_p(c.ks.p_value)),
+                c.per_binary.as_ref().map_or("–".into(), |t| escape(&format_p(t.p_value)))
             );
         }
         h.push_str("</tbody></table></div>\n");

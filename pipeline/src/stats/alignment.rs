@@ -3,11 +3,16 @@ use serde::{Deserialize, Serialize};
 
 use super::binomial::{binomial_test, BinomialOutcome};
 use super::errors::{convolution_seed, SampleErrors};
+use super::hist::Histogram;
 use super::ks::ks_uniform;
 use super::kuiper::kuiper_uniform;
-use super::mc::{simulate_samples, Ism, McConfig, McOutput};
+use super::mc::per_binary::pairs_per_binary;
+use super::mc::{simulate_per_binary, simulate_samples, BinarySetup, ForegroundQu, Ism, McConfig, McOutput};
 use super::model::AlignmentModel;
-use super::predictions::{broadening_line, describe_errors, predict, predict_convolved, Convolved, ModelComparison};
+use super::predictions::{
+    broadening_line, describe_errors, mixture_sample, per_binary_test, predict, predict_convolved, Convolved,
+    ModelComparison,
+};
 use super::{format_p, Result, TestOutcome};
 
 /// Default significance level of the verdict.
@@ -39,6 +44,60 @@ pub struct AnalysisParams {
     /// The sample's Delta-gamma errors: the predictions are also compared convolved with
     /// them (those that do not simulate measurement noise themselves).
     pub errors: SampleErrors,
+    /// Each binary's own noise and foreground: the random disks + ISM predictions are made
+    /// per binary and tested per binary (None: one Monte Carlo with the noise of `mc` for
+    /// the whole sample).
+    pub per_binary: Option<PerBinary>,
+}
+
+/// Each binary's own noise and foreground (sample order), for the random disks + ISM
+/// predictions.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PerBinary {
+    /// Noise sigma of q and u of A and B of each binary, percent.
+    pub noise_percent: Vec<[f64; 2]>,
+    /// Each binary's own foreground, percent, where measured.
+    pub foreground: Vec<Option<ForegroundQu>>,
+    /// The foreground of the binaries without their own in the own-foreground prediction
+    /// (None: no foreground).
+    pub fallback: Option<Ism>,
+}
+
+impl PerBinary {
+    /// The Monte-Carlo set-up of each binary, its foreground given by `fg`.
+    fn setups(&self, fg: impl Fn(usize) -> ForegroundQu) -> Vec<BinarySetup> {
+        self.noise_percent
+            .iter()
+            .enumerate()
+            .map(|(i, &noise_percent)| BinarySetup {
+                noise_percent,
+                foreground: fg(i),
+            })
+            .collect()
+    }
+
+    /// Binaries with their own foreground.
+    pub fn n_own_foreground(&self) -> usize {
+        self.foreground.iter().flatten().count()
+    }
+
+    /// The own-foreground prediction's foregrounds in words.
+    pub fn describe_foreground(&self) -> String {
+        let n = self.foreground.len();
+        let k = self.n_own_foreground();
+        let rest = match self.fallback {
+            Some(ism) => format!("P_ism = {} % at {} deg", ism.p_percent, ism.angle_deg),
+            None => "no foreground (P_ism = 0)".into(),
+        };
+        if k == n {
+            format!("each binary's own foreground ({k} of {n} measured)")
+        } else {
+            format!(
+                "each binary's own foreground where measured ({k} of {n}); the other {}: {rest}",
+                n - k
+            )
+        }
+    }
 }
 
 /// Comparison of the observed Delta gamma with one ISM level of the Monte Carlo.
@@ -58,6 +117,26 @@ pub struct IsmComparison {
     /// has an error, or when the Monte Carlo already draws (q, u) noise (convolving again
     /// would count the measurement error twice).
     pub with_errors: Option<Convolved>,
+    /// With per-binary predictions: the one-sample KS of the probability transforms
+    /// u_i = F_i(Delta gamma_i), each binary against its own prediction (the calibrated
+    /// test; `ks` is then the two-sample KS against the equal-weight mixture of the F_i,
+    /// and `mc` the mixture).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub per_binary: Option<TestOutcome>,
+    /// With per-binary predictions: the fewest simulated pairs that passed one binary's cut.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub min_accepted_per_binary: Option<u64>,
+    /// The foreground of the prediction in words, when it is not one level for the sample.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub foreground: Option<String>,
+}
+
+impl IsmComparison {
+    /// The p-value the verdict reads: the per-binary test when there is one, else the
+    /// two-sample KS.
+    pub fn p_value(&self) -> f64 {
+        self.per_binary.as_ref().map_or(self.ks.p_value, |t| t.p_value)
+    }
 }
 
 /// Everything `sofipol stats` reports.
@@ -77,6 +156,10 @@ pub struct AlignmentReport {
     pub kuiper_uniform: Option<TestOutcome>,
     /// Two-sample KS against each ISM level.
     pub ism: Vec<IsmComparison>,
+    /// Random disks behind each binary's own foreground (where the catalog has one; the
+    /// others as [`PerBinary::fallback`]); None when no binary has its own.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub own_foreground: Option<IsmComparison>,
     /// Two-sample KS against each alignment model, without and with the errors.
     pub models: Vec<ModelComparison>,
     /// The sample's Delta-gamma errors.
@@ -93,7 +176,7 @@ pub struct AlignmentReport {
 pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<AlignmentReport> {
     let n = delta_gamma_deg.len();
     let t = params.threshold_deg;
-    let mc_description = describe_mc(&params.mc);
+    let mc_description = describe_mc(&params.mc, params.per_binary.as_ref());
     let mut report = AlignmentReport {
         n,
         mean_delta_gamma_deg: (n > 0).then(|| delta_gamma_deg.iter().sum::<f64>() / n as f64),
@@ -102,6 +185,7 @@ pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<Align
         ks_uniform: None,
         kuiper_uniform: None,
         ism: Vec::new(),
+        own_foreground: None,
         models: Vec::new(),
         errors: params.errors.clone(),
         significance: params.significance,
@@ -136,7 +220,38 @@ pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<Align
         }
         // A Monte Carlo with (q, u) noise already carries measurement errors.
         let ism_sigmas: &[f64] = if params.mc.noise_percent.is_some() { &[] } else { sigmas };
+        if let Some(pb) = &params.per_binary {
+            let pairs = pairs_per_binary(params.mc.pairs, pb.noise_percent.len());
+            for (i, &level) in params.ism_levels_percent.iter().enumerate() {
+                let fg = ForegroundQu::fixed(Ism {
+                    p_percent: level,
+                    angle_deg: params.ism_angle_deg,
+                });
+                let sims = simulate_per_binary(&params.mc, &pb.setups(|_| fg), pairs, 1000 + i as u64)?;
+                report
+                    .ism
+                    .push(per_binary_comparison(level, delta_gamma_deg, &observed, &sims, t, bins));
+            }
+            if pb.n_own_foreground() > 0 {
+                let rest = pb.fallback.map_or(ForegroundQu::NONE, ForegroundQu::fixed);
+                let sims =
+                    simulate_per_binary(&params.mc, &pb.setups(|i| pb.foreground[i].unwrap_or(rest)), pairs, 999)?;
+                let mut c = per_binary_comparison(
+                    pb.fallback.map_or(0.0, |f| f.p_percent),
+                    delta_gamma_deg,
+                    &observed,
+                    &sims,
+                    t,
+                    bins,
+                );
+                c.foreground = Some(pb.describe_foreground());
+                report.own_foreground = Some(c);
+            }
+        }
         for (i, &level) in params.ism_levels_percent.iter().enumerate() {
+            if params.per_binary.is_some() {
+                break;
+            }
             let mut cfg = params.mc.clone();
             cfg.ism = Some(Ism {
                 p_percent: level,
@@ -156,6 +271,9 @@ pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<Align
                 mc_median_delta_gamma_deg: p.median_deg,
                 with_errors: predict_convolved(&observed, &sim, ism_sigmas, conv_seed, t, bins),
                 mc: out,
+                per_binary: None,
+                min_accepted_per_binary: None,
+                foreground: None,
             });
         }
     }
@@ -165,6 +283,48 @@ pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<Align
         report.verdict += &broadening(&report, params.mc.noise_percent.is_some());
     }
     Ok(report)
+}
+
+/// The comparison of the sample (`delta_gamma_deg` in sample order, `observed` sorted)
+/// with per-binary predictions `sims`: the per-binary test, and the summary and two-sample
+/// KS of their equal-weight mixture.
+fn per_binary_comparison(
+    level: f64,
+    delta_gamma_deg: &[f64],
+    observed: &[f64],
+    sims: &[super::mc::BinarySim],
+    t: f64,
+    bins: usize,
+) -> IsmComparison {
+    let mut mix = mixture_sample(sims);
+    let (histogram, _) = Histogram::from_values(0.0, 90.0, bins, &mix);
+    let mean = if mix.is_empty() {
+        f64::NAN
+    } else {
+        mix.iter().sum::<f64>() / mix.len() as f64
+    };
+    let out = McOutput {
+        histogram,
+        simulated: sims.iter().map(|s| s.simulated).sum(),
+        accepted: sims.iter().map(|s| s.values.len() as u64).sum(),
+        mean_delta_gamma_deg: mean,
+    };
+    let p = predict(observed, &mut mix, t);
+    IsmComparison {
+        p_ism_percent: level,
+        ks: p.ks,
+        mc_fraction_below_threshold: if mix.is_empty() {
+            0.0
+        } else {
+            p.fraction_below_threshold
+        },
+        mc_median_delta_gamma_deg: p.median_deg,
+        mc: out,
+        with_errors: None,
+        per_binary: per_binary_test(delta_gamma_deg, sims),
+        min_accepted_per_binary: sims.iter().map(|s| s.values.len() as u64).min(),
+        foreground: None,
+    }
 }
 
 /// How the measurement errors broaden the predictions, in words and figures.
@@ -220,10 +380,16 @@ fn broadening(r: &AlignmentReport, mc_has_noise: bool) -> String {
     s
 }
 
-fn describe_mc(cfg: &McConfig) -> String {
-    let noise = match cfg.noise_percent {
-        Some(s) => format!("noise sigma(q, u) = {s:.3} %"),
-        None => "no measurement noise".into(),
+fn describe_mc(cfg: &McConfig, per_binary: Option<&PerBinary>) -> String {
+    let noise = match (per_binary, cfg.noise_percent) {
+        (Some(pb), _) => {
+            let all: Vec<f64> = pb.noise_percent.iter().flatten().cloned().collect();
+            let lo = all.iter().cloned().fold(f64::INFINITY, f64::min);
+            let hi = all.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            format!("each binary's own noise sigma(q, u) = its components' sigma_P ({lo:.3} ... {hi:.3} %)")
+        }
+        (None, Some(s)) => format!("noise sigma(q, u) = {s:.3} %"),
+        (None, None) => "no measurement noise".into(),
     };
     let cut = match cfg.snr_cut {
         Some(k) => format!(", both components P/sigma > {k}"),
@@ -234,11 +400,17 @@ fn describe_mc(cfg: &McConfig) -> String {
         [a, b] if a == b => format!(", {} % of disks polarized perpendicular to their long axis", a * 100.0),
         [a, b] => format!(", perpendicular fractions A {a}, B {b}"),
     };
+    let pairs = match per_binary {
+        Some(pb) => format!(
+            "{} pairs per binary and level",
+            pairs_per_binary(cfg.pairs, pb.noise_percent.len())
+        ),
+        None => format!("{} pairs per level", cfg.pairs),
+    };
     format!(
-        "model {}, P_int {}{perp}, {noise}{cut}, {} pairs per level, seed {}",
+        "model {}, P_int {}{perp}, {noise}{cut}, {pairs}, seed {}",
         cfg.model.spec(),
         cfg.p_int.spec(),
-        cfg.pairs,
         cfg.seed
     )
 }
@@ -322,32 +494,34 @@ fn verdict(r: &AlignmentReport, dg: &[f64]) -> String {
         let ok: Vec<f64> = r
             .ism
             .iter()
-            .filter(|c| c.ks.p_value >= a)
+            .filter(|c| c.p_value() >= a)
             .map(|c| c.p_ism_percent)
             .collect();
         let bad: Vec<f64> = r
             .ism
             .iter()
-            .filter(|c| !(c.ks.p_value >= a))
+            .filter(|c| !(c.p_value() >= a))
             .map(|c| c.p_ism_percent)
             .collect();
+        let per_binary = r.ism.iter().any(|c| c.per_binary.is_some());
+        let test = if per_binary { "per-binary KS" } else { "two-sample KS" };
         s += &format!(
             "\nRandom disks plus interstellar polarization (Monte Carlo: {}): ",
             r.mc_description
         );
         if ok.is_empty() {
             s += &format!(
-                "none of the levels P_ism = {} % reproduces the observed Delta gamma (two-sample KS p < {a} for all): interstellar polarization alone does not explain it.",
+                "none of the levels P_ism = {} % reproduces the observed Delta gamma ({test} p < {a} for all): interstellar polarization alone does not explain it.",
                 list(&bad)
             );
         } else if bad.is_empty() {
             s += &format!(
-                "every level P_ism = {} % is consistent with the observed Delta gamma (two-sample KS p >= {a}).",
+                "every level P_ism = {} % is consistent with the observed Delta gamma ({test} p >= {a}).",
                 list(&ok)
             );
         } else {
             s += &format!(
-                "consistent (two-sample KS p >= {a}) for P_ism = {} %, inconsistent for P_ism = {} %.",
+                "consistent ({test} p >= {a}) for P_ism = {} %, inconsistent for P_ism = {} %.",
                 list(&ok),
                 list(&bad)
             );
@@ -358,6 +532,19 @@ fn verdict(r: &AlignmentReport, dg: &[f64]) -> String {
                 );
             }
         }
+        if per_binary {
+            s += " Each binary is predicted with its own noise (sigma_P of A and B) and its own P/sigma cut, and tested against its own prediction (KS of u_i = F_i(Delta gamma_i)).";
+        }
+    }
+    if let Some(c) = &r.own_foreground {
+        s += &format!(
+            "\nWith {}: random disks give {} p = {} ({}); without any foreground random disks give a uniform Delta gamma for any noise and cut (the KS p = {} above).",
+            c.foreground.as_deref().unwrap_or("each binary's own foreground"),
+            if c.per_binary.is_some() { "per-binary KS" } else { "two-sample KS" },
+            format_p(c.p_value()),
+            if c.p_value() >= a { "consistent with the sample" } else { "inconsistent with the sample" },
+            format_p(ks.p_value),
+        );
     }
     s
 }

@@ -411,6 +411,7 @@ mod tests {
             sigma_delta_gamma_deg: sigma,
             sigma_source: None,
             delta_gamma_interval_deg: interval,
+            foreground_percent: None,
         }
     }
 

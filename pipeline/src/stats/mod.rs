@@ -23,6 +23,7 @@ use serde::{Deserialize, Serialize};
 
 pub mod alignment;
 pub mod binomial;
+pub mod calibration;
 pub mod errors;
 pub mod figures;
 pub mod hist;

@@ -6,7 +6,8 @@ use serde::{Deserialize, Serialize};
 use super::errors::{convolve_with_errors, ErrorSource, SampleErrors};
 use super::hist::Histogram;
 use super::ks::ks_two_sample_against_large;
-use super::mc::McOutput;
+use super::ks::ks_uniform;
+use super::mc::{BinarySim, McOutput};
 use super::{format_p, TestOutcome};
 
 /// Summary of a predicted Delta gamma and the two-sample KS test of the observed sample
@@ -196,4 +197,44 @@ pub fn source_name(s: Option<ErrorSource>) -> &'static str {
         Some(ErrorSource::ComponentTotal) => "total (A, B)",
         None => "none",
     }
+}
+
+/// The per-binary test of a sample against predictions made for each binary: with F_i the
+/// simulated CDF of binary i (its own noise, cut and foreground; ties counted half), the
+/// probability transforms u_i = F_i(Delta gamma_i) are iid uniform on [0, 1] under the
+/// model whatever the F_i, and are tested with the one-sample KS. `observed` and `sims` are
+/// in the same (sample) order; binaries whose simulation has no accepted pair are left out.
+/// None below two usable binaries.
+pub fn per_binary_test(observed: &[f64], sims: &[BinarySim]) -> Option<TestOutcome> {
+    let u: Vec<f64> = observed
+        .iter()
+        .zip(sims)
+        .map(|(&x, s)| s.cdf_mid(x))
+        .filter(|u| u.is_finite())
+        .collect();
+    if u.len() < 2 {
+        return None;
+    }
+    let mut t = ks_uniform(&u, 0.0, 1.0);
+    t.method = format!(
+        "one-sample KS of u_i = F_i(Delta gamma_i) vs uniform, F_i simulated per binary; {}",
+        t.method
+    );
+    Some(t)
+}
+
+/// The equal-weight mixture (1/n) sum F_i of the binaries' predictions as one sample: the
+/// first m accepted values of each binary (a random sample of it: chunk order does not
+/// depend on the value), m the smallest accepted count among the binaries that have one.
+pub fn mixture_sample(sims: &[BinarySim]) -> Vec<f64> {
+    let m = sims
+        .iter()
+        .map(|s| s.values.len())
+        .filter(|&l| l > 0)
+        .min()
+        .unwrap_or(0);
+    sims.iter()
+        .filter(|s| !s.values.is_empty())
+        .flat_map(|s| s.values[..m].iter().cloned())
+        .collect()
 }

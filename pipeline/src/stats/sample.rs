@@ -2,7 +2,8 @@
 use serde::{Deserialize, Serialize};
 
 use super::errors::{is_large, ErrorSource, LargeError, SampleErrors};
-use crate::catalog::{fold_delta_gamma, Catalog, Component, Status, Target};
+use super::mc::ForegroundQu;
+use crate::catalog::{fold_delta_gamma, Catalog, Component, Foreground, Status, Target};
 
 /// One binary of the sample.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -24,6 +25,9 @@ pub struct SampleBinary {
     /// The catalog's central 68.27 % interval of Delta gamma, deg.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub delta_gamma_interval_deg: Option<[f64; 2]>,
+    /// The binary's own interstellar foreground (the catalog's `foreground`), percent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub foreground_percent: Option<ForegroundQu>,
 }
 
 /// The Delta-gamma error of a binary: the catalog's `sigma_delta_gamma_deg`, else the
@@ -41,6 +45,15 @@ pub fn delta_gamma_error(t: &Target, a: &Component, b: &Component) -> Option<(f6
     }
     let (sa, sb) = (a.sigma_gamma_deg, b.sigma_gamma_deg);
     (ok(sa) && ok(sb)).then(|| (sa.hypot(sb), ErrorSource::ComponentTotal))
+}
+
+/// The catalog's foreground (fractions, errors) in percent with its covariance.
+pub fn foreground_percent(f: &Foreground) -> ForegroundQu {
+    ForegroundQu {
+        q_percent: 100.0 * f.q,
+        u_percent: 100.0 * f.u,
+        cov_percent2: [1e4 * f.sigma_q * f.sigma_q, 1e4 * f.cov_qu, 1e4 * f.sigma_u * f.sigma_u],
+    }
 }
 
 /// A target left out of the sample, and why.
@@ -148,6 +161,7 @@ impl BinarySample {
                 delta_gamma_interval_deg: t
                     .delta_gamma_interval_deg
                     .filter(|[lo, hi]| lo.is_finite() && hi.is_finite()),
+                foreground_percent: t.foreground.as_ref().map(foreground_percent),
             });
         }
         if n_uncalibrated > 0 {
@@ -207,6 +221,21 @@ impl BinarySample {
             }
         }
         e
+    }
+
+    /// Each binary's noise: the sigma_P of A and B, percent (sample order).
+    pub fn noise_percent(&self) -> Vec<[f64; 2]> {
+        self.binaries.iter().map(|b| b.sigma_p_percent).collect()
+    }
+
+    /// Median sigma_P of the sample's components (2 per binary), percent.
+    pub fn median_sample_sigma_p_percent(&self) -> Option<f64> {
+        median(&self.binaries.iter().flat_map(|b| b.sigma_p_percent).collect::<Vec<_>>())
+    }
+
+    /// Each binary's own foreground, percent (None where the catalog has none).
+    pub fn foregrounds(&self) -> Vec<Option<ForegroundQu>> {
+        self.binaries.iter().map(|b| b.foreground_percent).collect()
     }
 
     /// Median sigma_P over all measured components of two-component targets, percent.

@@ -2,12 +2,14 @@
 //! from the sample (intrinsic P, noise, cut), the models compared with, and the texts of
 //! its figures. `sofipol stats` and the HTML night report (`crate::report`) both call
 //! [`params`] and [`analyse_sample`], so that the two say the same.
-use super::alignment::{analyse, AlignmentReport, AnalysisParams, DEFAULT_SIGNIFICANCE, DEFAULT_THRESHOLD_DEG};
+use super::alignment::{
+    analyse, AlignmentReport, AnalysisParams, PerBinary, DEFAULT_SIGNIFICANCE, DEFAULT_THRESHOLD_DEG,
+};
 use super::figures::paper_models;
-use super::mc::{McConfig, PIntDist, DEFAULT_BINS, DEFAULT_P_INT, DEFAULT_SEED, PAPER_ISM_LEVELS_PERCENT};
+use super::mc::{Ism, McConfig, PIntDist, DEFAULT_BINS, DEFAULT_P_INT, DEFAULT_SEED, PAPER_ISM_LEVELS_PERCENT};
 use super::model::AlignmentModel;
 use super::sample::BinarySample;
-use super::{format_p, Result};
+use super::{format_p, Error, Result};
 
 /// Default P/sigma cut of the simulated pairs when the Monte Carlo has noise.
 pub const DEFAULT_MC_SNR_CUT: f64 = 3.0;
@@ -17,7 +19,10 @@ pub const DEFAULT_PAIRS: u64 = 1_000_000;
 /// Measurement noise of the Monte Carlo.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Noise {
-    /// The median sigma_P of the catalog's components ([`BinarySample::median_sigma_p_percent`]).
+    /// Each binary's own: the sigma_P of its two components (the default of `sofipol
+    /// stats`): the random disks + ISM predictions are made and tested per binary.
+    PerBinary,
+    /// One level for every binary: the median sigma_P of the catalog's components ([`BinarySample::median_sigma_p_percent`]).
     Auto,
     /// No noise.
     None,
@@ -45,6 +50,9 @@ pub struct Options {
     pub noise: Noise,
     /// P/sigma cut of the simulated pairs (applied only when there is noise).
     pub snr_cut: Option<f64>,
+    /// In the own-foreground prediction, the foreground of the binaries whose catalog entry
+    /// has none: this degree (percent) at `ism_angle_deg`; None: no foreground.
+    pub ism_fallback_percent: Option<f64>,
     /// Significance level of the verdict.
     pub significance: f64,
 }
@@ -59,8 +67,9 @@ impl Default for Options {
             seed: DEFAULT_SEED,
             p_int: None,
             perpendicular_fraction: 0.0,
-            noise: Noise::Auto,
+            noise: Noise::PerBinary,
             snr_cut: Some(DEFAULT_MC_SNR_CUT),
+            ism_fallback_percent: None,
             significance: DEFAULT_SIGNIFICANCE,
         }
     }
@@ -84,6 +93,7 @@ pub fn params(sample: &BinarySample, opts: &Options, source: &str) -> Result<Ana
         None => PIntDist::empirical(&format!("{source} (sample components)"), sample.p_percent())?,
     };
     let noise_percent = match opts.noise {
+        Noise::PerBinary => sample.median_sample_sigma_p_percent(),
         Noise::Auto => sample.median_sigma_p_percent(),
         Noise::None => None,
         Noise::Percent(s) => Some(s),
@@ -100,6 +110,34 @@ pub fn params(sample: &BinarySample, opts: &Options, source: &str) -> Result<Ana
         perpendicular_fraction: [opts.perpendicular_fraction; 2],
     };
     mc.validate()?;
+    for b in &sample.binaries {
+        if let Some(f) = b.foreground_percent {
+            f.validate(&format!("{source}: target '{}'", b.object))?;
+        }
+    }
+    if let Some(p) = opts.ism_fallback_percent {
+        if !(p >= 0.0 && p.is_finite()) {
+            return Err(Error::InvalidParameter {
+                name: "ism-fallback (%)".into(),
+                value: p.to_string(),
+                reason: "must be >= 0".into(),
+            });
+        }
+    }
+    let own_noise = opts.noise == Noise::PerBinary;
+    let any_foreground = sample.binaries.iter().any(|b| b.foreground_percent.is_some());
+    let per_binary = (!sample.is_empty() && (own_noise || any_foreground)).then(|| PerBinary {
+        noise_percent: if own_noise {
+            sample.noise_percent()
+        } else {
+            vec![[noise_percent.unwrap_or(0.0); 2]; sample.len()]
+        },
+        foreground: sample.foregrounds(),
+        fallback: opts.ism_fallback_percent.map(|p| Ism {
+            p_percent: p,
+            angle_deg: opts.ism_angle_deg,
+        }),
+    });
     Ok(AnalysisParams {
         significance: opts.significance,
         threshold_deg: DEFAULT_THRESHOLD_DEG,
@@ -108,6 +146,7 @@ pub fn params(sample: &BinarySample, opts: &Options, source: &str) -> Result<Ana
         mc,
         models: comparison_models(),
         errors: sample.errors(),
+        per_binary,
     })
 }
 
@@ -118,10 +157,14 @@ pub fn analyse_sample(sample: &BinarySample, params: &AnalysisParams) -> Result<
 }
 
 /// The subtitle of the ISM figure: the Monte Carlo's intrinsic P, noise and cut.
-pub fn mc_subtitle(mc: &McConfig) -> String {
-    let noise = mc
-        .noise_percent
-        .map_or("no noise".to_string(), |s| format!("σ = {s:.2} %"));
+pub fn mc_subtitle(params: &AnalysisParams) -> String {
+    let mc = &params.mc;
+    let noise = match (&params.per_binary, mc.noise_percent) {
+        (Some(pb), _) if pb.noise_percent.iter().flatten().any(|&s| s > 0.0) => {
+            "each binary's own σ, equal-weight mixture".to_string()
+        }
+        (_, s) => s.map_or("no noise".to_string(), |s| format!("σ = {s:.2} %")),
+    };
     let cut = mc.snr_cut.map_or(String::new(), |k| format!(", P/σ > {k}"));
     let p_int = match &mc.p_int {
         PIntDist::Empirical { values, .. } => format!("= observed ({} values)", values.len()),

@@ -920,6 +920,7 @@ fn params(pairs: u64) -> AnalysisParams {
         },
         models: Vec::new(),
         errors: Default::default(),
+        per_binary: None,
     }
 }
 
@@ -1194,4 +1195,85 @@ fn a_p_value_of_zero_is_printed_as_a_bound() {
     assert_eq!(super::format_p(p), "< 1e-300");
     assert_eq!(super::format_p(0.5), "0.5000");
     assert_eq!(super::format_p(2.5e-7), "2.5e-7");
+}
+
+/// A catalog of `n` binaries with Delta gamma spread over [0, 90), sigma_P of A and B
+/// from 0.2 % to 1 %, P 4 % and 3 %; the first `with_fg` carry a foreground of 3 %.
+fn per_binary_catalog(n: usize, with_fg: usize) -> Catalog {
+    let targets = (0..n)
+        .map(|i| {
+            let s = 0.002 + 0.008 * i as f64 / n as f64;
+            let mut t = target(
+                &format!("T{i}"),
+                Status::Ok,
+                vec![
+                    component("A", 0.04, s, 10.0),
+                    component("B", 0.03, s, 10.0 + 90.0 * i as f64 / n as f64),
+                ],
+                None,
+            );
+            if i < with_fg {
+                t.foreground = Some(crate::catalog::Foreground {
+                    q: 0.03,
+                    u: 0.0,
+                    sigma_q: 0.001,
+                    sigma_u: 0.001,
+                    cov_qu: 0.0,
+                    source: None,
+                });
+            }
+            t
+        })
+        .collect();
+    Catalog {
+        schema_version: "1.0".into(),
+        targets,
+        ..Default::default()
+    }
+}
+
+/// `stats`' default analysis predicts random disks + ISM per binary (each level has the
+/// per-binary test, and the mixture's accepted pairs), adds the own-foreground prediction
+/// only when a target has a foreground, states it, and a strong own foreground pulls the
+/// prediction towards small Delta gamma (fraction below 30 deg above the level-0.1 row's).
+/// A bad foreground is refused naming the target and the key.
+#[test]
+fn stats_predicts_per_binary_and_with_each_binarys_own_foreground() {
+    use super::setup::{analyse_sample, params, Noise, Options};
+    let opts = Options {
+        pairs: 40_000,
+        ism_levels_percent: vec![0.1],
+        ..Default::default()
+    };
+    assert_eq!(opts.noise, Noise::PerBinary);
+    let none = BinarySample::from_catalog(&per_binary_catalog(12, 0), None);
+    let r = analyse_sample(&none, &params(&none, &opts, "cat.json").unwrap()).unwrap();
+    assert!(r.own_foreground.is_none());
+    assert!(r.ism[0].per_binary.is_some() && r.ism[0].min_accepted_per_binary.unwrap() >= 2000);
+    assert!(
+        r.mc_description.contains("each binary's own noise"),
+        "{}",
+        r.mc_description
+    );
+
+    let some = BinarySample::from_catalog(&per_binary_catalog(12, 12), None);
+    let r = analyse_sample(&some, &params(&some, &opts, "cat.json").unwrap()).unwrap();
+    let own = r.own_foreground.as_ref().expect("own-foreground prediction");
+    assert!(own.foreground.as_deref().unwrap().contains("12 of 12"));
+    assert!(
+        own.mc_fraction_below_threshold > r.ism[0].mc_fraction_below_threshold + 0.1,
+        "own {} vs 0.1 % {}",
+        own.mc_fraction_below_threshold,
+        r.ism[0].mc_fraction_below_threshold
+    );
+    assert!(r.verdict.contains("own foreground"), "{}", r.verdict);
+
+    let mut bad = per_binary_catalog(3, 1);
+    bad.targets[0].foreground.as_mut().unwrap().cov_qu = 0.01;
+    let s = BinarySample::from_catalog(&bad, None);
+    let e = params(&s, &opts, "cat.json").unwrap_err().to_string();
+    assert!(
+        e.contains("cat.json") && e.contains("T0") && e.contains("cov_qu"),
+        "{e}"
+    );
 }

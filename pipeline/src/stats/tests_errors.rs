@@ -249,6 +249,7 @@ fn params(noise: Option<f64>, sigmas: Vec<f64>) -> AnalysisParams {
             sigmas_deg: sigmas,
             ..Default::default()
         },
+        per_binary: None,
     }
 }
 

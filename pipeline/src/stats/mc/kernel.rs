@@ -7,9 +7,15 @@ use super::{McConfig, PIntDist};
 pub(super) struct Kernel<'a> {
     cfg: &'a McConfig,
     model_constant: f64,
+    /// Mean foreground (q, u) added to both components, percent.
     ism_qu: (f64, f64),
-    noise: f64,
-    cut2: Option<f64>,
+    /// Scatter of the foreground about `ism_qu`: the lower-triangular Cholesky factor
+    /// (l_qq, l_uq, l_uu) of its covariance, percent; None: a fixed foreground.
+    ism_chol: Option<[f64; 3]>,
+    /// Noise sigma of q and u of component A and B, percent.
+    noise: [f64; 2],
+    /// (K sigma)^2 of each component, percent^2.
+    cut2: Option<[f64; 2]>,
 }
 
 const RAD_TO_DEG: f64 = 180.0 / std::f64::consts::PI;
@@ -21,14 +27,27 @@ impl<'a> Kernel<'a> {
             (ism.p_percent * c, ism.p_percent * s)
         });
         let noise = cfg.noise_percent.unwrap_or(0.0);
-        let cut2 = cfg.snr_cut.map(|k| (k * noise) * (k * noise));
+        Self::with(cfg, ism_qu, None, [noise; 2])
+    }
+
+    /// The kernel of one binary: its own foreground (mean (q, u) and, if given, the Cholesky
+    /// factor of its covariance, percent) and its own noise of A and B (percent), with the
+    /// cut of `cfg`.
+    pub(super) fn with(cfg: &'a McConfig, ism_qu: (f64, f64), ism_chol: Option<[f64; 3]>, noise: [f64; 2]) -> Self {
+        let cut2 = cfg.snr_cut.map(|k| noise.map(|s| (k * s) * (k * s)));
         Self {
             cfg,
             model_constant: cfg.model.sampler_constant(),
             ism_qu,
+            ism_chol,
             noise,
             cut2,
         }
+    }
+
+    /// True when the polarization (not only the geometry) has to be simulated.
+    fn simulates_polarization(&self) -> bool {
+        self.cfg.simulates_polarization() || self.ism_chol.is_some() || self.noise != [0.0; 2]
     }
 
     /// Intrinsic (q, u) of a disk with projected axis (x, y), percent.
@@ -48,7 +67,7 @@ impl<'a> Kernel<'a> {
     pub(super) fn run_chunk(&self, chunk: u64, n: u64, sink: &mut impl FnMut(f64)) -> u64 {
         let mut rng = Xoshiro256pp::for_stream(self.cfg.seed, chunk);
         let model = &self.cfg.model;
-        let pol = self.cfg.simulates_polarization();
+        let pol = self.simulates_polarization();
         let mut accepted = 0;
         for _ in 0..n {
             let n1 = rng.unit_vector();
@@ -72,20 +91,28 @@ impl<'a> Kernel<'a> {
             if flip2 {
                 (q2, u2) = (-q2, -u2);
             }
-            q1 += self.ism_qu.0;
-            u1 += self.ism_qu.1;
-            q2 += self.ism_qu.0;
-            u2 += self.ism_qu.1;
-            if self.noise > 0.0 {
+            let (mut iq, mut iu) = self.ism_qu;
+            if let Some([lqq, luq, luu]) = self.ism_chol {
+                // One foreground per pair, common to both components: mean + L z.
+                let (a, b) = rng.normal_pair();
+                iq += lqq * a;
+                iu += luq * a + luu * b;
+            }
+            q1 += iq;
+            u1 += iu;
+            q2 += iq;
+            u2 += iu;
+            let [s1, s2] = self.noise;
+            if s1 > 0.0 || s2 > 0.0 {
                 let (a, b) = rng.normal_pair();
                 let (c, d) = rng.normal_pair();
-                q1 += self.noise * a;
-                u1 += self.noise * b;
-                q2 += self.noise * c;
-                u2 += self.noise * d;
+                q1 += s1 * a;
+                u1 += s1 * b;
+                q2 += s2 * c;
+                u2 += s2 * d;
             }
-            if let Some(cut2) = self.cut2 {
-                if !(q1 * q1 + u1 * u1 > cut2 && q2 * q2 + u2 * u2 > cut2) {
+            if let Some([c1, c2]) = self.cut2 {
+                if !(q1 * q1 + u1 * u1 > c1 && q2 * q2 + u2 * u2 > c2) {
                     continue;
                 }
             }

@@ -20,7 +20,8 @@
 //! chunk histograms are summed (integer sums do not depend on order), and samples are
 //! concatenated in chunk order. The result is bit-identical for any number of threads.
 //!
-//! Files: [`p_int`] (distributions of the intrinsic P), [`pofi`] (P(i) tables), `kernel`
+//! Files: [`p_int`] (distributions of the intrinsic P), [`pofi`] (P(i) tables),
+//! [`per_binary`] (each observed binary with its own noise and foreground), `kernel`
 //! (one pair: axes, projection, polarization, cut, Delta gamma); this file holds the
 //! configuration, the chunking and the drivers [`simulate`] and [`simulate_samples`].
 use rayon::prelude::*;
@@ -32,6 +33,7 @@ use super::{Error, Result};
 
 mod kernel;
 pub mod p_int;
+pub mod per_binary;
 pub mod pofi;
 
 pub use super::rng::CHUNK_PAIRS;
@@ -39,6 +41,7 @@ use kernel::Kernel;
 #[cfg(test)]
 pub(crate) use kernel::{delta_gamma_axes, delta_gamma_qu, intrinsic_qu};
 pub use p_int::PIntDist;
+pub use per_binary::{simulate_per_binary, BinarySetup, BinarySim, ForegroundQu};
 pub use pofi::PofITable;
 
 /// Default number of pairs (the reference study used 10^7).
