@@ -33,8 +33,9 @@ struct Glyph {
     id: GlyphId,
     /// Its horizontal advance, px.
     advance: f32,
-    /// Coverage of each pixel it touches, relative to the top-left of its pixel bounds.
-    coverage: Vec<(i32, i32, f32)>,
+    /// Coverage of each pixel it covers (coverage > 0), relative to the top-left of its
+    /// pixel bounds, with the blending weight of an opaque colour ([`weight`]).
+    coverage: Vec<(i32, i32, f32, u16)>,
     /// The bounds' top-left corner as plotters places it: (0, `size / 2 + min.y`) truncated.
     y_shift: i32,
 }
@@ -65,13 +66,31 @@ fn rasterise(bold: bool, size: f64, c: char) -> Glyph {
     let mut y_shift = 0;
     if let Some(q) = scaled.outline_glyph(scaled.scaled_glyph(c)) {
         y_shift = ((size as f32) / 2.0 + q.px_bounds().min.y) as i32;
-        q.draw(|x, y, a| coverage.push((x as i32, y as i32, a)));
+        // A pixel of zero coverage is left as it is: not kept.
+        q.draw(|x, y, a| {
+            if a > 0.0 {
+                coverage.push((x as i32, y as i32, a, weight(f64::from(a))));
+            }
+        });
     }
     Glyph {
         id,
         advance: scaled.h_advance(id),
         coverage,
         y_shift,
+    }
+}
+
+/// plotters' blending weight of opacity `alpha`, in 256ths: 256 (opaque) from 255/256 up,
+/// 0 at 0 or below, else floor(alpha * 256) (truncation of a positive value).
+#[inline]
+fn weight(alpha: f64) -> u16 {
+    if alpha >= 1.0 - 1.0 / 256.0 {
+        256
+    } else if alpha > 0.0 {
+        (alpha * 256.0) as u16
+    } else {
+        0
     }
 }
 
@@ -154,24 +173,22 @@ impl<'a> CachedText<'a> {
         BitMapBackend::with_buffer(self.buf, self.size)
     }
 
-    /// Blend `rgb` at opacity `alpha` into pixel (x, y) (inside the image), exactly as
-    /// plotters' RGB bitmap does: opaque from 255/256 up, nothing at 0 or below, else each
-    /// channel moved by floor(alpha * 256) / 256 of the way, in integers.
+    /// Blend `rgb` with weight `w` ([`weight`]) into pixel (x, y) (inside the image),
+    /// exactly as plotters' RGB bitmap does: set at 256, else each channel moved by w / 256
+    /// of the way, in integers.
     #[inline]
-    fn blend(&mut self, x: usize, y: usize, rgb: (u8, u8, u8), alpha: f64) {
+    fn blend(&mut self, x: usize, y: usize, rgb: (u8, u8, u8), w: u16) {
         let i = (y * self.size.0 as usize + x) * 3;
         let px = &mut self.buf[i..i + 3];
-        if alpha >= 1.0 - 1.0 / 256.0 {
+        if w >= 256 {
             px.copy_from_slice(&[rgb.0, rgb.1, rgb.2]);
-        } else if alpha > 0.0 {
-            // floor(alpha * 256) as plotters, without the libm call (truncation of a
-            // positive value).
-            let a = (alpha * 256.0) as u64;
+        } else if w > 0 {
+            let a = u32::from(w);
             for (p, new) in px.iter_mut().zip([rgb.0, rgb.1, rgb.2]) {
                 if new > *p {
-                    *p += (u64::from(new - *p) * a / 256) as u8;
+                    *p += (u32::from(new - *p) * a / 256) as u8;
                 } else {
-                    *p -= (u64::from(*p - new) * a / 256) as u8;
+                    *p -= (u32::from(*p - new) * a / 256) as u8;
                 }
             }
         }
@@ -277,10 +294,16 @@ impl DrawingBackend for CachedText<'_> {
             }
             prev = Some(g.id);
             let xs = x_shift as i32;
-            for &(x, y, a) in &g.coverage {
+            for &(x, y, a, opaque_w) in &g.coverage {
                 let (x, y) = (ox + x + xs, oy + y + g.y_shift);
                 if x >= 0 && x < w as i32 && y >= 0 && y < h as i32 {
-                    self.blend(x as usize, y as usize, color.rgb, color.alpha * a as f64);
+                    // plotters mixes the colour's opacity with the coverage in f64.
+                    let wt = if color.alpha == 1.0 {
+                        opaque_w
+                    } else {
+                        weight(color.alpha * a as f64)
+                    };
+                    self.blend(x as usize, y as usize, color.rgb, wt);
                 }
             }
             x_shift += g.advance;
