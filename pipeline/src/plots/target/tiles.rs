@@ -401,7 +401,7 @@ mod median_tests {
             x ^= x >> 7;
             x ^= x << 17;
             // Few distinct values (ties), signs mixed, some large.
-            ((x % 41) as f32 - 20.0) * if x % 7 == 0 { 1e6 } else { 0.25 }
+            ((x % 41) as f32 - 20.0) * if (x >> 5) & 7 == 0 { 1e6 } else { 0.25 }
         };
         for len in 1..=40 {
             for _ in 0..if len == 5 { 5000 } else { 50 } {
