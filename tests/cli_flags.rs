@@ -65,8 +65,11 @@ fn options(help: &str) -> Vec<Opt> {
                 help: rest.trim().to_string(),
             });
         } else if let Some(o) = out.last_mut() {
+            // Help on the lines below the flag (clap's layout when some help is long).
             if !t.is_empty() && indent > 6 {
-                o.help.push(' ');
+                if !o.help.is_empty() {
+                    o.help.push(' ');
+                }
                 o.help.push_str(t);
             }
         }
