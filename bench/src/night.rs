@@ -261,16 +261,14 @@ fn time_sofipol_night(
     let exe = std::env::current_exe().context("locating the sofipol executable")?;
     let mut runs: Vec<NightRun> = Vec::new();
     let mut last = String::new();
-    // One child `sofipol night`; returns its wall time and stderr.
-    let night = |out: &std::path::Path, extra: &[&str]| -> anyhow::Result<(f64, String)> {
+    // One child `sofipol night` (with its figures when `figures`); its wall time and stderr.
+    let night = |out: &std::path::Path, figures: bool, extra: &[&str]| -> anyhow::Result<(f64, String)> {
         let mut cmd = std::process::Command::new(&exe);
         cmd.arg("night").arg(raw).arg("-o").arg(out).arg("-q").arg("-v");
-        // `--png` is this benchmark's own word for "with the figures".
-        if extra.first() == Some(&"--png") {
-            cmd.args(&extra[1..]);
-        } else {
-            cmd.arg("--no-png").args(extra);
+        if !figures {
+            cmd.arg("--no-png");
         }
+        cmd.args(extra);
         if let Some(j) = a.jobs {
             cmd.arg("--jobs").arg(j.to_string());
         }
@@ -289,7 +287,7 @@ fn time_sofipol_night(
     // without this the first repeat reads from disk and its `cat` floor reads the rest.
     cat_floor(files)?;
     for r in 0..a.repeats.max(1) {
-        let (wall, stderr) = night(&root.join(format!("catalog{r}.json")), &[])?;
+        let (wall, stderr) = night(&root.join(format!("catalog{r}.json")), false, &[])?;
         // The floors, in the same run, page cache warm (the reduction just read the files).
         let cat = cat_floor(files)?;
         let read = read_floor(files)?;
@@ -297,11 +295,12 @@ fn time_sofipol_night(
         // calibration costs is the difference.
         let (base_wall, base_err) = night(
             &root.join("catalog-uncalibrated.json"),
+            false,
             &["--no-flat", "--no-calibration"],
         )?;
         // With the figures, right after the same run without them.
         let figures_wall = if a.figures {
-            night(&root.join("catalog-figures.json"), &["--png"])?.0
+            night(&root.join("catalog-figures.json"), true, &[])?.0
         } else {
             f64::NAN
         };
