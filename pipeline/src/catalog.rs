@@ -8,6 +8,7 @@ pub mod applied;
 pub mod calibration_state;
 pub mod flags;
 pub mod frame_quality;
+pub mod photometry;
 pub mod polarimetric_calibration;
 pub mod provenance;
 pub use applied::AppliedCalibration;

@@ -23,7 +23,7 @@ pub struct AppliedCalibration {
     /// The photometric zero-points of the night and the standards they came from, or why
     /// there are none (absent in older catalogs).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub photometry: Option<crate::calibration::photometric::PhotometricCalibration>,
+    pub photometry: Option<crate::catalog::photometry::PhotometricCalibration>,
     /// `night` (the night's standards), the calibration file given, `disabled`, or
     /// `per_catalog` (merged).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -105,7 +105,7 @@ impl AppliedCalibration {
     /// report's): "fluxes in ADU only" when the catalog does not record any (older).
     pub fn photometry_lines(&self) -> Vec<String> {
         match &self.photometry {
-            Some(p) => crate::calibration::photometric::lines(p),
+            Some(p) => crate::catalog::photometry::lines(p),
             None => vec!["no magnitudes: the catalog records no photometric calibration (fluxes in ADU only)".into()],
         }
     }

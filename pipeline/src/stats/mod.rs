@@ -26,6 +26,7 @@ pub mod binomial;
 pub mod calibration;
 pub mod errors;
 pub mod figures;
+pub mod foreground;
 pub mod hist;
 pub mod ks;
 pub mod kuiper;

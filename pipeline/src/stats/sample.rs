@@ -2,7 +2,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::errors::{is_large, ErrorSource, LargeError, SampleErrors};
-use super::mc::ForegroundQu;
+use super::foreground::ForegroundQu;
 use crate::catalog::{fold_delta_gamma, Catalog, Component, Foreground, Status, Target};
 
 /// One binary of the sample.

@@ -37,11 +37,13 @@ pub mod per_binary;
 pub mod pofi;
 
 pub use super::rng::CHUNK_PAIRS;
+/// The foreground types, defined in [`crate::stats::foreground`] (the sample reads them too).
+pub use crate::stats::foreground::{ForegroundQu, Ism};
 use kernel::Kernel;
 #[cfg(test)]
 pub(crate) use kernel::{delta_gamma_axes, delta_gamma_qu, intrinsic_qu};
 pub use p_int::PIntDist;
-pub use per_binary::{simulate_per_binary, BinarySetup, BinarySim, ForegroundQu};
+pub use per_binary::{simulate_per_binary, BinarySetup, BinarySim};
 pub use pofi::PofITable;
 
 /// Default number of pairs (the reference study used 10^7).
@@ -64,15 +66,6 @@ pub const DEFAULT_BINS: usize = 90;
 pub const PAPER_ISM_LEVELS_PERCENT: [f64; 10] = [0.1, 0.2, 0.4, 0.7, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0];
 /// Default intrinsic-polarization model of `sofipol mc`: P = 6 % sin^2 i.
 pub const DEFAULT_P_INT: &str = "sin2i:6";
-
-/// Interstellar polarization common to both components.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Ism {
-    /// Degree P_ism, percent.
-    pub p_percent: f64,
-    /// Angle gamma_ism, degrees east of north.
-    pub angle_deg: f64,
-}
 
 /// A validated Monte-Carlo configuration.
 #[derive(Debug, Clone, PartialEq)]
