@@ -40,11 +40,54 @@ struct Glyph {
     y_shift: i32,
 }
 
+/// A multiply-and-rotate hasher for the caches' small keys (the standard SipHash cost more
+/// than the lookups it served; no key here comes from outside the program).
+#[derive(Default, Clone, Copy)]
+struct KeyHasher(u64);
+
+impl std::hash::Hasher for KeyHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(u64::from(b));
+        }
+    }
+
+    fn write_u64(&mut self, v: u64) {
+        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+
+    fn write_u32(&mut self, v: u32) {
+        self.write_u64(u64::from(v));
+    }
+
+    fn write_u16(&mut self, v: u16) {
+        self.write_u64(u64::from(v));
+    }
+
+    fn write_u8(&mut self, v: u8) {
+        self.write_u64(u64::from(v));
+    }
+
+    fn write_usize(&mut self, v: usize) {
+        self.write_u64(v as u64);
+    }
+}
+
+type KeyMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<KeyHasher>>;
+
 /// Glyphs of the embedded fonts, per (bold, size bits, char).
-type Cache = HashMap<(bool, u64, char), Rc<Glyph>>;
+type Cache = KeyMap<(bool, u64, char), Rc<Glyph>>;
+
+/// Kerning of the embedded fonts, per (bold, size bits, left glyph, right glyph).
+type Kerning = KeyMap<(bool, u64, u16, u16), f32>;
 
 thread_local! {
-    static GLYPHS: RefCell<Cache> = RefCell::new(HashMap::new());
+    static GLYPHS: RefCell<Cache> = RefCell::new(Cache::default());
+    static KERNING: RefCell<Kerning> = RefCell::new(Kerning::default());
 }
 
 /// The embedded font of a style (plotters falls back to the normal face for styles it has
@@ -94,12 +137,18 @@ fn weight(alpha: f64) -> u16 {
     }
 }
 
-/// The kerning between two glyphs of a font at a size.
+/// The kerning between two glyphs of a font at a size (looked up in the font once per
+/// thread).
 fn kern(bold: bool, size: f64, a: GlyphId, b: GlyphId) -> f32 {
     thread_local! {
         static FONTS: [FontRef<'static>; 2] = [font(false), font(true)];
     }
-    FONTS.with(|f| f[usize::from(bold)].as_scaled(size as f32).kern(a, b))
+    KERNING.with(|cache| {
+        *cache
+            .borrow_mut()
+            .entry((bold, size.to_bits(), a.0, b.0))
+            .or_insert_with(|| FONTS.with(|f| f[usize::from(bold)].as_scaled(size as f32).kern(a, b)))
+    })
 }
 
 /// The cached glyph of `c` in a face at a size.
@@ -117,17 +166,35 @@ fn glyph(bold: bool, size: f64, c: char) -> Rc<Glyph> {
 /// (`FontDesc::box_size` of an unrotated font, the same sums in the same order: advances and
 /// kerning, truncated; the height is `size / 1.24` truncated), from the cached glyphs.
 pub fn text_size(bold: bool, size: f64, text: &str) -> (u32, u32) {
-    let mut x = 0f32;
+    layout(bold, size, text).0
+}
+
+/// A glyph of a text and the whole-pixel x it is drawn at.
+type Placed = (Rc<Glyph>, i32);
+
+/// A text's size as [`text_size`] gives it and its glyphs, each with the whole-pixel x at
+/// which plotters' ab_glyph font draws it (the kerning before it added, then its advance
+/// after it). The two sums are kept apart: plotters adds the same terms in two orders.
+fn layout(bold: bool, size: f64, text: &str) -> ((u32, u32), Vec<Placed>) {
+    let mut width = 0f32;
+    let mut x_shift = 0f32;
     let mut prev: Option<GlyphId> = None;
+    let mut glyphs = Vec::with_capacity(text.len());
     for c in text.chars() {
         let g = glyph(bold, size, c);
-        x += g.advance;
+        width += g.advance;
         if let Some(p) = prev {
-            x += kern(bold, size, p, g.id);
+            let k = kern(bold, size, p, g.id);
+            width += k;
+            x_shift += k;
         }
         prev = Some(g.id);
+        let xs = x_shift as i32;
+        x_shift += g.advance;
+        glyphs.push((g, xs));
     }
-    ((x as i32).unsigned_abs(), ((size / 1.24) as i32).unsigned_abs())
+    let size_px = ((width as i32).unsigned_abs(), ((size / 1.24) as i32).unsigned_abs());
+    (size_px, glyphs)
 }
 
 /// Whether a text style is one [`CachedText`] draws itself: the embedded font (`FONT`),
@@ -270,7 +337,7 @@ impl DrawingBackend for CachedText<'_> {
         // plotters' layout (its box starts at (0, 0)) and anchor (DrawingBackend::draw_text's
         // default).
         let size = style.size();
-        let (width, height) = text_size(bold, size, text);
+        let ((width, height), glyphs) = layout(bold, size, text);
         let (width, height) = (width as i32, height as i32);
         let dx = match style.anchor().h_pos {
             HPos::Left => 0,
@@ -285,15 +352,7 @@ impl DrawingBackend for CachedText<'_> {
         let (w, h) = self.get_size();
         let (ox, oy) = (pos.0 + dx, pos.1 + dy);
         // plotters' ab_glyph font's draw: the glyphs one after another.
-        let mut x_shift = 0f32;
-        let mut prev: Option<GlyphId> = None;
-        for c in text.chars() {
-            let g = glyph(bold, size, c);
-            if let Some(p) = prev {
-                x_shift += kern(bold, size, p, g.id);
-            }
-            prev = Some(g.id);
-            let xs = x_shift as i32;
+        for (g, xs) in &glyphs {
             for &(x, y, a, opaque_w) in &g.coverage {
                 let (x, y) = (ox + x + xs, oy + y + g.y_shift);
                 if x >= 0 && x < w as i32 && y >= 0 && y < h as i32 {
@@ -306,7 +365,6 @@ impl DrawingBackend for CachedText<'_> {
                     self.blend(x as usize, y as usize, color.rgb, wt);
                 }
             }
-            x_shift += g.advance;
         }
         Ok(())
     }

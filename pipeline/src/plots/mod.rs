@@ -28,6 +28,7 @@ use plotters::style::text_anchor::{HPos, Pos, VPos};
 use plotters::style::FontStyle;
 
 pub mod glyphs;
+pub mod png_rgb;
 pub mod quality;
 pub mod target;
 
@@ -181,13 +182,6 @@ fn ensure_font() -> Result<()> {
     } else {
         Err(Error::Font)
     }
-}
-
-/// The PNG encoder of every figure: fast deflate and the Paeth filter on every row (the
-/// adaptive choice per row costs a quarter more time for 6 % smaller files).
-pub fn png_encoder<W: std::io::Write>(w: W) -> image::codecs::png::PngEncoder<W> {
-    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-    PngEncoder::new_with_quality(w, CompressionType::Fast, FilterType::Paeth)
 }
 
 /// An RGB colour.

@@ -245,16 +245,7 @@ impl TargetFigure<'_> {
     /// The figure as PNG bytes.
     fn png_bytes(&self) -> io::Result<Vec<u8>> {
         let (w, h, rgb) = self.rgb()?;
-        let mut png = Vec::new();
-        image::ImageEncoder::write_image(
-            crate::plots::png_encoder(&mut png),
-            &rgb,
-            w,
-            h,
-            image::ExtendedColorType::Rgb8,
-        )
-        .map_err(de)?;
-        Ok(png)
+        crate::plots::png_rgb::encode_rgb8(w, h, &rgb)
     }
 }
 
