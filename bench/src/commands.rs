@@ -238,7 +238,7 @@ pub fn stages(repeats: usize) -> anyhow::Result<()> {
     });
     println!("  {:<44} {:>8.2} ms", "leave-one-out medians / orientation (5)", loo);
     let g = &profile.geometry;
-    let (r0, r1) = (g.o_target[0], g.e_target[1]);
+    let [r0, r1] = g.measured_rows();
     let cropped_profile = profile.cropped_rows(r0, r1);
     let o0c: Vec<sofipol_calib::Frame> = o0.iter().map(|f| f.crop_rows(r0, r1)).collect();
     let plain = sky::SkyOptions {

@@ -168,7 +168,7 @@ fn check_inputs(
         )));
     }
     let g = &profile.geometry;
-    let strip_end = g.strips().iter().map(|(_, r)| r[1]).max().unwrap_or(0);
+    let strip_end = g.lit_rows_end();
     if shape.0 < strip_end {
         return Err(stage_err(format!(
             "frames have {} rows but the profile's strips reach row {strip_end}",

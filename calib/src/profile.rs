@@ -182,6 +182,56 @@ impl Geometry {
     pub fn row_in_strip(&self, y: usize) -> bool {
         self.strips().iter().any(|(_, r)| y >= r[0] && y < r[1])
     }
+
+    /// The image of the beam splitter that row `y` receives: `None` on rows the mask
+    /// blocks.
+    pub fn beam_of_row(&self, y: usize) -> Option<Beam> {
+        let inside = |r: &[usize; 2]| y >= r[0] && y < r[1];
+        if [self.o_sky2, self.o_target, self.o_sky1].iter().any(inside) {
+            Some(Beam::Ordinary)
+        } else if [self.e_sky2, self.e_target, self.e_sky1].iter().any(inside) {
+            Some(Beam::Extraordinary)
+        } else {
+            None
+        }
+    }
+
+    /// The rows `[start, end)` of the strip where the target's image of `beam` falls.
+    pub fn target_rows(&self, beam: Beam) -> [usize; 2] {
+        match beam {
+            Beam::Ordinary => self.o_target,
+            Beam::Extraordinary => self.e_target,
+        }
+    }
+
+    /// The rows `[start, end)` holding the target's two images: what a reduction that
+    /// measures only the target needs to read.
+    pub fn measured_rows(&self) -> [usize; 2] {
+        [
+            self.o_target[0].min(self.e_target[0]),
+            self.o_target[1].max(self.e_target[1]),
+        ]
+    }
+
+    /// The first row above every strip: a frame needs at least this many rows.
+    pub fn lit_rows_end(&self) -> usize {
+        self.strips().iter().map(|(_, r)| r[1]).max().unwrap_or(0)
+    }
+
+    /// The nominal position of the extraordinary image of a star whose ordinary image is
+    /// at `(x, y)` (a starting value: the reduction measures the offset).
+    pub fn e_image_of(&self, (x, y): (f64, f64)) -> (f64, f64) {
+        (x + self.eo_offset_px[0], y + self.eo_offset_px[1])
+    }
+}
+
+/// The two images of a Wollaston prism.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Beam {
+    /// The ordinary image.
+    Ordinary,
+    /// The extraordinary image.
+    Extraordinary,
 }
 
 /// Detector constants.
@@ -832,6 +882,49 @@ mod tests {
             .with_overrides(&["detector.gain_e_per_adu=6".into()])
             .unwrap();
         assert_eq!(p.detector.gain_e_per_adu, 6.0);
+    }
+
+    #[test]
+    fn geometry_answers_from_the_strips() {
+        let g = Profile::sofi().geometry;
+        // Each strip's rows belong to its beam; the rows between and outside are masked.
+        for (name, [a, b]) in g.strips() {
+            let want = if name.starts_with("o_") {
+                Beam::Ordinary
+            } else {
+                Beam::Extraordinary
+            };
+            for y in [a, (a + b) / 2, b - 1] {
+                assert_eq!(g.beam_of_row(y), Some(want), "{name} row {y}");
+            }
+        }
+        assert_eq!(g.beam_of_row(0), None);
+        assert_eq!(g.beam_of_row(1013), None);
+        assert_eq!(g.beam_of_row(g.ny - 1), None);
+        assert_eq!(g.target_rows(Beam::Ordinary), [345, 512]);
+        assert_eq!(g.target_rows(Beam::Extraordinary), [512, 679]);
+        assert_eq!(g.measured_rows(), [345, 679]);
+        assert_eq!(g.lit_rows_end(), 1013);
+        assert_eq!(g.e_image_of((500.0, 400.0)), (500.0, 567.0));
+        // The beam of every row agrees with the strip list, row by row.
+        for y in 0..g.ny {
+            let in_o = g
+                .strips()
+                .iter()
+                .any(|(n, r)| n.starts_with("o_") && y >= r[0] && y < r[1]);
+            let in_e = g
+                .strips()
+                .iter()
+                .any(|(n, r)| n.starts_with("e_") && y >= r[0] && y < r[1]);
+            let want = match (in_o, in_e) {
+                (true, false) => Some(Beam::Ordinary),
+                (false, true) => Some(Beam::Extraordinary),
+                (false, false) => None,
+                (true, true) => unreachable!("strips overlap at row {y}"),
+            };
+            assert_eq!(g.beam_of_row(y), want, "row {y}");
+            assert_eq!(g.row_in_strip(y), want.is_some(), "row {y}");
+        }
     }
 
     #[test]

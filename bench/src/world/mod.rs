@@ -320,12 +320,14 @@ pub fn draw_scene(
     // draw is kept so that every other condition stays what it was.)
     let _ = r.random::<f64>();
     let eo = [-1.0 + 2.0 * r.random::<f64>(), 165.5 + 3.0 * r.random::<f64>()];
-    let g = Profile::sofi().geometry;
+    let o_rows = Profile::sofi()
+        .geometry
+        .target_rows(sofipol_calib::profile::Beam::Ordinary);
     let margin = 30.0;
     let xy = [
         250.0 + 524.0 * r.random::<f64>(),
-        g.o_target[0] as f64 + margin + {
-            let span = (g.o_target[1] - g.o_target[0]) as f64 - 2.0 * margin;
+        o_rows[0] as f64 + margin + {
+            let span = (o_rows[1] - o_rows[0]) as f64 - 2.0 * margin;
             span * r.random::<f64>()
         },
     ];

@@ -259,14 +259,14 @@ fn check_shapes(frames: &[&Frame], profile: &Profile, stage: &'static str) -> Re
         }
     }
     let g = &profile.geometry;
-    if shape.0 < g.strips().iter().map(|(_, r)| r[1]).max().unwrap_or(0) {
+    if shape.0 < g.lit_rows_end() {
         return Err(Error::Stage {
             stage,
             reason: format!(
                 "{}: {} rows, the profile's strips reach row {}",
                 name_of(frames[0], 0),
                 shape.0,
-                g.strips().iter().map(|(_, r)| r[1]).max().unwrap_or(0)
+                g.lit_rows_end()
             ),
         });
     }

@@ -725,7 +725,7 @@ fn check_inputs(frames: &[Frame], profile: &Profile, opts: &SkyOptions) -> Resul
             });
         }
     }
-    let strip_end = profile.geometry.strips().iter().map(|(_, r)| r[1]).max().unwrap_or(0);
+    let strip_end = profile.geometry.lit_rows_end();
     if shape.0 < strip_end {
         return Err(Error::Stage {
             stage: "sky",

@@ -135,7 +135,7 @@ pub fn night_flats(
     // Only the target strips are reduced unless whole frames are wanted: build the
     // superflat on those rows (a third of the detector) and leave 1 elsewhere.
     let g = &profile.geometry;
-    let (r0, r1) = (g.o_target[0].min(g.e_target[0]), g.o_target[1].max(g.e_target[1]));
+    let [r0, r1] = g.measured_rows();
     let crop = !params.full_frame_sky && params.save_intermediate.is_none() && r1 > r0;
     let cropped_profile = profile.cropped_rows(r0, r1);
     for (filter, paths) in superflat_frames {

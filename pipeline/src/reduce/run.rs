@@ -411,7 +411,7 @@ fn choose_flats<'a>(
 /// whole frames are wanted.
 pub(crate) fn crop_of(profile: &Profile, params: &TargetParams) -> Option<(usize, usize)> {
     let g = &profile.geometry;
-    let (r0, r1) = (g.o_target[0].min(g.e_target[0]), g.o_target[1].max(g.e_target[1]));
+    let [r0, r1] = g.measured_rows();
     (!params.full_frame_sky && params.save_intermediate.is_none() && r1 > r0).then_some((r0, r1))
 }
 

@@ -3,6 +3,7 @@
 //! The target is the source at the pointing, not the brightest of the strip: a brighter
 //! field star elsewhere in the strip is named in the flag `brighter_source_in_strip`.
 use ndarray::{Array2, ArrayView2};
+use sofipol_calib::profile::Beam;
 use sofipol_calib::{Frame, Profile};
 
 use super::{MeasureError, MeasureParams, SkySubtractedOrientation};
@@ -265,7 +266,7 @@ pub fn locate_primary(
     params: &MeasureParams,
 ) -> Result<Primary, MeasureError> {
     let g = &profile.geometry;
-    let orow = g.o_target;
+    let orow = g.target_rows(Beam::Ordinary);
     let first = orients
         .first()
         .and_then(|o| o.frames.first())

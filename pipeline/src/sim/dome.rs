@@ -1,6 +1,7 @@
 //! Dome-flat frames (the `dome_flats` effect): per rotator angle, lamp-on then lamp-off
 //! frames through the same detector as the science frames.
 use ndarray::Array2;
+use sofipol_calib::profile::Beam;
 use sofipol_calib::{Frame, Header};
 
 use super::truth::FlatFrameTruth;
@@ -76,8 +77,8 @@ impl Simulator {
         let c = s.dome_flats.clone().unwrap_or_default();
         let g = &self.profile.geometry;
         let ((io, j), truth) = self.dome_flat_plan(i);
-        let is_o = |y: usize| [g.o_sky2, g.o_target, g.o_sky1].iter().any(|r| y >= r[0] && y < r[1]);
-        let is_e = |y: usize| [g.e_sky2, g.e_target, g.e_sky1].iter().any(|r| y >= r[0] && y < r[1]);
+        let is_o = |y: usize| g.beam_of_row(y) == Some(Beam::Ordinary);
+        let is_e = |y: usize| g.beam_of_row(y) == Some(Beam::Extraordinary);
         let mean = 0.5 * (truth.level_o_adu + truth.level_e_adu);
         let mut img = Array2::<f32>::from_shape_fn((g.ny, g.nx), |(y, _)| {
             (if is_o(y) {

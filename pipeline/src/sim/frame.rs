@@ -1,5 +1,6 @@
 //! One science frame: its drawn parameters, the sources, what the detector does, the header.
 use ndarray::Array2;
+use sofipol_calib::profile::Beam;
 use sofipol_calib::{Frame, Header};
 
 use super::pointing::mean_angle_deg;
@@ -167,7 +168,8 @@ impl Simulator {
 
         // Sources: A, B and field stars, each as (name, offset from A in px, flux, pol).
         let x_a = b.x_px.unwrap_or(nx as f64 / 2.0);
-        let y_a = b.y_px.unwrap_or((g.o_target[0] + g.o_target[1]) as f64 / 2.0 - 0.5);
+        let o_rows = g.target_rows(Beam::Ordinary);
+        let y_a = b.y_px.unwrap_or((o_rows[0] + o_rows[1]) as f64 / 2.0 - 0.5);
         let ism = if self.is_standard(t) {
             Polarization::default()
         } else {
