@@ -319,10 +319,24 @@ pub fn calibrate_catalog(
     source: CalibrationSource,
     ctx: &CalibrationContext,
 ) -> (Option<Calibration>, CalibrationSummary) {
+    let chosen = calibration_from(source, &standards, ctx);
+    calibrate_catalog_with(cat, standards, chosen, ctx)
+}
+
+/// [`calibrate_catalog`] with the calibration already chosen ([`calibration_from`]: the
+/// calibration and where it came from), e.g. before the science targets were reduced so
+/// that each target's figure could be drawn as soon as it was reduced ([`resolved_target`]).
+pub fn calibrate_catalog_with(
+    cat: &mut Catalog,
+    standards: Vec<Target>,
+    (cal, origin): (Option<Calibration>, String),
+    ctx: &CalibrationContext,
+) -> (Option<Calibration>, CalibrationSummary) {
     let mut summary = CalibrationSummary::default();
-    let (cal, origin) = calibration_from(source, &standards, ctx);
     let other_night = !matches!(origin.as_str(), "night" | "disabled");
-    resolve_targets(cat, cal.as_ref(), ctx, other_night, &mut summary);
+    for t in cat.targets.iter_mut() {
+        resolve_target(t, cal.as_ref(), ctx, other_night, &mut summary);
+    }
     standards_section(cat, standards, cal.as_ref(), ctx, &mut summary);
     cat.calibration = Some(crate::catalog::AppliedCalibration::new(
         cal.clone(),
@@ -335,10 +349,21 @@ pub fn calibrate_catalog(
     (cal, summary)
 }
 
+/// A target as [`calibrate_catalog_with`] leaves it in the catalog, for one target alone:
+/// its components re-solved with `cal` (which came from `origin`), the cut and Delta-gamma
+/// updated. The function the catalog's calibration runs per target, so a figure drawn
+/// from it shows the catalog's numbers.
+pub fn resolved_target(t: &Target, cal: Option<&Calibration>, origin: &str, ctx: &CalibrationContext) -> Target {
+    let mut t = t.clone();
+    let other_night = !matches!(origin, "night" | "disabled");
+    resolve_target(&mut t, cal, ctx, other_night, &mut CalibrationSummary::default());
+    t
+}
+
 /// The calibration to apply, and where it came from (`night`, the file, `disabled`):
 /// measured from the night's standards, read, or none; without the telescope's term when
 /// the settings say so.
-fn calibration_from(
+pub fn calibration_from(
     source: CalibrationSource,
     standards: &[Target],
     ctx: &CalibrationContext,
@@ -364,10 +389,10 @@ fn calibration_from(
     (cal, origin)
 }
 
-/// Re-solve every target component with the calibration ([`resolve_component`]); without
-/// `allow_uncalibrated`, an uncalibrated component fails the cut.
-fn resolve_targets(
-    cat: &mut Catalog,
+/// Re-solve every component of target `t` with the calibration ([`resolve_component`]);
+/// without `allow_uncalibrated`, an uncalibrated component fails the cut.
+fn resolve_target(
+    t: &mut Target,
     cal: Option<&Calibration>,
     ctx: &CalibrationContext,
     other_night: bool,
@@ -380,32 +405,30 @@ fn resolve_targets(
         cut_snr,
         ..
     } = *ctx;
-    for t in cat.targets.iter_mut() {
-        let filter = filter_of(t);
-        let fc = cal.as_ref().and_then(|c| c.for_filter(&filter));
-        let settings = SolveSettings {
-            profile,
-            cal: fc,
-            method: params.stokes_method,
-            debias,
-            cut_snr,
-            telescope_prior: TelescopePrior::of(&profile.telescope, &filter),
-            telescope_polarizes: profile.telescope.polarizes,
-        };
-        let mut n_unc = 0;
-        for c in t.components.iter_mut() {
-            n_unc += usize::from(resolve_component(c, &settings));
-            note_origin(c, other_night);
-            if !params.allow_uncalibrated {
-                refuse_incomplete(c, summary);
-            }
-            note_calibration_state(c, fc, summary);
+    let filter = filter_of(t);
+    let fc = cal.and_then(|c| c.for_filter(&filter));
+    let settings = SolveSettings {
+        profile,
+        cal: fc,
+        method: params.stokes_method,
+        debias,
+        cut_snr,
+        telescope_prior: TelescopePrior::of(&profile.telescope, &filter),
+        telescope_polarizes: profile.telescope.polarizes,
+    };
+    let mut n_unc = 0;
+    for c in t.components.iter_mut() {
+        n_unc += usize::from(resolve_component(c, &settings));
+        note_origin(c, other_night);
+        if !params.allow_uncalibrated {
+            refuse_incomplete(c, summary);
         }
-        summary.n_uncalibrated += n_unc;
-        let errors = (fc.is_some() || settings.telescope_prior.is_some())
-            .then(|| calibration_errors(fc, settings.telescope_prior.as_ref()));
-        t.update_delta_gamma(errors.as_ref());
+        note_calibration_state(c, fc, summary);
     }
+    summary.n_uncalibrated += n_unc;
+    let errors = (fc.is_some() || settings.telescope_prior.is_some())
+        .then(|| calibration_errors(fc, settings.telescope_prior.as_ref()));
+    t.update_delta_gamma(errors.as_ref());
 }
 
 /// A calibration read from another night: the terms it measured are marked so.

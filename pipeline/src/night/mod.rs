@@ -121,7 +121,9 @@ pub struct NightSeconds {
     pub reduce: f64,
     /// Reducing the standards and calibrating.
     pub calibration: f64,
-    /// Drawing the figures (after the calibration; 0 without `on_figure`).
+    /// Drawing the figures after the calibration: all of them when FITS products are
+    /// written, else none (they are drawn during the reduction, as the workers run out of
+    /// targets, and counted in `reduce`); 0 without figures.
     pub figures: f64,
 }
 
@@ -172,6 +174,51 @@ pub fn run_night(plan: &NightPlan, setup: &NightSetup, opts: &RunOptions) -> Nig
     }
     let figures_wanted = opts.hooks.on_figure.is_some() || opts.outputs.is_some_and(|o| o.wants_figures());
     let mask_array = mask.as_ref().map(|m| &m.mask);
+    // The calibration is chosen before the science targets are reduced (the standards
+    // first), so that each target's figure can be drawn from the numbers the calibrated
+    // catalog will hold as soon as the target is reduced. The workers take the targets in
+    // turn and draw queued figures only when no target is left to take: the figures fill the
+    // cores the reduction's last targets leave idle, the rest are drawn right after. FITS
+    // products may flag a target after the calibration (a Stokes map not written): with
+    // them, every figure is drawn after the calibration.
+    let t = Instant::now();
+    let prepared = calibrate::prepare(
+        &plan.standards,
+        profile,
+        params,
+        &setup.calibration,
+        mask_array,
+        flats.set.as_ref(),
+    );
+    let t_prepare = t.elapsed().as_secs_f64();
+    let draw = |fig: &TargetFigure| {
+        if let Some(f) = opts.hooks.on_figure {
+            f(fig);
+        }
+        if let Some(o) = opts.outputs {
+            o.figure(fig);
+        }
+    };
+    let early = figures_wanted && !opts.outputs.is_some_and(|o| o.wants_fits());
+    let queue = FigureQueue::default();
+    let draw_one_queued = || match queue.pop() {
+        Some((target, inputs)) => {
+            let target = prepared.resolved(&target, profile, params, &setup.calibration);
+            let calibration = prepared
+                .chosen
+                .0
+                .as_ref()
+                .and_then(|c| c.for_filter(target.filter.as_deref().unwrap_or("")));
+            draw(&TargetFigure {
+                target: &target,
+                inputs: &inputs,
+                calibration,
+            });
+            true
+        }
+        None => false,
+    };
+    let enqueue = |target: &Target, inputs: FigureInputs| queue.push((target.clone(), inputs));
     let t = Instant::now();
     let cache = opts.cache.filter(|_| !figures_wanted).map(|c| (c, mask_key, flats_key));
     let mut reduced = reduce_sequences_cached(
@@ -182,6 +229,10 @@ pub fn run_night(plan: &NightPlan, setup: &NightSetup, opts: &RunOptions) -> Nig
         flats.set.as_ref(),
         (&opts.hooks, opts.outputs),
         cache,
+        early.then_some(Figures {
+            enqueue: &enqueue,
+            draw_one: &draw_one_queued,
+        }),
     );
     let t_reduce = t.elapsed().as_secs_f64();
     let mut cat = std::mem::take(&mut reduced.catalog);
@@ -191,29 +242,13 @@ pub fn run_night(plan: &NightPlan, setup: &NightSetup, opts: &RunOptions) -> Nig
     failures.sort_by(|a, b| a.file.cmp(&b.file));
     cat.failures = failures;
     let t = Instant::now();
-    let (calibration, summary) = calibrate(
-        &mut cat,
-        &plan.standards,
-        profile,
-        params,
-        &setup.calibration,
-        mask_array,
-        flats.set.as_ref(),
-    );
-    let t_cal = t.elapsed().as_secs_f64();
+    let (calibration, summary) = calibrate::finish(&mut cat, prepared, profile, params, &setup.calibration);
+    let t_cal = t_prepare + t.elapsed().as_secs_f64();
     if let Some(o) = opts.outputs {
         o.calibrated(&mut cat.targets, calibration.as_ref(), profile);
     }
     let t = Instant::now();
-    if figures_wanted {
-        let draw = |fig: &TargetFigure| {
-            if let Some(f) = opts.hooks.on_figure {
-                f(fig);
-            }
-            if let Some(o) = opts.outputs {
-                o.figure(fig);
-            }
-        };
+    if figures_wanted && !early {
         draw_figures(&cat.targets, &reduced.figures, calibration.as_ref(), &draw);
     }
     let t_fig = t.elapsed().as_secs_f64();
@@ -300,13 +335,83 @@ pub fn reduce_sequences(
     flats: Option<&FlatSet>,
     hooks: &Hooks,
 ) -> Reduced {
-    reduce_sequences_cached(sequences, profile, params, night_mask, flats, (hooks, None), None)
+    reduce_sequences_cached(sequences, profile, params, night_mask, flats, (hooks, None), None, None)
+}
+
+/// The figures of the targets reduced, waiting to be drawn (the inputs taken while the
+/// target's frames were in memory).
+#[derive(Default)]
+struct FigureQueue(std::sync::Mutex<std::collections::VecDeque<(Target, FigureInputs)>>);
+
+impl FigureQueue {
+    fn push(&self, job: (Target, FigureInputs)) {
+        self.0.lock().unwrap_or_else(|e| e.into_inner()).push_back(job);
+    }
+
+    fn pop(&self) -> Option<(Target, FigureInputs)> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner()).pop_front()
+    }
+}
+
+/// How a reduction hands over its targets' figures: `enqueue` takes a target just reduced
+/// and its figure inputs; `draw_one` draws one figure waiting, if any (`false` when none
+/// waits). The workers call `draw_one` only when no target is left to take.
+#[derive(Clone, Copy)]
+struct Figures<'a> {
+    enqueue: &'a (dyn Fn(&Target, FigureInputs) + Sync),
+    draw_one: &'a (dyn Fn() -> bool + Sync),
+}
+
+/// Run `one(k)` for k = 0..n on every worker of the current rayon pool, the workers taking
+/// the k in turn; a worker finding none left calls `idle` (other work, done only then)
+/// until every `one` has returned and `idle` finds nothing. The results in the order of k.
+fn claim_in_turn<T: Send>(n: usize, one: &(dyn Fn(usize) -> T + Sync), idle: &(dyn Fn() -> bool + Sync)) -> Vec<T> {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let next = AtomicUsize::new(0);
+    let done = AtomicUsize::new(0);
+    let slots: Vec<std::sync::Mutex<Option<T>>> = (0..n).map(|_| std::sync::Mutex::new(None)).collect();
+    rayon::broadcast(|_| loop {
+        let k = next.fetch_add(1, Ordering::SeqCst);
+        if k < n {
+            let v = one(k);
+            *slots[k].lock().unwrap_or_else(|e| e.into_inner()) = Some(v);
+            done.fetch_add(1, Ordering::SeqCst);
+            continue;
+        }
+        if idle() {
+            continue;
+        }
+        if done.load(Ordering::SeqCst) >= n {
+            // Every `one` has returned, so nothing more can be queued for `idle`; what a
+            // last `one` queued was found empty above only once taken by another worker.
+            if !idle() {
+                break;
+            }
+            continue;
+        }
+        // The last targets are being reduced by other workers: help with their parallel
+        // parts, else wait a little.
+        if !matches!(rayon::yield_now(), Some(rayon::Yield::Executed)) {
+            std::thread::sleep(std::time::Duration::from_micros(200));
+        }
+    });
+    slots
+        .into_iter()
+        .map(|m| {
+            m.into_inner()
+                .unwrap_or_else(|e| e.into_inner())
+                .expect("every item was taken and its result stored")
+        })
+        .collect()
 }
 
 /// [`reduce_sequences`], taking each target from `cache` (with the keys of the mask and
 /// flats given) when its inputs are unchanged, and keeping the others there; with
 /// `outputs`, each target reduced has its regions and FITS products written while its
-/// frames are in memory.
+/// frames are in memory. With `figures_now`, each target's figure inputs are handed over
+/// as soon as the target is reduced (not kept in [`Reduced::figures`]) and the figures are
+/// drawn by workers that find no target left to reduce ([`claim_in_turn`]).
+#[allow(clippy::too_many_arguments)]
 fn reduce_sequences_cached(
     sequences: &[Sequence],
     profile: &Profile,
@@ -315,6 +420,7 @@ fn reduce_sequences_cached(
     flats: Option<&FlatSet>,
     (hooks, outputs): (&Hooks, Option<&crate::products::Outputs>),
     cache: Option<(&NightCache, u64, u64)>,
+    figures_now: Option<Figures>,
 ) -> Reduced {
     let want_figures = hooks.on_figure.is_some() || outputs.is_some_and(|o| o.wants_figures());
     let keep_frames = outputs.is_some_and(|o| o.wants_frames());
@@ -329,33 +435,42 @@ fn reduce_sequences_cached(
             out.times.write += t.elapsed().as_secs_f64();
         }
     };
-    let outs: Vec<(Target, Vec<Failure>, StageTimes, Option<FigureInputs>)> = sequences
-        .par_iter()
-        .map(|q| {
-            let (target, failures, times, fig) = match cache {
-                Some((c, mask_key, flats_key)) => {
-                    let mut times = StageTimes::default();
-                    let (t, f, _) = c.target(c.target_key(q, mask_key, flats_key), || {
-                        let mut out = reduce_sequence(q, profile, params, night_mask, flats, keep_frames);
-                        reduced(&mut out);
-                        times = out.times;
-                        (out.target, out.failures)
-                    });
-                    (t, f, times, None)
-                }
-                None => {
-                    let mut out = reduce_sequence(q, profile, params, night_mask, flats, want_figures || keep_frames);
+    let one = |q: &Sequence| {
+        let (target, failures, times, fig) = match cache {
+            Some((c, mask_key, flats_key)) => {
+                let mut times = StageTimes::default();
+                let (t, f, _) = c.target(c.target_key(q, mask_key, flats_key), || {
+                    let mut out = reduce_sequence(q, profile, params, night_mask, flats, keep_frames);
                     reduced(&mut out);
-                    let fig = want_figures.then(|| FigureInputs::from_outcome(&out));
-                    (out.target, out.failures, out.times, fig)
-                }
-            };
-            if let Some(f) = hooks.on_done {
-                f(&target);
+                    times = out.times;
+                    (out.target, out.failures)
+                });
+                (t, f, times, None)
             }
-            (target, failures, times, fig)
-        })
-        .collect();
+            None => {
+                let mut out = reduce_sequence(q, profile, params, night_mask, flats, want_figures || keep_frames);
+                reduced(&mut out);
+                let fig = want_figures.then(|| FigureInputs::from_outcome(&out));
+                let fig = match (fig, figures_now) {
+                    (Some(inputs), Some(f)) => {
+                        (f.enqueue)(&out.target, inputs);
+                        None
+                    }
+                    (fig, _) => fig,
+                };
+                (out.target, out.failures, out.times, fig)
+            }
+        };
+        if let Some(f) = hooks.on_done {
+            f(&target);
+        }
+        (target, failures, times, fig)
+    };
+    type Out = (Target, Vec<Failure>, StageTimes, Option<FigureInputs>);
+    let outs: Vec<Out> = match figures_now {
+        Some(f) => claim_in_turn(sequences.len(), &|k| one(&sequences[k]), f.draw_one),
+        None => sequences.par_iter().map(one).collect(),
+    };
     let mut catalog = Catalog {
         schema_version: SCHEMA_VERSION.into(),
         ..Default::default()

@@ -198,6 +198,11 @@ impl Outputs {
         self.figures.is_some()
     }
 
+    /// Whether FITS products are written (they may flag a target after the calibration).
+    pub fn wants_fits(&self) -> bool {
+        self.fits.is_some()
+    }
+
     /// Whether a reduced target's frames are kept until [`Outputs::reduced`] (the FITS
     /// products need them; the regions only the measured positions).
     pub fn wants_frames(&self) -> bool {
