@@ -470,3 +470,22 @@ fn refused_values_name_the_key() {
         assert!(err.contains(key) && err.contains("bad.toml"), "{extra}: {err}");
     }
 }
+
+/// The example of docs/simulator.md parses and gives what the page says of it.
+#[test]
+fn documented_example_scene_gives_the_stated_population() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../testdata/scenes/foreground_field.toml");
+    let sc = Scene::from_toml(&std::fs::read_to_string(path).unwrap(), path).unwrap();
+    let sim = Simulator::new(sc, Profile::sofi()).unwrap();
+    let truth = sim.truth(&[]);
+    let pop = truth.field_population.as_ref().unwrap();
+    // "0.5 x 11.8 x (10^1.2 - 10^-1.8) = 94" stars on "11.8 arcmin^2".
+    assert!((pop.area_arcmin2 - 11.8).abs() < 0.05 && (pop.expected_per_binary - 94.0).abs() < 0.5);
+    for tt in &truth.targets {
+        let n = tt.field_stars.len() as f64;
+        assert!((n - 94.0).abs() < 4.0 * 94f64.sqrt(), "{}: {n} field stars", tt.object);
+        let fg = tt.foreground.as_ref().unwrap();
+        let mean = Polarization::from_p_gamma(0.02, 60.0);
+        assert!((fg.q - mean.q).abs() < 5.0 * 0.004 && (fg.u - mean.u).abs() < 5.0 * 0.004);
+    }
+}

@@ -299,6 +299,8 @@ impl Simulator {
                 Polarization::from_p_gamma(f.p, f.gamma_deg),
             ));
         }
+        // Sources from this index on were drawn by `field_population`.
+        let first_drawn = srcs.len() - self.drawn_k[t].len();
         // The foreground field at each source (same order: A, B, field stars).
         let fg = self.star_foreground(t);
         let mut sources = Vec::with_capacity(srcs.len());
@@ -327,7 +329,13 @@ impl Simulator {
             let yo = y_a + fp.true_off[1] + dy;
             let xe = xo + g.eo_offset_px[0];
             let ye = yo + g.eo_offset_px[1];
-            let stamp_o = self.render(fp.psf, xo, yo);
+            // A drawn field star's wing is cut where it holds 0.5 ADU (psf::render_with_tail).
+            let tail = if i >= first_drawn {
+                psf::MOFFAT_TAIL.max(0.5 / flux.max(1e-300))
+            } else {
+                psf::MOFFAT_TAIL
+            };
+            let stamp_o = self.render(fp.psf, xo, yo, tail);
             psf::add_stamp(&mut img, &stamp_o, fo);
             // The e image has the o image's sub-pixel phase when the beam offset is a
             // whole number of pixels (SOFI: 167 px): reuse the stamp.
@@ -335,7 +343,7 @@ impl Simulator {
             let stamp_e = if ox.fract() == 0.0 && oy.fract() == 0.0 && (xe - ox == xo) && (ye - oy == yo) {
                 stamp_o.shifted(ox as i64, oy as i64)
             } else {
-                self.render(fp.psf, xe, ye)
+                self.render(fp.psf, xe, ye, tail)
             };
             psf::add_stamp(&mut img, &stamp_e, fe);
             sources.push(SourceTruth {
@@ -454,11 +462,11 @@ impl Simulator {
         cr_pixels
     }
 
-    fn render(&self, p: psf::Psf, x: f64, y: f64) -> psf::Stamp {
+    fn render(&self, p: psf::Psf, x: f64, y: f64, tail: f64) -> psf::Stamp {
         if !matches!(p, psf::Psf::Point) {
             self.calls.hit(EffectKind::Psf);
         }
-        psf::render(p, x, y)
+        psf::render_with_tail(p, x, y, tail)
     }
 
     fn header(&self, t: usize, k: usize, fp: &FrameParams, file_name: &str) -> Header {

@@ -308,7 +308,7 @@ impl Scene {
             );
         }
         // Bounded like the other counts (the profile's strips are not known here: SOFI's
-        // three o strips, 1024 x 501 px at 0.288"/px, are 11.4 arcmin^2; 30 covers any
+        // three o strips, 1024 x 501 px at 0.288"/px, are 11.8 arcmin^2; 30 covers any
         // profile of that detector size).
         let s = c.slope_dex_per_mag;
         let per_arcmin2 = c.density_per_arcmin2
