@@ -2,7 +2,8 @@
 //! `cargo run --release -p sofipol-bench --example world -- [targets per bin]`, or write
 //! one drawn target's frames to look at: `... --example world -- write BIN T DIR [SEED]`;
 //! `-- N nocal` leaves the night's calibration unused, `-- N noinst` turns the instrument off,
-//! `noell` / `nonl` only the PSF ellipticity / the non-linearity (`full`: everything); a
+//! `noell` / `nonl` only the PSF ellipticity / the non-linearity, `fg` adds the
+//! interstellar foreground field (`foreground_field`; `full`: everything as default); a
 //! third argument is the seed, or seeds (`13,15,21`: every night's table, then the bins
 //! pooled over the nights). Environment: `WORLD_JSON=file` writes every target (conditions,
 //! pulls, photometry method, dither chi2, per-orientation F) as JSON; `WORLD_BETA_FREE=1`
@@ -36,6 +37,7 @@ fn main() {
         Some("noinst") => cfg.instrument = false,
         Some("noell") => cfg.ellipticity = false,
         Some("nonl") => cfg.nonlinearity = false,
+        Some("fg") => cfg.foreground_field = true,
         _ => {}
     }
     let t0 = std::time::Instant::now();

@@ -365,6 +365,8 @@ mod tests {
             pa_deg: 30.0,
             components: vec![comp("A", 0), comp("B", 1)],
             frames: vec![],
+            foreground: None,
+            field_stars: vec![],
         }
     }
 

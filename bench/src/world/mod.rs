@@ -21,6 +21,7 @@
 //! | instrument (one per night) | 1 % pixel response + 5 % vignetting (one detector: `detector_seed`), k = T_e/T_o 0.96-0.99, instrumental polarization 0.3 %, analyzer zero-point -5..5 deg and parity +-1, non-linearity, saturation |
 //! | calibration | dome flats and 2 unpolarized + 2 polarized standards of the same night and detector (their true polarization drawn from the table's values and errors), reduced and applied as `sofipol night` does |
 //! | telescope (off by default) | with `telescope_polarization`: p_tel 0-1 %, psi_tel 0-180 deg for the night; with `spread_standards`: the standards hours apart at spread parallactic angles |
+//! | foreground (off by default) | with `foreground_field`: one field on the sky for the night (every target's scene shares its seed): mean P 0-3 % at an angle 0-180 deg, rms of q and u 0.1-0.8 %, coherence 20-600" (log-uniform); each component gets the field at its own position |
 //!
 //! Pulls are `(q - q_true)/sigma_q` and `(u - u_true)/sigma_u` of both components; the A/B
 //! labels of the catalog are matched to the truth by position angle, and a swap of a pair
@@ -42,6 +43,7 @@ use sofipol_pipeline::calibration::{
 use sofipol_pipeline::catalog::{Catalog, Target};
 use sofipol_pipeline::night::{self, Hooks, NightSetup, RunOptions};
 use sofipol_pipeline::reduce::TargetParams;
+use sofipol_pipeline::sim::scene::ForegroundFieldConfig;
 use sofipol_pipeline::sim::{Scene, Simulator, TargetTruth};
 use sofipol_pipeline::standards::StandardsTable;
 use sofipol_pipeline::stokes::model::TelescopePolarization;
@@ -96,6 +98,9 @@ pub struct WorldConfig {
     /// ([`SPREAD_STANDARDS`]) that spread their parallactic angles, instead of one after
     /// another at pointings drawn from their names.
     pub spread_standards: bool,
+    /// The interstellar foreground as a field on the sky (effect `foreground_field`) in
+    /// every target's scene, drawn once for the night ([`draw_foreground`]).
+    pub foreground_field: bool,
 }
 
 /// (start UT, Dec, hour angle at the start in h) of the four standards of the world night
@@ -124,6 +129,7 @@ impl WorldConfig {
             saturated_every: 6,
             telescope_polarization: false,
             spread_standards: false,
+            foreground_field: false,
         }
     }
 }
@@ -246,6 +252,27 @@ pub struct Instrument {
     /// The telescope's polarization (with `telescope_polarization`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub telescope: Option<TelescopePolarization>,
+    /// The foreground field on the sky (with `foreground_field`; not instrumental, but drawn
+    /// once per night like the instrument).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub foreground: Option<ForegroundFieldConfig>,
+}
+
+/// The night's foreground field, from its own stream of the seed: mean P uniform in
+/// [0, 3 %) at an angle uniform in [0, 180) deg (K-band foregrounds of nearby star-forming
+/// clouds are 0-3 %), rms of q and of u uniform in [0.1, 0.8) %, coherence log-uniform in
+/// [20, 600) arcsec, the modes drawn from the night's seed (every target's scene sees the
+/// same field, each at its own place on the sky).
+pub fn draw_foreground(seed: u64) -> ForegroundFieldConfig {
+    let mut r = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(seed ^ 0xF0E6_0F1E);
+    ForegroundFieldConfig {
+        p: 0.03 * r.random::<f64>(),
+        angle_deg: 180.0 * r.random::<f64>(),
+        rms: 0.001 + 0.007 * r.random::<f64>(),
+        coherence_arcsec: 20.0 * 30f64.powf(r.random::<f64>()),
+        modes: 64,
+        seed: Some(seed),
+    }
 }
 
 /// Draw the night's instrument from the seed.
@@ -265,6 +292,7 @@ pub fn draw_instrument(cfg: &WorldConfig) -> Instrument {
                 psi_tel_deg: 180.0 * r.random::<f64>(),
             }
         }),
+        foreground: cfg.foreground_field.then(|| draw_foreground(cfg.seed)),
     }
 }
 
@@ -297,6 +325,20 @@ fn night_sections(cfg: &WorldConfig, inst: &Instrument) -> (String, String) {
         sections += &format!(
             "[telescope_polarization]\np_tel = {}\npsi_tel_deg = {}\n",
             t.p_tel, t.psi_tel_deg
+        );
+    }
+    if let Some(f) = &inst.foreground {
+        // (The standards of the calibration scene see none: the simulator adds it to
+        // binaries only.)
+        effects += r#", "foreground_field""#;
+        sections += &format!(
+            "[foreground_field]\np = {}\nangle_deg = {}\nrms = {}\ncoherence_arcsec = {}\nmodes = {}\nseed = {}\n",
+            f.p,
+            f.angle_deg,
+            f.rms,
+            f.coherence_arcsec,
+            f.modes,
+            f.seed.unwrap_or(cfg.seed)
         );
     }
     (effects, sections)

@@ -1,10 +1,12 @@
 //! One science frame: its drawn parameters, the sources, what the detector does, the header.
 use ndarray::Array2;
-use sofipol_calib::profile::Beam;
 use sofipol_calib::{Frame, Header};
 
+use super::foreground::{offset_position, StarForeground};
 use super::pointing::mean_angle_deg;
-use super::truth::{ComponentTruth, FramePointing, FrameTruth, SimFrame, SourceTruth, TargetTruth};
+use super::truth::{
+    ComponentTruth, FieldStarTruth, FramePointing, FrameTruth, SimFrame, SourceTruth, TargetForeground, TargetTruth,
+};
 use super::{effects, psf, schedule, EffectKind, Simulator};
 use crate::stokes::model::{beam_fluxes, companion_offset_px, normalized_difference, Polarization};
 
@@ -34,7 +36,91 @@ impl Simulator {
             pa_deg: b.pa_deg,
             components: self.component_truth(t),
             frames: frames.get(t).cloned().unwrap_or_default(),
+            foreground: self.star_foreground(t).map(|stars| TargetForeground {
+                q: stars[0].q,
+                u: stars[0].u,
+                stars,
+            }),
+            field_stars: self.field_star_truth(t),
         }
+    }
+
+    /// The foreground field at every star of target `t` (A, B, then its field stars, as
+    /// [`Simulator::frame`] lists them), when `foreground_field` is listed and `t` is a
+    /// binary (standards see none: their p, gamma are their totals). A sits at the
+    /// sequence's RA and Dec, every other star at its separation and position angle from A
+    /// along the great circle.
+    pub(super) fn star_foreground(&self, t: usize) -> Option<Vec<StarForeground>> {
+        let field = self.foreground.as_ref()?;
+        if self.is_standard(t) {
+            return None;
+        }
+        self.calls.hit(EffectKind::ForegroundField);
+        let b = &self.targets[t];
+        let (ra, dec) = (self.plan[t].ra_deg, self.plan[t].dec_deg);
+        let stars = [
+            ("A".to_string(), 0.0, 0.0),
+            ("B".to_string(), b.separation_arcsec, b.pa_deg),
+        ]
+        .into_iter()
+        .chain(
+            b.field_star
+                .iter()
+                .enumerate()
+                .map(|(i, f)| (format!("field{}", i + 1), f.separation_arcsec, f.pa_deg)),
+        )
+        .map(|(name, sep, pa)| {
+            let (ra_s, dec_s) = offset_position(ra, dec, sep, pa);
+            let p = field.at(ra_s, dec_s);
+            StarForeground {
+                name,
+                ra_deg: ra_s,
+                dec_deg: dec_s,
+                q: p.q,
+                u: p.u,
+            }
+        })
+        .collect();
+        Some(stars)
+    }
+
+    /// Truth of target `t`'s field stars: recorded when the scene lists `foreground_field`
+    /// or has a `field_population` (empty otherwise, as truth.json always was).
+    fn field_star_truth(&self, t: usize) -> Vec<FieldStarTruth> {
+        let s = &self.scene;
+        if !(s.has(EffectKind::ForegroundField) || s.field_population.is_some()) || self.is_standard(t) {
+            return Vec::new();
+        }
+        let b = &self.targets[t];
+        let ism = self.ism();
+        let fg = self.star_foreground(t);
+        let n_own = b.field_star.len() - self.drawn_k[t].len();
+        b.field_star
+            .iter()
+            .enumerate()
+            .map(|(i, f)| {
+                let intrinsic = Polarization::from_p_gamma(f.p, f.gamma_deg);
+                let mut sky = intrinsic.add(ism);
+                if let Some(fg) = &fg {
+                    sky = sky.add(Polarization {
+                        q: fg[2 + i].q,
+                        u: fg[2 + i].u,
+                    });
+                }
+                FieldStarTruth {
+                    name: format!("field{}", i + 1),
+                    separation_arcsec: f.separation_arcsec,
+                    pa_deg: f.pa_deg,
+                    flux: f.flux,
+                    k_mag: i.checked_sub(n_own).map(|j| self.drawn_k[t][j]),
+                    intrinsic,
+                    q: sky.q,
+                    u: sky.u,
+                    p: sky.p(),
+                    gamma_deg: sky.gamma_deg(),
+                }
+            })
+            .collect()
     }
 
     fn frame_params(&self, t: usize, k: usize) -> FrameParams {
@@ -118,14 +204,19 @@ impl Simulator {
         } else {
             self.ism()
         };
+        let fg = self.star_foreground(t);
         [
             ("A", b.flux_a, b.p_a, b.gamma_a_deg),
             ("B", b.flux_b, b.p_b, b.gamma_b_deg),
         ]
         .into_iter()
-        .map(|(name, flux, p, g)| {
+        .enumerate()
+        .map(|(i, (name, flux, p, g))| {
             let intrinsic = Polarization::from_p_gamma(p, g);
-            let sky = intrinsic.add(ism);
+            let mut sky = intrinsic.add(ism);
+            if let Some(fg) = &fg {
+                sky = sky.add(Polarization { q: fg[i].q, u: fg[i].u });
+            }
             ComponentTruth {
                 name: name.into(),
                 flux,
@@ -167,9 +258,7 @@ impl Simulator {
         }
 
         // Sources: A, B and field stars, each as (name, offset from A in px, flux, pol).
-        let x_a = b.x_px.unwrap_or(nx as f64 / 2.0);
-        let o_rows = g.target_rows(Beam::Ordinary);
-        let y_a = b.y_px.unwrap_or((o_rows[0] + o_rows[1]) as f64 / 2.0 - 0.5);
+        let [x_a, y_a] = super::primary_xy(b, g);
         let ism = if self.is_standard(t) {
             Polarization::default()
         } else {
@@ -210,11 +299,19 @@ impl Simulator {
                 Polarization::from_p_gamma(f.p, f.gamma_deg),
             ));
         }
+        // Sources from this index on were drawn by `field_population`.
+        let first_drawn = srcs.len() - self.drawn_k[t].len();
+        // The foreground field at each source (same order: A, B, field stars).
+        let fg = self.star_foreground(t);
         let mut sources = Vec::with_capacity(srcs.len());
-        for (name, (dx, dy), flux, pol) in srcs {
-            // Sky frame: the source's own polarization, the ISM in front of it, then the
-            // telescope's (M3 is in front of the rotator: it does not turn with phi).
+        for (i, (name, (dx, dy), flux, pol)) in srcs.into_iter().enumerate() {
+            // Sky frame: the source's own polarization, the ISM in front of it (uniform,
+            // then the foreground field at the source), then the telescope's (M3 is in
+            // front of the rotator: it does not turn with phi).
             let mut pol = pol.add(ism);
+            if let Some(fg) = &fg {
+                pol = pol.add(Polarization { q: fg[i].q, u: fg[i].u });
+            }
             if let Some(tel) = fp.telescope {
                 pol = pol.add(tel);
             }
@@ -232,7 +329,13 @@ impl Simulator {
             let yo = y_a + fp.true_off[1] + dy;
             let xe = xo + g.eo_offset_px[0];
             let ye = yo + g.eo_offset_px[1];
-            let stamp_o = self.render(fp.psf, xo, yo);
+            // A drawn field star's wing is cut where it holds 0.5 ADU (psf::render_with_tail).
+            let tail = if i >= first_drawn {
+                psf::MOFFAT_TAIL.max(0.5 / flux.max(1e-300))
+            } else {
+                psf::MOFFAT_TAIL
+            };
+            let stamp_o = self.render(fp.psf, xo, yo, tail);
             psf::add_stamp(&mut img, &stamp_o, fo);
             // The e image has the o image's sub-pixel phase when the beam offset is a
             // whole number of pixels (SOFI: 167 px): reuse the stamp.
@@ -240,7 +343,7 @@ impl Simulator {
             let stamp_e = if ox.fract() == 0.0 && oy.fract() == 0.0 && (xe - ox == xo) && (ye - oy == yo) {
                 stamp_o.shifted(ox as i64, oy as i64)
             } else {
-                self.render(fp.psf, xe, ye)
+                self.render(fp.psf, xe, ye, tail)
             };
             psf::add_stamp(&mut img, &stamp_e, fe);
             sources.push(SourceTruth {
@@ -359,11 +462,11 @@ impl Simulator {
         cr_pixels
     }
 
-    fn render(&self, p: psf::Psf, x: f64, y: f64) -> psf::Stamp {
+    fn render(&self, p: psf::Psf, x: f64, y: f64, tail: f64) -> psf::Stamp {
         if !matches!(p, psf::Psf::Point) {
             self.calls.hit(EffectKind::Psf);
         }
-        psf::render(p, x, y)
+        psf::render_with_tail(p, x, y, tail)
     }
 
     fn header(&self, t: usize, k: usize, fp: &FrameParams, file_name: &str) -> Header {

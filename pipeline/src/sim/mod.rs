@@ -19,16 +19,20 @@
 //!
 //! Submodules: [`scene`] (the TOML scene), [`schedule`] (when each sequence starts, where it
 //! points), [`pointing`] (sidereal time, hour angle, airmass, parallactic angle at La
-//! Silla), [`effects`] (one function per effect), [`psf`] (PSF rendering), [`truth`] (what
+//! Silla), [`effects`] (one function per effect), [`foreground`] (the interstellar
+//! foreground as a field on the sky), [`population`] (field stars drawn from a K-band
+//! luminosity function), [`psf`] (PSF rendering), [`truth`] (what
 //! was simulated), `frame` (one science frame: parameters,
 //! sources, detector, header), `dome` (dome-flat frames), `output` (whole scenes in
 //! memory or written to a folder), `loaded` (one target's frames as the reduction's input).
 mod dome;
 pub mod effects;
+pub mod foreground;
 mod frame;
 mod loaded;
 mod output;
 pub mod pointing;
+pub mod population;
 pub mod psf;
 pub mod rng;
 pub mod scene;
@@ -47,7 +51,10 @@ use sofipol_calib::Profile;
 pub use dome::SimFlatFrame;
 pub use loaded::loaded_from_sim;
 pub use scene::{Binary, EffectKind, Scene, StandardSource};
-pub use truth::{ComponentTruth, FlatFrameTruth, FramePointing, FrameTruth, SimFrame, SourceTruth, TargetTruth, Truth};
+pub use truth::{
+    ComponentTruth, FieldStarTruth, FlatFrameTruth, FramePointing, FrameTruth, SimFrame, SourceTruth, TargetForeground,
+    TargetTruth, Truth,
+};
 
 /// Per-effect call counters.
 #[derive(Debug, Default)]
@@ -80,8 +87,13 @@ pub struct Simulator {
     /// Sequence `t`'s start and pointing.
     plan: Vec<schedule::SequencePlan>,
     /// Binaries, then the standards as single stars (flux_b = 0): sequence `t` observes
-    /// `targets[t]`.
+    /// `targets[t]` (a binary's field stars: the scene's, then those drawn by
+    /// `field_population`).
     targets: Vec<Binary>,
+    /// The foreground field's modes (effect `foreground_field`).
+    foreground: Option<foreground::ForegroundField>,
+    /// K magnitude of each binary's drawn field stars (after the scene's own), per target.
+    drawn_k: Vec<Vec<f64>>,
 }
 
 impl Simulator {
@@ -108,7 +120,7 @@ impl Simulator {
                 nx,
             )
         });
-        let targets: Vec<Binary> = scene
+        let mut targets: Vec<Binary> = scene
             .binary
             .iter()
             .cloned()
@@ -133,6 +145,28 @@ impl Simulator {
             .collect();
         // When each sequence starts and where it points (binaries, then standards).
         let plan = scene.plan()?;
+        let foreground = scene.has(EffectKind::ForegroundField).then(|| {
+            let c = scene.foreground_field.clone().unwrap_or_default();
+            calls.hit(EffectKind::ForegroundField);
+            foreground::ForegroundField::new(&c, c.seed.unwrap_or(scene.seed))
+        });
+        let mut drawn_k = vec![Vec::new(); targets.len()];
+        if let (Some(c), Some(zp)) = (&scene.field_population, scene.observation.zero_point_mag) {
+            let g = &profile.geometry;
+            let posang = scene.observation.orientations_deg[0];
+            for (t, b) in targets.iter_mut().enumerate().take(scene.binary.len()) {
+                let (bx, by) = stokes_offset(b, posang, g.pixscale_arcsec);
+                let at = population::Frame0 {
+                    a_xy: primary_xy(b, g),
+                    b_off: [bx, by],
+                    posang_deg: posang,
+                };
+                for d in population::draw(c, zp, scene.observation.dit_s, g, &at, scene.seed, t as u64) {
+                    b.field_star.push(d.star);
+                    drawn_k[t].push(d.k_mag);
+                }
+            }
+        }
         Ok(Simulator {
             scene,
             profile,
@@ -141,6 +175,8 @@ impl Simulator {
             flat,
             plan,
             targets,
+            foreground,
+            drawn_k,
         })
     }
 
@@ -203,6 +239,23 @@ impl Simulator {
     fn scale(&self) -> f64 {
         self.profile.geometry.pixscale_arcsec
     }
+}
+
+/// A's ordinary image (x, y) at zero offset, px: the binary's `x_px`, `y_px`, else the
+/// detector's centre column and the middle of the o-target strip.
+pub(crate) fn primary_xy(b: &Binary, g: &sofipol_calib::profile::Geometry) -> [f64; 2] {
+    [
+        b.x_px.unwrap_or(g.nx as f64 / 2.0),
+        b.y_px.unwrap_or({
+            let o_rows = g.target_rows(sofipol_calib::profile::Beam::Ordinary);
+            (o_rows[0] + o_rows[1]) as f64 / 2.0 - 0.5
+        }),
+    ]
+}
+
+/// B's offset from A on the detector at rotator angle `posang`, px.
+fn stokes_offset(b: &Binary, posang: f64, scale: f64) -> (f64, f64) {
+    crate::stokes::model::companion_offset_px(b.separation_arcsec, b.pa_deg, posang, scale)
 }
 
 /// A name as a part of a file name: ASCII letters and digits kept, everything else

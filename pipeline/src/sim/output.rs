@@ -1,6 +1,7 @@
 //! Whole scenes: the truth, every frame in memory, or every frame written to a folder.
 use super::truth::{
-    DetectorTruth, FlatFieldTruth, FrameTruth, InstrumentalPolarizationTruth, SimFrame, ThroughputTruth, Truth,
+    DetectorTruth, FieldPopulationTruth, FlatFieldTruth, FrameTruth, InstrumentalPolarizationTruth, SimFrame,
+    ThroughputTruth, Truth,
 };
 use super::{effects, EffectKind, Simulator};
 
@@ -42,6 +43,15 @@ impl Simulator {
             telescope_polarization: s
                 .has(EffectKind::TelescopePolarization)
                 .then(|| s.telescope_polarization.clone().unwrap_or_default().model()),
+            foreground_field: s.has(EffectKind::ForegroundField).then(|| {
+                let c = s.foreground_field.clone().unwrap_or_default();
+                super::foreground::ForegroundFieldTruth::of(&c, c.seed.unwrap_or(s.seed))
+            }),
+            field_population: s.field_population.as_ref().map(|c| FieldPopulationTruth {
+                area_arcmin2: super::population::area_arcmin2(&self.profile.geometry),
+                expected_per_binary: super::population::expected_count(c, &self.profile.geometry),
+                zero_point_mag: s.observation.zero_point_mag.unwrap_or(f64::NAN),
+            }),
             detector,
             targets: (0..s.binary.len()).map(|t| self.target_truth(t, frames)).collect(),
             standards: (s.binary.len()..self.targets.len())

@@ -85,20 +85,22 @@ impl Psf {
         }
     }
 
-    /// Half-size of the rendered stamp, px.
-    fn half_size(&self) -> usize {
+    /// Half-size of the rendered stamp, px: a Moffat is truncated at the radius beyond
+    /// which the fraction `tail` of its flux lies ([`MOFFAT_TAIL`] but for faint field
+    /// stars, [`render_with_tail`]).
+    fn half_size(&self, tail: f64) -> usize {
         match *self {
             Psf::Point => 1,
             Psf::Gaussian { sigma_px } => (8.0 * sigma_px).ceil() as usize + 1,
             Psf::Moffat { alpha_px, beta } => {
-                // 1 - (1 + R^2/a^2)^(1-beta) = 1 - 1e-5
-                let x = 1e-5f64.powf(1.0 / (1.0 - beta)) - 1.0;
+                // 1 - (1 + R^2/a^2)^(1-beta) = 1 - tail
+                let x = tail.powf(1.0 / (1.0 - beta)) - 1.0;
                 ((alpha_px * x.max(0.0).sqrt()).ceil() as usize + 1).min(60)
             }
             Psf::EllipticalMoffat {
                 alpha_px, beta, ratio, ..
             } => {
-                let x = 1e-5f64.powf(1.0 / (1.0 - beta)) - 1.0;
+                let x = tail.powf(1.0 / (1.0 - beta)) - 1.0;
                 ((alpha_px * x.max(0.0).sqrt() / ratio.sqrt()).ceil() as usize + 1).min(60)
             }
         }
@@ -124,8 +126,20 @@ pub struct Stamp {
     pub values: Array2<f64>,
 }
 
+/// Fraction of a Moffat's flux beyond its truncation radius (before renormalising).
+pub const MOFFAT_TAIL: f64 = 1e-5;
+
 /// Render a unit-flux PSF centred at (cx, cy) (pixel centres at integers).
 pub fn render(psf: Psf, cx: f64, cy: f64) -> Stamp {
+    render_with_tail(psf, cx, cy, MOFFAT_TAIL)
+}
+
+/// [`render`] with a Moffat truncated where the fraction `tail` of the flux lies beyond
+/// (at least [`MOFFAT_TAIL`]): the field stars of a `field_population` are rendered with
+/// `tail = 0.5 ADU / flux`, so a faint star's stamp stops where its wing holds half an
+/// ADU in all (renormalised: its flux is unchanged), far below the sky noise of a pixel.
+pub fn render_with_tail(psf: Psf, cx: f64, cy: f64, tail: f64) -> Stamp {
+    let tail = tail.max(MOFFAT_TAIL);
     match psf {
         Psf::Point => {
             let ix = cx.floor();
@@ -144,7 +158,7 @@ pub fn render(psf: Psf, cx: f64, cy: f64) -> Stamp {
             }
         }
         Psf::Gaussian { sigma_px } => {
-            let h = psf.half_size() as i64;
+            let h = psf.half_size(tail) as i64;
             let x0 = cx.round() as i64 - h;
             let y0 = cy.round() as i64 - h;
             let n = (2 * h + 1) as usize;
@@ -164,7 +178,7 @@ pub fn render(psf: Psf, cx: f64, cy: f64) -> Stamp {
             Stamp { x0, y0, values: v }
         }
         Psf::Moffat { alpha_px, beta } => {
-            let h = psf.half_size() as i64;
+            let h = psf.half_size(tail) as i64;
             let x0 = cx.round() as i64 - h;
             let y0 = cy.round() as i64 - h;
             let n = (2 * h + 1) as usize;
@@ -203,7 +217,7 @@ pub fn render(psf: Psf, cx: f64, cy: f64) -> Stamp {
             ratio,
             pa_deg,
         } => {
-            let h = psf.half_size() as i64;
+            let h = psf.half_size(tail) as i64;
             let x0 = cx.round() as i64 - h;
             let y0 = cy.round() as i64 - h;
             let n = (2 * h + 1) as usize;
@@ -275,6 +289,27 @@ pub fn add_stamp(img: &mut Array2<f32>, stamp: &Stamp, flux: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_larger_tail_gives_a_smaller_stamp_of_the_same_flux_and_profile() {
+        let psf = Psf::from_fwhm(super::super::scene::PsfKind::Moffat, 2.8, 3.0);
+        let full = render(psf, 100.3, 200.7);
+        let cut = render_with_tail(psf, 100.3, 200.7, 1e-3);
+        assert!(
+            cut.values.len() * 3 < full.values.len(),
+            "{} vs {}",
+            cut.values.len(),
+            full.values.len()
+        );
+        assert!((cut.values.sum() - 1.0).abs() < 1e-12);
+        // Inside the smaller stamp the profile is the same up to the renormalisation.
+        let (dx, dy) = ((cut.x0 - full.x0) as usize, (cut.y0 - full.y0) as usize);
+        let c = cut.values[[cut.values.nrows() / 2, cut.values.ncols() / 2]]
+            / full.values[[dy + cut.values.nrows() / 2, dx + cut.values.ncols() / 2]];
+        assert!((c - 1.0).abs() < 2e-3 && c >= 1.0, "{c}");
+        // A tail below the default changes nothing.
+        assert_eq!(render_with_tail(psf, 100.3, 200.7, 1e-9).values, full.values);
+    }
 
     fn moments(s: &Stamp) -> (f64, f64, f64) {
         let mut t = 0.0;

@@ -51,12 +51,17 @@ pub enum EffectKind {
     /// `p_tel` at `psi_tel_deg` from the vertical adds to every source and to the sky in
     /// the sky frame, turning with each frame's parallactic angle.
     TelescopePolarization,
+    /// Interstellar polarization that varies across the sky (section `foreground_field`):
+    /// a mean (q, u) plus a Gaussian random field of given rms and coherence scale,
+    /// evaluated at each star's position and added to its (q, u) (binaries' A and B and
+    /// every field star; not the standards).
+    ForegroundField,
 }
 
 impl EffectKind {
     /// All effects.
     /// (New effects go at the end: an effect's index seeds its random streams.)
-    pub const ALL: [EffectKind; 18] = [
+    pub const ALL: [EffectKind; 19] = [
         EffectKind::Psf,
         EffectKind::Sky,
         EffectKind::Strips,
@@ -75,6 +80,7 @@ impl EffectKind {
         EffectKind::DomeFlats,
         EffectKind::AnalyzerAngle,
         EffectKind::TelescopePolarization,
+        EffectKind::ForegroundField,
     ];
     /// snake_case name as used in scene files.
     pub fn name(self) -> &'static str {
@@ -97,6 +103,7 @@ impl EffectKind {
             EffectKind::DomeFlats => "dome_flats",
             EffectKind::AnalyzerAngle => "analyzer_angle",
             EffectKind::TelescopePolarization => "telescope_polarization",
+            EffectKind::ForegroundField => "foreground_field",
         }
     }
     /// Index into per-effect tables.
@@ -547,6 +554,83 @@ impl TelescopePolConfig {
     }
 }
 
+/// The interstellar foreground as a field on the sky (effect `foreground_field`): at the
+/// unit vector n of a star, `q(n) = q_mean + rms sqrt(2/M) sum_j cos(k_j . n + phi_j)` and
+/// the same for u with its own modes, k_j drawn from a 3-D Gaussian of standard deviation
+/// 1/coherence (radians) per axis, phi_j uniform: a Gaussian random field with the
+/// Gaussian correlation `rms^2 exp(-d^2 / (2 coherence^2))`, d the chord between the two
+/// positions (the angle, for small ones). See [`crate::sim::foreground`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ForegroundFieldConfig {
+    /// Degree of the mean foreground polarization (fraction).
+    pub p: f64,
+    /// Angle of the mean, deg east of north.
+    pub angle_deg: f64,
+    /// rms of the fluctuations of q and of u, each (fraction).
+    pub rms: f64,
+    /// Coherence scale, arcsec: the correlation falls as exp(-d^2 / (2 coherence^2)).
+    pub coherence_arcsec: f64,
+    /// Fourier modes per Stokes parameter (more: closer to Gaussian, slower).
+    pub modes: usize,
+    /// Seed of the field's modes (absent: the scene's `seed`). Scenes simulated apart that
+    /// look through the same foreground (the targets of one region) share it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub seed: Option<u64>,
+}
+impl Default for ForegroundFieldConfig {
+    fn default() -> Self {
+        ForegroundFieldConfig {
+            p: 0.01,
+            angle_deg: 60.0,
+            rms: 0.003,
+            coherence_arcsec: 60.0,
+            modes: 64,
+            seed: None,
+        }
+    }
+}
+
+/// Field stars drawn per binary (section `field_population`): a cumulative K-band
+/// luminosity function `N(<K) = density (area) 10^(slope (K - k_ref))` between `k_min_mag`
+/// and `k_max_mag`, positions uniform over the sky the o strips see at the first rotator
+/// angle and zero offset, a fraction intrinsically polarized. See
+/// [`crate::sim::population`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FieldPopulationConfig {
+    /// Stars per arcmin^2 brighter than `k_ref_mag`.
+    pub density_per_arcmin2: f64,
+    /// Reference magnitude of `density_per_arcmin2`.
+    pub k_ref_mag: f64,
+    /// d log10 N(<K) / dK, dex per magnitude.
+    pub slope_dex_per_mag: f64,
+    /// Brightest magnitude drawn.
+    pub k_min_mag: f64,
+    /// Faintest magnitude drawn.
+    pub k_max_mag: f64,
+    /// Fraction of the stars intrinsically polarized (young stars with disks).
+    pub polarized_fraction: f64,
+    /// Range of their intrinsic degree of polarization (fraction; angles uniform).
+    pub p_polarized: [f64; 2],
+    /// No field star within this distance of A or B, arcsec.
+    pub exclude_arcsec: f64,
+}
+impl Default for FieldPopulationConfig {
+    fn default() -> Self {
+        FieldPopulationConfig {
+            density_per_arcmin2: 0.5,
+            k_ref_mag: 14.0,
+            slope_dex_per_mag: 0.3,
+            k_min_mag: 8.0,
+            k_max_mag: 18.0,
+            polarized_fraction: 0.1,
+            p_polarized: [0.02, 0.10],
+            exclude_arcsec: 3.0,
+        }
+    }
+}
+
 /// The instrument's true analyzer-angle relation (effect `analyzer_angle`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -637,6 +721,15 @@ pub struct Scene {
     /// Telescope polarization (used only when `telescope_polarization` is listed).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub telescope_polarization: Option<TelescopePolConfig>,
+    /// Interstellar polarization varying across the sky (used only when
+    /// `foreground_field` is listed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub foreground_field: Option<ForegroundFieldConfig>,
+    /// Field stars drawn per binary from a K-band luminosity function (sources, not an
+    /// effect: present, every binary gets its population; needs
+    /// `observation.zero_point_mag`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field_population: Option<FieldPopulationConfig>,
 }
 
 /// The o+e flux per NDIT-averaged frame of DIT `dit_s` of a source of magnitude `mag` at
@@ -731,6 +824,7 @@ impl Scene {
             (EffectKind::DomeFlats, self.dome_flats.is_some()),
             (EffectKind::AnalyzerAngle, self.analyzer_angle.is_some()),
             (EffectKind::TelescopePolarization, self.telescope_polarization.is_some()),
+            (EffectKind::ForegroundField, self.foreground_field.is_some()),
         ];
         present
             .iter()

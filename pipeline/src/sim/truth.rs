@@ -82,8 +82,9 @@ pub struct ComponentTruth {
     pub flux: f64,
     /// Intrinsic polarization.
     pub intrinsic: Polarization,
-    /// What a perfect reduction should report in the sky frame: intrinsic + ISM (the
-    /// telescope's polarization is not the star's: it is in each frame's truth).
+    /// What a perfect reduction should report in the sky frame: intrinsic + ISM (uniform
+    /// `interstellar_polarization` and the `foreground_field` at the star; the telescope's
+    /// polarization is not the star's: it is in each frame's truth).
     pub q: f64,
     /// Sky-frame u (intrinsic + ISM).
     pub u: f64,
@@ -112,6 +113,51 @@ pub struct TargetTruth {
     pub components: Vec<ComponentTruth>,
     /// Frames in exposure order.
     pub frames: Vec<FrameTruth>,
+    /// The foreground field (effect `foreground_field`) at A (the binary's value) and at
+    /// every star.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub foreground: Option<TargetForeground>,
+    /// The field stars (the scene's, then those of `field_population`), recorded when the
+    /// scene lists `foreground_field` or has a `field_population`.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub field_stars: Vec<FieldStarTruth>,
+}
+
+/// The foreground field at one binary's stars.
+#[derive(Debug, Clone, Serialize)]
+pub struct TargetForeground {
+    /// The field's q at A: the binary's foreground.
+    pub q: f64,
+    /// The field's u at A.
+    pub u: f64,
+    /// The field at A, B and every field star (`field1`... as in [`TargetTruth::field_stars`]).
+    pub stars: Vec<super::foreground::StarForeground>,
+}
+
+/// One field star's truth.
+#[derive(Debug, Clone, Serialize)]
+pub struct FieldStarTruth {
+    /// "field1"... (the frames' source names).
+    pub name: String,
+    /// Separation from A, arcsec.
+    pub separation_arcsec: f64,
+    /// Position angle from A, deg east of north.
+    pub pa_deg: f64,
+    /// Total flux (o + e), ADU per NDIT-averaged frame.
+    pub flux: f64,
+    /// K magnitude (stars drawn by `field_population`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub k_mag: Option<f64>,
+    /// Intrinsic polarization.
+    pub intrinsic: Polarization,
+    /// Sky-frame q: intrinsic + ISM + foreground field at the star.
+    pub q: f64,
+    /// Sky-frame u.
+    pub u: f64,
+    /// Degree of (q, u).
+    pub p: f64,
+    /// Angle of (q, u), deg [0, 180).
+    pub gamma_deg: f64,
 }
 
 /// Truth of a whole simulation (written as truth.json).
@@ -130,6 +176,12 @@ pub struct Truth {
     /// p_tel and psi_tel of the telescope (effect `telescope_polarization`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub telescope_polarization: Option<TelescopePolarization>,
+    /// The foreground field's parameters (effect `foreground_field`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub foreground_field: Option<super::foreground::ForegroundFieldTruth>,
+    /// The field-star population's area and expected count per binary (`field_population`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub field_population: Option<FieldPopulationTruth>,
     /// Fixed detector realisations (bad-pixel counts, flat statistics...).
     pub detector: DetectorTruth,
     /// Targets.
@@ -141,6 +193,18 @@ pub struct Truth {
     /// targets.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub standards: Vec<TargetTruth>,
+}
+
+/// The field-star population of a scene.
+#[derive(Debug, Clone, Serialize)]
+pub struct FieldPopulationTruth {
+    /// Area the o strips see, arcmin^2.
+    pub area_arcmin2: f64,
+    /// Expected stars per binary between k_min_mag and k_max_mag (before the exclusion
+    /// around A and B).
+    pub expected_per_binary: f64,
+    /// The zero-point the magnitudes were converted with (`observation.zero_point_mag`).
+    pub zero_point_mag: f64,
 }
 
 /// Realised parameters of one dome-flat frame.

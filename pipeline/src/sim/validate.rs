@@ -44,6 +44,7 @@ impl Scene {
                 )));
             }
         }
+        self.validate_foreground()?;
         for b in &self.binary {
             for (what, v) in [("flux_a", b.flux_a), ("flux_b", b.flux_b)] {
                 if !(v >= 0.0) {
@@ -215,6 +216,112 @@ impl Scene {
                     super::file_slug(name)
                 )));
             }
+        }
+        Ok(())
+    }
+}
+
+/// Most Fourier modes per Stokes parameter of a foreground field.
+pub const MAX_FOREGROUND_MODES: usize = 4096;
+/// Most field stars expected per binary of a `field_population`.
+pub const MAX_FIELD_STARS_EXPECTED: f64 = 2000.0;
+
+impl Scene {
+    /// The sections `foreground_field` and `field_population`.
+    fn validate_foreground(&self) -> crate::error::Result<()> {
+        if let Some(f) = &self.foreground_field {
+            let bad = |key: &str, v: String, want: &str| Err(invalid(format!("foreground_field.{key} = {v} {want}")));
+            if !(0.0..1.0).contains(&f.p) {
+                return bad("p", f.p.to_string(), "must be in [0, 1)");
+            }
+            if !f.angle_deg.is_finite() {
+                return bad("angle_deg", f.angle_deg.to_string(), "must be finite");
+            }
+            if !(0.0..0.5).contains(&f.rms) {
+                return bad("rms", f.rms.to_string(), "must be in [0, 0.5)");
+            }
+            if !(f.coherence_arcsec > 0.0 && f.coherence_arcsec.is_finite()) {
+                return bad(
+                    "coherence_arcsec",
+                    f.coherence_arcsec.to_string(),
+                    "must be > 0 and finite",
+                );
+            }
+            if !(1..=MAX_FOREGROUND_MODES).contains(&f.modes) {
+                return bad(
+                    "modes",
+                    f.modes.to_string(),
+                    &format!("must be in 1..={MAX_FOREGROUND_MODES}"),
+                );
+            }
+        }
+        let Some(c) = &self.field_population else {
+            return Ok(());
+        };
+        let bad = |key: &str, v: String, want: &str| Err(invalid(format!("field_population.{key} = {v} {want}")));
+        if self.observation.zero_point_mag.is_none() {
+            return Err(invalid(
+                "field_population needs observation.zero_point_mag (the magnitude of 1 ADU/s) to turn K magnitudes into fluxes".into(),
+            ));
+        }
+        if !(c.density_per_arcmin2 >= 0.0 && c.density_per_arcmin2.is_finite()) {
+            return bad(
+                "density_per_arcmin2",
+                c.density_per_arcmin2.to_string(),
+                "must be >= 0 and finite",
+            );
+        }
+        if !(c.slope_dex_per_mag > 0.0 && c.slope_dex_per_mag <= 2.0) {
+            return bad(
+                "slope_dex_per_mag",
+                c.slope_dex_per_mag.to_string(),
+                "must be in (0, 2]",
+            );
+        }
+        if !(c.k_min_mag.is_finite() && c.k_max_mag.is_finite() && c.k_ref_mag.is_finite() && c.k_min_mag < c.k_max_mag)
+        {
+            return bad(
+                "k_min_mag",
+                format!(
+                    "{} (k_max_mag = {}, k_ref_mag = {})",
+                    c.k_min_mag, c.k_max_mag, c.k_ref_mag
+                ),
+                "must be finite and below k_max_mag",
+            );
+        }
+        if !(0.0..=1.0).contains(&c.polarized_fraction) {
+            return bad(
+                "polarized_fraction",
+                c.polarized_fraction.to_string(),
+                "must be in [0, 1]",
+            );
+        }
+        let [lo, hi] = c.p_polarized;
+        if !(lo >= 0.0 && lo <= hi && hi < 1.0) {
+            return bad("p_polarized", format!("[{lo}, {hi}]"), "must have 0 <= lo <= hi < 1");
+        }
+        if !(c.exclude_arcsec >= 0.0 && c.exclude_arcsec.is_finite()) {
+            return bad(
+                "exclude_arcsec",
+                c.exclude_arcsec.to_string(),
+                "must be >= 0 and finite",
+            );
+        }
+        // Bounded like the other counts (the profile's strips are not known here: SOFI's
+        // three o strips, 1024 x 501 px at 0.288"/px, are 11.8 arcmin^2; 30 covers any
+        // profile of that detector size).
+        let s = c.slope_dex_per_mag;
+        let per_arcmin2 = c.density_per_arcmin2
+            * (10f64.powf(s * (c.k_max_mag - c.k_ref_mag)) - 10f64.powf(s * (c.k_min_mag - c.k_ref_mag)));
+        if !(per_arcmin2 * 30.0 <= MAX_FIELD_STARS_EXPECTED) {
+            return bad(
+                "density_per_arcmin2",
+                c.density_per_arcmin2.to_string(),
+                &format!(
+                    "gives {per_arcmin2:.0} stars per arcmin^2 between k_min_mag and k_max_mag: at most {:.0} allowed",
+                    MAX_FIELD_STARS_EXPECTED / 30.0
+                ),
+            );
         }
         Ok(())
     }
