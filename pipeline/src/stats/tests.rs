@@ -1213,14 +1213,7 @@ fn per_binary_catalog(n: usize, with_fg: usize) -> Catalog {
                 None,
             );
             if i < with_fg {
-                t.foreground = Some(crate::catalog::Foreground {
-                    q: 0.03,
-                    u: 0.0,
-                    sigma_q: 0.001,
-                    sigma_u: 0.001,
-                    cov_qu: 0.0,
-                    source: None,
-                });
+                t.foreground = Some(crate::catalog::Foreground::new(0.03, 0.0, 0.001, 0.001, 0.0));
             }
             t
         })
