@@ -63,7 +63,6 @@
 //! then unbounded), and a median of 4 cannot tell one young star from the foreground.
 use std::fmt;
 
-
 use crate::catalog::{Flag, FlagCode, Foreground, RejectedFieldStar, Target};
 use crate::numeric::median_in_place;
 use crate::stokes::propagation::{CalibrationCovariance, QuCovariance};
@@ -115,6 +114,22 @@ pub struct EstimateParams {
     pub max_separation_arcmin: Option<f64>,
     /// See [`CLIP_PROBABILITY`].
     pub clip_probability: f64,
+    /// Whether the foreground's star-to-star dispersion tau is estimated.
+    pub dispersion: Dispersion,
+}
+
+/// The foreground's variation from place to place.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Dispersion {
+    /// Estimated from the field (module doc), tau at most `tau_max` (a fraction; the
+    /// default [`TAU_PRIOR_MAX`]).
+    Estimated {
+        /// The largest tau the prior allows, per q and u.
+        tau_max: f64,
+    },
+    /// Assumed zero: the field stars' own errors alone (a uniform foreground known from
+    /// elsewhere). The covariance is then only the error of the mean.
+    None,
 }
 
 impl Default for EstimateParams {
@@ -122,6 +137,9 @@ impl Default for EstimateParams {
         EstimateParams {
             max_separation_arcmin: None,
             clip_probability: CLIP_PROBABILITY,
+            dispersion: Dispersion::Estimated {
+                tau_max: TAU_PRIOR_MAX,
+            },
         }
     }
 }
@@ -235,53 +253,89 @@ struct Obs {
     s: [f64; 3],
 }
 
-/// The Paule-Mandel tau^2 of values `y` with variances `v` (module doc).
-pub fn paule_mandel_tau2(y: &[f64], v: &[f64]) -> f64 {
-    let n = y.len();
-    if n < 2 {
-        return 0.0;
-    }
-    let q_of = |t: f64| {
-        let w: Vec<f64> = v.iter().map(|vi| 1.0 / (vi + t)).collect();
-        let sw: f64 = w.iter().sum();
-        let mean = w.iter().zip(y).map(|(w, y)| w * y).sum::<f64>() / sw;
-        w.iter().zip(y).map(|(w, y)| w * (y - mean) * (y - mean)).sum::<f64>()
-    };
-    let target = (n - 1) as f64;
-    if q_of(0.0) <= target {
-        return 0.0;
-    }
-    // Q(t) <= (n - 1) s^2 / t, so t = s^2 (the plain sample variance) has Q <= n - 1.
-    let ybar = y.iter().sum::<f64>() / n as f64;
-    let mut hi = y.iter().map(|y| (y - ybar) * (y - ybar)).sum::<f64>() / target;
-    let mut lo = 0.0;
-    for _ in 0..200 {
-        let mid = 0.5 * (lo + hi);
-        if q_of(mid) > target {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-        if hi - lo <= 1e-12 * hi {
-            break;
-        }
-    }
-    0.5 * (lo + hi)
+/// What the field says about one coordinate's dispersion tau: the posterior means of
+/// tau^2 and of the variance of the weighted mean (module doc).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TauPosterior {
+    /// E[tau^2 | data].
+    pub tau2: f64,
+    /// E[(sum_j 1/(sigma_j^2 + tau^2))^-1 | data]: the error of the field's mean.
+    pub var_mean: f64,
 }
 
-/// The random-effects fit of the kept stars: mean, its covariance, tau^2 (q, u).
+/// The largest star-to-star dispersion of the foreground allowed by the prior, per q and u.
+pub const TAU_PRIOR_MAX: f64 = 0.005;
+
+/// Points of the tau grid of [`tau_posterior`] (log-spaced, plus tau = 0).
+pub const TAU_GRID: usize = 400;
+
+/// The restricted (REML) log-likelihood of tau^2 = `t` for values `y` with variances `v`:
+/// `-1/2 [sum ln(v_j + t) + ln sum w_j + sum w_j (y_j - ybar_w)^2]`, w_j = 1/(v_j + t).
+pub fn reml_log_likelihood(y: &[f64], v: &[f64], t: f64) -> f64 {
+    let w: Vec<f64> = v.iter().map(|vi| 1.0 / (vi + t)).collect();
+    let sw: f64 = w.iter().sum();
+    let mean = w.iter().zip(y).map(|(w, y)| w * y).sum::<f64>() / sw;
+    let q: f64 = w.iter().zip(y).map(|(w, y)| w * (y - mean) * (y - mean)).sum();
+    -0.5 * (w.iter().map(|w| -w.ln()).sum::<f64>() + sw.ln() + q)
+}
+
+/// The posterior of tau for values `y` with variances `v` (at least 2): the restricted
+/// likelihood times a flat prior on tau >= 0, integrated by the trapezoid rule on tau = 0
+/// and [`TAU_GRID`] points log-spaced from 10^-4 to 10^2 times the scale of the data
+/// (their plain standard deviation plus the largest error). The likelihood falls as
+/// tau^-(n-1), so E[tau^2] is finite from n = 5 on ([`MIN_FIELD_STARS`]).
+pub fn tau_posterior(y: &[f64], v: &[f64], tau_max: f64) -> TauPosterior {
+    let n = y.len() as f64;
+    let ybar = y.iter().sum::<f64>() / n;
+    let sd = (y.iter().map(|y| (y - ybar).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
+    let scale = sd + v.iter().copied().fold(0.0, f64::max).sqrt();
+    let taus: Vec<f64> = std::iter::once(0.0)
+        .chain((0..TAU_GRID).map(|i| scale * 10f64.powf(-4.0 + 6.0 * i as f64 / (TAU_GRID - 1) as f64)))
+        .filter(|t| *t <= tau_max)
+        .chain(std::iter::once(tau_max).filter(|t| t.is_finite()))
+        .collect();
+    let logl: Vec<f64> = taus.iter().map(|t| reml_log_likelihood(y, v, t * t)).collect();
+    let top = logl.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let (mut z, mut e_t2, mut e_vm) = (0.0, 0.0, 0.0);
+    for i in 1..taus.len() {
+        let dt = taus[i] - taus[i - 1];
+        for j in [i - 1, i] {
+            let p = 0.5 * dt * (logl[j] - top).exp();
+            let t2 = taus[j] * taus[j];
+            let vm = 1.0 / v.iter().map(|vi| 1.0 / (vi + t2)).sum::<f64>();
+            z += p;
+            e_t2 += p * t2;
+            e_vm += p * vm;
+        }
+    }
+    TauPosterior {
+        tau2: e_t2 / z,
+        var_mean: e_vm / z,
+    }
+}
+
+/// The random-effects fit of the kept stars: mean, its covariance, the posteriors of
+/// tau (q, u).
 struct Fit {
     mean: [f64; 2],
     cov_mean: [f64; 3],
     tau2: [f64; 2],
+    post: [TauPosterior; 2],
 }
 
-fn fit(obs: &[Obs]) -> Fit {
+fn fit(obs: &[Obs], dispersion: Dispersion) -> Fit {
     let yq: Vec<f64> = obs.iter().map(|o| o.y[0]).collect();
     let yu: Vec<f64> = obs.iter().map(|o| o.y[1]).collect();
     let vq: Vec<f64> = obs.iter().map(|o| o.s[0]).collect();
     let vu: Vec<f64> = obs.iter().map(|o| o.s[2]).collect();
-    let tau2 = [paule_mandel_tau2(&yq, &vq), paule_mandel_tau2(&yu, &vu)];
+    let post = match dispersion {
+        Dispersion::Estimated { tau_max } => [tau_posterior(&yq, &vq, tau_max), tau_posterior(&yu, &vu, tau_max)],
+        Dispersion::None => [&vq, &vu].map(|v| TauPosterior {
+            tau2: 0.0,
+            var_mean: 1.0 / v.iter().map(|v| 1.0 / v).sum::<f64>(),
+        }),
+    };
+    let tau2 = [post[0].tau2, post[1].tau2];
     let (mut sw, mut swy) = ([0.0; 3], [0.0; 2]);
     for o in obs {
         let w = inv2([o.s[0] + tau2[0], o.s[1], o.s[2] + tau2[1]]);
@@ -296,6 +350,7 @@ fn fit(obs: &[Obs]) -> Fit {
         mean: [c[0] * swy[0] + c[1] * swy[1], c[1] * swy[0] + c[2] * swy[1]],
         cov_mean: c,
         tau2,
+        post,
     }
 }
 
@@ -305,19 +360,48 @@ fn chi2(o: &Obs, centre: [f64; 2], tau2: [f64; 2]) -> f64 {
     w[0] * dq * dq + 2.0 * w[1] * dq * du + w[2] * du * du
 }
 
-/// The robust start: per-coordinate medians, and tau^2 from the median absolute
-/// deviation less the median measurement variance.
+/// The variances of coordinate `k` (0 q, 1 u) of the kept stars.
+fn kept_var<'a>(obs: &'a [Obs], keep: &'a [bool], k: usize) -> impl Iterator<Item = f64> + 'a {
+    obs.iter().zip(keep).filter(|(_, k)| **k).map(move |(o, _)| o.s[2 * k])
+}
+
+/// Median of a chi-square with 1 degree of freedom.
+const CHI2_1_MEDIAN: f64 = 0.454_936_423_119_572_8;
+
+/// The robust start, per coordinate: the median as centre, and tau^2 such that the median
+/// of the normalised squared residuals `r_j^2 / (sigma_j^2 + tau^2)` is that of a
+/// chi-square with 1 degree of freedom (0 when it is below already): a robust
+/// Paule-Mandel, which a minority of outliers does not inflate and which, unlike the
+/// median absolute deviation, does not mistake the scatter of the noisiest stars for the
+/// foreground's.
 fn robust_start(obs: &[Obs]) -> ([f64; 2], [f64; 2]) {
     let mut centre = [0.0; 2];
     let mut tau2 = [0.0; 2];
     for k in 0..2 {
         let mut y: Vec<f64> = obs.iter().map(|o| o.y[k]).collect();
         let m = median_in_place(&mut y);
-        let mut dev: Vec<f64> = obs.iter().map(|o| (o.y[k] - m).abs()).collect();
-        let mad = 1.482_6 * median_in_place(&mut dev);
-        let mut var: Vec<f64> = obs.iter().map(|o| o.s[2 * k]).collect();
+        let r2: Vec<f64> = obs.iter().map(|o| (o.y[k] - m).powi(2)).collect();
+        let med = |t: f64| {
+            let mut z: Vec<f64> = obs.iter().zip(&r2).map(|(o, r2)| r2 / (o.s[2 * k] + t)).collect();
+            median_in_place(&mut z)
+        };
         centre[k] = m;
-        tau2[k] = (mad * mad - median_in_place(&mut var)).max(0.0);
+        if med(0.0) <= CHI2_1_MEDIAN {
+            continue;
+        }
+        let (mut lo, mut hi) = (0.0, r2.iter().copied().fold(0.0, f64::max) / CHI2_1_MEDIAN);
+        for _ in 0..200 {
+            let mid = 0.5 * (lo + hi);
+            if med(mid) > CHI2_1_MEDIAN {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+            if hi - lo <= 1e-12 * hi {
+                break;
+            }
+        }
+        tau2[k] = 0.5 * (lo + hi);
     }
     (centre, tau2)
 }
@@ -368,7 +452,10 @@ pub fn estimate(ra_deg: f64, dec_deg: f64, stars: &[FieldStarQu], params: &Estim
     if obs.len() < MIN_FIELD_STARS {
         return too_few(obs.len(), rejected);
     }
-    let (centre, tau2) = robust_start(&obs);
+    let (centre, mut tau2) = robust_start(&obs);
+    if params.dispersion == Dispersion::None {
+        tau2 = [0.0; 2];
+    }
     let mut keep: Vec<bool> = obs.iter().map(|o| chi2(o, centre, tau2) <= limit).collect();
     let mut result = None;
     for _ in 0..MAX_CLIP_ROUNDS {
@@ -377,7 +464,7 @@ pub fn estimate(ra_deg: f64, dec_deg: f64, stars: &[FieldStarQu], params: &Estim
             result = None;
             break;
         }
-        let f = fit(&kept);
+        let f = fit(&kept, params.dispersion);
         let next: Vec<bool> = obs.iter().map(|o| chi2(o, f.mean, f.tau2) <= limit).collect();
         let settled = next == keep;
         result = Some(f);
@@ -408,19 +495,24 @@ pub fn estimate(ra_deg: f64, dec_deg: f64, stars: &[FieldStarQu], params: &Estim
         }
     }
     rejected.sort_by_key(|r| r.0);
-    let n = n_kept as f64;
-    let k = (n - 1.0) / (n - 3.0);
+    // The 2 x 2 error of the mean at E[tau^2] (the stars' cov_qu in it), each variance
+    // scaled by E[var of the mean] / (var of the mean at E[tau^2]) of its coordinate: the
+    // uncertainty of tau (ratio 1 when tau is not estimated).
+    let ratio: [f64; 2] = std::array::from_fn(|k| {
+        let at_mean = 1.0 / kept_var(&obs, &keep, k).map(|v| 1.0 / (v + f.tau2[k])).sum::<f64>();
+        f.post[k].var_mean / at_mean
+    });
     let cov_mean = QuCovariance {
-        var_q: f.cov_mean[0],
-        var_u: f.cov_mean[2],
-        cov_qu: f.cov_mean[1],
+        var_q: f.cov_mean[0] * ratio[0],
+        var_u: f.cov_mean[2] * ratio[1],
+        cov_qu: f.cov_mean[1] * (ratio[0] * ratio[1]).sqrt(),
     };
     Outcome::Estimated(ForegroundEstimate {
         q: f.mean[0],
         u: f.mean[1],
         cov: QuCovariance {
-            var_q: cov_mean.var_q + k * f.tau2[0],
-            var_u: cov_mean.var_u + k * f.tau2[1],
+            var_q: cov_mean.var_q + f.tau2[0],
+            var_u: cov_mean.var_u + f.tau2[1],
             cov_qu: cov_mean.cov_qu,
         },
         cov_mean,

@@ -3,13 +3,14 @@
 //! outcome, and the science: Delta-gamma of unaligned binaries behind a foreground, with
 //! and without the subtraction.
 use super::*;
-use crate::catalog::{fold_delta_gamma, Component, Polarization, Status};
+use crate::catalog::{fold_delta_gamma, Component, Status};
+use crate::stokes::inversion::Polarization;
 use crate::stats::ks_uniform;
 use crate::stokes::propagation::{
     delta_gamma_interval_with_foreground_deg, sigma_delta_gamma_deg, sigma_delta_gamma_with_foreground_deg,
     StarQu,
 };
-use rand::{Rng, SeedableRng};
+use rand::{RngExt, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
 
 type Rng64 = rand::rngs::Xoshiro256PlusPlus;
@@ -43,9 +44,8 @@ fn estimated(o: Outcome) -> ForegroundEstimate {
     }
 }
 
-/// Equal errors, values closer to each other than their errors (the chi-square below its
-/// n - 1, so tau = 0): the plain mean, and sigma^2/n for both the mean's and the
-/// prediction's variance.
+/// Equal errors and no dispersion (assumed: [`Dispersion::None`]): the plain mean and
+/// sigma^2/n for both the mean's and the prediction's variance.
 #[test]
 fn equal_errors_and_no_dispersion_give_the_plain_mean_and_sigma_over_sqrt_n() {
     let sigma = 0.005;
@@ -55,7 +55,11 @@ fn equal_errors_and_no_dispersion_give_the_plain_mean_and_sigma_over_sqrt_n() {
         .enumerate()
         .map(|(i, d)| star(i, 0.012 + d * sigma, -0.004 - 0.5 * d * sigma, sigma))
         .collect();
-    let e = estimated(estimate(RA, DEC, &stars, &EstimateParams::default()));
+    let fixed = EstimateParams {
+        dispersion: Dispersion::None,
+        ..EstimateParams::default()
+    };
+    let e = estimated(estimate(RA, DEC, &stars, &fixed));
     let n = stars.len() as f64;
     let mean_q = stars.iter().map(|s| s.q).sum::<f64>() / n;
     let mean_u = stars.iter().map(|s| s.u).sum::<f64>() / n;
@@ -70,30 +74,60 @@ fn equal_errors_and_no_dispersion_give_the_plain_mean_and_sigma_over_sqrt_n() {
     assert!((f.sigma_q - sigma / 3.0).abs() < 1e-15);
     assert_eq!(f.n_used, Some(9));
     f.validate().unwrap();
+    // Dispersion estimated: still the plain mean (equal weights whatever tau), and the
+    // variance of the prediction E[sigma^2/n + tau^2 (1 + 1/n)] >= sigma^2/n.
+    let e = estimated(estimate(RA, DEC, &stars, &EstimateParams::default()));
+    assert!((e.q - mean_q).abs() < 1e-15 && (e.u - mean_u).abs() < 1e-15, "{e:?}");
+    let t2 = e.tau[0].powi(2);
+    assert!(t2 > 0.0);
+    assert!((e.cov.var_q - (sigma * sigma / n + t2 * (1.0 + 1.0 / n))).abs() < 1e-9 * e.cov.var_q);
 }
 
-/// Paule-Mandel: at the returned tau^2 > 0 the generalised chi-square equals n - 1
-/// (checked by a plain sum), and a larger or smaller tau^2 moves it to the wrong side.
+/// The posterior of tau against a slow reference for equal errors, where the restricted
+/// likelihood is `(sigma^2 + t)^-(n-1)/2 exp(-(n-1) s^2 / 2(sigma^2 + t))` (s^2 the
+/// sample variance), integrated on a fine uniform grid of tau far into its tail.
 #[test]
-fn paule_mandel_tau_solves_its_equation() {
-    let y = [0.010, 0.018, 0.004, 0.022, 0.013, 0.007, 0.016];
-    let v = [1e-6, 4e-6, 2.5e-5, 1e-6, 9e-6, 1.6e-5, 4e-6];
-    let q = |t: f64| {
-        let w: Vec<f64> = v.iter().map(|vi| 1.0 / (vi + t)).collect();
-        let m = w.iter().zip(&y).map(|(w, y)| w * y).sum::<f64>() / w.iter().sum::<f64>();
-        w.iter().zip(&y).map(|(w, y)| w * (y - m).powi(2)).sum::<f64>()
-    };
-    let t = paule_mandel_tau2(&y, &v);
-    assert!(t > 0.0);
-    assert!((q(t) - 6.0).abs() < 1e-6, "Q = {}", q(t));
-    assert!(q(0.9 * t) > 6.0 && q(1.1 * t) < 6.0);
-    assert_eq!(paule_mandel_tau2(&[0.01, 0.0101], &[1e-6, 1e-6]), 0.0);
+fn the_posterior_of_tau_matches_a_slow_integration() {
+    let sigma2: f64 = 1e-5;
+    for y in [
+        vec![0.010, 0.018, 0.004, 0.022, 0.013, 0.007, 0.016],
+        vec![0.010, 0.011, 0.009, 0.0105, 0.0095],
+        vec![0.0, 0.03, -0.02, 0.01, 0.05, -0.04, 0.02, 0.0, 0.01, 0.015],
+    ] {
+        let n = y.len() as f64;
+        let m = y.iter().sum::<f64>() / n;
+        let s2 = y.iter().map(|y| (y - m).powi(2)).sum::<f64>() / (n - 1.0);
+        let logl = |t: f64| -0.5 * (n - 1.0) * (sigma2 + t).ln() - 0.5 * (n - 1.0) * s2 / (sigma2 + t);
+        let (mut z, mut et2) = (0.0, 0.0);
+        let (steps, top) = (2_000_000, 3.0);
+        let h = top / steps as f64;
+        for i in 0..=steps {
+            let tau = i as f64 * h;
+            let w = if i == 0 || i == steps { 0.5 } else { 1.0 };
+            let p = w * (logl(tau * tau) - logl(0.0)).exp();
+            z += p;
+            et2 += p * tau * tau;
+        }
+        let want = et2 / z;
+        let v = vec![sigma2; y.len()];
+        let got = tau_posterior(&y, &v, f64::INFINITY);
+        eprintln!("n = {n}: E[tau^2] {got:?} slow {want:.4e}");
+        assert!((got.tau2 / want - 1.0).abs() < 0.01, "{} vs {want}", got.tau2);
+        assert!((got.var_mean / ((sigma2 + want) / n) - 1.0).abs() < 0.01);
+        // The same likelihood in its general form, up to a constant.
+        let (t1, t2) = (1e-5, 4e-4);
+        let d = reml_log_likelihood(&y, &v, t1) - reml_log_likelihood(&y, &v, t2);
+        assert!((d - (logl(t1) - logl(t2))).abs() < 1e-9, "{d}");
+    }
 }
 
-/// A field of given stars (unequal, correlated errors) drawn again and again from a known
-/// foreground with a known dispersion: the scatter of the estimated mean about the true
-/// mean and of the prediction error at the binary match the covariances the estimate
-/// reports (means over the draws), within 8 %.
+/// A field of given stars (unequal, correlated errors) drawn again and again, with the
+/// covariances the estimate reports (means over the draws) against the scatter of the
+/// draws, within 8 % (12 % for the error of the field's mean when tau is estimated): (1) no dispersion, assumed and true: the scatter of the estimated
+/// mean is `(sum W_j)^-1`; (2) the dispersion estimated, the true tau of q and u drawn for
+/// each field uniformly within the prior's range: the scatter of the prediction error at
+/// the binary is the reported prediction covariance, and that of the field's mean the
+/// reported error of the mean.
 #[test]
 fn the_covariance_matches_a_slow_monte_carlo() {
     let mut rng = Rng64::seed_from_u64(11);
@@ -102,57 +136,70 @@ fn the_covariance_matches_a_slow_monte_carlo() {
         .map(|i| {
             let s = 0.001 * (1.0 + 19.0 * (i as f64 / (n - 1) as f64).powi(2));
             let (sq, su) = (s, 1.3 * s);
-            [sq, su, 0.4 * sq * su * if i % 2 == 0 { 1.0 } else { -1.0 }]
+            [sq, su, 0.4 * sq * su * if i % 3 == 0 { -1.0 } else { 1.0 }]
         })
         .collect();
-    let (f, tau) = ([0.015, -0.007], [0.003, 0.002]);
+    let f = [0.015, -0.007];
     let draws = 6000;
-    let (mut err_mean, mut err_pred) = (Vec::new(), Vec::new());
-    let (mut rep_mean, mut rep_pred) = ([0.0; 3], [0.0; 3]);
-    for _ in 0..draws {
-        let stars: Vec<FieldStarQu> = (0..n)
-            .map(|i| {
-                let [sq, su, c] = sig[i];
-                // Correlated noise: Cholesky of [[sq^2, c], [c, su^2]].
-                let (z1, z2) = (gauss(&mut rng), gauss(&mut rng));
-                let l21 = c / sq;
-                let l22 = (su * su - l21 * l21).sqrt();
-                let mut s = star(i, 0.0, 0.0, sq);
-                s.sigma_u = su;
-                s.cov_qu = c;
-                s.q = f[0] + tau[0] * gauss(&mut rng) + sq * z1;
-                s.u = f[1] + tau[1] * gauss(&mut rng) + l21 * z1 + l22 * z2;
-                s
-            })
-            .collect();
-        let e = estimated(estimate(RA, DEC, &stars, &EstimateParams::default()));
-        let fb = [f[0] + tau[0] * gauss(&mut rng), f[1] + tau[1] * gauss(&mut rng)];
-        err_mean.push([e.q - f[0], e.u - f[1]]);
-        err_pred.push([fb[0] - e.q, fb[1] - e.u]);
-        for (acc, c) in [(&mut rep_mean, e.cov_mean), (&mut rep_pred, e.cov)] {
-            acc[0] += c.var_q / draws as f64;
-            acc[1] += c.cov_qu / draws as f64;
-            acc[2] += c.var_u / draws as f64;
+    for (dispersion, tau_max) in [
+        (Dispersion::None, 0.0),
+        (Dispersion::Estimated { tau_max: TAU_PRIOR_MAX }, TAU_PRIOR_MAX),
+    ] {
+        let params = EstimateParams {
+            dispersion,
+            ..EstimateParams::default()
+        };
+        let (mut err_mean, mut err_pred) = (Vec::new(), Vec::new());
+        let (mut rep_mean, mut rep_pred) = ([0.0; 3], [0.0; 3]);
+        for _ in 0..draws {
+            let tau = [tau_max * rng.random::<f64>(), tau_max * rng.random::<f64>()];
+            let stars: Vec<FieldStarQu> = (0..n)
+                .map(|i| {
+                    let [sq, su, c] = sig[i];
+                    // Correlated noise: Cholesky of [[sq^2, c], [c, su^2]].
+                    let (z1, z2) = (gauss(&mut rng), gauss(&mut rng));
+                    let l21 = c / sq;
+                    let l22 = (su * su - l21 * l21).sqrt();
+                    let mut s = star(i, 0.0, 0.0, sq);
+                    s.sigma_u = su;
+                    s.cov_qu = c;
+                    s.q = f[0] + tau[0] * gauss(&mut rng) + sq * z1;
+                    s.u = f[1] + tau[1] * gauss(&mut rng) + l21 * z1 + l22 * z2;
+                    s
+                })
+                .collect();
+            let e = estimated(estimate(RA, DEC, &stars, &params));
+            let fb = [f[0] + tau[0] * gauss(&mut rng), f[1] + tau[1] * gauss(&mut rng)];
+            err_mean.push([e.q - f[0], e.u - f[1]]);
+            err_pred.push([fb[0] - e.q, fb[1] - e.u]);
+            for (acc, c) in [(&mut rep_mean, e.cov_mean), (&mut rep_pred, e.cov)] {
+                acc[0] += c.var_q / draws as f64;
+                acc[1] += c.cov_qu / draws as f64;
+                acc[2] += c.var_u / draws as f64;
+            }
         }
-    }
-    let cov = |e: &[[f64; 2]]| {
-        let m = e.len() as f64;
-        let mq = e.iter().map(|x| x[0]).sum::<f64>() / m;
-        let mu = e.iter().map(|x| x[1]).sum::<f64>() / m;
-        [
-            e.iter().map(|x| (x[0] - mq).powi(2)).sum::<f64>() / (m - 1.0),
-            e.iter().map(|x| (x[0] - mq) * (x[1] - mu)).sum::<f64>() / (m - 1.0),
-            e.iter().map(|x| (x[1] - mu).powi(2)).sum::<f64>() / (m - 1.0),
-        ]
-    };
-    let (mc_mean, mc_pred) = (cov(&err_mean), cov(&err_pred));
-    eprintln!("mean: monte carlo {mc_mean:?}, reported {rep_mean:?}");
-    eprintln!("prediction: monte carlo {mc_pred:?}, reported {rep_pred:?}");
-    for (mc, rep) in [(mc_mean, rep_mean), (mc_pred, rep_pred)] {
-        assert!((rep[0] / mc[0] - 1.0).abs() < 0.08, "var q: {} vs {}", rep[0], mc[0]);
-        assert!((rep[2] / mc[2] - 1.0).abs() < 0.08, "var u: {} vs {}", rep[2], mc[2]);
-        // The correlation is small: compare on the scale of the variances.
-        assert!((rep[1] - mc[1]).abs() < 0.08 * (mc[0] * mc[2]).sqrt(), "cov: {} vs {}", rep[1], mc[1]);
+        let cov = |e: &[[f64; 2]]| {
+            let m = e.len() as f64;
+            let mq = e.iter().map(|x| x[0]).sum::<f64>() / m;
+            let mu = e.iter().map(|x| x[1]).sum::<f64>() / m;
+            [
+                e.iter().map(|x| (x[0] - mq).powi(2)).sum::<f64>() / (m - 1.0),
+                e.iter().map(|x| (x[0] - mq) * (x[1] - mu)).sum::<f64>() / (m - 1.0),
+                e.iter().map(|x| (x[1] - mu).powi(2)).sum::<f64>() / (m - 1.0),
+            ]
+        };
+        let (mc_mean, mc_pred) = (cov(&err_mean), cov(&err_pred));
+        eprintln!("{dispersion:?}: mean: monte carlo {mc_mean:?}, reported {rep_mean:?}");
+        eprintln!("{dispersion:?}: prediction: monte carlo {mc_pred:?}, reported {rep_pred:?}");
+        // The error of the field's mean alone is looser when tau is estimated (measured:
+        // 9 % low for q); the prediction at the binary, what is used, is within 8 %.
+        let tol_mean = if tau_max > 0.0 { 0.12 } else { 0.08 };
+        for (mc, rep, tol) in [(mc_mean, rep_mean, tol_mean), (mc_pred, rep_pred, 0.08)] {
+            assert!((rep[0] / mc[0] - 1.0).abs() < tol, "var q: {} vs {}", rep[0], mc[0]);
+            assert!((rep[2] / mc[2] - 1.0).abs() < tol, "var u: {} vs {}", rep[2], mc[2]);
+            // The correlation is small: compare on the scale of the variances.
+            assert!((rep[1] - mc[1]).abs() < 0.08 * (mc[0] * mc[2]).sqrt(), "cov: {} vs {}", rep[1], mc[1]);
+        }
     }
 }
 
@@ -175,12 +222,22 @@ fn simulate_field(
     p_range: [f64; 2],
     tau_max: f64,
 ) -> (Vec<FieldStarQu>, [f64; 2], Vec<String>) {
+    simulate_field_with(rng, variation, p_range, tau_max, [0.10, 0.20])
+}
+
+fn simulate_field_with(
+    rng: &mut Rng64,
+    variation: Variation,
+    p_range: [f64; 2],
+    tau_max: f64,
+    outlier_range: [f64; 2],
+) -> (Vec<FieldStarQu>, [f64; 2], Vec<String>) {
     let n = rng.random_range(8..=30usize);
     let p_fg = p_range[0] + (p_range[1] - p_range[0]) * rng.random::<f64>();
     let ang = std::f64::consts::PI * rng.random::<f64>();
     let mean = [p_fg * (2.0 * ang).cos(), p_fg * (2.0 * ang).sin()];
     let tau = [tau_max * rng.random::<f64>(), tau_max * rng.random::<f64>()];
-    let outlier_fraction = 0.10 + 0.10 * rng.random::<f64>();
+    let outlier_fraction = outlier_range[0] + (outlier_range[1] - outlier_range[0]) * rng.random::<f64>();
     let grad: [[f64; 2]; 2] = std::array::from_fn(|_| std::array::from_fn(|_| gauss(rng)));
     let fg_at = |rng: &mut Rng64, x: [f64; 2]| -> [f64; 2] {
         match variation {
