@@ -625,7 +625,10 @@ impl Foreground {
         }
         if let Some(t) = self.tau {
             if !t.iter().all(|v| v.is_finite() && *v >= 0.0) {
-                return Err(format!("foreground.tau = [{}, {}]: must be finite and >= 0", t[0], t[1]));
+                return Err(format!(
+                    "foreground.tau = [{}, {}]: must be finite and >= 0",
+                    t[0], t[1]
+                ));
             }
         }
         Ok(())

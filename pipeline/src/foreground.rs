@@ -151,9 +151,7 @@ impl Default for EstimateParams {
         EstimateParams {
             max_separation_arcmin: None,
             clip_probability: CLIP_PROBABILITY,
-            dispersion: Dispersion::Estimated {
-                tau_max: TAU_PRIOR_MAX,
-            },
+            dispersion: Dispersion::Estimated { tau_max: TAU_PRIOR_MAX },
         }
     }
 }
@@ -186,12 +184,18 @@ impl fmt::Display for Rejection {
         match self {
             Rejection::NotUsable => write!(f, "flagged unusable by its measurement"),
             Rejection::InvalidMeasurement => {
-                write!(f, "invalid measurement (non-finite value, error <= 0 or |cov_qu| >= sigma_q sigma_u)")
+                write!(
+                    f,
+                    "invalid measurement (non-finite value, error <= 0 or |cov_qu| >= sigma_q sigma_u)"
+                )
             }
             Rejection::TooFar {
                 separation_arcmin,
                 limit_arcmin,
-            } => write!(f, "{separation_arcmin:.2} arcmin from the binary, beyond {limit_arcmin} arcmin"),
+            } => write!(
+                f,
+                "{separation_arcmin:.2} arcmin from the binary, beyond {limit_arcmin} arcmin"
+            ),
             Rejection::Outlier { chi2, limit } => write!(
                 f,
                 "outlier: chi2 = {chi2:.1} against the foreground (2 dof) above {limit:.1}: intrinsically polarized"

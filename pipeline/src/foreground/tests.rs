@@ -4,11 +4,10 @@
 //! and without the subtraction.
 use super::*;
 use crate::catalog::{fold_delta_gamma, Component, Status};
-use crate::stokes::inversion::Polarization;
 use crate::stats::ks_uniform;
+use crate::stokes::inversion::Polarization;
 use crate::stokes::propagation::{
-    delta_gamma_interval_with_foreground_deg, sigma_delta_gamma_deg, sigma_delta_gamma_with_foreground_deg,
-    StarQu,
+    delta_gamma_interval_with_foreground_deg, sigma_delta_gamma_deg, sigma_delta_gamma_with_foreground_deg, StarQu,
 };
 use rand::{RngExt, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
@@ -198,7 +197,12 @@ fn the_covariance_matches_a_slow_monte_carlo() {
             assert!((rep[0] / mc[0] - 1.0).abs() < tol, "var q: {} vs {}", rep[0], mc[0]);
             assert!((rep[2] / mc[2] - 1.0).abs() < tol, "var u: {} vs {}", rep[2], mc[2]);
             // The correlation is small: compare on the scale of the variances.
-            assert!((rep[1] - mc[1]).abs() < 0.08 * (mc[0] * mc[2]).sqrt(), "cov: {} vs {}", rep[1], mc[1]);
+            assert!(
+                (rep[1] - mc[1]).abs() < 0.08 * (mc[0] * mc[2]).sqrt(),
+                "cov: {} vs {}",
+                rep[1],
+                mc[1]
+            );
         }
     }
 }
@@ -373,7 +377,9 @@ fn too_few_field_stars_give_no_estimate_with_the_reasons() {
         Outcome::TooFew { n_left, rejected, .. } => {
             assert_eq!(n_left, 4);
             assert_eq!(rejected.len(), 2);
-            assert!(rejected.iter().all(|(_, r)| matches!(r, Rejection::Outlier { chi2, .. } if *chi2 > 100.0)));
+            assert!(rejected
+                .iter()
+                .all(|(_, r)| matches!(r, Rejection::Outlier { chi2, .. } if *chi2 > 100.0)));
         }
         other => panic!("{other:?}"),
     }
@@ -383,14 +389,20 @@ fn too_few_field_stars_give_no_estimate_with_the_reasons() {
     assert_eq!(e.used.len(), 5);
     let ids: Vec<&str> = e.rejected.iter().map(|(id, _)| id.as_str()).collect();
     assert_eq!(ids, ["f4", "f5"]);
-    assert!(e.rejected[0].1.to_string().starts_with("outlier: chi2 = "), "{}", e.rejected[0].1);
+    assert!(
+        e.rejected[0].1.to_string().starts_with("outlier: chi2 = "),
+        "{}",
+        e.rejected[0].1
+    );
     // The distance limit.
     let far = EstimateParams {
         max_separation_arcmin: Some(0.5),
         ..EstimateParams::default()
     };
     match estimate(RA + 1.0, DEC, &six, &far) {
-        Outcome::TooFew { n_left: 0, rejected, .. } => {
+        Outcome::TooFew {
+            n_left: 0, rejected, ..
+        } => {
             assert!(rejected.iter().all(|(_, r)| matches!(r, Rejection::TooFar { .. })));
         }
         other => panic!("{other:?}"),
@@ -464,7 +476,10 @@ fn set_target_foreground_fills_the_catalog_and_the_corrected_delta_gamma() {
         panic!()
     };
     assert!(t.foreground.is_none() && t.delta_gamma_fg_corrected_deg.is_none());
-    assert!(t.target_flags().iter().any(|f| f.is(FlagCode::ForegroundTooFewFieldStars)));
+    assert!(t
+        .target_flags()
+        .iter()
+        .any(|f| f.is(FlagCode::ForegroundTooFewFieldStars)));
     set_target_foreground(&mut t, &stars, &EstimateParams::default(), None);
     assert!(t.flags.is_none() && t.foreground.is_some());
 }
@@ -514,11 +529,10 @@ fn the_foreground_error_is_common_to_both_stars_in_sigma_delta_gamma() {
     // Independent per star: gA^T C gA + gB^T C gB, which is not the common value.
     let ga = crate::stokes::propagation::gamma_gradient_rad(a.q, a.u);
     let gb = crate::stokes::propagation::gamma_gradient_rad(b.q, b.u);
-    let independent = (sigma_delta_gamma_deg(&a, &b, &cal).to_radians().powi(2)
-        + fg.quadratic_form(ga)
-        + fg.quadratic_form(gb))
-    .sqrt()
-    .to_degrees();
+    let independent =
+        (sigma_delta_gamma_deg(&a, &b, &cal).to_radians().powi(2) + fg.quadratic_form(ga) + fg.quadratic_form(gb))
+            .sqrt()
+            .to_degrees();
     assert!((independent / sd - 1.0).abs() > 0.1, "{independent} vs {sd}");
     let iv = delta_gamma_interval_with_foreground_deg(&a, &b, &cal, &fg);
     let dg = fold_delta_gamma(a.gamma_deg(), b.gamma_deg());
@@ -589,5 +603,8 @@ fn subtracting_the_estimated_foreground_removes_the_fake_alignment() {
     assert!(e_corr.abs() < 3.0 * se_e_corr, "{e_corr} +- {se_e_corr}");
     assert!(ks_corr > 0.01, "{ks_corr}");
     let within = pulls.iter().filter(|p| p.abs() < 1.0).count() as f64 / pulls.len() as f64;
-    eprintln!("corrected Delta-gamma within 1 sigma of the truth: {:.1} %", 100.0 * within);
+    eprintln!(
+        "corrected Delta-gamma within 1 sigma of the truth: {:.1} %",
+        100.0 * within
+    );
 }

@@ -262,7 +262,11 @@ fn foreground_table(h: &mut String, cat: &Catalog) {
     let too_few: Vec<String> = cat
         .targets
         .iter()
-        .filter(|t| t.target_flags().iter().any(|f| f.is(crate::catalog::FlagCode::ForegroundTooFewFieldStars)))
+        .filter(|t| {
+            t.target_flags()
+                .iter()
+                .any(|f| f.is(crate::catalog::FlagCode::ForegroundTooFewFieldStars))
+        })
         .map(|t| escape(&t.object))
         .collect();
     if with.is_empty() && too_few.is_empty() {
@@ -278,9 +282,10 @@ fn foreground_table(h: &mut String, cat: &Catalog) {
     );
     for t in with {
         let f = t.foreground.as_ref().expect("filtered");
-        let interval = t
-            .delta_gamma_fg_corrected_interval_deg
-            .map_or_else(|| "–".to_string(), |[lo, hi]| format!("{} – {}", fmt(Some(lo), 1), fmt(Some(hi), 1)));
+        let interval = t.delta_gamma_fg_corrected_interval_deg.map_or_else(
+            || "–".to_string(),
+            |[lo, hi]| format!("{} – {}", fmt(Some(lo), 1), fmt(Some(hi), 1)),
+        );
         let _ = writeln!(
             h,
             "<tr><td>{}</td><td>{} ± {}</td><td>{} ± {}</td><td>{}</td><td>{}</td><td>{} ± {}</td><td>{} ± {}</td><td>{}</td><td>{}</td></tr>",

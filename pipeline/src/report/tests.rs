@@ -407,7 +407,11 @@ fn a_catalog_without_frame_quality_says_so_and_has_no_figure() {
 /// before and after the subtraction; a catalog without any has no such section.
 #[test]
 fn the_foreground_section_shows_delta_gamma_before_and_after() {
-    let mut t = binary("Fg Tau", comp("A", 0.03, 0.0, 0.001, &[]), comp("B", 0.02, 0.01, 0.001, &[]));
+    let mut t = binary(
+        "Fg Tau",
+        comp("A", 0.03, 0.0, 0.001, &[]),
+        comp("B", 0.02, 0.01, 0.001, &[]),
+    );
     let plain = render(&input(
         Catalog {
             targets: vec![t.clone()],
@@ -434,6 +438,9 @@ fn the_foreground_section_shows_delta_gamma_before_and_after() {
     let row = &row[..row.find("</tr>").unwrap()];
     let after = format!("{:.1}", t.delta_gamma_fg_corrected_deg.unwrap());
     let before = format!("{:.1}", t.delta_gamma_deg.unwrap());
-    assert!(row.contains(&after) && row.contains(&before) && row.contains("<td>12</td>"), "{row}");
+    assert!(
+        row.contains(&after) && row.contains(&before) && row.contains("<td>12</td>"),
+        "{row}"
+    );
     assert_ne!(after, before);
 }

@@ -1306,6 +1306,9 @@ fn stats_tests_the_delta_gamma_after_subtracting_each_foreground() {
     assert_eq!(f.n, 30);
     assert!(f.ks_before.p_value < 1e-6, "{:?}", f.ks_before);
     assert!(f.ks_after.p_value > 0.5, "{:?}", f.ks_after);
-    assert!((f.mean_after_deg - 45.0).abs() < 3.5 && f.mean_before_deg < 25.0, "{f:?}");
+    assert!(
+        (f.mean_after_deg - 45.0).abs() < 3.5 && f.mean_before_deg < 25.0,
+        "{f:?}"
+    );
     assert!(crate::stats::alignment::FgCorrected::from_pairs(&[]).is_none());
 }
