@@ -133,7 +133,7 @@ fn fits_reads_back_with_units() {
         assert_eq!(flags[i].trim_end(), e.5);
     }
     // Units: find the gamma column's TUNITn.
-    let ttype: Vec<String> = (1..=40)
+    let ttype: Vec<String> = (1..=999)
         .map_while(|i| hdu.read_key::<String>(&mut f, &format!("TTYPE{i}")).ok())
         .collect();
     let gi = ttype.iter().position(|t| t == "gamma").unwrap() + 1;

@@ -408,6 +408,24 @@ pub struct Target {
         deserialize_with = "crate::nullable::opt"
     )]
     pub dec_deg: Option<f64>,
+    /// Delta-gamma after subtracting the target's `foreground` from both components,
+    /// `|gamma(q_A - q_f, u_A - u_f) - gamma(q_B - q_f, u_B - u_f)|` folded into [0, 90]
+    /// deg, when both components pass the cut and the target has a valid `foreground`.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
+    pub delta_gamma_fg_corrected_deg: Option<f64>,
+    /// Central 68.27 % interval of `delta_gamma_fg_corrected_deg` [low, high], deg: Monte
+    /// Carlo draws of both stars, the calibration and the foreground (one draw common to
+    /// both stars).
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::pair"
+    )]
+    pub delta_gamma_fg_corrected_interval_deg: Option<[f64; 2]>,
     /// Integration time of each frame of the sequence (`DET DIT`, else `EXPTIME`), s: the
     /// frames are NDIT-averaged, so `flux_adu / dit_s` is ADU per second. Absent when the
     /// frames' times differ (no magnitude is then given) or in older catalogs.
@@ -498,6 +516,15 @@ pub struct Target {
     /// Sequence id, `object@TPL START`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sequence: Option<String>,
+    /// 1-sigma error of `delta_gamma_fg_corrected_deg`, deg (delta method): as
+    /// `sigma_delta_gamma_deg` plus the foreground's covariance, common to both stars (it
+    /// moves the two angles differently and does not cancel in the difference).
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::opt"
+    )]
+    pub sigma_delta_gamma_fg_corrected_deg: Option<f64>,
     /// TPL START of the sequence.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tpl_start: Option<String>,
@@ -531,6 +558,90 @@ pub struct Foreground {
     /// How it was measured (e.g. `field stars, n = 12, within 5 arcmin`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub source: Option<String>,
+    /// Number of field stars the estimate used (absent: filled by hand or another tool).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub n_used: Option<usize>,
+    /// Star-to-star dispersion of the foreground among the field stars [tau_q, tau_u]
+    /// (fractions), included in sigma_q, sigma_u.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::nullable::pair"
+    )]
+    pub tau: Option<[f64; 2]>,
+    /// The estimator, in words (`pipeline/src/foreground.rs`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub method: Option<String>,
+    /// The field stars not used, each with why.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub rejected: Vec<RejectedFieldStar>,
+}
+
+/// A field star the foreground estimate did not use.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RejectedFieldStar {
+    /// The star's identifier.
+    pub id: String,
+    /// Why, in words (not usable, invalid, too far, outlier with its chi-square).
+    pub reason: String,
+}
+
+impl Foreground {
+    /// A foreground of (q, u) with its covariance and nothing else.
+    pub fn new(q: f64, u: f64, sigma_q: f64, sigma_u: f64, cov_qu: f64) -> Foreground {
+        Foreground {
+            q,
+            u,
+            sigma_q,
+            sigma_u,
+            cov_qu,
+            source: None,
+            n_used: None,
+            tau: None,
+            method: None,
+            rejected: Vec::new(),
+        }
+    }
+
+    /// Check the values, naming the key and the value: finite, sigmas >= 0,
+    /// |cov_qu| <= sigma_q sigma_u.
+    pub fn validate(&self) -> std::result::Result<(), String> {
+        for (key, v) in [("q", self.q), ("u", self.u), ("cov_qu", self.cov_qu)] {
+            if !v.is_finite() {
+                return Err(format!("foreground.{key} = {v}: must be finite"));
+            }
+        }
+        for (key, v) in [("sigma_q", self.sigma_q), ("sigma_u", self.sigma_u)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("foreground.{key} = {v}: must be finite and >= 0"));
+            }
+        }
+        if self.cov_qu * self.cov_qu > self.sigma_q * self.sigma_q * self.sigma_u * self.sigma_u * (1.0 + 1e-9) {
+            return Err(format!(
+                "foreground.cov_qu = {}: exceeds sigma_q sigma_u = {}: not a covariance",
+                self.cov_qu,
+                self.sigma_q * self.sigma_u
+            ));
+        }
+        if let Some(t) = self.tau {
+            if !t.iter().all(|v| v.is_finite() && *v >= 0.0) {
+                return Err(format!(
+                    "foreground.tau = [{}, {}]: must be finite and >= 0",
+                    t[0], t[1]
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The covariance of (q, u).
+    pub fn covariance(&self) -> crate::stokes::propagation::QuCovariance {
+        crate::stokes::propagation::QuCovariance {
+            var_q: self.sigma_q * self.sigma_q,
+            var_u: self.sigma_u * self.sigma_u,
+            cov_qu: self.cov_qu,
+        }
+    }
 }
 
 impl Target {
@@ -547,6 +658,8 @@ impl Target {
             aperture_radius_px: None,
             bad_pixels_masked: None,
             dec_deg: None,
+            delta_gamma_fg_corrected_deg: None,
+            delta_gamma_fg_corrected_interval_deg: None,
             dit_s: None,
             eo_offset_px: None,
             filter: None,
@@ -563,6 +676,7 @@ impl Target {
             ra_deg: None,
             separation_arcsec: None,
             sequence: None,
+            sigma_delta_gamma_fg_corrected_deg: None,
             tpl_start: None,
             extra: serde_json::Map::new(),
         }
@@ -576,12 +690,25 @@ impl Target {
     /// cancels ([`crate::stokes::propagation`]). `None`: no calibration was applied (the
     /// offsets the components carry, if any, are used alone). A catalog written before the
     /// measurement covariances were kept apart falls back on the totals.
+    ///
+    /// With a valid `foreground` (f, C_f) it also sets the `*_fg_corrected_*` fields: the
+    /// same on (q - q_f, u - u_f) of both stars, with C_f common to both
+    /// ([`crate::stokes::propagation::sigma_delta_gamma_with_foreground_deg`]); an invalid
+    /// foreground leaves them absent.
     pub fn update_delta_gamma(&mut self, cal: Option<&crate::stokes::propagation::CalibrationCovariance>) {
-        use crate::stokes::propagation::{delta_gamma_interval_deg, sigma_delta_gamma_deg};
+        use crate::stokes::propagation::{
+            delta_gamma_interval_deg, delta_gamma_interval_with_foreground_deg, sigma_delta_gamma_deg,
+            sigma_delta_gamma_with_foreground_deg,
+        };
         (
             self.delta_gamma_deg,
             self.sigma_delta_gamma_deg,
             self.delta_gamma_interval_deg,
+        ) = (None, None, None);
+        (
+            self.delta_gamma_fg_corrected_deg,
+            self.sigma_delta_gamma_fg_corrected_deg,
+            self.delta_gamma_fg_corrected_interval_deg,
         ) = (None, None, None);
         let [a, b] = self.components.as_slice() else { return };
         if !(a.passes_cut && b.passes_cut) {
@@ -602,6 +729,18 @@ impl Target {
         if sigma.is_finite() {
             self.sigma_delta_gamma_deg = Some(sigma);
             self.delta_gamma_interval_deg = Some(delta_gamma_interval_deg(&sa, &sb, &cal));
+        }
+        let Some(fg) = self.foreground.as_ref().filter(|f| f.validate().is_ok()) else {
+            return;
+        };
+        let (ca, cb) = (sa.minus_foreground(fg.q, fg.u), sb.minus_foreground(fg.q, fg.u));
+        let fg_cov = fg.covariance();
+        self.delta_gamma_fg_corrected_deg = Some(fold_delta_gamma(ca.gamma_deg(), cb.gamma_deg()));
+        let sigma = sigma_delta_gamma_with_foreground_deg(&ca, &cb, &cal, &fg_cov);
+        if sigma.is_finite() {
+            self.sigma_delta_gamma_fg_corrected_deg = Some(sigma);
+            self.delta_gamma_fg_corrected_interval_deg =
+                Some(delta_gamma_interval_with_foreground_deg(&ca, &cb, &cal, &fg_cov));
         }
     }
 

@@ -106,7 +106,7 @@ impl Table {
 }
 
 /// The numeric columns, in table order: (name, unit, description).
-const NUMERIC: [(&str, &str, &str); 30] = [
+const NUMERIC: [(&str, &str, &str); 36] = [
     (
         "ra",
         "deg",
@@ -179,6 +179,28 @@ const NUMERIC: [(&str, &str, &str); 30] = [
         "deg",
         "target: high end of the central 68.27% interval of delta_gamma",
     ),
+    (
+        "fg_q",
+        "",
+        "target: interstellar foreground q at the target (the catalog's foreground); NaN without one",
+    ),
+    ("fg_u", "", "target: interstellar foreground u at the target"),
+    (
+        "sigma_fg_q",
+        "",
+        "target: 1-sigma error of fg_q (error of the field stars' mean + their dispersion)",
+    ),
+    ("sigma_fg_u", "", "target: 1-sigma error of fg_u"),
+    (
+        "delta_gamma_fg_corrected",
+        "deg",
+        "target: delta_gamma after subtracting the foreground from both components; NaN without one",
+    ),
+    (
+        "sigma_delta_gamma_fg_corrected",
+        "deg",
+        "target: 1-sigma error of delta_gamma_fg_corrected (the foreground's error common to both)",
+    ),
     ("flux", "adu", "mean o+e flux per dither"),
     (
         "sigma_flux",
@@ -208,8 +230,9 @@ struct Row {
 }
 
 /// The row of component `c` of a target or standard: its sequence's values `seq`
-/// (RA, Dec, MJD, separation, PA) and its target's Delta-gamma `dg` (value, error, interval).
-fn row_values(c: &Component, seq: [Option<f64>; 5], dg: [Option<f64>; 4]) -> [f64; NUMERIC.len()] {
+/// (RA, Dec, MJD, separation, PA) and its target's Delta-gamma `dg` (value, error, interval,
+/// then the foreground q, u and their errors, and the Delta-gamma after subtracting it with its error).
+fn row_values(c: &Component, seq: [Option<f64>; 5], dg: [Option<f64>; 10]) -> [f64; NUMERIC.len()] {
     let o = |v: Option<f64>| v.unwrap_or(f64::NAN);
     [
         o(seq[0]),
@@ -238,6 +261,12 @@ fn row_values(c: &Component, seq: [Option<f64>; 5], dg: [Option<f64>; 4]) -> [f6
         o(dg[1]),
         o(dg[2]),
         o(dg[3]),
+        o(dg[4]),
+        o(dg[5]),
+        o(dg[6]),
+        o(dg[7]),
+        o(dg[8]),
+        o(dg[9]),
         o(c.flux_adu),
         o(c.sigma_flux_adu),
         o(c.mag),
@@ -287,6 +316,12 @@ fn rows(cat: &Catalog) -> (Vec<Row>, usize, usize) {
             t.sigma_delta_gamma_deg,
             interval.map(|i| i[0]),
             interval.map(|i| i[1]),
+            t.foreground.as_ref().map(|f| f.q),
+            t.foreground.as_ref().map(|f| f.u),
+            t.foreground.as_ref().map(|f| f.sigma_q),
+            t.foreground.as_ref().map(|f| f.sigma_u),
+            t.delta_gamma_fg_corrected_deg,
+            t.sigma_delta_gamma_fg_corrected_deg,
         ];
         for (k, c) in t.components.iter().enumerate() {
             // Each star's own position: A at the pointing, B where the measured geometry
@@ -327,7 +362,7 @@ fn rows(cat: &Catalog) -> (Vec<Row>, usize, usize) {
             filter: s.filter.clone(),
             status: status_text(s.status),
             component: String::new(),
-            num: row_values(c, [s.ra_deg, s.dec_deg, s.mjd_mean, None, None], [None; 4]),
+            num: row_values(c, [s.ra_deg, s.dec_deg, s.mjd_mean, None, None], [None; 10]),
             passes_cut: c.passes_cut,
             flags: join(&c.flags, ";"),
             target_flags: join(&s.flags, ";"),

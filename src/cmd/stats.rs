@@ -372,6 +372,23 @@ fn print_report(path: &Path, sample: &BinarySample, r: &AlignmentReport) {
             println!("  own: {f}");
         }
     }
+    if let Some(f) = &r.fg_corrected {
+        println!(
+            "\nAfter subtracting each binary's own foreground ({} of {} binaries; against uniform, the prediction of random disks without a foreground):",
+            f.n, r.n
+        );
+        println!(
+            "  before: mean Delta gamma {:.1} deg, KS p {}  (with the foreground: compare the row \"own\" above)",
+            f.mean_before_deg,
+            format_p(f.ks_before.p_value)
+        );
+        println!(
+            "  after:  mean Delta gamma {:.1} deg, KS p {}, Kuiper p {}",
+            f.mean_after_deg,
+            format_p(f.ks_after.p_value),
+            format_p(f.kuiper_after.p_value)
+        );
+    }
     println!("\n{}", r.verdict);
 }
 

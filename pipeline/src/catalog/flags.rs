@@ -181,6 +181,10 @@ flag_codes! {
     /// The primary star was not found in a frame (the frame is named).
     PrimaryNotFoundIn = "primary not found in", Leading,
         "The primary star was not found in this frame: its dithers were dropped.";
+    // Target level: the interstellar foreground.
+    /// Too few usable field stars for the foreground estimate.
+    ForegroundTooFewFieldStars = "foreground_too_few_field_stars", Named,
+        "Too few usable field stars to estimate the interstellar foreground: no foreground is subtracted.";
     // Target level: frames, orientations and the sequence.
     /// The exposures of the sequence differ in DIT or NDIT.
     MixedExposure = "mixed_exposure", Named,

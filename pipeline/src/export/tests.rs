@@ -50,6 +50,9 @@ fn catalog() -> Catalog {
         filter: Some("Ks".into()),
         sequence: Some("Alpha@1999-03-03T01:00:00".into()),
         delta_gamma_deg: Some(48.0),
+        foreground: Some(crate::catalog::Foreground::new(0.004, -0.002, 0.0005, 0.0007, 0.0)),
+        delta_gamma_fg_corrected_deg: Some(51.5),
+        sigma_delta_gamma_fg_corrected_deg: Some(1.25),
         ..Target::new("Alpha", Status::Ok)
     };
     Catalog {
@@ -131,6 +134,19 @@ fn standards_are_rows_of_kind_standard_with_pointing_time_and_units() {
         sep[2].is_nan() && pa[2].is_nan() && dg[2].is_nan(),
         "a standard has no pair"
     );
+    // The foreground and the Delta-gamma after subtracting it, on both of the target's rows.
+    for (col, want) in [
+        ("fg_q", 0.004),
+        ("fg_u", -0.002),
+        ("sigma_fg_q", 0.0005),
+        ("sigma_fg_u", 0.0007),
+        ("delta_gamma_fg_corrected", 51.5),
+        ("sigma_delta_gamma_fg_corrected", 1.25),
+    ] {
+        let v = nums(&t, col);
+        assert_eq!((v[0], v[1]), (want, want), "{col}");
+        assert!(v[2].is_nan(), "{col}: a standard has no foreground");
+    }
     for (name, unit) in [
         ("ra", "deg"),
         ("dec", "deg"),

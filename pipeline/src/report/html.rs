@@ -37,6 +37,7 @@ pub fn render(input: &ReportInput) -> String {
     );
     summary(&mut h, cat);
     targets_table(&mut h, cat);
+    foreground_table(&mut h, cat);
     target_figures(&mut h, input);
     super::quality::quality(&mut h, cat, input.quality_figure.as_ref());
     super::sections::calibration(&mut h, cat);
@@ -252,6 +253,66 @@ fn target_row(h: &mut String, t: &Target, c: Option<&Component>) {
     }
     flag_list(h, &all);
     h.push_str("</td></tr>\n");
+}
+
+/// The targets with an interstellar foreground: the foreground, its field stars, and
+/// Delta-gamma before and after subtracting it (nothing when no target has one).
+fn foreground_table(h: &mut String, cat: &Catalog) {
+    let with: Vec<&Target> = cat.targets.iter().filter(|t| t.foreground.is_some()).collect();
+    let too_few: Vec<String> = cat
+        .targets
+        .iter()
+        .filter(|t| {
+            t.target_flags()
+                .iter()
+                .any(|f| f.is(crate::catalog::FlagCode::ForegroundTooFewFieldStars))
+        })
+        .map(|t| escape(&t.object))
+        .collect();
+    if with.is_empty() && too_few.is_empty() {
+        return;
+    }
+    h.push_str(
+        "<section id=\"foreground\"><h2>Interstellar foreground</h2>\n<p class=\"muted\">The foreground \
+         (q, u) at each target from its field stars, subtracted from both components; Δγ after: the \
+         foreground's error is common to both stars and included in σ (docs/polarimetry.md).</p>\n\
+         <div class=\"scroll\"><table id=\"foreground-table\"><thead><tr><th>target</th><th>q<sub>fg</sub> [%]</th>\
+         <th>u<sub>fg</sub> [%]</th><th>field stars used</th><th>rejected</th><th>Δγ [deg]</th>\
+         <th>Δγ after [deg]</th><th>68 % interval after [deg]</th><th>source</th></tr></thead><tbody>\n",
+    );
+    for t in with {
+        let f = t.foreground.as_ref().expect("filtered");
+        let interval = t.delta_gamma_fg_corrected_interval_deg.map_or_else(
+            || "–".to_string(),
+            |[lo, hi]| format!("{} – {}", fmt(Some(lo), 1), fmt(Some(hi), 1)),
+        );
+        let _ = writeln!(
+            h,
+            "<tr><td>{}</td><td>{} ± {}</td><td>{} ± {}</td><td>{}</td><td>{}</td><td>{} ± {}</td><td>{} ± {}</td><td>{}</td><td>{}</td></tr>",
+            escape(&t.object),
+            pct(Some(f.q)),
+            pct(Some(f.sigma_q)),
+            pct(Some(f.u)),
+            pct(Some(f.sigma_u)),
+            f.n_used.map_or_else(|| "–".to_string(), |n| n.to_string()),
+            f.rejected.len(),
+            fmt(t.delta_gamma_deg, 1),
+            fmt(t.sigma_delta_gamma_deg, 1),
+            fmt(t.delta_gamma_fg_corrected_deg, 1),
+            fmt(t.sigma_delta_gamma_fg_corrected_deg, 1),
+            interval,
+            escape(f.source.as_deref().unwrap_or("–")),
+        );
+    }
+    h.push_str("</tbody></table></div>\n");
+    if !too_few.is_empty() {
+        let _ = writeln!(
+            h,
+            "<p>Too few usable field stars for a foreground (not subtracted): {}.</p>",
+            too_few.join(", ")
+        );
+    }
+    h.push_str("</section>\n");
 }
 
 fn target_figures(h: &mut String, input: &ReportInput) {

@@ -402,3 +402,45 @@ fn a_catalog_without_frame_quality_says_so_and_has_no_figure() {
     let page = render(&input(cat, Err(not_computed("none"))));
     assert!(page.contains("The catalog has no per-frame quality"), "{page}");
 }
+
+/// A target with a foreground gets a row in the foreground section with the Delta-gamma
+/// before and after the subtraction; a catalog without any has no such section.
+#[test]
+fn the_foreground_section_shows_delta_gamma_before_and_after() {
+    let mut t = binary(
+        "Fg Tau",
+        comp("A", 0.03, 0.0, 0.001, &[]),
+        comp("B", 0.02, 0.01, 0.001, &[]),
+    );
+    let plain = render(&input(
+        Catalog {
+            targets: vec![t.clone()],
+            ..Catalog::default()
+        },
+        Err(not_computed("none")),
+    ));
+    assert!(!plain.contains("id=\"foreground\""));
+    let mut f = crate::catalog::Foreground::new(0.02, 0.0, 0.001, 0.001, 0.0);
+    f.n_used = Some(12);
+    f.source = Some("field stars, n = 12".into());
+    t.foreground = Some(f);
+    t.update_delta_gamma(None);
+    let page = render(&input(
+        Catalog {
+            targets: vec![t.clone()],
+            ..Catalog::default()
+        },
+        Err(not_computed("none")),
+    ));
+    assert_balanced(&page);
+    let section = &page[page.find("id=\"foreground\"").expect("a foreground section")..];
+    let row = &section[section.find("<td>Fg Tau</td>").expect("its row")..];
+    let row = &row[..row.find("</tr>").unwrap()];
+    let after = format!("{:.1}", t.delta_gamma_fg_corrected_deg.unwrap());
+    let before = format!("{:.1}", t.delta_gamma_deg.unwrap());
+    assert!(
+        row.contains(&after) && row.contains(&before) && row.contains("<td>12</td>"),
+        "{row}"
+    );
+    assert_ne!(after, before);
+}

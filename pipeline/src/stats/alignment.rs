@@ -139,6 +139,44 @@ impl IsmComparison {
     }
 }
 
+/// Delta-gamma after subtracting each binary's own foreground, against uniform.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FgCorrected {
+    /// Binaries with a foreground-subtracted Delta-gamma.
+    pub n: usize,
+    /// Their Delta-gamma before the subtraction, mean, deg.
+    pub mean_before_deg: f64,
+    /// After the subtraction, mean, deg (45 for random disks).
+    pub mean_after_deg: f64,
+    /// KS of the values before the subtraction against uniform on [0, 90].
+    pub ks_before: TestOutcome,
+    /// KS of the values after the subtraction against uniform on [0, 90].
+    pub ks_after: TestOutcome,
+    /// Kuiper of the values after the subtraction against uniform on [0, 90].
+    pub kuiper_after: TestOutcome,
+}
+
+impl FgCorrected {
+    /// The test on pairs (before, after) of the binaries with a subtracted Delta-gamma;
+    /// None when there is none.
+    pub fn from_pairs(pairs: &[(f64, f64)]) -> Option<FgCorrected> {
+        if pairs.is_empty() {
+            return None;
+        }
+        let before: Vec<f64> = pairs.iter().map(|p| p.0).collect();
+        let after: Vec<f64> = pairs.iter().map(|p| p.1).collect();
+        let n = pairs.len();
+        Some(FgCorrected {
+            n,
+            mean_before_deg: before.iter().sum::<f64>() / n as f64,
+            mean_after_deg: after.iter().sum::<f64>() / n as f64,
+            ks_before: ks_uniform(&before, 0.0, 90.0),
+            ks_after: ks_uniform(&after, 0.0, 90.0),
+            kuiper_after: kuiper_uniform(&after, 0.0, 90.0),
+        })
+    }
+}
+
 /// Everything `sofipol stats` reports.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct AlignmentReport {
@@ -160,6 +198,11 @@ pub struct AlignmentReport {
     /// others as [`PerBinary::fallback`]); None when no binary has its own.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub own_foreground: Option<IsmComparison>,
+    /// The same sample after subtracting each binary's own foreground (the binaries whose
+    /// catalog entry has `delta_gamma_fg_corrected_deg`), tested against uniform: the
+    /// prediction of random disks once the foreground is removed. None when no binary has one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fg_corrected: Option<FgCorrected>,
     /// Two-sample KS against each alignment model, without and with the errors.
     pub models: Vec<ModelComparison>,
     /// The sample's Delta-gamma errors.
@@ -186,6 +229,7 @@ pub fn analyse(delta_gamma_deg: &[f64], params: &AnalysisParams) -> Result<Align
         kuiper_uniform: None,
         ism: Vec::new(),
         own_foreground: None,
+        fg_corrected: None,
         models: Vec::new(),
         errors: params.errors.clone(),
         significance: params.significance,

@@ -411,6 +411,7 @@ mod tests {
             sigma_delta_gamma_deg: sigma,
             sigma_source: None,
             delta_gamma_interval_deg: interval,
+            delta_gamma_fg_corrected_deg: None,
             foreground_percent: None,
         }
     }

@@ -25,6 +25,10 @@ pub struct SampleBinary {
     /// The catalog's central 68.27 % interval of Delta gamma, deg.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub delta_gamma_interval_deg: Option<[f64; 2]>,
+    /// Delta gamma after subtracting the binary's own foreground (the catalog's
+    /// `delta_gamma_fg_corrected_deg`), deg.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub delta_gamma_fg_corrected_deg: Option<f64>,
     /// The binary's own interstellar foreground (the catalog's `foreground`), percent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub foreground_percent: Option<ForegroundQu>,
@@ -161,6 +165,9 @@ impl BinarySample {
                 delta_gamma_interval_deg: t
                     .delta_gamma_interval_deg
                     .filter(|[lo, hi]| lo.is_finite() && hi.is_finite()),
+                delta_gamma_fg_corrected_deg: t
+                    .delta_gamma_fg_corrected_deg
+                    .filter(|d| d.is_finite() && t.foreground.is_some()),
                 foreground_percent: t.foreground.as_ref().map(foreground_percent),
             });
         }
@@ -193,6 +200,15 @@ impl BinarySample {
     /// The Delta-gamma values, degrees.
     pub fn delta_gamma_deg(&self) -> Vec<f64> {
         self.binaries.iter().map(|b| b.delta_gamma_deg).collect()
+    }
+
+    /// (Delta gamma, Delta gamma after subtracting the binary's own foreground) of the
+    /// binaries that have the latter, deg.
+    pub fn fg_corrected_pairs(&self) -> Vec<(f64, f64)> {
+        self.binaries
+            .iter()
+            .filter_map(|b| b.delta_gamma_fg_corrected_deg.map(|a| (b.delta_gamma_deg, a)))
+            .collect()
     }
 
     /// Debiased P of every component in the sample (2 per binary), percent.

@@ -153,7 +153,9 @@ pub fn params(sample: &BinarySample, opts: &Options, source: &str) -> Result<Ana
 /// Every test of `sample`'s Delta gamma with `params` ([`analyse`], in the current rayon
 /// pool).
 pub fn analyse_sample(sample: &BinarySample, params: &AnalysisParams) -> Result<AlignmentReport> {
-    analyse(&sample.delta_gamma_deg(), params)
+    let mut report = analyse(&sample.delta_gamma_deg(), params)?;
+    report.fg_corrected = super::alignment::FgCorrected::from_pairs(&sample.fg_corrected_pairs());
+    Ok(report)
 }
 
 /// The subtitle of the ISM figure: the Monte Carlo's intrinsic P, noise and cut.

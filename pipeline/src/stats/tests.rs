@@ -1213,14 +1213,7 @@ fn per_binary_catalog(n: usize, with_fg: usize) -> Catalog {
                 None,
             );
             if i < with_fg {
-                t.foreground = Some(crate::catalog::Foreground {
-                    q: 0.03,
-                    u: 0.0,
-                    sigma_q: 0.001,
-                    sigma_u: 0.001,
-                    cov_qu: 0.0,
-                    source: None,
-                });
+                t.foreground = Some(crate::catalog::Foreground::new(0.03, 0.0, 0.001, 0.001, 0.0));
             }
             t
         })
@@ -1276,4 +1269,46 @@ fn stats_predicts_per_binary_and_with_each_binarys_own_foreground() {
         e.contains("cat.json") && e.contains("T0") && e.contains("cov_qu"),
         "{e}"
     );
+}
+
+/// The sample keeps each binary's foreground-subtracted Delta-gamma, and the test on it
+/// is against uniform: binaries whose subtracted values are spread evenly over [0, 90]
+/// while their raw values cluster below 20 deg give a KS p < 1e-6 before and > 0.5 after.
+#[test]
+fn stats_tests_the_delta_gamma_after_subtracting_each_foreground() {
+    let n = 40;
+    let targets: Vec<Target> = (0..n)
+        .map(|i| {
+            let mut t = target(
+                &format!("B{i}"),
+                Status::Ok,
+                vec![
+                    component("A", 0.04, 0.001, 10.0),
+                    component("B", 0.03, 0.001, 10.0 + 20.0 * (i as f64 + 0.5) / n as f64),
+                ],
+                None,
+            );
+            if i % 4 != 3 {
+                t.foreground = Some(crate::catalog::Foreground::new(0.02, 0.0, 0.001, 0.001, 0.0));
+                t.delta_gamma_fg_corrected_deg = Some(90.0 * (i as f64 + 0.5) / n as f64);
+            }
+            t
+        })
+        .collect();
+    let cat = Catalog {
+        targets,
+        ..Catalog::default()
+    };
+    let s = BinarySample::from_catalog(&cat, None);
+    let pairs = s.fg_corrected_pairs();
+    assert_eq!(pairs.len(), 30);
+    let f = crate::stats::alignment::FgCorrected::from_pairs(&pairs).unwrap();
+    assert_eq!(f.n, 30);
+    assert!(f.ks_before.p_value < 1e-6, "{:?}", f.ks_before);
+    assert!(f.ks_after.p_value > 0.5, "{:?}", f.ks_after);
+    assert!(
+        (f.mean_after_deg - 45.0).abs() < 3.5 && f.mean_before_deg < 25.0,
+        "{f:?}"
+    );
+    assert!(crate::stats::alignment::FgCorrected::from_pairs(&[]).is_none());
 }

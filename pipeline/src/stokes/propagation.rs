@@ -221,6 +221,31 @@ impl StarQu {
     }
 }
 
+impl StarQu {
+    /// The star with a foreground (q_f, u_f) subtracted: (q - q_f, u - u_f), the same own
+    /// covariance. The foreground was measured on field stars calibrated with the same
+    /// zero-point, so it rotates with theta0 too: the theta0 column loses the foreground's
+    /// rotation gradient (for a pure rotation it becomes the corrected star's). The other
+    /// columns (c, telescope) are the star's own: the field stars' share of them is not
+    /// known here, which can only overstate the error.
+    pub fn minus_foreground(&self, q_f: f64, u_f: f64) -> StarQu {
+        let mut jacobian = self.jacobian;
+        let r = rotation_gradient_per_deg(q_f, u_f);
+        jacobian[CAL_THETA0] = [jacobian[CAL_THETA0][0] - r[0], jacobian[CAL_THETA0][1] - r[1]];
+        StarQu {
+            q: self.q - q_f,
+            u: self.u - u_f,
+            stat: self.stat,
+            jacobian,
+        }
+    }
+
+    /// The angle 1/2 atan2(u, q), deg in [0, 180).
+    pub fn gamma_deg(&self) -> f64 {
+        (0.5 * self.u.atan2(self.q).to_degrees()).rem_euclid(180.0)
+    }
+}
+
 /// A covariance of the offset c alone.
 pub fn offset_covariance(var_c: f64) -> CalibrationCovariance {
     let mut m = [[0.0; 4]; 4];
@@ -239,6 +264,19 @@ fn common_weights(a: &StarQu, b: &StarQu) -> [f64; 4] {
 /// calibration common to both (`cal`, the covariance of (c, theta0, a, b)); theta0, a pure
 /// rotation of both, cancels.
 pub fn sigma_delta_gamma_deg(a: &StarQu, b: &StarQu, cal: &CalibrationCovariance) -> f64 {
+    sigma_delta_gamma_with_foreground_deg(a, b, cal, &QuCovariance::ZERO)
+}
+
+/// [`sigma_delta_gamma_deg`] of two stars from which a foreground f of covariance
+/// `foreground` was subtracted (`a`, `b` already corrected: [`StarQu::minus_foreground`]).
+/// f is common to both: it moves Delta-gamma by `-(gA - gB) . df`, which does not cancel
+/// (the two angles' gradients differ), and adds `(gA - gB)^T C_f (gA - gB)`.
+pub fn sigma_delta_gamma_with_foreground_deg(
+    a: &StarQu,
+    b: &StarQu,
+    cal: &CalibrationCovariance,
+    foreground: &QuCovariance,
+) -> f64 {
     let (ga, gb) = (gamma_gradient_rad(a.q, a.u), gamma_gradient_rad(b.q, b.u));
     let w = common_weights(a, b);
     let mut common = 0.0;
@@ -247,7 +285,8 @@ pub fn sigma_delta_gamma_deg(a: &StarQu, b: &StarQu, cal: &CalibrationCovariance
             common += w[k] * cal[k][l] * w[l];
         }
     }
-    (a.stat.quadratic_form(ga) + b.stat.quadratic_form(gb) + common)
+    let fg = foreground.quadratic_form([ga[0] - gb[0], ga[1] - gb[1]]);
+    (a.stat.quadratic_form(ga) + b.stat.quadratic_form(gb) + common + fg)
         .max(0.0)
         .sqrt()
         .to_degrees()
@@ -290,9 +329,25 @@ pub const INTERVAL_DRAWS: usize = 8192;
 /// the same catalog gives the same interval. Near 0 or 90 deg, and at low S/N, the
 /// folded distribution is skewed: the interval is then the honest summary.
 pub fn delta_gamma_interval_deg(a: &StarQu, b: &StarQu, cal: &CalibrationCovariance) -> [f64; 2] {
+    delta_gamma_interval_with_foreground_deg(a, b, cal, &QuCovariance::ZERO)
+}
+
+/// [`delta_gamma_interval_deg`] of two stars from which a foreground of covariance
+/// `foreground` was subtracted (`a`, `b` already corrected): each draw also draws one
+/// foreground error and subtracts it from both stars. A zero `foreground` gives exactly
+/// [`delta_gamma_interval_deg`]'s draws.
+pub fn delta_gamma_interval_with_foreground_deg(
+    a: &StarQu,
+    b: &StarQu,
+    cal: &CalibrationCovariance,
+    foreground: &QuCovariance,
+) -> [f64; 2] {
+    let with_fg = *foreground != QuCovariance::ZERO;
+    let fg_terms = [foreground.var_q, foreground.var_u, foreground.cov_qu];
     let seed = [a.q, a.u, b.q, b.u]
         .iter()
         .chain(cal.iter().flatten())
+        .chain(fg_terms.iter().filter(|_| with_fg))
         .fold(0x5eed_u64, |h, v| (h ^ v.to_bits()).wrapping_mul(0x100_0000_01b3));
     let mut rng = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(seed);
     let chol = |s: &QuCovariance| {
@@ -302,7 +357,7 @@ pub fn delta_gamma_interval_deg(a: &StarQu, b: &StarQu, cal: &CalibrationCovaria
         let l22 = (s.var_u - l21 * l21).max(0.0).sqrt();
         (l11, l21, l22)
     };
-    let (la, lb) = (chol(&a.stat), chol(&b.stat));
+    let (la, lb, lf) = (chol(&a.stat), chol(&b.stat), chol(foreground));
     let lc = cholesky_psd(cal);
     let mut z = || -> f64 { StandardNormal.sample(&mut rng) };
     let shift = |j: &CalibrationJacobian, t: &[f64; 4]| -> [f64; 2] {
@@ -315,10 +370,17 @@ pub fn delta_gamma_interval_deg(a: &StarQu, b: &StarQu, cal: &CalibrationCovaria
             // One draw of the common calibration, theta = L z.
             let t: [f64; 4] = std::array::from_fn(|i| (0..=i).map(|k| lc[i][k] * zc[k]).sum());
             let (da, db) = (shift(&a.jacobian, &t), shift(&b.jacobian, &t));
-            let qa = a.q + la.0 * z1 + da[0];
-            let ua = a.u + la.1 * z1 + la.2 * z2 + da[1];
-            let qb = b.q + lb.0 * z3 + db[0];
-            let ub = b.u + lb.1 * z3 + lb.2 * z4 + db[1];
+            // One draw of the foreground's error, common to both stars.
+            let (fq, fu) = if with_fg {
+                let (z5, z6) = (z(), z());
+                (lf.0 * z5, lf.1 * z5 + lf.2 * z6)
+            } else {
+                (0.0, 0.0)
+            };
+            let qa = a.q + la.0 * z1 + da[0] - fq;
+            let ua = a.u + la.1 * z1 + la.2 * z2 + da[1] - fu;
+            let qb = b.q + lb.0 * z3 + db[0] - fq;
+            let ub = b.u + lb.1 * z3 + lb.2 * z4 + db[1] - fu;
             folded_delta_deg(qa, ua, qb, ub)
         })
         .collect();

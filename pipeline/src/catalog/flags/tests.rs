@@ -46,6 +46,7 @@ fn example(code: FlagCode) -> &'static str {
             "brighter_source_in_strip: 127.0\" at PA 90.0 deg from the target (441 px at POSANG 0), its peak 8.3 times the target's"
         }
         PrimaryNotFoundIn => "primary not found in /data/raw/SOFI.2026-11-26T01:00:00.fits",
+        ForegroundTooFewFieldStars => "foreground_too_few_field_stars: 4 usable field star(s) after 2 rejection(s), need 5",
         MixedExposure => "mixed_exposure: DIT [10.0, 20.0] s, NDIT [1] within the sequence: normalised",
         DitherDropped => "dither of POSANG 45 dropped: sky: a.fits: no background",
         OrientationDropped => "orientation POSANG 90 dropped: 1 readable dither(s), need 2 for the sky",

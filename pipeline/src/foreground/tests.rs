@@ -1,0 +1,610 @@
+//! The foreground estimate against analytic values, a slow Monte Carlo of its covariance,
+//! the pulls of its prediction at the binary over many simulated fields, the too-few
+//! outcome, and the science: Delta-gamma of unaligned binaries behind a foreground, with
+//! and without the subtraction.
+use super::*;
+use crate::catalog::{fold_delta_gamma, Component, Status};
+use crate::stats::ks_uniform;
+use crate::stokes::inversion::Polarization;
+use crate::stokes::propagation::{
+    delta_gamma_interval_with_foreground_deg, sigma_delta_gamma_deg, sigma_delta_gamma_with_foreground_deg, StarQu,
+};
+use rand::{RngExt, SeedableRng};
+use rand_distr::{Distribution, StandardNormal};
+
+type Rng64 = rand::rngs::Xoshiro256PlusPlus;
+
+fn gauss(rng: &mut Rng64) -> f64 {
+    StandardNormal.sample(rng)
+}
+
+/// The binary's place in every simulated field.
+const RA: f64 = 83.8;
+const DEC: f64 = -5.4;
+
+fn star(id: usize, q: f64, u: f64, sigma: f64) -> FieldStarQu {
+    FieldStarQu {
+        id: format!("f{id}"),
+        q,
+        u,
+        sigma_q: sigma,
+        sigma_u: sigma,
+        cov_qu: 0.0,
+        ra_deg: RA + 0.01 * (id as f64 % 7.0 - 3.0),
+        dec_deg: DEC + 0.01 * (id as f64 % 5.0 - 2.0),
+        usable: true,
+    }
+}
+
+fn estimated(o: Outcome) -> ForegroundEstimate {
+    match o {
+        Outcome::Estimated(e) => e,
+        other => panic!("no estimate: {other:?}"),
+    }
+}
+
+/// Equal errors and no dispersion (assumed: [`Dispersion::None`]): the plain mean and
+/// sigma^2/n for both the mean's and the prediction's variance.
+#[test]
+fn equal_errors_and_no_dispersion_give_the_plain_mean_and_sigma_over_sqrt_n() {
+    let sigma = 0.005;
+    let offsets = [0.1, -0.2, 0.05, 0.3, -0.15, 0.0, 0.2, -0.25, -0.05];
+    let stars: Vec<FieldStarQu> = offsets
+        .iter()
+        .enumerate()
+        .map(|(i, d)| star(i, 0.012 + d * sigma, -0.004 - 0.5 * d * sigma, sigma))
+        .collect();
+    let fixed = EstimateParams {
+        dispersion: Dispersion::None,
+        ..EstimateParams::default()
+    };
+    let e = estimated(estimate(RA, DEC, &stars, &fixed));
+    let n = stars.len() as f64;
+    let mean_q = stars.iter().map(|s| s.q).sum::<f64>() / n;
+    let mean_u = stars.iter().map(|s| s.u).sum::<f64>() / n;
+    assert!((e.q - mean_q).abs() < 1e-15 && (e.u - mean_u).abs() < 1e-15, "{e:?}");
+    assert_eq!(e.tau, [0.0, 0.0]);
+    for v in [e.cov.var_q, e.cov.var_u, e.cov_mean.var_q] {
+        assert!((v / (sigma * sigma / n) - 1.0).abs() < 1e-12, "{v}");
+    }
+    assert_eq!(e.cov.cov_qu, 0.0);
+    assert_eq!((e.used.len(), e.rejected.len()), (9, 0));
+    let f = e.to_catalog();
+    assert!((f.sigma_q - sigma / 3.0).abs() < 1e-15);
+    assert_eq!(f.n_used, Some(9));
+    f.validate().unwrap();
+    // Dispersion estimated: still the plain mean (equal weights whatever tau), and the
+    // variance of the prediction E[sigma^2/n + tau^2 (1 + 1/n)] >= sigma^2/n.
+    let e = estimated(estimate(RA, DEC, &stars, &EstimateParams::default()));
+    assert!((e.q - mean_q).abs() < 1e-15 && (e.u - mean_u).abs() < 1e-15, "{e:?}");
+    let t2 = e.tau[0].powi(2);
+    assert!(t2 > 0.0);
+    assert!((e.cov.var_q - (sigma * sigma / n + t2 * (1.0 + 1.0 / n))).abs() < 1e-9 * e.cov.var_q);
+}
+
+/// The posterior of tau against a slow reference for equal errors, where the restricted
+/// likelihood is `(sigma^2 + t)^-(n-1)/2 exp(-(n-1) s^2 / 2(sigma^2 + t))` (s^2 the
+/// sample variance), integrated on a fine uniform grid of tau far into its tail.
+#[test]
+fn the_posterior_of_tau_matches_a_slow_integration() {
+    let sigma2: f64 = 1e-5;
+    for y in [
+        vec![0.010, 0.018, 0.004, 0.022, 0.013, 0.007, 0.016],
+        vec![0.010, 0.011, 0.009, 0.0105, 0.0095],
+        vec![0.0, 0.03, -0.02, 0.01, 0.05, -0.04, 0.02, 0.0, 0.01, 0.015],
+    ] {
+        let n = y.len() as f64;
+        let m = y.iter().sum::<f64>() / n;
+        let s2 = y.iter().map(|y| (y - m).powi(2)).sum::<f64>() / (n - 1.0);
+        let logl = |t: f64| -0.5 * (n - 1.0) * (sigma2 + t).ln() - 0.5 * (n - 1.0) * s2 / (sigma2 + t);
+        let (mut z, mut et2) = (0.0, 0.0);
+        let (steps, top) = (2_000_000, 3.0);
+        let h = top / steps as f64;
+        for i in 0..=steps {
+            let tau = i as f64 * h;
+            let w = if i == 0 || i == steps { 0.5 } else { 1.0 };
+            let p = w * (logl(tau * tau) - logl(0.0)).exp();
+            z += p;
+            et2 += p * tau * tau;
+        }
+        let want = et2 / z;
+        let v = vec![sigma2; y.len()];
+        let got = tau_posterior(&y, &v, f64::INFINITY);
+        eprintln!("n = {n}: E[tau^2] {got:?} slow {want:.4e}");
+        assert!((got.tau2 / want - 1.0).abs() < 0.01, "{} vs {want}", got.tau2);
+        assert!((got.var_mean / ((sigma2 + want) / n) - 1.0).abs() < 0.01);
+        // The same likelihood in its general form, up to a constant.
+        let (t1, t2) = (1e-5, 4e-4);
+        let d = reml_log_likelihood(&y, &v, t1) - reml_log_likelihood(&y, &v, t2);
+        assert!((d - (logl(t1) - logl(t2))).abs() < 1e-9, "{d}");
+    }
+}
+
+/// A field of given stars (unequal, correlated errors) drawn again and again, with the
+/// covariances the estimate reports (means over the draws) against the scatter of the
+/// draws, within 8 % (12 % for the error of the field's mean when tau is estimated): (1) no dispersion, assumed and true: the scatter of the estimated
+/// mean is `(sum W_j)^-1`; (2) the dispersion estimated, the true tau of q and u drawn for
+/// each field uniformly within the prior's range: the scatter of the prediction error at
+/// the binary is the reported prediction covariance, and that of the field's mean the
+/// reported error of the mean.
+#[test]
+fn the_covariance_matches_a_slow_monte_carlo() {
+    let mut rng = Rng64::seed_from_u64(11);
+    let n = 16;
+    let sig: Vec<[f64; 3]> = (0..n)
+        .map(|i| {
+            let s = 0.001 * (1.0 + 19.0 * (i as f64 / (n - 1) as f64).powi(2));
+            let (sq, su) = (s, 1.3 * s);
+            [sq, su, 0.4 * sq * su * if i % 3 == 0 { -1.0 } else { 1.0 }]
+        })
+        .collect();
+    let f = [0.015, -0.007];
+    let draws = 6000;
+    for (dispersion, tau_max) in [
+        (Dispersion::None, 0.0),
+        (Dispersion::Estimated { tau_max: TAU_PRIOR_MAX }, TAU_PRIOR_MAX),
+    ] {
+        let params = EstimateParams {
+            dispersion,
+            ..EstimateParams::default()
+        };
+        let (mut err_mean, mut err_pred) = (Vec::new(), Vec::new());
+        let (mut rep_mean, mut rep_pred) = ([0.0; 3], [0.0; 3]);
+        for _ in 0..draws {
+            let tau = [tau_max * rng.random::<f64>(), tau_max * rng.random::<f64>()];
+            let stars: Vec<FieldStarQu> = (0..n)
+                .map(|i| {
+                    let [sq, su, c] = sig[i];
+                    // Correlated noise: Cholesky of [[sq^2, c], [c, su^2]].
+                    let (z1, z2) = (gauss(&mut rng), gauss(&mut rng));
+                    let l21 = c / sq;
+                    let l22 = (su * su - l21 * l21).sqrt();
+                    let mut s = star(i, 0.0, 0.0, sq);
+                    s.sigma_u = su;
+                    s.cov_qu = c;
+                    s.q = f[0] + tau[0] * gauss(&mut rng) + sq * z1;
+                    s.u = f[1] + tau[1] * gauss(&mut rng) + l21 * z1 + l22 * z2;
+                    s
+                })
+                .collect();
+            let e = estimated(estimate(RA, DEC, &stars, &params));
+            let fb = [f[0] + tau[0] * gauss(&mut rng), f[1] + tau[1] * gauss(&mut rng)];
+            err_mean.push([e.q - f[0], e.u - f[1]]);
+            err_pred.push([fb[0] - e.q, fb[1] - e.u]);
+            for (acc, c) in [(&mut rep_mean, e.cov_mean), (&mut rep_pred, e.cov)] {
+                acc[0] += c.var_q / draws as f64;
+                acc[1] += c.cov_qu / draws as f64;
+                acc[2] += c.var_u / draws as f64;
+            }
+        }
+        let cov = |e: &[[f64; 2]]| {
+            let m = e.len() as f64;
+            let mq = e.iter().map(|x| x[0]).sum::<f64>() / m;
+            let mu = e.iter().map(|x| x[1]).sum::<f64>() / m;
+            [
+                e.iter().map(|x| (x[0] - mq).powi(2)).sum::<f64>() / (m - 1.0),
+                e.iter().map(|x| (x[0] - mq) * (x[1] - mu)).sum::<f64>() / (m - 1.0),
+                e.iter().map(|x| (x[1] - mu).powi(2)).sum::<f64>() / (m - 1.0),
+            ]
+        };
+        let (mc_mean, mc_pred) = (cov(&err_mean), cov(&err_pred));
+        eprintln!("{dispersion:?}: mean: monte carlo {mc_mean:?}, reported {rep_mean:?}");
+        eprintln!("{dispersion:?}: prediction: monte carlo {mc_pred:?}, reported {rep_pred:?}");
+        // The error of the field's mean alone is looser when tau is estimated (measured:
+        // 9 % low for q); the prediction at the binary, what is used, is within 8 %.
+        let tol_mean = if tau_max > 0.0 { 0.12 } else { 0.08 };
+        for (mc, rep, tol) in [(mc_mean, rep_mean, tol_mean), (mc_pred, rep_pred, 0.08)] {
+            assert!((rep[0] / mc[0] - 1.0).abs() < tol, "var q: {} vs {}", rep[0], mc[0]);
+            assert!((rep[2] / mc[2] - 1.0).abs() < tol, "var u: {} vs {}", rep[2], mc[2]);
+            // The correlation is small: compare on the scale of the variances.
+            assert!(
+                (rep[1] - mc[1]).abs() < 0.08 * (mc[0] * mc[2]).sqrt(),
+                "cov: {} vs {}",
+                rep[1],
+                mc[1]
+            );
+        }
+    }
+}
+
+/// How the foreground varies over a simulated field.
+#[derive(Clone, Copy, Debug)]
+enum Variation {
+    /// Each place an independent draw of N(0, tau^2) per q and u.
+    Random,
+    /// A linear gradient across the field (amplitude up to tau at 2.5 arcmin), the binary at
+    /// the centre.
+    Gradient,
+}
+
+/// One simulated field: (stars, the true foreground at the binary, the outliers' ids).
+/// The mean foreground's degree is uniform in `p_range`, tau of q and u each uniform in
+/// [0, `tau_max`].
+fn simulate_field(
+    rng: &mut Rng64,
+    variation: Variation,
+    p_range: [f64; 2],
+    tau_max: f64,
+) -> (Vec<FieldStarQu>, [f64; 2], Vec<String>) {
+    simulate_field_with(rng, variation, p_range, tau_max, [0.10, 0.20])
+}
+
+fn simulate_field_with(
+    rng: &mut Rng64,
+    variation: Variation,
+    p_range: [f64; 2],
+    tau_max: f64,
+    outlier_range: [f64; 2],
+) -> (Vec<FieldStarQu>, [f64; 2], Vec<String>) {
+    let n = rng.random_range(8..=30usize);
+    let p_fg = p_range[0] + (p_range[1] - p_range[0]) * rng.random::<f64>();
+    let ang = std::f64::consts::PI * rng.random::<f64>();
+    let mean = [p_fg * (2.0 * ang).cos(), p_fg * (2.0 * ang).sin()];
+    let tau = [tau_max * rng.random::<f64>(), tau_max * rng.random::<f64>()];
+    let outlier_fraction = outlier_range[0] + (outlier_range[1] - outlier_range[0]) * rng.random::<f64>();
+    let grad: [[f64; 2]; 2] = std::array::from_fn(|_| std::array::from_fn(|_| gauss(rng)));
+    let fg_at = |rng: &mut Rng64, x: [f64; 2]| -> [f64; 2] {
+        match variation {
+            Variation::Random => [mean[0] + tau[0] * gauss(rng), mean[1] + tau[1] * gauss(rng)],
+            // x in units of 2.5 arcmin; the gradient's rms over the field about tau.
+            Variation::Gradient => std::array::from_fn(|k| mean[k] + tau[k] * (grad[k][0] * x[0] + grad[k][1] * x[1])),
+        }
+    };
+    let mut outliers = Vec::new();
+    let stars = (0..n)
+        .map(|i| {
+            let x = [rng.random::<f64>() * 2.0 - 1.0, rng.random::<f64>() * 2.0 - 1.0];
+            let f = fg_at(rng, x);
+            let sigma = 0.001 * 20f64.powf(rng.random::<f64>());
+            let mut y = [f[0] + sigma * gauss(rng), f[1] + sigma * gauss(rng)];
+            let id = format!("f{i}");
+            if rng.random::<f64>() < outlier_fraction {
+                let p = 0.01 + 0.05 * rng.random::<f64>();
+                let a = std::f64::consts::PI * rng.random::<f64>();
+                y[0] += p * (2.0 * a).cos();
+                y[1] += p * (2.0 * a).sin();
+                outliers.push(id.clone());
+            }
+            let dec = DEC + x[1] * 2.5 / 60.0;
+            FieldStarQu {
+                id,
+                q: y[0],
+                u: y[1],
+                sigma_q: sigma,
+                sigma_u: sigma,
+                cov_qu: 0.0,
+                ra_deg: RA + x[0] * 2.5 / 60.0 / DEC.to_radians().cos(),
+                dec_deg: dec,
+                usable: true,
+            }
+        })
+        .collect();
+    (stars, fg_at(rng, [0.0, 0.0]), outliers)
+}
+
+/// Pull statistics of the prediction at the binary over simulated fields: (rms of the
+/// pulls of q and u pooled, count, fraction of outliers rejected, fraction of good stars
+/// rejected, fields with too few).
+fn pulls(seed: u64, fields: usize, variation: Variation) -> (f64, usize, f64, f64, usize) {
+    let mut rng = Rng64::seed_from_u64(seed);
+    let (mut ss, mut n) = (0.0, 0usize);
+    let (mut out_total, mut out_rej, mut good_total, mut good_rej, mut too_few) = (0, 0, 0, 0, 0);
+    for _ in 0..fields {
+        let (stars, fb, outliers) = simulate_field(&mut rng, variation, [0.0, 0.03], 0.005);
+        match estimate(RA, DEC, &stars, &EstimateParams::default()) {
+            Outcome::Estimated(e) => {
+                ss += (fb[0] - e.q).powi(2) / e.cov.var_q + (fb[1] - e.u).powi(2) / e.cov.var_u;
+                n += 2;
+                for s in &stars {
+                    let rejected = e.rejected.iter().any(|(id, _)| id == &s.id);
+                    if outliers.contains(&s.id) {
+                        out_total += 1;
+                        out_rej += usize::from(rejected);
+                    } else {
+                        good_total += 1;
+                        good_rej += usize::from(rejected);
+                    }
+                }
+            }
+            Outcome::TooFew { .. } => too_few += 1,
+        }
+    }
+    (
+        (ss / n as f64).sqrt(),
+        n,
+        out_rej as f64 / out_total as f64,
+        good_rej as f64 / good_total as f64,
+        too_few,
+    )
+}
+
+/// Fields of 8-30 stars, noise 0.1-2 %, a foreground of 0-3 % varying by tau 0-0.5 % from
+/// place to place, 10-20 % intrinsically polarized stars (1-6 %): the pulls of the
+/// foreground predicted at the binary, pooled over q and u and 3000 fields, have an rms in
+/// [0.9, 1.1]; with a smooth gradient instead of random variation (binary at the centre)
+/// the covariance is conservative (rms < 1).
+#[test]
+fn pulls_of_the_foreground_at_the_binary_have_unit_rms_over_random_fields() {
+    let (rms, n, out_rej, good_rej, too_few) = pulls(2026, 3000, Variation::Random);
+    eprintln!(
+        "random variation: pull rms {rms:.3} over {n} pulls; outliers rejected {:.1} %, good stars rejected {:.2} %, too few {too_few}",
+        100.0 * out_rej,
+        100.0 * good_rej
+    );
+    assert!((0.9..=1.1).contains(&rms), "pull rms {rms}");
+    assert!(out_rej > 0.5, "{out_rej}");
+    assert!(good_rej < 0.02, "{good_rej}");
+    let (rms_g, n_g, ..) = pulls(7, 2000, Variation::Gradient);
+    eprintln!("gradient: pull rms {rms_g:.3} over {n_g} pulls");
+    assert!(rms_g < 1.0, "gradient pull rms {rms_g}");
+}
+
+/// Fewer than 5 usable stars: no estimate, each rejection with its reason; 2 of 6 stars
+/// far off (intrinsically polarized) leave 4: too few as well.
+#[test]
+fn too_few_field_stars_give_no_estimate_with_the_reasons() {
+    let mut stars: Vec<FieldStarQu> = (0..4).map(|i| star(i, 0.01, 0.0, 0.002)).collect();
+    let mut flagged = star(4, 0.01, 0.0, 0.002);
+    flagged.usable = false;
+    let mut broken = star(5, 0.01, 0.0, 0.0);
+    broken.sigma_u = f64::NAN;
+    stars.extend([flagged, broken]);
+    match estimate(RA, DEC, &stars, &EstimateParams::default()) {
+        Outcome::TooFew {
+            n_left,
+            minimum,
+            rejected,
+        } => {
+            assert_eq!((n_left, minimum), (4, MIN_FIELD_STARS));
+            assert_eq!(
+                rejected,
+                vec![
+                    ("f4".to_string(), Rejection::NotUsable),
+                    ("f5".to_string(), Rejection::InvalidMeasurement)
+                ]
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+    let mut six: Vec<FieldStarQu> = [0.0, 0.001, -0.001, 0.0005]
+        .iter()
+        .enumerate()
+        .map(|(i, d)| star(i, 0.01 + d, 0.0, 0.002))
+        .collect();
+    six.push(star(4, 0.08, 0.03, 0.002));
+    six.push(star(5, -0.05, 0.06, 0.002));
+    match estimate(RA, DEC, &six, &EstimateParams::default()) {
+        Outcome::TooFew { n_left, rejected, .. } => {
+            assert_eq!(n_left, 4);
+            assert_eq!(rejected.len(), 2);
+            assert!(rejected
+                .iter()
+                .all(|(_, r)| matches!(r, Rejection::Outlier { chi2, .. } if *chi2 > 100.0)));
+        }
+        other => panic!("{other:?}"),
+    }
+    // A seventh good star makes 5: an estimate, the two outliers named.
+    six.push(star(6, 0.0102, 0.0, 0.002));
+    let e = estimated(estimate(RA, DEC, &six, &EstimateParams::default()));
+    assert_eq!(e.used.len(), 5);
+    let ids: Vec<&str> = e.rejected.iter().map(|(id, _)| id.as_str()).collect();
+    assert_eq!(ids, ["f4", "f5"]);
+    assert!(
+        e.rejected[0].1.to_string().starts_with("outlier: chi2 = "),
+        "{}",
+        e.rejected[0].1
+    );
+    // The distance limit.
+    let far = EstimateParams {
+        max_separation_arcmin: Some(0.5),
+        ..EstimateParams::default()
+    };
+    match estimate(RA + 1.0, DEC, &six, &far) {
+        Outcome::TooFew {
+            n_left: 0, rejected, ..
+        } => {
+            assert!(rejected.iter().all(|(_, r)| matches!(r, Rejection::TooFar { .. })));
+        }
+        other => panic!("{other:?}"),
+    }
+}
+
+fn component(name: &str, q: f64, u: f64, sigma: f64) -> Component {
+    let p = q.hypot(u);
+    let mut c = Component::new(
+        name,
+        Polarization {
+            q,
+            u,
+            sigma_q: sigma,
+            sigma_u: sigma,
+            p,
+            sigma_p: sigma,
+            p_debiased: p,
+            gamma_deg: (0.5 * u.atan2(q).to_degrees()).rem_euclid(180.0),
+            sigma_gamma_deg: 28.65 * sigma / p,
+        },
+    );
+    c.passes_cut = true;
+    c
+}
+
+/// The one call: the target's foreground set from its stars, the subtracted Delta-gamma
+/// computed; too few stars: foreground cleared, flag set (and removed again once there
+/// are enough); no position: nothing done.
+#[test]
+fn set_target_foreground_fills_the_catalog_and_the_corrected_delta_gamma() {
+    let fg = [0.02, 0.0];
+    let mut t = Target::new("B1", Status::Ok);
+    t.components = vec![
+        component("A", fg[0] + 0.01, fg[1] + 0.0, 0.0005),
+        component("B", fg[0] + 0.0, fg[1] + 0.01, 0.0005),
+    ];
+    t.update_delta_gamma(None);
+    assert!(t.delta_gamma_fg_corrected_deg.is_none());
+    let before = t.delta_gamma_deg.unwrap();
+    let offsets = [0.1, -0.2, 0.05, 0.3, -0.15, 0.0, 0.2, -0.25];
+    let stars: Vec<FieldStarQu> = offsets
+        .iter()
+        .enumerate()
+        .map(|(i, d)| star(i, fg[0] + d * 0.001, fg[1] - d * 0.001, 0.001))
+        .collect();
+    assert_eq!(
+        set_target_foreground(&mut t, &stars, &EstimateParams::default(), None),
+        Applied::NoPosition
+    );
+    (t.ra_deg, t.dec_deg) = (Some(RA), Some(DEC));
+    let Applied::Set(e) = set_target_foreground(&mut t, &stars, &EstimateParams::default(), None) else {
+        panic!()
+    };
+    let f = t.foreground.clone().unwrap();
+    assert_eq!((f.q, f.u, f.n_used), (e.q, e.u, Some(8)));
+    // Intrinsic angles 0 and 45 deg: Delta-gamma 45 after the subtraction, 13.3 before.
+    let dg = t.delta_gamma_fg_corrected_deg.unwrap();
+    assert!((dg - 45.0).abs() < 0.5, "{dg}");
+    assert!((before - 13.28).abs() < 0.01, "{before}");
+    let s = t.sigma_delta_gamma_fg_corrected_deg.unwrap();
+    assert!(s > t.sigma_delta_gamma_deg.unwrap(), "{s}");
+    let [lo, hi] = t.delta_gamma_fg_corrected_interval_deg.unwrap();
+    assert!(lo < dg && dg < hi);
+    // A round trip through the JSON keeps everything.
+    let back: Target = serde_json::from_str(&serde_json::to_string(&t).unwrap()).unwrap();
+    assert_eq!(back, t);
+
+    let few = &stars[..3];
+    let Applied::TooFew { n_left: 3, .. } = set_target_foreground(&mut t, few, &EstimateParams::default(), None) else {
+        panic!()
+    };
+    assert!(t.foreground.is_none() && t.delta_gamma_fg_corrected_deg.is_none());
+    assert!(t
+        .target_flags()
+        .iter()
+        .any(|f| f.is(FlagCode::ForegroundTooFewFieldStars)));
+    set_target_foreground(&mut t, &stars, &EstimateParams::default(), None);
+    assert!(t.flags.is_none() && t.foreground.is_some());
+}
+
+/// sigma of the subtracted Delta-gamma: the delta method against the scatter of draws in
+/// which one foreground error moves both stars; the same covariance counted as two
+/// independent errors (one per star) gives a different sigma; a zero foreground gives
+/// exactly the uncorrected formula's value.
+#[test]
+fn the_foreground_error_is_common_to_both_stars_in_sigma_delta_gamma() {
+    let stat = QuCovariance {
+        var_q: 1e-8,
+        var_u: 1e-8,
+        cov_qu: 0.0,
+    };
+    let a = StarQu::with_offset_gradient(0.03, 0.01, stat, [0.0, 0.0]);
+    let b = StarQu::with_offset_gradient(0.01, 0.025, stat, [0.0, 0.0]);
+    let cal = [[0.0; 4]; 4];
+    let fg = QuCovariance {
+        var_q: 4e-6,
+        var_u: 2.25e-6,
+        cov_qu: 1e-6,
+    };
+    let want = sigma_delta_gamma_with_foreground_deg(&a, &b, &cal, &fg);
+    assert_eq!(
+        sigma_delta_gamma_with_foreground_deg(&a, &b, &cal, &QuCovariance::ZERO),
+        sigma_delta_gamma_deg(&a, &b, &cal)
+    );
+    // Slow Monte Carlo: signed Delta-gamma (no fold near 30 deg) over draws.
+    let mut rng = Rng64::seed_from_u64(5);
+    let l11 = fg.var_q.sqrt();
+    let l21 = fg.cov_qu / l11;
+    let l22 = (fg.var_u - l21 * l21).sqrt();
+    let g = |q: f64, u: f64| 0.5 * u.atan2(q).to_degrees();
+    let draws: Vec<f64> = (0..200_000)
+        .map(|_| {
+            let (z1, z2) = (gauss(&mut rng), gauss(&mut rng));
+            let (fq, fu) = (l11 * z1, l21 * z1 + l22 * z2);
+            let n: [f64; 4] = std::array::from_fn(|_| 1e-4 * gauss(&mut rng));
+            g(a.q + n[0] - fq, a.u + n[1] - fu) - g(b.q + n[2] - fq, b.u + n[3] - fu)
+        })
+        .collect();
+    let m = draws.iter().sum::<f64>() / draws.len() as f64;
+    let sd = (draws.iter().map(|d| (d - m).powi(2)).sum::<f64>() / (draws.len() - 1) as f64).sqrt();
+    eprintln!("delta method {want:.3} deg, monte carlo {sd:.3} deg");
+    assert!((want / sd - 1.0).abs() < 0.03, "{want} vs {sd}");
+    // Independent per star: gA^T C gA + gB^T C gB, which is not the common value.
+    let ga = crate::stokes::propagation::gamma_gradient_rad(a.q, a.u);
+    let gb = crate::stokes::propagation::gamma_gradient_rad(b.q, b.u);
+    let independent =
+        (sigma_delta_gamma_deg(&a, &b, &cal).to_radians().powi(2) + fg.quadratic_form(ga) + fg.quadratic_form(gb))
+            .sqrt()
+            .to_degrees();
+    assert!((independent / sd - 1.0).abs() > 0.1, "{independent} vs {sd}");
+    let iv = delta_gamma_interval_with_foreground_deg(&a, &b, &cal, &fg);
+    let dg = fold_delta_gamma(a.gamma_deg(), b.gamma_deg());
+    assert!(((iv[1] - iv[0]) / (2.0 * want) - 1.0).abs() < 0.05, "{iv:?} {want}");
+    assert!(iv[0] < dg && dg < iv[1]);
+}
+
+/// The science. 4000 unaligned binaries (random intrinsic angles, P_int 1-8 %), each
+/// behind a foreground of 1-3 % (its own angle, varying by up to 0.3 % from place to
+/// place), components measured with noise 0.1-2 %, and 8-30 field stars with the same
+/// noise and 10-20 % intrinsically polarized ones. Without the subtraction the mean folded
+/// Delta-gamma is far below 45 deg (alignment faked); after it, the mean signed error
+/// against the true Delta-gamma is consistent with 0 and the mean |Delta-gamma| with 45
+/// deg (uniform: KS p > 0.01).
+#[test]
+fn subtracting_the_estimated_foreground_removes_the_fake_alignment() {
+    let mut rng = Rng64::seed_from_u64(314);
+    let (mut raw, mut corrected, mut err_raw, mut err_corr) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut pulls = Vec::new();
+    while corrected.len() < 4000 {
+        let (stars, fb, _) = simulate_field(&mut rng, Variation::Random, [0.01, 0.03], 0.003);
+        let Outcome::Estimated(e) = estimate(RA, DEC, &stars, &EstimateParams::default()) else {
+            continue;
+        };
+        let mut gamma_true = [0.0; 2];
+        let mut t = Target::new("sim", Status::Ok);
+        (t.ra_deg, t.dec_deg) = (Some(RA), Some(DEC));
+        for (k, name) in ["A", "B"].iter().enumerate() {
+            let p = 0.01 * 8f64.powf(rng.random::<f64>());
+            let a = std::f64::consts::PI * rng.random::<f64>();
+            gamma_true[k] = a.to_degrees();
+            let sigma = 0.001 * 20f64.powf(rng.random::<f64>());
+            let q = p * (2.0 * a).cos() + fb[0] + sigma * gauss(&mut rng);
+            let u = p * (2.0 * a).sin() + fb[1] + sigma * gauss(&mut rng);
+            t.components.push(component(name, q, u, sigma));
+        }
+        t.foreground = Some(e.to_catalog());
+        t.update_delta_gamma(None);
+        let truth = fold_delta_gamma(gamma_true[0], gamma_true[1]);
+        let (d_raw, d_corr) = (t.delta_gamma_deg.unwrap(), t.delta_gamma_fg_corrected_deg.unwrap());
+        raw.push(d_raw);
+        corrected.push(d_corr);
+        err_raw.push(d_raw - truth);
+        err_corr.push(d_corr - truth);
+        pulls.push((d_corr - truth) / t.sigma_delta_gamma_fg_corrected_deg.unwrap());
+    }
+    let stats = |v: &[f64]| {
+        let n = v.len() as f64;
+        let m = v.iter().sum::<f64>() / n;
+        let sd = (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+        (m, sd / n.sqrt())
+    };
+    let (m_raw, se_raw) = stats(&raw);
+    let (m_corr, se_corr) = stats(&corrected);
+    let (e_raw, se_e_raw) = stats(&err_raw);
+    let (e_corr, se_e_corr) = stats(&err_corr);
+    let ks_raw = ks_uniform(&raw, 0.0, 90.0).p_value;
+    let ks_corr = ks_uniform(&corrected, 0.0, 90.0).p_value;
+    eprintln!(
+        "without subtraction: mean |dg| {m_raw:.2} +- {se_raw:.2} deg, mean signed error {e_raw:.2} +- {se_e_raw:.2} deg, KS p {ks_raw:.1e}"
+    );
+    eprintln!(
+        "after subtraction:   mean |dg| {m_corr:.2} +- {se_corr:.2} deg, mean signed error {e_corr:.2} +- {se_e_corr:.2} deg, KS p {ks_corr:.3}"
+    );
+    assert!(45.0 - m_raw > 10.0 * se_raw, "{m_raw} +- {se_raw}");
+    assert!(ks_raw < 1e-6);
+    assert!((m_corr - 45.0).abs() < 3.0 * se_corr, "{m_corr} +- {se_corr}");
+    assert!(e_corr.abs() < 3.0 * se_e_corr, "{e_corr} +- {se_e_corr}");
+    assert!(ks_corr > 0.01, "{ks_corr}");
+    let within = pulls.iter().filter(|p| p.abs() < 1.0).count() as f64 / pulls.len() as f64;
+    eprintln!(
+        "corrected Delta-gamma within 1 sigma of the truth: {:.1} %",
+        100.0 * within
+    );
+}
