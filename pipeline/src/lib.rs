@@ -29,6 +29,7 @@ pub mod calibration;
 pub mod catalog;
 pub mod error;
 pub mod export;
+pub mod frame_list;
 pub mod input;
 pub mod io;
 pub mod live;
