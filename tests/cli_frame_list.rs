@@ -32,8 +32,14 @@ fn night_on_its_own_frames_file_repeats_the_run() {
     assert!(code == 0 || code == 2, "{code}: {err}");
     let frames = d.path().join("first.frames");
     let text = std::fs::read_to_string(&frames).expect("night writes its set-of-frames file");
-    let listed: Vec<&str> = text.lines().filter(|l| !l.starts_with('#') && !l.trim().is_empty()).collect();
-    let n_fits = std::fs::read_dir(&n).unwrap().filter(|e| e.as_ref().unwrap().path().extension().is_some_and(|x| x == "fits")).count();
+    let listed: Vec<&str> = text
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .collect();
+    let n_fits = std::fs::read_dir(&n)
+        .unwrap()
+        .filter(|e| e.as_ref().unwrap().path().extension().is_some_and(|x| x == "fits"))
+        .count();
     assert_eq!(listed.len(), n_fits, "{text}");
     assert!(listed.iter().all(|l| l.ends_with(" science")), "{text}");
     let cat2 = d.path().join("second.json");
@@ -44,7 +50,12 @@ fn night_on_its_own_frames_file_repeats_the_run() {
     assert_eq!(science_of(a), science_of(b));
     // The second run's own frames file lists the same frames.
     let again = std::fs::read_to_string(d.path().join("second.frames")).unwrap();
-    let strip = |t: &str| t.lines().filter(|l| !l.starts_with('#')).map(str::to_string).collect::<Vec<_>>();
+    let strip = |t: &str| {
+        t.lines()
+            .filter(|l| !l.starts_with('#'))
+            .map(str::to_string)
+            .collect::<Vec<_>>()
+    };
     assert_eq!(strip(&text), strip(&again));
 }
 
@@ -72,7 +83,12 @@ fn target_reads_a_frames_file_and_the_roles_and_target_names_given() {
     let (code, _, err) = run(&["target", s(&list), "-o", s(&out), "-q"]);
     assert!(code == 0 || code == 2, "{code}: {err}");
     let c = json(&out);
-    let objects: Vec<&str> = c["targets"].as_array().unwrap().iter().map(|t| t["object"].as_str().unwrap()).collect();
+    let objects: Vec<&str> = c["targets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t["object"].as_str().unwrap())
+        .collect();
     assert_eq!(objects, vec!["AlphaRenamed"]);
     // The same through `night`: Beta's frames are named as listed darks, not reduced.
     let out = d.path().join("n.json");

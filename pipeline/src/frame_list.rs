@@ -126,7 +126,8 @@ pub fn read(file: &Path) -> Result<FrameList, FrameListError> {
         value,
         reason,
     };
-    let bytes = std::fs::read(file).map_err(|e| err(None, "file", shown(&file.display().to_string()), e.to_string()))?;
+    let bytes =
+        std::fs::read(file).map_err(|e| err(None, "file", shown(&file.display().to_string()), e.to_string()))?;
     let base = file.parent().map(Path::to_path_buf).unwrap_or_default();
     parse(&bytes, file, &base)
 }
@@ -152,7 +153,10 @@ pub fn parse(bytes: &[u8], file: &Path, base: &Path) -> Result<FrameList, FrameL
                 n,
                 "line",
                 &start,
-                format!("{} bytes, longer than the {MAX_LINE_BYTES} bytes a line may have", raw.len()),
+                format!(
+                    "{} bytes, longer than the {MAX_LINE_BYTES} bytes a line may have",
+                    raw.len()
+                ),
             ));
         }
         let text = std::str::from_utf8(raw).map_err(|e| {
@@ -212,9 +216,15 @@ pub fn parse(bytes: &[u8], file: &Path, base: &Path) -> Result<FrameList, FrameL
         }
         let p = Path::new(path_text.as_str());
         let path = if p.is_absolute() { p.to_path_buf() } else { base.join(p) };
-        let meta = std::fs::metadata(&path).map_err(|e| err(n, "path", path_text, format!("{}: {e}", path.display())))?;
+        let meta =
+            std::fs::metadata(&path).map_err(|e| err(n, "path", path_text, format!("{}: {e}", path.display())))?;
         if !meta.is_file() {
-            return Err(err(n, "path", path_text, format!("{}: not a regular file", path.display())));
+            return Err(err(
+                n,
+                "path",
+                path_text,
+                format!("{}: not a regular file", path.display()),
+            ));
         }
         let canonical = std::fs::canonicalize(&path).unwrap_or_else(|_| path.clone());
         if let Some(first) = seen.insert(canonical, n) {
@@ -341,7 +351,12 @@ mod tests {
         let (d, list) = setup();
         let long = format!("a.fits science target={}\n", "x".repeat(5000));
         let cases: Vec<(Vec<u8>, usize, &str, &str)> = vec![
-            (b"a.fits science\nmissing.fits science\n".to_vec(), 2, "path", "missing.fits"),
+            (
+                b"a.fits science\nmissing.fits science\n".to_vec(),
+                2,
+                "path",
+                "missing.fits",
+            ),
             (b"a.fits science\n./a.fits flat\n".to_vec(), 2, "path", "line 1"),
             (b"a.fits bias\n".to_vec(), 1, "role", "unknown role"),
             (b"a.fits\n".to_vec(), 1, "role", "missing"),
@@ -363,7 +378,10 @@ mod tests {
             assert_eq!(e.line, Some(line), "{msg}");
             assert_eq!(e.key, key, "{msg}");
             assert!(msg.contains(why), "{msg}");
-            assert!(msg.starts_with(&format!("{}:{line}: {key} = ", list.display())), "{msg}");
+            assert!(
+                msg.starts_with(&format!("{}:{line}: {key} = ", list.display())),
+                "{msg}"
+            );
         }
         // An empty file and a file of comments list nothing (the caller refuses that).
         assert!(parse_text(d.path(), &list, b"").unwrap().frames.is_empty());

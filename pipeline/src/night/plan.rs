@@ -239,7 +239,10 @@ pub fn plan_frame_list(
                 Ok(Some(_)) => s.dome_flats.push(info.path),
                 Ok(None) => s.other.push(Failure {
                     file: info.path.display().to_string(),
-                    error: format!("listed as flat ({}) but the header has no lamp keyword of a dome flat", at(lf)),
+                    error: format!(
+                        "listed as flat ({}) but the header has no lamp keyword of a dome flat",
+                        at(lf)
+                    ),
                 }),
                 Err(e) => s.other.push(Failure {
                     file: info.path.display().to_string(),
@@ -260,7 +263,10 @@ pub fn plan_frame_list(
             Some((FrameRole::Flat, _)) | None => flats.push(p),
             Some((role, line)) => s.other.push(Failure {
                 file: p.display().to_string(),
-                error: format!("listed as {} ({line}) but its header is a dome flat's: not used", role.name()),
+                error: format!(
+                    "listed as {} ({line}) but its header is a dome flat's: not used",
+                    role.name()
+                ),
             }),
         }
     }

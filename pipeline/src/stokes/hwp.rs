@@ -317,9 +317,10 @@ pub fn reduce(frames: &[PlateFrame], zero_point_deg: f64, tolerance_deg: f64, me
                     }
                 })
                 .collect();
-            solve(&obs, stokes_method, None)
-                .ok()
-                .map(|sol| Cycle { frames: *idx, fit: sol.fit })
+            solve(&obs, stokes_method, None).ok().map(|sol| Cycle {
+                frames: *idx,
+                fit: sol.fit,
+            })
         })
         .collect();
     let combined = if cycles.is_empty() {
@@ -469,7 +470,13 @@ mod tests {
             .iter()
             .map(|&p| {
                 let (o, e) = beam_fluxes(1e6, POL, analyzer_deg(p, 10.0), 1.0, 1.0);
-                PlateFrame { plate_deg: p, o, sigma_o: o.sqrt(), e, sigma_e: e.sqrt() }
+                PlateFrame {
+                    plate_deg: p,
+                    o,
+                    sigma_o: o.sqrt(),
+                    e,
+                    sigma_e: e.sqrt(),
+                }
             })
             .collect();
         let r = reduce(&fr, 10.0, 1.0, CycleMethod::DoubleDifference);
@@ -503,15 +510,26 @@ mod tests {
                     e += 300.0 * gauss(&mut rng);
                     // Errors that make sigma_F = 7e-4 on every frame.
                     let s = 7e-4 * (o + e).powi(2) / (2.0 * o.hypot(e));
-                    PlateFrame { plate_deg: p, o, sigma_o: s, e, sigma_e: s }
+                    PlateFrame {
+                        plate_deg: p,
+                        o,
+                        sigma_o: s,
+                        e,
+                        sigma_e: s,
+                    }
                 })
                 .collect();
             let r = reduce(&fr, 0.0, 1.0, CycleMethod::DoubleDifference);
             let (ls, cy) = (r.least_squares.unwrap(), r.cycles[0]);
             let sf: Vec<f64> = r.f.iter().map(|v| v.unwrap().1).collect();
             assert!(sf.iter().all(|s| (s / 7e-4 - 1.0).abs() < 1e-12));
-            assert!((ls.fit.q - cy.fit.q).abs() < 1e-15 && (ls.fit.u - cy.fit.u).abs() < 1e-15, "c {c}");
-            assert!((ls.fit.var_q / cy.fit.var_q - 1.0).abs() < 1e-12 && (ls.fit.var_u / cy.fit.var_u - 1.0).abs() < 1e-12);
+            assert!(
+                (ls.fit.q - cy.fit.q).abs() < 1e-15 && (ls.fit.u - cy.fit.u).abs() < 1e-15,
+                "c {c}"
+            );
+            assert!(
+                (ls.fit.var_q / cy.fit.var_q - 1.0).abs() < 1e-12 && (ls.fit.var_u / cy.fit.var_u - 1.0).abs() < 1e-12
+            );
             assert!((ls.offset.unwrap().c - c).abs() < 5e-4);
             let f: Vec<f64> = r.f.iter().map(|v| v.unwrap().0).collect();
             assert!((cy.fit.q - 0.5 * (f[0] - f[1])).abs() < 1e-16);
@@ -532,7 +550,13 @@ mod tests {
                 .zip(transparency)
                 .map(|(f, k)| {
                     let k = 3.7 * k;
-                    PlateFrame { o: k * f.o, sigma_o: k * f.sigma_o, e: k * f.e, sigma_e: k * f.sigma_e, ..*f }
+                    PlateFrame {
+                        o: k * f.o,
+                        sigma_o: k * f.sigma_o,
+                        e: k * f.e,
+                        sigma_e: k * f.sigma_e,
+                        ..*f
+                    }
                 })
                 .collect();
             let r1 = reduce(&scaled, 0.0, 1.0, method);
@@ -562,12 +586,23 @@ mod tests {
                     .iter()
                     .map(|t| {
                         let (a, b) = (gauss(&mut rng), gauss(&mut rng));
-                        PlateFrame { o: t.o + t.sigma_o * a, e: t.e + t.sigma_e * b, ..*t }
+                        PlateFrame {
+                            o: t.o + t.sigma_o * a,
+                            e: t.e + t.sigma_e * b,
+                            ..*t
+                        }
                     })
                     .collect();
                 let r = reduce(&fr, 0.0, 1.0, method);
                 let (ls, cb, c0) = (r.least_squares.unwrap(), r.combined.unwrap(), r.cycles[0]);
-                draws.push([ls.fit.q, ls.fit.u, ls.offset.unwrap().c, cb.q.value, cb.u.value, c0.fit.q]);
+                draws.push([
+                    ls.fit.q,
+                    ls.fit.u,
+                    ls.offset.unwrap().c,
+                    cb.q.value,
+                    cb.u.value,
+                    c0.fit.q,
+                ]);
                 if k == 0 {
                     formal = [
                         ls.fit.var_q.sqrt(),
@@ -583,7 +618,11 @@ mod tests {
                 let m = draws.iter().map(|d| d[j]).sum::<f64>() / n as f64;
                 let sd = (draws.iter().map(|d| (d[j] - m).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt();
                 // 20000 draws: the scatter's own error is 0.5 %.
-                assert!((formal[j] / sd - 1.0).abs() < 0.03, "{method:?} {j}: formal {} vs MC {sd}", formal[j]);
+                assert!(
+                    (formal[j] / sd - 1.0).abs() < 0.03,
+                    "{method:?} {j}: formal {} vs MC {sd}",
+                    formal[j]
+                );
             }
             // The correlations of (q, c) and (q, u) of the least squares against the draws'.
             let ls = reduce(&truth, 0.0, 1.0, method).least_squares.unwrap();
@@ -601,7 +640,12 @@ mod tests {
             let formal_corr = |i: usize, j: usize| ls.cov[i][j] / (ls.cov[i][i] * ls.cov[j][j]).sqrt();
             for (i, j) in [(0, 2), (0, 1), (1, 2)] {
                 // 1/sqrt(20000) = 0.007 is the sampling error of a correlation near 0.
-                assert!((corr(i, j) - formal_corr(i, j)).abs() < 0.03, "{method:?} corr({i}, {j}): {} vs {}", corr(i, j), formal_corr(i, j));
+                assert!(
+                    (corr(i, j) - formal_corr(i, j)).abs() < 0.03,
+                    "{method:?} corr({i}, {j}): {} vs {}",
+                    corr(i, j),
+                    formal_corr(i, j)
+                );
             }
         }
     }
@@ -610,7 +654,9 @@ mod tests {
     fn incomplete_cycles_are_left_out_of_the_double_difference() {
         // An interrupted cycle (0, 45, 22.5), a complete one, a repeated position, a frame at
         // another angle, then a complete cycle in another order, then a lone 67.5.
-        let plates = [0.0, 45.0, 22.5, 0.0, 45.0, 22.5, 67.5, 22.5, 22.5, 10.0, 67.5, 22.5, 0.0, 45.0, 67.5];
+        let plates = [
+            0.0, 45.0, 22.5, 0.0, 45.0, 22.5, 67.5, 22.5, 22.5, 10.0, 67.5, 22.5, 0.0, 45.0, 67.5,
+        ];
         let g = complete_cycles(&plates, &[true; 15], 1.0);
         assert_eq!(g.cycles, vec![[3, 5, 4, 6], [12, 11, 13, 10]]);
         assert_eq!(g.left_out, vec![0, 1, 2, 7, 8, 9, 14]);
@@ -630,19 +676,37 @@ mod tests {
         assert_eq!((ls.n, ls.dof), (7, 4));
         assert!((ls.fit.q - POL.q).abs() < 1e-15);
         // Two plate positions only (0, 22.5): q, u without c, said by `offset_fitted`.
-        let r = reduce(&frames(&[0.0, 22.5, 0.0, 22.5], 1e6, 1.0, 1.0), 0.0, 1.0, CycleMethod::DoubleDifference);
+        let r = reduce(
+            &frames(&[0.0, 22.5, 0.0, 22.5], 1e6, 1.0, 1.0),
+            0.0,
+            1.0,
+            CycleMethod::DoubleDifference,
+        );
         let ls = r.least_squares.unwrap();
         assert!(!ls.offset_fitted() && r.cycles.is_empty() && r.combined.is_none());
         assert!((ls.fit.q - POL.q).abs() < 1e-15);
         // One position: nothing.
-        let r = reduce(&frames(&[45.0, 45.0], 1e6, 1.0, 1.0), 0.0, 1.0, CycleMethod::DoubleDifference);
+        let r = reduce(
+            &frames(&[45.0, 45.0], 1e6, 1.0, 1.0),
+            0.0,
+            1.0,
+            CycleMethod::DoubleDifference,
+        );
         assert!(r.least_squares.is_none() && r.cycles.is_empty());
         // Empty and hostile input: no panic.
         let r = reduce(&[], 0.0, 1.0, CycleMethod::DoubleRatio);
         assert!(r.least_squares.is_none() && r.combined.is_none());
-        let bad = PlateFrame { plate_deg: f64::INFINITY, o: -1.0, sigma_o: f64::NAN, e: 0.0, sigma_e: -2.0 };
+        let bad = PlateFrame {
+            plate_deg: f64::INFINITY,
+            o: -1.0,
+            sigma_o: f64::NAN,
+            e: 0.0,
+            sigma_e: -2.0,
+        };
         assert!(frame_f(&bad).is_none());
-        assert!(reduce(&[bad; 5], 0.0, 1.0, CycleMethod::DoubleDifference).least_squares.is_none());
+        assert!(reduce(&[bad; 5], 0.0, 1.0, CycleMethod::DoubleDifference)
+            .least_squares
+            .is_none());
     }
 
     #[test]
