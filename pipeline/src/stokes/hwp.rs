@@ -129,8 +129,8 @@ pub fn complete_cycles(plate_deg: &[f64], usable: &[bool], tolerance_deg: f64) -
         if i + 4 <= n {
             let mut slot = [usize::MAX; 4];
             let mut ok = true;
-            for j in i..i + 4 {
-                match pos[j] {
+            for (j, p) in pos.iter().enumerate().skip(i).take(4) {
+                match *p {
                     Some(k) if slot[k] == usize::MAX => slot[k] = j,
                     _ => {
                         ok = false;
