@@ -99,3 +99,45 @@ fn target_reads_a_frames_file_and_the_roles_and_target_names_given() {
     assert!(!text.contains("\"Beta\""), "Beta reduced");
     assert!(text.contains("listed as dark"), "{text}");
 }
+
+/// The demo night (5 binaries, dome flats, 3 standards): its frames file lists the
+/// standards and the dome flats with their roles, the night on it gives the same catalog
+/// (calibration included), and listing the standards' frames as `science` turns them into
+/// targets.
+#[test]
+fn standards_and_dome_flats_keep_their_roles_through_the_frames_file() {
+    let d = tempfile::tempdir().unwrap();
+    let n = d.path().join("night");
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("testdata/scenes/demo.toml").display().to_string();
+    let (code, _, err) = run(&["simulate", &scene, "-o", s(&n), "-q"]);
+    assert_eq!(code, 0, "{err}");
+    let cat1 = d.path().join("first.json");
+    let (code, _, err) = run(&["night", s(&n), "-o", s(&cat1), "-q", "--no-png"]);
+    assert!(code == 0 || code == 2, "{code}: {err}");
+    let frames = d.path().join("first.frames");
+    let text = std::fs::read_to_string(&frames).unwrap();
+    let count = |role: &str| text.lines().filter(|l| !l.starts_with('#') && l.ends_with(&format!(" {role}"))).count();
+    let a = json(&cat1);
+    let n_std_files: usize =
+        a["standards"].as_array().unwrap().iter().map(|s| s["input_files"].as_array().map_or(0, Vec::len)).sum();
+    assert!(n_std_files > 0 && count("standard") == n_std_files, "{text}");
+    assert!(count("flat") > 0, "{text}");
+    assert!(a["provenance"]["flat"]["mode"] == "dome", "{}", a["provenance"]["flat"]);
+    let cat2 = d.path().join("second.json");
+    let (code, _, err) = run(&["night", s(&frames), "-o", s(&cat2), "-q", "--no-png"]);
+    assert!(code == 0 || code == 2, "{code}: {err}");
+    let b = json(&cat2);
+    assert_eq!(b["provenance"]["flat"]["mode"], "dome");
+    assert_eq!(science_of(a.clone()), science_of(b));
+    // The standards' frames listed as science: reduced as targets, no standard left.
+    let as_science = text.replace(" standard\n", " science\n");
+    let list = d.path().join("as_science.frames");
+    std::fs::write(&list, as_science).unwrap();
+    let cat3 = d.path().join("third.json");
+    let (code, _, err) = run(&["night", s(&list), "-o", s(&cat3), "-q", "--no-png", "--allow-uncalibrated"]);
+    assert!(code == 0 || code == 2, "{code}: {err}");
+    let c = json(&cat3);
+    assert!(c["standards"].as_array().is_none_or(|v| v.is_empty()), "{}", c["standards"]);
+    let n_targets = |v: &Value| v["targets"].as_array().unwrap().len();
+    assert_eq!(n_targets(&c), n_targets(&a) + a["standards"].as_array().unwrap().len());
+}
