@@ -57,6 +57,24 @@ fn night_on_its_own_frames_file_repeats_the_run() {
             .collect::<Vec<_>>()
     };
     assert_eq!(strip(&text), strip(&again));
+    // A run whose catalog's frames file would be its input list leaves the list alone.
+    let mine = d.path().join("mine.frames");
+    let hand = format!("# by hand\n{}\n", strip(&text).join("\n"));
+    std::fs::write(&mine, &hand).unwrap();
+    let (code, _, err) = run(&[
+        "night",
+        s(&mine),
+        "-o",
+        s(&d.path().join("mine.json")),
+        "-q",
+        "--no-png",
+    ]);
+    assert!(code == 0 || code == 2, "{code}: {err}");
+    assert_eq!(
+        std::fs::read_to_string(&mine).unwrap(),
+        hand,
+        "the input list was overwritten"
+    );
 }
 
 #[test]
@@ -108,7 +126,10 @@ fn target_reads_a_frames_file_and_the_roles_and_target_names_given() {
 fn standards_and_dome_flats_keep_their_roles_through_the_frames_file() {
     let d = tempfile::tempdir().unwrap();
     let n = d.path().join("night");
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("testdata/scenes/demo.toml").display().to_string();
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("testdata/scenes/demo.toml")
+        .display()
+        .to_string();
     let (code, _, err) = run(&["simulate", &scene, "-o", s(&n), "-q"]);
     assert_eq!(code, 0, "{err}");
     let cat1 = d.path().join("first.json");
@@ -116,10 +137,18 @@ fn standards_and_dome_flats_keep_their_roles_through_the_frames_file() {
     assert!(code == 0 || code == 2, "{code}: {err}");
     let frames = d.path().join("first.frames");
     let text = std::fs::read_to_string(&frames).unwrap();
-    let count = |role: &str| text.lines().filter(|l| !l.starts_with('#') && l.ends_with(&format!(" {role}"))).count();
+    let count = |role: &str| {
+        text.lines()
+            .filter(|l| !l.starts_with('#') && l.ends_with(&format!(" {role}")))
+            .count()
+    };
     let a = json(&cat1);
-    let n_std_files: usize =
-        a["standards"].as_array().unwrap().iter().map(|s| s["input_files"].as_array().map_or(0, Vec::len)).sum();
+    let n_std_files: usize = a["standards"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["input_files"].as_array().map_or(0, Vec::len))
+        .sum();
     assert!(n_std_files > 0 && count("standard") == n_std_files, "{text}");
     assert!(count("flat") > 0, "{text}");
     assert!(a["provenance"]["flat"]["mode"] == "dome", "{}", a["provenance"]["flat"]);
@@ -134,10 +163,22 @@ fn standards_and_dome_flats_keep_their_roles_through_the_frames_file() {
     let list = d.path().join("as_science.frames");
     std::fs::write(&list, as_science).unwrap();
     let cat3 = d.path().join("third.json");
-    let (code, _, err) = run(&["night", s(&list), "-o", s(&cat3), "-q", "--no-png", "--allow-uncalibrated"]);
+    let (code, _, err) = run(&[
+        "night",
+        s(&list),
+        "-o",
+        s(&cat3),
+        "-q",
+        "--no-png",
+        "--allow-uncalibrated",
+    ]);
     assert!(code == 0 || code == 2, "{code}: {err}");
     let c = json(&cat3);
-    assert!(c["standards"].as_array().is_none_or(|v| v.is_empty()), "{}", c["standards"]);
+    assert!(
+        c["standards"].as_array().is_none_or(|v| v.is_empty()),
+        "{}",
+        c["standards"]
+    );
     let n_targets = |v: &Value| v["targets"].as_array().unwrap().len();
     assert_eq!(n_targets(&c), n_targets(&a) + a["standards"].as_array().unwrap().len());
 }

@@ -45,15 +45,30 @@ pub fn frame_list_path(catalog: &Path) -> std::path::PathBuf {
 
 /// Write the night log of `cat` beside the catalog at `catalog` (atomically: a temporary
 /// file renamed), and the set-of-frames file of the frames it used ([`night_frame_list`],
-/// at [`frame_list_path`]), returning the log's path.
+/// at [`frame_list_path`]; not when that is one of the run's inputs), returning the log's
+/// path.
 pub fn write_night_log(catalog: &Path, cat: &Catalog) -> sofipol_calib::Result<std::path::PathBuf> {
     let path = log_path(catalog);
     let name = catalog
         .file_name()
         .map_or_else(|| catalog.display().to_string(), |n| n.to_string_lossy().into());
     let frames = frame_list_path(catalog);
-    let dir = frames.parent().unwrap_or(Path::new(""));
-    crate::io::write_atomic(&frames, night_frame_list(cat, &name, dir).as_bytes())?;
+    // Never over an input (`night night.frames -o night.json`: the list given, with its
+    // comments and its dark and sky lines, stays as it is).
+    let same = |a: &Path, b: &Path| match (std::fs::canonicalize(a), std::fs::canonicalize(b)) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => a == b,
+    };
+    let is_input = cat
+        .provenance
+        .inputs
+        .iter()
+        .flatten()
+        .any(|i| same(Path::new(i), &frames));
+    if !is_input {
+        let dir = frames.parent().unwrap_or(Path::new(""));
+        crate::io::write_atomic(&frames, night_frame_list(cat, &name, dir).as_bytes())?;
+    }
     crate::io::write_atomic(&path, night_log(cat, &name).as_bytes())?;
     Ok(path)
 }
