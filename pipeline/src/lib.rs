@@ -30,6 +30,7 @@ pub mod catalog;
 pub mod error;
 pub mod export;
 pub mod foreground;
+pub mod frame_list;
 pub mod input;
 pub mod io;
 pub mod live;

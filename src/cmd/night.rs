@@ -129,7 +129,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 /// Scan the night (standards apart, this shard's sequences and failures) and check the
 /// outputs against its files (never overwrite an input).
 fn plan_night(args: &Args, setup: &NightSetup) -> anyhow::Result<NightPlan> {
-    let plan = setup.plan(&args.dirs, args.shard);
+    let plan = setup.plan_inputs(&args.dirs, args.shard)?;
     super::common::check_scan_complete(&plan)?;
     anyhow::ensure!(
         plan.n_files > 0,

@@ -46,7 +46,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         anyhow::ensure!(i.exists(), "{}: no such file or directory", i.display());
     }
     super::setup::check_input_frames(&setup.params)?;
-    let mut plan = setup.plan(&args.inputs, None);
+    let mut plan = setup.plan_inputs(&args.inputs, None)?;
     super::common::check_scan_complete(&plan)?;
     anyhow::ensure!(
         plan.n_files > 0,

@@ -32,15 +32,93 @@ pub fn log_path(catalog: &Path) -> std::path::PathBuf {
     }
 }
 
+/// Where the set-of-frames file of a catalog goes: the catalog's name with `.frames` in
+/// place of its extension (`night.json` -> `night.frames`).
+pub fn frame_list_path(catalog: &Path) -> std::path::PathBuf {
+    let p = catalog.with_extension(crate::frame_list::EXTENSION);
+    if p == catalog {
+        catalog.with_extension("frames.frames")
+    } else {
+        p
+    }
+}
+
 /// Write the night log of `cat` beside the catalog at `catalog` (atomically: a temporary
-/// file renamed), returning its path.
+/// file renamed), and the set-of-frames file of the frames it used ([`night_frame_list`],
+/// at [`frame_list_path`]; not when that is one of the run's inputs), returning the log's
+/// path.
 pub fn write_night_log(catalog: &Path, cat: &Catalog) -> sofipol_calib::Result<std::path::PathBuf> {
     let path = log_path(catalog);
     let name = catalog
         .file_name()
         .map_or_else(|| catalog.display().to_string(), |n| n.to_string_lossy().into());
+    let frames = frame_list_path(catalog);
+    // Never over an input (`night night.frames -o night.json`: the list given, with its
+    // comments and its dark and sky lines, stays as it is).
+    let same = |a: &Path, b: &Path| match (std::fs::canonicalize(a), std::fs::canonicalize(b)) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => a == b,
+    };
+    let is_input = cat
+        .provenance
+        .inputs
+        .iter()
+        .flatten()
+        .any(|i| same(Path::new(i), &frames));
+    if !is_input {
+        let dir = frames.parent().unwrap_or(Path::new(""));
+        crate::io::write_atomic(&frames, night_frame_list(cat, &name, dir).as_bytes())?;
+    }
     crate::io::write_atomic(&path, night_log(cat, &name).as_bytes())?;
     Ok(path)
+}
+
+/// The set-of-frames file ([`crate::frame_list`]) of the frames the catalog's run used: the
+/// frames of its targets (`science`), of its standards (`standard`) and its dome flats
+/// (`flat`), so that `sofipol night FILE` repeats the run on the same frames. Paths are
+/// relative when the catalog's paths are relative and the file goes to the working
+/// directory (`dir` empty or `.`), absolute otherwise (relative paths made absolute with
+/// the working directory).
+pub fn night_frame_list(cat: &Catalog, catalog_name: &str, dir: &Path) -> String {
+    use crate::frame_list::FrameRole;
+    let here = dir.as_os_str().is_empty() || dir == Path::new(".");
+    let shown = |f: &str| {
+        let p = Path::new(f);
+        if p.is_absolute() || here {
+            p.to_path_buf()
+        } else {
+            std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf())
+        }
+    };
+    let mut frames: Vec<(std::path::PathBuf, FrameRole)> = Vec::new();
+    let mut seen = std::collections::HashSet::new();
+    let mut add = |f: &str, role: FrameRole, frames: &mut Vec<_>| {
+        if seen.insert(f.to_string()) {
+            frames.push((shown(f), role));
+        }
+    };
+    for t in &cat.targets {
+        for f in t.input_files.iter().flatten() {
+            add(f, FrameRole::Science, &mut frames);
+        }
+    }
+    for st in &cat.standards {
+        for f in st.input_files.iter().flatten() {
+            add(f, FrameRole::Standard, &mut frames);
+        }
+    }
+    for fl in cat.provenance.flat_list() {
+        if fl.kind == "dome" {
+            for f in &fl.frames {
+                add(f, FrameRole::Flat, &mut frames);
+            }
+        }
+    }
+    let header = vec![
+        format!("sofipol set of frames of {catalog_name}: the frames its run used, with their roles"),
+        "`sofipol night THIS_FILE -o CATALOG`: the same run on the same frames (docs/cli.md)".to_string(),
+    ];
+    crate::frame_list::write(&header, &frames)
 }
 
 /// The night log of `cat` (see the module's documentation), `catalog_name` naming the

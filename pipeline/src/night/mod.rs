@@ -42,10 +42,10 @@ pub use crate::products::{products_dir, slug};
 pub use cache::{files_key, CacheCounts, CachedTarget, FileStamp, NightCache};
 pub use calibrate::{calibrate, reduce_standards};
 pub use flats::{night_flats, NightFlats};
-pub use log::{log_path, log_ut, night_log, write_night_log};
+pub use log::{frame_list_path, log_path, log_ut, night_frame_list, night_log, write_night_log};
 pub use mask::night_bad_pixel_mask;
 pub use merge::merge;
-pub use plan::{pick_superflat_frames, plan, plan_listing, stable_hash, NightPlan, Shard};
+pub use plan::{pick_superflat_frames, plan, plan_frame_list, plan_listing, stable_hash, NightPlan, Shard};
 
 /// Most frames stacked for the night-wide bad-pixel mask.
 pub const MASK_FRAMES: usize = 15;
@@ -67,6 +67,38 @@ impl NightSetup {
         plan(roots, &self.profile, self.params.flat_options.max_frames, shard, |q| {
             crate::calibration::is_standard_sequence(q, &self.profile)
         })
+    }
+
+    /// [`NightSetup::plan`] of the command line's inputs: a single set-of-frames file
+    /// ([`crate::frame_list`]) is read and planned with its roles ([`plan_frame_list`]);
+    /// directories and FITS files are searched and classified by header. A set-of-frames
+    /// file among other inputs, or a bad one, is an error naming its file and line.
+    pub fn plan_inputs(
+        &self,
+        roots: &[PathBuf],
+        shard: Option<Shard>,
+    ) -> Result<NightPlan, crate::frame_list::FrameListError> {
+        let lists: Vec<&PathBuf> = roots.iter().filter(|r| crate::frame_list::is_frame_list(r)).collect();
+        match (lists.as_slice(), roots.len()) {
+            ([], _) => Ok(self.plan(roots, shard)),
+            ([one], 1) => {
+                let list = crate::frame_list::read(one)?;
+                Ok(plan_frame_list(
+                    &list,
+                    &self.profile,
+                    self.params.flat_options.max_frames,
+                    shard,
+                    |q| crate::calibration::is_standard_sequence(q, &self.profile),
+                ))
+            }
+            (some, _) => Err(crate::frame_list::FrameListError {
+                file: some[0].to_path_buf(),
+                line: None,
+                key: "inputs".into(),
+                value: format!("{} input(s)", roots.len()),
+                reason: "a set-of-frames file is given alone, not with directories, FITS files or other lists".into(),
+            }),
+        }
     }
 }
 

@@ -3,7 +3,7 @@
 //! night-wide bad-pixel mask and superflat (before sharding, so every shard builds the
 //! same ones) and keep the sequences of one shard.
 use std::collections::BTreeMap;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use sofipol_calib::Profile;
 
@@ -186,6 +186,132 @@ pub fn plan_listing(
     read_header: &scan::ReadHeader<'_>,
 ) -> NightPlan {
     let (s, files) = scan::scan_listing_with(listing, profile, read_header);
+    plan_scanned(s, files, profile, max_superflat_frames, shard, is_standard, keep)
+}
+
+/// The plan of the frames a set-of-frames file lists ([`crate::frame_list`]): only those
+/// files, with their roles as given. A frame listed as `science` or `standard` must still
+/// be a polarimetric frame by its header (else it is not used, with the header's reason
+/// and the line); its `angle=` and `target=` replace the header's POSANG and OBJECT; a
+/// sequence with a frame listed as `standard` is a standard, one with a frame listed as
+/// `science` is not, whatever the header says (others: `is_standard`). `flat` frames go to
+/// the dome-flat builder when the header has the lamp keyword; `dark` and `sky` frames are
+/// listed as not used.
+pub fn plan_frame_list(
+    list: &crate::frame_list::FrameList,
+    profile: &Profile,
+    max_superflat_frames: usize,
+    shard: Option<Shard>,
+    is_standard: impl Fn(&Sequence) -> bool,
+) -> NightPlan {
+    use crate::frame_list::FrameRole;
+    use std::collections::HashMap;
+    let listing = scan::Listing {
+        files: list.frames.iter().map(|f| f.path.clone()).collect(),
+        ..Default::default()
+    };
+    let (mut s, files) = scan::scan_listing_with(listing, profile, &sofipol_calib::fits::read_header);
+    let by_path: HashMap<&Path, &crate::frame_list::ListedFrame> =
+        list.frames.iter().map(|f| (f.path.as_path(), f)).collect();
+    let at = |f: &crate::frame_list::ListedFrame| format!("{}:{}", list.file.display(), f.line);
+    // Science frames: overrides, or out when listed as something else.
+    let mut science = Vec::new();
+    for mut info in std::mem::take(&mut s.science) {
+        let Some(lf) = by_path.get(info.path.as_path()) else {
+            science.push(info);
+            continue;
+        };
+        match lf.role {
+            FrameRole::Science | FrameRole::Standard => {
+                if let Some(a) = lf.angle_deg {
+                    info.posang_deg = a;
+                }
+                if let Some(t) = &lf.target {
+                    info.object = t.clone();
+                    info.sequence = format!("{}@{}", info.object, info.tpl_start);
+                }
+                science.push(info);
+            }
+            FrameRole::Flat => match sofipol_calib::fits::read_header(&info.path)
+                .map_err(|e| e.to_string())
+                .and_then(|h| sofipol_calib::flat::dome_flat_info(&h, profile).map_err(|e| e.to_string()))
+            {
+                Ok(Some(_)) => s.dome_flats.push(info.path),
+                Ok(None) => s.other.push(Failure {
+                    file: info.path.display().to_string(),
+                    error: format!(
+                        "listed as flat ({}) but the header has no lamp keyword of a dome flat",
+                        at(lf)
+                    ),
+                }),
+                Err(e) => s.other.push(Failure {
+                    file: info.path.display().to_string(),
+                    error: format!("listed as flat ({}): {e}", at(lf)),
+                }),
+            },
+            FrameRole::Dark | FrameRole::Sky => s.other.push(Failure {
+                file: info.path.display().to_string(),
+                error: format!("listed as {} ({}): not used by this reduction", lf.role.name(), at(lf)),
+            }),
+        }
+    }
+    s.science = science;
+    // Dome flats listed as something else.
+    let mut flats = Vec::new();
+    for p in std::mem::take(&mut s.dome_flats) {
+        match by_path.get(p.as_path()).map(|lf| (lf.role, at(lf))) {
+            Some((FrameRole::Flat, _)) | None => flats.push(p),
+            Some((role, line)) => s.other.push(Failure {
+                file: p.display().to_string(),
+                error: format!(
+                    "listed as {} ({line}) but its header is a dome flat's: not used",
+                    role.name()
+                ),
+            }),
+        }
+    }
+    s.dome_flats = flats;
+    // Frames the header does not take as science: say what they were listed as.
+    for f in &mut s.other {
+        if let Some(lf) = by_path.get(Path::new(&f.file)) {
+            if matches!(lf.role, FrameRole::Science | FrameRole::Standard | FrameRole::Flat)
+                && !f.error.starts_with("listed as")
+            {
+                f.error = format!("listed as {} ({}), but {}", lf.role.name(), at(lf), f.error);
+            } else if matches!(lf.role, FrameRole::Dark | FrameRole::Sky) && !f.error.starts_with("listed as") {
+                f.error = format!("listed as {} ({}): not used by this reduction", lf.role.name(), at(lf));
+            }
+        }
+    }
+    let roles: HashMap<PathBuf, FrameRole> = list.frames.iter().map(|f| (f.path.clone(), f.role)).collect();
+    let standard = |q: &Sequence| {
+        let listed: Vec<FrameRole> = q
+            .orientations
+            .iter()
+            .flat_map(|o| &o.exposures)
+            .filter_map(|e| roles.get(&e.path).copied())
+            .collect();
+        if listed.contains(&FrameRole::Standard) {
+            true
+        } else if listed.contains(&FrameRole::Science) {
+            false
+        } else {
+            is_standard(q)
+        }
+    };
+    plan_scanned(s, files, profile, max_superflat_frames, shard, standard, |_| true)
+}
+
+/// The plan from a finished scan ([`plan_listing`] after its scan).
+fn plan_scanned(
+    s: scan::Scan,
+    files: Vec<PathBuf>,
+    profile: &Profile,
+    max_superflat_frames: usize,
+    shard: Option<Shard>,
+    is_standard: impl Fn(&Sequence) -> bool,
+    keep: impl Fn(&Sequence) -> bool,
+) -> NightPlan {
     let n_files = files.len();
     let mut failures: Vec<Failure> = s.unreadable;
     failures.extend(s.duplicates);

@@ -714,7 +714,7 @@ fn dither_value((mut o_b, ob): (BeamFlux, u8), (mut e_b, eb): (BeamFlux, u8), mu
 /// The error of F = (o - e)/(o + e) from the fluxes' variances and covariance (first
 /// order): dF/do = 2e/(o + e)^2, dF/de = -2o/(o + e)^2, so a positive covariance (a common
 /// error of both beams, e.g. the PSF shape's in a joint fit) lowers it.
-fn f_error(o: f64, e: f64, var_o: f64, var_e: f64, cov_oe: f64) -> f64 {
+pub(crate) fn f_error(o: f64, e: f64, var_o: f64, var_e: f64, cov_oe: f64) -> f64 {
     let tot2 = (o + e).powi(2);
     let (dfo, dfe) = (2.0 * e / tot2, -2.0 * o / tot2);
     (dfo * dfo * var_o + dfe * dfe * var_e + 2.0 * dfo * dfe * cov_oe).sqrt()

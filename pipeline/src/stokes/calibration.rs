@@ -208,16 +208,53 @@ pub fn difference_pair(a: &OrientationF, b: &OrientationF) -> (f64, f64) {
 }
 
 /// Least squares of `F_i = q cos 2phi_i + u sin 2phi_i + c` with `c` free. `None` with fewer
-/// than 3 distinct angles (mod 180) or a singular system.
+/// than 3 distinct angles (mod 180) or a singular system. Orientations at the same angle are
+/// merged first (weighted mean of F), so `chi2` has `distinct angles - 3` degrees of freedom;
+/// [`fit_qu_offset_points`] fits the points one by one.
 pub fn fit_qu_offset(obs: &[OrientationF]) -> Option<(QuFit, Offset)> {
-    let m = merged(obs);
-    if m.len() < 3 {
+    fit_qu_offset_points(&merged(obs)).map(|f| (f.fit, f.offset))
+}
+
+/// [`fit_qu_offset_points`]: q, u, c with their full 3 x 3 covariance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OffsetFit {
+    /// q, u, Var(q), Var(u), Cov(q, u) and the chi^2 over every point.
+    pub fit: QuFit,
+    /// c and its 1-sigma error.
+    pub offset: Offset,
+    /// Covariance of (q, u, c), in that order.
+    pub cov: [[f64; 3]; 3],
+    /// Points used (finite F, finite positive error).
+    pub n: usize,
+}
+
+impl OffsetFit {
+    /// Degrees of freedom of `fit.chi2`: points used minus 3.
+    pub fn dof(&self) -> usize {
+        self.n.saturating_sub(3)
+    }
+}
+
+/// Weighted least squares of `F_i = q cos 2phi_i + u sin 2phi_i + c` over every point as
+/// given (no merging of equal angles: repeated angles add degrees of freedom to chi^2).
+/// Points with a non-finite F or a non-finite or non-positive error are skipped. `None` with
+/// fewer than 3 distinct angles (mod 180, 0.01 deg) among the usable points, or a singular
+/// system.
+pub fn fit_qu_offset_points(obs: &[OrientationF]) -> Option<OffsetFit> {
+    let usable: Vec<&OrientationF> = obs
+        .iter()
+        .filter(|o| o.f.is_finite() && o.sigma_f.is_finite() && o.sigma_f > 0.0 && o.analyzer_deg.is_finite())
+        .collect();
+    let mut keys: Vec<i64> = usable.iter().map(|o| key(o.analyzer_deg)).collect();
+    keys.sort_unstable();
+    keys.dedup();
+    if keys.len() < 3 {
         return None;
     }
     // Normal equations for (q, u, c).
     let mut a = [[0.0f64; 3]; 3];
     let mut y = [0.0f64; 3];
-    for o in &m {
+    for o in &usable {
         let w = o.sigma_f.powi(-2);
         let t = 2.0 * o.analyzer_deg.to_radians();
         let x = [t.cos(), t.sin(), 1.0];
@@ -230,15 +267,15 @@ pub fn fit_qu_offset(obs: &[OrientationF]) -> Option<(QuFit, Offset)> {
     }
     let inv = invert3(&a)?;
     let p: Vec<f64> = (0..3).map(|i| (0..3).map(|j| inv[i][j] * y[j]).sum()).collect();
-    let chi2 = m
+    let chi2 = usable
         .iter()
         .map(|o| {
             let t = 2.0 * o.analyzer_deg.to_radians();
             ((o.f - p[0] * t.cos() - p[1] * t.sin() - p[2]) / o.sigma_f).powi(2)
         })
         .sum();
-    Some((
-        QuFit {
+    Some(OffsetFit {
+        fit: QuFit {
             q: p[0],
             u: p[1],
             var_q: inv[0][0],
@@ -246,11 +283,13 @@ pub fn fit_qu_offset(obs: &[OrientationF]) -> Option<(QuFit, Offset)> {
             cov_qu: inv[0][1],
             chi2,
         },
-        Offset {
+        offset: Offset {
             c: p[2],
             sigma_c: inv[2][2].sqrt(),
         },
-    ))
+        cov: inv,
+        n: usable.len(),
+    })
 }
 
 fn invert3(a: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {

@@ -1,6 +1,7 @@
 //! Stokes parameters: the instrument's forward model and its inversion.
 pub mod calibration;
 pub mod fresnel;
+pub mod hwp;
 pub mod inversion;
 pub mod model;
 pub mod propagation;
