@@ -690,7 +690,7 @@ fn dither_value((mut o_b, ob): (BeamFlux, u8), (mut e_b, eb): (BeamFlux, u8), mu
     }
     let tot = o_b.flux + e_b.flux;
     let fval = (o_b.flux - e_b.flux) / tot;
-    let sigma_f = f_error(o_b.flux, e_b.flux, o_b.var, e_b.var, cov_oe);
+    let sigma_f = crate::stokes::model::f_error(o_b.flux, e_b.flux, o_b.var, e_b.var, cov_oe);
     let blocking = (ob | eb) & (mbits::BAD | mbits::COSMIC | mbits::SATURATED | mbits::OFF_STRIP);
     let pf = Flags(o_b.phot_flags | e_b.phot_flags);
     let rejected = if !(fval.is_finite() && sigma_f.is_finite() && sigma_f > 0.0 && tot > 0.0) {
@@ -709,15 +709,6 @@ fn dither_value((mut o_b, ob): (BeamFlux, u8), (mut e_b, eb): (BeamFlux, u8), mu
         e: e_b,
         rejected,
     }
-}
-
-/// The error of F = (o - e)/(o + e) from the fluxes' variances and covariance (first
-/// order): dF/do = 2e/(o + e)^2, dF/de = -2o/(o + e)^2, so a positive covariance (a common
-/// error of both beams, e.g. the PSF shape's in a joint fit) lowers it.
-pub(crate) fn f_error(o: f64, e: f64, var_o: f64, var_e: f64, cov_oe: f64) -> f64 {
-    let tot2 = (o + e).powi(2);
-    let (dfo, dfe) = (2.0 * e / tot2, -2.0 * o / tot2);
-    (dfo * dfo * var_o + dfe * dfe * var_e + 2.0 * dfo * dfe * cov_oe).sqrt()
 }
 
 /// A square cut-out of a frame around the target.

@@ -84,7 +84,7 @@ pub fn frame_f(fr: &PlateFrame) -> Option<(f64, f64)> {
         return None;
     }
     let f = (fr.o - fr.e) / tot;
-    let s = crate::reduce::fluxes::f_error(fr.o, fr.e, fr.sigma_o.powi(2), fr.sigma_e.powi(2), 0.0);
+    let s = crate::stokes::model::f_error(fr.o, fr.e, fr.sigma_o.powi(2), fr.sigma_e.powi(2), 0.0);
     Some((f, s))
 }
 

@@ -90,6 +90,15 @@ pub fn normalized_difference(pol: Polarization, phi_deg: f64) -> f64 {
     pol.q * t.cos() + pol.u * t.sin()
 }
 
+/// The error of F = (o - e)/(o + e) from the fluxes' variances and covariance (first
+/// order): dF/do = 2e/(o + e)^2, dF/de = -2o/(o + e)^2, so a positive covariance (a common
+/// error of both beams, e.g. the PSF shape's in a joint fit) lowers it.
+pub fn f_error(o: f64, e: f64, var_o: f64, var_e: f64, cov_oe: f64) -> f64 {
+    let tot2 = (o + e).powi(2);
+    let (dfo, dfe) = (2.0 * e / tot2, -2.0 * o / tot2);
+    (dfo * dfo * var_o + dfe * dfe * var_e + 2.0 * dfo * dfe * cov_oe).sqrt()
+}
+
 /// Ordinary and extraordinary beam fluxes of a source of total intensity `i`
 /// (any flux unit), at analyzer angle `phi_deg`, with beam transmissions `t_o`, `t_e`.
 pub fn beam_fluxes(i: f64, pol: Polarization, phi_deg: f64, t_o: f64, t_e: f64) -> (f64, f64) {
