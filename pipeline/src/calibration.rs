@@ -402,6 +402,18 @@ fn resolve_targets(
             note_calibration_state(c, fc, summary);
         }
         summary.n_uncalibrated += n_unc;
+        // The field stars: the same re-solve and the same refusals; the night's counts
+        // (and its exit code) are the binaries' alone.
+        let mut field_summary = CalibrationSummary::default();
+        for s in t.field_stars.iter_mut().flatten() {
+            resolve_component(&mut s.star, &settings);
+            note_origin(&mut s.star, other_night);
+            if !params.allow_uncalibrated {
+                refuse_incomplete(&mut s.star, &mut field_summary);
+            }
+            note_calibration_state(&mut s.star, fc, &mut field_summary);
+            s.settle();
+        }
         let errors = (fc.is_some() || settings.telescope_prior.is_some())
             .then(|| calibration_errors(fc, settings.telescope_prior.as_ref()));
         t.update_delta_gamma(errors.as_ref());
@@ -696,9 +708,11 @@ pub fn is_standard_sequence(seq: &crate::sequence::Sequence, profile: &Profile) 
 }
 
 /// Reduction settings for a standard: a single star, never a binary (no companion is
-/// accepted, so none is searched for in the photometry).
+/// accepted, so none is searched for in the photometry), without field stars (the
+/// standards section keeps the star alone).
 pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::TargetParams {
     let mut s = p.clone();
+    s.measure.field_stars = false;
     s.measure.min_companion_snr = f64::INFINITY;
     s.measure.companion_hint = None;
     s
