@@ -485,7 +485,8 @@ fn field_star_entries(
             let id = format!("F{}", i + 1);
             let mut c = component_from_dithers(&id, &s.dithers, phis, etas, files, params, profile);
             let n: usize = s.dithers.iter().map(Vec::len).sum();
-            c.flags.retain(|f| !f.is(FlagCode::OutsideField) && !f.is(FlagCode::StripEdge));
+            c.flags
+                .retain(|f| !f.is(FlagCode::OutsideField) && !f.is(FlagCode::StripEdge));
             if s.n_outside > 0 {
                 c.flags.push(Flag::with_detail(
                     FlagCode::OutsideField,

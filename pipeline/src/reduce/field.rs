@@ -19,6 +19,7 @@
 //!    detector has no value (`outside_field`), one whose aperture crosses a strip or
 //!    detector edge is rejected (`strip_edge`).
 use ndarray::{Array2, ArrayView2};
+use sofipol_calib::frame::mask as mbits;
 use sofipol_calib::Profile;
 
 use super::companion::Companion;
@@ -91,7 +92,6 @@ impl Strips {
 /// `setup` is the components' photometry; `eo` the measured e-o offset.
 pub fn measure_field_stars(
     orients: &[SkySubtractedOrientation],
-    masks: &[Vec<Array2<u8>>],
     primary: &Primary,
     companion: &Companion,
     setup: &FluxSetup,
@@ -113,15 +113,7 @@ pub fn measure_field_stars(
     let mut detections: Vec<Detection> = Vec::new();
     for (k, o) in orients.iter().enumerate() {
         let rel_a = companion.found[k].map(|p| p.a).unwrap_or((0.0, 0.0));
-        detections.extend(detect_orientation(
-            o,
-            &masks[k],
-            &primary.centres[k],
-            rel_a,
-            b_en,
-            &strips,
-            setup,
-        ));
+        detections.extend(detect_orientation(o, &primary.centres[k], rel_a, b_en, &strips, setup));
     }
     let groups = group(&detections, GROUP_TOL_PX * scale);
     let mut stars: Vec<FieldMeasured> = groups
@@ -152,10 +144,12 @@ pub fn measure_field_stars(
     for (i, s) in stars.iter_mut().enumerate() {
         let me = ens[i];
         let mut neighbours: Vec<(f64, f64)> = Vec::new();
-        let others = sources
-            .iter()
-            .cloned()
-            .chain(ens.iter().enumerate().filter(|(j, _)| *j != i).map(|(_, e)| ("field star".to_string(), *e)));
+        let others = sources.iter().cloned().chain(
+            ens.iter()
+                .enumerate()
+                .filter(|(j, _)| *j != i)
+                .map(|(_, e)| ("field star".to_string(), *e)),
+        );
         for (name, en) in others {
             let d = (en.0 - me.0).hypot(en.1 - me.1);
             if d < blend_arcsec {
@@ -277,10 +271,7 @@ fn group(dets: &[Detection], tol: f64) -> Vec<Group> {
         {
             Some(g) => {
                 let w = g.w + d.snr;
-                g.en = (
-                    (g.en.0 * g.w + d.en.0 * d.snr) / w,
-                    (g.en.1 * g.w + d.en.1 * d.snr) / w,
-                );
+                g.en = ((g.en.0 * g.w + d.en.0 * d.snr) / w, (g.en.1 * g.w + d.en.1 * d.snr) / w);
                 g.w = w;
                 g.n += 1;
             }
@@ -295,12 +286,17 @@ fn group(dets: &[Detection], tol: f64) -> Vec<Group> {
     groups
 }
 
+/// The mask bits that leave a pixel out of the detection stack: defects, cosmic rays and
+/// the focal mask, not saturation (a saturated core left out would leave a hole whose rim
+/// peaks in several places; kept, it is one plateau, and the photometry rejects it).
+const STACK_SKIP: u8 = mbits::BAD | mbits::COSMIC | mbits::OFF_STRIP;
+
 /// The stack of one orientation's frames registered on the first frame where the primary
 /// was found (whole-pixel shifts by the primary's centres): mean, its variance, and 1 where
-/// no frame gave a usable pixel. None when the primary was found in no frame.
+/// no frame gave a usable pixel ([`STACK_SKIP`]). None when the primary was found in no
+/// frame.
 fn stack(
     o: &SkySubtractedOrientation,
-    masks: &[Array2<u8>],
     centres: &[Option<(f64, f64)>],
 ) -> Option<(Array2<f32>, Array2<f32>, Array2<u8>, (f64, f64))> {
     let r = centres.iter().position(Option::is_some)?;
@@ -309,8 +305,9 @@ fn stack(
     let mut sum = Array2::<f32>::zeros((ny, nx));
     let mut var = Array2::<f32>::zeros((ny, nx));
     let mut n = Array2::<u16>::zeros((ny, nx));
-    for ((f, m), c) in o.frames.iter().zip(masks).zip(centres) {
+    for (f, c) in o.frames.iter().zip(centres) {
         let Some(c) = c else { continue };
+        let m = &f.mask;
         if f.shape() != (ny, nx) {
             continue;
         }
@@ -324,7 +321,7 @@ fn stack(
             let (x0, x1) = ((-dx).max(0), (nx as i64 - dx).min(nx as i64));
             for x in x0..x1 {
                 let (ys, xs) = (ys as usize, (x + dx) as usize);
-                if m[[ys, xs]] != 0 {
+                if m[[ys, xs]] & STACK_SKIP != 0 {
                     continue;
                 }
                 let (yu, xu) = (y as usize, x as usize);
@@ -335,18 +332,15 @@ fn stack(
         }
     }
     let bad = n.mapv(|k| u8::from(k == 0));
-    ndarray::Zip::from(&mut sum)
-        .and(&mut var)
-        .and(&n)
-        .for_each(|s, v, &k| {
-            if k > 0 {
-                *s /= k as f32;
-                *v /= (k as f32) * (k as f32);
-            } else {
-                *s = 0.0;
-                *v = 0.0;
-            }
-        });
+    ndarray::Zip::from(&mut sum).and(&mut var).and(&n).for_each(|s, v, &k| {
+        if k > 0 {
+            *s /= k as f32;
+            *v /= (k as f32) * (k as f32);
+        } else {
+            *s = 0.0;
+            *v = 0.0;
+        }
+    });
     Some((sum, var, bad, cr))
 }
 
@@ -443,28 +437,59 @@ fn peaks(
                 continue;
             }
             let xy = refine(img, bad, x as f64, y as f64, fwhm, 2.0).unwrap_or((x as f64, y as f64));
-            out.push(Peak {
-                xy,
-                sum: s as f64,
-                snr,
-            });
+            out.push(Peak { xy, sum: s as f64, snr });
         }
     }
-    out
+    merge_plateaus(out, bs.view(), fwhm)
+}
+
+/// Peaks of one source: a fainter peak within [`BLEND_FWHM`] FWHM of a brighter one with no
+/// dip between them (the box sums along the segment never fall below [`DIP`] of the fainter
+/// peak's; masked boxes skipped) is the same source (a saturated plateau, a noisy core) and
+/// is dropped. Two stars at 2 FWHM or more have a dip far deeper than that.
+fn merge_plateaus(mut peaks: Vec<Peak>, bs: ArrayView2<f32>, fwhm: f64) -> Vec<Peak> {
+    /// Fraction of the fainter peak's box sum that the segment must fall below for two peaks
+    /// to be two sources.
+    const DIP: f64 = 0.6;
+    peaks.sort_by(|a, b| b.sum.total_cmp(&a.sum));
+    let (ny, nx) = bs.dim();
+    let mut kept: Vec<Peak> = Vec::new();
+    for q in peaks {
+        let same = kept.iter().any(|p| {
+            let d = (p.xy.0 - q.xy.0).hypot(p.xy.1 - q.xy.1);
+            if d > BLEND_FWHM * fwhm {
+                return false;
+            }
+            let n = (2.0 * d).ceil().max(1.0) as usize;
+            (0..=n).all(|k| {
+                let t = k as f64 / n as f64;
+                let (x, y) = (q.xy.0 + t * (p.xy.0 - q.xy.0), q.xy.1 + t * (p.xy.1 - q.xy.1));
+                let (xi, yi) = (x.round() as usize, y.round() as usize);
+                if xi >= nx || yi >= ny {
+                    return true;
+                }
+                let v = bs[[yi, xi]] as f64;
+                !v.is_finite() || v >= DIP * q.sum
+            })
+        });
+        if !same {
+            kept.push(q);
+        }
+    }
+    kept
 }
 
 /// The field stars of one orientation on its stack: o-strip peaks paired with their e-strip
 /// images, the binary's own images left out; as sky offsets from A.
 fn detect_orientation(
     o: &SkySubtractedOrientation,
-    masks: &[Array2<u8>],
     centres: &[Option<(f64, f64)>],
     rel_a: (f64, f64),
     b_en: Option<(f64, f64)>,
     strips: &Strips,
     setup: &FluxSetup,
 ) -> Vec<Detection> {
-    let Some((img, var, bad, cr)) = stack(o, masks, centres) else {
+    let Some((img, var, bad, cr)) = stack(o, centres) else {
         return Vec::new();
     };
     let scale = setup.scale_arcsec_per_px;
@@ -485,10 +510,7 @@ fn detect_orientation(
     let mut used = vec![false; ep.len()];
     let mut out = Vec::new();
     for p in order {
-        if components
-            .iter()
-            .any(|c| (c.0 - p.xy.0).hypot(c.1 - p.xy.1) < own)
-        {
+        if components.iter().any(|c| (c.0 - p.xy.0).hypot(c.1 - p.xy.1) < own) {
             continue;
         }
         let want = (p.xy.0 + setup.eo_px.0, p.xy.1 + setup.eo_px.1);

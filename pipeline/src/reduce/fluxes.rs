@@ -261,7 +261,10 @@ fn measure_beams_jointly(f: &Frame, stars: &[(f64, f64)], setup: &FluxSetup) -> 
     let frame_fwhm = shape_fit.fwhm_x().clamp(0.5 * fwhm_med, 2.0 * fwhm_med);
     let frame_shape = shape_fit.converged.then(|| FrameShape::of(shape_fit));
     let r_ap = params.aperture_radius_px(frame_fwhm);
-    let seeing = setup.seeing.then(|| seeing_fwhm_px(&cuts[0], shape_fit, choice)).flatten();
+    let seeing = setup
+        .seeing
+        .then(|| seeing_fwhm_px(&cuts[0], shape_fit, choice))
+        .flatten();
     let results = cuts
         .iter()
         .zip(&joint.fits)
@@ -691,7 +694,11 @@ fn model_fraction_in_aperture(
 
 /// F = (o - e)/(o + e) of one dither from the o and e beam fluxes (with the mask bits in
 /// their apertures), and why it is not used, if so.
-pub(crate) fn dither_value((mut o_b, ob): (BeamFlux, u8), (mut e_b, eb): (BeamFlux, u8), mut cov_oe: f64) -> DitherValue {
+pub(crate) fn dither_value(
+    (mut o_b, ob): (BeamFlux, u8),
+    (mut e_b, eb): (BeamFlux, u8),
+    mut cov_oe: f64,
+) -> DitherValue {
     // Aperture correction, only when both beams have one (else F would mix corrected and
     // uncorrected fluxes).
     if let (Some(fo), Some(fe)) = (o_b.aperture_fraction, e_b.aperture_fraction) {

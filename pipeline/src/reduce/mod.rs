@@ -182,7 +182,7 @@ pub fn measure_sequence(
     // The field stars, with the components' photometry at the refined e-o offset.
     let field = if params.field_stars {
         let setup = fluxes::FluxSetup { eo_px: eo, ..setup };
-        field::measure_field_stars(orients, &masks, &primary, &companion, &setup, profile)
+        field::measure_field_stars(orients, &primary, &companion, &setup, profile)
     } else {
         Vec::new()
     };
