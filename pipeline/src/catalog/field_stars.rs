@@ -127,3 +127,66 @@ pub fn validate(stars: &[FieldStar]) -> Result<(), String> {
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::catalog::Flag;
+    use crate::stokes::inversion::Polarization;
+
+    fn star(id: &str, q: f64) -> FieldStar {
+        let mut c = Component::new(id, Polarization::UNDEFINED);
+        c.pol.q = q;
+        c.pol.u = 0.01;
+        c.flags.push(Flag::with_detail(FlagCode::StripEdge, "2 of 10 dithers"));
+        FieldStar {
+            id: id.into(),
+            usable: q.is_finite(),
+            x_px: 100.5,
+            y_px: 420.25,
+            separation_arcsec: 15.0,
+            pa_deg: 60.0,
+            ra_deg: Some(81.3),
+            dec_deg: Some(-35.1),
+            n_detected: 2,
+            detection_snr: 250.0,
+            star: c,
+        }
+    }
+
+    /// A field star written and read back is the same (its component's keys flattened in
+    /// beside its own), and its flags keep their codes.
+    #[test]
+    fn a_field_star_round_trips_through_json() {
+        let s = star("F1", 0.02);
+        let text = serde_json::to_string(&s).unwrap();
+        assert!(text.starts_with("{\"id\":\"F1\",\"usable\":true,"), "{text}");
+        let back: FieldStar = serde_json::from_str(&text).unwrap();
+        assert_eq!(back, s);
+        assert!(has(&back.star.flags, FlagCode::StripEdge));
+        assert!(back.star.extra.is_empty(), "{:?}", back.star.extra);
+    }
+
+    /// Validation names the star, the key and the value; ids are unique; `usable` needs q.
+    #[test]
+    fn validation_refuses_what_a_reader_cannot_use() {
+        assert!(validate(&[star("F1", 0.02), star("F2", 0.0)]).is_ok());
+        let e = validate(&[star("F1", 0.02), star("F1", 0.0)]).unwrap_err();
+        assert!(e.contains("\"F1\" appears twice"), "{e}");
+        let mut s = star("F3", f64::NAN);
+        s.usable = true;
+        assert!(validate(&[s]).unwrap_err().contains("F3: usable = true with q = NaN"));
+        let mut s = star("F4", 0.0);
+        s.x_px = f64::NAN;
+        assert!(validate(&[s]).unwrap_err().contains("F4: x_px = NaN"));
+        let mut s = star("F5", 0.0);
+        s.dec_deg = Some(91.0);
+        assert!(validate(&[s]).unwrap_err().contains("dec_deg = 91"));
+        // A blended star is never usable, whatever its numbers.
+        let mut s = star("F6", 0.02);
+        s.star.flags.push(Flag::new(FlagCode::Blended));
+        s.star.passes_cut = true;
+        s.settle();
+        assert!(!s.usable && !s.star.passes_cut);
+    }
+}

@@ -292,56 +292,102 @@ fn group(dets: &[Detection], tol: f64) -> Vec<Group> {
 const STACK_SKIP: u8 = mbits::BAD | mbits::COSMIC | mbits::OFF_STRIP;
 
 /// The stack of one orientation's frames registered on the first frame where the primary
-/// was found (whole-pixel shifts by the primary's centres): mean, its variance, and 1 where
-/// no frame gave a usable pixel ([`STACK_SKIP`]). None when the primary was found in no
-/// frame.
-fn stack(
-    o: &SkySubtractedOrientation,
-    centres: &[Option<(f64, f64)>],
-) -> Option<(Array2<f32>, Array2<f32>, Array2<u8>, (f64, f64))> {
+/// was found (whole-pixel shifts by the primary's centres).
+struct Stack {
+    /// Mean of the usable pixels ([`STACK_SKIP`]), 0 where there is none.
+    mean: Array2<f32>,
+    /// Frames that gave each pixel.
+    n: Array2<u16>,
+    /// 1 where no frame gave a usable pixel.
+    bad: Array2<u8>,
+    /// The median variance of one frame's pixel (the sky's), ADU^2: a pixel of the stack
+    /// has this over `n` (the detection threshold is the sky's noise, as SExtractor's).
+    var_pixel: f32,
+    /// The primary's centre in the reference frame, px.
+    centre: (f64, f64),
+}
+
+/// [`Stack`] of orientation `o`; None when the primary was found in no frame. Row slices,
+/// no per-pixel index checks: it runs on every orientation of every target.
+fn stack(o: &SkySubtractedOrientation, centres: &[Option<(f64, f64)>]) -> Option<Stack> {
     let r = centres.iter().position(Option::is_some)?;
     let cr = centres[r]?;
     let (ny, nx) = o.frames[r].shape();
-    let mut sum = Array2::<f32>::zeros((ny, nx));
-    let mut var = Array2::<f32>::zeros((ny, nx));
-    let mut n = Array2::<u16>::zeros((ny, nx));
+    let mut sum = vec![0f32; ny * nx];
+    let mut n = vec![0u16; ny * nx];
+    let mut variances: Vec<f32> = Vec::new();
     for (f, c) in o.frames.iter().zip(centres) {
         let Some(c) = c else { continue };
-        let m = &f.mask;
         if f.shape() != (ny, nx) {
             continue;
         }
         let (dx, dy) = ((c.0 - cr.0).round() as i64, (c.1 - cr.1).round() as i64);
-        let fv = f.variance.as_ref();
-        for y in 0..ny as i64 {
-            let ys = y + dy;
+        let data = f.data.as_standard_layout();
+        let mask = f.mask.as_standard_layout();
+        let (Some(d), Some(m)) = (data.as_slice(), mask.as_slice()) else {
+            continue;
+        };
+        let (x0, x1) = ((-dx).max(0) as usize, (nx as i64 - dx).clamp(0, nx as i64) as usize);
+        if x1 <= x0 {
+            continue;
+        }
+        for y in 0..ny {
+            let ys = y as i64 + dy;
             if ys < 0 || ys >= ny as i64 {
                 continue;
             }
-            let (x0, x1) = ((-dx).max(0), (nx as i64 - dx).min(nx as i64));
-            for x in x0..x1 {
-                let (ys, xs) = (ys as usize, (x + dx) as usize);
-                if m[[ys, xs]] & STACK_SKIP != 0 {
-                    continue;
-                }
-                let (yu, xu) = (y as usize, x as usize);
-                sum[[yu, xu]] += f.data[[ys, xs]];
-                var[[yu, xu]] += fv.map_or(1.0, |v| v[[ys, xs]]);
-                n[[yu, xu]] += 1;
+            let so = ys as usize * nx + (x0 as i64 + dx) as usize;
+            let len = x1 - x0;
+            let (src, msk) = (&d[so..so + len], &m[so..so + len]);
+            let dst = &mut sum[y * nx + x0..y * nx + x1];
+            let cnt = &mut n[y * nx + x0..y * nx + x1];
+            for i in 0..len {
+                let ok = msk[i] & STACK_SKIP == 0 && src[i].is_finite();
+                dst[i] += if ok { src[i] } else { 0.0 };
+                cnt[i] += u16::from(ok);
+            }
+        }
+        // The sky's variance: the median of a sparse sample of this frame's pixels.
+        if let Some(v) = f.variance.as_ref() {
+            let mut sample: Vec<f32> = v
+                .iter()
+                .step_by(97)
+                .copied()
+                .filter(|x| x.is_finite() && *x > 0.0)
+                .collect();
+            if !sample.is_empty() {
+                let mid = sample.len() / 2;
+                let (_, med, _) = sample.select_nth_unstable_by(mid, f32::total_cmp);
+                variances.push(*med);
             }
         }
     }
-    let bad = n.mapv(|k| u8::from(k == 0));
-    ndarray::Zip::from(&mut sum).and(&mut var).and(&n).for_each(|s, v, &k| {
+    for (s, &k) in sum.iter_mut().zip(&n) {
         if k > 0 {
             *s /= k as f32;
-            *v /= (k as f32) * (k as f32);
-        } else {
-            *s = 0.0;
-            *v = 0.0;
         }
-    });
-    Some((sum, var, bad, cr))
+    }
+    let var_pixel = if variances.is_empty() {
+        // No variance plane: the scatter of the stack's pixels about their median (MAD).
+        let mut v: Vec<f32> = sum.iter().step_by(13).copied().collect();
+        let mid = v.len() / 2;
+        let med = *v.select_nth_unstable_by(mid, f32::total_cmp).1;
+        let mut dev: Vec<f32> = v.iter().map(|x| (x - med).abs()).collect();
+        let mad = *dev.select_nth_unstable_by(mid, f32::total_cmp).1;
+        let k = n.iter().copied().max().unwrap_or(1).max(1) as f32;
+        (1.4826 * mad).powi(2) * k
+    } else {
+        variances.sort_by(f32::total_cmp);
+        variances[variances.len() / 2]
+    };
+    let n = Array2::from_shape_vec((ny, nx), n).ok()?;
+    Some(Stack {
+        mean: Array2::from_shape_vec((ny, nx), sum).ok()?,
+        bad: n.mapv(|k| u8::from(k == 0)),
+        n,
+        var_pixel,
+        centre: cr,
+    })
 }
 
 /// A peak of one strip of the stack: position (refined), 3x3 box sum, S/N above its ring.
@@ -352,60 +398,65 @@ struct Peak {
     snr: f64,
 }
 
-/// The peaks of `rows` of the stack (see the module documentation).
-fn peaks(
-    img: ArrayView2<f32>,
-    var: ArrayView2<f32>,
-    bad: ArrayView2<u8>,
-    rows: [usize; 2],
-    fwhm: f64,
-    snr_min: f64,
-) -> Vec<Peak> {
+/// The peaks of the stack in rows `rows` and columns `cols` (see the module
+/// documentation). The 3x3 box sums by two passes of running sums over the window and a
+/// 2 px margin; the noise of a box the sky's (9 var_pixel / n).
+fn peaks(st: &Stack, rows: [usize; 2], cols: [usize; 2], fwhm: f64, snr_min: f64) -> Vec<Peak> {
+    let img = st.mean.view();
     let (ny, nx) = img.dim();
-    let (y0, y1) = (rows[0].max(2), rows[1].min(ny).saturating_sub(2));
-    if y1 <= y0 || nx < 5 {
+    // The window keeps 3 px from the image's edges (its margin's boxes stay inside).
+    let (y0, y1) = (rows[0].max(3), rows[1].min(ny).saturating_sub(3));
+    let (x0, x1) = (cols[0].max(3), cols[1].min(nx).saturating_sub(3));
+    if y1 <= y0 || x1 <= x0 || !(st.var_pixel > 0.0) {
         return Vec::new();
     }
-    // 3x3 box sums and their variances over the strip (NaN where fewer than 7 pixels are usable).
-    let mut bs = Array2::<f32>::from_elem((ny, nx), f32::NAN);
-    let mut bv = Array2::<f32>::zeros((ny, nx));
-    for y in y0 - 1..y1 + 1 {
-        for x in 1..nx - 1 {
-            let (mut s, mut v, mut k) = (0f32, 0f32, 0);
-            for j in y - 1..=y + 1 {
-                for i in x - 1..=x + 1 {
-                    if bad[[j, i]] == 0 {
-                        s += img[[j, i]];
-                        v += var[[j, i]];
-                        k += 1;
-                    }
-                }
-            }
-            if k >= 7 && v > 0.0 {
-                bs[[y, x]] = s * 9.0 / k as f32;
-                bv[[y, x]] = v * 81.0 / (k * k) as f32;
-            }
+    // Box sums over the window and a 2 px margin: local coordinates (y - y0 + 2, x - x0 + 2).
+    let (wy, wx) = (y1 - y0 + 4, x1 - x0 + 4);
+    let mut row3 = Array2::<f32>::zeros((wy + 2, wx));
+    for ly in 0..wy + 2 {
+        let src = img.row(y0 + ly - 3);
+        let src = src.as_slice().expect("standard layout");
+        let dst = row3.row_mut(ly).into_slice().expect("standard layout");
+        for (lx, d) in dst.iter_mut().enumerate() {
+            let c = x0 - 2 + lx;
+            *d = src[c - 1] + src[c] + src[c + 1];
         }
     }
+    let mut bs = Array2::<f32>::zeros((wy, wx));
+    for ly in 0..wy {
+        let (a, b, c) = (row3.row(ly), row3.row(ly + 1), row3.row(ly + 2));
+        let dst = bs.row_mut(ly).into_slice().expect("standard layout");
+        for lx in 0..wx {
+            dst[lx] = a[lx] + b[lx] + c[lx];
+        }
+    }
+    let box_noise = |y: usize, x: usize| (9.0 * st.var_pixel / st.n[[y, x]].max(1) as f32).sqrt();
     let (r_in, r_out) = ((1.5 * fwhm).max(3.0), (2.5 * fwhm).max(5.0));
     let ro = r_out.ceil() as i64;
     let mut out = Vec::new();
-    for y in y0..y1 {
-        for x in 2..nx - 2 {
-            let s = bs[[y, x]];
+    for ly in 2..wy - 2 {
+        let y = y0 + ly - 2;
+        let row = bs.row(ly);
+        let row = row.as_slice().expect("standard layout");
+        for lx in 2..wx - 2 {
+            let s = row[lx];
             if !(s > 0.0) {
                 continue;
             }
-            let noise = bv[[y, x]].sqrt();
+            let x = x0 + lx - 2;
+            if st.n[[y, x]] == 0 {
+                continue;
+            }
+            let noise = box_noise(y, x);
             if s < snr_min as f32 * noise {
                 continue;
             }
             // A local maximum of the 5x5 neighbourhood (ties: the first in row-major order).
             let mut is_max = true;
-            'n: for j in y - 2..=y + 2 {
-                for i in x - 2..=x + 2 {
-                    let o = bs[[j.min(ny - 1), i]];
-                    if (j, i) != (y, x) && (o > s || (o == s && (j, i) < (y, x))) {
+            'n: for j in ly - 2..=ly + 2 {
+                for i in lx - 2..=lx + 2 {
+                    let o = bs[[j, i]];
+                    if (j, i) != (ly, lx) && (o > s || (o == s && (j, i) < (ly, lx))) {
                         is_max = false;
                         break 'n;
                     }
@@ -421,7 +472,7 @@ fn peaks(
                 for i in (x as i64 - ro).max(0)..=(x as i64 + ro).min(nx as i64 - 1) {
                     let r = ((i - x as i64) as f64).hypot((j - y as i64) as f64);
                     let (ju, iu) = (j as usize, i as usize);
-                    if r >= r_in && r <= r_out && bad[[ju, iu]] == 0 {
+                    if r >= r_in && r <= r_out && st.bad[[ju, iu]] == 0 {
                         ring.push(img[[ju, iu]]);
                     }
                 }
@@ -436,18 +487,19 @@ fn peaks(
             if snr < snr_min {
                 continue;
             }
-            let xy = refine(img, bad, x as f64, y as f64, fwhm, 2.0).unwrap_or((x as f64, y as f64));
+            let xy = refine(img, st.bad.view(), x as f64, y as f64, fwhm, 2.0).unwrap_or((x as f64, y as f64));
             out.push(Peak { xy, sum: s as f64, snr });
         }
     }
-    merge_plateaus(out, bs.view(), fwhm)
+    merge_plateaus(out, bs.view(), (y0 - 2, x0 - 2), fwhm)
 }
 
 /// Peaks of one source: a fainter peak within [`BLEND_FWHM`] FWHM of a brighter one with no
 /// dip between them (the box sums along the segment never fall below [`DIP`] of the fainter
-/// peak's; masked boxes skipped) is the same source (a saturated plateau, a noisy core) and
+/// peak's; masked boxes skipped; `bs` the box sums of the window whose (0, 0) is the
+/// stack's `origin` (y, x)) is the same source (a saturated plateau, a noisy core) and
 /// is dropped. Two stars at 2 FWHM or more have a dip far deeper than that.
-fn merge_plateaus(mut peaks: Vec<Peak>, bs: ArrayView2<f32>, fwhm: f64) -> Vec<Peak> {
+fn merge_plateaus(mut peaks: Vec<Peak>, bs: ArrayView2<f32>, origin: (usize, usize), fwhm: f64) -> Vec<Peak> {
     /// Fraction of the fainter peak's box sum that the segment must fall below for two peaks
     /// to be two sources.
     const DIP: f64 = 0.6;
@@ -464,12 +516,12 @@ fn merge_plateaus(mut peaks: Vec<Peak>, bs: ArrayView2<f32>, fwhm: f64) -> Vec<P
             (0..=n).all(|k| {
                 let t = k as f64 / n as f64;
                 let (x, y) = (q.xy.0 + t * (p.xy.0 - q.xy.0), q.xy.1 + t * (p.xy.1 - q.xy.1));
-                let (xi, yi) = (x.round() as usize, y.round() as usize);
-                if xi >= nx || yi >= ny {
+                let (xi, yi) = (x.round() as i64 - origin.1 as i64, y.round() as i64 - origin.0 as i64);
+                if xi < 0 || yi < 0 || xi as usize >= nx || yi as usize >= ny {
                     return true;
                 }
-                let v = bs[[yi, xi]] as f64;
-                !v.is_finite() || v >= DIP * q.sum
+                let v = bs[[yi as usize, xi as usize]] as f64;
+                !(v.is_finite() && v > f64::from(f32::MIN)) || v >= DIP * q.sum
             })
         });
         if !same {
@@ -489,14 +541,14 @@ fn detect_orientation(
     strips: &Strips,
     setup: &FluxSetup,
 ) -> Vec<Detection> {
-    let Some((img, var, bad, cr)) = stack(o, centres) else {
+    let Some(st) = stack(o, centres) else {
         return Vec::new();
     };
+    let cr = st.centre;
     let scale = setup.scale_arcsec_per_px;
     let fwhm = setup.choice.fwhm_px;
     let snr_min = setup.params.field_star_snr;
-    let op = peaks(img.view(), var.view(), bad.view(), strips.o, fwhm, snr_min);
-    let ep = peaks(img.view(), var.view(), bad.view(), strips.e, fwhm, snr_min);
+    let op = peaks(&st, strips.o, [0, strips.nx], fwhm, snr_min);
     let a = (cr.0 + rel_a.0, cr.1 + rel_a.1);
     let mut components = vec![a];
     if let Some(b) = b_en {
@@ -507,23 +559,30 @@ fn detect_orientation(
     let own = (COMPONENT_FWHM * fwhm).max(3.0);
     let mut order: Vec<&Peak> = op.iter().collect();
     order.sort_by(|p, q| q.snr.total_cmp(&p.snr));
-    let mut used = vec![false; ep.len()];
+    let mut used: Vec<(f64, f64)> = Vec::new();
     let mut out = Vec::new();
     for p in order {
         if components.iter().any(|c| (c.0 - p.xy.0).hypot(c.1 - p.xy.1) < own) {
             continue;
         }
         let want = (p.xy.0 + setup.eo_px.0, p.xy.1 + setup.eo_px.1);
-        // The e image: at the e-o offset AND of a similar flux; the closest such.
-        let best = ep
-            .iter()
-            .enumerate()
-            .filter(|(j, _)| !used[*j])
-            .map(|(j, e)| (j, e, (e.xy.0 - want.0).hypot(e.xy.1 - want.1)))
-            .filter(|(_, e, d)| *d <= PAIR_TOL_PX && ((p.sum - e.sum) / (p.sum + e.sum)).abs() <= PAIR_MAX_F)
-            .min_by(|x, y| x.2.total_cmp(&y.2));
-        let Some((j, e, _)) = best else { continue };
-        used[j] = true;
+        // The e image: a peak of the e strip (searched about the expected place only) at
+        // the e-o offset AND of a similar flux; the closest such, each used once.
+        let reach = PAIR_TOL_PX.ceil() as usize + 3;
+        let (wx, wy) = (want.0.round().max(0.0) as usize, want.1.round().max(0.0) as usize);
+        let rows = [
+            wy.saturating_sub(reach).max(strips.e[0]),
+            (wy + reach + 1).min(strips.e[1]),
+        ];
+        let cols = [wx.saturating_sub(reach), wx + reach + 1];
+        let best = peaks(&st, rows, cols, fwhm, snr_min)
+            .into_iter()
+            .filter(|e| !used.iter().any(|u| (u.0 - e.xy.0).hypot(u.1 - e.xy.1) < 0.5))
+            .map(|e| (e, (e.xy.0 - want.0).hypot(e.xy.1 - want.1)))
+            .filter(|(e, d)| *d <= PAIR_TOL_PX && ((p.sum - e.sum) / (p.sum + e.sum)).abs() <= PAIR_MAX_F)
+            .min_by(|x, y| x.1.total_cmp(&y.1));
+        let Some((e, _)) = best else { continue };
+        used.push(e.xy);
         let (sep, pa) = offset_to_sep_pa(p.xy.0 - a.0, p.xy.1 - a.1, o.posang_deg, scale);
         out.push(Detection {
             en: en_of(sep, pa),
