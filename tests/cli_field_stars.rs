@@ -208,7 +208,7 @@ fn en(sep: f64, pa: f64) -> (f64, f64) {
 
 /// The catalog's field star nearest the truth's `st` on the sky (by separation and PA
 /// from A), within 1.5".
-fn matched<'a>(fs: &'a [Value], st: Star) -> Option<&'a Value> {
+fn matched(fs: &[Value], st: Star) -> Option<&Value> {
     let want = en(st.0, st.1);
     fs.iter()
         .map(|f| {
@@ -451,8 +451,7 @@ fn exports_carry_field_stars(dir: &std::path::Path, catalog: &std::path::Path, c
                 .collect();
             let naxis2: usize = cards
                 .iter()
-                .filter(|c| c.starts_with("NAXIS2  ="))
-                .last()
+                .rfind(|c| c.starts_with("NAXIS2  ="))
                 .and_then(|c| c[10..30].trim().parse().ok())
                 .expect("NAXIS2 of the table");
             assert_eq!(naxis2, csv_rows, "fits rows {naxis2}, csv rows {csv_rows}");

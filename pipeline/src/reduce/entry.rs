@@ -568,6 +568,7 @@ mod tests {
             aperture_px: 3.0,
             dithers: vec![comp(0.03, 0.02), comp(-0.02, 0.04)],
             flags,
+            field: Vec::new(),
         }
     }
 

@@ -438,8 +438,7 @@ fn peaks(st: &Stack, rows: [usize; 2], cols: [usize; 2], fwhm: f64, snr_min: f64
         let y = y0 + ly - 2;
         let row = bs.row(ly);
         let row = row.as_slice().expect("standard layout");
-        for lx in 2..wx - 2 {
-            let s = row[lx];
+        for (lx, &s) in row.iter().enumerate().take(wx - 2).skip(2) {
             if !(s > 0.0) {
                 continue;
             }
