@@ -13,9 +13,9 @@
 //!    companion's) and merged within [`GROUP_TOL_PX`]: one star, one sky position.
 //! 3. Measurement, in every dither of every orientation, at the star's sky position carried
 //!    to the frame by A's position in it: the components' per-frame photometry
-//!    ([`super::fluxes::measure_frame`], aperture photometry with the PSF fit's neighbours
+//!    (`fluxes::measure_frame`, aperture photometry with the PSF fit's neighbours
 //!    subtracted and the aperture correction) and F per dither
-//!    ([`super::fluxes::dither_value`]); a dither whose star falls beyond the strips or the
+//!    (`fluxes::dither_value`); a dither whose star falls beyond the strips or the
 //!    detector has no value (`outside_field`), one whose aperture crosses a strip or
 //!    detector edge is rejected (`strip_edge`).
 use ndarray::{Array2, ArrayView2};
