@@ -162,7 +162,9 @@ mod tests {
         let text = serde_json::to_string(&s).unwrap();
         assert!(text.starts_with("{\"id\":\"F1\",\"usable\":true,"), "{text}");
         let back: FieldStar = serde_json::from_str(&text).unwrap();
-        assert_eq!(back, s);
+        // (NaN errors: compared as written.)
+        assert_eq!(serde_json::to_string(&back).unwrap(), text);
+        assert_eq!((back.id.as_str(), back.star.q, back.x_px), ("F1", 0.02, 100.5));
         assert!(has(&back.star.flags, FlagCode::StripEdge));
         assert!(back.star.extra.is_empty(), "{:?}", back.star.extra);
     }
