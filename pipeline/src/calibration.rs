@@ -32,6 +32,7 @@ pub use crate::catalog::polarimetric_calibration::{
     Calibration, FilterCalibration, TelescopeCalibration, CALIBRATION_FILE, CALIBRATION_SCHEMA,
 };
 use crate::catalog::{CalibrationState, Catalog, Component, Flag, FlagCode, StandardResult, Status, Target};
+use crate::foreground::{set_target_foreground, EstimateParams, FieldStarQu};
 pub use crate::reduce::params::CalibrationParams;
 pub use crate::solve::{calibration_errors, orientation_values, resolve_component, SolveSettings};
 use crate::standards::{StandardStar, StandardsTable};
@@ -426,9 +427,45 @@ fn resolve_target(
         note_calibration_state(c, fc, summary);
     }
     summary.n_uncalibrated += n_unc;
+    // The field stars: the same re-solve and the same refusals; the night's counts (and its
+    // exit code) are the binaries' alone.
+    let mut field_summary = CalibrationSummary::default();
+    for s in t.field_stars.iter_mut().flatten() {
+        resolve_component(&mut s.star, &settings);
+        note_origin(&mut s.star, other_night);
+        if !params.allow_uncalibrated {
+            refuse_incomplete(&mut s.star, &mut field_summary);
+        }
+        note_calibration_state(&mut s.star, fc, &mut field_summary);
+        s.settle();
+    }
     let errors = (fc.is_some() || settings.telescope_prior.is_some())
         .then(|| calibration_errors(fc, settings.telescope_prior.as_ref()));
-    t.update_delta_gamma(errors.as_ref());
+    match t.field_stars.as_deref() {
+        // Measured field stars: the binary's foreground estimated from them (or flagged too
+        // few), and both Delta-gammas computed.
+        Some(stars) => {
+            let qu: Vec<FieldStarQu> = stars.iter().map(field_star_qu).collect();
+            set_target_foreground(t, &qu, &EstimateParams::default(), errors.as_ref());
+        }
+        None => t.update_delta_gamma(errors.as_ref()),
+    }
+}
+
+/// A calibrated field star as the foreground's estimate takes it (its total errors: the
+/// measurement's and the calibration's).
+fn field_star_qu(s: &crate::catalog::field_stars::FieldStar) -> FieldStarQu {
+    FieldStarQu {
+        id: s.id.clone(),
+        q: s.star.pol.q,
+        u: s.star.pol.u,
+        sigma_q: s.star.pol.sigma_q,
+        sigma_u: s.star.pol.sigma_u,
+        cov_qu: s.star.cov_qu.unwrap_or(0.0),
+        ra_deg: s.ra_deg.unwrap_or(f64::NAN),
+        dec_deg: s.dec_deg.unwrap_or(f64::NAN),
+        usable: s.usable,
+    }
 }
 
 /// A calibration read from another night: the terms it measured are marked so.
@@ -719,9 +756,11 @@ pub fn is_standard_sequence(seq: &crate::sequence::Sequence, profile: &Profile) 
 }
 
 /// Reduction settings for a standard: a single star, never a binary (no companion is
-/// accepted, so none is searched for in the photometry).
+/// accepted, so none is searched for in the photometry), without field stars (the
+/// standards section keeps the star alone).
 pub fn standard_params(p: &crate::reduce::TargetParams) -> crate::reduce::TargetParams {
     let mut s = p.clone();
+    s.measure.field_stars = false;
     s.measure.min_companion_snr = f64::INFINITY;
     s.measure.companion_hint = None;
     s

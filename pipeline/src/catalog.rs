@@ -6,6 +6,7 @@ use crate::stokes::inversion::Polarization;
 
 pub mod applied;
 pub mod calibration_state;
+pub mod field_stars;
 pub mod flags;
 pub mod frame_quality;
 pub mod photometry;
@@ -13,6 +14,7 @@ pub mod polarimetric_calibration;
 pub mod provenance;
 pub use applied::AppliedCalibration;
 pub use calibration_state::{CalibrationState, TermSource};
+pub use field_stars::FieldStar;
 pub use flags::{Flag, FlagCode};
 pub use frame_quality::FrameQuality;
 pub use provenance::Provenance;
@@ -442,6 +444,10 @@ pub struct Target {
         deserialize_with = "crate::nullable::pair"
     )]
     pub eo_offset_px: Option<[f64; 2]>,
+    /// Every other point source of the target's strips, measured like the components
+    /// ([`FieldStar`]; absent when field stars were not measured, `[]` when none was found).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field_stars: Option<Vec<FieldStar>>,
     /// Filter.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub filter: Option<String>,
@@ -662,6 +668,7 @@ impl Target {
             delta_gamma_fg_corrected_interval_deg: None,
             dit_s: None,
             eo_offset_px: None,
+            field_stars: None,
             filter: None,
             flags: None,
             flat: None,

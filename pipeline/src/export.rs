@@ -1,8 +1,9 @@
 //! Catalog export to table formats astronomers load in one line (docs/cli.md, "export"):
 //! ECSV (astropy `Table.read`), FITS binary table (astropy, TOPCAT, fitsio) and plain CSV.
 //!
-//! One row per component of a target (`kind` = `target`), then one per measured standard
-//! star (`kind` = `standard`); targets without components (failed) and unmeasured
+//! One row per component of a target (`kind` = `target`) followed by one per field star of
+//! that target (`kind` = `field_star`), then one per measured standard star
+//! (`kind` = `standard`); targets without components (failed) and unmeasured
 //! standards have no row. Units are in the column metadata (ECSV header YAML `unit`; FITS
 //! `TUNITn`, descriptions in `TCOMMn`); flags are one string (`;`-separated); every row
 //! carries its target, sequence, filter, pointing and time, status, the software that
@@ -111,17 +112,25 @@ const NUMERIC: [(&str, &str, &str); 36] = [
         "ra",
         "deg",
         "right ascension of this star (ICRS): A and standards at the pointing (mean over the frames), \
-         B offset from A by the measured separation and position angle",
+         B and field stars offset from A by their measured separation and position angle",
     ),
     (
         "dec",
         "deg",
         "declination of this star (ICRS): A and standards at the pointing (mean over the frames), \
-         B offset from A by the measured separation and position angle",
+         B and field stars offset from A by their measured separation and position angle",
     ),
     ("mjd", "d", "mean MJD-OBS of the sequence's frames"),
-    ("separation", "arcsec", "target: separation of B from A found"),
-    ("pa", "deg", "target: position angle of B from A found, east of north"),
+    (
+        "separation",
+        "arcsec",
+        "target: separation of B from A found; field_star: of the star from A",
+    ),
+    (
+        "pa",
+        "deg",
+        "target: position angle of B from A found, east of north; field_star: of the star from A",
+    ),
     ("q", "", "normalised Stokes q, sky frame (fraction)"),
     ("sigma_q", "", "1-sigma error of q: measurement and calibration"),
     ("u", "", "normalised Stokes u, sky frame (fraction)"),
@@ -348,6 +357,38 @@ fn rows(cat: &Catalog) -> (Vec<Row>, usize, usize) {
                 target_flags: join(t.target_flags(), ";"),
             });
         }
+        // Its field stars, after the components: each at its own sky position, with its
+        // separation and PA from A; `passes_cut` only when usable too.
+        for f in t.field_stars.iter().flatten() {
+            let c = &f.star;
+            let seq = [
+                f.ra_deg,
+                f.dec_deg,
+                t.mjd_mean,
+                Some(f.separation_arcsec),
+                Some(f.pa_deg),
+            ];
+            let mut flags = join(&c.flags, ";");
+            if !f.usable {
+                flags = if flags.is_empty() {
+                    "unusable".into()
+                } else {
+                    format!("unusable;{flags}")
+                };
+            }
+            rows.push(Row {
+                target: t.object.clone(),
+                kind: "field_star",
+                sequence: t.sequence_id().to_string(),
+                filter: t.filter.clone().unwrap_or_default(),
+                status: status_text(t.status),
+                component: f.id.clone(),
+                num: row_values(c, seq, [None; 10]),
+                passes_cut: c.passes_cut && f.usable,
+                flags,
+                target_flags: join(t.target_flags(), ";"),
+            });
+        }
     }
     let mut unmeasured = 0;
     for s in &cat.standards {
@@ -387,13 +428,19 @@ pub fn table(cat: &Catalog, source: &str) -> Table {
         text("target", "object name (standards: name in the standards table)", |r| {
             r.target.clone()
         }),
-        text("kind", "target (a binary's component) or standard", |r| r.kind.into()),
+        text(
+            "kind",
+            "target (a binary's component), field_star (another star of the target's field) or standard",
+            |r| r.kind.into(),
+        ),
         text("sequence", "sequence id, object@TPL START", |r| r.sequence.clone()),
         text("filter", "filter", |r| r.filter.clone()),
         text("status", "target status: ok, partial, failed", |r| r.status.clone()),
-        text("component", "A (brighter) or B; empty for a standard", |r| {
-            r.component.clone()
-        }),
+        text(
+            "component",
+            "A (brighter) or B; a field star's id (F1, F2...); empty for a standard",
+            |r| r.component.clone(),
+        ),
     ];
     for (i, (name, unit, description)) in NUMERIC.into_iter().enumerate() {
         columns.push(Column {

@@ -38,6 +38,12 @@ pub fn read_catalog(path: &Path) -> Result<Catalog> {
             SCHEMA_VERSION.split('.').next().unwrap_or(SCHEMA_VERSION)
         )));
     }
+    for t in &cat.targets {
+        if let Some(stars) = &t.field_stars {
+            crate::catalog::field_stars::validate(stars)
+                .map_err(|e| bad(format!("target {:?}: field_stars: {e}", t.sequence_id())))?;
+        }
+    }
     Ok(cat)
 }
 

@@ -91,12 +91,18 @@ fn read_table(args: &Args) -> anyhow::Result<(Catalog, export::Table)> {
 
 fn summary(cat: &Catalog, t: &export::Table) -> String {
     let components: usize = cat.targets.iter().map(|t| t.components.len()).sum();
+    let field: usize = cat.targets.iter().flat_map(|t| &t.field_stars).map(Vec::len).sum();
     format!(
-        "{} rows ({} components of {} targets, {} of {} standards; {} targets without components \
+        "{} rows ({} components of {} targets{}, {} of {} standards; {} targets without components \
          and {} standards without a measurement not exported)",
         t.rows(),
         components,
         cat.targets.len(),
+        if field > 0 {
+            format!(", {field} field stars")
+        } else {
+            String::new()
+        },
         cat.standards.len() - t.standards_without_measurement,
         cat.standards.len(),
         t.targets_without_components,

@@ -1100,8 +1100,8 @@ fn the_standards_section_keeps_flags_failures_and_residuals_only_where_they_appl
     );
 }
 
-/// A standard is reduced as a single star: no companion accepted or hinted; every other
-/// setting is the targets'.
+/// A standard is reduced as a single star: no companion accepted or hinted, no field
+/// stars; every other setting is the targets'.
 #[test]
 fn standards_are_reduced_as_single_stars_with_the_targets_settings() {
     let mut p = crate::reduce::TargetParams::default();
@@ -1112,7 +1112,9 @@ fn standards_are_reduced_as_single_stars_with_the_targets_settings() {
     assert_eq!(s.measure.min_companion_snr, f64::INFINITY);
     assert!(s.measure.companion_hint.is_none());
     assert_eq!(s.measure.clip_sigma, 4.5);
+    assert!(!s.measure.field_stars);
     let mut back = s.clone();
+    back.measure.field_stars = p.measure.field_stars;
     back.measure.companion_hint = p.measure.companion_hint;
     back.measure.min_companion_snr = p.measure.min_companion_snr;
     assert_eq!(serde_json::to_value(&back).unwrap(), serde_json::to_value(&p).unwrap());

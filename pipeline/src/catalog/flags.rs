@@ -150,6 +150,19 @@ flag_codes! {
     /// The orientations do not constrain q and u.
     UndefinedPolarization = "undefined_polarization", Named,
         "The orientations measured do not constrain q and u: no polarization.";
+    // Field stars (a field star's `flags`, with the component flags above).
+    /// A field star beyond the strips or the detector in some dithers.
+    OutsideField = "outside_field", Named,
+        "A field star fell beyond the strips or the detector in some dithers (jitter, rotation between orientations): those dithers have no value.";
+    /// A field star's aperture crosses a strip or detector edge in some dithers.
+    StripEdge = "strip_edge", Named,
+        "A field star's aperture crosses a strip or detector edge in some dithers: those dithers were dropped (not usable when every dither of an orientation was).";
+    /// Another source lies within 3 FWHM of a field star.
+    Blended = "blended", Named,
+        "Another source (a field star or a component of the binary) lies within 3 FWHM of this field star: apertures and wings overlap; not usable.";
+    /// A field star's mean flux is measured at S/N below 10.
+    Faint = "faint", Named,
+        "The field star's mean o+e flux has S/N below 10: not usable.";
     // Target level: the companion and the labels A and B.
     /// The companion was not found.
     CompanionNotFound = "companion_not_found", Named,

@@ -3,7 +3,7 @@
 //! least squares over the orientations, P, gamma and their errors, debiasing and the cut.
 use super::{DitherValue, MeasureParams, Measured, SkySubtractedOrientation};
 use crate::catalog::flags::has;
-use crate::catalog::{CombinedF, Component, DroppedDither, Flag, FlagCode, Status, Target};
+use crate::catalog::{CombinedF, Component, DroppedDither, FieldStar, Flag, FlagCode, Status, Target};
 use crate::stokes::inversion::{clip_dithers, combine_dithers, Polarization};
 use sofipol_calib::profile::Keywords;
 use sofipol_calib::Profile;
@@ -422,6 +422,9 @@ pub fn target_entry(
             c
         })
         .collect();
+    let field_stars = params
+        .field_stars
+        .then(|| field_star_entries(&m.field, &phis, &etas, &files, params, profile));
     // No component with a value (all null) is a failure, not a partial result.
     let status = if components.len() == 2 && components.iter().all(|c| c.q.is_finite()) {
         Status::Ok
@@ -455,10 +458,73 @@ pub fn target_entry(
         pa_deg: m.geometry.map(|g| g.1),
         orientations_deg: Some(orients.iter().map(|o| o.posang_deg).collect()),
         flags: Some(target_flags),
+        field_stars,
         ..Target::new(object, status)
     };
     t.update_delta_gamma(None);
     t
+}
+
+/// The catalog entries of the field stars: each one's dithers combined and solved by
+/// [`component_from_dithers`] as a component's, then its own flags (dithers beyond the
+/// field or at a strip edge counted, `blended` with what, `faint`) and whether usable.
+/// Positions are in the reduced rows (the caller adds the crop's first row and the sky
+/// position).
+fn field_star_entries(
+    field: &[super::field::FieldMeasured],
+    phis: &[f64],
+    etas: &[Vec<Option<f64>>],
+    files: &[Vec<String>],
+    params: &MeasureParams,
+    profile: &Profile,
+) -> Vec<FieldStar> {
+    field
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            let id = format!("F{}", i + 1);
+            let mut c = component_from_dithers(&id, &s.dithers, phis, etas, files, params, profile);
+            let n: usize = s.dithers.iter().map(Vec::len).sum();
+            c.flags
+                .retain(|f| !f.is(FlagCode::OutsideField) && !f.is(FlagCode::StripEdge));
+            if s.n_outside > 0 {
+                c.flags.push(Flag::with_detail(
+                    FlagCode::OutsideField,
+                    format!("{} of {n} dithers", s.n_outside),
+                ));
+            }
+            if s.n_edge > 0 {
+                c.flags.push(Flag::with_detail(
+                    FlagCode::StripEdge,
+                    format!("{} of {n} dithers", s.n_edge),
+                ));
+            }
+            if !s.blended_with.is_empty() {
+                c.flags
+                    .push(Flag::with_detail(FlagCode::Blended, s.blended_with.join(", ")));
+            }
+            let flux_snr = c.flux_adu.zip(c.sigma_flux_adu).map_or(f64::NAN, |(f, e)| f / e);
+            if !(flux_snr >= crate::catalog::field_stars::MIN_FLUX_SNR) {
+                c.flags
+                    .push(Flag::with_detail(FlagCode::Faint, format!("flux S/N {flux_snr:.1}")));
+            }
+            let mut star = FieldStar {
+                id,
+                usable: false,
+                x_px: s.xy_px.0,
+                y_px: s.xy_px.1,
+                separation_arcsec: s.sep_arcsec,
+                pa_deg: s.pa_deg,
+                ra_deg: None,
+                dec_deg: None,
+                n_detected: s.n_detected,
+                detection_snr: s.detection_snr,
+                star: c,
+            };
+            star.settle();
+            star
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -502,6 +568,7 @@ mod tests {
             aperture_px: 3.0,
             dithers: vec![comp(0.03, 0.02), comp(-0.02, 0.04)],
             flags,
+            field: Vec::new(),
         }
     }
 

@@ -110,6 +110,10 @@ pub struct FluxSetup<'a> {
     pub scale_arcsec_per_px: f64,
     /// The measurement settings.
     pub params: &'a MeasureParams,
+    /// Measure each frame's seeing ([`Fluxes::frame_fwhm_px`]: a beta-free refit of the o
+    /// beam when beta is held fixed); off for the field stars, whose fits decide nothing
+    /// about the frame.
+    pub seeing: bool,
 }
 
 /// Stage 5: photometry of both components in both beams of every frame, where the
@@ -121,7 +125,7 @@ pub fn measure_fluxes(
     setup: &FluxSetup,
     flags: &mut Vec<Flag>,
 ) -> Fluxes {
-    let (scale, params) = (setup.scale_arcsec_per_px, setup.params);
+    let scale = setup.scale_arcsec_per_px;
     let ncomp = if companion.geometry.is_some() { 2 } else { 1 };
     let mut out = Fluxes {
         dithers: vec![Vec::new(); ncomp],
@@ -153,14 +157,7 @@ pub fn measure_fluxes(
             if let Some(ob) = off_b {
                 stars.push((a_o.0 + ob.0, a_o.1 + ob.1));
             }
-            let joint = params
-                .joint_beams
-                .then(|| measure_beams_jointly(f, &stars, setup))
-                .flatten();
-            let (results, cov_oe) = match joint {
-                Some(j) => j,
-                None => (measure_beams_separately(f, &stars, setup), vec![0.0; stars.len()]),
-            };
+            let (results, cov_oe) = measure_frame(f, &stars, setup);
             let fitted: Vec<f64> = results
                 .iter()
                 .map(|b| b.fit_fwhm_px)
@@ -192,6 +189,22 @@ pub fn measure_fluxes(
         }
     }
     out
+}
+
+/// Both beams of the stars at `stars` (o-beam positions, px) in frame `f`: fitted jointly
+/// when `measure.joint_beams` is on and the joint fit can be made, else beam by beam; with
+/// the o-e covariance of each star's fluxes. The one per-frame photometry of the
+/// components and of the field stars ([`super::field`]).
+pub(crate) fn measure_frame(f: &Frame, stars: &[(f64, f64)], setup: &FluxSetup) -> (Vec<BeamResult>, Vec<f64>) {
+    let joint = setup
+        .params
+        .joint_beams
+        .then(|| measure_beams_jointly(f, stars, setup))
+        .flatten();
+    match joint {
+        Some(j) => j,
+        None => (measure_beams_separately(f, stars, setup), vec![0.0; stars.len()]),
+    }
 }
 
 /// Both beams of frame `f` fitted on their own, the o beam first (its fit starts the e
@@ -248,7 +261,10 @@ fn measure_beams_jointly(f: &Frame, stars: &[(f64, f64)], setup: &FluxSetup) -> 
     let frame_fwhm = shape_fit.fwhm_x().clamp(0.5 * fwhm_med, 2.0 * fwhm_med);
     let frame_shape = shape_fit.converged.then(|| FrameShape::of(shape_fit));
     let r_ap = params.aperture_radius_px(frame_fwhm);
-    let seeing = seeing_fwhm_px(&cuts[0], shape_fit, choice);
+    let seeing = setup
+        .seeing
+        .then(|| seeing_fwhm_px(&cuts[0], shape_fit, choice))
+        .flatten();
     let results = cuts
         .iter()
         .zip(&joint.fits)
@@ -339,15 +355,15 @@ fn fit_params(choice: &PsfChoice) -> PsfFitParams {
 }
 
 /// One beam of one frame.
-struct BeamResult {
+pub(crate) struct BeamResult {
     /// Per star: the flux and the mask bits inside its aperture.
-    stars: Vec<(BeamFlux, u8)>,
+    pub(crate) stars: Vec<(BeamFlux, u8)>,
     /// Fitted (or assumed) position of A, frame px.
     fitted_a: Option<(f64, f64)>,
     /// Offset of B from A when the two-star fit converged, px.
     pair_offset: Option<(f64, f64)>,
     /// Aperture radius, px.
-    r_ap: f64,
+    pub(crate) r_ap: f64,
     /// The o beam's converged fit as a start for the e beam's (frame coordinates).
     fit_start: Option<PsfStart>,
     /// FWHM of this beam's PSF fit when it converged (the geometric mean of the axes'), px;
@@ -678,7 +694,11 @@ fn model_fraction_in_aperture(
 
 /// F = (o - e)/(o + e) of one dither from the o and e beam fluxes (with the mask bits in
 /// their apertures), and why it is not used, if so.
-fn dither_value((mut o_b, ob): (BeamFlux, u8), (mut e_b, eb): (BeamFlux, u8), mut cov_oe: f64) -> DitherValue {
+pub(crate) fn dither_value(
+    (mut o_b, ob): (BeamFlux, u8),
+    (mut e_b, eb): (BeamFlux, u8),
+    mut cov_oe: f64,
+) -> DitherValue {
     // Aperture correction, only when both beams have one (else F would mix corrected and
     // uncorrected fluxes).
     if let (Some(fo), Some(fe)) = (o_b.aperture_fraction, e_b.aperture_fraction) {

@@ -22,6 +22,9 @@
 //!   identity.rs   7. A/B identity on the per-dither photometry: B at one sky position
 //!                    angle from A at every orientation, A the brighter in o+e flux when
 //!                    the ratio is significant (else `ab_identity_unverified`)
+//!   field.rs      field stars: every other point source of the strips, detected on the
+//!                 stacks of each orientation (o and e images paired by offset and flux),
+//!                 measured in every dither by stage 5's photometry
 //! entry.rs      per component: clipped weighted mean of F per orientation, q, u (least
 //!               squares over orientations), P, gamma, errors, debiasing, cut; catalog entry
 //! params.rs     the settings of all stages, validated once when read
@@ -33,6 +36,7 @@
 pub mod beams;
 pub mod companion;
 pub mod entry;
+pub mod field;
 pub mod fluxes;
 pub mod identity;
 pub mod params;
@@ -114,6 +118,9 @@ pub struct Measured {
     pub dithers: Vec<Vec<Vec<DitherValue>>>,
     /// Target flags.
     pub flags: Vec<crate::catalog::Flag>,
+    /// The field stars (empty unless `measure.field_stars`), F per orientation and dither
+    /// like `dithers`.
+    pub field: Vec<field::FieldMeasured>,
 }
 
 /// An error that stops the measurement of a sequence (defined with the crate's other errors).
@@ -164,6 +171,7 @@ pub fn measure_sequence(
         eo_px: eo,
         scale_arcsec_per_px: scale,
         params,
+        seeing: true,
     };
     let mut fl = fluxes::measure_fluxes(orients, &primary, &companion, &setup, &mut flags);
 
@@ -171,6 +179,13 @@ pub fn measure_sequence(
     // registered to whole pixels).
     fl.apertures.sort_by(|a, b| a.total_cmp(b));
     let eo = beams::median_offset(&fl.fitted_a_oe).unwrap_or(eo);
+    // The field stars, with the components' photometry at the refined e-o offset.
+    let field = if params.field_stars {
+        let setup = fluxes::FluxSetup { eo_px: eo, ..setup };
+        field::measure_field_stars(orients, &primary, &companion, &setup, profile)
+    } else {
+        Vec::new()
+    };
     let geometry = match companion::combine_geometry(&fl.pair_offsets, scale) {
         Some((sep, pa, _)) if companion.geometry.is_some() => Some((sep, pa)),
         _ => companion.geometry,
@@ -188,6 +203,7 @@ pub fn measure_sequence(
         aperture_px: fl.apertures.get(fl.apertures.len() / 2).copied().unwrap_or(f64::NAN),
         dithers: fl.dithers,
         flags,
+        field,
     };
     identity::verify_pair(&mut measured, orients, scale);
     Ok(measured)

@@ -71,6 +71,12 @@ pub struct MeasureParams {
     /// 0.9-1 from guiding, wind shake and optics; a circular fit of an elongated pair moves
     /// flux from one star to the other along the elongation. Off: circular.
     pub psf_elliptical: bool,
+    /// Detect and measure every other point source of the target's strips (the catalog's
+    /// `field_stars`; docs/photometry.md, "Field stars"). Off: no `field_stars` key.
+    pub field_stars: bool,
+    /// Detection threshold of the field stars: S/N of the 3x3 box sum of the stacked
+    /// dithers above the median of a ring about the peak, in each beam.
+    pub field_star_snr: f64,
 }
 
 impl MeasureParams {
@@ -108,6 +114,8 @@ impl Default for MeasureParams {
             psf_elliptical: true,
             psf_model: PsfModel::Moffat { beta: None },
             beta_from_stack: true,
+            field_stars: true,
+            field_star_snr: 7.0,
         }
     }
 }
@@ -399,6 +407,12 @@ impl MeasureParams {
             "measure.min_companion_snr",
             self.min_companion_snr,
             "in [0, 1e6]",
+        )?;
+        check(
+            in_closed(self.field_star_snr, 3.0, 1e6),
+            "measure.field_star_snr",
+            self.field_star_snr,
+            "in [3, 1e6]",
         )?;
         check(
             in_closed(self.min_companion_f, 0.0, 1e9),

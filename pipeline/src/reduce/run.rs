@@ -61,6 +61,20 @@ fn pointed(mut target: Target, seq: &Sequence) -> Target {
     target
 }
 
+/// The field stars of `target` on the detector (their rows moved by `row0`, the reduced
+/// rows' first) and on the sky: the target's pointing (A's position, as the export gives A)
+/// offset by each star's separation and PA from A
+/// ([`crate::export::offset_position`], the one B gets).
+fn place_field_stars(target: &mut Target, row0: usize) {
+    let pointing = target.ra_deg.zip(target.dec_deg);
+    for s in target.field_stars.iter_mut().flatten() {
+        s.y_px += row0 as f64;
+        let sky = pointing.map(|(ra, dec)| crate::export::offset_position(ra, dec, s.separation_arcsec, s.pa_deg));
+        s.ra_deg = sky.map(|p| p.0);
+        s.dec_deg = sky.map(|p| p.1);
+    }
+}
+
 /// A failed target, keeping the diagnostic flags gathered before the failure.
 fn failed(seq: &Sequence, msg: String, flags: &[Flag], failures: Vec<Failure>, times: StageTimes) -> TargetOutcome {
     TargetOutcome {
@@ -308,6 +322,7 @@ pub fn reduce_loaded(
         target.error = Some(first.to_string());
     }
     let mut target = pointed(target, seq);
+    place_field_stars(&mut target, crop.map_or(0, |(r0, _)| r0));
     target.sequence = Some(seq.id.clone());
     target.tpl_start = Some(seq.tpl_start.clone());
     target.filter = Some(seq.filter.clone());

@@ -129,6 +129,7 @@ fn inputs() -> FigureInputs {
             aperture_px: 2.9,
             dithers: vec![vec![per_orientation(), per_orientation()]; 2],
             flags: vec![],
+            field: Vec::new(),
         }),
     }
 }

@@ -52,6 +52,7 @@ fn outcome() -> TargetOutcome {
         aperture_px: 4.5,
         dithers: vec![a, b],
         flags: Vec::new(),
+        field: Vec::new(),
     };
     let files = |k: usize| {
         (1..=2)
