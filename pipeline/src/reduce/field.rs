@@ -20,6 +20,7 @@
 //!    detector edge is rejected (`strip_edge`).
 use ndarray::{Array2, ArrayView2};
 use sofipol_calib::frame::mask as mbits;
+use sofipol_calib::profile::Beam;
 use sofipol_calib::Profile;
 
 use super::companion::Companion;
@@ -104,8 +105,8 @@ pub fn measure_field_stars(
         return Vec::new();
     };
     let strips = Strips {
-        o: g.o_target,
-        e: g.e_target,
+        o: g.target_rows(Beam::Ordinary),
+        e: g.target_rows(Beam::Extraordinary),
         nx,
     };
     // B's sky position from A (arcsec east, north), when found.
