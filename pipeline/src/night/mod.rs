@@ -402,12 +402,20 @@ fn claim_in_turn<T: Send>(n: usize, one: &(dyn Fn(usize) -> T + Sync), idle: &(d
     let next = AtomicUsize::new(0);
     let done = AtomicUsize::new(0);
     let slots: Vec<std::sync::Mutex<Option<T>>> = (0..n).map(|_| std::sync::Mutex::new(None)).collect();
+    /// Counts an item done when dropped: also when `one` panics, so that the other
+    /// workers stop waiting for it and the panic reaches the caller (not a hang).
+    struct Done<'a>(&'a AtomicUsize);
+    impl Drop for Done<'_> {
+        fn drop(&mut self) {
+            self.0.fetch_add(1, Ordering::SeqCst);
+        }
+    }
     rayon::broadcast(|_| loop {
         let k = next.fetch_add(1, Ordering::SeqCst);
         if k < n {
+            let _done = Done(&done);
             let v = one(k);
             *slots[k].lock().unwrap_or_else(|e| e.into_inner()) = Some(v);
-            done.fetch_add(1, Ordering::SeqCst);
             continue;
         }
         if idle() {
@@ -531,5 +539,79 @@ pub fn provenance(profile: &Profile, params: &impl serde::Serialize) -> Provenan
         profile: Some(serde_json::json!(profile)),
         parameters: Some(serde_json::json!(params)),
         ..Provenance::now()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::claim_in_turn;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::Mutex;
+
+    fn pool(n: usize) -> rayon::ThreadPool {
+        rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap()
+    }
+
+    #[test]
+    fn every_item_once_in_order_and_idle_work_only_after_the_last_was_taken() {
+        for threads in [1, 2, 4] {
+            let n = 37;
+            let taken = AtomicUsize::new(0);
+            let idle_jobs = Mutex::new((0..20).collect::<Vec<usize>>());
+            let idle_done = AtomicUsize::new(0);
+            let out = pool(threads).install(|| {
+                claim_in_turn(
+                    n,
+                    &|k| {
+                        taken.fetch_add(1, Ordering::SeqCst);
+                        std::thread::sleep(std::time::Duration::from_micros(200));
+                        k * k
+                    },
+                    &|| {
+                        // Idle work starts only once every item has been taken: the other
+                        // workers may have taken theirs without having started it yet.
+                        let started = taken.load(Ordering::SeqCst);
+                        assert!(
+                            started + threads > n,
+                            "idle work while items were left ({started} of {n} started)"
+                        );
+                        let job = idle_jobs.lock().unwrap().pop();
+                        job.map(|_| idle_done.fetch_add(1, Ordering::SeqCst)).is_some()
+                    },
+                )
+            });
+            assert_eq!(out, (0..n).map(|k| k * k).collect::<Vec<_>>(), "{threads} threads");
+            assert_eq!(
+                idle_done.load(Ordering::SeqCst),
+                20,
+                "{threads} threads: idle work left"
+            );
+        }
+    }
+
+    #[test]
+    fn a_panicking_item_reaches_the_caller_instead_of_hanging_the_others() {
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let r = std::panic::catch_unwind(|| {
+                pool(2).install(|| {
+                    claim_in_turn(
+                        8,
+                        &|k| {
+                            if k == 3 {
+                                panic!("item 3 fails");
+                            }
+                            k
+                        },
+                        &|| false,
+                    )
+                })
+            });
+            let _ = tx.send(r.is_err());
+        });
+        let panicked = rx
+            .recv_timeout(std::time::Duration::from_secs(60))
+            .expect("claim_in_turn hung after an item panicked");
+        assert!(panicked, "the item's panic did not reach the caller");
     }
 }
