@@ -442,19 +442,26 @@ fn resolve_target(
     let errors = (fc.is_some() || settings.telescope_prior.is_some())
         .then(|| calibration_errors(fc, settings.telescope_prior.as_ref()));
     match t.field_stars.as_deref() {
-        // Measured field stars: the binary's foreground estimated from them (or flagged too
-        // few), and both Delta-gammas computed.
-        Some(stars) => {
-            let qu: Vec<FieldStarQu> = stars.iter().map(field_star_qu).collect();
+        // Field stars found: the binary's foreground estimated from them (or flagged too
+        // few), and both Delta-gammas computed. None found (or none searched for): no
+        // foreground and no flag, the Delta-gamma as without field stars.
+        Some(stars) if !stars.is_empty() => {
+            let qu: Vec<FieldStarQu> = stars
+                .iter()
+                .map(|s| field_star_qu(s, params.allow_uncalibrated))
+                .collect();
             set_target_foreground(t, &qu, &EstimateParams::default(), errors.as_ref());
         }
-        None => t.update_delta_gamma(errors.as_ref()),
+        _ => t.update_delta_gamma(errors.as_ref()),
     }
 }
 
 /// A calibrated field star as the foreground's estimate takes it (its total errors: the
-/// measurement's and the calibration's).
-fn field_star_qu(s: &crate::catalog::field_stars::FieldStar) -> FieldStarQu {
+/// measurement's and the calibration's). A star whose calibration leaves a term that biases
+/// q and u (no offset c: no standards, another night's calibration without its filter) is
+/// not used, as its components would not pass the cut, unless `allow_uncalibrated`.
+fn field_star_qu(s: &crate::catalog::field_stars::FieldStar, allow_uncalibrated: bool) -> FieldStarQu {
+    let calibrated = allow_uncalibrated || s.star.calibration.is_some_and(|c| c.complete_for_the_cut());
     FieldStarQu {
         id: s.id.clone(),
         q: s.star.pol.q,
@@ -464,7 +471,7 @@ fn field_star_qu(s: &crate::catalog::field_stars::FieldStar) -> FieldStarQu {
         cov_qu: s.star.cov_qu.unwrap_or(0.0),
         ra_deg: s.ra_deg.unwrap_or(f64::NAN),
         dec_deg: s.dec_deg.unwrap_or(f64::NAN),
-        usable: s.usable,
+        usable: s.usable && calibrated,
     }
 }
 

@@ -587,7 +587,8 @@ pub enum Applied {
         /// Ids of the stars not used, with why.
         rejected: Vec<(String, Rejection)>,
     },
-    /// The target has no sky position (`ra_deg`, `dec_deg`): nothing was done.
+    /// The target has no sky position (`ra_deg`, `dec_deg`): no foreground (cleared), the
+    /// Delta-gamma recomputed without one.
     NoPosition,
 }
 
@@ -603,6 +604,10 @@ pub fn set_target_foreground(
     cal: Option<&CalibrationCovariance>,
 ) -> Applied {
     let (Some(ra), Some(dec)) = (target.ra_deg, target.dec_deg) else {
+        // No sky position: no estimate, and the Delta-gamma of the calibrated components
+        // all the same.
+        target.foreground = None;
+        target.update_delta_gamma(cal);
         return Applied::NoPosition;
     };
     let applied = match estimate(ra, dec, stars, params) {

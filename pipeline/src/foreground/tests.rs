@@ -608,3 +608,27 @@ fn subtracting_the_estimated_foreground_removes_the_fake_alignment() {
         100.0 * within
     );
 }
+
+/// A target without a sky position still gets its Delta-gamma recomputed (no foreground):
+/// a component that no longer passes the cut clears a Delta-gamma left from before, and a
+/// stale foreground goes.
+#[test]
+fn without_a_position_the_delta_gamma_is_still_recomputed() {
+    let mut t = Target::new("B2", Status::Ok);
+    t.components = vec![component("A", 0.03, 0.0, 0.0005), component("B", 0.0, 0.03, 0.0005)];
+    t.update_delta_gamma(None);
+    assert!(t.delta_gamma_deg.is_some());
+    t.foreground = Some(crate::catalog::Foreground::new(0.01, 0.0, 0.001, 0.001, 0.0));
+    // The calibration refused B since.
+    t.components[1].passes_cut = false;
+    let stars: Vec<FieldStarQu> = (0..6).map(|i| star(i, 0.01, 0.0, 0.001)).collect();
+    assert_eq!(
+        set_target_foreground(&mut t, &stars, &EstimateParams::default(), None),
+        Applied::NoPosition
+    );
+    assert!(
+        t.delta_gamma_deg.is_none(),
+        "a Delta-gamma of a component refused by the cut"
+    );
+    assert!(t.foreground.is_none() && t.delta_gamma_fg_corrected_deg.is_none());
+}
