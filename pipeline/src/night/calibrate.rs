@@ -81,23 +81,6 @@ impl Prepared {
     }
 }
 
-/// Calibrate a reduced catalog of targets: reduce the standards, measure the calibration
-/// from them (unless another night's is given or none is wanted), re-solve every target
-/// component. The standards' unusable files join the catalog's failures. Returns the
-/// calibration used and the summary lines.
-pub fn calibrate(
-    cat: &mut Catalog,
-    standards: &[Sequence],
-    profile: &Profile,
-    params: &TargetParams,
-    setup: &CalibSetup,
-    night_mask: Option<&Array2<u8>>,
-    flats: Option<&FlatSet>,
-) -> (Option<Calibration>, CalibrationSummary) {
-    let prepared = prepare(standards, profile, params, setup, night_mask, flats);
-    finish(cat, prepared, profile, params, setup)
-}
-
 /// Apply a [`prepare`]d calibration to a reduced catalog: every target component re-solved,
 /// the standards' unusable files joined to the catalog's failures. Returns the calibration
 /// used and the summary lines.

@@ -40,7 +40,7 @@ mod plan;
 pub use crate::products::badpix::NightMask;
 pub use crate::products::{products_dir, slug};
 pub use cache::{files_key, CacheCounts, CachedTarget, FileStamp, NightCache};
-pub use calibrate::{calibrate, reduce_standards};
+pub use calibrate::{finish, prepare, reduce_standards, Prepared};
 pub use flats::{night_flats, NightFlats};
 pub use log::{frame_list_path, log_path, log_ut, night_frame_list, night_log, write_night_log};
 pub use mask::night_bad_pixel_mask;
