@@ -17,12 +17,21 @@
 //! in place of the header's OBJECT). Relative paths are relative to the file's directory.
 //! Every problem is an error naming the file, the line, the key and the value: a missing
 //! file, a path listed twice (also by another spelling of the same file), an unknown role
-//! or key, an angle that is not a finite number, a line that is not UTF-8 or is longer
-//! than [`MAX_LINE_BYTES`].
+//! or key, an angle that is not a finite number within one turn ([`MAX_ANGLE_DEG`]), a
+//! line that is not UTF-8 or is longer than [`MAX_LINE_BYTES`], a file longer than
+//! [`MAX_FILE_BYTES`] (refused before it is held in memory).
 use std::path::{Path, PathBuf};
 
 /// The longest line read, bytes.
 pub const MAX_LINE_BYTES: usize = 4096;
+
+/// The longest set-of-frames file read, bytes (some 200 000 lines of frames): a larger
+/// file (or a device that never ends) is refused before it is held in memory.
+pub const MAX_FILE_BYTES: u64 = 64 << 20;
+
+/// The largest modulation angle a line may give, deg (in either sign): an instrument
+/// angle, a plate angle or an analyzer angle lies within one turn.
+pub const MAX_ANGLE_DEG: f64 = 360.0;
 
 /// The extension of the set-of-frames file the night writes beside its catalog.
 pub const EXTENSION: &str = "frames";
@@ -119,6 +128,11 @@ pub fn is_frame_list(path: &Path) -> bool {
 
 /// Read and check a set-of-frames file.
 pub fn read(file: &Path) -> Result<FrameList, FrameListError> {
+    read_limited(file, MAX_FILE_BYTES)
+}
+
+/// [`read`] refusing a file longer than `max_bytes`.
+fn read_limited(file: &Path, max_bytes: u64) -> Result<FrameList, FrameListError> {
     let err = |line: Option<usize>, key: &str, value: String, reason: String| FrameListError {
         file: file.to_path_buf(),
         line,
@@ -126,8 +140,23 @@ pub fn read(file: &Path) -> Result<FrameList, FrameListError> {
         value,
         reason,
     };
-    let bytes =
-        std::fs::read(file).map_err(|e| err(None, "file", shown(&file.display().to_string()), e.to_string()))?;
+    let shown_file = || shown(&file.display().to_string());
+    let mut bytes = Vec::new();
+    {
+        use std::io::Read;
+        let f = std::fs::File::open(file).map_err(|e| err(None, "file", shown_file(), e.to_string()))?;
+        f.take(max_bytes + 1)
+            .read_to_end(&mut bytes)
+            .map_err(|e| err(None, "file", shown_file(), e.to_string()))?;
+    }
+    if bytes.len() as u64 > max_bytes {
+        return Err(err(
+            None,
+            "file",
+            shown_file(),
+            format!("longer than the {max_bytes} bytes a set-of-frames file may have"),
+        ));
+    }
     let base = file.parent().map(Path::to_path_buf).unwrap_or_default();
     parse(&bytes, file, &base)
 }
@@ -196,6 +225,14 @@ pub fn parse(bytes: &[u8], file: &Path, base: &Path) -> Result<FrameList, FrameL
                         .map_err(|_| err(n, k, v, "not a number (the modulation angle in degrees)".into()))?;
                     if !a.is_finite() {
                         return Err(err(n, k, v, "not a finite angle".into()));
+                    }
+                    if a.abs() > MAX_ANGLE_DEG {
+                        return Err(err(
+                            n,
+                            k,
+                            v,
+                            format!("outside -{MAX_ANGLE_DEG}..{MAX_ANGLE_DEG} deg (one turn)"),
+                        ));
                     }
                     angle_deg = Some(a);
                 }
@@ -347,6 +384,22 @@ mod tests {
     }
 
     #[test]
+    fn a_file_longer_than_the_limit_is_refused_before_it_is_read_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut text = String::new();
+        for k in 0..10 {
+            std::fs::write(dir.path().join(format!("a{k}.fits")), b"").unwrap();
+            text += &format!("a{k}.fits science\n");
+        }
+        let list = dir.path().join("frames.txt");
+        std::fs::write(&list, &text).unwrap();
+        assert_eq!(text.len(), 160);
+        assert_eq!(read_limited(&list, 160).unwrap().frames.len(), 10);
+        let e = read_limited(&list, 159).unwrap_err().to_string();
+        assert!(e.contains("frames.txt") && e.contains("159 bytes"), "{e}");
+    }
+
+    #[test]
     fn hostile_lines_are_errors_naming_file_line_key_and_value() {
         let (d, list) = setup();
         let long = format!("a.fits science target={}\n", "x".repeat(5000));
@@ -362,6 +415,8 @@ mod tests {
             (b"a.fits\n".to_vec(), 1, "role", "missing"),
             (b"a.fits science angle=nan\n".to_vec(), 1, "angle", "finite"),
             (b"a.fits science angle=inf\n".to_vec(), 1, "angle", "finite"),
+            (b"a.fits science angle=1e300\n".to_vec(), 1, "angle", "one turn"),
+            (b"a.fits science angle=-360.5\n".to_vec(), 1, "angle", "one turn"),
             (b"a.fits science angle=north\n".to_vec(), 1, "angle", "not a number"),
             (b"a.fits science angle=1 angle=2\n".to_vec(), 1, "angle", "twice"),
             (b"a.fits science colour=red\n".to_vec(), 1, "colour", "unknown key"),
