@@ -742,13 +742,29 @@ impl Target {
         };
         let (ca, cb) = (sa.minus_foreground(fg.q, fg.u), sb.minus_foreground(fg.q, fg.u));
         let fg_cov = fg.covariance();
-        self.delta_gamma_fg_corrected_deg = Some(fold_delta_gamma(ca.gamma_deg(), cb.gamma_deg()));
+        self.delta_gamma_fg_corrected_deg = self.fg_corrected_delta_gamma();
         let sigma = sigma_delta_gamma_with_foreground_deg(&ca, &cb, &cal, &fg_cov);
         if sigma.is_finite() {
             self.sigma_delta_gamma_fg_corrected_deg = Some(sigma);
             self.delta_gamma_fg_corrected_interval_deg =
                 Some(delta_gamma_interval_with_foreground_deg(&ca, &cb, &cal, &fg_cov));
         }
+    }
+
+    /// Delta-gamma of the two components after subtracting the target's foreground from
+    /// both (q, u), folded into [0, 90] deg: None without two components or a valid
+    /// foreground. What [`Target::update_delta_gamma`] stores and `stats` recomputes.
+    pub fn fg_corrected_delta_gamma(&self) -> Option<f64> {
+        let [a, b] = self.components.as_slice() else {
+            return None;
+        };
+        let fg = self.foreground.as_ref().filter(|f| f.validate().is_ok())?;
+        let (ca, cb) = (
+            a.star_qu().minus_foreground(fg.q, fg.u),
+            b.star_qu().minus_foreground(fg.q, fg.u),
+        );
+        let d = fold_delta_gamma(ca.gamma_deg(), cb.gamma_deg());
+        d.is_finite().then_some(d)
     }
 
     /// The sequence id, or the object name when the catalog has none: what identifies a

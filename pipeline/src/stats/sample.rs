@@ -154,6 +154,21 @@ impl BinarySample {
                     ));
                 }
             }
+            // The foreground-subtracted Delta-gamma recomputed from the components' q, u
+            // and the foreground (which a user may have filled or edited), as the raw one.
+            let dg_fg = t.fg_corrected_delta_gamma();
+            match (t.delta_gamma_fg_corrected_deg, dg_fg) {
+                (Some(stored), Some(d)) if (stored - d).abs() > 1e-6 => s.warnings.push(format!(
+                    "{}: stored delta_gamma_fg_corrected_deg {stored} differs from the one the components and the \
+                     foreground give, {d}; using {d}",
+                    t.object
+                )),
+                (Some(stored), None) if stored.is_finite() => s.warnings.push(format!(
+                    "{}: stored delta_gamma_fg_corrected_deg {stored} without a valid foreground; not used",
+                    t.object
+                )),
+                _ => {}
+            }
             let error = delta_gamma_error(t, a, b);
             s.binaries.push(SampleBinary {
                 object: t.object.clone(),
@@ -165,9 +180,7 @@ impl BinarySample {
                 delta_gamma_interval_deg: t
                     .delta_gamma_interval_deg
                     .filter(|[lo, hi]| lo.is_finite() && hi.is_finite()),
-                delta_gamma_fg_corrected_deg: t
-                    .delta_gamma_fg_corrected_deg
-                    .filter(|d| d.is_finite() && t.foreground.is_some()),
+                delta_gamma_fg_corrected_deg: dg_fg,
                 foreground_percent: t.foreground.as_ref().map(foreground_percent),
             });
         }

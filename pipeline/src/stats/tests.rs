@@ -827,10 +827,11 @@ fn histogram_tables_and_catalog_p_are_drawn_from() {
 // ------------------------------------------------------------ sample and verdict
 
 fn component(name: &str, p: f64, sigma_p: f64, gamma: f64) -> Component {
+    let two_g = 2.0 * gamma.to_radians();
     Component {
         pol: crate::stokes::inversion::Polarization {
-            q: p,
-            u: 0.0,
+            q: p * two_g.cos(),
+            u: p * two_g.sin(),
             sigma_q: sigma_p,
             sigma_u: sigma_p,
             p,
@@ -1271,26 +1272,33 @@ fn stats_predicts_per_binary_and_with_each_binarys_own_foreground() {
     );
 }
 
-/// The sample keeps each binary's foreground-subtracted Delta-gamma, and the test on it
-/// is against uniform: binaries whose subtracted values are spread evenly over [0, 90]
-/// while their raw values cluster below 20 deg give a KS p < 1e-6 before and > 0.5 after.
+/// The sample recomputes each binary's foreground-subtracted Delta-gamma from its
+/// components' q, u and its foreground, and tests it against uniform: binaries whose
+/// intrinsic angles differ evenly over [0, 90] deg, seen through a 5 % foreground that
+/// squeezes their raw Delta-gamma below ~25 deg, give a KS p < 1e-6 before and > 0.5 after.
+/// A stored value that disagrees is replaced (with a warning), as the raw Delta-gamma is.
 #[test]
 fn stats_tests_the_delta_gamma_after_subtracting_each_foreground() {
     let n = 40;
+    let (fq, fu) = (0.05, 0.0);
+    let seen = |name: &str, p: f64, g: f64| {
+        let t = 2.0 * g.to_radians();
+        let (q, u) = (p * t.cos() + fq, p * t.sin() + fu);
+        component(name, q.hypot(u), 0.001, 0.5 * u.atan2(q).to_degrees())
+    };
     let targets: Vec<Target> = (0..n)
         .map(|i| {
+            let d = 90.0 * (i as f64 + 0.5) / n as f64;
             let mut t = target(
                 &format!("B{i}"),
                 Status::Ok,
-                vec![
-                    component("A", 0.04, 0.001, 10.0),
-                    component("B", 0.03, 0.001, 10.0 + 20.0 * (i as f64 + 0.5) / n as f64),
-                ],
+                vec![seen("A", 0.02, 10.0), seen("B", 0.02, 10.0 + d)],
                 None,
             );
             if i % 4 != 3 {
-                t.foreground = Some(crate::catalog::Foreground::new(0.02, 0.0, 0.001, 0.001, 0.0));
-                t.delta_gamma_fg_corrected_deg = Some(90.0 * (i as f64 + 0.5) / n as f64);
+                t.foreground = Some(crate::catalog::Foreground::new(fq, fu, 0.001, 0.001, 0.0));
+                // A stale stored value on one binary: replaced by the recomputed one.
+                t.delta_gamma_fg_corrected_deg = Some(if i == 0 { 77.0 } else { d });
             }
             t
         })
@@ -1302,6 +1310,21 @@ fn stats_tests_the_delta_gamma_after_subtracting_each_foreground() {
     let s = BinarySample::from_catalog(&cat, None);
     let pairs = s.fg_corrected_pairs();
     assert_eq!(pairs.len(), 30);
+    for (k, (_, after)) in pairs.iter().enumerate() {
+        let i = k + k / 3; // every fourth binary has no foreground
+        let d = 90.0 * (i as f64 + 0.5) / n as f64;
+        assert!((after - d).abs() < 1e-9, "binary {i}: {after} vs {d}");
+    }
+    let stale: Vec<&String> = s
+        .warnings
+        .iter()
+        .filter(|w| w.contains("delta_gamma_fg_corrected_deg"))
+        .collect();
+    assert!(
+        stale.len() == 1 && stale[0].starts_with("B0:") && stale[0].contains("77"),
+        "{:?}",
+        s.warnings
+    );
     let f = crate::stats::alignment::FgCorrected::from_pairs(&pairs).unwrap();
     assert_eq!(f.n, 30);
     assert!(f.ks_before.p_value < 1e-6, "{:?}", f.ks_before);
