@@ -13,6 +13,10 @@ use common::{json, run, ALPHA_BETA, INSTRUMENT};
 /// The simulated night's zero-point (magnitude of 1 ADU/s, o+e) and DIT.
 const ZP: f64 = 20.0;
 const DIT_S: f64 = 10.0;
+/// A field star of the last binary (Beta): separation from A, arcsec, and flux (o+e, ADU per
+/// frame, unit transmission).
+const FIELD_SEP: f64 = 40.0;
+const FIELD_FLUX: f64 = 80000.0;
 
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()
@@ -30,7 +34,7 @@ fn night(dir: &Path) -> std::path::PathBuf {
              [observation]\norientations_deg = [0.0, 45.0]\ndithers = 3\ndit_s = {DIT_S}\nzero_point_mag = {ZP}\n\
              [psf]\nkind = \"moffat\"\nfwhm_arcsec = 0.8\n{INSTRUMENT}\
              [[standard]]\nname = \"HD 64299\"\nmag = 9.5\n\
-             [[standard]]\nname = \"HD 204827\"\nmag = 9.7\np = 0.0088\ngamma_deg = 58.7\n{ALPHA_BETA}"
+             [[standard]]\nname = \"HD 204827\"\nmag = 9.7\np = 0.0088\ngamma_deg = 58.7\n{ALPHA_BETA}             [[binary.field_star]]\nseparation_arcsec = {FIELD_SEP}\npa_deg = 270.0\nflux = {FIELD_FLUX}\np = 0.0\ngamma_deg = 0.0\n"
         ),
     )
     .unwrap();
@@ -133,6 +137,22 @@ fn a_night_with_photometric_standards_gives_magnitudes_that_agree_with_the_truth
         }
     }
     assert_eq!(pulls.len(), 4);
+    // Field stars are measured like the components and get magnitudes alike.
+    let beta = cat["targets"].as_array().unwrap().iter().find(|t| t["object"] == "Beta").unwrap();
+    let fs = beta["field_stars"].as_array().unwrap_or_else(|| panic!("Beta: no field_stars: {beta}"));
+    let star = fs
+        .iter()
+        .find(|f| (f["separation_arcsec"].as_f64().unwrap() - FIELD_SEP).abs() < 1.0)
+        .unwrap_or_else(|| panic!("the field star at {FIELD_SEP}\" not found: {fs:?}"));
+    let truth_mag = ZP - 2.5 * (FIELD_FLUX / DIT_S).log10();
+    let (m, sm) = (
+        star["mag"].as_f64().unwrap_or_else(|| panic!("field star: no mag: {star}")),
+        star["sigma_mag"].as_f64().unwrap(),
+    );
+    let pull = (m - truth_mag) / sm;
+    println!("Beta field star: mag {m:.4} +- {sm:.4}, truth {truth_mag:.4}, pull {pull:+.2}");
+    assert!(sm >= zp_sigma && (m - truth_mag).abs() < 0.05, "field star {m} +- {sm} vs {truth_mag}");
+    pulls.push(pull);
     for p in &pulls {
         assert!(p.abs() < 4.0, "pulls {pulls:?}");
     }

@@ -185,7 +185,9 @@ pub fn apply(cat: &mut Catalog, photometry: &Photometry) -> PhotometricCalibrati
             .iter()
             .find(|z| z.filter.eq_ignore_ascii_case(filter.trim()));
         let airmass = mean_airmass(t.frame_quality.as_ref());
-        for c in t.components.iter_mut() {
+        // The binary's components and its field stars, measured alike, get magnitudes alike.
+        let field = t.field_stars.iter_mut().flatten().map(|f| &mut f.star);
+        for c in t.components.iter_mut().chain(field) {
             (c.mag, c.sigma_mag) = (None, None);
             let Some(z) = zp else {
                 without.insert(filter.clone());
