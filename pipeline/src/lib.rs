@@ -44,6 +44,7 @@ pub mod reduce;
 pub mod report;
 pub mod scan;
 pub mod sequence;
+pub mod single_pointing;
 pub mod sim;
 pub mod solve;
 pub mod standards;
