@@ -487,3 +487,156 @@ pub(super) fn number_or_keyword(h: &Header, keyword: Option<&str>, number: f64, 
     }
     Ok(v)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::super::Profile;
+    use super::*;
+
+    fn nirc2() -> Profile {
+        Profile::embedded("nirc2").expect("embedded").expect("valid")
+    }
+
+    fn header(cards: &[(&str, crate::header::HeaderValue)]) -> Header {
+        let mut h = Header::new("n0932.fits.gz");
+        for (k, v) in cards {
+            h.set(k, v.clone());
+        }
+        h
+    }
+
+    /// The embedded NIRC2 profile: a half-wave plate read from PCUPR, pupil tracking with
+    /// PARANG, EL and ROTPDEST, header gain and read noise, summed coadds; SOFI's has none of
+    /// these sections and serializes exactly the keys it had before (its catalogs'
+    /// provenance is unchanged).
+    #[test]
+    fn nirc2_profile_describes_a_half_wave_plate() {
+        let p = nirc2();
+        assert_eq!(p.name, "NIRC2");
+        assert_eq!(p.modulation_kind(), ModulationKind::HalfWavePlate);
+        assert_eq!(p.modulation.as_ref().unwrap().keyword.as_deref(), Some("PCUPR"));
+        assert_eq!(p.field_rotation.as_ref().unwrap().kind, FieldRotationKind::PupilTracking);
+        assert!(p.detector.coadds_summed);
+        assert_eq!(p.keywords.ndit, "COADDS");
+        assert_eq!(p.geometry.eo_offset_px, [-13.0, -505.0]);
+        assert_eq!(Profile::embedded("NIRC2 ").map(|r| r.unwrap().name), Some("NIRC2".into()));
+        assert!(Profile::embedded("nirc3").is_none());
+        let sofi = Profile::sofi();
+        assert_eq!(Profile::embedded("sofi").unwrap().unwrap(), sofi);
+        assert_eq!(sofi.modulation_kind(), ModulationKind::RotateInstrument);
+        let v = toml::Value::try_from(&sofi).unwrap();
+        let keys: Vec<&String> = v.as_table().unwrap().keys().collect();
+        assert_eq!(
+            keys,
+            ["angles", "detector", "geometry", "keywords", "match", "name", "photometry", "telescope"]
+        );
+        let det: Vec<&String> = v["detector"].as_table().unwrap().keys().collect();
+        assert_eq!(
+            det,
+            [
+                "gain_e_per_adu",
+                "linear_limit_adu",
+                "nonlin_coeff_per_adu",
+                "nonlinear_warn_adu",
+                "read_noise_e",
+                "saturation_adu"
+            ]
+        );
+    }
+
+    /// The analyzer's turn on the sky is PARANG - EL - ROTPDEST for NIRC2 (0 for a sky-fixed
+    /// field); the gain and read noise come from the header; a missing or bad keyword is an
+    /// error naming it.
+    #[test]
+    fn angles_and_detector_numbers_come_from_the_header() {
+        use crate::header::HeaderValue as V;
+        let p = nirc2();
+        let h = header(&[
+            ("PARANG", V::Float(215.07)),
+            ("EL", V::Float(77.17)),
+            ("ROTPDEST", V::Float(77.87)),
+            ("PCUPR", V::Float(22.4975)),
+            ("DETGAIN", V::Float(8.0)),
+            ("DETRN", V::Float(40.0)),
+        ]);
+        let f = p.field_rotation.as_ref().unwrap();
+        assert!((f.sky_offset_deg(&h).unwrap() - (215.07 - 77.17 - 77.87)).abs() < 1e-12);
+        assert_eq!(FieldRotation::default().sky_offset_deg(&h).unwrap(), 0.0);
+        assert_eq!(p.modulation.as_ref().unwrap().plate_deg(&h).unwrap(), 22.4975);
+        assert_eq!((p.detector.gain_of(&h).unwrap(), p.detector.read_noise_of(&h).unwrap()), (8.0, 40.0));
+        let no_el = header(&[("PARANG", V::Float(215.07)), ("ROTPDEST", V::Float(77.87))]);
+        let e = f.sky_offset_deg(&no_el).unwrap_err().to_string();
+        assert!(e.contains("EL") && e.contains("n0932"), "{e}");
+        let mut bad = h.clone();
+        bad.set("DETGAIN", -8.0);
+        let e = p.detector.gain_of(&bad).unwrap_err().to_string();
+        assert!(e.contains("DETGAIN") && e.contains("-8"), "{e}");
+        // SOFI's numbers stay the profile's.
+        assert_eq!(Profile::sofi().detector.gain_of(&bad).unwrap(), 5.4);
+    }
+
+    /// Roles from keyword tests: darks by the shutter, sky frames by OBJECT, science needs the
+    /// Wollaston; anything else is not used, naming the test that failed.
+    #[test]
+    fn files_are_classified_by_keyword_tests() {
+        use crate::header::HeaderValue as V;
+        let c = nirc2().classify.unwrap();
+        let s = |v: &str| V::Str(v.into());
+        let base = [("INSTRUME", s("NIRC2")), ("FWONAME", s("Wollaston")), ("SHRNAME", s("open"))];
+        let with = |extra: &[(&str, V)]| {
+            let mut cards = base.to_vec();
+            cards.extend_from_slice(extra);
+            header(&cards)
+        };
+        assert_eq!(c.role(&with(&[("OBJECT", s("AB Aur_hwp_0.0"))])), Role::Science);
+        assert_eq!(c.role(&with(&[("OBJECT", s("sky_flat_hwp_45.0"))])), Role::Sky);
+        assert_eq!(c.role(&with(&[("OBJECT", s("dark")), ("SHRNAME", s(" Closed "))])), Role::Dark);
+        let Role::NotUsed(why) = c.role(&with(&[("OBJECT", s("AB Aur")), ("FWONAME", s("clear"))])) else {
+            panic!("a frame without the Wollaston is not science");
+        };
+        assert!(why.contains("FWONAME = 'Wollaston'") && why.contains("'clear'"), "{why}");
+    }
+
+    /// Hostile values are refused naming the key.
+    #[test]
+    fn bad_sections_are_refused_by_key() {
+        let p = nirc2();
+        for (set, key) in [
+            ("modulation.tolerance_deg=20", "modulation.tolerance_deg"),
+            ("modulation.tolerance_deg=nan", "modulation.tolerance_deg"),
+            ("modulation.sigma_zero_point_deg=100", "modulation.sigma_zero_point_deg"),
+            ("modulation.zero_point_deg=inf", "modulation.zero_point_deg"),
+            ("modulation.keyword=\"\"", "modulation.keyword"),
+            ("modulation.kind=\"quarter_wave\"", "quarter_wave"),
+            ("modulation.plate=1", "plate"),
+            ("modulation.kind=\"rotate_instrument\"", "pupil_tracking"),
+            ("field_rotation.parang_keyword=\"\"", "field_rotation.parang_keyword"),
+            ("beams.o_rows=[0, 500]", "overlap"),
+            ("beams.e_rows=[0, 2000]", "beams.e_rows"),
+            ("beams.flux_ratio_tolerance=1.5", "beams.flux_ratio_tolerance"),
+            ("single_pointing.aperture_px=[40.0, 18.0]", "single_pointing.aperture_px"),
+            ("single_pointing.hot_pixel_adu=-1", "single_pointing.hot_pixel_adu"),
+            ("single_pointing.sky=\"moon\"", "moon"),
+            ("detector.gain_keyword=\"\"", "detector.gain_keyword"),
+        ] {
+            let e = p.with_overrides(&[set.to_string()]).expect_err(set).to_string();
+            assert!(e.contains(key), "{set}: {e}");
+        }
+        let e = p
+            .with_overrides(&["classify.dark=[{ keyword = \"SHRNAME\", equals = \"closed\", contains = \"c\" }]".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("classify.dark[0]") && e.contains("exactly one"), "{e}");
+        // A half-wave plate on SOFI's profile needs the sections it lacks.
+        let e = Profile::sofi()
+            .with_overrides(&["modulation.kind=\"half_wave_plate\"".into(), "modulation.keyword=\"X\"".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("[beams]"), "{e}");
+        let e = Profile::sofi()
+            .with_overrides(&["field_rotation.kind=\"pupil_tracking\"".into(), "field_rotation.parang_keyword=\"P\"".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("rotate_instrument"), "{e}");
+    }
+}

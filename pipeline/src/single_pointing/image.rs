@@ -276,6 +276,10 @@ pub fn fit_sky(s: &Img, k: &Img, bad: &[bool], rows: [usize; 2], centre: (f64, f
             .map(|(&i, _)| (s.v[i] - a * k.v[i] - b).abs())
             .collect();
         sig = 1.4826 * median(&mut res);
+        if !(sig > 0.0) {
+            // An exact fit (noise-free frames): nothing to clip.
+            break;
+        }
         let new: Vec<bool> = idx.iter().map(|&i| (s.v[i] - a * k.v[i] - b).abs() < 4.0 * sig).collect();
         if new == good {
             break;

@@ -281,38 +281,172 @@ fn calib(file: &Path) -> impl Fn(sofipol_calib::Error) -> Error + '_ {
     move |e| err(file.display().to_string(), e.to_string())
 }
 
+/// One input file, with what a set-of-frames file says of it (docs/frame-format.md, "A set
+/// of frames as a file"): its role, its modulation angle and its target in place of the
+/// header's.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InputFile {
+    /// The file.
+    pub path: PathBuf,
+    /// Its role (`None`: from the header by the profile's `[classify]`).
+    pub role: Option<Role>,
+    /// `angle=`: the modulation angle, deg (the plate angle; the analyzer angle of a
+    /// `per_file` modulation).
+    pub angle_deg: Option<f64>,
+    /// `target=`: the target's name.
+    pub target: Option<String>,
+}
+
+/// The input files under `inputs`: every FITS file of a folder (recursively), or the
+/// frames of a set-of-frames file with their roles (`science`, `dark`, `sky`; a `flat` or
+/// `standard` frame is listed as not used, with why).
+pub fn input_files(inputs: &[PathBuf]) -> Result<Vec<InputFile>> {
+    let mut out = Vec::new();
+    let mut folders = Vec::new();
+    for i in inputs {
+        if crate::frame_list::is_frame_list(i) {
+            let list = crate::frame_list::read(i).map_err(|e| err(i.display().to_string(), e.to_string()))?;
+            for f in list.frames {
+                use crate::frame_list::FrameRole as R;
+                let role = match f.role {
+                    R::Science => Role::Science,
+                    R::Dark => Role::Dark,
+                    R::Sky => Role::Sky,
+                    R::Flat | R::Standard => Role::NotUsed(format!(
+                        "listed as {} in {} (line {}): the half-wave-plate reduction takes its flat from the sky frames and has no standards",
+                        f.role.name(),
+                        list.file.display(),
+                        f.line
+                    )),
+                };
+                out.push(InputFile {
+                    path: f.path,
+                    role: Some(role),
+                    angle_deg: f.angle_deg,
+                    target: f.target,
+                });
+            }
+        } else {
+            folders.push(i.clone());
+        }
+    }
+    if !folders.is_empty() {
+        out.extend(crate::scan::list(&folders).files.into_iter().map(|path| InputFile {
+            path,
+            role: None,
+            angle_deg: None,
+            target: None,
+        }));
+    }
+    Ok(out)
+}
+
 struct Raw {
     path: PathBuf,
     header: Header,
     img: Img,
+    angle_deg: Option<f64>,
+    target: Option<String>,
 }
 
-fn read(path: &Path) -> Result<Raw> {
-    let f = sofipol_calib::fits::read_frame(path).map_err(calib(path))?;
-    let (ny, nx) = f.shape();
+fn read(f: &InputFile) -> Result<Raw> {
+    let path = &f.path;
+    let fr = sofipol_calib::fits::read_frame(path).map_err(calib(path))?;
+    let (ny, nx) = fr.shape();
     Ok(Raw {
         path: path.to_path_buf(),
-        header: f.header,
+        header: fr.header,
         img: Img {
             nx,
             ny,
-            v: f.data.iter().map(|&v| v as f64).collect(),
+            v: fr.data.iter().map(|&v| v as f64).collect(),
         },
+        angle_deg: f.angle_deg,
+        target: f.target.clone(),
     })
+}
+
+/// The plate angle of a frame: `angle=` of a set-of-frames file, else the header's.
+fn plate_of(r: &Raw, m: &sofipol_calib::profile::Modulation) -> Result<f64> {
+    match (r.angle_deg, m.kind) {
+        (Some(a), ModulationKind::PerFile) => Ok(0.5 * a),
+        (Some(a), _) => Ok(a),
+        (None, _) => m.plate_deg(&r.header).map_err(calib(&r.path)),
+    }
+}
+
+/// The night's summary in a few lines: per target q, u, P, angle in the instrument frame
+/// and on the sky, the zero point, the cycles' agreement; the files not used.
+pub fn summary_lines(cat: &SinglePointingCatalog) -> Vec<String> {
+    let pct = |v: f64| 100.0 * v;
+    let pol = |p: &Pol| {
+        format!(
+            "q {:+.3} +- {:.3} %, u {:+.3} +- {:.3} %, P {:.3} +- {:.3} %, angle {:.1} +- {:.1} deg",
+            pct(p.q),
+            pct(p.sigma_q),
+            pct(p.u),
+            pct(p.sigma_u),
+            pct(p.p),
+            pct(p.sigma_p),
+            p.angle_deg,
+            p.sigma_angle_deg
+        )
+    };
+    let mut lines = vec![format!(
+        "profile {} ({}, {}): {} dark(s), {} sky frame(s) ({} in the flat), {} bad pixels, {} file(s) not used",
+        cat.profile,
+        cat.modulation,
+        cat.field_rotation,
+        cat.darks.len(),
+        cat.skies.len(),
+        cat.flat_from.len(),
+        cat.bad_pixels,
+        cat.not_used.len()
+    )];
+    for n in &cat.not_used {
+        lines.push(format!("not used: {}: {}", n.file, n.reason));
+    }
+    for t in &cat.targets {
+        let head = format!("{} {} ({} frames, {} cycles)", t.name, t.filter, t.frames.len(), t.cycles.len());
+        match (&t.instrument, &t.sky) {
+            (Some(i), Some(s)) => {
+                lines.push(format!("{head}: instrument {}", pol(i)));
+                lines.push(format!(
+                    "{head}: sky {} (zero point {} +- {} deg: the angle's systematic error)",
+                    pol(s),
+                    cat.zero_point.deg,
+                    cat.zero_point.sigma_deg
+                ));
+            }
+            _ => lines.push(format!("{head}: no complete plate cycle; see the least squares in the catalog")),
+        }
+        for (k, c) in t.cycles.iter().enumerate() {
+            lines.push(format!("{head}: cycle {} instrument {}", k + 1, pol(&c.instrument)));
+        }
+        if let Some(a) = &t.cycle_agreement {
+            let f = |v: &[f64]| v.iter().map(|x| format!("{x:+.1}")).collect::<Vec<_>>().join(", ");
+            lines.push(format!(
+                "{head}: consecutive cycles differ by {} sigma in q, {} sigma in u (photometric errors; the adopted errors include the scatter)",
+                f(&a.q_difference_sigma),
+                f(&a.u_difference_sigma)
+            ));
+        }
+    }
+    lines
 }
 
 fn name(p: &Path) -> String {
     p.file_name().map_or_else(|| p.display().to_string(), |n| n.to_string_lossy().into_owned())
 }
 
-/// Reduce every target under `roots` with a half-wave-plate profile.
+/// Reduce every target under `roots` (folders or set-of-frames files) with a
+/// half-wave-plate profile.
 pub fn reduce(roots: &[PathBuf], profile: &Profile) -> Result<SinglePointingCatalog> {
-    let listing = crate::scan::list(roots);
-    reduce_files(&listing.files, roots, profile)
+    reduce_inputs(&input_files(roots)?, roots, profile)
 }
 
-/// [`reduce`] of the files given.
-pub fn reduce_files(files: &[PathBuf], roots: &[PathBuf], profile: &Profile) -> Result<SinglePointingCatalog> {
+/// [`reduce`] of the files given (`roots`: the inputs as given, for the provenance).
+pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) -> Result<SinglePointingCatalog> {
     let night = roots
         .iter()
         .map(|r| r.display().to_string())
@@ -334,7 +468,8 @@ pub fn reduce_files(files: &[PathBuf], roots: &[PathBuf], profile: &Profile) -> 
     // 1. Roles.
     let mut not_used = Vec::new();
     let (mut darks, mut skies, mut science) = (Vec::new(), Vec::new(), Vec::new());
-    for p in files {
+    for input in files {
+        let p = &input.path;
         let h = match sofipol_calib::fits::read_header(p) {
             Ok(h) => h,
             Err(e) => {
@@ -345,15 +480,15 @@ pub fn reduce_files(files: &[PathBuf], roots: &[PathBuf], profile: &Profile) -> 
                 continue;
             }
         };
-        match cls.role(&h) {
-            Role::Dark => darks.push(p.clone()),
-            Role::Sky => skies.push(p.clone()),
+        match input.role.clone().unwrap_or_else(|| cls.role(&h)) {
+            Role::Dark => darks.push(input.clone()),
+            Role::Sky => skies.push(input.clone()),
             Role::Science => match &m.in_beam {
                 Some(r) if !r.matches(&h) => not_used.push(NotUsed {
                     file: name(p),
                     reason: format!("the modulator is not in the beam: {} fails", r.describe()),
                 }),
-                _ => science.push(p.clone()),
+                _ => science.push(input.clone()),
             },
             Role::NotUsed(reason) => not_used.push(NotUsed { file: name(p), reason }),
         }
@@ -361,7 +496,7 @@ pub fn reduce_files(files: &[PathBuf], roots: &[PathBuf], profile: &Profile) -> 
     if science.is_empty() {
         return Err(err(&night, "no science frame (see the profile's [classify] science rules)"));
     }
-    let read_all = |v: &[PathBuf]| -> Result<Vec<Raw>> { v.par_iter().map(|p| read(p)).collect() };
+    let read_all = |v: &[InputFile]| -> Result<Vec<Raw>> { v.par_iter().map(read).collect() };
     let mut sci = read_all(&science)?;
     let mjd = |r: &Raw| r.header.get_f64(&kw.mjd_obs).map_err(calib(&r.path));
     for r in &sci {
@@ -421,7 +556,7 @@ pub fn reduce_files(files: &[PathBuf], roots: &[PathBuf], profile: &Profile) -> 
     let mut sky_raw = Vec::new();
     for r in read_all(&skies)? {
         let usable = setup(&r.header) == sci_setup && (r.img.nx, r.img.ny) == (nx, ny);
-        let plate = m.plate_deg(&r.header).map_err(calib(&r.path))?;
+        let plate = plate_of(&r, m)?;
         match (usable, hwp::cycle_position(plate, m.tolerance_deg)) {
             (true, Some(pos)) => sky_raw.push((mjd(&r)?, pos, plate, r)),
             (false, _) => not_used.push(NotUsed {
@@ -512,15 +647,18 @@ pub fn reduce_files(files: &[PathBuf], roots: &[PathBuf], profile: &Profile) -> 
     };
     let measured: Vec<FrameResult> = sci.par_iter().map(|r| measure_frame(r, &ctx)).collect::<Result<_>>()?;
     // 7. Per target and filter, in time order.
-    let target_of = |h: &Header| {
-        h.opt_str(&kw.targ_name)
+    let target_of = |r: &Raw| {
+        let h = &r.header;
+        r.target
+            .clone()
+            .or_else(|| h.opt_str(&kw.targ_name))
             .or_else(|| h.opt_str(&kw.object))
             .map_or_else(|| "unnamed".to_string(), |s| s.trim().to_string())
     };
     let filter_of = |h: &Header| h.opt_str(&kw.filter).map_or_else(String::new, |s| s.trim().to_string());
     let mut keys: Vec<(String, String)> = Vec::new();
     for r in &sci {
-        let k = (target_of(&r.header), filter_of(&r.header));
+        let k = (target_of(r), filter_of(&r.header));
         if !keys.contains(&k) {
             keys.push(k);
         }
@@ -531,7 +669,7 @@ pub fn reduce_files(files: &[PathBuf], roots: &[PathBuf], profile: &Profile) -> 
             let frames: Vec<FrameResult> = sci
                 .iter()
                 .zip(&measured)
-                .filter(|(r, _)| target_of(&r.header) == t && filter_of(&r.header) == f)
+                .filter(|(r, _)| target_of(r) == t && filter_of(&r.header) == f)
                 .map(|(_, fr)| fr.clone())
                 .collect();
             target_result(t, f, frames, m.zero_point_deg, m.sigma_zero_point_deg, m.tolerance_deg)
@@ -593,7 +731,7 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
     let file = name(&r.path);
     let h = &r.header;
     let (nx, ny) = (r.img.nx, r.img.ny);
-    let plate = m.plate_deg(h).map_err(calib(&r.path))?;
+    let plate = plate_of(r, m)?;
     let pos = hwp::cycle_position(plate, m.tolerance_deg);
     let sky_offset = c.field.sky_offset_deg(h).map_err(calib(&r.path))?;
     let mjd = h.get_f64(&p.keywords.mjd_obs).map_err(calib(&r.path))?;
