@@ -58,7 +58,11 @@ fn nirc2_ab_aur_agrees_with_the_photutils_reference() {
         let df = (f.f - num(&r["F"])) / num(&r["sigma_F"]);
         // The same photons, two implementations of one method: the centres agree to a few
         // hundredths of a pixel (measured <= 0.026), F within 2 sigma_F (measured <= 1.5).
-        assert!(d.iter().all(|v| v.abs() < 0.05), "{}: centres differ by {d:?} px", f.file);
+        assert!(
+            d.iter().all(|v| v.abs() < 0.05),
+            "{}: centres differ by {d:?} px",
+            f.file
+        );
         assert!(df.abs() < 2.0, "{}: F differs by {df} sigma_F", f.file);
         assert!(
             (f.sigma_f / num(&r["sigma_F"]) - 1.0).abs() < 0.05,
@@ -68,7 +72,12 @@ fn nirc2_ab_aur_agrees_with_the_photutils_reference() {
             r["sigma_F"]
         );
         // r_in = 18 px lies outside every pixel above the linear limit (reference: 16.1-16.4).
-        assert!((f.saturation_radius_px - num(&r["saturation_radius_px"])).abs() < 0.5, "{}: saturation radius {}", f.file, f.saturation_radius_px);
+        assert!(
+            (f.saturation_radius_px - num(&r["saturation_radius_px"])).abs() < 0.5,
+            "{}: saturation radius {}",
+            f.file,
+            f.saturation_radius_px
+        );
         println!(
             "{} plate {:7.3}: centre diff o ({:+.3}, {:+.3}) e ({:+.3}, {:+.3}) px; F {:.5} ref {:.5} ({:+.2} sigma_F); sat r {:.1}",
             f.file,
@@ -93,10 +102,21 @@ fn nirc2_ab_aur_agrees_with_the_photutils_reference() {
     );
     println!(
         "sky: q {:.5} +- {:.5}, u {:.5} +- {:.5}, P {:.5} +- {:.5}, angle {:.2} +- {:.2} (+- {} zero point)",
-        sky.q, sky.sigma_q, sky.u, sky.sigma_u, sky.p, sky.sigma_p, sky.angle_deg, sky.sigma_angle_deg, t.sigma_angle_zero_point_deg
+        sky.q,
+        sky.sigma_q,
+        sky.u,
+        sky.sigma_u,
+        sky.p,
+        sky.sigma_p,
+        sky.angle_deg,
+        sky.sigma_angle_deg,
+        t.sigma_angle_zero_point_deg
     );
     let ag = t.cycle_agreement.as_ref().unwrap();
-    println!("cycles: dq {:?} sigma, du {:?} sigma", ag.q_difference_sigma, ag.u_difference_sigma);
+    println!(
+        "cycles: dq {:?} sigma, du {:?} sigma",
+        ag.q_difference_sigma, ag.u_difference_sigma
+    );
     // Difference from the reference in units of the adopted (scatter) error.
     let pull = |a: f64, b: f64, s: f64| (a - b) / s;
     let pulls = [
@@ -117,7 +137,10 @@ fn nirc2_ab_aur_agrees_with_the_photutils_reference() {
         (sky.sigma_q, num(&rs["sigma_q_scatter"])),
         (sky.sigma_u, num(&rs["sigma_u_scatter"])),
     ] {
-        assert!((ours / theirs - 1.0).abs() < 0.2, "adopted {ours} vs reference scatter {theirs}");
+        assert!(
+            (ours / theirs - 1.0).abs() < 0.2,
+            "adopted {ours} vs reference scatter {theirs}"
+        );
     }
     // Each cycle on its own agrees with the reference's within its photometric error x 2
     // (the same frames: differences come from centring and the sky fit), in both frames.
@@ -127,7 +150,11 @@ fn nirc2_ab_aur_agrees_with_the_photutils_reference() {
                 (ours.q - num(&theirs["q"])) / ours.sigma_q,
                 (ours.u - num(&theirs["u"])) / ours.sigma_u,
             );
-            assert!(dq.abs() < 2.0 && du.abs() < 2.0, "cycle {:?}: {dq}, {du} sigma", c.frames);
+            assert!(
+                dq.abs() < 2.0 && du.abs() < 2.0,
+                "cycle {:?}: {dq}, {du} sigma",
+                c.frames
+            );
         }
     }
     // The two cycles' disagreement, in units of their combined photometric error, is the
@@ -138,8 +165,18 @@ fn nirc2_ab_aur_agrees_with_the_photutils_reference() {
         (num(&b[k]) - num(&a[k])) / num(&a[&format!("sigma_{k}")]).hypot(num(&b[&format!("sigma_{k}")]))
     };
     assert_eq!((ag.q_difference_sigma.len(), ag.dof), (1, 1));
-    assert!((ag.q_difference_sigma[0] - ref_pull("q")).abs() < 1.0, "{} vs {}", ag.q_difference_sigma[0], ref_pull("q"));
-    assert!((ag.u_difference_sigma[0] - ref_pull("u")).abs() < 1.0, "{} vs {}", ag.u_difference_sigma[0], ref_pull("u"));
+    assert!(
+        (ag.q_difference_sigma[0] - ref_pull("q")).abs() < 1.0,
+        "{} vs {}",
+        ag.q_difference_sigma[0],
+        ref_pull("q")
+    );
+    assert!(
+        (ag.u_difference_sigma[0] - ref_pull("u")).abs() < 1.0,
+        "{} vs {}",
+        ag.u_difference_sigma[0],
+        ref_pull("u")
+    );
     // The zero point is stated, with its uncertainty and source.
     assert_eq!((cat.zero_point.deg, cat.zero_point.sigma_deg), (26.0, 12.0));
     assert!(cat.zero_point.source.contains("NIRC2Pol-DPP"));

@@ -24,26 +24,29 @@ const STEP_PARANG: f64 = 1.0;
 const STEP_EL: f64 = 0.05;
 
 fn profile() -> Profile {
-    Profile::embedded("nirc2").unwrap().unwrap().with_overrides(&[
-        format!("geometry.nx={NX}"),
-        format!("geometry.ny={NY}"),
-        "geometry.o_sky2=[0, 10]".into(),
-        "geometry.e_sky2=[10, 20]".into(),
-        "geometry.o_target=[20, 30]".into(),
-        "geometry.e_target=[30, 40]".into(),
-        "geometry.o_sky1=[40, 50]".into(),
-        "geometry.e_sky1=[50, 60]".into(),
-        format!("geometry.eo_offset_px=[{}, {}]", EO.0, EO.1),
-        "beams.o_rows=[105, 200]".into(),
-        "beams.e_rows=[0, 95]".into(),
-        "single_pointing.aperture_px=[0.0, 9.0]".into(),
-        "single_pointing.centre_annulus_px=[1.5, 9.0]".into(),
-        "single_pointing.sky_fit_min_radius_px=25.0".into(),
-        "single_pointing.search_radius_px=4.0".into(),
-        "detector.linear_limit_adu=1e9".into(),
-        "detector.saturation_adu=2e9".into(),
-    ])
-    .unwrap()
+    Profile::embedded("nirc2")
+        .unwrap()
+        .unwrap()
+        .with_overrides(&[
+            format!("geometry.nx={NX}"),
+            format!("geometry.ny={NY}"),
+            "geometry.o_sky2=[0, 10]".into(),
+            "geometry.e_sky2=[10, 20]".into(),
+            "geometry.o_target=[20, 30]".into(),
+            "geometry.e_target=[30, 40]".into(),
+            "geometry.o_sky1=[40, 50]".into(),
+            "geometry.e_sky1=[50, 60]".into(),
+            format!("geometry.eo_offset_px=[{}, {}]", EO.0, EO.1),
+            "beams.o_rows=[105, 200]".into(),
+            "beams.e_rows=[0, 95]".into(),
+            "single_pointing.aperture_px=[0.0, 9.0]".into(),
+            "single_pointing.centre_annulus_px=[1.5, 9.0]".into(),
+            "single_pointing.sky_fit_min_radius_px=25.0".into(),
+            "single_pointing.search_radius_px=4.0".into(),
+            "detector.linear_limit_adu=1e9".into(),
+            "detector.saturation_adu=2e9".into(),
+        ])
+        .unwrap()
 }
 
 /// A flat-field gradient along x only: both beams' rows then have the same median, so the
@@ -102,7 +105,12 @@ fn write(dir: &Path, name: &str, s: &Shot<'_>) {
         (v + dark + hot) as f32
     });
     let mut h = Header::new("");
-    for (k, v) in [("INSTRUME", "NIRC2"), ("FWONAME", "Wollaston"), ("FWINAME", "Lp"), ("PCUNAME", "hwp_center")] {
+    for (k, v) in [
+        ("INSTRUME", "NIRC2"),
+        ("FWONAME", "Wollaston"),
+        ("FWINAME", "Lp"),
+        ("PCUNAME", "hwp_center"),
+    ] {
         h.set(k, v);
     }
     h.set("OBJECT", s.object);
@@ -168,20 +176,30 @@ fn known_polarization_comes_back() {
     let t = &cat.targets[0];
     assert_eq!((t.name.as_str(), t.frames.len(), t.cycles.len()), ("Sim Star", 8, 2));
     for f in &t.frames {
-        assert!((f.o_centre[0] - O_POS.0).abs() < 1e-3 && (f.o_centre[1] - O_POS.1).abs() < 1e-3, "{:?}", f.o_centre);
+        // Cubic convolution is not exact on a 2-px-sigma Gaussian: the symmetry centre is
+        // biased by 0.005 px (measured), the same in both images (same sub-pixel phase).
+        assert!(
+            (f.o_centre[0] - O_POS.0).abs() < 0.01 && (f.o_centre[1] - O_POS.1).abs() < 0.01,
+            "{:?}",
+            f.o_centre
+        );
         assert!((f.eo_offset[0] - EO.0).abs() < 1e-3 && (f.eo_offset[1] - EO.1).abs() < 1e-3);
         assert!((f.sky_o.scale - 1.0).abs() < 1e-6 && (f.sky_e.scale - 1.0).abs() < 1e-6);
     }
     // On the sky, the least squares with each frame's rotation: exact.
     let ls = t.least_squares_sky.as_ref().unwrap();
-    assert!((ls.pol.q - Q_SKY).abs() < 1e-6 && (ls.pol.u - U_SKY).abs() < 1e-6, "{:?}", ls.pol);
+    assert!(
+        (ls.pol.q - Q_SKY).abs() < 1e-6 && (ls.pol.u - U_SKY).abs() < 1e-6,
+        "{:?}",
+        ls.pol
+    );
     assert!(ls.c.unwrap().abs() < 1e-6, "{:?}", ls.c);
     // Each cycle: the double difference pairs frames 1 and 2 turns apart, so its (q, u) are
     // the sky's turned by the cycle's mean turn theta0 + PARANG - EL - ROTPDEST within
-    // 2 P x (the turn per frame, rad) (the pairs' mean turns lie one step either side of the
-    // cycle's mean).
+    // 2 P x (the turn per frame, rad) to first order (the pairs' mean turns lie one step
+    // either side of the cycle's mean), 25 % added for the second order (measured: 1.0 x).
     let step = (STEP_PARANG + 2.0 * STEP_EL).to_radians();
-    let bound = 2.0 * Q_SKY.hypot(U_SKY) * step;
+    let bound = 1.25 * 2.0 * Q_SKY.hypot(U_SKY) * step;
     for (k, c) in t.cycles.iter().enumerate() {
         let mean_turn: f64 = (0..4)
             .map(|j| {
@@ -199,12 +217,29 @@ fn known_polarization_comes_back() {
             "cycle {k}: {:?} vs {qi}, {ui} (bound {bound})",
             c.instrument
         );
-        assert!((c.sky.q - Q_SKY).abs() < bound && (c.sky.u - U_SKY).abs() < bound, "cycle {k}: {:?}", c.sky);
+        assert!(
+            (c.sky.q - Q_SKY).abs() < bound && (c.sky.u - U_SKY).abs() < bound,
+            "cycle {k}: {:?}",
+            c.sky
+        );
     }
+    // The angle east of north: exact by the least squares, within the cycles' blur by the
+    // combined double difference.
+    let truth = (0.5 * U_SKY.atan2(Q_SKY).to_degrees()).rem_euclid(180.0);
+    assert!(
+        (ls.pol.angle_deg - truth).abs() < 1e-3,
+        "{} vs {truth}",
+        ls.pol.angle_deg
+    );
     let sky = t.sky.unwrap();
-    assert!((sky.angle_deg - (0.5 * U_SKY.atan2(Q_SKY).to_degrees()).rem_euclid(180.0)).abs() < 0.2);
+    let blur_deg = (0.5 * bound / Q_SKY.hypot(U_SKY)).to_degrees();
+    assert!((sky.angle_deg - truth).abs() < blur_deg, "{} vs {truth}", sky.angle_deg);
     // A profile that pairs at the wrong offset stops, naming the frame.
-    let wrong = profile().with_overrides(&["geometry.eo_offset_px=[-3.0, -80.0]".into()]).unwrap();
-    let e = single_pointing::reduce(&[dir.path().to_path_buf()], &wrong).unwrap_err().to_string();
+    let wrong = profile()
+        .with_overrides(&["geometry.eo_offset_px=[-3.0, -80.0]".into()])
+        .unwrap();
+    let e = single_pointing::reduce(&[dir.path().to_path_buf()], &wrong)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("sci") && e.contains("eo_offset_px"), "{e}");
 }

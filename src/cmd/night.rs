@@ -139,7 +139,10 @@ fn run_single_pointing(args: &Args, profile: &sofipol_calib::Profile) -> anyhow:
         ("--shard", args.shard.is_some()),
         ("--report", args.report.is_some()),
         ("--dump-params", args.setup.reduce.dump_params),
-        ("--params / --param", args.setup.reduce.params.is_some() || !args.setup.reduce.param.is_empty()),
+        (
+            "--params / --param",
+            args.setup.reduce.params.is_some() || !args.setup.reduce.param.is_empty(),
+        ),
     ];
     for (flag, given) in not_here {
         anyhow::ensure!(
@@ -156,7 +159,11 @@ fn run_single_pointing(args: &Args, profile: &sofipol_calib::Profile) -> anyhow:
     anyhow::ensure!(
         !files.is_empty(),
         "no FITS files (.fits, .fit, .fits.gz, .fit.gz, .fz) in {}",
-        args.dirs.iter().map(|d| d.display().to_string()).collect::<Vec<_>>().join(", ")
+        args.dirs
+            .iter()
+            .map(|d| d.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
     );
     let mut inputs: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();
     inputs.extend(args.setup.input_files());

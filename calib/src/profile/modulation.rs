@@ -230,7 +230,8 @@ impl Classify {
             Role::NotUsed(format!(
                 "not a dark, not a sky frame, and not science: {} fails (value {})",
                 r.describe(),
-                h.opt_str(&r.keyword).map_or("absent".to_string(), |v| format!("'{}'", v.trim()))
+                h.opt_str(&r.keyword)
+                    .map_or("absent".to_string(), |v| format!("'{}'", v.trim()))
             ))
         } else {
             Role::Science
@@ -375,9 +376,11 @@ pub(super) fn validate(p: &super::Profile) -> std::result::Result<(), String> {
         }
     }
     if pupil && kind == ModulationKind::RotateInstrument {
-        return Err("field_rotation.kind = pupil_tracking needs modulation.kind = half_wave_plate or per_file \
+        return Err(
+            "field_rotation.kind = pupil_tracking needs modulation.kind = half_wave_plate or per_file \
                     (the rotate_instrument reduction assumes a sky-fixed field)"
-            .into());
+                .into(),
+        );
     }
     if let Some(c) = &p.classify {
         for (name, rules) in [("dark", &c.dark), ("sky", &c.sky), ("science", &c.science)] {
@@ -515,11 +518,17 @@ mod tests {
         assert_eq!(p.name, "NIRC2");
         assert_eq!(p.modulation_kind(), ModulationKind::HalfWavePlate);
         assert_eq!(p.modulation.as_ref().unwrap().keyword.as_deref(), Some("PCUPR"));
-        assert_eq!(p.field_rotation.as_ref().unwrap().kind, FieldRotationKind::PupilTracking);
+        assert_eq!(
+            p.field_rotation.as_ref().unwrap().kind,
+            FieldRotationKind::PupilTracking
+        );
         assert!(p.detector.coadds_summed);
         assert_eq!(p.keywords.ndit, "COADDS");
         assert_eq!(p.geometry.eo_offset_px, [-13.0, -505.0]);
-        assert_eq!(Profile::embedded("NIRC2 ").map(|r| r.unwrap().name), Some("NIRC2".into()));
+        assert_eq!(
+            Profile::embedded("NIRC2 ").map(|r| r.unwrap().name),
+            Some("NIRC2".into())
+        );
         assert!(Profile::embedded("nirc3").is_none());
         let sofi = Profile::sofi();
         assert_eq!(Profile::embedded("sofi").unwrap().unwrap(), sofi);
@@ -528,7 +537,16 @@ mod tests {
         let keys: Vec<&String> = v.as_table().unwrap().keys().collect();
         assert_eq!(
             keys,
-            ["angles", "detector", "geometry", "keywords", "match", "name", "photometry", "telescope"]
+            [
+                "angles",
+                "detector",
+                "geometry",
+                "keywords",
+                "match",
+                "name",
+                "photometry",
+                "telescope"
+            ]
         );
         let det: Vec<&String> = v["detector"].as_table().unwrap().keys().collect();
         assert_eq!(
@@ -563,7 +581,10 @@ mod tests {
         assert!((f.sky_offset_deg(&h).unwrap() - (215.07 - 77.17 - 77.87)).abs() < 1e-12);
         assert_eq!(FieldRotation::default().sky_offset_deg(&h).unwrap(), 0.0);
         assert_eq!(p.modulation.as_ref().unwrap().plate_deg(&h).unwrap(), 22.4975);
-        assert_eq!((p.detector.gain_of(&h).unwrap(), p.detector.read_noise_of(&h).unwrap()), (8.0, 40.0));
+        assert_eq!(
+            (p.detector.gain_of(&h).unwrap(), p.detector.read_noise_of(&h).unwrap()),
+            (8.0, 40.0)
+        );
         let no_el = header(&[("PARANG", V::Float(215.07)), ("ROTPDEST", V::Float(77.87))]);
         let e = f.sky_offset_deg(&no_el).unwrap_err().to_string();
         assert!(e.contains("EL") && e.contains("n0932"), "{e}");
@@ -582,7 +603,11 @@ mod tests {
         use crate::header::HeaderValue as V;
         let c = nirc2().classify.unwrap();
         let s = |v: &str| V::Str(v.into());
-        let base = [("INSTRUME", s("NIRC2")), ("FWONAME", s("Wollaston")), ("SHRNAME", s("open"))];
+        let base = [
+            ("INSTRUME", s("NIRC2")),
+            ("FWONAME", s("Wollaston")),
+            ("SHRNAME", s("open")),
+        ];
         let with = |extra: &[(&str, V)]| {
             let mut cards = base.to_vec();
             cards.extend_from_slice(extra);
@@ -590,11 +615,17 @@ mod tests {
         };
         assert_eq!(c.role(&with(&[("OBJECT", s("AB Aur_hwp_0.0"))])), Role::Science);
         assert_eq!(c.role(&with(&[("OBJECT", s("sky_flat_hwp_45.0"))])), Role::Sky);
-        assert_eq!(c.role(&with(&[("OBJECT", s("dark")), ("SHRNAME", s(" Closed "))])), Role::Dark);
+        assert_eq!(
+            c.role(&with(&[("OBJECT", s("dark")), ("SHRNAME", s(" Closed "))])),
+            Role::Dark
+        );
         let Role::NotUsed(why) = c.role(&with(&[("OBJECT", s("AB Aur")), ("FWONAME", s("clear"))])) else {
             panic!("a frame without the Wollaston is not science");
         };
-        assert!(why.contains("FWONAME = 'Wollaston'") && why.contains("'clear'"), "{why}");
+        assert!(
+            why.contains("FWONAME = 'Wollaston'") && why.contains("'clear'"),
+            "{why}"
+        );
     }
 
     /// Hostile values are refused naming the key.
@@ -614,7 +645,10 @@ mod tests {
             ("beams.o_rows=[0, 500]", "overlap"),
             ("beams.e_rows=[0, 2000]", "beams.e_rows"),
             ("beams.flux_ratio_tolerance=1.5", "beams.flux_ratio_tolerance"),
-            ("single_pointing.aperture_px=[40.0, 18.0]", "single_pointing.aperture_px"),
+            (
+                "single_pointing.aperture_px=[40.0, 18.0]",
+                "single_pointing.aperture_px",
+            ),
             ("single_pointing.hot_pixel_adu=-1", "single_pointing.hot_pixel_adu"),
             ("single_pointing.sky=\"moon\"", "moon"),
             ("detector.gain_keyword=\"\"", "detector.gain_keyword"),
@@ -623,18 +657,26 @@ mod tests {
             assert!(e.contains(key), "{set}: {e}");
         }
         let e = p
-            .with_overrides(&["classify.dark=[{ keyword = \"SHRNAME\", equals = \"closed\", contains = \"c\" }]".into()])
+            .with_overrides(&[
+                "classify.dark=[{ keyword = \"SHRNAME\", equals = \"closed\", contains = \"c\" }]".into(),
+            ])
             .unwrap_err()
             .to_string();
         assert!(e.contains("classify.dark[0]") && e.contains("exactly one"), "{e}");
         // A half-wave plate on SOFI's profile needs the sections it lacks.
         let e = Profile::sofi()
-            .with_overrides(&["modulation.kind=\"half_wave_plate\"".into(), "modulation.keyword=\"X\"".into()])
+            .with_overrides(&[
+                "modulation.kind=\"half_wave_plate\"".into(),
+                "modulation.keyword=\"X\"".into(),
+            ])
             .unwrap_err()
             .to_string();
         assert!(e.contains("[beams]"), "{e}");
         let e = Profile::sofi()
-            .with_overrides(&["field_rotation.kind=\"pupil_tracking\"".into(), "field_rotation.parang_keyword=\"P\"".into()])
+            .with_overrides(&[
+                "field_rotation.kind=\"pupil_tracking\"".into(),
+                "field_rotation.parang_keyword=\"P\"".into(),
+            ])
             .unwrap_err()
             .to_string();
         assert!(e.contains("rotate_instrument"), "{e}");

@@ -179,7 +179,16 @@ pub fn symmetry_centre(img: &Img, guess: (f64, f64), r_in: f64, r_out: f64, sear
         for _ in 0..50 {
             let mut moved = false;
             let (bx, by) = (best.1, best.2);
-            for (sx, sy) in [(-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0), (-1.0, -1.0), (1.0, 1.0), (-1.0, 1.0), (1.0, -1.0)] {
+            for (sx, sy) in [
+                (-1.0, 0.0),
+                (1.0, 0.0),
+                (0.0, -1.0),
+                (0.0, 1.0),
+                (-1.0, -1.0),
+                (1.0, 1.0),
+                (-1.0, 1.0),
+                (1.0, -1.0),
+            ] {
                 let (x, y) = (bx + sx * step, by + sy * step);
                 let c = cost(x, y);
                 if c < best.0 {
@@ -237,7 +246,14 @@ pub fn inside(img: &Img, (cx, cy): (f64, f64), r: f64) -> bool {
 /// `[r0, r1)` farther than `r_min` from `centre` and not `bad`, iterated with 4-sigma
 /// clipping (sigma = 1.4826 x the median absolute residual) until the set of pixels used
 /// stops changing (at most 6 passes): `(a, b, sigma, pixels used)`.
-pub fn fit_sky(s: &Img, k: &Img, bad: &[bool], rows: [usize; 2], centre: (f64, f64), r_min: f64) -> Option<(f64, f64, f64, usize)> {
+pub fn fit_sky(
+    s: &Img,
+    k: &Img,
+    bad: &[bool],
+    rows: [usize; 2],
+    centre: (f64, f64),
+    r_min: f64,
+) -> Option<(f64, f64, f64, usize)> {
     let nx = s.nx;
     let mut idx = Vec::new();
     for y in rows[0]..rows[1] {
@@ -280,7 +296,10 @@ pub fn fit_sky(s: &Img, k: &Img, bad: &[bool], rows: [usize; 2], centre: (f64, f
             // An exact fit (noise-free frames): nothing to clip.
             break;
         }
-        let new: Vec<bool> = idx.iter().map(|&i| (s.v[i] - a * k.v[i] - b).abs() < 4.0 * sig).collect();
+        let new: Vec<bool> = idx
+            .iter()
+            .map(|&i| (s.v[i] - a * k.v[i] - b).abs() < 4.0 * sig)
+            .collect();
         if new == good {
             break;
         }

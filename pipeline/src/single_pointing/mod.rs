@@ -407,7 +407,13 @@ pub fn summary_lines(cat: &SinglePointingCatalog) -> Vec<String> {
         lines.push(format!("not used: {}: {}", n.file, n.reason));
     }
     for t in &cat.targets {
-        let head = format!("{} {} ({} frames, {} cycles)", t.name, t.filter, t.frames.len(), t.cycles.len());
+        let head = format!(
+            "{} {} ({} frames, {} cycles)",
+            t.name,
+            t.filter,
+            t.frames.len(),
+            t.cycles.len()
+        );
         match (&t.instrument, &t.sky) {
             (Some(i), Some(s)) => {
                 lines.push(format!("{head}: instrument {}", pol(i)));
@@ -418,7 +424,9 @@ pub fn summary_lines(cat: &SinglePointingCatalog) -> Vec<String> {
                     cat.zero_point.sigma_deg
                 ));
             }
-            _ => lines.push(format!("{head}: no complete plate cycle; see the least squares in the catalog")),
+            _ => lines.push(format!(
+                "{head}: no complete plate cycle; see the least squares in the catalog"
+            )),
         }
         for (k, c) in t.cycles.iter().enumerate() {
             lines.push(format!("{head}: cycle {} instrument {}", k + 1, pol(&c.instrument)));
@@ -436,7 +444,8 @@ pub fn summary_lines(cat: &SinglePointingCatalog) -> Vec<String> {
 }
 
 fn name(p: &Path) -> String {
-    p.file_name().map_or_else(|| p.display().to_string(), |n| n.to_string_lossy().into_owned())
+    p.file_name()
+        .map_or_else(|| p.display().to_string(), |n| n.to_string_lossy().into_owned())
 }
 
 /// Reduce every target under `roots` (folders or set-of-frames files) with a
@@ -456,12 +465,25 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
     if kind == ModulationKind::RotateInstrument {
         return Err(err(
             &night,
-            format!("profile {}: modulation.kind is rotate_instrument, not a half-wave plate", profile.name),
+            format!(
+                "profile {}: modulation.kind is rotate_instrument, not a half-wave plate",
+                profile.name
+            ),
         ));
     }
-    let (m, cls, beams, sp) = match (&profile.modulation, &profile.classify, &profile.beams, &profile.single_pointing) {
+    let (m, cls, beams, sp) = match (
+        &profile.modulation,
+        &profile.classify,
+        &profile.beams,
+        &profile.single_pointing,
+    ) {
         (Some(m), Some(c), Some(b), Some(s)) => (m, c, b, s),
-        _ => return Err(err(&night, "the profile lacks [modulation], [classify], [beams] or [single_pointing]")),
+        _ => {
+            return Err(err(
+                &night,
+                "the profile lacks [modulation], [classify], [beams] or [single_pointing]",
+            ))
+        }
     };
     let kw = &profile.keywords;
     let field = profile.field_rotation.clone().unwrap_or_default();
@@ -494,7 +516,10 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
         }
     }
     if science.is_empty() {
-        return Err(err(&night, "no science frame (see the profile's [classify] science rules)"));
+        return Err(err(
+            &night,
+            "no science frame (see the profile's [classify] science rules)",
+        ));
     }
     let read_all = |v: &[InputFile]| -> Result<Vec<Raw>> { v.par_iter().map(read).collect() };
     let mut sci = read_all(&science)?;
@@ -506,11 +531,22 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
     let (nx, ny) = (sci[0].img.nx, sci[0].img.ny);
     for r in &sci {
         if (r.img.nx, r.img.ny) != (nx, ny) {
-            return Err(err(name(&r.path), format!("{} x {} px, not {nx} x {ny} as {}", r.img.nx, r.img.ny, name(&sci[0].path))));
+            return Err(err(
+                name(&r.path),
+                format!(
+                    "{} x {} px, not {nx} x {ny} as {}",
+                    r.img.nx,
+                    r.img.ny,
+                    name(&sci[0].path)
+                ),
+            ));
         }
     }
     if beams.o_rows[1] > ny || beams.e_rows[1] > ny {
-        return Err(err(name(&sci[0].path), format!("{ny} rows: fewer than the profile's [beams] rows")));
+        return Err(err(
+            name(&sci[0].path),
+            format!("{ny} rows: fewer than the profile's [beams] rows"),
+        ));
     }
     let setup = |h: &Header| (h.opt_str(&kw.dit), h.opt_str(&kw.ndit));
     let sci_setup = setup(&sci[0].header);
@@ -518,7 +554,12 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
         if setup(&r.header) != sci_setup {
             return Err(err(
                 name(&r.path),
-                format!("{} / {} differ from {}'s: one exposure setup per night", kw.dit, kw.ndit, name(&sci[0].path)),
+                format!(
+                    "{} / {} differ from {}'s: one exposure setup per night",
+                    kw.dit,
+                    kw.ndit,
+                    name(&sci[0].path)
+                ),
             ));
         }
     }
@@ -528,7 +569,10 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
         if setup(&r.header) != sci_setup || (r.img.nx, r.img.ny) != (nx, ny) {
             not_used.push(NotUsed {
                 file: name(&r.path),
-                reason: format!("a dark of another {} / {} or size than the science frames", kw.dit, kw.ndit),
+                reason: format!(
+                    "a dark of another {} / {} or size than the science frames",
+                    kw.dit, kw.ndit
+                ),
             });
         } else {
             dark_raw.push(r);
@@ -561,7 +605,10 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
             (true, Some(pos)) => sky_raw.push((mjd(&r)?, pos, plate, r)),
             (false, _) => not_used.push(NotUsed {
                 file: name(&r.path),
-                reason: format!("a sky frame of another {} / {} or size than the science frames", kw.dit, kw.ndit),
+                reason: format!(
+                    "a sky frame of another {} / {} or size than the science frames",
+                    kw.dit, kw.ndit
+                ),
             }),
             (true, None) => not_used.push(NotUsed {
                 file: name(&r.path),
@@ -592,7 +639,10 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
     let region_median = |img: &Img, rows: [usize; 2]| image::median(&mut img.v[rows[0] * nx..rows[1] * nx].to_vec());
     let (lo, le) = (region_median(&flat, beams.o_rows), region_median(&flat, beams.e_rows));
     if !(lo > 0.0 && le > 0.0) {
-        return Err(err(&night, format!("the sky frames' median level is {lo} (o rows), {le} (e rows) ADU: no flat")));
+        return Err(err(
+            &night,
+            format!("the sky frames' median level is {lo} (o rows), {le} (e rows) ADU: no flat"),
+        ));
     }
     for y in 0..ny {
         let level = if (beams.o_rows[0]..beams.o_rows[1]).contains(&y) {
@@ -684,7 +734,12 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
                 field.parang_keyword.as_deref().unwrap_or_default()
             );
             for t in &field.terms {
-                s += &format!(" {} {} x {}", if t.factor < 0.0 { "-" } else { "+" }, t.factor.abs(), t.keyword);
+                s += &format!(
+                    " {} {} x {}",
+                    if t.factor < 0.0 { "-" } else { "+" },
+                    t.factor.abs(),
+                    t.keyword
+                );
             }
             s
         }
@@ -740,7 +795,12 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
     let ndit = match h.contains(&p.keywords.ndit) {
         true => match h.get_i64(&p.keywords.ndit).map_err(calib(&r.path))? {
             n if n >= 1 => n as f64,
-            n => return Err(err(&file, format!("{} = {n}: the number of coadds must be >= 1", p.keywords.ndit))),
+            n => {
+                return Err(err(
+                    &file,
+                    format!("{} = {n}: the number of coadds must be >= 1", p.keywords.ndit),
+                ))
+            }
         },
         false => 1.0,
     };
@@ -759,12 +819,18 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
     };
     let sky = match sp.sky {
         SkySource::SkyFrames => {
-            let pos = pos.ok_or_else(|| err(&file, format!("plate angle {plate} deg is not a cycle position: no matched sky frame")))?;
-            Some(
-                c.matched[pos]
-                    .as_ref()
-                    .ok_or_else(|| err(&file, format!("no sky frame at plate position {} deg", hwp::CYCLE_POSITIONS_DEG[pos])))?,
-            )
+            let pos = pos.ok_or_else(|| {
+                err(
+                    &file,
+                    format!("plate angle {plate} deg is not a cycle position: no matched sky frame"),
+                )
+            })?;
+            Some(c.matched[pos].as_ref().ok_or_else(|| {
+                err(
+                    &file,
+                    format!("no sky frame at plate position {} deg", hwp::CYCLE_POSITIONS_DEG[pos]),
+                )
+            })?)
         }
         SkySource::Annulus => None,
     };
@@ -799,8 +865,13 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
     let mut fit_beam = |rows: [usize; 2], centre: (f64, f64)| -> Result<SkyFit> {
         let (a, b, sig, n, nsky) = match sky {
             Some((k, nsky)) => {
-                let (a, b, sig, n) = image::fit_sky(&s, k, c.bad, rows, centre, sp.sky_fit_min_radius_px)
-                    .ok_or_else(|| err(&file, format!("sky fit in rows {}..{}: too few pixels", rows[0], rows[1])))?;
+                let (a, b, sig, n) =
+                    image::fit_sky(&s, k, c.bad, rows, centre, sp.sky_fit_min_radius_px).ok_or_else(|| {
+                        err(
+                            &file,
+                            format!("sky fit in rows {}..{}: too few pixels", rows[0], rows[1]),
+                        )
+                    })?;
                 (a, b, sig, n, *nsky as f64)
             }
             None => (0.0, 0.0, f64::NAN, 0, 1.0),
@@ -845,7 +916,10 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
                 }
             }
             if vals.len() < 10 {
-                return Err(err(&file, format!("sky annulus {a0}-{a1} px: {} pixels in the beam's rows", vals.len())));
+                return Err(err(
+                    &file,
+                    format!("sky annulus {a0}-{a1} px: {} pixels in the beam's rows", vals.len()),
+                ));
             }
             let med = image::median(&mut vals.clone());
             let mut dev: Vec<f64> = vals.iter().map(|v| (v - med).abs()).collect();
@@ -908,7 +982,13 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
     }
     for cen in [co_, ce_] {
         if !image::inside(&img, cen, r_out) {
-            return Err(err(&file, format!("the aperture of radius {r_out} px about ({:.1}, {:.1}) leaves the frame", cen.0, cen.1)));
+            return Err(err(
+                &file,
+                format!(
+                    "the aperture of radius {r_out} px about ({:.1}, {:.1}) leaves the frame",
+                    cen.0, cen.1
+                ),
+            ));
         }
     }
     let (o, so) = image::annulus_sum(&img, &var, c.bad, co_, r_in, r_out);

@@ -867,7 +867,13 @@ mod tests {
             .collect();
         let l = &j["combined"]["least_squares"]["sky"];
         for (offsets, zp) in [(&from_theta, 0.0), (&from_headers, 26.0)] {
-            let r = reduce_on_sky(&fr, offsets, zp, DEFAULT_PLATE_TOLERANCE_DEG, CycleMethod::DoubleDifference);
+            let r = reduce_on_sky(
+                &fr,
+                offsets,
+                zp,
+                DEFAULT_PLATE_TOLERANCE_DEG,
+                CycleMethod::DoubleDifference,
+            );
             let ls = r.least_squares.unwrap();
             assert!((ls.fit.q - num(&l["q"])).abs() < 1e-9 && (ls.fit.u - num(&l["u"])).abs() < 1e-9);
             assert!((ls.fit.chi2 / num(&l["chi2"]) - 1.0).abs() < 1e-6);
