@@ -32,7 +32,7 @@ fn nirc2_ab_aur_agrees_with_the_photutils_reference() {
         return;
     }
     let profile = Profile::embedded("nirc2").expect("nirc2 is embedded").expect("valid");
-    let cat = single_pointing::reduce(&[dir.clone()], &profile).expect("reduction");
+    let cat = single_pointing::reduce(std::slice::from_ref(&dir), &profile).expect("reduction");
     let j = reference();
     // The files' roles: 3 darks, 4 sky frames (one whole cycle, all in the flat), 8 science.
     assert_eq!(cat.darks.len(), 3, "{:?}", cat.not_used);
