@@ -234,6 +234,23 @@ fn known_polarization_comes_back() {
     let sky = t.sky.unwrap();
     let blur_deg = (0.5 * bound / Q_SKY.hypot(U_SKY)).to_degrees();
     assert!((sky.angle_deg - truth).abs() < blur_deg, "{} vs {truth}", sky.angle_deg);
+    // The sky from an annulus about each image instead of the sky frames: the same (the
+    // simulated sky is flat within each beam), exact by the least squares.
+    let annulus = profile()
+        .with_overrides(&[
+            "single_pointing.sky=\"annulus\"".into(),
+            "single_pointing.sky_annulus_px=[12.0, 20.0]".into(),
+        ])
+        .unwrap();
+    let cat2 = single_pointing::reduce(&[dir.path().to_path_buf()], &annulus).expect("reduces");
+    let t2 = &cat2.targets[0];
+    let ls2 = t2.least_squares_sky.as_ref().unwrap();
+    assert!(
+        (ls2.pol.q - Q_SKY).abs() < 1e-6 && (ls2.pol.u - U_SKY).abs() < 1e-6,
+        "{:?}",
+        ls2.pol
+    );
+    assert!(t2.frames.iter().all(|f| f.sky_o.pixels > 500 && f.sky_o.scale == 1.0));
     // A profile that pairs at the wrong offset stops, naming the frame.
     let wrong = profile()
         .with_overrides(&["geometry.eo_offset_px=[-3.0, -80.0]".into()])

@@ -581,6 +581,12 @@ mod tests {
         assert!((f.sky_offset_deg(&h).unwrap() - (215.07 - 77.17 - 77.87)).abs() < 1e-12);
         assert_eq!(FieldRotation::default().sky_offset_deg(&h).unwrap(), 0.0);
         assert_eq!(p.modulation.as_ref().unwrap().plate_deg(&h).unwrap(), 22.4975);
+        // `per_file`: the header's angle is the analyzer's, i.e. twice a plate's.
+        let per_file = p.with_overrides(&["modulation.kind=\"per_file\"".into()]).unwrap();
+        assert_eq!(
+            per_file.modulation.as_ref().unwrap().plate_deg(&h).unwrap(),
+            0.5 * 22.4975
+        );
         assert_eq!(
             (p.detector.gain_of(&h).unwrap(), p.detector.read_noise_of(&h).unwrap()),
             (8.0, 40.0)
