@@ -11,6 +11,19 @@ use crate::frame::Frame;
 /// The embedded SOFI profile text.
 pub const SOFI_TOML: &str = include_str!("../profiles/sofi.toml");
 
+/// The embedded Keck/NIRC2 profile text (merged over SOFI's: it gives every key the
+/// half-wave-plate reduction reads; docs/instruments.md).
+pub const NIRC2_TOML: &str = include_str!("../profiles/nirc2.toml");
+
+/// The embedded profiles `--profile NAME` selects: (name, text merged over SOFI's).
+pub const EMBEDDED: [(&str, &str); 2] = [("sofi", ""), ("nirc2", NIRC2_TOML)];
+
+mod modulation;
+pub use modulation::{
+    AngleTerm, Beams, Classify, FieldRotation, FieldRotationKind, KeywordRule, Modulation, ModulationKind, Role,
+    SinglePointing, SkySource,
+};
+
 /// Header keyword names (without `HIERARCH`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)] // a misspelt key in --profile or --set is an error, not ignored
@@ -250,9 +263,30 @@ pub struct Detector {
     pub saturation_adu: f64,
     /// Quadratic non-linearity: measured = true * (1 - c * true).
     pub nonlin_coeff_per_adu: f64,
+    /// The header keyword of the gain (e-/ADU), when the header gives it: it then wins over
+    /// `gain_e_per_adu` (read by the half-wave-plate reduction).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gain_keyword: Option<String>,
+    /// The header keyword of the read noise (e- per read), when the header gives it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub read_noise_keyword: Option<String>,
+    /// Whether the pixel values are the SUM of the NDIT (coadd) reads (NIRC2) rather than
+    /// their mean (SOFI): then the read-noise variance is NDIT x (read noise / gain)^2 and
+    /// the levels above (linear limit, saturation) are per read.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub coadds_summed: bool,
 }
 
 impl Detector {
+    /// The gain of a frame, e-/ADU: its header's (`gain_keyword`) or the profile's.
+    pub fn gain_of(&self, h: &crate::header::Header) -> Result<f64> {
+        modulation::number_or_keyword(h, self.gain_keyword.as_deref(), self.gain_e_per_adu, "a gain")
+    }
+    /// The read noise of a frame, e- per read: its header's (`read_noise_keyword`) or the
+    /// profile's.
+    pub fn read_noise_of(&self, h: &crate::header::Header) -> Result<f64> {
+        modulation::number_or_keyword(h, self.read_noise_keyword.as_deref(), self.read_noise_e, "a read noise")
+    }
     /// Effective gain of an NDIT-averaged frame for Poisson noise (e-/ADU).
     pub fn effective_gain(&self, ndit: u32) -> f64 {
         self.gain_e_per_adu * ndit.max(1) as f64
@@ -382,6 +416,21 @@ pub struct Profile {
     /// Photometry: the atmospheric extinction of the magnitudes' airmass term.
     #[serde(default)]
     pub photometry: Photometry,
+    /// How the analyzer angle is set (absent: SOFI's turned instrument).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub modulation: Option<Modulation>,
+    /// How the field turns on the detector (absent: fixed on the sky).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field_rotation: Option<FieldRotation>,
+    /// File roles from keyword tests, for headers that are not ESO's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub classify: Option<Classify>,
+    /// The rows of the two beams of a Wollaston without a focal mask.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub beams: Option<Beams>,
+    /// How a single pointing (one star, no dithers) is measured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub single_pointing: Option<SinglePointing>,
 }
 
 /// The atmosphere's extinction for the photometric zero-point (docs/calibration.md,
@@ -440,6 +489,22 @@ impl Profile {
     /// The embedded SOFI profile.
     pub fn sofi() -> Profile {
         Self::from_layers(&[("embedded sofi", SOFI_TOML)]).expect("embedded SOFI profile is valid")
+    }
+
+    /// An embedded profile by name (`sofi`, `nirc2`: [`EMBEDDED`]), merged over SOFI's;
+    /// `None` for another name.
+    pub fn embedded(name: &str) -> Option<Result<Profile>> {
+        let (n, text) = EMBEDDED.iter().find(|(n, _)| n.eq_ignore_ascii_case(name.trim()))?;
+        Some(Self::from_layers(&[
+            ("embedded sofi", SOFI_TOML),
+            (&format!("embedded {n}"), text),
+        ]))
+    }
+
+    /// How the analyzer angle is set: the `[modulation]` kind, `rotate_instrument` (SOFI's)
+    /// without the section.
+    pub fn modulation_kind(&self) -> ModulationKind {
+        self.modulation.as_ref().map(|m| m.kind).unwrap_or_default()
     }
 
     /// The SOFI profile with a user TOML file merged over it.
@@ -653,7 +718,7 @@ impl Profile {
         if self.angles.parity != 1 && self.angles.parity != -1 {
             return err(format!("angles.parity = {} must be +1 or -1", self.angles.parity));
         }
-        Ok(())
+        modulation::validate(self).or_else(err)
     }
 
     /// The profile seen through a crop to detector rows `[r0, r1)`: row ranges shift by

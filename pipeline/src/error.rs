@@ -113,6 +113,15 @@ pub enum Error {
     /// A statistics parameter, table or file is bad.
     #[error(transparent)]
     Stats(#[from] StatsError),
+    /// The half-wave-plate reduction of a single pointing (`single_pointing`) stopped:
+    /// names the file (or the night) and why.
+    #[error("{file}: {reason}")]
+    SinglePointing {
+        /// The file or folder concerned.
+        file: String,
+        /// What is wrong.
+        reason: String,
+    },
     /// A saved live state (`sofipol watch`) was read but cannot be resumed from.
     #[error("{path}: {source}")]
     SavedState {

@@ -45,6 +45,7 @@ pub mod report;
 pub mod scan;
 pub mod sequence;
 pub mod sim;
+pub mod single_pointing;
 pub mod solve;
 pub mod standards;
 pub mod stats;

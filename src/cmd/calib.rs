@@ -67,7 +67,7 @@ fn build_flat_products(flats: &night::NightFlats, caldir: &Path) -> anyhow::Resu
 /// Run: the night's flats and standards, reduced as `sofipol night` does, give the
 /// calibration; both are written into CALDIR.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let profile = args.profile.load()?;
+    let profile = args.profile.load_rotating("calib")?;
     let params = args.reduce.params_with(&args.flat)?;
     if args.reduce.dump_params {
         print!("{}", super::setup::dump_params(&params)?);

@@ -11,9 +11,11 @@ use sofipol_pipeline::products::{outputs, OutputChoice, Outputs};
 /// Instrument-profile options.
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct ProfileArgs {
-    /// TOML file merged over the embedded SOFI profile (any subset of its keys) [default:
-    /// none, the embedded SOFI profile].
-    #[arg(long, value_name = "FILE")]
+    /// An embedded profile by name (`sofi`, `nirc2`: Keck/NIRC2's half-wave plate,
+    /// docs/instruments.md), or a TOML file merged over the embedded SOFI profile (any subset
+    /// of its keys; write `./nirc2` for a file of an embedded profile's name) [default: none,
+    /// the embedded SOFI profile].
+    #[arg(long, value_name = "NAME|FILE")]
     pub profile: Option<PathBuf>,
     /// Override one profile value, e.g. `--set detector.gain_e_per_adu=5.6` (repeatable).
     #[arg(long = "set", value_name = "SECTION.KEY=VALUE")]
@@ -24,10 +26,29 @@ impl ProfileArgs {
     /// The validated profile.
     pub fn load(&self) -> anyhow::Result<Profile> {
         let base = match &self.profile {
-            Some(p) => Profile::sofi_with_override(p)?,
+            Some(p) => match p.to_str().and_then(Profile::embedded) {
+                Some(embedded) => embedded?,
+                None => Profile::sofi_with_override(p)?,
+            },
             None => Profile::sofi(),
         };
         base.with_overrides(&self.sets).context("applying --set overrides")
+    }
+
+    /// [`Self::load`] for a command that reduces only an instrument turned on the sky
+    /// (SOFI's `rotate_instrument` modulation): a half-wave-plate profile is refused, naming
+    /// the command that reduces it.
+    pub fn load_rotating(&self, command: &str) -> anyhow::Result<Profile> {
+        let p = self.load()?;
+        let kind = p.modulation_kind();
+        anyhow::ensure!(
+            kind == sofipol_calib::profile::ModulationKind::RotateInstrument,
+            "profile {}: modulation.kind = {} is reduced by `sofipol night DIR --profile ...` only; `sofipol {command}` \
+             reduces an instrument turned on the sky (modulation.kind = rotate_instrument)",
+            p.name,
+            kind.name()
+        );
+        Ok(p)
     }
 }
 

@@ -56,6 +56,10 @@ pub struct Args {
 /// bad-pixel mask and flats, every sequence, the standards and the calibration), write the
 /// catalog.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let profile = args.setup.profile.load()?;
+    if profile.modulation_kind() != sofipol_calib::profile::ModulationKind::RotateInstrument {
+        return run_single_pointing(&args, &profile);
+    }
     let setup = args.setup.load()?;
     if args.setup.reduce.dump_params {
         print!("{}", super::setup::dump_params(&setup.params)?);
@@ -124,6 +128,61 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     } else {
         ExitCode::SUCCESS
     })
+}
+
+/// A half-wave-plate profile (`--profile nirc2`): the single-pointing reduction
+/// ([`sofipol_pipeline::single_pointing`]) of every target under the inputs, its catalog
+/// written to `-o`, one summary per target on stderr. The SOFI night's options that do not
+/// apply are refused by name.
+fn run_single_pointing(args: &Args, profile: &sofipol_calib::Profile) -> anyhow::Result<ExitCode> {
+    let not_here = [
+        ("--shard", args.shard.is_some()),
+        ("--report", args.report.is_some()),
+        ("--dump-params", args.setup.reduce.dump_params),
+        (
+            "--params / --param",
+            args.setup.reduce.params.is_some() || !args.setup.reduce.param.is_empty(),
+        ),
+    ];
+    for (flag, given) in not_here {
+        anyhow::ensure!(
+            !given,
+            "{flag}: not available with profile {} (modulation.kind = {}): its reduction is set by the profile's [single_pointing] section",
+            profile.name,
+            profile.modulation_kind().name()
+        );
+    }
+    for d in &args.dirs {
+        anyhow::ensure!(d.exists(), "{}: no such file or directory", d.display());
+    }
+    let files = sofipol_pipeline::single_pointing::input_files(&args.dirs)?;
+    anyhow::ensure!(
+        !files.is_empty(),
+        "no FITS files (.fits, .fit, .fits.gz, .fit.gz, .fz) in {}",
+        args.dirs
+            .iter()
+            .map(|d| d.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    let mut inputs: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();
+    inputs.extend(args.setup.input_files());
+    super::common::check_output(&args.output, &inputs)?;
+    let pool = super::common::worker_pool("night", args.jobs, args.quiet)?;
+    let t0 = Instant::now();
+    let cat = pool.install(|| sofipol_pipeline::single_pointing::reduce_inputs(&files, &args.dirs, profile))?;
+    io::write_json_atomic(&args.output, &cat).with_context(|| format!("writing {}", args.output.display()))?;
+    if !args.quiet {
+        for line in sofipol_pipeline::single_pointing::summary_lines(&cat) {
+            eprintln!("sofipol night: {}", printable(&line));
+        }
+        eprintln!(
+            "sofipol night: catalog {} ({:.1} s)",
+            args.output.display(),
+            t0.elapsed().as_secs_f64()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 /// Scan the night (standards apart, this shard's sequences and failures) and check the

@@ -34,7 +34,7 @@ impl SetupArgs {
     /// The validated profile, reduction parameters and calibration setup (the calibration
     /// flags override the `[calibration]` section of `--params`).
     pub fn load(&self) -> anyhow::Result<NightSetup> {
-        let profile = self.profile.load()?;
+        let profile = self.profile.load_rotating("target / watch")?;
         let mut params = self.reduce.params_with(&self.flat)?;
         let calibration = self.calib.setup(&params.calibration)?;
         params.calibration = calibration.params.clone();

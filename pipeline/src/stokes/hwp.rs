@@ -277,14 +277,44 @@ pub struct HwpStokes {
 /// theta0 (0 gives the instrument frame). `tolerance_deg`: of a plate angle about its cycle
 /// position.
 pub fn reduce(frames: &[PlateFrame], zero_point_deg: f64, tolerance_deg: f64, method: CycleMethod) -> HwpStokes {
+    reduce_on_sky(frames, &vec![0.0; frames.len()], zero_point_deg, tolerance_deg, method)
+}
+
+/// The mean of angles of period 180 deg (analyzer angles), deg: the direction of the
+/// mean of the unit vectors at twice the angles, halved.
+pub fn mean_analyzer_offset_deg(offsets_deg: &[f64]) -> f64 {
+    let (s, c) = offsets_deg.iter().fold((0.0, 0.0), |(s, c), d| {
+        let t = (2.0 * d).to_radians();
+        (s + t.sin(), c + t.cos())
+    });
+    0.5 * s.atan2(c).to_degrees()
+}
+
+/// [`reduce`] when the analyzer's angle on the sky also turns from frame to frame (a field
+/// that rotates on the detector: pupil tracking): frame `i`'s analyzer angle on the sky is
+/// `2 theta_i + theta0 + offsets_deg[i]`. The least squares uses each frame's own angle; a
+/// cycle is reduced by the double difference at the nominal plate positions, which gives
+/// (q, u) in the frame of the cycle's mean offset ([`mean_analyzer_offset_deg`]), i.e. the
+/// instrument's (q, u) turned by twice that mean plus theta0 (the turn within a cycle is not
+/// undone: a cycle of 4 frames spanning 2 deg on the sky blurs the angle by that much). With
+/// every offset 0 this is [`reduce`].
+pub fn reduce_on_sky(
+    frames: &[PlateFrame],
+    offsets_deg: &[f64],
+    zero_point_deg: f64,
+    tolerance_deg: f64,
+    method: CycleMethod,
+) -> HwpStokes {
     let f: Vec<Option<(f64, f64)>> = frames.iter().map(frame_f).collect();
+    let offset = |i: usize| offsets_deg.get(i).copied().unwrap_or(f64::NAN);
     let obs: Vec<OrientationF> = frames
         .iter()
         .zip(&f)
-        .filter_map(|(fr, v)| {
-            v.filter(|&(_, s)| s > 0.0 && fr.plate_deg.is_finite())
+        .enumerate()
+        .filter_map(|(i, (fr, v))| {
+            v.filter(|&(_, s)| s > 0.0 && fr.plate_deg.is_finite() && offset(i).is_finite())
                 .map(|(f, sigma_f)| OrientationF {
-                    analyzer_deg: analyzer_deg(fr.plate_deg, zero_point_deg),
+                    analyzer_deg: analyzer_deg(fr.plate_deg, zero_point_deg) + offset(i),
                     f,
                     sigma_f,
                 })
@@ -293,7 +323,11 @@ pub fn reduce(frames: &[PlateFrame], zero_point_deg: f64, tolerance_deg: f64, me
     let least_squares = least_squares(&obs);
 
     let plate: Vec<f64> = frames.iter().map(|fr| fr.plate_deg).collect();
-    let usable: Vec<bool> = f.iter().map(|v| v.is_some_and(|(_, s)| s > 0.0)).collect();
+    let usable: Vec<bool> = f
+        .iter()
+        .enumerate()
+        .map(|(i, v)| v.is_some_and(|(_, s)| s > 0.0) && offset(i).is_finite())
+        .collect();
     let grouping = complete_cycles(&plate, &usable, tolerance_deg);
     let stokes_method = match method {
         CycleMethod::DoubleDifference => StokesMethod::Difference,
@@ -305,13 +339,18 @@ pub fn reduce(frames: &[PlateFrame], zero_point_deg: f64, tolerance_deg: f64, me
         .filter_map(|idx| {
             // Nominal positions: the pairs must be exactly 90 deg apart in analyzer angle
             // (a 0.0025-deg reading offset moves cos 4theta by 1e-8).
+            let turn = if offsets_deg.iter().all(|&d| d == 0.0) {
+                0.0
+            } else {
+                mean_analyzer_offset_deg(&idx.iter().map(|&i| offset(i)).collect::<Vec<_>>())
+            };
             let obs: Vec<OrientationF> = idx
                 .iter()
                 .zip(CYCLE_POSITIONS_DEG)
                 .map(|(&i, nominal)| {
                     let (fv, s) = f[i].expect("cycle frames are usable");
                     OrientationF {
-                        analyzer_deg: analyzer_deg(nominal, zero_point_deg),
+                        analyzer_deg: analyzer_deg(nominal, zero_point_deg) + turn,
                         f: fv,
                         sigma_f: s,
                     }
@@ -797,5 +836,57 @@ mod tests {
         assert!(rel(ls.scaled_sigma_u(), num(&l["sigma_u_scatter"])) < 1e-7);
         // chi2 442 for 5 dof: the adopted error is the scaled one, 9.4 x the formal one.
         assert!((ls.adopted_sigma_q() / ls.fit.var_q.sqrt() - (num(&l["chi2"]) / 5.0).sqrt()).abs() < 1e-6);
+    }
+
+    /// The sky frame of the same reference: its least squares with each frame's own
+    /// rotation and its per-cycle double differences turned by the cycle's mean rotation
+    /// (NIRC2Pol-DPP's theta_rot = -2 PARANG + 2 EL + 2 ROTPDEST + 4 theta_off), given
+    /// either as the reference's theta_rot per frame (offset -theta_rot/2) or as the NIRC2
+    /// profile's model (offset PARANG - EL - ROTPDEST, zero point -2 theta_off = 26 deg).
+    #[test]
+    fn reproduces_the_nirc2_reference_on_the_sky() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../testdata/real/nirc2_abaur_reference.json");
+        let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let j: serde_json::Value = serde_json::from_str(&text).unwrap();
+        let num = |v: &serde_json::Value| v.as_f64().unwrap();
+        let jf = j["frames"].as_array().unwrap();
+        let fr: Vec<PlateFrame> = jf
+            .iter()
+            .map(|f| PlateFrame {
+                plate_deg: num(&f["pcupr_deg"]),
+                o: num(&f["o"]),
+                sigma_o: num(&f["sigma_o"]),
+                e: num(&f["e"]),
+                sigma_e: num(&f["sigma_e"]),
+            })
+            .collect();
+        let from_theta: Vec<f64> = jf.iter().map(|f| -0.5 * num(&f["theta_rot_deg"])).collect();
+        let from_headers: Vec<f64> = jf
+            .iter()
+            .map(|f| num(&f["parang_deg"]) - num(&f["el_deg"]) - num(&f["rotpdest_deg"]))
+            .collect();
+        let l = &j["combined"]["least_squares"]["sky"];
+        for (offsets, zp) in [(&from_theta, 0.0), (&from_headers, 26.0)] {
+            let r = reduce_on_sky(
+                &fr,
+                offsets,
+                zp,
+                DEFAULT_PLATE_TOLERANCE_DEG,
+                CycleMethod::DoubleDifference,
+            );
+            let ls = r.least_squares.unwrap();
+            assert!((ls.fit.q - num(&l["q"])).abs() < 1e-9 && (ls.fit.u - num(&l["u"])).abs() < 1e-9);
+            assert!((ls.fit.chi2 / num(&l["chi2"]) - 1.0).abs() < 1e-6);
+            for (c, jc) in r.cycles.iter().zip(j["cycles"].as_array().unwrap()) {
+                let sky = &jc["sky"];
+                assert!((c.fit.q - num(&sky["q"])).abs() < 1e-9, "{} {}", c.fit.q, sky["q"]);
+                assert!((c.fit.u - num(&sky["u"])).abs() < 1e-9);
+            }
+        }
+        // All offsets 0: the instrument frame, identical to `reduce`.
+        let a = reduce_on_sky(&fr, &[0.0; 8], 0.0, 1.0, CycleMethod::DoubleDifference);
+        assert_eq!(a, reduce(&fr, 0.0, 1.0, CycleMethod::DoubleDifference));
+        assert!((mean_analyzer_offset_deg(&[179.0, 1.0]) - 0.0).abs() < 1e-12);
+        assert!((mean_analyzer_offset_deg(&[88.0, 92.0]).abs() - 90.0).abs() < 1e-12);
     }
 }
