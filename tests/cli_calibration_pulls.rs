@@ -175,10 +175,23 @@ fn night(dir: &std::path::Path, seed: u64) -> Night {
     let scene_path = dir.join(format!("n{seed}.toml"));
     std::fs::write(&scene_path, text).unwrap();
     let raw = dir.join(format!("n{seed}_raw"));
-    let (code, _, err) = run(&["simulate", scene_path.to_str().unwrap(), "-o", raw.to_str().unwrap(), "-q"]);
+    let (code, _, err) = run(&[
+        "simulate",
+        scene_path.to_str().unwrap(),
+        "-o",
+        raw.to_str().unwrap(),
+        "-q",
+    ]);
     assert_eq!(code, 0, "simulate night {seed}: {err}");
     let out = dir.join(format!("n{seed}.json"));
-    let (code, stdout, err) = run(&["night", raw.to_str().unwrap(), "-o", out.to_str().unwrap(), "--jobs", "2"]);
+    let (code, stdout, err) = run(&[
+        "night",
+        raw.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--jobs",
+        "2",
+    ]);
     assert!(code == 0 || code == 2, "night {seed}: exit {code}\n{stdout}\n{err}");
     let cat = json(&out);
     let truth = json(&raw.join("truth.json"));
@@ -209,7 +222,12 @@ fn night(dir: &std::path::Path, seed: u64) -> Night {
             .find(|x| x["object"] == t["object"])
             .unwrap_or_else(|| panic!("night {seed}: target {} not in the truth", t["object"]));
         for c in t["components"].as_array().unwrap() {
-            let tc = truth_t["components"].as_array().unwrap().iter().find(|x| x["name"] == c["name"]).unwrap();
+            let tc = truth_t["components"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|x| x["name"] == c["name"])
+                .unwrap();
             if c["q"].is_number() {
                 for (k, sk) in [("q", "sigma_q"), ("u", "sigma_u")] {
                     let d = num(&c[k]) - num(&tc[k]);
@@ -223,12 +241,16 @@ fn night(dir: &std::path::Path, seed: u64) -> Night {
                 continue;
             }
             // The field star of the scene at this separation (they are 3" apart or more).
-            let Some(&(_, _, _, p, gamma)) =
-                FIELD.iter().find(|st| (st.0 - num(&fs["separation_arcsec"])).abs() < 1.0)
+            let Some(&(_, _, _, p, gamma)) = FIELD
+                .iter()
+                .find(|st| (st.0 - num(&fs["separation_arcsec"])).abs() < 1.0)
             else {
                 continue;
             };
-            let (tq, tu) = (p * (2.0 * gamma.to_radians()).cos(), p * (2.0 * gamma.to_radians()).sin());
+            let (tq, tu) = (
+                p * (2.0 * gamma.to_radians()).cos(),
+                p * (2.0 * gamma.to_radians()).sin(),
+            );
             for (k, sk, tv) in [("q", "sigma_q", tq), ("u", "sigma_u", tu)] {
                 let d = num(&fs[k]) - tv;
                 n.total.push(d / num(&fs[sk]));
@@ -249,8 +271,8 @@ fn rms_by_night(groups: &[Vec<f64>]) -> (f64, f64, usize) {
     let (s, m) = (ss.iter().sum::<f64>(), cnt.iter().sum::<f64>());
     let ms = s / m;
     // Var(ms) ~ sum (ss_i - ms cnt_i)^2 / m^2 x n / (n - 1).
-    let var = ss.iter().zip(&cnt).map(|(a, b)| (a - ms * b).powi(2)).sum::<f64>() / (m * m) * n_nights
-        / (n_nights - 1.0);
+    let var =
+        ss.iter().zip(&cnt).map(|(a, b)| (a - ms * b).powi(2)).sum::<f64>() / (m * m) * n_nights / (n_nights - 1.0);
     let rms = ms.sqrt();
     (rms, var.sqrt() / (2.0 * rms), m as usize)
 }
@@ -258,7 +280,10 @@ fn rms_by_night(groups: &[Vec<f64>]) -> (f64, f64, usize) {
 #[test]
 #[ignore = "long: about 3 s a night; run with --ignored (SOFIPOL_CAL_NIGHTS, default 48)"]
 fn calibration_pulls_over_many_nights() {
-    let nights: u64 = std::env::var("SOFIPOL_CAL_NIGHTS").ok().and_then(|v| v.parse().ok()).unwrap_or(48);
+    let nights: u64 = std::env::var("SOFIPOL_CAL_NIGHTS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(48);
     let dir = tempfile::tempdir().unwrap();
     let mut all = Vec::new();
     for seed in 1..=nights {
@@ -275,7 +300,11 @@ fn calibration_pulls_over_many_nights() {
     }
     let mut worst: f64 = 0.0;
     for (i, name) in ["c", "theta0", "tel_a", "tel_b"].into_iter().enumerate() {
-        let groups: Vec<Vec<f64>> = all.iter().map(|n| vec![n.cal[i]]).filter(|g| g[0].is_finite()).collect();
+        let groups: Vec<Vec<f64>> = all
+            .iter()
+            .map(|n| vec![n.cal[i]])
+            .filter(|g| g[0].is_finite())
+            .collect();
         let (rms, se, m) = rms_by_night(&groups);
         let mean = groups.iter().map(|g| g[0]).sum::<f64>() / m as f64;
         println!("calibration {name}: {m} nights, pull mean {mean:+.3}, rms {rms:.3} +- {se:.3}");
@@ -293,7 +322,13 @@ fn calibration_pulls_over_many_nights() {
         "stars (components and usable field stars): {tm} q, u pulls over {nights} nights: \
          total errors rms {tr:.3} +- {tse:.3}; measurement errors alone rms {sr:.3} +- {sse:.3}"
     );
-    assert!((rms - 1.0).abs() < 3.0 * se, "calibration pulls rms {rms:.3} +- {se:.3}");
-    assert!((tr - 1.0).abs() < 3.0 * tse, "stars' total pulls rms {tr:.3} +- {tse:.3}");
+    assert!(
+        (rms - 1.0).abs() < 3.0 * se,
+        "calibration pulls rms {rms:.3} +- {se:.3}"
+    );
+    assert!(
+        (tr - 1.0).abs() < 3.0 * tse,
+        "stars' total pulls rms {tr:.3} +- {tse:.3}"
+    );
     println!("largest |rms - 1| / se of one parameter: {worst:.2}");
 }

@@ -210,10 +210,22 @@ fn mean_inverse_inflation(nu: usize) -> f64 {
     let d = ChiSquared::new(nu as f64).unwrap();
     let (hi, m) = (nu as f64 + 40.0 * (2.0 * nu as f64).sqrt() + 40.0, 200_000);
     let h = hi / m as f64;
-    let f = |x: f64| if x <= 0.0 { 0.0 } else { d.pdf(x) * (1.0 - 1.0 / inflation(x, nu)) };
+    let f = |x: f64| {
+        if x <= 0.0 {
+            0.0
+        } else {
+            d.pdf(x) * (1.0 - 1.0 / inflation(x, nu))
+        }
+    };
     1.0 - (0..=m)
         .map(|i| {
-            let w = if i == 0 || i == m { 1.0 } else if i % 2 == 1 { 4.0 } else { 2.0 };
+            let w = if i == 0 || i == m {
+                1.0
+            } else if i % 2 == 1 {
+                4.0
+            } else {
+                2.0
+            };
             w * f(i as f64 * h)
         })
         .sum::<f64>()
@@ -245,7 +257,10 @@ fn the_inflation_leaves_honest_nights_alone() {
         if nu >= 3 {
             let lower = ChiSquared::new(nu as f64 - 2.0).unwrap();
             let closed = d.cdf(a) + nu as f64 / (nu as f64 - 2.0) * (1.0 - lower.cdf(a));
-            assert!((e - closed).abs() < 1e-4, "{nu} dof: quadrature {e:.6}, closed form {closed:.6}");
+            assert!(
+                (e - closed).abs() < 1e-4,
+                "{nu} dof: quadrature {e:.6}, closed form {closed:.6}"
+            );
         }
     }
     assert_eq!(inflation(5.0, 0), 1.0);

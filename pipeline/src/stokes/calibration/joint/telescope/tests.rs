@@ -586,8 +586,7 @@ fn pulls_of_reported_covariance(n: usize, noise_factor: f64, seed: u64) -> (Vec<
                     Polarization { q: k * g(), u: k * g() }
                 };
                 let mut s = standard(star, &TWO, &[e, e + 2.0], ins, sigma_f);
-                (s.p, s.sigma_p, s.gamma_deg, s.sigma_gamma_deg) =
-                    (p, sigma_p, gamma, if p > 0.0 { 2.0 } else { 0.0 });
+                (s.p, s.sigma_p, s.gamma_deg, s.sigma_gamma_deg) = (p, sigma_p, gamma, if p > 0.0 { 2.0 } else { 0.0 });
                 for o in &mut s.f {
                     o.f += noise_factor * sigma_f * g();
                 }
@@ -632,7 +631,10 @@ fn mean_rms(pulls: &[[f64; 4]], k: usize) -> (f64, f64) {
 fn the_reported_calibration_covariance_gives_unit_pulls() {
     let n = 3000;
     let (pulls, inflated, refused) = pulls_of_reported_covariance(n, 1.0, 20261130);
-    assert!(refused <= n / 20, "{refused} of {n} nights refused the telescope's term or theta0");
+    assert!(
+        refused <= n / 20,
+        "{refused} of {n} nights refused the telescope's term or theta0"
+    );
     let n = pulls.len();
     let names = ["c", "theta0", "a", "b"];
     let stats: Vec<(f64, f64)> = (0..4).map(|k| mean_rms(&pulls, k)).collect();
@@ -642,7 +644,10 @@ fn the_reported_calibration_covariance_gives_unit_pulls() {
     let pooled = (stats.iter().map(|s| s.1 * s.1).sum::<f64>() / 4.0).sqrt();
     eprintln!("pooled rms {pooled:.3}");
     for (name, &(mean, rms)) in names.iter().zip(&stats) {
-        assert!((0.95..=1.05).contains(&rms), "{name}: pull rms {rms:.3} over {n} nights");
+        assert!(
+            (0.95..=1.05).contains(&rms),
+            "{name}: pull rms {rms:.3} over {n} nights"
+        );
         assert!(mean.abs() < 0.08, "{name}: pull mean {mean:+.3}");
     }
     assert!((0.97..=1.03).contains(&pooled), "pooled pull rms {pooled:.3}");
