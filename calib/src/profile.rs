@@ -145,7 +145,13 @@ pub struct Match {
     pub object_std_alias: String,
 }
 
-/// Detector geometry and focal-mask strips. Row ranges are 0-based, half-open.
+/// Detector geometry: the detector, the o -> e displacement of the beam splitter and the
+/// focal mask's strips. Row ranges are 0-based, half-open.
+///
+/// Two layouts: a focal mask (`mask = true`, the default: SOFI's six strips, each row
+/// receiving one beam or none) or none (`mask = false`: a Savart-plate-like imager, both
+/// beams on the whole detector, the e image of a source at `eo_offset_px` from its o image;
+/// the strip keys are then ignored).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)] // a misspelt key in --profile or --set is an error, not ignored
 #[allow(missing_docs)]
@@ -153,6 +159,10 @@ pub struct Geometry {
     pub nx: usize,
     pub ny: usize,
     pub pixscale_arcsec: f64,
+    /// Whether a focal mask blocks all rows outside the six strips (default `true`).
+    /// `false`: no mask, the whole detector sees sky through both beams.
+    #[serde(default = "yes", skip_serializing_if = "is_true")]
+    pub mask: bool,
     pub strip_height_px: usize,
     pub o_sky2: [usize; 2],
     pub e_sky2: [usize; 2],
@@ -166,10 +176,28 @@ pub struct Geometry {
     pub jitter_step_px: f64,
 }
 
+fn is_true(b: &bool) -> bool {
+    *b
+}
+
+/// The name [`Geometry::strips`] gives the one region of a detector without a focal mask.
+pub const WHOLE_DETECTOR: &str = "detector";
+
 impl Geometry {
-    /// All six strips as (name, [start, end)), bottom to top.
-    pub fn strips(&self) -> [(&'static str, [usize; 2]); 6] {
-        [
+    /// Whether a focal mask splits the detector into strips ([`Geometry::mask`]).
+    pub fn has_mask(&self) -> bool {
+        self.mask
+    }
+
+    /// The regions of the detector that see sky, as (name, rows [start, end)), bottom to
+    /// top: the six strips of the focal mask, or without a mask one region
+    /// ([`WHOLE_DETECTOR`]) of every row. Stages that level, normalize or threshold region
+    /// by region take these.
+    pub fn strips(&self) -> Vec<(&'static str, [usize; 2])> {
+        if !self.mask {
+            return vec![(WHOLE_DETECTOR, [0, self.ny])];
+        }
+        vec![
             ("o_sky2", self.o_sky2),
             ("e_sky2", self.e_sky2),
             ("o_target", self.o_target),
@@ -178,14 +206,19 @@ impl Geometry {
             ("e_sky1", self.e_sky1),
         ]
     }
-    /// Whether row `y` lies inside any strip (i.e. is not blocked by the focal mask).
+    /// Whether row `y` sees sky: inside a strip of the mask; every row when there is no
+    /// mask.
     pub fn row_in_strip(&self, y: usize) -> bool {
         self.strips().iter().any(|(_, r)| y >= r[0] && y < r[1])
     }
 
-    /// The image of the beam splitter that row `y` receives: `None` on rows the mask
-    /// blocks.
+    /// The one image of the beam splitter that row `y` receives: `None` on rows the mask
+    /// blocks, and on every row without a mask (each pixel then receives both beams: a
+    /// pixel's beam is that of the source it belongs to, [`Geometry::e_image_of`]).
     pub fn beam_of_row(&self, y: usize) -> Option<Beam> {
+        if !self.mask {
+            return None;
+        }
         let inside = |r: &[usize; 2]| y >= r[0] && y < r[1];
         if [self.o_sky2, self.o_target, self.o_sky1].iter().any(inside) {
             Some(Beam::Ordinary)
@@ -196,8 +229,12 @@ impl Geometry {
         }
     }
 
-    /// The rows `[start, end)` of the strip where the target's image of `beam` falls.
+    /// The rows `[start, end)` where the target's image of `beam` falls: its strip, or
+    /// every row without a mask.
     pub fn target_rows(&self, beam: Beam) -> [usize; 2] {
+        if !self.mask {
+            return [0, self.ny];
+        }
         match beam {
             Beam::Ordinary => self.o_target,
             Beam::Extraordinary => self.e_target,
@@ -205,12 +242,31 @@ impl Geometry {
     }
 
     /// The rows `[start, end)` holding the target's two images: what a reduction that
-    /// measures only the target needs to read.
+    /// measures only the target needs to read (every row without a mask).
     pub fn measured_rows(&self) -> [usize; 2] {
+        if !self.mask {
+            return [0, self.ny];
+        }
         [
             self.o_target[0].min(self.e_target[0]),
             self.o_target[1].max(self.e_target[1]),
         ]
+    }
+
+    /// The pointing: where the telescope puts the target's o image at zero jitter offset,
+    /// (x, y) px. The detector's centre column and the middle of the o-target strip; without
+    /// a mask, the point that centres the pair of images (o and e) on the detector.
+    pub fn pointing_px(&self) -> (f64, f64) {
+        if !self.mask {
+            return (
+                (self.nx as f64 - self.eo_offset_px[0]) / 2.0 - 0.5,
+                (self.ny as f64 - self.eo_offset_px[1]) / 2.0 - 0.5,
+            );
+        }
+        (
+            self.nx as f64 / 2.0,
+            (self.o_target[0] + self.o_target[1]) as f64 / 2.0 - 0.5,
+        )
     }
 
     /// The first row above every strip: a frame needs at least this many rows.
@@ -222,6 +278,54 @@ impl Geometry {
     /// at `(x, y)` (a starting value: the reduction measures the offset).
     pub fn e_image_of(&self, (x, y): (f64, f64)) -> (f64, f64) {
         (x + self.eo_offset_px[0], y + self.eo_offset_px[1])
+    }
+
+    /// The checks of [`Profile::validate`] on the geometry: the reason naming key and value.
+    fn check(&self) -> std::result::Result<(), String> {
+        if !(1..=MAX_DETECTOR_SIDE_PX).contains(&self.nx) || !(1..=MAX_DETECTOR_SIDE_PX).contains(&self.ny) {
+            return Err(format!(
+                "geometry.nx = {}, ny = {}: each must be in 1..={MAX_DETECTOR_SIDE_PX}",
+                self.nx, self.ny
+            ));
+        }
+        let [dx, dy] = self.eo_offset_px;
+        for (i, v, side) in [(0, dx, self.nx), (1, dy, self.ny)] {
+            if v.is_finite() && v.abs() >= side as f64 {
+                return Err(format!(
+                    "geometry.eo_offset_px[{i}] = {v}: the e image would fall off the detector ({} px wide)",
+                    side
+                ));
+            }
+        }
+        if !self.mask {
+            if dx.hypot(dy) < 2.0 {
+                return Err(format!(
+                    "geometry.eo_offset_px = [{dx}, {dy}]: without a mask the two images must be at least 2 px \
+                     apart (they would lie on each other)"
+                ));
+            }
+            return Ok(());
+        }
+        let strips = self.strips();
+        for (name, r) in &strips {
+            if r[0] >= r[1] || r[1] > self.ny {
+                return Err(format!(
+                    "geometry.{name} = [{}, {}) is not inside 0..{}",
+                    r[0], r[1], self.ny
+                ));
+            }
+        }
+        for (i, (a, ra)) in strips.iter().enumerate() {
+            for (b, rb) in &strips[i + 1..] {
+                if ra[0] < rb[1] && rb[0] < ra[1] {
+                    return Err(format!(
+                        "geometry.{a} = [{}, {}) and geometry.{b} = [{}, {}) overlap",
+                        ra[0], ra[1], rb[0], rb[1]
+                    ));
+                }
+            }
+        }
+        Ok(())
     }
 }
 
@@ -509,13 +613,8 @@ impl Profile {
             })
         };
         let g = &self.geometry;
-        for (name, r) in g.strips() {
-            if r[0] >= r[1] || r[1] > g.ny {
-                return err(format!(
-                    "geometry.{name} = [{}, {}) is not inside 0..{}",
-                    r[0], r[1], g.ny
-                ));
-            }
+        if let Err(reason) = g.check() {
+            return err(reason);
         }
         if !(g.pixscale_arcsec > 0.0) {
             return err(format!("geometry.pixscale_arcsec = {} must be > 0", g.pixscale_arcsec));
