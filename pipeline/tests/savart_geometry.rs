@@ -52,8 +52,26 @@ fn pulls(targets: &[Target], truth: &Truth) -> (Vec<f64>, usize) {
             continue;
         }
         for (c, ct) in t.components.iter().zip(&tt.components) {
-            out.push((c.pol.q - ct.q) / c.pol.sigma_q);
-            out.push((c.pol.u - ct.u) / c.pol.sigma_u);
+            let (pq, pu) = ((c.pol.q - ct.q) / c.pol.sigma_q, (c.pol.u - ct.u) / c.pol.sigma_u);
+            if pq.abs().max(pu.abs()) > 4.0 {
+                eprintln!(
+                    "{} {}: q {:.4} (true {:.4}) u {:.4} (true {:.4}) pulls {pq:.1} {pu:.1}; flags {:?} {:?}",
+                    t.object, c.name, c.pol.q, ct.q, c.pol.u, ct.u, c.flags, t.flags
+                );
+                eprintln!(
+                    "   measured sep {:?} pa {:?} eo {:?}; true sep {} pa {}",
+                    t.separation_arcsec, t.pa_deg, t.eo_offset_px, tt.separation_arcsec, tt.pa_deg
+                );
+                for f in &tt.field_stars {
+                    let d = sofipol_pipeline::stokes::model::companion_offset_px(f.separation_arcsec, f.pa_deg, 0.0, 0.288);
+                    let near = |x: f64, y: f64| (d.0 - x).hypot(d.1 - y) < 25.0;
+                    if near(0.0, 0.0) || near(24.0, -19.0) || near(-24.0, 19.0) {
+                        eprintln!("   field {} at ({:.1}, {:.1}) px flux {:.0}", f.name, d.0, d.1, f.flux);
+                    }
+                }
+            }
+            out.push(pq);
+            out.push(pu);
         }
     }
     (out, missing)

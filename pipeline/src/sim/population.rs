@@ -125,13 +125,13 @@ pub fn draw(
             continue;
         }
         // Without a focal mask a star's e image can land on A's or B's o image and its o
-        // image on their e images: the same exclusion, image by image.
-        let [ex, ey] = g.eo_offset_px;
-        if !g.has_mask()
-            && [(ex, ey), (-ex, -ey)]
-                .iter()
-                .any(|&(sx, sy)| near(sx, sy) || near(at.b_off[0] + sx, at.b_off[1] + sy))
-        {
+        // image on their e images (offset d = the e-o offset). The sky turns about A with
+        // the rotator while d stays fixed on the detector, so at some rotator angle it does
+        // when the star's distance from A or from B is within `exclude_arcsec` of |d|: no
+        // star there.
+        let d = g.eo_offset_px[0].hypot(g.eo_offset_px[1]);
+        let ring = |ox: f64, oy: f64| ((dx - ox).hypot(dy - oy) - d).abs() * scale < c.exclude_arcsec;
+        if !g.has_mask() && (ring(0.0, 0.0) || ring(at.b_off[0], at.b_off[1])) {
             continue;
         }
         let (sep, pa) = offset_to_sep_pa(dx, dy, at.posang_deg, scale);
