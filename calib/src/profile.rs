@@ -1026,6 +1026,75 @@ mod tests {
         }
     }
 
+    /// Without a focal mask every row sees sky and no row has a beam of its own; the
+    /// target's rows are the whole detector; the pointing centres the pair of images; the
+    /// e image of any position is at the offset vector. With the mask, nothing changes.
+    #[test]
+    fn geometry_without_a_mask_answers_for_the_whole_detector() {
+        let p = Profile::sofi()
+            .with_overrides(&[
+                "geometry.mask=false".into(),
+                "geometry.nx=512".into(),
+                "geometry.ny=400".into(),
+                "geometry.eo_offset_px=[24.0, -19.0]".into(),
+            ])
+            .unwrap();
+        let g = &p.geometry;
+        assert!(!g.has_mask());
+        assert_eq!(g.strips(), vec![(WHOLE_DETECTOR, [0, 400])]);
+        assert!((0..400).all(|y| g.row_in_strip(y) && g.beam_of_row(y).is_none()));
+        assert!(!g.row_in_strip(400));
+        assert_eq!(g.target_rows(Beam::Ordinary), [0, 400]);
+        assert_eq!(g.target_rows(Beam::Extraordinary), [0, 400]);
+        assert_eq!(g.measured_rows(), [0, 400]);
+        assert_eq!(g.lit_rows_end(), 400);
+        // The pair (o at the pointing, e at the pointing + offset) is centred on the
+        // detector's centre ((nx - 1)/2, (ny - 1)/2).
+        let (x, y) = g.pointing_px();
+        let (xe, ye) = g.e_image_of((x, y));
+        assert_eq!(((x + xe) / 2.0, (y + ye) / 2.0), (255.5, 199.5));
+        // The mask's keys are not written when the mask is there (SOFI's profile text and
+        // anything serialized from it unchanged), and are when it is not.
+        let sofi = toml::to_string(&Profile::sofi()).unwrap();
+        assert!(!sofi.contains("mask"), "{sofi}");
+        assert!(toml::to_string(&p).unwrap().contains("mask = false"));
+        let s = Profile::sofi();
+        assert_eq!(s.geometry.pointing_px(), (512.0, 428.0));
+    }
+
+    /// Hostile geometries are refused naming the key and the value.
+    #[test]
+    fn hostile_geometry_is_refused_by_key_and_value() {
+        for (sets, want) in [
+            (vec!["geometry.eo_offset_px=[0.0, 1024.0]"], "geometry.eo_offset_px[1] = 1024"),
+            (vec!["geometry.eo_offset_px=[-2000.0, 1.0]"], "geometry.eo_offset_px[0] = -2000"),
+            (
+                vec!["geometry.mask=false", "geometry.eo_offset_px=[0.5, 1.0]"],
+                "geometry.eo_offset_px = [0.5, 1]",
+            ),
+            (
+                vec!["geometry.mask=false", "geometry.nx=64", "geometry.eo_offset_px=[80.0, 0.0]"],
+                "geometry.eo_offset_px[0] = 80",
+            ),
+            (vec!["geometry.o_target=[300, 520]"], "geometry.e_sky2 = [178, 345) and geometry.o_target = [300, 520) overlap"),
+            (vec!["geometry.e_sky1=[846, 1100]"], "geometry.e_sky1 = [846, 1100)"),
+            (vec!["geometry.mask=1"], "mask"),
+        ] {
+            let sets: Vec<String> = sets.into_iter().map(String::from).collect();
+            let e = Profile::sofi().with_overrides(&sets).expect_err(&sets.join(" ")).to_string();
+            assert!(e.contains(want), "{sets:?}: {e}");
+        }
+        // Without a mask the strip keys are not read: strips beyond a small detector pass.
+        let p = Profile::sofi()
+            .with_overrides(&[
+                "geometry.mask=false".into(),
+                "geometry.ny=256".into(),
+                "geometry.eo_offset_px=[10.0, 10.0]".into(),
+            ])
+            .unwrap();
+        assert_eq!(p.geometry.lit_rows_end(), 256);
+    }
+
     #[test]
     fn cropping_shifts_the_strips() {
         let p = Profile::sofi().cropped_rows(345, 679);

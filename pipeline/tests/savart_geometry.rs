@@ -106,3 +106,30 @@ fn savart_like_crowded_field_gives_honest_pulls_over_eight_seeds() {
     assert!((0.9..=1.1).contains(&sd), "pooled pull sd {sd:.3} over {n}");
     assert!(mean.abs() < 3.0 / (n as f64).sqrt(), "pooled pull mean {mean:.3} over {n}");
 }
+
+/// The e image is found by the offset vector, not by its length nor by the nearest star:
+/// reduced with the offset turned by 90 degrees (the same length, the wrong direction),
+/// the same nights give no honest q, u. Each target either fails (no e image at the
+/// offset) or is flagged for an offset far from the profile's, or its pulls are far
+/// wider than 1.
+#[test]
+fn the_offset_direction_matters() {
+    let profile = savart_profile();
+    let mut turned = profile.clone();
+    let [dx, dy] = profile.geometry.eo_offset_px;
+    turned.geometry.eo_offset_px = [-dy, dx];
+    let (targets, truth) = night(1, &profile, &turned);
+    let (p, missing) = pulls(&targets, &truth);
+    let flagged = targets
+        .iter()
+        .filter(|t| {
+            t.flags.as_ref().is_some_and(|f| {
+                f.iter()
+                    .any(|f| f.is(sofipol_pipeline::catalog::FlagCode::EoOffsetDiffersFromProfile))
+            })
+        })
+        .count();
+    let sd = if p.len() > 1 { mean_sd(&p).1 } else { f64::NAN };
+    eprintln!("turned offset: {} pulls, sd {sd:.2}, {missing} components missing, {flagged} targets flagged", p.len());
+    assert!(missing > 0 || flagged > 0 || sd > 3.0, "{} pulls, sd {sd}", p.len());
+}
