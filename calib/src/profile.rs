@@ -1066,22 +1066,38 @@ mod tests {
     #[test]
     fn hostile_geometry_is_refused_by_key_and_value() {
         for (sets, want) in [
-            (vec!["geometry.eo_offset_px=[0.0, 1024.0]"], "geometry.eo_offset_px[1] = 1024"),
-            (vec!["geometry.eo_offset_px=[-2000.0, 1.0]"], "geometry.eo_offset_px[0] = -2000"),
+            (
+                vec!["geometry.eo_offset_px=[0.0, 1024.0]"],
+                "geometry.eo_offset_px[1] = 1024",
+            ),
+            (
+                vec!["geometry.eo_offset_px=[-2000.0, 1.0]"],
+                "geometry.eo_offset_px[0] = -2000",
+            ),
             (
                 vec!["geometry.mask=false", "geometry.eo_offset_px=[0.5, 1.0]"],
                 "geometry.eo_offset_px = [0.5, 1]",
             ),
             (
-                vec!["geometry.mask=false", "geometry.nx=64", "geometry.eo_offset_px=[80.0, 0.0]"],
+                vec![
+                    "geometry.mask=false",
+                    "geometry.nx=64",
+                    "geometry.eo_offset_px=[80.0, 0.0]",
+                ],
                 "geometry.eo_offset_px[0] = 80",
             ),
-            (vec!["geometry.o_target=[300, 520]"], "geometry.e_sky2 = [178, 345) and geometry.o_target = [300, 520) overlap"),
+            (
+                vec!["geometry.o_target=[300, 520]"],
+                "geometry.e_sky2 = [178, 345) and geometry.o_target = [300, 520) overlap",
+            ),
             (vec!["geometry.e_sky1=[846, 1100]"], "geometry.e_sky1 = [846, 1100)"),
             (vec!["geometry.mask=1"], "mask"),
         ] {
             let sets: Vec<String> = sets.into_iter().map(String::from).collect();
-            let e = Profile::sofi().with_overrides(&sets).expect_err(&sets.join(" ")).to_string();
+            let e = Profile::sofi()
+                .with_overrides(&sets)
+                .expect_err(&sets.join(" "))
+                .to_string();
             assert!(e.contains(want), "{sets:?}: {e}");
         }
         // Without a mask the strip keys are not read: strips beyond a small detector pass.

@@ -63,7 +63,8 @@ fn pulls(targets: &[Target], truth: &Truth) -> (Vec<f64>, usize) {
                     t.separation_arcsec, t.pa_deg, t.eo_offset_px, tt.separation_arcsec, tt.pa_deg
                 );
                 for f in &tt.field_stars {
-                    let d = sofipol_pipeline::stokes::model::companion_offset_px(f.separation_arcsec, f.pa_deg, 0.0, 0.288);
+                    let d =
+                        sofipol_pipeline::stokes::model::companion_offset_px(f.separation_arcsec, f.pa_deg, 0.0, 0.288);
                     let near = |x: f64, y: f64| (d.0 - x).hypot(d.1 - y) < 25.0;
                     if near(0.0, 0.0) || near(24.0, -19.0) || near(-24.0, 19.0) {
                         eprintln!("   field {} at ({:.1}, {:.1}) px flux {:.0}", f.name, d.0, d.1, f.flux);
@@ -93,7 +94,10 @@ fn savart_like_crowded_field_gives_honest_pulls_over_eight_seeds() {
         let (targets, truth) = night(seed, &profile, &profile);
         let (p, m) = pulls(&targets, &truth);
         let (mean, sd) = mean_sd(&p);
-        eprintln!("seed {seed}: {} pulls, mean {mean:.3}, sd {sd:.3}, {m} components missing", p.len());
+        eprintln!(
+            "seed {seed}: {} pulls, mean {mean:.3}, sd {sd:.3}, {m} components missing",
+            p.len()
+        );
         all.extend(p);
         missing += m;
     }
@@ -104,7 +108,10 @@ fn savart_like_crowded_field_gives_honest_pulls_over_eight_seeds() {
     assert_eq!(missing, 0, "every component of every target measured");
     assert_eq!(n, 8 * 6 * 2 * 2);
     assert!((0.9..=1.1).contains(&sd), "pooled pull sd {sd:.3} over {n}");
-    assert!(mean.abs() < 3.0 / (n as f64).sqrt(), "pooled pull mean {mean:.3} over {n}");
+    assert!(
+        mean.abs() < 3.0 / (n as f64).sqrt(),
+        "pooled pull mean {mean:.3} over {n}"
+    );
 }
 
 /// The e image is found by the offset vector, not by its length nor by the nearest star:
@@ -130,6 +137,9 @@ fn the_offset_direction_matters() {
         })
         .count();
     let sd = if p.len() > 1 { mean_sd(&p).1 } else { f64::NAN };
-    eprintln!("turned offset: {} pulls, sd {sd:.2}, {missing} components missing, {flagged} targets flagged", p.len());
+    eprintln!(
+        "turned offset: {} pulls, sd {sd:.2}, {missing} components missing, {flagged} targets flagged",
+        p.len()
+    );
     assert!(missing > 0 || flagged > 0 || sd > 3.0, "{} pulls, sd {sd}", p.len());
 }
