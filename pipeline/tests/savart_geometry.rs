@@ -7,7 +7,7 @@
 //! both components of six binaries, pooled over eight seeds (96 components, 192 pulls), have
 //! a standard deviation within [0.9, 1.1] and a mean within 3 standard errors of 0.
 use sofipol_calib::Profile;
-use sofipol_pipeline::catalog::{Status, Target};
+use sofipol_pipeline::catalog::{FlagCode, Status, Target};
 use sofipol_pipeline::reduce::run::reduce_loaded;
 use sofipol_pipeline::reduce::TargetParams;
 use sofipol_pipeline::sim::{loaded_from_sim, Scene, Simulator, Truth};
@@ -58,24 +58,43 @@ fn pulls(targets: &[Target], truth: &Truth) -> (Vec<f64>, usize) {
                     "{} {}: q {:.4} (true {:.4}) u {:.4} (true {:.4}) pulls {pq:.1} {pu:.1}; flags {:?} {:?}",
                     t.object, c.name, c.pol.q, ct.q, c.pol.u, ct.u, c.flags, t.flags
                 );
-                eprintln!(
-                    "   measured sep {:?} pa {:?} eo {:?}; true sep {} pa {}",
-                    t.separation_arcsec, t.pa_deg, t.eo_offset_px, tt.separation_arcsec, tt.pa_deg
-                );
-                for f in &tt.field_stars {
-                    let d =
-                        sofipol_pipeline::stokes::model::companion_offset_px(f.separation_arcsec, f.pa_deg, 0.0, 0.288);
-                    let near = |x: f64, y: f64| (d.0 - x).hypot(d.1 - y) < 25.0;
-                    if near(0.0, 0.0) || near(24.0, -19.0) || near(-24.0, 19.0) {
-                        eprintln!("   field {} at ({:.1}, {:.1}) px flux {:.0}", f.name, d.0, d.1, f.flux);
-                    }
-                }
             }
             out.push(pq);
             out.push(pu);
         }
     }
     (out, missing)
+}
+
+/// The pulls of q and u of the usable field stars not flagged `blended` that match a
+/// simulated one (same sky position within 0.6"), the number of usable field stars
+/// matching none (a false pair: an o image paired with another star's e image), and the
+/// number matched (blended or not).
+fn field_pulls(targets: &[Target], truth: &Truth) -> (Vec<f64>, usize, usize) {
+    let en = |sep: f64, pa: f64| {
+        let a = pa.to_radians();
+        (sep * a.sin(), sep * a.cos())
+    };
+    let (mut out, mut false_pairs, mut matched) = (Vec::new(), 0, 0);
+    for (t, tt) in targets.iter().zip(&truth.targets) {
+        for f in t.field_stars.iter().flatten().filter(|f| f.usable) {
+            let m = en(f.separation_arcsec, f.pa_deg);
+            let found = tt.field_stars.iter().find(|s| {
+                let e = en(s.separation_arcsec, s.pa_deg);
+                (e.0 - m.0).hypot(e.1 - m.1) < 0.6
+            });
+            match found {
+                Some(_) if f.star.flags.iter().any(|g| g.is(FlagCode::Blended)) => matched += 1,
+                Some(s) => {
+                    matched += 1;
+                    out.push((f.star.pol.q - s.q) / f.star.pol.sigma_q);
+                    out.push((f.star.pol.u - s.u) / f.star.pol.sigma_u);
+                }
+                None => false_pairs += 1,
+            }
+        }
+    }
+    (out, false_pairs, matched)
 }
 
 fn mean_sd(v: &[f64]) -> (f64, f64) {
@@ -90,8 +109,13 @@ fn savart_like_crowded_field_gives_honest_pulls_over_eight_seeds() {
     assert!(!profile.geometry.has_mask());
     let mut all = Vec::new();
     let mut missing = 0;
+    let (mut field, mut false_pairs, mut matched) = (Vec::new(), 0, 0);
     for seed in 1..=8u64 {
         let (targets, truth) = night(seed, &profile, &profile);
+        let (fp, fa, fm) = field_pulls(&targets, &truth);
+        field.extend(fp);
+        false_pairs += fa;
+        matched += fm;
         let (p, m) = pulls(&targets, &truth);
         let (mean, sd) = mean_sd(&p);
         eprintln!(
@@ -105,7 +129,17 @@ fn savart_like_crowded_field_gives_honest_pulls_over_eight_seeds() {
     let n = all.len();
     let worst = all.iter().fold(0f64, |a, b| a.max(b.abs()));
     eprintln!("pooled: {n} pulls, mean {mean:.3}, sd {sd:.3}, |pull| max {worst:.2}, {missing} components missing");
+    let (fmean, fsd) = mean_sd(&field);
+    let fworst = field.iter().fold(0f64, |a, b| a.max(b.abs()));
+    eprintln!(
+        "field stars: {matched} usable matched ({} pulls of those not blended, mean {fmean:.3}, sd {fsd:.3}, \
+         |pull| max {fworst:.2}), {false_pairs} usable matching no simulated star",
+        field.len()
+    );
     assert_eq!(missing, 0, "every component of every target measured");
+    // Field stars are paired by the offset vector: none pairs images of two stars.
+    assert!(matched > 500, "{matched} field stars matched");
+    assert_eq!(false_pairs, 0, "field stars matching no simulated star");
     assert_eq!(n, 8 * 6 * 2 * 2);
     assert!((0.9..=1.1).contains(&sd), "pooled pull sd {sd:.3} over {n}");
     assert!(
