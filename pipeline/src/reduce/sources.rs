@@ -692,3 +692,56 @@ fn centres_in_orientation(
     }
     cs
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A star whose o image (at (40, 30)) is fainter than its e image (at (40, 30) + (17,
+    /// -9): 40 % polarized) and an unrelated star brighter than the o image: on the frame
+    /// the brightest point near the o image is not the o image, on the pair image it is
+    /// (o + e there, e alone at the e image, the other star alone at its place). Each pixel
+    /// sums its partner's value and variance and is unusable where its partner is, or where
+    /// the partner is off the frame.
+    #[test]
+    fn the_pair_image_peaks_at_the_o_image() {
+        let (ny, nx) = (64, 96);
+        let eo = (17.0, -9.0);
+        let star = |x0: f64, y0: f64, f: f32| {
+            Array2::from_shape_fn((ny, nx), |(y, x)| {
+                let r2 = (x as f64 - x0).powi(2) + (y as f64 - y0).powi(2);
+                f * (-r2 / (2.0 * 1.5f64.powi(2))).exp() as f32
+            })
+        };
+        let data = star(40.0, 30.0, 30.0) + star(57.0, 21.0, 70.0) + star(50.0, 40.0, 60.0);
+        let mut f = Frame::new(data, sofipol_calib::header::Header::new("t.fits"));
+        f.variance = Some(Array2::from_elem((ny, nx), 1.0));
+        let mut m = Array2::<u8>::zeros((ny, nx));
+        m[[21, 57]] = 1; // a bad pixel at the e image's centre
+        let o = SkySubtractedOrientation {
+            posang_deg: 0.0,
+            analyzer_deg: 0.0,
+            frames: vec![f],
+            offsets: vec![[0.0, 0.0]],
+        };
+        let on_frame = brightest_peak(o.frames[0].data.view(), m.view(), 45.0, 30.0, 20.0, [0, ny]).unwrap();
+        assert_ne!((on_frame.0, on_frame.1), (40.0, 30.0));
+        let (pairs, pms) = pair_images(std::slice::from_ref(&o), &[vec![m.clone()]], eo);
+        let p = &pairs[0].frames[0];
+        let pm = &pms[0][0];
+        let best = brightest_peak(p.data.view(), pm.view(), 45.0, 30.0, 20.0, [0, ny]).unwrap();
+        assert_eq!((best.0, best.1), (40.0, 30.0), "{best:?}");
+        // Sum, variance and mask of each pixel and its partner.
+        assert_eq!(
+            p.data[[30, 40]],
+            o.frames[0].data[[30, 40]] + o.frames[0].data[[21, 57]]
+        );
+        assert_eq!(p.variance.as_ref().unwrap()[[30, 40]], 2.0);
+        assert_eq!(pm[[30, 40]], 1, "the partner's bad pixel");
+        assert_eq!(pm[[30, 41]], 0);
+        // Partners off the frame: columns x + 17 >= nx, rows y - 9 < 0.
+        assert!((0..ny).all(|y| pm[[y, nx - 17]] == 1));
+        assert!((0..nx).all(|x| pm[[8, x]] == 1));
+        assert_eq!(pm[[9, nx - 18]], 0);
+    }
+}
