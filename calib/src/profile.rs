@@ -158,7 +158,13 @@ pub struct Match {
     pub object_std_alias: String,
 }
 
-/// Detector geometry and focal-mask strips. Row ranges are 0-based, half-open.
+/// Detector geometry: the detector, the o -> e displacement of the beam splitter and the
+/// focal mask's strips. Row ranges are 0-based, half-open.
+///
+/// Two layouts: a focal mask (`mask = true`, the default: SOFI's six strips, each row
+/// receiving one beam or none) or none (`mask = false`: a Savart-plate-like imager, both
+/// beams on the whole detector, the e image of a source at `eo_offset_px` from its o image;
+/// the strip keys are then ignored).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)] // a misspelt key in --profile or --set is an error, not ignored
 #[allow(missing_docs)]
@@ -166,6 +172,10 @@ pub struct Geometry {
     pub nx: usize,
     pub ny: usize,
     pub pixscale_arcsec: f64,
+    /// Whether a focal mask blocks all rows outside the six strips (default `true`).
+    /// `false`: no mask, the whole detector sees sky through both beams.
+    #[serde(default = "yes", skip_serializing_if = "is_true")]
+    pub mask: bool,
     pub strip_height_px: usize,
     pub o_sky2: [usize; 2],
     pub e_sky2: [usize; 2],
@@ -179,10 +189,28 @@ pub struct Geometry {
     pub jitter_step_px: f64,
 }
 
+fn is_true(b: &bool) -> bool {
+    *b
+}
+
+/// The name [`Geometry::strips`] gives the one region of a detector without a focal mask.
+pub const WHOLE_DETECTOR: &str = "detector";
+
 impl Geometry {
-    /// All six strips as (name, [start, end)), bottom to top.
-    pub fn strips(&self) -> [(&'static str, [usize; 2]); 6] {
-        [
+    /// Whether a focal mask splits the detector into strips ([`Geometry::mask`]).
+    pub fn has_mask(&self) -> bool {
+        self.mask
+    }
+
+    /// The regions of the detector that see sky, as (name, rows [start, end)), bottom to
+    /// top: the six strips of the focal mask, or without a mask one region
+    /// ([`WHOLE_DETECTOR`]) of every row. Stages that level, normalize or threshold region
+    /// by region take these.
+    pub fn strips(&self) -> Vec<(&'static str, [usize; 2])> {
+        if !self.mask {
+            return vec![(WHOLE_DETECTOR, [0, self.ny])];
+        }
+        vec![
             ("o_sky2", self.o_sky2),
             ("e_sky2", self.e_sky2),
             ("o_target", self.o_target),
@@ -191,14 +219,19 @@ impl Geometry {
             ("e_sky1", self.e_sky1),
         ]
     }
-    /// Whether row `y` lies inside any strip (i.e. is not blocked by the focal mask).
+    /// Whether row `y` sees sky: inside a strip of the mask; every row when there is no
+    /// mask.
     pub fn row_in_strip(&self, y: usize) -> bool {
         self.strips().iter().any(|(_, r)| y >= r[0] && y < r[1])
     }
 
-    /// The image of the beam splitter that row `y` receives: `None` on rows the mask
-    /// blocks.
+    /// The one image of the beam splitter that row `y` receives: `None` on rows the mask
+    /// blocks, and on every row without a mask (each pixel then receives both beams: a
+    /// pixel's beam is that of the source it belongs to, [`Geometry::e_image_of`]).
     pub fn beam_of_row(&self, y: usize) -> Option<Beam> {
+        if !self.mask {
+            return None;
+        }
         let inside = |r: &[usize; 2]| y >= r[0] && y < r[1];
         if [self.o_sky2, self.o_target, self.o_sky1].iter().any(inside) {
             Some(Beam::Ordinary)
@@ -209,8 +242,12 @@ impl Geometry {
         }
     }
 
-    /// The rows `[start, end)` of the strip where the target's image of `beam` falls.
+    /// The rows `[start, end)` where the target's image of `beam` falls: its strip, or
+    /// every row without a mask.
     pub fn target_rows(&self, beam: Beam) -> [usize; 2] {
+        if !self.mask {
+            return [0, self.ny];
+        }
         match beam {
             Beam::Ordinary => self.o_target,
             Beam::Extraordinary => self.e_target,
@@ -218,12 +255,31 @@ impl Geometry {
     }
 
     /// The rows `[start, end)` holding the target's two images: what a reduction that
-    /// measures only the target needs to read.
+    /// measures only the target needs to read (every row without a mask).
     pub fn measured_rows(&self) -> [usize; 2] {
+        if !self.mask {
+            return [0, self.ny];
+        }
         [
             self.o_target[0].min(self.e_target[0]),
             self.o_target[1].max(self.e_target[1]),
         ]
+    }
+
+    /// The pointing: where the telescope puts the target's o image at zero jitter offset,
+    /// (x, y) px. The detector's centre column and the middle of the o-target strip; without
+    /// a mask, the point that centres the pair of images (o and e) on the detector.
+    pub fn pointing_px(&self) -> (f64, f64) {
+        if !self.mask {
+            return (
+                (self.nx as f64 - self.eo_offset_px[0]) / 2.0 - 0.5,
+                (self.ny as f64 - self.eo_offset_px[1]) / 2.0 - 0.5,
+            );
+        }
+        (
+            self.nx as f64 / 2.0,
+            (self.o_target[0] + self.o_target[1]) as f64 / 2.0 - 0.5,
+        )
     }
 
     /// The first row above every strip: a frame needs at least this many rows.
@@ -235,6 +291,54 @@ impl Geometry {
     /// at `(x, y)` (a starting value: the reduction measures the offset).
     pub fn e_image_of(&self, (x, y): (f64, f64)) -> (f64, f64) {
         (x + self.eo_offset_px[0], y + self.eo_offset_px[1])
+    }
+
+    /// The checks of [`Profile::validate`] on the geometry: the reason naming key and value.
+    fn check(&self) -> std::result::Result<(), String> {
+        if !(1..=MAX_DETECTOR_SIDE_PX).contains(&self.nx) || !(1..=MAX_DETECTOR_SIDE_PX).contains(&self.ny) {
+            return Err(format!(
+                "geometry.nx = {}, ny = {}: each must be in 1..={MAX_DETECTOR_SIDE_PX}",
+                self.nx, self.ny
+            ));
+        }
+        let [dx, dy] = self.eo_offset_px;
+        for (i, v, side) in [(0, dx, self.nx), (1, dy, self.ny)] {
+            if v.is_finite() && v.abs() >= side as f64 {
+                return Err(format!(
+                    "geometry.eo_offset_px[{i}] = {v}: the e image would fall off the detector ({} px wide)",
+                    side
+                ));
+            }
+        }
+        if !self.mask {
+            if dx.hypot(dy) < 2.0 {
+                return Err(format!(
+                    "geometry.eo_offset_px = [{dx}, {dy}]: without a mask the two images must be at least 2 px \
+                     apart (they would lie on each other)"
+                ));
+            }
+            return Ok(());
+        }
+        let strips = self.strips();
+        for (name, r) in &strips {
+            if r[0] >= r[1] || r[1] > self.ny {
+                return Err(format!(
+                    "geometry.{name} = [{}, {}) is not inside 0..{}",
+                    r[0], r[1], self.ny
+                ));
+            }
+        }
+        for (i, (a, ra)) in strips.iter().enumerate() {
+            for (b, rb) in &strips[i + 1..] {
+                if ra[0] < rb[1] && rb[0] < ra[1] {
+                    return Err(format!(
+                        "geometry.{a} = [{}, {}) and geometry.{b} = [{}, {}) overlap",
+                        ra[0], ra[1], rb[0], rb[1]
+                    ));
+                }
+            }
+        }
+        Ok(())
     }
 }
 
@@ -574,13 +678,8 @@ impl Profile {
             })
         };
         let g = &self.geometry;
-        for (name, r) in g.strips() {
-            if r[0] >= r[1] || r[1] > g.ny {
-                return err(format!(
-                    "geometry.{name} = [{}, {}) is not inside 0..{}",
-                    r[0], r[1], g.ny
-                ));
-            }
+        if let Err(reason) = g.check() {
+            return err(reason);
         }
         if !(g.pixscale_arcsec > 0.0) {
             return err(format!("geometry.pixscale_arcsec = {} must be > 0", g.pixscale_arcsec));
@@ -990,6 +1089,91 @@ mod tests {
             assert_eq!(g.beam_of_row(y), want, "row {y}");
             assert_eq!(g.row_in_strip(y), want.is_some(), "row {y}");
         }
+    }
+
+    /// Without a focal mask every row sees sky and no row has a beam of its own; the
+    /// target's rows are the whole detector; the pointing centres the pair of images; the
+    /// e image of any position is at the offset vector. With the mask, nothing changes.
+    #[test]
+    fn geometry_without_a_mask_answers_for_the_whole_detector() {
+        let p = Profile::sofi()
+            .with_overrides(&[
+                "geometry.mask=false".into(),
+                "geometry.nx=512".into(),
+                "geometry.ny=400".into(),
+                "geometry.eo_offset_px=[24.0, -19.0]".into(),
+            ])
+            .unwrap();
+        let g = &p.geometry;
+        assert!(!g.has_mask());
+        assert_eq!(g.strips(), vec![(WHOLE_DETECTOR, [0, 400])]);
+        assert!((0..400).all(|y| g.row_in_strip(y) && g.beam_of_row(y).is_none()));
+        assert!(!g.row_in_strip(400));
+        assert_eq!(g.target_rows(Beam::Ordinary), [0, 400]);
+        assert_eq!(g.target_rows(Beam::Extraordinary), [0, 400]);
+        assert_eq!(g.measured_rows(), [0, 400]);
+        assert_eq!(g.lit_rows_end(), 400);
+        // The pair (o at the pointing, e at the pointing + offset) is centred on the
+        // detector's centre ((nx - 1)/2, (ny - 1)/2).
+        let (x, y) = g.pointing_px();
+        let (xe, ye) = g.e_image_of((x, y));
+        assert_eq!(((x + xe) / 2.0, (y + ye) / 2.0), (255.5, 199.5));
+        // The mask's keys are not written when the mask is there (SOFI's profile text and
+        // anything serialized from it unchanged), and are when it is not.
+        let sofi = toml::to_string(&Profile::sofi()).unwrap();
+        assert!(!sofi.contains("mask"), "{sofi}");
+        assert!(toml::to_string(&p).unwrap().contains("mask = false"));
+        let s = Profile::sofi();
+        assert_eq!(s.geometry.pointing_px(), (512.0, 428.0));
+    }
+
+    /// Hostile geometries are refused naming the key and the value.
+    #[test]
+    fn hostile_geometry_is_refused_by_key_and_value() {
+        for (sets, want) in [
+            (
+                vec!["geometry.eo_offset_px=[0.0, 1024.0]"],
+                "geometry.eo_offset_px[1] = 1024",
+            ),
+            (
+                vec!["geometry.eo_offset_px=[-2000.0, 1.0]"],
+                "geometry.eo_offset_px[0] = -2000",
+            ),
+            (
+                vec!["geometry.mask=false", "geometry.eo_offset_px=[0.5, 1.0]"],
+                "geometry.eo_offset_px = [0.5, 1]",
+            ),
+            (
+                vec![
+                    "geometry.mask=false",
+                    "geometry.nx=64",
+                    "geometry.eo_offset_px=[80.0, 0.0]",
+                ],
+                "geometry.eo_offset_px[0] = 80",
+            ),
+            (
+                vec!["geometry.o_target=[300, 520]"],
+                "geometry.e_sky2 = [178, 345) and geometry.o_target = [300, 520) overlap",
+            ),
+            (vec!["geometry.e_sky1=[846, 1100]"], "geometry.e_sky1 = [846, 1100)"),
+            (vec!["geometry.mask=1"], "mask"),
+        ] {
+            let sets: Vec<String> = sets.into_iter().map(String::from).collect();
+            let e = Profile::sofi()
+                .with_overrides(&sets)
+                .expect_err(&sets.join(" "))
+                .to_string();
+            assert!(e.contains(want), "{sets:?}: {e}");
+        }
+        // Without a mask the strip keys are not read: strips beyond a small detector pass.
+        let p = Profile::sofi()
+            .with_overrides(&[
+                "geometry.mask=false".into(),
+                "geometry.ny=256".into(),
+                "geometry.eo_offset_px=[10.0, 10.0]".into(),
+            ])
+            .unwrap();
+        assert_eq!(p.geometry.lit_rows_end(), 256);
     }
 
     #[test]

@@ -12,7 +12,7 @@ const UNKNOWN: u8 = 2;
 /// a pixel is not used.
 struct Layout<'a> {
     shape: (usize, usize),
-    strips: [(&'a str, [usize; 2]); 6],
+    strips: Vec<(&'a str, [usize; 2])>,
     strip_of: Vec<Option<usize>>,
     sat: f32,
 }
@@ -462,7 +462,7 @@ mod tests {
             .collect();
         let lay = Layout {
             shape: (ny, nx),
-            strips: STRIPS,
+            strips: STRIPS.to_vec(),
             strip_of,
             sat: 5e5,
         };

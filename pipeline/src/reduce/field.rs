@@ -8,7 +8,8 @@
 //!    An o-strip peak is a star when an e-strip peak lies at the measured e-o offset
 //!    (within [`PAIR_TOL_PX`]) with a similar flux (|o - e|/(o + e) <= [`PAIR_MAX_F`]):
 //!    never the nearest peak alone. Peaks within [`COMPONENT_FWHM`] FWHM of A or B are
-//!    the binary's own images and are never field stars.
+//!    the binary's own images and are never field stars (without a focal mask, where the
+//!    "strips" are the whole detector, nor are peaks that close to A's or B's e image).
 //! 2. The orientations' detections are put on the sky (separation and PA from A, as the
 //!    companion's) and merged within [`GROUP_TOL_PX`]: one star, one sky position.
 //! 3. Measurement, in every dither of every orientation, at the star's sky position carried
@@ -80,6 +81,8 @@ struct Strips {
     o: [usize; 2],
     e: [usize; 2],
     nx: usize,
+    /// No focal mask: both images of every source on the whole detector.
+    unmasked: bool,
 }
 
 impl Strips {
@@ -108,6 +111,7 @@ pub fn measure_field_stars(
         o: g.target_rows(Beam::Ordinary),
         e: g.target_rows(Beam::Extraordinary),
         nx,
+        unmasked: !g.has_mask(),
     };
     // B's sky position from A (arcsec east, north), when found.
     let b_en = companion.geometry.map(|(sep, pa)| en_of(sep, pa));
@@ -555,6 +559,12 @@ fn detect_orientation(
         let (sep, pa) = sep_pa_of(b);
         let d = companion_offset_px(sep, pa, o.posang_deg, scale);
         components.push((a.0 + d.0, a.1 + d.1));
+    }
+    if strips.unmasked {
+        // Without a focal mask the components' e images lie among the o peaks too: they
+        // are the binary's own images, never field stars.
+        let eo = setup.eo_px;
+        components.extend(components.clone().iter().map(|c| (c.0 + eo.0, c.1 + eo.1)));
     }
     let own = (COMPONENT_FWHM * fwhm).max(3.0);
     let mut order: Vec<&Peak> = op.iter().collect();

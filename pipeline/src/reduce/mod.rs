@@ -164,7 +164,14 @@ pub fn measure_sequence(
     let primary = sources::locate_primary(orients, &masks, profile, params)?;
     flags.extend(primary.flags.iter().cloned());
     let eo = beams::measure_eo_offset(orients, &primary, &masks, profile, &mut flags)?;
-    let companion = companion::find_companion(orients, &primary, &masks, profile, params, &mut flags);
+    // Without a focal mask the companion is searched on the pair images too: B's e image,
+    // as bright as B, may lie within the companion search radius of A.
+    let companion = if profile.geometry.has_mask() {
+        companion::find_companion(orients, &primary, &masks, profile, params, &mut flags)
+    } else {
+        let (pairs, pair_masks) = sources::pair_images(orients, &masks, eo);
+        companion::find_companion(&pairs, &primary, &pair_masks, profile, params, &mut flags)
+    };
     let choice = fluxes::choose_psf(&companion, primary.fwhm_guess, scale, params);
     let setup = fluxes::FluxSetup {
         choice: &choice,

@@ -259,7 +259,95 @@ pub fn unusable_masks(orients: &[SkySubtractedOrientation]) -> Vec<Vec<Array2<u8
 /// centre (brightest peak near the header position) carried by the header offsets and
 /// refined by a centroid. Picking the brightest peak in every frame would jump between the
 /// components of a near-equal pair.
+///
+/// Without a focal mask both images of every source lie on the detector, the target's e
+/// image within the search radius of its o image and as bright: the search then runs on
+/// the pair images ([`pair_images`]), where only the o image of a source holds both of its
+/// images, and the centres are refined on the frames themselves.
 pub fn locate_primary(
+    orients: &[SkySubtractedOrientation],
+    masks: &[Vec<Array2<u8>>],
+    profile: &Profile,
+    params: &MeasureParams,
+) -> Result<Primary, MeasureError> {
+    let g = &profile.geometry;
+    if g.has_mask() {
+        return locate_primary_in(orients, masks, profile, params);
+    }
+    let (pairs, pair_masks) = pair_images(orients, masks, (g.eo_offset_px[0], g.eo_offset_px[1]));
+    let mut primary = locate_primary_in(&pairs, &pair_masks, profile, params)?;
+    for ((cs, o), ms) in primary.centres.iter_mut().zip(orients).zip(masks) {
+        for ((c, f), m) in cs.iter_mut().zip(&o.frames).zip(ms) {
+            if let Some(xy) = c {
+                let fwhm = primary.fwhm_guess;
+                *xy = refine(f.data.view(), m.view(), xy.0, xy.1, fwhm, 2.0).unwrap_or(*xy);
+            }
+        }
+    }
+    Ok(primary)
+}
+
+/// The pair images of the frames for a beam offset `eo` (e image minus o image, px): at
+/// every pixel p the sum of the frame at p and at p + eo (rounded to whole pixels), the
+/// variance summed alike, unusable where either pixel is (or p + eo is off the frame).
+/// A source's o image then holds both of its images, its e image one only and the point
+/// `eo` before its o image the o image alone: the brightest point of a source in the pair
+/// image is its o image, whatever the source's polarization, while in the frame the e
+/// image of a star (as bright as its o image, `eo` away) could be taken for it.
+pub fn pair_images(
+    orients: &[SkySubtractedOrientation],
+    masks: &[Vec<Array2<u8>>],
+    eo: (f64, f64),
+) -> (Vec<SkySubtractedOrientation>, Vec<Vec<Array2<u8>>>) {
+    let (dx, dy) = (eo.0.round() as i64, eo.1.round() as i64);
+    let mut out_masks = Vec::with_capacity(masks.len());
+    let pairs = orients
+        .iter()
+        .zip(masks)
+        .map(|(o, ms)| {
+            let mut frames = Vec::with_capacity(o.frames.len());
+            let mut pms = Vec::with_capacity(ms.len());
+            for (f, m) in o.frames.iter().zip(ms) {
+                let (ny, nx) = f.shape();
+                let mut data = f.data.clone();
+                let mut var = f.variance.clone();
+                let mut pm = m.clone();
+                for y in 0..ny {
+                    let ye = y as i64 + dy;
+                    for x in 0..nx {
+                        let xe = x as i64 + dx;
+                        if ye < 0 || xe < 0 || ye >= ny as i64 || xe >= nx as i64 {
+                            pm[[y, x]] = 1;
+                            continue;
+                        }
+                        let (ye, xe) = (ye as usize, xe as usize);
+                        data[[y, x]] += f.data[[ye, xe]];
+                        if let (Some(v), Some(v0)) = (var.as_mut(), f.variance.as_ref()) {
+                            v[[y, x]] += v0[[ye, xe]];
+                        }
+                        pm[[y, x]] |= m[[ye, xe]];
+                    }
+                }
+                let mut pf = Frame::new(data, f.header.clone());
+                pf.variance = var;
+                pf.mask = f.mask.clone();
+                frames.push(pf);
+                pms.push(pm);
+            }
+            out_masks.push(pms);
+            SkySubtractedOrientation {
+                posang_deg: o.posang_deg,
+                analyzer_deg: o.analyzer_deg,
+                frames,
+                offsets: o.offsets.clone(),
+            }
+        })
+        .collect();
+    (pairs, out_masks)
+}
+
+/// [`locate_primary`] on frames where the target's brightest point is its o image.
+fn locate_primary_in(
     orients: &[SkySubtractedOrientation],
     masks: &[Vec<Array2<u8>>],
     profile: &Profile,
@@ -284,7 +372,11 @@ pub fn locate_primary(
         Some(xy) => xy,
         None => {
             // The pointing: where the telescope puts the target at zero jitter offset.
-            let pointing = (nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5);
+            let pointing = if g.has_mask() {
+                (nx as f64 / 2.0, (orow[0] + orow[1]) as f64 / 2.0 - 0.5)
+            } else {
+                g.pointing_px()
+            };
             let found = target_at_zero_offset(o0, &masks[0], orow, pointing, reach, params.primary_search_px);
             if let Some(b) = found.brighter {
                 search_px = search_px.min(0.5 * (b.xy.0 - found.xy.0).hypot(b.xy.1 - found.xy.1));
@@ -599,4 +691,57 @@ fn centres_in_orientation(
         cs.push(c);
     }
     cs
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A star whose o image (at (40, 30)) is fainter than its e image (at (40, 30) + (17,
+    /// -9): 40 % polarized) and an unrelated star brighter than the o image: on the frame
+    /// the brightest point near the o image is not the o image, on the pair image it is
+    /// (o + e there, e alone at the e image, the other star alone at its place). Each pixel
+    /// sums its partner's value and variance and is unusable where its partner is, or where
+    /// the partner is off the frame.
+    #[test]
+    fn the_pair_image_peaks_at_the_o_image() {
+        let (ny, nx) = (64, 96);
+        let eo = (17.0, -9.0);
+        let star = |x0: f64, y0: f64, f: f32| {
+            Array2::from_shape_fn((ny, nx), |(y, x)| {
+                let r2 = (x as f64 - x0).powi(2) + (y as f64 - y0).powi(2);
+                f * (-r2 / (2.0 * 1.5f64.powi(2))).exp() as f32
+            })
+        };
+        let data = star(40.0, 30.0, 30.0) + star(57.0, 21.0, 70.0) + star(50.0, 40.0, 60.0);
+        let mut f = Frame::new(data, sofipol_calib::header::Header::new("t.fits"));
+        f.variance = Some(Array2::from_elem((ny, nx), 1.0));
+        let mut m = Array2::<u8>::zeros((ny, nx));
+        m[[21, 57]] = 1; // a bad pixel at the e image's centre
+        let o = SkySubtractedOrientation {
+            posang_deg: 0.0,
+            analyzer_deg: 0.0,
+            frames: vec![f],
+            offsets: vec![[0.0, 0.0]],
+        };
+        let on_frame = brightest_peak(o.frames[0].data.view(), m.view(), 45.0, 30.0, 20.0, [0, ny]).unwrap();
+        assert_ne!((on_frame.0, on_frame.1), (40.0, 30.0));
+        let (pairs, pms) = pair_images(std::slice::from_ref(&o), &[vec![m.clone()]], eo);
+        let p = &pairs[0].frames[0];
+        let pm = &pms[0][0];
+        let best = brightest_peak(p.data.view(), pm.view(), 45.0, 30.0, 20.0, [0, ny]).unwrap();
+        assert_eq!((best.0, best.1), (40.0, 30.0), "{best:?}");
+        // Sum, variance and mask of each pixel and its partner.
+        assert_eq!(
+            p.data[[30, 40]],
+            o.frames[0].data[[30, 40]] + o.frames[0].data[[21, 57]]
+        );
+        assert_eq!(p.variance.as_ref().unwrap()[[30, 40]], 2.0);
+        assert_eq!(pm[[30, 40]], 1, "the partner's bad pixel");
+        assert_eq!(pm[[30, 41]], 0);
+        // Partners off the frame: columns x + 17 >= nx, rows y - 9 < 0.
+        assert!((0..ny).all(|y| pm[[y, nx - 17]] == 1));
+        assert!((0..nx).all(|x| pm[[8, x]] == 1));
+        assert_eq!(pm[[9, nx - 18]], 0);
+    }
 }

@@ -245,9 +245,14 @@ pub fn telescope_polarization(calls: &EffectCalls, c: &TelescopePolConfig, eta_d
 /// The sky seen through the polarizing telescope: the sky already in `img` (uniform in o
 /// and e) becomes `sky (1 + F_tel)` in the o strips and `sky (1 - F_tel)` in the e strips,
 /// `F_tel = q_tel cos 2phi + u_tel sin 2phi` ([`crate::stokes::model::normalized_difference`]);
-/// rows outside the strips are left as they are.
+/// rows outside the strips are left as they are. Without a focal mask every pixel receives
+/// both beams' sky, whose sum the telescope's polarization does not change: nothing to do.
 pub fn telescope_polarization_sky(calls: &EffectCalls, img: &mut Array2<f32>, g: &Geometry, f_tel: f64) {
     calls.hit(EffectKind::TelescopePolarization);
+    if !g.has_mask() {
+        // Every pixel sees the sky through both beams: sky (1 + F)/2 + sky (1 - F)/2.
+        return;
+    }
     for (name, rows) in g.strips() {
         let factor = if name.starts_with("o_") {
             1.0 + f_tel

@@ -242,15 +242,12 @@ impl Simulator {
 }
 
 /// A's ordinary image (x, y) at zero offset, px: the binary's `x_px`, `y_px`, else the
-/// detector's centre column and the middle of the o-target strip.
+/// profile's pointing ([`sofipol_calib::profile::Geometry::pointing_px`]: the detector's
+/// centre column and the middle of the o-target strip, or without a focal mask the point
+/// that centres the pair of images).
 pub(crate) fn primary_xy(b: &Binary, g: &sofipol_calib::profile::Geometry) -> [f64; 2] {
-    [
-        b.x_px.unwrap_or(g.nx as f64 / 2.0),
-        b.y_px.unwrap_or({
-            let o_rows = g.target_rows(sofipol_calib::profile::Beam::Ordinary);
-            (o_rows[0] + o_rows[1]) as f64 / 2.0 - 0.5
-        }),
-    ]
+    let (x, y) = g.pointing_px();
+    [b.x_px.unwrap_or(x), b.y_px.unwrap_or(y)]
 }
 
 /// B's offset from A on the detector at rotator angle `posang`, px.

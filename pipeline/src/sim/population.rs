@@ -41,7 +41,11 @@ pub fn expected_count(c: &FieldPopulationConfig, g: &Geometry) -> f64 {
         * (10f64.powf(s * (c.k_max_mag - c.k_ref_mag)) - 10f64.powf(s * (c.k_min_mag - c.k_ref_mag)))
 }
 
+/// The rows whose sky the o images see: the o strips, or every row without a focal mask.
 fn o_strips(g: &Geometry) -> Vec<[usize; 2]> {
+    if !g.has_mask() {
+        return vec![[0, g.ny]];
+    }
     g.strips()
         .into_iter()
         .filter(|(n, r)| n.starts_with("o_") && r[1] > r[0])
@@ -118,6 +122,16 @@ pub fn draw(
         let scale = g.pixscale_arcsec;
         let near = |ox: f64, oy: f64| (dx - ox).hypot(dy - oy) * scale < c.exclude_arcsec;
         if near(0.0, 0.0) || near(at.b_off[0], at.b_off[1]) {
+            continue;
+        }
+        // Without a focal mask a star's e image can land on A's or B's o image and its o
+        // image on their e images (offset d = the e-o offset). The sky turns about A with
+        // the rotator while d stays fixed on the detector, so at some rotator angle it does
+        // when the star's distance from A or from B is within `exclude_arcsec` of |d|: no
+        // star there.
+        let d = g.eo_offset_px[0].hypot(g.eo_offset_px[1]);
+        let ring = |ox: f64, oy: f64| ((dx - ox).hypot(dy - oy) - d).abs() * scale < c.exclude_arcsec;
+        if !g.has_mask() && (ring(0.0, 0.0) || ring(at.b_off[0], at.b_off[1])) {
             continue;
         }
         let (sep, pa) = offset_to_sep_pa(dx, dy, at.posang_deg, scale);
