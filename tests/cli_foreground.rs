@@ -11,8 +11,9 @@
 //! - the usable field stars' q and u pulls (measurement errors) have an rms in [0.9, 1.1]
 //!   and a mean within 4 standard errors of 0;
 //! - the foreground at each binary, (estimate - the field at A) / sigma in q and u, has an
-//!   rms within 3 standard deviations of the rms of as many unit normals
-//!   (|rms - 1| <= 3 / sqrt(2 n)) and inside [0.8, 1.2];
+//!   rms no larger than 1 + 3 standard deviations of the rms of as many unit normals
+//!   (1 + 3 / sqrt(2 n)) and at least 0.5: the covariance is not understated (it is an upper
+//!   bound for a correlated field, src/foreground.rs);
 //! - the binaries' |Delta-gamma| after the foreground's subtraction minus the intrinsic one
 //!   (the scene's) has a mean within 3 standard errors of 0, whereas without the
 //!   subtraction its mean is below 0 by more than 5 standard errors: the foreground's
@@ -20,7 +21,8 @@
 //!
 //! The CI version runs 8 nights; `SOFIPOL_FG_NIGHTS=N` runs N (the figures of
 //! docs/accuracy.md are from 24), and `SOFIPOL_FG_EFFECTS="flat_field cosmic_rays ..."`
-//! adds simulator effects to every night.
+//! adds simulator effects to every night (`bitpix16`: the frames written as 16-bit
+//! integers, `[observation] bitpix = 16`).
 
 use serde_json::Value;
 
@@ -37,7 +39,7 @@ const STANDARDS: [(&str, f64, f64); 3] = [
     ("HD 154445", 0.0068, 88.8),
 ];
 
-/// Standard normal draws (xorshift64* and Box-Muller), reproducible from a seed.
+/// Uniform draws (xorshift64*), reproducible from a seed.
 struct Rng(u64);
 
 impl Rng {
@@ -49,11 +51,10 @@ impl Rng {
     }
 }
 
-/// A binary of the scene: name, p_a, gamma_a, p_b, gamma_b (intrinsic), RA, Dec.
+/// A binary of the scene: its name and its components' intrinsic gamma (deg).
 #[derive(Clone, Debug)]
 struct Binary {
     name: String,
-    p: [f64; 2],
     gamma: [f64; 2],
 }
 
@@ -63,12 +64,18 @@ fn fold(a: f64, b: f64) -> f64 {
     d.min(180.0 - d)
 }
 
-/// The night of `seed`: its scene text and its binaries. Intrinsic polarizations 2-4 % with
-/// a Delta-gamma of 30-60 deg (away from the fold's ends at 0 and 90), a foreground of 2 %
-/// at 60 deg varying by 0.4 % rms in q and u on a 90" scale.
+/// The night of `seed`: its scene text and its binaries. Intrinsic polarizations 1.5-3 %
+/// with a Delta-gamma of 30-60 deg (away from the fold's ends at 0 and 90), a foreground of
+/// 3 % at 60 deg varying by 0.4 % rms in q and u on a 90" scale. The field stars have
+/// 12 <= K < 18 (A is K = 11.9: no field star is taken for the binary's primary).
 fn scene(seed: u64, effects: &[String]) -> (String, Vec<Binary>) {
     let mut rng = Rng(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1);
-    let extra: String = effects.iter().map(|e| format!(", \"{e}\"")).collect();
+    let bitpix16 = effects.iter().any(|e| e == "bitpix16");
+    let extra: String = effects
+        .iter()
+        .filter(|e| *e != "bitpix16")
+        .map(|e| format!(", \"{e}\""))
+        .collect();
     let mut s = format!(
         r#"name = "fg"
 seed = {seed}
@@ -76,25 +83,27 @@ effects = ["psf", "sky", "strips", "photon_noise", "read_noise", "saturation", "
 [observation]
 dithers = 5
 dit_s = 10.0
-zero_point_mag = 22.3
+zero_point_mag = 22.3{}
 [psf]
 kind = "moffat"
 fwhm_arcsec = 0.8
 [foreground_field]
-p = 0.02
+p = 0.03
 angle_deg = 60.0
 rms = 0.004
 coherence_arcsec = 90.0
 [field_population]
 density_per_arcmin2 = 1.0
-"#
+k_min_mag = 12.0
+"#,
+        if bitpix16 { "\nbitpix = 16" } else { "" }
     );
     let mut binaries = Vec::new();
     for t in 0..BINARIES {
         let ga = 180.0 * rng.uniform();
         let dg = (30.0 + 30.0 * rng.uniform()) * if rng.uniform() < 0.5 { 1.0 } else { -1.0 };
         let gb = (ga + dg).rem_euclid(180.0);
-        let p = [0.02 + 0.02 * rng.uniform(), 0.02 + 0.02 * rng.uniform()];
+        let p = [0.015 + 0.015 * rng.uniform(), 0.015 + 0.015 * rng.uniform()];
         let name = format!("T{t}");
         s += &format!(
             "[[binary]]\nname = \"{name}\"\nseparation_arcsec = {}\npa_deg = {}\nflux_a = 150000.0\nflux_b = 100000.0\n\
@@ -105,11 +114,7 @@ density_per_arcmin2 = 1.0
             p[1],
             100.0 + 0.5 * t as f64,
         );
-        binaries.push(Binary {
-            name,
-            p,
-            gamma: [ga, gb],
-        });
+        binaries.push(Binary { name, gamma: [ga, gb] });
     }
     for (k, (name, p, gamma)) in STANDARDS.into_iter().enumerate() {
         s += &format!(
@@ -159,13 +164,17 @@ struct Pooled {
 }
 
 fn nights(n: u64, effects: &[String]) -> Pooled {
-    let dir = tempfile::tempdir().unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    // SOFIPOL_FG_DIR keeps the nights' frames and catalogs there, to look at.
+    let kept = std::env::var("SOFIPOL_FG_DIR").ok().map(std::path::PathBuf::from);
+    let dir = kept.as_deref().unwrap_or(tmp.path());
+    std::fs::create_dir_all(dir).unwrap();
     let mut out = Pooled::default();
     for seed in 1..=n {
         let (text, binaries) = scene(seed, effects);
-        let scene_path = dir.path().join(format!("s{seed}.toml"));
+        let scene_path = dir.join(format!("s{seed}.toml"));
         std::fs::write(&scene_path, text).unwrap();
-        let raw = dir.path().join(format!("s{seed}_raw"));
+        let raw = dir.join(format!("s{seed}_raw"));
         let (code, _, err) = run(&[
             "simulate",
             scene_path.to_str().unwrap(),
@@ -174,7 +183,7 @@ fn nights(n: u64, effects: &[String]) -> Pooled {
             "-q",
         ]);
         assert_eq!(code, 0, "simulate seed {seed}: {err}");
-        let cat_path = dir.path().join(format!("s{seed}.json"));
+        let cat_path = dir.join(format!("s{seed}.json"));
         let (code, stdout, err) = run(&[
             "night",
             raw.to_str().unwrap(),
@@ -186,7 +195,10 @@ fn nights(n: u64, effects: &[String]) -> Pooled {
             "--set",
             "telescope.polarizes=false",
         ]);
-        assert!(code == 0 || code == 2, "night seed {seed}: exit {code}\n{stdout}\n{err}");
+        assert!(
+            code == 0 || code == 2,
+            "night seed {seed}: exit {code}\n{stdout}\n{err}"
+        );
         let cat = json(&cat_path);
         let truth = json(&raw.join("truth.json"));
         assert!(
@@ -197,6 +209,12 @@ fn nights(n: u64, effects: &[String]) -> Pooled {
             out.n_binaries += 1;
             let tg = by_name(&cat["targets"], "object", &b.name);
             let tt = by_name(&truth["targets"], "object", &b.name);
+            let both = tg["components"].as_array().map(Vec::len) == Some(2);
+            assert!(
+                both,
+                "seed {seed} {}: the binary was not found: {}",
+                b.name, tg["flags"]
+            );
             // Field stars: matched to the truth's by separation and PA from A (1.5").
             let truth_stars = tt["field_stars"].as_array().cloned().unwrap_or_default();
             for f in tg["field_stars"].as_array().into_iter().flatten() {
@@ -311,12 +329,17 @@ fn the_foreground_at_the_binary_and_its_subtraction_are_honest_end_to_end() {
     assert!(nfs >= 200, "only {nfs} field-star pulls");
     assert!((0.9..=1.1).contains(&rfs), "field-star pull rms {rfs:.3} (n = {nfs})");
     assert!(mfs.abs() <= 4.0 * sefs, "field-star pull mean {mfs:.3} +- {sefs:.3}");
-    // The rms of n unit normals has a standard deviation of 1/sqrt(2 n) (0.08 at 80 pulls).
+    // The rms of n unit normals has a standard deviation of 1/sqrt(2 n) (0.07 at 94 pulls).
+    // The prediction covariance (error of the mean + E[tau^2]) is an upper bound for a
+    // field correlated over the strip with the binary at its centre (src/foreground.rs,
+    // "The prediction at the binary"): the pulls must not be wider than unit normals'
+    // (the error understated), and the bound not loose by more than a factor 2.
     let tol = 3.0 / (2.0 * nfg as f64).sqrt();
     assert!(nfg >= 60, "only {nfg} foreground pulls");
     assert!(
-        (rfg - 1.0).abs() <= tol && (0.8..=1.2).contains(&rfg),
-        "foreground pull rms {rfg:.3} (n = {nfg}, tolerance {tol:.3})"
+        rfg <= 1.0 + tol && rfg >= 0.5,
+        "foreground pull rms {rfg:.3} (n = {nfg}, upper limit {:.3})",
+        1.0 + tol
     );
     assert!(ndc * 2 >= nfg / 2, "only {ndc} Delta-gammas");
     assert!(

@@ -665,7 +665,10 @@ fn field_through_the_sky(
         let sigma = 0.001 * 10f64.powf(rng.random::<f64>());
         let mut y = [f.q + sigma * gauss(rng), f.u + sigma * gauss(rng)];
         if rng.random::<f64>() < 0.1 {
-            let (p, a) = (0.02 + 0.08 * rng.random::<f64>(), std::f64::consts::PI * rng.random::<f64>());
+            let (p, a) = (
+                0.02 + 0.08 * rng.random::<f64>(),
+                std::f64::consts::PI * rng.random::<f64>(),
+            );
             y[0] += p * (2.0 * a).cos();
             y[1] += p * (2.0 * a).sin();
         }
@@ -729,18 +732,22 @@ fn rms_of(v: &[f64]) -> f64 {
 }
 
 /// The prediction at the binary against the simulator's own foreground field (a Gaussian
-/// random field with a coherence scale; the stars in the SOFI target strip about the binary,
-/// each field its own draw): the pulls with the reported covariance (error of the mean +
-/// E[tau^2]) have an rms in [0.9, 1.1] for a coherence scale of 90" (the example scene's) and
-/// are conservative, never optimistic (rms <= 1.1), from 20" to 600"; with the error of the
-/// mean alone they are far too wide (rms > 1.5 at 90"): the field's own scatter between the
-/// stars' places and the binary's is the larger term and must be in the covariance.
+/// random field of rms 0.3 % in q and u, within the prior's bound; the stars in the SOFI
+/// target strip about the binary; each draw its own field). The reported covariance (error
+/// of the mean + E[tau^2]) is exact when the field's places are independent and an upper
+/// bound when they are correlated (module doc, "The prediction at the binary"): at a
+/// coherence scale of 20" (nearly independent places 10-150" apart) the pulls have an rms in
+/// [0.85, 1.15]; at 90" and 600" they are never wider than that (conservative). With the
+/// error of the mean alone they are far too wide (rms > 1.3) at 20" and 90": the field's own
+/// scatter between the stars' places and the binary's must be in the covariance.
 #[test]
 fn pulls_at_the_binary_through_the_simulators_random_field() {
-    let rms_field: f64 = std::env::var("FG_RMS").ok().and_then(|s| s.parse().ok()).unwrap_or(0.004);
+    let rms_field = 0.003;
     let mut failures = Vec::new();
     for (coherence, draws) in [(20.0, 600), (90.0, 1500), (600.0, 600)] {
-        let (p, m) = sky_pulls(draws, 11, &[(RA, DEC)], |i| sky_field(rms_field, coherence, 1000 + i as u64));
+        let (p, m) = sky_pulls(draws, 11, &[(RA, DEC)], |i| {
+            sky_field(rms_field, coherence, 1000 + i as u64)
+        });
         let (r, rm) = (rms_of(&p), rms_of(&m));
         eprintln!(
             "coherence {coherence}\": {} pulls, rms {r:.3} (error of the mean alone: {rm:.3})",
@@ -749,36 +756,17 @@ fn pulls_at_the_binary_through_the_simulators_random_field() {
         if p.len() <= draws {
             failures.push(format!("coherence {coherence}\": too few estimates: {}", p.len()));
         }
-        if r > 1.1 {
-            failures.push(format!("coherence {coherence}\": pull rms {r:.3}"));
+        if r > 1.15 {
+            failures.push(format!("coherence {coherence}\": pull rms {r:.3} (optimistic)"));
         }
-        if coherence == 90.0 && !(0.9..=1.1).contains(&r) {
-            failures.push(format!("coherence 90\": pull rms {r:.3}"));
+        if coherence == 20.0 && r < 0.85 {
+            failures.push(format!("coherence 20\": pull rms {r:.3} (too conservative)"));
         }
-        if coherence == 90.0 && rm <= 1.5 {
-            failures.push(format!("coherence 90\": error of the mean alone: pull rms {rm:.3}"));
+        if coherence < 100.0 && rm <= 1.3 {
+            failures.push(format!(
+                "coherence {coherence}\": error of the mean alone: pull rms {rm:.3}"
+            ));
         }
     }
     assert!(failures.is_empty(), "{failures:?}");
-}
-
-/// One realisation of the field shared by every night (the example scene's
-/// `[foreground_field] seed`), two binaries 111" apart (the example's places): the pulls of
-/// 8 nights are two clusters, not 16 independent draws. Over many such 8-night sets each
-/// with its own field, the pooled rms of a set scatters far more than that of 22-32
-/// independent unit normals (standard deviation about 0.13); a set's 1.24 is common.
-#[test]
-fn a_field_shared_by_all_nights_makes_the_pooled_rms_of_8_nights_scatter_widely() {
-    let places = [(167.00, -77.20), (167.03, -77.23)];
-    let mut set_rms = Vec::new();
-    for set in 0..60u64 {
-        let (p, _) = sky_pulls(8, 500 + set, &places, |_| sky_field(0.004, 90.0, 7000 + set));
-        set_rms.push(rms_of(&p));
-    }
-    let n = set_rms.len() as f64;
-    let mean = set_rms.iter().sum::<f64>() / n;
-    let sd = (set_rms.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
-    let above = set_rms.iter().filter(|r| **r >= 1.24).count();
-    eprintln!("60 sets of 8 nights sharing one field: pooled rms mean {mean:.3}, sd {sd:.3}, {above} of 60 at or above 1.24");
-    assert!(sd > 0.2, "sd of the sets' rms {sd:.3}");
 }
