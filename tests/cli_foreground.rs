@@ -13,16 +13,16 @@
 //! - the foreground at each binary, (estimate - the field at A) / sigma in q and u, has an
 //!   rms no larger than 1 + 3 standard deviations of the rms of as many unit normals
 //!   (1 + 3 / sqrt(2 n)) and at least 0.5: the covariance is not understated (it is an upper
-//!   bound for a correlated field, src/foreground.rs);
+//!   bound for a correlated field, pipeline/src/foreground.rs);
 //! - the binaries' |Delta-gamma| after the foreground's subtraction minus the intrinsic one
 //!   (the scene's) has a mean within 3 standard errors of 0, whereas without the
 //!   subtraction its mean is below 0 by more than 5 standard errors: the foreground's
 //!   fake alignment, removed.
 //!
-//! The CI version runs 8 nights; `SOFIPOL_FG_NIGHTS=N` runs N (the figures of
-//! docs/accuracy.md are from 24), and `SOFIPOL_FG_EFFECTS="flat_field cosmic_rays ..."`
-//! adds simulator effects to every night (`bitpix16`: the frames written as 16-bit
-//! integers, `[observation] bitpix = 16`).
+//! The test runs 8 nights (seeds 1-8, the figures of docs/accuracy.md; about 1.5 min on 2
+//! cores); `SOFIPOL_FG_NIGHTS=N` runs N, `SOFIPOL_FG_DIR=DIR` keeps the nights there, and
+//! `SOFIPOL_FG_EFFECTS="flat_field cosmic_rays ..."` adds simulator effects to every night
+//! (`bitpix16`: the frames written as 16-bit integers, `[observation] bitpix = 16`).
 
 use serde_json::Value;
 
@@ -201,6 +201,10 @@ fn nights(n: u64, effects: &[String]) -> Pooled {
         );
         let cat = json(&cat_path);
         let truth = json(&raw.join("truth.json"));
+        if kept.is_none() {
+            // A night's frames are ~360 MB: only its catalog and truth are needed from here.
+            std::fs::remove_dir_all(&raw).unwrap();
+        }
         assert!(
             cat["calibration"]["calibration"].is_object(),
             "seed {seed}: the night has no calibration"
@@ -331,7 +335,7 @@ fn the_foreground_at_the_binary_and_its_subtraction_are_honest_end_to_end() {
     assert!(mfs.abs() <= 4.0 * sefs, "field-star pull mean {mfs:.3} +- {sefs:.3}");
     // The rms of n unit normals has a standard deviation of 1/sqrt(2 n) (0.07 at 94 pulls).
     // The prediction covariance (error of the mean + E[tau^2]) is an upper bound for a
-    // field correlated over the strip with the binary at its centre (src/foreground.rs,
+    // field correlated over the strip with the binary at its centre (pipeline/src/foreground.rs,
     // "The prediction at the binary"): the pulls must not be wider than unit normals'
     // (the error understated), and the bound not loose by more than a factor 2.
     let tol = 3.0 / (2.0 * nfg as f64).sqrt();

@@ -48,8 +48,8 @@
 //! V = sum_j w_j^2 S_j + sum_jk w_j w_k K(x_j, x_k) - 2 sum_j w_j K(x_j, x_b) + s^2.
 //! ```
 //!
-//! Independent places (K = tau^2 on the diagonal, 0 off it): V = sum_j w_j^2 (S_j + tau^2)
-//! + tau^2 = `C_mean + T`, what is reported. A correlated field: the stars' scatter
+//! Independent places (K = tau^2 on the diagonal, 0 off it):
+//! `V = sum_j w_j^2 (S_j + tau^2) + tau^2 = C_mean + T`, what is reported. A correlated field: the stars' scatter
 //! measures tau^2 = s^2 (1 - rho_s), rho_s the mean correlation between the stars' places,
 //! and for equal weights V - sum w^2 S = s^2 (1 - 2 rho_b + rho_s + (1 - rho_s)/n), rho_b the
 //! mean correlation between the binary's place and the stars'. A binary placed like one
@@ -454,7 +454,7 @@ fn robust_start(obs: &[Obs]) -> ([f64; 2], [f64; 2]) {
 }
 
 /// Typical intrinsic polarization of a young field star per q and u (a fraction): the width
-/// of the outliers' part of the start's mixture ([`best_start`]).
+/// of the outliers' part of the start's mixture (`best_start`).
 pub const OUTLIER_SCALE: f64 = 0.05;
 
 /// Share of intrinsically polarized stars the start's mixture assumes.
