@@ -1,5 +1,6 @@
 //! One science frame: its drawn parameters, the sources, what the detector does, the header.
 use ndarray::Array2;
+use sofipol_calib::profile::Beam;
 use sofipol_calib::{Frame, Header};
 
 use super::foreground::{offset_position, StarForeground};
@@ -335,8 +336,15 @@ impl Simulator {
             } else {
                 psf::MOFFAT_TAIL
             };
+            // The focal mask stands before the Wollaston prism: the light a slit lets
+            // through makes the o image in that slit's o strip and the e image in its e
+            // strip, and nothing else. A star behind a bar (its o image on an e strip's
+            // rows or between strips) leaves neither image, and a star at a slit's edge
+            // loses the same part of both. Without a mask nothing is blocked.
+            let strips = s.has(EffectKind::Strips) && g.has_mask();
+            let open_for = |beam: Beam| move |y: usize| !strips || g.beam_of_row(y) == Some(beam);
             let stamp_o = self.render(fp.psf, xo, yo, tail);
-            psf::add_stamp(&mut img, &stamp_o, fo);
+            psf::add_stamp_rows(&mut img, &stamp_o, fo, open_for(Beam::Ordinary));
             // The e image has the o image's sub-pixel phase when the beam offset is a
             // whole number of pixels (SOFI: 167 px): reuse the stamp.
             let (ox, oy) = (g.eo_offset_px[0], g.eo_offset_px[1]);
@@ -345,7 +353,7 @@ impl Simulator {
             } else {
                 self.render(fp.psf, xe, ye, tail)
             };
-            psf::add_stamp(&mut img, &stamp_e, fe);
+            psf::add_stamp_rows(&mut img, &stamp_e, fe, open_for(Beam::Extraordinary));
             sources.push(SourceTruth {
                 name,
                 o_xy: [xo, yo],

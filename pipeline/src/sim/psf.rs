@@ -272,12 +272,18 @@ impl Stamp {
 /// Add `flux * stamp` into `img` (pixels outside the image are dropped and returned as
 /// the lost flux).
 pub fn add_stamp(img: &mut Array2<f32>, stamp: &Stamp, flux: f64) -> f64 {
+    add_stamp_rows(img, stamp, flux, |_| true)
+}
+
+/// [`add_stamp`] on the rows `open` admits only: the light on the other rows is lost (a
+/// focal mask's bar). Returns the flux lost off the detector or on closed rows.
+pub fn add_stamp_rows(img: &mut Array2<f32>, stamp: &Stamp, flux: f64, open: impl Fn(usize) -> bool) -> f64 {
     let (ny, nx) = img.dim();
     let mut lost = 0.0;
     for ((j, i), &v) in stamp.values.indexed_iter() {
         let x = stamp.x0 + i as i64;
         let y = stamp.y0 + j as i64;
-        if x < 0 || y < 0 || x >= nx as i64 || y >= ny as i64 {
+        if x < 0 || y < 0 || x >= nx as i64 || y >= ny as i64 || !open(y as usize) {
             lost += flux * v;
             continue;
         }
