@@ -138,20 +138,32 @@ fn a_night_with_photometric_standards_gives_magnitudes_that_agree_with_the_truth
     }
     assert_eq!(pulls.len(), 4);
     // Field stars are measured like the components and get magnitudes alike.
-    let beta = cat["targets"].as_array().unwrap().iter().find(|t| t["object"] == "Beta").unwrap();
-    let fs = beta["field_stars"].as_array().unwrap_or_else(|| panic!("Beta: no field_stars: {beta}"));
+    let beta = cat["targets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|t| t["object"] == "Beta")
+        .unwrap();
+    let fs = beta["field_stars"]
+        .as_array()
+        .unwrap_or_else(|| panic!("Beta: no field_stars: {beta}"));
     let star = fs
         .iter()
         .find(|f| (f["separation_arcsec"].as_f64().unwrap() - FIELD_SEP).abs() < 1.0)
         .unwrap_or_else(|| panic!("the field star at {FIELD_SEP}\" not found: {fs:?}"));
     let truth_mag = ZP - 2.5 * (FIELD_FLUX / DIT_S).log10();
     let (m, sm) = (
-        star["mag"].as_f64().unwrap_or_else(|| panic!("field star: no mag: {star}")),
+        star["mag"]
+            .as_f64()
+            .unwrap_or_else(|| panic!("field star: no mag: {star}")),
         star["sigma_mag"].as_f64().unwrap(),
     );
     let pull = (m - truth_mag) / sm;
     println!("Beta field star: mag {m:.4} +- {sm:.4}, truth {truth_mag:.4}, pull {pull:+.2}");
-    assert!(sm >= zp_sigma && (m - truth_mag).abs() < 0.05, "field star {m} +- {sm} vs {truth_mag}");
+    assert!(
+        sm >= zp_sigma && (m - truth_mag).abs() < 0.05,
+        "field star {m} +- {sm} vs {truth_mag}"
+    );
     pulls.push(pull);
     for p in &pulls {
         assert!(p.abs() < 4.0, "pulls {pulls:?}");
