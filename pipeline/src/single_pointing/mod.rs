@@ -428,6 +428,18 @@ pub fn summary_lines(cat: &SinglePointingCatalog) -> Vec<String> {
                 "{head}: no complete plate cycle; see the least squares in the catalog"
             )),
         }
+        // With the field turning, the double difference takes each cycle's mean rotation
+        // (it blurs the angle by the turn within a cycle); the least squares takes each
+        // frame's own: show it beside.
+        if let (true, Some(ls)) = (cat.field_rotation.starts_with("pupil_tracking"), &t.least_squares_sky) {
+            lines.push(format!(
+                "{head}: sky, least squares with each frame's rotation {} (chi2 {:.1} for {} dof; the double difference \
+                 above takes each cycle's mean rotation)",
+                pol(&ls.pol),
+                ls.chi2,
+                ls.dof
+            ));
+        }
         for (k, c) in t.cycles.iter().enumerate() {
             lines.push(format!("{head}: cycle {} instrument {}", k + 1, pol(&c.instrument)));
         }
