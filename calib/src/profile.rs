@@ -305,8 +305,9 @@ impl Geometry {
         for (i, v, side) in [(0, dx, self.nx), (1, dy, self.ny)] {
             if v.is_finite() && v.abs() >= side as f64 {
                 return Err(format!(
-                    "geometry.eo_offset_px[{i}] = {v}: the e image would fall off the detector ({} px wide)",
-                    side
+                    "geometry.eo_offset_px[{i}] = {v}: the e image would fall off the detector ({} px {})",
+                    side,
+                    if i == 0 { "wide" } else { "high" }
                 ));
             }
         }

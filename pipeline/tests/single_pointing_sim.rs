@@ -482,6 +482,8 @@ fn pulls_on_noisy_pupil_tracking_nights() {
     eprintln!("control, rotation ignored: {no_rotation}");
     eprintln!("control, gain 2x: {gain_2x}");
     assert!(ok(&ls_phot), "least squares, photometric error: {ls_phot}");
+    // The cycles on the sky (each frame at its own angle) combined: as honest.
+    assert!(ok(&dd_phot), "cycles on the sky, photometric error: {dd_phot}");
     // The adopted error is never below the photometric one: conservative.
     assert!(ls_adopted.rms < ls_phot.rms && ls_adopted.mean.abs() < 3.0 * ls_adopted.se_mean());
     assert!(!ok(&no_rotation), "rotation ignored: {no_rotation}");

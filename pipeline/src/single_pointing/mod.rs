@@ -206,7 +206,8 @@ pub struct CycleResult {
     pub frames: Vec<String>,
     /// Double difference, instrument frame.
     pub instrument: Pol,
-    /// Double difference on the sky.
+    /// On the sky: the double difference turned by the cycle's offset, or, when the field
+    /// turns within the cycle, q, u and the constant fitted at each frame's own angle.
     pub sky: Pol,
 }
 
@@ -214,7 +215,8 @@ pub struct CycleResult {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CycleAgreement {
     /// Each consecutive pair of cycles: (q_{k+1} - q_k) / sqrt(sigma_k^2 + sigma_{k+1}^2),
-    /// photometric errors, instrument frame.
+    /// photometric errors, in the instrument frame, or on the sky when the field turns
+    /// (pupil tracking: the star's (q, u) turns in the instrument frame).
     pub q_difference_sigma: Vec<f64>,
     /// The same for u.
     pub u_difference_sigma: Vec<f64>,
@@ -428,13 +430,11 @@ pub fn summary_lines(cat: &SinglePointingCatalog) -> Vec<String> {
                 "{head}: no complete plate cycle; see the least squares in the catalog"
             )),
         }
-        // With the field turning, the double difference takes each cycle's mean rotation
-        // (it blurs the angle by the turn within a cycle); the least squares takes each
-        // frame's own: show it beside.
+        // With the field turning, the least squares over every frame beside the cycles'
+        // combination (both take each frame's own rotation).
         if let (true, Some(ls)) = (cat.field_rotation.starts_with("pupil_tracking"), &t.least_squares_sky) {
             lines.push(format!(
-                "{head}: sky, least squares with each frame's rotation {} (chi2 {:.1} for {} dof; the double difference \
-                 above takes each cycle's mean rotation)",
+                "{head}: sky, least squares over the frames, each at its own rotation {} (chi2 {:.1} for {} dof)",
                 pol(&ls.pol),
                 ls.chi2,
                 ls.dof
@@ -446,9 +446,10 @@ pub fn summary_lines(cat: &SinglePointingCatalog) -> Vec<String> {
         if let Some(a) = &t.cycle_agreement {
             let f = |v: &[f64]| v.iter().map(|x| format!("{x:+.1}")).collect::<Vec<_>>().join(", ");
             lines.push(format!(
-                "{head}: consecutive cycles differ by {} sigma in q, {} sigma in u (photometric errors; the adopted errors include the scatter)",
+                "{head}: consecutive cycles differ by {} sigma in q, {} sigma in u ({}; photometric errors; the adopted errors include the scatter)",
                 f(&a.q_difference_sigma),
-                f(&a.u_difference_sigma)
+                f(&a.u_difference_sigma),
+                if cat.field_rotation.starts_with("pupil_tracking") { "on the sky" } else { "instrument frame" }
             ));
         }
     }
@@ -1108,17 +1109,21 @@ fn target_result(
             sky: pol_of(b),
         })
         .collect();
+    // With the field turning (pupil tracking) the star's (q, u) turns in the instrument frame
+    // from cycle to cycle: the cycles are compared on the sky, where it stands still.
+    let turning = offsets.iter().any(|&d| d != offsets[0]);
     let cycle_agreement = (cycles.len() >= 2).then(|| {
+        let frame = |c: &CycleResult| if turning { c.sky } else { c.instrument };
         let diff = |get: &dyn Fn(&Pol) -> (f64, f64)| -> Vec<f64> {
             cycles
                 .windows(2)
                 .map(|w| {
-                    let ((a, sa), (b, sb)) = (get(&w[0].instrument), get(&w[1].instrument));
+                    let ((a, sa), (b, sb)) = (get(&frame(&w[0])), get(&frame(&w[1])));
                     (b - a) / sa.hypot(sb)
                 })
                 .collect()
         };
-        let cb = inst.combined.expect("cycles combined");
+        let cb = if turning { sky.combined } else { inst.combined }.expect("cycles combined");
         CycleAgreement {
             q_difference_sigma: diff(&|p: &Pol| (p.q, p.sigma_q)),
             u_difference_sigma: diff(&|p: &Pol| (p.u, p.sigma_u)),

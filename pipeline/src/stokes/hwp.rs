@@ -169,7 +169,8 @@ pub struct Cycle {
     /// Frame indices at plate 0, 22.5, 45, 67.5 deg.
     pub frames: [usize; 4],
     /// q, u, their (co)variances propagated from the fluxes' errors; chi^2 = 0 (4 values,
-    /// 2 unknowns, the constant removed).
+    /// 2 unknowns, the constant removed), or of 1 degree of freedom when the field turns
+    /// within the cycle (q, u and the constant fitted at each frame's own angle).
     pub fit: QuFit,
 }
 
@@ -292,12 +293,13 @@ pub fn mean_analyzer_offset_deg(offsets_deg: &[f64]) -> f64 {
 
 /// [`reduce`] when the analyzer's angle on the sky also turns from frame to frame (a field
 /// that rotates on the detector: pupil tracking): frame `i`'s analyzer angle on the sky is
-/// `2 theta_i + theta0 + offsets_deg[i]`. The least squares uses each frame's own angle; a
-/// cycle is reduced by the double difference at the nominal plate positions, which gives
-/// (q, u) in the frame of the cycle's mean offset ([`mean_analyzer_offset_deg`]), i.e. the
-/// instrument's (q, u) turned by twice that mean plus theta0 (the turn within a cycle is not
-/// undone: a cycle of 4 frames spanning 2 deg on the sky blurs the angle by that much). With
-/// every offset 0 this is [`reduce`].
+/// `2 theta_i + theta0 + offsets_deg[i]`. The least squares uses each frame's own angle, and
+/// so does each cycle when the offsets differ within it: its four frames are fitted for q,
+/// u and the constant c at their own analyzer angles (1 degree of freedom; the beam
+/// imbalance c still cancels, and the turn of the field within the cycle, a few degrees on
+/// real data, does not blur the angle). A cycle whose offsets are all equal (a field that
+/// does not turn) is reduced by `method` at the nominal plate positions, turned by that
+/// offset. With every offset 0 this is [`reduce`].
 pub fn reduce_on_sky(
     frames: &[PlateFrame],
     offsets_deg: &[f64],
@@ -339,11 +341,26 @@ pub fn reduce_on_sky(
         .filter_map(|idx| {
             // Nominal positions: the pairs must be exactly 90 deg apart in analyzer angle
             // (a 0.0025-deg reading offset moves cos 4theta by 1e-8).
-            let turn = if offsets_deg.iter().all(|&d| d == 0.0) {
-                0.0
-            } else {
-                mean_analyzer_offset_deg(&idx.iter().map(|&i| offset(i)).collect::<Vec<_>>())
-            };
+            let first = offset(idx[0]);
+            if idx.iter().any(|&i| offset(i) != first) {
+                // The field turns within the cycle: each frame at its own angle.
+                let obs: Vec<OrientationF> = idx
+                    .iter()
+                    .map(|&i| {
+                        let (fv, s) = f[i].expect("cycle frames are usable");
+                        OrientationF {
+                            analyzer_deg: analyzer_deg(frames[i].plate_deg, zero_point_deg) + offset(i),
+                            f: fv,
+                            sigma_f: s,
+                        }
+                    })
+                    .collect();
+                return fit_qu_offset_points(&obs).map(|r| Cycle {
+                    frames: *idx,
+                    fit: r.fit,
+                });
+            }
+            let turn = first;
             let obs: Vec<OrientationF> = idx
                 .iter()
                 .zip(CYCLE_POSITIONS_DEG)
@@ -877,10 +894,42 @@ mod tests {
             let ls = r.least_squares.unwrap();
             assert!((ls.fit.q - num(&l["q"])).abs() < 1e-9 && (ls.fit.u - num(&l["u"])).abs() < 1e-9);
             assert!((ls.fit.chi2 / num(&l["chi2"]) - 1.0).abs() < 1e-6);
-            for (c, jc) in r.cycles.iter().zip(j["cycles"].as_array().unwrap()) {
-                let sky = &jc["sky"];
-                assert!((c.fit.q - num(&sky["q"])).abs() < 1e-9, "{} {}", c.fit.q, sky["q"]);
-                assert!((c.fit.u - num(&sky["u"])).abs() < 1e-9);
+            // Each cycle (the field turns ~4 deg within it): q, u and c fitted at each frame's
+            // own angle, against the weighted normal equations solved by hand (Cramer's rule).
+            assert_eq!(r.cycles.len(), 2);
+            for c in &r.cycles {
+                let mut a = [[0.0f64; 3]; 3];
+                let mut b = [0.0f64; 3];
+                for &i in &c.frames {
+                    let (f, sf) = frame_f(&fr[i]).unwrap();
+                    let phi = (2.0 * (2.0 * fr[i].plate_deg + zp + offsets[i])).to_radians();
+                    let x = [phi.cos(), phi.sin(), 1.0];
+                    for (r_, xr) in x.iter().enumerate() {
+                        b[r_] += xr * f / (sf * sf);
+                        for (k, xk) in x.iter().enumerate() {
+                            a[r_][k] += xr * xk / (sf * sf);
+                        }
+                    }
+                }
+                let det = |m: &[[f64; 3]; 3]| {
+                    m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+                        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+                        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+                };
+                let solve_col = |k: usize| {
+                    let mut m = a;
+                    for r_ in 0..3 {
+                        m[r_][k] = b[r_];
+                    }
+                    det(&m) / det(&a)
+                };
+                let (q, u) = (solve_col(0), solve_col(1));
+                assert!(
+                    (c.fit.q - q).abs() < 1e-9 && (c.fit.u - u).abs() < 1e-9,
+                    "{} {} vs {q} {u}",
+                    c.fit.q,
+                    c.fit.u
+                );
             }
         }
         // All offsets 0: the instrument frame, identical to `reduce`.
