@@ -1010,9 +1010,13 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
         return Err(err(
             &file,
             format!(
-                "o/e flux ratio {:.3} (o {o:.4e}, e {e:.4e} ADU) is not within {} of 1: the two images are not one star's",
+                "o/e flux ratio {:.3} (o {o:.4e}, e {e:.4e} ADU) is not within beams.flux_ratio_tolerance = {} of 1: \
+                 the two images are not one star's, or the star is polarized by more than about {:.0} % \
+                 (then raise beams.flux_ratio_tolerance)",
                 o / e,
-                beams.flux_ratio_tolerance
+                beams.flux_ratio_tolerance,
+                // |o/e - 1| = t at F = t / (2 + t): a star polarized beyond that F fails.
+                100.0 * beams.flux_ratio_tolerance / (2.0 + beams.flux_ratio_tolerance)
             ),
         ));
     }
