@@ -298,6 +298,27 @@ fn known_polarization_comes_back() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("sci") && e.contains("eo_offset_px"), "{e}");
+    // A science frame that cannot be measured (the star is not in it) is listed as not used
+    // with why; the night goes on with the others.
+    let empty = Shot {
+        object: "Sim Star_hwp",
+        plate: 0.0,
+        parang: 200.0,
+        el: 78.0,
+        shutter: "open",
+        star: None,
+        mjd: 2.5,
+    };
+    write(dir.path(), "sci8.fits", &empty, None);
+    let cat3 = single_pointing::reduce(&[dir.path().to_path_buf()], &profile()).expect("the night goes on");
+    let n = cat3
+        .not_used
+        .iter()
+        .find(|n| n.file == "sci8.fits")
+        .expect("sci8 listed as not used");
+    assert!(!n.reason.is_empty() && !n.reason.starts_with("sci8"), "{}", n.reason);
+    assert_eq!(cat3.targets[0].frames.len(), 8);
+    assert_eq!(cat3.targets[0].least_squares_sky, cat.targets[0].least_squares_sky);
 }
 
 /// rms and mean of pulls, with their standard errors for unit-normal pulls (1/sqrt(2N),

@@ -280,7 +280,21 @@ fn err(file: impl Into<String>, reason: impl Into<String>) -> Error {
 }
 
 fn calib(file: &Path) -> impl Fn(sofipol_calib::Error) -> Error + '_ {
-    move |e| err(file.display().to_string(), e.to_string())
+    move |e| {
+        let f = file.display().to_string();
+        err(f.clone(), without_path(e.to_string(), &f))
+    }
+}
+
+/// `msg` without the leading `"FILE: "` (as often as it repeats): for an error that is
+/// named by its file once more.
+fn without_path(msg: String, file: &str) -> String {
+    let prefix = format!("{file}: ");
+    let mut m = msg.as_str();
+    while let Some(rest) = m.strip_prefix(&prefix) {
+        m = rest;
+    }
+    m.to_string()
 }
 
 /// One input file, with what a set-of-frames file says of it (docs/frame-format.md, "A set
@@ -613,9 +627,22 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
     let mut sky_raw = Vec::new();
     for r in read_all(&skies)? {
         let usable = setup(&r.header) == sci_setup && (r.img.nx, r.img.ny) == (nx, ny);
-        let plate = plate_of(&r, m)?;
+        // A sky frame without its plate angle or time is left out, not the night.
+        let (plate, t) = match plate_of(&r, m).and_then(|p| Ok((p, mjd(&r)?))) {
+            Ok(v) => v,
+            Err(e) => {
+                not_used.push(NotUsed {
+                    file: name(&r.path),
+                    reason: without_path(
+                        without_path(e.to_string(), &r.path.display().to_string()),
+                        &name(&r.path),
+                    ),
+                });
+                continue;
+            }
+        };
         match (usable, hwp::cycle_position(plate, m.tolerance_deg)) {
-            (true, Some(pos)) => sky_raw.push((mjd(&r)?, pos, plate, r)),
+            (true, Some(pos)) => sky_raw.push((t, pos, plate, r)),
             (false, _) => not_used.push(NotUsed {
                 file: name(&r.path),
                 reason: format!(
@@ -708,7 +735,33 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
         matched: &matched,
         field: &field,
     };
-    let measured: Vec<FrameResult> = sci.par_iter().map(|r| measure_frame(r, &ctx)).collect::<Result<_>>()?;
+    // A science frame that cannot be measured (a missing keyword, no pair of images...) is
+    // listed as not used with why; the night goes on with the others.
+    let results: Vec<Result<FrameResult>> = sci.par_iter().map(|r| measure_frame(r, &ctx)).collect();
+    let mut measured: Vec<FrameResult> = Vec::new();
+    let mut kept: Vec<&Raw> = Vec::new();
+    let mut first_error = None;
+    for (r, res) in sci.iter().zip(results) {
+        match res {
+            Ok(f) => {
+                measured.push(f);
+                kept.push(r);
+            }
+            Err(e) => {
+                not_used.push(NotUsed {
+                    file: name(&r.path),
+                    reason: without_path(
+                        without_path(e.to_string(), &r.path.display().to_string()),
+                        &name(&r.path),
+                    ),
+                });
+                first_error.get_or_insert(e);
+            }
+        }
+    }
+    if let (true, Some(e)) = (measured.is_empty(), first_error) {
+        return Err(e);
+    }
     // 7. Per target and filter, in time order.
     let target_of = |r: &Raw| {
         let h = &r.header;
@@ -720,7 +773,7 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
     };
     let filter_of = |h: &Header| h.opt_str(&kw.filter).map_or_else(String::new, |s| s.trim().to_string());
     let mut keys: Vec<(String, String)> = Vec::new();
-    for r in &sci {
+    for r in &kept {
         let k = (target_of(r), filter_of(&r.header));
         if !keys.contains(&k) {
             keys.push(k);
@@ -729,7 +782,7 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
     let targets = keys
         .into_iter()
         .map(|(t, f)| {
-            let frames: Vec<FrameResult> = sci
+            let frames: Vec<FrameResult> = kept
                 .iter()
                 .zip(&measured)
                 .filter(|(r, _)| target_of(r) == t && filter_of(&r.header) == f)
