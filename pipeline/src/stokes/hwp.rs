@@ -791,18 +791,13 @@ mod tests {
         assert!((ls.adopted_sigma_q() - ls.scaled_sigma_q()).abs() < 1e-18);
     }
 
-    /// The stored independent photutils reduction of Keck/NIRC2 AB Aur
-    /// (bench/python/nirc2_reference.py, testdata/real/nirc2_abaur_reference.json): its
-    /// per-frame o, e fluxes and errors, given to these functions, must give its F,
-    /// sigma_F, per-cycle double differences and least squares. An independent
-    /// implementation of the same arithmetic (numpy there), not of the photometry.
-    #[test]
-    fn reproduces_the_nirc2_reference_from_its_fluxes() {
+    /// The stored NIRC2 reference (testdata/real) and its per-frame plate angles and fluxes.
+    fn nirc2_reference() -> (serde_json::Value, Vec<PlateFrame>) {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../testdata/real/nirc2_abaur_reference.json");
         let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
         let j: serde_json::Value = serde_json::from_str(&text).unwrap();
         let num = |v: &serde_json::Value| v.as_f64().unwrap();
-        let fr: Vec<PlateFrame> = j["frames"]
+        let fr = j["frames"]
             .as_array()
             .unwrap()
             .iter()
@@ -814,6 +809,18 @@ mod tests {
                 sigma_e: num(&f["sigma_e"]),
             })
             .collect();
+        (j, fr)
+    }
+
+    /// The stored independent photutils reduction of Keck/NIRC2 AB Aur
+    /// (bench/python/nirc2_reference.py, testdata/real/nirc2_abaur_reference.json): its
+    /// per-frame o, e fluxes and errors, given to these functions, must give its F,
+    /// sigma_F, per-cycle double differences and least squares. An independent
+    /// implementation of the same arithmetic (numpy there), not of the photometry.
+    #[test]
+    fn reproduces_the_nirc2_reference_from_its_fluxes() {
+        let (j, fr) = nirc2_reference();
+        let num = |v: &serde_json::Value| v.as_f64().unwrap();
         assert_eq!(fr.len(), 8);
         let r = reduce(&fr, 0.0, DEFAULT_PLATE_TOLERANCE_DEG, CycleMethod::DoubleDifference);
         let rel = |a: f64, b: f64| (a - b).abs() / b.abs();
@@ -862,21 +869,9 @@ mod tests {
     /// profile's model (offset PARANG - EL - ROTPDEST, zero point -2 theta_off = 26 deg).
     #[test]
     fn reproduces_the_nirc2_reference_on_the_sky() {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../testdata/real/nirc2_abaur_reference.json");
-        let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-        let j: serde_json::Value = serde_json::from_str(&text).unwrap();
+        let (j, fr) = nirc2_reference();
         let num = |v: &serde_json::Value| v.as_f64().unwrap();
         let jf = j["frames"].as_array().unwrap();
-        let fr: Vec<PlateFrame> = jf
-            .iter()
-            .map(|f| PlateFrame {
-                plate_deg: num(&f["pcupr_deg"]),
-                o: num(&f["o"]),
-                sigma_o: num(&f["sigma_o"]),
-                e: num(&f["e"]),
-                sigma_e: num(&f["sigma_e"]),
-            })
-            .collect();
         let from_theta: Vec<f64> = jf.iter().map(|f| -0.5 * num(&f["theta_rot_deg"])).collect();
         let from_headers: Vec<f64> = jf
             .iter()
