@@ -177,3 +177,67 @@ fn the_offset_direction_matters() {
     );
     assert!(missing > 0 || flagged > 0 || sd > 3.0, "{} pulls, sd {sd}", p.len());
 }
+
+/// DIAGNOSTIC (temporary): one line per usable field star matched to the truth.
+#[test]
+#[ignore]
+fn diag_field_star_breakdown() {
+    let profile = savart_profile();
+    let seeds: Vec<u64> = std::env::var("DIAG_SEEDS")
+        .map(|s| s.split(',').map(|x| x.parse().unwrap()).collect())
+        .unwrap_or_else(|_| (1..=8).collect());
+    let en = |sep: f64, pa: f64| {
+        let a = pa.to_radians();
+        (sep * a.sin(), sep * a.cos())
+    };
+    for seed in seeds {
+        let (targets, truth) = night(seed, &profile, &profile);
+        for (ti, (t, tt)) in targets.iter().zip(&truth.targets).enumerate() {
+            for f in t.field_stars.iter().flatten().filter(|f| f.usable) {
+                let m = en(f.separation_arcsec, f.pa_deg);
+                let Some(s) = tt.field_stars.iter().find(|s| {
+                    let e = en(s.separation_arcsec, s.pa_deg);
+                    (e.0 - m.0).hypot(e.1 - m.1) < 0.6
+                }) else {
+                    continue;
+                };
+                // nearest other image (o or e of any other source) to either of its images,
+                // min over frames; and the flux ratio of that neighbour; and edge distance
+                let (mut dmin, mut nflux, mut edge) = (f64::INFINITY, 0.0, f64::INFINITY);
+                let mut dmin_same = f64::INFINITY; // o-o / e-e
+                for fr in &tt.frames {
+                    let Some(me) = fr.sources.iter().find(|x| x.name == s.name) else { continue };
+                    for p in [me.o_xy, me.e_xy] {
+                        edge = edge.min(p[0]).min(p[1]).min(511.0 - p[0]).min(511.0 - p[1]);
+                    }
+                    for o in fr.sources.iter().filter(|x| x.name != s.name) {
+                        for (i, p) in [me.o_xy, me.e_xy].iter().enumerate() {
+                            for (j, q) in [o.o_xy, o.e_xy].iter().enumerate() {
+                                let d = (p[0] - q[0]).hypot(p[1] - q[1]);
+                                if i == j {
+                                    dmin_same = dmin_same.min(d);
+                                }
+                                if d < dmin {
+                                    dmin = d;
+                                    nflux = (o.flux_o + o.flux_e) / (me.flux_o + me.flux_e);
+                                }
+                            }
+                        }
+                    }
+                }
+                let pq = (f.star.pol.q - s.q) / f.star.pol.sigma_q;
+                let pu = (f.star.pol.u - s.u) / f.star.pol.sigma_u;
+                let flags: Vec<String> = f.star.flags.iter().map(|g| format!("{g:?}")).collect();
+                println!(
+                    "ROW {seed} {ti} {} {:.0} {:.2} {dmin:.1} {dmin_same:.1} {nflux:.2} {edge:.1} {pq:.2} {pu:.2} {:.4} {} {}",
+                    f.id,
+                    s.flux,
+                    s.k_mag.unwrap_or(f64::NAN),
+                    f.star.pol.sigma_q,
+                    f.detection_snr,
+                    flags.join(";").replace(' ', "")
+                );
+            }
+        }
+    }
+}

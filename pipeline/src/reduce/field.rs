@@ -149,33 +149,59 @@ pub fn measure_field_stars(
     for (i, s) in stars.iter_mut().enumerate() {
         let me = ens[i];
         let mut neighbours: Vec<(f64, f64)> = Vec::new();
-        let others = sources.iter().cloned().chain(
-            ens.iter()
-                .enumerate()
-                .filter(|(j, _)| *j != i)
-                .map(|(_, e)| ("field star".to_string(), *e)),
-        );
-        for (name, en) in others {
+        let others: Vec<(String, (f64, f64))> = sources
+            .iter()
+            .cloned()
+            .chain(
+                ens.iter()
+                    .enumerate()
+                    .filter(|(j, _)| *j != i)
+                    .map(|(_, e)| ("field star".to_string(), *e)),
+            )
+            .collect();
+        for (name, en) in &others {
             let d = (en.0 - me.0).hypot(en.1 - me.1);
             if d < blend_arcsec {
                 s.blended_with.push(format!("{name} at {d:.1}\""));
             }
             if d < reach_arcsec {
-                neighbours.push(en);
+                neighbours.push(*en);
             }
         }
-        measure_star(s, me, &neighbours, orients, primary, companion, &strips, setup);
+        // Without a focal mask every other source's e image lies among the o images and its
+        // o image among the e images: those fall on this star's images too.
+        let cross = if strips.unmasked { others.as_slice() } else { &[] };
+        measure_star(s, me, &neighbours, cross, orients, primary, companion, &strips, setup);
     }
     stars
 }
 
+/// Where the other beam's image of another source falls near a star's images, in one
+/// orientation: the place in the star's o beam (offset from A, px) of an image that falls
+/// on the star's o image (another source's e image) or, moved back by the e-o offset `eo`,
+/// on its e image (another source's o image). `d` is the star's o image and `dj` the other
+/// source's, both offsets from A, px. Returns (the place, o-beam image) and (the place,
+/// e-beam image); each image is `d`'s neighbour at the place's distance from `d`.
+fn cross_images(dj: (f64, f64), eo: (f64, f64)) -> [((f64, f64), Beam); 2] {
+    [
+        ((dj.0 + eo.0, dj.1 + eo.1), Beam::Ordinary),
+        ((dj.0 - eo.0, dj.1 - eo.1), Beam::Extraordinary),
+    ]
+}
+
 /// Measure one field star at sky offset `me` from A (arcsec east, north) in every dither,
-/// its `neighbours` (sky offsets) fitted and subtracted with it.
+/// its `neighbours` (sky offsets) fitted and subtracted with it. `cross` (named sky
+/// offsets; empty with a focal mask) are the other sources whose images of the other beam
+/// may fall on this star's: at each orientation those within reach of one of its images
+/// are fitted and subtracted too (a source of the fit placed so that its image in that
+/// beam is the other source's, [`cross_images`]), and one within [`BLEND_FWHM`] FWHM
+/// makes the star `blended` (the closest approach over the orientations is reported).
 #[allow(clippy::too_many_arguments)]
 fn measure_star(
     s: &mut FieldMeasured,
     me: (f64, f64),
     neighbours: &[(f64, f64)],
+    cross: &[(String, (f64, f64))],
     orients: &[SkySubtractedOrientation],
     primary: &Primary,
     companion: &Companion,
@@ -191,10 +217,33 @@ fn measure_star(
         let (sep, pa) = sep_pa_of(en);
         companion_offset_px(sep, pa, posang, scale)
     };
+    let reach_px = setup.params.annulus_px(fwhm).1 + fwhm;
+    // The closest approach of each other source's image of the other beam: (index in
+    // `cross`, beam of the star's image it falls on) -> px.
+    let mut closest: Vec<((usize, Beam), f64)> = Vec::new();
     for (k, o) in orients.iter().enumerate() {
         let rel_a = companion.found[k].map(|p| p.a).unwrap_or((0.0, 0.0));
         let d = px(me, o.posang_deg);
-        let dn: Vec<(f64, f64)> = neighbours.iter().map(|&n| px(n, o.posang_deg)).collect();
+        let mut dn: Vec<(f64, f64)> = neighbours.iter().map(|&n| px(n, o.posang_deg)).collect();
+        for (j, (_, en)) in cross.iter().enumerate() {
+            for (q, beam) in cross_images(px(*en, o.posang_deg), eo) {
+                let r = (q.0 - d.0).hypot(q.1 - d.1);
+                if r < BLEND_FWHM * fwhm {
+                    match closest.iter_mut().find(|(key, _)| *key == (j, beam)) {
+                        Some((_, best)) => *best = best.min(r),
+                        None => closest.push(((j, beam), r)),
+                    }
+                }
+                // Fitted with the star unless another source of the fit is already there
+                // (two sources of the fit within a FWHM are one blend of light).
+                let taken = std::iter::once(&d)
+                    .chain(dn.iter())
+                    .any(|p| (p.0 - q.0).hypot(p.1 - q.1) < fwhm);
+                if r < reach_px && !taken {
+                    dn.push(q);
+                }
+            }
+        }
         let far = dn.iter().map(|n| (n.0 - d.0).hypot(n.1 - d.1)).fold(0.0, f64::max);
         let choice = PsfChoice {
             use_psf: false,
@@ -240,6 +289,17 @@ fn measure_star(
             values.push(v);
         }
         s.dithers.push(values);
+    }
+    for ((j, beam), r) in closest {
+        let (theirs, mine) = match beam {
+            Beam::Ordinary => ("e", "o"),
+            Beam::Extraordinary => ("o", "e"),
+        };
+        s.blended_with.push(format!(
+            "{}'s {theirs} image at {:.1}\" from the {mine} image",
+            cross[j].0,
+            r * scale
+        ));
     }
 }
 
