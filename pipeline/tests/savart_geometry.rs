@@ -5,7 +5,9 @@
 //! finds the target by its position and its e image by the offset vector, and its q, u
 //! errors are honest. The pulls `(q - q_true) / sigma_q` and `(u - u_true) / sigma_u` of
 //! both components of six binaries, pooled over eight seeds (96 components, 192 pulls), have
-//! a standard deviation within [0.9, 1.1] and a mean within 3 standard errors of 0.
+//! a standard deviation within [0.9, 1.1] and a mean within 3 standard errors of 0; the
+//! usable field stars' pulls a standard deviation of at most 1.2 (2.0 when the o-e
+//! overlaps of different stars went unseen).
 use sofipol_calib::Profile;
 use sofipol_pipeline::catalog::{FlagCode, Status, Target};
 use sofipol_pipeline::reduce::run::reduce_loaded;
@@ -79,10 +81,7 @@ fn field_pulls(targets: &[Target], truth: &Truth) -> (Vec<f64>, usize, usize) {
     for (t, tt) in targets.iter().zip(&truth.targets) {
         for f in t.field_stars.iter().flatten().filter(|f| f.usable) {
             let m = en(f.separation_arcsec, f.pa_deg);
-            let found = tt.field_stars.iter().find(|s| {
-                let e = en(s.separation_arcsec, s.pa_deg);
-                (e.0 - m.0).hypot(e.1 - m.1) < 0.6
-            });
+            let found = matching_star(tt, m);
             match found {
                 Some(_) if f.star.flags.iter().any(|g| g.is(FlagCode::Blended)) => matched += 1,
                 Some(s) => {
@@ -95,6 +94,20 @@ fn field_pulls(targets: &[Target], truth: &Truth) -> (Vec<f64>, usize, usize) {
         }
     }
     (out, false_pairs, matched)
+}
+
+/// The simulated field star that a star measured at sky offset `m` from A (arcsec east,
+/// north) is: the brightest within 0.6" (a much fainter one at the same place adds a
+/// trace of light; the first found could be that one).
+fn matching_star(tt: &sofipol_pipeline::sim::TargetTruth, m: (f64, f64)) -> Option<&sofipol_pipeline::sim::FieldStarTruth> {
+    tt.field_stars
+        .iter()
+        .filter(|s| {
+            let a = s.pa_deg.to_radians();
+            let e = (s.separation_arcsec * a.sin(), s.separation_arcsec * a.cos());
+            (e.0 - m.0).hypot(e.1 - m.1) < 0.6
+        })
+        .max_by(|a, b| a.flux.total_cmp(&b.flux))
 }
 
 fn mean_sd(v: &[f64]) -> (f64, f64) {
@@ -140,6 +153,15 @@ fn savart_like_crowded_field_gives_honest_pulls_over_eight_seeds() {
     // Field stars are paired by the offset vector: none pairs images of two stars.
     assert!(matched > 500, "{matched} field stars matched");
     assert_eq!(false_pairs, 0, "field stars matching no simulated star");
+    // The usable field stars' errors: without a focal mask another star's image of the
+    // other beam can fall on a star's o or e image (an o-e overlap no sky distance shows);
+    // unflagged and unsubtracted it gave pulls of sd 2.0. Those within 3 FWHM are now
+    // `blended` (not usable) and those within reach fitted and subtracted. What is left
+    // (sd 1.17 over 8 seeds) comes from sources too faint to be detected (or with their
+    // other image off the detector) within 2 FWHM of an image: bounded here, not solved.
+    let nf = field.len() as f64;
+    assert!(fsd <= 1.2, "field-star pull sd {fsd:.3} over {nf}");
+    assert!(fmean.abs() < 3.0 * fsd / nf.sqrt(), "field-star pull mean {fmean:.3} over {nf}");
     assert_eq!(n, 8 * 6 * 2 * 2);
     assert!((0.9..=1.1).contains(&sd), "pooled pull sd {sd:.3} over {n}");
     assert!(
@@ -178,66 +200,3 @@ fn the_offset_direction_matters() {
     assert!(missing > 0 || flagged > 0 || sd > 3.0, "{} pulls, sd {sd}", p.len());
 }
 
-/// DIAGNOSTIC (temporary): one line per usable field star matched to the truth.
-#[test]
-#[ignore]
-fn diag_field_star_breakdown() {
-    let profile = savart_profile();
-    let seeds: Vec<u64> = std::env::var("DIAG_SEEDS")
-        .map(|s| s.split(',').map(|x| x.parse().unwrap()).collect())
-        .unwrap_or_else(|_| (1..=8).collect());
-    let en = |sep: f64, pa: f64| {
-        let a = pa.to_radians();
-        (sep * a.sin(), sep * a.cos())
-    };
-    for seed in seeds {
-        let (targets, truth) = night(seed, &profile, &profile);
-        for (ti, (t, tt)) in targets.iter().zip(&truth.targets).enumerate() {
-            for f in t.field_stars.iter().flatten().filter(|f| f.usable) {
-                let m = en(f.separation_arcsec, f.pa_deg);
-                let Some(s) = tt.field_stars.iter().find(|s| {
-                    let e = en(s.separation_arcsec, s.pa_deg);
-                    (e.0 - m.0).hypot(e.1 - m.1) < 0.6
-                }) else {
-                    continue;
-                };
-                // nearest other image (o or e of any other source) to either of its images,
-                // min over frames; and the flux ratio of that neighbour; and edge distance
-                let (mut dmin, mut nflux, mut edge) = (f64::INFINITY, 0.0, f64::INFINITY);
-                let mut dmin_same = f64::INFINITY; // o-o / e-e
-                for fr in &tt.frames {
-                    let Some(me) = fr.sources.iter().find(|x| x.name == s.name) else { continue };
-                    for p in [me.o_xy, me.e_xy] {
-                        edge = edge.min(p[0]).min(p[1]).min(511.0 - p[0]).min(511.0 - p[1]);
-                    }
-                    for o in fr.sources.iter().filter(|x| x.name != s.name) {
-                        for (i, p) in [me.o_xy, me.e_xy].iter().enumerate() {
-                            for (j, q) in [o.o_xy, o.e_xy].iter().enumerate() {
-                                let d = (p[0] - q[0]).hypot(p[1] - q[1]);
-                                if i == j {
-                                    dmin_same = dmin_same.min(d);
-                                }
-                                if d < dmin {
-                                    dmin = d;
-                                    nflux = (o.flux_o + o.flux_e) / (me.flux_o + me.flux_e);
-                                }
-                            }
-                        }
-                    }
-                }
-                let pq = (f.star.pol.q - s.q) / f.star.pol.sigma_q;
-                let pu = (f.star.pol.u - s.u) / f.star.pol.sigma_u;
-                let flags: Vec<String> = f.star.flags.iter().map(|g| format!("{g:?}")).collect();
-                println!(
-                    "ROW {seed} {ti} {} {:.0} {:.2} {dmin:.1} {dmin_same:.1} {nflux:.2} {edge:.1} {pq:.2} {pu:.2} {:.4} {} {}",
-                    f.id,
-                    s.flux,
-                    s.k_mag.unwrap_or(f64::NAN),
-                    f.star.pol.sigma_q,
-                    f.detection_snr,
-                    flags.join(";").replace(' ', "")
-                );
-            }
-        }
-    }
-}

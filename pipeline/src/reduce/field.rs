@@ -43,6 +43,12 @@ pub const GROUP_TOL_PX: f64 = 2.0;
 /// A field star with another source (field star or component) within this many FWHM is
 /// `blended`: the wings share apertures and annuli.
 pub const BLEND_FWHM: f64 = 3.0;
+/// Without a focal mask, the S/N (as [`MeasureParams::field_star_snr`]'s) down to which
+/// every peak of a stack is a source that can fall on a field star's images, paired or not
+/// (a star whose other image is off the detector, too faint or too polarized to pair).
+///
+/// [`MeasureParams::field_star_snr`]: super::MeasureParams::field_star_snr
+pub const BLEND_PEAK_SNR: f64 = 5.0;
 
 /// One field star as measured: where it is and F per dither.
 #[derive(Debug, Clone, serde::Serialize)]
@@ -116,11 +122,32 @@ pub fn measure_field_stars(
     // B's sky position from A (arcsec east, north), when found.
     let b_en = companion.geometry.map(|(sep, pa)| en_of(sep, pa));
     let mut detections: Vec<Detection> = Vec::new();
+    // Without a focal mask: the fainter pairs, and per orientation every peak of its stack
+    // (px from A).
+    let mut faint: Vec<Detection> = Vec::new();
+    let mut all_peaks: Vec<Vec<(f64, f64)>> = Vec::new();
     for (k, o) in orients.iter().enumerate() {
         let rel_a = companion.found[k].map(|p| p.a).unwrap_or((0.0, 0.0));
-        detections.extend(detect_orientation(o, &primary.centres[k], rel_a, b_en, &strips, setup));
+        let (found, fainter, peaks) = detect_orientation(o, &primary.centres[k], rel_a, b_en, &strips, setup);
+        detections.extend(found);
+        faint.extend(fainter);
+        all_peaks.push(peaks);
     }
     let groups = group(&detections, GROUP_TOL_PX * scale);
+    // The fainter sources that are not field stars (nor the binary's).
+    let faint: Vec<(String, (f64, f64))> = group(&faint, GROUP_TOL_PX * scale)
+        .into_iter()
+        .filter(|f| {
+            let own = (COMPONENT_FWHM * fwhm).max(3.0) * scale;
+            !groups
+                .iter()
+                .map(|g| g.en)
+                .chain(std::iter::once((0.0, 0.0)))
+                .chain(b_en)
+                .any(|e| (e.0 - f.en.0).hypot(e.1 - f.en.1) < own.max(GROUP_TOL_PX * scale))
+        })
+        .map(|f| ("faint source".to_string(), f.en))
+        .collect();
     let mut stars: Vec<FieldMeasured> = groups
         .iter()
         .map(|gr| {
@@ -158,6 +185,7 @@ pub fn measure_field_stars(
                     .filter(|(j, _)| *j != i)
                     .map(|(_, e)| ("field star".to_string(), *e)),
             )
+            .chain(faint.iter().cloned())
             .collect();
         for (name, en) in &others {
             let d = (en.0 - me.0).hypot(en.1 - me.1);
@@ -171,7 +199,17 @@ pub fn measure_field_stars(
         // Without a focal mask every other source's e image lies among the o images and its
         // o image among the e images: those fall on this star's images too.
         let cross = if strips.unmasked { others.as_slice() } else { &[] };
-        measure_star(s, me, &neighbours, cross, orients, primary, companion, &strips, setup);
+        measure_star(
+            s,
+            me,
+            &neighbours,
+            (cross, &all_peaks),
+            orients,
+            primary,
+            companion,
+            &strips,
+            setup,
+        );
     }
     stars
 }
@@ -196,12 +234,16 @@ fn cross_images(dj: (f64, f64), eo: (f64, f64)) -> [((f64, f64), Beam); 2] {
 /// are fitted and subtracted too (a source of the fit placed so that its image in that
 /// beam is the other source's, [`cross_images`]), and one within [`BLEND_FWHM`] FWHM
 /// makes the star `blended` (the closest approach over the orientations is reported).
+/// `peaks` (per orientation, px from A; empty with a focal mask) are every peak of the
+/// orientation's stack: one near one of the star's images that none of those sources
+/// explains (within a FWHM) is a source all the same, fitted and subtracted, and blending
+/// within [`BLEND_FWHM`] FWHM.
 #[allow(clippy::too_many_arguments)]
 fn measure_star(
     s: &mut FieldMeasured,
     me: (f64, f64),
     neighbours: &[(f64, f64)],
-    cross: &[(String, (f64, f64))],
+    (cross, peaks): (&[(String, (f64, f64))], &[Vec<(f64, f64)>]),
     orients: &[SkySubtractedOrientation],
     primary: &Primary,
     companion: &Companion,
@@ -221,6 +263,8 @@ fn measure_star(
     // The closest approach of each other source's image of the other beam: (index in
     // `cross`, beam of the star's image it falls on) -> px.
     let mut closest: Vec<((usize, Beam), f64)> = Vec::new();
+    // The same for the peaks no source explains, per beam of the star's image.
+    let mut unexplained: [f64; 2] = [f64::INFINITY; 2];
     for (k, o) in orients.iter().enumerate() {
         let rel_a = companion.found[k].map(|p| p.a).unwrap_or((0.0, 0.0));
         let d = px(me, o.posang_deg);
@@ -242,6 +286,23 @@ fn measure_star(
                 if r < reach_px && !taken {
                     dn.push(q);
                 }
+            }
+        }
+        for p in peaks.get(k).into_iter().flatten() {
+            for (bi, shift) in [(0.0, 0.0), eo].into_iter().enumerate() {
+                // Where a source of the fit must be for its image in this beam to be `p`.
+                let q = (p.0 - shift.0, p.1 - shift.1);
+                let r = (q.0 - d.0).hypot(q.1 - d.1);
+                let explained = std::iter::once(&d)
+                    .chain(dn.iter())
+                    .any(|e| (e.0 - q.0).hypot(e.1 - q.1) < fwhm);
+                if r >= reach_px || explained {
+                    continue;
+                }
+                if r < BLEND_FWHM * fwhm {
+                    unexplained[bi] = unexplained[bi].min(r);
+                }
+                dn.push(q);
             }
         }
         let far = dn.iter().map(|n| (n.0 - d.0).hypot(n.1 - d.1)).fold(0.0, f64::max);
@@ -300,6 +361,14 @@ fn measure_star(
             cross[j].0,
             r * scale
         ));
+    }
+    for (r, mine) in unexplained.into_iter().zip(["o", "e"]) {
+        if r.is_finite() {
+            s.blended_with.push(format!(
+                "an unpaired source at {:.1}\" from the {mine} image",
+                r * scale
+            ));
+        }
     }
 }
 
@@ -596,7 +665,9 @@ fn merge_plateaus(mut peaks: Vec<Peak>, bs: ArrayView2<f32>, origin: (usize, usi
 }
 
 /// The field stars of one orientation on its stack: o-strip peaks paired with their e-strip
-/// images, the binary's own images left out; as sky offsets from A.
+/// images, the binary's own images left out; as sky offsets from A. Without a focal mask
+/// (both empty with one), also the pairs down to [`BLEND_PEAK_SNR`] (sky offsets from A)
+/// and every peak of the stack down to it, px from A.
 fn detect_orientation(
     o: &SkySubtractedOrientation,
     centres: &[Option<(f64, f64)>],
@@ -604,9 +675,9 @@ fn detect_orientation(
     b_en: Option<(f64, f64)>,
     strips: &Strips,
     setup: &FluxSetup,
-) -> Vec<Detection> {
+) -> (Vec<Detection>, Vec<Detection>, Vec<(f64, f64)>) {
     let Some(st) = stack(o, centres) else {
-        return Vec::new();
+        return (Vec::new(), Vec::new(), Vec::new());
     };
     let cr = st.centre;
     let scale = setup.scale_arcsec_per_px;
@@ -614,6 +685,15 @@ fn detect_orientation(
     let snr_min = setup.params.field_star_snr;
     let op = peaks(&st, strips.o, [0, strips.nx], fwhm, snr_min);
     let a = (cr.0 + rel_a.0, cr.1 + rel_a.1);
+    let all_peaks: Vec<(f64, f64)> = if strips.unmasked {
+        let ny = st.mean.dim().0;
+        peaks(&st, [0, ny], [0, strips.nx], fwhm, BLEND_PEAK_SNR.min(snr_min))
+            .into_iter()
+            .map(|p| (p.xy.0 - a.0, p.xy.1 - a.1))
+            .collect()
+    } else {
+        Vec::new()
+    };
     let mut components = vec![a];
     if let Some(b) = b_en {
         let (sep, pa) = sep_pa_of(b);
@@ -626,6 +706,36 @@ fn detect_orientation(
         let eo = setup.eo_px;
         components.extend(components.clone().iter().map(|c| (c.0 + eo.0, c.1 + eo.1)));
     }
+    let paired = |op: &[Peak], snr_min: f64| pair_peaks(&st, op, &components, a, o.posang_deg, strips, setup, snr_min);
+    let out = paired(&op, snr_min);
+    // Without a focal mask, the fainter pairs too: sources whose images can fall on a
+    // field star's (not field stars themselves).
+    let faint = if strips.unmasked && BLEND_PEAK_SNR < snr_min {
+        let ny = st.mean.dim().0;
+        paired(&peaks(&st, [0, ny], [0, strips.nx], fwhm, BLEND_PEAK_SNR), BLEND_PEAK_SNR)
+    } else {
+        Vec::new()
+    };
+    (out, faint, all_peaks)
+}
+
+/// The o-strip peaks `op` of stack `st` paired with their e-strip images at S/N
+/// `snr_min` (see the module documentation), those within [`COMPONENT_FWHM`] FWHM of
+/// `components` (the binary's images) left out; as sky offsets from A at `a` (px) at
+/// rotator angle `posang`, deg.
+#[allow(clippy::too_many_arguments)]
+fn pair_peaks(
+    st: &Stack,
+    op: &[Peak],
+    components: &[(f64, f64)],
+    a: (f64, f64),
+    posang: f64,
+    strips: &Strips,
+    setup: &FluxSetup,
+    snr_min: f64,
+) -> Vec<Detection> {
+    let scale = setup.scale_arcsec_per_px;
+    let fwhm = setup.choice.fwhm_px;
     let own = (COMPONENT_FWHM * fwhm).max(3.0);
     let mut order: Vec<&Peak> = op.iter().collect();
     order.sort_by(|p, q| q.snr.total_cmp(&p.snr));
@@ -645,7 +755,7 @@ fn detect_orientation(
             (wy + reach + 1).min(strips.e[1]),
         ];
         let cols = [wx.saturating_sub(reach), wx + reach + 1];
-        let best = peaks(&st, rows, cols, fwhm, snr_min)
+        let best = peaks(st, rows, cols, fwhm, snr_min)
             .into_iter()
             .filter(|e| !used.iter().any(|u| (u.0 - e.xy.0).hypot(u.1 - e.xy.1) < 0.5))
             .map(|e| (e, (e.xy.0 - want.0).hypot(e.xy.1 - want.1)))
@@ -653,7 +763,7 @@ fn detect_orientation(
             .min_by(|x, y| x.1.total_cmp(&y.1));
         let Some((e, _)) = best else { continue };
         used.push(e.xy);
-        let (sep, pa) = offset_to_sep_pa(p.xy.0 - a.0, p.xy.1 - a.1, o.posang_deg, scale);
+        let (sep, pa) = offset_to_sep_pa(p.xy.0 - a.0, p.xy.1 - a.1, posang, scale);
         out.push(Detection {
             en: en_of(sep, pa),
             snr: p.snr.min(e.snr),
