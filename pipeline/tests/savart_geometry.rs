@@ -99,7 +99,10 @@ fn field_pulls(targets: &[Target], truth: &Truth) -> (Vec<f64>, usize, usize) {
 /// The simulated field star that a star measured at sky offset `m` from A (arcsec east,
 /// north) is: the brightest within 0.6" (a much fainter one at the same place adds a
 /// trace of light; the first found could be that one).
-fn matching_star(tt: &sofipol_pipeline::sim::TargetTruth, m: (f64, f64)) -> Option<&sofipol_pipeline::sim::FieldStarTruth> {
+fn matching_star(
+    tt: &sofipol_pipeline::sim::TargetTruth,
+    m: (f64, f64),
+) -> Option<&sofipol_pipeline::sim::FieldStarTruth> {
     tt.field_stars
         .iter()
         .filter(|s| {
@@ -161,7 +164,10 @@ fn savart_like_crowded_field_gives_honest_pulls_over_eight_seeds() {
     // other image off the detector) within 2 FWHM of an image: bounded here, not solved.
     let nf = field.len() as f64;
     assert!(fsd <= 1.2, "field-star pull sd {fsd:.3} over {nf}");
-    assert!(fmean.abs() < 3.0 * fsd / nf.sqrt(), "field-star pull mean {fmean:.3} over {nf}");
+    assert!(
+        fmean.abs() < 3.0 * fsd / nf.sqrt(),
+        "field-star pull mean {fmean:.3} over {nf}"
+    );
     assert_eq!(n, 8 * 6 * 2 * 2);
     assert!((0.9..=1.1).contains(&sd), "pooled pull sd {sd:.3} over {n}");
     assert!(
@@ -199,4 +205,3 @@ fn the_offset_direction_matters() {
     );
     assert!(missing > 0 || flagged > 0 || sd > 3.0, "{} pulls, sd {sd}", p.len());
 }
-

@@ -19,6 +19,10 @@
 //!    (`fluxes::dither_value`); a dither whose star falls beyond the strips or the
 //!    detector has no value (`outside_field`), one whose aperture crosses a strip or
 //!    detector edge is rejected (`strip_edge`).
+//! 4. Without a focal mask, the images of the other beam of every other source (field
+//!    stars, A, B, fainter pairs down to [`BLEND_PEAK_SNR`]) and the stack's peaks that none
+//!    explains are fitted with the star when within reach of one of its images, and make it
+//!    `blended` within [`BLEND_FWHM`] FWHM (docs/photometry.md, "Field stars").
 use ndarray::{Array2, ArrayView2};
 use sofipol_calib::frame::mask as mbits;
 use sofipol_calib::profile::Beam;
@@ -712,7 +716,10 @@ fn detect_orientation(
     // field star's (not field stars themselves).
     let faint = if strips.unmasked && BLEND_PEAK_SNR < snr_min {
         let ny = st.mean.dim().0;
-        paired(&peaks(&st, [0, ny], [0, strips.nx], fwhm, BLEND_PEAK_SNR), BLEND_PEAK_SNR)
+        paired(
+            &peaks(&st, [0, ny], [0, strips.nx], fwhm, BLEND_PEAK_SNR),
+            BLEND_PEAK_SNR,
+        )
     } else {
         Vec::new()
     };
