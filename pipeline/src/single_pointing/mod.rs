@@ -231,10 +231,14 @@ pub struct CycleAgreement {
 /// The least squares over every frame.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LeastSquares {
-    /// q, u with errors scaled by sqrt(chi2/dof) when above 1.
+    /// q, u with errors scaled by sqrt(chi2/dof) when chi2 lies beyond its 99th percentile.
     pub pol: Pol,
     /// The fitted constant c of F (beam imbalance), when fitted.
     pub c: Option<f64>,
+    /// Why c was not fitted (fewer than 3 distinct angles, or angles that do not determine
+    /// it), when it was not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub c_not_fitted: Option<String>,
     /// chi^2.
     pub chi2: f64,
     /// Degrees of freedom.
@@ -453,6 +457,9 @@ pub fn summary_lines(cat: &SinglePointingCatalog) -> Vec<String> {
                 ls.chi2,
                 ls.dof
             ));
+        }
+        if let Some(why) = t.least_squares_sky.as_ref().and_then(|l| l.c_not_fitted.as_ref()) {
+            lines.push(format!("{head}: least squares: {why}"));
         }
         for (k, c) in t.cycles.iter().enumerate() {
             lines.push(format!("{head}: cycle {} instrument {}", k + 1, pol(&c.instrument)));
@@ -851,6 +858,8 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
     );
     let file = name(&r.path);
     let h = &r.header;
+    // This frame's bad pixels: the night's, and its own pixels that are not finite (NaN).
+    let bad_f: Vec<bool> = c.bad.iter().zip(&r.img.v).map(|(&b, v)| b || !v.is_finite()).collect();
     let (nx, ny) = (r.img.nx, r.img.ny);
     let plate = plate_of(r, m)?;
     let pos = hwp::cycle_position(plate, m.tolerance_deg);
@@ -909,7 +918,7 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
         None => s.clone(),
     };
     let rough = |rows: [usize; 2]| -> Result<(f64, f64)> {
-        let bx = image::boxcar_in_rows(&diff, c.bad, rows, 15);
+        let bx = image::boxcar_in_rows(&diff, &bad_f, rows, 15);
         let mut best = (f64::NEG_INFINITY, 0usize, 0usize);
         for y in rows[0]..rows[1] {
             for x in 0..nx {
@@ -932,7 +941,7 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
         let (a, b, sig, n, nsky) = match sky {
             Some((k, nsky)) => {
                 let (a, b, sig, n) =
-                    image::fit_sky(&s, k, c.bad, rows, centre, sp.sky_fit_min_radius_px).ok_or_else(|| {
+                    image::fit_sky(&s, k, &bad_f, rows, centre, sp.sky_fit_min_radius_px).ok_or_else(|| {
                         err(
                             &file,
                             format!("sky fit in rows {}..{}: too few pixels", rows[0], rows[1]),
@@ -963,7 +972,7 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
     let mut sky_e = fit_beam(beams.e_rows, rough_e)?;
     let [ci, co] = sp.centre_annulus_px;
     let centre = |g: (f64, f64)| {
-        image::symmetry_centre(&img, g, ci, co, sp.search_radius_px)
+        image::symmetry_centre(&img, &bad_f, g, ci, co, sp.search_radius_px)
             .ok_or_else(|| err(&file, format!("no centre of symmetry near ({:.0}, {:.0})", g.0, g.1)))
     };
     let (co_, ce_) = (centre(rough_o)?, centre(rough_e)?);
@@ -976,7 +985,7 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
                 for x in 0..nx {
                     let r = (x as f64 - cen.0).hypot(y as f64 - cen.1);
                     let i = y * nx + x;
-                    if r >= a0 && r <= a1 && !c.bad[i] && img.v[i].is_finite() {
+                    if r >= a0 && r <= a1 && !bad_f[i] && img.v[i].is_finite() {
                         vals.push(img.v[i]);
                     }
                 }
@@ -1030,7 +1039,7 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
             for x in x0..=x1 {
                 let i = y * nx + x;
                 let r = (x as f64 - cen.0).hypot(y as f64 - cen.1);
-                if r < 60.0 && !c.bad[i] && s.v[i] > limit {
+                if r < 60.0 && !bad_f[i] && s.v[i] > limit {
                     sat_r = sat_r.max(r);
                 }
             }
@@ -1046,7 +1055,7 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
             ),
         ));
     }
-    for cen in [co_, ce_] {
+    for (cen, rows, beam) in [(co_, beams.o_rows, "o"), (ce_, beams.e_rows, "e")] {
         if !image::inside(&img, cen, r_out) {
             return Err(err(
                 &file,
@@ -1056,9 +1065,27 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
                 ),
             ));
         }
+        // The aperture must lie within its beam's rows (outside them the image holds the
+        // other beam or nothing: no flux of this star's beam to sum).
+        if cen.1 - r_out < rows[0] as f64 - 0.5 || cen.1 + r_out > rows[1] as f64 - 0.5 {
+            return Err(err(
+                &file,
+                format!(
+                    "the {beam} image's aperture (single_pointing.aperture_px outer radius {r_out} px) about ({:.1}, {:.1}) \
+                     crosses the {beam} beam's rows {}..{} (beams.{beam}_rows): a smaller aperture or a star farther from the beam's edge",
+                    cen.0, cen.1, rows[0], rows[1]
+                ),
+            ));
+        }
     }
-    let (o, so) = image::annulus_sum(&img, &var, c.bad, co_, r_in, r_out);
-    let (e, se) = image::annulus_sum(&img, &var, c.bad, ce_, r_in, r_out);
+    let (o, so) = image::annulus_sum(&img, &var, &bad_f, co_, r_in, r_out);
+    let (e, se) = image::annulus_sum(&img, &var, &bad_f, ce_, r_in, r_out);
+    if ![o, so, e, se].iter().all(|v| v.is_finite()) {
+        return Err(err(
+            &file,
+            format!("the aperture sums are not finite (o {o} +- {so}, e {e} +- {se} ADU): a pixel of the sky fit or the flat is not finite"),
+        ));
+    }
     if !(o > 0.0 && e > 0.0) || (o / e - 1.0).abs() > beams.flux_ratio_tolerance {
         return Err(err(
             &file,
@@ -1112,6 +1139,7 @@ fn least_squares(r: &HwpStokes) -> Option<LeastSquares> {
             ls.fit.var_u.sqrt(),
         ),
         c: ls.offset.map(|o| o.c),
+        c_not_fitted: ls.offset_note(),
         chi2: ls.fit.chi2,
         dof: ls.dof,
     })
