@@ -133,7 +133,7 @@ pub fn interp(img: &Img, x: f64, y: f64) -> f64 {
 
 /// Bicubic value at `(x, y)` when none of its 16 taps is masked (`mask[i]`: bad or not
 /// finite) and it lies 2 px inside the edge.
-fn interp_unmasked(img: &Img, mask: &[bool], x: f64, y: f64) -> Option<f64> {
+pub(crate) fn interp_unmasked(img: &Img, mask: &[bool], x: f64, y: f64) -> Option<f64> {
     let (fx, fy) = (x.floor(), y.floor());
     if fx < 1.0 || fy < 1.0 || fx + 2.0 >= img.nx as f64 || fy + 2.0 >= img.ny as f64 {
         return None;
@@ -148,19 +148,56 @@ fn interp_unmasked(img: &Img, mask: &[bool], x: f64, y: f64) -> Option<f64> {
     Some(interp(img, x, y))
 }
 
+/// `img` with each masked pixel that has a good neighbour on both sides along x or along y
+/// set to the mean of those pairs' means, and the mask of the pixels left bad.
+fn fill_bad(img: &Img, mask: &[bool]) -> (Img, Vec<bool>) {
+    let (nx, ny) = (img.nx, img.ny);
+    let mut out = img.clone();
+    let mut left = mask.to_vec();
+    for y in 0..ny {
+        for x in 0..nx {
+            let i = y * nx + x;
+            if !mask[i] {
+                continue;
+            }
+            let (mut s, mut n) = (0.0, 0);
+            if x > 0 && x + 1 < nx && !mask[i - 1] && !mask[i + 1] {
+                s += 0.5 * (img.v[i - 1] + img.v[i + 1]);
+                n += 1;
+            }
+            if y > 0 && y + 1 < ny && !mask[i - nx] && !mask[i + nx] {
+                s += 0.5 * (img.v[i - nx] + img.v[i + nx]);
+                n += 1;
+            }
+            if n > 0 {
+                out.v[i] = s / n as f64;
+                left[i] = false;
+            }
+        }
+    }
+    (out, left)
+}
+
 /// The centre `(x, y)` of 180-degree symmetry of `img` between radii `r_in` and `r_out`
 /// about a first guess: the point minimizing the mean of `(I(c + d) - I(c - d))^2` over the
 /// integer offsets `d` of the annulus, first on a 1-px grid within `search` px of the guess
 /// (a saturated ring fools a local start), then by a pattern search down to 0.001 px.
 /// A saturated core has no usable peak or centroid; its symmetry remains.
 ///
-/// Bad pixels (`bad`) and pixels that are not finite (NaN) are left out by pairs: a pair
-/// `(c + d, c - d)` either of whose bicubic values would read a bad pixel is not used. The
-/// pairs left out then depend on `c`, so the search runs twice: with the pairs left out at
-/// each trial centre (the mean over the pairs used), then again from that centre with the
-/// pairs fixed: every pair that reads a bad pixel anywhere within 1.5 px of it is left out
-/// throughout, and the cost is smooth. Without a bad pixel near the star both passes are
-/// the single search on every pair. `None` when fewer than a quarter of the pairs are left.
+/// Bad pixels (`bad`) and pixels that are not finite (NaN) are first filled where they can
+/// be interpolated, for the centring only: the mean of the means of the two good neighbours
+/// along x and along y (either pair when only one is good; a pixel without a good pair, e.g.
+/// beyond the beam's rows, stays bad). A bad pixel that stays bad is left out by pairs: a
+/// pair `(c + d, c - d)` either of whose bicubic values would read it is not used. The pairs
+/// left out then depend on `c`, so the search runs twice: with the pairs left out at each
+/// trial centre (the mean over the pairs used), then again from that centre with the pairs
+/// fixed: every pair that reads a bad pixel anywhere within 1.5 px of it is left out
+/// throughout, and the cost is smooth. Filling rather than leaving out every pair near a
+/// bad pixel keeps the weighting of the star's (not quite symmetric) light: on a real NIRC2
+/// frame of AB Aur (a disk about the star) leaving out the pairs near 12 NaN pixels moved
+/// the centre by up to 0.19 px, filling them by 0.01 px. Without a bad pixel near the star
+/// this is the single search on every pair. `None` when fewer than a quarter of the pairs
+/// are left.
 pub fn symmetry_centre(
     img: &Img,
     bad: &[bool],
@@ -180,7 +217,16 @@ pub fn symmetry_centre(
             }
         }
     }
-    let mask: Vec<bool> = img.v.iter().zip(bad).map(|(v, &b)| b || !v.is_finite()).collect();
+    let mut mask: Vec<bool> = img.v.iter().zip(bad).map(|(v, &b)| b || !v.is_finite()).collect();
+    let filled;
+    let img = if mask.iter().any(|&m| m) {
+        let (f, m) = fill_bad(img, &mask);
+        filled = f;
+        mask = m;
+        &filled
+    } else {
+        img
+    };
     let min_pairs = (d.len() / 4).max(1);
     // `fixed`: the pairs left out throughout (pass 2); `None`: left out where they read a
     // bad pixel (pass 1).

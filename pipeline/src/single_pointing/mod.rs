@@ -29,6 +29,7 @@
 //!    plate cycle and their combination with the cycle-to-cycle scatter, the least squares
 //!    over every frame; once in the instrument frame (theta0 = 0) and once on the sky
 //!    (`modulation.zero_point_deg` plus each frame's field rotation, `[field_rotation]`).
+pub mod cosmic;
 pub mod image;
 
 use std::path::{Path, PathBuf};
@@ -197,6 +198,10 @@ pub struct FrameResult {
     pub f: f64,
     /// Its error.
     pub sigma_f: f64,
+    /// Pixels repaired as cosmic-ray hits in the o and e apertures ([`cosmic`]); the fluxes
+    /// and F above are after the repair.
+    #[serde(default)]
+    pub cosmic_ray_pixels: [usize; 2],
 }
 
 /// One complete plate cycle.
@@ -744,14 +749,16 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
     };
     // A science frame that cannot be measured (a missing keyword, no pair of images...) is
     // listed as not used with why; the night goes on with the others.
-    let results: Vec<Result<FrameResult>> = sci.par_iter().map(|r| measure_frame(r, &ctx)).collect();
+    let results: Vec<Result<(FrameResult, [cosmic::Cutout; 2])>> = sci.par_iter().map(|r| measure_frame(r, &ctx)).collect();
     let mut measured: Vec<FrameResult> = Vec::new();
+    let mut cutouts: Vec<[cosmic::Cutout; 2]> = Vec::new();
     let mut kept: Vec<&Raw> = Vec::new();
     let mut first_error = None;
     for (r, res) in sci.iter().zip(results) {
         match res {
-            Ok(f) => {
+            Ok((f, cuts)) => {
                 measured.push(f);
+                cutouts.push(cuts);
                 kept.push(r);
             }
             Err(e) => {
@@ -789,12 +796,12 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
     let targets = keys
         .into_iter()
         .map(|(t, f)| {
-            let frames: Vec<FrameResult> = kept
-                .iter()
-                .zip(&measured)
-                .filter(|(r, _)| target_of(r) == t && filter_of(&r.header) == f)
-                .map(|(_, fr)| fr.clone())
+            let idx: Vec<usize> = (0..kept.len())
+                .filter(|&i| target_of(kept[i]) == t && filter_of(&kept[i].header) == f)
                 .collect();
+            let mut frames: Vec<FrameResult> = idx.iter().map(|&i| measured[i].clone()).collect();
+            let cuts: Vec<&[cosmic::Cutout; 2]> = idx.iter().map(|&i| &cutouts[i]).collect();
+            cosmic::repair(&mut frames, &cuts, sp.aperture_px);
             target_result(t, f, frames, m.zero_point_deg, m.sigma_zero_point_deg, m.tolerance_deg)
         })
         .collect();
@@ -849,7 +856,7 @@ struct FrameContext<'a> {
     field: &'a sofipol_calib::profile::FieldRotation,
 }
 
-fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
+fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<(FrameResult, [cosmic::Cutout; 2])> {
     let p = c.profile;
     let (m, beams, sp) = (
         p.modulation.as_ref().expect("checked"),
@@ -1108,7 +1115,10 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
         sigma_e: se,
     })
     .ok_or_else(|| err(&file, "F undefined (fluxes or errors not finite)"))?;
-    Ok(FrameResult {
+    // Boxes about both images for the cosmic-ray test against the other frames (guiding
+    // moves the star by a few pixels at most).
+    let cuts = [co_, ce_].map(|cen| cosmic::Cutout::new(&img, &var, &bad_f, cen, r_out + 8.0));
+    let result = FrameResult {
         file,
         plate_deg: plate,
         mjd,
@@ -1125,7 +1135,9 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
         sigma_e: se,
         f,
         sigma_f: sf,
-    })
+        cosmic_ray_pixels: [0, 0],
+    };
+    Ok((result, cuts))
 }
 
 fn least_squares(r: &HwpStokes) -> Option<LeastSquares> {
