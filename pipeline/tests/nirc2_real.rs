@@ -291,3 +291,59 @@ fn nan_pixels_near_the_core_leave_the_centre() {
     assert!(d.iter().all(|v| v.abs() < 0.05), "{d:?}");
     assert!(f1.f.is_finite() && f1.sigma_f.is_finite());
 }
+
+/// A cosmic-ray hit of 3 pixels in the o aperture of a real frame (25 px from the centre,
+/// enough to move its F by 5 sigma_F) is found against the other frames and repaired: F
+/// within 1 sigma_F of the clean frame's, and the night's q, u within 1 sigma.
+#[test]
+fn a_cosmic_ray_in_a_real_aperture_is_repaired() {
+    let dir = frames_dir();
+    if !dir.is_dir() {
+        eprintln!(
+            "SKIPPED a_cosmic_ray_in_a_real_aperture_is_repaired: {} is absent (the real NIRC2 frames are not in the repository)",
+            dir.display()
+        );
+        return;
+    }
+    let profile = Profile::embedded("nirc2").expect("nirc2 is embedded").expect("valid");
+    let clean = single_pointing::reduce(std::slice::from_ref(&dir), &profile).expect("reduction");
+    let t0 = &clean.targets[0];
+    let f0 = t0.frames.iter().find(|f| f.file == "n0933.fits.gz").expect("n0933").clone();
+    let tmp = tempfile::tempdir().unwrap();
+    for e in std::fs::read_dir(&dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.file_name().unwrap() != "n0933.fits.gz" {
+            std::os::unix::fs::symlink(&p, tmp.path().join(p.file_name().unwrap())).unwrap();
+        }
+    }
+    let mut fr = sofipol_calib::fits::read_frame(&dir.join("n0933.fits.gz")).unwrap();
+    // dF = dO 2e / (o + e)^2: 5 sigma_F over 3 pixels (the flat is ~1).
+    let adu = 5.0 * f0.sigma_f * (f0.o + f0.e).powi(2) / (2.0 * f0.e) / 3.0;
+    let (cx, cy) = (f0.o_centre[0].round() as usize, f0.o_centre[1].round() as usize);
+    for (x, y) in [(cx + 25, cy), (cx + 26, cy), (cx + 25, cy + 1)] {
+        fr.data[[y, x]] += adu as f32;
+    }
+    sofipol_calib::fits::write_frame(
+        &tmp.path().join("n0933.fits"),
+        &fr,
+        &sofipol_calib::fits::WriteOptions::default(),
+    )
+    .unwrap();
+    let cat = single_pointing::reduce(&[tmp.path().to_path_buf()], &profile).expect("reduction with a hit");
+    let t = &cat.targets[0];
+    let f1 = t.frames.iter().find(|f| f.file == "n0933.fits").expect("n0933 with a hit");
+    let d = (f1.f - f0.f) / f0.sigma_f;
+    println!(
+        "n0933 with a hit of 3 x {adu:.0} ADU: {:?} pixels repaired, F moves by {d:+.3} sigma_F",
+        f1.cosmic_ray_pixels
+    );
+    assert!(f1.cosmic_ray_pixels[0] >= 3, "{:?}", f1.cosmic_ray_pixels);
+    assert!(d.abs() < 1.0, "F moves by {d} sigma_F");
+    for (f, g) in t.frames.iter().zip(&t0.frames) {
+        if f.file != "n0933.fits" {
+            assert_eq!((f.cosmic_ray_pixels, f.f), ([0, 0], g.f), "{}", f.file);
+        }
+    }
+    let (a, b) = (t.sky.unwrap(), t0.sky.unwrap());
+    assert!((a.q - b.q).abs() < b.sigma_q && (a.u - b.u).abs() < b.sigma_u, "{a:?} vs {b:?}");
+}
