@@ -19,12 +19,16 @@
 //!    photon noise (gain from the header), the read noise of NDIT summed coadds, the sky
 //!    frame's own noise.
 //! 5. The star: the brightest 15 x 15 box mean in each beam's rows, then the centre of
-//!    180-degree symmetry (`centre_annulus_px`; a saturated core reads low and has no peak).
+//!    180-degree symmetry (`centre_annulus_px`; a saturated core reads low and has no peak;
+//!    bad and NaN pixels filled from their neighbours or left out by pairs:
+//!    [`image::symmetry_centre`]).
 //!    The two images are one star's when their offset is `geometry.eo_offset_px` within
 //!    `beams.offset_tolerance_px` and their fluxes agree within `beams.flux_ratio_tolerance`;
 //!    otherwise the frame stops the reduction, named.
 //! 6. Photometry: exact-area annulus `aperture_px` (r_in outside every pixel above the
-//!    linear limit, checked per frame), bad pixels left out.
+//!    linear limit, checked per frame; the annulus inside the frame and its beam's rows,
+//!    else the frame is not used, named), bad and NaN pixels left out; cosmic-ray hits in
+//!    the apertures found against the target's other frames and repaired ([`cosmic`]).
 //! 7. Stokes: [`crate::stokes::hwp`]: F per frame, the double difference of each complete
 //!    plate cycle and their combination with the cycle-to-cycle scatter, the least squares
 //!    over every frame; once in the instrument frame (theta0 = 0) and once on the sky
