@@ -308,7 +308,12 @@ fn a_cosmic_ray_in_a_real_aperture_is_repaired() {
     let profile = Profile::embedded("nirc2").expect("nirc2 is embedded").expect("valid");
     let clean = single_pointing::reduce(std::slice::from_ref(&dir), &profile).expect("reduction");
     let t0 = &clean.targets[0];
-    let f0 = t0.frames.iter().find(|f| f.file == "n0933.fits.gz").expect("n0933").clone();
+    let f0 = t0
+        .frames
+        .iter()
+        .find(|f| f.file == "n0933.fits.gz")
+        .expect("n0933")
+        .clone();
     let tmp = tempfile::tempdir().unwrap();
     for e in std::fs::read_dir(&dir).unwrap() {
         let p = e.unwrap().path();
@@ -331,7 +336,11 @@ fn a_cosmic_ray_in_a_real_aperture_is_repaired() {
     .unwrap();
     let cat = single_pointing::reduce(&[tmp.path().to_path_buf()], &profile).expect("reduction with a hit");
     let t = &cat.targets[0];
-    let f1 = t.frames.iter().find(|f| f.file == "n0933.fits").expect("n0933 with a hit");
+    let f1 = t
+        .frames
+        .iter()
+        .find(|f| f.file == "n0933.fits")
+        .expect("n0933 with a hit");
     let d = (f1.f - f0.f) / f0.sigma_f;
     println!(
         "n0933 with a hit of 3 x {adu:.0} ADU: {:?} pixels repaired, F moves by {d:+.3} sigma_F",
@@ -345,5 +354,8 @@ fn a_cosmic_ray_in_a_real_aperture_is_repaired() {
         }
     }
     let (a, b) = (t.sky.unwrap(), t0.sky.unwrap());
-    assert!((a.q - b.q).abs() < b.sigma_q && (a.u - b.u).abs() < b.sigma_u, "{a:?} vs {b:?}");
+    assert!(
+        (a.q - b.q).abs() < b.sigma_q && (a.u - b.u).abs() < b.sigma_u,
+        "{a:?} vs {b:?}"
+    );
 }

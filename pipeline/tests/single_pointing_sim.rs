@@ -606,28 +606,53 @@ fn cosmic_rays_are_repaired_or_clipped() {
     let f3 = &clean.targets[0].frames[3];
     let adu = 6.0 * f3.sigma_f * (f3.o + f3.e) / 3.0 * 1.05;
     let (x, y) = (O_POS.0.round() as usize, O_POS.1.round() as usize);
-    hit(&dir.path().join("sci3.fits"), &[(x + 3, y + 1), (x + 4, y + 1), (x + 4, y + 2)], adu);
+    hit(
+        &dir.path().join("sci3.fits"),
+        &[(x + 3, y + 1), (x + 4, y + 1), (x + 4, y + 2)],
+        adu,
+    );
     // Hits in the sky-fit regions (beyond 25 px of the star) of sci5, both beams, and in
     // the sky annulus (12-20 px) of sci6's o image.
-    hit(&dir.path().join("sci5.fits"), &[(100, 180), (101, 180), (20, 60), (21, 61)], 50.0 * adu);
-    hit(&dir.path().join("sci6.fits"), &[(x + 15, y), (x + 15, y + 1), (x - 3, y - 14)], 50.0 * adu);
+    hit(
+        &dir.path().join("sci5.fits"),
+        &[(100, 180), (101, 180), (20, 60), (21, 61)],
+        50.0 * adu,
+    );
+    hit(
+        &dir.path().join("sci6.fits"),
+        &[(x + 15, y), (x + 15, y + 1), (x - 3, y - 14)],
+        50.0 * adu,
+    );
     for (c0, p) in [(&clean, profile()), (&clean_a, annulus)] {
         let cat = single_pointing::reduce(&[dir.path().to_path_buf()], &p).unwrap();
         let (t, t0) = (&cat.targets[0], &c0.targets[0]);
         assert_eq!(t.frames.len(), 8, "{:?}", cat.not_used);
         for (f, g) in t.frames.iter().zip(&t0.frames) {
             let d = (f.f - g.f) / g.sigma_f;
-            println!("{}: F moves by {d:+.3} sigma_F; {:?} pixels repaired", f.file, f.cosmic_ray_pixels);
+            println!(
+                "{}: F moves by {d:+.3} sigma_F; {:?} pixels repaired",
+                f.file, f.cosmic_ray_pixels
+            );
             assert!(d.abs() < 1.0, "{}: F moves by {d} sigma_F", f.file);
         }
-        assert!(t.frames[3].cosmic_ray_pixels[0] >= 3, "{:?}", t.frames[3].cosmic_ray_pixels);
+        assert!(
+            t.frames[3].cosmic_ray_pixels[0] >= 3,
+            "{:?}",
+            t.frames[3].cosmic_ray_pixels
+        );
         let (a, b) = (
             t.least_squares_sky.as_ref().unwrap().pol,
             t0.least_squares_sky.as_ref().unwrap().pol,
         );
-        assert!((a.q - b.q).abs() < b.sigma_q && (a.u - b.u).abs() < b.sigma_u, "{a:?} vs {b:?}");
+        assert!(
+            (a.q - b.q).abs() < b.sigma_q && (a.u - b.u).abs() < b.sigma_u,
+            "{a:?} vs {b:?}"
+        );
         let (a, b) = (t.sky.unwrap(), t0.sky.unwrap());
-        assert!((a.q - b.q).abs() < b.sigma_q && (a.u - b.u).abs() < b.sigma_u, "{a:?} vs {b:?}");
+        assert!(
+            (a.q - b.q).abs() < b.sigma_q && (a.u - b.u).abs() < b.sigma_u,
+            "{a:?} vs {b:?}"
+        );
     }
 }
 
@@ -678,8 +703,16 @@ fn an_absurd_header_angle_is_refused_by_name() {
     fr.header.set("PARANG", 1e300);
     write_frame(&p, &fr, &WriteOptions::default()).unwrap();
     let cat = single_pointing::reduce(&[dir.path().to_path_buf()], &profile()).unwrap();
-    let n = cat.not_used.iter().find(|n| n.file == "sci4.fits").expect("sci4 not used");
-    assert!(n.reason.contains("PARANG") && n.reason.contains("1e300"), "{}", n.reason);
+    let n = cat
+        .not_used
+        .iter()
+        .find(|n| n.file == "sci4.fits")
+        .expect("sci4 not used");
+    assert!(
+        n.reason.contains("PARANG") && n.reason.contains("1e300"),
+        "{}",
+        n.reason
+    );
     assert_eq!(cat.targets[0].frames.len(), 4);
 }
 
@@ -703,7 +736,14 @@ fn two_plate_positions_do_not_fit_c() {
     assert!(ls.c.is_none(), "{:?}", ls.c);
     let why = ls.c_not_fitted.as_deref().expect("why c is not fitted");
     assert!(why.contains("not fitted") && why.contains("do not determine"), "{why}");
-    assert!((ls.pol.q - Q_SKY).abs() < 1e-6 && (ls.pol.u - U_SKY).abs() < 1e-6, "{:?}", ls.pol);
+    assert!(
+        (ls.pol.q - Q_SKY).abs() < 1e-6 && (ls.pol.u - U_SKY).abs() < 1e-6,
+        "{:?}",
+        ls.pol
+    );
     let lines = single_pointing::summary_lines(&cat);
-    assert!(lines.iter().any(|l| l.contains("c (beam imbalance) is not fitted")), "{lines:?}");
+    assert!(
+        lines.iter().any(|l| l.contains("c (beam imbalance) is not fitted")),
+        "{lines:?}"
+    );
 }

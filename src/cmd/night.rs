@@ -201,7 +201,10 @@ fn single_pointing_refusals(args: &Args) -> Vec<(&'static str, &'static str)> {
     ];
     let mut out: Vec<(&str, &str)> = refusals.iter().filter(|r| r.1).map(|r| (r.0, r.2)).collect();
     if *verbose > 0 {
-        out.push(("--verbose", "the half-wave-plate night prints its whole summary without it"));
+        out.push((
+            "--verbose",
+            "the half-wave-plate night prints its whole summary without it",
+        ));
     }
     out
 }
@@ -427,10 +430,14 @@ mod tests {
             } else if let Some(v) = arg.get_possible_values().first() {
                 vec![v.get_name().to_string()]
             } else {
-                ["1/2", "1.5", "1.0,30", "a.b=1", "x.toml"].map(String::from).to_vec()
+                ["1/2", "1.5", "1.0,30", "a.b=1", "x.toml", "exact", "wk", "ratio"]
+                    .map(String::from)
+                    .to_vec()
             };
             let parsed = if candidates.is_empty() {
-                cmd.clone().try_get_matches_from(["night", "d", "--profile", "nirc2", &flag]).ok()
+                cmd.clone()
+                    .try_get_matches_from(["night", "d", "--profile", "nirc2", &flag])
+                    .ok()
             } else {
                 candidates.iter().find_map(|v| {
                     cmd.clone()
@@ -451,7 +458,18 @@ mod tests {
         let m = cmd
             .clone()
             .try_get_matches_from([
-                "night", "d", "--profile", "nirc2", "-o", "c.json", "-j", "2", "--no-png", "-q", "--set", "a.b=1",
+                "night",
+                "d",
+                "--profile",
+                "nirc2",
+                "-o",
+                "c.json",
+                "-j",
+                "2",
+                "--no-png",
+                "-q",
+                "--set",
+                "a.b=1",
             ])
             .unwrap();
         assert!(single_pointing_refusals(&Args::from_arg_matches(&m).unwrap()).is_empty());

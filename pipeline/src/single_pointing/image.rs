@@ -472,7 +472,8 @@ mod tests {
         for y in 0..ny {
             for x in 0..nx {
                 let r = (x as f64 - x0).hypot(y as f64 - y0);
-                img.v[y * nx + x] = 1e4 * (-0.5 * (r / 6.0).powi(2)).exp() + 800.0 * (-0.5 * ((r - 14.0) / 2.5).powi(2)).exp();
+                img.v[y * nx + x] =
+                    1e4 * (-0.5 * (r / 6.0).powi(2)).exp() + 800.0 * (-0.5 * ((r - 14.0) / 2.5).powi(2)).exp();
             }
         }
         let mut bad = vec![false; nx * ny];
@@ -486,7 +487,10 @@ mod tests {
             bad[y * nx + x] = true;
         }
         let (cx, cy) = symmetry_centre(&img, &bad, (x0 + 2.0, y0 - 1.0), 3.0, 30.0, 4.0).expect("a centre");
-        assert!((cx - clean.0).abs() < 0.01 && (cy - clean.1).abs() < 0.01, "{cx} {cy} vs {clean:?}");
+        assert!(
+            (cx - clean.0).abs() < 0.01 && (cy - clean.1).abs() < 0.01,
+            "{cx} {cy} vs {clean:?}"
+        );
     }
 
     /// The annulus weights sum to the exact area pi (r_out^2 - r_in^2); a constant image sums

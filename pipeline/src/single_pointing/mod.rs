@@ -753,7 +753,8 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
     };
     // A science frame that cannot be measured (a missing keyword, no pair of images...) is
     // listed as not used with why; the night goes on with the others.
-    let results: Vec<Result<(FrameResult, [cosmic::Cutout; 2])>> = sci.par_iter().map(|r| measure_frame(r, &ctx)).collect();
+    let results: Vec<Result<(FrameResult, [cosmic::Cutout; 2])>> =
+        sci.par_iter().map(|r| measure_frame(r, &ctx)).collect();
     let mut measured: Vec<FrameResult> = Vec::new();
     let mut cutouts: Vec<[cosmic::Cutout; 2]> = Vec::new();
     let mut kept: Vec<&Raw> = Vec::new();

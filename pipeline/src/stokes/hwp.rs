@@ -878,8 +878,10 @@ mod tests {
                 .least_squares
                 .unwrap();
             assert_eq!(ls.dof, 5);
-            z2 += ((ls.fit.q - POL.q) / ls.adopted_sigma_q()).powi(2) + ((ls.fit.u - POL.u) / ls.adopted_sigma_u()).powi(2);
-            z2_formal += ((ls.fit.q - POL.q) / ls.fit.var_q.sqrt()).powi(2) + ((ls.fit.u - POL.u) / ls.fit.var_u.sqrt()).powi(2);
+            z2 += ((ls.fit.q - POL.q) / ls.adopted_sigma_q()).powi(2)
+                + ((ls.fit.u - POL.u) / ls.adopted_sigma_u()).powi(2);
+            z2_formal +=
+                ((ls.fit.q - POL.q) / ls.fit.var_q.sqrt()).powi(2) + ((ls.fit.u - POL.u) / ls.fit.var_u.sqrt()).powi(2);
             inflated += usize::from(ls.inflation() > 1.0);
         }
         let (m, mf) = (z2 / (2 * n) as f64, z2_formal / (2 * n) as f64);
@@ -916,17 +918,33 @@ mod tests {
         };
         let plates = [0.0, 22.5, 0.0, 22.5, 0.0, 22.5, 0.0, 22.5];
         let offsets: Vec<f64> = (0..8).map(|k| 0.1 * k as f64).collect();
-        let r = reduce_on_sky(&on_sky(&plates, &offsets), &offsets, 0.0, 1.0, CycleMethod::DoubleDifference);
+        let r = reduce_on_sky(
+            &on_sky(&plates, &offsets),
+            &offsets,
+            0.0,
+            1.0,
+            CycleMethod::DoubleDifference,
+        );
         let ls = r.least_squares.unwrap();
         assert!(!ls.offset_fitted(), "{:?}", ls.offset);
         let note = ls.offset_note().unwrap();
         assert!(note.contains("not fitted") && note.contains("correlation"), "{note}");
         assert_eq!(ls.dof, 6);
-        assert!((ls.fit.q - POL.q).abs() < 1e-12 && (ls.fit.u - POL.u).abs() < 1e-12, "{:?}", ls.fit);
+        assert!(
+            (ls.fit.q - POL.q).abs() < 1e-12 && (ls.fit.u - POL.u).abs() < 1e-12,
+            "{:?}",
+            ls.fit
+        );
         let p4 = cycle_plates(2);
-        let ls4 = reduce_on_sky(&on_sky(&p4, &offsets), &offsets, 0.0, 1.0, CycleMethod::DoubleDifference)
-            .least_squares
-            .unwrap();
+        let ls4 = reduce_on_sky(
+            &on_sky(&p4, &offsets),
+            &offsets,
+            0.0,
+            1.0,
+            CycleMethod::DoubleDifference,
+        )
+        .least_squares
+        .unwrap();
         assert!(ls4.offset_fitted() && ls4.offset_note().is_none());
         let wide: Vec<f64> = (0..8).map(|k| 7.5 * k as f64).collect();
         let lw = reduce_on_sky(&on_sky(&plates, &wide), &wide, 0.0, 1.0, CycleMethod::DoubleDifference)
@@ -934,8 +952,18 @@ mod tests {
             .unwrap();
         assert!(lw.offset_fitted(), "{:?}", lw.offset_note());
         // Two distinct angles only: not fitted, said.
-        let r2 = reduce(&frames(&[0.0, 22.5, 0.0, 22.5], 1e6, 1.0, 1.0), 0.0, 1.0, CycleMethod::DoubleDifference);
-        assert!(r2.least_squares.unwrap().offset_note().unwrap().contains("fewer than 3 distinct"));
+        let r2 = reduce(
+            &frames(&[0.0, 22.5, 0.0, 22.5], 1e6, 1.0, 1.0),
+            0.0,
+            1.0,
+            CycleMethod::DoubleDifference,
+        );
+        assert!(r2
+            .least_squares
+            .unwrap()
+            .offset_note()
+            .unwrap()
+            .contains("fewer than 3 distinct"));
     }
 
     /// The stored NIRC2 reference (testdata/real) and its per-frame plate angles and fluxes.
