@@ -51,6 +51,29 @@ fn a_half_wave_plate_profile_is_refused_where_it_cannot_be_reduced() {
     ]);
     assert_ne!(code, 0);
     assert!(err.contains("--shard") && err.contains("NIRC2"), "{err}");
+    // Every SOFI-only option is refused, each named with why, all at once.
+    let (code, _, err) = run(&[
+        "night",
+        dir,
+        "--profile",
+        "nirc2",
+        "--regions",
+        "--stokes-method",
+        "ratio",
+        "--aperture-fwhm",
+        "2",
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    assert_ne!(code, 0);
+    for flag in [
+        "--regions: no DS9 region files",
+        "--stokes-method: q and u come from",
+        "--aperture-fwhm: the aperture is single_pointing.aperture_px",
+    ] {
+        assert!(err.contains(flag), "{flag}: {err}");
+    }
+    assert!(!out.exists());
     // A bad value of a new section is refused naming the key.
     let (code, _, err) = run(&[
         "night",

@@ -8,6 +8,9 @@ use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
 
+/// The largest |value| a header angle may have, deg ([`Header::get_angle_deg`]): two turns.
+pub const MAX_HEADER_ANGLE_DEG: f64 = 720.0;
+
 /// A header value.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(untagged)]
@@ -157,6 +160,28 @@ impl Header {
         };
         if !x.is_finite() {
             return Err(self.bad(key, v, "not a finite number"));
+        }
+        Ok(x)
+    }
+
+    /// An angle keyword, deg: a finite number within +-[`MAX_HEADER_ANGLE_DEG`] (a plate
+    /// angle, a parallactic angle, a rotator position). A value beyond two turns is not an
+    /// angle any instrument writes (a corrupt card, a wrong keyword) and is refused, named.
+    pub fn get_angle_deg(&self, key: &str) -> Result<f64> {
+        let x = self.get_f64(key)?;
+        if x.abs() > MAX_HEADER_ANGLE_DEG {
+            // 1e300 written as such, not as its 301 digits.
+            let shown = match self.get(key) {
+                Some(HeaderValue::Float(v)) if v.abs() >= 1e6 => format!("{v:e}"),
+                Some(v) => v.to_string(),
+                None => x.to_string(),
+            };
+            return Err(Error::BadKeyword {
+                path: self.path.clone(),
+                keyword: normalize_key(key),
+                value: shown,
+                reason: format!("not an angle in degrees (beyond +-{MAX_HEADER_ANGLE_DEG})"),
+            });
         }
         Ok(x)
     }

@@ -130,28 +130,102 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     })
 }
 
+/// The options of `night` given that the half-wave-plate reduction does not use, each with
+/// why: every field of [`Args`] is named below (no `..`), so a new option does not compile
+/// until it is either used by the half-wave-plate night or refused here.
+fn single_pointing_refusals(args: &Args) -> Vec<(&'static str, &'static str)> {
+    use super::common::OutputArgs;
+    use super::setup::{CalibArgs, FlatArgs, ReduceArgs};
+    let Args {
+        dirs: _,
+        output: _,
+        jobs: _,
+        shard,
+        // Nothing to leave out: the half-wave-plate night writes no figure.
+        no_png: _,
+        outputs: OutputArgs { regions, fits_products },
+        report,
+        setup:
+            super::setup::SetupArgs {
+                reduce:
+                    ReduceArgs {
+                        params,
+                        param,
+                        dump_params,
+                        badpix,
+                        aperture_fwhm,
+                        method,
+                        debias,
+                        companion,
+                        save_intermediate,
+                    },
+                flat: FlatArgs { flat, no_flat },
+                calib:
+                    CalibArgs {
+                        calib,
+                        standards,
+                        stokes_method,
+                        no_calibration,
+                        no_telescope_correction,
+                        allow_uncalibrated,
+                    },
+                // The profile and its --set overrides set the reduction.
+                profile: _,
+            },
+        quiet: _,
+        verbose,
+    } = args;
+    const PROFILE: &str = "the reduction is set by the profile's [single_pointing] section (change it with --set single_pointing.KEY=VALUE)";
+    let refusals: [(&str, bool, &str); 21] = [
+        ("--shard", shard.is_some(), "the night is one set of frames, not split into sequences"),
+        ("--regions", *regions, "no DS9 region files are written for a half-wave-plate night"),
+        ("--fits-products", *fits_products, "no FITS products are written for a half-wave-plate night"),
+        ("--report", report.is_some(), "there is no HTML page of a half-wave-plate catalog"),
+        ("--params", params.is_some(), PROFILE),
+        ("--param", !param.is_empty(), PROFILE),
+        ("--dump-params", *dump_params, PROFILE),
+        ("--badpix", badpix.is_some(), "bad pixels come from the night's darks and flat (single_pointing.hot_pixel_adu)"),
+        ("--aperture-fwhm", aperture_fwhm.is_some(), "the aperture is single_pointing.aperture_px, in pixels"),
+        ("--method", method.is_some(), "the aperture's pixels are always weighted by their exact overlap"),
+        ("--debias", debias.is_some(), "P is reported as measured, not debiased"),
+        ("--companion", companion.is_some(), "one star per frame is measured; there is no companion search"),
+        ("--save-intermediate", save_intermediate.is_some(), "no intermediate frames are written for a half-wave-plate night"),
+        ("--flat", !flat.is_empty(), "the flat is made from the night's sky frames of complete plate cycles"),
+        ("--no-flat", *no_flat, "the flat from the sky frames also finds the bad pixels and is always applied"),
+        ("--calib", calib.is_some(), "there is no standard-star calibration: the zero point is modulation.zero_point_deg"),
+        ("--standards", standards.is_some(), "there is no standard-star calibration: the zero point is modulation.zero_point_deg"),
+        ("--stokes-method", stokes_method.is_some(), "q and u come from the double difference of each plate cycle and the least squares over the frames, both always given"),
+        ("--no-calibration", *no_calibration, "there is no standard-star calibration to leave out (the instrument-frame result is always given)"),
+        ("--no-telescope-correction", *no_telescope_correction, "the telescope's polarization is neither fitted nor removed"),
+        ("--allow-uncalibrated", *allow_uncalibrated, "there is no P/sigma cut on calibration"),
+    ];
+    let mut out: Vec<(&str, &str)> = refusals.iter().filter(|r| r.1).map(|r| (r.0, r.2)).collect();
+    if *verbose > 0 {
+        out.push((
+            "--verbose",
+            "the half-wave-plate night prints its whole summary without it",
+        ));
+    }
+    out
+}
+
 /// A half-wave-plate profile (`--profile nirc2`): the single-pointing reduction
 /// ([`sofipol_pipeline::single_pointing`]) of every target under the inputs, its catalog
 /// written to `-o`, one summary per target on stderr. The SOFI night's options that do not
-/// apply are refused by name.
+/// apply are refused by name, with why ([`single_pointing_refusals`]).
 fn run_single_pointing(args: &Args, profile: &sofipol_calib::Profile) -> anyhow::Result<ExitCode> {
-    let not_here = [
-        ("--shard", args.shard.is_some()),
-        ("--report", args.report.is_some()),
-        ("--dump-params", args.setup.reduce.dump_params),
-        (
-            "--params / --param",
-            args.setup.reduce.params.is_some() || !args.setup.reduce.param.is_empty(),
-        ),
-    ];
-    for (flag, given) in not_here {
-        anyhow::ensure!(
-            !given,
-            "{flag}: not available with profile {} (modulation.kind = {}): its reduction is set by the profile's [single_pointing] section",
-            profile.name,
-            profile.modulation_kind().name()
-        );
-    }
+    let refused = single_pointing_refusals(args);
+    anyhow::ensure!(
+        refused.is_empty(),
+        "not available with profile {} (modulation.kind = {}): {}",
+        profile.name,
+        profile.modulation_kind().name(),
+        refused
+            .iter()
+            .map(|(flag, why)| format!("{flag}: {why}"))
+            .collect::<Vec<_>>()
+            .join("; ")
+    );
     for d in &args.dirs {
         anyhow::ensure!(d.exists(), "{}: no such file or directory", d.display());
     }
@@ -326,4 +400,78 @@ pub fn print_verbose(out: &NightOutput, wall: f64) {
         io::cpu_seconds().unwrap_or(f64::NAN),
         io::peak_rss_bytes().unwrap_or(0) as f64 / 1e6
     );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::{Args as _, FromArgMatches};
+
+    /// Every option of `night` that the half-wave-plate reduction does not use is refused
+    /// naming it: the options are taken from clap's own list of `night`'s arguments (a new
+    /// one is tested without being listed here); only the ones the half-wave-plate night
+    /// uses pass.
+    #[test]
+    fn every_sofi_only_option_is_refused_by_name() {
+        let used = ["dirs", "output", "jobs", "no_png", "quiet", "profile", "sets"];
+        let cmd = Args::augment_args(clap::Command::new("night"));
+        let mut tried = 0;
+        for arg in cmd.get_arguments() {
+            let id = arg.get_id().as_str();
+            if used.contains(&id) {
+                continue;
+            }
+            let long = arg.get_long().unwrap_or_else(|| panic!("{id}: no long name"));
+            let flag = format!("--{long}");
+            // A value clap accepts for it: its first possible value, else the first of a few
+            // kinds that parses.
+            let candidates: Vec<String> = if !arg.get_action().takes_values() {
+                vec![]
+            } else if let Some(v) = arg.get_possible_values().first() {
+                vec![v.get_name().to_string()]
+            } else {
+                ["1/2", "1.5", "1.0,30", "a.b=1", "x.toml", "exact", "wk", "ratio"]
+                    .map(String::from)
+                    .to_vec()
+            };
+            let parsed = if candidates.is_empty() {
+                cmd.clone()
+                    .try_get_matches_from(["night", "d", "--profile", "nirc2", &flag])
+                    .ok()
+            } else {
+                candidates.iter().find_map(|v| {
+                    cmd.clone()
+                        .try_get_matches_from(["night", "d", "--profile", "nirc2", &flag, v])
+                        .ok()
+                })
+            };
+            let m = parsed.unwrap_or_else(|| panic!("{flag}: no test value parses"));
+            let args = Args::from_arg_matches(&m).unwrap();
+            let refused = single_pointing_refusals(&args);
+            assert_eq!(refused.len(), 1, "{flag}: {refused:?}");
+            assert_eq!(refused[0].0, flag, "{flag}: {refused:?}");
+            assert!(refused[0].1.len() > 20, "{flag}: no reason");
+            tried += 1;
+        }
+        assert!(tried >= 22, "{tried} options tried");
+        // The options it uses pass.
+        let m = cmd
+            .clone()
+            .try_get_matches_from([
+                "night",
+                "d",
+                "--profile",
+                "nirc2",
+                "-o",
+                "c.json",
+                "-j",
+                "2",
+                "--no-png",
+                "-q",
+                "--set",
+                "a.b=1",
+            ])
+            .unwrap();
+        assert!(single_pointing_refusals(&Args::from_arg_matches(&m).unwrap()).is_empty());
+    }
 }

@@ -79,10 +79,11 @@ fn default_tolerance() -> f64 {
 impl Modulation {
     /// The plate angle of a frame as [`crate::profile`]'s half-wave-plate model uses it, deg:
     /// the keyword's value (`half_wave_plate`) or half the analyzer angle (`per_file`, so
-    /// that phi = 2 x this + theta0 is the header's angle). Errors name the file and key.
+    /// that phi = 2 x this + theta0 is the header's angle). Errors name the file and key; a
+    /// value beyond +-720 deg is refused ([`Header::get_angle_deg`]).
     pub fn plate_deg(&self, h: &Header) -> Result<f64> {
         let key = self.keyword.as_deref().unwrap_or_default();
-        let v = h.get_f64(key)?;
+        let v = h.get_angle_deg(key)?;
         Ok(match self.kind {
             ModulationKind::PerFile => 0.5 * v,
             _ => v,
@@ -133,15 +134,16 @@ pub struct FieldRotation {
 impl FieldRotation {
     /// The offset of the analyzer's angle on the sky from its angle in the instrument, deg,
     /// for one frame: 0 for `sky_fixed`; `PARANG + sum(factor x keyword)` for
-    /// `pupil_tracking`. Errors name the file and the keyword.
+    /// `pupil_tracking`. Errors name the file and the keyword; each angle must be finite and
+    /// within +-720 deg ([`Header::get_angle_deg`]).
     pub fn sky_offset_deg(&self, h: &Header) -> Result<f64> {
         match self.kind {
             FieldRotationKind::SkyFixed => Ok(0.0),
             FieldRotationKind::PupilTracking => {
                 let key = self.parang_keyword.as_deref().unwrap_or_default();
-                let mut a = h.get_f64(key)?;
+                let mut a = h.get_angle_deg(key)?;
                 for t in &self.terms {
-                    a += t.factor * h.get_f64(&t.keyword)?;
+                    a += t.factor * h.get_angle_deg(&t.keyword)?;
                 }
                 Ok(a)
             }
@@ -600,6 +602,45 @@ mod tests {
         assert!(e.contains("DETGAIN") && e.contains("-8"), "{e}");
         // SOFI's numbers stay the profile's.
         assert_eq!(Profile::sofi().detector.gain_of(&bad).unwrap(), 5.4);
+    }
+
+    /// A header angle that is no angle (1e300, beyond two turns, or not a number) is refused
+    /// naming the file, the keyword and the value; two turns are still an angle.
+    #[test]
+    fn absurd_header_angles_are_refused_by_name() {
+        use crate::header::HeaderValue as V;
+        let p = nirc2();
+        let (m, f) = (p.modulation.as_ref().unwrap(), p.field_rotation.as_ref().unwrap());
+        let good = [
+            ("PARANG", V::Float(215.07)),
+            ("EL", V::Float(77.17)),
+            ("ROTPDEST", V::Float(77.87)),
+            ("PCUPR", V::Float(22.4975)),
+        ];
+        for (key, value, shown) in [
+            ("PCUPR", V::Float(1e300), "1e300"),
+            ("PARANG", V::Float(-1e300), "-1e300"),
+            ("EL", V::Float(720.5), "720.5"),
+            ("ROTPDEST", V::Str("nan".into()), "nan"),
+        ] {
+            let mut cards = good.to_vec();
+            cards.retain(|c| c.0 != key);
+            cards.push((key, value));
+            let h = header(&cards);
+            let e = if key == "PCUPR" {
+                m.plate_deg(&h).unwrap_err()
+            } else {
+                f.sky_offset_deg(&h).unwrap_err()
+            }
+            .to_string();
+            assert!(
+                e.contains(key) && e.to_lowercase().contains(shown) && e.contains("n0932"),
+                "{key}: {e}"
+            );
+        }
+        let mut cards = good.to_vec();
+        cards[0] = ("PARANG", V::Float(-720.0));
+        assert!((f.sky_offset_deg(&header(&cards)).unwrap() - (-720.0 - 77.17 - 77.87)).abs() < 1e-9);
     }
 
     /// Roles from keyword tests: darks by the shutter, sky frames by OBJECT, science needs the

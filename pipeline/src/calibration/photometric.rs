@@ -8,7 +8,8 @@
 //! standard i:  ZP_i = m_i + 2.5 log10(r_i) + k X_i
 //!              sigma_ZP_i^2 = sigma_m_i^2 + (2.5/ln 10 sigma_r_i / r_i)^2
 //! filter:      ZP = sum w_i ZP_i / sum w_i,  w_i = 1/sigma_ZP_i^2
-//!              sigma_ZP = sqrt(1 / sum w_i) x max(1, sqrt(chi2 / (n - 1)))   (n >= 2)
+//!              sigma_ZP = sqrt(1 / sum w_i) x sqrt(k),  k = chi2 / (n - 1) when chi2 is
+//!                         beyond its 99th percentile for n - 1 dof, else 1   (n >= 2)
 //! component:   m = ZP - 2.5 log10(r) - k X,  sigma_m^2 = (2.5/ln 10 sigma_r / r)^2 + sigma_ZP^2
 //! ```
 //!
@@ -43,8 +44,10 @@ pub fn standard_zero_point(
 }
 
 /// The weighted mean of zero-points `(zp, sigma)`, its error (scaled by the Birge ratio
-/// `sqrt(chi2/(n-1))` when above 1) and the standard deviation of the zero-points (n >= 2).
-/// `None` without a point.
+/// `sqrt(chi2/(n-1))` only when chi2 exceeds its 99th percentile for n - 1 degrees of
+/// freedom: [`crate::stokes::calibration::joint::inflation`], sofipol's one rule; scaling
+/// whenever the ratio is above 1 makes honest errors too large on average) and the standard
+/// deviation of the zero-points (n >= 2). `None` without a point.
 pub fn combine(points: &[(f64, f64)]) -> Option<(f64, f64, Option<f64>)> {
     if points.is_empty() {
         return None;
@@ -57,7 +60,7 @@ pub fn combine(points: &[(f64, f64)]) -> Option<(f64, f64, Option<f64>)> {
     let mut scatter = None;
     if n >= 2 {
         let chi2: f64 = points.iter().zip(&w).map(|(p, w)| w * (p.0 - zp).powi(2)).sum();
-        sigma *= (chi2 / (n - 1) as f64).sqrt().max(1.0);
+        sigma *= crate::stokes::calibration::joint::inflation(chi2, n - 1).sqrt();
         let mean = points.iter().map(|p| p.0).sum::<f64>() / n as f64;
         let var = points.iter().map(|p| (p.0 - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
         scatter = Some(var.sqrt());
@@ -253,7 +256,9 @@ mod tests {
 
     /// Two standards 17.0 +- 0.03 and 17.1 +- 0.04: w = 1111.1, 625; ZP = (18888.9 + 10687.5)
     /// / 1736.1 = 17.036; 1/sqrt(sum w) = 0.024; chi2 = 1111.1 x 0.036^2 + 625 x 0.064^2 =
-    /// 4.0, Birge ratio 2.0: sigma 0.048; scatter |0.1| / sqrt 2 = 0.0707.
+    /// 4.0 for 1 dof, below its 99th percentile 6.635: not inflated (the former rule,
+    /// max(1, Birge ratio), gave 0.048); scatter |0.1| / sqrt 2 = 0.0707. 17.0 and 17.15:
+    /// chi2 = 0.15^2 / (0.03^2 + 0.04^2) = 9.0, beyond it: sigma x sqrt(9) = 0.072.
     #[test]
     fn zero_points_are_combined_with_the_birge_ratio_by_hand() {
         let (zp, s, sc) = combine(&[(17.0, 0.03), (17.1, 0.04)]).unwrap();
@@ -262,8 +267,10 @@ mod tests {
         assert!((zp - want).abs() < 1e-12 && (zp - 17.036).abs() < 1e-3, "{zp}");
         let chi2 = w[0] * (17.0 - want).powi(2) + w[1] * (17.1 - want).powi(2);
         assert!((chi2 - 4.0).abs() < 1e-9, "{chi2}");
-        assert!((s - 0.048).abs() < 1e-9, "{s}");
+        assert!((s - 0.024).abs() < 1e-9, "{s}");
         assert!((sc.unwrap() - 0.1 / 2f64.sqrt()).abs() < 1e-12);
+        let (_, s, _) = combine(&[(17.0, 0.03), (17.15, 0.04)]).unwrap();
+        assert!((s - 0.072).abs() < 1e-9, "{s}");
         // Agreeing standards: the error is the weighted mean's, not shrunk by the Birge ratio.
         let (_, s, _) = combine(&[(17.0, 0.03), (17.0, 0.04)]).unwrap();
         assert!((s - 0.024).abs() < 1e-9, "{s}");

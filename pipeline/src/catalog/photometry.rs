@@ -23,7 +23,7 @@ pub struct ZeroPoint {
     #[serde(deserialize_with = "crate::nullable::num")]
     pub zero_point_mag: f64,
     /// Its 1-sigma error, mag (the weighted mean's, scaled by the Birge ratio when the
-    /// standards scatter more than their errors).
+    /// standards' chi^2 lies beyond its 99th percentile).
     #[serde(deserialize_with = "crate::nullable::num")]
     pub sigma_zero_point_mag: f64,
     /// Standard deviation of the standards' zero-points (two or more standards), mag.

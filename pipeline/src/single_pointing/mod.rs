@@ -19,16 +19,21 @@
 //!    photon noise (gain from the header), the read noise of NDIT summed coadds, the sky
 //!    frame's own noise.
 //! 5. The star: the brightest 15 x 15 box mean in each beam's rows, then the centre of
-//!    180-degree symmetry (`centre_annulus_px`; a saturated core reads low and has no peak).
+//!    180-degree symmetry (`centre_annulus_px`; a saturated core reads low and has no peak;
+//!    bad and NaN pixels filled from their neighbours or left out by pairs:
+//!    [`image::symmetry_centre`]).
 //!    The two images are one star's when their offset is `geometry.eo_offset_px` within
 //!    `beams.offset_tolerance_px` and their fluxes agree within `beams.flux_ratio_tolerance`;
 //!    otherwise the frame stops the reduction, named.
 //! 6. Photometry: exact-area annulus `aperture_px` (r_in outside every pixel above the
-//!    linear limit, checked per frame), bad pixels left out.
+//!    linear limit, checked per frame; the annulus inside the frame and its beam's rows,
+//!    else the frame is not used, named), bad and NaN pixels left out; cosmic-ray hits in
+//!    the apertures found against the target's other frames and repaired ([`cosmic`]).
 //! 7. Stokes: [`crate::stokes::hwp`]: F per frame, the double difference of each complete
 //!    plate cycle and their combination with the cycle-to-cycle scatter, the least squares
 //!    over every frame; once in the instrument frame (theta0 = 0) and once on the sky
 //!    (`modulation.zero_point_deg` plus each frame's field rotation, `[field_rotation]`).
+pub mod cosmic;
 pub mod image;
 
 use std::path::{Path, PathBuf};
@@ -197,6 +202,10 @@ pub struct FrameResult {
     pub f: f64,
     /// Its error.
     pub sigma_f: f64,
+    /// Pixels repaired as cosmic-ray hits in the o and e apertures ([`cosmic`]); the fluxes
+    /// and F above are after the repair.
+    #[serde(default)]
+    pub cosmic_ray_pixels: [usize; 2],
 }
 
 /// One complete plate cycle.
@@ -231,10 +240,14 @@ pub struct CycleAgreement {
 /// The least squares over every frame.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LeastSquares {
-    /// q, u with errors scaled by sqrt(chi2/dof) when above 1.
+    /// q, u with errors scaled by sqrt(chi2/dof) when chi2 lies beyond its 99th percentile.
     pub pol: Pol,
     /// The fitted constant c of F (beam imbalance), when fitted.
     pub c: Option<f64>,
+    /// Why c was not fitted (fewer than 3 distinct angles, or angles that do not determine
+    /// it), when it was not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub c_not_fitted: Option<String>,
     /// chi^2.
     pub chi2: f64,
     /// Degrees of freedom.
@@ -453,6 +466,9 @@ pub fn summary_lines(cat: &SinglePointingCatalog) -> Vec<String> {
                 ls.chi2,
                 ls.dof
             ));
+        }
+        if let Some(why) = t.least_squares_sky.as_ref().and_then(|l| l.c_not_fitted.as_ref()) {
+            lines.push(format!("{head}: least squares: {why}"));
         }
         for (k, c) in t.cycles.iter().enumerate() {
             lines.push(format!("{head}: cycle {} instrument {}", k + 1, pol(&c.instrument)));
@@ -737,14 +753,17 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
     };
     // A science frame that cannot be measured (a missing keyword, no pair of images...) is
     // listed as not used with why; the night goes on with the others.
-    let results: Vec<Result<FrameResult>> = sci.par_iter().map(|r| measure_frame(r, &ctx)).collect();
+    let results: Vec<Result<(FrameResult, [cosmic::Cutout; 2])>> =
+        sci.par_iter().map(|r| measure_frame(r, &ctx)).collect();
     let mut measured: Vec<FrameResult> = Vec::new();
+    let mut cutouts: Vec<[cosmic::Cutout; 2]> = Vec::new();
     let mut kept: Vec<&Raw> = Vec::new();
     let mut first_error = None;
     for (r, res) in sci.iter().zip(results) {
         match res {
-            Ok(f) => {
+            Ok((f, cuts)) => {
                 measured.push(f);
+                cutouts.push(cuts);
                 kept.push(r);
             }
             Err(e) => {
@@ -782,12 +801,12 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
     let targets = keys
         .into_iter()
         .map(|(t, f)| {
-            let frames: Vec<FrameResult> = kept
-                .iter()
-                .zip(&measured)
-                .filter(|(r, _)| target_of(r) == t && filter_of(&r.header) == f)
-                .map(|(_, fr)| fr.clone())
+            let idx: Vec<usize> = (0..kept.len())
+                .filter(|&i| target_of(kept[i]) == t && filter_of(&kept[i].header) == f)
                 .collect();
+            let mut frames: Vec<FrameResult> = idx.iter().map(|&i| measured[i].clone()).collect();
+            let cuts: Vec<&[cosmic::Cutout; 2]> = idx.iter().map(|&i| &cutouts[i]).collect();
+            cosmic::repair(&mut frames, &cuts, sp.aperture_px);
             target_result(t, f, frames, m.zero_point_deg, m.sigma_zero_point_deg, m.tolerance_deg)
         })
         .collect();
@@ -842,7 +861,7 @@ struct FrameContext<'a> {
     field: &'a sofipol_calib::profile::FieldRotation,
 }
 
-fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
+fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<(FrameResult, [cosmic::Cutout; 2])> {
     let p = c.profile;
     let (m, beams, sp) = (
         p.modulation.as_ref().expect("checked"),
@@ -851,6 +870,8 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
     );
     let file = name(&r.path);
     let h = &r.header;
+    // This frame's bad pixels: the night's, and its own pixels that are not finite (NaN).
+    let bad_f: Vec<bool> = c.bad.iter().zip(&r.img.v).map(|(&b, v)| b || !v.is_finite()).collect();
     let (nx, ny) = (r.img.nx, r.img.ny);
     let plate = plate_of(r, m)?;
     let pos = hwp::cycle_position(plate, m.tolerance_deg);
@@ -909,7 +930,7 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
         None => s.clone(),
     };
     let rough = |rows: [usize; 2]| -> Result<(f64, f64)> {
-        let bx = image::boxcar_in_rows(&diff, c.bad, rows, 15);
+        let bx = image::boxcar_in_rows(&diff, &bad_f, rows, 15);
         let mut best = (f64::NEG_INFINITY, 0usize, 0usize);
         for y in rows[0]..rows[1] {
             for x in 0..nx {
@@ -932,7 +953,7 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
         let (a, b, sig, n, nsky) = match sky {
             Some((k, nsky)) => {
                 let (a, b, sig, n) =
-                    image::fit_sky(&s, k, c.bad, rows, centre, sp.sky_fit_min_radius_px).ok_or_else(|| {
+                    image::fit_sky(&s, k, &bad_f, rows, centre, sp.sky_fit_min_radius_px).ok_or_else(|| {
                         err(
                             &file,
                             format!("sky fit in rows {}..{}: too few pixels", rows[0], rows[1]),
@@ -963,7 +984,7 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
     let mut sky_e = fit_beam(beams.e_rows, rough_e)?;
     let [ci, co] = sp.centre_annulus_px;
     let centre = |g: (f64, f64)| {
-        image::symmetry_centre(&img, g, ci, co, sp.search_radius_px)
+        image::symmetry_centre(&img, &bad_f, g, ci, co, sp.search_radius_px)
             .ok_or_else(|| err(&file, format!("no centre of symmetry near ({:.0}, {:.0})", g.0, g.1)))
     };
     let (co_, ce_) = (centre(rough_o)?, centre(rough_e)?);
@@ -976,7 +997,7 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
                 for x in 0..nx {
                     let r = (x as f64 - cen.0).hypot(y as f64 - cen.1);
                     let i = y * nx + x;
-                    if r >= a0 && r <= a1 && !c.bad[i] && img.v[i].is_finite() {
+                    if r >= a0 && r <= a1 && !bad_f[i] && img.v[i].is_finite() {
                         vals.push(img.v[i]);
                     }
                 }
@@ -1030,7 +1051,7 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
             for x in x0..=x1 {
                 let i = y * nx + x;
                 let r = (x as f64 - cen.0).hypot(y as f64 - cen.1);
-                if r < 60.0 && !c.bad[i] && s.v[i] > limit {
+                if r < 60.0 && !bad_f[i] && s.v[i] > limit {
                     sat_r = sat_r.max(r);
                 }
             }
@@ -1046,7 +1067,7 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
             ),
         ));
     }
-    for cen in [co_, ce_] {
+    for (cen, rows, beam) in [(co_, beams.o_rows, "o"), (ce_, beams.e_rows, "e")] {
         if !image::inside(&img, cen, r_out) {
             return Err(err(
                 &file,
@@ -1056,9 +1077,27 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
                 ),
             ));
         }
+        // The aperture must lie within its beam's rows (outside them the image holds the
+        // other beam or nothing: no flux of this star's beam to sum).
+        if cen.1 - r_out < rows[0] as f64 - 0.5 || cen.1 + r_out > rows[1] as f64 - 0.5 {
+            return Err(err(
+                &file,
+                format!(
+                    "the {beam} image's aperture (single_pointing.aperture_px outer radius {r_out} px) about ({:.1}, {:.1}) \
+                     crosses the {beam} beam's rows {}..{} (beams.{beam}_rows): a smaller aperture or a star farther from the beam's edge",
+                    cen.0, cen.1, rows[0], rows[1]
+                ),
+            ));
+        }
     }
-    let (o, so) = image::annulus_sum(&img, &var, c.bad, co_, r_in, r_out);
-    let (e, se) = image::annulus_sum(&img, &var, c.bad, ce_, r_in, r_out);
+    let (o, so) = image::annulus_sum(&img, &var, &bad_f, co_, r_in, r_out);
+    let (e, se) = image::annulus_sum(&img, &var, &bad_f, ce_, r_in, r_out);
+    if ![o, so, e, se].iter().all(|v| v.is_finite()) {
+        return Err(err(
+            &file,
+            format!("the aperture sums are not finite (o {o} +- {so}, e {e} +- {se} ADU): a pixel of the sky fit or the flat is not finite"),
+        ));
+    }
     if !(o > 0.0 && e > 0.0) || (o / e - 1.0).abs() > beams.flux_ratio_tolerance {
         return Err(err(
             &file,
@@ -1081,7 +1120,10 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
         sigma_e: se,
     })
     .ok_or_else(|| err(&file, "F undefined (fluxes or errors not finite)"))?;
-    Ok(FrameResult {
+    // Boxes about both images for the cosmic-ray test against the other frames (guiding
+    // moves the star by a few pixels at most).
+    let cuts = [co_, ce_].map(|cen| cosmic::Cutout::new(&img, &var, &bad_f, cen, r_out + 8.0));
+    let result = FrameResult {
         file,
         plate_deg: plate,
         mjd,
@@ -1098,7 +1140,9 @@ fn measure_frame(r: &Raw, c: &FrameContext<'_>) -> Result<FrameResult> {
         sigma_e: se,
         f,
         sigma_f: sf,
-    })
+        cosmic_ray_pixels: [0, 0],
+    };
+    Ok((result, cuts))
 }
 
 fn least_squares(r: &HwpStokes) -> Option<LeastSquares> {
@@ -1112,6 +1156,7 @@ fn least_squares(r: &HwpStokes) -> Option<LeastSquares> {
             ls.fit.var_u.sqrt(),
         ),
         c: ls.offset.map(|o| o.c),
+        c_not_fitted: ls.offset_note(),
         chi2: ls.fit.chi2,
         dof: ls.dof,
     })

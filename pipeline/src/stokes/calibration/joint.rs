@@ -495,7 +495,11 @@ pub const INFLATION_P: f64 = 0.01;
 /// too large on nights whose errors are right. Inflating only beyond the 99th percentile a
 /// of chi^2_nu gives E[1/k] = F_nu(a) + nu/(nu - 2) (1 - F_{nu-2}(a)) = 0.993 at nu = 6,
 /// and still scales the errors of a night whose standards scatter beyond them.
-fn inflation(chi2: f64, dof: usize) -> f64 {
+///
+/// The one rule of sofipol for scaling errors by a fit's chi^2: also the half-wave-plate
+/// least squares ([`crate::stokes::hwp`]) and the photometric zero point
+/// ([`crate::calibration::photometric::combine`]).
+pub fn inflation(chi2: f64, dof: usize) -> f64 {
     if dof == 0 || !chi2.is_finite() {
         return 1.0;
     }

@@ -1,0 +1,236 @@
+//! Cosmic rays in the apertures of the half-wave-plate reduction: each frame's image of a
+//! star is compared with the same beam's images of that star in the target's other frames.
+//!
+//! The star lies on the same pixels of every frame (a single pointing; the frames' centres
+//! differ by the guiding, fractions of a pixel to a few pixels) and its image changes from
+//! frame to frame only by its flux (the plate turns the polarization, the sky's
+//! transparency changes) and a little by the seeing. So at each aperture pixel `p` of frame
+//! `i`, the other frames' values at the same offset from their own centres (bicubic), each
+//! scaled by the ratio of the beam's aperture fluxes `flux_i / flux_j`, predict frame `i`'s
+//! value; their median is the prediction `m` and 1.4826 x their median absolute deviation
+//! `s` its spread (the other frames' noise, the seeing's changes and the interpolation's
+//! error together). The pixel is hit when
+//!
+//! ```text
+//! I_i(p) - m > K sqrt(Var_i(p) + s^2)         K = 6 (one-sided: a hit adds charge)
+//! ```
+//!
+//! and the pixels next to a hit (8-connected) are hit too when above `K_GROW` = 3 of the
+//! same: a hit spreads its charge over a few pixels. A hit pixel is repaired, its value
+//! replaced by `m` (its variance kept), and the beam's aperture flux summed again; the frame's
+//! catalog entry counts the pixels repaired per beam (`cosmic_ray_pixels`). The median of 7
+//! other frames is unmoved by a hit in one of them, and K = 6 keeps honest pixels: over an
+//! aperture of 4000 pixels in 16 images the chance of repairing a clean pixel is below 1 %
+//! per night. A target with fewer than 3 frames is not checked (no median to compare with).
+//!
+//! Hits outside the aperture need no test: the sky fit clips them (4 sigma, `image::fit_sky`),
+//! the annulus sky is a median.
+use super::image::{self, Img};
+use super::FrameResult;
+use crate::stokes::hwp::{self, PlateFrame};
+
+/// Threshold of a hit, in units of `sqrt(Var + s^2)`.
+pub const K_HIT: f64 = 6.0;
+/// Threshold of a hit's neighbour.
+pub const K_GROW: f64 = 3.0;
+
+/// A box of one frame about one image of the star: the reduced values, their variances and
+/// the pixels not to use (bad, not finite).
+#[derive(Debug, Clone)]
+pub struct Cutout {
+    /// Column of the box's first pixel in the frame.
+    pub x0: usize,
+    /// Row of its first pixel.
+    pub y0: usize,
+    /// Values.
+    pub img: Img,
+    /// Variances.
+    pub var: Img,
+    /// Bad or not finite.
+    pub mask: Vec<bool>,
+    /// The image's centre, in the box's pixels.
+    pub centre: (f64, f64),
+}
+
+impl Cutout {
+    /// The box of half-size `half` px about `centre` (frame pixels), clipped to the frame.
+    pub fn new(img: &Img, var: &Img, bad: &[bool], centre: (f64, f64), half: f64) -> Cutout {
+        let lo = |c: f64| (c - half).floor().max(0.0) as usize;
+        let (x0, y0) = (lo(centre.0), lo(centre.1));
+        let x1 = ((centre.0 + half).ceil() as usize + 1).min(img.nx);
+        let y1 = ((centre.1 + half).ceil() as usize + 1).min(img.ny);
+        let (nx, ny) = (x1.saturating_sub(x0), y1.saturating_sub(y0));
+        let mut out = Cutout {
+            x0,
+            y0,
+            img: Img::filled(nx, ny, f64::NAN),
+            var: Img::filled(nx, ny, f64::NAN),
+            mask: vec![true; nx * ny],
+            centre: (centre.0 - x0 as f64, centre.1 - y0 as f64),
+        };
+        for y in 0..ny {
+            for x in 0..nx {
+                let (i, k) = ((y0 + y) * img.nx + x0 + x, y * nx + x);
+                out.img.v[k] = img.v[i];
+                out.var.v[k] = var.v[i];
+                out.mask[k] = bad[i] || !img.v[i].is_finite() || !var.v[i].is_finite();
+            }
+        }
+        out
+    }
+}
+
+/// Find and repair cosmic-ray hits in the apertures (`aperture_px` = [r_in, r_out]) of one
+/// target's frames (`cuts[i]`: frame i's o and e boxes); each frame whose pixels are
+/// repaired gets its fluxes, F and errors again and `cosmic_ray_pixels` set.
+pub fn repair(frames: &mut [FrameResult], cuts: &[&[Cutout; 2]], aperture_px: [f64; 2]) {
+    let n = frames.len();
+    if n < 3 || cuts.len() != n {
+        return;
+    }
+    let [r_in, r_out] = aperture_px;
+    for beam in 0..2 {
+        let flux = |f: &FrameResult| if beam == 0 { f.o } else { f.e };
+        let fluxes: Vec<f64> = frames.iter().map(flux).collect();
+        for i in 0..n {
+            let me = &cuts[i][beam];
+            let hits = hits(me, i, &fluxes, cuts, beam, r_in, r_out);
+            if hits.is_empty() {
+                continue;
+            }
+            let mut img = me.img.clone();
+            for &(k, m) in &hits {
+                img.v[k] = m;
+            }
+            let (s, sigma) = image::annulus_sum(&img, &me.var, &me.mask, me.centre, r_in, r_out);
+            if !(s.is_finite() && sigma.is_finite()) {
+                continue;
+            }
+            let f = &mut frames[i];
+            if beam == 0 {
+                (f.o, f.sigma_o) = (s, sigma);
+            } else {
+                (f.e, f.sigma_e) = (s, sigma);
+            }
+            f.cosmic_ray_pixels[beam] = hits.len();
+            if let Some((fv, sf)) = hwp::frame_f(&PlateFrame {
+                plate_deg: f.plate_deg,
+                o: f.o,
+                sigma_o: f.sigma_o,
+                e: f.e,
+                sigma_e: f.sigma_e,
+            }) {
+                (f.f, f.sigma_f) = (fv, sf);
+            }
+        }
+    }
+}
+
+/// The hit pixels of frame `i`'s box `me` (index in the box, the predicted value).
+fn hits(
+    me: &Cutout,
+    i: usize,
+    fluxes: &[f64],
+    cuts: &[&[Cutout; 2]],
+    beam: usize,
+    r_in: f64,
+    r_out: f64,
+) -> Vec<(usize, f64)> {
+    let (nx, ny) = (me.img.nx, me.img.ny);
+    // Per pixel of the aperture and 3 px about it: the residual from the prediction, its
+    // noise and the prediction.
+    let mut res = vec![f64::NAN; nx * ny];
+    let mut noise = vec![f64::NAN; nx * ny];
+    let mut pred = vec![f64::NAN; nx * ny];
+    let mut vals = Vec::with_capacity(cuts.len());
+    for y in 0..ny {
+        for x in 0..nx {
+            let k = y * nx + x;
+            let (dx, dy) = (x as f64 - me.centre.0, y as f64 - me.centre.1);
+            let r = dx.hypot(dy);
+            if me.mask[k] || r > r_out + 3.75 || r < r_in - 3.75 {
+                continue;
+            }
+            vals.clear();
+            for (j, c) in cuts.iter().enumerate() {
+                if j == i || !(fluxes[j] > 0.0) {
+                    continue;
+                }
+                let o = &c[beam];
+                let v = image::interp_unmasked(&o.img, &o.mask, o.centre.0 + dx, o.centre.1 + dy);
+                if let Some(v) = v {
+                    vals.push(v * fluxes[i] / fluxes[j]);
+                }
+            }
+            if vals.len() < 2 {
+                continue;
+            }
+            let m = image::median(&mut vals.clone());
+            let mut dev: Vec<f64> = vals.iter().map(|v| (v - m).abs()).collect();
+            let s = 1.4826 * image::median(&mut dev);
+            let sd = (me.var.v[k] + s * s).sqrt();
+            if sd > 0.0 {
+                res[k] = me.img.v[k] - m;
+                noise[k] = sd;
+                pred[k] = m;
+            }
+        }
+    }
+    // The residual less the median of its ring 2 px away (16 pixels, at least 8 usable):
+    // a hit is sharp, a change of the seeing or of the speckles is not.
+    let mut z = vec![f64::NAN; nx * ny];
+    let mut ring = Vec::with_capacity(16);
+    for y in 2..ny.saturating_sub(2) {
+        for x in 2..nx.saturating_sub(2) {
+            let k = y * nx + x;
+            let (dx, dy) = (x as f64 - me.centre.0, y as f64 - me.centre.1);
+            let r = dx.hypot(dy);
+            if !res[k].is_finite() || r > r_out + 0.75 || r < r_in - 0.75 {
+                continue;
+            }
+            ring.clear();
+            for oy in -2i64..=2 {
+                for ox in -2i64..=2 {
+                    if ox.abs() == 2 || oy.abs() == 2 {
+                        let kk = (y as i64 + oy) as usize * nx + (x as i64 + ox) as usize;
+                        if res[kk].is_finite() {
+                            ring.push(res[kk]);
+                        }
+                    }
+                }
+            }
+            if ring.len() >= 8 {
+                let bg = image::median(&mut ring);
+                z[k] = (res[k] - bg) / noise[k];
+                pred[k] += bg;
+            }
+        }
+    }
+    let mut hit = vec![false; nx * ny];
+    for (h, &zk) in hit.iter_mut().zip(&z) {
+        *h = zk > K_HIT;
+    }
+    let core = hit.clone();
+    for y in 0..ny {
+        for x in 0..nx {
+            let k = y * nx + x;
+            if !core[k] {
+                continue;
+            }
+            for (oy, ox) in [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)] {
+                let (xx, yy) = (x as i64 + ox, y as i64 + oy);
+                if xx >= 0 && yy >= 0 && (xx as usize) < nx && (yy as usize) < ny {
+                    let kk = yy as usize * nx + xx as usize;
+                    if z[kk] > K_GROW {
+                        hit[kk] = true;
+                    }
+                }
+            }
+        }
+    }
+    hit.iter()
+        .enumerate()
+        .filter(|(_, &h)| h)
+        .map(|(k, _)| (k, pred[k]))
+        .collect()
+}
