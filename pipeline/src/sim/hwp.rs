@@ -63,10 +63,10 @@ pub struct HwpConfig {
     /// Constant header keywords of every frame (numbers), e.g. the rotator's `ROTPDEST`
     /// of a `[field_rotation]` term; the keywords the simulator computes win.
     pub header: BTreeMap<String, f64>,
-    /// x of the o image (default: the profile's pointing, the pair of images centred).
+    /// x of the o image (default: the pair of images centred on the detector).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub x_px: Option<f64>,
-    /// y of the o image (default: the profile's pointing).
+    /// y of the o image (default: the pair of images centred).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub y_px: Option<f64>,
     /// The stars, observed one after the other.
@@ -400,6 +400,22 @@ impl HwpSimulator {
             scene,
             profile,
         };
+        // Both images on the detector, each in its beam's rows.
+        let [xo, yo] = sim.o_xy();
+        let (xe, ye) = sim.profile.geometry.e_image_of((xo, yo));
+        let g = &sim.profile.geometry;
+        let on = |x: f64, y: f64, rows: Option<[usize; 2]>| {
+            let [r0, r1] = rows.unwrap_or([0, g.ny]);
+            (0.0..g.nx as f64 - 1.0).contains(&x) && (r0 as f64..r1 as f64 - 1.0).contains(&y)
+        };
+        if !on(xo, yo, sim.profile.beams.as_ref().map(|b| b.o_rows))
+            || !on(xe, ye, sim.profile.beams.as_ref().map(|b| b.e_rows))
+        {
+            return Err(invalid(format!(
+                "half_wave_plate: x_px, y_px = ({xo}, {yo}) puts the o image at ({xo}, {yo}) and the e image at ({xe}, {ye}): each must lie on the {} x {} detector in its beam's rows (profile {}'s beams.o_rows, e_rows)",
+                g.nx, g.ny, sim.profile.name
+            )));
+        }
         // Every file name distinct, every header given its role by the profile's rules.
         let names = sim.file_names();
         let mut seen = std::collections::HashSet::new();
@@ -617,9 +633,14 @@ impl HwpSimulator {
         (q, u)
     }
 
-    /// The o image position, px.
-    fn o_xy(&self) -> [f64; 2] {
-        let (x, y) = self.profile.geometry.pointing_px();
+    /// The o image position, px: the scene's `x_px`, `y_px`, else the point that centres
+    /// the pair of images on the detector (the e image at the profile's `eo_offset_px`).
+    pub fn o_xy(&self) -> [f64; 2] {
+        let g = &self.profile.geometry;
+        let (x, y) = (
+            (g.nx as f64 - g.eo_offset_px[0]) / 2.0 - 0.5,
+            (g.ny as f64 - g.eo_offset_px[1]) / 2.0 - 0.5,
+        );
         [self.cfg.x_px.unwrap_or(x), self.cfg.y_px.unwrap_or(y)]
     }
 
@@ -919,6 +940,12 @@ hour_angle_h = -0.5
             .with_overrides(&[
                 "geometry.nx=64".into(),
                 "geometry.ny=120".into(),
+                "geometry.o_sky2=[0, 10]".into(),
+                "geometry.e_sky2=[10, 20]".into(),
+                "geometry.o_target=[20, 30]".into(),
+                "geometry.e_target=[30, 40]".into(),
+                "geometry.o_sky1=[40, 50]".into(),
+                "geometry.e_sky1=[50, 60]".into(),
                 "geometry.eo_offset_px=[-3.0, -60.0]".into(),
                 "beams.o_rows=[62, 120]".into(),
                 "beams.e_rows=[0, 58]".into(),
@@ -944,7 +971,8 @@ hour_angle_h = -0.5
             assert_eq!(h.get_f64("ROTPDEST").unwrap(), 12.5);
             let phi = (2.0 * plate + 26.0 + parang - el - 12.5).to_radians();
             let ff = q * (2.0 * phi).cos() + u * (2.0 * phi).sin();
-            let (xo, yo) = nirc2_small().geometry.pointing_px();
+            let [xo, yo] = sim.o_xy();
+            assert_eq!([xo, yo], [33.0, 89.5]);
             let at = |x: f64, y: f64| f.data[[y.floor() as usize, x.floor() as usize]] as f64;
             // A point source shares its flux between the four nearest pixels.
             let sum4 = |x: f64, y: f64| {
