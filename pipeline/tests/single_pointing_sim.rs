@@ -179,14 +179,18 @@ fn known_polarization_comes_back() {
         .iter()
         .map(|f| {
             let h = sofipol_calib::fits::read_header(&dir.path().join(&f.file)).unwrap();
-            let turn = THETA0 + h.get_f64("PARANG").unwrap() - h.get_f64("EL").unwrap() - h.get_f64("ROTPDEST").unwrap();
+            let turn =
+                THETA0 + h.get_f64("PARANG").unwrap() - h.get_f64("EL").unwrap() - h.get_f64("ROTPDEST").unwrap();
             assert!((f.phi_sky_deg - 2.0 * f.plate_deg - turn).abs() < 1e-9);
             turn
         })
         .collect();
     // The pupil turns on the sky: by 0.3-2 deg per frame.
     let step_max = turns.windows(2).map(|w| (w[1] - w[0]).abs()).fold(0.0, f64::max);
-    let step_min = turns.windows(2).map(|w| (w[1] - w[0]).abs()).fold(f64::INFINITY, f64::min);
+    let step_min = turns
+        .windows(2)
+        .map(|w| (w[1] - w[0]).abs())
+        .fold(f64::INFINITY, f64::min);
     assert!(step_min > 0.3 && step_max < 2.0, "{turns:?}");
     // On the sky, the least squares with each frame's rotation: exact.
     let ls = t.least_squares_sky.as_ref().unwrap();

@@ -360,12 +360,12 @@ impl HwpSimulator {
         let (ny, nx) = (profile.geometry.ny, profile.geometry.nx);
         let calls = EffectCalls::default();
         let dseed = scene.detector_seed.unwrap_or(scene.seed);
-        let bad = scene.has(EffectKind::BadPixels).then(|| {
-            effects::bad_pixel_map(&calls, dseed, &scene.bad_pixels.clone().unwrap_or_default(), ny, nx)
-        });
-        let flat = scene.has(EffectKind::FlatField).then(|| {
-            effects::flat_field_map(&calls, dseed, &scene.flat_field.clone().unwrap_or_default(), ny, nx)
-        });
+        let bad = scene
+            .has(EffectKind::BadPixels)
+            .then(|| effects::bad_pixel_map(&calls, dseed, &scene.bad_pixels.clone().unwrap_or_default(), ny, nx));
+        let flat = scene
+            .has(EffectKind::FlatField)
+            .then(|| effects::flat_field_map(&calls, dseed, &scene.flat_field.clone().unwrap_or_default(), ny, nx));
         let o = &scene.observation;
         let start = effects::mjd_from_date_time(&o.date, &o.start_ut).ok_or_else(|| {
             invalid(format!(
@@ -684,10 +684,7 @@ impl HwpSimulator {
             // Rows of neither beam see both beams' skies.
             let factor: Vec<f32> = (0..g.ny)
                 .map(|y| {
-                    let (o, e) = (
-                        in_rows(beams.map(|b| b.o_rows), y),
-                        in_rows(beams.map(|b| b.e_rows), y),
-                    );
+                    let (o, e) = (in_rows(beams.map(|b| b.o_rows), y), in_rows(beams.map(|b| b.e_rows), y));
                     let both = !o && !e;
                     (f64::from(o || both) * (1.0 + m) + f64::from(e || both) * (1.0 - m)) as f32
                 })
@@ -744,7 +741,10 @@ impl HwpSimulator {
         let (gain_eff, read_sigma) = if d.coadds_summed {
             (d.gain_e_per_adu, d.read_noise_e / d.gain_e_per_adu * n.sqrt())
         } else {
-            (d.effective_gain(s.observation.ndit), d.read_variance_adu2(s.observation.ndit).sqrt())
+            (
+                d.effective_gain(s.observation.ndit),
+                d.read_variance_adu2(s.observation.ndit).sqrt(),
+            )
         };
         if let Some(flat) = &self.flat {
             self.calls.hit(EffectKind::FlatField);
@@ -758,8 +758,13 @@ impl HwpSimulator {
             effects::read_noise(&self.calls, &mut img, s.seed, key, read_sigma);
         }
         if s.has(EffectKind::CosmicRays) {
-            truth.cosmic_ray_pixels =
-                effects::cosmic_rays(&self.calls, &mut img, s.seed, key, &s.cosmic_rays.clone().unwrap_or_default());
+            truth.cosmic_ray_pixels = effects::cosmic_rays(
+                &self.calls,
+                &mut img,
+                s.seed,
+                key,
+                &s.cosmic_rays.clone().unwrap_or_default(),
+            );
         }
         if let Some(bad) = &self.bad {
             effects::apply_bad_pixels(&self.calls, &mut img, bad);
@@ -870,7 +875,11 @@ impl HwpSimulator {
 
     /// Simulate every frame into `dir` (FITS, atomically; BITPIX and compression from the
     /// scene's `observation`) with `truth.json`; `on_frame` after each frame.
-    pub fn write_to_dir(&self, dir: &std::path::Path, on_frame: &(dyn Fn(&str) + Sync)) -> crate::error::Result<HwpTruth> {
+    pub fn write_to_dir(
+        &self,
+        dir: &std::path::Path,
+        on_frame: &(dyn Fn(&str) + Sync),
+    ) -> crate::error::Result<HwpTruth> {
         use rayon::prelude::*;
         std::fs::create_dir_all(dir).map_err(|source| Error::Io {
             path: dir.to_path_buf(),
@@ -975,9 +984,7 @@ hour_angle_h = -0.5
             assert_eq!([xo, yo], [33.0, 89.5]);
             let at = |x: f64, y: f64| f.data[[y.floor() as usize, x.floor() as usize]] as f64;
             // A point source shares its flux between the four nearest pixels.
-            let sum4 = |x: f64, y: f64| {
-                at(x, y) + at(x + 1.0, y) + at(x, y + 1.0) + at(x + 1.0, y + 1.0) - 4.0 * 100.0
-            };
+            let sum4 = |x: f64, y: f64| at(x, y) + at(x + 1.0, y) + at(x, y + 1.0) + at(x + 1.0, y + 1.0) - 4.0 * 100.0;
             let (o, e) = (sum4(xo, yo), sum4(xo - 3.0, yo - 60.0));
             assert!((o - 5e5 * (1.0 + ff)).abs() < 0.1, "{name}: o {o}");
             assert!((e - 5e5 * (1.0 - ff)).abs() < 0.1, "{name}: e {e}");
@@ -988,7 +995,10 @@ hour_angle_h = -0.5
             assert!((parang - want).abs() < 1e-9, "{parang} vs {want}");
         }
         // The pupil turns: PARANG advances with the hour angle over the star's frames.
-        let pa: Vec<f64> = frames[..8].iter().map(|(_, f)| f.header.get_f64("PARANG").unwrap()).collect();
+        let pa: Vec<f64> = frames[..8]
+            .iter()
+            .map(|(_, f)| f.header.get_f64("PARANG").unwrap())
+            .collect();
         assert!(pa.windows(2).all(|w| w[1] > w[0]), "{pa:?}");
         // Roles by the profile's own rules.
         let c = sim.profile.classify.clone().unwrap();
@@ -1006,11 +1016,7 @@ hour_angle_h = -0.5
     #[test]
     fn noise_of_summed_coadds() {
         let sim = HwpSimulator::new(
-            scene(
-                "\"sky\", \"photon_noise\", \"read_noise\"",
-                "",
-            )
-            .clone(),
+            scene("\"sky\", \"photon_noise\", \"read_noise\"", "").clone(),
             nirc2_small(),
         )
         .unwrap();
@@ -1044,7 +1050,10 @@ hour_angle_h = -0.5
 
     #[test]
     fn refusals_name_the_key() {
-        let e = HwpSimulator::new(scene("", ""), Profile::sofi()).err().unwrap().to_string();
+        let e = HwpSimulator::new(scene("", ""), Profile::sofi())
+            .err()
+            .unwrap()
+            .to_string();
         assert!(e.contains("modulation.kind"), "{e}");
         let e = HwpSimulator::new(scene("\"strips\"", ""), nirc2_small())
             .err()
