@@ -24,7 +24,8 @@
 //! luminosity function), [`psf`] (PSF rendering), [`truth`] (what
 //! was simulated), `frame` (one science frame: parameters,
 //! sources, detector, header), `dome` (dome-flat frames), `output` (whole scenes in
-//! memory or written to a folder), `loaded` (one target's frames as the reduction's input).
+//! memory or written to a folder), `loaded` (one target's frames as the reduction's input),
+//! [`hwp`] (half-wave-plate scenes for a half-wave-plate profile: [`HwpSimulator`]).
 mod dome;
 pub mod effects;
 pub mod foreground;
