@@ -1,20 +1,21 @@
-//! The half-wave-plate reduction on frames made from a known polarization (the NIRC2
-//! profile, shrunk to a 128 x 200 detector): a star's o and e images from the forward
-//! model F = q cos 2phi + u sin 2phi with phi on the sky = 2 PCUPR + theta0 + PARANG - EL -
-//! ROTPDEST, a plate-dependent sky (also in the sky frames), a dark with a hot pixel, a
-//! flat-field gradient. Noise-free (`known_polarization_comes_back`): every step is exact,
-//! so (q, u) must come back to 1e-6 in the instrument frame (each cycle) and on the sky
-//! (least squares over the frames, each with its own rotation). With photon and read noise
-//! (`pulls_on_noisy_pupil_tracking_nights`): the errors the reduction reports must match the
-//! scatter about the truth over many simulated nights.
+//! The half-wave-plate reduction on frames the simulator makes from a known polarization
+//! ([`sofipol_pipeline::sim::HwpSimulator`], the NIRC2 profile shrunk to a 128 x 200
+//! detector): a star's o and e images from the forward model F = q cos 2phi + u sin 2phi
+//! with phi on the sky = 2 PCUPR + theta0 + PARANG - EL - ROTPDEST, PARANG following the
+//! hour angle (pupil tracking), a plate-dependent sky (also in the sky frames), darks, hot
+//! pixels, a vignetting pixel response. Noise-free (`known_polarization_comes_back`): every
+//! step is exact, so (q, u) must come back to 1e-6 on the sky (least squares over the
+//! frames, each with its own rotation). With photon and read noise
+//! (`pulls_on_noisy_pupil_tracking_nights`): the errors the reduction reports must match
+//! the scatter about the truth over many simulated nights.
 use std::path::Path;
 
-use ndarray::Array2;
 use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
-use rand_distr::{Distribution, StandardNormal};
 use sofipol_calib::fits::{write_frame, WriteOptions};
-use sofipol_calib::{Frame, Header, Profile};
+use sofipol_calib::Profile;
+use sofipol_pipeline::sim::hwp::{HwpConfig, HwpStar, HwpTruth};
+use sofipol_pipeline::sim::{HwpSimulator, Scene};
 use sofipol_pipeline::single_pointing;
 
 const NX: usize = 128;
@@ -23,10 +24,10 @@ const O_POS: (f64, f64) = (60.3, 150.7);
 const EO: (f64, f64) = (-3.0, -100.0);
 const Q_SKY: f64 = 0.021;
 const U_SKY: f64 = -0.013;
+/// The profile's zero point of phi (NIRC2's), written out.
 const THETA0: f64 = 26.0;
-/// The sky turns by PARANG - 2 EL per frame: -1.1 deg.
-const STEP_PARANG: f64 = 1.0;
-const STEP_EL: f64 = 0.05;
+const ROTPDEST: f64 = 45.7;
+const GAIN_E: f64 = 8.0;
 
 fn profile() -> Profile {
     Profile::embedded("nirc2")
@@ -50,164 +51,110 @@ fn profile() -> Profile {
             "single_pointing.search_radius_px=4.0".into(),
             "detector.linear_limit_adu=1e9".into(),
             "detector.saturation_adu=2e9".into(),
+            format!("detector.gain_e_per_adu={GAIN_E}"),
+            "detector.read_noise_e=40.0".into(),
         ])
         .unwrap()
 }
 
-/// A flat-field gradient along x only: both beams' rows then have the same median, so the
-/// per-beam normalisation leaves no beam imbalance (c = 0) and F is exact.
-fn flat(x: usize, _y: usize) -> f64 {
-    1.0 + 0.1 * (x as f64 / NX as f64)
-}
-
-fn star(x: usize, y: usize, c: (f64, f64), flux: f64) -> f64 {
-    let r2 = (x as f64 - c.0).powi(2) + (y as f64 - c.1).powi(2);
-    flux / (2.0 * std::f64::consts::PI * 2.0 * 2.0) * (-0.5 * r2 / 4.0).exp()
-}
-
-/// A star: its name (TARGNAME), polarization on the sky and total flux over both beams (ADU
-/// summed over the coadds).
-struct Star {
-    name: String,
-    q: f64,
-    u: f64,
-    flux: f64,
-}
-
-struct Shot<'a> {
-    object: &'a str,
-    plate: f64,
-    parang: f64,
-    el: f64,
-    shutter: &'a str,
-    star: Option<&'a Star>,
-    mjd: f64,
-}
-
-/// The detector's noise: photon noise of the light (sky and star, after the flat) with the
-/// gain `GAIN_E` e-/ADU, the read noise `RN_E` e- of each of the `COADDS` summed reads,
-/// Gaussian (every pixel holds >= 10^4 e-, where Poisson is Gaussian to 1 %). The dark
-/// level is a bias: read noise only.
-struct Noise {
-    rng: Xoshiro256PlusPlus,
-}
-
-const GAIN_E: f64 = 8.0;
-const RN_E: f64 = 40.0;
-const COADDS: i64 = 45;
-
-fn write(dir: &Path, name: &str, s: &Shot<'_>, mut noise: Option<&mut Noise>) {
-    let dark = 100.0;
-    // Sky per beam, depending on the plate (a polarized sky), the same in sky frames.
-    let sky_o = 5000.0 * (1.0 + 0.01 * (4.0 * s.plate).to_radians().cos());
-    let sky_e = 5400.0 * (1.0 - 0.01 * (4.0 * s.plate).to_radians().cos());
-    let rotpdest = s.el + 0.7;
-    let phi = 2.0 * s.plate + THETA0 + s.parang - s.el - rotpdest;
-    let (q, u, total) = s.star.map_or((0.0, 0.0, 0.0), |st| (st.q, st.u, st.flux));
-    let f = q * (2.0 * phi).to_radians().cos() + u * (2.0 * phi).to_radians().sin();
-    let (t_o, t_e) = (1.0, 1.0);
-    let (o, e) = (0.5 * total * t_o * (1.0 + f), 0.5 * total * t_e * (1.0 - f));
-    let read_var = COADDS as f64 * (RN_E / GAIN_E).powi(2);
-    let ec = (O_POS.0 + EO.0, O_POS.1 + EO.1);
-    let closed = s.shutter == "closed";
-    let data = Array2::from_shape_fn((NY, NX), |(y, x)| {
-        let mut v = 0.0;
-        if !closed {
-            let in_o = y >= 105;
-            let in_e = y < 95;
-            let sky = if in_o {
-                sky_o
-            } else if in_e {
-                sky_e
-            } else {
-                sky_o + sky_e
-            };
-            let mut light = sky;
-            if s.star.is_some() {
-                light += if in_o { star(x, y, O_POS, o) } else { 0.0 } + if in_e { star(x, y, ec, e) } else { 0.0 };
-            }
-            v += light * flat(x, y);
-        }
-        if let Some(n) = noise.as_deref_mut() {
-            let z: f64 = StandardNormal.sample(&mut n.rng);
-            v += z * (v / GAIN_E + read_var).sqrt();
-        }
-        let hot = if (x, y) == (20, 30) { 9000.0 } else { 0.0 };
-        (v + dark + hot) as f32
+/// A scene of `stars` through the plate: 45 coadds of 0.45 s and 10 s overheads (30 s
+/// per frame), a Gaussian PSF of sigma 2 px, a sky of 5000 ADU per beam modulated by the
+/// plate (1 +- 0.01 cos 4 plate), three hot pixels, a vignetting pixel response symmetric
+/// about the detector's middle row (both beams' rows then have the same median, so the
+/// per-beam normalisation leaves no beam imbalance), a dark level of 100 ADU; `noise` adds
+/// photon and read noise. A header keyword SIMGAIN2 holds twice the true gain (the pull
+/// test's control).
+fn scene(seed: u64, stars: Vec<HwpStar>, sky_cycles: usize, darks: usize, noise: bool) -> Scene {
+    let effects = if noise {
+        r#""psf", "sky", "flat_field", "bad_pixels", "photon_noise", "read_noise""#
+    } else {
+        r#""psf", "sky", "flat_field", "bad_pixels""#
+    };
+    let fwhm_arcsec = 2.0 * (8.0f64 * 2f64.ln()).sqrt() * profile().geometry.pixscale_arcsec;
+    let mut s = Scene::from_toml(
+        &format!(
+            r#"
+name = "hwp"
+seed = {seed}
+effects = [{effects}]
+[observation]
+dit_s = 0.45
+ndit = 45
+overhead_s = 10.0
+filter = "Lp"
+date = "2025-12-08"
+start_ut = "09:00:00"
+[psf]
+kind = "gaussian"
+fwhm_arcsec = {fwhm_arcsec}
+seeing_rms_frac = 0.0
+[sky]
+level_adu = 5000.0
+gradient_x = 0.0
+gradient_y = 0.0
+frame_change_frac = 0.0
+[flat_field]
+pixel_rms = 0.0
+vignetting = 0.1
+[bad_pixels]
+hot_fraction = 1.2e-4
+dead_fraction = 0.0
+hot_level_adu = 9000.0
+clusters = 0
+column_segments = 0
+"#
+        ),
+        "test scene",
+    )
+    .unwrap();
+    let mut header = std::collections::BTreeMap::new();
+    header.insert("ROTPDEST".to_string(), ROTPDEST);
+    header.insert("SIMGAIN2".to_string(), 2.0 * GAIN_E);
+    s.half_wave_plate = Some(HwpConfig {
+        plate_deg: vec![0.0, 45.0, 22.5, 67.5],
+        cycles: 2,
+        sky_cycles,
+        darks,
+        dark_adu: 100.0,
+        sky_modulation: 0.01,
+        header,
+        x_px: Some(O_POS.0),
+        y_px: Some(O_POS.1),
+        star: stars,
+        ..HwpConfig::default()
     });
-    let mut h = Header::new("");
-    for (k, v) in [
-        ("INSTRUME", "NIRC2"),
-        ("FWONAME", "Wollaston"),
-        ("FWINAME", "Lp"),
-        ("PCUNAME", "hwp_center"),
-    ] {
-        h.set(k, v);
+    s
+}
+
+/// A star of polarization (q, u) on the sky.
+fn star(name: &str, q: f64, u: f64, flux: f64, dec_deg: f64, hour_angle_h: f64) -> HwpStar {
+    HwpStar {
+        name: name.into(),
+        flux,
+        p: q.hypot(u),
+        gamma_deg: 0.5 * u.atan2(q).to_degrees(),
+        dec_deg,
+        hour_angle_h,
     }
-    h.set("OBJECT", s.object);
-    h.set("TARGNAME", s.star.map_or("", |st| st.name.as_str()));
-    h.set("SHRNAME", s.shutter);
-    h.set("PCUPR", s.plate);
-    h.set("PARANG", s.parang);
-    h.set("EL", s.el);
-    h.set("ROTPDEST", rotpdest);
-    h.set("MJD", s.mjd);
-    h.set("ITIME", 0.45);
-    h.set("COADDS", COADDS);
-    h.set("DETGAIN", GAIN_E);
-    // A wrong gain (2x) for a profile that reads it instead (the pull test's control).
-    h.set("SIMGAIN2", 2.0 * GAIN_E);
-    h.set("DETRN", RN_E);
-    write_frame(&dir.join(name), &Frame::new(data, h), &WriteOptions::default()).unwrap();
+}
+
+/// Simulate a scene into `dir` (the frames and truth.json).
+fn simulate(dir: &Path, s: Scene) -> HwpTruth {
+    HwpSimulator::new(s, profile())
+        .expect("valid scene")
+        .write_to_dir(dir, &|_| {})
+        .expect("written")
 }
 
 #[test]
 fn known_polarization_comes_back() {
     let dir = tempfile::tempdir().unwrap();
-    let sim_star = Star {
-        name: "Sim Star".into(),
-        q: Q_SKY,
-        u: U_SKY,
-        flux: 4e6,
-    };
-    let plates = [0.0, 45.0, 22.5, 67.5];
-    for (k, &p) in plates.iter().enumerate() {
-        let shot = Shot {
-            object: "sky_flat",
-            plate: p,
-            parang: 0.0,
-            el: 60.0,
-            shutter: "open",
-            star: None,
-            mjd: 1.0 + k as f64 * 1e-3,
-        };
-        write(dir.path(), &format!("sky{k}.fits"), &shot, None);
-    }
-    for k in 0..2 {
-        let shot = Shot {
-            object: "dark",
-            plate: 0.0,
-            parang: 0.0,
-            el: 0.0,
-            shutter: "closed",
-            star: None,
-            mjd: 3.0 + k as f64 * 1e-3,
-        };
-        write(dir.path(), &format!("dark{k}.fits"), &shot, None);
-    }
-    // Two cycles; the sky turns by 2 deg per frame (pupil tracking).
-    for k in 0..8 {
-        let shot = Shot {
-            object: "Sim Star_hwp",
-            plate: plates[k % 4],
-            parang: 215.0 - STEP_PARANG * k as f64,
-            el: 77.0 + STEP_EL * k as f64,
-            shutter: "open",
-            star: Some(&sim_star),
-            mjd: 2.0 + k as f64 * 1e-3,
-        };
-        write(dir.path(), &format!("sci{k}.fits"), &shot, None);
-    }
+    // Near the meridian 10 deg from the zenith: the sky turns by ~0.7 deg per frame.
+    let truth = simulate(
+        dir.path(),
+        scene(1, vec![star("Sim Star", Q_SKY, U_SKY, 4e6, 10.0, -0.05)], 1, 2, false),
+    );
+    assert!((truth.stars[0].q - Q_SKY).abs() < 1e-12 && (truth.stars[0].u - U_SKY).abs() < 1e-12);
     std::fs::write(dir.path().join("notes.fits"), b"not a FITS file").unwrap();
     let cat = single_pointing::reduce(&[dir.path().to_path_buf()], &profile()).expect("reduces");
     assert_eq!((cat.darks.len(), cat.skies.len(), cat.flat_from.len()), (2, 4, 4));
@@ -225,6 +172,26 @@ fn known_polarization_comes_back() {
         assert!((f.eo_offset[0] - EO.0).abs() < 1e-3 && (f.eo_offset[1] - EO.1).abs() < 1e-3);
         assert!((f.sky_o.scale - 1.0).abs() < 1e-6 && (f.sky_e.scale - 1.0).abs() < 1e-6);
     }
+    // Each frame's turn theta0 + PARANG - EL - ROTPDEST from its header (written out here,
+    // not the profile's), the same as the truth's.
+    let turns: Vec<f64> = truth.stars[0]
+        .frames
+        .iter()
+        .map(|f| {
+            let h = sofipol_calib::fits::read_header(&dir.path().join(&f.file)).unwrap();
+            let turn =
+                THETA0 + h.get_f64("PARANG").unwrap() - h.get_f64("EL").unwrap() - h.get_f64("ROTPDEST").unwrap();
+            assert!((f.phi_sky_deg - 2.0 * f.plate_deg - turn).abs() < 1e-9);
+            turn
+        })
+        .collect();
+    // The pupil turns on the sky: by 0.3-2 deg per frame.
+    let step_max = turns.windows(2).map(|w| (w[1] - w[0]).abs()).fold(0.0, f64::max);
+    let step_min = turns
+        .windows(2)
+        .map(|w| (w[1] - w[0]).abs())
+        .fold(f64::INFINITY, f64::min);
+    assert!(step_min > 0.3 && step_max < 2.0, "{turns:?}");
     // On the sky, the least squares with each frame's rotation: exact.
     let ls = t.least_squares_sky.as_ref().unwrap();
     assert!(
@@ -232,22 +199,17 @@ fn known_polarization_comes_back() {
         "{:?}",
         ls.pol
     );
-    assert!(ls.c.unwrap().abs() < 1e-6, "{:?}", ls.c);
+    // No beam imbalance is simulated: c = 0 up to the f32 frames' and flat's rounding
+    // (measured 3.7e-6).
+    assert!(ls.c.unwrap().abs() < 1e-5, "{:?}", ls.c);
     // Each cycle: the double difference pairs frames 1 and 2 turns apart, so its (q, u) are
-    // the sky's turned by the cycle's mean turn theta0 + PARANG - EL - ROTPDEST within
-    // 2 P x (the turn per frame, rad) to first order (the pairs' mean turns lie one step
-    // either side of the cycle's mean), 25 % added for the second order (measured: 1.0 x).
-    let step = (STEP_PARANG + 2.0 * STEP_EL).to_radians();
+    // the sky's turned by the cycle's mean turn within 2 P x (the largest turn per frame,
+    // rad) to first order (the pairs' mean turns lie one step either side of the cycle's
+    // mean), 25 % added for the second order.
+    let step = step_max.to_radians();
     let bound = 1.25 * 2.0 * Q_SKY.hypot(U_SKY) * step;
     for (k, c) in t.cycles.iter().enumerate() {
-        let mean_turn: f64 = (0..4)
-            .map(|j| {
-                let i = 4 * k + j;
-                let (parang, el) = (215.0 - STEP_PARANG * i as f64, 77.0 + STEP_EL * i as f64);
-                THETA0 + parang - el - (el + 0.7)
-            })
-            .sum::<f64>()
-            / 4.0;
+        let mean_turn: f64 = turns[4 * k..4 * k + 4].iter().sum::<f64>() / 4.0;
         let a = (2.0 * mean_turn).to_radians();
         // Instrument (theta0 = 0, no turn) = sky turned back by the mean turn.
         let (qi, ui) = (Q_SKY * a.cos() + U_SKY * a.sin(), -Q_SKY * a.sin() + U_SKY * a.cos());
@@ -264,15 +226,16 @@ fn known_polarization_comes_back() {
     }
     // The angle east of north: exact by the least squares, within the cycles' blur by the
     // combined double difference.
-    let truth = (0.5 * U_SKY.atan2(Q_SKY).to_degrees()).rem_euclid(180.0);
+    let angle = (0.5 * U_SKY.atan2(Q_SKY).to_degrees()).rem_euclid(180.0);
+    assert!((truth.stars[0].gamma_deg - angle).abs() < 1e-9);
     assert!(
-        (ls.pol.angle_deg - truth).abs() < 1e-3,
-        "{} vs {truth}",
+        (ls.pol.angle_deg - angle).abs() < 1e-3,
+        "{} vs {angle}",
         ls.pol.angle_deg
     );
     let sky = t.sky.unwrap();
     let blur_deg = (0.5 * bound / Q_SKY.hypot(U_SKY)).to_degrees();
-    assert!((sky.angle_deg - truth).abs() < blur_deg, "{} vs {truth}", sky.angle_deg);
+    assert!((sky.angle_deg - angle).abs() < blur_deg, "{} vs {angle}", sky.angle_deg);
     // The sky from an annulus about each image instead of the sky frames: the same (the
     // simulated sky is flat within each beam), exact by the least squares.
     let annulus = profile()
@@ -297,19 +260,17 @@ fn known_polarization_comes_back() {
     let e = single_pointing::reduce(&[dir.path().to_path_buf()], &wrong)
         .unwrap_err()
         .to_string();
-    assert!(e.contains("sci") && e.contains("eo_offset_px"), "{e}");
-    // A science frame that cannot be measured (the star is not in it) is listed as not used
-    // with why; the night goes on with the others.
-    let empty = Shot {
-        object: "Sim Star_hwp",
-        plate: 0.0,
-        parang: 200.0,
-        el: 78.0,
-        shutter: "open",
-        star: None,
-        mjd: 2.5,
-    };
-    write(dir.path(), "sci8.fits", &empty, None);
+    assert!(e.contains("Sim_Star") && e.contains("eo_offset_px"), "{e}");
+    // A science frame that cannot be measured (the star is not in it: a frame of another
+    // scene's star, far off, renamed to this one) is listed as not used with why; the night
+    // goes on with the others.
+    let other = tempfile::tempdir().unwrap();
+    let far = simulate(
+        other.path(),
+        scene(1, vec![star("Sim Star", Q_SKY, U_SKY, 0.0, 10.0, -0.05)], 0, 0, false),
+    );
+    let empty = sofipol_calib::fits::read_frame(&other.path().join(&far.stars[0].frames[0].file)).unwrap();
+    write_frame(&dir.path().join("sci8.fits"), &empty, &WriteOptions::default()).unwrap();
     let cat3 = single_pointing::reduce(&[dir.path().to_path_buf()], &profile()).expect("the night goes on");
     let n = cat3
         .not_used
@@ -370,7 +331,8 @@ const PULL_SKIES: usize = 4;
 /// Pulls (estimate - truth) / error of q and u on the sky, pooled over `PULL_SEEDS`
 /// simulated nights with photon and read noise, each with `PULL_TARGETS` stars of their own
 /// (q, u) drawn uniformly in [-3 %, 3 %]^2, two cycles of four plate positions each, pupil
-/// tracking with the sky turning by 0.5-2 deg per frame (4-14 deg over a star's frames).
+/// tracking with the sky turning with the hour angle (stars 3-30 deg south of the zenith
+/// within 36 min of the meridian, 30 s per frame).
 /// The least squares over the frames (each frame's own rotation) with the photometric error
 /// must give pulls of rms 1 and mean 0 within 3 standard errors (and rms within 0.9-1.1),
 /// and so must the adopted error (scaled by sqrt(chi2/dof) only when chi2 lies beyond its
@@ -379,7 +341,6 @@ const PULL_SKIES: usize = 4;
 /// one must fail the same test.
 #[test]
 fn pulls_on_noisy_pupil_tracking_nights() {
-    let plates = [0.0, 22.5, 45.0, 67.5];
     let reduce_with = |dir: &Path, extra: &[&str]| {
         let p = profile()
             .with_overrides(&extra.iter().map(|s| s.to_string()).collect::<Vec<_>>())
@@ -400,66 +361,29 @@ fn pulls_on_noisy_pupil_tracking_nights() {
     let seeds =
         std::env::var("SOFIPOL_PULL_SEEDS").map_or(PULL_SEEDS, |s| s.parse().expect("SOFIPOL_PULL_SEEDS: a number"));
     for seed in 0..seeds {
-        let mut noise = Noise {
-            rng: Xoshiro256PlusPlus::seed_from_u64(0x5350_4F4C ^ seed),
-        };
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(0x5350_4F4C ^ seed);
         let dir = tempfile::tempdir().unwrap();
-        let mut i = 0;
-        for k in 0..PULL_SKIES * 4 {
-            let shot = Shot {
-                object: "sky_flat",
-                plate: plates[k % 4],
-                parang: 0.0,
-                el: 60.0,
-                shutter: "open",
-                star: None,
-                mjd: 1.0 + k as f64 * 1e-3,
-            };
-            write(dir.path(), &format!("sky{k}.fits"), &shot, Some(&mut noise));
-        }
-        for k in 0..3 {
-            let shot = Shot {
-                object: "dark",
-                plate: 0.0,
-                parang: 0.0,
-                el: 0.0,
-                shutter: "closed",
-                star: None,
-                mjd: 3.0 + k as f64 * 1e-3,
-            };
-            write(dir.path(), &format!("dark{k}.fits"), &shot, Some(&mut noise));
-        }
-        let mut stars = Vec::new();
-        for t in 0..PULL_TARGETS {
-            let star = Star {
-                name: format!("Star {t}"),
-                q: noise.rng.random_range(-0.03..0.03),
-                u: noise.rng.random_range(-0.03..0.03),
-                flux: 4e7,
-            };
-            let parang0: f64 = noise.rng.random_range(-180.0..180.0);
-            let step: f64 = noise.rng.random_range(0.5..2.0) * if noise.rng.random::<bool>() { 1.0 } else { -1.0 };
-            let el0: f64 = noise.rng.random_range(40.0..80.0);
-            for k in 0..8 {
-                let shot = Shot {
-                    object: "hwp",
-                    plate: plates[k % 4],
-                    parang: parang0 + step * k as f64,
-                    el: el0 + 0.05 * k as f64,
-                    shutter: "open",
-                    star: Some(&star),
-                    mjd: 2.0 + 0.1 * t as f64 + k as f64 * 1e-3,
-                };
-                i += 1;
-                write(dir.path(), &format!("sci{i:03}.fits"), &shot, Some(&mut noise));
-            }
-            stars.push(star);
-        }
+        // Stars 3-30 deg south of the zenith within 36 min of the meridian (the parallactic
+        // angle passes 0, not 180 where it wraps): the sky turns by 0.1-3 deg per frame.
+        let stars: Vec<HwpStar> = (0..PULL_TARGETS)
+            .map(|t| {
+                let dec = 19.8 - rng.random_range(3.0..30.0);
+                star(
+                    &format!("Star {t}"),
+                    rng.random_range(-0.03..0.03),
+                    rng.random_range(-0.03..0.03),
+                    4e7,
+                    dec,
+                    rng.random_range(-0.6..0.6),
+                )
+            })
+            .collect();
+        let truth = simulate(dir.path(), scene(seed, stars, PULL_SKIES, 3, true));
         let cat = reduce_with(dir.path(), &[]);
         let no_rot = reduce_with(dir.path(), &["field_rotation.kind=\"sky_fixed\""]);
         let gain2 = reduce_with(dir.path(), &["detector.gain_keyword=\"SIMGAIN2\""]);
         assert_eq!(cat.targets.len(), PULL_TARGETS);
-        for star in &stars {
+        for star in &truth.stars {
             let find = |c: &single_pointing::SinglePointingCatalog| {
                 let t = c.targets.iter().find(|t| t.name == star.name).expect("target");
                 assert_eq!((t.frames.len(), t.cycles.len()), (8, 2));

@@ -1,9 +1,12 @@
-//! `sofipol simulate SCENE.toml -o DIR`: SOFI-like raw frames plus truth.json.
+//! `sofipol simulate SCENE.toml -o DIR`: SOFI-like raw frames plus truth.json, or with a
+//! half-wave-plate profile (the scene's `profile` or `--profile`) a half-wave-plate night.
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::Context;
-use sofipol_pipeline::sim::{Scene, Simulator, Truth};
+use sofipol_calib::profile::ModulationKind;
+use sofipol_calib::Profile;
+use sofipol_pipeline::sim::{HwpSimulator, Scene, Simulator, Truth};
 
 use super::common::{progress, ProfileArgs};
 
@@ -115,13 +118,41 @@ pub fn check_simulate_dir(dir: &Path, names: &[String]) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The profile of a scene: `--profile` when given, else the scene's `profile` (an embedded
+/// name, or a file relative to the scene's folder), else SOFI's; then the scene's
+/// `profile_set`, then `--set`.
+pub fn scene_profile(args: &ProfileArgs, scene: &Scene, scene_path: &Path) -> anyhow::Result<Profile> {
+    let base = match (&args.profile, &scene.profile) {
+        (None, Some(name)) => match Profile::embedded(name) {
+            Some(p) => p?,
+            None => {
+                let path = scene_path.parent().unwrap_or(Path::new(".")).join(name);
+                Profile::sofi_with_override(&path)
+                    .with_context(|| format!("scene {}: profile = '{name}'", scene_path.display()))?
+            }
+        },
+        _ => ProfileArgs {
+            profile: args.profile.clone(),
+            sets: Vec::new(),
+        }
+        .load()?,
+    };
+    base.with_overrides(&scene.profile_set)
+        .with_context(|| format!("scene {}: profile_set", scene_path.display()))?
+        .with_overrides(&args.sets)
+        .context("applying --set overrides")
+}
+
 /// Run.
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let mut scene = load_scene(&args.scene)?;
     if let Some(s) = args.seed {
         scene.seed = s;
     }
-    let profile = args.profile.load()?;
+    let profile = scene_profile(&args.profile, &scene, &args.scene)?;
+    if profile.modulation_kind() == ModulationKind::HalfWavePlate {
+        return run_half_wave_plate(&args, scene, profile);
+    }
     let t0 = std::time::Instant::now();
     let sim = Simulator::new(scene, profile).map_err(anyhow::Error::msg)?;
     check_output_size(&sim, &args.output, args.force)?;
@@ -132,6 +163,69 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         println!(
             "simulated {} target(s), {nframes} frames into {} in {:.2} s; effects: [{}]",
             truth.targets.len(),
+            args.output.display(),
+            t0.elapsed().as_secs_f64(),
+            truth.effects.join(", ")
+        );
+        if !truth.ignored_sections.is_empty() {
+            println!(
+                "ignored (configured but not listed in effects): {}",
+                truth.ignored_sections.join(", ")
+            );
+        }
+        println!("truth: {}", args.output.join("truth.json").display());
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// A half-wave-plate scene (`[half_wave_plate]`) for a half-wave-plate profile.
+fn run_half_wave_plate(args: &Args, scene: Scene, profile: Profile) -> anyhow::Result<ExitCode> {
+    let t0 = std::time::Instant::now();
+    let sim = HwpSimulator::new(scene, profile).map_err(anyhow::Error::msg)?;
+    let bytes = sim.output_bytes();
+    let names = sim.file_names();
+    anyhow::ensure!(
+        args.force || bytes <= MAX_OUTPUT_BYTES,
+        "the scene's {} frames would take {:.1} GB in {} (more than the {:.1} GB simulate writes \
+         without --force): fewer stars or cycles, or --force",
+        names.len() - 1,
+        bytes as f64 / 1e9,
+        args.output.display(),
+        MAX_OUTPUT_BYTES as f64 / 1e9
+    );
+    check_simulate_dir(&args.output, &names)?;
+    let pb = progress((names.len() - 1) as u64, "simulate", args.quiet);
+    let truth = sim
+        .write_to_dir(&args.output, &|name| {
+            pb.inc(1);
+            pb.set_message(name.to_string());
+        })
+        .map_err(anyhow::Error::msg)?;
+    pb.finish_and_clear();
+    if let Some(path) = &args.badpix_mask {
+        let mask = sim
+            .bad_pixel_mask()
+            .context("--badpix-mask needs the bad_pixels effect in the scene")?;
+        let mut h = sofipol_calib::Header::new(path);
+        h.set("OBJECT", "sofipol true bad-pixel map");
+        let frame = sofipol_calib::Frame::new(mask.mapv(|v| v as f32), h).with_history(
+            "simulate",
+            format!(
+                "true bad-pixel map of scene '{}' seed {}",
+                sim.scene().name,
+                sim.scene().seed
+            ),
+        );
+        sofipol_calib::fits::write_frame(path, &frame, &Default::default())?;
+    }
+    if !args.quiet {
+        let nframes: usize = truth.stars.iter().map(|t| t.frames.len()).sum();
+        println!(
+            "simulated {} star(s) through the half-wave plate ({} profile), {nframes} frames, {} sky frames, {} darks into {} in {:.2} s; effects: [{}]",
+            truth.stars.len(),
+            truth.profile,
+            truth.skies.len(),
+            truth.darks.len(),
             args.output.display(),
             t0.elapsed().as_secs_f64(),
             truth.effects.join(", ")

@@ -24,11 +24,13 @@
 //! luminosity function), [`psf`] (PSF rendering), [`truth`] (what
 //! was simulated), `frame` (one science frame: parameters,
 //! sources, detector, header), `dome` (dome-flat frames), `output` (whole scenes in
-//! memory or written to a folder), `loaded` (one target's frames as the reduction's input).
+//! memory or written to a folder), `loaded` (one target's frames as the reduction's input),
+//! [`hwp`] (half-wave-plate scenes for a half-wave-plate profile: [`HwpSimulator`]).
 mod dome;
 pub mod effects;
 pub mod foreground;
 mod frame;
+pub mod hwp;
 mod loaded;
 mod output;
 pub mod pointing;
@@ -49,6 +51,7 @@ use rand_distr::{Distribution, StandardNormal};
 use sofipol_calib::Profile;
 
 pub use dome::SimFlatFrame;
+pub use hwp::{HwpSimulator, HwpTruth};
 pub use loaded::loaded_from_sim;
 pub use scene::{Binary, EffectKind, Scene, StandardSource};
 pub use truth::{
@@ -100,6 +103,18 @@ impl Simulator {
     /// Prepare a scene (validates it and draws the fixed detector maps of listed effects).
     pub fn new(scene: Scene, profile: Profile) -> crate::error::Result<Simulator> {
         scene.validate()?;
+        let hwp = profile.modulation_kind() == sofipol_calib::profile::ModulationKind::HalfWavePlate;
+        if scene.half_wave_plate.is_some() || hwp {
+            return Err(crate::error::Error::Scene {
+                origin: scene.name.clone(),
+                reason: format!(
+                    "profile {} (modulation.kind = {}) with{} a [half_wave_plate] section: a half-wave-plate scene is simulated by HwpSimulator (`sofipol simulate` chooses by the profile)",
+                    profile.name,
+                    profile.modulation_kind().name(),
+                    if scene.half_wave_plate.is_some() { "" } else { "out" }
+                ),
+            });
+        }
         let calls = EffectCalls::default();
         let (ny, nx) = (profile.geometry.ny, profile.geometry.nx);
         let bad = scene.has(EffectKind::BadPixels).then(|| {

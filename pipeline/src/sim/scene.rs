@@ -730,6 +730,21 @@ pub struct Scene {
     /// `observation.zero_point_mag`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub field_population: Option<FieldPopulationConfig>,
+    /// The instrument profile the scene is made for: an embedded profile's name (`sofi`,
+    /// `nirc2`) or a TOML file (relative to the scene file) merged over SOFI's. Absent: the
+    /// command's `--profile` (default SOFI's). A half-wave-plate profile
+    /// (`modulation.kind = "half_wave_plate"`) needs the `half_wave_plate` section.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub profile: Option<String>,
+    /// Overrides of the profile's values, `section.key=value` each (as `--set`, applied
+    /// before the command's own `--set`). A reduction of the frames needs the same.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub profile_set: Vec<String>,
+    /// A half-wave-plate observation (with a half-wave-plate profile only): stars observed
+    /// at one pointing through the plate's positions, sky frames, darks
+    /// ([`crate::sim::hwp`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub half_wave_plate: Option<super::hwp::HwpConfig>,
 }
 
 /// The o+e flux per NDIT-averaged frame of DIT `dit_s` of a source of magnitude `mag` at
