@@ -152,8 +152,6 @@ struct Pooled {
     field_total: Vec<f64>,
     /// The foreground at the binary: q, u pulls with the catalog's sigma.
     fg: Vec<f64>,
-    /// The same with the error of the field stars' mean alone (sigma^2 - tau^2).
-    fg_mean_only: Vec<f64>,
     /// |Delta-gamma| - intrinsic, deg: after the subtraction, and without it (same binaries).
     dg_corrected: Vec<f64>,
     dg_raw: Vec<f64>,
@@ -249,12 +247,10 @@ fn nights(n: u64, effects: &[String]) -> Pooled {
             if fg.is_object() {
                 out.n_estimated += 1;
                 let tf = &tt["foreground"];
-                for (k, t) in [("q", 0), ("u", 1)] {
+                for k in ["q", "u"] {
                     let d = num(&fg[k]) - num(&tf[k]);
                     let s = num(&fg[&format!("sigma_{k}")]);
-                    let tau = num(&fg["tau"][t]);
                     out.fg.push(d / s);
-                    out.fg_mean_only.push(d / (s * s - tau * tau).max(0.0).sqrt());
                 }
                 let (dc, dr) = (num(&tg["delta_gamma_fg_corrected_deg"]), num(&tg["delta_gamma_deg"]));
                 if dc.is_finite() && dr.is_finite() {
@@ -320,7 +316,6 @@ fn the_foreground_at_the_binary_and_its_subtraction_are_honest_end_to_end() {
     let (nfs, mfs, sefs, rfs) = report("field stars, q and u pulls, measurement errors", &p.field_stat);
     report("field stars, q and u pulls, total errors", &p.field_total);
     let (nfg, _, _, rfg) = report("foreground at the binary, q and u pulls", &p.fg);
-    report("foreground at the binary, error of the mean alone", &p.fg_mean_only);
     let (ndc, mdc, sedc, _) = report("|Delta-gamma| corrected - intrinsic, deg", &p.dg_corrected);
     let (_, mdr, sedr, _) = report("|Delta-gamma| uncorrected - intrinsic, deg", &p.dg_raw);
 
@@ -333,17 +328,15 @@ fn the_foreground_at_the_binary_and_its_subtraction_are_honest_end_to_end() {
     assert!(nfs >= 200, "only {nfs} field-star pulls");
     assert!((0.9..=1.1).contains(&rfs), "field-star pull rms {rfs:.3} (n = {nfs})");
     assert!(mfs.abs() <= 4.0 * sefs, "field-star pull mean {mfs:.3} +- {sefs:.3}");
-    // The rms of n unit normals has a standard deviation of 1/sqrt(2 n) (0.07 at 94 pulls).
-    // The prediction covariance (error of the mean + E[tau^2]) is an upper bound for a
-    // field correlated over the strip with the binary at its centre (pipeline/src/foreground.rs,
-    // "The prediction at the binary"): the pulls must not be wider than unit normals'
-    // (the error understated), and the bound not loose by more than a factor 2.
+    // The rms of n unit normals has a standard deviation of 1/sqrt(2 n) (0.07 at 94 pulls):
+    // the kriging's covariance (pipeline/src/foreground.rs, the night's fields informing each
+    // one's prior) within 3 of them of 1. (The random-effects covariance, the binary as one
+    // more independent place of its field, gave 0.69 here: too wide.)
     let tol = 3.0 / (2.0 * nfg as f64).sqrt();
     assert!(nfg >= 60, "only {nfg} foreground pulls");
     assert!(
-        rfg <= 1.0 + tol && rfg >= 0.5,
-        "foreground pull rms {rfg:.3} (n = {nfg}, upper limit {:.3})",
-        1.0 + tol
+        (rfg - 1.0).abs() <= tol,
+        "foreground pull rms {rfg:.3} (n = {nfg}, allowed 1 +- {tol:.3})"
     );
     assert!(ndc * 2 >= nfg / 2, "only {ndc} Delta-gammas");
     assert!(

@@ -338,6 +338,7 @@ pub fn calibrate_catalog_with(
     for t in cat.targets.iter_mut() {
         resolve_target(t, cal.as_ref(), ctx, other_night, &mut summary);
     }
+    night_foregrounds(&mut cat.targets, cal.as_ref(), ctx);
     standards_section(cat, standards, cal.as_ref(), ctx, &mut summary);
     cat.calibration = Some(crate::catalog::AppliedCalibration::new(
         cal.clone(),
@@ -439,20 +440,77 @@ fn resolve_target(
         note_calibration_state(&mut s.star, fc, &mut field_summary);
         s.settle();
     }
-    let errors = (fc.is_some() || settings.telescope_prior.is_some())
-        .then(|| calibration_errors(fc, settings.telescope_prior.as_ref()));
-    match t.field_stars.as_deref() {
+    let (qu, errors) = foreground_inputs(t, cal, ctx);
+    match qu {
         // Field stars found: the binary's foreground estimated from them (or flagged too
         // few), and both Delta-gammas computed. None found (or none searched for): no
         // foreground and no flag, the Delta-gamma as without field stars.
-        Some(stars) if !stars.is_empty() => {
-            let qu: Vec<FieldStarQu> = stars
-                .iter()
-                .map(|s| field_star_qu(s, params.allow_uncalibrated))
-                .collect();
+        Some(qu) => {
             set_target_foreground(t, &qu, &EstimateParams::default(), errors.as_ref());
         }
-        _ => t.update_delta_gamma(errors.as_ref()),
+        None => t.update_delta_gamma(errors.as_ref()),
+    }
+}
+
+/// What the foreground's estimate of target `t` takes: its field stars as calibrated (None
+/// when it has none), and the calibration's covariance for its filter (None when no
+/// calibration applies).
+fn foreground_inputs(
+    t: &Target,
+    cal: Option<&Calibration>,
+    ctx: &CalibrationContext,
+) -> (
+    Option<Vec<FieldStarQu>>,
+    Option<crate::stokes::propagation::CalibrationCovariance>,
+) {
+    let filter = filter_of(t);
+    let fc = cal.and_then(|c| c.for_filter(&filter));
+    let prior = TelescopePrior::of(&ctx.profile.telescope, &filter);
+    let errors = (fc.is_some() || prior.is_some()).then(|| calibration_errors(fc, prior.as_ref()));
+    let qu = t.field_stars.as_deref().filter(|s| !s.is_empty()).map(|stars| {
+        stars
+            .iter()
+            .map(|s| field_star_qu(s, ctx.params.allow_uncalibrated))
+            .collect()
+    });
+    (qu, errors)
+}
+
+/// The night's foregrounds: every target with field stars and a sky position estimated
+/// again with the night's other fields informing the prior of the foreground's variation
+/// ([`crate::foreground::estimate_night`]), its catalog entries and Delta-gammas updated.
+/// A target alone (the per-target pass, [`resolved_target`]) has the flat prior.
+fn night_foregrounds(targets: &mut [Target], cal: Option<&Calibration>, ctx: &CalibrationContext) {
+    let inputs: Vec<(
+        usize,
+        Vec<FieldStarQu>,
+        Option<crate::stokes::propagation::CalibrationCovariance>,
+    )> = targets
+        .iter()
+        .enumerate()
+        .filter(|(_, t)| t.ra_deg.is_some() && t.dec_deg.is_some())
+        .filter_map(|(i, t)| {
+            let (qu, errors) = foreground_inputs(t, cal, ctx);
+            qu.map(|qu| (i, qu, errors))
+        })
+        .collect();
+    if inputs.len() < 2 {
+        return;
+    }
+    let fields: Vec<(f64, f64, &[FieldStarQu])> = inputs
+        .iter()
+        .map(|(i, qu, _)| {
+            let t = &targets[*i];
+            (
+                t.ra_deg.unwrap_or_default(),
+                t.dec_deg.unwrap_or_default(),
+                qu.as_slice(),
+            )
+        })
+        .collect();
+    let outcomes = crate::foreground::estimate_night(&fields, &EstimateParams::default());
+    for ((i, _, errors), outcome) in inputs.iter().zip(outcomes) {
+        crate::foreground::apply_outcome(&mut targets[*i], outcome, errors.as_ref());
     }
 }
 

@@ -73,13 +73,22 @@ fn equal_errors_and_no_dispersion_give_the_plain_mean_and_sigma_over_sqrt_n() {
     assert!((f.sigma_q - sigma / 3.0).abs() < 1e-15);
     assert_eq!(f.n_used, Some(9));
     f.validate().unwrap();
-    // Dispersion estimated: still the plain mean (equal weights whatever tau), and the
-    // variance of the prediction E[sigma^2/n + tau^2 (1 + 1/n)] >= sigma^2/n.
+    // Dispersion estimated: the random-effects prediction is still the plain mean (equal
+    // weights whatever tau), with the variance E[sigma^2/n + tau^2 (1 + 1/n)] >= sigma^2/n;
+    // the kriging's (weights by place) is within its error of it and never more precise
+    // than the stars' own noise allows.
     let e = estimated(estimate(RA, DEC, &stars, &EstimateParams::default()));
-    assert!((e.q - mean_q).abs() < 1e-15 && (e.u - mean_u).abs() < 1e-15, "{e:?}");
+    let ([rq, ru], rc) = e.random_effects;
+    assert!((rq - mean_q).abs() < 1e-15 && (ru - mean_u).abs() < 1e-15, "{e:?}");
     let t2 = e.tau[0].powi(2);
     assert!(t2 > 0.0);
-    assert!((e.cov.var_q - (sigma * sigma / n + t2 * (1.0 + 1.0 / n))).abs() < 1e-9 * e.cov.var_q);
+    assert!((rc.var_q - (sigma * sigma / n + t2 * (1.0 + 1.0 / n))).abs() < 1e-9 * rc.var_q);
+    assert!((e.q - mean_q).abs() < 2.0 * e.cov.var_q.sqrt(), "{} vs {mean_q}", e.q);
+    assert!(
+        e.cov.var_q >= sigma * sigma / n && e.cov.var_u >= sigma * sigma / n,
+        "{:?}",
+        e.cov
+    );
 }
 
 /// The posterior of tau against a slow reference for equal errors, where the restricted
@@ -125,7 +134,7 @@ fn the_posterior_of_tau_matches_a_slow_integration() {
 /// draws, within 8 % (12 % for the error of the field's mean when tau is estimated): (1) no dispersion, assumed and true: the scatter of the estimated
 /// mean is `(sum W_j)^-1`; (2) the dispersion estimated, the true tau of q and u drawn for
 /// each field uniformly within the prior's range: the scatter of the prediction error at
-/// the binary is the reported prediction covariance, and that of the field's mean the
+/// the binary is the random-effects prediction covariance, and that of the field's mean the
 /// reported error of the mean.
 #[test]
 fn the_covariance_matches_a_slow_monte_carlo() {
@@ -169,9 +178,10 @@ fn the_covariance_matches_a_slow_monte_carlo() {
                 .collect();
             let e = estimated(estimate(RA, DEC, &stars, &params));
             let fb = [f[0] + tau[0] * gauss(&mut rng), f[1] + tau[1] * gauss(&mut rng)];
-            err_mean.push([e.q - f[0], e.u - f[1]]);
-            err_pred.push([fb[0] - e.q, fb[1] - e.u]);
-            for (acc, c) in [(&mut rep_mean, e.cov_mean), (&mut rep_pred, e.cov)] {
+            let m = e.random_effects.0;
+            err_mean.push([m[0] - f[0], m[1] - f[1]]);
+            err_pred.push([fb[0] - m[0], fb[1] - m[1]]);
+            for (acc, c) in [(&mut rep_mean, e.cov_mean), (&mut rep_pred, e.random_effects.1)] {
                 acc[0] += c.var_q / draws as f64;
                 acc[1] += c.cov_qu / draws as f64;
                 acc[2] += c.var_u / draws as f64;
@@ -702,70 +712,74 @@ fn sky_field(rms: f64, coherence_arcsec: f64, seed: u64) -> crate::sim::foregrou
     )
 }
 
-/// Pulls (estimate - field at the binary) / sigma of q and u, with the reported prediction
-/// covariance and with the error of the mean alone, over `draws` (field, stars) pairs;
-/// `field_of(i)` is the field of draw i.
-fn sky_pulls(
-    draws: usize,
-    seed: u64,
-    positions: &[(f64, f64)],
-    field_of: impl Fn(usize) -> crate::sim::foreground::ForegroundField,
-) -> (Vec<f64>, Vec<f64>) {
-    let mut rng = Rng64::seed_from_u64(seed);
-    let (mut with_tau, mut mean_only) = (Vec::new(), Vec::new());
-    for i in 0..draws {
-        let field = field_of(i);
-        for &(ra, dec) in positions {
-            let (stars, fb) = field_through_the_sky(&mut rng, &field, ra, dec);
-            if let Outcome::Estimated(e) = estimate(ra, dec, &stars, &EstimateParams::default()) {
-                let d = [e.q - fb[0], e.u - fb[1]];
-                with_tau.extend([d[0] / e.cov.var_q.sqrt(), d[1] / e.cov.var_u.sqrt()]);
-                mean_only.extend([d[0] / e.cov_mean.var_q.sqrt(), d[1] / e.cov_mean.var_u.sqrt()]);
-            }
-        }
-    }
-    (with_tau, mean_only)
-}
-
 fn rms_of(v: &[f64]) -> f64 {
     (v.iter().map(|p| p * p).sum::<f64>() / v.len() as f64).sqrt()
 }
 
+/// Nights of `size` fields through the simulator's random field (rms `rms_field`,
+/// `coherence` arcsec; each field its own draw, the binary at its centre), every night's
+/// fields estimated together ([`estimate_night`]): the pulls with the reported covariance
+/// and with the random-effects one (the binary as one more independent place).
+fn night_pulls(coherence: f64, size: usize, fields: usize, rms_field: f64) -> (Vec<f64>, Vec<f64>) {
+    let mut rng = Rng64::seed_from_u64(11);
+    let (mut pulls, mut re) = (Vec::new(), Vec::new());
+    for night in 0..fields / size {
+        let drawn: Vec<_> = (0..size)
+            .map(|i| {
+                let field = sky_field(rms_field, coherence, 1000 + (night * size + i) as u64);
+                field_through_the_sky(&mut rng, &field, RA, DEC)
+            })
+            .collect();
+        let input: Vec<(f64, f64, &[FieldStarQu])> = drawn.iter().map(|(s, _)| (RA, DEC, s.as_slice())).collect();
+        for (o, (_, fb)) in estimate_night(&input, &EstimateParams::default()).iter().zip(&drawn) {
+            if let Outcome::Estimated(e) = o {
+                pulls.extend([(e.q - fb[0]) / e.cov.var_q.sqrt(), (e.u - fb[1]) / e.cov.var_u.sqrt()]);
+                let (m, c) = e.random_effects;
+                re.extend([(m[0] - fb[0]) / c.var_q.sqrt(), (m[1] - fb[1]) / c.var_u.sqrt()]);
+            }
+        }
+    }
+    (pulls, re)
+}
+
 /// The prediction at the binary against the simulator's own foreground field (a Gaussian
-/// random field of rms 0.3 % in q and u, within the prior's bound; the stars in the SOFI
-/// target strip about the binary; each draw its own field). The reported covariance (error
-/// of the mean + E[tau^2]) is exact when the field's places are independent and an upper
-/// bound when they are correlated (module doc, "The prediction at the binary"): at a
-/// coherence scale of 20" (nearly independent places 10-150" apart) the pulls have an rms in
-/// [0.85, 1.15]; at 90" and 600" they are never wider than that (conservative). With the
-/// error of the mean alone they are far too wide (rms > 1.3) at 20" and 90": the field's own
-/// scatter between the stars' places and the binary's must be in the covariance.
+/// random field of rms 0.3 % in q and u; the stars in the SOFI target strip about the
+/// binary; 300 fields per coherence scale), by nights of 6 fields (module doc, "The
+/// night's fields"): the pulls have an rms in [0.85, 1.15] at a coherence scale of 20"
+/// (nearly independent places); at 90" they are still conservative but at least 0.75 and
+/// 0.1 above the random-effects covariance's (the binary as one more independent place:
+/// 0.66); never wider than 1.15 at 600" (nearly a gradient across the strip), nor for a
+/// field alone (the flat prior).
 #[test]
 fn pulls_at_the_binary_through_the_simulators_random_field() {
-    let rms_field = 0.003;
     let mut failures = Vec::new();
-    for (coherence, draws) in [(20.0, 600), (90.0, 1500), (600.0, 600)] {
-        let (p, m) = sky_pulls(draws, 11, &[(RA, DEC)], |i| {
-            sky_field(rms_field, coherence, 1000 + i as u64)
-        });
-        let (r, rm) = (rms_of(&p), rms_of(&m));
-        eprintln!(
-            "coherence {coherence}\": {} pulls, rms {r:.3} (error of the mean alone: {rm:.3})",
-            p.len()
-        );
-        if p.len() <= draws {
-            failures.push(format!("coherence {coherence}\": too few estimates: {}", p.len()));
-        }
-        if r > 1.15 {
-            failures.push(format!("coherence {coherence}\": pull rms {r:.3} (optimistic)"));
-        }
-        if coherence == 20.0 && r < 0.85 {
-            failures.push(format!("coherence 20\": pull rms {r:.3} (too conservative)"));
-        }
-        if coherence < 100.0 && rm <= 1.3 {
-            failures.push(format!(
-                "coherence {coherence}\": error of the mean alone: pull rms {rm:.3}"
-            ));
+    for coherence in [20.0, 90.0, 600.0] {
+        for size in [1, 6] {
+            let (p, re) = night_pulls(coherence, size, 300, 0.003);
+            let (r, rr) = (rms_of(&p), rms_of(&re));
+            eprintln!(
+                "coherence {coherence}\", nights of {size}: {} pulls, rms {r:.3} (random effects: {rr:.3})",
+                p.len()
+            );
+            if p.len() < 500 {
+                failures.push(format!("coherence {coherence}\": too few estimates: {}", p.len()));
+            }
+            if r > 1.15 {
+                failures.push(format!(
+                    "coherence {coherence}\", nights of {size}: pull rms {r:.3} (optimistic)"
+                ));
+            }
+            if size == 6 && coherence == 20.0 && r < 0.85 {
+                failures.push(format!(
+                    "coherence 20\", nights of 6: pull rms {r:.3} (too conservative)"
+                ));
+            }
+            // Measured: 0.81 against the random effects' 0.66.
+            if size == 6 && coherence == 90.0 && !(r >= 0.75 && r >= rr + 0.1) {
+                failures.push(format!(
+                    "coherence 90\", nights of 6: pull rms {r:.3}, random effects {rr:.3}"
+                ));
+            }
         }
     }
     assert!(failures.is_empty(), "{failures:?}");

@@ -1,0 +1,590 @@
+//! The foreground at the binary by Bayesian ordinary kriging of the field stars (one
+//! coordinate, q or u, at a time).
+//!
+//! # Why
+//!
+//! Dust varies smoothly on the sky: two field stars close together see more nearly the same
+//! foreground than two far apart. Treating the binary as "one more random place" of the
+//! field (the random-effects mean) is honest only when the places are independent; for a
+//! field correlated over the strip it overstates the error at a binary in the middle of
+//! its stars (pulls 0.7 at a coherence scale of 90", 0.4 at 600"), and it gives a star
+//! next to the binary no more weight than one at the strip's far end.
+//!
+//! # The model
+//!
+//! The foreground (one coordinate) at place x is `f(x) = m + e(x)`, m unknown, with the
+//! semivariogram
+//!
+//! ```text
+//! gamma(h) = 1/2 E[(e(x) - e(x + h))^2] = t^2 [h > 0] + s^2 h / H,      H = 300"
+//! ```
+//!
+//! a nugget t (variation between places closer than the stars are to each other: patchy
+//! dust, independent from place to place) plus a linear part (a field that varies more
+//! the farther apart two places are; s^2 is its semivariance at 5 arcmin, one SOFI field).
+//! The linear variogram is the one of Brownian motion on the plane: it assumes no scale,
+//! fits a gradient across the field (a parabola's chord over the field's extent) as well as
+//! a rough field, and needs no coherence length, which 5-30 stars cannot measure. Field
+//! star j measures `y_j = f(x_j) + n_j`, n_j its measurement error (variance S_j).
+//!
+//! # Estimation
+//!
+//! For given (t, s), the covariance of the stars is `Sigma = diag(S_j) + t^2 I + (s^2/H)
+//! (C - D)`, D the matrix of their separations and C a constant large enough for Sigma to
+//! be positive definite: the restricted (REML) likelihood of (t, s) and the ordinary-kriging
+//! predictor do not depend on C (both use only contrasts of the stars and weights that sum
+//! to one). The ordinary-kriging weights lambda (sum 1) minimise the variance of the error
+//! at the binary,
+//!
+//! ```text
+//! V = lambda^T Sigma lambda - 2 lambda^T k_b + K_bb,
+//! k_b,j = (s^2/H)(C - d_jb),   K_bb = (s^2/H) C + t^2
+//! ```
+//!
+//! (the binary's own nugget draw is in K_bb: it is not measured by any star). t and s each
+//! get a flat prior on [0, tau_max] (as the random-effects dispersion); the REML likelihood
+//! is evaluated on a [`GRID`] x [`GRID`] grid and the prediction and its variance are the
+//! posterior mixture: `f_hat = sum_i p_i lambda_i^T y`, `V = sum_i p_i (V_i + (f_i -
+//! f_hat)^2)`. The uncertainty of t and s is thereby in the variance, as with the
+//! random-effects dispersion.
+//!
+//! When the stars show no spatial structure (s near 0), the prediction is the random-
+//! effects weighted mean and V its error of the mean plus t^2: the model contains the
+//! previous one.
+use super::separation_arcmin;
+
+/// Points per parameter of the posterior grid (t and s each, quadratic spacing from 0 to
+/// the prior's bound: finer near 0 where a precise field's likelihood peaks).
+pub const GRID: usize = 24;
+
+/// The separation at which the linear part's semivariance is s^2, arcsec (5 arcmin: one
+/// SOFI field).
+pub const H_ARCSEC: f64 = 300.0;
+
+/// The most stars a prediction uses: the nearest to the binary (the cost grows as the cube
+/// of the number; a star beyond the 60th nearest adds nothing the nearer ones do not say).
+pub const MAX_STARS: usize = 60;
+
+/// One star for the kriging.
+#[derive(Debug, Clone, Copy)]
+pub struct Site {
+    /// The measured value (q or u).
+    pub y: f64,
+    /// Its measurement variance.
+    pub var: f64,
+    /// Right ascension, deg.
+    pub ra_deg: f64,
+    /// Declination, deg.
+    pub dec_deg: f64,
+}
+
+/// The prediction at the binary.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Prediction {
+    /// The foreground at the binary.
+    pub value: f64,
+    /// The variance of its error (the posterior mixture).
+    pub var: f64,
+    /// The posterior mean of the predictor's weights (sum 1), one per site.
+    pub weights: Vec<f64>,
+    /// E[t^2]: the nugget.
+    pub nugget2: f64,
+    /// E[s^2]: the linear part's semivariance at [`H_ARCSEC`].
+    pub slope2: f64,
+}
+
+/// Cholesky factor (lower, row-major) of the symmetric n x n `a`; None when not positive
+/// definite.
+fn cholesky(a: &[f64], n: usize) -> Option<Vec<f64>> {
+    let mut l = vec![0.0; n * n];
+    for i in 0..n {
+        for j in 0..=i {
+            let mut s = a[i * n + j];
+            for k in 0..j {
+                s -= l[i * n + k] * l[j * n + k];
+            }
+            if i == j {
+                if !(s > 0.0) {
+                    return None;
+                }
+                l[i * n + i] = s.sqrt();
+            } else {
+                l[i * n + j] = s / l[j * n + j];
+            }
+        }
+    }
+    Some(l)
+}
+
+/// Solve `L L^T x = b` in place.
+fn solve(l: &[f64], n: usize, b: &mut [f64]) {
+    for i in 0..n {
+        let mut s = b[i];
+        for k in 0..i {
+            s -= l[i * n + k] * b[k];
+        }
+        b[i] = s / l[i * n + i];
+    }
+    for i in (0..n).rev() {
+        let mut s = b[i];
+        for k in i + 1..n {
+            s -= l[k * n + i] * b[k];
+        }
+        b[i] = s / l[i * n + i];
+    }
+}
+
+/// Solve the small dense p x p system `a x = b` (Gaussian elimination with partial
+/// pivoting); None when singular.
+fn solve_dense(mut a: Vec<f64>, p: usize, mut b: Vec<f64>) -> Option<Vec<f64>> {
+    for c in 0..p {
+        let piv = (c..p).max_by(|&i, &j| a[i * p + c].abs().total_cmp(&a[j * p + c].abs()))?;
+        if !(a[piv * p + c].abs() > 0.0) {
+            return None;
+        }
+        for k in 0..p {
+            a.swap(c * p + k, piv * p + k);
+        }
+        b.swap(c, piv);
+        for i in c + 1..p {
+            let f = a[i * p + c] / a[c * p + c];
+            for k in c..p {
+                a[i * p + k] -= f * a[c * p + k];
+            }
+            b[i] -= f * b[c];
+        }
+    }
+    for c in (0..p).rev() {
+        let s: f64 = (c + 1..p).map(|k| a[c * p + k] * b[k]).sum();
+        b[c] = (b[c] - s) / a[c * p + c];
+    }
+    Some(b)
+}
+
+/// The REML log-likelihood, the kriging weights, prediction and error variance for one
+/// (t^2, b = s^2/H), with the drift columns `x` (n x p, row-major; the first all ones) and
+/// the binary's `x_b`; None when the covariance is not positive definite at any C tried.
+#[allow(clippy::too_many_arguments)]
+fn at(
+    sites: &[Site],
+    d: &[f64],
+    d_b: &[f64],
+    x: &[f64],
+    x_b: &[f64],
+    c0: f64,
+    t2: f64,
+    b: f64,
+) -> Option<(f64, Vec<f64>, f64, f64)> {
+    let n = sites.len();
+    let p = x_b.len();
+    let mut c = c0;
+    for _ in 0..8 {
+        let mut sigma = vec![0.0; n * n];
+        for i in 0..n {
+            for j in 0..n {
+                sigma[i * n + j] = b * (c - d[i * n + j]);
+            }
+            sigma[i * n + i] += sites[i].var + t2;
+        }
+        let Some(l) = cholesky(&sigma, n) else {
+            c *= 4.0;
+            continue;
+        };
+        let ln_det: f64 = (0..n).map(|i| 2.0 * l[i * n + i].ln()).sum();
+        // Sigma^-1 X, column by column.
+        let mut six = vec![0.0; n * p];
+        for a in 0..p {
+            let mut col: Vec<f64> = (0..n).map(|i| x[i * p + a]).collect();
+            solve(&l, n, &mut col);
+            for i in 0..n {
+                six[i * p + a] = col[i];
+            }
+        }
+        let mut xsx = vec![0.0; p * p];
+        for a in 0..p {
+            for bb in 0..p {
+                xsx[a * p + bb] = (0..n).map(|i| x[i * p + a] * six[i * p + bb]).sum();
+            }
+        }
+        let ln_det_xsx = {
+            // Determinant by the elimination of a copy (p <= 3).
+            let mut m = xsx.clone();
+            let mut det = 1.0;
+            for cc in 0..p {
+                let piv = (cc..p).max_by(|&i, &j| m[i * p + cc].abs().total_cmp(&m[j * p + cc].abs()))?;
+                if piv != cc {
+                    for k in 0..p {
+                        m.swap(cc * p + k, piv * p + k);
+                    }
+                }
+                let v = m[cc * p + cc];
+                if v == 0.0 || v.is_nan() {
+                    return None;
+                }
+                det *= v;
+                for i in cc + 1..p {
+                    let f = m[i * p + cc] / v;
+                    for k in cc..p {
+                        m[i * p + k] -= f * m[cc * p + k];
+                    }
+                }
+            }
+            det.abs().ln()
+        };
+        let mut siy: Vec<f64> = sites.iter().map(|s| s.y).collect();
+        solve(&l, n, &mut siy);
+        let y_siy: f64 = sites.iter().zip(&siy).map(|(s, v)| s.y * v).sum();
+        let xsy: Vec<f64> = (0..p).map(|a| (0..n).map(|i| x[i * p + a] * siy[i]).sum()).collect();
+        let beta = solve_dense(xsx.clone(), p, xsy.clone())?;
+        let fit: f64 = beta.iter().zip(&xsy).map(|(b, v)| b * v).sum();
+        let logl = -0.5 * (ln_det + ln_det_xsx + y_siy - fit);
+        let k: Vec<f64> = d_b.iter().map(|db| b * (c - db)).collect();
+        let mut sik = k.clone();
+        solve(&l, n, &mut sik);
+        // lambda = Sigma^-1 (k + X mu), X^T lambda = x_b.
+        let rhs: Vec<f64> = (0..p)
+            .map(|a| x_b[a] - (0..n).map(|i| x[i * p + a] * sik[i]).sum::<f64>())
+            .collect();
+        let mu = solve_dense(xsx, p, rhs)?;
+        let lambda: Vec<f64> = (0..n)
+            .map(|i| sik[i] + (0..p).map(|a| six[i * p + a] * mu[a]).sum::<f64>())
+            .collect();
+        let value: f64 = lambda.iter().zip(sites).map(|(w, s)| w * s.y).sum();
+        // V = lambda^T Sigma lambda - 2 lambda^T k + K_bb.
+        let mut quad = 0.0;
+        for i in 0..n {
+            let row: f64 = (0..n).map(|j| sigma[i * n + j] * lambda[j]).sum();
+            quad += lambda[i] * row;
+        }
+        let lk: f64 = lambda.iter().zip(&k).map(|(a, b)| a * b).sum();
+        let var = (quad - 2.0 * lk + b * c + t2).max(0.0);
+        return Some((logl, lambda, value, var));
+    }
+    None
+}
+
+/// The grid of one parameter (quadratic spacing on [0, tau_max]) and its trapezoid weights
+/// for a flat prior.
+fn grid(tau_max: f64) -> (Vec<f64>, Vec<f64>) {
+    let g: Vec<f64> = (0..GRID)
+        .map(|i| tau_max * (i as f64 / (GRID - 1) as f64).powi(2))
+        .collect();
+    let w: Vec<f64> = (0..GRID)
+        .map(|i| {
+            let lo = if i == 0 { g[0] } else { g[i - 1] };
+            let hi = if i + 1 == GRID { g[GRID - 1] } else { g[i + 1] };
+            0.5 * (hi - lo)
+        })
+        .collect();
+    (g, w)
+}
+
+/// Separations of the sites from each other (n x n) and from the binary, arcsec.
+pub fn separations(sites: &[Site], ra_deg: f64, dec_deg: f64) -> (Vec<f64>, Vec<f64>) {
+    let n = sites.len();
+    let mut d = vec![0.0; n * n];
+    for i in 0..n {
+        for j in i + 1..n {
+            let s = 60.0 * separation_arcmin(sites[i].ra_deg, sites[i].dec_deg, sites[j].ra_deg, sites[j].dec_deg);
+            d[i * n + j] = s;
+            d[j * n + i] = s;
+        }
+    }
+    let d_b = sites
+        .iter()
+        .map(|s| 60.0 * separation_arcmin(ra_deg, dec_deg, s.ra_deg, s.dec_deg))
+        .collect();
+    (d, d_b)
+}
+
+/// One point of the posterior grid: the parameters, the REML log-likelihood, and the
+/// kriging prediction, its error variance and weights at those parameters.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GridPoint {
+    /// t^2.
+    pub t2: f64,
+    /// s^2.
+    pub s2: f64,
+    /// ln of the flat prior's trapezoid weight.
+    pub ln_prior: f64,
+    /// The REML log-likelihood.
+    pub logl: f64,
+    /// The prediction at the binary.
+    pub value: f64,
+    /// Its error variance.
+    pub var: f64,
+    /// The kriging weights (sum 1).
+    pub lambda: Vec<f64>,
+}
+
+/// The posterior grid of the kriging at (`ra_deg`, `dec_deg`) from `sites` (module doc),
+/// t and s on [0, `tau_max`] ([`GRID`] x [`GRID`] points, the same list for every field),
+/// with a plane across the field as drift when `drift`. Empty when there are too few
+/// sites.
+pub fn grid_points(sites: &[Site], ra_deg: f64, dec_deg: f64, tau_max: f64, drift: bool) -> Vec<GridPoint> {
+    let n = sites.len();
+    let p = if drift { 3 } else { 1 };
+    if n < p + 1 {
+        return Vec::new();
+    }
+    let (d, d_b) = separations(sites, ra_deg, dec_deg);
+    let cosd = dec_deg.to_radians().cos();
+    let x: Vec<f64> = sites
+        .iter()
+        .flat_map(|s| {
+            let de = ((s.ra_deg - ra_deg + 540.0).rem_euclid(360.0) - 180.0) * cosd * 3600.0 / H_ARCSEC;
+            let dn = (s.dec_deg - dec_deg) * 3600.0 / H_ARCSEC;
+            [1.0, de, dn].into_iter().take(p)
+        })
+        .collect();
+    let x_b: Vec<f64> = [1.0, 0.0, 0.0].into_iter().take(p).collect();
+    let dmax = d.iter().chain(&d_b).copied().fold(0.0, f64::max);
+    let c0 = 2.0 * dmax + H_ARCSEC;
+    let (g, w) = grid(tau_max);
+    let mut points = Vec::with_capacity(g.len() * g.len());
+    for (i, &t) in g.iter().enumerate() {
+        for (j, &s) in g.iter().enumerate() {
+            let prior = w[i] * w[j];
+            // A grid point whose covariance is not positive definite (not seen: the nugget
+            // and measurement variances are on the diagonal) keeps its place with zero
+            // likelihood, so every field's grid stays the same list.
+            let (logl, lambda, value, var) = at(sites, &d, &d_b, &x, &x_b, c0, t * t, s * s / H_ARCSEC).unwrap_or((
+                f64::NEG_INFINITY,
+                vec![0.0; n],
+                0.0,
+                0.0,
+            ));
+            points.push(GridPoint {
+                t2: t * t,
+                s2: s * s,
+                ln_prior: prior.ln(),
+                logl,
+                value,
+                var,
+                lambda,
+            });
+        }
+    }
+    points
+}
+
+/// The posterior mixture of the grid's predictions, each point weighted by its likelihood,
+/// its prior and `ln_extra(i)` (e.g. what the night's other fields say about t and s).
+pub fn combine(points: &[GridPoint], ln_extra: impl Fn(usize) -> f64) -> Option<Prediction> {
+    if points.is_empty() {
+        return None;
+    }
+    let lp: Vec<f64> = points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| p.logl + p.ln_prior + ln_extra(i))
+        .collect();
+    let top = lp.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if !top.is_finite() {
+        return None;
+    }
+    let n = points[0].lambda.len();
+    let mut z = 0.0;
+    let (mut value, mut weights, mut nugget2, mut slope2) = (0.0, vec![0.0; n], 0.0, 0.0);
+    for (p, l) in points.iter().zip(&lp) {
+        let w = (l - top).exp();
+        z += w;
+        value += w * p.value;
+        nugget2 += w * p.t2;
+        slope2 += w * p.s2;
+        for (a, b) in weights.iter_mut().zip(&p.lambda) {
+            *a += w * b;
+        }
+    }
+    value /= z;
+    nugget2 /= z;
+    slope2 /= z;
+    weights.iter_mut().for_each(|w| *w /= z);
+    let var = points
+        .iter()
+        .zip(&lp)
+        .map(|(p, l)| (l - top).exp() * (p.var + (p.value - value).powi(2)))
+        .sum::<f64>()
+        / z;
+    Some(Prediction {
+        value,
+        var,
+        weights,
+        nugget2,
+        slope2,
+    })
+}
+
+/// The night's distribution of (t, s) over the common grid, from the fields' likelihood
+/// grids (each a `Vec` of ln-likelihoods on the same grid, flat prior weights `ln_prior`):
+/// the nonparametric maximum-likelihood mixture (EM, [`EM_ROUNDS`] rounds from the flat
+/// prior), mixed with the flat prior as one more field. Returned as ln-weights relative to
+/// the flat prior (to add to each point's ln-likelihood + ln-prior).
+pub fn night_prior(fields: &[Vec<f64>], ln_prior: &[f64]) -> Vec<f64> {
+    let k = ln_prior.len();
+    let top = ln_prior.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let mut flat: Vec<f64> = ln_prior.iter().map(|l| (l - top).exp()).collect();
+    let z: f64 = flat.iter().sum();
+    flat.iter_mut().for_each(|v| *v /= z);
+    // Each field's likelihood, scaled to its maximum.
+    let lik: Vec<Vec<f64>> = fields
+        .iter()
+        .filter(|f| f.len() == k && f.iter().any(|l| l.is_finite()))
+        .map(|f| {
+            let m = f.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            f.iter().map(|l| (l - m).exp()).collect()
+        })
+        .collect();
+    if lik.is_empty() {
+        return vec![0.0; k];
+    }
+    let mut pi = flat.clone();
+    for _ in 0..EM_ROUNDS {
+        let mut next = vec![0.0; k];
+        for l in &lik {
+            let norm: f64 = pi.iter().zip(l).map(|(p, l)| p * l).sum();
+            if norm > 0.0 {
+                for ((nx, p), l) in next.iter_mut().zip(&pi).zip(l) {
+                    *nx += p * l / norm;
+                }
+            }
+        }
+        let total: f64 = next.iter().sum();
+        pi = next.into_iter().map(|v| v / total).collect();
+    }
+    let f = lik.len() as f64;
+    pi.iter()
+        .zip(&flat)
+        .map(|(p, q)| ((f * p + q) / (f + 1.0) / q).ln())
+        .collect()
+}
+
+/// Rounds of the EM of [`night_prior`].
+pub const EM_ROUNDS: usize = 100;
+
+/// The Bayesian kriging prediction at (`ra_deg`, `dec_deg`) from `sites` with flat priors
+/// ([`grid_points`], [`combine`]).
+pub fn predict(sites: &[Site], ra_deg: f64, dec_deg: f64, tau_max: f64, drift: bool) -> Option<Prediction> {
+    combine(&grid_points(sites, ra_deg, dec_deg, tau_max, drift), |_| 0.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The Cholesky solve against a hand-computed 2 x 2 system.
+    #[test]
+    fn cholesky_solves_a_small_system() {
+        let a = [4.0, 2.0, 2.0, 3.0];
+        let l = cholesky(&a, 2).unwrap();
+        let mut b = [2.0, 1.0];
+        solve(&l, 2, &mut b);
+        // [4 2; 2 3]^-1 [2 1] = [0.5, 0].
+        assert!((b[0] - 0.5).abs() < 1e-14 && b[1].abs() < 1e-14, "{b:?}");
+        assert!(cholesky(&[1.0, 2.0, 2.0, 1.0], 2).is_none());
+    }
+
+    /// Stars at one place (no separations: the linear part is one common offset) weigh
+    /// by their errors: the least precise least, the weights summing to 1.
+    #[test]
+    fn stars_at_one_place_weigh_by_their_errors() {
+        let sites: Vec<Site> = [(0.01, 1e-6), (0.02, 4e-6), (0.015, 1e-6)]
+            .iter()
+            .map(|&(y, var)| Site {
+                y,
+                var,
+                ra_deg: 10.0,
+                dec_deg: -5.0,
+            })
+            .collect();
+        let p = predict(&sites, 10.0, -5.0 + 1.0 / 3600.0, 0.005, false).unwrap();
+        assert!((p.weights.iter().sum::<f64>() - 1.0).abs() < 1e-9);
+        assert!((p.weights[0] - p.weights[2]).abs() < 1e-12, "{:?}", p.weights);
+        assert!(p.weights[1] < p.weights[0], "{:?}", p.weights);
+    }
+
+    /// With a plane as drift, stars on an exact plane (tiny noise) predict the plane's value
+    /// at the binary, off their centroid; without it, their weighted mean is pulled toward
+    /// the place's neighbours only.
+    #[test]
+    fn a_plane_as_drift_is_recovered() {
+        let plane = |ra: f64, dec: f64| 0.01 + 0.02 * (ra - 10.0) - 0.03 * (dec + 5.0);
+        let sites: Vec<Site> = (0..9)
+            .map(|i| {
+                let (ra, dec) = (10.0 + 0.01 * (i % 3) as f64, -5.0 + 0.01 * (i / 3) as f64);
+                Site {
+                    y: plane(ra, dec),
+                    var: 1e-12,
+                    ra_deg: ra,
+                    dec_deg: dec,
+                }
+            })
+            .collect();
+        let (ra, dec) = (10.004, -4.997);
+        let p = predict(&sites, ra, dec, 0.005, true).unwrap();
+        assert!(
+            (p.value - plane(ra, dec)).abs() < 1e-6,
+            "{} vs {}",
+            p.value,
+            plane(ra, dec)
+        );
+        assert!((p.weights.iter().sum::<f64>() - 1.0).abs() < 1e-9);
+    }
+
+    /// The kriging variance for given parameters against a slow Monte Carlo of the model
+    /// itself: draw the field (a Brownian sheet is awkward; use the same covariance with C)
+    /// at the stars and the binary, the measurements, predict with the weights, and compare
+    /// the scatter of the error with V.
+    #[test]
+    fn the_kriging_variance_matches_a_monte_carlo_of_its_model() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand::rngs::Xoshiro256PlusPlus::seed_from_u64(3);
+        let n = 8;
+        let sites: Vec<Site> = (0..n)
+            .map(|_| Site {
+                y: 0.0,
+                var: (0.001 + 0.003 * rng.random::<f64>()).powi(2),
+                ra_deg: 10.0 + (rng.random::<f64>() - 0.5) * 0.08,
+                dec_deg: -5.0 + (rng.random::<f64>() - 0.5) * 0.02,
+            })
+            .collect();
+        let (d, d_b) = separations(&sites, 10.0, -5.0);
+        let dmax = d.iter().chain(&d_b).copied().fold(0.0, f64::max);
+        let c = 2.0 * dmax + H_ARCSEC;
+        let (t2, b) = (0.002f64.powi(2), 0.003f64.powi(2) / H_ARCSEC);
+        let ones = vec![1.0; n];
+        let (_, lambda, _, var) = at(&sites, &d, &d_b, &ones, &[1.0], c, t2, b).unwrap();
+        // The joint covariance of (e at the stars, e at the binary) with the constant C:
+        // a valid covariance for this configuration (checked by its Cholesky below).
+        let m = n + 1;
+        let mut k = vec![0.0; m * m];
+        for i in 0..m {
+            for j in 0..m {
+                let dij = match (i < n, j < n) {
+                    (true, true) => d[i * n + j],
+                    (true, false) => d_b[i],
+                    (false, true) => d_b[j],
+                    (false, false) => 0.0,
+                };
+                k[i * m + j] = b * (c - dij) + if i == j { t2 } else { 0.0 };
+            }
+        }
+        let l = cholesky(&k, m).expect("joint covariance positive definite");
+        let normal = |rng: &mut rand::rngs::Xoshiro256PlusPlus| {
+            let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
+            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+        };
+        let draws = 40_000;
+        let mut ss = 0.0;
+        for _ in 0..draws {
+            let z: Vec<f64> = (0..m).map(|_| normal(&mut rng)).collect();
+            let e: Vec<f64> = (0..m).map(|i| (0..=i).map(|j| l[i * m + j] * z[j]).sum()).collect();
+            let pred: f64 = (0..n)
+                .map(|i| lambda[i] * (e[i] + sites[i].var.sqrt() * normal(&mut rng)))
+                .sum();
+            ss += (pred - e[n]).powi(2);
+        }
+        let mc = ss / draws as f64;
+        assert!((mc / var - 1.0).abs() < 0.03, "Monte Carlo {mc:.4e} vs V {var:.4e}");
+    }
+}
