@@ -132,12 +132,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 
 /// A half-wave-plate profile (`--profile nirc2`): the single-pointing reduction
 /// ([`sofipol_pipeline::single_pointing`]) of every target under the inputs, its catalog
-/// written to `-o`, one summary per target on stderr. The SOFI night's options that do not
-/// apply are refused by name.
+/// (sofipol's, each target's half-wave-plate results in its `half_wave_plate` section)
+/// written to `-o` with the night log and set-of-frames file beside it, one summary per
+/// target on stderr; exit 2 as a SOFI night's when a target is not `ok` or a file was not
+/// used. The SOFI night's options that do not apply are refused by name.
 fn run_single_pointing(args: &Args, profile: &sofipol_calib::Profile) -> anyhow::Result<ExitCode> {
     let not_here = [
         ("--shard", args.shard.is_some()),
-        ("--report", args.report.is_some()),
         ("--dump-params", args.setup.reduce.dump_params),
         (
             "--params / --param",
@@ -168,21 +169,37 @@ fn run_single_pointing(args: &Args, profile: &sofipol_calib::Profile) -> anyhow:
     let mut inputs: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();
     inputs.extend(args.setup.input_files());
     super::common::check_output(&args.output, &inputs)?;
+    if let Some(r) = &args.report {
+        inputs.push(args.output.clone());
+        super::common::check_output(r, &inputs)?;
+    }
     let pool = super::common::worker_pool("night", args.jobs, args.quiet)?;
     let t0 = Instant::now();
-    let cat = pool.install(|| sofipol_pipeline::single_pointing::reduce_inputs(&files, &args.dirs, profile))?;
+    let sp = pool.install(|| sofipol_pipeline::single_pointing::reduce_inputs(&files, &args.dirs, profile))?;
+    let cat = sofipol_pipeline::single_pointing::output::to_catalog(&sp, &files, profile)?;
     io::write_json_atomic(&args.output, &cat).with_context(|| format!("writing {}", args.output.display()))?;
+    let log = night::write_night_log(&args.output, &cat)
+        .with_context(|| format!("writing {}", night::log_path(&args.output).display()))?;
+    if let Some(r) = &args.report {
+        let (pairs, seed) = (
+            sofipol_pipeline::report::DEFAULT_REPORT_PAIRS,
+            sofipol_pipeline::stats::mc::DEFAULT_SEED,
+        );
+        pool.install(|| super::report::write_page(cat.clone(), &args.output, None, r, pairs, seed))?;
+    }
     if !args.quiet {
-        for line in sofipol_pipeline::single_pointing::summary_lines(&cat) {
+        for line in sofipol_pipeline::single_pointing::summary_lines(&sp) {
             eprintln!("sofipol night: {}", printable(&line));
         }
         eprintln!(
-            "sofipol night: catalog {} ({:.1} s)",
+            "sofipol night: catalog {}, night log {} ({:.1} s)",
             args.output.display(),
+            log.display(),
             t0.elapsed().as_secs_f64()
         );
     }
-    Ok(ExitCode::SUCCESS)
+    let bad = cat.targets.iter().any(|t| t.status != Status::Ok) || !cat.failures.is_empty();
+    Ok(if bad { ExitCode::from(2) } else { ExitCode::SUCCESS })
 }
 
 /// Scan the night (standards apart, this shard's sequences and failures) and check the
