@@ -3,11 +3,19 @@
 //! commands and options that reduce SOFI's turned instrument refuse it, naming why. On the
 //! real Keck/NIRC2 frames of AB Aur (read from ../shared/real, never copied; skipped, saying
 //! so, when absent) the folder and a set-of-frames file listing the same frames with their
-//! roles give the same result.
+//! roles give the same result. The night writes sofipol's catalog (one target per star,
+//! its half-wave-plate results in `half_wave_plate`), its night log and set-of-frames file;
+//! `report`, `stats`, `export` and `merge` read it, and the set-of-frames file repeats the
+//! run: on the real frames and on simulated ones (pipeline/tests/hwp_frames).
 use std::path::{Path, PathBuf};
+
+use sofipol_pipeline::catalog::Catalog;
 
 mod common;
 use common::{json, run};
+
+#[path = "../pipeline/tests/hwp_frames/mod.rs"]
+mod hwp_frames;
 
 fn real() -> Option<PathBuf> {
     let d = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/real/nirc2-abaur-lprime");
@@ -87,12 +95,21 @@ fn nirc2_night_from_a_folder_and_from_a_frames_file() {
     assert_eq!(code, 0, "{err}");
     assert!(err.contains("AB Aur Lp (8 frames, 2 cycles): sky q"), "{err}");
     assert!(err.contains("consecutive cycles differ by"), "{err}");
-    let ca = json(&a);
-    assert_eq!(ca["kind"], "sofipol half-wave-plate single-pointing catalog");
-    assert_eq!(ca["profile"], "NIRC2");
-    let t = &ca["targets"][0];
-    assert_eq!(t["name"], "AB Aur");
-    assert!(t["sky"]["p"].as_f64().unwrap() > 0.0);
+    let ca = typed(&a);
+    assert_eq!(ca.targets.len(), 1);
+    let t = &ca.targets[0];
+    assert_eq!((t.object.as_str(), t.filter.as_deref()), ("AB Aur", Some("Lp")));
+    let hw = t.half_wave_plate.as_ref().expect("half_wave_plate");
+    assert_eq!(hw.profile, "NIRC2");
+    assert_eq!((hw.frames.len(), hw.cycles.len(), hw.darks.len(), hw.skies.len()), (8, 2, 3, 4));
+    assert!(t.components[0].p > 0.0);
+    // RA '04:55:45.91', DEC '+30:33:08.1' in every frame's header.
+    let ra = 15.0 * (4.0 + 55.0 / 60.0 + 45.91 / 3600.0);
+    assert!((t.ra_deg.unwrap() - ra).abs() < 1e-9, "{:?}", t.ra_deg);
+    assert!((t.dec_deg.unwrap() - (30.0 + 33.0 / 60.0 + 8.1 / 3600.0)).abs() < 1e-9);
+    assert_eq!(t.dit_s, Some(0.45));
+    every_command(&d.path().join("commands"), &a);
+    repeat_from_frames_file(d.path(), &a, &[]);
     // The same frames through a set-of-frames file, roles given there, the science frames
     // named another target.
     let list = d.path().join("abaur.frames");
@@ -122,12 +139,264 @@ fn nirc2_night_from_a_folder_and_from_a_frames_file() {
         b.to_str().unwrap(),
     ]);
     assert_eq!(code, 0, "{err}");
-    let cb = json(&b);
-    let tb = &cb["targets"][0];
-    assert_eq!(tb["name"], "AB_Aur_listed");
-    for frame in ["instrument", "sky"] {
-        for k in ["q", "u", "sigma_q", "sigma_u"] {
-            assert_eq!(t[frame][k], tb[frame][k], "{frame}.{k}");
+    let cb = typed(&b);
+    let tb = &cb.targets[0];
+    assert_eq!(tb.object, "AB_Aur_listed");
+    let hb = tb.half_wave_plate.as_ref().unwrap();
+    assert_eq!((hb.instrument, hb.sky), (hw.instrument, hw.sky));
+    assert_eq!(tb.components, t.components);
+    // Its own set-of-frames file keeps the name given (target=) and repeats the run.
+    let listed = std::fs::read_to_string(d.path().join("b.frames")).unwrap();
+    assert!(listed.contains("n0932.fits.gz science target=AB_Aur_listed"), "{listed}");
+    repeat_from_frames_file(d.path(), &b, &[]);
+}
+
+/// `path` read as sofipol's typed catalog.
+fn typed(path: &Path) -> Catalog {
+    let text = std::fs::read_to_string(path).unwrap();
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{} is not sofipol's catalog: {e}", path.display()))
+}
+
+/// `night` on the set-of-frames file written beside `catalog`: exit 0 and the same catalog
+/// apart from its provenance. `set`: the profile's overrides of the first run.
+fn repeat_from_frames_file(dir: &Path, catalog: &Path, set: &[String]) {
+    let frames = catalog.with_extension("frames");
+    let log = std::fs::read_to_string(catalog.with_extension("log")).expect("night log");
+    let first = typed(catalog);
+    for f in first.targets.iter().flat_map(|t| t.input_files.iter().flatten()) {
+        let name = Path::new(f).file_name().unwrap().to_str().unwrap();
+        assert!(log.contains(name), "{name} not in the night log:\n{log}");
+    }
+    let again = dir.join(format!(
+        "{}-again.json",
+        catalog.file_stem().unwrap().to_str().unwrap()
+    ));
+    let mut args = vec![
+        "night".to_string(),
+        frames.display().to_string(),
+        "--profile".into(),
+        "nirc2".into(),
+        "-o".into(),
+        again.display().to_string(),
+    ];
+    for s in set {
+        args.extend(["--set".to_string(), s.clone()]);
+    }
+    let (code, _, err) = run(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert_eq!(code, 0, "{err}");
+    let without_provenance = |p: &Path| {
+        let mut v = json(p);
+        v.as_object_mut().unwrap().remove("provenance");
+        v
+    };
+    assert_eq!(
+        without_provenance(catalog),
+        without_provenance(&again),
+        "{} and the run on {}",
+        catalog.display(),
+        frames.display()
+    );
+}
+
+/// `report`, `stats`, `export` (every format) and `merge` on a half-wave-plate catalog:
+/// each exits 0 and shows its single-star targets for what they are.
+fn every_command(dir: &Path, catalog: &Path) {
+    std::fs::create_dir_all(dir).unwrap();
+    let cat = typed(catalog);
+    let c = catalog.to_str().unwrap();
+    // The night's page: the component and the half-wave-plate section.
+    let html = dir.join("night.html");
+    let (code, _, err) = run(&["report", c, "-o", html.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let page = std::fs::read_to_string(&html).unwrap();
+    assert!(page.contains("<section id=\"half-wave-plate\">"), "no half-wave-plate section");
+    for t in &cat.targets {
+        assert!(page.contains(&t.object), "{} not on the page", t.object);
+    }
+    // Statistics: no binary, each single star said to have no Delta-gamma.
+    let st = dir.join("stats");
+    let (code, out, err) = run(&["stats", c, "-o", st.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("0 binaries"), "{out}");
+    for t in &cat.targets {
+        assert!(
+            out.contains(&format!("excluded {}: a single star: no Delta-gamma", t.object)),
+            "{out}"
+        );
+    }
+    let stats = json(&st.join("stats.json"));
+    assert!(stats.to_string().contains("a single star: no Delta-gamma"), "{stats}");
+    // Export: one row per star, q and u as the catalog has them.
+    let q: Vec<f64> = cat.targets.iter().map(|t| t.components[0].q).collect();
+    let u: Vec<f64> = cat.targets.iter().map(|t| t.components[0].u).collect();
+    for format in ["csv", "ecsv", "fits"] {
+        let out = dir.join(format!("table.{format}"));
+        let (code, _, err) = run(&["export", c, "-o", out.to_str().unwrap()]);
+        assert_eq!(code, 0, "{format}: {err}");
+        let (tq, tu) = match format {
+            "fits" => {
+                let mut f = fitsio::FitsFile::open(&out).unwrap();
+                let hdu = f.hdu("SOFIPOL").unwrap();
+                (hdu.read_col::<f64>(&mut f, "q").unwrap(), hdu.read_col::<f64>(&mut f, "u").unwrap())
+            }
+            _ => text_columns(&std::fs::read_to_string(&out).unwrap()),
+        };
+        assert_eq!((tq, tu), (q.clone(), u.clone()), "{format}");
+    }
+    // Merge: with itself refused (the same sequences twice), with another night's stars kept whole.
+    let m = dir.join("merged.json");
+    let (code, _, err) = run(&["merge", c, c, "-o", m.to_str().unwrap()]);
+    assert_ne!(code, 0);
+    assert!(err.contains("appears in both"), "{err}");
+    let (code, _, err) = run(&["merge", c, "-o", m.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let merged = typed(&m);
+    assert_eq!(merged.targets, cat.targets);
+    assert_eq!(merged.failures, cat.failures);
+}
+
+/// The q and u columns of an exported CSV or ECSV table (both comma-separated).
+fn text_columns(text: &str) -> (Vec<f64>, Vec<f64>) {
+    let mut lines = text.lines().filter(|l| !l.starts_with('#'));
+    let sep = ',';
+    let header: Vec<&str> = lines.next().unwrap().split(sep).collect();
+    let col = |name: &str| header.iter().position(|h| *h == name).unwrap_or_else(|| panic!("no {name}"));
+    let (iq, iu) = (col("q"), col("u"));
+    let (mut q, mut u) = (Vec::new(), Vec::new());
+    for l in lines {
+        // The first columns (target, kind, sequence...) may hold the separator inside quotes:
+        // q and u are found from the end, where only numbers, booleans and flags follow.
+        let cells = split_quoted(l, sep);
+        assert_eq!(cells.len(), header.len(), "{l}");
+        q.push(cells[iq].parse().unwrap());
+        u.push(cells[iu].parse().unwrap());
+    }
+    (q, u)
+}
+
+/// A line split at `sep` outside double quotes.
+fn split_quoted(line: &str, sep: char) -> Vec<String> {
+    let (mut out, mut cur, mut quoted) = (Vec::new(), String::new(), false);
+    for ch in line.chars() {
+        match ch {
+            '"' => quoted = !quoted,
+            c if c == sep && !quoted => out.push(std::mem::take(&mut cur)),
+            c => cur.push(c),
         }
     }
+    out.push(cur);
+    out
+}
+
+/// The overrides of the simulated frames' profile as `--set` arguments.
+fn set_args(set: &[String]) -> Vec<String> {
+    set.iter().flat_map(|s| ["--set".to_string(), s.clone()]).collect()
+}
+
+/// `night --profile nirc2` on `dir` with the simulated frames' profile: (exit code, stderr).
+fn sim_night(dir: &Path, out: &Path) -> (i32, String) {
+    let mut args = vec![
+        "night".to_string(),
+        dir.display().to_string(),
+        "--profile".into(),
+        "nirc2".into(),
+        "-o".into(),
+        out.display().to_string(),
+    ];
+    args.extend(set_args(&hwp_frames::overrides()));
+    let (code, _, err) = run(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    (code, err)
+}
+
+/// Simulated frames of a known polarization (noise-free, two plate cycles under pupil
+/// tracking): the catalog's component is the sky result within the cycles' blur of the
+/// truth, its half-wave-plate section holds the rest; every command reads it; a file that
+/// is not a frame is a failure (exit 2, named in the log); the set-of-frames file repeats
+/// the run; two nights merge into one catalog with both stars.
+#[test]
+fn simulated_half_wave_plate_night_through_every_command() {
+    use hwp_frames::{write_night, Star, Q_SKY, STEP_EL, STEP_PARANG, U_SKY};
+    let d = tempfile::tempdir().unwrap();
+    let (n1, n2) = (d.path().join("n1"), d.path().join("n2"));
+    std::fs::create_dir_all(&n1).unwrap();
+    std::fs::create_dir_all(&n2).unwrap();
+    let star = |name: &str, q: f64, u: f64| Star {
+        name: name.into(),
+        q,
+        u,
+        flux: 4e6,
+    };
+    write_night(&n1, &star("Sim Star", Q_SKY, U_SKY), "");
+    write_night(&n2, &star("Other_Star", -0.011, 0.017), "b_");
+    let a = d.path().join("a.json");
+    let (code, err) = sim_night(&n1, &a);
+    assert_eq!(code, 0, "{err}");
+    let ca = typed(&a);
+    assert!(ca.failures.is_empty(), "{:?}", ca.failures);
+    assert_eq!(ca.targets.len(), 1);
+    let t = &ca.targets[0];
+    assert_eq!(t.object, "Sim Star");
+    assert_eq!(t.status, sofipol_pipeline::catalog::Status::Ok);
+    assert_eq!(t.components.len(), 1);
+    let c = &t.components[0];
+    let hw = t.half_wave_plate.as_ref().expect("half_wave_plate");
+    assert_eq!(hw.component_from, "cycles");
+    // The component is the cycles combined on the sky, as the summary gives it.
+    let sky = hw.sky.unwrap();
+    assert_eq!((c.q, c.u, c.sigma_q, c.sigma_u), (sky.q, sky.u, sky.sigma_q, sky.sigma_u));
+    assert_eq!((c.p, c.sigma_p, c.gamma_deg), (sky.p, sky.sigma_p, sky.angle_deg));
+    assert!(err.contains(&format!("sky q {:+.3} +- {:.3} %", 100.0 * sky.q, 100.0 * sky.sigma_q)), "{err}");
+    // ... within the cycles' blur of the truth (pipeline/tests/single_pointing_sim.rs).
+    let bound = 1.25 * 2.0 * Q_SKY.hypot(U_SKY) * (STEP_PARANG + 2.0 * STEP_EL).to_radians();
+    assert!((c.q - Q_SKY).abs() < bound && (c.u - U_SKY).abs() < bound, "{} {}", c.q, c.u);
+    // The zero point: in the angle's error, and stated with its source.
+    assert_eq!(c.sigma_gamma_zero_point_deg, Some(hw.zero_point.sigma_deg));
+    assert!((c.sigma_gamma_deg - sky.sigma_angle_deg.hypot(hw.zero_point.sigma_deg)).abs() < 1e-12);
+    assert!(c.flags.iter().any(|f| f.to_string().contains(&hw.zero_point.source)));
+    // Frames, times, setup.
+    let files: Vec<String> = (0..8).map(|k| n1.join(format!("sci{k}.fits")).display().to_string()).collect();
+    assert_eq!(t.input_files.as_ref(), Some(&files));
+    assert!((t.mjd_mean.unwrap() - (2.0 + 3.5e-3)).abs() < 1e-9, "{:?}", t.mjd_mean);
+    assert_eq!((t.filter.as_deref(), t.dit_s), (Some("Lp"), Some(0.45)));
+    assert_eq!((t.ra_deg, t.dec_deg), (None, None), "the simulated headers have no RA/DEC");
+    assert_eq!(hw.darks.len(), 2);
+    // The one sky cycle is the flat (listed in plate order, the skies in time order).
+    let sorted = |v: &[String]| {
+        let mut v = v.to_vec();
+        v.sort();
+        v
+    };
+    assert_eq!(hw.skies.len(), 4);
+    assert_eq!(sorted(&hw.skies), sorted(&hw.flat_from));
+    every_command(&d.path().join("commands_a"), &a);
+    repeat_from_frames_file(d.path(), &a, &hwp_frames::overrides());
+    // Two nights merged: both stars, each with its own section.
+    let b = d.path().join("b.json");
+    let (code, err) = sim_night(&n2, &b);
+    assert_eq!(code, 0, "{err}");
+    let m = d.path().join("m.json");
+    let (code, _, err) = run(&["merge", a.to_str().unwrap(), b.to_str().unwrap(), "-o", m.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let merged = typed(&m);
+    let mut names: Vec<&str> = merged.targets.iter().map(|t| t.object.as_str()).collect();
+    names.sort();
+    assert_eq!(names, ["Other_Star", "Sim Star"]);
+    assert!(merged.targets.iter().all(|t| t.half_wave_plate.is_some()));
+    every_command(&d.path().join("commands_m"), &m);
+    // A file that is not a frame: a failure, named, exit 2; the star as before.
+    std::fs::write(n1.join("notes.fits"), b"not a FITS file").unwrap();
+    let f = d.path().join("f.json");
+    let (code, err) = sim_night(&n1, &f);
+    assert_eq!(code, 2, "{err}");
+    let cf = typed(&f);
+    assert_eq!(cf.failures.len(), 1);
+    assert_eq!(cf.failures[0].file, n1.join("notes.fits").display().to_string());
+    assert_eq!(cf.targets, ca.targets);
+    let log = std::fs::read_to_string(d.path().join("f.log")).unwrap();
+    assert!(
+        log.lines().any(|l| l.starts_with("notes.fits") && l.contains("not used")),
+        "{log}"
+    );
+    let listed = std::fs::read_to_string(d.path().join("f.frames")).unwrap();
+    assert!(listed.contains("# not listed, not used by the run:"), "{listed}");
 }

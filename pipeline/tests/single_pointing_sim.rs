@@ -7,159 +7,14 @@
 //! (least squares over the frames, each with its own rotation). With photon and read noise
 //! (`pulls_on_noisy_pupil_tracking_nights`): the errors the reduction reports must match the
 //! scatter about the truth over many simulated nights.
+mod hwp_frames;
+
 use std::path::Path;
 
-use ndarray::Array2;
+use hwp_frames::*;
 use rand::rngs::Xoshiro256PlusPlus;
 use rand::{RngExt, SeedableRng};
-use rand_distr::{Distribution, StandardNormal};
-use sofipol_calib::fits::{write_frame, WriteOptions};
-use sofipol_calib::{Frame, Header, Profile};
 use sofipol_pipeline::single_pointing;
-
-const NX: usize = 128;
-const NY: usize = 200;
-const O_POS: (f64, f64) = (60.3, 150.7);
-const EO: (f64, f64) = (-3.0, -100.0);
-const Q_SKY: f64 = 0.021;
-const U_SKY: f64 = -0.013;
-const THETA0: f64 = 26.0;
-/// The sky turns by PARANG - 2 EL per frame: -1.1 deg.
-const STEP_PARANG: f64 = 1.0;
-const STEP_EL: f64 = 0.05;
-
-fn profile() -> Profile {
-    Profile::embedded("nirc2")
-        .unwrap()
-        .unwrap()
-        .with_overrides(&[
-            format!("geometry.nx={NX}"),
-            format!("geometry.ny={NY}"),
-            "geometry.o_sky2=[0, 10]".into(),
-            "geometry.e_sky2=[10, 20]".into(),
-            "geometry.o_target=[20, 30]".into(),
-            "geometry.e_target=[30, 40]".into(),
-            "geometry.o_sky1=[40, 50]".into(),
-            "geometry.e_sky1=[50, 60]".into(),
-            format!("geometry.eo_offset_px=[{}, {}]", EO.0, EO.1),
-            "beams.o_rows=[105, 200]".into(),
-            "beams.e_rows=[0, 95]".into(),
-            "single_pointing.aperture_px=[0.0, 9.0]".into(),
-            "single_pointing.centre_annulus_px=[1.5, 9.0]".into(),
-            "single_pointing.sky_fit_min_radius_px=25.0".into(),
-            "single_pointing.search_radius_px=4.0".into(),
-            "detector.linear_limit_adu=1e9".into(),
-            "detector.saturation_adu=2e9".into(),
-        ])
-        .unwrap()
-}
-
-/// A flat-field gradient along x only: both beams' rows then have the same median, so the
-/// per-beam normalisation leaves no beam imbalance (c = 0) and F is exact.
-fn flat(x: usize, _y: usize) -> f64 {
-    1.0 + 0.1 * (x as f64 / NX as f64)
-}
-
-fn star(x: usize, y: usize, c: (f64, f64), flux: f64) -> f64 {
-    let r2 = (x as f64 - c.0).powi(2) + (y as f64 - c.1).powi(2);
-    flux / (2.0 * std::f64::consts::PI * 2.0 * 2.0) * (-0.5 * r2 / 4.0).exp()
-}
-
-/// A star: its name (TARGNAME), polarization on the sky and total flux over both beams (ADU
-/// summed over the coadds).
-struct Star {
-    name: String,
-    q: f64,
-    u: f64,
-    flux: f64,
-}
-
-struct Shot<'a> {
-    object: &'a str,
-    plate: f64,
-    parang: f64,
-    el: f64,
-    shutter: &'a str,
-    star: Option<&'a Star>,
-    mjd: f64,
-}
-
-/// The detector's noise: photon noise of the light (sky and star, after the flat) with the
-/// gain `GAIN_E` e-/ADU, the read noise `RN_E` e- of each of the `COADDS` summed reads,
-/// Gaussian (every pixel holds >= 10^4 e-, where Poisson is Gaussian to 1 %). The dark
-/// level is a bias: read noise only.
-struct Noise {
-    rng: Xoshiro256PlusPlus,
-}
-
-const GAIN_E: f64 = 8.0;
-const RN_E: f64 = 40.0;
-const COADDS: i64 = 45;
-
-fn write(dir: &Path, name: &str, s: &Shot<'_>, mut noise: Option<&mut Noise>) {
-    let dark = 100.0;
-    // Sky per beam, depending on the plate (a polarized sky), the same in sky frames.
-    let sky_o = 5000.0 * (1.0 + 0.01 * (4.0 * s.plate).to_radians().cos());
-    let sky_e = 5400.0 * (1.0 - 0.01 * (4.0 * s.plate).to_radians().cos());
-    let rotpdest = s.el + 0.7;
-    let phi = 2.0 * s.plate + THETA0 + s.parang - s.el - rotpdest;
-    let (q, u, total) = s.star.map_or((0.0, 0.0, 0.0), |st| (st.q, st.u, st.flux));
-    let f = q * (2.0 * phi).to_radians().cos() + u * (2.0 * phi).to_radians().sin();
-    let (t_o, t_e) = (1.0, 1.0);
-    let (o, e) = (0.5 * total * t_o * (1.0 + f), 0.5 * total * t_e * (1.0 - f));
-    let read_var = COADDS as f64 * (RN_E / GAIN_E).powi(2);
-    let ec = (O_POS.0 + EO.0, O_POS.1 + EO.1);
-    let closed = s.shutter == "closed";
-    let data = Array2::from_shape_fn((NY, NX), |(y, x)| {
-        let mut v = 0.0;
-        if !closed {
-            let in_o = y >= 105;
-            let in_e = y < 95;
-            let sky = if in_o {
-                sky_o
-            } else if in_e {
-                sky_e
-            } else {
-                sky_o + sky_e
-            };
-            let mut light = sky;
-            if s.star.is_some() {
-                light += if in_o { star(x, y, O_POS, o) } else { 0.0 } + if in_e { star(x, y, ec, e) } else { 0.0 };
-            }
-            v += light * flat(x, y);
-        }
-        if let Some(n) = noise.as_deref_mut() {
-            let z: f64 = StandardNormal.sample(&mut n.rng);
-            v += z * (v / GAIN_E + read_var).sqrt();
-        }
-        let hot = if (x, y) == (20, 30) { 9000.0 } else { 0.0 };
-        (v + dark + hot) as f32
-    });
-    let mut h = Header::new("");
-    for (k, v) in [
-        ("INSTRUME", "NIRC2"),
-        ("FWONAME", "Wollaston"),
-        ("FWINAME", "Lp"),
-        ("PCUNAME", "hwp_center"),
-    ] {
-        h.set(k, v);
-    }
-    h.set("OBJECT", s.object);
-    h.set("TARGNAME", s.star.map_or("", |st| st.name.as_str()));
-    h.set("SHRNAME", s.shutter);
-    h.set("PCUPR", s.plate);
-    h.set("PARANG", s.parang);
-    h.set("EL", s.el);
-    h.set("ROTPDEST", rotpdest);
-    h.set("MJD", s.mjd);
-    h.set("ITIME", 0.45);
-    h.set("COADDS", COADDS);
-    h.set("DETGAIN", GAIN_E);
-    // A wrong gain (2x) for a profile that reads it instead (the pull test's control).
-    h.set("SIMGAIN2", 2.0 * GAIN_E);
-    h.set("DETRN", RN_E);
-    write_frame(&dir.join(name), &Frame::new(data, h), &WriteOptions::default()).unwrap();
-}
 
 #[test]
 fn known_polarization_comes_back() {
@@ -509,4 +364,67 @@ fn pulls_on_noisy_pupil_tracking_nights() {
     assert!(ls_adopted.rms < ls_phot.rms && ls_adopted.mean.abs() < 3.0 * ls_adopted.se_mean());
     assert!(!ok(&no_rotation), "rotation ignored: {no_rotation}");
     assert!(!ok(&gain_2x), "gain 2x: {gain_2x}");
+}
+
+/// The reduction as sofipol's catalog ([`single_pointing::output::to_catalog`]): one target
+/// per star, its component the cycles combined on the sky, every half-wave-plate result in
+/// the typed `half_wave_plate` section as the reduction gave it, the files not used as
+/// `failures` with their paths; the JSON reads back to the same catalog, and a SOFI target
+/// writes no `half_wave_plate` key.
+#[test]
+fn the_reduction_as_sofipols_catalog() {
+    use sofipol_pipeline::catalog::{Catalog, Status, Target};
+    let dir = tempfile::tempdir().unwrap();
+    let star = Star {
+        name: "Sim Star".into(),
+        q: Q_SKY,
+        u: U_SKY,
+        flux: 4e6,
+    };
+    write_night(dir.path(), &star, "");
+    std::fs::write(dir.path().join("notes.fits"), b"not a FITS file").unwrap();
+    let roots = [dir.path().to_path_buf()];
+    let files = single_pointing::input_files(&roots).unwrap();
+    let sp = single_pointing::reduce_inputs(&files, &roots, &profile()).expect("reduces");
+    let cat = single_pointing::output::to_catalog(&sp, &files, &profile()).expect("a catalog");
+    assert_eq!(cat.targets.len(), 1);
+    let (t, r) = (&cat.targets[0], &sp.targets[0]);
+    assert_eq!((t.object.as_str(), t.status), ("Sim Star", Status::Ok));
+    let c = &t.components[0];
+    let sky = r.sky.unwrap();
+    assert_eq!((c.q, c.u, c.sigma_q, c.sigma_u), (sky.q, sky.u, sky.sigma_q, sky.sigma_u));
+    assert_eq!((c.p, c.sigma_p, c.gamma_deg), (sky.p, sky.sigma_p, sky.angle_deg));
+    assert_eq!(c.sigma_gamma_stat_deg, Some(sky.sigma_angle_deg));
+    let hw = t.half_wave_plate.as_ref().unwrap();
+    assert_eq!((hw.instrument, hw.sky), (r.instrument, r.sky));
+    assert_eq!(hw.cycles, r.cycles);
+    assert_eq!(hw.cycle_agreement, r.cycle_agreement);
+    assert_eq!(
+        (&hw.least_squares_instrument, &hw.least_squares_sky),
+        (&r.least_squares_instrument, &r.least_squares_sky)
+    );
+    assert_eq!((&hw.frames, &hw.left_out), (&r.frames, &r.left_out));
+    assert_eq!(hw.zero_point, sp.zero_point);
+    assert_eq!(hw.zero_point.deg, THETA0);
+    let path = |n: &str| dir.path().join(n).display().to_string();
+    assert_eq!(hw.darks, [path("dark0.fits"), path("dark1.fits")]);
+    assert_eq!(cat.failures.len(), 1);
+    assert_eq!(cat.failures[0].file, path("notes.fits"));
+    assert_eq!(cat.failures[0].error, sp.not_used[0].reason);
+    let json = serde_json::to_string(&cat).unwrap();
+    let back: Catalog = serde_json::from_str(&json).unwrap();
+    assert_eq!(back.targets, cat.targets);
+    assert_eq!(serde_json::to_string(&back).unwrap(), json);
+    // A target without the section (SOFI's) writes no key for it.
+    let sofi = serde_json::to_value(Target::new("x", Status::Ok)).unwrap();
+    assert!(sofi.get("half_wave_plate").is_none(), "{sofi}");
+    // Two inputs of one file name cannot be told apart in the catalog: refused, naming both.
+    let other = tempfile::tempdir().unwrap();
+    std::fs::copy(dir.path().join("sci0.fits"), other.path().join("sci0.fits")).unwrap();
+    let mut twice = files.clone();
+    twice.extend(single_pointing::input_files(&[other.path().to_path_buf()]).unwrap());
+    let e = single_pointing::output::to_catalog(&sp, &twice, &profile())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("sci0.fits") && e.contains(other.path().to_str().unwrap()), "{e}");
 }

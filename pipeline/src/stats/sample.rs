@@ -119,6 +119,10 @@ impl BinarySample {
                 exclude("reduction failed".into());
                 continue;
             }
+            if t.components.len() == 1 {
+                exclude("a single star: no Delta-gamma (it needs two components)".into());
+                continue;
+            }
             if t.components.len() != 2 {
                 exclude(format!("{} component(s), need 2", t.components.len()));
                 continue;
