@@ -101,7 +101,10 @@ fn nirc2_night_from_a_folder_and_from_a_frames_file() {
     assert_eq!((t.object.as_str(), t.filter.as_deref()), ("AB Aur", Some("Lp")));
     let hw = t.half_wave_plate.as_ref().expect("half_wave_plate");
     assert_eq!(hw.profile, "NIRC2");
-    assert_eq!((hw.frames.len(), hw.cycles.len(), hw.darks.len(), hw.skies.len()), (8, 2, 3, 4));
+    assert_eq!(
+        (hw.frames.len(), hw.cycles.len(), hw.darks.len(), hw.skies.len()),
+        (8, 2, 3, 4)
+    );
     assert!(t.components[0].p > 0.0);
     // RA '04:55:45.91', DEC '+30:33:08.1' in every frame's header.
     let ra = 15.0 * (4.0 + 55.0 / 60.0 + 45.91 / 3600.0);
@@ -147,7 +150,10 @@ fn nirc2_night_from_a_folder_and_from_a_frames_file() {
     assert_eq!(tb.components, t.components);
     // Its own set-of-frames file keeps the name given (target=) and repeats the run.
     let listed = std::fs::read_to_string(d.path().join("b.frames")).unwrap();
-    assert!(listed.contains("n0932.fits.gz science target=AB_Aur_listed"), "{listed}");
+    assert!(
+        listed.contains("n0932.fits.gz science target=AB_Aur_listed"),
+        "{listed}"
+    );
     repeat_from_frames_file(d.path(), &b, &[]);
 }
 
@@ -167,10 +173,7 @@ fn repeat_from_frames_file(dir: &Path, catalog: &Path, set: &[String]) {
         let name = Path::new(f).file_name().unwrap().to_str().unwrap();
         assert!(log.contains(name), "{name} not in the night log:\n{log}");
     }
-    let again = dir.join(format!(
-        "{}-again.json",
-        catalog.file_stem().unwrap().to_str().unwrap()
-    ));
+    let again = dir.join(format!("{}-again.json", catalog.file_stem().unwrap().to_str().unwrap()));
     let mut args = vec![
         "night".to_string(),
         frames.display().to_string(),
@@ -209,7 +212,10 @@ fn every_command(dir: &Path, catalog: &Path) {
     let (code, _, err) = run(&["report", c, "-o", html.to_str().unwrap()]);
     assert_eq!(code, 0, "{err}");
     let page = std::fs::read_to_string(&html).unwrap();
-    assert!(page.contains("<section id=\"half-wave-plate\">"), "no half-wave-plate section");
+    assert!(
+        page.contains("<section id=\"half-wave-plate\">"),
+        "no half-wave-plate section"
+    );
     for t in &cat.targets {
         assert!(page.contains(&t.object), "{} not on the page", t.object);
     }
@@ -237,7 +243,10 @@ fn every_command(dir: &Path, catalog: &Path) {
             "fits" => {
                 let mut f = fitsio::FitsFile::open(&out).unwrap();
                 let hdu = f.hdu("SOFIPOL").unwrap();
-                (hdu.read_col::<f64>(&mut f, "q").unwrap(), hdu.read_col::<f64>(&mut f, "u").unwrap())
+                (
+                    hdu.read_col::<f64>(&mut f, "q").unwrap(),
+                    hdu.read_col::<f64>(&mut f, "u").unwrap(),
+                )
             }
             _ => text_columns(&std::fs::read_to_string(&out).unwrap()),
         };
@@ -260,7 +269,12 @@ fn text_columns(text: &str) -> (Vec<f64>, Vec<f64>) {
     let mut lines = text.lines().filter(|l| !l.starts_with('#'));
     let sep = ',';
     let header: Vec<&str> = lines.next().unwrap().split(sep).collect();
-    let col = |name: &str| header.iter().position(|h| *h == name).unwrap_or_else(|| panic!("no {name}"));
+    let col = |name: &str| {
+        header
+            .iter()
+            .position(|h| *h == name)
+            .unwrap_or_else(|| panic!("no {name}"))
+    };
     let (iq, iu) = (col("q"), col("u"));
     let (mut q, mut u) = (Vec::new(), Vec::new());
     for l in lines {
@@ -343,22 +357,39 @@ fn simulated_half_wave_plate_night_through_every_command() {
     assert_eq!(hw.component_from, "cycles");
     // The component is the cycles combined on the sky, as the summary gives it.
     let sky = hw.sky.unwrap();
-    assert_eq!((c.q, c.u, c.sigma_q, c.sigma_u), (sky.q, sky.u, sky.sigma_q, sky.sigma_u));
+    assert_eq!(
+        (c.q, c.u, c.sigma_q, c.sigma_u),
+        (sky.q, sky.u, sky.sigma_q, sky.sigma_u)
+    );
     assert_eq!((c.p, c.sigma_p, c.gamma_deg), (sky.p, sky.sigma_p, sky.angle_deg));
-    assert!(err.contains(&format!("sky q {:+.3} +- {:.3} %", 100.0 * sky.q, 100.0 * sky.sigma_q)), "{err}");
+    assert!(
+        err.contains(&format!("sky q {:+.3} +- {:.3} %", 100.0 * sky.q, 100.0 * sky.sigma_q)),
+        "{err}"
+    );
     // ... within the cycles' blur of the truth (pipeline/tests/single_pointing_sim.rs).
     let bound = 1.25 * 2.0 * Q_SKY.hypot(U_SKY) * (STEP_PARANG + 2.0 * STEP_EL).to_radians();
-    assert!((c.q - Q_SKY).abs() < bound && (c.u - U_SKY).abs() < bound, "{} {}", c.q, c.u);
+    assert!(
+        (c.q - Q_SKY).abs() < bound && (c.u - U_SKY).abs() < bound,
+        "{} {}",
+        c.q,
+        c.u
+    );
     // The zero point: in the angle's error, and stated with its source.
     assert_eq!(c.sigma_gamma_zero_point_deg, Some(hw.zero_point.sigma_deg));
     assert!((c.sigma_gamma_deg - sky.sigma_angle_deg.hypot(hw.zero_point.sigma_deg)).abs() < 1e-12);
     assert!(c.flags.iter().any(|f| f.to_string().contains(&hw.zero_point.source)));
     // Frames, times, setup.
-    let files: Vec<String> = (0..8).map(|k| n1.join(format!("sci{k}.fits")).display().to_string()).collect();
+    let files: Vec<String> = (0..8)
+        .map(|k| n1.join(format!("sci{k}.fits")).display().to_string())
+        .collect();
     assert_eq!(t.input_files.as_ref(), Some(&files));
     assert!((t.mjd_mean.unwrap() - (2.0 + 3.5e-3)).abs() < 1e-9, "{:?}", t.mjd_mean);
     assert_eq!((t.filter.as_deref(), t.dit_s), (Some("Lp"), Some(0.45)));
-    assert_eq!((t.ra_deg, t.dec_deg), (None, None), "the simulated headers have no RA/DEC");
+    assert_eq!(
+        (t.ra_deg, t.dec_deg),
+        (None, None),
+        "the simulated headers have no RA/DEC"
+    );
     assert_eq!(hw.darks.len(), 2);
     // The one sky cycle is the flat (listed in plate order, the skies in time order).
     let sorted = |v: &[String]| {
@@ -375,7 +406,13 @@ fn simulated_half_wave_plate_night_through_every_command() {
     let (code, err) = sim_night(&n2, &b);
     assert_eq!(code, 0, "{err}");
     let m = d.path().join("m.json");
-    let (code, _, err) = run(&["merge", a.to_str().unwrap(), b.to_str().unwrap(), "-o", m.to_str().unwrap()]);
+    let (code, _, err) = run(&[
+        "merge",
+        a.to_str().unwrap(),
+        b.to_str().unwrap(),
+        "-o",
+        m.to_str().unwrap(),
+    ]);
     assert_eq!(code, 0, "{err}");
     let merged = typed(&m);
     let mut names: Vec<&str> = merged.targets.iter().map(|t| t.object.as_str()).collect();
@@ -394,7 +431,8 @@ fn simulated_half_wave_plate_night_through_every_command() {
     assert_eq!(cf.targets, ca.targets);
     let log = std::fs::read_to_string(d.path().join("f.log")).unwrap();
     assert!(
-        log.lines().any(|l| l.starts_with("notes.fits") && l.contains("not used")),
+        log.lines()
+            .any(|l| l.starts_with("notes.fits") && l.contains("not used")),
         "{log}"
     );
     let listed = std::fs::read_to_string(d.path().join("f.frames")).unwrap();

@@ -393,6 +393,25 @@ mod tests {
         let again = parse_text(d.path(), &list, write(&["x".into()], &frames).as_bytes()).unwrap();
         let back: Vec<(PathBuf, FrameRole)> = again.frames.iter().map(|f| (f.path.clone(), f.role)).collect();
         assert_eq!(back, frames);
+        // With targets: a name a line can carry is written and read back; one with
+        // whitespace is left out (the header names the target again).
+        let named = [
+            (d.path().join("a.fits"), FrameRole::Science, Some("AB_Aur")),
+            (d.path().join("b.fits"), FrameRole::Science, Some("AB Aur")),
+            (d.path().join("sub dir/c.fits"), FrameRole::Dark, None),
+        ];
+        let text = write_with_targets(&[], &named);
+        let again = parse_text(d.path(), &list, text.as_bytes()).unwrap();
+        let back: Vec<_> = again.frames.iter().map(|f| (f.role, f.target.as_deref())).collect();
+        assert_eq!(
+            back,
+            [
+                (FrameRole::Science, Some("AB_Aur")),
+                (FrameRole::Science, None),
+                (FrameRole::Dark, None)
+            ],
+            "{text}"
+        );
     }
 
     #[test]

@@ -392,7 +392,10 @@ fn the_reduction_as_sofipols_catalog() {
     assert_eq!((t.object.as_str(), t.status), ("Sim Star", Status::Ok));
     let c = &t.components[0];
     let sky = r.sky.unwrap();
-    assert_eq!((c.q, c.u, c.sigma_q, c.sigma_u), (sky.q, sky.u, sky.sigma_q, sky.sigma_u));
+    assert_eq!(
+        (c.q, c.u, c.sigma_q, c.sigma_u),
+        (sky.q, sky.u, sky.sigma_q, sky.sigma_u)
+    );
     assert_eq!((c.p, c.sigma_p, c.gamma_deg), (sky.p, sky.sigma_p, sky.angle_deg));
     assert_eq!(c.sigma_gamma_stat_deg, Some(sky.sigma_angle_deg));
     let hw = t.half_wave_plate.as_ref().unwrap();
@@ -426,5 +429,8 @@ fn the_reduction_as_sofipols_catalog() {
     let e = single_pointing::output::to_catalog(&sp, &twice, &profile())
         .unwrap_err()
         .to_string();
-    assert!(e.contains("sci0.fits") && e.contains(other.path().to_str().unwrap()), "{e}");
+    assert!(
+        e.contains("sci0.fits") && e.contains(other.path().to_str().unwrap()),
+        "{e}"
+    );
 }

@@ -206,7 +206,6 @@ pub struct LeastSquares {
     pub dof: usize,
 }
 
-
 /// Which of the target's results its component carries (`component_from`).
 pub const FROM_CYCLES: &str = "cycles";
 /// The least squares over every frame, when no plate cycle is complete.

@@ -137,7 +137,11 @@ pub fn night_frame_list(cat: &Catalog, catalog_name: &str, dir: &Path) -> String
     ];
     if !named.is_empty() && cat.targets.iter().any(|t| t.half_wave_plate.is_some()) {
         for f in &cat.failures {
-            header.push(format!("not listed, not used by the run: {}: {}", f.file, one_line(&f.error)));
+            header.push(format!(
+                "not listed, not used by the run: {}: {}",
+                f.file,
+                one_line(&f.error)
+            ));
         }
     }
     named.extend(frames.into_iter().map(|(p, r)| (p, r, None)));

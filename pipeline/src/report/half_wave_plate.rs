@@ -78,7 +78,13 @@ pub fn section(h: &mut String, cat: &Catalog) {
             row("cycles combined", "sky", p, agreement, cycles_main);
         }
         for (k, c) in hw.cycles.iter().enumerate() {
-            row(&format!("cycle {}", k + 1), "instrument", &c.instrument, "–".into(), false);
+            row(
+                &format!("cycle {}", k + 1),
+                "instrument",
+                &c.instrument,
+                "–".into(),
+                false,
+            );
             row(&format!("cycle {}", k + 1), "sky", &c.sky, "–".into(), false);
         }
         for (frame, ls, main) in [

@@ -129,7 +129,8 @@ fn target(sp: &SinglePointingCatalog, t: &TargetResult, paths: &Paths, profile: 
                     None => TermSource::Cancelled,
                 }
             };
-            out.components.push(component(&p, zp.sigma_deg, &zp.source, offset, from));
+            out.components
+                .push(component(&p, zp.sigma_deg, &zp.source, offset, from));
             if from == FROM_LEAST_SQUARES {
                 out.status = Status::Partial;
                 out.error = Some(format!(
@@ -209,7 +210,8 @@ fn component(p: &Pol, sigma_zero_point_deg: f64, zero_point_source: &str, offset
         }
         .into(),
     );
-    c.flags.push(Flag::with_detail(FlagCode::ZeroPointFromProfile, zero_point_source));
+    c.flags
+        .push(Flag::with_detail(FlagCode::ZeroPointFromProfile, zero_point_source));
     c.flags.push(Flag::with_detail(
         FlagCode::TelescopeUncorrected,
         "the half-wave-plate reduction removes no polarization of the telescope or of the optics before the plate",

@@ -30,7 +30,11 @@ pub const STEP_EL: f64 = 0.05;
 
 /// The NIRC2 profile shrunk to the simulated detector ([`overrides`]).
 pub fn profile() -> Profile {
-    Profile::embedded("nirc2").unwrap().unwrap().with_overrides(&overrides()).unwrap()
+    Profile::embedded("nirc2")
+        .unwrap()
+        .unwrap()
+        .with_overrides(&overrides())
+        .unwrap()
 }
 
 /// A flat-field gradient along x only: both beams' rows then have the same median, so the
@@ -139,7 +143,6 @@ pub fn write(dir: &Path, name: &str, s: &Shot<'_>, mut noise: Option<&mut Noise>
     h.set("DETRN", RN_E);
     write_frame(&dir.join(name), &Frame::new(data, h), &WriteOptions::default()).unwrap();
 }
-
 
 /// The profile's overrides as `--set` takes them (`profile()` applies them).
 pub fn overrides() -> Vec<String> {
