@@ -319,7 +319,7 @@ pub fn write(header: &[String], frames: &[(PathBuf, FrameRole)]) -> String {
     write_with_targets(header, &frames)
 }
 
-/// [`write`], each frame with its `target=` when given: a name that a line can carry
+/// [`write()`], each frame with its `target=` when given: a name that a line can carry
 /// (no whitespace, no control character) is written, another is left out (the frame's
 /// header then names the target).
 pub fn write_with_targets(header: &[String], frames: &[(PathBuf, FrameRole, Option<&str>)]) -> String {
