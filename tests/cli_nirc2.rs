@@ -420,6 +420,24 @@ fn simulated_half_wave_plate_night_through_every_command() {
     assert_eq!(names, ["Other_Star", "Sim Star"]);
     assert!(merged.targets.iter().all(|t| t.half_wave_plate.is_some()));
     every_command(&d.path().join("commands_m"), &m);
+    // `night --report`: the page beside the catalog, with the half-wave-plate section.
+    let r = d.path().join("r.json");
+    let page = d.path().join("r.html");
+    let mut args = vec![
+        "night".to_string(),
+        n1.display().to_string(),
+        "--profile".into(),
+        "nirc2".into(),
+        "-o".into(),
+        r.display().to_string(),
+        "--report".into(),
+        page.display().to_string(),
+    ];
+    args.extend(set_args(&hwp_frames::overrides()));
+    let (code, _, err) = run(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert_eq!(code, 0, "{err}");
+    let html = std::fs::read_to_string(&page).unwrap();
+    assert!(html.contains("<section id=\"half-wave-plate\">") && html.contains("Sim Star"));
     // A file that is not a frame: a failure, named, exit 2; the star as before.
     std::fs::write(n1.join("notes.fits"), b"not a FITS file").unwrap();
     let f = d.path().join("f.json");

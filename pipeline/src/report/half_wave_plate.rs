@@ -71,11 +71,16 @@ pub fn section(h: &mut String, cat: &Catalog) {
             || "–".to_string(),
             |a| format!("q {}, u {} / {}", fmt(Some(a.chi2_q), 1), fmt(Some(a.chi2_u), 1), a.dof),
         );
+        // The cycles are compared where the star stands still: on the sky when the field
+        // turns (pupil tracking), else in the instrument frame.
+        let on_sky = hw.field_rotation.starts_with("pupil_tracking");
         if let Some(p) = &hw.instrument {
-            row("cycles combined", "instrument", p, agreement.clone(), false);
+            let chi2 = if on_sky { "–".to_string() } else { agreement.clone() };
+            row("cycles combined", "instrument", p, chi2, false);
         }
         if let Some(p) = &hw.sky {
-            row("cycles combined", "sky", p, agreement, cycles_main);
+            let chi2 = if on_sky { agreement } else { "–".to_string() };
+            row("cycles combined", "sky", p, chi2, cycles_main);
         }
         for (k, c) in hw.cycles.iter().enumerate() {
             row(
@@ -101,9 +106,10 @@ pub fn section(h: &mut String, cat: &Catalog) {
             let list = |v: &[f64]| v.iter().map(|x| fmt(Some(*x), 1)).collect::<Vec<_>>().join(", ");
             let _ = writeln!(
                 h,
-                "<p>Consecutive cycles differ by {} σ in q and {} σ in u (photometric errors).</p>",
+                "<p>Consecutive cycles differ by {} σ in q and {} σ in u (photometric errors, {}).</p>",
                 list(&a.q_difference_sigma),
-                list(&a.u_difference_sigma)
+                list(&a.u_difference_sigma),
+                if on_sky { "on the sky" } else { "instrument frame" }
             );
         }
         if !hw.left_out.is_empty() {
