@@ -119,7 +119,9 @@ impl BinarySample {
                 exclude("reduction failed".into());
                 continue;
             }
-            if t.components.len() == 1 {
+            // A half-wave-plate target is one star by design (a SOFI target with one
+            // component lost its companion).
+            if t.half_wave_plate.is_some() && t.components.len() == 1 {
                 exclude("a single star: no Delta-gamma (it needs two components)".into());
                 continue;
             }
