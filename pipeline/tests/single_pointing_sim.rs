@@ -450,13 +450,21 @@ fn night(dir: &Path, plates: &[f64], cycles: usize, flux: f64, noise: bool) -> V
     hw.plate_deg = plates.to_vec();
     hw.cycles = cycles;
     if plates.len() == 4 {
-        return simulate(dir, s).stars[0].frames.iter().map(|f| f.file.clone()).collect();
+        return simulate(dir, s).stars[0]
+            .frames
+            .iter()
+            .map(|f| f.file.clone())
+            .collect();
     }
     // Fewer plate positions than a cycle: the sky frames and darks of a four-position
     // night of the same scene (the flat and the sky need every position).
     let hw = s.half_wave_plate.as_mut().unwrap();
     (hw.sky_cycles, hw.darks) = (0, 0);
-    let science = simulate(dir, s.clone()).stars[0].frames.iter().map(|f| f.file.clone()).collect();
+    let science = simulate(dir, s.clone()).stars[0]
+        .frames
+        .iter()
+        .map(|f| f.file.clone())
+        .collect();
     let skies = tempfile::tempdir().unwrap();
     let hw = s.half_wave_plate.as_mut().unwrap();
     (hw.plate_deg, hw.cycles, hw.sky_cycles, hw.darks) = (four.to_vec(), 1, 1, 2);
@@ -495,7 +503,10 @@ fn cosmic_rays_are_repaired_or_clipped() {
     let clean_a = single_pointing::reduce(&[dir.path().to_path_buf()], &annulus).unwrap();
     for c in [&clean, &clean_a] {
         let t = &c.targets[0];
-        assert_eq!(t.frames.iter().map(|f| &f.file).collect::<Vec<_>>(), sci.iter().collect::<Vec<_>>());
+        assert_eq!(
+            t.frames.iter().map(|f| &f.file).collect::<Vec<_>>(),
+            sci.iter().collect::<Vec<_>>()
+        );
         assert!(
             t.frames.iter().all(|f| f.cosmic_ray_pixels == [0, 0]),
             "clean frames repaired: {:?}",
