@@ -9,6 +9,7 @@ pub mod calibration_state;
 pub mod field_stars;
 pub mod flags;
 pub mod frame_quality;
+pub mod half_wave_plate;
 pub mod photometry;
 pub mod polarimetric_calibration;
 pub mod provenance;
@@ -17,6 +18,7 @@ pub use calibration_state::{CalibrationState, TermSource};
 pub use field_stars::FieldStar;
 pub use flags::{Flag, FlagCode};
 pub use frame_quality::FrameQuality;
+pub use half_wave_plate::HalfWavePlateResult;
 pub use provenance::Provenance;
 
 /// Version of the catalog schema written by this build.
@@ -477,6 +479,10 @@ pub struct Target {
         deserialize_with = "crate::nullable::opt"
     )]
     pub fwhm_px: Option<f64>,
+    /// The half-wave-plate reduction's own results (cycles, their agreement, least squares,
+    /// instrument-frame values, zero point, every frame): absent for SOFI.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub half_wave_plate: Option<HalfWavePlateResult>,
     /// Every frame of the sequence.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub input_files: Option<Vec<String>>,
@@ -675,6 +681,7 @@ impl Target {
             foreground: None,
             frame_quality: None,
             fwhm_px: None,
+            half_wave_plate: None,
             input_files: None,
             mjd_mean: None,
             orientations_deg: None,

@@ -315,13 +315,25 @@ fn tokenize(line: &str) -> Result<Vec<String>, (String, String)> {
 /// quoted when they hold whitespace or start with `#` or `"`; a path that cannot be written
 /// (a quote and whitespace, a newline, not UTF-8) becomes a comment saying so.
 pub fn write(header: &[String], frames: &[(PathBuf, FrameRole)]) -> String {
+    let frames: Vec<(PathBuf, FrameRole, Option<&str>)> = frames.iter().map(|(p, r)| (p.clone(), *r, None)).collect();
+    write_with_targets(header, &frames)
+}
+
+/// [`write()`], each frame with its `target=` when given: a name that a line can carry
+/// (no whitespace, no control character) is written, another is left out (the frame's
+/// header then names the target).
+pub fn write_with_targets(header: &[String], frames: &[(PathBuf, FrameRole, Option<&str>)]) -> String {
     let mut s = String::new();
     for h in header {
         for l in h.lines() {
             s.push_str(&format!("# {l}\n"));
         }
     }
-    for (p, role) in frames {
+    for (p, role, target) in frames {
+        let setting = target
+            .filter(|t| !t.is_empty() && !t.chars().any(|c| c.is_whitespace() || c.is_control()))
+            .map(|t| format!(" target={t}"))
+            .unwrap_or_default();
         let Some(t) = p.to_str() else {
             s.push_str(&format!("# not listed (path not UTF-8): {}\n", p.display()));
             continue;
@@ -330,9 +342,9 @@ pub fn write(header: &[String], frames: &[(PathBuf, FrameRole)]) -> String {
         if t.contains(['\n', '\r']) || t.len() > MAX_LINE_BYTES - 16 || (needs_quotes && t.contains('"')) {
             s.push_str(&format!("# not listed (path not representable): {t:?}\n"));
         } else if needs_quotes {
-            s.push_str(&format!("\"{t}\" {}\n", role.name()));
+            s.push_str(&format!("\"{t}\" {}{setting}\n", role.name()));
         } else {
-            s.push_str(&format!("{t} {}\n", role.name()));
+            s.push_str(&format!("{t} {}{setting}\n", role.name()));
         }
     }
     s
@@ -381,6 +393,25 @@ mod tests {
         let again = parse_text(d.path(), &list, write(&["x".into()], &frames).as_bytes()).unwrap();
         let back: Vec<(PathBuf, FrameRole)> = again.frames.iter().map(|f| (f.path.clone(), f.role)).collect();
         assert_eq!(back, frames);
+        // With targets: a name a line can carry is written and read back; one with
+        // whitespace is left out (the header names the target again).
+        let named = [
+            (d.path().join("a.fits"), FrameRole::Science, Some("AB_Aur")),
+            (d.path().join("b.fits"), FrameRole::Science, Some("AB Aur")),
+            (d.path().join("sub dir/c.fits"), FrameRole::Dark, None),
+        ];
+        let text = write_with_targets(&[], &named);
+        let again = parse_text(d.path(), &list, text.as_bytes()).unwrap();
+        let back: Vec<_> = again.frames.iter().map(|f| (f.role, f.target.as_deref())).collect();
+        assert_eq!(
+            back,
+            [
+                (FrameRole::Science, Some("AB_Aur")),
+                (FrameRole::Science, None),
+                (FrameRole::Dark, None)
+            ],
+            "{text}"
+        );
     }
 
     #[test]

@@ -50,3 +50,15 @@ pub fn square<'de, D: Deserializer<'de>, const N: usize>(d: D) -> Result<Option<
 pub fn present<'de, D: Deserializer<'de>, T: Deserialize<'de>>(d: D) -> Result<Option<Option<T>>, D::Error> {
     Option::<T>::deserialize(d).map(Some)
 }
+
+/// A pair of numbers that is always present, each `null` read as NaN.
+pub fn fixed_pair<'de, D: Deserializer<'de>>(d: D) -> Result<[f64; 2], D::Error> {
+    let v: [Option<f64>; 2] = Deserialize::deserialize(d)?;
+    Ok(v.map(|x| x.unwrap_or(f64::NAN)))
+}
+
+/// A list of numbers that is always present, each `null` read as NaN.
+pub fn num_list<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<f64>, D::Error> {
+    let v: Vec<Option<f64>> = Deserialize::deserialize(d)?;
+    Ok(v.into_iter().map(|x| x.unwrap_or(f64::NAN)).collect())
+}

@@ -438,46 +438,41 @@ fn pulls_on_noisy_pupil_tracking_nights() {
     assert!(!ok(&gain_2x), "gain 2x: {gain_2x}");
 }
 
-/// A night in `dir`: 4 sky frames (one per plate position), 2 darks and one star's frames at
-/// `plates` (pupil tracking, the sky turning by `step` deg per frame), with noise when
-/// given. Science files are `sci{k}.fits`.
-fn night(dir: &Path, plates: &[f64], step: f64, star: &Star, mut noise: Option<&mut Noise>) {
-    for (k, &p) in [0.0, 45.0, 22.5, 67.5].iter().enumerate() {
-        let shot = Shot {
-            object: "sky_flat",
-            plate: p,
-            parang: 0.0,
-            el: 60.0,
-            shutter: "open",
-            star: None,
-            mjd: 1.0 + k as f64 * 1e-3,
-        };
-        write(dir, &format!("sky{k}.fits"), &shot, noise.as_deref_mut());
+/// A night in `dir` from the simulator: one star ("Sim Star", (q, u) = (Q_SKY, U_SKY),
+/// `flux`) observed at `plates` repeated `cycles` times under pupil tracking (10 deg from
+/// the zenith near the meridian: the sky turns by ~0.7 deg per frame), 4 sky frames (one per
+/// plate position 0, 45, 22.5, 67.5 deg) and 2 darks, with photon and read noise when
+/// `noise`. Returns the science files in observing order.
+fn night(dir: &Path, plates: &[f64], cycles: usize, flux: f64, noise: bool) -> Vec<String> {
+    let four = [0.0, 45.0, 22.5, 67.5];
+    let mut s = scene(77, vec![star("Sim Star", Q_SKY, U_SKY, flux, 10.0, -0.05)], 1, 2, noise);
+    let hw = s.half_wave_plate.as_mut().unwrap();
+    hw.plate_deg = plates.to_vec();
+    hw.cycles = cycles;
+    if plates.len() == 4 {
+        return simulate(dir, s).stars[0]
+            .frames
+            .iter()
+            .map(|f| f.file.clone())
+            .collect();
     }
-    for k in 0..2 {
-        let shot = Shot {
-            object: "dark",
-            plate: 0.0,
-            parang: 0.0,
-            el: 0.0,
-            shutter: "closed",
-            star: None,
-            mjd: 3.0 + k as f64 * 1e-3,
-        };
-        write(dir, &format!("dark{k}.fits"), &shot, noise.as_deref_mut());
+    // Fewer plate positions than a cycle: the sky frames and darks of a four-position
+    // night of the same scene (the flat and the sky need every position).
+    let hw = s.half_wave_plate.as_mut().unwrap();
+    (hw.sky_cycles, hw.darks) = (0, 0);
+    let science = simulate(dir, s.clone()).stars[0]
+        .frames
+        .iter()
+        .map(|f| f.file.clone())
+        .collect();
+    let skies = tempfile::tempdir().unwrap();
+    let hw = s.half_wave_plate.as_mut().unwrap();
+    (hw.plate_deg, hw.cycles, hw.sky_cycles, hw.darks) = (four.to_vec(), 1, 1, 2);
+    let t = simulate(skies.path(), s);
+    for f in t.skies.iter().map(|f| &f.file).chain(&t.darks) {
+        std::fs::copy(skies.path().join(f), dir.join(f)).unwrap();
     }
-    for (k, &p) in plates.iter().enumerate() {
-        let shot = Shot {
-            object: "hwp",
-            plate: p,
-            parang: 215.0 - step * k as f64,
-            el: 77.0,
-            shutter: "open",
-            star: Some(star),
-            mjd: 2.0 + k as f64 * 1e-3,
-        };
-        write(dir, &format!("sci{k}.fits"), &shot, noise.as_deref_mut());
-    }
+    science
 }
 
 /// Add `adu` to pixels `(x, y)` of a written frame.
@@ -496,18 +491,8 @@ fn hit(path: &Path, pixels: &[(usize, usize)], adu: f64) {
 /// 1 sigma; the clean night repairs nothing. The same with the sky from an annulus.
 #[test]
 fn cosmic_rays_are_repaired_or_clipped() {
-    let star = Star {
-        name: "Sim Star".into(),
-        q: Q_SKY,
-        u: U_SKY,
-        flux: 4e7,
-    };
-    let plates: Vec<f64> = (0..8).map(|k| [0.0, 22.5, 45.0, 67.5][k % 4]).collect();
     let dir = tempfile::tempdir().unwrap();
-    let mut noise = Noise {
-        rng: Xoshiro256PlusPlus::seed_from_u64(77),
-    };
-    night(dir.path(), &plates, 1.0, &star, Some(&mut noise));
+    let sci = night(dir.path(), &[0.0, 22.5, 45.0, 67.5], 2, 4e7, true);
     let annulus = profile()
         .with_overrides(&[
             "single_pointing.sky=\"annulus\"".into(),
@@ -518,32 +503,35 @@ fn cosmic_rays_are_repaired_or_clipped() {
     let clean_a = single_pointing::reduce(&[dir.path().to_path_buf()], &annulus).unwrap();
     for c in [&clean, &clean_a] {
         let t = &c.targets[0];
-        assert_eq!(t.frames.len(), 8);
+        assert_eq!(
+            t.frames.iter().map(|f| &f.file).collect::<Vec<_>>(),
+            sci.iter().collect::<Vec<_>>()
+        );
         assert!(
             t.frames.iter().all(|f| f.cosmic_ray_pixels == [0, 0]),
             "clean frames repaired: {:?}",
             t.frames.iter().map(|f| f.cosmic_ray_pixels).collect::<Vec<_>>()
         );
     }
-    // A hit of 3 pixels 3-4 px from the o image's centre in sci3: 6 sigma_F in F
-    // (dF = dO 2e / (o + e)^2 ~ dO / (o + e)), after the flat (~1.05).
+    // A hit of 3 pixels 3-4 px from the o image's centre in the fourth frame: 6 sigma_F in
+    // F (dF = dO 2e / (o + e)^2 ~ dO / (o + e)), after the flat (~1.05).
     let f3 = &clean.targets[0].frames[3];
     let adu = 6.0 * f3.sigma_f * (f3.o + f3.e) / 3.0 * 1.05;
     let (x, y) = (O_POS.0.round() as usize, O_POS.1.round() as usize);
     hit(
-        &dir.path().join("sci3.fits"),
+        &dir.path().join(&sci[3]),
         &[(x + 3, y + 1), (x + 4, y + 1), (x + 4, y + 2)],
         adu,
     );
-    // Hits in the sky-fit regions (beyond 25 px of the star) of sci5, both beams, and in
-    // the sky annulus (12-20 px) of sci6's o image.
+    // Hits in the sky-fit regions (beyond 25 px of the star) of the sixth frame, both
+    // beams, and in the sky annulus (12-20 px) of the seventh's o image.
     hit(
-        &dir.path().join("sci5.fits"),
+        &dir.path().join(&sci[5]),
         &[(100, 180), (101, 180), (20, 60), (21, 61)],
         50.0 * adu,
     );
     hit(
-        &dir.path().join("sci6.fits"),
+        &dir.path().join(&sci[6]),
         &[(x + 15, y), (x + 15, y + 1), (x - 3, y - 14)],
         50.0 * adu,
     );
@@ -585,14 +573,8 @@ fn cosmic_rays_are_repaired_or_clipped() {
 /// value of it); no NaN reaches the catalog.
 #[test]
 fn an_aperture_across_the_beam_rows_is_refused_by_name() {
-    let star = Star {
-        name: "Sim Star".into(),
-        q: Q_SKY,
-        u: U_SKY,
-        flux: 4e6,
-    };
     let dir = tempfile::tempdir().unwrap();
-    night(dir.path(), &[0.0, 22.5, 45.0, 67.5], 1.0, &star, None);
+    let sci = night(dir.path(), &[0.0, 22.5, 45.0, 67.5], 1, 4e6, false);
     // The o image at y = 150.7, its rows from 105: an outer radius of 47 px reaches 103.7
     // (and stays inside the frame).
     let wide = profile()
@@ -605,7 +587,10 @@ fn an_aperture_across_the_beam_rows_is_refused_by_name() {
         .unwrap_err()
         .to_string();
     assert!(
-        e.contains("sci") && e.contains("(60.3, 150.7)") && e.contains("47 px") && e.contains("rows 105..200"),
+        sci.iter().any(|f| e.contains(f.as_str()))
+            && e.contains("(60.3, 150.7)")
+            && e.contains("47 px")
+            && e.contains("rows 105..200"),
         "{e}"
     );
 }
@@ -614,15 +599,9 @@ fn an_aperture_across_the_beam_rows_is_refused_by_name() {
 /// named with the keyword and value; the night goes on with the others.
 #[test]
 fn an_absurd_header_angle_is_refused_by_name() {
-    let star = Star {
-        name: "Sim Star".into(),
-        q: Q_SKY,
-        u: U_SKY,
-        flux: 4e6,
-    };
     let dir = tempfile::tempdir().unwrap();
-    night(dir.path(), &[0.0, 22.5, 45.0, 67.5, 0.0], 1.0, &star, None);
-    let p = dir.path().join("sci4.fits");
+    let sci = night(dir.path(), &[0.0, 22.5, 45.0, 67.5], 2, 4e6, false);
+    let p = dir.path().join(&sci[4]);
     let mut fr = sofipol_calib::fits::read_frame(&p).unwrap();
     fr.header.set("PARANG", 1e300);
     write_frame(&p, &fr, &WriteOptions::default()).unwrap();
@@ -630,32 +609,27 @@ fn an_absurd_header_angle_is_refused_by_name() {
     let n = cat
         .not_used
         .iter()
-        .find(|n| n.file == "sci4.fits")
-        .expect("sci4 not used");
+        .find(|n| n.file == sci[4])
+        .unwrap_or_else(|| panic!("{} not used: {:?}", sci[4], cat.not_used));
     assert!(
         n.reason.contains("PARANG") && n.reason.contains("1e300"),
         "{}",
         n.reason
     );
-    assert_eq!(cat.targets[0].frames.len(), 4);
+    assert_eq!(cat.targets[0].frames.len(), 7);
 }
 
-/// Two plate positions only (0 and 22.5) on a field that turns by 0.1 deg per frame: the
+/// Two plate positions only (0 and 22.5) on a field that turns by ~0.7 deg per frame: the
 /// analyzer angles on the sky are distinct, but c is not determined by them and is not
 /// fitted; the catalog and the summary say so. (q, u) on the sky come back exactly
 /// (noise-free, equal beams).
 #[test]
 fn two_plate_positions_do_not_fit_c() {
-    let star = Star {
-        name: "Sim Star".into(),
-        q: Q_SKY,
-        u: U_SKY,
-        flux: 4e6,
-    };
     let dir = tempfile::tempdir().unwrap();
-    night(dir.path(), &[0.0, 22.5, 0.0, 22.5, 0.0, 22.5], 0.1, &star, None);
+    night(dir.path(), &[0.0, 22.5], 3, 4e6, false);
     let cat = single_pointing::reduce(&[dir.path().to_path_buf()], &profile()).unwrap();
     let t = &cat.targets[0];
+    assert_eq!(t.frames.len(), 6, "{:?}", cat.not_used);
     let ls = t.least_squares_sky.as_ref().unwrap();
     assert!(ls.c.is_none(), "{:?}", ls.c);
     let why = ls.c_not_fitted.as_deref().expect("why c is not fitted");
@@ -669,5 +643,72 @@ fn two_plate_positions_do_not_fit_c() {
     assert!(
         lines.iter().any(|l| l.contains("c (beam imbalance) is not fitted")),
         "{lines:?}"
+    );
+}
+
+/// The reduction as sofipol's catalog ([`single_pointing::output::to_catalog`]): one target
+/// per star, its component the cycles combined on the sky, every half-wave-plate result in
+/// the typed `half_wave_plate` section as the reduction gave it, the files not used as
+/// `failures` with their paths; the JSON reads back to the same catalog, and a SOFI target
+/// writes no `half_wave_plate` key.
+#[test]
+fn the_reduction_as_sofipols_catalog() {
+    use sofipol_pipeline::catalog::{Catalog, Status, Target};
+    let dir = tempfile::tempdir().unwrap();
+    let truth = simulate(
+        dir.path(),
+        scene(1, vec![star("Sim Star", Q_SKY, U_SKY, 4e6, 10.0, -0.05)], 1, 2, false),
+    );
+    std::fs::write(dir.path().join("notes.fits"), b"not a FITS file").unwrap();
+    let roots = [dir.path().to_path_buf()];
+    let files = single_pointing::input_files(&roots).unwrap();
+    let sp = single_pointing::reduce_inputs(&files, &roots, &profile()).expect("reduces");
+    let cat = single_pointing::output::to_catalog(&sp, &files, &profile()).expect("a catalog");
+    assert_eq!(cat.targets.len(), 1);
+    let (t, r) = (&cat.targets[0], &sp.targets[0]);
+    assert_eq!((t.object.as_str(), t.status), ("Sim Star", Status::Ok));
+    let c = &t.components[0];
+    let sky = r.sky.unwrap();
+    assert_eq!(
+        (c.q, c.u, c.sigma_q, c.sigma_u),
+        (sky.q, sky.u, sky.sigma_q, sky.sigma_u)
+    );
+    assert_eq!((c.p, c.sigma_p, c.gamma_deg), (sky.p, sky.sigma_p, sky.angle_deg));
+    assert_eq!(c.sigma_gamma_stat_deg, Some(sky.sigma_angle_deg));
+    let hw = t.half_wave_plate.as_ref().unwrap();
+    assert_eq!((hw.instrument, hw.sky), (r.instrument, r.sky));
+    assert_eq!(hw.cycles, r.cycles);
+    assert_eq!(hw.cycle_agreement, r.cycle_agreement);
+    assert_eq!(
+        (&hw.least_squares_instrument, &hw.least_squares_sky),
+        (&r.least_squares_instrument, &r.least_squares_sky)
+    );
+    assert_eq!((&hw.frames, &hw.left_out), (&r.frames, &r.left_out));
+    assert_eq!(hw.zero_point, sp.zero_point);
+    assert_eq!(hw.zero_point.deg, THETA0);
+    let path = |n: &str| dir.path().join(n).display().to_string();
+    assert_eq!(hw.darks, truth.darks.iter().map(|d| path(d)).collect::<Vec<_>>());
+    assert_eq!(cat.failures.len(), 1);
+    assert_eq!(cat.failures[0].file, path("notes.fits"));
+    assert_eq!(cat.failures[0].error, sp.not_used[0].reason);
+    let json = serde_json::to_string(&cat).unwrap();
+    let back: Catalog = serde_json::from_str(&json).unwrap();
+    assert_eq!(back.targets, cat.targets);
+    assert_eq!(serde_json::to_string(&back).unwrap(), json);
+    // A target without the section (SOFI's) writes no key for it.
+    let sofi = serde_json::to_value(Target::new("x", Status::Ok)).unwrap();
+    assert!(sofi.get("half_wave_plate").is_none(), "{sofi}");
+    // Two inputs of one file name cannot be told apart in the catalog: refused, naming both.
+    let first = &truth.stars[0].frames[0].file;
+    let other = tempfile::tempdir().unwrap();
+    std::fs::copy(dir.path().join(first), other.path().join(first)).unwrap();
+    let mut twice = files.clone();
+    twice.extend(single_pointing::input_files(&[other.path().to_path_buf()]).unwrap());
+    let e = single_pointing::output::to_catalog(&sp, &twice, &profile())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains(first.as_str()) && e.contains(other.path().to_str().unwrap()),
+        "{e}"
     );
 }

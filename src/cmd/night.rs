@@ -144,7 +144,8 @@ fn single_pointing_refusals(args: &Args) -> Vec<(&'static str, &'static str)> {
         // Nothing to leave out: the half-wave-plate night writes no figure.
         no_png: _,
         outputs: OutputArgs { regions, fits_products },
-        report,
+        // The night's HTML page (`sofipol report`), with its half-wave-plate section.
+        report: _,
         setup:
             super::setup::SetupArgs {
                 reduce:
@@ -176,11 +177,10 @@ fn single_pointing_refusals(args: &Args) -> Vec<(&'static str, &'static str)> {
         verbose,
     } = args;
     const PROFILE: &str = "the reduction is set by the profile's [single_pointing] section (change it with --set single_pointing.KEY=VALUE)";
-    let refusals: [(&str, bool, &str); 21] = [
+    let refusals: [(&str, bool, &str); 20] = [
         ("--shard", shard.is_some(), "the night is one set of frames, not split into sequences"),
         ("--regions", *regions, "no DS9 region files are written for a half-wave-plate night"),
         ("--fits-products", *fits_products, "no FITS products are written for a half-wave-plate night"),
-        ("--report", report.is_some(), "there is no HTML page of a half-wave-plate catalog"),
         ("--params", params.is_some(), PROFILE),
         ("--param", !param.is_empty(), PROFILE),
         ("--dump-params", *dump_params, PROFILE),
@@ -211,8 +211,11 @@ fn single_pointing_refusals(args: &Args) -> Vec<(&'static str, &'static str)> {
 
 /// A half-wave-plate profile (`--profile nirc2`): the single-pointing reduction
 /// ([`sofipol_pipeline::single_pointing`]) of every target under the inputs, its catalog
-/// written to `-o`, one summary per target on stderr. The SOFI night's options that do not
-/// apply are refused by name, with why ([`single_pointing_refusals`]).
+/// (sofipol's, each target's half-wave-plate results in its `half_wave_plate` section)
+/// written to `-o` with the night log and set-of-frames file beside it, and its HTML page
+/// to `--report`; one summary per target on stderr; exit 2 as a SOFI night's when a target
+/// is not `ok` or a file was not used. The SOFI night's options that do not apply are
+/// refused by name, with why ([`single_pointing_refusals`]).
 fn run_single_pointing(args: &Args, profile: &sofipol_calib::Profile) -> anyhow::Result<ExitCode> {
     let refused = single_pointing_refusals(args);
     anyhow::ensure!(
@@ -242,21 +245,37 @@ fn run_single_pointing(args: &Args, profile: &sofipol_calib::Profile) -> anyhow:
     let mut inputs: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();
     inputs.extend(args.setup.input_files());
     super::common::check_output(&args.output, &inputs)?;
+    if let Some(r) = &args.report {
+        inputs.push(args.output.clone());
+        super::common::check_output(r, &inputs)?;
+    }
     let pool = super::common::worker_pool("night", args.jobs, args.quiet)?;
     let t0 = Instant::now();
-    let cat = pool.install(|| sofipol_pipeline::single_pointing::reduce_inputs(&files, &args.dirs, profile))?;
+    let sp = pool.install(|| sofipol_pipeline::single_pointing::reduce_inputs(&files, &args.dirs, profile))?;
+    let cat = sofipol_pipeline::single_pointing::output::to_catalog(&sp, &files, profile)?;
     io::write_json_atomic(&args.output, &cat).with_context(|| format!("writing {}", args.output.display()))?;
+    let log = night::write_night_log(&args.output, &cat)
+        .with_context(|| format!("writing {}", night::log_path(&args.output).display()))?;
+    if let Some(r) = &args.report {
+        let (pairs, seed) = (
+            sofipol_pipeline::report::DEFAULT_REPORT_PAIRS,
+            sofipol_pipeline::stats::mc::DEFAULT_SEED,
+        );
+        pool.install(|| super::report::write_page(cat.clone(), &args.output, None, r, pairs, seed))?;
+    }
     if !args.quiet {
-        for line in sofipol_pipeline::single_pointing::summary_lines(&cat) {
+        for line in sofipol_pipeline::single_pointing::summary_lines(&sp) {
             eprintln!("sofipol night: {}", printable(&line));
         }
         eprintln!(
-            "sofipol night: catalog {} ({:.1} s)",
+            "sofipol night: catalog {}, night log {} ({:.1} s)",
             args.output.display(),
+            log.display(),
             t0.elapsed().as_secs_f64()
         );
     }
-    Ok(ExitCode::SUCCESS)
+    let bad = cat.targets.iter().any(|t| t.status != Status::Ok) || !cat.failures.is_empty();
+    Ok(if bad { ExitCode::from(2) } else { ExitCode::SUCCESS })
 }
 
 /// Scan the night (standards apart, this shard's sequences and failures) and check the
@@ -413,7 +432,7 @@ mod tests {
     /// uses pass.
     #[test]
     fn every_sofi_only_option_is_refused_by_name() {
-        let used = ["dirs", "output", "jobs", "no_png", "quiet", "profile", "sets"];
+        let used = ["dirs", "output", "jobs", "no_png", "report", "quiet", "profile", "sets"];
         let cmd = Args::augment_args(clap::Command::new("night"));
         let mut tried = 0;
         for arg in cmd.get_arguments() {
@@ -453,7 +472,7 @@ mod tests {
             assert!(refused[0].1.len() > 20, "{flag}: no reason");
             tried += 1;
         }
-        assert!(tried >= 22, "{tried} options tried");
+        assert!(tried >= 21, "{tried} options tried");
         // The options it uses pass.
         let m = cmd
             .clone()
@@ -467,6 +486,8 @@ mod tests {
                 "-j",
                 "2",
                 "--no-png",
+                "--report",
+                "r.html",
                 "-q",
                 "--set",
                 "a.b=1",

@@ -92,16 +92,33 @@ pub fn night_frame_list(cat: &Catalog, catalog_name: &str, dir: &Path) -> String
     };
     let mut frames: Vec<(std::path::PathBuf, FrameRole)> = Vec::new();
     let mut seen = std::collections::HashSet::new();
+    // The targets' frames, with the target's name where a half-wave-plate run may have
+    // taken it from a set-of-frames file (`target=`) rather than the header.
+    let mut named: Vec<(std::path::PathBuf, FrameRole, Option<String>)> = Vec::new();
+    let mut add_named = |f: &str, role: FrameRole, target: Option<&str>, named: &mut Vec<_>| {
+        if seen.insert(f.to_string()) {
+            named.push((shown(f), role, target.map(str::to_string)));
+        }
+    };
+    for t in &cat.targets {
+        let target = t.half_wave_plate.as_ref().map(|_| t.object.as_str());
+        for f in t.input_files.iter().flatten() {
+            add_named(f, FrameRole::Science, target, &mut named);
+        }
+    }
+    for hw in cat.targets.iter().filter_map(|t| t.half_wave_plate.as_ref()) {
+        for f in &hw.darks {
+            add_named(f, FrameRole::Dark, None, &mut named);
+        }
+        for f in &hw.skies {
+            add_named(f, FrameRole::Sky, None, &mut named);
+        }
+    }
     let mut add = |f: &str, role: FrameRole, frames: &mut Vec<_>| {
         if seen.insert(f.to_string()) {
             frames.push((shown(f), role));
         }
     };
-    for t in &cat.targets {
-        for f in t.input_files.iter().flatten() {
-            add(f, FrameRole::Science, &mut frames);
-        }
-    }
     for st in &cat.standards {
         for f in st.input_files.iter().flatten() {
             add(f, FrameRole::Standard, &mut frames);
@@ -114,11 +131,22 @@ pub fn night_frame_list(cat: &Catalog, catalog_name: &str, dir: &Path) -> String
             }
         }
     }
-    let header = vec![
+    let mut header = vec![
         format!("sofipol set of frames of {catalog_name}: the frames its run used, with their roles"),
         "`sofipol night THIS_FILE -o CATALOG`: the same run on the same frames (docs/cli.md)".to_string(),
     ];
-    crate::frame_list::write(&header, &frames)
+    if !named.is_empty() && cat.targets.iter().any(|t| t.half_wave_plate.is_some()) {
+        for f in &cat.failures {
+            header.push(format!(
+                "not listed, not used by the run: {}: {}",
+                f.file,
+                one_line(&f.error)
+            ));
+        }
+    }
+    named.extend(frames.into_iter().map(|(p, r)| (p, r, None)));
+    let listed: Vec<_> = named.iter().map(|(p, r, t)| (p.clone(), *r, t.as_deref())).collect();
+    crate::frame_list::write_with_targets(&header, &listed)
 }
 
 /// The night log of `cat` (see the module's documentation), `catalog_name` naming the
@@ -188,6 +216,21 @@ fn frame_entries(cat: &Catalog) -> BTreeMap<String, FrameEntry> {
                 .or_default()
                 .roles
                 .push(format!("target {}", t.object));
+        }
+        if let Some(hw) = &t.half_wave_plate {
+            let mut role = |f: &str, what: String| {
+                let e = frames.entry(f.to_string()).or_default();
+                if !e.roles.contains(&what) {
+                    e.roles.push(what);
+                }
+            };
+            for f in &hw.darks {
+                role(f, "dark (master dark)".into());
+            }
+            for f in &hw.skies {
+                let flat = if hw.flat_from.contains(f) { " and flat" } else { "" };
+                role(f, format!("sky frame (matched sky{flat})"));
+            }
         }
         for c in &t.components {
             for d in c.dropped_dithers.iter().flatten() {
@@ -358,6 +401,57 @@ fn targets(s: &mut String, cat: &Catalog) {
         for f in t.flags.iter().flatten() {
             let _ = writeln!(s, "  {}", flag_line(f));
         }
+        if let Some(hw) = &t.half_wave_plate {
+            half_wave_plate_lines(s, hw);
+        }
+    }
+}
+
+/// A half-wave-plate target's cycles, their agreement and the zero point, under its
+/// component.
+fn half_wave_plate_lines(s: &mut String, hw: &crate::catalog::HalfWavePlateResult) {
+    let pol = |p: &crate::catalog::half_wave_plate::Pol| {
+        format!(
+            "q = {:+.3} +- {:.3} %, u = {:+.3} +- {:.3} %, P = {:.3} +- {:.3} %, angle = {:.1} +- {:.1} deg",
+            100.0 * p.q,
+            100.0 * p.sigma_q,
+            100.0 * p.u,
+            100.0 * p.sigma_u,
+            100.0 * p.p,
+            100.0 * p.sigma_p,
+            p.angle_deg,
+            p.sigma_angle_deg
+        )
+    };
+    let _ = writeln!(
+        s,
+        "  half-wave plate: {} frame(s), {} complete cycle(s), the component from the {}; zero point {} +- {} deg ({})",
+        hw.frames.len(),
+        hw.cycles.len(),
+        if hw.component_from == crate::catalog::half_wave_plate::FROM_CYCLES {
+            "cycles combined"
+        } else {
+            "least squares over the frames"
+        },
+        hw.zero_point.deg,
+        hw.zero_point.sigma_deg,
+        one_line(&hw.zero_point.source)
+    );
+    if let Some(i) = &hw.instrument {
+        let _ = writeln!(s, "    instrument frame: {}", pol(i));
+    }
+    for (k, c) in hw.cycles.iter().enumerate() {
+        let _ = writeln!(s, "    cycle {} on the sky: {}", k + 1, pol(&c.sky));
+    }
+    if let Some(a) = &hw.cycle_agreement {
+        let _ = writeln!(
+            s,
+            "    cycles' chi2: q {:.1}, u {:.1} for {} dof",
+            a.chi2_q, a.chi2_u, a.dof
+        );
+    }
+    if !hw.left_out.is_empty() {
+        let _ = writeln!(s, "    in no complete cycle: {}", one_line(&hw.left_out.join(", ")));
     }
 }
 

@@ -38,6 +38,7 @@ pub fn render(input: &ReportInput) -> String {
     summary(&mut h, cat);
     targets_table(&mut h, cat);
     foreground_table(&mut h, cat);
+    super::half_wave_plate::section(&mut h, cat);
     target_figures(&mut h, input);
     super::quality::quality(&mut h, cat, input.quality_figure.as_ref());
     super::sections::calibration(&mut h, cat);
@@ -83,7 +84,8 @@ fn summary(h: &mut String, cat: &Catalog) {
         let _ = writeln!(
             h,
             "<p class=\"uncalibrated\" id=\"uncalibrated\"><strong>UNCALIBRATED</strong>: {uncalibrated} \
-             component(s) have no instrumental calibration (no standards, or none that fix the offset c): \
+             component(s) have no instrumental calibration (no standards, none that fix the offset c, or \
+             the telescope's polarization neither removed nor carried: see their flags): \
              their q, u and angles are biased, they never pass the cut unless reduced with \
              <code>--allow-uncalibrated</code>, and the statistics leave their binaries out.</p>"
         );

@@ -33,6 +33,7 @@ use crate::stats::figures::{ism_figure, observed_figure};
 use crate::stats::sample::BinarySample;
 use crate::stats::setup;
 
+mod half_wave_plate;
 pub mod html;
 pub mod links;
 pub mod markup;

@@ -444,3 +444,75 @@ fn the_foreground_section_shows_delta_gamma_before_and_after() {
     );
     assert_ne!(after, before);
 }
+
+/// A half-wave-plate target's section: its rows in both frames, the zero point's source and
+/// the agreement where the cycles were compared, escaped, the page balanced; none for SOFI.
+#[test]
+fn the_half_wave_plate_section_shows_a_target_s_cycles_and_only_there() {
+    use crate::catalog::half_wave_plate::{CycleAgreement, CycleResult, HalfWavePlateResult, Pol, ZeroPoint};
+    let p = Pol::new(0.01, -0.02, 0.001, 0.001, 0.001, 0.001);
+    let mut t = Target::new("Single <Star>", Status::Ok);
+    t.components = vec![comp("A", p.q, p.u, p.sigma_q, &[])];
+    t.half_wave_plate = Some(HalfWavePlateResult {
+        component_from: "cycles".into(),
+        zero_point: ZeroPoint {
+            deg: 26.0,
+            sigma_deg: 12.0,
+            source: HOSTILE.into(),
+        },
+        profile: "NIRC2".into(),
+        modulation: "half_wave_plate".into(),
+        field_rotation: "sky_fixed".into(),
+        darks: vec![],
+        skies: vec![],
+        flat_from: vec![],
+        bad_pixels: 3,
+        instrument: Some(p),
+        sky: Some(p),
+        cycles: vec![CycleResult {
+            frames: vec!["a.fits".into()],
+            instrument: p,
+            sky: p,
+        }],
+        cycle_agreement: Some(CycleAgreement {
+            q_difference_sigma: vec![1.5],
+            u_difference_sigma: vec![-0.5],
+            chi2_q: 2.25,
+            chi2_u: 0.25,
+            dof: 1,
+        }),
+        least_squares_instrument: None,
+        least_squares_sky: None,
+        left_out: vec!["late.fits".into()],
+        frames: vec![],
+    });
+    let sofi = Catalog {
+        targets: vec![binary(
+            "Alpha",
+            comp("A", 0.03, 0.0, 0.002, &[]),
+            comp("B", 0.0, 0.03, 0.002, &[]),
+        )],
+        ..Catalog::default()
+    };
+    let mut cat = sofi.clone();
+    cat.targets.push(t);
+    let page = render(&input(cat, Err(not_computed("x"))));
+    assert_balanced(&page);
+    let i = page.find("<section id=\"half-wave-plate\">").expect("the section");
+    let section = &page[i..i + page[i..].find("</section>").unwrap()];
+    assert!(section.contains("Single &lt;Star&gt;") && section.contains(&escape(HOSTILE)));
+    assert!(!section.contains("<script>"));
+    // Sky-fixed: the cycles compared in the instrument frame, the chi2 on that row.
+    assert!(
+        section.contains("<td>cycles combined</td><td>instrument</td>"),
+        "{section}"
+    );
+    assert!(
+        section.contains("q 2.2, u 0.2 / 1") || section.contains("q 2.3, u 0.3 / 1"),
+        "{section}"
+    );
+    assert!(section.contains("<td>cycles combined ★</td><td>sky</td>"), "{section}");
+    assert!(section.contains("1.5 σ in q") && section.contains("instrument frame") && section.contains("late.fits"));
+    let page = render(&input(sofi, Err(not_computed("x"))));
+    assert!(!page.contains("half-wave-plate"));
+}

@@ -25,12 +25,14 @@
 //! was simulated), `frame` (one science frame: parameters,
 //! sources, detector, header), `dome` (dome-flat frames), `output` (whole scenes in
 //! memory or written to a folder), `loaded` (one target's frames as the reduction's input),
-//! [`hwp`] (half-wave-plate scenes for a half-wave-plate profile: [`HwpSimulator`]).
+//! [`hwp`] (half-wave-plate scenes for a half-wave-plate profile: [`HwpSimulator`];
+//! their scene section in [`hwp_scene`]).
 mod dome;
 pub mod effects;
 pub mod foreground;
 mod frame;
 pub mod hwp;
+pub mod hwp_scene;
 mod loaded;
 mod output;
 pub mod pointing;

@@ -744,7 +744,7 @@ pub struct Scene {
     /// at one pointing through the plate's positions, sky frames, darks
     /// ([`crate::sim::hwp`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub half_wave_plate: Option<super::hwp::HwpConfig>,
+    pub half_wave_plate: Option<super::hwp_scene::HwpConfig>,
 }
 
 /// The o+e flux per NDIT-averaged frame of DIT `dit_s` of a source of magnitude `mag` at

@@ -35,6 +35,7 @@
 //!    (`modulation.zero_point_deg` plus each frame's field rotation, `[field_rotation]`).
 pub mod cosmic;
 pub mod image;
+pub mod output;
 
 use std::path::{Path, PathBuf};
 
@@ -44,15 +45,19 @@ use sofipol_calib::header::Header;
 use sofipol_calib::profile::{ModulationKind, Role, SkySource};
 use sofipol_calib::Profile;
 
+pub use crate::catalog::half_wave_plate::{
+    CycleAgreement, CycleResult, FrameResult, LeastSquares, NotUsed, Pol, SkyFit, ZeroPoint,
+};
 use crate::catalog::provenance::Provenance;
 use crate::error::{Error, Result};
 use crate::stokes::hwp::{self, CycleMethod, HwpStokes, PlateFrame};
 use image::Img;
 
-/// The catalog of the half-wave-plate reduction (docs/instruments.md, "The catalog").
+/// What the half-wave-plate reduction measured: the night writes it as sofipol's catalog
+/// ([`output::to_catalog`]; docs/instruments.md, "The catalog").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SinglePointingCatalog {
-    /// What this file is.
+    /// What this is ([`CATALOG_KIND`]).
     pub kind: String,
     /// Software, commit, command line, time.
     pub provenance: Provenance,
@@ -79,180 +84,7 @@ pub struct SinglePointingCatalog {
 }
 
 /// The kind string of [`SinglePointingCatalog`].
-pub const CATALOG_KIND: &str = "sofipol half-wave-plate single-pointing catalog";
-
-/// The analyzer zero point.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ZeroPoint {
-    /// theta0, deg.
-    pub deg: f64,
-    /// Its 1-sigma uncertainty, deg: a systematic error of every angle on the sky, not in
-    /// the angles' statistical errors.
-    pub sigma_deg: f64,
-    /// Where it comes from.
-    pub source: String,
-}
-
-/// A file not used.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct NotUsed {
-    /// The file.
-    pub file: String,
-    /// Why.
-    pub reason: String,
-}
-
-/// Linear polarization with its errors.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Pol {
-    /// Stokes q (fraction).
-    pub q: f64,
-    /// Stokes u.
-    pub u: f64,
-    /// 1-sigma error of q adopted (the larger of the propagated and the scatter error).
-    pub sigma_q: f64,
-    /// 1-sigma error of u adopted.
-    pub sigma_u: f64,
-    /// The error propagated from the photometry alone, q.
-    pub sigma_q_photometric: f64,
-    /// The same, u.
-    pub sigma_u_photometric: f64,
-    /// P = sqrt(q^2 + u^2) (not debiased).
-    pub p: f64,
-    /// Its first-order error (from sigma_q, sigma_u).
-    pub sigma_p: f64,
-    /// The angle, 0.5 atan2(u, q), deg in [0, 180).
-    pub angle_deg: f64,
-    /// Its statistical error, deg (0.5 sigma_p / p).
-    pub sigma_angle_deg: f64,
-}
-
-impl Pol {
-    fn new(q: f64, u: f64, sq: f64, su: f64, sq_phot: f64, su_phot: f64) -> Pol {
-        let p = q.hypot(u);
-        let sp = if p > 0.0 {
-            ((q * sq).powi(2) + (u * su).powi(2)).sqrt() / p
-        } else {
-            sq.hypot(su)
-        };
-        Pol {
-            q,
-            u,
-            sigma_q: sq,
-            sigma_u: su,
-            sigma_q_photometric: sq_phot,
-            sigma_u_photometric: su_phot,
-            p,
-            sigma_p: sp,
-            angle_deg: (0.5 * u.atan2(q).to_degrees()).rem_euclid(180.0),
-            sigma_angle_deg: if p > 0.0 {
-                (0.5 * sp / p).to_degrees().min(90.0)
-            } else {
-                90.0
-            },
-        }
-    }
-}
-
-/// One beam's sky fit.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct SkyFit {
-    /// Scale of the sky frame (1 for an annulus sky).
-    pub scale: f64,
-    /// Offset, ADU (the annulus median for an annulus sky).
-    pub offset_adu: f64,
-    /// Robust rms of the residuals, ADU.
-    pub sigma_adu: f64,
-    /// Pixels used.
-    pub pixels: usize,
-}
-
-/// One science frame.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct FrameResult {
-    /// The file.
-    pub file: String,
-    /// Plate angle (header), deg.
-    pub plate_deg: f64,
-    /// MJD.
-    pub mjd: f64,
-    /// The analyzer's turn from the instrument to the sky (field rotation), deg.
-    pub sky_offset_deg: f64,
-    /// Centre of the o image, (x, y) px 0-based.
-    pub o_centre: [f64; 2],
-    /// Centre of the e image.
-    pub e_centre: [f64; 2],
-    /// e - o, (dx, dy) px.
-    pub eo_offset: [f64; 2],
-    /// Sky of the o beam.
-    pub sky_o: SkyFit,
-    /// Sky of the e beam.
-    pub sky_e: SkyFit,
-    /// The farthest pixel above the linear limit from either centre, px (0: none).
-    pub saturation_radius_px: f64,
-    /// o flux, ADU (summed over the coadds, flat-fielded).
-    pub o: f64,
-    /// Its error.
-    pub sigma_o: f64,
-    /// e flux.
-    pub e: f64,
-    /// Its error.
-    pub sigma_e: f64,
-    /// F = (o - e)/(o + e).
-    pub f: f64,
-    /// Its error.
-    pub sigma_f: f64,
-    /// Pixels repaired as cosmic-ray hits in the o and e apertures ([`cosmic`]); the fluxes
-    /// and F above are after the repair.
-    #[serde(default)]
-    pub cosmic_ray_pixels: [usize; 2],
-}
-
-/// One complete plate cycle.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CycleResult {
-    /// Its files at plate 0, 22.5, 45, 67.5 deg.
-    pub frames: Vec<String>,
-    /// Double difference, instrument frame.
-    pub instrument: Pol,
-    /// On the sky: the double difference turned by the cycle's offset, or, when the field
-    /// turns within the cycle, q, u and the constant fitted at each frame's own angle.
-    pub sky: Pol,
-}
-
-/// How far the complete cycles agree.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CycleAgreement {
-    /// Each consecutive pair of cycles: (q_{k+1} - q_k) / sqrt(sigma_k^2 + sigma_{k+1}^2),
-    /// photometric errors, in the instrument frame, or on the sky when the field turns
-    /// (pupil tracking: the star's (q, u) turns in the instrument frame).
-    pub q_difference_sigma: Vec<f64>,
-    /// The same for u.
-    pub u_difference_sigma: Vec<f64>,
-    /// chi^2 of the cycles' q about their mean (photometric errors), n - 1 dof.
-    pub chi2_q: f64,
-    /// The same for u.
-    pub chi2_u: f64,
-    /// Degrees of freedom.
-    pub dof: usize,
-}
-
-/// The least squares over every frame.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct LeastSquares {
-    /// q, u with errors scaled by sqrt(chi2/dof) when chi2 lies beyond its 99th percentile.
-    pub pol: Pol,
-    /// The fitted constant c of F (beam imbalance), when fitted.
-    pub c: Option<f64>,
-    /// Why c was not fitted (fewer than 3 distinct angles, or angles that do not determine
-    /// it), when it was not.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub c_not_fitted: Option<String>,
-    /// chi^2.
-    pub chi2: f64,
-    /// Degrees of freedom.
-    pub dof: usize,
-}
+pub const CATALOG_KIND: &str = "sofipol half-wave-plate single-pointing result";
 
 /// One target in one filter.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -119,6 +119,12 @@ impl BinarySample {
                 exclude("reduction failed".into());
                 continue;
             }
+            // A half-wave-plate target is one star by design (a SOFI target with one
+            // component lost its companion).
+            if t.half_wave_plate.is_some() && t.components.len() == 1 {
+                exclude("a single star: no Delta-gamma (it needs two components)".into());
+                continue;
+            }
             if t.components.len() != 2 {
                 exclude(format!("{} component(s), need 2", t.components.len()));
                 continue;
