@@ -354,7 +354,9 @@ pub fn calibrate_catalog_with(
 /// A target as [`calibrate_catalog_with`] leaves it in the catalog, for one target alone:
 /// its components re-solved with `cal` (which came from `origin`), the cut and Delta-gamma
 /// updated. The function the catalog's calibration runs per target, so a figure drawn
-/// from it shows the catalog's numbers.
+/// from it shows the catalog's numbers, except the foreground and the Delta-gamma after
+/// subtracting it: here from the target's field alone (flat prior), in the catalog from
+/// the night's fields together (`night_foregrounds`).
 pub fn resolved_target(t: &Target, cal: Option<&Calibration>, origin: &str, ctx: &CalibrationContext) -> Target {
     let mut t = t.clone();
     let other_night = !matches!(origin, "night" | "disabled");
@@ -481,36 +483,47 @@ fn foreground_inputs(
 /// ([`crate::foreground::estimate_night`]), its catalog entries and Delta-gammas updated.
 /// A target alone (the per-target pass, [`resolved_target`]) has the flat prior.
 fn night_foregrounds(targets: &mut [Target], cal: Option<&Calibration>, ctx: &CalibrationContext) {
+    let finite = |v: Option<f64>| v.filter(|v| v.is_finite());
     let inputs: Vec<(
         usize,
+        String,
         Vec<FieldStarQu>,
         Option<crate::stokes::propagation::CalibrationCovariance>,
     )> = targets
         .iter()
         .enumerate()
-        .filter(|(_, t)| t.ra_deg.is_some() && t.dec_deg.is_some())
+        .filter(|(_, t)| finite(t.ra_deg).is_some() && finite(t.dec_deg).is_some())
         .filter_map(|(i, t)| {
             let (qu, errors) = foreground_inputs(t, cal, ctx);
-            qu.map(|qu| (i, qu, errors))
+            qu.map(|qu| (i, filter_of(t), qu, errors))
         })
         .collect();
-    if inputs.len() < 2 {
-        return;
+    // Each filter's fields alone: the foreground's size differs between filters.
+    let mut filters: Vec<&str> = inputs.iter().map(|(_, f, ..)| f.as_str()).collect();
+    filters.sort_unstable();
+    filters.dedup();
+    let mut results = Vec::new();
+    for filter in filters {
+        let group: Vec<&(usize, String, Vec<FieldStarQu>, _)> = inputs.iter().filter(|x| x.1 == filter).collect();
+        if group.len() < 2 {
+            continue;
+        }
+        let fields: Vec<(f64, f64, &[FieldStarQu])> = group
+            .iter()
+            .map(|(i, _, qu, _)| {
+                let t = &targets[*i];
+                (
+                    t.ra_deg.unwrap_or_default(),
+                    t.dec_deg.unwrap_or_default(),
+                    qu.as_slice(),
+                )
+            })
+            .collect();
+        let outcomes = crate::foreground::estimate_night(&fields, &EstimateParams::default());
+        results.extend(group.iter().map(|(i, _, _, e)| (*i, e.clone())).zip(outcomes));
     }
-    let fields: Vec<(f64, f64, &[FieldStarQu])> = inputs
-        .iter()
-        .map(|(i, qu, _)| {
-            let t = &targets[*i];
-            (
-                t.ra_deg.unwrap_or_default(),
-                t.dec_deg.unwrap_or_default(),
-                qu.as_slice(),
-            )
-        })
-        .collect();
-    let outcomes = crate::foreground::estimate_night(&fields, &EstimateParams::default());
-    for ((i, _, errors), outcome) in inputs.iter().zip(outcomes) {
-        crate::foreground::apply_outcome(&mut targets[*i], outcome, errors.as_ref());
+    for ((i, errors), outcome) in results {
+        crate::foreground::apply_outcome(&mut targets[i], outcome, errors.as_ref());
     }
 }
 

@@ -73,11 +73,16 @@
 //! fields inform each field's prior: their likelihoods of (t, s) (q and u of each field)
 //! give the nonparametric maximum-likelihood distribution of (t, s) over the grid (EM),
 //! mixed with the flat prior as one more field ([`kriging::night_prior`]); a field's own
-//! data are left out of its prior. Measured against the simulator's field, nights of 6
-//! fields: pull rms 1.06 at 20", 0.81 at 90", 0.75 at 600" (still conservative for smooth
-//! fields, never optimistic); end to end through `sofipol night` (rms 0.4 %, 90", 6
-//! binaries a night, 8 nights): 0.89. A night with a single target with field stars, and
-//! `sofipol target`, have the flat prior.
+//! data, and those of every field within [`SAME_FIELD_ARCMIN`] of it (the same binary again,
+//! or a neighbour sharing its stars), are left out of its prior, and at least
+//! [`MIN_OTHER_FIELDS`] others are needed. The calibration gives each filter's fields
+//! alone. Measured against the simulator's field, nights of 6
+//! fields: pull rms 1.04 at 20", 0.77 at 90", 0.71 at 600" (conservative for smooth fields
+//! over many nights); end to end through `sofipol night` (rms 0.4 %, 90", 6 binaries a
+//! night, 8 nights): 0.85. One night's prior is common to its fields: a night whose other
+//! fields happen to look smoother than this one makes its errors too small (2 nights of
+//! the accuracy report's foreground test: 1.16). A night with fewer than 3 targets with
+//! field stars, and `sofipol target`, have the flat prior.
 //!
 //! # Outliers
 //!
@@ -120,16 +125,15 @@ pub const MAX_CLIP_ROUNDS: usize = 20;
 pub fn method_text(params: &EstimateParams) -> String {
     let tau = match params.dispersion {
         Dispersion::Estimated { tau_max } => format!(
-            "outliers clipped against a random-effects mean (tau per q and u from its REML posterior, flat prior up to {} %); the foreground at the binary by Bayesian ordinary kriging of each of q and u (semivariogram nugget + linear, REML on a grid, flat priors up to {} % or the night's other fields' distribution), covariance = the posterior mixture's",
+            "outliers clipped against a random-effects mean (tau per q and u from its REML posterior, flat prior up to {} %); the foreground at the binary by Bayesian ordinary kriging of each of q and u (semivariogram nugget + linear, REML on a grid up to {} %), covariance = the posterior mixture's",
             100.0 * tau_max,
             100.0 * tau_max
         ),
-        Dispersion::None => "no dispersion assumed (tau = 0), covariance = error of the mean".to_string(),
+        Dispersion::None => {
+            "weighted mean, no dispersion assumed (tau = 0), covariance = error of the mean".to_string()
+        }
     };
-    format!(
-        "field stars: random-effects weighted mean, {tau}, chi-square clip p = {}",
-        params.clip_probability
-    )
+    format!("field stars: {tau}, chi-square clip p = {}", params.clip_probability)
 }
 
 /// One field star's calibrated polarization (sky frame, fractions like the components' q
@@ -543,7 +547,8 @@ pub fn estimate(ra_deg: f64, dec_deg: f64, stars: &[FieldStarQu], params: &Estim
 /// The foregrounds of a night's binaries, each (`ra_deg`, `dec_deg`, its field stars):
 /// every field's kriging likelihood of the foreground's variation (t, s) enters the
 /// night's distribution of it ([`kriging::night_prior`]), which is then each field's prior
-/// (module doc, "The night's fields"). The outcomes are in the order of `fields`.
+/// (module doc, "The night's fields"). Give each filter's fields on their own: the
+/// foreground's size differs between filters. The outcomes are in the order of `fields`.
 pub fn estimate_night(fields: &[(f64, f64, &[FieldStarQu])], params: &EstimateParams) -> Vec<Outcome> {
     use rayon::prelude::*;
     let prepared: Vec<Prepared> = fields
@@ -566,23 +571,46 @@ pub fn estimate_night(fields: &[(f64, f64, &[FieldStarQu])], params: &EstimatePa
         Prepared::Ready(r) => r.grids.as_ref().map(|g| g[0].iter().map(|p| p.ln_prior).collect()),
         Prepared::Done(_) => None,
     });
-    // Each field's prior from the night's other fields (its own data are in its
-    // likelihood already).
+    // Each field's prior from the night's other fields: its own data are in its
+    // likelihood already, and a field within SAME_FIELD_ARCMIN of it (the same binary
+    // observed again, another filter's sequence of it, a neighbour sharing its stars) holds
+    // nearly the same data, so it is left out too. Fewer than MIN_OTHER_FIELDS others: the
+    // flat prior.
     prepared
         .into_par_iter()
         .enumerate()
         .map(|(f, p)| {
-            let others: Vec<Vec<f64>> = grids
+            let (ra, dec) = (fields[f].0, fields[f].1);
+            let others: Vec<&Vec<Vec<f64>>> = grids
                 .iter()
                 .enumerate()
-                .filter(|(g, _)| *g != f)
-                .flat_map(|(_, c)| c.iter().cloned())
+                .filter(|(g, c)| {
+                    *g != f
+                        && !c.is_empty()
+                        && !(separation_arcmin(ra, dec, fields[*g].0, fields[*g].1) < SAME_FIELD_ARCMIN)
+                })
+                .map(|(_, c)| c)
                 .collect();
-            let prior = ln_prior.as_ref().map(|lp| kriging::night_prior(&others, lp));
-            finish(p, prior.as_deref())
+            let prior = match &ln_prior {
+                Some(lp) if others.len() >= MIN_OTHER_FIELDS => {
+                    let flat: Vec<Vec<f64>> = others.iter().flat_map(|c| c.iter().cloned()).collect();
+                    Some((kriging::night_prior(&flat, others.len(), lp), others.len()))
+                }
+                _ => None,
+            };
+            finish(p, prior.as_ref().map(|(p, n)| (p.as_slice(), *n)))
         })
         .collect()
 }
+
+/// Fields closer than this to a field (arcmin: a SOFI field is 4.9 arcmin across) share its
+/// field stars and are left out of its prior.
+pub const SAME_FIELD_ARCMIN: f64 = 5.0;
+
+/// Fewest other fields for a night's prior (fewer: the flat prior). One other field's
+/// likelihood alone would make a prior nearly as sharp as a measurement of this field's
+/// variation.
+pub const MIN_OTHER_FIELDS: usize = 2;
 
 /// A field's estimate up to the night's prior: the outcome itself when the field cannot
 /// give one, else the kept stars' fits and kriging grids.
@@ -774,12 +802,12 @@ fn prepare(ra_deg: f64, dec_deg: f64, stars: &[FieldStarQu], params: &EstimatePa
 
 /// The estimate of a prepared field with the night's prior (ln-weights on the kriging
 /// grid; None: the flat prior).
-fn finish(p: Prepared, night_prior: Option<&[f64]>) -> Outcome {
+fn finish(p: Prepared, night_prior: Option<(&[f64], usize)>) -> Outcome {
     let r = match p {
         Prepared::Done(o) => return *o,
         Prepared::Ready(r) => *r,
     };
-    let ln_extra = |i: usize| night_prior.map_or(0.0, |p| p[i]);
+    let ln_extra = |i: usize| night_prior.map_or(0.0, |(p, _)| p[i]);
     let predicted = r.grids.as_ref().and_then(|[gq, gu]| {
         let (pq, pu) = (kriging::combine(gq, ln_extra)?, kriging::combine(gu, ln_extra)?);
         Some((pq, pu))
@@ -804,7 +832,7 @@ fn finish(p: Prepared, night_prior: Option<&[f64]>) -> Outcome {
             let spatial = Spatial {
                 nugget: [pq.nugget2.sqrt(), pu.nugget2.sqrt()],
                 slope: [pq.slope2.sqrt(), pu.slope2.sqrt()],
-                night_prior: night_prior.is_some(),
+                night_prior: night_prior.map(|(_, n)| n),
             };
             ([pq.value, pu.value], cov, Some(spatial))
         }
@@ -820,7 +848,21 @@ fn finish(p: Prepared, night_prior: Option<&[f64]>) -> Outcome {
         used: r.used,
         rejected: r.rejected,
         max_separation_arcmin: r.max_sep,
-        method: method_text(&r.params),
+        method: match &spatial {
+            Some(sp) => format!(
+                "{}; prior of the foreground's variation: {}",
+                method_text(&r.params),
+                match sp.night_prior {
+                    Some(n) => format!("the night's distribution from {n} other field(s)"),
+                    None => "flat".to_string(),
+                }
+            ),
+            None if r.grids.is_some() => format!(
+                "{}; the kriging failed (no grid point with a positive-definite covariance): the random-effects prediction, error of the mean + E[tau^2]",
+                method_text(&r.params)
+            ),
+            None => method_text(&r.params),
+        },
     })
 }
 
@@ -832,8 +874,9 @@ pub struct Spatial {
     pub nugget: [f64; 2],
     /// sqrt(E[s^2]) of q and u: the linear part's rms difference at 5 arcmin / sqrt(2).
     pub slope: [f64; 2],
-    /// Whether the night's other fields informed the prior of t and s.
-    pub night_prior: bool,
+    /// How many of the night's other fields informed the prior of t and s (None: the flat
+    /// prior).
+    pub night_prior: Option<usize>,
 }
 
 impl ForegroundEstimate {
@@ -895,7 +938,10 @@ pub fn set_target_foreground(
     params: &EstimateParams,
     cal: Option<&CalibrationCovariance>,
 ) -> Applied {
-    let (Some(ra), Some(dec)) = (target.ra_deg, target.dec_deg) else {
+    let (Some(ra), Some(dec)) = (
+        target.ra_deg.filter(|v| v.is_finite()),
+        target.dec_deg.filter(|v| v.is_finite()),
+    ) else {
         // No sky position: no estimate, and the Delta-gamma of the calibrated components
         // all the same.
         target.foreground = None;

@@ -38,7 +38,9 @@ pub struct Pol {
     /// Stokes u.
     #[serde(deserialize_with = "crate::nullable::num")]
     pub u: f64,
-    /// 1-sigma error of q adopted (the larger of the propagated and the scatter error).
+    /// 1-sigma error of q adopted: for a cycle or the cycles' combination the larger of the
+    /// propagated and the scatter error; for a least squares the propagated error, scaled by
+    /// sqrt(chi2/dof) only when chi2 lies beyond its 99th percentile.
     #[serde(deserialize_with = "crate::nullable::num")]
     pub sigma_q: f64,
     /// 1-sigma error of u adopted.

@@ -20,7 +20,7 @@
 //! ```
 //!
 //! a nugget t (variation between places closer than the stars are to each other: patchy
-//! dust, independent from place to place) plus a linear part (a field that varies more
+//! dust, independent from one object to the next, even at the same place) plus a linear part (a field that varies more
 //! the farther apart two places are; s^2 is its semivariance at 5 arcmin, one SOFI field).
 //! The linear variogram is the one of Brownian motion on the plane: it assumes no scale,
 //! fits a gradient across the field (a parabola's chord over the field's extent) as well as
@@ -257,8 +257,11 @@ fn at(
             quad += lambda[i] * row;
         }
         let lk: f64 = lambda.iter().zip(&k).map(|(a, b)| a * b).sum();
-        let var = (quad - 2.0 * lk + b * c + t2).max(0.0);
-        return Some((logl, lambda, value, var));
+        let var = quad - 2.0 * lk + b * c + t2;
+        if !(value.is_finite() && logl.is_finite() && var.is_finite()) {
+            return None;
+        }
+        return Some((logl, lambda, value, var.max(0.0)));
     }
     None
 }
@@ -418,9 +421,10 @@ pub fn combine(points: &[GridPoint], ln_extra: impl Fn(usize) -> f64) -> Option<
 /// The night's distribution of (t, s) over the common grid, from the fields' likelihood
 /// grids (each a `Vec` of ln-likelihoods on the same grid, flat prior weights `ln_prior`):
 /// the nonparametric maximum-likelihood mixture (EM, [`EM_ROUNDS`] rounds from the flat
-/// prior), mixed with the flat prior as one more field. Returned as ln-weights relative to
+/// prior), mixed with the flat prior as one more of the `n_fields` fields. Returned as
+/// ln-weights relative to
 /// the flat prior (to add to each point's ln-likelihood + ln-prior).
-pub fn night_prior(fields: &[Vec<f64>], ln_prior: &[f64]) -> Vec<f64> {
+pub fn night_prior(fields: &[Vec<f64>], n_fields: usize, ln_prior: &[f64]) -> Vec<f64> {
     let k = ln_prior.len();
     let top = ln_prior.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     let mut flat: Vec<f64> = ln_prior.iter().map(|l| (l - top).exp()).collect();
@@ -452,7 +456,8 @@ pub fn night_prior(fields: &[Vec<f64>], ln_prior: &[f64]) -> Vec<f64> {
         let total: f64 = next.iter().sum();
         pi = next.into_iter().map(|v| v / total).collect();
     }
-    let f = lik.len() as f64;
+    // The flat prior weighs as one more field (q and u of a field are two grids).
+    let f = n_fields.max(1) as f64;
     pi.iter()
         .zip(&flat)
         .map(|(p, q)| ((f * p + q) / (f + 1.0) / q).ln())

@@ -724,13 +724,19 @@ fn night_pulls(coherence: f64, size: usize, fields: usize, rms_field: f64) -> (V
     let mut rng = Rng64::seed_from_u64(11);
     let (mut pulls, mut re) = (Vec::new(), Vec::new());
     for night in 0..fields / size {
+        // The binaries 1 deg apart in RA: separate fields.
+        let at = |i: usize| (RA + i as f64, DEC);
         let drawn: Vec<_> = (0..size)
             .map(|i| {
                 let field = sky_field(rms_field, coherence, 1000 + (night * size + i) as u64);
-                field_through_the_sky(&mut rng, &field, RA, DEC)
+                field_through_the_sky(&mut rng, &field, at(i).0, at(i).1)
             })
             .collect();
-        let input: Vec<(f64, f64, &[FieldStarQu])> = drawn.iter().map(|(s, _)| (RA, DEC, s.as_slice())).collect();
+        let input: Vec<(f64, f64, &[FieldStarQu])> = drawn
+            .iter()
+            .enumerate()
+            .map(|(i, (s, _))| (at(i).0, at(i).1, s.as_slice()))
+            .collect();
         for (o, (_, fb)) in estimate_night(&input, &EstimateParams::default()).iter().zip(&drawn) {
             if let Outcome::Estimated(e) = o {
                 pulls.extend([(e.q - fb[0]) / e.cov.var_q.sqrt(), (e.u - fb[1]) / e.cov.var_u.sqrt()]);
@@ -747,8 +753,8 @@ fn night_pulls(coherence: f64, size: usize, fields: usize, rms_field: f64) -> (V
 /// binary; 300 fields per coherence scale), by nights of 6 fields (module doc, "The
 /// night's fields"): the pulls have an rms in [0.85, 1.15] at a coherence scale of 20"
 /// (nearly independent places); at 90" they are still conservative but at least 0.75 and
-/// 0.1 above the random-effects covariance's (the binary as one more independent place:
-/// 0.66); never wider than 1.15 at 600" (nearly a gradient across the strip), nor for a
+/// 0.05 above the random-effects covariance's (the binary as one more independent place:
+/// 0.67); never wider than 1.15 at 600" (nearly a gradient across the strip), nor for a
 /// field alone (the flat prior).
 #[test]
 fn pulls_at_the_binary_through_the_simulators_random_field() {
@@ -774,8 +780,8 @@ fn pulls_at_the_binary_through_the_simulators_random_field() {
                     "coherence 20\", nights of 6: pull rms {r:.3} (too conservative)"
                 ));
             }
-            // Measured: 0.81 against the random effects' 0.66.
-            if size == 6 && coherence == 90.0 && !(r >= 0.75 && r >= rr + 0.1) {
+            // Measured: 0.77 against the random effects' 0.67.
+            if size == 6 && coherence == 90.0 && !(r >= 0.75 && r >= rr + 0.05) {
                 failures.push(format!(
                     "coherence 90\", nights of 6: pull rms {r:.3}, random effects {rr:.3}"
                 ));
@@ -833,4 +839,31 @@ fn a_precise_star_among_noisy_ones_is_not_clipped_for_their_median() {
     let (tq, tu) = (-0.0070, 0.0209);
     assert!((e.q - tq).abs() < 2.0 * e.cov.var_q.sqrt(), "q {} vs {tq}", e.q);
     assert!((e.u - tu).abs() < 2.0 * e.cov.var_u.sqrt(), "u {} vs {tu}", e.u);
+}
+
+/// Two targets at the same place with the same field stars (the binary observed twice, or
+/// in two filters) do not inform each other's prior: with only such a twin besides, each
+/// keeps the flat prior, and the estimate is the one of the field alone.
+#[test]
+fn the_same_field_twice_does_not_inform_its_own_prior() {
+    let mut rng = Rng64::seed_from_u64(5);
+    let field = sky_field(0.003, 90.0, 77);
+    let (stars, _) = field_through_the_sky(&mut rng, &field, RA, DEC);
+    let alone = estimated(estimate(RA, DEC, &stars, &EstimateParams::default()));
+    let out = estimate_night(
+        &[(RA, DEC, stars.as_slice()), (RA, DEC + 1.0 / 3600.0, stars.as_slice())],
+        &EstimateParams::default(),
+    );
+    for (k, o) in out.into_iter().enumerate() {
+        let e = estimated(o);
+        assert_eq!(e.spatial.map(|s| s.night_prior), Some(None), "{}", e.method);
+        assert!(
+            e.method.contains("prior of the foreground's variation: flat"),
+            "{}",
+            e.method
+        );
+        if k == 0 {
+            assert!((e.q - alone.q).abs() < 1e-12 && (e.cov.var_q - alone.cov.var_q).abs() < 1e-15);
+        }
+    }
 }

@@ -70,7 +70,9 @@ fn context<'a>(profile: &'a Profile, params: &TargetParams, setup: &'a CalibSetu
 
 impl Prepared {
     /// Target `t` as [`finish`] leaves it in the catalog (re-solved with the calibration,
-    /// refused where another night's calibration lacks its filter), for one target alone.
+    /// refused where another night's calibration lacks its filter), for one target alone:
+    /// its foreground from its own field (flat prior), where the catalog's comes from the
+    /// night's fields together.
     pub fn resolved(&self, t: &Target, profile: &Profile, params: &TargetParams, setup: &CalibSetup) -> Target {
         let (cal, origin) = &self.chosen;
         let mut t = calibration::resolved_target(t, cal.as_ref(), origin, &context(profile, params, setup));

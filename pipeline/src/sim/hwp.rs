@@ -231,7 +231,18 @@ impl HwpSimulator {
         if cfg.cycles == 0 {
             return Err(invalid("half_wave_plate.cycles = 0 must be >= 1".into()));
         }
-        let n = cfg.star.len() * cfg.cycles * cfg.plate_deg.len() + cfg.sky_cycles * cfg.plate_deg.len() + cfg.darks;
+        let n = cfg
+            .star
+            .len()
+            .checked_mul(cfg.cycles)
+            .and_then(|v| v.checked_mul(cfg.plate_deg.len()))
+            .and_then(|v| {
+                cfg.sky_cycles
+                    .checked_mul(cfg.plate_deg.len())
+                    .and_then(|s| v.checked_add(s))
+            })
+            .and_then(|v| v.checked_add(cfg.darks))
+            .unwrap_or(usize::MAX);
         if n > MAX_FRAMES {
             return Err(invalid(format!(
                 "half_wave_plate: {n} frames (stars x cycles x plate positions + skies + darks) is more than {MAX_FRAMES}"

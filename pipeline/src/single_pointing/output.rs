@@ -124,17 +124,25 @@ fn target(sp: &SinglePointingCatalog, t: &TargetResult, paths: &Paths, profile: 
             let offset = if from == FROM_CYCLES {
                 TermSource::Cancelled
             } else {
+                // Without a complete cycle nothing cancels c: fitted, or missing (q and u
+                // then carry it, and the cut refuses them).
                 match t.least_squares_sky.as_ref().and_then(|l| l.c) {
                     Some(_) => TermSource::Fitted,
-                    None => TermSource::Cancelled,
+                    None => TermSource::Missing,
                 }
             };
             out.components
                 .push(component(&p, zp.sigma_deg, &zp.source, offset, from));
             if from == FROM_LEAST_SQUARES {
                 out.status = Status::Partial;
+                let c_note = t
+                    .least_squares_sky
+                    .as_ref()
+                    .and_then(|l| l.c_not_fitted.as_ref())
+                    .map(|why| format!("; the offset c was not fitted ({why}): q and u carry it"))
+                    .unwrap_or_default();
                 out.error = Some(format!(
-                    "no complete plate cycle (0, 22.5, 45, 67.5 deg) in {} frame(s): q and u from the least squares over the frames",
+                    "no complete plate cycle (0, 22.5, 45, 67.5 deg) in {} frame(s): q and u from the least squares over the frames{c_note}",
                     t.frames.len()
                 ));
             } else if !t.left_out.is_empty() {
