@@ -520,7 +520,7 @@ fn night_foregrounds(targets: &mut [Target], cal: Option<&Calibration>, ctx: &Ca
             })
             .collect();
         let outcomes = crate::foreground::estimate_night(&fields, &EstimateParams::default());
-        results.extend(group.iter().map(|(i, _, _, e)| (*i, e.clone())).zip(outcomes));
+        results.extend(group.iter().map(|(i, _, _, e)| (*i, *e)).zip(outcomes));
     }
     for ((i, errors), outcome) in results {
         crate::foreground::apply_outcome(&mut targets[i], outcome, errors.as_ref());

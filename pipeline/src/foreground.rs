@@ -291,7 +291,7 @@ pub struct ForegroundEstimate {
 #[derive(Debug, Clone, PartialEq)]
 pub enum Outcome {
     /// An estimate from at least [`MIN_FIELD_STARS`] stars.
-    Estimated(ForegroundEstimate),
+    Estimated(Box<ForegroundEstimate>),
     /// Fewer than [`MIN_FIELD_STARS`] stars left: no estimate.
     TooFew {
         /// Stars left after the rejections.
@@ -837,7 +837,7 @@ fn finish(p: Prepared, night_prior: Option<(&[f64], usize)>) -> Outcome {
             ([pq.value, pu.value], cov, Some(spatial))
         }
     };
-    Outcome::Estimated(ForegroundEstimate {
+    Outcome::Estimated(Box::new(ForegroundEstimate {
         q: mean[0],
         u: mean[1],
         cov,
@@ -863,7 +863,7 @@ fn finish(p: Prepared, night_prior: Option<(&[f64], usize)>) -> Outcome {
             ),
             None => method_text(&r.params),
         },
-    })
+    }))
 }
 
 /// The foreground's variation over the field as the kriging saw it (posterior means,
@@ -958,7 +958,7 @@ pub fn apply_outcome(target: &mut Target, outcome: Outcome, cal: Option<&Calibra
         Outcome::Estimated(e) => {
             target.foreground = Some(e.to_catalog());
             set_too_few_flag(target, None);
-            Applied::Set(Box::new(e))
+            Applied::Set(e)
         }
         Outcome::TooFew { n_left, rejected, .. } => {
             target.foreground = None;

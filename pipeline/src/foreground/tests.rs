@@ -38,7 +38,7 @@ fn star(id: usize, q: f64, u: f64, sigma: f64) -> FieldStarQu {
 
 fn estimated(o: Outcome) -> ForegroundEstimate {
     match o {
-        Outcome::Estimated(e) => e,
+        Outcome::Estimated(e) => *e,
         other => panic!("no estimate: {other:?}"),
     }
 }
