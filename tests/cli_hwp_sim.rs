@@ -155,7 +155,10 @@ fn pulls(cat: &Value, truth: &Value) -> Vec<f64> {
 fn repaired(cat: &Value) -> Vec<(String, String, u64)> {
     let mut v = Vec::new();
     for t in cat["targets"].as_array().expect("targets") {
-        for f in t["half_wave_plate"]["frames"].as_array().unwrap_or_else(|| panic!("frames in {t}")) {
+        for f in t["half_wave_plate"]["frames"]
+            .as_array()
+            .unwrap_or_else(|| panic!("frames in {t}"))
+        {
             let c = f["cosmic_ray_pixels"]
                 .as_array()
                 .unwrap_or_else(|| panic!("cosmic_ray_pixels in {f}"));
@@ -237,7 +240,10 @@ fn simulated_half_wave_plate_nights_give_honest_pulls() {
     eprintln!("control, rotation ignored: rms {crms:.2}, mean {cmean:+.2}");
     eprintln!("frames with pixels repaired as cosmic-ray hits: {}", repairs.len());
     // No cosmic rays were simulated: the seeing's changes from frame to frame are not hits.
-    assert!(repairs.is_empty(), "repaired (seed, (target, file, pixels)): {repairs:?}");
+    assert!(
+        repairs.is_empty(),
+        "repaired (seed, (target, file, pixels)): {repairs:?}"
+    );
     assert!((0.9..=1.1).contains(&rms), "pull rms {rms}");
     assert!(mean.abs() < 3.0 / n.sqrt(), "pull mean {mean}");
     assert!(crms > 3.0, "rotation ignored: rms {crms}");

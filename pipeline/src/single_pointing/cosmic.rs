@@ -11,14 +11,18 @@
 //! `s` its spread (the other frames' noise, the seeing's changes and the interpolation's
 //! error together). The residual `I_i - m` still holds frame `i`'s own change of the
 //! seeing, a smooth pattern as large as many sigma in the core of a bright star: its
-//! weighted least-squares fit `c0 + c1 lap(m) + c2 dm/dx + c3 dm/dy` over the aperture (a
-//! change of the width, of the centring, of the sky) is added to `m`. What is left less
-//! the median of the ring 2 px about `p` (the speckles' changes) is `r`, and the pixel is
-//! hit when
+//! weighted least-squares fit by a constant, `m`'s two gradients and its three second
+//! derivatives over the aperture (a change of the sky, of the centring, of the width and
+//! the elongation) is added to `m`. What is left less the median of the ring 2 px about `p`
+//! (the speckles' changes) is `r`, and the pixel is hit when
 //!
 //! ```text
-//! r > K sqrt(Var_i(p) + s^2)         K = 6 (one-sided: a hit adds charge)
+//! r > K sqrt(Var_i(p) + s^2 + (f m)^2)   K = 6 (one-sided: a hit adds charge), f = 0.005
 //! ```
+//!
+//! (`f m` the prediction's own error: the bicubic interpolation of a core a few pixels
+//! wide, the flat's pixel errors; without it single pixels of the simulated nights' cores
+//! reached 7-8 sigma; 0.02 hid a 6-sigma_F hit 3-4 px from a bright star's centre).
 //!
 //! and the pixels next to a hit (8-connected) are hit too when above `K_GROW` = 3 of the
 //! same: a hit spreads its charge over a few pixels. A hit pixel is repaired, its value
@@ -38,7 +42,7 @@ use crate::stokes::hwp::{self, PlateFrame};
 pub const K_HIT: f64 = 6.0;
 /// The prediction's own error as a fraction of it, added in quadrature to the noise: the
 /// bicubic interpolation of a core a few pixels wide, the flat's pixel errors.
-pub const REL_FLOOR: f64 = 0.02;
+pub const REL_FLOOR: f64 = 0.005;
 /// Threshold of a hit's neighbour.
 pub const K_GROW: f64 = 3.0;
 
@@ -185,9 +189,9 @@ fn hits(
         }
     }
     // The smooth part of the residual: a change of the seeing, of the focus or of the
-    // centring changes the image as a whole, the prediction's Laplacian and gradients times
-    // a few numbers. Removed by weighted least squares over the aperture (pixels beyond
-    // K_GROW left out and the fit made again), what is left is sharp.
+    // centring changes the image as a whole, the prediction's gradients and second
+    // derivatives times a few numbers. Removed by weighted least squares over the aperture
+    // (pixels beyond K_GROW left out and the fit made again), what is left is sharp.
     smooth_fit(&mut res, &mut pred, &noise, nx, ny, |k| {
         let (dx, dy) = ((k % nx) as f64 - me.centre.0, (k / nx) as f64 - me.centre.1);
         let r = dx.hypot(dy);
@@ -256,22 +260,16 @@ fn hits(
 /// fit, weights `1 / noise^2`, made over the pixels `use_px` where all are finite, by
 ///
 /// ```text
-/// res ~ c0 + c1 lap(pred) + c2 d(pred)/dx + c3 d(pred)/dy
+/// res ~ c0 + c1 d(pred)/dx + c2 d(pred)/dy + c3 d2(pred)/dx2 + c4 d2(pred)/dy2 + c5 d2(pred)/dxdy
 /// ```
 ///
 /// (finite differences of the prediction): a Gaussian image whose width changes by
-/// `d sigma` changes by `sigma d sigma lap(P)`, one that moves by `(ex, ey)` by
-/// `-ex dP/dx - ey dP/dy`, a sky offset by a constant. Pixels beyond `K_GROW` of the fit
+/// `d sigma` changes by `sigma d sigma lap(P)` (an elongated change weights the second
+/// derivatives apart), one that moves by `(ex, ey)` by `-ex dP/dx - ey dP/dy`, a sky offset
+/// by a constant. Pixels beyond `K_GROW` of the fit
 /// (a hit) are left out and the fit made again, twice. Nothing is changed when fewer than
 /// 16 pixels can be used or the normal equations are singular.
-fn smooth_fit(
-    res: &mut [f64],
-    pred: &mut [f64],
-    noise: &[f64],
-    nx: usize,
-    ny: usize,
-    use_px: impl Fn(usize) -> bool,
-) {
+fn smooth_fit(res: &mut [f64], pred: &mut [f64], noise: &[f64], nx: usize, ny: usize, use_px: impl Fn(usize) -> bool) {
     let at = |x: usize, y: usize| pred[y * nx + x];
     // Every pixel with a residual is corrected; those of `use_px` make the fit.
     let mut rows: Vec<(usize, [f64; NB], bool)> = Vec::new();
