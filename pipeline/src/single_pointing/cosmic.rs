@@ -337,8 +337,9 @@ fn solve(mut a: [[f64; NB]; NB], mut b: [f64; NB]) -> Option<[f64; NB]> {
         b.swap(c, p);
         for r in c + 1..NB {
             let f = a[r][c] / a[c][c];
-            for j in c..NB {
-                a[r][j] -= f * a[c][j];
+            let pivot = a[c];
+            for (arj, pj) in a[r].iter_mut().zip(pivot).skip(c) {
+                *arj -= f * pj;
             }
             b[r] -= f * b[c];
         }
