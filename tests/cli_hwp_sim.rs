@@ -3,7 +3,8 @@
 //! q, u about the truth the simulator wrote (pulls pooled over seeds). The scene names its
 //! profile (NIRC2's, shrunk by `profile_set` to a 128 x 200 detector so the test runs in
 //! seconds); the night gets the same values by `--set`. Control: the same frames reduced
-//! with the sky's rotation ignored give pulls far from 1. The example scene
+//! with the sky's rotation ignored give pulls far from 1. The frames have no cosmic rays, and
+//! none of their pixels is repaired as one (the seeing changes from frame to frame). The example scene
 //! testdata/scenes/hwp_pupil.toml (the full NIRC2 detector) simulates and reduces with
 //! `--profile nirc2` alone, every star within 5 sigma of its truth.
 use std::path::Path;
@@ -149,6 +150,25 @@ fn pulls(cat: &Value, truth: &Value) -> Vec<f64> {
     v
 }
 
+/// Every frame's pixels repaired as cosmic-ray hits (o + e), with the target and file:
+/// these frames have no cosmic rays.
+fn repaired(cat: &Value) -> Vec<(String, String, u64)> {
+    let mut v = Vec::new();
+    for t in cat["targets"].as_array().expect("targets") {
+        for f in t["half_wave_plate"]["frames"]
+            .as_array()
+            .unwrap_or_else(|| panic!("frames in {t}"))
+        {
+            let c = f["cosmic_ray_pixels"]
+                .as_array()
+                .unwrap_or_else(|| panic!("cosmic_ray_pixels in {f}"));
+            let n = c.iter().map(|x| x.as_u64().expect("a count")).sum();
+            v.push((t["object"].to_string(), f["file"].to_string(), n));
+        }
+    }
+    v
+}
+
 fn night(raw: &Path, out: &Path, extra: &[&str]) -> Value {
     let mut args = vec![
         "night",
@@ -181,7 +201,7 @@ fn simulated_half_wave_plate_nights_give_honest_pulls() {
     let d = tempfile::tempdir().unwrap();
     let scene_path = d.path().join("scene.toml");
     std::fs::write(&scene_path, scene()).unwrap();
-    let (mut all, mut control) = (Vec::new(), Vec::new());
+    let (mut all, mut control, mut repairs) = (Vec::new(), Vec::new(), Vec::new());
     for seed in 1..=SEEDS {
         let raw = d.path().join(format!("raw{seed}"));
         let (code, out, err) = run(&[
@@ -199,6 +219,9 @@ fn simulated_half_wave_plate_nights_give_honest_pulls() {
         assert_eq!(per_target(&cat, "darks"), [3; 6]);
         assert_eq!(per_target(&cat, "skies"), [8; 6]);
         all.extend(pulls(&cat, &truth));
+        let rep = repaired(&cat);
+        assert_eq!(rep.len(), 48, "seed {seed}: frames in the catalog");
+        repairs.extend(rep.into_iter().filter(|r| r.2 > 0).map(|r| (seed, r)));
         let cat = night(
             &raw,
             &d.path().join(format!("fixed{seed}.json")),
@@ -215,6 +238,12 @@ fn simulated_half_wave_plate_nights_give_honest_pulls() {
     );
     let (crms, cmean) = rms_mean(&control);
     eprintln!("control, rotation ignored: rms {crms:.2}, mean {cmean:+.2}");
+    eprintln!("frames with pixels repaired as cosmic-ray hits: {}", repairs.len());
+    // No cosmic rays were simulated: the seeing's changes from frame to frame are not hits.
+    assert!(
+        repairs.is_empty(),
+        "repaired (seed, (target, file, pixels)): {repairs:?}"
+    );
     assert!((0.9..=1.1).contains(&rms), "pull rms {rms}");
     assert!(mean.abs() < 3.0 / n.sqrt(), "pull mean {mean}");
     assert!(crms > 3.0, "rotation ignored: rms {crms}");
