@@ -74,20 +74,7 @@ pub fn simulate_with(sim: &Simulator, dir: &Path, badpix: Option<&Path>, quiet: 
         .map_err(anyhow::Error::msg)?;
     pb.finish_and_clear();
     if let Some(path) = badpix {
-        let mask = sim
-            .bad_pixel_mask()
-            .context("--badpix-mask needs the bad_pixels effect in the scene")?;
-        let mut h = sofipol_calib::Header::new(path);
-        h.set("OBJECT", "sofipol true bad-pixel map");
-        let frame = sofipol_calib::Frame::new(mask.mapv(|v| v as f32), h).with_history(
-            "simulate",
-            format!(
-                "true bad-pixel map of scene '{}' seed {}",
-                sim.scene().name,
-                sim.scene().seed
-            ),
-        );
-        sofipol_calib::fits::write_frame(path, &frame, &Default::default())?;
+        write_badpix_mask(path, sim.bad_pixel_mask(), sim.scene())?;
     }
     Ok(truth)
 }
@@ -203,20 +190,7 @@ fn run_half_wave_plate(args: &Args, scene: Scene, profile: Profile) -> anyhow::R
         .map_err(anyhow::Error::msg)?;
     pb.finish_and_clear();
     if let Some(path) = &args.badpix_mask {
-        let mask = sim
-            .bad_pixel_mask()
-            .context("--badpix-mask needs the bad_pixels effect in the scene")?;
-        let mut h = sofipol_calib::Header::new(path);
-        h.set("OBJECT", "sofipol true bad-pixel map");
-        let frame = sofipol_calib::Frame::new(mask.mapv(|v| v as f32), h).with_history(
-            "simulate",
-            format!(
-                "true bad-pixel map of scene '{}' seed {}",
-                sim.scene().name,
-                sim.scene().seed
-            ),
-        );
-        sofipol_calib::fits::write_frame(path, &frame, &Default::default())?;
+        write_badpix_mask(path, sim.bad_pixel_mask(), sim.scene())?;
     }
     if !args.quiet {
         let nframes: usize = truth.stars.iter().map(|t| t.frames.len()).sum();
@@ -239,4 +213,22 @@ fn run_half_wave_plate(args: &Args, scene: Scene, profile: Profile) -> anyhow::R
         println!("truth: {}", args.output.join("truth.json").display());
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Write the scene's true bad-pixel map (`--badpix-mask`) to `path`; `mask` is None when the
+/// scene has no `bad_pixels` effect.
+fn write_badpix_mask(
+    path: &std::path::Path,
+    mask: Option<ndarray::Array2<u8>>,
+    scene: &sofipol_pipeline::sim::Scene,
+) -> anyhow::Result<()> {
+    let mask = mask.context("--badpix-mask needs the bad_pixels effect in the scene")?;
+    let mut h = sofipol_calib::Header::new(path);
+    h.set("OBJECT", "sofipol true bad-pixel map");
+    let frame = sofipol_calib::Frame::new(mask.mapv(|v| v as f32), h).with_history(
+        "simulate",
+        format!("true bad-pixel map of scene '{}' seed {}", scene.name, scene.seed),
+    );
+    sofipol_calib::fits::write_frame(path, &frame, &Default::default())?;
+    Ok(())
 }

@@ -737,19 +737,7 @@ impl HwpSimulator {
     /// The truth from the frames' (in [`HwpSimulator::roles`] order).
     fn truth(&self, frames: Vec<(HwpRole, HwpFrameTruth)>) -> HwpTruth {
         let s = &self.scene;
-        let mut detector = DetectorTruth {
-            bad_pixels: self
-                .bad
-                .as_ref()
-                .map(|b| serde_json::to_value(&b.summary).unwrap_or_default()),
-            ..DetectorTruth::default()
-        };
-        if let Some(f) = &self.flat {
-            let n = f.len() as f64;
-            let mean = f.iter().map(|&v| v as f64).sum::<f64>() / n;
-            let rms = (f.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n).sqrt();
-            detector.flat_field = Some(super::truth::FlatFieldTruth { mean, rms });
-        }
+        let mut detector = DetectorTruth::of_pixels(self.bad.as_ref(), self.flat.as_ref());
         if s.has(EffectKind::Throughput) {
             let c = s.throughput.clone().unwrap_or_default();
             detector.throughput = Some(super::truth::ThroughputTruth { t_e: c.t_e, t_o: c.t_o });

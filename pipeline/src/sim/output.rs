@@ -1,7 +1,6 @@
 //! Whole scenes: the truth, every frame in memory, or every frame written to a folder.
 use super::truth::{
-    DetectorTruth, FieldPopulationTruth, FlatFieldTruth, FrameTruth, InstrumentalPolarizationTruth, SimFrame,
-    ThroughputTruth, Truth,
+    DetectorTruth, FieldPopulationTruth, FrameTruth, InstrumentalPolarizationTruth, SimFrame, ThroughputTruth, Truth,
 };
 use super::{effects, EffectKind, Simulator};
 
@@ -9,19 +8,7 @@ impl Simulator {
     /// Truth of the whole scene (frames are re-derived cheaply: no images are rendered).
     pub fn truth(&self, frames: &[Vec<FrameTruth>]) -> Truth {
         let s = &self.scene;
-        let mut detector = DetectorTruth {
-            bad_pixels: self
-                .bad
-                .as_ref()
-                .map(|b| serde_json::to_value(&b.summary).unwrap_or_default()),
-            ..DetectorTruth::default()
-        };
-        if let Some(f) = &self.flat {
-            let n = f.len() as f64;
-            let mean = f.iter().map(|&v| v as f64).sum::<f64>() / n;
-            let rms = (f.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n).sqrt();
-            detector.flat_field = Some(FlatFieldTruth { mean, rms });
-        }
+        let mut detector = DetectorTruth::of_pixels(self.bad.as_ref(), self.flat.as_ref());
         if s.has(EffectKind::Throughput) {
             let (t_o, t_e) = effects::throughput(&self.calls, &s.throughput.clone().unwrap_or_default());
             detector.throughput = Some(ThroughputTruth { t_e, t_o });

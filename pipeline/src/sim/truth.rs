@@ -252,6 +252,23 @@ pub struct DetectorTruth {
 }
 
 impl DetectorTruth {
+    /// The detector's truth of the effects `bad_pixels` (its counts by kind) and
+    /// `flat_field` (the pixel response's mean and rms); the other fields left empty.
+    pub fn of_pixels(bad: Option<&super::effects::BadPixelMap>, flat: Option<&ndarray::Array2<f32>>) -> DetectorTruth {
+        DetectorTruth {
+            bad_pixels: bad.map(|b| serde_json::to_value(&b.summary).unwrap_or_default()),
+            flat_field: flat.map(|f| {
+                let n = f.len() as f64;
+                let mean = f.iter().map(|&v| v as f64).sum::<f64>() / n;
+                let rms = (f.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n).sqrt();
+                FlatFieldTruth { mean, rms }
+            }),
+            ..DetectorTruth::default()
+        }
+    }
+}
+
+impl DetectorTruth {
     /// The offset c of F the calibration should find: (T_o - T_e)/(T_o + T_e) plus the
     /// instrumental polarization along the analyzer (none without the throughput effect).
     pub fn offset_c(&self) -> Option<f64> {
