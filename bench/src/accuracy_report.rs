@@ -17,9 +17,15 @@ use sofipol_pipeline::plots::{Figure, LegendPos, Panel, Series, Style};
 use sofipol_pipeline::reduce::TargetParams;
 
 use crate::accuracy::{AccuracyConfig, BinReport};
+use crate::accuracy_hwp::{HwpAccuracyConfig, HwpEstimate};
 
 /// Changes a variant makes to the simulated night and to the reduction settings.
-pub type Apply = Box<dyn Fn(&mut AccuracyConfig, &mut TargetParams) + Sync + Send>;
+pub enum Apply {
+    /// A SOFI night of binaries ([`crate::accuracy`]).
+    Sofi(Box<dyn Fn(&mut AccuracyConfig, &mut TargetParams) + Sync + Send>),
+    /// A half-wave-plate night of single stars ([`crate::accuracy_hwp`]).
+    HalfWavePlate(Box<dyn Fn(&mut HwpAccuracyConfig) + Sync + Send>),
+}
 
 /// One row of the report.
 pub struct Variant {
@@ -47,7 +53,23 @@ fn v(
         name: name.into(),
         flags: flags.into(),
         is_default,
-        apply: Box::new(apply),
+        apply: Apply::Sofi(Box::new(apply)),
+    }
+}
+
+fn h(
+    group: &'static str,
+    name: &str,
+    flags: &str,
+    is_default: bool,
+    apply: impl Fn(&mut HwpAccuracyConfig) + Sync + Send + 'static,
+) -> Variant {
+    Variant {
+        group,
+        name: name.into(),
+        flags: flags.into(),
+        is_default,
+        apply: Apply::HalfWavePlate(Box::new(apply)),
     }
 }
 
@@ -65,6 +87,16 @@ pub const G_INSTRUMENT: &str = "instrument calibration";
 /// field, with field stars (x axis: reduction time per target; error: the binaries'
 /// intrinsic q, u).
 pub const G_FOREGROUND: &str = "foreground";
+/// Group of the half-wave-plate reduction's choices on simulated NIRC2 nights under pupil
+/// tracking (single stars; x axis: reduction time per star).
+pub const G_HWP: &str = "half-wave plate";
+/// Group of the half-wave-plate observing choices: plate cycles per star (x axis: exposure
+/// time per star).
+pub const G_HWP_EXPOSURE: &str = "half-wave-plate cycles";
+
+/// Nights of each half-wave-plate row (seeds `seed`, `seed + 1`, ...), each of
+/// [`HwpAccuracyConfig::default`]'s 6 stars: 96 pulls per row.
+pub const HWP_NIGHTS: u64 = 8;
 
 /// Every trade-off of the report. The DIT of the simulated frames is 10 s (1 NDIT).
 pub fn variants() -> Vec<Variant> {
@@ -208,6 +240,78 @@ pub fn variants() -> Vec<Variant> {
     }
     out.extend(calibration_variants());
     out.extend(foreground_variants());
+    out.extend(hwp_variants());
+    out
+}
+
+/// Half-wave-plate rows: simulated NIRC2 nights under pupil tracking (the sky turning by
+/// 0.1-3 deg per frame), 6 stars of (q, u) within +-3 % each, cosmic rays, reduced by the
+/// single-pointing path; the settings the profile offers (`--set` of `sofipol night`), the
+/// estimate read from the catalog, and the plate cycles per star.
+fn hwp_variants() -> Vec<Variant> {
+    let set = |sets: &'static [&'static str]| {
+        move |c: &mut HwpAccuracyConfig| c.reduce_set.extend(sets.iter().map(|s| s.to_string()))
+    };
+    let mut out = vec![
+        h(
+            G_HWP,
+            "complete cycles on the sky (each fitted at its frames' own angles) combined, error max(propagated, cycle scatter); matched sky frames; 9-px aperture",
+            "night --profile nirc2 (the catalog's component)",
+            true,
+            |_| {},
+        ),
+        h(
+            G_HWP,
+            "least squares over every frame at its own angle on the sky (q, u, c), adopted error",
+            "same night: catalog half_wave_plate.least_squares_sky",
+            false,
+            |c| c.estimate = HwpEstimate::LeastSquares,
+        ),
+        h(
+            G_HWP,
+            "sky: median of an annulus 14-24 px about each image (no sky frames)",
+            "--set single_pointing.sky=\"annulus\" --set single_pointing.sky_annulus_px=[14,24]",
+            false,
+            set(&["single_pointing.sky=\"annulus\"", "single_pointing.sky_annulus_px=[14.0, 24.0]"]),
+        ),
+        h(
+            G_HWP,
+            "aperture 6 px (1.3 FWHM)",
+            "--set single_pointing.aperture_px=[0,6]",
+            false,
+            set(&["single_pointing.aperture_px=[0.0, 6.0]"]),
+        ),
+        h(
+            G_HWP,
+            "aperture 13 px (2.8 FWHM)",
+            "--set single_pointing.aperture_px=[0,13]",
+            false,
+            set(&["single_pointing.aperture_px=[0.0, 13.0]"]),
+        ),
+        h(
+            G_HWP,
+            "field rotation ignored (the sky taken as fixed on the detector)",
+            "--set field_rotation.kind=\"sky_fixed\"",
+            false,
+            set(&["field_rotation.kind=\"sky_fixed\""]),
+        ),
+        h(
+            G_HWP,
+            "the default, on nights with 10 cosmic-ray hits per frame (10x the density of the other rows: a condition, not a choice)",
+            "scene [cosmic_rays] rate_per_frame=10",
+            false,
+            |c| c.cosmic_rays_per_frame = 10.0,
+        ),
+    ];
+    for n in 1..=3usize {
+        out.push(h(
+            G_HWP_EXPOSURE,
+            &format!("{n} cycle(s) of 4 plate positions per star"),
+            &format!("scene [half_wave_plate] cycles={n}"),
+            n == 2,
+            move |c| c.cycles = n,
+        ));
+    }
     out
 }
 
@@ -353,6 +457,10 @@ pub struct Report {
     pub mc: Vec<McRow>,
     /// Rayon threads.
     pub threads: usize,
+    /// Nights of each half-wave-plate row.
+    pub hwp_nights: u64,
+    /// Stars per half-wave-plate night.
+    pub hwp_stars: usize,
 }
 
 /// Settings of the report.
@@ -414,18 +522,34 @@ pub fn run(dir: &Path, base: &TargetParams, opts: &ReportOptions) -> anyhow::Res
         base_cfg.targets_per_bin = opts.targets.min(1);
     }
     let dit_s = 10.0;
+    let hwp_base = HwpAccuracyConfig {
+        stars: if opts.quick { 2 } else { HwpAccuracyConfig::default().stars },
+        ..Default::default()
+    };
+    let hwp_seeds: Vec<u64> = (opts.seed..opts.seed + if opts.quick { 1 } else { HWP_NIGHTS }).collect();
     let mut results = Vec::new();
     let vs = variants();
     for (i, var) in vs.iter().enumerate() {
-        let mut cfg = base_cfg.clone();
-        let mut params = base.clone();
-        (var.apply)(&mut cfg, &mut params);
         let t0 = Instant::now();
-        let mut bins = crate::accuracy::run(&cfg, &params);
-        if opts.quick {
-            // Only the first and last bins were asked for.
-            bins = bins.into_iter().step_by(2).collect();
-        }
+        let (bins, exposure_s) = match &var.apply {
+            Apply::Sofi(apply) => {
+                let mut cfg = base_cfg.clone();
+                let mut params = base.clone();
+                apply(&mut cfg, &mut params);
+                let mut bins = crate::accuracy::run(&cfg, &params);
+                if opts.quick {
+                    // Only the first and last bins were asked for.
+                    bins = bins.into_iter().step_by(2).collect();
+                }
+                (bins, (cfg.orientations_deg.len() * cfg.dithers) as f64 * dit_s)
+            }
+            Apply::HalfWavePlate(apply) => {
+                let mut cfg = hwp_base.clone();
+                apply(&mut cfg);
+                let (bin, _) = crate::accuracy_hwp::run_seeds(&cfg, &hwp_seeds);
+                (vec![bin], cfg.exposure_s())
+            }
+        };
         let (mut se, mut ne) = (0.0, 0usize);
         for b in bins.iter().filter(|b| b.n_pulls > 0) {
             se += b.rms_error * b.rms_error * b.n_pulls as f64;
@@ -445,7 +569,7 @@ pub fn run(dir: &Path, base: &TargetParams, opts: &ReportOptions) -> anyhow::Res
             name: var.name.clone(),
             flags: var.flags.clone(),
             is_default: var.is_default,
-            exposure_s: (cfg.orientations_deg.len() * cfg.dithers) as f64 * dit_s,
+            exposure_s,
             reduce_s,
             // Components lost count as unmeasured: no error to average (see `missing`).
             rms_error: if ne > 0 { (se / ne as f64).sqrt() } else { f64::NAN },
@@ -480,6 +604,8 @@ pub fn run(dir: &Path, base: &TargetParams, opts: &ReportOptions) -> anyhow::Res
         variants: results,
         mc,
         threads: rayon::current_num_threads(),
+        hwp_nights: hwp_seeds.len() as u64,
+        hwp_stars: hwp_base.stars,
     };
     write_report(dir, &report)?;
     Ok(report)
@@ -487,18 +613,24 @@ pub fn run(dir: &Path, base: &TargetParams, opts: &ReportOptions) -> anyhow::Res
 
 /// The cost axis of a result: exposure time for observing choices, reduction time else.
 fn cost(r: &VariantResult) -> f64 {
-    if r.group == G_EXPOSURE {
+    if is_exposure_group(&r.group) {
         r.exposure_s
     } else {
         r.reduce_s
     }
 }
 
+/// Groups whose cost is the exposure time.
+fn is_exposure_group(group: &str) -> bool {
+    group == G_EXPOSURE || group == G_HWP_EXPOSURE
+}
+
 fn cost_label(group: &str) -> &'static str {
-    if group == G_EXPOSURE {
-        "exposure time per target, s"
-    } else {
-        "reduction time per target, s (median, 2 workers)"
+    match group {
+        G_EXPOSURE => "exposure time per target, s",
+        G_HWP_EXPOSURE => "exposure time per star, s",
+        G_HWP => "reduction time per star, s (median night / stars)",
+        _ => "reduction time per target, s (median, 2 workers)",
     }
 }
 
@@ -587,9 +719,18 @@ fn write_report(dir: &Path, r: &Report) -> anyhow::Result<()> {
             }
             md += "\n";
         }
+        if *g == G_HWP || *g == G_HWP_EXPOSURE {
+            md += &hwp_paragraph(r, g, &rows);
+        }
         md += &format!(
             "| variant | flags | {} | rms err (1e-3) | rms pull per bin | median sigma_q per bin (1e-3) | rms err per bin (1e-3) | mean err per bin (1e-3) | missing | Pareto |\n|---|---|---|---|---|---|---|---|---|---|\n",
-            if *g == G_EXPOSURE { "exposure s" } else { "s / target" }
+            if is_exposure_group(g) {
+                "exposure s"
+            } else if *g == G_HWP {
+                "s / star"
+            } else {
+                "s / target"
+            }
         );
         for v in rows {
             let name = if v.is_default {
@@ -604,7 +745,7 @@ fn write_report(dir: &Path, r: &Report) -> anyhow::Result<()> {
                 } else {
                     format!("`{}`", v.flags)
                 },
-                if *g == G_EXPOSURE {
+                if is_exposure_group(g) {
                     format!("{:.0} ({:.3} s cpu)", v.exposure_s, v.reduce_s)
                 } else {
                     format!("{:.3}", v.reduce_s)
@@ -642,6 +783,44 @@ fn write_report(dir: &Path, r: &Report) -> anyhow::Result<()> {
     write_atomic(&dir.join("README.md"), md.as_bytes())?;
     write_atomic(&dir.join("results.json"), serde_json::to_string_pretty(r)?.as_bytes())?;
     Ok(())
+}
+
+/// What the half-wave-plate groups simulate, and each row's pulls pooled over the nights
+/// with their standard errors.
+fn hwp_paragraph(r: &Report, g: &str, rows: &[&VariantResult]) -> String {
+    let mut md = format!(
+        "Simulated NIRC2 nights under pupil tracking (`bench/src/accuracy_hwp.rs`: the detector shrunk to 128 x 200 px, \
+         L' frames of 45 coadds of 0.45 s, Gaussian images of FWHM 4.7 px, sky 5000 ADU polarized 1 % through the plate, \
+         1 % pixel response, hot pixels, {} cosmic-ray hits per frame), {} nights of {} stars each (4e6 ADU, q and u uniform \
+         in +-3 %, the sky turning by 0.1-3 deg per frame), two cycles of sky frames and three darks per night; each night \
+         written as FITS and reduced as `sofipol night DIR --profile nirc2` does (the small detector's `--set`s in \
+         `SMALL_NIRC2`). One column per row: every star of every night pooled; the time is the median over the nights \
+         of the reduction's wall time (reading the files included) divided by the stars.{}\n\n",
+        HwpAccuracyConfig::default().cosmic_rays_per_frame,
+        r.hwp_nights,
+        r.hwp_stars,
+        if g == G_HWP_EXPOSURE {
+            " Exposure: DIT x coadds x frames per star."
+        } else {
+            ""
+        }
+    );
+    for v in rows {
+        if let Some(b) = v.bins.first().filter(|b| b.n_pulls > 0) {
+            let n = b.n_pulls as f64;
+            md += &format!(
+                "- {}: {} pulls, rms {:.3} +- {:.3}, mean {:+.3} +- {:.3}; {} star(s) missing.\n",
+                v.name,
+                b.n_pulls,
+                b.rms_pull,
+                1.0 / (2.0 * n).sqrt(),
+                b.mean_pull,
+                1.0 / n.sqrt(),
+                b.missing
+            );
+        }
+    }
+    md + "\n"
 }
 
 fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {

@@ -12,6 +12,8 @@
 //!  python           bench night --python: the expert Python reduction (bench/python/), timed
 //!                   and compared
 //!  accuracy         the accuracy harness: simulated nights by separation bin, pulls, time
+//!  accuracy_hwp     the same for the half-wave-plate profile (NIRC2's, pupil tracking):
+//!                   simulated nights of single stars, reduced as `night --profile nirc2`
 //!  calibration      bench calibration: the calibration's pooled accuracy over many nights in
 //!                   two hard cases (standards at one parallactic angle, polarized standards
 //!                   only), each night simulated and reduced by `sofipol` in child processes
@@ -25,6 +27,7 @@
 #![deny(missing_docs)]
 
 pub mod accuracy;
+pub mod accuracy_hwp;
 pub mod accuracy_report;
 pub mod calibration;
 pub mod commands;
