@@ -15,13 +15,21 @@ fn bench_accuracy_report_quick_writes_tables_plots_and_json() {
     for needle in [
         "## reduction",
         "## exposure",
+        "## half-wave plate",
+        "## half-wave-plate cycles",
         "## Monte Carlo",
         "(default)",
         "| front |",
     ] {
         assert!(md.contains(needle), "README.md lacks {needle:?}:\n{md}");
     }
-    for png in ["pareto_reduction.png", "pareto_exposure.png", "mc_cost.png"] {
+    for png in [
+        "pareto_reduction.png",
+        "pareto_exposure.png",
+        "pareto_half-wave_plate.png",
+        "pareto_half-wave-plate_cycles.png",
+        "mc_cost.png",
+    ] {
         let bytes = std::fs::read(out.join(png)).expect(png);
         assert!(bytes.starts_with(b"\x89PNG") && bytes.len() > 2000, "{png}");
     }

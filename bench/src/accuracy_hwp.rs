@@ -114,7 +114,11 @@ impl HwpAccuracyConfig {
 
 /// The NIRC2 profile on the harness's small detector ([`SMALL_NIRC2`]) and `extra`.
 pub fn profile(extra: &[String]) -> Profile {
-    let sets: Vec<String> = SMALL_NIRC2.iter().map(|s| s.to_string()).chain(extra.iter().cloned()).collect();
+    let sets: Vec<String> = SMALL_NIRC2
+        .iter()
+        .map(|s| s.to_string())
+        .chain(extra.iter().cloned())
+        .collect();
     Profile::embedded("nirc2")
         .expect("embedded profile")
         .expect("nirc2 is embedded")
@@ -169,7 +173,11 @@ sky_modulation = 0.01
 header = {{ ROTPDEST = 45.7 }}
 "#,
         cfg.seed,
-        cfg.effects.iter().map(|e| format!("\"{e}\"")).collect::<Vec<_>>().join(", "),
+        cfg.effects
+            .iter()
+            .map(|e| format!("\"{e}\""))
+            .collect::<Vec<_>>()
+            .join(", "),
         cfg.cosmic_rays_per_frame,
         cfg.cycles
     );

@@ -523,7 +523,11 @@ pub fn run(dir: &Path, base: &TargetParams, opts: &ReportOptions) -> anyhow::Res
     }
     let dit_s = 10.0;
     let hwp_base = HwpAccuracyConfig {
-        stars: if opts.quick { 2 } else { HwpAccuracyConfig::default().stars },
+        stars: if opts.quick {
+            2
+        } else {
+            HwpAccuracyConfig::default().stars
+        },
         ..Default::default()
     };
     let hwp_seeds: Vec<u64> = (opts.seed..opts.seed + if opts.quick { 1 } else { HWP_NIGHTS }).collect();
@@ -791,7 +795,7 @@ fn hwp_paragraph(r: &Report, g: &str, rows: &[&VariantResult]) -> String {
     let mut md = format!(
         "Simulated NIRC2 nights under pupil tracking (`bench/src/accuracy_hwp.rs`: the detector shrunk to 128 x 200 px, \
          L' frames of 45 coadds of 0.45 s, Gaussian images of FWHM 4.7 px, sky 5000 ADU polarized 1 % through the plate, \
-         1 % pixel response, hot pixels, {} cosmic-ray hits per frame), {} nights of {} stars each (4e6 ADU, q and u uniform \
+         1 % pixel response, hot pixels, cosmic-ray hits {} per frame unless the row says otherwise), {} night(s) of {} stars each (4e6 ADU, q and u uniform \
          in +-3 %, the sky turning by 0.1-3 deg per frame), two cycles of sky frames and three darks per night; each night \
          written as FITS and reduced as `sofipol night DIR --profile nirc2` does (the small detector's `--set`s in \
          `SMALL_NIRC2`). One column per row: every star of every night pooled; the time is the median over the nights \

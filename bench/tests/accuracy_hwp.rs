@@ -68,6 +68,13 @@ fn half_wave_plate_default_pulls_are_what_its_errors_promise() {
         ..cfg
     };
     let (c, _) = run_seeds(&rotation_ignored, &SEEDS[..4]);
-    eprintln!("control, rotation ignored: N = {}, rms pull {:.2}", c.n_pulls, c.rms_pull);
-    assert!(c.rms_pull > expected + 6.0 * se, "rotation ignored: rms pull {:.3}", c.rms_pull);
+    eprintln!(
+        "control, rotation ignored: N = {}, rms pull {:.2}",
+        c.n_pulls, c.rms_pull
+    );
+    assert!(
+        c.rms_pull > expected + 6.0 * se,
+        "rotation ignored: rms pull {:.3}",
+        c.rms_pull
+    );
 }
