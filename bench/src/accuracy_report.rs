@@ -19,12 +19,18 @@ use sofipol_pipeline::reduce::TargetParams;
 use crate::accuracy::{AccuracyConfig, BinReport};
 use crate::accuracy_hwp::{HwpAccuracyConfig, HwpEstimate};
 
+/// Changes a SOFI variant makes to the simulated night and to the reduction settings.
+pub type ApplySofi = Box<dyn Fn(&mut AccuracyConfig, &mut TargetParams) + Sync + Send>;
+
+/// Changes a half-wave-plate variant makes to its nights and their reduction.
+pub type ApplyHwp = Box<dyn Fn(&mut HwpAccuracyConfig) + Sync + Send>;
+
 /// Changes a variant makes to the simulated night and to the reduction settings.
 pub enum Apply {
     /// A SOFI night of binaries ([`crate::accuracy`]).
-    Sofi(Box<dyn Fn(&mut AccuracyConfig, &mut TargetParams) + Sync + Send>),
+    Sofi(ApplySofi),
     /// A half-wave-plate night of single stars ([`crate::accuracy_hwp`]).
-    HalfWavePlate(Box<dyn Fn(&mut HwpAccuracyConfig) + Sync + Send>),
+    HalfWavePlate(ApplyHwp),
 }
 
 /// One row of the report.
