@@ -751,6 +751,10 @@ fn merge_plateaus(mut peaks: Vec<Peak>, bs: ArrayView2<f32>, origin: (usize, usi
     kept
 }
 
+/// What one orientation's stack gives: the field stars, the fainter pairs, every peak (px
+/// from A) and the stack ([`detect_orientation`]).
+type OrientationSources = (Vec<Detection>, Vec<Detection>, Vec<(f64, f64)>, Option<Stack>);
+
 /// The field stars of one orientation on its stack: o-strip peaks paired with their e-strip
 /// images, the binary's own images left out; as sky offsets from A. Without a focal mask
 /// (both empty with one), also the pairs down to [`BLEND_PEAK_SNR`] (sky offsets from A)
@@ -763,7 +767,7 @@ fn detect_orientation(
     b_en: Option<(f64, f64)>,
     strips: &Strips,
     setup: &FluxSetup,
-) -> (Vec<Detection>, Vec<Detection>, Vec<(f64, f64)>, Option<Stack>) {
+) -> OrientationSources {
     let Some(st) = stack(o, centres, strips.unmasked) else {
         return (Vec::new(), Vec::new(), Vec::new(), None);
     };
