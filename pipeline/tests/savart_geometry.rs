@@ -215,7 +215,7 @@ fn savart_like_crowded_field_gives_honest_pulls_over_eight_seeds() {
     // or on a star's wing. The o-e residual of each star (its o image minus its e image
     // moved onto it) finds those and makes the star `blended`: sd 1.093 (1432 pulls), a
     // widening of the whole distribution (flux for flux), not a tail. At most a quarter of
-    // the stars usable before may be `blended` by the residual alone (15 % measured).
+    // the stars usable before may be `blended` by the residual alone (12.5 % measured).
     let nf = field.len() as f64;
     assert!((0.9..=1.1).contains(&fsd), "field-star pull sd {fsd:.3} over {nf}");
     assert!(fworst < 6.0, "field-star |pull| max {fworst:.2}");
