@@ -22,7 +22,9 @@
 //! 4. Without a focal mask, the images of the other beam of every other source (field
 //!    stars, A, B, fainter pairs down to [`BLEND_PEAK_SNR`]) and the stack's peaks that none
 //!    explains are fitted with the star when within reach of one of its images, and make it
-//!    `blended` within [`BLEND_FWHM`] FWHM (docs/photometry.md, "Field stars").
+//!    `blended` within [`BLEND_FWHM`] FWHM (docs/photometry.md, "Field stars"); so are
+//!    the sources on the star's o-e residual on the stack ([`super::residual`]), within
+//!    the aperture radius plus 1 FWHM of one of its images.
 use ndarray::{Array2, ArrayView2};
 use sofipol_calib::frame::mask as mbits;
 use sofipol_calib::profile::Beam;
@@ -30,6 +32,7 @@ use sofipol_calib::Profile;
 
 use super::companion::Companion;
 use super::fluxes::{dither_value, measure_frame, FluxSetup, PsfChoice};
+use super::residual::{residual_sources, StackImage, RESIDUAL_SNR};
 use super::sources::{refine, Primary};
 use super::{DitherValue, SkySubtractedOrientation};
 use crate::catalog::FlagCode;
@@ -130,12 +133,15 @@ pub fn measure_field_stars(
     // (px from A).
     let mut faint: Vec<Detection> = Vec::new();
     let mut all_peaks: Vec<Vec<(f64, f64)>> = Vec::new();
+    // Without a focal mask, each orientation's stack (for the o-e residuals).
+    let mut stacks: Vec<Option<Stack>> = Vec::new();
     for (k, o) in orients.iter().enumerate() {
         let rel_a = companion.found[k].map(|p| p.a).unwrap_or((0.0, 0.0));
-        let (found, fainter, peaks) = detect_orientation(o, &primary.centres[k], rel_a, b_en, &strips, setup);
+        let (found, fainter, peaks, st) = detect_orientation(o, &primary.centres[k], rel_a, b_en, &strips, setup);
         detections.extend(found);
         faint.extend(fainter);
         all_peaks.push(peaks);
+        stacks.push(st.filter(|_| strips.unmasked));
     }
     let groups = group(&detections, GROUP_TOL_PX * scale);
     // The fainter sources that are not field stars (nor the binary's).
@@ -209,6 +215,7 @@ pub fn measure_field_stars(
             &neighbours,
             cross,
             &all_peaks,
+            &stacks,
             orients,
             primary,
             companion,
@@ -250,6 +257,7 @@ fn measure_star(
     neighbours: &[(f64, f64)],
     cross: &[(String, (f64, f64))],
     peaks: &[Vec<(f64, f64)>],
+    stacks: &[Option<Stack>],
     orients: &[SkySubtractedOrientation],
     primary: &Primary,
     companion: &Companion,
@@ -271,6 +279,9 @@ fn measure_star(
     let mut closest: Vec<((usize, Beam), f64)> = Vec::new();
     // The same for the peaks no source explains, per beam of the star's image.
     let mut unexplained: [f64; 2] = [f64::INFINITY; 2];
+    // The same for the sources of the o-e residual no source explains (px, S/N).
+    let mut on_residual: [(f64, f64); 2] = [(f64::INFINITY, 0.0); 2];
+    let residual_radius = setup.params.aperture_radius_px(fwhm) + fwhm;
     for (k, o) in orients.iter().enumerate() {
         let rel_a = companion.found[k].map(|p| p.a).unwrap_or((0.0, 0.0));
         let d = px(me, o.posang_deg);
@@ -309,6 +320,35 @@ fn measure_star(
                     unexplained[bi] = unexplained[bi].min(r);
                 }
                 dn.push(q);
+            }
+        }
+        // Without a focal mask, the sources on the o-e residual of the star's images on
+        // the stack that no source of the fit explains (within a FWHM): fitted with the
+        // star (unless within a FWHM of it, where they cannot be told from it), and each
+        // makes it `blended`, within reach of its aperture's light.
+        if let Some(st) = stacks.get(k).and_then(Option::as_ref) {
+            let a_st = (st.centre.0 + rel_a.0, st.centre.1 + rel_a.1);
+            let img = StackImage {
+                mean: st.mean.view(),
+                var: st.var.view(),
+                bad: st.bad.view(),
+            };
+            let xo = (a_st.0 + d.0, a_st.1 + d.1);
+            for src in residual_sources(&img, xo, eo, fwhm, residual_radius, RESIDUAL_SNR) {
+                let (bi, shift) = match src.beam {
+                    Beam::Ordinary => (0, (0.0, 0.0)),
+                    Beam::Extraordinary => (1, eo),
+                };
+                let q = (src.xy.0 - shift.0 - a_st.0, src.xy.1 - shift.1 - a_st.1);
+                if dn.iter().any(|e| (e.0 - q.0).hypot(e.1 - q.1) < fwhm) {
+                    continue;
+                }
+                if src.r_px < on_residual[bi].0 {
+                    on_residual[bi] = (src.r_px, src.snr);
+                }
+                if (q.0 - d.0).hypot(q.1 - d.1) >= fwhm {
+                    dn.push(q);
+                }
             }
         }
         let far = dn.iter().map(|n| (n.0 - d.0).hypot(n.1 - d.1)).fold(0.0, f64::max);
@@ -372,6 +412,14 @@ fn measure_star(
         if r.is_finite() {
             s.blended_with.push(format!(
                 "an unpaired source at {:.1}\" from the {mine} image",
+                r * scale
+            ));
+        }
+    }
+    for ((r, snr), mine) in on_residual.into_iter().zip(["o", "e"]) {
+        if r.is_finite() {
+            s.blended_with.push(format!(
+                "a source on the o-e residual at {:.1}\" from the {mine} image (S/N {snr:.1})",
                 r * scale
             ));
         }
@@ -440,6 +488,10 @@ struct Stack {
     n: Array2<u16>,
     /// 1 where no frame gave a usable pixel.
     bad: Array2<u8>,
+    /// Without a focal mask, the variance of each pixel of the mean, ADU^2: the frames'
+    /// variance planes (the sky's, `var_pixel` over `n`, when a frame has none); empty
+    /// with a mask.
+    var: Array2<f32>,
     /// The median variance of one frame's pixel (the sky's), ADU^2: a pixel of the stack
     /// has this over `n` (the detection threshold is the sky's noise, as SExtractor's).
     var_pixel: f32,
@@ -447,15 +499,19 @@ struct Stack {
     centre: (f64, f64),
 }
 
-/// [`Stack`] of orientation `o`; None when the primary was found in no frame. Row slices,
-/// no per-pixel index checks: it runs on every orientation of every target.
-fn stack(o: &SkySubtractedOrientation, centres: &[Option<(f64, f64)>]) -> Option<Stack> {
+/// [`Stack`] of orientation `o`, with its variance plane when `with_var`; None when the
+/// primary was found in no frame. Row slices, no per-pixel index checks: it runs on every
+/// orientation of every target.
+fn stack(o: &SkySubtractedOrientation, centres: &[Option<(f64, f64)>], with_var: bool) -> Option<Stack> {
     let r = centres.iter().position(Option::is_some)?;
     let cr = centres[r]?;
     let (ny, nx) = o.frames[r].shape();
     let mut sum = vec![0f32; ny * nx];
     let mut n = vec![0u16; ny * nx];
     let mut variances: Vec<f32> = Vec::new();
+    // The sum of the frames' variances, and whether every frame had a variance plane.
+    let mut vsum = if with_var { vec![0f32; ny * nx] } else { Vec::new() };
+    let mut all_var = with_var;
     for (f, c) in o.frames.iter().zip(centres) {
         let Some(c) = c else { continue };
         if f.shape() != (ny, nx) {
@@ -464,6 +520,9 @@ fn stack(o: &SkySubtractedOrientation, centres: &[Option<(f64, f64)>]) -> Option
         let (dx, dy) = ((c.0 - cr.0).round() as i64, (c.1 - cr.1).round() as i64);
         let data = f.data.as_standard_layout();
         let mask = f.mask.as_standard_layout();
+        let var = f.variance.as_ref().filter(|_| with_var).map(|v| v.as_standard_layout());
+        all_var &= var.is_some();
+        let var = var.as_ref().and_then(|v| v.as_slice());
         let (Some(d), Some(m)) = (data.as_slice(), mask.as_slice()) else {
             continue;
         };
@@ -485,6 +544,15 @@ fn stack(o: &SkySubtractedOrientation, centres: &[Option<(f64, f64)>]) -> Option
                 let ok = msk[i] & STACK_SKIP == 0 && src[i].is_finite();
                 dst[i] += if ok { src[i] } else { 0.0 };
                 cnt[i] += u16::from(ok);
+            }
+            if let Some(v) = var {
+                let vsrc = &v[so..so + len];
+                let vdst = &mut vsum[y * nx + x0..y * nx + x1];
+                for i in 0..len {
+                    if msk[i] & STACK_SKIP == 0 && src[i].is_finite() {
+                        vdst[i] += vsrc[i];
+                    }
+                }
             }
         }
         // The sky's variance: the median of a sparse sample of this frame's pixels.
@@ -520,6 +588,18 @@ fn stack(o: &SkySubtractedOrientation, centres: &[Option<(f64, f64)>]) -> Option
         variances.sort_by(f32::total_cmp);
         variances[variances.len() / 2]
     };
+    let var = if !with_var {
+        Array2::zeros((0, 0))
+    } else if all_var {
+        let v: Vec<f32> = vsum
+            .iter()
+            .zip(&n)
+            .map(|(s, &k)| if k > 0 { s / (k as f32 * k as f32) } else { f32::NAN })
+            .collect();
+        Array2::from_shape_vec((ny, nx), v).ok()?
+    } else {
+        Array2::from_shape_vec((ny, nx), n.iter().map(|&k| var_pixel / k.max(1) as f32).collect()).ok()?
+    };
     let n = Array2::from_shape_vec((ny, nx), n).ok()?;
     Some(Stack {
         mean: Array2::from_shape_vec((ny, nx), sum).ok()?,
@@ -527,6 +607,7 @@ fn stack(o: &SkySubtractedOrientation, centres: &[Option<(f64, f64)>]) -> Option
         n,
         var_pixel,
         centre: cr,
+        var,
     })
 }
 
@@ -670,10 +751,15 @@ fn merge_plateaus(mut peaks: Vec<Peak>, bs: ArrayView2<f32>, origin: (usize, usi
     kept
 }
 
+/// What one orientation's stack gives: the field stars, the fainter pairs, every peak (px
+/// from A) and the stack ([`detect_orientation`]).
+type OrientationSources = (Vec<Detection>, Vec<Detection>, Vec<(f64, f64)>, Option<Stack>);
+
 /// The field stars of one orientation on its stack: o-strip peaks paired with their e-strip
 /// images, the binary's own images left out; as sky offsets from A. Without a focal mask
 /// (both empty with one), also the pairs down to [`BLEND_PEAK_SNR`] (sky offsets from A)
-/// and every peak of the stack down to it, px from A.
+/// and every peak of the stack down to it, px from A; and the stack (None when the primary
+/// was found in no frame).
 fn detect_orientation(
     o: &SkySubtractedOrientation,
     centres: &[Option<(f64, f64)>],
@@ -681,9 +767,9 @@ fn detect_orientation(
     b_en: Option<(f64, f64)>,
     strips: &Strips,
     setup: &FluxSetup,
-) -> (Vec<Detection>, Vec<Detection>, Vec<(f64, f64)>) {
-    let Some(st) = stack(o, centres) else {
-        return (Vec::new(), Vec::new(), Vec::new());
+) -> OrientationSources {
+    let Some(st) = stack(o, centres, strips.unmasked) else {
+        return (Vec::new(), Vec::new(), Vec::new(), None);
     };
     let cr = st.centre;
     let scale = setup.scale_arcsec_per_px;
@@ -725,7 +811,7 @@ fn detect_orientation(
     } else {
         Vec::new()
     };
-    (out, faint, all_peaks)
+    (out, faint, all_peaks, Some(st))
 }
 
 /// The o-strip peaks `op` of stack `st` paired with their e-strip images at S/N

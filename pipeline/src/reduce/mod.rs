@@ -41,6 +41,7 @@ pub mod fluxes;
 pub mod identity;
 pub mod params;
 pub mod quality;
+pub mod residual;
 pub mod run;
 pub mod sources;
 #[cfg(test)]
