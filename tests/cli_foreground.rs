@@ -22,7 +22,9 @@
 //! The test runs 8 nights (seeds 1-8, the figures of docs/accuracy.md; about 1.5 min on 2
 //! cores); `SOFIPOL_FG_NIGHTS=N` runs N, `SOFIPOL_FG_DIR=DIR` keeps the nights there, and
 //! `SOFIPOL_FG_EFFECTS="flat_field cosmic_rays ..."` adds simulator effects to every night
-//! (`bitpix16`: the frames written as 16-bit integers, `[observation] bitpix = 16`).
+//! (`bitpix16`: the frames written as 16-bit integers, `[observation] bitpix = 16`);
+//! `SOFIPOL_FG_STRUCTURE=alpha` makes the foreground turbulent (a structure function growing
+//! as d^alpha up to an outer scale of 600", same rms).
 
 use serde_json::Value;
 
@@ -91,12 +93,16 @@ fwhm_arcsec = 0.8
 p = 0.03
 angle_deg = 60.0
 rms = 0.004
-coherence_arcsec = 90.0
+{field}
 [field_population]
 density_per_arcmin2 = 1.0
 k_min_mag = 12.0
 "#,
-        if bitpix16 { "\nbitpix = 16" } else { "" }
+        if bitpix16 { "\nbitpix = 16" } else { "" },
+        field = match structure_exponent() {
+            None => "coherence_arcsec = 90.0".to_string(),
+            Some(a) => format!("coherence_arcsec = 600.0\nstructure_exponent = {a}\nmodes = 256"),
+        }
     );
     let mut binaries = Vec::new();
     for t in 0..BINARIES {
@@ -291,6 +297,12 @@ fn night_count() -> u64 {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(8)
+}
+
+/// `SOFIPOL_FG_STRUCTURE=alpha`: a turbulent foreground (structure function ~ d^alpha up
+/// to an outer scale of 600") instead of the Gaussian 90" one.
+fn structure_exponent() -> Option<f64> {
+    std::env::var("SOFIPOL_FG_STRUCTURE").ok().and_then(|s| s.parse().ok())
 }
 
 fn extra_effects() -> Vec<String> {

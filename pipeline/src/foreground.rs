@@ -55,7 +55,7 @@
 //! simulator's random field (rms 0.3 %) its pulls have an rms of 1.10 at a coherence scale
 //! of 20", 0.66 at 90", 0.39 at 600". So the stars' kept (q, u) are kriged (each of q and u
 //! on its own; their errors correlate through each star's cov_qu): a semivariogram of a
-//! nugget t (independent from place to place) plus a linear part (s^2 at 5 arcmin), the
+//! nugget t (independent from place to place) plus a power law (s^2 at 5 arcmin), the
 //! weights those of ordinary kriging, the REML likelihood of (t, s) on a grid, the
 //! prediction and its variance the posterior mixture over (t, s). Stars near the binary
 //! weigh more when the field shows structure; with none, the prediction is the
@@ -125,7 +125,7 @@ pub const MAX_CLIP_ROUNDS: usize = 20;
 pub fn method_text(params: &EstimateParams) -> String {
     let tau = match params.dispersion {
         Dispersion::Estimated { tau_max } => format!(
-            "outliers clipped against a random-effects mean (tau per q and u from its REML posterior, flat prior up to {} %); the foreground at the binary by Bayesian ordinary kriging of each of q and u (semivariogram nugget + linear, REML on a grid up to {} %), covariance = the posterior mixture's",
+            "outliers clipped against a random-effects mean (tau per q and u from its REML posterior, flat prior up to {} %); the foreground at the binary by Bayesian ordinary kriging of each of q and u (semivariogram nugget + power law of exponent 0.5-1.9, REML on a grid up to {} %), covariance = the posterior mixture's",
             100.0 * tau_max,
             100.0 * tau_max
         ),
@@ -832,6 +832,7 @@ fn finish(p: Prepared, night_prior: Option<(&[f64], usize)>) -> Outcome {
             let spatial = Spatial {
                 nugget: [pq.nugget2.sqrt(), pu.nugget2.sqrt()],
                 slope: [pq.slope2.sqrt(), pu.slope2.sqrt()],
+                exponent: [pq.alpha, pu.alpha],
                 night_prior: night_prior.map(|(_, n)| n),
             };
             ([pq.value, pu.value], cov, Some(spatial))
@@ -872,8 +873,10 @@ fn finish(p: Prepared, night_prior: Option<(&[f64], usize)>) -> Outcome {
 pub struct Spatial {
     /// sqrt(E[t^2]) of q and u: the nugget, variation between neighbouring places.
     pub nugget: [f64; 2],
-    /// sqrt(E[s^2]) of q and u: the linear part's rms difference at 5 arcmin / sqrt(2).
+    /// sqrt(E[s^2]) of q and u: the power-law part's rms difference at 5 arcmin / sqrt(2).
     pub slope: [f64; 2],
+    /// E[alpha] of q and u: the power-law part's exponent.
+    pub exponent: [f64; 2],
     /// How many of the night's other fields informed the prior of t and s (None: the flat
     /// prior).
     pub night_prior: Option<usize>,

@@ -270,6 +270,7 @@ pub fn draw_foreground(seed: u64) -> ForegroundFieldConfig {
         angle_deg: 180.0 * r.random::<f64>(),
         rms: 0.001 + 0.007 * r.random::<f64>(),
         coherence_arcsec: 20.0 * 30f64.powf(r.random::<f64>()),
+        structure_exponent: None,
         modes: 64,
         seed: Some(seed),
     }

@@ -569,8 +569,16 @@ pub struct ForegroundFieldConfig {
     pub angle_deg: f64,
     /// rms of the fluctuations of q and of u, each (fraction).
     pub rms: f64,
-    /// Coherence scale, arcsec: the correlation falls as exp(-d^2 / (2 coherence^2)).
+    /// Coherence scale, arcsec: the correlation falls as exp(-d^2 / (2 coherence^2)). With
+    /// `structure_exponent`, the outer scale of the power law instead.
     pub coherence_arcsec: f64,
+    /// Absent: the Gaussian correlation above (a field smooth below the coherence scale).
+    /// An exponent alpha in (0, 2): a turbulent field whose structure function
+    /// `E[(q(x) - q(x + d))^2]` grows as d^alpha from [`INNER_SCALE_RATIO`] times
+    /// `coherence_arcsec` up to `coherence_arcsec`, beyond which it levels off at 2 rms^2
+    /// (the wavenumbers' magnitudes drawn from a power law, their directions isotropic).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub structure_exponent: Option<f64>,
     /// Fourier modes per Stokes parameter (more: closer to Gaussian, slower).
     pub modes: usize,
     /// Seed of the field's modes (absent: the scene's `seed`). Scenes simulated apart that
@@ -585,11 +593,16 @@ impl Default for ForegroundFieldConfig {
             angle_deg: 60.0,
             rms: 0.003,
             coherence_arcsec: 60.0,
+            structure_exponent: None,
             modes: 64,
             seed: None,
         }
     }
 }
+
+/// The inner scale of a power-law foreground field (`structure_exponent`) as a fraction of
+/// its outer scale `coherence_arcsec`.
+pub const INNER_SCALE_RATIO: f64 = 1e-3;
 
 /// Field stars drawn per binary (section `field_population`): a cumulative K-band
 /// luminosity function `N(<K) = density (area) 10^(slope (K - k_ref))` between `k_min_mag`

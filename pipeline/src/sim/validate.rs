@@ -247,6 +247,9 @@ impl Scene {
                     "must be > 0 and finite",
                 );
             }
+            if let Some(a) = f.structure_exponent.filter(|a| !(*a > 0.0 && *a < 2.0)) {
+                return bad("structure_exponent", a.to_string(), "must be in (0, 2)");
+            }
             if !(1..=MAX_FOREGROUND_MODES).contains(&f.modes) {
                 return bad(
                     "modes",
