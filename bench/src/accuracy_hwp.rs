@@ -212,8 +212,11 @@ pub struct HwpNight {
     pub outliers: Vec<String>,
 }
 
-/// Simulate, reduce and score one night.
-pub fn run_night(cfg: &HwpAccuracyConfig) -> HwpNight {
+/// Simulate one night into a temporary folder and reduce it: the simulator's truth, the
+/// catalog and the reduction's wall time (reading the files included), s.
+pub fn simulate_and_reduce(
+    cfg: &HwpAccuracyConfig,
+) -> (HwpTruth, sofipol_pipeline::error::Result<SinglePointingCatalog>, f64) {
     let sim_profile = profile(&[]);
     let sim = HwpSimulator::new(scene(cfg), sim_profile).expect("valid half-wave-plate night");
     let dir = tempfile::tempdir().expect("temporary folder");
@@ -221,7 +224,12 @@ pub fn run_night(cfg: &HwpAccuracyConfig) -> HwpNight {
     let red_profile = profile(&cfg.reduce_set);
     let t0 = Instant::now();
     let cat = single_pointing::reduce(&[dir.path().to_path_buf()], &red_profile);
-    let reduce_s = t0.elapsed().as_secs_f64();
+    (truth, cat, t0.elapsed().as_secs_f64())
+}
+
+/// Simulate, reduce and score one night.
+pub fn run_night(cfg: &HwpAccuracyConfig) -> HwpNight {
+    let (truth, cat, reduce_s) = simulate_and_reduce(cfg);
     score(cfg, &truth, cat, reduce_s)
 }
 

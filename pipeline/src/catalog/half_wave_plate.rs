@@ -244,6 +244,10 @@ pub struct HalfWavePlateResult {
     pub flat_from: Vec<String>,
     /// Bad pixels of the night (dark, flat).
     pub bad_pixels: usize,
+    /// Pixels of the night's sky frames repaired as cosmic-ray hits (each sky frame against
+    /// the others) before the flat and the matched skies were made of them.
+    #[serde(default)]
+    pub sky_cosmic_ray_pixels: usize,
     /// The cycles combined, instrument frame (theta0 = 0, no instrumental polarization
     /// removed); absent without a complete cycle.
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -466,6 +466,7 @@ fn the_half_wave_plate_section_shows_a_target_s_cycles_and_only_there() {
         darks: vec![],
         skies: vec![],
         flat_from: vec![],
+        sky_cosmic_ray_pixels: 0,
         bad_pixels: 3,
         instrument: Some(p),
         sky: Some(p),

@@ -77,6 +77,9 @@ pub struct SinglePointingCatalog {
     pub flat_from: Vec<String>,
     /// Bad pixels (dark, flat).
     pub bad_pixels: usize,
+    /// Pixels of the sky frames repaired as cosmic-ray hits before the flat and the matched
+    /// skies were made of them (all sky frames).
+    pub sky_cosmic_ray_pixels: usize,
     /// Files not used, with why.
     pub not_used: Vec<NotUsed>,
     /// One entry per target and filter.
@@ -254,13 +257,14 @@ pub fn summary_lines(cat: &SinglePointingCatalog) -> Vec<String> {
         )
     };
     let mut lines = vec![format!(
-        "profile {} ({}, {}): {} dark(s), {} sky frame(s) ({} in the flat), {} bad pixels, {} file(s) not used",
+        "profile {} ({}, {}): {} dark(s), {} sky frame(s) ({} in the flat, {} pixels repaired as cosmic-ray hits), {} bad pixels, {} file(s) not used",
         cat.profile,
         cat.modulation,
         cat.field_rotation,
         cat.darks.len(),
         cat.skies.len(),
         cat.flat_from.len(),
+        cat.sky_cosmic_ray_pixels,
         cat.bad_pixels,
         cat.not_used.len()
     )];
@@ -516,7 +520,10 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
             ),
         ));
     }
-    let sky_sub: Vec<Img> = sky_raw.iter().map(|s| sub_dark(&s.3)).collect();
+    let mut sky_sub: Vec<Img> = sky_raw.iter().map(|s| sub_dark(&s.3)).collect();
+    // Cosmic rays in the sky frames repaired against each other before the flat and the
+    // matched skies are made of them.
+    let sky_repaired = cosmic::repair_sky_frames(&mut sky_sub, &[beams.o_rows, beams.e_rows], &bad);
     let in_cycles: Vec<usize> = grouping.cycles.iter().flatten().copied().collect();
     let mut flat = Img::filled(nx, ny, 0.0);
     for &i in &in_cycles {
@@ -679,6 +686,7 @@ pub fn reduce_inputs(files: &[InputFile], roots: &[PathBuf], profile: &Profile) 
         skies: sky_raw.iter().map(|s| name(&s.3.path)).collect(),
         flat_from: in_cycles.iter().map(|&i| name(&sky_raw[i].3.path)).collect(),
         bad_pixels: bad.iter().filter(|&&b| b).count(),
+        sky_cosmic_ray_pixels: sky_repaired.iter().sum(),
         not_used,
         targets,
     })

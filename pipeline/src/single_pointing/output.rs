@@ -172,6 +172,7 @@ fn target(sp: &SinglePointingCatalog, t: &TargetResult, paths: &Paths, profile: 
         skies: paths.all(&sp.skies)?,
         flat_from: paths.all(&sp.flat_from)?,
         bad_pixels: sp.bad_pixels,
+        sky_cosmic_ray_pixels: sp.sky_cosmic_ray_pixels,
         instrument: t.instrument,
         sky: t.sky,
         cycles: t.cycles.clone(),
