@@ -77,9 +77,11 @@
 //! or a neighbour sharing its stars), are left out of its prior, and at least
 //! [`MIN_OTHER_FIELDS`] others are needed. The calibration gives each filter's fields
 //! alone. Measured against the simulator's field, nights of 6
-//! fields: pull rms 1.04 at 20", 0.77 at 90", 0.71 at 600" (conservative for smooth fields
-//! over many nights); end to end through `sofipol night` (rms 0.4 %, 90", 6 binaries a
-//! night, 8 nights): 0.85. One night's prior is common to its fields: a night whose other
+//! fields: pull rms 1.02 at 20", 0.86 at 90", 0.73 at 600" (conservative for smooth fields
+//! over many nights; 1.04, 0.77 and 0.71 with the exponent fixed at 1); through turbulent
+//! fields (outer scale 600", structure-function exponent 0.7, 1 and 5/3): 0.96, 0.90, 0.78;
+//! end to end through `sofipol night` (rms 0.4 %, 90", 6 binaries a night, 8 nights):
+//! 0.85. One night's prior is common to its fields: a night whose other
 //! fields happen to look smoother than this one makes its errors too small (2 nights of
 //! the accuracy report's foreground test: 1.16). A night with fewer than 3 targets with
 //! field stars, and `sofipol target`, have the flat prior.
