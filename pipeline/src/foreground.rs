@@ -877,7 +877,7 @@ pub struct Spatial {
     pub nugget: [f64; 2],
     /// sqrt(E[s^2]) of q and u: the power-law part's rms difference at 5 arcmin / sqrt(2).
     pub slope: [f64; 2],
-    /// E[alpha] of q and u: the power-law part's exponent.
+    /// E\[alpha\] of q and u: the power-law part's exponent.
     pub exponent: [f64; 2],
     /// How many of the night's other fields informed the prior of t and s (None: the flat
     /// prior).

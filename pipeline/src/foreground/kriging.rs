@@ -104,7 +104,7 @@ pub struct Prediction {
     pub nugget2: f64,
     /// E[s^2]: the power-law part's semivariance at [`H_ARCSEC`].
     pub slope2: f64,
-    /// E[alpha]: the power-law part's exponent.
+    /// E\[alpha\]: the power-law part's exponent.
     pub alpha: f64,
 }
 
