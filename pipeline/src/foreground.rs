@@ -68,23 +68,27 @@
 //!
 //! 5-30 stars cannot tell a nugget from a smooth field: for one field alone the posterior
 //! of (t, s) is nearly its flat prior, and the mixture is as conservative as the
-//! random-effects covariance (pulls 0.55 at 90"; [`estimate`]). The binaries of one night
+//! random-effects covariance (pulls 0.58 at 90"; [`estimate`]). The binaries of one night
 //! lie behind dust of similar structure, so [`estimate_night`] lets the night's other
-//! fields inform each field's prior: their likelihoods of (t, s) (q and u of each field)
-//! give the nonparametric maximum-likelihood distribution of (t, s) over the grid (EM),
-//! mixed with the flat prior as one more field ([`kriging::night_prior`]); a field's own
-//! data, and those of every field within [`SAME_FIELD_ARCMIN`] of it (the same binary again,
-//! or a neighbour sharing its stars), are left out of its prior, and at least
+//! fields inform each field's prior: their likelihoods of (t, s, alpha) (q and u of each
+//! field) give the nonparametric maximum-likelihood distribution over the grid (EM), mixed
+//! with the flat prior ([`kriging::night_prior`]). The flat prior's share is chosen by how
+//! well the other fields predict each other (each one's marginal likelihood under the
+//! mixture of the rest): a night whose fields look alike leans on them, one whose fields
+//! differ keeps the flat prior; it is in the estimate's method. A field's own data, and
+//! those of every field within [`SAME_FIELD_ARCMIN`] of it (the same binary again, or a
+//! neighbour sharing its stars), are left out of its prior, and at least
 //! [`MIN_OTHER_FIELDS`] others are needed. The calibration gives each filter's fields
-//! alone. Measured against the simulator's field, nights of 6
-//! fields: pull rms 1.02 at 20", 0.86 at 90", 0.73 at 600" (conservative for smooth fields
-//! over many nights; 1.04, 0.77 and 0.71 with the exponent fixed at 1); through turbulent
-//! fields (outer scale 600", structure-function exponent 0.7, 1 and 5/3): 0.96, 0.90, 0.78;
-//! end to end through `sofipol night` (rms 0.4 %, 90", 6 binaries a night, 8 nights):
-//! 0.85. One night's prior is common to its fields: a night whose other
-//! fields happen to look smoother than this one makes its errors too small (2 nights of
-//! the accuracy report's foreground test: 1.16). A night with fewer than 3 targets with
-//! field stars, and `sofipol target`, have the flat prior.
+//! alone. Measured against the simulator's field, nights of 6 fields: pull rms 1.04 at 20",
+//! 0.95 at 90", 0.85 at 600"; through turbulent fields (outer scale 600", structure-function
+//! exponent 0.7, 1 and 5/3): 1.09, 1.05, 0.91; end to end through `sofipol night` (rms
+//! 0.4 %, 90", 16 nights of 6 binaries): 0.89. With the share fixed at 1/(n + 1) (the flat
+//! prior weighing as one field) these were 1.02, 0.86, 0.73; 0.96, 0.90, 0.78; 0.83: too
+//! wide for smooth fields, the flat prior's mass at large variations, which a field of
+//! 6-24 stars cannot exclude, entering every field's error. One night's prior is common to
+//! its fields: a night whose other fields happen to look smoother than this one makes its
+//! errors too small. A night with fewer than 3 targets with field stars, and `sofipol
+//! target`, have the flat prior.
 //!
 //! # Outliers
 //!
@@ -582,25 +586,23 @@ pub fn estimate_night(fields: &[(f64, f64, &[FieldStarQu])], params: &EstimatePa
         .into_par_iter()
         .enumerate()
         .map(|(f, p)| {
-            let (ra, dec) = (fields[f].0, fields[f].1);
-            let others: Vec<&Vec<Vec<f64>>> = grids
-                .iter()
-                .enumerate()
-                .filter(|(g, c)| {
-                    *g != f
-                        && !c.is_empty()
-                        && !(separation_arcmin(ra, dec, fields[*g].0, fields[*g].1) < SAME_FIELD_ARCMIN)
-                })
-                .map(|(_, c)| c)
+            let near = |a: usize, b: usize| {
+                separation_arcmin(fields[a].0, fields[a].1, fields[b].0, fields[b].1) < SAME_FIELD_ARCMIN
+            };
+            let others: Vec<usize> = (0..grids.len())
+                .filter(|&g| g != f && !grids[g].is_empty() && !near(f, g))
                 .collect();
             let prior = match &ln_prior {
                 Some(lp) if others.len() >= MIN_OTHER_FIELDS => {
-                    let flat: Vec<Vec<f64>> = others.iter().flat_map(|c| c.iter().cloned()).collect();
-                    Some((kriging::night_prior(&flat, others.len(), lp), others.len()))
+                    let other_grids: Vec<&[Vec<f64>]> = others.iter().map(|&g| grids[g].as_slice()).collect();
+                    Some((
+                        kriging::night_prior(&other_grids, |a, b| near(others[a], others[b]), lp),
+                        others.len(),
+                    ))
                 }
                 _ => None,
             };
-            finish(p, prior.as_ref().map(|(p, n)| (p.as_slice(), *n)))
+            finish(p, prior.as_ref())
         })
         .collect()
 }
@@ -804,12 +806,12 @@ fn prepare(ra_deg: f64, dec_deg: f64, stars: &[FieldStarQu], params: &EstimatePa
 
 /// The estimate of a prepared field with the night's prior (ln-weights on the kriging
 /// grid; None: the flat prior).
-fn finish(p: Prepared, night_prior: Option<(&[f64], usize)>) -> Outcome {
+fn finish(p: Prepared, night_prior: Option<&(kriging::NightPrior, usize)>) -> Outcome {
     let r = match p {
         Prepared::Done(o) => return *o,
         Prepared::Ready(r) => *r,
     };
-    let ln_extra = |i: usize| night_prior.map_or(0.0, |(p, _)| p[i]);
+    let ln_extra = |i: usize| night_prior.map_or(0.0, |(p, _)| p.ln_weights[i]);
     let predicted = r.grids.as_ref().and_then(|[gq, gu]| {
         let (pq, pu) = (kriging::combine(gq, ln_extra)?, kriging::combine(gu, ln_extra)?);
         Some((pq, pu))
@@ -835,7 +837,8 @@ fn finish(p: Prepared, night_prior: Option<(&[f64], usize)>) -> Outcome {
                 nugget: [pq.nugget2.sqrt(), pu.nugget2.sqrt()],
                 slope: [pq.slope2.sqrt(), pu.slope2.sqrt()],
                 exponent: [pq.alpha, pu.alpha],
-                night_prior: night_prior.map(|(_, n)| n),
+                night_prior: night_prior.map(|(_, n)| *n),
+                flat_share: night_prior.map(|(p, _)| p.flat_share),
             };
             ([pq.value, pu.value], cov, Some(spatial))
         }
@@ -855,9 +858,11 @@ fn finish(p: Prepared, night_prior: Option<(&[f64], usize)>) -> Outcome {
             Some(sp) => format!(
                 "{}; prior of the foreground's variation: {}",
                 method_text(&r.params),
-                match sp.night_prior {
-                    Some(n) => format!("the night's distribution from {n} other field(s)"),
-                    None => "flat".to_string(),
+                match (sp.night_prior, sp.flat_share) {
+                    (Some(n), Some(share)) => format!(
+                        "the night's distribution from {n} other field(s), the flat prior's share {share} (chosen by how well the other fields predict each other)"
+                    ),
+                    _ => "flat".to_string(),
                 }
             ),
             None if r.grids.is_some() => format!(
@@ -882,6 +887,9 @@ pub struct Spatial {
     /// How many of the night's other fields informed the prior of t and s (None: the flat
     /// prior).
     pub night_prior: Option<usize>,
+    /// The flat prior's share of the night's prior ([`kriging::night_prior`]; None: the
+    /// flat prior alone).
+    pub flat_share: Option<f64>,
 }
 
 impl ForegroundEstimate {
