@@ -25,17 +25,15 @@ struct Case {
 
 /// A resolved pair (1.8" = 2.25 FWHM) with a field star of 1.3 times B's flux at 4.9"
 /// (the accuracy harness's case: its foreground night of seed 42, target S0_2).
-const CASES: [Case; 1] = [
-    Case {
-        name: "Wide",
-        sep_arcsec: 1.8,
-        pa_deg: 189.0,
-        fluxes: (100000.0, 45000.0),
-        star_sep_arcsec: 4.9,
-        star_pa_deg: 104.0,
-        star_flux: 60000.0,
-    },
-];
+const CASES: [Case; 1] = [Case {
+    name: "Wide",
+    sep_arcsec: 1.8,
+    pa_deg: 189.0,
+    fluxes: (100000.0, 45000.0),
+    star_sep_arcsec: 4.9,
+    star_pa_deg: 104.0,
+    star_flux: 60000.0,
+}];
 
 fn scene() -> String {
     let mut s = String::from(
@@ -160,6 +158,10 @@ fn a_brighter_field_star_within_the_search_radius_is_not_taken_for_b() {
             "{}: the field star is not among the field stars: {stars:?}",
             c.name
         );
-        assert!(!near(sep_true, pa_true), "{}: B is listed as a field star: {stars:?}", c.name);
+        assert!(
+            !near(sep_true, pa_true),
+            "{}: B is listed as a field star: {stars:?}",
+            c.name
+        );
     }
 }

@@ -182,6 +182,7 @@ pub struct OtherSource {
 /// than the star counts make up for). The next such candidate is kept in
 /// [`PairOnStack::other`] when its flux is at least [`COMPARABLE_FLUX`] of B's. Without
 /// other candidates the fit is the largest residual's alone.
+#[allow(clippy::too_many_arguments)]
 pub fn find_pair(
     stack: &Array2<f32>,
     smask: &Array2<u8>,
@@ -307,7 +308,7 @@ fn pair_fit(
         let (sa, sb) = (two.stars[0], two.stars[1]);
         let sep = (sa.x - sb.x).hypot(sa.y - sb.y);
         let r = (2.0 * fwhm).max(sep + 1.5 * fwhm).min(n as f64 / 2.0);
-        let r1 = subtract_star_near(stack.view(), &single, 0, (s0.x, s0.y), r + 1.0);
+        let r1 = subtract_star_near(stack.view(), single, 0, (s0.x, s0.y), r + 1.0);
         let mut r2 = subtract_star_near(stack.view(), &two, 0, (s0.x, s0.y), r + 1.0);
         subtract_star_near_in_place(&mut r2, &two, 1, (s0.x, s0.y), r + 1.0);
         let (s1, npix) = rss(&r1, smask, s0.x, s0.y, r);
@@ -435,7 +436,8 @@ fn resolved_peaks(
                 continue;
             }
             let is_max = (j - 2..=j + 2).all(|jj| {
-                (i - 2..=i + 2).all(|ii| (jj, ii) == (j, i) || !(bm[[jj, ii]] > v || (bm[[jj, ii]] == v && (jj, ii) < (j, i))))
+                (i - 2..=i + 2)
+                    .all(|ii| (jj, ii) == (j, i) || !(bm[[jj, ii]] > v || (bm[[jj, ii]] == v && (jj, ii) < (j, i))))
             });
             if !is_max {
                 continue;
@@ -557,7 +559,16 @@ pub fn find_companion(
         let predicted = params
             .companion_hint
             .map(|(sep, pa)| companion_offset_px(sep, pa, o.posang_deg, scale));
-        let p = find_pair(&stack, &smask, frac, fwhm_guess, search_px, predicted, params.psf_model, &tests);
+        let p = find_pair(
+            &stack,
+            &smask,
+            frac,
+            fwhm_guess,
+            search_px,
+            predicted,
+            params.psf_model,
+            &tests,
+        );
         if let Some(p) = p {
             fwhms.push(p.fwhm_px);
         }
@@ -604,9 +615,9 @@ fn other_candidates(
         }
         let (sep, pa) = offset_to_sep_pa(d.0, d.1, o.posang_deg, scale);
         let (e, n) = (sep * pa.to_radians().sin(), sep * pa.to_radians().cos());
-        let same = seen.iter().any(|&(s, a, _)| {
-            (s * a.to_radians().sin() - e).hypot(s * a.to_radians().cos() - n) < 0.3
-        });
+        let same = seen
+            .iter()
+            .any(|&(s, a, _)| (s * a.to_radians().sin() - e).hypot(s * a.to_radians().cos() - n) < 0.3);
         if !same {
             seen.push((sep, pa, other.flux / p.flux.1));
         }
