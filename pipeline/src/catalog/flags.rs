@@ -173,6 +173,9 @@ flag_codes! {
     /// The companion's position scatters between orientations.
     CompanionPositionScatter = "companion_position_scatter", Named,
         "The companion's position scatters between orientations.";
+    /// Another source of comparable flux within the companion search radius.
+    CompanionCandidates = "companion_candidates", Named,
+        "Another source of comparable or greater flux lies within the companion search radius: B is the candidate least likely to be a chance alignment (the fewest field stars expected at least as bright within its separation); the other, named by its separation and PA from A, is not B (a field star when field stars are measured).";
     /// The star found at an orientation is B by its flux.
     AbIdentityFromFlux = "ab_identity_from_flux", Named,
         "The companion was not found at an orientation; the star found there is B by its flux.";

@@ -71,6 +71,9 @@ pub struct PairOnStack {
     /// ((S1 - S2)/3) / (S2/(n - 7)) with S the residual sums of squares. A single star
     /// gives ~1; a real companion gives hundreds or more.
     pub f_stat: f64,
+    /// Another source within the search radius, of at least [`COMPARABLE_FLUX`] of B's
+    /// flux, that was a candidate for B too ([`find_pair`]).
+    pub other: Option<OtherSource>,
 }
 
 impl PairOnStack {
@@ -100,9 +103,86 @@ fn rss(resid: &Array2<f32>, smask: &Array2<u8>, x: f64, y: f64, r: f64) -> (f64,
     (s, n)
 }
 
+/// What makes the companion of a two-star fit real ([`PairOnStack::companion`] and B's flux
+/// S/N): the thresholds of `measure.min_companion_f`, `measure.min_companion_sep_arcsec`
+/// (in px) and `measure.min_companion_snr`.
+#[derive(Debug, Clone, Copy)]
+pub struct CompanionTests {
+    /// Smallest F statistic of the two-star fit against one star.
+    pub min_f: f64,
+    /// Smallest separation of the pair, px.
+    pub min_sep_px: f64,
+    /// Smallest S/N of B's fitted flux.
+    pub min_snr: f64,
+}
+
+impl CompanionTests {
+    /// The thresholds of `params` at the pixel scale `scale_arcsec_per_px`.
+    pub fn of(params: &MeasureParams, scale_arcsec_per_px: f64) -> CompanionTests {
+        CompanionTests {
+            min_f: params.min_companion_f,
+            min_sep_px: params.min_companion_sep_arcsec / scale_arcsec_per_px,
+            min_snr: params.min_companion_snr,
+        }
+    }
+
+    /// Whether the pair's companion passes every test.
+    pub fn pass(&self, p: &PairOnStack) -> bool {
+        p.companion(self.min_f, self.min_sep_px) && p.flux.1 / p.flux_b_err.max(1e-30) >= self.min_snr
+    }
+}
+
+/// Slope of the K-band star counts, d log10 N / dK, dex per magnitude: the surface density
+/// of stars at least as bright as flux f grows as f^(-slope / 0.4) ([`chance_rank`]). 0.3 is
+/// the slope of the counts at K = 10-16 away from the Galactic plane's densest fields.
+pub const COUNTS_SLOPE_DEX_PER_MAG: f64 = 0.3;
+
+/// S/N (the 3x3 box mean above the median of a ring about it, in units of the box mean's
+/// noise) of a peak of the stack resolved from A that makes it a candidate for B besides
+/// the residual's brightest peak.
+pub const CANDIDATE_SNR: f64 = 10.0;
+
+/// At most this many resolved sources (brightest first) are fitted as candidates for B
+/// besides the residual's brightest peak.
+pub const MAX_CANDIDATES: usize = 3;
+
+/// A candidate not taken for B is reported (`companion_candidates`) when its fitted flux is
+/// at least this fraction of B's.
+pub const COMPARABLE_FLUX: f64 = 0.5;
+
+/// How likely a source of flux `flux` at `sep_px` from A is a chance alignment, up to a
+/// factor common to every source of the stack: the expected number of stars at least as
+/// bright within that separation is pi sep^2 N(>flux), and the counts N(>flux) grow as
+/// flux^(-slope / 0.4) for a slope of [`COUNTS_SLOPE_DEX_PER_MAG`] per magnitude
+/// (1 mag = 0.4 dex in flux). The smaller, the likelier a bound companion.
+pub fn chance_rank(sep_px: f64, flux: f64) -> f64 {
+    sep_px * sep_px * flux.powf(-COUNTS_SLOPE_DEX_PER_MAG / 0.4)
+}
+
+/// Another source than B within the companion search radius, found by [`find_pair`] and
+/// reported by the flag `companion_candidates`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OtherSource {
+    /// Its offset from the stack's reference centroid, px (as [`PairOnStack::a`]).
+    pub at: (f64, f64),
+    /// Its fitted flux (stack units).
+    pub flux: f64,
+}
+
 /// Find the companion on a stack centred (to within `frac`) on the blend centroid: fit one
 /// star, look for the largest residual within `search_px`, then fit two stars. With
 /// `predicted` (offset of B from A, px) the residual search is skipped. Both fits use `model`.
+///
+/// Other candidates for B (a field star beside the binary may leave the largest residual):
+/// the sources resolved from A within `search_px` (peaks of the stack at [`CANDIDATE_SNR`],
+/// at least 2 FWHM from A, from the largest residual and from each other). Of the
+/// candidates whose companion
+/// passes `tests` (the others' B flux at S/N [`CANDIDATE_SNR`] too), B is the least likely
+/// chance alignment ([`chance_rank`]: the nearer, unless the farther is brighter by more
+/// than the star counts make up for). The next such candidate is kept in
+/// [`PairOnStack::other`] when its flux is at least [`COMPARABLE_FLUX`] of B's. Without
+/// other candidates the fit is the largest residual's alone.
+#[allow(clippy::too_many_arguments)]
 pub fn find_pair(
     stack: &Array2<f32>,
     smask: &Array2<u8>,
@@ -111,6 +191,7 @@ pub fn find_pair(
     search_px: f64,
     predicted: Option<(f64, f64)>,
     model: PsfModel,
+    tests: &CompanionTests,
 ) -> Option<PairOnStack> {
     let n = stack.dim().0;
     let c = ((n / 2) as f64 + frac.0, (n / 2) as f64 + frac.1);
@@ -124,8 +205,9 @@ pub fn find_pair(
     let single = fit_psf(stack.view(), None, Some(smask.view()), &[c], &p1).ok()?;
     let s0 = single.stars[0];
     let fwhm = single.fwhm_x().clamp(0.5 * fwhm_guess, 3.0 * fwhm_guess);
-    let b_guess = match predicted {
-        Some((dx, dy)) => (s0.x + dx * 0.5, s0.y + dy * 0.5, s0.x - dx * 0.5, s0.y - dy * 0.5),
+    // Starts of B and A, (bx, by, ax, ay): the residual's brightest peak first.
+    let starts: Vec<(f64, f64, f64, f64)> = match predicted {
+        Some((dx, dy)) => vec![(s0.x + dx * 0.5, s0.y + dy * 0.5, s0.x - dx * 0.5, s0.y - dy * 0.5)],
         None => {
             // The search reads within search_px (+1 for its 3x3 sums) of the single fit.
             let resid = subtract_star_near(stack.view(), &single, 0, (s0.x, s0.y), search_px + 3.0);
@@ -134,9 +216,65 @@ pub fn find_pair(
                 return None;
             }
             let (ax, ay) = primary_start(&single, fwhm, (bx, by, v));
-            (bx, by, ax, ay)
+            let mut starts = vec![(bx, by, ax, ay)];
+            let away = [(s0.x, s0.y), (ax, ay), (bx, by)];
+            for (x, y, _) in resolved_peaks(stack, smask, (s0.x, s0.y), search_px, fwhm, &away) {
+                starts.push((x, y, s0.x, s0.y));
+            }
+            starts
         }
     };
+    let pair_from = |st: &Array2<f32>, start: (f64, f64, f64, f64)| {
+        let (p, cand) = pair_fit(st, smask, &single, fwhm, model, (c, frac), start);
+        (p, cand, start)
+    };
+    let first = pair_from(stack, starts[0]);
+    if starts.len() == 1 {
+        return Some(first.0);
+    }
+    // Several sources within reach: every candidate whose companion is real, ranked.
+    // The residual's brightest peak is held to `tests`; the others, B's flux at
+    // CANDIDATE_SNR too (a fitted wing or core mismatch of a bright A passes the F test and
+    // S/N 5, never S/N 10 on the simulated nights).
+    let mut ranked: Vec<(f64, PairOnStack, OtherSource)> = std::iter::once((first.clone(), tests.min_snr))
+        .chain(starts[1..].iter().map(|&s| (pair_from(stack, s), CANDIDATE_SNR)))
+        .filter_map(|((p, cand, s), min_snr)| {
+            let (k, _) = cand?;
+            // The candidate's star must have stayed on its source (not slid onto another).
+            let stayed = (k.at.0 - (s.0 - c.0 + frac.0)).hypot(k.at.1 - (s.1 - c.1 + frac.1)) <= fwhm;
+            let sep = (p.b.0 - p.a.0).hypot(p.b.1 - p.a.1);
+            let significant = tests.pass(&p) && p.flux.1 / p.flux_b_err.max(1e-30) >= min_snr;
+            (significant && stayed).then(|| (chance_rank(sep, k.flux), p, k))
+        })
+        .collect();
+    ranked.sort_by(|x, y| x.0.total_cmp(&y.0));
+    let Some(&(_, mut best, kb)) = ranked.first() else {
+        return Some(first.0);
+    };
+    best.other = ranked
+        .iter()
+        .skip(1)
+        .find(|r| (r.2.at.0 - kb.at.0).hypot(r.2.at.1 - kb.at.1) > fwhm && r.2.flux >= COMPARABLE_FLUX * kb.flux)
+        .map(|r| r.2);
+    Some(best)
+}
+
+/// The two-star fit from `start` (B's and A's starting positions, (bx, by, ax, ay)) after
+/// the one-star fit `single` (its FWHM `fwhm`) on the stack whose reference centroid is
+/// `c` (fractional offset `frac`): the pair (the one-star fit alone when the second star is
+/// lost), and the star that started at B's position (offset from `c` as the pair's, and
+/// its flux) with the two-star fit (that star its second) when the two-star fit holds.
+fn pair_fit(
+    stack: &Array2<f32>,
+    smask: &Array2<u8>,
+    single: &PsfFit,
+    fwhm: f64,
+    model: PsfModel,
+    (c, frac): ((f64, f64), (f64, f64)),
+    b_guess: (f64, f64, f64, f64),
+) -> (PairOnStack, Option<(OtherSource, PsfFit)>) {
+    let n = stack.dim().0;
+    let s0 = single.stars[0];
     let sep_guess = ((b_guess.0 - b_guess.2).powi(2) + (b_guess.1 - b_guess.3).powi(2)).sqrt();
     let p2 = PsfFitParams {
         fwhm_px: fwhm,
@@ -153,6 +291,7 @@ pub fn find_pair(
         fwhm_px: single.fwhm_x(),
         beta: single.beta,
         f_stat: 0.0,
+        other: None,
     };
     // The residuals are read within r of the single fit only (rss): they are rendered on
     // the square that holds that disc (the same values as a whole-stack subtraction).
@@ -169,7 +308,7 @@ pub fn find_pair(
         let (sa, sb) = (two.stars[0], two.stars[1]);
         let sep = (sa.x - sb.x).hypot(sa.y - sb.y);
         let r = (2.0 * fwhm).max(sep + 1.5 * fwhm).min(n as f64 / 2.0);
-        let r1 = subtract_star_near(stack.view(), &single, 0, (s0.x, s0.y), r + 1.0);
+        let r1 = subtract_star_near(stack.view(), single, 0, (s0.x, s0.y), r + 1.0);
         let mut r2 = subtract_star_near(stack.view(), &two, 0, (s0.x, s0.y), r + 1.0);
         subtract_star_near_in_place(&mut r2, &two, 1, (s0.x, s0.y), r + 1.0);
         let (s1, npix) = rss(&r1, smask, s0.x, s0.y, r);
@@ -177,7 +316,7 @@ pub fn find_pair(
         Some((two, s1, s2, npix))
     };
     let Some(mut fitted) = two_star(&p2) else {
-        return Some(single_only);
+        return (single_only, None);
     };
     // With beta free, the two-star fit can slide into a worse minimum than one star (beta
     // at its bound, a broad core absorbing both): then hold beta at the single-star fit's.
@@ -215,9 +354,13 @@ pub fn find_pair(
         );
     }
     if !(b.flux > 0.0) {
-        return Some(single_only);
+        return (single_only, None);
     }
-    Some(PairOnStack {
+    let started_at_b = OtherSource {
+        at: (sb.x - c.0 + frac.0, sb.y - c.1 + frac.1),
+        flux: sb.flux,
+    };
+    let pair = PairOnStack {
         a: (a.x - c.0 + frac.0, a.y - c.1 + frac.1),
         b: (b.x - c.0 + frac.0, b.y - c.1 + frac.1),
         flux: (a.flux, b.flux),
@@ -225,7 +368,108 @@ pub fn find_pair(
         fwhm_px: two.fwhm_x(),
         beta: two.beta,
         f_stat,
-    })
+        other: None,
+    };
+    (pair, Some((started_at_b, two)))
+}
+
+/// Sources resolved from A on the stack within `search_px` of `centre`: local maxima of the
+/// 3x3 box mean (over its 5x5 neighbourhood) standing [`CANDIDATE_SNR`] times the box
+/// mean's noise above the median of a ring 1.5-2.5 FWHM about them (a star's own peak, not
+/// a bump on another's wing), at least 2 FWHM from every point of `away` and from each
+/// other; the brightest first, at most [`MAX_CANDIDATES`]. Returns (x, y, box mean) in the
+/// stack's px. The noise is the MAD of the stack's usable pixels.
+fn resolved_peaks(
+    stack: &Array2<f32>,
+    smask: &Array2<u8>,
+    centre: (f64, f64),
+    search_px: f64,
+    fwhm: f64,
+    away: &[(f64, f64)],
+) -> Vec<(f64, f64, f64)> {
+    let (ny, nx) = stack.dim();
+    let usable = |j: usize, i: usize| smask[[j, i]] == 0 && stack[[j, i]].is_finite();
+    let mut vals: Vec<f64> = stack
+        .indexed_iter()
+        .filter(|((j, i), _)| usable(*j, *i))
+        .map(|(_, &v)| v as f64)
+        .collect();
+    if vals.len() < 20 {
+        return Vec::new();
+    }
+    vals.sort_by(f64::total_cmp);
+    let med = vals[vals.len() / 2];
+    let mut dev: Vec<f64> = vals.iter().map(|v| (v - med).abs()).collect();
+    dev.sort_by(f64::total_cmp);
+    let sigma = 1.4826 * dev[dev.len() / 2];
+    if !(sigma > 0.0) {
+        return Vec::new();
+    }
+    // Box means where all 9 pixels are usable (NaN elsewhere).
+    let bm = Array2::from_shape_fn((ny, nx), |(j, i)| {
+        if j == 0 || i == 0 || j + 1 >= ny || i + 1 >= nx {
+            return f64::NAN;
+        }
+        let mut s = 0.0;
+        for y in j - 1..=j + 1 {
+            for x in i - 1..=i + 1 {
+                if !usable(y, x) {
+                    return f64::NAN;
+                }
+                s += stack[[y, x]] as f64;
+            }
+        }
+        s / 9.0
+    });
+    let box_noise = sigma / 3.0;
+    let min_sep = 2.0 * fwhm;
+    let (r_in, r_out) = ((1.5 * fwhm).max(3.0), (2.5 * fwhm).max(5.0));
+    let mut out: Vec<(f64, f64, f64)> = Vec::new();
+    for j in 2..ny.saturating_sub(2) {
+        for i in 2..nx.saturating_sub(2) {
+            let v = bm[[j, i]];
+            let (x, y) = (i as f64, j as f64);
+            if !(v > CANDIDATE_SNR * box_noise)
+                || (x - centre.0).hypot(y - centre.1) > search_px
+                || away.iter().any(|a| (x - a.0).hypot(y - a.1) < min_sep)
+            {
+                continue;
+            }
+            let is_max = (j - 2..=j + 2).all(|jj| {
+                (i - 2..=i + 2)
+                    .all(|ii| (jj, ii) == (j, i) || !(bm[[jj, ii]] > v || (bm[[jj, ii]] == v && (jj, ii) < (j, i))))
+            });
+            if !is_max {
+                continue;
+            }
+            let ro = r_out.ceil() as i64;
+            let mut ring: Vec<f64> = Vec::new();
+            for jj in (j as i64 - ro).max(0)..=(j as i64 + ro).min(ny as i64 - 1) {
+                for ii in (i as i64 - ro).max(0)..=(i as i64 + ro).min(nx as i64 - 1) {
+                    let r = ((ii - i as i64) as f64).hypot((jj - j as i64) as f64);
+                    if r >= r_in && r <= r_out && usable(jj as usize, ii as usize) {
+                        ring.push(stack[[jj as usize, ii as usize]] as f64);
+                    }
+                }
+            }
+            if ring.len() < 8 {
+                continue;
+            }
+            ring.sort_by(f64::total_cmp);
+            if v - ring[ring.len() / 2] < CANDIDATE_SNR * box_noise {
+                continue;
+            }
+            out.push((x, y, v));
+        }
+    }
+    out.sort_by(|p, q| q.2.total_cmp(&p.2));
+    let mut kept: Vec<(f64, f64, f64)> = Vec::new();
+    for p in out {
+        if kept.len() < MAX_CANDIDATES && kept.iter().all(|k| (k.0 - p.0).hypot(k.1 - p.1) >= min_sep) {
+            kept.push(p);
+        }
+    }
+    kept
 }
 
 /// Where the two-star fit starts A, from the one-star fit `single` (FWHM `fwhm`) and the
@@ -300,6 +544,7 @@ pub fn find_companion(
     let fwhm_guess = primary.fwhm_guess;
     let search_px = params.companion_search_arcsec / scale;
     let h = (search_px + 3.0 * fwhm_guess).ceil() as usize;
+    let tests = CompanionTests::of(params, scale);
     let mut found: Vec<Option<PairOnStack>> = Vec::new();
     let mut stacks: Vec<Option<Stack>> = Vec::new();
     let mut fwhms = Vec::new();
@@ -314,7 +559,16 @@ pub fn find_companion(
         let predicted = params
             .companion_hint
             .map(|(sep, pa)| companion_offset_px(sep, pa, o.posang_deg, scale));
-        let p = find_pair(&stack, &smask, frac, fwhm_guess, search_px, predicted, params.psf_model);
+        let p = find_pair(
+            &stack,
+            &smask,
+            frac,
+            fwhm_guess,
+            search_px,
+            predicted,
+            params.psf_model,
+            &tests,
+        );
         if let Some(p) = p {
             fwhms.push(p.fwhm_px);
         }
@@ -328,10 +582,57 @@ pub fn find_companion(
         scale_arcsec_per_px: scale,
     };
     let geometry = label_and_combine(&mut found, &seen, flags);
-    if geometry.is_none() {
-        flags.push(Flag::new(FlagCode::CompanionNotFound));
+    match geometry {
+        None => flags.push(Flag::new(FlagCode::CompanionNotFound)),
+        Some(b) => {
+            let search = params.companion_search_arcsec;
+            if let Some(detail) = other_candidates(&found, orients, scale, b, search) {
+                flags.push(Flag::with_detail(FlagCode::CompanionCandidates, detail));
+            }
+        }
     }
     Companion { found, fwhms, geometry }
+}
+
+/// The detail of `companion_candidates`: every other source kept by [`find_pair`] at some
+/// orientation (after the labels A and B are final), on the sky from A, once each (within
+/// 0.3"), with its flux relative to B's; B's geometry `(sep, pa)` (arcsec, deg) and the
+/// search radius `search_arcsec`. None when no orientation kept one.
+fn other_candidates(
+    found: &[Option<PairOnStack>],
+    orients: &[SkySubtractedOrientation],
+    scale: f64,
+    (sep_b, pa_b): (f64, f64),
+    search_arcsec: f64,
+) -> Option<String> {
+    let mut seen: Vec<(f64, f64, f64)> = Vec::new();
+    for (p, o) in found.iter().zip(orients) {
+        let Some(p) = p else { continue };
+        let Some(other) = p.other else { continue };
+        let d = (other.at.0 - p.a.0, other.at.1 - p.a.1);
+        if !(d.0.is_finite() && d.1.is_finite() && p.flux.1 > 0.0) {
+            continue;
+        }
+        let (sep, pa) = offset_to_sep_pa(d.0, d.1, o.posang_deg, scale);
+        let (e, n) = (sep * pa.to_radians().sin(), sep * pa.to_radians().cos());
+        let same = seen
+            .iter()
+            .any(|&(s, a, _)| (s * a.to_radians().sin() - e).hypot(s * a.to_radians().cos() - n) < 0.3);
+        if !same {
+            seen.push((sep, pa, other.flux / p.flux.1));
+        }
+    }
+    if seen.is_empty() {
+        return None;
+    }
+    let others: Vec<String> = seen
+        .iter()
+        .map(|(s, a, r)| format!("another source at {s:.2}\" PA {a:.1} deg from A, {r:.2} times B's flux"))
+        .collect();
+    Some(format!(
+        "{} within the {search_arcsec:.1}\" search radius: B at {sep_b:.2}\" PA {pa_b:.1} deg is the less likely chance alignment",
+        others.join("; ")
+    ))
 }
 
 /// What the pair was found on, read when it is labelled A and B at every orientation
@@ -610,6 +911,7 @@ mod tests {
             fwhm_px: 2.93,
             beta: 3.18,
             f_stat: 3.3e5,
+            other: None,
         };
         let single45 = PairOnStack {
             a: (0.07, -0.12),
@@ -619,6 +921,7 @@ mod tests {
             fwhm_px: 2.89,
             beta: 2.91,
             f_stat: 0.0,
+            other: None,
         };
         (vec![Some(pair0), Some(single45)], vec![orient(0.0), orient(45.0)])
     }
@@ -712,6 +1015,7 @@ mod tests {
     #[test]
     fn the_two_star_fit_starts_a_near_a() {
         let fwhm = 3.0;
+        let tests = CompanionTests::of(&MeasureParams::default(), Profile::sofi().geometry.pixscale_arcsec);
         for (dx, dy) in [(4.5, 0.0), (3.0, 3.5), (7.0, -5.0), (-12.0, 9.0), (18.0, 0.0)] {
             // A (flux 2000) at the centre, B (1000) at (dx, dy).
             let (pair, smask) = two_star_stack(Some((dx, dy)), 1000.0);
@@ -736,7 +1040,7 @@ mod tests {
                 let opposite = (s0.x - w * (b.0 - s0.x) / (1.0 + w), s0.y - w * (b.1 - s0.y) / (1.0 + w));
                 assert!((opposite.0 - 30.0).hypot(opposite.1 - 30.0) > 1.0, "({dx}, {dy})");
             }
-            let pair = find_pair(&stack, &smask, (0.0, 0.0), fwhm, 22.0, None, PsfModel::Gaussian).unwrap();
+            let pair = find_pair(&stack, &smask, (0.0, 0.0), fwhm, 22.0, None, PsfModel::Gaussian, &tests).unwrap();
             assert!(pair.a.0.hypot(pair.a.1) < 0.1, "({dx}, {dy}): A at {:?}", pair.a);
             assert!(
                 (pair.b.0 - dx).hypot(pair.b.1 - dy) < 0.1,

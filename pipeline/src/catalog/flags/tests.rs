@@ -39,6 +39,9 @@ fn example(code: FlagCode) -> &'static str {
         CompanionNotFound => "companion_not_found",
         CompanionRejected => "companion_rejected: significant at 1 of 4 orientations",
         CompanionPositionScatter => "companion_position_scatter: 0.73 px between orientations",
+        CompanionCandidates => {
+            "companion_candidates: another source at 4.91\" PA 104.0 deg from A, 1.29 times B's flux within the 6.0\" search radius: B at 1.79\" PA 189.0 deg is the less likely chance alignment"
+        }
         AbIdentityFromFlux => {
             "ab_identity_from_flux: at POSANG 45.0 the star found is B (companion not found there); A placed by the geometry"
         }
