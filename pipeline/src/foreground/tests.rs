@@ -890,6 +890,92 @@ fn a_precise_star_among_noisy_ones_is_not_clipped_for_their_median() {
     assert!((e.u - tu).abs() < 2.0 * e.cov.var_u.sqrt(), "u {} vs {tu}", e.u);
 }
 
+/// One binary's usable field stars as measured on simulated frames (an end-to-end night
+/// of `tests/cli_foreground.rs`, seed 17, T4: separation from A in arcsec, PA in deg, q,
+/// u, sigma_q, sigma_u, rounded; the field at the binary q = -0.0189, u = 0.0239): one
+/// precise star (F1, 0.15 %) that is a young star polarized by its own disk, its (q, u)
+/// 3.5 % off the foreground in u, and 8 stars of 1-7 % errors about the foreground. The
+/// clip keeps F1 (the noisy stars cannot contradict it alone), and the kriging leaned on it
+/// with a weight near 1: the estimate was 16 sigma off in u. With F1 weighed as possibly
+/// polarized (its residual against the others' prediction at its place), the prediction
+/// without it is mixed in and the estimate is within 2 sigma.
+#[test]
+fn a_precise_polarized_star_among_noisy_ones_is_weighed_as_possibly_polarized() {
+    use crate::sim::foreground::offset_position;
+    let values: [(f64, f64, f64, f64, f64, f64); 9] = [
+        (38.8, 102.0, -0.0233, -0.0106, 0.0014, 0.0018),
+        (20.4, 192.0, 0.0025, 0.0261, 0.0122, 0.0138),
+        (39.7, 116.0, -0.0220, 0.0437, 0.0280, 0.0308),
+        (20.5, 208.0, -0.0124, -0.0009, 0.0285, 0.0329),
+        (42.8, 290.0, 0.0070, 0.0049, 0.0334, 0.0408),
+        (21.7, 93.0, 0.0234, 0.0074, 0.0473, 0.0475),
+        (19.9, 217.0, -0.0206, -0.0539, 0.0464, 0.0562),
+        (41.8, 120.0, -0.0126, 0.0096, 0.0542, 0.0577),
+        (5.1, 120.0, -0.0114, -0.0519, 0.0667, 0.0649),
+    ];
+    let stars: Vec<FieldStarQu> = values
+        .iter()
+        .enumerate()
+        .map(|(i, &(sep, pa, q, u, sq, su))| {
+            let (ra, dec) = offset_position(RA, DEC, sep, pa);
+            FieldStarQu {
+                id: format!("F{i}"),
+                q,
+                u,
+                sigma_q: sq,
+                sigma_u: su,
+                cov_qu: 0.0,
+                ra_deg: ra,
+                dec_deg: dec,
+                usable: true,
+            }
+        })
+        .collect();
+    let e = estimated(estimate(RA, DEC, &stars, &EstimateParams::default()));
+    let (tq, tu) = (-0.0189, 0.0239);
+    let pulls = [(e.q - tq) / e.cov.var_q.sqrt(), (e.u - tu) / e.cov.var_u.sqrt()];
+    eprintln!("q {:.4} u {:.4}, pulls {pulls:?}, dominant {:?}", e.q, e.u, e.dominant);
+    assert!(
+        e.used.contains(&"F0".to_string()),
+        "the clip now rejects F0: {:?}",
+        e.rejected
+    );
+    let d = e.dominant.as_ref().expect("F0 carries most of the weight");
+    assert_eq!(d.id, "F0");
+    assert!(d.weight >= DOMINANT_WEIGHT && d.probability_polarized > 0.1, "{d:?}");
+    assert!(pulls.iter().all(|p| p.abs() < 2.0), "pulls {pulls:?}");
+    assert!(e.method.contains("polarized itself with probability"), "{}", e.method);
+}
+
+/// A precise star that shows the foreground, among noisy ones that agree with it, keeps
+/// nearly all its weight: the chance that it is polarized is small and the estimate is
+/// the one with it.
+#[test]
+fn a_precise_star_that_shows_the_foreground_keeps_its_weight() {
+    let mut stars = vec![star(0, 0.010, 0.020, 0.001)];
+    let mut rng = Rng64::seed_from_u64(11);
+    for i in 1..9 {
+        stars.push(star(
+            i,
+            0.010 + 0.02 * gauss(&mut rng),
+            0.020 + 0.02 * gauss(&mut rng),
+            0.02,
+        ));
+    }
+    let e = estimated(estimate(RA, DEC, &stars, &EstimateParams::default()));
+    let d = e
+        .dominant
+        .as_ref()
+        .expect("the precise star carries most of the weight");
+    assert!(d.probability_polarized < 0.05, "{d:?}");
+    assert!(
+        (e.q - 0.010).abs() < 0.002 && (e.u - 0.020).abs() < 0.002,
+        "{} {}",
+        e.q,
+        e.u
+    );
+}
+
 /// Two targets at the same place with the same field stars (the binary observed twice, or
 /// in two filters) do not inform each other's prior: with only such a twin besides, each
 /// keeps the flat prior, and the estimate is the one of the field alone.
