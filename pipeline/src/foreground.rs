@@ -74,19 +74,18 @@
 //! field) give the nonparametric maximum-likelihood distribution over the grid (EM), mixed
 //! with the flat prior ([`kriging::night_prior`]). The flat prior's share is chosen by how
 //! well the other fields predict each other (each one's marginal likelihood under the
-//! mixture of the rest; the field worst predicted is not counted, and a near tie goes to
-//! the smaller share: [`kriging::share_from_scores`]): a night whose fields look alike
-//! leans on them, one whose fields differ keeps the flat prior; it is in the estimate's
-//! method. A field's own data, and
-//! those of every field within [`SAME_FIELD_ARCMIN`] of it (the same binary again, or a
+//! mixture of the rest; the field that most prefers the flat prior is not counted, and a
+//! near tie goes to the smaller share: [`kriging::share_from_scores`]): a night whose
+//! fields look alike leans on them, one whose fields differ keeps the flat prior; it is in
+//! the estimate's method. A field's own data, and those of every field within [`SAME_FIELD_ARCMIN`] of it (the same binary again, or a
 //! neighbour sharing its stars), are left out of its prior, and at least
 //! [`MIN_OTHER_FIELDS`] others are needed. The calibration gives each filter's fields
 //! alone. Measured against the simulator's field, nights of 6 fields: pull rms 1.06 at 20",
 //! 0.97 at 90", 0.86 at 600"; through turbulent fields (outer scale 600", structure-function
 //! exponent 0.7, 1 and 5/3): 1.11, 1.07, 0.92; end to end through `sofipol night` (rms
 //! 0.4 %, 90", 16 nights of 6 binaries): 0.91, and 1.07 on 16 more (0.89 on the first 16
-//! with the plain sum's best share, every predicted field counted). With the share fixed at 1/(n + 1) (the flat
-//! prior weighing as one field) these were 1.02, 0.86, 0.73; 0.96, 0.90, 0.78; 0.83: too
+//! with the plain sum's best share, every predicted field counted). With the share fixed
+//! at 1/(n + 1) (the flat prior weighing as one field) these were 1.02, 0.86, 0.73; 0.96, 0.90, 0.78; 0.83: too
 //! wide for smooth fields, the flat prior's mass at large variations, which a field of
 //! 6-24 stars cannot exclude, entering every field's error. One night's prior is common to
 //! its fields: a night whose other fields happen to look smoother than this one makes its
